@@ -1,0 +1,41 @@
+"""YAML configuration of buses and drives, EDS handling, and the passive CANopen tables.
+
+Imports neither ``motor_driver`` nor ``virtual_can`` (nor rclpy): both of them, the nodes and
+the CLI build on it.
+"""
+
+from can_config.config import (
+    DEFAULT_CONFIG,
+    GENERIC_EDS,
+    BusConfig,
+    DriveConfig,
+    DriveSystemConfig,
+    IdentityConfig,
+    RoverConfig,
+    config_to_dict,
+    load_config,
+    parse_config,
+    with_bus_overrides,
+)
+from can_config.eds import check_cia402, load_drive_od, load_od
+from can_config.errors import ConfigError, EdsError, RovercanError
+
+__all__ = [
+    "DEFAULT_CONFIG",
+    "GENERIC_EDS",
+    "BusConfig",
+    "ConfigError",
+    "DriveConfig",
+    "DriveSystemConfig",
+    "EdsError",
+    "IdentityConfig",
+    "RoverConfig",
+    "RovercanError",
+    "check_cia402",
+    "config_to_dict",
+    "load_config",
+    "load_drive_od",
+    "load_od",
+    "parse_config",
+    "with_bus_overrides",
+]

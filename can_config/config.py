@@ -1,0 +1,450 @@
+"""The YAML configuration of buses and drives, validated into frozen dataclasses.
+
+Every validation error names the file, the key path, the bad value and what is allowed,
+and suggests the closest known key for a typo. Nothing in a config is ever evaluated.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from can_config.errors import ConfigError
+
+DATA_DIR = Path(__file__).resolve().parent / "data"
+GENERIC_EDS = DATA_DIR / "generic_cia402.eds"
+DEFAULT_CONFIG = DATA_DIR / "default.yaml"
+
+_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+_REQUIRED: Any = object()
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """One CAN bus, opened as ``can.Bus(interface=..., channel=..., bitrate=..., **kwargs)``."""
+
+    name: str
+    interface: str
+    channel: str
+    bitrate: int = 1_000_000
+    kwargs: Mapping[str, Any] = field(default_factory=dict)
+    sync_period_s: float = 0.01
+
+    def bus_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for :func:`can.Bus`."""
+        args: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
+        if self.interface not in ("socketcand", "rovercan"):
+            args["bitrate"] = self.bitrate
+        args.update(self.kwargs)
+        return args
+
+
+@dataclass(frozen=True)
+class IdentityConfig:
+    """Expected 0x1018 identity; ``None`` fields are not checked."""
+
+    vendor_id: int | None = None
+    product_code: int | None = None
+    revision: int | None = None
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    """One CiA 402 drive and the joint it moves."""
+
+    name: str
+    node_id: int
+    bus: str
+    eds: Path
+    counts_per_rev: int = 4096
+    gear_ratio: float = 1.0
+    rated_torque_nm: float = 1.0
+    joint: str = "continuous"
+    min_deg: float | None = None
+    max_deg: float | None = None
+    max_velocity_deg_s: float = 360.0
+    profile_velocity_deg_s: float = 90.0
+    profile_acceleration_deg_s2: float = 360.0
+    heartbeat_period_s: float = 0.1
+    heartbeat_timeout_s: float = 0.35
+    watchdog_s: float = 0.5
+    arm_on_start: bool = False
+    restore_enable_after_reboot: bool = False
+    homing_method: int = 35
+    homing_speed_deg_s: float = 30.0
+    homing_timeout_s: float = 10.0
+    identity: IdentityConfig = field(default_factory=IdentityConfig)
+
+    @property
+    def counts_per_deg(self) -> float:
+        """Encoder counts per degree of joint motion (motor counts x gear ratio / 360)."""
+        return self.counts_per_rev * self.gear_ratio / 360.0
+
+    @property
+    def is_continuous(self) -> bool:
+        return self.joint == "continuous"
+
+
+@dataclass(frozen=True)
+class DriveSystemConfig:
+    """The rover's skid-steer drive system (optional)."""
+
+    left: tuple[str, ...]
+    right: tuple[str, ...]
+    track_width_m: float = 0.6
+    wheel_radius_m: float = 0.1
+    cmd_timeout_s: float = 0.5
+    max_accel_m_s2: float = 1.0
+    max_speed_m_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class RoverConfig:
+    """A whole configuration: buses, drives and, optionally, the drive system."""
+
+    buses: tuple[BusConfig, ...]
+    drives: tuple[DriveConfig, ...]
+    drive_system: DriveSystemConfig | None = None
+    source: Path | None = None
+
+    def bus(self, name: str) -> BusConfig:
+        for bus in self.buses:
+            if bus.name == name:
+                return bus
+        raise ConfigError(f"no bus named {name!r}; configured buses: {[b.name for b in self.buses]}")
+
+    def drive(self, name: str) -> DriveConfig:
+        for drive in self.drives:
+            if drive.name == name:
+                return drive
+        raise ConfigError(
+            f"no drive named {name!r}; configured drives: {[d.name for d in self.drives]}"
+        )
+
+
+# --------------------------------------------------------------------------- validation
+
+
+@dataclass(frozen=True)
+class _Field:
+    kind: str  # "int", "float", "bool", "str", "name", "path", "map", "list_names", "opt_float"
+    default: Any = _REQUIRED
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] | None = None
+    low_open: bool = False
+
+
+_BUS_FIELDS: dict[str, _Field] = {
+    "name": _Field("name"),
+    "interface": _Field("str"),
+    "channel": _Field("str"),
+    "bitrate": _Field("int", 1_000_000, 10_000, 8_000_000),
+    "kwargs": _Field("map", {}),
+    "sync_period_ms": _Field("float", 10.0, 1.0, 1000.0),
+}
+
+_IDENTITY_FIELDS: dict[str, _Field] = {
+    "vendor_id": _Field("int", None, 0, 0xFFFF_FFFF),
+    "product_code": _Field("int", None, 0, 0xFFFF_FFFF),
+    "revision": _Field("int", None, 0, 0xFFFF_FFFF),
+}
+
+_DRIVE_FIELDS: dict[str, _Field] = {
+    "name": _Field("name"),
+    "node_id": _Field("int", _REQUIRED, 1, 127),
+    "bus": _Field("str", None),
+    "eds": _Field("path", "generic"),
+    "counts_per_rev": _Field("int", 4096, 1, 2**31 - 1),
+    "gear_ratio": _Field("float", 1.0, 0.0, 1e6, low_open=True),
+    "rated_torque_nm": _Field("float", 1.0, 0.0, 1e5, low_open=True),
+    "joint": _Field("str", "continuous", choices=("continuous", "limited")),
+    "min_deg": _Field("opt_float", None, -1e7, 1e7),
+    "max_deg": _Field("opt_float", None, -1e7, 1e7),
+    "max_velocity_deg_s": _Field("float", 360.0, 0.0, 1e6, low_open=True),
+    "profile_velocity_deg_s": _Field("float", 90.0, 0.0, 1e6, low_open=True),
+    "profile_acceleration_deg_s2": _Field("float", 360.0, 0.0, 1e7, low_open=True),
+    "heartbeat_period_ms": _Field("float", 100.0, 10.0, 10_000.0),
+    "heartbeat_timeout_ms": _Field("float", 350.0, 20.0, 60_000.0),
+    "watchdog_ms": _Field("float", 500.0, 10.0, 60_000.0),
+    "arm_on_start": _Field("bool", False),
+    "restore_enable_after_reboot": _Field("bool", False),
+    "homing_method": _Field("int", 35, -128, 127),
+    "homing_speed_deg_s": _Field("float", 30.0, 0.0, 1e6, low_open=True),
+    "homing_timeout_s": _Field("float", 10.0, 0.1, 600.0),
+    "identity": _Field("map", {}),
+}
+
+_DRIVE_SYSTEM_FIELDS: dict[str, _Field] = {
+    "left": _Field("list_names"),
+    "right": _Field("list_names"),
+    "track_width_m": _Field("float", 0.6, 0.0, 100.0, low_open=True),
+    "wheel_radius_m": _Field("float", 0.1, 0.0, 10.0, low_open=True),
+    "cmd_timeout_ms": _Field("float", 500.0, 10.0, 60_000.0),
+    "max_accel_m_s2": _Field("float", 1.0, 0.0, 100.0, low_open=True),
+    "max_speed_m_s": _Field("float", 1.0, 0.0, 100.0, low_open=True),
+}
+
+_TOP_FIELDS = ("buses", "drives", "drive_system")
+
+
+class _Where:
+    """Formats error locations: ``file: drives[0].gear_ratio``."""
+
+    def __init__(self, source: Path | str | None) -> None:
+        self.source = str(source) if source is not None else "<config>"
+
+    def fail(self, key: str, message: str) -> ConfigError:
+        return ConfigError(f"{self.source}: {key}: {message}")
+
+
+def _check_keys(where: _Where, prefix: str, data: Mapping[str, Any], known: tuple[str, ...]) -> None:
+    for key in data:
+        if key not in known:
+            hint = difflib.get_close_matches(str(key), known, n=1)
+            suggestion = f" Did you mean {hint[0]!r}?" if hint else ""
+            raise where.fail(
+                f"{prefix}{key}",
+                f"unknown key.{suggestion} Allowed keys: {', '.join(known)}.",
+            )
+
+
+def _convert(where: _Where, key: str, value: Any, spec: _Field) -> Any:
+    if value is None and spec.default is None:
+        return None
+    kind = spec.kind
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected true or false.")
+        return value
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a whole number"
+                             f" from {spec.low:g} to {spec.high:g}.")
+        _check_range(where, key, value, spec)
+        return value
+    if kind in ("float", "opt_float"):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a number"
+                             f"{_range_text(spec)}.")
+        number = float(value)
+        if not math.isfinite(number):
+            raise where.fail(key, f"got {value!r}; expected a finite number{_range_text(spec)}.")
+        _check_range(where, key, number, spec)
+        return number
+    if kind in ("str", "name", "path"):
+        if not isinstance(value, str) or not value:
+            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a non-empty text.")
+        if kind == "name" and not _NAME_RE.match(value):
+            raise where.fail(key, f"got {value!r}; expected a name of letters, digits and '_' that"
+                             " starts with a letter (it becomes part of ROS topic names).")
+        if spec.choices is not None and value not in spec.choices:
+            raise where.fail(key, f"got {value!r}; expected one of {', '.join(spec.choices)}.")
+        return value
+    if kind == "map":
+        if not isinstance(value, Mapping):
+            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a mapping (key: value).")
+        return dict(value)
+    if kind == "list_names":
+        if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
+            raise where.fail(key, f"got {value!r}; expected a non-empty list of drive names.")
+        return tuple(value)
+    raise AssertionError(f"unknown field kind {kind}")  # pragma: no cover - programming error
+
+
+def _range_text(spec: _Field) -> str:
+    if spec.low is None or spec.high is None:
+        return ""
+    low_op = ">" if spec.low_open else ">="
+    return f" {low_op} {spec.low:g} and <= {spec.high:g}"
+
+
+def _check_range(where: _Where, key: str, value: float, spec: _Field) -> None:
+    if spec.low is None or spec.high is None:
+        return
+    too_low = value <= spec.low if spec.low_open else value < spec.low
+    if too_low or value > spec.high:
+        raise where.fail(key, f"got {value!r}; expected a value{_range_text(spec)}.")
+
+
+def _section(where: _Where, prefix: str, data: Any, fields: dict[str, _Field]) -> dict[str, Any]:
+    if not isinstance(data, Mapping):
+        raise where.fail(prefix.rstrip("."), f"got {data!r}; expected a mapping of keys.")
+    _check_keys(where, prefix, data, tuple(fields))
+    out: dict[str, Any] = {}
+    for key, spec in fields.items():
+        if key in data:
+            out[key] = _convert(where, prefix + key, data[key], spec)
+        elif spec.default is _REQUIRED:
+            raise where.fail(prefix + key, "missing; this key is required.")
+        else:
+            out[key] = spec.default
+    return out
+
+
+def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
+    """Validate an already-parsed YAML document into a :class:`RoverConfig`."""
+    where = _Where(source)
+    base_dir = Path(source).resolve().parent if source is not None else Path.cwd()
+    if not isinstance(data, Mapping):
+        raise where.fail("(top level)", f"got {type(data).__name__}; expected a mapping with keys"
+                         f" {', '.join(_TOP_FIELDS)}.")
+    _check_keys(where, "", data, _TOP_FIELDS)
+    raw_buses = data.get("buses")
+    if not isinstance(raw_buses, list) or not raw_buses:
+        raise where.fail("buses", "expected a non-empty list of buses.")
+    buses: list[BusConfig] = []
+    for i, raw in enumerate(raw_buses):
+        values = _section(where, f"buses[{i}].", raw, _BUS_FIELDS)
+        period_ms = values.pop("sync_period_ms")
+        buses.append(BusConfig(sync_period_s=period_ms / 1000.0, **values))
+    names = [b.name for b in buses]
+    if len(set(names)) != len(names):
+        raise where.fail("buses", f"bus names must be unique; got {names}.")
+
+    raw_drives = data.get("drives")
+    if not isinstance(raw_drives, list) or not raw_drives:
+        raise where.fail("drives", "expected a non-empty list of drives.")
+    drives: list[DriveConfig] = []
+    for i, raw in enumerate(raw_drives):
+        prefix = f"drives[{i}]."
+        values = _section(where, prefix, raw, _DRIVE_FIELDS)
+        bus = values["bus"] or buses[0].name
+        if bus not in names:
+            hint = difflib.get_close_matches(bus, names, n=1)
+            raise where.fail(prefix + "bus", f"got {bus!r}; expected one of the configured buses"
+                             f" {names}.{' Did you mean ' + repr(hint[0]) + '?' if hint else ''}")
+        values["bus"] = bus
+        values["eds"] = resolve_eds_path(values["eds"], base_dir)
+        identity = _section(where, prefix + "identity.", values["identity"], _IDENTITY_FIELDS)
+        values["identity"] = IdentityConfig(**identity)
+        for ms_key, s_key in (("heartbeat_period_ms", "heartbeat_period_s"),
+                              ("heartbeat_timeout_ms", "heartbeat_timeout_s"),
+                              ("watchdog_ms", "watchdog_s")):
+            values[s_key] = values.pop(ms_key) / 1000.0
+        drive = DriveConfig(**values)
+        _check_drive(where, prefix, drive)
+        drives.append(drive)
+    _check_unique(where, drives)
+
+    drive_system = None
+    if data.get("drive_system") is not None:
+        values = _section(where, "drive_system.", data["drive_system"], _DRIVE_SYSTEM_FIELDS)
+        known = {d.name for d in drives}
+        for side in ("left", "right"):
+            for name in values[side]:
+                if name not in known:
+                    raise where.fail(f"drive_system.{side}", f"names drive {name!r}, which is not"
+                                     f" configured; configured drives: {sorted(known)}.")
+        values["cmd_timeout_s"] = values.pop("cmd_timeout_ms") / 1000.0
+        drive_system = DriveSystemConfig(**values)
+    return RoverConfig(tuple(buses), tuple(drives), drive_system,
+                       Path(source) if source is not None else None)
+
+
+def _check_drive(where: _Where, prefix: str, drive: DriveConfig) -> None:
+    if drive.joint == "limited":
+        if drive.min_deg is None or drive.max_deg is None:
+            raise where.fail(prefix + "joint", "a limited joint needs min_deg and max_deg.")
+        if drive.min_deg >= drive.max_deg:
+            raise where.fail(prefix + "min_deg", f"got min_deg={drive.min_deg:g} >= max_deg="
+                             f"{drive.max_deg:g}; min_deg must be below max_deg.")
+    elif drive.min_deg is not None or drive.max_deg is not None:
+        raise where.fail(prefix + "joint", "min_deg/max_deg are only allowed with joint: limited.")
+    if drive.heartbeat_timeout_s <= drive.heartbeat_period_s:
+        raise where.fail(prefix + "heartbeat_timeout_ms", f"got {drive.heartbeat_timeout_s * 1000:g};"
+                         f" it must be longer than heartbeat_period_ms"
+                         f" ({drive.heartbeat_period_s * 1000:g}), typically 1.5x to 3x.")
+    if drive.profile_velocity_deg_s > drive.max_velocity_deg_s:
+        raise where.fail(prefix + "profile_velocity_deg_s", f"got {drive.profile_velocity_deg_s:g};"
+                         f" it must not exceed max_velocity_deg_s ({drive.max_velocity_deg_s:g}).")
+
+
+def _check_unique(where: _Where, drives: list[DriveConfig]) -> None:
+    seen_names: set[str] = set()
+    seen_ids: set[tuple[str, int]] = set()
+    for i, drive in enumerate(drives):
+        if drive.name in seen_names:
+            raise where.fail(f"drives[{i}].name", f"{drive.name!r} is used twice; names must be unique.")
+        if (drive.bus, drive.node_id) in seen_ids:
+            raise where.fail(f"drives[{i}].node_id", f"node id {drive.node_id} is used twice on bus"
+                             f" {drive.bus!r}; each drive on a bus needs its own id (1..127).")
+        seen_names.add(drive.name)
+        seen_ids.add((drive.bus, drive.node_id))
+
+
+def resolve_eds_path(value: str, base_dir: Path) -> Path:
+    """``generic`` is the project's own CiA 402 EDS; other paths are relative to the config."""
+    if value == "generic":
+        return GENERIC_EDS
+    path = Path(value).expanduser()
+    return path if path.is_absolute() else (base_dir / path).resolve()
+
+
+def load_config(path: Path | str | None = None) -> RoverConfig:
+    """Read and validate a YAML config; ``None`` loads the embedded default."""
+    source = Path(path) if path is not None else DEFAULT_CONFIG
+    try:
+        text = source.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{source}: cannot read the config file ({err.strerror or err});"
+                          " check the path and its permissions.") from err
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err)
+        raise ConfigError(f"{source}:{where}: not valid YAML: {problem}.") from err
+    return parse_config(data, source)
+
+
+def config_to_dict(config: RoverConfig) -> dict[str, Any]:
+    """Back to the YAML shape (used to hand a config to a subprocess or a ROS parameter)."""
+    buses = [{"name": b.name, "interface": b.interface, "channel": b.channel, "bitrate": b.bitrate,
+              "kwargs": dict(b.kwargs), "sync_period_ms": b.sync_period_s * 1000.0}
+             for b in config.buses]
+    drives = []
+    for d in config.drives:
+        entry: dict[str, Any] = {
+            "name": d.name, "node_id": d.node_id, "bus": d.bus, "eds": str(d.eds),
+            "counts_per_rev": d.counts_per_rev, "gear_ratio": d.gear_ratio,
+            "rated_torque_nm": d.rated_torque_nm, "joint": d.joint,
+            "max_velocity_deg_s": d.max_velocity_deg_s,
+            "profile_velocity_deg_s": d.profile_velocity_deg_s,
+            "profile_acceleration_deg_s2": d.profile_acceleration_deg_s2,
+            "heartbeat_period_ms": d.heartbeat_period_s * 1000.0,
+            "heartbeat_timeout_ms": d.heartbeat_timeout_s * 1000.0,
+            "watchdog_ms": d.watchdog_s * 1000.0, "arm_on_start": d.arm_on_start,
+            "restore_enable_after_reboot": d.restore_enable_after_reboot,
+            "homing_method": d.homing_method, "homing_speed_deg_s": d.homing_speed_deg_s,
+            "homing_timeout_s": d.homing_timeout_s,
+            "identity": {k: v for k, v in vars(d.identity).items() if v is not None},
+        }
+        if d.joint == "limited":
+            entry["min_deg"] = d.min_deg
+            entry["max_deg"] = d.max_deg
+        drives.append(entry)
+    out: dict[str, Any] = {"buses": buses, "drives": drives}
+    if config.drive_system is not None:
+        ds = config.drive_system
+        out["drive_system"] = {"left": list(ds.left), "right": list(ds.right),
+                               "track_width_m": ds.track_width_m, "wheel_radius_m": ds.wheel_radius_m,
+                               "cmd_timeout_ms": ds.cmd_timeout_s * 1000.0,
+                               "max_accel_m_s2": ds.max_accel_m_s2, "max_speed_m_s": ds.max_speed_m_s}
+    return out
+
+
+def with_bus_overrides(config: RoverConfig, **kwargs: Any) -> RoverConfig:
+    """A copy whose buses all get ``kwargs`` merged into their python-can arguments
+    (e.g. ``port=`` of a simulator started on a free port)."""
+    buses = tuple(BusConfig(b.name, b.interface, b.channel, b.bitrate, {**b.kwargs, **kwargs},
+                            b.sync_period_s) for b in config.buses)
+    return RoverConfig(buses, config.drives, config.drive_system, config.source)
