@@ -1,0 +1,103 @@
+"""Fault-injection scenarios from YAML, played against a running :class:`SimService`.
+
+    steps:
+      - {at_s: 2.0, node: 1, action: unplug}
+      - {at_s: 3.0, node: 1, action: plug}
+      - {at_s: 4.0, node: 2, action: power_cycle, off_s: 0.5}
+      - {at_s: 5.0, node: 3, action: fault, code: 0x2310}
+      - {at_s: 6.0, node: 3, action: sto, low: true}
+      - {at_s: 7.0, channel: can0, action: frames, drop: 0.01, delay: 0.0, corrupt: 0.0}
+      - {at_s: 8.0, node: 1, action: sdo, delay_s: 0.2}
+      - {at_s: 9.0, node: 1, action: sdo, abort: 0x08000022}
+      - {at_s: 10.0, action: disconnect_clients}
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from can_config.errors import ConfigError
+from virtual_can.service import SimService
+
+logger = logging.getLogger(__name__)
+
+ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "frames", "sdo", "disconnect_clients")
+
+
+def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
+    """Apply one fault-injection step (also used directly from Python)."""
+    action = step.get("action")
+    if action not in ACTIONS:
+        raise ConfigError(f"scenario action {action!r}: expected one of {', '.join(ACTIONS)}")
+    if action == "disconnect_clients":
+        sim.server.disconnect_clients()
+        return
+    if action == "frames":
+        chan = sim.engine.channel(str(step.get("channel", "can0")))
+        chan.faults.drop = float(step.get("drop", 0.0))
+        chan.faults.delay = float(step.get("delay", 0.0))
+        chan.faults.delay_s = float(step.get("delay_s", chan.faults.delay_s))
+        chan.faults.corrupt = float(step.get("corrupt", 0.0))
+        return
+    node = int(step.get("node", 0))
+    simulator = sim.simulator_for(node)
+    drive = simulator.drive(node)
+
+    def act() -> None:
+        now = time.monotonic()
+        if action == "unplug":
+            drive.faults.unplugged = True
+        elif action == "plug":
+            drive.faults.unplugged = False
+        elif action == "power_cycle":
+            drive.power_cycle(now, float(step.get("off_s", 0.5)))
+        elif action == "fault":
+            drive.raise_fault(int(step.get("code", 0x1000)))
+        elif action == "sto":
+            drive.faults.sto_low = bool(step.get("low", True))
+        elif action == "sdo":
+            drive.faults.sdo_delay_s = float(step.get("delay_s", 0.0))
+            abort = step.get("abort")
+            drive.sdo.force_abort = int(abort) if abort is not None else None
+
+    simulator.call(act)
+
+
+def load_scenario(path: str | Path) -> list[dict[str, Any]]:
+    try:
+        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"{path}: cannot read the scenario: {err}") from err
+    steps = data.get("steps") if isinstance(data, dict) else None
+    if not isinstance(steps, list):
+        raise ConfigError(f"{path}: expected a mapping with a 'steps' list")
+    for i, step in enumerate(steps):
+        if not isinstance(step, dict) or step.get("action") not in ACTIONS:
+            raise ConfigError(f"{path}: steps[{i}]: expected a mapping with action one of {', '.join(ACTIONS)}")
+    return sorted(steps, key=lambda s: float(s.get("at_s", 0.0)))
+
+
+def run_scenario_in_background(sim: SimService, path: str | Path, stop: threading.Event) -> threading.Thread:
+    steps = load_scenario(path)
+
+    def run() -> None:
+        start = time.monotonic()
+        for step in steps:
+            if stop.wait(max(0.0, start + float(step.get("at_s", 0.0)) - time.monotonic())):
+                return
+            logger.warning("scenario: %s", dict(step))
+            try:
+                apply_action(sim, step)
+            except Exception as err:
+                logger.error("scenario step %s failed: %s", step, err)
+
+    thread = threading.Thread(target=run, daemon=True, name="virtual_can-scenario")
+    thread.start()
+    return thread

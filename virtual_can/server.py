@@ -1,0 +1,351 @@
+"""A socketcand-protocol server on a :class:`~virtual_can.engine.BusEngine`.
+
+python-can's ``socketcand`` interface is its client: ``can.Bus(interface="socketcand",
+channel="can0", host="127.0.0.1", port=29536)``. Raw mode of the socketcand protocol::
+
+    server: < hi >                     (on connect)
+    client: < open can0 >      server: < ok >
+    client: < rawmode >        server: < ok >
+    server: < frame 123 1700000000.000123 11223344 >   (every frame on the channel)
+    client: < send 123 4 11 22 33 44 >                  (put a frame on the channel)
+    client: < echo >           server: < echo >
+
+Every reply is a separate write (python-can reads the handshake replies one ``recv`` each).
+Each client has a reader and a writer thread and a bounded outgoing queue: a client that
+stops reading loses frames and is then dropped, a malformed line gets ``< error ... >``, and
+neither affects any other client. The server binds loopback unless told otherwise.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import socket
+import threading
+from dataclasses import dataclass
+
+import can
+
+from can_config.errors import ProtocolError, SimError
+from virtual_can.engine import BusEngine, Channel, Endpoint
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 29536
+#: Longest protocol line accepted; a longer one is an error and is discarded.
+MAX_LINE_CHARS = 256
+#: Frames queued for a client that is not reading before frames are dropped.
+CLIENT_QUEUE_FRAMES = 20_000
+#: Frames dropped in a row for one client before that client is disconnected.
+SLOW_CLIENT_DROP_LIMIT = 20_000
+#: Protocol errors from one client before it is disconnected.
+CLIENT_ERROR_LIMIT = 100
+DEFAULT_MAX_CLIENTS = 64
+#: How long socket reads block before checking for shutdown.
+POLL_S = 0.2
+_LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+def format_frame(msg: can.Message) -> str:
+    """``< frame ID SEC.USEC HEXDATA >`` with a 3-digit standard or 8-digit extended id."""
+    can_id = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
+    return f"< frame {can_id} {msg.timestamp:.6f} {bytes(msg.data).hex().upper()} >"
+
+
+def parse_send(line: str) -> can.Message:
+    """Parse ``< send ID LEN B0 B1 ... >`` into a message. Raises :class:`ProtocolError`."""
+    parts = line[1:-1].split()
+    if len(parts) < 3 or parts[0] != "send":
+        raise ProtocolError(f"expected '< send ID LEN B0 .. >', got {line[:60]!r}")
+    try:
+        can_id = int(parts[1], 16)
+        length = int(parts[2], 16)
+        data = bytes(int(b, 16) for b in parts[3:])
+    except ValueError as err:
+        raise ProtocolError(f"bad number in {line[:60]!r}: {err}") from err
+    extended = len(parts[1]) > 3
+    if not 0 <= length <= 8 or len(data) != length:
+        raise ProtocolError(f"length {length} does not match {len(data)} data bytes (0..8 allowed)")
+    if can_id < 0 or can_id > (0x1FFFFFFF if extended else 0x7FF):
+        raise ProtocolError(f"CAN id {parts[1]} out of range")
+    return can.Message(arbitration_id=can_id, data=data, is_extended_id=extended, timestamp=0.0)
+
+
+@dataclass
+class ClientStats:
+    received: int = 0
+    sent: int = 0
+    dropped: int = 0
+    errors: int = 0
+
+
+class _Client:
+    def __init__(self, server: SocketcandServer, sock: socket.socket, addr: tuple[str, int]) -> None:
+        self.server = server
+        self.sock = sock
+        self.addr = addr
+        self.stats = ClientStats()
+        self.channel: Channel | None = None
+        self.endpoint: Endpoint | None = None
+        self.raw = False
+        self._out: queue.Queue[str | None] = queue.Queue(CLIENT_QUEUE_FRAMES)
+        self._drops_in_row = 0
+        self._closed = threading.Event()
+        name = f"{addr[0]}:{addr[1]}"
+        self.reader = threading.Thread(target=self._read_loop, daemon=True, name=f"socketcand-rx-{name}")
+        self.writer = threading.Thread(target=self._write_loop, daemon=True, name=f"socketcand-tx-{name}")
+
+    def start(self) -> None:
+        self._reply("< hi >")
+        self.reader.start()
+        self.writer.start()
+
+    # engine -> client
+    def _on_frame(self, msg: can.Message) -> None:
+        if not self.raw:
+            return
+        try:
+            self._out.put_nowait(format_frame(msg))
+            self._drops_in_row = 0
+        except queue.Full:
+            self.stats.dropped += 1
+            self._drops_in_row += 1
+            if self._drops_in_row == SLOW_CLIENT_DROP_LIMIT:
+                logger.warning("socketcand client %s stopped reading; disconnecting it", self.addr)
+                threading.Thread(target=self.close, daemon=True, name="socketcand-drop").start()
+
+    def _reply(self, line: str) -> None:
+        """Protocol replies go out as their own write, in order with frames."""
+        try:
+            self._out.put(line, timeout=1.0)
+        except queue.Full:
+            self.close()
+
+    def _write_loop(self) -> None:
+        sock = self.sock
+        out = self._out
+        carry: str | None = None
+        while not self._closed.is_set():
+            first: str | None
+            if carry is not None:
+                first, carry = carry, None
+            else:
+                try:
+                    first = out.get(timeout=POLL_S)
+                except queue.Empty:
+                    continue
+            if first is None:
+                break
+            if not first.startswith("< frame"):
+                batch = first  # a reply: alone in its write
+            else:
+                lines = [first]
+                while len(lines) < 256:
+                    try:
+                        nxt = out.get_nowait()
+                    except queue.Empty:
+                        break
+                    if nxt is None or not nxt.startswith("< frame"):
+                        carry = nxt  # a reply goes out on its own, after these frames
+                        break
+                    lines.append(nxt)
+                batch = "".join(lines)
+                self.stats.sent += len(lines)
+            try:
+                sock.sendall(batch.encode("ascii"))
+            except OSError:
+                break
+        self.close()
+
+    # client -> engine
+    def _read_loop(self) -> None:
+        buf = ""
+        sock = self.sock
+        sock.settimeout(POLL_S)
+        while not self._closed.is_set():
+            try:
+                chunk = sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                break
+            if not chunk:
+                break
+            buf += chunk.decode("ascii", errors="replace")
+            while True:
+                start = buf.find("<")
+                if start < 0:
+                    if buf.strip():
+                        self._error("data outside '< ... >'")
+                    buf = ""
+                    break
+                end = buf.find(">", start)
+                if end < 0:
+                    if len(buf) - start > MAX_LINE_CHARS:
+                        self._error(f"line longer than {MAX_LINE_CHARS} characters")
+                        buf = ""
+                    else:
+                        buf = buf[start:]
+                    break
+                line = buf[start:end + 1]
+                if buf[:start].strip():
+                    self._error("data outside '< ... >'")
+                buf = buf[end + 1:]
+                self._handle(line)
+            if self.stats.errors >= CLIENT_ERROR_LIMIT:
+                logger.warning("socketcand client %s sent %d bad lines; disconnecting it",
+                               self.addr, self.stats.errors)
+                break
+        self.close()
+
+    def _error(self, what: str) -> None:
+        self.stats.errors += 1
+        self._reply(f"< error {what} >")
+
+    def _handle(self, line: str) -> None:
+        words = line[1:-1].split()
+        if not words:
+            self._error("empty command")
+            return
+        cmd = words[0]
+        if cmd == "send" and self.channel is not None:
+            try:
+                msg = parse_send(line)
+            except ProtocolError as err:
+                self._error(str(err))
+                return
+            self.stats.received += 1
+            try:
+                self.channel.send(msg, self.endpoint)
+            except can.CanError as err:
+                self._error(str(err))
+        elif cmd == "open" and len(words) == 2 and self.channel is None:
+            if not self.server.channel_allowed(words[1]):
+                self._error(f"no such channel {words[1]}; served: {', '.join(self.server.channels)}")
+                return
+            self.channel = self.server.engine.channel(words[1])
+            self._reply("< ok >")
+        elif cmd == "rawmode" and self.channel is not None:
+            self._reply("< ok >")
+            self.raw = True
+            if self.endpoint is None:
+                self.endpoint = self.channel.attach(self._on_frame, name=f"client:{self.addr}")
+        elif cmd == "echo":
+            self._reply("< echo >")
+        else:
+            self._error("unknown command")
+
+    def close(self) -> None:
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        if self.endpoint is not None:
+            self.endpoint.detach()
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
+        self.server._forget(self)
+
+    def join(self, timeout: float) -> None:
+        for thread in (self.reader, self.writer):
+            if thread.is_alive() and thread is not threading.current_thread():
+                thread.join(timeout)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed.is_set()
+
+
+class SocketcandServer:
+    """Serves the channels of a :class:`BusEngine` over TCP. Context manager; ``close()`` is idempotent."""
+
+    def __init__(self, engine: BusEngine, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, *,
+                 channels: tuple[str, ...] = ("can0",), allow_any_channel: bool = False,
+                 max_clients: int = DEFAULT_MAX_CLIENTS, allow_remote: bool = False) -> None:
+        if host not in _LOOPBACK and not host.startswith("127."):
+            if not allow_remote:
+                raise SimError(f"refusing to bind {host!r}: the bus server listens on loopback"
+                               " (127.0.0.1) unless allow_remote=True (CLI: --allow-remote)")
+            logger.warning("bus server binding %s: every host that reaches it can drive the motors",
+                           host)
+        self.engine = engine
+        self.channels = channels
+        self.allow_any_channel = allow_any_channel
+        self.max_clients = max_clients
+        self._clients: set[_Client] = set()
+        self._lock = threading.Lock()
+        self._sock = socket.create_server((host, port), reuse_port=False)
+        self._sock.settimeout(POLL_S)
+        self.host, self.port = self._sock.getsockname()[:2]
+        self._stop = threading.Event()
+        for name in channels:
+            engine.channel(name)
+        self._thread = threading.Thread(target=self._accept_loop, daemon=True,
+                                        name=f"socketcand-accept-{self.port}")
+        self._thread.start()
+        logger.info("socketcand server on %s:%d serving %s", self.host, self.port, ", ".join(channels))
+
+    def channel_allowed(self, name: str) -> bool:
+        return self.allow_any_channel or name in self.channels
+
+    @property
+    def clients(self) -> list[_Client]:
+        with self._lock:
+            return list(self._clients)
+
+    def _accept_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                sock, addr = self._sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                break
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                full = len(self._clients) >= self.max_clients
+            if full:
+                logger.warning("refusing client %s: %d clients already", addr, self.max_clients)
+                try:
+                    sock.sendall(b"< error too many clients >")
+                finally:
+                    sock.close()
+                continue
+            client = _Client(self, sock, addr)
+            with self._lock:
+                self._clients.add(client)
+            client.start()
+
+    def _forget(self, client: _Client) -> None:
+        with self._lock:
+            self._clients.discard(client)
+
+    def disconnect_clients(self) -> int:
+        """Fault injection: drop every client connection (a bus-off as the clients see it)."""
+        clients = self.clients
+        for client in clients:
+            client.close()
+        return len(clients)
+
+    def close(self) -> None:
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        try:
+            self._sock.close()
+        finally:
+            self._thread.join(timeout=2.0)
+            clients = self.clients
+            for client in clients:
+                client.close()
+            for client in clients:
+                client.join(timeout=2.0)
+
+    def __enter__(self) -> SocketcandServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,113 @@
+"""The emulator as one service: engine + socketcand server + simulated drives.
+
+This is what ``rovercan sim`` runs and what tests and the demo start in-process::
+
+    with SimService.from_config(load_config(), port=0) as sim:
+        bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from can_config import RoverConfig, load_drive_od
+from can_config.config import GENERIC_EDS
+from virtual_can.bus import VirtualBus
+from virtual_can.engine import BusEngine
+from virtual_can.server import DEFAULT_HOST, DEFAULT_PORT, SocketcandServer
+from virtual_can.sim.drive import MotorParams, SimulatedDrive
+from virtual_can.sim.runner import DEFAULT_TICK_S, DriveSimulator
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SimDriveSpec:
+    """One simulated drive: node id, EDS, channel and motor model."""
+
+    node_id: int
+    eds: Path = GENERIC_EDS
+    channel: str = "can0"
+    name: str | None = None
+    counts_per_rev: int = 4096
+
+
+def specs_from_config(config: RoverConfig) -> list[SimDriveSpec]:
+    """The simulator as a twin of the rover: one drive per configured drive, on its bus's channel."""
+    return [SimDriveSpec(d.node_id, d.eds, config.bus(d.bus).channel, d.name, d.counts_per_rev)
+            for d in config.drives]
+
+
+def specs_for_count(n: int, eds: Path = GENERIC_EDS, channel: str = "can0") -> list[SimDriveSpec]:
+    return [SimDriveSpec(i, eds, channel) for i in range(1, n + 1)]
+
+
+class SimService:
+    """Engine, socketcand server and one simulator thread per channel."""
+
+    def __init__(self, specs: Sequence[SimDriveSpec], *, host: str = DEFAULT_HOST,
+                 port: int = DEFAULT_PORT, wire_time: bool = False, bitrate: int = 1_000_000,
+                 allow_remote: bool = False, tick_s: float = DEFAULT_TICK_S,
+                 extra_channels: Sequence[str] = ()) -> None:
+        self.engine = BusEngine(bitrate=bitrate, wire_time=wire_time)
+        channels = tuple(dict.fromkeys([*(s.channel for s in specs), *extra_channels])) or ("can0",)
+        self.simulators: dict[str, DriveSimulator] = {}
+        self._buses: list[VirtualBus] = []
+        try:
+            for channel in channels:
+                drives = [SimulatedDrive(s.node_id, load_drive_od(s.eds, s.node_id),
+                                         MotorParams(counts_per_rev=s.counts_per_rev), name=s.name)
+                          for s in specs if s.channel == channel]
+                bus = VirtualBus(channel, engine=self.engine)
+                self._buses.append(bus)
+                self.simulators[channel] = DriveSimulator(bus, drives, tick_s=tick_s, name=channel)
+            self.server = SocketcandServer(self.engine, host, port, channels=channels,
+                                           allow_remote=allow_remote)
+        except BaseException:
+            self._close_parts()
+            raise
+        for sim in self.simulators.values():
+            sim.start()
+
+    @classmethod
+    def from_config(cls, config: RoverConfig, **kwargs: object) -> SimService:
+        return cls(specs_from_config(config), **kwargs)  # type: ignore[arg-type]
+
+    @property
+    def host(self) -> str:
+        return str(self.server.host)
+
+    @property
+    def port(self) -> int:
+        return int(self.server.port)
+
+    def simulator_for(self, node_id: int, channel: str | None = None) -> DriveSimulator:
+        for name, sim in self.simulators.items():
+            if (channel is None or name == channel) and node_id in sim.drives:
+                return sim
+        raise KeyError(f"no simulated drive {node_id}")
+
+    def python_can_args(self, channel: str = "can0") -> str:
+        return f"-i socketcand -c {channel} --bus-kwargs host={self.host} port={self.port}"
+
+    def _close_parts(self) -> None:
+        for sim in self.simulators.values():
+            sim.close()
+        for bus in self._buses:
+            bus.shutdown()
+        self.engine.close()
+
+    def close(self) -> None:
+        server = getattr(self, "server", None)
+        if server is not None:
+            server.close()
+        self._close_parts()
+
+    def __enter__(self) -> SimService:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

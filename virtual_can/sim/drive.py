@@ -1,0 +1,748 @@
+"""A simulated CiA 402 servo drive, written from CiA 301 / CiA 402 on its own.
+
+One :class:`SimulatedDrive` is one CANopen node: NMT, SDO server, heartbeat producer, EMCY
+producer with error register and history, PDOs configured from its object dictionary (and
+re-configurable by SDO, with the CiA 301 procedure enforced), the CiA 402 state machine with
+quick stop and fault reaction, the modes PP, PV, PT, CSP and homing, and a motion model
+(inertia, viscous friction, load torque, torque limit) behind a position/velocity controller.
+Position, velocity and torque are reported in the drive's units: encoder counts, counts/s
+and per mille of the rated torque.
+
+It does no I/O: :meth:`on_frame` and :meth:`tick` return the frames to send; a
+:class:`~virtual_can.sim.runner.DriveSimulator` moves them on a python-can bus.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import can
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config.objects import (
+    OD,
+    PDO_COB_ID_INVALID,
+    STRUCT_FORMAT,
+    NmtCommand,
+    NmtState,
+    OperationMode,
+)
+from virtual_can.sim.objects import (
+    ABORT_DEVICE_STATE,
+    ABORT_NOT_MAPPABLE,
+    ABORT_PDO_LENGTH,
+    ObjectStore,
+    SdoAbort,
+    encode,
+)
+from virtual_can.sim.sdo import SdoServer
+
+logger = logging.getLogger(__name__)
+
+
+class State(IntEnum):
+    """CiA 402 power state machine states (the simulator's own definition)."""
+
+    NOT_READY_TO_SWITCH_ON = 0
+    SWITCH_ON_DISABLED = 1
+    READY_TO_SWITCH_ON = 2
+    SWITCHED_ON = 3
+    OPERATION_ENABLED = 4
+    QUICK_STOP_ACTIVE = 5
+    FAULT_REACTION_ACTIVE = 6
+    FAULT = 7
+
+
+#: Statusword bits 0-3, 5, 6 for each state (CiA 402 table 30).
+STATUS_BITS: dict[State, int] = {
+    State.NOT_READY_TO_SWITCH_ON: 0x0000,
+    State.SWITCH_ON_DISABLED: 0x0040,
+    State.READY_TO_SWITCH_ON: 0x0021,
+    State.SWITCHED_ON: 0x0023,
+    State.OPERATION_ENABLED: 0x0027,
+    State.QUICK_STOP_ACTIVE: 0x0007,
+    State.FAULT_REACTION_ACTIVE: 0x000F,
+    State.FAULT: 0x0008,
+}
+
+SW_VOLTAGE_ENABLED = 1 << 4
+SW_WARNING = 1 << 7
+SW_REMOTE = 1 << 9
+SW_TARGET_REACHED = 1 << 10
+SW_OMS12 = 1 << 12  # PP: setpoint acknowledge; PV: speed; homing: attained; CSP: following
+SW_OMS13 = 1 << 13  # PP/CSP: following error; homing: homing error
+
+CW_SWITCH_ON = 1 << 0
+CW_ENABLE_VOLTAGE = 1 << 1
+CW_QUICK_STOP = 1 << 2  # active low
+CW_ENABLE_OPERATION = 1 << 3
+CW_NEW_SETPOINT = 1 << 4  # homing: start
+CW_CHANGE_IMMEDIATELY = 1 << 5
+CW_RELATIVE = 1 << 6
+CW_FAULT_RESET = 1 << 7
+CW_HALT = 1 << 8
+
+POWERED = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE)
+ERROR_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}  # by code's first nibble
+
+
+def next_state(state: State, cw: int, prev_cw: int, *, voltage_ok: bool, quick_stop_option: int) -> State:
+    """The CiA 402 transition a controlword causes (pure; transition numbers in comments)."""
+    if state == State.FAULT:
+        if cw & CW_FAULT_RESET and not prev_cw & CW_FAULT_RESET:
+            return State.SWITCH_ON_DISABLED  # 15
+        return state
+    if state in (State.NOT_READY_TO_SWITCH_ON, State.FAULT_REACTION_ACTIVE):
+        return state
+    ev = bool(cw & CW_ENABLE_VOLTAGE)
+    qs = not cw & CW_QUICK_STOP
+    so = bool(cw & CW_SWITCH_ON)
+    eo = bool(cw & CW_ENABLE_OPERATION)
+    shutdown = ev and not qs and not so
+    switch_on = ev and not qs and so
+    if state == State.SWITCH_ON_DISABLED:
+        return State.READY_TO_SWITCH_ON if shutdown else state  # 2
+    if state == State.READY_TO_SWITCH_ON:
+        if not ev or qs:
+            return State.SWITCH_ON_DISABLED  # 7
+        if switch_on and voltage_ok:
+            return State.OPERATION_ENABLED if eo else State.SWITCHED_ON  # 3 (+4)
+        return state
+    if state == State.SWITCHED_ON:
+        if not ev or qs:
+            return State.SWITCH_ON_DISABLED  # 10
+        if shutdown:
+            return State.READY_TO_SWITCH_ON  # 6
+        if switch_on and eo:
+            return State.OPERATION_ENABLED  # 4
+        return state
+    if state == State.OPERATION_ENABLED:
+        if not ev:
+            return State.SWITCH_ON_DISABLED  # 9
+        if qs:
+            return State.QUICK_STOP_ACTIVE  # 11
+        if shutdown:
+            return State.READY_TO_SWITCH_ON  # 8
+        if switch_on and not eo:
+            return State.SWITCHED_ON  # 5
+        return state
+    if state == State.QUICK_STOP_ACTIVE:
+        if not ev:
+            return State.SWITCH_ON_DISABLED  # 12
+        if switch_on and eo and quick_stop_option >= 5:
+            return State.OPERATION_ENABLED  # 16
+        return state
+    return state
+
+
+@dataclass
+class MotorParams:
+    """Physical model of the motor and its load (motor side)."""
+
+    counts_per_rev: int = 4096
+    inertia_kg_m2: float = 1e-4
+    viscous_nm_s_rad: float = 0.01
+    load_nm: float = 0.2
+    rated_torque_nm: float = 1.0  # used when the EDS has no 0x6076
+    bandwidth_hz: float = 20.0
+    index_position_counts: int = 0  # where homing finds its switch/index
+
+
+@dataclass
+class _Pdo:
+    cob_id: int
+    trans_type: int
+    entries: list[tuple[int, int, str]]  # (index, subindex, struct format)
+    inhibit_s: float = 0.0
+    event_s: float = 0.0
+    sync_count: int = 0
+    last_data: bytes | None = None
+    last_sent: float = -1e9
+
+    def pack(self, store: ObjectStore) -> bytes:
+        values = store.values
+        return b"".join(struct.pack(fmt, values[(i, s)]) for i, s, fmt in self.entries)
+
+
+@dataclass
+class Faults:
+    """Fault-injection switches of one drive."""
+
+    unplugged: bool = False
+    sto_low: bool = False
+    sdo_delay_s: float = 0.0
+    power_off_until: float = 0.0
+    pending: list[int] = field(default_factory=list)  # EMCY codes to raise at the next tick
+
+
+class SimulatedDrive:
+    """One simulated CiA 402 node. Not thread-safe: driven by one runner thread."""
+
+    def __init__(self, node_id: int, od: ObjectDictionary, params: MotorParams | None = None,
+                 *, name: str | None = None) -> None:
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"node_id={node_id}: CANopen node ids are 1..127")
+        self.node_id = node_id
+        self.name = name or f"drive{node_id}"
+        self.params = params or MotorParams()
+        self.store = ObjectStore(od)
+        self.store.on_write = self._on_sdo_write
+        self.sdo = SdoServer(self.store)
+        self.faults = Faults()
+        self.nmt = NmtState.BOOTUP
+        self.counters = {"tpdo": 0, "rpdo": 0, "emcy": 0, "sdo": 0}
+        self._rad_per_count = 2 * math.pi / self.params.counts_per_rev
+        self._reset_node(now=0.0, announce=False)
+
+    # ---------------------------------------------------------------- lifecycle
+    def _reset_node(self, now: float, announce: bool = True) -> list[can.Message]:
+        self.store.reset(0x0000, 0xFFFF)
+        self._reset_motion()
+        return self._reset_comm(now, announce)
+
+    def _reset_motion(self) -> None:
+        self.state = State.SWITCH_ON_DISABLED
+        self.prev_cw = 0
+        self.theta = getattr(self, "theta", 0.0)  # the shaft does not move on a reset
+        self.omega = 0.0
+        self.torque_nm = 0.0
+        self.sp_pos = self.theta / self._rad_per_count
+        self.sp_vel = 0.0
+        self.sp_acc = 0.0
+        self.position_offset = getattr(self, "position_offset", 0.0)
+        self.pp_target: float | None = None
+        self.homing_active = False
+        self.homing_done = False
+        self.homing_error = False
+        self.following_since: float | None = None
+        self._csp_last: float | None = None
+        self.error_code = 0
+        self._pending_rpdos: list[tuple[_Pdo, bytes]] = []
+        self._setpoint_ack = False
+        self._pending_emcy_reset = False
+        self._delayed_sdo: tuple[float, bytes] | None = None
+        self._homing_start = 0.0
+
+    def _reset_comm(self, now: float, announce: bool) -> list[can.Message]:
+        self.store.reset(0x1000, 0x1FFF)
+        self.nmt = NmtState.PRE_OPERATIONAL
+        self._rebuild_pdos()
+        self._next_heartbeat = now
+        if not announce:
+            return []
+        return [self._msg(0x700 + self.node_id, b"\x00")]
+
+    def power_cycle(self, now: float, off_s: float) -> None:
+        """Fault injection: power off for ``off_s``, then boot again (boot-up message)."""
+        self.faults.power_off_until = now + off_s
+        self.state = State.NOT_READY_TO_SWITCH_ON
+
+    # ---------------------------------------------------------------- PDO config
+    def _rebuild_pdos(self) -> None:
+        self.rpdos: dict[int, _Pdo] = {}
+        self.tpdos: list[_Pdo] = []
+        for n in range(512):
+            comm, mapping = OD.RPDO_COMM + n, OD.RPDO_MAP + n
+            if not self.store.has(comm, 1):
+                break
+            pdo = self._pdo(comm, mapping)
+            if pdo is not None:
+                self.rpdos[pdo.cob_id] = pdo
+        for n in range(512):
+            comm, mapping = OD.TPDO_COMM + n, OD.TPDO_MAP + n
+            if not self.store.has(comm, 1):
+                break
+            pdo = self._pdo(comm, mapping)
+            if pdo is not None:
+                pdo.inhibit_s = int(self.store.get(comm, 3, 0)) * 100e-6  # type: ignore[arg-type]
+                pdo.event_s = int(self.store.get(comm, 5, 0)) / 1000.0  # type: ignore[arg-type]
+                self.tpdos.append(pdo)
+
+    def _pdo(self, comm: int, mapping: int) -> _Pdo | None:
+        cob = int(self.store.get(comm, 1, PDO_COB_ID_INVALID))  # type: ignore[arg-type]
+        if cob & PDO_COB_ID_INVALID:
+            return None
+        entries = []
+        count = int(self.store.get(mapping, 0, 0))  # type: ignore[arg-type]
+        for sub in range(1, count + 1):
+            raw = int(self.store.get(mapping, sub, 0))  # type: ignore[arg-type]
+            index, subindex = raw >> 16, (raw >> 8) & 0xFF
+            var = self.store.vars.get((index, subindex))
+            fmt = STRUCT_FORMAT.get(var.data_type) if var is not None else None
+            if var is None or fmt is None:
+                logger.warning("node %d: PDO 0x%04X maps 0x%04X:%d, which it cannot carry;"
+                               " PDO disabled", self.node_id, mapping, index, subindex)
+                return None
+            entries.append((index, subindex, fmt))
+        return _Pdo(cob & 0x1FFFFFFF, int(self.store.get(comm, 2, 255)), entries)  # type: ignore[arg-type]
+
+    def _check_mapping_write(self, index: int, subindex: int) -> None:
+        """CiA 301 procedure: a mapping changes only while the PDO is invalid and sub 0 is 0."""
+        comm = index - 0x200
+        cob = int(self.store.get(comm, 1, 0))  # type: ignore[arg-type]
+        if not cob & PDO_COB_ID_INVALID:
+            raise SdoAbort(ABORT_DEVICE_STATE, index, subindex,
+                           "set bit 31 of the PDO COB-ID before changing its mapping")
+        if subindex == 0:
+            count = int(self.store.get(index, 0))  # type: ignore[arg-type]
+            bits = 0
+            for sub in range(1, count + 1):
+                raw = int(self.store.get(index, sub, 0))  # type: ignore[arg-type]
+                var = self.store.vars.get((raw >> 16, (raw >> 8) & 0xFF))
+                if var is None:
+                    raise SdoAbort(0x0602_0000, index, subindex,
+                                   f"mapped object 0x{raw >> 16:04X} does not exist")
+                if not var.mappable:
+                    raise SdoAbort(ABORT_NOT_MAPPABLE, index, subindex,
+                                   f"0x{var.index:04X} cannot be PDO-mapped")
+                bits += raw & 0xFF
+            if bits > 64:
+                raise SdoAbort(ABORT_PDO_LENGTH, index, subindex, f"{bits} bits > 64")
+        elif int(self.store.get(index, 0)) != 0:  # type: ignore[arg-type]
+            raise SdoAbort(ABORT_DEVICE_STATE, index, subindex,
+                           "set sub-index 0 to 0 before changing mapping entries")
+
+    def _on_sdo_write(self, index: int, subindex: int) -> None:
+        if 0x1600 <= index <= 0x17FF or 0x1A00 <= index <= 0x1BFF:
+            self._check_mapping_write(index, subindex)
+            self._rebuild_pdos()
+        elif 0x1400 <= index <= 0x15FF or 0x1800 <= index <= 0x19FF:
+            self._rebuild_pdos()
+        elif index == OD.CONTROLWORD:
+            self._apply_controlword()
+        elif index == OD.MODES_OF_OPERATION:
+            self._set_mode()
+
+    # ---------------------------------------------------------------- frames in
+    def on_frame(self, msg: can.Message, now: float) -> list[can.Message]:
+        if self.faults.unplugged or now < self.faults.power_off_until or msg.is_remote_frame:
+            return []
+        cob = msg.arbitration_id
+        data = bytes(msg.data)
+        if cob == 0:
+            return self._on_nmt(data, now)
+        if cob == (int(self.store.get(OD.COB_ID_SYNC, 0, 0x80)) & 0x7FF):  # type: ignore[arg-type]
+            return self._on_sync(now)
+        if self.nmt == NmtState.STOPPED:
+            return []
+        if cob == 0x600 + self.node_id:
+            if self.faults.sdo_delay_s > 0:
+                self._delayed_sdo = (now + self.faults.sdo_delay_s, data)
+                return []
+            return self._sdo(data)
+        pdo = self.rpdos.get(cob)
+        if pdo is not None and self.nmt == NmtState.OPERATIONAL:
+            self.counters["rpdo"] += 1
+            if 0 <= pdo.trans_type <= 240:
+                self._pending_rpdos.append((pdo, data))
+            else:
+                self._apply_rpdo(pdo, data)
+        return []
+
+    def _sdo(self, data: bytes) -> list[can.Message]:
+        self.counters["sdo"] += 1
+        resp = self.sdo.handle(data)
+        return [self._msg(0x580 + self.node_id, resp)] if resp is not None else []
+
+    def _on_nmt(self, data: bytes, now: float) -> list[can.Message]:
+        if len(data) != 2 or data[1] not in (0, self.node_id):
+            return []
+        cmd = data[0]
+        if cmd == NmtCommand.START:
+            self.nmt = NmtState.OPERATIONAL
+        elif cmd == NmtCommand.STOP:
+            self.nmt = NmtState.STOPPED
+        elif cmd == NmtCommand.ENTER_PREOPERATIONAL:
+            self.nmt = NmtState.PRE_OPERATIONAL
+        elif cmd == NmtCommand.RESET_NODE:
+            return self._reset_node(now)
+        elif cmd == NmtCommand.RESET_COMMUNICATION:
+            return self._reset_comm(now, announce=True)
+        return []
+
+    def _apply_rpdo(self, pdo: _Pdo, data: bytes) -> None:
+        need = sum(struct.calcsize(fmt) for _, _, fmt in pdo.entries)
+        if len(data) < need:
+            self.faults.pending.append(0x8210)  # PDO not processed due to length error
+            return
+        offset = 0
+        cw_written = mode_written = False
+        for index, sub, fmt in pdo.entries:
+            (value,) = struct.unpack_from(fmt, data, offset)
+            offset += struct.calcsize(fmt)
+            self.store.values[(index, sub)] = value
+            cw_written |= index == OD.CONTROLWORD
+            mode_written |= index == OD.MODES_OF_OPERATION
+        if mode_written:
+            self._set_mode()
+        if cw_written:
+            self._apply_controlword()
+        elif any(i == OD.TARGET_POSITION for i, _, _ in pdo.entries):
+            self._csp_target()
+
+    def _on_sync(self, now: float) -> list[can.Message]:
+        if self.nmt != NmtState.OPERATIONAL:
+            return []
+        for pdo, data in self._pending_rpdos:
+            self._apply_rpdo(pdo, data)
+        self._pending_rpdos.clear()
+        out = []
+        for pdo in self.tpdos:
+            tt = pdo.trans_type
+            if tt == 0:
+                data = pdo.pack(self.store)
+                if data != pdo.last_data:
+                    out.append(self._send_pdo(pdo, data, now))
+            elif 1 <= tt <= 240:
+                pdo.sync_count += 1
+                if pdo.sync_count >= tt:
+                    pdo.sync_count = 0
+                    out.append(self._send_pdo(pdo, pdo.pack(self.store), now))
+        return out
+
+    def _send_pdo(self, pdo: _Pdo, data: bytes, now: float) -> can.Message:
+        pdo.last_data = data
+        pdo.last_sent = now
+        self.counters["tpdo"] += 1
+        return self._msg(pdo.cob_id, data)
+
+    # ---------------------------------------------------------------- CiA 402
+    def _apply_controlword(self) -> None:
+        cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
+        new = next_state(self.state, cw, self.prev_cw, voltage_ok=not self.faults.sto_low,
+                         quick_stop_option=int(self.store.get(OD.QUICK_STOP_OPTION, 0, 2)))  # type: ignore[arg-type]
+        if new != self.state:
+            if self.state == State.FAULT:
+                self._clear_error()
+            if new == State.OPERATION_ENABLED and self.state != State.QUICK_STOP_ACTIVE:
+                self._hold_position()
+            self.state = new
+        mode = self.mode
+        rising = cw & ~self.prev_cw
+        if self.state == State.OPERATION_ENABLED:
+            if mode == OperationMode.PROFILE_POSITION and rising & CW_NEW_SETPOINT:
+                self._new_pp_setpoint(cw)
+            elif mode == OperationMode.HOMING and rising & CW_NEW_SETPOINT:
+                self._start_homing()
+            elif mode == OperationMode.CYCLIC_SYNC_POSITION:
+                self._csp_target()
+        self.prev_cw = cw
+
+    @property
+    def mode(self) -> int:
+        return int(self.store.get(OD.MODES_OF_OPERATION_DISPLAY, 0))  # type: ignore[arg-type]
+
+    def _set_mode(self) -> None:
+        requested = int(self.store.get(OD.MODES_OF_OPERATION, 0))  # type: ignore[arg-type]
+        supported = int(self.store.get(OD.SUPPORTED_DRIVE_MODES, 0, 0))  # type: ignore[arg-type]
+        bit = {1: 0, 3: 2, 4: 3, 6: 5, 8: 7}.get(requested)
+        if requested != 0 and (bit is None or not supported >> bit & 1):
+            return  # unsupported: the display keeps the old mode, as real drives do
+        self.store.set(OD.MODES_OF_OPERATION_DISPLAY, 0, requested)
+        self.pp_target = None
+        self.homing_active = False
+        self._hold_position()
+
+    def _hold_position(self) -> None:
+        self.sp_pos = self.position_counts
+        self.sp_vel = 0.0
+        self.sp_acc = 0.0
+        self.pp_target = None
+        self._csp_last = None
+
+    def _new_pp_setpoint(self, cw: int) -> None:
+        target = float(self.store.get(OD.TARGET_POSITION, 0))  # type: ignore[arg-type]
+        if cw & CW_RELATIVE:
+            target += self.pp_target if self.pp_target is not None else self.sp_pos
+        self.pp_target = target
+        self._setpoint_ack = True
+
+    def _csp_target(self) -> None:
+        if self.state == State.OPERATION_ENABLED and self.mode == OperationMode.CYCLIC_SYNC_POSITION:
+            self.pp_target = float(self.store.get(OD.TARGET_POSITION, 0))  # type: ignore[arg-type]
+
+    def _start_homing(self) -> None:
+        method = int(self.store.get(OD.HOMING_METHOD, 0, 35))  # type: ignore[arg-type]
+        self.homing_done = self.homing_error = False
+        if method in (35, 37):
+            self._home_here()
+        else:
+            self.homing_active = True
+            self._homing_start = self.position_counts
+
+    def _home_here(self) -> None:
+        raw = self.theta / self._rad_per_count
+        self.position_offset = -raw
+        self.homing_active = False
+        self.homing_done = True
+        self._hold_position()
+
+    # ---------------------------------------------------------------- faults
+    def raise_fault(self, code: int) -> None:
+        """Fault injection: the drive detects an error with this EMCY code at its next tick."""
+        self.faults.pending.append(code)
+
+    def _raise_fault(self, code: int, now: float | None) -> list[can.Message]:
+        self.error_code = code
+        self.store.set(OD.ERROR_CODE, 0, code)
+        register = 0x01 | ERROR_REGISTER_BITS.get(code >> 12, 0)
+        if code >> 8 == 0x86 or code >> 8 == 0x85:
+            register |= 0x20  # device profile specific
+        self.store.set(OD.ERROR_REGISTER, 0, register)
+        if self.store.has(OD.PREDEFINED_ERROR_FIELD, 1):
+            depth = sum(1 for k in self.store.vars if k[0] == OD.PREDEFINED_ERROR_FIELD and k[1] > 0)
+            for sub in range(depth, 1, -1):
+                self.store.set(OD.PREDEFINED_ERROR_FIELD, sub, self.store.get(OD.PREDEFINED_ERROR_FIELD, sub - 1))
+            self.store.set(OD.PREDEFINED_ERROR_FIELD, 1, code)
+            count = int(self.store.get(OD.PREDEFINED_ERROR_FIELD, 0))  # type: ignore[arg-type]
+            self.store.set(OD.PREDEFINED_ERROR_FIELD, 0, min(depth, count + 1))
+        if self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            self.state = State.FAULT_REACTION_ACTIVE if self.state in POWERED else State.FAULT
+        self.counters["emcy"] += 1
+        return [self._emcy(code, register)]
+
+    def _clear_error(self) -> None:
+        self.error_code = 0
+        self.store.set(OD.ERROR_CODE, 0, 0)
+        self.store.set(OD.ERROR_REGISTER, 0, 0)
+        self._pending_emcy_reset = True
+
+    def _emcy(self, code: int, register: int) -> can.Message:
+        cob = int(self.store.get(OD.COB_ID_EMCY, 0, 0x80 + self.node_id)) & 0x7FF  # type: ignore[arg-type]
+        return self._msg(cob, struct.pack("<HB5x", code, register))
+
+    # ---------------------------------------------------------------- time
+    def tick(self, now: float, dt: float) -> list[can.Message]:
+        """Advance the simulation by ``dt`` seconds; return the frames the drive sends."""
+        if self.faults.power_off_until:
+            if now < self.faults.power_off_until:
+                return []
+            self.faults.power_off_until = 0.0
+            return self._reset_node(now)
+        out: list[can.Message] = []
+        while self.faults.pending:
+            out += self._raise_fault(self.faults.pending.pop(0), now)
+        if self._pending_emcy_reset:
+            self._pending_emcy_reset = False
+            out.append(self._emcy(0x0000, 0))
+        delayed = self._delayed_sdo
+        if delayed is not None and now >= delayed[0]:
+            self._delayed_sdo = None
+            out += self._sdo(delayed[1])
+        if self.faults.sto_low and self.state in POWERED and self.state != State.FAULT_REACTION_ACTIVE:
+            out += self._raise_fault(0x5441, now)
+        out += self._move(now, dt)
+        self._update_status()
+        if self.faults.unplugged:
+            return []
+        if self.nmt == NmtState.OPERATIONAL:
+            for pdo in self.tpdos:
+                if pdo.trans_type >= 254:
+                    due = pdo.event_s and now - pdo.last_sent >= pdo.event_s
+                    if now - pdo.last_sent >= pdo.inhibit_s:
+                        data = pdo.pack(self.store)
+                        if due or data != pdo.last_data:
+                            out.append(self._send_pdo(pdo, data, now))
+        period_ms = int(self.store.get(OD.PRODUCER_HEARTBEAT_TIME, 0, 0))  # type: ignore[arg-type]
+        if period_ms and now >= self._next_heartbeat:
+            self._next_heartbeat = max(self._next_heartbeat + period_ms / 1000.0, now)
+            out.append(self._msg(0x700 + self.node_id, bytes([self.nmt])))
+        return out
+
+    @property
+    def position_counts(self) -> float:
+        return self.theta / self._rad_per_count + self.position_offset
+
+    def _move(self, now: float, dt: float) -> list[can.Message]:
+        store = self.store
+        p = self.params
+        k = self._rad_per_count
+        powered = self.state in POWERED
+        halt = bool(int(store.get(OD.CONTROLWORD, 0)) & CW_HALT)  # type: ignore[arg-type]
+        mode = self.mode
+        rated = float(store.get(OD.RATED_TORQUE, 0, 0)) / 1000.0 if store.has(OD.RATED_TORQUE) else 0.0  # type: ignore[arg-type]
+        rated = rated or p.rated_torque_nm
+        out: list[can.Message] = []
+        if powered:
+            decel = float(store.get(OD.PROFILE_DECELERATION, 0, 16384)) or 16384.0  # type: ignore[arg-type]
+            accel = float(store.get(OD.PROFILE_ACCELERATION, 0, 16384)) or 16384.0  # type: ignore[arg-type]
+            vmax = float(store.get(OD.PROFILE_VELOCITY, 0, 4096)) or 4096.0  # type: ignore[arg-type]
+            vlimit = float(store.get(OD.MAX_PROFILE_VELOCITY, 0, 0)) or vmax  # type: ignore[arg-type]
+            vmax = min(vmax, vlimit)
+            if self.state != State.OPERATION_ENABLED:
+                qs_decel = float(store.get(OD.QUICK_STOP_DECELERATION, 0, 65536)) or 65536.0  # type: ignore[arg-type]
+                self._ramp_velocity(0.0, qs_decel, qs_decel, dt)
+                if abs(self.sp_vel) < 1e-6:
+                    self.state = State.FAULT if self.state == State.FAULT_REACTION_ACTIVE else State.SWITCH_ON_DISABLED
+            elif halt and mode in (OperationMode.PROFILE_POSITION, OperationMode.PROFILE_VELOCITY,
+                                   OperationMode.HOMING):
+                self._ramp_velocity(0.0, decel, decel, dt)
+            elif mode == OperationMode.PROFILE_POSITION and self.pp_target is not None:
+                self._track_position(self.pp_target, vmax, accel, decel, dt)
+            elif mode == OperationMode.PROFILE_VELOCITY:
+                target_v = float(store.get(OD.TARGET_VELOCITY, 0, 0))  # type: ignore[arg-type]
+                target_v = max(-vlimit, min(vlimit, target_v))
+                self._ramp_velocity(target_v, accel, decel, dt)
+            elif mode == OperationMode.CYCLIC_SYNC_POSITION and self.pp_target is not None:
+                self.sp_vel = 0.0 if self._csp_last is None else (self.pp_target - self._csp_last) / max(dt, 1e-6)
+                self._csp_last = self.sp_pos = self.pp_target
+                self.sp_acc = 0.0
+            elif mode == OperationMode.HOMING and self.homing_active:
+                speed = float(store.get(OD.HOMING_SPEEDS, 1, 1000)) or 1000.0  # type: ignore[arg-type]
+                raw_index = p.index_position_counts
+                raw_now = self.sp_pos - self.position_offset
+                direction = 1.0 if raw_index > raw_now else -1.0
+                self._ramp_velocity(direction * speed, accel, decel, dt)
+                if (raw_index - (self.sp_pos - self.position_offset)) * direction <= 0:
+                    self.theta = raw_index * k
+                    self._home_here()
+                elif abs(self.sp_pos - self._homing_start) > 20 * p.counts_per_rev:
+                    self.homing_active = False
+                    self.homing_error = True
+            else:
+                self.sp_vel = self.sp_acc = 0.0
+            # controller + plant, in motor radians
+            if mode == OperationMode.PROFILE_TORQUE and self.state == State.OPERATION_ENABLED:
+                tau = float(store.get(OD.TARGET_TORQUE, 0, 0)) / 1000.0 * rated  # type: ignore[arg-type]
+            else:
+                wn = 2 * math.pi * p.bandwidth_hz
+                kp = p.inertia_kg_m2 * wn * wn
+                kd = 2 * p.inertia_kg_m2 * wn
+                pos_err = (self.sp_pos - self.position_counts) * k
+                vel_err = self.sp_vel * k - self.omega
+                ff = p.inertia_kg_m2 * self.sp_acc * k + p.viscous_nm_s_rad * self.sp_vel * k + p.load_nm
+                tau = ff + kp * pos_err + kd * vel_err
+            limit = float(store.get(OD.MAX_TORQUE, 0, 3000)) / 1000.0 * rated  # type: ignore[arg-type]
+            tau = max(-limit, min(limit, tau))
+            self.omega += dt * (tau - p.viscous_nm_s_rad * self.omega - p.load_nm) / p.inertia_kg_m2
+            self.theta += dt * self.omega
+            self.torque_nm = tau
+            out += self._check_following(now, mode)
+        else:
+            self.omega = 0.0  # holding brake
+            self.torque_nm = 0.0
+            self.sp_pos = self.position_counts
+            self.sp_vel = self.sp_acc = 0.0
+        store.values[(OD.POSITION_ACTUAL, 0)] = self._as_type(OD.POSITION_ACTUAL, self.position_counts)
+        store.values[(OD.VELOCITY_ACTUAL, 0)] = self._as_type(OD.VELOCITY_ACTUAL, self.omega / k)
+        if store.has(OD.TORQUE_ACTUAL):
+            store.values[(OD.TORQUE_ACTUAL, 0)] = self._as_type(OD.TORQUE_ACTUAL,
+                                                                self.torque_nm / rated * 1000.0)
+        if store.has(OD.FOLLOWING_ERROR_ACTUAL):
+            store.values[(OD.FOLLOWING_ERROR_ACTUAL, 0)] = self._as_type(
+                OD.FOLLOWING_ERROR_ACTUAL, self.sp_pos - self.position_counts)
+        return out
+
+    def _as_type(self, index: int, value: float) -> int | float:
+        var = self.store.vars[(index, 0)]
+        if var.data_type in (0x08, 0x11):
+            return value
+        bits = var.size_bits or 32
+        low, high = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1)
+        return max(low, min(high, int(round(value))))
+
+    def _check_following(self, now: float, mode: int) -> list[can.Message]:
+        if mode not in (OperationMode.PROFILE_POSITION, OperationMode.PROFILE_VELOCITY,
+                        OperationMode.CYCLIC_SYNC_POSITION) or self.state != State.OPERATION_ENABLED:
+            self.following_since = None
+            return []
+        window = int(self.store.get(OD.FOLLOWING_ERROR_WINDOW, 0, 0))  # type: ignore[arg-type]
+        if window <= 0 or window == 0xFFFFFFFF:
+            return []
+        if abs(self.sp_pos - self.position_counts) <= window:
+            self.following_since = None
+            return []
+        if self.following_since is None:
+            self.following_since = now
+        timeout = int(self.store.get(OD.FOLLOWING_ERROR_TIMEOUT, 0, 0)) / 1000.0  # type: ignore[arg-type]
+        if now - self.following_since >= timeout:
+            self.following_since = None
+            return self._raise_fault(0x8611, now)
+        return []
+
+    def _ramp_velocity(self, target: float, accel: float, decel: float, dt: float) -> None:
+        dv = target - self.sp_vel
+        rate = accel if abs(target) > abs(self.sp_vel) and target * self.sp_vel >= 0 else decel
+        step = rate * dt
+        self.sp_acc = math.copysign(rate, dv) if abs(dv) > step else dv / dt if dt else 0.0
+        self.sp_vel = target if abs(dv) <= step else self.sp_vel + math.copysign(step, dv)
+        self.sp_pos += self.sp_vel * dt
+
+    def _track_position(self, target: float, vmax: float, accel: float, decel: float, dt: float) -> None:
+        """Online trapezoidal profile toward ``target`` (counts)."""
+        dist = target - self.sp_pos
+        v = self.sp_vel
+        if abs(dist) < 0.5 and abs(v) < decel * dt:
+            self.sp_pos, self.sp_vel, self.sp_acc = target, 0.0, 0.0
+            return
+        direction = math.copysign(1.0, dist)
+        stop_dist = v * v / (2 * decel)
+        if v * direction > 0 and stop_dist >= abs(dist):
+            desired = 0.0
+        else:
+            desired = direction * vmax
+        # never ask for more speed than allows stopping on target
+        cap = math.sqrt(2 * decel * abs(dist))
+        desired = max(-cap, min(cap, desired))
+        self._ramp_velocity(desired, accel, decel, dt)
+        if (target - self.sp_pos) * direction < 0:  # passed it within this step
+            self.sp_pos, self.sp_vel, self.sp_acc = target, 0.0, 0.0
+
+    def _update_status(self) -> None:
+        sw = STATUS_BITS[self.state] | SW_REMOTE
+        if not self.faults.sto_low and self.state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
+                                                      *POWERED):
+            sw |= SW_VOLTAGE_ENABLED
+        mode = self.mode
+        if self.state == State.OPERATION_ENABLED:
+            if mode == OperationMode.PROFILE_POSITION:
+                if self.pp_target is None or (abs(self.sp_pos - self.pp_target) < 0.5 and self.sp_vel == 0.0
+                                              and abs(self.position_counts - self.pp_target) <= self._window()):
+                    sw |= SW_TARGET_REACHED
+                cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
+                if cw & CW_NEW_SETPOINT and self._setpoint_ack:
+                    sw |= SW_OMS12
+                else:
+                    self._setpoint_ack = False
+            elif mode == OperationMode.PROFILE_VELOCITY:
+                target_v = float(self.store.get(OD.TARGET_VELOCITY, 0, 0))  # type: ignore[arg-type]
+                if abs(self.omega / self._rad_per_count - target_v) < max(10.0, abs(target_v) * 0.02):
+                    sw |= SW_TARGET_REACHED
+                if abs(self.omega / self._rad_per_count) < 10.0:
+                    sw |= SW_OMS12
+            elif mode == OperationMode.HOMING:
+                if self.homing_done:
+                    sw |= SW_OMS12 | SW_TARGET_REACHED
+                if self.homing_error:
+                    sw |= SW_OMS13
+            elif mode == OperationMode.CYCLIC_SYNC_POSITION:
+                sw |= SW_OMS12
+            else:
+                sw |= SW_TARGET_REACHED
+        if self.following_since is not None:
+            sw |= SW_WARNING
+        self.store.values[(OD.STATUSWORD, 0)] = sw
+
+    def _window(self) -> float:
+        return max(2.0, self.params.counts_per_rev / 3600.0)
+
+    @property
+    def statusword(self) -> int:
+        return int(self.store.get(OD.STATUSWORD, 0))  # type: ignore[arg-type]
+
+    def _msg(self, cob_id: int, data: bytes) -> can.Message:
+        return can.Message(arbitration_id=cob_id, data=data, is_extended_id=False, timestamp=0.0)
+
+    def status_line(self) -> str:
+        return (f"node {self.node_id:3d} {self.name:<10} NMT={self.nmt.name:<15} {self.state.name:<22}"
+                f" mode={self.mode:<2} pos={self.position_counts:12.0f} vel={self.omega / self._rad_per_count:9.0f}"
+                f" torque={self.torque_nm:+.3f}Nm err=0x{self.error_code:04X}")
+
+
+def encode_value(data_type: int, value: int | float | bytes) -> bytes:
+    """Re-exported for tests: the simulator's own value encoding."""
+    return encode(data_type, value)
