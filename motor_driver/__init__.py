@@ -1,0 +1,44 @@
+"""CANopen / CiA 402 motor driver (python-can + canopen). Never imports rclpy or virtual_can.
+
+    from can_config import load_config
+    from motor_driver import MotorDriver
+
+    with MotorDriver(load_config("rover.yaml")).start() as driver:
+        joint = driver.drive("motor")
+        joint.enable()
+        joint.move_to(90.0, wait=True)
+        print(joint.snapshot())
+"""
+
+from can_config.errors import (
+    BootError,
+    BusLostError,
+    CommandRejected,
+    DriveStateError,
+    DriveTimeoutError,
+    MotorError,
+    RovercanError,
+    SdoError,
+    SdoTimeoutError,
+)
+from motor_driver.cia402 import Command, State
+from motor_driver.drive import Drive, DriveState, Emcy
+from motor_driver.driver import MotorDriver
+
+__all__ = [
+    "BootError",
+    "BusLostError",
+    "Command",
+    "CommandRejected",
+    "Drive",
+    "DriveState",
+    "DriveStateError",
+    "DriveTimeoutError",
+    "Emcy",
+    "MotorDriver",
+    "MotorError",
+    "RovercanError",
+    "SdoError",
+    "SdoTimeoutError",
+    "State",
+]

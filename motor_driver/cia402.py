@@ -1,0 +1,140 @@
+"""CiA 402 drive profile as data: states, controlword commands, the transition table.
+
+Pure functions only; :class:`motor_driver.drive.Drive` does the I/O. Written from CiA 402
+(IEC 61800-7-201) on its own, independently of the simulator's state machine.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class State(IntEnum):
+    """Power drive states (CiA 402 figure 'state machine')."""
+
+    NOT_READY_TO_SWITCH_ON = 0
+    SWITCH_ON_DISABLED = 1
+    READY_TO_SWITCH_ON = 2
+    SWITCHED_ON = 3
+    OPERATION_ENABLED = 4
+    QUICK_STOP_ACTIVE = 5
+    FAULT_REACTION_ACTIVE = 6
+    FAULT = 7
+    UNKNOWN = 8
+
+
+class Command(IntEnum):
+    """Controlword device-control commands (bits 0-3 and 7)."""
+
+    SHUTDOWN = 0x0006
+    SWITCH_ON = 0x0007
+    SWITCH_ON_ENABLE = 0x000F
+    DISABLE_VOLTAGE = 0x0000
+    QUICK_STOP = 0x0002
+    DISABLE_OPERATION = 0x0007
+    ENABLE_OPERATION = 0x000F
+    FAULT_RESET = 0x0080
+
+
+class SW(IntEnum):
+    """Statusword bits."""
+
+    READY_TO_SWITCH_ON = 1 << 0
+    SWITCHED_ON = 1 << 1
+    OPERATION_ENABLED = 1 << 2
+    FAULT = 1 << 3
+    VOLTAGE_ENABLED = 1 << 4
+    QUICK_STOP = 1 << 5
+    SWITCH_ON_DISABLED = 1 << 6
+    WARNING = 1 << 7
+    REMOTE = 1 << 9
+    TARGET_REACHED = 1 << 10
+    INTERNAL_LIMIT = 1 << 11
+    SETPOINT_ACK = 1 << 12  # PP; homing: attained; PV: speed zero
+    FOLLOWING_ERROR = 1 << 13  # PP/CSP; homing: homing error
+
+
+class CW(IntEnum):
+    """Controlword bits beyond the device-control command."""
+
+    NEW_SETPOINT = 1 << 4  # homing: start homing
+    CHANGE_IMMEDIATELY = 1 << 5
+    RELATIVE = 1 << 6
+    FAULT_RESET = 1 << 7
+    HALT = 1 << 8
+
+
+#: (mask, value) of the statusword for each state (CiA 402 table 'state coding').
+_STATE_CODING: tuple[tuple[int, int, State], ...] = (
+    (0x4F, 0x00, State.NOT_READY_TO_SWITCH_ON),
+    (0x4F, 0x40, State.SWITCH_ON_DISABLED),
+    (0x6F, 0x21, State.READY_TO_SWITCH_ON),
+    (0x6F, 0x23, State.SWITCHED_ON),
+    (0x6F, 0x27, State.OPERATION_ENABLED),
+    (0x6F, 0x07, State.QUICK_STOP_ACTIVE),
+    (0x4F, 0x0F, State.FAULT_REACTION_ACTIVE),
+    (0x4F, 0x08, State.FAULT),
+)
+
+
+def decode_state(statusword: int) -> State:
+    """The CiA 402 state a statusword reports."""
+    for mask, value, state in _STATE_CODING:
+        if statusword & mask == value:
+            return state
+    return State.UNKNOWN
+
+
+#: Transition table: (from, to) -> (transition number, command). Automatic transitions
+#: (0, 1, 13, 14) have no command and are not listed.
+TRANSITIONS: dict[tuple[State, State], tuple[int, Command]] = {
+    (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON): (2, Command.SHUTDOWN),
+    (State.READY_TO_SWITCH_ON, State.SWITCHED_ON): (3, Command.SWITCH_ON),
+    (State.SWITCHED_ON, State.OPERATION_ENABLED): (4, Command.ENABLE_OPERATION),
+    (State.OPERATION_ENABLED, State.SWITCHED_ON): (5, Command.DISABLE_OPERATION),
+    (State.SWITCHED_ON, State.READY_TO_SWITCH_ON): (6, Command.SHUTDOWN),
+    (State.READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED): (7, Command.DISABLE_VOLTAGE),
+    (State.OPERATION_ENABLED, State.READY_TO_SWITCH_ON): (8, Command.SHUTDOWN),
+    (State.OPERATION_ENABLED, State.SWITCH_ON_DISABLED): (9, Command.DISABLE_VOLTAGE),
+    (State.SWITCHED_ON, State.SWITCH_ON_DISABLED): (10, Command.DISABLE_VOLTAGE),
+    (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE): (11, Command.QUICK_STOP),
+    (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED): (12, Command.DISABLE_VOLTAGE),
+    (State.FAULT, State.SWITCH_ON_DISABLED): (15, Command.FAULT_RESET),
+    (State.QUICK_STOP_ACTIVE, State.OPERATION_ENABLED): (16, Command.ENABLE_OPERATION),
+}
+
+#: The way up to Operation Enabled, one transition at a time.
+_ENABLE_PATH: dict[State, State] = {
+    State.SWITCH_ON_DISABLED: State.READY_TO_SWITCH_ON,
+    State.READY_TO_SWITCH_ON: State.SWITCHED_ON,
+    State.SWITCHED_ON: State.OPERATION_ENABLED,
+    State.QUICK_STOP_ACTIVE: State.SWITCH_ON_DISABLED,
+}
+
+
+def next_step_to_enable(state: State) -> tuple[State, int, Command] | None:
+    """The next (state, transition number, command) on the way to Operation Enabled.
+
+    ``None`` when already enabled, or when the state needs something else first (fault:
+    reset it; not ready / fault reaction: wait).
+    """
+    target = _ENABLE_PATH.get(state)
+    if target is None:
+        return None
+    number, command = TRANSITIONS[(state, target)]
+    return target, number, command
+
+
+def controlword(command: Command, *, new_setpoint: bool = False, change_immediately: bool = False,
+                relative: bool = False, halt: bool = False) -> int:
+    """Build a controlword: a device-control command plus operation-mode bits."""
+    cw = int(command)
+    if new_setpoint:
+        cw |= CW.NEW_SETPOINT
+    if change_immediately:
+        cw |= CW.CHANGE_IMMEDIATELY
+    if relative:
+        cw |= CW.RELATIVE
+    if halt:
+        cw |= CW.HALT
+    return cw

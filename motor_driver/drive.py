@@ -1,0 +1,697 @@
+"""One CiA 402 drive on a CANopen network: boot, state machine, commands, PDO state.
+
+Hot path: TPDO callbacks (canopen's notifier thread) unpack with one precompiled struct and
+store plain attributes; commands build their payload with a pure function and send one
+frame. Every failure raises a typed error from :mod:`can_config.errors`; nothing is logged
+and swallowed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import canopen
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config.config import DriveConfig
+from can_config.eds import has_object, variable
+from can_config.errors import (
+    BootError,
+    CommandRejected,
+    DriveStateError,
+    DriveTimeoutError,
+    SdoError,
+    SdoTimeoutError,
+)
+from can_config.objects import (
+    CIA402_PROFILE,
+    OD,
+    STRUCT_FORMAT,
+    SUPPORTED_MODE_BIT,
+    NmtCommand,
+    NmtState,
+    OperationMode,
+    emcy_text,
+    sdo_abort_text,
+)
+from motor_driver.cia402 import CW, SW, Command, State, controlword, decode_state, next_step_to_enable
+from motor_driver.pdo import PdoPlan, TpdoLayout, encode_rpdo, mapping_writes, plan_pdos
+from motor_driver.units import (
+    Scale,
+    check_counts,
+    check_limits,
+    nearest_equivalent,
+    require_finite,
+)
+
+logger = logging.getLogger(__name__)
+
+#: Timeouts (seconds); module constants so tests and benchmarks can override them.
+BOOTUP_TIMEOUT_S = 2.0
+SDO_TIMEOUT_S = 0.5
+TRANSITION_TIMEOUT_S = 1.0
+MODE_SWITCH_TIMEOUT_S = 1.0
+STATE_POLL_S = 0.002
+
+
+@dataclass(frozen=True)
+class Emcy:
+    code: int
+    register: int
+    text: str
+    timestamp: float
+
+
+@dataclass(frozen=True)
+class DriveState:
+    """A snapshot of what the driver knows about one drive, in engineering units."""
+
+    name: str
+    node_id: int
+    angle_deg: float
+    velocity_deg_s: float
+    torque_nm: float  # NaN where the drive has no torque actual value (0x6077)
+    statusword: int
+    state: State
+    mode: int
+    nmt: str
+    enabled: bool
+    fault: bool
+    lost: bool
+    error_code: int
+    error_text: str
+    stamp: float  # time.time() when the PDOs carrying this state arrived
+    heartbeat_age_s: float
+    target_reached: bool
+
+
+class Drive:
+    """One drive. Created by :class:`motor_driver.driver.MotorDriver`; methods are thread-safe."""
+
+    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary) -> None:
+        self.config = config
+        self.name = config.name
+        self.node_id = config.node_id
+        self.network = network
+        self.od = od
+        self.node = canopen.RemoteNode(config.node_id, od)
+        self.node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+        network.add_node(self.node)
+        self.scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio)
+        self.plan: PdoPlan = plan_pdos(od, config.node_id)
+        self._lock = threading.RLock()  # serialises commands to this drive
+        self._cw = 0  # last device-control controlword (no edge bits)
+        self._target_counts = 0
+        self._pending_target: int | None = None
+        self._awaiting_ack = False
+        # state from PDOs / heartbeat / EMCY (written by the notifier thread)
+        self.statusword = 0
+        self.mode_display = 0
+        self.position_counts = 0
+        self.velocity_counts_s = 0
+        self.torque_permille: float = math.nan
+        self.stamp = 0.0
+        self.nmt_state = "UNKNOWN"
+        self.last_heartbeat = 0.0
+        self.lost = False
+        self.booted = False
+        self.last_emcy: Emcy | None = None
+        self.rebooted = threading.Event()
+        self._bootup = threading.Event()
+        self._status_event = threading.Condition()
+        self.tpdo_count = 0
+        self.boot_count = 0
+        self.last_velocity_cmd = 0.0
+        self.velocity_commanded = False
+        self.was_enabled = False
+        self.turns_offset_deg = 0.0
+        self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in self.plan.tpdos)
+        self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in self.plan.tpdos}
+        for cob in self._layouts:
+            network.subscribe(cob, self._on_tpdo)
+        network.subscribe(0x700 + self.node_id, self._on_heartbeat)
+        network.subscribe(0x80 + self.node_id, self._on_emcy)
+
+    # ------------------------------------------------------------------ receive (hot path)
+    def _on_tpdo(self, cob_id: int, data: bytearray, timestamp: float) -> None:
+        layout = self._layouts[cob_id]
+        try:
+            values = layout.codec.unpack_from(data)
+        except struct.error:
+            logger.warning("node %d: TPDO 0x%03X with %d bytes, expected %d; ignored",
+                           self.node_id, cob_id, len(data), layout.codec.size)
+            return
+        for index, value in zip(layout.indexes, values, strict=True):
+            if index == OD.STATUSWORD:
+                self.statusword = value
+            elif index == OD.POSITION_ACTUAL:
+                self.position_counts = value
+            elif index == OD.VELOCITY_ACTUAL:
+                self.velocity_counts_s = value
+            elif index == OD.TORQUE_ACTUAL:
+                self.torque_permille = value
+            elif index == OD.MODES_OF_OPERATION_DISPLAY:
+                self.mode_display = value
+        self.stamp = timestamp
+        self.tpdo_count += 1
+        if OD.STATUSWORD in layout.indexes:
+            if self._awaiting_ack and self.statusword & SW.SETPOINT_ACK:
+                self._complete_setpoint()
+            with self._status_event:
+                self._status_event.notify_all()
+
+    def _on_heartbeat(self, cob_id: int, data: bytearray, timestamp: float) -> None:
+        if not data:
+            return
+        state = data[0] & 0x7F
+        self.last_heartbeat = time.monotonic()
+        if state == NmtState.BOOTUP:
+            self.nmt_state = "BOOTUP"
+            self._bootup.set()
+            if self.booted:
+                logger.warning("node %d (%s) sent boot-up: it power-cycled or reset; it will be"
+                               " configured again", self.node_id, self.name)
+                self.booted = False
+                self.rebooted.set()
+            return
+        try:
+            self.nmt_state = NmtState(state).name
+        except ValueError:
+            self.nmt_state = f"0x{state:02X}"
+        if self.lost:
+            logger.warning("node %d (%s): heartbeat back", self.node_id, self.name)
+            self.lost = False
+
+    def _on_emcy(self, cob_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) < 3:
+            return
+        code, register = struct.unpack_from("<HB", data)
+        self.last_emcy = Emcy(code, register, emcy_text(code), timestamp)
+        if code:
+            logger.error("node %d (%s): EMCY 0x%04X %s (error register 0x%02X)", self.node_id,
+                         self.name, code, emcy_text(code), register)
+        else:
+            logger.info("node %d (%s): EMCY error reset", self.node_id, self.name)
+
+    # ------------------------------------------------------------------ snapshot
+    @property
+    def state(self) -> State:
+        return decode_state(self.statusword)
+
+    @property
+    def angle_deg(self) -> float:
+        return self.scale.counts_to_deg(self.position_counts)
+
+    def snapshot(self) -> DriveState:
+        sw = self.statusword
+        state = decode_state(sw)
+        emcy = self.last_emcy
+        error_code = emcy.code if emcy is not None and state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else 0
+        if emcy is not None and not error_code and emcy.code:
+            error_code = emcy.code
+        hb_age = time.monotonic() - self.last_heartbeat if self.last_heartbeat else math.inf
+        torque = self.scale.permille_to_nm(self.torque_permille) if self._has_torque else math.nan
+        return DriveState(
+            name=self.name, node_id=self.node_id, angle_deg=self.angle_deg,
+            velocity_deg_s=self.scale.counts_s_to_deg_s(self.velocity_counts_s), torque_nm=torque,
+            statusword=sw, state=state, mode=self.mode_display, nmt=self.nmt_state,
+            enabled=state == State.OPERATION_ENABLED and not self.lost,
+            fault=state in (State.FAULT, State.FAULT_REACTION_ACTIVE) or self.lost,
+            lost=self.lost, error_code=error_code,
+            error_text=emcy_text(error_code) if error_code else "",
+            stamp=self.stamp, heartbeat_age_s=hb_age,
+            target_reached=bool(sw & SW.TARGET_REACHED))
+
+    # ------------------------------------------------------------------ SDO
+    def sdo_read(self, index: int, subindex: int = 0) -> bytes:
+        try:
+            return bytes(self.node.sdo.upload(index, subindex))
+        except canopen.SdoAbortedError as err:
+            raise SdoError(f"node {self.node_id}: SDO read 0x{index:04X}:{subindex} aborted with"
+                           f" 0x{err.code:08X} ({sdo_abort_text(err.code)})", node_id=self.node_id,
+                           index=index, subindex=subindex, abort_code=err.code) from err
+        except canopen.SdoCommunicationError as err:
+            raise SdoTimeoutError(f"node {self.node_id}: SDO read 0x{index:04X}:{subindex} got no"
+                                  f" answer ({err}); check power, node id, bitrate and termination",
+                                  node_id=self.node_id, index=index, subindex=subindex) from err
+
+    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        try:
+            self.node.sdo.download(index, subindex, data)
+        except canopen.SdoAbortedError as err:
+            raise SdoError(f"node {self.node_id}: SDO write 0x{index:04X}:{subindex} aborted with"
+                           f" 0x{err.code:08X} ({sdo_abort_text(err.code)})", node_id=self.node_id,
+                           index=index, subindex=subindex, abort_code=err.code) from err
+        except canopen.SdoCommunicationError as err:
+            raise SdoTimeoutError(f"node {self.node_id}: SDO write 0x{index:04X}:{subindex} got no"
+                                  f" answer ({err}); check power, node id, bitrate and termination",
+                                  node_id=self.node_id, index=index, subindex=subindex) from err
+
+    def sdo_read_value(self, index: int, subindex: int = 0) -> int | float | bytes:
+        raw = self.sdo_read(index, subindex)
+        var = variable(self.od, index, subindex)
+        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else None
+        if fmt is not None and len(raw) == struct.calcsize(fmt):
+            return struct.unpack(fmt, raw)[0]  # type: ignore[no-any-return]
+        return raw
+
+    def _write_typed(self, index: int, subindex: int, value: int) -> None:
+        var = variable(self.od, index, subindex)
+        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else "<i"
+        if fmt in ("<f", "<d"):
+            self.sdo_write(index, subindex, struct.pack(fmt, float(value)))
+        else:
+            self.sdo_write(index, subindex, struct.pack(fmt or "<i", value))
+
+    # ------------------------------------------------------------------ boot
+    def boot(self, *, reset: bool = True) -> None:
+        """Reset (NMT), check identity, configure PDOs and parameters, NMT start. Does not enable."""
+        cfg = self.config
+        step = "boot-up"
+        self.booted = False
+        self.rebooted.clear()
+        if reset:
+            self._bootup.clear()
+            self.network.send_message(0x000, bytes([NmtCommand.RESET_NODE, self.node_id]))
+            if not self._bootup.wait(BOOTUP_TIMEOUT_S):
+                raise BootError(f"node {self.node_id} ({self.name}): no boot-up message within"
+                                f" {BOOTUP_TIMEOUT_S:g} s after NMT reset; check power, node id,"
+                                " bitrate and termination", node_id=self.node_id, step=step)
+        current: tuple[int, int] = (0, 0)
+        try:
+            step = "device type"
+            current = (OD.DEVICE_TYPE, 0)
+            device_type = struct.unpack("<I", self.sdo_read(OD.DEVICE_TYPE, 0)[:4].ljust(4, b"\0"))[0]
+            if device_type & 0xFFFF != CIA402_PROFILE:
+                logger.warning("node %d: device type 0x%08X is not a CiA 402 drive profile",
+                               self.node_id, device_type)
+            step = "identity"
+            self._check_identity()
+            step = "PDO mapping"
+            for index, sub, data, what in mapping_writes(self.plan):
+                current = (index, sub)
+                var = variable(self.od, index, sub)
+                if var is not None and var.access_type in ("ro", "const"):
+                    logger.info("node %d: %s: 0x%04X:%d is read-only in the EDS; keeping the device's"
+                                " value", self.node_id, what, index, sub)
+                    continue
+                try:
+                    self.sdo_write(index, sub, data)
+                except SdoError as err:
+                    raise BootError(f"node {self.node_id} ({self.name}): boot step '{step}' failed at"
+                                    f" {what} (0x{index:04X}:{sub}): {err}", node_id=self.node_id,
+                                    step=step, index=index, subindex=sub,
+                                    abort_code=err.abort_code) from err
+            step = "heartbeat"
+            current = (OD.PRODUCER_HEARTBEAT_TIME, 0)
+            self.sdo_write(OD.PRODUCER_HEARTBEAT_TIME, 0,
+                           struct.pack("<H", int(cfg.heartbeat_period_s * 1000)))
+            step = "profile parameters"
+            for index, value in ((OD.PROFILE_VELOCITY, self.scale.deg_s_to_counts_s(cfg.profile_velocity_deg_s)),
+                                 (OD.PROFILE_ACCELERATION, self.scale.deg_s_to_counts_s(cfg.profile_acceleration_deg_s2)),
+                                 (OD.PROFILE_DECELERATION, self.scale.deg_s_to_counts_s(cfg.profile_acceleration_deg_s2)),
+                                 (OD.MAX_PROFILE_VELOCITY, self.scale.deg_s_to_counts_s(cfg.max_velocity_deg_s))):
+                if has_object(self.od, index):
+                    current = (index, 0)
+                    self._write_typed(index, 0, value)
+            step = "operation mode"
+            current = (OD.SUPPORTED_DRIVE_MODES, 0)
+            supported = self.supported_modes()
+            current = (OD.MODES_OF_OPERATION, 0)
+            if supported >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_POSITION] & 1:
+                self._switch_mode_sdo(OperationMode.PROFILE_POSITION)
+            else:
+                logger.warning("node %d (%s): 0x6502 = 0x%08X lists no profile position mode; the"
+                               " drive boots without a mode and move_to() will be refused",
+                               self.node_id, self.name, supported)
+                self.mode_display = int(self.sdo_read_value(OD.MODES_OF_OPERATION_DISPLAY))  # type: ignore[arg-type]
+            step = "read state"
+            current = (OD.STATUSWORD, 0)
+            self.statusword = int(self.sdo_read_value(OD.STATUSWORD))  # type: ignore[arg-type]
+            current = (OD.POSITION_ACTUAL, 0)
+            self.position_counts = int(self.sdo_read_value(OD.POSITION_ACTUAL))  # type: ignore[arg-type]
+            self._target_counts = self.position_counts
+        except BootError:
+            raise
+        except (SdoError, DriveStateError) as err:
+            code = getattr(err, "abort_code", None)
+            raise BootError(f"node {self.node_id} ({self.name}): boot step '{step}' failed at"
+                            f" 0x{current[0]:04X}:{current[1]}: {err}", node_id=self.node_id,
+                            step=step, index=current[0], subindex=current[1], abort_code=code) from err
+        self.network.send_message(0x000, bytes([NmtCommand.START, self.node_id]))
+        self.nmt_state = "OPERATIONAL"
+        self.last_heartbeat = time.monotonic()
+        self.lost = False
+        self._cw = 0
+        self.boot_count += 1
+        self.booted = True
+        logger.info("node %d (%s) booted: %d RPDOs, %d TPDOs%s", self.node_id, self.name,
+                    len(self.plan.rpdos), len(self.plan.tpdos),
+                    f"; by SDO: {', '.join(f'0x{i:04X}' for i in self.plan.sdo_only)}"
+                    if self.plan.sdo_only else "")
+
+    def _check_identity(self) -> None:
+        expected = self.config.identity
+        for sub, name, want in ((1, "vendor id", expected.vendor_id),
+                                (2, "product code", expected.product_code),
+                                (3, "revision", expected.revision)):
+            if want is None:
+                continue
+            got = struct.unpack("<I", self.sdo_read(OD.IDENTITY, sub)[:4].ljust(4, b"\0"))[0]
+            if got != want:
+                raise BootError(f"node {self.node_id} ({self.name}): identity mismatch: {name} is"
+                                f" 0x{got:08X} on the device, the config expects 0x{want:08X}. Is"
+                                " the right drive at this node id?", node_id=self.node_id,
+                                step="identity", index=OD.IDENTITY, subindex=sub)
+
+    # ------------------------------------------------------------------ modes
+    def supported_modes(self) -> int:
+        if not has_object(self.od, OD.SUPPORTED_DRIVE_MODES):
+            return 0xFFFF_FFFF
+        return int(self.sdo_read_value(OD.SUPPORTED_DRIVE_MODES))  # type: ignore[arg-type]
+
+    def _switch_mode_sdo(self, mode: OperationMode) -> None:
+        self._write_typed(OD.MODES_OF_OPERATION, 0, int(mode))
+        deadline = time.monotonic() + MODE_SWITCH_TIMEOUT_S
+        while True:
+            shown = int(self.sdo_read_value(OD.MODES_OF_OPERATION_DISPLAY))  # type: ignore[arg-type]
+            if shown == mode:
+                self.mode_display = shown
+                return
+            if time.monotonic() > deadline:
+                raise DriveTimeoutError(f"node {self.node_id}: mode {mode.name} written to 0x6060 but"
+                                        f" 0x6061 still shows {shown} after {MODE_SWITCH_TIMEOUT_S:g} s",
+                                        node_id=self.node_id, statusword=self.statusword)
+            time.sleep(STATE_POLL_S)
+
+    def set_mode(self, mode: OperationMode | int) -> None:
+        """Switch the mode of operation; refuses modes 0x6502 does not list; waits for 0x6061."""
+        mode = OperationMode(mode)
+        with self._lock:
+            bit = SUPPORTED_MODE_BIT.get(mode)
+            supported = self.supported_modes()
+            if bit is None or not supported >> bit & 1:
+                raise CommandRejected(f"{self.name}: mode {mode.name} is not supported by node"
+                                      f" {self.node_id} (0x6502 = 0x{supported:08X}); supported:"
+                                      f" {', '.join(m.name for m, b in SUPPORTED_MODE_BIT.items() if supported >> b & 1)}")
+            if self.mode_display == mode:
+                return
+            self._target_counts = self.position_counts
+            self._switch_mode_sdo(mode)
+
+    # ------------------------------------------------------------------ state machine
+    def _send_cw(self, cw: int) -> None:
+        pdo = self.plan.rpdo_with(OD.CONTROLWORD)
+        if pdo is None:
+            self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", cw))
+            return
+        values: dict[int, int] = {OD.CONTROLWORD: cw, OD.TARGET_POSITION: self._target_counts, OD.TARGET_VELOCITY: 0}
+        self.network.send_message(pdo.cob_id, encode_rpdo(pdo, values))
+
+    def _wait_state(self, wanted: set[State], timeout_s: float, doing: str, *,
+                    fault_ok: bool = False) -> State:
+        deadline = time.monotonic() + timeout_s
+        with self._status_event:
+            while True:
+                state = self.state
+                if state in wanted:
+                    return state
+                if state in (State.FAULT, State.FAULT_REACTION_ACTIVE) and not fault_ok:
+                    raise self._fault_error(doing)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    hint = ""
+                    if state == State.READY_TO_SWITCH_ON and not self.statusword & SW.VOLTAGE_ENABLED:
+                        hint = " The drive reports no voltage: is STO low or the E-stop pressed?"
+                    raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: still in"
+                                            f" {state.name} (statusword 0x{self.statusword:04X}) after"
+                                            f" {timeout_s:g} s.{hint}", node_id=self.node_id,
+                                            statusword=self.statusword)
+                self._status_event.wait(min(remaining, 0.05))
+
+    def _fault_error(self, doing: str) -> DriveStateError:
+        emcy = self.last_emcy
+        code = emcy.code if emcy is not None else None
+        what = f"EMCY 0x{code:04X} {emcy_text(code)}" if code else "no EMCY received"
+        return DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is in FAULT"
+                               f" ({what}); call recover() to reset it", node_id=self.node_id,
+                               statusword=self.statusword, error_code=code)
+
+    def _require_usable(self, doing: str) -> None:
+        if self.lost:
+            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is lost (no"
+                                  " heartbeat); nothing was sent", node_id=self.node_id)
+        if not self.booted:
+            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is not"
+                                  " booted (boot() it, or wait for re-configuration after a reset)",
+                                  node_id=self.node_id)
+
+    def enable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        """Walk the state machine to Operation Enabled (transitions 2, 3, 4), holding position."""
+        with self._lock:
+            self._require_usable("enable")
+            self._target_counts = self.position_counts
+            for _ in range(6):
+                state = self.state
+                if state == State.OPERATION_ENABLED:
+                    self.was_enabled = True
+                    return
+                if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                    raise self._fault_error("enable")
+                step = next_step_to_enable(state)
+                if step is None:
+                    self._wait_state({State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON,
+                                      State.SWITCHED_ON, State.OPERATION_ENABLED}, timeout_s, "enable")
+                    continue
+                target, number, command = step
+                logger.debug("node %d: transition %d to %s", self.node_id, number, target.name)
+                self._cw = int(command)
+                self._send_cw(self._cw)
+                self._wait_state({target, State.OPERATION_ENABLED}, timeout_s,
+                                 f"enable (transition {number} to {target.name})")
+            if self.state != State.OPERATION_ENABLED:
+                raise DriveTimeoutError(f"{self.name}: could not reach OPERATION_ENABLED",
+                                        node_id=self.node_id, statusword=self.statusword)
+            self.was_enabled = True
+
+    def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        """Shutdown (transition 8 or 6): power stage off, drive in Ready to Switch On."""
+        with self._lock:
+            self.was_enabled = False
+            self.velocity_commanded = False
+            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.SWITCH_ON_DISABLED,
+                              State.READY_TO_SWITCH_ON):
+                return
+            self._cw = int(Command.SHUTDOWN)
+            self._send_cw(self._cw)
+            self._wait_state({State.READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED}, timeout_s, "disable")
+
+    def quick_stop(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        """Quick stop (transition 11): the drive brakes on its quick-stop ramp."""
+        with self._lock:
+            self.was_enabled = False
+            self.velocity_commanded = False
+            if self.state != State.OPERATION_ENABLED:
+                return
+            self._cw = int(Command.QUICK_STOP)
+            self._send_cw(self._cw)
+            self._wait_state({State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED}, timeout_s, "quick stop")
+
+    def disable_voltage(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        """Disable voltage (transitions 7, 9, 10, 12): power stage off, Switch On Disabled."""
+        with self._lock:
+            self.was_enabled = False
+            self.velocity_commanded = False
+            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                return
+            self._cw = int(Command.DISABLE_VOLTAGE)
+            self._send_cw(self._cw)
+            self._wait_state({State.SWITCH_ON_DISABLED}, timeout_s, "disable voltage")
+
+    def halt(self, on: bool = True) -> None:
+        """Set or clear the halt bit (8): stop on the profile deceleration, stay enabled."""
+        with self._lock:
+            self._require_usable("halt")
+            self._cw = (self._cw | CW.HALT) if on else (self._cw & ~CW.HALT)
+            self._send_cw(self._cw)
+
+    def recover(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        """Fault reset (transition 15), then back to the enable state the drive had before."""
+        with self._lock:
+            if self.lost:
+                raise DriveStateError(f"{self.name}: recover: the drive is lost (no heartbeat)",
+                                      node_id=self.node_id)
+            restore = self.was_enabled
+            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                if self.state == State.FAULT_REACTION_ACTIVE:
+                    self._wait_state({State.FAULT}, timeout_s, "recover (fault reaction)", fault_ok=True)
+                self._cw = 0
+                self._send_cw(0)
+                self._send_cw(int(Command.FAULT_RESET))
+                self._wait_state({State.SWITCH_ON_DISABLED}, timeout_s, "fault reset (transition 15)",
+                                 fault_ok=True)
+                self._cw = 0
+                self._send_cw(0)
+            self.last_emcy = None
+            if restore:
+                self.enable(timeout_s)
+
+    # ------------------------------------------------------------------ motion
+    def _position_target_counts(self, angle_deg: float) -> int:
+        angle = require_finite(f"{self.name} angle", angle_deg, "deg")
+        cfg = self.config
+        if cfg.is_continuous:
+            angle = nearest_equivalent(angle, self.angle_deg)
+        else:
+            check_limits(self.name, angle, cfg.min_deg, cfg.max_deg)
+        return check_counts(self.name, self.scale.deg_to_counts(angle), "target position")
+
+    def move_to(self, angle_deg: float, *, wait: bool = False, timeout_s: float | None = None) -> float:
+        """Profile-position move to ``angle_deg``; returns the (multi-turn) target in degrees.
+
+        A continuous joint takes the short way round; a limited joint refuses targets beyond
+        its limits. Nothing is sent for a refused command.
+        """
+        counts = self._position_target_counts(angle_deg)
+        with self._lock:
+            self._require_usable("move")
+            if self.state != State.OPERATION_ENABLED:
+                if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                    raise self._fault_error("move")
+                raise DriveStateError(f"{self.name} (node {self.node_id}): move refused: the drive is"
+                                      f" {self.state.name}, not OPERATION_ENABLED; enable() it first",
+                                      node_id=self.node_id, statusword=self.statusword)
+            if self.mode_display != OperationMode.PROFILE_POSITION:
+                self.set_mode(OperationMode.PROFILE_POSITION)
+            self._cw &= ~CW.HALT
+            if self._awaiting_ack:
+                self._pending_target = counts
+            else:
+                self._send_setpoint(counts)
+        if wait:
+            self.wait_target_reached(timeout_s)
+        return self.scale.counts_to_deg(counts)
+
+    def _send_setpoint(self, counts: int) -> None:
+        self._target_counts = counts
+        pdo = self.plan.rpdo_with(OD.TARGET_POSITION)
+        cw = controlword(Command.ENABLE_OPERATION, new_setpoint=True, change_immediately=True)
+        cw |= self._cw & CW.HALT
+        self._awaiting_ack = True
+        if pdo is not None:
+            self.network.send_message(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw,
+                                                                    OD.TARGET_POSITION: counts}))
+        else:  # target position not PDO-mappable on this drive (e.g. SCHUNK PRL120)
+            self._write_typed(OD.TARGET_POSITION, 0, counts)
+            self._send_cw(cw)
+
+    def _complete_setpoint(self) -> None:
+        """Setpoint acknowledged (statusword bit 12): clear bit 4; send a queued target."""
+        self._awaiting_ack = False
+        cw = int(Command.ENABLE_OPERATION) | (self._cw & CW.HALT)
+        self._send_cw(cw)
+        pending, self._pending_target = self._pending_target, None
+        if pending is not None:
+            self._send_setpoint(pending)
+
+    def wait_target_reached(self, timeout_s: float | None = None) -> None:
+        if timeout_s is None:
+            span = abs(self.scale.counts_to_deg(self._target_counts - self.position_counts))
+            cfg = self.config
+            timeout_s = 2.0 + span / cfg.profile_velocity_deg_s + 2 * cfg.profile_velocity_deg_s / cfg.profile_acceleration_deg_s2
+        deadline = time.monotonic() + timeout_s
+        with self._status_event:
+            while True:
+                if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                    raise self._fault_error("move")
+                if not self._awaiting_ack and self._pending_target is None and self.statusword & SW.TARGET_REACHED:
+                    return
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DriveTimeoutError(f"{self.name}: target not reached within {timeout_s:.1f} s"
+                                            f" (at {self.angle_deg:.2f} deg, target"
+                                            f" {self.scale.counts_to_deg(self._target_counts):.2f} deg)",
+                                            node_id=self.node_id, statusword=self.statusword)
+                self._status_event.wait(min(remaining, 0.05))
+
+    def set_velocity(self, velocity_deg_s: float) -> None:
+        """Profile-velocity command in deg/s, limited by max_velocity_deg_s; feeds the watchdog."""
+        velocity = require_finite(f"{self.name} velocity", velocity_deg_s, "deg/s")
+        vmax = self.config.max_velocity_deg_s
+        if abs(velocity) > vmax:
+            raise CommandRejected(f"{self.name}: velocity {velocity:g} deg/s is beyond the limit"
+                                  f" max_velocity_deg_s={vmax:g} (allowed -{vmax:g} to {vmax:g}). Nothing"
+                                  " was sent.")
+        counts_s = check_counts(self.name, self.scale.deg_s_to_counts_s(velocity), "velocity")
+        with self._lock:
+            self._require_usable("velocity command")
+            if self.state != State.OPERATION_ENABLED:
+                raise DriveStateError(f"{self.name}: velocity command refused: the drive is"
+                                      f" {self.state.name}; enable() it first", node_id=self.node_id,
+                                      statusword=self.statusword)
+            if self.mode_display != OperationMode.PROFILE_VELOCITY:
+                self.set_mode(OperationMode.PROFILE_VELOCITY)
+            self._send_velocity(counts_s)
+            self.last_velocity_cmd = time.monotonic()
+            self.velocity_commanded = velocity != 0.0
+
+    def _send_velocity(self, counts_s: int) -> None:
+        pdo = self.plan.rpdo_with(OD.TARGET_VELOCITY)
+        cw = int(Command.ENABLE_OPERATION) | (self._cw & CW.HALT)
+        if pdo is not None:
+            self.network.send_message(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw,
+                                                                    OD.TARGET_VELOCITY: counts_s}))
+        else:
+            self._write_typed(OD.TARGET_VELOCITY, 0, counts_s)
+
+    def stop_velocity(self) -> None:
+        """Watchdog action: command zero velocity."""
+        with self._lock:
+            self.velocity_commanded = False
+            if self.state == State.OPERATION_ENABLED and self.mode_display == OperationMode.PROFILE_VELOCITY:
+                self._send_velocity(0)
+
+    def home(self, timeout_s: float | None = None) -> None:
+        """Homing with the configured method and speed; waits for 'homing attained'."""
+        cfg = self.config
+        with self._lock:
+            self._require_usable("home")
+            self.set_mode(OperationMode.HOMING)
+            self._write_typed(OD.HOMING_METHOD, 0, cfg.homing_method)
+            if has_object(self.od, OD.HOMING_SPEEDS, 1):
+                self._write_typed(OD.HOMING_SPEEDS, 1, self.scale.deg_s_to_counts_s(cfg.homing_speed_deg_s))
+            if self.state != State.OPERATION_ENABLED:
+                self.enable()
+            self._send_cw(int(Command.ENABLE_OPERATION))
+            self._send_cw(int(Command.ENABLE_OPERATION) | CW.NEW_SETPOINT)
+        deadline = time.monotonic() + (timeout_s or cfg.homing_timeout_s)
+        while True:
+            sw = self.statusword
+            if sw & SW.FOLLOWING_ERROR:
+                raise DriveStateError(f"{self.name}: homing error reported (statusword 0x{sw:04X})",
+                                      node_id=self.node_id, statusword=sw)
+            if sw & SW.SETPOINT_ACK and sw & SW.TARGET_REACHED:
+                break
+            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                raise self._fault_error("home")
+            if time.monotonic() > deadline:
+                raise DriveTimeoutError(f"{self.name}: homing not attained within"
+                                        f" {timeout_s or cfg.homing_timeout_s:g} s", node_id=self.node_id,
+                                        statusword=sw)
+            time.sleep(STATE_POLL_S)
+        with self._lock:
+            self._send_cw(int(Command.ENABLE_OPERATION))
+            self.set_mode(OperationMode.PROFILE_POSITION)
+            self._target_counts = self.position_counts
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "node_id": self.node_id,
+                "rpdos": [[f"0x{i:04X}" for i in p.indexes] for p in self.plan.rpdos],
+                "tpdos": [[f"0x{i:04X}" for i in p.indexes] for p in self.plan.tpdos],
+                "sdo_only": [f"0x{i:04X}" for i in self.plan.sdo_only]}

@@ -1,0 +1,219 @@
+"""The motor driver: every configured bus and drive in one process.
+
+Per bus: a python-can bus (opened from config, or given), a canopen ``Network`` (its notifier
+thread runs the PDO callbacks), a SYNC producer through python-can's periodic send (the
+kernel's BCM timer on SocketCAN). One supervisor thread watches heartbeats (loss within the
+consumer time), re-configures drives that sent a boot-up, and runs the velocity watchdog.
+
+Safe by default: start() boots and configures but enables only drives with
+``arm_on_start``; close() quick-stops and disables every drive, stops SYNC, stops threads,
+and closes the buses it opened, in that order.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
+
+import can
+import canopen
+
+from can_config import RoverConfig, load_drive_od
+from can_config.errors import BusLostError, ConfigError, MotorError
+from motor_driver.cia402 import State
+from motor_driver.drive import Drive, DriveState
+
+logger = logging.getLogger(__name__)
+
+SUPERVISOR_PERIOD_S = 0.01
+NOTIFIER_TIMEOUT_S = 0.1
+
+
+class BusHandle:
+    """One bus with its canopen network and SYNC task."""
+
+    def __init__(self, name: str, bus: can.BusABC, owned: bool, sync_period_s: float) -> None:
+        self.name = name
+        self.bus = bus
+        self.owned = owned
+        self.sync_period_s = sync_period_s
+        self.network = canopen.Network(bus)
+        self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
+        self.network.connect()
+        self.sync_task: can.broadcastmanager.CyclicSendTaskABC | None = None
+
+    def start_sync(self) -> None:
+        if self.sync_task is None and self.sync_period_s > 0:
+            msg = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
+            self.sync_task = self.bus.send_periodic(msg, self.sync_period_s, store_task=False)
+
+    def stop_sync(self) -> None:
+        if self.sync_task is not None:
+            self.sync_task.stop()
+            self.sync_task = None
+
+    def close(self) -> None:
+        self.stop_sync()
+        notifier = self.network.notifier
+        if notifier is not None:
+            notifier.stop(timeout=1.0)
+            self.network.notifier = None
+        if self.owned:
+            self.bus.shutdown()
+
+
+class MotorDriver:
+    """All drives of a :class:`RoverConfig`. A context manager; ``close()`` is idempotent.
+
+    ``buses`` maps bus names to already-open python-can buses (tests, the emulator); any
+    other configured bus is opened with ``can.Bus(**bus_config.bus_kwargs())``.
+    """
+
+    def __init__(self, config: RoverConfig, buses: Mapping[str, can.BusABC] | None = None) -> None:
+        self.config = config
+        self._handles: dict[str, BusHandle] = {}
+        self.drives: dict[str, Drive] = {}
+        self._closed = False
+        self._stop = threading.Event()
+        self._supervisor: threading.Thread | None = None
+        self.bus_lost: dict[str, bool] = {}
+        given = dict(buses or {})
+        # every EDS is loaded and checked before any hardware is touched
+        ods = {d.name: load_drive_od(d.eds, d.node_id) for d in config.drives}
+        try:
+            for bus_cfg in config.buses:
+                bus = given.get(bus_cfg.name)
+                owned = bus is None
+                if bus is None:
+                    try:
+                        bus = can.Bus(**bus_cfg.bus_kwargs())
+                    except (can.CanError, OSError, ValueError, ImportError) as err:
+                        raise BusLostError(f"bus {bus_cfg.name!r}: cannot open {bus_cfg.bus_kwargs()}:"
+                                           f" {err}. Is the interface up (ip link) or the simulator"
+                                           " running (rovercan sim)?") from err
+                self._handles[bus_cfg.name] = BusHandle(bus_cfg.name, bus, owned, bus_cfg.sync_period_s)
+                self.bus_lost[bus_cfg.name] = False
+            for drive_cfg in config.drives:
+                self.drives[drive_cfg.name] = Drive(drive_cfg, self._handles[drive_cfg.bus].network,
+                                                    ods[drive_cfg.name])
+        except BaseException:
+            self._close_buses()
+            raise
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self, *, reset: bool = True) -> MotorDriver:
+        """Boot every drive (buses in parallel), start SYNC and supervision; enable only drives
+        configured with ``arm_on_start``."""
+        by_bus: dict[str, list[Drive]] = {}
+        for drive in self.drives.values():
+            by_bus.setdefault(drive.config.bus, []).append(drive)
+        with ThreadPoolExecutor(max_workers=max(1, len(self.drives)),
+                                thread_name_prefix="rovercan-boot") as pool:
+            futures = [pool.submit(d.boot, reset=reset) for d in self.drives.values()]
+            for future in futures:
+                future.result()
+        for handle in self._handles.values():
+            handle.start_sync()
+        self._supervisor = threading.Thread(target=self._supervise, daemon=True,
+                                            name="rovercan-supervisor")
+        self._supervisor.start()
+        for drive in self.drives.values():
+            if drive.config.arm_on_start:
+                drive.enable()
+        return self
+
+    def __enter__(self) -> MotorDriver:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def drive(self, name: str) -> Drive:
+        try:
+            return self.drives[name]
+        except KeyError:
+            raise ConfigError(f"unknown joint {name!r}; configured joints: {sorted(self.drives)}") from None
+
+    def __iter__(self) -> Iterator[Drive]:
+        return iter(self.drives.values())
+
+    def states(self) -> list[DriveState]:
+        return [d.snapshot() for d in self.drives.values()]
+
+    # ------------------------------------------------------------------ supervision
+    def _supervise(self) -> None:
+        while not self._stop.wait(SUPERVISOR_PERIOD_S):
+            now = time.monotonic()
+            for drive in self.drives.values():
+                try:
+                    self._supervise_drive(drive, now)
+                except MotorError as err:
+                    logger.error("supervisor: %s", err)
+                except Exception:
+                    logger.exception("supervisor: unexpected error on %s", drive.name)
+            for name, handle in self._handles.items():
+                exc = handle.network.notifier.exception if handle.network.notifier else None
+                if exc is not None and not self.bus_lost[name]:
+                    self.bus_lost[name] = True
+                    logger.error("bus %s lost: %s", name, exc)
+
+    def _supervise_drive(self, drive: Drive, now: float) -> None:
+        cfg = drive.config
+        if drive.rebooted.is_set():
+            drive.rebooted.clear()
+            restore = drive.was_enabled and cfg.restore_enable_after_reboot
+            drive.boot(reset=False)
+            if restore:
+                drive.enable()
+            else:
+                drive.was_enabled = False
+            return
+        if drive.booted and not drive.lost and drive.last_heartbeat and \
+                now - drive.last_heartbeat > cfg.heartbeat_timeout_s:
+            drive.lost = True
+            drive.velocity_commanded = False
+            logger.error("node %d (%s): heartbeat lost (none for %.0f ms, consumer time %.0f ms)",
+                         drive.node_id, drive.name, (now - drive.last_heartbeat) * 1000,
+                         cfg.heartbeat_timeout_s * 1000)
+        if drive.velocity_commanded and now - drive.last_velocity_cmd > cfg.watchdog_s:
+            logger.warning("%s: no velocity command for %.0f ms (watchdog %.0f ms); stopping",
+                           drive.name, (now - drive.last_velocity_cmd) * 1000, cfg.watchdog_s * 1000)
+            drive.stop_velocity()
+
+    # ------------------------------------------------------------------ shutdown
+    def safe_stop(self) -> None:
+        """Quick-stop and disable every drive that is powered (errors are collected, not lost)."""
+        errors: list[str] = []
+        for drive in self.drives.values():
+            if drive.lost or not drive.booted:
+                continue
+            try:
+                if drive.state == State.OPERATION_ENABLED:
+                    drive.quick_stop()
+                drive.disable_voltage()
+            except MotorError as err:
+                errors.append(str(err))
+        for message in errors:
+            logger.error("safe stop: %s", message)
+
+    def close(self) -> None:
+        """Quick stop + disable drives, stop SYNC, stop threads, close buses. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        if self._supervisor is not None and self._supervisor is not threading.current_thread():
+            self._supervisor.join(timeout=2.0)
+        try:
+            self.safe_stop()
+        finally:
+            self._close_buses()
+
+    def _close_buses(self) -> None:
+        for handle in self._handles.values():
+            handle.stop_sync()
+        for handle in self._handles.values():
+            handle.close()

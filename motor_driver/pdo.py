@@ -1,0 +1,172 @@
+"""The PDO set the driver needs, planned from a drive's EDS, and its codecs (pure).
+
+The driver never trusts vendor default mappings: :func:`plan_pdos` decides which objects go
+in which PDO, :func:`mapping_writes` lists the SDO writes that configure them with the CiA
+301 procedure (invalidate, clear count, write entries, set count, set transmission type,
+validate), and :class:`TpdoLayout` decodes received TPDOs with one precompiled struct.
+Objects a drive cannot PDO-map are left to SDO, with a warning.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config.eds import count_pdos, variable
+from can_config.objects import OD, PDO_COB_ID_INVALID, RPDO_BASES, STRUCT_FORMAT, TPDO_BASES
+
+logger = logging.getLogger(__name__)
+
+TT_SYNC = 1  # synchronous, every SYNC
+TT_EVENT = 255  # event-driven (device profile specific: on change)
+
+
+@dataclass(frozen=True)
+class PdoMap:
+    """One PDO: its number (0-based), COB-ID, transmission type and mapped objects."""
+
+    number: int
+    cob_id: int
+    trans_type: int
+    objects: tuple[tuple[int, int, int], ...]  # (index, subindex, data type)
+    inhibit_100us: int = 0
+    event_timer_ms: int = 0
+
+    @property
+    def struct_format(self) -> str:
+        return "<" + "".join(STRUCT_FORMAT[dt][1:] for _, _, dt in self.objects)
+
+    @property
+    def indexes(self) -> tuple[int, ...]:
+        return tuple(i for i, _, _ in self.objects)
+
+
+@dataclass(frozen=True)
+class PdoPlan:
+    rpdos: tuple[PdoMap, ...]
+    tpdos: tuple[PdoMap, ...]
+    n_rpdo: int
+    n_tpdo: int
+    node_id: int
+    sdo_only: tuple[int, ...] = field(default=())  # objects that must go by SDO
+
+    def rpdo_with(self, index: int) -> PdoMap | None:
+        for pdo in self.rpdos:
+            if index in pdo.indexes:
+                return pdo
+        return None
+
+
+def _mappable(od: ObjectDictionary, index: int) -> int | None:
+    """Data type of a PDO-mappable fixed-size object, else ``None``."""
+    var = variable(od, index)
+    if var is None or not var.pdo_mappable or int(var.data_type) not in STRUCT_FORMAT:
+        return None
+    return int(var.data_type)
+
+
+def plan_pdos(od: ObjectDictionary, node_id: int) -> PdoPlan:
+    """The PDOs the driver configures on this drive.
+
+    RPDO1 controlword; RPDO2 controlword + target position; RPDO3 controlword + target
+    velocity. TPDO1 statusword + mode display on change; TPDO2 position + velocity on SYNC;
+    TPDO3 torque + statusword on SYNC.
+    """
+    n_rpdo = count_pdos(od, OD.RPDO_COMM)
+    n_tpdo = count_pdos(od, OD.TPDO_COMM)
+    sdo_only: list[int] = []
+
+    def entries(*indexes: int) -> tuple[tuple[int, int, int], ...]:
+        out = []
+        for index in indexes:
+            dt = _mappable(od, index)
+            if dt is None:
+                if variable(od, index) is not None:
+                    sdo_only.append(index)
+                continue
+            out.append((index, 0, dt))
+        return tuple(out)
+
+    wanted_r = [entries(OD.CONTROLWORD),
+                entries(OD.CONTROLWORD, OD.TARGET_POSITION),
+                entries(OD.CONTROLWORD, OD.TARGET_VELOCITY)]
+    wanted_t = [(entries(OD.STATUSWORD, OD.MODES_OF_OPERATION_DISPLAY), TT_EVENT),
+                (entries(OD.POSITION_ACTUAL, OD.VELOCITY_ACTUAL), TT_SYNC),
+                (entries(OD.TORQUE_ACTUAL, OD.STATUSWORD), TT_SYNC)]
+    rpdos: list[PdoMap] = []
+    seen: set[tuple[int, ...]] = set()
+    for objs in wanted_r:
+        key = tuple(i for i, _, _ in objs)
+        if not objs or key in seen or len(rpdos) >= n_rpdo:
+            continue
+        seen.add(key)
+        n = len(rpdos)
+        rpdos.append(PdoMap(n, RPDO_BASES[n] + node_id if n < 4 else 0, TT_EVENT, objs))
+    tpdos: list[PdoMap] = []
+    for objs, tt in wanted_t:
+        if not objs or len(tpdos) >= n_tpdo:
+            continue
+        if objs == ((OD.STATUSWORD, 0, objs[0][2]),) and tpdos and tt == TT_SYNC:
+            continue  # a SYNC TPDO with only the statusword adds nothing to TPDO1
+        n = len(tpdos)
+        tpdos.append(PdoMap(n, TPDO_BASES[n] + node_id if n < 4 else 0, tt, objs,
+                            inhibit_100us=0, event_timer_ms=0))
+    for index in sorted(set(sdo_only)):
+        logger.warning("node %d: 0x%04X cannot be PDO-mapped on this drive; using SDO for it",
+                       node_id, index)
+    return PdoPlan(tuple(rpdos), tuple(tpdos), n_rpdo, n_tpdo, node_id, tuple(sorted(set(sdo_only))))
+
+
+def _u32(value: int) -> bytes:
+    return struct.pack("<I", value)
+
+
+def mapping_writes(plan: PdoPlan) -> list[tuple[int, int, bytes, str]]:
+    """Every SDO write (index, subindex, data, what) that configures the plan, in order.
+
+    PDOs the plan does not use are invalidated, so the drive sends nothing the driver did not
+    ask for (vendor defaults often leave TPDOs enabled).
+    """
+    writes: list[tuple[int, int, bytes, str]] = []
+    for comm_base, bases, used, total in ((OD.RPDO_COMM, RPDO_BASES, plan.rpdos, plan.n_rpdo),
+                                          (OD.TPDO_COMM, TPDO_BASES, plan.tpdos, plan.n_tpdo)):
+        map_base = comm_base + 0x200
+        kind = "RPDO" if comm_base == OD.RPDO_COMM else "TPDO"
+        for n in range(min(total, 4)):
+            comm, mapping = comm_base + n, map_base + n
+            pdo = next((p for p in used if p.number == n), None)
+            cob = pdo.cob_id if pdo is not None else bases[n] + plan.node_id
+            writes.append((comm, 1, _u32(cob | PDO_COB_ID_INVALID), f"{kind}{n + 1} invalidate"))
+            if pdo is None:
+                continue
+            writes.append((mapping, 0, b"\x00", f"{kind}{n + 1} clear mapping"))
+            for sub, (index, subindex, dt) in enumerate(pdo.objects, start=1):
+                bits = struct.calcsize(STRUCT_FORMAT[dt]) * 8
+                entry = (index << 16) | (subindex << 8) | bits
+                writes.append((mapping, sub, _u32(entry), f"{kind}{n + 1} map 0x{index:04X}"))
+            writes.append((mapping, 0, bytes([len(pdo.objects)]), f"{kind}{n + 1} mapping count"))
+            writes.append((comm, 2, bytes([pdo.trans_type]), f"{kind}{n + 1} transmission type"))
+            writes.append((comm, 1, _u32(cob), f"{kind}{n + 1} validate"))
+    return writes
+
+
+@dataclass(frozen=True)
+class TpdoLayout:
+    """How to decode one TPDO: a precompiled struct and the object each field is."""
+
+    cob_id: int
+    codec: struct.Struct
+    indexes: tuple[int, ...]
+
+    @classmethod
+    def from_map(cls, pdo: PdoMap) -> TpdoLayout:
+        return cls(pdo.cob_id, struct.Struct(pdo.struct_format), pdo.indexes)
+
+
+def encode_rpdo(pdo: PdoMap, values: Mapping[int, int]) -> bytes:
+    """Payload of an RPDO from object values (pure; exact-byte tested)."""
+    return struct.pack(pdo.struct_format, *(values[i] for i in pdo.indexes))
