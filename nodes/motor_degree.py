@@ -1,0 +1,49 @@
+"""``motor_degree``: the team's demo publisher. Every 0.1 s the command grows by 0.1 degree,
+modulo 360, on ``/motor_degree_cmd`` (std_msgs/Float32)."""
+
+from __future__ import annotations
+
+import sys
+
+import rclpy
+from rclpy.node import Node
+from std_msgs.msg import Float32
+
+from nodes.qos import COMMAND_QOS
+
+TENTHS_PER_TURN = 3600
+
+
+class MotorDegreeNode(Node):
+    def __init__(self, **kwargs: object) -> None:
+        super().__init__("motor_degree", **kwargs)  # type: ignore[arg-type]
+        self.declare_parameter("period_s", 0.1)
+        self.declare_parameter("step_deg", 0.1)
+        self.declare_parameter("start_deg", 0.0)
+        period = float(self.get_parameter("period_s").value)
+        self._step_tenths = round(float(self.get_parameter("step_deg").value) * 10)
+        self._tenths = round(float(self.get_parameter("start_deg").value) * 10)
+        self._pub = self.create_publisher(Float32, "/motor_degree_cmd", COMMAND_QOS)
+        self._timer = self.create_timer(period, self._tick)
+
+    def _tick(self) -> None:
+        # integer tenths: no float drift however long it runs
+        self._tenths = (self._tenths + self._step_tenths) % TENTHS_PER_TURN
+        self._pub.publish(Float32(data=self._tenths / 10.0))
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args if args is not None else sys.argv)
+    node = MotorDegreeNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

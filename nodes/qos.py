@@ -1,0 +1,18 @@
+"""QoS profiles, chosen on purpose:
+
+* commands: reliable, keep last 1, volatile. Only the newest command matters; a late stale
+  command must not be replayed to a moving joint (depth 1), and reliable so that a single
+  one-off command (bench, service-like use) is not silently lost.
+* state: best effort, keep last 5. High-rate telemetry: a lost sample is replaced 20 ms
+  later; best effort never stalls the publisher on a slow subscriber (RViz over Wi-Fi).
+  Subscribers must also use best effort (a reliable subscriber sees nothing).
+* diagnostics: reliable, keep last 10, as diagnostic_aggregator expects.
+"""
+
+from __future__ import annotations
+
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+COMMAND_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+STATE_QOS = QoSProfile(depth=5, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
+DIAGNOSTICS_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
