@@ -1,0 +1,5 @@
+import sys
+
+from rovercan.cli import main
+
+sys.exit(main())

@@ -1,0 +1,219 @@
+"""``rovercan``: one CLI for the simulator, the demo and bench work.
+
+Each subcommand is a thin function over the library. Exit codes: 0 ok, 1 the operation
+failed (message on stderr), 2 bad usage or configuration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from types import FrameType
+
+from can_config import load_config, with_bus_overrides
+from can_config.errors import ConfigError, RovercanError
+
+logger = logging.getLogger(__name__)
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # python-can's socketcand client warns whenever TCP splits a line: not a fault
+    logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+
+
+class StopSignal:
+    """SIGINT/SIGTERM set an event instead of raising, so shutdown runs in order."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self._old: dict[int, object] = {}
+
+    def __enter__(self) -> StopSignal:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        self.event.set()
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._old.items():
+            signal.signal(sig, handler)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------- sim
+def cmd_sim(args: argparse.Namespace) -> int:
+    from virtual_can.service import SimService, specs_for_count, specs_from_config
+
+    if args.config:
+        specs = specs_from_config(load_config(args.config))
+    else:
+        from can_config.config import GENERIC_EDS
+        specs = specs_for_count(args.drives, Path(args.eds) if args.eds else GENERIC_EDS, args.channel)
+    with StopSignal() as stop, SimService(specs, host=args.host, port=args.port,
+                                          wire_time=args.wire_time, bitrate=args.bitrate,
+                                          allow_remote=args.allow_remote) as sim:
+        channels = ", ".join(sim.simulators)
+        print(f"rovercan sim: {len(specs)} simulated drive(s) on {channels}, socketcand protocol on"
+              f" {sim.host}:{sim.port}", flush=True)
+        for channel in sim.simulators:
+            print(f"  python-can arguments: {sim.python_can_args(channel)}", flush=True)
+        if args.scenario:
+            from virtual_can.scenario import run_scenario_in_background
+            run_scenario_in_background(sim, args.scenario, stop.event)
+        next_status = time.monotonic() + args.status_period if args.status_period else None
+        while not stop.event.wait(0.2):
+            if next_status is not None and time.monotonic() >= next_status:
+                next_status += args.status_period
+                for simulator in sim.simulators.values():
+                    for drive in simulator.drives.values():
+                        print(simulator.call(drive.status_line), flush=True)
+        print("rovercan sim: stopped", flush=True)
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------- demo
+def cmd_demo(args: argparse.Namespace) -> int:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rovercan_msgs.msg import MotorState
+    from std_msgs.msg import Float32
+
+    from motor_driver import MotorDriver
+    from nodes.motor_controller import MotorControllerNode
+    from nodes.motor_degree import MotorDegreeNode
+    from nodes.qos import COMMAND_QOS, STATE_QOS
+    from virtual_can.service import SimService
+
+    config = load_config(args.config)
+    joint = config.drives[0].name
+    with StopSignal() as stop, SimService.from_config(config, port=args.port) as sim:
+        config = with_bus_overrides(config, host=sim.host, port=sim.port)
+        print(f"rovercan demo: simulated drive(s) on {sim.host}:{sim.port}; joint {joint!r};"
+              f" {'until Ctrl+C' if args.duration is None else f'{args.duration:g} s'}", flush=True)
+        rclpy.init(args=[])
+        driver = MotorDriver(config)
+        nodes: list[object] = []
+        try:
+            driver.start()
+            controller = MotorControllerNode(driver, parameter_overrides=[
+                Parameter("arm", value=True), Parameter("joint", value=joint)])
+            degree = MotorDegreeNode(parameter_overrides=[Parameter("step_deg", value=args.step)])
+            monitor = rclpy.create_node("demo_monitor")
+            nodes = [controller, degree, monitor]
+            last: dict[str, float] = {"cmd": float("nan")}
+            latest: list[MotorState] = []
+            monitor.create_subscription(Float32, "/motor_degree_cmd",
+                                        lambda m: last.__setitem__("cmd", m.data), COMMAND_QOS)
+            monitor.create_subscription(MotorState, "/motor_state",
+                                        lambda m: latest.__setitem__(slice(None), [m]), STATE_QOS)
+
+            def show() -> None:
+                if latest:
+                    m = latest[0]
+                    print(f"cmd {last['cmd']:7.2f} deg | angle {m.angle:7.2f} deg | velocity"
+                          f" {m.velocity:6.2f} deg/s | torque {m.torque:+.3f} Nm | {m.state}"
+                          f"{f' FAULT 0x{m.error_code:04X}' if m.fault else ''}", flush=True)
+
+            monitor.create_timer(args.print_period, show)
+            executor = SingleThreadedExecutor()
+            for node in nodes:
+                executor.add_node(node)  # type: ignore[arg-type]
+            deadline = None if args.duration is None else time.monotonic() + args.duration
+            while not stop.event.is_set() and (deadline is None or time.monotonic() < deadline):
+                executor.spin_once(timeout_sec=0.05)
+            result = _demo_verdict(last["cmd"], latest[0] if latest else None)
+        finally:
+            for node in nodes:
+                if isinstance(node, MotorControllerNode):
+                    node.close()
+                node.destroy_node()  # type: ignore[attr-defined]
+            driver.close()
+            rclpy.try_shutdown()
+    return result
+
+
+def _demo_verdict(cmd: float, state: object | None) -> int:
+    if state is None:
+        print("rovercan demo: no MotorState received", file=sys.stderr)
+        return EXIT_FAILED
+    angle = float(state.angle)  # type: ignore[attr-defined]
+    error = abs((angle - cmd + 180.0) % 360.0 - 180.0)
+    print(f"rovercan demo: done; last command {cmd:.2f} deg, angle {angle:.2f} deg, error {error:.2f} deg",
+          flush=True)
+    if error > 2.0:
+        print("rovercan demo: the motor did not follow the command", file=sys.stderr)
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rovercan", description=__doc__.split("\n\n")[0])
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("sim", help="serve a virtual CAN bus with simulated CiA 402 drives")
+    p.add_argument("--drives", type=_positive_int(1, 127), default=1, help="number of drives, node ids 1..N")
+    p.add_argument("--config", help="simulate the drives of this rover config (a twin of the rover)")
+    p.add_argument("--eds", help="EDS of the simulated drives (default: the generic CiA 402 EDS)")
+    p.add_argument("--channel", default="can0", help="channel name served (default can0)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=_positive_int(0, 65535), default=29536, help="TCP port (default 29536; 0: any free)")
+    p.add_argument("--allow-remote", action="store_true", help="allow binding a non-loopback address")
+    p.add_argument("--wire-time", action="store_true", help="frames take their real bit time")
+    p.add_argument("--bitrate", type=_positive_int(10_000, 8_000_000), default=1_000_000)
+    p.add_argument("--scenario", help="YAML fault-injection scenario to play")
+    p.add_argument("--status-period", type=float, default=0.0, help="print a status line per drive every S seconds")
+    p.set_defaults(func=cmd_sim)
+
+    p = sub.add_parser("demo", help="the motor demo: simulator + driver + ROS nodes, live MotorState")
+    p.add_argument("--config", help="rover config (default: the embedded one)")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl+C)")
+    p.add_argument("--port", type=_positive_int(0, 65535), default=0, help="simulator port (default: any free)")
+    p.add_argument("--step", type=float, default=0.1, help="degrees added per 0.1 s command (default 0.1)")
+    p.add_argument("--print-period", type=float, default=0.5, help="seconds between printed states")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def _positive_int(low: int, high: int) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        try:
+            value = int(text, 0)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{value} is out of range {low}..{high}")
+        return value
+    return parse
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose)
+    try:
+        return int(args.func(args))
+    except ConfigError as err:
+        print(f"rovercan: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except RovercanError as err:
+        print(f"rovercan: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    except OSError as err:
+        print(f"rovercan: {err}", file=sys.stderr)
+        return EXIT_FAILED

@@ -1,0 +1,55 @@
+"""Tier 1: the CiA 402 tables and controlwords against the standard, byte for byte."""
+
+from __future__ import annotations
+
+import pytest
+
+from motor_driver.cia402 import TRANSITIONS, Command, State, controlword, decode_state, next_step_to_enable
+
+
+@pytest.mark.parametrize(("statusword", "state"), [
+    (0x0000, State.NOT_READY_TO_SWITCH_ON),
+    (0x0240, State.SWITCH_ON_DISABLED),
+    (0x0740, State.SWITCH_ON_DISABLED),  # maxon EPOS (machinekit issue 589 table)
+    (0x0721, State.READY_TO_SWITCH_ON),
+    (0x0723, State.SWITCHED_ON),
+    (0x0737, State.OPERATION_ENABLED),
+    (0x0637, State.OPERATION_ENABLED),  # ros2_canopen issue 298 trace
+    (0x0617, State.QUICK_STOP_ACTIVE),
+    (0x021F, State.FAULT_REACTION_ACTIVE),
+    (0x0638, State.FAULT),  # ros2_canopen issue 298 trace, after EMCY 0x5201
+    (0x0208, State.FAULT),
+])
+def test_statusword_decodes_to_the_standard_state(statusword: int, state: State) -> None:
+    assert decode_state(statusword) is state
+
+
+def test_transition_table_carries_the_standard_numbers_and_commands() -> None:
+    assert TRANSITIONS[(State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON)] == (2, Command.SHUTDOWN)
+    assert TRANSITIONS[(State.READY_TO_SWITCH_ON, State.SWITCHED_ON)] == (3, Command.SWITCH_ON)
+    assert TRANSITIONS[(State.SWITCHED_ON, State.OPERATION_ENABLED)] == (4, Command.ENABLE_OPERATION)
+    assert TRANSITIONS[(State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)] == (11, Command.QUICK_STOP)
+    assert TRANSITIONS[(State.FAULT, State.SWITCH_ON_DISABLED)] == (15, Command.FAULT_RESET)
+    numbers = sorted(n for n, _ in TRANSITIONS.values())
+    assert numbers == [2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 15, 16]
+
+
+def test_controlword_values() -> None:
+    # the enable sequence of the maxon EPOS table: 06 -> 07 -> 0F
+    assert [int(Command.SHUTDOWN), int(Command.SWITCH_ON), int(Command.ENABLE_OPERATION)] == [0x06, 0x07, 0x0F]
+    assert int(Command.QUICK_STOP) == 0x02
+    assert int(Command.FAULT_RESET) == 0x80
+    assert controlword(Command.ENABLE_OPERATION, new_setpoint=True, change_immediately=True) == 0x3F
+    assert controlword(Command.ENABLE_OPERATION, halt=True) == 0x10F
+    assert controlword(Command.ENABLE_OPERATION, relative=True) == 0x4F
+
+
+def test_enable_path_walks_2_3_4() -> None:
+    steps = []
+    state = State.SWITCH_ON_DISABLED
+    while (step := next_step_to_enable(state)) is not None:
+        state, number, command = step
+        steps.append((number, int(command)))
+    assert steps == [(2, 0x06), (3, 0x07), (4, 0x0F)]
+    assert state is State.OPERATION_ENABLED
+    assert next_step_to_enable(State.FAULT) is None

@@ -1,0 +1,82 @@
+"""Configuration: validation errors name the file, the key, the value and what is allowed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from can_config import DEFAULT_CONFIG, ConfigError, EdsError, load_config, load_drive_od
+
+from .conftest import SHARED_EDS, requires_shared
+
+GOOD = DEFAULT_CONFIG.read_text()
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "rover.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_default_config_loads() -> None:
+    config = load_config()
+    assert config.drives[0].name == "motor"
+    assert config.bus("can0").bus_kwargs() == {"interface": "socketcand", "channel": "can0",
+                                                "host": "127.0.0.1", "port": 29536}
+
+
+def test_wrong_type_names_file_key_value_and_allowed(tmp_path: Path) -> None:
+    path = write(tmp_path, GOOD.replace("gear_ratio: 1.0", "gear_ratio: fast"))
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    text = str(err.value)
+    assert str(path) in text and "drives[0].gear_ratio" in text and "'fast'" in text and "expected a number" in text
+
+
+def test_unknown_key_suggests_the_close_one(tmp_path: Path) -> None:
+    path = write(tmp_path, GOOD.replace("gear_ratio:", "gear_ration:"))
+    with pytest.raises(ConfigError, match=r"drives\[0\]\.gear_ration: unknown key\. Did you mean 'gear_ratio'\?"):
+        load_config(path)
+
+
+def test_out_of_range_node_id(tmp_path: Path) -> None:
+    path = write(tmp_path, GOOD.replace("node_id: 1", "node_id: 128"))
+    with pytest.raises(ConfigError, match=r"node_id: got 128; expected a value >= 1 and <= 127"):
+        load_config(path)
+
+
+def test_malformed_yaml_names_the_line(tmp_path: Path) -> None:
+    path = write(tmp_path, "buses: [\n  - name: can0\n")
+    with pytest.raises(ConfigError, match=r"line \d+, column \d+: not valid YAML"):
+        load_config(path)
+
+
+def test_missing_eds_is_a_clear_error(tmp_path: Path) -> None:
+    path = write(tmp_path, GOOD.replace("eds: generic", "eds: nowhere.eds"))
+    config = load_config(path)
+    with pytest.raises(EdsError, match=r"nowhere\.eds: EDS file not found"):
+        load_drive_od(config.drives[0].eds)
+
+
+def test_limited_joint_needs_ordered_limits(tmp_path: Path) -> None:
+    path = write(tmp_path, GOOD.replace("joint: continuous", "joint: limited\n    min_deg: 10\n    max_deg: -10"))
+    with pytest.raises(ConfigError, match=r"min_deg must be below max_deg"):
+        load_config(path)
+
+
+def test_yaml_is_never_evaluated(tmp_path: Path) -> None:
+    path = write(tmp_path, GOOD.replace("name: motor", "name: !!python/object/apply:os.system ['true']"))
+    with pytest.raises(ConfigError):
+        load_config(path)
+
+
+@requires_shared
+@pytest.mark.parametrize("eds", sorted(p.name for p in SHARED_EDS.glob("*.eds")) if SHARED_EDS.is_dir() else [])
+def test_every_shared_eds_loads(eds: str) -> None:
+    if eds == "python_canopen_sample.eds":
+        with pytest.raises(EdsError, match="lacks 0x6040"):
+            load_drive_od(SHARED_EDS / eds)
+    else:
+        od = load_drive_od(SHARED_EDS / eds, 7)
+        assert 0x6041 in od

@@ -1,0 +1,176 @@
+"""Tier 2: the driver against simulated drives over the real socketcand protocol."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import can
+import pytest
+
+from can_config import RoverConfig
+from can_config.errors import BootError, CommandRejected, DriveStateError
+from motor_driver import MotorDriver, State
+from virtual_can import SimService
+from virtual_can.scenario import apply_action
+
+from .conftest import drain, make_config, wait_for
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+
+
+def test_boot_does_not_enable_and_configures_pdos(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(2))
+    for drive in driver:
+        assert drive.booted
+        assert drive.state is State.SWITCH_ON_DISABLED  # safe by default: not armed
+        assert drive.nmt_state == "OPERATIONAL"
+    # the mapping the driver wrote is what the simulated drive now runs
+    sim_drive = sim.simulator_for(1).drive(1)
+    assert [p.cob_id for p in sim_drive.tpdos] == [0x181, 0x281, 0x381]
+    assert [tuple(i for i, _, _ in p.entries) for p in sim_drive.tpdos] == [
+        (0x6041, 0x6061), (0x6064, 0x606C), (0x6077, 0x6041)]
+
+
+def test_enable_move_and_report_in_degrees(driver_factory: DriverFactory) -> None:
+    _, driver = driver_factory(make_config(1, gear_ratio=10.0))
+    drive = driver.drive("joint1")
+    drive.enable()
+    assert drive.state is State.OPERATION_ENABLED
+    drive.move_to(45.0, wait=True)
+    state = drive.snapshot()
+    assert state.angle_deg == pytest.approx(45.0, abs=0.05)
+    assert state.enabled and not state.fault
+    assert 0.0 < state.torque_nm < 5.0  # the load torque, at the joint
+
+
+def test_nan_and_limits_are_refused_and_nothing_is_sent(driver_factory: DriverFactory,
+                                                        listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    sim, driver = driver_factory(make_config(1, joint="limited", min_deg=-90.0, max_deg=90.0))
+    drive = driver.drive("joint1")
+    drive.enable()
+    listener = listener_factory(sim)
+    drain(listener, 0.05)
+    for bad in (math.nan, math.inf, 1e300):
+        with pytest.raises(CommandRejected):
+            drive.move_to(bad)
+    with pytest.raises(CommandRejected, match=r"above the upper limit max_deg=90"):
+        drive.move_to(90.5)
+    with pytest.raises(CommandRejected, match=r"max_velocity_deg_s=360"):
+        drive.set_velocity(1000.0)
+    frames = drain(listener, 0.1)
+    assert not [m for m in frames if m.arbitration_id in (0x201, 0x301, 0x401, 0x501, 0x601)]  # no RPDO, no SDO
+
+
+def test_emcy_fault_is_reported_commands_refused_and_recover_restores(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
+    wait_for(lambda: drive.state is State.FAULT, 2.0, "FAULT")
+    state = drive.snapshot()
+    assert state.fault and state.error_code == 0x2310 and "over-current" in state.error_text
+    with pytest.raises(DriveStateError, match=r"FAULT \(EMCY 0x2310 continuous over-current\)"):
+        drive.move_to(10.0)
+    drive.recover()
+    assert drive.state is State.OPERATION_ENABLED  # back to the enable state it had
+    drive.move_to(10.0, wait=True)
+
+
+def test_heartbeat_loss_detected_others_keep_moving_then_reconfigured(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(3))
+    for drive in driver:
+        drive.enable()
+    lost = driver.drive("joint2")
+    apply_action(sim, {"action": "unplug", "node": 2})
+    t0 = time.monotonic()
+    wait_for(lambda: lost.lost, 1.0, "heartbeat loss")
+    # within the consumer time (350 ms) plus one heartbeat period and the supervisor tick
+    assert time.monotonic() - t0 < 0.35 + 0.1 + 0.05
+    assert lost.snapshot().fault
+    with pytest.raises(DriveStateError, match="lost"):
+        lost.move_to(5.0)
+    driver.drive("joint1").move_to(30.0, wait=True)
+    driver.drive("joint3").move_to(-30.0, wait=True)
+    # it power-cycles: boot-up, re-configured without restarting anything
+    boots = lost.boot_count
+    apply_action(sim, {"action": "plug", "node": 2})
+    apply_action(sim, {"action": "power_cycle", "node": 2, "off_s": 0.2})
+    wait_for(lambda: lost.boot_count > boots and not lost.lost, 3.0, "re-configuration after boot-up")
+    assert lost.state is State.SWITCH_ON_DISABLED  # not re-armed: restore_enable_after_reboot is off
+    lost.enable()
+    lost.move_to(15.0, wait=True)
+
+
+def test_sto_low_is_reported_not_fought(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    apply_action(sim, {"action": "sto", "node": 1, "low": True})
+    with pytest.raises(DriveStateError, match=r"STO low or the E-stop"):
+        drive.enable(timeout_s=0.3)
+
+
+def test_close_quick_stops_and_disables_before_the_bus_closes(
+        sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]],
+        listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    sim, cfg = sim_factory(make_config(1))
+    listener = listener_factory(sim)
+    driver = MotorDriver(cfg).start()
+    drive = driver.drive("joint1")
+    drive.enable()
+    drain(listener, 0.05)
+    driver.close()
+    frames = drain(listener, 0.2)
+    controlwords = [int.from_bytes(m.data[:2], "little") for m in frames if m.arbitration_id == 0x201]
+    assert controlwords[:2] == [0x02, 0x00]  # quick stop (11), then disable voltage (12)
+    assert sim.simulator_for(1).call(lambda: sim.simulator_for(1).drive(1).state.name) in (
+        "SWITCH_ON_DISABLED", "READY_TO_SWITCH_ON")
+    sync_after = [m for m in drain(listener, 0.1) if m.arbitration_id == 0x080]
+    assert not sync_after  # SYNC stopped
+
+
+def test_boot_error_names_step_object_and_abort_code(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) -> None:
+    sim, cfg = sim_factory(make_config(1))
+    apply_action(sim, {"action": "sdo", "node": 1, "abort": 0x0800_0022})
+    with MotorDriver(cfg) as driver, pytest.raises(BootError) as err:
+        driver.start()
+    assert err.value.abort_code == 0x0800_0022
+    assert "present device state" in str(err.value) and "0x1000" in str(err.value)
+
+
+def test_identity_mismatch_names_both_values(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) -> None:
+    _, cfg = sim_factory(make_config(1, identity={"vendor_id": 0x1234}))
+    expected = r"vendor id is 0x00524F56 on the device, the config expects 0x00001234"
+    with MotorDriver(cfg) as driver, pytest.raises(BootError, match=expected):
+        driver.start()
+
+
+def test_velocity_watchdog_stops_the_drive(driver_factory: DriverFactory) -> None:
+    _, driver = driver_factory(make_config(1, watchdog_ms=200))
+    drive = driver.drive("joint1")
+    drive.enable()
+    for _ in range(40):  # commands at 50 Hz keep it running
+        drive.set_velocity(90.0)
+        time.sleep(0.02)
+    assert drive.snapshot().velocity_deg_s == pytest.approx(90.0, abs=2.0)
+    t0 = time.monotonic()
+    wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 2.0, "watchdog stop")
+    # 200 ms watchdog + a 0.25 s ramp down at 360 deg/s^2
+    assert time.monotonic() - t0 < 0.2 + 0.25 + 0.15
+
+
+def test_unsupported_mode_is_refused(driver_factory: DriverFactory) -> None:
+    from can_config.objects import OperationMode
+    _, driver = driver_factory(make_config(1))
+    with pytest.raises(CommandRejected, match=r"CYCLIC_SYNC_TORQUE is not supported.*supported: PROFILE_POSITION"):
+        driver.drive("joint1").set_mode(OperationMode.CYCLIC_SYNC_TORQUE)
+
+
+def test_homing_sets_zero(driver_factory: DriverFactory) -> None:
+    _, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.move_to(20.0, wait=True)
+    drive.home()
+    wait_for(lambda: abs(drive.snapshot().angle_deg) < 0.05, 1.0, "homed at zero")

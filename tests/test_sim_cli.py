@@ -1,0 +1,100 @@
+"""`rovercan sim` as a real subprocess; python-can's socketcand client and canopen's
+RemoteNode in this (another) process see heartbeats and PDOs and read 0x1018 / 0x6041."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+
+import can
+import canopen
+import pytest
+
+from can_config import GENERIC_EDS
+
+from .conftest import REPO, drain
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def rovercan(*args: str) -> list[str]:
+    return [sys.executable, "-m", "rovercan", *args]
+
+
+@pytest.fixture
+def sim_process() -> Iterator[tuple[subprocess.Popen[str], int]]:
+    port = free_port()
+    proc = subprocess.Popen(rovercan("sim", "--drives", "2", "--port", str(port)), cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    first = proc.stdout.readline()
+    assert "2 simulated drive(s)" in first, first + (proc.stderr.read() if proc.poll() is not None else "")
+    yield proc, port
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+
+
+def test_sim_prints_python_can_arguments_and_stops_on_sigterm(sim_process: tuple[subprocess.Popen[str], int]) -> None:
+    proc, port = sim_process
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    assert f"-i socketcand -c can0 --bus-kwargs host=127.0.0.1 port={port}" in line
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=10) == 0
+
+
+def test_other_process_sees_heartbeats_pdos_and_reads_identity(sim_process: tuple[subprocess.Popen[str], int]) -> None:
+    _, port = sim_process
+    bus = can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port)
+    listener = can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port)
+    network = canopen.Network(bus)
+    network.connect()
+    try:
+        node = network.add_node(2, str(GENERIC_EDS))
+        vendor = node.sdo[0x1018][1].raw
+        assert vendor == 0x00524F56
+        assert node.sdo[0x6041].raw & 0x4F == 0x40  # switch on disabled
+        node.sdo[0x1017].raw = 50  # heartbeat on
+        node.nmt.state = "OPERATIONAL"
+        time.sleep(0.06)  # a heartbeat sent before the command was processed may still be in flight
+        node.nmt.wait_for_heartbeat(timeout=1.0)
+        assert node.nmt.state == "OPERATIONAL"
+        drain(listener, 0.05)
+        node.sdo[0x6040].raw = 0x06  # shutdown: the statusword changes, event TPDO1 goes out
+        frames = drain(listener, 0.3)
+        ids = {m.arbitration_id for m in frames}
+        assert 0x702 in ids  # heartbeat
+        tpdo1 = [m for m in frames if m.arbitration_id == 0x182]  # default map: statusword
+        assert tpdo1 and int.from_bytes(tpdo1[-1].data[:2], "little") & 0x6F == 0x21  # ready to switch on
+    finally:
+        network.disconnect()
+        listener.shutdown()
+
+
+def test_sim_refuses_a_non_loopback_bind_without_the_flag() -> None:
+    result = subprocess.run(rovercan("sim", "--host", "0.0.0.0", "--port", "0"), cwd=REPO,
+                            capture_output=True, text=True, timeout=30)
+    assert result.returncode == 1
+    assert "listens on loopback" in result.stderr
+
+
+def test_demo_runs_and_exits_zero() -> None:
+    env = dict(os.environ)
+    result = subprocess.run(rovercan("demo", "--duration", "3", "--print-period", "0.5"), cwd=REPO,
+                            capture_output=True, text=True, timeout=60, env=env)
+    assert result.returncode == 0, result.stdout + result.stderr
+    lines = [ln for ln in result.stdout.splitlines() if ln.startswith("cmd ")]
+    assert len(lines) >= 4
+    assert "OPERATION_ENABLED" in lines[-1]
+    assert "rovercan demo: done" in result.stdout
+    time.sleep(0)
