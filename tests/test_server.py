@@ -1,0 +1,140 @@
+"""The socketcand server at the protocol level: what python-can's client relies on, and a
+hostile client affecting only itself."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Iterator
+
+import can
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from virtual_can import BusEngine, SocketcandServer, VirtualBus
+from virtual_can.server import format_frame, parse_send
+from virtual_can.wire import frame_bits
+
+
+@pytest.fixture
+def server() -> Iterator[SocketcandServer]:
+    with BusEngine() as engine, SocketcandServer(engine, port=0, channels=("can0", "can1")) as srv:
+        yield srv
+
+
+def raw_client(srv: SocketcandServer) -> socket.socket:
+    sock = socket.create_connection((srv.host, srv.port), timeout=2.0)
+    return sock
+
+
+def read_until(sock: socket.socket, text: str, timeout_s: float = 2.0) -> str:
+    data = ""
+    deadline = time.monotonic() + timeout_s
+    while text not in data and time.monotonic() < deadline:
+        try:
+            data += sock.recv(4096).decode()
+        except TimeoutError:
+            break
+    return data
+
+
+def test_handshake_replies_are_separate_writes(server: SocketcandServer) -> None:
+    sock = raw_client(server)
+    assert sock.recv(256) == b"< hi >"
+    sock.sendall(b"< open can0 >")
+    assert sock.recv(256) == b"< ok >"
+    sock.sendall(b"< rawmode >")
+    assert sock.recv(256) == b"< ok >"
+    sock.sendall(b"< echo >")
+    assert sock.recv(256) == b"< echo >"
+    sock.sendall(b"< bogus >")
+    assert sock.recv(256) == b"< error unknown command >"
+    sock.close()
+
+
+def test_frame_formats() -> None:
+    std = can.Message(arbitration_id=0x123, data=bytes.fromhex("11223344"), is_extended_id=False, timestamp=23.424242)
+    assert format_frame(std) == "< frame 123 23.424242 11223344 >"
+    ext = can.Message(arbitration_id=0x1ABCDEF, data=b"", is_extended_id=True, timestamp=1.5)
+    assert format_frame(ext) == "< frame 01ABCDEF 1.500000  >"
+    msg = parse_send("< send 601 8 40 0 10 0 0 0 0 0 >")
+    assert msg.arbitration_id == 0x601 and bytes(msg.data) == bytes.fromhex("4000100000000000")
+    assert parse_send("< send 00000123 1 ff >").is_extended_id
+
+
+def test_frames_reach_every_other_client_in_order(server: SocketcandServer) -> None:
+    a = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
+    b = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
+    other = can.Bus(interface="socketcand", channel="can1", host=server.host, port=server.port)
+    try:
+        time.sleep(0.05)
+        for i in range(500):
+            a.send(can.Message(arbitration_id=0x100 + i % 7, data=i.to_bytes(2, "little"), is_extended_id=False))
+        got = []
+        while len(got) < 500 and (msg := b.recv(2.0)) is not None:
+            got.append(int.from_bytes(msg.data, "little"))
+        assert got == list(range(500))
+        assert other.recv(0.1) is None  # channels are separate
+        assert a.recv(0.05) is None  # no echo to the sender
+    finally:
+        for bus in (a, b, other):
+            bus.shutdown()
+
+
+def test_hostile_client_affects_only_itself(server: SocketcandServer) -> None:
+    engine_bus = VirtualBus("can0", engine=server.engine)
+    good = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
+    bad = raw_client(server)
+    try:
+        bad.recv(256)
+        bad.sendall(b"< open can0 >")
+        bad.recv(256)
+        bad.sendall(b"< rawmode >")
+        bad.recv(256)
+        bad.sendall(b"< send 7FF 9 1 2 >" + b"x" * 5000 + b"< send zz 1 1 >" + b"<" + b"A" * 400)
+        reply = read_until(bad, "error")
+        assert "< error" in reply
+        time.sleep(0.05)
+        engine_bus.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+        msg = good.recv(2.0)
+        assert msg is not None and msg.arbitration_id == 0x181
+        good.send(can.Message(arbitration_id=0x201, data=b"\x02", is_extended_id=False))
+        got = engine_bus.recv(2.0)
+        assert got is not None and got.arbitration_id == 0x201
+    finally:
+        bad.close()
+        good.shutdown()
+        engine_bus.shutdown()
+
+
+def test_half_open_client_is_dropped_and_others_continue(server: SocketcandServer) -> None:
+    sock = raw_client(server)
+    sock.recv(256)
+    sock.sendall(b"< open can0 >")
+    sock.close()
+    time.sleep(0.4)
+    assert len(server.clients) == 0
+    bus = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
+    bus.shutdown()
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.binary(max_size=300))
+def test_fuzzed_lines_never_break_the_server(server: SocketcandServer, junk: bytes) -> None:
+    sock = raw_client(server)
+    try:
+        sock.recv(256)
+        sock.sendall(b"< open can0 >< rawmode >" + junk)
+    finally:
+        sock.close()
+    # the server still serves a well-behaved client
+    probe = raw_client(server)
+    assert probe.recv(256) == b"< hi >"
+    probe.close()
+
+
+def test_frame_bits_worst_case() -> None:
+    assert frame_bits(8) == 135  # 8-byte standard frame: 135 us at 1 Mbit/s
+    assert frame_bits(0) == 55
+    assert frame_bits(8, extended=True) == 160
