@@ -55,14 +55,19 @@ class StopSignal:
 
 # ---------------------------------------------------------------------------- sim
 def cmd_sim(args: argparse.Namespace) -> int:
+    from virtual_can.server import DEFAULT_PORT
     from virtual_can.service import SimService, specs_for_count, specs_from_config
 
+    port = args.port
     if args.config:
-        specs = specs_from_config(load_config(args.config))
+        config = load_config(args.config)
+        specs = specs_from_config(config)
+        if port is None:  # serve where the config's driver will look
+            port = int(config.buses[0].kwargs.get("port", DEFAULT_PORT))
     else:
         from can_config.config import GENERIC_EDS
         specs = specs_for_count(args.drives, Path(args.eds) if args.eds else GENERIC_EDS, args.channel)
-    with StopSignal() as stop, SimService(specs, host=args.host, port=args.port,
+    with StopSignal() as stop, SimService(specs, host=args.host, port=DEFAULT_PORT if port is None else port,
                                           wire_time=args.wire_time, bitrate=args.bitrate,
                                           allow_remote=args.allow_remote) as sim:
         channels = ", ".join(sim.simulators)
@@ -160,6 +165,19 @@ def _demo_verdict(cmd: float, state: object | None) -> int:
     return EXIT_OK
 
 
+# ---------------------------------------------------------------------------- launch
+def cmd_launch(args: argparse.Namespace) -> int:
+    from rovercan.launch import run_launch
+
+    overrides: dict[str, str] = {}
+    for item in args.args:
+        name, sep, value = item.partition(":=")
+        if not sep:
+            raise ConfigError(f"launch argument {item!r}: expected name:=value")
+        overrides[name] = value
+    return run_launch(Path(args.file), overrides, args.duration)
+
+
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rovercan", description=__doc__.split("\n\n")[0])
@@ -172,7 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eds", help="EDS of the simulated drives (default: the generic CiA 402 EDS)")
     p.add_argument("--channel", default="can0", help="channel name served (default can0)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
-    p.add_argument("--port", type=_positive_int(0, 65535), default=29536, help="TCP port (default 29536; 0: any free)")
+    p.add_argument("--port", type=_positive_int(0, 65535), default=None,
+                   help="TCP port (default: the config's, else 29536; 0: any free)")
     p.add_argument("--allow-remote", action="store_true", help="allow binding a non-loopback address")
     p.add_argument("--wire-time", action="store_true", help="frames take their real bit time")
     p.add_argument("--bitrate", type=_positive_int(10_000, 8_000_000), default=1_000_000)
@@ -187,6 +206,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--step", type=float, default=0.1, help="degrees added per 0.1 s command (default 0.1)")
     p.add_argument("--print-period", type=float, default=0.5, help="seconds between printed states")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("launch", help="run a ROS 2 XML launch file of this project without the ros2 CLI")
+    p.add_argument("file", help="launch file, e.g. ros/rovercan_bringup/launch/motor_launch.xml")
+    p.add_argument("args", nargs="*", help="launch arguments name:=value")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    p.set_defaults(func=cmd_launch)
     return parser
 
 
