@@ -1,0 +1,156 @@
+"""Benchmark suite (figures, not pass/fail tests): ``python benchmarks/run.py [--quick]``.
+
+Writes ``benchmarks/results.json``. Measured so far: emulator throughput (in-process and over
+the socketcand server between two client connections, zero loss and order checked), wire-time
+cap, expedited SDO round trip over the socketcand server, and the boot of 6 drives to
+Operation Enabled. Keys of the performance issue not measured yet are written as null.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import platform
+import statistics
+import sys
+import threading
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from can_config import GENERIC_EDS, parse_config, with_bus_overrides  # noqa: E402
+from motor_driver import MotorDriver  # noqa: E402
+from virtual_can import BusEngine, SimService, SocketcandServer, VirtualBus  # noqa: E402
+
+logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+OUT = Path(__file__).resolve().parent / "results.json"
+NOT_YET = ("cmd_latency_p50_ms", "cmd_latency_p99_ms", "cmd_latency_ratio", "tpdo_loss", "cpu_core_fraction",
+           "sync_jitter_p99_us", "rss_mb", "baseline_canopen_tpdo_loss", "baseline_canopen_cpu_core_fraction")
+
+
+def flood(tx: can.BusABC, rx: can.BusABC, n: int) -> tuple[float, int, bool]:
+    """Send n 8-byte frames from tx; count and order-check them at rx. Returns (fps, received, in_order)."""
+    got: list[int] = []
+    done = threading.Event()
+
+    def reader() -> None:
+        while len(got) < n:
+            msg = rx.recv(2.0)
+            if msg is None:
+                break
+            got.append(int.from_bytes(msg.data, "little"))
+        done.set()
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    start = time.perf_counter()
+    for i in range(n):
+        tx.send(can.Message(arbitration_id=0x181, data=i.to_bytes(8, "little"), is_extended_id=False))
+    done.wait()
+    elapsed = time.perf_counter() - start
+    thread.join()
+    return len(got) / elapsed, len(got), got == list(range(len(got)))
+
+
+def bench_inprocess(n: int) -> dict[str, Any]:
+    with BusEngine() as engine:
+        a, b = VirtualBus("can0", engine=engine), VirtualBus("can0", engine=engine)
+        fps, received, ordered = flood(a, b, n)
+        a.shutdown()
+        b.shutdown()
+    return {"emulator_fps_inprocess": round(fps), "emulator_inprocess_lost": n - received,
+            "emulator_inprocess_in_order": ordered}
+
+
+def bench_socketcand(n: int) -> dict[str, Any]:
+    with BusEngine() as engine, SocketcandServer(engine, port=0) as srv:
+        a = can.Bus(interface="socketcand", channel="can0", host=srv.host, port=srv.port)
+        b = can.Bus(interface="socketcand", channel="can0", host=srv.host, port=srv.port)
+        time.sleep(0.05)
+        fps, received, ordered = flood(a, b, n)
+        a.shutdown()
+        b.shutdown()
+    return {"emulator_fps_socketcand": round(fps), "emulator_socketcand_lost": n - received,
+            "emulator_socketcand_in_order": ordered}
+
+
+def bench_wire_time(n: int) -> dict[str, Any]:
+    with BusEngine(wire_time=True, bitrate=1_000_000) as engine:
+        a, b = VirtualBus("can0", engine=engine), VirtualBus("can0", engine=engine)
+        fps, _, _ = flood(a, b, n)
+        load = engine.channel("can0").load()
+        a.shutdown()
+        b.shutdown()
+    return {"wire_time_fps_1mbit": round(fps), "wire_time_bus_load": round(load, 3)}
+
+
+def bench_sdo(n: int) -> dict[str, Any]:
+    config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0"}],
+                           "drives": [{"name": "j1", "node_id": 1}]})
+    with SimService.from_config(config, port=0) as sim:
+        bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port, tcp_tune=True)
+        network = canopen.Network(bus)
+        network.connect()
+        node = network.add_node(1, str(GENERIC_EDS))
+        rtts = []
+        for _ in range(n):
+            t0 = time.perf_counter()
+            node.sdo.upload(0x6041, 0)
+            rtts.append((time.perf_counter() - t0) * 1000)
+        network.disconnect()
+    rtts.sort()
+    return {"sdo_rtt_p50_ms": round(statistics.median(rtts), 3),
+            "sdo_rtt_p99_ms": round(rtts[int(0.99 * (len(rtts) - 1))], 3)}
+
+
+def bench_boot(runs: int) -> dict[str, Any]:
+    config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0"}],
+                           "drives": [{"name": f"j{i}", "node_id": i} for i in range(1, 7)]})
+    times = []
+    with SimService.from_config(config, port=0) as sim:
+        cfg = with_bus_overrides(config, host=sim.host, port=sim.port)
+        for _ in range(runs):
+            with MotorDriver(cfg) as driver:
+                t0 = time.perf_counter()
+                driver.start()
+                for drive in driver:
+                    drive.enable()
+                times.append(time.perf_counter() - t0)
+    return {"boot_6_drives_s": round(statistics.median(times), 3)}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="short version (under 2 minutes)")
+    args = parser.parse_args()
+    scale = 1 if args.quick else 10
+    results: dict[str, Any] = {
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "mode": "quick" if args.quick else "full",
+        "machine": {"platform": platform.platform(), "processor": platform.machine(),
+                    "python": platform.python_version()},
+        "versions": {"python-can": can.__version__, "canopen": canopen.__version__},
+    }
+    for name, fn, arg in (("in-process bus", bench_inprocess, 100_000 * scale),
+                          ("socketcand server", bench_socketcand, 30_000 * scale),
+                          ("wire time", bench_wire_time, 5_000 * scale),
+                          ("SDO round trip", bench_sdo, 500 * scale),
+                          ("boot 6 drives", bench_boot, 3)):
+        print(f"benchmark: {name} ...", flush=True)
+        results.update(fn(arg))  # type: ignore[operator]
+    for key in NOT_YET:
+        results.setdefault(key, None)
+    OUT.write_text(json.dumps(results, indent=2) + "\n")
+    print(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
