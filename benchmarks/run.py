@@ -25,9 +25,9 @@ import canopen
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from can_config import GENERIC_EDS, parse_config, with_bus_overrides  # noqa: E402
-from motor_driver import MotorDriver  # noqa: E402
-from virtual_can import BusEngine, SimService, SocketcandServer, VirtualBus  # noqa: E402
+from can_config import GENERIC_EDS, parse_config, with_bus_overrides
+from motor_driver import MotorDriver
+from virtual_can import BusEngine, SimService, SocketcandServer, VirtualBus
 
 logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
 OUT = Path(__file__).resolve().parent / "results.json"

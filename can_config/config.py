@@ -63,7 +63,7 @@ class DriveConfig:
     node_id: int
     bus: str
     eds: Path
-    counts_per_rev: int = 4096
+    counts_per_rev: int | None = None  # None: from the drive (0x608F), else 4096
     gear_ratio: float = 1.0
     rated_torque_nm: float = 1.0
     joint: str = "continuous"
@@ -84,8 +84,9 @@ class DriveConfig:
 
     @property
     def counts_per_deg(self) -> float:
-        """Encoder counts per degree of joint motion (motor counts x gear ratio / 360)."""
-        return self.counts_per_rev * self.gear_ratio / 360.0
+        """Encoder counts per degree of joint motion (motor counts x gear ratio / 360), from the
+        config alone (the driver refines it from the drive's own objects at boot)."""
+        return (self.counts_per_rev or 4096) * self.gear_ratio / 360.0
 
     @property
     def is_continuous(self) -> bool:
@@ -162,7 +163,7 @@ _DRIVE_FIELDS: dict[str, _Field] = {
     "node_id": _Field("int", _REQUIRED, 1, 127),
     "bus": _Field("str", None),
     "eds": _Field("path", "generic"),
-    "counts_per_rev": _Field("int", 4096, 1, 2**31 - 1),
+    "counts_per_rev": _Field("int", None, 1, 2**31 - 1),
     "gear_ratio": _Field("float", 1.0, 0.0, 1e6, low_open=True),
     "rated_torque_nm": _Field("float", 1.0, 0.0, 1e5, low_open=True),
     "joint": _Field("str", "continuous", choices=("continuous", "limited")),

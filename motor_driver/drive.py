@@ -45,6 +45,7 @@ from motor_driver.pdo import PdoPlan, TpdoLayout, encode_rpdo, mapping_writes, p
 from motor_driver.units import (
     Scale,
     check_counts,
+    scale_from_objects,
     check_limits,
     nearest_equivalent,
     require_finite,
@@ -293,6 +294,8 @@ class Drive:
                                self.node_id, device_type)
             step = "identity"
             self._check_identity()
+            step = "units"
+            self._read_units()
             step = "PDO mapping"
             for index, sub, data, what in mapping_writes(self.plan):
                 current = (index, sub)
@@ -355,6 +358,21 @@ class Drive:
                     len(self.plan.rpdos), len(self.plan.tpdos),
                     f"; by SDO: {', '.join(f'0x{i:04X}' for i in self.plan.sdo_only)}"
                     if self.plan.sdo_only else "")
+
+    def _read_units(self) -> None:
+        """Scale from the drive's factor group, SI velocity unit and rated torque, where it has them."""
+        objects: dict[tuple[int, int], int] = {}
+        for index, subs in ((OD.POSITION_ENCODER_RESOLUTION, (1, 2)), (OD.GEAR_RATIO, (1, 2)),
+                            (OD.FEED_CONSTANT, (1, 2)), (OD.SI_UNIT_VELOCITY, (0,)), (OD.RATED_TORQUE, (0,))):
+            for sub in subs:
+                if has_object(self.od, index, sub):
+                    value = self.sdo_read_value(index, sub)
+                    if isinstance(value, int):
+                        objects[(index, sub)] = value
+        cfg = self.config
+        self.scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects)
+        for note in notes:
+            logger.warning("node %d (%s): %s", self.node_id, self.name, note)
 
     def _check_identity(self) -> None:
         expected = self.config.identity

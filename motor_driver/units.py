@@ -18,9 +18,18 @@ INT32_MAX = 2**31 - 1
 
 @dataclass(frozen=True)
 class Scale:
+    """Drive units <-> joint units. ``counts_per_deg``: position units per joint degree;
+    ``velocity_units_per_deg_s``: velocity units (0x606C/0x60FF/0x6081) per joint deg/s;
+    accelerations are velocity units per second."""
+
     counts_per_deg: float
     rated_torque_nm: float
     gear_ratio: float = 1.0
+    velocity_units_per_deg_s: float = 0.0  # 0: the same as counts_per_deg (increments/s)
+
+    @property
+    def _v(self) -> float:
+        return self.velocity_units_per_deg_s or self.counts_per_deg
 
     def deg_to_counts(self, angle_deg: float) -> int:
         return int(round(angle_deg * self.counts_per_deg))
@@ -29,10 +38,10 @@ class Scale:
         return counts / self.counts_per_deg
 
     def deg_s_to_counts_s(self, velocity_deg_s: float) -> int:
-        return int(round(velocity_deg_s * self.counts_per_deg))
+        return int(round(velocity_deg_s * self._v))
 
     def counts_s_to_deg_s(self, counts_s: float) -> float:
-        return counts_s / self.counts_per_deg
+        return counts_s / self._v
 
     def permille_to_nm(self, permille: float) -> float:
         return permille / 1000.0 * self.rated_torque_nm * self.gear_ratio
@@ -70,3 +79,74 @@ def check_counts(name: str, counts: int, what: str) -> int:
         raise CommandRejected(f"{name}: {what} of {counts} counts does not fit the drive's 32-bit"
                               " range; command a smaller value.")
     return counts
+
+
+# SI unit codes (CiA 402 / CiA 303-2) in 0x60A8 / 0x60A9: prefix << 24 | numerator << 16 | denominator << 8
+SI_REVOLUTION = 0xB4
+SI_INCREMENT = 0xB5
+SI_SECOND = 0x03
+SI_MINUTE = 0x47
+
+
+def _ratio(objects: dict[tuple[int, int], int], index: int) -> float | None:
+    num, den = objects.get((index, 1)), objects.get((index, 2))
+    if not num or not den:
+        return None
+    return num / den
+
+
+def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torque_nm: float,
+                       objects: dict[tuple[int, int], int]) -> tuple[Scale, list[str]]:
+    """The scale of a drive from its own objects where it provides them, else from the config.
+
+    ``objects`` holds what the drive reported: 0x608F (encoder increments per motor rev),
+    0x6091 (motor revs per shaft rev), 0x6092 (feed per shaft rev), 0x60A9 (SI velocity unit),
+    0x6076 (rated torque, mNm). Rule: with a feed constant other than 1:1 the drive reports
+    position in feed units (feed per joint revolution); otherwise in increments, with 0x608F
+    (when not 1:1) as increments per motor revolution and 0x6091 as the gear. Returns the
+    scale and notes on what came from where.
+    """
+    notes: list[str] = []
+    enc = _ratio(objects, 0x608F)
+    gear_obj = _ratio(objects, 0x6091)
+    feed = _ratio(objects, 0x6092)
+    gear = gear_ratio
+    if gear_obj is not None and gear_obj != 1.0:
+        if gear_obj != gear_ratio:
+            notes.append(f"gear ratio {gear_obj:g} from 0x6091 (config says {gear_ratio:g})")
+        gear = gear_obj
+    if feed is not None and feed != 1.0:
+        units_per_joint_rev = feed
+        notes.append(f"position in feed units: {feed:g} per joint revolution (0x6092)")
+    else:
+        if enc is not None and enc != 1.0:
+            if counts_per_rev is not None and counts_per_rev != enc:
+                notes.append(f"encoder {enc:g} increments/rev from 0x608F (config says {counts_per_rev})")
+            motor_counts = enc
+        elif counts_per_rev is not None:
+            motor_counts = float(counts_per_rev)
+        else:
+            motor_counts = 4096.0
+            notes.append("no counts_per_rev in the config and no 0x608F on the drive: assuming 4096")
+        units_per_joint_rev = motor_counts * gear
+    counts_per_deg = units_per_joint_rev / 360.0
+    velocity = 0.0
+    si = objects.get((0x60A9, 0))
+    if si:
+        prefix = (si >> 24) & 0xFF
+        prefix = prefix - 256 if prefix >= 128 else prefix
+        numerator, denominator = (si >> 16) & 0xFF, (si >> 8) & 0xFF
+        per_s = {SI_SECOND: 1.0, SI_MINUTE: 60.0}.get(denominator)
+        if numerator == SI_REVOLUTION and per_s is not None:
+            # value x 10^prefix motor revolutions per (s|min) -> joint deg/s
+            velocity = per_s / (10.0**prefix * 360.0 / gear)
+            notes.append(f"velocity in 10^{prefix} rev/{'min' if per_s == 60 else 's'} (0x60A9)")
+        elif numerator == SI_INCREMENT and per_s is not None:
+            velocity = counts_per_deg * per_s / 10.0**prefix
+    rated = rated_torque_nm
+    mnm = objects.get((0x6076, 0))
+    if mnm:
+        rated = mnm / 1000.0
+        if abs(rated - rated_torque_nm) > 1e-9:
+            notes.append(f"rated torque {rated:g} Nm from 0x6076 (config says {rated_torque_nm:g})")
+    return Scale(counts_per_deg, rated, gear, velocity), notes

@@ -43,3 +43,25 @@ def test_limits_name_the_limit() -> None:
         check_limits("elbow", 90.5, -90.0, 90.0)
     with pytest.raises(CommandRejected, match=r"below the lower limit min_deg=-90"):
         check_limits("elbow", -91.0, -90.0, 90.0)
+
+
+def test_scale_from_the_drives_own_objects() -> None:
+    from motor_driver.units import scale_from_objects
+
+    # Ingenia Everest: 0x608F = 2000/1 increments per motor rev, feed 1:1 -> increments
+    scale, notes = scale_from_objects(None, 1.0, 1.0, {(0x608F, 1): 2000, (0x608F, 2): 1,
+                                                       (0x6092, 1): 1, (0x6092, 2): 1, (0x6076, 0): 0x136})
+    assert scale.deg_to_counts(360.0) == 2000
+    assert scale.rated_torque_nm == pytest.approx(0.310)
+    assert any("0x6076" in n for n in notes)
+    # Faulhaber MCBL: feed constant 3000/1 -> 3000 feed units per joint revolution
+    scale, _ = scale_from_objects(4096, 1.0, 1.0, {(0x6092, 1): 3000, (0x6092, 2): 1})
+    assert scale.deg_to_counts(90.0) == 750
+    # maxon EPOS4: 0x60A9 = 0x00B44700 -> velocity in motor rev/min; gear 10 at the joint
+    scale, notes = scale_from_objects(4096, 10.0, 1.0, {(0x60A9, 0): 0x00B44700})
+    assert scale.deg_s_to_counts_s(36.0) == 60  # 36 deg/s at the joint = 0.1 rev/s = 1 rev/s at the motor = 60 rpm
+    assert scale.counts_s_to_deg_s(60) == pytest.approx(36.0)
+    assert any("rev/min" in n for n in notes)
+    # nothing from the drive: the config
+    scale, _ = scale_from_objects(1000, 2.0, 1.0, {})
+    assert scale.deg_to_counts(180.0) == 1000

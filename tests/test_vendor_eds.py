@@ -39,3 +39,18 @@ def test_vendor_drive_boots_enables_moves(eds: str, driver_factory: Callable[[Ro
 def test_sample_eds_refused() -> None:
     with pytest.raises(EdsError, match=r"python_canopen_sample\.eds: not a usable CiA 402 drive"):
         MotorDriver(make_config(1, eds=str(SHARED_EDS / "python_canopen_sample.eds")))
+
+
+@requires_shared
+def test_epos4_velocity_in_rpm_is_converted(driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
+    # EPOS4 reports velocity in rpm (0x60A9); 90 deg/s at the joint with gear 4 is 60 rpm at the motor
+    sim, driver = driver_factory(make_config(1, eds=str(SHARED_EDS / "maxon_epos4_module50_5.eds"), gear_ratio=4.0))
+    drive = driver.drive("joint1")
+    drive.enable()
+    import time
+    for _ in range(60):
+        drive.set_velocity(90.0)
+        time.sleep(0.02)
+    assert drive.snapshot().velocity_deg_s == pytest.approx(90.0, abs=1.0)
+    rpm = sim.simulator_for(1).call(lambda: sim.simulator_for(1).drive(1).store.get(0x606C, 0))
+    assert rpm == pytest.approx(60, abs=1)

@@ -32,7 +32,7 @@ class SimDriveSpec:
     eds: Path = GENERIC_EDS
     channel: str = "can0"
     name: str | None = None
-    counts_per_rev: int = 4096
+    counts_per_rev: int | None = None
 
 
 def specs_from_config(config: RoverConfig) -> list[SimDriveSpec]:
@@ -59,7 +59,7 @@ class SimService:
         try:
             for channel in channels:
                 drives = [SimulatedDrive(s.node_id, load_drive_od(s.eds, s.node_id),
-                                         MotorParams(counts_per_rev=s.counts_per_rev), name=s.name)
+                                         MotorParams(counts_per_rev=s.counts_per_rev or 4096), name=s.name)
                           for s in specs if s.channel == channel]
                 bus = VirtualBus(channel, engine=self.engine)
                 self._buses.append(bus)

@@ -195,8 +195,38 @@ class SimulatedDrive:
         self.faults = Faults()
         self.nmt = NmtState.BOOTUP
         self.counters = {"tpdo": 0, "rpdo": 0, "emcy": 0, "sdo": 0}
-        self._rad_per_count = 2 * math.pi / self.params.counts_per_rev
+        self._units_from_od()
         self._reset_node(now=0.0, announce=False)
+
+    def _units_from_od(self) -> None:
+        """The drive's own units, from its factor group and SI velocity unit (CiA 402).
+
+        Position: increments of the encoder (0x608F, when not 1:1, else the motor model's
+        counts per rev), or feed units when the feed constant (0x6092) is not 1:1
+        (feed per shaft revolution, shaft = motor / gear 0x6091). Velocity: position units/s,
+        or 10^prefix motor rev/min (or /s) when 0x60A9 says so (maxon EPOS4: rpm).
+        """
+        store = self.store
+
+        def ratio(index: int) -> float:
+            num, den = store.get(index, 1, 0), store.get(index, 2, 0)
+            return float(num) / float(den) if num and den else 1.0  # type: ignore[arg-type]
+
+        enc, gear, feed = ratio(OD.POSITION_ENCODER_RESOLUTION), ratio(OD.GEAR_RATIO), ratio(OD.FEED_CONSTANT)
+        increments = enc if enc != 1.0 else float(self.params.counts_per_rev)
+        self.units_per_motor_rev = feed / gear if feed != 1.0 else increments
+        self._rad_per_count = 2 * math.pi / self.units_per_motor_rev
+        self._vconv = 1.0  # position units/s per velocity unit
+        si = int(store.get(OD.SI_UNIT_VELOCITY, 0, 0))  # type: ignore[arg-type]
+        if si and (si >> 16) & 0xFF == 0xB4:  # revolutions per ...
+            prefix = (si >> 24) & 0xFF
+            prefix = prefix - 256 if prefix >= 128 else prefix
+            per = 60.0 if (si >> 8) & 0xFF == 0x47 else 1.0
+            self._vconv = self.units_per_motor_rev * 10.0**prefix / per
+
+    def _v(self, index: int, sub: int = 0, default: float = 0.0) -> float:
+        """A velocity or acceleration object, in position units/s (or /s^2)."""
+        return float(self.store.get(index, sub, default)) * self._vconv  # type: ignore[arg-type]
 
     # ---------------------------------------------------------------- lifecycle
     def _reset_node(self, now: float, announce: bool = True) -> list[can.Message]:
@@ -568,13 +598,13 @@ class SimulatedDrive:
         rated = rated or p.rated_torque_nm
         out: list[can.Message] = []
         if powered:
-            decel = float(store.get(OD.PROFILE_DECELERATION, 0, 16384)) or 16384.0  # type: ignore[arg-type]
-            accel = float(store.get(OD.PROFILE_ACCELERATION, 0, 16384)) or 16384.0  # type: ignore[arg-type]
-            vmax = float(store.get(OD.PROFILE_VELOCITY, 0, 4096)) or 4096.0  # type: ignore[arg-type]
-            vlimit = float(store.get(OD.MAX_PROFILE_VELOCITY, 0, 0)) or vmax  # type: ignore[arg-type]
+            decel = self._v(OD.PROFILE_DECELERATION, 0, 16384) or 16384.0
+            accel = self._v(OD.PROFILE_ACCELERATION, 0, 16384) or 16384.0
+            vmax = self._v(OD.PROFILE_VELOCITY, 0, 4096) or 4096.0
+            vlimit = self._v(OD.MAX_PROFILE_VELOCITY, 0, 0) or vmax
             vmax = min(vmax, vlimit)
             if self.state != State.OPERATION_ENABLED:
-                qs_decel = float(store.get(OD.QUICK_STOP_DECELERATION, 0, 65536)) or 65536.0  # type: ignore[arg-type]
+                qs_decel = self._v(OD.QUICK_STOP_DECELERATION, 0, 65536) or 65536.0
                 self._ramp_velocity(0.0, qs_decel, qs_decel, dt)
                 if abs(self.sp_vel) < 1e-6:
                     self.state = State.FAULT if self.state == State.FAULT_REACTION_ACTIVE else State.SWITCH_ON_DISABLED
@@ -584,7 +614,7 @@ class SimulatedDrive:
             elif mode == OperationMode.PROFILE_POSITION and self.pp_target is not None:
                 self._track_position(self.pp_target, vmax, accel, decel, dt)
             elif mode == OperationMode.PROFILE_VELOCITY:
-                target_v = float(store.get(OD.TARGET_VELOCITY, 0, 0))  # type: ignore[arg-type]
+                target_v = self._v(OD.TARGET_VELOCITY, 0, 0)
                 target_v = max(-vlimit, min(vlimit, target_v))
                 self._ramp_velocity(target_v, accel, decel, dt)
             elif mode == OperationMode.CYCLIC_SYNC_POSITION and self.pp_target is not None:
@@ -592,7 +622,7 @@ class SimulatedDrive:
                 self._csp_last = self.sp_pos = self.pp_target
                 self.sp_acc = 0.0
             elif mode == OperationMode.HOMING and self.homing_active:
-                speed = float(store.get(OD.HOMING_SPEEDS, 1, 1000)) or 1000.0  # type: ignore[arg-type]
+                speed = self._v(OD.HOMING_SPEEDS, 1, 1000) or 1000.0
                 raw_index = p.index_position_counts
                 raw_now = self.sp_pos - self.position_offset
                 direction = 1.0 if raw_index > raw_now else -1.0
@@ -600,7 +630,7 @@ class SimulatedDrive:
                 if (raw_index - (self.sp_pos - self.position_offset)) * direction <= 0:
                     self.theta = raw_index * k
                     self._home_here()
-                elif abs(self.sp_pos - self._homing_start) > 20 * p.counts_per_rev:
+                elif abs(self.sp_pos - self._homing_start) > 20 * self.units_per_motor_rev:
                     self.homing_active = False
                     self.homing_error = True
             else:
@@ -628,7 +658,7 @@ class SimulatedDrive:
             self.sp_pos = self.position_counts
             self.sp_vel = self.sp_acc = 0.0
         store.values[(OD.POSITION_ACTUAL, 0)] = self._as_type(OD.POSITION_ACTUAL, self.position_counts)
-        store.values[(OD.VELOCITY_ACTUAL, 0)] = self._as_type(OD.VELOCITY_ACTUAL, self.omega / k)
+        store.values[(OD.VELOCITY_ACTUAL, 0)] = self._as_type(OD.VELOCITY_ACTUAL, self.omega / k / self._vconv)
         if store.has(OD.TORQUE_ACTUAL):
             store.values[(OD.TORQUE_ACTUAL, 0)] = self._as_type(OD.TORQUE_ACTUAL,
                                                                 self.torque_nm / rated * 1000.0)
@@ -709,7 +739,7 @@ class SimulatedDrive:
                 else:
                     self._setpoint_ack = False
             elif mode == OperationMode.PROFILE_VELOCITY:
-                target_v = float(self.store.get(OD.TARGET_VELOCITY, 0, 0))  # type: ignore[arg-type]
+                target_v = self._v(OD.TARGET_VELOCITY, 0, 0)
                 if abs(self.omega / self._rad_per_count - target_v) < max(10.0, abs(target_v) * 0.02):
                     sw |= SW_TARGET_REACHED
                 if abs(self.omega / self._rad_per_count) < 10.0:
@@ -728,7 +758,7 @@ class SimulatedDrive:
         self.store.values[(OD.STATUSWORD, 0)] = sw
 
     def _window(self) -> float:
-        return max(2.0, self.params.counts_per_rev / 3600.0)
+        return max(2.0, self.units_per_motor_rev / 3600.0)
 
     @property
     def statusword(self) -> int:
