@@ -66,6 +66,7 @@ class DriveConfig:
     counts_per_rev: int | None = None  # None: from the drive (0x608F), else 4096
     gear_ratio: float = 1.0
     rated_torque_nm: float = 1.0
+    max_torque_nm: float | None = None  # None: the rated torque at the joint (rated x gear)
     joint: str = "continuous"
     min_deg: float | None = None
     max_deg: float | None = None
@@ -166,6 +167,7 @@ _DRIVE_FIELDS: dict[str, _Field] = {
     "counts_per_rev": _Field("int", None, 1, 2**31 - 1),
     "gear_ratio": _Field("float", 1.0, 0.0, 1e6, low_open=True),
     "rated_torque_nm": _Field("float", 1.0, 0.0, 1e5, low_open=True),
+    "max_torque_nm": _Field("opt_float", None, 0.0, 1e6, low_open=True),
     "joint": _Field("str", "continuous", choices=("continuous", "limited")),
     "min_deg": _Field("opt_float", None, -1e7, 1e7),
     "max_deg": _Field("opt_float", None, -1e7, 1e7),
@@ -417,7 +419,7 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
         entry: dict[str, Any] = {
             "name": d.name, "node_id": d.node_id, "bus": d.bus, "eds": str(d.eds),
             "counts_per_rev": d.counts_per_rev, "gear_ratio": d.gear_ratio,
-            "rated_torque_nm": d.rated_torque_nm, "joint": d.joint,
+            "rated_torque_nm": d.rated_torque_nm, "max_torque_nm": d.max_torque_nm, "joint": d.joint,
             "max_velocity_deg_s": d.max_velocity_deg_s,
             "profile_velocity_deg_s": d.profile_velocity_deg_s,
             "profile_acceleration_deg_s2": d.profile_acceleration_deg_s2,

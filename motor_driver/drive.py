@@ -45,10 +45,10 @@ from motor_driver.pdo import PdoPlan, TpdoLayout, encode_rpdo, mapping_writes, p
 from motor_driver.units import (
     Scale,
     check_counts,
-    scale_from_objects,
     check_limits,
     nearest_equivalent,
     require_finite,
+    scale_from_objects,
 )
 
 logger = logging.getLogger(__name__)
@@ -127,7 +127,9 @@ class Drive:
         self._bootup = threading.Event()
         self._status_event = threading.Condition()
         self.tpdo_count = 0
+        self._position_seq = 0
         self.boot_count = 0
+        self.sync_period_s = 0.01  # set by the driver from the bus config
         self.last_velocity_cmd = 0.0
         self.velocity_commanded = False
         self.was_enabled = False
@@ -153,6 +155,7 @@ class Drive:
                 self.statusword = value
             elif index == OD.POSITION_ACTUAL:
                 self.position_counts = value
+                self._position_seq += 1
             elif index == OD.VELOCITY_ACTUAL:
                 self.velocity_counts_s = value
             elif index == OD.TORQUE_ACTUAL:
@@ -578,15 +581,7 @@ class Drive:
         """
         counts = self._position_target_counts(angle_deg)
         with self._lock:
-            self._require_usable("move")
-            if self.state != State.OPERATION_ENABLED:
-                if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-                    raise self._fault_error("move")
-                raise DriveStateError(f"{self.name} (node {self.node_id}): move refused: the drive is"
-                                      f" {self.state.name}, not OPERATION_ENABLED; enable() it first",
-                                      node_id=self.node_id, statusword=self.statusword)
-            if self.mode_display != OperationMode.PROFILE_POSITION:
-                self.set_mode(OperationMode.PROFILE_POSITION)
+            self._ensure_mode(OperationMode.PROFILE_POSITION, "move")
             self._cw &= ~CW.HALT
             if self._awaiting_ack:
                 self._pending_target = counts
@@ -629,7 +624,7 @@ class Drive:
                 if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                     raise self._fault_error("move")
                 if not self._awaiting_ack and self._pending_target is None and self.statusword & SW.TARGET_REACHED:
-                    return
+                    break
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     raise DriveTimeoutError(f"{self.name}: target not reached within {timeout_s:.1f} s"
@@ -637,6 +632,12 @@ class Drive:
                                             f" {self.scale.counts_to_deg(self._target_counts):.2f} deg)",
                                             node_id=self.node_id, statusword=self.statusword)
                 self._status_event.wait(min(remaining, 0.05))
+        # the statusword comes on change, the position on SYNC: wait for a position sampled
+        # after the drive said 'reached', so the caller's snapshot is not one period old
+        seq = self._position_seq
+        settle = time.monotonic() + 3 * self.sync_period_s + 0.05
+        while self._position_seq == seq and time.monotonic() < settle:
+            time.sleep(0.001)
 
     def set_velocity(self, velocity_deg_s: float) -> None:
         """Profile-velocity command in deg/s, limited by max_velocity_deg_s; feeds the watchdog."""
@@ -648,13 +649,7 @@ class Drive:
                                   " was sent.")
         counts_s = check_counts(self.name, self.scale.deg_s_to_counts_s(velocity), "velocity")
         with self._lock:
-            self._require_usable("velocity command")
-            if self.state != State.OPERATION_ENABLED:
-                raise DriveStateError(f"{self.name}: velocity command refused: the drive is"
-                                      f" {self.state.name}; enable() it first", node_id=self.node_id,
-                                      statusword=self.statusword)
-            if self.mode_display != OperationMode.PROFILE_VELOCITY:
-                self.set_mode(OperationMode.PROFILE_VELOCITY)
+            self._ensure_mode(OperationMode.PROFILE_VELOCITY, "velocity command")
             self._send_velocity(counts_s)
             self.last_velocity_cmd = time.monotonic()
             self.velocity_commanded = velocity != 0.0
@@ -669,11 +664,70 @@ class Drive:
             self._write_typed(OD.TARGET_VELOCITY, 0, counts_s)
 
     def stop_velocity(self) -> None:
-        """Watchdog action: command zero velocity."""
+        """Watchdog action: zero velocity (PV) or zero torque (PT)."""
         with self._lock:
             self.velocity_commanded = False
-            if self.state == State.OPERATION_ENABLED and self.mode_display == OperationMode.PROFILE_VELOCITY:
+            if self.state != State.OPERATION_ENABLED:
+                return
+            if self.mode_display == OperationMode.PROFILE_VELOCITY:
                 self._send_velocity(0)
+            elif self.mode_display == OperationMode.PROFILE_TORQUE:
+                self._send_torque(0)
+
+    def _ensure_mode(self, mode: OperationMode, doing: str) -> None:
+        self._require_usable(doing)
+        if self.state != State.OPERATION_ENABLED:
+            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                raise self._fault_error(doing)
+            raise DriveStateError(f"{self.name}: {doing} refused: the drive is {self.state.name}; enable() it"
+                                  " first", node_id=self.node_id, statusword=self.statusword)
+        if self.mode_display != mode:
+            self.set_mode(mode)
+
+    def set_torque(self, torque_nm: float) -> None:
+        """Profile-torque command in Nm at the joint, limited by max_torque_nm; feeds the watchdog."""
+        torque = require_finite(f"{self.name} torque", torque_nm, "Nm")
+        limit = self.config.max_torque_nm or self.scale.rated_torque_nm * self.scale.gear_ratio
+        if abs(torque) > limit:
+            raise CommandRejected(f"{self.name}: torque {torque:g} Nm is beyond the limit max_torque_nm={limit:g}"
+                                  f" (allowed -{limit:g} to {limit:g} Nm). Nothing was sent.")
+        with self._lock:
+            self._ensure_mode(OperationMode.PROFILE_TORQUE, "torque command")
+            self._send_torque(self.scale.nm_to_permille(torque))
+            self.last_velocity_cmd = time.monotonic()
+            self.velocity_commanded = torque != 0.0
+
+    def _send_torque(self, permille: int) -> None:
+        pdo = self.plan.rpdo_with(OD.TARGET_TORQUE)
+        cw = int(Command.ENABLE_OPERATION) | (self._cw & CW.HALT)
+        if pdo is not None:
+            self.network.send_message(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_TORQUE: permille}))
+        else:
+            self._write_typed(OD.TARGET_TORQUE, 0, permille)
+
+    def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None) -> None:
+        """Cyclic synchronous position: one setpoint per SYNC period, no handshake.
+
+        Refuses a setpoint that jumps further than ``max_step_deg`` (default: max velocity
+        over two SYNC periods) from the previous one: a streamed trajectory must be smooth.
+        """
+        counts = self._position_target_counts(angle_deg)
+        with self._lock:
+            self._ensure_mode(OperationMode.CYCLIC_SYNC_POSITION, "CSP setpoint")
+            if max_step_deg is None:
+                max_step_deg = self.config.max_velocity_deg_s * 2 * self.sync_period_s
+            step = abs(self.scale.counts_to_deg(counts - self._target_counts))
+            if step > max_step_deg:
+                raise CommandRejected(f"{self.name}: CSP setpoint jumps {step:.3f} deg from the last one; at most"
+                                      f" {max_step_deg:.3f} deg per step (max_velocity_deg_s over two SYNC"
+                                      " periods) is allowed. Nothing was sent.")
+            self._target_counts = counts
+            pdo = self.plan.rpdo_with(OD.TARGET_POSITION)
+            cw = int(Command.ENABLE_OPERATION)
+            if pdo is not None:
+                self.network.send_message(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_POSITION: counts}))
+            else:
+                self._write_typed(OD.TARGET_POSITION, 0, counts)
 
     def home(self, timeout_s: float | None = None) -> None:
         """Homing with the configured method and speed; waits for 'homing attained'."""

@@ -97,8 +97,9 @@ class MotorDriver:
                 self._handles[bus_cfg.name] = BusHandle(bus_cfg.name, bus, owned, bus_cfg.sync_period_s)
                 self.bus_lost[bus_cfg.name] = False
             for drive_cfg in config.drives:
-                self.drives[drive_cfg.name] = Drive(drive_cfg, self._handles[drive_cfg.bus].network,
-                                                    ods[drive_cfg.name])
+                drive = Drive(drive_cfg, self._handles[drive_cfg.bus].network, ods[drive_cfg.name])
+                drive.sync_period_s = self._handles[drive_cfg.bus].sync_period_s
+                self.drives[drive_cfg.name] = drive
         except BaseException:
             self._close_buses()
             raise

@@ -73,7 +73,7 @@ def plan_pdos(od: ObjectDictionary, node_id: int) -> PdoPlan:
     """The PDOs the driver configures on this drive.
 
     RPDO1 controlword; RPDO2 controlword + target position; RPDO3 controlword + target
-    velocity. TPDO1 statusword + mode display on change; TPDO2 position + velocity on SYNC;
+    velocity; RPDO4 controlword + target torque. TPDO1 statusword + mode display on change; TPDO2 position + velocity on SYNC;
     TPDO3 torque + statusword on SYNC.
     """
     n_rpdo = count_pdos(od, OD.RPDO_COMM)
@@ -93,7 +93,8 @@ def plan_pdos(od: ObjectDictionary, node_id: int) -> PdoPlan:
 
     wanted_r = [entries(OD.CONTROLWORD),
                 entries(OD.CONTROLWORD, OD.TARGET_POSITION),
-                entries(OD.CONTROLWORD, OD.TARGET_VELOCITY)]
+                entries(OD.CONTROLWORD, OD.TARGET_VELOCITY),
+                entries(OD.CONTROLWORD, OD.TARGET_TORQUE)]
     wanted_t = [(entries(OD.STATUSWORD, OD.MODES_OF_OPERATION_DISPLAY), TT_EVENT),
                 (entries(OD.POSITION_ACTUAL, OD.VELOCITY_ACTUAL), TT_SYNC),
                 (entries(OD.TORQUE_ACTUAL, OD.STATUSWORD), TT_SYNC)]

@@ -174,3 +174,64 @@ def test_homing_sets_zero(driver_factory: DriverFactory) -> None:
     drive.move_to(20.0, wait=True)
     drive.home()
     wait_for(lambda: abs(drive.snapshot().angle_deg) < 0.05, 1.0, "homed at zero")
+
+
+def test_cyclic_synchronous_position_streams_and_refuses_jumps(driver_factory: DriverFactory) -> None:
+    _, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    for i in range(1, 41):  # 0.5 deg per 10 ms SYNC period: 50 deg/s
+        drive.stream_position(i * 0.5)
+        time.sleep(0.01)
+    wait_for(lambda: abs(drive.snapshot().angle_deg - 20.0) < 0.1, 1.0, "CSP to 20 deg")
+    assert drive.snapshot().mode == 8
+    with pytest.raises(CommandRejected, match=r"CSP setpoint jumps (29\.9|30\.0)\d* deg.*at most 7\.200 deg"):
+        drive.stream_position(50.0)
+
+
+def test_profile_torque_and_its_limit(driver_factory: DriverFactory) -> None:
+    _, driver = driver_factory(make_config(1, max_torque_nm=0.8))
+    drive = driver.drive("joint1")
+    drive.enable()
+    with pytest.raises(CommandRejected, match=r"max_torque_nm=0.8"):
+        drive.set_torque(0.9)
+    for _ in range(10):
+        drive.set_torque(0.5)
+        time.sleep(0.02)
+    state = drive.snapshot()
+    assert state.mode == 4 and state.torque_nm == pytest.approx(0.5, abs=0.01)
+    assert state.velocity_deg_s > 10.0  # 0.5 Nm against a 0.2 Nm load accelerates the joint
+    drive.set_torque(0.0)
+
+
+def test_many_buses_one_process(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) -> None:
+    from can_config import parse_config
+    config = parse_config({
+        "buses": [{"name": "left", "interface": "socketcand", "channel": "can0"},
+                  {"name": "right", "interface": "socketcand", "channel": "can1"}],
+        "drives": [{"name": "l1", "node_id": 1, "bus": "left"}, {"name": "l2", "node_id": 2, "bus": "left"},
+                   {"name": "r1", "node_id": 1, "bus": "right"}]})
+    sim, cfg = sim_factory(config)
+    assert sorted(sim.simulators) == ["can0", "can1"]
+    with MotorDriver(cfg) as driver:
+        driver.start()
+        for drive in driver:
+            drive.enable()
+        t0 = time.monotonic()
+        for drive, target in zip(driver, (10.0, 20.0, -30.0), strict=True):
+            drive.move_to(target)
+        assert time.monotonic() - t0 < 0.1  # commands to different drives do not wait for each other
+        for drive, target in zip(driver, (10.0, 20.0, -30.0), strict=True):
+            drive.wait_target_reached()
+            assert drive.angle_deg == pytest.approx(target, abs=0.05)
+        # same node id on two buses: two drives, two simulators
+        assert sim.simulator_for(1, "can1").drive(1).position_counts != sim.simulator_for(1, "can0").drive(1).position_counts
+
+
+def test_restore_enable_after_reboot_when_configured(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(1, restore_enable_after_reboot=True))
+    drive = driver.drive("joint1")
+    drive.enable()
+    boots = drive.boot_count
+    apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.1})
+    wait_for(lambda: drive.boot_count > boots and drive.state is State.OPERATION_ENABLED, 3.0, "re-armed after reboot")

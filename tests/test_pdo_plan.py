@@ -15,8 +15,8 @@ from .conftest import SHARED_EDS, requires_shared
 
 def test_generic_plan() -> None:
     plan = plan_pdos(load_drive_od(GENERIC_EDS, 5), 5)
-    assert [p.indexes for p in plan.rpdos] == [(0x6040,), (0x6040, 0x607A), (0x6040, 0x60FF)]
-    assert [p.cob_id for p in plan.rpdos] == [0x205, 0x305, 0x405]
+    assert [p.indexes for p in plan.rpdos] == [(0x6040,), (0x6040, 0x607A), (0x6040, 0x60FF), (0x6040, 0x6071)]
+    assert [p.cob_id for p in plan.rpdos] == [0x205, 0x305, 0x405, 0x505]
     assert [p.indexes for p in plan.tpdos] == [(0x6041, 0x6061), (0x6064, 0x606C), (0x6077, 0x6041)]
     assert [p.trans_type for p in plan.tpdos] == [255, 1, 1]
     assert plan.sdo_only == ()
@@ -35,9 +35,9 @@ def test_mapping_writes_follow_the_cia301_procedure() -> None:
         (0x1401, 2, "ff"),  # event-driven
         (0x1401, 1, "01030000"),  # valid again
     ]
-    # the unused RPDO4 is invalidated and nothing else
-    assert (0x1403, 1, "01050080") in writes
-    assert not any(i == 0x1603 for i, _, _ in writes)
+    # the unused TPDO4 is invalidated and nothing else
+    assert (0x1803, 1, "81040080") in writes
+    assert not any(i == 0x1A03 for i, _, _ in writes)
 
 
 def test_rpdo_payload_bytes() -> None:
