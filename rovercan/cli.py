@@ -55,6 +55,8 @@ class StopSignal:
 
 # ---------------------------------------------------------------------------- sim
 def cmd_sim(args: argparse.Namespace) -> int:
+    if getattr(args, "bus_interface", None):  # python-can's bus arguments default to "absent"
+        return _sim_on_bus(args)
     from virtual_can.server import DEFAULT_PORT
     from virtual_can.service import SimService, specs_for_count, specs_from_config
 
@@ -86,6 +88,38 @@ def cmd_sim(args: argparse.Namespace) -> int:
                     for drive in simulator.drives.values():
                         print(simulator.call(drive.status_line), flush=True)
         print("rovercan sim: stopped", flush=True)
+    return EXIT_OK
+
+
+def _sim_on_bus(args: argparse.Namespace) -> int:
+    """Simulated drives on a real python-can bus (e.g. a kernel vcan0), no server."""
+    import can.cli
+
+    from can_config import load_drive_od
+    from can_config.config import GENERIC_EDS
+    from virtual_can.sim import DriveSimulator, MotorParams, SimulatedDrive
+
+    if args.config:
+        config = load_config(args.config)
+        drives = [SimulatedDrive(d.node_id, load_drive_od(d.eds, d.node_id),
+                                 MotorParams(counts_per_rev=d.counts_per_rev or 4096), name=d.name)
+                  for d in config.drives]
+    else:
+        eds = Path(args.eds) if args.eds else GENERIC_EDS
+        drives = [SimulatedDrive(i, load_drive_od(eds, i)) for i in range(1, args.drives + 1)]
+    try:
+        bus = can.cli.create_bus_from_namespace(args, prefix="bus")
+    except argparse.ArgumentError as err:
+        cause = err.__cause__
+        print(f"rovercan sim: cannot open {args.bus_interface} {getattr(args, 'bus_channel', '')}: {cause}",
+              file=sys.stderr)
+        return EXIT_FAILED
+    with StopSignal() as stop, bus, DriveSimulator(bus, drives) as sim:
+        print(f"rovercan sim: {len(drives)} simulated drive(s) on {bus.channel_info}", flush=True)
+        while not stop.event.wait(0.2):
+            pass
+        del sim
+    print("rovercan sim: stopped", flush=True)
     return EXIT_OK
 
 
@@ -197,6 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bitrate", type=_positive_int(10_000, 8_000_000), default=1_000_000)
     p.add_argument("--scenario", help="YAML fault-injection scenario to play")
     p.add_argument("--status-period", type=float, default=0.0, help="print a status line per drive every S seconds")
+    import can.cli
+    can.cli.add_bus_arguments(p, prefix="bus", group_title="instead of serving a bus: put the simulated drives on"
+                              " this python-can bus (e.g. --bus-interface socketcan --bus-channel vcan0)")
     p.set_defaults(func=cmd_sim)
 
     p = sub.add_parser("demo", help="the motor demo: simulator + driver + ROS nodes, live MotorState")

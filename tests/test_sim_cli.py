@@ -98,3 +98,14 @@ def test_demo_runs_and_exits_zero() -> None:
     assert "OPERATION_ENABLED" in lines[-1]
     assert "rovercan demo: done" in result.stdout
     time.sleep(0)
+
+
+def test_sim_on_a_kernel_interface_reports_why_it_cannot() -> None:
+    from .test_faults import kernel_can_available
+    reason = kernel_can_available()
+    if reason is None:
+        pytest.skip("this kernel has vcan0: covered by test_faults' socketcan tier")
+    result = subprocess.run(rovercan("sim", "--bus-interface", "socketcan", "--bus-channel", "vcan0"), cwd=REPO,
+                            capture_output=True, text=True, timeout=30)
+    assert result.returncode == 1
+    assert "cannot open socketcan vcan0" in result.stderr

@@ -28,7 +28,7 @@ class VirtualBus(can.BusABC):
         if engine is None:
             raise SimError("VirtualBus needs engine=BusEngine(); the in-process bus lives in one"
                            " engine object shared by everything on it")
-        self._queue: queue.Queue[can.Message] = queue.Queue(RX_QUEUE_FRAMES)
+        self._queue: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
         self._receive_own = receive_own_messages
         self.overruns = 0
         self.channel_info = f"rovercan virtual bus {channel}"
@@ -38,10 +38,10 @@ class VirtualBus(can.BusABC):
         super().__init__(channel=channel, **kwargs)
 
     def _on_frame(self, msg: can.Message) -> None:
-        try:
-            self._queue.put_nowait(msg)
-        except queue.Full:
+        if self._queue.qsize() >= RX_QUEUE_FRAMES:
             self.overruns += 1
+            return
+        self._queue.put(msg)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         try:
@@ -53,9 +53,9 @@ class VirtualBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if self._closed:
             raise can.CanOperationError("the virtual bus is shut down")
-        out = can.Message(arbitration_id=msg.arbitration_id, data=msg.data, dlc=msg.dlc,
-                          is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
-                          channel=self.channel_info, timestamp=0.0)
+        # a copy: receivers must not see later changes the sender makes to its message
+        out = can.Message(timestamp=0.0, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                          is_remote_frame=msg.is_remote_frame, dlc=msg.dlc, data=msg.data, check=False)
         self._channel.send(out, self._endpoint)
         if self._receive_own:
             self._on_frame(out)

@@ -1,0 +1,190 @@
+"""Fault injection, each fault shown from the client side (what a driver observes), and the
+kernel-interface tier (vcan), skipped with a reason where the kernel has no SocketCAN."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable
+
+import can
+import canopen
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from can_config import GENERIC_EDS, RoverConfig, load_drive_od, parse_config
+from motor_driver import MotorDriver, State
+from virtual_can import SimDriveSpec, SimService
+from virtual_can.scenario import apply_action, load_scenario
+from virtual_can.sim import DriveSimulator, SimulatedDrive
+
+from .conftest import drain, make_config, wait_for
+
+Listener = Callable[[SimService], can.BusABC]
+
+
+@pytest.fixture
+def sim() -> SimService:
+    service = SimService([SimDriveSpec(1)], port=0)
+    yield service  # type: ignore[misc]
+    service.close()
+
+
+def heartbeat_on(sim: SimService, period_ms: int = 20) -> None:
+    simulator = sim.simulator_for(1)
+    simulator.call(lambda: simulator.drive(1).store.set(0x1017, 0, period_ms))
+
+
+def test_drop_all_frames_then_none(sim: SimService, listener_factory: Listener) -> None:
+    heartbeat_on(sim)
+    listener = listener_factory(sim)
+    assert any(m.arbitration_id == 0x701 for m in drain(listener, 0.1))
+    apply_action(sim, {"action": "frames", "drop": 1.0})
+    drain(listener, 0.02)
+    assert not drain(listener, 0.1)
+    apply_action(sim, {"action": "frames", "drop": 0.0})
+    assert any(m.arbitration_id == 0x701 for m in drain(listener, 0.1))
+
+
+def test_drop_rate_is_about_what_was_asked(sim: SimService, listener_factory: Listener) -> None:
+    heartbeat_on(sim, 10)
+    listener = listener_factory(sim)
+    apply_action(sim, {"action": "frames", "drop": 0.5})
+    drain(listener, 0.02)
+    got = len([m for m in drain(listener, 1.0) if m.arbitration_id == 0x701])
+    assert 20 <= got <= 80  # ~100 sent, half dropped
+    assert sim.engine.channel("can0").stats.dropped > 10
+
+
+def test_corrupted_frames_differ_by_one_bit(sim: SimService, listener_factory: Listener) -> None:
+    heartbeat_on(sim)
+    listener = listener_factory(sim)
+    apply_action(sim, {"action": "frames", "corrupt": 1.0})
+    drain(listener, 0.05)
+    beats = [m for m in drain(listener, 0.2) if m.arbitration_id == 0x701]
+    assert beats and all(bin(m.data[0] ^ 0x7F).count("1") == 1 for m in beats)  # 0x7F = pre-operational
+
+
+def test_delayed_frames_arrive_late(sim: SimService, listener_factory: Listener) -> None:
+    heartbeat_on(sim, 50)
+    listener = listener_factory(sim)
+    drain(listener, 0.06)
+    apply_action(sim, {"action": "frames", "delay": 1.0, "delay_s": 0.2})
+    t0 = time.monotonic()
+    msg = listener.recv(1.0)
+    assert msg is not None and time.monotonic() - t0 >= 0.18
+
+
+def test_disconnected_client_sees_the_bus_go(sim: SimService, listener_factory: Listener) -> None:
+    listener = listener_factory(sim)
+    time.sleep(0.05)
+    assert sim.server.disconnect_clients() >= 1
+    time.sleep(0.1)
+    with pytest.raises(OSError):
+        for _ in range(50):  # the first write may still be buffered by the kernel
+            listener.send(can.Message(arbitration_id=0x123, data=b"\x00", is_extended_id=False))
+            time.sleep(0.01)
+
+
+def test_sdo_delay_and_abort(sim: SimService) -> None:
+    bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    network = canopen.Network(bus)
+    network.connect()
+    try:
+        node = network.add_node(1, str(GENERIC_EDS))
+        node.sdo.RESPONSE_TIMEOUT = 0.3
+        node.sdo.MAX_RETRIES = 1  # (0 would retry forever in canopen 2.4)
+        apply_action(sim, {"action": "sdo", "node": 1, "delay_s": 0.1})
+        t0 = time.monotonic()
+        assert node.sdo[0x1000].raw == 0x00020192
+        assert time.monotonic() - t0 >= 0.09
+        apply_action(sim, {"action": "sdo", "node": 1, "delay_s": 0.5})
+        with pytest.raises(canopen.SdoCommunicationError):
+            node.sdo[0x1000].raw  # noqa: B018
+        time.sleep(0.5)
+        apply_action(sim, {"action": "sdo", "node": 1, "delay_s": 0.0, "abort": 0x0606_0000})
+        with pytest.raises(canopen.SdoAbortedError) as err:
+            node.sdo[0x1000].raw  # noqa: B018
+        assert err.value.code == 0x0606_0000
+    finally:
+        network.disconnect()
+
+
+def test_following_error_trips_fault_8611(driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
+    _, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.sdo_write(0x6072, 0, (30).to_bytes(2, "little"))  # max torque 3 % of rated: cannot follow
+    drive.sdo_write(0x6065, 0, (50).to_bytes(4, "little"))  # following error window: 50 counts
+    drive.enable()
+    drive.move_to(170.0)
+    wait_for(lambda: drive.state is State.FAULT, 3.0, "following error fault")
+    assert drive.snapshot().error_code == 0x8611
+    assert drive.snapshot().error_text == "following error"
+
+
+def test_scenario_file(tmp_path: object, sim: SimService, listener_factory: Listener) -> None:
+    from pathlib import Path
+    path = Path(str(tmp_path)) / "faults.yaml"
+    path.write_text("steps:\n  - {at_s: 0.0, node: 1, action: fault, code: 0x4210}\n")
+    steps = load_scenario(path)
+    listener = listener_factory(sim)
+    time.sleep(0.05)
+    for step in steps:
+        apply_action(sim, step)
+    emcy = [m for m in drain(listener, 0.2) if m.arbitration_id == 0x081]
+    assert emcy and emcy[0].data[:2] == bytes.fromhex("1042")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 0x7FF), st.binary(max_size=8)), min_size=1, max_size=40))
+def test_random_frames_never_crash_a_simulated_drive(frames: list[tuple[int, bytes]]) -> None:
+    drive = SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))
+    now = 0.0
+    for cob, data in frames:
+        now += 0.001
+        drive.on_frame(can.Message(arbitration_id=cob, data=data, is_extended_id=False), now)
+        drive.tick(now, 0.001)
+    assert drive.statusword & 0x4F in (0x00, 0x40, 0x08, 0x0F) or drive.statusword & 0x6F in (0x21, 0x23, 0x27, 0x07)
+
+
+def kernel_can_available(channel: str = "vcan0") -> str | None:
+    """None when a kernel CAN interface can be opened, else the reason it cannot."""
+    if not hasattr(socket, "AF_CAN"):
+        return "this Python has no AF_CAN"
+    try:
+        sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    except OSError as err:
+        return f"the kernel does not support AF_CAN ({err})"
+    try:
+        sock.bind((channel,))
+    except OSError as err:
+        return f"no {channel} interface ({err}); create it with: ip link add dev {channel} type vcan"
+    finally:
+        sock.close()
+    return None
+
+
+@pytest.mark.parametrize("interface", ["emulator", "socketcan"])
+def test_boot_enable_move_on_each_interface(interface: str,
+                                            driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
+    """Tier 3: the same scenario on a real kernel interface where there is one."""
+    if interface == "emulator":
+        _, driver = driver_factory(make_config(1))
+        drive = driver.drive("joint1")
+        drive.enable()
+        drive.move_to(33.0, wait=True)
+        return
+    reason = kernel_can_available()
+    if reason is not None:
+        pytest.skip(reason)
+    sim_bus = can.Bus(interface="socketcan", channel="vcan0")
+    config = parse_config({"buses": [{"name": "can0", "interface": "socketcan", "channel": "vcan0"}],
+                           "drives": [{"name": "joint1", "node_id": 1}]})
+    with sim_bus, DriveSimulator(sim_bus, [SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))]), \
+            MotorDriver(config) as driver:
+        driver.start()
+        drive = driver.drive("joint1")
+        drive.enable()
+        drive.move_to(33.0, wait=True)
+        assert drive.angle_deg == pytest.approx(33.0, abs=0.2)
