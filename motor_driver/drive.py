@@ -53,12 +53,22 @@ from motor_driver.units import (
 
 logger = logging.getLogger(__name__)
 
+#: Objects no tool or service may write by SDO (see Drive.sdo_write_checked).
+PROTECTED_OBJECTS = frozenset({
+    OD.CONTROLWORD, OD.MODES_OF_OPERATION, OD.TARGET_POSITION, OD.TARGET_VELOCITY, OD.TARGET_TORQUE,
+    OD.SOFTWARE_POSITION_LIMIT, OD.MAX_PROFILE_VELOCITY, OD.MAX_TORQUE, OD.PROFILE_VELOCITY,
+    OD.PROFILE_ACCELERATION, OD.PROFILE_DECELERATION, OD.QUICK_STOP_DECELERATION, OD.QUICK_STOP_OPTION,
+    OD.HOMING_METHOD, OD.HOMING_SPEEDS, OD.PRODUCER_HEARTBEAT_TIME, OD.COB_ID_SYNC,
+})
+
 #: Timeouts (seconds); module constants so tests and benchmarks can override them.
 BOOTUP_TIMEOUT_S = 2.0
 SDO_TIMEOUT_S = 0.5
 TRANSITION_TIMEOUT_S = 1.0
 MODE_SWITCH_TIMEOUT_S = 1.0
 STATE_POLL_S = 0.002
+#: A continuous joint's degree command is an angle modulo 360; beyond this it is a mistake.
+CONTINUOUS_COMMAND_LIMIT_DEG = 360.0
 
 
 @dataclass(frozen=True)
@@ -256,6 +266,15 @@ class Drive:
             raise SdoTimeoutError(f"node {self.node_id}: SDO write 0x{index:04X}:{subindex} got no"
                                   f" answer ({err}); check power, node id, bitrate and termination",
                                   node_id=self.node_id, index=index, subindex=subindex) from err
+
+    def sdo_write_checked(self, index: int, subindex: int, value: int) -> None:
+        """SDO write for tools and services: refuses the objects that move the motor or set its
+        limits and PDOs, which only the driver's own checked paths may write."""
+        if index in PROTECTED_OBJECTS or 0x1400 <= index <= 0x1BFF:
+            raise CommandRejected(f"{self.name}: writing 0x{index:04X} by SDO is refused: it moves the motor,"
+                                  " sets a limit or the PDO set; use the motion commands and services, whose"
+                                  " limits are enforced, or the config file.")
+        self._write_typed(index, subindex, value)
 
     def sdo_read_value(self, index: int, subindex: int = 0) -> int | float | bytes:
         raw = self.sdo_read(index, subindex)
@@ -568,6 +587,10 @@ class Drive:
         angle = require_finite(f"{self.name} angle", angle_deg, "deg")
         cfg = self.config
         if cfg.is_continuous:
+            if abs(angle) > CONTINUOUS_COMMAND_LIMIT_DEG:
+                raise CommandRejected(f"{self.name}: {angle:g} deg: a continuous joint takes an angle from"
+                                      f" -{CONTINUOUS_COMMAND_LIMIT_DEG:g} to {CONTINUOUS_COMMAND_LIMIT_DEG:g} deg"
+                                      " and moves the short way to it. Nothing was sent.")
             angle = nearest_equivalent(angle, self.angle_deg)
         else:
             check_limits(self.name, angle, cfg.min_deg, cfg.max_deg)

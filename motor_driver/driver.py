@@ -22,6 +22,7 @@ import can
 import canopen
 
 from can_config import RoverConfig, load_drive_od
+from can_config.bits import frame_bits
 from can_config.errors import BusLostError, ConfigError, MotorError
 from motor_driver.cia402 import State
 from motor_driver.drive import Drive, DriveState
@@ -32,16 +33,50 @@ SUPERVISOR_PERIOD_S = 0.01
 NOTIFIER_TIMEOUT_S = 0.1
 
 
+class BusStats(can.Listener):
+    """Frames received on a bus, error frames, and the load they make (worst-case bits)."""
+
+    def __init__(self, bitrate: int) -> None:
+        self.bitrate = bitrate
+        self.frames = 0
+        self.error_frames = 0
+        self.bits = 0
+        self._window_start = time.monotonic()
+        self._window_bits = 0
+        self.load = 0.0
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.error_frames += 1
+            return
+        self.frames += 1
+        bits = frame_bits(min(msg.dlc, 8), extended=msg.is_extended_id)
+        self.bits += bits
+        self._window_bits += bits
+
+    def sample(self) -> float:
+        """Bus load (0..1) seen since the last sample."""
+        now = time.monotonic()
+        elapsed = now - self._window_start
+        if elapsed > 0:
+            self.load = self._window_bits / (elapsed * self.bitrate)
+        self._window_start, self._window_bits = now, 0
+        return self.load
+
+
 class BusHandle:
     """One bus with its canopen network and SYNC task."""
 
-    def __init__(self, name: str, bus: can.BusABC, owned: bool, sync_period_s: float) -> None:
+    def __init__(self, name: str, bus: can.BusABC, owned: bool, sync_period_s: float,
+                 bitrate: int = 1_000_000) -> None:
         self.name = name
         self.bus = bus
         self.owned = owned
         self.sync_period_s = sync_period_s
+        self.stats = BusStats(bitrate)
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
+        self.network.listeners.append(self.stats)
         self.network.connect()
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | None = None
 
@@ -94,7 +129,8 @@ class MotorDriver:
                         raise BusLostError(f"bus {bus_cfg.name!r}: cannot open {bus_cfg.bus_kwargs()}:"
                                            f" {err}. Is the interface up (ip link) or the simulator"
                                            " running (rovercan sim)?") from err
-                self._handles[bus_cfg.name] = BusHandle(bus_cfg.name, bus, owned, bus_cfg.sync_period_s)
+                self._handles[bus_cfg.name] = BusHandle(bus_cfg.name, bus, owned, bus_cfg.sync_period_s,
+                                                        bus_cfg.bitrate)
                 self.bus_lost[bus_cfg.name] = False
             for drive_cfg in config.drives:
                 drive = Drive(drive_cfg, self._handles[drive_cfg.bus].network, ods[drive_cfg.name])
@@ -143,6 +179,10 @@ class MotorDriver:
 
     def states(self) -> list[DriveState]:
         return [d.snapshot() for d in self.drives.values()]
+
+    @property
+    def buses(self) -> dict[str, BusHandle]:
+        return dict(self._handles)
 
     # ------------------------------------------------------------------ supervision
     def _supervise(self) -> None:

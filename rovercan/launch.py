@@ -27,7 +27,7 @@ from can_config.errors import ConfigError
 logger = logging.getLogger(__name__)
 
 PACKAGE = "rovercan_bringup"
-EXECUTABLES = ("motor_controller", "motor_degree")
+EXECUTABLES = ("motor_controller", "motor_degree", "rover_driver")
 STOP_GRACE_S = 5.0
 _VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
 

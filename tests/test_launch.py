@@ -30,7 +30,10 @@ def test_launch_file_names_only_existing_executables() -> None:
         assert script.is_file() and os.access(script, os.X_OK)
         assert f"from nodes.{exe} import main" in script.read_text()
         assert (REPO / "nodes" / f"{exe}.py").is_file()
-    assert "scripts/motor_controller scripts/motor_degree" in (BRINGUP / "CMakeLists.txt").read_text()
+    assert "scripts/motor_controller scripts/motor_degree scripts/rover_driver" in (BRINGUP / "CMakeLists.txt").read_text()
+    rover = parse_launch(BRINGUP / "launch" / "rover_launch.xml", {"config": "config/rover.yaml", "sim": "true"})
+    assert [p.name for p in rover] == ["python", "rovercan_driver"]
+    assert "nodes.rover_driver" in rover[1].argv and "config:=config/rover.yaml" in rover[1].argv
 
 
 def test_unknown_launch_argument_is_refused() -> None:

@@ -69,6 +69,9 @@ STATUS_BITS: dict[State, int] = {
     State.FAULT: 0x0008,
 }
 
+#: Longest integration step of the motor model.
+PHYSICS_STEP_S = 0.0005
+
 SW_VOLTAGE_ENABLED = 1 << 4
 SW_WARNING = 1 << 7
 SW_REMOTE = 1 << 9
@@ -145,7 +148,7 @@ class MotorParams:
 
     counts_per_rev: int = 4096
     inertia_kg_m2: float = 1e-4
-    viscous_nm_s_rad: float = 0.01
+    viscous_nm_s_rad: float = 0.001
     load_nm: float = 0.2
     rated_torque_nm: float = 1.0  # used when the EDS has no 0x6076
     bandwidth_hz: float = 20.0
@@ -635,21 +638,27 @@ class SimulatedDrive:
                     self.homing_error = True
             else:
                 self.sp_vel = self.sp_acc = 0.0
-            # controller + plant, in motor radians
-            if mode == OperationMode.PROFILE_TORQUE and self.state == State.OPERATION_ENABLED:
-                tau = float(store.get(OD.TARGET_TORQUE, 0, 0)) / 1000.0 * rated  # type: ignore[arg-type]
-            else:
-                wn = 2 * math.pi * p.bandwidth_hz
-                kp = p.inertia_kg_m2 * wn * wn
-                kd = 2 * p.inertia_kg_m2 * wn
-                pos_err = (self.sp_pos - self.position_counts) * k
-                vel_err = self.sp_vel * k - self.omega
-                ff = p.inertia_kg_m2 * self.sp_acc * k + p.viscous_nm_s_rad * self.sp_vel * k + p.load_nm
-                tau = ff + kp * pos_err + kd * vel_err
+            # controller + plant, in motor radians, in sub-steps of at most PHYSICS_STEP_S so the
+            # servo loop stays stable however late the simulator thread gets to run
+            torque_mode = mode == OperationMode.PROFILE_TORQUE and self.state == State.OPERATION_ENABLED
             limit = float(store.get(OD.MAX_TORQUE, 0, 3000)) / 1000.0 * rated  # type: ignore[arg-type]
-            tau = max(-limit, min(limit, tau))
-            self.omega += dt * (tau - p.viscous_nm_s_rad * self.omega - p.load_nm) / p.inertia_kg_m2
-            self.theta += dt * self.omega
+            wn = 2 * math.pi * p.bandwidth_hz
+            kp = p.inertia_kg_m2 * wn * wn
+            kd = 2 * p.inertia_kg_m2 * wn
+            ff = p.inertia_kg_m2 * self.sp_acc * k + p.viscous_nm_s_rad * self.sp_vel * k + p.load_nm
+            steps = max(1, math.ceil(dt / PHYSICS_STEP_S))
+            h = dt / steps
+            tau = 0.0
+            for _ in range(steps):
+                if torque_mode:
+                    tau = float(store.get(OD.TARGET_TORQUE, 0, 0)) / 1000.0 * rated  # type: ignore[arg-type]
+                else:
+                    pos_err = (self.sp_pos - self.position_counts) * k
+                    vel_err = self.sp_vel * k - self.omega
+                    tau = ff + kp * pos_err + kd * vel_err
+                tau = max(-limit, min(limit, tau))
+                self.omega += h * (tau - p.viscous_nm_s_rad * self.omega - p.load_nm) / p.inertia_kg_m2
+                self.theta += h * self.omega
             self.torque_nm = tau
             out += self._check_following(now, mode)
         else:

@@ -1,0 +1,88 @@
+"""Skid-steer kinematics, acceleration ramp and odometry of the rover's drive system (pure).
+
+Body twist (v m/s, w rad/s) -> wheel speeds: left = (v - w*T/2)/r, right = (v + w*T/2)/r
+(rad/s), T the track width and r the wheel radius. Odometry integrates the measured wheel
+speeds back into a pose with the midpoint rule. No I/O and no ROS: the node feeds it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Twist2D:
+    linear_m_s: float = 0.0
+    angular_rad_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Pose2D:
+    x_m: float = 0.0
+    y_m: float = 0.0
+    yaw_rad: float = 0.0
+
+
+def wheel_speeds_rad_s(twist: Twist2D, track_width_m: float, wheel_radius_m: float) -> tuple[float, float]:
+    """(left, right) wheel angular speeds for a body twist."""
+    half = track_width_m / 2.0
+    left = (twist.linear_m_s - twist.angular_rad_s * half) / wheel_radius_m
+    right = (twist.linear_m_s + twist.angular_rad_s * half) / wheel_radius_m
+    return left, right
+
+
+def body_twist(left_rad_s: float, right_rad_s: float, track_width_m: float, wheel_radius_m: float) -> Twist2D:
+    """Body twist from (mean) left and right wheel speeds."""
+    v_left, v_right = left_rad_s * wheel_radius_m, right_rad_s * wheel_radius_m
+    return Twist2D((v_left + v_right) / 2.0, (v_right - v_left) / track_width_m)
+
+
+def ramp(current: float, target: float, max_rate: float, dt: float) -> float:
+    """Move ``current`` toward ``target`` by at most ``max_rate * dt``."""
+    step = max_rate * dt
+    if target > current + step:
+        return current + step
+    if target < current - step:
+        return current - step
+    return target
+
+
+def integrate(pose: Pose2D, twist: Twist2D, dt: float) -> Pose2D:
+    """Advance a pose by a body twist over ``dt`` (midpoint heading)."""
+    mid = pose.yaw_rad + twist.angular_rad_s * dt / 2.0
+    return Pose2D(pose.x_m + twist.linear_m_s * math.cos(mid) * dt,
+                  pose.y_m + twist.linear_m_s * math.sin(mid) * dt,
+                  math.remainder(pose.yaw_rad + twist.angular_rad_s * dt, 2 * math.pi))
+
+
+class SkidSteer:
+    """Commanded twist -> ramped wheel speed setpoints; measured wheel speeds -> odometry."""
+
+    def __init__(self, track_width_m: float, wheel_radius_m: float, max_accel_m_s2: float,
+                 max_speed_m_s: float) -> None:
+        self.track_width_m = track_width_m
+        self.wheel_radius_m = wheel_radius_m
+        self.max_accel_m_s2 = max_accel_m_s2
+        self.max_speed_m_s = max_speed_m_s
+        self.left_rad_s = 0.0
+        self.right_rad_s = 0.0
+        self.pose = Pose2D()
+
+    def clamp(self, twist: Twist2D) -> Twist2D:
+        """Refuse nothing, clamp the linear speed to the configured maximum."""
+        v = max(-self.max_speed_m_s, min(self.max_speed_m_s, twist.linear_m_s))
+        return Twist2D(v, twist.angular_rad_s)
+
+    def step(self, target: Twist2D, dt: float) -> tuple[float, float]:
+        """Ramped (left, right) wheel setpoints in rad/s toward ``target``, limited in rim acceleration."""
+        left, right = wheel_speeds_rad_s(self.clamp(target), self.track_width_m, self.wheel_radius_m)
+        max_rate = self.max_accel_m_s2 / self.wheel_radius_m
+        self.left_rad_s = ramp(self.left_rad_s, left, max_rate, dt)
+        self.right_rad_s = ramp(self.right_rad_s, right, max_rate, dt)
+        return self.left_rad_s, self.right_rad_s
+
+    def odometry(self, left_rad_s: float, right_rad_s: float, dt: float) -> tuple[Pose2D, Twist2D]:
+        twist = body_twist(left_rad_s, right_rad_s, self.track_width_m, self.wheel_radius_m)
+        self.pose = integrate(self.pose, twist, dt)
+        return self.pose, twist

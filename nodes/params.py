@@ -1,0 +1,40 @@
+"""Every ROS parameter of the rovercan nodes, declared in one place with a description and a range.
+
+Values come from ``config/rovercan.params.yaml`` (``--ros-args --params-file``) or ``-p``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
+from rclpy.node import Node
+
+
+@dataclass(frozen=True)
+class Param:
+    default: object
+    description: str
+    low: float | None = None
+    high: float | None = None
+
+
+PARAMS: dict[str, Param] = {
+    "config": Param("", "rover config YAML (buses, drives, drive system); empty: the embedded default"),
+    "arm": Param(False, "enable every drive at start; off by default: arming is an explicit act"),
+    "default_joint": Param("", "joint served on /motor_degree_cmd and /motor_state; empty: the first drive"),
+    "state_rate_hz": Param(50.0, "rate of MotorState and /joint_states", 1.0, 500.0),
+    "diagnostics_rate_hz": Param(1.0, "rate of /diagnostics", 0.1, 10.0),
+    "odom_rate_hz": Param(50.0, "rate of the drive system's control loop and /odom", 1.0, 200.0),
+    "odom_frame": Param("odom", "frame_id of /odom"),
+    "base_frame": Param("base_link", "child_frame_id of /odom"),
+}
+
+
+def declare(node: Node, *names: str) -> None:
+    for name in names:
+        spec = PARAMS[name]
+        descriptor = ParameterDescriptor(description=spec.description)
+        if spec.low is not None and spec.high is not None:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=spec.low, to_value=spec.high)]
+        node.declare_parameter(name, spec.default, descriptor)

@@ -1,0 +1,394 @@
+"""``rover_driver``: the ROS 2 face of every configured drive, and the rover's drive system.
+
+Per drive (joint name from the config, under the node's namespace):
+  topics   <joint>/degree_cmd (std_msgs/Float32, deg), <joint>/velocity_cmd (Float32, deg/s),
+           <joint>/motor_state (rovercan_msgs/MotorState)
+  services <joint>/enable, disable, halt, quick_stop, recover, home (std_srvs/Trigger),
+           <joint>/set_mode (SetMode), <joint>/sdo_read (SdoRead), <joint>/sdo_write (SdoWrite)
+All drives: /joint_states (rad, rad/s, Nm), /joint_commands (sensor_msgs/JointState targets),
+/diagnostics. The default joint also serves the team's /motor_degree_cmd and /motor_state.
+With a ``drive_system`` in the config, ``drive_system`` takes /cmd_vel and publishes /odom.
+
+Executor: a MultiThreadedExecutor with services in their own mutually exclusive callback
+group, because enable/home block for up to seconds and must not stall state publication
+(measured alternatives: benchmarks/run.py, executor section of the README).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from functools import partial
+from struct import error as struct_error
+from typing import Any, TypeVar
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Twist
+from nav_msgs.msg import Odometry
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rovercan_msgs.msg import MotorState
+from rovercan_msgs.srv import SdoRead, SdoWrite, SetMode
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float32
+from std_srvs.srv import Trigger
+
+from can_config import RoverConfig, load_config
+from can_config.errors import RovercanError
+from can_config.objects import OperationMode, sdo_abort_text
+from motor_driver import Drive, MotorDriver
+from motor_driver.health import drive_health
+from motor_driver.skid_steer import SkidSteer, Twist2D
+from nodes.logbridge import bridge_core_logging, unbridge
+from nodes.motor_controller import fill_motor_state
+from nodes.params import declare
+from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
+
+WARN_THROTTLE_S = 1.0
+DEG = 180.0 / math.pi
+T = TypeVar("T")
+
+
+def _stamp(msg_header: Any, stamp: float) -> None:
+    msg_header.stamp.sec = int(stamp)
+    msg_header.stamp.nanosec = int((stamp - int(stamp)) * 1e9)
+
+
+class RefusalLog:
+    """Counts refused commands per joint for /diagnostics and logs them, throttled."""
+
+    def __init__(self, node: Node) -> None:
+        self._node = node
+        self.count: dict[str, int] = {}
+        self.last: dict[str, str] = {}
+
+    def refuse(self, joint: str, why: str) -> None:
+        self.count[joint] = self.count.get(joint, 0) + 1
+        self.last[joint] = why
+        self._node.get_logger().warning(f"{joint}: refused: {why}", throttle_duration_sec=WARN_THROTTLE_S)
+
+    def take(self, joint: str) -> tuple[int, str]:
+        return self.count.pop(joint, 0), self.last.get(joint, "")
+
+
+class DriverNode(Node):
+    """Topics, services and diagnostics of every drive of a :class:`MotorDriver`."""
+
+    def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
+        super().__init__("rovercan_driver", **kwargs)
+        declare(self, "arm", "default_joint", "state_rate_hz", "diagnostics_rate_hz")
+        self.driver = driver
+        self.refusals = RefusalLog(self)
+        self._service_group = MutuallyExclusiveCallbackGroup()
+        self._states: dict[str, MotorState] = {}
+        self._state_pubs: dict[str, Any] = {}
+        joints = list(driver.drives)
+        default = str(self.get_parameter("default_joint").value) or joints[0]
+        if default not in driver.drives:
+            raise RovercanError(f"default_joint {default!r} is not a configured joint; joints: {joints}")
+        for name, drive in driver.drives.items():
+            self._add_drive(name, drive)
+        self._default = default
+        self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", STATE_QOS)
+        self.create_subscription(Float32, "/motor_degree_cmd", self._on_degree(default), COMMAND_QOS)
+        self._joint_pub = self.create_publisher(JointState, "/joint_states", STATE_QOS)
+        self.create_subscription(JointState, "/joint_commands", self._on_joint_commands, COMMAND_QOS)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self.create_timer(1.0 / float(self.get_parameter("state_rate_hz").value), self._publish_states)
+        self.create_timer(1.0 / float(self.get_parameter("diagnostics_rate_hz").value), self._publish_diagnostics)
+        if self.get_parameter("arm").value:
+            for drive in driver:
+                self._guard(drive.name, "arm", drive.enable)
+
+    # --------------------------------------------------------------------- wiring
+    def _add_drive(self, name: str, drive: Drive) -> None:
+        self._states[name] = MotorState()
+        self._state_pubs[name] = self.create_publisher(MotorState, f"{name}/motor_state", STATE_QOS)
+        self.create_subscription(Float32, f"{name}/degree_cmd", self._on_degree(name), COMMAND_QOS)
+        self.create_subscription(Float32, f"{name}/velocity_cmd", self._on_velocity(name), COMMAND_QOS)
+        for service, action in (("enable", drive.enable), ("disable", drive.disable),
+                                ("halt", drive.halt), ("quick_stop", drive.quick_stop),
+                                ("recover", drive.recover), ("home", drive.home)):
+            self.create_service(Trigger, f"{name}/{service}", self._trigger(name, service, action),
+                                callback_group=self._service_group)
+        self.create_service(SetMode, f"{name}/set_mode", self._set_mode(drive), callback_group=self._service_group)
+        self.create_service(SdoRead, f"{name}/sdo_read", self._sdo_read(drive), callback_group=self._service_group)
+        self.create_service(SdoWrite, f"{name}/sdo_write", self._sdo_write(drive), callback_group=self._service_group)
+
+    def _guard(self, joint: str, what: str, fn: Callable[[], T]) -> T | None:
+        """Run a driver call; every failure becomes a throttled warning and a diagnostic."""
+        try:
+            return fn()
+        except RovercanError as err:
+            self.refusals.refuse(joint, f"{what}: {err}")
+        except Exception as err:  # never raise into the executor
+            self.refusals.refuse(joint, f"{what}: unexpected {err!r}")
+        return None
+
+    def _on_degree(self, joint: str) -> Callable[[Float32], None]:
+        drive = self.driver.drives[joint]
+
+        def on_message(msg: Float32) -> None:
+            self._guard(joint, f"degree command {msg.data!r}", partial(drive.move_to, msg.data))
+        return on_message
+
+    def _on_velocity(self, joint: str) -> Callable[[Float32], None]:
+        drive = self.driver.drives[joint]
+
+        def on_message(msg: Float32) -> None:
+            self._guard(joint, f"velocity command {msg.data!r}", partial(drive.set_velocity, msg.data))
+        return on_message
+
+    def _on_joint_commands(self, msg: JointState) -> None:
+        for i, name in enumerate(msg.name):
+            drive = self.driver.drives.get(name)
+            if drive is None:
+                self.refusals.refuse(name or "?", f"/joint_commands names unknown joint {name!r};"
+                                     f" joints: {sorted(self.driver.drives)}")
+                continue
+            if i < len(msg.position):
+                self._guard(name, "joint position", partial(drive.move_to, msg.position[i] * DEG))
+            elif i < len(msg.velocity):
+                self._guard(name, "joint velocity", partial(drive.set_velocity, msg.velocity[i] * DEG))
+            else:
+                self.refusals.refuse(name, "/joint_commands entry has neither position nor velocity")
+
+    def _trigger(self, joint: str, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
+        def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+            try:
+                action()
+                response.success, response.message = True, f"{joint}: {service} done; state {self.driver.drives[joint].state.name}"
+            except RovercanError as err:
+                response.success, response.message = False, str(err)
+            except Exception as err:
+                response.success, response.message = False, f"{joint}: {service} failed unexpectedly: {err!r}"
+            return response
+        return call
+
+    def _set_mode(self, drive: Drive) -> Callable[[Any, Any], Any]:
+        def call(request: SetMode.Request, response: SetMode.Response) -> SetMode.Response:
+            try:
+                mode = OperationMode[request.mode.strip().upper()]
+            except KeyError:
+                response.success = False
+                response.message = (f"unknown mode {request.mode!r}; allowed: "
+                                    f"{', '.join(m.name for m in OperationMode if m != OperationMode.NO_MODE)}")
+                return response
+            try:
+                drive.set_mode(mode)
+                response.success, response.message = True, f"{drive.name}: mode {mode.name} confirmed by 0x6061"
+            except RovercanError as err:
+                response.success, response.message = False, str(err)
+            return response
+        return call
+
+    def _sdo_read(self, drive: Drive) -> Callable[[Any, Any], Any]:
+        def call(request: SdoRead.Request, response: SdoRead.Response) -> SdoRead.Response:
+            try:
+                value = drive.sdo_read_value(request.index, request.subindex)
+            except RovercanError as err:
+                response.success, response.message = False, str(err)
+                return response
+            response.success = True
+            if isinstance(value, int):
+                response.value, response.text = value, str(value)
+            elif isinstance(value, float):
+                response.value, response.text = int(value), repr(value)
+            else:
+                response.text = value.decode("latin-1", errors="replace")
+            response.message = f"0x{request.index:04X}:{request.subindex} = {response.text}"
+            return response
+        return call
+
+    def _sdo_write(self, drive: Drive) -> Callable[[Any, Any], Any]:
+        def call(request: SdoWrite.Request, response: SdoWrite.Response) -> SdoWrite.Response:
+            try:
+                drive.sdo_write_checked(request.index, request.subindex, request.value)
+                response.success, response.message = True, f"0x{request.index:04X}:{request.subindex} written"
+            except RovercanError as err:
+                response.success, response.message = False, str(err)
+                code = getattr(err, "abort_code", None)
+                if code is not None and sdo_abort_text(code) not in response.message:
+                    response.message += f" ({sdo_abort_text(code)})"
+            except struct_error as err:
+                response.success, response.message = False, f"value {request.value} does not fit the object: {err}"
+            return response
+        return call
+
+    # --------------------------------------------------------------------- publishing
+    def _publish_states(self) -> None:
+        try:
+            joint = JointState()
+            newest = 0.0
+            for name, drive in self.driver.drives.items():
+                state = drive.snapshot()
+                msg = fill_motor_state(self._states[name], state, drive.config.is_continuous)
+                self._state_pubs[name].publish(msg)
+                if name == self._default:
+                    self._demo_state_pub.publish(msg)
+                joint.name.append(name)
+                joint.position.append(math.radians(state.angle_deg))
+                joint.velocity.append(math.radians(state.velocity_deg_s))
+                joint.effort.append(state.torque_nm)
+                newest = max(newest, state.stamp)
+            _stamp(joint.header, newest or time.time())
+            self._joint_pub.publish(joint)
+        except Exception as err:
+            self.get_logger().error(f"state publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+
+    def _publish_diagnostics(self) -> None:
+        try:
+            array = DiagnosticArray()
+            _stamp(array.header, time.time())
+            for name, drive in self.driver.drives.items():
+                refused, last = self.refusals.take(name)
+                health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s,
+                                      refused_since_last=refused, last_refusal=last,
+                                      bus_lost=self.driver.bus_lost.get(drive.config.bus, False))
+                array.status.append(DiagnosticStatus(
+                    level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
+                    hardware_id=f"{drive.config.bus}/node{drive.node_id}",
+                    values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
+            for bus_name, handle in self.driver.buses.items():
+                load = handle.stats.sample()
+                lost = self.driver.bus_lost.get(bus_name, False)
+                level = 2 if lost else 1 if load > 0.5 else 0
+                array.status.append(DiagnosticStatus(
+                    level=bytes([level]), name=f"rovercan: bus {bus_name}",
+                    message="bus lost" if lost else f"load {load:.1%}", hardware_id=bus_name,
+                    values=[KeyValue(key="load", value=f"{load:.4f}"),
+                            KeyValue(key="frames_received", value=str(handle.stats.frames)),
+                            KeyValue(key="error_frames", value=str(handle.stats.error_frames))]))
+            self._diag_pub.publish(array)
+        except Exception as err:
+            self.get_logger().error(f"diagnostics publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+
+
+class DriveSystemNode(Node):
+    """/cmd_vel -> skid-steer wheel velocities (ramped, stale commands stop), /odom from wheel feedback.
+
+    The node commands the wheels only while /cmd_vel is fresh and while it ramps them down after
+    /cmd_vel went stale; once stopped it leaves them alone (bench tools and per-joint topics
+    may then use them).
+    """
+
+    def __init__(self, driver: MotorDriver, config: RoverConfig, refusals: RefusalLog | None = None,
+                 **kwargs: Any) -> None:
+        super().__init__("drive_system", **kwargs)
+        declare(self, "odom_rate_hz", "odom_frame", "base_frame")
+        system = config.drive_system
+        if system is None:
+            raise RovercanError("the config has no drive_system section")
+        self.system = system
+        self.left = [driver.drive(n) for n in system.left]
+        self.right = [driver.drive(n) for n in system.right]
+        self.steer = SkidSteer(system.track_width_m, system.wheel_radius_m, system.max_accel_m_s2,
+                               system.max_speed_m_s)
+        self.refusals = refusals or RefusalLog(self)
+        self._target = Twist2D()
+        self._last_cmd = -math.inf
+        self._last_tick = time.monotonic()
+        self.stale = True
+        self.active = False  # commanding the wheels (fresh /cmd_vel or ramping down after it)
+        self._odom_frame = str(self.get_parameter("odom_frame").value)
+        self._base_frame = str(self.get_parameter("base_frame").value)
+        self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, COMMAND_QOS)
+        self._odom_pub = self.create_publisher(Odometry, "/odom", STATE_QOS)
+        self.create_timer(1.0 / float(self.get_parameter("odom_rate_hz").value), self._tick)
+
+    def _on_cmd_vel(self, msg: Twist) -> None:
+        v, w = msg.linear.x, msg.angular.z
+        if not (math.isfinite(v) and math.isfinite(w)):
+            self.refusals.refuse("drive_system", f"/cmd_vel with non-finite values (linear.x={v}, angular.z={w})")
+            return
+        self._target = Twist2D(v, w)
+        self._last_cmd = time.monotonic()
+
+    def _tick(self) -> None:
+        try:
+            now = time.monotonic()
+            dt = min(now - self._last_tick, 0.5)
+            self._last_tick = now
+            self.stale = now - self._last_cmd > self.system.cmd_timeout_s
+            target = Twist2D() if self.stale else self._target
+            left, right = self.steer.step(target, dt)
+            if not self.stale:
+                self.active = True
+            elif self.active and left == 0.0 and right == 0.0:
+                self.active = False  # stopped: send this last zero, then leave the wheels to others
+            elif not self.active:
+                self._publish_odom(dt)
+                return
+            for drives, speed in ((self.left, left), (self.right, right)):
+                for drive in drives:
+                    if drive.state.name != "OPERATION_ENABLED":
+                        continue
+                    try:
+                        drive.set_velocity(speed * DEG)
+                    except RovercanError as err:
+                        self.refusals.refuse(drive.name, f"wheel velocity: {err}")
+            self._publish_odom(dt)
+        except Exception as err:
+            self.get_logger().error(f"drive system tick failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+
+    def _publish_odom(self, dt: float) -> None:
+        def mean_rad_s(drives: list[Drive]) -> float:
+            return sum(math.radians(d.snapshot().velocity_deg_s) for d in drives) / len(drives)
+
+        pose, twist = self.steer.odometry(mean_rad_s(self.left), mean_rad_s(self.right), dt)
+        odom = Odometry()
+        _stamp(odom.header, time.time())
+        odom.header.frame_id = self._odom_frame
+        odom.child_frame_id = self._base_frame
+        odom.pose.pose.position.x = pose.x_m
+        odom.pose.pose.position.y = pose.y_m
+        odom.pose.pose.orientation.z = math.sin(pose.yaw_rad / 2.0)
+        odom.pose.pose.orientation.w = math.cos(pose.yaw_rad / 2.0)
+        odom.twist.twist.linear.x = twist.linear_m_s
+        odom.twist.twist.angular.z = twist.angular_rad_s
+        self._odom_pub.publish(odom)
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args if args is not None else sys.argv)
+    boot = rclpy.create_node("rovercan_driver_params")
+    declare(boot, "config")
+    path = str(boot.get_parameter("config").value) or None
+    boot.destroy_node()
+    try:
+        config = load_config(path)
+        driver = MotorDriver(config)
+        driver.start()
+    except RovercanError as err:
+        print(f"rover_driver: {err}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    nodes: list[Node] = []
+    try:
+        node = DriverNode(driver)
+        nodes.append(node)
+        handler = bridge_core_logging(node)
+        if config.drive_system is not None:
+            nodes.append(DriveSystemNode(driver, config, node.refusals))
+        executor = MultiThreadedExecutor(num_threads=2)
+        for n in nodes:
+            executor.add_node(n)
+        try:
+            executor.spin()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        unbridge(handler)
+    finally:
+        driver.close()  # quick stop + disable voltage before the bus closes
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,54 @@
+"""On SIGTERM / SIGINT the node quick-stops and disables its drives before the bus closes,
+as the frames on the bus show."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+from virtual_can import SimDriveSpec, SimService
+
+from .conftest import REPO, drain, requires_ros
+
+pytestmark = requires_ros
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_rover_driver_safe_state_on_signal(tmp_path: Path, sig: int) -> None:
+    with SimService([SimDriveSpec(1), SimDriveSpec(2)], port=0) as sim:
+        config = tmp_path / "rover.yaml"
+        config.write_text("buses:\n  - {name: can0, interface: socketcand, channel: can0,"
+                          f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}\n"
+                          "drives:\n  - {name: a, node_id: 1}\n  - {name: b, node_id: 2}\n")
+        listener = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        proc = subprocess.Popen([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p", f"config:={config}",
+                                 "-p", "arm:=true"], cwd=REPO, env=dict(os.environ),
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            drive = sim.simulator_for(1).drive(1)
+            deadline = time.monotonic() + 20
+            while sim.simulator_for(1).call(lambda: drive.state.name) != "OPERATION_ENABLED":
+                assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()[0] if proc.poll() else "timeout"
+                time.sleep(0.05)
+            time.sleep(0.3)
+            drain(listener, 0.05)
+            proc.send_signal(sig)
+            out, _ = proc.communicate(timeout=20)
+            frames = drain(listener, 0.3)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            listener.shutdown()
+        assert proc.returncode == 0, out
+        for node in (1, 2):
+            cws = [int.from_bytes(m.data[:2], "little") for m in frames if m.arbitration_id == 0x200 + node]
+            assert cws[:2] == [0x02, 0x00], (node, cws)  # quick stop, then disable voltage
+        states = [sim.simulator_for(n).call(lambda n=n: sim.simulator_for(n).drive(n).state.name) for n in (1, 2)]
+        assert states == ["SWITCH_ON_DISABLED", "SWITCH_ON_DISABLED"]
