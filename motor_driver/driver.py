@@ -24,6 +24,7 @@ import canopen
 from can_config import RoverConfig, load_drive_od
 from can_config.bits import frame_bits
 from can_config.errors import BusLostError, ConfigError, MotorError
+from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
 from motor_driver.cia402 import State
 from motor_driver.drive import Drive, DriveState
 
@@ -107,8 +108,18 @@ class MotorDriver:
     other configured bus is opened with ``can.Bus(**bus_config.bus_kwargs())``.
     """
 
-    def __init__(self, config: RoverConfig, buses: Mapping[str, can.BusABC] | None = None) -> None:
+    def __init__(self, config: RoverConfig, buses: Mapping[str, can.BusABC] | None = None, *,
+                 force: bool = False) -> None:
         self.config = config
+        for load in plan_load(config):  # refuse a config the bus cannot carry, before touching it
+            if load.load > MAX_LOAD and not force:
+                raise ConfigError(f"bus {load.bus!r}: the configured traffic needs {load.load:.0%} of"
+                                  f" {load.bitrate} bit/s (worst case); lengthen sync_period_ms, raise the"
+                                  " bitrate or move drives to another bus (rovercan plan shows the budget),"
+                                  " or force it")
+            if load.load > WARN_LOAD:
+                logger.warning("bus %s: planned load %.0f%% of %d bit/s (worst case)", load.bus,
+                               load.load * 100, load.bitrate)
         self._handles: dict[str, BusHandle] = {}
         self.drives: dict[str, Drive] = {}
         self._closed = False

@@ -31,6 +31,8 @@ def _setup_logging(verbose: int) -> None:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     # python-can's socketcand client warns whenever TCP splits a line: not a fault
     logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+    if verbose == 0:  # the command reports failures itself, with their meaning
+        logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)
 
 
 class StopSignal:
@@ -244,12 +246,132 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--print-period", type=float, default=0.5, help="seconds between printed states")
     p.set_defaults(func=cmd_demo)
 
+    _bench_parsers(sub)
+
     p = sub.add_parser("launch", help="run a ROS 2 XML launch file of this project without the ros2 CLI")
     p.add_argument("file", help="launch file, e.g. ros/rovercan_bringup/launch/motor_launch.xml")
     p.add_argument("args", nargs="*", help="launch arguments name:=value")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
     p.set_defaults(func=cmd_launch)
     return parser
+
+
+def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    from rovercan import bench
+
+    p = sub.add_parser("scan", help="find CANopen nodes: heartbeats and an SDO probe of 0x1000/0x1018 over ids 1-127")
+    bench.add_bus_args(p)
+    p.add_argument("--listen", type=float, default=1.2, help="seconds to collect answers and heartbeats")
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_scan)
+
+    p = sub.add_parser("info", help="identity, firmware, modes, PDO mapping and error history of a node")
+    p.add_argument("node")
+    bench.add_bus_args(p)
+    p.add_argument("--eds", help="EDS for object names")
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_info)
+
+    p = sub.add_parser("sdo", help="SDO read or write (types and names from --eds)")
+    p.add_argument("action", choices=("read", "write"))
+    p.add_argument("node")
+    p.add_argument("index", help="INDEX[:SUB] in hex, e.g. 0x6041 or 1018:1")
+    p.add_argument("value", nargs="?")
+    p.add_argument("--size", type=int, default=4, choices=(1, 2, 4), help="bytes to write without an EDS")
+    bench.add_bus_args(p)
+    p.add_argument("--eds", help="EDS for the object's type and name")
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_sdo)
+
+    p = sub.add_parser("nmt", help="NMT command to a node or all nodes")
+    p.add_argument("action", choices=tuple(bench.NMT_COMMANDS))
+    p.add_argument("node", help="node id or 'all'")
+    bench.add_bus_args(p)
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_nmt)
+
+    for action, text in (("enable", "boot and enable a drive (disabled again on exit)"),
+                         ("disable", "boot and disable a drive"), ("fault-reset", "reset a drive's fault"),
+                         ("home", "home a drive with its configured method")):
+        p = sub.add_parser(action, help=text)
+        p.add_argument("node")
+        bench.add_drive_args(p)
+        bench.add_bus_args(p)
+        if action == "enable":
+            p.add_argument("--hold", type=float, default=0.0, help="stay enabled for S seconds")
+        bench.add_json(p)
+        p.set_defaults(func=bench.cmd_drive, action=action)
+
+    p = sub.add_parser("move", help="move a drive to an angle and wait for target reached")
+    p.add_argument("node")
+    p.add_argument("degrees", type=float)
+    p.add_argument("--speed", type=float, help="profile velocity, deg/s")
+    bench.add_drive_args(p)
+    bench.add_bus_args(p)
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_move)
+
+    p = sub.add_parser("jog", help="run a drive at a velocity for a time")
+    p.add_argument("node")
+    p.add_argument("velocity", type=float, help="deg/s")
+    p.add_argument("--for", dest="seconds", type=float, required=True, help="seconds")
+    bench.add_drive_args(p)
+    bench.add_bus_args(p)
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_jog)
+
+    p = sub.add_parser("monitor", help="live CANopen-decoded traffic")
+    bench.add_bus_args(p)
+    p.add_argument("--node", type=int, help="only this node")
+    p.add_argument("--table", action="store_true", help="a per-node table at the end instead of lines")
+    p.add_argument("--seconds", type=float, default=0.0, help="stop after S seconds (default: Ctrl+C)")
+    p.add_argument("--config", help="decode PDOs by the driver's mapping for this config")
+    p.add_argument("--eds", help="decode PDOs by the driver's mapping for this EDS")
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_monitor)
+
+    p = sub.add_parser("record", help="record the bus to a python-can log (.log .asc .blf .trc .csv)")
+    p.add_argument("file")
+    bench.add_bus_args(p)
+    p.add_argument("--seconds", type=float, default=0.0, help="stop after S seconds (default: Ctrl+C)")
+    p.set_defaults(func=bench.cmd_record)
+
+    p = sub.add_parser("replay", help="replay a recording onto the bus with its timing")
+    p.add_argument("file")
+    bench.add_bus_args(p)
+    p.add_argument("--fast", action="store_true", help="as fast as possible, ignoring timestamps")
+    p.set_defaults(func=bench.cmd_replay)
+
+    p = sub.add_parser("decode", help="CANopen-decoded transcript of a recording")
+    p.add_argument("file")
+    p.add_argument("--node", type=int, help="only this node")
+    p.add_argument("--config", help="decode PDOs by the driver's mapping for this config")
+    p.add_argument("--eds", help="decode PDOs by the driver's mapping for this EDS")
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_decode)
+
+    p = sub.add_parser("step-test", help="position step: PNG plot and JSON metrics")
+    p.add_argument("node")
+    p.add_argument("--step", type=float, required=True, help="step in degrees")
+    p.add_argument("--seconds", type=float, default=3.0, help="recording length")
+    p.add_argument("--out", default="step_test", help="output path without suffix (.png and .json)")
+    bench.add_drive_args(p)
+    bench.add_bus_args(p)
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_step_test)
+
+    p = sub.add_parser("plan", help="worst-case bus load of a config")
+    p.add_argument("--config", required=True)
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_plan)
+
+    p = sub.add_parser("can-up", help="bring up a SocketCAN interface (runs ip, no shell)")
+    p.add_argument("interface_name", metavar="INTERFACE")
+    p.add_argument("--bitrate", type=int, required=True)
+    p.add_argument("--restart-ms", type=int, default=100)
+    p.add_argument("--txqueuelen", type=int, default=1000)
+    p.add_argument("--dry-run", action="store_true", help="print the commands only")
+    p.set_defaults(func=bench.cmd_can_up)
 
 
 def _positive_int(low: int, high: int) -> Callable[[str], int]:

@@ -37,9 +37,10 @@ def record(od: ObjectDictionary, name: str, index: int, members: list[ODVariable
 
 
 def array(od: ObjectDictionary, name: str, index: int, dtype: int, access: str,
-          defaults: list[object]) -> None:
+          defaults: list[object], count: int | None = None) -> None:
     arr = ODArray(name, index)
-    arr.add_member(var("Number of entries", index, 0, T.UNSIGNED8, "ro", len(defaults)))
+    arr.add_member(var("Number of entries", index, 0, T.UNSIGNED8, "rw" if count is not None else "ro",
+                       len(defaults) if count is None else count))
     for i, d in enumerate(defaults, start=1):
         arr.add_member(var(f"{name} {i}", index, i, dtype, access, d))
     od.add_object(arr)
@@ -64,7 +65,7 @@ def build() -> ObjectDictionary:
     add = od.add_object
     add(var("Device type", 0x1000, 0, T.UNSIGNED32, "ro", 0x00020192))
     add(var("Error register", 0x1001, 0, T.UNSIGNED8, "ro", 0, True))
-    array(od, "Pre-defined error field", 0x1003, T.UNSIGNED32, "ro", [0] * 8)
+    array(od, "Pre-defined error field", 0x1003, T.UNSIGNED32, "ro", [0] * 8, count=0)  # sub 0: errors recorded
     add(var("COB-ID SYNC", 0x1005, 0, T.UNSIGNED32, "rw", 0x80))
     add(var("Manufacturer device name", 0x1008, 0, T.VISIBLE_STRING, "const",
             "rovercan generic CiA 402 servo"))

@@ -1,0 +1,648 @@
+"""The bench commands of ``rovercan``: thin functions over the library and python-can.
+
+Every command takes python-can's standard bus arguments (``-i/-c/-b/--bus-kwargs``); a
+command that addresses a drive also takes ``--config FILE`` or ``--eds FILE`` with
+``--counts-per-rev`` / ``--gear-ratio``. Human tables by default, ``--json`` for scripts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import struct
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import can
+import can.cli
+import canopen
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config import GENERIC_EDS, RoverConfig, load_config, load_drive_od, load_od, parse_config
+from can_config.eds import variable
+from can_config.errors import ConfigError, RovercanError
+from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
+from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
+
+SCAN_TIMEOUT_S = 0.3
+SDO_TIMEOUT_S = 0.5
+CAUSES = "check the node id, power, bitrate and termination (120 ohm at both ends)"
+
+
+class CliError(RovercanError):
+    """A bench command failed; the message is printed on stderr."""
+
+
+# ------------------------------------------------------------------------------ shared helpers
+def add_bus_args(parser: argparse.ArgumentParser) -> None:
+    can.cli.add_bus_arguments(parser)
+
+
+def add_drive_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="the rover config (bus, drives, units)")
+    parser.add_argument("--eds", help="EDS of a drive on its own (default: the generic CiA 402 EDS)")
+    parser.add_argument("--counts-per-rev", type=int, help="encoder counts per motor revolution")
+    parser.add_argument("--gear-ratio", type=float, default=1.0, help="motor revolutions per joint revolution")
+
+
+def add_json(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="machine-readable output")
+
+
+def open_bus(args: argparse.Namespace) -> can.BusABC:
+    if getattr(args, "interface", None) is None and getattr(args, "config", None):
+        config = load_config(args.config)
+        return can.Bus(**config.buses[0].bus_kwargs())
+    if getattr(args, "interface", None) is None:
+        raise ConfigError("no bus given: pass -i INTERFACE -c CHANNEL (e.g. -i socketcan -c can0, or"
+                          " -i socketcand -c can0 --bus-kwargs host=127.0.0.1 port=29536) or --config FILE")
+    try:
+        return can.cli.create_bus_from_namespace(args)
+    except argparse.ArgumentError as err:
+        raise CliError(f"cannot open the bus {args.interface} {getattr(args, 'channel', '')}: {err.__cause__}") from err
+
+
+def parse_node(text: str) -> int:
+    try:
+        node = int(text, 0)
+    except ValueError:
+        raise ConfigError(f"node {text!r}: expected a node id 1..127") from None
+    if not 1 <= node <= 127:
+        raise ConfigError(f"node {node}: CANopen node ids are 1..127")
+    return node
+
+
+def parse_index(text: str) -> tuple[int, int]:
+    match = re.fullmatch(r"(0x)?([0-9a-fA-F]{1,4})(?::(\d+|0x[0-9a-fA-F]+))?", text)
+    if not match:
+        raise ConfigError(f"index {text!r}: expected INDEX[:SUB] in hex, e.g. 0x6041 or 1018:1")
+    return int(match.group(2), 16), int(match.group(3), 0) if match.group(3) else 0
+
+
+def emit(args: argparse.Namespace, data: Any, title: str, columns: list[str] | None = None) -> None:
+    if getattr(args, "json", False):
+        print(json.dumps(data, indent=2, default=str))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    if columns is not None and isinstance(data, list):
+        table = Table(title=title)
+        for col in columns:
+            table.add_column(col)
+        for row in data:
+            table.add_row(*(str(row.get(c, "")) for c in columns))
+        console.print(table)
+    elif isinstance(data, dict):
+        table = Table(title=title, show_header=False)
+        table.add_column("key")
+        table.add_column("value")
+        for key, value in data.items():
+            table.add_row(str(key), json.dumps(value) if isinstance(value, (list, dict)) else str(value))
+        console.print(table)
+    else:
+        console.print(data)
+
+
+@contextmanager
+def remote_node(args: argparse.Namespace, node_id: int) -> Iterator[tuple[canopen.RemoteNode, can.BusABC]]:
+    bus = open_bus(args)
+    network = canopen.Network(bus)
+    network.NOTIFIER_CYCLE = 0.1  # so stopping it is quick and precedes the bus shutdown
+    network.connect()
+    try:
+        eds = getattr(args, "eds", None)
+        od: ObjectDictionary | str = load_od(eds, node_id) if eds else ObjectDictionary()
+        node = canopen.RemoteNode(node_id, od)
+        node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+        network.add_node(node)
+        yield node, bus
+    finally:
+        network.notifier.stop(1.0) if network.notifier else None
+        bus.shutdown()
+
+
+def sdo_upload(node: canopen.RemoteNode, index: int, sub: int) -> bytes:
+    try:
+        return bytes(node.sdo.upload(index, sub))
+    except canopen.SdoAbortedError as err:
+        raise CliError(f"node {node.id}: SDO read 0x{index:04X}:{sub} aborted: 0x{err.code:08X}"
+                       f" {sdo_abort_text(err.code)}") from err
+    except canopen.SdoCommunicationError as err:
+        raise CliError(f"node {node.id}: no answer to SDO read 0x{index:04X}:{sub} within {SDO_TIMEOUT_S:g} s;"
+                       f" {CAUSES}") from err
+
+
+def _u32(raw: bytes) -> int:
+    return int.from_bytes(raw[:4].ljust(4, b"\0"), "little")
+
+
+def _text(raw: bytes) -> str:
+    return raw.rstrip(b"\0").decode("latin-1", errors="replace")
+
+
+# ------------------------------------------------------------------------------ scan
+def cmd_scan(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    bus = open_bus(args)
+    found: dict[int, dict[str, Any]] = {}
+    try:
+        ids = range(1, 128)
+        for node_id in tqdm(ids, desc="probing 0x1000", unit="node", disable=args.json, file=sys.stderr):
+            bus.send(can.Message(arbitration_id=0x600 + node_id, data=bytes([0x40, 0x00, 0x10, 0, 0, 0, 0, 0]),
+                                 is_extended_id=False))
+        deadline = time.monotonic() + args.listen
+        while (remaining := deadline - time.monotonic()) > 0:
+            msg = bus.recv(remaining)
+            if msg is None:
+                continue
+            node = node_of(msg)
+            if node is None:
+                continue
+            if msg.arbitration_id == 0x580 + node and msg.data[0] & 0xE0 == 0x40 and msg.data[1:3] == b"\x00\x10":
+                found.setdefault(node, {})["device_type"] = f"0x{_u32(bytes(msg.data[4:])):08X}"
+            elif msg.arbitration_id == 0x700 + node and msg.data and not msg.is_remote_frame:
+                found.setdefault(node, {})["nmt"] = _state_name(msg.data[0] & 0x7F)
+    finally:
+        bus.shutdown()
+    rows = []
+    for node_id in sorted(found):
+        row: dict[str, Any] = {"node": node_id, "device_type": found[node_id].get("device_type", "?"),
+                               "nmt": found[node_id].get("nmt", "no heartbeat")}
+        if "device_type" in found[node_id]:
+            with remote_node(args, node_id) as (node, _):
+                for sub, key in ((1, "vendor"), (2, "product"), (3, "revision")):
+                    try:
+                        row[key] = f"0x{_u32(sdo_upload(node, OD.IDENTITY, sub)):08X}"
+                    except CliError:
+                        row[key] = "?"
+        rows.append(row)
+    if not rows:
+        print(f"rovercan scan: no node answered on the bus within {args.listen:g} s; {CAUSES}", file=sys.stderr)
+        return 1
+    emit(args, rows, "CANopen nodes", ["node", "device_type", "vendor", "product", "revision", "nmt"])
+    return 0
+
+
+def _state_name(value: int) -> str:
+    try:
+        return NmtState(value).name
+    except ValueError:
+        return f"0x{value:02X}"
+
+
+# ------------------------------------------------------------------------------ info
+def cmd_info(args: argparse.Namespace) -> int:
+    node_id = parse_node(args.node)
+    with remote_node(args, node_id) as (node, _):
+        od = node.object_dictionary if len(node.object_dictionary) else load_od(GENERIC_EDS, node_id)
+        info: dict[str, Any] = {"node": node_id, "device_type": f"0x{_u32(sdo_upload(node, OD.DEVICE_TYPE, 0)):08X}"}
+        for sub, key in ((1, "vendor_id"), (2, "product_code"), (3, "revision"), (4, "serial")):
+            try:
+                info[key] = f"0x{_u32(sdo_upload(node, OD.IDENTITY, sub)):08X}"
+            except CliError as err:
+                info[key] = str(err)
+        for index, key in ((OD.DEVICE_NAME, "device_name"), (OD.HARDWARE_VERSION, "hardware"),
+                           (OD.SOFTWARE_VERSION, "firmware")):
+            try:
+                info[key] = _text(sdo_upload(node, index, 0))
+            except CliError:
+                info[key] = "(not available)"
+        try:
+            modes = _u32(sdo_upload(node, OD.SUPPORTED_DRIVE_MODES, 0))
+            info["supported_modes"] = [m.name for m, b in SUPPORTED_MODE_BIT.items() if modes >> b & 1]
+        except CliError:
+            info["supported_modes"] = "(0x6502 not available)"
+        info["rpdos"] = _pdo_mapping(node, od, OD.RPDO_COMM)
+        info["tpdos"] = _pdo_mapping(node, od, OD.TPDO_COMM)
+        info["error_register"] = f"0x{sdo_upload(node, OD.ERROR_REGISTER, 0)[0]:02X}"
+        history = []
+        try:
+            count = sdo_upload(node, OD.PREDEFINED_ERROR_FIELD, 0)[0]
+            for sub in range(1, count + 1):
+                from can_config.objects import emcy_text
+                code = _u32(sdo_upload(node, OD.PREDEFINED_ERROR_FIELD, sub)) & 0xFFFF
+                history.append(f"0x{code:04X} {emcy_text(code)}")
+        except CliError:
+            history.append("(0x1003 not available)")
+        info["error_history"] = history
+    emit(args, info, f"node {node_id}")
+    return 0
+
+
+def _pdo_mapping(node: canopen.RemoteNode, od: ObjectDictionary, comm_base: int) -> list[str]:
+    out = []
+    for n in range(4):
+        try:
+            cob = _u32(sdo_upload(node, comm_base + n, 1))
+        except CliError:
+            break
+        if cob & 0x8000_0000:
+            out.append(f"{n + 1}: disabled")
+            continue
+        tt = sdo_upload(node, comm_base + n, 2)[0]
+        count = sdo_upload(node, comm_base + 0x200 + n, 0)[0]
+        names = []
+        for sub in range(1, count + 1):
+            entry = _u32(sdo_upload(node, comm_base + 0x200 + n, sub))
+            index, subindex = entry >> 16, (entry >> 8) & 0xFF
+            var = variable(od, index, subindex)
+            names.append(f"0x{index:04X} {var.name}" if var is not None else f"0x{index:04X}:{subindex}")
+        out.append(f"{n + 1}: 0x{cob & 0x7FF:03X} type {tt}: " + ", ".join(names))
+    return out
+
+
+# ------------------------------------------------------------------------------ sdo / nmt
+def cmd_sdo(args: argparse.Namespace) -> int:
+    node_id = parse_node(args.node)
+    index, sub = parse_index(args.index)
+    with remote_node(args, node_id) as (node, _):
+        var = variable(node.object_dictionary, index, sub) if len(node.object_dictionary) else None
+        name = var.name if var is not None else ""
+        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else None
+        if args.action == "read":
+            raw = sdo_upload(node, index, sub)
+            value: Any = struct.unpack(fmt, raw)[0] if fmt and len(raw) == struct.calcsize(fmt) else (
+                _text(raw) if var is not None and int(var.data_type) == 0x09 else int.from_bytes(raw, "little"))
+            emit(args, {"node": node_id, "index": f"0x{index:04X}", "sub": sub, "name": name, "value": value,
+                        "raw": raw.hex(" ")}, f"node {node_id} 0x{index:04X}:{sub}")
+            return 0
+        if args.value is None:
+            raise ConfigError("sdo write needs a VALUE")
+        if fmt is None:
+            size = args.size
+            data = int(args.value, 0).to_bytes(size, "little", signed=int(args.value, 0) < 0)
+        else:
+            number: Any = float(args.value) if fmt in ("<f", "<d") else int(args.value, 0)
+            try:
+                data = struct.pack(fmt, number)
+            except struct.error as err:
+                raise ConfigError(f"value {args.value} does not fit {name} ({fmt}): {err}") from err
+        try:
+            node.sdo.download(index, sub, data)
+        except canopen.SdoAbortedError as err:
+            raise CliError(f"node {node_id}: SDO write 0x{index:04X}:{sub} aborted: 0x{err.code:08X}"
+                           f" {sdo_abort_text(err.code)}") from err
+        except canopen.SdoCommunicationError as err:
+            raise CliError(f"node {node_id}: no answer to SDO write 0x{index:04X}:{sub}; {CAUSES}") from err
+        emit(args, {"node": node_id, "index": f"0x{index:04X}", "sub": sub, "written": data.hex(" ")}, "written")
+    return 0
+
+
+NMT_COMMANDS = {"start": NmtCommand.START, "stop": NmtCommand.STOP, "preop": NmtCommand.ENTER_PREOPERATIONAL,
+                "reset": NmtCommand.RESET_NODE, "reset-comm": NmtCommand.RESET_COMMUNICATION}
+
+
+def cmd_nmt(args: argparse.Namespace) -> int:
+    node_id = 0 if args.node == "all" else parse_node(args.node)
+    bus = open_bus(args)
+    try:
+        bus.send(can.Message(arbitration_id=0, data=bytes([NMT_COMMANDS[args.action], node_id]), is_extended_id=False))
+    finally:
+        bus.shutdown()
+    emit(args, {"nmt": args.action, "node": args.node}, "NMT")
+    return 0
+
+
+# ------------------------------------------------------------------------------ drive commands
+def one_drive_config(args: argparse.Namespace, node_id: int) -> RoverConfig:
+    """A config with the one drive at ``node_id``: from --config, or built from --eds and units."""
+    if args.config:
+        config = load_config(args.config)
+        drives = [d for d in config.drives if d.node_id == node_id]
+        if not drives:
+            raise ConfigError(f"{args.config}: no drive with node id {node_id}; drives:"
+                              f" {[(d.name, d.node_id) for d in config.drives]}")
+        bus = config.bus(drives[0].bus)
+        return RoverConfig((bus,), (drives[0],), None, config.source)
+    return parse_config({"buses": [{"name": "bench", "interface": "virtual", "channel": "bench"}],
+                         "drives": [{"name": f"node{node_id}", "node_id": node_id, "eds": args.eds or "generic",
+                                     "counts_per_rev": args.counts_per_rev, "gear_ratio": args.gear_ratio}]})
+
+
+@contextmanager
+def bench_driver(args: argparse.Namespace, node_id: int) -> Iterator[Any]:
+    from motor_driver import MotorDriver
+
+    config = one_drive_config(args, node_id)
+    bus = open_bus(args) if getattr(args, "interface", None) else None
+    driver = MotorDriver(config, {config.buses[0].name: bus} if bus is not None else None)
+    try:
+        driver.start()
+        yield driver.drive(config.drives[0].name)
+    finally:
+        driver.close()  # quick stop + disable: the bench never leaves a drive armed by accident
+        if bus is not None:
+            bus.shutdown()
+
+
+def cmd_drive(args: argparse.Namespace) -> int:
+    node_id = parse_node(args.node)
+    with bench_driver(args, node_id) as drive:
+        if args.action == "fault-reset":
+            drive.recover()
+        elif args.action == "disable":
+            drive.disable()
+        elif args.action == "enable":
+            drive.enable()
+            if args.hold:
+                time.sleep(args.hold)
+        elif args.action == "home":
+            drive.enable()
+            drive.home()
+        state = drive.snapshot()
+        emit(args, {"node": node_id, "action": args.action, "state": state.state.name,
+                    "angle_deg": round(state.angle_deg, 3)}, f"node {node_id}")
+    return 0
+
+
+def cmd_move(args: argparse.Namespace) -> int:
+    node_id = parse_node(args.node)
+    with bench_driver(args, node_id) as drive:
+        drive.enable()
+        if args.speed is not None:
+            from motor_driver.units import require_finite
+            speed = require_finite("--speed", args.speed, "deg/s")
+            if not 0 < speed <= drive.config.max_velocity_deg_s:
+                raise ConfigError(f"--speed {speed:g} deg/s: allowed 0 < speed <= {drive.config.max_velocity_deg_s:g}")
+            drive._write_typed(OD.PROFILE_VELOCITY, 0, drive.scale.deg_s_to_counts_s(speed))
+        target = drive.move_to(args.degrees, wait=True)
+        state = drive.snapshot()
+        emit(args, {"node": node_id, "target_deg": round(target, 3), "angle_deg": round(state.angle_deg, 3),
+                    "state": state.state.name}, f"node {node_id} moved")
+    return 0
+
+
+def cmd_jog(args: argparse.Namespace) -> int:
+    node_id = parse_node(args.node)
+    with bench_driver(args, node_id) as drive:
+        drive.enable()
+        end = time.monotonic() + args.seconds
+        while time.monotonic() < end:
+            drive.set_velocity(args.velocity)
+            time.sleep(0.05)
+        peak = drive.snapshot()
+        drive.set_velocity(0.0)
+        emit(args, {"node": node_id, "velocity_deg_s": round(peak.velocity_deg_s, 3),
+                    "angle_deg": round(peak.angle_deg, 3)}, f"node {node_id} jogged")
+    return 0
+
+
+# ------------------------------------------------------------------------------ traffic
+def pdo_layouts_for(args: argparse.Namespace) -> PdoLayouts:
+    """PDO layouts the driver would configure, for decoding (config or EDS given)."""
+    from motor_driver.pdo import plan_pdos
+
+    layouts: dict[int, tuple[PdoField, ...]] = {}
+    drives = []
+    if getattr(args, "config", None):
+        drives = [(d.eds, d.node_id) for d in load_config(args.config).drives]
+    elif getattr(args, "eds", None):
+        drives = [(Path(args.eds), n) for n in range(1, 128)]
+    for eds, node_id in drives:
+        od = load_drive_od(eds, node_id)
+        plan = plan_pdos(od, node_id)
+        for pdo in (*plan.tpdos, *plan.rpdos):
+            layouts[pdo.cob_id] = tuple(PdoField(_field_name(od, i, s), STRUCT_FORMAT[dt]) for i, s, dt in pdo.objects)
+    return layouts
+
+
+def _field_name(od: ObjectDictionary, index: int, sub: int) -> str:
+    if index == OD.STATUSWORD:
+        return "statusword"
+    if index == OD.CONTROLWORD:
+        return "controlword"
+    var = variable(od, index, sub)
+    return var.name.lower().replace(" ", "_") if var is not None else f"0x{index:04X}"
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    from rovercan.cli import StopSignal
+
+    layouts = pdo_layouts_for(args)
+    bus = open_bus(args)
+    print(f"rovercan monitor: listening on {bus.channel_info}", file=sys.stderr, flush=True)
+    count = 0
+    nodes: dict[int, dict[str, str]] = {}
+    with StopSignal() as stop:
+        try:
+            end = time.monotonic() + args.seconds if args.seconds else math.inf
+            while not stop.event.is_set() and time.monotonic() < end:
+                msg = bus.recv(0.2)
+                if msg is None:
+                    continue
+                node = node_of(msg)
+                if args.node is not None and node != args.node:
+                    continue
+                text = decode(msg, layouts)
+                count += 1
+                if args.table:
+                    if node is not None:
+                        nodes.setdefault(node, {})["last"] = text
+                    continue
+                if args.json:
+                    print(json.dumps({"t": msg.timestamp, "id": msg.arbitration_id, "data": bytes(msg.data).hex(),
+                                      "node": node, "text": text}), flush=True)
+                else:
+                    print(f"{candump_line(msg, str(args.channel or 'can'))}   {text}", flush=True)
+        finally:
+            bus.shutdown()
+    if args.table:
+        emit(args, [{"node": n, "last": v["last"]} for n, v in sorted(nodes.items())], "nodes", ["node", "last"])
+    print(f"rovercan monitor: {count} frames", file=sys.stderr)
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from rovercan.cli import StopSignal
+
+    bus = open_bus(args)
+    print(f"rovercan record: recording {bus.channel_info} to {args.file}", file=sys.stderr, flush=True)
+    n = 0
+    with StopSignal() as stop, can.Logger(args.file) as logger:
+        try:
+            end = time.monotonic() + args.seconds if args.seconds else math.inf
+            while not stop.event.is_set() and time.monotonic() < end:
+                msg = bus.recv(0.2)
+                if msg is not None:
+                    logger(msg)
+                    n += 1
+        finally:
+            bus.shutdown()
+    print(f"rovercan record: {n} frames to {args.file}", file=sys.stderr)
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    if not Path(args.file).is_file():
+        raise ConfigError(f"{args.file}: no such recording")
+    bus = open_bus(args)
+    n = 0
+    try:
+        messages = can.LogReader(args.file)
+        source = messages if args.fast else can.MessageSync(messages, timestamps=True)
+        for msg in source:
+            if msg.is_error_frame:
+                continue
+            bus.send(can.Message(arbitration_id=msg.arbitration_id, data=msg.data, is_extended_id=msg.is_extended_id,
+                                 is_remote_frame=msg.is_remote_frame, dlc=msg.dlc))
+            n += 1
+    finally:
+        bus.shutdown()
+    print(f"rovercan replay: {n} frames from {args.file}", file=sys.stderr)
+    return 0
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    if not Path(args.file).is_file():
+        raise ConfigError(f"{args.file}: no such recording")
+    layouts = pdo_layouts_for(args)
+    n = 0
+    for msg in can.LogReader(args.file):
+        node = node_of(msg)
+        if args.node is not None and node != args.node:
+            continue
+        text = decode(msg, layouts)
+        if args.json:
+            print(json.dumps({"t": msg.timestamp, "id": msg.arbitration_id, "data": bytes(msg.data).hex(), "text": text}))
+        else:
+            print(f"{msg.timestamp:14.6f} {candump_line(msg).strip()}   {text}")
+        n += 1
+    print(f"rovercan decode: {n} frames", file=sys.stderr)
+    return 0
+
+
+# ------------------------------------------------------------------------------ step test
+def step_metrics(t: list[float], y: list[float], start: float, step: float, torque: list[float]) -> dict[str, float]:
+    """Rise time (10-90 %), overshoot (%), settling time (2 % band), steady-state error, peak torque."""
+    final = start + step
+    sign = 1.0 if step >= 0 else -1.0
+    rel = [(v - start) * sign / abs(step) for v in y]
+    t10 = next((ti for ti, r in zip(t, rel, strict=True) if r >= 0.1), math.nan)
+    t90 = next((ti for ti, r in zip(t, rel, strict=True) if r >= 0.9), math.nan)
+    overshoot = max(0.0, (max(rel) - 1.0) * 100.0)
+    band = 0.02
+    settle = 0.0
+    for ti, r in zip(t, rel, strict=True):
+        if abs(r - 1.0) > band:
+            settle = ti
+    return {"rise_time_s": round(t90 - t10, 4), "overshoot_pct": round(overshoot, 3),
+            "settling_time_s": round(settle, 4), "steady_state_error_deg": round(abs(final - y[-1]), 4),
+            "peak_torque_nm": round(max((abs(x) for x in torque if not math.isnan(x)), default=math.nan), 4)}
+
+
+def cmd_step_test(args: argparse.Namespace) -> int:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    node_id = parse_node(args.node)
+    with bench_driver(args, node_id) as drive:
+        drive.enable()
+        start = drive.snapshot().angle_deg
+        t0 = time.monotonic()
+        ts, setpoint, angle, velocity, torque = [], [], [], [], []
+        if drive.config.is_continuous and abs(args.step) >= 180:
+            raise ConfigError(f"--step {args.step:g}: a continuous joint moves the short way, so a step test"
+                              " needs |step| < 180 deg")
+        target = drive.move_to(start + args.step)
+        while time.monotonic() - t0 < args.seconds:
+            s = drive.snapshot()
+            ts.append(time.monotonic() - t0)
+            setpoint.append(target)
+            angle.append(s.angle_deg)
+            velocity.append(s.velocity_deg_s)
+            torque.append(s.torque_nm)
+            time.sleep(0.005)
+    metrics = step_metrics(ts, angle, start, args.step, torque)
+    metrics.update({"step_deg": args.step, "start_deg": round(start, 3),
+                    "profile_velocity_deg_s": drive.config.profile_velocity_deg_s,
+                    "profile_acceleration_deg_s2": drive.config.profile_acceleration_deg_s2})
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+    axes[0].plot(ts, setpoint, "--", label="setpoint")
+    axes[0].plot(ts, angle, label="angle")
+    axes[0].set_ylabel("deg")
+    axes[0].legend()
+    axes[0].set_title(f"step test node {node_id}: {args.step:g} deg, rise {metrics['rise_time_s']} s,"
+                      f" overshoot {metrics['overshoot_pct']} %")
+    axes[1].plot(ts, velocity)
+    axes[1].set_ylabel("deg/s")
+    axes[2].plot(ts, torque)
+    axes[2].set_ylabel("Nm")
+    axes[2].set_xlabel("s")
+    for ax in axes:
+        ax.grid(True)
+    fig.tight_layout()
+    fig.savefig(out.with_suffix(".png"))
+    plt.close(fig)
+    out.with_suffix(".json").write_text(json.dumps(metrics, indent=2) + "\n")
+    emit(args, metrics, f"step test node {node_id} -> {out.with_suffix('.png')}")
+    return 0
+
+
+# ------------------------------------------------------------------------------ plan / can-up
+def cmd_plan(args: argparse.Namespace) -> int:
+    from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
+
+    loads = plan_load(load_config(args.config))
+    rows = []
+    worst = 0.0
+    for load in loads:
+        for line in load.lines:
+            rows.append({"bus": line.bus, "what": line.what, "frames/s": round(line.frames_per_s, 1),
+                         "load": f"{line.bits_per_s / load.bitrate:.1%}"})
+        rows.append({"bus": load.bus, "what": "TOTAL", "frames/s": round(sum(x.frames_per_s for x in load.lines), 1),
+                     "load": f"{load.load:.1%}"})
+        worst = max(worst, load.load)
+    emit(args, rows, "worst-case bus load", ["bus", "what", "frames/s", "load"])
+    if worst > MAX_LOAD:
+        print(f"rovercan plan: a bus needs {worst:.0%} of its bitrate: it cannot carry this config", file=sys.stderr)
+        return 1
+    if worst > WARN_LOAD:
+        print(f"rovercan plan: warning: a bus is planned at {worst:.0%} (over {WARN_LOAD:.0%})", file=sys.stderr)
+    return 0
+
+
+_IFNAME = re.compile(r"^[a-zA-Z][a-zA-Z0-9_-]{0,14}$")
+
+
+def can_up_commands(interface: str, bitrate: int, restart_ms: int, txqueuelen: int) -> list[list[str]]:
+    """The ``ip`` commands that bring a SocketCAN interface up the way the Orin's mttcan needs (pure)."""
+    if not _IFNAME.match(interface):
+        raise ConfigError(f"interface {interface!r}: expected a Linux interface name (letters, digits, '_' or '-',"
+                          " at most 15 characters), e.g. can0")
+    if not 10_000 <= bitrate <= 1_000_000:
+        raise ConfigError(f"--bitrate {bitrate}: classic CAN allows 10000 to 1000000 bit/s")
+    if not 0 <= restart_ms <= 60_000:
+        raise ConfigError(f"--restart-ms {restart_ms}: allowed 0 to 60000")
+    if not 10 <= txqueuelen <= 100_000:
+        raise ConfigError(f"--txqueuelen {txqueuelen}: allowed 10 to 100000")
+    return [["ip", "link", "set", interface, "down"],
+            ["ip", "link", "set", interface, "type", "can", "bitrate", str(bitrate), "restart-ms", str(restart_ms),
+             "berr-reporting", "on"],
+            ["ip", "link", "set", interface, "txqueuelen", str(txqueuelen)],
+            ["ip", "link", "set", interface, "up"]]
+
+
+def cmd_can_up(args: argparse.Namespace) -> int:
+    commands = can_up_commands(args.interface_name, args.bitrate, args.restart_ms, args.txqueuelen)
+    for argv in commands:
+        print(" ".join(argv), flush=True)
+        if args.dry_run:
+            continue
+        result = subprocess.run(argv, capture_output=True, text=True, check=False)  # a list: no shell
+        if result.returncode != 0:
+            raise CliError(f"{' '.join(argv)} failed ({result.returncode}): {result.stderr.strip()}"
+                           " (root or CAP_NET_ADMIN needed; is the CAN controller's driver loaded?)")
+    return 0
