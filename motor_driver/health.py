@@ -28,7 +28,7 @@ class Health:
 
 
 def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_last: int = 0,
-                 last_refusal: str = "", bus_lost: bool = False) -> Health:
+                 last_refusal: str = "", bus_lost: bool = False, tpdos_applied: int = 0) -> Health:
     values = {
         "node_id": str(state.node_id),
         "nmt_state": state.nmt,
@@ -42,6 +42,7 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         "last_emcy_text": emcy_text(state.error_code) if state.error_code else "",
         "heartbeat_age_s": "never" if math.isinf(state.heartbeat_age_s) else f"{state.heartbeat_age_s:.3f}",
         "refused_commands": str(refused_since_last),
+        "tpdos_applied": str(tpdos_applied),
         "last_refusal": last_refusal,
     }
     if bus_lost:

@@ -9,15 +9,16 @@ All drives: /joint_states (rad, rad/s, Nm), /joint_commands (sensor_msgs/JointSt
 /diagnostics. The default joint also serves the team's /motor_degree_cmd and /motor_state.
 With a ``drive_system`` in the config, ``drive_system`` takes /cmd_vel and publishes /odom.
 
-Executor: a MultiThreadedExecutor with services in their own mutually exclusive callback
-group, because enable/home block for up to seconds and must not stall state publication
-(measured alternatives: benchmarks/run.py, executor section of the README).
+Executors, by measurement (README): two single-threaded executors, a hot one for commands,
+state and the drive system (small wait set: every wake-up rebuilds it in Python) and a cold
+one, on its own thread, for the services, which block for up to seconds (enable, home).
 """
 
 from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from collections.abc import Callable
 from functools import partial
@@ -28,8 +29,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rovercan_msgs.msg import MotorState
 from rovercan_msgs.srv import SdoRead, SdoWrite, SetMode
@@ -83,7 +83,6 @@ class DriverNode(Node):
         declare(self, "arm", "default_joint", "state_rate_hz", "diagnostics_rate_hz")
         self.driver = driver
         self.refusals = RefusalLog(self)
-        self._service_group = MutuallyExclusiveCallbackGroup()
         self._states: dict[str, MotorState] = {}
         self._state_pubs: dict[str, Any] = {}
         joints = list(driver.drives)
@@ -110,14 +109,6 @@ class DriverNode(Node):
         self._state_pubs[name] = self.create_publisher(MotorState, f"{name}/motor_state", STATE_QOS)
         self.create_subscription(Float32, f"{name}/degree_cmd", self._on_degree(name), COMMAND_QOS)
         self.create_subscription(Float32, f"{name}/velocity_cmd", self._on_velocity(name), COMMAND_QOS)
-        for service, action in (("enable", drive.enable), ("disable", drive.disable),
-                                ("halt", drive.halt), ("quick_stop", drive.quick_stop),
-                                ("recover", drive.recover), ("home", drive.home)):
-            self.create_service(Trigger, f"{name}/{service}", self._trigger(name, service, action),
-                                callback_group=self._service_group)
-        self.create_service(SetMode, f"{name}/set_mode", self._set_mode(drive), callback_group=self._service_group)
-        self.create_service(SdoRead, f"{name}/sdo_read", self._sdo_read(drive), callback_group=self._service_group)
-        self.create_service(SdoWrite, f"{name}/sdo_write", self._sdo_write(drive), callback_group=self._service_group)
 
     def _guard(self, joint: str, what: str, fn: Callable[[], T]) -> T | None:
         """Run a driver call; every failure becomes a throttled warning and a diagnostic."""
@@ -156,6 +147,73 @@ class DriverNode(Node):
                 self._guard(name, "joint velocity", partial(drive.set_velocity, msg.velocity[i] * DEG))
             else:
                 self.refusals.refuse(name, "/joint_commands entry has neither position nor velocity")
+
+    # --------------------------------------------------------------------- publishing
+    def _publish_states(self) -> None:
+        try:
+            joint = JointState()
+            newest = 0.0
+            for name, drive in self.driver.drives.items():
+                state = drive.snapshot()
+                msg = fill_motor_state(self._states[name], state, drive.config.is_continuous)
+                self._state_pubs[name].publish(msg)
+                if name == self._default:
+                    self._demo_state_pub.publish(msg)
+                joint.name.append(name)
+                joint.position.append(math.radians(state.angle_deg))
+                joint.velocity.append(math.radians(state.velocity_deg_s))
+                joint.effort.append(state.torque_nm)
+                newest = max(newest, state.stamp)
+            _stamp(joint.header, newest or time.time())
+            self._joint_pub.publish(joint)
+        except Exception as err:
+            self.get_logger().error(f"state publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+
+    def _publish_diagnostics(self) -> None:
+        try:
+            array = DiagnosticArray()
+            _stamp(array.header, time.time())
+            for name, drive in self.driver.drives.items():
+                refused, last = self.refusals.take(name)
+                health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s,
+                                      refused_since_last=refused, last_refusal=last,
+                                      bus_lost=self.driver.bus_lost.get(drive.config.bus, False),
+                                      tpdos_applied=drive.tpdo_count)
+                array.status.append(DiagnosticStatus(
+                    level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
+                    hardware_id=f"{drive.config.bus}/node{drive.node_id}",
+                    values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
+            for bus_name, handle in self.driver.buses.items():
+                load = handle.stats.sample()
+                lost = self.driver.bus_lost.get(bus_name, False)
+                level = 2 if lost else 1 if load > 0.5 else 0
+                array.status.append(DiagnosticStatus(
+                    level=bytes([level]), name=f"rovercan: bus {bus_name}",
+                    message="bus lost" if lost else f"load {load:.1%}", hardware_id=bus_name,
+                    values=[KeyValue(key="load", value=f"{load:.4f}"),
+                            KeyValue(key="frames_received", value=str(handle.stats.frames)),
+                            KeyValue(key="error_frames", value=str(handle.stats.error_frames))]))
+            self._diag_pub.publish(array)
+        except Exception as err:
+            self.get_logger().error(f"diagnostics publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+
+
+class DriverServicesNode(Node):
+    """The per-drive services, in a node of their own: ``enable`` and ``home`` block for up to
+    seconds, so they run on their own executor thread while topics and timers stay on the hot
+    one (see main)."""
+
+    def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
+        super().__init__("rovercan_driver_services", **kwargs)
+        self.driver = driver
+        for name, drive in driver.drives.items():
+            for service, action in (("enable", drive.enable), ("disable", drive.disable),
+                                    ("halt", drive.halt), ("quick_stop", drive.quick_stop),
+                                    ("recover", drive.recover), ("home", drive.home)):
+                self.create_service(Trigger, f"{name}/{service}", self._trigger(name, service, action))
+            self.create_service(SetMode, f"{name}/set_mode", self._set_mode(drive))
+            self.create_service(SdoRead, f"{name}/sdo_read", self._sdo_read(drive))
+            self.create_service(SdoWrite, f"{name}/sdo_write", self._sdo_write(drive))
 
     def _trigger(self, joint: str, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
         def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -218,54 +276,6 @@ class DriverNode(Node):
                 response.success, response.message = False, f"value {request.value} does not fit the object: {err}"
             return response
         return call
-
-    # --------------------------------------------------------------------- publishing
-    def _publish_states(self) -> None:
-        try:
-            joint = JointState()
-            newest = 0.0
-            for name, drive in self.driver.drives.items():
-                state = drive.snapshot()
-                msg = fill_motor_state(self._states[name], state, drive.config.is_continuous)
-                self._state_pubs[name].publish(msg)
-                if name == self._default:
-                    self._demo_state_pub.publish(msg)
-                joint.name.append(name)
-                joint.position.append(math.radians(state.angle_deg))
-                joint.velocity.append(math.radians(state.velocity_deg_s))
-                joint.effort.append(state.torque_nm)
-                newest = max(newest, state.stamp)
-            _stamp(joint.header, newest or time.time())
-            self._joint_pub.publish(joint)
-        except Exception as err:
-            self.get_logger().error(f"state publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
-
-    def _publish_diagnostics(self) -> None:
-        try:
-            array = DiagnosticArray()
-            _stamp(array.header, time.time())
-            for name, drive in self.driver.drives.items():
-                refused, last = self.refusals.take(name)
-                health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s,
-                                      refused_since_last=refused, last_refusal=last,
-                                      bus_lost=self.driver.bus_lost.get(drive.config.bus, False))
-                array.status.append(DiagnosticStatus(
-                    level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
-                    hardware_id=f"{drive.config.bus}/node{drive.node_id}",
-                    values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
-            for bus_name, handle in self.driver.buses.items():
-                load = handle.stats.sample()
-                lost = self.driver.bus_lost.get(bus_name, False)
-                level = 2 if lost else 1 if load > 0.5 else 0
-                array.status.append(DiagnosticStatus(
-                    level=bytes([level]), name=f"rovercan: bus {bus_name}",
-                    message="bus lost" if lost else f"load {load:.1%}", hardware_id=bus_name,
-                    values=[KeyValue(key="load", value=f"{load:.4f}"),
-                            KeyValue(key="frames_received", value=str(handle.stats.frames)),
-                            KeyValue(key="error_frames", value=str(handle.stats.error_frames))]))
-            self._diag_pub.publish(array)
-        except Exception as err:
-            self.get_logger().error(f"diagnostics publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
 
 
 class DriveSystemNode(Node):
@@ -353,6 +363,13 @@ class DriveSystemNode(Node):
         self._odom_pub.publish(odom)
 
 
+def _spin_quietly(executor: SingleThreadedExecutor) -> None:
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+
+
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args if args is not None else sys.argv)
     boot = rclpy.create_node("rovercan_driver_params")
@@ -374,13 +391,22 @@ def main(args: list[str] | None = None) -> int:
         handler = bridge_core_logging(node)
         if config.drive_system is not None:
             nodes.append(DriveSystemNode(driver, config, node.refusals))
-        executor = MultiThreadedExecutor(num_threads=2)
-        for n in nodes:
-            executor.add_node(n)
+        services = DriverServicesNode(driver)
+        nodes.append(services)
+        # two single-threaded executors: the hot one (commands, state, drive system) keeps a
+        # small wait set; the cold one serves the blocking services (measured: README)
+        hot = SingleThreadedExecutor()
+        for n in nodes[:-1]:
+            hot.add_node(n)
+        cold = SingleThreadedExecutor()
+        cold.add_node(services)
+        cold_thread = threading.Thread(target=_spin_quietly, args=(cold,), daemon=True, name="rovercan-services")
+        cold_thread.start()
         try:
-            executor.spin()
+            hot.spin()
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        cold.shutdown(timeout_sec=1.0)
         unbridge(handler)
     finally:
         driver.close()  # quick stop + disable voltage before the bus closes

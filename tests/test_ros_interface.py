@@ -33,7 +33,7 @@ if HAVE_ROS:
     from std_srvs.srv import Trigger
 
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
-    from nodes.rover_driver import DriverNode, DriveSystemNode
+    from nodes.rover_driver import DriverNode, DriverServicesNode, DriveSystemNode
 
 WHEELS = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left",
           "wheel_front_right", "wheel_middle_right", "wheel_rear_right"]
@@ -71,16 +71,17 @@ def graph() -> Iterator[Graph]:
     rclpy.init(context=context)
     driver_node = DriverNode(driver, context=context, parameter_overrides=[Parameter("diagnostics_rate_hz", value=5.0)])
     system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
+    services = DriverServicesNode(driver, context=context)
     probe = rclpy.create_node("probe", context=context)
     executor = MultiThreadedExecutor(num_threads=3, context=context)
-    for node in (driver_node, system_node, probe):
+    for node in (driver_node, system_node, services, probe):
         executor.add_node(node)
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
     yield Graph(sim, driver, context, probe, driver_node, system_node)
     executor.shutdown()
     thread.join(timeout=5)
-    for node in (driver_node, system_node, probe):
+    for node in (driver_node, system_node, services, probe):
         node.destroy_node()
     rclpy.shutdown(context=context)
     driver.close()

@@ -1,0 +1,59 @@
+"""The baseline: the python canopen library's way (BaseNode402 + PDO callbacks) for the same
+state run. usage: baseline_canopen.py HOST PORT N_DRIVES SYNC_MS SECONDS; prints JSON."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+import canopen
+from canopen.profiles.p402 import BaseNode402
+
+from can_config import GENERIC_EDS
+
+
+def main() -> int:
+    host, port, n, sync_ms, seconds = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
+    network = canopen.Network()
+    network.connect(interface="socketcand", channel="can0", host=host, port=port)
+    received = [0]
+    nodes = []
+    for node_id in range(1, n + 1):
+        node = BaseNode402(node_id, str(GENERIC_EDS))
+        network.add_node(node)
+        node.nmt.state = "PRE-OPERATIONAL"
+        node.tpdo.read()
+        node.tpdo[1].clear()
+        node.tpdo[1].add_variable(0x6041)
+        node.tpdo[1].add_variable(0x6061)
+        node.tpdo[1].trans_type = 255
+        node.tpdo[1].enabled = True
+        node.tpdo[2].clear()
+        node.tpdo[2].add_variable(0x6064)
+        node.tpdo[2].add_variable(0x606C)
+        node.tpdo[2].trans_type = 1
+        node.tpdo[2].enabled = True
+        node.tpdo[3].clear()
+        node.tpdo[3].add_variable(0x6077)
+        node.tpdo[3].add_variable(0x6041)
+        node.tpdo[3].trans_type = 1
+        node.tpdo[3].enabled = True
+        node.tpdo.save()
+        node.setup_402_state_machine(read_pdos=False)
+        for tpdo in (node.tpdo[1], node.tpdo[2], node.tpdo[3]):
+            tpdo.add_callback(lambda _m: received.__setitem__(0, received[0] + 1))
+        nodes.append(node)
+    for node in nodes:
+        node.nmt.state = "OPERATIONAL"
+    network.sync.start(sync_ms / 1000.0)
+    print("measuring", flush=True)
+    time.sleep(seconds + 1.0)
+    network.sync.stop()
+    print(json.dumps({"received": received[0]}), flush=True)
+    network.disconnect()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
