@@ -16,6 +16,7 @@ socketcand client here) sees every frame with the server's wire timestamp. Figur
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import statistics
@@ -113,7 +114,7 @@ def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) 
             while node.count_subscribers(f"j{n_drives}/degree_cmd") == 0:
                 time.sleep(0.05)
             time.sleep(0.5)
-            sent: dict[tuple[int, int], float] = {}
+            sent: dict[tuple[int, int], list[float]] = {}
             cpu0, wall0 = proc_cpu_s(proc.pid), time.monotonic()
             period = 1.0 / command_hz
             next_t = time.monotonic()
@@ -122,7 +123,7 @@ def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) 
                 k += 1
                 angle = (k % 3000) * 0.1 + 0.05
                 for i, pub in enumerate(pubs, start=1):
-                    sent[(i, round(angle * COUNTS_PER_DEG))] = time.time()
+                    sent.setdefault((i, round(angle * COUNTS_PER_DEG)), []).append(time.time())
                     pub.publish(Float32(data=angle))
                 executor.spin_once(timeout_sec=0)
                 next_t += period
@@ -146,17 +147,22 @@ def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) 
             proc.wait(20)
             listener.close()
     latencies = []
+    matched = 0
     for t, cob, data in listener.frames:
         if 0x301 <= cob <= 0x300 + n_drives and len(data) >= 6 and data[0] & 0x10:
-            key = (cob - 0x300, int.from_bytes(data[2:6], "little", signed=True))
-            if key in sent:
-                latencies.append((t - sent.pop(key)) * 1000)
+            times = sent.get((cob - 0x300, int.from_bytes(data[2:6], "little", signed=True)), [])
+            while times and times[0] < t - 1.0:
+                times.pop(0)  # a command superseded before it was sent (latest wins), 30 s ago
+            if times and times[0] <= t:
+                latencies.append((t - times.pop(0)) * 1000)
+                matched += 1
+    unmatched = sum(len(v) for v in sent.values())
     syncs = [t for t, cob, _ in listener.frames if cob == 0x080]
-    periods = [(b - a) * 1e6 for a, b in zip(syncs, syncs[1:], strict=False)]
+    periods = [(b - a) * 1e6 for a, b in itertools.pairwise(syncs)]
     jitter = [abs(p - sync_ms * 1000) for p in periods]
     return {"cmd_latency_p50_ms": round(statistics.median(latencies), 3) if latencies else None,
             "cmd_latency_p99_ms": round(pct(latencies, 0.99), 3) if latencies else None,
-            "commands_matched": len(latencies), "commands_unmatched": len(sent),
+            "commands_matched": matched, "commands_superseded": unmatched,
             "tpdo_sent": sim_tpdos, "tpdo_applied": applied, "tpdo_loss": sim_tpdos - applied,
             "cpu_core_fraction": round(cpu, 3), "rss_mb": round(rss, 1),
             "sync_jitter_p99_us": round(pct(jitter, 0.99), 1) if jitter else None}
@@ -209,12 +215,12 @@ def bare_path(seconds: float) -> dict[str, Any]:
     return {"bare_latency_p50_ms": round(statistics.median(latencies), 3)}
 
 
-def baseline_canopen(n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]:
-    """The canopen library's way, in its own process: tpdo loss and CPU."""
+def state_run(script: str, prefix: str, n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]:
+    """A driver-level state run (no ROS) in its own process: TPDO loss and CPU."""
     with SimService([SimDriveSpec(i) for i in range(1, n_drives + 1)], port=0) as sim:
-        proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve().parent / "baseline_canopen.py"),
+        proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve().parent / script),
                                  sim.host, str(sim.port), str(n_drives), str(sync_ms), str(seconds)],
-                                stdout=subprocess.PIPE, text=True)
+                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=REPO)
         assert proc.stdout is not None
         assert proc.stdout.readline().startswith("measuring")
         cpu0, wall0 = proc_cpu_s(proc.pid), time.monotonic()
@@ -228,8 +234,16 @@ def baseline_canopen(n_drives: int, sync_ms: float, seconds: float) -> dict[str,
         proc.stdin = None
         out = json.loads(proc.stdout.readline())
         proc.wait(30)
-    return {"baseline_canopen_tpdo_loss": sent - out["received"], "baseline_canopen_tpdo_sent": sent,
-            "baseline_canopen_cpu_core_fraction": round(cpu, 3)}
+    return {f"{prefix}_tpdo_loss": sent - out["received"], f"{prefix}_tpdo_sent": sent,
+            f"{prefix}_cpu_core_fraction": round(cpu, 3)}
+
+
+def baseline_canopen(n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]:
+    return state_run("baseline_canopen.py", "baseline_canopen", n_drives, sync_ms, seconds)
+
+
+def driver_only(n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]:
+    return state_run("driver_only.py", "driver_only", n_drives, sync_ms, seconds)
 
 
 if __name__ == "__main__":

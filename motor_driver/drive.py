@@ -16,6 +16,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import can
 import canopen
 from canopen.objectdictionary import ObjectDictionary
 
@@ -23,9 +24,11 @@ from can_config.config import DriveConfig
 from can_config.eds import has_object, variable
 from can_config.errors import (
     BootError,
+    BusLostError,
     CommandRejected,
     DriveStateError,
     DriveTimeoutError,
+    MotorError,
     SdoError,
     SdoTimeoutError,
 )
@@ -138,12 +141,17 @@ class Drive:
         self._status_event = threading.Condition()
         self.tpdo_count = 0
         self._position_seq = 0
+        self._position_t = 0.0
+        self._suspect_position: int | None = None
+        self.implausible_samples = 0
         self.boot_count = 0
         self.sync_period_s = 0.01  # set by the driver from the bus config
         self.last_velocity_cmd = 0.0
         self.velocity_commanded = False
         self.was_enabled = False
         self.turns_offset_deg = 0.0
+        self._max_counts_s = int(abs(self.scale.counts_per_deg * config.max_velocity_deg_s)) or 1
+        self._jump_margin_counts = max(4.0, self.scale.counts_per_deg)  # one degree
         self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in self.plan.tpdos)
         self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in self.plan.tpdos}
         for cob in self._layouts:
@@ -164,6 +172,8 @@ class Drive:
             if index == OD.STATUSWORD:
                 self.statusword = value
             elif index == OD.POSITION_ACTUAL:
+                if not self._plausible_position(value, timestamp):
+                    continue
                 self.position_counts = value
                 self._position_seq += 1
             elif index == OD.VELOCITY_ACTUAL:
@@ -176,9 +186,33 @@ class Drive:
         self.tpdo_count += 1
         if OD.STATUSWORD in layout.indexes:
             if self._awaiting_ack and self.statusword & SW.SETPOINT_ACK:
-                self._complete_setpoint()
+                try:
+                    self._complete_setpoint()
+                except MotorError as err:  # never let a send failure kill the receive thread
+                    logger.warning("node %d: setpoint handshake: %s", self.node_id, err)
             with self._status_event:
                 self._status_event.notify_all()
+
+    def _plausible_position(self, value: int, timestamp: float) -> bool:
+        """Reject a position the joint cannot have reached since the last one (a corrupted or
+        foreign frame), unless the next sample confirms it (homing, a reboot, a real jump)."""
+        last_t = self._position_t
+        self._position_t = timestamp
+        if not last_t:
+            return True
+        limit = self._max_counts_s * 2.0 * max(timestamp - last_t, 0.001) + self._jump_margin_counts
+        if abs(value - self.position_counts) <= limit:
+            self._suspect_position = None
+            return True
+        suspect = self._suspect_position
+        if suspect is not None and abs(value - suspect) <= limit:
+            self._suspect_position = None
+            return True  # confirmed by a second sample
+        self._suspect_position = value
+        self.implausible_samples += 1
+        logger.debug("node %d: position %d implausible after %d; held for confirmation", self.node_id, value,
+                     self.position_counts)
+        return False
 
     def _on_heartbeat(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         if not data:
@@ -242,6 +276,14 @@ class Drive:
             stamp=self.stamp, heartbeat_age_s=hb_age,
             target_reached=bool(sw & SW.TARGET_REACHED))
 
+    def _send(self, cob_id: int, data: bytes) -> None:
+        """One frame out; a dead bus becomes BusLostError (the supervisor reconnects)."""
+        try:
+            self.network.send_message(cob_id, data)
+        except (can.CanError, OSError, RuntimeError) as err:
+            raise BusLostError(f"{self.name} (node {self.node_id}): cannot send 0x{cob_id:03X}: the bus is"
+                               f" gone ({err}); nothing moves until it is back and the drive is enabled again") from err
+
     # ------------------------------------------------------------------ SDO
     def sdo_read(self, index: int, subindex: int = 0) -> bytes:
         try:
@@ -254,6 +296,8 @@ class Drive:
             raise SdoTimeoutError(f"node {self.node_id}: SDO read 0x{index:04X}:{subindex} got no"
                                   f" answer ({err}); check power, node id, bitrate and termination",
                                   node_id=self.node_id, index=index, subindex=subindex) from err
+        except (can.CanError, OSError) as err:
+            raise BusLostError(f"node {self.node_id}: SDO read 0x{index:04X}:{subindex}: the bus is gone ({err})") from err
 
     def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
         try:
@@ -266,6 +310,8 @@ class Drive:
             raise SdoTimeoutError(f"node {self.node_id}: SDO write 0x{index:04X}:{subindex} got no"
                                   f" answer ({err}); check power, node id, bitrate and termination",
                                   node_id=self.node_id, index=index, subindex=subindex) from err
+        except (can.CanError, OSError) as err:
+            raise BusLostError(f"node {self.node_id}: SDO write 0x{index:04X}:{subindex}: the bus is gone ({err})") from err
 
     def sdo_write_checked(self, index: int, subindex: int, value: int) -> None:
         """SDO write for tools and services: refuses the objects that move the motor or set its
@@ -301,7 +347,7 @@ class Drive:
         self.rebooted.clear()
         if reset:
             self._bootup.clear()
-            self.network.send_message(0x000, bytes([NmtCommand.RESET_NODE, self.node_id]))
+            self._send(0x000, bytes([NmtCommand.RESET_NODE, self.node_id]))
             if not self._bootup.wait(BOOTUP_TIMEOUT_S):
                 raise BootError(f"node {self.node_id} ({self.name}): no boot-up message within"
                                 f" {BOOTUP_TIMEOUT_S:g} s after NMT reset; check power, node id,"
@@ -361,6 +407,7 @@ class Drive:
             self.statusword = int(self.sdo_read_value(OD.STATUSWORD))  # type: ignore[arg-type]
             current = (OD.POSITION_ACTUAL, 0)
             self.position_counts = int(self.sdo_read_value(OD.POSITION_ACTUAL))  # type: ignore[arg-type]
+            self._position_t = 0.0  # trust the next TPDO: the position was just read
             self._target_counts = self.position_counts
         except BootError:
             raise
@@ -369,7 +416,7 @@ class Drive:
             raise BootError(f"node {self.node_id} ({self.name}): boot step '{step}' failed at"
                             f" 0x{current[0]:04X}:{current[1]}: {err}", node_id=self.node_id,
                             step=step, index=current[0], subindex=current[1], abort_code=code) from err
-        self.network.send_message(0x000, bytes([NmtCommand.START, self.node_id]))
+        self._send(0x000, bytes([NmtCommand.START, self.node_id]))
         self.nmt_state = "OPERATIONAL"
         self.last_heartbeat = time.monotonic()
         self.lost = False
@@ -393,6 +440,8 @@ class Drive:
                         objects[(index, sub)] = value
         cfg = self.config
         self.scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects)
+        self._max_counts_s = int(abs(self.scale.counts_per_deg * cfg.max_velocity_deg_s)) or 1
+        self._jump_margin_counts = max(4.0, self.scale.counts_per_deg)
         for note in notes:
             logger.warning("node %d (%s): %s", self.node_id, self.name, note)
 
@@ -452,7 +501,7 @@ class Drive:
             self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", cw))
             return
         values: dict[int, int] = {OD.CONTROLWORD: cw, OD.TARGET_POSITION: self._target_counts, OD.TARGET_VELOCITY: 0}
-        self.network.send_message(pdo.cob_id, encode_rpdo(pdo, values))
+        self._send(pdo.cob_id, encode_rpdo(pdo, values))
 
     def _wait_state(self, wanted: set[State], timeout_s: float, doing: str, *,
                     fault_ok: bool = False) -> State:
@@ -621,7 +670,7 @@ class Drive:
         cw |= self._cw & CW.HALT
         self._awaiting_ack = True
         if pdo is not None:
-            self.network.send_message(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw,
+            self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw,
                                                                     OD.TARGET_POSITION: counts}))
         else:  # target position not PDO-mappable on this drive (e.g. SCHUNK PRL120)
             self._write_typed(OD.TARGET_POSITION, 0, counts)
@@ -681,7 +730,7 @@ class Drive:
         pdo = self.plan.rpdo_with(OD.TARGET_VELOCITY)
         cw = int(Command.ENABLE_OPERATION) | (self._cw & CW.HALT)
         if pdo is not None:
-            self.network.send_message(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw,
+            self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw,
                                                                     OD.TARGET_VELOCITY: counts_s}))
         else:
             self._write_typed(OD.TARGET_VELOCITY, 0, counts_s)
@@ -724,7 +773,7 @@ class Drive:
         pdo = self.plan.rpdo_with(OD.TARGET_TORQUE)
         cw = int(Command.ENABLE_OPERATION) | (self._cw & CW.HALT)
         if pdo is not None:
-            self.network.send_message(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_TORQUE: permille}))
+            self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_TORQUE: permille}))
         else:
             self._write_typed(OD.TARGET_TORQUE, 0, permille)
 
@@ -748,7 +797,7 @@ class Drive:
             pdo = self.plan.rpdo_with(OD.TARGET_POSITION)
             cw = int(Command.ENABLE_OPERATION)
             if pdo is not None:
-                self.network.send_message(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_POSITION: counts}))
+                self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_POSITION: counts}))
             else:
                 self._write_typed(OD.TARGET_POSITION, 0, counts)
 
@@ -780,6 +829,11 @@ class Drive:
                                         f" {timeout_s or cfg.homing_timeout_s:g} s", node_id=self.node_id,
                                         statusword=sw)
             time.sleep(STATE_POLL_S)
+        self._position_t = 0.0  # homing moves the zero: the next position is trusted as it comes
+        seq = self._position_seq
+        settle = time.monotonic() + 3 * self.sync_period_s + 0.05
+        while self._position_seq == seq and time.monotonic() < settle:
+            time.sleep(0.001)
         with self._lock:
             self._send_cw(int(Command.ENABLE_OPERATION))
             self.set_mode(OperationMode.PROFILE_POSITION)

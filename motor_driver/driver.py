@@ -31,7 +31,35 @@ from motor_driver.drive import Drive, DriveState
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
+RECONNECT_MIN_S = 0.2
+RECONNECT_MAX_S = 5.0
 NOTIFIER_TIMEOUT_S = 0.1
+
+
+class GuardedNetwork(canopen.Network):
+    """A canopen Network whose frame dispatch survives a failing callback.
+
+    canopen's own consumers (EMCY, NMT) raise on malformed frames (a 2-byte EMCY, an empty NMT
+    command: found by the random-frame test), and an exception in the receive thread stops
+    python-can's Notifier, i.e. the driver would go deaf from one bad frame. Here each callback
+    is isolated; rejected frames are counted.
+    """
+
+    def __init__(self, bus: can.BusABC | None = None) -> None:
+        super().__init__(bus)
+        self.rejected_frames = 0
+
+    def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        callbacks = self.subscribers.get(can_id)
+        if callbacks:
+            for callback in callbacks:
+                try:
+                    callback(can_id, data, timestamp)
+                except Exception as err:  # a malformed frame must not stop the receive thread
+                    self.rejected_frames += 1
+                    logger.debug("frame 0x%03X %s rejected by %s: %r", can_id, bytes(data).hex(),
+                                 getattr(callback, "__qualname__", callback), err)
+        self.scanner.on_message_received(can_id)
 
 
 class BusStats(can.Listener):
@@ -75,11 +103,32 @@ class BusHandle:
         self.owned = owned
         self.sync_period_s = sync_period_s
         self.stats = BusStats(bitrate)
-        self.network = canopen.Network(bus)
+        self.network = GuardedNetwork(bus)
         self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         self.network.listeners.append(self.stats)
         self.network.connect()
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | None = None
+        self.backoff_s = RECONNECT_MIN_S
+        self.next_attempt = 0.0
+        self.last_frames = 0
+        self.last_rx = 0.0
+
+    def disconnect(self) -> None:
+        """Drop a lost bus: SYNC, receive thread and socket (the network object stays)."""
+        self.stop_sync()
+        notifier = self.network.notifier
+        if notifier is not None:
+            notifier.stop(timeout=1.0)
+            self.network.notifier = None
+        try:
+            self.bus.shutdown()
+        except (can.CanError, OSError):
+            pass
+
+    def reconnect(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.network.bus = bus
+        self.network.notifier = can.Notifier(bus, self.network.listeners, NOTIFIER_TIMEOUT_S)
 
     def start_sync(self) -> None:
         if self.sync_task is None and self.sync_period_s > 0:
@@ -98,7 +147,10 @@ class BusHandle:
             notifier.stop(timeout=1.0)
             self.network.notifier = None
         if self.owned:
-            self.bus.shutdown()
+            try:
+                self.bus.shutdown()
+            except (can.CanError, OSError):
+                pass
 
 
 class MotorDriver:
@@ -207,10 +259,58 @@ class MotorDriver:
                 except Exception:
                     logger.exception("supervisor: unexpected error on %s", drive.name)
             for name, handle in self._handles.items():
-                exc = handle.network.notifier.exception if handle.network.notifier else None
-                if exc is not None and not self.bus_lost[name]:
-                    self.bus_lost[name] = True
-                    logger.error("bus %s lost: %s", name, exc)
+                try:
+                    self._supervise_bus(name, handle, now)
+                except Exception:
+                    logger.exception("supervisor: unexpected error on bus %s", name)
+
+    def _supervise_bus(self, name: str, handle: BusHandle, now: float) -> None:
+        """A bus is lost when its receive thread failed, or when every drive on it lost its
+        heartbeat and nothing at all arrived for a consumer time (a socketcand server that died,
+        an unplugged adapter). A bus the driver
+        opened itself is then reconnected with back-off and its drives are booted again (not
+        re-armed: commands are refused until someone enables them)."""
+        if not self.bus_lost[name]:
+            exc = handle.network.notifier.exception if handle.network.notifier else None
+            drives = [d for d in self.drives.values() if d.config.bus == name]
+            if handle.stats.frames != handle.last_frames:
+                handle.last_frames, handle.last_rx = handle.stats.frames, now
+            silent_for = now - handle.last_rx if handle.last_rx else 0.0
+            timeout = max((d.config.heartbeat_timeout_s for d in drives), default=1.0)
+            if exc is not None or (drives and all(d.lost for d in drives) and silent_for > timeout):
+                self.bus_lost[name] = True
+                why = f"receive failed: {exc}" if exc is not None else f"nothing received for {silent_for:.1f} s"
+                logger.error("bus %s lost (%s)", name, why)
+                for drive in drives:
+                    drive.lost = True
+                    drive.booted = False
+                if handle.owned:
+                    handle.disconnect()
+                    handle.next_attempt = now
+            return
+        if not handle.owned or now < handle.next_attempt:
+            return
+        bus_cfg = self.config.bus(name)
+        try:
+            handle.reconnect(can.Bus(**bus_cfg.bus_kwargs()))
+        except (can.CanError, OSError, ValueError, TimeoutError) as err:
+            handle.backoff_s = min(handle.backoff_s * 2, RECONNECT_MAX_S)
+            handle.next_attempt = now + handle.backoff_s
+            logger.warning("bus %s: reconnect failed (%s); next try in %.1f s", name, err, handle.backoff_s)
+            return
+        handle.backoff_s = RECONNECT_MIN_S
+        try:
+            for drive in (d for d in self.drives.values() if d.config.bus == name):
+                drive.boot(reset=True)
+                drive.was_enabled = False
+        except MotorError as err:
+            logger.error("bus %s is back but a drive did not boot: %s; retrying", name, err)
+            handle.disconnect()
+            handle.next_attempt = now + handle.backoff_s
+            return
+        handle.start_sync()
+        self.bus_lost[name] = False
+        logger.warning("bus %s re-established; drives configured again (not enabled)", name)
 
     def _supervise_drive(self, drive: Drive, now: float) -> None:
         cfg = drive.config

@@ -55,15 +55,16 @@ def test_rovercan_launch_runs_the_graph(tmp_path: Path) -> None:
                       "drives:\n  - {name: motor, node_id: 1}\n")
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     proc = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(LAUNCH), "sim:=true", "arm:=true",
-                             f"config:={config}", "--duration", "12"], cwd=REPO, env=env,
+                             f"config:={config}", "--duration", "40"], cwd=REPO, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # the same range as the launched nodes
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node("launch_probe", context=context)
     states: list[MotorState] = []
     node.create_subscription(MotorState, "/motor_state", states.append, STATE_QOS)
     try:
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + 30.0  # three Python processes start on two cores
         while time.monotonic() < deadline and not (len(states) > 20 and states[-1].angle > 0.5):
             _spin(node, context)
         assert states, "no /motor_state from the launched graph"
