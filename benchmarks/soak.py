@@ -70,6 +70,7 @@ def main() -> int:
         faulted: set[int] = set()
         sent = [0] * (N + 1)
         stop = threading.Event()
+        books = threading.Lock()  # a command is sent and counted, or not at all, as seen by the counting
 
         def command_loop() -> None:
             k = 0
@@ -77,19 +78,22 @@ def main() -> int:
             while not stop.is_set():
                 k += 1
                 for d in driver:
-                    if d.node_id in faulted:
-                        continue
-                    try:
-                        d.set_velocity(30.0 + (k % 50))
-                        sent[d.node_id] += 1
-                    except MotorError:
-                        pass
+                    with books:
+                        if d.node_id in faulted:
+                            continue
+                        try:
+                            d.set_velocity(30.0 + (k % 50))
+                            sent[d.node_id] += 1
+                        except MotorError:
+                            pass
                 next_t += 0.01
                 time.sleep(max(0.0, next_t - time.monotonic()))
 
         def rpdos(node: int) -> int:
+            """RPDOs the drive received, less the zero-velocity frames the driver's own watchdog sent."""
             s = sim.simulator_for(node)
-            return int(s.call(lambda: s.drive(node).counters["rpdo"]))  # type: ignore[arg-type]
+            received = int(s.call(lambda: s.drive(node).counters["rpdo"]))  # type: ignore[arg-type]
+            return received - driver.drive(f"j{node}").watchdog_stops
 
         time.sleep(1.0)
         threads0, fds0 = threading.active_count(), fds()
@@ -97,7 +101,12 @@ def main() -> int:
         thread.start()
         time.sleep(5.0)  # warm-up
         rss0 = rss_mb()
-        base = {n: (sent[n], rpdos(n)) for n in range(1, N + 1)}
+        with books:  # pause every drive's commands, let in-flight ones land, then start counting
+            faulted.update(range(1, N + 1))
+        time.sleep(0.05)
+        with books:
+            base = {n: (sent[n], rpdos(n)) for n in range(1, N + 1)}
+            faulted.clear()
         faults = {"injected": 0, "detected": 0, "recovered": 0}
         lost_commands = 0
         end = time.monotonic() + args.minutes * 60.0
@@ -110,8 +119,9 @@ def main() -> int:
             i += 1
             d = driver.drive(f"j{node}")
             # keep it out of the count while faulted; count its commands once in-flight ones landed
-            faulted.add(node)
-            time.sleep(0.05)
+            with books:
+                faulted.add(node)
+            time.sleep(0.05)  # in-flight commands land
             lost_commands += (sent[node] - base[node][0]) - (rpdos(node) - base[node][1])
             faults["injected"] += 1
             boots = d.boot_count
@@ -137,8 +147,9 @@ def main() -> int:
                 print(f"recovery of j{node} after {kind} failed: {err}", file=sys.stderr)
                 recovered = False
             faults["recovered"] += recovered
-            base[node] = (sent[node], rpdos(node))
-            faulted.discard(node)
+            with books:
+                base[node] = (sent[node], rpdos(node))
+                faulted.discard(node)
         stop.set()
         thread.join(2)
         time.sleep(0.2)
@@ -148,6 +159,7 @@ def main() -> int:
             "commands_sent": sum(sent), "commands_lost": lost_commands,
             "faults_injected": faults["injected"], "faults_detected": faults["detected"],
             "faults_recovered": faults["recovered"],
+            "watchdog_stops": sum(d.watchdog_stops for d in driver),
             "rss_growth_mb": round(rss_mb() - rss0, 2), "rss_peak_mb": round(rss_mb(), 1),
             "threads_start": threads0, "threads_end": threading.active_count(),
             "fds_start": fds0, "fds_end": fds(),

@@ -123,7 +123,7 @@ def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) 
                 k += 1
                 angle = (k % 3000) * 0.1 + 0.05
                 for i, pub in enumerate(pubs, start=1):
-                    sent.setdefault((i, round(angle * COUNTS_PER_DEG)), []).append(time.time())
+                    sent.setdefault((i, round(angle * COUNTS_PER_DEG) % 4096), []).append(time.time())
                     pub.publish(Float32(data=angle))
                 executor.spin_once(timeout_sec=0)
                 next_t += period
@@ -150,7 +150,9 @@ def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) 
     matched = 0
     for t, cob, data in listener.frames:
         if 0x301 <= cob <= 0x300 + n_drives and len(data) >= 6 and data[0] & 0x10:
-            times = sent.get((cob - 0x300, int.from_bytes(data[2:6], "little", signed=True)), [])
+            # continuous joints go the short way: the target on the wire is multi-turn, so match
+            # it modulo one revolution (4096 counts)
+            times = sent.get((cob - 0x300, int.from_bytes(data[2:6], "little", signed=True) % 4096), [])
             while times and times[0] < t - 1.0:
                 times.pop(0)  # a command superseded before it was sent (latest wins), 30 s ago
             if times and times[0] <= t:

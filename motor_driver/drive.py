@@ -140,6 +140,7 @@ class Drive:
         self._bootup = threading.Event()
         self._status_event = threading.Condition()
         self.tpdo_count = 0
+        self.watchdog_stops = 0
         self._position_seq = 0
         self._position_t = 0.0
         self._suspect_position: int | None = None
@@ -743,8 +744,10 @@ class Drive:
                 return
             if self.mode_display == OperationMode.PROFILE_VELOCITY:
                 self._send_velocity(0)
+                self.watchdog_stops += 1
             elif self.mode_display == OperationMode.PROFILE_TORQUE:
                 self._send_torque(0)
+                self.watchdog_stops += 1
 
     def _ensure_mode(self, mode: OperationMode, doing: str) -> None:
         self._require_usable(doing)

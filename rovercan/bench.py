@@ -278,6 +278,10 @@ def cmd_sdo(args: argparse.Namespace) -> int:
             return 0
         if args.value is None:
             raise ConfigError("sdo write needs a VALUE")
+        from motor_driver.drive import PROTECTED_OBJECTS
+        if index in PROTECTED_OBJECTS or 0x1400 <= index <= 0x1BFF:
+            raise CliError(f"writing 0x{index:04X} by SDO is refused: it moves the motor, sets a limit or the PDO"
+                           " set; use move/jog/home (limits enforced) or the config file")
         if fmt is None:
             size = args.size
             data = int(args.value, 0).to_bytes(size, "little", signed=int(args.value, 0) < 0)

@@ -55,10 +55,13 @@ def test_info_decodes_identity_firmware_and_pdos(sim_port: int) -> None:
 
 
 def test_sdo_read_write_and_errors(sim_port: int) -> None:
-    assert as_json(run(sim_port, "sdo", "write", "1", "0x1017", "250", "--eds", GENERIC, "--json"))["written"] == "fa 00"  # type: ignore[index]
-    assert as_json(run(sim_port, "sdo", "read", "1", "1017", "--eds", GENERIC, "--json"))["value"] == 250  # type: ignore[index]
+    assert as_json(run(sim_port, "sdo", "write", "1", "0x6065", "250", "--eds", GENERIC, "--json"))["written"] == "fa 00 00 00"  # type: ignore[index]
+    assert as_json(run(sim_port, "sdo", "read", "1", "6065", "--eds", GENERIC, "--json"))["value"] == 250  # type: ignore[index]
     abort = run(sim_port, "sdo", "read", "1", "0x2345")
     assert abort.returncode == 1 and "0x06020000 object does not exist" in abort.stderr
+    for guarded in ("0x607A", "0x607D:2", "0x6040", "0x1600:1", "0x1017"):  # limits cannot be bypassed from the CLI
+        refused = run(sim_port, "sdo", "write", "1", guarded, "1", "--eds", GENERIC)
+        assert refused.returncode == 1 and "is refused" in refused.stderr
     ro = run(sim_port, "sdo", "write", "1", "0x1000", "5", "--eds", GENERIC)
     assert ro.returncode == 1 and "attempt to write a read only object" in ro.stderr
     bad = run(sim_port, "sdo", "read", "1", "nope")
@@ -80,6 +83,8 @@ def test_nmt_and_drive_commands(sim_port: int) -> None:
     homed = as_json(run(sim_port, "home", "2", "--counts-per-rev", "4096", "--json"))
     assert homed["angle_deg"] == pytest.approx(0.0, abs=0.05)  # type: ignore[index]
     assert as_json(run(sim_port, "fault-reset", "2", "--counts-per-rev", "4096", "--json"))["state"]  # type: ignore[index]
+    disabled = as_json(run(sim_port, "disable", "2", "--counts-per-rev", "4096", "--json"))
+    assert disabled["state"] in ("READY_TO_SWITCH_ON", "SWITCH_ON_DISABLED")  # type: ignore[index]
     missing = run(sim_port, "move", "9", "10")
     assert missing.returncode == 1 and "no boot-up message" in missing.stderr
     nan = run(sim_port, "move", "1", "nan", "--counts-per-rev", "4096")

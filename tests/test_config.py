@@ -80,3 +80,11 @@ def test_every_shared_eds_loads(eds: str) -> None:
     else:
         od = load_drive_od(SHARED_EDS / eds, 7)
         assert 0x6041 in od
+
+
+def test_unreadable_eds_is_a_clear_error(tmp_path: Path) -> None:
+    from can_config.eds import load_od
+    eds = tmp_path / "drive.eds"
+    eds.write_bytes(b"\x00\xff not an eds \x00")
+    with pytest.raises(EdsError, match=r"drive\.eds: (cannot parse the EDS|the EDS holds no objects)"):
+        load_od(eds)

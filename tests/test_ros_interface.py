@@ -235,3 +235,18 @@ def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph:
                "NaN twist refused")
     time.sleep(0.3)
     assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
+
+
+def test_bus_lost_is_published_and_nodes_keep_running(graph: Graph) -> None:
+    diags = graph.listen(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+    states = graph.listen(MotorState, "wheel_front_left/motor_state")
+    graph.sim.close()  # both buses' server dies
+
+    def bus_error() -> bool:
+        return any(st.name == "rovercan: bus can0" and st.level == bytes([2]) and st.message == "bus lost"
+                   for array in diags[-3:] for st in array.status)
+
+    eventually(bus_error, 5.0, "bus lost on /diagnostics")
+    eventually(lambda: bool(states) and states[-1].state == "LOST" and states[-1].fault, 3.0, "MotorState LOST")
+    count = len(states)
+    eventually(lambda: len(states) > count + 10, 2.0, "MotorState still published")

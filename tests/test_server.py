@@ -4,6 +4,7 @@ hostile client affecting only itself."""
 from __future__ import annotations
 
 import socket
+import threading
 import time
 from collections.abc import Iterator
 
@@ -138,3 +139,61 @@ def test_frame_bits_worst_case() -> None:
     assert frame_bits(8) == 135  # 8-byte standard frame: 135 us at 1 Mbit/s
     assert frame_bits(0) == 55
     assert frame_bits(8, extended=True) == 160
+
+
+def test_client_cap_and_slow_client_do_not_hurt_others() -> None:
+    import virtual_can.server as server_module
+    with BusEngine() as engine, SocketcandServer(engine, port=0, max_clients=2) as srv:
+        first = socket.socket()
+        first.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a small window: it fills fast
+        first.settimeout(2.0)
+        first.connect((srv.host, srv.port))
+        second = raw_client(srv)
+        assert first.recv(256) == b"< hi >" and second.recv(256) == b"< hi >"
+        third = raw_client(srv)
+        assert third.recv(256) == b"< error too many clients >"  # capped, the others unaffected
+        third.close()
+        # a client that opened the channel and stopped reading: bounded queue, dropped frames
+        first.sendall(b"< open can0 >")
+        first.recv(256)
+        first.sendall(b"< rawmode >")
+        first.recv(256)
+        second.close()
+        time.sleep(0.1)
+        slow = [c for c in srv.clients if c.raw]
+        assert len(slow) == 1
+        good = can.Bus(interface="socketcand", channel="can0", host=srv.host, port=srv.port)
+        sender = VirtualBus("can0", engine=engine)
+        seen: list[int] = []
+        stop = threading.Event()
+
+        def read_good() -> None:
+            while not stop.is_set():
+                msg = good.recv(0.1)
+                if msg is not None:
+                    seen.append(msg.arbitration_id)
+
+        reader = threading.Thread(target=read_good, daemon=True)
+        reader.start()
+        try:
+            for i in range(server_module.CLIENT_QUEUE_FRAMES * 10):  # far beyond socket buffers + queue
+                sender.send(can.Message(arbitration_id=0x100, data=i.to_bytes(4, "little"), is_extended_id=False))
+                if i % 2000 == 0:
+                    time.sleep(0.001)  # the reading client keeps up, as a real one does
+            # the client that does not read loses frames (a bounded queue), and is dropped after
+            # SLOW_CLIENT_DROP_LIMIT losses in a row
+            wait_until = time.monotonic() + 5.0
+            while not slow[0].closed and time.monotonic() < wait_until:
+                time.sleep(0.05)
+            assert slow[0].stats.dropped >= server_module.SLOW_CLIENT_DROP_LIMIT and slow[0].closed
+            sender.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
+            wait_until = time.monotonic() + 5.0
+            while 0x123 not in seen and time.monotonic() < wait_until:
+                time.sleep(0.05)
+            assert 0x123 in seen  # the reading client is still served
+        finally:
+            stop.set()
+            reader.join(2)
+            good.shutdown()
+            sender.shutdown()
+            first.close()

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import select
 import socket
 import threading
 from dataclasses import dataclass
@@ -162,13 +163,16 @@ class _Client:
     def _read_loop(self) -> None:
         buf = ""
         sock = self.sock
-        sock.settimeout(POLL_S)
+        # the socket stays blocking for the writer: a client that pauses reading is not dropped
+        # for a short stall, only after SLOW_CLIENT_DROP_LIMIT frames lost in a row; the reader
+        # waits with select so that it notices shutdown
         while not self._closed.is_set():
             try:
+                readable, _, _ = select.select([sock], [], [], POLL_S)
+                if not readable:
+                    continue
                 chunk = sock.recv(65536)
-            except TimeoutError:
-                continue
-            except OSError:
+            except (OSError, ValueError):
                 break
             if not chunk:
                 break

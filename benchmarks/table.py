@@ -1,0 +1,40 @@
+"""Print the README's performance table from benchmarks/results.json: ``python benchmarks/table.py``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+ROWS = [
+    ("cmd_latency_p50_ms", "command latency p50 (publish -> RPDO on the wire), ms", "<= 0.5", "bare_latency_p50_ms"),
+    ("cmd_latency_p99_ms", "command latency p99, ms", "<= 2", None),
+    ("cmd_latency_ratio", "p50 / bare path (rclpy + one python-can send)", "<= 1.5", None),
+    ("tpdo_loss", "TPDO loss, 6 drives, 100 Hz SYNC", "0", "baseline_canopen_tpdo_loss"),
+    ("tpdo_loss_8_drives_200hz", "TPDO loss, 8 drives, 200 Hz SYNC", "0", None),
+    ("cpu_core_fraction", "CPU of driver + ROS node process (fraction of a core)", "<= 0.15",
+     "baseline_canopen_cpu_core_fraction"),
+    ("driver_only_cpu_core_fraction", "CPU of the driver alone, same state run", "", "baseline_canopen_cpu_core_fraction"),
+    ("sync_jitter_p99_us", "SYNC period error p99 at a listener, us", "<= 200", None),
+    ("boot_6_drives_s", "6 drives from NMT reset to Operation Enabled, s", "<= 1.0", None),
+    ("sdo_rtt_p99_ms", "expedited SDO upload round trip p99, ms", "<= 5", None),
+    ("emulator_fps_socketcand", "socketcand server, 2 client processes, frames/s (0 lost)", ">= 9,009", None),
+    ("emulator_fps_inprocess", "in-process bus, frames/s (0 lost)", ">= 90,000", None),
+    ("wire_time_fps_1mbit", "wire-time mode, flooded 1 Mbit/s bus, frames/s", "< 9,009", None),
+    ("rss_mb", "peak RSS of driver + ROS node process, MB", "<= 150", None),
+]
+
+
+def main() -> None:
+    data = json.loads((Path(__file__).resolve().parent / "results.json").read_text())
+    print(f"Measured {data['date']} ({data['mode']} run), Python {data['machine']['python']},"
+          f" python-can {data['versions']['python-can']}, canopen {data['versions']['canopen']}.\n")
+    print("| figure | ours | target | baseline |\n|---|---|---|---|")
+    for key, what, target, base in ROWS:
+        baseline = data.get(base) if base else None
+        label = {"bare_latency_p50_ms": "bare path", "baseline_canopen_tpdo_loss": "canopen lib",
+                 "baseline_canopen_cpu_core_fraction": "canopen lib"}.get(base or "", "")
+        print(f"| {what} | {data.get(key)} | {target} | {f'{baseline} ({label})' if baseline is not None else ''} |")
+
+
+if __name__ == "__main__":
+    main()
