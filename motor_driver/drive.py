@@ -13,6 +13,8 @@ import math
 import struct
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -286,33 +288,28 @@ class Drive:
                                f" gone ({err}); nothing moves until it is back and the drive is enabled again") from err
 
     # ------------------------------------------------------------------ SDO
-    def sdo_read(self, index: int, subindex: int = 0) -> bytes:
+    @contextmanager
+    def _sdo_errors(self, what: str, index: int, subindex: int) -> Iterator[None]:
+        """canopen's SDO exceptions -> this project's, with the abort code and its meaning."""
+        where = f"node {self.node_id}: SDO {what} 0x{index:04X}:{subindex}"
         try:
-            return bytes(self.node.sdo.upload(index, subindex))
+            yield
         except canopen.SdoAbortedError as err:
-            raise SdoError(f"node {self.node_id}: SDO read 0x{index:04X}:{subindex} aborted with"
-                           f" 0x{err.code:08X} ({sdo_abort_text(err.code)})", node_id=self.node_id,
-                           index=index, subindex=subindex, abort_code=err.code) from err
+            raise SdoError(f"{where} aborted with 0x{err.code:08X} ({sdo_abort_text(err.code)})",
+                           node_id=self.node_id, index=index, subindex=subindex, abort_code=err.code) from err
         except canopen.SdoCommunicationError as err:
-            raise SdoTimeoutError(f"node {self.node_id}: SDO read 0x{index:04X}:{subindex} got no"
-                                  f" answer ({err}); check power, node id, bitrate and termination",
+            raise SdoTimeoutError(f"{where} got no answer ({err}); check power, node id, bitrate and termination",
                                   node_id=self.node_id, index=index, subindex=subindex) from err
         except (can.CanError, OSError) as err:
-            raise BusLostError(f"node {self.node_id}: SDO read 0x{index:04X}:{subindex}: the bus is gone ({err})") from err
+            raise BusLostError(f"{where}: the bus is gone ({err})") from err
+
+    def sdo_read(self, index: int, subindex: int = 0) -> bytes:
+        with self._sdo_errors("read", index, subindex):
+            return bytes(self.node.sdo.upload(index, subindex))
 
     def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
-        try:
+        with self._sdo_errors("write", index, subindex):
             self.node.sdo.download(index, subindex, data)
-        except canopen.SdoAbortedError as err:
-            raise SdoError(f"node {self.node_id}: SDO write 0x{index:04X}:{subindex} aborted with"
-                           f" 0x{err.code:08X} ({sdo_abort_text(err.code)})", node_id=self.node_id,
-                           index=index, subindex=subindex, abort_code=err.code) from err
-        except canopen.SdoCommunicationError as err:
-            raise SdoTimeoutError(f"node {self.node_id}: SDO write 0x{index:04X}:{subindex} got no"
-                                  f" answer ({err}); check power, node id, bitrate and termination",
-                                  node_id=self.node_id, index=index, subindex=subindex) from err
-        except (can.CanError, OSError) as err:
-            raise BusLostError(f"node {self.node_id}: SDO write 0x{index:04X}:{subindex}: the bus is gone ({err})") from err
 
     def sdo_write_checked(self, index: int, subindex: int, value: int) -> None:
         """SDO write for tools and services: refuses the objects that move the motor or set its
