@@ -235,3 +235,17 @@ def test_restore_enable_after_reboot_when_configured(driver_factory: DriverFacto
     boots = drive.boot_count
     apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.1})
     wait_for(lambda: drive.boot_count > boots and drive.state is State.OPERATION_ENABLED, 3.0, "re-armed after reboot")
+
+
+def test_unhandled_error_still_leaves_drives_safe(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]],
+                                                  listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    sim, cfg = sim_factory(make_config(1))
+    listener = listener_factory(sim)
+    with pytest.raises(ZeroDivisionError), MotorDriver(cfg) as driver:
+        driver.start()
+        driver.drive("joint1").enable()
+        drain(listener, 0.05)
+        _ = 1 / 0  # an unhandled error in the application
+    frames = drain(listener, 0.2)
+    controlwords = [int.from_bytes(m.data[:2], "little") for m in frames if m.arbitration_id == 0x201]
+    assert controlwords[:2] == [0x02, 0x00]  # quick stop, then disable voltage, before the bus closed
