@@ -16,7 +16,6 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
 
 import can
 import canopen
@@ -838,9 +837,3 @@ class Drive:
             self._send_cw(int(Command.ENABLE_OPERATION))
             self.set_mode(OperationMode.PROFILE_POSITION)
             self._target_counts = self.position_counts
-
-    def describe(self) -> dict[str, Any]:
-        return {"name": self.name, "node_id": self.node_id,
-                "rpdos": [[f"0x{i:04X}" for i in p.indexes] for p in self.plan.rpdos],
-                "tpdos": [[f"0x{i:04X}" for i in p.indexes] for p in self.plan.tpdos],
-                "sdo_only": [f"0x{i:04X}" for i in self.plan.sdo_only]}

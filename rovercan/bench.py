@@ -486,9 +486,13 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _require_recording(path: str) -> None:
+    if not Path(path).is_file():
+        raise ConfigError(f"{path}: no such recording")
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
-    if not Path(args.file).is_file():
-        raise ConfigError(f"{args.file}: no such recording")
+    _require_recording(args.file)
     bus = open_bus(args)
     n = 0
     try:
@@ -507,8 +511,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
-    if not Path(args.file).is_file():
-        raise ConfigError(f"{args.file}: no such recording")
+    _require_recording(args.file)
     layouts = pdo_layouts_for(args)
     n = 0
     for msg in can.LogReader(args.file):

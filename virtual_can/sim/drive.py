@@ -37,7 +37,6 @@ from virtual_can.sim.objects import (
     ABORT_PDO_LENGTH,
     ObjectStore,
     SdoAbort,
-    encode,
 )
 from virtual_can.sim.sdo import SdoServer
 
@@ -781,7 +780,3 @@ class SimulatedDrive:
                 f" mode={self.mode:<2} pos={self.position_counts:12.0f} vel={self.omega / self._rad_per_count:9.0f}"
                 f" torque={self.torque_nm:+.3f}Nm err=0x{self.error_code:04X}")
 
-
-def encode_value(data_type: int, value: int | float | bytes) -> bytes:
-    """Re-exported for tests: the simulator's own value encoding."""
-    return encode(data_type, value)
