@@ -11,13 +11,16 @@ from __future__ import annotations
 import sys
 
 import rclpy
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rovercan_msgs.msg import MotorState
 from std_msgs.msg import Float32
 
 from can_config import RoverConfig, load_config
 from can_config.errors import CommandRejected, MotorError, RovercanError
+from can_config.stop import StopSignal
 from motor_driver import DriveState, MotorDriver
+from nodes import runtime
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.qos import COMMAND_QOS, STATE_QOS
 
@@ -104,21 +107,23 @@ def start_driver(config: RoverConfig) -> MotorDriver:
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args if args is not None else sys.argv)
-    try:
-        node = MotorControllerNode()
-    except RovercanError as err:
-        print(f"motor_controller: {err}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.close()  # quick stop + disable before the bus closes
-        node.destroy_node()
-        rclpy.try_shutdown()
+    runtime.init(args)
+    with StopSignal() as stop:
+        try:
+            node = MotorControllerNode()
+        except RovercanError as err:
+            print(f"motor_controller: {err}", file=sys.stderr)
+            rclpy.try_shutdown()
+            return 2
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        try:
+            runtime.spin_until(executor, stop.event)
+        finally:
+            node.close()  # quick stop + disable before the bus closes
+            executor.shutdown(timeout_sec=0)
+            node.destroy_node()
+            rclpy.try_shutdown()
     return 0
 
 

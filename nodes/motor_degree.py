@@ -6,9 +6,12 @@ from __future__ import annotations
 import sys
 
 import rclpy
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import Float32
 
+from can_config.stop import StopSignal
+from nodes import runtime
 from nodes.qos import COMMAND_QOS
 
 TENTHS_PER_TURN = 3600
@@ -33,15 +36,17 @@ class MotorDegreeNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args if args is not None else sys.argv)
-    node = MotorDegreeNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    runtime.init(args)
+    with StopSignal() as stop:
+        node = MotorDegreeNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        try:
+            runtime.spin_until(executor, stop.event)
+        finally:
+            executor.shutdown(timeout_sec=0)
+            node.destroy_node()
+            rclpy.try_shutdown()
     return 0
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 import sys
-import threading
 import time
 from collections.abc import Callable
 from functools import partial
@@ -29,7 +28,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rovercan_msgs.msg import MotorState
 from rovercan_msgs.srv import SdoRead, SdoWrite, SetMode
@@ -40,15 +39,18 @@ from std_srvs.srv import Trigger
 from can_config import RoverConfig, load_config
 from can_config.errors import RovercanError
 from can_config.objects import OperationMode, sdo_abort_text
+from can_config.stop import StopSignal
 from motor_driver import Drive, MotorDriver
 from motor_driver.health import drive_health
 from motor_driver.skid_steer import SkidSteer, Twist2D
+from nodes import runtime
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.motor_controller import fill_motor_state
 from nodes.params import declare
 from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
 
 WARN_THROTTLE_S = 1.0
+SERVICE_JOIN_S = 5.0  # longest a service callback may take to notice the driver is closed
 DEG = 180.0 / math.pi
 T = TypeVar("T")
 
@@ -363,15 +365,13 @@ class DriveSystemNode(Node):
         self._odom_pub.publish(odom)
 
 
-def _spin_quietly(executor: SingleThreadedExecutor) -> None:
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-
-
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args if args is not None else sys.argv)
+    runtime.init(args)
+    with StopSignal() as stop:
+        return _run(stop)
+
+
+def _run(stop: StopSignal) -> int:
     boot = rclpy.create_node("rovercan_driver_params")
     declare(boot, "config")
     path = str(boot.get_parameter("config").value) or None
@@ -385,6 +385,8 @@ def main(args: list[str] | None = None) -> int:
         rclpy.try_shutdown()
         return 2
     nodes: list[Node] = []
+    cold: runtime.SpinThread | None = None
+    handler = None
     try:
         node = DriverNode(driver)
         nodes.append(node)
@@ -398,20 +400,20 @@ def main(args: list[str] | None = None) -> int:
         hot = SingleThreadedExecutor()
         for n in nodes[:-1]:
             hot.add_node(n)
-        cold = SingleThreadedExecutor()
-        cold.add_node(services)
-        cold_thread = threading.Thread(target=_spin_quietly, args=(cold,), daemon=True, name="rovercan-services")
-        cold_thread.start()
-        try:
-            hot.spin()
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-        cold.shutdown(timeout_sec=1.0)
-        unbridge(handler)
+        cold_executor = SingleThreadedExecutor()
+        cold_executor.add_node(services)
+        cold = runtime.SpinThread(cold_executor, "rovercan-services")
+        runtime.spin_until(hot, stop.event)
     finally:
-        driver.close()  # quick stop + disable voltage before the bus closes
-        for n in nodes:
-            n.destroy_node()
+        # order: drives safe first (a service blocked on a drive then fails fast), then the
+        # service thread joined, then nodes destroyed, then the context
+        driver.close()
+        joined = cold is None or cold.stop(timeout_s=SERVICE_JOIN_S)
+        if handler is not None:
+            unbridge(handler)
+        if joined:  # a thread still inside rclpy must not see its node destroyed under it
+            for n in nodes:
+                n.destroy_node()
         rclpy.try_shutdown()
     return 0
 

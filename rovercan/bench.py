@@ -29,6 +29,7 @@ from can_config import GENERIC_EDS, RoverConfig, load_config, load_drive_od, loa
 from can_config.eds import variable
 from can_config.errors import ConfigError, RovercanError
 from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
+from can_config.stop import StopSignal
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
 
 SCAN_TIMEOUT_S = 0.3
@@ -430,7 +431,6 @@ def _field_name(od: ObjectDictionary, index: int, sub: int) -> str:
 
 
 def cmd_monitor(args: argparse.Namespace) -> int:
-    from rovercan.cli import StopSignal
 
     layouts = pdo_layouts_for(args)
     bus = open_bus(args)
@@ -467,7 +467,6 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from rovercan.cli import StopSignal
 
     bus = open_bus(args)
     print(f"rovercan record: recording {bus.channel_info} to {args.file}", file=sys.stderr, flush=True)

@@ -8,16 +8,14 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from types import FrameType
 
 from can_config import load_config, with_bus_overrides
 from can_config.errors import ConfigError, RovercanError
+from can_config.stop import StopSignal
 
 logger = logging.getLogger(__name__)
 
@@ -33,26 +31,6 @@ def _setup_logging(verbose: int) -> None:
     logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
     if verbose == 0:  # the command reports failures itself, with their meaning
         logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)
-
-
-class StopSignal:
-    """SIGINT/SIGTERM set an event instead of raising, so shutdown runs in order."""
-
-    def __init__(self) -> None:
-        self.event = threading.Event()
-        self._old: dict[int, object] = {}
-
-    def __enter__(self) -> StopSignal:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._old[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum: int, frame: FrameType | None) -> None:
-        self.event.set()
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._old.items():
-            signal.signal(sig, handler)  # type: ignore[arg-type]
 
 
 # ---------------------------------------------------------------------------- sim
@@ -134,6 +112,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from std_msgs.msg import Float32
 
     from motor_driver import MotorDriver
+    from nodes import runtime
     from nodes.motor_controller import MotorControllerNode
     from nodes.motor_degree import MotorDegreeNode
     from nodes.qos import COMMAND_QOS, STATE_QOS
@@ -145,7 +124,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         config = with_bus_overrides(config, host=sim.host, port=sim.port)
         print(f"rovercan demo: simulated drive(s) on {sim.host}:{sim.port}; joint {joint!r};"
               f" {'until Ctrl+C' if args.duration is None else f'{args.duration:g} s'}", flush=True)
-        rclpy.init(args=[])
+        runtime.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
         driver = MotorDriver(config)
         nodes: list[object] = []
         try:

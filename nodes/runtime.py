@@ -1,0 +1,63 @@
+"""Process life cycle of the rovercan nodes: one stop path, one teardown order.
+
+rclpy's own signal handling shuts the context down (SIGTERM) or raises
+``KeyboardInterrupt`` (SIGINT) under whatever is running, including an executor spinning on
+another thread or an executor building its wait set. Both were seen to kill the node (an
+``RCLError`` from a wait set, a segfault) before or while the drives were brought to a safe
+state. Here rclpy installs no handlers; SIGINT/SIGTERM set an event, the spin loops return,
+and the caller tears down in order: executors stopped and joined, drives safe, nodes
+destroyed, context shut down.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Sequence
+
+import rclpy
+from rclpy.executors import Executor, ExternalShutdownException
+from rclpy.signals import SignalHandlerOptions
+
+from can_config.stop import StopSignal
+
+logger = logging.getLogger(__name__)
+
+POLL_S = 0.1  # longest wait before a spin loop sees the stop event
+
+
+def init(args: Sequence[str] | None) -> None:
+    """``rclpy.init`` without rclpy's signal handlers (use :class:`StopSignal`)."""
+    rclpy.init(args=list(args) if args is not None else None, signal_handler_options=SignalHandlerOptions.NO)
+
+
+def spin_until(executor: Executor, stop: threading.Event) -> None:
+    """Spin ``executor`` until ``stop`` is set or the context is shut down by someone else."""
+    try:
+        while not stop.is_set() and executor.context.ok():
+            executor.spin_once(timeout_sec=POLL_S)
+    except ExternalShutdownException:
+        pass
+
+
+class SpinThread:
+    """An executor spinning on its own thread, stopped and joined by :meth:`stop`."""
+
+    def __init__(self, executor: Executor, name: str) -> None:
+        self.executor = executor
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=spin_until, args=(executor, self._stop), daemon=True, name=name)
+        self._thread.start()
+
+    def stop(self, timeout_s: float) -> bool:
+        """Stop spinning; True once the thread has left the executor (then it may be destroyed)."""
+        self._stop.set()
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            logger.error("%s: still inside a callback after %.1f s", self._thread.name, timeout_s)
+            return False
+        self.executor.shutdown(timeout_sec=0)
+        return True
+
+
+__all__ = ["POLL_S", "SpinThread", "StopSignal", "init", "spin_until"]
