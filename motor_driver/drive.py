@@ -136,6 +136,7 @@ class Drive:
         self.last_heartbeat = 0.0
         self.lost = False
         self.booted = False
+        self.closed = False  # set by MotorDriver.close: no command is accepted after it
         self.last_emcy: Emcy | None = None
         self.rebooted = threading.Event()
         self._bootup = threading.Event()
@@ -530,6 +531,9 @@ class Drive:
                                statusword=self.statusword, error_code=code)
 
     def _require_usable(self, doing: str) -> None:
+        if self.closed:
+            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the driver is shut down;"
+                                  " nothing was sent", node_id=self.node_id)
         if self.lost:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is lost (no"
                                   " heartbeat); nothing was sent", node_id=self.node_id)
@@ -610,9 +614,7 @@ class Drive:
     def recover(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Fault reset (transition 15), then back to the enable state the drive had before."""
         with self._lock:
-            if self.lost:
-                raise DriveStateError(f"{self.name}: recover: the drive is lost (no heartbeat)",
-                                      node_id=self.node_id)
+            self._require_usable("recover")
             restore = self.was_enabled
             if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 if self.state == State.FAULT_REACTION_ACTIVE:

@@ -134,6 +134,13 @@ class BusHandle:
         if self.sync_task is None and self.sync_period_s > 0:
             msg = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
             self.sync_task = self.bus.send_periodic(msg, self.sync_period_s, store_task=False)
+            if hasattr(self.sync_task, "on_error"):  # python-can's thread-based task
+                self.sync_task.on_error = self._sync_failed
+
+    def _sync_failed(self, exc: Exception) -> bool:
+        """The SYNC thread could not send (bus gone): stop it; the supervisor reconnects."""
+        logger.error("bus %s: SYNC stopped: %s", self.name, exc)
+        return False
 
     def stop_sync(self) -> None:
         if self.sync_task is not None:
@@ -356,6 +363,8 @@ class MotorDriver:
         if self._closed:
             return
         self._closed = True
+        for drive in self.drives.values():
+            drive.closed = True  # refuse new commands from here on; safe_stop bypasses the check
         self._stop.set()
         if self._supervisor is not None and self._supervisor is not threading.current_thread():
             self._supervisor.join(timeout=2.0)

@@ -111,15 +111,20 @@ def test_sto_low_is_reported_not_fought(driver_factory: DriverFactory) -> None:
         drive.enable(timeout_s=0.3)
 
 
-def test_close_quick_stops_and_disables_before_the_bus_closes(
-        sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]],
-        listener_factory: Callable[[SimService], can.BusABC]) -> None:
+@pytest.fixture
+def enabled_one(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]],
+                listener_factory: Callable[[SimService], can.BusABC]) -> tuple[SimService, can.BusABC, MotorDriver]:
+    """One enabled drive, a bus listener with nothing pending, and the (started) driver."""
     sim, cfg = sim_factory(make_config(1))
     listener = listener_factory(sim)
     driver = MotorDriver(cfg).start()
-    drive = driver.drive("joint1")
-    drive.enable()
+    driver.drive("joint1").enable()
     drain(listener, 0.05)
+    return sim, listener, driver
+
+
+def test_close_quick_stops_and_disables_before_the_bus_closes(enabled_one: tuple[SimService, can.BusABC, MotorDriver]) -> None:
+    sim, listener, driver = enabled_one
     driver.close()
     frames = drain(listener, 0.2)
     controlwords = [int.from_bytes(m.data[:2], "little") for m in frames if m.arbitration_id == 0x201]
@@ -128,6 +133,18 @@ def test_close_quick_stops_and_disables_before_the_bus_closes(
         "SWITCH_ON_DISABLED", "READY_TO_SWITCH_ON")
     sync_after = [m for m in drain(listener, 0.1) if m.arbitration_id == 0x080]
     assert not sync_after  # SYNC stopped
+
+
+def test_commands_after_close_are_refused_and_nothing_is_sent(enabled_one: tuple[SimService, can.BusABC, MotorDriver]) -> None:
+    """A service or topic callback racing the shutdown must not re-enable or move a drive."""
+    _, listener, driver = enabled_one
+    drive = driver.drive("joint1")
+    driver.close()
+    drain(listener, 0.1)
+    for call in (drive.enable, drive.recover, lambda: drive.move_to(10.0), lambda: drive.set_velocity(5.0)):
+        with pytest.raises(DriveStateError, match="driver is shut down; nothing was sent"):
+            call()
+    assert not [m for m in drain(listener, 0.2) if m.arbitration_id in (0x201, 0x301, 0x401, 0x501)]
 
 
 def test_boot_error_names_step_object_and_abort_code(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) -> None:
