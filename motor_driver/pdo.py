@@ -13,6 +13,7 @@ import logging
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 
 from canopen.objectdictionary import ObjectDictionary
 
@@ -36,11 +37,16 @@ class PdoMap:
     inhibit_100us: int = 0
     event_timer_ms: int = 0
 
-    @property
+    # cached: these sit on the command hot path (every RPDO is packed with them)
+    @cached_property
     def struct_format(self) -> str:
         return "<" + "".join(STRUCT_FORMAT[dt][1:] for _, _, dt in self.objects)
 
-    @property
+    @cached_property
+    def codec(self) -> struct.Struct:
+        return struct.Struct(self.struct_format)
+
+    @cached_property
     def indexes(self) -> tuple[int, ...]:
         return tuple(i for i, _, _ in self.objects)
 
@@ -165,9 +171,9 @@ class TpdoLayout:
 
     @classmethod
     def from_map(cls, pdo: PdoMap) -> TpdoLayout:
-        return cls(pdo.cob_id, struct.Struct(pdo.struct_format), pdo.indexes)
+        return cls(pdo.cob_id, pdo.codec, pdo.indexes)
 
 
 def encode_rpdo(pdo: PdoMap, values: Mapping[int, int]) -> bytes:
     """Payload of an RPDO from object values (pure; exact-byte tested)."""
-    return struct.pack(pdo.struct_format, *(values[i] for i in pdo.indexes))
+    return pdo.codec.pack(*(values[i] for i in pdo.indexes))

@@ -21,6 +21,7 @@ class Param:
 
 PARAMS: dict[str, Param] = {
     "config": Param("", "rover config YAML (buses, drives, drive system); empty: the embedded default"),
+    "executor": Param("events", "hot-path executor: events (rclpy's EventsExecutor, measured fastest) or single"),
     "arm": Param(False, "enable every drive at start; off by default: arming is an explicit act"),
     "default_joint": Param("", "joint served on /motor_degree_cmd and /motor_state; empty: the first drive"),
     "state_rate_hz": Param(50.0, "rate of MotorState and /joint_states", 1.0, 500.0),

@@ -47,7 +47,7 @@ from nodes import runtime
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.motor_controller import fill_motor_state
 from nodes.params import declare
-from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
+from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, STATE_QOS
 
 WARN_THROTTLE_S = 1.0
 SERVICE_JOIN_S = 5.0  # longest a service callback may take to notice the driver is closed
@@ -82,7 +82,7 @@ class DriverNode(Node):
 
     def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
         super().__init__("rovercan_driver", **kwargs)
-        declare(self, "arm", "default_joint", "state_rate_hz", "diagnostics_rate_hz")
+        declare(self, "config", "executor", "arm", "default_joint", "state_rate_hz", "diagnostics_rate_hz")
         self.driver = driver
         self.refusals = RefusalLog(self)
         self._states: dict[str, MotorState] = {}
@@ -94,11 +94,11 @@ class DriverNode(Node):
         for name, drive in driver.drives.items():
             self._add_drive(name, drive)
         self._default = default
-        self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", STATE_QOS)
-        self.create_subscription(Float32, "/motor_degree_cmd", self._on_degree(default), COMMAND_QOS)
-        self._joint_pub = self.create_publisher(JointState, "/joint_states", STATE_QOS)
-        self.create_subscription(JointState, "/joint_commands", self._on_joint_commands, COMMAND_QOS)
-        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
+        self.create_subscription(Float32, "/motor_degree_cmd", self._on_degree(default), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        self._joint_pub = self.create_publisher(JointState, "/joint_states", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
+        self.create_subscription(JointState, "/joint_commands", self._on_joint_commands, COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=NO_PUB_EVENTS)
         self.create_timer(1.0 / float(self.get_parameter("state_rate_hz").value), self._publish_states)
         self.create_timer(1.0 / float(self.get_parameter("diagnostics_rate_hz").value), self._publish_diagnostics)
         if self.get_parameter("arm").value:
@@ -108,9 +108,9 @@ class DriverNode(Node):
     # --------------------------------------------------------------------- wiring
     def _add_drive(self, name: str, drive: Drive) -> None:
         self._states[name] = MotorState()
-        self._state_pubs[name] = self.create_publisher(MotorState, f"{name}/motor_state", STATE_QOS)
-        self.create_subscription(Float32, f"{name}/degree_cmd", self._on_degree(name), COMMAND_QOS)
-        self.create_subscription(Float32, f"{name}/velocity_cmd", self._on_velocity(name), COMMAND_QOS)
+        self._state_pubs[name] = self.create_publisher(MotorState, f"{name}/motor_state", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
+        self.create_subscription(Float32, f"{name}/degree_cmd", self._on_degree(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        self.create_subscription(Float32, f"{name}/velocity_cmd", self._on_velocity(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
 
     def _guard(self, joint: str, what: str, fn: Callable[[], T]) -> T | None:
         """Run a driver call; every failure becomes a throttled warning and a diagnostic."""
@@ -308,8 +308,8 @@ class DriveSystemNode(Node):
         self.active = False  # commanding the wheels (fresh /cmd_vel or ramping down after it)
         self._odom_frame = str(self.get_parameter("odom_frame").value)
         self._base_frame = str(self.get_parameter("base_frame").value)
-        self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, COMMAND_QOS)
-        self._odom_pub = self.create_publisher(Odometry, "/odom", STATE_QOS)
+        self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        self._odom_pub = self.create_publisher(Odometry, "/odom", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
         self.create_timer(1.0 / float(self.get_parameter("odom_rate_hz").value), self._tick)
 
     def _on_cmd_vel(self, msg: Twist) -> None:
@@ -372,11 +372,14 @@ def main(args: list[str] | None = None) -> int:
 
 
 def _run(stop: StopSignal) -> int:
-    boot = rclpy.create_node("rovercan_driver_params")
-    declare(boot, "config")
+    # read before the driver node exists (same name, so a params file's values apply)
+    boot = rclpy.create_node("rovercan_driver")
+    declare(boot, "config", "executor")
     path = str(boot.get_parameter("config").value) or None
+    executor_kind = str(boot.get_parameter("executor").value)
     boot.destroy_node()
     try:
+        hot = runtime.make_executor(executor_kind)
         config = load_config(path)
         driver = MotorDriver(config)
         driver.start()
@@ -395,9 +398,8 @@ def _run(stop: StopSignal) -> int:
             nodes.append(DriveSystemNode(driver, config, node.refusals))
         services = DriverServicesNode(driver)
         nodes.append(services)
-        # two single-threaded executors: the hot one (commands, state, drive system) keeps a
-        # small wait set; the cold one serves the blocking services (measured: README)
-        hot = SingleThreadedExecutor()
+        # two executors (measured: README): the hot one for commands, state and the drive
+        # system, the cold one, on its own thread, for the services that block (enable, home)
         for n in nodes[:-1]:
             hot.add_node(n)
         cold_executor = SingleThreadedExecutor()

@@ -20,8 +20,9 @@ from .conftest import REPO, drain, requires_ros
 pytestmark = requires_ros
 
 
+@pytest.mark.parametrize("executor", ["events", "single"])
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_rover_driver_safe_state_on_signal(tmp_path: Path, sig: int) -> None:
+def test_rover_driver_safe_state_on_signal(tmp_path: Path, sig: int, executor: str) -> None:
     with SimService([SimDriveSpec(1), SimDriveSpec(2)], port=0) as sim:
         config = tmp_path / "rover.yaml"
         config.write_text("buses:\n  - {name: can0, interface: socketcand, channel: can0,"
@@ -29,7 +30,7 @@ def test_rover_driver_safe_state_on_signal(tmp_path: Path, sig: int) -> None:
                           "drives:\n  - {name: a, node_id: 1}\n  - {name: b, node_id: 2}\n")
         listener = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
         proc = subprocess.Popen([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p", f"config:={config}",
-                                 "-p", "arm:=true"], cwd=REPO, env=dict(os.environ),
+                                 "-p", "arm:=true", "-p", f"executor:={executor}"], cwd=REPO, env=dict(os.environ),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:
             drive = sim.simulator_for(1).drive(1)
@@ -52,3 +53,31 @@ def test_rover_driver_safe_state_on_signal(tmp_path: Path, sig: int) -> None:
             assert cws[:2] == [0x02, 0x00], (node, cws)  # quick stop, then disable voltage
         states = [sim.simulator_for(n).call(lambda n=n: sim.simulator_for(n).drive(n).state.name) for n in (1, 2)]
         assert states == ["SWITCH_ON_DISABLED", "SWITCH_ON_DISABLED"]
+
+
+def test_unknown_executor_is_refused_before_the_bus_is_touched(tmp_path: Path) -> None:
+    with SimService([SimDriveSpec(1)], port=0) as sim:
+        config = tmp_path / "rover.yaml"
+        config.write_text("buses:\n  - {name: can0, interface: socketcand, channel: can0,"
+                          f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}\n"
+                          "drives:\n  - {name: a, node_id: 1}\n")
+        listener = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        try:
+            out = subprocess.run([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p", f"config:={config}",
+                                  "-p", "executor:=fast"], cwd=REPO, capture_output=True, text=True, timeout=30)
+            frames = drain(listener, 0.3)
+        finally:
+            listener.shutdown()
+    assert out.returncode == 2, out.stderr
+    assert "executor: 'fast' is not one of ['events', 'single']" in out.stderr
+    assert frames == []  # no NMT, no SDO: nothing was sent
+
+
+def test_a_params_file_reaches_the_parameters_read_before_the_driver_starts(tmp_path: Path) -> None:
+    """config and executor are read first, by a node of the same name, so --params-file applies."""
+    params = tmp_path / "params.yaml"
+    params.write_text(f"rovercan_driver:\n  ros__parameters:\n    config: {tmp_path / 'absent.yaml'}\n")
+    out = subprocess.run([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "--params-file", str(params)],
+                         cwd=REPO, capture_output=True, text=True, timeout=30)
+    assert out.returncode == 2, out.stderr
+    assert "absent.yaml" in out.stderr
