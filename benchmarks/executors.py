@@ -14,11 +14,15 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import rclpy
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from std_msgs.msg import Float64
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from nodes.runtime import spin_until
 
 
 def measure(kind: str, seconds: float) -> dict[str, Any]:
@@ -37,7 +41,8 @@ def measure(kind: str, seconds: float) -> dict[str, Any]:
         from rclpy.experimental import EventsExecutor
         executor = EventsExecutor(context=context)
     executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
+    stop = threading.Event()  # stopped the way the nodes stop (nodes/runtime.py)
+    thread = threading.Thread(target=spin_until, args=(executor, stop), daemon=True)
     thread.start()
     time.sleep(0.5)
     latencies.clear()
@@ -48,8 +53,9 @@ def measure(kind: str, seconds: float) -> dict[str, Any]:
         next_t += 0.01
         time.sleep(max(0.0, next_t - time.perf_counter()))
     cpu = (time.process_time() - cpu0) / (time.perf_counter() - wall0)
-    executor.shutdown()
+    stop.set()
     thread.join(timeout=2)
+    executor.shutdown(timeout_sec=0)
     node.destroy_node()
     rclpy.shutdown(context=context)
     ms = sorted(x * 1000 for x in latencies)

@@ -5,8 +5,8 @@ The simulator (socketcand server + 6 drives) runs in this process; the measured 
 socketcand client here) sees every frame with the server's wire timestamp. Figures:
 
 * cmd_latency: publish on ``<joint>/degree_cmd`` (6 joints at 100 Hz) -> the RPDO with that
-  target on the wire; the bare path (rclpy publish -> callback -> one python-can send) is
-  measured the same way in this process.
+  target on the wire; the bare path (rclpy publish -> a subscriber process on the
+  EventsExecutor the node uses -> one python-can send) is measured the same way.
 * tpdo_loss: TPDOs the simulated drives sent minus TPDOs the driver applied (its count comes
   over /diagnostics), after the drives stop sending.
 * cpu_core_fraction, rss_mb: /proc of the measured process (CPU time / wall time; VmHWM).
@@ -171,7 +171,11 @@ def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) 
 
 
 def bare_path(seconds: float) -> dict[str, Any]:
-    """rclpy publish -> subscription callback -> one python-can send, to the listener."""
+    """rclpy publish -> subscription callback -> one python-can send, to the listener.
+
+    The subscriber is its own process (``bare_peer.py``), as the driver node is: publisher and
+    subscriber in one process would take DDS's intra-process shortcut the node never gets.
+    """
     import rclpy
     from std_msgs.msg import Float32
 
@@ -180,38 +184,34 @@ def bare_path(seconds: float) -> dict[str, Any]:
     with SimService([], port=0) as sim:
         listener = Listener(sim)
         listener.start()
-        bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port, tcp_tune=True)
+        peer = subprocess.Popen([sys.executable, str(Path(__file__).resolve().parent / "bare_peer.py"), sim.host,
+                                 str(sim.port)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         context = rclpy.Context()
         rclpy.init(context=context)
         node = rclpy.create_node("bare", context=context)
-
-        def on_cmd(msg: Float32) -> None:
-            counts = round(msg.data * COUNTS_PER_DEG)
-            bus.send(can.Message(arbitration_id=0x301, data=b"\x3f\x00" + counts.to_bytes(4, "little", signed=True),
-                                 is_extended_id=False))
-        node.create_subscription(Float32, "bare_cmd", on_cmd, COMMAND_QOS)
         pub = node.create_publisher(Float32, "bare_cmd", COMMAND_QOS)
-        from rclpy.executors import SingleThreadedExecutor
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        spin = threading.Thread(target=executor.spin, daemon=True)
-        spin.start()
-        time.sleep(0.5)
-        sent: dict[int, float] = {}
-        start = time.monotonic()
-        k = 0
-        while time.monotonic() - start < seconds:
-            k += 1
-            angle = (k % 3000) * 0.1 + 0.05
-            sent[round(angle * COUNTS_PER_DEG)] = time.time()
-            pub.publish(Float32(data=angle))
-            time.sleep(0.01)
-        time.sleep(0.3)
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=context)
-        bus.shutdown()
-        listener.close()
+        try:
+            assert peer.stdout is not None and peer.stdout.readline().strip() == "ready"
+            deadline = time.monotonic() + 10
+            while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.5)
+            sent: dict[int, float] = {}
+            start = time.monotonic()
+            k = 0
+            while time.monotonic() - start < seconds:
+                k += 1
+                angle = (k % 3000) * 0.1 + 0.05
+                sent[round(angle * COUNTS_PER_DEG)] = time.time()
+                pub.publish(Float32(data=angle))
+                time.sleep(0.01)
+            time.sleep(0.3)
+        finally:
+            peer.terminate()
+            peer.wait(10)
+            node.destroy_node()
+            rclpy.shutdown(context=context)
+            listener.close()
     latencies = [(t - sent.pop(int.from_bytes(d[2:6], "little", signed=True))) * 1000
                  for t, cob, d in listener.frames if cob == 0x301 and int.from_bytes(d[2:6], "little", signed=True) in sent]
     return {"bare_latency_p50_ms": round(statistics.median(latencies), 3)}

@@ -1,0 +1,53 @@
+"""The bare path's subscriber, in its own process like the driver node:
+
+    python bare_peer.py HOST PORT   -> on ``bare_cmd`` (Float32, deg) sends one RPDO 0x301
+
+Nothing but rclpy (the EventsExecutor the node uses) and one python-can send per message;
+SIGTERM ends it.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import can
+import rclpy
+from rclpy.experimental import EventsExecutor
+from std_msgs.msg import Float32
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from nodes import runtime
+from nodes.qos import COMMAND_QOS
+
+COUNTS_PER_DEG = 4096 / 360.0
+logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+
+
+def main() -> int:
+    host, port = sys.argv[1], int(sys.argv[2])
+    bus = can.Bus(interface="socketcand", channel="can0", host=host, port=port, tcp_tune=True)
+    runtime.init(None)
+    node = rclpy.create_node("bare_peer")
+
+    def on_cmd(msg: Float32) -> None:
+        counts = round(msg.data * COUNTS_PER_DEG)
+        bus.send(can.Message(arbitration_id=0x301, data=b"\x3f\x00" + counts.to_bytes(4, "little", signed=True),
+                             is_extended_id=False))
+
+    node.create_subscription(Float32, "bare_cmd", on_cmd, COMMAND_QOS)
+    executor = EventsExecutor()
+    executor.add_node(node)
+    with runtime.StopSignal() as stop:
+        print("ready", flush=True)
+        runtime.spin_until(executor, stop.event)
+    executor.shutdown(timeout_sec=0)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    bus.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
