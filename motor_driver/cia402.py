@@ -57,7 +57,7 @@ class SW(IntEnum):
 class CW(IntEnum):
     """Controlword bits beyond the device-control command."""
 
-    NEW_SETPOINT = 1 << 4  # homing: start homing
+    NEW_SETPOINT = 1 << 4  # homing: start homing; interpolated position: enable ip mode
     CHANGE_IMMEDIATELY = 1 << 5
     RELATIVE = 1 << 6
     FAULT_RESET = 1 << 7

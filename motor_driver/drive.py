@@ -779,14 +779,17 @@ class Drive:
             self._write_typed(OD.TARGET_TORQUE, 0, permille)
 
     def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None) -> None:
-        """Cyclic synchronous position: one setpoint per SYNC period, no handshake.
+        """One position set-point per SYNC period, no handshake: cyclic synchronous position,
+        or interpolated position (0x60C1:1, controlword bit 4 "enable ip mode") on a drive
+        whose 0x6502 lists IP but not CSP (the SCHUNK PRL120 is one).
 
         Refuses a setpoint that jumps further than ``max_step_deg`` (default: max velocity
         over two SYNC periods) from the previous one: a streamed trajectory must be smooth.
         """
         counts = self._position_target_counts(angle_deg)
         with self._lock:
-            self._ensure_mode(OperationMode.CYCLIC_SYNC_POSITION, "CSP setpoint")
+            mode = self._streaming_mode()
+            self._ensure_mode(mode, "CSP setpoint" if mode == OperationMode.CYCLIC_SYNC_POSITION else "IP setpoint")
             if max_step_deg is None:
                 max_step_deg = self.config.max_velocity_deg_s * 2 * self.sync_period_s
             step = abs(self.scale.counts_to_deg(counts - self._target_counts))
@@ -795,12 +798,25 @@ class Drive:
                                       f" {max_step_deg:.3f} deg per step (max_velocity_deg_s over two SYNC"
                                       " periods) is allowed. Nothing was sent.")
             self._target_counts = counts
-            pdo = self.plan.rpdo_with(OD.TARGET_POSITION)
             cw = int(Command.ENABLE_OPERATION)
+            target = OD.TARGET_POSITION
+            if mode == OperationMode.INTERPOLATED_POSITION:
+                cw |= CW.NEW_SETPOINT  # enable ip mode: the drive follows 0x60C1:1 at each SYNC
+                target = OD.INTERPOLATION_DATA
+            pdo = self.plan.rpdo_with(target)
             if pdo is not None:
-                self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_POSITION: counts}))
+                self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, target: counts}))
             else:
-                self._write_typed(OD.TARGET_POSITION, 0, counts)
+                self._write_typed(target, 1 if target == OD.INTERPOLATION_DATA else 0, counts)
+                self._send_cw(cw)
+
+    def _streaming_mode(self) -> OperationMode:
+        supported = self.supported_modes()
+        for mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
+            if supported >> SUPPORTED_MODE_BIT[mode] & 1:
+                return mode
+        raise CommandRejected(f"{self.name}: streaming set-points needs cyclic synchronous or interpolated"
+                              f" position; node {self.node_id} supports neither (0x6502 = 0x{supported:08X}).")
 
     def home(self, timeout_s: float | None = None) -> None:
         """Homing with the configured method and speed; waits for 'homing attained'."""

@@ -18,7 +18,15 @@ from functools import cached_property
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config.eds import count_pdos, variable
-from can_config.objects import OD, PDO_COB_ID_INVALID, RPDO_BASES, STRUCT_FORMAT, TPDO_BASES
+from can_config.objects import (
+    OD,
+    PDO_COB_ID_INVALID,
+    RPDO_BASES,
+    STRUCT_FORMAT,
+    SUPPORTED_MODE_BIT,
+    TPDO_BASES,
+    OperationMode,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -67,40 +75,51 @@ class PdoPlan:
         return None
 
 
-def _mappable(od: ObjectDictionary, index: int) -> int | None:
+def _mappable(od: ObjectDictionary, index: int, subindex: int = 0) -> int | None:
     """Data type of a PDO-mappable fixed-size object, else ``None``."""
-    var = variable(od, index)
+    var = variable(od, index, subindex)
     if var is None or not var.pdo_mappable or int(var.data_type) not in STRUCT_FORMAT:
         return None
     return int(var.data_type)
+
+
+def _eds_lists_mode(od: ObjectDictionary, mode: OperationMode) -> bool:
+    var = variable(od, OD.SUPPORTED_DRIVE_MODES)
+    value = var.default if var is not None else None
+    return isinstance(value, int) and bool(value >> SUPPORTED_MODE_BIT[mode] & 1)
 
 
 def plan_pdos(od: ObjectDictionary, node_id: int) -> PdoPlan:
     """The PDOs the driver configures on this drive.
 
     RPDO1 controlword; RPDO2 controlword + target position; RPDO3 controlword + target
-    velocity; RPDO4 controlword + target torque. TPDO1 statusword + mode display on change; TPDO2 position + velocity on SYNC;
+    velocity; RPDO4 controlword + target torque; on a drive whose EDS lists interpolated
+    position but not CSP (0x6502), controlword + interpolation set-point (0x60C1:1) where an
+    RPDO is left. TPDO1 statusword + mode display on change; TPDO2 position + velocity on SYNC;
     TPDO3 torque + statusword on SYNC.
     """
     n_rpdo = count_pdos(od, OD.RPDO_COMM)
     n_tpdo = count_pdos(od, OD.TPDO_COMM)
     sdo_only: list[int] = []
 
-    def entries(*indexes: int) -> tuple[tuple[int, int, int], ...]:
+    def entries(*objects: int | tuple[int, int]) -> tuple[tuple[int, int, int], ...]:
         out = []
-        for index in indexes:
-            dt = _mappable(od, index)
+        for obj in objects:
+            index, sub = obj if isinstance(obj, tuple) else (obj, 0)
+            dt = _mappable(od, index, sub)
             if dt is None:
-                if variable(od, index) is not None:
+                if variable(od, index, sub) is not None:
                     sdo_only.append(index)
                 continue
-            out.append((index, 0, dt))
+            out.append((index, sub, dt))
         return tuple(out)
 
     wanted_r = [entries(OD.CONTROLWORD),
                 entries(OD.CONTROLWORD, OD.TARGET_POSITION),
                 entries(OD.CONTROLWORD, OD.TARGET_VELOCITY),
                 entries(OD.CONTROLWORD, OD.TARGET_TORQUE)]
+    if _eds_lists_mode(od, OperationMode.INTERPOLATED_POSITION) and not _eds_lists_mode(od, OperationMode.CYCLIC_SYNC_POSITION):
+        wanted_r.append(entries(OD.CONTROLWORD, (OD.INTERPOLATION_DATA, 1)))
     wanted_t = [(entries(OD.STATUSWORD, OD.MODES_OF_OPERATION_DISPLAY), TT_EVENT),
                 (entries(OD.POSITION_ACTUAL, OD.VELOCITY_ACTUAL), TT_SYNC),
                 (entries(OD.TORQUE_ACTUAL, OD.STATUSWORD), TT_SYNC)]

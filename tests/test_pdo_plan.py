@@ -55,6 +55,11 @@ def test_schunk_target_position_falls_back_to_sdo() -> None:
     assert plan.n_rpdo == 2
     assert OD.TARGET_POSITION in plan.sdo_only
     assert all(OD.TARGET_POSITION not in p.indexes for p in plan.rpdos)
+    # its modes are homing and interpolated position: the second RPDO carries the IP set-point
+    ip = plan.rpdo_with(OD.INTERPOLATION_DATA)
+    assert ip is not None and ip.cob_id == 0x303
+    assert encode_rpdo(ip, {OD.CONTROLWORD: 0x1F, OD.INTERPOLATION_DATA: 4096}) == bytes.fromhex("1f0000100000")
+    assert (0x1601, 2, bytes.fromhex("2001c160"), "RPDO2 map 0x60C1") in mapping_writes(plan)  # 0x60C1:01, 32 bits
 
 
 @requires_shared

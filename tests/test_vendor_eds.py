@@ -3,6 +3,7 @@ through the driver; the python-canopen sample (not a drive) is refused."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import pytest
@@ -12,7 +13,7 @@ from can_config.errors import CommandRejected
 from motor_driver import MotorDriver, State
 from virtual_can import SimService
 
-from .conftest import SHARED_EDS, make_config, requires_shared
+from .conftest import SHARED_EDS, make_config, requires_shared, wait_for
 
 DRIVES = sorted(p.name for p in SHARED_EDS.glob("*.eds") if p.name != "python_canopen_sample.eds") \
     if SHARED_EDS.is_dir() else []
@@ -26,9 +27,16 @@ def test_vendor_drive_boots_enables_moves(eds: str, driver_factory: Callable[[Ro
     drive.enable()
     assert drive.state is State.OPERATION_ENABLED
     if eds == "schunk_prl120.eds":
-        # its 0x6502 = 0x60 lists only homing and interpolated position: refused, clearly
+        # its 0x6502 = 0x60 lists only homing and interpolated position: profile position is
+        # refused, clearly; it moves by streamed IP set-points (0x60C1:1 in its second RPDO)
         with pytest.raises(CommandRejected, match=r"PROFILE_POSITION is not supported by node 1 \(0x6502 = 0x00000060\)"):
             drive.move_to(30.0)
+        assert [(i, s) for i, s, _ in driver.drive("joint1").plan.rpdos[1].objects] == [(0x6040, 0), (0x60C1, 1)]
+        for i in range(1, 61):
+            drive.stream_position(i * 0.5)
+            time.sleep(0.01)
+        wait_for(lambda: abs(drive.snapshot().angle_deg - 30.0) < 0.2, 2.0, "IP to 30 deg")
+        assert drive.snapshot().mode == 7 and drive.statusword & 0x1000  # ip mode active
         return
     drive.move_to(30.0, wait=True)
     # "target reached" holds within the position window (2 counts = 0.18 deg at 4096 counts/rev)
@@ -47,7 +55,6 @@ def test_epos4_velocity_in_rpm_is_converted(driver_factory: Callable[[RoverConfi
     sim, driver = driver_factory(make_config(1, eds=str(SHARED_EDS / "maxon_epos4_module50_5.eds"), gear_ratio=4.0))
     drive = driver.drive("joint1")
     drive.enable()
-    import time
     for _ in range(60):
         drive.set_velocity(90.0)
         time.sleep(0.02)

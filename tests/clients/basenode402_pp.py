@@ -1,6 +1,8 @@
 """An independent client: the python canopen library's own BaseNode402, over python-can's
 socketcand interface, in its own process. Boots a simulated drive, reaches Operation Enabled,
-runs profile position to a target and checks that 0x6064 reaches it.
+runs profile position to a target (or, on a drive whose 0x6502 lists no profile position but
+interpolated position, streams 0x60C1:1 set-points with "enable ip mode") and checks that
+0x6064 reaches it.
 
 usage: python basenode402_pp.py HOST PORT NODE_ID EDS TARGET
 prints "OK <position>" and exits 0, or prints the failure and exits 1.
@@ -39,13 +41,28 @@ def main() -> int:
         time.sleep(0.05)
         # the mode first: with the generic default mapping, RPDO2 carries 0x6060 *and* the
         # controlword, so switching the mode by PDO while enabled would also send controlword 0
-        node.op_mode = "PROFILED POSITION"
-        node.state = "SWITCH ON DISABLED"
-        node.state = "OPERATION ENABLED"
-        node.sdo[0x607A].raw = target
-        node.controlword = 0x3F  # enable operation + new setpoint + change immediately
-        time.sleep(0.05)
-        node.controlword = 0x0F
+        supported = node.sdo[0x6502].raw
+        if supported & 1:
+            node.op_mode = "PROFILED POSITION"
+            node.state = "SWITCH ON DISABLED"
+            node.state = "OPERATION ENABLED"
+            node.sdo[0x607A].raw = target
+            node.controlword = 0x3F  # enable operation + new setpoint + change immediately
+            time.sleep(0.05)
+            node.controlword = 0x0F
+        elif supported >> 6 & 1:
+            node.op_mode = "INTERPOLATED POSITION"
+            node.state = "SWITCH ON DISABLED"
+            node.state = "OPERATION ENABLED"
+            node.controlword = 0x1F  # enable operation + enable ip mode
+            start = node.sdo[0x6064].raw
+            steps = 40
+            for k in range(1, steps + 1):  # a smooth ramp of set-points, one per SYNC or so
+                node.sdo[0x60C1][1].raw = start + (target - start) * k // steps
+                time.sleep(0.01)
+        else:
+            print(f"FAIL 0x6502 = 0x{supported:08X} lists neither profile nor interpolated position")
+            return 1
         deadline = time.monotonic() + 10.0
         position = node.sdo[0x6064].raw
         while abs(position - target) > 2 and time.monotonic() < deadline:

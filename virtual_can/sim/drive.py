@@ -3,7 +3,7 @@
 One :class:`SimulatedDrive` is one CANopen node: NMT, SDO server, heartbeat producer, EMCY
 producer with error register and history, PDOs configured from its object dictionary (and
 re-configurable by SDO, with the CiA 301 procedure enforced), the CiA 402 state machine with
-quick stop and fault reaction, the modes PP, PV, PT, CSP and homing, and a motion model
+quick stop and fault reaction, the modes PP, PV, PT, CSP, IP and homing, and a motion model
 (inertia, viscous friction, load torque, torque limit) behind a position/velocity controller.
 Position, velocity and torque are reported in the drive's units: encoder counts, counts/s
 and per mille of the rated torque.
@@ -75,7 +75,7 @@ SW_VOLTAGE_ENABLED = 1 << 4
 SW_WARNING = 1 << 7
 SW_REMOTE = 1 << 9
 SW_TARGET_REACHED = 1 << 10
-SW_OMS12 = 1 << 12  # PP: setpoint acknowledge; PV: speed; homing: attained; CSP: following
+SW_OMS12 = 1 << 12  # PP: setpoint acknowledge; PV: speed; homing: attained; CSP: following; IP: active
 SW_OMS13 = 1 << 13  # PP/CSP: following error; homing: homing error
 
 CW_SWITCH_ON = 1 << 0
@@ -348,6 +348,8 @@ class SimulatedDrive:
             self._apply_controlword()
         elif index == OD.MODES_OF_OPERATION:
             self._set_mode()
+        elif index in (OD.TARGET_POSITION, OD.INTERPOLATION_DATA):
+            self._csp_target()
 
     # ---------------------------------------------------------------- frames in
     def on_frame(self, msg: can.Message, now: float) -> list[can.Message]:
@@ -413,7 +415,7 @@ class SimulatedDrive:
             self._set_mode()
         if cw_written:
             self._apply_controlword()
-        elif any(i == OD.TARGET_POSITION for i, _, _ in pdo.entries):
+        elif any(i in (OD.TARGET_POSITION, OD.INTERPOLATION_DATA) for i, _, _ in pdo.entries):
             self._csp_target()
 
     def _on_sync(self, now: float) -> list[can.Message]:
@@ -460,7 +462,7 @@ class SimulatedDrive:
                 self._new_pp_setpoint(cw)
             elif mode == OperationMode.HOMING and rising & CW_NEW_SETPOINT:
                 self._start_homing()
-            elif mode == OperationMode.CYCLIC_SYNC_POSITION:
+            elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
                 self._csp_target()
         self.prev_cw = cw
 
@@ -471,7 +473,7 @@ class SimulatedDrive:
     def _set_mode(self) -> None:
         requested = int(self.store.get(OD.MODES_OF_OPERATION, 0))  # type: ignore[arg-type]
         supported = int(self.store.get(OD.SUPPORTED_DRIVE_MODES, 0, 0))  # type: ignore[arg-type]
-        bit = {1: 0, 3: 2, 4: 3, 6: 5, 8: 7}.get(requested)
+        bit = {1: 0, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7}.get(requested)
         if requested != 0 and (bit is None or not supported >> bit & 1):
             return  # unsupported: the display keeps the old mode, as real drives do
         self.store.set(OD.MODES_OF_OPERATION_DISPLAY, 0, requested)
@@ -494,8 +496,17 @@ class SimulatedDrive:
         self._setpoint_ack = True
 
     def _csp_target(self) -> None:
-        if self.state == State.OPERATION_ENABLED and self.mode == OperationMode.CYCLIC_SYNC_POSITION:
+        """CSP: follow 0x607A; IP: follow 0x60C1:1 while controlword bit 4 (enable ip) is set."""
+        if self.state != State.OPERATION_ENABLED:
+            return
+        if self.mode == OperationMode.CYCLIC_SYNC_POSITION:
             self.pp_target = float(self.store.get(OD.TARGET_POSITION, 0))  # type: ignore[arg-type]
+        elif self.mode == OperationMode.INTERPOLATED_POSITION and self._ip_enabled:
+            self.pp_target = float(self.store.get(OD.INTERPOLATION_DATA, 1, 0))  # type: ignore[arg-type]
+
+    @property
+    def _ip_enabled(self) -> bool:
+        return bool(int(self.store.get(OD.CONTROLWORD, 0)) & CW_NEW_SETPOINT)  # type: ignore[arg-type]
 
     def _start_homing(self) -> None:
         method = int(self.store.get(OD.HOMING_METHOD, 0, 35))  # type: ignore[arg-type]
@@ -619,7 +630,8 @@ class SimulatedDrive:
                 target_v = self._v(OD.TARGET_VELOCITY, 0, 0)
                 target_v = max(-vlimit, min(vlimit, target_v))
                 self._ramp_velocity(target_v, accel, decel, dt)
-            elif mode == OperationMode.CYCLIC_SYNC_POSITION and self.pp_target is not None:
+            elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION) \
+                    and self.pp_target is not None:
                 self.sp_vel = 0.0 if self._csp_last is None else (self.pp_target - self._csp_last) / max(dt, 1e-6)
                 self._csp_last = self.sp_pos = self.pp_target
                 self.sp_acc = 0.0
@@ -684,8 +696,8 @@ class SimulatedDrive:
         return max(low, min(high, int(round(value))))
 
     def _check_following(self, now: float, mode: int) -> list[can.Message]:
-        if mode not in (OperationMode.PROFILE_POSITION, OperationMode.PROFILE_VELOCITY,
-                        OperationMode.CYCLIC_SYNC_POSITION) or self.state != State.OPERATION_ENABLED:
+        if mode not in (OperationMode.PROFILE_POSITION, OperationMode.PROFILE_VELOCITY, OperationMode.CYCLIC_SYNC_POSITION,
+                        OperationMode.INTERPOLATED_POSITION) or self.state != State.OPERATION_ENABLED:
             self.following_since = None
             return []
         window = int(self.store.get(OD.FOLLOWING_ERROR_WINDOW, 0, 0))  # type: ignore[arg-type]
@@ -759,6 +771,11 @@ class SimulatedDrive:
                     sw |= SW_OMS13
             elif mode == OperationMode.CYCLIC_SYNC_POSITION:
                 sw |= SW_OMS12
+            elif mode == OperationMode.INTERPOLATED_POSITION:
+                if self._ip_enabled:
+                    sw |= SW_OMS12  # ip mode active
+                if self.pp_target is None or abs(self.pp_target - self.position_counts) <= self._window():
+                    sw |= SW_TARGET_REACHED
             else:
                 sw |= SW_TARGET_REACHED
         if self.following_since is not None:
