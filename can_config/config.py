@@ -63,6 +63,7 @@ class DriveConfig:
     node_id: int
     bus: str
     eds: Path
+    namespace: str = ""  # ROS namespace of the joint's topics and services ("" = the node's)
     counts_per_rev: int | None = None  # None: from the drive (0x608F), else 4096
     gear_ratio: float = 1.0
     rated_torque_nm: float = 1.0
@@ -92,6 +93,11 @@ class DriveConfig:
     @property
     def is_continuous(self) -> bool:
         return self.joint == "continuous"
+
+    @property
+    def ros_prefix(self) -> str:
+        """Where the joint's topics and services live: ``namespace/name``, or ``name``."""
+        return f"{self.namespace.rstrip('/')}/{self.name}" if self.namespace else self.name
 
 
 @dataclass(frozen=True)
@@ -136,7 +142,7 @@ class RoverConfig:
 
 @dataclass(frozen=True)
 class _Field:
-    kind: str  # "int", "float", "bool", "str", "name", "path", "map", "list_names", "opt_float"
+    kind: str  # "int", "float", "bool", "str", "name", "namespace", "path", "map", "list_names", "opt_float"
     default: Any = _REQUIRED
     low: float | None = None
     high: float | None = None
@@ -161,6 +167,7 @@ _IDENTITY_FIELDS: dict[str, _Field] = {
 
 _DRIVE_FIELDS: dict[str, _Field] = {
     "name": _Field("name"),
+    "namespace": _Field("namespace", ""),
     "node_id": _Field("int", _REQUIRED, 1, 127),
     "bus": _Field("str", None),
     "eds": _Field("path", "generic"),
@@ -250,6 +257,12 @@ def _convert(where: _Where, key: str, value: Any, spec: _Field) -> Any:
                              " starts with a letter (it becomes part of ROS topic names).")
         if spec.choices is not None and value not in spec.choices:
             raise where.fail(key, f"got {value!r}; expected one of {', '.join(spec.choices)}.")
+        return value
+    if kind == "namespace":
+        tokens = value.strip("/").split("/") if isinstance(value, str) else None
+        if tokens is None or (value and not all(_NAME_RE.match(t) for t in tokens)):
+            raise where.fail(key, f"got {value!r}; expected a ROS namespace: names of letters, digits and"
+                             " '_' that start with a letter, separated by '/' (e.g. wheels/left), or ''.")
         return value
     if kind == "map":
         if not isinstance(value, Mapping):
@@ -417,7 +430,7 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
     drives = []
     for d in config.drives:
         entry: dict[str, Any] = {
-            "name": d.name, "node_id": d.node_id, "bus": d.bus, "eds": str(d.eds),
+            "name": d.name, "namespace": d.namespace, "node_id": d.node_id, "bus": d.bus, "eds": str(d.eds),
             "counts_per_rev": d.counts_per_rev, "gear_ratio": d.gear_ratio,
             "rated_torque_nm": d.rated_torque_nm, "max_torque_nm": d.max_torque_nm, "joint": d.joint,
             "max_velocity_deg_s": d.max_velocity_deg_s,

@@ -1,6 +1,7 @@
 """``rover_driver``: the ROS 2 face of every configured drive, and the rover's drive system.
 
-Per drive (joint name from the config, under the node's namespace):
+Per drive (under the drive's ``namespace`` from the config, if any, then its joint name;
+relative to the node's namespace):
   topics   <joint>/degree_cmd (std_msgs/Float32, deg), <joint>/velocity_cmd (Float32, deg/s),
            <joint>/motor_state (rovercan_msgs/MotorState)
   services <joint>/enable, disable, halt, quick_stop, recover, home (std_srvs/Trigger),
@@ -108,9 +109,10 @@ class DriverNode(Node):
     # --------------------------------------------------------------------- wiring
     def _add_drive(self, name: str, drive: Drive) -> None:
         self._states[name] = MotorState()
-        self._state_pubs[name] = self.create_publisher(MotorState, f"{name}/motor_state", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
-        self.create_subscription(Float32, f"{name}/degree_cmd", self._on_degree(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
-        self.create_subscription(Float32, f"{name}/velocity_cmd", self._on_velocity(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        base = drive.config.ros_prefix
+        self._state_pubs[name] = self.create_publisher(MotorState, f"{base}/motor_state", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
+        self.create_subscription(Float32, f"{base}/degree_cmd", self._on_degree(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        self.create_subscription(Float32, f"{base}/velocity_cmd", self._on_velocity(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
 
     def _guard(self, joint: str, what: str, fn: Callable[[], T]) -> T | None:
         """Run a driver call; every failure becomes a throttled warning and a diagnostic."""
@@ -209,13 +211,14 @@ class DriverServicesNode(Node):
         super().__init__("rovercan_driver_services", **kwargs)
         self.driver = driver
         for name, drive in driver.drives.items():
+            base = drive.config.ros_prefix
             for service, action in (("enable", drive.enable), ("disable", drive.disable),
                                     ("halt", drive.halt), ("quick_stop", drive.quick_stop),
                                     ("recover", drive.recover), ("home", drive.home)):
-                self.create_service(Trigger, f"{name}/{service}", self._trigger(name, service, action))
-            self.create_service(SetMode, f"{name}/set_mode", self._set_mode(drive))
-            self.create_service(SdoRead, f"{name}/sdo_read", self._sdo_read(drive))
-            self.create_service(SdoWrite, f"{name}/sdo_write", self._sdo_write(drive))
+                self.create_service(Trigger, f"{base}/{service}", self._trigger(name, service, action))
+            self.create_service(SetMode, f"{base}/set_mode", self._set_mode(drive))
+            self.create_service(SdoRead, f"{base}/sdo_read", self._sdo_read(drive))
+            self.create_service(SdoWrite, f"{base}/sdo_write", self._sdo_write(drive))
 
     def _trigger(self, joint: str, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
         def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -88,3 +88,17 @@ def test_unreadable_eds_is_a_clear_error(tmp_path: Path) -> None:
     eds.write_bytes(b"\x00\xff not an eds \x00")
     with pytest.raises(EdsError, match=r"drive\.eds: (cannot parse the EDS|the EDS holds no objects)"):
         load_od(eds)
+
+
+def test_drive_namespace_prefixes_its_ros_names(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, GOOD.replace("node_id: 1", "node_id: 1\n    namespace: arm/left")))
+    assert config.drives[0].ros_prefix == "arm/left/motor"
+    from can_config import config_to_dict, parse_config
+    assert parse_config(config_to_dict(config)).drives[0].namespace == "arm/left"
+
+
+@pytest.mark.parametrize("bad", ["arm//left", "1arm", "arm left", "arm/-x"])
+def test_bad_namespace_says_what_a_namespace_is(tmp_path: Path, bad: str) -> None:
+    path = write(tmp_path, GOOD.replace("node_id: 1", f"node_id: 1\n    namespace: '{bad}'"))
+    with pytest.raises(ConfigError, match=r"drives\[0\]\.namespace: got .*expected a ROS namespace"):
+        load_config(path)

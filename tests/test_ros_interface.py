@@ -94,15 +94,15 @@ def eventually(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
 
 def test_per_drive_topics_and_joint_states(graph: Graph) -> None:
     joint = "wheel_rear_right"
-    assert graph.call(Trigger, f"{joint}/enable").success
-    states = graph.listen(MotorState, f"{joint}/motor_state")
+    assert graph.call(Trigger, f"wheels/{joint}/enable").success
+    states = graph.listen(MotorState, f"wheels/{joint}/motor_state")
     joints = graph.listen(JointState, "/joint_states")
-    degree = graph.probe.create_publisher(Float32, f"{joint}/degree_cmd", COMMAND_QOS)
+    degree = graph.probe.create_publisher(Float32, f"wheels/{joint}/degree_cmd", COMMAND_QOS)
     time.sleep(0.3)
     degree.publish(Float32(data=120.0))
     eventually(lambda: bool(states) and abs(states[-1].angle - 120.0) < 0.2, 8.0, "angle 120")
     assert states[-1].name == joint and states[-1].enabled
-    velocity = graph.probe.create_publisher(Float32, f"{joint}/velocity_cmd", COMMAND_QOS)
+    velocity = graph.probe.create_publisher(Float32, f"wheels/{joint}/velocity_cmd", COMMAND_QOS)
     for _ in range(30):
         velocity.publish(Float32(data=-90.0))
         time.sleep(0.02)
@@ -112,38 +112,38 @@ def test_per_drive_topics_and_joint_states(graph: Graph) -> None:
     i = last.name.index(joint)
     assert last.velocity[i] == pytest.approx(math.radians(states[-1].velocity), abs=0.1)
     assert abs(last.header.stamp.sec + last.header.stamp.nanosec * 1e-9 - time.time()) < 1.0
-    assert graph.call(Trigger, f"{joint}/quick_stop").success
+    assert graph.call(Trigger, f"wheels/{joint}/quick_stop").success
 
 
 def test_services_answer_with_what_happened(graph: Graph) -> None:
     joint = "wheel_front_left"
     drive = graph.driver.drive(joint)
-    reply = graph.call(Trigger, f"{joint}/enable")
+    reply = graph.call(Trigger, f"wheels/{joint}/enable")
     assert reply.success and "OPERATION_ENABLED" in reply.message
-    assert graph.call(Trigger, f"{joint}/halt").success
-    assert graph.call(Trigger, f"{joint}/disable").success
+    assert graph.call(Trigger, f"wheels/{joint}/halt").success
+    assert graph.call(Trigger, f"wheels/{joint}/disable").success
     assert drive.state is State.READY_TO_SWITCH_ON
-    mode = graph.call(SetMode, f"{joint}/set_mode", SetMode.Request(mode="profile_velocity"))
+    mode = graph.call(SetMode, f"wheels/{joint}/set_mode", SetMode.Request(mode="profile_velocity"))
     assert mode.success and "confirmed by 0x6061" in mode.message
-    bad = graph.call(SetMode, f"{joint}/set_mode", SetMode.Request(mode="warp"))
+    bad = graph.call(SetMode, f"wheels/{joint}/set_mode", SetMode.Request(mode="warp"))
     assert not bad.success and "allowed: PROFILE_POSITION" in bad.message
-    unsupported = graph.call(SetMode, f"{joint}/set_mode", SetMode.Request(mode="cyclic_sync_torque"))
+    unsupported = graph.call(SetMode, f"wheels/{joint}/set_mode", SetMode.Request(mode="cyclic_sync_torque"))
     assert not unsupported.success and "not supported" in unsupported.message
-    read = graph.call(SdoRead, f"{joint}/sdo_read", SdoRead.Request(index=0x1018, subindex=1))
+    read = graph.call(SdoRead, f"wheels/{joint}/sdo_read", SdoRead.Request(index=0x1018, subindex=1))
     assert read.success and read.value == 0x00524F56
-    missing = graph.call(SdoRead, f"{joint}/sdo_read", SdoRead.Request(index=0x2345, subindex=0))
+    missing = graph.call(SdoRead, f"wheels/{joint}/sdo_read", SdoRead.Request(index=0x2345, subindex=0))
     assert not missing.success and "0x06020000" in missing.message and "does not exist" in missing.message
-    refused = graph.call(SdoWrite, f"{joint}/sdo_write", SdoWrite.Request(index=0x607A, subindex=0, value=99999))
+    refused = graph.call(SdoWrite, f"wheels/{joint}/sdo_write", SdoWrite.Request(index=0x607A, subindex=0, value=99999))
     assert not refused.success and "refused" in refused.message
-    ro = graph.call(SdoWrite, f"{joint}/sdo_write", SdoWrite.Request(index=0x1000, subindex=0, value=1))
+    ro = graph.call(SdoWrite, f"wheels/{joint}/sdo_write", SdoWrite.Request(index=0x1000, subindex=0, value=1))
     assert not ro.success and "read only" in ro.message
-    ok = graph.call(SdoWrite, f"{joint}/sdo_write", SdoWrite.Request(index=0x6065, subindex=0, value=30000))
+    ok = graph.call(SdoWrite, f"wheels/{joint}/sdo_write", SdoWrite.Request(index=0x6065, subindex=0, value=30000))
     assert ok.success
-    assert graph.call(Trigger, f"{joint}/enable").success
-    assert graph.call(Trigger, f"{joint}/home").success
+    assert graph.call(Trigger, f"wheels/{joint}/enable").success
+    assert graph.call(Trigger, f"wheels/{joint}/home").success
     apply_action(graph.sim, {"action": "fault", "node": 1, "code": 0x2310})  # node 1 on can0
     eventually(lambda: drive.state is State.FAULT, 2.0, "fault")
-    recover = graph.call(Trigger, f"{joint}/recover")
+    recover = graph.call(Trigger, f"wheels/{joint}/recover")
     assert recover.success, recover.message
     assert drive.state is State.OPERATION_ENABLED
 
@@ -176,11 +176,11 @@ def test_diagnostics_levels_follow_the_rules(graph: Graph) -> None:
 def test_bad_commands_refused_no_motion_warning_diagnostic(graph: Graph, bad: float) -> None:
     joint = "wheel_front_right"
     drive = graph.driver.drive(joint)
-    assert graph.call(Trigger, f"{joint}/enable").success
+    assert graph.call(Trigger, f"wheels/{joint}/enable").success
     diags = graph.listen(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
     before = drive.angle_deg
-    pub = graph.probe.create_publisher(Float32, f"{joint}/degree_cmd", COMMAND_QOS)
-    vel = graph.probe.create_publisher(Float32, f"{joint}/velocity_cmd", COMMAND_QOS)
+    pub = graph.probe.create_publisher(Float32, f"wheels/{joint}/degree_cmd", COMMAND_QOS)
+    vel = graph.probe.create_publisher(Float32, f"wheels/{joint}/velocity_cmd", COMMAND_QOS)
     commands = graph.probe.create_publisher(JointState, "/joint_commands", COMMAND_QOS)
     time.sleep(0.3)
     pub.publish(Float32(data=bad))
@@ -203,7 +203,7 @@ def test_bad_commands_refused_no_motion_warning_diagnostic(graph: Graph, bad: fl
 
 def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph: Graph) -> None:
     for wheel in WHEELS:
-        assert graph.call(Trigger, f"{wheel}/enable").success
+        assert graph.call(Trigger, f"wheels/{wheel}/enable").success
     odom = graph.listen(Odometry, "/odom")
     cmd = graph.probe.create_publisher(Twist, "/cmd_vel", COMMAND_QOS)
     twist = Twist()
@@ -239,7 +239,7 @@ def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph:
 
 def test_bus_lost_is_published_and_nodes_keep_running(graph: Graph) -> None:
     diags = graph.listen(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
-    states = graph.listen(MotorState, "wheel_front_left/motor_state")
+    states = graph.listen(MotorState, "wheels/wheel_front_left/motor_state")
     graph.sim.close()  # both buses' server dies
 
     def bus_error() -> bool:
