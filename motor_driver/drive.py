@@ -137,6 +137,7 @@ class Drive:
         self.lost = False
         self.booted = False
         self.closed = False  # set by MotorDriver.close: no command is accepted after it
+        self._supported_modes: int | None = None  # 0x6502, read once per boot
         self.last_emcy: Emcy | None = None
         self.rebooted = threading.Event()
         self._bootup = threading.Event()
@@ -342,6 +343,7 @@ class Drive:
         cfg = self.config
         step = "boot-up"
         self.booted = False
+        self._supported_modes = None  # a replaced drive may support other modes
         self.rebooted.clear()
         if reset:
             self._bootup.clear()
@@ -397,7 +399,7 @@ class Drive:
                 self._switch_mode_sdo(OperationMode.PROFILE_POSITION)
             else:
                 logger.warning("node %d (%s): 0x6502 = 0x%08X lists no profile position mode; the"
-                               " drive boots without a mode and move_to() will be refused",
+                               " drive boots without a mode; move_to() will be refused (stream_position uses IP where listed)",
                                self.node_id, self.name, supported)
                 self.mode_display = int(self.sdo_read_value(OD.MODES_OF_OPERATION_DISPLAY))  # type: ignore[arg-type]
             step = "read state"
@@ -459,9 +461,13 @@ class Drive:
 
     # ------------------------------------------------------------------ modes
     def supported_modes(self) -> int:
-        if not has_object(self.od, OD.SUPPORTED_DRIVE_MODES):
-            return 0xFFFF_FFFF
-        return int(self.sdo_read_value(OD.SUPPORTED_DRIVE_MODES))  # type: ignore[arg-type]
+        """0x6502 as the drive reports it (read by SDO once per boot; all modes without it)."""
+        if self._supported_modes is None:
+            if not has_object(self.od, OD.SUPPORTED_DRIVE_MODES):
+                self._supported_modes = 0xFFFF_FFFF
+            else:
+                self._supported_modes = int(self.sdo_read_value(OD.SUPPORTED_DRIVE_MODES))  # type: ignore[arg-type]
+        return self._supported_modes
 
     def _switch_mode_sdo(self, mode: OperationMode) -> None:
         self._write_typed(OD.MODES_OF_OPERATION, 0, int(mode))
@@ -811,6 +817,8 @@ class Drive:
                 self._send_cw(cw)
 
     def _streaming_mode(self) -> OperationMode:
+        if self.mode_display in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
+            return OperationMode(self.mode_display)  # the hot path: streaming already
         supported = self.supported_modes()
         for mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
             if supported >> SUPPORTED_MODE_BIT[mode] & 1:

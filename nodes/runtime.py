@@ -5,8 +5,8 @@ rclpy's own signal handling shuts the context down (SIGTERM) or raises
 another thread or an executor building its wait set. Both were seen to kill the node (an
 ``RCLError`` from a wait set, a segfault) before or while the drives were brought to a safe
 state. Here rclpy installs no handlers; SIGINT/SIGTERM set an event, the spin loops return,
-and the caller tears down in order: executors stopped and joined, drives safe, nodes
-destroyed, context shut down.
+and the caller tears down in order: drives safe, executor threads joined, nodes destroyed,
+context shut down.
 """
 
 from __future__ import annotations

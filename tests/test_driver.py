@@ -193,13 +193,20 @@ def test_homing_sets_zero(driver_factory: DriverFactory) -> None:
     wait_for(lambda: abs(drive.snapshot().angle_deg) < 0.05, 1.0, "homed at zero")
 
 
-def test_cyclic_synchronous_position_streams_and_refuses_jumps(driver_factory: DriverFactory) -> None:
-    _, driver = driver_factory(make_config(1))
+def test_cyclic_synchronous_position_streams_and_refuses_jumps(
+        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    sim, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")
     drive.enable()
-    for i in range(1, 41):  # 0.5 deg per 10 ms SYNC period: 50 deg/s
+    drive.stream_position(0.5)  # switches to CSP (SDO) once
+    listener = listener_factory(sim)
+    drain(listener, 0.05)
+    for i in range(2, 41):  # 0.5 deg per 10 ms SYNC period: 50 deg/s
         drive.stream_position(i * 0.5)
         time.sleep(0.01)
+    frames = drain(listener, 0.05)
+    assert not [m for m in frames if m.arbitration_id == 0x601]  # one RPDO per set-point, no SDO
+    assert len([m for m in frames if m.arbitration_id == 0x301]) == 39
     wait_for(lambda: abs(drive.snapshot().angle_deg - 20.0) < 0.1, 1.0, "CSP to 20 deg")
     assert drive.snapshot().mode == 8
     with pytest.raises(CommandRejected, match=r"CSP setpoint jumps (29\.9|30\.0)\d* deg.*at most 7\.200 deg"):
