@@ -11,7 +11,6 @@ from __future__ import annotations
 import sys
 
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rovercan_msgs.msg import MotorState
 from std_msgs.msg import Float32
@@ -115,15 +114,7 @@ def main(args: list[str] | None = None) -> int:
             print(f"motor_controller: {err}", file=sys.stderr)
             rclpy.try_shutdown()
             return 2
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        try:
-            runtime.spin_until(executor, stop.event)
-        finally:
-            node.close()  # quick stop + disable before the bus closes
-            executor.shutdown(timeout_sec=0)
-            node.destroy_node()
-            rclpy.try_shutdown()
+        runtime.spin_node(node, stop.event, on_stop=node.close)  # close: quick stop + disable first
     return 0
 
 

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import sys
 
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import Float32
 
@@ -38,15 +36,7 @@ class MotorDegreeNode(Node):
 def main(args: list[str] | None = None) -> int:
     runtime.init(args)
     with StopSignal() as stop:
-        node = MotorDegreeNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        try:
-            runtime.spin_until(executor, stop.event)
-        finally:
-            executor.shutdown(timeout_sec=0)
-            node.destroy_node()
-            rclpy.try_shutdown()
+        runtime.spin_node(MotorDegreeNode(), stop.event)
     return 0
 
 

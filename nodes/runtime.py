@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import rclpy
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from can_config.errors import ConfigError
@@ -65,6 +66,23 @@ def spin_until(executor: Executor, stop: threading.Event) -> None:
         pass
 
 
+def spin_node(node: Node, stop: threading.Event, *, on_stop: Callable[[], None] | None = None) -> None:
+    """One node on a single-threaded executor until ``stop``; then ``on_stop`` (drives safe),
+    the node destroyed and the context shut down, in that order, whatever happened."""
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        spin_until(executor, stop)
+    finally:
+        try:
+            if on_stop is not None:
+                on_stop()
+        finally:
+            executor.shutdown(timeout_sec=0)
+            node.destroy_node()
+            rclpy.try_shutdown()
+
+
 class SpinThread:
     """An executor spinning on its own thread, stopped and joined by :meth:`stop`."""
 
@@ -85,4 +103,4 @@ class SpinThread:
         return True
 
 
-__all__ = ["EXECUTORS", "POLL_S", "SpinThread", "StopSignal", "init", "make_executor", "spin_until"]
+__all__ = ["EXECUTORS", "POLL_S", "SpinThread", "StopSignal", "init", "make_executor", "spin_node", "spin_until"]
