@@ -20,17 +20,25 @@ from .conftest import REPO, drain, requires_ros
 pytestmark = requires_ros
 
 
-@pytest.mark.parametrize("executor", ["events", "single"])
+CASES = [  # (module, extra parameters, nodes): the driver node on both executors, the demo controller
+    ("nodes.rover_driver", ["-p", "executor:=events"], (1, 2)),
+    ("nodes.rover_driver", ["-p", "executor:=single"], (1, 2)),
+    ("nodes.motor_controller", ["-p", "joint:=a"], (1,)),
+]
+
+
+@pytest.mark.parametrize(("module", "extra", "nodes"), CASES, ids=["driver-events", "driver-single", "motor_controller"])
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_rover_driver_safe_state_on_signal(tmp_path: Path, sig: int, executor: str) -> None:
-    with SimService([SimDriveSpec(1), SimDriveSpec(2)], port=0) as sim:
+def test_node_leaves_drives_safe_on_signal(tmp_path: Path, sig: int, module: str, extra: list[str],
+                                           nodes: tuple[int, ...]) -> None:
+    with SimService([SimDriveSpec(n) for n in nodes], port=0) as sim:
         config = tmp_path / "rover.yaml"
         config.write_text("buses:\n  - {name: can0, interface: socketcand, channel: can0,"
                           f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}\n"
-                          "drives:\n  - {name: a, node_id: 1}\n  - {name: b, node_id: 2}\n")
+                          "drives:\n" + "".join(f"  - {{name: {'ab'[n - 1]}, node_id: {n}}}\n" for n in nodes))
         listener = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
-        proc = subprocess.Popen([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p", f"config:={config}",
-                                 "-p", "arm:=true", "-p", f"executor:={executor}"], cwd=REPO, env=dict(os.environ),
+        proc = subprocess.Popen([sys.executable, "-m", module, "--ros-args", "-p", f"config:={config}",
+                                 "-p", "arm:=true", *extra], cwd=REPO, env=dict(os.environ),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:
             drive = sim.simulator_for(1).drive(1)
@@ -48,11 +56,11 @@ def test_rover_driver_safe_state_on_signal(tmp_path: Path, sig: int, executor: s
                 proc.kill()
             listener.shutdown()
         assert proc.returncode == 0, out
-        for node in (1, 2):
+        for node in nodes:
             cws = [int.from_bytes(m.data[:2], "little") for m in frames if m.arbitration_id == 0x200 + node]
             assert cws[:2] == [0x02, 0x00], (node, cws)  # quick stop, then disable voltage
-        states = [sim.simulator_for(n).call(lambda n=n: sim.simulator_for(n).drive(n).state.name) for n in (1, 2)]
-        assert states == ["SWITCH_ON_DISABLED", "SWITCH_ON_DISABLED"]
+        states = [sim.simulator_for(n).call(lambda n=n: sim.simulator_for(n).drive(n).state.name) for n in nodes]
+        assert states == ["SWITCH_ON_DISABLED"] * len(nodes)
 
 
 def test_unknown_executor_is_refused_before_the_bus_is_touched(tmp_path: Path) -> None:
