@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import can
 import canopen
@@ -34,6 +35,22 @@ SUPERVISOR_PERIOD_S = 0.01
 RECONNECT_MIN_S = 0.2
 RECONNECT_MAX_S = 5.0
 NOTIFIER_TIMEOUT_S = 0.1
+#: Tries to open a bus whose handshake failed (a socketcand daemon's first frame can arrive with
+#: its rawmode '< ok >', which python-can's client rejects); other errors are not retried.
+OPEN_ATTEMPTS = 3
+OPEN_RETRY_S = 0.1
+
+
+def open_bus(kwargs: dict[str, Any]) -> can.BusABC:
+    """``can.Bus(**kwargs)``, retrying a failed protocol handshake (``can.CanError``) a few times."""
+    for attempt in range(1, OPEN_ATTEMPTS):
+        try:
+            return can.Bus(**kwargs)
+        except can.CanError as err:
+            logger.warning("bus %s: opening failed (%s); try %d of %d", kwargs.get("channel"), err,
+                           attempt + 1, OPEN_ATTEMPTS)
+            time.sleep(OPEN_RETRY_S)
+    return can.Bus(**kwargs)
 
 
 class GuardedNetwork(canopen.Network):
@@ -194,7 +211,7 @@ class MotorDriver:
                 owned = bus is None
                 if bus is None:
                     try:
-                        bus = can.Bus(**bus_cfg.bus_kwargs())
+                        bus = open_bus(bus_cfg.bus_kwargs())
                     except (can.CanError, OSError, ValueError, ImportError) as err:
                         raise BusLostError(f"bus {bus_cfg.name!r}: cannot open {bus_cfg.bus_kwargs()}:"
                                            f" {err}. Is the interface up (ip link) or the simulator"

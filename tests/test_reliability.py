@@ -4,6 +4,7 @@ no thread or socket leaks."""
 from __future__ import annotations
 
 import os
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -12,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from can_config import RoverConfig
+from can_config import RoverConfig, with_bus_overrides
 from can_config.errors import MotorError
 from motor_driver import MotorDriver, State
 from virtual_can import SimService
@@ -126,3 +127,35 @@ def test_random_frames_never_crash_the_driver(one_driver: MotorDriver, frames: l
     drive = driver.drive("joint1")
     assert 0 <= drive.statusword <= 0xFFFF and isinstance(drive.state, State)
     assert -(2**31) <= drive.position_counts < 2**31
+
+
+def test_driver_opens_a_bus_whose_first_handshake_is_garbled() -> None:
+    """A socketcand daemon sends frames as soon as it answers rawmode, so its '< ok >' can reach
+    python-can's handshake read together with a frame, which fails the connect. The driver
+    tries again (a scripted daemon: the first connection coalesces, the second does not)."""
+    daemon = socket.create_server(("127.0.0.1", 0))
+    daemon.settimeout(5.0)
+    accepted: list[socket.socket] = []
+
+    def serve() -> None:
+        for garbled in (True, False):
+            conn, _ = daemon.accept()
+            accepted.append(conn)
+            conn.sendall(b"< hi >")
+            conn.recv(256)  # < open can0 >
+            conn.sendall(b"< ok >")
+            conn.recv(256)  # < rawmode >
+            conn.sendall(b"< ok >< frame 701 0.000000 7F >" if garbled else b"< ok >")
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    cfg = with_bus_overrides(make_config(1), host="127.0.0.1", port=daemon.getsockname()[1])
+    try:
+        with MotorDriver(cfg) as driver:
+            assert len(accepted) == 2  # one garbled handshake, one retry
+            assert not driver.bus_lost["can0"]
+    finally:
+        server.join(2.0)
+        for conn in accepted:
+            conn.close()
+        daemon.close()

@@ -197,3 +197,30 @@ def test_client_cap_and_slow_client_do_not_hurt_others() -> None:
             good.shutdown()
             sender.shutdown()
             first.close()
+
+
+def test_clients_join_a_busy_channel(server: SocketcandServer) -> None:
+    """python-can's client reads each handshake reply with one recv(256) and compares it exactly,
+    so a frame that arrives with the rawmode '< ok >' fails its connect (the real socketcand has
+    the same race). The server holds a new client's frames until it speaks or a moment passes:
+    joining a busy bus always works, and the held frames are delivered, not lost."""
+    stop = threading.Event()
+
+    def flood() -> None:
+        with VirtualBus("can0", engine=server.engine) as sender:
+            while not stop.is_set():
+                sender.send(can.Message(arbitration_id=0x701, data=b"\x7f", is_extended_id=False))
+                time.sleep(0.0002)
+
+    flooder = threading.Thread(target=flood, daemon=True)
+    flooder.start()
+    try:
+        for _ in range(10):
+            bus = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
+            try:
+                assert bus.recv(2.0) is not None  # held frames arrive once the hold ends
+            finally:
+                bus.shutdown()
+    finally:
+        stop.set()
+        flooder.join(2.0)

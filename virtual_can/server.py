@@ -10,7 +10,10 @@ channel="can0", host="127.0.0.1", port=29536)``. Raw mode of the socketcand prot
     client: < send 123 4 11 22 33 44 >                  (put a frame on the channel)
     client: < echo >           server: < echo >
 
-Every reply is a separate write (python-can reads the handshake replies one ``recv`` each).
+Every reply is a separate write (python-can reads the handshake replies one ``recv`` each and
+compares them exactly). Separate writes still coalesce in the client's socket when frames follow
+at once, so after the ``rawmode`` reply a client's frames are held until it sends its first line
+or ``RAWMODE_HOLD_S`` passes: held frames are delivered late, never dropped.
 Each client has a reader and a writer thread and a bounded outgoing queue: a client that
 stops reading loses frames and is then dropped, a malformed line gets ``< error ... >``, and
 neither affects any other client. The server binds loopback unless told otherwise.
@@ -43,6 +46,9 @@ SLOW_CLIENT_DROP_LIMIT = 20_000
 #: Protocol errors from one client before it is disconnected.
 CLIENT_ERROR_LIMIT = 100
 DEFAULT_MAX_CLIENTS = 64
+#: After the rawmode '< ok >', frames wait this long (or until the client speaks) so that the
+#: reply reaches the client's handshake read on its own.
+RAWMODE_HOLD_S = 0.25
 #: How long socket reads block before checking for shutdown.
 POLL_S = 0.2
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -93,6 +99,8 @@ class _Client:
         self._out: queue.Queue[str | None] = queue.Queue(CLIENT_QUEUE_FRAMES)
         self._drops_in_row = 0
         self._closed = threading.Event()
+        self._hold_frames = False  # set by rawmode: frames wait for _spoke or RAWMODE_HOLD_S
+        self._spoke = threading.Event()
         name = f"{addr[0]}:{addr[1]}"
         self.reader = threading.Thread(target=self._read_loop, daemon=True, name=f"socketcand-rx-{name}")
         self.writer = threading.Thread(target=self._write_loop, daemon=True, name=f"socketcand-tx-{name}")
@@ -141,6 +149,9 @@ class _Client:
             if not first.startswith("< frame"):
                 batch = first  # a reply: alone in its write
             else:
+                if self._hold_frames:
+                    self._spoke.wait(RAWMODE_HOLD_S)
+                    self._hold_frames = False
                 lines = [first]
                 while len(lines) < 256:
                     try:
@@ -193,6 +204,8 @@ class _Client:
                         buf = buf[start:]
                     break
                 line = buf[start:end + 1]
+                if self.raw:
+                    self._spoke.set()
                 if buf[:start].strip():
                     self._error("data outside '< ... >'")
                 buf = buf[end + 1:]
@@ -231,6 +244,7 @@ class _Client:
             self.channel = self.server.engine.channel(words[1])
             self._reply("< ok >")
         elif cmd == "rawmode" and self.channel is not None:
+            self._hold_frames = True
             self._reply("< ok >")
             self.raw = True
             if self.endpoint is None:
