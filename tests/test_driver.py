@@ -167,10 +167,14 @@ def test_velocity_watchdog_stops_the_drive(driver_factory: DriverFactory) -> Non
     _, driver = driver_factory(make_config(1, watchdog_ms=200))
     drive = driver.drive("joint1")
     drive.enable()
-    for _ in range(40):  # commands at 50 Hz keep it running
+    samples = []
+    for i in range(40):  # commands at 50 Hz keep it running: no watchdog stop while they are fresh
         drive.set_velocity(90.0)
         time.sleep(0.02)
-    assert drive.snapshot().velocity_deg_s == pytest.approx(90.0, abs=2.0)
+        if i >= 20:  # past the 0.25 s ramp up at 360 deg/s^2
+            samples.append(drive.snapshot().velocity_deg_s)
+    # a simulated servo (inertia, load torque), sampled at SYNC: within 5 % of the command throughout
+    assert min(samples) > 85.5 and max(samples) < 94.5, samples
     t0 = time.monotonic()
     wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 2.0, "watchdog stop")
     # 200 ms watchdog + a 0.25 s ramp down at 360 deg/s^2
