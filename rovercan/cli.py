@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -377,6 +378,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RovercanError as err:
         print(f"rovercan: {err}", file=sys.stderr)
         return EXIT_FAILED
+    except BrokenPipeError:
+        # the reader went away ('rovercan monitor | head'): not a failure of this command; stdout
+        # goes to /dev/null so that the interpreter's last flush does not complain again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
     except OSError as err:
         print(f"rovercan: {err}", file=sys.stderr)
         return EXIT_FAILED

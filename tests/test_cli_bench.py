@@ -112,6 +112,22 @@ def test_monitor_record_replay_decode(sim_port: int, tmp_path: Path) -> None:
     assert run(sim_port, "replay", str(log), "--fast").returncode == 0
 
 
+def test_monitor_into_a_pipe_that_closes_ends_quietly(sim_port: int) -> None:
+    """'rovercan monitor | head' on the bench: the reader goes away, the monitor ends with 0 and
+    no broken-pipe message."""
+    mon = subprocess.Popen([sys.executable, "-m", "rovercan", "monitor", "-i", "socketcand", "-c", "can0",
+                            "--bus-kwargs", "host=127.0.0.1", f"port={sim_port}"], cwd=REPO,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert mon.stdout is not None and mon.stderr is not None
+    assert "listening" in mon.stderr.readline()
+    assert run(sim_port, "sdo", "read", "1", "0x1000").returncode == 0
+    assert "SDO" in mon.stdout.readline()
+    mon.stdout.close()
+    assert run(sim_port, "sdo", "read", "1", "0x1000").returncode == 0  # more lines: the write fails
+    assert mon.wait(timeout=10) == 0
+    assert "Broken pipe" not in mon.stderr.read()
+
+
 def as_json_lines(result: subprocess.CompletedProcess[str]) -> list[dict[str, object]]:
     assert result.returncode == 0, result.stderr
     return [json.loads(line) for line in result.stdout.splitlines()]
