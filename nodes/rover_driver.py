@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from functools import partial
 from struct import error as struct_error
 from typing import Any, TypeVar
@@ -70,12 +70,24 @@ class RefusalLog:
         self.last: dict[str, str] = {}
 
     def refuse(self, joint: str, why: str) -> None:
-        self.count[joint] = self.count.get(joint, 0) + 1
+        self.count[joint] = self.count.pop(joint, 0) + 1  # re-inserted: the newest refusal is last
         self.last[joint] = why
         self._node.get_logger().warning(f"{joint}: refused: {why}", throttle_duration_sec=WARN_THROTTLE_S)
 
     def take(self, joint: str) -> tuple[int, str]:
-        return self.count.pop(joint, 0), self.last.get(joint, "")
+        """Refusals of one joint since the last call, and the newest reason; cleared."""
+        return self.count.pop(joint, 0), self.last.pop(joint, "")
+
+    def take_others(self, joints: Collection[str]) -> tuple[int, str]:
+        """Refusals not about a configured joint (unknown names, /cmd_vel), summed with the newest
+        reason, and cleared: a publisher of made-up joint names cannot grow these tables."""
+        others = [k for k in self.count if k not in joints]
+        newest = self.last.get(others[-1], "") if others else ""
+        total = 0
+        for key in others:
+            total += self.count.pop(key)
+            self.last.pop(key, None)
+        return total, newest
 
 
 class DriverNode(Node):
@@ -187,6 +199,12 @@ class DriverNode(Node):
                     level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
                     hardware_id=f"{drive.config.bus}/node{drive.node_id}",
                     values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
+            refused, last = self.refusals.take_others(self.driver.drives)
+            array.status.append(DiagnosticStatus(
+                level=bytes([1 if refused else 0]), name="rovercan: command input",
+                message=f"{refused} command(s) refused: {last}" if refused else "no refused commands",
+                hardware_id="ros", values=[KeyValue(key="refused_commands", value=str(refused)),
+                                           KeyValue(key="last_refusal", value=last)]))
             for bus_name, handle in self.driver.buses.items():
                 load = handle.stats.sample()
                 lost = self.driver.bus_lost.get(bus_name, False)
