@@ -6,12 +6,15 @@ order, to every other endpoint attached to that channel. Optional per channel:
 
 * wire-time mode: frames wait for the bus to be free, take their real bit time at the
   configured bitrate, and contend by identifier (lowest id wins), so a flooded channel
-  carries no more frames than a real bus;
+  carries no more frames than a real bus. The wire keeps its own time: a frame sent onto an
+  idle wire starts when it was sent, and the frames sent while another is on the wire
+  contend when it ends, however late the wire thread gets to run;
 * fault injection: drop, delay or corrupt frames with a given probability.
 """
 
 from __future__ import annotations
 
+import collections
 import heapq
 import itertools
 import logging
@@ -84,7 +87,10 @@ class Channel:
         self._lock = threading.Lock()
         self._rng = random.Random(seed)
         self._wire_time = wire_time
-        self._pending: list[tuple[int, int, can.Message, Endpoint | None]] = []
+        # wire-time mode: frames in the order sent (with the time sent), and the ones that have
+        # reached the wire and contend for it, by identifier
+        self._sent: collections.deque[tuple[float, can.Message, Endpoint | None]] = collections.deque()
+        self._contending: list[tuple[int, int, can.Message, Endpoint | None]] = []
         self._seq = itertools.count()
         self._wire_cv = threading.Condition()
         self._closed = False
@@ -122,7 +128,7 @@ class Channel:
             msg = msg_or_none
         if self._wire_time:
             with self._wire_cv:
-                heapq.heappush(self._pending, (msg.arbitration_id, next(self._seq), msg, sender))
+                self._sent.append((time.perf_counter(), msg, sender))
                 self._wire_cv.notify()
             return
         self._deliver(msg, sender)
@@ -167,16 +173,23 @@ class Channel:
 
     # -- wire time
     def _wire_loop(self) -> None:
-        free_at = time.perf_counter()
+        free_at = time.perf_counter()  # when the wire is free, in perf_counter time
+        wall_offset = time.time() - free_at  # frames are stamped at their end of frame, as a controller does
+        sent, contending = self._sent, self._contending
         while True:
             with self._wire_cv:
-                while not self._pending and not self._closed:
+                while not sent and not contending and not self._closed:
                     self._wire_cv.wait(WIRE_IDLE_WAIT_S)
                 if self._closed:
                     return
-                _, _, msg, sender = heapq.heappop(self._pending)
+                # the next transmission starts when the wire is free, or when the first waiting
+                # frame was sent onto an idle wire; every frame sent by then contends
+                start = free_at if contending else max(free_at, sent[0][0])
+                while sent and sent[0][0] <= start:
+                    _, queued, queued_by = sent.popleft()
+                    heapq.heappush(contending, (queued.arbitration_id, next(self._seq), queued, queued_by))
+                _, _, msg, sender = heapq.heappop(contending)
             duration = frame_time_s(msg.dlc, self.bitrate, extended=msg.is_extended_id)
-            start = max(free_at, time.perf_counter())
             free_at = start + duration
             delay = free_at - time.perf_counter()
             if delay > 0.0002:
@@ -184,6 +197,7 @@ class Channel:
             while time.perf_counter() < free_at:
                 pass
             self.stats.busy_s += duration
+            msg.timestamp = free_at + wall_offset
             self._deliver(msg, sender)
 
     def load(self) -> float:
