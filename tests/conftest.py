@@ -14,6 +14,7 @@ import pytest
 from can_config import RoverConfig, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
 from virtual_can import SimService
+from virtual_can.server import RAWMODE_HOLD_S
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"
@@ -79,6 +80,10 @@ def listener_factory() -> Iterator[Callable[[SimService], can.BusABC]]:
     def open_bus(sim: SimService) -> can.BusABC:
         bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
         buses.append(bus)
+        # a passive client never ends the server's hold of its first frames early: wait it out
+        # and take what it held, so that the listener sees the bus live from here on
+        time.sleep(RAWMODE_HOLD_S + 0.02)
+        drain(bus, 0.02)
         return bus
 
     yield open_bus

@@ -58,6 +58,10 @@ def test_epos4_velocity_in_rpm_is_converted(driver_factory: Callable[[RoverConfi
     for _ in range(60):
         drive.set_velocity(90.0)
         time.sleep(0.02)
-    assert drive.snapshot().velocity_deg_s == pytest.approx(90.0, abs=1.0)
+    velocity = drive.snapshot().velocity_deg_s
+    # whole rpm at the motor are 1.5 deg/s at the joint: the factor is exact, and the simulated
+    # servo is within one rpm of 60 (its speed ripples by a count under load)
+    assert velocity / 1.5 == pytest.approx(round(velocity / 1.5), abs=1e-9)
+    assert abs(velocity - 90.0) <= 1.5 + 1e-9
     rpm = sim.simulator_for(1).call(lambda: sim.simulator_for(1).drive(1).store.get(0x606C, 0))
     assert rpm == pytest.approx(60, abs=1)

@@ -48,7 +48,7 @@ CLIENT_ERROR_LIMIT = 100
 DEFAULT_MAX_CLIENTS = 64
 #: After the rawmode '< ok >', frames wait this long (or until the client speaks) so that the
 #: reply reaches the client's handshake read on its own.
-RAWMODE_HOLD_S = 0.25
+RAWMODE_HOLD_S = 0.05
 #: How long socket reads block before checking for shutdown.
 POLL_S = 0.2
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
