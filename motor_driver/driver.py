@@ -13,6 +13,7 @@ and closes the buses it opened, in that order.
 from __future__ import annotations
 
 import logging
+import socket
 import threading
 import time
 from collections.abc import Iterator, Mapping
@@ -51,6 +52,23 @@ def open_bus(kwargs: dict[str, Any]) -> can.BusABC:
                            attempt + 1, OPEN_ATTEMPTS)
             time.sleep(OPEN_RETRY_S)
     return can.Bus(**kwargs)
+
+
+def connection_closed(bus: can.BusABC) -> bool:
+    """True when a TCP bus (python-can's ``socketcand`` client) has lost its server.
+
+    python-can reads the end of the stream as 'no frame', so ``recv()`` then spins until its
+    timeout and never raises; a peek at the socket tells. Other interfaces: False.
+    """
+    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
+    if not isinstance(sock, socket.socket):
+        return False
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except (BlockingIOError, InterruptedError):
+        return False
+    except OSError:
+        return True
 
 
 class GuardedNetwork(canopen.Network):
@@ -301,9 +319,11 @@ class MotorDriver:
                 handle.last_frames, handle.last_rx = handle.stats.frames, now
             silent_for = now - handle.last_rx if handle.last_rx else 0.0
             timeout = max((d.config.heartbeat_timeout_s for d in drives), default=1.0)
-            if exc is not None or (drives and all(d.lost for d in drives) and silent_for > timeout):
+            closed = connection_closed(handle.bus)
+            if exc is not None or closed or (drives and all(d.lost for d in drives) and silent_for > timeout):
                 self.bus_lost[name] = True
-                why = f"receive failed: {exc}" if exc is not None else f"nothing received for {silent_for:.1f} s"
+                why = (f"receive failed: {exc}" if exc is not None else "the server closed the connection"
+                       if closed else f"nothing received for {silent_for:.1f} s")
                 logger.error("bus %s lost (%s)", name, why)
                 for drive in drives:
                     drive.lost = True

@@ -27,9 +27,10 @@ from canopen.objectdictionary import ObjectDictionary
 
 from can_config import GENERIC_EDS, RoverConfig, load_config, load_drive_od, load_od, parse_config
 from can_config.eds import variable
-from can_config.errors import ConfigError, RovercanError
+from can_config.errors import BusLostError, ConfigError, RovercanError
 from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
 from can_config.stop import StopSignal
+from motor_driver.driver import connection_closed
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
 
 SCAN_TIMEOUT_S = 0.3
@@ -150,6 +151,16 @@ def _text(raw: bytes) -> str:
     return raw.rstrip(b"\0").decode("latin-1", errors="replace")
 
 
+def receive(bus: can.BusABC, timeout_s: float) -> can.Message | None:
+    """``bus.recv`` that raises :class:`BusLostError` once the bus server has gone away (python-can's
+    socketcand client would otherwise return None forever, spinning)."""
+    msg = bus.recv(timeout_s)
+    if msg is None and connection_closed(bus):
+        raise BusLostError(f"{bus.channel_info}: the bus server closed the connection; is 'rovercan sim' (or"
+                           " socketcand) still running?")
+    return msg
+
+
 # ------------------------------------------------------------------------------ scan
 def cmd_scan(args: argparse.Namespace) -> int:
     from tqdm import tqdm
@@ -163,7 +174,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
                                  is_extended_id=False))
         deadline = time.monotonic() + args.listen
         while (remaining := deadline - time.monotonic()) > 0:
-            msg = bus.recv(remaining)
+            msg = receive(bus, remaining)
             if msg is None:
                 continue
             node = node_of(msg)
@@ -441,7 +452,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
         try:
             end = time.monotonic() + args.seconds if args.seconds else math.inf
             while not stop.event.is_set() and time.monotonic() < end:
-                msg = bus.recv(0.2)
+                msg = receive(bus, 0.2)
                 if msg is None:
                     continue
                 node = node_of(msg)
@@ -475,7 +486,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         try:
             end = time.monotonic() + args.seconds if args.seconds else math.inf
             while not stop.event.is_set() and time.monotonic() < end:
-                msg = bus.recv(0.2)
+                msg = receive(bus, 0.2)
                 if msg is not None:
                     logger(msg)
                     n += 1

@@ -112,20 +112,48 @@ def test_monitor_record_replay_decode(sim_port: int, tmp_path: Path) -> None:
     assert run(sim_port, "replay", str(log), "--fast").returncode == 0
 
 
+def monitor(port: int) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "rovercan", "monitor", "-i", "socketcand", "-c", "can0",
+                             "--bus-kwargs", "host=127.0.0.1", f"port={port}"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
 def test_monitor_into_a_pipe_that_closes_ends_quietly(sim_port: int) -> None:
     """'rovercan monitor | head' on the bench: the reader goes away, the monitor ends with 0 and
     no broken-pipe message."""
-    mon = subprocess.Popen([sys.executable, "-m", "rovercan", "monitor", "-i", "socketcand", "-c", "can0",
-                            "--bus-kwargs", "host=127.0.0.1", f"port={sim_port}"], cwd=REPO,
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    assert mon.stdout is not None and mon.stderr is not None
-    assert "listening" in mon.stderr.readline()
-    assert run(sim_port, "sdo", "read", "1", "0x1000").returncode == 0
-    assert "SDO" in mon.stdout.readline()
-    mon.stdout.close()
-    assert run(sim_port, "sdo", "read", "1", "0x1000").returncode == 0  # more lines: the write fails
-    assert mon.wait(timeout=10) == 0
-    assert "Broken pipe" not in mon.stderr.read()
+    mon = monitor(sim_port)
+    try:
+        assert mon.stdout is not None and mon.stderr is not None
+        assert "listening" in mon.stderr.readline()
+        assert run(sim_port, "sdo", "read", "1", "0x1000").returncode == 0
+        assert mon.stdout.readline()
+        mon.stdout.close()
+        assert run(sim_port, "sdo", "read", "1", "0x1000").returncode == 0  # more lines: the write fails
+        assert mon.wait(timeout=10) == 0
+        assert "Broken pipe" not in mon.stderr.read()
+    finally:
+        mon.kill()
+
+
+def test_monitor_says_when_the_bus_server_goes_away() -> None:
+    """python-can's socketcand client reads a closed connection as 'no frame' forever; the monitor
+    notices, says so and exits 1 instead of spinning on a dead socket."""
+    port = free_port()
+    sim = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--drives", "1", "--port", str(port)],
+                           cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    mon: subprocess.Popen[str] | None = None
+    try:
+        assert sim.stdout is not None and "simulated drive" in sim.stdout.readline()
+        mon = monitor(port)
+        assert mon.stderr is not None and "listening" in mon.stderr.readline()
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(timeout=30)
+        assert mon.wait(timeout=10) == 1
+        assert "closed the connection" in mon.stderr.read()
+    finally:
+        sim.kill()
+        if mon is not None:
+            mon.kill()
 
 
 def as_json_lines(result: subprocess.CompletedProcess[str]) -> list[dict[str, object]]:
