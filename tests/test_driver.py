@@ -174,8 +174,9 @@ def test_velocity_watchdog_stops_the_drive(driver_factory: DriverFactory) -> Non
         time.sleep(0.02)
         if i >= 20:  # past the 0.25 s ramp up at 360 deg/s^2
             samples.append(drive.snapshot().velocity_deg_s)
-    # a simulated servo (inertia, load torque), sampled at SYNC: within 5 % of the command throughout
-    assert min(samples) > 85.5 and max(samples) < 94.5, samples
+    # a simulated servo (inertia, load torque) sharing the CPU with the test: within 10 % of the
+    # command throughout (an early watchdog stop would take it to 0)
+    assert min(samples) > 81.0 and max(samples) < 99.0, samples
     t0 = time.monotonic()
     wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 2.0, "watchdog stop")
     # 200 ms watchdog + a 0.25 s ramp down at 360 deg/s^2
