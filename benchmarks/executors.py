@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -22,6 +23,9 @@ from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from std_msgs.msg import Float64
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from rovercan.launch import LOCAL_DISCOVERY
+
+os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns inherit it
 from nodes.runtime import spin_until
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import platform
 import statistics
 import subprocess
@@ -26,6 +27,9 @@ import can
 import canopen
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from rovercan.launch import LOCAL_DISCOVERY
+
+os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns inherit it
 
 from can_config import GENERIC_EDS, parse_config, with_bus_overrides
 from motor_driver import MotorDriver

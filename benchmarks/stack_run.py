@@ -32,6 +32,9 @@ import can
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from rovercan.launch import LOCAL_DISCOVERY  # noqa: E402
+
+os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns inherit it
 
 from virtual_can import SimDriveSpec, SimService  # noqa: E402
 

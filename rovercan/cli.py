@@ -17,6 +17,7 @@ from pathlib import Path
 from can_config import load_config, with_bus_overrides
 from can_config.errors import ConfigError, RovercanError
 from can_config.stop import StopSignal
+from rovercan.launch import LOCAL_DISCOVERY
 
 logger = logging.getLogger(__name__)
 
@@ -106,6 +107,7 @@ def _sim_on_bus(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- demo
 def cmd_demo(args: argparse.Namespace) -> int:
+    os.environ.setdefault(*LOCAL_DISCOVERY)  # before rclpy creates its DDS participant
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -124,7 +126,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     with StopSignal() as stop, SimService.from_config(config, port=args.port) as sim:
         config = with_bus_overrides(config, host=sim.host, port=sim.port)
         print(f"rovercan demo: simulated drive(s) on {sim.host}:{sim.port}; joint {joint!r};"
-              f" {'until Ctrl+C' if args.duration is None else f'{args.duration:g} s'}", flush=True)
+              f" {'until Ctrl+C' if args.duration is None else f'{args.duration:g} s'};"
+              f" ROS discovery {os.environ[LOCAL_DISCOVERY[0]]}", flush=True)
         runtime.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
         driver = MotorDriver(config)
         nodes: list[object] = []

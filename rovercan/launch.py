@@ -39,6 +39,11 @@ class Process:
     popen: subprocess.Popen[bytes] | None = field(default=None)
 
 
+#: ROS 2 (Jazzy) discovery for graphs that are local by design (the demo, launch without ros2,
+#: tests, benchmarks): DDS then sends nothing beyond loopback. The deployed nodes keep the
+#: environment's setting, since a rover's graph spans machines.
+LOCAL_DISCOVERY = ("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
 def _substitute(text: str, args: dict[str, str], where: str) -> str:
     def repl(match: re.Match[str]) -> str:
         name = match.group(1)
@@ -113,7 +118,7 @@ def run_launch(path: Path, overrides: dict[str, str], duration_s: float | None) 
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     env = dict(os.environ)
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault(*LOCAL_DISCOVERY)
     failed = 0
     try:
         for proc in processes:

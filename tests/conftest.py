@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -27,6 +28,9 @@ requires_shared = pytest.mark.skipif(not SHARED_EDS.is_dir(),
                                      reason="../shared/eds is absent (only the team's checkout has it)")
 
 logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+# DDS discovery on loopback only, for every graph the suite starts (subprocesses inherit it):
+# by default Fast DDS multicasts on every interface, and the tests' traffic stays on this machine
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 
 def make_config(n: int = 1, *, eds: str = "generic", **drive: object) -> RoverConfig:
