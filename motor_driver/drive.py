@@ -118,6 +118,9 @@ class Drive:
         self.node = canopen.RemoteNode(config.node_id, od)
         self.node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
         network.add_node(self.node)
+        # the driver decodes EMCY itself (_on_emcy); canopen's consumer would keep every EMCY in
+        # a list that is never trimmed, for as long as the process runs
+        network.unsubscribe(0x80 + config.node_id, self.node.emcy.on_emcy)
         self.scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio)
         self.plan: PdoPlan = plan_pdos(od, config.node_id)
         self._lock = threading.RLock()  # serialises commands to this drive

@@ -77,6 +77,9 @@ def test_emcy_fault_is_reported_commands_refused_and_recover_restores(driver_fac
     drive.recover()
     assert drive.state is State.OPERATION_ENABLED  # back to the enable state it had
     drive.move_to(10.0, wait=True)
+    # one EMCY consumer, the driver's: canopen's own would keep every EMCY for good
+    assert driver.buses["can0"].network.subscribers[0x81] == [drive._on_emcy]
+    assert drive.node.emcy.log == []
 
 
 def test_heartbeat_loss_detected_others_keep_moving_then_reconfigured(driver_factory: DriverFactory) -> None:
