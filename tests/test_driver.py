@@ -281,7 +281,8 @@ def test_a_blocked_drive_does_not_block_the_others(driver_factory: DriverFactory
         assert other.angle_deg == pytest.approx(target, abs=0.05)
     assert not done.is_set()  # both moves finished while homing still blocked its caller
     thread.join(10.0)
-    assert done.is_set() and homing.angle_deg == pytest.approx(0.0, abs=0.05)
+    # zeroed at the index while moving at 30 deg/s, then it stops a little past it
+    assert done.is_set() and homing.angle_deg == pytest.approx(0.0, abs=0.5)
 
 
 def test_restore_enable_after_reboot_when_configured(driver_factory: DriverFactory) -> None:
