@@ -14,6 +14,7 @@ import pytest
 
 from can_config import RoverConfig, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
+from rovercan.launch import LOCAL_DISCOVERY
 from virtual_can import SimService
 from virtual_can.server import RAWMODE_HOLD_S
 
@@ -30,7 +31,7 @@ requires_shared = pytest.mark.skipif(not SHARED_EDS.is_dir(),
 logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
 # DDS discovery on loopback only, for every graph the suite starts (subprocesses inherit it):
 # by default Fast DDS multicasts on every interface, and the tests' traffic stays on this machine
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault(*LOCAL_DISCOVERY)
 
 
 def make_config(n: int = 1, *, eds: str = "generic", **drive: object) -> RoverConfig:
