@@ -112,6 +112,7 @@ def build() -> ObjectDictionary:
                   tpdo_maps[n][i - 1] if i <= len(tpdo_maps[n]) else 0) for i in range(1, 9)],
         ])
     add(var("Error code", 0x603F, 0, T.UNSIGNED16, "ro", 0, True))
+    add(var("Abort connection option code", 0x6007, 0, T.INTEGER16, "rw", 0))
     add(var("Controlword", 0x6040, 0, T.UNSIGNED16, "rw", 0, True))
     add(var("Statusword", 0x6041, 0, T.UNSIGNED16, "ro", 0, True))
     add(var("Quick stop option code", 0x605A, 0, T.INTEGER16, "rw", 2))

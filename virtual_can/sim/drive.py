@@ -3,7 +3,12 @@
 One :class:`SimulatedDrive` is one CANopen node: NMT, SDO server, heartbeat producer, EMCY
 producer with error register and history, PDOs configured from its object dictionary (and
 re-configurable by SDO, with the CiA 301 procedure enforced), the CiA 402 state machine with
-quick stop and fault reaction, the modes PP, PV, PT, CSP, IP and homing, and a motion model
+quick stop and fault reaction, the modes PP, PV, PT, CSP, IP and homing, the CiA 301 heartbeat
+consumer (0x1016, armed by the first heartbeat it watches, EMCY 0x8130 on expiry) with the CiA
+402 abort connection option (0x6007: 0 nothing, 1 fault, 2 disable voltage, 3 quick stop; a
+fault on a drive without 0x6007, as its vendor would most likely have it), the
+software position limits (0x607D: moving beyond one while enabled is a fault, EMCY 0x8612), and
+a motion model
 (inertia, viscous friction, load torque, torque limit) behind a position/velocity controller.
 Position, velocity and torque are reported in the drive's units: encoder counts, counts/s
 and per mille of the rated torque.
@@ -70,6 +75,10 @@ STATUS_BITS: dict[State, int] = {
 
 #: Longest integration step of the motor model.
 PHYSICS_STEP_S = 0.0005
+
+#: EMCY codes (CiA 301 / CiA 402).
+EMCY_HEARTBEAT = 0x8130  # life guard error or heartbeat error
+EMCY_POSITION_LIMIT = 0x8612  # reference limit (software position limit)
 
 SW_VOLTAGE_ENABLED = 1 << 4
 SW_WARNING = 1 << 7
@@ -262,6 +271,8 @@ class SimulatedDrive:
     def _reset_comm(self, now: float, announce: bool) -> list[can.Message]:
         self.store.reset(0x1000, 0x1FFF)
         self.nmt = NmtState.PRE_OPERATIONAL
+        self._consumer_seen: dict[int, float] = {}  # 0x1016 sub -> when its producer was last heard
+        self._load_consumers()
         self._rebuild_pdos()
         self._next_heartbeat = now
         if not announce:
@@ -350,6 +361,56 @@ class SimulatedDrive:
             self._set_mode()
         elif index in (OD.TARGET_POSITION, OD.INTERPOLATION_DATA):
             self._csp_target()
+        elif index == OD.CONSUMER_HEARTBEAT_TIME:
+            self._consumer_seen.pop(subindex, None)  # a new entry is armed by its next heartbeat
+            self._load_consumers()
+
+    # ---------------------------------------------------------------- heartbeat consumer
+    def _load_consumers(self) -> None:
+        """The active 0x1016 entries: sub -> (watched node id, consumer time in s)."""
+        self._consumers: dict[int, tuple[int, float]] = {}
+        for (index, sub), value in self.store.values.items():
+            if index == OD.CONSUMER_HEARTBEAT_TIME and sub > 0 and isinstance(value, int):
+                node, time_ms = (value >> 16) & 0x7F, value & 0xFFFF
+                if node and time_ms:
+                    self._consumers[sub] = (node, time_ms / 1000.0)
+
+    def _on_heartbeat(self, node: int, now: float) -> None:
+        for sub, (watched, _) in self._consumers.items():
+            if watched == node:
+                self._consumer_seen[sub] = now
+
+    def _check_consumers(self, now: float) -> list[can.Message]:
+        out: list[can.Message] = []
+        for sub, (node, timeout_s) in self._consumers.items():
+            seen = self._consumer_seen.get(sub)
+            if seen is not None and now - seen > timeout_s:
+                del self._consumer_seen[sub]  # disarmed until that producer is heard again
+                logger.warning("node %d: heartbeat of node %d lost (consumer time %.0f ms)", self.node_id,
+                               node, timeout_s * 1000)
+                out += self._connection_lost(now)
+        return out
+
+    def _connection_lost(self, now: float) -> list[can.Message]:
+        """CiA 402 0x6007: the drive's own reaction to losing its master. A drive without 0x6007
+        reacts as its vendor decided; the model takes the common choice, a fault."""
+        option = int(self.store.get(OD.ABORT_CONNECTION_OPTION, 0, 1))  # type: ignore[arg-type]
+        if option == 1:
+            return self._raise_fault(EMCY_HEARTBEAT, now)
+        if option == 2 and self.state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON, *POWERED):
+            self.state = State.SWITCH_ON_DISABLED
+        elif option == 3:
+            if self.state == State.OPERATION_ENABLED:
+                self.state = State.QUICK_STOP_ACTIVE
+            elif self.state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON):
+                self.state = State.SWITCH_ON_DISABLED
+        return [self._warning_emcy(EMCY_HEARTBEAT)]
+
+    def _warning_emcy(self, code: int) -> can.Message:
+        """An EMCY that reports an error without a fault state (communication error bit set)."""
+        self._record_error(code)
+        self.counters["emcy"] += 1
+        return self._emcy(code, 0x11)
 
     # ---------------------------------------------------------------- frames in
     def on_frame(self, msg: can.Message, now: float) -> list[can.Message]:
@@ -359,6 +420,9 @@ class SimulatedDrive:
         data = bytes(msg.data)
         if cob == 0:
             return self._on_nmt(data, now)
+        if 0x701 <= cob <= 0x77F and cob != 0x700 + self.node_id and data:
+            self._on_heartbeat(cob - 0x700, now)
+            return []
         if cob == (int(self.store.get(OD.COB_ID_SYNC, 0, 0x80)) & 0x7FF):  # type: ignore[arg-type]
             return self._on_sync(now)
         if self.nmt == NmtState.STOPPED:
@@ -536,6 +600,14 @@ class SimulatedDrive:
         if code >> 8 == 0x86 or code >> 8 == 0x85:
             register |= 0x20  # device profile specific
         self.store.set(OD.ERROR_REGISTER, 0, register)
+        self._record_error(code)
+        if self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            self.state = State.FAULT_REACTION_ACTIVE if self.state in POWERED else State.FAULT
+        self.counters["emcy"] += 1
+        return [self._emcy(code, register)]
+
+    def _record_error(self, code: int) -> None:
+        """Push ``code`` onto the pre-defined error field (0x1003), newest at sub 1."""
         if self.store.has(OD.PREDEFINED_ERROR_FIELD, 1):
             depth = sum(1 for k in self.store.vars if k[0] == OD.PREDEFINED_ERROR_FIELD and k[1] > 0)
             for sub in range(depth, 1, -1):
@@ -543,10 +615,6 @@ class SimulatedDrive:
             self.store.set(OD.PREDEFINED_ERROR_FIELD, 1, code)
             count = int(self.store.get(OD.PREDEFINED_ERROR_FIELD, 0))  # type: ignore[arg-type]
             self.store.set(OD.PREDEFINED_ERROR_FIELD, 0, min(depth, count + 1))
-        if self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-            self.state = State.FAULT_REACTION_ACTIVE if self.state in POWERED else State.FAULT
-        self.counters["emcy"] += 1
-        return [self._emcy(code, register)]
 
     def _clear_error(self) -> None:
         self.error_code = 0
@@ -578,7 +646,10 @@ class SimulatedDrive:
             out += self._sdo(delayed[1])
         if self.faults.sto_low and self.state in POWERED and self.state != State.FAULT_REACTION_ACTIVE:
             out += self._raise_fault(0x5441, now)
+        if self._consumer_seen:
+            out += self._check_consumers(now)
         out += self._move(now, dt)
+        out += self._check_position_limits(now)
         self._update_status()
         if self.faults.unplugged:
             return []
@@ -647,6 +718,10 @@ class SimulatedDrive:
                 elif abs(self.sp_pos - self._homing_start) > 20 * self.units_per_motor_rev:
                     self.homing_active = False
                     self.homing_error = True
+            elif mode == OperationMode.PROFILE_TORQUE:
+                # no set-point of its own: it follows the shaft, so a stop (quick stop, halt, a
+                # mode change) starts from where the joint is and how fast it turns
+                self.sp_pos, self.sp_vel, self.sp_acc = self.position_counts, self.omega / k, 0.0
             else:
                 self.sp_vel = self.sp_acc = 0.0
             # controller + plant, in motor radians, in sub-steps of at most PHYSICS_STEP_S so the
@@ -686,6 +761,20 @@ class SimulatedDrive:
             store.values[(OD.FOLLOWING_ERROR_ACTUAL, 0)] = self._as_type(
                 OD.FOLLOWING_ERROR_ACTUAL, self.sp_pos - self.position_counts)
         return out
+
+    def _check_position_limits(self, now: float) -> list[can.Message]:
+        """0x607D while enabled: moving on beyond a software position limit is a fault."""
+        if self.state != State.OPERATION_ENABLED or not self.store.has(OD.SOFTWARE_POSITION_LIMIT, 2):
+            return []
+        low = float(self.store.get(OD.SOFTWARE_POSITION_LIMIT, 1))  # type: ignore[arg-type]
+        high = float(self.store.get(OD.SOFTWARE_POSITION_LIMIT, 2))  # type: ignore[arg-type]
+        if low >= high:  # CiA 402: limits switched off
+            return []
+        pos = self.position_counts
+        if (pos > high and self.omega > 0) or (pos < low and self.omega < 0):
+            logger.warning("node %d: position %.0f beyond the software limit [%.0f, %.0f]", self.node_id, pos, low, high)
+            return self._raise_fault(EMCY_POSITION_LIMIT, now)
+        return []
 
     def _as_type(self, index: int, value: float) -> int | float:
         var = self.store.vars[(index, 0)]

@@ -20,6 +20,8 @@ logger = logging.getLogger(__name__)
 
 #: Physics step of the simulated drives.
 DEFAULT_TICK_S = 0.001
+#: Frames handled before the drives' time moves on (a bound, so that a flood cannot stop time).
+MAX_FRAMES_PER_TICK = 256
 
 
 class DriveSimulator:
@@ -75,6 +77,17 @@ class DriveSimulator:
                 self.errors += 1
                 logger.debug("simulator send failed: %s", err)
 
+    def _deliver(self, drives: list[SimulatedDrive], msg: can.Message, now: float) -> None:
+        for drive in drives:
+            try:
+                out = drive.on_frame(msg, now)
+            except Exception:  # a drive must never take the simulator down
+                self.errors += 1
+                logger.exception("simulated drive %d failed on frame %s", drive.node_id, msg)
+                continue
+            if out:
+                self._send(out)
+
     def _run(self) -> None:
         drives = list(self.drives.values())
         tick = self.tick_s
@@ -92,16 +105,17 @@ class DriveSimulator:
                 time.sleep(0.05)
                 continue
             now = time.monotonic()
-            if msg is not None and not msg.is_error_frame:
-                for drive in drives:
-                    try:
-                        out = drive.on_frame(msg, now)
-                    except Exception:  # a drive must never take the simulator down
-                        self.errors += 1
-                        logger.exception("simulated drive %d failed on frame %s", drive.node_id, msg)
-                        continue
-                    if out:
-                        self._send(out)
+            # every frame already waiting is handled before the drives' time moves on: a thread
+            # that ran late must not tick a drive past a heartbeat that is in its queue
+            for _ in range(MAX_FRAMES_PER_TICK):
+                if msg is None:
+                    break
+                if not msg.is_error_frame:
+                    self._deliver(drives, msg, now)
+                try:
+                    msg = self.bus.recv(timeout=0.0)
+                except (can.CanError, OSError, ValueError):
+                    break
             while True:
                 try:
                     fn, reply = self._calls.get_nowait()
