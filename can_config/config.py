@@ -6,6 +6,7 @@ and suggests the closest known key for a typo. Nothing in a config is ever evalu
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
 import re
@@ -22,6 +23,9 @@ DATA_DIR = Path(__file__).resolve().parent / "data"
 GENERIC_EDS = DATA_DIR / "generic_cia402.eds"
 DEFAULT_CONFIG = DATA_DIR / "default.yaml"
 
+#: ``on_host_loss`` -> the CiA 402 abort connection option code (0x6007) written at boot.
+ON_HOST_LOSS = {"quick_stop": 3, "disable": 2, "fault": 1}
+
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 _REQUIRED: Any = object()
 
@@ -36,12 +40,18 @@ class BusConfig:
     bitrate: int = 1_000_000
     kwargs: Mapping[str, Any] = field(default_factory=dict)
     sync_period_s: float = 0.01
+    host_node_id: int = 127  # the driver's own NMT node id: its heartbeat is what the drives watch
+    host_heartbeat_s: float = 0.05
 
     def bus_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for :func:`can.Bus`."""
         args: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
         if self.interface not in ("socketcand", "rovercan"):
             args["bitrate"] = self.bitrate
+        if self.interface == "socketcand":
+            # latency first: without TCP_NODELAY/QUICKACK, Nagle and delayed ACKs hold small
+            # frames 20-40 ms; a config says tcp_tune: false to turn it off
+            args["tcp_tune"] = True
         args.update(self.kwargs)
         return args
 
@@ -83,6 +93,16 @@ class DriveConfig:
     homing_speed_deg_s: float = 30.0
     homing_timeout_s: float = 10.0
     identity: IdentityConfig = field(default_factory=IdentityConfig)
+    invert: bool = False  # the joint turns the other way than the motor (a mirrored wheel)
+    offset_deg: float = 0.0  # the joint angle at drive position 0
+    quick_stop_deceleration_deg_s2: float | None = None  # None: 4x profile_acceleration_deg_s2
+    host_timeout_s: float | None = None  # consumer time of the host heartbeat; None: 3x its period
+    on_host_loss: str = "quick_stop"  # 0x6007: what the drive does when the host falls silent
+    allow_no_host_watch: bool = False  # arm a drive that cannot watch the host (loud warning)
+
+    @property
+    def quick_stop_decel_deg_s2(self) -> float:
+        return self.quick_stop_deceleration_deg_s2 or 4.0 * self.profile_acceleration_deg_s2
 
     @property
     def counts_per_deg(self) -> float:
@@ -157,6 +177,8 @@ _BUS_FIELDS: dict[str, _Field] = {
     "bitrate": _Field("int", 1_000_000, 10_000, 8_000_000),
     "kwargs": _Field("map", {}),
     "sync_period_ms": _Field("float", 10.0, 1.0, 1000.0),
+    "host_node_id": _Field("int", 127, 1, 127),
+    "host_heartbeat_ms": _Field("float", 50.0, 10.0, 1000.0),
 }
 
 _IDENTITY_FIELDS: dict[str, _Field] = {
@@ -190,6 +212,12 @@ _DRIVE_FIELDS: dict[str, _Field] = {
     "homing_speed_deg_s": _Field("float", 30.0, 0.0, 1e6, low_open=True),
     "homing_timeout_s": _Field("float", 10.0, 0.1, 600.0),
     "identity": _Field("map", {}),
+    "invert": _Field("bool", False),
+    "offset_deg": _Field("float", 0.0, -1e6, 1e6),
+    "quick_stop_deceleration_deg_s2": _Field("opt_float", None, 0.0, 1e7, low_open=True),
+    "host_timeout_ms": _Field("opt_float", None, 20.0, 65_535.0),
+    "on_host_loss": _Field("str", "quick_stop", choices=tuple(ON_HOST_LOSS)),
+    "allow_no_host_watch": _Field("bool", False),
 }
 
 _DRIVE_SYSTEM_FIELDS: dict[str, _Field] = {
@@ -320,7 +348,8 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
     for i, raw in enumerate(raw_buses):
         values = _section(where, f"buses[{i}].", raw, _BUS_FIELDS)
         period_ms = values.pop("sync_period_ms")
-        buses.append(BusConfig(sync_period_s=period_ms / 1000.0, **values))
+        host_ms = values.pop("host_heartbeat_ms")
+        buses.append(BusConfig(sync_period_s=period_ms / 1000.0, host_heartbeat_s=host_ms / 1000.0, **values))
     names = [b.name for b in buses]
     if len(set(names)) != len(names):
         raise where.fail("buses", f"bus names must be unique; got {names}.")
@@ -345,8 +374,19 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
                               ("heartbeat_timeout_ms", "heartbeat_timeout_s"),
                               ("watchdog_ms", "watchdog_s")):
             values[s_key] = values.pop(ms_key) / 1000.0
+        host_ms = values.pop("host_timeout_ms")
+        bus_cfg = buses[names.index(bus)]
+        values["host_timeout_s"] = host_ms / 1000.0 if host_ms is not None else 3 * bus_cfg.host_heartbeat_s
         drive = DriveConfig(**values)
         _check_drive(where, prefix, drive)
+        if drive.node_id == bus_cfg.host_node_id:
+            raise where.fail(prefix + "node_id", f"node id {drive.node_id} is the host's own id on bus {bus!r}"
+                             f" (host_node_id, default 127); give the drive another id or set the bus's"
+                             " host_node_id to a free one.")
+        if drive.host_timeout_s is not None and drive.host_timeout_s <= bus_cfg.host_heartbeat_s:
+            raise where.fail(prefix + "host_timeout_ms", f"got {drive.host_timeout_s * 1000:g}; it must be"
+                             f" longer than the bus's host_heartbeat_ms ({bus_cfg.host_heartbeat_s * 1000:g}),"
+                             " typically 3x.")
         drives.append(drive)
     _check_unique(where, drives)
 
@@ -425,7 +465,8 @@ def load_config(path: Path | str | None = None) -> RoverConfig:
 def config_to_dict(config: RoverConfig) -> dict[str, Any]:
     """Back to the YAML shape (used to hand a config to a subprocess or a ROS parameter)."""
     buses = [{"name": b.name, "interface": b.interface, "channel": b.channel, "bitrate": b.bitrate,
-              "kwargs": dict(b.kwargs), "sync_period_ms": b.sync_period_s * 1000.0}
+              "kwargs": dict(b.kwargs), "sync_period_ms": b.sync_period_s * 1000.0,
+              "host_node_id": b.host_node_id, "host_heartbeat_ms": b.host_heartbeat_s * 1000.0}
              for b in config.buses]
     drives = []
     for d in config.drives:
@@ -443,6 +484,10 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
             "homing_method": d.homing_method, "homing_speed_deg_s": d.homing_speed_deg_s,
             "homing_timeout_s": d.homing_timeout_s,
             "identity": {k: v for k, v in vars(d.identity).items() if v is not None},
+            "invert": d.invert, "offset_deg": d.offset_deg,
+            "quick_stop_deceleration_deg_s2": d.quick_stop_deceleration_deg_s2,
+            "host_timeout_ms": d.host_timeout_s * 1000.0 if d.host_timeout_s is not None else None,
+            "on_host_loss": d.on_host_loss, "allow_no_host_watch": d.allow_no_host_watch,
         }
         if d.joint == "limited":
             entry["min_deg"] = d.min_deg
@@ -461,6 +506,5 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
 def with_bus_overrides(config: RoverConfig, **kwargs: Any) -> RoverConfig:
     """A copy whose buses all get ``kwargs`` merged into their python-can arguments
     (e.g. ``port=`` of a simulator started on a free port)."""
-    buses = tuple(BusConfig(b.name, b.interface, b.channel, b.bitrate, {**b.kwargs, **kwargs},
-                            b.sync_period_s) for b in config.buses)
+    buses = tuple(dataclasses.replace(b, kwargs={**b.kwargs, **kwargs}) for b in config.buses)
     return RoverConfig(buses, config.drives, config.drive_system, config.source)

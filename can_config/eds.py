@@ -108,6 +108,17 @@ def check_cia402(od: ObjectDictionary, path: Path | str) -> None:
                        " Use the EDS of the drive itself (or 'generic').")
 
 
+def consumer_subs(od: ObjectDictionary) -> tuple[int, ...]:
+    """The sub-indexes of the consumer heartbeat entries (0x1016:1..n) the EDS defines."""
+    try:
+        obj = od[0x1016]
+    except KeyError:
+        return ()
+    if not isinstance(obj, (ODRecord, ODArray)):
+        return ()
+    return tuple(sorted(sub for sub in obj.subindices if sub > 0))
+
+
 def count_pdos(od: ObjectDictionary, comm_base: int) -> int:
     """How many PDOs (communication + mapping objects both present) the EDS defines."""
     map_base = comm_base + 0x200

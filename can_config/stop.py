@@ -1,20 +1,39 @@
-"""Process stop requests: SIGINT and SIGTERM set an event instead of raising.
+"""Process stop requests: SIGINT, SIGTERM and SIGHUP.
 
-Every long-running entry point (CLI commands, ROS nodes) waits on the event and then tears
-down in one order it owns: drives to a safe state, threads joined, buses closed. Raising
-``KeyboardInterrupt`` at a random bytecode, or rclpy shutting its context down under a
-running executor, cannot give that order.
+Two ways, one per kind of program:
+
+- :class:`StopSignal` sets an event instead of raising. Long-running entry points (the
+  simulator, ROS nodes, ``record``) wait on the event and then tear down in one order they
+  own: drives to a safe state, threads joined, buses closed.
+- :func:`stop_on_signals` raises :class:`StopRequested` in the main thread, wherever it is
+  (waiting for a move, sleeping in a jog loop), so the ``with`` blocks around it unwind and a
+  ``MotorDriver``'s ``close()`` quick-stops and disables every drive before the process exits.
+  The API's one call for a script::
+
+      with stop_on_signals() as stop, MotorDriver(load_config("rover.yaml")) as driver:
+          ...                      # SIGTERM / SIGINT / SIGHUP: drives stopped, block left
+      if stop.signum is not None:  # the block was left on a signal
+          ...
+
+  Only the first signal raises; a second one during the teardown is ignored, so the stop
+  cannot be interrupted half-way. SIGKILL, a hang or a power cut run no handler at all: for
+  those the drives watch the host's heartbeat themselves (see the README, Safety).
 """
 
 from __future__ import annotations
 
 import signal
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from types import FrameType
+
+#: What systemd / docker stop (SIGTERM), Ctrl+C (SIGINT) and a closed terminal (SIGHUP) send.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 class StopSignal:
-    """Context manager: while active, SIGINT/SIGTERM set :attr:`event` (main thread only)."""
+    """Context manager: while active, SIGINT/SIGTERM/SIGHUP set :attr:`event` (main thread only)."""
 
     def __init__(self) -> None:
         self.event = threading.Event()
@@ -22,7 +41,7 @@ class StopSignal:
         self._old: dict[int, object] = {}
 
     def __enter__(self) -> StopSignal:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             self._old[sig] = signal.signal(sig, self._handle)
         return self
 
@@ -34,3 +53,37 @@ class StopSignal:
         for sig, handler in self._old.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
         self._old.clear()
+
+
+class StopRequested(BaseException):
+    """Raised in the main thread by :func:`stop_on_signals` on a stop signal. A BaseException,
+    like KeyboardInterrupt, so that ``except Exception`` in user code does not swallow it."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+        self.signum = signum
+
+
+class _Stop:
+    signum: int | None = None
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[_Stop]:
+    """While active (main thread), SIGINT/SIGTERM/SIGHUP raise :class:`StopRequested`; the
+    block is left (its ``with`` exits run) and the exception ends here: ``.signum`` tells."""
+    state = _Stop()
+
+    def handle(signum: int, frame: FrameType | None) -> None:
+        if state.signum is None:  # the first one stops; later ones must not break the teardown
+            state.signum = signum
+            raise StopRequested(signum)
+
+    old = {sig: signal.signal(sig, handle) for sig in STOP_SIGNALS}
+    try:
+        yield state
+    except StopRequested:
+        pass
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)

@@ -1,9 +1,9 @@
 """CANopen / CiA 402 motor driver (python-can + canopen). Never imports rclpy or virtual_can.
 
     from can_config import load_config
-    from motor_driver import MotorDriver
+    from motor_driver import MotorDriver, stop_on_signals
 
-    with MotorDriver(load_config("rover.yaml")).start() as driver:
+    with stop_on_signals(), MotorDriver(load_config("rover.yaml")).start() as driver:
         joint = driver.drive("motor")
         joint.enable()
         joint.move_to(90.0, wait=True)
@@ -21,6 +21,7 @@ from can_config.errors import (
     SdoError,
     SdoTimeoutError,
 )
+from can_config.stop import StopRequested, stop_on_signals
 from motor_driver.cia402 import Command, State
 from motor_driver.drive import Drive, DriveState, Emcy
 from motor_driver.driver import MotorDriver
@@ -41,4 +42,6 @@ __all__ = [
     "SdoError",
     "SdoTimeoutError",
     "State",
+    "StopRequested",
+    "stop_on_signals",
 ]

@@ -21,8 +21,8 @@ import can
 import canopen
 from canopen.objectdictionary import ObjectDictionary
 
-from can_config.config import DriveConfig
-from can_config.eds import has_object, variable
+from can_config.config import ON_HOST_LOSS, DriveConfig
+from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import (
     BootError,
     BusLostError,
@@ -46,7 +46,9 @@ from can_config.objects import (
 )
 from motor_driver.cia402 import CW, SW, Command, State, controlword, decode_state, next_step_to_enable
 from motor_driver.pdo import PdoPlan, TpdoLayout, encode_rpdo, mapping_writes, plan_pdos
+from motor_driver.safety import SafetyCheck, judge
 from motor_driver.units import (
+    UNIT_OBJECTS,
     Scale,
     check_counts,
     check_limits,
@@ -56,6 +58,11 @@ from motor_driver.units import (
 )
 
 logger = logging.getLogger(__name__)
+
+
+def host_consumer_entry(host_node_id: int, timeout_s: float) -> int:
+    """A 0x1016 sub-entry: watch ``host_node_id``'s heartbeat with this consumer time (CiA 301)."""
+    return (host_node_id & 0x7F) << 16 | max(1, min(0xFFFF, int(round(timeout_s * 1000))))
 
 #: Objects no tool or service may write by SDO (see Drive.sdo_write_checked).
 PROTECTED_OBJECTS = frozenset({
@@ -71,6 +78,17 @@ SDO_TIMEOUT_S = 0.5
 TRANSITION_TIMEOUT_S = 1.0
 MODE_SWITCH_TIMEOUT_S = 1.0
 STATE_POLL_S = 0.002
+REBOOT_RETRY_S = 0.5
+#: 0x605A: slow down on the quick-stop ramp, then Switch On Disabled.
+QUICK_STOP_THEN_DISABLE = 2
+#: Reaction time of the driver's own limit guard (supervisor period, SYNC, TPDO age), as distance
+#: travelled at the current speed before braking starts.
+LIMIT_MARGIN_S = 0.05
+#: The limit guard moves a sampled position on by its velocity for at most this long.
+MAX_EXTRAPOLATION_S = 0.2
+NO_HOST_WATCH = "no drive-side stop on host loss"
+#: SDO aborts of a value out of the object's range (CiA 301): the drive cannot take that entry.
+VALUE_RANGE_ABORTS = frozenset({0x0609_0030, 0x0609_0031, 0x0609_0032, 0x0609_0036})
 #: A continuous joint's degree command is an angle modulo 360; beyond this it is a mistake.
 CONTINUOUS_COMMAND_LIMIT_DEG = 360.0
 
@@ -109,8 +127,10 @@ class DriveState:
 class Drive:
     """One drive. Created by :class:`motor_driver.driver.MotorDriver`; methods are thread-safe."""
 
-    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary) -> None:
+    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
+                 host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
         self.config = config
+        self.host_node_id = host_node_id
         self.name = config.name
         self.node_id = config.node_id
         self.network = network
@@ -121,7 +141,8 @@ class Drive:
         # the driver decodes EMCY itself (_on_emcy); canopen's consumer would keep every EMCY in
         # a list that is never trimmed, for as long as the process runs
         network.unsubscribe(0x80 + config.node_id, self.node.emcy.on_emcy)
-        self.scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio)
+        self.scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio,
+                           invert=config.invert, offset_deg=config.offset_deg)
         self.plan: PdoPlan = plan_pdos(od, config.node_id)
         self._lock = threading.RLock()  # serialises commands to this drive
         self._cw = 0  # last device-control controlword (no edge bits)
@@ -152,7 +173,12 @@ class Drive:
         self._suspect_position: int | None = None
         self.implausible_samples = 0
         self.boot_count = 0
-        self.sync_period_s = 0.01  # set by the driver from the bus config
+        self.sync_period_s = sync_period_s
+        #: how the drive watches the host (set at boot), or None: nothing stops it if the host dies
+        self.host_watch: str | None = None
+        self.host_watch_problem: str | None = None  # why there is no host watch (after boot)
+        self.safety: tuple[SafetyCheck, ...] = ()  # read back after each boot (motor_driver.safety)
+        self.limit_stops = 0
         self.last_velocity_cmd = 0.0
         self.velocity_commanded = False
         self.was_enabled = False
@@ -253,6 +279,39 @@ class Drive:
                          self.name, code, emcy_text(code), register)
         else:
             logger.info("node %d (%s): EMCY error reset", self.node_id, self.name)
+
+    # ------------------------------------------------------------------ supervision (driver's threads)
+    def check_heartbeat(self, now: float) -> None:
+        """Supervisor: declare the drive lost when its heartbeat is overdue."""
+        if self.booted and not self.lost and self.last_heartbeat and \
+                now - self.last_heartbeat > self.config.heartbeat_timeout_s:
+            self.lost = True
+            self.velocity_commanded = False
+            logger.error("node %d (%s): heartbeat lost (none for %.0f ms, consumer time %.0f ms)",
+                         self.node_id, self.name, (now - self.last_heartbeat) * 1000,
+                         self.config.heartbeat_timeout_s * 1000)
+
+    def mark_lost(self) -> None:
+        """Supervisor: the drive's bus is gone; nothing is commanded until it is booted again."""
+        self.lost = True
+        self.booted = False
+        self.velocity_commanded = False
+        self.was_enabled = False
+
+    def reconfigure(self) -> None:
+        """Bus worker: configure a drive that reset or power-cycled (boot-up seen) again; enable
+        it again only when it was enabled and the config says ``restore_enable_after_reboot``."""
+        restore = self.was_enabled and self.config.restore_enable_after_reboot
+        self.was_enabled = False
+        try:
+            self.boot(reset=False)
+            if restore and not self.closed:
+                self.enable()
+        except MotorError as err:
+            logger.error("%s: re-configuration after a reset failed: %s; retrying in %g s", self.name, err,
+                         REBOOT_RETRY_S)
+            time.sleep(REBOOT_RETRY_S)
+            self.rebooted.set()  # the supervisor hands it to the worker again
 
     # ------------------------------------------------------------------ snapshot
     @property
@@ -386,14 +445,27 @@ class Drive:
             current = (OD.PRODUCER_HEARTBEAT_TIME, 0)
             self.sdo_write(OD.PRODUCER_HEARTBEAT_TIME, 0,
                            struct.pack("<H", int(cfg.heartbeat_period_s * 1000)))
+            step = "host watch"
+            self._configure_host_watch()
+            step = "position limits"
+            if not cfg.is_continuous and has_object(self.od, OD.SOFTWARE_POSITION_LIMIT, 2):
+                low, high = self.scale.limits_to_counts(cfg.min_deg, cfg.max_deg)  # type: ignore[arg-type]
+                current = (OD.SOFTWARE_POSITION_LIMIT, 1)
+                self._write_typed(OD.SOFTWARE_POSITION_LIMIT, 1, low)
+                current = (OD.SOFTWARE_POSITION_LIMIT, 2)
+                self._write_typed(OD.SOFTWARE_POSITION_LIMIT, 2, high)
             step = "profile parameters"
-            for index, value in ((OD.PROFILE_VELOCITY, self.scale.deg_s_to_counts_s(cfg.profile_velocity_deg_s)),
-                                 (OD.PROFILE_ACCELERATION, self.scale.deg_s_to_counts_s(cfg.profile_acceleration_deg_s2)),
-                                 (OD.PROFILE_DECELERATION, self.scale.deg_s_to_counts_s(cfg.profile_acceleration_deg_s2)),
-                                 (OD.MAX_PROFILE_VELOCITY, self.scale.deg_s_to_counts_s(cfg.max_velocity_deg_s))):
+            to_drive = self.scale.magnitude_to_drive
+            for index, value in ((OD.PROFILE_VELOCITY, to_drive(cfg.profile_velocity_deg_s)),
+                                 (OD.PROFILE_ACCELERATION, to_drive(cfg.profile_acceleration_deg_s2)),
+                                 (OD.PROFILE_DECELERATION, to_drive(cfg.profile_acceleration_deg_s2)),
+                                 (OD.MAX_PROFILE_VELOCITY, to_drive(cfg.max_velocity_deg_s))):
                 if has_object(self.od, index):
                     current = (index, 0)
                     self._write_typed(index, 0, value)
+            if has_object(self.od, OD.QUICK_STOP_DECELERATION):
+                current = (OD.QUICK_STOP_DECELERATION, 0)
+                self._write_typed(OD.QUICK_STOP_DECELERATION, 0, self._quick_stop_decel())
             step = "operation mode"
             current = (OD.SUPPORTED_DRIVE_MODES, 0)
             supported = self.supported_modes()
@@ -419,6 +491,17 @@ class Drive:
             raise BootError(f"node {self.node_id} ({self.name}): boot step '{step}' failed at"
                             f" 0x{current[0]:04X}:{current[1]}: {err}", node_id=self.node_id,
                             step=step, index=current[0], subindex=current[1], abort_code=code) from err
+        try:
+            self.safety = tuple(judge(cfg, self.host_node_id, self.scale, self._read_int,
+                                      consumer_subs=consumer_subs(self.od)))
+        except SdoError as err:
+            raise BootError(f"node {self.node_id} ({self.name}): boot step 'safety check' failed: {err}",
+                            node_id=self.node_id, step="safety check", index=err.index, subindex=err.subindex,
+                            abort_code=err.abort_code) from err
+        for check in self.safety:
+            if check.failed:
+                logger.error("node %d (%s): safety check failed: %s: %s is %s, expected %s", self.node_id,
+                             self.name, check.check, check.object, check.actual, check.expected)
         self._send(0x000, bytes([NmtCommand.START, self.node_id]))
         self.nmt_state = "OPERATIONAL"
         self.last_heartbeat = time.monotonic()
@@ -431,18 +514,74 @@ class Drive:
                     f"; by SDO: {', '.join(f'0x{i:04X}' for i in self.plan.sdo_only)}"
                     if self.plan.sdo_only else "")
 
+    def _configure_host_watch(self) -> None:
+        """Tell the drive to stop by itself when the host falls silent (CiA 301 0x1016, CiA 402
+        0x6007 and 0x605A): the one stop that holds when this process is killed, hung or unpowered."""
+        cfg = self.config
+        self.host_watch = None
+        self.host_watch_problem = f"{NO_HOST_WATCH}: the drive has no consumer heartbeat time (0x1016)"
+        if has_object(self.od, OD.QUICK_STOP_OPTION):
+            self._write_typed(OD.QUICK_STOP_OPTION, 0, QUICK_STOP_THEN_DISABLE)
+        if has_object(self.od, OD.ABORT_CONNECTION_OPTION):
+            self._write_typed(OD.ABORT_CONNECTION_OPTION, 0, ON_HOST_LOSS[cfg.on_host_loss])
+        if has_object(self.od, OD.CONSUMER_HEARTBEAT_TIME, 1) and cfg.host_timeout_s is not None:
+            entry = host_consumer_entry(self.host_node_id, cfg.host_timeout_s)
+            try:
+                self.sdo_write(OD.CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", entry))
+            except SdoError as err:
+                if err.abort_code not in VALUE_RANGE_ABORTS:
+                    raise
+                self.host_watch_problem = (f"{NO_HOST_WATCH}: node {self.node_id} refuses 0x1016:1 = 0x{entry:08X}"
+                                           f" (watch node {self.host_node_id}): {sdo_abort_text(err.abort_code or 0)}")
+            else:
+                reaction = cfg.on_host_loss if has_object(self.od, OD.ABORT_CONNECTION_OPTION) else \
+                    "the drive's own reaction (no 0x6007 to choose it)"
+                self.host_watch = (f"heartbeat consumer 0x1016:1 watches node {self.host_node_id}"
+                                   f" ({cfg.host_timeout_s * 1000:.0f} ms), then {reaction}")
+                self.host_watch_problem = None
+        if self.host_watch is None and cfg.allow_no_host_watch:
+            logger.warning("node %d (%s): %s; allowed by allow_no_host_watch: if this process dies, hangs or"
+                           " loses power while the drive is enabled, NOTHING stops it", self.node_id, self.name,
+                           self.host_watch_problem)
+        elif self.host_watch is None:
+            logger.warning("node %d (%s): %s; it will not be enabled (allow_no_host_watch: true overrides)",
+                           self.node_id, self.name, self.host_watch_problem)
+
+    def _quick_stop_decel(self) -> int:
+        """The configured quick-stop deceleration in drive units, at most what the drive takes
+        (its EDS HighLimit): the fastest stop it allows, said in a warning."""
+        wanted = self.scale.magnitude_to_drive(self.config.quick_stop_decel_deg_s2)
+        var = variable(self.od, OD.QUICK_STOP_DECELERATION, 0)
+        high = var.max if var is not None else None
+        if isinstance(high, int) and wanted > high:
+            logger.warning("node %d (%s): quick-stop deceleration %g deg/s^2 is beyond the drive's range"
+                           " (0x6085 <= %d); using its maximum, %.0f deg/s^2", self.node_id, self.name,
+                           self.config.quick_stop_decel_deg_s2, high, high / self.scale.magnitude_to_drive(1.0))
+            return high
+        return wanted
+
+    def _read_int(self, index: int, subindex: int) -> int | None:
+        """An integer object read by SDO, or None where the drive's EDS has no such object."""
+        if not has_object(self.od, index, subindex):
+            return None
+        value = self.sdo_read_value(index, subindex)
+        return int(value) if isinstance(value, (int, float)) else None
+
+    def release_host_watch(self) -> None:
+        """Clean shutdown of a disabled drive: stop watching the host, so that its last heartbeat
+        raises no EMCY. Kept on a drive that is still enabled (the watch is then its only stop)."""
+        if self.host_watch is None or self.lost or self.state == State.OPERATION_ENABLED:
+            return
+        self.sdo_write(OD.CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", 0))
+        self.host_watch = None
+
     def _read_units(self) -> None:
         """Scale from the drive's factor group, SI velocity unit and rated torque, where it has them."""
-        objects: dict[tuple[int, int], int] = {}
-        for index, subs in ((OD.POSITION_ENCODER_RESOLUTION, (1, 2)), (OD.GEAR_RATIO, (1, 2)),
-                            (OD.FEED_CONSTANT, (1, 2)), (OD.SI_UNIT_VELOCITY, (0,)), (OD.RATED_TORQUE, (0,))):
-            for sub in subs:
-                if has_object(self.od, index, sub):
-                    value = self.sdo_read_value(index, sub)
-                    if isinstance(value, int):
-                        objects[(index, sub)] = value
+        objects = {(index, sub): value for index, subs in UNIT_OBJECTS for sub in subs
+                   if (value := self._read_int(index, sub)) is not None}
         cfg = self.config
-        self.scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects)
+        self.scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
+                                               invert=cfg.invert, offset_deg=cfg.offset_deg)
         self._max_counts_s = int(abs(self.scale.counts_per_deg * cfg.max_velocity_deg_s)) or 1
         self._jump_margin_counts = max(4.0, self.scale.counts_per_deg)
         for note in notes:
@@ -552,9 +691,17 @@ class Drive:
                                   node_id=self.node_id)
 
     def enable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
-        """Walk the state machine to Operation Enabled (transitions 2, 3, 4), holding position."""
+        """Walk the state machine to Operation Enabled (transitions 2, 3, 4), holding position.
+
+        Refused for a drive that cannot watch the host (no 0x1016), unless the config allows it.
+        """
         with self._lock:
             self._require_usable("enable")
+            if self.host_watch is None and not self.config.allow_no_host_watch:
+                raise CommandRejected(f"{self.name} (node {self.node_id}): enable refused: {self.host_watch_problem},"
+                                      " so it would keep moving if this process were killed, hung or lost power."
+                                      " Give it a heartbeat consumer, or set allow_no_host_watch: true for this"
+                                      " drive to arm it anyway. Nothing was sent.")
             self._target_counts = self.position_counts
             for _ in range(6):
                 state = self.state
@@ -695,7 +842,7 @@ class Drive:
 
     def wait_target_reached(self, timeout_s: float | None = None) -> None:
         if timeout_s is None:
-            span = abs(self.scale.counts_to_deg(self._target_counts - self.position_counts))
+            span = self.scale.span_deg(self._target_counts - self.position_counts)
             cfg = self.config
             timeout_s = 2.0 + span / cfg.profile_velocity_deg_s + 2 * cfg.profile_velocity_deg_s / cfg.profile_acceleration_deg_s2
         deadline = time.monotonic() + timeout_s
@@ -729,10 +876,68 @@ class Drive:
                                   " was sent.")
         counts_s = check_counts(self.name, self.scale.deg_s_to_counts_s(velocity), "velocity")
         with self._lock:
+            self._refuse_past_limit(velocity, abs(velocity), self.config.profile_acceleration_deg_s2,
+                                    f"velocity {velocity:g} deg/s")
             self._ensure_mode(OperationMode.PROFILE_VELOCITY, "velocity command")
             self._send_velocity(counts_s)
             self.last_velocity_cmd = time.monotonic()
             self.velocity_commanded = velocity != 0.0
+
+    # ------------------------------------------------------------------ limits in every mode
+    def _limit_ahead(self, direction: float, speed_deg_s: float, decel_deg_s2: float) -> str | None:
+        """The limit a motion in ``direction`` at ``speed_deg_s`` (or the joint's own speed, if
+        higher) could not stop before when braking at ``decel_deg_s2``; None when clear."""
+        cfg = self.config
+        if cfg.is_continuous or direction == 0 or cfg.min_deg is None or cfg.max_deg is None:
+            return None
+        velocity = self.scale.counts_s_to_deg_s(self.velocity_counts_s)
+        age = min(max(time.time() - self.stamp, 0.0), MAX_EXTRAPOLATION_S) if self.stamp else 0.0
+        angle = self.angle_deg + velocity * age  # where the joint is now, not when its TPDO was sampled
+        speed = max(speed_deg_s, abs(velocity))
+        need = speed * speed / (2 * decel_deg_s2) + speed * LIMIT_MARGIN_S
+        if direction > 0 and cfg.max_deg - angle <= need:
+            return f"max_deg={cfg.max_deg:g}"
+        if direction < 0 and angle - cfg.min_deg <= need:
+            return f"min_deg={cfg.min_deg:g}"
+        return None
+
+    def _refuse_past_limit(self, direction: float, speed_deg_s: float, decel_deg_s2: float, what: str) -> None:
+        limit = self._limit_ahead(direction, speed_deg_s, decel_deg_s2)
+        if limit is None:
+            return
+        self._brake()
+        raise CommandRejected(f"{self.name}: {what} refused: at {self.angle_deg:.2f} deg the joint could not stop"
+                              f" before its limit {limit} braking at {decel_deg_s2:g} deg/s^2; it is stopping."
+                              " Command away from the limit, or move_to() a target inside it.")
+
+    def _brake(self) -> None:
+        """Stop a velocity- or torque-commanded joint at once, without waiting: zero velocity
+        (the drive brakes on its profile deceleration) or, in torque mode, a quick stop."""
+        self.velocity_commanded = False
+        if self.state != State.OPERATION_ENABLED:
+            return
+        self.limit_stops += 1
+        if self.mode_display == OperationMode.PROFILE_VELOCITY:
+            self._send_velocity(0)
+        elif self.mode_display == OperationMode.PROFILE_TORQUE:
+            self._send_torque(0)
+            self._cw = int(Command.QUICK_STOP)
+            self.was_enabled = False
+            self._send_cw(self._cw)
+
+    def guard_limits(self) -> None:
+        """Supervisor, every period: brake a velocity- or torque-commanded limited joint whose
+        stopping distance has reached its limit (the drive's own 0x607D is the backstop)."""
+        if self.config.is_continuous or not self.velocity_commanded:
+            return
+        velocity = self.scale.counts_s_to_deg_s(self.velocity_counts_s)
+        torque_mode = self.mode_display == OperationMode.PROFILE_TORQUE
+        decel = self.config.quick_stop_decel_deg_s2 if torque_mode else self.config.profile_acceleration_deg_s2
+        limit = self._limit_ahead(velocity, abs(velocity), decel)
+        if limit is not None:  # no lock: a command racing this brake is checked against the limit itself
+            logger.warning("%s: at %.2f deg moving %.1f deg/s toward its limit %s; braking", self.name,
+                           self.angle_deg, velocity, limit)
+            self._brake()
 
     def _send_velocity(self, counts_s: int) -> None:
         pdo = self.plan.rpdo_with(OD.TARGET_VELOCITY)
@@ -743,18 +948,25 @@ class Drive:
         else:
             self._write_typed(OD.TARGET_VELOCITY, 0, counts_s)
 
-    def stop_velocity(self) -> None:
-        """Watchdog action: zero velocity (PV) or zero torque (PT)."""
-        with self._lock:
+    def stop_velocity(self) -> bool:
+        """Watchdog action: zero velocity (PV) or zero torque (PT). Never waits: when a command
+        holds the drive (enable, homing, a mode switch: each ends the velocity command itself),
+        it returns False and the supervisor tries again at its next period."""
+        if not self._lock.acquire(blocking=False):
+            return False
+        try:
             self.velocity_commanded = False
             if self.state != State.OPERATION_ENABLED:
-                return
+                return True
             if self.mode_display == OperationMode.PROFILE_VELOCITY:
                 self._send_velocity(0)
                 self.watchdog_stops += 1
             elif self.mode_display == OperationMode.PROFILE_TORQUE:
                 self._send_torque(0)
                 self.watchdog_stops += 1
+            return True
+        finally:
+            self._lock.release()
 
     def _ensure_mode(self, mode: OperationMode, doing: str) -> None:
         self._require_usable(doing)
@@ -774,6 +986,7 @@ class Drive:
             raise CommandRejected(f"{self.name}: torque {torque:g} Nm is beyond the limit max_torque_nm={limit:g}"
                                   f" (allowed -{limit:g} to {limit:g} Nm). Nothing was sent.")
         with self._lock:
+            self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"torque {torque:g} Nm")
             self._ensure_mode(OperationMode.PROFILE_TORQUE, "torque command")
             self._send_torque(self.scale.nm_to_permille(torque))
             self.last_velocity_cmd = time.monotonic()
@@ -801,7 +1014,7 @@ class Drive:
             self._ensure_mode(mode, "CSP setpoint" if mode == OperationMode.CYCLIC_SYNC_POSITION else "IP setpoint")
             if max_step_deg is None:
                 max_step_deg = self.config.max_velocity_deg_s * 2 * self.sync_period_s
-            step = abs(self.scale.counts_to_deg(counts - self._target_counts))
+            step = self.scale.span_deg(counts - self._target_counts)
             if step > max_step_deg:
                 raise CommandRejected(f"{self.name}: CSP setpoint jumps {step:.3f} deg from the last one; at most"
                                       f" {max_step_deg:.3f} deg per step (max_velocity_deg_s over two SYNC"
@@ -837,7 +1050,7 @@ class Drive:
             self.set_mode(OperationMode.HOMING)
             self._write_typed(OD.HOMING_METHOD, 0, cfg.homing_method)
             if has_object(self.od, OD.HOMING_SPEEDS, 1):
-                self._write_typed(OD.HOMING_SPEEDS, 1, self.scale.deg_s_to_counts_s(cfg.homing_speed_deg_s))
+                self._write_typed(OD.HOMING_SPEEDS, 1, self.scale.magnitude_to_drive(cfg.homing_speed_deg_s))
             if self.state != State.OPERATION_ENABLED:
                 self.enable()
             self._send_cw(int(Command.ENABLE_OPERATION))

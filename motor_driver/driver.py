@@ -2,8 +2,23 @@
 
 Per bus: a python-can bus (opened from config, or given), a canopen ``Network`` (its notifier
 thread runs the PDO callbacks), a SYNC producer through python-can's periodic send (the
-kernel's BCM timer on SocketCAN). One supervisor thread watches heartbeats (loss within the
-consumer time), re-configures drives that sent a boot-up, and runs the velocity watchdog.
+kernel's BCM timer on SocketCAN), and a worker thread for the bus's blocking jobs (re-boot of
+a drive that reset, reconnection of a lost bus).
+
+Threads and what they own:
+- the notifier thread of each bus (canopen/python-can): decodes frames into each Drive's
+  received state and notifies waiters; it sends nothing but the set-point handshake's reply.
+- the supervisor thread (``rovercan-supervisor``), period SUPERVISOR_PERIOD_S, never blocks:
+  produces the host heartbeat on every bus, checks the drives' heartbeats, runs the velocity
+  watchdog and the limit guard, notices lost buses and hands re-boots and reconnects to the
+  bus's worker. It owns ``bus_lost`` and each BusHandle's reconnect bookkeeping.
+- one worker per bus (``rovercan-<bus>``): the re-boots and reconnects, one at a time.
+- the caller's threads: commands, each serialised per drive by the Drive's lock.
+
+The host heartbeat (node ``host_node_id``, every ``host_heartbeat_ms``) is sent by the
+supervisor loop itself, not by a kernel timer: it proves that the driver is alive, so a killed,
+hung or stopped process falls silent and every drive, told at boot to watch it (0x1016, 0x6007),
+stops by itself within its consumer time.
 
 Safe by default: start() boots and configures but enables only drives with
 ``arm_on_start``; close() quick-stops and disables every drive, stops SYNC, stops threads,
@@ -17,7 +32,7 @@ import socket
 import threading
 import time
 from collections.abc import Iterator, Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import can
@@ -26,6 +41,7 @@ import canopen
 from can_config import RoverConfig, load_drive_od
 from can_config.bits import frame_bits
 from can_config.errors import BusLostError, ConfigError, MotorError
+from can_config.objects import NmtState
 from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
 from motor_driver.cia402 import State
 from motor_driver.drive import Drive, DriveState
@@ -143,6 +159,12 @@ class BusHandle:
         self.network.listeners.append(self.stats)
         self.network.connect()
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | None = None
+        self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"rovercan-{name}")
+        self.job: Future[None] | None = None  # the bus's reconnect, while it runs
+        self.host_beats = 0
+        self.late_beats = 0
+        self.last_beat = 0.0
+        self.next_beat = 0.0
         self.backoff_s = RECONNECT_MIN_S
         self.next_attempt = 0.0
         self.last_frames = 0
@@ -182,8 +204,18 @@ class BusHandle:
             self.sync_task.stop()
             self.sync_task = None
 
+    def beat(self, host_node_id: int) -> None:
+        """One host heartbeat (NMT state operational), sent from the supervisor loop."""
+        try:
+            self.bus.send(can.Message(arbitration_id=0x700 + host_node_id, data=bytes([NmtState.OPERATIONAL]),
+                                      is_extended_id=False))
+            self.host_beats += 1
+        except (can.CanError, OSError, ValueError) as err:  # a lost bus is noticed by the supervisor
+            logger.debug("bus %s: host heartbeat not sent: %s", self.name, err)
+
     def close(self) -> None:
         self.stop_sync()
+        self.worker.shutdown(wait=True, cancel_futures=True)
         notifier = self.network.notifier
         if notifier is not None:
             notifier.stop(timeout=1.0)
@@ -220,6 +252,7 @@ class MotorDriver:
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
         self.bus_lost: dict[str, bool] = {}
+        self._reboots: dict[str, Future[None]] = {}  # drive name -> its re-boot on the bus worker
         given = dict(buses or {})
         # every EDS is loaded and checked before any hardware is touched
         ods = {d.name: load_drive_od(d.eds, d.node_id) for d in config.drives}
@@ -238,9 +271,10 @@ class MotorDriver:
                                                         bus_cfg.bitrate)
                 self.bus_lost[bus_cfg.name] = False
             for drive_cfg in config.drives:
-                drive = Drive(drive_cfg, self._handles[drive_cfg.bus].network, ods[drive_cfg.name])
-                drive.sync_period_s = self._handles[drive_cfg.bus].sync_period_s
-                self.drives[drive_cfg.name] = drive
+                bus_cfg = config.bus(drive_cfg.bus)
+                self.drives[drive_cfg.name] = Drive(drive_cfg, self._handles[drive_cfg.bus].network,
+                                                    ods[drive_cfg.name], host_node_id=bus_cfg.host_node_id,
+                                                    sync_period_s=bus_cfg.sync_period_s)
         except BaseException:
             self._close_buses()
             raise
@@ -249,9 +283,14 @@ class MotorDriver:
     def start(self, *, reset: bool = True) -> MotorDriver:
         """Boot every drive (buses in parallel), start SYNC and supervision; enable only drives
         configured with ``arm_on_start``."""
-        by_bus: dict[str, list[Drive]] = {}
-        for drive in self.drives.values():
-            by_bus.setdefault(drive.config.bus, []).append(drive)
+        try:
+            self._start(reset)
+        except BaseException:  # a failed or interrupted start leaves nothing armed or open
+            self.close()
+            raise
+        return self
+
+    def _start(self, reset: bool) -> None:
         with ThreadPoolExecutor(max_workers=max(1, len(self.drives)),
                                 thread_name_prefix="rovercan-boot") as pool:
             futures = [pool.submit(d.boot, reset=reset) for d in self.drives.values()]
@@ -259,13 +298,13 @@ class MotorDriver:
                 future.result()
         for handle in self._handles.values():
             handle.start_sync()
+            handle.worker.submit(lambda: None).result()  # its thread now, not at the first bus loss
         self._supervisor = threading.Thread(target=self._supervise, daemon=True,
                                             name="rovercan-supervisor")
         self._supervisor.start()
         for drive in self.drives.values():
             if drive.config.arm_on_start:
                 drive.enable()
-        return self
 
     def __enter__(self) -> MotorDriver:
         return self
@@ -293,6 +332,7 @@ class MotorDriver:
     def _supervise(self) -> None:
         while not self._stop.wait(SUPERVISOR_PERIOD_S):
             now = time.monotonic()
+            self._beat(now)
             for drive in self.drives.values():
                 try:
                     self._supervise_drive(drive, now)
@@ -306,12 +346,28 @@ class MotorDriver:
                 except Exception:
                     logger.exception("supervisor: unexpected error on bus %s", name)
 
+    def _beat(self, now: float) -> None:
+        """The host heartbeat on every bus that is up, from this loop: when the loop stops (the
+        process killed, hung, stopped), the heartbeat stops and the drives stop themselves."""
+        for name, handle in self._handles.items():
+            if now >= handle.next_beat and not self.bus_lost[name]:
+                bus_cfg = self.config.bus(name)
+                handle.beat(bus_cfg.host_node_id)
+                if handle.last_beat and now - handle.last_beat > 2 * bus_cfg.host_heartbeat_s:
+                    handle.late_beats += 1
+                    logger.warning("bus %s: host heartbeat %.0f ms late (period %.0f ms): this process is starved;"
+                                   " the drives stop by themselves when it is later than their host timeout",
+                                   name, (now - handle.last_beat - bus_cfg.host_heartbeat_s) * 1000,
+                                   bus_cfg.host_heartbeat_s * 1000)
+                handle.last_beat = now
+                handle.next_beat = max(handle.next_beat + bus_cfg.host_heartbeat_s, now)
+
     def _supervise_bus(self, name: str, handle: BusHandle, now: float) -> None:
         """A bus is lost when its receive thread failed, or when every drive on it lost its
         heartbeat and nothing at all arrived for a consumer time (a socketcand server that died,
-        an unplugged adapter). A bus the driver
-        opened itself is then reconnected with back-off and its drives are booted again (not
-        re-armed: commands are refused until someone enables them)."""
+        an unplugged adapter). A bus the driver opened itself is then reconnected with back-off
+        on the bus's worker and its drives are booted again (not re-armed: commands are refused
+        until someone enables them)."""
         if not self.bus_lost[name]:
             exc = handle.network.notifier.exception if handle.network.notifier else None
             drives = [d for d in self.drives.values() if d.config.bus == name]
@@ -325,32 +381,39 @@ class MotorDriver:
                 why = (f"receive failed: {exc}" if exc is not None else "the server closed the connection"
                        if closed else f"nothing received for {silent_for:.1f} s")
                 logger.error("bus %s lost (%s)", name, why)
+                handle.last_beat = 0.0  # no heartbeat while the bus is gone: that is not lateness
                 for drive in drives:
-                    drive.lost = True
-                    drive.booted = False
-                if handle.owned:
-                    handle.disconnect()
-                    handle.next_attempt = now
+                    drive.mark_lost()
+                if handle.owned:  # reconnected on the bus's worker: joining a notifier can take a second
+                    handle.next_attempt = float("inf")  # until the job says when to try again
+                    handle.job = handle.worker.submit(self._reconnect, name, handle, True)
             return
-        if not handle.owned or now < handle.next_attempt:
+        if not handle.owned or now < handle.next_attempt or (handle.job is not None and not handle.job.done()):
             return
+        handle.next_attempt = float("inf")
+        handle.job = handle.worker.submit(self._reconnect, name, handle)
+
+    def _reconnect(self, name: str, handle: BusHandle, drop: bool = False) -> None:
+        """On the bus's worker: drop the lost connection (``drop``), open the bus again and boot
+        its drives; back off on failure."""
+        if drop:
+            handle.disconnect()
         bus_cfg = self.config.bus(name)
         try:
             handle.reconnect(can.Bus(**bus_cfg.bus_kwargs()))
         except (can.CanError, OSError, ValueError, TimeoutError) as err:
             handle.backoff_s = min(handle.backoff_s * 2, RECONNECT_MAX_S)
-            handle.next_attempt = now + handle.backoff_s
+            handle.next_attempt = time.monotonic() + handle.backoff_s
             logger.warning("bus %s: reconnect failed (%s); next try in %.1f s", name, err, handle.backoff_s)
             return
         handle.backoff_s = RECONNECT_MIN_S
         try:
             for drive in (d for d in self.drives.values() if d.config.bus == name):
                 drive.boot(reset=True)
-                drive.was_enabled = False
         except MotorError as err:
             logger.error("bus %s is back but a drive did not boot: %s; retrying", name, err)
             handle.disconnect()
-            handle.next_attempt = now + handle.backoff_s
+            handle.next_attempt = time.monotonic() + handle.backoff_s
             return
         handle.start_sync()
         self.bus_lost[name] = False
@@ -359,25 +422,16 @@ class MotorDriver:
     def _supervise_drive(self, drive: Drive, now: float) -> None:
         cfg = drive.config
         if drive.rebooted.is_set():
-            drive.rebooted.clear()
-            restore = drive.was_enabled and cfg.restore_enable_after_reboot
-            drive.boot(reset=False)
-            if restore:
-                drive.enable()
-            else:
-                drive.was_enabled = False
+            job = self._reboots.get(drive.name)
+            if (job is None or job.done()) and not self.bus_lost[cfg.bus]:
+                self._reboots[drive.name] = self._handles[cfg.bus].worker.submit(drive.reconfigure)
             return
-        if drive.booted and not drive.lost and drive.last_heartbeat and \
-                now - drive.last_heartbeat > cfg.heartbeat_timeout_s:
-            drive.lost = True
-            drive.velocity_commanded = False
-            logger.error("node %d (%s): heartbeat lost (none for %.0f ms, consumer time %.0f ms)",
-                         drive.node_id, drive.name, (now - drive.last_heartbeat) * 1000,
-                         cfg.heartbeat_timeout_s * 1000)
+        drive.check_heartbeat(now)
         if drive.velocity_commanded and now - drive.last_velocity_cmd > cfg.watchdog_s:
             logger.warning("%s: no velocity command for %.0f ms (watchdog %.0f ms); stopping",
                            drive.name, (now - drive.last_velocity_cmd) * 1000, cfg.watchdog_s * 1000)
             drive.stop_velocity()
+        drive.guard_limits()
 
     # ------------------------------------------------------------------ shutdown
     def safe_stop(self) -> None:
@@ -402,13 +456,23 @@ class MotorDriver:
         self._closed = True
         for drive in self.drives.values():
             drive.closed = True  # refuse new commands from here on; safe_stop bypasses the check
-        self._stop.set()
-        if self._supervisor is not None and self._supervisor is not threading.current_thread():
-            self._supervisor.join(timeout=2.0)
         try:
-            self.safe_stop()
+            self.safe_stop()  # the host heartbeat goes on meanwhile: no drive reacts to its loss yet
         finally:
+            self._stop.set()
+            if self._supervisor is not None and self._supervisor is not threading.current_thread():
+                self._supervisor.join(timeout=2.0)
+            for handle in self._handles.values():
+                handle.worker.shutdown(wait=True, cancel_futures=True)  # a re-boot under way ends first
+            self._release_host_watch()
             self._close_buses()
+
+    def _release_host_watch(self) -> None:
+        for drive in self.drives.values():
+            try:
+                drive.release_host_watch()
+            except MotorError as err:
+                logger.info("%s: host watch left armed (%s); the drive reports the host's silence", drive.name, err)
 
     def _close_buses(self) -> None:
         for handle in self._handles.values():

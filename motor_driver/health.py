@@ -2,20 +2,24 @@
 result into diagnostic_msgs). The rules:
 
 * ERROR: the drive is lost (no heartbeat within the consumer time), in FAULT or FAULT
-  REACTION ACTIVE, or its bus is lost.
+  REACTION ACTIVE, its bus is lost, or a safety check read back after boot failed
+  (:mod:`motor_driver.safety`: nothing would stop it if the host died, limits not set, ...).
 * WARN: the statusword warning bit is set, a command was refused since the last report,
-  the heartbeat is older than 1.5 producer periods, or the drive is not booted.
+  the heartbeat is older than 1.5 producer periods, the drive is not booted, or it has no
+  drive-side stop on host loss and the config allows that (``allow_no_host_watch``).
 * OK: otherwise (enabled or safely disabled).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from can_config.objects import emcy_text
 from motor_driver.cia402 import SW, State
 from motor_driver.drive import DriveState
+from motor_driver.safety import ALLOWED, SafetyCheck
 
 OK, WARN, ERROR = 0, 1, 2
 
@@ -28,7 +32,8 @@ class Health:
 
 
 def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_last: int = 0,
-                 last_refusal: str = "", bus_lost: bool = False, tpdos_applied: int = 0) -> Health:
+                 last_refusal: str = "", bus_lost: bool = False, tpdos_applied: int = 0,
+                 safety: Sequence[SafetyCheck] = ()) -> Health:
     values = {
         "node_id": str(state.node_id),
         "nmt_state": state.nmt,
@@ -45,6 +50,10 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         "tpdos_applied": str(tpdos_applied),
         "last_refusal": last_refusal,
     }
+    for check in safety:
+        values[f"safety: {check.check} ({check.object})"] = f"{check.status}: {check.actual}"
+    failed = [c for c in safety if c.failed]
+    allowed = [c for c in safety if c.status == ALLOWED]
     if bus_lost:
         return Health(ERROR, "bus lost", values)
     if state.lost:
@@ -52,10 +61,16 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     if state.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
         code = state.error_code
         return Health(ERROR, f"fault: EMCY 0x{code:04X} {emcy_text(code)}" if code else "fault", values)
+    if failed:
+        return Health(ERROR, "safety check failed: " + "; ".join(f"{c.check} ({c.object} is {c.actual},"
+                                                                 f" expected {c.expected})" for c in failed), values)
     if refused_since_last:
         return Health(WARN, f"{refused_since_last} command(s) refused: {last_refusal}", values)
     if state.statusword & SW.WARNING:
         return Health(WARN, "drive warning bit set", values)
     if state.heartbeat_age_s > 1.5 * heartbeat_period_s:
         return Health(WARN, f"heartbeat late ({values['heartbeat_age_s']} s)", values)
+    if allowed:
+        return Health(WARN, "NO drive-side stop on host loss (allowed by allow_no_host_watch): if this process"
+                      " dies while the drive is enabled, nothing stops it", values)
     return Health(OK, "enabled" if state.enabled else f"ready ({state.state.name})", values)

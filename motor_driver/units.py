@@ -3,6 +3,12 @@
 Position: encoder counts. ``counts_per_deg = counts_per_rev x gear_ratio / 360`` (counts per
 motor revolution, motor revolutions per joint revolution). Velocity: counts/s. Torque:
 per mille of the motor's rated torque (0x6077 / 0x6071); joint torque = motor torque x gear.
+
+Polarity and offset (a mirrored wheel, a joint whose zero is not the drive's): the joint angle
+is ``offset_deg + sign x drive angle`` with ``sign = -1`` for an inverted joint; velocities
+and torques carry the sign. Every conversion of a position, velocity or torque goes through
+the signed methods here, so commands, readings and limits agree; the unsigned
+``*_magnitude`` methods are for profile speeds and accelerations, which have no direction.
 """
 
 from __future__ import annotations
@@ -26,28 +32,51 @@ class Scale:
     rated_torque_nm: float
     gear_ratio: float = 1.0
     velocity_units_per_deg_s: float = 0.0  # 0: the same as counts_per_deg (increments/s)
+    invert: bool = False
+    offset_deg: float = 0.0
 
     @property
     def _v(self) -> float:
         return self.velocity_units_per_deg_s or self.counts_per_deg
 
+    @property
+    def sign(self) -> int:
+        return -1 if self.invert else 1
+
     def deg_to_counts(self, angle_deg: float) -> int:
-        return int(round(angle_deg * self.counts_per_deg))
+        """Joint angle -> drive position."""
+        return int(round(self.sign * (angle_deg - self.offset_deg) * self.counts_per_deg))
 
     def counts_to_deg(self, counts: float) -> float:
-        return counts / self.counts_per_deg
+        """Drive position -> joint angle."""
+        return self.offset_deg + self.sign * counts / self.counts_per_deg
+
+    def span_deg(self, counts: float) -> float:
+        """A distance in drive counts as joint degrees (no sign, no offset)."""
+        return abs(counts) / self.counts_per_deg
 
     def deg_s_to_counts_s(self, velocity_deg_s: float) -> int:
-        return int(round(velocity_deg_s * self._v))
+        """Joint velocity -> drive velocity units (signed)."""
+        return int(round(self.sign * velocity_deg_s * self._v))
 
     def counts_s_to_deg_s(self, counts_s: float) -> float:
-        return counts_s / self._v
+        """Drive velocity units -> joint velocity (signed)."""
+        return self.sign * counts_s / self._v
+
+    def magnitude_to_drive(self, per_s: float) -> int:
+        """A speed or acceleration (deg/s, deg/s^2; no direction) in drive units."""
+        return int(round(abs(per_s) * self._v))
 
     def permille_to_nm(self, permille: float) -> float:
-        return permille / 1000.0 * self.rated_torque_nm * self.gear_ratio
+        return self.sign * permille / 1000.0 * self.rated_torque_nm * self.gear_ratio
 
     def nm_to_permille(self, torque_nm: float) -> int:
-        return int(round(torque_nm / (self.rated_torque_nm * self.gear_ratio) * 1000.0))
+        return int(round(self.sign * torque_nm / (self.rated_torque_nm * self.gear_ratio) * 1000.0))
+
+    def limits_to_counts(self, min_deg: float, max_deg: float) -> tuple[int, int]:
+        """Joint limits as the drive's (low, high) position limits (0x607D), through polarity."""
+        a, b = self.deg_to_counts(min_deg), self.deg_to_counts(max_deg)
+        return min(a, b), max(a, b)
 
 
 def require_finite(name: str, value: float, unit: str) -> float:
@@ -95,8 +124,14 @@ def _ratio(objects: dict[tuple[int, int], int], index: int) -> float | None:
     return num / den
 
 
+#: The drive objects a scale is derived from: (index, sub-indexes).
+UNIT_OBJECTS: tuple[tuple[int, tuple[int, ...]], ...] = (
+    (0x608F, (1, 2)), (0x6091, (1, 2)), (0x6092, (1, 2)), (0x60A9, (0,)), (0x6076, (0,)))
+
+
 def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torque_nm: float,
-                       objects: dict[tuple[int, int], int]) -> tuple[Scale, list[str]]:
+                       objects: dict[tuple[int, int], int], *, invert: bool = False,
+                       offset_deg: float = 0.0) -> tuple[Scale, list[str]]:
     """The scale of a drive from its own objects where it provides them, else from the config.
 
     ``objects`` holds what the drive reported: 0x608F (encoder increments per motor rev),
@@ -149,4 +184,4 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
         rated = mnm / 1000.0
         if abs(rated - rated_torque_nm) > 1e-9:
             notes.append(f"rated torque {rated:g} Nm from 0x6076 (config says {rated_torque_nm:g})")
-    return Scale(counts_per_deg, rated, gear, velocity), notes
+    return Scale(counts_per_deg, rated, gear, velocity, invert, offset_deg), notes

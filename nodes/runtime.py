@@ -16,6 +16,7 @@ import threading
 from collections.abc import Callable, Sequence
 
 import rclpy
+from rclpy.context import Context
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -36,7 +37,7 @@ def init(args: Sequence[str] | None) -> None:
 EXECUTORS = ("events", "single")
 
 
-def make_executor(kind: str) -> Executor:
+def make_executor(kind: str, context: Context | None = None) -> Executor:
     """The hot-path executor by name (the ``executor`` parameter).
 
     ``events``: rclpy's EventsExecutor (C++ dispatch, no wait set rebuilt in Python per
@@ -53,8 +54,8 @@ def make_executor(kind: str) -> Executor:
         except ImportError:
             logger.warning("this rclpy has no EventsExecutor; using the SingleThreadedExecutor")
         else:
-            return EventsExecutor()
-    return SingleThreadedExecutor()
+            return EventsExecutor(context=context)
+    return SingleThreadedExecutor(context=context)
 
 
 def spin_until(executor: Executor, stop: threading.Event) -> None:

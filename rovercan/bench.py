@@ -8,6 +8,7 @@ command that addresses a drive also takes ``--config FILE`` or ``--eds FILE`` wi
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import re
@@ -26,7 +27,7 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config import GENERIC_EDS, RoverConfig, load_config, load_drive_od, load_od, parse_config
-from can_config.eds import variable
+from can_config.eds import consumer_subs, variable
 from can_config.errors import BusLostError, ConfigError, RovercanError
 from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
 from can_config.stop import StopSignal
@@ -65,8 +66,9 @@ def open_bus(args: argparse.Namespace) -> can.BusABC:
     if getattr(args, "interface", None) is None:
         raise ConfigError("no bus given: pass -i INTERFACE -c CHANNEL (e.g. -i socketcan -c can0, or"
                           " -i socketcand -c can0 --bus-kwargs host=127.0.0.1 port=29536) or --config FILE")
+    tuned: dict[str, Any] = {"tcp_tune": True} if args.interface == "socketcand" else {}  # --bus-kwargs overrides
     try:
-        return can.cli.create_bus_from_namespace(args)
+        return can.cli.create_bus_from_namespace(args, **tuned)
     except argparse.ArgumentError as err:
         raise CliError(f"cannot open the bus {args.interface} {getattr(args, 'channel', '')}: {err.__cause__}") from err
 
@@ -390,7 +392,7 @@ def cmd_move(args: argparse.Namespace) -> int:
             speed = require_finite("--speed", args.speed, "deg/s")
             if not 0 < speed <= drive.config.max_velocity_deg_s:
                 raise ConfigError(f"--speed {speed:g} deg/s: allowed 0 < speed <= {drive.config.max_velocity_deg_s:g}")
-            drive._write_typed(OD.PROFILE_VELOCITY, 0, drive.scale.deg_s_to_counts_s(speed))
+            drive._write_typed(OD.PROFILE_VELOCITY, 0, drive.scale.magnitude_to_drive(speed))
         target = drive.move_to(args.degrees, wait=True)
         state = drive.snapshot()
         emit(args, {"node": node_id, "target_deg": round(target, 3), "angle_deg": round(state.angle_deg, 3),
@@ -605,6 +607,86 @@ def cmd_step_test(args: argparse.Namespace) -> int:
     plt.close(fig)
     out.with_suffix(".json").write_text(json.dumps(metrics, indent=2) + "\n")
     emit(args, metrics, f"step test node {node_id} -> {out.with_suffix('.png')}")
+    return 0
+
+
+# ------------------------------------------------------------------------------ safety-check
+def safety_configs(args: argparse.Namespace) -> RoverConfig:
+    """The drives to check: every drive of --config (on its first bus), or --node N ... with --eds."""
+    if args.config:
+        config = load_config(args.config)
+        bus = config.buses[0]
+        drives = tuple(d for d in config.drives if d.bus == bus.name and (not args.node or d.node_id in args.node))
+        if not drives:
+            raise ConfigError(f"{args.config}: no drive on bus {bus.name!r}"
+                              f"{' with node id ' + str(args.node) if args.node else ''}")
+        return RoverConfig((bus,), drives, None, config.source)
+    if not args.node:
+        raise ConfigError("safety-check: give --config FILE, or --eds FILE with --node N (repeatable)")
+    configs = [one_drive_config(args, node) for node in args.node]
+    return RoverConfig(configs[0].buses, tuple(c.drives[0] for c in configs), None, None)
+
+
+def cmd_safety_check(args: argparse.Namespace) -> int:
+    """Read back from each drive what keeps it safe when the host is gone; judge it by the
+    driver's own rules (motor_driver.safety); and look for the host heartbeat on the bus."""
+    from motor_driver.safety import host_heartbeat_check, judge
+    from motor_driver.units import UNIT_OBJECTS, scale_from_objects
+
+    if args.listen is not None and not (math.isfinite(args.listen) and 0 < args.listen <= 60):
+        raise ConfigError(f"--listen {args.listen}: allowed 0 < seconds <= 60")
+    config = safety_configs(args)
+    bus_cfg = config.buses[0]
+    listen_s = args.listen or max(0.3, 4 * bus_cfg.host_heartbeat_s)
+    bus = open_bus(args)
+    rows: list[dict[str, Any]] = []
+    try:
+        beats: list[float] = []
+        deadline = time.monotonic() + listen_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            msg = receive(bus, remaining)
+            if msg is not None and msg.arbitration_id == 0x700 + bus_cfg.host_node_id and not msg.is_remote_frame:
+                beats.append(msg.timestamp)
+        host = host_heartbeat_check(bus_cfg.host_node_id, bus_cfg.host_heartbeat_s,
+                                    [b - a for a, b in itertools.pairwise(beats)])
+        rows.append({"node": "-", "drive": "(host)", **vars(host)})
+        network = canopen.Network(bus)
+        network.NOTIFIER_CYCLE = 0.1
+        network.connect()
+        try:
+            for cfg in config.drives:
+                od = load_drive_od(cfg.eds, cfg.node_id)
+                node = canopen.RemoteNode(cfg.node_id, od)
+                node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+                network.add_node(node)
+
+                def read(index: int, sub: int, node: canopen.RemoteNode = node, od: ObjectDictionary = od) -> int | None:
+                    var = variable(od, index, sub)
+                    if var is None:
+                        return None
+                    raw = sdo_upload(node, index, sub)
+                    fmt = STRUCT_FORMAT.get(int(var.data_type))
+                    if fmt is None or len(raw) < struct.calcsize(fmt):
+                        return _u32(raw)
+                    return int(struct.unpack_from(fmt, raw)[0])
+
+                objects = {(i, sub): v for i, subs in UNIT_OBJECTS for sub in subs if (v := read(i, sub)) is not None}
+                scale, _ = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
+                                              invert=cfg.invert, offset_deg=cfg.offset_deg)
+                subs = consumer_subs(od)
+                for check in judge(cfg, bus_cfg.host_node_id, scale, read, consumer_subs=subs):
+                    rows.append({"node": cfg.node_id, "drive": cfg.name, **vars(check)})
+        finally:
+            if network.notifier is not None:
+                network.notifier.stop(1.0)
+    finally:
+        bus.shutdown()
+    emit(args, rows, f"safety check ({bus_cfg.name})", ["node", "drive", "check", "object", "expected", "actual", "status"])
+    failed = [r for r in rows if r["status"] == "FAIL"]
+    if failed:
+        names = ", ".join(f"{r['drive']} {r['check']} ({r['object']})" for r in failed)
+        print(f"rovercan: safety check failed: {names}", file=sys.stderr)
+        return 1
     return 0
 
 

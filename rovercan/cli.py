@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -16,7 +17,7 @@ from pathlib import Path
 
 from can_config import load_config, with_bus_overrides
 from can_config.errors import ConfigError, RovercanError
-from can_config.stop import StopSignal
+from can_config.stop import StopSignal, stop_on_signals
 from rovercan.launch import LOCAL_DISCOVERY
 
 logger = logging.getLogger(__name__)
@@ -343,6 +344,15 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_step_test)
 
+    p = sub.add_parser("safety-check", help="read back what stops each drive when the host is gone; pass/fail")
+    p.add_argument("--node", type=_positive_int(1, 127), action="append", help="node id (repeatable; default:"
+                   " every drive of --config on its first bus)")
+    bench.add_drive_args(p)
+    bench.add_bus_args(p)
+    p.add_argument("--listen", type=float, help="seconds to watch for the host heartbeat (default 4 periods)")
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_safety_check)
+
     p = sub.add_parser("plan", help="worst-case bus load of a config")
     p.add_argument("--config", required=True)
     bench.add_json(p)
@@ -374,7 +384,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     try:
-        return int(args.func(args))
+        with stop_on_signals() as stop:  # SIGINT/SIGTERM/SIGHUP: the with blocks unwind, drives stopped
+            return int(args.func(args))
+        name = signal.Signals(stop.signum).name if stop.signum else "a signal"
+        print(f"rovercan: stopped by {name}; any drive this command had armed was quick-stopped and disabled",
+              file=sys.stderr)
+        return EXIT_FAILED
     except ConfigError as err:
         print(f"rovercan: {err}", file=sys.stderr)
         return EXIT_USAGE

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from can_config import DEFAULT_CONFIG, ConfigError, EdsError, load_config, load_drive_od
+from can_config import DEFAULT_CONFIG, ConfigError, EdsError, load_config, load_drive_od, parse_config
 
 from .conftest import SHARED_EDS, requires_shared
 
@@ -23,7 +23,19 @@ def test_default_config_loads() -> None:
     config = load_config()
     assert config.drives[0].name == "motor"
     assert config.bus("can0").bus_kwargs() == {"interface": "socketcand", "channel": "can0",
-                                                "host": "127.0.0.1", "port": 29536}
+                                                "host": "127.0.0.1", "port": 29536, "tcp_tune": True}
+
+
+def test_socketcand_is_tuned_for_latency_unless_the_config_says_no() -> None:
+    """Nagle's algorithm and delayed ACKs hold small frames 20-40 ms: a config without tuning
+    keys gets TCP_NODELAY/QUICKACK (python-can's tcp_tune); 'tcp_tune: false' turns it off."""
+    bus = {"name": "can0", "interface": "socketcand", "channel": "can0", "kwargs": {"host": "h", "port": 1}}
+    drives = [{"name": "a", "node_id": 1}]
+    assert parse_config({"buses": [bus], "drives": drives}).buses[0].bus_kwargs()["tcp_tune"] is True
+    off = {**bus, "kwargs": {"host": "h", "port": 1, "tcp_tune": False}}
+    assert parse_config({"buses": [off], "drives": drives}).buses[0].bus_kwargs()["tcp_tune"] is False
+    other = {**bus, "interface": "socketcan"}
+    assert "tcp_tune" not in parse_config({"buses": [other], "drives": drives}).buses[0].bus_kwargs()
 
 
 def test_wrong_type_names_file_key_value_and_allowed(tmp_path: Path) -> None:

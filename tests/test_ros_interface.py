@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -24,7 +23,7 @@ if HAVE_ROS:
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import Twist
     from nav_msgs.msg import Odometry
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from rovercan_msgs.msg import MotorState
     from rovercan_msgs.srv import SdoRead, SdoWrite, SetMode
@@ -34,6 +33,7 @@ if HAVE_ROS:
 
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
     from nodes.rover_driver import DriverNode, DriverServicesNode, DriveSystemNode
+    from nodes.runtime import SpinThread, make_executor
 
 WHEELS = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left",
           "wheel_front_right", "wheel_middle_right", "wheel_rear_right"]
@@ -73,14 +73,18 @@ def graph() -> Iterator[Graph]:
     system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
     services = DriverServicesNode(driver, context=context)
     probe = rclpy.create_node("probe", context=context)
-    executor = MultiThreadedExecutor(num_threads=3, context=context)
-    for node in (driver_node, system_node, services, probe):
-        executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
+    # the executors the rover_driver node runs: topics on the EventsExecutor, services on a
+    # single-threaded one of their own (rclpy's MultiThreadedExecutor starves the driver's
+    # other threads for 0.1-0.5 s at a time: measured, and the drives' host watch sees it)
+    hot = make_executor("events", context)
+    for node in (driver_node, system_node, probe):
+        hot.add_node(node)
+    cold = SingleThreadedExecutor(context=context)
+    cold.add_node(services)
+    spinning = [SpinThread(hot, "test-hot"), SpinThread(cold, "test-services")]
     yield Graph(sim, driver, context, probe, driver_node, system_node)
-    executor.shutdown()
-    thread.join(timeout=5)
+    for spin in spinning:
+        spin.stop(5.0)
     for node in (driver_node, system_node, services, probe):
         node.destroy_node()
     rclpy.shutdown(context=context)

@@ -14,6 +14,7 @@ from motor_driver import MotorDriver, State
 from virtual_can import SimService
 
 from .conftest import SHARED_EDS, make_config, requires_shared, wait_for
+from .test_host_loss import can_watch_host
 
 DRIVES = sorted(p.name for p in SHARED_EDS.glob("*.eds") if p.name != "python_canopen_sample.eds") \
     if SHARED_EDS.is_dir() else []
@@ -22,7 +23,10 @@ DRIVES = sorted(p.name for p in SHARED_EDS.glob("*.eds") if p.name != "python_ca
 @requires_shared
 @pytest.mark.parametrize("eds", DRIVES)
 def test_vendor_drive_boots_enables_moves(eds: str, driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
-    _, driver = driver_factory(make_config(1, eds=str(SHARED_EDS / eds)))
+    # a drive that cannot watch the host is armed here on the explicit override (test_host_loss
+    # shows the refusal without it)
+    _, driver = driver_factory(make_config(1, eds=str(SHARED_EDS / eds),
+                                           allow_no_host_watch=not can_watch_host(SHARED_EDS / eds)))
     drive = driver.drive("joint1")
     drive.enable()
     assert drive.state is State.OPERATION_ENABLED

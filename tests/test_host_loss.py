@@ -1,0 +1,318 @@
+"""Drive-side safety: the drives stop by themselves when the driver's process dies or hangs.
+
+The driver runs in a process of its own (tests/clients/hold_velocity.py) and is killed with
+SIGKILL or frozen with SIGSTOP: no handler of ours runs. Independent clients on the bus (a
+python-can listener and a canopen SDO client of the test's own) show every drive leaving
+Operation Enabled within the consumer time + 100 ms and standing still.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+import canopen
+import pytest
+
+from can_config import RoverConfig, load_config, load_drive_od
+from can_config.config import GENERIC_EDS
+from can_config.errors import CommandRejected
+from motor_driver import MotorDriver, State
+from motor_driver.pdo import plan_pdos
+from virtual_can import SimDriveSpec, SimService
+from virtual_can.server import RAWMODE_HOLD_S
+
+from .conftest import REPO, SHARED_EDS, make_config, requires_shared, wait_for
+
+SimFactory = Callable[[RoverConfig], tuple[SimService, RoverConfig]]
+CLIENT = REPO / "tests" / "clients" / "hold_velocity.py"
+HOST_TIMEOUT_S = 0.15  # the default: 3 x the 50 ms host heartbeat
+BOUND_S = HOST_TIMEOUT_S + 0.1
+
+
+def statusword_enabled(sw: int) -> bool:
+    return sw & 0x6F == 0x27
+
+
+@dataclass
+class Watch:
+    """Frames of one channel with their bus time (the server stamps each frame as it enters the
+    bus, wall clock), collected by a thread of the test's own."""
+
+    bus: can.BusABC
+    frames: list[tuple[float, can.Message]] = field(default_factory=list)
+    stop: threading.Event = field(default_factory=threading.Event)
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            msg = self.bus.recv(0.05)
+            if msg is not None:
+                self.frames.append((msg.timestamp, msg))
+
+
+@contextmanager
+def watching(sim: SimService, channels: list[str]) -> Iterator[dict[str, Watch]]:
+    watches = {ch: Watch(can.Bus(interface="socketcand", channel=ch, host=sim.host, port=sim.port)) for ch in channels}
+    threads = [threading.Thread(target=w.run, daemon=True) for w in watches.values()]
+    for thread in threads:
+        thread.start()
+    time.sleep(RAWMODE_HOLD_S + 0.05)
+    try:
+        yield watches
+    finally:
+        for w in watches.values():
+            w.stop.set()
+        for thread in threads:
+            thread.join()
+        for w in watches.values():
+            w.bus.shutdown()
+
+
+def write_config(path: Path, port: int, drives: list[tuple[str, int, str, Path]], **extra: object) -> Path:
+    """drives: (name, node id, channel, eds)."""
+    channels = sorted({ch for _, _, ch, _ in drives})
+    lines = ["buses:"]
+    lines += [f"  - {{name: {ch}, interface: socketcand, channel: {ch}, kwargs: {{host: 127.0.0.1, port: {port}}}}}"
+              for ch in channels]
+    lines.append("drives:")
+    keys = {"counts_per_rev": 4096, "gear_ratio": 10, "max_velocity_deg_s": 720, "profile_acceleration_deg_s2": 2000,
+            **extra}
+    more = "".join(f", {k}: {v}" for k, v in keys.items())
+    lines += [f"  - {{name: {name}, node_id: {node}, bus: {ch}, eds: '{eds}'{more}}}" for name, node, ch, eds in drives]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def first_stop(frames: list[tuple[float, can.Message]], cob_id: int, offset: int, after: float) -> float | None:
+    """Arrival time of the first statusword (in TPDO ``cob_id`` at byte ``offset``) after
+    ``after`` that says the drive is no longer in Operation Enabled."""
+    for t, msg in frames:
+        if t >= after and msg.arbitration_id == cob_id and len(msg.data) >= offset + 2 \
+                and not statusword_enabled(int.from_bytes(msg.data[offset:offset + 2], "little")):
+            return t
+    return None
+
+
+def statusword_tpdo(eds: Path, node: int) -> tuple[int, int]:
+    """COB-ID and byte offset of the first event-driven TPDO carrying the statusword, as the driver maps it."""
+    for pdo in plan_pdos(load_drive_od(eds, node), node).tpdos:
+        offset = 0
+        for index, _, dtype in pdo.objects:
+            if index == 0x6041 and pdo.trans_type >= 254:
+                return pdo.cob_id, offset
+            offset += {0x2: 1, 0x5: 1, 0x3: 2, 0x6: 2}.get(dtype, 4)
+    raise AssertionError(f"{eds.name}: no event-driven statusword TPDO")
+
+
+def run_and_stop(tmp_path: Path, drives: list[tuple[str, int, str, Path]], sig: int, velocity: float = 60.0,
+                 **extra: object) -> None:
+    specs = [SimDriveSpec(node, eds, ch, name, 4096) for name, node, ch, eds in drives]
+    with SimService(specs, port=0) as sim:
+        config = write_config(tmp_path / "rover.yaml", sim.port, drives, **extra)
+        channels = sorted({ch for _, _, ch, _ in drives})
+        with watching(sim, channels) as watches:
+            proc = subprocess.Popen([sys.executable, str(CLIENT), str(config), str(velocity)], cwd=REPO,
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            try:
+                assert proc.stdout is not None
+                line = proc.stdout.readline()
+                assert line.strip() == "READY", (line, proc.stderr.read() if proc.poll() is not None else "")
+                for name, node, ch, _ in drives:
+                    sim_drive = sim.simulators[ch].drive(node)
+                    assert sim.simulators[ch].call(lambda d=sim_drive: d.state.name) == "OPERATION_ENABLED", name
+                t_signal = time.time()
+                proc.send_signal(sig)
+                time.sleep(BOUND_S + 0.3)
+                results = {}
+                for name, node, ch, eds in drives:
+                    cob, offset = statusword_tpdo(eds, node)
+                    stopped = first_stop(watches[ch].frames, cob, offset, t_signal)
+                    results[name] = None if stopped is None else stopped - t_signal
+                heard = {ch: [t for t, m in w.frames if m.arbitration_id == 0x77F] for ch, w in watches.items()}
+            finally:
+                if sig == signal.SIGSTOP:
+                    proc.kill()
+                    proc.send_signal(signal.SIGCONT)
+                proc.kill()
+                proc.wait(10)
+                if proc.stdout:
+                    proc.stdout.close()
+                if proc.stderr:
+                    proc.stderr.close()
+        for ch, beats in heard.items():  # the host heartbeat was on each bus, and stopped with the process
+            assert beats and beats[-1] < t_signal + 0.1, (ch, [round(t - t_signal, 3) for t in beats[-3:]])
+        late = {name: dt for name, dt in results.items() if dt is None or dt > BOUND_S}
+        assert not late, f"not stopped within {BOUND_S * 1000:.0f} ms of the signal: {late}"
+        # an independent SDO client: every drive stands still and is not enabled
+        for ch in channels:
+            network = canopen.Network()
+            network.connect(interface="socketcand", channel=ch, host=sim.host, port=sim.port)
+            try:
+                time.sleep(RAWMODE_HOLD_S + 0.02)
+                for name, node, chan, eds in drives:
+                    if chan != ch:
+                        continue
+                    remote = network.add_node(node, load_drive_od(eds, node))
+                    sw = int.from_bytes(remote.sdo.upload(0x6041, 0), "little")
+                    velocity_actual = int.from_bytes(remote.sdo.upload(0x606C, 0), "little", signed=True)
+                    assert not statusword_enabled(sw) and velocity_actual == 0, (name, hex(sw), velocity_actual)
+            finally:
+                network.disconnect()
+
+
+ROVER = [(f"wheel{i}", (i - 1) % 3 + 1, "can0" if i <= 3 else "can1", GENERIC_EDS) for i in range(1, 7)]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])
+def test_six_drives_on_two_buses_stop_when_the_driver_dies(tmp_path: Path, sig: int) -> None:
+    run_and_stop(tmp_path, ROVER, sig)
+
+
+def test_on_host_loss_fault_puts_the_drives_in_fault(tmp_path: Path) -> None:
+    run_and_stop(tmp_path, ROVER[:2], signal.SIGKILL, on_host_loss="fault")
+
+
+def can_watch_host(eds: Path) -> bool:
+    """The EDS has a 0x1016:1 whose range holds a node id (Elmo's says HighLimit 65535: time only)."""
+    od = load_drive_od(eds, 1)
+    if 0x1016 not in od:
+        return False
+    high = od[0x1016][1].max
+    return high is None or high >= 127 << 16 | 150
+
+
+VENDOR = [p for p in sorted(SHARED_EDS.glob("*.eds")) if p.name != "python_canopen_sample.eds"] \
+    if SHARED_EDS.is_dir() else []
+WATCHING_EDS = [p for p in VENDOR if can_watch_host(p)]
+BLIND_EDS = [p for p in VENDOR if not can_watch_host(p)]
+
+
+@requires_shared
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])
+def test_vendor_drives_with_a_consumer_heartbeat_stop_when_the_driver_dies(tmp_path: Path, sig: int) -> None:
+    assert len(WATCHING_EDS) >= 5, [p.name for p in WATCHING_EDS]
+    drives = [(p.stem.split("_")[0] + str(i), i, "can0", p) for i, p in enumerate(WATCHING_EDS, start=1)]
+    run_and_stop(tmp_path, drives, sig, velocity=30.0, gear_ratio=1, max_velocity_deg_s=360,
+                 profile_acceleration_deg_s2=360)
+
+
+@requires_shared
+@pytest.mark.parametrize("eds", BLIND_EDS, ids=lambda p: p.name)
+def test_a_drive_that_cannot_watch_the_host_is_not_armed_unless_allowed(eds: Path, sim_factory: SimFactory) -> None:
+    _, cfg = sim_factory(make_config(1, eds=str(eds)))
+    with MotorDriver(cfg).start() as driver:
+        drive = driver.drive("joint1")
+        assert drive.host_watch is None
+        reason = "refuses 0x1016:1 = 0x007F0096" if "1016" in eds.read_text(errors="replace") else "has no consumer heartbeat"
+        with pytest.raises(CommandRejected, match=f"enable refused: no drive-side stop on host loss: .*{reason}"):
+            drive.enable()
+        assert drive.state is not State.OPERATION_ENABLED
+    _, cfg = sim_factory(make_config(1, eds=str(eds), allow_no_host_watch=True))
+    with MotorDriver(cfg).start() as driver:
+        driver.drive("joint1").enable()
+        assert driver.drive("joint1").state is State.OPERATION_ENABLED
+
+
+def test_boot_writes_the_host_watch_and_close_releases_it(sim_factory: SimFactory) -> None:
+    sim, cfg = sim_factory(make_config(1, host_timeout_ms=200, on_host_loss="disable"))
+    sim_drive = sim.simulators["can0"].drive(1)
+
+    def read(index: int, sub: int = 0) -> object:
+        return sim.simulators["can0"].call(lambda: sim_drive.store.get(index, sub))
+
+    driver = MotorDriver(cfg).start()
+    try:
+        assert read(0x1016, 1) == 127 << 16 | 200  # node 127, 200 ms
+        assert read(0x6007) == 2 and read(0x605A) == 2
+        wait_for(lambda: bool(sim.simulators["can0"].call(lambda: dict(sim_drive._consumer_seen))), 1.0,
+                 "consumer armed by the host heartbeat")
+    finally:
+        driver.close()
+    assert read(0x1016, 1) == 0  # a clean close leaves no armed watch behind: no EMCY after exit
+
+
+def test_default_config_has_the_host_watch() -> None:
+    config = load_config()
+    assert config.buses[0].host_node_id == 127 and config.buses[0].host_heartbeat_s == 0.05
+    assert config.drives[0].host_timeout_s == pytest.approx(0.15) and config.drives[0].on_host_loss == "quick_stop"
+
+
+def test_sigterm_to_an_api_script_with_the_helper_stops_the_drive_in_the_driver(tmp_path: Path) -> None:
+    drives = ROVER[:1]
+    with SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "wheel1", 4096)], port=0) as sim:
+        config = write_config(tmp_path / "rover.yaml", sim.port, drives)
+        with watching(sim, ["can0"]) as watches:
+            proc = subprocess.Popen([sys.executable, str(CLIENT), str(config), "60", "--helper"], cwd=REPO,
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            try:
+                assert proc.stdout is not None and proc.stdout.readline().strip() == "READY"
+                t_signal = time.time()
+                proc.send_signal(signal.SIGTERM)
+                out, err = proc.communicate(timeout=10)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+            time.sleep(0.1)
+        frames = watches["can0"].frames
+    assert proc.returncode == 0 and f"STOPPED {int(signal.SIGTERM)}" in out, err
+    stopped = first_stop(frames, 0x181, 0, t_signal)
+    assert stopped is not None and stopped - t_signal < 0.5
+    # the driver itself stopped it (quick stop, then disable voltage), not the drive's host watch
+    cws = [int.from_bytes(m.data[:2], "little") for t, m in frames if t >= t_signal and m.arbitration_id == 0x201]
+    assert cws[:2] == [0x02, 0x00], cws
+    assert not [m for t, m in frames if m.arbitration_id == 0x81 and m.data[:2] == b"\x30\x81"]  # no EMCY 0x8130
+
+
+def test_an_api_script_without_any_handler_is_still_stopped_by_the_drive(tmp_path: Path) -> None:
+    run_and_stop(tmp_path, ROVER[:1], signal.SIGTERM)
+
+
+def test_a_config_cannot_give_a_drive_the_hosts_node_id() -> None:
+    from can_config import parse_config
+    from can_config.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"drives\[0\]\.node_id: node id 127 is the host's own id"):
+        parse_config({"buses": [{"name": "can0", "interface": "virtual", "channel": "x"}],
+                      "drives": [{"name": "a", "node_id": 127}]})
+    with pytest.raises(ConfigError, match=r"host_timeout_ms: got 40; it must be longer than the bus's host_heartbeat_ms \(50\)"):
+        parse_config({"buses": [{"name": "can0", "interface": "virtual", "channel": "x"}],
+                      "drives": [{"name": "a", "node_id": 1, "host_timeout_ms": 40}]})
+
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_a_signal_to_rovercan_jog_stops_the_drive(tmp_path: Path, sig: int) -> None:
+    with SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "wheel1", 4096)], port=0) as sim:
+        config = write_config(tmp_path / "rover.yaml", sim.port, ROVER[:1])
+        runner = sim.simulators["can0"]
+        sim_drive = runner.drive(1)
+        with watching(sim, ["can0"]) as watches:
+            proc = subprocess.Popen([sys.executable, "-m", "rovercan", "jog", "1", "60", "--for", "30",
+                                     "--config", str(config)], cwd=REPO, stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True)
+            try:
+                wait_for(lambda: abs(float(runner.call(lambda: sim_drive.omega))) > 1.0, 15.0, "the jog turning")  # type: ignore[arg-type]
+                t_signal = time.time()
+                proc.send_signal(sig)
+                _out, err = proc.communicate(timeout=10)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+            time.sleep(0.1)
+        frames = watches["can0"].frames
+        final = runner.call(lambda: sim_drive.state.name)
+    assert proc.returncode == 1, err
+    assert f"stopped by {signal.Signals(sig).name}" in err and "Traceback" not in err, err
+    stopped = first_stop(frames, 0x181, 0, t_signal)
+    assert stopped is not None and stopped - t_signal < 0.5
+    cws = [int.from_bytes(m.data[:2], "little") for t, m in frames if t >= t_signal and m.arbitration_id == 0x201]
+    assert cws[:2] == [0x02, 0x00], cws  # the CLI's own quick stop and disable, before it exits
+    assert final == "SWITCH_ON_DISABLED"
