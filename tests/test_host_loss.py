@@ -149,6 +149,8 @@ def run_and_stop(tmp_path: Path, drives: list[tuple[str, int, str, Path]], sig: 
                     proc.stderr.close()
         for ch, beats in heard.items():  # the host heartbeat was on each bus, and stopped with the process
             assert beats and beats[-1] < t_signal + 0.1, (ch, [round(t - t_signal, 3) for t in beats[-3:]])
+        print(f"stop after {signal.Signals(sig).name}: " + ", ".join(f"{n} {dt * 1000:.0f} ms" if dt else f"{n} -"
+                                                              for n, dt in results.items()))
         late = {name: dt for name, dt in results.items() if dt is None or dt > BOUND_S}
         assert not late, f"not stopped within {BOUND_S * 1000:.0f} ms of the signal: {late}"
         # an independent SDO client: every drive stands still and is not enabled
@@ -313,6 +315,43 @@ def test_a_signal_to_rovercan_jog_stops_the_drive(tmp_path: Path, sig: int) -> N
     assert f"stopped by {signal.Signals(sig).name}" in err and "Traceback" not in err, err
     stopped = first_stop(frames, 0x181, 0, t_signal)
     assert stopped is not None and stopped - t_signal < 0.5
+    print(f"jog stopped {(stopped - t_signal) * 1000:.0f} ms after {signal.Signals(sig).name}")
     cws = [int.from_bytes(m.data[:2], "little") for t, m in frames if t >= t_signal and m.arbitration_id == 0x201]
     assert cws[:2] == [0x02, 0x00], cws  # the CLI's own quick stop and disable, before it exits
     assert final == "SWITCH_ON_DISABLED"
+
+
+def seconds_until_stopped(sim: SimService, nodes: list[int], timeout_s: float = 2.0) -> dict[int, float]:
+    """From now until each simulated drive has left Operation Enabled and stands still (its truth)."""
+    runner = sim.simulators["can0"]
+    t0 = time.monotonic()
+    out: dict[int, float] = {}
+    while len(out) < len(nodes) and time.monotonic() - t0 < timeout_s:
+        for node in nodes:
+            drive = runner.drive(node)
+            state, omega = runner.call(lambda d=drive: (d.state.name, d.omega))  # type: ignore[misc]
+            if node not in out and state != "OPERATION_ENABLED" and omega == 0.0:
+                out[node] = time.monotonic() - t0
+        time.sleep(0.002)
+    return out
+
+
+@pytest.mark.parametrize("failure", ["cable pulled", "bus server gone"])
+def test_the_drives_stop_when_the_host_is_cut_off(driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]],
+                                                 failure: str) -> None:
+    from virtual_can.scenario import apply_action
+
+    sim, driver = driver_factory(make_config(2, counts_per_rev=4096, gear_ratio=10, profile_acceleration_deg_s2=2000,
+                                             watchdog_ms=10_000))
+    for drive in driver:
+        drive.enable()
+        drive.set_velocity(60.0)
+    wait_for(lambda: all(abs(d.snapshot().velocity_deg_s - 60.0) < 3.0 for d in driver), 3.0, "both turning")
+    if failure == "cable pulled":  # the drives' side of the cable: they hear nothing more
+        for node in (1, 2):
+            apply_action(sim, {"action": "unplug", "node": node})
+    else:  # the socketcand server drops its clients: the drives keep running on the CAN bus
+        apply_action(sim, {"action": "disconnect_clients"})
+    stopped = seconds_until_stopped(sim, [1, 2])
+    print(f"stop after {failure}: " + ", ".join(f"node {n} {dt * 1000:.0f} ms" for n, dt in stopped.items()))
+    assert set(stopped) == {1, 2} and max(stopped.values()) <= BOUND_S, stopped

@@ -226,6 +226,12 @@ def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph:
     assert math.radians(left) == pytest.approx(2.5, rel=0.1)
     assert math.radians(right) == pytest.approx(5.5, rel=0.1)
     assert right / left == pytest.approx(5.5 / 2.5, rel=0.08)
+    # the right side is mounted mirrored (invert: true in config/rover.yaml): forward in joint
+    # space is a negative velocity on its drives, positive on the left side's
+    for channel, sign in (("can0", 1), ("can1", -1)):
+        runner = graph.sim.simulators[channel]
+        drive_velocity = float(runner.call(lambda runner=runner: runner.drive(2).store.get(0x606C, 0)))
+        assert drive_velocity * sign > 0, (channel, drive_velocity)
     last = odom[-1]
     assert last.twist.twist.linear.x == pytest.approx(0.4, rel=0.1)
     assert last.twist.twist.angular.z == pytest.approx(0.5, rel=0.15)
