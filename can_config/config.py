@@ -130,7 +130,8 @@ class DriveSystemConfig:
     wheel_radius_m: float = 0.1
     cmd_timeout_s: float = 0.5
     max_accel_m_s2: float = 1.0
-    max_speed_m_s: float = 1.0
+    max_speed_m_s: float = 1.0  # body speed, and every wheel's rim speed
+    max_angular_rad_s: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -228,6 +229,7 @@ _DRIVE_SYSTEM_FIELDS: dict[str, _Field] = {
     "cmd_timeout_ms": _Field("float", 500.0, 10.0, 60_000.0),
     "max_accel_m_s2": _Field("float", 1.0, 0.0, 100.0, low_open=True),
     "max_speed_m_s": _Field("float", 1.0, 0.0, 100.0, low_open=True),
+    "max_angular_rad_s": _Field("float", 2.0, 0.0, 100.0, low_open=True),
 }
 
 _TOP_FIELDS = ("buses", "drives", "drive_system")
@@ -499,7 +501,8 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
         out["drive_system"] = {"left": list(ds.left), "right": list(ds.right),
                                "track_width_m": ds.track_width_m, "wheel_radius_m": ds.wheel_radius_m,
                                "cmd_timeout_ms": ds.cmd_timeout_s * 1000.0,
-                               "max_accel_m_s2": ds.max_accel_m_s2, "max_speed_m_s": ds.max_speed_m_s}
+                               "max_accel_m_s2": ds.max_accel_m_s2, "max_speed_m_s": ds.max_speed_m_s,
+                               "max_angular_rad_s": ds.max_angular_rad_s}
     return out
 
 

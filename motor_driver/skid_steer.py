@@ -3,6 +3,11 @@
 Body twist (v m/s, w rad/s) -> wheel speeds: left = (v - w*T/2)/r, right = (v + w*T/2)/r
 (rad/s), T the track width and r the wheel radius. Odometry integrates the measured wheel
 speeds back into a pose with the midpoint rule. No I/O and no ROS: the node feeds it.
+
+Limits never bend a turn: a command beyond any limit (body speed, body turn rate, any wheel's
+rim speed or drive speed) is scaled as a whole, v and w by one factor, so its curvature
+stays; the acceleration ramp moves both sides along a straight line in (left, right) wheel
+space, so they reach their target together and the curvature holds while ramping too.
 """
 
 from __future__ import annotations
@@ -57,30 +62,57 @@ def integrate(pose: Pose2D, twist: Twist2D, dt: float) -> Pose2D:
 
 
 class SkidSteer:
-    """Commanded twist -> ramped wheel speed setpoints; measured wheel speeds -> odometry."""
+    """Commanded twist -> desaturated, ramped wheel speed setpoints; wheel speeds -> odometry."""
 
     def __init__(self, track_width_m: float, wheel_radius_m: float, max_accel_m_s2: float,
-                 max_speed_m_s: float) -> None:
+                 max_speed_m_s: float, *, max_angular_rad_s: float = math.inf,
+                 max_wheel_rad_s: float = math.inf) -> None:
         self.track_width_m = track_width_m
         self.wheel_radius_m = wheel_radius_m
         self.max_accel_m_s2 = max_accel_m_s2
         self.max_speed_m_s = max_speed_m_s
+        self.max_angular_rad_s = max_angular_rad_s
+        #: the slowest wheel's limit: its drive's max velocity, and max_speed_m_s at its rim
+        self.max_wheel_rad_s = min(max_wheel_rad_s, max_speed_m_s / wheel_radius_m)
         self.left_rad_s = 0.0
         self.right_rad_s = 0.0
         self.pose = Pose2D()
 
+    def desaturate(self, twist: Twist2D) -> Twist2D:
+        """``twist`` scaled as a whole (same curvature) so that every limit holds."""
+        v, w = twist.linear_m_s, twist.angular_rad_s
+        factor = 1.0
+        if abs(v) > self.max_speed_m_s:
+            factor = min(factor, self.max_speed_m_s / abs(v))
+        if abs(w) > self.max_angular_rad_s:
+            factor = min(factor, self.max_angular_rad_s / abs(w))
+        peak = max(abs(x) for x in wheel_speeds_rad_s(twist, self.track_width_m, self.wheel_radius_m))
+        if peak > self.max_wheel_rad_s:
+            factor = min(factor, self.max_wheel_rad_s / peak)
+        return Twist2D(v * factor, w * factor)
+
     def clamp(self, twist: Twist2D) -> Twist2D:
-        """Refuse nothing, clamp the linear speed to the configured maximum."""
-        v = max(-self.max_speed_m_s, min(self.max_speed_m_s, twist.linear_m_s))
-        return Twist2D(v, twist.angular_rad_s)
+        """Kept for callers of the old name: the whole command scaled, see :meth:`desaturate`."""
+        return self.desaturate(twist)
 
     def step(self, target: Twist2D, dt: float) -> tuple[float, float]:
-        """Ramped (left, right) wheel setpoints in rad/s toward ``target``, limited in rim acceleration."""
-        left, right = wheel_speeds_rad_s(self.clamp(target), self.track_width_m, self.wheel_radius_m)
-        max_rate = self.max_accel_m_s2 / self.wheel_radius_m
-        self.left_rad_s = ramp(self.left_rad_s, left, max_rate, dt)
-        self.right_rad_s = ramp(self.right_rad_s, right, max_rate, dt)
+        """(left, right) wheel setpoints in rad/s toward the desaturated ``target``; neither side
+        changes faster than the rim acceleration allows, and both arrive together."""
+        left, right = wheel_speeds_rad_s(self.desaturate(target), self.track_width_m, self.wheel_radius_m)
+        d_left, d_right = left - self.left_rad_s, right - self.right_rad_s
+        largest = max(abs(d_left), abs(d_right))
+        step = self.max_accel_m_s2 / self.wheel_radius_m * dt
+        if largest <= step:
+            self.left_rad_s, self.right_rad_s = left, right
+        else:
+            self.left_rad_s += d_left * step / largest
+            self.right_rad_s += d_right * step / largest
         return self.left_rad_s, self.right_rad_s
+
+    def halt(self) -> None:
+        """Forget the ramp: the wheels were stopped by someone else (a refusal, a fault). The
+        next command ramps up from standstill; a stale one never brings them back."""
+        self.left_rad_s = self.right_rad_s = 0.0
 
     def odometry(self, left_rad_s: float, right_rad_s: float, dt: float) -> tuple[Pose2D, Twist2D]:
         twist = body_twist(left_rad_s, right_rad_s, self.track_width_m, self.wheel_radius_m)

@@ -319,8 +319,11 @@ class DriveSystemNode(Node):
         self.system = system
         self.left = [driver.drive(n) for n in system.left]
         self.right = [driver.drive(n) for n in system.right]
+        self.wheels = self.left + self.right
+        slowest_deg_s = min(d.config.max_velocity_deg_s for d in self.wheels)
         self.steer = SkidSteer(system.track_width_m, system.wheel_radius_m, system.max_accel_m_s2,
-                               system.max_speed_m_s)
+                               system.max_speed_m_s, max_angular_rad_s=system.max_angular_rad_s,
+                               max_wheel_rad_s=math.radians(slowest_deg_s))
         self.refusals = refusals or RefusalLog(self)
         self._target = Twist2D()
         self._last_cmd = -math.inf
@@ -347,26 +350,50 @@ class DriveSystemNode(Node):
             dt = min(now - self._last_tick, 0.5)
             self._last_tick = now
             self.stale = now - self._last_cmd > self.system.cmd_timeout_s
-            target = Twist2D() if self.stale else self._target
-            left, right = self.steer.step(target, dt)
             if not self.stale:
+                # all or none: a turn driven by one side only is worse than no motion
+                blocked = [d for d in self.wheels if not d.snapshot().enabled]
+                if blocked:
+                    state = blocked[0].snapshot()
+                    self._halt(f"/cmd_vel not applied: wheel {blocked[0].name} is"
+                               f" {'lost' if state.lost else state.state.name}; no wheel is driven")
+                    self._publish_odom(dt)
+                    return
                 self.active = True
-            elif self.active and left == 0.0 and right == 0.0:
-                self.active = False  # stopped: send this last zero, then leave the wheels to others
-            elif not self.active:
+            left, right = self.steer.step(Twist2D() if self.stale else self._target, dt)
+            if self.stale and not self.active:
                 self._publish_odom(dt)
                 return
+            if self.stale and left == 0.0 and right == 0.0:
+                self.active = False  # stopped: send this last zero, then leave the wheels to others
             for drives, speed in ((self.left, left), (self.right, right)):
                 for drive in drives:
-                    if drive.state.name != "OPERATION_ENABLED":
-                        continue
+                    if self.stale and not drive.snapshot().enabled:
+                        continue  # ramping down: the others still stop
                     try:
                         drive.set_velocity(speed * DEG)
                     except RovercanError as err:
-                        self.refusals.refuse(drive.name, f"wheel velocity: {err}")
+                        self._halt(f"/cmd_vel not applied: wheel {drive.name} refused {speed:.2f} rad/s ({err});"
+                                   " every wheel stopped")
+                        self._publish_odom(dt)
+                        return
             self._publish_odom(dt)
         except Exception as err:
             self.get_logger().error(f"drive system tick failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+
+    def _halt(self, reason: str) -> None:
+        """Stop every wheel that still runs and forget the ramp, so that nothing (a stale
+        ramp-down, a recovered wheel) brings them back without a fresh /cmd_vel."""
+        self.steer.halt()
+        if self.active:
+            for drive in self.wheels:
+                if drive.snapshot().enabled:
+                    try:
+                        drive.set_velocity(0.0)
+                    except RovercanError:
+                        pass  # that wheel cannot move anyway
+        self.active = False
+        self.refusals.refuse("drive_system", reason)
 
     def _publish_odom(self, dt: float) -> None:
         def mean_rad_s(drives: list[Drive]) -> float:

@@ -264,3 +264,90 @@ def test_bus_lost_is_published_and_nodes_keep_running(graph: Graph) -> None:
     eventually(lambda: bool(states) and states[-1].state == "LOST" and states[-1].fault, 3.0, "MotorState LOST")
     count = len(states)
     eventually(lambda: len(states) > count + 10, 2.0, "MotorState still published")
+
+
+def tpdo_velocities(frames: list[Any], counts_per_deg: float) -> list[float]:
+    """Joint speeds (deg/s, unsigned) in the drives' TPDO2 (0x28N: position, velocity)."""
+    return [abs(int.from_bytes(m.data[4:8], "little", signed=True)) / counts_per_deg
+            for m in frames if 0x281 <= m.arbitration_id <= 0x283 and len(m.data) == 8]
+
+
+def test_cmd_vel_beyond_every_limit_is_scaled_whole_and_nothing_moves_after_it_stops(graph: Graph) -> None:
+    import can
+
+    from virtual_can.server import RAWMODE_HOLD_S
+
+    from .conftest import drain
+
+    for wheel in WHEELS:
+        assert graph.call(Trigger, f"wheels/{wheel}/enable").success
+    listeners: list[can.BusABC] = []
+    try:
+        odom = graph.listen(Odometry, "/odom")
+        cmd = graph.probe.create_publisher(Twist, "/cmd_vel", COMMAND_QOS)
+        twist = Twist()
+        twist.linear.x, twist.angular.z = 1.0, 4.0  # right wheel: 22 rad/s, 2.2 m/s at the rim
+        peak = 0.0
+        t_end = time.monotonic() + 3.0
+        while time.monotonic() < t_end:
+            cmd.publish(twist)
+            peak = max([peak] + [abs(graph.driver.drive(w).snapshot().velocity_deg_s) for w in WHEELS])
+            time.sleep(0.05)
+        # scaled as a whole: the fastest wheel at the 1.0 m/s rim limit (10 rad/s), the turn kept
+        assert math.radians(peak) <= 10.0 * 1.05
+        assert math.radians(peak) >= 10.0 * 0.9
+        last = odom[-1].twist.twist
+        assert last.angular.z / last.linear.x == pytest.approx(4.0, rel=0.15)
+        assert not graph.system_node.stale and graph.driver.drive("wheel_front_right").watchdog_stops == 0
+        # /cmd_vel stops: the wheels ramp down (10 rad/s at 10 rad/s^2 after the 0.5 s timeout)
+        time.sleep(1.8)
+        listeners += [can.Bus(interface="socketcand", channel=ch, host=graph.sim.host, port=graph.sim.port)
+                      for ch in ("can0", "can1")]
+        time.sleep(RAWMODE_HOLD_S + 0.05)
+        for bus in listeners:
+            drain(bus, 0.02)
+        time.sleep(10.0)  # ten seconds of the bus, read back from each listener's queue
+        frames = [m for bus in listeners for m in drain(bus, 0.5)]
+        speeds = tpdo_velocities(frames, 4096 * 50 / 360.0)
+        assert len(speeds) > 500 and max(speeds) < 0.5, max(speeds)  # and they stay stopped (seen on the bus)
+        # angular alone beyond max_angular_rad_s: turned on the spot at 2 rad/s
+        spin = Twist()
+        spin.angular.z = 4.0
+        t_end = time.monotonic() + 2.5
+        while time.monotonic() < t_end:
+            cmd.publish(spin)
+            time.sleep(0.05)
+        last = odom[-1].twist.twist
+        assert abs(last.angular.z) == pytest.approx(2.0, rel=0.1) and abs(last.linear.x) < 0.05
+        rim = max(abs(math.radians(graph.driver.drive(w).snapshot().velocity_deg_s)) * 0.1 for w in WHEELS)
+        assert rim <= 1.0 * 1.05
+    finally:
+        for bus in listeners:
+            bus.shutdown()
+
+
+def test_a_wheel_that_cannot_follow_stops_the_whole_drive_system(graph: Graph) -> None:
+    for wheel in WHEELS:
+        assert graph.call(Trigger, f"wheels/{wheel}/enable").success
+    cmd = graph.probe.create_publisher(Twist, "/cmd_vel", COMMAND_QOS)
+    twist = Twist()
+    twist.linear.x = 0.5
+    diags = graph.listen(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+
+    def drive_for(seconds: float) -> None:
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            cmd.publish(twist)
+            time.sleep(0.05)
+
+    drive_for(1.0)
+    apply_action(graph.sim, {"action": "fault", "node": 2, "code": 0x2310})  # wheel_middle_left (can0)
+    drive_for(1.5)  # /cmd_vel still fresh, but one wheel is in FAULT: none is driven
+    assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
+    assert any("wheel wheel_middle_left is FAULT; no wheel is driven" in st.message for a in diags for st in a.status)
+    graph.driver.drive("wheel_middle_left").recover()
+    graph.driver.drive("wheel_middle_left").enable()
+    time.sleep(1.0)  # recovered, but no fresh /cmd_vel: nothing moves
+    assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
+    drive_for(1.5)  # a fresh command drives all six again
+    assert all(graph.driver.drive(w).snapshot().velocity_deg_s > 100.0 for w in WHEELS)
