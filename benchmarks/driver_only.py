@@ -17,7 +17,7 @@ logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR
 def main() -> int:
     host, port, n, sync_ms, seconds = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
     config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0", "sync_period_ms": sync_ms,
-                                      "kwargs": {"host": host, "port": port, "tcp_tune": True}}],
+                                      "kwargs": {"host": host, "port": port}}],  # tuned by default
                            "drives": [{"name": f"j{i}", "node_id": i, "counts_per_rev": 4096} for i in range(1, n + 1)]})
     with MotorDriver(config) as driver:
         driver.start()

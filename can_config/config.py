@@ -99,6 +99,7 @@ class DriveConfig:
     host_timeout_s: float | None = None  # consumer time of the host heartbeat; None: 3x its period
     on_host_loss: str = "quick_stop"  # 0x6007: what the drive does when the host falls silent
     allow_no_host_watch: bool = False  # arm a drive that cannot watch the host (loud warning)
+    stale_after_syncs: int = 5  # no TPDO for this many SYNC periods: its state is reported stale
 
     @property
     def quick_stop_decel_deg_s2(self) -> float:
@@ -219,6 +220,7 @@ _DRIVE_FIELDS: dict[str, _Field] = {
     "host_timeout_ms": _Field("opt_float", None, 20.0, 65_535.0),
     "on_host_loss": _Field("str", "quick_stop", choices=tuple(ON_HOST_LOSS)),
     "allow_no_host_watch": _Field("bool", False),
+    "stale_after_syncs": _Field("int", 5, 2, 1000),
 }
 
 _DRIVE_SYSTEM_FIELDS: dict[str, _Field] = {
@@ -490,6 +492,7 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
             "quick_stop_deceleration_deg_s2": d.quick_stop_deceleration_deg_s2,
             "host_timeout_ms": d.host_timeout_s * 1000.0 if d.host_timeout_s is not None else None,
             "on_host_loss": d.on_host_loss, "allow_no_host_watch": d.allow_no_host_watch,
+            "stale_after_syncs": d.stale_after_syncs,
         }
         if d.joint == "limited":
             entry["min_deg"] = d.min_deg

@@ -122,6 +122,9 @@ class DriveState:
     stamp: float  # time.time() when the PDOs carrying this state arrived
     heartbeat_age_s: float
     target_reached: bool
+    data_age_s: float = math.inf  # since the last TPDO arrived
+    stale: bool = False  # no TPDO for stale_after_syncs SYNC periods: the values above are old
+    foreign_master: str = ""  # evidence that another master drives it: commands are refused
 
 
 class Drive:
@@ -179,6 +182,11 @@ class Drive:
         self.host_watch_problem: str | None = None  # why there is no host watch (after boot)
         self.safety: tuple[SafetyCheck, ...] = ()  # read back after each boot (motor_driver.safety)
         self.limit_stops = 0
+        self.rx_monotonic = 0.0  # when the last TPDO arrived (receive thread)
+        self._sw_enabled = False  # the last statusword said Operation Enabled (receive thread)
+        #: set by the supervisor while another master is on the bus: why commands are refused
+        self.foreign_master = ""
+        self.behind_back: tuple[float, str] = (0.0, "")  # (when, what) changed without this driver
         self.last_velocity_cmd = 0.0
         self.velocity_commanded = False
         self.was_enabled = False
@@ -216,8 +224,15 @@ class Drive:
             elif index == OD.MODES_OF_OPERATION_DISPLAY:
                 self.mode_display = value
         self.stamp = timestamp
+        self.rx_monotonic = time.monotonic()
         self.tpdo_count += 1
         if OD.STATUSWORD in layout.indexes:
+            enable = int(Command.ENABLE_OPERATION)
+            now_enabled = decode_state(self.statusword) == State.OPERATION_ENABLED
+            if now_enabled and not self._sw_enabled and self.booted and self._cw & enable != enable:
+                self.behind_back = (self.rx_monotonic, f"node {self.node_id} became OPERATION_ENABLED, which this"
+                                                       " driver did not command")
+            self._sw_enabled = now_enabled
             if self._awaiting_ack and self.statusword & SW.SETPOINT_ACK:
                 try:
                     self._complete_setpoint()
@@ -261,10 +276,14 @@ class Drive:
                 self.booted = False
                 self.rebooted.set()
             return
+        was = self.nmt_state
         try:
             self.nmt_state = NmtState(state).name
         except ValueError:
             self.nmt_state = f"0x{state:02X}"
+        if self.booted and state != NmtState.OPERATIONAL and was == "OPERATIONAL":  # the change, not the state
+            self.behind_back = (self.last_heartbeat, f"node {self.node_id} went {self.nmt_state} without an NMT"
+                                                     " command from this driver")
         if self.lost:
             logger.warning("node %d (%s): heartbeat back", self.node_id, self.name)
             self.lost = False
@@ -290,6 +309,22 @@ class Drive:
             logger.error("node %d (%s): heartbeat lost (none for %.0f ms, consumer time %.0f ms)",
                          self.node_id, self.name, (now - self.last_heartbeat) * 1000,
                          self.config.heartbeat_timeout_s * 1000)
+
+    def set_foreign_master(self, evidence: str) -> None:
+        """Supervisor: another master drives this drive ("" once it has been gone long enough).
+        Nothing of this driver's goes to the drive meanwhile; when it clears, the drive is
+        configured again (not enabled): the other master may have reset or re-mapped it."""
+        if evidence and not self.foreign_master:
+            logger.error("%s (node %d): another master on the bus: %s; commands are refused", self.name,
+                         self.node_id, evidence)
+            self.velocity_commanded = False
+            self.was_enabled = False
+        elif not evidence and self.foreign_master:
+            logger.warning("%s (node %d): the other master is gone; configuring the drive again (not enabled)",
+                           self.name, self.node_id)
+            self.booted = False
+            self.rebooted.set()
+        self.foreign_master = evidence
 
     def mark_lost(self) -> None:
         """Supervisor: the drive's bus is gone; nothing is commanded until it is booted again."""
@@ -329,18 +364,22 @@ class Drive:
         error_code = emcy.code if emcy is not None and state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else 0
         if emcy is not None and not error_code and emcy.code:
             error_code = emcy.code
-        hb_age = time.monotonic() - self.last_heartbeat if self.last_heartbeat else math.inf
+        now = time.monotonic()
+        hb_age = now - self.last_heartbeat if self.last_heartbeat else math.inf
+        data_age = now - self.rx_monotonic if self.rx_monotonic else math.inf
+        stale = data_age > self.config.stale_after_syncs * self.sync_period_s
         torque = self.scale.permille_to_nm(self.torque_permille) if self._has_torque else math.nan
         return DriveState(
             name=self.name, node_id=self.node_id, angle_deg=self.angle_deg,
             velocity_deg_s=self.scale.counts_s_to_deg_s(self.velocity_counts_s), torque_nm=torque,
             statusword=sw, state=state, mode=self.mode_display, nmt=self.nmt_state,
-            enabled=state == State.OPERATION_ENABLED and not self.lost,
+            enabled=state == State.OPERATION_ENABLED and not self.lost and not stale,
             fault=state in (State.FAULT, State.FAULT_REACTION_ACTIVE) or self.lost,
             lost=self.lost, error_code=error_code,
             error_text=emcy_text(error_code) if error_code else "",
             stamp=self.stamp, heartbeat_age_s=hb_age,
-            target_reached=bool(sw & SW.TARGET_REACHED))
+            target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age, stale=stale,
+            foreign_master=self.foreign_master)
 
     def _send(self, cob_id: int, data: bytes) -> None:
         """One frame out; a dead bus becomes BusLostError (the supervisor reconnects)."""
@@ -685,6 +724,11 @@ class Drive:
         if self.lost:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is lost (no"
                                   " heartbeat); nothing was sent", node_id=self.node_id)
+        if self.foreign_master:
+            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing} refused: the drive is not under"
+                                  f" this driver's control: another master is on the bus ({self.foreign_master})."
+                                  " Stop the other driver or bench tool; this one configures the drive again"
+                                  " (not enabled) once the bus is its own. Nothing was sent.", node_id=self.node_id)
         if not self.booted:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is not"
                                   " booted (boot() it, or wait for re-configuration after a reset)",

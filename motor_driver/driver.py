@@ -31,7 +31,7 @@ import logging
 import socket
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Collection, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
@@ -49,6 +49,9 @@ from motor_driver.drive import Drive, DriveState
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
+#: Another master's frames mark its drives for this long; the mark clears after this much quiet.
+FOREIGN_HOLD_S = 0.5
+FOREIGN_RELEASE_S = 2.0
 RECONNECT_MIN_S = 0.2
 RECONNECT_MAX_S = 5.0
 NOTIFIER_TIMEOUT_S = 0.1
@@ -144,11 +147,54 @@ class BusStats(can.Listener):
         return self.load
 
 
+class ForeignTraffic(can.Listener):
+    """Frames that only another master sends (this driver never receives its own): SYNC, NMT
+    commands, heartbeats with the host's own node id, SDO requests to this driver's drives.
+    The receive thread stores when it last saw each (one assignment each); the supervisor
+    reads them and decides."""
+
+    def __init__(self, host_node_id: int, node_ids: Collection[int]) -> None:
+        self.host_node_id = host_node_id
+        self.node_ids = frozenset(node_ids)
+        self.sync = 0.0
+        self.host_twin = 0.0
+        self.nmt: dict[int, tuple[float, int]] = {}  # target node (0: all) -> (when, command)
+        self.sdo: dict[int, float] = {}  # node -> when another client sent it an SDO request
+
+    def on_message_received(self, msg: can.Message) -> None:
+        cob = msg.arbitration_id
+        if msg.is_error_frame or msg.is_extended_id:
+            return
+        if cob == 0x080:
+            self.sync = time.monotonic()
+        elif cob == 0x000 and len(msg.data) == 2:
+            self.nmt[msg.data[1]] = (time.monotonic(), msg.data[0])
+        elif cob == 0x700 + self.host_node_id:
+            self.host_twin = time.monotonic()
+        elif 0x601 <= cob <= 0x67F and cob - 0x600 in self.node_ids:
+            self.sdo[cob - 0x600] = time.monotonic()
+
+    def evidence(self, node_id: int, since: float) -> str:
+        """What shows another master acting on ``node_id`` after ``since`` ('' when nothing)."""
+        found = []
+        if self.host_twin > since:
+            found.append(f"heartbeats of node {self.host_node_id}, this driver's own id: a second driver?")
+        if self.sync > since:
+            found.append("SYNC frames this driver did not send")
+        for target in (node_id, 0):
+            when, command = self.nmt.get(target, (0.0, 0))
+            if when > since:
+                found.append(f"NMT command 0x{command:02X} to {'all nodes' if target == 0 else f'node {target}'}")
+        if self.sdo.get(node_id, 0.0) > since:
+            found.append(f"SDO requests to node {node_id} from another client")
+        return "; ".join(found)
+
+
 class BusHandle:
     """One bus with its canopen network and SYNC task."""
 
     def __init__(self, name: str, bus: can.BusABC, owned: bool, sync_period_s: float,
-                 bitrate: int = 1_000_000) -> None:
+                 bitrate: int = 1_000_000, foreign: ForeignTraffic | None = None) -> None:
         self.name = name
         self.bus = bus
         self.owned = owned
@@ -156,7 +202,8 @@ class BusHandle:
         self.stats = BusStats(bitrate)
         self.network = GuardedNetwork(bus)
         self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
-        self.network.listeners.append(self.stats)
+        self.foreign = foreign or ForeignTraffic(0, ())
+        self.network.listeners += [self.stats, self.foreign]  # before connect(): its Notifier copies the list
         self.network.connect()
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"rovercan-{name}")
@@ -267,8 +314,9 @@ class MotorDriver:
                         raise BusLostError(f"bus {bus_cfg.name!r}: cannot open {bus_cfg.bus_kwargs()}:"
                                            f" {err}. Is the interface up (ip link) or the simulator"
                                            " running (rovercan sim)?") from err
+                foreign = ForeignTraffic(bus_cfg.host_node_id, [d.node_id for d in config.drives if d.bus == bus_cfg.name])
                 self._handles[bus_cfg.name] = BusHandle(bus_cfg.name, bus, owned, bus_cfg.sync_period_s,
-                                                        bus_cfg.bitrate)
+                                                        bus_cfg.bitrate, foreign)
                 self.bus_lost[bus_cfg.name] = False
             for drive_cfg in config.drives:
                 bus_cfg = config.bus(drive_cfg.bus)
@@ -346,6 +394,20 @@ class MotorDriver:
                 except Exception:
                     logger.exception("supervisor: unexpected error on bus %s", name)
 
+    def _check_foreign(self, drive: Drive, now: float) -> None:
+        """Another master on the drive's bus (within FOREIGN_HOLD_S): mark it; once it has been
+        quiet for FOREIGN_RELEASE_S, clear the mark (the drive is then configured again)."""
+        foreign = self._handles[drive.config.bus].foreign
+        evidence = foreign.evidence(drive.node_id, now - FOREIGN_HOLD_S)
+        when, what = drive.behind_back
+        if when > now - FOREIGN_HOLD_S:
+            evidence = "; ".join(filter(None, (evidence, what)))
+        if evidence:
+            drive.set_foreign_master(evidence)
+        elif drive.foreign_master and not foreign.evidence(drive.node_id, now - FOREIGN_RELEASE_S) \
+                and drive.behind_back[0] <= now - FOREIGN_RELEASE_S:
+            drive.set_foreign_master("")
+
     def _beat(self, now: float) -> None:
         """The host heartbeat on every bus that is up, from this loop: when the loop stops (the
         process killed, hung, stopped), the heartbeat stops and the drives stop themselves."""
@@ -421,6 +483,9 @@ class MotorDriver:
 
     def _supervise_drive(self, drive: Drive, now: float) -> None:
         cfg = drive.config
+        self._check_foreign(drive, now)
+        if drive.foreign_master:
+            return  # nothing of ours goes to a drive another master drives (no re-boot, no watchdog)
         if drive.rebooted.is_set():
             job = self._reboots.get(drive.name)
             if (job is None or job.done()) and not self.bus_lost[cfg.bus]:

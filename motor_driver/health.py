@@ -2,7 +2,8 @@
 result into diagnostic_msgs). The rules:
 
 * ERROR: the drive is lost (no heartbeat within the consumer time), in FAULT or FAULT
-  REACTION ACTIVE, its bus is lost, or a safety check read back after boot failed
+  REACTION ACTIVE, its bus is lost, another master drives it, its PDOs stopped while it is
+  operational (stale data), or a safety check read back after boot failed
   (:mod:`motor_driver.safety`: nothing would stop it if the host died, limits not set, ...).
 * WARN: the statusword warning bit is set, a command was refused since the last report,
   the heartbeat is older than 1.5 producer periods, the drive is not booted, or it has no
@@ -54,8 +55,12 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         values[f"safety: {check.check} ({check.object})"] = f"{check.status}: {check.actual}"
     failed = [c for c in safety if c.failed]
     allowed = [c for c in safety if c.status == ALLOWED]
+    values["data_age_s"] = "never" if math.isinf(state.data_age_s) else f"{state.data_age_s:.3f}"
+    values["foreign_master"] = state.foreign_master
     if bus_lost:
         return Health(ERROR, "bus lost", values)
+    if state.foreign_master:
+        return Health(ERROR, f"not under control: another master on the bus ({state.foreign_master})", values)
     if state.lost:
         return Health(ERROR, f"heartbeat lost ({values['heartbeat_age_s']} s)", values)
     if state.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
@@ -64,6 +69,8 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     if failed:
         return Health(ERROR, "safety check failed: " + "; ".join(f"{c.check} ({c.object} is {c.actual},"
                                                                  f" expected {c.expected})" for c in failed), values)
+    if state.stale and state.nmt == "OPERATIONAL":
+        return Health(ERROR, f"stale: no PDO for {values['data_age_s']} s; the values shown are old", values)
     if refused_since_last:
         return Health(WARN, f"{refused_since_last} command(s) refused: {last_refusal}", values)
     if state.statusword & SW.WARNING:

@@ -8,6 +8,7 @@ logged with a throttled warning and nothing moves.
 
 from __future__ import annotations
 
+import math
 import sys
 
 import rclpy
@@ -27,11 +28,15 @@ WARN_THROTTLE_S = 1.0
 
 
 def fill_motor_state(msg: MotorState, state: DriveState, continuous: bool) -> MotorState:
-    """Copy a driver snapshot into a MotorState (angle wrapped to [0, 360) on continuous joints)."""
+    """Copy a driver snapshot into a MotorState (angle wrapped to [0, 360) on continuous joints;
+    NaN values and ``stale`` when no PDO came for ``stale_after_syncs`` SYNC periods)."""
     angle = state.angle_deg % 360.0 if continuous else state.angle_deg
-    msg.angle = float(angle)
-    msg.torque = float(state.torque_nm)
-    msg.velocity = float(state.velocity_deg_s)
+    # stale data is not repeated as if it were news: NaN, with the flag and its age
+    msg.angle = math.nan if state.stale else float(angle)
+    msg.torque = math.nan if state.stale else float(state.torque_nm)
+    msg.velocity = math.nan if state.stale else float(state.velocity_deg_s)
+    msg.stale = state.stale
+    msg.data_age = float(min(state.data_age_s, 1e9))
     msg.name = state.name
     msg.state = "LOST" if state.lost else state.state.name
     msg.enabled = state.enabled

@@ -114,8 +114,13 @@ class DriverNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=NO_PUB_EVENTS)
         self.create_timer(1.0 / float(self.get_parameter("state_rate_hz").value), self._publish_states)
         self.create_timer(1.0 / float(self.get_parameter("diagnostics_rate_hz").value), self._publish_diagnostics)
+
+    def arm_if_asked(self) -> None:
+        """Enable every drive when the ``arm`` parameter says so. Called once every node and
+        entity exists: creating ROS entities holds the interpreter (C++ under the GIL), and
+        the drives watch the driver's heartbeat from the moment they are armed."""
         if self.get_parameter("arm").value:
-            for drive in driver:
+            for drive in self.driver:
                 self._guard(drive.name, "arm", drive.enable)
 
     # --------------------------------------------------------------------- wiring
@@ -176,9 +181,10 @@ class DriverNode(Node):
                 if name == self._default:
                     self._demo_state_pub.publish(msg)
                 joint.name.append(name)
-                joint.position.append(math.radians(state.angle_deg))
-                joint.velocity.append(math.radians(state.velocity_deg_s))
-                joint.effort.append(state.torque_nm)
+                stale = math.nan if state.stale else 1.0  # stale joints: NaN, not the last values again
+                joint.position.append(math.radians(state.angle_deg) * stale)
+                joint.velocity.append(math.radians(state.velocity_deg_s) * stale)
+                joint.effort.append(state.torque_nm * stale)
                 newest = max(newest, state.stamp)
             _stamp(joint.header, newest or time.time())
             self._joint_pub.publish(joint)
@@ -453,6 +459,7 @@ def _run(stop: StopSignal) -> int:
         cold_executor = SingleThreadedExecutor()
         cold_executor.add_node(services)
         cold = runtime.SpinThread(cold_executor, "rovercan-services")
+        node.arm_if_asked()
         runtime.spin_until(hot, stop.event)
     finally:
         # order: drives safe first (a service blocked on a drive then fails fast), then the

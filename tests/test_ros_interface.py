@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -9,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from can_config import load_config, with_bus_overrides
+from can_config import RoverConfig, load_config, with_bus_overrides
 from motor_driver import MotorDriver, State
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -45,6 +46,7 @@ class Graph:
         self.sim, self.driver, self.context, self.probe = sim, driver, context, probe
         self.driver_node, self.system_node = driver_node, system_node
         self.inbox: dict[str, list[Any]] = {}
+        self.clients: dict[str, Any] = {}
 
     def listen(self, msg_type: Any, topic: str, qos: Any = STATE_QOS) -> list[Any]:
         box: list[Any] = []
@@ -52,7 +54,9 @@ class Graph:
         return box
 
     def call(self, srv_type: Any, name: str, request: Any = None, timeout_s: float = 15.0) -> Any:
-        client = self.probe.create_client(srv_type, name)
+        client = self.clients.get(name)
+        if client is None:  # one client per service: creating ROS entities holds the interpreter
+            client = self.clients[name] = self.probe.create_client(srv_type, name)
         assert client.wait_for_service(timeout_sec=5.0), f"no service {name}"
         future = client.call_async(request if request is not None else srv_type.Request())
         deadline = time.monotonic() + timeout_s
@@ -62,9 +66,22 @@ class Graph:
         return future.result()
 
 
+#: The consumer time of the drives' host watch in graphs where the simulated drives, the bus
+#: server, the driver, the nodes and the test share one interpreter: the suite's process (six
+#: drives simulated in Python at 1 kHz, a server thread per client, ROS entities created while
+#: drives are enabled) has held the driver's supervisor up to 0.1 s, which the shipped 150 ms
+#: does not cover. The driver process alone is measured by the benchmarks (host heartbeat gap).
+IN_PROCESS_HOST_TIMEOUT_S = 0.5
+
+
+def in_process_host_timeout(config: RoverConfig) -> RoverConfig:
+    drives = tuple(dataclasses.replace(d, host_timeout_s=IN_PROCESS_HOST_TIMEOUT_S) for d in config.drives)
+    return dataclasses.replace(config, drives=drives)
+
+
 @pytest.fixture
 def graph() -> Iterator[Graph]:
-    config = load_config(REPO / "config" / "rover.yaml")
+    config = in_process_host_timeout(load_config(REPO / "config" / "rover.yaml"))
     sim = SimService.from_config(config, port=0)
     driver = MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)).start()
     context = rclpy.Context()
@@ -351,3 +368,20 @@ def test_a_wheel_that_cannot_follow_stops_the_whole_drive_system(graph: Graph) -
     assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
     drive_for(1.5)  # a fresh command drives all six again
     assert all(graph.driver.drive(w).snapshot().velocity_deg_s > 100.0 for w in WHEELS)
+
+
+def test_motor_state_is_marked_stale_when_the_pdos_stop(graph: Graph) -> None:
+    states = graph.listen(MotorState, "wheels/wheel_front_left/motor_state")
+    joints = graph.listen(JointState, "/joint_states")
+    eventually(lambda: bool(states) and not states[-1].stale and math.isfinite(states[-1].angle), 3.0, "fresh state")
+    apply_action(graph.sim, {"action": "tpdos", "node": 1, "channel": "can0", "on": False})
+    t0 = time.monotonic()
+    eventually(lambda: states[-1].stale, 2.0, "MotorState stale")
+    # 5 SYNC periods (50 ms) plus one state publishing period and the graph's delivery
+    assert time.monotonic() - t0 < 0.05 + 0.1 + 0.1
+    last = states[-1]
+    assert math.isnan(last.angle) and math.isnan(last.velocity) and not last.enabled and last.data_age >= 0.05
+    eventually(lambda: math.isnan(joints[-1].position[0]) and math.isfinite(joints[-1].position[3]), 1.0,
+               "/joint_states: NaN for the stale joint only")
+    apply_action(graph.sim, {"action": "tpdos", "node": 1, "channel": "can0", "on": True})
+    eventually(lambda: not states[-1].stale and math.isfinite(states[-1].angle), 2.0, "fresh again")

@@ -18,6 +18,7 @@ from virtual_can import SimService
 
 from .conftest import HAVE_ROS, requires_ros, wait_for
 from .test_limits import COUNTS_PER_DEG, Extremes
+from .test_ros_interface import in_process_host_timeout
 
 pytestmark = requires_ros
 
@@ -52,7 +53,7 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
     path.write_text(CONFIG.format(port=1))
     sim = SimService.from_config(load_config(path), port=0)
     path.write_text(CONFIG.format(port=sim.port))
-    driver = MotorDriver(load_config(path)).start()
+    driver = MotorDriver(in_process_host_timeout(load_config(path))).start()
     for drive in driver:
         drive.enable()
     context = rclpy.Context()

@@ -10,6 +10,7 @@
       - {at_s: 8.0, node: 1, action: sdo, delay_s: 0.2}
       - {at_s: 9.0, node: 1, action: sdo, abort: 0x08000022}
       - {at_s: 10.0, action: disconnect_clients}
+      - {at_s: 11.0, node: 2, channel: can1, action: tpdos, on: false}
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from virtual_can.service import SimService
 
 logger = logging.getLogger(__name__)
 
-ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "frames", "sdo", "disconnect_clients")
+ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "tpdos", "frames", "sdo", "disconnect_clients")
 
 
 def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
@@ -47,7 +48,8 @@ def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
         chan.faults.corrupt = float(step.get("corrupt", 0.0))
         return
     node = int(step.get("node", 0))
-    simulator = sim.simulator_for(node)
+    channel = step.get("channel")
+    simulator = sim.simulator_for(node, str(channel) if channel is not None else None)
     drive = simulator.drive(node)
 
     def act() -> None:
@@ -60,6 +62,8 @@ def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
             drive.power_cycle(now, float(step.get("off_s", 0.5)))
         elif action == "fault":
             drive.raise_fault(int(step.get("code", 0x1000)))
+        elif action == "tpdos":  # the drive stops (or resumes) sending its TPDOs; heartbeat and SDO go on
+            drive.faults.tpdo_silent = not bool(step.get("on", False))
         elif action == "sto":
             drive.faults.sto_low = bool(step.get("low", True))
         elif action == "sdo":

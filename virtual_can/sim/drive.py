@@ -184,6 +184,7 @@ class Faults:
     """Fault-injection switches of one drive."""
 
     unplugged: bool = False
+    tpdo_silent: bool = False  # heartbeat and SDO go on, no TPDO leaves (a PDO set lost, a stuck stack)
     sto_low: bool = False
     sdo_delay_s: float = 0.0
     power_off_until: float = 0.0
@@ -494,19 +495,21 @@ class SimulatedDrive:
             if tt == 0:
                 data = pdo.pack(self.store)
                 if data != pdo.last_data:
-                    out.append(self._send_pdo(pdo, data, now))
+                    out += self._send_pdo(pdo, data, now)
             elif 1 <= tt <= 240:
                 pdo.sync_count += 1
                 if pdo.sync_count >= tt:
                     pdo.sync_count = 0
-                    out.append(self._send_pdo(pdo, pdo.pack(self.store), now))
+                    out += self._send_pdo(pdo, pdo.pack(self.store), now)
         return out
 
-    def _send_pdo(self, pdo: _Pdo, data: bytes, now: float) -> can.Message:
+    def _send_pdo(self, pdo: _Pdo, data: bytes, now: float) -> list[can.Message]:
+        if self.faults.tpdo_silent:
+            return []
         pdo.last_data = data
         pdo.last_sent = now
         self.counters["tpdo"] += 1
-        return self._msg(pdo.cob_id, data)
+        return [self._msg(pdo.cob_id, data)]
 
     # ---------------------------------------------------------------- CiA 402
     def _apply_controlword(self) -> None:
@@ -660,7 +663,7 @@ class SimulatedDrive:
                     if now - pdo.last_sent >= pdo.inhibit_s:
                         data = pdo.pack(self.store)
                         if due or data != pdo.last_data:
-                            out.append(self._send_pdo(pdo, data, now))
+                            out += self._send_pdo(pdo, data, now)
         period_ms = int(self.store.get(OD.PRODUCER_HEARTBEAT_TIME, 0, 0))  # type: ignore[arg-type]
         if period_ms and now >= self._next_heartbeat:
             self._next_heartbeat = max(self._next_heartbeat + period_ms / 1000.0, now)

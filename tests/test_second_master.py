@@ -1,0 +1,132 @@
+"""A second master on the bus is noticed, its drives are not commanded until it is gone, and
+then they are configured again (not re-armed); a drive whose PDOs stop is reported stale."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import pytest
+
+from can_config import RoverConfig
+from can_config.errors import DriveStateError
+from motor_driver import MotorDriver, State
+from motor_driver.health import ERROR, drive_health
+from virtual_can import SimService
+from virtual_can.scenario import apply_action
+
+from .conftest import make_config, wait_for
+
+SimFactory = Callable[[RoverConfig], tuple[SimService, RoverConfig]]
+
+
+class TruthWatch:
+    """Every 5 ms: does the first driver's snapshot claim Operation Enabled while the simulated
+    drive is not? Collects how long each such claim lasted."""
+
+    def __init__(self, sim: SimService, driver: MotorDriver) -> None:
+        self.sim, self.driver = sim, driver
+        self.false_claims: list[float] = []
+        self._since: float | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        runner = self.sim.simulators["can0"]
+        drive = runner.drive(1)
+        while not self._stop.is_set():
+            claims = self.driver.drive("joint1").snapshot().enabled
+            truth = runner.call(lambda: drive.state.name) == "OPERATION_ENABLED"
+            now = time.monotonic()
+            if claims and not truth:
+                self._since = self._since or now
+            elif self._since is not None:
+                self.false_claims.append(now - self._since)
+                self._since = None
+            time.sleep(0.005)
+
+    def stop(self) -> list[float]:
+        self._stop.set()
+        self._thread.join()
+        return self.false_claims
+
+
+def test_a_second_driver_is_noticed_refused_and_control_comes_back(sim_factory: SimFactory) -> None:
+    sim, cfg = sim_factory(make_config(1, watchdog_ms=10_000))
+    first = MotorDriver(cfg).start()
+    try:
+        drive = first.drive("joint1")
+        drive.enable()
+        drive.set_velocity(30.0)
+        wait_for(lambda: drive.snapshot().velocity_deg_s > 25.0, 2.0, "turning")
+        boots = drive.boot_count
+        truth = TruthWatch(sim, first)
+        t_second = time.monotonic()
+        second = MotorDriver(cfg).start()  # a forgotten bench script: NMT reset, SDO, its own SYNC
+        try:
+            wait_for(lambda: bool(drive.foreign_master), 1.0, "the first driver to notice the second")
+            noticed = time.monotonic() - t_second
+            assert "NMT command 0x81 to node 1" in drive.foreign_master  # its reset came first
+            wait_for(lambda: "SYNC frames this driver did not send" in drive.foreign_master
+                     and "this driver's own id: a second driver?" in drive.foreign_master, 1.0, "its SYNC and heartbeat")
+            with pytest.raises(DriveStateError, match="not under this driver's control: another master is on the bus"):
+                drive.set_velocity(10.0)
+            with pytest.raises(DriveStateError, match="another master"):
+                drive.enable()
+            health = drive_health(drive.snapshot(), heartbeat_period_s=0.1)
+            assert health.level == ERROR and health.message.startswith("not under control")
+            # the second one sees the first as well
+            wait_for(lambda: bool(second.drive("joint1").foreign_master), 1.0, "the second to notice the first")
+            time.sleep(0.5)
+        finally:
+            second.close()
+        wait_for(lambda: not drive.foreign_master and drive.booted, 6.0, "control back")
+        assert drive.boot_count == boots + 1  # configured again ...
+        wait_for(lambda: drive.snapshot().stamp > 0 and not drive.snapshot().stale, 1.0, "fresh PDOs")
+        assert drive.state is not State.OPERATION_ENABLED and not drive.snapshot().enabled  # ... not re-armed
+        drive.enable()
+        drive.move_to(drive.snapshot().angle_deg + 10.0, wait=True)
+        false_claims = truth.stop()
+        assert noticed < 1.0
+        assert not [c for c in false_claims if c > 0.1], false_claims  # never claimed enabled while it was not
+    finally:
+        first.close()
+
+
+def test_an_nmt_command_from_a_bench_tool_marks_the_drive(sim_factory: SimFactory) -> None:
+    import can
+
+    sim, cfg = sim_factory(make_config(2))
+    with MotorDriver(cfg).start() as driver:
+        bench = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        try:
+            time.sleep(0.1)
+            bench.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 2]), is_extended_id=False))  # pre-op node 2
+            wait_for(lambda: bool(driver.drive("joint2").foreign_master), 1.0, "node 2 marked")
+            assert "NMT command 0x80 to node 2" in driver.drive("joint2").foreign_master
+            assert not driver.drive("joint1").foreign_master  # only the node it was sent to
+        finally:
+            bench.shutdown()
+        wait_for(lambda: not driver.drive("joint2").foreign_master and driver.drive("joint2").booted, 6.0,
+                 "configured again after the quiet period")
+        assert driver.drive("joint2").nmt_state == "OPERATIONAL"
+
+
+def test_stopped_pdos_are_reported_stale_within_n_sync_periods(sim_factory: SimFactory) -> None:
+    sim, cfg = sim_factory(make_config(1, stale_after_syncs=5))
+    with MotorDriver(cfg).start() as driver:
+        drive = driver.drive("joint1")
+        drive.enable()
+        wait_for(lambda: drive.snapshot().enabled, 1.0, "fresh")
+        apply_action(sim, {"action": "tpdos", "node": 1, "on": False})
+        t0 = time.monotonic()
+        wait_for(lambda: drive.snapshot().stale, 1.0, "stale")
+        assert time.monotonic() - t0 <= 5 * 0.01 + 0.05  # 5 SYNC periods of 10 ms, and the poll
+        state = drive.snapshot()
+        assert not state.enabled and state.data_age_s >= 0.05
+        health = drive_health(state, heartbeat_period_s=0.1)
+        assert health.level == ERROR and health.message.startswith("stale: no PDO")
+        apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
+        wait_for(lambda: not drive.snapshot().stale and drive.snapshot().enabled, 1.0, "fresh again")
