@@ -4,6 +4,22 @@ Hot path: TPDO callbacks (canopen's notifier thread) unpack with one precompiled
 store plain attributes; commands build their payload with a pure function and send one
 frame. Every failure raises a typed error from :mod:`can_config.errors`; nothing is logged
 and swallowed.
+
+Threads and what each owns:
+
+- the bus's receive thread (``_on_tpdo``, ``_on_heartbeat``, ``_on_emcy``): the received
+  state (statusword, position, velocity, torque, mode display, NMT state, last EMCY, their
+  times), each field replaced in one assignment; it notifies ``_status_event`` waiters and
+  sends one thing only, the set-point handshake's reply (:mod:`motor_driver.setpoint`, which
+  owns its own state under its own short lock). It takes no lock a command or a wait holds.
+- command threads (the API, ROS callbacks): ``_cw``, ``_target_counts``, the velocity
+  watchdog's timestamps, under ``_lock``, which is held only to decide and send a frame or
+  two (at most ``COMMAND_LOCK_WAIT_S`` waited for it) and never while waiting for the drive.
+  Operations that wait (enable, homing, recover, the stops) mark the drive busy instead
+  (``_operation``): commands meanwhile are refused at once; a stop preempts them.
+- the driver's supervisor: changes a drive only through its methods (``check_heartbeat``,
+  ``mark_lost``, ``set_foreign_master``, ``stop_velocity``, ``guard_limits``), none of which
+  waits; the bus's worker runs ``reconfigure`` (boot after a reset), which may take seconds.
 """
 
 from __future__ import annotations
@@ -47,6 +63,7 @@ from can_config.objects import (
 from motor_driver.cia402 import CW, SW, Command, State, controlword, decode_state, next_step_to_enable
 from motor_driver.pdo import PdoPlan, TpdoLayout, encode_rpdo, mapping_writes, plan_pdos
 from motor_driver.safety import SafetyCheck, judge
+from motor_driver.setpoint import SetpointHandshake
 from motor_driver.units import (
     UNIT_OBJECTS,
     Scale,
@@ -79,6 +96,9 @@ TRANSITION_TIMEOUT_S = 1.0
 MODE_SWITCH_TIMEOUT_S = 1.0
 STATE_POLL_S = 0.002
 REBOOT_RETRY_S = 0.5
+#: How long a command waits for another command's frames before it is refused (never for an
+#: operation such as enable or homing: that refuses at once).
+COMMAND_LOCK_WAIT_S = 0.003
 #: 0x605A: slow down on the quick-stop ramp, then Switch On Disabled.
 QUICK_STOP_THEN_DISABLE = 2
 #: Reaction time of the driver's own limit guard (supervisor period, SYNC, TPDO age), as distance
@@ -147,11 +167,14 @@ class Drive:
         self.scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio,
                            invert=config.invert, offset_deg=config.offset_deg)
         self.plan: PdoPlan = plan_pdos(od, config.node_id)
-        self._lock = threading.RLock()  # serialises commands to this drive
+        self._lock = threading.RLock()  # serialises commands; never held while waiting for the drive
+        self._busy: str | None = None  # the operation in progress (enable, home, a stop, ...)
+        self._busy_owner: int | None = None  # its thread
+        self._generation = 0  # counts operations: a preempted one notices
+        self._preempted: tuple[int, str] = (0, "")  # operations older than this generation were stopped
         self._cw = 0  # last device-control controlword (no edge bits)
         self._target_counts = 0
-        self._pending_target: int | None = None
-        self._awaiting_ack = False
+        self._handshake = SetpointHandshake(self._send_setpoint, self._clear_setpoint)
         # state from PDOs / heartbeat / EMCY (written by the notifier thread)
         self.statusword = 0
         self.mode_display = 0
@@ -233,9 +256,9 @@ class Drive:
                 self.behind_back = (self.rx_monotonic, f"node {self.node_id} became OPERATION_ENABLED, which this"
                                                        " driver did not command")
             self._sw_enabled = now_enabled
-            if self._awaiting_ack and self.statusword & SW.SETPOINT_ACK:
+            if self.statusword & SW.SETPOINT_ACK and not self._handshake.idle:
                 try:
-                    self._complete_setpoint()
+                    self._handshake.acknowledged()  # the one reply the receive thread sends
                 except MotorError as err:  # never let a send failure kill the receive thread
                     logger.warning("node %d: setpoint handshake: %s", self.node_id, err)
             with self._status_event:
@@ -677,6 +700,7 @@ class Drive:
             if self.mode_display == mode:
                 return
             self._target_counts = self.position_counts
+            self._handshake.reset()
             self._switch_mode_sdo(mode)
 
     # ------------------------------------------------------------------ state machine
@@ -689,13 +713,15 @@ class Drive:
         self._send(pdo.cob_id, encode_rpdo(pdo, values))
 
     def _wait_state(self, wanted: set[State], timeout_s: float, doing: str, *,
-                    fault_ok: bool = False) -> State:
+                    fault_ok: bool = False, generation: int | None = None) -> State:
         deadline = time.monotonic() + timeout_s
         with self._status_event:
             while True:
                 state = self.state
                 if state in wanted:
                     return state
+                if generation is not None:
+                    self._check_not_preempted(generation, doing)
                 if state in (State.FAULT, State.FAULT_REACTION_ACTIVE) and not fault_ok:
                     raise self._fault_error(doing)
                 remaining = deadline - time.monotonic()
@@ -716,6 +742,58 @@ class Drive:
         return DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is in FAULT"
                                f" ({what}); call recover() to reset it", node_id=self.node_id,
                                statusword=self.statusword, error_code=code)
+
+    @contextmanager
+    def _operation(self, name: str, *, preempt: bool = False) -> Iterator[int]:
+        """A state-machine operation that waits for the drive (enable, homing, a stop): the drive
+        is marked busy with it instead of its lock being held while it waits, so a command
+        meanwhile is refused at once (never queued behind seconds of waiting). ``preempt``:
+        a stop, which does not wait for anyone; the operation it interrupts ends with an error.
+        Yields the operation's generation (see :meth:`_check_not_preempted`)."""
+        me = threading.get_ident()
+        with self._lock:
+            if self._busy and self._busy_owner != me and not preempt:
+                raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {self._busy};"
+                                      " nothing was sent. Try again when it is done.")
+            outer = (self._busy, self._busy_owner)
+            self._busy, self._busy_owner = name, me
+            self._generation += 1
+            generation = self._generation
+            if preempt and outer[0] and outer[1] != me:
+                self._preempted = (generation, name)  # every operation started before this one ends
+        if preempt:
+            with self._status_event:
+                self._status_event.notify_all()  # an operation waiting for the drive notices at once
+        try:
+            yield generation
+        finally:
+            with self._lock:
+                if self._busy_owner == me:
+                    self._busy, self._busy_owner = outer
+
+    def _check_not_preempted(self, generation: int, doing: str) -> None:
+        if self.closed:
+            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the driver shut down meanwhile",
+                                  node_id=self.node_id)
+        before, by = self._preempted
+        if generation < before:
+            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing} interrupted by {by}",
+                                  node_id=self.node_id)
+
+    @contextmanager
+    def _command(self, name: str) -> Iterator[None]:
+        """A command of a frame or two: the lock for at most COMMAND_LOCK_WAIT_S, and refused at
+        once while an operation runs, so that a topic callback never waits on a service."""
+        if not self._lock.acquire(timeout=COMMAND_LOCK_WAIT_S):
+            raise CommandRejected(f"{self.name}: {name} refused: another command holds the drive;"
+                                  " nothing was sent")
+        try:
+            if self._busy and self._busy_owner != threading.get_ident():
+                raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {self._busy};"
+                                      " nothing was sent. Send it again when that is done.")
+            yield
+        finally:
+            self._lock.release()
 
     def _require_usable(self, doing: str) -> None:
         if self.closed:
@@ -738,9 +816,11 @@ class Drive:
         """Walk the state machine to Operation Enabled (transitions 2, 3, 4), holding position.
 
         Refused for a drive that cannot watch the host (no 0x1016), unless the config allows it.
+        A stop (quick stop, disable, the driver's close) preempts it.
         """
-        with self._lock:
+        with self._operation("enable") as generation:
             self._require_usable("enable")
+            self._handshake.reset()  # a drive that left Operation Enabled acknowledges nothing more
             if self.host_watch is None and not self.config.allow_no_host_watch:
                 raise CommandRejected(f"{self.name} (node {self.node_id}): enable refused: {self.host_watch_problem},"
                                       " so it would keep moving if this process were killed, hung or lost power."
@@ -757,14 +837,16 @@ class Drive:
                 step = next_step_to_enable(state)
                 if step is None:
                     self._wait_state({State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON,
-                                      State.SWITCHED_ON, State.OPERATION_ENABLED}, timeout_s, "enable")
+                                      State.SWITCHED_ON, State.OPERATION_ENABLED}, timeout_s, "enable",
+                                     generation=generation)
                     continue
                 target, number, command = step
                 logger.debug("node %d: transition %d to %s", self.node_id, number, target.name)
                 self._cw = int(command)
                 self._send_cw(self._cw)
                 self._wait_state({target, State.OPERATION_ENABLED}, timeout_s,
-                                 f"enable (transition {number} to {target.name})")
+                                 f"enable (transition {number} to {target.name})", generation=generation)
+                self._check_not_preempted(generation, "enable")
             if self.state != State.OPERATION_ENABLED:
                 raise DriveTimeoutError(f"{self.name}: could not reach OPERATION_ENABLED",
                                         node_id=self.node_id, statusword=self.statusword)
@@ -772,7 +854,7 @@ class Drive:
 
     def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Shutdown (transition 8 or 6): power stage off, drive in Ready to Switch On."""
-        with self._lock:
+        with self._operation("disable", preempt=True):
             self.was_enabled = False
             self.velocity_commanded = False
             if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.SWITCH_ON_DISABLED,
@@ -784,7 +866,7 @@ class Drive:
 
     def quick_stop(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Quick stop (transition 11): the drive brakes on its quick-stop ramp."""
-        with self._lock:
+        with self._operation("quick stop", preempt=True):
             self.was_enabled = False
             self.velocity_commanded = False
             if self.state != State.OPERATION_ENABLED:
@@ -795,7 +877,7 @@ class Drive:
 
     def disable_voltage(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Disable voltage (transitions 7, 9, 10, 12): power stage off, Switch On Disabled."""
-        with self._lock:
+        with self._operation("disable voltage", preempt=True):
             self.was_enabled = False
             self.velocity_commanded = False
             if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
@@ -806,14 +888,14 @@ class Drive:
 
     def halt(self, on: bool = True) -> None:
         """Set or clear the halt bit (8): stop on the profile deceleration, stay enabled."""
-        with self._lock:
+        with self._command("halt"):
             self._require_usable("halt")
             self._cw = (self._cw | CW.HALT) if on else (self._cw & ~CW.HALT)
             self._send_cw(self._cw)
 
     def recover(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Fault reset (transition 15), then back to the enable state the drive had before."""
-        with self._lock:
+        with self._operation("recover"):
             self._require_usable("recover")
             restore = self.was_enabled
             if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
@@ -851,23 +933,20 @@ class Drive:
         its limits. Nothing is sent for a refused command.
         """
         counts = self._position_target_counts(angle_deg)
-        with self._lock:
+        with self._command("move"):
             self._ensure_mode(OperationMode.PROFILE_POSITION, "move")
             self._cw &= ~CW.HALT
-            if self._awaiting_ack:
-                self._pending_target = counts
-            else:
-                self._send_setpoint(counts)
+            self._handshake.command(counts)
         if wait:
             self.wait_target_reached(timeout_s)
         return self.scale.counts_to_deg(counts)
 
     def _send_setpoint(self, counts: int) -> None:
+        """A target with controlword bit 4 rising (called by the handshake, under its lock)."""
         self._target_counts = counts
         pdo = self.plan.rpdo_with(OD.TARGET_POSITION)
         cw = controlword(Command.ENABLE_OPERATION, new_setpoint=True, change_immediately=True)
         cw |= self._cw & CW.HALT
-        self._awaiting_ack = True
         if pdo is not None:
             self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw,
                                                                     OD.TARGET_POSITION: counts}))
@@ -875,14 +954,9 @@ class Drive:
             self._write_typed(OD.TARGET_POSITION, 0, counts)
             self._send_cw(cw)
 
-    def _complete_setpoint(self) -> None:
-        """Setpoint acknowledged (statusword bit 12): clear bit 4; send a queued target."""
-        self._awaiting_ack = False
-        cw = int(Command.ENABLE_OPERATION) | (self._cw & CW.HALT)
-        self._send_cw(cw)
-        pending, self._pending_target = self._pending_target, None
-        if pending is not None:
-            self._send_setpoint(pending)
+    def _clear_setpoint(self) -> None:
+        """Controlword bit 4 back to 0 after the acknowledge (called by the handshake)."""
+        self._send_cw(int(Command.ENABLE_OPERATION) | (self._cw & CW.HALT))
 
     def wait_target_reached(self, timeout_s: float | None = None) -> None:
         if timeout_s is None:
@@ -894,7 +968,7 @@ class Drive:
             while True:
                 if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                     raise self._fault_error("move")
-                if not self._awaiting_ack and self._pending_target is None and self.statusword & SW.TARGET_REACHED:
+                if self._handshake.idle and self.statusword & SW.TARGET_REACHED:
                     break
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -919,7 +993,7 @@ class Drive:
                                   f" max_velocity_deg_s={vmax:g} (allowed -{vmax:g} to {vmax:g}). Nothing"
                                   " was sent.")
         counts_s = check_counts(self.name, self.scale.deg_s_to_counts_s(velocity), "velocity")
-        with self._lock:
+        with self._command("velocity command"):
             self._refuse_past_limit(velocity, abs(velocity), self.config.profile_acceleration_deg_s2,
                                     f"velocity {velocity:g} deg/s")
             self._ensure_mode(OperationMode.PROFILE_VELOCITY, "velocity command")
@@ -999,6 +1073,8 @@ class Drive:
         if not self._lock.acquire(blocking=False):
             return False
         try:
+            if self._busy:
+                return False
             self.velocity_commanded = False
             if self.state != State.OPERATION_ENABLED:
                 return True
@@ -1029,7 +1105,7 @@ class Drive:
         if abs(torque) > limit:
             raise CommandRejected(f"{self.name}: torque {torque:g} Nm is beyond the limit max_torque_nm={limit:g}"
                                   f" (allowed -{limit:g} to {limit:g} Nm). Nothing was sent.")
-        with self._lock:
+        with self._command("torque command"):
             self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"torque {torque:g} Nm")
             self._ensure_mode(OperationMode.PROFILE_TORQUE, "torque command")
             self._send_torque(self.scale.nm_to_permille(torque))
@@ -1053,7 +1129,7 @@ class Drive:
         over two SYNC periods) from the previous one: a streamed trajectory must be smooth.
         """
         counts = self._position_target_counts(angle_deg)
-        with self._lock:
+        with self._command("set-point"):
             mode = self._streaming_mode()
             self._ensure_mode(mode, "CSP setpoint" if mode == OperationMode.CYCLIC_SYNC_POSITION else "IP setpoint")
             if max_step_deg is None:
@@ -1087,9 +1163,10 @@ class Drive:
                               f" position; node {self.node_id} supports neither (0x6502 = 0x{supported:08X}).")
 
     def home(self, timeout_s: float | None = None) -> None:
-        """Homing with the configured method and speed; waits for 'homing attained'."""
+        """Homing with the configured method and speed; waits for 'homing attained'. The drive
+        is busy meanwhile: commands are refused, a stop preempts it."""
         cfg = self.config
-        with self._lock:
+        with self._operation("home") as generation:
             self._require_usable("home")
             self.set_mode(OperationMode.HOMING)
             self._write_typed(OD.HOMING_METHOD, 0, cfg.homing_method)
@@ -1099,27 +1176,27 @@ class Drive:
                 self.enable()
             self._send_cw(int(Command.ENABLE_OPERATION))
             self._send_cw(int(Command.ENABLE_OPERATION) | CW.NEW_SETPOINT)
-        deadline = time.monotonic() + (timeout_s or cfg.homing_timeout_s)
-        while True:
-            sw = self.statusword
-            if sw & SW.FOLLOWING_ERROR:
-                raise DriveStateError(f"{self.name}: homing error reported (statusword 0x{sw:04X})",
-                                      node_id=self.node_id, statusword=sw)
-            if sw & SW.SETPOINT_ACK and sw & SW.TARGET_REACHED:
-                break
-            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-                raise self._fault_error("home")
-            if time.monotonic() > deadline:
-                raise DriveTimeoutError(f"{self.name}: homing not attained within"
-                                        f" {timeout_s or cfg.homing_timeout_s:g} s", node_id=self.node_id,
-                                        statusword=sw)
-            time.sleep(STATE_POLL_S)
-        self._position_t = 0.0  # homing moves the zero: the next position is trusted as it comes
-        seq = self._position_seq
-        settle = time.monotonic() + 3 * self.sync_period_s + 0.05
-        while self._position_seq == seq and time.monotonic() < settle:
-            time.sleep(0.001)
-        with self._lock:
+            deadline = time.monotonic() + (timeout_s or cfg.homing_timeout_s)
+            while True:
+                sw = self.statusword
+                if sw & SW.FOLLOWING_ERROR:
+                    raise DriveStateError(f"{self.name}: homing error reported (statusword 0x{sw:04X})",
+                                          node_id=self.node_id, statusword=sw)
+                if sw & SW.SETPOINT_ACK and sw & SW.TARGET_REACHED:
+                    break
+                if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                    raise self._fault_error("home")
+                self._check_not_preempted(generation, "home")
+                if time.monotonic() > deadline:
+                    raise DriveTimeoutError(f"{self.name}: homing not attained within"
+                                            f" {timeout_s or cfg.homing_timeout_s:g} s", node_id=self.node_id,
+                                            statusword=sw)
+                time.sleep(STATE_POLL_S)
+            self._position_t = 0.0  # homing moves the zero: the next position is trusted as it comes
+            seq = self._position_seq
+            settle = time.monotonic() + 3 * self.sync_period_s + 0.05
+            while self._position_seq == seq and time.monotonic() < settle:
+                time.sleep(0.001)
             self._send_cw(int(Command.ENABLE_OPERATION))
             self.set_mode(OperationMode.PROFILE_POSITION)
             self._target_counts = self.position_counts

@@ -28,7 +28,6 @@ and closes the buses it opened, in that order.
 from __future__ import annotations
 
 import logging
-import socket
 import threading
 import time
 from collections.abc import Collection, Iterator, Mapping
@@ -36,12 +35,12 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import can
-import canopen
 
 from can_config import RoverConfig, load_drive_od
 from can_config.bits import frame_bits
 from can_config.errors import BusLostError, ConfigError, MotorError
 from can_config.objects import NmtState
+from motor_driver.adapters import GuardedNetwork, connection_closed
 from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
 from motor_driver.cia402 import State
 from motor_driver.drive import Drive, DriveState
@@ -71,49 +70,6 @@ def open_bus(kwargs: dict[str, Any]) -> can.BusABC:
                            attempt + 1, OPEN_ATTEMPTS)
             time.sleep(OPEN_RETRY_S)
     return can.Bus(**kwargs)
-
-
-def connection_closed(bus: can.BusABC) -> bool:
-    """True when a TCP bus (python-can's ``socketcand`` client) has lost its server.
-
-    python-can reads the end of the stream as 'no frame', so ``recv()`` then spins until its
-    timeout and never raises; a peek at the socket tells. Other interfaces: False.
-    """
-    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
-    if not isinstance(sock, socket.socket):
-        return False
-    try:
-        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
-    except (BlockingIOError, InterruptedError):
-        return False
-    except OSError:
-        return True
-
-
-class GuardedNetwork(canopen.Network):
-    """A canopen Network whose frame dispatch survives a failing callback.
-
-    canopen's own consumers (EMCY, NMT) raise on malformed frames (a 2-byte EMCY, an empty NMT
-    command: found by the random-frame test), and an exception in the receive thread stops
-    python-can's Notifier, i.e. the driver would go deaf from one bad frame. Here each callback
-    is isolated; rejected frames are counted.
-    """
-
-    def __init__(self, bus: can.BusABC | None = None) -> None:
-        super().__init__(bus)
-        self.rejected_frames = 0
-
-    def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        callbacks = self.subscribers.get(can_id)
-        if callbacks:
-            for callback in callbacks:
-                try:
-                    callback(can_id, data, timestamp)
-                except Exception as err:  # a malformed frame must not stop the receive thread
-                    self.rejected_frames += 1
-                    logger.debug("frame 0x%03X %s rejected by %s: %r", can_id, bytes(data).hex(),
-                                 getattr(callback, "__qualname__", callback), err)
-        self.scanner.on_message_received(can_id)
 
 
 class BusStats(can.Listener):

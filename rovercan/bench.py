@@ -31,7 +31,7 @@ from can_config.eds import consumer_subs, variable
 from can_config.errors import BusLostError, ConfigError, RovercanError
 from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
 from can_config.stop import StopSignal
-from motor_driver.driver import connection_closed
+from motor_driver.adapters import connection_closed
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
 
 SCAN_TIMEOUT_S = 0.3

@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from can_config import RoverConfig, load_config, with_bus_overrides
+from can_config.errors import CommandRejected
 from motor_driver import MotorDriver, State
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -385,3 +386,33 @@ def test_motor_state_is_marked_stale_when_the_pdos_stop(graph: Graph) -> None:
                "/joint_states: NaN for the stale joint only")
     apply_action(graph.sim, {"action": "tpdos", "node": 1, "channel": "can0", "on": True})
     eventually(lambda: not states[-1].stale and math.isfinite(states[-1].angle), 2.0, "fresh again")
+
+
+def test_a_slow_enable_service_never_stalls_commands_or_other_joints_topics(graph: Graph) -> None:
+    apply_action(graph.sim, {"action": "slow_enable", "node": 1, "channel": "can0", "delay_s": 0.7})  # ~2 s
+    diags = graph.listen(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+    other = graph.listen(MotorState, "wheels/wheel_rear_left/motor_state")
+    degree = graph.probe.create_publisher(Float32, "wheels/wheel_front_left/degree_cmd", COMMAND_QOS)
+    client = graph.probe.create_client(Trigger, "wheels/wheel_front_left/enable")
+    assert client.wait_for_service(timeout_sec=5.0)
+    time.sleep(0.3)
+    future = client.call_async(Trigger.Request())
+    t0 = time.monotonic()
+    time.sleep(0.2)
+    drive = graph.driver.drive("wheel_front_left")
+    n0 = len(other)
+    worst = 0.0
+    while not future.done() and time.monotonic() - t0 < 5.0:
+        degree.publish(Float32(data=30.0))  # the hot executor refuses it at once
+        start = time.perf_counter()
+        with pytest.raises(CommandRejected, match="busy with enable"):
+            drive.move_to(30.0)  # what the topic callback runs
+        worst = max(worst, time.perf_counter() - start)
+        time.sleep(0.02)
+    elapsed = time.monotonic() - t0 - 0.2
+    assert future.done() and future.result().success and time.monotonic() - t0 >= 1.8
+    assert worst < 0.005, worst
+    rate = (len(other) - n0) / elapsed
+    assert rate >= 0.8 * 50.0, rate  # joint B's MotorState kept its 50 Hz meanwhile
+    eventually(lambda: any("busy with enable" in kv.value for a in diags for st in a.status if "wheel_front_left" in st.name
+                           for kv in st.values), 3.0, "the refusal in /diagnostics")

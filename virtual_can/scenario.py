@@ -11,6 +11,8 @@
       - {at_s: 9.0, node: 1, action: sdo, abort: 0x08000022}
       - {at_s: 10.0, action: disconnect_clients}
       - {at_s: 11.0, node: 2, channel: can1, action: tpdos, on: false}
+      - {at_s: 12.0, node: 1, action: slow_enable, delay_s: 0.7}
+      - {at_s: 13.0, node: 1, action: slow_ack, max_s: 0.004}
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from virtual_can.service import SimService
 
 logger = logging.getLogger(__name__)
 
-ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "tpdos", "frames", "sdo", "disconnect_clients")
+ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "tpdos", "slow_enable", "slow_ack", "frames", "sdo",
+           "disconnect_clients")
 
 
 def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
@@ -64,6 +67,10 @@ def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
             drive.raise_fault(int(step.get("code", 0x1000)))
         elif action == "tpdos":  # the drive stops (or resumes) sending its TPDOs; heartbeat and SDO go on
             drive.faults.tpdo_silent = not bool(step.get("on", False))
+        elif action == "slow_enable":  # each enabling transition takes delay_s
+            drive.faults.enable_step_delay_s = float(step.get("delay_s", 0.0))
+        elif action == "slow_ack":  # the set-point acknowledge comes 0..max_s late
+            drive.faults.ack_delay_max_s = float(step.get("max_s", 0.0))
         elif action == "sto":
             drive.faults.sto_low = bool(step.get("low", True))
         elif action == "sdo":

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
+import random
 import struct
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -98,6 +99,7 @@ CW_FAULT_RESET = 1 << 7
 CW_HALT = 1 << 8
 
 POWERED = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE)
+ENABLING = (State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.OPERATION_ENABLED)
 ERROR_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}  # by code's first nibble
 
 
@@ -187,6 +189,8 @@ class Faults:
     tpdo_silent: bool = False  # heartbeat and SDO go on, no TPDO leaves (a PDO set lost, a stuck stack)
     sto_low: bool = False
     sdo_delay_s: float = 0.0
+    ack_delay_max_s: float = 0.0  # the set-point acknowledge comes after a random delay up to this
+    enable_step_delay_s: float = 0.0  # each enabling transition (2, 3, 4) takes this long
     power_off_until: float = 0.0
     pending: list[int] = field(default_factory=list)  # EMCY codes to raise at the next tick
 
@@ -205,6 +209,9 @@ class SimulatedDrive:
         self.store.on_write = self._on_sdo_write
         self.sdo = SdoServer(self.store)
         self.faults = Faults()
+        self._now = 0.0
+        #: every profile-position target the drive accepted, in order (None: not recorded)
+        self.accepted_targets: list[float] | None = None
         self.nmt = NmtState.BOOTUP
         self.counters = {"tpdo": 0, "rpdo": 0, "emcy": 0, "sdo": 0}
         self._units_from_od()
@@ -265,6 +272,8 @@ class SimulatedDrive:
         self.error_code = 0
         self._pending_rpdos: list[tuple[_Pdo, bytes]] = []
         self._setpoint_ack = False
+        self._ack_at = 0.0  # the acknowledge shows from then on (fault injection: a slow drive)
+        self._slow_transition: tuple[State, float] | None = None  # (state, when) of a slow enabling step
         self._pending_emcy_reset = False
         self._delayed_sdo: tuple[float, bytes] | None = None
         self._homing_start = 0.0
@@ -516,12 +525,14 @@ class SimulatedDrive:
         cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
         new = next_state(self.state, cw, self.prev_cw, voltage_ok=not self.faults.sto_low,
                          quick_stop_option=int(self.store.get(OD.QUICK_STOP_OPTION, 0, 2)))  # type: ignore[arg-type]
+        pending, self._slow_transition = self._slow_transition, None  # a new controlword overrides it
         if new != self.state:
-            if self.state == State.FAULT:
-                self._clear_error()
-            if new == State.OPERATION_ENABLED and self.state != State.QUICK_STOP_ACTIVE:
-                self._hold_position()
-            self.state = new
+            if self.faults.enable_step_delay_s > 0 and new in ENABLING and self.state in (State.SWITCH_ON_DISABLED,
+                                                                                        *ENABLING):
+                self._slow_transition = pending if pending is not None and pending[0] == new else \
+                    (new, self._now + self.faults.enable_step_delay_s)  # a slow drive
+            else:
+                self._enter(new)
         mode = self.mode
         rising = cw & ~self.prev_cw
         if self.state == State.OPERATION_ENABLED:
@@ -532,6 +543,13 @@ class SimulatedDrive:
             elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
                 self._csp_target()
         self.prev_cw = cw
+
+    def _enter(self, new: State) -> None:
+        if self.state == State.FAULT:
+            self._clear_error()
+        if new == State.OPERATION_ENABLED and self.state != State.QUICK_STOP_ACTIVE:
+            self._hold_position()
+        self.state = new
 
     @property
     def mode(self) -> int:
@@ -561,6 +579,10 @@ class SimulatedDrive:
             target += self.pp_target if self.pp_target is not None else self.sp_pos
         self.pp_target = target
         self._setpoint_ack = True
+        if self.faults.ack_delay_max_s > 0:
+            self._ack_at = self._now + random.uniform(0.0, self.faults.ack_delay_max_s)
+        if self.accepted_targets is not None:
+            self.accepted_targets.append(target)
 
     def _csp_target(self) -> None:
         """CSP: follow 0x607A; IP: follow 0x60C1:1 while controlword bit 4 (enable ip) is set."""
@@ -632,6 +654,7 @@ class SimulatedDrive:
     # ---------------------------------------------------------------- time
     def tick(self, now: float, dt: float) -> list[can.Message]:
         """Advance the simulation by ``dt`` seconds; return the frames the drive sends."""
+        self._now = now
         if self.faults.power_off_until:
             if now < self.faults.power_off_until:
                 return []
@@ -651,6 +674,10 @@ class SimulatedDrive:
             out += self._raise_fault(0x5441, now)
         if self._consumer_seen:
             out += self._check_consumers(now)
+        if self._slow_transition is not None and now >= self._slow_transition[1]:
+            new, _ = self._slow_transition
+            self._slow_transition = None
+            self._enter(new)
         out += self._move(now, dt)
         out += self._check_position_limits(now)
         self._update_status()
@@ -847,7 +874,8 @@ class SimulatedDrive:
                     sw |= SW_TARGET_REACHED
                 cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
                 if cw & CW_NEW_SETPOINT and self._setpoint_ack:
-                    sw |= SW_OMS12
+                    if self._now >= self._ack_at:  # a slow drive acknowledges later (fault injection)
+                        sw |= SW_OMS12
                 else:
                     self._setpoint_ack = False
             elif mode == OperationMode.PROFILE_VELOCITY:

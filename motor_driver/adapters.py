@@ -1,0 +1,67 @@
+"""The two places where the driver leans on a dependency's internals, kept in one module.
+
+Each is pinned by ``tests/test_adapters.py`` against the installed version, so an upgrade
+that changes the behaviour fails there, loudly, instead of in the field:
+
+- :func:`connection_closed`: python-can's socketcand client reads the end of its TCP stream as
+  "no frame" and never raises, so a vanished server is invisible through its public API; a
+  peek at its socket (a name-mangled private attribute) tells.
+- :class:`GuardedNetwork`: canopen's ``Network.notify`` stops the receive thread when one
+  callback raises; this override isolates each callback (its loop mirrors canopen's).
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+
+import can
+import canopen
+
+logger = logging.getLogger(__name__)
+
+#: python-can's socketcand client keeps its socket here (name-mangled private attribute).
+SOCKETCAND_SOCKET_ATTRIBUTE = "_SocketCanDaemonBus__socket"
+
+
+def connection_closed(bus: can.BusABC) -> bool:
+    """True when a TCP bus (python-can's ``socketcand`` client) has lost its server.
+
+    python-can reads the end of the stream as 'no frame', so ``recv()`` then spins until its
+    timeout and never raises; a peek at the socket tells. Other interfaces: False.
+    """
+    sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
+    if not isinstance(sock, socket.socket):
+        return False
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except (BlockingIOError, InterruptedError):
+        return False
+    except OSError:
+        return True
+
+
+class GuardedNetwork(canopen.Network):
+    """A canopen Network whose frame dispatch survives a failing callback.
+
+    canopen's own consumers (EMCY, NMT) raise on malformed frames (a 2-byte EMCY, an empty NMT
+    command: found by the random-frame test), and an exception in the receive thread stops
+    python-can's Notifier, i.e. the driver would go deaf from one bad frame. Here each callback
+    is isolated; rejected frames are counted.
+    """
+
+    def __init__(self, bus: can.BusABC | None = None) -> None:
+        super().__init__(bus)
+        self.rejected_frames = 0
+
+    def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        callbacks = self.subscribers.get(can_id)
+        if callbacks:
+            for callback in callbacks:
+                try:
+                    callback(can_id, data, timestamp)
+                except Exception as err:  # a malformed frame must not stop the receive thread
+                    self.rejected_frames += 1
+                    logger.debug("frame 0x%03X %s rejected by %s: %r", can_id, bytes(data).hex(),
+                                 getattr(callback, "__qualname__", callback), err)
+        self.scanner.on_message_received(can_id)

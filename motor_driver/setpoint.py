@@ -1,0 +1,74 @@
+"""The profile-position set-point handshake (CiA 402), as one small object both threads share.
+
+A new target goes out with controlword bit 4 ("new set-point") rising; the drive answers
+with statusword bit 12 ("set-point acknowledge"); the host then clears bit 4, and only after
+that may the next target go out (a target sent while bit 4 is still set has no rising edge:
+the drive ignores it). Targets commanded meanwhile are parked, and only the newest is kept.
+
+Two threads meet here: a command thread (:meth:`command`) and the bus's receive thread
+(:meth:`acknowledged`, from the statusword). Each decision and the frame it implies are made
+under one short lock, so the frames leave in the order of the decisions; the lock is never
+held while waiting for the drive (sending one frame is not waiting). The rule is exact:
+after any interleaving the last target sent is the newest commanded one, each target is sent
+at most once, and targets go out in command order.
+
+Owner of its state: this object (``_lock``); :meth:`idle` and :attr:`target` may be read
+from any thread.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+
+class SetpointHandshake:
+    """``send_setpoint(counts)`` sends a target with bit 4 set; ``send_clear()`` clears bit 4."""
+
+    def __init__(self, send_setpoint: Callable[[int], None], send_clear: Callable[[], None]) -> None:
+        self._send_setpoint = send_setpoint
+        self._send_clear = send_clear
+        self._lock = threading.Lock()
+        self._awaiting = False  # a target is out and not yet acknowledged
+        self._pending: int | None = None  # the newest target commanded while awaiting
+        self.target: int | None = None  # the last target sent
+
+    def command(self, counts: int) -> bool:
+        """Send ``counts`` now, or park it as the next one; True when it was sent now."""
+        with self._lock:
+            if self._awaiting:
+                self._pending = counts  # newest wins: an older parked target is dropped
+                return False
+            self._send(counts)
+            return True
+
+    def acknowledged(self) -> None:
+        """The drive set bit 12: clear bit 4; send the parked target, if any."""
+        with self._lock:
+            if not self._awaiting:
+                return
+            self._awaiting = False
+            self._send_clear()
+            pending, self._pending = self._pending, None
+            if pending is not None:
+                self._send(pending)
+
+    def reset(self) -> None:
+        """Forget the handshake (the drive left Operation Enabled, a mode switch, a re-boot)."""
+        with self._lock:
+            self._awaiting = False
+            self._pending = None
+
+    @property
+    def idle(self) -> bool:
+        """No target out unacknowledged and none parked."""
+        return not self._awaiting and self._pending is None
+
+    def _send(self, counts: int) -> None:
+        self._awaiting = True  # before the send: an acknowledge can come back at once
+        self.target = counts
+        try:
+            self._send_setpoint(counts)
+        except BaseException:
+            self._awaiting = False  # nothing went out: the drive will not acknowledge
+            raise
