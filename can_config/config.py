@@ -42,6 +42,7 @@ class BusConfig:
     sync_period_s: float = 0.01
     host_node_id: int = 127  # the driver's own NMT node id: its heartbeat is what the drives watch
     host_heartbeat_s: float = 0.05
+    connect_timeout_s: float = 10.0  # how long the driver waits for a socketcand server at start
 
     def bus_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for :func:`can.Bus`."""
@@ -181,6 +182,7 @@ _BUS_FIELDS: dict[str, _Field] = {
     "sync_period_ms": _Field("float", 10.0, 1.0, 1000.0),
     "host_node_id": _Field("int", 127, 1, 127),
     "host_heartbeat_ms": _Field("float", 50.0, 10.0, 1000.0),
+    "connect_timeout_ms": _Field("float", 10_000.0, 0.0, 600_000.0),
 }
 
 _IDENTITY_FIELDS: dict[str, _Field] = {
@@ -353,7 +355,9 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
         values = _section(where, f"buses[{i}].", raw, _BUS_FIELDS)
         period_ms = values.pop("sync_period_ms")
         host_ms = values.pop("host_heartbeat_ms")
-        buses.append(BusConfig(sync_period_s=period_ms / 1000.0, host_heartbeat_s=host_ms / 1000.0, **values))
+        connect_ms = values.pop("connect_timeout_ms")
+        buses.append(BusConfig(sync_period_s=period_ms / 1000.0, host_heartbeat_s=host_ms / 1000.0,
+                               connect_timeout_s=connect_ms / 1000.0, **values))
     names = [b.name for b in buses]
     if len(set(names)) != len(names):
         raise where.fail("buses", f"bus names must be unique; got {names}.")
@@ -470,7 +474,8 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
     """Back to the YAML shape (used to hand a config to a subprocess or a ROS parameter)."""
     buses = [{"name": b.name, "interface": b.interface, "channel": b.channel, "bitrate": b.bitrate,
               "kwargs": dict(b.kwargs), "sync_period_ms": b.sync_period_s * 1000.0,
-              "host_node_id": b.host_node_id, "host_heartbeat_ms": b.host_heartbeat_s * 1000.0}
+              "host_node_id": b.host_node_id, "host_heartbeat_ms": b.host_heartbeat_s * 1000.0,
+              "connect_timeout_ms": b.connect_timeout_s * 1000.0}
              for b in config.buses]
     drives = []
     for d in config.drives:

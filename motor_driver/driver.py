@@ -28,6 +28,7 @@ and closes the buses it opened, in that order.
 from __future__ import annotations
 
 import logging
+import socket
 import threading
 import time
 from collections.abc import Collection, Iterator, Mapping
@@ -58,10 +59,55 @@ NOTIFIER_TIMEOUT_S = 0.1
 #: its rawmode '< ok >', which python-can's client rejects); other errors are not retried.
 OPEN_ATTEMPTS = 3
 OPEN_RETRY_S = 0.1
+#: How long the driver waits for a socketcand server to accept, and its back-off between tries.
+CONNECT_TIMEOUT_S = 10.0
+CONNECT_RETRY_MIN_S = 0.1
+CONNECT_RETRY_MAX_S = 2.0
 
 
-def open_bus(kwargs: dict[str, Any]) -> can.BusABC:
-    """``can.Bus(**kwargs)``, retrying a failed protocol handshake (``can.CanError``) a few times."""
+class _QuietConnectRetries(logging.Filter):
+    """python-can's socketcand client retries its connect in a loop without a pause and logs
+    every failure (30,000 lines a second while a server is down): those lines are dropped;
+    :func:`wait_for_server` says the same once per attempt, with back-off."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith("Failed to connect to server")
+
+
+logging.getLogger("can.interfaces.socketcand.socketcand").addFilter(_QuietConnectRetries())
+
+
+def wait_for_server(host: str, port: int, timeout_s: float) -> None:
+    """Until a TCP connect to a socketcand server succeeds: one attempt at a time, backing off
+    from CONNECT_RETRY_MIN_S to CONNECT_RETRY_MAX_S, one log line per failed attempt; then
+    :class:`BusLostError` naming host:port and the likely cause."""
+    deadline = time.monotonic() + timeout_s
+    delay = CONNECT_RETRY_MIN_S
+    attempt = 0
+    while True:
+        attempt += 1
+        try:
+            with socket.create_connection((host, port), timeout=max(0.05, min(1.0, deadline - time.monotonic()))):
+                return
+        except OSError as err:
+            remaining = deadline - time.monotonic()
+            why = err.strerror or str(err) or type(err).__name__
+            if remaining <= 0:
+                raise BusLostError(f"socketcand server {host}:{port} not reachable ({why}) after {attempt} attempt(s)"
+                                   f" in {timeout_s:g} s; is the simulator running (rovercan sim) or socketcand"
+                                   " started, and are host and port right?") from err
+            logger.warning("socketcand server %s:%d: %s (attempt %d); next try in %.1f s", host, port, why, attempt,
+                           min(delay, remaining))
+            time.sleep(min(delay, remaining))
+            delay = min(delay * 2, CONNECT_RETRY_MAX_S)
+
+
+def open_bus(kwargs: dict[str, Any], connect_timeout_s: float = CONNECT_TIMEOUT_S) -> can.BusABC:
+    """``can.Bus(**kwargs)``, retrying a failed protocol handshake (``can.CanError``) a few times.
+    A socketcand server is first waited for (:func:`wait_for_server`), so python-can's own
+    connect loop never spins."""
+    if kwargs.get("interface") == "socketcand" and "host" in kwargs and "port" in kwargs:
+        wait_for_server(str(kwargs["host"]), int(kwargs["port"]), connect_timeout_s)
     for attempt in range(1, OPEN_ATTEMPTS):
         try:
             return can.Bus(**kwargs)
@@ -265,7 +311,9 @@ class MotorDriver:
                 owned = bus is None
                 if bus is None:
                     try:
-                        bus = open_bus(bus_cfg.bus_kwargs())
+                        bus = open_bus(bus_cfg.bus_kwargs(), bus_cfg.connect_timeout_s)
+                    except BusLostError:
+                        raise
                     except (can.CanError, OSError, ValueError, ImportError) as err:
                         raise BusLostError(f"bus {bus_cfg.name!r}: cannot open {bus_cfg.bus_kwargs()}:"
                                            f" {err}. Is the interface up (ip link) or the simulator"
@@ -418,8 +466,8 @@ class MotorDriver:
             handle.disconnect()
         bus_cfg = self.config.bus(name)
         try:
-            handle.reconnect(can.Bus(**bus_cfg.bus_kwargs()))
-        except (can.CanError, OSError, ValueError, TimeoutError) as err:
+            handle.reconnect(open_bus(bus_cfg.bus_kwargs(), connect_timeout_s=0.0))  # one try: the back-off is ours
+        except (can.CanError, OSError, ValueError, TimeoutError, BusLostError) as err:
             handle.backoff_s = min(handle.backoff_s * 2, RECONNECT_MAX_S)
             handle.next_attempt = time.monotonic() + handle.backoff_s
             logger.warning("bus %s: reconnect failed (%s); next try in %.1f s", name, err, handle.backoff_s)

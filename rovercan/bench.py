@@ -32,10 +32,14 @@ from can_config.errors import BusLostError, ConfigError, RovercanError
 from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
 from can_config.stop import StopSignal
 from motor_driver.adapters import connection_closed
+from motor_driver.driver import open_bus as driver_open_bus
+from motor_driver.driver import wait_for_server
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
 
 SCAN_TIMEOUT_S = 0.3
 SDO_TIMEOUT_S = 0.5
+#: The bench waits this long for a socketcand server (the driver in a node: 10 s).
+CLI_CONNECT_TIMEOUT_S = 3.0
 CAUSES = "check the node id, power, bitrate and termination (120 ohm at both ends)"
 
 
@@ -62,11 +66,14 @@ def add_json(parser: argparse.ArgumentParser) -> None:
 def open_bus(args: argparse.Namespace) -> can.BusABC:
     if getattr(args, "interface", None) is None and getattr(args, "config", None):
         config = load_config(args.config)
-        return can.Bus(**config.buses[0].bus_kwargs())
+        return driver_open_bus(config.buses[0].bus_kwargs(), CLI_CONNECT_TIMEOUT_S)
     if getattr(args, "interface", None) is None:
         raise ConfigError("no bus given: pass -i INTERFACE -c CHANNEL (e.g. -i socketcan -c can0, or"
                           " -i socketcand -c can0 --bus-kwargs host=127.0.0.1 port=29536) or --config FILE")
     tuned: dict[str, Any] = {"tcp_tune": True} if args.interface == "socketcand" else {}  # --bus-kwargs overrides
+    extra = getattr(args, "bus_kwargs", None) or {}
+    if args.interface == "socketcand" and "host" in extra and "port" in extra:
+        wait_for_server(str(extra["host"]), int(extra["port"]), CLI_CONNECT_TIMEOUT_S)  # python-can's loop spins
     try:
         return can.cli.create_bus_from_namespace(args, **tuned)
     except argparse.ArgumentError as err:
