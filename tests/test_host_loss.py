@@ -112,6 +112,20 @@ def statusword_tpdo(eds: Path, node: int) -> tuple[int, int]:
     raise AssertionError(f"{eds.name}: no event-driven statusword TPDO")
 
 
+def signal_and_wait(proc: subprocess.Popen[str], sig: int) -> tuple[float, str, str]:
+    """Send ``sig``, wait for the process to end (killed after 10 s); the signal's wall time,
+    then stdout and stderr. A short pause lets the listeners take the last frames."""
+    t_signal = time.time()
+    proc.send_signal(sig)
+    try:
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    time.sleep(0.1)
+    return t_signal, out, err
+
+
 def run_and_stop(tmp_path: Path, drives: list[tuple[str, int, str, Path]], sig: int, velocity: float = 60.0,
                  **extra: object) -> None:
     specs = [SimDriveSpec(node, eds, ch, name, 4096) for name, node, ch, eds in drives]
@@ -256,13 +270,10 @@ def test_sigterm_to_an_api_script_with_the_helper_stops_the_drive_in_the_driver(
                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             try:
                 assert proc.stdout is not None and proc.stdout.readline().strip() == "READY"
-                t_signal = time.time()
-                proc.send_signal(signal.SIGTERM)
-                out, err = proc.communicate(timeout=10)
-            finally:
-                if proc.poll() is None:
-                    proc.kill()
-            time.sleep(0.1)
+            except BaseException:
+                proc.kill()
+                raise
+            t_signal, out, err = signal_and_wait(proc, signal.SIGTERM)
         frames = watches["can0"].frames
     assert proc.returncode == 0 and f"STOPPED {int(signal.SIGTERM)}" in out, err
     stopped = first_stop(frames, 0x181, 0, t_signal)
@@ -289,7 +300,6 @@ def test_a_config_cannot_give_a_drive_the_hosts_node_id() -> None:
                       "drives": [{"name": "a", "node_id": 1, "host_timeout_ms": 40}]})
 
 
-
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
 def test_a_signal_to_rovercan_jog_stops_the_drive(tmp_path: Path, sig: int) -> None:
     with SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "wheel1", 4096)], port=0) as sim:
@@ -302,13 +312,10 @@ def test_a_signal_to_rovercan_jog_stops_the_drive(tmp_path: Path, sig: int) -> N
                                     stderr=subprocess.PIPE, text=True)
             try:
                 wait_for(lambda: abs(float(runner.call(lambda: sim_drive.omega))) > 1.0, 15.0, "the jog turning")  # type: ignore[arg-type]
-                t_signal = time.time()
-                proc.send_signal(sig)
-                _out, err = proc.communicate(timeout=10)
-            finally:
-                if proc.poll() is None:
-                    proc.kill()
-            time.sleep(0.1)
+            except BaseException:
+                proc.kill()
+                raise
+            t_signal, _, err = signal_and_wait(proc, sig)
         frames = watches["can0"].frames
         final = runner.call(lambda: sim_drive.state.name)
     assert proc.returncode == 1, err
