@@ -31,7 +31,7 @@ from rovercan.launch import LOCAL_DISCOVERY
 
 os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns inherit it
 
-from can_config import GENERIC_EDS, parse_config, with_bus_overrides
+from can_config import GENERIC_EDS, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
 from virtual_can import BusEngine, SimService, SocketcandServer, VirtualBus
 
@@ -46,17 +46,14 @@ TARGETS = {"cmd_latency_p50_ms": 0.5, "cmd_latency_p99_ms": 2.0, "cmd_latency_ra
 def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
     import stack_run
 
-    out: dict[str, Any] = stack_run.run_stack(6, 10.0, seconds, 100.0)
+    out: dict[str, Any] = stack_run.run_stack(stack_run.SHIPPED["rover"], seconds, 100.0)
+    default = stack_run.run_stack(stack_run.SHIPPED["default"], min(seconds, 10.0), 100.0)
+    out.update({f"default_{k}": v for k, v in default.items()})
     out.update(stack_run.bare_path(min(seconds, 10.0)))
     if out.get("cmd_latency_p50_ms") and out.get("bare_latency_p50_ms"):
         out["cmd_latency_ratio"] = round(out["cmd_latency_p50_ms"] / out["bare_latency_p50_ms"], 2)
     out.update(stack_run.baseline_canopen(6, 10.0, seconds))
     out.update(stack_run.driver_only(6, 10.0, seconds))
-    if full:
-        heavy = stack_run.run_stack(8, 5.0, seconds, 100.0)
-        out["tpdo_loss_8_drives_200hz"] = heavy["tpdo_loss"]
-        out["tpdo_sent_8_drives_200hz"] = heavy["tpdo_sent"]
-        out["cpu_core_fraction_8_drives_200hz"] = heavy["cpu_core_fraction"]
     return out
 
 
@@ -148,8 +145,8 @@ def bench_sdo(n: int) -> dict[str, Any]:
 
 
 def bench_boot(runs: int) -> dict[str, Any]:
-    config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0"}],
-                           "drives": [{"name": f"j{i}", "node_id": i} for i in range(1, 7)]})
+    """The shipped rover config's six wheels (two buses) from NMT reset to Operation Enabled."""
+    config = load_config(Path(__file__).resolve().parent.parent / "config" / "rover.yaml")
     times = []
     with SimService.from_config(config, port=0) as sim:
         cfg = with_bus_overrides(config, host=sim.host, port=sim.port)
@@ -182,7 +179,8 @@ def main() -> int:
                           ("boot 6 drives", bench_boot, 3)):
         print(f"benchmark: {name} ...", flush=True)
         results.update(fn(arg))  # type: ignore[operator]
-    print("benchmark: 6-drive stack run (driver + ROS node, listener, baselines) ...", flush=True)
+    print("benchmark: stack runs on config/rover.yaml and the embedded default (driver + ROS node,"
+          " listener, baselines) ...", flush=True)
     results.update(bench_stack(10.0 if args.quick else 60.0, not args.quick))
     results["targets"] = TARGETS
     OUT.write_text(json.dumps(results, indent=2) + "\n")

@@ -4,7 +4,9 @@ The simulator (socketcand server + 6 drives) runs in this process; the measured 
 ``rover_driver`` (driver + ROS node) in its own process; an independent listener (a python-can
 socketcand client here) sees every frame with the server's wire timestamp. Figures:
 
-* cmd_latency: publish on ``<joint>/degree_cmd`` (6 joints at 100 Hz) -> the RPDO with that
+* the measured process runs a shipped config (``config/rover.yaml``: six wheels on two buses;
+  the embedded default: one motor) as a user gets it, only the simulator's port put in.
+* cmd_latency: publish on ``<joint>/degree_cmd`` (every joint at 100 Hz) -> the RPDO with that
   target on the wire; the bare path (rclpy publish -> a subscriber process on the
   EventsExecutor the node uses -> one python-can send) is measured the same way.
 * tpdo_loss: TPDOs the simulated drives sent minus TPDOs the driver applied (its count comes
@@ -36,9 +38,10 @@ from rovercan.launch import LOCAL_DISCOVERY  # noqa: E402
 
 os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns inherit it
 
-from virtual_can import SimDriveSpec, SimService  # noqa: E402
+#: The bare path's peer (bare_peer.py) sends targets in counts of a 4096-count revolution.
+BARE_COUNTS_PER_DEG = 4096 / 360.0
 
-COUNTS_PER_DEG = 4096 / 360.0
+from virtual_can import SimDriveSpec, SimService  # noqa: E402
 
 
 def proc_cpu_s(pid: int) -> float:
@@ -59,9 +62,10 @@ def pct(values: list[float], q: float) -> float:
 
 
 class Listener(threading.Thread):
-    def __init__(self, sim: SimService) -> None:
+    def __init__(self, sim: SimService, channel: str = "can0") -> None:
         super().__init__(daemon=True)
-        self.bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port, tcp_tune=True)
+        self.channel = channel
+        self.bus = can.Bus(interface="socketcand", channel=channel, host=sim.host, port=sim.port, tcp_tune=True)
         self.frames: list[tuple[float, int, bytes]] = []
         self.stop = threading.Event()
 
@@ -77,47 +81,51 @@ class Listener(threading.Thread):
         self.bus.shutdown()
 
 
-def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) -> dict[str, Any]:
+SHIPPED = {"rover": REPO / "config" / "rover.yaml", "default": REPO / "can_config" / "data" / "default.yaml"}
+
+
+def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str, Any]:
+    """The measured process runs a shipped config as a user gets it; only the simulator's port
+    is put into it. Every drive gets a ``degree_cmd`` at ``command_hz``."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float32
 
+    from can_config import load_config
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS
 
-    with SimService([SimDriveSpec(i) for i in range(1, n_drives + 1)], port=0) as sim, \
-            tempfile.TemporaryDirectory() as tmp:
-        config = Path(tmp) / "bench.yaml"
-        drives = "".join(f"  - {{name: j{i}, node_id: {i}, counts_per_rev: 4096, max_velocity_deg_s: 3600,"
-                         f" profile_velocity_deg_s: 3600, profile_acceleration_deg_s2: 100000}}\n"
-                         for i in range(1, n_drives + 1))
-        config.write_text(f"buses:\n  - {{name: can0, interface: socketcand, channel: can0, sync_period_ms: {sync_ms},"
-                          f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}\ndrives:\n{drives}")
+    shipped = load_config(config_path)
+    channels = {b.name: b.channel for b in shipped.buses}
+    with SimService.from_config(shipped, port=0) as sim, tempfile.TemporaryDirectory() as tmp:
+        config = Path(tmp) / config_path.name
+        config.write_text(config_path.read_text().replace("port: 29536", f"port: {sim.port}"))
         proc = subprocess.Popen([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p", f"config:={config}",
-                                 "-p", "arm:=true", "-p", "state_rate_hz:=50.0", "-p", "diagnostics_rate_hz:=2.0"],
+                                 "-p", "arm:=true", "-p", "diagnostics_rate_hz:=2.0"],
                                 cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        listener = Listener(sim)
-        listener.start()
+        listeners = {ch: Listener(sim, ch) for ch in sorted(set(channels.values()))}
+        for listener in listeners.values():
+            listener.start()
         context = rclpy.Context()
         rclpy.init(context=context)
         node = rclpy.create_node("bench_publisher", context=context)
         diags: list[Any] = []
         node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, DIAGNOSTICS_QOS)
-        pubs = [node.create_publisher(Float32, f"j{i}/degree_cmd", COMMAND_QOS) for i in range(1, n_drives + 1)]
+        drives = [(d, channels[d.bus], d.counts_per_deg, round(d.counts_per_deg * 360)) for d in shipped.drives]
+        pubs = [node.create_publisher(Float32, f"{d.ros_prefix}/degree_cmd", COMMAND_QOS) for d in shipped.drives]
         from rclpy.executors import SingleThreadedExecutor
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         try:
             deadline = time.monotonic() + 30
-            sims = [sim.simulator_for(i) for i in range(1, n_drives + 1)]
-            while not all(s.call(lambda s=s, i=i: s.drive(i).state.name) == "OPERATION_ENABLED"
-                          for i, s in enumerate(sims, start=1)):
+            sims = [(sim.simulators[ch], d.node_id) for d, ch, _, _ in drives]
+            while not all(s.call(lambda s=s, n=n: s.drive(n).state.name) == "OPERATION_ENABLED" for s, n in sims):
                 if time.monotonic() > deadline or proc.poll() is not None:
                     raise RuntimeError("the measured process did not enable its drives")
                 time.sleep(0.1)
-            while node.count_subscribers(f"j{n_drives}/degree_cmd") == 0:
+            while node.count_subscribers(f"{shipped.drives[-1].ros_prefix}/degree_cmd") == 0:
                 time.sleep(0.05)
             time.sleep(0.5)
-            sent: dict[tuple[int, int], list[float]] = {}
+            sent: dict[tuple[str, int, int], list[float]] = {}
             cpu0, wall0 = proc_cpu_s(proc.pid), time.monotonic()
             window0 = time.time()
             period = 1.0 / command_hz
@@ -126,8 +134,8 @@ def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) 
             while time.monotonic() - wall0 < seconds:
                 k += 1
                 angle = (k % 3000) * 0.1 + 0.05
-                for i, pub in enumerate(pubs, start=1):
-                    sent.setdefault((i, round(angle * COUNTS_PER_DEG) % 4096), []).append(time.time())
+                for (d, ch, per_deg, per_rev), pub in zip(drives, pubs, strict=True):
+                    sent.setdefault((ch, d.node_id, round(angle * per_deg) % per_rev), []).append(time.time())
                     pub.publish(Float32(data=angle))
                 executor.spin_once(timeout_sec=0)
                 next_t += period
@@ -135,10 +143,10 @@ def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) 
             cpu = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
             window1 = time.time()
             rss = proc_rss_peak_mb(proc.pid)
-            for i, s in enumerate(sims, start=1):  # the drives stop sending: loss can be counted exactly
-                s.call(lambda s=s, i=i: setattr(s.drive(i), "nmt", 0x7F))
+            for s, n in sims:  # the drives stop sending: loss can be counted exactly
+                s.call(lambda s=s, n=n: setattr(s.drive(n), "nmt", 0x7F))
             time.sleep(0.3)
-            sim_tpdos = sum(s.call(lambda s=s, i=i: s.drive(i).counters["tpdo"]) for i, s in enumerate(sims, start=1))
+            sim_tpdos = sum(s.call(lambda s=s, n=n: s.drive(n).counters["tpdo"]) for s, n in sims)
             diags.clear()
             end = time.monotonic() + 3
             while time.monotonic() < end and not diags:
@@ -150,28 +158,34 @@ def run_stack(n_drives: int, sync_ms: float, seconds: float, command_hz: float) 
             rclpy.shutdown(context=context)
             proc.terminate()
             proc.wait(20)
-            listener.close()
+            for listener in listeners.values():
+                listener.close()
     latencies = []
     matched = 0
-    for t, cob, data in listener.frames:
-        if 0x301 <= cob <= 0x300 + n_drives and len(data) >= 6 and data[0] & 0x10:
-            # continuous joints go the short way: the target on the wire is multi-turn, so match
-            # it modulo one revolution (4096 counts)
-            times = sent.get((cob - 0x300, int.from_bytes(data[2:6], "little", signed=True) % 4096), [])
-            while times and times[0] < t - 1.0:
-                times.pop(0)  # a command superseded before it was sent (latest wins), 30 s ago
-            if times and times[0] <= t:
-                latencies.append((t - times.pop(0)) * 1000)
-                matched += 1
+    per_rev = {(ch, d.node_id): rev for d, ch, _, rev in drives}
+    for ch, listener in listeners.items():
+        for t, cob, data in listener.frames:
+            node_id = cob - 0x300
+            if (ch, node_id) in per_rev and len(data) >= 6 and data[0] & 0x10:
+                # continuous joints go the short way: the target on the wire is multi-turn, so match
+                # it modulo one revolution of the joint
+                times = sent.get((ch, node_id, int.from_bytes(data[2:6], "little", signed=True) % per_rev[(ch, node_id)]), [])
+                while times and times[0] < t - 1.0:
+                    times.pop(0)  # a command superseded before it was sent (latest wins)
+                if times and times[0] <= t:
+                    latencies.append((t - times.pop(0)) * 1000)
+                    matched += 1
     unmatched = sum(len(v) for v in sent.values())
-    syncs = [t for t, cob, _ in listener.frames if cob == 0x080]
-    periods = [(b - a) * 1e6 for a, b in itertools.pairwise(syncs)]
-    jitter = [abs(p - sync_ms * 1000) for p in periods]
+    first = listeners[min(listeners)]
+    syncs = [t for t, cob, _ in first.frames if cob == 0x080]
+    sync_s = shipped.buses[0].sync_period_s
+    jitter = [abs((b - a) - sync_s) * 1e6 for a, b in itertools.pairwise(syncs)]
     # the driver's heartbeat (node 127) as the drives see it: its longest gap is what their
     # consumer time (150 ms by default) must cover while the process is busy
-    beats = [t for t, cob, _ in listener.frames if cob == 0x77F and window0 <= t <= window1]
+    beats = [t for t, cob, _ in first.frames if cob == 0x77F and window0 <= t <= window1]
     gaps = [(b - a) * 1000 for a, b in itertools.pairwise(beats)]
-    return {"host_heartbeat_gap_p99_ms": round(pct(gaps, 0.99), 1) if gaps else None,
+    return {"config": str(config_path.relative_to(REPO)), "drives": len(drives),
+            "host_heartbeat_gap_p99_ms": round(pct(gaps, 0.99), 1) if gaps else None,
             "host_heartbeat_gap_max_ms": round(max(gaps), 1) if gaps else None,
             "cmd_latency_p50_ms": round(statistics.median(latencies), 3) if latencies else None,
             "cmd_latency_p99_ms": round(pct(latencies, 0.99), 3) if latencies else None,
@@ -213,7 +227,7 @@ def bare_path(seconds: float) -> dict[str, Any]:
             while time.monotonic() - start < seconds:
                 k += 1
                 angle = (k % 3000) * 0.1 + 0.05
-                sent[round(angle * COUNTS_PER_DEG)] = time.time()
+                sent[round(angle * BARE_COUNTS_PER_DEG)] = time.time()
                 pub.publish(Float32(data=angle))
                 time.sleep(0.01)
             time.sleep(0.3)
@@ -260,4 +274,4 @@ def driver_only(n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]
 
 
 if __name__ == "__main__":
-    print(json.dumps({**run_stack(6, 10.0, 10.0, 100.0), **bare_path(5.0)}, indent=2))
+    print(json.dumps({**run_stack(SHIPPED["rover"], 10.0, 100.0), **bare_path(5.0)}, indent=2))

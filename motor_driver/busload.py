@@ -1,6 +1,6 @@
 """Bus-load planning (pure): worst-case bits per second of every frame a config makes.
 
-Per bus: SYNC (0 bytes) at the SYNC rate. Per drive: its SYNC TPDOs every SYNC, its event
+Per bus: SYNC (0 bytes) at the SYNC rate and the driver's own heartbeat. Per drive: its SYNC TPDOs every SYNC, its event
 TPDO (statusword) counted once per SYNC as a worst case, one RPDO per SYNC (streamed
 commands), and its heartbeat. Worst-case bit stuffing. Over 50 % of a bus is a warning, over
 100 % an error: the driver refuses such a config at start-up unless forced.
@@ -47,7 +47,9 @@ def plan_load(config: RoverConfig) -> list[BusLoad]:
     out = []
     for bus in config.buses:
         sync_hz = 1.0 / bus.sync_period_s
-        lines = [LoadLine(bus.name, "SYNC", sync_hz, sync_hz * frame_bits(0))]
+        beat_hz = 1.0 / bus.host_heartbeat_s
+        lines = [LoadLine(bus.name, "SYNC", sync_hz, sync_hz * frame_bits(0)),
+                 LoadLine(bus.name, f"host heartbeat (node {bus.host_node_id})", beat_hz, beat_hz * frame_bits(1))]
         for drive in (d for d in config.drives if d.bus == bus.name):
             plan = plan_pdos(load_drive_od(drive.eds, drive.node_id), drive.node_id)
             bits = 0.0

@@ -335,11 +335,20 @@ class Drive:
 
     def set_foreign_master(self, evidence: str) -> None:
         """Supervisor: another master drives this drive ("" once it has been gone long enough).
-        Nothing of this driver's goes to the drive meanwhile; when it clears, the drive is
-        configured again (not enabled): the other master may have reset or re-mapped it."""
+        A drive this driver had enabled gets a quick stop (nothing else of this driver's goes to
+        it meanwhile); when it clears, the drive is configured again (not enabled): the other
+        master may have reset or re-mapped it."""
         if evidence and not self.foreign_master:
             logger.error("%s (node %d): another master on the bus: %s; commands are refused", self.name,
                          self.node_id, evidence)
+            if self.was_enabled and self.state == State.OPERATION_ENABLED:
+                # two masters on one drive is no state to keep moving in: the last thing this
+                # driver sends it is a quick stop (the watchdog no longer runs for it)
+                self._cw = int(Command.QUICK_STOP)
+                try:
+                    self._send_cw(self._cw)
+                except MotorError as err:
+                    logger.error("%s: quick stop on losing control not sent: %s", self.name, err)
             self.velocity_commanded = False
             self.was_enabled = False
         elif not evidence and self.foreign_master:
@@ -690,7 +699,7 @@ class Drive:
     def set_mode(self, mode: OperationMode | int) -> None:
         """Switch the mode of operation; refuses modes 0x6502 does not list; waits for 0x6061."""
         mode = OperationMode(mode)
-        with self._lock:
+        with self._command("set mode"):
             bit = SUPPORTED_MODE_BIT.get(mode)
             supported = self.supported_modes()
             if bit is None or not supported >> bit & 1:

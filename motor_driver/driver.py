@@ -151,7 +151,7 @@ class BusStats(can.Listener):
 
 class ForeignTraffic(can.Listener):
     """Frames that only another master sends (this driver never receives its own): SYNC, NMT
-    commands, heartbeats with the host's own node id, SDO requests to this driver's drives.
+    commands, heartbeats with the host's own node id, SDO writes to this driver's drives.
     The receive thread stores when it last saw each (one assignment each); the supervisor
     reads them and decides."""
 
@@ -173,8 +173,8 @@ class ForeignTraffic(can.Listener):
             self.nmt[msg.data[1]] = (time.monotonic(), msg.data[0])
         elif cob == 0x700 + self.host_node_id:
             self.host_twin = time.monotonic()
-        elif 0x601 <= cob <= 0x67F and cob - 0x600 in self.node_ids:
-            self.sdo[cob - 0x600] = time.monotonic()
+        elif 0x601 <= cob <= 0x67F and cob - 0x600 in self.node_ids and msg.data and msg.data[0] & 0xE0 == 0x20:
+            self.sdo[cob - 0x600] = time.monotonic()  # a download (write); reads by bench tools are harmless
 
     def evidence(self, node_id: int, since: float) -> str:
         """What shows another master acting on ``node_id`` after ``since`` ('' when nothing)."""
@@ -188,7 +188,7 @@ class ForeignTraffic(can.Listener):
             if when > since:
                 found.append(f"NMT command 0x{command:02X} to {'all nodes' if target == 0 else f'node {target}'}")
         if self.sdo.get(node_id, 0.0) > since:
-            found.append(f"SDO requests to node {node_id} from another client")
+            found.append(f"SDO writes to node {node_id} from another client")
         return "; ".join(found)
 
 

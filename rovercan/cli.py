@@ -241,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    from rovercan import bench
+    from rovercan import audit, bench
 
     p = sub.add_parser("scan", help="find CANopen nodes: heartbeats and an SDO probe of 0x1000/0x1018 over ids 1-127")
     bench.add_bus_args(p)
@@ -352,6 +352,15 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--listen", type=float, help="seconds to watch for the host heartbeat (default 4 periods)")
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_safety_check)
+
+    p = sub.add_parser("audit", help="measure SYNC, command latency, TPDO loss, SDO, heartbeats and load on the bus")
+    p.add_argument("--config", required=True, help="the rover config (its drives on the audited bus are exercised)")
+    p.add_argument("--bus", help="which bus of the config (default: the first)")
+    p.add_argument("--seconds", type=float, default=5.0, help="how long to measure (0.5 to 600)")
+    p.add_argument("--no-motion", action="store_true", help="do not arm the drives (no command latency figure)")
+    bench.add_bus_args(p)
+    bench.add_json(p)
+    p.set_defaults(func=audit.cmd_audit)
 
     p = sub.add_parser("plan", help="worst-case bus load of a config")
     p.add_argument("--config", required=True)

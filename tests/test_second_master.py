@@ -130,3 +130,31 @@ def test_stopped_pdos_are_reported_stale_within_n_sync_periods(sim_factory: SimF
         assert health.level == ERROR and health.message.startswith("stale: no PDO")
         apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
         wait_for(lambda: not drive.snapshot().stale and drive.snapshot().enabled, 1.0, "fresh again")
+
+
+def test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_does_not(sim_factory: SimFactory) -> None:
+    import canopen
+
+    from can_config import GENERIC_EDS, load_drive_od
+    from virtual_can.server import RAWMODE_HOLD_S
+
+    sim, cfg = sim_factory(make_config(1, watchdog_ms=10_000))
+    with MotorDriver(cfg).start() as driver:
+        drive = driver.drive("joint1")
+        drive.enable()
+        drive.set_velocity(30.0)
+        bench = canopen.Network()
+        bench.connect(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        try:
+            time.sleep(RAWMODE_HOLD_S + 0.02)
+            node = bench.add_node(1, load_drive_od(GENERIC_EDS, 1))
+            node.sdo.upload(0x1000, 0)  # a bench read (rovercan info, scan)
+            time.sleep(0.6)
+            assert not drive.foreign_master and drive.snapshot().enabled
+            node.sdo.download(0x6065, 0, (1000).to_bytes(4, "little"))  # a write behind the driver's back
+            wait_for(lambda: "SDO writes to node 1 from another client" in drive.foreign_master, 1.0, "marked")
+            runner = sim.simulators["can0"]
+            wait_for(lambda: runner.call(lambda: runner.drive(1).state.name) != "OPERATION_ENABLED", 1.0,
+                     "the quick stop the driver sent on losing control")
+        finally:
+            bench.disconnect()
