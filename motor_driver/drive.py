@@ -183,6 +183,7 @@ class Drive:
         self.torque_permille: float = math.nan
         self.stamp = 0.0
         self.nmt_state = "UNKNOWN"
+        self._reported_nmt = "UNKNOWN"  # the last state the drive's own heartbeat said (receive thread)
         self.last_heartbeat = 0.0
         self.lost = False
         self.booted = False
@@ -291,7 +292,7 @@ class Drive:
         state = data[0] & 0x7F
         self.last_heartbeat = time.monotonic()
         if state == NmtState.BOOTUP:
-            self.nmt_state = "BOOTUP"
+            self.nmt_state = self._reported_nmt = "BOOTUP"
             self._bootup.set()
             if self.booted:
                 logger.warning("node %d (%s) sent boot-up: it power-cycled or reset; it will be"
@@ -299,11 +300,14 @@ class Drive:
                 self.booted = False
                 self.rebooted.set()
             return
-        was = self.nmt_state
+        # compared with what the drive itself said last, never with what boot() assumed after its
+        # NMT start: a heartbeat sent just before the drive obeyed it is still on its way then
+        was = self._reported_nmt
         try:
             self.nmt_state = NmtState(state).name
         except ValueError:
             self.nmt_state = f"0x{state:02X}"
+        self._reported_nmt = self.nmt_state
         if self.booted and state != NmtState.OPERATIONAL and was == "OPERATIONAL":  # the change, not the state
             self.behind_back = (self.last_heartbeat, f"node {self.node_id} went {self.nmt_state} without an NMT"
                                                      " command from this driver")
@@ -381,6 +385,11 @@ class Drive:
             self.rebooted.set()  # the supervisor hands it to the worker again
 
     # ------------------------------------------------------------------ snapshot
+    @property
+    def busy(self) -> str | None:
+        """The operation in progress (enable, home, a stop, ...), or None: commands are refused meanwhile."""
+        return self._busy
+
     @property
     def state(self) -> State:
         return decode_state(self.statusword)

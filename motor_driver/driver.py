@@ -63,6 +63,8 @@ OPEN_RETRY_S = 0.1
 CONNECT_TIMEOUT_S = 10.0
 CONNECT_RETRY_MIN_S = 0.1
 CONNECT_RETRY_MAX_S = 2.0
+#: How long a socketcand server may take to greet and to finish the handshake (it takes ms).
+HANDSHAKE_TIMEOUT_S = 3.0
 
 
 class _QuietConnectRetries(logging.Filter):
@@ -77,45 +79,102 @@ class _QuietConnectRetries(logging.Filter):
 logging.getLogger("can.interfaces.socketcand.socketcand").addFilter(_QuietConnectRetries())
 
 
+def _greeting(sock: socket.socket, timeout_s: float) -> str:
+    """What a server says first (a socketcand server: ``< hi >``), or '' after ``timeout_s``."""
+    sock.settimeout(timeout_s)
+    try:
+        return sock.recv(64).decode("ascii", "replace")
+    except TimeoutError:
+        return ""
+
+
 def wait_for_server(host: str, port: int, timeout_s: float) -> None:
-    """Until a TCP connect to a socketcand server succeeds: one attempt at a time, backing off
-    from CONNECT_RETRY_MIN_S to CONNECT_RETRY_MAX_S, one log line per failed attempt; then
-    :class:`BusLostError` naming host:port and the likely cause."""
+    """Until a socketcand server at host:port accepts and greets (``< hi >``): one attempt at a
+    time, backing off from CONNECT_RETRY_MIN_S to CONNECT_RETRY_MAX_S, one log line per failed
+    attempt; then :class:`BusLostError` naming host:port and the likely cause. The greeting is
+    checked because python-can's handshake reads without a timeout: a port that accepts and stays
+    silent (another service, a hung daemon) would hang the caller for ever."""
     deadline = time.monotonic() + timeout_s
     delay = CONNECT_RETRY_MIN_S
     attempt = 0
     while True:
         attempt += 1
         try:
-            with socket.create_connection((host, port), timeout=max(0.05, min(1.0, deadline - time.monotonic()))):
+            with socket.create_connection((host, port), timeout=max(0.05, min(1.0, deadline - time.monotonic()))) as sock:
+                said = _greeting(sock, HANDSHAKE_TIMEOUT_S)
+            if said.startswith("< hi >"):
                 return
+            verdict = "no socketcand server"
+            why = (f"it accepted but sent {said[:40]!r}, not the socketcand greeting '< hi >'" if said else
+                   f"it accepted but sent no socketcand greeting ('< hi >') within {HANDSHAKE_TIMEOUT_S:g} s")
         except OSError as err:
-            remaining = deadline - time.monotonic()
+            verdict = "not reachable"
             why = err.strerror or str(err) or type(err).__name__
-            if remaining <= 0:
-                raise BusLostError(f"socketcand server {host}:{port} not reachable ({why}) after {attempt} attempt(s)"
-                                   f" in {timeout_s:g} s; is the simulator running (rovercan sim) or socketcand"
-                                   " started, and are host and port right?") from err
-            logger.warning("socketcand server %s:%d: %s (attempt %d); next try in %.1f s", host, port, why, attempt,
-                           min(delay, remaining))
-            time.sleep(min(delay, remaining))
-            delay = min(delay * 2, CONNECT_RETRY_MAX_S)
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise BusLostError(f"socketcand server {host}:{port} {verdict} ({why}) after {attempt} attempt(s)"
+                               f" in {timeout_s:g} s; is the simulator running (rovercan sim) or socketcand"
+                               " started, and are host and port right?")
+        logger.warning("socketcand server %s:%d: %s (attempt %d); next try in %.1f s", host, port, why, attempt,
+                       min(delay, remaining))
+        time.sleep(min(delay, remaining))
+        delay = min(delay * 2, CONNECT_RETRY_MAX_S)
+
+
+def _bus_within(kwargs: dict[str, Any], timeout_s: float) -> can.BusABC:
+    """``can.Bus(**kwargs)`` on a helper thread, given up after ``timeout_s`` with
+    :class:`BusLostError` (python-can's socketcand handshake has no timeout of its own). A bus
+    that opens after it was given up is shut down by the helper."""
+    outcome: list[can.BusABC | BaseException] = []
+    given_up = threading.Event()
+    lock = threading.Lock()  # outcome vs. given_up: the helper either hands the bus over or shuts it
+
+    def open_it() -> None:
+        try:
+            result: can.BusABC | BaseException = can.Bus(**kwargs)
+        except BaseException as err:  # handed to the caller's thread
+            result = err
+        with lock:
+            if given_up.is_set():
+                if isinstance(result, can.BusABC):
+                    result.shutdown()
+                return
+            outcome.append(result)
+
+    helper = threading.Thread(target=open_it, name="rovercan-open-bus", daemon=True)
+    helper.start()
+    helper.join(timeout_s)
+    with lock:
+        if not outcome:
+            given_up.set()
+            raise BusLostError(f"bus {kwargs.get('channel')} at {kwargs.get('host')}:{kwargs.get('port')}: the"
+                               f" socketcand handshake did not finish within {timeout_s:g} s; the server"
+                               " accepted but stopped answering (restart it)")
+    result = outcome[0]
+    if isinstance(result, BaseException):
+        raise result
+    return result
 
 
 def open_bus(kwargs: dict[str, Any], connect_timeout_s: float = CONNECT_TIMEOUT_S) -> can.BusABC:
     """``can.Bus(**kwargs)``, retrying a failed protocol handshake (``can.CanError``) a few times.
     A socketcand server is first waited for (:func:`wait_for_server`), so python-can's own
-    connect loop never spins."""
-    if kwargs.get("interface") == "socketcand" and "host" in kwargs and "port" in kwargs:
+    connect loop never spins, and its handshake is bounded by HANDSHAKE_TIMEOUT_S."""
+    socketcand = kwargs.get("interface") == "socketcand" and "host" in kwargs and "port" in kwargs
+    if socketcand:
         wait_for_server(str(kwargs["host"]), int(kwargs["port"]), connect_timeout_s)
+
+    def opened() -> can.BusABC:
+        return _bus_within(kwargs, HANDSHAKE_TIMEOUT_S) if socketcand else can.Bus(**kwargs)
+
     for attempt in range(1, OPEN_ATTEMPTS):
         try:
-            return can.Bus(**kwargs)
+            return opened()
         except can.CanError as err:
             logger.warning("bus %s: opening failed (%s); try %d of %d", kwargs.get("channel"), err,
                            attempt + 1, OPEN_ATTEMPTS)
             time.sleep(OPEN_RETRY_S)
-    return can.Bus(**kwargs)
+    return opened()
 
 
 class BusStats(can.Listener):
@@ -160,7 +219,7 @@ class ForeignTraffic(can.Listener):
         self.node_ids = frozenset(node_ids)
         self.sync = 0.0
         self.host_twin = 0.0
-        self.nmt: dict[int, tuple[float, int]] = {}  # target node (0: all) -> (when, command)
+        self.nmt: dict[tuple[int, int], float] = {}  # (target node (0: all), command) -> when
         self.sdo: dict[int, float] = {}  # node -> when another client sent it an SDO request
 
     def on_message_received(self, msg: can.Message) -> None:
@@ -170,7 +229,7 @@ class ForeignTraffic(can.Listener):
         if cob == 0x080:
             self.sync = time.monotonic()
         elif cob == 0x000 and len(msg.data) == 2:
-            self.nmt[msg.data[1]] = (time.monotonic(), msg.data[0])
+            self.nmt[msg.data[1], msg.data[0]] = time.monotonic()  # each command kept: a reset then a start
         elif cob == 0x700 + self.host_node_id:
             self.host_twin = time.monotonic()
         elif 0x601 <= cob <= 0x67F and cob - 0x600 in self.node_ids and msg.data and msg.data[0] & 0xE0 == 0x20:
@@ -183,9 +242,9 @@ class ForeignTraffic(can.Listener):
             found.append(f"heartbeats of node {self.host_node_id}, this driver's own id: a second driver?")
         if self.sync > since:
             found.append("SYNC frames this driver did not send")
-        for target in (node_id, 0):
-            when, command = self.nmt.get(target, (0.0, 0))
-            if when > since:
+        seen = list(self.nmt.items())  # one copy (the receive thread may add a key meanwhile)
+        for (target, command), when in sorted(seen, key=lambda item: item[1]):
+            if target in (node_id, 0) and when > since:
                 found.append(f"NMT command 0x{command:02X} to {'all nodes' if target == 0 else f'node {target}'}")
         if self.sdo.get(node_id, 0.0) > since:
             found.append(f"SDO writes to node {node_id} from another client")

@@ -3,6 +3,7 @@ no thread or socket leaks."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import socket
 import threading
@@ -14,8 +15,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from can_config import RoverConfig, with_bus_overrides
-from can_config.errors import MotorError
+from can_config.errors import BusLostError, MotorError
 from motor_driver import MotorDriver, State
+from motor_driver.driver import HANDSHAKE_TIMEOUT_S, OPEN_ATTEMPTS
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
@@ -139,33 +141,84 @@ def test_random_frames_never_crash_the_driver(one_driver: MotorDriver, frames: l
     assert -(2**31) <= drive.position_counts < 2**31
 
 
+class ScriptedDaemon:
+    """A socketcand server that follows a script per connection: the driver's greeting probe
+    (it reads '< hi >' and leaves) is answered and not counted; each later connection gets the
+    next handshake from ``script``: 'garbled' (the rawmode '< ok >' arrives with a frame), 'ok'
+    or 'mute' (greets, then never answers '< open >')."""
+
+    def __init__(self, script: list[str]) -> None:
+        self.script = script
+        self.handshakes: list[str] = []
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.sock.settimeout(10.0)
+        self.port = self.sock.getsockname()[1]
+        self.conns: list[socket.socket] = []
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        try:
+            while len(self.handshakes) < len(self.script):
+                conn, _ = self.sock.accept()
+                self.conns.append(conn)
+                conn.sendall(b"< hi >")
+                if not conn.recv(256):  # < open can0 >, or the probe leaving
+                    continue
+                kind = self.script[len(self.handshakes)]
+                self.handshakes.append(kind)
+                if kind == "mute":
+                    continue
+                conn.sendall(b"< ok >")
+                conn.recv(256)  # < rawmode >
+                conn.sendall(b"< ok >< frame 701 0.000000 7F >" if kind == "garbled" else b"< ok >")
+        except OSError:
+            pass  # closed by close()
+
+    def close(self) -> None:
+        self.sock.close()
+        for conn in self.conns:
+            conn.close()
+        self.thread.join(2.0)
+
+
 def test_driver_opens_a_bus_whose_first_handshake_is_garbled() -> None:
     """A socketcand daemon sends frames as soon as it answers rawmode, so its '< ok >' can reach
     python-can's handshake read together with a frame, which fails the connect. The driver
-    tries again (a scripted daemon: the first connection coalesces, the second does not)."""
-    daemon = socket.create_server(("127.0.0.1", 0))
-    daemon.settimeout(5.0)
-    accepted: list[socket.socket] = []
-
-    def serve() -> None:
-        for garbled in (True, False):
-            conn, _ = daemon.accept()
-            accepted.append(conn)
-            conn.sendall(b"< hi >")
-            conn.recv(256)  # < open can0 >
-            conn.sendall(b"< ok >")
-            conn.recv(256)  # < rawmode >
-            conn.sendall(b"< ok >< frame 701 0.000000 7F >" if garbled else b"< ok >")
-
-    server = threading.Thread(target=serve, daemon=True)
-    server.start()
-    cfg = with_bus_overrides(make_config(1), host="127.0.0.1", port=daemon.getsockname()[1])
+    tries again (a scripted daemon: the first handshake coalesces, the second does not)."""
+    daemon = ScriptedDaemon(["garbled", "ok"])
+    cfg = with_bus_overrides(make_config(1), host="127.0.0.1", port=daemon.port)
     try:
         with MotorDriver(cfg) as driver:
-            assert len(accepted) == 2  # one garbled handshake, one retry
+            assert daemon.handshakes == ["garbled", "ok"]  # one garbled handshake, one retry
             assert not driver.bus_lost["can0"]
     finally:
-        server.join(2.0)
-        for conn in accepted:
-            conn.close()
+        daemon.close()
+
+
+def test_a_port_that_accepts_but_never_greets_is_named_not_waited_on_for_ever() -> None:
+    """python-can's handshake reads without a timeout: a port that accepts and stays silent
+    (another service, a hung daemon) would hang the driver. It is an error naming host:port."""
+    silent = socket.create_server(("127.0.0.1", 0))
+    port = silent.getsockname()[1]
+    cfg = with_bus_overrides(make_config(1), host="127.0.0.1", port=port)
+    cfg = dataclasses.replace(cfg, buses=tuple(dataclasses.replace(b, connect_timeout_s=1.0) for b in cfg.buses))
+    try:
+        start = time.monotonic()
+        with pytest.raises(BusLostError, match=rf"127.0.0.1:{port} no socketcand server \(it accepted but sent no socketcand"
+                                               r" greeting.*are host and port right"):
+            MotorDriver(cfg)
+        assert time.monotonic() - start < 3 * HANDSHAKE_TIMEOUT_S
+    finally:
+        silent.close()
+
+
+def test_a_server_that_greets_then_stops_answering_is_given_up_with_a_clear_error() -> None:
+    daemon = ScriptedDaemon(["mute"] * OPEN_ATTEMPTS)
+    cfg = with_bus_overrides(make_config(1), host="127.0.0.1", port=daemon.port)
+    try:
+        with pytest.raises(BusLostError, match=r"handshake did not finish within .* stopped answering"):
+            MotorDriver(cfg)
+        assert daemon.handshakes == ["mute"]  # a timeout is not retried: the server is hung
+    finally:
         daemon.close()

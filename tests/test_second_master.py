@@ -158,3 +158,26 @@ def test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_doe
                      "the quick stop the driver sent on losing control")
         finally:
             bench.disconnect()
+
+
+def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master(sim_factory: SimFactory) -> None:
+    """boot() ends with NMT start; a PRE-OPERATIONAL heartbeat the drive sent just before it
+    obeyed can reach the receive thread after boot() returned (a loaded host, the socketcand
+    server's queue). That is no state change behind the driver's back; leaving OPERATIONAL after
+    the drive itself said OPERATIONAL is."""
+    from can_config.objects import NmtState
+
+    sim, cfg = sim_factory(make_config(1))
+    with MotorDriver(cfg).start() as driver:
+        drive = driver.drive("joint1")
+        runner = sim.simulators["can0"]
+        runner.call(lambda: setattr(runner.drive(1), "nmt", NmtState.PRE_OPERATIONAL))  # as after a reset
+        wait_for(lambda: drive.nmt_state == "PRE_OPERATIONAL", 1.0, "a PRE-OPERATIONAL heartbeat")
+        drive.set_foreign_master("")  # the drive went there on its own: no concern of this test
+        drive.boot(reset=False)  # ... ends with NMT start
+        drive._on_heartbeat(0x701, bytearray([NmtState.PRE_OPERATIONAL]), 0.0)  # the one on its way
+        time.sleep(0.6)
+        assert not drive.foreign_master
+        wait_for(lambda: drive.nmt_state == "OPERATIONAL", 1.0, "the drive's own OPERATIONAL heartbeat")
+        runner.call(lambda: setattr(runner.drive(1), "nmt", NmtState.PRE_OPERATIONAL))  # now it is a change
+        wait_for(lambda: "went PRE_OPERATIONAL without an NMT command" in drive.foreign_master, 1.0, "marked")
