@@ -92,6 +92,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
     from std_msgs.msg import Float32
 
     from can_config import load_config
+    from motor_driver.units import Scale
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS
 
     shipped = load_config(config_path)
@@ -110,7 +111,12 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
         node = rclpy.create_node("bench_publisher", context=context)
         diags: list[Any] = []
         node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, DIAGNOSTICS_QOS)
-        drives = [(d, channels[d.bus], d.counts_per_deg, round(d.counts_per_deg * 360)) for d in shipped.drives]
+        # the target each degree command puts on the wire, as the driver scales it (a mirrored
+        # wheel's `invert`, `offset_deg`): matching on the unsigned counts would miss those wheels
+        scales = [Scale(d.counts_per_deg, d.rated_torque_nm, d.gear_ratio, invert=d.invert, offset_deg=d.offset_deg)
+                  for d in shipped.drives]
+        drives = [(d, channels[d.bus], scale, round(d.counts_per_deg * 360))
+                  for d, scale in zip(shipped.drives, scales, strict=True)]
         pubs = [node.create_publisher(Float32, f"{d.ros_prefix}/degree_cmd", COMMAND_QOS) for d in shipped.drives]
         from rclpy.executors import SingleThreadedExecutor
         executor = SingleThreadedExecutor(context=context)
@@ -134,8 +140,8 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             while time.monotonic() - wall0 < seconds:
                 k += 1
                 angle = (k % 3000) * 0.1 + 0.05
-                for (d, ch, per_deg, per_rev), pub in zip(drives, pubs, strict=True):
-                    sent.setdefault((ch, d.node_id, round(angle * per_deg) % per_rev), []).append(time.time())
+                for (d, ch, scale, per_rev), pub in zip(drives, pubs, strict=True):
+                    sent.setdefault((ch, d.node_id, scale.deg_to_counts(angle) % per_rev), []).append(time.time())
                     pub.publish(Float32(data=angle))
                 executor.spin_once(timeout_sec=0)
                 next_t += period
