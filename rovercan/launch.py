@@ -5,11 +5,13 @@ It understands the subset the project's launch files use: ``<arg name default>``
 ``<node pkg exec name>`` with ``<param name value>``, ``<executable cmd>``, ``$(var name)``
 substitutions and ``if``/``unless`` attributes. Nodes of ``rovercan_bringup`` run as
 ``python -m nodes.<exec>`` subprocesses; anything else is refused with a clear error.
-On SIGINT/SIGTERM (or ``--duration``) every process gets SIGINT, then SIGTERM, then SIGKILL.
+On SIGINT/SIGTERM (or ``--duration``) the processes are stopped in reverse start order, each
+with SIGINT, then SIGTERM, then SIGKILL, and each gone before the next one is signalled.
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import re
@@ -53,6 +55,23 @@ def _substitute(text: str, args: dict[str, str], where: str) -> str:
     return _VAR.sub(repl, text)
 
 
+def _split_then_substitute(cmd: str, args: dict[str, str], where: str) -> list[str]:
+    """The command split into words as written, then each ``$(var ...)`` filled in within its
+    word (the substitution is masked while splitting: it holds a space)."""
+    names: list[str] = []
+
+    def mask(match: re.Match[str]) -> str:
+        names.append(match.group(0))
+        return f"\x00{len(names) - 1}\x00"
+
+    try:
+        words = shlex.split(_VAR.sub(mask, cmd))
+    except ValueError as err:
+        raise ConfigError(f"{where}: cannot split cmd {cmd!r}: {err}") from err
+    return [_substitute(re.sub("\x00(\\d+)\x00", lambda m: names[int(m.group(1))], word), args, where)
+            for word in words]
+
+
 def _truthy(value: str, where: str) -> bool:
     lowered = value.strip().lower()
     if lowered in ("true", "1"):
@@ -88,7 +107,9 @@ def parse_launch(path: Path, overrides: dict[str, str]) -> list[Process]:
         if cond_unless is not None and _truthy(_substitute(cond_unless, args, where), where):
             continue
         if element.tag == "executable":
-            argv = shlex.split(_substitute(element.get("cmd", ""), args, where))
+            # split first, then substitute into each word: a value is one argument whatever it
+            # holds (quotes, spaces, "--flags")
+            argv = _split_then_substitute(element.get("cmd", ""), args, where)
             if argv and argv[0] == "rovercan":
                 argv = [sys.executable, "-m", "rovercan", *argv[1:]]
             processes.append(Process(Path(argv[0]).name if argv else "?", argv))
@@ -109,7 +130,37 @@ def parse_launch(path: Path, overrides: dict[str, str]) -> list[Process]:
     return processes
 
 
+def _die_with_parent() -> None:
+    """In the child before exec: SIGTERM when the launcher dies (even by SIGKILL), since the
+    children run in their own process group and a terminal's Ctrl+C no longer reaches them."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass  # not Linux: the launcher's own stop path remains
+
+
+PR_SET_PDEATHSIG = 1
+
+
+def _stop(proc: Process) -> None:
+    """SIGINT, then SIGTERM, then SIGKILL, STOP_GRACE_S apart, until the process is gone."""
+    assert proc.popen is not None
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+        if proc.popen.poll() is not None:
+            return
+        proc.popen.send_signal(sig)
+        try:
+            proc.popen.wait(STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            print(f"rovercan launch: {proc.name} still running {STOP_GRACE_S:g} s after {signal.Signals(sig).name}",
+                  file=sys.stderr, flush=True)
+
+
 def run_launch(path: Path, overrides: dict[str, str], duration_s: float | None) -> int:
+    """Starts the processes in file order, each in its own session (a terminal's Ctrl+C
+    reaches only this runner), and stops them in reverse order, each gone before the next is
+    signalled: the driver brings its drives to a safe state while the bus (the simulator) is
+    still there."""
     processes = parse_launch(path, overrides)
     stop = {"flag": False}
 
@@ -122,8 +173,10 @@ def run_launch(path: Path, overrides: dict[str, str], duration_s: float | None) 
     failed = 0
     try:
         for proc in processes:
-            print(f"rovercan launch: starting {proc.name}: {' '.join(proc.argv)}", flush=True)
-            proc.popen = subprocess.Popen(proc.argv, env=env)
+            print(f"rovercan launch: starting {proc.name}: {shlex.join(proc.argv)}", flush=True)
+            # the runner has no threads, so preexec_fn is safe here
+            proc.popen = subprocess.Popen(proc.argv, env=env, start_new_session=True,
+                                          preexec_fn=_die_with_parent)  # noqa: PLW1509
         deadline = None if duration_s is None else time.monotonic() + duration_s
         while not stop["flag"] and (deadline is None or time.monotonic() < deadline):
             for proc in processes:
@@ -136,14 +189,9 @@ def run_launch(path: Path, overrides: dict[str, str], duration_s: float | None) 
                     stop["flag"] = True
             time.sleep(0.1)
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
-            alive = [p for p in reversed(processes) if p.popen is not None and p.popen.poll() is None]
-            for proc in alive:
-                assert proc.popen is not None
-                proc.popen.send_signal(sig)
-            end = time.monotonic() + STOP_GRACE_S
-            while any(p.popen is not None and p.popen.poll() is None for p in alive) and time.monotonic() < end:
-                time.sleep(0.05)
+        for proc in reversed(processes):
+            if proc.popen is not None:
+                _stop(proc)
         for sig, handler in old.items():
             signal.signal(sig, handler)
     for proc in processes:

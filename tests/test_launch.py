@@ -74,3 +74,65 @@ def test_rovercan_launch_runs_the_graph(tmp_path: Path) -> None:
     assert len(targets) >= 5, f"no set-points from the launched graph: {out[-3000:]}"
     assert targets == sorted(targets) and targets[-1] > targets[0]  # following the +0.1 deg ramp
     assert proc.returncode == 0, out[-3000:]
+
+
+STOPPER = """
+import signal, sys, time
+name, log = sys.argv[1], sys.argv[2]
+def note(what):
+    with open(log, "a") as f:
+        f.write(f"{name} {what}\\n")
+def on_int(signum, frame):
+    note("stopping")
+    time.sleep(0.5)  # a safe stop that needs the processes started before it
+    note("stopped")
+    sys.exit(0)
+signal.signal(signal.SIGINT, on_int)
+note("ready")
+while True:
+    time.sleep(0.05)
+"""
+
+
+def write_launch(tmp_path: Path) -> Path:
+    (tmp_path / "stopper.py").write_text(STOPPER)
+    launch = tmp_path / "two.xml"
+    launch.write_text('<launch>\n  <arg name="py" default="python3"/>\n  <arg name="log" default="log.txt"/>\n'
+                      '  <executable cmd="$(var py) stopper.py bus $(var log)"/>\n'
+                      '  <executable cmd="$(var py) stopper.py driver $(var log)"/>\n</launch>\n')
+    return launch
+
+
+def test_a_launch_value_is_one_argument_whatever_it_holds(tmp_path: Path) -> None:
+    hostile = "c.yaml' --host 0.0.0.0 --allow-remote --port '1234"
+    processes = parse_launch(write_launch(tmp_path), {"log": hostile})
+    assert processes[0].argv[-1] == hostile and "--allow-remote" not in processes[0].argv
+    sim = parse_launch(REPO / "ros" / "rovercan_bringup" / "launch" / "rover_launch.xml",
+                       {"config": hostile, "sim": "true"})[0]
+    assert hostile in sim.argv and "--allow-remote" not in sim.argv
+
+
+def test_ctrl_c_stops_the_processes_in_reverse_order_each_before_the_next(tmp_path: Path) -> None:
+    """A terminal's Ctrl+C goes to the whole foreground process group. The launched processes
+    get it from the runner only, last started first, each gone before the next is signalled:
+    the driver's safe stop still finds the bus (the simulator) there."""
+    import signal
+
+    log = tmp_path / "log.txt"
+    runner = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(write_launch(tmp_path)),
+                               f"py:={sys.executable}", f"log:={log}"], cwd=tmp_path, start_new_session=True,
+                              env=dict(os.environ, PYTHONPATH=str(REPO)), stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 20
+        while (not log.exists() or log.read_text().count("ready") < 2) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        os.killpg(runner.pid, signal.SIGINT)  # what the terminal does
+        out, _ = runner.communicate(timeout=30)
+    finally:
+        if runner.poll() is None:
+            runner.kill()
+    lines = log.read_text().split("\n")
+    assert [line for line in lines if "stop" in line] == ["driver stopping", "driver stopped", "bus stopping",
+                                                          "bus stopped"], out
+    assert runner.returncode == 0, out

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from can_config.errors import ProtocolError
 from virtual_can import BusEngine, SocketcandServer, VirtualBus
 from virtual_can.server import format_frame, parse_send
 from virtual_can.wire import frame_bits
@@ -224,3 +225,104 @@ def test_clients_join_a_busy_channel(server: SocketcandServer) -> None:
     finally:
         stop.set()
         flooder.join(2.0)
+
+
+@pytest.mark.parametrize("word", ["+12", "1_0", "0x7FF", "-1", " ", "7FG", "123456789", "١٢٣"])
+def test_ids_are_hex_digits_only(word: str) -> None:
+    with pytest.raises(ProtocolError, match="hex digits"):
+        parse_send(f"< send {word} 1 11 >")
+
+
+@given(st.integers(0, 0x1FFFFFFF), st.integers(1, 8))
+def test_standard_or_extended_by_the_protocol_rule_and_the_value(can_id: int, digits: int) -> None:
+    """8 digits (as socketcand and python-can write extended ids) or a value above 0x7FF:
+    extended; otherwise standard. Any id python-can formats comes back as it was sent."""
+    word = f"{can_id:0{digits}X}"
+    if len(word) > 8:
+        return
+    msg = parse_send(f"< send {word} 0 >")
+    assert msg.arbitration_id == can_id
+    assert msg.is_extended_id == (len(word) == 8 or can_id > 0x7FF)
+
+
+def test_a_remote_frame_is_relayed_and_breaks_no_client() -> None:
+    """python-can sends an RTR frame as '< send ID DLC >' without data; it is relayed, not refused
+    (python-can's client reads any '< error ... >' reply as an error frame and its recv raises)."""
+    msg = parse_send("< send 181 2 >")
+    assert msg.is_remote_frame and msg.dlc == 2 and not msg.data
+    assert format_frame(can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=2, is_extended_id=False,
+                                    timestamp=1.0)) == "< frame 181 1.000000  >"
+
+
+def test_hostile_and_idle_clients_never_starve_a_well_behaved_one() -> None:
+    """A client sending non-ASCII, an RTR-sending python-can client and idle connections on every
+    free slot: the well-behaved client connects and receives every frame throughout, the idle
+    ones are closed once the handshake time is up, and a new client then gets a slot."""
+    with BusEngine() as engine, SocketcandServer(engine, port=0, max_clients=6, handshake_timeout_s=1.0) as srv:
+        good = can.Bus(interface="socketcand", channel="can0", host=srv.host, port=srv.port)
+        sender = VirtualBus("can0", engine=engine)
+        stop = threading.Event()
+        sent: list[int] = []
+
+        def send_steadily() -> None:
+            while not stop.is_set():
+                sent.append(len(sent))
+                sender.send(can.Message(arbitration_id=0x281, data=sent[-1].to_bytes(4, "little"), is_extended_id=False))
+                time.sleep(0.005)
+
+        pump = threading.Thread(target=send_steadily, daemon=True)
+        got: list[int] = []
+        other_ids: list[tuple[int, bool]] = []
+        try:
+            time.sleep(0.1)
+            pump.start()
+            # non-ASCII bytes in a line: the error reply stays ASCII and the client stays served
+            rude = raw_client(srv)
+            assert rude.recv(256) == b"< hi >"
+            rude.sendall(b"< open can0 >")
+            rude.recv(256)
+            rude.sendall(b"< rawmode >")
+            rude.recv(256)
+            rude.sendall("< send \u00e9 1 11 >".encode())
+            rude.sendall(b"< echo >")
+            reply = read_until(rude, "< echo >")
+            assert "< error CAN id '\\\\xc3\\\\xa9'" in reply and "< echo >" in reply, reply
+            reply.encode("ascii")
+            # an RTR frame from python-can: relayed to the others, the sender's recv does not raise
+            rtr = can.Bus(interface="socketcand", channel="can0", host=srv.host, port=srv.port)
+            rtr.send(can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=2, is_extended_id=False))
+            # idle connections on every free slot (good, rude, rtr hold three of six)
+            idle = [raw_client(srv) for _ in range(3)]
+            for sock in idle:
+                assert sock.recv(256) == b"< hi >"
+            full = raw_client(srv)
+            assert full.recv(256) == b"< error too many clients >"
+            full.close()
+            start = time.monotonic()
+            for sock in idle:
+                sock.settimeout(3.0)
+                assert sock.recv(256) == b""  # closed by the server
+            closed_after = time.monotonic() - start
+            late = can.Bus(interface="socketcand", channel="can0", host=srv.host, port=srv.port)  # a slot again
+            late.shutdown()
+            rtr.recv(0.2)  # would raise CanError had the server answered the RTR with '< error ... >'
+            rtr.shutdown()
+            rude.close()
+            stop.set()
+            pump.join(2)
+            deadline = time.monotonic() + 3.0
+            while (len(got) < len(sent)) and time.monotonic() < deadline:
+                msg = good.recv(0.2)
+                if msg is None:
+                    continue
+                if msg.arbitration_id == 0x281:
+                    got.append(int.from_bytes(msg.data, "little"))
+                else:
+                    other_ids.append((msg.arbitration_id, len(msg.data) == 0))
+            assert got == sent  # every frame, in order, throughout
+            assert (0x181, True) in other_ids  # the RTR frame, relayed
+            assert 0.5 <= closed_after <= 2.5, closed_after
+        finally:
+            stop.set()
+            good.shutdown()
+            sender.shutdown()

@@ -26,6 +26,7 @@ import queue
 import select
 import socket
 import threading
+import time
 from dataclasses import dataclass
 
 import can
@@ -49,33 +50,54 @@ DEFAULT_MAX_CLIENTS = 64
 #: After the rawmode '< ok >', frames wait this long (or until the client speaks) so that the
 #: reply reaches the client's handshake read on its own.
 RAWMODE_HOLD_S = 0.05
+#: A client that has not reached rawmode this long after connecting is closed (idle
+#: connections would otherwise hold every client slot).
+HANDSHAKE_TIMEOUT_S = 5.0
 #: How long socket reads block before checking for shutdown.
 POLL_S = 0.2
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
 
 def format_frame(msg: can.Message) -> str:
-    """``< frame ID SEC.USEC HEXDATA >`` with a 3-digit standard or 8-digit extended id."""
+    """``< frame ID SEC.USEC HEXDATA >`` with a 3-digit standard or 8-digit extended id (a
+    remote frame has no data: rawmode has no RTR marker)."""
     can_id = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
-    return f"< frame {can_id} {msg.timestamp:.6f} {bytes(msg.data).hex().upper()} >"
+    data = b"" if msg.is_remote_frame else bytes(msg.data)
+    return f"< frame {can_id} {msg.timestamp:.6f} {data.hex().upper()} >"
+
+
+_HEX = frozenset("0123456789abcdefABCDEF")
+
+
+def _hex(word: str, max_digits: int, what: str, line: str) -> int:
+    """A field of hex digits only (no sign, prefix or underscore), at most ``max_digits``."""
+    if not 1 <= len(word) <= max_digits or not _HEX.issuperset(word):
+        raise ProtocolError(f"{what} {word[:12]!r} in {line[:60]!r}: expected 1 to {max_digits} hex digits")
+    return int(word, 16)
 
 
 def parse_send(line: str) -> can.Message:
-    """Parse ``< send ID LEN B0 B1 ... >`` into a message. Raises :class:`ProtocolError`."""
+    """Parse ``< send ID LEN B0 B1 ... >`` into a message. Raises :class:`ProtocolError`.
+
+    Strict: every field is hex digits only. The id is extended when written with 8 digits (the
+    form socketcand and python-can write) or when its value exceeds 0x7FF; otherwise standard.
+    LEN > 0 with no data bytes is a remote frame (RTR) of that DLC: python-can sends those so."""
     parts = line[1:-1].split()
     if len(parts) < 3 or parts[0] != "send":
         raise ProtocolError(f"expected '< send ID LEN B0 .. >', got {line[:60]!r}")
-    try:
-        can_id = int(parts[1], 16)
-        length = int(parts[2], 16)
-        data = bytes(int(b, 16) for b in parts[3:])
-    except ValueError as err:
-        raise ProtocolError(f"bad number in {line[:60]!r}: {err}") from err
-    extended = len(parts[1]) > 3
-    if not 0 <= length <= 8 or len(data) != length:
-        raise ProtocolError(f"length {length} does not match {len(data)} data bytes (0..8 allowed)")
-    if can_id < 0 or can_id > (0x1FFFFFFF if extended else 0x7FF):
-        raise ProtocolError(f"CAN id {parts[1]} out of range")
+    can_id = _hex(parts[1], 8, "CAN id", line)
+    length = _hex(parts[2], 1, "length", line)
+    data = bytes(_hex(b, 2, "data byte", line) for b in parts[3:])
+    extended = len(parts[1]) == 8 or can_id > 0x7FF
+    if can_id > 0x1FFFFFFF:
+        raise ProtocolError(f"CAN id {parts[1]} out of range (0..7FF standard, 0..1FFFFFFF extended)")
+    if length > 8:
+        raise ProtocolError(f"length {length} out of range (0..8)")
+    if not data and length:
+        return can.Message(arbitration_id=can_id, dlc=length, is_remote_frame=True, is_extended_id=extended,
+                           timestamp=0.0)
+    if len(data) != length:
+        raise ProtocolError(f"length {length} does not match {len(data)} data bytes")
     return can.Message(arbitration_id=can_id, data=data, is_extended_id=extended, timestamp=0.0)
 
 
@@ -165,7 +187,7 @@ class _Client:
                 batch = "".join(lines)
                 self.stats.sent += len(lines)
             try:
-                sock.sendall(batch.encode("ascii"))
+                sock.sendall(batch.encode("ascii", "backslashreplace"))  # replies quote client input
             except OSError:
                 break
         self.close()
@@ -174,12 +196,17 @@ class _Client:
     def _read_loop(self) -> None:
         buf = ""
         sock = self.sock
+        connected = time.monotonic()
         # the socket stays blocking for the writer: a client that pauses reading is not dropped
         # for a short stall, only after SLOW_CLIENT_DROP_LIMIT frames lost in a row; the reader
         # waits with select so that it notices shutdown
         while not self._closed.is_set():
             try:
                 readable, _, _ = select.select([sock], [], [], POLL_S)
+                if not self.raw and time.monotonic() - connected > self.server.handshake_timeout_s:
+                    logger.info("socketcand client %s: no rawmode within %g s; closing it", self.addr,
+                                self.server.handshake_timeout_s)
+                    break
                 if not readable:
                     continue
                 chunk = sock.recv(65536)
@@ -187,7 +214,7 @@ class _Client:
                 break
             if not chunk:
                 break
-            buf += chunk.decode("ascii", errors="replace")
+            buf += chunk.decode("ascii", errors="backslashreplace")  # what is quoted back stays ASCII
             while True:
                 start = buf.find("<")
                 if start < 0:
@@ -282,7 +309,8 @@ class SocketcandServer:
 
     def __init__(self, engine: BusEngine, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, *,
                  channels: tuple[str, ...] = ("can0",), allow_any_channel: bool = False,
-                 max_clients: int = DEFAULT_MAX_CLIENTS, allow_remote: bool = False) -> None:
+                 max_clients: int = DEFAULT_MAX_CLIENTS, allow_remote: bool = False,
+                 handshake_timeout_s: float = HANDSHAKE_TIMEOUT_S) -> None:
         if host not in _LOOPBACK and not host.startswith("127."):
             if not allow_remote:
                 raise SimError(f"refusing to bind {host!r}: the bus server listens on loopback"
@@ -293,6 +321,7 @@ class SocketcandServer:
         self.channels = channels
         self.allow_any_channel = allow_any_channel
         self.max_clients = max_clients
+        self.handshake_timeout_s = handshake_timeout_s
         self._clients: set[_Client] = set()
         self._lock = threading.Lock()
         self._sock = socket.create_server((host, port), reuse_port=False)
