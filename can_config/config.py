@@ -15,9 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from can_config.errors import ConfigError
+from can_config.textfile import load_yaml
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 GENERIC_EDS = DATA_DIR / "generic_cia402.eds"
@@ -136,6 +135,12 @@ class DriveSystemConfig:
     max_angular_rad_s: float = 2.0
 
 
+#: Motor revolutions per joint revolution: below 0.001 a 4096-count encoder gives under 5
+#: counts per joint revolution, and a move rounds to no motion at all.
+GEAR_RATIO_MIN = 0.001
+GEAR_RATIO_MAX = 1e6
+
+
 @dataclass(frozen=True)
 class RoverConfig:
     """A whole configuration: buses, drives and, optionally, the drive system."""
@@ -198,7 +203,7 @@ _DRIVE_FIELDS: dict[str, _Field] = {
     "bus": _Field("str", None),
     "eds": _Field("path", "generic"),
     "counts_per_rev": _Field("int", None, 1, 2**31 - 1),
-    "gear_ratio": _Field("float", 1.0, 0.0, 1e6, low_open=True),
+    "gear_ratio": _Field("float", 1.0, GEAR_RATIO_MIN, GEAR_RATIO_MAX),
     "rated_torque_nm": _Field("float", 1.0, 0.0, 1e5, low_open=True),
     "max_torque_nm": _Field("opt_float", None, 0.0, 1e6, low_open=True),
     "joint": _Field("str", "continuous", choices=("continuous", "limited")),
@@ -455,18 +460,7 @@ def resolve_eds_path(value: str, base_dir: Path) -> Path:
 def load_config(path: Path | str | None = None) -> RoverConfig:
     """Read and validate a YAML config; ``None`` loads the embedded default."""
     source = Path(path) if path is not None else DEFAULT_CONFIG
-    try:
-        text = source.read_text(encoding="utf-8")
-    except OSError as err:
-        raise ConfigError(f"{source}: cannot read the config file ({err.strerror or err});"
-                          " check the path and its permissions.") from err
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(err, "problem", None) or str(err)
-        raise ConfigError(f"{source}:{where}: not valid YAML: {problem}.") from err
+    data = load_yaml(source, "config file")
     return parse_config(data, source)
 
 

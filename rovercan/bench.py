@@ -16,7 +16,7 @@ import struct
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -27,13 +27,16 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config import GENERIC_EDS, RoverConfig, load_config, load_drive_od, load_od, parse_config
+from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN
 from can_config.eds import consumer_subs, variable
 from can_config.errors import BusLostError, ConfigError, RovercanError
 from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
 from can_config.stop import StopSignal
+from can_config.textfile import read_text_file
 from motor_driver.adapters import connection_closed
 from motor_driver.driver import open_bus as driver_open_bus
 from motor_driver.driver import wait_for_server
+from rovercan.argtypes import real, whole
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
 
 SCAN_TIMEOUT_S = 0.3
@@ -55,8 +58,9 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
 def add_drive_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="the rover config (bus, drives, units)")
     parser.add_argument("--eds", help="EDS of a drive on its own (default: the generic CiA 402 EDS)")
-    parser.add_argument("--counts-per-rev", type=int, help="encoder counts per motor revolution")
-    parser.add_argument("--gear-ratio", type=float, default=1.0, help="motor revolutions per joint revolution")
+    parser.add_argument("--counts-per-rev", type=whole(1, 2**31 - 1), help="encoder counts per motor revolution")
+    parser.add_argument("--gear-ratio", type=real(GEAR_RATIO_MIN, GEAR_RATIO_MAX), default=1.0,
+                        help="motor revolutions per joint revolution")
 
 
 def add_json(parser: argparse.ArgumentParser) -> None:
@@ -487,7 +491,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-
+    check_recording_target(args.file)
     bus = open_bus(args)
     print(f"rovercan record: recording {bus.channel_info} to {args.file}", file=sys.stderr, flush=True)
     n = 0
@@ -505,17 +509,48 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
-def _require_recording(path: str) -> None:
-    if not Path(path).is_file():
+#: Recording formats python-can writes as text: their content is checked to be text first.
+TEXT_RECORDINGS = (".asc", ".csv", ".log", ".trc", ".txt")
+
+
+def read_recording(path: str) -> list[can.Message]:
+    """Every frame of a recording, read in full before anything is sent (a file that breaks half
+    way never half-replays), or :class:`ConfigError` naming the file and what is wrong with it."""
+    file = Path(path)
+    readers: dict[str, Callable[[str], Any]] = {
+        **can.io.player.MESSAGE_READERS, ".txt": can.CanutilsLogReader}  # .txt: candump -L output
+    suffix = file.suffix.lower()
+    if suffix not in readers:
+        raise ConfigError(f"{path}: {suffix or 'a file without suffix'} is not a recording format python-can reads;"
+                          f" use one of {', '.join(sorted(readers))} (candump -L output: .log or .txt)")
+    if not file.is_file():
         raise ConfigError(f"{path}: no such recording")
+    if suffix in TEXT_RECORDINGS:
+        read_text_file(file, "recording", "give a recording")  # binary or UTF-16 content is named
+    try:
+        with readers[suffix](path) as reader:
+            frames = list(reader)
+    except (ValueError, UnicodeDecodeError, struct.error, IndexError, KeyError, OSError, EOFError) as err:
+        raise ConfigError(f"{path}: not a valid {suffix} recording ({type(err).__name__}: {err})") from err
+    if not frames:
+        raise ConfigError(f"{path}: no CAN frames in this {suffix} file")
+    return frames
+
+
+def check_recording_target(path: str) -> None:
+    """``record``'s file: a format python-can writes, checked before the bus is opened."""
+    suffix = Path(path).suffix.lower()
+    writers = can.io.logger.MESSAGE_WRITERS
+    if suffix not in writers:
+        raise ConfigError(f"{path}: {suffix or 'a file without suffix'} is not a format python-can records;"
+                          f" use one of {', '.join(sorted(writers))}")
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    _require_recording(args.file)
+    messages = read_recording(args.file)
     bus = open_bus(args)
     n = 0
     try:
-        messages = can.LogReader(args.file)
         source = messages if args.fast else can.MessageSync(messages, timestamps=True)
         for msg in source:
             if msg.is_error_frame:
@@ -530,10 +565,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
-    _require_recording(args.file)
+    frames = read_recording(args.file)
     layouts = pdo_layouts_for(args)
     n = 0
-    for msg in can.LogReader(args.file):
+    for msg in frames:
         node = node_of(msg)
         if args.node is not None and node != args.node:
             continue

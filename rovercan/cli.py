@@ -9,15 +9,18 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import signal
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from decimal import Decimal
 from pathlib import Path
 
 from can_config import load_config, with_bus_overrides
 from can_config.errors import ConfigError, RovercanError
 from can_config.stop import StopSignal, stop_on_signals
+from rovercan.argtypes import real, whole
 from rovercan.launch import LOCAL_DISCOVERY
 
 logger = logging.getLogger(__name__)
@@ -44,6 +47,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from virtual_can.service import SimService, specs_for_count, specs_from_config
 
     port = args.port
+    if args.scenario:
+        from virtual_can.scenario import load_scenario
+        load_scenario(args.scenario)  # a bad scenario is refused before anything is served
     if args.config:
         config = load_config(args.config)
         specs = specs_from_config(config)
@@ -205,18 +211,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("sim", help="serve a virtual CAN bus with simulated CiA 402 drives")
-    p.add_argument("--drives", type=_positive_int(1, 127), default=1, help="number of drives, node ids 1..N")
+    p.add_argument("--drives", type=whole(1, 127), default=1, help="number of drives, node ids 1..N")
     p.add_argument("--config", help="simulate the drives of this rover config (a twin of the rover)")
     p.add_argument("--eds", help="EDS of the simulated drives (default: the generic CiA 402 EDS)")
     p.add_argument("--channel", default="can0", help="channel name served (default can0)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
-    p.add_argument("--port", type=_positive_int(0, 65535), default=None,
+    p.add_argument("--port", type=whole(0, 65535), default=None,
                    help="TCP port (default: the config's, else 29536; 0: any free)")
     p.add_argument("--allow-remote", action="store_true", help="allow binding a non-loopback address")
     p.add_argument("--wire-time", action="store_true", help="frames take their real bit time")
-    p.add_argument("--bitrate", type=_positive_int(10_000, 8_000_000), default=1_000_000)
+    p.add_argument("--bitrate", type=whole(10_000, 8_000_000), default=1_000_000)
     p.add_argument("--scenario", help="YAML fault-injection scenario to play")
-    p.add_argument("--status-period", type=float, default=0.0, help="print a status line per drive every S seconds")
+    p.add_argument("--status-period", type=real(0, 3600), default=0.0, help="print a status line per drive every S seconds")
     import can.cli
     can.cli.add_bus_arguments(p, prefix="bus", group_title="instead of serving a bus: put the simulated drives on"
                               " this python-can bus (e.g. --bus-interface socketcan --bus-channel vcan0)")
@@ -224,10 +230,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="the motor demo: simulator + driver + ROS nodes, live MotorState")
     p.add_argument("--config", help="rover config (default: the embedded one)")
-    p.add_argument("--duration", type=float, default=None, help="stop after S seconds (default: Ctrl+C)")
-    p.add_argument("--port", type=_positive_int(0, 65535), default=0, help="simulator port (default: any free)")
-    p.add_argument("--step", type=float, default=0.1, help="degrees added per 0.1 s command (default 0.1)")
-    p.add_argument("--print-period", type=float, default=0.5, help="seconds between printed states")
+    p.add_argument("--duration", type=real(0.1, 1e6), default=None, help="stop after S seconds (default: Ctrl+C)")
+    p.add_argument("--port", type=whole(0, 65535), default=0, help="simulator port (default: any free)")
+    p.add_argument("--step", type=real(-360, 360), default=0.1, help="degrees added per 0.1 s command (default 0.1)")
+    p.add_argument("--print-period", type=real(0.05, 3600), default=0.5, help="seconds between printed states")
     p.set_defaults(func=cmd_demo)
 
     _bench_parsers(sub)
@@ -235,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("launch", help="run a ROS 2 XML launch file of this project without the ros2 CLI")
     p.add_argument("file", help="launch file, e.g. ros/rovercan_bringup/launch/motor_launch.xml")
     p.add_argument("args", nargs="*", help="launch arguments name:=value")
-    p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    p.add_argument("--duration", type=real(0.1, 1e6), default=None, help="stop after S seconds")
     p.set_defaults(func=cmd_launch)
     return parser
 
@@ -245,7 +251,7 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
     p = sub.add_parser("scan", help="find CANopen nodes: heartbeats and an SDO probe of 0x1000/0x1018 over ids 1-127")
     bench.add_bus_args(p)
-    p.add_argument("--listen", type=float, default=1.2, help="seconds to collect answers and heartbeats")
+    p.add_argument("--listen", type=real(0.05, 600), default=1.2, help="seconds to collect answers and heartbeats")
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_scan)
 
@@ -282,14 +288,14 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
         bench.add_drive_args(p)
         bench.add_bus_args(p)
         if action == "enable":
-            p.add_argument("--hold", type=float, default=0.0, help="stay enabled for S seconds")
+            p.add_argument("--hold", type=real(0, 86400), default=0.0, help="stay enabled for S seconds")
         bench.add_json(p)
         p.set_defaults(func=bench.cmd_drive, action=action)
 
     p = sub.add_parser("move", help="move a drive to an angle and wait for target reached")
     p.add_argument("node")
-    p.add_argument("degrees", type=float)
-    p.add_argument("--speed", type=float, help="profile velocity, deg/s")
+    p.add_argument("degrees", type=real(-1e6, 1e6), help="joint angle (limits: the config's)")
+    p.add_argument("--speed", type=real(0.001, 1e6), help="profile velocity, deg/s")
     bench.add_drive_args(p)
     bench.add_bus_args(p)
     bench.add_json(p)
@@ -297,8 +303,8 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
     p = sub.add_parser("jog", help="run a drive at a velocity for a time")
     p.add_argument("node")
-    p.add_argument("velocity", type=float, help="deg/s")
-    p.add_argument("--for", dest="seconds", type=float, required=True, help="seconds")
+    p.add_argument("velocity", type=real(-1e6, 1e6), help="deg/s")
+    p.add_argument("--for", dest="seconds", type=real(0.01, 3600), required=True, help="seconds")
     bench.add_drive_args(p)
     bench.add_bus_args(p)
     bench.add_json(p)
@@ -306,9 +312,9 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
     p = sub.add_parser("monitor", help="live CANopen-decoded traffic")
     bench.add_bus_args(p)
-    p.add_argument("--node", type=int, help="only this node")
+    p.add_argument("--node", type=whole(1, 127), help="only this node")
     p.add_argument("--table", action="store_true", help="a per-node table at the end instead of lines")
-    p.add_argument("--seconds", type=float, default=0.0, help="stop after S seconds (default: Ctrl+C)")
+    p.add_argument("--seconds", type=real(0, 1e6), default=0.0, help="stop after S seconds (default: Ctrl+C)")
     p.add_argument("--config", help="decode PDOs by the driver's mapping for this config")
     p.add_argument("--eds", help="decode PDOs by the driver's mapping for this EDS")
     bench.add_json(p)
@@ -317,7 +323,7 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p = sub.add_parser("record", help="record the bus to a python-can log (.log .asc .blf .trc .csv)")
     p.add_argument("file")
     bench.add_bus_args(p)
-    p.add_argument("--seconds", type=float, default=0.0, help="stop after S seconds (default: Ctrl+C)")
+    p.add_argument("--seconds", type=real(0, 1e6), default=0.0, help="stop after S seconds (default: Ctrl+C)")
     p.set_defaults(func=bench.cmd_record)
 
     p = sub.add_parser("replay", help="replay a recording onto the bus with its timing")
@@ -328,7 +334,7 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
     p = sub.add_parser("decode", help="CANopen-decoded transcript of a recording")
     p.add_argument("file")
-    p.add_argument("--node", type=int, help="only this node")
+    p.add_argument("--node", type=whole(1, 127), help="only this node")
     p.add_argument("--config", help="decode PDOs by the driver's mapping for this config")
     p.add_argument("--eds", help="decode PDOs by the driver's mapping for this EDS")
     bench.add_json(p)
@@ -336,8 +342,8 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
     p = sub.add_parser("step-test", help="position step: PNG plot and JSON metrics")
     p.add_argument("node")
-    p.add_argument("--step", type=float, required=True, help="step in degrees")
-    p.add_argument("--seconds", type=float, default=3.0, help="recording length")
+    p.add_argument("--step", type=real(-3600, 3600, nonzero=True), required=True, help="step in degrees")
+    p.add_argument("--seconds", type=real(0.1, 600), default=3.0, help="recording length")
     p.add_argument("--out", default="step_test", help="output path without suffix (.png and .json)")
     bench.add_drive_args(p)
     bench.add_bus_args(p)
@@ -345,18 +351,18 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.set_defaults(func=bench.cmd_step_test)
 
     p = sub.add_parser("safety-check", help="read back what stops each drive when the host is gone; pass/fail")
-    p.add_argument("--node", type=_positive_int(1, 127), action="append", help="node id (repeatable; default:"
+    p.add_argument("--node", type=whole(1, 127), action="append", help="node id (repeatable; default:"
                    " every drive of --config on its first bus)")
     bench.add_drive_args(p)
     bench.add_bus_args(p)
-    p.add_argument("--listen", type=float, help="seconds to watch for the host heartbeat (default 4 periods)")
+    p.add_argument("--listen", type=real(0.05, 600), help="seconds to watch for the host heartbeat (default 4 periods)")
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_safety_check)
 
     p = sub.add_parser("audit", help="measure SYNC, command latency, TPDO loss, SDO, heartbeats and load on the bus")
     p.add_argument("--config", required=True, help="the rover config (its drives on the audited bus are exercised)")
     p.add_argument("--bus", help="which bus of the config (default: the first)")
-    p.add_argument("--seconds", type=float, default=5.0, help="how long to measure (0.5 to 600)")
+    p.add_argument("--seconds", type=real(0.5, 600), default=5.0, help="how long to measure (0.5 to 600)")
     p.add_argument("--no-motion", action="store_true", help="do not arm the drives (no command latency figure)")
     bench.add_bus_args(p)
     bench.add_json(p)
@@ -369,28 +375,22 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
     p = sub.add_parser("can-up", help="bring up a SocketCAN interface (runs ip, no shell)")
     p.add_argument("interface_name", metavar="INTERFACE")
-    p.add_argument("--bitrate", type=int, required=True)
-    p.add_argument("--restart-ms", type=int, default=100)
-    p.add_argument("--txqueuelen", type=int, default=1000)
+    p.add_argument("--bitrate", type=whole(10_000, 8_000_000), required=True)
+    p.add_argument("--restart-ms", type=whole(0, 65_535), default=100)
+    p.add_argument("--txqueuelen", type=whole(1, 1_000_000), default=1000)
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     p.set_defaults(func=bench.cmd_can_up)
 
 
-def _positive_int(low: int, high: int) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        try:
-            value = int(text, 0)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"{value} is out of range {low}..{high}")
-        return value
-    return parse
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    for i, word in enumerate(words):
+        if re.fullmatch(r"-(inf|infinity|nan)", word, re.IGNORECASE):  # argparse would read "-i nf"
+            parser.error(f"{word} is not a finite number: angles, speeds and times must be finite")
+        if re.fullmatch(r"-(\d+\.?\d*|\.\d+)[eE][+-]?\d+", word):  # argparse takes "-1e3" for an option
+            words[i] = f"{Decimal(word):f}"  # the same number, in the form argparse reads as one
+    args = parser.parse_args(words)
     _setup_logging(args.verbose)
     try:
         with stop_on_signals() as stop:  # SIGINT/SIGTERM/SIGHUP: the with blocks unwind, drives stopped

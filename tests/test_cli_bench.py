@@ -88,7 +88,7 @@ def test_nmt_and_drive_commands(sim_port: int) -> None:
     missing = run(sim_port, "move", "9", "10")
     assert missing.returncode == 1 and "no boot-up message" in missing.stderr
     nan = run(sim_port, "move", "1", "nan", "--counts-per-rev", "4096")
-    assert nan.returncode == 1 and "not a finite number" in nan.stderr
+    assert nan.returncode == 2 and "not a finite number" in nan.stderr  # refused as input, before the bus
 
 
 def test_monitor_record_replay_decode(sim_port: int, tmp_path: Path) -> None:

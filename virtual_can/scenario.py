@@ -24,9 +24,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from can_config.errors import ConfigError
+from can_config.textfile import load_yaml
 from virtual_can.service import SimService
 
 logger = logging.getLogger(__name__)
@@ -82,10 +81,7 @@ def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
 
 
 def load_scenario(path: str | Path) -> list[dict[str, Any]]:
-    try:
-        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as err:
-        raise ConfigError(f"{path}: cannot read the scenario: {err}") from err
+    data = load_yaml(Path(path), "scenario")
     steps = data.get("steps") if isinstance(data, dict) else None
     if not isinstance(steps, list):
         raise ConfigError(f"{path}: expected a mapping with a 'steps' list")
