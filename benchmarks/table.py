@@ -23,6 +23,9 @@ ROWS = [
     ("emulator_fps_inprocess", "in-process bus, frames/s (0 lost)", ">= 90,000", None),
     ("wire_time_fps_1mbit", "wire-time mode, flooded 1 Mbit/s bus, frames/s", "< 9,009", None),
     ("rss_mb", "peak RSS of driver + ROS node process, MB", "<= 150", None),
+    ("server_rss_growth_mb", "bus server RSS growth after 6 x (40 never-reading clients + 400k frames), MB", "<= 10",
+     None),
+    ("server_rss_peak_mb", "bus server peak RSS in that run, MB", "", None),
 ]
 
 

@@ -177,7 +177,7 @@ def test_client_cap_and_slow_client_do_not_hurt_others() -> None:
         reader = threading.Thread(target=read_good, daemon=True)
         reader.start()
         try:
-            for i in range(server_module.CLIENT_QUEUE_FRAMES * 10):  # far beyond socket buffers + queue
+            for i in range(server_module.CLIENT_QUEUE_BYTES // 40 * 10):  # far beyond socket buffers + queue
                 sender.send(can.Message(arbitration_id=0x100, data=i.to_bytes(4, "little"), is_extended_id=False))
                 if i % 2000 == 0:
                     time.sleep(0.001)  # the reading client keeps up, as a real one does
