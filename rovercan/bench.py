@@ -29,7 +29,7 @@ from canopen.objectdictionary import ObjectDictionary
 from can_config import GENERIC_EDS, RoverConfig, load_config, load_drive_od, load_od, parse_config
 from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN
 from can_config.eds import consumer_subs, variable
-from can_config.errors import BusLostError, ConfigError, RovercanError
+from can_config.errors import BusLostError, CommandRejected, ConfigError, RovercanError
 from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
 from can_config.stop import StopSignal
 from can_config.textfile import read_text_file
@@ -67,13 +67,16 @@ def add_json(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="machine-readable output")
 
 
+NO_BUS = ("no bus given: pass -i INTERFACE -c CHANNEL (e.g. -i socketcan -c can0, or -i socketcand -c can0"
+          " --bus-kwargs host=127.0.0.1 port=29536) or --config FILE")
+
+
 def open_bus(args: argparse.Namespace) -> can.BusABC:
     if getattr(args, "interface", None) is None and getattr(args, "config", None):
         config = load_config(args.config)
         return driver_open_bus(config.buses[0].bus_kwargs(), CLI_CONNECT_TIMEOUT_S)
     if getattr(args, "interface", None) is None:
-        raise ConfigError("no bus given: pass -i INTERFACE -c CHANNEL (e.g. -i socketcan -c can0, or"
-                          " -i socketcand -c can0 --bus-kwargs host=127.0.0.1 port=29536) or --config FILE")
+        raise ConfigError(NO_BUS)
     tuned: dict[str, Any] = {"tcp_tune": True} if args.interface == "socketcand" else {}  # --bus-kwargs overrides
     extra = getattr(args, "bus_kwargs", None) or {}
     if args.interface == "socketcand" and "host" in extra and "port" in extra:
@@ -331,11 +334,44 @@ NMT_COMMANDS = {"start": NmtCommand.START, "stop": NmtCommand.STOP, "preop": Nmt
                 "reset": NmtCommand.RESET_NODE, "reset-comm": NmtCommand.RESET_COMMUNICATION}
 
 
+#: How long ``nmt`` waits for the addressed node to show itself (NMT has no reply of its own).
+NMT_CONFIRM_S = 1.5
+
+
+def _heard_from(bus: can.BusABC, node_id: int, timeout_s: float, *, probe: bool, bootup: bool = False) -> bool:
+    """Did the node show itself within ``timeout_s``: a heartbeat (or only its boot-up), or, with
+    ``probe``, an answer to an SDO read of 0x1000 (any state but STOPPED answers)?"""
+    if probe:
+        bus.send(can.Message(arbitration_id=0x600 + node_id, data=bytes([0x40, 0x00, 0x10, 0, 0, 0, 0, 0]),
+                             is_extended_id=False))
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        msg = receive(bus, max(0.0, end - time.monotonic()))
+        if msg is None:
+            continue
+        if msg.arbitration_id == 0x700 + node_id and msg.data and (not bootup or msg.data[0] == 0):
+            return True
+        if probe and msg.arbitration_id == 0x580 + node_id:
+            return True
+    return False
+
+
 def cmd_nmt(args: argparse.Namespace) -> int:
     node_id = 0 if args.node == "all" else parse_node(args.node)
+    command = NMT_COMMANDS[args.action]
     bus = open_bus(args)
     try:
-        bus.send(can.Message(arbitration_id=0, data=bytes([NMT_COMMANDS[args.action], node_id]), is_extended_id=False))
+        # a node that is not there is an error, not "done": before a stop (a stopped node answers
+        # no SDO), after a start or pre-op (it answers then), its boot-up after a reset
+        present = bool(node_id) and command == NmtCommand.STOP and _heard_from(bus, node_id, 0.5, probe=True)
+        bus.send(can.Message(arbitration_id=0, data=bytes([command, node_id]), is_extended_id=False))
+        if node_id and not present:
+            resets = command in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION)
+            if not _heard_from(bus, node_id, NMT_CONFIRM_S, probe=command != NmtCommand.STOP and not resets,
+                               bootup=resets):
+                raise CliError(f"node {node_id}: nothing heard from it within {NMT_CONFIRM_S:g} s of NMT {args.action}"
+                               f" ({'no boot-up' if resets else 'no SDO answer or heartbeat'}); check the node id,"
+                               " power, bitrate and termination")
     finally:
         bus.shutdown()
     emit(args, {"nmt": args.action, "node": args.node}, "NMT")
@@ -353,6 +389,8 @@ def one_drive_config(args: argparse.Namespace, node_id: int) -> RoverConfig:
                               f" {[(d.name, d.node_id) for d in config.drives]}")
         bus = config.bus(drives[0].bus)
         return RoverConfig((bus,), (drives[0],), None, config.source)
+    if getattr(args, "interface", None) is None:
+        raise ConfigError(NO_BUS)  # never a silent python-can virtual bus: "no boot-up" would mislead
     return parse_config({"buses": [{"name": "bench", "interface": "virtual", "channel": "bench"}],
                          "drives": [{"name": f"node{node_id}", "node_id": node_id, "eds": args.eds or "generic",
                                      "counts_per_rev": args.counts_per_rev, "gear_ratio": args.gear_ratio}]})
@@ -416,8 +454,15 @@ def cmd_jog(args: argparse.Namespace) -> int:
     with bench_driver(args, node_id) as drive:
         drive.enable()
         end = time.monotonic() + args.seconds
+        sent = 0
         while time.monotonic() < end:
-            drive.set_velocity(args.velocity)
+            try:
+                drive.set_velocity(args.velocity)
+            except CommandRejected as err:
+                if sent:  # refused on the way (a limit ahead): the drive had moved, so exit 1, not 2
+                    raise CliError(str(err)) from err
+                raise
+            sent += 1
             time.sleep(0.05)
         peak = drive.snapshot()
         drive.set_velocity(0.0)

@@ -18,16 +18,17 @@ from decimal import Decimal
 from pathlib import Path
 
 from can_config import load_config, with_bus_overrides
-from can_config.errors import ConfigError, RovercanError
+from can_config.errors import CommandRejected, ConfigError, RovercanError, SimError
 from can_config.stop import StopSignal, stop_on_signals
 from rovercan.argtypes import real, whole
 from rovercan.launch import LOCAL_DISCOVERY
 
 logger = logging.getLogger(__name__)
 
-EXIT_OK = 0
-EXIT_FAILED = 1
-EXIT_USAGE = 2
+#: The one rule for exit codes (README, Bench testing).
+EXIT_OK = 0  # done
+EXIT_FAILED = 1  # the bus or a drive failed or refused
+EXIT_USAGE = 2  # bad usage, a bad config or input, or a command refused before it was sent
 
 
 def _setup_logging(verbose: int) -> None:
@@ -399,7 +400,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"rovercan: stopped by {name}; any drive this command had armed was quick-stopped and disabled",
               file=sys.stderr)
         return EXIT_FAILED
-    except ConfigError as err:
+    except (ConfigError, CommandRejected, SimError) as err:  # refused before anything was sent
         print(f"rovercan: {err}", file=sys.stderr)
         return EXIT_USAGE
     except RovercanError as err:
