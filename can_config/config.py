@@ -100,6 +100,8 @@ class DriveConfig:
     on_host_loss: str = "quick_stop"  # 0x6007: what the drive does when the host falls silent
     allow_no_host_watch: bool = False  # arm a drive that cannot watch the host (loud warning)
     stale_after_syncs: int = 5  # no TPDO for this many SYNC periods: its state is reported stale
+    sdo_timeout_s: float = 0.5  # one SDO answer (a parameter save can keep a drive silent ~400 ms)
+    boot_timeout_s: float = 2.0  # from NMT reset to the boot-up message
 
     @property
     def quick_stop_decel_deg_s2(self) -> float:
@@ -228,6 +230,8 @@ _DRIVE_FIELDS: dict[str, _Field] = {
     "on_host_loss": _Field("str", "quick_stop", choices=tuple(ON_HOST_LOSS)),
     "allow_no_host_watch": _Field("bool", False),
     "stale_after_syncs": _Field("int", 5, 2, 1000),
+    "sdo_timeout_ms": _Field("float", 500.0, 10.0, 10_000.0),
+    "boot_timeout_ms": _Field("float", 2000.0, 100.0, 60_000.0),
 }
 
 _DRIVE_SYSTEM_FIELDS: dict[str, _Field] = {
@@ -385,7 +389,8 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
         values["identity"] = IdentityConfig(**identity)
         for ms_key, s_key in (("heartbeat_period_ms", "heartbeat_period_s"),
                               ("heartbeat_timeout_ms", "heartbeat_timeout_s"),
-                              ("watchdog_ms", "watchdog_s")):
+                              ("watchdog_ms", "watchdog_s"), ("sdo_timeout_ms", "sdo_timeout_s"),
+                              ("boot_timeout_ms", "boot_timeout_s")):
             values[s_key] = values.pop(ms_key) / 1000.0
         host_ms = values.pop("host_timeout_ms")
         bus_cfg = buses[names.index(bus)]
@@ -492,6 +497,7 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
             "host_timeout_ms": d.host_timeout_s * 1000.0 if d.host_timeout_s is not None else None,
             "on_host_loss": d.on_host_loss, "allow_no_host_watch": d.allow_no_host_watch,
             "stale_after_syncs": d.stale_after_syncs,
+            "sdo_timeout_ms": d.sdo_timeout_s * 1000.0, "boot_timeout_ms": d.boot_timeout_s * 1000.0,
         }
         if d.joint == "limited":
             entry["min_deg"] = d.min_deg

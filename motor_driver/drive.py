@@ -81,17 +81,39 @@ def host_consumer_entry(host_node_id: int, timeout_s: float) -> int:
     """A 0x1016 sub-entry: watch ``host_node_id``'s heartbeat with this consumer time (CiA 301)."""
     return (host_node_id & 0x7F) << 16 | max(1, min(0xFFFF, int(round(timeout_s * 1000))))
 
-#: Objects no tool or service may write by SDO (see Drive.sdo_write_checked).
-PROTECTED_OBJECTS = frozenset({
-    OD.CONTROLWORD, OD.MODES_OF_OPERATION, OD.TARGET_POSITION, OD.TARGET_VELOCITY, OD.TARGET_TORQUE,
-    OD.SOFTWARE_POSITION_LIMIT, OD.MAX_PROFILE_VELOCITY, OD.MAX_TORQUE, OD.PROFILE_VELOCITY,
-    OD.PROFILE_ACCELERATION, OD.PROFILE_DECELERATION, OD.QUICK_STOP_DECELERATION, OD.QUICK_STOP_OPTION,
-    OD.HOMING_METHOD, OD.HOMING_SPEEDS, OD.PRODUCER_HEARTBEAT_TIME, OD.COB_ID_SYNC,
-})
+#: Objects no tool or service may write by SDO (see Drive.sdo_write_checked), each with why:
+#: they move the motor, bypass a limit, or undo what stops the drive when the host is gone.
+_TARGET = "it is a motion target; use move/jog (limits enforced)"
+PROTECTED_OBJECTS: dict[int, str] = {
+    OD.CONTROLWORD: "it drives the state machine (enable, quick stop); use enable/disable",
+    OD.MODES_OF_OPERATION: "it changes the operation mode under the driver",
+    OD.TARGET_POSITION: _TARGET, OD.TARGET_VELOCITY: _TARGET, OD.TARGET_TORQUE: _TARGET,
+    OD.SOFTWARE_POSITION_LIMIT: "it is the drive's position limit; set min_deg/max_deg in the config",
+    OD.MAX_PROFILE_VELOCITY: "it is a velocity limit; set max_velocity_deg_s in the config",
+    OD.MAX_TORQUE: "it is the torque limit; set max_torque_nm in the config",
+    OD.PROFILE_VELOCITY: "it is the speed of every profile move, checked against max_velocity_deg_s; use move --speed",
+    OD.PROFILE_ACCELERATION: "it is the ramp of every profile move; set profile_acceleration_deg_s2 in the config",
+    OD.PROFILE_DECELERATION: "it is the ramp of every profile move; set profile_acceleration_deg_s2 in the config",
+    OD.QUICK_STOP_DECELERATION: "the drive's quick stop (and its stop when the host is gone) brakes by it",
+    OD.QUICK_STOP_OPTION: "it decides what the drive's quick stop does (the host-loss stop relies on it)",
+    OD.ABORT_CONNECTION_OPTION: "it decides what the drive does when the host is gone (on_host_loss in the config)",
+    OD.CONSUMER_HEARTBEAT_TIME: "it is how the drive watches the host's heartbeat (the stop when the host dies)",
+    OD.HOMING_METHOD: "homing moves the motor by it; set homing in the config",
+    OD.HOMING_SPEEDS: "homing moves the motor by it; set homing in the config",
+    OD.PRODUCER_HEARTBEAT_TIME: "the driver watches the drive's heartbeat at the configured period; a change makes"
+                                " it declare the drive lost, or miss a loss (heartbeat_ms in the config)",
+    OD.COB_ID_SYNC: "it moves the SYNC every PDO of the drive runs on",
+}
+
+
+def protected_reason(index: int) -> str | None:
+    """Why writing ``index`` by SDO is refused, or None when it may be written."""
+    if 0x1400 <= index <= 0x1BFF:
+        return "it changes the PDO set the driver configured (a PDO could then carry motion targets)"
+    return PROTECTED_OBJECTS.get(index)
+
 
 #: Timeouts (seconds); module constants so tests and benchmarks can override them.
-BOOTUP_TIMEOUT_S = 2.0
-SDO_TIMEOUT_S = 0.5
 TRANSITION_TIMEOUT_S = 1.0
 MODE_SWITCH_TIMEOUT_S = 1.0
 STATE_POLL_S = 0.002
@@ -159,7 +181,7 @@ class Drive:
         self.network = network
         self.od = od
         self.node = canopen.RemoteNode(config.node_id, od)
-        self.node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+        self.node.sdo.RESPONSE_TIMEOUT = config.sdo_timeout_s
         network.add_node(self.node)
         # the driver decodes EMCY itself (_on_emcy); canopen's consumer would keep every EMCY in
         # a list that is never trimmed, for as long as the process runs
@@ -167,6 +189,8 @@ class Drive:
         self.scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio,
                            invert=config.invert, offset_deg=config.offset_deg)
         self.plan: PdoPlan = plan_pdos(od, config.node_id)
+        for index in self.plan.sdo_only:
+            logger.warning("node %d: 0x%04X cannot be PDO-mapped on this drive; using SDO for it", config.node_id, index)
         self._lock = threading.RLock()  # serialises commands; never held while waiting for the drive
         self._busy: str | None = None  # the operation in progress (enable, home, a stop, ...)
         self._busy_owner: int | None = None  # its thread
@@ -457,10 +481,9 @@ class Drive:
     def sdo_write_checked(self, index: int, subindex: int, value: int) -> None:
         """SDO write for tools and services: refuses the objects that move the motor or set its
         limits and PDOs, which only the driver's own checked paths may write."""
-        if index in PROTECTED_OBJECTS or 0x1400 <= index <= 0x1BFF:
-            raise CommandRejected(f"{self.name}: writing 0x{index:04X} by SDO is refused: it moves the motor,"
-                                  " sets a limit or the PDO set; use the motion commands and services, whose"
-                                  " limits are enforced, or the config file.")
+        reason = protected_reason(index)
+        if reason is not None:
+            raise CommandRejected(f"{self.name}: writing 0x{index:04X} by SDO is refused: {reason}.")
         self._write_typed(index, subindex, value)
 
     def sdo_read_value(self, index: int, subindex: int = 0) -> int | float | bytes:
@@ -490,9 +513,9 @@ class Drive:
         if reset:
             self._bootup.clear()
             self._send(0x000, bytes([NmtCommand.RESET_NODE, self.node_id]))
-            if not self._bootup.wait(BOOTUP_TIMEOUT_S):
+            if not self._bootup.wait(cfg.boot_timeout_s):
                 raise BootError(f"node {self.node_id} ({self.name}): no boot-up message within"
-                                f" {BOOTUP_TIMEOUT_S:g} s after NMT reset; check power, node id,"
+                                f" {cfg.boot_timeout_s:g} s after NMT reset (boot_timeout_ms); check power, node id,"
                                 " bitrate and termination", node_id=self.node_id, step=step)
         current: tuple[int, int] = (0, 0)
         try:
@@ -1184,6 +1207,11 @@ class Drive:
         """Homing with the configured method and speed; waits for 'homing attained'. The drive
         is busy meanwhile: commands are refused, a stop preempts it."""
         cfg = self.config
+        if not has_object(self.od, OD.HOMING_METHOD) or \
+                not self.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.HOMING] & 1:
+            raise CommandRejected(f"{self.name}: this drive has no homing mode ("
+                                  f"{'no 0x6098 in its EDS' if not has_object(self.od, OD.HOMING_METHOD) else '0x6502 lists no homing'});"
+                                  " nothing was sent. Home it with the vendor's tool, or set offset_deg in the config.")
         with self._operation("home") as generation:
             self._require_usable("home")
             self.set_mode(OperationMode.HOMING)

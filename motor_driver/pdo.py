@@ -9,7 +9,6 @@ Objects a drive cannot PDO-map are left to SDO, with a warning.
 
 from __future__ import annotations
 
-import logging
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -27,8 +26,6 @@ from can_config.objects import (
     TPDO_BASES,
     OperationMode,
 )
-
-logger = logging.getLogger(__name__)
 
 TT_SYNC = 1  # synchronous, every SYNC
 TT_EVENT = 255  # event-driven (device profile specific: on change)
@@ -97,6 +94,8 @@ def plan_pdos(od: ObjectDictionary, node_id: int) -> PdoPlan:
     position but not CSP (0x6502), controlword + interpolation set-point (0x60C1:1) where an
     RPDO is left. TPDO1 statusword + mode display on change; TPDO2 position + velocity on SYNC;
     TPDO3 torque + statusword on SYNC.
+
+    Pure (no log): objects that cannot be mapped are in ``sdo_only``; the drive says so once.
     """
     n_rpdo = count_pdos(od, OD.RPDO_COMM)
     n_tpdo = count_pdos(od, OD.TPDO_COMM)
@@ -141,9 +140,6 @@ def plan_pdos(od: ObjectDictionary, node_id: int) -> PdoPlan:
         n = len(tpdos)
         tpdos.append(PdoMap(n, TPDO_BASES[n] + node_id if n < 4 else 0, tt, objs,
                             inhibit_100us=0, event_timer_ms=0))
-    for index in sorted(set(sdo_only)):
-        logger.warning("node %d: 0x%04X cannot be PDO-mapped on this drive; using SDO for it",
-                       node_id, index)
     return PdoPlan(tuple(rpdos), tuple(tpdos), n_rpdo, n_tpdo, node_id, tuple(sorted(set(sdo_only))))
 
 

@@ -8,13 +8,16 @@ command that addresses a drive also takes ``--config FILE`` or ``--eds FILE`` wi
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
+import logging
 import math
 import re
 import struct
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -39,9 +42,11 @@ from motor_driver.driver import wait_for_server
 from rovercan.argtypes import real, whole
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
 
+logger = logging.getLogger(__name__)
+
 SCAN_TIMEOUT_S = 0.3
 SDO_TIMEOUT_S = 0.5
-#: The bench waits this long for a socketcand server (the driver in a node: 10 s).
+#: The bench waits this long for a socketcand server by default (--timeout; the driver in a node: 10 s).
 CLI_CONNECT_TIMEOUT_S = 3.0
 CAUSES = "check the node id, power, bitrate and termination (120 ohm at both ends)"
 
@@ -53,6 +58,12 @@ class CliError(RovercanError):
 # ------------------------------------------------------------------------------ shared helpers
 def add_bus_args(parser: argparse.ArgumentParser) -> None:
     can.cli.add_bus_arguments(parser)
+    parser.add_argument("--timeout", type=real(0.1, 600), default=CLI_CONNECT_TIMEOUT_S, metavar="S",
+                        help=f"seconds to wait for a socketcand server (default {CLI_CONNECT_TIMEOUT_S:g})")
+
+
+def connect_timeout(args: argparse.Namespace) -> float:
+    return float(getattr(args, "timeout", CLI_CONNECT_TIMEOUT_S))
 
 
 def add_drive_args(parser: argparse.ArgumentParser) -> None:
@@ -74,13 +85,13 @@ NO_BUS = ("no bus given: pass -i INTERFACE -c CHANNEL (e.g. -i socketcan -c can0
 def open_bus(args: argparse.Namespace) -> can.BusABC:
     if getattr(args, "interface", None) is None and getattr(args, "config", None):
         config = load_config(args.config)
-        return driver_open_bus(config.buses[0].bus_kwargs(), CLI_CONNECT_TIMEOUT_S)
+        return driver_open_bus(config.buses[0].bus_kwargs(), connect_timeout(args))
     if getattr(args, "interface", None) is None:
         raise ConfigError(NO_BUS)
     tuned: dict[str, Any] = {"tcp_tune": True} if args.interface == "socketcand" else {}  # --bus-kwargs overrides
     extra = getattr(args, "bus_kwargs", None) or {}
     if args.interface == "socketcand" and "host" in extra and "port" in extra:
-        wait_for_server(str(extra["host"]), int(extra["port"]), CLI_CONNECT_TIMEOUT_S)  # python-can's loop spins
+        wait_for_server(str(extra["host"]), int(extra["port"]), connect_timeout(args))  # python-can's loop spins
     try:
         return can.cli.create_bus_from_namespace(args, **tuned)
     except argparse.ArgumentError as err:
@@ -101,7 +112,10 @@ def parse_index(text: str) -> tuple[int, int]:
     match = re.fullmatch(r"(0x)?([0-9a-fA-F]{1,4})(?::(\d+|0x[0-9a-fA-F]+))?", text)
     if not match:
         raise ConfigError(f"index {text!r}: expected INDEX[:SUB] in hex, e.g. 0x6041 or 1018:1")
-    return int(match.group(2), 16), int(match.group(3), 0) if match.group(3) else 0
+    sub = int(match.group(3), 0) if match.group(3) else 0
+    if sub > 0xFF:
+        raise ConfigError(f"index {text!r}: sub-index {sub} out of range 0..255")
+    return int(match.group(2), 16), sub
 
 
 def emit(args: argparse.Namespace, data: Any, title: str, columns: list[str] | None = None) -> None:
@@ -185,7 +199,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
     found: dict[int, dict[str, Any]] = {}
     try:
         ids = range(1, 128)
-        for node_id in tqdm(ids, desc="probing 0x1000", unit="node", disable=args.json, file=sys.stderr):
+        for node_id in tqdm(ids, desc="probing 0x1000", disable=args.json, file=sys.stderr,
+                            bar_format="{desc}: {bar} {n_fmt}/{total_fmt} node ids"):  # no rate: sends are instant
             bus.send(can.Message(arbitration_id=0x600 + node_id, data=bytes([0x40, 0x00, 0x10, 0, 0, 0, 0, 0]),
                                  is_extended_id=False))
         deadline = time.monotonic() + args.listen
@@ -290,6 +305,29 @@ def _pdo_mapping(node: canopen.RemoteNode, od: ObjectDictionary, comm_base: int)
 
 
 # ------------------------------------------------------------------------------ sdo / nmt
+def sdo_value_bytes(text: str, fmt: str | None, size: int, what: str) -> bytes:
+    """VALUE of ``sdo write`` as the object's bytes (its EDS type, else --size bytes), or
+    :class:`ConfigError` naming the value, the object and the allowed form."""
+    try:
+        number: int | float = float(text) if fmt in ("<f", "<d") else int(text, 0)
+    except ValueError:
+        kind = "a number" if fmt in ("<f", "<d") else "a whole number (decimal or 0x hex)"
+        raise ConfigError(f"value {text!r} for {what}: expected {kind}") from None
+    if fmt is None:
+        low, high = -(1 << (8 * size - 1)), (1 << (8 * size)) - 1
+        if not low <= int(number) <= high:
+            raise ConfigError(f"value {text} for {what} does not fit --size {size} bytes ({low}..{high})")
+        return int(number).to_bytes(size, "little", signed=int(number) < 0)
+    try:
+        return struct.pack(fmt, number)
+    except (struct.error, OverflowError) as err:
+        raise ConfigError(f"value {text} does not fit {what} ({STRUCT_NAMES.get(fmt, fmt)}): {err}") from err
+
+
+STRUCT_NAMES = {"<b": "INTEGER8", "<B": "UNSIGNED8", "<h": "INTEGER16", "<H": "UNSIGNED16", "<i": "INTEGER32",
+                "<I": "UNSIGNED32", "<q": "INTEGER64", "<Q": "UNSIGNED64", "<f": "REAL32", "<d": "REAL64"}
+
+
 def cmd_sdo(args: argparse.Namespace) -> int:
     node_id = parse_node(args.node)
     index, sub = parse_index(args.index)
@@ -306,19 +344,15 @@ def cmd_sdo(args: argparse.Namespace) -> int:
             return 0
         if args.value is None:
             raise ConfigError("sdo write needs a VALUE")
-        from motor_driver.drive import PROTECTED_OBJECTS
-        if index in PROTECTED_OBJECTS or 0x1400 <= index <= 0x1BFF:
-            raise CliError(f"writing 0x{index:04X} by SDO is refused: it moves the motor, sets a limit or the PDO"
-                           " set; use move/jog/home (limits enforced) or the config file")
-        if fmt is None:
-            size = args.size
-            data = int(args.value, 0).to_bytes(size, "little", signed=int(args.value, 0) < 0)
-        else:
-            number: Any = float(args.value) if fmt in ("<f", "<d") else int(args.value, 0)
-            try:
-                data = struct.pack(fmt, number)
-            except struct.error as err:
-                raise ConfigError(f"value {args.value} does not fit {name} ({fmt}): {err}") from err
+        from motor_driver.drive import protected_reason
+        reason = protected_reason(index)
+        if reason is not None and not args.force:
+            raise ConfigError(f"writing 0x{index:04X} by SDO is refused: {reason}. On the bench, --force writes"
+                              " it anyway (logged)")
+        if reason is not None:
+            logger.warning("node %d: forced SDO write of protected 0x%04X:%d = %s (%s)", node_id, index, sub,
+                           args.value, reason)
+        data = sdo_value_bytes(args.value, fmt, args.size, f"0x{index:04X}:{sub}{f' ({name})' if name else ''}")
         try:
             node.sdo.download(index, sub, data)
         except canopen.SdoAbortedError as err:
@@ -387,7 +421,7 @@ def one_drive_config(args: argparse.Namespace, node_id: int) -> RoverConfig:
         if not drives:
             raise ConfigError(f"{args.config}: no drive with node id {node_id}; drives:"
                               f" {[(d.name, d.node_id) for d in config.drives]}")
-        bus = config.bus(drives[0].bus)
+        bus = dataclasses.replace(config.bus(drives[0].bus), connect_timeout_s=connect_timeout(args))
         return RoverConfig((bus,), (drives[0],), None, config.source)
     if getattr(args, "interface", None) is None:
         raise ConfigError(NO_BUS)  # never a silent python-can virtual bus: "no boot-up" would mislead
@@ -432,40 +466,177 @@ def cmd_drive(args: argparse.Namespace) -> int:
     return 0
 
 
+class UnitCheck:
+    """While a drive moves: does the distance its position covered match what its reported
+    velocity adds up to? Position counts and velocity units come from different objects (0x608F,
+    0x60A9, gear ratio); a wrong ``counts_per_rev`` shows as a ratio far from 1."""
+
+    TOLERANCE = 0.2
+    MIN_TRAVEL_DEG = 2.0
+
+    def __init__(self, drive: Any) -> None:
+        self.drive = drive
+        self.samples: list[tuple[float, float, float]] = []
+
+    def sample(self) -> None:
+        s = self.drive.snapshot()
+        self.samples.append((time.monotonic(), s.angle_deg, s.velocity_deg_s))
+
+    def verdict(self) -> str | None:
+        moved = reported = 0.0
+        for (t0, a0, v0), (t1, a1, v1) in itertools.pairwise(self.samples):
+            step = a1 - a0
+            if self.drive.config.is_continuous:
+                step = (step + 180.0) % 360.0 - 180.0  # across the wrap of a continuous joint
+            moved += step
+            reported += (v0 + v1) / 2 * (t1 - t0)
+        if max(abs(moved), abs(reported)) < self.MIN_TRAVEL_DEG:
+            return None  # too little motion to judge
+        if reported and abs(moved / reported - 1) <= self.TOLERANCE:
+            return None
+        ratio = f"x{moved / reported:.2f}" if reported else "no velocity reported"
+        return (f"node {self.drive.node_id}: the position moved {moved:.1f} deg while the reported velocity adds"
+                f" up to {reported:.1f} deg ({ratio}): counts_per_rev looks wrong (or gear_ratio, or the"
+                " drive's velocity unit 0x60A9); positions and velocities disagree")
+
+    def warn(self) -> None:
+        text = self.verdict()
+        if text is not None:
+            print(f"rovercan: warning: {text}", file=sys.stderr, flush=True)
+
+
+def has_profile_position(drive: Any) -> bool:
+    from can_config.objects import OperationMode
+    return bool(drive.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_POSITION] & 1)
+
+
+def stream_to(drive: Any, target_deg: float, speed_deg_s: float | None = None,
+              on_tick: Callable[[], None] | None = None) -> float:
+    """A move on a drive whose only position modes are cyclic or interpolated (the SCHUNK PRL120):
+    a trapezoid of set-points, one per SYNC period, through the driver's streaming path (limits
+    enforced there), then waits until the joint is within 0.2 deg. Returns the target."""
+    cfg = drive.config
+    drive._position_target_counts(target_deg)  # beyond a limit: refused before anything is sent
+    period = drive.sync_period_s
+    speed = min(speed_deg_s or cfg.profile_velocity_deg_s, cfg.max_velocity_deg_s)
+    accel = cfg.profile_acceleration_deg_s2
+    start = drive.snapshot().angle_deg
+    distance = target_deg - start
+    direction = 1.0 if distance >= 0 else -1.0
+    span = abs(distance)
+    ramp = min(speed * speed / (2 * accel), span / 2)  # distance of each ramp (v^2 / 2a, or half the way)
+    peak = math.sqrt(2 * accel * ramp)  # the speed reached
+    t_ramp = peak / accel if accel else 0.0
+    t_total = 2 * t_ramp + ((span - 2 * ramp) / peak if peak else 0.0)
+    t = 0.0
+    while t < t_total:
+        t = min(t + period, t_total)
+        if t < t_ramp:
+            done = 0.5 * accel * t * t
+        elif t > t_total - t_ramp:
+            done = span - 0.5 * accel * (t_total - t) ** 2
+        else:
+            done = ramp + peak * (t - t_ramp)
+        drive.stream_position(start + direction * done)
+        if on_tick is not None:
+            on_tick()
+        time.sleep(period)
+    drive.stream_position(target_deg)
+    if on_tick is not None:
+        return target_deg  # the caller keeps sampling
+    deadline = time.monotonic() + 3.0
+    while abs(drive.snapshot().angle_deg - target_deg) > 0.2:
+        if time.monotonic() > deadline:
+            raise CliError(f"node {drive.node_id}: at {drive.snapshot().angle_deg:.2f} deg, not at {target_deg:g} deg"
+                           " 3 s after the streamed move ended")
+        time.sleep(period)
+    return target_deg
+
+
 def cmd_move(args: argparse.Namespace) -> int:
     node_id = parse_node(args.node)
     with bench_driver(args, node_id) as drive:
+        if args.speed is not None and not 0 < args.speed <= drive.config.max_velocity_deg_s:
+            raise ConfigError(f"--speed {args.speed:g} deg/s: allowed 0 < speed <= {drive.config.max_velocity_deg_s:g}"
+                              " (max_velocity_deg_s)")
         drive.enable()
-        if args.speed is not None:
-            from motor_driver.units import require_finite
-            speed = require_finite("--speed", args.speed, "deg/s")
-            if not 0 < speed <= drive.config.max_velocity_deg_s:
-                raise ConfigError(f"--speed {speed:g} deg/s: allowed 0 < speed <= {drive.config.max_velocity_deg_s:g}")
-            drive._write_typed(OD.PROFILE_VELOCITY, 0, drive.scale.magnitude_to_drive(speed))
-        target = drive.move_to(args.degrees, wait=True)
+        if has_profile_position(drive):
+            if args.speed is not None:
+                drive._write_typed(OD.PROFILE_VELOCITY, 0, drive.scale.magnitude_to_drive(args.speed))
+            check = UnitCheck(drive)
+            target = drive.move_to(args.degrees)
+            sampling = threading.Event()
+
+            def sample_until_done() -> None:
+                while not sampling.wait(0.01):
+                    check.sample()
+
+            sampler = threading.Thread(target=sample_until_done, daemon=True, name="rovercan-unit-check")
+            sampler.start()
+            try:
+                drive.wait_target_reached()
+            finally:
+                sampling.set()
+                sampler.join()
+            check.warn()
+        else:  # cyclic or interpolated position only: streamed set-points
+            target = stream_to(drive, args.degrees, args.speed)
         state = drive.snapshot()
         emit(args, {"node": node_id, "target_deg": round(target, 3), "angle_deg": round(state.angle_deg, 3),
                     "state": state.state.name}, f"node {node_id} moved")
     return 0
 
 
+def has_profile_velocity(drive: Any) -> bool:
+    from can_config.objects import OperationMode
+    return bool(drive.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_VELOCITY] & 1)
+
+
+def stream_jog(drive: Any, velocity: float, seconds: float) -> Any:
+    """A jog on a drive without profile velocity: streamed positions, ramped at the profile
+    acceleration up to ``velocity``, held for ``seconds``, ramped down. Returns the state seen at
+    the end of the hold."""
+    cfg = drive.config
+    period = drive.sync_period_s
+    dv = cfg.profile_acceleration_deg_s2 * period
+    position = drive.snapshot().angle_deg
+    v = 0.0
+    end = time.monotonic() + seconds
+    peak = None
+    while peak is None or abs(v) > 1e-9:
+        goal = velocity if time.monotonic() < end else 0.0
+        if goal == 0.0 and peak is None:
+            peak = drive.snapshot()
+        v += max(-dv, min(dv, goal - v))
+        position += v * period
+        drive.stream_position(position)
+        time.sleep(period)
+    return peak
+
+
 def cmd_jog(args: argparse.Namespace) -> int:
     node_id = parse_node(args.node)
     with bench_driver(args, node_id) as drive:
         drive.enable()
-        end = time.monotonic() + args.seconds
-        sent = 0
-        while time.monotonic() < end:
-            try:
-                drive.set_velocity(args.velocity)
-            except CommandRejected as err:
-                if sent:  # refused on the way (a limit ahead): the drive had moved, so exit 1, not 2
-                    raise CliError(str(err)) from err
-                raise
-            sent += 1
-            time.sleep(0.05)
-        peak = drive.snapshot()
-        drive.set_velocity(0.0)
+        if not has_profile_velocity(drive):  # a position-only drive: a streamed ramp
+            peak = stream_jog(drive, args.velocity, args.seconds)
+        else:
+            end = time.monotonic() + args.seconds
+            sent = 0
+            check = UnitCheck(drive)
+            while time.monotonic() < end:
+                try:
+                    drive.set_velocity(args.velocity)
+                except CommandRejected as err:
+                    if sent:  # refused on the way (a limit ahead): the drive had moved, so exit 1, not 2
+                        raise CliError(str(err)) from err
+                    raise
+                sent += 1
+                check.sample()
+                time.sleep(0.05)
+            peak = drive.snapshot()
+            drive.set_velocity(0.0)
+            check.warn()
         emit(args, {"node": node_id, "velocity_deg_s": round(peak.velocity_deg_s, 3),
                     "angle_deg": round(peak.angle_deg, 3)}, f"node {node_id} jogged")
     return 0
@@ -591,15 +762,38 @@ def check_recording_target(path: str) -> None:
                           f" use one of {', '.join(sorted(writers))}")
 
 
+def is_command_frame(msg: can.Message) -> bool:
+    """Frames that tell a drive what to do: NMT, RPDOs (set-points, controlwords), SDO requests,
+    LSS from a master. Everything else (SYNC, EMCY, TPDOs, heartbeats, SDO answers) only reports."""
+    cob = msg.arbitration_id
+    return not msg.is_extended_id and (cob == 0x000 or 0x201 <= cob <= 0x57F or 0x601 <= cob <= 0x67F
+                                       or cob == 0x7E5)
+
+
+def parse_filter(text: str) -> tuple[int, int]:
+    """``ID[:MASK]`` in hex: a frame passes when ``frame_id & MASK == ID & MASK`` (MASK: 0x7FF)."""
+    match = re.fullmatch(r"(?:0x)?([0-9a-fA-F]{1,8})(?::(?:0x)?([0-9a-fA-F]{1,8}))?", text)
+    if not match:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected ID[:MASK] in hex, e.g. 0x181 or 0x180:0x780")
+    return int(match.group(1), 16), int(match.group(2), 16) if match.group(2) else 0x7FF
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
-    messages = read_recording(args.file)
+    messages = [m for m in read_recording(args.file) if not m.is_error_frame]
+    if args.filter:
+        messages = [m for m in messages if any(m.arbitration_id & mask == fid & mask for fid, mask in args.filter)]
+    commands = sum(1 for m in messages if is_command_frame(m))
+    if commands and not args.allow_commands:
+        messages = [m for m in messages if not is_command_frame(m)]
+        print(f"rovercan replay: {commands} command frames (NMT, RPDO, SDO requests, LSS) left out: on a live bus"
+              " they would move or reconfigure drives; --allow-commands sends them", file=sys.stderr, flush=True)
+    elif commands:
+        logger.warning("replaying %d command frames (NMT, RPDO, SDO requests, LSS) onto the bus", commands)
     bus = open_bus(args)
     n = 0
     try:
         source = messages if args.fast else can.MessageSync(messages, timestamps=True)
         for msg in source:
-            if msg.is_error_frame:
-                continue
             bus.send(can.Message(arbitration_id=msg.arbitration_id, data=msg.data, is_extended_id=msg.is_extended_id,
                                  is_remote_frame=msg.is_remote_frame, dlc=msg.dlc))
             n += 1
@@ -653,21 +847,33 @@ def cmd_step_test(args: argparse.Namespace) -> int:
 
     node_id = parse_node(args.node)
     with bench_driver(args, node_id) as drive:
-        drive.enable()
-        start = drive.snapshot().angle_deg
-        t0 = time.monotonic()
-        ts, setpoint, angle, velocity, torque = [], [], [], [], []
         if drive.config.is_continuous and abs(args.step) >= 180:
             raise ConfigError(f"--step {args.step:g}: a continuous joint moves the short way, so a step test"
                               " needs |step| < 180 deg")
-        target = drive.move_to(start + args.step)
-        while time.monotonic() - t0 < args.seconds:
+        drive.enable()
+        start = drive.snapshot().angle_deg
+        t0 = time.monotonic()
+        ts: list[float] = []
+        setpoint: list[float] = []
+        angle: list[float] = []
+        velocity: list[float] = []
+        torque: list[float] = []
+        target = start + args.step
+
+        def sample() -> None:
             s = drive.snapshot()
             ts.append(time.monotonic() - t0)
             setpoint.append(target)
             angle.append(s.angle_deg)
             velocity.append(s.velocity_deg_s)
             torque.append(s.torque_nm)
+
+        if has_profile_position(drive):
+            target = drive.move_to(target)
+        else:  # position streamed: the set-point is a trapezoid, sampled as it goes
+            stream_to(drive, target, on_tick=sample)
+        while time.monotonic() - t0 < args.seconds:
+            sample()
             time.sleep(0.005)
     metrics = step_metrics(ts, angle, start, args.step, torque)
     metrics.update({"step_deg": args.step, "start_deg": round(start, 3),
@@ -787,11 +993,11 @@ def cmd_plan(args: argparse.Namespace) -> int:
     for load in loads:
         for line in load.lines:
             rows.append({"bus": line.bus, "what": line.what, "frames/s": round(line.frames_per_s, 1),
-                         "load": f"{line.bits_per_s / load.bitrate:.1%}"})
+                         "load_pct": round(100 * line.bits_per_s / load.bitrate, 1)})
         rows.append({"bus": load.bus, "what": "TOTAL", "frames/s": round(sum(x.frames_per_s for x in load.lines), 1),
-                     "load": f"{load.load:.1%}"})
+                     "load_pct": round(100 * load.load, 1)})
         worst = max(worst, load.load)
-    emit(args, rows, "worst-case bus load", ["bus", "what", "frames/s", "load"])
+    emit(args, rows, "worst-case bus load (% of the bitrate)", ["bus", "what", "frames/s", "load_pct"])
     if worst > MAX_LOAD:
         print(f"rovercan plan: a bus needs {worst:.0%} of its bitrate: it cannot carry this config", file=sys.stderr)
         return 1
@@ -804,7 +1010,8 @@ _IFNAME = re.compile(r"^[a-zA-Z][a-zA-Z0-9_-]{0,14}$")
 
 
 def can_up_commands(interface: str, bitrate: int, restart_ms: int, txqueuelen: int) -> list[list[str]]:
-    """The ``ip`` commands that bring a SocketCAN interface up the way the Orin's mttcan needs (pure)."""
+    """The ``ip`` commands that bring a SocketCAN interface up the way the Orin's mttcan needs, or
+    a virtual ``vcanN`` (created; it has no bitrate) as CI uses (pure)."""
     if not _IFNAME.match(interface):
         raise ConfigError(f"interface {interface!r}: expected a Linux interface name (letters, digits, '_' or '-',"
                           " at most 15 characters), e.g. can0")
@@ -814,6 +1021,10 @@ def can_up_commands(interface: str, bitrate: int, restart_ms: int, txqueuelen: i
         raise ConfigError(f"--restart-ms {restart_ms}: allowed 0 to 60000")
     if not 10 <= txqueuelen <= 100_000:
         raise ConfigError(f"--txqueuelen {txqueuelen}: allowed 10 to 100000")
+    if interface.startswith("vcan"):
+        return [["ip", "link", "add", "dev", interface, "type", "vcan"],
+                ["ip", "link", "set", interface, "txqueuelen", str(txqueuelen)],
+                ["ip", "link", "set", interface, "up"]]
     return [["ip", "link", "set", interface, "down"],
             ["ip", "link", "set", interface, "type", "can", "bitrate", str(bitrate), "restart-ms", str(restart_ms),
              "berr-reporting", "on"],
@@ -821,13 +1032,28 @@ def can_up_commands(interface: str, bitrate: int, restart_ms: int, txqueuelen: i
             ["ip", "link", "set", interface, "up"]]
 
 
+def can_up_bitrate(args: argparse.Namespace) -> tuple[int, str]:
+    """--bitrate, else the bitrate of the --config bus on the interface, else the embedded default's."""
+    if args.bitrate is not None:
+        return int(args.bitrate), "--bitrate"
+    config = load_config(args.config)  # None: the embedded default
+    on_it = [b for b in config.buses if b.channel == args.interface_name] or list(config.buses[:1])
+    return on_it[0].bitrate, f"bus {on_it[0].name} of {args.config or 'the embedded default config'}"
+
+
 def cmd_can_up(args: argparse.Namespace) -> int:
-    commands = can_up_commands(args.interface_name, args.bitrate, args.restart_ms, args.txqueuelen)
+    bitrate, source = can_up_bitrate(args)
+    vcan = args.interface_name.startswith("vcan")
+    if not vcan:
+        print(f"# bitrate {bitrate} bit/s from {source}", flush=True)
+    commands = can_up_commands(args.interface_name, bitrate, args.restart_ms, args.txqueuelen)
     for argv in commands:
         print(" ".join(argv), flush=True)
         if args.dry_run:
             continue
         result = subprocess.run(argv, capture_output=True, text=True, check=False)  # a list: no shell
+        if vcan and argv[2] == "add" and "File exists" in result.stderr:
+            continue  # the vcan interface is there already
         if result.returncode != 0:
             raise CliError(f"{' '.join(argv)} failed ({result.returncode}): {result.stderr.strip()}"
                            " (root or CAP_NET_ADMIN needed; is the CAN controller's driver loaded?)")

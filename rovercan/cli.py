@@ -269,6 +269,7 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("index", help="INDEX[:SUB] in hex, e.g. 0x6041 or 1018:1")
     p.add_argument("value", nargs="?")
     p.add_argument("--size", type=int, default=4, choices=(1, 2, 4), help="bytes to write without an EDS")
+    p.add_argument("--force", action="store_true", help="write an object the driver protects (bench only; logged)")
     bench.add_bus_args(p)
     p.add_argument("--eds", help="EDS for the object's type and name")
     bench.add_json(p)
@@ -331,6 +332,10 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("file")
     bench.add_bus_args(p)
     p.add_argument("--fast", action="store_true", help="as fast as possible, ignoring timestamps")
+    p.add_argument("--filter", type=bench.parse_filter, action="append", metavar="ID[:MASK]",
+                   help="only frames matching (hex, repeatable), e.g. 0x181 or 0x180:0x780")
+    p.add_argument("--allow-commands", action="store_true",
+                   help="also send NMT, RPDO, SDO request and LSS frames (left out by default)")
     p.set_defaults(func=bench.cmd_replay)
 
     p = sub.add_parser("decode", help="CANopen-decoded transcript of a recording")
@@ -374,11 +379,13 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_plan)
 
-    p = sub.add_parser("can-up", help="bring up a SocketCAN interface (runs ip, no shell)")
+    p = sub.add_parser("can-up", help="bring up a SocketCAN interface (runs ip, no shell); vcanN: a virtual one")
     p.add_argument("interface_name", metavar="INTERFACE")
-    p.add_argument("--bitrate", type=whole(10_000, 8_000_000), required=True)
-    p.add_argument("--restart-ms", type=whole(0, 65_535), default=100)
-    p.add_argument("--txqueuelen", type=whole(1, 1_000_000), default=1000)
+    p.add_argument("--bitrate", type=whole(10_000, 1_000_000),
+                   help="bit/s (default: the --config bus on INTERFACE, else the embedded default config's)")
+    p.add_argument("--config", help="take the bitrate from this config's bus on INTERFACE")
+    p.add_argument("--restart-ms", type=whole(0, 60_000), default=100)
+    p.add_argument("--txqueuelen", type=whole(10, 100_000), default=1000)
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     p.set_defaults(func=bench.cmd_can_up)
 

@@ -61,7 +61,7 @@ def test_sdo_read_write_and_errors(sim_port: int) -> None:
     assert abort.returncode == 1 and "0x06020000 object does not exist" in abort.stderr
     for guarded in ("0x607A", "0x607D:2", "0x6040", "0x1600:1", "0x1017"):  # limits cannot be bypassed from the CLI
         refused = run(sim_port, "sdo", "write", "1", guarded, "1", "--eds", GENERIC)
-        assert refused.returncode == 1 and "is refused" in refused.stderr
+        assert refused.returncode == 2 and "is refused" in refused.stderr  # refused before anything was sent
     ro = run(sim_port, "sdo", "write", "1", "0x1000", "5", "--eds", GENERIC)
     assert ro.returncode == 1 and "attempt to write a read only object" in ro.stderr
     bad = run(sim_port, "sdo", "read", "1", "nope")
@@ -186,7 +186,7 @@ def test_step_test_png_and_metrics(sim_port: int, tmp_path: Path) -> None:
 def test_plan_and_can_up(tmp_path: Path) -> None:
     rows = as_json(run(None, "plan", "--config", str(REPO / "config" / "rover.yaml"), "--json"))
     totals = [r for r in rows if r["what"] == "TOTAL"]  # type: ignore[union-attr, index]
-    assert len(totals) == 2 and all(float(t["load"].rstrip("%")) < 50 for t in totals)  # type: ignore[index]
+    assert len(totals) == 2 and all(0 < t["load_pct"] < 50 for t in totals)  # type: ignore[index]  # a number
     heavy = tmp_path / "heavy.yaml"
     heavy.write_text("buses: [{name: can0, interface: socketcand, channel: can0, bitrate: 125000, sync_period_ms: 1}]\n"
                      "drives: [{name: a, node_id: 1}, {name: b, node_id: 2}]\n")
@@ -199,4 +199,10 @@ def test_plan_and_can_up(tmp_path: Path) -> None:
     evil = run(None, "can-up", "can0;reboot", "--bitrate", "1000000", "--dry-run")
     assert evil.returncode == 2 and "expected a Linux interface name" in evil.stderr
     slow = run(None, "can-up", "can0", "--bitrate", "2000000", "--dry-run")
-    assert slow.returncode == 2 and "10000 to 1000000" in slow.stderr
+    assert slow.returncode == 2 and "out of range 10000..1000000" in slow.stderr
+    vcan = run(None, "can-up", "vcan0", "--dry-run")  # CI's virtual interface: created, no bitrate
+    assert vcan.returncode == 0 and "ip link add dev vcan0 type vcan" in vcan.stdout and "bitrate" not in vcan.stdout
+    from_config = run(None, "can-up", "can1", "--dry-run", "--config", str(REPO / "config" / "rover.yaml"))
+    assert from_config.returncode == 0 and "bitrate 1000000 bit/s from bus can1 of" in from_config.stdout
+    bare = run(None, "can-up", "can0", "--dry-run")  # the embedded default knows the bitrate
+    assert bare.returncode == 0 and "type can bitrate 1000000" in bare.stdout

@@ -74,3 +74,158 @@ def test_commands_refused_before_they_are_sent_exit_2(sim_port: int, tmp_path: P
     assert run("sdo", "read", "1", "0x6064", *bus(sim_port), "--json").stdout == before  # nothing moved
     result = run("sim", "--host", "0.0.0.0", "--port", "0")
     assert result.returncode == 2 and "listens on loopback" in result.stderr
+
+
+GENERIC = str(REPO / "can_config" / "data" / "generic_cia402.eds")
+
+
+def test_sdo_write_protection_gives_the_real_reason_and_force_overrides(sim_port: int) -> None:
+    for index, reason in (("0x1017", "the driver watches the drive's heartbeat"),
+                          ("0x6081", "the speed of every profile move"),
+                          ("0x1016:1", "how the drive watches the host's heartbeat"),
+                          ("0x1A00:1", "changes the PDO set")):
+        result = run("sdo", "write", "1", index, "100", "--eds", GENERIC, *bus(sim_port))
+        assert result.returncode == 2 and reason in result.stderr and "--force" in result.stderr, result.stderr
+    forced = run("sdo", "write", "1", "0x1017", "250", "--eds", GENERIC, "--force", *bus(sim_port))
+    assert forced.returncode == 0 and "forced SDO write of protected 0x1017:0" in forced.stderr, forced.stderr
+    assert '"value": 250' in run("sdo", "read", "1", "0x1017", "--eds", GENERIC, "--json", *bus(sim_port)).stdout
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (["sdo", "write", "1", "0x6065", "abc", "--eds", GENERIC], "value 'abc' for 0x6065:0"),
+    (["sdo", "write", "1", "0x6065", "1.5"], "expected a whole number"),
+    (["sdo", "write", "1", "0x2000", "70000", "--size", "2"], "does not fit --size 2 bytes"),
+    (["sdo", "write", "1", "0x6065", "-1", "--eds", GENERIC], "does not fit 0x6065:0"),
+    (["sdo", "read", "1", "0x1018:300"], "sub-index 300 out of range 0..255"),
+])
+def test_sdo_input_errors_name_the_value_and_the_object(sim_port: int, args: list[str], says: str) -> None:
+    result = run(*args, *bus(sim_port))
+    assert result.returncode == 2 and says in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+def test_a_wrong_port_is_named_within_the_timeout() -> None:
+    port = free_port()
+    result = run("scan", "--timeout", "1", "-i", "socketcand", "-c", "can0", "--bus-kwargs", "host=127.0.0.1",
+                 f"port={port}")
+    assert result.returncode == 1 and f"127.0.0.1:{port} not reachable" in result.stderr
+    assert "is the simulator running (rovercan sim)" in result.stderr and "in 1 s" in result.stderr, result.stderr
+
+
+def test_sdo_and_boot_timeouts_come_from_the_config(tmp_path: Path) -> None:
+    """A drive that answers an SDO in 0.7 s is read with sdo_timeout_ms 1000 (the default 500 gives up)."""
+    from can_config import load_config, with_bus_overrides
+    from can_config.errors import ConfigError
+    from motor_driver import MotorDriver
+    from virtual_can import SimService
+
+    path = tmp_path / "slow.yaml"
+    path.write_text("buses: [{name: can0, interface: socketcand, channel: can0, kwargs: {host: 127.0.0.1, port: 1}}]\n"
+                    "drives: [{name: j, node_id: 1, counts_per_rev: 4096, sdo_timeout_ms: 1000,"
+                    " boot_timeout_ms: 3000}]\n")
+    config = load_config(path)
+    assert config.drives[0].sdo_timeout_s == 1.0 and config.drives[0].boot_timeout_s == 3.0
+    with SimService.from_config(config, port=0) as sim:
+        runner = sim.simulators["can0"]
+        with MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)).start() as driver:
+            runner.call(lambda: setattr(runner.drive(1).faults, "sdo_delay_s", 0.7))
+            assert driver.drive("j").sdo_read(0x1000, 0)  # 0.7 s: within 1000 ms
+    path.write_text(path.read_text().replace("sdo_timeout_ms: 1000", "sdo_timeout_ms: 5"))
+    with pytest.raises(ConfigError, match=r"sdo_timeout_ms.*10"):
+        load_config(path)
+
+
+def test_replay_leaves_commands_out_unless_allowed_and_filters(tmp_path: Path) -> None:
+    import time
+
+    import can
+
+    from can_config import GENERIC_EDS
+    from virtual_can import SimDriveSpec, SimService
+
+    log = tmp_path / "incident.log"
+    frames = ["000#0101", "201#0F00", "601#2F60600001000000", "181#3712", "701#05", "080#", "581#4B41600037020000"]
+    log.write_text("".join(f"({1.0 + i * 0.001:.6f}) can0 {f}\n" for i, f in enumerate(frames)))
+    with SimService([SimDriveSpec(5, GENERIC_EDS, "can0", "other", 4096)], port=0) as sim:
+        listener = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        try:
+            def replayed(*extra: str) -> tuple[subprocess.CompletedProcess[str], set[int]]:
+                time.sleep(0.1)
+                while listener.recv(0.05) is not None:
+                    pass
+                result = run("replay", str(log), "--fast", *extra, *bus(sim.port))
+                seen: set[int] = set()
+                while (msg := listener.recv(0.3)) is not None:
+                    if msg.arbitration_id not in (0x705, 0x185, 0x285, 0x385, 0x485):  # the simulated drive's own
+                        seen.add(msg.arbitration_id)
+                return result, seen
+
+            result, seen = replayed()
+            assert result.returncode == 0 and "3 command frames (NMT, RPDO, SDO requests, LSS) left out" in result.stderr
+            assert seen == {0x181, 0x701, 0x080, 0x581}, sorted(map(hex, seen))
+            result, seen = replayed("--allow-commands")
+            assert result.returncode == 0 and {0x000, 0x201, 0x601} <= seen, sorted(map(hex, seen))
+            result, seen = replayed("--filter", "0x700:0x780")
+            assert result.returncode == 0 and seen == {0x701}, sorted(map(hex, seen))
+            assert run("replay", str(log), "--filter", "zz", *bus(sim.port)).returncode == 2
+        finally:
+            listener.shutdown()
+
+
+@pytest.mark.skipif(not (REPO.parent / "shared" / "eds" / "schunk_prl120.eds").is_file(),
+                    reason="../shared/eds/schunk_prl120.eds not present (a clone without ../shared)")
+def test_a_drive_with_interpolated_position_only_moves_jogs_and_steps_from_the_cli(tmp_path: Path) -> None:
+    """The SCHUNK PRL120 lists only homing and interpolated position (0x6502 = 0x60) and has no
+    0x6098: move, jog and step-test go through the driver's streaming path; home says why not."""
+    import json
+
+    eds = str(REPO.parent / "shared" / "eds" / "schunk_prl120.eds")
+    port = free_port()
+    sim = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--eds", eds, "--port", str(port)], cwd=REPO,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert sim.stdout is not None and "simulated drive" in sim.stdout.readline()
+        drive = ["--eds", eds, "--counts-per-rev", "4096", *bus(port), "--json"]
+        moved = run("move", "1", "30", *drive)
+        assert moved.returncode == 0, moved.stderr
+        assert json.loads(moved.stdout)["angle_deg"] == pytest.approx(30.0, abs=0.2)
+        jogged = run("jog", "1", "-40", "--for", "1", *drive)
+        assert jogged.returncode == 0, jogged.stderr
+        travelled = json.loads(jogged.stdout)["angle_deg"] - json.loads(moved.stdout)["angle_deg"]
+        assert -48.0 < travelled < -32.0, travelled  # about 40 deg/s for 1 s (its IP velocity reading ripples)
+        stepped = run("step-test", "1", "--step", "20", "--seconds", "1.5", "--out", str(tmp_path / "s"), *drive)
+        assert stepped.returncode == 0, stepped.stderr
+        assert json.loads((tmp_path / "s.json").read_text())["steady_state_error_deg"] < 0.3
+        homed = run("home", "1", *drive)
+        assert homed.returncode == 2 and "this drive has no homing mode (no 0x6098 in its EDS)" in homed.stderr
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(10)
+
+
+@pytest.mark.skipif(not (REPO.parent / "shared" / "eds" / "maxon_epos4_module50_5.eds").is_file(),
+                    reason="../shared/eds/maxon_epos4_module50_5.eds not present (a clone without ../shared)")
+def test_a_wrong_counts_per_rev_is_named_after_a_jog_and_a_move() -> None:
+    """EPOS4 reports velocity in rpm (0x60A9), independent of the encoder: told 2048 counts per
+    revolution for its 4096, positions read half of what they are while velocities are right."""
+    eds = str(REPO.parent / "shared" / "eds" / "maxon_epos4_module50_5.eds")
+    port = free_port()
+    sim = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--eds", eds, "--port", str(port)], cwd=REPO,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert sim.stdout is not None and "simulated drive" in sim.stdout.readline()
+        for counts, wrong in (("2048", True), ("4096", False)):
+            for args in (["jog", "1", "60", "--for", "1.5"], ["move", "1", "90" if wrong else "0"]):
+                result = run(*args, "--eds", eds, "--counts-per-rev", counts, *bus(port))
+                assert result.returncode == 0, result.stderr
+                assert ("counts_per_rev looks wrong" in result.stderr) == wrong, (counts, args, result.stderr)
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(10)
+
+
+@pytest.mark.skipif(not (REPO.parent / "shared" / "eds" / "schunk_prl120.eds").is_file(),
+                    reason="../shared/eds/schunk_prl120.eds not present (a clone without ../shared)")
+def test_each_pdo_warning_is_printed_once() -> None:
+    eds = str(REPO.parent / "shared" / "eds" / "schunk_prl120.eds")
+    result = run("enable", "1", "--eds", eds, "-i", "virtual", "-c", "rovercan-once", "--timeout", "0.1")
+    assert result.stderr.count("0x6061 cannot be PDO-mapped") == 1, result.stderr

@@ -41,6 +41,8 @@ def test_vendor_drive_boots_enables_moves(eds: str, driver_factory: Callable[[Ro
             time.sleep(0.01)
         wait_for(lambda: abs(drive.snapshot().angle_deg - 30.0) < 0.2, 2.0, "IP to 30 deg")
         assert drive.snapshot().mode == 7 and drive.statusword & 0x1000  # ip mode active
+        with pytest.raises(CommandRejected, match=r"this drive has no homing mode \(no 0x6098 in its EDS\)"):
+            drive.home()
         return
     drive.move_to(30.0, wait=True)
     # "target reached" holds within the position window (2 counts = 0.18 deg at 4096 counts/rev)
