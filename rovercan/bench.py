@@ -177,6 +177,15 @@ def _u32(raw: bytes) -> int:
     return int.from_bytes(raw[:4].ljust(4, b"\0"), "little")
 
 
+def _untyped(raw: bytes) -> int | str:
+    """A value read without an EDS: a number up to 8 bytes, printable text as text (0x1008, the
+    device name, is a string of 10-70 bytes), anything else as hex."""
+    text = raw.rstrip(b"\0")
+    if len(raw) > 8 or (len(raw) > 4 and text and all(32 <= b < 127 for b in text)):
+        return text.decode("ascii") if text and all(32 <= b < 127 for b in text) else raw.hex(" ")
+    return int.from_bytes(raw, "little")
+
+
 def _text(raw: bytes) -> str:
     return raw.rstrip(b"\0").decode("latin-1", errors="replace")
 
@@ -338,7 +347,7 @@ def cmd_sdo(args: argparse.Namespace) -> int:
         if args.action == "read":
             raw = sdo_upload(node, index, sub)
             value: Any = struct.unpack(fmt, raw)[0] if fmt and len(raw) == struct.calcsize(fmt) else (
-                _text(raw) if var is not None and int(var.data_type) == 0x09 else int.from_bytes(raw, "little"))
+                _text(raw) if var is not None and int(var.data_type) == 0x09 else _untyped(raw))
             emit(args, {"node": node_id, "index": f"0x{index:04X}", "sub": sub, "name": name, "value": value,
                         "raw": raw.hex(" ")}, f"node {node_id} 0x{index:04X}:{sub}")
             return 0
@@ -653,8 +662,11 @@ def pdo_layouts_for(args: argparse.Namespace) -> PdoLayouts:
         drives = [(d.eds, d.node_id) for d in load_config(args.config).drives]
     elif getattr(args, "eds", None):
         drives = [(Path(args.eds), n) for n in range(1, 128)]
+    loaded: dict[Path, ObjectDictionary] = {}
     for eds, node_id in drives:
-        od = load_drive_od(eds, node_id)
+        # one parse per EDS file (127 parses took about two seconds): the plan depends on the
+        # objects, and the node id only moves the COB-IDs, which plan_pdos derives itself
+        od = loaded.get(eds) or loaded.setdefault(eds, load_drive_od(eds, node_id))
         plan = plan_pdos(od, node_id)
         for pdo in (*plan.tpdos, *plan.rpdos):
             layouts[pdo.cob_id] = tuple(PdoField(_field_name(od, i, s), STRUCT_FORMAT[dt]) for i, s, dt in pdo.objects)

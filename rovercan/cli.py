@@ -227,6 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     import can.cli
     can.cli.add_bus_arguments(p, prefix="bus", group_title="instead of serving a bus: put the simulated drives on"
                               " this python-can bus (e.g. --bus-interface socketcan --bus-channel vcan0)")
+    _rename_option(p, "--bus-bus-kwargs", "--bus-kwargs")  # python-can's prefix doubles the word
     p.set_defaults(func=cmd_sim)
 
     p = sub.add_parser("demo", help="the motor demo: simulator + driver + ROS nodes, live MotorState")
@@ -245,6 +246,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=real(0.1, 1e6), default=None, help="stop after S seconds")
     p.set_defaults(func=cmd_launch)
     return parser
+
+
+def _rename_option(parser: argparse.ArgumentParser, old: str, new: str) -> None:
+    """Give an option another name (its dest stays, so python-can still finds the value)."""
+    action = parser._option_string_actions.pop(old)
+    action.option_strings = [new if o == old else o for o in action.option_strings]
+    parser._option_string_actions[new] = action
 
 
 def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

@@ -229,3 +229,39 @@ def test_each_pdo_warning_is_printed_once() -> None:
     eds = str(REPO.parent / "shared" / "eds" / "schunk_prl120.eds")
     result = run("enable", "1", "--eds", eds, "-i", "virtual", "-c", "rovercan-once", "--timeout", "0.1")
     assert result.stderr.count("0x6061 cannot be PDO-mapped") == 1, result.stderr
+
+
+def test_the_smaller_cli_cases(sim_port: int, tmp_path: Path) -> None:
+    import json
+
+    from rovercan.cli import build_parser
+
+    help_text = run("sim", "--help").stdout
+    assert "--bus-kwargs" in help_text and "--bus-bus-kwargs" not in help_text
+    parsed = build_parser().parse_args(["sim", "--bus-interface", "virtual", "--bus-channel", "x", "--bus-kwargs",
+                                        "receive_own_messages=False"])
+    assert parsed.bus_bus_kwargs == {"receive_own_messages": False}  # python-can reads it under its own name
+    name = json.loads(run("sdo", "read", "1", "0x1008", *bus(sim_port), "--json").stdout)["value"]
+    assert isinstance(name, str) and name.isprintable() and name, name  # the device name, not a 70-digit number
+    scan = run("scan", *bus(sim_port))
+    assert "node/s" not in scan.stderr and "it/s" not in scan.stderr, scan.stderr
+    monitor = run("monitor", "--seconds", "0.5", "--eds", GENERIC, *bus(sim_port))
+    assert monitor.returncode == 0, monitor.stderr
+
+
+def test_monitor_parses_an_eds_once_not_per_node(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`monitor --seconds 1 --eds` took 3.5 s: the EDS was parsed for each of the 127 node ids."""
+    import argparse
+
+    from rovercan import bench
+
+    parses: list[int] = []
+    real = bench.load_drive_od
+
+    def counting(eds: Path, node_id: int) -> object:
+        parses.append(node_id)
+        return real(eds, node_id)
+
+    monkeypatch.setattr(bench, "load_drive_od", counting)
+    layouts = bench.pdo_layouts_for(argparse.Namespace(config=None, eds=GENERIC))
+    assert len(parses) == 1 and 0x181 in layouts and 0x1FF in layouts and 0x27F in layouts
