@@ -66,6 +66,17 @@ class IdentityConfig:
 
 
 @dataclass(frozen=True)
+class SdoSetting:
+    """One vendor parameter written at boot (``sdo:`` list of a drive), in the list's order."""
+
+    index: int
+    sub: int = 0
+    value: int | float = 0
+    check: bool = True  # read back after the write and compare
+    size: int | None = None  # bytes, for an object the EDS does not list (1, 2, 4 or 8)
+
+
+@dataclass(frozen=True)
 class DriveConfig:
     """One CiA 402 drive and the joint it moves."""
 
@@ -102,6 +113,7 @@ class DriveConfig:
     stale_after_syncs: int = 5  # no TPDO for this many SYNC periods: its state is reported stale
     sdo_timeout_s: float = 0.5  # one SDO answer (a parameter save can keep a drive silent ~400 ms)
     boot_timeout_s: float = 2.0  # from NMT reset to the boot-up message
+    sdo: tuple[SdoSetting, ...] = ()  # vendor parameters written at boot, in order
 
     @property
     def quick_stop_decel_deg_s2(self) -> float:
@@ -172,7 +184,8 @@ class RoverConfig:
 
 @dataclass(frozen=True)
 class _Field:
-    kind: str  # "int", "float", "bool", "str", "name", "namespace", "path", "map", "list_names", "opt_float"
+    kind: str  # "int", "float", "bool", "str", "name", "namespace", "path", "map", "list", "list_names",
+    #            "opt_float", "opt_int" (a byte size), "number" (int or float)
     default: Any = _REQUIRED
     low: float | None = None
     high: float | None = None
@@ -232,6 +245,15 @@ _DRIVE_FIELDS: dict[str, _Field] = {
     "stale_after_syncs": _Field("int", 5, 2, 1000),
     "sdo_timeout_ms": _Field("float", 500.0, 10.0, 10_000.0),
     "boot_timeout_ms": _Field("float", 2000.0, 100.0, 60_000.0),
+    "sdo": _Field("list", []),
+}
+
+_SDO_FIELDS: dict[str, _Field] = {
+    "index": _Field("int", _REQUIRED, 0x1000, 0xFFFF),
+    "sub": _Field("int", 0, 0, 255),
+    "value": _Field("number", _REQUIRED),
+    "check": _Field("bool", True),
+    "size": _Field("opt_int", None, 1, 8),
 }
 
 _DRIVE_SYSTEM_FIELDS: dict[str, _Field] = {
@@ -311,6 +333,18 @@ def _convert(where: _Where, key: str, value: Any, spec: _Field) -> Any:
         if not isinstance(value, Mapping):
             raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a mapping (key: value).")
         return dict(value)
+    if kind == "list":
+        if not isinstance(value, list):
+            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a list.")
+        return list(value)
+    if kind == "number":
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise where.fail(key, f"got {value!r}; expected a finite number (decimal, 0x hex or a real).")
+        return value
+    if kind == "opt_int":
+        if isinstance(value, bool) or not isinstance(value, int) or value not in (1, 2, 4, 8):
+            raise where.fail(key, f"got {value!r}; expected 1, 2, 4 or 8 (bytes).")
+        return value
     if kind == "list_names":
         if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
             raise where.fail(key, f"got {value!r}; expected a non-empty list of drive names.")
@@ -387,6 +421,8 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
         values["eds"] = resolve_eds_path(values["eds"], base_dir)
         identity = _section(where, prefix + "identity.", values["identity"], _IDENTITY_FIELDS)
         values["identity"] = IdentityConfig(**identity)
+        values["sdo"] = tuple(SdoSetting(**_section(where, f"{prefix}sdo[{k}].", entry, _SDO_FIELDS))
+                              for k, entry in enumerate(values["sdo"]))
         for ms_key, s_key in (("heartbeat_period_ms", "heartbeat_period_s"),
                               ("heartbeat_timeout_ms", "heartbeat_timeout_s"),
                               ("watchdog_ms", "watchdog_s"), ("sdo_timeout_ms", "sdo_timeout_s"),
@@ -498,6 +534,7 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
             "on_host_loss": d.on_host_loss, "allow_no_host_watch": d.allow_no_host_watch,
             "stale_after_syncs": d.stale_after_syncs,
             "sdo_timeout_ms": d.sdo_timeout_s * 1000.0, "boot_timeout_ms": d.boot_timeout_s * 1000.0,
+            "sdo": [{k: v for k, v in vars(x).items() if v is not None} for x in d.sdo],
         }
         if d.joint == "limited":
             entry["min_deg"] = d.min_deg

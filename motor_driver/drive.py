@@ -37,7 +37,7 @@ import can
 import canopen
 from canopen.objectdictionary import ObjectDictionary
 
-from can_config.config import ON_HOST_LOSS, DriveConfig
+from can_config.config import ON_HOST_LOSS, DriveConfig, SdoSetting
 from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import (
     BootError,
@@ -502,6 +502,39 @@ class Drive:
         else:
             self.sdo_write(index, subindex, struct.pack(fmt or "<i", value))
 
+    def _write_setting(self, setting: SdoSetting) -> None:
+        """One entry of the config's ``sdo:`` list: typed by the EDS (or ``size`` bytes), read
+        back when ``check``. Objects the driver owns are refused with the reason."""
+        where = f"sdo setting 0x{setting.index:04X}:{setting.sub}"
+        reason = protected_reason(setting.index)
+        if reason is not None:
+            raise BootError(f"node {self.node_id} ({self.name}): {where} is refused: {reason}.", node_id=self.node_id,
+                            step="sdo settings", index=setting.index, subindex=setting.sub)
+        var = variable(self.od, setting.index, setting.sub)
+        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else None
+        if fmt is None and setting.size is None:
+            raise BootError(f"node {self.node_id} ({self.name}): {where} is not in the drive's EDS; give its size"
+                            " (size: 1, 2, 4 or 8 bytes) in the config", node_id=self.node_id, step="sdo settings",
+                            index=setting.index, subindex=setting.sub)
+        try:
+            if fmt is not None:
+                data = struct.pack(fmt, float(setting.value) if fmt in ("<f", "<d") else int(setting.value))
+            else:
+                size = int(setting.size or 4)
+                data = int(setting.value).to_bytes(size, "little", signed=int(setting.value) < 0)
+        except (struct.error, OverflowError) as err:
+            raise BootError(f"node {self.node_id} ({self.name}): {where}: value {setting.value} does not fit the"
+                            f" object ({fmt or f'{setting.size} bytes'}): {err}", node_id=self.node_id,
+                            step="sdo settings", index=setting.index, subindex=setting.sub) from err
+        self.sdo_write(setting.index, setting.sub, data)
+        if setting.check:
+            back = self.sdo_read(setting.index, setting.sub)[:len(data)]
+            if back != data:
+                raise BootError(f"node {self.node_id} ({self.name}): {where}: wrote {data.hex(' ')}, read back"
+                                f" {back.hex(' ')}; the drive did not keep the value (range, or writable only in"
+                                " another state?)", node_id=self.node_id, step="sdo settings",
+                                index=setting.index, subindex=setting.sub)
+
     # ------------------------------------------------------------------ boot
     def boot(self, *, reset: bool = True) -> None:
         """Reset (NMT), check identity, configure PDOs and parameters, NMT start. Does not enable."""
@@ -569,6 +602,10 @@ class Drive:
             if has_object(self.od, OD.QUICK_STOP_DECELERATION):
                 current = (OD.QUICK_STOP_DECELERATION, 0)
                 self._write_typed(OD.QUICK_STOP_DECELERATION, 0, self._quick_stop_decel())
+            step = "sdo settings"
+            for setting in cfg.sdo:
+                current = (setting.index, setting.sub)
+                self._write_setting(setting)
             step = "operation mode"
             current = (OD.SUPPORTED_DRIVE_MODES, 0)
             supported = self.supported_modes()

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.node import Node
 
+from can_config.errors import ConfigError
+
 
 @dataclass(frozen=True)
 class Param:
@@ -26,6 +28,8 @@ PARAMS: dict[str, Param] = {
     "default_joint": Param("", "joint served on /motor_degree_cmd and /motor_state; empty: the first drive"),
     "state_rate_hz": Param(50.0, "rate of MotorState and /joint_states", 1.0, 500.0),
     "diagnostics_rate_hz": Param(1.0, "rate of /diagnostics", 0.1, 10.0),
+    "state_qos_depth": Param(10, "keep-last depth of the reliable state topics (MotorState, /joint_states, /odom),"
+                                 " 1 to 1000"),
     "odom_rate_hz": Param(50.0, "rate of the drive system's control loop and /odom", 1.0, 200.0),
     "odom_frame": Param("odom", "frame_id of /odom"),
     "base_frame": Param("base_link", "child_frame_id of /odom"),
@@ -39,3 +43,11 @@ def declare(node: Node, *names: str) -> None:
         if spec.low is not None and spec.high is not None:
             descriptor.floating_point_range = [FloatingPointRange(from_value=spec.low, to_value=spec.high)]
         node.declare_parameter(name, spec.default, descriptor)
+
+
+def qos_depth(node: Node) -> int:
+    """``state_qos_depth``, checked: a whole number from 1 to 1000."""
+    value = node.get_parameter("state_qos_depth").value
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 1000:
+        raise ConfigError(f"parameter state_qos_depth = {value!r}: expected a whole number from 1 to 1000")
+    return int(value)

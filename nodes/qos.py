@@ -3,9 +3,12 @@
 * commands: reliable, keep last 1, volatile. Only the newest command matters; a late stale
   command must not be replayed to a moving joint (depth 1), and reliable so that a single
   one-off command (bench, service-like use) is not silently lost.
-* state: best effort, keep last 5. High-rate telemetry: a lost sample is replaced 20 ms
-  later; best effort never stalls the publisher on a slow subscriber (RViz over Wi-Fi).
-  Subscribers must also use best effort (a reliable subscriber sees nothing).
+* state (MotorState, /joint_states, /odom): reliable, keep last ``state_qos_depth`` (10, in
+  the params file), as ros2_control's joint_state_broadcaster and diff_drive_controller
+  publish. A reliable publisher is read by reliable subscribers (rclpy's and RViz's default,
+  Nav2) and best-effort ones alike; a best-effort one was read by nobody who kept the default
+  ("offering incompatible QoS"). Keep-last never blocks the publisher: a slow subscriber
+  loses the oldest samples, as it would under best effort.
 * diagnostics: reliable, keep last 10, as diagnostic_aggregator expects.
 
 The driver's own topics are created without rclpy's default QoS-event handlers (incompatible
@@ -21,8 +24,15 @@ from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallba
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 COMMAND_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
-STATE_QOS = QoSProfile(depth=5, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
+STATE_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+
+
+
+def state_qos(depth: int) -> QoSProfile:
+    """STATE_QOS with the configured keep-last depth."""
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+
 
 NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
 NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)

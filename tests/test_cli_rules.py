@@ -265,3 +265,20 @@ def test_monitor_parses_an_eds_once_not_per_node(monkeypatch: pytest.MonkeyPatch
     monkeypatch.setattr(bench, "load_drive_od", counting)
     layouts = bench.pdo_layouts_for(argparse.Namespace(config=None, eds=GENERIC))
     assert len(parses) == 1 and 0x181 in layouts and 0x1FF in layouts and 0x27F in layouts
+
+
+def test_save_keeps_parameters_over_a_reset(sim_port: int) -> None:
+    import json
+
+    drive = ["--eds", GENERIC, *bus(sim_port)]
+    assert run("sdo", "write", "2", "0x6065", "777", *drive).returncode == 0
+    assert run("nmt", "reset", "2", *bus(sim_port)).returncode == 0
+    assert '"value": 777' not in run("sdo", "read", "2", "0x6065", *drive, "--json").stdout  # not kept unsaved
+    assert run("sdo", "write", "2", "0x6065", "777", *drive).returncode == 0
+    saved = run("save", "2", *bus(sim_port), "--json")
+    assert saved.returncode == 0, saved.stderr
+    assert json.loads(saved.stdout)["answer_ms"] >= 400  # the drive's silence while it writes its flash
+    assert run("nmt", "reset", "2", *bus(sim_port)).returncode == 0
+    assert '"value": 777' in run("sdo", "read", "2", "0x6065", *drive, "--json").stdout
+    missing = run("save", "9", *bus(sim_port))
+    assert missing.returncode == 1 and "no answer to the save (0x1010:1)" in missing.stderr

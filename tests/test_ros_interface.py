@@ -49,9 +49,9 @@ class Graph:
         self.inbox: dict[str, list[Any]] = {}
         self.clients: dict[str, Any] = {}
 
-    def listen(self, msg_type: Any, topic: str, qos: Any = STATE_QOS) -> list[Any]:
+    def listen(self, msg_type: Any, topic: str, qos: Any = None) -> list[Any]:
         box: list[Any] = []
-        self.probe.create_subscription(msg_type, topic, box.append, qos)
+        self.probe.create_subscription(msg_type, topic, box.append, qos or STATE_QOS)
         return box
 
     def call(self, srv_type: Any, name: str, request: Any = None, timeout_s: float = 15.0) -> Any:
@@ -425,3 +425,15 @@ def test_a_slow_enable_service_never_stalls_commands_or_other_joints_topics(grap
     assert rate >= 0.8 * 50.0, rate  # joint B's MotorState kept its 50 Hz meanwhile
     eventually(lambda: any("busy with enable" in kv.value for a in diags for st in a.status if "wheel_front_left" in st.name
                            for kv in st.values), 3.0, "the refusal in /diagnostics")
+
+
+def test_default_qos_subscribers_receive_the_state_topics(graph: Graph) -> None:
+    """What RViz, Nav2 and a plain rclpy subscriber use: reliable, volatile, keep last 10. A
+    best-effort publisher was invisible to them ("offering incompatible QoS")."""
+    from rclpy.qos import QoSProfile
+
+    default = QoSProfile(depth=10)
+    inboxes = {topic: graph.listen(msg_type, topic, default) for topic, msg_type in (
+        ("/odom", Odometry), ("/joint_states", JointState), ("/diagnostics", DiagnosticArray),
+        ("wheels/wheel_front_left/motor_state", MotorState), ("/motor_state", MotorState))}
+    eventually(lambda: all(inboxes.values()), 5.0, "a message on every state topic")

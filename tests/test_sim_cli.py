@@ -17,7 +17,7 @@ import pytest
 
 from can_config import GENERIC_EDS
 
-from .conftest import REPO, drain
+from .conftest import REPO, drain, requires_ros
 
 
 def free_port() -> int:
@@ -94,6 +94,7 @@ def test_sim_refuses_a_non_loopback_bind_without_the_flag() -> None:
     assert "listens on loopback" in result.stderr
 
 
+@requires_ros
 def test_demo_runs_and_exits_zero() -> None:
     env = {k: v for k, v in os.environ.items() if k != "ROS_AUTOMATIC_DISCOVERY_RANGE"}
     result = subprocess.run(rovercan("demo", "--duration", "3", "--print-period", "0.5"), cwd=REPO,

@@ -78,6 +78,11 @@ STATUS_BITS: dict[State, int] = {
 PHYSICS_STEP_S = 0.0005
 
 #: EMCY codes (CiA 301 / CiA 402).
+#: 0x1010 "save" signature ("save" in ASCII, little endian) and what each sub-index stores.
+SAVE_SIGNATURE = int.from_bytes(b"save", "little")
+SAVE_RANGES = {1: (0x1000, 0x9FFF), 2: (0x1000, 0x1FFF), 3: (0x6000, 0x9FFF), 4: (0x2000, 0x5FFF)}
+#: A real drive writes its flash meanwhile: its SDO server answers the save this much later.
+SAVE_SILENCE_S = 0.4
 EMCY_HEARTBEAT = 0x8130  # life guard error or heartbeat error
 EMCY_POSITION_LIMIT = 0x8612  # reference limit (software position limit)
 
@@ -359,6 +364,15 @@ class SimulatedDrive:
             raise SdoAbort(ABORT_DEVICE_STATE, index, subindex,
                            "set sub-index 0 to 0 before changing mapping entries")
 
+    def _store_parameters(self, subindex: int) -> None:
+        """0x1010:sub = "save" (CiA 301): keep the values that a reset or power cycle restores."""
+        if int(self.store.get(OD.STORE_PARAMETERS, subindex, 0)) != SAVE_SIGNATURE:  # type: ignore[arg-type]
+            return
+        low, high = SAVE_RANGES.get(subindex, (0x1000, 0x9FFF))
+        kept = self.store.save(low, high)
+        self.store.set(OD.STORE_PARAMETERS, subindex, 1)  # reads back its capability: saves on command
+        logger.info("node %d: %d parameters saved (0x1010:%d)", self.node_id, kept, subindex)
+
     def _on_sdo_write(self, index: int, subindex: int) -> None:
         if 0x1600 <= index <= 0x17FF or 0x1A00 <= index <= 0x1BFF:
             self._check_mapping_write(index, subindex)
@@ -374,6 +388,8 @@ class SimulatedDrive:
         elif index == OD.CONSUMER_HEARTBEAT_TIME:
             self._consumer_seen.pop(subindex, None)  # a new entry is armed by its next heartbeat
             self._load_consumers()
+        elif index == OD.STORE_PARAMETERS:
+            self._store_parameters(subindex)
 
     # ---------------------------------------------------------------- heartbeat consumer
     def _load_consumers(self) -> None:
@@ -438,8 +454,9 @@ class SimulatedDrive:
         if self.nmt == NmtState.STOPPED:
             return []
         if cob == 0x600 + self.node_id:
-            if self.faults.sdo_delay_s > 0:
-                self._delayed_sdo = (now + self.faults.sdo_delay_s, data)
+            saving = len(data) >= 4 and data[0] & 0xE0 == 0x20 and data[1:3] == OD.STORE_PARAMETERS.to_bytes(2, "little")
+            if self.faults.sdo_delay_s > 0 or saving:  # a save keeps the drive's SDO server silent a while
+                self._delayed_sdo = (now + max(self.faults.sdo_delay_s, SAVE_SILENCE_S if saving else 0.0), data)
                 return []
             return self._sdo(data)
         pdo = self.rpdos.get(cob)

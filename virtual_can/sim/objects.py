@@ -125,6 +125,7 @@ class ObjectStore:
         self.vars: dict[tuple[int, int], SimVariable] = {}
         self.values: dict[tuple[int, int], Value] = {}
         self.on_write: Callable[[int, int], None] | None = None
+        self.saved: dict[tuple[int, int], Value] = {}  # 0x1010 "save": survives resets and power cycles
         for obj in od.values():
             members = list(obj.values()) if isinstance(obj, (ODRecord, ODArray)) else [obj]
             for var in members:
@@ -150,10 +151,18 @@ class ObjectStore:
                                      var.min, var.max)
 
     def reset(self, low: int, high: int) -> None:
-        """Restore defaults of the objects from ``low`` to ``high`` (NMT reset node / comm)."""
+        """Restore the objects from ``low`` to ``high`` (NMT reset node / comm): their saved
+        values (0x1010) where there are some, else the EDS defaults."""
         for key, var in self.vars.items():
             if low <= key[0] <= high:
-                self.values[key] = var.default
+                self.values[key] = self.saved.get(key, var.default)
+
+    def save(self, low: int, high: int) -> int:
+        """0x1010 "save": keep the current values of ``low`` to ``high``; how many were kept."""
+        kept = {key: value for key, value in self.values.items()
+                if low <= key[0] <= high and key[0] != 0x1010 and self.vars[key].writable}
+        self.saved.update(kept)
+        return len(kept)
 
     def has(self, index: int, subindex: int = 0) -> bool:
         return (index, subindex) in self.vars
