@@ -162,15 +162,20 @@ def remote_node(args: argparse.Namespace, node_id: int) -> Iterator[tuple[canope
         bus.shutdown()
 
 
-def sdo_upload(node: canopen.RemoteNode, index: int, sub: int) -> bytes:
+@contextmanager
+def sdo_errors(node_id: int, what: str, timeout_s: float) -> Iterator[None]:
+    """canopen's SDO failures as one-line CLI errors naming the node, the object and the cause."""
     try:
-        return bytes(node.sdo.upload(index, sub))
+        yield
     except canopen.SdoAbortedError as err:
-        raise CliError(f"node {node.id}: SDO read 0x{index:04X}:{sub} aborted: 0x{err.code:08X}"
-                       f" {sdo_abort_text(err.code)}") from err
+        raise CliError(f"node {node_id}: {what} aborted: 0x{err.code:08X} {sdo_abort_text(err.code)}") from err
     except canopen.SdoCommunicationError as err:
-        raise CliError(f"node {node.id}: no answer to SDO read 0x{index:04X}:{sub} within {SDO_TIMEOUT_S:g} s;"
-                       f" {CAUSES}") from err
+        raise CliError(f"node {node_id}: no answer to {what} within {timeout_s:g} s; {CAUSES}") from err
+
+
+def sdo_upload(node: canopen.RemoteNode, index: int, sub: int) -> bytes:
+    with sdo_errors(node.id, f"SDO read 0x{index:04X}:{sub}", SDO_TIMEOUT_S):
+        return bytes(node.sdo.upload(index, sub))
 
 
 def _u32(raw: bytes) -> int:
@@ -362,13 +367,8 @@ def cmd_sdo(args: argparse.Namespace) -> int:
             logger.warning("node %d: forced SDO write of protected 0x%04X:%d = %s (%s)", node_id, index, sub,
                            args.value, reason)
         data = sdo_value_bytes(args.value, fmt, args.size, f"0x{index:04X}:{sub}{f' ({name})' if name else ''}")
-        try:
+        with sdo_errors(node_id, f"SDO write 0x{index:04X}:{sub}", SDO_TIMEOUT_S):
             node.sdo.download(index, sub, data)
-        except canopen.SdoAbortedError as err:
-            raise CliError(f"node {node_id}: SDO write 0x{index:04X}:{sub} aborted: 0x{err.code:08X}"
-                           f" {sdo_abort_text(err.code)}") from err
-        except canopen.SdoCommunicationError as err:
-            raise CliError(f"node {node_id}: no answer to SDO write 0x{index:04X}:{sub}; {CAUSES}") from err
         emit(args, {"node": node_id, "index": f"0x{index:04X}", "sub": sub, "written": data.hex(" ")}, "written")
     return 0
 
@@ -385,14 +385,8 @@ def cmd_save(args: argparse.Namespace) -> int:
     with remote_node(args, node_id) as (node, _):
         node.sdo.RESPONSE_TIMEOUT = SAVE_TIMEOUT_S
         started = time.monotonic()
-        try:
+        with sdo_errors(node_id, f"the save (0x1010:{args.sub})", SAVE_TIMEOUT_S):
             node.sdo.download(OD.STORE_PARAMETERS, args.sub, b"save")
-        except canopen.SdoAbortedError as err:
-            raise CliError(f"node {node_id}: save (0x1010:{args.sub}) aborted: 0x{err.code:08X}"
-                           f" {sdo_abort_text(err.code)}") from err
-        except canopen.SdoCommunicationError as err:
-            raise CliError(f"node {node_id}: no answer to the save (0x1010:{args.sub}) within {SAVE_TIMEOUT_S:g} s;"
-                           f" {CAUSES}") from err
         took = time.monotonic() - started
     emit(args, {"node": node_id, "saved": SAVE_WHAT[args.sub], "object": f"0x1010:{args.sub}",
                 "answer_ms": round(took * 1000)}, f"node {node_id} saved")
