@@ -282,3 +282,27 @@ def test_save_keeps_parameters_over_a_reset(sim_port: int) -> None:
     assert '"value": 777' in run("sdo", "read", "2", "0x6065", *drive, "--json").stdout
     missing = run("save", "9", *bus(sim_port))
     assert missing.returncode == 1 and "no answer to the save (0x1010:1)" in missing.stderr
+
+
+@pytest.mark.skipif(not (REPO.parent / "shared" / "eds" / "maxon_epos4_module50_5.eds").is_file(),
+                    reason="../shared/eds/maxon_epos4_module50_5.eds not present (a clone without ../shared)")
+def test_a_simulated_epos4_reports_the_identity_of_its_eds() -> None:
+    """The EPOS4 file carries vendor, product, revision and name only in [DeviceInfo]."""
+    import json
+
+    eds = str(REPO.parent / "shared" / "eds" / "maxon_epos4_module50_5.eds")
+    port = free_port()
+    sim = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--eds", eds, "--port", str(port)], cwd=REPO,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert sim.stdout is not None and "simulated drive" in sim.stdout.readline()
+        result = run("info", "1", "--eds", eds, *bus(port), "--json")
+        assert result.returncode == 0, result.stderr
+        text = result.stdout
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(10)
+    info = json.loads(text)
+    flat = json.dumps(info)
+    assert "0x000000FB" in flat and "0x61500000" in flat and "0x01500000" in flat, flat[:800]
+    assert "EPOS4 Module 50/5" in flat

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import threading
 import time
 
 import canopen
@@ -27,8 +28,14 @@ def main() -> int:
     try:
         node = BaseNode402(node_id, eds)
         network.add_node(node)
+        # listen for the boot-up before sending the reset: canopen's wait_for_bootup() starts
+        # listening only when called, and a quick drive's boot-up can come before that
+        booted = threading.Event()
+        network.subscribe(0x700 + node_id, lambda _cob, data, _t: booted.set() if data and data[0] == 0 else None)
         node.nmt.state = "RESET"
-        node.nmt.wait_for_bootup(5)
+        if not booted.wait(5):
+            print(f"FAIL: no boot-up of node {node_id} within 5 s of NMT reset")
+            return 1
         node.setup_402_state_machine()
         for index, value in ((0x6081, 20000), (0x6083, 50000), (0x6084, 50000)):  # profile parameters
             if index in node.object_dictionary:

@@ -137,6 +137,8 @@ class ObjectStore:
         key = (var.index, var.subindex)
         default = var.default
         if default is None:
+            default = self._device_info(key)
+        if default is None:
             default = FALLBACK_DEFAULTS.get(key, _zero(var.data_type))
         elif isinstance(default, str):
             default = default.encode("latin-1")
@@ -149,6 +151,18 @@ class ObjectStore:
         self.vars[key] = SimVariable(var.index, var.subindex, var.name, int(var.data_type),
                                      var.access_type or "rw", bool(var.pdo_mappable), default,
                                      var.min, var.max)
+
+    def _device_info(self, key: tuple[int, int]) -> Value | None:
+        """Identity and name from the EDS's [DeviceInfo] where the objects carry no default (a
+        real drive answers with its own; the EPOS4 file has them only there)."""
+        info = self.od.device_information
+        fields: dict[tuple[int, int], object] = {
+            (OD.IDENTITY, 1): info.vendor_number, (OD.IDENTITY, 2): info.product_number,
+            (OD.IDENTITY, 3): info.revision_number, (OD.DEVICE_NAME, 0): info.product_name}
+        value = fields.get(key)
+        if isinstance(value, str):
+            return value.encode("latin-1", "replace")
+        return value if isinstance(value, int) else None
 
     def reset(self, low: int, high: int) -> None:
         """Restore the objects from ``low`` to ``high`` (NMT reset node / comm): their saved
