@@ -964,6 +964,15 @@ class Drive:
             self._send_cw(self._cw)
             self._wait_state({State.SWITCH_ON_DISABLED}, timeout_s, "disable voltage")
 
+    def set_profile_velocity(self, velocity_deg_s: float) -> None:
+        """The speed of the following profile-position moves (0x6081), at most max_velocity_deg_s."""
+        speed = require_finite(f"{self.name} profile velocity", velocity_deg_s, "deg/s")
+        if not 0 < speed <= self.config.max_velocity_deg_s:
+            raise CommandRejected(f"{self.name}: profile velocity {speed:g} deg/s: allowed 0 < speed <="
+                                  f" {self.config.max_velocity_deg_s:g} (max_velocity_deg_s). Nothing was sent.")
+        with self._command("profile velocity"):
+            self._write_typed(OD.PROFILE_VELOCITY, 0, self.scale.magnitude_to_drive(speed))
+
     def halt(self, on: bool = True) -> None:
         """Set or clear the halt bit (8): stop on the profile deceleration, stay enabled."""
         with self._command("halt"):

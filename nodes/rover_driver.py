@@ -7,12 +7,14 @@ relative to the node's namespace):
   services <joint>/enable, disable, halt, quick_stop, recover, home (std_srvs/Trigger),
            <joint>/set_mode (SetMode), <joint>/sdo_read (SdoRead), <joint>/sdo_write (SdoWrite)
 All drives: /joint_states (rad, rad/s, Nm), /joint_commands (sensor_msgs/JointState targets),
-/diagnostics. The default joint also serves the team's /motor_degree_cmd and /motor_state.
+/diagnostics; actions home_joint (rovercan_msgs/Home) and move_joint (MoveJoint) with
+feedback and cancel (nodes/actions.py). The default joint also serves the team's /motor_degree_cmd and /motor_state.
 With a ``drive_system`` in the config, ``drive_system`` takes /cmd_vel and publishes /odom.
 
 Executors, by measurement (README): two single-threaded executors, a hot one for commands,
 state and the drive system (small wait set: every wake-up rebuilds it in Python) and a cold
-one, on its own thread, for the services, which block for up to seconds (enable, home).
+one, on its own thread, for the services, which block for up to seconds (enable, home); the
+actions on one of their own (their goals are coroutines: nodes/actions.py).
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from motor_driver import Drive, MotorDriver
 from motor_driver.health import drive_health
 from motor_driver.skid_steer import SkidSteer, Twist2D
 from nodes import runtime
+from nodes.actions import DriverActionsNode
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.motor_controller import fill_motor_state
 from nodes.params import declare, qos_depth
@@ -447,6 +450,7 @@ def _run(stop: StopSignal) -> int:
         return 2
     nodes: list[Node] = []
     cold: runtime.SpinThread | None = None
+    goals: runtime.SpinThread | None = None
     handler = None
     try:
         node = DriverNode(driver)
@@ -455,14 +459,19 @@ def _run(stop: StopSignal) -> int:
         if config.drive_system is not None:
             nodes.append(DriveSystemNode(driver, config, node.refusals))
         services = DriverServicesNode(driver)
-        nodes.append(services)
-        # two executors (measured: README): the hot one for commands, state and the drive
-        # system, the cold one, on its own thread, for the services that block (enable, home)
-        for n in nodes[:-1]:
+        actions = DriverActionsNode(driver)
+        # executors (measured: README): the hot one for commands, state and the drive system;
+        # a cold one, on its own thread, for the services that block (enable, home); one for
+        # the actions, whose goals are coroutines (nodes/actions.py)
+        for n in nodes:
             hot.add_node(n)
+        nodes += [services, actions]
         cold_executor = SingleThreadedExecutor()
         cold_executor.add_node(services)
         cold = runtime.SpinThread(cold_executor, "rovercan-services")
+        action_executor = SingleThreadedExecutor()
+        action_executor.add_node(actions)
+        goals = runtime.SpinThread(action_executor, "rovercan-actions")
         node.arm_if_asked()
         runtime.spin_until(hot, stop.event)
     finally:
@@ -470,6 +479,7 @@ def _run(stop: StopSignal) -> int:
         # service thread joined, then nodes destroyed, then the context
         driver.close()
         joined = cold is None or cold.stop(timeout_s=SERVICE_JOIN_S)
+        joined = (goals is None or goals.stop(timeout_s=SERVICE_JOIN_S)) and joined
         if handler is not None:
             unbridge(handler)
         if joined:  # a thread still inside rclpy must not see its node destroyed under it

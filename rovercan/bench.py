@@ -591,7 +591,7 @@ def cmd_move(args: argparse.Namespace) -> int:
         drive.enable()
         if has_profile_position(drive):
             if args.speed is not None:
-                drive._write_typed(OD.PROFILE_VELOCITY, 0, drive.scale.magnitude_to_drive(args.speed))
+                drive.set_profile_velocity(args.speed)
             check = UnitCheck(drive)
             target = drive.move_to(args.degrees)
             sampling = threading.Event()

@@ -33,6 +33,7 @@ if HAVE_ROS:
     from std_msgs.msg import Float32
     from std_srvs.srv import Trigger
 
+    from nodes.actions import DriverActionsNode
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
     from nodes.rover_driver import DriverNode, DriverServicesNode, DriveSystemNode
     from nodes.runtime import SpinThread, make_executor
@@ -90,6 +91,7 @@ def graph() -> Iterator[Graph]:
     driver_node = DriverNode(driver, context=context, parameter_overrides=[Parameter("diagnostics_rate_hz", value=5.0)])
     system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
     services = DriverServicesNode(driver, context=context)
+    actions = DriverActionsNode(driver, context=context)
     probe = rclpy.create_node("probe", context=context)
     # the executors the rover_driver node runs: topics on the EventsExecutor, services on a
     # single-threaded one of their own (rclpy's MultiThreadedExecutor starves the driver's
@@ -99,11 +101,13 @@ def graph() -> Iterator[Graph]:
         hot.add_node(node)
     cold = SingleThreadedExecutor(context=context)
     cold.add_node(services)
-    spinning = [SpinThread(hot, "test-hot"), SpinThread(cold, "test-services")]
+    goals = SingleThreadedExecutor(context=context)
+    goals.add_node(actions)
+    spinning = [SpinThread(hot, "test-hot"), SpinThread(cold, "test-services"), SpinThread(goals, "test-actions")]
     yield Graph(sim, driver, context, probe, driver_node, system_node)
     for spin in spinning:
         spin.stop(5.0)
-    for node in (driver_node, system_node, services, probe):
+    for node in (driver_node, system_node, services, actions, probe):
         node.destroy_node()
     rclpy.shutdown(context=context)
     driver.close()
@@ -437,3 +441,54 @@ def test_default_qos_subscribers_receive_the_state_topics(graph: Graph) -> None:
         ("/odom", Odometry), ("/joint_states", JointState), ("/diagnostics", DiagnosticArray),
         ("wheels/wheel_front_left/motor_state", MotorState), ("/motor_state", MotorState))}
     eventually(lambda: all(inboxes.values()), 5.0, "a message on every state topic")
+
+
+def test_home_and_move_joint_actions_give_feedback_and_cancel_stops_the_joint(graph: Graph) -> None:
+    from rclpy.action import ActionClient
+    from rovercan_msgs.action import Home, MoveJoint
+
+    client_node = rclpy.create_node("action_client", context=graph.context)
+    executor = SingleThreadedExecutor(context=graph.context)
+    executor.add_node(client_node)
+    spin = SpinThread(executor, "test-action-client")
+    try:
+        joint = "wheel_rear_left"
+        drive = graph.driver.drive(joint)
+        move = ActionClient(client_node, MoveJoint, "move_joint")
+        home = ActionClient(client_node, Home, "home_joint")
+        assert move.wait_for_server(timeout_sec=5.0) and home.wait_for_server(timeout_sec=5.0)
+        assert graph.call(Trigger, f"wheels/{joint}/enable").success
+
+        def run(client: Any, goal: Any, cancel_after_s: float | None = None) -> tuple[Any, list[Any]]:
+            feedback: list[Any] = []
+            sent = client.send_goal_async(goal, feedback_callback=lambda f: feedback.append(f.feedback))
+            eventually(sent.done, 5.0, "the goal accepted")
+            handle = sent.result()
+            assert handle.accepted
+            if cancel_after_s is not None:
+                time.sleep(cancel_after_s)
+                cancel = handle.cancel_goal_async()
+                eventually(cancel.done, 5.0, "the cancel answered")
+            result = handle.get_result_async()
+            eventually(result.done, 30.0, "the result")
+            return result.result(), feedback
+
+        homed, feedback = run(home, Home.Goal(joint=joint))
+        assert homed.result.success and homed.result.angle == pytest.approx(0.0, abs=0.2), homed.result.message
+        assert feedback and all(f.state for f in feedback)
+        moved, feedback = run(move, MoveJoint.Goal(joint=joint, target_deg=40.0, speed_deg_s=90.0))
+        assert moved.result.success and moved.result.angle == pytest.approx(40.0, abs=0.3), moved.result.message
+        assert len(feedback) >= 3 and feedback[0].remaining_deg > feedback[-1].remaining_deg > -0.5
+        canceled, feedback = run(move, MoveJoint.Goal(joint=joint, target_deg=200.0, speed_deg_s=60.0),
+                                 cancel_after_s=1.0)
+        assert canceled.status == 5 and not canceled.result.success  # GoalStatus.STATUS_CANCELED
+        assert "halted" in canceled.result.message
+        state = drive.snapshot()
+        assert 45.0 < state.angle_deg < 190.0 and abs(state.velocity_deg_s) < 1.0  # stopped short of 200
+        assert state.state is State.OPERATION_ENABLED  # a halt, not a disable
+        unknown = move.send_goal_async(MoveJoint.Goal(joint="no_such_wheel", target_deg=1.0))
+        eventually(unknown.done, 5.0, "the unknown joint refused")
+        assert not unknown.result().accepted
+    finally:
+        spin.stop(5.0)
+        client_node.destroy_node()

@@ -1,0 +1,144 @@
+"""``home_joint`` and ``move_joint``: the long-running drive operations as ROS 2 actions
+(rovercan_msgs/Home, rovercan_msgs/MoveJoint): feedback while they run, cancel that stops the
+joint. The Trigger services stay for scripts.
+
+The goals are coroutines on a single-threaded executor of the node's own: between two looks
+at the drive a goal awaits a future that a timer thread completes, so the executor serves the
+cancel requests and other goals meanwhile. (rclpy's MultiThreadedExecutor was measured
+starving the driver's own threads for 0.1-0.5 s: README.) Homing, which blocks in the driver,
+runs on a thread of its own and is watched the same way.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.task import Future
+from rovercan_msgs.action import Home, MoveJoint
+
+from can_config.errors import RovercanError
+from motor_driver import MotorDriver
+
+logger = logging.getLogger(__name__)
+
+#: How often feedback is published and a cancel request looked at.
+FEEDBACK_PERIOD_S = 0.05
+#: How long a canceled move may take to come to rest before the result is sent anyway.
+CANCEL_SETTLE_S = 3.0
+#: A move is done when the drive says "target reached" within this of the target.
+TARGET_WINDOW_DEG = 0.5
+
+
+class DriverActionsNode(Node):
+    def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
+        super().__init__("rovercan_driver_actions", **kwargs)
+        self.driver = driver
+        group = ReentrantCallbackGroup()
+        self._home = ActionServer(self, Home, "home_joint", execute_callback=self._execute_home,
+                                  goal_callback=self._known_joint, cancel_callback=self._accept_cancel,
+                                  callback_group=group)
+        self._move = ActionServer(self, MoveJoint, "move_joint", execute_callback=self._execute_move,
+                                  goal_callback=self._known_joint, cancel_callback=self._accept_cancel,
+                                  callback_group=group)
+
+    async def _pause(self) -> None:
+        """FEEDBACK_PERIOD_S without holding the executor: a timer thread completes a future."""
+        done = Future(executor=self.executor)
+        timer = threading.Timer(FEEDBACK_PERIOD_S, lambda: done.done() or done.set_result(True))
+        timer.daemon = True
+        timer.start()
+        await done
+
+    def destroy_node(self) -> None:
+        self._home.destroy()
+        self._move.destroy()
+        super().destroy_node()
+
+    def _known_joint(self, goal: Any) -> GoalResponse:
+        if goal.joint not in self.driver.drives:
+            logger.warning("goal for unknown joint %r refused; joints: %s", goal.joint, list(self.driver.drives))
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
+    @staticmethod
+    def _accept_cancel(_goal: Any) -> CancelResponse:
+        return CancelResponse.ACCEPT
+
+    def _finish(self, goal: Any, result: Any, joint: str, success: bool, message: str) -> Any:
+        state = self.driver.drive(joint).snapshot()
+        result.success, result.message = success, message
+        result.angle, result.state = float(state.angle_deg), state.state.name
+        if goal.is_cancel_requested:
+            goal.canceled()
+        elif success:
+            goal.succeed()
+        else:
+            goal.abort()
+        return result
+
+    async def _execute_move(self, goal: Any) -> Any:
+        request = goal.request
+        drive = self.driver.drive(request.joint)
+        feedback = MoveJoint.Feedback()
+        try:
+            if request.speed_deg_s > 0:
+                drive.set_profile_velocity(float(request.speed_deg_s))
+            target = drive.move_to(float(request.target_deg))
+            while True:
+                await self._pause()
+                state = drive.snapshot()
+                if state.fault:
+                    drive.wait_target_reached(0.0)  # raises the fault with its EMCY text
+                if state.target_reached and abs(target - state.angle_deg) < TARGET_WINDOW_DEG:
+                    drive.wait_target_reached(1.0)  # the handshake's last word, and a fresh position
+                    break
+                feedback.angle, feedback.remaining_deg = float(state.angle_deg), float(target - state.angle_deg)
+                goal.publish_feedback(feedback)
+                if goal.is_cancel_requested:
+                    drive.halt()  # the profile deceleration; the drive stays enabled
+                    settle = time.monotonic() + CANCEL_SETTLE_S
+                    while abs(drive.snapshot().velocity_deg_s) > 0.5 and time.monotonic() < settle:
+                        await self._pause()
+                    return self._finish(goal, MoveJoint.Result(), request.joint, False,
+                                        f"canceled: halted at {drive.snapshot().angle_deg:.2f} deg")
+        except RovercanError as err:
+            return self._finish(goal, MoveJoint.Result(), request.joint, False, str(err))
+        return self._finish(goal, MoveJoint.Result(), request.joint, True, f"at {target:.2f} deg")
+
+    async def _execute_home(self, goal: Any) -> Any:
+        joint = goal.request.joint
+        drive = self.driver.drive(joint)
+        failure: list[str] = []
+
+        def run() -> None:
+            try:
+                drive.home()
+            except RovercanError as err:
+                failure.append(str(err))
+
+        homing = threading.Thread(target=run, name=f"rovercan-home-{joint}", daemon=True)
+        homing.start()
+        feedback = Home.Feedback()
+        stopped = False
+        while homing.is_alive():
+            state = drive.snapshot()
+            feedback.angle, feedback.state = float(state.angle_deg), state.state.name
+            goal.publish_feedback(feedback)
+            if goal.is_cancel_requested and not stopped:
+                stopped = True
+                try:
+                    drive.quick_stop()  # preempts the homing operation, which then gives up
+                except RovercanError as err:
+                    failure.append(f"quick stop on cancel failed: {err}")
+            await self._pause()
+        if stopped:
+            return self._finish(goal, Home.Result(), joint, False, "canceled: quick-stopped while homing")
+        if failure:
+            return self._finish(goal, Home.Result(), joint, False, failure[0])
+        return self._finish(goal, Home.Result(), joint, True, "homed")
