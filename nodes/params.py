@@ -30,6 +30,8 @@ PARAMS: dict[str, Param] = {
     "diagnostics_rate_hz": Param(1.0, "rate of /diagnostics", 0.1, 10.0),
     "state_qos_depth": Param(10, "keep-last depth of the reliable state topics (MotorState, /joint_states, /odom),"
                                  " 1 to 1000"),
+    "autostart": Param(False, "rover_lifecycle: configure and activate at start (the demo); off: a lifecycle"
+                              " manager drives the transitions"),
     "odom_rate_hz": Param(50.0, "rate of the drive system's control loop and /odom", 1.0, 200.0),
     "odom_frame": Param("odom", "frame_id of /odom"),
     "base_frame": Param("base_link", "child_frame_id of /odom"),

@@ -29,7 +29,7 @@ from can_config.errors import ConfigError
 logger = logging.getLogger(__name__)
 
 PACKAGE = "rovercan_bringup"
-EXECUTABLES = ("motor_controller", "motor_degree", "rover_driver")
+EXECUTABLES = ("motor_controller", "motor_degree", "rover_driver", "rover_lifecycle")
 STOP_GRACE_S = 5.0
 _VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
 

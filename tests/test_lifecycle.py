@@ -1,0 +1,157 @@
+"""rover_lifecycle walked through configure, activate, deactivate, cleanup and shutdown, each
+transition checked on the bus by an independent listener and on the simulated drives."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from can_config import GENERIC_EDS
+from virtual_can import SimDriveSpec, SimService
+
+from .conftest import HAVE_ROS, requires_ros, wait_for
+
+pytestmark = requires_ros
+
+if HAVE_ROS:
+    import can
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from nodes.rover_lifecycle import DriveLifecycleNode
+    from nodes.runtime import SpinThread, make_executor
+
+
+class Listener(threading.Thread):
+    def __init__(self, sim: SimService) -> None:
+        super().__init__(daemon=True)
+        self.bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        self.frames: list[tuple[float, int, bytes]] = []
+        self.stop = threading.Event()
+        self.start()
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            msg = self.bus.recv(0.05)
+            if msg is not None:
+                self.frames.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
+
+    def since(self, t: float, cob: int) -> list[bytes]:
+        return [d for tt, c, d in list(self.frames) if tt >= t and c == cob]
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[tuple[Any, SimService, Listener, Any]]:
+    sim = SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "a", 4096), SimDriveSpec(2, GENERIC_EDS, "can0", "b", 4096)],
+                     port=0)
+    config = tmp_path / "rover.yaml"
+    config.write_text("buses: [{name: can0, interface: socketcand, channel: can0,"
+                      f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}]\n"
+                      "drives: [{name: a, node_id: 1, counts_per_rev: 4096}, {name: b, node_id: 2, counts_per_rev: 4096}]\n")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    hot = make_executor("events", context)
+    spin = SpinThread(hot, "test-hot")
+    node = DriveLifecycleNode(hot, context=context, parameter_overrides=[Parameter("config", value=str(config))])
+    listener = Listener(sim)
+    yield node, sim, listener, config
+    listener.stop.set()
+    listener.join(2)
+    listener.bus.shutdown()
+    node._release()
+    spin.stop(5.0)
+    node.destroy_node()
+    rclpy.shutdown(context=context)
+    sim.close()
+
+
+def states(sim: SimService) -> list[str]:
+    runner = sim.simulators["can0"]
+    return runner.call(lambda: [runner.drive(n).state.name for n in (1, 2)])
+
+
+def test_each_transition_is_confirmed_on_the_bus(rig: tuple[Any, SimService, Listener, Any]) -> None:
+    node, sim, listener, _ = rig
+    assert node._state_machine.current_state[1] == "unconfigured"
+    time.sleep(0.3)
+    assert not listener.since(0.0, 0x77F)  # nothing of the driver on the bus yet
+
+    t = time.monotonic()
+    node.trigger_configure()
+    assert node._state_machine.current_state[1] == "inactive"
+    assert node.driver is not None and all(d.booted for d in node.driver)
+    assert states(sim) == ["SWITCH_ON_DISABLED"] * 2  # booted, not enabled
+    wait_for(lambda: len(listener.since(t, 0x77F)) >= 2, 2.0, "the driver's host heartbeat")
+    assert {d[:2] for d in listener.since(t, 0x000)} >= {bytes([0x81, 1]), bytes([0x81, 2])}  # NMT reset: boot
+
+    node.trigger_activate()
+    assert node._state_machine.current_state[1] == "active"
+    assert states(sim) == ["OPERATION_ENABLED"] * 2
+
+    t = time.monotonic()
+    node.trigger_deactivate()
+    assert node._state_machine.current_state[1] == "inactive"
+    assert states(sim) == ["SWITCH_ON_DISABLED"] * 2
+    for cob in (0x201, 0x202):  # each drive quick-stopped (controlword 0x0002) before being disabled
+        words = [int.from_bytes(d[:2], "little") for d in listener.since(t, cob)]
+        assert 0x0002 in words, (hex(cob), words)
+
+    node.trigger_cleanup()
+    assert node._state_machine.current_state[1] == "unconfigured" and node.driver is None
+    time.sleep(0.3)
+    t = time.monotonic()
+    time.sleep(0.5)
+    assert not listener.since(t, 0x77F) and not listener.since(t, 0x080)  # no heartbeat, no SYNC: bus released
+    assert len(sim.server.clients) == 1  # only the listener is connected
+
+    node.trigger_shutdown()
+    assert node._state_machine.current_state[1] == "finalized"
+
+
+def test_a_failed_configure_leaves_nothing_behind(rig: tuple[Any, SimService, Listener, Any]) -> None:
+    node, sim, listener, config = rig
+    config.write_text("buses: [{name: can0, interface: socketcand, channel: can0, kwargs: {host: 127.0.0.1, port: 1},"
+                      " connect_timeout_ms: 200}]\ndrives: [{name: a, node_id: 1}]\n")
+    node.trigger_configure()
+    assert node._state_machine.current_state[1] == "unconfigured" and node.driver is None
+    assert states(sim) == ["SWITCH_ON_DISABLED"] * 2 and not listener.since(0.0, 0x77F)
+
+
+def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) -> None:
+    """The demo's auto-start: `autostart:=true` configures and activates at start; SIGTERM (what
+    systemd and docker stop send) stops and disables every drive before the bus closes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from rovercan.launch import parse_launch
+
+    from .conftest import REPO
+
+    launched = parse_launch(REPO / "ros" / "rovercan_bringup" / "launch" / "rover_launch.xml",
+                            {"config": "/x.yaml", "lifecycle": "true", "autostart": "true"})
+    assert [p.name for p in launched] == ["rovercan_lifecycle"] and "autostart:=true" in launched[0].argv
+    assert "nodes.rover_lifecycle" in launched[0].argv
+    with SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "a", 4096)], port=0) as sim:
+        config = tmp_path / "rover.yaml"
+        config.write_text("buses: [{name: can0, interface: socketcand, channel: can0,"
+                          f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}]\n"
+                          "drives: [{name: a, node_id: 1, counts_per_rev: 4096}]\n")
+        proc = subprocess.Popen([sys.executable, "-m", "nodes.rover_lifecycle", "--ros-args", "-p",
+                                 f"config:={config}", "-p", "autostart:=true"], cwd=REPO,
+                                env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"),
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        runner = sim.simulators["can0"]
+        try:
+            wait_for(lambda: runner.call(lambda: runner.drive(1).state.name) == "OPERATION_ENABLED", 20.0, "armed")
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=20)
+        assert proc.returncode == 0, out[-2000:]
+        assert runner.call(lambda: runner.drive(1).state.name) == "SWITCH_ON_DISABLED", out[-2000:]
