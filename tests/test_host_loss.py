@@ -223,7 +223,7 @@ def test_vendor_drives_with_a_consumer_heartbeat_stop_when_the_driver_dies(tmp_p
 @requires_shared
 @pytest.mark.parametrize("eds", BLIND_EDS, ids=lambda p: p.name)
 def test_a_drive_that_cannot_watch_the_host_is_not_armed_unless_allowed(eds: Path, sim_factory: SimFactory) -> None:
-    _, cfg = sim_factory(make_config(1, eds=str(eds)))
+    _, cfg = sim_factory(make_config(1, eds=str(eds), host_timeout_ms=150))
     with MotorDriver(cfg).start() as driver:
         drive = driver.drive("joint1")
         assert drive.host_watch is None
@@ -231,7 +231,7 @@ def test_a_drive_that_cannot_watch_the_host_is_not_armed_unless_allowed(eds: Pat
         with pytest.raises(CommandRejected, match=f"enable refused: no drive-side stop on host loss: .*{reason}"):
             drive.enable()
         assert drive.state is not State.OPERATION_ENABLED
-    _, cfg = sim_factory(make_config(1, eds=str(eds), allow_no_host_watch=True))
+    _, cfg = sim_factory(make_config(1, eds=str(eds), allow_no_host_watch=True, host_timeout_ms=150))
     with MotorDriver(cfg).start() as driver:
         driver.drive("joint1").enable()
         assert driver.drive("joint1").state is State.OPERATION_ENABLED
@@ -349,7 +349,7 @@ def test_the_drives_stop_when_the_host_is_cut_off(driver_factory: Callable[[Rove
     from virtual_can.scenario import apply_action
 
     sim, driver = driver_factory(make_config(2, counts_per_rev=4096, gear_ratio=10, profile_acceleration_deg_s2=2000,
-                                             watchdog_ms=10_000))
+                                             watchdog_ms=10_000, host_timeout_ms=HOST_TIMEOUT_S * 1000))
     for drive in driver:
         drive.enable()
         drive.set_velocity(60.0)
