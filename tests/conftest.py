@@ -6,6 +6,7 @@ import logging
 import os
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import can
@@ -129,3 +130,23 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str) -> None
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         time.sleep(0.005)
+
+
+@contextmanager
+def rovercan_sim(*args: str) -> Iterator[int]:
+    """`rovercan sim ARGS` in its own process on a free port, until the block ends; yields the port."""
+    import signal
+    import subprocess
+    import sys
+
+    from .test_sim_cli import free_port
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", *args, "--port", str(port)], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and "simulated drive" in proc.stdout.readline()
+        yield port
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=10)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import REPO, SHARED_TRAFFIC, requires_shared
+from .conftest import REPO, SHARED_TRAFFIC, requires_shared, rovercan_sim
 from .test_sim_cli import free_port
 
 GENERIC = str(REPO / "can_config" / "data" / "generic_cia402.eds")
@@ -19,13 +19,8 @@ GENERIC = str(REPO / "can_config" / "data" / "generic_cia402.eds")
 
 @pytest.fixture(scope="module")
 def sim_port() -> Iterator[int]:
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--drives", "2", "--port", str(port)],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    assert proc.stdout is not None and "simulated drive" in proc.stdout.readline()
-    yield port
-    proc.send_signal(signal.SIGTERM)
-    proc.wait(timeout=10)
+    with rovercan_sim("--drives", "2") as port:
+        yield port
 
 
 def run(port: int | None, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:

@@ -4,7 +4,6 @@ sent. Drive commands never run on a bus nobody named."""
 
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -12,19 +11,14 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import REPO
+from .conftest import REPO, rovercan_sim
 from .test_sim_cli import free_port
 
 
 @pytest.fixture(scope="module")
 def sim_port() -> Iterator[int]:
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--drives", "2", "--port", str(port)],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    assert proc.stdout is not None and "simulated drive" in proc.stdout.readline()
-    yield port
-    proc.send_signal(signal.SIGTERM)
-    proc.wait(timeout=10)
+    with rovercan_sim("--drives", "2") as port:
+        yield port
 
 
 def run(*args: str) -> subprocess.CompletedProcess[str]:
@@ -179,11 +173,7 @@ def test_a_drive_with_interpolated_position_only_moves_jogs_and_steps_from_the_c
     import json
 
     eds = str(REPO.parent / "shared" / "eds" / "schunk_prl120.eds")
-    port = free_port()
-    sim = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--eds", eds, "--port", str(port)], cwd=REPO,
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert sim.stdout is not None and "simulated drive" in sim.stdout.readline()
+    with rovercan_sim("--eds", eds) as port:
         drive = ["--eds", eds, "--counts-per-rev", "4096", *bus(port), "--json"]
         moved = run("move", "1", "30", *drive)
         assert moved.returncode == 0, moved.stderr
@@ -197,9 +187,6 @@ def test_a_drive_with_interpolated_position_only_moves_jogs_and_steps_from_the_c
         assert json.loads((tmp_path / "s.json").read_text())["steady_state_error_deg"] < 0.3
         homed = run("home", "1", *drive)
         assert homed.returncode == 2 and "this drive has no homing mode (no 0x6098 in its EDS)" in homed.stderr
-    finally:
-        sim.send_signal(signal.SIGTERM)
-        sim.wait(10)
 
 
 @pytest.mark.skipif(not (REPO.parent / "shared" / "eds" / "maxon_epos4_module50_5.eds").is_file(),
@@ -208,19 +195,12 @@ def test_a_wrong_counts_per_rev_is_named_after_a_jog_and_a_move() -> None:
     """EPOS4 reports velocity in rpm (0x60A9), independent of the encoder: told 2048 counts per
     revolution for its 4096, positions read half of what they are while velocities are right."""
     eds = str(REPO.parent / "shared" / "eds" / "maxon_epos4_module50_5.eds")
-    port = free_port()
-    sim = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--eds", eds, "--port", str(port)], cwd=REPO,
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert sim.stdout is not None and "simulated drive" in sim.stdout.readline()
+    with rovercan_sim("--eds", eds) as port:
         for counts, wrong in (("2048", True), ("4096", False)):
             for args in (["jog", "1", "60", "--for", "1.5"], ["move", "1", "90" if wrong else "0"]):
                 result = run(*args, "--eds", eds, "--counts-per-rev", counts, *bus(port))
                 assert result.returncode == 0, result.stderr
                 assert ("counts_per_rev looks wrong" in result.stderr) == wrong, (counts, args, result.stderr)
-    finally:
-        sim.send_signal(signal.SIGTERM)
-        sim.wait(10)
 
 
 @pytest.mark.skipif(not (REPO.parent / "shared" / "eds" / "schunk_prl120.eds").is_file(),
@@ -291,17 +271,10 @@ def test_a_simulated_epos4_reports_the_identity_of_its_eds() -> None:
     import json
 
     eds = str(REPO.parent / "shared" / "eds" / "maxon_epos4_module50_5.eds")
-    port = free_port()
-    sim = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--eds", eds, "--port", str(port)], cwd=REPO,
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert sim.stdout is not None and "simulated drive" in sim.stdout.readline()
+    with rovercan_sim("--eds", eds) as port:
         result = run("info", "1", "--eds", eds, *bus(port), "--json")
         assert result.returncode == 0, result.stderr
         text = result.stdout
-    finally:
-        sim.send_signal(signal.SIGTERM)
-        sim.wait(10)
     info = json.loads(text)
     flat = json.dumps(info)
     assert "0x000000FB" in flat and "0x61500000" in flat and "0x01500000" in flat, flat[:800]
