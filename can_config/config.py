@@ -77,6 +77,25 @@ class SdoSetting:
 
 
 @dataclass(frozen=True)
+class SimModelConfig:
+    """The simulator's motor and load model of one drive (``sim:`` of a drive; the driver
+    ignores it). Motor side of the gear; the defaults look like one wheel of a ~60 kg
+    six-wheeled rover behind a 50:1 gear. Gains left out follow from the inertia and the
+    velocity loop's bandwidth."""
+
+    inertia_kg_m2: float = 1e-4
+    viscous_nm_s_rad: float = 2e-5
+    coulomb_nm: float = 0.03
+    load_nm: float = 0.0
+    torque_lag_s: float = 0.001
+    bandwidth_hz: float = 50.0
+    position_kp: float | None = None
+    velocity_kp: float | None = None
+    velocity_ki: float | None = None
+    velocity_ff: float = 1.0
+
+
+@dataclass(frozen=True)
 class DriveConfig:
     """One CiA 402 drive and the joint it moves."""
 
@@ -114,6 +133,9 @@ class DriveConfig:
     sdo_timeout_s: float = 0.5  # one SDO answer (a parameter save can keep a drive silent ~400 ms)
     boot_timeout_s: float = 2.0  # from NMT reset to the boot-up message
     sdo: tuple[SdoSetting, ...] = ()  # vendor parameters written at boot, in order
+    velocity_mode: str = "profile"  # /joint_commands velocity: profile velocity, or cyclic (CSV)
+    torque_mode: str = "profile"  # /joint_commands effort: profile torque, or cyclic (CST)
+    sim: SimModelConfig = field(default_factory=SimModelConfig)  # the simulator's model of it
 
     @property
     def quick_stop_decel_deg_s2(self) -> float:
@@ -246,6 +268,22 @@ _DRIVE_FIELDS: dict[str, _Field] = {
     "sdo_timeout_ms": _Field("float", 500.0, 10.0, 10_000.0),
     "boot_timeout_ms": _Field("float", 2000.0, 100.0, 60_000.0),
     "sdo": _Field("list", []),
+    "velocity_mode": _Field("str", "profile", choices=("profile", "cyclic")),
+    "torque_mode": _Field("str", "profile", choices=("profile", "cyclic")),
+    "sim": _Field("map", {}),
+}
+
+_SIM_FIELDS: dict[str, _Field] = {
+    "inertia_kg_m2": _Field("float", 1e-4, 0.0, 100.0, low_open=True),
+    "viscous_nm_s_rad": _Field("float", 2e-5, 0.0, 100.0),
+    "coulomb_nm": _Field("float", 0.03, 0.0, 1e4),
+    "load_nm": _Field("float", 0.0, -1e4, 1e4),
+    "torque_lag_ms": _Field("float", 1.0, 0.0, 100.0),
+    "bandwidth_hz": _Field("float", 50.0, 0.0, 1000.0, low_open=True),
+    "position_kp": _Field("opt_float", None, 0.0, 1e4),
+    "velocity_kp": _Field("opt_float", None, 0.0, 1e4),
+    "velocity_ki": _Field("opt_float", None, 0.0, 1e6),
+    "velocity_ff": _Field("float", 1.0, 0.0, 2.0),
 }
 
 _SDO_FIELDS: dict[str, _Field] = {
@@ -423,6 +461,9 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
         values["identity"] = IdentityConfig(**identity)
         values["sdo"] = tuple(SdoSetting(**_section(where, f"{prefix}sdo[{k}].", entry, _SDO_FIELDS))
                               for k, entry in enumerate(values["sdo"]))
+        sim = _section(where, prefix + "sim.", values["sim"], _SIM_FIELDS)
+        sim["torque_lag_s"] = sim.pop("torque_lag_ms") / 1000.0
+        values["sim"] = SimModelConfig(**sim)
         for ms_key, s_key in (("heartbeat_period_ms", "heartbeat_period_s"),
                               ("heartbeat_timeout_ms", "heartbeat_timeout_s"),
                               ("watchdog_ms", "watchdog_s"), ("sdo_timeout_ms", "sdo_timeout_s"),
@@ -535,6 +576,8 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
             "stale_after_syncs": d.stale_after_syncs,
             "sdo_timeout_ms": d.sdo_timeout_s * 1000.0, "boot_timeout_ms": d.boot_timeout_s * 1000.0,
             "sdo": [{k: v for k, v in vars(x).items() if v is not None} for x in d.sdo],
+            "velocity_mode": d.velocity_mode, "torque_mode": d.torque_mode,
+            "sim": _sim_to_dict(d.sim),
         }
         if d.joint == "limited":
             entry["min_deg"] = d.min_deg
@@ -548,6 +591,12 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
                                "cmd_timeout_ms": ds.cmd_timeout_s * 1000.0,
                                "max_accel_m_s2": ds.max_accel_m_s2, "max_speed_m_s": ds.max_speed_m_s,
                                "max_angular_rad_s": ds.max_angular_rad_s}
+    return out
+
+
+def _sim_to_dict(sim: SimModelConfig) -> dict[str, Any]:
+    out = {k: v for k, v in vars(sim).items() if v is not None}
+    out["torque_lag_ms"] = out.pop("torque_lag_s") * 1000.0
     return out
 
 

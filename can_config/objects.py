@@ -62,6 +62,8 @@ class OD(IntEnum):
     SI_UNIT_POSITION = 0x60A8
     SI_UNIT_VELOCITY = 0x60A9
     INTERPOLATION_DATA = 0x60C1  # record; sub 1: the interpolated position set-point
+    VELOCITY_OFFSET = 0x60B1  # CSV: added to the target velocity
+    TORQUE_OFFSET = 0x60B2  # CST: added to the target torque
     FOLLOWING_ERROR_ACTUAL = 0x60F4
     TARGET_VELOCITY = 0x60FF
     SUPPORTED_DRIVE_MODES = 0x6502

@@ -92,7 +92,7 @@ def _sim_on_bus(args: argparse.Namespace) -> int:
     if args.config:
         config = load_config(args.config)
         drives = [SimulatedDrive(d.node_id, load_drive_od(d.eds, d.node_id),
-                                 MotorParams(counts_per_rev=d.counts_per_rev or 4096), name=d.name)
+                                 MotorParams.from_model(d.sim, d.counts_per_rev), name=d.name)
                   for d in config.drives]
     else:
         eds = Path(args.eds) if args.eds else GENERIC_EDS

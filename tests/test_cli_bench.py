@@ -175,7 +175,8 @@ def test_step_test_png_and_metrics(sim_port: int, tmp_path: Path) -> None:
     assert metrics["overshoot_pct"] < 1.0  # type: ignore[index]
     assert metrics["settling_time_s"] == pytest.approx(1.2, abs=0.2)  # type: ignore[index]
     assert metrics["steady_state_error_deg"] < 0.2  # type: ignore[index]
-    assert 0.1 < metrics["peak_torque_nm"] < 1.0  # type: ignore[index]
+    # the simulator's default wheel model: 0.03 Nm of friction plus 1e-4 kg m^2 x 6.3 rad/s^2
+    assert 0.025 < metrics["peak_torque_nm"] < 0.1  # type: ignore[index]
 
 
 def test_plan_and_can_up(tmp_path: Path) -> None:

@@ -135,7 +135,10 @@ def test_streamed_positions_are_refused_beyond_a_limit(driver_factory: DriverFac
             time.sleep(drive.sync_period_s)
     time.sleep(0.3)
     _low, high = watch.stop()
-    assert angle == 91.0 and high <= 90.0
+    # the stream stops dead from 100 deg/s at 90: the servo overshoots a little (the simulated
+    # drive's model), less than its limit tolerance (0.1 motor rev), so it does not fault
+    assert angle == 91.0 and high <= 90.0 + 0.1 * 360.0 / GEAR
+    assert drive.state is State.OPERATION_ENABLED
 
 
 def test_the_drive_gets_its_limits_and_faults_beyond_them_by_itself(driver_factory: DriverFactory) -> None:

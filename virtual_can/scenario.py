@@ -13,6 +13,8 @@
       - {at_s: 11.0, node: 2, channel: can1, action: tpdos, on: false}
       - {at_s: 12.0, node: 1, action: slow_enable, delay_s: 0.7}
       - {at_s: 13.0, node: 1, action: slow_ack, max_s: 0.004}
+      - {at_s: 14.0, node: 1, action: load, nm: 0.05}      # a slope: motor-side load torque
+      - {at_s: 15.0, node: 1, action: load, stall: true}   # the wheel jams: the shaft cannot turn
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from virtual_can.service import SimService
 logger = logging.getLogger(__name__)
 
 ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "tpdos", "slow_enable", "slow_ack", "frames", "sdo",
-           "disconnect_clients")
+           "disconnect_clients", "load")
 
 
 def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
@@ -70,6 +72,10 @@ def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
             drive.faults.enable_step_delay_s = float(step.get("delay_s", 0.0))
         elif action == "slow_ack":  # the set-point acknowledge comes 0..max_s late
             drive.faults.ack_delay_max_s = float(step.get("max_s", 0.0))
+        elif action == "load":  # external load torque (motor side) and/or a blocked shaft
+            if "nm" in step:
+                drive.params.load_nm = float(step["nm"])
+            drive.faults.stalled = bool(step.get("stall", False))
         elif action == "sto":
             drive.faults.sto_low = bool(step.get("low", True))
         elif action == "sdo":

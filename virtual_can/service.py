@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from can_config import RoverConfig, load_drive_od
-from can_config.config import GENERIC_EDS
+from can_config.config import GENERIC_EDS, SimModelConfig
 from virtual_can.bus import VirtualBus
 from virtual_can.engine import BusEngine
 from virtual_can.server import DEFAULT_HOST, DEFAULT_PORT, SocketcandServer
@@ -33,11 +33,15 @@ class SimDriveSpec:
     channel: str = "can0"
     name: str | None = None
     counts_per_rev: int | None = None
+    model: SimModelConfig = field(default_factory=SimModelConfig)
+
+    def motor(self) -> MotorParams:
+        return MotorParams.from_model(self.model, self.counts_per_rev)
 
 
 def specs_from_config(config: RoverConfig) -> list[SimDriveSpec]:
     """The simulator as a twin of the rover: one drive per configured drive, on its bus's channel."""
-    return [SimDriveSpec(d.node_id, d.eds, config.bus(d.bus).channel, d.name, d.counts_per_rev)
+    return [SimDriveSpec(d.node_id, d.eds, config.bus(d.bus).channel, d.name, d.counts_per_rev, d.sim)
             for d in config.drives]
 
 
@@ -58,8 +62,7 @@ class SimService:
         self._buses: list[VirtualBus] = []
         try:
             for channel in channels:
-                drives = [SimulatedDrive(s.node_id, load_drive_od(s.eds, s.node_id),
-                                         MotorParams(counts_per_rev=s.counts_per_rev or 4096), name=s.name)
+                drives = [SimulatedDrive(s.node_id, load_drive_od(s.eds, s.node_id), s.motor(), name=s.name)
                           for s in specs if s.channel == channel]
                 bus = VirtualBus(channel, engine=self.engine)
                 self._buses.append(bus)

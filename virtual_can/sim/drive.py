@@ -29,6 +29,7 @@ from enum import IntEnum
 import can
 from canopen.objectdictionary import ObjectDictionary
 
+from can_config.config import SimModelConfig
 from can_config.objects import (
     OD,
     PDO_COB_ID_INVALID,
@@ -75,7 +76,13 @@ STATUS_BITS: dict[State, int] = {
 }
 
 #: Longest integration step of the motor model.
-PHYSICS_STEP_S = 0.0005
+PHYSICS_STEP_S = 0.001
+#: How far past a software position limit the shaft may go before the drive faults: a servo
+#: that reaches a set-point at the limit at speed overshoots it (0.4 deg at the joint for a
+#: 100 deg/s stream stopped in one cycle through a 50:1 gear); a real excursion goes on.
+LIMIT_TOLERANCE_REV = 0.1
+#: A cyclic position set-point older than this is held (no velocity fed forward from it).
+CYCLIC_GAP_S = 0.1
 
 #: EMCY codes (CiA 301 / CiA 402).
 #: 0x1010 "save" signature ("save" in ASCII, little endian) and what each sub-index stores.
@@ -159,15 +166,44 @@ def next_state(state: State, cw: int, prev_cw: int, *, voltage_ok: bool, quick_s
 
 @dataclass
 class MotorParams:
-    """Physical model of the motor and its load (motor side)."""
+    """Physical model of the motor, its gear and its load, all on the motor side of the gear,
+    and the drive's servo loops.
+
+    The defaults look like one wheel of a ~60 kg six-wheeled rover behind a 50:1 gear: rotor
+    plus reflected wheel and body inertia 1e-4 kg m^2, gear and rolling friction 0.03 Nm,
+    a 1 ms current loop, a 50 Hz velocity loop and a position loop at a tenth of it.
+    """
 
     counts_per_rev: int = 4096
     inertia_kg_m2: float = 1e-4
-    viscous_nm_s_rad: float = 0.001
-    load_nm: float = 0.2
+    viscous_nm_s_rad: float = 2e-5
+    coulomb_nm: float = 0.03  # dry friction: opposes motion; at rest it holds up to this torque
+    load_nm: float = 0.0  # external load (a slope), opposing positive motion
     rated_torque_nm: float = 1.0  # used when the EDS has no 0x6076
-    bandwidth_hz: float = 20.0
+    torque_lag_s: float = 0.001  # time constant of the current (torque) loop
+    bandwidth_hz: float = 50.0  # velocity loop; the gains below default to it
+    position_kp: float | None = None  # 1/s: velocity asked per position error
+    velocity_kp: float | None = None  # Nm s/rad
+    velocity_ki: float | None = None  # Nm/rad
+    velocity_ff: float = 1.0  # the profile's velocity fed forward into the velocity loop
     index_position_counts: int = 0  # where homing finds its switch/index
+
+    @classmethod
+    def from_model(cls, model: SimModelConfig, counts_per_rev: int | None = None) -> MotorParams:
+        """The model of a drive's ``sim:`` section of the rover config."""
+        return cls(counts_per_rev=counts_per_rev or 4096, inertia_kg_m2=model.inertia_kg_m2,
+                   viscous_nm_s_rad=model.viscous_nm_s_rad, coulomb_nm=model.coulomb_nm, load_nm=model.load_nm,
+                   torque_lag_s=model.torque_lag_s, bandwidth_hz=model.bandwidth_hz,
+                   position_kp=model.position_kp, velocity_kp=model.velocity_kp,
+                   velocity_ki=model.velocity_ki, velocity_ff=model.velocity_ff)
+
+    def gains(self) -> tuple[float, float, float]:
+        """(position kp 1/s, velocity kp Nm s/rad, velocity ki Nm/rad)."""
+        wv = 2 * math.pi * self.bandwidth_hz
+        kv = self.velocity_kp if self.velocity_kp is not None else self.inertia_kg_m2 * wv
+        ki = self.velocity_ki if self.velocity_ki is not None else kv * wv / 4.0
+        kp = self.position_kp if self.position_kp is not None else wv / 10.0
+        return kp, kv, ki
 
 
 @dataclass
@@ -197,6 +233,7 @@ class Faults:
     ack_delay_max_s: float = 0.0  # the set-point acknowledge comes after a random delay up to this
     enable_step_delay_s: float = 0.0  # each enabling transition (2, 3, 4) takes this long
     power_off_until: float = 0.0
+    stalled: bool = False  # the shaft is blocked (a wheel jammed against a rock): it cannot turn
     pending: list[int] = field(default_factory=list)  # EMCY codes to raise at the next tick
 
 
@@ -210,6 +247,7 @@ class SimulatedDrive:
         self.node_id = node_id
         self.name = name or f"drive{node_id}"
         self.params = params or MotorParams()
+        self._gains = self.params.gains()
         self.store = ObjectStore(od)
         self.store.on_write = self._on_sdo_write
         self.sdo = SdoServer(self.store)
@@ -264,6 +302,7 @@ class SimulatedDrive:
         self.theta = getattr(self, "theta", 0.0)  # the shaft does not move on a reset
         self.omega = 0.0
         self.torque_nm = 0.0
+        self._vel_integral = 0.0
         self.sp_pos = self.theta / self._rad_per_count
         self.sp_vel = 0.0
         self.sp_acc = 0.0
@@ -274,6 +313,11 @@ class SimulatedDrive:
         self.homing_error = False
         self.following_since: float | None = None
         self._csp_last: float | None = None
+        self._csp_t = 0.0
+        self._csp_from = 0.0  # the cyclic set-point being left, and the cycle it is left over
+        self._csp_period = 1e-3
+        self._last_sync = -1.0
+        self._sync_period_s = 0.01  # measured from the SYNCs (a drive's 0x1006 / 0x60C2)
         self.error_code = 0
         self._pending_rpdos: list[tuple[_Pdo, bytes]] = []
         self._setpoint_ack = False
@@ -510,6 +554,10 @@ class SimulatedDrive:
             self._csp_target()
 
     def _on_sync(self, now: float) -> list[can.Message]:
+        interval = now - self._last_sync
+        self._last_sync = now
+        if 0.0005 < interval < CYCLIC_GAP_S:  # the cycle the cyclic modes interpolate over
+            self._sync_period_s += 0.2 * (interval - self._sync_period_s)
         if self.nmt != NmtState.OPERATIONAL:
             return []
         for pdo, data in self._pending_rpdos:
@@ -575,7 +623,7 @@ class SimulatedDrive:
     def _set_mode(self) -> None:
         requested = int(self.store.get(OD.MODES_OF_OPERATION, 0))  # type: ignore[arg-type]
         supported = int(self.store.get(OD.SUPPORTED_DRIVE_MODES, 0, 0))  # type: ignore[arg-type]
-        bit = {1: 0, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7}.get(requested)
+        bit = {1: 0, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7, 9: 8, 10: 9}.get(requested)
         if requested != 0 and (bit is None or not supported >> bit & 1):
             return  # unsupported: the display keeps the old mode, as real drives do
         self.store.set(OD.MODES_OF_OPERATION_DISPLAY, 0, requested)
@@ -589,6 +637,7 @@ class SimulatedDrive:
         self.sp_acc = 0.0
         self.pp_target = None
         self._csp_last = None
+        self._vel_integral = 0.0
 
     def _new_pp_setpoint(self, cw: int) -> None:
         target = float(self.store.get(OD.TARGET_POSITION, 0))  # type: ignore[arg-type]
@@ -750,9 +799,26 @@ class SimulatedDrive:
                 self._ramp_velocity(target_v, accel, decel, dt)
             elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION) \
                     and self.pp_target is not None:
-                self.sp_vel = 0.0 if self._csp_last is None else (self.pp_target - self._csp_last) / max(dt, 1e-6)
-                self._csp_last = self.sp_pos = self.pp_target
+                target = self.pp_target
+                if target != self._csp_last:  # a new cyclic set-point: reached over one SYNC cycle
+                    fresh = self._csp_last is not None and now - self._csp_t <= CYCLIC_GAP_S
+                    self._csp_from = self.sp_pos if fresh else target
+                    self._csp_period = self._sync_period_s
+                    self._csp_last, self._csp_t = target, now
+                # linear interpolation from the last set-point to this one over the cycle, as
+                # drives do (0x60C2): no jump per cycle, no velocity left over when it ends
+                done = (now - self._csp_t) / self._csp_period
+                if done >= 1.0:
+                    self.sp_pos, self.sp_vel = target, 0.0
+                else:
+                    self.sp_vel = (target - self._csp_from) / self._csp_period
+                    self.sp_pos = self._csp_from + (target - self._csp_from) * done
                 self.sp_acc = 0.0
+            elif mode == OperationMode.CYCLIC_SYNC_VELOCITY:
+                target_v = self._v(OD.TARGET_VELOCITY, 0, 0)
+                if store.has(OD.VELOCITY_OFFSET):
+                    target_v += self._v(OD.VELOCITY_OFFSET, 0, 0)
+                self.sp_vel, self.sp_acc = max(-vlimit, min(vlimit, target_v)), 0.0
             elif mode == OperationMode.HOMING and self.homing_active:
                 speed = self._v(OD.HOMING_SPEEDS, 1, 1000) or 1000.0
                 raw_index = p.index_position_counts
@@ -765,38 +831,27 @@ class SimulatedDrive:
                 elif abs(self.sp_pos - self._homing_start) > 20 * self.units_per_motor_rev:
                     self.homing_active = False
                     self.homing_error = True
-            elif mode == OperationMode.PROFILE_TORQUE:
+            elif mode in (OperationMode.PROFILE_TORQUE, OperationMode.CYCLIC_SYNC_TORQUE):
                 # no set-point of its own: it follows the shaft, so a stop (quick stop, halt, a
                 # mode change) starts from where the joint is and how fast it turns
                 self.sp_pos, self.sp_vel, self.sp_acc = self.position_counts, self.omega / k, 0.0
             else:
                 self.sp_vel = self.sp_acc = 0.0
             # controller + plant, in motor radians, in sub-steps of at most PHYSICS_STEP_S so the
-            # servo loop stays stable however late the simulator thread gets to run
-            torque_mode = mode == OperationMode.PROFILE_TORQUE and self.state == State.OPERATION_ENABLED
+            # servo loops stay stable however late the simulator thread gets to run
+            torque_mode = mode in (OperationMode.PROFILE_TORQUE, OperationMode.CYCLIC_SYNC_TORQUE) \
+                and self.state == State.OPERATION_ENABLED
+            position_loop = mode not in (OperationMode.PROFILE_VELOCITY, OperationMode.CYCLIC_SYNC_VELOCITY) \
+                or self.state != State.OPERATION_ENABLED or halt
             limit = float(store.get(OD.MAX_TORQUE, 0, 3000)) / 1000.0 * rated  # type: ignore[arg-type]
-            wn = 2 * math.pi * p.bandwidth_hz
-            kp = p.inertia_kg_m2 * wn * wn
-            kd = 2 * p.inertia_kg_m2 * wn
-            ff = p.inertia_kg_m2 * self.sp_acc * k + p.viscous_nm_s_rad * self.sp_vel * k + p.load_nm
-            steps = max(1, math.ceil(dt / PHYSICS_STEP_S))
-            h = dt / steps
-            tau = 0.0
-            for _ in range(steps):
-                if torque_mode:
-                    tau = float(store.get(OD.TARGET_TORQUE, 0, 0)) / 1000.0 * rated  # type: ignore[arg-type]
-                else:
-                    pos_err = (self.sp_pos - self.position_counts) * k
-                    vel_err = self.sp_vel * k - self.omega
-                    tau = ff + kp * pos_err + kd * vel_err
-                tau = max(-limit, min(limit, tau))
-                self.omega += h * (tau - p.viscous_nm_s_rad * self.omega - p.load_nm) / p.inertia_kg_m2
-                self.theta += h * self.omega
-            self.torque_nm = tau
+            self._servo(dt, k, limit, self._target_torque(rated) if torque_mode else None, position_loop)
+            if not position_loop:  # velocity modes: no position loop, the set-point follows the shaft
+                self.sp_pos = self.position_counts
             out += self._check_following(now, mode)
         else:
             self.omega = 0.0  # holding brake
             self.torque_nm = 0.0
+            self._vel_integral = 0.0
             self.sp_pos = self.position_counts
             self.sp_vel = self.sp_acc = 0.0
         store.values[(OD.POSITION_ACTUAL, 0)] = self._as_type(OD.POSITION_ACTUAL, self.position_counts)
@@ -809,6 +864,53 @@ class SimulatedDrive:
                 OD.FOLLOWING_ERROR_ACTUAL, self.sp_pos - self.position_counts)
         return out
 
+    def _target_torque(self, rated: float) -> float:
+        """PT / CST: 0x6071 (+ the torque offset 0x60B2 where the drive has it), in Nm."""
+        permille = float(self.store.get(OD.TARGET_TORQUE, 0, 0))  # type: ignore[arg-type]
+        if self.mode == OperationMode.CYCLIC_SYNC_TORQUE and self.store.has(OD.TORQUE_OFFSET):
+            permille += float(self.store.get(OD.TORQUE_OFFSET, 0, 0))  # type: ignore[arg-type]
+        return permille / 1000.0 * rated
+
+    def _servo(self, dt: float, k: float, limit: float, target_tau: float | None, position_loop: bool) -> None:
+        """Position loop (P) -> velocity loop (PI) -> current loop (first-order lag) -> motor
+        and load (inertia, viscous and Coulomb friction, external load), in motor radians."""
+        p = self.params
+        kp, kv, ki = self._gains
+        inertia = p.inertia_kg_m2
+        steps = max(1, math.ceil(dt / PHYSICS_STEP_S))
+        h = dt / steps
+        alpha = h / (p.torque_lag_s + h)  # the current loop's lag, backward Euler (stable for any h)
+        sp_speed = self.sp_vel * k
+        v_ff = p.velocity_ff * sp_speed
+        sp_rad = self.sp_pos * k - sp_speed * dt  # the profile's position at the start of the tick
+        i_max = limit / ki if ki > 0 else 0.0
+        stalled = self.faults.stalled
+        omega, theta, tau, integral = self.omega, self.theta, self.torque_nm, self._vel_integral
+        offset_rad = self.position_offset * k
+        for i in range(steps):
+            if target_tau is not None:
+                tau_cmd = target_tau
+            else:  # the set-point moves on within the tick as the shaft does: both at the sub-step's start
+                v_cmd = v_ff + (kp * (sp_rad + sp_speed * h * i - theta - offset_rad) if position_loop else 0.0)
+                err = v_cmd - omega
+                integral = max(-i_max, min(i_max, integral + err * h))  # anti-windup
+                tau_cmd = kv * err + ki * integral
+            tau_cmd = max(-limit, min(limit, tau_cmd))
+            tau += alpha * (tau_cmd - tau)
+            if stalled:
+                omega = 0.0
+                continue
+            drive = tau - p.load_nm - p.viscous_nm_s_rad * omega
+            if omega == 0.0 and abs(drive) <= p.coulomb_nm:
+                continue  # static friction holds the shaft
+            friction = math.copysign(p.coulomb_nm, omega if omega != 0.0 else drive)
+            new_omega = omega + h * (drive - friction) / inertia
+            if omega != 0.0 and new_omega * omega < 0.0 and abs(drive) <= p.coulomb_nm:
+                new_omega = 0.0  # friction stops the shaft; it does not reverse it
+            theta += h * 0.5 * (omega + new_omega)
+            omega = new_omega
+        self.omega, self.theta, self.torque_nm, self._vel_integral = omega, theta, tau, integral
+
     def _check_position_limits(self, now: float) -> list[can.Message]:
         """0x607D while enabled: moving on beyond a software position limit is a fault."""
         if self.state != State.OPERATION_ENABLED or not self.store.has(OD.SOFTWARE_POSITION_LIMIT, 2):
@@ -818,7 +920,8 @@ class SimulatedDrive:
         if low >= high:  # CiA 402: limits switched off
             return []
         pos = self.position_counts
-        if (pos > high and self.omega > 0) or (pos < low and self.omega < 0):
+        tolerance = LIMIT_TOLERANCE_REV * self.units_per_motor_rev
+        if (pos > high + tolerance and self.omega > 0) or (pos < low - tolerance and self.omega < 0):
             logger.warning("node %d: position %.0f beyond the software limit [%.0f, %.0f]", self.node_id, pos, low, high)
             return self._raise_fault(EMCY_POSITION_LIMIT, now)
         return []
@@ -868,9 +971,17 @@ class SimulatedDrive:
         direction = math.copysign(1.0, dist)
         stop_dist = v * v / (2 * decel)
         if v * direction > 0 and stop_dist >= abs(dist):
-            desired = 0.0
-        else:
-            desired = direction * vmax
+            # braking: the constant deceleration that stops exactly on the target (a step late,
+            # it is a little more than the profile's), so the set-point ends without a jump
+            need = v * v / (2 * abs(dist))
+            if abs(v) <= need * dt:
+                self.sp_pos, self.sp_vel, self.sp_acc = target, 0.0, -v / dt
+                return
+            self.sp_acc = -direction * need
+            self.sp_pos += v * dt + 0.5 * self.sp_acc * dt * dt
+            self.sp_vel = v + self.sp_acc * dt
+            return
+        desired = direction * vmax
         # never ask for more speed than allows stopping on target
         cap = math.sqrt(2 * decel * abs(dist))
         desired = max(-cap, min(cap, desired))
@@ -906,8 +1017,9 @@ class SimulatedDrive:
                     sw |= SW_OMS12 | SW_TARGET_REACHED
                 if self.homing_error:
                     sw |= SW_OMS13
-            elif mode == OperationMode.CYCLIC_SYNC_POSITION:
-                sw |= SW_OMS12
+            elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.CYCLIC_SYNC_VELOCITY,
+                          OperationMode.CYCLIC_SYNC_TORQUE):
+                sw |= SW_OMS12  # the drive follows the cyclic target
             elif mode == OperationMode.INTERPOLATED_POSITION:
                 if self._ip_enabled:
                     sw |= SW_OMS12  # ip mode active

@@ -1,0 +1,133 @@
+"""The simulated drive's motor and load model, seen through the real driver on the bus:
+torque follows inertia x acceleration plus friction, a stall saturates it at 0x6072 and ends
+in a following-error fault (EMCY 0x8611), and the servo gains of the sim config shape the
+step response that `rovercan step-test` reports."""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import yaml
+
+from motor_driver import MotorDriver
+from motor_driver.drive import DriveState
+from virtual_can.scenario import apply_action
+from virtual_can.service import SimService
+
+from .conftest import REPO, make_config, rovercan_sim, wait_for
+
+DriverFactory = Callable[..., tuple[SimService, MotorDriver]]
+
+GEAR = 50.0
+ACCEL_DEG_S2 = 2000.0
+CRUISE_DEG_S = 360.0
+# the simulator's default wheel model (SimModelConfig), motor side
+INERTIA_KG_M2 = 1e-4
+COULOMB_NM = 0.03
+VISCOUS_NM_S_RAD = 2e-5
+
+
+def wheel_config(**drive: object) -> object:
+    return make_config(1, gear_ratio=GEAR, counts_per_rev=4096, max_velocity_deg_s=720.0,
+                       profile_velocity_deg_s=CRUISE_DEG_S, profile_acceleration_deg_s2=ACCEL_DEG_S2, **drive)
+
+
+def record(drive: object, seconds: float) -> list[DriveState]:
+    samples: list[DriveState] = []
+    end = time.monotonic() + seconds
+    last = 0.0
+    while time.monotonic() < end:
+        s = drive.snapshot()  # type: ignore[attr-defined]
+        if s.stamp != last:  # one sample per TPDO set (one per SYNC)
+            samples.append(s)
+            last = s.stamp
+        time.sleep(0.002)
+    return samples
+
+
+def test_torque_is_inertia_times_acceleration_plus_friction(driver_factory: DriverFactory) -> None:
+    _, driver = driver_factory(wheel_config())
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.move_to(170.0)
+    samples = record(drive, 1.2)
+    peak = max(range(len(samples)), key=lambda i: samples[i].velocity_deg_s)
+    cruise = [s.torque_nm for s in samples if s.velocity_deg_s > 0.98 * CRUISE_DEG_S]
+    # the middle of each ramp (the servo needs ~30 ms to settle on a new acceleration)
+    ramp_up = [s.torque_nm for s in samples[:peak] if 0.3 * CRUISE_DEG_S < s.velocity_deg_s < 0.7 * CRUISE_DEG_S]
+    ramp_down = [s.torque_nm for s in samples[peak:] if 0.3 * CRUISE_DEG_S < s.velocity_deg_s < 0.7 * CRUISE_DEG_S]
+    assert len(cruise) >= 10 and len(ramp_up) >= 3 and len(ramp_down) >= 3, (len(cruise), ramp_up, ramp_down)
+    inertia_joint = INERTIA_KG_M2 * GEAR**2
+    expected = inertia_joint * math.radians(ACCEL_DEG_S2)  # 8.7 Nm at the joint
+    friction = statistics.median(cruise)
+    assert statistics.median(ramp_up) - friction == pytest.approx(expected, rel=0.10)
+    assert statistics.median(ramp_down) - friction == pytest.approx(-expected, rel=0.10)
+    # at constant speed: Coulomb plus viscous friction, through the gear
+    omega_motor = math.radians(CRUISE_DEG_S * GEAR)
+    assert friction == pytest.approx((COULOMB_NM + VISCOUS_NM_S_RAD * omega_motor) * GEAR, rel=0.15)
+
+
+def test_a_stall_saturates_the_torque_at_0x6072_and_faults_with_8611(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(wheel_config())
+    drive = driver.drive("joint1")
+    drive.enable()
+    apply_action(sim, {"node": 1, "action": "load", "stall": True})
+    drive.move_to(90.0)
+    samples = record(drive, 0.6)
+    # 0x6072 = 3000 per mille of the rated 1 Nm: 3 Nm at the motor, 150 Nm at the joint
+    torques = [s.torque_nm for s in samples if not s.fault]
+    assert max(torques) == pytest.approx(3.0 * GEAR, rel=0.01)
+    assert max(abs(s.angle_deg) for s in samples) < 0.01  # the shaft never turned
+    wait_for(lambda: drive.snapshot().fault, 1.0, "following-error fault")
+    state = drive.snapshot()
+    assert state.error_code == 0x8611, hex(state.error_code)
+    apply_action(sim, {"node": 1, "action": "load", "stall": False})
+    drive.recover()
+    drive.enable()
+    drive.move_to(10.0, wait=True, timeout_s=3.0)  # free again, it moves
+
+
+def test_a_constant_load_is_held_by_the_servo(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(wheel_config())
+    drive = driver.drive("joint1")
+    drive.enable()
+    apply_action(sim, {"node": 1, "action": "load", "nm": 0.5})  # a slope
+    time.sleep(0.5)
+    state = drive.snapshot()
+    assert abs(state.angle_deg) < 0.05  # the position loop holds it ...
+    assert state.torque_nm == pytest.approx(0.5 * GEAR, abs=COULOMB_NM * GEAR * 1.05)  # ... against the load
+
+
+def step_test(tmp_path: Path, name: str, sim_model: dict[str, float]) -> dict[str, float]:
+    config = tmp_path / f"{name}.yaml"
+    config.write_text(yaml.safe_dump({
+        "buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
+                   "kwargs": {"host": "127.0.0.1", "port": 1}}],
+        "drives": [{"name": "wheel", "node_id": 1, "gear_ratio": GEAR, "counts_per_rev": 4096,
+                    "max_velocity_deg_s": 720.0, "profile_velocity_deg_s": CRUISE_DEG_S,
+                    "profile_acceleration_deg_s2": ACCEL_DEG_S2, "sim": sim_model}]}))
+    with rovercan_sim("--config", str(config)) as port:
+        out = tmp_path / name
+        result = subprocess.run([sys.executable, "-m", "rovercan", "step-test", "1", "--step", "90", "--seconds", "1.5",
+                                 "--config", str(config), "--out", str(out), "--json", "-i", "socketcand", "-c", "can0",
+                                 "--bus-kwargs", "host=127.0.0.1", f"port={port}"],
+                                cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    metrics: dict[str, float] = json.loads(result.stdout)
+    return metrics
+
+
+def test_step_test_overshoot_and_settling_follow_the_sim_gains(tmp_path: Path) -> None:
+    stiff = step_test(tmp_path, "stiff", {})  # the default tuning: a 50 Hz velocity loop
+    soft = step_test(tmp_path, "soft", {"bandwidth_hz": 5.0})  # a detuned drive
+    assert stiff["overshoot_pct"] < 0.5, stiff
+    assert soft["overshoot_pct"] > 3.0, soft  # ~7 % in the model
+    assert soft["settling_time_s"] > stiff["settling_time_s"] + 0.1, (stiff, soft)
