@@ -88,6 +88,7 @@ PROTECTED_OBJECTS: dict[int, str] = {
     OD.CONTROLWORD: "it drives the state machine (enable, quick stop); use enable/disable",
     OD.MODES_OF_OPERATION: "it changes the operation mode under the driver",
     OD.TARGET_POSITION: _TARGET, OD.TARGET_VELOCITY: _TARGET, OD.TARGET_TORQUE: _TARGET,
+    OD.VELOCITY_OFFSET: _TARGET, OD.TORQUE_OFFSET: _TARGET,
     OD.SOFTWARE_POSITION_LIMIT: "it is the drive's position limit; set min_deg/max_deg in the config",
     OD.MAX_PROFILE_VELOCITY: "it is a velocity limit; set max_velocity_deg_s in the config",
     OD.MAX_TORQUE: "it is the torque limit; set max_torque_nm in the config",
@@ -133,6 +134,10 @@ NO_HOST_WATCH = "no drive-side stop on host loss"
 VALUE_RANGE_ABORTS = frozenset({0x0609_0030, 0x0609_0031, 0x0609_0032, 0x0609_0036})
 #: A continuous joint's degree command is an angle modulo 360; beyond this it is a mistake.
 CONTINUOUS_COMMAND_LIMIT_DEG = 360.0
+#: Modes whose command is a velocity (the watchdog and the limit guard send zero velocity) ...
+VELOCITY_MODES = (OperationMode.PROFILE_VELOCITY, OperationMode.CYCLIC_SYNC_VELOCITY)
+#: ... and a torque (they send zero torque and, at a limit, quick-stop).
+TORQUE_MODES = (OperationMode.PROFILE_TORQUE, OperationMode.CYCLIC_SYNC_TORQUE)
 
 
 @dataclass(frozen=True)
@@ -237,6 +242,7 @@ class Drive:
         self.behind_back: tuple[float, str] = (0.0, "")  # (when, what) changed without this driver
         self.last_velocity_cmd = 0.0
         self.velocity_commanded = False
+        self._stream_velocity_counts_s = 0  # the last CSV target (command threads, under _lock)
         self.was_enabled = False
         self.turns_offset_deg = 0.0
         self._max_counts_s = int(abs(self.scale.counts_per_deg * config.max_velocity_deg_s)) or 1
@@ -1073,13 +1079,7 @@ class Drive:
 
     def set_velocity(self, velocity_deg_s: float) -> None:
         """Profile-velocity command in deg/s, limited by max_velocity_deg_s; feeds the watchdog."""
-        velocity = require_finite(f"{self.name} velocity", velocity_deg_s, "deg/s")
-        vmax = self.config.max_velocity_deg_s
-        if abs(velocity) > vmax:
-            raise CommandRejected(f"{self.name}: velocity {velocity:g} deg/s is beyond the limit"
-                                  f" max_velocity_deg_s={vmax:g} (allowed -{vmax:g} to {vmax:g}). Nothing"
-                                  " was sent.")
-        counts_s = check_counts(self.name, self.scale.deg_s_to_counts_s(velocity), "velocity")
+        velocity, counts_s = self._checked_velocity(velocity_deg_s)
         with self._command("velocity command"):
             self._refuse_past_limit(velocity, abs(velocity), self.config.profile_acceleration_deg_s2,
                                     f"velocity {velocity:g} deg/s")
@@ -1122,9 +1122,9 @@ class Drive:
         if self.state != State.OPERATION_ENABLED:
             return
         self.limit_stops += 1
-        if self.mode_display == OperationMode.PROFILE_VELOCITY:
+        if self.mode_display in VELOCITY_MODES:
             self._send_velocity(0)
-        elif self.mode_display == OperationMode.PROFILE_TORQUE:
+        elif self.mode_display in TORQUE_MODES:
             self._send_torque(0)
             self._cw = int(Command.QUICK_STOP)
             self.was_enabled = False
@@ -1136,7 +1136,7 @@ class Drive:
         if self.config.is_continuous or not self.velocity_commanded:
             return
         velocity = self.scale.counts_s_to_deg_s(self.velocity_counts_s)
-        torque_mode = self.mode_display == OperationMode.PROFILE_TORQUE
+        torque_mode = self.mode_display in TORQUE_MODES
         decel = self.config.quick_stop_decel_deg_s2 if torque_mode else self.config.profile_acceleration_deg_s2
         limit = self._limit_ahead(velocity, abs(velocity), decel)
         if limit is not None:  # no lock: a command racing this brake is checked against the limit itself
@@ -1165,10 +1165,10 @@ class Drive:
             self.velocity_commanded = False
             if self.state != State.OPERATION_ENABLED:
                 return True
-            if self.mode_display == OperationMode.PROFILE_VELOCITY:
+            if self.mode_display in VELOCITY_MODES:
                 self._send_velocity(0)
                 self.watchdog_stops += 1
-            elif self.mode_display == OperationMode.PROFILE_TORQUE:
+            elif self.mode_display in TORQUE_MODES:
                 self._send_torque(0)
                 self.watchdog_stops += 1
             return True
@@ -1185,13 +1185,26 @@ class Drive:
         if self.mode_display != mode:
             self.set_mode(mode)
 
-    def set_torque(self, torque_nm: float) -> None:
-        """Profile-torque command in Nm at the joint, limited by max_torque_nm; feeds the watchdog."""
+    def _checked_torque(self, torque_nm: float) -> float:
         torque = require_finite(f"{self.name} torque", torque_nm, "Nm")
         limit = self.config.max_torque_nm or self.scale.rated_torque_nm * self.scale.gear_ratio
         if abs(torque) > limit:
             raise CommandRejected(f"{self.name}: torque {torque:g} Nm is beyond the limit max_torque_nm={limit:g}"
                                   f" (allowed -{limit:g} to {limit:g} Nm). Nothing was sent.")
+        return torque
+
+    def _checked_velocity(self, velocity_deg_s: float) -> tuple[float, int]:
+        velocity = require_finite(f"{self.name} velocity", velocity_deg_s, "deg/s")
+        vmax = self.config.max_velocity_deg_s
+        if abs(velocity) > vmax:
+            raise CommandRejected(f"{self.name}: velocity {velocity:g} deg/s is beyond the limit"
+                                  f" max_velocity_deg_s={vmax:g} (allowed -{vmax:g} to {vmax:g}). Nothing"
+                                  " was sent.")
+        return velocity, check_counts(self.name, self.scale.deg_s_to_counts_s(velocity), "velocity")
+
+    def set_torque(self, torque_nm: float) -> None:
+        """Profile-torque command in Nm at the joint, limited by max_torque_nm; feeds the watchdog."""
+        torque = self._checked_torque(torque_nm)
         with self._command("torque command"):
             self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"torque {torque:g} Nm")
             self._ensure_mode(OperationMode.PROFILE_TORQUE, "torque command")
@@ -1206,6 +1219,57 @@ class Drive:
             self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_TORQUE: permille}))
         else:
             self._write_typed(OD.TARGET_TORQUE, 0, permille)
+
+    def stream_velocity(self, velocity_deg_s: float) -> None:
+        """Cyclic synchronous velocity (CSV): one target per SYNC period, which the drive takes
+        at the next SYNC without a ramp of its own (the caller's stream is the ramp). Limited by
+        max_velocity_deg_s; speeding up by more than the quick-stop deceleration over two SYNC
+        periods in one step is refused (slowing down never is); feeds the watchdog. Refused on a
+        drive whose 0x6502 does not list CSV."""
+        velocity, counts_s = self._checked_velocity(velocity_deg_s)
+        with self._command("CSV set-point"):
+            self._refuse_past_limit(velocity, abs(velocity), self.config.quick_stop_decel_deg_s2,
+                                    f"CSV velocity {velocity:g} deg/s")
+            self._ensure_mode(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point")
+            previous = self.scale.counts_s_to_deg_s(self._stream_velocity_counts_s) if self.velocity_commanded else 0.0
+            max_step = self.config.quick_stop_decel_deg_s2 * 2 * self.sync_period_s
+            if abs(velocity) > abs(previous) and abs(velocity - previous) > max_step:
+                raise CommandRejected(f"{self.name}: CSV set-point {velocity:g} deg/s jumps"
+                                      f" {abs(velocity - previous):.1f} deg/s from the last one ({previous:g});"
+                                      f" at most {max_step:.1f} deg/s per step speeding up (the quick-stop"
+                                      " deceleration over two SYNC periods). Ramp it. Nothing was sent.")
+            self._send_velocity(counts_s)
+            self._stream_velocity_counts_s = counts_s
+            self.last_velocity_cmd = time.monotonic()
+            self.velocity_commanded = velocity != 0.0
+
+    def stream_torque(self, torque_nm: float) -> None:
+        """Cyclic synchronous torque (CST): one torque target in Nm at the joint per SYNC period,
+        limited by max_torque_nm; feeds the watchdog (which sends zero torque). Refused on a
+        drive whose 0x6502 does not list CST."""
+        torque = self._checked_torque(torque_nm)
+        with self._command("CST set-point"):
+            self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"CST torque {torque:g} Nm")
+            self._ensure_mode(OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point")
+            self._send_torque(self.scale.nm_to_permille(torque))
+            self.last_velocity_cmd = time.monotonic()
+            self.velocity_commanded = torque != 0.0
+
+    def command_velocity(self, velocity_deg_s: float) -> None:
+        """A velocity command in the drive's configured way: profile velocity, or CSV
+        (``velocity_mode: cyclic``)."""
+        if self.config.velocity_mode == "cyclic":
+            self.stream_velocity(velocity_deg_s)
+        else:
+            self.set_velocity(velocity_deg_s)
+
+    def command_torque(self, torque_nm: float) -> None:
+        """A torque command in the drive's configured way: profile torque, or CST
+        (``torque_mode: cyclic``)."""
+        if self.config.torque_mode == "cyclic":
+            self.stream_torque(torque_nm)
+        else:
+            self.set_torque(torque_nm)
 
     def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None) -> None:
         """One position set-point per SYNC period, no handshake: cyclic synchronous position,

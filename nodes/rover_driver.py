@@ -159,7 +159,7 @@ class DriverNode(Node):
         drive = self.driver.drives[joint]
 
         def on_message(msg: Float32) -> None:
-            self._guard(joint, f"velocity command {msg.data!r}", partial(drive.set_velocity, msg.data))
+            self._guard(joint, f"velocity command {msg.data!r}", partial(drive.command_velocity, msg.data))
         return on_message
 
     def _on_joint_commands(self, msg: JointState) -> None:
@@ -172,9 +172,11 @@ class DriverNode(Node):
             if i < len(msg.position):
                 self._guard(name, "joint position", partial(drive.move_to, msg.position[i] * DEG))
             elif i < len(msg.velocity):
-                self._guard(name, "joint velocity", partial(drive.set_velocity, msg.velocity[i] * DEG))
+                self._guard(name, "joint velocity", partial(drive.command_velocity, msg.velocity[i] * DEG))
+            elif i < len(msg.effort):
+                self._guard(name, "joint effort", partial(drive.command_torque, msg.effort[i]))
             else:
-                self.refusals.refuse(name, "/joint_commands entry has neither position nor velocity")
+                self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort")
 
     # --------------------------------------------------------------------- publishing
     def _publish_states(self) -> None:

@@ -190,8 +190,8 @@ def test_velocity_watchdog_stops_the_drive(driver_factory: DriverFactory) -> Non
 def test_unsupported_mode_is_refused(driver_factory: DriverFactory) -> None:
     from can_config.objects import OperationMode
     _, driver = driver_factory(make_config(1))
-    with pytest.raises(CommandRejected, match=r"CYCLIC_SYNC_TORQUE is not supported.*supported: PROFILE_POSITION"):
-        driver.drive("joint1").set_mode(OperationMode.CYCLIC_SYNC_TORQUE)
+    with pytest.raises(CommandRejected, match=r"INTERPOLATED_POSITION is not supported.*supported: PROFILE_POSITION"):
+        driver.drive("joint1").set_mode(OperationMode.INTERPOLATED_POSITION)
 
 
 def test_homing_sets_zero(driver_factory: DriverFactory) -> None:

@@ -1,0 +1,163 @@
+"""Cyclic synchronous velocity (CSV) and torque (CST): streamed one value per SYNC by the
+driver, followed by the simulated drive, refused on a drive whose 0x6502 lacks them, stopped by
+the watchdog when the stream stops, and used by /joint_commands where the config says so."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import can
+import pytest
+
+from can_config import RoverConfig, parse_config
+from can_config.config import GENERIC_EDS
+from can_config.errors import CommandRejected
+from can_config.objects import OperationMode
+from motor_driver import MotorDriver
+from virtual_can.service import SimService
+
+from .conftest import HAVE_ROS, IN_PROCESS_HOST_TIMEOUT_MS, REPO, drain, make_config, requires_ros, wait_for
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+CYCLIC = {"velocity_mode": "cyclic", "torque_mode": "cyclic"}
+
+
+def stream(fn: Callable[[float], None], values: list[float], period_s: float) -> None:
+    for value in values:
+        fn(value)
+        time.sleep(period_s)
+
+
+def test_csv_follows_the_stream_then_the_watchdog_stops_it(
+        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    sim, driver = driver_factory(make_config(1, gear_ratio=10.0, counts_per_rev=4096, watchdog_ms=300))
+    drive = driver.drive("joint1")
+    drive.enable()
+    period = drive.sync_period_s
+    drive.stream_velocity(5.0)  # switches to CSV (SDO) once
+    listener = listener_factory(sim)
+    drain(listener, 0.02)
+    ramp = [10.0 * i for i in range(1, 19)]  # 10 deg/s per SYNC: 1000 deg/s^2 up to 180 deg/s
+    stream(drive.stream_velocity, ramp + [180.0] * 40, period)
+    state = drive.snapshot()
+    assert state.mode == OperationMode.CYCLIC_SYNC_VELOCITY
+    assert state.velocity_deg_s == pytest.approx(180.0, rel=0.03)
+    frames = drain(listener, 0.05)
+    assert not [m for m in frames if m.arbitration_id == 0x601]  # set-points by RPDO, no SDO
+    t0 = time.monotonic()  # the stream stops: the watchdog (300 ms) sends zero velocity
+    wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 2.0, "the watchdog's stop")
+    assert time.monotonic() - t0 < 0.3 + 0.3
+    assert drive.watchdog_stops == 1
+
+
+def test_csv_refuses_a_jump_up_and_a_speed_beyond_the_limit(driver_factory: DriverFactory) -> None:
+    _, driver = driver_factory(make_config(1, max_velocity_deg_s=360.0))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.stream_velocity(10.0)
+    # quick-stop deceleration 4 x 360 deg/s^2 over two 10 ms SYNC periods: 28.8 deg/s per step
+    with pytest.raises(CommandRejected, match=r"jumps 190\.0 deg/s .* at most 28\.8 deg/s per step"):
+        drive.stream_velocity(200.0)
+    with pytest.raises(CommandRejected, match=r"max_velocity_deg_s=360"):
+        drive.stream_velocity(400.0)
+    drive.stream_velocity(0.0)  # slowing down is never refused
+
+
+def test_cst_drives_the_commanded_torque(driver_factory: DriverFactory) -> None:
+    _, driver = driver_factory(make_config(1, max_torque_nm=0.8))
+    drive = driver.drive("joint1")
+    drive.enable()
+    with pytest.raises(CommandRejected, match=r"max_torque_nm=0.8"):
+        drive.stream_torque(0.9)
+    stream(drive.stream_torque, [0.2] * 20, drive.sync_period_s)
+    state = drive.snapshot()
+    assert state.mode == OperationMode.CYCLIC_SYNC_TORQUE
+    assert state.torque_nm == pytest.approx(0.2, abs=0.01)
+    assert state.velocity_deg_s > 50.0  # 0.2 Nm against 0.03 Nm of friction speeds the joint up
+    stream(drive.stream_torque, [0.0] * 5, drive.sync_period_s)
+    assert drive.snapshot().torque_nm == pytest.approx(0.0, abs=0.03)  # friction brakes it, no torque
+
+
+def test_cyclic_modes_are_refused_on_a_drive_without_them(tmp_path: Path, driver_factory: DriverFactory) -> None:
+    eds = tmp_path / "no_cyclic.eds"  # 0x6502 = 0xAD: PP, PV, PT, homing, CSP; no CSV, no CST
+    eds.write_text(GENERIC_EDS.read_text().replace("DefaultValue=941", "DefaultValue=173"))
+    _, driver = driver_factory(make_config(1, eds=str(eds)))
+    drive = driver.drive("joint1")
+    drive.enable()
+    with pytest.raises(CommandRejected, match=r"CYCLIC_SYNC_VELOCITY is not supported by node 1 \(0x6502 = 0x000000AD\)"):
+        drive.stream_velocity(5.0)
+    with pytest.raises(CommandRejected, match=r"CYCLIC_SYNC_TORQUE is not supported"):
+        drive.stream_torque(0.1)
+    assert drive.snapshot().mode == OperationMode.PROFILE_POSITION  # nothing changed on the drive
+
+
+def test_command_velocity_and_torque_take_the_configured_mode(driver_factory: DriverFactory) -> None:
+    _, driver = driver_factory(make_config(1, **CYCLIC))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.command_velocity(10.0)
+    assert drive.snapshot().mode == OperationMode.CYCLIC_SYNC_VELOCITY
+    drive.command_torque(0.0)
+    assert drive.snapshot().mode == OperationMode.CYCLIC_SYNC_TORQUE
+    _, profile = driver_factory(make_config(1))
+    other = profile.drive("joint1")
+    other.enable()
+    other.command_velocity(10.0)
+    assert other.snapshot().mode == OperationMode.PROFILE_VELOCITY
+
+
+if HAVE_ROS:
+    import rclpy
+    from sensor_msgs.msg import JointState
+
+    from nodes.qos import COMMAND_QOS
+    from nodes.rover_driver import DriverNode
+    from nodes.runtime import SpinThread, make_executor
+
+
+@pytest.fixture
+def ros_driver() -> Iterator[tuple[MotorDriver, object]]:
+    config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
+                                      "kwargs": {"host": "127.0.0.1", "port": 1}}],
+                           "drives": [{"name": "wheel", "node_id": 1, "host_timeout_ms": IN_PROCESS_HOST_TIMEOUT_MS,
+                                       **CYCLIC}]}, source=REPO / "tests" / "generated.yaml")
+    with SimService.from_config(config, port=0) as sim:
+        from can_config import with_bus_overrides
+        driver = MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)).start()
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        node = DriverNode(driver, context=context)
+        probe = rclpy.create_node("probe", context=context)
+        executor = make_executor("events", context)
+        executor.add_node(node)
+        executor.add_node(probe)
+        spin = SpinThread(executor, "test-cyclic")
+        try:
+            yield driver, probe
+        finally:
+            spin.stop(5.0)
+            node.destroy_node()
+            probe.destroy_node()
+            rclpy.shutdown(context=context)
+            driver.close()
+
+
+@requires_ros
+def test_joint_commands_velocity_and_effort_stream_csv_and_cst(ros_driver: tuple[MotorDriver, object]) -> None:
+    driver, probe = ros_driver
+    drive = driver.drive("wheel")
+    drive.enable()
+    pub = probe.create_publisher(JointState, "/joint_commands", COMMAND_QOS)  # type: ignore[attr-defined]
+    time.sleep(0.3)
+    for i in range(1, 30):  # rad/s, ramped: 0.1 rad/s (5.7 deg/s) per SYNC
+        pub.publish(JointState(name=["wheel"], velocity=[min(0.1 * i, 1.0)]))
+        time.sleep(0.01)
+    wait_for(lambda: drive.snapshot().mode == OperationMode.CYCLIC_SYNC_VELOCITY, 1.0, "CSV")
+    wait_for(lambda: abs(drive.snapshot().velocity_deg_s - 57.3) < 3.0, 1.0, "1 rad/s")
+    for _ in range(20):
+        pub.publish(JointState(name=["wheel"], effort=[0.1]))
+        time.sleep(0.01)
+    wait_for(lambda: drive.snapshot().mode == OperationMode.CYCLIC_SYNC_TORQUE, 1.0, "CST")
+    wait_for(lambda: abs(drive.snapshot().torque_nm - 0.1) < 0.01, 1.0, "0.1 Nm")
