@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -42,6 +43,9 @@ class BusConfig:
     host_node_id: int = 127  # the driver's own NMT node id: its heartbeat is what the drives watch
     host_heartbeat_s: float = 0.05
     connect_timeout_s: float = 10.0  # how long the driver waits for a socketcand server at start
+    #: auto: the bus's own timer sends the SYNC (the kernel's on SocketCAN, the daemon's on
+    #: socketcand); thread: a thread of the driver process does
+    sync_timer: str = "auto"
 
     def bus_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for :func:`can.Bus`."""
@@ -178,6 +182,26 @@ GEAR_RATIO_MAX = 1e6
 
 
 @dataclass(frozen=True)
+class RecorderConfig:
+    """The driver's flight recorder (``recorder:``): the last ``seconds`` of frames and drive
+    states, written on each incident with what follows it for ``after_s``."""
+
+    enabled: bool = True
+    dir: Path | None = None  # None: $ROVERCAN_INCIDENT_DIR, else ~/.local/state/rovercan/incidents
+    seconds: float = 10.0
+    after_s: float = 1.0
+    max_mb: float = 200.0  # the directory's cap: the oldest incidents go first
+    plot: bool = True  # a PNG of angle, velocity, torque and state (needs matplotlib)
+
+    @property
+    def directory(self) -> Path:
+        if self.dir is not None:
+            return self.dir
+        env = os.environ.get("ROVERCAN_INCIDENT_DIR")
+        return Path(env) if env else Path.home() / ".local" / "state" / "rovercan" / "incidents"
+
+
+@dataclass(frozen=True)
 class RoverConfig:
     """A whole configuration: buses, drives and, optionally, the drive system."""
 
@@ -185,6 +209,7 @@ class RoverConfig:
     drives: tuple[DriveConfig, ...]
     drive_system: DriveSystemConfig | None = None
     source: Path | None = None
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
 
     def bus(self, name: str) -> BusConfig:
         for bus in self.buses:
@@ -225,6 +250,7 @@ _BUS_FIELDS: dict[str, _Field] = {
     "host_node_id": _Field("int", 127, 1, 127),
     "host_heartbeat_ms": _Field("float", 50.0, 10.0, 1000.0),
     "connect_timeout_ms": _Field("float", 10_000.0, 0.0, 600_000.0),
+    "sync_timer": _Field("str", "auto", choices=("auto", "thread")),
 }
 
 _IDENTITY_FIELDS: dict[str, _Field] = {
@@ -305,7 +331,16 @@ _DRIVE_SYSTEM_FIELDS: dict[str, _Field] = {
     "max_angular_rad_s": _Field("float", 2.0, 0.0, 100.0, low_open=True),
 }
 
-_TOP_FIELDS = ("buses", "drives", "drive_system")
+_RECORDER_FIELDS: dict[str, _Field] = {
+    "enabled": _Field("bool", True),
+    "dir": _Field("str", None),
+    "seconds": _Field("float", 10.0, 1.0, 600.0),
+    "after_s": _Field("float", 1.0, 0.0, 60.0),
+    "max_mb": _Field("float", 200.0, 1.0, 1e6),
+    "plot": _Field("bool", True),
+}
+
+_TOP_FIELDS = ("buses", "drives", "drive_system", "recorder")
 
 
 class _Where:
@@ -496,8 +531,11 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
                                      f" configured; configured drives: {sorted(known)}.")
         values["cmd_timeout_s"] = values.pop("cmd_timeout_ms") / 1000.0
         drive_system = DriveSystemConfig(**values)
+    recorder = _section(where, "recorder.", data.get("recorder") or {}, _RECORDER_FIELDS)
+    if recorder["dir"] is not None:
+        recorder["dir"] = (base_dir / Path(recorder["dir"]).expanduser()).resolve()
     return RoverConfig(tuple(buses), tuple(drives), drive_system,
-                       Path(source) if source is not None else None)
+                       Path(source) if source is not None else None, RecorderConfig(**recorder))
 
 
 def _check_drive(where: _Where, prefix: str, drive: DriveConfig) -> None:
@@ -551,7 +589,7 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
     buses = [{"name": b.name, "interface": b.interface, "channel": b.channel, "bitrate": b.bitrate,
               "kwargs": dict(b.kwargs), "sync_period_ms": b.sync_period_s * 1000.0,
               "host_node_id": b.host_node_id, "host_heartbeat_ms": b.host_heartbeat_s * 1000.0,
-              "connect_timeout_ms": b.connect_timeout_s * 1000.0}
+              "connect_timeout_ms": b.connect_timeout_s * 1000.0, "sync_timer": b.sync_timer}
              for b in config.buses]
     drives = []
     for d in config.drives:
@@ -583,7 +621,11 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
             entry["min_deg"] = d.min_deg
             entry["max_deg"] = d.max_deg
         drives.append(entry)
-    out: dict[str, Any] = {"buses": buses, "drives": drives}
+    rec = config.recorder
+    out: dict[str, Any] = {"buses": buses, "drives": drives,
+                           "recorder": {"enabled": rec.enabled, "seconds": rec.seconds, "after_s": rec.after_s,
+                                        "max_mb": rec.max_mb, "plot": rec.plot,
+                                        **({"dir": str(rec.dir)} if rec.dir is not None else {})}}
     if config.drive_system is not None:
         ds = config.drive_system
         out["drive_system"] = {"left": list(ds.left), "right": list(ds.right),
@@ -604,4 +646,4 @@ def with_bus_overrides(config: RoverConfig, **kwargs: Any) -> RoverConfig:
     """A copy whose buses all get ``kwargs`` merged into their python-can arguments
     (e.g. ``port=`` of a simulator started on a free port)."""
     buses = tuple(dataclasses.replace(b, kwargs={**b.kwargs, **kwargs}) for b in config.buses)
-    return RoverConfig(buses, config.drives, config.drive_system, config.source)
+    return dataclasses.replace(config, buses=buses)

@@ -31,6 +31,7 @@ import logging
 import socket
 import threading
 import time
+from collections import deque
 from collections.abc import Collection, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
@@ -39,11 +40,13 @@ import can
 
 from can_config import RoverConfig, load_drive_od
 from can_config.bits import frame_bits
+from can_config.config import BusConfig
 from can_config.errors import BusLostError, ConfigError, MotorError
 from can_config.objects import NmtState
 from motor_driver.adapters import GuardedNetwork, connection_closed
 from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
 from motor_driver.cia402 import State
+from motor_driver.cyclic import DaemonCyclicTask
 from motor_driver.drive import Drive, DriveState
 
 logger = logging.getLogger(__name__)
@@ -51,6 +54,8 @@ logger = logging.getLogger(__name__)
 SUPERVISOR_PERIOD_S = 0.01
 #: Another master's frames mark its drives for this long; the mark clears after this much quiet.
 FOREIGN_HOLD_S = 0.5
+#: Window in which SYNC frames are counted when the bus daemon sends the driver's own.
+SYNC_RATE_WINDOW_S = 0.3
 FOREIGN_RELEASE_S = 2.0
 RECONNECT_MIN_S = 0.2
 RECONNECT_MAX_S = 5.0
@@ -218,6 +223,10 @@ class ForeignTraffic(can.Listener):
         self.host_node_id = host_node_id
         self.node_ids = frozenset(node_ids)
         self.sync = 0.0
+        #: set while the bus daemon sends this driver's SYNC (it then reaches this listener):
+        #: another master's SYNC shows as more SYNC frames than that period gives
+        self.own_sync_period_s = 0.0
+        self._syncs: deque[float] = deque()  # receive thread only
         self.host_twin = 0.0
         self.nmt: dict[tuple[int, int], float] = {}  # (target node (0: all), command) -> when
         self.sdo: dict[int, float] = {}  # node -> when another client sent it an SDO request
@@ -227,7 +236,17 @@ class ForeignTraffic(can.Listener):
         if msg.is_error_frame or msg.is_extended_id:
             return
         if cob == 0x080:
-            self.sync = time.monotonic()
+            now = time.monotonic()
+            period = self.own_sync_period_s
+            if period <= 0:
+                self.sync = now
+                return
+            syncs = self._syncs
+            syncs.append(now)
+            while now - syncs[0] > SYNC_RATE_WINDOW_S:
+                syncs.popleft()
+            if len(syncs) > 1.5 * SYNC_RATE_WINDOW_S / period + 2:
+                self.sync = now
         elif cob == 0x000 and len(msg.data) == 2:
             self.nmt[msg.data[1], msg.data[0]] = time.monotonic()  # each command kept: a reset then a start
         elif cob == 0x700 + self.host_node_id:
@@ -241,7 +260,7 @@ class ForeignTraffic(can.Listener):
         if self.host_twin > since:
             found.append(f"heartbeats of node {self.host_node_id}, this driver's own id: a second driver?")
         if self.sync > since:
-            found.append("SYNC frames this driver did not send")
+            found.append("SYNC frames this driver did not send")  # or more of them than it sends
         seen = list(self.nmt.items())  # one copy (the receive thread may add a key meanwhile)
         for (target, command), when in sorted(seen, key=lambda item: item[1]):
             if target in (node_id, 0) and when > since:
@@ -251,12 +270,23 @@ class ForeignTraffic(can.Listener):
         return "; ".join(found)
 
 
+def sync_daemon(bus_cfg: BusConfig) -> tuple[str, int, str] | None:
+    """(host, port, channel) of the socketcand daemon whose timer sends the bus's SYNC, or None
+    (not socketcand, or ``sync_timer: thread`` in the config)."""
+    kwargs = bus_cfg.bus_kwargs()
+    if bus_cfg.interface != "socketcand" or bus_cfg.sync_timer != "auto":
+        return None
+    return str(kwargs.get("host", "127.0.0.1")), int(kwargs.get("port", 29536)), bus_cfg.channel
+
+
 class BusHandle:
     """One bus with its canopen network and SYNC task."""
 
     def __init__(self, name: str, bus: can.BusABC, owned: bool, sync_period_s: float,
-                 bitrate: int = 1_000_000, foreign: ForeignTraffic | None = None) -> None:
+                 bitrate: int = 1_000_000, foreign: ForeignTraffic | None = None,
+                 daemon: tuple[str, int, str] | None = None) -> None:
         self.name = name
+        self.daemon = daemon  # (host, port, channel): the socketcand daemon's timer sends the SYNC
         self.bus = bus
         self.owned = owned
         self.sync_period_s = sync_period_s
@@ -266,7 +296,7 @@ class BusHandle:
         self.foreign = foreign or ForeignTraffic(0, ())
         self.network.listeners += [self.stats, self.foreign]  # before connect(): its Notifier copies the list
         self.network.connect()
-        self.sync_task: can.broadcastmanager.CyclicSendTaskABC | None = None
+        self.sync_task: can.broadcastmanager.CyclicSendTaskABC | DaemonCyclicTask | None = None
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"rovercan-{name}")
         self.job: Future[None] | None = None  # the bus's reconnect, while it runs
         self.host_beats = 0
@@ -296,8 +326,19 @@ class BusHandle:
         self.network.notifier = can.Notifier(bus, self.network.listeners, NOTIFIER_TIMEOUT_S)
 
     def start_sync(self) -> None:
+        """SYNC by the bus's own timer where there is one: the socketcand daemon's broadcast
+        manager, or (python-can on SocketCAN) the kernel's; else python-can's thread."""
         if self.sync_task is None and self.sync_period_s > 0:
             msg = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
+            if self.daemon is not None:
+                host, port, channel = self.daemon
+                self.foreign.own_sync_period_s = self.sync_period_s  # its SYNC reaches us: judge by rate
+                try:
+                    self.sync_task = DaemonCyclicTask(host, port, channel, msg, self.sync_period_s)
+                    return
+                except BusLostError as err:
+                    logger.warning("bus %s: %s; SYNC from a thread of this process instead", self.name, err)
+            self.foreign.own_sync_period_s = 0.0
             self.sync_task = self.bus.send_periodic(msg, self.sync_period_s, store_task=False)
             if hasattr(self.sync_task, "on_error"):  # python-can's thread-based task
                 self.sync_task.on_error = self._sync_failed
@@ -379,7 +420,7 @@ class MotorDriver:
                                            " running (rovercan sim)?") from err
                 foreign = ForeignTraffic(bus_cfg.host_node_id, [d.node_id for d in config.drives if d.bus == bus_cfg.name])
                 self._handles[bus_cfg.name] = BusHandle(bus_cfg.name, bus, owned, bus_cfg.sync_period_s,
-                                                        bus_cfg.bitrate, foreign)
+                                                        bus_cfg.bitrate, foreign, sync_daemon(bus_cfg))
                 self.bus_lost[bus_cfg.name] = False
             for drive_cfg in config.drives:
                 bus_cfg = config.bus(drive_cfg.bus)

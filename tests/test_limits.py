@@ -155,7 +155,8 @@ def test_the_drive_gets_its_limits_and_faults_beyond_them_by_itself(driver_facto
     drive.sdo_write(0x60FF, 0, int(360 * COUNTS_PER_DEG).to_bytes(4, "little", signed=True))  # behind the driver's back
     wait_for(lambda: drive.state is State.FAULT, 3.0, "the drive's own limit fault")
     assert drive.snapshot().error_code == 0x8612  # reference limit
-    assert Extremes(sim).stop()[1] < 90.0 + 360.0 * 360.0 / (2 * 4 * 720.0) + 1.0  # within its quick-stop distance
+    # within its limit tolerance (0.1 motor rev) and quick-stop distance
+    assert Extremes(sim).stop()[1] < 90.0 + 0.1 * 360.0 / GEAR + 360.0 * 360.0 / (2 * 4 * 720.0) + 1.0
 
 
 @pytest.mark.parametrize("invert", [False, True], ids=["plain", "inverted"])

@@ -153,7 +153,7 @@ def test_services_answer_with_what_happened(graph: Graph) -> None:
     assert mode.success and "confirmed by 0x6061" in mode.message
     bad = graph.call(SetMode, f"wheels/{joint}/set_mode", SetMode.Request(mode="warp"))
     assert not bad.success and "allowed: PROFILE_POSITION" in bad.message
-    unsupported = graph.call(SetMode, f"wheels/{joint}/set_mode", SetMode.Request(mode="cyclic_sync_torque"))
+    unsupported = graph.call(SetMode, f"wheels/{joint}/set_mode", SetMode.Request(mode="interpolated_position"))
     assert not unsupported.success and "not supported" in unsupported.message
     read = graph.call(SdoRead, f"wheels/{joint}/sdo_read", SdoRead.Request(index=0x1018, subindex=1))
     assert read.success and read.value == 0x00524F56

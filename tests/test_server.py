@@ -3,6 +3,7 @@ hostile client affecting only itself."""
 
 from __future__ import annotations
 
+import itertools
 import socket
 import threading
 import time
@@ -176,11 +177,16 @@ def test_client_cap_and_slow_client_do_not_hurt_others() -> None:
 
         reader = threading.Thread(target=read_good, daemon=True)
         reader.start()
+
+        def good_stats() -> object:
+            return [(c.stats.sent, c.stats.dropped, c.closed) for c in srv.clients]
         try:
             for i in range(server_module.CLIENT_QUEUE_BYTES // 40 * 10):  # far beyond socket buffers + queue
                 sender.send(can.Message(arbitration_id=0x100, data=i.to_bytes(4, "little"), is_extended_id=False))
-                if i % 2000 == 0:
-                    time.sleep(0.001)  # the reading client keeps up, as a real one does
+                if i % 2000 == 0:  # the reading client keeps up, as a real one does (within its queue)
+                    paced = time.monotonic() + 2.0
+                    while len(seen) < i - 10_000 and time.monotonic() < paced:
+                        time.sleep(0.001)
             # the client that does not read loses frames (a bounded queue), and is dropped after
             # SLOW_CLIENT_DROP_LIMIT losses in a row
             wait_until = time.monotonic() + 5.0
@@ -191,7 +197,7 @@ def test_client_cap_and_slow_client_do_not_hurt_others() -> None:
             wait_until = time.monotonic() + 5.0
             while 0x123 not in seen and time.monotonic() < wait_until:
                 time.sleep(0.05)
-            assert 0x123 in seen  # the reading client is still served
+            assert 0x123 in seen, (len(seen), good_stats())  # the reading client is still served
         finally:
             stop.set()
             reader.join(2)
@@ -326,3 +332,65 @@ def test_hostile_and_idle_clients_never_starve_a_well_behaved_one() -> None:
             stop.set()
             good.shutdown()
             sender.shutdown()
+
+
+def frames_of(bus: can.BusABC, seconds: float) -> list[can.Message]:
+    out = []
+    end = time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        msg = bus.recv(left)
+        if msg is not None:
+            out.append(msg)
+    return out
+
+
+def test_cyclic_jobs_add_update_delete_and_end_with_their_client(server: SocketcandServer) -> None:
+    """socketcand's broadcast manager: '< add >' makes the server send a frame on its own timer."""
+    listener = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
+    try:
+        sock = raw_client(server)
+        assert "< hi >" in read_until(sock, "< hi >")
+        sock.sendall(b"< open can0 >")
+        assert "< ok >" in read_until(sock, "< ok >")  # BCM mode: no rawmode needed
+        sock.sendall(b"< add 0 10000 080 0 >< add 0 20000 123 2 AA BB >")
+        got = frames_of(listener, 0.5)
+        syncs = [m.timestamp for m in got if m.arbitration_id == 0x080]
+        other = [m for m in got if m.arbitration_id == 0x123]
+        assert 45 <= len(syncs) <= 55 and 22 <= len(other) <= 28, (len(syncs), len(other))
+        periods = sorted(b - a for a, b in itertools.pairwise(syncs))
+        assert abs(periods[len(periods) // 2] - 0.01) < 0.001  # the median period is the job's
+        assert bytes(other[0].data) == b"\xaa\xbb"
+        sock.sendall(b"< update 123 1 CC >< delete 080 >")
+        frames_of(listener, 0.05)  # what was on its way before
+        got = frames_of(listener, 0.2)
+        assert not [m for m in got if m.arbitration_id == 0x080]
+        assert {bytes(m.data) for m in got if m.arbitration_id == 0x123} == {b"\xcc"}
+        sock.sendall(b"< add 0 0 200 0 >< delete 7FF >< add x 0 080 0 >")
+        replies = read_until(sock, "< error", 1.0)
+        assert "cyclic period 0 s out of range" in replies, replies
+        sock.close()  # the client goes: its job goes with it
+        frames_of(listener, 0.05)
+        assert not frames_of(listener, 0.2)
+    finally:
+        listener.shutdown()
+
+
+def test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout() -> None:
+    """A BCM-mode client (a driver's SYNC job) never sends rawmode: it is not an idle one."""
+    with BusEngine() as engine, SocketcandServer(engine, port=0, handshake_timeout_s=0.2) as srv:
+        listener = can.Bus(interface="socketcand", channel="can0", host=srv.host, port=srv.port)
+        idle, job = raw_client(srv), raw_client(srv)
+        try:
+            for sock in (idle, job):
+                read_until(sock, "< hi >")
+                sock.sendall(b"< open can0 >")
+                read_until(sock, "< ok >")
+            job.sendall(b"< add 0 20000 080 0 >")
+            time.sleep(0.5)
+            assert idle.recv(64) == b""  # the idle one was closed
+            frames_of(listener, 0.05)
+            assert len([m for m in frames_of(listener, 0.2) if m.arbitration_id == 0x080]) >= 8
+        finally:
+            idle.close()
+            job.close()
+            listener.shutdown()

@@ -10,6 +10,15 @@ channel="can0", host="127.0.0.1", port=29536)``. Raw mode of the socketcand prot
     client: < send 123 4 11 22 33 44 >                  (put a frame on the channel)
     client: < echo >           server: < echo >
 
+and the broadcast manager's cyclic jobs (BCM mode, also accepted in raw mode), which a kernel
+timer runs on a real socketcand; here one timer thread of the server does::
+
+    client: < add SEC USEC ID LEN B0 .. >   (send this frame every SEC.USEC seconds)
+    client: < update ID LEN B0 .. >         (new data for the job, same period)
+    client: < delete ID >                   (stop it)
+
+A client's jobs end with its connection: a master that dies stops its SYNC.
+
 Every reply is a separate write (python-can reads the handshake replies one ``recv`` each and
 compares them exactly). Separate writes still coalesce in the client's socket when frames follow
 at once, so after the ``rawmode`` reply a client's frames are held until it sends its first line
@@ -55,9 +64,17 @@ DEFAULT_MAX_CLIENTS = 64
 #: After the rawmode '< ok >', frames wait this long (or until the client speaks) so that the
 #: reply reaches the client's handshake read on its own.
 RAWMODE_HOLD_S = 0.05
-#: A client that has not reached rawmode this long after connecting is closed (idle
-#: connections would otherwise hold every client slot).
+#: A client that has not reached rawmode (nor added a cyclic job) this long after connecting is
+#: closed (idle connections would otherwise hold every client slot).
 HANDSHAKE_TIMEOUT_S = 5.0
+#: Periods a cyclic job ('< add >') may have.
+MIN_CYCLIC_PERIOD_S = 0.0005
+MAX_CYCLIC_PERIOD_S = 3600.0
+#: The cyclic timer spins to each due time for at most / at least this long (see CyclicJobs).
+SPIN_MAX_S = 0.001
+SPIN_MIN_S = 0.0001
+#: ... of which this last part without yielding the interpreter to other threads.
+HARD_SPIN_S = 0.00015
 #: How long socket reads block before checking for shutdown.
 POLL_S = 0.2
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -121,6 +138,126 @@ def parse_send(line: str) -> can.Message:
     if len(data) != length:
         raise ProtocolError(f"length {length} does not match {len(data)} data bytes")
     return can.Message(arbitration_id=can_id, data=data, is_extended_id=extended, timestamp=0.0)
+
+
+def parse_add(line: str) -> tuple[float, can.Message]:
+    """Parse ``< add SEC USEC ID LEN B0 .. >`` into (period in s, message). Raises
+    :class:`ProtocolError`; the period must be at least ``MIN_CYCLIC_PERIOD_S``."""
+    parts = line[1:-1].split()
+    if len(parts) < 5 or parts[0] != "add" or not all(p.isdigit() for p in parts[1:3]):
+        raise ProtocolError(f"expected '< add SEC USEC ID LEN B0 .. >', got {line[:60]!r}")
+    period = int(parts[1]) + int(parts[2]) / 1e6
+    if not MIN_CYCLIC_PERIOD_S <= period <= MAX_CYCLIC_PERIOD_S:
+        raise ProtocolError(f"cyclic period {period:g} s out of range ({MIN_CYCLIC_PERIOD_S:g} to"
+                            f" {MAX_CYCLIC_PERIOD_S:g} s)")
+    return period, parse_send("< send " + " ".join(parts[3:]) + " >")
+
+
+@dataclass(eq=False)
+class _CyclicJob:
+    channel: Channel
+    msg: can.Message
+    period_s: float
+    due: float
+
+
+class CyclicJobs:
+    """The server's broadcast manager: frames sent on a timer of its own, one thread for every
+    job of every client. Each job keeps its own schedule (start + n x period), so one late
+    wake-up does not shift the ones after it; a job added with the period of another starts in
+    its phase, so that one wake-up serves both. Jobs are keyed by (client, CAN id).
+
+    A timed wait in Python wakes 0.2-1 ms late on a loaded machine, so the thread wakes that
+    much early (the longest recent lateness, doubled, at most ``SPIN_MAX_S``) and spins to the
+    due time: the emulator's stand-in for the kernel timer a real socketcand uses.
+    """
+
+    def __init__(self) -> None:
+        self._jobs: dict[tuple[object, int], _CyclicJob] = {}
+        self._cond = threading.Condition()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._lateness: deque[float] = deque(maxlen=100)
+        self.sent = 0
+
+    def add(self, owner: object, channel: Channel, msg: can.Message, period_s: float) -> None:
+        with self._cond:
+            now = time.monotonic()
+            due = now
+            for job in self._jobs.values():
+                if job.period_s == period_s:  # same period: same phase
+                    due = job.due - period_s if job.due - period_s >= now else job.due
+                    break
+            self._jobs[owner, msg.arbitration_id] = _CyclicJob(channel, msg, period_s, due)
+            if self._thread is None and not self._stop:
+                self._thread = threading.Thread(target=self._run, daemon=True, name="socketcand-bcm")
+                self._thread.start()
+            self._cond.notify()
+
+    def update(self, owner: object, msg: can.Message) -> bool:
+        with self._cond:
+            job = self._jobs.get((owner, msg.arbitration_id))
+            if job is not None:
+                job.msg = msg
+            return job is not None
+
+    def delete(self, owner: object, can_id: int) -> bool:
+        with self._cond:
+            return self._jobs.pop((owner, can_id), None) is not None
+
+    def owns(self, owner: object) -> bool:
+        with self._cond:
+            return any(key[0] is owner for key in self._jobs)
+
+    def drop(self, owner: object) -> None:
+        with self._cond:
+            for key in [k for k in self._jobs if k[0] is owner]:
+                del self._jobs[key]
+
+    def _spin_s(self) -> float:
+        return min(SPIN_MAX_S, max(SPIN_MIN_S, 2.0 * max(self._lateness, default=SPIN_MAX_S)))
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if self._stop or not self._jobs:
+                    self._thread = None  # the thread lives while there are jobs; add() starts another
+                    return
+                job = min(self._jobs.values(), key=lambda j: j.due)
+                due = job.due
+                wait = due - self._spin_s() - time.monotonic()
+                if wait > 0:
+                    timed = wait < POLL_S
+                    wake_at = time.monotonic() + wait
+                    if not self._cond.wait(min(wait, POLL_S)) and timed:  # timed out: how late?
+                        self._lateness.append(max(0.0, time.monotonic() - wake_at))
+                    continue
+            while time.monotonic() < due - HARD_SPIN_S:  # the last stretch: spin (no lock), letting
+                time.sleep(0)  # other threads run, ...
+            while time.monotonic() < due:  # ... but for the very last of it
+                pass
+            now = time.monotonic()
+            with self._cond:
+                if not any(j is job for j in self._jobs.values()):
+                    continue  # deleted meanwhile
+                job.due = due + job.period_s if now - due < job.period_s else now + job.period_s
+                msg, channel = job.msg, job.channel
+            frame = can.Message(arbitration_id=msg.arbitration_id, data=msg.data, dlc=msg.dlc,
+                                is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame)
+            try:
+                channel.send(frame)
+                self.sent += 1
+            except can.CanError as err:
+                logger.debug("cyclic frame 0x%X not sent: %s", msg.arbitration_id, err)
+
+    def close(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._jobs.clear()
+            self._cond.notify()
+            thread = self._thread
+        if thread is not None:
+            thread.join(timeout=2.0)
 
 
 @dataclass
@@ -222,9 +359,10 @@ class _Client:
         while not self._closed.is_set():
             try:
                 readable, _, _ = select.select([sock], [], [], POLL_S)
-                if not self.raw and time.monotonic() - connected > self.server.handshake_timeout_s:
-                    logger.info("socketcand client %s: no rawmode within %g s; closing it", self.addr,
-                                self.server.handshake_timeout_s)
+                if not self.raw and time.monotonic() - connected > self.server.handshake_timeout_s \
+                        and not self.server.cyclic.owns(self):  # a BCM-mode client with a cyclic job stays
+                    logger.info("socketcand client %s: no rawmode (nor a cyclic job) within %g s; closing it",
+                                self.addr, self.server.handshake_timeout_s)
                     break
                 if not readable:
                     continue
@@ -297,13 +435,31 @@ class _Client:
                 self.endpoint = self.channel.attach(self._on_frame, name=f"client:{self.addr}")
         elif cmd == "echo":
             self._reply("< echo >")
+        elif cmd in ("add", "update", "delete") and self.channel is not None:
+            self._cyclic(cmd, words, line)
         else:
             self._error("unknown command")
+
+    def _cyclic(self, cmd: str, words: list[str], line: str) -> None:
+        jobs = self.server.cyclic
+        assert self.channel is not None
+        try:
+            if cmd == "add":
+                period, msg = parse_add(line)
+                jobs.add(self, self.channel, msg, period)
+            elif cmd == "update":
+                if not jobs.update(self, parse_send("< send " + " ".join(words[1:]) + " >")):
+                    self._error(f"no cyclic job with id {words[1]}")
+            elif len(words) != 2 or not jobs.delete(self, _hex(words[1], 8, "CAN id", line)):
+                self._error(f"no cyclic job with id {' '.join(words[1:])}")
+        except ProtocolError as err:
+            self._error(str(err))
 
     def close(self) -> None:
         if self._closed.is_set():
             return
         self._closed.set()
+        self.server.cyclic.drop(self)  # its cyclic jobs end with it
         if self.endpoint is not None:
             self.endpoint.detach()
         try:
@@ -347,6 +503,7 @@ class SocketcandServer:
         self.handshake_timeout_s = handshake_timeout_s
         self._clients: set[_Client] = set()
         self._lock = threading.Lock()
+        self.cyclic = CyclicJobs()
         self._sock = socket.create_server((host, port), reuse_port=False)
         self._sock.settimeout(POLL_S)
         self.host, self.port = self._sock.getsockname()[:2]
@@ -413,6 +570,7 @@ class SocketcandServer:
                 client.close()
             for client in clients:
                 client.join(timeout=2.0)
+            self.cyclic.close()
 
     def __enter__(self) -> SocketcandServer:
         return self

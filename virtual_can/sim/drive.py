@@ -508,8 +508,11 @@ class SimulatedDrive:
             self.counters["rpdo"] += 1
             if 0 <= pdo.trans_type <= 240:
                 self._pending_rpdos.append((pdo, data))
-            else:
+            else:  # taken at once, and the statusword answers at once (a drive's next cycle)
                 self._apply_rpdo(pdo, data)
+                self._now = now
+                self._update_status()
+                return [] if self.faults.unplugged else self._event_tpdos(now)
         return []
 
     def _sdo(self, data: bytes) -> list[can.Message]:
@@ -552,6 +555,18 @@ class SimulatedDrive:
             self._apply_controlword()
         elif any(i in (OD.TARGET_POSITION, OD.INTERPOLATION_DATA) for i, _, _ in pdo.entries):
             self._csp_target()
+
+    def _event_tpdos(self, now: float) -> list[can.Message]:
+        """Event-driven TPDOs (254/255) whose data changed, or whose event timer is due."""
+        out: list[can.Message] = []
+        for pdo in self.tpdos:
+            if pdo.trans_type >= 254:
+                due = pdo.event_s and now - pdo.last_sent >= pdo.event_s
+                if now - pdo.last_sent >= pdo.inhibit_s:
+                    data = pdo.pack(self.store)
+                    if due or data != pdo.last_data:
+                        out += self._send_pdo(pdo, data, now)
+        return out
 
     def _on_sync(self, now: float) -> list[can.Message]:
         interval = now - self._last_sync
@@ -750,13 +765,7 @@ class SimulatedDrive:
         if self.faults.unplugged:
             return []
         if self.nmt == NmtState.OPERATIONAL:
-            for pdo in self.tpdos:
-                if pdo.trans_type >= 254:
-                    due = pdo.event_s and now - pdo.last_sent >= pdo.event_s
-                    if now - pdo.last_sent >= pdo.inhibit_s:
-                        data = pdo.pack(self.store)
-                        if due or data != pdo.last_data:
-                            out += self._send_pdo(pdo, data, now)
+            out += self._event_tpdos(now)
         period_ms = int(self.store.get(OD.PRODUCER_HEARTBEAT_TIME, 0, 0))  # type: ignore[arg-type]
         if period_ms and now >= self._next_heartbeat:
             self._next_heartbeat = max(self._next_heartbeat + period_ms / 1000.0, now)

@@ -18,8 +18,11 @@ from virtual_can.sim.drive import SimulatedDrive
 
 logger = logging.getLogger(__name__)
 
-#: Physics step of the simulated drives.
-DEFAULT_TICK_S = 0.001
+#: How often the simulated drives' time moves on (their physics runs in sub-steps of 1 ms
+#: within it; frames are answered as they arrive). 2 ms rather than 1: half the CPU, which on
+#: a two-core machine the driver and the bus server's timer need (SYNC jitter measured 0.7 ms
+#: at p99 with 1 ms, 0.04 ms with 2).
+DEFAULT_TICK_S = 0.002
 #: Frames handled before the drives' time moves on (a bound, so that a flood cannot stop time).
 MAX_FRAMES_PER_TICK = 256
 

@@ -1,0 +1,101 @@
+"""A cyclic frame (the SYNC) sent by the bus daemon's timer instead of a thread of ours.
+
+python-can's ``send_periodic`` on a SocketCAN interface hands the frame to the kernel's
+broadcast manager; on a socketcand bus it runs a Python thread, whose period then depends on
+how soon this interpreter lets it run (a busy process, the GIL: SYNC period errors of 1-2 ms at
+p99 measured on two cores). socketcand has the broadcast manager too: ``< add SEC USEC ID LEN
+.. >`` on a connection in BCM mode makes the daemon send the frame on its own timer (the
+kernel's, on a real socketcand; the simulator's server runs one of its own). The job ends when
+that connection closes, so a SYNC of a dead driver stops as it did before.
+
+:class:`DaemonCyclicTask` opens that connection, adds the job and deletes it on ``stop()``.
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import socket
+import time
+
+import can
+
+from can_config.errors import BusLostError
+
+logger = logging.getLogger(__name__)
+
+#: How long the daemon has to greet, open the channel and (for an error) answer the job.
+DAEMON_REPLY_TIMEOUT_S = 2.0
+#: After '< add >', an error reply would come within this long (the daemon answers nothing else).
+ADD_ERROR_WAIT_S = 0.05
+
+
+def add_command(msg: can.Message, period_s: float) -> str:
+    """The socketcand line that makes the daemon send ``msg`` every ``period_s``."""
+    usec_total = round(period_s * 1e6)
+    sec, usec = divmod(usec_total, 1_000_000)
+    can_id = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
+    data = " ".join(f"{b:02X}" for b in msg.data)
+    return f"< add {sec} {usec} {can_id} {len(msg.data)} {data} >".replace("  ", " ")
+
+
+class DaemonCyclicTask:
+    """One cyclic job in a socketcand daemon, on a connection of its own. ``stop()`` is
+    idempotent; raises :class:`BusLostError` when the daemon cannot be reached or refuses."""
+
+    def __init__(self, host: str, port: int, channel: str, msg: can.Message, period_s: float,
+                 timeout_s: float = DAEMON_REPLY_TIMEOUT_S) -> None:
+        self.where = f"socketcand {host}:{port} {channel}"
+        self._can_id = msg.arbitration_id
+        self._buf = b""
+        try:
+            sock = socket.create_connection((host, port), timeout=timeout_s)
+        except OSError as err:
+            raise BusLostError(f"{self.where}: cannot connect for the cyclic SYNC job: {err}") from err
+        self._sock: socket.socket | None = sock
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self._expect("< hi >", timeout_s)
+            sock.sendall(f"< open {channel} >".encode("ascii"))
+            self._expect("< ok >", timeout_s)
+            sock.sendall(add_command(msg, period_s).encode("ascii"))
+            readable, _, _ = select.select([sock], [], [], ADD_ERROR_WAIT_S)
+            if readable:
+                raise BusLostError(f"{self.where}: the daemon refused the cyclic job: {self._line(timeout_s)}")
+        except (OSError, BusLostError) as err:
+            self.stop()
+            if isinstance(err, BusLostError):
+                raise
+            raise BusLostError(f"{self.where}: cyclic job not set up: {err}") from err
+        logger.info("%s: 0x%03X every %.1f ms by the daemon's timer", self.where, self._can_id, period_s * 1000)
+
+    def _line(self, timeout_s: float) -> str:
+        assert self._sock is not None
+        deadline = time.monotonic() + timeout_s
+        while b">" not in self._buf:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise BusLostError(f"{self.where}: no reply within {timeout_s:g} s")
+            self._sock.settimeout(remaining)
+            chunk = self._sock.recv(256)
+            if not chunk:
+                raise BusLostError(f"{self.where}: the daemon closed the connection")
+            self._buf += chunk
+        line, _, self._buf = self._buf.partition(b">")
+        return (line + b">").decode("ascii", "replace").strip()
+
+    def _expect(self, wanted: str, timeout_s: float) -> None:
+        line = self._line(timeout_s)
+        if line != wanted:
+            raise BusLostError(f"{self.where}: expected {wanted!r}, got {line!r}")
+
+    def stop(self) -> None:
+        sock, self._sock = self._sock, None
+        if sock is None:
+            return
+        try:
+            sock.sendall(f"< delete {self._can_id:03X} >".encode("ascii"))
+        except OSError:
+            pass  # a closed connection ends the job as well
+        finally:
+            sock.close()
