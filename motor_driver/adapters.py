@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import logging
 import socket
+import time
+from collections.abc import Callable
 
 import can
 import canopen
@@ -53,6 +55,15 @@ class GuardedNetwork(canopen.Network):
     def __init__(self, bus: can.BusABC | None = None) -> None:
         super().__init__(bus)
         self.rejected_frames = 0
+        #: called with each frame sent (the flight recorder), after it went out
+        self.on_sent: Callable[[can.Message], None] | None = None
+
+    def send_message(self, can_id: int, data: bytes | bytearray, remote: bool = False) -> None:
+        super().send_message(can_id, data, remote)
+        hook = self.on_sent
+        if hook is not None:
+            hook(can.Message(arbitration_id=can_id, data=bytes(data), is_extended_id=can_id > 0x7FF,
+                             is_remote_frame=remote, timestamp=time.time()))
 
     def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
         callbacks = self.subscribers.get(can_id)

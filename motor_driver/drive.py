@@ -134,6 +134,10 @@ NO_HOST_WATCH = "no drive-side stop on host loss"
 VALUE_RANGE_ABORTS = frozenset({0x0609_0030, 0x0609_0031, 0x0609_0032, 0x0609_0036})
 #: A continuous joint's degree command is an angle modulo 360; beyond this it is a mistake.
 CONTINUOUS_COMMAND_LIMIT_DEG = 360.0
+#: At boot, how long to listen for the drive's heartbeat before asking its error history.
+HOST_LOSS_CHECK_WAIT_S = 0.25
+#: EMCY / error history code of a drive whose heartbeat consumer lost the host (CiA 301).
+EMCY_HOST_LOST = 0x8130
 #: Modes whose command is a velocity (the watchdog and the limit guard send zero velocity) ...
 VELOCITY_MODES = (OperationMode.PROFILE_VELOCITY, OperationMode.CYCLIC_SYNC_VELOCITY)
 #: ... and a torque (they send zero torque and, at a limit, quick-stop).
@@ -242,6 +246,7 @@ class Drive:
         self.behind_back: tuple[float, str] = (0.0, "")  # (when, what) changed without this driver
         self.last_velocity_cmd = 0.0
         self.velocity_commanded = False
+        self.host_loss_stops = 0  # boots that found the drive stopped by its host watch (boot thread)
         self._stream_velocity_counts_s = 0  # the last CSV target (command threads, under _lock)
         self.was_enabled = False
         self.turns_offset_deg = 0.0
@@ -550,6 +555,7 @@ class Drive:
         self._supported_modes = None  # a replaced drive may support other modes
         self.rebooted.clear()
         if reset:
+            self._note_host_loss_stop()
             self._bootup.clear()
             self._send(0x000, bytes([NmtCommand.RESET_NODE, self.node_id]))
             if not self._bootup.wait(cfg.boot_timeout_s):
@@ -705,6 +711,29 @@ class Drive:
                            self.config.quick_stop_decel_deg_s2, high, high / self.scale.magnitude_to_drive(1.0))
             return high
         return wanted
+
+    def _note_host_loss_stop(self) -> None:
+        """Before the reset at boot: did the drive stop itself because the host was gone (the
+        newest entry of its error history 0x1003 is 0x8130)? Counted for the flight recorder
+        (``host_loss_stops``), and the history is cleared so that it is counted once. Only a
+        drive heard within HOST_LOSS_CHECK_WAIT_S is asked: an absent one does not slow the boot."""
+        if not has_object(self.od, OD.PREDEFINED_ERROR_FIELD, 1):
+            return
+        deadline = time.monotonic() + HOST_LOSS_CHECK_WAIT_S
+        while not self.last_heartbeat and time.monotonic() < deadline:
+            time.sleep(STATE_POLL_S)
+        if not self.last_heartbeat:
+            return
+        try:
+            newest = self._read_int(OD.PREDEFINED_ERROR_FIELD, 1)
+            if newest is None or newest & 0xFFFF != EMCY_HOST_LOST:
+                return
+            self.host_loss_stops += 1
+            logger.warning("node %d (%s): it had stopped itself when the host was lost (0x8130 in its error"
+                           " history)", self.node_id, self.name)
+            self.sdo_write(OD.PREDEFINED_ERROR_FIELD, 0, b"\x00")  # CiA 301: 0 clears the history
+        except MotorError as err:
+            logger.info("node %d (%s): error history not read before the reset: %s", self.node_id, self.name, err)
 
     def _read_int(self, index: int, subindex: int) -> int | None:
         """An integer object read by SDO, or None where the drive's EDS has no such object."""

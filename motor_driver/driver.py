@@ -1,9 +1,10 @@
 """The motor driver: every configured bus and drive in one process.
 
 Per bus: a python-can bus (opened from config, or given), a canopen ``Network`` (its notifier
-thread runs the PDO callbacks), a SYNC producer through python-can's periodic send (the
-kernel's BCM timer on SocketCAN), and a worker thread for the bus's blocking jobs (re-boot of
-a drive that reset, reconnection of a lost bus).
+thread runs the PDO callbacks), a SYNC producer outside this interpreter where the bus has a
+timer of its own (the socketcand daemon's cyclic job, :mod:`motor_driver.cyclic`; the kernel's
+BCM through python-can's periodic send on SocketCAN; else python-can's thread), and a worker
+thread for the bus's blocking jobs (re-boot of a drive that reset, reconnection of a lost bus).
 
 Threads and what they own:
 - the notifier thread of each bus (canopen/python-can): decodes frames into each Drive's
@@ -14,6 +15,8 @@ Threads and what they own:
   bus's worker. It owns ``bus_lost`` and each BusHandle's reconnect bookkeeping.
 - one worker per bus (``rovercan-<bus>``): the re-boots and reconnects, one at a time.
 - the caller's threads: commands, each serialised per drive by the Drive's lock.
+- the flight recorder's writer (``rovercan-recorder``, :mod:`motor_driver.recorder`): the
+  others append frames, states and incidents to it without waiting; it writes the files.
 
 The host heartbeat (node ``host_node_id``, every ``host_heartbeat_ms``) is sent by the
 supervisor loop itself, not by a kernel timer: it proves that the driver is alive, so a killed,
@@ -27,6 +30,7 @@ and closes the buses it opened, in that order.
 
 from __future__ import annotations
 
+import functools
 import logging
 import socket
 import threading
@@ -48,6 +52,7 @@ from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
 from motor_driver.cia402 import State
 from motor_driver.cyclic import DaemonCyclicTask
 from motor_driver.drive import Drive, DriveState
+from motor_driver.recorder import FlightRecorder
 
 logger = logging.getLogger(__name__)
 
@@ -284,8 +289,9 @@ class BusHandle:
 
     def __init__(self, name: str, bus: can.BusABC, owned: bool, sync_period_s: float,
                  bitrate: int = 1_000_000, foreign: ForeignTraffic | None = None,
-                 daemon: tuple[str, int, str] | None = None) -> None:
+                 daemon: tuple[str, int, str] | None = None, recorder: FlightRecorder | None = None) -> None:
         self.name = name
+        self.recorder = recorder
         self.daemon = daemon  # (host, port, channel): the socketcand daemon's timer sends the SYNC
         self.bus = bus
         self.owned = owned
@@ -295,6 +301,9 @@ class BusHandle:
         self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         self.foreign = foreign or ForeignTraffic(0, ())
         self.network.listeners += [self.stats, self.foreign]  # before connect(): its Notifier copies the list
+        if recorder is not None:
+            self.network.listeners.append(recorder.listener(name))
+            self.network.on_sent = functools.partial(recorder.record_sent, name)
         self.network.connect()
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | DaemonCyclicTask | None = None
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"rovercan-{name}")
@@ -356,9 +365,12 @@ class BusHandle:
     def beat(self, host_node_id: int) -> None:
         """One host heartbeat (NMT state operational), sent from the supervisor loop."""
         try:
-            self.bus.send(can.Message(arbitration_id=0x700 + host_node_id, data=bytes([NmtState.OPERATIONAL]),
-                                      is_extended_id=False))
+            beat = can.Message(arbitration_id=0x700 + host_node_id, data=bytes([NmtState.OPERATIONAL]),
+                               is_extended_id=False)
+            self.bus.send(beat)
             self.host_beats += 1
+            if self.recorder is not None:
+                self.recorder.record_sent(self.name, beat)
         except (can.CanError, OSError, ValueError) as err:  # a lost bus is noticed by the supervisor
             logger.debug("bus %s: host heartbeat not sent: %s", self.name, err)
 
@@ -403,6 +415,10 @@ class MotorDriver:
         self.bus_lost: dict[str, bool] = {}
         self._reboots: dict[str, Future[None]] = {}  # drive name -> its re-boot on the bus worker
         given = dict(buses or {})
+        self.recorder = FlightRecorder(config.recorder, {d.name: (d.bus, d.node_id) for d in config.drives},
+                                       {b.name: b.channel for b in config.buses},
+                                       config.source) if config.recorder.enabled else None
+        self._host_loss_seen: dict[str, int] = {}  # supervisor: host-loss stops already reported
         # every EDS is loaded and checked before any hardware is touched
         ods = {d.name: load_drive_od(d.eds, d.node_id) for d in config.drives}
         try:
@@ -420,7 +436,8 @@ class MotorDriver:
                                            " running (rovercan sim)?") from err
                 foreign = ForeignTraffic(bus_cfg.host_node_id, [d.node_id for d in config.drives if d.bus == bus_cfg.name])
                 self._handles[bus_cfg.name] = BusHandle(bus_cfg.name, bus, owned, bus_cfg.sync_period_s,
-                                                        bus_cfg.bitrate, foreign, sync_daemon(bus_cfg))
+                                                        bus_cfg.bitrate, foreign, sync_daemon(bus_cfg),
+                                                        self.recorder)
                 self.bus_lost[bus_cfg.name] = False
             for drive_cfg in config.drives:
                 bus_cfg = config.bus(drive_cfg.bus)
@@ -429,6 +446,8 @@ class MotorDriver:
                                                     sync_period_s=bus_cfg.sync_period_s)
         except BaseException:
             self._close_buses()
+            if self.recorder is not None:
+                self.recorder.close()
             raise
 
     # ------------------------------------------------------------------ lifecycle
@@ -485,6 +504,8 @@ class MotorDriver:
         while not self._stop.wait(SUPERVISOR_PERIOD_S):
             now = time.monotonic()
             self._beat(now)
+            if self.recorder is not None:
+                self.recorder.sample([d.snapshot() for d in self.drives.values()])
             for drive in self.drives.values():
                 try:
                     self._supervise_drive(drive, now)
@@ -547,6 +568,8 @@ class MotorDriver:
                 why = (f"receive failed: {exc}" if exc is not None else "the server closed the connection"
                        if closed else f"nothing received for {silent_for:.1f} s")
                 logger.error("bus %s lost (%s)", name, why)
+                if self.recorder is not None:
+                    self.recorder.trigger("bus_lost", name, text=why)
                 handle.last_beat = 0.0  # no heartbeat while the bus is gone: that is not lateness
                 for drive in drives:
                     drive.mark_lost()
@@ -595,12 +618,23 @@ class MotorDriver:
             if (job is None or job.done()) and not self.bus_lost[cfg.bus]:
                 self._reboots[drive.name] = self._handles[cfg.bus].worker.submit(drive.reconfigure)
             return
+        was_lost = drive.lost
         drive.check_heartbeat(now)
+        if drive.lost and not was_lost:
+            self._incident("heartbeat_lost", drive, "heartbeat lost")
+        if drive.host_loss_stops != self._host_loss_seen.get(drive.name, 0):
+            self._host_loss_seen[drive.name] = drive.host_loss_stops
+            self._incident("host_loss_stop", drive, "the drive had stopped itself: the host was gone (0x8130)")
         if drive.velocity_commanded and now - drive.last_velocity_cmd > cfg.watchdog_s:
             logger.warning("%s: no velocity command for %.0f ms (watchdog %.0f ms); stopping",
                            drive.name, (now - drive.last_velocity_cmd) * 1000, cfg.watchdog_s * 1000)
-            drive.stop_velocity()
+            if drive.stop_velocity():
+                self._incident("watchdog_stop", drive, f"no command for {cfg.watchdog_s * 1000:.0f} ms")
         drive.guard_limits()
+
+    def _incident(self, kind: str, drive: Drive, text: str) -> None:
+        if self.recorder is not None:
+            self.recorder.trigger(kind, drive.config.bus, node=drive.node_id, drive=drive.name, text=text)
 
     # ------------------------------------------------------------------ shutdown
     def safe_stop(self) -> None:
@@ -635,6 +669,8 @@ class MotorDriver:
                 handle.worker.shutdown(wait=True, cancel_futures=True)  # a re-boot under way ends first
             self._release_host_watch()
             self._close_buses()
+            if self.recorder is not None:
+                self.recorder.close()  # writes what is pending
 
     def _release_host_watch(self) -> None:
         for drive in self.drives.values():

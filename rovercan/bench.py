@@ -853,6 +853,33 @@ def cmd_decode(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------ incident
+def cmd_incident(args: argparse.Namespace) -> int:
+    """The summary the flight recorder wrote, or its drives' faults as a simulator scenario."""
+    from can_config.incident import fault_steps, load_incident
+
+    summary = load_incident(args.file)
+    if args.scenario:
+        import yaml
+        steps = fault_steps(args.file)
+        print(f"# drive faults of {Path(args.file).with_suffix('.json').name}: rovercan sim --scenario FILE")
+        print(yaml.safe_dump({"steps": steps}, sort_keys=False), end="")
+        return 0
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    events = [{"t_s": round(e["t"] - summary["t"], 3), "kind": e["kind"], "bus": e["bus"],
+               "drive": e.get("drive") or "", "node": e.get("node") or "",
+               "code": f"0x{e['code']:04X}" if e.get("code") is not None else "", "what": e.get("text", "")}
+              for e in summary["events"]]
+    print(f"incident {summary['kind']} at {summary['time']}: {summary['frames']} frames kept from"
+          f" {summary['window_s'][0]:+.2f} s to {summary['window_s'][1]:+.2f} s"
+          f" (buses {', '.join(summary['channels'].values())}); files: {summary['blf']}"
+          f"{', ' + summary['png'] if summary.get('png') else ''}")
+    emit(args, events, "events", ["t_s", "kind", "bus", "drive", "node", "code", "what"])
+    return 0
+
+
 # ------------------------------------------------------------------------------ step test
 def step_metrics(t: list[float], y: list[float], start: float, step: float, torque: list[float]) -> dict[str, float]:
     """Rise time (10-90 %), overshoot (%), settling time (2 % band), steady-state error, peak torque."""

@@ -48,9 +48,18 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from virtual_can.service import SimService, specs_for_count, specs_from_config
 
     port = args.port
+    steps = None
+    if args.scenario and args.scenario_from_log:
+        raise ConfigError("give --scenario or --scenario-from-log, not both")
     if args.scenario:
         from virtual_can.scenario import load_scenario
-        load_scenario(args.scenario)  # a bad scenario is refused before anything is served
+        steps = load_scenario(args.scenario)  # a bad scenario is refused before anything is served
+    elif args.scenario_from_log:
+        from can_config.incident import fault_steps
+        steps = fault_steps(args.scenario_from_log, args.scenario_delay)
+        if not steps:
+            raise ConfigError(f"{args.scenario_from_log}: the incident has no drive faults to replay (no EMCY,"
+                              " silence or reboot of a configured drive in its frames)")
     if args.config:
         config = load_config(args.config)
         specs = specs_from_config(config)
@@ -67,9 +76,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
               f" {sim.host}:{sim.port}", flush=True)
         for channel in sim.simulators:
             print(f"  python-can arguments: {sim.python_can_args(channel)}", flush=True)
-        if args.scenario:
-            from virtual_can.scenario import run_scenario_in_background
-            run_scenario_in_background(sim, args.scenario, stop.event)
+        if steps is not None:
+            from virtual_can.scenario import run_steps_in_background
+            print(f"rovercan sim: playing {len(steps)} fault step(s) of"
+                  f" {args.scenario or args.scenario_from_log}", flush=True)
+            run_steps_in_background(sim, steps, stop.event)
         next_status = time.monotonic() + args.status_period if args.status_period else None
         while not stop.event.wait(0.2):
             if next_status is not None and time.monotonic() >= next_status:
@@ -228,6 +239,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wire-time", action="store_true", help="frames take their real bit time")
     p.add_argument("--bitrate", type=whole(10_000, 8_000_000), default=1_000_000)
     p.add_argument("--scenario", help="YAML fault-injection scenario to play")
+    p.add_argument("--scenario-from-log", metavar="INCIDENT",
+                   help="replay the drives' faults of a flight-recorder incident (.json/.blf) at their times")
+    p.add_argument("--scenario-delay", type=real(0, 3600), default=2.0,
+                   help="seconds from the start to the incident's first fault (default 2: time for a driver to boot)")
     p.add_argument("--status-period", type=real(0, 3600), default=0.0, help="print a status line per drive every S seconds")
     import can.cli
     can.cli.add_bus_arguments(p, prefix="bus", group_title="instead of serving a bus: put the simulated drives on"
@@ -366,6 +381,13 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--eds", help="decode PDOs by the driver's mapping for this EDS")
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_decode)
+
+    p = sub.add_parser("incident", help="what the flight recorder kept of an incident (its .json, .blf or .png)")
+    p.add_argument("file")
+    p.add_argument("--scenario", action="store_true",
+                   help="print the drives' faults as a simulator scenario (YAML) instead: a regression test")
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_incident)
 
     p = sub.add_parser("step-test", help="position step: PNG plot and JSON metrics")
     p.add_argument("node")

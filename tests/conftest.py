@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -39,6 +40,9 @@ requires_shared = pytest.mark.skipif(not SHARED_EDS.is_dir(),
                                      reason="../shared/eds is absent (only the team's checkout has it)")
 
 logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+# the flight recorder of every driver the suite starts (subprocesses inherit it) writes its
+# incidents here, not into the user's ~/.local/state
+os.environ.setdefault("ROVERCAN_INCIDENT_DIR", tempfile.mkdtemp(prefix="rovercan-test-incidents-"))
 # DDS discovery on loopback only, for every graph the suite starts (subprocesses inherit it):
 # by default Fast DDS multicasts on every interface, and the tests' traffic stays on this machine
 os.environ.setdefault(*LOCAL_DISCOVERY)

@@ -98,7 +98,11 @@ def load_scenario(path: str | Path) -> list[dict[str, Any]]:
 
 
 def run_scenario_in_background(sim: SimService, path: str | Path, stop: threading.Event) -> threading.Thread:
-    steps = load_scenario(path)
+    return run_steps_in_background(sim, load_scenario(path), stop)
+
+
+def run_steps_in_background(sim: SimService, steps: list[dict[str, Any]], stop: threading.Event) -> threading.Thread:
+    """Play ``steps`` (sorted by ``at_s``) from now, in a thread, until ``stop``."""
 
     def run() -> None:
         start = time.monotonic()

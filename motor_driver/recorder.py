@@ -1,0 +1,251 @@
+"""The flight recorder: the last seconds of every frame and drive state, kept in memory and
+written when something goes wrong, so that a field incident can be read and replayed.
+
+An incident is an EMCY, a drive's heartbeat lost, a watchdog stop, a bus lost, or a drive
+found at boot to have stopped itself because the host was gone (EMCY 0x8130 in its error
+history). Each writes, into the configured directory (capped in size, oldest first):
+
+- ``<stamp>-<kind>-<who>.blf``: the frames of every bus, received and sent (python-can's BLF;
+  the JSON names the bus of each BLF channel),
+- ``<stamp>-<kind>-<who>.json``: the summary (``rovercan incident FILE`` prints it),
+- ``<stamp>-<kind>-<who>.png``: angle, velocity, torque and state of every drive around it.
+
+Threads and what each owns: the buses' receive threads append received frames to the ring
+(one deque append each; the deque is bounded by time, trimmed by whoever appends) and flag an
+EMCY as an incident (a queue put); command threads append the frames they send the same way;
+the supervisor appends drive-state samples and flags its own incidents. The writer thread
+(``rovercan-recorder``) waits ``after_s`` so that what follows is kept, takes a copy of the
+ring (``deque.copy`` runs under the GIL in one step) and writes the files. Nothing waits on
+the writer, and no lock is shared with the bus.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+from can_config.config import RecorderConfig
+from can_config.incident import FORMAT
+from can_config.objects import emcy_text
+from motor_driver.drive import DriveState
+
+logger = logging.getLogger(__name__)
+
+INCIDENT_KINDS = ("emcy", "heartbeat_lost", "watchdog_stop", "bus_lost", "host_loss_stop")
+#: How often the writer looks for the stop of the driver while it waits.
+WRITER_POLL_S = 0.2
+
+
+@dataclass(frozen=True)
+class IncidentEvent:
+    """One thing that went wrong: ``t`` is time.time(), like the frames' timestamps."""
+
+    kind: str
+    t: float
+    bus: str
+    node: int | None = None
+    drive: str | None = None
+    code: int | None = None
+    text: str = ""
+
+
+class _BusTap(can.Listener):
+    """Received frames of one bus into the ring (the bus's receive thread)."""
+
+    def __init__(self, recorder: FlightRecorder, bus: str) -> None:
+        self.recorder = recorder
+        self.bus = bus
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.recorder.append(self.bus, msg)
+        cob = msg.arbitration_id
+        if 0x081 <= cob <= 0x0FF and not msg.is_extended_id and len(msg.data) >= 3:
+            code = int.from_bytes(msg.data[:2], "little")
+            if code:
+                self.recorder.trigger("emcy", self.bus, node=cob - 0x80, code=code, text=emcy_text(code),
+                                      t=msg.timestamp or time.time())
+
+
+class FlightRecorder:
+    """A bounded ring of frames and drive states, written on each incident. ``close()`` writes
+    what is pending and stops the writer; it is idempotent."""
+
+    def __init__(self, config: RecorderConfig, drives: Mapping[str, tuple[str, int]],
+                 bus_channels: Mapping[str, str], source: Path | None = None) -> None:
+        self.config = config
+        self._bus_channels = dict(bus_channels)
+        self.directory = config.directory
+        self._names = {(bus, node): name for name, (bus, node) in drives.items()}
+        self._keep_s = config.seconds + config.after_s
+        self._frames: deque[tuple[str, can.Message]] = deque()
+        self._states: deque[tuple[float, tuple[DriveState, ...]]] = deque()
+        self._events: queue.SimpleQueue[IncidentEvent] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._source = source
+        self.written: list[Path] = []  # the JSON of each incident written (writer thread)
+        self._thread = threading.Thread(target=self._run, daemon=True, name="rovercan-recorder")
+        self._thread.start()
+
+    # ------------------------------------------------------------------ recording (many threads)
+    def listener(self, bus: str) -> can.Listener:
+        return _BusTap(self, bus)
+
+    def append(self, bus: str, msg: can.Message) -> None:
+        frames = self._frames
+        frames.append((bus, msg))
+        horizon = (msg.timestamp or time.time()) - self._keep_s
+        while frames and frames[0][1].timestamp < horizon:
+            frames.popleft()
+
+    def record_sent(self, bus: str, msg: can.Message) -> None:
+        if not msg.timestamp:
+            msg.timestamp = time.time()
+        self.append(bus, msg)
+
+    def sample(self, states: Sequence[DriveState]) -> None:
+        """Supervisor: the drives' states now."""
+        now = time.time()
+        self._states.append((now, tuple(states)))
+        while self._states and self._states[0][0] < now - self._keep_s:
+            self._states.popleft()
+
+    def trigger(self, kind: str, bus: str, *, node: int | None = None, drive: str | None = None,
+                code: int | None = None, text: str = "", t: float | None = None) -> None:
+        if drive is None and node is not None:
+            drive = self._names.get((bus, node))
+        self._events.put(IncidentEvent(kind, t or time.time(), bus, node, drive, code, text))
+
+    # ------------------------------------------------------------------ writer thread
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                first = self._events.get(timeout=WRITER_POLL_S)
+            except queue.Empty:
+                continue
+            events = [first]
+            deadline = time.monotonic() + self.config.after_s
+            while (left := deadline - time.monotonic()) > 0 and not self._stop.is_set():
+                try:  # what happens meanwhile is the same incident
+                    events.append(self._events.get(timeout=min(left, WRITER_POLL_S)))
+                except queue.Empty:
+                    pass
+            self._write_safely(events)
+        rest: list[IncidentEvent] = []
+        while True:
+            try:
+                rest.append(self._events.get_nowait())
+            except queue.Empty:
+                break
+        if rest:
+            self._write_safely(rest)
+
+    def _write_safely(self, events: list[IncidentEvent]) -> None:
+        try:
+            self.written.append(self.write(events))
+        except Exception:  # the recorder must never take the driver down
+            logger.exception("flight recorder: the incident %s could not be written", events[0].kind)
+
+    def write(self, events: list[IncidentEvent]) -> Path:
+        """Write one incident (the ring as it is now); returns the JSON's path."""
+        first = events[0]
+        frames = list(self._frames.copy())
+        states = list(self._states.copy())
+        self.directory.mkdir(parents=True, exist_ok=True)
+        stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(first.t)) + f"-{int(first.t * 1000) % 1000:03d}"
+        who = first.drive or (f"node{first.node}" if first.node is not None else first.bus)
+        base = self.directory / f"{stamp}-{first.kind}-{who}"
+        buses = sorted({bus for bus, _ in frames} | {e.bus for e in events})
+        channel_of = {bus: i + 1 for i, bus in enumerate(buses)}
+        with can.BLFWriter(base.with_suffix(".blf")) as blf:
+            for bus, msg in frames:
+                blf.on_message_received(can.Message(
+                    timestamp=msg.timestamp, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                    is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, dlc=msg.dlc,
+                    data=msg.data, channel=channel_of[bus]))
+        summary: dict[str, Any] = {
+            "format": FORMAT,
+            "kind": first.kind,
+            "time": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(first.t)),
+            "t": first.t,
+            "events": [asdict(e) for e in events],
+            "window_s": [frames[0][1].timestamp - first.t, frames[-1][1].timestamp - first.t] if frames else [0, 0],
+            "frames": len(frames),
+            "channels": {str(i): bus for bus, i in channel_of.items()},
+            "bus_channels": self._bus_channels,
+            "drives": [{"name": name, "bus": bus, "node_id": node} for (bus, node), name in self._names.items()],
+            "config": str(self._source) if self._source else None,
+            "blf": base.with_suffix(".blf").name,
+            "png": None,
+        }
+        if self.config.plot and states:
+            summary["png"] = _plot(base.with_suffix(".png"), states, first)
+        json_path = base.with_suffix(".json")
+        json_path.write_text(json.dumps(summary, indent=2) + "\n")
+        logger.warning("flight recorder: %s (%s) written to %s", first.kind, who, json_path)
+        _enforce_cap(self.directory, self.config.max_mb * 1e6, keep=base.name)
+        return json_path
+
+    def close(self) -> None:
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._thread.join(timeout=30.0)
+
+
+def _plot(path: Path, states: list[tuple[float, tuple[DriveState, ...]]], first: IncidentEvent) -> str | None:
+    """Angle, velocity, torque and state of each drive around the incident; None without matplotlib."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        logger.info("flight recorder: no matplotlib, no plot (pip install rovercan[cli])")
+        return None
+    fig, axes = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
+    names = [s.name for s in states[-1][1]]
+    for i, name in enumerate(names):
+        rows = [(t - first.t, snap[i]) for t, snap in states if i < len(snap) and snap[i].name == name]
+        ts = [t for t, _ in rows]
+        for ax, values in zip(axes, ([s.angle_deg for _, s in rows], [s.velocity_deg_s for _, s in rows],
+                                     [s.torque_nm for _, s in rows], [int(s.state) for _, s in rows]), strict=True):
+            ax.plot(ts, values, label=name)
+    for ax, label in zip(axes, ("angle, deg", "velocity, deg/s", "torque, Nm", "CiA 402 state"), strict=True):
+        ax.set_ylabel(label)
+        ax.axvline(0.0, color="red", linewidth=0.8)
+        ax.grid(True)
+    axes[0].legend(fontsize="small", loc="upper left")
+    axes[0].set_title(f"{first.kind} {first.drive or first.bus} {first.text}")
+    axes[-1].set_xlabel("s from the incident")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path.name
+
+
+def _enforce_cap(directory: Path, max_bytes: float, keep: str) -> None:
+    """Remove the oldest incidents (all files of one stem together) while the directory is over."""
+    groups: dict[str, list[Path]] = {}
+    for path in directory.iterdir():
+        if path.suffix in (".blf", ".json", ".png") and path.is_file():
+            groups.setdefault(path.stem, []).append(path)
+    total = sum(p.stat().st_size for paths in groups.values() for p in paths)
+    for stem in sorted(groups, key=lambda s: min(p.stat().st_mtime for p in groups[s])):
+        if total <= max_bytes:
+            break
+        if stem == keep:
+            continue
+        for path in groups[stem]:
+            total -= path.stat().st_size
+            os.remove(path)
+        logger.info("flight recorder: removed incident %s (directory over %.0f MB)", stem, max_bytes / 1e6)

@@ -1,0 +1,109 @@
+"""The flight recorder: an EMCY in a running driver leaves the incident's frames (a bounded
+ring), summary and plot on disk; `rovercan incident` reads them; `rovercan sim
+--scenario-from-log` replays the drives' faults, and a new driver sees the same fault again."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from can_config import parse_config, with_bus_overrides
+from can_config.incident import fault_steps, incident_frames, load_incident
+from motor_driver import MotorDriver
+from motor_driver.recorder import _enforce_cap
+from virtual_can.scenario import apply_action
+from virtual_can.service import SimService
+
+from .conftest import IN_PROCESS_HOST_TIMEOUT_MS, REPO, rovercan_sim, wait_for
+
+SECONDS, AFTER_S = 2.0, 0.3
+
+
+def config_dict(port: int, incidents: Path) -> dict[str, Any]:
+    return {"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
+                       "kwargs": {"host": "127.0.0.1", "port": port}}],
+            "drives": [{"name": "wheel", "node_id": 1, "host_timeout_ms": IN_PROCESS_HOST_TIMEOUT_MS},
+                       {"name": "arm", "node_id": 2, "host_timeout_ms": IN_PROCESS_HOST_TIMEOUT_MS}],
+            "recorder": {"dir": str(incidents), "seconds": SECONDS, "after_s": AFTER_S}}
+
+
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=60)
+
+
+def test_an_emcy_is_recorded_read_back_and_replayed_as_a_regression(tmp_path: Path) -> None:
+    incidents = tmp_path / "incidents"
+    config = parse_config(config_dict(1, incidents), source=tmp_path / "rover.yaml")
+    with SimService.from_config(config, port=0) as sim, \
+            MotorDriver(with_bus_overrides(config, port=sim.port)) as driver:
+        driver.start()
+        wheel = driver.drive("wheel")
+        wheel.enable()
+        wheel.move_to(300.0)  # moving, 90 deg/s
+        time.sleep(SECONDS + 0.5)  # longer than the ring: its old end is dropped
+        apply_action(sim, {"node": 1, "action": "fault", "code": 0x2310})  # over-current, in the field
+        assert driver.recorder is not None
+        wait_for(lambda: bool(driver.recorder.written), 5.0, "the incident written")  # type: ignore[union-attr]
+        written = driver.recorder.written[0]
+    summary = load_incident(written)
+    assert summary["kind"] == "emcy" and summary["events"][0]["drive"] == "wheel"
+    assert summary["events"][0]["code"] == 0x2310
+    # the ring is bounded: the last SECONDS before the incident and AFTER_S after it, no more
+    assert -(SECONDS + AFTER_S) - 0.05 <= summary["window_s"][0] <= -SECONDS + 0.05, summary["window_s"]
+    frames = incident_frames(written, summary)
+    assert len(frames) == summary["frames"] > 500
+    ids = {msg.arbitration_id for _, msg in frames}
+    assert {0x080, 0x081, 0x181, 0x701, 0x77F} <= ids  # SYNC, the EMCY, a TPDO, heartbeats, the host's own
+    assert (incidents / summary["png"]).stat().st_size > 10_000
+
+    shown = run("incident", str(written))
+    assert shown.returncode == 0, shown.stderr
+    assert "incident emcy" in shown.stdout and "0x2310" in shown.stdout
+    scenario = run("incident", str(written.with_suffix(".blf")), "--scenario")
+    assert scenario.returncode == 0, scenario.stderr
+    steps = yaml.safe_load(scenario.stdout)["steps"]
+    assert steps == fault_steps(written) == [{"at_s": 2.0, "node": 1, "channel": "can0", "action": "fault",
+                                              "code": 0x2310}]
+
+    # the replay: the same rover config served with the incident's faults, a new driver on it
+    replay_dir = tmp_path / "replayed"
+    replay = tmp_path / "replay.yaml"
+    replay.write_text(yaml.safe_dump(config_dict(1, replay_dir)))
+    with rovercan_sim("--config", str(replay), "--scenario-from-log", str(written), "--scenario-delay", "1.5") as port:
+        replay_config = with_bus_overrides(parse_config(config_dict(port, replay_dir), source=replay), port=port)
+        with MotorDriver(replay_config) as again:
+            again.start()
+            wait_for(lambda: again.drive("wheel").snapshot().error_code == 0x2310, 5.0, "the same fault again")
+            assert again.drive("arm").snapshot().error_code == 0
+            wait_for(lambda: bool(again.recorder and again.recorder.written), 5.0, "a new incident")
+            assert again.recorder is not None
+            assert load_incident(again.recorder.written[0])["events"][0]["code"] == 0x2310
+
+
+def test_the_directory_is_capped_oldest_first(tmp_path: Path) -> None:
+    for i in range(5):
+        for suffix in (".blf", ".json"):
+            path = tmp_path / f"2026010{i}-emcy-wheel{suffix}"
+            path.write_bytes(b"x" * 200_000)
+            os.utime(path, (1_000_000 + i, 1_000_000 + i))
+    _enforce_cap(tmp_path, 1_000_000, keep="20260104-emcy-wheel")
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ["20260103-emcy-wheel.blf", "20260103-emcy-wheel.json",
+                    "20260104-emcy-wheel.blf", "20260104-emcy-wheel.json"]
+
+
+def test_a_bad_incident_file_is_named(tmp_path: Path) -> None:
+    bad = tmp_path / "x.json"
+    bad.write_text(json.dumps({"kind": "emcy"}))
+    result = run("incident", str(bad))
+    assert result.returncode == 2 and "not a rovercan incident summary" in result.stderr
+    missing = run("sim", "--scenario-from-log", str(tmp_path / "none.json"), "--port", "0")
+    assert missing.returncode == 2 and "none.json" in missing.stderr
