@@ -504,7 +504,7 @@ class MotorDriver:
         while not self._stop.wait(SUPERVISOR_PERIOD_S):
             now = time.monotonic()
             self._beat(now)
-            if self.recorder is not None:
+            if self.recorder is not None and self.recorder.wants_sample():
                 self.recorder.sample([d.snapshot() for d in self.drives.values()])
             for drive in self.drives.values():
                 try:

@@ -8,7 +8,10 @@ history). Each writes, into the configured directory (capped in size, oldest fir
 - ``<stamp>-<kind>-<who>.blf``: the frames of every bus, received and sent (python-can's BLF;
   the JSON names the bus of each BLF channel),
 - ``<stamp>-<kind>-<who>.json``: the summary (``rovercan incident FILE`` prints it),
-- ``<stamp>-<kind>-<who>.png``: angle, velocity, torque and state of every drive around it.
+- ``<stamp>-<kind>-<who>.png``: angle, velocity, torque and state of every drive around it,
+  drawn by a helper process at low priority (``python -m motor_driver.recorder FILE.json``)
+  from the states the JSON carries: matplotlib in the driver's process would hold its
+  interpreter for a second or more, and the host heartbeat with it.
 
 Threads and what each owns: the buses' receive threads append received frames to the ring
 (one deque append each; the deque is bounded by time, trimmed by whoever appends) and flag an
@@ -25,6 +28,8 @@ import json
 import logging
 import os
 import queue
+import subprocess
+import sys
 import threading
 import time
 from collections import deque
@@ -45,6 +50,10 @@ logger = logging.getLogger(__name__)
 INCIDENT_KINDS = ("emcy", "heartbeat_lost", "watchdog_stop", "bus_lost", "host_loss_stop")
 #: How often the writer looks for the stop of the driver while it waits.
 WRITER_POLL_S = 0.2
+#: The drives' states are kept from every SAMPLE_EVERY-th supervisor pass (20 Hz).
+SAMPLE_EVERY = 5
+#: close() waits this long for a plot still being drawn.
+PLOT_WAIT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -94,6 +103,8 @@ class FlightRecorder:
         self._stop = threading.Event()
         self._source = source
         self.written: list[Path] = []  # the JSON of each incident written (writer thread)
+        self._helpers: list[subprocess.Popen[bytes]] = []  # plot processes (writer thread, then close)
+        self._samples = 0  # supervisor passes seen by sample()
         self._thread = threading.Thread(target=self._run, daemon=True, name="rovercan-recorder")
         self._thread.start()
 
@@ -112,6 +123,11 @@ class FlightRecorder:
         if not msg.timestamp:
             msg.timestamp = time.time()
         self.append(bus, msg)
+
+    def wants_sample(self) -> bool:
+        """Supervisor: whether this pass should call :meth:`sample` (every SAMPLE_EVERY-th)."""
+        self._samples += 1
+        return self._samples % SAMPLE_EVERY == 0
 
     def sample(self, states: Sequence[DriveState]) -> None:
         """Supervisor: the drives' states now."""
@@ -188,49 +204,76 @@ class FlightRecorder:
             "blf": base.with_suffix(".blf").name,
             "png": None,
         }
-        if self.config.plot and states:
-            summary["png"] = _plot(base.with_suffix(".png"), states, first)
+        summary["states"] = _state_series(states, first.t)
         json_path = base.with_suffix(".json")
-        json_path.write_text(json.dumps(summary, indent=2) + "\n")
+        if self.config.plot and states:
+            summary["png"] = base.with_suffix(".png").name  # drawn by a helper process, below
+        json_path.write_text(json.dumps(summary, indent=1) + "\n")
+        if self.config.plot and states:
+            self._plot_in_helper(json_path)
         logger.warning("flight recorder: %s (%s) written to %s", first.kind, who, json_path)
         _enforce_cap(self.directory, self.config.max_mb * 1e6, keep=base.name)
         return json_path
+
+    def _plot_in_helper(self, json_path: Path) -> None:
+        """The PNG is drawn by a process of its own at low priority: matplotlib in this one would
+        hold the interpreter for a second or two, and the supervisor's host heartbeat with it."""
+        self._helpers = [p for p in self._helpers if p.poll() is None]
+        self._helpers.append(subprocess.Popen([sys.executable, "-m", "motor_driver.recorder", str(json_path)],
+                                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                              stderr=subprocess.DEVNULL))
 
     def close(self) -> None:
         if self._stop.is_set():
             return
         self._stop.set()
         self._thread.join(timeout=30.0)
+        for helper in self._helpers:  # no zombie left behind; a plot still drawing finishes on its own
+            try:
+                helper.wait(timeout=PLOT_WAIT_S)
+            except subprocess.TimeoutExpired:
+                logger.info("flight recorder: a plot is still being drawn (pid %d)", helper.pid)
 
 
-def _plot(path: Path, states: list[tuple[float, tuple[DriveState, ...]]], first: IncidentEvent) -> str | None:
-    """Angle, velocity, torque and state of each drive around the incident; None without matplotlib."""
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        logger.info("flight recorder: no matplotlib, no plot (pip install rovercan[cli])")
-        return None
+def _state_series(states: list[tuple[float, tuple[DriveState, ...]]], t0: float) -> dict[str, Any]:
+    """The drives' states as series per drive, times in s from the incident."""
+    series: dict[str, dict[str, list[float]]] = {}
+    for t, snap in states:
+        for s in snap:
+            row = series.setdefault(s.name, {"t_s": [], "angle_deg": [], "velocity_deg_s": [], "torque_nm": [],
+                                             "state": []})
+            row["t_s"].append(round(t - t0, 4))
+            row["angle_deg"].append(round(s.angle_deg, 4))
+            row["velocity_deg_s"].append(round(s.velocity_deg_s, 3))
+            row["torque_nm"].append(s.torque_nm if s.torque_nm == s.torque_nm else 0.0)  # NaN: no 0x6077
+            row["state"].append(int(s.state))
+    return series
+
+
+def plot_incident(json_path: Path) -> Path:
+    """Draw ``<stem>.png`` from an incident's summary: angle, velocity, torque and state."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summary = json.loads(json_path.read_text())
     fig, axes = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
-    names = [s.name for s in states[-1][1]]
-    for i, name in enumerate(names):
-        rows = [(t - first.t, snap[i]) for t, snap in states if i < len(snap) and snap[i].name == name]
-        ts = [t for t, _ in rows]
-        for ax, values in zip(axes, ([s.angle_deg for _, s in rows], [s.velocity_deg_s for _, s in rows],
-                                     [s.torque_nm for _, s in rows], [int(s.state) for _, s in rows]), strict=True):
-            ax.plot(ts, values, label=name)
+    for name, row in summary.get("states", {}).items():
+        for ax, key in zip(axes, ("angle_deg", "velocity_deg_s", "torque_nm", "state"), strict=True):
+            ax.plot(row["t_s"], row[key], label=name)
     for ax, label in zip(axes, ("angle, deg", "velocity, deg/s", "torque, Nm", "CiA 402 state"), strict=True):
         ax.set_ylabel(label)
         ax.axvline(0.0, color="red", linewidth=0.8)
         ax.grid(True)
     axes[0].legend(fontsize="small", loc="upper left")
-    axes[0].set_title(f"{first.kind} {first.drive or first.bus} {first.text}")
+    first = summary["events"][0]
+    axes[0].set_title(f"{first['kind']} {first.get('drive') or first['bus']} {first.get('text', '')}")
     axes[-1].set_xlabel("s from the incident")
     fig.tight_layout()
-    fig.savefig(path)
+    png = json_path.with_suffix(".png")
+    fig.savefig(png)
     plt.close(fig)
-    return path.name
+    return png
 
 
 def _enforce_cap(directory: Path, max_bytes: float, keep: str) -> None:
@@ -249,3 +292,25 @@ def _enforce_cap(directory: Path, max_bytes: float, keep: str) -> None:
             total -= path.stat().st_size
             os.remove(path)
         logger.info("flight recorder: removed incident %s (directory over %.0f MB)", stem, max_bytes / 1e6)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m motor_driver.recorder INCIDENT.json``: draw its PNG, at low priority."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if len(args) != 1:
+        print("usage: python -m motor_driver.recorder INCIDENT.json", file=sys.stderr)
+        return 2
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+    try:
+        plot_incident(Path(args[0]))
+    except ImportError:
+        print("no matplotlib: no plot (pip install rovercan[cli])", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

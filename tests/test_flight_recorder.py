@@ -62,7 +62,9 @@ def test_an_emcy_is_recorded_read_back_and_replayed_as_a_regression(tmp_path: Pa
     assert len(frames) == summary["frames"] > 500
     ids = {msg.arbitration_id for _, msg in frames}
     assert {0x080, 0x081, 0x181, 0x701, 0x77F} <= ids  # SYNC, the EMCY, a TPDO, heartbeats, the host's own
-    assert (incidents / summary["png"]).stat().st_size > 10_000
+    png = incidents / summary["png"]  # drawn by a helper process
+    wait_for(lambda: png.exists() and png.stat().st_size > 10_000, 20.0, "the incident's plot")
+    assert set(summary["states"]) == {"wheel", "arm"} and len(summary["states"]["wheel"]["t_s"]) > 30
 
     shown = run("incident", str(written))
     assert shown.returncode == 0, shown.stderr
