@@ -73,6 +73,10 @@ def test_the_unit_starts_the_image_after_can0_with_the_config_mounted() -> None:
     assert "--network" in start and start[start.index("--network") + 1] == "host"  # SocketCAN is the host's
     mount = start[start.index("-v") + 1].split(":")
     assert mount[1] == "/etc/rovercan"  # where ROVERCAN_CONFIG points in the image
+    volumes = [start[i + 1].split(":") for i, word in enumerate(start) if word == "-v"]
+    incidents = re.search(r"ENV ROVERCAN_INCIDENT_DIR=(\S+)", (DEPLOY / "Dockerfile").read_text())
+    assert incidents is not None and [incidents.group(1)] * 2 in volumes  # the flight recorder's files outlive it
+    assert unit["Service"]["StateDirectory"] == "rovercan/incidents"
     assert "docker build -f deploy/Dockerfile -t rovercan:latest ." in (DEPLOY / "Dockerfile").read_text()
     assert shlex.split(unit["Service"]["ExecStop"])[:3] == ["/usr/bin/docker", "stop", "--time"]
     assert unit["Install"]["WantedBy"] == "multi-user.target"
