@@ -292,9 +292,9 @@ class Drive:
                 self.behind_back = (self.rx_monotonic, f"node {self.node_id} became OPERATION_ENABLED, which this"
                                                        " driver did not command")
             self._sw_enabled = now_enabled
-            if self.statusword & SW.SETPOINT_ACK and not self._handshake.idle:
-                try:
-                    self._handshake.acknowledged()  # the one reply the receive thread sends
+            if not self._handshake.idle:
+                try:  # the one reply the receive thread sends
+                    self._handshake.on_status(bool(self.statusword & SW.SETPOINT_ACK))
                 except MotorError as err:  # never let a send failure kill the receive thread
                     logger.warning("node %d: setpoint handshake: %s", self.node_id, err)
             with self._status_event:

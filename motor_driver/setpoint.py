@@ -1,9 +1,12 @@
 """The profile-position set-point handshake (CiA 402), as one small object both threads share.
 
 A new target goes out with controlword bit 4 ("new set-point") rising; the drive answers
-with statusword bit 12 ("set-point acknowledge"); the host then clears bit 4, and only after
-that may the next target go out (a target sent while bit 4 is still set has no rising edge:
-the drive ignores it). Targets commanded meanwhile are parked, and only the newest is kept.
+with statusword bit 12 ("set-point acknowledge"); the host then clears bit 4; the drive
+releases bit 12; only then may the next target go out. A drive that reads its controlword once
+per cycle would not see bit 4 fall and rise again if both frames came within one cycle (no
+rising edge: the target ignored, its acknowledge still standing from the last one), so the
+next target waits for bit 12 to be seen low. Targets commanded meanwhile are parked, and only
+the newest is kept.
 
 Two threads meet here: a command thread (:meth:`command`) and the bus's receive thread
 (:meth:`acknowledged`, from the statusword). Each decision and the frame it implies are made
@@ -30,39 +33,44 @@ class SetpointHandshake:
         self._send_clear = send_clear
         self._lock = threading.Lock()
         self._awaiting = False  # a target is out and not yet acknowledged
-        self._pending: int | None = None  # the newest target commanded while awaiting
+        self._releasing = False  # bit 4 cleared after the acknowledge; bit 12 not yet seen low
+        self._pending: int | None = None  # the newest target commanded meanwhile
         self.target: int | None = None  # the last target sent
 
     def command(self, counts: int) -> bool:
         """Send ``counts`` now, or park it as the next one; True when it was sent now."""
         with self._lock:
-            if self._awaiting:
+            if self._awaiting or self._releasing:
                 self._pending = counts  # newest wins: an older parked target is dropped
                 return False
             self._send(counts)
             return True
 
-    def acknowledged(self) -> None:
-        """The drive set bit 12: clear bit 4; send the parked target, if any."""
+    def on_status(self, acknowledged: bool) -> None:
+        """A statusword arrived (receive thread): bit 12 set -> clear bit 4; bit 12 low again
+        after that -> send the parked target, if any."""
         with self._lock:
-            if not self._awaiting:
-                return
-            self._awaiting = False
-            self._send_clear()
-            pending, self._pending = self._pending, None
-            if pending is not None:
-                self._send(pending)
+            if self._awaiting and acknowledged:
+                self._awaiting = False
+                self._releasing = True
+                self._send_clear()
+            elif self._releasing and not acknowledged:
+                self._releasing = False
+                pending, self._pending = self._pending, None
+                if pending is not None:
+                    self._send(pending)
 
     def reset(self) -> None:
         """Forget the handshake (the drive left Operation Enabled, a mode switch, a re-boot)."""
         with self._lock:
             self._awaiting = False
+            self._releasing = False
             self._pending = None
 
     @property
     def idle(self) -> bool:
-        """No target out unacknowledged and none parked."""
-        return not self._awaiting and self._pending is None
+        """No target out unacknowledged, none parked, and the drive's acknowledge released."""
+        return not self._awaiting and not self._releasing and self._pending is None
 
     def _send(self, counts: int) -> None:
         self._awaiting = True  # before the send: an acknowledge can come back at once

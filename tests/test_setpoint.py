@@ -49,9 +49,15 @@ class HookLock:
         self._lock.release()
 
 
+def acknowledge(handshake: SetpointHandshake) -> None:
+    """What the drive's statuswords say after a target: bit 12 set, then (bit 4 cleared) low."""
+    handshake.on_status(True)
+    handshake.on_status(False)
+
+
 def ack_in_thread(handshake: SetpointHandshake) -> threading.Thread:
     """The receive thread's acknowledge, started now; it must wait for the command's lock."""
-    thread = threading.Thread(target=handshake.acknowledged)
+    thread = threading.Thread(target=acknowledge, args=(handshake,))
     thread.start()
     thread.join(0.05)
     return thread
@@ -71,11 +77,11 @@ def test_an_acknowledge_at_every_point_of_a_command_sends_the_newest_target_exac
         assert racing[-1].is_alive()  # it waits for the lock: no decision of the command is torn
 
     if point == "before":
-        handshake.acknowledged()
+        acknowledge(handshake)
     elif point in ("check", "park"):  # the command holds the lock and is deciding (check) or parking (park)
         lock.on_acquire = race
     elif point == "send":  # S1 acknowledged and cleared by then, S2 inside its send
-        handshake.acknowledged()
+        acknowledge(handshake)
         original = rec.setpoint
 
         def send_and_race(counts: int) -> None:
@@ -87,12 +93,12 @@ def test_an_acknowledge_at_every_point_of_a_command_sends_the_newest_target_exac
         handshake._send_setpoint = send_and_race  # type: ignore[method-assign]
     handshake.command(200)  # S2
     if point == "after":
-        handshake.acknowledged()
+        acknowledge(handshake)
     for thread in racing:
         thread.join(1.0)
         assert not thread.is_alive()
     while not handshake.idle:
-        handshake.acknowledged()  # the drive acknowledges whatever is out
+        acknowledge(handshake)  # the drive acknowledges whatever is out
     sets = [c for kind, c in rec.frames if kind == "set"]
     assert sets == [100, 200], rec.frames  # each once, in command order, the newest last
     assert handshake.target == 200
@@ -107,9 +113,25 @@ def test_parked_targets_are_replaced_by_newer_ones() -> None:
     handshake.command(1)
     for counts in (2, 3, 4):
         assert not handshake.command(counts)  # parked; each replaces the last
-    handshake.acknowledged()
-    handshake.acknowledged()
+    acknowledge(handshake)
+    acknowledge(handshake)
     assert [c for kind, c in rec.frames if kind == "set"] == [1, 4] and handshake.idle
+
+
+def test_the_next_target_waits_until_the_drive_released_its_acknowledge() -> None:
+    """A drive that reads its controlword once per cycle must see bit 4 low before it rises
+    again: the parked target goes out only after a statusword with bit 12 low."""
+    rec = Recorder()
+    handshake = SetpointHandshake(rec.setpoint, rec.clear)
+    handshake.command(1)
+    assert not handshake.command(2)
+    handshake.on_status(True)
+    handshake.on_status(True)  # still acknowledged: nothing more goes out
+    assert rec.frames == [("set", 1), ("clear", None)] and not handshake.idle
+    handshake.on_status(False)
+    assert rec.frames[-1] == ("set", 2)
+    acknowledge(handshake)
+    assert handshake.idle and handshake.command(3)  # idle: sent at once
 
 
 def test_a_failed_send_leaves_nothing_awaited() -> None:
@@ -156,3 +178,33 @@ def test_100k_profile_position_commands_at_1khz_never_send_a_stale_target(
     assert accepted[-1] == commanded[-1]  # the drive ends at the newest target
     assert all(a < b for a, b in itertools.pairwise(order)), "a target older than one before it was sent"
     assert len(accepted) > 1000  # it really ran the handshake many times (most targets superseded)
+
+
+def test_a_drive_that_reads_its_controlword_once_per_cycle_gets_the_newest_target(
+        driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
+    """Such a drive sees only the last controlword of each cycle: 'clear bit 4' and the next
+    target sent back to back would leave bit 4 high (no edge, the target ignored, its old
+    acknowledge taken for the new one). The driver waits for bit 12 low before the next one."""
+    counts_per_deg = 4096 / 360.0
+    sim, driver = driver_factory(make_config(1, counts_per_rev=4096, max_velocity_deg_s=3600.0,
+                                             profile_velocity_deg_s=3600.0))
+    runner = sim.simulators["can0"]
+    sim_drive = runner.drive(1)
+
+    def setup() -> Any:
+        sim_drive.faults.cw_per_cycle = True
+        sim_drive.accepted_targets = []
+        return None
+
+    runner.call(setup)
+    drive = driver.drive("joint1")
+    drive.enable()
+    commanded = [round((i % 300) * 0.1 * counts_per_deg) for i in range(1, 3001)]
+    for counts in commanded:
+        drive.move_to(counts / counts_per_deg)
+        time.sleep(0.001)
+    wait_for(lambda: drive._handshake.idle, 2.0, "the last acknowledge")
+    accepted = [round(t) for t in runner.call(lambda: list(sim_drive.accepted_targets or []))]  # type: ignore[union-attr]
+    assert accepted[-1] == commanded[-1]  # the drive has the newest target, not one it ignored
+    assert drive._handshake.target == commanded[-1]
+    assert len(accepted) > 100

@@ -234,6 +234,7 @@ class Faults:
     enable_step_delay_s: float = 0.0  # each enabling transition (2, 3, 4) takes this long
     power_off_until: float = 0.0
     stalled: bool = False  # the shaft is blocked (a wheel jammed against a rock): it cannot turn
+    cw_per_cycle: bool = False  # event RPDOs taken once per cycle, the last of each (many drives)
     pending: list[int] = field(default_factory=list)  # EMCY codes to raise at the next tick
 
 
@@ -320,6 +321,7 @@ class SimulatedDrive:
         self._sync_period_s = 0.01  # measured from the SYNCs (a drive's 0x1006 / 0x60C2)
         self.error_code = 0
         self._pending_rpdos: list[tuple[_Pdo, bytes]] = []
+        self._cycle_rpdos: list[tuple[_Pdo, bytes]] = []  # faults.cw_per_cycle: read at the tick
         self._setpoint_ack = False
         self._ack_at = 0.0  # the acknowledge shows from then on (fault injection: a slow drive)
         self._slow_transition: tuple[State, float] | None = None  # (state, when) of a slow enabling step
@@ -508,6 +510,8 @@ class SimulatedDrive:
             self.counters["rpdo"] += 1
             if 0 <= pdo.trans_type <= 240:
                 self._pending_rpdos.append((pdo, data))
+            elif self.faults.cw_per_cycle:  # the drive reads its objects at its next cycle
+                self._cycle_rpdos.append((pdo, data))
             else:  # taken at once, and the statusword answers at once (a drive's next cycle)
                 self._apply_rpdo(pdo, data)
                 self._now = now
@@ -537,23 +541,28 @@ class SimulatedDrive:
         return []
 
     def _apply_rpdo(self, pdo: _Pdo, data: bytes) -> None:
+        self._act_on(self._write_rpdo(pdo, data))
+
+    def _write_rpdo(self, pdo: _Pdo, data: bytes) -> set[int]:
+        """The RPDO's values into the object dictionary; returns the objects written."""
         need = sum(struct.calcsize(fmt) for _, _, fmt in pdo.entries)
         if len(data) < need:
             self.faults.pending.append(0x8210)  # PDO not processed due to length error
-            return
+            return set()
         offset = 0
-        cw_written = mode_written = False
         for index, sub, fmt in pdo.entries:
             (value,) = struct.unpack_from(fmt, data, offset)
             offset += struct.calcsize(fmt)
             self.store.values[(index, sub)] = value
-            cw_written |= index == OD.CONTROLWORD
-            mode_written |= index == OD.MODES_OF_OPERATION
-        if mode_written:
+        return {index for index, _, _ in pdo.entries}
+
+    def _act_on(self, written: set[int]) -> None:
+        """What the drive does with newly written objects (once per frame, or once per cycle)."""
+        if OD.MODES_OF_OPERATION in written:
             self._set_mode()
-        if cw_written:
+        if OD.CONTROLWORD in written:
             self._apply_controlword()
-        elif any(i in (OD.TARGET_POSITION, OD.INTERPOLATION_DATA) for i, _, _ in pdo.entries):
+        elif written & {OD.TARGET_POSITION, OD.INTERPOLATION_DATA}:
             self._csp_target()
 
     def _event_tpdos(self, now: float) -> list[can.Message]:
@@ -755,6 +764,12 @@ class SimulatedDrive:
             out += self._raise_fault(0x5441, now)
         if self._consumer_seen:
             out += self._check_consumers(now)
+        if self._cycle_rpdos:  # the objects hold the last value written; the drive reads them once
+            written: set[int] = set()
+            for pdo, data in self._cycle_rpdos:
+                written |= self._write_rpdo(pdo, data)
+            self._cycle_rpdos.clear()
+            self._act_on(written)
         if self._slow_transition is not None and now >= self._slow_transition[1]:
             new, _ = self._slow_transition
             self._slow_transition = None
