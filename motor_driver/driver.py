@@ -246,9 +246,11 @@ class ForeignTraffic(can.Listener):
             if period <= 0:
                 self.sync = now
                 return
+            # counted by the bus's timestamps, not by arrival: a busy process reads a burst of them
+            wire = msg.timestamp or time.time()
             syncs = self._syncs
-            syncs.append(now)
-            while now - syncs[0] > SYNC_RATE_WINDOW_S:
+            syncs.append(wire)
+            while wire - syncs[0] > SYNC_RATE_WINDOW_S:
                 syncs.popleft()
             if len(syncs) > 1.5 * SYNC_RATE_WINDOW_S / period + 2:
                 self.sync = now

@@ -20,6 +20,7 @@ from can_config import RoverConfig
 from can_config.errors import CommandRejected, MotorError
 from motor_driver import Drive, MotorDriver, State
 from virtual_can import SimService
+from virtual_can.sim.drive import LIMIT_TOLERANCE_REV
 
 from .conftest import REPO, make_config, wait_for
 
@@ -136,8 +137,8 @@ def test_streamed_positions_are_refused_beyond_a_limit(driver_factory: DriverFac
     time.sleep(0.3)
     _low, high = watch.stop()
     # the stream stops dead from 100 deg/s at 90: the servo overshoots a little (the simulated
-    # drive's model), less than its limit tolerance (0.1 motor rev), so it does not fault
-    assert angle == 91.0 and high <= 90.0 + 0.1 * 360.0 / GEAR
+    # drive's model: about 0.1 motor rev), less than its limit tolerance, so it does not fault
+    assert angle == 91.0 and high <= 90.0 + LIMIT_TOLERANCE_REV * 360.0 / GEAR
     assert drive.state is State.OPERATION_ENABLED
 
 
@@ -155,8 +156,8 @@ def test_the_drive_gets_its_limits_and_faults_beyond_them_by_itself(driver_facto
     drive.sdo_write(0x60FF, 0, int(360 * COUNTS_PER_DEG).to_bytes(4, "little", signed=True))  # behind the driver's back
     wait_for(lambda: drive.state is State.FAULT, 3.0, "the drive's own limit fault")
     assert drive.snapshot().error_code == 0x8612  # reference limit
-    # within its limit tolerance (0.1 motor rev) and quick-stop distance
-    assert Extremes(sim).stop()[1] < 90.0 + 0.1 * 360.0 / GEAR + 360.0 * 360.0 / (2 * 4 * 720.0) + 1.0
+    # within its limit tolerance and quick-stop distance
+    assert Extremes(sim).stop()[1] < 90.0 + LIMIT_TOLERANCE_REV * 360.0 / GEAR + 360.0 * 360.0 / (2 * 4 * 720.0) + 1.0
 
 
 @pytest.mark.parametrize("invert", [False, True], ids=["plain", "inverted"])

@@ -68,8 +68,12 @@ def test_torque_is_inertia_times_acceleration_plus_friction(driver_factory: Driv
     inertia_joint = INERTIA_KG_M2 * GEAR**2
     expected = inertia_joint * math.radians(ACCEL_DEG_S2)  # 8.7 Nm at the joint
     friction = statistics.median(cruise)
-    assert statistics.median(ramp_up) - friction == pytest.approx(expected, rel=0.10)
-    assert statistics.median(ramp_down) - friction == pytest.approx(-expected, rel=0.10)
+    up, down = statistics.mean(ramp_up), statistics.mean(ramp_down)
+    # same direction, same speeds: friction is the same on both ramps, so half the difference is
+    # the torque that accelerates the inertia; each ramp on its own (minus friction) within 20 %
+    assert (up - down) / 2 == pytest.approx(expected, rel=0.10)
+    assert up - friction == pytest.approx(expected, rel=0.20)
+    assert down - friction == pytest.approx(-expected, rel=0.20)
     # at constant speed: Coulomb plus viscous friction, through the gear
     omega_motor = math.radians(CRUISE_DEG_S * GEAR)
     assert friction == pytest.approx((COULOMB_NM + VISCOUS_NM_S_RAD * omega_motor) * GEAR, rel=0.15)

@@ -78,9 +78,10 @@ STATUS_BITS: dict[State, int] = {
 #: Longest integration step of the motor model.
 PHYSICS_STEP_S = 0.001
 #: How far past a software position limit the shaft may go before the drive faults: a servo
-#: that reaches a set-point at the limit at speed overshoots it (0.4 deg at the joint for a
-#: 100 deg/s stream stopped in one cycle through a 50:1 gear); a real excursion goes on.
-LIMIT_TOLERANCE_REV = 0.1
+#: that reaches a set-point at the limit at speed overshoots it (0.4-0.75 deg at the joint for a
+#: 100 deg/s stream stopped in one cycle through a 50:1 gear, 0.1 motor rev); a real excursion
+#: goes on.
+LIMIT_TOLERANCE_REV = 0.25
 #: A cyclic position set-point older than this is held (no velocity fed forward from it).
 CYCLIC_GAP_S = 0.1
 
