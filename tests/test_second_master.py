@@ -12,6 +12,7 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import DriveStateError
 from motor_driver import MotorDriver, State
+from motor_driver.driver import FOREIGN_HOLD_S
 from motor_driver.health import ERROR, drive_health
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -171,8 +172,13 @@ def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master
     with MotorDriver(cfg).start() as driver:
         drive = driver.drive("joint1")
         runner = sim.simulators["can0"]
+        wait_for(lambda: drive._reported_nmt == "OPERATIONAL", 2.0, "the drive's own OPERATIONAL heartbeat")
         runner.call(lambda: setattr(runner.drive(1), "nmt", NmtState.PRE_OPERATIONAL))  # as after a reset
         wait_for(lambda: drive.nmt_state == "PRE_OPERATIONAL", 1.0, "a PRE-OPERATIONAL heartbeat")
+        # the supervisor marks that change (within its hold time); only then is the mark cleared,
+        # or a late supervisor (a loaded machine) would mark it again after the clear
+        wait_for(lambda: bool(drive.foreign_master), 2.0, "the supervisor's mark of the change")
+        wait_for(lambda: drive.behind_back[0] < time.monotonic() - FOREIGN_HOLD_S - 0.05, 2.0, "the hold over")
         drive.set_foreign_master("")  # the drive went there on its own: no concern of this test
         drive.boot(reset=False)  # ... ends with NMT start
         drive._on_heartbeat(0x701, bytearray([NmtState.PRE_OPERATIONAL]), 0.0)  # the one on its way
