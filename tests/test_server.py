@@ -19,6 +19,8 @@ from virtual_can import BusEngine, SocketcandServer, VirtualBus
 from virtual_can.server import format_frame, parse_send
 from virtual_can.wire import frame_bits
 
+from .conftest import drain
+
 
 @pytest.fixture
 def server() -> Iterator[SocketcandServer]:
@@ -334,16 +336,6 @@ def test_hostile_and_idle_clients_never_starve_a_well_behaved_one() -> None:
             sender.shutdown()
 
 
-def frames_of(bus: can.BusABC, seconds: float) -> list[can.Message]:
-    out = []
-    end = time.monotonic() + seconds
-    while (left := end - time.monotonic()) > 0:
-        msg = bus.recv(left)
-        if msg is not None:
-            out.append(msg)
-    return out
-
-
 def test_cyclic_jobs_add_update_delete_and_end_with_their_client(server: SocketcandServer) -> None:
     """socketcand's broadcast manager: '< add >' makes the server send a frame on its own timer."""
     listener = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
@@ -353,7 +345,7 @@ def test_cyclic_jobs_add_update_delete_and_end_with_their_client(server: Socketc
         sock.sendall(b"< open can0 >")
         assert "< ok >" in read_until(sock, "< ok >")  # BCM mode: no rawmode needed
         sock.sendall(b"< add 0 10000 080 0 >< add 0 20000 123 2 AA BB >")
-        got = frames_of(listener, 0.5)
+        got = drain(listener, 0.5)
         syncs = [m.timestamp for m in got if m.arbitration_id == 0x080]
         other = [m for m in got if m.arbitration_id == 0x123]
         assert 45 <= len(syncs) <= 55 and 22 <= len(other) <= 28, (len(syncs), len(other))
@@ -361,16 +353,16 @@ def test_cyclic_jobs_add_update_delete_and_end_with_their_client(server: Socketc
         assert abs(periods[len(periods) // 2] - 0.01) < 0.001  # the median period is the job's
         assert bytes(other[0].data) == b"\xaa\xbb"
         sock.sendall(b"< update 123 1 CC >< delete 080 >")
-        frames_of(listener, 0.05)  # what was on its way before
-        got = frames_of(listener, 0.2)
+        drain(listener, 0.05)  # what was on its way before
+        got = drain(listener, 0.2)
         assert not [m for m in got if m.arbitration_id == 0x080]
         assert {bytes(m.data) for m in got if m.arbitration_id == 0x123} == {b"\xcc"}
         sock.sendall(b"< add 0 0 200 0 >< delete 7FF >< add x 0 080 0 >")
         replies = read_until(sock, "< error", 1.0)
         assert "cyclic period 0 s out of range" in replies, replies
         sock.close()  # the client goes: its job goes with it
-        frames_of(listener, 0.05)
-        assert not frames_of(listener, 0.2)
+        drain(listener, 0.05)
+        assert not drain(listener, 0.2)
     finally:
         listener.shutdown()
 
@@ -388,8 +380,8 @@ def test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout() -> None:
             job.sendall(b"< add 0 20000 080 0 >")
             time.sleep(0.5)
             assert idle.recv(64) == b""  # the idle one was closed
-            frames_of(listener, 0.05)
-            assert len([m for m in frames_of(listener, 0.2) if m.arbitration_id == 0x080]) >= 8
+            drain(listener, 0.05)
+            assert len([m for m in drain(listener, 0.2) if m.arbitration_id == 0x080]) >= 8
         finally:
             idle.close()
             job.close()
