@@ -346,7 +346,11 @@ class Drive:
         if self.booted and state != NmtState.OPERATIONAL and was == "OPERATIONAL":  # the change, not the state
             self.behind_back = (self.last_heartbeat, f"node {self.node_id} went {self.nmt_state} without an NMT"
                                                      " command from this driver")
-        if self.lost:
+        # a heartbeat brings back only a drive whose heartbeat was late (still booted); one the
+        # supervisor marked lost with its bus is back when boot() configured it again. A heartbeat
+        # still queued in the receive thread when the bus went must not undo that mark: nothing
+        # would declare the drive lost again (check_heartbeat watches booted drives only).
+        if self.lost and self.booted:
             logger.warning("node %d (%s): heartbeat back", self.node_id, self.name)
             self.lost = False
 

@@ -395,7 +395,9 @@ def test_motor_state_is_marked_stale_when_the_pdos_stop(graph: Graph) -> None:
 def test_a_slow_enable_service_never_stalls_commands_or_other_joints_topics(graph: Graph) -> None:
     apply_action(graph.sim, {"action": "slow_enable", "node": 1, "channel": "can0", "delay_s": 0.7})  # ~2 s
     diags = graph.listen(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
-    other = graph.listen(MotorState, "wheels/wheel_rear_left/motor_state")
+    other: list[float] = []  # arrival times of joint B's MotorState
+    graph.probe.create_subscription(MotorState, "wheels/wheel_rear_left/motor_state",
+                                    lambda _msg: other.append(time.monotonic()), STATE_QOS)
     degree = graph.probe.create_publisher(Float32, "wheels/wheel_front_left/degree_cmd", COMMAND_QOS)
     client = graph.probe.create_client(Trigger, "wheels/wheel_front_left/enable")
     assert client.wait_for_service(timeout_sec=5.0)
@@ -425,8 +427,12 @@ def test_a_slow_enable_service_never_stalls_commands_or_other_joints_topics(grap
     eventually(future.done, 2.0, "the enable service's answer")
     assert future.result().success and elapsed >= 1.5 and refused >= 30, (elapsed, refused)
     assert worst < 0.005, worst
-    rate = (len(other) - n0) / elapsed
-    assert rate >= 0.8 * 50.0, rate  # joint B's MotorState kept its 50 Hz meanwhile
+    # joint B's MotorState kept coming meanwhile: a stall behind the enable's waits (0.7 s per
+    # step) would leave a gap of that size; a loaded machine's scheduling does not (the rate is
+    # no target here: on a 2-core machine kept busy by other processes it was 39 Hz of 50)
+    during = [t for t in other[n0:] if t <= t_busy + elapsed]
+    gaps = [b - a for a, b in zip([t_busy, *during], [*during, t_busy + elapsed], strict=True)]
+    assert len(during) >= 0.5 * 50.0 * elapsed and max(gaps) < 0.3, (len(during), elapsed, max(gaps))
     eventually(lambda: any("busy with enable" in kv.value for a in diags for st in a.status if "wheel_front_left" in st.name
                            for kv in st.values), 3.0, "the refusal in /diagnostics")
 
