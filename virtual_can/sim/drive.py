@@ -905,9 +905,13 @@ class SimulatedDrive:
         steps = max(1, math.ceil(dt / PHYSICS_STEP_S))
         h = dt / steps
         alpha = h / (p.torque_lag_s + h)  # the current loop's lag, backward Euler (stable for any h)
-        sp_speed = self.sp_vel * k
-        v_ff = p.velocity_ff * sp_speed
-        sp_rad = self.sp_pos * k - sp_speed * dt  # the profile's position at the start of the tick
+        # the profile's set-point moves on within the tick with its acceleration (the set-point
+        # velocity ramps, the feed-forward with it): a tick that comes late, 10-20 ms on a busy
+        # machine, gives the same torque as ten on time, not a velocity step and then friction
+        acc = self.sp_acc * k
+        v_end = self.sp_vel * k
+        v0 = v_end - acc * dt
+        sp_rad = self.sp_pos * k - 0.5 * (v0 + v_end) * dt  # the profile's position at the start of the tick
         i_max = limit / ki if ki > 0 else 0.0
         stalled = self.faults.stalled
         omega, theta, tau, integral = self.omega, self.theta, self.torque_nm, self._vel_integral
@@ -916,7 +920,9 @@ class SimulatedDrive:
             if target_tau is not None:
                 tau_cmd = target_tau
             else:  # the set-point moves on within the tick as the shaft does: both at the sub-step's start
-                v_cmd = v_ff + (kp * (sp_rad + sp_speed * h * i - theta - offset_rad) if position_loop else 0.0)
+                t = h * i
+                v_cmd = p.velocity_ff * (v0 + acc * t) + (
+                    kp * (sp_rad + v0 * t + 0.5 * acc * t * t - theta - offset_rad) if position_loop else 0.0)
                 err = v_cmd - omega
                 integral = max(-i_max, min(i_max, integral + err * h))  # anti-windup
                 tau_cmd = kv * err + ki * integral
@@ -983,8 +989,9 @@ class SimulatedDrive:
         rate = accel if abs(target) > abs(self.sp_vel) and target * self.sp_vel >= 0 else decel
         step = rate * dt
         self.sp_acc = math.copysign(rate, dv) if abs(dv) > step else dv / dt if dt else 0.0
+        v_start = self.sp_vel
         self.sp_vel = target if abs(dv) <= step else self.sp_vel + math.copysign(step, dv)
-        self.sp_pos += self.sp_vel * dt
+        self.sp_pos += 0.5 * (v_start + self.sp_vel) * dt  # exact for the constant acceleration
 
     def _track_position(self, target: float, vmax: float, accel: float, decel: float, dt: float) -> None:
         """Online trapezoidal profile toward ``target`` (counts)."""
