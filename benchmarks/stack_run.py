@@ -1,16 +1,18 @@
 """The 6-drive stack run of the performance issue, measured from outside the measured process.
 
-The simulator (socketcand server + 6 drives) runs in this process; the measured process is
-``rover_driver`` (driver + ROS node) in its own process; an independent listener (a python-can
-socketcand client here) sees every frame with the server's wire timestamp. Figures:
+Three processes, as on a bench: the simulator (``rovercan sim --config``: socketcand server,
+the drives, the SYNC job the driver hands it), the measured process (``rover_driver``: driver +
+ROS node), and this one (the command publisher and an independent listener, a python-can
+socketcand client that sees every frame with the server's wire timestamp). Figures:
 
 * the measured process runs a shipped config (``config/rover.yaml``: six wheels on two buses;
   the embedded default: one motor) as a user gets it, only the simulator's port put in.
 * cmd_latency: publish on ``<joint>/degree_cmd`` (every joint at 100 Hz) -> the RPDO with that
   target on the wire; the bare path (rclpy publish -> a subscriber process on the
   EventsExecutor the node uses -> one python-can send) is measured the same way.
-* tpdo_loss: TPDOs the simulated drives sent minus TPDOs the driver applied (its count comes
-  over /diagnostics), after the drives stop sending.
+* tpdo_loss: TPDOs on the wire (the listener, connected before the driver started) minus
+  TPDOs the driver applied (its count comes over /diagnostics), after an NMT "enter
+  pre-operational" stopped the drives sending.
 * cpu_core_fraction, rss_mb: /proc of the measured process (CPU time / wall time; VmHWM).
 * sync_jitter_p99_us: SYNC period error at the listener.
 * baseline: the same state run done the canopen library's way (BaseNode402 + PDO callbacks).
@@ -21,12 +23,15 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import socket
 import statistics
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -62,10 +67,10 @@ def pct(values: list[float], q: float) -> float:
 
 
 class Listener(threading.Thread):
-    def __init__(self, sim: SimService, channel: str = "can0") -> None:
+    def __init__(self, port: int, channel: str = "can0") -> None:
         super().__init__(daemon=True)
         self.channel = channel
-        self.bus = can.Bus(interface="socketcand", channel=channel, host=sim.host, port=sim.port, tcp_tune=True)
+        self.bus = can.Bus(interface="socketcand", channel=channel, host="127.0.0.1", port=port, tcp_tune=True)
         self.frames: list[tuple[float, int, bytes]] = []
         self.stop = threading.Event()
 
@@ -84,6 +89,36 @@ class Listener(threading.Thread):
 SHIPPED = {"rover": REPO / "config" / "rover.yaml", "default": REPO / "can_config" / "data" / "default.yaml"}
 
 
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@contextmanager
+def simulator(*args: str) -> Iterator[int]:
+    """``rovercan sim ARGS`` in a process of its own on a free port, as a user runs it; yields
+    the port once it serves. Its output goes to a file: a pipe nobody reads could block it."""
+    port = free_port()
+    with tempfile.TemporaryFile("w+") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", *args, "--port", str(port)], cwd=REPO,
+                                stdout=out, stderr=subprocess.STDOUT, text=True)
+        try:
+            deadline = time.monotonic() + 30
+            while "simulated drive" not in (out.seek(0) or out.read()):
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise RuntimeError(f"the simulator did not start: {out.read()}")
+                time.sleep(0.05)
+            yield port
+        finally:
+            proc.terminate()
+            proc.wait(20)
+
+
+def is_tpdo(cob: int) -> bool:
+    return 0x181 <= cob <= 0x4FF and cob & 0x7F != 0 and cob & 0x780 in (0x180, 0x280, 0x380, 0x480)
+
+
 def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str, Any]:
     """The measured process runs a shipped config as a user gets it; only the simulator's port
     is put into it. Every drive gets a ``degree_cmd`` at ``command_hz``."""
@@ -97,15 +132,16 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
 
     shipped = load_config(config_path)
     channels = {b.name: b.channel for b in shipped.buses}
-    with SimService.from_config(shipped, port=0) as sim, tempfile.TemporaryDirectory() as tmp:
+    with simulator("--config", str(config_path)) as port, tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / config_path.name
-        config.write_text(config_path.read_text().replace("port: 29536", f"port: {sim.port}"))
+        config.write_text(config_path.read_text().replace("port: 29536", f"port: {port}"))
+        # the listener first: it must see every TPDO the drives send to count the loss
+        listeners = {ch: Listener(port, ch) for ch in sorted(set(channels.values()))}
+        for listener in listeners.values():
+            listener.start()
         proc = subprocess.Popen([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p", f"config:={config}",
                                  "-p", "arm:=true", "-p", "diagnostics_rate_hz:=2.0"],
                                 cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        listeners = {ch: Listener(sim, ch) for ch in sorted(set(channels.values()))}
-        for listener in listeners.values():
-            listener.start()
         context = rclpy.Context()
         rclpy.init(context=context)
         node = rclpy.create_node("bench_publisher", context=context)
@@ -121,13 +157,21 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
         from rclpy.executors import SingleThreadedExecutor
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
+
+        names = {f"rovercan: {d.name}" for d in shipped.drives}
+
+        def all_enabled() -> bool:
+            """Every drive in Operation Enabled, as the newest /diagnostics says."""
+            status = diags[-1].status if diags else []
+            states = {st.name: kv.value for st in status for kv in st.values if kv.key == "cia402_state"}
+            return all(states.get(n) == "OPERATION_ENABLED" for n in names)
+
         try:
             deadline = time.monotonic() + 30
-            sims = [(sim.simulators[ch], d.node_id) for d, ch, _, _ in drives]
-            while not all(s.call(lambda s=s, n=n: s.drive(n).state.name) == "OPERATION_ENABLED" for s, n in sims):
+            while not all_enabled():  # every drive enabled, as the driver reports it
                 if time.monotonic() > deadline or proc.poll() is not None:
                     raise RuntimeError("the measured process did not enable its drives")
-                time.sleep(0.1)
+                executor.spin_once(timeout_sec=0.1)
             while node.count_subscribers(f"{shipped.drives[-1].ros_prefix}/degree_cmd") == 0:
                 time.sleep(0.05)
             time.sleep(0.5)
@@ -149,15 +193,18 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             cpu = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
             window1 = time.time()
             rss = proc_rss_peak_mb(proc.pid)
-            for s, n in sims:  # the drives stop sending: loss can be counted exactly
-                s.call(lambda s=s, n=n: setattr(s.drive(n), "nmt", 0x7F))
-            time.sleep(0.3)
-            sim_tpdos = sum(s.call(lambda s=s, n=n: s.drive(n).counters["tpdo"]) for s, n in sims)
+            first = listeners[min(listeners)]
+            for listener in listeners.values():  # the drives stop sending: loss can be counted exactly
+                listener.bus.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 0]), is_extended_id=False))
+            time.sleep(0.5)
             diags.clear()
-            end = time.monotonic() + 3
+            end = time.monotonic() + 5
             while time.monotonic() < end and not diags:
                 executor.spin_once(timeout_sec=0.1)
-            applied = sum(int(kv.value) for st in diags[-1].status for kv in st.values if kv.key == "tpdos_applied")
+            tpdo_applied = sum(int(kv.value) for st in diags[-1].status for kv in st.values if kv.key == "tpdos_applied")
+            # the wire's count now: the driver takes the drives back later (an NMT command not its
+            # own is another master's; once that is over it configures them again, TPDOs and all)
+            tpdo_sent = sum(1 for listener in listeners.values() for _, cob, _ in listener.frames[:] if is_tpdo(cob))
         finally:
             executor.shutdown()
             node.destroy_node()
@@ -182,7 +229,6 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
                     latencies.append((t - times.pop(0)) * 1000)
                     matched += 1
     unmatched = sum(len(v) for v in sent.values())
-    first = listeners[min(listeners)]
     syncs = [t for t, cob, _ in first.frames if cob == 0x080]
     sync_s = shipped.buses[0].sync_period_s
     jitter = [abs((b - a) - sync_s) * 1e6 for a, b in itertools.pairwise(syncs)]
@@ -196,7 +242,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             "cmd_latency_p50_ms": round(statistics.median(latencies), 3) if latencies else None,
             "cmd_latency_p99_ms": round(pct(latencies, 0.99), 3) if latencies else None,
             "commands_matched": matched, "commands_superseded": unmatched,
-            "tpdo_sent": sim_tpdos, "tpdo_applied": applied, "tpdo_loss": sim_tpdos - applied,
+            "tpdo_sent": tpdo_sent, "tpdo_applied": tpdo_applied, "tpdo_loss": tpdo_sent - tpdo_applied,
             "cpu_core_fraction": round(cpu, 3), "rss_mb": round(rss, 1),
             "sync_jitter_p99_us": round(pct(jitter, 0.99), 1) if jitter else None}
 
@@ -212,11 +258,11 @@ def bare_path(seconds: float) -> dict[str, Any]:
 
     from nodes.qos import COMMAND_QOS
 
-    with SimService([], port=0) as sim:
-        listener = Listener(sim)
+    with simulator("--drives", "1") as port:  # the same server process as the stack's (its drive stays pre-op)
+        listener = Listener(port)
         listener.start()
-        peer = subprocess.Popen([sys.executable, str(Path(__file__).resolve().parent / "bare_peer.py"), sim.host,
-                                 str(sim.port)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        peer = subprocess.Popen([sys.executable, str(Path(__file__).resolve().parent / "bare_peer.py"), "127.0.0.1",
+                                 str(port)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         context = rclpy.Context()
         rclpy.init(context=context)
         node = rclpy.create_node("bare", context=context)
