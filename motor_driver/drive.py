@@ -29,7 +29,7 @@ import math
 import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -376,11 +376,14 @@ class Drive:
                          self.node_id, self.name, (now - self.last_heartbeat) * 1000,
                          self.config.heartbeat_timeout_s * 1000)
 
-    def set_foreign_master(self, evidence: str) -> None:
+    def set_foreign_master(self, evidence: str) -> bool:
         """Supervisor: another master drives this drive ("" once it has been gone long enough).
         A drive this driver had enabled gets a quick stop (nothing else of this driver's goes to
         it meanwhile); when it clears, the drive is configured again (not enabled): the other
-        master may have reset or re-mapped it."""
+        master may have reset or re-mapped it. True when the quick stop went out as an RPDO: the
+        caller sends it by SDO as well (:meth:`quick_stop_by_sdo`, on the bus worker), since a
+        drive the other master put in PRE-OPERATIONAL ignores PDOs and would keep moving."""
+        stopped = False
         if evidence and not self.foreign_master:
             logger.error("%s (node %d): another master on the bus: %s; commands are refused", self.name,
                          self.node_id, evidence)
@@ -388,6 +391,7 @@ class Drive:
                 # two masters on one drive is no state to keep moving in: the last thing this
                 # driver sends it is a quick stop (the watchdog no longer runs for it)
                 self._cw = int(Command.QUICK_STOP)
+                stopped = True
                 try:
                     self._send_cw(self._cw)
                 except MotorError as err:
@@ -400,6 +404,47 @@ class Drive:
             self.booted = False
             self.rebooted.set()
         self.foreign_master = evidence
+        return stopped
+
+    def _disarm_by_sdo(self) -> None:
+        """Boot: a drive found powered (configured without a reset after another master had it,
+        or left enabled by a driver that did not stop it) is quick-stopped and disabled before
+        anything else, by SDO (no PDOs flow before NMT start): a boot never leaves a drive armed
+        behind a driver that says it is not enabled."""
+        state = decode_state(int(self.sdo_read_value(OD.STATUSWORD)))  # type: ignore[arg-type]
+        if state not in (State.SWITCHED_ON, State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
+            return
+        logger.warning("%s (node %d): found %s at boot (another master, or a driver that did not stop it);"
+                       " quick stop, then disable voltage", self.name, self.node_id, state.name)
+        if state == State.OPERATION_ENABLED:
+            self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
+            # stopped: Switch On Disabled (quick-stop options 1-3), or Quick Stop Active with
+            # bit 10 set (options 5-7 hold there)
+            self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED or (
+                st == State.QUICK_STOP_ACTIVE and bool(sw & SW.TARGET_REACHED)), "quick stop at boot")
+        self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.DISABLE_VOLTAGE)))
+        self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED, "disable voltage at boot")
+
+    def _poll_state_sdo(self, done: Callable[[State, int], bool], doing: str) -> None:
+        deadline = time.monotonic() + TRANSITION_TIMEOUT_S
+        while True:
+            sw = int(self.sdo_read_value(OD.STATUSWORD))  # type: ignore[arg-type]
+            if done(decode_state(sw), sw):
+                self.statusword = sw
+                return
+            if time.monotonic() > deadline:
+                raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: still in"
+                                        f" {decode_state(sw).name} (statusword 0x{sw:04X}) after"
+                                        f" {TRANSITION_TIMEOUT_S:g} s", node_id=self.node_id, statusword=sw)
+            time.sleep(0.02)
+
+    def quick_stop_by_sdo(self) -> None:
+        """Bus worker: the quick stop of losing control once more, as an SDO write of the
+        controlword (an SDO reaches a drive in PRE-OPERATIONAL; one expedited write, no wait)."""
+        try:
+            self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
+        except MotorError as err:
+            logger.error("%s: quick stop by SDO on losing control failed: %s", self.name, err)
 
     def mark_lost(self) -> None:
         """Supervisor: the drive's bus is gone; nothing is commanded until it is booted again."""
@@ -576,6 +621,10 @@ class Drive:
                                self.node_id, device_type)
             step = "identity"
             self._check_identity()
+            step = "disarm"
+            if has_object(self.od, OD.STATUSWORD) and has_object(self.od, OD.CONTROLWORD):
+                current = (OD.STATUSWORD, 0)
+                self._disarm_by_sdo()
             step = "units"
             self._read_units()
             step = "PDO mapping"

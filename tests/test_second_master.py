@@ -187,3 +187,61 @@ def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master
         wait_for(lambda: drive.nmt_state == "OPERATIONAL", 1.0, "the drive's own OPERATIONAL heartbeat")
         runner.call(lambda: setattr(runner.drive(1), "nmt", NmtState.PRE_OPERATIONAL))  # now it is a change
         wait_for(lambda: "went PRE_OPERATIONAL without an NMT command" in drive.foreign_master, 1.0, "marked")
+
+
+def sim_state(sim: SimService) -> tuple[str, float]:
+    """The simulated drive's own CiA 402 state and shaft speed (rad/s): the truth, not the driver's view."""
+    runner = sim.simulators["can0"]
+    return runner.call(lambda: (runner.drive(1).state.name, runner.drive(1).omega))
+
+
+def test_a_turning_drive_another_master_puts_in_pre_operational_is_stopped(sim_factory: SimFactory) -> None:
+    """PRE-OPERATIONAL stops a drive's PDOs, not its motor: the quick stop the driver sends on
+    losing control went as an RPDO only, which the drive ignored, and it kept turning at the
+    commanded speed while the driver refused every command (seen: 30 deg/s for the 2 s until
+    the driver took it back). It goes by SDO as well now."""
+    import can
+
+    sim, cfg = sim_factory(make_config(1, watchdog_ms=10_000))
+    with MotorDriver(cfg).start() as driver:
+        drive = driver.drive("joint1")
+        drive.enable()
+        drive.set_velocity(30.0)
+        wait_for(lambda: sim_state(sim)[1] > 0.4, 2.0, "turning")
+        bench = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        try:
+            bench.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 1]), is_extended_id=False))
+        finally:
+            bench.shutdown()
+        wait_for(lambda: bool(drive.foreign_master), 1.0, "the other master noticed")
+        wait_for(lambda: sim_state(sim) == ("SWITCH_ON_DISABLED", 0.0), 1.0, "the drive stopped by the driver's quick stop")
+
+
+def test_a_drive_another_master_left_enabled_is_disabled_when_configured_again(sim_factory: SimFactory) -> None:
+    """A bench tool enables a drive (SDO controlword writes) and goes quiet; the driver then
+    configures the drive again without a reset and says it is not enabled: the drive must not
+    be, or the next command from anyone moves a drive nobody armed."""
+    import canopen
+
+    from can_config import GENERIC_EDS, load_drive_od
+    from virtual_can.server import RAWMODE_HOLD_S
+
+    sim, cfg = sim_factory(make_config(1))
+    with MotorDriver(cfg).start() as driver:
+        drive = driver.drive("joint1")
+        bench = canopen.Network()
+        bench.connect(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        try:
+            time.sleep(RAWMODE_HOLD_S + 0.02)
+            node = bench.add_node(1, load_drive_od(GENERIC_EDS, 1))
+            for cw in (0x06, 0x07, 0x0F):  # shutdown, switch on, enable operation
+                node.sdo.download(0x6040, 0, cw.to_bytes(2, "little"))
+            assert sim_state(sim)[0] == "OPERATION_ENABLED"
+            wait_for(lambda: bool(drive.foreign_master), 1.0, "the bench tool noticed")
+        finally:
+            bench.disconnect()
+        wait_for(lambda: not drive.foreign_master and drive.booted, 6.0, "configured again after the quiet period")
+        assert sim_state(sim)[0] == "SWITCH_ON_DISABLED"
+        assert not drive.snapshot().enabled
+        drive.enable()  # armed again only when asked
+        drive.move_to(10.0, wait=True)
