@@ -194,17 +194,22 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             window1 = time.time()
             rss = proc_rss_peak_mb(proc.pid)
             first = listeners[min(listeners)]
+            t_stop = time.time()
             for listener in listeners.values():  # the drives stop sending: loss can be counted exactly
                 listener.bus.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 0]), is_extended_id=False))
-            time.sleep(0.5)
+            # the driver's count from a /diagnostics published a second after the stop (one
+            # published at once can miss the last TPDOs still on their way), taken before the
+            # driver takes the drives back (FOREIGN_RELEASE_S after the other master's NMT)
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.05)
             diags.clear()
             end = time.monotonic() + 5
             while time.monotonic() < end and not diags:
-                executor.spin_once(timeout_sec=0.1)
+                executor.spin_once(timeout_sec=0.05)
             tpdo_applied = sum(int(kv.value) for st in diags[-1].status for kv in st.values if kv.key == "tpdos_applied")
-            # the wire's count now: the driver takes the drives back later (an NMT command not its
-            # own is another master's; once that is over it configures them again, TPDOs and all)
-            tpdo_sent = sum(1 for listener in listeners.values() for _, cob, _ in listener.frames[:] if is_tpdo(cob))
+            tpdo_sent = sum(1 for listener in listeners.values() for t, cob, _ in listener.frames[:]
+                            if is_tpdo(cob) and t < t_stop + 0.5)
         finally:
             executor.shutdown()
             node.destroy_node()
