@@ -418,6 +418,7 @@ class Drive:
                        " quick stop, then disable voltage", self.name, self.node_id, state.name)
         if state == State.OPERATION_ENABLED:
             self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
+        if state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):  # no power off while it brakes
             # stopped: Switch On Disabled (quick-stop options 1-3), or Quick Stop Active with
             # bit 10 set (options 5-7 hold there)
             self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED or (
