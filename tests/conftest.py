@@ -53,10 +53,16 @@ os.environ.setdefault(*LOCAL_DISCOVERY)
 #: 100-150 ms late (measured with one core busy), which the default 150 ms would take for a dead
 #: host. Tests of the drive-side stop itself give host_timeout_ms explicitly.
 IN_PROCESS_HOST_TIMEOUT_MS = 500.0
+#: The driver's consumer time of the simulated drives' heartbeats in those rigs, for the same
+#: reason the other way round: with both cores kept busy by other processes the simulated drives
+#: were seen silent for more than the default 350 ms, and the driver rightly took them for lost.
+#: Tests of heartbeat loss itself give heartbeat_timeout_ms explicitly.
+IN_PROCESS_HEARTBEAT_TIMEOUT_MS = 1000.0
 
 
 def make_config(n: int = 1, *, eds: str = "generic", **drive: object) -> RoverConfig:
     drive.setdefault("host_timeout_ms", IN_PROCESS_HOST_TIMEOUT_MS)
+    drive.setdefault("heartbeat_timeout_ms", IN_PROCESS_HEARTBEAT_TIMEOUT_MS)
     drives = [{"name": f"joint{i}", "node_id": i, "eds": eds, **drive} for i in range(1, n + 1)]
     return parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
                                     "kwargs": {"host": "127.0.0.1", "port": 1}}],

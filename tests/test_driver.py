@@ -84,7 +84,7 @@ def test_emcy_fault_is_reported_commands_refused_and_recover_restores(driver_fac
 
 
 def test_heartbeat_loss_detected_others_keep_moving_then_reconfigured(driver_factory: DriverFactory) -> None:
-    sim, driver = driver_factory(make_config(3))
+    sim, driver = driver_factory(make_config(3, heartbeat_timeout_ms=350))
     for drive in driver:
         drive.enable()
     lost = driver.drive("joint2")

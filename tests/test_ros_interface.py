@@ -16,7 +16,7 @@ from motor_driver import MotorDriver, State
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
-from .conftest import HAVE_ROS, REPO, requires_ros, wait_for
+from .conftest import HAVE_ROS, IN_PROCESS_HEARTBEAT_TIMEOUT_MS, REPO, requires_ros, wait_for
 
 pytestmark = requires_ros
 
@@ -77,7 +77,10 @@ IN_PROCESS_HOST_TIMEOUT_S = 0.5
 
 
 def in_process_host_timeout(config: RoverConfig) -> RoverConfig:
-    drives = tuple(dataclasses.replace(d, host_timeout_s=IN_PROCESS_HOST_TIMEOUT_S) for d in config.drives)
+    """The in-process consumer times both ways (conftest's IN_PROCESS_HEARTBEAT_TIMEOUT_MS)."""
+    drives = tuple(dataclasses.replace(d, host_timeout_s=IN_PROCESS_HOST_TIMEOUT_S,
+                                       heartbeat_timeout_s=IN_PROCESS_HEARTBEAT_TIMEOUT_MS / 1000)
+                   for d in config.drives)
     return dataclasses.replace(config, drives=drives)
 
 
