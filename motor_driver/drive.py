@@ -19,7 +19,8 @@ Threads and what each owns:
   (``_operation``): commands meanwhile are refused at once; a stop preempts them.
 - the driver's supervisor: changes a drive only through its methods (``check_heartbeat``,
   ``mark_lost``, ``set_foreign_master``, ``stop_velocity``, ``guard_limits``), none of which
-  waits; the bus's worker runs ``reconfigure`` (boot after a reset), which may take seconds.
+  waits; the bus's worker runs ``reconfigure`` (boot after a reset), which may take seconds,
+  and ``quick_stop_by_sdo`` (the SDO copy of the quick stop on losing control).
 """
 
 from __future__ import annotations
