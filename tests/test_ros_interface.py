@@ -431,11 +431,12 @@ def test_a_slow_enable_service_never_stalls_commands_or_other_joints_topics(grap
     assert future.result().success and elapsed >= 1.5 and refused >= 30, (elapsed, refused)
     assert worst < 0.005, worst
     # joint B's MotorState kept coming meanwhile: a stall behind the enable's waits (0.7 s per
-    # step) would leave a gap of that size; a loaded machine's scheduling does not (the rate is
-    # no target here: on a 2-core machine kept busy by other processes it was 39 Hz of 50)
+    # step) would leave a gap of that size; a loaded machine's scheduling leaves less (the rate
+    # is no target here: on a 2-core machine kept busy by other processes it was 39 Hz of 50,
+    # and the longest gap 0.31 s)
     during = [t for t in other[n0:] if t <= t_busy + elapsed]
     gaps = [b - a for a, b in zip([t_busy, *during], [*during, t_busy + elapsed], strict=True)]
-    assert len(during) >= 0.5 * 50.0 * elapsed and max(gaps) < 0.3, (len(during), elapsed, max(gaps))
+    assert len(during) >= 0.5 * 50.0 * elapsed and max(gaps) < 0.5, (len(during), elapsed, max(gaps))
     eventually(lambda: any("busy with enable" in kv.value for a in diags for st in a.status if "wheel_front_left" in st.name
                            for kv in st.values), 3.0, "the refusal in /diagnostics")
 

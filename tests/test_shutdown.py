@@ -35,7 +35,11 @@ def test_node_leaves_drives_safe_on_signal(tmp_path: Path, sig: int, module: str
         config = tmp_path / "rover.yaml"
         config.write_text("buses:\n  - {name: can0, interface: socketcand, channel: can0,"
                           f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}\n"
-                          "drives:\n" + "".join(f"  - {{name: {'ab'[n - 1]}, node_id: {n}}}\n" for n in nodes))
+                          # the drives' own stop on a silent host is not what this tests: a node
+                          # process starved past the default 150 ms on a loaded machine had the
+                          # drive stop itself and the enable walk it up again
+                          "drives:\n" + "".join(f"  - {{name: {'ab'[n - 1]}, node_id: {n}, host_timeout_ms: 500}}\n"
+                                                 for n in nodes))
         listener = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
         proc = subprocess.Popen([sys.executable, "-m", module, "--ros-args", "-p", f"config:={config}",
                                  "-p", "arm:=true", *extra], cwd=REPO, env=dict(os.environ),
