@@ -20,7 +20,7 @@ Threads and what each owns:
 - the driver's supervisor: changes a drive only through its methods (``check_heartbeat``,
   ``mark_lost``, ``set_foreign_master``, ``stop_velocity``, ``guard_limits``), none of which
   waits; the bus's worker runs ``reconfigure`` (boot after a reset), which may take seconds,
-  and ``quick_stop_by_sdo`` (the SDO copy of the quick stop on losing control).
+  and ``quick_stop_by_sdo`` (the SDO copy of the quick stop on losing control, where needed).
 """
 
 from __future__ import annotations
@@ -218,6 +218,8 @@ class Drive:
         self.stamp = 0.0
         self.nmt_state = "UNKNOWN"
         self._reported_nmt = "UNKNOWN"  # the last state the drive's own heartbeat said (receive thread)
+        self._bootup_at = 0.0  # when it last sent a boot-up (receive thread)
+        self._operational_at = 0.0  # its last heartbeat saying OPERATIONAL (receive thread)
         self.last_heartbeat = 0.0
         self.lost = False
         self.booted = False
@@ -329,6 +331,7 @@ class Drive:
         self.last_heartbeat = time.monotonic()
         if state == NmtState.BOOTUP:
             self.nmt_state = self._reported_nmt = "BOOTUP"
+            self._bootup_at = self.last_heartbeat
             self._bootup.set()
             if self.booted:
                 logger.warning("node %d (%s) sent boot-up: it power-cycled or reset; it will be"
@@ -344,6 +347,8 @@ class Drive:
         except ValueError:
             self.nmt_state = f"0x{state:02X}"
         self._reported_nmt = self.nmt_state
+        if state == NmtState.OPERATIONAL:
+            self._operational_at = self.last_heartbeat
         if self.booted and state != NmtState.OPERATIONAL and was == "OPERATIONAL":  # the change, not the state
             self.behind_back = (self.last_heartbeat, f"node {self.node_id} went {self.nmt_state} without an NMT"
                                                      " command from this driver")
@@ -440,9 +445,20 @@ class Drive:
                                         f" {TRANSITION_TIMEOUT_S:g} s", node_id=self.node_id, statusword=sw)
             time.sleep(0.02)
 
-    def quick_stop_by_sdo(self) -> None:
+    def quick_stop_by_sdo(self, since: float) -> None:
         """Bus worker: the quick stop of losing control once more, as an SDO write of the
-        controlword (an SDO reaches a drive in PRE-OPERATIONAL; one expedited write, no wait)."""
+        controlword, where the RPDO cannot have reached the drive: its first heartbeat after
+        ``since`` (when the other master was noticed) says PRE-OPERATIONAL. Not to a drive that
+        reset meanwhile (a boot-up: the reset disabled it) or is still OPERATIONAL (it took the
+        RPDO): the other master's SDO transfers use the same channel, and a needless write of
+        ours breaks them (seen: a second driver's boot failed on our response). A reset is a
+        boot-up after the drive's last OPERATIONAL heartbeat: it can come before the supervisor
+        noticed the other master."""
+        deadline = since + self.config.heartbeat_timeout_s  # a heartbeat by then, or the drive is lost
+        while self.last_heartbeat <= since and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if self._bootup_at > self._operational_at or self._reported_nmt != "PRE_OPERATIONAL":
+            return
         try:
             self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
         except MotorError as err:

@@ -531,7 +531,7 @@ class MotorDriver:
             evidence = "; ".join(filter(None, (evidence, what)))
         if evidence:
             if drive.set_foreign_master(evidence):  # an SDO blocks: on the bus's worker
-                self._handles[drive.config.bus].worker.submit(drive.quick_stop_by_sdo)
+                self._handles[drive.config.bus].worker.submit(drive.quick_stop_by_sdo, now)
         elif drive.foreign_master and not foreign.evidence(drive.node_id, now - FOREIGN_RELEASE_S) \
                 and drive.behind_back[0] <= now - FOREIGN_RELEASE_S:
             drive.set_foreign_master("")
