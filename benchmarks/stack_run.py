@@ -46,6 +46,7 @@ os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns 
 #: The bare path's peer (bare_peer.py) sends targets in counts of a 4096-count revolution.
 BARE_COUNTS_PER_DEG = 4096 / 360.0
 
+from can_config.objects import TPDO_BASES  # noqa: E402
 from virtual_can import SimDriveSpec, SimService  # noqa: E402
 
 
@@ -116,7 +117,7 @@ def simulator(*args: str) -> Iterator[int]:
 
 
 def is_tpdo(cob: int) -> bool:
-    return 0x181 <= cob <= 0x4FF and cob & 0x7F != 0 and cob & 0x780 in (0x180, 0x280, 0x380, 0x480)
+    return cob & 0x7F != 0 and cob & 0x780 in TPDO_BASES
 
 
 def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str, Any]:
