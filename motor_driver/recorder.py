@@ -47,6 +47,9 @@ from motor_driver.drive import DriveState
 
 logger = logging.getLogger(__name__)
 
+#: One kept frame: time.time(), bus name, COB-ID, extended, remote, error frame, DLC, data.
+Frame = tuple[float, str, int, bool, bool, bool, int, bytes]
+
 INCIDENT_KINDS = ("emcy", "heartbeat_lost", "watchdog_stop", "bus_lost", "host_loss_stop")
 #: How often the writer looks for the stop of the driver while it waits.
 WRITER_POLL_S = 0.2
@@ -97,7 +100,11 @@ class FlightRecorder:
         self.directory = config.directory
         self._names = {(bus, node): name for name, (bus, node) in drives.items()}
         self._keep_s = config.seconds + config.after_s
-        self._frames: deque[tuple[str, can.Message]] = deque()
+        # a frame is kept as a tuple of plain values (see :data:`Frame`), not a can.Message: such a
+        # tuple is dropped from the garbage collector's watch, so 10 s of frames (50,000 at 6 drives)
+        # cost nothing in its full collections, which stop every thread of the process; as
+        # can.Messages they made one take 70 ms and the host heartbeat went out 110 ms late
+        self._frames: deque[Frame] = deque()
         self._states: deque[tuple[float, tuple[DriveState, ...]]] = deque()
         self._events: queue.SimpleQueue[IncidentEvent] = queue.SimpleQueue()
         self._stop = threading.Event()
@@ -114,9 +121,11 @@ class FlightRecorder:
 
     def append(self, bus: str, msg: can.Message) -> None:
         frames = self._frames
-        frames.append((bus, msg))
-        horizon = (msg.timestamp or time.time()) - self._keep_s
-        while frames and frames[0][1].timestamp < horizon:
+        t = msg.timestamp or time.time()
+        frames.append((t, bus, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame,
+                       msg.dlc, bytes(msg.data)))
+        horizon = t - self._keep_s
+        while frames and frames[0][0] < horizon:
             frames.popleft()
 
     def record_sent(self, bus: str, msg: can.Message) -> None:
@@ -181,21 +190,20 @@ class FlightRecorder:
         stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(first.t)) + f"-{int(first.t * 1000) % 1000:03d}"
         who = first.drive or (f"node{first.node}" if first.node is not None else first.bus)
         base = self.directory / f"{stamp}-{first.kind}-{who}"
-        buses = sorted({bus for bus, _ in frames} | {e.bus for e in events})
+        buses = sorted({frame[1] for frame in frames} | {e.bus for e in events})
         channel_of = {bus: i + 1 for i, bus in enumerate(buses)}
         with can.BLFWriter(base.with_suffix(".blf")) as blf:
-            for bus, msg in frames:
+            for t, bus, cob, extended, remote, error, dlc, data in frames:
                 blf.on_message_received(can.Message(
-                    timestamp=msg.timestamp, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
-                    is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, dlc=msg.dlc,
-                    data=msg.data, channel=channel_of[bus]))
+                    timestamp=t, arbitration_id=cob, is_extended_id=extended, is_remote_frame=remote,
+                    is_error_frame=error, dlc=dlc, data=data, channel=channel_of[bus]))
         summary: dict[str, Any] = {
             "format": FORMAT,
             "kind": first.kind,
             "time": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(first.t)),
             "t": first.t,
             "events": [asdict(e) for e in events],
-            "window_s": [frames[0][1].timestamp - first.t, frames[-1][1].timestamp - first.t] if frames else [0, 0],
+            "window_s": [frames[0][0] - first.t, frames[-1][0] - first.t] if frames else [0, 0],
             "frames": len(frames),
             "channels": {str(i): bus for bus, i in channel_of.items()},
             "bus_channels": self._bus_channels,

@@ -39,7 +39,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32
 from std_srvs.srv import Trigger
 
-from can_config import RoverConfig, load_config
+from can_config import RoverConfig, heap, load_config
 from can_config.errors import RovercanError
 from can_config.objects import OperationMode, sdo_abort_text
 from can_config.stop import StopSignal
@@ -475,6 +475,7 @@ def _run(stop: StopSignal) -> int:
         action_executor.add_node(actions)
         goals = runtime.SpinThread(action_executor, "rovercan-actions")
         node.arm_if_asked()
+        heap.settle()  # the nodes are built: what exists now lives as long as the process
         runtime.spin_until(hot, stop.event)
     finally:
         # order: drives safe first (a service blocked on a drive then fails fast), then the

@@ -25,7 +25,7 @@ from rclpy.lifecycle import Node as LifecycleNode
 from rclpy.lifecycle import State, TransitionCallbackReturn
 from rclpy.node import Node
 
-from can_config import load_config
+from can_config import heap, load_config
 from can_config.errors import RovercanError
 from motor_driver import MotorDriver
 from motor_driver import State as DriveState
@@ -138,6 +138,7 @@ def main(args: list[str] | None = None) -> int:
                 node.trigger_configure()
                 if node.driver is not None:
                     node.trigger_activate()
+            heap.settle()  # built (and, with autostart, the driver too): keep it out of the collector's walks
             runtime.spin_until(hot, stop.event)
         finally:
             transitions.stop(5.0)

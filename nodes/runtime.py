@@ -21,6 +21,7 @@ from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedE
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from can_config import heap
 from can_config.errors import ConfigError
 from can_config.stop import StopSignal
 
@@ -72,6 +73,7 @@ def spin_node(node: Node, stop: threading.Event, *, on_stop: Callable[[], None] 
     the node destroyed and the context shut down, in that order, whatever happened."""
     executor = SingleThreadedExecutor()
     executor.add_node(node)
+    heap.settle()  # the node is built: what exists now lives as long as the process
     try:
         spin_until(executor, stop)
     finally:

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from decimal import Decimal
 from pathlib import Path
 
-from can_config import load_config, with_bus_overrides
+from can_config import heap, load_config, with_bus_overrides
 from can_config.errors import CommandRejected, ConfigError, RovercanError, SimError
 from can_config.stop import StopSignal, stop_on_signals
 from rovercan.argtypes import real, whole
@@ -81,6 +81,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
             print(f"rovercan sim: playing {len(steps)} fault step(s) of"
                   f" {args.scenario or args.scenario_from_log}", flush=True)
             run_steps_in_background(sim, steps, stop.event)
+        heap.settle()  # the drives' object dictionaries live as long as the server: out of the collector's walks
         next_status = time.monotonic() + args.status_period if args.status_period else None
         while not stop.event.wait(0.2):
             if next_status is not None and time.monotonic() >= next_status:
