@@ -6,7 +6,9 @@ full collection walks every container object alive. Once a node is built, most o
 driver) live as long as the process, yet each full collection walked them again: measured in
 the six-drive stack run (benchmarks/stack_run.py), one took 70 ms, and the driver's heartbeat,
 which the drives watch with a 150 ms consumer time, went out 110 ms late. :func:`settle` moves
-them out of the collector's sight (``gc.freeze``); later garbage is collected as before.
+them out of the collector's sight (``gc.freeze``); later garbage is collected as before. A
+frozen object that is dropped later is still freed by its reference count; only a reference
+cycle among frozen objects would stay (start-up objects that live as long as the process).
 """
 
 from __future__ import annotations
