@@ -1011,6 +1011,8 @@ class Drive:
                                       " Give it a heartbeat consumer, or set allow_no_host_watch: true for this"
                                       " drive to arm it anyway. Nothing was sent.")
             self._target_counts = self.position_counts
+            if self.state != State.OPERATION_ENABLED:
+                self._zero_held_target()
             for _ in range(6):
                 state = self.state
                 if state == State.OPERATION_ENABLED:
@@ -1035,6 +1037,16 @@ class Drive:
                 raise DriveTimeoutError(f"{self.name}: could not reach OPERATION_ENABLED",
                                         node_id=self.node_id, statusword=self.statusword)
             self.was_enabled = True
+
+    def _zero_held_target(self) -> None:
+        """Before enabling in a velocity or torque mode: the drive still holds the last target
+        (0x60FF / 0x6071) from before a fault or a disable, and would turn at it the moment it
+        reached Operation Enabled (a recovered wheel ran at 286 deg/s until the watchdog). By SDO:
+        the RPDO that carries the target also carries the controlword "enable operation"."""
+        if self.mode_display in VELOCITY_MODES:
+            self._write_typed(OD.TARGET_VELOCITY, 0, 0)
+        elif self.mode_display in TORQUE_MODES:
+            self._write_typed(OD.TARGET_TORQUE, 0, 0)
 
     def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Shutdown (transition 8 or 6): power stage off, drive in Ready to Switch On."""

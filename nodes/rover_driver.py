@@ -398,8 +398,12 @@ class DriveSystemNode(Node):
 
     def _halt(self, reason: str) -> None:
         """Stop every wheel that still runs and forget the ramp, so that nothing (a stale
-        ramp-down, a recovered wheel) brings them back without a fresh /cmd_vel."""
+        ramp-down, a recovered wheel) brings them back without a fresh /cmd_vel. The command
+        that was refused is spent: only one received after this drives again (it was driving all
+        six for a moment when the wheel came back within its timeout)."""
         self.steer.halt()
+        self._last_cmd = -math.inf
+        self.stale = True
         if self.active:
             for drive in self.wheels:
                 if drive.snapshot().enabled:

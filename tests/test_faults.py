@@ -189,3 +189,35 @@ def test_boot_enable_move_on_each_interface(interface: str,
         drive.enable()
         drive.move_to(33.0, wait=True)
         assert drive.angle_deg == pytest.approx(33.0, abs=0.2)
+
+
+@pytest.mark.parametrize("command", ["velocity", "torque"])
+@pytest.mark.parametrize("how", ["fault", "disable"])
+def test_a_drive_enabled_again_does_not_resume_its_old_target(
+        driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]], command: str, how: str) -> None:
+    """The drive keeps the last target velocity (0x60FF) or torque (0x6071) through a fault or a
+    disable; enabled again, it turned at it (a recovered wheel at 286 deg/s until the watchdog)."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    if command == "velocity":
+        drive.set_velocity(90.0)
+    else:
+        drive.set_torque(0.5)
+    wait_for(lambda: abs(drive.snapshot().velocity_deg_s) > 30.0, 3.0, "turning")
+    if how == "fault":
+        apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
+        wait_for(lambda: drive.state is State.FAULT, 3.0, "the fault")
+        wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 3.0, "stopped by the fault reaction")
+        drive.recover()  # enables again: it was enabled before the fault
+    else:
+        drive.quick_stop()
+        wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 3.0, "stopped")
+        drive.disable()
+        drive.enable()
+    assert drive.state is State.OPERATION_ENABLED
+    fastest, t_end = 0.0, time.monotonic() + 0.4  # inside the driver's 500 ms command watchdog
+    while time.monotonic() < t_end:
+        fastest = max(fastest, abs(drive.snapshot().velocity_deg_s))
+        time.sleep(0.01)
+    assert fastest < 1.0, f"enabled again, the drive turned at {fastest:.1f} deg/s on its old {command} target"

@@ -372,8 +372,14 @@ def test_a_wheel_that_cannot_follow_stops_the_whole_drive_system(graph: Graph) -
     assert any("wheel wheel_middle_left is FAULT; no wheel is driven" in st.message for a in diags for st in a.status)
     graph.driver.drive("wheel_middle_left").recover()
     graph.driver.drive("wheel_middle_left").enable()
-    time.sleep(1.0)  # recovered, but no fresh /cmd_vel: nothing moves
-    assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
+    # recovered, but no fresh /cmd_vel: nothing moves, not even briefly. The /cmd_vel refused
+    # while the wheel was in FAULT was still within its 500 ms timeout when the wheel came back,
+    # and drove all six for a moment (caught only at the end of a loaded run; watched throughout now)
+    fastest, t_end = 0.0, time.monotonic() + 1.0
+    while time.monotonic() < t_end:
+        fastest = max([fastest, *(abs(graph.driver.drive(w).snapshot().velocity_deg_s) for w in WHEELS)])
+        time.sleep(0.01)
+    assert fastest < 1.0, f"a wheel turned at {fastest:.1f} deg/s on the /cmd_vel refused before the recovery"
     drive_for(1.5)  # a fresh command drives all six again
     assert all(graph.driver.drive(w).snapshot().velocity_deg_s > 100.0 for w in WHEELS)
 
