@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from decimal import Decimal
 from pathlib import Path
 
-from can_config import heap, load_config, with_bus_overrides
+from can_config import RoverConfig, heap, load_config, with_bus_overrides
 from can_config.errors import CommandRejected, ConfigError, RovercanError, SimError
 from can_config.stop import StopSignal, stop_on_signals
 from rovercan.argtypes import real, whole
@@ -93,6 +93,21 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _config_bus_for(config: RoverConfig, path: str, channel: str | None) -> str:
+    """The config bus whose drives go on the python-can bus ``channel``: the one with that
+    channel, or the only one. Each bus's node ids are its own (node 1 on can0 and node 1 on
+    can1 are two drives), so the drives of two buses never share one."""
+    if len(config.buses) == 1:
+        return config.buses[0].name
+    matching = [b.name for b in config.buses if b.channel == channel]
+    if len(matching) == 1:
+        return matching[0]
+    buses = ", ".join(f"{b.name} (channel {b.channel})" for b in config.buses)
+    raise ConfigError(f"{path}: drives on several buses ({buses}) and none has channel {channel!r}; a bus"
+                      " carries the drives of one config bus: run one `rovercan sim --config ... --bus-channel"
+                      " CHANNEL` per bus, with that bus's channel")
+
+
 def _sim_on_bus(args: argparse.Namespace) -> int:
     """Simulated drives on a real python-can bus (e.g. a kernel vcan0), no server."""
     import can.cli
@@ -103,9 +118,10 @@ def _sim_on_bus(args: argparse.Namespace) -> int:
 
     if args.config:
         config = load_config(args.config)
+        served = _config_bus_for(config, args.config, getattr(args, "bus_channel", None))
         drives = [SimulatedDrive(d.node_id, load_drive_od(d.eds, d.node_id),
                                  MotorParams.from_model(d.sim, d.counts_per_rev), name=d.name)
-                  for d in config.drives]
+                  for d in config.drives if d.bus == served]
     else:
         eds = Path(args.eds) if args.eds else GENERIC_EDS
         drives = [SimulatedDrive(i, load_drive_od(eds, i)) for i in range(1, args.drives + 1)]
@@ -117,7 +133,8 @@ def _sim_on_bus(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return EXIT_FAILED
     with StopSignal() as stop, bus, DriveSimulator(bus, drives) as sim:
-        print(f"rovercan sim: {len(drives)} simulated drive(s) on {bus.channel_info}", flush=True)
+        names = ", ".join(f"{d.node_id} {d.name}" for d in drives)
+        print(f"rovercan sim: {len(drives)} simulated drive(s) on {bus.channel_info}: {names}", flush=True)
         while not stop.event.wait(0.2):
             pass
         del sim

@@ -117,3 +117,46 @@ def test_sim_on_a_kernel_interface_reports_why_it_cannot() -> None:
                             capture_output=True, text=True, timeout=30)
     assert result.returncode == 1
     assert "cannot open socketcan vcan0" in result.stderr
+
+
+def test_sim_on_a_bus_serves_the_drives_of_that_config_bus_only() -> None:
+    """config/rover.yaml has node ids 1-3 on can0 and again on can1: put on one python-can bus
+    (here a socketcand channel of the emulator), only that bus's three drives answer, once each;
+    asked for a channel no config bus has, it is refused and the buses are named."""
+    from virtual_can import SimService
+
+    config = str(REPO / "config" / "rover.yaml")
+    with SimService([], port=0, extra_channels=("can1",)) as server:
+        refused = subprocess.run(rovercan("sim", "--config", config, "--bus-interface", "socketcand",
+                                          "--bus-channel", "vcan7", "--bus-kwargs", "host=127.0.0.1",
+                                          f"port={server.port}"),
+                                 cwd=REPO, capture_output=True, text=True, timeout=30)
+        assert refused.returncode == 2, refused.stderr
+        assert "can0 (channel can0), can1 (channel can1)" in refused.stderr and "'vcan7'" in refused.stderr
+        proc = subprocess.Popen(rovercan("sim", "--config", config, "--bus-interface", "socketcand",
+                                         "--bus-channel", "can1", "--bus-kwargs", "host=127.0.0.1",
+                                         f"port={server.port}"),
+                                cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert proc.stdout is not None
+            first = proc.stdout.readline()
+            assert "3 simulated drive(s)" in first and "wheel_front_right" in first, first
+            assert "left" not in first, first
+            with can.Bus(interface="socketcand", channel="can1", host="127.0.0.1", port=server.port) as bus:
+                bus.send(can.Message(arbitration_id=0x000, data=[0x81, 0], is_extended_id=False))  # reset all
+                boot_ups: list[int] = []
+                deadline = time.monotonic() + 5.0
+                while time.monotonic() < deadline:
+                    msg = bus.recv(0.2)
+                    if msg is not None and 0x701 <= msg.arbitration_id <= 0x77F and bytes(msg.data) == b"\x00":
+                        boot_ups.append(msg.arbitration_id - 0x700)
+                    if len(boot_ups) >= 3:
+                        deadline = min(deadline, time.monotonic() + 0.5)  # a second drive per id would come now
+            assert sorted(boot_ups) == [1, 2, 3], boot_ups
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
