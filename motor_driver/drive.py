@@ -1012,7 +1012,7 @@ class Drive:
                                       " drive to arm it anyway. Nothing was sent.")
             self._target_counts = self.position_counts
             if self.state != State.OPERATION_ENABLED:
-                self._zero_held_target()
+                self._clear_held_target()
             for _ in range(6):
                 state = self.state
                 if state == State.OPERATION_ENABLED:
@@ -1038,15 +1038,30 @@ class Drive:
                                         node_id=self.node_id, statusword=self.statusword)
             self.was_enabled = True
 
-    def _zero_held_target(self) -> None:
-        """Before enabling in a velocity or torque mode: the drive still holds the last target
-        (0x60FF / 0x6071) from before a fault or a disable, and would turn at it the moment it
-        reached Operation Enabled (a recovered wheel ran at 286 deg/s until the watchdog). By SDO:
-        the RPDO that carries the target also carries the controlword "enable operation"."""
-        if self.mode_display in VELOCITY_MODES:
+    def _clear_held_target(self) -> None:
+        """Before enabling: the drive still holds the last target from before a fault or a stop
+        and follows it the moment it reaches Operation Enabled. Velocity and torque modes: a
+        recovered wheel ran at its old 0x60FF (286 deg/s) until the watchdog; so 0 here. The
+        cyclic position modes: a wheel stopped at speed brakes on past its last set-point
+        (0x607A / 0x60C1:1) and jumped back to it (9 deg); so where the shaft is now (0x6064,
+        read now: the braked shaft does not move). By SDO: the RPDO that carries the target
+        also carries the controlword "enable operation"."""
+        mode = self.mode_display
+        if mode in VELOCITY_MODES:
             self._write_typed(OD.TARGET_VELOCITY, 0, 0)
-        elif self.mode_display in TORQUE_MODES:
+        elif mode in TORQUE_MODES:
             self._write_typed(OD.TARGET_TORQUE, 0, 0)
+        elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
+            actual = self._read_int(OD.POSITION_ACTUAL, 0)
+            if actual is None:
+                raise CommandRejected(f"{self.name} (node {self.node_id}): enable refused in"
+                                      f" {OperationMode(mode).name}: the drive's EDS has no 0x6064, so its held"
+                                      " set-point cannot be moved to where the shaft is. Nothing was sent.")
+            self._target_counts = actual
+            index, sub = (OD.TARGET_POSITION, 0) if mode == OperationMode.CYCLIC_SYNC_POSITION else \
+                (OD.INTERPOLATION_DATA, 1)
+            if has_object(self.od, index, sub):  # without it, nothing is held
+                self._write_typed(index, sub, actual)
 
     def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Shutdown (transition 8 or 6): power stage off, drive in Ready to Switch On."""

@@ -221,3 +221,51 @@ def test_a_drive_enabled_again_does_not_resume_its_old_target(
         fastest = max(fastest, abs(drive.snapshot().velocity_deg_s))
         time.sleep(0.01)
     assert fastest < 1.0, f"enabled again, the drive turned at {fastest:.1f} deg/s on its old {command} target"
+
+
+@pytest.mark.parametrize("how", ["fault", "disable"])
+def test_a_streaming_drive_enabled_again_holds_where_it_is_not_its_old_set_point(
+        driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]], how: str) -> None:
+    """In CSP the drive keeps the last streamed set-point (0x607A) through a fault or a stop.
+    A wheel stopped at speed comes to rest away from it (its quick-stop or fault-reaction ramp,
+    its lag); enabled again, it jumped to that set-point at once (1-45 deg seen)."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+
+    def stopped_at_speed() -> float:
+        """Stream up to 3 deg per 10 ms SYNC period (300 deg/s), stop at speed, enable again;
+        returns the last set-point."""
+        angle, step = drive.snapshot().angle_deg, 0.0
+        for _ in range(40):
+            step = min(3.0, step + 0.25)
+            angle += step
+            time.sleep(0.01)
+            drive.stream_position(angle)
+        if how == "fault":  # at once: a set-point later, the drive would have stopped at the last one
+            apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
+            wait_for(lambda: drive.state is State.FAULT, 3.0, "the fault")
+        else:
+            drive.quick_stop()
+        wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 0.5, 5.0, "come to rest")
+        if how == "fault":
+            drive.recover()
+        else:
+            drive.disable()
+            drive.enable()
+        assert drive.state is State.OPERATION_ENABLED
+        return angle
+
+    for _ in range(3):  # a run starved between the last set-point and the stop rests at it: again
+        last = stopped_at_speed()
+        at_enable = drive.snapshot().angle_deg
+        if abs(at_enable - last) > 0.5:
+            break
+    else:
+        pytest.fail(f"three times at rest within 0.5 deg of the last set-point (at {at_enable:.1f}, {last:.1f})")
+    furthest, t_end = 0.0, time.monotonic() + 0.4
+    while time.monotonic() < t_end:
+        furthest = max(furthest, abs(drive.snapshot().angle_deg - at_enable))
+        time.sleep(0.01)
+    assert furthest < 0.25, f"enabled again, the drive moved {furthest:.1f} deg towards its old set-point {last:.1f}"
+    drive.stream_position(at_enable + 0.5)  # and the stream goes on from where it is
