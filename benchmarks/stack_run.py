@@ -96,14 +96,31 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+def fifo_threads(pid: int) -> int:
+    """Threads of ``pid`` under SCHED_FIFO: the simulator's SYNC timer where the OS allows it
+    (can_config/realtime.py); /proc/PID/task/TID/stat field 41."""
+    count = 0
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        try:
+            count += int(stat.read_text().rsplit(")", 1)[1].split()[38]) == os.SCHED_FIFO
+        except OSError:
+            pass  # the thread ended meanwhile
+    return count
+
+
+SIM_PIDS: list[int] = []  # the simulator processes started, newest last
+
+
 @contextmanager
 def simulator(*args: str) -> Iterator[int]:
     """``rovercan sim ARGS`` in a process of its own on a free port, as a user runs it; yields
-    the port once it serves. Its output goes to a file: a pipe nobody reads could block it."""
+    the port once it serves (its pid goes to SIM_PIDS). Its output goes to a file: a pipe nobody
+    reads could block it."""
     port = free_port()
     with tempfile.TemporaryFile("w+") as out:
         proc = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", *args, "--port", str(port)], cwd=REPO,
                                 stdout=out, stderr=subprocess.STDOUT, text=True)
+        SIM_PIDS.append(proc.pid)
         try:
             deadline = time.monotonic() + 30
             while "simulated drive" not in (out.seek(0) or out.read()):
@@ -192,6 +209,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
                 next_t += period
                 time.sleep(max(0.0, next_t - time.monotonic()))
             cpu = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
+            sync_timer_realtime = fifo_threads(SIM_PIDS[-1]) > 0
             window1 = time.time()
             rss = proc_rss_peak_mb(proc.pid)
             first = listeners[min(listeners)]
@@ -250,7 +268,8 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             "commands_matched": matched, "commands_superseded": unmatched,
             "tpdo_sent": tpdo_sent, "tpdo_applied": tpdo_applied, "tpdo_loss": tpdo_sent - tpdo_applied,
             "cpu_core_fraction": round(cpu, 3), "rss_mb": round(rss, 1),
-            "sync_jitter_p99_us": round(pct(jitter, 0.99), 1) if jitter else None}
+            "sync_jitter_p99_us": round(pct(jitter, 0.99), 1) if jitter else None,
+            "sync_timer_realtime": sync_timer_realtime}
 
 
 def bare_path(seconds: float) -> dict[str, Any]:

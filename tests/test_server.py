@@ -4,10 +4,15 @@ hostile client affecting only itself."""
 from __future__ import annotations
 
 import itertools
+import os
+import shutil
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import can
 import pytest
@@ -19,7 +24,7 @@ from virtual_can import BusEngine, SocketcandServer, VirtualBus
 from virtual_can.server import format_frame, parse_send
 from virtual_can.wire import frame_bits
 
-from .conftest import drain
+from .conftest import REPO, drain
 
 
 @pytest.fixture
@@ -386,3 +391,73 @@ def test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout() -> None:
             idle.close()
             job.close()
             listener.shutdown()
+
+
+def _fifo_threads(pid: int) -> int:
+    """Threads of process ``pid`` under SCHED_FIFO (/proc/PID/task/TID/stat, field 41)."""
+    count = 0
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue  # the thread ended meanwhile
+        count += int(fields[38]) == os.SCHED_FIFO
+    return count
+
+
+def _realtime_allowed() -> bool:
+    result: list[bool] = []
+
+    def attempt() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))  # this short-lived thread only
+            result.append(True)
+        except OSError:
+            result.append(False)
+    thread = threading.Thread(target=attempt)
+    thread.start()
+    thread.join()
+    return result[0]
+
+
+@pytest.mark.parametrize("how", ["default", "switched off", "not permitted"])
+def test_the_cyclic_timer_is_a_real_time_thread_where_the_os_allows_it(how: str) -> None:
+    """`rovercan sim`'s broadcast-manager timer (the SYNC of a socketcand driver) runs under
+    SCHED_FIFO where it may: a timer among the simulated drives' threads woke 0.5-2 ms late at
+    p99 (benchmarks/stack_run.py: SYNC period error 1.2-2.4 ms at a listener, 0.07-0.5 with it).
+    ROVERCAN_REALTIME=0 switches it off; without CAP_SYS_NICE it stays ordinary and the SYNC
+    still runs."""
+    if not hasattr(os, "sched_setscheduler"):
+        pytest.skip("this OS has no SCHED_FIFO")
+    command = [sys.executable, "-m", "rovercan", "sim", "--drives", "1", "--port", "0"]
+    env = dict(os.environ)
+    expected = _realtime_allowed()
+    if how == "switched off":
+        env["ROVERCAN_REALTIME"] = "0"
+        expected = False
+    elif how == "not permitted":
+        if shutil.which("setpriv") is None or not expected:
+            pytest.skip("needs setpriv and the right to drop CAP_SYS_NICE (root)")
+        command = ["setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice", *command]
+        expected = False
+    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert proc.stdout is not None
+        assert "simulated drive" in proc.stdout.readline()
+        port = int(proc.stdout.readline().rsplit("port=", 1)[1])
+        assert _fifo_threads(proc.pid) == 0  # no job, no timer thread
+        with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port) as listener:
+            sock = socket.create_connection(("127.0.0.1", port), timeout=2.0)
+            try:
+                assert "< hi >" in read_until(sock, "< hi >")
+                sock.sendall(b"< open can0 >")
+                assert "< ok >" in read_until(sock, "< ok >")
+                sock.sendall(b"< add 0 10000 080 0 >")
+                syncs = [m for m in drain(listener, 0.5) if m.arbitration_id == 0x080]
+                assert len(syncs) >= 20  # the SYNC runs either way
+                assert _fifo_threads(proc.pid) == int(expected)  # the timer thread, and only it
+            finally:
+                sock.close()
+    finally:
+        proc.terminate()
+        proc.wait(30)

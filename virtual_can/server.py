@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import can
 
 from can_config.errors import ProtocolError, SimError
+from can_config.realtime import make_thread_realtime
 from virtual_can.engine import BusEngine, Channel, Endpoint
 
 logger = logging.getLogger(__name__)
@@ -179,6 +180,7 @@ class CyclicJobs:
         self._thread: threading.Thread | None = None
         self._lateness: deque[float] = deque(maxlen=100)
         self.sent = 0
+        self.realtime = False  # the timer thread runs under SCHED_FIFO
 
     def add(self, owner: object, channel: Channel, msg: can.Message, period_s: float) -> None:
         with self._cond:
@@ -218,6 +220,8 @@ class CyclicJobs:
         return min(SPIN_MAX_S, max(SPIN_MIN_S, 2.0 * max(self._lateness, default=SPIN_MAX_S)))
 
     def _run(self) -> None:
+        realtime = make_thread_realtime("socketcand broadcast manager timer")
+        self.realtime = realtime
         while True:
             with self._cond:
                 if self._stop or not self._jobs:
@@ -232,8 +236,9 @@ class CyclicJobs:
                     if not self._cond.wait(min(wait, POLL_S)) and timed:  # timed out: how late?
                         self._lateness.append(max(0.0, time.monotonic() - wake_at))
                     continue
-            while time.monotonic() < due - HARD_SPIN_S:  # the last stretch: spin (no lock), letting
-                time.sleep(0)  # other threads run, ...
+            while not realtime and time.monotonic() < due - HARD_SPIN_S:  # the last stretch: spin (no
+                time.sleep(0)  # lock), letting other threads run (a real-time thread would lose the
+                # interpreter to them and wait for it: it spins on), ...
             while time.monotonic() < due:  # ... but for the very last of it
                 pass
             now = time.monotonic()

@@ -1,0 +1,39 @@
+"""Real-time scheduling for the one thread whose timing is the product: where the OS allows it.
+
+A Linux thread under ``SCHED_FIFO`` runs the moment it is ready, ahead of every ordinary
+(``SCHED_OTHER``) thread on its core; a timed wait wakes it within tens of microseconds however
+busy the machine is. That is what the kernel's own timers give a real socketcand daemon's
+broadcast manager. It needs ``CAP_SYS_NICE`` (root, or ``setcap cap_sys_nice+ep`` on the
+interpreter, or an ``rtprio`` limit in ``/etc/security/limits.conf``); without it the thread stays
+ordinary and says so once in the log. ``ROVERCAN_REALTIME=0`` turns it off (to compare).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+logger = logging.getLogger(__name__)
+
+#: Above ordinary threads, below the kernel's own (threaded interrupts run at 50).
+REALTIME_PRIORITY = 10
+ENV_SWITCH = "ROVERCAN_REALTIME"
+
+
+def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY) -> bool:
+    """Put the calling thread under ``SCHED_FIFO`` at ``priority``; True if it now is.
+    A thread only: the other threads of the process keep their scheduling."""
+    if os.environ.get(ENV_SWITCH, "1") == "0":
+        logger.info("%s: real-time scheduling off (%s=0)", what, ENV_SWITCH)
+        return False
+    if not hasattr(os, "sched_setscheduler"):
+        logger.info("%s: this OS has no SCHED_FIFO; an ordinary thread", what)
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))  # 0: this thread (a Linux task)
+    except OSError as err:
+        logger.info("%s: an ordinary thread: real-time scheduling refused (%s); give the interpreter"
+                    " CAP_SYS_NICE or an rtprio limit for a steadier period on a busy machine", what, err)
+        return False
+    logger.info("%s: SCHED_FIFO priority %d", what, priority)
+    return True
