@@ -13,7 +13,7 @@ from pathlib import Path
 import can
 import pytest
 
-from can_config import RoverConfig, load_config, parse_config, with_bus_overrides
+from can_config import RoverConfig, heap, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
 from rovercan.launch import LOCAL_DISCOVERY
 from virtual_can import SimService
@@ -58,6 +58,18 @@ IN_PROCESS_HOST_TIMEOUT_MS = 500.0
 #: were seen silent for more than the default 350 ms, and the driver rightly took them for lost.
 #: Tests of heartbeat loss itself give heartbeat_timeout_ms explicitly.
 IN_PROCESS_HEARTBEAT_TIMEOUT_MS = 1000.0
+
+
+@pytest.fixture(autouse=True)
+def _settled_heap() -> None:
+    """Each test starts with the suite's heap settled (can_config.heap.settle), as every node and
+    the simulator settle theirs once built. The suite's own process accumulates what hundreds of
+    tests built; a full garbage collection then walked it all, stopping every thread for 110-190
+    ms on an idle machine (a gc callback, mid-suite) and about twice that with both cores busy:
+    an in-process driver's heartbeat went out 520 ms late and its drives, rightly, stopped by
+    themselves (a loaded run, tests/test_ros_interface.py). Afterwards a collection walks only what
+    the running test made."""
+    heap.settle()
 
 
 def make_config(n: int = 1, *, eds: str = "generic", **drive: object) -> RoverConfig:
