@@ -47,6 +47,7 @@ os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns 
 BARE_COUNTS_PER_DEG = 4096 / 360.0
 
 from can_config.objects import TPDO_BASES  # noqa: E402
+from can_config.realtime import fifo_thread_count  # noqa: E402
 from virtual_can import SimDriveSpec, SimService  # noqa: E402
 
 
@@ -94,18 +95,6 @@ def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
-
-
-def fifo_threads(pid: int) -> int:
-    """Threads of ``pid`` under SCHED_FIFO: the simulator's SYNC timer where the OS allows it
-    (can_config/realtime.py); /proc/PID/task/TID/stat field 41."""
-    count = 0
-    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
-        try:
-            count += int(stat.read_text().rsplit(")", 1)[1].split()[38]) == os.SCHED_FIFO
-        except OSError:
-            pass  # the thread ended meanwhile
-    return count
 
 
 SIM_PIDS: list[int] = []  # the simulator processes started, newest last
@@ -209,7 +198,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
                 next_t += period
                 time.sleep(max(0.0, next_t - time.monotonic()))
             cpu = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
-            sync_timer_realtime = fifo_threads(SIM_PIDS[-1]) > 0
+            sync_timer_realtime = fifo_thread_count(SIM_PIDS[-1]) > 0
             window1 = time.time()
             rss = proc_rss_peak_mb(proc.pid)
             first = listeners[min(listeners)]

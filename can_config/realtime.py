@@ -37,3 +37,17 @@ def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY) -> bool:
         return False
     logger.info("%s: SCHED_FIFO priority %d", what, priority)
     return True
+
+
+def fifo_thread_count(pid: int) -> int:
+    """Threads of process ``pid`` under SCHED_FIFO (/proc/PID/task/TID/stat, field 41); 0 where
+    there is no /proc."""
+    from pathlib import Path
+
+    count = 0
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        try:
+            count += int(stat.read_text().rsplit(")", 1)[1].split()[38]) == os.SCHED_FIFO
+        except OSError:
+            pass  # the thread ended meanwhile
+    return count

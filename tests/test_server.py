@@ -12,7 +12,6 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import can
 import pytest
@@ -20,6 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from can_config.errors import ProtocolError
+from can_config.realtime import fifo_thread_count
 from virtual_can import BusEngine, SocketcandServer, VirtualBus
 from virtual_can.server import format_frame, parse_send
 from virtual_can.wire import frame_bits
@@ -393,18 +393,6 @@ def test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout() -> None:
             listener.shutdown()
 
 
-def _fifo_threads(pid: int) -> int:
-    """Threads of process ``pid`` under SCHED_FIFO (/proc/PID/task/TID/stat, field 41)."""
-    count = 0
-    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue  # the thread ended meanwhile
-        count += int(fields[38]) == os.SCHED_FIFO
-    return count
-
-
 def _realtime_allowed() -> bool:
     result: list[bool] = []
 
@@ -445,7 +433,7 @@ def test_the_cyclic_timer_is_a_real_time_thread_where_the_os_allows_it(how: str)
         assert proc.stdout is not None
         assert "simulated drive" in proc.stdout.readline()
         port = int(proc.stdout.readline().rsplit("port=", 1)[1])
-        assert _fifo_threads(proc.pid) == 0  # no job, no timer thread
+        assert fifo_thread_count(proc.pid) == 0  # no job, no timer thread
         with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port) as listener:
             sock = socket.create_connection(("127.0.0.1", port), timeout=2.0)
             try:
@@ -455,7 +443,7 @@ def test_the_cyclic_timer_is_a_real_time_thread_where_the_os_allows_it(how: str)
                 sock.sendall(b"< add 0 10000 080 0 >")
                 syncs = [m for m in drain(listener, 0.5) if m.arbitration_id == 0x080]
                 assert len(syncs) >= 20  # the SYNC runs either way
-                assert _fifo_threads(proc.pid) == int(expected)  # the timer thread, and only it
+                assert fifo_thread_count(proc.pid) == int(expected)  # the timer thread, and only it
             finally:
                 sock.close()
     finally:
