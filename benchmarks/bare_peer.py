@@ -1,6 +1,7 @@
 """The bare path's subscriber, in its own process like the driver node:
 
-    python bare_peer.py HOST PORT   -> on ``bare_cmd`` (Float32, deg) sends one RPDO 0x301
+    python bare_peer.py HOST PORT [N]  -> on ``bare_cmd_<i>`` (Float32, deg; i < N, default 1)
+                                         sends one RPDO 0x301 + i
 
 Nothing but rclpy (the EventsExecutor the node uses) and one python-can send per message;
 SIGTERM ends it.
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -27,16 +29,20 @@ logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR
 
 def main() -> int:
     host, port = sys.argv[1], int(sys.argv[2])
+    topics = int(sys.argv[3]) if len(sys.argv) > 3 else 1
     bus = can.Bus(interface="socketcand", channel="can0", host=host, port=port, tcp_tune=True)
     runtime.init(None)
     node = rclpy.create_node("bare_peer")
 
-    def on_cmd(msg: Float32) -> None:
-        counts = round(msg.data * COUNTS_PER_DEG)
-        bus.send(can.Message(arbitration_id=0x301, data=b"\x3f\x00" + counts.to_bytes(4, "little", signed=True),
-                             is_extended_id=False))
+    def on_cmd(cob_id: int) -> Callable[[Float32], None]:
+        def send(msg: Float32) -> None:
+            counts = round(msg.data * COUNTS_PER_DEG)
+            bus.send(can.Message(arbitration_id=cob_id, data=b"\x3f\x00" + counts.to_bytes(4, "little", signed=True),
+                                 is_extended_id=False))
+        return send
 
-    node.create_subscription(Float32, "bare_cmd", on_cmd, COMMAND_QOS)
+    for i in range(topics):
+        node.create_subscription(Float32, f"bare_cmd_{i}", on_cmd(0x301 + i), COMMAND_QOS)
     executor = EventsExecutor()
     executor.add_node(node)
     with runtime.StopSignal() as stop:

@@ -58,8 +58,12 @@ def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
     default = stack_run.run_stack(stack_run.SHIPPED["default"], min(seconds, 10.0), 100.0)
     out.update({f"default_{k}": v for k, v in default.items()})
     out.update(stack_run.bare_path(min(seconds, 10.0)))
+    out.update(stack_run.bare_path(min(seconds, 10.0), out["drives"]))  # the same burst of one command per drive
+    burst = f"bare_latency_{out['drives']}_topics_p50_ms"
     if out.get("cmd_latency_p50_ms") and out.get("bare_latency_p50_ms"):
         out["cmd_latency_ratio"] = round(out["cmd_latency_p50_ms"] / out["bare_latency_p50_ms"], 2)
+    if out.get("cmd_latency_p50_ms") and out.get(burst):
+        out["cmd_latency_ratio_same_burst"] = round(out["cmd_latency_p50_ms"] / out[burst], 2)
     out.update(stack_run.baseline_canopen(6, 10.0, seconds))
     out.update(stack_run.driver_only(6, 10.0, seconds))
     return out

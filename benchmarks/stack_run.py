@@ -20,18 +20,20 @@ socketcand client that sees every frame with the server's wire timestamp). Figur
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import json
+import multiprocessing
 import os
 import socket
 import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -68,24 +70,53 @@ def pct(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(q * (len(ordered) - 1)))]
 
 
-class Listener(threading.Thread):
-    def __init__(self, port: int, channel: str = "can0") -> None:
-        super().__init__(daemon=True)
-        self.channel = channel
-        self.bus = can.Bus(interface="socketcand", channel=channel, host="127.0.0.1", port=port, tcp_tune=True)
-        self.frames: list[tuple[float, int, bytes]] = []
-        self.stop = threading.Event()
-
-    def run(self) -> None:
-        while not self.stop.is_set():
-            msg = self.bus.recv(0.1)
+def _listen(port: int, channel: str, conn: Connection) -> None:
+    """The listener process: every frame on ``channel`` with the server's timestamp, until told
+    to stop; ``("send", cob, data)`` puts a frame on the bus."""
+    bus = can.Bus(interface="socketcand", channel=channel, host="127.0.0.1", port=port, tcp_tune=True)
+    frames: list[tuple[float, int, bytes]] = []
+    conn.send("ready")
+    try:
+        while True:
+            if conn.poll():
+                request = conn.recv()
+                if request == "stop":
+                    break
+                bus.send(can.Message(arbitration_id=request[1], data=request[2], is_extended_id=False))
+            msg = bus.recv(0.05)
             if msg is not None:
-                self.frames.append((msg.timestamp, msg.arbitration_id, bytes(msg.data)))
+                frames.append((msg.timestamp, msg.arbitration_id, bytes(msg.data)))
+        conn.send(frames)
+    finally:
+        bus.shutdown()
+
+
+class Listener:
+    """An independent listener in a process of its own: its parsing of every frame on the bus
+    (thousands a second) must not hold the interpreter the benchmark publishes commands from."""
+
+    def __init__(self, port: int, channel: str = "can0") -> None:
+        self.channel = channel
+        self._conn, child = multiprocessing.Pipe()
+        self._proc = multiprocessing.get_context("spawn").Process(target=_listen, args=(port, channel, child),
+                                                                  daemon=True)
+        self.frames: list[tuple[float, int, bytes]] = []
+
+    def start(self) -> None:
+        self._proc.start()
+        if not self._conn.poll(30) or self._conn.recv() != "ready":
+            raise RuntimeError(f"the listener on {self.channel} did not start")
+
+    def send(self, cob_id: int, data: bytes) -> None:
+        self._conn.send(("send", cob_id, data))
 
     def close(self) -> None:
-        self.stop.set()
-        self.join(2)
-        self.bus.shutdown()
+        """Stop listening; :attr:`frames` then holds every frame seen."""
+        if self._proc.is_alive():
+            self._conn.send("stop")
+            if self._conn.poll(30):
+                self.frames = self._conn.recv()
+        self._proc.join(10)
 
 
 SHIPPED = {"rover": REPO / "config" / "rover.yaml", "default": REPO / "can_config" / "data" / "default.yaml"}
@@ -128,7 +159,7 @@ def is_tpdo(cob: int) -> bool:
 
 def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str, Any]:
     """The measured process runs a shipped config as a user gets it; only the simulator's port
-    is put into it. Every drive gets a ``degree_cmd`` at ``command_hz``."""
+    is put into it. Every drive gets a ``degree_cmd`` at ``command_hz`` (0.1 % slow: below)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float32
@@ -185,7 +216,10 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             sent: dict[tuple[str, int, int], list[float]] = {}
             cpu0, wall0 = proc_cpu_s(proc.pid), time.monotonic()
             window0 = time.time()
-            period = 1.0 / command_hz
+            # the command clock runs 0.1 % slow: over each 10 s the bursts pass once through every
+            # phase of the SYNC period. At exactly the SYNC's rate one run would see one phase only
+            # (on one clock the two stay locked), and the p50 would be 0.9 or 1.5 ms by luck
+            period = 1.001 / command_hz
             next_t = time.monotonic()
             k = 0
             while time.monotonic() - wall0 < seconds:
@@ -204,7 +238,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             first = listeners[min(listeners)]
             t_stop = time.time()
             for listener in listeners.values():  # the drives stop sending: loss can be counted exactly
-                listener.bus.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 0]), is_extended_id=False))
+                listener.send(0x000, bytes([0x80, 0]))
             # the driver's count from a /diagnostics published a second after the stop (one
             # published at once can miss the last TPDOs still on their way), taken before the
             # driver takes the drives back (FOREIGN_RELEASE_S after the other master's NMT)
@@ -216,8 +250,6 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             while time.monotonic() < end and not diags:
                 executor.spin_once(timeout_sec=0.05)
             tpdo_applied = sum(int(kv.value) for st in diags[-1].status for kv in st.values if kv.key == "tpdos_applied")
-            tpdo_sent = sum(1 for listener in listeners.values() for t, cob, _ in listener.frames[:]
-                            if is_tpdo(cob) and t < t_stop + 0.5)
         finally:
             executor.shutdown()
             node.destroy_node()
@@ -226,7 +258,12 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             proc.wait(20)
             for listener in listeners.values():
                 listener.close()
+    tpdo_sent = sum(1 for listener in listeners.values() for t, cob, _ in listener.frames
+                    if is_tpdo(cob) and t < t_stop + 0.5)
     latencies = []
+    by_order: dict[int, list[float]] = {}  # latency by the command's place in each burst of publishes
+    published_at: list[float] = []  # of each latency
+    order = {(ch, d.node_id): i for i, (d, ch, _, _) in enumerate(drives)}
     matched = 0
     per_rev = {(ch, d.node_id): rev for d, ch, _, rev in drives}
     for ch, listener in listeners.items():
@@ -239,12 +276,21 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
                 while times and times[0] < t - 1.0:
                     times.pop(0)  # a command superseded before it was sent (latest wins)
                 if times and times[0] <= t:
-                    latencies.append((t - times.pop(0)) * 1000)
+                    published = times.pop(0)
+                    latencies.append((t - published) * 1000)
+                    by_order.setdefault(order[(ch, node_id)], []).append(latencies[-1])
+                    published_at.append(published)
                     matched += 1
     unmatched = sum(len(v) for v in sent.values())
     syncs = [t for t, cob, _ in first.frames if cob == 0x080]
     sync_s = shipped.buses[0].sync_period_s
     jitter = [abs((b - a) - sync_s) * 1e6 for a, b in itertools.pairwise(syncs)]
+    # latency by when the command was published within the SYNC period (tenths of it after a SYNC)
+    by_phase: dict[int, list[float]] = {}
+    for published, latency in zip(published_at, latencies, strict=True):
+        i = bisect.bisect_right(syncs, published) - 1
+        if 0 <= i < len(syncs) - 1:
+            by_phase.setdefault(min(9, int(10 * (published - syncs[i]) / sync_s)), []).append(latency)
     # the driver's heartbeat (node 127) as the drives see it: its longest gap is what their
     # consumer time (150 ms by default) must cover while the process is busy
     beats = [t for t, cob, _ in first.frames if cob == 0x77F and window0 <= t <= window1]
@@ -254,6 +300,9 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             "host_heartbeat_gap_max_ms": round(max(gaps), 1) if gaps else None,
             "cmd_latency_p50_ms": round(statistics.median(latencies), 3) if latencies else None,
             "cmd_latency_p99_ms": round(pct(latencies, 0.99), 3) if latencies else None,
+            "cmd_latency_p50_ms_by_publish_order": [round(statistics.median(by_order[i]), 3) for i in sorted(by_order)],
+            "cmd_latency_p50_ms_by_sync_phase": [round(statistics.median(by_phase[i]), 3) if i in by_phase else None
+                                                 for i in range(10)],
             "commands_matched": matched, "commands_superseded": unmatched,
             "tpdo_sent": tpdo_sent, "tpdo_applied": tpdo_applied, "tpdo_loss": tpdo_sent - tpdo_applied,
             "cpu_core_fraction": round(cpu, 3), "rss_mb": round(rss, 1),
@@ -261,8 +310,10 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             "sync_timer_realtime": sync_timer_realtime}
 
 
-def bare_path(seconds: float) -> dict[str, Any]:
-    """rclpy publish -> subscription callback -> one python-can send, to the listener.
+def bare_path(seconds: float, topics: int = 1) -> dict[str, Any]:
+    """rclpy publish -> subscription callback -> one python-can send, to the listener, for
+    ``topics`` topics published in a burst every 10 ms, as the stack run publishes one command
+    per drive.
 
     The subscriber is its own process (``bare_peer.py``), as the driver node is: publisher and
     subscriber in one process would take DDS's intra-process shortcut the node never gets.
@@ -276,26 +327,30 @@ def bare_path(seconds: float) -> dict[str, Any]:
         listener = Listener(port)
         listener.start()
         peer = subprocess.Popen([sys.executable, str(Path(__file__).resolve().parent / "bare_peer.py"), "127.0.0.1",
-                                 str(port)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+                                 str(port), str(topics)],
+                                cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         context = rclpy.Context()
         rclpy.init(context=context)
         node = rclpy.create_node("bare", context=context)
-        pub = node.create_publisher(Float32, "bare_cmd", COMMAND_QOS)
+        pubs = [node.create_publisher(Float32, f"bare_cmd_{i}", COMMAND_QOS) for i in range(topics)]
         try:
             assert peer.stdout is not None and peer.stdout.readline().strip() == "ready"
             deadline = time.monotonic() + 10
-            while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            while any(pub.get_subscription_count() == 0 for pub in pubs) and time.monotonic() < deadline:
                 time.sleep(0.05)
             time.sleep(0.5)
-            sent: dict[int, float] = {}
+            sent: dict[tuple[int, int], float] = {}
             start = time.monotonic()
+            next_t = start
             k = 0
             while time.monotonic() - start < seconds:
                 k += 1
                 angle = (k % 3000) * 0.1 + 0.05
-                sent[round(angle * BARE_COUNTS_PER_DEG)] = time.time()
-                pub.publish(Float32(data=angle))
-                time.sleep(0.01)
+                for i, pub in enumerate(pubs):
+                    sent[(0x301 + i, round(angle * BARE_COUNTS_PER_DEG))] = time.time()
+                    pub.publish(Float32(data=angle))
+                next_t += 0.01
+                time.sleep(max(0.0, next_t - time.monotonic()))
             time.sleep(0.3)
         finally:
             peer.terminate()
@@ -303,9 +358,10 @@ def bare_path(seconds: float) -> dict[str, Any]:
             node.destroy_node()
             rclpy.shutdown(context=context)
             listener.close()
-    latencies = [(t - sent.pop(int.from_bytes(d[2:6], "little", signed=True))) * 1000
-                 for t, cob, d in listener.frames if cob == 0x301 and int.from_bytes(d[2:6], "little", signed=True) in sent]
-    return {"bare_latency_p50_ms": round(statistics.median(latencies), 3)}
+    latencies = [(t - sent.pop((cob, int.from_bytes(d[2:6], "little", signed=True)))) * 1000
+                 for t, cob, d in listener.frames if (cob, int.from_bytes(d[2:6], "little", signed=True)) in sent]
+    key = "bare_latency_p50_ms" if topics == 1 else f"bare_latency_{topics}_topics_p50_ms"
+    return {key: round(statistics.median(latencies), 3)}
 
 
 def state_run(script: str, prefix: str, n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]:
@@ -340,4 +396,4 @@ def driver_only(n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]
 
 
 if __name__ == "__main__":
-    print(json.dumps({**run_stack(SHIPPED["rover"], 10.0, 100.0), **bare_path(5.0)}, indent=2))
+    print(json.dumps({**run_stack(SHIPPED["rover"], 10.0, 100.0), **bare_path(5.0), **bare_path(5.0, 6)}, indent=2))

@@ -9,6 +9,11 @@ ROWS = [
     ("cmd_latency_p50_ms", "command latency p50 (publish -> RPDO on the wire), ms", "<= 0.5", "bare_latency_p50_ms"),
     ("cmd_latency_p99_ms", "command latency p99, ms", "<= 2", None),
     ("cmd_latency_ratio", "p50 / bare path (rclpy + one python-can send)", "<= 1.5", None),
+    ("cmd_latency_ratio_same_burst", "p50 / bare path with the same burst (six topics, six sends every 10 ms)", "",
+     "bare_latency_6_topics_p50_ms"),
+    ("cmd_latency_p50_ms_by_publish_order", "command latency p50 by place in the burst (1st .. 6th joint), ms", "", None),
+    ("cmd_latency_p50_ms_by_sync_phase", "command latency p50 by when it was published after a SYNC (tenths of the period), ms",
+     "", None),
     ("default_cmd_latency_p50_ms", "embedded default (1 motor): command latency p50, ms", "<= 0.5", None),
     ("default_cmd_latency_p99_ms", "embedded default (1 motor): command latency p99, ms", "<= 2", None),
     ("tpdo_loss", "TPDO loss, 6 drives, 100 Hz SYNC", "0", "baseline_canopen_tpdo_loss"),
@@ -40,7 +45,8 @@ def main() -> None:
     print("| figure | ours | target | baseline |\n|---|---|---|---|")
     for key, what, target, base in ROWS:
         baseline = data.get(base) if base else None
-        label = {"bare_latency_p50_ms": "bare path", "baseline_canopen_tpdo_loss": "canopen lib",
+        label = {"bare_latency_p50_ms": "bare path", "bare_latency_6_topics_p50_ms": "bare path, 6 topics",
+                 "baseline_canopen_tpdo_loss": "canopen lib",
                  "baseline_canopen_cpu_core_fraction": "canopen lib"}.get(base or "", "")
         print(f"| {what} | {data.get(key)} | {target} | {f'{baseline} ({label})' if baseline is not None else ''} |")
 
