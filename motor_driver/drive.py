@@ -130,6 +130,11 @@ QUICK_STOP_THEN_DISABLE = 2
 LIMIT_MARGIN_S = 0.05
 #: The limit guard moves a sampled position on by its velocity for at most this long.
 MAX_EXTRAPOLATION_S = 0.2
+#: How long a torque-commanded joint goes on speeding up once the guard has decided to brake:
+#: the quick stop reaches the drive with the next SYNC, a supervisor period after the samples.
+LIMIT_ACCEL_MARGIN_S = 0.025
+#: Velocity samples further apart than this give no acceleration (a gap, not a slope).
+MAX_ACCEL_GAP_S = 0.2
 NO_HOST_WATCH = "no drive-side stop on host loss"
 #: SDO aborts of a value out of the object's range (CiA 301): the drive cannot take that entry.
 VALUE_RANGE_ABORTS = frozenset({0x0609_0030, 0x0609_0031, 0x0609_0032, 0x0609_0036})
@@ -214,6 +219,10 @@ class Drive:
         self.mode_display = 0
         self.position_counts = 0
         self.velocity_counts_s = 0
+        #: the slope of the last two velocity samples, counts/s^2: how a torque-commanded joint
+        #: speeds up while the limit guard reacts (receive thread; 0 after a gap in the samples)
+        self.accel_counts_s2 = 0.0
+        self._accel_from = (0, 0.0)  # (velocity, sample time) the slope is taken from (receive thread)
         self.torque_permille: float = math.nan
         self.stamp = 0.0
         self.nmt_state = "UNKNOWN"
@@ -280,6 +289,7 @@ class Drive:
                 self.position_counts = value
                 self._position_seq += 1
             elif index == OD.VELOCITY_ACTUAL:
+                self._track_accel(value, timestamp)
                 self.velocity_counts_s = value
             elif index == OD.TORQUE_ACTUAL:
                 self.torque_permille = value
@@ -302,6 +312,16 @@ class Drive:
                     logger.warning("node %d: setpoint handshake: %s", self.node_id, err)
             with self._status_event:
                 self._status_event.notify_all()
+
+    def _track_accel(self, velocity_counts_s: int, timestamp: float) -> None:
+        """Receive thread: the slope from the last sample at least half a SYNC period older (two
+        frames that queued up and arrive together give no slope of their own)."""
+        before, t_before = self._accel_from
+        gap = timestamp - t_before
+        if 0.0 <= gap < 0.5 * self.sync_period_s:
+            return
+        self.accel_counts_s2 = (velocity_counts_s - before) / gap if 0.0 < gap <= MAX_ACCEL_GAP_S else 0.0
+        self._accel_from = (velocity_counts_s, timestamp)
 
     def _plausible_position(self, value: int, timestamp: float) -> bool:
         """Reject a position the joint cannot have reached since the last one (a corrupted or
@@ -1216,25 +1236,33 @@ class Drive:
             self.velocity_commanded = velocity != 0.0
 
     # ------------------------------------------------------------------ limits in every mode
-    def _limit_ahead(self, direction: float, speed_deg_s: float, decel_deg_s2: float) -> str | None:
+    def _limit_ahead(self, direction: float, speed_deg_s: float, decel_deg_s2: float,
+                     torque_mode: bool = False) -> str | None:
         """The limit a motion in ``direction`` at ``speed_deg_s`` (or the joint's own speed, if
-        higher) could not stop before when braking at ``decel_deg_s2``; None when clear."""
+        higher) could not stop before when braking at ``decel_deg_s2``; None when clear.
+        ``torque_mode``: nothing caps the joint's acceleration (a profile does in the velocity
+        modes), so it speeds up on its measured acceleration while the guard reacts."""
         cfg = self.config
         if cfg.is_continuous or direction == 0 or cfg.min_deg is None or cfg.max_deg is None:
             return None
         velocity = self.scale.counts_s_to_deg_s(self.velocity_counts_s)
+        accel = self.scale.counts_s_to_deg_s(self.accel_counts_s2) if torque_mode else 0.0
+        accel = accel if accel * direction > 0 else 0.0  # only speeding up toward the limit counts
         age = min(max(time.time() - self.stamp, 0.0), MAX_EXTRAPOLATION_S) if self.stamp else 0.0
-        angle = self.angle_deg + velocity * age  # where the joint is now, not when its TPDO was sampled
-        speed = max(speed_deg_s, abs(velocity))
-        need = speed * speed / (2 * decel_deg_s2) + speed * LIMIT_MARGIN_S
+        # where the joint is now, and how fast, not when its TPDO was sampled
+        angle = self.angle_deg + velocity * age + 0.5 * accel * age * age
+        speed = max(speed_deg_s, abs(velocity + accel * age))
+        gain = abs(accel) * LIMIT_ACCEL_MARGIN_S  # speed gained before the brake takes hold
+        need = (speed + gain) ** 2 / (2 * decel_deg_s2) + speed * LIMIT_MARGIN_S + 0.5 * gain * LIMIT_ACCEL_MARGIN_S
         if direction > 0 and cfg.max_deg - angle <= need:
             return f"max_deg={cfg.max_deg:g}"
         if direction < 0 and angle - cfg.min_deg <= need:
             return f"min_deg={cfg.min_deg:g}"
         return None
 
-    def _refuse_past_limit(self, direction: float, speed_deg_s: float, decel_deg_s2: float, what: str) -> None:
-        limit = self._limit_ahead(direction, speed_deg_s, decel_deg_s2)
+    def _refuse_past_limit(self, direction: float, speed_deg_s: float, decel_deg_s2: float, what: str,
+                           torque_mode: bool = False) -> None:
+        limit = self._limit_ahead(direction, speed_deg_s, decel_deg_s2, torque_mode)
         if limit is None:
             return
         self._brake()
@@ -1265,7 +1293,7 @@ class Drive:
         velocity = self.scale.counts_s_to_deg_s(self.velocity_counts_s)
         torque_mode = self.mode_display in TORQUE_MODES
         decel = self.config.quick_stop_decel_deg_s2 if torque_mode else self.config.profile_acceleration_deg_s2
-        limit = self._limit_ahead(velocity, abs(velocity), decel)
+        limit = self._limit_ahead(velocity, abs(velocity), decel, torque_mode)
         if limit is not None:  # no lock: a command racing this brake is checked against the limit itself
             logger.warning("%s: at %.2f deg moving %.1f deg/s toward its limit %s; braking", self.name,
                            self.angle_deg, velocity, limit)
@@ -1333,7 +1361,8 @@ class Drive:
         """Profile-torque command in Nm at the joint, limited by max_torque_nm; feeds the watchdog."""
         torque = self._checked_torque(torque_nm)
         with self._command("torque command"):
-            self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"torque {torque:g} Nm")
+            self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"torque {torque:g} Nm",
+                                    torque_mode=True)
             self._ensure_mode(OperationMode.PROFILE_TORQUE, "torque command")
             self._send_torque(self.scale.nm_to_permille(torque))
             self.last_velocity_cmd = time.monotonic()
@@ -1376,7 +1405,8 @@ class Drive:
         drive whose 0x6502 does not list CST."""
         torque = self._checked_torque(torque_nm)
         with self._command("CST set-point"):
-            self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"CST torque {torque:g} Nm")
+            self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"CST torque {torque:g} Nm",
+                                    torque_mode=True)
             self._ensure_mode(OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point")
             self._send_torque(self.scale.nm_to_permille(torque))
             self.last_velocity_cmd = time.monotonic()

@@ -212,7 +212,13 @@ def test_a_drive_enabled_again_does_not_resume_its_old_target(
         drive.recover()  # enables again: it was enabled before the fault
     else:
         drive.quick_stop()
-        wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 3.0, "stopped")
+        try:
+            wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 3.0, "stopped")
+        except AssertionError as err:  # seen once under load, not reproduced: say what each side saw
+            runner = sim.simulators["can0"]
+            truth = runner.call(lambda: (runner.drive(1).state.name, runner.drive(1).omega))
+            raise AssertionError(f"{err}; the driver saw {drive.snapshot()}; the simulated drive is in"
+                                 f" {truth[0]} at {truth[1]:.2f} rad/s") from err
         drive.disable()
         drive.enable()
     assert drive.state is State.OPERATION_ENABLED

@@ -114,13 +114,15 @@ def test_torque_toward_a_limit_is_stopped(driver_factory: DriverFactory) -> None
     drive = driver.drive("joint1")
     drive.enable()
     watch = Extremes(sim)
-    for push in range(1, 4):  # pushed again and again from where it stopped: never past the limit
-        drive.set_torque(12.0)  # accelerates the joint toward +90 at several hundred deg/s^2
+    for push in range(1, 7):  # pushed again and again from where it stopped: never past the limit
+        drive.set_torque(12.0)  # accelerates the joint toward +90 at about 2300 deg/s^2
         wait_for(lambda push=push: drive.limit_stops >= push, 3.0, "the limit guard")
         wait_for(lambda: sim_state(sim) == "SWITCH_ON_DISABLED", 1.0, "quick stop done")  # a torque loop has no brake
         drive.enable()
     _low, high = watch.stop()
-    assert 85.0 < high <= 90.0, high
+    # the guard allows for the joint speeding up while it reacts (about 2300 deg/s^2 here, near
+    # the quick-stop ramp's 2880): each push from rest stops nearer, never past it, not far short
+    assert 83.0 < high <= 90.0, high
 
 
 def test_streamed_positions_are_refused_beyond_a_limit(driver_factory: DriverFactory) -> None:
