@@ -449,3 +449,44 @@ def test_the_cyclic_timer_is_a_real_time_thread_where_the_os_allows_it(how: str)
     finally:
         proc.terminate()
         proc.wait(30)
+
+
+def test_a_frame_is_stamped_when_it_reached_the_server_not_when_read(server: SocketcandServer) -> None:
+    """A frame's bus time is its arrival at the server (the kernel's stamp), as a CAN controller
+    stamps a frame on the wire: an interpreter busy elsewhere does not make the client look late."""
+    listener = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
+    sock = raw_client(server)
+    try:
+        assert read_until(sock, "< hi >").endswith("< hi >")
+        sock.sendall(b"< open can0 >")
+        assert "< ok >" in read_until(sock, "< ok >")
+        sock.sendall(b"< rawmode >")
+        assert "< ok >" in read_until(sock, "< ok >")
+        old = sys.getswitchinterval()
+        sys.setswitchinterval(1.0)  # the loop below keeps the interpreter from the server's reader
+        try:
+            sent = time.time()
+            sock.sendall(b"< send 123 1 AA >")
+            busy_until = time.monotonic() + 0.15
+            while time.monotonic() < busy_until:
+                pass
+        finally:
+            sys.setswitchinterval(old)
+        msg = listener.recv(2.0)
+        assert msg is not None and msg.arbitration_id == 0x123
+        assert 0.0 <= msg.timestamp - sent < 0.05, f"stamped {msg.timestamp - sent:.4f} s after it was sent"
+    finally:
+        sock.close()
+        listener.shutdown()
+
+
+def test_frames_on_one_channel_are_stamped_in_time_order() -> None:
+    """One wire, one order in time: a frame delivered after another is never stamped before it."""
+    with BusEngine() as engine:
+        channel = engine.channel("can0")
+        seen: list[float] = []
+        channel.attach(lambda msg: seen.append(msg.timestamp))
+        channel.send(can.Message(arbitration_id=1, data=b"", timestamp=10.0))
+        channel.send(can.Message(arbitration_id=2, data=b"", timestamp=5.0))
+        channel.send(can.Message(arbitration_id=3, data=b""))
+        assert seen[:2] == [10.0, 10.0] and seen[2] >= 10.0

@@ -96,6 +96,7 @@ class Channel:
         self._closed = False
         self._wire_thread: threading.Thread | None = None
         self._timers: set[threading.Timer] = set()
+        self._last_stamp = 0.0  # of the newest frame delivered; guarded by _lock
         if wire_time:
             self._wire_thread = threading.Thread(target=self._wire_loop, daemon=True,
                                                  name=f"virtual_can-wire-{name}")
@@ -136,8 +137,10 @@ class Channel:
     def _deliver(self, msg: can.Message, sender: Endpoint | None) -> None:
         with self._lock:  # one frame at a time: every endpoint sees the same order
             self.stats.frames += 1
-            if msg.timestamp == 0.0:
-                msg.timestamp = time.time()
+            # stamped when it reached the bus (a server's reader gives the kernel's arrival time)
+            # or now; never before the frame delivered before it: one wire, one order in time
+            stamp = msg.timestamp or time.time()
+            msg.timestamp = self._last_stamp = max(stamp, self._last_stamp)
             for endpoint in self._endpoints:
                 if endpoint is not sender:
                     endpoint.deliver(msg)

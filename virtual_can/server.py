@@ -34,6 +34,8 @@ import ctypes
 import logging
 import select
 import socket
+import struct
+import sys
 import threading
 import time
 from collections import deque
@@ -71,14 +73,46 @@ HANDSHAKE_TIMEOUT_S = 5.0
 #: Periods a cyclic job ('< add >') may have.
 MIN_CYCLIC_PERIOD_S = 0.0005
 MAX_CYCLIC_PERIOD_S = 3600.0
-#: The cyclic timer spins to each due time for at most / at least this long (see CyclicJobs).
+#: The cyclic timer spins to each due time for at most / at least this long (see CyclicJobs):
+#: an ordinary thread wakes up to a millisecond late and yields to other threads while it spins.
 SPIN_MAX_S = 0.001
-SPIN_MIN_S = 0.0001
+SPIN_MIN_S = 0.00005
+#: Under SCHED_FIFO the wake-up is on time and the spin only covers getting the interpreter
+#: back, but it holds the interpreter and a core, and a client's frame that arrives during it
+#: reaches the bus after the SYNC (six-drive stack runs: a 1 ms cap gave a command p99 of
+#: 2.3 ms and a SYNC error p99 of 36 us; 0.2 ms gave 1.5 ms and 216-324 us).
+SPIN_MAX_REALTIME_S = 0.0002
 #: ... of which this last part without yielding the interpreter to other threads.
 HARD_SPIN_S = 0.00015
 #: How long socket reads block before checking for shutdown.
 POLL_S = 0.2
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
+#: Linux's SO_TIMESTAMPNS (the socket module does not name it): each read carries the time its
+#: data reached the socket, which is when the client's frame reached the bus. A frame is stamped
+#: with it, as a CAN controller stamps a frame on the wire, not with the moment this server's
+#: interpreter got round to it (its drive threads can hold it for a tick).
+_SO_TIMESTAMPNS: int | None = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform == "linux" else None)
+_TIMESPEC = struct.Struct("@ll")
+_ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
+
+
+def _stamp_arrivals(sock: socket.socket) -> None:
+    """Ask the kernel to stamp every read of ``sock`` (where it can; else frames are stamped
+    when read)."""
+    if _SO_TIMESTAMPNS is not None:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        except OSError:
+            pass
+
+
+def _arrival(ancillary: list[tuple[int, int, bytes]]) -> float:
+    """The kernel's arrival time of a read, or now where it gave none."""
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack_from(data)
+            return float(sec + nsec * 1e-9)
+    return time.time()
 
 
 def _load_malloc_trim() -> Callable[[int], int] | None:
@@ -169,7 +203,8 @@ class CyclicJobs:
     its phase, so that one wake-up serves both. Jobs are keyed by (client, CAN id).
 
     A timed wait in Python wakes 0.2-1 ms late on a loaded machine, so the thread wakes that
-    much early (the longest recent lateness, doubled, at most ``SPIN_MAX_S``) and spins to the
+    much early (the longest recent lateness, doubled, at most ``SPIN_MAX_S``, or
+    ``SPIN_MAX_REALTIME_S`` under SCHED_FIFO, which wakes on time) and spins to the
     due time: the emulator's stand-in for the kernel timer a real socketcand uses.
     """
 
@@ -217,7 +252,8 @@ class CyclicJobs:
                 del self._jobs[key]
 
     def _spin_s(self) -> float:
-        return min(SPIN_MAX_S, max(SPIN_MIN_S, 2.0 * max(self._lateness, default=SPIN_MAX_S)))
+        cap = SPIN_MAX_REALTIME_S if self.realtime else SPIN_MAX_S
+        return min(cap, max(SPIN_MIN_S, 2.0 * max(self._lateness, default=cap)))
 
     def _run(self) -> None:
         realtime = make_thread_realtime("socketcand broadcast manager timer")
@@ -291,6 +327,8 @@ class _Client:
         self._closed = threading.Event()
         self._hold_frames = False  # set by rawmode: frames wait for _spoke or RAWMODE_HOLD_S
         self._spoke = threading.Event()
+        self._arrival = 0.0  # when the newest read reached the socket; the reader's own
+        _stamp_arrivals(sock)
         name = f"{addr[0]}:{addr[1]}"
         self.reader = threading.Thread(target=self._read_loop, daemon=True, name=f"socketcand-rx-{name}")
         self.writer = threading.Thread(target=self._write_loop, daemon=True, name=f"socketcand-tx-{name}")
@@ -371,7 +409,8 @@ class _Client:
                     break
                 if not readable:
                     continue
-                chunk = sock.recv(65536)
+                chunk, ancillary, _, _ = sock.recvmsg(65536, _ANCILLARY_BYTES)
+                self._arrival = _arrival(ancillary)
             except (OSError, ValueError):
                 break
             if not chunk:
@@ -422,6 +461,7 @@ class _Client:
                 self._error(str(err))
                 return
             self.stats.received += 1
+            msg.timestamp = self._arrival
             try:
                 self.channel.send(msg, self.endpoint)
             except can.CanError as err:
