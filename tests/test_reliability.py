@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from can_config import RoverConfig, with_bus_overrides
 from can_config.errors import BusLostError, MotorError
-from motor_driver import MotorDriver, State
+from motor_driver import Drive, MotorDriver, State
 from motor_driver.driver import HANDSHAKE_TIMEOUT_S, OPEN_ATTEMPTS
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -131,17 +131,38 @@ def test_frame_faults_no_crash_no_wrong_state(driver_factory: DriverFactory, rat
     assert all(h.network.notifier is not None and h.network.notifier.exception is None for h in driver.buses.values())
 
 
-def test_corrupted_position_is_not_reported(driver_factory: DriverFactory) -> None:
+def _position_receiving(driver_factory: DriverFactory) -> tuple[Drive, Callable[[int, float], None]]:
+    """One drive whose position TPDOs arrive, and a way to feed it a position sample (as its
+    receive thread would) stamped at a given time."""
     _, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")
     network = driver.buses["can0"].network
     seq = drive._position_seq
     wait_for(lambda: drive._position_seq > seq + 1, 1.0, "position TPDOs")
+
+    def feed(counts: int, t: float) -> None:
+        network.notify(0x281, bytearray(counts.to_bytes(4, "little", signed=True) + bytes(4)), t)
+    return drive, feed
+
+
+def test_corrupted_position_is_not_reported(driver_factory: DriverFactory) -> None:
+    drive, feed = _position_receiving(driver_factory)
     before = drive.position_counts
-    t = time.time()
-    network.notify(0x281, bytearray((before + 2**20).to_bytes(4, "little", signed=True) + bytes(4)), t)
+    feed(before + 2**20, time.time())
     assert drive.position_counts == before  # a one-off jump beyond max velocity is held back
     assert drive.implausible_samples == 1
+
+
+def test_a_jump_is_taken_only_when_two_more_samples_agree(driver_factory: DriverFactory) -> None:
+    """The same corruption twice in a row is still held back; a real jump (homing, a reboot)
+    is taken with the third sample that agrees."""
+    drive, feed = _position_receiving(driver_factory)
+    before = drive.position_counts
+    jumped = before + 2**29
+    t = time.time()
+    for i, expected in enumerate((before, before, jumped)):
+        feed(jumped, t + 0.001 * i)
+        assert drive.position_counts == expected, f"after {i + 1} sample(s) of the jump"
 
 
 FRAME = st.tuples(st.integers(0, 0x7FF), st.binary(max_size=8))
