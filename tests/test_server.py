@@ -490,3 +490,18 @@ def test_frames_on_one_channel_are_stamped_in_time_order() -> None:
         channel.send(can.Message(arbitration_id=2, data=b"", timestamp=5.0))
         channel.send(can.Message(arbitration_id=3, data=b""))
         assert seen[:2] == [10.0, 10.0] and seen[2] >= 10.0
+
+
+def test_a_delayed_frame_is_stamped_when_it_reaches_the_wire() -> None:
+    """The delay fault holds a frame back: its stamp is when it is delivered, not its arrival."""
+    with BusEngine() as engine:
+        channel = engine.channel("can0")
+        seen: list[float] = []
+        channel.attach(lambda msg: seen.append(msg.timestamp))
+        channel.faults.delay, channel.faults.delay_s = 1.0, 0.05
+        arrived = time.time()
+        channel.send(can.Message(arbitration_id=1, data=b"", timestamp=arrived))
+        deadline = time.monotonic() + 2.0
+        while not seen and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert seen and seen[0] - arrived >= 0.04

@@ -172,6 +172,7 @@ class Channel:
         with self._lock:
             self._timers = {t for t in self._timers if t.is_alive() and t is not threading.current_thread()}
         if not self._closed:
+            msg.timestamp = 0.0  # it reaches the wire now, not when it reached the server
             self._deliver(msg, sender)
 
     # -- wire time
