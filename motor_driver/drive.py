@@ -33,12 +33,13 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import can
 import canopen
 from canopen.objectdictionary import ObjectDictionary
 
-from can_config.config import ON_HOST_LOSS, DriveConfig, SdoSetting
+from can_config.config import GENERIC_EDS, ON_HOST_LOSS, DriveConfig, SdoSetting
 from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import (
     BootError,
@@ -66,11 +67,11 @@ from motor_driver.pdo import PdoPlan, TpdoLayout, encode_rpdo, mapping_writes, p
 from motor_driver.safety import SafetyCheck, judge
 from motor_driver.setpoint import SetpointHandshake
 from motor_driver.units import (
-    UNIT_OBJECTS,
     Scale,
     check_counts,
     check_limits,
     nearest_equivalent,
+    read_unit_objects,
     require_finite,
     scale_from_objects,
 )
@@ -150,6 +151,9 @@ HOST_LOSS_CHECK_WAIT_S = 0.25
 #: EMCY / error history code of a drive whose heartbeat consumer lost the host (CiA 301).
 EMCY_HOST_LOST = 0x8130
 #: Modes whose command is a velocity (the watchdog and the limit guard send zero velocity) ...
+#: The controlword bits of Enable Operation (switch on, enable voltage, no quick stop, enable
+#: operation): motion frames go out only while this driver's last controlword had them all.
+ENABLED_CW_MASK = 0x000F
 VELOCITY_MODES = (OperationMode.PROFILE_VELOCITY, OperationMode.CYCLIC_SYNC_VELOCITY)
 #: ... and a torque (they send zero torque and, at a limit, quick-stop).
 TORQUE_MODES = (OperationMode.PROFILE_TORQUE, OperationMode.CYCLIC_SYNC_TORQUE)
@@ -216,7 +220,9 @@ class Drive:
         self._busy_owner: int | None = None  # its thread
         self._generation = 0  # counts operations: a preempted one notices
         self._preempted: tuple[int, str] = (0, "")  # operations older than this generation were stopped
-        self._cw = 0  # last device-control controlword (no edge bits)
+        self._cw = 0  # last device-control controlword (no edge bits); written under _lock only
+        #: tests only: called at named points of the state machine to force an interleaving (_hook)
+        self.interleave: Callable[[str], None] | None = None
         self._target_counts = 0
         self._handshake = SetpointHandshake(self._send_setpoint, self._clear_setpoint)
         # state from PDOs / heartbeat / EMCY (written by the notifier thread)
@@ -425,10 +431,9 @@ class Drive:
             if self.was_enabled and self.state == State.OPERATION_ENABLED:
                 # two masters on one drive is no state to keep moving in: the last thing this
                 # driver sends it is a quick stop (the watchdog no longer runs for it)
-                self._cw = int(Command.QUICK_STOP)
                 stopped = True
                 try:
-                    self._send_cw(self._cw)
+                    self._stop_frame(Command.QUICK_STOP, "another master on the bus")
                 except MotorError as err:
                     logger.error("%s: quick stop on losing control not sent: %s", self.name, err)
             self.velocity_commanded = False
@@ -660,14 +665,15 @@ class Drive:
                                 " bitrate and termination", node_id=self.node_id, step=step)
         current: tuple[int, int] = (0, 0)
         try:
+            step = "identity"
+            current = (OD.IDENTITY, 1)
+            self._check_identity()
             step = "device type"
             current = (OD.DEVICE_TYPE, 0)
             device_type = struct.unpack("<I", self.sdo_read(OD.DEVICE_TYPE, 0)[:4].ljust(4, b"\0"))[0]
             if device_type & 0xFFFF != CIA402_PROFILE:
                 logger.warning("node %d: device type 0x%08X is not a CiA 402 drive profile",
                                self.node_id, device_type)
-            step = "identity"
-            self._check_identity()
             step = "disarm"
             if has_object(self.od, OD.STATUSWORD) and has_object(self.od, OD.CONTROLWORD):
                 current = (OD.STATUSWORD, 0)
@@ -703,10 +709,10 @@ class Drive:
                 current = (OD.SOFTWARE_POSITION_LIMIT, 2)
                 self._write_typed(OD.SOFTWARE_POSITION_LIMIT, 2, high)
             step = "profile parameters"
-            to_drive = self.scale.magnitude_to_drive
+            to_drive, accel_to_drive = self.scale.magnitude_to_drive, self.scale.acceleration_to_drive
             for index, value in ((OD.PROFILE_VELOCITY, to_drive(cfg.profile_velocity_deg_s)),
-                                 (OD.PROFILE_ACCELERATION, to_drive(cfg.profile_acceleration_deg_s2)),
-                                 (OD.PROFILE_DECELERATION, to_drive(cfg.profile_acceleration_deg_s2)),
+                                 (OD.PROFILE_ACCELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2)),
+                                 (OD.PROFILE_DECELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2)),
                                  (OD.MAX_PROFILE_VELOCITY, to_drive(cfg.max_velocity_deg_s))):
                 if has_object(self.od, index):
                     current = (index, 0)
@@ -802,13 +808,13 @@ class Drive:
     def _quick_stop_decel(self) -> int:
         """The configured quick-stop deceleration in drive units, at most what the drive takes
         (its EDS HighLimit): the fastest stop it allows, said in a warning."""
-        wanted = self.scale.magnitude_to_drive(self.config.quick_stop_decel_deg_s2)
+        wanted = self.scale.acceleration_to_drive(self.config.quick_stop_decel_deg_s2)
         var = variable(self.od, OD.QUICK_STOP_DECELERATION, 0)
         high = var.max if var is not None else None
         if isinstance(high, int) and wanted > high:
             logger.warning("node %d (%s): quick-stop deceleration %g deg/s^2 is beyond the drive's range"
                            " (0x6085 <= %d); using its maximum, %.0f deg/s^2", self.node_id, self.name,
-                           self.config.quick_stop_decel_deg_s2, high, high / self.scale.magnitude_to_drive(1.0))
+                           self.config.quick_stop_decel_deg_s2, high, high * self.config.quick_stop_decel_deg_s2 / wanted)
             return high
         return wanted
 
@@ -825,6 +831,7 @@ class Drive:
         if not self.last_heartbeat:
             return
         try:
+            self._check_identity()  # never clear the history of another drive than the config's
             newest = self._read_int(OD.PREDEFINED_ERROR_FIELD, 1)
             if newest is None or newest & 0xFFFF != EMCY_HOST_LOST:
                 return
@@ -850,31 +857,78 @@ class Drive:
         self.sdo_write(OD.CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", 0))
         self.host_watch = None
 
+    def _read_optional(self, index: int, subindex: int) -> bytes | None:
+        """An object read by SDO whatever the EDS lists, or None where the drive aborts (it has
+        no such object). No answer at all is an error, not an absence."""
+        try:
+            return self.sdo_read(index, subindex)
+        except SdoTimeoutError:
+            raise
+        except SdoError:
+            return None
+
     def _read_units(self) -> None:
-        """Scale from the drive's factor group, SI velocity unit and rated torque, where it has them."""
-        objects = {(index, sub): value for index, subs in UNIT_OBJECTS for sub in subs
-                   if (value := self._read_int(index, sub)) is not None}
+        """Scale from the drive's own unit objects (factor group, SI units, rated torque), each
+        read by SDO whatever the EDS lists: an EDS that omits 0x60A9 does not make an EPOS4's
+        rpm counts/s. What came from where is said once at INFO (a conflict with the config at
+        WARNING); later boots say it at DEBUG."""
         cfg = self.config
+        objects = read_unit_objects(self._read_optional)
         self.scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
                                                invert=cfg.invert, offset_deg=cfg.offset_deg)
         self._max_counts_s = int(abs(self.scale.counts_per_deg * cfg.max_velocity_deg_s)) or 1
         self._jump_margin_counts = max(4.0, self.scale.counts_per_deg)
         for note in notes:
-            logger.warning("node %d (%s): %s", self.node_id, self.name, note)
+            level = logging.WARNING if "(config says" in note else logging.INFO
+            logger.log(level if not self.boot_count else logging.DEBUG, "node %d (%s): %s", self.node_id,
+                       self.name, note)
+
+    def _require_resolution(self, doing: str) -> None:
+        """Motion needs the position resolution from the config or the drive, never an assumption."""
+        if not self.scale.resolution_known:
+            raise CommandRejected(f"{self.name} (node {self.node_id}): {doing} refused: the position resolution is"
+                                  " unknown (no counts_per_rev in the config, no 0x608F or 0x60A8 on the drive), so"
+                                  " degrees cannot be turned into the drive's units. Set counts_per_rev for this drive"
+                                  " (bench: --counts-per-rev N). Nothing was sent.")
+
+    def expected_identity(self) -> list[tuple[int, str, frozenset[int], str]]:
+        """What 0x1018 must hold: (sub, what, values allowed, who says so), from the config's
+        ``identity:`` and from the EDS: vendor and product of its [DeviceInfo] (or of its own 0x1018
+        defaults, where a file disagrees with itself). Not for the project's generic EDS, which
+        stands for any CiA 402 drive."""
+        wanted: list[tuple[int, str, frozenset[int], str]] = []
+        expected = self.config.identity
+        for sub, what, want in ((1, "vendor id", expected.vendor_id), (2, "product code", expected.product_code),
+                                (3, "revision", expected.revision)):
+            if want is not None:
+                wanted.append((sub, what, frozenset({want}), "the config expects"))
+        eds = Path(self.config.eds)
+        if eds.resolve() == GENERIC_EDS.resolve():
+            return wanted
+        info = self.od.device_information
+        for sub, what, number, name in ((1, "vendor id", info.vendor_number, info.vendor_name),
+                                        (2, "product code", info.product_number, info.product_name)):
+            var = variable(self.od, OD.IDENTITY, sub)
+            values = {v for v in (number, var.default if var is not None else None) if isinstance(v, int) and v}
+            if values:
+                wanted.append((sub, what, frozenset(values), f"its EDS {eds.name}{f' ({name})' if name else ''} names"))
+        return wanted
 
     def _check_identity(self) -> None:
-        expected = self.config.identity
-        for sub, name, want in ((1, "vendor id", expected.vendor_id),
-                                (2, "product code", expected.product_code),
-                                (3, "revision", expected.revision)):
-            if want is None:
+        """0x1018 against the EDS and the config, before any other object of the drive is touched:
+        a drive of another vendor or product at this node id is a boot error naming both ids."""
+        for sub, what, allowed, source in self.expected_identity():
+            raw = self._read_optional(OD.IDENTITY, sub) if sub > 1 else self.sdo_read(OD.IDENTITY, sub)
+            if raw is None:
+                logger.info("node %d (%s): no 0x1018:%d (%s) to compare", self.node_id, self.name, sub, what)
                 continue
-            got = struct.unpack("<I", self.sdo_read(OD.IDENTITY, sub)[:4].ljust(4, b"\0"))[0]
-            if got != want:
-                raise BootError(f"node {self.node_id} ({self.name}): identity mismatch: {name} is"
-                                f" 0x{got:08X} on the device, the config expects 0x{want:08X}. Is"
-                                " the right drive at this node id?", node_id=self.node_id,
-                                step="identity", index=OD.IDENTITY, subindex=sub)
+            got = struct.unpack("<I", raw[:4].ljust(4, b"\0"))[0]
+            if got not in allowed:
+                want = " or ".join(f"0x{v:08X}" for v in sorted(allowed))
+                raise BootError(f"node {self.node_id} ({self.name}): identity mismatch: {what} is"
+                                f" 0x{got:08X} on the device, {source} {want}. Is the right drive at this"
+                                " node id, and is the config's EDS the drive's own? Nothing else was written to it.",
+                                node_id=self.node_id, step="identity", index=OD.IDENTITY, subindex=sub)
 
     # ------------------------------------------------------------------ modes
     def supported_modes(self) -> int:
@@ -886,11 +940,21 @@ class Drive:
                 self._supported_modes = int(self.sdo_read_value(OD.SUPPORTED_DRIVE_MODES))  # type: ignore[arg-type]
         return self._supported_modes
 
-    def _switch_mode_sdo(self, mode: OperationMode) -> None:
+    def _switch_mode_sdo(self, mode: OperationMode, generation: int | None = None) -> None:
+        """0x6060 by SDO, then 0x6061 polled until it shows ``mode``. No lock is held: the caller
+        marked the drive busy; a stop meanwhile preempts it (``generation``)."""
+        if generation is not None:
+            with self._lock:
+                self._check_not_preempted(generation, f"mode switch to {mode.name}")
+                self._target_counts = self.position_counts
+                self._handshake.reset()
         self._write_typed(OD.MODES_OF_OPERATION, 0, int(mode))
+        self._hook("mode switch: 0x6060 written")
         deadline = time.monotonic() + MODE_SWITCH_TIMEOUT_S
         while True:
             shown = int(self.sdo_read_value(OD.MODES_OF_OPERATION_DISPLAY))  # type: ignore[arg-type]
+            if generation is not None:
+                self._check_not_preempted(generation, f"mode switch to {mode.name}")
             if shown == mode:
                 self.mode_display = shown
                 return
@@ -901,20 +965,20 @@ class Drive:
             time.sleep(STATE_POLL_S)
 
     def set_mode(self, mode: OperationMode | int) -> None:
-        """Switch the mode of operation; refuses modes 0x6502 does not list; waits for 0x6061."""
+        """Switch the mode of operation; refuses modes 0x6502 does not list; waits for 0x6061.
+        The drive is busy meanwhile (commands refused at once, a stop preempts it); no lock is
+        held across its SDO round trips."""
         mode = OperationMode(mode)
-        with self._command("set mode"):
-            bit = SUPPORTED_MODE_BIT.get(mode)
-            supported = self.supported_modes()
-            if bit is None or not supported >> bit & 1:
-                raise CommandRejected(f"{self.name}: mode {mode.name} is not supported by node"
-                                      f" {self.node_id} (0x6502 = 0x{supported:08X}); supported:"
-                                      f" {', '.join(m.name for m, b in SUPPORTED_MODE_BIT.items() if supported >> b & 1)}")
-            if self.mode_display == mode:
-                return
-            self._target_counts = self.position_counts
-            self._handshake.reset()
-            self._switch_mode_sdo(mode)
+        bit = SUPPORTED_MODE_BIT.get(mode)
+        supported = self.supported_modes()
+        if bit is None or not supported >> bit & 1:
+            raise CommandRejected(f"{self.name}: mode {mode.name} is not supported by node"
+                                  f" {self.node_id} (0x6502 = 0x{supported:08X}); supported:"
+                                  f" {', '.join(m.name for m, b in SUPPORTED_MODE_BIT.items() if supported >> b & 1)}")
+        if self.mode_display == mode:
+            return
+        with self._operation("mode switch") as generation:
+            self._switch_mode_sdo(mode, generation)
 
     # ------------------------------------------------------------------ state machine
     def _send_cw(self, cw: int) -> None:
@@ -931,10 +995,10 @@ class Drive:
         with self._status_event:
             while True:
                 state = self.state
+                if generation is not None:  # before the wanted state: a stop that landed meanwhile wins
+                    self._check_not_preempted(generation, doing)
                 if state in wanted:
                     return state
-                if generation is not None:
-                    self._check_not_preempted(generation, doing)
                 if state in (State.FAULT, State.FAULT_REACTION_ACTIVE) and not fault_ok:
                     raise self._fault_error(doing)
                 remaining = deadline - time.monotonic()
@@ -972,7 +1036,7 @@ class Drive:
             self._busy, self._busy_owner = name, me
             self._generation += 1
             generation = self._generation
-            if preempt and outer[0] and outer[1] != me:
+            if preempt:
                 self._preempted = (generation, name)  # every operation started before this one ends
         if preempt:
             with self._status_event:
@@ -1001,12 +1065,15 @@ class Drive:
             raise CommandRejected(f"{self.name}: {name} refused: another command holds the drive;"
                                   " nothing was sent")
         try:
-            if self._busy and self._busy_owner != threading.get_ident():
-                raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {self._busy};"
-                                      " nothing was sent. Send it again when that is done.")
+            self._refuse_if_busy(name)
             yield
         finally:
             self._lock.release()
+
+    def _refuse_if_busy(self, doing: str) -> None:
+        if self._busy and self._busy_owner != threading.get_ident():
+            raise CommandRejected(f"{self.name}: {doing} refused: the drive is busy with {self._busy};"
+                                  " nothing was sent. Send it again when that is done.")
 
     def _require_usable(self, doing: str) -> None:
         if self.closed:
@@ -1045,8 +1112,9 @@ class Drive:
             for _ in range(6):
                 state = self.state
                 if state == State.OPERATION_ENABLED:
-                    self.was_enabled = True
-                    return
+                    if self._cw & ENABLED_CW_MASK != ENABLED_CW_MASK:  # enabled, but not by this driver's word
+                        self._transition(generation, "enable", Command.ENABLE_OPERATION)
+                    break
                 if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                     raise self._fault_error("enable")
                 step = next_step_to_enable(state)
@@ -1057,15 +1125,32 @@ class Drive:
                     continue
                 target, number, command = step
                 logger.debug("node %d: transition %d to %s", self.node_id, number, target.name)
-                self._cw = int(command)
-                self._send_cw(self._cw)
+                self._hook(f"enable: before transition {number}")
+                self._transition(generation, f"enable (transition {number} to {target.name})", command)
+                self._hook(f"enable: sent transition {number}")
                 self._wait_state({target, State.OPERATION_ENABLED}, timeout_s,
                                  f"enable (transition {number} to {target.name})", generation=generation)
+            with self._lock:  # the verdict and a stop are ordered too
                 self._check_not_preempted(generation, "enable")
-            if self.state != State.OPERATION_ENABLED:
-                raise DriveTimeoutError(f"{self.name}: could not reach OPERATION_ENABLED",
-                                        node_id=self.node_id, statusword=self.statusword)
-            self.was_enabled = True
+                if self.state != State.OPERATION_ENABLED:
+                    raise DriveTimeoutError(f"{self.name}: could not reach OPERATION_ENABLED",
+                                            node_id=self.node_id, statusword=self.statusword)
+                self.was_enabled = True
+
+    def _transition(self, generation: int, doing: str, command: Command | int, edge: int = 0) -> None:
+        """One controlword of an operation (enable, recover, homing): the check that no stop came
+        since the operation began and the frame are one critical section, so a stop's frame is
+        always the last the drive gets."""
+        with self._lock:
+            self._check_not_preempted(generation, doing)
+            self._cw = int(command)
+            self._send_cw(self._cw | edge)
+
+    def _hook(self, point: str) -> None:
+        """A seam for tests that force an interleaving: ``interleave`` is called at named points
+        of the state machine (never set in production; None costs one attribute read)."""
+        if self.interleave is not None:
+            self.interleave(point)
 
     def _clear_held_target(self) -> None:
         """Before enabling: the drive still holds the last target from before a fault or a stop
@@ -1092,47 +1177,50 @@ class Drive:
             if has_object(self.od, index, sub):  # without it, nothing is held
                 self._write_typed(index, sub, actual)
 
-    def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
-        """Shutdown (transition 8 or 6): power stage off, drive in Ready to Switch On."""
-        with self._operation("disable", preempt=True):
+    def _stop(self, name: str, command: Command, wanted: set[State], timeout_s: float) -> None:
+        """A stop: it preempts every operation under way, and its decision and its frame are one
+        critical section (:meth:`_stop_frame`); the frame is always sent, since the state last
+        seen may be stale while another frame is on its way. Then it waits for ``wanted`` (or a
+        fault) without holding the lock."""
+        with self._operation(name, preempt=True):
+            self._stop_frame(command, name)
+            self._hook(f"{name}: sent")
+            self._wait_state(wanted | {State.FAULT, State.FAULT_REACTION_ACTIVE}, timeout_s, name)
+
+    def _stop_frame(self, command: Command, by: str) -> None:
+        """The frame of a stop, decided and sent under the lock: no command or transition can
+        follow it unless it was decided after it. The set-point handshake is forgotten first, so
+        the receive thread sends no "enable operation" reply after it."""
+        with self._lock:
+            self._generation += 1
+            self._preempted = (self._generation, by)
             self.was_enabled = False
             self.velocity_commanded = False
-            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.SWITCH_ON_DISABLED,
-                              State.READY_TO_SWITCH_ON):
-                return
-            self._cw = int(Command.SHUTDOWN)
+            self._handshake.reset()
+            self._cw = int(command)
             self._send_cw(self._cw)
-            self._wait_state({State.READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED}, timeout_s, "disable")
+
+    def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        """Shutdown (transition 8, 6 or 2): power stage off, drive in Ready to Switch On."""
+        self._stop("disable", Command.SHUTDOWN, {State.READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED}, timeout_s)
 
     def quick_stop(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
-        """Quick stop (transition 11): the drive brakes on its quick-stop ramp."""
-        with self._operation("quick stop", preempt=True):
-            self.was_enabled = False
-            self.velocity_commanded = False
-            if self.state != State.OPERATION_ENABLED:
-                return
-            self._cw = int(Command.QUICK_STOP)
-            self._send_cw(self._cw)
-            self._wait_state({State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED}, timeout_s, "quick stop")
+        """Quick stop (transition 11; 7 or 10 from the states before): the drive brakes on its
+        quick-stop ramp."""
+        self._stop("quick stop", Command.QUICK_STOP, {State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED}, timeout_s)
 
     def disable_voltage(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Disable voltage (transitions 7, 9, 10, 12): power stage off, Switch On Disabled."""
-        with self._operation("disable voltage", preempt=True):
-            self.was_enabled = False
-            self.velocity_commanded = False
-            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-                return
-            self._cw = int(Command.DISABLE_VOLTAGE)
-            self._send_cw(self._cw)
-            self._wait_state({State.SWITCH_ON_DISABLED}, timeout_s, "disable voltage")
+        self._stop("disable voltage", Command.DISABLE_VOLTAGE, {State.SWITCH_ON_DISABLED}, timeout_s)
 
     def set_profile_velocity(self, velocity_deg_s: float) -> None:
         """The speed of the following profile-position moves (0x6081), at most max_velocity_deg_s."""
         speed = require_finite(f"{self.name} profile velocity", velocity_deg_s, "deg/s")
+        self._require_resolution("a profile velocity")
         if not 0 < speed <= self.config.max_velocity_deg_s:
             raise CommandRejected(f"{self.name}: profile velocity {speed:g} deg/s: allowed 0 < speed <="
                                   f" {self.config.max_velocity_deg_s:g} (max_velocity_deg_s). Nothing was sent.")
-        with self._command("profile velocity"):
+        with self._operation("profile velocity"):  # an SDO round trip: busy, not the lock
             self._write_typed(OD.PROFILE_VELOCITY, 0, self.scale.magnitude_to_drive(speed))
 
     def halt(self, on: bool = True) -> None:
@@ -1144,19 +1232,18 @@ class Drive:
 
     def recover(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Fault reset (transition 15), then back to the enable state the drive had before."""
-        with self._operation("recover"):
+        with self._operation("recover") as generation:
             self._require_usable("recover")
             restore = self.was_enabled
             if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 if self.state == State.FAULT_REACTION_ACTIVE:
-                    self._wait_state({State.FAULT}, timeout_s, "recover (fault reaction)", fault_ok=True)
-                self._cw = 0
-                self._send_cw(0)
-                self._send_cw(int(Command.FAULT_RESET))
+                    self._wait_state({State.FAULT}, timeout_s, "recover (fault reaction)", fault_ok=True,
+                                     generation=generation)
+                self._transition(generation, "recover", 0)
+                self._transition(generation, "recover", Command.FAULT_RESET)
                 self._wait_state({State.SWITCH_ON_DISABLED}, timeout_s, "fault reset (transition 15)",
-                                 fault_ok=True)
-                self._cw = 0
-                self._send_cw(0)
+                                 fault_ok=True, generation=generation)
+                self._transition(generation, "recover", 0)
             self.last_emcy = None
             if restore:
                 self.enable(timeout_s)
@@ -1164,6 +1251,7 @@ class Drive:
     # ------------------------------------------------------------------ motion
     def _position_target_counts(self, angle_deg: float) -> int:
         angle = require_finite(f"{self.name} angle", angle_deg, "deg")
+        self._require_resolution("a position command")
         cfg = self.config
         if cfg.is_continuous:
             if abs(angle) > CONTINUOUS_COMMAND_LIMIT_DEG:
@@ -1182,10 +1270,25 @@ class Drive:
         its limits. Nothing is sent for a refused command.
         """
         counts = self._position_target_counts(angle_deg)
-        with self._command("move"):
-            self._ensure_mode(OperationMode.PROFILE_POSITION, "move")
-            self._cw &= ~CW.HALT
-            self._handshake.command(counts)
+        self._ensure_mode(OperationMode.PROFILE_POSITION, "move")
+        if self.plan.rpdo_with(OD.CONTROLWORD) is None:
+            raise CommandRejected(f"{self.name} (node {self.node_id}): move refused: the controlword cannot be"
+                                  " PDO-mapped on this drive, and the set-point handshake's replies come from the"
+                                  " receive thread, which never waits for an SDO. Nothing was sent.")
+        if self.plan.rpdo_with(OD.TARGET_POSITION) is None:
+            # 0x607A only by SDO (the SCHUNK PRL120): written here, on the caller's thread and with
+            # the drive busy (no lock held while the SDO waits); the handshake sends only the edge
+            with self._operation("move (target by SDO)"):
+                self._write_typed(OD.TARGET_POSITION, 0, counts)
+                with self._lock:
+                    self._require_motion(OperationMode.PROFILE_POSITION, "move")
+                    self._cw &= ~CW.HALT
+                    self._handshake.command(counts)
+        else:
+            with self._command("move"):
+                self._require_motion(OperationMode.PROFILE_POSITION, "move")
+                self._cw &= ~CW.HALT
+                self._handshake.command(counts)
         if wait:
             self.wait_target_reached(timeout_s)
         return self.scale.counts_to_deg(counts)
@@ -1199,8 +1302,7 @@ class Drive:
         if pdo is not None:
             self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw,
                                                                     OD.TARGET_POSITION: counts}))
-        else:  # target position not PDO-mappable on this drive (e.g. SCHUNK PRL120)
-            self._write_typed(OD.TARGET_POSITION, 0, counts)
+        else:  # 0x607A not PDO-mappable (SCHUNK PRL120): move_to wrote it by SDO; the edge only
             self._send_cw(cw)
 
     def _clear_setpoint(self) -> None:
@@ -1236,10 +1338,11 @@ class Drive:
     def set_velocity(self, velocity_deg_s: float) -> None:
         """Profile-velocity command in deg/s, limited by max_velocity_deg_s; feeds the watchdog."""
         velocity, counts_s = self._checked_velocity(velocity_deg_s)
+        self._ensure_mode(OperationMode.PROFILE_VELOCITY, "velocity command")
         with self._command("velocity command"):
             self._refuse_past_limit(velocity, abs(velocity), self.config.profile_acceleration_deg_s2,
                                     f"velocity {velocity:g} deg/s")
-            self._ensure_mode(OperationMode.PROFILE_VELOCITY, "velocity command")
+            self._require_motion(OperationMode.PROFILE_VELOCITY, "velocity command")
             self._send_velocity(counts_s)
             self.last_velocity_cmd = time.monotonic()
             self.velocity_commanded = velocity != 0.0
@@ -1290,9 +1393,7 @@ class Drive:
             self._send_velocity(0)
         elif self.mode_display in TORQUE_MODES:
             self._send_torque(0)
-            self._cw = int(Command.QUICK_STOP)
-            self.was_enabled = False
-            self._send_cw(self._cw)
+            self._stop_frame(Command.QUICK_STOP, "the limit guard's quick stop")
 
     def guard_limits(self) -> None:
         """Supervisor, every period: brake a velocity- or torque-commanded limited joint whose
@@ -1303,10 +1404,18 @@ class Drive:
         torque_mode = self.mode_display in TORQUE_MODES
         decel = self.config.quick_stop_decel_deg_s2 if torque_mode else self.config.profile_acceleration_deg_s2
         limit = self._limit_ahead(velocity, abs(velocity), decel, torque_mode)
-        if limit is not None:  # no lock: a command racing this brake is checked against the limit itself
+        if limit is None:
+            return
+        # never waits (the supervisor's period is the host heartbeat's): a command that holds the
+        # lock is checked against the limit itself, and the next period brakes if it still must
+        if not self._lock.acquire(blocking=False):
+            return
+        try:
             logger.warning("%s: at %.2f deg moving %.1f deg/s toward its limit %s; braking", self.name,
                            self.angle_deg, velocity, limit)
             self._brake()
+        finally:
+            self._lock.release()
 
     def _send_velocity(self, counts_s: int) -> None:
         pdo = self.plan.rpdo_with(OD.TARGET_VELOCITY)
@@ -1339,18 +1448,35 @@ class Drive:
         finally:
             self._lock.release()
 
-    def _ensure_mode(self, mode: OperationMode, doing: str) -> None:
+    def _require_enabled(self, doing: str) -> None:
         self._require_usable(doing)
-        if self.state != State.OPERATION_ENABLED:
+        if self.state != State.OPERATION_ENABLED or self._cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
             if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 raise self._fault_error(doing)
-            raise DriveStateError(f"{self.name}: {doing} refused: the drive is {self.state.name}; enable() it"
+            shown = self.state.name if self.state != State.OPERATION_ENABLED else "stopping"
+            raise DriveStateError(f"{self.name}: {doing} refused: the drive is {shown}; enable() it"
                                   " first", node_id=self.node_id, statusword=self.statusword)
+
+    def _ensure_mode(self, mode: OperationMode, doing: str) -> None:
+        """Before a motion command, without the lock: the drive enabled and in ``mode`` (a mode
+        switch is an operation of its own, :meth:`set_mode`)."""
+        self._refuse_if_busy(doing)
+        self._require_enabled(doing)
         if self.mode_display != mode:
             self.set_mode(mode)
 
+    def _require_motion(self, mode: OperationMode, doing: str) -> None:
+        """Under the lock, right before a motion frame, decided with it as one step: the drive is
+        usable, this driver's last controlword was Enable Operation (no stop since), the last
+        statusword said Operation Enabled, and the mode is still ``mode``."""
+        self._require_enabled(doing)
+        if self.mode_display != mode:
+            raise CommandRejected(f"{self.name}: {doing} refused: the drive left {mode.name} meanwhile (now"
+                                  f" {self.mode_display}); nothing was sent. Send it again.")
+
     def _checked_torque(self, torque_nm: float) -> float:
         torque = require_finite(f"{self.name} torque", torque_nm, "Nm")
+        self._require_resolution("a torque command")  # its limit guard works in degrees
         limit = self.config.max_torque_nm or self.scale.rated_torque_nm * self.scale.gear_ratio
         if abs(torque) > limit:
             raise CommandRejected(f"{self.name}: torque {torque:g} Nm is beyond the limit max_torque_nm={limit:g}"
@@ -1359,6 +1485,7 @@ class Drive:
 
     def _checked_velocity(self, velocity_deg_s: float) -> tuple[float, int]:
         velocity = require_finite(f"{self.name} velocity", velocity_deg_s, "deg/s")
+        self._require_resolution("a velocity command")
         vmax = self.config.max_velocity_deg_s
         if abs(velocity) > vmax:
             raise CommandRejected(f"{self.name}: velocity {velocity:g} deg/s is beyond the limit"
@@ -1369,10 +1496,11 @@ class Drive:
     def set_torque(self, torque_nm: float) -> None:
         """Profile-torque command in Nm at the joint, limited by max_torque_nm; feeds the watchdog."""
         torque = self._checked_torque(torque_nm)
+        self._ensure_mode(OperationMode.PROFILE_TORQUE, "torque command")
         with self._command("torque command"):
             self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"torque {torque:g} Nm",
                                     torque_mode=True)
-            self._ensure_mode(OperationMode.PROFILE_TORQUE, "torque command")
+            self._require_motion(OperationMode.PROFILE_TORQUE, "torque command")
             self._send_torque(self.scale.nm_to_permille(torque))
             self.last_velocity_cmd = time.monotonic()
             self.velocity_commanded = torque != 0.0
@@ -1392,10 +1520,11 @@ class Drive:
         periods in one step is refused (slowing down never is); feeds the watchdog. Refused on a
         drive whose 0x6502 does not list CSV."""
         velocity, counts_s = self._checked_velocity(velocity_deg_s)
+        self._ensure_mode(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point")
         with self._command("CSV set-point"):
             self._refuse_past_limit(velocity, abs(velocity), self.config.quick_stop_decel_deg_s2,
                                     f"CSV velocity {velocity:g} deg/s")
-            self._ensure_mode(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point")
+            self._require_motion(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point")
             previous = self.scale.counts_s_to_deg_s(self._stream_velocity_counts_s) if self.velocity_commanded else 0.0
             max_step = self.config.quick_stop_decel_deg_s2 * 2 * self.sync_period_s
             if abs(velocity) > abs(previous) and abs(velocity - previous) > max_step:
@@ -1413,10 +1542,11 @@ class Drive:
         limited by max_torque_nm; feeds the watchdog (which sends zero torque). Refused on a
         drive whose 0x6502 does not list CST."""
         torque = self._checked_torque(torque_nm)
+        self._ensure_mode(OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point")
         with self._command("CST set-point"):
             self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"CST torque {torque:g} Nm",
                                     torque_mode=True)
-            self._ensure_mode(OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point")
+            self._require_motion(OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point")
             self._send_torque(self.scale.nm_to_permille(torque))
             self.last_velocity_cmd = time.monotonic()
             self.velocity_commanded = torque != 0.0
@@ -1446,9 +1576,11 @@ class Drive:
         over two SYNC periods) from the previous one: a streamed trajectory must be smooth.
         """
         counts = self._position_target_counts(angle_deg)
+        mode = self._streaming_mode()
+        doing = "CSP setpoint" if mode == OperationMode.CYCLIC_SYNC_POSITION else "IP setpoint"
+        self._ensure_mode(mode, doing)
         with self._command("set-point"):
-            mode = self._streaming_mode()
-            self._ensure_mode(mode, "CSP setpoint" if mode == OperationMode.CYCLIC_SYNC_POSITION else "IP setpoint")
+            self._require_motion(mode, doing)
             if max_step_deg is None:
                 max_step_deg = self.config.max_velocity_deg_s * 2 * self.sync_period_s
             step = self.scale.span_deg(counts - self._target_counts)
@@ -1483,6 +1615,7 @@ class Drive:
         """Homing with the configured method and speed; waits for 'homing attained'. The drive
         is busy meanwhile: commands are refused, a stop preempts it."""
         cfg = self.config
+        self._require_resolution("homing")
         if not has_object(self.od, OD.HOMING_METHOD) or \
                 not self.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.HOMING] & 1:
             raise CommandRejected(f"{self.name}: this drive has no homing mode ("
@@ -1496,8 +1629,8 @@ class Drive:
                 self._write_typed(OD.HOMING_SPEEDS, 1, self.scale.magnitude_to_drive(cfg.homing_speed_deg_s))
             if self.state != State.OPERATION_ENABLED:
                 self.enable()
-            self._send_cw(int(Command.ENABLE_OPERATION))
-            self._send_cw(int(Command.ENABLE_OPERATION) | CW.NEW_SETPOINT)
+            self._transition(generation, "home", Command.ENABLE_OPERATION)
+            self._transition(generation, "home", Command.ENABLE_OPERATION, edge=CW.NEW_SETPOINT)
             deadline = time.monotonic() + (timeout_s or cfg.homing_timeout_s)
             while True:
                 sw = self.statusword
@@ -1519,6 +1652,6 @@ class Drive:
             settle = time.monotonic() + 3 * self.sync_period_s + 0.05
             while self._position_seq == seq and time.monotonic() < settle:
                 time.sleep(0.001)
-            self._send_cw(int(Command.ENABLE_OPERATION))
+            self._transition(generation, "home", Command.ENABLE_OPERATION)
             self.set_mode(OperationMode.PROFILE_POSITION)
             self._target_counts = self.position_counts

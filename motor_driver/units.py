@@ -14,6 +14,7 @@ the signed methods here, so commands, readings and limits agree; the unsigned
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from can_config.errors import CommandRejected
@@ -34,6 +35,11 @@ class Scale:
     velocity_units_per_deg_s: float = 0.0  # 0: the same as counts_per_deg (increments/s)
     invert: bool = False
     offset_deg: float = 0.0
+    #: acceleration units (0x6083/0x6084/0x6085) per joint deg/s^2; 0: velocity units per second
+    acceleration_units_per_deg_s2: float = 0.0
+    #: False when neither the config (counts_per_rev) nor the drive (0x608F, 0x60A8, 0x6092) gave
+    #: the position resolution: the figures above are an assumption, and no motion is commanded
+    resolution_known: bool = True
 
     @property
     def _v(self) -> float:
@@ -64,8 +70,12 @@ class Scale:
         return self.sign * counts_s / self._v
 
     def magnitude_to_drive(self, per_s: float) -> int:
-        """A speed or acceleration (deg/s, deg/s^2; no direction) in drive units."""
+        """A speed (deg/s, no direction) in drive units."""
         return int(round(abs(per_s) * self._v))
+
+    def acceleration_to_drive(self, deg_s2: float) -> int:
+        """An acceleration (deg/s^2, no direction) in drive units (0x60AA, else velocity units/s)."""
+        return int(round(abs(deg_s2) * (self.acceleration_units_per_deg_s2 or self._v)))
 
     def permille_to_nm(self, permille: float) -> float:
         return self.sign * permille / 1000.0 * self.rated_torque_nm * self.gear_ratio
@@ -110,11 +120,37 @@ def check_counts(name: str, counts: int, what: str) -> int:
     return counts
 
 
-# SI unit codes (CiA 402 / CiA 303-2) in 0x60A8 / 0x60A9: prefix << 24 | numerator << 16 | denominator << 8
+# SI unit codes (CiA 402 / CiA 303-2) in 0x60A8-0x60AA: prefix << 24 | numerator << 16 | denominator << 8
 SI_REVOLUTION = 0xB4
 SI_INCREMENT = 0xB5
 SI_SECOND = 0x03
 SI_MINUTE = 0x47
+SI_SECOND_SQUARED = 0x57
+#: Used when neither the config nor the drive gives the position resolution (read-only use).
+ASSUMED_COUNTS_PER_REV = 4096
+
+#: The drive objects a scale is derived from: (index, sub-indexes). All UNSIGNED32 (CiA 402),
+#: so they are decoded without an EDS: they are read from every drive, whatever its EDS lists.
+UNIT_OBJECTS: tuple[tuple[int, tuple[int, ...]], ...] = (
+    (0x608F, (1, 2)), (0x6091, (1, 2)), (0x6092, (1, 2)), (0x60A8, (0,)), (0x60A9, (0,)), (0x60AA, (0,)),
+    (0x6076, (0,)))
+#: What each is, for the notes.
+UNIT_OBJECT_NAMES = {0x608F: "position encoder resolution", 0x6091: "gear ratio", 0x6092: "feed constant",
+                     0x60A8: "SI unit position", 0x60A9: "SI unit velocity", 0x60AA: "SI unit acceleration",
+                     0x6076: "motor rated torque"}
+
+
+def read_unit_objects(upload: Callable[[int, int], bytes | None]) -> dict[tuple[int, int], int]:
+    """The unit objects a drive has, decoded as UNSIGNED32. ``upload(index, sub)`` reads one by
+    SDO and returns None where the drive answers that it has no such object (an abort); the
+    same reader serves the driver and the bench, so both derive the same scale."""
+    objects: dict[tuple[int, int], int] = {}
+    for index, subs in UNIT_OBJECTS:
+        for sub in subs:
+            raw = upload(index, sub)
+            if raw:
+                objects[(index, sub)] = int.from_bytes(raw[:4].ljust(4, b"\0"), "little")
+    return objects
 
 
 def _ratio(objects: dict[tuple[int, int], int], index: int) -> float | None:
@@ -124,9 +160,10 @@ def _ratio(objects: dict[tuple[int, int], int], index: int) -> float | None:
     return num / den
 
 
-#: The drive objects a scale is derived from: (index, sub-indexes).
-UNIT_OBJECTS: tuple[tuple[int, tuple[int, ...]], ...] = (
-    (0x608F, (1, 2)), (0x6091, (1, 2)), (0x6092, (1, 2)), (0x60A9, (0,)), (0x6076, (0,)))
+def _si(code: int) -> tuple[int, int, int]:
+    """(prefix as a signed power of ten, numerator, denominator) of an SI unit code."""
+    prefix = (code >> 24) & 0xFF
+    return (prefix - 256 if prefix >= 128 else prefix), (code >> 16) & 0xFF, (code >> 8) & 0xFF
 
 
 def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torque_nm: float,
@@ -134,25 +171,34 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
                        offset_deg: float = 0.0) -> tuple[Scale, list[str]]:
     """The scale of a drive from its own objects where it provides them, else from the config.
 
-    ``objects`` holds what the drive reported: 0x608F (encoder increments per motor rev),
-    0x6091 (motor revs per shaft rev), 0x6092 (feed per shaft rev), 0x60A9 (SI velocity unit),
-    0x6076 (rated torque, mNm). Rule: with a feed constant other than 1:1 the drive reports
-    position in feed units (feed per joint revolution); otherwise in increments, with 0x608F
-    (when not 1:1) as increments per motor revolution and 0x6091 as the gear. Returns the
-    scale and notes on what came from where.
+    ``objects`` holds what the drive reported (:func:`read_unit_objects`): 0x608F (encoder
+    increments per motor rev), 0x6091 (motor revs per shaft rev), 0x6092 (feed per shaft rev),
+    0x60A8/0x60A9/0x60AA (SI units of position, velocity, acceleration), 0x6076 (rated torque,
+    mNm). Rule: with a feed constant other than 1:1 the drive reports position in feed units
+    (feed per joint revolution); a position unit of 10^p revolutions gives 10^-p units per motor
+    revolution; otherwise increments, with 0x608F (when not 1:1) as increments per motor
+    revolution, else the config's ``counts_per_rev``. Where none of these says it, the scale
+    assumes ASSUMED_COUNTS_PER_REV and ``resolution_known`` is False: nothing may move on it.
+    Returns the scale and notes on what came from where.
     """
     notes: list[str] = []
     enc = _ratio(objects, 0x608F)
     gear_obj = _ratio(objects, 0x6091)
     feed = _ratio(objects, 0x6092)
     gear = gear_ratio
+    known = True
     if gear_obj is not None and gear_obj != 1.0:
         if gear_obj != gear_ratio:
             notes.append(f"gear ratio {gear_obj:g} from 0x6091 (config says {gear_ratio:g})")
         gear = gear_obj
+    position_si = objects.get((0x60A8, 0))
+    p_prefix, p_num, _ = _si(position_si) if position_si else (0, SI_INCREMENT, 0)
     if feed is not None and feed != 1.0:
         units_per_joint_rev = feed
         notes.append(f"position in feed units: {feed:g} per joint revolution (0x6092)")
+    elif p_num == SI_REVOLUTION:
+        units_per_joint_rev = 10.0 ** -p_prefix * gear
+        notes.append(f"position in 10^{p_prefix} motor revolutions (0x60A8)")
     else:
         if enc is not None and enc != 1.0:
             if counts_per_rev is not None and counts_per_rev != enc:
@@ -161,16 +207,16 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
         elif counts_per_rev is not None:
             motor_counts = float(counts_per_rev)
         else:
-            motor_counts = 4096.0
-            notes.append("no counts_per_rev in the config and no 0x608F on the drive: assuming 4096")
+            known = False
+            motor_counts = float(ASSUMED_COUNTS_PER_REV)
+            notes.append(f"position resolution unknown: no counts_per_rev in the config and no 0x608F/0x60A8 on"
+                         f" the drive; readings assume {ASSUMED_COUNTS_PER_REV} counts/rev and motion is refused")
         units_per_joint_rev = motor_counts * gear
     counts_per_deg = units_per_joint_rev / 360.0
     velocity = 0.0
     si = objects.get((0x60A9, 0))
     if si:
-        prefix = (si >> 24) & 0xFF
-        prefix = prefix - 256 if prefix >= 128 else prefix
-        numerator, denominator = (si >> 16) & 0xFF, (si >> 8) & 0xFF
+        prefix, numerator, denominator = _si(si)
         per_s = {SI_SECOND: 1.0, SI_MINUTE: 60.0}.get(denominator)
         if numerator == SI_REVOLUTION and per_s is not None:
             # value x 10^prefix motor revolutions per (s|min) -> joint deg/s
@@ -178,10 +224,19 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
             notes.append(f"velocity in 10^{prefix} rev/{'min' if per_s == 60 else 's'} (0x60A9)")
         elif numerator == SI_INCREMENT and per_s is not None:
             velocity = counts_per_deg * per_s / 10.0**prefix
+    acceleration = 0.0
+    si_acc = objects.get((0x60AA, 0))
+    if si_acc:
+        prefix, numerator, denominator = _si(si_acc)
+        if denominator == SI_SECOND_SQUARED and numerator == SI_INCREMENT:
+            acceleration = counts_per_deg / 10.0**prefix
+        elif denominator == SI_SECOND_SQUARED and numerator == SI_REVOLUTION:
+            acceleration = 1.0 / (10.0**prefix * 360.0 / gear)
+            notes.append(f"acceleration in 10^{prefix} rev/s^2 (0x60AA)")
     rated = rated_torque_nm
     mnm = objects.get((0x6076, 0))
     if mnm:
         rated = mnm / 1000.0
         if abs(rated - rated_torque_nm) > 1e-9:
             notes.append(f"rated torque {rated:g} Nm from 0x6076 (config says {rated_torque_nm:g})")
-    return Scale(counts_per_deg, rated, gear, velocity, invert, offset_deg), notes
+    return Scale(counts_per_deg, rated, gear, velocity, invert, offset_deg, acceleration, known), notes

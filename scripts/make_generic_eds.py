@@ -71,6 +71,7 @@ def build() -> ObjectDictionary:
             "rovercan generic CiA 402 servo"))
     add(var("Manufacturer hardware version", 0x1009, 0, T.VISIBLE_STRING, "const", "1.0"))
     add(var("Manufacturer software version", 0x100A, 0, T.VISIBLE_STRING, "const", "1.0.0"))
+    array(od, "Store parameters", 0x1010, T.UNSIGNED32, "rw", [1])  # "save" (0x65766173) stores all
     add(var("COB-ID EMCY", 0x1014, 0, T.UNSIGNED32, "rw", "$NODEID+0x80"))
     array(od, "Consumer heartbeat time", 0x1016, T.UNSIGNED32, "rw", [0])
     add(var("Producer heartbeat time", 0x1017, 0, T.UNSIGNED16, "rw", 0))
@@ -128,6 +129,11 @@ def build() -> ObjectDictionary:
     add(var("Torque actual value", 0x6077, 0, T.INTEGER16, "ro", 0, True))
     add(var("Target position", 0x607A, 0, T.INTEGER32, "rw", 0, True))
     array(od, "Software position limit", 0x607D, T.INTEGER32, "rw", [-2**31, 2**31 - 1])
+    record(od, "Position encoder resolution", 0x608F, [  # the simulated motor's 4096-count encoder
+        var("Highest sub-index supported", 0x608F, 0, T.UNSIGNED8, "ro", 2),
+        var("Encoder increments", 0x608F, 1, T.UNSIGNED32, "rw", 4096),
+        var("Motor revolutions", 0x608F, 2, T.UNSIGNED32, "rw", 1),
+    ])
     add(var("Max profile velocity", 0x607F, 0, T.UNSIGNED32, "rw", 10_000_000))
     add(var("Profile velocity", 0x6081, 0, T.UNSIGNED32, "rw", 4096, True))
     add(var("Profile acceleration", 0x6083, 0, T.UNSIGNED32, "rw", 16384, True))
@@ -142,8 +148,8 @@ def build() -> ObjectDictionary:
     add(var("Homing acceleration", 0x609A, 0, T.UNSIGNED32, "rw", 16384))
     add(var("Following error actual value", 0x60F4, 0, T.INTEGER32, "ro", 0, True))
     add(var("Target velocity", 0x60FF, 0, T.INTEGER32, "rw", 0, True))
-    # PP, PV, PT, homing, CSP
-    add(var("Supported drive modes", 0x6502, 0, T.UNSIGNED32, "ro", 0b1010_1101))
+    # PP, PV, PT, homing, CSP, CSV, CST
+    add(var("Supported drive modes", 0x6502, 0, T.UNSIGNED32, "ro", 0b11_1010_1101))
     return od
 
 

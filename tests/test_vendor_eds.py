@@ -25,7 +25,8 @@ DRIVES = sorted(p.name for p in SHARED_EDS.glob("*.eds") if p.name != "python_ca
 def test_vendor_drive_boots_enables_moves(eds: str, driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
     # a drive that cannot watch the host is armed here on the explicit override (test_host_loss
     # shows the refusal without it)
-    _, driver = driver_factory(make_config(1, eds=str(SHARED_EDS / eds),
+    # counts_per_rev: the simulated motor's encoder (most of these files have no 0x608F to say it)
+    _, driver = driver_factory(make_config(1, eds=str(SHARED_EDS / eds), counts_per_rev=4096,
                                            allow_no_host_watch=not can_watch_host(SHARED_EDS / eds)))
     drive = driver.drive("joint1")
     drive.enable()
@@ -58,7 +59,8 @@ def test_sample_eds_refused() -> None:
 @requires_shared
 def test_epos4_velocity_in_rpm_is_converted(driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
     # EPOS4 reports velocity in rpm (0x60A9); 90 deg/s at the joint with gear 4 is 60 rpm at the motor
-    sim, driver = driver_factory(make_config(1, eds=str(SHARED_EDS / "maxon_epos4_module50_5.eds"), gear_ratio=4.0))
+    sim, driver = driver_factory(make_config(1, eds=str(SHARED_EDS / "maxon_epos4_module50_5.eds"), gear_ratio=4.0,
+                                             counts_per_rev=4096))  # the EPOS4 has no 0x608F to say it
     drive = driver.drive("joint1")
     drive.enable()
     for _ in range(60):

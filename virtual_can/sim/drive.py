@@ -175,7 +175,9 @@ class MotorParams:
     a 1 ms current loop, a 50 Hz velocity loop and a position loop at a tenth of it.
     """
 
-    counts_per_rev: int = 4096
+    #: the encoder's increments per motor revolution; None: the EDS's 0x608F, else 4096. Given, it is
+    #: also what the drive reports in 0x608F (a real drive reports its own encoder there)
+    counts_per_rev: int | None = None
     inertia_kg_m2: float = 1e-4
     viscous_nm_s_rad: float = 2e-5
     coulomb_nm: float = 0.03  # dry friction: opposes motion; at rest it holds up to this torque
@@ -192,7 +194,7 @@ class MotorParams:
     @classmethod
     def from_model(cls, model: SimModelConfig, counts_per_rev: int | None = None) -> MotorParams:
         """The model of a drive's ``sim:`` section of the rover config."""
-        return cls(counts_per_rev=counts_per_rev or 4096, inertia_kg_m2=model.inertia_kg_m2,
+        return cls(counts_per_rev=counts_per_rev, inertia_kg_m2=model.inertia_kg_m2,
                    viscous_nm_s_rad=model.viscous_nm_s_rad, coulomb_nm=model.coulomb_nm, load_nm=model.load_nm,
                    torque_lag_s=model.torque_lag_s, bandwidth_hz=model.bandwidth_hz,
                    position_kp=model.position_kp, velocity_kp=model.velocity_kp,
@@ -259,8 +261,20 @@ class SimulatedDrive:
         self.accepted_targets: list[float] | None = None
         self.nmt = NmtState.BOOTUP
         self.counters = {"tpdo": 0, "rpdo": 0, "emcy": 0, "sdo": 0}
+        self._report_encoder()
         self._units_from_od()
         self._reset_node(now=0.0, announce=False)
+
+    def _report_encoder(self) -> None:
+        """0x608F holds the motor model's encoder, when the model was given one: its value after
+        every reset, as a real drive reports the encoder it has."""
+        cpr = self.params.counts_per_rev
+        keys = ((OD.POSITION_ENCODER_RESOLUTION, 1), (OD.POSITION_ENCODER_RESOLUTION, 2))
+        if cpr is None or not all(self.store.has(*key) for key in keys):
+            return
+        for key, value in zip(keys, (cpr, 1), strict=True):
+            self.store.vars[key].default = value
+            self.store.set(*key, value)
 
     def _units_from_od(self) -> None:
         """The drive's own units, from its factor group and SI velocity unit (CiA 402).
@@ -277,7 +291,7 @@ class SimulatedDrive:
             return float(num) / float(den) if num and den else 1.0  # type: ignore[arg-type]
 
         enc, gear, feed = ratio(OD.POSITION_ENCODER_RESOLUTION), ratio(OD.GEAR_RATIO), ratio(OD.FEED_CONSTANT)
-        increments = enc if enc != 1.0 else float(self.params.counts_per_rev)
+        increments = enc if enc != 1.0 else float(self.params.counts_per_rev or 4096)
         self.units_per_motor_rev = feed / gear if feed != 1.0 else increments
         self._rad_per_count = 2 * math.pi / self.units_per_motor_rev
         self._vconv = 1.0  # position units/s per velocity unit
