@@ -221,6 +221,7 @@ class Drive:
         self._generation = 0  # counts operations: a preempted one notices
         self._preempted: tuple[int, str] = (0, "")  # operations older than this generation were stopped
         self._cw = 0  # last device-control controlword (no edge bits); written under _lock only
+        self._enable_sent_at = 0.0  # when this driver last sent Enable Operation (under _lock)
         #: tests only: called at named points of the state machine to force an interleaving (_hook)
         self.interleave: Callable[[str], None] | None = None
         self._target_counts = 0
@@ -312,7 +313,8 @@ class Drive:
         if OD.STATUSWORD in layout.indexes:
             enable = int(Command.ENABLE_OPERATION)
             now_enabled = decode_state(self.statusword) == State.OPERATION_ENABLED
-            if now_enabled and not self._sw_enabled and self.booted and self._cw & enable != enable:
+            ours = self.rx_monotonic - self._enable_sent_at < TRANSITION_TIMEOUT_S  # a stop may have followed it
+            if now_enabled and not self._sw_enabled and self.booted and self._cw & enable != enable and not ours:
                 self.behind_back = (self.rx_monotonic, f"node {self.node_id} became OPERATION_ENABLED, which this"
                                                        " driver did not command")
             self._sw_enabled = now_enabled
@@ -1144,6 +1146,8 @@ class Drive:
         with self._lock:
             self._check_not_preempted(generation, doing)
             self._cw = int(command)
+            if self._cw & ENABLED_CW_MASK == ENABLED_CW_MASK:
+                self._enable_sent_at = time.monotonic()
             self._send_cw(self._cw | edge)
 
     def _hook(self, point: str) -> None:

@@ -1,0 +1,185 @@
+"""A stop always wins: each interleaving of a stop with enable(), a disable with enable(), and a
+mode switch with other commands is forced at a named point of the state machine
+(``Drive.interleave``), not hoped for in a stress run. After a stop returns, the drive is not
+Operation Enabled, and the last controlword on the bus is the stop's."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import can
+import canopen
+import pytest
+
+from can_config import RoverConfig
+from can_config.config import GENERIC_EDS
+from can_config.errors import CommandRejected, DriveStateError
+from motor_driver import MotorDriver
+from motor_driver.drive import Drive
+from virtual_can import SimService
+
+from .conftest import make_config, wait_for
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+ListenerFactory = Callable[[SimService], can.BusABC]
+RPDO1 = 0x201  # node 1's controlword RPDO
+
+STOPS: dict[str, tuple[Callable[[Drive], None], int, set[str]]] = {
+    # name: (the stop, its controlword, the states the drive may end in)
+    "quick stop": (Drive.quick_stop, 0x0002, {"SWITCH_ON_DISABLED", "QUICK_STOP_ACTIVE"}),
+    "disable": (Drive.disable, 0x0006, {"READY_TO_SWITCH_ON", "SWITCH_ON_DISABLED"}),
+    "disable voltage": (Drive.disable_voltage, 0x0000, {"SWITCH_ON_DISABLED"}),
+}
+ENABLE_POINTS = [f"enable: {when} transition {n}" for n in (2, 3, 4) for when in ("before", "sent")]
+
+
+def sim_state(sim: SimService) -> str:
+    runner = sim.simulators["can0"]
+    return str(runner.call(lambda: runner.drive(1).state.name))
+
+
+def controlwords(frames: list[can.Message]) -> list[int]:
+    return [int.from_bytes(m.data[:2], "little") for m in frames if m.arbitration_id == RPDO1]
+
+
+def collect(listener: can.BusABC, seconds: float) -> list[can.Message]:
+    out = []
+    deadline = time.monotonic() + seconds
+    while (remaining := deadline - time.monotonic()) > 0:
+        msg = listener.recv(remaining)
+        if msg is not None:
+            out.append(msg)
+    return out
+
+
+class StopAt:
+    """When the drive's thread reaches ``point``, ``action`` runs to completion on another thread
+    while that thread waits; what it raised and how long it took are kept."""
+
+    def __init__(self, drive: Drive, point: str, action: Callable[[], None]) -> None:
+        self.point, self.action = point, action
+        self.fired = False
+        self.error: BaseException | None = None
+        self.took_s = 0.0
+        drive.interleave = self
+
+    def __call__(self, point: str) -> None:
+        if point != self.point or self.fired:
+            return
+        self.fired = True
+
+        def run() -> None:
+            start = time.monotonic()
+            try:
+                self.action()
+            except BaseException as err:
+                self.error = err
+            self.took_s = time.monotonic() - start
+
+        other = threading.Thread(target=run)
+        other.start()
+        other.join(5.0)
+        assert not other.is_alive(), f"the interleaved action did not finish at {self.point}"
+
+
+@pytest.mark.parametrize("stop_name", list(STOPS))
+@pytest.mark.parametrize("point", ENABLE_POINTS)
+def test_a_stop_during_each_step_of_enable_wins(driver_factory: DriverFactory, listener_factory: ListenerFactory,
+                                                point: str, stop_name: str) -> None:
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    stop, stop_cw, stopped_states = STOPS[stop_name]
+    listener = listener_factory(sim)
+    at = StopAt(drive, point, lambda: stop(drive))
+    with pytest.raises(DriveStateError, match=f"interrupted by {stop_name}"):
+        drive.enable()
+    assert at.fired and at.error is None, at.error
+    frames = collect(listener, 0.4)  # the drive has settled: its last word came in long ago
+    words = controlwords(frames)
+    assert words and words[-1] == stop_cw, [hex(w) for w in words]  # nothing of enable() after the stop
+    assert sim_state(sim) in stopped_states and drive.state.name in stopped_states, (sim_state(sim), drive.state)
+    drive.enable()  # a later enable that asks for it is obeyed
+    assert sim_state(sim) == "OPERATION_ENABLED"
+
+
+def test_a_stop_during_a_mode_switch_wins_and_other_commands_are_refused_at_once(
+        driver_factory: DriverFactory, listener_factory: ListenerFactory) -> None:
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    listener = listener_factory(sim)
+    refused: list[tuple[str, float]] = []
+
+    def meanwhile() -> None:
+        for command in (lambda: drive.move_to(10.0), lambda: drive.set_velocity(5.0), drive.halt):
+            start = time.monotonic()
+            try:
+                command()
+            except CommandRejected as err:
+                refused.append((str(err), time.monotonic() - start))
+        drive.quick_stop()
+
+    at = StopAt(drive, "mode switch: 0x6060 written", meanwhile)
+    with pytest.raises(DriveStateError, match="interrupted by quick stop"):
+        drive.set_velocity(30.0)  # asks for a switch to profile velocity, which the stop ends
+    assert at.fired and at.error is None, at.error
+    assert len(refused) == 3 and all("busy with mode switch" in text and took < 0.05 for text, took in refused), refused
+    assert at.took_s < 1.0  # the stop did not wait for the switch's SDO round trips
+    frames = collect(listener, 0.4)
+    assert not [m for m in frames if m.arbitration_id == 0x401], "a velocity RPDO went out"
+    assert controlwords(frames)[-1] == 0x0002
+    assert sim_state(sim) != "OPERATION_ENABLED"
+    assert drive.snapshot().velocity_deg_s == 0.0
+
+
+def test_a_motion_command_after_a_stop_sends_nothing(driver_factory: DriverFactory,
+                                                     listener_factory: ListenerFactory) -> None:
+    """The stop's frame has gone, the drive's next statusword has not come yet: the last
+    statusword still says Operation Enabled, and a command must not take it for permission."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.set_velocity(0.0)  # in profile velocity now
+    listener = listener_factory(sim)
+
+    def velocity_right_after_the_stop_frame(point: str) -> None:
+        if point == "quick stop: sent":
+            drive.interleave = None
+            with pytest.raises((DriveStateError, CommandRejected)):
+                drive.set_velocity(20.0)
+
+    drive.interleave = velocity_right_after_the_stop_frame
+    drive.quick_stop()
+    frames = collect(listener, 0.3)
+    assert not [m for m in frames if m.arbitration_id == 0x401 and int.from_bytes(m.data[2:6], "little")]
+    assert sim_state(sim) in {"SWITCH_ON_DISABLED", "QUICK_STOP_ACTIVE"}
+
+
+def no_pdo_target_eds(path: Path) -> Path:
+    od = canopen.import_od(str(GENERIC_EDS), 1)
+    od[0x607A].pdo_mappable = False  # as on the SCHUNK PRL120
+    canopen.export_od(od, str(path), doc_type="eds")
+    return path
+
+
+def test_a_parked_target_on_a_drive_without_a_pdo_target_is_never_sent_by_sdo_from_the_receive_thread(
+        driver_factory: DriverFactory, tmp_path: Path) -> None:
+    _, driver = driver_factory(make_config(1, eds=str(no_pdo_target_eds(tmp_path / "no-pdo-target.eds"))))
+    drive = driver.drive("joint1")
+    assert drive.plan.rpdo_with(0x607A) is None
+    drive.enable()
+    threads: list[str] = []
+    download = drive.node.sdo.download
+
+    def recording(*args: object, **kwargs: object) -> None:
+        threads.append(threading.current_thread().name)
+        download(*args, **kwargs)  # type: ignore[arg-type]
+
+    drive.node.sdo.download = recording  # type: ignore[method-assign]
+    drive.move_to(5.0)
+    drive.move_to(10.0)  # parked until the first is acknowledged and released
+    wait_for(lambda: abs(drive.snapshot().angle_deg - 10.0) < 0.2, 5.0, "the parked target reached")
+    assert threads and set(threads) == {threading.current_thread().name}, threads
