@@ -13,6 +13,7 @@ inherits the matching built-in so callers can catch what they already know::
     │   ├── DriveStateError                   CiA 402 transition refused / drive faulted / lost
     │   │   └── DriveTimeoutError (TimeoutError)
     │   ├── CommandRejected (ValueError)      NaN, out of limits, unsupported mode: nothing sent
+    │   ├── ForeignMasterError                another master is live on the bus: nothing was sent
     │   └── BusLostError (ConnectionError)    the bus went away
     └── SimError                              virtual_can: emulator misuse
         └── ProtocolError (ValueError)        a malformed socketcand line
@@ -85,6 +86,15 @@ class DriveTimeoutError(DriveStateError, TimeoutError):
 
 class CommandRejected(MotorError, ValueError):
     """A command was refused before anything was sent (NaN, beyond a limit, unsupported)."""
+
+
+class ForeignMasterError(MotorError):
+    """Another master is live on the bus (its heartbeat, SYNC, NMT or commands were heard): the
+    driver or bench command refused to start; nothing was sent. Carries the evidence."""
+
+    def __init__(self, message: str, *, evidence: str) -> None:
+        super().__init__(message)
+        self.evidence = evidence
 
 
 class BusLostError(MotorError, ConnectionError):

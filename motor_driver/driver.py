@@ -45,7 +45,7 @@ import can
 from can_config import RoverConfig, load_drive_od
 from can_config.bits import frame_bits
 from can_config.config import BusConfig
-from can_config.errors import BusLostError, ConfigError, MotorError
+from can_config.errors import BusLostError, ConfigError, ForeignMasterError, MotorError
 from can_config.objects import NmtState
 from motor_driver.adapters import GuardedNetwork, connection_closed
 from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
@@ -62,6 +62,9 @@ FOREIGN_HOLD_S = 0.5
 #: Window in which SYNC frames are counted when the bus daemon sends the driver's own.
 SYNC_RATE_WINDOW_S = 0.3
 FOREIGN_RELEASE_S = 2.0
+#: Before its first NMT command the driver (and each bench command) listens this long, at least,
+#: for another master: two periods of the host heartbeat, if longer (:func:`look_for_master`).
+LOOK_MIN_S = 0.2
 RECONNECT_MIN_S = 0.2
 RECONNECT_MAX_S = 5.0
 NOTIFIER_TIMEOUT_S = 0.1
@@ -235,6 +238,9 @@ class ForeignTraffic(can.Listener):
         self.host_twin = 0.0
         self.nmt: dict[tuple[int, int], float] = {}  # (target node (0: all), command) -> when
         self.sdo: dict[int, float] = {}  # node -> when another client sent it an SDO request
+        #: node -> when an RPDO to it passed: only another master's before this driver sends any
+        #: (read by :meth:`master_evidence`, the look before the first NMT command)
+        self.rpdo: dict[int, float] = {}
 
     def on_message_received(self, msg: can.Message) -> None:
         cob = msg.arbitration_id
@@ -260,6 +266,8 @@ class ForeignTraffic(can.Listener):
             self.host_twin = time.monotonic()
         elif 0x601 <= cob <= 0x67F and cob - 0x600 in self.node_ids and msg.data and msg.data[0] & 0xE0 == 0x20:
             self.sdo[cob - 0x600] = time.monotonic()  # a download (write); reads by bench tools are harmless
+        elif 0x200 <= cob < 0x580 and not cob & 0x80 and cob & 0x7F in self.node_ids:
+            self.rpdo[cob & 0x7F] = time.monotonic()  # RPDO1-4 (0x200, 0x300, 0x400, 0x500 + node)
 
     def evidence(self, node_id: int, since: float) -> str:
         """What shows another master acting on ``node_id`` after ``since`` ('' when nothing)."""
@@ -275,6 +283,41 @@ class ForeignTraffic(can.Listener):
         if self.sdo.get(node_id, 0.0) > since:
             found.append(f"SDO writes to node {node_id} from another client")
         return "; ".join(found)
+
+
+    def master_evidence(self, since: float) -> str:
+        """What shows a live master on the bus after ``since``, for any of this driver's drives
+        ('' when nothing): the look before a first NMT command, when none of it can be this
+        driver's own."""
+        found = [self.evidence(node, since) for node in sorted(self.node_ids)]
+        found += [f"RPDOs to node {node}" for node, when in sorted(self.rpdo.items()) if when > since]
+        unique = list(dict.fromkeys(part for text in found for part in text.split("; ") if part))
+        return "; ".join(unique)
+
+
+def look_for_master(bus: can.BusABC, host_node_id: int, node_ids: Collection[int], seconds: float) -> str:
+    """Listen on ``bus`` for ``seconds`` before anything is sent to it; the evidence of another
+    live master ('' when none): its heartbeat with the host id, SYNC, NMT commands, RPDOs or SDO
+    writes to ``node_ids``. For a bus of its own (a bench command); the driver keeps a listener."""
+    foreign = ForeignTraffic(host_node_id, node_ids)
+    since = time.monotonic()
+    deadline = since + seconds
+    while (remaining := deadline - time.monotonic()) > 0:
+        msg = bus.recv(remaining)
+        if msg is not None:
+            foreign.on_message_received(msg)
+    return foreign.master_evidence(since - 1.0)
+
+
+def other_master_error(where: str, evidence: str) -> ForeignMasterError:
+    return ForeignMasterError(f"{where}: another master is live on the bus ({evidence}); nothing was sent. Two"
+                              " masters on one drive fight over it: stop the other driver or tool first. To take"
+                              " the bus over anyway (its drives are reset and disarmed): --force on the bench,"
+                              " MotorDriver.start(take_over=True) in Python.", evidence=evidence)
+
+
+def look_window_s(host_heartbeat_s: float) -> float:
+    return max(LOOK_MIN_S, 2.0 * host_heartbeat_s)
 
 
 def sync_daemon(bus_cfg: BusConfig) -> tuple[str, int, str] | None:
@@ -421,6 +464,7 @@ class MotorDriver:
                                        {b.name: b.channel for b in config.buses},
                                        config.source) if config.recorder.enabled else None
         self._host_loss_seen: dict[str, int] = {}  # supervisor: host-loss stops already reported
+        self._take_over = False  # start(take_over=True): another master's traffic is not held against it
         # every EDS is loaded and checked before any hardware is touched
         ods = {d.name: load_drive_od(d.eds, d.node_id) for d in config.drives}
         try:
@@ -453,15 +497,34 @@ class MotorDriver:
             raise
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self, *, reset: bool = True) -> MotorDriver:
-        """Boot every drive (buses in parallel), start SYNC and supervision; enable only drives
-        configured with ``arm_on_start``."""
+    def start(self, *, reset: bool = True, take_over: bool = False) -> MotorDriver:
+        """Look for another master, boot every drive (buses in parallel), start SYNC and
+        supervision; enable only drives configured with ``arm_on_start``.
+
+        Before its first NMT command the driver listens two host-heartbeat periods (at least
+        LOOK_MIN_S) on each bus: another live master (a heartbeat with this driver's host id,
+        SYNC, NMT commands, RPDOs or SDO writes to its drives) makes it refuse with
+        :class:`ForeignMasterError`, nothing sent, unless ``take_over``."""
+        self._take_over = take_over
         try:
+            self._look(take_over)
             self._start(reset)
         except BaseException:  # a failed or interrupted start leaves nothing armed or open
             self.close()
             raise
         return self
+
+    def _look(self, take_over: bool) -> None:
+        window = max(look_window_s(b.host_heartbeat_s) for b in self.config.buses)
+        since = time.monotonic()
+        time.sleep(window)
+        for name, handle in self._handles.items():
+            evidence = handle.foreign.master_evidence(since - 1.0)
+            if not evidence:
+                continue
+            if not take_over:
+                raise other_master_error(f"bus {name}", evidence)
+            logger.warning("bus %s: another master is live (%s); taking the bus over as told", name, evidence)
 
     def _start(self, reset: bool) -> None:
         with ThreadPoolExecutor(max_workers=max(1, len(self.drives)),
@@ -524,6 +587,8 @@ class MotorDriver:
     def _check_foreign(self, drive: Drive, now: float) -> None:
         """Another master on the drive's bus (within FOREIGN_HOLD_S): mark it; once it has been
         quiet for FOREIGN_RELEASE_S, clear the mark (the drive is then configured again)."""
+        if self._take_over:
+            return  # told to take the bus over: the other master's traffic is expected
         foreign = self._handles[drive.config.bus].foreign
         evidence = foreign.evidence(drive.node_id, now - FOREIGN_HOLD_S)
         when, what = drive.behind_back

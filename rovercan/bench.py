@@ -19,7 +19,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -419,11 +419,33 @@ def _heard_from(bus: can.BusABC, node_id: int, timeout_s: float, *, probe: bool,
     return False
 
 
+def add_force(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--force", action="store_true",
+                        help="take the bus over even when another master (a running driver) is live on it")
+
+
+def refuse_beside_a_master(args: argparse.Namespace, bus: can.BusABC, node_ids: Collection[int]) -> None:
+    """Before the first NMT command or enable of a bench command: listen for another master (two
+    host-heartbeat periods) and refuse, naming what was heard, unless --force."""
+    from motor_driver.driver import look_for_master, look_window_s, other_master_error
+
+    host_id, period = 127, 0.05
+    if getattr(args, "config", None):
+        bus_cfg = load_config(args.config).buses[0]
+        host_id, period = bus_cfg.host_node_id, bus_cfg.host_heartbeat_s
+    evidence = look_for_master(bus, host_id, node_ids, look_window_s(period))
+    if evidence and not getattr(args, "force", False):
+        raise other_master_error(f"rovercan {args.command}", evidence)
+    if evidence:
+        logger.warning("another master is live (%s); going ahead as --force says", evidence)
+
+
 def cmd_nmt(args: argparse.Namespace) -> int:
     node_id = 0 if args.node == "all" else parse_node(args.node)
     command = NMT_COMMANDS[args.action]
     bus = open_bus(args)
     try:
+        refuse_beside_a_master(args, bus, range(1, 128) if node_id == 0 else (node_id,))
         # a node that is not there is an error, not "done": before a stop (a stopped node answers
         # no SDO), after a start or pre-op (it answers then), its boot-up after a reset
         present = bool(node_id) and command == NmtCommand.STOP and _heard_from(bus, node_id, 0.5, probe=True)
@@ -467,7 +489,7 @@ def bench_driver(args: argparse.Namespace, node_id: int) -> Iterator[Any]:
     bus = open_bus(args) if getattr(args, "interface", None) else None
     driver = MotorDriver(config, {config.buses[0].name: bus} if bus is not None else None)
     try:
-        driver.start()
+        driver.start(take_over=bool(getattr(args, "force", False)))
         yield driver.drive(config.drives[0].name)
     finally:
         driver.close()  # quick stop + disable: the bench never leaves a drive armed by accident
