@@ -1267,6 +1267,11 @@ class Drive:
             check_limits(self.name, angle, cfg.min_deg, cfg.max_deg)
         return check_counts(self.name, self.scale.deg_to_counts(angle), "target position")
 
+    def check_position(self, angle_deg: float) -> float:
+        """The (multi-turn) angle a position command of ``angle_deg`` would go to, or
+        :class:`CommandRejected` naming the limit; nothing is sent."""
+        return self.scale.counts_to_deg(self._position_target_counts(angle_deg))
+
     def move_to(self, angle_deg: float, *, wait: bool = False, timeout_s: float | None = None) -> float:
         """Profile-position move to ``angle_deg``; returns the (multi-turn) target in degrees.
 

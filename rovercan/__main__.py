@@ -1,5 +1,5 @@
 import sys
 
-from rovercan.cli import main
+from rovercan.entry import main
 
 sys.exit(main())

@@ -512,8 +512,12 @@ def cmd_drive(args: argparse.Namespace) -> int:
             drive.enable()
             drive.home()
         state = drive.snapshot()
-        emit(args, {"node": node_id, "action": args.action, "state": state.state.name,
-                    "angle_deg": round(state.angle_deg, 3)}, f"node {node_id}")
+        result: dict[str, Any] = {"node": node_id, "action": args.action, "state": state.state.name,
+                                  "angle_deg": round(state.angle_deg, 3)}
+        if args.action == "enable":  # the bench never leaves a drive armed behind it
+            result["on_exit"] = (f"held enabled {args.hold:g} s, then disabled" if args.hold else
+                                 "disabled again as the command exits; --hold S keeps it enabled S seconds first")
+        emit(args, result, f"node {node_id}")
     return 0
 
 
@@ -561,13 +565,20 @@ def has_profile_position(drive: Any) -> bool:
     return bool(drive.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_POSITION] & 1)
 
 
+def command_angle(drive: Any, angle_deg: float) -> float:
+    """The angle to command for a multi-turn ``angle_deg``: a continuous joint takes an angle
+    modulo 360 (and moves the short way to it), so after a few turns a measured start plus a step
+    is brought back into -360..360 first."""
+    return math.fmod(angle_deg, 360.0) if drive.config.is_continuous else angle_deg
+
+
 def stream_to(drive: Any, target_deg: float, speed_deg_s: float | None = None,
               on_tick: Callable[[], None] | None = None) -> float:
     """A move on a drive whose only position modes are cyclic or interpolated (the SCHUNK PRL120):
     a trapezoid of set-points, one per SYNC period, through the driver's streaming path (limits
     enforced there), then waits until the joint is within 0.2 deg. Returns the target."""
     cfg = drive.config
-    drive._position_target_counts(target_deg)  # beyond a limit: refused before anything is sent
+    drive.check_position(command_angle(drive, target_deg))  # beyond a limit: refused before anything is sent
     period = drive.sync_period_s
     speed = min(speed_deg_s or cfg.profile_velocity_deg_s, cfg.max_velocity_deg_s)
     accel = cfg.profile_acceleration_deg_s2
@@ -588,11 +599,11 @@ def stream_to(drive: Any, target_deg: float, speed_deg_s: float | None = None,
             done = span - 0.5 * accel * (t_total - t) ** 2
         else:
             done = ramp + peak * (t - t_ramp)
-        drive.stream_position(start + direction * done)
+        drive.stream_position(command_angle(drive, start + direction * done))
         if on_tick is not None:
             on_tick()
         time.sleep(period)
-    drive.stream_position(target_deg)
+    drive.stream_position(command_angle(drive, target_deg))
     if on_tick is not None:
         return target_deg  # the caller keeps sampling
     deadline = time.monotonic() + 3.0
@@ -950,7 +961,7 @@ def cmd_step_test(args: argparse.Namespace) -> int:
             torque.append(s.torque_nm)
 
         if has_profile_position(drive):
-            target = drive.move_to(target)
+            target = drive.move_to(command_angle(drive, target))
         else:  # position streamed: the set-point is a trapezoid, sampled as it goes
             stream_to(drive, target, on_tick=sample)
         while time.monotonic() - t0 < args.seconds:

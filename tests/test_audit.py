@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from can_config import load_config
 from virtual_can import SimService
 
@@ -15,8 +17,8 @@ from .conftest import REPO, cpu_share_of_a_new_process, rovercan_sim
 
 FIGURES = ("SYNC period error p50, us", "SYNC period error p99, us", "SYNC period error max, us",
            "command -> RPDO p50, ms", "command -> RPDO p99, ms", "TPDO 0x281 lost", "TPDO 0x281 late fraction",
-           "SDO round trip p99, ms", "heartbeat period error p99, ms", "bus load (measured, worst-case stuffing)",
-           "bus load (planned, rovercan plan)", "error frames")
+           "SDO round trip p99, ms", "heartbeat period error p99, ms", "bus load (measured, worst-case stuffing), %",
+           "bus load (planned, rovercan plan), %", "error frames")
 
 #: Figures a machine whose cores other processes keep busy cannot meet (scheduling delay in each).
 TIMING = ("period error", "command -> RPDO", "SDO round trip", "late fraction")
@@ -51,6 +53,11 @@ def test_audit_of_the_simulated_rover_reports_every_figure_and_passes(tmp_path: 
     names = " | ".join(r["figure"] for r in rows)
     for figure in FIGURES:
         assert figure in names, (figure, names)
+    # the bus load in percent, as `rovercan plan` gives it (not a fraction beside its percentage)
+    plan = subprocess.run([sys.executable, "-m", "rovercan", "plan", "--config", str(config), "--json"], cwd=REPO,
+                          capture_output=True, text=True, timeout=60, check=True)
+    planned = next(r["load_pct"] for r in json.loads(plan.stdout) if r["what"] == "TOTAL" and r["bus"] == "can0")
+    assert next(r["measured"] for r in rows if r["figure"].startswith("bus load (planned")) == pytest.approx(planned, abs=0.1)
     missed = [r["figure"] for r in rows if r["status"] != "ok"]
     if share < SATURATED_SHARE and result.returncode == 1:
         # other processes keep both cores busy (the suite run beside two busy loops): the

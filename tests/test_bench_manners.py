@@ -1,0 +1,75 @@
+"""What a user meets first on the bench: Ctrl-C at any moment gives one line, `enable` says what
+happens as it exits, a step test works on a continuous joint that has turned a few times."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from .conftest import REPO, rovercan_sim
+
+GENERIC_EDS_ARG = "generic"
+
+
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=60, check=False)
+
+
+def bus(port: int) -> list[str]:
+    return ["-i", "socketcand", "-c", "can0", "--bus-kwargs", "host=127.0.0.1", f"port={port}"]
+
+
+def interpreter_start_s() -> float:
+    """How long this machine's interpreter takes to start with its site packages (the ROS wheels'
+    and the editable install's .pth files run then): a Ctrl-C before that is Python's own, and
+    Python prints 'Fatal Python error: init_import_site' with a traceback before any rovercan code
+    has run. The slowest of three starts."""
+    took = []
+    for _ in range(3):
+        start = time.monotonic()
+        subprocess.run([sys.executable, "-c", "pass"], check=True)
+        took.append(time.monotonic() - start)
+    return max(took)
+
+
+@pytest.mark.parametrize("after_start_s", [0.0, 0.03, 0.08, 0.15, 0.25, 0.4, 0.7])
+def test_ctrl_c_at_any_moment_gives_one_line_and_no_traceback(after_start_s: float) -> None:
+    """From the moment rovercan's own code can run: while it imports python-can, canopen and
+    the rest (about 0.3 s), while it opens the bus, while it works."""
+    script = Path(sys.executable).parent / "rovercan"  # the console script users run
+    argv = [str(script)] if script.exists() else [sys.executable, "-m", "rovercan"]
+    delay_s = 1.2 * interpreter_start_s() + after_start_s
+    proc = subprocess.Popen([*argv, "monitor", "-i", "virtual", "-c", "rovercan-ctrl-c", "--seconds", "5"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(delay_s)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=20)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert proc.returncode != 0 or "frames" in err, (proc.returncode, err)  # stopped, or done by then
+
+
+def test_enable_says_the_drive_is_disabled_again_as_it_exits() -> None:
+    with rovercan_sim() as port:
+        result = run("enable", "1", "--eds", GENERIC_EDS_ARG, *bus(port), "--json")
+        assert result.returncode == 0, result.stderr
+        assert "disabled again as the command exits; --hold S" in json.loads(result.stdout)["on_exit"]
+        held = run("enable", "1", "--eds", GENERIC_EDS_ARG, *bus(port), "--json", "--hold", "0.2")
+        assert json.loads(held.stdout)["on_exit"] == "held enabled 0.2 s, then disabled"
+
+
+def test_a_step_test_on_a_continuous_joint_after_a_few_turns(tmp_path: Path) -> None:
+    with rovercan_sim() as port:
+        jogged = run("jog", "1", "350", "--for", "2.5", *bus(port), "--json")  # about two turns
+        assert jogged.returncode == 0, jogged.stderr
+        assert json.loads(jogged.stdout)["angle_deg"] > 400.0
+        stepped = run("step-test", "1", "--step", "20", "--seconds", "1.5", "--out", str(tmp_path / "s"), *bus(port))
+        assert stepped.returncode == 0, stepped.stderr
+        metrics = json.loads((tmp_path / "s.json").read_text())
+        assert metrics["start_deg"] > 400.0 and metrics["steady_state_error_deg"] < 0.3, metrics
