@@ -231,9 +231,13 @@ class ForeignTraffic(can.Listener):
         self.host_node_id = host_node_id
         self.node_ids = frozenset(node_ids)
         self.sync = 0.0
-        #: set while the bus daemon sends this driver's SYNC (it then reaches this listener):
-        #: another master's SYNC shows as more SYNC frames than that period gives
+        #: set while this driver's SYNC reaches this listener (the socketcand daemon's timer, or the
+        #: kernel's broadcast manager, whose frames SocketCAN loops back to the host's other
+        #: sockets): another master's SYNC then shows as more SYNC frames than that period gives
         self.own_sync_period_s = 0.0
+        #: SocketCAN marks each frame made on this host (is_rx False): a SYNC with is_rx True
+        #: came over the wire from another node, which only another master sends
+        self.marks_local_frames = False
         self._syncs: deque[float] = deque()  # receive thread only
         self.host_twin = 0.0
         self.nmt: dict[tuple[int, int], float] = {}  # (target node (0: all), command) -> when
@@ -249,7 +253,7 @@ class ForeignTraffic(can.Listener):
         if cob == 0x080:
             now = time.monotonic()
             period = self.own_sync_period_s
-            if period <= 0:
+            if period <= 0 or (self.marks_local_frames and msg.is_rx):
                 self.sync = now
                 return
             # counted by the bus's timestamps, not by arrival: a busy process reads a burst of them
@@ -320,6 +324,15 @@ def look_window_s(host_heartbeat_s: float) -> float:
     return max(LOOK_MIN_S, 2.0 * host_heartbeat_s)
 
 
+def is_kernel_bus(bus: can.BusABC) -> bool:
+    """A python-can bus on a kernel SocketCAN interface (can0 on the Orin, vcan0 in CI)."""
+    try:
+        from can.interfaces.socketcan import SocketcanBus
+    except ImportError:  # pragma: no cover - python-can always ships it
+        return False
+    return isinstance(bus, SocketcanBus)
+
+
 def sync_daemon(bus_cfg: BusConfig) -> tuple[str, int, str] | None:
     """(host, port, channel) of the socketcand daemon whose timer sends the bus's SYNC, or None
     (not socketcand, or ``sync_timer: thread`` in the config)."""
@@ -345,6 +358,7 @@ class BusHandle:
         self.network = GuardedNetwork(bus)
         self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         self.foreign = foreign or ForeignTraffic(0, ())
+        self.foreign.marks_local_frames = is_kernel_bus(bus)
         self.network.listeners += [self.stats, self.foreign]  # before connect(): its Notifier copies the list
         if recorder is not None:
             self.network.listeners.append(recorder.listener(name))
@@ -392,10 +406,15 @@ class BusHandle:
                     return
                 except BusLostError as err:
                     logger.warning("bus %s: %s; SYNC from a thread of this process instead", self.name, err)
-            self.foreign.own_sync_period_s = 0.0
-            self.sync_task = self.bus.send_periodic(msg, self.sync_period_s, store_task=False)
-            if hasattr(self.sync_task, "on_error"):  # python-can's thread-based task
-                self.sync_task.on_error = self._sync_failed
+            task = self.bus.send_periodic(msg, self.sync_period_s, store_task=False)
+            self.sync_task = task
+            threaded = isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask)
+            # a thread sends through the driver's own socket, which does not receive its own
+            # frames; the kernel's BCM (python-can on SocketCAN) sends from a socket of its own,
+            # and the kernel loops its frames back to this one: judge those by their rate
+            self.foreign.own_sync_period_s = 0.0 if threaded else self.sync_period_s
+            if isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask):
+                task.on_error = self._sync_failed
 
     def _sync_failed(self, exc: Exception) -> bool:
         """The SYNC thread could not send (bus gone): stop it; the supervisor reconnects."""
