@@ -7,7 +7,8 @@ that changes the behaviour fails there, loudly, instead of in the field:
   "no frame" and never raises, so a vanished server is invisible through its public API; a
   peek at its socket (a name-mangled private attribute) tells.
 - :class:`GuardedNetwork`: canopen's ``Network.notify`` stops the receive thread when one
-  callback raises; this override isolates each callback (its loop mirrors canopen's).
+  callback raises; this override isolates each callback (its loop mirrors canopen's). Its
+  listener also drops 29-bit frames, which canopen would dispatch by their low bits.
 """
 
 from __future__ import annotations
@@ -43,6 +44,17 @@ def connection_closed(bus: can.BusABC) -> bool:
         return True
 
 
+class ElevenBitListener(canopen.network.MessageListener):  # type: ignore[misc]
+    """canopen's frame listener for CANopen's own frames only: CiA 301 uses 11-bit identifiers,
+    and canopen dispatches an extended frame by its identifier alone (an extended 0x181 carrying
+    0x0627 read as the drive's statusword: a false Operation Enabled)."""
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_extended_id:
+            return
+        super().on_message_received(msg)
+
+
 class GuardedNetwork(canopen.Network):
     """A canopen Network whose frame dispatch survives a failing callback.
 
@@ -54,6 +66,7 @@ class GuardedNetwork(canopen.Network):
 
     def __init__(self, bus: can.BusABC | None = None) -> None:
         super().__init__(bus)
+        self.listeners: list[can.Listener] = [ElevenBitListener(self)]  # before connect(): its Notifier takes it
         self.rejected_frames = 0
         #: called with each frame sent (the flight recorder), after it went out
         self.on_sent: Callable[[can.Message], None] | None = None

@@ -501,8 +501,8 @@ class SimulatedDrive:
 
     # ---------------------------------------------------------------- frames in
     def on_frame(self, msg: can.Message, now: float) -> list[can.Message]:
-        if self.faults.unplugged or now < self.faults.power_off_until or msg.is_remote_frame:
-            return []
+        if self.faults.unplugged or now < self.faults.power_off_until or msg.is_remote_frame or msg.is_extended_id:
+            return []  # CANopen (CiA 301) uses 11-bit identifiers only
         cob = msg.arbitration_id
         data = bytes(msg.data)
         if cob == 0:
