@@ -576,20 +576,27 @@ class SocketcandServer:
                 continue
             except OSError:
                 break
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            with self._lock:
-                full = len(self._clients) >= self.max_clients
-            if full:
-                logger.warning("refusing client %s: %d clients already", addr, self.max_clients)
-                try:
-                    sock.sendall(b"< error too many clients >")
-                finally:
-                    sock.close()
-                continue
-            client = _Client(self, sock, addr)
-            with self._lock:
-                self._clients.add(client)
-            client.start()
+            try:
+                self._admit(sock, addr)
+            except OSError as err:  # one connection's failure (reset at once, ...) never ends the loop
+                logger.info("client %s: dropped while connecting (%s)", addr, err)
+                sock.close()
+
+    def _admit(self, sock: socket.socket, addr: tuple[str, int]) -> None:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        with self._lock:
+            full = len(self._clients) >= self.max_clients
+        if full:
+            logger.warning("refusing client %s: %d clients already", addr, self.max_clients)
+            try:
+                sock.sendall(b"< error too many clients >")
+            finally:
+                sock.close()
+            return
+        client = _Client(self, sock, addr)
+        with self._lock:
+            self._clients.add(client)
+        client.start()
 
     def _forget(self, client: _Client) -> None:
         with self._lock:
