@@ -90,12 +90,25 @@ def open_bus(args: argparse.Namespace) -> can.BusABC:
         raise ConfigError(NO_BUS)
     tuned: dict[str, Any] = {"tcp_tune": True} if args.interface == "socketcand" else {}  # --bus-kwargs overrides
     extra = getattr(args, "bus_kwargs", None) or {}
+    if "port" in extra:
+        extra["port"] = tcp_port(extra["port"])
     if args.interface == "socketcand" and "host" in extra and "port" in extra:
         wait_for_server(str(extra["host"]), int(extra["port"]), connect_timeout(args))  # python-can's loop spins
     try:
         return can.cli.create_bus_from_namespace(args, **tuned)
     except argparse.ArgumentError as err:
         raise CliError(f"cannot open the bus {args.interface} {getattr(args, 'channel', '')}: {err.__cause__}") from err
+
+
+def tcp_port(value: object) -> int:
+    """``--bus-kwargs port=...`` as a TCP port: decimal or 0x hex, as every number of the CLI."""
+    try:
+        port = value if isinstance(value, int) and not isinstance(value, bool) else int(str(value), 0)
+    except ValueError:
+        raise ConfigError(f"--bus-kwargs port={value}: expected a TCP port 1..65535 (decimal, or hex as 0x71D8)") from None
+    if not 1 <= port <= 65535:
+        raise ConfigError(f"--bus-kwargs port={value}: a TCP port is 1..65535")
+    return port
 
 
 def parse_node(text: str) -> int:
@@ -762,7 +775,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
                     print(json.dumps({"t": msg.timestamp, "id": msg.arbitration_id, "data": bytes(msg.data).hex(),
                                       "node": node, "text": text}), flush=True)
                 else:
-                    print(f"{candump_line(msg, str(args.channel or 'can'))}   {text}", flush=True)
+                    print(f"{candump_line(msg, str(getattr(args, 'channel', None) or 'can'))}   {text}", flush=True)
         finally:
             bus.shutdown()
     if args.table:

@@ -49,11 +49,12 @@ def sim(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[SimService, 
 
 
 def bus_args(draw: Callable[[Any], Any], port: int) -> list[str]:
-    kind = draw(st.sampled_from(["sim", "sim", "sim", "sim", "none", "wrong port"]))
+    kind = draw(st.sampled_from(["sim", "sim", "sim", "sim hex", "none", "wrong port", "junk port"]))
     if kind == "none":
         return []
-    return ["-i", "socketcand", "-c", "can0", "--bus-kwargs", "host=127.0.0.1",
-            f"port={port if kind == 'sim' else 1}", "--timeout", "0.2"]
+    text = {"sim": str(port), "sim hex": hex(port), "wrong port": "1"}.get(kind) or draw(
+        st.sampled_from(["0xZZ", "-1", "70000", "", "1e3", "0x", "port"]) | st.text(max_size=6))
+    return ["-i", "socketcand", "-c", "can0", "--bus-kwargs", "host=127.0.0.1", f"port={text}", "--timeout", "0.2"]
 
 
 @st.composite
