@@ -239,6 +239,7 @@ class ForeignTraffic(can.Listener):
         #: came over the wire from another node, which only another master sends
         self.marks_local_frames = False
         self._syncs: deque[float] = deque()  # receive thread only
+        self.sync_excess = (0, 0.0)  # (SYNC frames seen, own period gives) in the last window over the rate
         self.host_twin = 0.0
         self.nmt: dict[tuple[int, int], float] = {}  # (target node (0: all), command) -> when
         self.sdo: dict[int, float] = {}  # node -> when another client sent it an SDO request
@@ -264,6 +265,7 @@ class ForeignTraffic(can.Listener):
                 syncs.popleft()
             if len(syncs) > 1.5 * SYNC_RATE_WINDOW_S / period + 2:
                 self.sync = now
+                self.sync_excess = (len(syncs), SYNC_RATE_WINDOW_S / period)
         elif cob == 0x000 and len(msg.data) == 2:
             self.nmt[msg.data[1], msg.data[0]] = time.monotonic()  # each command kept: a reset then a start
         elif cob == 0x700 + self.host_node_id:
@@ -279,7 +281,9 @@ class ForeignTraffic(can.Listener):
         if self.host_twin > since:
             found.append(f"heartbeats of node {self.host_node_id}, this driver's own id: a second driver?")
         if self.sync > since:
-            found.append("SYNC frames this driver did not send")  # or more of them than it sends
+            count, own = self.sync_excess
+            more = f" ({count} in {SYNC_RATE_WINDOW_S:g} s where its own give {own:.0f})" if count else ""
+            found.append(f"SYNC frames this driver did not send{more}")  # or more of them than it sends
         seen = list(self.nmt.items())  # one copy (the receive thread may add a key meanwhile)
         for (target, command), when in sorted(seen, key=lambda item: item[1]):
             if target in (node_id, 0) and when > since:
@@ -406,14 +410,15 @@ class BusHandle:
                     return
                 except BusLostError as err:
                     logger.warning("bus %s: %s; SYNC from a thread of this process instead", self.name, err)
+            # the kernel's BCM (python-can on SocketCAN) sends from a socket of its own, and the
+            # kernel loops its frames back to this one: judged by their rate, from the first one
+            # on (it can arrive before send_periodic returns); a thread sends through the
+            # driver's own socket, which does not receive its own frames: any SYNC is another's
+            self.foreign.own_sync_period_s = self.sync_period_s
             task = self.bus.send_periodic(msg, self.sync_period_s, store_task=False)
             self.sync_task = task
-            threaded = isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask)
-            # a thread sends through the driver's own socket, which does not receive its own
-            # frames; the kernel's BCM (python-can on SocketCAN) sends from a socket of its own,
-            # and the kernel loops its frames back to this one: judge those by their rate
-            self.foreign.own_sync_period_s = 0.0 if threaded else self.sync_period_s
             if isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask):
+                self.foreign.own_sync_period_s = 0.0
                 task.on_error = self._sync_failed
 
     def _sync_failed(self, exc: Exception) -> bool:

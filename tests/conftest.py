@@ -72,6 +72,35 @@ def _settled_heap() -> None:
     heap.settle()
 
 
+#: The command that runs the kernel tier (a real kernel's vcan0: natively, or in a small VM).
+KERNEL_TIER_COMMAND = "./dev kernel-test"
+#: Periods of the kernel tier's configs: in the VM (software emulation, Python about 12x slower)
+#: behaviour is tested, not timing, so SYNC, host heartbeat and consumer times are generous.
+KERNEL_BUS = {"sync_period_ms": 50, "host_heartbeat_ms": 100}
+KERNEL_DRIVE = {"counts_per_rev": 4096, "heartbeat_period_ms": 200, "heartbeat_timeout_ms": 1000,
+                "host_timeout_ms": 1000, "watchdog_ms": 2000, "sdo_timeout_ms": 2000}
+
+
+def kernel_can_available(channel: str = "vcan0") -> str | None:
+    """None when a kernel CAN interface can be opened, else the reason it cannot (and how)."""
+    import socket
+
+    how = f"; the kernel tier runs with `{KERNEL_TIER_COMMAND}` (natively where the kernel has vcan, else in a VM)"
+    if not hasattr(socket, "AF_CAN"):
+        return "this Python has no AF_CAN" + how
+    try:
+        sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    except OSError as err:
+        return f"the kernel does not support AF_CAN ({err})" + how
+    try:
+        sock.bind((channel,))
+    except OSError as err:
+        return f"no {channel} interface ({err}); create it with: ip link add dev {channel} type vcan" + how
+    finally:
+        sock.close()
+    return None
+
+
 def make_config(n: int = 1, *, eds: str = "generic", **drive: object) -> RoverConfig:
     drive.setdefault("host_timeout_ms", IN_PROCESS_HOST_TIMEOUT_MS)
     drive.setdefault("heartbeat_timeout_ms", IN_PROCESS_HEARTBEAT_TIMEOUT_MS)

@@ -3,7 +3,6 @@ kernel-interface tier (vcan), skipped with a reason where the kernel has no Sock
 
 from __future__ import annotations
 
-import socket
 import time
 from collections.abc import Callable
 
@@ -19,7 +18,7 @@ from virtual_can import SimDriveSpec, SimService
 from virtual_can.scenario import apply_action, load_scenario
 from virtual_can.sim import DriveSimulator, SimulatedDrive
 
-from .conftest import drain, make_config, wait_for
+from .conftest import KERNEL_BUS, KERNEL_DRIVE, drain, kernel_can_available, make_config, wait_for
 
 Listener = Callable[[SimService], can.BusABC]
 
@@ -149,24 +148,7 @@ def test_random_frames_never_crash_a_simulated_drive(frames: list[tuple[int, byt
     assert drive.statusword & 0x4F in (0x00, 0x40, 0x08, 0x0F) or drive.statusword & 0x6F in (0x21, 0x23, 0x27, 0x07)
 
 
-def kernel_can_available(channel: str = "vcan0") -> str | None:
-    """None when a kernel CAN interface can be opened, else the reason it cannot."""
-    if not hasattr(socket, "AF_CAN"):
-        return "this Python has no AF_CAN"
-    try:
-        sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
-    except OSError as err:
-        return f"the kernel does not support AF_CAN ({err})"
-    try:
-        sock.bind((channel,))
-    except OSError as err:
-        return f"no {channel} interface ({err}); create it with: ip link add dev {channel} type vcan"
-    finally:
-        sock.close()
-    return None
-
-
-@pytest.mark.parametrize("interface", ["emulator", "socketcan"])
+@pytest.mark.parametrize("interface", ["emulator", pytest.param("socketcan", marks=pytest.mark.kernel)])
 def test_boot_enable_move_on_each_interface(interface: str,
                                             driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
     """Tier 3: the same scenario on a real kernel interface where there is one."""
@@ -180,8 +162,8 @@ def test_boot_enable_move_on_each_interface(interface: str,
     if reason is not None:
         pytest.skip(reason)
     sim_bus = can.Bus(interface="socketcan", channel="vcan0")
-    config = parse_config({"buses": [{"name": "can0", "interface": "socketcan", "channel": "vcan0"}],
-                           "drives": [{"name": "joint1", "node_id": 1}]})
+    config = parse_config({"buses": [{"name": "can0", "interface": "socketcan", "channel": "vcan0", **KERNEL_BUS}],
+                           "drives": [{"name": "joint1", "node_id": 1, **KERNEL_DRIVE}]})
     with sim_bus, DriveSimulator(sim_bus, [SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))]), \
             MotorDriver(config) as driver:
         driver.start()

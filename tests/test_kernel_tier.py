@@ -1,0 +1,229 @@
+"""The kernel tier: the rover's own bus, a real kernel's SocketCAN (vcan0 here, can0 on the Orin).
+
+Run by ``./dev kernel-test`` (part of ``./dev test``): natively where the kernel has vcan, else
+inside a small VM (QEMU under software emulation, a distribution kernel with vcan, can-raw and
+can-bcm, the host's root file system). Python runs about 12x slower there, so the configs use
+generous periods (SYNC 50 ms, host heartbeat 100 ms, consumer times 1 s) and these tests check
+behaviour, not timing. The simulator runs in a process of its own on vcan0, as `rovercan sim
+--bus-interface socketcan` does for a user; so does the driver where the failure is its process's.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+import pytest
+
+from can_config import load_config
+from motor_driver import MotorDriver, State
+from motor_driver.driver import is_kernel_bus
+
+from .conftest import KERNEL_BUS, KERNEL_DRIVE, REPO, kernel_can_available, wait_for
+
+pytestmark = [pytest.mark.kernel, pytest.mark.skipif(kernel_can_available() is not None,
+                                                     reason=kernel_can_available() or "")]
+CHANNEL = "vcan0"
+#: Processes start slowly in the VM: python-can and canopen import in seconds there.
+START_S = 60.0
+
+
+def write_kernel_config(path: Path, *, nodes: tuple[int, ...] = (1,)) -> Path:
+    bus = ", ".join(f"{k}: {v}" for k, v in KERNEL_BUS.items())
+    drive = ", ".join(f"{k}: {v}" for k, v in KERNEL_DRIVE.items())
+    drives = "".join(f"  - {{name: wheel{n}, node_id: {n}, {drive}}}\n" for n in nodes)
+    path.write_text(f"buses:\n  - {{name: can0, interface: socketcan, channel: {CHANNEL}, {bus}}}\ndrives:\n{drives}")
+    return path
+
+
+def rovercan(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout, check=False)
+
+
+@contextmanager
+def simulator(config: Path) -> Iterator[subprocess.Popen[str]]:
+    """`rovercan sim --config CONFIG --bus-interface socketcan --bus-channel vcan0`, its own process."""
+    proc = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--config", str(config), "--bus-interface",
+                             "socketcan", "--bus-channel", CHANNEL], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        assert "simulated drive" in line, (line, proc.stderr.read() if proc.poll() is not None and proc.stderr else "")
+        yield proc
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+
+
+@dataclass
+class Listener:
+    """An independent raw socket on vcan0: every frame, with the kernel's receive time."""
+
+    bus: can.BusABC = field(default_factory=lambda: can.Bus(interface="socketcan", channel=CHANNEL))
+    frames: list[can.Message] = field(default_factory=list)
+    stop: threading.Event = field(default_factory=threading.Event)
+
+    def __post_init__(self) -> None:
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            msg = self.bus.recv(0.05)
+            if msg is not None:
+                self.frames.append(msg)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join()
+        self.bus.shutdown()
+
+    def statuswords(self, node: int, after: float = 0.0) -> list[tuple[float, int]]:
+        """(kernel time, statusword) of the event TPDO1 (0x180 + node), as the driver maps it."""
+        return [(m.timestamp, int.from_bytes(m.data[:2], "little")) for m in list(self.frames)
+                if m.arbitration_id == 0x180 + node and m.timestamp >= after and len(m.data) >= 2]
+
+
+@pytest.fixture
+def listener() -> Iterator[Listener]:
+    watch = Listener()
+    yield watch
+    watch.close()
+
+
+def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Path, listener: Listener) -> None:
+    config = write_kernel_config(tmp_path / "kernel.yaml")
+    with simulator(config), MotorDriver(load_config(config)) as driver:
+        driver.start()
+        handle = driver.buses["can0"]
+        assert is_kernel_bus(handle.bus)
+        # the SYNC is the kernel broadcast manager's, not a thread of this process
+        assert type(handle.sync_task).__module__ == "can.interfaces.socketcan.socketcan", type(handle.sync_task)
+        drive = driver.drive("wheel1")
+        t0 = time.time()
+        drive.enable()
+        drive.move_to(30.0, wait=True, timeout_s=30.0)
+        assert drive.snapshot().angle_deg == pytest.approx(30.0, abs=0.3)
+        for _ in range(20):  # profile velocity
+            drive.set_velocity(45.0)
+            time.sleep(0.05)
+        wait_for(lambda: drive.snapshot().velocity_deg_s > 20.0, 10.0, "turning in profile velocity")
+        drive.set_velocity(0.0)
+        wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 10.0, "stopped")
+        drive.set_torque(0.05)  # profile torque
+        wait_for(lambda: abs(drive.snapshot().torque_nm) > 0.0, 10.0, "torque")
+        drive.set_torque(0.0)
+        start = drive.snapshot().angle_deg
+        for i in range(1, 21):  # streamed position (CSP)
+            drive.stream_position(start + i * 0.25)
+            time.sleep(KERNEL_BUS["sync_period_ms"] / 1000)
+        wait_for(lambda: abs(drive.snapshot().angle_deg - (start + 5.0)) < 0.5, 10.0, "the streamed target")
+        assert drive.snapshot().mode == 8 and not drive.foreign_master  # its own SYNC is no other master
+        elapsed = time.time() - t0
+        drive.quick_stop()
+    syncs = [m for m in listener.frames if m.arbitration_id == 0x080 and m.timestamp >= t0]
+    assert len(syncs) >= 0.5 * elapsed / (KERNEL_BUS["sync_period_ms"] / 1000), (len(syncs), elapsed)
+
+
+def test_a_second_masters_sync_is_noticed_within_a_second_and_the_drivers_own_never(tmp_path: Path) -> None:
+    config = write_kernel_config(tmp_path / "kernel.yaml")
+    with simulator(config), MotorDriver(load_config(config)) as driver:
+        driver.start()
+        drive = driver.drive("wheel1")
+        drive.enable()
+        time.sleep(2.0)
+        assert not drive.foreign_master  # two seconds of its own kernel SYNC
+        with can.Bus(interface="socketcan", channel=CHANNEL) as other:  # a second driver on this host
+            started = time.monotonic()
+            task = other.send_periodic(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False),
+                                       KERNEL_BUS["sync_period_ms"] / 1000)
+            try:
+                wait_for(lambda: "SYNC frames this driver did not send" in drive.foreign_master, 5.0, "noticed")
+                noticed = time.monotonic() - started
+            finally:
+                task.stop()
+        assert noticed < 1.0, noticed
+        assert drive.state != State.OPERATION_ENABLED or drive.snapshot().velocity_deg_s == 0.0
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP])
+def test_a_killed_or_stopped_driver_lets_every_drive_stop_itself(tmp_path: Path, listener: Listener,
+                                                                  sig: signal.Signals) -> None:
+    config = write_kernel_config(tmp_path / "kernel.yaml")
+    client = REPO / "tests" / "clients" / "hold_velocity.py"
+    with simulator(config):
+        proc = subprocess.Popen([sys.executable, str(client), str(config), "30"], cwd=REPO,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert proc.stdout is not None
+            if proc.stdout.readline().strip() != "READY":
+                proc.kill()
+                raise AssertionError(f"the driver process did not get ready: {proc.communicate()[1][-3000:]}")
+            t_signal = time.time()
+            proc.send_signal(sig)
+            bound = KERNEL_DRIVE["host_timeout_ms"] / 1000 + 0.5
+            deadline = time.monotonic() + bound + 5.0
+            stopped_at = None
+            while stopped_at is None and time.monotonic() < deadline:
+                stopped_at = next((t for t, sw in listener.statuswords(1, t_signal) if sw & 0x6F != 0x27), None)
+                time.sleep(0.05)
+            assert stopped_at is not None, "the drive stayed enabled"
+            assert stopped_at - t_signal <= bound, stopped_at - t_signal
+        finally:
+            if sig == signal.SIGSTOP:
+                proc.send_signal(signal.SIGCONT)
+            proc.kill()
+            proc.communicate()
+
+
+def test_can_up_creates_a_vcan_interface() -> None:
+    result = rovercan("can-up", "vcan7")
+    try:
+        assert result.returncode == 0, result.stderr
+        shown = subprocess.run(["ip", "-details", "link", "show", "vcan7"], capture_output=True, text=True, check=False)
+        assert shown.returncode == 0 and "vcan" in shown.stdout and "UP" in shown.stdout, shown
+        with can.Bus(interface="socketcan", channel="vcan7") as bus:  # and it carries frames
+            bus.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
+    finally:
+        subprocess.run(["ip", "link", "del", "vcan7"], check=False)
+
+
+def test_a_candump_of_a_session_decodes_and_replays(tmp_path: Path, listener: Listener) -> None:
+    config = write_kernel_config(tmp_path / "kernel.yaml")
+    log = tmp_path / "session.log"
+    with simulator(config), log.open("w") as out:
+        dump = subprocess.Popen(["candump", "-L", CHANNEL], stdout=out, text=True)
+        try:
+            with MotorDriver(load_config(config)) as driver:
+                driver.start()
+                drive = driver.drive("wheel1")
+                drive.enable()
+                drive.move_to(10.0, wait=True, timeout_s=30.0)
+            time.sleep(0.5)
+        finally:
+            dump.send_signal(signal.SIGINT)
+            dump.wait(10)
+    decoded = rovercan("decode", str(log), "--config", str(config), "--json")
+    assert decoded.returncode == 0, decoded.stderr
+    texts = [json.loads(line)["text"] for line in decoded.stdout.splitlines()]
+    assert any("statusword" in t for t in texts) and any("SYNC" in t for t in texts), texts[:20]
+    before = len(listener.frames)
+    replayed = rovercan("replay", str(log), "-i", "socketcan", "-c", CHANNEL, "--fast")
+    assert replayed.returncode == 0, replayed.stderr
+    assert "command frames" in replayed.stderr  # NMT, RPDOs and SDO requests left out by default
+    wait_for(lambda: len(listener.frames) > before + 10, 10.0, "the replayed frames on vcan0")
