@@ -116,6 +116,13 @@ def protected_reason(index: int) -> str | None:
     return PROTECTED_OBJECTS.get(index)
 
 
+#: An SDO read of an object whose type has no size (a string, a domain) brings at most this much;
+#: a drive that announces or sends more is cut off with an abort.
+SDO_UPLOAD_MAX_BYTES = 1024
+#: A whole SDO read (all its segments) takes at most this many SDO timeouts.
+SDO_TRANSFER_TIMEOUTS = 4
+SDO_ABORT_OUT_OF_MEMORY = 0x0504_0005
+SDO_ABORT_TIMEOUT = 0x0504_0000
 #: Timeouts (seconds); module constants so tests and benchmarks can override them.
 TRANSITION_TIMEOUT_S = 1.0
 MODE_SWITCH_TIMEOUT_S = 1.0
@@ -571,7 +578,9 @@ class Drive:
     # ------------------------------------------------------------------ SDO
     @contextmanager
     def _sdo_errors(self, what: str, index: int, subindex: int) -> Iterator[None]:
-        """canopen's SDO exceptions -> this project's, with the abort code and its meaning."""
+        """canopen's SDO exceptions -> this project's, with the abort code and its meaning; a
+        malformed answer (canopen's parsing raising anything) is an SdoError too, never a
+        struct.error reaching the caller."""
         where = f"node {self.node_id}: SDO {what} 0x{index:04X}:{subindex}"
         try:
             yield
@@ -579,14 +588,50 @@ class Drive:
             raise SdoError(f"{where} aborted with 0x{err.code:08X} ({sdo_abort_text(err.code)})",
                            node_id=self.node_id, index=index, subindex=subindex, abort_code=err.code) from err
         except canopen.SdoCommunicationError as err:
+            if "No SDO response" not in str(err):  # an answer came, but not a valid one
+                raise SdoError(f"{where}: the drive answered wrongly ({err}); the transfer was aborted",
+                               node_id=self.node_id, index=index, subindex=subindex) from err
             raise SdoTimeoutError(f"{where} got no answer ({err}); check power, node id, bitrate and termination",
                                   node_id=self.node_id, index=index, subindex=subindex) from err
         except (can.CanError, OSError) as err:
             raise BusLostError(f"{where}: the bus is gone ({err})") from err
+        except (struct.error, ValueError, IndexError, KeyError, TypeError) as err:
+            raise SdoError(f"{where}: malformed answer from the drive ({type(err).__name__}: {err})",
+                           node_id=self.node_id, index=index, subindex=subindex) from err
 
     def sdo_read(self, index: int, subindex: int = 0) -> bytes:
+        """An SDO upload, bounded in size and in time: at most the object's size where its type
+        has one (else SDO_UPLOAD_MAX_BYTES), and SDO_TRANSFER_TIMEOUTS x the SDO timeout in all,
+        whatever the drive announces or keeps sending (a transfer past either is aborted)."""
         with self._sdo_errors("read", index, subindex):
-            return bytes(self.node.sdo.upload(index, subindex))
+            return self._bounded_upload(index, subindex)
+
+    def _bounded_upload(self, index: int, subindex: int) -> bytes:
+        var = variable(self.od, index, subindex)
+        fixed = len(var) // 8 if var is not None and var.fixed_size else None
+        cap = max(8, fixed) if fixed else SDO_UPLOAD_MAX_BYTES  # some drives send a U32 for a smaller type
+        sdo = self.node.sdo
+        where = f"node {self.node_id}: SDO read 0x{index:04X}:{subindex}"
+        deadline = time.monotonic() + SDO_TRANSFER_TIMEOUTS * self.config.sdo_timeout_s
+        data = bytearray()
+        with sdo.open(index, subindex, buffering=0) as stream:
+            if stream.size is not None and stream.size > cap:
+                sdo.abort(SDO_ABORT_OUT_OF_MEMORY)
+                raise SdoError(f"{where}: the drive announced {stream.size} bytes, more than the {cap} this object"
+                               " can hold; the transfer was aborted", node_id=self.node_id, index=index,
+                               subindex=subindex)
+            while chunk := stream.read(7):
+                data += chunk
+                if len(data) > cap:
+                    sdo.abort(SDO_ABORT_OUT_OF_MEMORY)
+                    raise SdoError(f"{where}: the drive sent more than {cap} bytes; the transfer was aborted",
+                                   node_id=self.node_id, index=index, subindex=subindex)
+                if time.monotonic() > deadline:
+                    sdo.abort(SDO_ABORT_TIMEOUT)
+                    raise SdoTimeoutError(f"{where}: the transfer took over {SDO_TRANSFER_TIMEOUTS} x the SDO timeout"
+                                          f" ({self.config.sdo_timeout_s:g} s); aborted", node_id=self.node_id,
+                                          index=index, subindex=subindex)
+        return bytes(data[:fixed] if fixed and len(data) > fixed else data)
 
     def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
         with self._sdo_errors("write", index, subindex):

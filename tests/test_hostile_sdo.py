@@ -1,0 +1,176 @@
+"""A drive that answers SDO requests wrongly cannot hang, fool or crash the driver: every SDO read
+is bounded in size and time, every malformed answer is an SdoError of the project's tree, and a
+boot against such a drive ends with a BootError naming its step.
+
+The hostile drive is a program on the bus (a python-can client of the bus server), not the
+simulator: it answers the NMT reset with a boot-up, sends heartbeats, and answers each SDO
+request in the way a test asks for."""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from collections.abc import Iterator
+
+import can
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from can_config import parse_config, with_bus_overrides
+from can_config.errors import BootError, MotorError, SdoError, SdoTimeoutError
+from motor_driver import MotorDriver
+from motor_driver.drive import SDO_TRANSFER_TIMEOUTS
+from virtual_can import BusEngine, SocketcandServer
+from virtual_can.server import RAWMODE_HOLD_S
+
+NODE = 5
+SDO_TIMEOUT_S = 0.2
+
+
+class HostileDrive:
+    """Node 5 on the bus: boots when reset, beats, and answers SDO requests by ``answer``."""
+
+    def __init__(self, port: int, answer: str) -> None:
+        self.answer = answer
+        self.bus = can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port)
+        self.stop = threading.Event()
+        self.requests = 0
+        self.thread = threading.Thread(target=self.run, daemon=True)
+        self.thread.start()
+        time.sleep(RAWMODE_HOLD_S + 0.02)
+
+    def send(self, cob: int, data: bytes) -> None:
+        self.bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+
+    def run(self) -> None:
+        next_beat = 0.0
+        while not self.stop.is_set():
+            if time.monotonic() >= next_beat:
+                self.send(0x700 + NODE, b"\x7f")
+                next_beat = time.monotonic() + 0.1
+            msg = self.bus.recv(0.02)
+            if msg is None:
+                continue
+            if msg.arbitration_id == 0 and len(msg.data) == 2 and msg.data[1] in (0, NODE):
+                self.send(0x700 + NODE, b"\x00")  # boot-up
+            elif msg.arbitration_id == 0x600 + NODE:
+                self.requests += 1
+                self.reply(bytes(msg.data))
+
+    def reply(self, req: bytes) -> None:
+        cmd, index, sub = req[0], req[1:3], req[3:4]
+        kind = self.answer
+        if kind == "silence":
+            return
+        if kind == "short":
+            self.send(0x580 + NODE, b"\x43")
+        elif kind == "wrong index":
+            self.send(0x580 + NODE, bytes([0x43]) + struct.pack("<H", 0x1234) + sub + b"\x01\x02\x03\x04")
+        elif kind == "unknown abort":
+            self.send(0x580 + NODE, bytes([0x80]) + index + sub + struct.pack("<I", 0x12345678))
+        elif cmd & 0xE0 == 0x40:  # an upload initiate
+            if kind == "huge size":
+                self.send(0x580 + NODE, bytes([0x41]) + index + sub + struct.pack("<I", 0xFFFFFF00))
+            else:  # endless: segmented, no size given, and the segments never end
+                self.send(0x580 + NODE, bytes([0x40]) + index + sub + b"\x00\x00\x00\x00")
+        elif cmd & 0xE0 == 0x60:  # a segment request: answer with its toggle, never the last
+            toggle = cmd & 0x10
+            if kind == "wrong toggle":
+                toggle ^= 0x10
+            self.send(0x580 + NODE, bytes([toggle]) + b"\x11" * 7)
+        elif cmd & 0xE0 == 0x20:  # a download: acknowledged
+            self.send(0x580 + NODE, bytes([0x60]) + index + sub + b"\x00" * 4)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join()
+        self.bus.shutdown()
+
+
+@pytest.fixture
+def server() -> Iterator[SocketcandServer]:
+    with BusEngine() as engine, SocketcandServer(engine, port=0, channels=("can0",)) as srv:
+        yield srv
+
+
+def config(port: int):  # type: ignore[no-untyped-def]
+    cfg = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0"}],
+                        "drives": [{"name": "hostile", "node_id": NODE, "counts_per_rev": 4096,
+                                    "sdo_timeout_ms": SDO_TIMEOUT_S * 1000, "boot_timeout_ms": 1000}]})
+    return with_bus_overrides(cfg, host="127.0.0.1", port=port)
+
+
+#: How long one SDO read may take at most: the transfer's bound, plus the initiate's and the
+#: last segment's request (each sent twice by canopen before it gives up).
+READ_BOUND_S = (SDO_TRANSFER_TIMEOUTS + 4) * SDO_TIMEOUT_S + 0.5
+
+KINDS = ["endless", "huge size", "short", "wrong index", "wrong toggle", "unknown abort", "silence"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_each_malformed_answer_is_an_sdo_error_within_its_bound(server: SocketcandServer, kind: str) -> None:
+    drive_bus = HostileDrive(server.port, kind)
+    try:
+        with MotorDriver(config(server.port)) as driver:
+            drive = driver.drive("hostile")  # not started: one SDO read at a time
+            for index, sub in ((0x1000, 0), (0x1008, 0), (0x6064, 0)):  # a U32, a string, an I32
+                start = time.monotonic()
+                with pytest.raises(SdoError) as err:
+                    drive.sdo_read(index, sub)
+                took = time.monotonic() - start
+                assert took < READ_BOUND_S, (kind, index, took)
+                if kind == "silence":
+                    assert isinstance(err.value, SdoTimeoutError)
+                if kind == "unknown abort":
+                    assert err.value.abort_code == 0x12345678 and "0x12345678" in str(err.value)
+    finally:
+        drive_bus.close()
+
+
+@pytest.mark.parametrize("kind", ["endless", "huge size"])
+def test_a_boot_against_an_endless_or_oversized_upload_ends_with_a_boot_error(server: SocketcandServer,
+                                                                            kind: str) -> None:
+    drive_bus = HostileDrive(server.port, kind)
+    try:
+        start = time.monotonic()
+        with MotorDriver(config(server.port)) as driver, pytest.raises(BootError) as err:
+            driver.start()
+        took = time.monotonic() - start
+        assert err.value.step == "device type" and "0x1000" in str(err.value), err.value
+        assert took < 0.5 + 1.0 + READ_BOUND_S, took  # the look, the boot-up wait, one bounded read
+        assert drive_bus.requests < 10  # cut off: not the 58,855 frames of an unbounded read
+    finally:
+        drive_bus.close()
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(answer=st.binary(min_size=0, max_size=8))
+def test_fuzzed_answers_never_raise_outside_the_tree(server: SocketcandServer, answer: bytes) -> None:
+    """Whatever one answer frame holds, a read ends with a value or an error of the tree."""
+    bus = can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=server.port)
+    stop = threading.Event()
+
+    def respond() -> None:
+        while not stop.is_set():
+            msg = bus.recv(0.02)
+            if msg is not None and msg.arbitration_id == 0x600 + NODE:
+                bus.send(can.Message(arbitration_id=0x580 + NODE, data=answer, is_extended_id=False))
+
+    thread = threading.Thread(target=respond, daemon=True)
+    thread.start()
+    time.sleep(RAWMODE_HOLD_S + 0.02)
+    try:
+        with MotorDriver(config(server.port)) as driver:
+            drive = driver.drive("hostile")
+            start = time.monotonic()
+            try:
+                drive.sdo_read(0x1008, 0)
+            except MotorError:
+                pass
+            assert time.monotonic() - start < READ_BOUND_S
+    finally:
+        stop.set()
+        thread.join()
+        bus.shutdown()
