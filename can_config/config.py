@@ -458,7 +458,7 @@ def _section(where: _Where, prefix: str, data: Any, fields: dict[str, _Field]) -
 def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
     """Validate an already-parsed YAML document into a :class:`RoverConfig`."""
     where = _Where(source)
-    base_dir = Path(source).resolve().parent if source is not None else Path.cwd()
+    base_dir = resolved(Path(source)).parent if source is not None else Path.cwd()
     if not isinstance(data, Mapping):
         raise where.fail("(top level)", f"got {type(data).__name__}; expected a mapping with keys"
                          f" {', '.join(_TOP_FIELDS)}.")
@@ -533,7 +533,7 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
         drive_system = DriveSystemConfig(**values)
     recorder = _section(where, "recorder.", data.get("recorder") or {}, _RECORDER_FIELDS)
     if recorder["dir"] is not None:
-        recorder["dir"] = (base_dir / Path(recorder["dir"]).expanduser()).resolve()
+        recorder["dir"] = resolved(base_dir / Path(recorder["dir"]).expanduser())
     return RoverConfig(tuple(buses), tuple(drives), drive_system,
                        Path(source) if source is not None else None, RecorderConfig(**recorder))
 
@@ -574,7 +574,15 @@ def resolve_eds_path(value: str, base_dir: Path) -> Path:
     if value == "generic":
         return GENERIC_EDS
     path = Path(value).expanduser()
-    return path if path.is_absolute() else (base_dir / path).resolve()
+    return path if path.is_absolute() else resolved(base_dir / path)
+
+
+def resolved(path: Path) -> Path:
+    """``path.resolve()``, or :class:`ConfigError` naming a symlink loop."""
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError) as err:  # a symlink loop: RuntimeError before Python 3.13
+        raise ConfigError(f"{path}: cannot resolve the path ({err}); check its symlinks.") from err
 
 
 def load_config(path: Path | str | None = None) -> RoverConfig:

@@ -15,8 +15,9 @@ from pathlib import Path
 import canopen
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 
-from can_config.errors import EdsError
+from can_config.errors import ConfigError, EdsError
 from can_config.objects import OD
+from can_config.textfile import check_regular_file
 
 logger = logging.getLogger(__name__)
 
@@ -28,6 +29,9 @@ REQUIRED_OBJECTS: dict[int, str] = {
     OD.MODES_OF_OPERATION_DISPLAY: "modes of operation display",
     OD.POSITION_ACTUAL: "position actual value",
 }
+
+#: The largest vendor EDS files are a few hundred kB.
+EDS_MAX_BYTES = 16 << 20
 
 
 @dataclass(frozen=True)
@@ -44,15 +48,23 @@ class ObjectInfo:
 
 def load_od(path: Path | str, node_id: int = 1) -> ObjectDictionary:
     """Parse an EDS (``$NODEID`` resolved for ``node_id``). Raises :class:`EdsError`."""
-    return _load_od_cached(str(Path(path).resolve()), node_id)
+    try:
+        resolved = Path(path).resolve()
+    except (OSError, RuntimeError) as err:  # a symlink loop: RuntimeError before Python 3.13
+        raise EdsError(f"{path}: cannot resolve the EDS path ({err}); check its symlinks.") from err
+    return _load_od_cached(str(resolved), node_id)
 
 
 @functools.lru_cache(maxsize=64)
 def _load_od_cached(path: str, node_id: int) -> ObjectDictionary:
     source = Path(path)
-    if not source.is_file():
+    if not source.exists():
         raise EdsError(f"{path}: EDS file not found; give an existing .eds path, or 'generic'"
                        " for the project's own CiA 402 EDS.")
+    try:
+        check_regular_file(source, "EDS", EDS_MAX_BYTES)
+    except ConfigError as err:
+        raise EdsError(str(err)) from err
     try:
         od = canopen.import_od(path, node_id)
     except Exception as err:  # the importer raises anything from configparser to ValueError

@@ -17,6 +17,7 @@ from typing import Any
 import can
 
 from can_config.errors import ConfigError
+from can_config.recording import RECORDING_ERRORS, frame_problem
 from can_config.textfile import read_text_file
 
 FORMAT = "rovercan-incident-1"
@@ -25,19 +26,82 @@ SILENCE_PERIODS = 3.0
 SILENCE_MIN_S = 0.1
 #: A power cycle replayed is at least this long (the drive's boot-up came after a silence).
 POWER_OFF_MIN_S = 0.05
+#: A summary holds its events and a few seconds of drive states: tens of kB to a few MB.
+SUMMARY_MAX_BYTES = 64 << 20
 
 
 def load_incident(path: Path | str) -> dict[str, Any]:
     """An incident's summary from its .json (or the .blf / .png beside it)."""
     json_path = Path(path).with_suffix(".json")
     try:
-        summary = json.loads(read_text_file(json_path, "incident summary", "give the .json of an incident"))
+        summary = json.loads(read_text_file(json_path, "incident summary", "give the .json of an incident",
+                                            max_bytes=SUMMARY_MAX_BYTES))
     except json.JSONDecodeError as err:
         raise ConfigError(f"{json_path}: not an incident summary (invalid JSON: {err})") from err
     if not isinstance(summary, dict) or summary.get("format") != FORMAT:
         raise ConfigError(f"{json_path}: not a rovercan incident summary (format {FORMAT!r} expected);"
                           " give a .json the flight recorder wrote")
+    problem = _summary_problem(summary)
+    if problem:
+        raise ConfigError(f"{json_path}: a damaged incident summary ({FORMAT}): {problem}; give a .json the flight"
+                          " recorder wrote, unedited")
     return summary
+
+
+_NUMBER = (int, float)
+_OPTIONAL_STR = (str, type(None))
+#: Each field of a summary and the types it may hold (bool is refused where a number is asked).
+_FIELDS: dict[str, tuple[type, ...]] = {
+    "kind": (str,), "time": (str,), "t": _NUMBER, "events": (list,), "window_s": (list,), "frames": (int,),
+    "channels": (dict,), "bus_channels": (dict,), "drives": (list,), "config": _OPTIONAL_STR, "blf": _OPTIONAL_STR,
+    "png": _OPTIONAL_STR, "states": (dict,),
+}
+_EVENT_FIELDS: dict[str, tuple[type, ...]] = {
+    "kind": (str,), "t": _NUMBER, "bus": (str,), "node": (int, type(None)), "drive": _OPTIONAL_STR,
+    "code": (int, type(None)), "text": (str,),
+}
+_DRIVE_FIELDS: dict[str, tuple[type, ...]] = {"name": (str,), "bus": (str,), "node_id": (int,)}
+
+
+def _wrong(value: Any, types: tuple[type, ...]) -> bool:
+    return isinstance(value, bool) or not isinstance(value, types)
+
+
+def _record_problem(record: Any, fields: dict[str, tuple[type, ...]], where: str) -> str | None:
+    if not isinstance(record, dict):
+        return f"{where} is {type(record).__name__}, not an object"
+    for key, types in fields.items():
+        if key not in record:
+            return f"{where} has no {key!r}"
+        if _wrong(record[key], types):
+            wanted = " or ".join("null" if t is type(None) else t.__name__ for t in types)
+            return f"{where}.{key} is {record[key]!r}, not {wanted}"
+    return None
+
+
+def _summary_problem(summary: dict[str, Any]) -> str | None:
+    """What is wrong with a summary's fields (None: it is whole), as read by ``incident``."""
+    problem = _record_problem(summary, _FIELDS, "the summary")
+    if problem:
+        return problem
+    if not summary["events"]:
+        return "it lists no events"
+    window = summary["window_s"]
+    if len(window) != 2 or any(_wrong(t, _NUMBER) for t in window):
+        return f"window_s is {window!r}, not [start, end] in s"
+    for i, event in enumerate(summary["events"]):
+        if problem := _record_problem(event, _EVENT_FIELDS, f"events[{i}]"):
+            return problem
+    for i, drive in enumerate(summary["drives"]):
+        if problem := _record_problem(drive, _DRIVE_FIELDS, f"drives[{i}]"):
+            return problem
+    blf = summary["blf"]
+    if blf is not None and (not blf or Path(blf).name != blf):
+        return f"blf is {blf!r}, not the name of a file beside the summary"
+    for name in ("channels", "bus_channels"):
+        if any(not isinstance(v, str) for v in summary[name].values()):
+            return f"{name} maps to something other than bus names"
+    return None
 
 
 def incident_frames(path: Path | str, summary: dict[str, Any]) -> list[tuple[str, can.Message]]:
@@ -46,9 +110,14 @@ def incident_frames(path: Path | str, summary: dict[str, Any]) -> list[tuple[str
     channels: dict[str, str] = summary.get("channels", {})
     try:
         with can.BLFReader(blf) as reader:
-            return [(channels.get(str(msg.channel), str(msg.channel)), msg) for msg in reader]
-    except (OSError, ValueError, can.CanError) as err:
-        raise ConfigError(f"{blf}: cannot read the incident's frames ({err})") from err
+            frames = [(channels.get(str(msg.channel), str(msg.channel)), msg) for msg in reader]
+    except RECORDING_ERRORS as err:
+        raise ConfigError(f"{blf}: cannot read the incident's frames, a damaged BLF file ({type(err).__name__}:"
+                          f" {err}); the summary is still readable with 'rovercan incident'") from err
+    for i, (_, msg) in enumerate(frames):
+        if problem := frame_problem(msg):
+            raise ConfigError(f"{blf}: frame {i + 1} of the incident's BLF is damaged: {problem}")
+    return frames
 
 
 def fault_steps(path: Path | str, delay_s: float = 2.0) -> list[dict[str, Any]]:

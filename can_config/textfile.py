@@ -4,6 +4,7 @@ with ``node_id: 1`` and then ``node_id: 2`` would drive node 2)."""
 
 from __future__ import annotations
 
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -12,14 +13,45 @@ from yaml.constructor import ConstructorError
 
 from can_config.errors import ConfigError
 
+#: A config or a scenario is a few kB; a file over this is not one (and is refused before it is read).
+TEXT_MAX_BYTES = 1 << 20
+#: Nesting deeper than this is no config (the shipped ones nest 4 levels).
+YAML_MAX_DEPTH = 32
 
-def read_text_file(path: Path, what: str, hint: str = "give the YAML file") -> str:
-    """The file as UTF-8 text (a BOM is allowed), or :class:`ConfigError` naming the file and why."""
+
+def check_regular_file(path: Path, what: str, max_bytes: int | None) -> int:
+    """The file's size, or :class:`ConfigError` when it is not a regular file (a FIFO would block
+    the read for ever, a device never end), is over ``max_bytes``, or cannot be reached (a symlink
+    loop, no permission)."""
     try:
-        raw = path.read_bytes()
+        info = path.stat()
+    except (OSError, RuntimeError) as err:
+        why = getattr(err, "strerror", None) or str(err)
+        raise ConfigError(f"{path}: cannot read the {what} ({why}); check the path, its symlinks and its"
+                          " permissions.") from err
+    if not stat.S_ISREG(info.st_mode):
+        kind = "a directory" if stat.S_ISDIR(info.st_mode) else "a FIFO" if stat.S_ISFIFO(info.st_mode) else \
+            "a device or socket"
+        raise ConfigError(f"{path}: the {what} is {kind}, not a regular file; give a file.")
+    if max_bytes is not None and info.st_size > max_bytes:
+        raise ConfigError(f"{path}: the {what} is {info.st_size:,} bytes, over the {max_bytes:,} a {what} may have;"
+                          " is it the right file?")
+    return info.st_size
+
+
+def read_text_file(path: Path, what: str, hint: str = "give the YAML file", max_bytes: int | None = TEXT_MAX_BYTES
+                   ) -> str:
+    """The file as UTF-8 text (a BOM is allowed), or :class:`ConfigError` naming the file and why:
+    not a regular file, over ``max_bytes`` (None: any size), binary, UTF-16 or not UTF-8."""
+    check_regular_file(path, what, max_bytes)
+    try:
+        with path.open("rb") as file:
+            raw = file.read() if max_bytes is None else file.read(max_bytes + 1)
     except OSError as err:
         raise ConfigError(f"{path}: cannot read the {what} ({err.strerror or err}); check the path and its"
                           " permissions.") from err
+    if max_bytes is not None and len(raw) > max_bytes:
+        raise ConfigError(f"{path}: the {what} grew past {max_bytes:,} bytes while it was read; is it the right file?")
     if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
         raise ConfigError(f"{path}: the {what} is UTF-16 text; save it as UTF-8.")
     if b"\x00" in raw:
@@ -57,9 +89,37 @@ def load_yaml(path: Path, what: str) -> Any:
     """A YAML file's data, or :class:`ConfigError` naming the file, the line and the problem."""
     text = read_text_file(path, what)
     try:
-        return yaml.load(text, Loader=_StrictLoader)
+        data = yaml.load(text, Loader=_StrictLoader)
+    except RecursionError as err:
+        raise ConfigError(f"{path}: the {what} nests deeper than YAML can be read here (over"
+                          f" {YAML_MAX_DEPTH} levels are never a {what}).") from err
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" line {mark.line + 1}, column {mark.column + 1}:" if mark is not None else ""
         problem = getattr(err, "problem", None) or str(err)
         raise ConfigError(f"{path}:{where} not valid YAML: {problem}.") from err
+    if (depth := nesting(data)) > YAML_MAX_DEPTH:
+        raise ConfigError(f"{path}: the {what} nests {depth} levels deep, over the {YAML_MAX_DEPTH} a {what} may;"
+                          " is it the right file?")
+    return data
+
+
+def nesting(data: Any) -> int:
+    """How deep lists and mappings nest in ``data`` (a scalar: 0), without recursion; each list or
+    mapping counted once (YAML aliases share them, and may even make one contain itself)."""
+    deepest, stack, seen = 0, [(data, 1)], set()
+    while stack:
+        item, depth = stack.pop()
+        if id(item) in seen:
+            continue
+        if isinstance(item, (dict, list)):
+            seen.add(id(item))
+        if isinstance(item, dict):
+            children = [*item.keys(), *item.values()]
+        elif isinstance(item, list):
+            children = item
+        else:
+            continue
+        deepest = max(deepest, depth)
+        stack.extend((child, depth + 1) for child in children)
+    return deepest

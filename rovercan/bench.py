@@ -34,8 +34,8 @@ from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN
 from can_config.eds import consumer_subs, variable
 from can_config.errors import BusLostError, CommandRejected, ConfigError, RovercanError
 from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
+from can_config.recording import read_recording
 from can_config.stop import StopSignal
-from can_config.textfile import read_text_file
 from motor_driver.adapters import connection_closed
 from motor_driver.driver import open_bus as driver_open_bus
 from motor_driver.driver import wait_for_server
@@ -803,32 +803,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
-#: Recording formats python-can writes as text: their content is checked to be text first.
-TEXT_RECORDINGS = (".asc", ".csv", ".log", ".trc", ".txt")
-
-
-def read_recording(path: str) -> list[can.Message]:
-    """Every frame of a recording, read in full before anything is sent (a file that breaks half
-    way never half-replays), or :class:`ConfigError` naming the file and what is wrong with it."""
-    file = Path(path)
-    readers: dict[str, Callable[[str], Any]] = {
-        **can.io.player.MESSAGE_READERS, ".txt": can.CanutilsLogReader}  # .txt: candump -L output
-    suffix = file.suffix.lower()
-    if suffix not in readers:
-        raise ConfigError(f"{path}: {suffix or 'a file without suffix'} is not a recording format python-can reads;"
-                          f" use one of {', '.join(sorted(readers))} (candump -L output: .log or .txt)")
-    if not file.is_file():
-        raise ConfigError(f"{path}: no such recording")
-    if suffix in TEXT_RECORDINGS:
-        read_text_file(file, "recording", "give a recording")  # binary or UTF-16 content is named
-    try:
-        with readers[suffix](path) as reader:
-            frames = list(reader)
-    except (ValueError, UnicodeDecodeError, struct.error, IndexError, KeyError, OSError, EOFError) as err:
-        raise ConfigError(f"{path}: not a valid {suffix} recording ({type(err).__name__}: {err})") from err
-    if not frames:
-        raise ConfigError(f"{path}: no CAN frames in this {suffix} file")
-    return frames
+#: A classic CAN frame's data bytes at most (replay refuses CAN FD frames).
+CLASSIC_DATA_MAX = 8
 
 
 def check_recording_target(path: str) -> None:
@@ -858,6 +834,9 @@ def parse_filter(text: str) -> tuple[int, int]:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     messages = [m for m in read_recording(args.file) if not m.is_error_frame]
+    if fd := sum(1 for m in messages if len(m.data) > CLASSIC_DATA_MAX):
+        raise ConfigError(f"{args.file}: {fd} CAN FD frames (over {CLASSIC_DATA_MAX} data bytes); the buses of this"
+                          " stack are classic CAN and cannot carry them. Nothing was sent.")
     if args.filter:
         messages = [m for m in messages if any(m.arbitration_id & mask == fid & mask for fid, mask in args.filter)]
     commands = sum(1 for m in messages if is_command_frame(m))

@@ -109,7 +109,7 @@ def test_demo_runs_and_exits_zero() -> None:
 
 
 def test_sim_on_a_kernel_interface_reports_why_it_cannot() -> None:
-    from .test_faults import kernel_can_available
+    from .conftest import kernel_can_available
     reason = kernel_can_available()
     if reason is None:
         pytest.skip("this kernel has vcan0: covered by test_faults' socketcan tier")

@@ -1,0 +1,82 @@
+"""Reading CAN recordings (every format python-can reads, and ``candump -L`` output as .txt):
+read in full before anything is done with them (a file that breaks half way never
+half-replays), each frame checked, and a damaged file answered with one :class:`ConfigError`
+naming the file, the format and what is wrong, never a reader's own exception."""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+import struct
+import zlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import can
+from can.io.blf import BLFParseError
+
+from can_config.errors import ConfigError
+from can_config.textfile import read_text_file
+
+TEXT_RECORDINGS = (".asc", ".csv", ".log", ".trc", ".txt")
+#: What python-can's readers raise on a damaged file (a truncated or bit-flipped BLF, a .db that
+#: is no database, a text line that does not parse).
+RECORDING_ERRORS: tuple[type[BaseException], ...] = (
+    ValueError, UnicodeDecodeError, struct.error, IndexError, KeyError, OSError, EOFError, TypeError,
+    AttributeError, OverflowError, BLFParseError, zlib.error, sqlite3.Error, can.CanError)
+STANDARD_ID_MAX = 0x7FF
+EXTENDED_ID_MAX = 0x1FFF_FFFF
+FD_DATA_MAX = 64
+
+
+def recording_readers() -> dict[str, Callable[[str], Any]]:
+    return {**can.io.player.MESSAGE_READERS, ".txt": can.CanutilsLogReader}
+
+
+def frame_problem(msg: can.Message) -> str | None:
+    """What makes a read frame impossible on a bus (None: it is a frame). A reader gives what the
+    file holds: a damaged .db gives any type in any column."""
+    if not isinstance(msg.arbitration_id, int) or isinstance(msg.arbitration_id, bool):
+        return f"id {msg.arbitration_id!r} is not a number"
+    if not isinstance(msg.data, (bytes, bytearray)):
+        return f"data {msg.data!r} is not bytes"
+    if not isinstance(msg.timestamp, (int, float)) or not isinstance(msg.dlc, int):
+        return f"timestamp {msg.timestamp!r} or length {msg.dlc!r} is not a number"
+    top = EXTENDED_ID_MAX if msg.is_extended_id else STANDARD_ID_MAX
+    if not 0 <= msg.arbitration_id <= top:
+        kind = "an extended" if msg.is_extended_id else "a standard"
+        return f"id 0x{msg.arbitration_id:X} does not fit {kind} frame (0 to 0x{top:X})"
+    if len(msg.data) > FD_DATA_MAX:
+        return f"{len(msg.data)} data bytes (at most {FD_DATA_MAX})"
+    if not math.isfinite(msg.timestamp):
+        return f"timestamp {msg.timestamp}"
+    return None
+
+
+def read_recording(path: str) -> list[can.Message]:
+    """Every frame of a recording, or :class:`ConfigError` naming the file and what is wrong."""
+    file = Path(path)
+    readers = recording_readers()
+    suffix = file.suffix.lower()
+    if suffix not in readers:
+        raise ConfigError(f"{path}: {suffix or 'a file without suffix'} is not a recording format python-can reads;"
+                          f" use one of {', '.join(sorted(readers))} (candump -L output: .log or .txt)")
+    if not file.is_file():
+        raise ConfigError(f"{path}: no such recording (or not a regular file)")
+    if suffix in TEXT_RECORDINGS:
+        read_text_file(file, "recording", "give a recording", max_bytes=None)  # binary or UTF-16 content is named
+    try:
+        with readers[suffix](path) as reader:
+            frames = list(reader)
+    except NotImplementedError as err:  # a reader whose optional package is missing (.mf4: asammdf)
+        raise ConfigError(f"{path}: python-can cannot read {suffix} files here ({err})") from err
+    except RECORDING_ERRORS as err:
+        raise ConfigError(f"{path}: not a valid {suffix} recording, the file is damaged or of another format"
+                          f" ({type(err).__name__}: {err})") from err
+    if not frames:
+        raise ConfigError(f"{path}: no CAN frames in this {suffix} file")
+    for i, msg in enumerate(frames):
+        if problem := frame_problem(msg):
+            raise ConfigError(f"{path}: frame {i + 1} of this {suffix} recording is damaged: {problem}")
+    return frames

@@ -1,0 +1,115 @@
+"""Config reading is bounded: what is not a config file (a FIFO, a device, a directory, a huge
+file, a symlink loop, YAML nested past reason or containing itself) is refused with one line
+naming the file, fast, and never blocks, exhausts memory or raises outside the project's tree."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from can_config import load_config, load_od
+from can_config.errors import ConfigError, EdsError
+from can_config.textfile import TEXT_MAX_BYTES, YAML_MAX_DEPTH
+from virtual_can.scenario import load_scenario
+
+from .conftest import REPO
+
+BUS = "buses: [{name: can0, interface: socketcand, channel: can0}]\n"
+
+
+def refused(path: Path, *words: str) -> str:
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    text = str(err.value)
+    assert str(path) in text or path.name in text, text
+    for word in words:
+        assert word in text, text
+    return text
+
+
+def test_a_fifo_is_refused_not_waited_on(tmp_path: Path) -> None:
+    fifo = tmp_path / "rover.yaml"
+    os.mkfifo(fifo)
+    started = time.monotonic()
+    refused(fifo, "a FIFO, not a regular file")
+    assert time.monotonic() - started < 1.0
+
+
+def test_the_cli_refuses_a_fifo_in_one_line(tmp_path: Path) -> None:
+    fifo = tmp_path / "rover.yaml"
+    os.mkfifo(fifo)
+    run = subprocess.run([sys.executable, "-m", "rovercan", "plan", "--config", str(fifo)], capture_output=True,
+                         text=True, timeout=60, cwd=REPO)
+    assert run.returncode == 2, run.stderr
+    assert run.stderr.count("\n") == 1 and "FIFO" in run.stderr, run.stderr
+
+
+def test_a_device_is_refused(tmp_path: Path) -> None:
+    refused(Path("/dev/zero"), "a device or socket")
+
+
+def test_a_directory_is_refused(tmp_path: Path) -> None:
+    refused(tmp_path, "a directory")
+
+
+def test_an_oversized_config_is_refused_before_it_is_read(tmp_path: Path) -> None:
+    big = tmp_path / "rover.yaml"
+    big.write_text(BUS + "# " + "x" * TEXT_MAX_BYTES + "\n")
+    started = time.monotonic()
+    refused(big, f"over the {TEXT_MAX_BYTES:,}")
+    assert time.monotonic() - started < 1.0
+
+
+def test_a_symlink_loop_as_the_config_is_named(tmp_path: Path) -> None:
+    a, b = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    a.symlink_to(b)
+    b.symlink_to(a)
+    refused(a, "symlinks")
+
+
+def test_a_symlink_loop_as_an_eds_is_named(tmp_path: Path) -> None:
+    a, b = tmp_path / "a.eds", tmp_path / "b.eds"
+    a.symlink_to(b)
+    b.symlink_to(a)
+    config = tmp_path / "rover.yaml"
+    config.write_text(BUS + "drives: [{name: m, node_id: 1, counts_per_rev: 4096, eds: a.eds}]\n")
+    with pytest.raises(ConfigError, match=r"a\.eds.*symlinks"):
+        load_config(config)
+
+
+def test_an_eds_that_is_a_fifo_or_a_loop_is_refused(tmp_path: Path) -> None:
+    os.mkfifo(tmp_path / "drive.eds")
+    with pytest.raises(EdsError, match=r"drive\.eds.*FIFO"):
+        load_od(tmp_path / "drive.eds")
+    (tmp_path / "a.eds").symlink_to(tmp_path / "a.eds")
+    with pytest.raises(EdsError, match=r"a\.eds.*symlinks"):
+        load_od(tmp_path / "a.eds")
+
+
+@pytest.mark.parametrize("depth", [YAML_MAX_DEPTH + 1, 5000])
+def test_deep_nesting_is_named(tmp_path: Path, depth: int) -> None:
+    deep = tmp_path / "rover.yaml"
+    deep.write_text(BUS + "drives: " + "[" * depth + "]" * depth + "\n")
+    refused(deep, "nests")
+
+
+def test_a_list_containing_itself_is_refused_not_walked_for_ever(tmp_path: Path) -> None:
+    loop = tmp_path / "rover.yaml"
+    loop.write_text(BUS + "drives: &d [*d]\n")
+    refused(loop, "recursive")
+
+
+def test_a_scenario_has_the_same_bounds(tmp_path: Path) -> None:
+    fifo = tmp_path / "scenario.yaml"
+    os.mkfifo(fifo)
+    with pytest.raises(ConfigError, match="FIFO"):
+        load_scenario(fifo)
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("steps: " + "[" * 2000 + "]" * 2000 + "\n")
+    with pytest.raises(ConfigError, match="nests"):
+        load_scenario(deep)
