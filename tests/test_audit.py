@@ -90,4 +90,4 @@ def test_audit_of_an_overloaded_wire_names_the_missed_target(tmp_path: Path) -> 
     assert "rovercan audit: targets missed:" in result.stderr
     assert "bus load (measured, worst-case stuffing)" in result.stderr
     missed = [r["figure"] for r in json.loads(result.stdout) if r["status"] == "MISSED"]
-    assert "bus load (planned, rovercan plan)" in missed and "bus load (measured, worst-case stuffing)" in missed
+    assert "bus load (planned, rovercan plan), %" in missed and "bus load (measured, worst-case stuffing), %" in missed
