@@ -8,6 +8,11 @@ p99 measured on two cores). socketcand has the broadcast manager too: ``< add SE
 kernel's, on a real socketcand; the simulator's server runs one of its own). The job ends when
 that connection closes, so a SYNC of a dead driver stops as it did before.
 
+A BCM connection sends nothing after its ``< add >``; a bus server short of connection slots
+may close clients silent for a while (the simulator's: 60 s, oldest first). So the task sends
+``< echo >`` every ``KEEPALIVE_S`` (``keep_alive()``, called by the driver's supervisor) and
+reports a connection the daemon closed.
+
 :class:`DaemonCyclicTask` opens that connection, adds the job and deletes it on ``stop()``.
 """
 
@@ -28,6 +33,8 @@ logger = logging.getLogger(__name__)
 DAEMON_REPLY_TIMEOUT_S = 2.0
 #: After '< add >', an error reply would come within this long (the daemon answers nothing else).
 ADD_ERROR_WAIT_S = 0.05
+#: A BCM connection says ``< echo >`` this often, so that a server never takes it for idle.
+KEEPALIVE_S = 10.0
 
 
 def add_command(msg: can.Message, period_s: float) -> str:
@@ -67,7 +74,33 @@ class DaemonCyclicTask:
             if isinstance(err, BusLostError):
                 raise
             raise BusLostError(f"{self.where}: cyclic job not set up: {err}") from err
+        self._last_said = time.monotonic()
         logger.info("%s: 0x%03X every %.1f ms by the daemon's timer", self.where, self._can_id, period_s * 1000)
+
+    def keep_alive(self, now: float) -> bool:
+        """``< echo >`` when the connection has been silent ``KEEPALIVE_S``, and drop what the
+        daemon said since (its echoes); False when the daemon closed the connection (the job is
+        gone with it). Called by one thread (the driver's supervisor); never blocks."""
+        sock = self._sock
+        if sock is None:
+            return False
+        try:
+            while select.select([sock], [], [], 0)[0]:
+                chunk = sock.recv(4096, socket.MSG_DONTWAIT)
+                if not chunk:
+                    logger.error("%s: the daemon closed the cyclic job's connection", self.where)
+                    return False
+                if b"error" in chunk:
+                    logger.warning("%s: the daemon said %r", self.where, chunk[:80])
+            if now - self._last_said >= KEEPALIVE_S:
+                sock.send(b"< echo >", socket.MSG_DONTWAIT)
+                self._last_said = now
+        except BlockingIOError:
+            pass  # the daemon is slow to read: the next call tries again
+        except OSError as err:
+            logger.error("%s: cyclic job's connection failed: %s", self.where, err)
+            return False
+        return True
 
     def _line(self, timeout_s: float) -> str:
         assert self._sock is not None

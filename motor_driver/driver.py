@@ -421,6 +421,14 @@ class BusHandle:
                 self.foreign.own_sync_period_s = 0.0
                 task.on_error = self._sync_failed
 
+    def job_done(self) -> bool:
+        return self.job is None or self.job.done()
+
+    def restart_sync(self) -> None:
+        """On the bus's worker: a SYNC job the daemon dropped is set up again."""
+        self.stop_sync()
+        self.start_sync()
+
     def _sync_failed(self, exc: Exception) -> bool:
         """The SYNC thread could not send (bus gone): stop it; the supervisor reconnects."""
         logger.error("bus %s: SYNC stopped: %s", self.name, exc)
@@ -648,6 +656,9 @@ class MotorDriver:
         on the bus's worker and its drives are booted again (not re-armed: commands are refused
         until someone enables them)."""
         if not self.bus_lost[name]:
+            sync = handle.sync_task
+            if isinstance(sync, DaemonCyclicTask) and not sync.keep_alive(now) and handle.job_done():
+                handle.job = handle.worker.submit(handle.restart_sync)  # the daemon dropped the SYNC job
             exc = handle.network.notifier.exception if handle.network.notifier else None
             drives = [d for d in self.drives.values() if d.config.bus == name]
             if handle.stats.frames != handle.last_frames:

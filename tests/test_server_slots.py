@@ -1,6 +1,7 @@
-"""The bus server's accept loop survives any one connection's failure: with every slot full,
-clients that connect and reset at once do not stop it, and a well-behaved client connects as soon
-as a slot is free."""
+"""The bus server's slots: the accept loop survives any one connection's failure (with every
+slot full, clients that connect and reset at once do not stop it), and connections that hold a
+slot without a word give it to a newcomer once silent for the idle time, while the driver's own
+cyclic-job connection, which keeps itself heard, keeps its slot."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import struct
 import time
 
 import can
+import pytest
 
+from motor_driver import cyclic
 from virtual_can import BusEngine, SocketcandServer
 from virtual_can.server import DEFAULT_MAX_CLIENTS
 
@@ -44,5 +47,84 @@ def test_full_slots_and_resetting_clients_do_not_end_the_accept_loop() -> None:
                 got = b.recv(2.0)
                 assert got is not None and got.arbitration_id == 0x123  # and it reads frames
         finally:
+            for sock in held:
+                sock.close()
+
+
+def hostile(port: int, mode: str) -> socket.socket:
+    """A connection that takes a slot and then says nothing: in rawmode, or in BCM mode holding
+    a one-hour cyclic job."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=2.0)
+    sock.recv(64)  # < hi >
+    sock.sendall(b"< open can0 >")
+    sock.recv(64)  # < ok >
+    sock.sendall(b"< rawmode >" if mode == "raw" else b"< add 3600 0 7FF 1 00 >")
+    return sock
+
+
+def test_idle_hostile_connections_give_way_to_a_well_behaved_client() -> None:
+    """64 connections that hold every slot and never speak (half in rawmode, half in BCM mode
+    with a cyclic job): once they have been silent for the idle time, a new client connects and
+    receives within 1 s, and the silent longest go first. (The server's default idle time is
+    IDLE_TIMEOUT_S; the test uses a short one.)"""
+    idle_s = 0.5
+    with BusEngine() as engine, SocketcandServer(engine, port=0, channels=("can0",), idle_timeout_s=idle_s) as srv:
+        held = [hostile(srv.port, "raw" if i % 2 else "bcm") for i in range(DEFAULT_MAX_CLIENTS)]
+        try:
+            wait_for(lambda: len(srv.clients) == DEFAULT_MAX_CLIENTS, 5.0, "every slot taken")
+            with socket.create_connection(("127.0.0.1", srv.port), timeout=2.0) as early:
+                assert early.recv(64).startswith(b"< error too many clients >")  # not yet idle long enough
+            time.sleep(idle_s + 0.1)
+            for _ in range(3):  # each newcomer takes the slot of one hostile connection
+                started = time.monotonic()
+                with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as a, \
+                        can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as b:
+                    time.sleep(0.1)
+                    a.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
+                    got = b.recv(1.0)
+                    assert got is not None and got.arbitration_id == 0x123
+                    assert time.monotonic() - started < 1.5
+            assert srv.idle_closed >= 2
+        finally:
+            for sock in held:
+                sock.close()
+
+
+def test_the_driver_s_cyclic_job_is_never_taken_for_idle(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The driver's SYNC connection (BCM mode, nothing to say after its '< add >') keeps its slot:
+    its keep-alive echo makes it heard, so newcomers take the silent hostile slots instead."""
+    monkeypatch.setattr(cyclic, "KEEPALIVE_S", 0.1)
+    idle_s = 0.5
+    with BusEngine() as engine, SocketcandServer(engine, port=0, channels=("can0",), idle_timeout_s=idle_s) as srv:
+        task = cyclic.DaemonCyclicTask("127.0.0.1", srv.port, "can0",
+                                       can.Message(arbitration_id=0x080, data=b"", is_extended_id=False), 0.01)
+        held = [hostile(srv.port, "bcm") for _ in range(DEFAULT_MAX_CLIENTS - 1)]
+        try:
+            wait_for(lambda: len(srv.clients) == DEFAULT_MAX_CLIENTS, 5.0, "every slot taken")
+            deadline = time.monotonic() + idle_s + 0.2
+            while time.monotonic() < deadline:
+                assert task.keep_alive(time.monotonic())
+                time.sleep(0.05)
+            newcomers = []
+            for _ in range(DEFAULT_MAX_CLIENTS - 1):  # every hostile slot is taken over, one by one
+                assert task.keep_alive(time.monotonic())
+                newcomers.append(socket.create_connection(("127.0.0.1", srv.port), timeout=2.0))
+                assert newcomers[-1].recv(64).startswith(b"< hi >")
+            assert srv.idle_closed == DEFAULT_MAX_CLIENTS - 1
+            for sock in newcomers[:2]:
+                sock.close()
+            wait_for(lambda: len(srv.clients) < DEFAULT_MAX_CLIENTS, 5.0, "a slot free")
+            with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as listener:
+                until = time.monotonic() + 0.5
+                syncs = 0
+                while time.monotonic() < until:
+                    msg = listener.recv(0.1)
+                    syncs += msg is not None and msg.arbitration_id == 0x080
+                assert syncs >= 10  # the SYNC runs on
+            for sock in newcomers:
+                sock.close()
+            assert task.keep_alive(time.monotonic())
+        finally:
+            task.stop()
             for sock in held:
                 sock.close()

@@ -70,6 +70,10 @@ RAWMODE_HOLD_S = 0.05
 #: A client that has not reached rawmode (nor added a cyclic job) this long after connecting is
 #: closed (idle connections would otherwise hold every client slot).
 HANDSHAKE_TIMEOUT_S = 5.0
+#: With every slot taken, a new client gets the slot of the client silent longest, when that
+#: one has sent nothing (no frame, no command, no echo) for this long: longer than any idle of
+#: python-can's socketcand bus or of the driver's cyclic job, which says ``< echo >`` every 10 s.
+IDLE_TIMEOUT_S = 60.0
 #: Periods a cyclic job ('< add >') may have.
 MIN_CYCLIC_PERIOD_S = 0.0005
 MAX_CYCLIC_PERIOD_S = 3600.0
@@ -328,6 +332,7 @@ class _Client:
         self._hold_frames = False  # set by rawmode: frames wait for _spoke or RAWMODE_HOLD_S
         self._spoke = threading.Event()
         self._arrival = 0.0  # when the newest read reached the socket; the reader's own
+        self.last_heard = time.monotonic()  # written by the reader, read by the accept loop
         _stamp_arrivals(sock)
         name = f"{addr[0]}:{addr[1]}"
         self.reader = threading.Thread(target=self._read_loop, daemon=True, name=f"socketcand-rx-{name}")
@@ -411,6 +416,7 @@ class _Client:
                     continue
                 chunk, ancillary, _, _ = sock.recvmsg(65536, _ANCILLARY_BYTES)
                 self._arrival = _arrival(ancillary)
+                self.last_heard = time.monotonic()
             except (OSError, ValueError):
                 break
             if not chunk:
@@ -534,7 +540,7 @@ class SocketcandServer:
     def __init__(self, engine: BusEngine, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, *,
                  channels: tuple[str, ...] = ("can0",), allow_any_channel: bool = False,
                  max_clients: int = DEFAULT_MAX_CLIENTS, allow_remote: bool = False,
-                 handshake_timeout_s: float = HANDSHAKE_TIMEOUT_S) -> None:
+                 handshake_timeout_s: float = HANDSHAKE_TIMEOUT_S, idle_timeout_s: float = IDLE_TIMEOUT_S) -> None:
         if host not in _LOOPBACK and not host.startswith("127."):
             if not allow_remote:
                 raise SimError(f"refusing to bind {host!r}: the bus server listens on loopback"
@@ -546,6 +552,8 @@ class SocketcandServer:
         self.allow_any_channel = allow_any_channel
         self.max_clients = max_clients
         self.handshake_timeout_s = handshake_timeout_s
+        self.idle_timeout_s = idle_timeout_s
+        self.idle_closed = 0
         self._clients: set[_Client] = set()
         self._lock = threading.Lock()
         self.cyclic = CyclicJobs()
@@ -586,6 +594,8 @@ class SocketcandServer:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         with self._lock:
             full = len(self._clients) >= self.max_clients
+        if full and self._free_an_idle_slot(addr):
+            full = False
         if full:
             logger.warning("refusing client %s: %d clients already", addr, self.max_clients)
             try:
@@ -597,6 +607,21 @@ class SocketcandServer:
         with self._lock:
             self._clients.add(client)
         client.start()
+
+    def _free_an_idle_slot(self, newcomer: tuple[str, int]) -> bool:
+        """Slots full: close the client silent longest, if silent for ``idle_timeout_s`` (in
+        rawmode or BCM mode alike: a connection that only holds a slot, or a cyclic job, and
+        never speaks)."""
+        now = time.monotonic()
+        with self._lock:
+            idle = max(self._clients, key=lambda c: now - c.last_heard, default=None)
+        if idle is None or now - idle.last_heard < self.idle_timeout_s:
+            return False
+        logger.info("slots full: closing client %s (silent for %.0f s) to admit %s", idle.addr,
+                    now - idle.last_heard, newcomer)
+        idle.close()
+        self.idle_closed += 1
+        return True
 
     def _forget(self, client: _Client) -> None:
         with self._lock:
