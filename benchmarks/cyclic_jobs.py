@@ -1,0 +1,129 @@
+"""One client's idle cyclic jobs against another client's SYNC (issue 35): the bus server runs
+alone in a child process (``--serve``); a hostile client adds N one-hour cyclic jobs (29-bit ids,
+so they never collide with the SYNC); the driver's own cyclic task (``DaemonCyclicTask``, as
+the driver uses it) runs a 10 ms SYNC on a connection of its own; a listener reads the SYNC with
+the server's timestamps (stamped when the timer sent each frame) and the figure is the p99 of
+``|period - 10 ms|``, with no idle jobs and with N. Target: under 1 ms with 50,000.
+
+``python benchmarks/cyclic_jobs.py [--jobs N] [--seconds S]`` prints the figures as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import socket
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+IDLE_JOBS = 50_000
+SYNC_PERIOD_S = 0.01
+
+
+def serve() -> None:
+    sys.path.insert(0, str(REPO))
+    from virtual_can import BusEngine, SocketcandServer
+
+    with BusEngine() as engine, SocketcandServer(engine, port=0) as server:
+        print(server.port, flush=True)
+        sys.stdin.read()  # until the parent closes the pipe
+        print(len(server.cyclic), file=sys.stderr)
+
+
+def _reply(sock: socket.socket, wanted: bytes, timeout_s: float = 60.0) -> bytes:
+    sock.settimeout(timeout_s)
+    got = b""
+    while wanted not in got:
+        chunk = sock.recv(65536)
+        if not chunk:
+            raise ConnectionError(f"server closed the connection waiting for {wanted!r}: {got[-200:]!r}")
+        got += chunk
+    return got
+
+
+def add_idle_jobs(port: int, n: int) -> socket.socket:
+    """A client in BCM mode with ``n`` one-hour jobs; returns once the server took them all."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    _reply(sock, b"< hi >")
+    sock.sendall(b"< open can0 >")
+    _reply(sock, b"< ok >")
+    batch = 1000
+    for start in range(0, n, batch):
+        sock.sendall(b"".join(f"< add 3600 0 {0x1000_0000 + i:08X} 1 00 >".encode() for i in
+                              range(start, min(n, start + batch))))
+    sock.sendall(b"< echo >")
+    got = _reply(sock, b"< echo >", 300.0)
+    if b"error" in got:
+        raise RuntimeError(f"the server refused jobs: {got[:200]!r}")
+    return sock
+
+
+def sync_error_p99_ms(port: int, seconds: float) -> dict[str, float]:
+    import can
+
+    from motor_driver.cyclic import DaemonCyclicTask
+
+    with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port) as listener:
+        task = DaemonCyclicTask("127.0.0.1", port, "can0", can.Message(arbitration_id=0x080, data=b"",
+                                                                        is_extended_id=False), SYNC_PERIOD_S)
+        stamps: list[float] = []
+        try:
+            until = time.monotonic() + seconds
+            while time.monotonic() < until:
+                msg = listener.recv(0.5)
+                if msg is not None and msg.arbitration_id == 0x080 and not msg.is_extended_id:
+                    stamps.append(msg.timestamp)
+        finally:
+            task.stop()
+    errors = sorted(abs(b - a - SYNC_PERIOD_S) * 1000 for a, b in itertools.pairwise(stamps[1:]))
+    if len(errors) < 10:
+        raise RuntimeError(f"only {len(stamps)} SYNC frames in {seconds} s")
+    return {"p50": statistics.median(errors), "p99": errors[int(0.99 * (len(errors) - 1))], "max": errors[-1],
+            "frames": float(len(stamps)), "expected": seconds / SYNC_PERIOD_S}
+
+
+def measure(jobs: int = IDLE_JOBS, seconds: float = 10.0) -> dict[str, Any]:
+    sys.path.insert(0, str(REPO))
+    child = subprocess.Popen([sys.executable, __file__, "--serve"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout is not None
+        port = int(child.stdout.readline())
+        quiet = sync_error_p99_ms(port, seconds)
+        started = time.monotonic()
+        hostile = add_idle_jobs(port, jobs)
+        add_s = time.monotonic() - started
+        try:
+            loaded = sync_error_p99_ms(port, seconds)
+        finally:
+            hostile.close()
+    finally:
+        child.communicate(timeout=30)
+    return {"cyclic_idle_jobs": jobs, "cyclic_jobs_add_s": round(add_s, 2),
+            "cyclic_sync_error_p99_ms_no_jobs": round(quiet["p99"], 3),
+            "cyclic_sync_error_p99_ms": round(loaded["p99"], 3),
+            "cyclic_sync_error_max_ms": round(loaded["max"], 3),
+            "cyclic_sync_frames_fraction": round(loaded["frames"] / loaded["expected"], 3)}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--jobs", type=int, default=IDLE_JOBS)
+    parser.add_argument("--seconds", type=float, default=10.0)
+    args = parser.parse_args()
+    if args.serve:
+        serve()
+        return 0
+    print(json.dumps(measure(args.jobs, args.seconds), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
