@@ -77,6 +77,10 @@ _STATE_CODING: tuple[tuple[int, int, State], ...] = (
 )
 
 
+#: The states of a drive in fault (its reaction running, or done).
+FAULT_STATES = frozenset({State.FAULT, State.FAULT_REACTION_ACTIVE})
+
+
 def decode_state(statusword: int) -> State:
     """The CiA 402 state a statusword reports."""
     for mask, value, state in _STATE_CODING:

@@ -62,7 +62,16 @@ from can_config.objects import (
     emcy_text,
     sdo_abort_text,
 )
-from motor_driver.cia402 import CW, SW, Command, State, controlword, decode_state, next_step_to_enable
+from motor_driver.cia402 import (
+    CW,
+    FAULT_STATES,
+    SW,
+    Command,
+    State,
+    controlword,
+    decode_state,
+    next_step_to_enable,
+)
 from motor_driver.pdo import PdoPlan, TpdoLayout, encode_rpdo, mapping_writes, plan_pdos
 from motor_driver.safety import SafetyCheck, judge
 from motor_driver.setpoint import SetpointHandshake
@@ -235,6 +244,10 @@ class Drive:
         self._handshake = SetpointHandshake(self._send_setpoint, self._clear_setpoint)
         # state from PDOs / heartbeat / EMCY (written by the notifier thread)
         self.statusword = 0
+        #: a FAULT statusword was seen since the last enable() / recover() / boot: set by the
+        #: receive thread, cleared by those operations; motion is refused while it is set, so a
+        #: drive whose statusword flickers through FAULT is never commanded between two samples
+        self.fault_seen: int | None = None
         self.mode_display = 0
         self.position_counts = 0
         self.velocity_counts_s = 0
@@ -301,6 +314,8 @@ class Drive:
             return
         for index, value in zip(layout.indexes, values, strict=True):
             if index == OD.STATUSWORD:
+                if decode_state(value) in FAULT_STATES:
+                    self.fault_seen = value
                 self.statusword = value
             elif index == OD.POSITION_ACTUAL:
                 if not self._plausible_position(value, timestamp):
@@ -813,6 +828,7 @@ class Drive:
         self.lost = False
         self._cw = 0
         self.boot_count += 1
+        self.fault_seen = None
         self.booted = True
         logger.info("node %d (%s) booted: %d RPDOs, %d TPDOs%s", self.node_id, self.name,
                     len(self.plan.rpdos), len(self.plan.tpdos),
@@ -1147,6 +1163,7 @@ class Drive:
         """
         with self._operation("enable") as generation:
             self._require_usable("enable")
+            self.fault_seen = None  # asked again: from here on a FAULT stops motion anew
             self._handshake.reset()  # a drive that left Operation Enabled acknowledges nothing more
             if self.host_watch is None and not self.config.allow_no_host_watch:
                 raise CommandRejected(f"{self.name} (node {self.node_id}): enable refused: {self.host_watch_problem},"
@@ -1294,6 +1311,7 @@ class Drive:
                                  fault_ok=True, generation=generation)
                 self._transition(generation, "recover", 0)
             self.last_emcy = None
+            self.fault_seen = None
             if restore:
                 self.enable(timeout_s)
 
@@ -1504,6 +1522,11 @@ class Drive:
 
     def _require_enabled(self, doing: str) -> None:
         self._require_usable(doing)
+        if self.fault_seen is not None and self.state not in FAULT_STATES:
+            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing} refused: the drive reported FAULT"
+                                  f" (statusword 0x{self.fault_seen:04X}) since it was enabled, though it shows"
+                                  f" {self.state.name} now; recover() and enable() it again",
+                                  node_id=self.node_id, statusword=self.statusword)
         if self.state != State.OPERATION_ENABLED or self._cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
             if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 raise self._fault_error(doing)

@@ -1,0 +1,84 @@
+"""A statusword that flickers through FAULT (a hostile or broken drive, a spoofed TPDO) stops
+motion: once the driver has seen FAULT since the drive was enabled, every motion command is
+refused, even when the next sample says Operation Enabled again, until recover() and enable().
+So no motion frame goes out between a FAULT sample and the next good one."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import can
+import pytest
+
+from can_config import RoverConfig
+from can_config.errors import DriveStateError
+from motor_driver import MotorDriver, State
+from virtual_can import SimService
+
+from .conftest import drain, make_config, wait_for
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+FAULT_SW = 0x0008
+
+
+def spoofed_fault(driver: MotorDriver) -> can.Message:
+    """TPDO of node 1 that carries the statusword, every field 0 but the statusword FAULT."""
+    drive = driver.drive("joint1")
+    cob, layout = next((cob, lay) for cob, lay in drive._layouts.items() if 0x6041 in lay.indexes)
+    values = [FAULT_SW if index == 0x6041 else 0 for index in layout.indexes]
+    return can.Message(arbitration_id=cob, data=layout.codec.pack(*values), is_extended_id=False)
+
+
+def test_one_fault_sample_stops_motion_until_recover_and_enable(
+        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.set_velocity(20.0)
+    spoofer = listener_factory(sim)
+    spoofer.send(spoofed_fault(driver))
+    wait_for(lambda: drive.fault_seen is not None, 2.0, "the FAULT sample taken")
+    wait_for(lambda: drive.state is State.OPERATION_ENABLED, 2.0, "the drive's own next TPDO")
+    drain(spoofer, 0.05)
+    with pytest.raises(DriveStateError, match=r"reported FAULT \(statusword 0x0008\).*recover\(\) and enable\(\)"):
+        drive.set_velocity(30.0)
+    rpdo_ids = {0x200 + 1, 0x300 + 1, 0x400 + 1, 0x500 + 1}
+    assert not [m for m in drain(spoofer, 0.2) if m.arbitration_id in rpdo_ids], "an RPDO went out after the refusal"
+    drive.recover()
+    drive.enable()
+    drive.set_velocity(30.0)  # asked again: moves again
+
+
+def test_a_statusword_flipping_every_5_ms_lets_no_velocity_command_through(
+        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.set_velocity(10.0)
+    spoofer = listener_factory(sim)
+    fault = spoofed_fault(driver)
+    stop = threading.Event()
+
+    def flip() -> None:
+        while not stop.is_set():
+            spoofer.send(fault)  # the simulated drive's own TPDOs say Operation Enabled between
+            time.sleep(0.005)
+
+    flipper = threading.Thread(target=flip, daemon=True)
+    flipper.start()
+    try:
+        wait_for(lambda: drive.fault_seen is not None, 2.0, "the first FAULT sample")
+        accepted = 0
+        for i in range(200):
+            try:
+                drive.set_velocity(10.0 + i % 5)
+                accepted += 1
+            except DriveStateError:
+                pass
+            time.sleep(0.002)
+        assert accepted == 0
+    finally:
+        stop.set()
+        flipper.join(timeout=2.0)
