@@ -3,7 +3,7 @@
     from can_config import load_config
     from motor_driver import MotorDriver, stop_on_signals
 
-    with stop_on_signals(), MotorDriver(load_config("rover.yaml")).start() as driver:
+    with stop_on_signals(), MotorDriver(load_config()).start() as driver:
         joint = driver.drive("motor")
         joint.enable()
         joint.move_to(90.0, wait=True)

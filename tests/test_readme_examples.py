@@ -1,0 +1,50 @@
+"""A README example is code: every Python block of the README (and of docs/, where there is
+one) runs, as a user would paste it into a file, against `rovercan sim` serving the embedded
+default config, and exits 0."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from can_config import load_config
+from virtual_can import SimService
+from virtual_can.server import DEFAULT_PORT
+
+from .conftest import REPO
+
+DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+BLOCK = re.compile(r"^```python\n(.*?)^```", re.MULTILINE | re.DOTALL)
+
+
+def python_blocks() -> list[tuple[str, str]]:
+    out = []
+    for doc in DOCS:
+        for i, match in enumerate(BLOCK.finditer(doc.read_text())):
+            out.append((f"{doc.name}#{i + 1}", match.group(1)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def sim() -> Iterator[SimService]:
+    with SimService.from_config(load_config(), port=DEFAULT_PORT) as service:
+        yield service
+
+
+def test_the_readme_has_python_examples() -> None:
+    assert len(python_blocks()) >= 2
+
+
+@pytest.mark.parametrize(("where", "code"), python_blocks(), ids=[w for w, _ in python_blocks()])
+def test_each_python_example_runs_against_the_simulator(sim: SimService, tmp_path: Path, where: str,
+                                                        code: str) -> None:
+    script = tmp_path / "example.py"
+    script.write_text(code)
+    run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, f"{where} failed:\n{code}\n{run.stderr[-3000:]}"
+    assert "Traceback" not in run.stderr
