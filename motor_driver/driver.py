@@ -45,6 +45,7 @@ import can
 from can_config import RoverConfig, load_drive_od
 from can_config.bits import frame_bits
 from can_config.config import BusConfig
+from can_config.errorframes import ErrorFrame, decode_error_frame
 from can_config.errors import BusLostError, ConfigError, ForeignMasterError, MotorError
 from can_config.objects import NmtState
 from motor_driver.adapters import GuardedNetwork, connection_closed
@@ -66,6 +67,10 @@ FOREIGN_RELEASE_S = 2.0
 #: for another master: two periods of the host heartbeat, if longer (:func:`look_for_master`).
 LOOK_MIN_S = 0.2
 RECONNECT_MIN_S = 0.2
+#: Host heartbeats that could not be sent in a row (their periods) before the bus counts as lost.
+SEND_FAILING_BEATS = 3
+#: A receive that failed is tried again after this pause (python-can's notifier loops on).
+RX_ERROR_PAUSE_S = 0.05
 RECONNECT_MAX_S = 5.0
 NOTIFIER_TIMEOUT_S = 0.1
 #: Tries to open a bus whose handshake failed (a socketcand daemon's first frame can arrive with
@@ -197,6 +202,12 @@ class BusStats(can.Listener):
         self.bitrate = bitrate
         self.frames = 0
         self.error_frames = 0
+        #: the newest error frame: (monotonic time, decoded); and the newest that loses the bus
+        #: (bus-off, no ACK). Written by the receive thread (one assignment each), read by the
+        #: supervisor, which reports and acts.
+        self.last_error: tuple[float, ErrorFrame] | None = None
+        self.last_losing_error = 0.0
+        self.receive_error: tuple[float, str] | None = None
         self.bits = 0
         self._window_start = time.monotonic()
         self._window_bits = 0
@@ -205,11 +216,26 @@ class BusStats(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
             self.error_frames += 1
+            error = decode_error_frame(msg.arbitration_id, bytes(msg.data))
+            now = time.monotonic()
+            self.last_error = (now, error)
+            if error.loses_the_bus:
+                self.last_losing_error = now
             return
         self.frames += 1
         bits = frame_bits(min(msg.dlc, 8), extended=msg.is_extended_id)
         self.bits += bits
         self._window_bits += bits
+
+    def on_error(self, exc: Exception) -> None:
+        """The receive thread's error (python-can calls it; handled here, the thread does not die
+        with a traceback): noted for the supervisor, which declares the bus lost (the notifier's
+        ``exception``) and reconnects. A kernel socket reports ENETDOWN once when its interface
+        goes down and receives again when it is up; the pause bounds a receive that keeps failing
+        to RX_ERROR_PAUSE_S per try (no spinning thread)."""
+        self.receive_error = (time.monotonic(), str(exc))
+        logger.debug("receive error: %s", exc)
+        time.sleep(RX_ERROR_PAUSE_S)
 
     def sample(self) -> float:
         """Bus load (0..1) seen since the last sample."""
@@ -379,6 +405,11 @@ class BusHandle:
         self.next_attempt = 0.0
         self.last_frames = 0
         self.last_rx = 0.0
+        #: supervisor's: the newest error frame it reported, and since when sends have failed
+        #: (a host heartbeat that could not be sent: ENETDOWN, ENOBUFS) with the last error
+        self.reported_error = 0.0
+        self.reported_losing = 0.0
+        self.send_failing: tuple[float, str] | None = None
 
     def disconnect(self) -> None:
         """Drop a lost bus: SYNC, receive thread and socket (the network object stays)."""
@@ -446,10 +477,13 @@ class BusHandle:
                                is_extended_id=False)
             self.bus.send(beat)
             self.host_beats += 1
+            self.send_failing = None
             if self.recorder is not None:
                 self.recorder.record_sent(self.name, beat)
-        except (can.CanError, OSError, ValueError) as err:  # a lost bus is noticed by the supervisor
+        except (can.CanError, OSError, ValueError) as err:  # the supervisor decides when the bus is lost
             logger.debug("bus %s: host heartbeat not sent: %s", self.name, err)
+            if self.send_failing is None:
+                self.send_failing = (time.monotonic(), str(err))
 
     def close(self) -> None:
         self.stop_sync()
@@ -655,6 +689,7 @@ class MotorDriver:
         an unplugged adapter). A bus the driver opened itself is then reconnected with back-off
         on the bus's worker and its drives are booted again (not re-armed: commands are refused
         until someone enables them)."""
+        bus_cfg = self.config.bus(name)
         if not self.bus_lost[name]:
             sync = handle.sync_task
             if isinstance(sync, DaemonCyclicTask) and not sync.keep_alive(now) and handle.job_done():
@@ -666,16 +701,23 @@ class MotorDriver:
             silent_for = now - handle.last_rx if handle.last_rx else 0.0
             timeout = max((d.config.heartbeat_timeout_s for d in drives), default=1.0)
             closed = connection_closed(handle.bus)
-            if exc is not None or closed or (drives and all(d.lost for d in drives) and silent_for > timeout):
+            losing = self._bus_error(name, handle)
+            failing = handle.send_failing
+            send_failed = failing is not None and now - failing[0] > SEND_FAILING_BEATS * bus_cfg.host_heartbeat_s
+            if exc is not None or closed or losing or send_failed or (
+                    drives and all(d.lost for d in drives) and silent_for > timeout):
+                for drive in drives:  # first: no command passes once the bus counts as lost
+                    drive.mark_lost()
                 self.bus_lost[name] = True
                 why = (f"receive failed: {exc}" if exc is not None else "the server closed the connection"
-                       if closed else f"nothing received for {silent_for:.1f} s")
+                       if closed else f"error frame: {losing}" if losing else
+                       f"sends fail: {failing[1]}" if send_failed and failing else
+                       f"nothing received for {silent_for:.1f} s")
+                handle.send_failing = None
                 logger.error("bus %s lost (%s)", name, why)
                 if self.recorder is not None:
                     self.recorder.trigger("bus_lost", name, text=why)
                 handle.last_beat = 0.0  # no heartbeat while the bus is gone: that is not lateness
-                for drive in drives:
-                    drive.mark_lost()
                 if handle.owned:  # reconnected on the bus's worker: joining a notifier can take a second
                     handle.next_attempt = float("inf")  # until the job says when to try again
                     handle.job = handle.worker.submit(self._reconnect, name, handle, True)
@@ -684,6 +726,23 @@ class MotorDriver:
             return
         handle.next_attempt = float("inf")
         handle.job = handle.worker.submit(self._reconnect, name, handle)
+
+    def _bus_error(self, name: str, handle: BusHandle) -> str:
+        """Report the newest error frame that came since the last look (log, flight recorder; the
+        count is in /diagnostics); return what it says when one since then loses the bus (bus-off,
+        no ACK: the driver's frames reach no drive), else ''."""
+        stats = handle.stats
+        last = stats.last_error
+        if last is None or last[0] <= handle.reported_error:
+            return ""
+        handle.reported_error = last[0]
+        losing = stats.last_losing_error > handle.reported_losing
+        handle.reported_losing = stats.last_losing_error
+        logger.log(logging.ERROR if losing else logging.WARNING, "bus %s: error frame: %s (%d so far)", name,
+                   last[1].text, stats.error_frames)
+        if self.recorder is not None:
+            self.recorder.trigger("bus_error", name, code=last[1].classes, text=last[1].text)
+        return last[1].text if losing else ""
 
     def _reconnect(self, name: str, handle: BusHandle, drop: bool = False) -> None:
         """On the bus's worker: drop the lost connection (``drop``), open the bus again and boot
@@ -702,6 +761,12 @@ class MotorDriver:
         try:
             for drive in (d for d in self.drives.values() if d.config.bus == name):
                 drive.boot(reset=True)
+        except BusLostError as err:  # opened, but nothing goes out (an interface still down)
+            handle.disconnect()
+            handle.backoff_s = min(handle.backoff_s * 2, RECONNECT_MAX_S)
+            handle.next_attempt = time.monotonic() + handle.backoff_s
+            logger.warning("bus %s: still not usable (%s); next try in %.1f s", name, err, handle.backoff_s)
+            return
         except MotorError as err:
             logger.error("bus %s is back but a drive did not boot: %s; retrying", name, err)
             handle.disconnect()

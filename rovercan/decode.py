@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import can
 
+from can_config.errorframes import decode_error_frame
 from can_config.objects import NmtCommand, NmtState, emcy_text, sdo_abort_text
 
 PDO_NAMES = {0x180: "TPDO1", 0x200: "RPDO1", 0x280: "TPDO2", 0x300: "RPDO2", 0x380: "TPDO3", 0x400: "RPDO3",
@@ -82,7 +83,7 @@ def decode(msg: can.Message, pdo_layouts: PdoLayouts | None = None) -> str:
     cob = msg.arbitration_id
     data = bytes(msg.data)
     if msg.is_error_frame:
-        return "error frame"
+        return f"error frame: {decode_error_frame(msg.arbitration_id, bytes(msg.data)).text}"
     if msg.is_extended_id:
         return f"extended id 0x{cob:08X} (not CANopen)"
     fn, node = cob & 0x780, cob & 0x7F

@@ -25,6 +25,7 @@ import can
 import pytest
 
 from can_config import load_config
+from can_config.errors import MotorError
 from motor_driver import MotorDriver, State
 from motor_driver.driver import is_kernel_bus
 
@@ -227,3 +228,67 @@ def test_a_candump_of_a_session_decodes_and_replays(tmp_path: Path, listener: Li
     assert replayed.returncode == 0, replayed.stderr
     assert "command frames" in replayed.stderr  # NMT, RPDOs and SDO requests left out by default
     wait_for(lambda: len(listener.frames) > before + 10, 10.0, "the replayed frames on vcan0")
+
+
+def ip_link(state: str) -> None:
+    subprocess.run(["ip", "link", "set", CHANNEL, state], check=True)
+
+
+def lost_then_configured_again(driver: MotorDriver, drive_name: str, what: str) -> None:
+    """The bus counted lost and the drive refusing commands, then, once frames flow again, the
+    drive configured again (booted) and not enabled: a command is refused until enable()."""
+    drive = driver.drive(drive_name)
+    wait_for(lambda: driver.bus_lost["can0"], 30.0, f"the bus lost after {what}")
+    with pytest.raises(MotorError):
+        drive.set_velocity(20.0)
+    wait_for(lambda: not driver.bus_lost["can0"] and drive.booted and not drive.lost, 90.0,
+             f"the drive configured again after {what}")
+    assert drive.state != State.OPERATION_ENABLED
+    with pytest.raises(MotorError):
+        drive.set_velocity(20.0)  # not re-armed
+    drive.enable()
+    drive.set_velocity(20.0)  # usable again once asked
+
+
+def test_the_interface_down_then_up_stops_commands_and_configures_again_unarmed(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    config = write_kernel_config(tmp_path / "kernel.yaml")
+    with simulator(config) as sim:
+        try:
+            with MotorDriver(load_config(config)) as driver:
+                driver.start()
+                drive = driver.drive("wheel1")
+                drive.enable()
+                drive.set_velocity(20.0)
+                ip_link("down")
+                try:
+                    wait_for(lambda: driver.bus_lost["can0"], 30.0, "the bus lost")
+                    time.sleep(2.0)
+                finally:
+                    ip_link("up")
+                lost_then_configured_again(driver, "wheel1", "the interface went down and up")
+                assert sim.poll() is None  # the simulator lives through it
+        finally:
+            subprocess.run(["ip", "link", "set", CHANNEL, "up"], check=False)
+    assert "Traceback" not in caplog.text
+    assert "bus can0 lost" in caplog.text
+
+
+def test_error_frames_are_reported_and_a_bus_off_stops_commands(tmp_path: Path, caplog: pytest.LogCaptureFixture,
+                                                                 listener: Listener) -> None:
+    config = write_kernel_config(tmp_path / "kernel.yaml")
+    with simulator(config), MotorDriver(load_config(config)) as driver, \
+            can.Bus(interface="socketcan", channel=CHANNEL) as controller:  # stands in for the CAN controller
+        driver.start()
+        drive = driver.drive("wheel1")
+        drive.enable()
+        drive.set_velocity(20.0)
+        controller.send(can.Message(arbitration_id=0x004, data=bytes([0, 0x20, 0, 0, 0, 0, 0, 0]),
+                                    is_error_frame=True, is_extended_id=False))  # controller: error passive (tx)
+        wait_for(lambda: "error passive (transmit)" in caplog.text, 20.0, "the error-passive frame reported")
+        assert driver.buses["can0"].stats.error_frames == 1
+        assert not driver.bus_lost["can0"]
+        drive.set_velocity(20.0)  # error passive: still talking; reported, not stopped
+        controller.send(can.Message(arbitration_id=0x040, data=bytes(8), is_error_frame=True, is_extended_id=False))
+        lost_then_configured_again(driver, "wheel1", "a bus-off error frame")
+    assert "error frame: bus-off" in caplog.text and "Traceback" not in caplog.text
