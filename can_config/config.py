@@ -133,6 +133,9 @@ class DriveConfig:
     host_timeout_s: float | None = None  # consumer time of the host heartbeat; None: 3x its period
     on_host_loss: str = "quick_stop"  # 0x6007: what the drive does when the host falls silent
     allow_no_host_watch: bool = False  # arm a drive that cannot watch the host (loud warning)
+    #: how the drive watches the host: heartbeat consumer (0x1016), node guarding (0x100C/0x100D,
+    #: remote frames: kernel buses only), or auto (0x1016 where the drive has it, else guarding)
+    host_watch: str = "auto"
     stale_after_syncs: int = 5  # no TPDO for this many SYNC periods: its state is reported stale
     sdo_timeout_s: float = 0.5  # one SDO answer (a parameter save can keep a drive silent ~400 ms)
     boot_timeout_s: float = 2.0  # from NMT reset to the boot-up message
@@ -290,6 +293,7 @@ _DRIVE_FIELDS: dict[str, _Field] = {
     "host_timeout_ms": _Field("opt_float", None, 20.0, 65_535.0),
     "on_host_loss": _Field("str", "quick_stop", choices=tuple(ON_HOST_LOSS)),
     "allow_no_host_watch": _Field("bool", False),
+    "host_watch": _Field("str", "auto", choices=("auto", "heartbeat", "guarding")),
     "stale_after_syncs": _Field("int", 5, 2, 1000),
     "sdo_timeout_ms": _Field("float", 500.0, 10.0, 10_000.0),
     "boot_timeout_ms": _Field("float", 2000.0, 100.0, 60_000.0),
@@ -618,7 +622,7 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
             "invert": d.invert, "offset_deg": d.offset_deg,
             "quick_stop_deceleration_deg_s2": d.quick_stop_deceleration_deg_s2,
             "host_timeout_ms": d.host_timeout_s * 1000.0 if d.host_timeout_s is not None else None,
-            "on_host_loss": d.on_host_loss, "allow_no_host_watch": d.allow_no_host_watch,
+            "on_host_loss": d.on_host_loss, "allow_no_host_watch": d.allow_no_host_watch, "host_watch": d.host_watch,
             "stale_after_syncs": d.stale_after_syncs,
             "sdo_timeout_ms": d.sdo_timeout_s * 1000.0, "boot_timeout_ms": d.boot_timeout_s * 1000.0,
             "sdo": [{k: v for k, v in vars(x).items() if v is not None} for x in d.sdo],

@@ -73,7 +73,7 @@ from motor_driver.cia402 import (
     next_step_to_enable,
 )
 from motor_driver.pdo import PdoPlan, TpdoLayout, encode_rpdo, mapping_writes, plan_pdos
-from motor_driver.safety import SafetyCheck, judge
+from motor_driver.safety import SafetyCheck, guard_settings, judge
 from motor_driver.setpoint import SetpointHandshake
 from motor_driver.units import (
     Scale,
@@ -281,6 +281,15 @@ class Drive:
         #: how the drive watches the host (set at boot), or None: nothing stops it if the host dies
         self.host_watch: str | None = None
         self.host_watch_problem: str | None = None  # why there is no host watch (after boot)
+        #: set by the driver: the bus carries remote frames (a kernel bus; socketcand's rawmode cannot)
+        self.remote_frames = False
+        # node guarding (CiA 301), for a drive without a heartbeat consumer: the supervisor sends
+        # the guard (guard(), its thread only); the receive thread checks each answer's toggle
+        self.guarding = False  # written by boot (the bus's worker) while the drive is not booted
+        self._guard_toggle = 0  # the toggle bit the next answer must carry (receive thread)
+        self._next_guard = 0.0  # supervisor only
+        self.guard_errors = 0  # answers with a wrong toggle bit (receive thread)
+        self._guardable = False  # boot's: node guarding chosen and possible on this bus
         self.safety: tuple[SafetyCheck, ...] = ()  # read back after each boot (motor_driver.safety)
         self.limit_stops = 0
         self.rx_monotonic = 0.0  # when the last TPDO arrived (receive thread)
@@ -387,6 +396,15 @@ class Drive:
         if not data:
             return
         state = data[0] & 0x7F
+        if self.guarding and state != NmtState.BOOTUP:  # a guard's answer: its toggle must alternate
+            toggle = data[0] >> 7
+            if toggle != self._guard_toggle:
+                self.guard_errors += 1
+                logger.warning("node %d (%s): node guarding answer with toggle %d, expected %d; not counted",
+                               self.node_id, self.name, toggle, self._guard_toggle)
+                self._guard_toggle = toggle ^ 1  # in step again from the next answer on
+                return
+            self._guard_toggle ^= 1
         self.last_heartbeat = time.monotonic()
         if state == NmtState.BOOTUP:
             self.nmt_state = self._reported_nmt = "BOOTUP"
@@ -759,8 +777,12 @@ class Drive:
                                     abort_code=err.abort_code) from err
             step = "heartbeat"
             current = (OD.PRODUCER_HEARTBEAT_TIME, 0)
+            self.guarding, self._guard_toggle = False, 0  # the toggle starts at 0 after a reset
+            # CiA 301: a node with a heartbeat is not guarded; one that cannot be guarded here (no
+            # remote frames) keeps its heartbeat, which tells the driver it is alive
+            self._guardable = self.watch_mode() == "guarding" and self.remote_frames
             self.sdo_write(OD.PRODUCER_HEARTBEAT_TIME, 0,
-                           struct.pack("<H", int(cfg.heartbeat_period_s * 1000)))
+                           struct.pack("<H", 0 if self._guardable else int(cfg.heartbeat_period_s * 1000)))
             step = "host watch"
             self._configure_host_watch()
             step = "position limits"
@@ -813,7 +835,7 @@ class Drive:
                             step=step, index=current[0], subindex=current[1], abort_code=code) from err
         try:
             self.safety = tuple(judge(cfg, self.host_node_id, self.scale, self._read_int,
-                                      consumer_subs=consumer_subs(self.od)))
+                                      consumer_subs=consumer_subs(self.od), guarding=self._guardable))
         except SdoError as err:
             raise BootError(f"node {self.node_id} ({self.name}): boot step 'safety check' failed: {err}",
                             node_id=self.node_id, step="safety check", index=err.index, subindex=err.subindex,
@@ -845,7 +867,9 @@ class Drive:
             self._write_typed(OD.QUICK_STOP_OPTION, 0, QUICK_STOP_THEN_DISABLE)
         if has_object(self.od, OD.ABORT_CONNECTION_OPTION):
             self._write_typed(OD.ABORT_CONNECTION_OPTION, 0, ON_HOST_LOSS[cfg.on_host_loss])
-        if has_object(self.od, OD.CONSUMER_HEARTBEAT_TIME, 1) and cfg.host_timeout_s is not None:
+        if self.watch_mode() == "guarding":
+            self._configure_guarding()
+        elif has_object(self.od, OD.CONSUMER_HEARTBEAT_TIME, 1) and cfg.host_timeout_s is not None:
             entry = host_consumer_entry(self.host_node_id, cfg.host_timeout_s)
             try:
                 self.sdo_write(OD.CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", entry))
@@ -867,6 +891,48 @@ class Drive:
         elif self.host_watch is None:
             logger.warning("node %d (%s): %s; it will not be enabled (allow_no_host_watch: true overrides)",
                            self.node_id, self.name, self.host_watch_problem)
+
+    def watch_mode(self) -> str:
+        """How this drive watches the host: ``heartbeat`` (0x1016) or ``guarding`` (0x100C/0x100D);
+        ``auto`` takes the heartbeat consumer where the drive has one."""
+        mode = self.config.host_watch
+        if mode == "auto":
+            guardable = has_object(self.od, OD.GUARD_TIME) and has_object(self.od, OD.LIFE_TIME_FACTOR)
+            mode = "guarding" if guardable and not has_object(self.od, OD.CONSUMER_HEARTBEAT_TIME, 1) else "heartbeat"
+        return mode
+
+    def _configure_guarding(self) -> None:
+        """Node guarding: guard time and life time factor written; the supervisor guards the drive
+        from then on (never a kernel timer: a hung process must fall silent)."""
+        cfg = self.config
+        if not (has_object(self.od, OD.GUARD_TIME) and has_object(self.od, OD.LIFE_TIME_FACTOR)):
+            self.host_watch_problem = f"{NO_HOST_WATCH}: host_watch: guarding, but the drive has no 0x100C/0x100D"
+            return
+        if not self.remote_frames:
+            self.host_watch_problem = (f"{NO_HOST_WATCH}: node guarding needs remote frames, which this bus cannot"
+                                       " carry (socketcand's rawmode has none); use a kernel bus (socketcan)")
+            return
+        guard_ms, factor = guard_settings(cfg)
+        self._write_typed(OD.GUARD_TIME, 0, guard_ms)
+        self._write_typed(OD.LIFE_TIME_FACTOR, 0, factor)
+        reaction = cfg.on_host_loss if has_object(self.od, OD.ABORT_CONNECTION_OPTION) else \
+            "the drive's own reaction (no 0x6007 to choose it)"
+        self.host_watch = (f"node guarding every {guard_ms} ms, life time {guard_ms * factor} ms (0x100C x 0x100D),"
+                           f" then {reaction}")
+        self.host_watch_problem = None
+        self._next_guard = 0.0
+        self.guarding = True
+
+    def guard(self, now: float) -> None:
+        """Supervisor: the guard (a remote frame on 0x700 + id) when one is due. Its answer is the
+        drive's 'heartbeat': a missing one makes the drive lost after heartbeat_timeout_ms."""
+        if not self.guarding or now < self._next_guard:
+            return
+        self._next_guard = max(self._next_guard + self.config.heartbeat_period_s, now)
+        try:
+            self.network.send_message(0x700 + self.node_id, b"", remote=True)
+        except (can.CanError, OSError, RuntimeError) as err:  # a lost bus is the supervisor's to find
+            logger.debug("node %d: guard not sent: %s", self.node_id, err)
 
     def _quick_stop_decel(self) -> int:
         """The configured quick-stop deceleration in drive units, at most what the drive takes
@@ -917,7 +983,11 @@ class Drive:
         raises no EMCY. Kept on a drive that is still enabled (the watch is then its only stop)."""
         if self.host_watch is None or self.lost or self.state == State.OPERATION_ENABLED:
             return
-        self.sdo_write(OD.CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", 0))
+        if self.guarding:
+            self._write_typed(OD.LIFE_TIME_FACTOR, 0, 0)  # 0: life guarding off
+            self.guarding = False
+        else:
+            self.sdo_write(OD.CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", 0))
         self.host_watch = None
 
     def _read_optional(self, index: int, subindex: int) -> bytes | None:
@@ -1169,7 +1239,7 @@ class Drive:
                 raise CommandRejected(f"{self.name} (node {self.node_id}): enable refused: {self.host_watch_problem},"
                                       " so it would keep moving if this process were killed, hung or lost power."
                                       " Give it a heartbeat consumer, or set allow_no_host_watch: true for this"
-                                      " drive to arm it anyway. Nothing was sent.")
+                                      " drive (bench: --allow-no-host-watch) to arm it anyway. Nothing was sent.")
             self._target_counts = self.position_counts
             if self.state != State.OPERATION_ENABLED:
                 self._clear_held_target()

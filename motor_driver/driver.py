@@ -354,6 +354,11 @@ def look_window_s(host_heartbeat_s: float) -> float:
     return max(LOOK_MIN_S, 2.0 * host_heartbeat_s)
 
 
+def carries_remote_frames(bus: can.BusABC) -> bool:
+    """Every python-can interface carries remote frames but socketcand (its rawmode has none)."""
+    return not type(bus).__module__.startswith("can.interfaces.socketcand")
+
+
 def is_kernel_bus(bus: can.BusABC) -> bool:
     """A python-can bus on a kernel SocketCAN interface (can0 on the Orin, vcan0 in CI)."""
     try:
@@ -556,6 +561,7 @@ class MotorDriver:
                 self.drives[drive_cfg.name] = Drive(drive_cfg, self._handles[drive_cfg.bus].network,
                                                     ods[drive_cfg.name], host_node_id=bus_cfg.host_node_id,
                                                     sync_period_s=bus_cfg.sync_period_s)
+                self.drives[drive_cfg.name].remote_frames = carries_remote_frames(self._handles[drive_cfg.bus].bus)
         except BaseException:
             self._close_buses()
             if self.recorder is not None:
@@ -787,6 +793,7 @@ class MotorDriver:
                 self._reboots[drive.name] = self._handles[cfg.bus].worker.submit(drive.reconfigure)
             return
         was_lost = drive.lost
+        drive.guard(now)
         drive.check_heartbeat(now)
         if drive.lost and not was_lost:
             self._incident("heartbeat_lost", drive, "heartbeat lost")

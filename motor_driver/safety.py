@@ -22,6 +22,7 @@ drive heartbeat            0x1017 is the configured producer period (the host   
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -51,9 +52,29 @@ class SafetyCheck:
 Reader = Callable[[int, int], "int | None"]
 
 
+def guard_settings(cfg: DriveConfig) -> tuple[int, int]:
+    """Node guarding (CiA 301) for a drive without a heartbeat consumer: the host guards it every
+    ``heartbeat_period_ms`` (0x100C, guard time) and the drive stops itself when no guard came for
+    guard time x life time factor (0x100D), at least ``host_timeout_ms``."""
+    guard_ms = max(1, round(cfg.heartbeat_period_s * 1000))
+    factor = max(2, math.ceil(round((cfg.host_timeout_s or 3 * cfg.heartbeat_period_s) * 1000) / guard_ms))
+    return guard_ms, min(factor, 255)
+
+
+def _guarding_checks(cfg: DriveConfig, read: Reader) -> list[SafetyCheck]:
+    guard_ms, factor = guard_settings(cfg)
+    got = (read(OD.GUARD_TIME, 0), read(OD.LIFE_TIME_FACTOR, 0))
+    status = PASS if got == (guard_ms, factor) else ALLOWED if cfg.allow_no_host_watch else FAIL
+    return [SafetyCheck("host watch (node guarding)", "0x100C/0x100D", f"{guard_ms} ms x {factor}",
+                        f"{got[0]} ms x {got[1]}", status)]
+
+
 def judge(cfg: DriveConfig, host_node_id: int, scale: Scale, read: Reader, *,
-          consumer_subs: Sequence[int] = (1,)) -> list[SafetyCheck]:
-    """The checks above for one drive; ``consumer_subs``: the 0x1016 sub-indexes it has."""
+          consumer_subs: Sequence[int] = (1,), guarding: bool = False) -> list[SafetyCheck]:
+    """The checks above for one drive; ``consumer_subs``: the 0x1016 sub-indexes it has;
+    ``guarding``: the drive watches the host by node guarding instead (no heartbeat of its own)."""
+    if guarding:
+        return _guarding_checks(cfg, read) + _common_checks(cfg, scale, read, heartbeat_ms=0)
     out: list[SafetyCheck] = []
     want_ms = round((cfg.host_timeout_s or 0.0) * 1000)
     entries = [(sub, v) for sub in consumer_subs if (v := read(OD.CONSUMER_HEARTBEAT_TIME, sub)) is not None]
@@ -66,6 +87,13 @@ def judge(cfg: DriveConfig, host_node_id: int, scale: Scale, read: Reader, *,
         status = ALLOWED if cfg.allow_no_host_watch else FAIL
     out.append(SafetyCheck("host watch", "0x1016", expected,
                            "; ".join(watching) or ("no entry watches anything" if entries else "no 0x1016"), status))
+    return out + _common_checks(cfg, scale, read, heartbeat_ms=round(cfg.heartbeat_period_s * 1000))
+
+
+def _common_checks(cfg: DriveConfig, scale: Scale, read: Reader, *, heartbeat_ms: int) -> list[SafetyCheck]:
+    """The drive's reaction, quick stop, limits and own heartbeat (0 for a guarded drive: CiA 301
+    guards a node only while its heartbeat producer is off)."""
+    out: list[SafetyCheck] = []
     option = read(OD.ABORT_CONNECTION_OPTION, 0)
     code = ON_HOST_LOSS[cfg.on_host_loss]
     if option is None:
@@ -92,10 +120,10 @@ def judge(cfg: DriveConfig, host_node_id: int, scale: Scale, read: Reader, *,
             out.append(SafetyCheck("software limits", "0x607D", f"[{low}, {high}]", f"[{got[0]}, {got[1]}]",
                                    PASS if got == (low, high) else FAIL))
     period = read(OD.PRODUCER_HEARTBEAT_TIME, 0)
-    want_period = round(cfg.heartbeat_period_s * 1000)
-    out.append(SafetyCheck("drive heartbeat", "0x1017", f"{want_period} ms",
+    out.append(SafetyCheck("drive heartbeat", "0x1017", f"{heartbeat_ms} ms" + (" (node guarding)" if not heartbeat_ms
+                                                                                  else ""),
                            "no 0x1017" if period is None else f"{period} ms",
-                           PASS if period == want_period else FAIL))
+                           PASS if period == heartbeat_ms else FAIL))
     return out
 
 

@@ -432,9 +432,14 @@ def _heard_from(bus: can.BusABC, node_id: int, timeout_s: float, *, probe: bool,
     return False
 
 
-def add_force(parser: argparse.ArgumentParser) -> None:
+def add_master_flags(parser: argparse.ArgumentParser) -> None:
+    """The flags of a command that drives a drive: taking the bus over, and arming a drive that
+    cannot watch this host."""
     parser.add_argument("--force", action="store_true",
                         help="take the bus over even when another master (a running driver) is live on it")
+    parser.add_argument("--allow-no-host-watch", action="store_true",
+                        help="arm a drive that cannot watch this host (no 0x1016, or node guarding on a bus without"
+                             " remote frames): if this command dies, NOTHING stops the drive")
 
 
 def refuse_beside_a_master(args: argparse.Namespace, bus: can.BusABC, node_ids: Collection[int]) -> None:
@@ -486,12 +491,16 @@ def one_drive_config(args: argparse.Namespace, node_id: int) -> RoverConfig:
             raise ConfigError(f"{args.config}: no drive with node id {node_id}; drives:"
                               f" {[(d.name, d.node_id) for d in config.drives]}")
         bus = dataclasses.replace(config.bus(drives[0].bus), connect_timeout_s=connect_timeout(args))
-        return RoverConfig((bus,), (drives[0],), None, config.source)
+        drive = drives[0]
+        if getattr(args, "allow_no_host_watch", False):
+            drive = dataclasses.replace(drive, allow_no_host_watch=True)
+        return RoverConfig((bus,), (drive,), None, config.source)
     if getattr(args, "interface", None) is None:
         raise ConfigError(NO_BUS)  # never a silent python-can virtual bus: "no boot-up" would mislead
     return parse_config({"buses": [{"name": "bench", "interface": "virtual", "channel": "bench"}],
                          "drives": [{"name": f"node{node_id}", "node_id": node_id, "eds": args.eds or "generic",
-                                     "counts_per_rev": args.counts_per_rev, "gear_ratio": args.gear_ratio}]})
+                                     "counts_per_rev": args.counts_per_rev, "gear_ratio": args.gear_ratio,
+                                     "allow_no_host_watch": bool(getattr(args, "allow_no_host_watch", False))}]})
 
 
 @contextmanager

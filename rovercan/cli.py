@@ -333,7 +333,7 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("action", choices=tuple(bench.NMT_COMMANDS))
     p.add_argument("node", help="node id or 'all'")
     bench.add_bus_args(p)
-    bench.add_force(p)
+    bench.add_master_flags(p)
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_nmt)
 
@@ -346,7 +346,7 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
         bench.add_bus_args(p)
         if action == "enable":
             p.add_argument("--hold", type=real(0, 86400), default=0.0, help="stay enabled for S seconds")
-        bench.add_force(p)
+        bench.add_master_flags(p)
         bench.add_json(p)
         p.set_defaults(func=bench.cmd_drive, action=action)
 
@@ -356,7 +356,7 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--speed", type=real(0.001, 1e6), help="profile velocity, deg/s")
     bench.add_drive_args(p)
     bench.add_bus_args(p)
-    bench.add_force(p)
+    bench.add_master_flags(p)
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_move)
 
@@ -366,7 +366,7 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--for", dest="seconds", type=real(0.01, 3600), required=True, help="seconds")
     bench.add_drive_args(p)
     bench.add_bus_args(p)
-    bench.add_force(p)
+    bench.add_master_flags(p)
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_jog)
 
@@ -418,7 +418,7 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--out", default="step_test", help="output path without suffix (.png and .json)")
     bench.add_drive_args(p)
     bench.add_bus_args(p)
-    bench.add_force(p)
+    bench.add_master_flags(p)
     bench.add_json(p)
     p.set_defaults(func=bench.cmd_step_test)
 

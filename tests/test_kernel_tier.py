@@ -29,18 +29,19 @@ from can_config.errors import MotorError
 from motor_driver import MotorDriver, State
 from motor_driver.driver import is_kernel_bus
 
-from .conftest import KERNEL_BUS, KERNEL_DRIVE, REPO, kernel_can_available, wait_for
+from .conftest import KERNEL_BUS, KERNEL_DRIVE, REPO, SHARED_EDS, kernel_can_available, wait_for
 
 pytestmark = [pytest.mark.kernel, pytest.mark.skipif(kernel_can_available() is not None,
                                                      reason=kernel_can_available() or "")]
 CHANNEL = "vcan0"
+TECHNOSOFT_EDS = SHARED_EDS / "technosoft_ipos_v1_04_via_ros2_canopen.eds"
 #: Processes start slowly in the VM: python-can and canopen import in seconds there.
 START_S = 60.0
 
 
-def write_kernel_config(path: Path, *, nodes: tuple[int, ...] = (1,)) -> Path:
+def write_kernel_config(path: Path, *, nodes: tuple[int, ...] = (1,), eds: Path | None = None) -> Path:
     bus = ", ".join(f"{k}: {v}" for k, v in KERNEL_BUS.items())
-    drive = ", ".join(f"{k}: {v}" for k, v in KERNEL_DRIVE.items())
+    drive = ", ".join(f"{k}: {v}" for k, v in KERNEL_DRIVE.items()) + (f", eds: {eds}" if eds else "")
     drives = "".join(f"  - {{name: wheel{n}, node_id: {n}, {drive}}}\n" for n in nodes)
     path.write_text(f"buses:\n  - {{name: can0, interface: socketcan, channel: {CHANNEL}, {bus}}}\ndrives:\n{drives}")
     return path
@@ -162,10 +163,18 @@ def test_a_second_masters_sync_is_noticed_within_a_second_and_the_drivers_own_ne
         assert drive.state != State.OPERATION_ENABLED or drive.snapshot().velocity_deg_s == 0.0
 
 
+@pytest.mark.parametrize("watch", ["heartbeat", "guarding"])
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP])
 def test_a_killed_or_stopped_driver_lets_every_drive_stop_itself(tmp_path: Path, listener: Listener,
-                                                                  sig: signal.Signals) -> None:
-    config = write_kernel_config(tmp_path / "kernel.yaml")
+                                                                  sig: signal.Signals, watch: str) -> None:
+    """Heartbeat: the generic drive's consumer (0x1016). Guarding: a drive built from the
+    Technosoft iPOS EDS (0x100C/0x100D, no 0x1016), node-guarded by the driver's supervisor."""
+    eds = None
+    if watch == "guarding":
+        if not TECHNOSOFT_EDS.is_file():
+            pytest.skip(f"no {TECHNOSOFT_EDS} (../shared is not beside this clone)")
+        eds = TECHNOSOFT_EDS
+    config = write_kernel_config(tmp_path / "kernel.yaml", eds=eds)
     client = REPO / "tests" / "clients" / "hold_velocity.py"
     with simulator(config):
         proc = subprocess.Popen([sys.executable, str(client), str(config), "30"], cwd=REPO,

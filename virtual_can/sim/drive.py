@@ -348,6 +348,8 @@ class SimulatedDrive:
         self.store.reset(0x1000, 0x1FFF)
         self.nmt = NmtState.PRE_OPERATIONAL
         self._consumer_seen: dict[int, float] = {}  # 0x1016 sub -> when its producer was last heard
+        self._guard_toggle = 0  # node guarding: the toggle bit of the next answer (0 after a reset)
+        self._guarded_at: float | None = None  # the last guard; life guarding armed by the first one
         self._load_consumers()
         self._rebuild_pdos()
         self._next_heartbeat = now
@@ -478,6 +480,26 @@ class SimulatedDrive:
                 out += self._connection_lost(now)
         return out
 
+    # ---------------------------------------------------------------- node guarding
+    def _on_guard(self, now: float) -> list[can.Message]:
+        """CiA 301 node guarding, the slave's side: answer toggle bit + NMT state; the first
+        guard arms life guarding."""
+        answer = self._guard_toggle << 7 | int(self.nmt)
+        self._guard_toggle ^= 1
+        self._guarded_at = now
+        return [self._msg(0x700 + self.node_id, bytes([answer]))]
+
+    def _check_life_guard(self, now: float) -> list[can.Message]:
+        """Life guarding: no guard for guard time x life time factor (0x100C x 0x100D, both set)
+        is a lost master: EMCY 0x8130 and the 0x6007 reaction, as for a heartbeat consumer."""
+        guard_ms = int(self.store.get(OD.GUARD_TIME, 0, 0))  # type: ignore[arg-type]
+        factor = int(self.store.get(OD.LIFE_TIME_FACTOR, 0, 0))  # type: ignore[arg-type]
+        if self._guarded_at is None or not guard_ms or not factor or now - self._guarded_at <= guard_ms * factor / 1000:
+            return []
+        self._guarded_at = None  # disarmed until the next guard
+        logger.warning("node %d: life guarding event (no guard for %d ms x %d)", self.node_id, guard_ms, factor)
+        return self._connection_lost(now)
+
     def _connection_lost(self, now: float) -> list[can.Message]:
         """CiA 402 0x6007: the drive's own reaction to losing its master. A drive without 0x6007
         reacts as its vendor decided; the model takes the common choice, a fault."""
@@ -501,8 +523,10 @@ class SimulatedDrive:
 
     # ---------------------------------------------------------------- frames in
     def on_frame(self, msg: can.Message, now: float) -> list[can.Message]:
-        if self.faults.unplugged or now < self.faults.power_off_until or msg.is_remote_frame or msg.is_extended_id:
+        if self.faults.unplugged or now < self.faults.power_off_until or msg.is_extended_id:
             return []  # CANopen (CiA 301) uses 11-bit identifiers only
+        if msg.is_remote_frame:  # the one remote frame CANopen uses: the master's node guard
+            return self._on_guard(now) if msg.arbitration_id == 0x700 + self.node_id else []
         cob = msg.arbitration_id
         data = bytes(msg.data)
         if cob == 0:
@@ -779,6 +803,8 @@ class SimulatedDrive:
             out += self._raise_fault(0x5441, now)
         if self._consumer_seen:
             out += self._check_consumers(now)
+        if self._guarded_at is not None:
+            out += self._check_life_guard(now)
         if self._cycle_rpdos:  # the objects hold the last value written; the drive reads them once
             written: set[int] = set()
             for pdo, data in self._cycle_rpdos:

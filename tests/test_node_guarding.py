@@ -1,0 +1,115 @@
+"""Node guarding (CiA 301) for drives without a heartbeat consumer (0x1016), such as the
+Technosoft iPOS and Ingenia Everest EDS files in ../shared/eds: the simulated drive's slave side
+(toggle + state answers, life guarding with the 0x6007 reaction), the driver's choice of watch
+per drive (``host_watch: auto | heartbeat | guarding``) and its refusal on a bus without remote
+frames. The driver's guarding against a killed process runs in the kernel tier
+(tests/test_kernel_tier.py), where remote frames exist."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import can
+import pytest
+
+from can_config import GENERIC_EDS, load_drive_od, with_bus_overrides
+from can_config.errors import MotorError
+from can_config.objects import OD, NmtCommand, NmtState
+from motor_driver import MotorDriver
+from motor_driver.safety import guard_settings
+from virtual_can import SimService
+from virtual_can.sim import SimulatedDrive
+from virtual_can.sim.drive import State as SimState
+
+from .conftest import REPO, SHARED_EDS, make_config, requires_shared
+
+TECHNOSOFT = SHARED_EDS / "technosoft_ipos_v1_04_via_ros2_canopen.eds"
+GUARD = can.Message(arbitration_id=0x702, is_remote_frame=True, dlc=1, is_extended_id=False)
+
+
+def guarded_drive() -> SimulatedDrive:
+    drive = SimulatedDrive(2, load_drive_od(GENERIC_EDS, 2))
+    drive.on_frame(can.Message(arbitration_id=0, data=bytes([NmtCommand.START, 2]), is_extended_id=False), 0.0)
+    drive.store.values[(OD.GUARD_TIME, 0)] = 100
+    drive.store.values[(OD.LIFE_TIME_FACTOR, 0)] = 3
+    drive.store.values[(OD.ABORT_CONNECTION_OPTION, 0)] = 3  # quick stop
+    return drive
+
+
+def test_the_simulated_drive_answers_each_guard_with_a_toggling_state() -> None:
+    drive = guarded_drive()
+    answers = [drive.on_frame(GUARD, t * 0.1) for t in range(4)]
+    assert [a[0].arbitration_id for a in answers] == [0x702] * 4
+    assert [a[0].data[0] for a in answers] == [0x05, 0x85, 0x05, 0x85]  # OPERATIONAL, toggle 0, 1, 0, 1
+    other = can.Message(arbitration_id=0x703, is_remote_frame=True, dlc=1, is_extended_id=False)
+    assert drive.on_frame(other, 0.5) == []  # another node's guard
+
+
+def test_life_guarding_stops_the_drive_after_guard_time_x_factor() -> None:
+    drive = guarded_drive()
+    drive.state = SimState.OPERATION_ENABLED
+    drive.on_frame(GUARD, 1.0)
+    out = []
+    now = 1.0
+    while now < 1.25:  # within 100 ms x 3: nothing
+        now += 0.01
+        out += drive.tick(now, 0.01)
+    assert drive.state == SimState.OPERATION_ENABLED
+    while now < 1.4:
+        now += 0.01
+        out += drive.tick(now, 0.01)
+    emcys = [m for m in out if m.arbitration_id == 0x082]
+    assert emcys and int.from_bytes(emcys[0].data[:2], "little") == 0x8130
+    assert drive.state in (SimState.QUICK_STOP_ACTIVE, SimState.SWITCH_ON_DISABLED)
+
+
+def test_life_guarding_waits_for_the_first_guard() -> None:
+    drive = guarded_drive()
+    drive.state = SimState.OPERATION_ENABLED
+    out = [m for t in range(1, 100) for m in drive.tick(t * 0.01, 0.01)]
+    assert not [m for m in out if m.arbitration_id == 0x082] and drive.state == SimState.OPERATION_ENABLED
+    assert drive._guarded_at is None
+    assert NmtState(drive.nmt) == NmtState.OPERATIONAL
+
+
+def test_guard_settings_cover_the_host_timeout() -> None:
+    cfg = make_config(1, heartbeat_period_ms=100, host_timeout_ms=350).drives[0]
+    guard_ms, factor = guard_settings(cfg)
+    assert guard_ms == 100 and guard_ms * factor >= 350 and factor == 4
+
+
+@requires_shared
+def test_a_guarded_drive_on_socketcand_is_not_armed_and_says_why() -> None:
+    """socketcand's rawmode has no remote frames: a drive that can only be guarded (Technosoft:
+    0x100C/0x100D, no 0x1016) gets no host watch there, named, and is not enabled."""
+    config = make_config(1, eds=str(TECHNOSOFT), counts_per_rev=4096)
+    with SimService.from_config(config, port=0) as sim:
+        cfg = with_bus_overrides(config, host="127.0.0.1", port=sim.port)
+        with MotorDriver(cfg) as driver:
+            driver.start()
+            drive = driver.drive("joint1")
+            assert drive.watch_mode() == "guarding"
+            assert drive.host_watch is None
+            assert "remote frames" in (drive.host_watch_problem or "")
+            with pytest.raises(MotorError, match="remote frames"):
+                drive.enable()
+
+
+@requires_shared
+def test_the_bench_arms_a_guarded_drive_on_socketcand_only_when_told() -> None:
+    """`rovercan enable` of a drive that can only be guarded, on socketcand: refused, naming the
+    missing host watch; with --allow-no-host-watch it arms, with the warning on stderr."""
+    config = make_config(1, eds=str(TECHNOSOFT), counts_per_rev=4096)
+    with SimService.from_config(config, port=0) as sim:
+        bus = ["-i", "socketcand", "-c", "can0", "--bus-kwargs", "host=127.0.0.1", f"port={sim.port}"]
+        drive = ["--eds", str(TECHNOSOFT), "--counts-per-rev", "4096"]
+        refused = subprocess.run([sys.executable, "-m", "rovercan", "enable", "1", *drive, *bus], cwd=REPO,
+                                 capture_output=True, text=True, timeout=120)
+        assert refused.returncode == 2, refused.stderr  # refused before anything was sent
+        assert "remote frames" in refused.stderr and "--allow-no-host-watch" in refused.stderr
+        assert "safety check failed: drive heartbeat" not in refused.stderr  # it keeps its heartbeat here
+        allowed = subprocess.run([sys.executable, "-m", "rovercan", "enable", "1", "--allow-no-host-watch", *drive,
+                                  *bus], cwd=REPO, capture_output=True, text=True, timeout=120)
+        assert allowed.returncode == 0, allowed.stderr
+        assert "NOTHING stops it" in allowed.stderr
