@@ -1099,6 +1099,40 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check(args: argparse.Namespace) -> int:
+    """A config checked without a bus: parsed, each drive's EDS read (with the objects the driver
+    needs for its host watch), the drive system's wheels known, each bus's planned load. Exit 0,
+    or 2 with the first problem (a ConfigError names file, key and what is allowed)."""
+    from can_config.eds import has_object
+    from can_config.objects import OD
+    from motor_driver.busload import MAX_LOAD, plan_load
+
+    config = load_config(args.config)
+    rows: list[dict[str, Any]] = []
+    for drive in config.drives:
+        od = load_drive_od(drive.eds, drive.node_id)  # an EdsError names the file
+        watch = ("heartbeat consumer (0x1016)" if has_object(od, OD.CONSUMER_HEARTBEAT_TIME, 1) and
+                 drive.host_watch != "guarding" else "node guarding (0x100C/0x100D)"
+                 if has_object(od, OD.GUARD_TIME) and has_object(od, OD.LIFE_TIME_FACTOR) else
+                 "none (allow_no_host_watch)" if drive.allow_no_host_watch else "NONE: it will not be enabled")
+        rows.append({"bus": drive.bus, "drive": drive.name, "node": drive.node_id, "eds": Path(drive.eds).name,
+                     "host watch": watch})
+    loads = {load.bus: load.load for load in plan_load(config)}
+    for bus in config.buses:
+        rows.append({"bus": bus.name, "drive": "-", "node": "-", "eds": f"{bus.interface} {bus.channel}",
+                     "host watch": f"planned load {100 * loads.get(bus.name, 0.0):.1f} %"})
+    emit(args, rows, f"{args.config}: valid", ["bus", "drive", "node", "eds", "host watch"])
+    system = config.drive_system
+    if system is not None and not args.json:
+        print(f"drive system: left {', '.join(system.left)}; right {', '.join(system.right)}; track"
+              f" {system.track_width_m:g} m, wheel radius {system.wheel_radius_m:g} m")
+    worst = max(loads.values(), default=0.0)
+    if worst > MAX_LOAD:
+        raise ConfigError(f"{args.config}: a bus is planned at {worst:.0%} of its bitrate, over {MAX_LOAD:.0%}: it"
+                          " cannot carry this config (rovercan plan shows each frame); lower sync or PDO rates")
+    return 0
+
+
 _IFNAME = re.compile(r"^[a-zA-Z][a-zA-Z0-9_-]{0,14}$")
 
 

@@ -440,6 +440,11 @@ def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     bench.add_json(p)
     p.set_defaults(func=audit.cmd_audit)
 
+    p = sub.add_parser("check", help="validate a config without a bus: keys, EDS files, host watch, drive system, load")
+    p.add_argument("--config", required=True)
+    bench.add_json(p)
+    p.set_defaults(func=bench.cmd_check)
+
     p = sub.add_parser("plan", help="worst-case bus load of a config")
     p.add_argument("--config", required=True)
     bench.add_json(p)

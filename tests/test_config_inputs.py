@@ -113,3 +113,27 @@ def test_a_scenario_has_the_same_bounds(tmp_path: Path) -> None:
     deep.write_text("steps: " + "[" * 2000 + "]" * 2000 + "\n")
     with pytest.raises(ConfigError, match="nests"):
         load_scenario(deep)
+
+
+def check(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "rovercan", "check", *args], capture_output=True, text=True,
+                          timeout=60, cwd=REPO)
+
+
+@pytest.mark.parametrize("config", ["config/rover.yaml", "can_config/data/default.yaml"])
+def test_check_passes_the_shipped_configs(config: str) -> None:
+    run = check("--config", config, "--json")
+    assert run.returncode == 0, run.stderr
+    assert "heartbeat consumer" in run.stdout and "planned load" in run.stdout
+
+
+def test_check_names_a_missing_eds_and_an_unknown_wheel(tmp_path: Path) -> None:
+    config = tmp_path / "rover.yaml"
+    config.write_text(BUS + "drives: [{name: m, node_id: 1, counts_per_rev: 4096, eds: nowhere.eds}]\n")
+    run = check("--config", str(config))
+    assert run.returncode == 2 and "nowhere.eds" in run.stderr and run.stderr.count("\n") == 1, run.stderr
+    config.write_text(BUS + "drives: [{name: m, node_id: 1, counts_per_rev: 4096}]\n"
+                      "drive_system: {left: [m], right: [x], track_width_m: 0.5, wheel_radius_m: 0.1,"
+                      " max_speed_m_s: 1.0}\n")
+    run = check("--config", str(config))
+    assert run.returncode == 2 and "'x'" in run.stderr, run.stderr

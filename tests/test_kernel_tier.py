@@ -29,7 +29,7 @@ from can_config.errors import MotorError
 from motor_driver import MotorDriver, State
 from motor_driver.driver import is_kernel_bus
 
-from .conftest import KERNEL_BUS, KERNEL_DRIVE, REPO, SHARED_EDS, kernel_can_available, wait_for
+from .conftest import HAVE_ROS, KERNEL_BUS, KERNEL_DRIVE, REPO, SHARED_EDS, kernel_can_available, wait_for
 
 pytestmark = [pytest.mark.kernel, pytest.mark.skipif(kernel_can_available() is not None,
                                                      reason=kernel_can_available() or "")]
@@ -301,3 +301,51 @@ def test_error_frames_are_reported_and_a_bus_off_stops_commands(tmp_path: Path, 
         controller.send(can.Message(arbitration_id=0x040, data=bytes(8), is_error_frame=True, is_extended_id=False))
         lost_then_configured_again(driver, "wheel1", "a bus-off error frame")
     assert "error frame: bus-off" in caplog.text and "Traceback" not in caplog.text
+
+
+@pytest.mark.skipif(not HAVE_ROS, reason="rclpy / rovercan_msgs not installed (run ./dev setup)")
+def test_the_ros_drive_system_turns_and_stops_the_wheels_on_vcan0(tmp_path: Path) -> None:
+    """/cmd_vel in, through the drive-system node and the driver on a socketcan config: the
+    wheels turn by the kinematics and stop when /cmd_vel goes stale (rclpy graph in this process)."""
+    import rclpy
+    from geometry_msgs.msg import Twist
+
+    from nodes.qos import COMMAND_QOS
+    from nodes.rover_driver import DriverNode, DriveSystemNode
+    from nodes.runtime import SpinThread, make_executor
+
+    config_path = write_kernel_config(tmp_path / "kernel.yaml", nodes=(1, 2))
+    config_path.write_text(config_path.read_text() + "drive_system: {left: [wheel1], right: [wheel2], track_width_m: 0.6,"
+                           " wheel_radius_m: 0.1, cmd_timeout_ms: 1000, max_accel_m_s2: 1.0, max_speed_m_s: 1.0}\n")
+    config = load_config(config_path)
+    with simulator(config_path), MotorDriver(config) as driver:
+        driver.start()
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        driver_node = DriverNode(driver, context=context)
+        system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
+        probe = rclpy.create_node("kernel_probe", context=context)
+        executor = make_executor("events", context)
+        for node in (driver_node, system_node, probe):
+            executor.add_node(node)
+        spin = SpinThread(executor, "kernel-tier-ros")
+        try:
+            for drive in driver:
+                drive.enable()
+            cmd = probe.create_publisher(Twist, "/cmd_vel", COMMAND_QOS)
+            twist = Twist()
+            twist.linear.x, twist.angular.z = 0.3, 0.5  # left (0.3 - 0.15) / 0.1 = 1.5 rad/s, right 4.5 rad/s
+            t_end = time.monotonic() + 8.0
+            while time.monotonic() < t_end:
+                cmd.publish(twist)
+                time.sleep(0.1)
+            left = driver.drive("wheel1").snapshot().velocity_deg_s
+            right = driver.drive("wheel2").snapshot().velocity_deg_s
+            assert left > 30.0 and right > 2.0 * left, (left, right)  # turning, the right side faster
+            wait_for(lambda: all(abs(d.snapshot().velocity_deg_s) < 1.0 for d in driver), 30.0,
+                     "the wheels stopped after /cmd_vel went stale")
+        finally:
+            spin.stop(10.0)
+            for node in (driver_node, system_node, probe):
+                node.destroy_node()
+            rclpy.shutdown(context=context)
