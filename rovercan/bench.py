@@ -33,7 +33,15 @@ from can_config import GENERIC_EDS, RoverConfig, load_config, load_drive_od, loa
 from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN
 from can_config.eds import consumer_subs, variable
 from can_config.errors import BusLostError, CommandRejected, ConfigError, RovercanError
-from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, sdo_abort_text
+from can_config.objects import (
+    OD,
+    STRUCT_FORMAT,
+    SUPPORTED_MODE_BIT,
+    NmtCommand,
+    NmtState,
+    OperationMode,
+    sdo_abort_text,
+)
 from can_config.recording import read_recording
 from can_config.stop import StopSignal
 from motor_driver.adapters import connection_closed
@@ -359,15 +367,21 @@ def cmd_sdo(args: argparse.Namespace) -> int:
     node_id = parse_node(args.node)
     index, sub = parse_index(args.index)
     with remote_node(args, node_id) as (node, _):
-        var = variable(node.object_dictionary, index, sub) if len(node.object_dictionary) else None
+        # without --eds/--config the standard objects of CiA 301/402 are still known: the
+        # project's generic CiA 402 EDS lists them with their names and types
+        od = node.object_dictionary if len(node.object_dictionary) else load_od(GENERIC_EDS, node_id)
+        var = variable(od, index, sub)
         name = var.name if var is not None else ""
         fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else None
         if args.action == "read":
             raw = sdo_upload(node, index, sub)
             value: Any = struct.unpack(fmt, raw)[0] if fmt and len(raw) == struct.calcsize(fmt) else (
                 _text(raw) if var is not None and int(var.data_type) == 0x09 else _untyped(raw))
-            emit(args, {"node": node_id, "index": f"0x{index:04X}", "sub": sub, "name": name, "value": value,
-                        "raw": raw.hex(" ")}, f"node {node_id} 0x{index:04X}:{sub}")
+            row = {"node": node_id, "index": f"0x{index:04X}", "sub": sub, "name": name, "value": value,
+                   "raw": raw.hex(" ")}
+            if (meaning := standard_meaning(index, value)) is not None:
+                row["meaning"] = meaning
+            emit(args, row, f"node {node_id} 0x{index:04X}:{sub}")
             return 0
         if args.value is None:
             raise ConfigError("sdo write needs a VALUE")
@@ -384,6 +398,28 @@ def cmd_sdo(args: argparse.Namespace) -> int:
             node.sdo.download(index, sub, data)
         emit(args, {"node": node_id, "index": f"0x{index:04X}", "sub": sub, "written": data.hex(" ")}, "written")
     return 0
+
+
+def standard_meaning(index: int, value: Any) -> str | None:
+    """What a CiA 402 status, control or mode value says, in words (None: nothing to add)."""
+    from motor_driver.cia402 import CW, SW, decode_state
+
+    if not isinstance(value, int) or isinstance(value, bool):
+        return None
+    if index == OD.STATUSWORD:
+        bits = [bit.name for bit in SW if value & bit]
+        return f"{decode_state(value).name}: {', '.join(bits) or 'no bit set'}"
+    if index == OD.CONTROLWORD:
+        low = {0x0000: "disable voltage", 0x0002: "quick stop", 0x0006: "shutdown", 0x0007: "switch on",
+               0x000F: "enable operation"}.get(value & 0x000F, f"0x{value & 0x0F:X}")
+        bits = [bit.name for bit in CW if value & bit]
+        return ", ".join([low, *bits])
+    if index in (OD.MODES_OF_OPERATION, OD.MODES_OF_OPERATION_DISPLAY):
+        try:
+            return OperationMode(value).name
+        except ValueError:
+            return f"mode {value} (vendor-specific)" if value < 0 else f"mode {value} (unknown)"
+    return None
 
 
 #: A drive writes its flash on a save and may not answer SDOs meanwhile (about 400 ms seen).
@@ -583,7 +619,6 @@ class UnitCheck:
 
 
 def has_profile_position(drive: Any) -> bool:
-    from can_config.objects import OperationMode
     return bool(drive.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_POSITION] & 1)
 
 
@@ -672,7 +707,6 @@ def cmd_move(args: argparse.Namespace) -> int:
 
 
 def has_profile_velocity(drive: Any) -> bool:
-    from can_config.objects import OperationMode
     return bool(drive.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_VELOCITY] & 1)
 
 

@@ -67,6 +67,17 @@ def test_sdo_read_write_and_errors(sim_port: int) -> None:
     assert no_bus.returncode == 2 and "no bus given" in no_bus.stderr
 
 
+def test_sdo_read_knows_the_standard_objects_without_an_eds(sim_port: int) -> None:
+    status = as_json(run(sim_port, "sdo", "read", "1", "0x6041", "--json"))
+    assert status["name"] == "Statusword" and isinstance(status["value"], int)  # type: ignore[index]
+    assert status["meaning"].startswith("SWITCH_ON_DISABLED: ")  # type: ignore[index]
+    assert "SWITCH_ON_DISABLED" in status["meaning"].split(": ")[1]  # type: ignore[index]
+    mode = as_json(run(sim_port, "sdo", "read", "1", "0x6061", "--json"))
+    assert mode["meaning"] in ("NO_MODE", "PROFILE_POSITION") and mode["name"]  # type: ignore[index]
+    device = as_json(run(sim_port, "sdo", "read", "1", "0x1000", "--json"))
+    assert device["value"] == 0x00020192 and device["name"]  # type: ignore[index]
+
+
 def test_nmt_and_drive_commands(sim_port: int) -> None:
     assert run(sim_port, "nmt", "preop", "all").returncode == 0
     moved = as_json(run(sim_port, "move", "2", "30", "--counts-per-rev", "4096", "--speed", "120", "--json"))
