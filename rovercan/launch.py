@@ -118,13 +118,13 @@ def parse_launch(path: Path, overrides: dict[str, str]) -> list[Process]:
             if pkg != PACKAGE or exe not in EXECUTABLES:
                 raise ConfigError(f"{where}: pkg={pkg!r} exec={exe!r} is not an executable of this project"
                                   f" ({PACKAGE}: {', '.join(EXECUTABLES)})")
-            name = element.get("name", exe)
-            argv = [sys.executable, "-m", f"nodes.{exe}", "--ros-args", "-r", f"__node:={name}"]
+            node_name = element.get("name")  # as ros2 launch: a name renames every node of the process
+            argv = [sys.executable, "-m", f"nodes.{exe}", "--ros-args", *(["-r", f"__node:={node_name}"] if node_name else [])]
             for param in element.iter("param"):
                 value = _substitute(param.get("value", ""), args, where)
                 if value != "":
                     argv += ["-p", f"{param.get('name')}:={value}"]
-            processes.append(Process(name, argv))
+            processes.append(Process(node_name or exe, argv))
         elif element.tag != "arg":
             raise ConfigError(f"{where}: element not supported by rovercan launch")
     return processes

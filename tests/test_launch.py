@@ -136,3 +136,64 @@ def test_ctrl_c_stops_the_processes_in_reverse_order_each_before_the_next(tmp_pa
     assert [line for line in lines if "stop" in line] == ["driver stopping", "driver stopped", "bus stopping",
                                                           "bus stopped"], out
     assert runner.returncode == 0, out
+
+
+ROVER_LAUNCH = BRINGUP / "launch" / "rover_launch.xml"
+DRIVER_NODES = {"rovercan_driver", "drive_system", "rovercan_driver_services", "rovercan_driver_actions"}
+
+
+@requires_ros
+def test_the_rover_launch_names_each_node_once_and_its_parameters_answer_alike(tmp_path: Path) -> None:
+    """A launch name renames every node of a process (ros2 launch passes __node:=): the rover
+    launch gives none, so the driver process's four nodes keep their names, each once in the
+    graph, and /rovercan_driver/list_parameters answers the same each time."""
+    import rclpy
+    from rcl_interfaces.srv import ListParameters
+    from rclpy.executors import SingleThreadedExecutor
+
+    port = free_port()
+    config = tmp_path / "rover.yaml"
+    config.write_text("buses:\n  - {name: can0, interface: socketcand, channel: can0,"
+                      f" kwargs: {{host: 127.0.0.1, port: {port}}}}}\n"
+                      "drives:\n  - {name: left, node_id: 1, counts_per_rev: 4096}\n"
+                      "  - {name: right, node_id: 2, counts_per_rev: 4096}\n"
+                      "drive_system: {left: [left], right: [right], track_width_m: 0.5, wheel_radius_m: 0.1,"
+                      " max_speed_m_s: 1.0}\n")
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    assert all("__node" not in " ".join(p.argv) for p in parse_launch(ROVER_LAUNCH, {"config": str(config)}))
+    proc = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(ROVER_LAUNCH), "sim:=true",
+                             f"config:={config}", "--duration", "90"], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    probe = rclpy.create_node("launch_probe", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(probe)
+    try:
+        names: list[str] = []
+        deadline = time.monotonic() + 60.0  # the processes start on two cores, then DDS discovery
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.2)
+            names = [n for n, ns in probe.get_node_names_and_namespaces() if ns == "/"]
+            if set(names) >= DRIVER_NODES:
+                break
+        assert set(names) >= DRIVER_NODES, (names, proc.poll())
+        time.sleep(1.0)
+        names = [n for n, ns in probe.get_node_names_and_namespaces() if ns == "/"]
+        assert len(names) == len(set(names)), f"a node name twice: {sorted(names)}"
+        client = probe.create_client(ListParameters, "/rovercan_driver/list_parameters")
+        assert client.wait_for_service(timeout_sec=20.0)
+        answers = []
+        for _ in range(3):
+            future = client.call_async(ListParameters.Request())
+            executor.spin_until_future_complete(future, timeout_sec=10.0)
+            assert future.result() is not None
+            answers.append(sorted(future.result().result.names))
+        assert answers[0] == answers[1] == answers[2] and "config" in answers[0], answers
+    finally:
+        probe.destroy_node()
+        rclpy.shutdown(context=context)
+        proc.terminate()
+        out, _ = proc.communicate(timeout=30)
+    assert "Publisher already registered" not in out, out[-3000:]
