@@ -32,7 +32,7 @@ def test_launch_file_names_only_existing_executables() -> None:
         assert (REPO / "nodes" / f"{exe}.py").is_file()
     assert "scripts/motor_controller scripts/motor_degree scripts/rover_driver" in (BRINGUP / "CMakeLists.txt").read_text()
     rover = parse_launch(BRINGUP / "launch" / "rover_launch.xml", {"config": "config/rover.yaml", "sim": "true"})
-    assert [p.name for p in rover] == ["python", "rovercan_driver"]
+    assert [p.name for p in rover] == ["python", "rover_driver"]  # the executable: no name renames its nodes
     assert "nodes.rover_driver" in rover[1].argv and "config:=config/rover.yaml" in rover[1].argv
 
 
