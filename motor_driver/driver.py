@@ -133,8 +133,10 @@ def wait_for_server(host: str, port: int, timeout_s: float) -> None:
             raise BusLostError(f"socketcand server {host}:{port} {verdict} ({why}) after {attempt} attempt(s)"
                                f" in {timeout_s:g} s; is the simulator running (rovercan sim) or socketcand"
                                " started, and are host and port right?")
-        logger.warning("socketcand server %s:%d: %s (attempt %d); next try in %.1f s", host, port, why, attempt,
-                       min(delay, remaining))
+        # each attempt at INFO: a waiting driver says so in its log; a command gets the one line of
+        # the final error (a WARNING per attempt was five lines for a refused connection)
+        logger.info("socketcand server %s:%d: %s (attempt %d); next try in %.1f s", host, port, why, attempt,
+                    min(delay, remaining))
         time.sleep(min(delay, remaining))
         delay = min(delay * 2, CONNECT_RETRY_MAX_S)
 

@@ -76,3 +76,4 @@ def test_the_cli_without_a_bus_server_names_host_and_port(args: list[str]) -> No
     assert result.returncode == 1, result.stderr
     assert f"127.0.0.1:{port} not reachable" in result.stderr and "Traceback" not in result.stderr
     assert "Failed to connect to server" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr  # the attempts are INFO: one line
