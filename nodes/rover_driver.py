@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from functools import partial
 from struct import error as struct_error
 from typing import Any, TypeVar
@@ -169,14 +169,17 @@ class DriverNode(Node):
                 self.refusals.refuse(name or "?", f"/joint_commands names unknown joint {name!r};"
                                      f" joints: {sorted(self.driver.drives)}")
                 continue
-            if i < len(msg.position):
-                self._guard(name, "joint position", partial(drive.move_to, msg.position[i] * DEG))
-            elif i < len(msg.velocity):
-                self._guard(name, "joint velocity", partial(drive.command_velocity, msg.velocity[i] * DEG))
-            elif i < len(msg.effort):
-                self._guard(name, "joint effort", partial(drive.command_torque, msg.effort[i]))
+            # the first field given for this joint; NaN means "not commanded" (ros2_control's
+            # topic-based hardware interface sends NaN in the fields it does not command)
+            position, velocity, effort = (_given(values, i) for values in (msg.position, msg.velocity, msg.effort))
+            if position is not None:
+                self._guard(name, "joint position", partial(drive.move_to, position * DEG))
+            elif velocity is not None:
+                self._guard(name, "joint velocity", partial(drive.command_velocity, velocity * DEG))
+            elif effort is not None:
+                self._guard(name, "joint effort", partial(drive.command_torque, effort))
             else:
-                self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort")
+                self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort (or only NaN)")
 
     # --------------------------------------------------------------------- publishing
     def _publish_states(self) -> None:
@@ -430,6 +433,14 @@ class DriveSystemNode(Node):
         odom.twist.twist.linear.x = twist.linear_m_s
         odom.twist.twist.angular.z = twist.angular_rad_s
         self._odom_pub.publish(odom)
+
+
+def _given(values: Sequence[float], i: int) -> float | None:
+    """``values[i]`` when the message has it and it is not NaN (NaN: the field is not commanded);
+    an infinite value is given, and the driver refuses it by name."""
+    if i >= len(values) or math.isnan(values[i]):
+        return None
+    return float(values[i])
 
 
 def main(args: list[str] | None = None) -> int:
