@@ -11,6 +11,7 @@ behaviour, not timing. The simulator runs in a process of its own on vcan0, as `
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -318,6 +319,7 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels_on_vcan0(tmp_path: Path
     config_path.write_text(config_path.read_text() + "drive_system: {left: [wheel1], right: [wheel2], track_width_m: 0.6,"
                            " wheel_radius_m: 0.1, cmd_timeout_ms: 1000, max_accel_m_s2: 1.0, max_speed_m_s: 1.0}\n")
     config = load_config(config_path)
+    os.environ.setdefault("ROS_LOG_DIR", str(tmp_path / "ros-log"))  # the VM's root file system is read-only
     with simulator(config_path), MotorDriver(config) as driver:
         driver.start()
         context = rclpy.Context()
