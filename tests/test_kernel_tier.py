@@ -316,25 +316,30 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels_on_vcan0(tmp_path: Path
     from nodes.runtime import SpinThread, make_executor
 
     config_path = write_kernel_config(tmp_path / "kernel.yaml", nodes=(1, 2))
-    config_path.write_text(config_path.read_text() + "drive_system: {left: [wheel1], right: [wheel2], track_width_m: 0.6,"
+    # ROS entities are created with the interpreter held for seconds under the VM's emulation:
+    # they are made before the driver starts, and this test's drives watch the host for 5 s
+    text = config_path.read_text().replace(f"host_timeout_ms: {KERNEL_DRIVE['host_timeout_ms']}", "host_timeout_ms: 5000")
+    text = text.replace(f"heartbeat_timeout_ms: {KERNEL_DRIVE['heartbeat_timeout_ms']}", "heartbeat_timeout_ms: 5000")
+    config_path.write_text(text + "drive_system: {left: [wheel1], right: [wheel2], track_width_m: 0.6,"
                            " wheel_radius_m: 0.1, cmd_timeout_ms: 1000, max_accel_m_s2: 1.0, max_speed_m_s: 1.0}\n")
     config = load_config(config_path)
+    assert config.drives[0].host_timeout_s == 5.0 and config.drives[0].heartbeat_timeout_s == 5.0
     os.environ.setdefault("ROS_LOG_DIR", str(tmp_path / "ros-log"))  # the VM's root file system is read-only
     with simulator(config_path), MotorDriver(config) as driver:
-        driver.start()
         context = rclpy.Context()
         rclpy.init(context=context)
         driver_node = DriverNode(driver, context=context)
         system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
         probe = rclpy.create_node("kernel_probe", context=context)
+        cmd = probe.create_publisher(Twist, "/cmd_vel", COMMAND_QOS)
         executor = make_executor("events", context)
         for node in (driver_node, system_node, probe):
             executor.add_node(node)
         spin = SpinThread(executor, "kernel-tier-ros")
         try:
+            driver.start()
             for drive in driver:
                 drive.enable()
-            cmd = probe.create_publisher(Twist, "/cmd_vel", COMMAND_QOS)
             twist = Twist()
             twist.linear.x, twist.angular.z = 0.3, 0.5  # left (0.3 - 0.15) / 0.1 = 1.5 rad/s, right 4.5 rad/s
             t_end = time.monotonic() + 8.0
