@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from can_config.objects import emcy_text
-from motor_driver.cia402 import SW, State
+from motor_driver.cia402 import FAULT_STATES, SW
 from motor_driver.drive import DriveState
 from motor_driver.safety import ALLOWED, SafetyCheck
 
@@ -63,7 +63,7 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         return Health(ERROR, f"not under control: another master on the bus ({state.foreign_master})", values)
     if state.lost:
         return Health(ERROR, f"heartbeat lost ({values['heartbeat_age_s']} s)", values)
-    if state.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+    if state.state in FAULT_STATES:
         code = state.error_code
         return Health(ERROR, f"fault: EMCY 0x{code:04X} {emcy_text(code)}" if code else "fault", values)
     if failed:

@@ -1,0 +1,32 @@
+"""One CiA 402 drive on a CANopen network: boot, state machine, commands, PDO state.
+
+Hot path: TPDO callbacks (canopen's notifier thread) unpack with one precompiled struct and
+store plain attributes; commands build their payload with a pure function and send one
+frame. Every failure raises a typed error from :mod:`can_config.errors`; nothing is logged
+and swallowed.
+
+What lives where (each module's docstring names the thread that owns its state):
+
+- :mod:`.state`: the state cache, the receive thread's only room (TPDO, heartbeat, EMCY)
+- :mod:`.sdo`: SDO access, bounded, one typed codec; the objects no tool may write
+- :mod:`.frames`: the frames of a command (controlword, targets), RPDO else SDO
+- :mod:`.power`: the CiA 402 power state machine (owner of the controlword, busy and
+  preemption: a stop always wins) and the mode switch
+- :mod:`.limits`: the stopping-distance limit guard and the velocity watchdog
+- :mod:`.motion`: motion commands, one family per operation mode
+- :mod:`.homing`: homing
+- :mod:`.hostwatch`: the drive's watch of the host (heartbeat consumer, node guarding) and the
+  supervisor's watch of the drive
+- :mod:`.boot`: boot as a table of steps; re-configuration after a reset
+- :mod:`.facade`: :class:`Drive`, the layers stacked
+- :mod:`.constants`: timeouts and fixed codes
+"""
+
+from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
+from motor_driver.drive.facade import Drive
+from motor_driver.drive.hostwatch import host_consumer_entry
+from motor_driver.drive.sdo import PROTECTED_OBJECTS, protected_reason
+from motor_driver.drive.state import DriveState, Emcy
+
+__all__ = ["PROTECTED_OBJECTS", "SDO_TRANSFER_TIMEOUTS", "SDO_UPLOAD_MAX_BYTES", "Drive", "DriveState", "Emcy",
+           "host_consumer_entry", "protected_reason"]

@@ -1,0 +1,357 @@
+"""Boot of one drive as a table of steps, and its re-configuration after a reset.
+
+Owner: the bus's worker (or the caller of :meth:`Boot.boot`), while the drive is not booted:
+nothing else commands it meanwhile (``booted`` is False, so every command is refused). Each
+step reads or writes by SDO and returns; the object it is at is kept for the error
+(``_boot_object``); what the steps read (statusword, position, mode) is seeded into the state
+cache in one place at the end.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import canopen
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config.config import GENERIC_EDS, DriveConfig
+from can_config.eds import consumer_subs, has_object, variable
+from can_config.errors import (
+    BootError,
+    DriveStateError,
+    DriveTimeoutError,
+    MotorError,
+    SdoError,
+)
+from can_config.objects import (
+    CIA402_PROFILE,
+    OD,
+    SUPPORTED_MODE_BIT,
+    NmtCommand,
+    OperationMode,
+)
+from motor_driver.cia402 import (
+    SW,
+    Command,
+    State,
+    decode_state,
+)
+from motor_driver.drive.constants import EMCY_HOST_LOST, HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
+from motor_driver.drive.hostwatch import HostWatch
+from motor_driver.pdo import mapping_writes
+from motor_driver.safety import SafetyCheck, judge
+from motor_driver.units import (
+    read_unit_objects,
+    scale_from_objects,
+)
+
+logger = logging.getLogger(__name__)
+
+
+class Boot(HostWatch):
+    """Layer 8: boot, a table of steps, and re-configuration after a reset."""
+
+    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
+                 host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
+        super().__init__(config, network, od, host_node_id=host_node_id, sync_period_s=sync_period_s)
+        self.safety: tuple[SafetyCheck, ...] = ()  # read back after each boot (motor_driver.safety)
+        self.host_loss_stops = 0  # boots that found the drive stopped by its host watch (boot thread)
+        self._boot_object = (0, 0)  # the object the running boot step is at (for its error)
+
+    def boot(self, *, reset: bool = True) -> None:
+        """Reset (NMT), check identity, configure PDOs and parameters, NMT start. Does not enable."""
+        self.booted = False
+        self._supported_modes = None  # a replaced drive may support other modes
+        self.rebooted.clear()
+        if reset:
+            self._reset_node()
+        self._boot_object = (OD.IDENTITY, 1)
+        for step, run in self._boot_steps():
+            try:
+                run()
+            except BootError:
+                raise
+            except (SdoError, DriveStateError) as err:
+                index, sub = self._boot_object
+                raise BootError(f"node {self.node_id} ({self.name}): boot step '{step}' failed at"
+                                f" 0x{index:04X}:{sub}: {err}", node_id=self.node_id, step=step, index=index,
+                                subindex=sub, abort_code=getattr(err, "abort_code", None)) from err
+        self._safety_check()
+        self._start()
+
+    def _boot_steps(self) -> tuple[tuple[str, Callable[[], None]], ...]:
+        """The steps of a boot in order, each named as a BootError names it."""
+        return (("identity", self._check_identity), ("device type", self._check_device_type),
+                ("disarm", self._disarm), ("units", self._read_units), ("PDO mapping", self._write_pdo_mapping),
+                ("heartbeat", self._write_heartbeat), ("host watch", self._configure_host_watch),
+                ("position limits", self._write_position_limits), ("profile parameters", self._write_profile),
+                ("sdo settings", self._write_settings), ("operation mode", self._boot_mode),
+                ("read state", self._read_state))
+
+    def _at(self, index: int, subindex: int) -> None:
+        """The object the boot step is at: a failure names it."""
+        self._boot_object = (index, subindex)
+
+    def _reset_node(self) -> None:
+        self._note_host_loss_stop()
+        self._bootup.clear()
+        self._send(0x000, bytes([NmtCommand.RESET_NODE, self.node_id]))
+        if not self._bootup.wait(self.config.boot_timeout_s):
+            raise BootError(f"node {self.node_id} ({self.name}): no boot-up message within"
+                            f" {self.config.boot_timeout_s:g} s after NMT reset (boot_timeout_ms); check power, node"
+                            " id, bitrate and termination", node_id=self.node_id, step="boot-up")
+
+    def _check_device_type(self) -> None:
+        self._at(OD.DEVICE_TYPE, 0)
+        device_type = struct.unpack("<I", self.sdo_read(OD.DEVICE_TYPE, 0)[:4].ljust(4, b"\0"))[0]
+        if device_type & 0xFFFF != CIA402_PROFILE:
+            logger.warning("node %d: device type 0x%08X is not a CiA 402 drive profile", self.node_id, device_type)
+
+    def _disarm(self) -> None:
+        if has_object(self.od, OD.STATUSWORD) and has_object(self.od, OD.CONTROLWORD):
+            self._at(OD.STATUSWORD, 0)
+            self._disarm_by_sdo()
+
+    def _write_pdo_mapping(self) -> None:
+        for index, sub, data, what in mapping_writes(self.plan):
+            self._at(index, sub)
+            var = variable(self.od, index, sub)
+            if var is not None and var.access_type in ("ro", "const"):
+                logger.info("node %d: %s: 0x%04X:%d is read-only in the EDS; keeping the device's"
+                            " value", self.node_id, what, index, sub)
+                continue
+            try:
+                self.sdo_write(index, sub, data)
+            except SdoError as err:
+                raise BootError(f"node {self.node_id} ({self.name}): boot step 'PDO mapping' failed at"
+                                f" {what} (0x{index:04X}:{sub}): {err}", node_id=self.node_id,
+                                step="PDO mapping", index=index, subindex=sub, abort_code=err.abort_code) from err
+
+    def _write_heartbeat(self) -> None:
+        self._at(OD.PRODUCER_HEARTBEAT_TIME, 0)
+        self.guarding, self._guard_toggle = False, 0  # the toggle starts at 0 after a reset
+        # CiA 301: a node with a heartbeat is not guarded; one that cannot be guarded here (no
+        # remote frames) keeps its heartbeat, which tells the driver it is alive
+        self._guardable = self.watch_mode() == "guarding" and self.remote_frames
+        self.sdo_write(OD.PRODUCER_HEARTBEAT_TIME, 0,
+                       struct.pack("<H", 0 if self._guardable else int(self.config.heartbeat_period_s * 1000)))
+
+    def _write_position_limits(self) -> None:
+        cfg = self.config
+        if not cfg.is_continuous and has_object(self.od, OD.SOFTWARE_POSITION_LIMIT, 2):
+            low, high = self.scale.limits_to_counts(cfg.min_deg, cfg.max_deg)  # type: ignore[arg-type]
+            self._at(OD.SOFTWARE_POSITION_LIMIT, 1)
+            self._write_typed(OD.SOFTWARE_POSITION_LIMIT, 1, low)
+            self._at(OD.SOFTWARE_POSITION_LIMIT, 2)
+            self._write_typed(OD.SOFTWARE_POSITION_LIMIT, 2, high)
+
+    def _write_profile(self) -> None:
+        cfg = self.config
+        to_drive, accel_to_drive = self.scale.magnitude_to_drive, self.scale.acceleration_to_drive
+        for index, value in ((OD.PROFILE_VELOCITY, to_drive(cfg.profile_velocity_deg_s)),
+                             (OD.PROFILE_ACCELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2)),
+                             (OD.PROFILE_DECELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2)),
+                             (OD.MAX_PROFILE_VELOCITY, to_drive(cfg.max_velocity_deg_s))):
+            if has_object(self.od, index):
+                self._at(index, 0)
+                self._write_typed(index, 0, value)
+        if has_object(self.od, OD.QUICK_STOP_DECELERATION):
+            self._at(OD.QUICK_STOP_DECELERATION, 0)
+            self._write_typed(OD.QUICK_STOP_DECELERATION, 0, self._quick_stop_decel())
+
+    def _write_settings(self) -> None:
+        for setting in self.config.sdo:
+            self._at(setting.index, setting.sub)
+            self._write_setting(setting)
+
+    def _boot_mode(self) -> None:
+        self._at(OD.SUPPORTED_DRIVE_MODES, 0)
+        supported = self.supported_modes()
+        self._at(OD.MODES_OF_OPERATION, 0)
+        if supported >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_POSITION] & 1:
+            self._switch_mode_sdo(OperationMode.PROFILE_POSITION)
+        else:
+            logger.warning("node %d (%s): 0x6502 = 0x%08X lists no profile position mode; the"
+                           " drive boots without a mode; move_to() will be refused (stream_position uses IP where listed)",
+                           self.node_id, self.name, supported)
+            self.mode_display = int(self.sdo_read_value(OD.MODES_OF_OPERATION_DISPLAY))  # type: ignore[arg-type]
+
+    def _read_state(self) -> None:
+        self._at(OD.STATUSWORD, 0)
+        statusword = int(self.sdo_read_value(OD.STATUSWORD))  # type: ignore[arg-type]
+        self._at(OD.POSITION_ACTUAL, 0)
+        position = int(self.sdo_read_value(OD.POSITION_ACTUAL))  # type: ignore[arg-type]
+        self.seed(statusword, position)
+        self._target_counts = position
+
+    def _safety_check(self) -> None:
+        try:
+            self.safety = tuple(judge(self.config, self.host_node_id, self.scale, self._read_int,
+                                      consumer_subs=consumer_subs(self.od), guarding=self._guardable))
+        except SdoError as err:
+            raise BootError(f"node {self.node_id} ({self.name}): boot step 'safety check' failed: {err}",
+                            node_id=self.node_id, step="safety check", index=err.index, subindex=err.subindex,
+                            abort_code=err.abort_code) from err
+        for check in self.safety:
+            if check.failed:
+                logger.error("node %d (%s): safety check failed: %s: %s is %s, expected %s", self.node_id,
+                             self.name, check.check, check.object, check.actual, check.expected)
+
+    def _start(self) -> None:
+        """NMT start: the drive is booted (not enabled)."""
+        self._send(0x000, bytes([NmtCommand.START, self.node_id]))
+        self.nmt_state = "OPERATIONAL"
+        self.last_heartbeat = time.monotonic()
+        self.lost = False
+        self._cw = 0
+        self.boot_count += 1
+        self.fault_seen = None
+        self.booted = True
+        logger.info("node %d (%s) booted: %d RPDOs, %d TPDOs%s", self.node_id, self.name,
+                    len(self.plan.rpdos), len(self.plan.tpdos),
+                    f"; by SDO: {', '.join(f'0x{i:04X}' for i in self.plan.sdo_only)}"
+                    if self.plan.sdo_only else "")
+
+    def _note_host_loss_stop(self) -> None:
+        """Before the reset at boot: did the drive stop itself because the host was gone (the
+        newest entry of its error history 0x1003 is 0x8130)? Counted for the flight recorder
+        (``host_loss_stops``), and the history is cleared so that it is counted once. Only a
+        drive heard within HOST_LOSS_CHECK_WAIT_S is asked: an absent one does not slow the boot."""
+        if not has_object(self.od, OD.PREDEFINED_ERROR_FIELD, 1):
+            return
+        deadline = time.monotonic() + HOST_LOSS_CHECK_WAIT_S
+        while not self.last_heartbeat and time.monotonic() < deadline:
+            time.sleep(STATE_POLL_S)
+        if not self.last_heartbeat:
+            return
+        try:
+            self._check_identity()  # never clear the history of another drive than the config's
+            newest = self._read_int(OD.PREDEFINED_ERROR_FIELD, 1)
+            if newest is None or newest & 0xFFFF != EMCY_HOST_LOST:
+                return
+            self.host_loss_stops += 1
+            logger.warning("node %d (%s): it had stopped itself when the host was lost (0x8130 in its error"
+                           " history)", self.node_id, self.name)
+            self.sdo_write(OD.PREDEFINED_ERROR_FIELD, 0, b"\x00")  # CiA 301: 0 clears the history
+        except MotorError as err:
+            logger.info("node %d (%s): error history not read before the reset: %s", self.node_id, self.name, err)
+
+    def expected_identity(self) -> list[tuple[int, str, frozenset[int], str]]:
+        """What 0x1018 must hold: (sub, what, values allowed, who says so), from the config's
+        ``identity:`` and from the EDS: vendor and product of its [DeviceInfo] (or of its own 0x1018
+        defaults, where a file disagrees with itself). Not for the project's generic EDS, which
+        stands for any CiA 402 drive."""
+        wanted: list[tuple[int, str, frozenset[int], str]] = []
+        expected = self.config.identity
+        for sub, what, want in ((1, "vendor id", expected.vendor_id), (2, "product code", expected.product_code),
+                                (3, "revision", expected.revision)):
+            if want is not None:
+                wanted.append((sub, what, frozenset({want}), "the config expects"))
+        eds = Path(self.config.eds)
+        if eds.resolve() == GENERIC_EDS.resolve():
+            return wanted
+        info = self.od.device_information
+        for sub, what, number, name in ((1, "vendor id", info.vendor_number, info.vendor_name),
+                                        (2, "product code", info.product_number, info.product_name)):
+            var = variable(self.od, OD.IDENTITY, sub)
+            values = {v for v in (number, var.default if var is not None else None) if isinstance(v, int) and v}
+            if values:
+                wanted.append((sub, what, frozenset(values), f"its EDS {eds.name}{f' ({name})' if name else ''} names"))
+        return wanted
+
+    def _check_identity(self) -> None:
+        """0x1018 against the EDS and the config, before any other object of the drive is touched:
+        a drive of another vendor or product at this node id is a boot error naming both ids."""
+        for sub, what, allowed, source in self.expected_identity():
+            raw = self._read_optional(OD.IDENTITY, sub) if sub > 1 else self.sdo_read(OD.IDENTITY, sub)
+            if raw is None:
+                logger.info("node %d (%s): no 0x1018:%d (%s) to compare", self.node_id, self.name, sub, what)
+                continue
+            got = struct.unpack("<I", raw[:4].ljust(4, b"\0"))[0]
+            if got not in allowed:
+                want = " or ".join(f"0x{v:08X}" for v in sorted(allowed))
+                raise BootError(f"node {self.node_id} ({self.name}): identity mismatch: {what} is"
+                                f" 0x{got:08X} on the device, {source} {want}. Is the right drive at this"
+                                " node id, and is the config's EDS the drive's own? Nothing else was written to it.",
+                                node_id=self.node_id, step="identity", index=OD.IDENTITY, subindex=sub)
+
+    def _disarm_by_sdo(self) -> None:
+        """Boot: a drive found powered (configured without a reset after another master had it,
+        or left enabled by a driver that did not stop it) is quick-stopped and disabled before
+        anything else, by SDO (no PDOs flow before NMT start): a boot never leaves a drive armed
+        behind a driver that says it is not enabled."""
+        state = decode_state(int(self.sdo_read_value(OD.STATUSWORD)))  # type: ignore[arg-type]
+        if state not in (State.SWITCHED_ON, State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
+            return
+        logger.warning("%s (node %d): found %s at boot (another master, or a driver that did not stop it);"
+                       " quick stop, then disable voltage", self.name, self.node_id, state.name)
+        if state == State.OPERATION_ENABLED:
+            self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
+        if state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):  # no power off while it brakes
+            # stopped: Switch On Disabled (quick-stop options 1-3), or Quick Stop Active with
+            # bit 10 set (options 5-7 hold there)
+            self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED or (
+                st == State.QUICK_STOP_ACTIVE and bool(sw & SW.TARGET_REACHED)), "quick stop at boot")
+        self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.DISABLE_VOLTAGE)))
+        self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED, "disable voltage at boot")
+
+    def _poll_state_sdo(self, done: Callable[[State, int], bool], doing: str) -> None:
+        deadline = time.monotonic() + TRANSITION_TIMEOUT_S
+        while True:
+            sw = int(self.sdo_read_value(OD.STATUSWORD))  # type: ignore[arg-type]
+            if done(decode_state(sw), sw):
+                self.statusword = sw
+                return
+            if time.monotonic() > deadline:
+                raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: still in"
+                                        f" {decode_state(sw).name} (statusword 0x{sw:04X}) after"
+                                        f" {TRANSITION_TIMEOUT_S:g} s", node_id=self.node_id, statusword=sw)
+            time.sleep(0.02)
+
+    def _read_units(self) -> None:
+        """Scale from the drive's own unit objects (factor group, SI units, rated torque), each
+        read by SDO whatever the EDS lists: an EDS that omits 0x60A9 does not make an EPOS4's
+        rpm counts/s. What came from where is said once at INFO (a conflict with the config at
+        WARNING); later boots say it at DEBUG."""
+        cfg = self.config
+        objects = read_unit_objects(self._read_optional)
+        self.scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
+                                               invert=cfg.invert, offset_deg=cfg.offset_deg)
+        self._max_counts_s = int(abs(self.scale.counts_per_deg * cfg.max_velocity_deg_s)) or 1
+        self._jump_margin_counts = max(4.0, self.scale.counts_per_deg)
+        for note in notes:
+            level = logging.WARNING if "(config says" in note else logging.INFO
+            logger.log(level if not self.boot_count else logging.DEBUG, "node %d (%s): %s", self.node_id,
+                       self.name, note)
+
+    def _quick_stop_decel(self) -> int:
+        """The configured quick-stop deceleration in drive units, at most what the drive takes
+        (its EDS HighLimit): the fastest stop it allows, said in a warning."""
+        wanted = self.scale.acceleration_to_drive(self.config.quick_stop_decel_deg_s2)
+        var = variable(self.od, OD.QUICK_STOP_DECELERATION, 0)
+        high = var.max if var is not None else None
+        if isinstance(high, int) and wanted > high:
+            logger.warning("node %d (%s): quick-stop deceleration %g deg/s^2 is beyond the drive's range"
+                           " (0x6085 <= %d); using its maximum, %.0f deg/s^2", self.node_id, self.name,
+                           self.config.quick_stop_decel_deg_s2, high, high * self.config.quick_stop_decel_deg_s2 / wanted)
+            return high
+        return wanted
+
+    def reconfigure(self) -> None:
+        """Bus worker: configure a drive that reset or power-cycled (boot-up seen) again; enable
+        it again only when it was enabled and the config says ``restore_enable_after_reboot``."""
+        restore = self.was_enabled and self.config.restore_enable_after_reboot
+        self.was_enabled = False
+        try:
+            self.boot(reset=False)
+            if restore and not self.closed:
+                self.enable()
+        except MotorError as err:
+            logger.error("%s: re-configuration after a reset failed: %s; retrying in %g s", self.name, err,
+                         REBOOT_RETRY_S)
+            time.sleep(REBOOT_RETRY_S)
+            self.rebooted.set()  # the supervisor hands it to the worker again

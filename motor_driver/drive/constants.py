@@ -1,0 +1,58 @@
+"""The drive layer's tunable numbers and fixed codes, in one place.
+
+Read-only at run time; module constants so that tests and benchmarks can see what the driver
+waits for.
+"""
+
+from can_config.objects import OperationMode
+
+#: An SDO read of an object whose type has no size (a string, a domain) brings at most this much;
+#: a drive that announces or sends more is cut off with an abort.
+SDO_UPLOAD_MAX_BYTES = 1024
+#: A whole SDO read (all its segments) takes at most this many SDO timeouts.
+SDO_TRANSFER_TIMEOUTS = 4
+SDO_ABORT_OUT_OF_MEMORY = 0x0504_0005
+SDO_ABORT_TIMEOUT = 0x0504_0000
+#: Timeouts (seconds); module constants so tests and benchmarks can override them.
+TRANSITION_TIMEOUT_S = 1.0
+MODE_SWITCH_TIMEOUT_S = 1.0
+STATE_POLL_S = 0.002
+REBOOT_RETRY_S = 0.5
+#: How long a command waits for another command's frames before it is refused (never for an
+#: operation such as enable or homing: that refuses at once).
+COMMAND_LOCK_WAIT_S = 0.003
+#: 0x605A: slow down on the quick-stop ramp, then Switch On Disabled.
+QUICK_STOP_THEN_DISABLE = 2
+#: Reaction time of the driver's own limit guard (supervisor period, SYNC, TPDO age), as distance
+#: travelled at the current speed before braking starts.
+LIMIT_MARGIN_S = 0.05
+#: The limit guard moves a sampled position on by its velocity for at most this long.
+MAX_EXTRAPOLATION_S = 0.2
+#: How long a torque-commanded joint goes on speeding up once the guard has decided to brake:
+#: the quick stop reaches the drive with the next SYNC, a supervisor period after the samples.
+LIMIT_ACCEL_MARGIN_S = 0.025
+#: Velocity samples further apart than this give no acceleration (a gap, not a slope).
+MAX_ACCEL_GAP_S = 0.2
+#: A position the joint cannot have reached is taken only once this many further samples agree
+#: with it (a real jump: homing, a reboot). One corrupted TPDO is held back, and so is the same
+#: corruption twice in a row (at the emulator's 10 % corruption rate, estimated at one two-second
+#: run in a hundred; seen once: a wheel reported 47 million degrees for a SYNC period).
+JUMP_CONFIRMATIONS = 2
+NO_HOST_WATCH = "no drive-side stop on host loss"
+#: SDO aborts of a value out of the object's range (CiA 301): the drive cannot take that entry.
+VALUE_RANGE_ABORTS = frozenset({0x0609_0030, 0x0609_0031, 0x0609_0032, 0x0609_0036})
+#: A continuous joint's degree command is an angle modulo 360; beyond this it is a mistake.
+CONTINUOUS_COMMAND_LIMIT_DEG = 360.0
+#: At boot, how long to listen for the drive's heartbeat before asking its error history.
+HOST_LOSS_CHECK_WAIT_S = 0.25
+#: EMCY / error history code of a drive whose heartbeat consumer lost the host (CiA 301).
+EMCY_HOST_LOST = 0x8130
+#: The controlword bits of Enable Operation (switch on, enable voltage, no quick stop, enable
+#: operation): motion frames go out only while this driver's last controlword had them all.
+ENABLED_CW_MASK = 0x000F
+#: Modes whose command is a velocity (the watchdog and the limit guard send zero velocity) ...
+VELOCITY_MODES = (OperationMode.PROFILE_VELOCITY, OperationMode.CYCLIC_SYNC_VELOCITY)
+#: ... and a torque (they send zero torque and, at a limit, quick-stop).
+TORQUE_MODES = (OperationMode.PROFILE_TORQUE, OperationMode.CYCLIC_SYNC_TORQUE)
+
+

@@ -1,0 +1,211 @@
+"""SDO access to one drive: bounded reads, typed writes, and the objects no tool may write.
+
+Threads: no state of its own beyond canopen's SDO client (one transfer at a time, canopen's
+lock). Called from the bus's worker (boot), command threads (operations that wait) and the
+CLI, never from the receive thread (which never waits) nor the supervisor.
+One typed codec (:func:`can_config.objects.STRUCT_FORMAT` by the EDS's data type) is used for
+every read and write, here and by the bench CLI (through :meth:`SdoAccess.sdo_read_value` and
+:meth:`SdoAccess.sdo_write_checked`).
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import can
+import canopen
+
+from can_config.config import SdoSetting
+from can_config.eds import has_object, variable
+from can_config.errors import (
+    BootError,
+    BusLostError,
+    CommandRejected,
+    SdoError,
+    SdoTimeoutError,
+)
+from can_config.objects import (
+    OD,
+    STRUCT_FORMAT,
+    sdo_abort_text,
+)
+from motor_driver.drive.constants import SDO_ABORT_OUT_OF_MEMORY, SDO_ABORT_TIMEOUT, SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
+from motor_driver.drive.state import DriveCache
+
+logger = logging.getLogger(__name__)
+
+
+#: Objects no tool or service may write by SDO (see Drive.sdo_write_checked), each with why:
+#: they move the motor, bypass a limit, or undo what stops the drive when the host is gone.
+_TARGET = "it is a motion target; use move/jog (limits enforced)"
+PROTECTED_OBJECTS: dict[int, str] = {
+    OD.CONTROLWORD: "it drives the state machine (enable, quick stop); use enable/disable",
+    OD.MODES_OF_OPERATION: "it changes the operation mode under the driver",
+    OD.TARGET_POSITION: _TARGET, OD.TARGET_VELOCITY: _TARGET, OD.TARGET_TORQUE: _TARGET,
+    OD.VELOCITY_OFFSET: _TARGET, OD.TORQUE_OFFSET: _TARGET,
+    OD.SOFTWARE_POSITION_LIMIT: "it is the drive's position limit; set min_deg/max_deg in the config",
+    OD.MAX_PROFILE_VELOCITY: "it is a velocity limit; set max_velocity_deg_s in the config",
+    OD.MAX_TORQUE: "it is the torque limit; set max_torque_nm in the config",
+    OD.PROFILE_VELOCITY: "it is the speed of every profile move, checked against max_velocity_deg_s; use move --speed",
+    OD.PROFILE_ACCELERATION: "it is the ramp of every profile move; set profile_acceleration_deg_s2 in the config",
+    OD.PROFILE_DECELERATION: "it is the ramp of every profile move; set profile_acceleration_deg_s2 in the config",
+    OD.QUICK_STOP_DECELERATION: "the drive's quick stop (and its stop when the host is gone) brakes by it",
+    OD.QUICK_STOP_OPTION: "it decides what the drive's quick stop does (the host-loss stop relies on it)",
+    OD.ABORT_CONNECTION_OPTION: "it decides what the drive does when the host is gone (on_host_loss in the config)",
+    OD.CONSUMER_HEARTBEAT_TIME: "it is how the drive watches the host's heartbeat (the stop when the host dies)",
+    OD.HOMING_METHOD: "homing moves the motor by it; set homing in the config",
+    OD.HOMING_SPEEDS: "homing moves the motor by it; set homing in the config",
+    OD.PRODUCER_HEARTBEAT_TIME: "the driver watches the drive's heartbeat at the configured period; a change makes"
+                                " it declare the drive lost, or miss a loss (heartbeat_ms in the config)",
+    OD.COB_ID_SYNC: "it moves the SYNC every PDO of the drive runs on",
+}
+
+
+def protected_reason(index: int) -> str | None:
+    """Why writing ``index`` by SDO is refused, or None when it may be written."""
+    if 0x1400 <= index <= 0x1BFF:
+        return "it changes the PDO set the driver configured (a PDO could then carry motion targets)"
+    return PROTECTED_OBJECTS.get(index)
+
+
+class SdoAccess(DriveCache):
+    """Layer 1: SDO access, bounded in size and time, with one typed codec."""
+
+    @contextmanager
+    def _sdo_errors(self, what: str, index: int, subindex: int) -> Iterator[None]:
+        """canopen's SDO exceptions -> this project's, with the abort code and its meaning; a
+        malformed answer (canopen's parsing raising anything) is an SdoError too, never a
+        struct.error reaching the caller."""
+        where = f"node {self.node_id}: SDO {what} 0x{index:04X}:{subindex}"
+        try:
+            yield
+        except canopen.SdoAbortedError as err:
+            raise SdoError(f"{where} aborted with 0x{err.code:08X} ({sdo_abort_text(err.code)})",
+                           node_id=self.node_id, index=index, subindex=subindex, abort_code=err.code) from err
+        except canopen.SdoCommunicationError as err:
+            if "No SDO response" not in str(err):  # an answer came, but not a valid one
+                raise SdoError(f"{where}: the drive answered wrongly ({err}); the transfer was aborted",
+                               node_id=self.node_id, index=index, subindex=subindex) from err
+            raise SdoTimeoutError(f"{where} got no answer ({err}); check power, node id, bitrate and termination",
+                                  node_id=self.node_id, index=index, subindex=subindex) from err
+        except (can.CanError, OSError) as err:
+            raise BusLostError(f"{where}: the bus is gone ({err})") from err
+        except (struct.error, ValueError, IndexError, KeyError, TypeError) as err:
+            raise SdoError(f"{where}: malformed answer from the drive ({type(err).__name__}: {err})",
+                           node_id=self.node_id, index=index, subindex=subindex) from err
+
+    def sdo_read(self, index: int, subindex: int = 0) -> bytes:
+        """An SDO upload, bounded in size and in time: at most the object's size where its type
+        has one (else SDO_UPLOAD_MAX_BYTES), and SDO_TRANSFER_TIMEOUTS x the SDO timeout in all,
+        whatever the drive announces or keeps sending (a transfer past either is aborted)."""
+        with self._sdo_errors("read", index, subindex):
+            return self._bounded_upload(index, subindex)
+
+    def _bounded_upload(self, index: int, subindex: int) -> bytes:
+        var = variable(self.od, index, subindex)
+        fixed = len(var) // 8 if var is not None and var.fixed_size else None
+        cap = max(8, fixed) if fixed else SDO_UPLOAD_MAX_BYTES  # some drives send a U32 for a smaller type
+        sdo = self.node.sdo
+        where = f"node {self.node_id}: SDO read 0x{index:04X}:{subindex}"
+        deadline = time.monotonic() + SDO_TRANSFER_TIMEOUTS * self.config.sdo_timeout_s
+        data = bytearray()
+        with sdo.open(index, subindex, buffering=0) as stream:
+            if stream.size is not None and stream.size > cap:
+                sdo.abort(SDO_ABORT_OUT_OF_MEMORY)
+                raise SdoError(f"{where}: the drive announced {stream.size} bytes, more than the {cap} this object"
+                               " can hold; the transfer was aborted", node_id=self.node_id, index=index,
+                               subindex=subindex)
+            while chunk := stream.read(7):
+                data += chunk
+                if len(data) > cap:
+                    sdo.abort(SDO_ABORT_OUT_OF_MEMORY)
+                    raise SdoError(f"{where}: the drive sent more than {cap} bytes; the transfer was aborted",
+                                   node_id=self.node_id, index=index, subindex=subindex)
+                if time.monotonic() > deadline:
+                    sdo.abort(SDO_ABORT_TIMEOUT)
+                    raise SdoTimeoutError(f"{where}: the transfer took over {SDO_TRANSFER_TIMEOUTS} x the SDO timeout"
+                                          f" ({self.config.sdo_timeout_s:g} s); aborted", node_id=self.node_id,
+                                          index=index, subindex=subindex)
+        return bytes(data[:fixed] if fixed and len(data) > fixed else data)
+
+    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        with self._sdo_errors("write", index, subindex):
+            self.node.sdo.download(index, subindex, data)
+
+    def sdo_write_checked(self, index: int, subindex: int, value: int) -> None:
+        """SDO write for tools and services: refuses the objects that move the motor or set its
+        limits and PDOs, which only the driver's own checked paths may write."""
+        reason = protected_reason(index)
+        if reason is not None:
+            raise CommandRejected(f"{self.name}: writing 0x{index:04X} by SDO is refused: {reason}.")
+        self._write_typed(index, subindex, value)
+
+    def sdo_read_value(self, index: int, subindex: int = 0) -> int | float | bytes:
+        raw = self.sdo_read(index, subindex)
+        var = variable(self.od, index, subindex)
+        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else None
+        if fmt is not None and len(raw) == struct.calcsize(fmt):
+            return struct.unpack(fmt, raw)[0]  # type: ignore[no-any-return]
+        return raw
+
+    def _write_typed(self, index: int, subindex: int, value: int) -> None:
+        var = variable(self.od, index, subindex)
+        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else "<i"
+        if fmt in ("<f", "<d"):
+            self.sdo_write(index, subindex, struct.pack(fmt, float(value)))
+        else:
+            self.sdo_write(index, subindex, struct.pack(fmt or "<i", value))
+
+    def _write_setting(self, setting: SdoSetting) -> None:
+        """One entry of the config's ``sdo:`` list: typed by the EDS (or ``size`` bytes), read
+        back when ``check``. Objects the driver owns are refused with the reason."""
+        where = f"sdo setting 0x{setting.index:04X}:{setting.sub}"
+        reason = protected_reason(setting.index)
+        if reason is not None:
+            raise BootError(f"node {self.node_id} ({self.name}): {where} is refused: {reason}.", node_id=self.node_id,
+                            step="sdo settings", index=setting.index, subindex=setting.sub)
+        var = variable(self.od, setting.index, setting.sub)
+        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else None
+        if fmt is None and setting.size is None:
+            raise BootError(f"node {self.node_id} ({self.name}): {where} is not in the drive's EDS; give its size"
+                            " (size: 1, 2, 4 or 8 bytes) in the config", node_id=self.node_id, step="sdo settings",
+                            index=setting.index, subindex=setting.sub)
+        try:
+            if fmt is not None:
+                data = struct.pack(fmt, float(setting.value) if fmt in ("<f", "<d") else int(setting.value))
+            else:
+                size = int(setting.size or 4)
+                data = int(setting.value).to_bytes(size, "little", signed=int(setting.value) < 0)
+        except (struct.error, OverflowError) as err:
+            raise BootError(f"node {self.node_id} ({self.name}): {where}: value {setting.value} does not fit the"
+                            f" object ({fmt or f'{setting.size} bytes'}): {err}", node_id=self.node_id,
+                            step="sdo settings", index=setting.index, subindex=setting.sub) from err
+        self.sdo_write(setting.index, setting.sub, data)
+        if setting.check:
+            back = self.sdo_read(setting.index, setting.sub)[:len(data)]
+            if back != data:
+                raise BootError(f"node {self.node_id} ({self.name}): {where}: wrote {data.hex(' ')}, read back"
+                                f" {back.hex(' ')}; the drive did not keep the value (range, or writable only in"
+                                " another state?)", node_id=self.node_id, step="sdo settings",
+                                index=setting.index, subindex=setting.sub)
+
+    def _read_int(self, index: int, subindex: int) -> int | None:
+        """An integer object read by SDO, or None where the drive's EDS has no such object."""
+        if not has_object(self.od, index, subindex):
+            return None
+        value = self.sdo_read_value(index, subindex)
+        return int(value) if isinstance(value, (int, float)) else None
+
+    def _read_optional(self, index: int, subindex: int) -> bytes | None:
+        """An object read by SDO whatever the EDS lists, or None where the drive aborts (it has
+        no such object). No answer at all is an error, not an absence."""
+        try:
+            return self.sdo_read(index, subindex)
+        except SdoTimeoutError:
+            raise
+        except SdoError:
+            return None
