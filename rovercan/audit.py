@@ -34,6 +34,8 @@ import can
 from can_config import RoverConfig, load_config
 from can_config.bits import frame_bits
 from can_config.errors import ConfigError, MotorError
+from rovercan.argtypes import real
+from rovercan.bench.common import CliError, add_bus_args, add_json, emit, open_bus
 
 #: Targets (the README's Performance section; SYNC error is the acceptance bound, 200 us the aim).
 TARGETS = {"sync_error_p99_us": 500.0, "cmd_latency_p99_ms": 2.0, "tpdo_loss": 0, "late_tpdo_fraction": 0.01,
@@ -203,8 +205,6 @@ def analyse(config: RoverConfig, frames: list[can.Message], sent: dict[int, list
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
-    from rovercan.bench import CliError, emit, open_bus
-
     if not (math.isfinite(args.seconds) and 0.5 <= args.seconds <= 600):
         raise ConfigError(f"--seconds {args.seconds}: allowed 0.5 to 600")
     config = one_bus(load_config(args.config), args.bus)
@@ -232,3 +232,16 @@ def cmd_audit(args: argparse.Namespace) -> int:
         print(f"rovercan audit: targets missed: {'; '.join(missed)}", file=sys.stderr)
         return 1
     return 0
+
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """The audit commands' parsers."""
+    p = sub.add_parser("audit", help="measure SYNC, command latency, TPDO loss, SDO, heartbeats and load on the bus")
+    p.add_argument("--config", required=True, help="the rover config (its drives on the audited bus are exercised)")
+    p.add_argument("--bus", help="which bus of the config (default: the first)")
+    p.add_argument("--seconds", type=real(0.5, 600), default=5.0, help="how long to measure (0.5 to 600)")
+    p.add_argument("--no-motion", action="store_true", help="do not arm the drives (no command latency figure)")
+    add_bus_args(p)
+    add_json(p)
+    p.set_defaults(func=cmd_audit)

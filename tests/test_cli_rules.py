@@ -233,7 +233,7 @@ def test_monitor_parses_an_eds_once_not_per_node(monkeypatch: pytest.MonkeyPatch
     """`monitor --seconds 1 --eds` took 3.5 s: the EDS was parsed for each of the 127 node ids."""
     import argparse
 
-    from rovercan import bench
+    from rovercan.bench import traffic as bench
 
     parses: list[int] = []
     real = bench.load_drive_od

@@ -1,0 +1,266 @@
+"""Bench commands that check without moving: safety-check, check, plan; and can-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import logging
+import math
+import re
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import canopen
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config import RoverConfig, load_config, load_drive_od
+from can_config.eds import consumer_subs, variable
+from can_config.errors import ConfigError
+from can_config.objects import (
+    OD,
+    STRUCT_FORMAT,
+)
+from rovercan.argtypes import real, whole
+from rovercan.bench.common import (
+    SDO_TIMEOUT_S,
+    CliError,
+    _u32,
+    add_bus_args,
+    add_drive_args,
+    add_json,
+    emit,
+    one_drive_config,
+    open_bus,
+    receive,
+    sdo_upload,
+)
+
+logger = logging.getLogger(__name__)
+
+
+# ------------------------------------------------------------------------------ safety-check
+def safety_configs(args: argparse.Namespace) -> RoverConfig:
+    """The drives to check: every drive of --config (on its first bus), or --node N ... with --eds."""
+    if args.config:
+        config = load_config(args.config)
+        bus = config.buses[0]
+        drives = tuple(d for d in config.drives if d.bus == bus.name and (not args.node or d.node_id in args.node))
+        if not drives:
+            raise ConfigError(f"{args.config}: no drive on bus {bus.name!r}"
+                              f"{' with node id ' + str(args.node) if args.node else ''}")
+        return RoverConfig((bus,), drives, None, config.source)
+    if not args.node:
+        raise ConfigError("safety-check: give --config FILE, or --eds FILE with --node N (repeatable)")
+    configs = [one_drive_config(args, node) for node in args.node]
+    return RoverConfig(configs[0].buses, tuple(c.drives[0] for c in configs), None, None)
+
+
+def cmd_safety_check(args: argparse.Namespace) -> int:
+    """Read back from each drive what keeps it safe when the host is gone; judge it by the
+    driver's own rules (motor_driver.safety); and look for the host heartbeat on the bus."""
+    from motor_driver.safety import host_heartbeat_check, judge
+    from motor_driver.units import UNIT_OBJECTS, scale_from_objects
+
+    if args.listen is not None and not (math.isfinite(args.listen) and 0 < args.listen <= 60):
+        raise ConfigError(f"--listen {args.listen}: allowed 0 < seconds <= 60")
+    config = safety_configs(args)
+    bus_cfg = config.buses[0]
+    listen_s = args.listen or max(0.3, 4 * bus_cfg.host_heartbeat_s)
+    bus = open_bus(args)
+    rows: list[dict[str, Any]] = []
+    try:
+        beats: list[float] = []
+        deadline = time.monotonic() + listen_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            msg = receive(bus, remaining)
+            if msg is not None and msg.arbitration_id == 0x700 + bus_cfg.host_node_id and not msg.is_remote_frame:
+                beats.append(msg.timestamp)
+        host = host_heartbeat_check(bus_cfg.host_node_id, bus_cfg.host_heartbeat_s,
+                                    [b - a for a, b in itertools.pairwise(beats)])
+        rows.append({"node": "-", "drive": "(host)", **vars(host)})
+        network = canopen.Network(bus)
+        network.NOTIFIER_CYCLE = 0.1
+        network.connect()
+        try:
+            for cfg in config.drives:
+                od = load_drive_od(cfg.eds, cfg.node_id)
+                node = canopen.RemoteNode(cfg.node_id, od)
+                node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+                network.add_node(node)
+
+                def read(index: int, sub: int, node: canopen.RemoteNode = node, od: ObjectDictionary = od) -> int | None:
+                    var = variable(od, index, sub)
+                    if var is None:
+                        return None
+                    raw = sdo_upload(node, index, sub)
+                    fmt = STRUCT_FORMAT.get(int(var.data_type))
+                    if fmt is None or len(raw) < struct.calcsize(fmt):
+                        return _u32(raw)
+                    return int(struct.unpack_from(fmt, raw)[0])
+
+                objects = {(i, sub): v for i, subs in UNIT_OBJECTS for sub in subs if (v := read(i, sub)) is not None}
+                scale, _ = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
+                                              invert=cfg.invert, offset_deg=cfg.offset_deg)
+                subs = consumer_subs(od)
+                for check in judge(cfg, bus_cfg.host_node_id, scale, read, consumer_subs=subs):
+                    rows.append({"node": cfg.node_id, "drive": cfg.name, **vars(check)})
+        finally:
+            if network.notifier is not None:
+                network.notifier.stop(1.0)
+    finally:
+        bus.shutdown()
+    emit(args, rows, f"safety check ({bus_cfg.name})", ["node", "drive", "check", "object", "expected", "actual", "status"])
+    failed = [r for r in rows if r["status"] == "FAIL"]
+    if failed:
+        names = ", ".join(f"{r['drive']} {r['check']} ({r['object']})" for r in failed)
+        print(f"rovercan: safety check failed: {names}", file=sys.stderr)
+        return 1
+    return 0
+
+
+# ------------------------------------------------------------------------------ plan / can-up
+def cmd_plan(args: argparse.Namespace) -> int:
+    from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
+
+    loads = plan_load(load_config(args.config))
+    rows = []
+    worst = 0.0
+    for load in loads:
+        for line in load.lines:
+            rows.append({"bus": line.bus, "what": line.what, "frames/s": round(line.frames_per_s, 1),
+                         "load_pct": round(100 * line.bits_per_s / load.bitrate, 1)})
+        rows.append({"bus": load.bus, "what": "TOTAL", "frames/s": round(sum(x.frames_per_s for x in load.lines), 1),
+                     "load_pct": round(100 * load.load, 1)})
+        worst = max(worst, load.load)
+    emit(args, rows, "worst-case bus load (% of the bitrate)", ["bus", "what", "frames/s", "load_pct"])
+    if worst > MAX_LOAD:
+        print(f"rovercan plan: a bus needs {worst:.0%} of its bitrate: it cannot carry this config", file=sys.stderr)
+        return 1
+    if worst > WARN_LOAD:
+        print(f"rovercan plan: warning: a bus is planned at {worst:.0%} (over {WARN_LOAD:.0%})", file=sys.stderr)
+    return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """A config checked without a bus: parsed, each drive's EDS read (with the objects the driver
+    needs for its host watch), the drive system's wheels known, each bus's planned load. Exit 0,
+    or 2 with the first problem (a ConfigError names file, key and what is allowed)."""
+    from can_config.eds import has_object
+    from motor_driver.busload import MAX_LOAD, plan_load
+
+    config = load_config(args.config)
+    rows: list[dict[str, Any]] = []
+    for drive in config.drives:
+        od = load_drive_od(drive.eds, drive.node_id)  # an EdsError names the file
+        watch = ("heartbeat consumer (0x1016)" if has_object(od, OD.CONSUMER_HEARTBEAT_TIME, 1) and
+                 drive.host_watch != "guarding" else "node guarding (0x100C/0x100D)"
+                 if has_object(od, OD.GUARD_TIME) and has_object(od, OD.LIFE_TIME_FACTOR) else
+                 "none (allow_no_host_watch)" if drive.allow_no_host_watch else "NONE: it will not be enabled")
+        rows.append({"bus": drive.bus, "drive": drive.name, "node": drive.node_id, "eds": Path(drive.eds).name,
+                     "host watch": watch})
+    loads = {load.bus: load.load for load in plan_load(config)}
+    for bus in config.buses:
+        rows.append({"bus": bus.name, "drive": "-", "node": "-", "eds": f"{bus.interface} {bus.channel}",
+                     "host watch": f"planned load {100 * loads.get(bus.name, 0.0):.1f} %"})
+    emit(args, rows, f"{args.config}: valid", ["bus", "drive", "node", "eds", "host watch"])
+    system = config.drive_system
+    if system is not None and not args.json:
+        print(f"drive system: left {', '.join(system.left)}; right {', '.join(system.right)}; track"
+              f" {system.track_width_m:g} m, wheel radius {system.wheel_radius_m:g} m")
+    worst = max(loads.values(), default=0.0)
+    if worst > MAX_LOAD:
+        raise ConfigError(f"{args.config}: a bus is planned at {worst:.0%} of its bitrate, over {MAX_LOAD:.0%}: it"
+                          " cannot carry this config (rovercan plan shows each frame); lower sync or PDO rates")
+    return 0
+
+
+_IFNAME = re.compile(r"^[a-zA-Z][a-zA-Z0-9_-]{0,14}$")
+
+
+def can_up_commands(interface: str, bitrate: int, restart_ms: int, txqueuelen: int) -> list[list[str]]:
+    """The ``ip`` commands that bring a SocketCAN interface up the way the Orin's mttcan needs, or
+    a virtual ``vcanN`` (created; it has no bitrate) as CI uses (pure)."""
+    if not _IFNAME.match(interface):
+        raise ConfigError(f"interface {interface!r}: expected a Linux interface name (letters, digits, '_' or '-',"
+                          " at most 15 characters), e.g. can0")
+    if not 10_000 <= bitrate <= 1_000_000:
+        raise ConfigError(f"--bitrate {bitrate}: classic CAN allows 10000 to 1000000 bit/s")
+    if not 0 <= restart_ms <= 60_000:
+        raise ConfigError(f"--restart-ms {restart_ms}: allowed 0 to 60000")
+    if not 10 <= txqueuelen <= 100_000:
+        raise ConfigError(f"--txqueuelen {txqueuelen}: allowed 10 to 100000")
+    if interface.startswith("vcan"):
+        return [["ip", "link", "add", "dev", interface, "type", "vcan"],
+                ["ip", "link", "set", interface, "txqueuelen", str(txqueuelen)],
+                ["ip", "link", "set", interface, "up"]]
+    return [["ip", "link", "set", interface, "down"],
+            ["ip", "link", "set", interface, "type", "can", "bitrate", str(bitrate), "restart-ms", str(restart_ms),
+             "berr-reporting", "on"],
+            ["ip", "link", "set", interface, "txqueuelen", str(txqueuelen)],
+            ["ip", "link", "set", interface, "up"]]
+
+
+def can_up_bitrate(args: argparse.Namespace) -> tuple[int, str]:
+    """--bitrate, else the bitrate of the --config bus on the interface, else the embedded default's."""
+    if args.bitrate is not None:
+        return int(args.bitrate), "--bitrate"
+    config = load_config(args.config)  # None: the embedded default
+    on_it = [b for b in config.buses if b.channel == args.interface_name] or list(config.buses[:1])
+    return on_it[0].bitrate, f"bus {on_it[0].name} of {args.config or 'the embedded default config'}"
+
+
+def cmd_can_up(args: argparse.Namespace) -> int:
+    bitrate, source = can_up_bitrate(args)
+    vcan = args.interface_name.startswith("vcan")
+    if not vcan:
+        print(f"# bitrate {bitrate} bit/s from {source}", flush=True)
+    commands = can_up_commands(args.interface_name, bitrate, args.restart_ms, args.txqueuelen)
+    for argv in commands:
+        print(" ".join(argv), flush=True)
+        if args.dry_run:
+            continue
+        result = subprocess.run(argv, capture_output=True, text=True, check=False)  # a list: no shell
+        if vcan and argv[2] == "add" and "File exists" in result.stderr:
+            continue  # the vcan interface is there already
+        if result.returncode != 0:
+            raise CliError(f"{' '.join(argv)} failed ({result.returncode}): {result.stderr.strip()}"
+                           " (root or CAP_NET_ADMIN needed; is the CAN controller's driver loaded?)")
+    return 0
+
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """The checks commands' parsers."""
+    p = sub.add_parser("safety-check", help="read back what stops each drive when the host is gone; pass/fail")
+    p.add_argument("--node", type=whole(1, 127), action="append", help="node id (repeatable; default:"
+                   " every drive of --config on its first bus)")
+    add_drive_args(p)
+    add_bus_args(p)
+    p.add_argument("--listen", type=real(0.05, 600), help="seconds to watch for the host heartbeat (default 4 periods)")
+    add_json(p)
+    p.set_defaults(func=cmd_safety_check)
+
+    p = sub.add_parser("check", help="validate a config without a bus: keys, EDS files, host watch, drive system, load")
+    p.add_argument("--config", required=True)
+    add_json(p)
+    p.set_defaults(func=cmd_check)
+
+    p = sub.add_parser("plan", help="worst-case bus load of a config")
+    p.add_argument("--config", required=True)
+    add_json(p)
+    p.set_defaults(func=cmd_plan)
+
+    p = sub.add_parser("can-up", help="bring up a SocketCAN interface (runs ip, no shell); vcanN: a virtual one")
+    p.add_argument("interface_name", metavar="INTERFACE")
+    p.add_argument("--bitrate", type=whole(10_000, 1_000_000),
+                   help="bit/s (default: the --config bus on INTERFACE, else the embedded default config's)")
+    p.add_argument("--config", help="take the bitrate from this config's bus on INTERFACE")
+    p.add_argument("--restart-ms", type=whole(0, 60_000), default=100)
+    p.add_argument("--txqueuelen", type=whole(10, 100_000), default=1000)
+    p.add_argument("--dry-run", action="store_true", help="print the commands only")
+    p.set_defaults(func=cmd_can_up)

@@ -1,0 +1,296 @@
+"""What every bench command shares: bus and drive arguments, opening the bus, SDO helpers, output.
+
+No state: each command runs once on the CLI's main thread.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import re
+import time
+from collections.abc import Collection, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import can
+import can.cli
+import canopen
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config import RoverConfig, load_config, load_od, parse_config
+from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN
+from can_config.errors import BusLostError, ConfigError, RovercanError
+from can_config.objects import (
+    sdo_abort_text,
+)
+from motor_driver.adapters import connection_closed
+from motor_driver.driver import open_bus as driver_open_bus
+from motor_driver.driver import wait_for_server
+from rovercan.argtypes import real, whole
+
+logger = logging.getLogger(__name__)
+
+
+SCAN_TIMEOUT_S = 0.3
+
+
+SDO_TIMEOUT_S = 0.5
+
+
+#: The bench waits this long for a socketcand server by default (--timeout; the driver in a node: 10 s).
+CLI_CONNECT_TIMEOUT_S = 3.0
+
+
+CAUSES = "check the node id, power, bitrate and termination (120 ohm at both ends)"
+
+
+class CliError(RovercanError):
+    """A bench command failed; the message is printed on stderr."""
+
+
+# ------------------------------------------------------------------------------ shared helpers
+def add_bus_args(parser: argparse.ArgumentParser) -> None:
+    can.cli.add_bus_arguments(parser)
+    parser.add_argument("--timeout", type=real(0.1, 600), default=CLI_CONNECT_TIMEOUT_S, metavar="S",
+                        help=f"seconds to wait for a socketcand server (default {CLI_CONNECT_TIMEOUT_S:g})")
+
+
+def connect_timeout(args: argparse.Namespace) -> float:
+    return float(getattr(args, "timeout", CLI_CONNECT_TIMEOUT_S))
+
+
+def add_drive_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="the rover config (bus, drives, units)")
+    parser.add_argument("--eds", help="EDS of a drive on its own (default: the generic CiA 402 EDS)")
+    parser.add_argument("--counts-per-rev", type=whole(1, 2**31 - 1), help="encoder counts per motor revolution")
+    parser.add_argument("--gear-ratio", type=real(GEAR_RATIO_MIN, GEAR_RATIO_MAX), default=1.0,
+                        help="motor revolutions per joint revolution")
+
+
+def add_json(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="machine-readable output")
+
+
+NO_BUS = ("no bus given: pass -i INTERFACE -c CHANNEL (e.g. -i socketcan -c can0, or -i socketcand -c can0"
+          " --bus-kwargs host=127.0.0.1 port=29536) or --config FILE")
+
+
+def open_bus(args: argparse.Namespace) -> can.BusABC:
+    if getattr(args, "interface", None) is None and getattr(args, "config", None):
+        config = load_config(args.config)
+        return driver_open_bus(config.buses[0].bus_kwargs(), connect_timeout(args))
+    if getattr(args, "interface", None) is None:
+        raise ConfigError(NO_BUS)
+    tuned: dict[str, Any] = {"tcp_tune": True} if args.interface == "socketcand" else {}  # --bus-kwargs overrides
+    extra = getattr(args, "bus_kwargs", None) or {}
+    if "port" in extra:
+        extra["port"] = tcp_port(extra["port"])
+    if args.interface == "socketcand" and "host" in extra and "port" in extra:
+        wait_for_server(str(extra["host"]), int(extra["port"]), connect_timeout(args))  # python-can's loop spins
+    try:
+        return can.cli.create_bus_from_namespace(args, **tuned)
+    except argparse.ArgumentError as err:
+        raise CliError(f"cannot open the bus {args.interface} {getattr(args, 'channel', '')}: {err.__cause__}") from err
+
+
+def tcp_port(value: object) -> int:
+    """``--bus-kwargs port=...`` as a TCP port: decimal or 0x hex, as every number of the CLI."""
+    try:
+        port = value if isinstance(value, int) and not isinstance(value, bool) else int(str(value), 0)
+    except ValueError:
+        raise ConfigError(f"--bus-kwargs port={value}: expected a TCP port 1..65535 (decimal, or hex as 0x71D8)") from None
+    if not 1 <= port <= 65535:
+        raise ConfigError(f"--bus-kwargs port={value}: a TCP port is 1..65535")
+    return port
+
+
+def parse_node(text: str) -> int:
+    try:
+        node = int(text, 0)
+    except ValueError:
+        raise ConfigError(f"node {text!r}: expected a node id 1..127") from None
+    if not 1 <= node <= 127:
+        raise ConfigError(f"node {node}: CANopen node ids are 1..127")
+    return node
+
+
+def parse_index(text: str) -> tuple[int, int]:
+    match = re.fullmatch(r"(0x)?([0-9a-fA-F]{1,4})(?::(\d+|0x[0-9a-fA-F]+))?", text)
+    if not match:
+        raise ConfigError(f"index {text!r}: expected INDEX[:SUB] in hex, e.g. 0x6041 or 1018:1")
+    sub = int(match.group(3), 0) if match.group(3) else 0
+    if sub > 0xFF:
+        raise ConfigError(f"index {text!r}: sub-index {sub} out of range 0..255")
+    return int(match.group(2), 16), sub
+
+
+def emit(args: argparse.Namespace, data: Any, title: str, columns: list[str] | None = None) -> None:
+    if getattr(args, "json", False):
+        print(json.dumps(data, indent=2, default=str))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    if columns is not None and isinstance(data, list):
+        table = Table(title=title)
+        for col in columns:
+            table.add_column(col)
+        for row in data:
+            table.add_row(*(str(row.get(c, "")) for c in columns))
+        console.print(table)
+    elif isinstance(data, dict):
+        table = Table(title=title, show_header=False)
+        table.add_column("key")
+        table.add_column("value")
+        for key, value in data.items():
+            table.add_row(str(key), json.dumps(value) if isinstance(value, (list, dict)) else str(value))
+        console.print(table)
+    else:
+        console.print(data)
+
+
+@contextmanager
+def remote_node(args: argparse.Namespace, node_id: int) -> Iterator[tuple[canopen.RemoteNode, can.BusABC]]:
+    bus = open_bus(args)
+    network = canopen.Network(bus)
+    network.NOTIFIER_CYCLE = 0.1  # so stopping it is quick and precedes the bus shutdown
+    network.connect()
+    try:
+        eds = getattr(args, "eds", None)
+        od: ObjectDictionary | str = load_od(eds, node_id) if eds else ObjectDictionary()
+        node = canopen.RemoteNode(node_id, od)
+        node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+        network.add_node(node)
+        yield node, bus
+    finally:
+        network.notifier.stop(1.0) if network.notifier else None
+        bus.shutdown()
+
+
+@contextmanager
+def sdo_errors(node_id: int, what: str, timeout_s: float) -> Iterator[None]:
+    """canopen's SDO failures as one-line CLI errors naming the node, the object and the cause."""
+    try:
+        yield
+    except canopen.SdoAbortedError as err:
+        raise CliError(f"node {node_id}: {what} aborted: 0x{err.code:08X} {sdo_abort_text(err.code)}") from err
+    except canopen.SdoCommunicationError as err:
+        raise CliError(f"node {node_id}: no answer to {what} within {timeout_s:g} s; {CAUSES}") from err
+
+
+def sdo_upload(node: canopen.RemoteNode, index: int, sub: int) -> bytes:
+    with sdo_errors(node.id, f"SDO read 0x{index:04X}:{sub}", SDO_TIMEOUT_S):
+        return bytes(node.sdo.upload(index, sub))
+
+
+def _u32(raw: bytes) -> int:
+    return int.from_bytes(raw[:4].ljust(4, b"\0"), "little")
+
+
+def _untyped(raw: bytes) -> int | str:
+    """A value read without an EDS: a number up to 8 bytes, printable text as text (0x1008, the
+    device name, is a string of 10-70 bytes), anything else as hex."""
+    text = raw.rstrip(b"\0")
+    if len(raw) > 8 or (len(raw) > 4 and text and all(32 <= b < 127 for b in text)):
+        return text.decode("ascii") if text and all(32 <= b < 127 for b in text) else raw.hex(" ")
+    return int.from_bytes(raw, "little")
+
+
+def _text(raw: bytes) -> str:
+    return raw.rstrip(b"\0").decode("latin-1", errors="replace")
+
+
+def receive(bus: can.BusABC, timeout_s: float) -> can.Message | None:
+    """``bus.recv`` that raises :class:`BusLostError` once the bus server has gone away (python-can's
+    socketcand client would otherwise return None forever, spinning)."""
+    msg = bus.recv(timeout_s)
+    if msg is None and connection_closed(bus):
+        raise BusLostError(f"{bus.channel_info}: the bus server closed the connection; is 'rovercan sim' (or"
+                           " socketcand) still running?")
+    return msg
+
+
+def add_master_flags(parser: argparse.ArgumentParser) -> None:
+    """The flags of a command that drives a drive: taking the bus over, and arming a drive that
+    cannot watch this host."""
+    parser.add_argument("--force", action="store_true",
+                        help="take the bus over even when another master (a running driver) is live on it")
+    parser.add_argument("--allow-no-host-watch", action="store_true",
+                        help="arm a drive that cannot watch this host (no 0x1016, or node guarding on a bus without"
+                             " remote frames): if this command dies, NOTHING stops the drive")
+
+
+def _heard_from(bus: can.BusABC, node_id: int, timeout_s: float, *, probe: bool, bootup: bool = False) -> bool:
+    """Did the node show itself within ``timeout_s``: a heartbeat (or only its boot-up), or, with
+    ``probe``, an answer to an SDO read of 0x1000 (any state but STOPPED answers)?"""
+    if probe:
+        bus.send(can.Message(arbitration_id=0x600 + node_id, data=bytes([0x40, 0x00, 0x10, 0, 0, 0, 0, 0]),
+                             is_extended_id=False))
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        msg = receive(bus, max(0.0, end - time.monotonic()))
+        if msg is None:
+            continue
+        if msg.arbitration_id == 0x700 + node_id and msg.data and (not bootup or msg.data[0] == 0):
+            return True
+        if probe and msg.arbitration_id == 0x580 + node_id:
+            return True
+    return False
+
+
+def refuse_beside_a_master(args: argparse.Namespace, bus: can.BusABC, node_ids: Collection[int]) -> None:
+    """Before the first NMT command or enable of a bench command: listen for another master (two
+    host-heartbeat periods) and refuse, naming what was heard, unless --force."""
+    from motor_driver.driver import look_for_master, look_window_s, other_master_error
+
+    host_id, period = 127, 0.05
+    if getattr(args, "config", None):
+        bus_cfg = load_config(args.config).buses[0]
+        host_id, period = bus_cfg.host_node_id, bus_cfg.host_heartbeat_s
+    evidence = look_for_master(bus, host_id, node_ids, look_window_s(period))
+    if evidence and not getattr(args, "force", False):
+        raise other_master_error(f"rovercan {args.command}", evidence)
+    if evidence:
+        logger.warning("another master is live (%s); going ahead as --force says", evidence)
+
+
+# ------------------------------------------------------------------------------ drive commands
+def one_drive_config(args: argparse.Namespace, node_id: int) -> RoverConfig:
+    """A config with the one drive at ``node_id``: from --config, or built from --eds and units."""
+    if args.config:
+        config = load_config(args.config)
+        drives = [d for d in config.drives if d.node_id == node_id]
+        if not drives:
+            raise ConfigError(f"{args.config}: no drive with node id {node_id}; drives:"
+                              f" {[(d.name, d.node_id) for d in config.drives]}")
+        bus = dataclasses.replace(config.bus(drives[0].bus), connect_timeout_s=connect_timeout(args))
+        drive = drives[0]
+        if getattr(args, "allow_no_host_watch", False):
+            drive = dataclasses.replace(drive, allow_no_host_watch=True)
+        return RoverConfig((bus,), (drive,), None, config.source)
+    if getattr(args, "interface", None) is None:
+        raise ConfigError(NO_BUS)  # never a silent python-can virtual bus: "no boot-up" would mislead
+    return parse_config({"buses": [{"name": "bench", "interface": "virtual", "channel": "bench"}],
+                         "drives": [{"name": f"node{node_id}", "node_id": node_id, "eds": args.eds or "generic",
+                                     "counts_per_rev": args.counts_per_rev, "gear_ratio": args.gear_ratio,
+                                     "allow_no_host_watch": bool(getattr(args, "allow_no_host_watch", False))}]})
+
+
+@contextmanager
+def bench_driver(args: argparse.Namespace, node_id: int) -> Iterator[Any]:
+    from motor_driver import MotorDriver
+
+    config = one_drive_config(args, node_id)
+    bus = open_bus(args) if getattr(args, "interface", None) else None
+    driver = MotorDriver(config, {config.buses[0].name: bus} if bus is not None else None)
+    try:
+        driver.start(take_over=bool(getattr(args, "force", False)))
+        yield driver.drive(config.drives[0].name)
+    finally:
+        driver.close()  # quick stop + disable: the bench never leaves a drive armed by accident
+        if bus is not None:
+            bus.shutdown()
