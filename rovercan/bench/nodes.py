@@ -251,8 +251,6 @@ def standard_meaning(index: int, value: Any) -> str | None:
 
 #: A drive writes its flash on a save and may not answer SDOs meanwhile (about 400 ms seen).
 SAVE_TIMEOUT_S = 3.0
-
-
 SAVE_WHAT = {1: "all parameters", 2: "communication parameters", 3: "application parameters",
              4: "manufacturer parameters"}
 
@@ -273,8 +271,6 @@ def cmd_save(args: argparse.Namespace) -> int:
 
 NMT_COMMANDS = {"start": NmtCommand.START, "stop": NmtCommand.STOP, "preop": NmtCommand.ENTER_PREOPERATIONAL,
                 "reset": NmtCommand.RESET_NODE, "reset-comm": NmtCommand.RESET_COMMUNICATION}
-
-
 #: How long ``nmt`` waits for the addressed node to show itself (NMT has no reply of its own).
 NMT_CONFIRM_S = 1.5
 

@@ -1,0 +1,184 @@
+"""The simulated drive's CiA 402 state machine: controlword, mode switch, set-point acceptance
+per mode, statusword bits, and its reaction to losing the master (0x6007). Runner thread only.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+
+import can
+
+from can_config.objects import (
+    OD,
+    OperationMode,
+)
+from virtual_can.sim.drive.errors import ErrorStack
+from virtual_can.sim.drive.model import (
+    CW_NEW_SETPOINT,
+    CW_RELATIVE,
+    EMCY_HEARTBEAT,
+    ENABLING,
+    POWERED,
+    STATUS_BITS,
+    SW_OMS12,
+    SW_OMS13,
+    SW_REMOTE,
+    SW_TARGET_REACHED,
+    SW_VOLTAGE_ENABLED,
+    SW_WARNING,
+    State,
+    next_state,
+)
+
+logger = logging.getLogger(__name__)
+
+
+class StateMachine(ErrorStack):
+    """Layer 2: the CiA 402 state machine."""
+
+    def _apply_controlword(self) -> None:
+        cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
+        new = next_state(self.state, cw, self.prev_cw, voltage_ok=not self.faults.sto_low,
+                         quick_stop_option=int(self.store.get(OD.QUICK_STOP_OPTION, 0, 2)))  # type: ignore[arg-type]
+        pending, self._slow_transition = self._slow_transition, None  # a new controlword overrides it
+        if new != self.state:
+            if self.faults.enable_step_delay_s > 0 and new in ENABLING and self.state in (State.SWITCH_ON_DISABLED,
+                                                                                        *ENABLING):
+                self._slow_transition = pending if pending is not None and pending[0] == new else \
+                    (new, self._now + self.faults.enable_step_delay_s)  # a slow drive
+            else:
+                self._enter(new)
+        mode = self.mode
+        rising = cw & ~self.prev_cw
+        if self.state == State.OPERATION_ENABLED:
+            if mode == OperationMode.PROFILE_POSITION and rising & CW_NEW_SETPOINT:
+                self._new_pp_setpoint(cw)
+            elif mode == OperationMode.HOMING and rising & CW_NEW_SETPOINT:
+                self._start_homing()
+            elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
+                self._csp_target()
+        self.prev_cw = cw
+
+    def _enter(self, new: State) -> None:
+        if self.state == State.FAULT:
+            self._clear_error()
+        if new == State.OPERATION_ENABLED and self.state != State.QUICK_STOP_ACTIVE:
+            self._hold_position()
+        self.state = new
+
+    def _set_mode(self) -> None:
+        requested = int(self.store.get(OD.MODES_OF_OPERATION, 0))  # type: ignore[arg-type]
+        supported = int(self.store.get(OD.SUPPORTED_DRIVE_MODES, 0, 0))  # type: ignore[arg-type]
+        bit = {1: 0, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7, 9: 8, 10: 9}.get(requested)
+        if requested != 0 and (bit is None or not supported >> bit & 1):
+            return  # unsupported: the display keeps the old mode, as real drives do
+        self.store.set(OD.MODES_OF_OPERATION_DISPLAY, 0, requested)
+        self.pp_target = None
+        self.homing_active = False
+        self._hold_position()
+
+    def _hold_position(self) -> None:
+        self.sp_pos = self.position_counts
+        self.sp_vel = 0.0
+        self.sp_acc = 0.0
+        self.pp_target = None
+        self._csp_last = None
+        self._vel_integral = 0.0
+
+    def _new_pp_setpoint(self, cw: int) -> None:
+        target = float(self.store.get(OD.TARGET_POSITION, 0))  # type: ignore[arg-type]
+        if cw & CW_RELATIVE:
+            target += self.pp_target if self.pp_target is not None else self.sp_pos
+        self.pp_target = target
+        self._setpoint_ack = True
+        if self.faults.ack_delay_max_s > 0:
+            self._ack_at = self._now + random.uniform(0.0, self.faults.ack_delay_max_s)
+        if self.accepted_targets is not None:
+            self.accepted_targets.append(target)
+
+    def _csp_target(self) -> None:
+        """CSP: follow 0x607A; IP: follow 0x60C1:1 while controlword bit 4 (enable ip) is set."""
+        if self.state != State.OPERATION_ENABLED:
+            return
+        if self.mode == OperationMode.CYCLIC_SYNC_POSITION:
+            self.pp_target = float(self.store.get(OD.TARGET_POSITION, 0))  # type: ignore[arg-type]
+        elif self.mode == OperationMode.INTERPOLATED_POSITION and self._ip_enabled:
+            self.pp_target = float(self.store.get(OD.INTERPOLATION_DATA, 1, 0))  # type: ignore[arg-type]
+
+    @property
+    def _ip_enabled(self) -> bool:
+        return bool(int(self.store.get(OD.CONTROLWORD, 0)) & CW_NEW_SETPOINT)  # type: ignore[arg-type]
+
+    def _start_homing(self) -> None:
+        method = int(self.store.get(OD.HOMING_METHOD, 0, 35))  # type: ignore[arg-type]
+        self.homing_done = self.homing_error = False
+        if method in (35, 37):
+            self._home_here()
+        else:
+            self.homing_active = True
+            self._homing_start = self.position_counts
+
+    def _home_here(self) -> None:
+        raw = self.theta / self._rad_per_count
+        self.position_offset = -raw
+        self.homing_active = False
+        self.homing_done = True
+        self._hold_position()
+
+    def _update_status(self) -> None:
+        sw = STATUS_BITS[self.state] | SW_REMOTE
+        if not self.faults.sto_low and self.state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
+                                                      *POWERED):
+            sw |= SW_VOLTAGE_ENABLED
+        mode = self.mode
+        if self.state == State.OPERATION_ENABLED:
+            if mode == OperationMode.PROFILE_POSITION:
+                if self.pp_target is None or (abs(self.sp_pos - self.pp_target) < 0.5 and self.sp_vel == 0.0
+                                              and abs(self.position_counts - self.pp_target) <= self._window()):
+                    sw |= SW_TARGET_REACHED
+                cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
+                if cw & CW_NEW_SETPOINT and self._setpoint_ack:
+                    if self._now >= self._ack_at:  # a slow drive acknowledges later (fault injection)
+                        sw |= SW_OMS12
+                else:
+                    self._setpoint_ack = False
+            elif mode == OperationMode.PROFILE_VELOCITY:
+                target_v = self._v(OD.TARGET_VELOCITY, 0, 0)
+                if abs(self.omega / self._rad_per_count - target_v) < max(10.0, abs(target_v) * 0.02):
+                    sw |= SW_TARGET_REACHED
+                if abs(self.omega / self._rad_per_count) < 10.0:
+                    sw |= SW_OMS12
+            elif mode == OperationMode.HOMING:
+                if self.homing_done:
+                    sw |= SW_OMS12 | SW_TARGET_REACHED
+                if self.homing_error:
+                    sw |= SW_OMS13
+            elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.CYCLIC_SYNC_VELOCITY,
+                          OperationMode.CYCLIC_SYNC_TORQUE):
+                sw |= SW_OMS12  # the drive follows the cyclic target
+            elif mode == OperationMode.INTERPOLATED_POSITION:
+                if self._ip_enabled:
+                    sw |= SW_OMS12  # ip mode active
+                if self.pp_target is None or abs(self.pp_target - self.position_counts) <= self._window():
+                    sw |= SW_TARGET_REACHED
+            else:
+                sw |= SW_TARGET_REACHED
+        if self.following_since is not None:
+            sw |= SW_WARNING
+        self.store.values[(OD.STATUSWORD, 0)] = sw
+
+    def _connection_lost(self, now: float) -> list[can.Message]:
+        """CiA 402 0x6007: the drive's own reaction to losing its master. A drive without 0x6007
+        reacts as its vendor decided; the model takes the common choice, a fault."""
+        option = int(self.store.get(OD.ABORT_CONNECTION_OPTION, 0, 1))  # type: ignore[arg-type]
+        if option == 1:
+            return self._raise_fault(EMCY_HEARTBEAT, now)
+        if option == 2 and self.state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON, *POWERED):
+            self.state = State.SWITCH_ON_DISABLED
+        elif option == 3:
+            if self.state == State.OPERATION_ENABLED:
+                self.state = State.QUICK_STOP_ACTIVE
+            elif self.state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON):
+                self.state = State.SWITCH_ON_DISABLED
+        return [self._warning_emcy(EMCY_HEARTBEAT)]
