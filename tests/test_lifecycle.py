@@ -143,8 +143,8 @@ def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) 
 
     launched = parse_launch(REPO / "ros" / "rovercan_bringup" / "launch" / "rover_launch.xml",
                             {"config": "/x.yaml", "lifecycle": "true", "autostart": "true"})
-    assert [p.name for p in launched] == ["rovercan_lifecycle"] and "autostart:=true" in launched[0].argv
-    assert "nodes.rover_lifecycle" in launched[0].argv
+    assert [p.name for p in launched] == ["rover_lifecycle"] and "autostart:=true" in launched[0].argv
+    assert "nodes.rover_lifecycle" in launched[0].argv and "__node:=" not in " ".join(launched[0].argv)  # its own name
     with SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "a", 4096)], port=0) as sim:
         config = tmp_path / "rover.yaml"
         config.write_text("buses: [{name: can0, interface: socketcand, channel: can0,"
