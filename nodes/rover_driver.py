@@ -15,6 +15,9 @@ Executors, by measurement (README): two single-threaded executors, a hot one for
 state and the drive system (small wait set: every wake-up rebuilds it in Python) and a cold
 one, on its own thread, for the services, which block for up to seconds (enable, home); the
 actions on one of their own (their goals are coroutines: nodes/actions.py).
+
+What lives where: this module (the joints' topics, ``main``), :mod:`nodes.driver_services`
+(services), :mod:`nodes.drive_system` (/cmd_vel), :mod:`nodes.refusals` (shared helpers).
 """
 
 from __future__ import annotations
@@ -22,75 +25,34 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Sequence
 from functools import partial
-from struct import error as struct_error
 from typing import Any, TypeVar
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Twist
-from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rovercan_msgs.msg import MotorState
-from rovercan_msgs.srv import SdoRead, SdoWrite, SetMode
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32
-from std_srvs.srv import Trigger
 
-from can_config import RoverConfig, heap, load_config
+from can_config import heap, load_config
 from can_config.errors import RovercanError
-from can_config.objects import OperationMode, sdo_abort_text
 from can_config.stop import StopSignal
 from motor_driver import Drive, MotorDriver
 from motor_driver.health import drive_health
-from motor_driver.skid_steer import SkidSteer, Twist2D
 from nodes import runtime
 from nodes.actions import DriverActionsNode
+from nodes.drive_system import DriveSystemNode
+from nodes.driver_services import SERVICE_JOIN_S, DriverServicesNode
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.motor_controller import fill_motor_state
 from nodes.params import declare, qos_depth
 from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, state_qos
+from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
 
-WARN_THROTTLE_S = 1.0
-SERVICE_JOIN_S = 5.0  # longest a service callback may take to notice the driver is closed
-DEG = 180.0 / math.pi
 T = TypeVar("T")
-
-
-def _stamp(msg_header: Any, stamp: float) -> None:
-    msg_header.stamp.sec = int(stamp)
-    msg_header.stamp.nanosec = int((stamp - int(stamp)) * 1e9)
-
-
-class RefusalLog:
-    """Counts refused commands per joint for /diagnostics and logs them, throttled."""
-
-    def __init__(self, node: Node) -> None:
-        self._node = node
-        self.count: dict[str, int] = {}
-        self.last: dict[str, str] = {}
-
-    def refuse(self, joint: str, why: str) -> None:
-        self.count[joint] = self.count.pop(joint, 0) + 1  # re-inserted: the newest refusal is last
-        self.last[joint] = why
-        self._node.get_logger().warning(f"{joint}: refused: {why}", throttle_duration_sec=WARN_THROTTLE_S)
-
-    def take(self, joint: str) -> tuple[int, str]:
-        """Refusals of one joint since the last call, and the newest reason; cleared."""
-        return self.count.pop(joint, 0), self.last.pop(joint, "")
-
-    def take_others(self, joints: Collection[str]) -> tuple[int, str]:
-        """Refusals not about a configured joint (unknown names, /cmd_vel), summed with the newest
-        reason, and cleared: a publisher of made-up joint names cannot grow these tables."""
-        others = [k for k in self.count if k not in joints]
-        newest = self.last.get(others[-1], "") if others else ""
-        total = 0
-        for key in others:
-            total += self.count.pop(key)
-            self.last.pop(key, None)
-        return total, newest
 
 
 class DriverNode(Node):
@@ -198,7 +160,7 @@ class DriverNode(Node):
                 joint.velocity.append(math.radians(state.velocity_deg_s) * stale)
                 joint.effort.append(state.torque_nm * stale)
                 newest = max(newest, state.stamp)
-            _stamp(joint.header, newest or time.time())
+            stamp_header(joint.header, newest or time.time())
             self._joint_pub.publish(joint)
         except Exception as err:
             self.get_logger().error(f"state publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
@@ -206,7 +168,7 @@ class DriverNode(Node):
     def _publish_diagnostics(self) -> None:
         try:
             array = DiagnosticArray()
-            _stamp(array.header, time.time())
+            stamp_header(array.header, time.time())
             for name, drive in self.driver.drives.items():
                 refused, last = self.refusals.take(name)
                 health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s,
@@ -236,203 +198,6 @@ class DriverNode(Node):
             self._diag_pub.publish(array)
         except Exception as err:
             self.get_logger().error(f"diagnostics publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
-
-
-class DriverServicesNode(Node):
-    """The per-drive services, in a node of their own: ``enable`` and ``home`` block for up to
-    seconds, so they run on their own executor thread while topics and timers stay on the hot
-    one (see main)."""
-
-    def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
-        super().__init__("rovercan_driver_services", **kwargs)
-        self.driver = driver
-        for name, drive in driver.drives.items():
-            base = drive.config.ros_prefix
-            for service, action in (("enable", drive.enable), ("disable", drive.disable),
-                                    ("halt", drive.halt), ("quick_stop", drive.quick_stop),
-                                    ("recover", drive.recover), ("home", drive.home)):
-                self.create_service(Trigger, f"{base}/{service}", self._trigger(name, service, action))
-            self.create_service(SetMode, f"{base}/set_mode", self._set_mode(drive))
-            self.create_service(SdoRead, f"{base}/sdo_read", self._sdo_read(drive))
-            self.create_service(SdoWrite, f"{base}/sdo_write", self._sdo_write(drive))
-
-    def _trigger(self, joint: str, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
-        def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-            try:
-                action()
-                response.success, response.message = True, f"{joint}: {service} done; state {self.driver.drives[joint].state.name}"
-            except RovercanError as err:
-                response.success, response.message = False, str(err)
-            except Exception as err:
-                response.success, response.message = False, f"{joint}: {service} failed unexpectedly: {err!r}"
-            return response
-        return call
-
-    def _set_mode(self, drive: Drive) -> Callable[[Any, Any], Any]:
-        def call(request: SetMode.Request, response: SetMode.Response) -> SetMode.Response:
-            try:
-                mode = OperationMode[request.mode.strip().upper()]
-            except KeyError:
-                response.success = False
-                response.message = (f"unknown mode {request.mode!r}; allowed: "
-                                    f"{', '.join(m.name for m in OperationMode if m != OperationMode.NO_MODE)}")
-                return response
-            try:
-                drive.set_mode(mode)
-                response.success, response.message = True, f"{drive.name}: mode {mode.name} confirmed by 0x6061"
-            except RovercanError as err:
-                response.success, response.message = False, str(err)
-            return response
-        return call
-
-    def _sdo_read(self, drive: Drive) -> Callable[[Any, Any], Any]:
-        def call(request: SdoRead.Request, response: SdoRead.Response) -> SdoRead.Response:
-            try:
-                value = drive.sdo_read_value(request.index, request.subindex)
-            except RovercanError as err:
-                response.success, response.message = False, str(err)
-                return response
-            response.success = True
-            if isinstance(value, int):
-                response.value, response.text = value, str(value)
-            elif isinstance(value, float):
-                response.value, response.text = int(value), repr(value)
-            else:
-                response.text = value.decode("latin-1", errors="replace")
-            response.message = f"0x{request.index:04X}:{request.subindex} = {response.text}"
-            return response
-        return call
-
-    def _sdo_write(self, drive: Drive) -> Callable[[Any, Any], Any]:
-        def call(request: SdoWrite.Request, response: SdoWrite.Response) -> SdoWrite.Response:
-            try:
-                drive.sdo_write_checked(request.index, request.subindex, request.value)
-                response.success, response.message = True, f"0x{request.index:04X}:{request.subindex} written"
-            except RovercanError as err:
-                response.success, response.message = False, str(err)
-                code = getattr(err, "abort_code", None)
-                if code is not None and sdo_abort_text(code) not in response.message:
-                    response.message += f" ({sdo_abort_text(code)})"
-            except struct_error as err:
-                response.success, response.message = False, f"value {request.value} does not fit the object: {err}"
-            return response
-        return call
-
-
-class DriveSystemNode(Node):
-    """/cmd_vel -> skid-steer wheel velocities (ramped, stale commands stop), /odom from wheel feedback.
-
-    The node commands the wheels only while /cmd_vel is fresh and while it ramps them down after
-    /cmd_vel went stale; once stopped it leaves them alone (bench tools and per-joint topics
-    may then use them).
-    """
-
-    def __init__(self, driver: MotorDriver, config: RoverConfig, refusals: RefusalLog | None = None,
-                 **kwargs: Any) -> None:
-        super().__init__("drive_system", **kwargs)
-        declare(self, "odom_rate_hz", "odom_frame", "base_frame", "state_qos_depth")
-        system = config.drive_system
-        if system is None:
-            raise RovercanError("the config has no drive_system section")
-        self.system = system
-        self.left = [driver.drive(n) for n in system.left]
-        self.right = [driver.drive(n) for n in system.right]
-        self.wheels = self.left + self.right
-        slowest_deg_s = min(d.config.max_velocity_deg_s for d in self.wheels)
-        self.steer = SkidSteer(system.track_width_m, system.wheel_radius_m, system.max_accel_m_s2,
-                               system.max_speed_m_s, max_angular_rad_s=system.max_angular_rad_s,
-                               max_wheel_rad_s=math.radians(slowest_deg_s))
-        self.refusals = refusals or RefusalLog(self)
-        self._target = Twist2D()
-        self._last_cmd = -math.inf
-        self._last_tick = time.monotonic()
-        self.stale = True
-        self.active = False  # commanding the wheels (fresh /cmd_vel or ramping down after it)
-        self._odom_frame = str(self.get_parameter("odom_frame").value)
-        self._base_frame = str(self.get_parameter("base_frame").value)
-        self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
-        self._odom_pub = self.create_publisher(Odometry, "/odom", state_qos(qos_depth(self)), event_callbacks=NO_PUB_EVENTS)
-        self.create_timer(1.0 / float(self.get_parameter("odom_rate_hz").value), self._tick)
-
-    def _on_cmd_vel(self, msg: Twist) -> None:
-        v, w = msg.linear.x, msg.angular.z
-        if not (math.isfinite(v) and math.isfinite(w)):
-            self.refusals.refuse("drive_system", f"/cmd_vel with non-finite values (linear.x={v}, angular.z={w})")
-            return
-        self._target = Twist2D(v, w)
-        self._last_cmd = time.monotonic()
-
-    def _tick(self) -> None:
-        try:
-            now = time.monotonic()
-            dt = min(now - self._last_tick, 0.5)
-            self._last_tick = now
-            self.stale = now - self._last_cmd > self.system.cmd_timeout_s
-            if not self.stale:
-                # all or none: a turn driven by one side only is worse than no motion
-                blocked = [d for d in self.wheels if not d.snapshot().enabled]
-                if blocked:
-                    state = blocked[0].snapshot()
-                    self._halt(f"/cmd_vel not applied: wheel {blocked[0].name} is"
-                               f" {'lost' if state.lost else state.state.name}; no wheel is driven")
-                    self._publish_odom(dt)
-                    return
-                self.active = True
-            left, right = self.steer.step(Twist2D() if self.stale else self._target, dt)
-            if self.stale and not self.active:
-                self._publish_odom(dt)
-                return
-            if self.stale and left == 0.0 and right == 0.0:
-                self.active = False  # stopped: send this last zero, then leave the wheels to others
-            for drives, speed in ((self.left, left), (self.right, right)):
-                for drive in drives:
-                    if self.stale and not drive.snapshot().enabled:
-                        continue  # ramping down: the others still stop
-                    try:
-                        drive.set_velocity(speed * DEG)
-                    except RovercanError as err:
-                        self._halt(f"/cmd_vel not applied: wheel {drive.name} refused {speed:.2f} rad/s ({err});"
-                                   " every wheel stopped")
-                        self._publish_odom(dt)
-                        return
-            self._publish_odom(dt)
-        except Exception as err:
-            self.get_logger().error(f"drive system tick failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
-
-    def _halt(self, reason: str) -> None:
-        """Stop every wheel that still runs and forget the ramp, so that nothing (a stale
-        ramp-down, a recovered wheel) brings them back without a fresh /cmd_vel. The command
-        that was refused is spent: only one received after this drives again (it was driving all
-        six for a moment when the wheel came back within its timeout)."""
-        self.steer.halt()
-        self._last_cmd = -math.inf
-        self.stale = True
-        if self.active:
-            for drive in self.wheels:
-                if drive.snapshot().enabled:
-                    try:
-                        drive.set_velocity(0.0)
-                    except RovercanError:
-                        pass  # that wheel cannot move anyway
-        self.active = False
-        self.refusals.refuse("drive_system", reason)
-
-    def _publish_odom(self, dt: float) -> None:
-        def mean_rad_s(drives: list[Drive]) -> float:
-            return sum(math.radians(d.snapshot().velocity_deg_s) for d in drives) / len(drives)
-
-        pose, twist = self.steer.odometry(mean_rad_s(self.left), mean_rad_s(self.right), dt)
-        odom = Odometry()
-        _stamp(odom.header, time.time())
-        odom.header.frame_id = self._odom_frame
-        odom.child_frame_id = self._base_frame
-        odom.pose.pose.position.x = pose.x_m
-        odom.pose.pose.position.y = pose.y_m
-        odom.pose.pose.orientation.z = math.sin(pose.yaw_rad / 2.0)
-        odom.pose.pose.orientation.w = math.cos(pose.yaw_rad / 2.0)
-        odom.twist.twist.linear.x = twist.linear_m_s
-        odom.twist.twist.angular.z = twist.angular_rad_s
-        self._odom_pub.publish(odom)
 
 
 def _given(values: Sequence[float], i: int) -> float | None:
@@ -506,6 +271,8 @@ def _run(stop: StopSignal) -> int:
         rclpy.try_shutdown()
     return 0
 
+
+__all__ = ["DriveSystemNode", "DriverNode", "DriverServicesNode", "main"]
 
 if __name__ == "__main__":
     sys.exit(main())
