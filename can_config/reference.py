@@ -8,21 +8,21 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-from can_config.config import (
-    _BUS_FIELDS,
-    _DRIVE_FIELDS,
-    _DRIVE_SYSTEM_FIELDS,
-    _IDENTITY_FIELDS,
-    _RECORDER_FIELDS,
-    _REQUIRED,
-    _SDO_FIELDS,
-    _SIM_FIELDS,
-    _Field,
+from can_config.fields import (
+    BUS_FIELDS,
+    DRIVE_FIELDS,
+    DRIVE_SYSTEM_FIELDS,
+    IDENTITY_FIELDS,
+    RECORDER_FIELDS,
+    REQUIRED,
+    SDO_FIELDS,
+    SIM_FIELDS,
+    Field,
 )
 
 #: (section heading, YAML path, fields, {key: (unit, what it is)})
-SECTIONS: list[tuple[str, str, dict[str, _Field], dict[str, tuple[str, str]]]] = [
-    ("Buses", "buses[]", _BUS_FIELDS, {
+SECTIONS: list[tuple[str, str, dict[str, Field], dict[str, tuple[str, str]]]] = [
+    ("Buses", "buses[]", BUS_FIELDS, {
         "name": ("", "the bus's name, used by drives' `bus` and in logs"),
         "interface": ("", "python-can interface: `socketcan` (the rover, vcan), `socketcand` (the simulator), `pcan`, ..."),
         "channel": ("", "python-can channel: `can0`, `vcan0`, `PCAN_USBBUS1`, ..."),
@@ -34,7 +34,7 @@ SECTIONS: list[tuple[str, str, dict[str, _Field], dict[str, tuple[str, str]]]] =
         "connect_timeout_ms": ("ms", "how long the driver waits for a bus server that is not there yet"),
         "sync_timer": ("", "`auto`: the daemon's or kernel's timer sends the SYNC; `thread`: a thread of the driver"),
     }),
-    ("Drives", "drives[]", _DRIVE_FIELDS, {
+    ("Drives", "drives[]", DRIVE_FIELDS, {
         "name": ("", "the joint's name (topics, services, /joint_states)"),
         "namespace": ("", "ROS namespace of the joint's topics"),
         "node_id": ("", "CANopen node id of the drive"),
@@ -74,19 +74,19 @@ SECTIONS: list[tuple[str, str, dict[str, _Field], dict[str, tuple[str, str]]]] =
         "torque_mode": ("", "how efforts are sent: `profile` (PT) or `cyclic` (CST)"),
         "sim": ("", "the simulator's model of this drive (table below)"),
     }),
-    ("A drive's identity", "drives[].identity", _IDENTITY_FIELDS, {
+    ("A drive's identity", "drives[].identity", IDENTITY_FIELDS, {
         "vendor_id": ("", "0x1018:1, compared at boot"),
         "product_code": ("", "0x1018:2"),
         "revision": ("", "0x1018:3"),
     }),
-    ("A drive's vendor parameters", "drives[].sdo[]", _SDO_FIELDS, {
+    ("A drive's vendor parameters", "drives[].sdo[]", SDO_FIELDS, {
         "index": ("", "object index"),
         "sub": ("", "sub-index"),
         "value": ("", "the value written"),
         "check": ("", "read it back after writing"),
         "size": ("bytes", "the object's width where the EDS does not list it"),
     }),
-    ("A drive's simulated motor", "drives[].sim", _SIM_FIELDS, {
+    ("A drive's simulated motor", "drives[].sim", SIM_FIELDS, {
         "inertia_kg_m2": ("kg m^2", "rotor plus load inertia"),
         "viscous_nm_s_rad": ("Nm s/rad", "viscous friction"),
         "coulomb_nm": ("Nm", "Coulomb friction"),
@@ -98,7 +98,7 @@ SECTIONS: list[tuple[str, str, dict[str, _Field], dict[str, tuple[str, str]]]] =
         "velocity_ki": ("Nm/rad", "velocity integral gain (default: from the bandwidth)"),
         "velocity_ff": ("", "velocity feed-forward"),
     }),
-    ("The drive system (/cmd_vel)", "drive_system", _DRIVE_SYSTEM_FIELDS, {
+    ("The drive system (/cmd_vel)", "drive_system", DRIVE_SYSTEM_FIELDS, {
         "left": ("", "the drives of the left side"),
         "right": ("", "the drives of the right side"),
         "track_width_m": ("m", "distance between the left and right wheels"),
@@ -108,7 +108,7 @@ SECTIONS: list[tuple[str, str, dict[str, _Field], dict[str, tuple[str, str]]]] =
         "max_speed_m_s": ("m/s", "body speed and every wheel's rim speed"),
         "max_angular_rad_s": ("rad/s", "turn rate; a faster /cmd_vel is scaled down as a whole"),
     }),
-    ("The flight recorder", "recorder", _RECORDER_FIELDS, {
+    ("The flight recorder", "recorder", RECORDER_FIELDS, {
         "enabled": ("", "keep the ring and write incidents"),
         "dir": ("", "where incidents go (default `$ROVERCAN_INCIDENT_DIR`, else `~/.local/state/rovercan/incidents`)"),
         "seconds": ("s", "the ring: frames and states kept before an incident"),
@@ -125,8 +125,8 @@ def _num(value: float) -> str:
     return f"{int(value):,}" if float(value).is_integer() and abs(value) < 1e15 else f"{value:g}"
 
 
-def _default(field: _Field) -> str:
-    if field.default is _REQUIRED:
+def _default(field: Field) -> str:
+    if field.default is REQUIRED:
         return "required"
     value: Any = field.default
     if value is None:
@@ -140,7 +140,7 @@ def _default(field: _Field) -> str:
     return f"`{value}`" if value != "" else '`""`'
 
 
-def _allowed(field: _Field) -> str:
+def _allowed(field: Field) -> str:
     if field.choices:
         return " / ".join(f"`{c}`" for c in field.choices)
     if field.low is not None and field.high is not None:

@@ -213,26 +213,8 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
                          f" the drive; readings assume {ASSUMED_COUNTS_PER_REV} counts/rev and motion is refused")
         units_per_joint_rev = motor_counts * gear
     counts_per_deg = units_per_joint_rev / 360.0
-    velocity = 0.0
-    si = objects.get((0x60A9, 0))
-    if si:
-        prefix, numerator, denominator = _si(si)
-        per_s = {SI_SECOND: 1.0, SI_MINUTE: 60.0}.get(denominator)
-        if numerator == SI_REVOLUTION and per_s is not None:
-            # value x 10^prefix motor revolutions per (s|min) -> joint deg/s
-            velocity = per_s / (10.0**prefix * 360.0 / gear)
-            notes.append(f"velocity in 10^{prefix} rev/{'min' if per_s == 60 else 's'} (0x60A9)")
-        elif numerator == SI_INCREMENT and per_s is not None:
-            velocity = counts_per_deg * per_s / 10.0**prefix
-    acceleration = 0.0
-    si_acc = objects.get((0x60AA, 0))
-    if si_acc:
-        prefix, numerator, denominator = _si(si_acc)
-        if denominator == SI_SECOND_SQUARED and numerator == SI_INCREMENT:
-            acceleration = counts_per_deg / 10.0**prefix
-        elif denominator == SI_SECOND_SQUARED and numerator == SI_REVOLUTION:
-            acceleration = 1.0 / (10.0**prefix * 360.0 / gear)
-            notes.append(f"acceleration in 10^{prefix} rev/s^2 (0x60AA)")
+    velocity = _velocity_per_unit(objects, gear, counts_per_deg, notes)
+    acceleration = _acceleration_per_unit(objects, gear, counts_per_deg, notes)
     rated = rated_torque_nm
     mnm = objects.get((0x6076, 0))
     if mnm:
@@ -240,3 +222,35 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
         if abs(rated - rated_torque_nm) > 1e-9:
             notes.append(f"rated torque {rated:g} Nm from 0x6076 (config says {rated_torque_nm:g})")
     return Scale(counts_per_deg, rated, gear, velocity, invert, offset_deg, acceleration, known), notes
+
+
+def _velocity_per_unit(objects: dict[tuple[int, int], int], gear: float, counts_per_deg: float,
+                       notes: list[str]) -> float:
+    """Joint deg/s per unit of the drive's velocity (0x60A9), or 0.0 where it does not say."""
+    si = objects.get((0x60A9, 0))
+    if not si:
+        return 0.0
+    prefix, numerator, denominator = _si(si)
+    per_s = {SI_SECOND: 1.0, SI_MINUTE: 60.0}.get(denominator)
+    if numerator == SI_REVOLUTION and per_s is not None:
+        # value x 10^prefix motor revolutions per (s|min) -> joint deg/s
+        notes.append(f"velocity in 10^{prefix} rev/{'min' if per_s == 60 else 's'} (0x60A9)")
+        return per_s / (10.0**prefix * 360.0 / gear)
+    if numerator == SI_INCREMENT and per_s is not None:
+        return counts_per_deg * per_s / 10.0**prefix
+    return 0.0
+
+
+def _acceleration_per_unit(objects: dict[tuple[int, int], int], gear: float, counts_per_deg: float,
+                           notes: list[str]) -> float:
+    """Joint deg/s^2 per unit of the drive's acceleration (0x60AA), or 0.0 where it does not say."""
+    si_acc = objects.get((0x60AA, 0))
+    if not si_acc:
+        return 0.0
+    prefix, numerator, denominator = _si(si_acc)
+    if denominator == SI_SECOND_SQUARED and numerator == SI_INCREMENT:
+        return counts_per_deg / 10.0**prefix
+    if denominator == SI_SECOND_SQUARED and numerator == SI_REVOLUTION:
+        notes.append(f"acceleration in 10^{prefix} rev/s^2 (0x60AA)")
+        return 1.0 / (10.0**prefix * 360.0 / gear)
+    return 0.0

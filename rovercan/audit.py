@@ -144,38 +144,8 @@ def analyse(config: RoverConfig, frames: list[can.Message], sent: dict[int, list
         # command -> RPDO: the n-th velocity RPDO on the wire answers the n-th call
         rpdo = plan.rpdo_with(0x60FF)
         if sent[node] and rpdo is not None:
-            on_wire = [m.timestamp for m in frames if m.arbitration_id == rpdo.cob_id]
-            latencies = []
-            j = 0
-            for t_sent in sent[node]:  # each call's frame: the first on the wire at or after it
-                while j < len(on_wire) and on_wire[j] < t_sent:
-                    j += 1
-                if j == len(on_wire):
-                    break
-                latencies.append((on_wire[j] - t_sent) * 1000)
-                j += 1
-            if latencies:
-                p99 = pct(latencies, 0.99)
-                figures += [Figure(f"node {node}: command -> RPDO p50, ms", statistics.median(latencies), "", True),
-                            Figure(f"node {node}: command -> RPDO p99, ms", p99, f"<= {TARGETS['cmd_latency_p99_ms']:g}",
-                                   p99 <= TARGETS["cmd_latency_p99_ms"])]
-        # SYNC-driven TPDOs: expected from the SYNCs seen, late when more than half a period after theirs
-        for pdo in plan.tpdos:
-            if not 1 <= pdo.trans_type <= 240 or len(syncs) < 3:
-                continue
-            got = [m.timestamp for m in inside if m.arbitration_id == pdo.cob_id]
-            expected = (len(syncs) - 1) // pdo.trans_type
-            received = sum(1 for t in got if syncs[0] < t <= syncs[-1])
-            lost = max(0, expected - received)
-            late = 0
-            for t in got:
-                before = [s for s in syncs if s <= t]
-                if before and t - before[-1] > bus_cfg.sync_period_s / 2:
-                    late += 1
-            late_fraction = late / max(1, len(got))
-            figures += [Figure(f"node {node}: TPDO 0x{pdo.cob_id:03X} lost", lost, "0", lost <= TARGETS["tpdo_loss"]),
-                        Figure(f"node {node}: TPDO 0x{pdo.cob_id:03X} late fraction", late_fraction,
-                               f"<= {TARGETS['late_tpdo_fraction']:g}", late_fraction <= TARGETS["late_tpdo_fraction"])]
+            figures += _latency_figures(node, [m.timestamp for m in frames if m.arbitration_id == rpdo.cob_id], sent[node])
+        figures += _tpdo_figures(node, plan.tpdos, inside, syncs, bus_cfg.sync_period_s)
         if rtts[node]:
             p99 = pct(rtts[node], 0.99)
             figures.append(Figure(f"node {node}: SDO round trip p99, ms", p99, f"<= {TARGETS['sdo_rtt_p99_ms']:g}",
@@ -201,6 +171,47 @@ def analyse(config: RoverConfig, frames: list[can.Message], sent: dict[int, list
                        100 * load <= TARGETS["bus_load_pct"]),
                 Figure("bus load (planned, rovercan plan), %", 100 * planned, "<= 100 (refused above)", planned <= 1.0),
                 Figure("error frames", error_frames, "0", error_frames <= TARGETS["error_frames"])]
+    return figures
+
+
+def _latency_figures(node: int, on_wire: list[float], sent: list[float]) -> list[Figure]:
+    """Command -> RPDO: each call's frame is the first on the wire at or after it."""
+    latencies = []
+    j = 0
+    for t_sent in sent:
+        while j < len(on_wire) and on_wire[j] < t_sent:
+            j += 1
+        if j == len(on_wire):
+            break
+        latencies.append((on_wire[j] - t_sent) * 1000)
+        j += 1
+    if not latencies:
+        return []
+    p99 = pct(latencies, 0.99)
+    return [Figure(f"node {node}: command -> RPDO p50, ms", statistics.median(latencies), "", True),
+            Figure(f"node {node}: command -> RPDO p99, ms", p99, f"<= {TARGETS['cmd_latency_p99_ms']:g}",
+                   p99 <= TARGETS["cmd_latency_p99_ms"])]
+
+
+def _tpdo_figures(node: int, tpdos: Any, inside: list[can.Message], syncs: list[float], period_s: float) -> list[Figure]:
+    """SYNC-driven TPDOs: expected from the SYNCs seen, late when more than half a period after theirs."""
+    figures: list[Figure] = []
+    for pdo in tpdos:
+        if not 1 <= pdo.trans_type <= 240 or len(syncs) < 3:
+            continue
+        got = [m.timestamp for m in inside if m.arbitration_id == pdo.cob_id]
+        expected = (len(syncs) - 1) // pdo.trans_type
+        received = sum(1 for t in got if syncs[0] < t <= syncs[-1])
+        lost = max(0, expected - received)
+        late = 0
+        for t in got:
+            before = [s for s in syncs if s <= t]
+            if before and t - before[-1] > period_s / 2:
+                late += 1
+        late_fraction = late / max(1, len(got))
+        figures += [Figure(f"node {node}: TPDO 0x{pdo.cob_id:03X} lost", lost, "0", lost <= TARGETS["tpdo_loss"]),
+                    Figure(f"node {node}: TPDO 0x{pdo.cob_id:03X} late fraction", late_fraction,
+                           f"<= {TARGETS['late_tpdo_fraction']:g}", late_fraction <= TARGETS["late_tpdo_fraction"])]
     return figures
 
 

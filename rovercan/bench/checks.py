@@ -13,7 +13,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import canopen
 from canopen.objectdictionary import ObjectDictionary
@@ -40,6 +40,12 @@ from rovercan.bench.common import (
     sdo_upload,
 )
 
+if TYPE_CHECKING:
+    import can
+
+    from can_config.config import BusConfig, DriveConfig
+    from motor_driver.safety import SafetyCheck
+
 logger = logging.getLogger(__name__)
 
 
@@ -60,12 +66,53 @@ def safety_configs(args: argparse.Namespace) -> RoverConfig:
     return RoverConfig(configs[0].buses, tuple(c.drives[0] for c in configs), None, None)
 
 
+def _host_heartbeat(bus: can.BusABC, bus_cfg: BusConfig, listen_s: float) -> SafetyCheck:
+    """The host heartbeat on the bus for ``listen_s``, judged against its configured period."""
+    from motor_driver.safety import host_heartbeat_check
+
+    beats: list[float] = []
+    deadline = time.monotonic() + listen_s
+    while (remaining := deadline - time.monotonic()) > 0:
+        msg = receive(bus, remaining)
+        if msg is not None and msg.arbitration_id == 0x700 + bus_cfg.host_node_id and not msg.is_remote_frame:
+            beats.append(msg.timestamp)
+    return host_heartbeat_check(bus_cfg.host_node_id, bus_cfg.host_heartbeat_s,
+                                [b - a for a, b in itertools.pairwise(beats)])
+
+
+def _drive_safety_rows(network: canopen.Network, cfg: DriveConfig, bus_cfg: BusConfig) -> list[dict[str, Any]]:
+    """One drive's safety objects read back by SDO and judged by the driver's rules."""
+    from motor_driver.safety import judge
+    from motor_driver.units import UNIT_OBJECTS, scale_from_objects
+
+    rows: list[dict[str, Any]] = []
+    od = load_drive_od(cfg.eds, cfg.node_id)
+    node = canopen.RemoteNode(cfg.node_id, od)
+    node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+    network.add_node(node)
+
+    def read(index: int, sub: int, node: canopen.RemoteNode = node, od: ObjectDictionary = od) -> int | None:
+        var = variable(od, index, sub)
+        if var is None:
+            return None
+        raw = sdo_upload(node, index, sub)
+        fmt = STRUCT_FORMAT.get(int(var.data_type))
+        if fmt is None or len(raw) < struct.calcsize(fmt):
+            return _u32(raw)
+        return int(struct.unpack_from(fmt, raw)[0])
+
+    objects = {(i, sub): v for i, subs in UNIT_OBJECTS for sub in subs if (v := read(i, sub)) is not None}
+    scale, _ = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
+                                  invert=cfg.invert, offset_deg=cfg.offset_deg)
+    subs = consumer_subs(od)
+    for check in judge(cfg, bus_cfg.host_node_id, scale, read, consumer_subs=subs):
+        rows.append({"node": cfg.node_id, "drive": cfg.name, **vars(check)})
+    return rows
+
+
 def cmd_safety_check(args: argparse.Namespace) -> int:
     """Read back from each drive what keeps it safe when the host is gone; judge it by the
     driver's own rules (motor_driver.safety); and look for the host heartbeat on the bus."""
-    from motor_driver.safety import host_heartbeat_check, judge
-    from motor_driver.units import UNIT_OBJECTS, scale_from_objects
-
     if args.listen is not None and not (math.isfinite(args.listen) and 0 < args.listen <= 60):
         raise ConfigError(f"--listen {args.listen}: allowed 0 < seconds <= 60")
     config = safety_configs(args)
@@ -74,41 +121,14 @@ def cmd_safety_check(args: argparse.Namespace) -> int:
     bus = open_bus(args)
     rows: list[dict[str, Any]] = []
     try:
-        beats: list[float] = []
-        deadline = time.monotonic() + listen_s
-        while (remaining := deadline - time.monotonic()) > 0:
-            msg = receive(bus, remaining)
-            if msg is not None and msg.arbitration_id == 0x700 + bus_cfg.host_node_id and not msg.is_remote_frame:
-                beats.append(msg.timestamp)
-        host = host_heartbeat_check(bus_cfg.host_node_id, bus_cfg.host_heartbeat_s,
-                                    [b - a for a, b in itertools.pairwise(beats)])
+        host = _host_heartbeat(bus, bus_cfg, listen_s)
         rows.append({"node": "-", "drive": "(host)", **vars(host)})
         network = canopen.Network(bus)
         network.NOTIFIER_CYCLE = 0.1
         network.connect()
         try:
             for cfg in config.drives:
-                od = load_drive_od(cfg.eds, cfg.node_id)
-                node = canopen.RemoteNode(cfg.node_id, od)
-                node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
-                network.add_node(node)
-
-                def read(index: int, sub: int, node: canopen.RemoteNode = node, od: ObjectDictionary = od) -> int | None:
-                    var = variable(od, index, sub)
-                    if var is None:
-                        return None
-                    raw = sdo_upload(node, index, sub)
-                    fmt = STRUCT_FORMAT.get(int(var.data_type))
-                    if fmt is None or len(raw) < struct.calcsize(fmt):
-                        return _u32(raw)
-                    return int(struct.unpack_from(fmt, raw)[0])
-
-                objects = {(i, sub): v for i, subs in UNIT_OBJECTS for sub in subs if (v := read(i, sub)) is not None}
-                scale, _ = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
-                                              invert=cfg.invert, offset_deg=cfg.offset_deg)
-                subs = consumer_subs(od)
-                for check in judge(cfg, bus_cfg.host_node_id, scale, read, consumer_subs=subs):
-                    rows.append({"node": cfg.node_id, "drive": cfg.name, **vars(check)})
+                rows += _drive_safety_rows(network, cfg, bus_cfg)
         finally:
             if network.notifier is not None:
                 network.notifier.stop(1.0)

@@ -254,11 +254,34 @@ def step_metrics(t: list[float], y: list[float], start: float, step: float, torq
             "peak_torque_nm": round(max((abs(x) for x in torque if not math.isnan(x)), default=math.nan), 4)}
 
 
-def cmd_step_test(args: argparse.Namespace) -> int:
+def _plot_step(png: Path, node_id: int, step: float, metrics: dict[str, Any], ts: list[float],
+               series: tuple[list[float], list[float], list[float], list[float]]) -> None:
+    """The step test's PNG: set-point and angle, velocity, torque over time."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    setpoint, angle, velocity, torque = series
+    fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+    axes[0].plot(ts, setpoint, "--", label="setpoint")
+    axes[0].plot(ts, angle, label="angle")
+    axes[0].set_ylabel("deg")
+    axes[0].legend()
+    axes[0].set_title(f"step test node {node_id}: {step:g} deg, rise {metrics['rise_time_s']} s,"
+                      f" overshoot {metrics['overshoot_pct']} %")
+    axes[1].plot(ts, velocity)
+    axes[1].set_ylabel("deg/s")
+    axes[2].plot(ts, torque)
+    axes[2].set_ylabel("Nm")
+    axes[2].set_xlabel("s")
+    for ax in axes:
+        ax.grid(True)
+    fig.tight_layout()
+    fig.savefig(png)
+    plt.close(fig)
+
+
+def cmd_step_test(args: argparse.Namespace) -> int:
     node_id = parse_node(args.node)
     with bench_driver(args, node_id) as drive:
         if drive.config.is_continuous and abs(args.step) >= 180:
@@ -295,27 +318,10 @@ def cmd_step_test(args: argparse.Namespace) -> int:
                     "profile_acceleration_deg_s2": drive.config.profile_acceleration_deg_s2})
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
-    axes[0].plot(ts, setpoint, "--", label="setpoint")
-    axes[0].plot(ts, angle, label="angle")
-    axes[0].set_ylabel("deg")
-    axes[0].legend()
-    axes[0].set_title(f"step test node {node_id}: {args.step:g} deg, rise {metrics['rise_time_s']} s,"
-                      f" overshoot {metrics['overshoot_pct']} %")
-    axes[1].plot(ts, velocity)
-    axes[1].set_ylabel("deg/s")
-    axes[2].plot(ts, torque)
-    axes[2].set_ylabel("Nm")
-    axes[2].set_xlabel("s")
-    for ax in axes:
-        ax.grid(True)
-    fig.tight_layout()
-    fig.savefig(out.with_suffix(".png"))
-    plt.close(fig)
+    _plot_step(out.with_suffix(".png"), node_id, args.step, metrics, ts, (setpoint, angle, velocity, torque))
     out.with_suffix(".json").write_text(json.dumps(metrics, indent=2) + "\n")
     emit(args, metrics, f"step test node {node_id} -> {out.with_suffix('.png')}")
     return 0
-
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
