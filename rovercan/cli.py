@@ -16,6 +16,7 @@ import time
 from collections.abc import Sequence
 from decimal import Decimal
 from pathlib import Path
+from typing import Any
 
 from can_config import RoverConfig, heap, load_config, with_bus_overrides
 from can_config.errors import CommandRejected, ConfigError, RovercanError, SimError
@@ -161,14 +162,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
-    from rovercan_msgs.msg import MotorState
-    from std_msgs.msg import Float32
 
     from motor_driver import MotorDriver
     from nodes import runtime
     from nodes.motor_controller import MotorControllerNode
     from nodes.motor_degree import MotorDegreeNode
-    from nodes.qos import COMMAND_QOS, STATE_QOS
     from virtual_can.service import SimService
 
     config = load_config(args.config)
@@ -186,23 +184,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             controller = MotorControllerNode(driver, parameter_overrides=[
                 Parameter("arm", value=True), Parameter("joint", value=joint)])
             degree = MotorDegreeNode(parameter_overrides=[Parameter("step_deg", value=args.step)])
-            monitor = rclpy.create_node("demo_monitor")
+            monitor, last, latest = _demo_monitor(args.print_period)
             nodes = [controller, degree, monitor]
-            last: dict[str, float] = {"cmd": float("nan")}
-            latest: list[MotorState] = []
-            monitor.create_subscription(Float32, "/motor_degree_cmd",
-                                        lambda m: last.__setitem__("cmd", m.data), COMMAND_QOS)
-            monitor.create_subscription(MotorState, "/motor_state",
-                                        lambda m: latest.__setitem__(slice(None), [m]), STATE_QOS)
-
-            def show() -> None:
-                if latest:
-                    m = latest[0]
-                    print(f"cmd {last['cmd']:7.2f} deg | angle {m.angle:7.2f} deg | velocity"
-                          f" {m.velocity:6.2f} deg/s | torque {m.torque:+.3f} Nm | {m.state}"
-                          f"{f' FAULT 0x{m.error_code:04X}' if m.fault else ''}", flush=True)
-
-            monitor.create_timer(args.print_period, show)
             executor = SingleThreadedExecutor()
             for node in nodes:
                 executor.add_node(node)  # type: ignore[arg-type]
@@ -218,6 +201,31 @@ def cmd_demo(args: argparse.Namespace) -> int:
             driver.close()
             rclpy.try_shutdown()
     return result
+
+
+def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[Any]]:
+    """The demo's own node: the last degree command and MotorState, printed every period."""
+    import rclpy
+    from rovercan_msgs.msg import MotorState
+    from std_msgs.msg import Float32
+
+    from nodes.qos import COMMAND_QOS, STATE_QOS
+
+    monitor = rclpy.create_node("demo_monitor")
+    last: dict[str, float] = {"cmd": float("nan")}
+    latest: list[MotorState] = []
+    monitor.create_subscription(Float32, "/motor_degree_cmd", lambda m: last.__setitem__("cmd", m.data), COMMAND_QOS)
+    monitor.create_subscription(MotorState, "/motor_state", lambda m: latest.__setitem__(slice(None), [m]), STATE_QOS)
+
+    def show() -> None:
+        if latest:
+            m = latest[0]
+            print(f"cmd {last['cmd']:7.2f} deg | angle {m.angle:7.2f} deg | velocity"
+                  f" {m.velocity:6.2f} deg/s | torque {m.torque:+.3f} Nm | {m.state}"
+                  f"{f' FAULT 0x{m.error_code:04X}' if m.fault else ''}", flush=True)
+
+    monitor.create_timer(print_period_s, show)
+    return monitor, last, latest
 
 
 def _demo_verdict(cmd: float, state: object | None) -> int:
