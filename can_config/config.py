@@ -48,6 +48,17 @@ from can_config.model import (
 from can_config.textfile import load_yaml
 
 
+def ms_to_s(ms: float) -> float:
+    """A YAML time in ms as the config's seconds, at nanosecond resolution: so that a config
+    comes back unchanged from :func:`config_to_dict` (``0.1 * 1000 / 1000`` is not always 0.1)."""
+    return round(ms / 1000.0, 9)
+
+
+def s_to_ms(seconds: float) -> float:
+    """The config's seconds back to ms for YAML (the inverse of :func:`ms_to_s`)."""
+    return round(seconds * 1000.0, 6)
+
+
 def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
     """Validate an already-parsed YAML document into a :class:`RoverConfig`."""
     where = Where(source)
@@ -81,8 +92,8 @@ def _parse_buses(where: Where, raw_buses: Any) -> list[BusConfig]:
         period_ms = values.pop("sync_period_ms")
         host_ms = values.pop("host_heartbeat_ms")
         connect_ms = values.pop("connect_timeout_ms")
-        buses.append(BusConfig(sync_period_s=period_ms / 1000.0, host_heartbeat_s=host_ms / 1000.0,
-                               connect_timeout_s=connect_ms / 1000.0, **values))
+        buses.append(BusConfig(sync_period_s=ms_to_s(period_ms), host_heartbeat_s=ms_to_s(host_ms),
+                               connect_timeout_s=ms_to_s(connect_ms), **values))
     names = [b.name for b in buses]
     if len(set(names)) != len(names):
         raise where.fail("buses", f"bus names must be unique; got {names}.")
@@ -104,16 +115,16 @@ def _parse_drive(where: Where, prefix: str, raw: Any, buses: list[BusConfig], ba
     values["sdo"] = tuple(SdoSetting(**section(where, f"{prefix}sdo[{k}].", entry, SDO_FIELDS))
                           for k, entry in enumerate(values["sdo"]))
     sim = section(where, prefix + "sim.", values["sim"], SIM_FIELDS)
-    sim["torque_lag_s"] = sim.pop("torque_lag_ms") / 1000.0
+    sim["torque_lag_s"] = ms_to_s(sim.pop("torque_lag_ms"))
     values["sim"] = SimModelConfig(**sim)
     for ms_key, s_key in (("heartbeat_period_ms", "heartbeat_period_s"),
                           ("heartbeat_timeout_ms", "heartbeat_timeout_s"),
                           ("watchdog_ms", "watchdog_s"), ("sdo_timeout_ms", "sdo_timeout_s"),
                           ("boot_timeout_ms", "boot_timeout_s")):
-        values[s_key] = values.pop(ms_key) / 1000.0
+        values[s_key] = ms_to_s(values.pop(ms_key))
     host_ms = values.pop("host_timeout_ms")
     bus_cfg = buses[names.index(bus)]
-    values["host_timeout_s"] = host_ms / 1000.0 if host_ms is not None else 3 * bus_cfg.host_heartbeat_s
+    values["host_timeout_s"] = ms_to_s(host_ms) if host_ms is not None else round(3 * bus_cfg.host_heartbeat_s, 9)
     drive = DriveConfig(**values)
     _check_drive(where, prefix, drive)
     if drive.node_id == bus_cfg.host_node_id:
@@ -134,7 +145,7 @@ def _parse_drive_system(where: Where, raw: Any, known: set[str]) -> DriveSystemC
             if name not in known:
                 raise where.fail(f"drive_system.{side}", f"names drive {name!r}, which is not"
                                  f" configured; configured drives: {sorted(known)}.")
-    values["cmd_timeout_s"] = values.pop("cmd_timeout_ms") / 1000.0
+    values["cmd_timeout_s"] = ms_to_s(values.pop("cmd_timeout_ms"))
     return DriveSystemConfig(**values)
 
 
@@ -195,9 +206,9 @@ def load_config(path: Path | str | None = None) -> RoverConfig:
 def config_to_dict(config: RoverConfig) -> dict[str, Any]:
     """Back to the YAML shape (used to hand a config to a subprocess or a ROS parameter)."""
     buses = [{"name": b.name, "interface": b.interface, "channel": b.channel, "bitrate": b.bitrate,
-              "kwargs": dict(b.kwargs), "sync_period_ms": b.sync_period_s * 1000.0,
-              "host_node_id": b.host_node_id, "host_heartbeat_ms": b.host_heartbeat_s * 1000.0,
-              "connect_timeout_ms": b.connect_timeout_s * 1000.0, "sync_timer": b.sync_timer}
+              "kwargs": dict(b.kwargs), "sync_period_ms": s_to_ms(b.sync_period_s),
+              "host_node_id": b.host_node_id, "host_heartbeat_ms": s_to_ms(b.host_heartbeat_s),
+              "connect_timeout_ms": s_to_ms(b.connect_timeout_s), "sync_timer": b.sync_timer}
              for b in config.buses]
     drives = []
     for d in config.drives:
@@ -208,19 +219,19 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
             "max_velocity_deg_s": d.max_velocity_deg_s,
             "profile_velocity_deg_s": d.profile_velocity_deg_s,
             "profile_acceleration_deg_s2": d.profile_acceleration_deg_s2,
-            "heartbeat_period_ms": d.heartbeat_period_s * 1000.0,
-            "heartbeat_timeout_ms": d.heartbeat_timeout_s * 1000.0,
-            "watchdog_ms": d.watchdog_s * 1000.0, "arm_on_start": d.arm_on_start,
+            "heartbeat_period_ms": s_to_ms(d.heartbeat_period_s),
+            "heartbeat_timeout_ms": s_to_ms(d.heartbeat_timeout_s),
+            "watchdog_ms": s_to_ms(d.watchdog_s), "arm_on_start": d.arm_on_start,
             "restore_enable_after_reboot": d.restore_enable_after_reboot,
             "homing_method": d.homing_method, "homing_speed_deg_s": d.homing_speed_deg_s,
             "homing_timeout_s": d.homing_timeout_s,
             "identity": {k: v for k, v in vars(d.identity).items() if v is not None},
             "invert": d.invert, "offset_deg": d.offset_deg,
             "quick_stop_deceleration_deg_s2": d.quick_stop_deceleration_deg_s2,
-            "host_timeout_ms": d.host_timeout_s * 1000.0 if d.host_timeout_s is not None else None,
+            "host_timeout_ms": s_to_ms(d.host_timeout_s) if d.host_timeout_s is not None else None,
             "on_host_loss": d.on_host_loss, "allow_no_host_watch": d.allow_no_host_watch, "host_watch": d.host_watch,
             "stale_after_syncs": d.stale_after_syncs,
-            "sdo_timeout_ms": d.sdo_timeout_s * 1000.0, "boot_timeout_ms": d.boot_timeout_s * 1000.0,
+            "sdo_timeout_ms": s_to_ms(d.sdo_timeout_s), "boot_timeout_ms": s_to_ms(d.boot_timeout_s),
             "sdo": [{k: v for k, v in vars(x).items() if v is not None} for x in d.sdo],
             "velocity_mode": d.velocity_mode, "torque_mode": d.torque_mode,
             "sim": _sim_to_dict(d.sim),
@@ -238,7 +249,7 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
         ds = config.drive_system
         out["drive_system"] = {"left": list(ds.left), "right": list(ds.right),
                                "track_width_m": ds.track_width_m, "wheel_radius_m": ds.wheel_radius_m,
-                               "cmd_timeout_ms": ds.cmd_timeout_s * 1000.0,
+                               "cmd_timeout_ms": s_to_ms(ds.cmd_timeout_s),
                                "max_accel_m_s2": ds.max_accel_m_s2, "max_speed_m_s": ds.max_speed_m_s,
                                "max_angular_rad_s": ds.max_angular_rad_s}
     return out

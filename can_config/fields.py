@@ -8,7 +8,7 @@ from __future__ import annotations
 import difflib
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -150,64 +150,96 @@ def check_keys(where: Where, prefix: str, data: Mapping[str, Any], known: tuple[
 
 
 def convert(where: Where, key: str, value: Any, spec: Field) -> Any:
+    """``value`` of ``key`` as its kind says, or a ConfigError naming the key and what is allowed."""
     if value is None and spec.default is None:
         return None
-    kind = spec.kind
-    if kind == "bool":
-        if not isinstance(value, bool):
-            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected true or false.")
-        return value
-    if kind == "int":
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a whole number"
-                             f" from {spec.low:g} to {spec.high:g}.")
-        check_range(where, key, value, spec)
-        return value
-    if kind in ("float", "opt_float"):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a number"
-                             f"{range_text(spec)}.")
-        number = float(value)
-        if not math.isfinite(number):
-            raise where.fail(key, f"got {value!r}; expected a finite number{range_text(spec)}.")
-        check_range(where, key, number, spec)
-        return number
-    if kind in ("str", "name", "path"):
-        if not isinstance(value, str) or not value:
-            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a non-empty text.")
-        if kind == "name" and not NAME_RE.match(value):
-            raise where.fail(key, f"got {value!r}; expected a name of letters, digits and '_' that"
-                             " starts with a letter (it becomes part of ROS topic names).")
-        if spec.choices is not None and value not in spec.choices:
-            raise where.fail(key, f"got {value!r}; expected one of {', '.join(spec.choices)}.")
-        return value
-    if kind == "namespace":
-        tokens = value.strip("/").split("/") if isinstance(value, str) else None
-        if tokens is None or (value and not all(NAME_RE.match(t) for t in tokens)):
-            raise where.fail(key, f"got {value!r}; expected a ROS namespace: names of letters, digits and"
-                             " '_' that start with a letter, separated by '/' (e.g. wheels/left), or ''.")
-        return value
-    if kind == "map":
-        if not isinstance(value, Mapping):
-            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a mapping (key: value).")
-        return dict(value)
-    if kind == "list":
-        if not isinstance(value, list):
-            raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a list.")
-        return list(value)
-    if kind == "number":
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise where.fail(key, f"got {value!r}; expected a finite number (decimal, 0x hex or a real).")
-        return value
-    if kind == "opt_int":
-        if isinstance(value, bool) or not isinstance(value, int) or value not in (1, 2, 4, 8):
-            raise where.fail(key, f"got {value!r}; expected 1, 2, 4 or 8 (bytes).")
-        return value
-    if kind == "list_names":
-        if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
-            raise where.fail(key, f"got {value!r}; expected a non-empty list of drive names.")
-        return tuple(value)
-    raise AssertionError(f"unknown field kind {kind}")  # pragma: no cover - programming error
+    try:
+        converter = _CONVERTERS[spec.kind]
+    except KeyError:  # pragma: no cover - programming error
+        raise AssertionError(f"unknown field kind {spec.kind}") from None
+    return converter(where, key, value, spec)
+
+
+def _bool(where: Where, key: str, value: Any, spec: Field) -> Any:
+    if not isinstance(value, bool):
+        raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected true or false.")
+    return value
+
+
+def _int(where: Where, key: str, value: Any, spec: Field) -> Any:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a whole number"
+                         f" from {spec.low:g} to {spec.high:g}.")
+    check_range(where, key, value, spec)
+    return value
+
+
+def _float(where: Where, key: str, value: Any, spec: Field) -> Any:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a number"
+                         f"{range_text(spec)}.")
+    number = float(value)
+    if not math.isfinite(number):
+        raise where.fail(key, f"got {value!r}; expected a finite number{range_text(spec)}.")
+    check_range(where, key, number, spec)
+    return number
+
+
+def _text(where: Where, key: str, value: Any, spec: Field) -> Any:
+    if not isinstance(value, str) or not value:
+        raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a non-empty text.")
+    if spec.kind == "name" and not NAME_RE.match(value):
+        raise where.fail(key, f"got {value!r}; expected a name of letters, digits and '_' that"
+                         " starts with a letter (it becomes part of ROS topic names).")
+    if spec.choices is not None and value not in spec.choices:
+        raise where.fail(key, f"got {value!r}; expected one of {', '.join(spec.choices)}.")
+    return value
+
+
+def _namespace(where: Where, key: str, value: Any, spec: Field) -> Any:
+    tokens = value.strip("/").split("/") if isinstance(value, str) else None
+    if tokens is None or (value and not all(NAME_RE.match(t) for t in tokens)):
+        raise where.fail(key, f"got {value!r}; expected a ROS namespace: names of letters, digits and"
+                         " '_' that start with a letter, separated by '/' (e.g. wheels/left), or ''.")
+    return value
+
+
+def _map(where: Where, key: str, value: Any, spec: Field) -> Any:
+    if not isinstance(value, Mapping):
+        raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a mapping (key: value).")
+    return dict(value)
+
+
+def _list(where: Where, key: str, value: Any, spec: Field) -> Any:
+    if not isinstance(value, list):
+        raise where.fail(key, f"got {value!r} ({type(value).__name__}); expected a list.")
+    return list(value)
+
+
+def _number(where: Where, key: str, value: Any, spec: Field) -> Any:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise where.fail(key, f"got {value!r}; expected a finite number (decimal, 0x hex or a real).")
+    return value
+
+
+def _byte_size(where: Where, key: str, value: Any, spec: Field) -> Any:
+    if isinstance(value, bool) or not isinstance(value, int) or value not in (1, 2, 4, 8):
+        raise where.fail(key, f"got {value!r}; expected 1, 2, 4 or 8 (bytes).")
+    return value
+
+
+def _list_names(where: Where, key: str, value: Any, spec: Field) -> Any:
+    if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
+        raise where.fail(key, f"got {value!r}; expected a non-empty list of drive names.")
+    return tuple(value)
+
+
+#: Each field kind's converter (the kinds of :class:`Field`).
+_CONVERTERS: dict[str, Callable[[Where, str, Any, Field], Any]] = {
+    "bool": _bool, "int": _int, "float": _float, "opt_float": _float, "str": _text, "name": _text, "path": _text,
+    "namespace": _namespace, "map": _map, "list": _list, "number": _number, "opt_int": _byte_size,
+    "list_names": _list_names,
+}
 
 
 def range_text(spec: Field) -> str:

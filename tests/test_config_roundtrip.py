@@ -74,7 +74,7 @@ def configs(draw: st.DrawFn) -> dict[str, Any]:
             low = draw(st.floats(-1e4, 1e4, allow_nan=False))
             drive |= {"joint": "limited", "min_deg": low, "max_deg": low + draw(st.floats(0.5, 1e4))}
         period = drive.get("heartbeat_period_ms", 100.0)
-        drive["heartbeat_timeout_ms"] = draw(st.floats(max(period, 20.0), 60_000.0, exclude_min=True))
+        drive["heartbeat_timeout_ms"] = draw(st.floats(max(period * 1.001, 20.0), 60_000.0))  # longer than the period
         vmax = drive.get("max_velocity_deg_s", 360.0)
         drive["profile_velocity_deg_s"] = draw(st.floats(0.0, vmax, exclude_min=True))
         drive["host_timeout_ms"] = draw(st.none() | st.floats(max(20.0, host_ms * 1.01), 65_535.0))

@@ -36,6 +36,15 @@ ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "tpdos", "slow_enabl
            "disconnect_clients", "load")
 
 
+def _channel_faults(sim: SimService, step: Mapping[str, Any]) -> None:
+    """The ``frames`` action: drop, delay and corrupt frames on a channel."""
+    chan = sim.engine.channel(str(step.get("channel", "can0")))
+    chan.faults.drop = float(step.get("drop", 0.0))
+    chan.faults.delay = float(step.get("delay", 0.0))
+    chan.faults.delay_s = float(step.get("delay_s", chan.faults.delay_s))
+    chan.faults.corrupt = float(step.get("corrupt", 0.0))
+
+
 def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
     """Apply one fault-injection step (also used directly from Python)."""
     action = step.get("action")
@@ -45,11 +54,7 @@ def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
         sim.server.disconnect_clients()
         return
     if action == "frames":
-        chan = sim.engine.channel(str(step.get("channel", "can0")))
-        chan.faults.drop = float(step.get("drop", 0.0))
-        chan.faults.delay = float(step.get("delay", 0.0))
-        chan.faults.delay_s = float(step.get("delay_s", chan.faults.delay_s))
-        chan.faults.corrupt = float(step.get("corrupt", 0.0))
+        _channel_faults(sim, step)
         return
     node = int(step.get("node", 0))
     channel = step.get("channel")

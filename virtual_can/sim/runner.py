@@ -91,6 +91,18 @@ class DriveSimulator:
             if out:
                 self._send(out)
 
+    def _run_calls(self) -> None:
+        """Calls handed to this thread (:meth:`call`), each answered on its own queue."""
+        while True:
+            try:
+                fn, reply = self._calls.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                reply.put(fn())
+            except Exception as err:
+                reply.put(err)
+
     def _run(self) -> None:
         drives = list(self.drives.values())
         tick = self.tick_s
@@ -119,15 +131,7 @@ class DriveSimulator:
                     msg = self.bus.recv(timeout=0.0)
                 except (can.CanError, OSError, ValueError):
                     break
-            while True:
-                try:
-                    fn, reply = self._calls.get_nowait()
-                except queue.Empty:
-                    break
-                try:
-                    reply.put(fn())
-                except Exception as err:
-                    reply.put(err)
+            self._run_calls()
             if now >= next_tick:
                 dt = min(now - last, 10 * tick)
                 last = now

@@ -131,42 +131,47 @@ class StateMachine(ErrorStack):
         if not self.faults.sto_low and self.state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
                                                       *POWERED):
             sw |= SW_VOLTAGE_ENABLED
-        mode = self.mode
         if self.state == State.OPERATION_ENABLED:
-            if mode == OperationMode.PROFILE_POSITION:
-                if self.pp_target is None or (abs(self.sp_pos - self.pp_target) < 0.5 and self.sp_vel == 0.0
-                                              and abs(self.position_counts - self.pp_target) <= self._window()):
-                    sw |= SW_TARGET_REACHED
-                cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
-                if cw & CW_NEW_SETPOINT and self._setpoint_ack:
-                    if self._now >= self._ack_at:  # a slow drive acknowledges later (fault injection)
-                        sw |= SW_OMS12
-                else:
-                    self._setpoint_ack = False
-            elif mode == OperationMode.PROFILE_VELOCITY:
-                target_v = self._v(OD.TARGET_VELOCITY, 0, 0)
-                if abs(self.omega / self._rad_per_count - target_v) < max(10.0, abs(target_v) * 0.02):
-                    sw |= SW_TARGET_REACHED
-                if abs(self.omega / self._rad_per_count) < 10.0:
-                    sw |= SW_OMS12
-            elif mode == OperationMode.HOMING:
-                if self.homing_done:
-                    sw |= SW_OMS12 | SW_TARGET_REACHED
-                if self.homing_error:
-                    sw |= SW_OMS13
-            elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.CYCLIC_SYNC_VELOCITY,
-                          OperationMode.CYCLIC_SYNC_TORQUE):
-                sw |= SW_OMS12  # the drive follows the cyclic target
-            elif mode == OperationMode.INTERPOLATED_POSITION:
-                if self._ip_enabled:
-                    sw |= SW_OMS12  # ip mode active
-                if self.pp_target is None or abs(self.pp_target - self.position_counts) <= self._window():
-                    sw |= SW_TARGET_REACHED
-            else:
-                sw |= SW_TARGET_REACHED
+            sw |= self._mode_status_bits(self.mode)
         if self.following_since is not None:
             sw |= SW_WARNING
         self.store.values[(OD.STATUSWORD, 0)] = sw
+
+    def _mode_status_bits(self, mode: int) -> int:
+        """Statusword bits 10, 12 and 13 of Operation Enabled, as the mode defines them (CiA 402)."""
+        bits = 0
+        if mode == OperationMode.PROFILE_POSITION:
+            if self.pp_target is None or (abs(self.sp_pos - self.pp_target) < 0.5 and self.sp_vel == 0.0
+                                          and abs(self.position_counts - self.pp_target) <= self._window()):
+                bits |= SW_TARGET_REACHED
+            cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
+            if cw & CW_NEW_SETPOINT and self._setpoint_ack:
+                if self._now >= self._ack_at:  # a slow drive acknowledges later (fault injection)
+                    bits |= SW_OMS12
+            else:
+                self._setpoint_ack = False
+        elif mode == OperationMode.PROFILE_VELOCITY:
+            target_v = self._v(OD.TARGET_VELOCITY, 0, 0)
+            if abs(self.omega / self._rad_per_count - target_v) < max(10.0, abs(target_v) * 0.02):
+                bits |= SW_TARGET_REACHED
+            if abs(self.omega / self._rad_per_count) < 10.0:
+                bits |= SW_OMS12
+        elif mode == OperationMode.HOMING:
+            if self.homing_done:
+                bits |= SW_OMS12 | SW_TARGET_REACHED
+            if self.homing_error:
+                bits |= SW_OMS13
+        elif mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.CYCLIC_SYNC_VELOCITY,
+                      OperationMode.CYCLIC_SYNC_TORQUE):
+            bits |= SW_OMS12  # the drive follows the cyclic target
+        elif mode == OperationMode.INTERPOLATED_POSITION:
+            if self._ip_enabled:
+                bits |= SW_OMS12  # ip mode active
+            if self.pp_target is None or abs(self.pp_target - self.position_counts) <= self._window():
+                bits |= SW_TARGET_REACHED
+        else:
+            bits |= SW_TARGET_REACHED
+        return bits
 
     def _connection_lost(self, now: float) -> list[can.Message]:
         """CiA 402 0x6007: the drive's own reaction to losing its master. A drive without 0x6007
