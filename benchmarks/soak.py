@@ -57,6 +57,20 @@ def wait(pred: Any, timeout_s: float) -> bool:
     return False
 
 
+def inject(sim: SimService, d: Any, node: int, kind: str, boots: int) -> bool:
+    """One fault of ``kind`` on ``node``; True when the driver noticed it in time."""
+    if kind == "emcy":
+        apply_action(sim, {"action": "fault", "node": node, "code": 0x2310})
+        return wait(lambda: d.state is State.FAULT and d.snapshot().error_code == 0x2310, 2.0)
+    if kind == "unplug":
+        apply_action(sim, {"action": "unplug", "node": node})
+        ok = wait(lambda: d.lost, 2.0)
+        apply_action(sim, {"action": "plug", "node": node})
+        return ok
+    apply_action(sim, {"action": "power_cycle", "node": node, "off_s": 0.3})
+    return wait(lambda: d.boot_count > boots, 5.0)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--minutes", type=float, default=30.0)
@@ -129,17 +143,7 @@ def main() -> int:
             lost_commands += (sent[node] - base[node][0]) - (rpdos(node) - base[node][1])
             faults["injected"] += 1
             boots = d.boot_count
-            if kind == "emcy":
-                apply_action(sim, {"action": "fault", "node": node, "code": 0x2310})
-                ok = wait(lambda d=d: d.state is State.FAULT and d.snapshot().error_code == 0x2310, 2.0)
-            elif kind == "unplug":
-                apply_action(sim, {"action": "unplug", "node": node})
-                ok = wait(lambda d=d: d.lost, 2.0)
-                apply_action(sim, {"action": "plug", "node": node})
-            else:
-                apply_action(sim, {"action": "power_cycle", "node": node, "off_s": 0.3})
-                ok = wait(lambda d=d, b=boots: d.boot_count > b, 5.0)
-            faults["detected"] += ok
+            faults["detected"] += inject(sim, d, node, kind, boots)
             try:
                 if kind == "unplug":
                     wait(lambda d=d: not d.lost, 2.0)

@@ -157,6 +157,34 @@ def is_tpdo(cob: int) -> bool:
     return cob & 0x7F != 0 and cob & 0x780 in TPDO_BASES
 
 
+def match_latencies(listeners: dict[str, Any], sent: dict[tuple[str, int, int], list[float]],
+                    drives: list[Any]) -> tuple[list[float], dict[int, list[float]], list[float], int]:
+    """Each position RPDO on the wire matched to the degree command that asked for it: latencies
+    (ms), by the command's place in each burst, when each was published, and how many matched."""
+    latencies = []
+    by_order: dict[int, list[float]] = {}  # latency by the command's place in each burst of publishes
+    published_at: list[float] = []  # of each latency
+    order = {(ch, d.node_id): i for i, (d, ch, _, _) in enumerate(drives)}
+    matched = 0
+    per_rev = {(ch, d.node_id): rev for d, ch, _, rev in drives}
+    for ch, listener in listeners.items():
+        for t, cob, data in listener.frames:
+            node_id = cob - 0x300
+            if (ch, node_id) in per_rev and len(data) >= 6 and data[0] & 0x10:
+                # continuous joints go the short way: the target on the wire is multi-turn, so match
+                # it modulo one revolution of the joint
+                times = sent.get((ch, node_id, int.from_bytes(data[2:6], "little", signed=True) % per_rev[(ch, node_id)]), [])
+                while times and times[0] < t - 1.0:
+                    times.pop(0)  # a command superseded before it was sent (latest wins)
+                if times and times[0] <= t:
+                    published = times.pop(0)
+                    latencies.append((t - published) * 1000)
+                    by_order.setdefault(order[(ch, node_id)], []).append(latencies[-1])
+                    published_at.append(published)
+                    matched += 1
+    return latencies, by_order, published_at, matched
+
+
 def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str, Any]:
     """The measured process runs a shipped config as a user gets it; only the simulator's port
     is put into it. Every drive gets a ``degree_cmd`` at ``command_hz`` (0.1 % slow: below)."""
@@ -260,27 +288,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
                 listener.close()
     tpdo_sent = sum(1 for listener in listeners.values() for t, cob, _ in listener.frames
                     if is_tpdo(cob) and t < t_stop + 0.5)
-    latencies = []
-    by_order: dict[int, list[float]] = {}  # latency by the command's place in each burst of publishes
-    published_at: list[float] = []  # of each latency
-    order = {(ch, d.node_id): i for i, (d, ch, _, _) in enumerate(drives)}
-    matched = 0
-    per_rev = {(ch, d.node_id): rev for d, ch, _, rev in drives}
-    for ch, listener in listeners.items():
-        for t, cob, data in listener.frames:
-            node_id = cob - 0x300
-            if (ch, node_id) in per_rev and len(data) >= 6 and data[0] & 0x10:
-                # continuous joints go the short way: the target on the wire is multi-turn, so match
-                # it modulo one revolution of the joint
-                times = sent.get((ch, node_id, int.from_bytes(data[2:6], "little", signed=True) % per_rev[(ch, node_id)]), [])
-                while times and times[0] < t - 1.0:
-                    times.pop(0)  # a command superseded before it was sent (latest wins)
-                if times and times[0] <= t:
-                    published = times.pop(0)
-                    latencies.append((t - published) * 1000)
-                    by_order.setdefault(order[(ch, node_id)], []).append(latencies[-1])
-                    published_at.append(published)
-                    matched += 1
+    latencies, by_order, published_at, matched = match_latencies(listeners, sent, drives)
     unmatched = sum(len(v) for v in sent.values())
     syncs = [t for t, cob, _ in first.frames if cob == 0x080]
     sync_s = shipped.buses[0].sync_period_s

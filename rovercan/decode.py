@@ -87,6 +87,23 @@ def decode(msg: can.Message, pdo_layouts: PdoLayouts | None = None) -> str:
     if msg.is_extended_id:
         return f"extended id 0x{cob:08X} (not CANopen)"
     fn, node = cob & 0x780, cob & 0x7F
+    service = _decode_service(msg, cob, fn, node, data)
+    if service is not None:
+        return service
+    if fn == 0x580 and node:
+        return f"node {node}: " + _sdo("SDO response", data)
+    if fn == 0x600 and node:
+        return f"node {node}: " + _sdo("SDO request", data)
+    if cob in (0x7E4, 0x7E5):
+        return "LSS " + ("response" if cob == 0x7E4 else "request")
+    base = cob - node if node else cob
+    if base in PDO_NAMES and node:
+        return _decode_pdo(PDO_NAMES[base], cob, node, data, pdo_layouts)
+    return f"0x{cob:03X} (not a predefined CANopen id): {data.hex(' ')}"
+
+
+def _decode_service(msg: can.Message, cob: int, fn: int, node: int, data: bytes) -> str | None:
+    """NMT, SYNC, TIME, EMCY and heartbeat / node guarding frames; None for any other."""
     if cob == 0x000:
         if len(data) < 2:
             return "NMT (short frame)"
@@ -113,25 +130,21 @@ def decode(msg: can.Message, pdo_layouts: PdoLayouts | None = None) -> str:
             return f"BOOT-UP node {node}"
         toggle = " toggle" if data[0] & 0x80 else ""
         return f"heartbeat node {node}: {_state_name(data[0] & 0x7F)}{toggle}"
-    if fn == 0x580 and node:
-        return f"node {node}: " + _sdo("SDO response", data)
-    if fn == 0x600 and node:
-        return f"node {node}: " + _sdo("SDO request", data)
-    if cob in (0x7E4, 0x7E5):
-        return "LSS " + ("response" if cob == 0x7E4 else "request")
-    base = cob - node if node else cob
-    if base in PDO_NAMES and node:
-        fields = (pdo_layouts or {}).get(cob)
-        if fields:
-            try:
-                values = struct.unpack("<" + "".join(f.fmt[1:] for f in fields), data[:struct.calcsize(
-                    "<" + "".join(f.fmt[1:] for f in fields))])
-                return f"{PDO_NAMES[base]} node {node}: " + ", ".join(
-                    f"{f.name}={_fmt_value(f.name, v)}" for f, v in zip(fields, values, strict=True))
-            except struct.error:
-                pass
-        return f"{PDO_NAMES[base]} node {node}: {data.hex(' ')}"
-    return f"0x{cob:03X} (not a predefined CANopen id): {data.hex(' ')}"
+    return None
+
+
+def _decode_pdo(name: str, cob: int, node: int, data: bytes, pdo_layouts: PdoLayouts | None) -> str:
+    """A PDO by the driver's mapping where one is known, else its bytes."""
+    fields = (pdo_layouts or {}).get(cob)
+    if fields:
+        try:
+            values = struct.unpack("<" + "".join(f.fmt[1:] for f in fields), data[:struct.calcsize(
+                "<" + "".join(f.fmt[1:] for f in fields))])
+            return f"{name} node {node}: " + ", ".join(
+                f"{f.name}={_fmt_value(f.name, v)}" for f, v in zip(fields, values, strict=True))
+        except struct.error:
+            pass
+    return f"{name} node {node}: {data.hex(' ')}"
 
 
 def _fmt_value(name: str, value: object) -> str:

@@ -29,6 +29,7 @@ from typing import Any
 from can_config.errors import ConfigError
 from can_config.textfile import load_yaml
 from virtual_can.service import SimService
+from virtual_can.sim import SimulatedDrive
 
 logger = logging.getLogger(__name__)
 
@@ -43,6 +44,35 @@ def _channel_faults(sim: SimService, step: Mapping[str, Any]) -> None:
     chan.faults.delay = float(step.get("delay", 0.0))
     chan.faults.delay_s = float(step.get("delay_s", chan.faults.delay_s))
     chan.faults.corrupt = float(step.get("corrupt", 0.0))
+
+
+def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -> None:
+    """One drive's fault switch, on its simulator's thread."""
+    now = time.monotonic()
+    if action == "unplug":
+        drive.faults.unplugged = True
+    elif action == "plug":
+        drive.faults.unplugged = False
+    elif action == "power_cycle":
+        drive.power_cycle(now, float(step.get("off_s", 0.5)))
+    elif action == "fault":
+        drive.raise_fault(int(step.get("code", 0x1000)))
+    elif action == "tpdos":  # the drive stops (or resumes) sending its TPDOs; heartbeat and SDO go on
+        drive.faults.tpdo_silent = not bool(step.get("on", False))
+    elif action == "slow_enable":  # each enabling transition takes delay_s
+        drive.faults.enable_step_delay_s = float(step.get("delay_s", 0.0))
+    elif action == "slow_ack":  # the set-point acknowledge comes 0..max_s late
+        drive.faults.ack_delay_max_s = float(step.get("max_s", 0.0))
+    elif action == "load":  # external load torque (motor side) and/or a blocked shaft
+        if "nm" in step:
+            drive.params.load_nm = float(step["nm"])
+        drive.faults.stalled = bool(step.get("stall", False))
+    elif action == "sto":
+        drive.faults.sto_low = bool(step.get("low", True))
+    elif action == "sdo":
+        drive.faults.sdo_delay_s = float(step.get("delay_s", 0.0))
+        abort = step.get("abort")
+        drive.sdo.force_abort = int(abort) if abort is not None else None
 
 
 def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
@@ -61,34 +91,7 @@ def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
     simulator = sim.simulator_for(node, str(channel) if channel is not None else None)
     drive = simulator.drive(node)
 
-    def act() -> None:
-        now = time.monotonic()
-        if action == "unplug":
-            drive.faults.unplugged = True
-        elif action == "plug":
-            drive.faults.unplugged = False
-        elif action == "power_cycle":
-            drive.power_cycle(now, float(step.get("off_s", 0.5)))
-        elif action == "fault":
-            drive.raise_fault(int(step.get("code", 0x1000)))
-        elif action == "tpdos":  # the drive stops (or resumes) sending its TPDOs; heartbeat and SDO go on
-            drive.faults.tpdo_silent = not bool(step.get("on", False))
-        elif action == "slow_enable":  # each enabling transition takes delay_s
-            drive.faults.enable_step_delay_s = float(step.get("delay_s", 0.0))
-        elif action == "slow_ack":  # the set-point acknowledge comes 0..max_s late
-            drive.faults.ack_delay_max_s = float(step.get("max_s", 0.0))
-        elif action == "load":  # external load torque (motor side) and/or a blocked shaft
-            if "nm" in step:
-                drive.params.load_nm = float(step["nm"])
-            drive.faults.stalled = bool(step.get("stall", False))
-        elif action == "sto":
-            drive.faults.sto_low = bool(step.get("low", True))
-        elif action == "sdo":
-            drive.faults.sdo_delay_s = float(step.get("delay_s", 0.0))
-            abort = step.get("abort")
-            drive.sdo.force_abort = int(abort) if abort is not None else None
-
-    simulator.call(act)
+    simulator.call(lambda: _drive_action(drive, str(action), step))
 
 
 def load_scenario(path: str | Path) -> list[dict[str, Any]]:

@@ -89,8 +89,10 @@ ENABLING = (State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.OPERATION_ENABLED
 ERROR_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}  # by code's first nibble
 
 
-def next_state(state: State, cw: int, prev_cw: int, *, voltage_ok: bool, quick_stop_option: int) -> State:
-    """The CiA 402 transition a controlword causes (pure; transition numbers in comments)."""
+def next_state(state: State, cw: int, prev_cw: int, *, voltage_ok: bool,  # noqa: C901, PLR0911, PLR0912
+               quick_stop_option: int) -> State:
+    """The CiA 402 transition a controlword causes (pure; transition numbers in comments). One
+    branch per transition of the standard's table, in its order: the complexity is the table's."""
     if state == State.FAULT:
         if cw & CW_FAULT_RESET and not prev_cw & CW_FAULT_RESET:
             return State.SWITCH_ON_DISABLED  # 15

@@ -137,19 +137,25 @@ class StateMachine(ErrorStack):
             sw |= SW_WARNING
         self.store.values[(OD.STATUSWORD, 0)] = sw
 
+    def _pp_status_bits(self) -> int:
+        """Profile position: target reached (bit 10) and the set-point acknowledge (bit 12)."""
+        bits = 0
+        if self.pp_target is None or (abs(self.sp_pos - self.pp_target) < 0.5 and self.sp_vel == 0.0
+                                      and abs(self.position_counts - self.pp_target) <= self._window()):
+            bits |= SW_TARGET_REACHED
+        cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
+        if cw & CW_NEW_SETPOINT and self._setpoint_ack:
+            if self._now >= self._ack_at:  # a slow drive acknowledges later (fault injection)
+                bits |= SW_OMS12
+        else:
+            self._setpoint_ack = False
+        return bits
+
     def _mode_status_bits(self, mode: int) -> int:
         """Statusword bits 10, 12 and 13 of Operation Enabled, as the mode defines them (CiA 402)."""
         bits = 0
         if mode == OperationMode.PROFILE_POSITION:
-            if self.pp_target is None or (abs(self.sp_pos - self.pp_target) < 0.5 and self.sp_vel == 0.0
-                                          and abs(self.position_counts - self.pp_target) <= self._window()):
-                bits |= SW_TARGET_REACHED
-            cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
-            if cw & CW_NEW_SETPOINT and self._setpoint_ack:
-                if self._now >= self._ack_at:  # a slow drive acknowledges later (fault injection)
-                    bits |= SW_OMS12
-            else:
-                self._setpoint_ack = False
+            bits |= self._pp_status_bits()
         elif mode == OperationMode.PROFILE_VELOCITY:
             target_v = self._v(OD.TARGET_VELOCITY, 0, 0)
             if abs(self.omega / self._rad_per_count - target_v) < max(10.0, abs(target_v) * 0.02):
