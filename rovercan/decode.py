@@ -58,24 +58,27 @@ def _sdo(kind: str, data: bytes) -> str:
             return f"SDO read {where}"
         if cs == 1:
             if data[0] & 0x02:
-                n = (data[0] >> 2) & 3 if data[0] & 1 else 0
-                payload = data[4:8 - n]
-                return f"SDO write {where} = {payload.hex(' ')} ({int.from_bytes(payload, 'little')})"
+                return f"SDO write {where} = {_expedited(data)}"
             return f"SDO write {where} (segmented)"
         if cs in (0, 3):
             return f"SDO {'download' if cs == 0 else 'upload'} segment"
         return f"SDO request cs={cs}"
     if cs == 2:
         if data[0] & 0x02:
-            n = (data[0] >> 2) & 3 if data[0] & 1 else 0
-            payload = data[4:8 - n]
-            return f"SDO reply {where} = {payload.hex(' ')} ({int.from_bytes(payload, 'little')})"
+            return f"SDO reply {where} = {_expedited(data)}"
         return f"SDO reply {where} (segmented, {int.from_bytes(data[4:8], 'little')} bytes)"
     if cs == 3:
         return f"SDO write {where} ok"
     if cs in (0, 1):
         return "SDO segment"
     return f"SDO response cs={cs}"
+
+
+def _expedited(data: bytes) -> str:
+    """The payload of an expedited SDO frame, as bytes and as a little-endian number."""
+    n = (data[0] >> 2) & 3 if data[0] & 1 else 0
+    payload = data[4:8 - n]
+    return f"{payload.hex(' ')} ({int.from_bytes(payload, 'little')})"
 
 
 def decode(msg: can.Message, pdo_layouts: PdoLayouts | None = None) -> str:

@@ -15,39 +15,16 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import canopen
-from canopen.objectdictionary import ObjectDictionary
-
-from can_config.config import GENERIC_EDS, DriveConfig
+from can_config.config import GENERIC_EDS
 from can_config.eds import consumer_subs, has_object, variable
-from can_config.errors import (
-    BootError,
-    DriveStateError,
-    DriveTimeoutError,
-    MotorError,
-    SdoError,
-)
-from can_config.objects import (
-    CIA402_PROFILE,
-    OD,
-    SUPPORTED_MODE_BIT,
-    NmtCommand,
-    OperationMode,
-)
-from motor_driver.cia402 import (
-    SW,
-    Command,
-    State,
-    decode_state,
-)
+from can_config.errors import BootError, DriveStateError, DriveTimeoutError, MotorError, SdoError
+from can_config.objects import CIA402_PROFILE, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
+from motor_driver.cia402 import SW, Command, State, decode_state
 from motor_driver.drive.constants import EMCY_HOST_LOST, HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
 from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.pdo import mapping_writes
 from motor_driver.safety import SafetyCheck, judge
-from motor_driver.units import (
-    read_unit_objects,
-    scale_from_objects,
-)
+from motor_driver.units import read_unit_objects, scale_from_objects
 
 logger = logging.getLogger(__name__)
 
@@ -55,9 +32,8 @@ logger = logging.getLogger(__name__)
 class Boot(HostWatch):
     """Layer 8: boot, a table of steps, and re-configuration after a reset."""
 
-    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
-                 host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
-        super().__init__(config, network, od, host_node_id=host_node_id, sync_period_s=sync_period_s)
+    def _init_state(self) -> None:
+        super()._init_state()
         self.safety: tuple[SafetyCheck, ...] = ()  # read back after each boot (motor_driver.safety)
         self.host_loss_stops = 0  # boots that found the drive stopped by its host watch (boot thread)
         self._boot_object = (0, 0)  # the object the running boot step is at (for its error)

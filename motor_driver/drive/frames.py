@@ -14,18 +14,8 @@ import struct
 import threading
 from collections.abc import Callable
 
-import canopen
-from canopen.objectdictionary import ObjectDictionary
-
-from can_config.config import DriveConfig
-from can_config.objects import (
-    OD,
-)
-from motor_driver.cia402 import (
-    CW,
-    Command,
-    controlword,
-)
+from can_config.objects import OD
+from motor_driver.cia402 import CW, Command, controlword
 from motor_driver.drive.sdo import SdoAccess
 from motor_driver.pdo import encode_rpdo
 from motor_driver.setpoint import SetpointHandshake
@@ -36,9 +26,8 @@ logger = logging.getLogger(__name__)
 class CommandFrames(SdoAccess):
     """Layer 2: the frames a command sends (controlword, targets), RPDO where mapped, else SDO."""
 
-    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
-                 host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
-        super().__init__(config, network, od, host_node_id=host_node_id, sync_period_s=sync_period_s)
+    def _init_state(self) -> None:
+        super()._init_state()
         self._lock = threading.RLock()  # serialises commands; never held while waiting for the drive
         self._cw = 0  # last device-control controlword (no edge bits); written under _lock only
         self._enable_sent_at = 0.0  # when this driver last sent Enable Operation (under _lock)

@@ -10,23 +10,9 @@ import logging
 import time
 
 from can_config.eds import has_object
-from can_config.errors import (
-    CommandRejected,
-    DriveStateError,
-    DriveTimeoutError,
-)
-from can_config.objects import (
-    OD,
-    SUPPORTED_MODE_BIT,
-    OperationMode,
-)
-from motor_driver.cia402 import (
-    CW,
-    FAULT_STATES,
-    SW,
-    Command,
-    State,
-)
+from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
+from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
+from motor_driver.cia402 import CW, FAULT_STATES, SW, Command, State
 from motor_driver.drive.constants import STATE_POLL_S
 from motor_driver.drive.motion import Motion
 

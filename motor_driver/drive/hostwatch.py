@@ -14,23 +14,12 @@ import struct
 import time
 
 import can
-import canopen
-from canopen.objectdictionary import ObjectDictionary
 
-from can_config.config import ON_HOST_LOSS, DriveConfig
+from can_config.config import ON_HOST_LOSS
 from can_config.eds import has_object
-from can_config.errors import (
-    MotorError,
-    SdoError,
-)
-from can_config.objects import (
-    OD,
-    sdo_abort_text,
-)
-from motor_driver.cia402 import (
-    Command,
-    State,
-)
+from can_config.errors import MotorError, SdoError
+from can_config.objects import OD, sdo_abort_text
+from motor_driver.cia402 import Command, State
 from motor_driver.drive.constants import NO_HOST_WATCH, QUICK_STOP_THEN_DISABLE, VALUE_RANGE_ABORTS
 from motor_driver.drive.homing import Homing
 from motor_driver.safety import guard_settings
@@ -46,9 +35,8 @@ def host_consumer_entry(host_node_id: int, timeout_s: float) -> int:
 class HostWatch(Homing):
     """Layer 7: how the drive watches the host, and the supervisor's view of the drive."""
 
-    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
-                 host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
-        super().__init__(config, network, od, host_node_id=host_node_id, sync_period_s=sync_period_s)
+    def _init_state(self) -> None:
+        super()._init_state()
         #: set by the driver: the bus carries remote frames (a kernel bus; socketcand's rawmode cannot)
         self.remote_frames = False
         self._next_guard = 0.0  # supervisor only

@@ -11,17 +11,8 @@ from __future__ import annotations
 import logging
 import time
 
-import canopen
-from canopen.objectdictionary import ObjectDictionary
-
-from can_config.config import DriveConfig
-from can_config.errors import (
-    CommandRejected,
-)
-from motor_driver.cia402 import (
-    Command,
-    State,
-)
+from can_config.errors import CommandRejected
+from motor_driver.cia402 import Command, State
 from motor_driver.drive.constants import LIMIT_ACCEL_MARGIN_S, LIMIT_MARGIN_S, MAX_EXTRAPOLATION_S, TORQUE_MODES, VELOCITY_MODES
 from motor_driver.drive.power import PowerStateMachine
 
@@ -31,9 +22,8 @@ logger = logging.getLogger(__name__)
 class LimitGuard(PowerStateMachine):
     """Layer 4: the limit guard and the velocity watchdog, for every velocity and torque path."""
 
-    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
-                 host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
-        super().__init__(config, network, od, host_node_id=host_node_id, sync_period_s=sync_period_s)
+    def _init_state(self) -> None:
+        super()._init_state()
         self.limit_stops = 0  # brakes by the limit guard (command threads and the supervisor, under _lock)
         self.watchdog_stops = 0  # zero commands sent by the watchdog (the supervisor, under _lock)
 

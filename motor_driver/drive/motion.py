@@ -12,36 +12,13 @@ from __future__ import annotations
 import logging
 import time
 
-import canopen
-from canopen.objectdictionary import ObjectDictionary
-
-from can_config.config import DriveConfig
-from can_config.errors import (
-    CommandRejected,
-    DriveStateError,
-    DriveTimeoutError,
-)
-from can_config.objects import (
-    OD,
-    SUPPORTED_MODE_BIT,
-    OperationMode,
-)
-from motor_driver.cia402 import (
-    CW,
-    FAULT_STATES,
-    SW,
-    Command,
-    State,
-)
+from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
+from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
+from motor_driver.cia402 import CW, FAULT_STATES, SW, Command, State
 from motor_driver.drive.constants import CONTINUOUS_COMMAND_LIMIT_DEG, ENABLED_CW_MASK
 from motor_driver.drive.limits import LimitGuard
 from motor_driver.pdo import encode_rpdo
-from motor_driver.units import (
-    check_counts,
-    check_limits,
-    nearest_equivalent,
-    require_finite,
-)
+from motor_driver.units import check_counts, check_limits, nearest_equivalent, require_finite
 
 logger = logging.getLogger(__name__)
 
@@ -49,9 +26,8 @@ logger = logging.getLogger(__name__)
 class Motion(LimitGuard):
     """Layer 5: motion commands, one family per operation mode, limits checked on each."""
 
-    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
-                 host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
-        super().__init__(config, network, od, host_node_id=host_node_id, sync_period_s=sync_period_s)
+    def _init_state(self) -> None:
+        super()._init_state()
         self._stream_velocity_counts_s = 0  # the last CSV target (command threads, under _lock)
         self.turns_offset_deg = 0.0
 
@@ -202,17 +178,21 @@ class Motion(LimitGuard):
                                   " was sent.")
         return velocity, check_counts(self.name, self.scale.deg_s_to_counts_s(velocity), "velocity")
 
-    def set_torque(self, torque_nm: float) -> None:
-        """Profile-torque command in Nm at the joint, limited by max_torque_nm; feeds the watchdog."""
+    def _torque_command(self, torque_nm: float, mode: OperationMode, doing: str, what: str) -> None:
+        """A torque target in ``mode`` (profile or cyclic torque): checked, limit-guarded, sent."""
         torque = self._checked_torque(torque_nm)
-        self._ensure_mode(OperationMode.PROFILE_TORQUE, "torque command")
-        with self._command("torque command"):
-            self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"torque {torque:g} Nm",
+        self._ensure_mode(mode, doing)
+        with self._command(doing):
+            self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"{what} {torque:g} Nm",
                                     torque_mode=True)
-            self._require_motion(OperationMode.PROFILE_TORQUE, "torque command")
+            self._require_motion(mode, doing)
             self._send_torque(self.scale.nm_to_permille(torque))
             self.last_velocity_cmd = time.monotonic()
             self.velocity_commanded = torque != 0.0
+
+    def set_torque(self, torque_nm: float) -> None:
+        """Profile-torque command in Nm at the joint, limited by max_torque_nm; feeds the watchdog."""
+        self._torque_command(torque_nm, OperationMode.PROFILE_TORQUE, "torque command", "torque")
 
     def stream_velocity(self, velocity_deg_s: float) -> None:
         """Cyclic synchronous velocity (CSV): one target per SYNC period, which the drive takes
@@ -242,15 +222,7 @@ class Motion(LimitGuard):
         """Cyclic synchronous torque (CST): one torque target in Nm at the joint per SYNC period,
         limited by max_torque_nm; feeds the watchdog (which sends zero torque). Refused on a
         drive whose 0x6502 does not list CST."""
-        torque = self._checked_torque(torque_nm)
-        self._ensure_mode(OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point")
-        with self._command("CST set-point"):
-            self._refuse_past_limit(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"CST torque {torque:g} Nm",
-                                    torque_mode=True)
-            self._require_motion(OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point")
-            self._send_torque(self.scale.nm_to_permille(torque))
-            self.last_velocity_cmd = time.monotonic()
-            self.velocity_commanded = torque != 0.0
+        self._torque_command(torque_nm, OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point", "CST torque")
 
     def command_velocity(self, velocity_deg_s: float) -> None:
         """A velocity command in the drive's configured way: profile velocity, or CSV

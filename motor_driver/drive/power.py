@@ -16,30 +16,10 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-import canopen
-from canopen.objectdictionary import ObjectDictionary
-
-from can_config.config import DriveConfig
 from can_config.eds import has_object
-from can_config.errors import (
-    CommandRejected,
-    DriveStateError,
-    DriveTimeoutError,
-)
-from can_config.objects import (
-    OD,
-    SUPPORTED_MODE_BIT,
-    OperationMode,
-    emcy_text,
-)
-from motor_driver.cia402 import (
-    CW,
-    FAULT_STATES,
-    SW,
-    Command,
-    State,
-    next_step_to_enable,
-)
+from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
+from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
+from motor_driver.cia402 import CW, FAULT_STATES, SW, Command, State, next_step_to_enable
 from motor_driver.drive.constants import (
     COMMAND_LOCK_WAIT_S,
     ENABLED_CW_MASK,
@@ -57,9 +37,8 @@ logger = logging.getLogger(__name__)
 class PowerStateMachine(CommandFrames):
     """Layer 3: the CiA 402 power state machine and the operation modes."""
 
-    def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
-                 host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
-        super().__init__(config, network, od, host_node_id=host_node_id, sync_period_s=sync_period_s)
+    def _init_state(self) -> None:
+        super()._init_state()
         self._busy: str | None = None  # the operation in progress (enable, home, a stop, ...)
         self._busy_owner: int | None = None  # its thread
         self._generation = 0  # counts operations: a preempted one notices

@@ -21,18 +21,8 @@ import canopen
 
 from can_config.config import SdoSetting
 from can_config.eds import has_object, variable
-from can_config.errors import (
-    BootError,
-    BusLostError,
-    CommandRejected,
-    SdoError,
-    SdoTimeoutError,
-)
-from can_config.objects import (
-    OD,
-    STRUCT_FORMAT,
-    sdo_abort_text,
-)
+from can_config.errors import BootError, BusLostError, CommandRejected, SdoError, SdoTimeoutError
+from can_config.objects import OD, STRUCT_FORMAT, sdo_abort_text
 from motor_driver.drive.constants import SDO_ABORT_OUT_OF_MEMORY, SDO_ABORT_TIMEOUT, SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
 from motor_driver.drive.state import DriveCache
 

@@ -23,28 +23,13 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config.config import DriveConfig
-from can_config.errors import (
-    BusLostError,
-    MotorError,
-)
-from can_config.objects import (
-    OD,
-    NmtState,
-    emcy_text,
-)
-from motor_driver.cia402 import (
-    FAULT_STATES,
-    SW,
-    Command,
-    State,
-    decode_state,
-)
+from can_config.errors import BusLostError, MotorError
+from can_config.objects import OD, NmtState, emcy_text
+from motor_driver.cia402 import FAULT_STATES, SW, Command, State, decode_state
 from motor_driver.drive.constants import JUMP_CONFIRMATIONS, MAX_ACCEL_GAP_S, TRANSITION_TIMEOUT_S
 from motor_driver.pdo import PdoPlan, TpdoLayout, plan_pdos
 from motor_driver.setpoint import SetpointHandshake
-from motor_driver.units import (
-    Scale,
-)
+from motor_driver.units import Scale
 
 logger = logging.getLogger(__name__)
 
@@ -117,6 +102,11 @@ class DriveCache:
         self._jump_margin_counts = max(4.0, self.scale.counts_per_deg)  # one degree
         self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in self.plan.tpdos)
         self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in self.plan.tpdos}
+        self._init_state()
+
+    def _init_state(self) -> None:
+        """Each layer's own state, set up once identity, scale and PDO plan are: a layer extends
+        it (``super()._init_state()`` first). Nothing is subscribed yet (:class:`Drive` does that)."""
 
     def _init_received(self) -> None:
         """The state from PDOs, heartbeat and EMCY (the receive thread's)."""

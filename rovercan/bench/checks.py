@@ -21,10 +21,7 @@ from canopen.objectdictionary import ObjectDictionary
 from can_config import RoverConfig, load_config, load_drive_od
 from can_config.eds import consumer_subs, variable
 from can_config.errors import ConfigError
-from can_config.objects import (
-    OD,
-    STRUCT_FORMAT,
-)
+from can_config.objects import OD, STRUCT_FORMAT
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     SDO_TIMEOUT_S,

@@ -23,9 +23,7 @@ from canopen.objectdictionary import ObjectDictionary
 from can_config import RoverConfig, load_config, load_od, parse_config
 from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN
 from can_config.errors import BusLostError, ConfigError, RovercanError
-from can_config.objects import (
-    sdo_abort_text,
-)
+from can_config.objects import sdo_abort_text
 from motor_driver.adapters import connection_closed
 from motor_driver.driver import open_bus as driver_open_bus
 from motor_driver.driver import wait_for_server

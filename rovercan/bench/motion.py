@@ -17,10 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from can_config.errors import CommandRejected, ConfigError
-from can_config.objects import (
-    SUPPORTED_MODE_BIT,
-    OperationMode,
-)
+from can_config.objects import SUPPORTED_MODE_BIT, OperationMode
 from rovercan.argtypes import real
 from rovercan.bench.common import CliError, add_bus_args, add_drive_args, add_json, add_master_flags, bench_driver, emit, parse_node
 
@@ -324,6 +321,14 @@ def cmd_step_test(args: argparse.Namespace) -> int:
     return 0
 
 
+def _drive_command_args(parser: argparse.ArgumentParser) -> None:
+    """What every command that drives a motor takes: the drive, the bus, the master checks, --json."""
+    add_drive_args(parser)
+    add_bus_args(parser)
+    add_master_flags(parser)
+    add_json(parser)
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """The motion commands' parsers."""
     for action, text in (("enable", "boot and enable a drive (disabled again on exit)"),
@@ -331,32 +336,23 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                          ("home", "home a drive with its configured method")):
         p = sub.add_parser(action, help=text)
         p.add_argument("node")
-        add_drive_args(p)
-        add_bus_args(p)
         if action == "enable":
             p.add_argument("--hold", type=real(0, 86400), default=0.0, help="stay enabled for S seconds")
-        add_master_flags(p)
-        add_json(p)
+        _drive_command_args(p)
         p.set_defaults(func=cmd_drive, action=action)
 
     p = sub.add_parser("move", help="move a drive to an angle and wait for target reached")
     p.add_argument("node")
     p.add_argument("degrees", type=real(-1e6, 1e6), help="joint angle (limits: the config's)")
     p.add_argument("--speed", type=real(0.001, 1e6), help="profile velocity, deg/s")
-    add_drive_args(p)
-    add_bus_args(p)
-    add_master_flags(p)
-    add_json(p)
+    _drive_command_args(p)
     p.set_defaults(func=cmd_move)
 
     p = sub.add_parser("jog", help="run a drive at a velocity for a time")
     p.add_argument("node")
     p.add_argument("velocity", type=real(-1e6, 1e6), help="deg/s")
     p.add_argument("--for", dest="seconds", type=real(0.01, 3600), required=True, help="seconds")
-    add_drive_args(p)
-    add_bus_args(p)
-    add_master_flags(p)
-    add_json(p)
+    _drive_command_args(p)
     p.set_defaults(func=cmd_jog)
 
     p = sub.add_parser("step-test", help="position step: PNG plot and JSON metrics")
@@ -364,8 +360,5 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--step", type=real(-3600, 3600, nonzero=True), required=True, help="step in degrees")
     p.add_argument("--seconds", type=real(0.1, 600), default=3.0, help="recording length")
     p.add_argument("--out", default="step_test", help="output path without suffix (.png and .json)")
-    add_drive_args(p)
-    add_bus_args(p)
-    add_master_flags(p)
-    add_json(p)
+    _drive_command_args(p)
     p.set_defaults(func=cmd_step_test)

@@ -18,14 +18,7 @@ from canopen.objectdictionary import ObjectDictionary
 from can_config import GENERIC_EDS, load_od
 from can_config.eds import variable
 from can_config.errors import ConfigError
-from can_config.objects import (
-    OD,
-    STRUCT_FORMAT,
-    SUPPORTED_MODE_BIT,
-    NmtCommand,
-    NmtState,
-    OperationMode,
-)
+from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, OperationMode
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     CAUSES,

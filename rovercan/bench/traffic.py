@@ -19,10 +19,7 @@ from canopen.objectdictionary import ObjectDictionary
 from can_config import load_config, load_drive_od
 from can_config.eds import variable
 from can_config.errors import ConfigError
-from can_config.objects import (
-    OD,
-    STRUCT_FORMAT,
-)
+from can_config.objects import OD, STRUCT_FORMAT
 from can_config.recording import read_recording
 from can_config.stop import StopSignal
 from rovercan.argtypes import real, whole
@@ -221,6 +218,13 @@ def cmd_incident(args: argparse.Namespace) -> int:
 
 
 
+def _decoding_args(parser: argparse.ArgumentParser) -> None:
+    """How monitor and decode read PDOs (by a config's or an EDS's mapping), and --json."""
+    parser.add_argument("--config", help="decode PDOs by the driver's mapping for this config")
+    parser.add_argument("--eds", help="decode PDOs by the driver's mapping for this EDS")
+    add_json(parser)
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """The traffic commands' parsers."""
     p = sub.add_parser("monitor", help="live CANopen-decoded traffic")
@@ -228,9 +232,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--node", type=whole(1, 127), help="only this node")
     p.add_argument("--table", action="store_true", help="a per-node table at the end instead of lines")
     p.add_argument("--seconds", type=real(0, 1e6), default=0.0, help="stop after S seconds (default: Ctrl+C)")
-    p.add_argument("--config", help="decode PDOs by the driver's mapping for this config")
-    p.add_argument("--eds", help="decode PDOs by the driver's mapping for this EDS")
-    add_json(p)
+    _decoding_args(p)
     p.set_defaults(func=cmd_monitor)
 
     p = sub.add_parser("record", help="record the bus to a python-can log (.log .asc .blf .trc .csv)")
@@ -252,9 +254,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p = sub.add_parser("decode", help="CANopen-decoded transcript of a recording")
     p.add_argument("file")
     p.add_argument("--node", type=whole(1, 127), help="only this node")
-    p.add_argument("--config", help="decode PDOs by the driver's mapping for this config")
-    p.add_argument("--eds", help="decode PDOs by the driver's mapping for this EDS")
-    add_json(p)
+    _decoding_args(p)
     p.set_defaults(func=cmd_decode)
 
     p = sub.add_parser("incident", help="what the flight recorder kept of an incident (its .json, .blf or .png)")

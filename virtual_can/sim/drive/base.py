@@ -13,14 +13,9 @@ import math
 import can
 from canopen.objectdictionary import ObjectDictionary
 
-from can_config.objects import (
-    OD,
-    NmtState,
-)
+from can_config.objects import OD, NmtState
 from virtual_can.sim.drive.model import Faults, MotorParams, Pdo, State
-from virtual_can.sim.objects import (
-    ObjectStore,
-)
+from virtual_can.sim.objects import ObjectStore
 from virtual_can.sim.sdo import SdoServer
 
 logger = logging.getLogger(__name__)
@@ -49,22 +44,22 @@ class DriveBase:
         self.units_per_motor_rev = 4096.0
         self._rad_per_count = 2 * math.pi / 4096
         self._vconv = 1.0  # position units/s per velocity unit
+        self.theta = 0.0  # the shaft's angle, motor radians (a reset does not move it)
+        self.position_offset = 0.0  # set by homing; kept over a reset
         self._init_motion()
         self._init_comm()
 
     def _init_motion(self) -> None:
-        """The CiA 402 state machine, the set-point generator and the plant (reset by _reset_motion,
-        apart from the shaft: a reset does not move it)."""
+        """The CiA 402 state machine, the set-point generator and the plant's motion, as after a
+        reset (the shaft's angle and the homing offset stay)."""
         self.state = State.SWITCH_ON_DISABLED
         self.prev_cw = 0
-        self.theta = 0.0  # the shaft's angle, motor radians
         self.omega = 0.0
         self.torque_nm = 0.0
         self._vel_integral = 0.0
-        self.sp_pos = 0.0
+        self.sp_pos = self.theta / self._rad_per_count
         self.sp_vel = 0.0
         self.sp_acc = 0.0
-        self.position_offset = 0.0  # set by homing; kept over a reset
         self.pp_target: float | None = None
         self.homing_active = False
         self.homing_done = False

@@ -11,22 +11,10 @@ import struct
 import can
 from canopen.objectdictionary import ObjectDictionary
 
-from can_config.objects import (
-    OD,
-    PDO_COB_ID_INVALID,
-    STRUCT_FORMAT,
-    NmtCommand,
-    NmtState,
-)
-from virtual_can.sim.drive.model import CYCLIC_GAP_S, EMCY_PDO_LENGTH, SAVE_RANGES, SAVE_SIGNATURE, SAVE_SILENCE_S, MotorParams, Pdo, State
+from can_config.objects import OD, PDO_COB_ID_INVALID, STRUCT_FORMAT, NmtCommand, NmtState
+from virtual_can.sim.drive.model import CYCLIC_GAP_S, EMCY_PDO_LENGTH, SAVE_RANGES, SAVE_SIGNATURE, SAVE_SILENCE_S, MotorParams, Pdo
 from virtual_can.sim.drive.plant import Plant
-from virtual_can.sim.objects import (
-    ABORT_DEVICE_STATE,
-    ABORT_NO_OBJECT,
-    ABORT_NOT_MAPPABLE,
-    ABORT_PDO_LENGTH,
-    SdoAbort,
-)
+from virtual_can.sim.objects import ABORT_DEVICE_STATE, ABORT_NO_OBJECT, ABORT_NOT_MAPPABLE, ABORT_PDO_LENGTH, SdoAbort
 
 logger = logging.getLogger(__name__)
 
@@ -48,34 +36,11 @@ class CommNode(Plant):
         return self._reset_comm(now, announce)
 
     def _reset_motion(self) -> None:
-        self.state = State.SWITCH_ON_DISABLED
-        self.prev_cw = 0
-        self.omega = 0.0
-        self.torque_nm = 0.0
-        self._vel_integral = 0.0
-        self.sp_pos = self.theta / self._rad_per_count
-        self.sp_vel = 0.0
-        self.sp_acc = 0.0
-        self.pp_target = None
-        self.homing_active = False
-        self.homing_done = False
-        self.homing_error = False
-        self.following_since = None
-        self._csp_last = None
-        self._csp_t = 0.0
-        self._csp_from = 0.0  # the cyclic set-point being left, and the cycle it is left over
-        self._csp_period = 1e-3
-        self._last_sync = -1.0
-        self._sync_period_s = 0.01  # measured from the SYNCs (a drive's 0x1006 / 0x60C2)
-        self.error_code = 0
+        """A reset: the state machine and set-points start again; the shaft stays where it is."""
+        self._init_motion()
         self._pending_rpdos = []
-        self._cycle_rpdos = []  # faults.cw_per_cycle: read at the tick
-        self._setpoint_ack = False
-        self._ack_at = 0.0  # the acknowledge shows from then on (fault injection: a slow drive)
-        self._slow_transition = None  # (state, when) of a slow enabling step
-        self._pending_emcy_reset = False
+        self._cycle_rpdos = []
         self._delayed_sdo = None
-        self._homing_start = 0.0
 
     def _reset_comm(self, now: float, announce: bool) -> list[can.Message]:
         self.store.reset(0x1000, 0x1FFF)

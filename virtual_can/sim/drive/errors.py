@@ -9,9 +9,7 @@ import struct
 
 import can
 
-from can_config.objects import (
-    OD,
-)
+from can_config.objects import OD
 from virtual_can.sim.drive.base import DriveBase
 from virtual_can.sim.drive.model import ERROR_REGISTER_BITS, POWERED, State
 

@@ -26,10 +26,7 @@ import logging
 
 import can
 
-from can_config.objects import (
-    OD,
-    NmtState,
-)
+from can_config.objects import OD, NmtState
 from virtual_can.sim.drive.comm import CommNode
 from virtual_can.sim.drive.model import EMCY_STO, POWERED, State
 

@@ -13,9 +13,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 from can_config.config import SimModelConfig
-from virtual_can.sim.objects import (
-    ObjectStore,
-)
+from virtual_can.sim.objects import ObjectStore
 
 logger = logging.getLogger(__name__)
 

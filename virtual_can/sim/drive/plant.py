@@ -9,10 +9,7 @@ import math
 
 import can
 
-from can_config.objects import (
-    OD,
-    OperationMode,
-)
+from can_config.objects import OD, OperationMode
 from virtual_can.sim.drive.model import (
     CW_HALT,
     CYCLIC_GAP_S,

@@ -9,10 +9,7 @@ import random
 
 import can
 
-from can_config.objects import (
-    OD,
-    OperationMode,
-)
+from can_config.objects import OD, OperationMode
 from virtual_can.sim.drive.errors import ErrorStack
 from virtual_can.sim.drive.model import (
     CW_NEW_SETPOINT,
