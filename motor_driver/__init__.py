@@ -1,5 +1,18 @@
 """CANopen / CiA 402 motor driver (python-can + canopen). Never imports rclpy or virtual_can.
 
+What lives where:
+
+* :mod:`motor_driver.drive` - one drive, a stack of layers (state cache, SDO, frames, power
+  state machine, limit guard, motion, homing, host watch, boot; :class:`Drive`)
+* :mod:`motor_driver.driver` - every bus and drive of a config: start, safe stop, close
+* :mod:`motor_driver.supervisor`, :mod:`motor_driver.bushandle`, :mod:`motor_driver.connect`,
+  :mod:`motor_driver.traffic` - the supervisor's period, one bus, opening a bus, what the bus shows
+* :mod:`motor_driver.cia402`, :mod:`motor_driver.pdo`, :mod:`motor_driver.units`,
+  :mod:`motor_driver.safety`, :mod:`motor_driver.setpoint` - pure rules: state machine, PDO
+  plan, units, the safety judgement, the set-point handshake
+* :mod:`motor_driver.recorder`, :mod:`motor_driver.health`, :mod:`motor_driver.cyclic`,
+  :mod:`motor_driver.skid_steer`, :mod:`motor_driver.busload`, :mod:`motor_driver.adapters`
+
     from can_config import load_config
     from motor_driver import MotorDriver, stop_on_signals
 

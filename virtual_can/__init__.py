@@ -2,8 +2,10 @@
 
 * :mod:`virtual_can.engine` - named channels, wire time, frame faults
 * :mod:`virtual_can.bus` - in-process python-can bus (interface ``rovercan``)
-* :mod:`virtual_can.server` - socketcand-protocol server (python-can ``socketcand`` client)
-* :mod:`virtual_can.sim` - simulated drives from any CiA 402 EDS
+* :mod:`virtual_can.server` - socketcand-protocol server (python-can ``socketcand`` client),
+  with :mod:`virtual_can.client` (one client) and :mod:`virtual_can.cyclic_jobs` (the BCM timer)
+* :mod:`virtual_can.sim` - simulated drives from any CiA 402 EDS (:mod:`virtual_can.sim.drive`,
+  layers from the CiA 402 model up to NMT/SDO/PDO) and their runner thread
 * :mod:`virtual_can.service` - all of it as one service (``rovercan sim``)
 
 Never imports ``motor_driver``: the driver and the emulator meet only on the bus.
