@@ -15,6 +15,9 @@ from can_config.errors import ConfigError
 DATA_DIR = Path(__file__).resolve().parent / "data"
 GENERIC_EDS = DATA_DIR / "generic_cia402.eds"
 DEFAULT_CONFIG = DATA_DIR / "default.yaml"
+#: The socketcand protocol's usual TCP port: the simulator's default and the driver's when a
+#: config's socketcand bus names no port (the driver and the simulator meet only on the bus).
+SOCKETCAND_PORT = 29536
 #: ``on_host_loss`` -> the CiA 402 abort connection option code (0x6007) written at boot.
 ON_HOST_LOSS = {"quick_stop": 3, "disable": 2, "fault": 1}
 

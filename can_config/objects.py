@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import struct
 from enum import IntEnum
+from typing import Final
 
 
 class OD(IntEnum):
@@ -71,23 +72,31 @@ class OD(IntEnum):
     SUPPORTED_DRIVE_MODES = 0x6502
 
 
-class FunctionCode(IntEnum):
-    """COB-ID bases of the CANopen predefined connection set (add the node id)."""
+#: EMCY / error history code of a heartbeat consumer or life guard that lost its producer (CiA 301):
+#: what a drive reports when it stopped itself because the host fell silent.
+EMCY_HEARTBEAT_LOST = 0x8130
 
-    NMT = 0x000
-    SYNC = 0x080
-    EMCY = 0x080
-    TPDO1 = 0x180
-    RPDO1 = 0x200
-    TPDO2 = 0x280
-    RPDO2 = 0x300
-    TPDO3 = 0x380
-    RPDO3 = 0x400
-    TPDO4 = 0x480
-    RPDO4 = 0x500
-    SDO_TX = 0x580
-    SDO_RX = 0x600
-    HEARTBEAT = 0x700
+
+class FunctionCode:
+    """COB-ID bases of the CANopen predefined connection set (add the node id). Plain constants,
+    not an enum: EMCY and SYNC share 0x080 (SYNC alone, EMCY with a node id), which an IntEnum
+    would make one member."""
+
+    NMT: Final = 0x000
+    SYNC: Final = 0x080
+    EMCY: Final = 0x080
+    TIME: Final = 0x100
+    TPDO1: Final = 0x180
+    RPDO1: Final = 0x200
+    TPDO2: Final = 0x280
+    RPDO2: Final = 0x300
+    TPDO3: Final = 0x380
+    RPDO3: Final = 0x400
+    TPDO4: Final = 0x480
+    RPDO4: Final = 0x500
+    SDO_TX: Final = 0x580
+    SDO_RX: Final = 0x600
+    HEARTBEAT: Final = 0x700
 
 
 TPDO_BASES = (0x180, 0x280, 0x380, 0x480)

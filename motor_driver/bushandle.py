@@ -16,6 +16,7 @@ import can
 
 from can_config.config import BusConfig
 from can_config.errors import BusLostError
+from can_config.model import SOCKETCAND_PORT
 from can_config.objects import NmtState
 from motor_driver.adapters import GuardedNetwork
 from motor_driver.connect import is_kernel_bus
@@ -38,7 +39,7 @@ def sync_daemon(bus_cfg: BusConfig) -> tuple[str, int, str] | None:
     kwargs = bus_cfg.bus_kwargs()
     if bus_cfg.interface != "socketcand" or bus_cfg.sync_timer != "auto":
         return None
-    return str(kwargs.get("host", "127.0.0.1")), int(kwargs.get("port", 29536)), bus_cfg.channel
+    return str(kwargs.get("host", "127.0.0.1")), int(kwargs.get("port", SOCKETCAND_PORT)), bus_cfg.channel
 
 
 class BusHandle:

@@ -28,10 +28,9 @@ class Command(IntEnum):
 
     SHUTDOWN = 0x0006
     SWITCH_ON = 0x0007
-    SWITCH_ON_ENABLE = 0x000F
     DISABLE_VOLTAGE = 0x0000
     QUICK_STOP = 0x0002
-    DISABLE_OPERATION = 0x0007
+    DISABLE_OPERATION = 0x0007  # the bits of SWITCH_ON (an alias: transition 5 rather than 3)
     ENABLE_OPERATION = 0x000F
     FAULT_RESET = 0x0080
 

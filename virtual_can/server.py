@@ -39,6 +39,7 @@ import threading
 import time
 
 from can_config.errors import SimError
+from can_config.model import SOCKETCAND_PORT
 from virtual_can.client import CLIENT_QUEUE_BYTES, RAWMODE_HOLD_S, SLOW_CLIENT_DROP_LIMIT, Client, format_frame, parse_send
 from virtual_can.cyclic_jobs import CYCLIC_JOBS_PER_CLIENT, CYCLIC_JOBS_TOTAL, POLL_S, CyclicJobError, CyclicJobs
 from virtual_can.engine import BusEngine
@@ -46,7 +47,7 @@ from virtual_can.engine import BusEngine
 logger = logging.getLogger(__name__)
 
 DEFAULT_HOST = "127.0.0.1"
-DEFAULT_PORT = 29536
+DEFAULT_PORT = SOCKETCAND_PORT
 DEFAULT_MAX_CLIENTS = 64
 #: A client that has not reached rawmode (nor added a cyclic job) this long after connecting is
 #: closed (idle connections would otherwise hold every client slot).

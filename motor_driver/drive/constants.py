@@ -4,7 +4,7 @@ Read-only at run time; module constants so that tests and benchmarks can see wha
 waits for.
 """
 
-from can_config.objects import OperationMode
+from can_config.objects import EMCY_HEARTBEAT_LOST, OperationMode
 
 #: An SDO read of an object whose type has no size (a string, a domain) brings at most this much;
 #: a drive that announces or sends more is cut off with an abort.
@@ -46,7 +46,7 @@ CONTINUOUS_COMMAND_LIMIT_DEG = 360.0
 #: At boot, how long to listen for the drive's heartbeat before asking its error history.
 HOST_LOSS_CHECK_WAIT_S = 0.25
 #: EMCY / error history code of a drive whose heartbeat consumer lost the host (CiA 301).
-EMCY_HOST_LOST = 0x8130
+EMCY_HOST_LOST = EMCY_HEARTBEAT_LOST
 #: The controlword bits of Enable Operation (switch on, enable voltage, no quick stop, enable
 #: operation): motion frames go out only while this driver's last controlword had them all.
 ENABLED_CW_MASK = 0x000F
