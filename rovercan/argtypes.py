@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 
 def whole(low: int, high: int) -> Callable[[str], int]:
@@ -37,3 +38,20 @@ def real(low: float, high: float, *, nonzero: bool = False) -> Callable[[str], f
         return value
     parse.bounds = (low, high, nonzero)  # type: ignore[attr-defined]  # read by the tests
     return parse
+
+
+class BusKwargs(argparse.Action):
+    """``KEY=VALUE ...`` into a dict of python-can bus arguments, each value typed as python-can
+    types it (``port=29536`` an int, ``tcp_tune=false`` a bool): the sim's ``--bus-kwargs``."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: str | Sequence[Any] | None, option_string: str | None = None) -> None:
+        from can.util import cast_from_string
+
+        kwargs: dict[str, Any] = {}
+        for item in values if isinstance(values, list) else [values]:
+            key, sep, text = str(item).partition("=")
+            if not sep or not key.isidentifier():
+                raise argparse.ArgumentError(self, f"{item!r}: expected KEY=VALUE, e.g. host=127.0.0.1 port=29536")
+            kwargs[key] = cast_from_string(text)
+        setattr(namespace, self.dest, kwargs)

@@ -21,7 +21,7 @@ from typing import Any
 from can_config import RoverConfig, heap, load_config, with_bus_overrides
 from can_config.errors import CommandRejected, ConfigError, RovercanError, SimError
 from can_config.stop import StopSignal, stop_on_signals
-from rovercan.argtypes import real, whole
+from rovercan.argtypes import BusKwargs, real, whole
 from rovercan.launch import LOCAL_DISCOVERY
 
 logger = logging.getLogger(__name__)
@@ -278,10 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario-delay", type=real(0, 3600), default=2.0,
                    help="seconds from the start to the incident's first fault (default 2: time for a driver to boot)")
     p.add_argument("--status-period", type=real(0, 3600), default=0.0, help="print a status line per drive every S seconds")
-    import can.cli
-    can.cli.add_bus_arguments(p, prefix="bus", group_title="instead of serving a bus: put the simulated drives on"
-                              " this python-can bus (e.g. --bus-interface socketcan --bus-channel vcan0)")
-    _rename_option(p, "--bus-bus-kwargs", "--bus-kwargs")  # python-can's prefix doubles the word
+    _sim_bus_args(p)
     p.set_defaults(func=cmd_sim)
 
     p = sub.add_parser("demo", help="the motor demo: simulator + driver + ROS nodes, live MotorState")
@@ -302,11 +299,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _rename_option(parser: argparse.ArgumentParser, old: str, new: str) -> None:
-    """Give an option another name (its dest stays, so python-can still finds the value)."""
-    action = parser._option_string_actions.pop(old)
-    action.option_strings = [new if o == old else o for o in action.option_strings]
-    parser._option_string_actions[new] = action
+def _sim_bus_args(parser: argparse.ArgumentParser) -> None:
+    """``--bus-*``: put the simulated drives on a python-can bus instead of serving one; the names
+    python-can's ``create_bus_from_namespace(prefix="bus")`` reads (its own option set would
+    name the last one --bus-bus-kwargs)."""
+    group = parser.add_argument_group("instead of serving a bus: put the simulated drives on this python-can bus"
+                                      " (e.g. --bus-interface socketcan --bus-channel vcan0)")
+    group.add_argument("--bus-interface", default=argparse.SUPPRESS, metavar="INTERFACE",
+                       help="python-can interface (socketcan, socketcand, virtual, ...)")
+    group.add_argument("--bus-channel", default=argparse.SUPPRESS, metavar="CHANNEL", help="its channel, e.g. vcan0")
+    group.add_argument("--bus-bitrate", type=whole(10_000, 8_000_000), default=argparse.SUPPRESS, metavar="BITRATE",
+                       help="bit/s, where the interface sets it")
+    group.add_argument("--bus-kwargs", dest="bus_bus_kwargs", nargs="+", action=BusKwargs, default=argparse.SUPPRESS,
+                       metavar="KEY=VALUE", help="more arguments of that python-can bus, e.g. host=127.0.0.1 port=29536")
 
 
 def _bench_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
