@@ -3,8 +3,8 @@
 Imports neither ``motor_driver`` nor ``virtual_can`` (nor rclpy): both of them, the nodes and
 the CLI build on it.
 
-What lives where: :mod:`can_config.model` (the config's dataclasses), :mod:`can_config.fields`
-(each key's kind, range, default and checks), :mod:`can_config.config` (parse, load, dump),
+What lives where: :mod:`can_config.model` (the config's dataclasses, each field declaring its
+key: :mod:`can_config.keys`), :mod:`can_config.fields` (the checks), :mod:`can_config.config` (parse, load, dump),
 :mod:`can_config.reference` (the docs' key reference, generated), :mod:`can_config.eds`,
 :mod:`can_config.objects` (CANopen tables), :mod:`can_config.errors` (the exception tree),
 :mod:`can_config.recording`, :mod:`can_config.errorframes`, :mod:`can_config.bits`.

@@ -3,9 +3,10 @@
 Every validation error names the file, the key path, the bad value and what is allowed,
 and suggests the closest known key for a typo. Nothing in a config is ever evaluated.
 
-What lives where: :mod:`can_config.model` (the dataclasses), :mod:`can_config.fields` (each key's
-kind, range and default, and the checks), this module (parsing a document into the model,
-loading a file, and back to a dict).
+What lives where: :mod:`can_config.model` (the dataclasses; each field declares its YAML key,
+kind, range, default, unit and description, :mod:`can_config.keys`), :mod:`can_config.fields`
+(the checks), this module (parsing a document into the model, loading a file, and back to a
+dict, both derived from the declarations).
 """
 
 from __future__ import annotations
@@ -18,18 +19,12 @@ from typing import Any
 
 from can_config.errors import ConfigError
 from can_config.fields import (
-    BUS_FIELDS,
-    DRIVE_FIELDS,
-    DRIVE_SYSTEM_FIELDS,
-    IDENTITY_FIELDS,
-    RECORDER_FIELDS,
-    SDO_FIELDS,
-    SIM_FIELDS,
     TOP_FIELDS,
     Where,
     check_keys,
     section,
 )
+from can_config.keys import table, yaml_keys
 from can_config.model import (
     DEFAULT_CONFIG,
     GEAR_RATIO_MAX,
@@ -48,15 +43,54 @@ from can_config.model import (
 from can_config.textfile import load_yaml
 
 
-def ms_to_s(ms: float) -> float:
-    """A YAML time in ms as the config's seconds, at nanosecond resolution: so that a config
-    comes back unchanged from :func:`config_to_dict` (``0.1 * 1000 / 1000`` is not always 0.1)."""
-    return round(ms / 1000.0, 9)
+def from_yaml(value: float, scale: float) -> float:
+    """A YAML number in the key's unit (ms) as the field's (s), at nanosecond resolution: so that a
+    config comes back unchanged from :func:`config_to_dict` (``0.1 * 1000 / 1000`` is not always 0.1)."""
+    return round(value / scale, 9)
 
 
-def s_to_ms(seconds: float) -> float:
-    """The config's seconds back to ms for YAML (the inverse of :func:`ms_to_s`)."""
-    return round(seconds * 1000.0, 6)
+def to_yaml(value: float, scale: float) -> float:
+    """A field's value back in its key's unit (the inverse of :func:`from_yaml`)."""
+    return round(value * scale, 6)
+
+
+def build(where: Where, prefix: str, data: Any, cls: type) -> dict[str, Any]:
+    """One section of ``cls`` (a dataclass whose fields declare their keys): each key checked and
+    converted, nested sections built, times scaled; returns the fields' values by field name."""
+    values = section(where, prefix, data, table(cls))
+    out: dict[str, Any] = {}
+    for yaml_name, (name, spec) in yaml_keys(cls).items():
+        value = values[yaml_name]
+        if spec.nested is not None and spec.kind == "list":
+            value = tuple(spec.nested(**build(where, f"{prefix}{yaml_name}[{k}].", entry, spec.nested))
+                          for k, entry in enumerate(value))
+        elif spec.nested is not None:
+            value = spec.nested(**build(where, f"{prefix}{yaml_name}.", value, spec.nested))
+        elif spec.scale != 1.0 and value is not None:
+            value = from_yaml(value, spec.scale)
+        out[name] = value
+    return out
+
+
+def dump(obj: Any) -> dict[str, Any]:
+    """A section back in its YAML shape: every key, in the key's own unit."""
+    out: dict[str, Any] = {}
+    for yaml_name, (name, spec) in yaml_keys(type(obj)).items():
+        value = getattr(obj, name)
+        if spec.nested is not None and spec.kind == "list":
+            value = [dump(entry) for entry in value]
+        elif spec.nested is not None:
+            value = dump(value)
+        elif isinstance(value, Path):
+            value = str(value)
+        elif isinstance(value, Mapping):
+            value = dict(value)
+        elif isinstance(value, tuple):
+            value = list(value)
+        elif spec.scale != 1.0 and value is not None:
+            value = to_yaml(value, spec.scale)
+        out[yaml_name] = value
+    return out
 
 
 def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
@@ -76,7 +110,7 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
     drive_system = None
     if data.get("drive_system") is not None:
         drive_system = _parse_drive_system(where, data["drive_system"], {d.name for d in drives})
-    recorder = section(where, "recorder.", data.get("recorder") or {}, RECORDER_FIELDS)
+    recorder = build(where, "recorder.", data.get("recorder") or {}, RecorderConfig)
     if recorder["dir"] is not None:
         recorder["dir"] = resolved(base_dir / Path(recorder["dir"]).expanduser())
     return RoverConfig(tuple(buses), tuple(drives), drive_system,
@@ -86,14 +120,7 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
 def _parse_buses(where: Where, raw_buses: Any) -> list[BusConfig]:
     if not isinstance(raw_buses, list) or not raw_buses:
         raise where.fail("buses", "expected a non-empty list of buses.")
-    buses: list[BusConfig] = []
-    for i, raw in enumerate(raw_buses):
-        values = section(where, f"buses[{i}].", raw, BUS_FIELDS)
-        period_ms = values.pop("sync_period_ms")
-        host_ms = values.pop("host_heartbeat_ms")
-        connect_ms = values.pop("connect_timeout_ms")
-        buses.append(BusConfig(sync_period_s=ms_to_s(period_ms), host_heartbeat_s=ms_to_s(host_ms),
-                               connect_timeout_s=ms_to_s(connect_ms), **values))
+    buses = [BusConfig(**build(where, f"buses[{i}].", raw, BusConfig)) for i, raw in enumerate(raw_buses)]
     names = [b.name for b in buses]
     if len(set(names)) != len(names):
         raise where.fail("buses", f"bus names must be unique; got {names}.")
@@ -102,7 +129,7 @@ def _parse_buses(where: Where, raw_buses: Any) -> list[BusConfig]:
 
 def _parse_drive(where: Where, prefix: str, raw: Any, buses: list[BusConfig], base_dir: Path) -> DriveConfig:
     names = [b.name for b in buses]
-    values = section(where, prefix, raw, DRIVE_FIELDS)
+    values = build(where, prefix, raw, DriveConfig)
     bus = values["bus"] or buses[0].name
     if bus not in names:
         hint = difflib.get_close_matches(bus, names, n=1)
@@ -110,21 +137,9 @@ def _parse_drive(where: Where, prefix: str, raw: Any, buses: list[BusConfig], ba
                          f" {names}.{' Did you mean ' + repr(hint[0]) + '?' if hint else ''}")
     values["bus"] = bus
     values["eds"] = resolve_eds_path(values["eds"], base_dir)
-    identity = section(where, prefix + "identity.", values["identity"], IDENTITY_FIELDS)
-    values["identity"] = IdentityConfig(**identity)
-    values["sdo"] = tuple(SdoSetting(**section(where, f"{prefix}sdo[{k}].", entry, SDO_FIELDS))
-                          for k, entry in enumerate(values["sdo"]))
-    sim = section(where, prefix + "sim.", values["sim"], SIM_FIELDS)
-    sim["torque_lag_s"] = ms_to_s(sim.pop("torque_lag_ms"))
-    values["sim"] = SimModelConfig(**sim)
-    for ms_key, s_key in (("heartbeat_period_ms", "heartbeat_period_s"),
-                          ("heartbeat_timeout_ms", "heartbeat_timeout_s"),
-                          ("watchdog_ms", "watchdog_s"), ("sdo_timeout_ms", "sdo_timeout_s"),
-                          ("boot_timeout_ms", "boot_timeout_s")):
-        values[s_key] = ms_to_s(values.pop(ms_key))
-    host_ms = values.pop("host_timeout_ms")
     bus_cfg = buses[names.index(bus)]
-    values["host_timeout_s"] = ms_to_s(host_ms) if host_ms is not None else round(3 * bus_cfg.host_heartbeat_s, 9)
+    if values["host_timeout_s"] is None:
+        values["host_timeout_s"] = round(3 * bus_cfg.host_heartbeat_s, 9)
     drive = DriveConfig(**values)
     _check_drive(where, prefix, drive)
     if drive.node_id == bus_cfg.host_node_id:
@@ -139,13 +154,12 @@ def _parse_drive(where: Where, prefix: str, raw: Any, buses: list[BusConfig], ba
 
 
 def _parse_drive_system(where: Where, raw: Any, known: set[str]) -> DriveSystemConfig:
-    values = section(where, "drive_system.", raw, DRIVE_SYSTEM_FIELDS)
+    values = build(where, "drive_system.", raw, DriveSystemConfig)
     for side in ("left", "right"):
         for name in values[side]:
             if name not in known:
                 raise where.fail(f"drive_system.{side}", f"names drive {name!r}, which is not"
                                  f" configured; configured drives: {sorted(known)}.")
-    values["cmd_timeout_s"] = ms_to_s(values.pop("cmd_timeout_ms"))
     return DriveSystemConfig(**values)
 
 
@@ -204,60 +218,12 @@ def load_config(path: Path | str | None = None) -> RoverConfig:
 
 
 def config_to_dict(config: RoverConfig) -> dict[str, Any]:
-    """Back to the YAML shape (used to hand a config to a subprocess or a ROS parameter)."""
-    buses = [{"name": b.name, "interface": b.interface, "channel": b.channel, "bitrate": b.bitrate,
-              "kwargs": dict(b.kwargs), "sync_period_ms": s_to_ms(b.sync_period_s),
-              "host_node_id": b.host_node_id, "host_heartbeat_ms": s_to_ms(b.host_heartbeat_s),
-              "connect_timeout_ms": s_to_ms(b.connect_timeout_s), "sync_timer": b.sync_timer}
-             for b in config.buses]
-    drives = []
-    for d in config.drives:
-        entry: dict[str, Any] = {
-            "name": d.name, "namespace": d.namespace, "node_id": d.node_id, "bus": d.bus, "eds": str(d.eds),
-            "counts_per_rev": d.counts_per_rev, "gear_ratio": d.gear_ratio,
-            "rated_torque_nm": d.rated_torque_nm, "max_torque_nm": d.max_torque_nm, "joint": d.joint,
-            "max_velocity_deg_s": d.max_velocity_deg_s,
-            "profile_velocity_deg_s": d.profile_velocity_deg_s,
-            "profile_acceleration_deg_s2": d.profile_acceleration_deg_s2,
-            "heartbeat_period_ms": s_to_ms(d.heartbeat_period_s),
-            "heartbeat_timeout_ms": s_to_ms(d.heartbeat_timeout_s),
-            "watchdog_ms": s_to_ms(d.watchdog_s), "arm_on_start": d.arm_on_start,
-            "restore_enable_after_reboot": d.restore_enable_after_reboot,
-            "homing_method": d.homing_method, "homing_speed_deg_s": d.homing_speed_deg_s,
-            "homing_timeout_s": d.homing_timeout_s,
-            "identity": {k: v for k, v in vars(d.identity).items() if v is not None},
-            "invert": d.invert, "offset_deg": d.offset_deg,
-            "quick_stop_deceleration_deg_s2": d.quick_stop_deceleration_deg_s2,
-            "host_timeout_ms": s_to_ms(d.host_timeout_s) if d.host_timeout_s is not None else None,
-            "on_host_loss": d.on_host_loss, "allow_no_host_watch": d.allow_no_host_watch, "host_watch": d.host_watch,
-            "stale_after_syncs": d.stale_after_syncs,
-            "sdo_timeout_ms": s_to_ms(d.sdo_timeout_s), "boot_timeout_ms": s_to_ms(d.boot_timeout_s),
-            "sdo": [{k: v for k, v in vars(x).items() if v is not None} for x in d.sdo],
-            "velocity_mode": d.velocity_mode, "torque_mode": d.torque_mode,
-            "sim": _sim_to_dict(d.sim),
-        }
-        if d.joint == "limited":
-            entry["min_deg"] = d.min_deg
-            entry["max_deg"] = d.max_deg
-        drives.append(entry)
-    rec = config.recorder
-    out: dict[str, Any] = {"buses": buses, "drives": drives,
-                           "recorder": {"enabled": rec.enabled, "seconds": rec.seconds, "after_s": rec.after_s,
-                                        "max_mb": rec.max_mb, "plot": rec.plot,
-                                        **({"dir": str(rec.dir)} if rec.dir is not None else {})}}
+    """Back to the YAML shape (used to hand a config to a subprocess or a ROS parameter):
+    ``parse_config(config_to_dict(c)) == c``."""
+    out: dict[str, Any] = {"buses": [dump(b) for b in config.buses], "drives": [dump(d) for d in config.drives],
+                           "recorder": dump(config.recorder)}
     if config.drive_system is not None:
-        ds = config.drive_system
-        out["drive_system"] = {"left": list(ds.left), "right": list(ds.right),
-                               "track_width_m": ds.track_width_m, "wheel_radius_m": ds.wheel_radius_m,
-                               "cmd_timeout_ms": s_to_ms(ds.cmd_timeout_s),
-                               "max_accel_m_s2": ds.max_accel_m_s2, "max_speed_m_s": ds.max_speed_m_s,
-                               "max_angular_rad_s": ds.max_angular_rad_s}
-    return out
-
-
-def _sim_to_dict(sim: SimModelConfig) -> dict[str, Any]:
-    out = {k: v for k, v in vars(sim).items() if v is not None}
-    out["torque_lag_ms"] = out.pop("torque_lag_s") * 1000.0
+        out["drive_system"] = dump(config.drive_system)
     return out
 
 

@@ -1,6 +1,6 @@
-"""The configuration's keys: per section, each YAML key's kind, default, range and choices, and
-the checks that turn a YAML value into a typed one with an error that names the key. The
-reference in docs/configuration.md is generated from these (:mod:`can_config.reference`).
+"""The checks that turn a YAML value into a typed one with an error that names the key, and each
+section's key table, derived from the dataclass fields that declare the keys
+(:mod:`can_config.keys`, :mod:`can_config.model`).
 """
 
 from __future__ import annotations
@@ -9,122 +9,32 @@ import difflib
 import math
 import re
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from can_config.errors import ConfigError
-from can_config.model import GEAR_RATIO_MAX, GEAR_RATIO_MIN, ON_HOST_LOSS
+from can_config.keys import REQUIRED, Field, table
+from can_config.model import (
+    BusConfig,
+    DriveConfig,
+    DriveSystemConfig,
+    IdentityConfig,
+    RecorderConfig,
+    SdoSetting,
+    SimModelConfig,
+)
 
 NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
-REQUIRED: Any = object()
 
 
-@dataclass(frozen=True)
-class Field:
-    kind: str  # "int", "float", "bool", "str", "name", "namespace", "path", "map", "list", "list_names",
-    #            "opt_float", "opt_int" (a byte size), "number" (int or float)
-    default: Any = REQUIRED
-    low: float | None = None
-    high: float | None = None
-    choices: tuple[str, ...] | None = None
-    low_open: bool = False
-
-
-BUS_FIELDS: dict[str, Field] = {
-    "name": Field("name"),
-    "interface": Field("str"),
-    "channel": Field("str"),
-    "bitrate": Field("int", 1_000_000, 10_000, 8_000_000),
-    "kwargs": Field("map", {}),
-    "sync_period_ms": Field("float", 10.0, 1.0, 1000.0),
-    "host_node_id": Field("int", 127, 1, 127),
-    "host_heartbeat_ms": Field("float", 50.0, 10.0, 1000.0),
-    "connect_timeout_ms": Field("float", 10_000.0, 0.0, 600_000.0),
-    "sync_timer": Field("str", "auto", choices=("auto", "thread")),
-}
-IDENTITY_FIELDS: dict[str, Field] = {
-    "vendor_id": Field("int", None, 0, 0xFFFF_FFFF),
-    "product_code": Field("int", None, 0, 0xFFFF_FFFF),
-    "revision": Field("int", None, 0, 0xFFFF_FFFF),
-}
-DRIVE_FIELDS: dict[str, Field] = {
-    "name": Field("name"),
-    "namespace": Field("namespace", ""),
-    "node_id": Field("int", REQUIRED, 1, 127),
-    "bus": Field("str", None),
-    "eds": Field("path", "generic"),
-    "counts_per_rev": Field("int", None, 1, 2**31 - 1),
-    "gear_ratio": Field("float", 1.0, GEAR_RATIO_MIN, GEAR_RATIO_MAX),
-    "rated_torque_nm": Field("float", 1.0, 0.0, 1e5, low_open=True),
-    "max_torque_nm": Field("opt_float", None, 0.0, 1e6, low_open=True),
-    "joint": Field("str", "continuous", choices=("continuous", "limited")),
-    "min_deg": Field("opt_float", None, -1e7, 1e7),
-    "max_deg": Field("opt_float", None, -1e7, 1e7),
-    "max_velocity_deg_s": Field("float", 360.0, 0.0, 1e6, low_open=True),
-    "profile_velocity_deg_s": Field("float", 90.0, 0.0, 1e6, low_open=True),
-    "profile_acceleration_deg_s2": Field("float", 360.0, 0.0, 1e7, low_open=True),
-    "heartbeat_period_ms": Field("float", 100.0, 10.0, 10_000.0),
-    "heartbeat_timeout_ms": Field("float", 350.0, 20.0, 60_000.0),
-    "watchdog_ms": Field("float", 500.0, 10.0, 60_000.0),
-    "arm_on_start": Field("bool", False),
-    "restore_enable_after_reboot": Field("bool", False),
-    "homing_method": Field("int", 35, -128, 127),
-    "homing_speed_deg_s": Field("float", 30.0, 0.0, 1e6, low_open=True),
-    "homing_timeout_s": Field("float", 10.0, 0.1, 600.0),
-    "identity": Field("map", {}),
-    "invert": Field("bool", False),
-    "offset_deg": Field("float", 0.0, -1e6, 1e6),
-    "quick_stop_deceleration_deg_s2": Field("opt_float", None, 0.0, 1e7, low_open=True),
-    "host_timeout_ms": Field("opt_float", None, 20.0, 65_535.0),
-    "on_host_loss": Field("str", "quick_stop", choices=tuple(ON_HOST_LOSS)),
-    "allow_no_host_watch": Field("bool", False),
-    "host_watch": Field("str", "auto", choices=("auto", "heartbeat", "guarding")),
-    "stale_after_syncs": Field("int", 5, 2, 1000),
-    "sdo_timeout_ms": Field("float", 500.0, 10.0, 10_000.0),
-    "boot_timeout_ms": Field("float", 2000.0, 100.0, 60_000.0),
-    "sdo": Field("list", []),
-    "velocity_mode": Field("str", "profile", choices=("profile", "cyclic")),
-    "torque_mode": Field("str", "profile", choices=("profile", "cyclic")),
-    "sim": Field("map", {}),
-}
-SIM_FIELDS: dict[str, Field] = {
-    "inertia_kg_m2": Field("float", 1e-4, 0.0, 100.0, low_open=True),
-    "viscous_nm_s_rad": Field("float", 2e-5, 0.0, 100.0),
-    "coulomb_nm": Field("float", 0.03, 0.0, 1e4),
-    "load_nm": Field("float", 0.0, -1e4, 1e4),
-    "torque_lag_ms": Field("float", 1.0, 0.0, 100.0),
-    "bandwidth_hz": Field("float", 50.0, 0.0, 1000.0, low_open=True),
-    "position_kp": Field("opt_float", None, 0.0, 1e4),
-    "velocity_kp": Field("opt_float", None, 0.0, 1e4),
-    "velocity_ki": Field("opt_float", None, 0.0, 1e6),
-    "velocity_ff": Field("float", 1.0, 0.0, 2.0),
-}
-SDO_FIELDS: dict[str, Field] = {
-    "index": Field("int", REQUIRED, 0x1000, 0xFFFF),
-    "sub": Field("int", 0, 0, 255),
-    "value": Field("number", REQUIRED),
-    "check": Field("bool", True),
-    "size": Field("opt_int", None, 1, 8),
-}
-DRIVE_SYSTEM_FIELDS: dict[str, Field] = {
-    "left": Field("list_names"),
-    "right": Field("list_names"),
-    "track_width_m": Field("float", 0.6, 0.0, 100.0, low_open=True),
-    "wheel_radius_m": Field("float", 0.1, 0.0, 10.0, low_open=True),
-    "cmd_timeout_ms": Field("float", 500.0, 10.0, 60_000.0),
-    "max_accel_m_s2": Field("float", 1.0, 0.0, 100.0, low_open=True),
-    "max_speed_m_s": Field("float", 1.0, 0.0, 100.0, low_open=True),
-    "max_angular_rad_s": Field("float", 2.0, 0.0, 100.0, low_open=True),
-}
-RECORDER_FIELDS: dict[str, Field] = {
-    "enabled": Field("bool", True),
-    "dir": Field("str", None),
-    "seconds": Field("float", 10.0, 1.0, 600.0),
-    "after_s": Field("float", 1.0, 0.0, 60.0),
-    "max_mb": Field("float", 200.0, 1.0, 1e6),
-    "plot": Field("bool", True),
-}
+#: Each section's YAML keys, derived from the dataclass fields that declare them (can_config.model).
+BUS_FIELDS = table(BusConfig)
+IDENTITY_FIELDS = table(IdentityConfig)
+DRIVE_FIELDS = table(DriveConfig)
+SIM_FIELDS = table(SimModelConfig)
+SDO_FIELDS = table(SdoSetting)
+DRIVE_SYSTEM_FIELDS = table(DriveSystemConfig)
+RECORDER_FIELDS = table(RecorderConfig)
 TOP_FIELDS = ("buses", "drives", "drive_system", "recorder")
 
 

@@ -112,11 +112,12 @@ def incident_frames(path: Path | str, summary: dict[str, Any]) -> list[tuple[str
         with can.BLFReader(blf) as reader:
             frames = [(channels.get(str(msg.channel), str(msg.channel)), msg) for msg in reader]
     except RECORDING_ERRORS as err:
-        raise ConfigError(f"{blf}: cannot read the incident's frames, a damaged BLF file ({type(err).__name__}:"
+        what = "missing" if isinstance(err, FileNotFoundError) else "a damaged BLF file"
+        raise ConfigError(f"{path}: cannot read the incident's frames in {blf}, {what} ({type(err).__name__}:"
                           f" {err}); the summary is still readable with 'rovercan incident'") from err
     for i, (_, msg) in enumerate(frames):
         if problem := frame_problem(msg):
-            raise ConfigError(f"{blf}: frame {i + 1} of the incident's BLF is damaged: {problem}")
+            raise ConfigError(f"{path}: frame {i + 1} of the incident's BLF {blf} is damaged: {problem}")
     return frames
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from can_config.errors import ConfigError
+from can_config.keys import REQUIRED, key
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 GENERIC_EDS = DATA_DIR / "generic_cia402.eds"
@@ -21,23 +22,38 @@ SOCKETCAND_PORT = 29536
 #: ``on_host_loss`` -> the CiA 402 abort connection option code (0x6007) written at boot.
 ON_HOST_LOSS = {"quick_stop": 3, "disable": 2, "fault": 1}
 
+#: Motor revolutions per joint revolution: below 0.001 a 4096-count encoder gives under 5
+#: counts per joint revolution, and a move rounds to no motion at all.
+GEAR_RATIO_MIN = 0.001
+GEAR_RATIO_MAX = 1e6
+
 
 @dataclass(frozen=True)
 class BusConfig:
     """One CAN bus, opened as ``can.Bus(interface=..., channel=..., bitrate=..., **kwargs)``."""
 
-    name: str
-    interface: str
-    channel: str
-    bitrate: int = 1_000_000
-    kwargs: Mapping[str, Any] = field(default_factory=dict)
-    sync_period_s: float = 0.01
-    host_node_id: int = 127  # the driver's own NMT node id: its heartbeat is what the drives watch
-    host_heartbeat_s: float = 0.05
-    connect_timeout_s: float = 10.0  # how long the driver waits for a socketcand server at start
+    name: str = key("name", help="the bus's name, used by drives' `bus` and in logs")
+    interface: str = key(
+        "str",
+        help="python-can interface: `socketcan` (the rover, vcan), `socketcand` (the simulator), `pcan`, ...")
+    channel: str = key("str", help="python-can channel: `can0`, `vcan0`, `PCAN_USBBUS1`, ...")
+    bitrate: int = key("int", 1_000_000, 10_000, 8_000_000, unit="bit/s",
+                       help="the bus bitrate (bus load planning; set on the interface by `can-up`)")
+    kwargs: Mapping[str, Any] = key(
+        "map", {},
+        help="more python-can arguments, e.g. `{host: 127.0.0.1, port: 29536}` for socketcand")
+    sync_period_s: float = key("float", 10.0, 1.0, 1000.0, yaml="sync_period_ms", scale=1000, unit="ms",
+                               help="SYNC period: the rate of every synchronous PDO")
+    host_node_id: int = key("int", 127, 1, 127, help="the driver's own NMT id; no drive on the bus may use it")
+    host_heartbeat_s: float = key("float", 50.0, 10.0, 1000.0, yaml="host_heartbeat_ms", scale=1000, unit="ms",
+                                  help="period of the driver's heartbeat, which the drives watch")
+    connect_timeout_s: float = key("float", 10_000.0, 0.0, 600_000.0, yaml="connect_timeout_ms", scale=1000, unit="ms",
+                                   help="how long the driver waits for a bus server that is not there yet")
     #: auto: the bus's own timer sends the SYNC (the kernel's on SocketCAN, the daemon's on
     #: socketcand); thread: a thread of the driver process does
-    sync_timer: str = "auto"
+    sync_timer: str = key(
+        "str", "auto", choices=("auto", "thread"),
+        help="`auto`: the daemon's or kernel's timer sends the SYNC; `thread`: a thread of the driver")
 
     def bus_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for :func:`can.Bus`."""
@@ -56,20 +72,21 @@ class BusConfig:
 class IdentityConfig:
     """Expected 0x1018 identity; ``None`` fields are not checked."""
 
-    vendor_id: int | None = None
-    product_code: int | None = None
-    revision: int | None = None
+    vendor_id: int | None = key("int", None, 0, 4_294_967_295, help="0x1018:1, compared at boot")
+    product_code: int | None = key("int", None, 0, 4_294_967_295, help="0x1018:2")
+    revision: int | None = key("int", None, 0, 4_294_967_295, help="0x1018:3")
 
 
 @dataclass(frozen=True)
 class SdoSetting:
     """One vendor parameter written at boot (``sdo:`` list of a drive), in the list's order."""
 
-    index: int
-    sub: int = 0
-    value: int | float = 0
-    check: bool = True  # read back after the write and compare
-    size: int | None = None  # bytes, for an object the EDS does not list (1, 2, 4 or 8)
+    index: int = key("int", REQUIRED, 4096, 65_535, help="object index")
+    sub: int = key("int", 0, 0, 255, help="sub-index")
+    value: int | float = key("number", attr_default=0, help="the value written")
+    check: bool = key("bool", True, help="read it back after writing")
+    size: int | None = key("opt_int", None, 1, 8, unit="bytes",
+                           help="the object's width where the EDS does not list it")
 
 
 @dataclass(frozen=True)
@@ -79,62 +96,103 @@ class SimModelConfig:
     six-wheeled rover behind a 50:1 gear. Gains left out follow from the inertia and the
     velocity loop's bandwidth."""
 
-    inertia_kg_m2: float = 1e-4
-    viscous_nm_s_rad: float = 2e-5
-    coulomb_nm: float = 0.03
-    load_nm: float = 0.0
-    torque_lag_s: float = 0.001
-    bandwidth_hz: float = 50.0
-    position_kp: float | None = None
-    velocity_kp: float | None = None
-    velocity_ki: float | None = None
-    velocity_ff: float = 1.0
+    inertia_kg_m2: float = key("float", 0.0001, 0.0, 100.0, low_open=True, unit="kg m^2",
+                               help="rotor plus load inertia")
+    viscous_nm_s_rad: float = key("float", 2e-05, 0.0, 100.0, unit="Nm s/rad", help="viscous friction")
+    coulomb_nm: float = key("float", 0.03, 0.0, 10_000.0, unit="Nm", help="Coulomb friction")
+    load_nm: float = key("float", 0.0, -10_000.0, 10_000.0, unit="Nm", help="a constant load torque")
+    torque_lag_s: float = key("float", 1.0, 0.0, 100.0, yaml="torque_lag_ms", scale=1000, unit="ms",
+                              help="current loop time constant")
+    bandwidth_hz: float = key("float", 50.0, 0.0, 1000.0, low_open=True, unit="Hz",
+                              help="velocity loop bandwidth (gains derived from it)")
+    position_kp: float | None = key("opt_float", None, 0.0, 10_000.0, unit="1/s",
+                                    help="position gain (default: from the bandwidth)")
+    velocity_kp: float | None = key("opt_float", None, 0.0, 10_000.0, unit="Nm s/rad",
+                                    help="velocity gain (default: from the bandwidth)")
+    velocity_ki: float | None = key("opt_float", None, 0.0, 1_000_000.0, unit="Nm/rad",
+                                    help="velocity integral gain (default: from the bandwidth)")
+    velocity_ff: float = key("float", 1.0, 0.0, 2.0, help="velocity feed-forward")
 
 
 @dataclass(frozen=True)
 class DriveConfig:
     """One CiA 402 drive and the joint it moves."""
 
-    name: str
-    node_id: int
-    bus: str
-    eds: Path
-    namespace: str = ""  # ROS namespace of the joint's topics and services ("" = the node's)
-    counts_per_rev: int | None = None  # None: from the drive (0x608F), else 4096
-    gear_ratio: float = 1.0
-    rated_torque_nm: float = 1.0
-    max_torque_nm: float | None = None  # None: the rated torque at the joint (rated x gear)
-    joint: str = "continuous"
-    min_deg: float | None = None
-    max_deg: float | None = None
-    max_velocity_deg_s: float = 360.0
-    profile_velocity_deg_s: float = 90.0
-    profile_acceleration_deg_s2: float = 360.0
-    heartbeat_period_s: float = 0.1
-    heartbeat_timeout_s: float = 0.35
-    watchdog_s: float = 0.5
-    arm_on_start: bool = False
-    restore_enable_after_reboot: bool = False
-    homing_method: int = 35
-    homing_speed_deg_s: float = 30.0
-    homing_timeout_s: float = 10.0
-    identity: IdentityConfig = field(default_factory=IdentityConfig)
-    invert: bool = False  # the joint turns the other way than the motor (a mirrored wheel)
-    offset_deg: float = 0.0  # the joint angle at drive position 0
-    quick_stop_deceleration_deg_s2: float | None = None  # None: 4x profile_acceleration_deg_s2
-    host_timeout_s: float | None = None  # consumer time of the host heartbeat; None: 3x its period
-    on_host_loss: str = "quick_stop"  # 0x6007: what the drive does when the host falls silent
-    allow_no_host_watch: bool = False  # arm a drive that cannot watch the host (loud warning)
+    name: str = key("name", help="the joint's name (topics, services, /joint_states)")
+    node_id: int = key("int", REQUIRED, 1, 127, help="CANopen node id of the drive")
+    bus: str = key("str", None, required=True, help="the bus it is on (default: the only bus)")
+    eds: Path = key("path", "generic", required=True,
+                    help="`generic` (the project's CiA 402 EDS) or the vendor's EDS, relative to the config")
+    namespace: str = key("namespace", "", help="ROS namespace of the joint's topics")
+    counts_per_rev: int | None = key(
+        "int", None, 1, 2_147_483_647, unit="counts",
+        help="position resolution per motor turn; read from the drive's 0x608F where it has one")
+    gear_ratio: float = key("float", 1.0, GEAR_RATIO_MIN, GEAR_RATIO_MAX, help="motor turns per joint turn")
+    rated_torque_nm: float = key(
+        "float", 1.0, 0.0, 100_000.0, low_open=True, unit="Nm",
+        help="the motor's rated torque (0x6076 where the drive has it): the unit of torque objects")
+    max_torque_nm: float | None = key("opt_float", None, 0.0, 1_000_000.0, low_open=True, unit="Nm",
+                                      help="torque command limit at the joint (default: rated torque x gear ratio)")
+    joint: str = key("str", "continuous", choices=("continuous", "limited"),
+                     help="`continuous` (a wheel) or `limited` (needs `min_deg`/`max_deg`)")
+    min_deg: float | None = key("opt_float", None, -10_000_000.0, 10_000_000.0, unit="deg",
+                                help="lower position limit of a limited joint (also written to the drive, 0x607D)")
+    max_deg: float | None = key("opt_float", None, -10_000_000.0, 10_000_000.0, unit="deg",
+                                help="upper position limit of a limited joint")
+    max_velocity_deg_s: float = key("float", 360.0, 0.0, 1_000_000.0, low_open=True, unit="deg/s",
+                                    help="velocity command limit, every path (API, CLI, ROS)")
+    profile_velocity_deg_s: float = key("float", 90.0, 0.0, 1_000_000.0, low_open=True, unit="deg/s",
+                                        help="profile position speed (0x6081)")
+    profile_acceleration_deg_s2: float = key("float", 360.0, 0.0, 10_000_000.0, low_open=True, unit="deg/s^2",
+                                             help="profile acceleration and deceleration (0x6083/0x6084)")
+    heartbeat_period_s: float = key("float", 100.0, 10.0, 10_000.0, yaml="heartbeat_period_ms", scale=1000, unit="ms",
+                                    help="the drive's heartbeat period (0x1017), or the guard time when node-guarded")
+    heartbeat_timeout_s: float = key("float", 350.0, 20.0, 60_000.0, yaml="heartbeat_timeout_ms", scale=1000, unit="ms",
+                                     help="no heartbeat (or guard answer) for this long: the drive is lost")
+    watchdog_s: float = key("float", 500.0, 10.0, 60_000.0, yaml="watchdog_ms", scale=1000, unit="ms",
+                            help="no velocity/torque command for this long: the driver stops the joint")
+    arm_on_start: bool = key("bool", False, help="enable the drive when the driver starts (off: safe by default)")
+    restore_enable_after_reboot: bool = key("bool", False,
+                                            help="enable again after the drive rebooted by itself (off by default)")
+    homing_method: int = key("int", 35, -128, 127, help="CiA 402 homing method (0x6098)")
+    homing_speed_deg_s: float = key("float", 30.0, 0.0, 1_000_000.0, low_open=True, unit="deg/s",
+                                    help="homing speed (0x6099)")
+    homing_timeout_s: float = key("float", 10.0, 0.1, 600.0, unit="s", help="homing gives up after this long")
+    identity: IdentityConfig = key("map", {}, nested=IdentityConfig,
+                                   help="expected 0x1018 (`vendor_id`, `product_code`, `revision`); default: the EDS's")
+    invert: bool = key("bool", False, help="the joint turns the other way than the motor (a mirrored wheel)")
+    offset_deg: float = key("float", 0.0, -1_000_000.0, 1_000_000.0, unit="deg",
+                            help="the joint angle at drive position 0")
+    quick_stop_deceleration_deg_s2: float | None = key(
+        "opt_float", None, 0.0, 10_000_000.0, low_open=True, unit="deg/s^2",
+        help="quick-stop deceleration (0x6085; default 4x the profile's)")
+    host_timeout_s: float | None = key(
+        "opt_float", None, 20.0, 65_535.0, yaml="host_timeout_ms", scale=1000, unit="ms",
+        help="the drive stops itself when the host is silent this long (default 3x the host heartbeat)")
+    on_host_loss: str = key("str", "quick_stop", choices=tuple(ON_HOST_LOSS),
+                            help="what the drive does then (0x6007): `quick_stop`, `disable` or `fault`")
+    allow_no_host_watch: bool = key(
+        "bool", False,
+        help="arm a drive that cannot watch the host (loud warning): NOTHING stops it if the host dies")
     #: how the drive watches the host: heartbeat consumer (0x1016), node guarding (0x100C/0x100D,
     #: remote frames: kernel buses only), or auto (0x1016 where the drive has it, else guarding)
-    host_watch: str = "auto"
-    stale_after_syncs: int = 5  # no TPDO for this many SYNC periods: its state is reported stale
-    sdo_timeout_s: float = 0.5  # one SDO answer (a parameter save can keep a drive silent ~400 ms)
-    boot_timeout_s: float = 2.0  # from NMT reset to the boot-up message
-    sdo: tuple[SdoSetting, ...] = ()  # vendor parameters written at boot, in order
-    velocity_mode: str = "profile"  # /joint_commands velocity: profile velocity, or cyclic (CSV)
-    torque_mode: str = "profile"  # /joint_commands effort: profile torque, or cyclic (CST)
-    sim: SimModelConfig = field(default_factory=SimModelConfig)  # the simulator's model of it
+    host_watch: str = key(
+        "str", "auto", choices=("auto", "heartbeat", "guarding"),
+        help="`auto` (heartbeat consumer where the drive has 0x1016, else node guarding), `heartbeat`, `guarding`")
+    stale_after_syncs: int = key("int", 5, 2, 1000, unit="SYNC periods",
+                                 help="no PDO for this many SYNC periods: the drive's data are reported stale")
+    sdo_timeout_s: float = key("float", 500.0, 10.0, 10_000.0, yaml="sdo_timeout_ms", scale=1000, unit="ms",
+                               help="one SDO answer (a whole read: 4x this at most)")
+    boot_timeout_s: float = key("float", 2000.0, 100.0, 60_000.0, yaml="boot_timeout_ms", scale=1000, unit="ms",
+                                help="from NMT reset to the drive's boot-up")
+    sdo: tuple[SdoSetting, ...] = key("list", [], nested=SdoSetting,
+                                      help="vendor parameters written at boot, in order (table below)")
+    velocity_mode: str = key("str", "profile", choices=("profile", "cyclic"),
+                             help="how /joint_commands velocities are sent: `profile` (PV) or `cyclic` (CSV)")
+    torque_mode: str = key("str", "profile", choices=("profile", "cyclic"),
+                           help="how efforts are sent: `profile` (PT) or `cyclic` (CST)")
+    sim: SimModelConfig = key("map", {}, nested=SimModelConfig,
+                              help="the simulator's model of this drive (table below)")
 
     @property
     def quick_stop_decel_deg_s2(self) -> float:
@@ -160,20 +218,21 @@ class DriveConfig:
 class DriveSystemConfig:
     """The rover's skid-steer drive system (optional)."""
 
-    left: tuple[str, ...]
-    right: tuple[str, ...]
-    track_width_m: float = 0.6
-    wheel_radius_m: float = 0.1
-    cmd_timeout_s: float = 0.5
-    max_accel_m_s2: float = 1.0
-    max_speed_m_s: float = 1.0  # body speed, and every wheel's rim speed
-    max_angular_rad_s: float = 2.0
+    left: tuple[str, ...] = key("list_names", help="the drives of the left side")
+    right: tuple[str, ...] = key("list_names", help="the drives of the right side")
+    track_width_m: float = key("float", 0.6, 0.0, 100.0, low_open=True, unit="m",
+                               help="distance between the left and right wheels")
+    wheel_radius_m: float = key("float", 0.1, 0.0, 10.0, low_open=True, unit="m", help="wheel radius")
+    cmd_timeout_s: float = key("float", 500.0, 10.0, 60_000.0, yaml="cmd_timeout_ms", scale=1000, unit="ms",
+                               help="no /cmd_vel for this long: the wheels ramp down and stop")
+    max_accel_m_s2: float = key("float", 1.0, 0.0, 100.0, low_open=True, unit="m/s^2",
+                                help="acceleration limit of the body and every wheel")
+    max_speed_m_s: float = key("float", 1.0, 0.0, 100.0, low_open=True, unit="m/s",
+                               help="body speed and every wheel's rim speed")
+    max_angular_rad_s: float = key("float", 2.0, 0.0, 100.0, low_open=True, unit="rad/s",
+                                   help="turn rate; a faster /cmd_vel is scaled down as a whole")
 
 
-#: Motor revolutions per joint revolution: below 0.001 a 4096-count encoder gives under 5
-#: counts per joint revolution, and a move rounds to no motion at all.
-GEAR_RATIO_MIN = 0.001
-GEAR_RATIO_MAX = 1e6
 
 
 @dataclass(frozen=True)
@@ -181,12 +240,16 @@ class RecorderConfig:
     """The driver's flight recorder (``recorder:``): the last ``seconds`` of frames and drive
     states, written on each incident with what follows it for ``after_s``."""
 
-    enabled: bool = True
-    dir: Path | None = None  # None: $ROVERCAN_INCIDENT_DIR, else ~/.local/state/rovercan/incidents
-    seconds: float = 10.0
-    after_s: float = 1.0
-    max_mb: float = 200.0  # the directory's cap: the oldest incidents go first
-    plot: bool = True  # a PNG of angle, velocity, torque and state (needs matplotlib)
+    enabled: bool = key("bool", True, help="keep the ring and write incidents")
+    dir: Path | None = key(
+        "str", None,
+        help="where incidents go (default `$ROVERCAN_INCIDENT_DIR`, else `~/.local/state/rovercan/incidents`)")
+    seconds: float = key("float", 10.0, 1.0, 600.0, unit="s",
+                         help="the ring: frames and states kept before an incident")
+    after_s: float = key("float", 1.0, 0.0, 60.0, unit="s", help="kept after the incident")
+    max_mb: float = key("float", 200.0, 1.0, 1_000_000.0, unit="MB",
+                        help="the directory's cap; the oldest incidents go first")
+    plot: bool = key("bool", True, help="draw a PNG of each incident (needs matplotlib)")
 
     @property
     def directory(self) -> Path:
