@@ -3,7 +3,7 @@
 Threads: no state of its own beyond canopen's SDO client (one transfer at a time, canopen's
 lock). Called from the bus's worker (boot), command threads (operations that wait) and the
 CLI, never from the receive thread (which never waits) nor the supervisor.
-One typed codec (:func:`can_config.objects.STRUCT_FORMAT` by the EDS's data type) is used for
+One typed codec (:mod:`can_config.codec`, by the EDS's data type) is used for
 every read and write, here and by the bench CLI (through :meth:`SdoAccess.sdo_read_value` and
 :meth:`SdoAccess.sdo_write_checked`).
 """
@@ -19,10 +19,11 @@ from contextlib import contextmanager
 import can
 import canopen
 
+from can_config.codec import pack_value, unpack_value, value_format
 from can_config.config import SdoSetting
 from can_config.eds import has_object, variable
 from can_config.errors import BootError, BusLostError, CommandRejected, SdoError, SdoTimeoutError
-from can_config.objects import OD, STRUCT_FORMAT, sdo_abort_text
+from can_config.objects import OD, sdo_abort_text
 from motor_driver.drive.constants import SDO_ABORT_OUT_OF_MEMORY, SDO_ABORT_TIMEOUT, SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
 from motor_driver.drive.state import DriveCache
 
@@ -136,19 +137,12 @@ class SdoAccess(DriveCache):
 
     def sdo_read_value(self, index: int, subindex: int = 0) -> int | float | bytes:
         raw = self.sdo_read(index, subindex)
-        var = variable(self.od, index, subindex)
-        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else None
-        if fmt is not None and len(raw) == struct.calcsize(fmt):
-            return struct.unpack(fmt, raw)[0]  # type: ignore[no-any-return]
-        return raw
+        value = unpack_value(value_format(self.od, index, subindex), raw)
+        return raw if value is None else value
 
     def _write_typed(self, index: int, subindex: int, value: int) -> None:
-        var = variable(self.od, index, subindex)
-        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else "<i"
-        if fmt in ("<f", "<d"):
-            self.sdo_write(index, subindex, struct.pack(fmt, float(value)))
-        else:
-            self.sdo_write(index, subindex, struct.pack(fmt or "<i", value))
+        """A number written as its EDS type says (INTEGER32 for an object the EDS does not list)."""
+        self.sdo_write(index, subindex, pack_value(value_format(self.od, index, subindex) or "<i", value))
 
     def _write_setting(self, setting: SdoSetting) -> None:
         """One entry of the config's ``sdo:`` list: typed by the EDS (or ``size`` bytes), read
@@ -158,15 +152,14 @@ class SdoAccess(DriveCache):
         if reason is not None:
             raise BootError(f"node {self.node_id} ({self.name}): {where} is refused: {reason}.", node_id=self.node_id,
                             step="sdo settings", index=setting.index, subindex=setting.sub)
-        var = variable(self.od, setting.index, setting.sub)
-        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else None
+        fmt = value_format(self.od, setting.index, setting.sub)
         if fmt is None and setting.size is None:
             raise BootError(f"node {self.node_id} ({self.name}): {where} is not in the drive's EDS; give its size"
                             " (size: 1, 2, 4 or 8 bytes) in the config", node_id=self.node_id, step="sdo settings",
                             index=setting.index, subindex=setting.sub)
         try:
             if fmt is not None:
-                data = struct.pack(fmt, float(setting.value) if fmt in ("<f", "<d") else int(setting.value))
+                data = pack_value(fmt, setting.value)
             else:
                 size = int(setting.size or 4)
                 data = int(setting.value).to_bytes(size, "little", signed=int(setting.value) < 0)

@@ -19,9 +19,10 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config import RoverConfig, load_config, load_drive_od
+from can_config.codec import unpack_value, value_format
 from can_config.eds import consumer_subs, variable
 from can_config.errors import ConfigError
-from can_config.objects import OD, STRUCT_FORMAT
+from can_config.objects import OD
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     SDO_TIMEOUT_S,
@@ -89,14 +90,12 @@ def _drive_safety_rows(network: canopen.Network, cfg: DriveConfig, bus_cfg: BusC
     network.add_node(node)
 
     def read(index: int, sub: int, node: canopen.RemoteNode = node, od: ObjectDictionary = od) -> int | None:
-        var = variable(od, index, sub)
-        if var is None:
+        if variable(od, index, sub) is None:
             return None
         raw = sdo_upload(node, index, sub)
-        fmt = STRUCT_FORMAT.get(int(var.data_type))
-        if fmt is None or len(raw) < struct.calcsize(fmt):
-            return _u32(raw)
-        return int(struct.unpack_from(fmt, raw)[0])
+        fmt = value_format(od, index, sub)
+        value = unpack_value(fmt, raw[:struct.calcsize(fmt)] if fmt else raw)
+        return _u32(raw) if value is None else int(value)
 
     objects = {(i, sub): v for i, subs in UNIT_OBJECTS for sub in subs if (v := read(i, sub)) is not None}
     scale, _ = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,

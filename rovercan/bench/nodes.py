@@ -16,9 +16,10 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config import GENERIC_EDS, load_od
+from can_config.codec import pack_value, unpack_value, value_format
 from can_config.eds import variable
 from can_config.errors import ConfigError
-from can_config.objects import OD, STRUCT_FORMAT, SUPPORTED_MODE_BIT, NmtCommand, NmtState, OperationMode
+from can_config.objects import OD, SUPPORTED_MODE_BIT, NmtCommand, NmtState, OperationMode
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     CAUSES,
@@ -174,7 +175,7 @@ def sdo_value_bytes(text: str, fmt: str | None, size: int, what: str) -> bytes:
             raise ConfigError(f"value {text} for {what} does not fit --size {size} bytes ({low}..{high})")
         return int(number).to_bytes(size, "little", signed=int(number) < 0)
     try:
-        return struct.pack(fmt, number)
+        return pack_value(fmt, number)
     except (struct.error, OverflowError) as err:
         raise ConfigError(f"value {text} does not fit {what} ({STRUCT_NAMES.get(fmt, fmt)}): {err}") from err
 
@@ -192,11 +193,12 @@ def cmd_sdo(args: argparse.Namespace) -> int:
         od = node.object_dictionary if len(node.object_dictionary) else load_od(GENERIC_EDS, node_id)
         var = variable(od, index, sub)
         name = var.name if var is not None else ""
-        fmt = STRUCT_FORMAT.get(int(var.data_type)) if var is not None else None
+        fmt = value_format(od, index, sub)
         if args.action == "read":
             raw = sdo_upload(node, index, sub)
-            value: Any = struct.unpack(fmt, raw)[0] if fmt and len(raw) == struct.calcsize(fmt) else (
-                _text(raw) if var is not None and int(var.data_type) == 0x09 else _untyped(raw))
+            value: Any = unpack_value(fmt, raw)
+            if value is None:
+                value = _text(raw) if var is not None and int(var.data_type) == 0x09 else _untyped(raw)
             row = {"node": node_id, "index": f"0x{index:04X}", "sub": sub, "name": name, "value": value,
                    "raw": raw.hex(" ")}
             if (meaning := standard_meaning(index, value)) is not None:
