@@ -26,6 +26,8 @@ def test_core_installs_and_imports_without_ros(tmp_path: Path) -> None:
             "from virtual_can import SimService\n"
             "from motor_driver import MotorDriver\n"
             "from can_config import with_bus_overrides\n"
+            "from rovercan.cli import build_parser\n"
+            "build_parser()  # every bench command's module imports\n"
             "cfg = load_config()\n"
             "with SimService.from_config(cfg, port=0) as sim:\n"
             "    with MotorDriver(with_bus_overrides(cfg, port=sim.port)) as d:\n"
