@@ -17,7 +17,7 @@ import can
 from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
-from can_config.objects import NmtState
+from can_config.objects import FunctionCode, NmtState
 from motor_driver.adapters import GuardedNetwork
 from motor_driver.connect import is_kernel_bus
 from motor_driver.cyclic import DaemonCyclicTask
@@ -143,7 +143,7 @@ class BusHandle:
     def beat(self, host_node_id: int) -> None:
         """One host heartbeat (NMT state operational), sent from the supervisor loop."""
         try:
-            beat = can.Message(arbitration_id=0x700 + host_node_id, data=bytes([NmtState.OPERATIONAL]),
+            beat = can.Message(arbitration_id=FunctionCode.HEARTBEAT + host_node_id, data=bytes([NmtState.OPERATIONAL]),
                                is_extended_id=False)
             self.bus.send(beat)
             self.host_beats += 1

@@ -17,6 +17,7 @@ import can
 from can_config.bits import frame_bits
 from can_config.errorframes import ErrorFrame, decode_error_frame
 from can_config.errors import ForeignMasterError
+from can_config.objects import FunctionCode
 
 logger = logging.getLogger(__name__)
 
@@ -131,7 +132,7 @@ class ForeignTraffic(can.Listener):
                 self.sync_excess = (len(syncs), SYNC_RATE_WINDOW_S / period)
         elif cob == 0x000 and len(msg.data) == 2:
             self.nmt[msg.data[1], msg.data[0]] = time.monotonic()  # each command kept: a reset then a start
-        elif cob == 0x700 + self.host_node_id:
+        elif cob == FunctionCode.HEARTBEAT + self.host_node_id:
             self.host_twin = time.monotonic()
         elif 0x601 <= cob <= 0x67F and cob - 0x600 in self.node_ids and msg.data and msg.data[0] & 0xE0 == 0x20:
             self.sdo[cob - 0x600] = time.monotonic()  # a download (write); reads by bench tools are harmless

@@ -18,9 +18,9 @@ from pathlib import Path
 from can_config.config import GENERIC_EDS
 from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import BootError, DriveStateError, DriveTimeoutError, MotorError, SdoError
-from can_config.objects import CIA402_PROFILE, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
+from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
 from motor_driver.cia402 import SW, Command, State, decode_state
-from motor_driver.drive.constants import EMCY_HOST_LOST, HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
+from motor_driver.drive.constants import HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
 from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.pdo import mapping_writes
 from motor_driver.safety import SafetyCheck, judge
@@ -207,7 +207,7 @@ class Boot(HostWatch):
         try:
             self._check_identity()  # never clear the history of another drive than the config's
             newest = self._read_int(OD.PREDEFINED_ERROR_FIELD, 1)
-            if newest is None or newest & 0xFFFF != EMCY_HOST_LOST:
+            if newest is None or newest & 0xFFFF != EMCY_HEARTBEAT_LOST:
                 return
             self.host_loss_stops += 1
             logger.warning("node %d (%s): it had stopped itself when the host was lost (0x8130 in its error"

@@ -4,7 +4,7 @@ Read-only at run time; module constants so that tests and benchmarks can see wha
 waits for.
 """
 
-from can_config.objects import EMCY_HEARTBEAT_LOST, OperationMode
+from can_config.objects import OperationMode
 
 #: An SDO read of an object whose type has no size (a string, a domain) brings at most this much;
 #: a drive that announces or sends more is cut off with an abort.
@@ -45,8 +45,6 @@ VALUE_RANGE_ABORTS = frozenset({0x0609_0030, 0x0609_0031, 0x0609_0032, 0x0609_00
 CONTINUOUS_COMMAND_LIMIT_DEG = 360.0
 #: At boot, how long to listen for the drive's heartbeat before asking its error history.
 HOST_LOSS_CHECK_WAIT_S = 0.25
-#: EMCY / error history code of a drive whose heartbeat consumer lost the host (CiA 301).
-EMCY_HOST_LOST = EMCY_HEARTBEAT_LOST
 #: The controlword bits of Enable Operation (switch on, enable voltage, no quick stop, enable
 #: operation): motion frames go out only while this driver's last controlword had them all.
 ENABLED_CW_MASK = 0x000F

@@ -18,7 +18,7 @@ import can
 from can_config.config import ON_HOST_LOSS
 from can_config.eds import has_object
 from can_config.errors import MotorError, SdoError
-from can_config.objects import OD, sdo_abort_text
+from can_config.objects import OD, FunctionCode, sdo_abort_text
 from motor_driver.cia402 import Command, State
 from motor_driver.drive.constants import NO_HOST_WATCH, QUICK_STOP_THEN_DISABLE, VALUE_RANGE_ABORTS
 from motor_driver.drive.homing import Homing
@@ -115,7 +115,7 @@ class HostWatch(Homing):
             return
         self._next_guard = max(self._next_guard + self.config.heartbeat_period_s, now)
         try:
-            self.network.send_message(0x700 + self.node_id, b"", remote=True)
+            self.network.send_message(FunctionCode.HEARTBEAT + self.node_id, b"", remote=True)
         except (can.CanError, OSError, RuntimeError) as err:  # a lost bus is the supervisor's to find
             logger.debug("node %d: guard not sent: %s", self.node_id, err)
 

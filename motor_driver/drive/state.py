@@ -24,7 +24,7 @@ from canopen.objectdictionary import ObjectDictionary
 
 from can_config.config import DriveConfig
 from can_config.errors import BusLostError, MotorError
-from can_config.objects import OD, NmtState, emcy_text
+from can_config.objects import OD, FunctionCode, NmtState, emcy_text
 from motor_driver.cia402 import FAULT_STATES, SW, Command, State, decode_state
 from motor_driver.drive.constants import JUMP_CONFIRMATIONS, MAX_ACCEL_GAP_S, TRANSITION_TIMEOUT_S
 from motor_driver.pdo import PdoPlan, TpdoLayout, plan_pdos
@@ -89,7 +89,7 @@ class DriveCache:
         network.add_node(self.node)
         # the driver decodes EMCY itself (_on_emcy); canopen's consumer would keep every EMCY in
         # a list that is never trimmed, for as long as the process runs
-        network.unsubscribe(0x80 + config.node_id, self.node.emcy.on_emcy)
+        network.unsubscribe(FunctionCode.EMCY + config.node_id, self.node.emcy.on_emcy)
         self.scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio,
                            invert=config.invert, offset_deg=config.offset_deg)
         self.plan: PdoPlan = plan_pdos(od, config.node_id)
@@ -175,8 +175,8 @@ class DriveCache:
         """Hand the drive's COB-IDs to the receive thread: called once every layer is set up."""
         for cob in self._layouts:
             self.network.subscribe(cob, self._on_tpdo)
-        self.network.subscribe(0x700 + self.node_id, self._on_heartbeat)
-        self.network.subscribe(0x80 + self.node_id, self._on_emcy)
+        self.network.subscribe(FunctionCode.HEARTBEAT + self.node_id, self._on_heartbeat)
+        self.network.subscribe(FunctionCode.EMCY + self.node_id, self._on_emcy)
 
     def _on_tpdo(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         layout = self._layouts[cob_id]

@@ -11,7 +11,7 @@ import struct
 import can
 from canopen.objectdictionary import ObjectDictionary
 
-from can_config.objects import OD, PDO_COB_ID_INVALID, STRUCT_FORMAT, NmtCommand, NmtState
+from can_config.objects import OD, PDO_COB_ID_INVALID, STRUCT_FORMAT, FunctionCode, NmtCommand, NmtState
 from virtual_can.sim.drive.model import CYCLIC_GAP_S, EMCY_PDO_LENGTH, SAVE_RANGES, SAVE_SIGNATURE, SAVE_SILENCE_S, MotorParams, Pdo
 from virtual_can.sim.drive.plant import Plant
 from virtual_can.sim.objects import ABORT_DEVICE_STATE, ABORT_NO_OBJECT, ABORT_NOT_MAPPABLE, ABORT_PDO_LENGTH, SdoAbort
@@ -53,27 +53,30 @@ class CommNode(Plant):
         self._next_heartbeat = now
         if not announce:
             return []
-        return [self._msg(0x700 + self.node_id, b"\x00")]
+        return [self._msg(FunctionCode.HEARTBEAT + self.node_id, b"\x00")]
 
     def _rebuild_pdos(self) -> None:
         self.rpdos = {}
         self.tpdos = []
-        for n in range(512):
-            comm, mapping = OD.RPDO_COMM + n, OD.RPDO_MAP + n
-            if not self.store.has(comm, 1):
-                break
+        for comm, mapping in self._pdo_entries(OD.RPDO_COMM, OD.RPDO_MAP):
             pdo = self._pdo(comm, mapping)
             if pdo is not None:
                 self.rpdos[pdo.cob_id] = pdo
-        for n in range(512):
-            comm, mapping = OD.TPDO_COMM + n, OD.TPDO_MAP + n
-            if not self.store.has(comm, 1):
-                break
+        for comm, mapping in self._pdo_entries(OD.TPDO_COMM, OD.TPDO_MAP):
             pdo = self._pdo(comm, mapping)
             if pdo is not None:
                 pdo.inhibit_s = int(self.store.get(comm, 3, 0)) * 100e-6  # type: ignore[arg-type]
                 pdo.event_s = int(self.store.get(comm, 5, 0)) / 1000.0  # type: ignore[arg-type]
                 self.tpdos.append(pdo)
+
+    def _pdo_entries(self, comm_base: int, map_base: int) -> list[tuple[int, int]]:
+        """(communication, mapping) index of each PDO the object dictionary has, in order."""
+        out = []
+        for n in range(512):
+            if not self.store.has(comm_base + n, 1):
+                break
+            out.append((comm_base + n, map_base + n))
+        return out
 
     def _pdo(self, comm: int, mapping: int) -> Pdo | None:
         cob = int(self.store.get(comm, 1, PDO_COB_ID_INVALID))  # type: ignore[arg-type]
@@ -177,7 +180,7 @@ class CommNode(Plant):
         answer = self._guard_toggle << 7 | int(self.nmt)
         self._guard_toggle ^= 1
         self._guarded_at = now
-        return [self._msg(0x700 + self.node_id, bytes([answer]))]
+        return [self._msg(FunctionCode.HEARTBEAT + self.node_id, bytes([answer]))]
 
     def _check_life_guard(self, now: float) -> list[can.Message]:
         """Life guarding: no guard for guard time x life time factor (0x100C x 0x100D, both set)
@@ -194,19 +197,19 @@ class CommNode(Plant):
         if self.faults.unplugged or now < self.faults.power_off_until or msg.is_extended_id:
             return []  # CANopen (CiA 301) uses 11-bit identifiers only
         if msg.is_remote_frame:  # the one remote frame CANopen uses: the master's node guard
-            return self._on_guard(now) if msg.arbitration_id == 0x700 + self.node_id else []
+            return self._on_guard(now) if msg.arbitration_id == FunctionCode.HEARTBEAT + self.node_id else []
         cob = msg.arbitration_id
         data = bytes(msg.data)
         if cob == 0:
             return self._on_nmt(data, now)
-        if 0x701 <= cob <= 0x77F and cob != 0x700 + self.node_id and data:
+        if 0x701 <= cob <= 0x77F and cob != FunctionCode.HEARTBEAT + self.node_id and data:
             self._on_heartbeat(cob - 0x700, now)
             return []
         if cob == (int(self.store.get(OD.COB_ID_SYNC, 0, 0x80)) & 0x7FF):  # type: ignore[arg-type]
             return self._on_sync(now)
         if self.nmt == NmtState.STOPPED:
             return []
-        if cob == 0x600 + self.node_id:
+        if cob == FunctionCode.SDO_RX + self.node_id:
             saving = len(data) >= 4 and data[0] & 0xE0 == 0x20 and data[1:3] == OD.STORE_PARAMETERS.to_bytes(2, "little")
             if self.faults.sdo_delay_s > 0 or saving:  # a save keeps the drive's SDO server silent a while
                 self._delayed_sdo = (now + max(self.faults.sdo_delay_s, SAVE_SILENCE_S if saving else 0.0), data)
@@ -229,7 +232,7 @@ class CommNode(Plant):
     def _sdo(self, data: bytes) -> list[can.Message]:
         self.counters["sdo"] += 1
         resp = self.sdo.handle(data)
-        return [self._msg(0x580 + self.node_id, resp)] if resp is not None else []
+        return [self._msg(FunctionCode.SDO_TX + self.node_id, resp)] if resp is not None else []
 
     def _on_nmt(self, data: bytes, now: float) -> list[can.Message]:
         if len(data) != 2 or data[1] not in (0, self.node_id):

@@ -9,7 +9,7 @@ import struct
 
 import can
 
-from can_config.objects import OD
+from can_config.objects import OD, FunctionCode
 from virtual_can.sim.drive.base import DriveBase
 from virtual_can.sim.drive.model import ERROR_REGISTER_BITS, POWERED, State
 
@@ -53,7 +53,7 @@ class ErrorStack(DriveBase):
         self._pending_emcy_reset = True
 
     def _emcy(self, code: int, register: int) -> can.Message:
-        cob = int(self.store.get(OD.COB_ID_EMCY, 0, 0x80 + self.node_id)) & 0x7FF  # type: ignore[arg-type]
+        cob = int(self.store.get(OD.COB_ID_EMCY, 0, FunctionCode.EMCY + self.node_id)) & 0x7FF  # type: ignore[arg-type]
         return self._msg(cob, struct.pack("<HB5x", code, register))
 
     def _warning_emcy(self, code: int) -> can.Message:

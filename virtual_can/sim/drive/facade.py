@@ -26,7 +26,7 @@ import logging
 
 import can
 
-from can_config.objects import OD, NmtState
+from can_config.objects import OD, FunctionCode, NmtState
 from virtual_can.sim.drive.comm import CommNode
 from virtual_can.sim.drive.model import EMCY_STO, POWERED, State
 
@@ -85,7 +85,7 @@ class SimulatedDrive(CommNode):
         period_ms = int(self.store.get(OD.PRODUCER_HEARTBEAT_TIME, 0, 0))  # type: ignore[arg-type]
         if period_ms and now >= self._next_heartbeat:
             self._next_heartbeat = max(self._next_heartbeat + period_ms / 1000.0, now)
-            out.append(self._msg(0x700 + self.node_id, bytes([self.nmt])))
+            out.append(self._msg(FunctionCode.HEARTBEAT + self.node_id, bytes([self.nmt])))
         return out
 
     def status_line(self) -> str:

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 from can_config.config import SimModelConfig
-from can_config.objects import EMCY_HEARTBEAT_LOST
 from virtual_can.sim.objects import ObjectStore
 
 logger = logging.getLogger(__name__)
@@ -59,8 +58,7 @@ SAVE_SIGNATURE = int.from_bytes(b"save", "little")
 SAVE_RANGES = {1: (0x1000, 0x9FFF), 2: (0x1000, 0x1FFF), 3: (0x6000, 0x9FFF), 4: (0x2000, 0x5FFF)}
 #: A real drive writes its flash meanwhile: its SDO server answers the save this much later.
 SAVE_SILENCE_S = 0.4
-#: EMCY codes (CiA 301 / CiA 402).
-EMCY_HEARTBEAT = EMCY_HEARTBEAT_LOST  # life guard error or heartbeat error
+#: EMCY codes (CiA 301 / CiA 402; a lost heartbeat producer or guard is can_config's EMCY_HEARTBEAT_LOST).
 EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error
 EMCY_STO = 0x5441  # safe torque off (the drive's enable input low)
 EMCY_FOLLOWING_ERROR = 0x8611

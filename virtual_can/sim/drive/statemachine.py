@@ -9,12 +9,11 @@ import random
 
 import can
 
-from can_config.objects import OD, OperationMode
+from can_config.objects import EMCY_HEARTBEAT_LOST, OD, OperationMode
 from virtual_can.sim.drive.errors import ErrorStack
 from virtual_can.sim.drive.model import (
     CW_NEW_SETPOINT,
     CW_RELATIVE,
-    EMCY_HEARTBEAT,
     ENABLING,
     POWERED,
     STATUS_BITS,
@@ -181,7 +180,7 @@ class StateMachine(ErrorStack):
         reacts as its vendor decided; the model takes the common choice, a fault."""
         option = int(self.store.get(OD.ABORT_CONNECTION_OPTION, 0, 1))  # type: ignore[arg-type]
         if option == 1:
-            return self._raise_fault(EMCY_HEARTBEAT, now)
+            return self._raise_fault(EMCY_HEARTBEAT_LOST, now)
         if option == 2 and self.state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON, *POWERED):
             self.state = State.SWITCH_ON_DISABLED
         elif option == 3:
@@ -189,4 +188,4 @@ class StateMachine(ErrorStack):
                 self.state = State.QUICK_STOP_ACTIVE
             elif self.state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON):
                 self.state = State.SWITCH_ON_DISABLED
-        return [self._warning_emcy(EMCY_HEARTBEAT)]
+        return [self._warning_emcy(EMCY_HEARTBEAT_LOST)]
