@@ -235,7 +235,7 @@ class MotorDriver(Supervision):
             return
         self._closed = True
         for drive in self.drives.values():
-            drive.closed = True  # refuse new commands from here on; safe_stop bypasses the check
+            drive.close()  # refuse new commands from here on; the stops of safe_stop are still taken
         try:
             self.safe_stop()  # the host heartbeat goes on meanwhile: no drive reacts to its loss yet
         finally:

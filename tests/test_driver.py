@@ -79,7 +79,7 @@ def test_emcy_fault_is_reported_commands_refused_and_recover_restores(driver_fac
     assert drive.state is State.OPERATION_ENABLED  # back to the enable state it had
     drive.move_to(10.0, wait=True)
     # one EMCY consumer, the driver's: canopen's own would keep every EMCY for good
-    assert driver.buses["can0"].network.subscribers[0x81] == [drive._on_emcy]
+    assert driver.buses["can0"].network.subscribers[0x81] == [drive.cache.on_emcy]
     assert drive.node.emcy.log == []
 
 

@@ -26,7 +26,7 @@ FAULT_SW = 0x0008
 def spoofed_fault(driver: MotorDriver) -> can.Message:
     """TPDO of node 1 that carries the statusword, every field 0 but the statusword FAULT."""
     drive = driver.drive("joint1")
-    cob, layout = next((cob, lay) for cob, lay in drive._layouts.items() if 0x6041 in lay.indexes)
+    cob, layout = next((p.cob_id, p) for p in drive.plan.tpdos if 0x6041 in p.indexes)
     values = [FAULT_SW if index == 0x6041 else 0 for index in layout.indexes]
     return can.Message(arbitration_id=cob, data=layout.codec.pack(*values), is_extended_id=False)
 

@@ -137,8 +137,8 @@ def _position_receiving(driver_factory: DriverFactory) -> tuple[Drive, Callable[
     _, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")
     network = driver.buses["can0"].network
-    seq = drive._position_seq
-    wait_for(lambda: drive._position_seq > seq + 1, 1.0, "position TPDOs")
+    seq = drive.cache.position_seq
+    wait_for(lambda: drive.cache.position_seq > seq + 1, 1.0, "position TPDOs")
 
     def feed(counts: int, t: float) -> None:
         network.notify(0x281, bytearray(counts.to_bytes(4, "little", signed=True) + bytes(4)), t)

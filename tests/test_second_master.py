@@ -172,7 +172,7 @@ def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master
     with MotorDriver(cfg).start() as driver:
         drive = driver.drive("joint1")
         runner = sim.simulators["can0"]
-        wait_for(lambda: drive._reported_nmt == "OPERATIONAL", 2.0, "the drive's own OPERATIONAL heartbeat")
+        wait_for(lambda: drive.cache.reported_nmt == "OPERATIONAL", 2.0, "the drive's own OPERATIONAL heartbeat")
         runner.call(lambda: setattr(runner.drive(1), "nmt", NmtState.PRE_OPERATIONAL))  # as after a reset
         wait_for(lambda: drive.nmt_state == "PRE_OPERATIONAL", 1.0, "a PRE-OPERATIONAL heartbeat")
         # the supervisor marks that change (within its hold time); only then is the mark cleared,
@@ -181,7 +181,7 @@ def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master
         wait_for(lambda: drive.behind_back[0] < time.monotonic() - FOREIGN_HOLD_S - 0.05, 2.0, "the hold over")
         drive.set_foreign_master("")  # the drive went there on its own: no concern of this test
         drive.boot(reset=False)  # ... ends with NMT start
-        drive._on_heartbeat(0x701, bytearray([NmtState.PRE_OPERATIONAL]), 0.0)  # the one on its way
+        drive.cache.on_heartbeat(0x701, bytearray([NmtState.PRE_OPERATIONAL]), 0.0)  # the one on its way
         time.sleep(0.6)
         assert not drive.foreign_master
         wait_for(lambda: drive.nmt_state == "OPERATIONAL", 1.0, "the drive's own OPERATIONAL heartbeat")

@@ -171,7 +171,7 @@ def test_100k_profile_position_commands_at_1khz_never_send_a_stale_target(
         delay = next_t - time.monotonic()
         if delay > 0:
             time.sleep(delay)
-    wait_for(lambda: drive._handshake.idle, 2.0, "the last acknowledge")
+    wait_for(lambda: drive.channel.handshake_idle, 2.0, "the last acknowledge")
     accepted = [round(t) for t in runner.call(lambda: list(sim_drive.accepted_targets or []))]  # type: ignore[union-attr]
     index = {c: i for i, c in enumerate(commanded)}
     order = [index[c] for c in accepted]
@@ -203,8 +203,8 @@ def test_a_drive_that_reads_its_controlword_once_per_cycle_gets_the_newest_targe
     for counts in commanded:
         drive.move_to(counts / counts_per_deg)
         time.sleep(0.001)
-    wait_for(lambda: drive._handshake.idle, 2.0, "the last acknowledge")
+    wait_for(lambda: drive.channel.handshake_idle, 2.0, "the last acknowledge")
     accepted = [round(t) for t in runner.call(lambda: list(sim_drive.accepted_targets or []))]  # type: ignore[union-attr]
     assert accepted[-1] == commanded[-1]  # the drive has the newest target, not one it ignored
-    assert drive._handshake.target == commanded[-1]
+    assert drive.channel.target_counts == commanded[-1]
     assert len(accepted) > 100

@@ -183,3 +183,166 @@ def test_a_parked_target_on_a_drive_without_a_pdo_target_is_never_sent_by_sdo_fr
     drive.move_to(10.0)  # parked until the first is acknowledged and released
     wait_for(lambda: abs(drive.snapshot().angle_deg - 10.0) < 0.2, 5.0, "the parked target reached")
     assert threads and set(threads) == {threading.current_thread().name}, threads
+
+
+def no_pdo_velocity_eds(path: Path) -> Path:
+    od = canopen.import_od(str(GENERIC_EDS), 1)
+    od[0x60FF].pdo_mappable = False  # the target velocity only by SDO
+    canopen.export_od(od, str(path), doc_type="eds")
+    return path
+
+
+def settled_controlwords(listener: can.BusABC) -> list[int]:
+    """Every controlword of node 1 on the wire until the bus has been quiet of them a while."""
+    return controlwords(collect(listener, 0.4))
+
+
+@pytest.mark.parametrize("point", ["mode switch: 0x6060 written", "home: parameters written"])
+def test_a_stop_during_homings_sdo_writes_wins_and_nothing_of_homing_follows(
+        driver_factory: DriverFactory, listener_factory: ListenerFactory, point: str) -> None:
+    """Homing's enable runs under homing's operation: a stop that lands during homing's own SDO
+    writes ends it before any controlword of it (the landed code enabled the drive here)."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    listener = listener_factory(sim)
+    at = StopAt(drive, point, drive.quick_stop)
+    with pytest.raises(DriveStateError, match="interrupted by quick stop"):
+        drive.home()
+    assert at.fired and at.error is None, at.error
+    words = settled_controlwords(listener)
+    assert words and words[-1] == 0x0002, [hex(w) for w in words]
+    assert 0x000F not in words[words.index(0x0002):], [hex(w) for w in words]
+    assert sim_state(sim) != "OPERATION_ENABLED" and drive.busy is None
+
+
+@pytest.mark.parametrize("point", ENABLE_POINTS)
+def test_a_stop_during_enable_leaves_no_busy_mark(driver_factory: DriverFactory, point: str) -> None:
+    """After an enable a stop interrupted, every command from another thread is taken again and
+    the watchdog's stop runs (the landed code kept 'busy with enable' for ever)."""
+    _, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    StopAt(drive, point, drive.quick_stop)
+    with pytest.raises(DriveStateError):
+        drive.enable()
+    drive.interleave = None
+    assert drive.busy is None
+    assert drive.stop_velocity()  # the watchdog is not locked out
+    other: list[BaseException] = []
+
+    def enable_and_move() -> None:
+        try:
+            drive.enable()
+            drive.set_velocity(5.0)
+        except BaseException as err:
+            other.append(err)
+
+    thread = threading.Thread(target=enable_and_move)
+    thread.start()
+    thread.join(10.0)
+    assert not other, other
+    assert drive.velocity_commanded
+
+
+def test_a_stop_does_not_wait_behind_a_velocity_target_written_by_sdo(
+        driver_factory: DriverFactory, listener_factory: ListenerFactory, tmp_path: Path) -> None:
+    """0x60FF only by SDO, on a drive that answers SDO in 200 ms: a stop issued while that write
+    waits for its answer reaches the wire before the answer does (the landed code held the
+    drive's lock across the SDO, and the stop waited for it)."""
+    sim, driver = driver_factory(make_config(1, eds=str(no_pdo_velocity_eds(tmp_path / "no-pdo-velocity.eds"))))
+    drive = driver.drive("joint1")
+    assert drive.plan.rpdo_with(0x60FF) is None
+    drive.enable()
+    drive.set_velocity(0.0)  # in profile velocity now
+    runner = sim.simulators["can0"]
+    runner.call(lambda: setattr(runner.drive(1).faults, "sdo_delay_s", 0.2))
+    listener = listener_factory(sim)
+    errors: list[BaseException] = []
+
+    def command() -> None:
+        try:
+            drive.set_velocity(20.0)
+        except BaseException as err:
+            errors.append(err)
+
+    thread = threading.Thread(target=command)
+    thread.start()
+    frames: list[can.Message] = []
+    while not any(m.arbitration_id == 0x601 and bytes(m.data[1:3]) == b"\xff\x60" for m in frames):
+        msg = listener.recv(5.0)
+        assert msg is not None, "the 0x60FF write never went out"
+        frames.append(msg)
+    drive.quick_stop()
+    thread.join(10.0)
+    frames += collect(listener, 0.4)
+    order = [("stop" if m.arbitration_id == RPDO1 and m.data[0] == 0x02 else "answer")
+             for m in frames if m.arbitration_id == 0x581 or (m.arbitration_id == RPDO1 and m.data[0] == 0x02)]
+    assert order and order[0] == "stop", order  # the stop before the write's answer
+    assert controlwords(frames)[-1] == 0x0002
+    assert sim_state(sim) != "OPERATION_ENABLED"
+
+
+def test_a_stop_while_homings_method_write_waits_on_a_slow_drive_wins(
+        driver_factory: DriverFactory, listener_factory: ListenerFactory) -> None:
+    """Public API and the wire only: the stop is issued once the listener sees homing's 0x6098
+    write out, while a 200 ms drive has not answered it. The landed code's homing then enabled
+    the drive with a fresh operation of its own (0x2, 0x6, 0x7, 0xF after the stop)."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    runner = sim.simulators["can0"]
+    runner.call(lambda: setattr(runner.drive(1).faults, "sdo_delay_s", 0.2))
+    listener = listener_factory(sim)
+    errors: list[BaseException] = []
+
+    def home() -> None:
+        try:
+            drive.home(timeout_s=5.0)
+        except BaseException as err:
+            errors.append(err)
+
+    thread = threading.Thread(target=home)
+    thread.start()
+    frames: list[can.Message] = []
+    while not any(m.arbitration_id == 0x601 and bytes(m.data[1:3]) == b"\x98\x60" for m in frames):
+        msg = listener.recv(10.0)
+        assert msg is not None, "homing's 0x6098 write never went out"
+        frames.append(msg)
+    drive.quick_stop(timeout_s=3.0)
+    thread.join(20.0)
+    assert errors and "interrupted by quick stop" in str(errors[0]), errors
+    words = controlwords(frames + collect(listener, 0.6))
+    assert words and words[-1] == 0x0002, [hex(w) for w in words]
+    assert sim_state(sim) != "OPERATION_ENABLED" and drive.busy is None
+
+
+def test_a_stop_whose_wait_outlives_the_enable_it_ended_leaves_no_busy_mark(driver_factory: DriverFactory) -> None:
+    """The enable ends (interrupted) while the stop still waits for the drive: the landed code's
+    stop then restored 'busy with enable' for a thread that had finished, for ever."""
+    _, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    enable_done = threading.Event()
+    stop_errors: list[BaseException] = []
+
+    def stop() -> None:
+        try:
+            drive.quick_stop()
+        except BaseException as err:
+            stop_errors.append(err)
+
+    stopper = threading.Thread(target=stop)
+
+    def hook(point: str) -> None:
+        if point == "enable: sent transition 3" and not stopper.is_alive() and not enable_done.is_set():
+            stopper.start()  # the stop runs on its own thread; this enable goes on
+        elif point == "quick stop: sent":
+            assert enable_done.wait(10.0), "the enable did not end"  # the stop's wait outlives it
+
+    drive.interleave = hook
+    with pytest.raises(DriveStateError, match="interrupted by quick stop"):
+        drive.enable()
+    enable_done.set()
+    stopper.join(10.0)
+    drive.interleave = None
+    assert not stop_errors, stop_errors
+    assert drive.busy is None, drive.busy
+    drive.enable()  # from here: commands are taken again
+    drive.set_velocity(5.0)

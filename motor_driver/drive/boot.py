@@ -1,10 +1,11 @@
 """Boot of one drive as a table of steps, and its re-configuration after a reset.
 
 Owner: the bus's worker (or the caller of :meth:`Boot.boot`), while the drive is not booted:
-nothing else commands it meanwhile (``booted`` is False, so every command is refused). Each
-step reads or writes by SDO and returns; the object it is at is kept for the error
-(``_boot_object``); what the steps read (statusword, position, mode) is seeded into the state
-cache in one place at the end.
+nothing else commands it meanwhile (the cache says not booted, so every command is refused).
+Its own state: the safety check's result, the boot count, the host-loss stops it found, the
+object a step is at (for its error). Each step reads or writes by SDO through the drive's SDO
+port; what the steps read (statusword, position, mode, units) is handed to the state cache and
+the command channel through their methods, in one place at the end.
 """
 
 from __future__ import annotations
@@ -15,34 +16,54 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from can_config.config import GENERIC_EDS
+import can
+import canopen
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config.config import GENERIC_EDS, DriveConfig
 from can_config.eds import consumer_subs, has_object, variable
-from can_config.errors import BootError, DriveStateError, DriveTimeoutError, MotorError, SdoError
+from can_config.errors import BootError, BusLostError, DriveStateError, DriveTimeoutError, MotorError, SdoError
 from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
 from motor_driver.cia402 import SW, Command, State, decode_state
+from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
 from motor_driver.drive.hostwatch import HostWatch
-from motor_driver.pdo import mapping_writes
+from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.sdo import SdoPort
+from motor_driver.drive.state import DriveCache
+from motor_driver.pdo import PdoPlan, mapping_writes
 from motor_driver.safety import SafetyCheck, judge
 from motor_driver.units import read_unit_objects, scale_from_objects
 
 logger = logging.getLogger(__name__)
 
 
-class Boot(HostWatch):
-    """Layer 8: boot, a table of steps, and re-configuration after a reset."""
+class Boot:
+    """Boot of one drive, a table of steps, and re-configuration after a reset."""
 
-    def _init_state(self) -> None:
-        super()._init_state()
+    def __init__(self, config: DriveConfig, od: ObjectDictionary, plan: PdoPlan, network: canopen.Network,
+                 cache: DriveCache, channel: CommandChannel, sdo: SdoPort, power: PowerStateMachine,
+                 watch: HostWatch) -> None:
+        self.config = config
+        self.name, self.node_id = config.name, config.node_id
+        self.od = od
+        self.plan = plan
+        self._network = network
+        self._cache = cache
+        self._channel = channel
+        self._sdo = sdo
+        self._power = power
+        self._watch = watch
         self.safety: tuple[SafetyCheck, ...] = ()  # read back after each boot (motor_driver.safety)
-        self.host_loss_stops = 0  # boots that found the drive stopped by its host watch (boot thread)
+        self.host_loss_stops = 0  # boots that found the drive stopped by its host watch
+        self.boot_count = 0
         self._boot_object = (0, 0)  # the object the running boot step is at (for its error)
+        self._mode = 0  # the mode the boot left the drive in (0x6061)
 
     def boot(self, *, reset: bool = True) -> None:
         """Reset (NMT), check identity, configure PDOs and parameters, NMT start. Does not enable."""
-        self.booted = False
-        self._supported_modes = None  # a replaced drive may support other modes
-        self.rebooted.clear()
+        self._cache.mark_unbooted()
+        self._power.forget_modes()  # a replaced drive may support other modes
         if reset:
             self._reset_node()
         self._boot_object = (OD.IDENTITY, 1)
@@ -63,7 +84,7 @@ class Boot(HostWatch):
         """The steps of a boot in order, each named as a BootError names it."""
         return (("identity", self._check_identity), ("device type", self._check_device_type),
                 ("disarm", self._disarm), ("units", self._read_units), ("PDO mapping", self._write_pdo_mapping),
-                ("heartbeat", self._write_heartbeat), ("host watch", self._configure_host_watch),
+                ("heartbeat", self._write_heartbeat), ("host watch", self._watch.configure),
                 ("position limits", self._write_position_limits), ("profile parameters", self._write_profile),
                 ("sdo settings", self._write_settings), ("operation mode", self._boot_mode),
                 ("read state", self._read_state))
@@ -74,16 +95,16 @@ class Boot(HostWatch):
 
     def _reset_node(self) -> None:
         self._note_host_loss_stop()
-        self._bootup.clear()
-        self._send(0x000, bytes([NmtCommand.RESET_NODE, self.node_id]))
-        if not self._bootup.wait(self.config.boot_timeout_s):
+        self._cache.expect_bootup()
+        self._send_nmt(NmtCommand.RESET_NODE)
+        if not self._cache.wait_bootup(self.config.boot_timeout_s):
             raise BootError(f"node {self.node_id} ({self.name}): no boot-up message within"
                             f" {self.config.boot_timeout_s:g} s after NMT reset (boot_timeout_ms); check power, node"
                             " id, bitrate and termination", node_id=self.node_id, step="boot-up")
 
     def _check_device_type(self) -> None:
         self._at(OD.DEVICE_TYPE, 0)
-        device_type = struct.unpack("<I", self.sdo_read(OD.DEVICE_TYPE, 0)[:4].ljust(4, b"\0"))[0]
+        device_type = struct.unpack("<I", self._sdo.read(OD.DEVICE_TYPE, 0)[:4].ljust(4, b"\0"))[0]
         if device_type & 0xFFFF != CIA402_PROFILE:
             logger.warning("node %d: device type 0x%08X is not a CiA 402 drive profile", self.node_id, device_type)
 
@@ -101,7 +122,7 @@ class Boot(HostWatch):
                             " value", self.node_id, what, index, sub)
                 continue
             try:
-                self.sdo_write(index, sub, data)
+                self._sdo.write(index, sub, data)
             except SdoError as err:
                 raise BootError(f"node {self.node_id} ({self.name}): boot step 'PDO mapping' failed at"
                                 f" {what} (0x{index:04X}:{sub}): {err}", node_id=self.node_id,
@@ -109,65 +130,65 @@ class Boot(HostWatch):
 
     def _write_heartbeat(self) -> None:
         self._at(OD.PRODUCER_HEARTBEAT_TIME, 0)
-        self.guarding, self._guard_toggle = False, 0  # the toggle starts at 0 after a reset
         # CiA 301: a node with a heartbeat is not guarded; one that cannot be guarded here (no
         # remote frames) keeps its heartbeat, which tells the driver it is alive
-        self._guardable = self.watch_mode() == "guarding" and self.remote_frames
-        self.sdo_write(OD.PRODUCER_HEARTBEAT_TIME, 0,
-                       struct.pack("<H", 0 if self._guardable else int(self.config.heartbeat_period_s * 1000)))
+        guarded = self._watch.choose()
+        self._sdo.write(OD.PRODUCER_HEARTBEAT_TIME, 0,
+                        struct.pack("<H", 0 if guarded else int(self.config.heartbeat_period_s * 1000)))
 
     def _write_position_limits(self) -> None:
         cfg = self.config
         if not cfg.is_continuous and has_object(self.od, OD.SOFTWARE_POSITION_LIMIT, 2):
-            low, high = self.scale.limits_to_counts(cfg.min_deg, cfg.max_deg)  # type: ignore[arg-type]
+            low, high = self._cache.scale.limits_to_counts(cfg.min_deg, cfg.max_deg)  # type: ignore[arg-type]
             self._at(OD.SOFTWARE_POSITION_LIMIT, 1)
-            self._write_typed(OD.SOFTWARE_POSITION_LIMIT, 1, low)
+            self._sdo.write_typed(OD.SOFTWARE_POSITION_LIMIT, 1, low)
             self._at(OD.SOFTWARE_POSITION_LIMIT, 2)
-            self._write_typed(OD.SOFTWARE_POSITION_LIMIT, 2, high)
+            self._sdo.write_typed(OD.SOFTWARE_POSITION_LIMIT, 2, high)
 
     def _write_profile(self) -> None:
         cfg = self.config
-        to_drive, accel_to_drive = self.scale.magnitude_to_drive, self.scale.acceleration_to_drive
+        to_drive, accel_to_drive = self._cache.scale.magnitude_to_drive, self._cache.scale.acceleration_to_drive
         for index, value in ((OD.PROFILE_VELOCITY, to_drive(cfg.profile_velocity_deg_s)),
                              (OD.PROFILE_ACCELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2)),
                              (OD.PROFILE_DECELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2)),
                              (OD.MAX_PROFILE_VELOCITY, to_drive(cfg.max_velocity_deg_s))):
             if has_object(self.od, index):
                 self._at(index, 0)
-                self._write_typed(index, 0, value)
+                self._sdo.write_typed(index, 0, value)
         if has_object(self.od, OD.QUICK_STOP_DECELERATION):
             self._at(OD.QUICK_STOP_DECELERATION, 0)
-            self._write_typed(OD.QUICK_STOP_DECELERATION, 0, self._quick_stop_decel())
+            self._sdo.write_typed(OD.QUICK_STOP_DECELERATION, 0, self._quick_stop_decel())
 
     def _write_settings(self) -> None:
         for setting in self.config.sdo:
             self._at(setting.index, setting.sub)
-            self._write_setting(setting)
+            self._sdo.write_setting(setting)
 
     def _boot_mode(self) -> None:
         self._at(OD.SUPPORTED_DRIVE_MODES, 0)
-        supported = self.supported_modes()
+        supported = self._power.supported_modes()
         self._at(OD.MODES_OF_OPERATION, 0)
         if supported >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_POSITION] & 1:
-            self._switch_mode_sdo(OperationMode.PROFILE_POSITION)
+            self._power.switch_mode_sdo(OperationMode.PROFILE_POSITION)
+            self._mode = int(OperationMode.PROFILE_POSITION)
         else:
             logger.warning("node %d (%s): 0x6502 = 0x%08X lists no profile position mode; the"
                            " drive boots without a mode; move_to() will be refused (stream_position uses IP where listed)",
                            self.node_id, self.name, supported)
-            self.mode_display = int(self.sdo_read_value(OD.MODES_OF_OPERATION_DISPLAY))  # type: ignore[arg-type]
+            self._mode = self._sdo.read_number(OD.MODES_OF_OPERATION_DISPLAY)
 
     def _read_state(self) -> None:
         self._at(OD.STATUSWORD, 0)
-        statusword = int(self.sdo_read_value(OD.STATUSWORD))  # type: ignore[arg-type]
+        statusword = self._sdo.read_number(OD.STATUSWORD)
         self._at(OD.POSITION_ACTUAL, 0)
-        position = int(self.sdo_read_value(OD.POSITION_ACTUAL))  # type: ignore[arg-type]
-        self.seed(statusword, position)
-        self._target_counts = position
+        position = self._sdo.read_number(OD.POSITION_ACTUAL)
+        self._cache.seed(statusword, position, self._mode)
+        self._channel.reset(position)
 
     def _safety_check(self) -> None:
         try:
-            self.safety = tuple(judge(self.config, self.host_node_id, self.scale, self._read_int,
-                                      consumer_subs=consumer_subs(self.od), guarding=self._guardable))
+            self.safety = tuple(judge(self.config, self._watch.host_node_id, self._cache.scale, self._sdo.read_int,
+                                      consumer_subs=consumer_subs(self.od), guarding=self._watch.guardable))
         except SdoError as err:
             raise BootError(f"node {self.node_id} ({self.name}): boot step 'safety check' failed: {err}",
                             node_id=self.node_id, step="safety check", index=err.index, subindex=err.subindex,
@@ -179,18 +200,20 @@ class Boot(HostWatch):
 
     def _start(self) -> None:
         """NMT start: the drive is booted (not enabled)."""
-        self._send(0x000, bytes([NmtCommand.START, self.node_id]))
-        self.nmt_state = "OPERATIONAL"
-        self.last_heartbeat = time.monotonic()
-        self.lost = False
-        self._cw = 0
+        self._send_nmt(NmtCommand.START)
         self.boot_count += 1
-        self.fault_seen = None
-        self.booted = True
+        self._cache.mark_booted()
         logger.info("node %d (%s) booted: %d RPDOs, %d TPDOs%s", self.node_id, self.name,
                     len(self.plan.rpdos), len(self.plan.tpdos),
                     f"; by SDO: {', '.join(f'0x{i:04X}' for i in self.plan.sdo_only)}"
                     if self.plan.sdo_only else "")
+
+    def _send_nmt(self, command: NmtCommand) -> None:
+        try:
+            self._network.send_message(0x000, bytes([command, self.node_id]))
+        except (can.CanError, OSError, RuntimeError) as err:
+            raise BusLostError(f"{self.name} (node {self.node_id}): cannot send NMT {command.name}: the bus is"
+                               f" gone ({err})") from err
 
     def _note_host_loss_stop(self) -> None:
         """Before the reset at boot: did the drive stop itself because the host was gone (the
@@ -200,19 +223,19 @@ class Boot(HostWatch):
         if not has_object(self.od, OD.PREDEFINED_ERROR_FIELD, 1):
             return
         deadline = time.monotonic() + HOST_LOSS_CHECK_WAIT_S
-        while not self.last_heartbeat and time.monotonic() < deadline:
+        while not self._cache.last_heartbeat and time.monotonic() < deadline:
             time.sleep(STATE_POLL_S)
-        if not self.last_heartbeat:
+        if not self._cache.last_heartbeat:
             return
         try:
             self._check_identity()  # never clear the history of another drive than the config's
-            newest = self._read_int(OD.PREDEFINED_ERROR_FIELD, 1)
+            newest = self._sdo.read_int(OD.PREDEFINED_ERROR_FIELD, 1)
             if newest is None or newest & 0xFFFF != EMCY_HEARTBEAT_LOST:
                 return
             self.host_loss_stops += 1
             logger.warning("node %d (%s): it had stopped itself when the host was lost (0x8130 in its error"
                            " history)", self.node_id, self.name)
-            self.sdo_write(OD.PREDEFINED_ERROR_FIELD, 0, b"\x00")  # CiA 301: 0 clears the history
+            self._sdo.write(OD.PREDEFINED_ERROR_FIELD, 0, b"\x00")  # CiA 301: 0 clears the history
         except MotorError as err:
             logger.info("node %d (%s): error history not read before the reset: %s", self.node_id, self.name, err)
 
@@ -243,7 +266,7 @@ class Boot(HostWatch):
         """0x1018 against the EDS and the config, before any other object of the drive is touched:
         a drive of another vendor or product at this node id is a boot error naming both ids."""
         for sub, what, allowed, source in self.expected_identity():
-            raw = self._read_optional(OD.IDENTITY, sub) if sub > 1 else self.sdo_read(OD.IDENTITY, sub)
+            raw = self._sdo.read_optional(OD.IDENTITY, sub) if sub > 1 else self._sdo.read(OD.IDENTITY, sub)
             if raw is None:
                 logger.info("node %d (%s): no 0x1018:%d (%s) to compare", self.node_id, self.name, sub, what)
                 continue
@@ -260,27 +283,27 @@ class Boot(HostWatch):
         or left enabled by a driver that did not stop it) is quick-stopped and disabled before
         anything else, by SDO (no PDOs flow before NMT start): a boot never leaves a drive armed
         behind a driver that says it is not enabled."""
-        state = decode_state(int(self.sdo_read_value(OD.STATUSWORD)))  # type: ignore[arg-type]
+        state = decode_state(self._sdo.read_number(OD.STATUSWORD))
         if state not in (State.SWITCHED_ON, State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
             return
         logger.warning("%s (node %d): found %s at boot (another master, or a driver that did not stop it);"
                        " quick stop, then disable voltage", self.name, self.node_id, state.name)
         if state == State.OPERATION_ENABLED:
-            self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
+            self._sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
         if state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):  # no power off while it brakes
             # stopped: Switch On Disabled (quick-stop options 1-3), or Quick Stop Active with
             # bit 10 set (options 5-7 hold there)
             self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED or (
                 st == State.QUICK_STOP_ACTIVE and bool(sw & SW.TARGET_REACHED)), "quick stop at boot")
-        self.sdo_write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.DISABLE_VOLTAGE)))
+        self._sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.DISABLE_VOLTAGE)))
         self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED, "disable voltage at boot")
 
     def _poll_state_sdo(self, done: Callable[[State, int], bool], doing: str) -> None:
         deadline = time.monotonic() + TRANSITION_TIMEOUT_S
         while True:
-            sw = int(self.sdo_read_value(OD.STATUSWORD))  # type: ignore[arg-type]
+            sw = self._sdo.read_number(OD.STATUSWORD)
             if done(decode_state(sw), sw):
-                self.statusword = sw
+                self._cache.note_statusword(sw)
                 return
             if time.monotonic() > deadline:
                 raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: still in"
@@ -294,11 +317,10 @@ class Boot(HostWatch):
         rpm counts/s. What came from where is said once at INFO (a conflict with the config at
         WARNING); later boots say it at DEBUG."""
         cfg = self.config
-        objects = read_unit_objects(self._read_optional)
-        self.scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
-                                               invert=cfg.invert, offset_deg=cfg.offset_deg)
-        self._max_counts_s = int(abs(self.scale.counts_per_deg * cfg.max_velocity_deg_s)) or 1
-        self._jump_margin_counts = max(4.0, self.scale.counts_per_deg)
+        objects = read_unit_objects(self._sdo.read_optional)
+        scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
+                                          invert=cfg.invert, offset_deg=cfg.offset_deg)
+        self._cache.set_scale(scale)
         for note in notes:
             level = logging.WARNING if "(config says" in note else logging.INFO
             logger.log(level if not self.boot_count else logging.DEBUG, "node %d (%s): %s", self.node_id,
@@ -307,7 +329,7 @@ class Boot(HostWatch):
     def _quick_stop_decel(self) -> int:
         """The configured quick-stop deceleration in drive units, at most what the drive takes
         (its EDS HighLimit): the fastest stop it allows, said in a warning."""
-        wanted = self.scale.acceleration_to_drive(self.config.quick_stop_decel_deg_s2)
+        wanted = self._cache.scale.acceleration_to_drive(self.config.quick_stop_decel_deg_s2)
         var = variable(self.od, OD.QUICK_STOP_DECELERATION, 0)
         high = var.max if var is not None else None
         if isinstance(high, int) and wanted > high:
@@ -320,14 +342,14 @@ class Boot(HostWatch):
     def reconfigure(self) -> None:
         """Bus worker: configure a drive that reset or power-cycled (boot-up seen) again; enable
         it again only when it was enabled and the config says ``restore_enable_after_reboot``."""
-        restore = self.was_enabled and self.config.restore_enable_after_reboot
-        self.was_enabled = False
+        restore = self._channel.was_enabled and self.config.restore_enable_after_reboot
+        self._channel.forget_commanded()
         try:
             self.boot(reset=False)
-            if restore and not self.closed:
-                self.enable()
+            if restore and not self._channel.closed:
+                self._power.enable()
         except MotorError as err:
             logger.error("%s: re-configuration after a reset failed: %s; retrying in %g s", self.name, err,
                          REBOOT_RETRY_S)
             time.sleep(REBOOT_RETRY_S)
-            self.rebooted.set()  # the supervisor hands it to the worker again
+            self._cache.rebooted.set()  # the supervisor hands it to the worker again

@@ -18,9 +18,11 @@ TRANSITION_TIMEOUT_S = 1.0
 MODE_SWITCH_TIMEOUT_S = 1.0
 STATE_POLL_S = 0.002
 REBOOT_RETRY_S = 0.5
-#: How long a command waits for another command's frames before it is refused (never for an
-#: operation such as enable or homing: that refuses at once).
-COMMAND_LOCK_WAIT_S = 0.003
+#: How long a command waits for the command channel before it is refused. The channel's lock is
+#: held only to decide and send one frame (never an SDO or a wait), so this bounds a hang, not
+#: a queue: a few frames and a thread switch of the interpreter (5 ms) fit many times. An
+#: operation under way (enable, homing) refuses a command at once, without waiting.
+COMMAND_LOCK_WAIT_S = 0.1
 #: 0x605A: slow down on the quick-stop ramp, then Switch On Disabled.
 QUICK_STOP_THEN_DISABLE = 2
 #: Reaction time of the driver's own limit guard (supervisor period, SYNC, TPDO age), as distance

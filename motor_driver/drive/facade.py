@@ -1,24 +1,358 @@
-"""The :class:`Drive` every caller uses: the layers of :mod:`motor_driver.drive` stacked.
+"""The :class:`Drive` every caller uses: the parts of one drive composed.
 
-Each layer is a class in its own module and builds on the ones below it only (state cache,
-SDO, command frames, power state machine, limit guard, motion, homing, host watch, boot);
-this one adds nothing but the moment the drive's frames reach the receive thread: after every
-layer has set up its state, so that a frame never meets a half-built drive.
+Each part owns its state and is handed only the ports it needs, as canopen's ``RemoteNode``
+composes ``sdo``, ``pdo``, ``nmt`` and ``emcy``:
+
+- ``cache`` (:class:`DriveCache`): what the receive thread knows, published per frame;
+- ``sdo`` (:class:`SdoPort`): bounded SDO, one transfer at a time;
+- ``channel`` (:class:`CommandChannel`): the one way out for a controlword or a set-point;
+- ``watch`` (:class:`HostWatch`), ``power``, ``limits``, ``motion``, ``homing``, ``boot``:
+  collaborators built on those.
+
+This class adds no state and no rule: it builds the parts in order, connects the cache to the
+channel, and hands the drive's COB-IDs to the receive thread last, so that a frame never meets
+a half-built drive. Its methods and properties forward to the part that owns each.
 """
 
 from __future__ import annotations
 
+import logging
+import struct
+import threading
+from collections.abc import Callable
+
+import can
 import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config.config import DriveConfig
+from can_config.errors import BusLostError
+from can_config.objects import OD, FunctionCode, OperationMode
+from motor_driver.cia402 import State
 from motor_driver.drive.boot import Boot
+from motor_driver.drive.channel import CommandChannel
+from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
+from motor_driver.drive.homing import Homing
+from motor_driver.drive.hostwatch import HostWatch
+from motor_driver.drive.limits import LimitGuard
+from motor_driver.drive.motion import Motion
+from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.sdo import SdoPort
+from motor_driver.drive.state import DriveCache, DriveState, Emcy
+from motor_driver.pdo import PdoPlan, plan_pdos
+from motor_driver.safety import SafetyCheck
+from motor_driver.units import Scale
+
+logger = logging.getLogger(__name__)
 
 
-class Drive(Boot):
+class Drive:
     """One drive. Created by :class:`motor_driver.driver.MotorDriver`; methods are thread-safe."""
 
     def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
                  host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
-        super().__init__(config, network, od, host_node_id=host_node_id, sync_period_s=sync_period_s)
-        self.subscribe()
+        self.config = config
+        self.name, self.node_id = config.name, config.node_id
+        self.network = network
+        self.od = od
+        self.node = canopen.RemoteNode(config.node_id, od)
+        network.add_node(self.node)
+        # the driver decodes EMCY itself (the cache); canopen's consumer would keep every EMCY in
+        # a list that is never trimmed, for as long as the process runs
+        network.unsubscribe(FunctionCode.EMCY + config.node_id, self.node.emcy.on_emcy)
+        self.plan: PdoPlan = plan_pdos(od, config.node_id)
+        for index in self.plan.sdo_only:
+            logger.warning("node %d: 0x%04X cannot be PDO-mapped on this drive; using SDO for it", config.node_id, index)
+        scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio, invert=config.invert,
+                      offset_deg=config.offset_deg)
+        self.cache = DriveCache(config, network, self.plan, scale, sync_period_s=sync_period_s)
+        self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s)
+        self.channel = CommandChannel(config.name, config.node_id, self.plan, self._send, self._write_cw_sdo,
+                                      self.cache.wake)
+        self.watch = HostWatch(config, od, network, self.cache, self.channel, self.sdo, host_node_id)
+        self.power = PowerStateMachine(config, od, self.cache, self.channel, self.sdo, self.watch)
+        self.limits = LimitGuard(config, self.cache, self.channel)
+        self.motion = Motion(config, od, self.plan, self.cache, self.channel, self.sdo, self.power, self.limits)
+        self.homing = Homing(config, od, self.cache, self.channel, self.sdo, self.power)
+        self.boot_part = Boot(config, od, self.plan, network, self.cache, self.channel, self.sdo, self.power,
+                              self.watch)
+        self.cache.connect(self.channel)
+        self.cache.subscribe()
+
+    # ------------------------------------------------------------------ the channel's ports
+    def _send(self, cob_id: int, data: bytes) -> None:
+        """One frame out; a dead bus becomes BusLostError (the supervisor reconnects)."""
+        try:
+            self.network.send_message(cob_id, data)
+        except (can.CanError, OSError, RuntimeError) as err:
+            raise BusLostError(f"{self.name} (node {self.node_id}): cannot send 0x{cob_id:03X}: the bus is"
+                               f" gone ({err}); nothing moves until it is back and the drive is enabled again") from err
+
+    def _write_cw_sdo(self, word: int) -> None:
+        self.sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", word))
+
+    # ------------------------------------------------------------------ state (the cache's)
+    def snapshot(self) -> DriveState:
+        return self.cache.snapshot(self.watch.foreign_master)
+
+    @property
+    def state(self) -> State:
+        return self.cache.state
+
+    @property
+    def statusword(self) -> int:
+        return self.cache.statusword
+
+    @property
+    def angle_deg(self) -> float:
+        return self.cache.angle_deg
+
+    @property
+    def position_counts(self) -> int:
+        return self.cache.position_counts
+
+    @property
+    def mode_display(self) -> int:
+        return self.cache.mode_display
+
+    @property
+    def scale(self) -> Scale:
+        return self.cache.scale
+
+    @property
+    def sync_period_s(self) -> float:
+        return self.cache.sync_period_s
+
+    @property
+    def nmt_state(self) -> str:
+        return self.cache.nmt_state
+
+    @property
+    def last_heartbeat(self) -> float:
+        return self.cache.last_heartbeat
+
+    @property
+    def last_emcy(self) -> Emcy | None:
+        return self.cache.last_emcy
+
+    @property
+    def fault_seen(self) -> int | None:
+        return self.cache.fault_seen
+
+    @property
+    def tpdo_count(self) -> int:
+        return self.cache.tpdo_count
+
+    @property
+    def implausible_samples(self) -> int:
+        return self.cache.implausible_samples
+
+    @property
+    def guard_errors(self) -> int:
+        return self.cache.guard_errors
+
+    @property
+    def behind_back(self) -> tuple[float, str]:
+        return self.cache.behind_back
+
+    @property
+    def booted(self) -> bool:
+        return self.cache.booted
+
+    @property
+    def lost(self) -> bool:
+        return self.cache.lost
+
+    @property
+    def rebooted(self) -> threading.Event:
+        return self.cache.rebooted
+
+    # ------------------------------------------------------------------ the channel's
+    @property
+    def busy(self) -> str | None:
+        return self.channel.busy
+
+    @property
+    def closed(self) -> bool:
+        return self.channel.closed
+
+    def close(self) -> None:
+        """The driver shuts down: no command is taken from here on (stops still are)."""
+        self.channel.close()
+
+    @property
+    def was_enabled(self) -> bool:
+        return self.channel.was_enabled
+
+    @property
+    def velocity_commanded(self) -> bool:
+        return self.channel.velocity_commanded
+
+    @property
+    def last_velocity_cmd(self) -> float:
+        return self.channel.last_velocity_cmd
+
+    @property
+    def interleave(self) -> Callable[[str], None] | None:
+        return self.channel._hook
+
+    @interleave.setter
+    def interleave(self, hook: Callable[[str], None] | None) -> None:
+        self.channel.set_hook(hook)
+
+    # ------------------------------------------------------------------ the host watch's
+    @property
+    def foreign_master(self) -> str:
+        return self.watch.foreign_master
+
+    @property
+    def host_watch(self) -> str | None:
+        return self.watch.host_watch
+
+    @property
+    def host_watch_problem(self) -> str | None:
+        return self.watch.host_watch_problem
+
+    @property
+    def remote_frames(self) -> bool:
+        return self.watch.remote_frames
+
+    @remote_frames.setter
+    def remote_frames(self, carried: bool) -> None:
+        self.watch.set_remote_frames(carried)
+
+    @property
+    def guarding(self) -> bool:
+        return self.cache.guarding
+
+    def watch_mode(self) -> str:
+        return self.watch.watch_mode()
+
+    def guard(self, now: float) -> None:
+        self.watch.guard(now)
+
+    def check_heartbeat(self, now: float) -> Callable[[], None] | None:
+        return self.watch.check_heartbeat(now)
+
+    def set_foreign_master(self, evidence: str) -> bool:
+        return self.watch.set_foreign_master(evidence)
+
+    def quick_stop_by_sdo(self, since: float) -> None:
+        self.watch.quick_stop_by_sdo(since)
+
+    def mark_lost(self) -> None:
+        self.watch.mark_lost()
+
+    def release_host_watch(self) -> None:
+        self.watch.release_host_watch()
+
+    # ------------------------------------------------------------------ boot's
+    def boot(self, *, reset: bool = True) -> None:
+        self.boot_part.boot(reset=reset)
+
+    def reconfigure(self) -> None:
+        self.boot_part.reconfigure()
+
+    @property
+    def boot_count(self) -> int:
+        return self.boot_part.boot_count
+
+    @property
+    def safety(self) -> tuple[SafetyCheck, ...]:
+        return self.boot_part.safety
+
+    @property
+    def host_loss_stops(self) -> int:
+        return self.boot_part.host_loss_stops
+
+    def expected_identity(self) -> list[tuple[int, str, frozenset[int], str]]:
+        return self.boot_part.expected_identity()
+
+    # ------------------------------------------------------------------ the power state machine's
+    def enable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        self.power.enable(timeout_s)
+
+    def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        self.power.disable(timeout_s)
+
+    def quick_stop(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        self.power.quick_stop(timeout_s)
+
+    def disable_voltage(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        self.power.disable_voltage(timeout_s)
+
+    def halt(self, on: bool = True) -> None:
+        self.power.halt(on)
+
+    def recover(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        self.power.recover(timeout_s)
+
+    def supported_modes(self) -> int:
+        return self.power.supported_modes()
+
+    def set_mode(self, mode: OperationMode | int) -> None:
+        self.power.set_mode(mode)
+
+    # ------------------------------------------------------------------ limits and motion
+    @property
+    def limit_stops(self) -> int:
+        return self.limits.limit_stops
+
+    @property
+    def watchdog_stops(self) -> int:
+        return self.limits.watchdog_stops
+
+    def guard_limits(self) -> None:
+        self.limits.guard_limits()
+
+    def stop_velocity(self) -> bool:
+        return self.limits.stop_velocity()
+
+    def check_position(self, angle_deg: float) -> float:
+        return self.motion.check_position(angle_deg)
+
+    def move_to(self, angle_deg: float, *, wait: bool = False, timeout_s: float | None = None) -> float:
+        return self.motion.move_to(angle_deg, wait=wait, timeout_s=timeout_s)
+
+    def wait_target_reached(self, timeout_s: float | None = None) -> None:
+        self.motion.wait_target_reached(timeout_s)
+
+    def set_profile_velocity(self, velocity_deg_s: float) -> None:
+        self.motion.set_profile_velocity(velocity_deg_s)
+
+    def set_velocity(self, velocity_deg_s: float) -> None:
+        self.motion.set_velocity(velocity_deg_s)
+
+    def set_torque(self, torque_nm: float) -> None:
+        self.motion.set_torque(torque_nm)
+
+    def stream_velocity(self, velocity_deg_s: float) -> None:
+        self.motion.stream_velocity(velocity_deg_s)
+
+    def stream_torque(self, torque_nm: float) -> None:
+        self.motion.stream_torque(torque_nm)
+
+    def command_velocity(self, velocity_deg_s: float) -> None:
+        self.motion.command_velocity(velocity_deg_s)
+
+    def command_torque(self, torque_nm: float) -> None:
+        self.motion.command_torque(torque_nm)
+
+    def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None) -> None:
+        self.motion.stream_position(angle_deg, max_step_deg=max_step_deg)
+
+    def home(self, timeout_s: float | None = None) -> None:
+        self.homing.home(timeout_s)
+
+    # ------------------------------------------------------------------ SDO (the port's)
+    def sdo_read(self, index: int, subindex: int = 0) -> bytes:
+        return self.sdo.read(index, subindex)
+
+    def sdo_read_value(self, index: int, subindex: int = 0) -> int | float | bytes:
+        return self.sdo.read_value(index, subindex)
+
+    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        self.sdo.write(index, subindex, data)
+
+    def sdo_write_checked(self, index: int, subindex: int, value: int) -> None:
+        self.sdo.write_checked(index, subindex, value)

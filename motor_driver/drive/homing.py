@@ -1,68 +1,92 @@
 """Homing (CiA 402 mode 6) with the configured method and speed.
 
-Threads: a command thread, with the drive marked busy for the whole run (commands refused,
-a stop preempts it); no lock is held while it waits for 'homing attained'.
+Owner: no state of its own. A command thread runs it as one operation of the command channel
+for the whole run (commands refused meanwhile, a stop preempts it); the mode switches and the
+enable it needs run under that same operation, so a stop that lands during any of its SDO
+writes ends every one of them, and nothing of homing's reaches the drive after the stop.
+No lock is held while it waits for 'homing attained'.
 """
 
 from __future__ import annotations
 
 import logging
-import time
 
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config.config import DriveConfig
 from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.cia402 import CW, FAULT_STATES, SW, Command, State
-from motor_driver.drive.constants import STATE_POLL_S
-from motor_driver.drive.motion import Motion
+from motor_driver.drive.channel import CommandChannel, Op
+from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.sdo import SdoPort
+from motor_driver.drive.state import DriveCache
 
 logger = logging.getLogger(__name__)
 
 
-class Homing(Motion):
-    """Layer 6: homing (CiA 402 mode 6)."""
+class Homing:
+    """Homing of one drive (CiA 402 mode 6)."""
+
+    def __init__(self, config: DriveConfig, od: ObjectDictionary, cache: DriveCache, channel: CommandChannel,
+                 sdo: SdoPort, power: PowerStateMachine) -> None:
+        self.config = config
+        self.name, self.node_id = config.name, config.node_id
+        self._od = od
+        self._cache = cache
+        self._channel = channel
+        self._sdo = sdo
+        self._power = power
 
     def home(self, timeout_s: float | None = None) -> None:
         """Homing with the configured method and speed; waits for 'homing attained'. The drive
         is busy meanwhile: commands are refused, a stop preempts it."""
         cfg = self.config
-        self._require_resolution("homing")
-        if not has_object(self.od, OD.HOMING_METHOD) or \
-                not self.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.HOMING] & 1:
-            raise CommandRejected(f"{self.name}: this drive has no homing mode ("
-                                  f"{'no 0x6098 in its EDS' if not has_object(self.od, OD.HOMING_METHOD) else '0x6502 lists no homing'});"
-                                  " nothing was sent. Home it with the vendor's tool, or set offset_deg in the config.")
-        with self._operation("home") as generation:
-            self._require_usable("home")
-            self.set_mode(OperationMode.HOMING)
-            self._write_typed(OD.HOMING_METHOD, 0, cfg.homing_method)
-            if has_object(self.od, OD.HOMING_SPEEDS, 1):
-                self._write_typed(OD.HOMING_SPEEDS, 1, self.scale.magnitude_to_drive(cfg.homing_speed_deg_s))
-            if self.state != State.OPERATION_ENABLED:
-                self.enable()
-            self._transition(generation, "home", Command.ENABLE_OPERATION)
-            self._transition(generation, "home", Command.ENABLE_OPERATION, edge=CW.NEW_SETPOINT)
-            deadline = time.monotonic() + (timeout_s or cfg.homing_timeout_s)
-            while True:
-                sw = self.statusword
-                if sw & SW.FOLLOWING_ERROR:
-                    raise DriveStateError(f"{self.name}: homing error reported (statusword 0x{sw:04X})",
-                                          node_id=self.node_id, statusword=sw)
-                if sw & SW.SETPOINT_ACK and sw & SW.TARGET_REACHED:
-                    break
-                if self.state in FAULT_STATES:
-                    raise self._fault_error("home")
-                self._check_not_preempted(generation, "home")
-                if time.monotonic() > deadline:
-                    raise DriveTimeoutError(f"{self.name}: homing not attained within"
-                                            f" {timeout_s or cfg.homing_timeout_s:g} s", node_id=self.node_id,
-                                            statusword=sw)
-                time.sleep(STATE_POLL_S)
-            self._position_t = 0.0  # homing moves the zero: the next position is trusted as it comes
-            seq = self._position_seq
-            settle = time.monotonic() + 3 * self.sync_period_s + 0.05
-            while self._position_seq == seq and time.monotonic() < settle:
-                time.sleep(0.001)
-            self._transition(generation, "home", Command.ENABLE_OPERATION)
-            self.set_mode(OperationMode.PROFILE_POSITION)
-            self._target_counts = self.position_counts
+        if not self._cache.scale.resolution_known:
+            raise CommandRejected(f"{self.name} (node {self.node_id}): homing refused: the position resolution is"
+                                  " unknown (no counts_per_rev in the config, no 0x608F or 0x60A8 on the drive)."
+                                  " Set counts_per_rev for this drive. Nothing was sent.")
+        if not has_object(self._od, OD.HOMING_METHOD) or \
+                not self._power.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.HOMING] & 1:
+            why = "no 0x6098 in its EDS" if not has_object(self._od, OD.HOMING_METHOD) else "0x6502 lists no homing"
+            raise CommandRejected(f"{self.name}: this drive has no homing mode ({why}); nothing was sent. Home it"
+                                  " with the vendor's tool, or set offset_deg in the config.")
+        with self._channel.operation("home") as op:
+            self._power.require_usable("home")
+            self._power.set_mode(OperationMode.HOMING, parent=op)
+            self._channel.check(op, "home")
+            self._sdo.write_typed(OD.HOMING_METHOD, 0, cfg.homing_method)
+            if has_object(self._od, OD.HOMING_SPEEDS, 1):
+                self._sdo.write_typed(OD.HOMING_SPEEDS, 1, self._cache.scale.magnitude_to_drive(cfg.homing_speed_deg_s))
+            self._channel.point("home: parameters written")
+            if self._cache.state != State.OPERATION_ENABLED:
+                self._power.enable(parent=op)
+            self._channel.transition(op, "home", Command.ENABLE_OPERATION)
+            self._channel.transition(op, "home", Command.ENABLE_OPERATION, edge=CW.NEW_SETPOINT)
+            self._wait_attained(op, timeout_s or cfg.homing_timeout_s)
+            self._cache.trust_next_position()  # homing moves the zero: the next position is taken as it comes
+            seq = self._cache.position_seq
+            self._cache.wait_until(lambda: self._cache.position_seq != seq, 3 * self._cache.sync_period_s + 0.05)
+            self._channel.transition(op, "home", Command.ENABLE_OPERATION)
+            self._power.set_mode(OperationMode.PROFILE_POSITION, parent=op)
+            self._channel.forget(self._cache.position_counts)
+
+    def _wait_attained(self, op: Op, timeout_s: float) -> None:
+        cache = self._cache
+
+        def attained() -> bool:
+            sw = cache.statusword
+            if sw & SW.FOLLOWING_ERROR:
+                raise DriveStateError(f"{self.name}: homing error reported (statusword 0x{sw:04X})",
+                                      node_id=self.node_id, statusword=sw)
+            if sw & SW.SETPOINT_ACK and sw & SW.TARGET_REACHED:
+                return True
+            if cache.state in FAULT_STATES:
+                raise self._power.fault_error("home")
+            self._channel.check(op, "home")
+            return False
+
+        if not cache.wait_until(attained, timeout_s):
+            raise DriveTimeoutError(f"{self.name}: homing not attained within {timeout_s:g} s", node_id=self.node_id,
+                                    statusword=cache.statusword)

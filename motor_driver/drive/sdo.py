@@ -1,23 +1,26 @@
 """SDO access to one drive: bounded reads, typed writes, and the objects no tool may write.
 
-Threads: no state of its own beyond canopen's SDO client (one transfer at a time, canopen's
-lock). Called from the bus's worker (boot), command threads (operations that wait) and the
-CLI, never from the receive thread (which never waits) nor the supervisor.
-One typed codec (:mod:`can_config.codec`, by the EDS's data type) is used for
-every read and write, here and by the bench CLI (through :meth:`SdoAccess.sdo_read_value` and
-:meth:`SdoAccess.sdo_write_checked`).
+Owner: this object; its lock (one per node) serialises every transfer to the drive, whatever
+thread asks (canopen's SdoClient has no lock of its own: two threads' transfers on one node
+answer each other's requests). Called from the bus's worker (boot), command threads
+(operations that wait), the supervisor's worker jobs and the bench CLI; never from the receive
+thread (which never waits) nor the supervisor thread, never under the command channel's lock.
+One typed codec (:mod:`can_config.codec`, by the EDS's data type) is used for every read and
+write, here and by the bench CLI (which builds an :class:`SdoPort` for each node it talks to).
 """
 
 from __future__ import annotations
 
 import logging
 import struct
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 import can
 import canopen
+from canopen.objectdictionary import ObjectDictionary
 
 from can_config.codec import pack_value, unpack_value, value_format
 from can_config.config import SdoSetting
@@ -25,7 +28,6 @@ from can_config.eds import has_object, variable
 from can_config.errors import BootError, BusLostError, CommandRejected, SdoError, SdoTimeoutError
 from can_config.objects import OD, sdo_abort_text
 from motor_driver.drive.constants import SDO_ABORT_OUT_OF_MEMORY, SDO_ABORT_TIMEOUT, SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
-from motor_driver.drive.state import DriveCache
 
 logger = logging.getLogger(__name__)
 
@@ -63,8 +65,16 @@ def protected_reason(index: int) -> str | None:
     return PROTECTED_OBJECTS.get(index)
 
 
-class SdoAccess(DriveCache):
-    """Layer 1: SDO access, bounded in size and time, with one typed codec."""
+class SdoPort:
+    """SDO access to one node, bounded in size and time, with one typed codec, one transfer at a time."""
+
+    def __init__(self, name: str, node: canopen.RemoteNode, od: ObjectDictionary, timeout_s: float) -> None:
+        self.name, self.node_id = name, node.id
+        self.od = od
+        self._node = node
+        self._timeout_s = timeout_s
+        node.sdo.RESPONSE_TIMEOUT = timeout_s
+        self._lock = threading.Lock()
 
     @contextmanager
     def _sdo_errors(self, what: str, index: int, subindex: int) -> Iterator[None]:
@@ -89,20 +99,20 @@ class SdoAccess(DriveCache):
             raise SdoError(f"{where}: malformed answer from the drive ({type(err).__name__}: {err})",
                            node_id=self.node_id, index=index, subindex=subindex) from err
 
-    def sdo_read(self, index: int, subindex: int = 0) -> bytes:
+    def read(self, index: int, subindex: int = 0) -> bytes:
         """An SDO upload, bounded in size and in time: at most the object's size where its type
         has one (else SDO_UPLOAD_MAX_BYTES), and SDO_TRANSFER_TIMEOUTS x the SDO timeout in all,
         whatever the drive announces or keeps sending (a transfer past either is aborted)."""
-        with self._sdo_errors("read", index, subindex):
+        with self._lock, self._sdo_errors("read", index, subindex):
             return self._bounded_upload(index, subindex)
 
     def _bounded_upload(self, index: int, subindex: int) -> bytes:
         var = variable(self.od, index, subindex)
         fixed = len(var) // 8 if var is not None and var.fixed_size else None
         cap = max(8, fixed) if fixed else SDO_UPLOAD_MAX_BYTES  # some drives send a U32 for a smaller type
-        sdo = self.node.sdo
+        sdo = self._node.sdo
         where = f"node {self.node_id}: SDO read 0x{index:04X}:{subindex}"
-        deadline = time.monotonic() + SDO_TRANSFER_TIMEOUTS * self.config.sdo_timeout_s
+        deadline = time.monotonic() + SDO_TRANSFER_TIMEOUTS * self._timeout_s
         data = bytearray()
         with sdo.open(index, subindex, buffering=0) as stream:
             if stream.size is not None and stream.size > cap:
@@ -119,32 +129,32 @@ class SdoAccess(DriveCache):
                 if time.monotonic() > deadline:
                     sdo.abort(SDO_ABORT_TIMEOUT)
                     raise SdoTimeoutError(f"{where}: the transfer took over {SDO_TRANSFER_TIMEOUTS} x the SDO timeout"
-                                          f" ({self.config.sdo_timeout_s:g} s); aborted", node_id=self.node_id,
+                                          f" ({self._timeout_s:g} s); aborted", node_id=self.node_id,
                                           index=index, subindex=subindex)
         return bytes(data[:fixed] if fixed and len(data) > fixed else data)
 
-    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
-        with self._sdo_errors("write", index, subindex):
-            self.node.sdo.download(index, subindex, data)
+    def write(self, index: int, subindex: int, data: bytes) -> None:
+        with self._lock, self._sdo_errors("write", index, subindex):
+            self._node.sdo.download(index, subindex, data)
 
-    def sdo_write_checked(self, index: int, subindex: int, value: int) -> None:
+    def write_checked(self, index: int, subindex: int, value: int) -> None:
         """SDO write for tools and services: refuses the objects that move the motor or set its
         limits and PDOs, which only the driver's own checked paths may write."""
         reason = protected_reason(index)
         if reason is not None:
             raise CommandRejected(f"{self.name}: writing 0x{index:04X} by SDO is refused: {reason}.")
-        self._write_typed(index, subindex, value)
+        self.write_typed(index, subindex, value)
 
-    def sdo_read_value(self, index: int, subindex: int = 0) -> int | float | bytes:
-        raw = self.sdo_read(index, subindex)
+    def read_value(self, index: int, subindex: int = 0) -> int | float | bytes:
+        raw = self.read(index, subindex)
         value = unpack_value(value_format(self.od, index, subindex), raw)
         return raw if value is None else value
 
-    def _write_typed(self, index: int, subindex: int, value: int) -> None:
+    def write_typed(self, index: int, subindex: int, value: int) -> None:
         """A number written as its EDS type says (INTEGER32 for an object the EDS does not list)."""
-        self.sdo_write(index, subindex, pack_value(value_format(self.od, index, subindex) or "<i", value))
+        self.write(index, subindex, pack_value(value_format(self.od, index, subindex) or "<i", value))
 
-    def _write_setting(self, setting: SdoSetting) -> None:
+    def write_setting(self, setting: SdoSetting) -> None:
         """One entry of the config's ``sdo:`` list: typed by the EDS (or ``size`` bytes), read
         back when ``check``. Objects the driver owns are refused with the reason."""
         where = f"sdo setting 0x{setting.index:04X}:{setting.sub}"
@@ -167,28 +177,36 @@ class SdoAccess(DriveCache):
             raise BootError(f"node {self.node_id} ({self.name}): {where}: value {setting.value} does not fit the"
                             f" object ({fmt or f'{setting.size} bytes'}): {err}", node_id=self.node_id,
                             step="sdo settings", index=setting.index, subindex=setting.sub) from err
-        self.sdo_write(setting.index, setting.sub, data)
+        self.write(setting.index, setting.sub, data)
         if setting.check:
-            back = self.sdo_read(setting.index, setting.sub)[:len(data)]
+            back = self.read(setting.index, setting.sub)[:len(data)]
             if back != data:
                 raise BootError(f"node {self.node_id} ({self.name}): {where}: wrote {data.hex(' ')}, read back"
                                 f" {back.hex(' ')}; the drive did not keep the value (range, or writable only in"
                                 " another state?)", node_id=self.node_id, step="sdo settings",
                                 index=setting.index, subindex=setting.sub)
 
-    def _read_int(self, index: int, subindex: int) -> int | None:
+    def read_int(self, index: int, subindex: int) -> int | None:
         """An integer object read by SDO, or None where the drive's EDS has no such object."""
         if not has_object(self.od, index, subindex):
             return None
-        value = self.sdo_read_value(index, subindex)
+        value = self.read_value(index, subindex)
         return int(value) if isinstance(value, (int, float)) else None
 
-    def _read_optional(self, index: int, subindex: int) -> bytes | None:
+    def read_optional(self, index: int, subindex: int) -> bytes | None:
         """An object read by SDO whatever the EDS lists, or None where the drive aborts (it has
         no such object). No answer at all is an error, not an absence."""
         try:
-            return self.sdo_read(index, subindex)
+            return self.read(index, subindex)
         except SdoTimeoutError:
             raise
         except SdoError:
             return None
+
+    def read_number(self, index: int, subindex: int = 0) -> int:
+        """A numeric object read by SDO (typed by the EDS); anything else is an SdoError."""
+        value = self.read_value(index, subindex)
+        if not isinstance(value, (int, float)):
+            raise SdoError(f"node {self.node_id}: SDO read 0x{index:04X}:{subindex}: not a number ({value!r})",
+                           node_id=self.node_id, index=index, subindex=subindex)
+        return int(value)

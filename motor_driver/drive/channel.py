@@ -1,0 +1,434 @@
+"""The command channel of one drive: the only way a controlword or a set-point leaves the process.
+
+Owner: this object, under ``_lock``: the controlword last sent (``_cw``), the position target,
+the generation counter, the stop that preempted (``_preempted``), the busy registry, the
+set-point handshake, and what is commanded (enabled by this driver, a live velocity command).
+Command threads, the supervisor (watchdog, limit guard, the stop on losing a drive) and the
+receive thread (the handshake's reply) all come here; nobody else builds such a frame.
+
+The rule, kept by construction:
+
+- ``_lock`` is held only to decide and to send one PDO. Never an SDO, a sleep or a wait for
+  the drive. An operation that waits (enable, homing, recover, a mode switch, a target written
+  by SDO) registers in the busy registry instead, under a token of its own; commands from
+  others are refused at once meanwhile. An operation removes only its own entry; a nested
+  operation (homing's enable) runs under its caller's token and generation.
+- A stop's decision and its frame are one critical section that bumps the generation. Every
+  other frame leaves only if, under the same lock, the operation it belongs to was not
+  preempted and this driver's last controlword is still Enable Operation (for motion frames):
+  so after a stop nothing but a later, explicitly requested enable reaches the drive.
+- A controlword the drive takes only by SDO (no RPDO maps it) is decided under the lock and
+  written after it; a stop decided meanwhile is written again after such a write.
+
+``set_hook`` is the seam for tests that force an interleaving: the hook is called at named
+points, some inside the critical section (``"<what>: decided"``) and where a caller finds the
+lock taken (``"<what>: waiting for the lock"``), so a test can prove a competitor is held off.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from can_config.errors import CommandRejected, DriveStateError
+from can_config.objects import OD, OperationMode
+from motor_driver.cia402 import CW, Command, controlword
+from motor_driver.drive.constants import COMMAND_LOCK_WAIT_S, ENABLED_CW_MASK
+from motor_driver.pdo import PdoPlan, encode_rpdo
+from motor_driver.setpoint import SetpointHandshake
+
+logger = logging.getLogger(__name__)
+
+#: The controlwords of the stops: the channel re-sends one after a controlword written by SDO.
+STOP_WORDS = frozenset({int(Command.QUICK_STOP), int(Command.SHUTDOWN), int(Command.DISABLE_VOLTAGE)})
+
+
+@dataclass(frozen=True)
+class Op:
+    """An operation under way: its token in the busy registry and the generation it began in."""
+
+    token: int
+    name: str
+    generation: int
+
+
+class CommandChannel:
+    """Decides and sends every frame carrying a controlword or a set-point of one drive."""
+
+    def __init__(self, name: str, node_id: int, plan: PdoPlan, send: Callable[[int, bytes], None],
+                 write_cw_sdo: Callable[[int], None], wake: Callable[[], None]) -> None:
+        self.name, self.node_id = name, node_id
+        self._plan = plan
+        self._send = send
+        self._write_cw_sdo = write_cw_sdo
+        self._wake = wake
+        self._lock = threading.Lock()
+        self._cw = 0
+        self._target_counts = 0
+        self._stream_velocity_counts_s = 0
+        self._enable_sent_at = 0.0
+        self._generation = 0
+        self._preempted: tuple[int, str] = (0, "")
+        self._busy: dict[int, str] = {}
+        self._tokens = itertools.count(1)
+        self._closed = False
+        self._was_enabled = False
+        self._velocity_commanded = False
+        self._last_velocity_cmd = 0.0
+        self._handshake = SetpointHandshake(self._send_setpoint, self._clear_setpoint)
+        self._hook: Callable[[str], None] | None = None
+
+    # ------------------------------------------------------------------ reading
+    @property
+    def busy(self) -> str | None:
+        """The oldest operation under way, or None."""
+        return next(iter(self._busy.values()), None)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    @property
+    def cw(self) -> int:
+        return self._cw
+
+    @property
+    def target_counts(self) -> int:
+        return self._target_counts
+
+    @property
+    def stream_velocity_counts_s(self) -> int:
+        return self._stream_velocity_counts_s
+
+    @property
+    def was_enabled(self) -> bool:
+        return self._was_enabled
+
+    @property
+    def velocity_commanded(self) -> bool:
+        return self._velocity_commanded
+
+    @property
+    def last_velocity_cmd(self) -> float:
+        return self._last_velocity_cmd
+
+    @property
+    def handshake_idle(self) -> bool:
+        return self._handshake.idle
+
+    def enabled_by_us(self, now: float, within_s: float) -> bool:
+        """This driver's last controlword was Enable Operation, or it sent one within ``within_s``."""
+        enable = int(Command.ENABLE_OPERATION)
+        return self._cw & enable == enable or now - self._enable_sent_at < within_s
+
+    def set_hook(self, hook: Callable[[str], None] | None) -> None:
+        """Tests only: ``hook(point)`` at the named points of the channel (see the module doc)."""
+        self._hook = hook
+
+    def point(self, name: str) -> None:
+        if self._hook is not None:
+            self._hook(name)
+
+    # ------------------------------------------------------------------ the lock
+    def _acquire(self, what: str, timeout_s: float = -1.0) -> bool:
+        if self._lock.acquire(blocking=False):
+            return True
+        self.point(f"{what}: waiting for the lock")
+        return self._lock.acquire(timeout=timeout_s)
+
+    # ------------------------------------------------------------------ operations and stops
+    @contextmanager
+    def operation(self, name: str, parent: Op | None = None) -> Iterator[Op]:
+        """An operation that waits for the drive: registered busy under its own token (refused
+        while another runs), or run under ``parent``'s token and generation (a nested call)."""
+        if parent is not None:
+            self.check(parent, name)
+            yield parent
+            return
+        self._acquire(name)
+        try:
+            if self._busy:
+                raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {self.busy};"
+                                      " nothing was sent. Try again when it is done.")
+            self._generation += 1
+            op = Op(next(self._tokens), name, self._generation)
+            self._busy[op.token] = name
+        finally:
+            self._lock.release()
+        try:
+            yield op
+        finally:
+            with self._lock:
+                self._busy.pop(op.token, None)
+
+    def check(self, op: Op, doing: str) -> None:
+        """Raise when a stop came since ``op`` began, or the driver shut down."""
+        if self._closed:
+            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the driver shut down meanwhile",
+                                  node_id=self.node_id)
+        before, by = self._preempted
+        if op.generation < before:
+            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing} interrupted by {by}",
+                                  node_id=self.node_id)
+
+    @contextmanager
+    def stopping(self, command: Command, by: str) -> Iterator[Op]:
+        """A stop: its frame now (:meth:`stop`), then registered busy while the caller waits for
+        the drive to get there (commands meanwhile are refused; another stop is not)."""
+        self.stop(command, by)
+        with self._lock:
+            op = Op(next(self._tokens), by, self._generation)
+            self._busy[op.token] = by
+        try:
+            yield op
+        finally:
+            with self._lock:
+                self._busy.pop(op.token, None)
+
+    def stop(self, command: Command, by: str) -> None:
+        """The frame of a stop: decided and sent in one critical section that bumps the
+        generation, so no frame decided before it can follow it. Forgets the set-point handshake
+        and the commanded state; wakes every operation waiting for the drive."""
+        self._acquire(by)
+        try:
+            self._generation += 1
+            self._preempted = (self._generation, by)
+            self._was_enabled = False
+            self._velocity_commanded = False
+            self._handshake.reset()
+            self._cw = int(command)
+            self.point(f"{by}: decided")
+            sdo_word = self._emit_cw(self._cw)
+        finally:
+            self._lock.release()
+        if sdo_word is not None:
+            self._write_cw_sdo(sdo_word)
+        self._wake()
+
+    def transition(self, op: Op, doing: str, command: Command | int, edge: int = 0) -> None:
+        """One controlword of an operation (enable, recover, homing): sent only if no stop came
+        since ``op`` began, checked under the lock with the frame."""
+        self._acquire(doing)
+        try:
+            self.check(op, doing)
+            self.point(f"{doing}: decided")
+            self._cw = int(command)
+            if self._cw & ENABLED_CW_MASK == ENABLED_CW_MASK:
+                self._enable_sent_at = time.monotonic()
+            sdo_word = self._emit_cw(self._cw | edge)
+        finally:
+            self._lock.release()
+        if sdo_word is not None:
+            self._write_cw_sdo(sdo_word)
+            self._restop_after_sdo(op)
+
+    def mark_enabled(self, op: Op, verdict: Callable[[], None]) -> None:
+        """The end of an enable: ``verdict`` (raises when the drive is not enabled) and the mark,
+        under the lock, after the check that no stop came."""
+        with self._lock:
+            self.check(op, "enable")
+            verdict()
+            self._was_enabled = True
+
+    def _restop_after_sdo(self, op: Op) -> None:
+        """A controlword written by SDO after the lock: a stop decided meanwhile is written again."""
+        with self._lock:
+            word = self._cw if op.generation < self._preempted[0] and self._cw in STOP_WORDS else None
+        if word is not None:
+            self._write_cw_sdo(word)
+
+    def _emit_cw(self, word: int) -> int | None:
+        """Under the lock: the controlword on its RPDO; or, with no RPDO for it, the word to write
+        by SDO once the lock is released."""
+        pdo = self._plan.rpdo_with(OD.CONTROLWORD)
+        if pdo is None:
+            return word
+        self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: word, OD.TARGET_POSITION: self._target_counts,
+                                                 OD.TARGET_VELOCITY: 0}))
+        return None
+
+    # ------------------------------------------------------------------ commands (one frame)
+    @contextmanager
+    def command(self, name: str, op: Op | None = None) -> Iterator[Frames]:
+        """A command of a frame or two: the lock for at most COMMAND_LOCK_WAIT_S; refused at once
+        while an operation other than ``op`` runs, and, with ``op``, when a stop preempted it."""
+        if not self._acquire(name, COMMAND_LOCK_WAIT_S):
+            raise CommandRejected(f"{self.name}: {name} refused: another command holds the drive; nothing was sent")
+        try:
+            others = [n for t, n in self._busy.items() if op is None or t != op.token]
+            if others:
+                raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {others[0]};"
+                                      " nothing was sent. Send it again when that is done.")
+            if op is not None:
+                self.check(op, name)
+            yield Frames(self, name)
+        finally:
+            self._lock.release()
+
+    def try_command(self, name: str) -> Frames | None:
+        """The supervisor's way in (it never waits): the lock now, or None; the caller must
+        :meth:`release`. Refused (None) while any operation runs."""
+        if not self._lock.acquire(blocking=False):
+            return None
+        if self._busy:
+            self._lock.release()
+            return None
+        return Frames(self, name)
+
+    def release(self) -> None:
+        self._lock.release()
+
+    # the senders below run under the lock (reached only through Frames or the handshake)
+    def _require_enabled_word(self, doing: str) -> None:
+        if self._cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
+            raise CommandRejected(f"{self.name}: {doing} refused: a stop came first (controlword"
+                                  f" 0x{self._cw:04X}); nothing was sent. enable() it again.")
+
+    def _send_setpoint(self, counts: int) -> None:
+        """A target with controlword bit 4 rising (the handshake's, under its lock and ours)."""
+        self._target_counts = counts
+        pdo = self._plan.rpdo_with(OD.TARGET_POSITION)
+        cw = controlword(Command.ENABLE_OPERATION, new_setpoint=True, change_immediately=True) | (self._cw & CW.HALT)
+        if pdo is not None:
+            self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_POSITION: counts}))
+        else:  # 0x607A only by SDO: written before (motion); here the edge alone
+            self._send_rpdo_cw(cw)
+
+    def _clear_setpoint(self) -> None:
+        """Controlword bit 4 back to 0 after the acknowledge (the handshake's)."""
+        self._send_rpdo_cw(int(Command.ENABLE_OPERATION) | (self._cw & CW.HALT))
+
+    def _send_rpdo_cw(self, word: int) -> None:
+        pdo = self._plan.rpdo_with(OD.CONTROLWORD)
+        if pdo is None:  # motion refuses such a drive before any set-point
+            raise CommandRejected(f"{self.name}: the controlword has no RPDO on this drive; nothing was sent")
+        self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: word, OD.TARGET_POSITION: self._target_counts,
+                                                 OD.TARGET_VELOCITY: 0}))
+
+    def on_status(self, acknowledged: bool) -> None:
+        """Receive thread: a statusword came; the handshake's reply, if one is due. Takes the
+        lock (held by nobody for longer than a frame), so its frame cannot follow a stop's."""
+        if self._handshake.idle:
+            return
+        with self._lock:
+            if self._cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
+                return  # a stop came first: it reset the handshake; nothing more goes out
+            self._handshake.on_status(acknowledged)
+
+    # ------------------------------------------------------------------ the driver's own resets
+    def reset(self, position_counts: int) -> None:
+        """Boot (the drive not booted): nothing commanded, the target where the shaft is."""
+        with self._lock:
+            self._cw = 0
+            self._target_counts = position_counts
+            self._was_enabled = False
+            self._velocity_commanded = False
+            self._handshake.reset()
+
+    def forget(self, position_counts: int | None = None) -> None:
+        """Before an enable or a mode switch: the handshake forgotten, the target where the shaft is."""
+        with self._lock:
+            self._handshake.reset()
+            if position_counts is not None:
+                self._target_counts = position_counts
+
+    def forget_commanded(self) -> None:
+        """A drive lost or handed to another master: nothing is commanded any more."""
+        with self._lock:
+            self._was_enabled = False
+            self._velocity_commanded = False
+
+    def close(self) -> None:
+        """The driver shuts down: every operation ends, no command is taken (stops still are)."""
+        with self._lock:
+            self._closed = True
+        self._wake()
+
+
+class Frames:
+    """The frames a command may send, handed out by :meth:`CommandChannel.command` while it
+    holds the lock: each checks that this driver's last controlword was Enable Operation."""
+
+    def __init__(self, channel: CommandChannel, doing: str) -> None:
+        self._c = channel
+        self._doing = doing
+
+    @property
+    def cw(self) -> int:
+        return self._c._cw
+
+    def velocity(self, counts_s: int, *, live: bool, stream: bool = False) -> None:
+        """A velocity target on its RPDO (controlword Enable Operation beside it)."""
+        c = self._c
+        c._require_enabled_word(self._doing)
+        pdo = c._plan.rpdo_with(OD.TARGET_VELOCITY)
+        if pdo is None:
+            raise CommandRejected(f"{c.name}: {self._doing}: 0x60FF has no RPDO here; nothing was sent")
+        cw = int(Command.ENABLE_OPERATION) | (c._cw & CW.HALT)
+        c._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_VELOCITY: counts_s}))
+        self.commanded(live)
+        if stream:
+            c._stream_velocity_counts_s = counts_s
+
+    def torque(self, permille: int, *, live: bool) -> None:
+        c = self._c
+        c._require_enabled_word(self._doing)
+        pdo = c._plan.rpdo_with(OD.TARGET_TORQUE)
+        if pdo is None:
+            raise CommandRejected(f"{c.name}: {self._doing}: 0x6071 has no RPDO here; nothing was sent")
+        cw = int(Command.ENABLE_OPERATION) | (c._cw & CW.HALT)
+        c._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_TORQUE: permille}))
+        self.commanded(live)
+
+    def commanded(self, live: bool) -> None:
+        """A velocity or torque command went out (by RPDO, or by SDO before this): the watchdog's."""
+        self._c._last_velocity_cmd = time.monotonic()
+        self._c._velocity_commanded = live
+
+    def setpoint(self, counts: int) -> None:
+        """A profile-position target through the set-point handshake (halt cleared)."""
+        c = self._c
+        c._require_enabled_word(self._doing)
+        c._cw &= ~CW.HALT
+        c._handshake.command(counts)
+
+    def stream_position(self, mode: OperationMode, counts: int, sdo_written: bool) -> None:
+        """A CSP or IP set-point: on its RPDO, or (``sdo_written``) its controlword alone."""
+        c = self._c
+        c._require_enabled_word(self._doing)
+        c._target_counts = counts
+        cw = int(Command.ENABLE_OPERATION)
+        target = OD.TARGET_POSITION
+        if mode == OperationMode.INTERPOLATED_POSITION:
+            cw |= CW.NEW_SETPOINT  # enable ip mode: the drive follows 0x60C1:1 at each SYNC
+            target = OD.INTERPOLATION_DATA
+        pdo = c._plan.rpdo_with(target)
+        if pdo is not None and not sdo_written:
+            c._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, target: counts}))
+        else:
+            c._send_rpdo_cw(cw)
+
+    def halt(self, on: bool) -> None:
+        c = self._c
+        c._cw = (c._cw | CW.HALT) if on else (c._cw & ~CW.HALT)
+        word = c._emit_cw(c._cw)
+        if word is not None:
+            raise CommandRejected(f"{c.name}: halt: the controlword has no RPDO on this drive; nothing was sent")
+
+    def brake(self, velocity_mode: bool) -> bool:
+        """Zero velocity or zero torque, only while this driver's last word was Enable Operation
+        (never after a stop: that frame would carry Enable Operation again). True when sent."""
+        c = self._c
+        c._velocity_commanded = False
+        if c._cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
+            return False
+        if velocity_mode:
+            self.velocity(0, live=False)
+        else:
+            self.torque(0, live=False)
+        return True

@@ -1,0 +1,274 @@
+"""The command channel's rule, forced interleaving by interleaving: a stop's frame is the last a
+drive gets of everything decided before it; nothing but a later operation's enable follows it.
+
+The channel takes its senders as callbacks (as the set-point handshake does), so these tests
+record every frame it sends, in order, with no bus: they are exact and fast, and they are
+what ``./dev mutants`` runs against the channel. Each competitor runs on a thread of its own;
+the channel's hooks say where a thread is ("...: decided" inside the critical section,
+"...: waiting for the lock" before it blocks), so no test depends on timing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections.abc import Callable
+
+import pytest
+
+from can_config import load_drive_od
+from can_config.config import GENERIC_EDS
+from can_config.errors import CommandRejected, DriveStateError
+from can_config.objects import OperationMode
+from motor_driver.cia402 import Command
+from motor_driver.drive.channel import CommandChannel
+from motor_driver.pdo import plan_pdos
+
+RPDO1, RPDO2, RPDO3, RPDO4 = 0x201, 0x301, 0x401, 0x501
+QUICK_STOP, ENABLE = int(Command.QUICK_STOP), int(Command.ENABLE_OPERATION)
+JOIN_S = 10.0  # a hang, not a timing claim
+
+
+class Wire:
+    """Every frame the channel sends, in order: (cob-id, controlword, the rest)."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[int, int, bytes]] = []
+        self.sdo_words: list[int] = []
+        self.wakes = 0
+
+    def send(self, cob: int, data: bytes) -> None:
+        self.frames.append((cob, int.from_bytes(data[:2], "little"), bytes(data[2:])))
+
+    def words(self) -> list[int]:
+        return [cw for _, cw, _ in self.frames]
+
+
+def make_channel(wire: Wire) -> CommandChannel:
+    plan = plan_pdos(load_drive_od(str(GENERIC_EDS), 1), 1)
+    return CommandChannel("joint1", 1, plan, wire.send, wire.sdo_words.append, lambda: setattr(wire, "wakes",
+                                                                                                wire.wakes + 1))
+
+
+def enabled(channel: CommandChannel) -> None:
+    """The channel as after an enable: this driver's last word Enable Operation."""
+    with channel.operation("enable") as op:
+        channel.transition(op, "enable", Command.ENABLE_OPERATION)
+
+
+class Hooks:
+    """Runs ``action`` on its own thread when a thread reaches ``point``, and waits for it to
+    finish or to block on the channel's lock (its "waiting for the lock" point)."""
+
+    def __init__(self, channel: CommandChannel) -> None:
+        self._actions: dict[str, Callable[[], None]] = {}
+        self._blocked = threading.Event()
+        self.errors: list[BaseException] = []
+        self.threads: list[threading.Thread] = []
+        channel.set_hook(self)
+
+    def at(self, point: str, action: Callable[[], None]) -> None:
+        self._actions[point] = action
+
+    def __call__(self, point: str) -> None:
+        if point.endswith("waiting for the lock") and threading.current_thread() in self.threads:
+            self._blocked.set()
+        action = self._actions.pop(point, None)
+        if action is None:
+            return
+        done = threading.Event()
+
+        def run() -> None:
+            try:
+                action()
+            except BaseException as err:
+                self.errors.append(err)
+            finally:
+                done.set()
+                self._blocked.set()
+
+        thread = threading.Thread(target=run, daemon=True)
+        self.threads.append(thread)
+        self._blocked.clear()
+        thread.start()
+        assert self._blocked.wait(JOIN_S), f"the action at {point!r} neither finished nor blocked"
+
+    def join(self) -> None:
+        for thread in self.threads:
+            thread.join(JOIN_S)
+            assert not thread.is_alive()
+
+
+@pytest.fixture
+def wire() -> Wire:
+    return Wire()
+
+
+def test_a_stop_inside_a_transitions_critical_section_waits_and_its_frame_comes_last(wire: Wire) -> None:
+    channel = make_channel(wire)
+    hooks = Hooks(channel)
+    hooks.at("enable: decided", lambda: channel.stop(Command.QUICK_STOP, "quick stop"))
+    with channel.operation("enable") as op:
+        channel.transition(op, "enable", Command.ENABLE_OPERATION)
+    hooks.join()
+    assert wire.words() == [ENABLE, QUICK_STOP]  # decided before the stop, so sent before it
+
+
+def test_a_stop_decided_while_a_transition_waits_for_the_lock_ends_that_transition(wire: Wire) -> None:
+    """The stop gets the lock first: the transition's check, under the lock, sees it."""
+    channel = make_channel(wire)
+    holding = threading.Event()
+    release = threading.Event()
+
+    def hold() -> None:  # as a frame of another thread's would (the receive thread's reply)
+        with channel._lock:
+            holding.set()
+            release.wait(JOIN_S)
+
+    def stop_first() -> None:  # on the transition's thread, before it blocks on the lock
+        stopper = threading.Thread(target=lambda: channel.stop(Command.QUICK_STOP, "quick stop"), daemon=True)
+        stopper.start()
+        release.set()  # the stop is the only one waiting: it gets the lock
+        stopper.join(JOIN_S)
+        assert not stopper.is_alive()
+
+    with channel.operation("enable") as op:
+        holder = threading.Thread(target=hold, daemon=True)
+        holder.start()
+        assert holding.wait(JOIN_S)
+        channel.set_hook(lambda point: stop_first() if point == "enable: waiting for the lock" else None)
+        with pytest.raises(DriveStateError, match="interrupted by quick stop"):
+            channel.transition(op, "enable", Command.ENABLE_OPERATION)
+    holder.join(JOIN_S)
+    assert wire.words() == [QUICK_STOP]
+
+
+def test_no_transition_of_an_operation_begun_before_a_stop_leaves(wire: Wire) -> None:
+    channel = make_channel(wire)
+    with channel.operation("enable") as op:
+        channel.stop(Command.QUICK_STOP, "quick stop")
+        with pytest.raises(DriveStateError, match="interrupted by quick stop"):
+            channel.transition(op, "enable", Command.SWITCH_ON)
+    assert wire.words() == [QUICK_STOP]
+    with channel.operation("enable") as later:  # a later, explicit enable is obeyed
+        channel.transition(later, "enable", Command.ENABLE_OPERATION)
+    assert wire.words() == [QUICK_STOP, ENABLE]
+
+
+def test_a_nested_operation_runs_under_its_callers_generation(wire: Wire) -> None:
+    """Homing's enable: a stop during homing ends the nested enable before any frame of it."""
+    channel = make_channel(wire)
+    with channel.operation("home") as home:
+        channel.stop(Command.QUICK_STOP, "quick stop")
+        with pytest.raises(DriveStateError, match="interrupted by quick stop"), channel.operation("enable", home):
+            pass
+        with pytest.raises(DriveStateError, match="interrupted by quick stop"):
+            channel.transition(home, "enable", Command.SHUTDOWN)
+    assert wire.words() == [QUICK_STOP]
+
+
+def test_an_operation_removes_only_its_own_busy_mark(wire: Wire) -> None:
+    channel = make_channel(wire)
+    hooks = Hooks(channel)
+    with channel.operation("enable") as op:
+        assert channel.busy == "enable"
+        with pytest.raises(CommandRejected, match="busy with enable"), channel.operation("home"):
+            pass
+        assert channel.busy == "enable"  # the refused one took nothing away
+        with channel.stopping(Command.QUICK_STOP, "quick stop"):
+            assert channel.busy == "enable"  # still registered, by its own token
+        assert channel.busy == "enable"
+        with pytest.raises(DriveStateError, match="interrupted by quick stop"):
+            channel.check(op, "enable")
+    del hooks
+    assert channel.busy is None  # nothing stale: every later command may run
+    enabled(channel)
+    with channel.command("velocity") as frames:
+        frames.velocity(100, live=True)
+
+
+def test_a_stopped_channel_sends_no_motion_frame(wire: Wire) -> None:
+    channel = make_channel(wire)
+    enabled(channel)
+    channel.stop(Command.QUICK_STOP, "quick stop")
+    for send in (lambda f: f.velocity(10, live=True), lambda f: f.torque(10, live=True), lambda f: f.setpoint(10),
+                 lambda f: f.stream_position(OperationMode.CYCLIC_SYNC_POSITION, 10, False)):
+        with pytest.raises(CommandRejected, match="a stop came first"), channel.command("motion") as frames:
+            send(frames)
+    with channel.command("brake") as frames:
+        assert not frames.brake(velocity_mode=True)  # a brake carries Enable Operation: not after a stop
+    assert wire.words() == [ENABLE, QUICK_STOP]
+    assert not channel.velocity_commanded and not channel.was_enabled
+
+
+def test_the_supervisor_never_waits_and_never_brakes_after_a_stop(wire: Wire) -> None:
+    channel = make_channel(wire)
+    enabled(channel)
+    with channel.command("velocity") as frames:
+        assert channel.try_command("the watchdog") is None  # the lock is taken: it returns at once
+        frames.velocity(100, live=True)
+    assert channel.velocity_commanded
+    with channel.operation("home"):
+        assert channel.try_command("the watchdog") is None  # an operation runs
+    frames = channel.try_command("the watchdog")
+    assert frames is not None
+    try:
+        assert frames.brake(velocity_mode=True)
+    finally:
+        channel.release()
+    assert wire.frames[-1][0] == RPDO3 and int.from_bytes(wire.frames[-1][2][:4], "little") == 0
+
+
+def test_the_handshake_reply_never_follows_a_stop(wire: Wire) -> None:
+    channel = make_channel(wire)
+    enabled(channel)
+    with channel.command("move") as frames:
+        frames.setpoint(1000)
+    assert wire.frames[-1][0] == RPDO2
+    channel.stop(Command.QUICK_STOP, "quick stop")
+    channel.on_status(True)  # the acknowledge arrives after the stop
+    assert wire.words()[-1] == QUICK_STOP
+    assert channel.handshake_idle
+
+
+def test_the_handshake_reply_before_a_stop_comes_before_its_frame(wire: Wire) -> None:
+    """The receive thread's reply takes the channel's lock: a stop decided while it is out waits."""
+    channel = make_channel(wire)
+    enabled(channel)
+    with channel.command("move") as frames:
+        frames.setpoint(1000)
+    hooks = Hooks(channel)
+    original = wire.send
+
+    def send_and_stop(cob: int, data: bytes) -> None:
+        if int.from_bytes(data[:2], "little") == ENABLE and cob == RPDO1 and not hooks.threads:
+            hooks.at("now", lambda: channel.stop(Command.QUICK_STOP, "quick stop"))
+            hooks("now")  # the stop runs now, on its own thread, while the reply goes out
+        original(cob, data)
+
+    channel._send = send_and_stop
+    channel.on_status(True)  # the acknowledge: bit 4 cleared, with Enable Operation
+    hooks.join()
+    assert wire.words()[-2:] == [ENABLE, QUICK_STOP]
+
+
+def test_a_controlword_by_sdo_is_followed_by_the_stop_decided_meanwhile() -> None:
+    """No RPDO maps the controlword: a transition's SDO write comes after the lock, so a stop
+    decided in between is written again after it."""
+    wire = Wire()
+    plan = plan_pdos(load_drive_od(str(GENERIC_EDS), 1), 1)
+    no_cw = dataclasses.replace(plan, rpdos=())
+    channel = CommandChannel("joint1", 1, no_cw, wire.send, wire.sdo_words.append, lambda: None)
+    sdo_writes = wire.sdo_words
+
+    def write(word: int) -> None:
+        sdo_writes.append(word)
+        if word == ENABLE:  # the stop lands while the enable's SDO is on its way
+            channel.stop(Command.QUICK_STOP, "quick stop")
+
+    channel._write_cw_sdo = write
+    with channel.operation("enable") as op:
+        channel.transition(op, "enable", Command.ENABLE_OPERATION)
+    assert sdo_writes == [ENABLE, QUICK_STOP, QUICK_STOP]
+    assert not wire.frames
+
