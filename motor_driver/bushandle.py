@@ -116,11 +116,15 @@ class BusHandle:
             # on (it can arrive before send_periodic returns); a thread sends through the
             # driver's own socket, which does not receive its own frames: any SYNC is another's
             self.foreign.own_sync_period_s = self.sync_period_s
-            task = self.bus.send_periodic(msg, self.sync_period_s, store_task=False)
+            # not started yet: python-can's thread-based task must have its on_error before its
+            # thread runs (a server that died during start-up raised in that thread, unhandled)
+            task = self.bus.send_periodic(msg, self.sync_period_s, store_task=False, autostart=False)
             self.sync_task = task
             if isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask):
                 self.foreign.own_sync_period_s = 0.0
                 task.on_error = self._sync_failed
+            if isinstance(task, can.broadcastmanager.RestartableCyclicTaskABC):
+                task.start()
 
     def job_done(self) -> bool:
         return self.job is None or self.job.done()

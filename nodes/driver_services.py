@@ -1,5 +1,8 @@
-"""The driver's services (enable, disable, recover, home, set mode, SDO read and write) as a node
-of their own, on their own executor thread, so that a slow service never delays a topic.
+"""The driver's services as two nodes, each on an executor thread of its own: the stops
+(``quick_stop``, ``disable``, ``halt``), which answer at once whatever else runs, and the rest
+(``enable``, ``recover``, ``home``, ``set_mode``, SDO read and write), which block for up to
+seconds. A slow service never delays a topic, and never a stop: a stop preempts the operation
+it interrupts in the driver (the command channel) and must not queue behind it in ROS either.
 """
 
 from __future__ import annotations
@@ -19,35 +22,48 @@ from motor_driver import Drive, MotorDriver
 SERVICE_JOIN_S = 5.0  # longest a service callback may take to notice the driver is closed
 
 
+def trigger(driver: MotorDriver, joint: str, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
+    """A std_srvs/Trigger callback that runs ``action`` and says what happened."""
+    def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            action()
+            response.success, response.message = True, f"{joint}: {service} done; state {driver.drives[joint].state.name}"
+        except RovercanError as err:
+            response.success, response.message = False, str(err)
+        except Exception as err:
+            response.success, response.message = False, f"{joint}: {service} failed unexpectedly: {err!r}"
+        return response
+    return call
+
+
+class DriverStopsNode(Node):
+    """The per-drive stops (``quick_stop``, ``disable``, ``halt``), in a node of their own on an
+    executor thread of their own (see main): nothing but another stop is ever ahead of one."""
+
+    def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
+        super().__init__("rovercan_driver_stops", **kwargs)
+        for name, drive in driver.drives.items():
+            base = drive.config.ros_prefix
+            for service, action in (("quick_stop", drive.quick_stop), ("disable", drive.disable),
+                                    ("halt", drive.halt)):
+                self.create_service(Trigger, f"{base}/{service}", trigger(driver, name, service, action))
+
+
 class DriverServicesNode(Node):
-    """The per-drive services, in a node of their own: ``enable`` and ``home`` block for up to
-    seconds, so they run on their own executor thread while topics and timers stay on the hot
-    one (see main)."""
+    """The per-drive services that wait (``enable``, ``recover``, ``home``, set mode, SDO), in a
+    node of their own: they block for up to seconds, so they run on their own executor thread
+    while topics, timers and the stops stay on theirs (see main)."""
 
     def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
         super().__init__("rovercan_driver_services", **kwargs)
         self.driver = driver
         for name, drive in driver.drives.items():
             base = drive.config.ros_prefix
-            for service, action in (("enable", drive.enable), ("disable", drive.disable),
-                                    ("halt", drive.halt), ("quick_stop", drive.quick_stop),
-                                    ("recover", drive.recover), ("home", drive.home)):
-                self.create_service(Trigger, f"{base}/{service}", self._trigger(name, service, action))
+            for service, action in (("enable", drive.enable), ("recover", drive.recover), ("home", drive.home)):
+                self.create_service(Trigger, f"{base}/{service}", trigger(driver, name, service, action))
             self.create_service(SetMode, f"{base}/set_mode", self._set_mode(drive))
             self.create_service(SdoRead, f"{base}/sdo_read", self._sdo_read(drive))
             self.create_service(SdoWrite, f"{base}/sdo_write", self._sdo_write(drive))
-
-    def _trigger(self, joint: str, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
-        def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-            try:
-                action()
-                response.success, response.message = True, f"{joint}: {service} done; state {self.driver.drives[joint].state.name}"
-            except RovercanError as err:
-                response.success, response.message = False, str(err)
-            except Exception as err:
-                response.success, response.message = False, f"{joint}: {service} failed unexpectedly: {err!r}"
-            return response
-        return call
 
     def _set_mode(self, drive: Drive) -> Callable[[Any, Any], Any]:
         def call(request: SetMode.Request, response: SetMode.Response) -> SetMode.Response:

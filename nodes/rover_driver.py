@@ -31,7 +31,6 @@ from typing import Any, TypeVar
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rovercan_msgs.msg import MotorState
 from sensor_msgs.msg import JointState
@@ -45,7 +44,7 @@ from motor_driver.health import drive_health
 from nodes import runtime
 from nodes.actions import DriverActionsNode
 from nodes.drive_system import DriveSystemNode
-from nodes.driver_services import SERVICE_JOIN_S, DriverServicesNode
+from nodes.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStopsNode
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.motor_controller import fill_motor_state
 from nodes.params import declare, qos_depth
@@ -232,6 +231,7 @@ def _run(stop: StopSignal) -> int:
         return 2
     nodes: list[Node] = []
     cold: runtime.SpinThread | None = None
+    stops: runtime.SpinThread | None = None
     goals: runtime.SpinThread | None = None
     handler = None
     try:
@@ -241,19 +241,18 @@ def _run(stop: StopSignal) -> int:
         if config.drive_system is not None:
             nodes.append(DriveSystemNode(driver, config, node.refusals))
         services = DriverServicesNode(driver)
+        stop_services = DriverStopsNode(driver)
         actions = DriverActionsNode(driver)
         # executors (measured: README): the hot one for commands, state and the drive system;
         # a cold one, on its own thread, for the services that block (enable, home); one for
-        # the actions, whose goals are coroutines (nodes/actions.py)
+        # the stops, which never queue behind those; one for the actions, whose goals are
+        # coroutines (nodes/actions.py)
         for n in nodes:
             hot.add_node(n)
-        nodes += [services, actions]
-        cold_executor = SingleThreadedExecutor()
-        cold_executor.add_node(services)
-        cold = runtime.SpinThread(cold_executor, "rovercan-services")
-        action_executor = SingleThreadedExecutor()
-        action_executor.add_node(actions)
-        goals = runtime.SpinThread(action_executor, "rovercan-actions")
+        nodes += [services, stop_services, actions]
+        cold = runtime.spin_alone(services, "rovercan-services")
+        stops = runtime.spin_alone(stop_services, "rovercan-stops")
+        goals = runtime.spin_alone(actions, "rovercan-actions")
         node.arm_if_asked()
         heap.settle()  # the nodes are built: what exists now lives as long as the process
         runtime.spin_until(hot, stop.event)
@@ -262,6 +261,7 @@ def _run(stop: StopSignal) -> int:
         # service thread joined, then nodes destroyed, then the context
         driver.close()
         joined = cold is None or cold.stop(timeout_s=SERVICE_JOIN_S)
+        joined = (stops is None or stops.stop(timeout_s=SERVICE_JOIN_S)) and joined
         joined = (goals is None or goals.stop(timeout_s=SERVICE_JOIN_S)) and joined
         if handler is not None:
             unbridge(handler)
@@ -272,7 +272,7 @@ def _run(stop: StopSignal) -> int:
     return 0
 
 
-__all__ = ["DriveSystemNode", "DriverNode", "DriverServicesNode", "main"]
+__all__ = ["DriveSystemNode", "DriverNode", "DriverServicesNode", "DriverStopsNode", "main"]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -32,7 +32,7 @@ from motor_driver import State as DriveState
 from nodes import runtime
 from nodes.actions import DriverActionsNode
 from nodes.params import declare
-from nodes.rover_driver import DriverNode, DriverServicesNode, DriveSystemNode
+from nodes.rover_driver import DriverNode, DriverServicesNode, DriverStopsNode, DriveSystemNode
 
 logger = logging.getLogger(__name__)
 
@@ -43,7 +43,7 @@ class DriveLifecycleNode(LifecycleNode):
         self.hot = hot  # where the drives' ROS interface spins (None: no interface, tests of the bus alone)
         self.driver: MotorDriver | None = None
         self.interface: list[Node] = []
-        self._goals: runtime.SpinThread | None = None
+        self._threads: list[runtime.SpinThread] = []  # the actions' and the stops' executors
 
     # ------------------------------------------------------------------ transitions
     def on_configure(self, state: State) -> TransitionCallbackReturn:
@@ -62,10 +62,9 @@ class DriveLifecycleNode(LifecycleNode):
             for n in self.interface:
                 self.hot.add_node(n)
             actions = DriverActionsNode(self.driver, context=self.context)
-            self.interface.append(actions)
-            goals = SingleThreadedExecutor(context=self.context)
-            goals.add_node(actions)
-            self._goals = runtime.SpinThread(goals, "rovercan-actions")
+            stops = DriverStopsNode(self.driver, context=self.context)
+            self.interface += [actions, stops]
+            self._threads = [runtime.spin_alone(actions, "rovercan-actions"), runtime.spin_alone(stops, "rovercan-stops")]
         self.get_logger().info(f"configured: {len(self.driver.drives)} drive(s) booted, not enabled")
         return TransitionCallbackReturn.SUCCESS
 
@@ -112,9 +111,9 @@ class DriveLifecycleNode(LifecycleNode):
         return ok
 
     def _release(self) -> None:
-        if self._goals is not None:
-            self._goals.stop(5.0)
-            self._goals = None
+        for thread in self._threads:
+            thread.stop(5.0)
+        self._threads = []
         for n in self.interface:
             if self.hot is not None and n in self.hot.get_nodes():
                 self.hot.remove_node(n)

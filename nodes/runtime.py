@@ -106,4 +106,12 @@ class SpinThread:
         return True
 
 
-__all__ = ["EXECUTORS", "POLL_S", "SpinThread", "StopSignal", "init", "make_executor", "spin_node", "spin_until"]
+def spin_alone(node: Node, name: str) -> SpinThread:
+    """``node`` on a single-threaded executor of its own, spinning on a thread named ``name``."""
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    return SpinThread(executor, name)
+
+
+__all__ = ["EXECUTORS", "POLL_S", "SpinThread", "StopSignal", "init", "make_executor", "spin_alone", "spin_node",
+           "spin_until"]

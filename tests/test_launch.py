@@ -139,7 +139,8 @@ def test_ctrl_c_stops_the_processes_in_reverse_order_each_before_the_next(tmp_pa
 
 
 ROVER_LAUNCH = BRINGUP / "launch" / "rover_launch.xml"
-DRIVER_NODES = {"rovercan_driver", "drive_system", "rovercan_driver_services", "rovercan_driver_actions"}
+DRIVER_NODES = {"rovercan_driver", "drive_system", "rovercan_driver_services", "rovercan_driver_stops",
+                "rovercan_driver_actions"}
 
 
 @requires_ros

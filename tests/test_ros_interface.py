@@ -35,8 +35,8 @@ if HAVE_ROS:
 
     from nodes.actions import DriverActionsNode
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
-    from nodes.rover_driver import DriverNode, DriverServicesNode, DriveSystemNode
-    from nodes.runtime import SpinThread, make_executor
+    from nodes.rover_driver import DriverNode, DriverServicesNode, DriverStopsNode, DriveSystemNode
+    from nodes.runtime import SpinThread, make_executor, spin_alone
 
 WHEELS = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left",
           "wheel_front_right", "wheel_middle_right", "wheel_rear_right"]
@@ -94,6 +94,7 @@ def graph() -> Iterator[Graph]:
     driver_node = DriverNode(driver, context=context, parameter_overrides=[Parameter("diagnostics_rate_hz", value=5.0)])
     system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
     services = DriverServicesNode(driver, context=context)
+    stops = DriverStopsNode(driver, context=context)
     actions = DriverActionsNode(driver, context=context)
     probe = rclpy.create_node("probe", context=context)
     # the executors the rover_driver node runs: topics on the EventsExecutor, services on a
@@ -106,11 +107,12 @@ def graph() -> Iterator[Graph]:
     cold.add_node(services)
     goals = SingleThreadedExecutor(context=context)
     goals.add_node(actions)
-    spinning = [SpinThread(hot, "test-hot"), SpinThread(cold, "test-services"), SpinThread(goals, "test-actions")]
+    spinning = [SpinThread(hot, "test-hot"), SpinThread(cold, "test-services"), SpinThread(goals, "test-actions"),
+                spin_alone(stops, "test-stops")]
     yield Graph(sim, driver, context, probe, driver_node, system_node)
     for spin in spinning:
         spin.stop(5.0)
-    for node in (driver_node, system_node, services, actions, probe):
+    for node in (driver_node, system_node, services, stops, actions, probe):
         node.destroy_node()
     rclpy.shutdown(context=context)
     driver.close()
@@ -508,3 +510,28 @@ def test_home_and_move_joint_actions_give_feedback_and_cancel_stops_the_joint(gr
     finally:
         spin.stop(5.0)
         client_node.destroy_node()
+
+
+def test_a_stop_service_answers_while_a_slow_service_is_still_running(graph: Graph) -> None:
+    """/home on a drive that answers SDO in 0.3 s runs for seconds on the services' thread; a
+    quick stop of another joint and of the homing joint itself are answered meanwhile (order,
+    not a clock: the stop's answer comes while /home has not answered). The landed code ran
+    every Trigger service on one executor: /quick_stop waited behind /home."""
+    runner = graph.sim.simulators["can0"]
+    homing, other = "wheel_front_left", "wheel_middle_left"
+    node_id = graph.driver.drive(homing).node_id
+    runner.call(lambda: setattr(runner.drive(node_id).faults, "sdo_delay_s", 0.3))
+    for joint in (homing, other):
+        assert graph.call(Trigger, f"wheels/{joint}/enable").success
+    home_client = graph.probe.create_client(Trigger, f"wheels/{homing}/home")
+    assert home_client.wait_for_service(timeout_sec=5.0)
+    home = home_client.call_async(Trigger.Request())
+    wait_for(lambda: graph.driver.drive(homing).busy == "home", 10.0, "homing under way")
+    stopped = graph.call(Trigger, f"wheels/{other}/quick_stop")
+    assert stopped.success, stopped.message
+    assert not home.done() and graph.driver.drive(homing).busy == "home"  # answered while /home runs
+    stopped = graph.call(Trigger, f"wheels/{homing}/quick_stop")
+    assert stopped.success, stopped.message
+    wait_for(home.done, 15.0, "/home answered")
+    assert not home.result().success and "interrupted by quick stop" in home.result().message
+    assert graph.driver.drive(homing).state.name != "OPERATION_ENABLED"
