@@ -130,7 +130,7 @@ class MotorDriver(Supervision):
                 self.drives[drive_cfg.name] = Drive(drive_cfg, self._handles[drive_cfg.bus].network,
                                                     ods[drive_cfg.name], host_node_id=bus_cfg.host_node_id,
                                                     sync_period_s=bus_cfg.sync_period_s)
-                self.drives[drive_cfg.name].remote_frames = carries_remote_frames(self._handles[drive_cfg.bus].bus)
+                self.drives[drive_cfg.name].watch.set_remote_frames(carries_remote_frames(self._handles[drive_cfg.bus].bus))
         except BaseException:
             self._close_buses()
             if self.recorder is not None:

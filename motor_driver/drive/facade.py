@@ -217,10 +217,6 @@ class Drive:
     def remote_frames(self) -> bool:
         return self.watch.remote_frames
 
-    @remote_frames.setter
-    def remote_frames(self, carried: bool) -> None:
-        self.watch.set_remote_frames(carried)
-
     @property
     def guarding(self) -> bool:
         return self.cache.guarding
