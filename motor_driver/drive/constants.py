@@ -56,3 +56,10 @@ VELOCITY_MODES = (OperationMode.PROFILE_VELOCITY, OperationMode.CYCLIC_SYNC_VELO
 TORQUE_MODES = (OperationMode.PROFILE_TORQUE, OperationMode.CYCLIC_SYNC_TORQUE)
 
 
+#: enable() plans at most this many transitions (three are needed from Switch On Disabled; the
+#: rest cover a drive that showed a state on its way, or was stopped by another, meanwhile).
+ENABLE_STEPS = 8
+#: A wait after a frame of ours takes a statusword sent after it; a drive that sends its
+#: statusword only on change is taken at its last one after this many SYNC periods (plus a margin).
+FRESH_STATUS_SYNCS = 3
+FRESH_STATUS_MARGIN_S = 0.05

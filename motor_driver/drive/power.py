@@ -22,7 +22,10 @@ from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
 from motor_driver.cia402 import FAULT_STATES, SW, Command, State, next_step_to_enable
 from motor_driver.drive.channel import CommandChannel, Op
 from motor_driver.drive.constants import (
+    ENABLE_STEPS,
     ENABLED_CW_MASK,
+    FRESH_STATUS_MARGIN_S,
+    FRESH_STATUS_SYNCS,
     MODE_SWITCH_TIMEOUT_S,
     STATE_POLL_S,
     TORQUE_MODES,
@@ -77,17 +80,24 @@ class PowerStateMachine:
                                statusword=self._cache.statusword, error_code=code)
 
     def wait_state(self, wanted: set[State], timeout_s: float, doing: str, *, fault_ok: bool = False,
-                   op: Op | None = None) -> State:
-        """Wait for one of ``wanted``; a stop since ``op`` began ends the wait with its error."""
+                   op: Op | None = None, left: State | None = None, after: int | None = None) -> State:
+        """Wait for one of ``wanted``; a stop since ``op`` began ends the wait with its error.
+        ``left``: also return when the drive shows another state than this one (the caller
+        plans again from there). ``after``: only a statusword numbered above this counts (one
+        that left the drive after a frame of ours), or, for a drive that reports its statusword
+        only on change, the last one once FRESH_STATUS_SYNCS SYNC periods passed."""
         cache = self._cache
+        fresh_by = time.monotonic() + FRESH_STATUS_SYNCS * cache.sync_period_s + FRESH_STATUS_MARGIN_S
 
         def done() -> bool:
             if op is not None:  # before the wanted state: a stop that landed meanwhile wins
                 self._channel.check(op, doing)
+            if after is not None and cache.status_seq <= after and time.monotonic() < fresh_by:
+                return False
             state = cache.state
             if state in FAULT_STATES and not fault_ok and state not in wanted:
                 raise self.fault_error(doing)
-            return state in wanted
+            return state in wanted or (left is not None and state != left)
 
         if cache.wait_until(done, timeout_s):
             return cache.state
@@ -127,7 +137,10 @@ class PowerStateMachine:
             self._channel.mark_enabled(op, verdict)  # the verdict and a stop are ordered too
 
     def _walk_to_enabled(self, op: Op, timeout_s: float) -> None:
-        for _ in range(6):
+        """One transition at a time, each planned from the state the drive shows; a drive that
+        shows another state than the one a step was planned from (a statusword that was on its
+        way, a stop of another's) is planned for again from there."""
+        for _ in range(ENABLE_STEPS):
             state = self._cache.state
             if state == State.OPERATION_ENABLED:
                 if self._channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:  # enabled, but not by this driver's word
@@ -143,10 +156,14 @@ class PowerStateMachine:
             target, number, command = step
             logger.debug("node %d: transition %d to %s", self.node_id, number, target.name)
             self._channel.point(f"enable: before transition {number}")
+            seq = self._cache.status_seq
             self._channel.transition(op, f"enable (transition {number} to {target.name})", command)
             self._channel.point(f"enable: sent transition {number}")
             self.wait_state({target, State.OPERATION_ENABLED}, timeout_s,
-                            f"enable (transition {number} to {target.name})", op=op)
+                            f"enable (transition {number} to {target.name})", op=op, left=state, after=seq)
+        raise DriveTimeoutError(f"{self.name} (node {self.node_id}): enable: not OPERATION_ENABLED after"
+                                f" {ENABLE_STEPS} transitions (now {self._cache.state.name}); is another master"
+                                " commanding it?", node_id=self.node_id, statusword=self._cache.statusword)
 
     def _clear_held_target(self) -> None:
         """Before enabling: the drive still holds the last target from before a fault or a stop
@@ -177,9 +194,10 @@ class PowerStateMachine:
     def _stop(self, name: str, command: Command, wanted: set[State], timeout_s: float) -> None:
         """A stop: its frame first, in the channel's critical section (it preempts every
         operation under way); then the wait for ``wanted`` (or a fault), no lock held."""
+        seq = self._cache.status_seq
         with self._channel.stopping(command, name):
             self._channel.point(f"{name}: sent")
-            self.wait_state(wanted | FAULT_STATES, timeout_s, name)
+            self.wait_state(wanted | FAULT_STATES, timeout_s, name, after=seq)
 
     def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Shutdown (transition 8, 6 or 2): power stage off, drive in Ready to Switch On."""

@@ -114,6 +114,7 @@ class DriveCache:
         self._accel = 0.0
         self._accel_from = (0, 0.0)
         self._position_seq = 0
+        self._status_seq = 0  # statuswords received
         self._position_t = 0.0
         self._suspect: tuple[int, int] | None = None
         self._implausible = 0
@@ -192,6 +193,11 @@ class DriveCache:
     @property
     def position_seq(self) -> int:
         return self._position_seq
+
+    @property
+    def status_seq(self) -> int:
+        """Statuswords received so far: one that arrives after a frame was sent has a higher number."""
+        return self._status_seq
 
     @property
     def tpdo_count(self) -> int:
@@ -364,6 +370,7 @@ class DriveCache:
         self._rx = Received(sw, mode, position, velocity, torque, timestamp, now)
         self._tpdo_count += 1
         if OD.STATUSWORD in layout.indexes:
+            self._status_seq += 1
             self._on_statusword(sw, now)
 
     def _on_statusword(self, sw: int, now: float) -> None:
