@@ -218,6 +218,9 @@ class MotorDriver(Supervision):
         """Quick-stop and disable every drive that is powered (errors are collected, not lost)."""
         errors: list[str] = []
         for drive in self.drives.values():
+            if drive.lost and drive.booted:
+                drive.watch.lost_while_closing()  # unheard, maybe turning: one last stop it needs not answer
+                continue
             if drive.lost or not drive.booted:
                 continue
             try:

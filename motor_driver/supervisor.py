@@ -202,9 +202,11 @@ class Supervision:
             return
         was_lost = drive.lost
         drive.guard(now)
-        drive.check_heartbeat(now)
+        stop_by_sdo = drive.check_heartbeat(now)  # a lost drive is told to stop (RPDO, NMT) from here
+        if stop_by_sdo is not None:
+            self._handles[cfg.bus].worker.submit(stop_by_sdo)  # and by SDO, which waits: on the bus's worker
         if drive.lost and not was_lost:
-            self._incident("heartbeat_lost", drive, "heartbeat lost")
+            self._incident("heartbeat_lost", drive, "heartbeat lost; told to stop")
         if drive.host_loss_stops != self._host_loss_seen.get(drive.name, 0):
             self._host_loss_seen[drive.name] = drive.host_loss_stops
             self._incident("host_loss_stop", drive, "the drive had stopped itself: the host was gone (0x8130)")

@@ -23,12 +23,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import can
+import canopen
 import pytest
+from canopen.objectdictionary import ODVariable, datatypes
 
-from can_config import load_config
+from can_config import GENERIC_EDS, load_config, load_drive_od
 from can_config.errors import MotorError
 from motor_driver import MotorDriver, State
 from motor_driver.driver import is_kernel_bus
+from virtual_can.sim import SimulatedDrive
+from virtual_can.sim.runner import DriveSimulator
 
 from .conftest import HAVE_ROS, KERNEL_BUS, KERNEL_DRIVE, REPO, SHARED_EDS, kernel_can_available, wait_for
 
@@ -356,3 +360,51 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels_on_vcan0(tmp_path: Path
             for node in (driver_node, system_node, probe):
                 node.destroy_node()
             rclpy.shutdown(context=context)
+
+
+def guarded_generic_eds(path: Path) -> Path:
+    """The generic drive as a node-guarded one: 0x100C/0x100D, no heartbeat consumer (0x1016)."""
+    od = canopen.import_od(str(GENERIC_EDS), 1)
+    del od[0x1016]
+    for index, name, data_type in ((0x100C, "Guard time", datatypes.UNSIGNED16),
+                                   (0x100D, "Life time factor", datatypes.UNSIGNED8)):
+        var = ODVariable(name, index)
+        var.data_type, var.access_type, var.default = data_type, "rw", 0
+        od.add_object(var)
+    canopen.export_od(od, str(path), doc_type="eds")
+    return path
+
+
+@pytest.mark.parametrize("cause", ["heartbeat silent", "guard silent", "guard toggle stuck"])
+def test_a_drive_that_falls_silent_while_turning_is_told_to_stop(tmp_path: Path, listener: Listener,
+                                                                  cause: str) -> None:
+    """The drive hears and obeys but its answers stop (a broken transmit line) or come with a
+    stuck toggle: the driver declares it lost and tells it to stop (quick-stop RPDO, NMT stop,
+    SDO); the simulated drive, in this process on vcan0, is read directly."""
+    guarded = cause.startswith("guard")
+    eds = guarded_generic_eds(tmp_path / "guarded.eds") if guarded else GENERIC_EDS
+    config = write_kernel_config(tmp_path / "kernel.yaml", eds=eds)
+    sim_drive = SimulatedDrive(1, load_drive_od(eds, 1))
+    with can.Bus(interface="socketcan", channel=CHANNEL) as sim_bus, DriveSimulator(sim_bus, [sim_drive]) as runner, \
+            MotorDriver(load_config(config)) as driver:
+        runner.start()
+        driver.start()
+        drive = driver.drive("wheel1")
+        assert drive.guarding == guarded, drive.host_watch
+        drive.enable()
+        drive.set_velocity(30.0)
+        wait_for(lambda: runner.call(lambda: abs(sim_drive.omega)) > 0.1, 30.0, "the shaft turning")  # type: ignore[operator]
+        fault = "guard_toggle_stuck" if cause == "guard toggle stuck" else "tx_dead"
+        runner.call(lambda: setattr(sim_drive.faults, fault, True))
+        for _ in range(300):  # an application that keeps commanding, as a ROS node does, until refused
+            try:
+                drive.set_velocity(30.0)
+            except MotorError:
+                break
+            if drive.cache.wait_until(lambda: drive.lost, 0.1):
+                break
+        wait_for(lambda: drive.lost, 30.0, "the drive declared lost")
+        wait_for(lambda: runner.call(lambda: sim_drive.state.name != "OPERATION_ENABLED" and abs(sim_drive.omega) < 1e-3),
+                 30.0, "the silent drive stopped")
+    stops = [m for m in list(listener.frames) if m.arbitration_id == 0x000 and bytes(m.data) == b"\x02\x01"]
+    assert stops, "no NMT stop went to the lost drive"

@@ -84,7 +84,7 @@ def test_no_module_writes_a_drive_parts_attributes() -> None:
 
 def test_the_check_finds_a_write_into_another_part() -> None:
     decl = drive_declarations()
-    broken = "def f(drive):\n    drive.cache._lost = True\n    drive.channel._cw = 0\n"
+    broken = "def f(drive):\n    drive.cache._lost = True\n    drive.channel.cw = 0\n"
     found = violations(broken, set(), decl)
     assert len(found) == 2 and "state.py" in found[0] and "channel.py" in found[1], found
     inside = "class Boot:\n    def f(self):\n        self._cache._booted = True\n"

@@ -34,7 +34,7 @@ from virtual_can.sim import SimulatedDrive
 logger = logging.getLogger(__name__)
 
 ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "tpdos", "slow_enable", "slow_ack", "frames", "sdo",
-           "disconnect_clients", "load")
+           "disconnect_clients", "load", "tx_dead", "guard_toggle_stuck")
 
 
 def _channel_faults(sim: SimService, step: Mapping[str, Any]) -> None:
@@ -59,6 +59,10 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
         drive.raise_fault(int(step.get("code", 0x1000)))
     elif action == "tpdos":  # the drive stops (or resumes) sending its TPDOs; heartbeat and SDO go on
         drive.faults.tpdo_silent = not bool(step.get("on", False))
+    elif action == "tx_dead":  # it hears and obeys, sends nothing (a broken TX line); on: false heals it
+        drive.faults.tx_dead = bool(step.get("on", True))
+    elif action == "guard_toggle_stuck":  # its node-guarding answers keep toggle bit 0
+        drive.faults.guard_toggle_stuck = bool(step.get("on", True))
     elif action == "slow_enable":  # each enabling transition takes delay_s
         drive.faults.enable_step_delay_s = float(step.get("delay_s", 0.0))
     elif action == "slow_ack":  # the set-point acknowledge comes 0..max_s late

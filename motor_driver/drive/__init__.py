@@ -26,7 +26,7 @@ from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_B
 from motor_driver.drive.facade import Drive
 from motor_driver.drive.hostwatch import host_consumer_entry
 from motor_driver.drive.sdo import PROTECTED_OBJECTS, protected_reason
-from motor_driver.drive.state import DriveState, Emcy
+from motor_driver.drive.values import DriveState, Emcy
 
 __all__ = ["PROTECTED_OBJECTS", "SDO_TRANSFER_TIMEOUTS", "SDO_UPLOAD_MAX_BYTES", "Drive", "DriveState", "Emcy",
            "host_consumer_entry", "protected_reason"]

@@ -27,17 +27,16 @@ lock taken (``"<what>: waiting for the lock"``), so a test can prove a competito
 
 from __future__ import annotations
 
-import itertools
 import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 
 from can_config.errors import CommandRejected, DriveStateError
 from can_config.objects import OD, OperationMode
 from motor_driver.cia402 import CW, Command, controlword
+from motor_driver.drive.busy import BusyRegistry, Op
 from motor_driver.drive.constants import COMMAND_LOCK_WAIT_S, ENABLED_CW_MASK
 from motor_driver.pdo import PdoPlan, encode_rpdo
 from motor_driver.setpoint import SetpointHandshake
@@ -46,15 +45,6 @@ logger = logging.getLogger(__name__)
 
 #: The controlwords of the stops: the channel re-sends one after a controlword written by SDO.
 STOP_WORDS = frozenset({int(Command.QUICK_STOP), int(Command.SHUTDOWN), int(Command.DISABLE_VOLTAGE)})
-
-
-@dataclass(frozen=True)
-class Op:
-    """An operation under way: its token in the busy registry and the generation it began in."""
-
-    token: int
-    name: str
-    generation: int
 
 
 class CommandChannel:
@@ -68,18 +58,18 @@ class CommandChannel:
         self._write_cw_sdo = write_cw_sdo
         self._wake = wake
         self._lock = threading.Lock()
-        self._cw = 0
-        self._target_counts = 0
-        self._stream_velocity_counts_s = 0
+        # read by anyone, written here only (tests/test_ownership.py), under _lock
+        self.cw = 0
+        self.target_counts = 0
+        self.stream_velocity_counts_s = 0
         self._enable_sent_at = 0.0
         self._generation = 0
         self._preempted: tuple[int, str] = (0, "")
-        self._busy: dict[int, str] = {}
-        self._tokens = itertools.count(1)
-        self._closed = False
-        self._was_enabled = False
-        self._velocity_commanded = False
-        self._last_velocity_cmd = 0.0
+        self._busy = BusyRegistry()
+        self.closed = False
+        self.was_enabled = False
+        self.velocity_commanded = False
+        self.last_velocity_cmd = 0.0
         self._handshake = SetpointHandshake(self._send_setpoint, self._clear_setpoint)
         self._hook: Callable[[str], None] | None = None
 
@@ -87,35 +77,7 @@ class CommandChannel:
     @property
     def busy(self) -> str | None:
         """The oldest operation under way, or None."""
-        return next(iter(self._busy.values()), None)
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    @property
-    def cw(self) -> int:
-        return self._cw
-
-    @property
-    def target_counts(self) -> int:
-        return self._target_counts
-
-    @property
-    def stream_velocity_counts_s(self) -> int:
-        return self._stream_velocity_counts_s
-
-    @property
-    def was_enabled(self) -> bool:
-        return self._was_enabled
-
-    @property
-    def velocity_commanded(self) -> bool:
-        return self._velocity_commanded
-
-    @property
-    def last_velocity_cmd(self) -> float:
-        return self._last_velocity_cmd
+        return self._busy.oldest
 
     @property
     def handshake_idle(self) -> bool:
@@ -124,7 +86,7 @@ class CommandChannel:
     def enabled_by_us(self, now: float, within_s: float) -> bool:
         """This driver's last controlword was Enable Operation, or it sent one within ``within_s``."""
         enable = int(Command.ENABLE_OPERATION)
-        return self._cw & enable == enable or now - self._enable_sent_at < within_s
+        return self.cw & enable == enable or now - self._enable_sent_at < within_s
 
     def set_hook(self, hook: Callable[[str], None] | None) -> None:
         """Tests only: ``hook(point)`` at the named points of the channel (see the module doc)."""
@@ -156,19 +118,21 @@ class CommandChannel:
                 raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {self.busy};"
                                       " nothing was sent. Try again when it is done.")
             self._generation += 1
-            op = Op(next(self._tokens), name, self._generation)
-            self._busy[op.token] = name
+            op = self._busy.add(name, self._generation)
         finally:
             self._lock.release()
+        yield from self._run_registered(op)
+
+    def _run_registered(self, op: Op) -> Iterator[Op]:
         try:
             yield op
         finally:
             with self._lock:
-                self._busy.pop(op.token, None)
+                self._busy.remove(op)
 
     def check(self, op: Op, doing: str) -> None:
         """Raise when a stop came since ``op`` began, or the driver shut down."""
-        if self._closed:
+        if self.closed:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the driver shut down meanwhile",
                                   node_id=self.node_id)
         before, by = self._preempted
@@ -182,13 +146,8 @@ class CommandChannel:
         the drive to get there (commands meanwhile are refused; another stop is not)."""
         self.stop(command, by)
         with self._lock:
-            op = Op(next(self._tokens), by, self._generation)
-            self._busy[op.token] = by
-        try:
-            yield op
-        finally:
-            with self._lock:
-                self._busy.pop(op.token, None)
+            op = self._busy.add(by, self._generation)
+        yield from self._run_registered(op)
 
     def stop(self, command: Command, by: str) -> None:
         """The frame of a stop: decided and sent in one critical section that bumps the
@@ -198,12 +157,12 @@ class CommandChannel:
         try:
             self._generation += 1
             self._preempted = (self._generation, by)
-            self._was_enabled = False
-            self._velocity_commanded = False
+            self.was_enabled = False
+            self.velocity_commanded = False
             self._handshake.reset()
-            self._cw = int(command)
+            self.cw = int(command)
             self.point(f"{by}: decided")
-            sdo_word = self._emit_cw(self._cw)
+            sdo_word = self._emit_cw(self.cw)
         finally:
             self._lock.release()
         if sdo_word is not None:
@@ -217,10 +176,10 @@ class CommandChannel:
         try:
             self.check(op, doing)
             self.point(f"{doing}: decided")
-            self._cw = int(command)
-            if self._cw & ENABLED_CW_MASK == ENABLED_CW_MASK:
+            self.cw = int(command)
+            if self.cw & ENABLED_CW_MASK == ENABLED_CW_MASK:
                 self._enable_sent_at = time.monotonic()
-            sdo_word = self._emit_cw(self._cw | edge)
+            sdo_word = self._emit_cw(self.cw | edge)
         finally:
             self._lock.release()
         if sdo_word is not None:
@@ -233,12 +192,12 @@ class CommandChannel:
         with self._lock:
             self.check(op, "enable")
             verdict()
-            self._was_enabled = True
+            self.was_enabled = True
 
     def _restop_after_sdo(self, op: Op) -> None:
         """A controlword written by SDO after the lock: a stop decided meanwhile is written again."""
         with self._lock:
-            word = self._cw if op.generation < self._preempted[0] and self._cw in STOP_WORDS else None
+            word = self.cw if op.generation < self._preempted[0] and self.cw in STOP_WORDS else None
         if word is not None:
             self._write_cw_sdo(word)
 
@@ -248,7 +207,7 @@ class CommandChannel:
         pdo = self._plan.rpdo_with(OD.CONTROLWORD)
         if pdo is None:
             return word
-        self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: word, OD.TARGET_POSITION: self._target_counts,
+        self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: word, OD.TARGET_POSITION: self.target_counts,
                                                  OD.TARGET_VELOCITY: 0}))
         return None
 
@@ -260,9 +219,9 @@ class CommandChannel:
         if not self._acquire(name, COMMAND_LOCK_WAIT_S):
             raise CommandRejected(f"{self.name}: {name} refused: another command holds the drive; nothing was sent")
         try:
-            others = [n for t, n in self._busy.items() if op is None or t != op.token]
-            if others:
-                raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {others[0]};"
+            other = self._busy.other_than(op)
+            if other:
+                raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {other};"
                                       " nothing was sent. Send it again when that is done.")
             if op is not None:
                 self.check(op, name)
@@ -285,15 +244,15 @@ class CommandChannel:
 
     # the senders below run under the lock (reached only through Frames or the handshake)
     def _require_enabled_word(self, doing: str) -> None:
-        if self._cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
+        if self.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
             raise CommandRejected(f"{self.name}: {doing} refused: a stop came first (controlword"
-                                  f" 0x{self._cw:04X}); nothing was sent. enable() it again.")
+                                  f" 0x{self.cw:04X}); nothing was sent. enable() it again.")
 
     def _send_setpoint(self, counts: int) -> None:
         """A target with controlword bit 4 rising (the handshake's, under its lock and ours)."""
-        self._target_counts = counts
+        self.target_counts = counts
         pdo = self._plan.rpdo_with(OD.TARGET_POSITION)
-        cw = controlword(Command.ENABLE_OPERATION, new_setpoint=True, change_immediately=True) | (self._cw & CW.HALT)
+        cw = controlword(Command.ENABLE_OPERATION, new_setpoint=True, change_immediately=True) | (self.cw & CW.HALT)
         if pdo is not None:
             self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_POSITION: counts}))
         else:  # 0x607A only by SDO: written before (motion); here the edge alone
@@ -301,14 +260,11 @@ class CommandChannel:
 
     def _clear_setpoint(self) -> None:
         """Controlword bit 4 back to 0 after the acknowledge (the handshake's)."""
-        self._send_rpdo_cw(int(Command.ENABLE_OPERATION) | (self._cw & CW.HALT))
+        self._send_rpdo_cw(int(Command.ENABLE_OPERATION) | (self.cw & CW.HALT))
 
     def _send_rpdo_cw(self, word: int) -> None:
-        pdo = self._plan.rpdo_with(OD.CONTROLWORD)
-        if pdo is None:  # motion refuses such a drive before any set-point
+        if self._emit_cw(word) is not None:  # motion refuses such a drive before any set-point
             raise CommandRejected(f"{self.name}: the controlword has no RPDO on this drive; nothing was sent")
-        self._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: word, OD.TARGET_POSITION: self._target_counts,
-                                                 OD.TARGET_VELOCITY: 0}))
 
     def on_status(self, acknowledged: bool) -> None:
         """Receive thread: a statusword came; the handshake's reply, if one is due. Takes the
@@ -316,7 +272,7 @@ class CommandChannel:
         if self._handshake.idle:
             return
         with self._lock:
-            if self._cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
+            if self.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
                 return  # a stop came first: it reset the handshake; nothing more goes out
             self._handshake.on_status(acknowledged)
 
@@ -324,10 +280,10 @@ class CommandChannel:
     def reset(self, position_counts: int) -> None:
         """Boot (the drive not booted): nothing commanded, the target where the shaft is."""
         with self._lock:
-            self._cw = 0
-            self._target_counts = position_counts
-            self._was_enabled = False
-            self._velocity_commanded = False
+            self.cw = 0
+            self.target_counts = position_counts
+            self.was_enabled = False
+            self.velocity_commanded = False
             self._handshake.reset()
 
     def forget(self, position_counts: int | None = None) -> None:
@@ -335,18 +291,18 @@ class CommandChannel:
         with self._lock:
             self._handshake.reset()
             if position_counts is not None:
-                self._target_counts = position_counts
+                self.target_counts = position_counts
 
     def forget_commanded(self) -> None:
         """A drive lost or handed to another master: nothing is commanded any more."""
         with self._lock:
-            self._was_enabled = False
-            self._velocity_commanded = False
+            self.was_enabled = False
+            self.velocity_commanded = False
 
     def close(self) -> None:
         """The driver shuts down: every operation ends, no command is taken (stops still are)."""
         with self._lock:
-            self._closed = True
+            self.closed = True
         self._wake()
 
 
@@ -360,48 +316,44 @@ class Frames:
 
     @property
     def cw(self) -> int:
-        return self._c._cw
+        return self._c.cw
 
     def velocity(self, counts_s: int, *, live: bool, stream: bool = False) -> None:
         """A velocity target on its RPDO (controlword Enable Operation beside it)."""
-        c = self._c
-        c._require_enabled_word(self._doing)
-        pdo = c._plan.rpdo_with(OD.TARGET_VELOCITY)
-        if pdo is None:
-            raise CommandRejected(f"{c.name}: {self._doing}: 0x60FF has no RPDO here; nothing was sent")
-        cw = int(Command.ENABLE_OPERATION) | (c._cw & CW.HALT)
-        c._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_VELOCITY: counts_s}))
-        self.commanded(live)
+        self._target(OD.TARGET_VELOCITY, counts_s, live)
         if stream:
-            c._stream_velocity_counts_s = counts_s
+            self._c.stream_velocity_counts_s = counts_s
 
     def torque(self, permille: int, *, live: bool) -> None:
+        self._target(OD.TARGET_TORQUE, permille, live)
+
+    def _target(self, index: int, value: int, live: bool) -> None:
         c = self._c
         c._require_enabled_word(self._doing)
-        pdo = c._plan.rpdo_with(OD.TARGET_TORQUE)
+        pdo = c._plan.rpdo_with(index)
         if pdo is None:
-            raise CommandRejected(f"{c.name}: {self._doing}: 0x6071 has no RPDO here; nothing was sent")
-        cw = int(Command.ENABLE_OPERATION) | (c._cw & CW.HALT)
-        c._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, OD.TARGET_TORQUE: permille}))
+            raise CommandRejected(f"{c.name}: {self._doing}: 0x{index:04X} has no RPDO here; nothing was sent")
+        c._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: int(Command.ENABLE_OPERATION) | (c.cw & CW.HALT),
+                                              index: value}))
         self.commanded(live)
 
     def commanded(self, live: bool) -> None:
         """A velocity or torque command went out (by RPDO, or by SDO before this): the watchdog's."""
-        self._c._last_velocity_cmd = time.monotonic()
-        self._c._velocity_commanded = live
+        self._c.last_velocity_cmd = time.monotonic()
+        self._c.velocity_commanded = live
 
     def setpoint(self, counts: int) -> None:
         """A profile-position target through the set-point handshake (halt cleared)."""
         c = self._c
         c._require_enabled_word(self._doing)
-        c._cw &= ~CW.HALT
+        c.cw &= ~CW.HALT
         c._handshake.command(counts)
 
     def stream_position(self, mode: OperationMode, counts: int, sdo_written: bool) -> None:
         """A CSP or IP set-point: on its RPDO, or (``sdo_written``) its controlword alone."""
         c = self._c
         c._require_enabled_word(self._doing)
-        c._target_counts = counts
+        c.target_counts = counts
         cw = int(Command.ENABLE_OPERATION)
         target = OD.TARGET_POSITION
         if mode == OperationMode.INTERPOLATED_POSITION:
@@ -415,8 +367,8 @@ class Frames:
 
     def halt(self, on: bool) -> None:
         c = self._c
-        c._cw = (c._cw | CW.HALT) if on else (c._cw & ~CW.HALT)
-        word = c._emit_cw(c._cw)
+        c.cw = (c.cw | CW.HALT) if on else (c.cw & ~CW.HALT)
+        word = c._emit_cw(c.cw)
         if word is not None:
             raise CommandRejected(f"{c.name}: halt: the controlword has no RPDO on this drive; nothing was sent")
 
@@ -424,8 +376,8 @@ class Frames:
         """Zero velocity or zero torque, only while this driver's last word was Enable Operation
         (never after a stop: that frame would carry Enable Operation again). True when sent."""
         c = self._c
-        c._velocity_commanded = False
-        if c._cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
+        c.velocity_commanded = False
+        if c.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
             return False
         if velocity_mode:
             self.velocity(0, live=False)

@@ -38,7 +38,8 @@ from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.motion import Motion
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache, DriveState, Emcy
+from motor_driver.drive.state import DriveCache
+from motor_driver.drive.values import DriveState, Emcy
 from motor_driver.pdo import PdoPlan, plan_pdos
 from motor_driver.safety import SafetyCheck
 from motor_driver.units import Scale

@@ -18,7 +18,8 @@ from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.cia402 import CW, FAULT_STATES, SW, Command, State
-from motor_driver.drive.channel import CommandChannel, Op
+from motor_driver.drive.busy import Op
+from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache

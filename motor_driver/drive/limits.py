@@ -102,7 +102,7 @@ class LimitGuard:
         if self.config.is_continuous or not self._channel.velocity_commanded:
             return
         cache = self._cache
-        velocity = cache.scale.counts_s_to_deg_s(cache.velocity_counts_s)
+        velocity = cache.scale.counts_s_to_deg_s(cache.received.velocity_counts_s)
         torque_mode = cache.mode_display in TORQUE_MODES
         decel = self.config.quick_stop_decel_deg_s2 if torque_mode else self.config.profile_acceleration_deg_s2
         limit = self.limit_ahead(velocity, abs(velocity), decel, torque_mode)

@@ -20,7 +20,8 @@ from can_config.config import DriveConfig
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.cia402 import FAULT_STATES, SW, State
-from motor_driver.drive.channel import CommandChannel, Frames, Op
+from motor_driver.drive.busy import Op
+from motor_driver.drive.channel import CommandChannel, Frames
 from motor_driver.drive.constants import CONTINUOUS_COMMAND_LIMIT_DEG, ENABLED_CW_MASK
 from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.power import PowerStateMachine

@@ -20,7 +20,8 @@ from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
 from motor_driver.cia402 import FAULT_STATES, SW, Command, State, next_step_to_enable
-from motor_driver.drive.channel import CommandChannel, Op
+from motor_driver.drive.busy import Op
+from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import (
     ENABLE_STEPS,
     ENABLED_CW_MASK,

@@ -21,73 +21,19 @@ import struct
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import NamedTuple, Protocol
 
 import canopen
 
 from can_config.config import DriveConfig
 from can_config.objects import OD, FunctionCode, NmtState, emcy_text
 from motor_driver.cia402 import FAULT_STATES, SW, State, decode_state
-from motor_driver.drive.constants import JUMP_CONFIRMATIONS, MAX_ACCEL_GAP_S, TRANSITION_TIMEOUT_S
+from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
+from motor_driver.drive.position import PositionFilter
+from motor_driver.drive.values import DriveState, Emcy, Received, StatusSink
 from motor_driver.pdo import PdoPlan, TpdoLayout
 from motor_driver.units import Scale
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Emcy:
-    code: int
-    register: int
-    text: str
-    timestamp: float
-
-
-@dataclass(frozen=True)
-class DriveState:
-    """A snapshot of what the driver knows about one drive, in engineering units."""
-
-    name: str
-    node_id: int
-    angle_deg: float
-    velocity_deg_s: float
-    torque_nm: float  # NaN where the drive has no torque actual value (0x6077)
-    statusword: int
-    state: State
-    mode: int
-    nmt: str
-    enabled: bool
-    fault: bool
-    lost: bool
-    error_code: int
-    error_text: str
-    stamp: float  # time.time() when the PDOs carrying this state arrived
-    heartbeat_age_s: float
-    target_reached: bool
-    data_age_s: float = math.inf  # since the last TPDO arrived
-    stale: bool = False  # no TPDO for stale_after_syncs SYNC periods: the values above are old
-    foreign_master: str = ""  # evidence that another master drives it: commands are refused
-
-
-class Received(NamedTuple):
-    """What the TPDOs said last: replaced whole by the receive thread."""
-
-    statusword: int = 0
-    mode: int = 0
-    position_counts: int = 0
-    velocity_counts_s: int = 0
-    torque_permille: float = math.nan
-    stamp: float = 0.0  # time.time() of the frame
-    rx_monotonic: float = 0.0  # when it arrived
-
-
-class StatusSink(Protocol):
-    """The command channel, as the receive thread sees it."""
-
-    def on_status(self, acknowledged: bool) -> None: ...
-
-    def enabled_by_us(self, now: float, within_s: float) -> bool: ...
 
 
 class DriveCache:
@@ -105,19 +51,13 @@ class DriveCache:
         self._event = threading.Condition()
         self._rx = Received()
         self._scale = scale
-        self._max_counts_s = 1
-        self._jump_margin_counts = 4.0
+        self._positions = PositionFilter(config.node_id, sync_period_s)
         self.set_scale(scale)
         # receive thread
         self._fault_seq = 0  # FAULT statuswords seen
         self._fault_word = 0  # the last of them
-        self._accel = 0.0
-        self._accel_from = (0, 0.0)
         self._position_seq = 0
         self._status_seq = 0  # statuswords received
-        self._position_t = 0.0
-        self._suspect: tuple[int, int] | None = None
-        self._implausible = 0
         self._tpdo_count = 0
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
@@ -174,17 +114,9 @@ class DriveCache:
         return self._rx.position_counts
 
     @property
-    def velocity_counts_s(self) -> int:
-        return self._rx.velocity_counts_s
-
-    @property
     def accel_counts_s2(self) -> float:
         """The slope of the last velocity samples, counts/s^2 (0 after a gap)."""
-        return self._accel
-
-    @property
-    def stamp(self) -> float:
-        return self._rx.stamp
+        return self._positions.accel_counts_s2
 
     @property
     def angle_deg(self) -> float:
@@ -205,7 +137,7 @@ class DriveCache:
 
     @property
     def implausible_samples(self) -> int:
-        return self._implausible
+        return self._positions.implausible
 
     @property
     def fault_seen(self) -> int | None:
@@ -253,9 +185,6 @@ class DriveCache:
     def lost(self) -> bool:
         return self._lost
 
-    def heard_bootup(self) -> bool:
-        return self._bootup.is_set()
-
     def expect_bootup(self) -> None:
         """Boot, before its NMT reset: the next boot-up is the one it waits for."""
         self._bootup.clear()
@@ -284,14 +213,14 @@ class DriveCache:
     def set_scale(self, scale: Scale) -> None:
         """Boot: the drive's units (read from it) replace the config's."""
         self._scale = scale
-        self._max_counts_s = int(abs(scale.counts_per_deg * self.config.max_velocity_deg_s)) or 1
-        self._jump_margin_counts = max(4.0, scale.counts_per_deg)
+        self._positions.set_bound(int(abs(scale.counts_per_deg * self.config.max_velocity_deg_s)),
+                                  scale.counts_per_deg)
 
     def seed(self, statusword: int, position_counts: int, mode: int) -> None:
         """Boot (drive not booted, no PDO flows yet): the state read by SDO; the next position
         TPDO is trusted as it comes."""
         self._rx = self._rx._replace(statusword=statusword, position_counts=position_counts, mode=mode)
-        self._position_t = 0.0
+        self._positions.trust_next()
 
     def note_mode(self, mode: int) -> None:
         """A mode switch confirmed by SDO (0x6061): the cache shows it before the next TPDO."""
@@ -303,7 +232,7 @@ class DriveCache:
 
     def trust_next_position(self) -> None:
         """Homing moved the zero: the next position is taken as it comes."""
-        self._position_t = 0.0
+        self._positions.trust_next()
 
     def acknowledge_faults(self) -> None:
         """enable()/recover(): faults seen until now are dealt with; a later one stops motion anew."""
@@ -356,11 +285,11 @@ class DriveCache:
                     self._fault_word = value
                     self._fault_seq += 1
             elif index == OD.POSITION_ACTUAL:
-                if self._plausible_position(value, position, timestamp):
+                if self._positions.plausible(value, position, timestamp):
                     position = value
                     self._position_seq += 1
             elif index == OD.VELOCITY_ACTUAL:
-                self._track_accel(value, timestamp)
+                self._positions.track_accel(value, timestamp)
                 velocity = value
             elif index == OD.TORQUE_ACTUAL:
                 torque = value
@@ -388,40 +317,6 @@ class DriveCache:
                 logger.warning("node %d: set-point handshake: %s", self.node_id, err)
         with self._event:
             self._event.notify_all()
-
-    def _track_accel(self, velocity_counts_s: int, timestamp: float) -> None:
-        """The slope from the last sample at least half a SYNC period older (two frames that
-        queued up and arrive together give no slope of their own)."""
-        before, t_before = self._accel_from
-        gap = timestamp - t_before
-        if 0.0 <= gap < 0.5 * self.sync_period_s:
-            return
-        self._accel = (velocity_counts_s - before) / gap if 0.0 < gap <= MAX_ACCEL_GAP_S else 0.0
-        self._accel_from = (velocity_counts_s, timestamp)
-
-    def _plausible_position(self, value: int, last: int, timestamp: float) -> bool:
-        """Reject a position the joint cannot have reached since the last one (a corrupted or
-        foreign frame), unless JUMP_CONFIRMATIONS further samples agree with it (homing, a
-        reboot, a real jump)."""
-        last_t = self._position_t
-        self._position_t = timestamp
-        if not last_t:
-            return True
-        limit = self._max_counts_s * 2.0 * max(timestamp - last_t, 0.001) + self._jump_margin_counts
-        if abs(value - last) <= limit:
-            self._suspect = None
-            return True
-        suspect = self._suspect
-        if suspect is not None and abs(value - suspect[0]) <= limit:
-            if suspect[1] + 1 >= JUMP_CONFIRMATIONS:
-                self._suspect = None
-                return True  # confirmed
-            self._suspect = (value, suspect[1] + 1)
-            return False
-        self._suspect = (value, 0)
-        self._implausible += 1
-        logger.debug("node %d: position %d implausible after %d; held for confirmation", self.node_id, value, last)
-        return False
 
     def on_heartbeat(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         if not data:

@@ -88,7 +88,7 @@ class DriveSimulator:
                 self.errors += 1
                 logger.exception("simulated drive %d failed on frame %s", drive.node_id, msg)
                 continue
-            if out:
+            if out and not drive.faults.tx_dead:
                 self._send(out)
 
     def _run_calls(self) -> None:
@@ -145,7 +145,7 @@ class DriveSimulator:
                         self.errors += 1
                         logger.exception("simulated drive %d failed in tick", drive.node_id)
                         continue
-                    if out:
+                    if out and not drive.faults.tx_dead:
                         self._send(out)
 
     def close(self) -> None:

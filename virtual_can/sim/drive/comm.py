@@ -178,7 +178,8 @@ class CommNode(Plant):
         """CiA 301 node guarding, the slave's side: answer toggle bit + NMT state; the first
         guard arms life guarding."""
         answer = self._guard_toggle << 7 | int(self.nmt)
-        self._guard_toggle ^= 1
+        if not self.faults.guard_toggle_stuck:
+            self._guard_toggle ^= 1
         self._guarded_at = now
         return [self._msg(FunctionCode.HEARTBEAT + self.node_id, bytes([answer]))]
 
@@ -241,7 +242,9 @@ class CommNode(Plant):
         if cmd == NmtCommand.START:
             self.nmt = NmtState.OPERATIONAL
         elif cmd == NmtCommand.STOP:
-            self.nmt = NmtState.STOPPED
+            was, self.nmt = self.nmt, NmtState.STOPPED
+            if was == NmtState.OPERATIONAL:  # CiA 402 0x6007: entering NMT stopped aborts the connection
+                self._connection_lost(now)  # its warning EMCY cannot go out in STOPPED
         elif cmd == NmtCommand.ENTER_PREOPERATIONAL:
             self.nmt = NmtState.PRE_OPERATIONAL
         elif cmd == NmtCommand.RESET_NODE:

@@ -1,0 +1,73 @@
+"""The position filter of one drive: which position samples to believe, and how fast the joint
+speeds up.
+
+Owner: the bus's receive thread (the state cache calls it for each position and velocity
+sample); boot sets its speed bound from the drive's units (:meth:`set_bound`, drive not booted)
+and homing tells it to take the next position as it comes (:meth:`trust_next`).
+"""
+
+from __future__ import annotations
+
+import logging
+
+from motor_driver.drive.constants import JUMP_CONFIRMATIONS, MAX_ACCEL_GAP_S
+
+logger = logging.getLogger(__name__)
+
+
+class PositionFilter:
+    """Holds back a position the joint cannot have reached; tracks the velocity's slope."""
+
+    def __init__(self, node_id: int, sync_period_s: float) -> None:
+        self._node_id = node_id
+        self._sync_period_s = sync_period_s
+        self._max_counts_s = 1
+        self._jump_margin_counts = 4.0
+        self._last_t = 0.0
+        self._suspect: tuple[int, int] | None = None  # (value, samples agreeing since)
+        self.implausible = 0
+        self.accel_counts_s2 = 0.0
+        self._accel_from = (0, 0.0)
+
+    def set_bound(self, max_counts_s: int, counts_per_deg: float) -> None:
+        """The fastest the joint can go (counts/s), and one degree as the margin of a jump."""
+        self._max_counts_s = max_counts_s or 1
+        self._jump_margin_counts = max(4.0, counts_per_deg)
+
+    def trust_next(self) -> None:
+        """The next position is taken as it comes (after boot's SDO read, after homing)."""
+        self._last_t = 0.0
+
+    def plausible(self, value: int, last: int, timestamp: float) -> bool:
+        """Reject a position the joint cannot have reached since the last one (a corrupted or
+        foreign frame), unless JUMP_CONFIRMATIONS further samples agree with it (homing, a
+        reboot, a real jump)."""
+        last_t = self._last_t
+        self._last_t = timestamp
+        if not last_t:
+            return True
+        limit = self._max_counts_s * 2.0 * max(timestamp - last_t, 0.001) + self._jump_margin_counts
+        if abs(value - last) <= limit:
+            self._suspect = None
+            return True
+        suspect = self._suspect
+        if suspect is not None and abs(value - suspect[0]) <= limit:
+            if suspect[1] + 1 >= JUMP_CONFIRMATIONS:
+                self._suspect = None
+                return True  # confirmed
+            self._suspect = (value, suspect[1] + 1)
+            return False
+        self._suspect = (value, 0)
+        self.implausible += 1
+        logger.debug("node %d: position %d implausible after %d; held for confirmation", self._node_id, value, last)
+        return False
+
+    def track_accel(self, velocity_counts_s: int, timestamp: float) -> None:
+        """The slope from the last sample at least half a SYNC period older (two frames that
+        queued up and arrive together give no slope of their own)."""
+        before, t_before = self._accel_from
+        gap = timestamp - t_before
+        if 0.0 <= gap < 0.5 * self._sync_period_s:
+            return
+        self.accel_counts_s2 = (velocity_counts_s - before) / gap if 0.0 < gap <= MAX_ACCEL_GAP_S else 0.0
+        self._accel_from = (velocity_counts_s, timestamp)

@@ -1,0 +1,64 @@
+"""A drive the driver stops hearing may still be turning (a broken transmit line, a hung CAN
+task): the driver tells it to stop by every means that needs no answer (the quick-stop
+controlword on its RPDO, NMT stop, the controlword by SDO) and keeps telling it until it is
+heard again; on shutdown too. The simulated drive's transmitter is cut (``tx_dead``): it still
+hears and obeys, and sends nothing. What it does is read from the simulator, not the driver.
+The guarding causes (no answer, a stuck toggle) need remote frames: the kernel tier has them."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import can
+
+from can_config import RoverConfig
+from motor_driver import MotorDriver
+from virtual_can import SimService
+from virtual_can.scenario import apply_action
+
+from .conftest import drain, make_config, wait_for
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+ListenerFactory = Callable[[SimService], can.BusABC]
+
+
+def sim_motion(sim: SimService, node: int = 1) -> tuple[str, float]:
+    runner = sim.simulators["can0"]
+    return runner.call(lambda: (runner.drive(node).state.name, abs(runner.drive(node).omega)))  # type: ignore[return-value]
+
+
+def turning_then_deaf(sim: SimService, driver: MotorDriver, node: int = 1) -> None:
+    drive = driver.drive(f"joint{node}")
+    drive.enable()
+    drive.move_to(350.0)  # a long profile move at 90 deg/s: no watchdog stops this one
+    wait_for(lambda: sim_motion(sim, node)[1] > 0.5, 5.0, "the shaft turning")
+    apply_action(sim, {"action": "tx_dead", "node": node})
+
+
+def test_a_drive_whose_transmitter_dies_while_turning_is_stopped(driver_factory: DriverFactory,
+                                                                 listener_factory: ListenerFactory) -> None:
+    sim, driver = driver_factory(make_config(2, joint="continuous", heartbeat_timeout_ms=300.0))
+    listener = listener_factory(sim)
+    turning_then_deaf(sim, driver)
+    drive = driver.drive("joint1")
+    wait_for(lambda: drive.lost, 5.0, "the driver declares it lost")
+    wait_for(lambda: sim_motion(sim)[0] != "OPERATION_ENABLED" and sim_motion(sim)[1] < 1e-3, 10.0,
+             "the deaf drive stopped")
+    frames = drain(listener, 0.3)
+    assert any(m.arbitration_id == 0x201 and m.data[0] == 0x02 for m in frames), "the quick-stop RPDO"
+    assert any(m.arbitration_id == 0x000 and bytes(m.data) == b"\x02\x01" for m in frames), "NMT stop of node 1"
+    assert not any(m.arbitration_id == 0x000 and m.data[1] == 2 for m in frames), "the other drive left alone"
+    assert driver.drive("joint2").state.name != "FAULT" and not driver.drive("joint2").lost
+    assert drive.watch.lost_stops >= 2  # told again while it stays unheard
+
+
+def test_a_lost_drive_is_told_to_stop_when_the_driver_shuts_down(driver_factory: DriverFactory,
+                                                                 listener_factory: ListenerFactory) -> None:
+    sim, driver = driver_factory(make_config(1, joint="continuous", heartbeat_timeout_ms=300.0))
+    turning_then_deaf(sim, driver)
+    wait_for(lambda: driver.drive("joint1").lost, 5.0, "the driver declares it lost")
+    listener = listener_factory(sim)
+    driver.close()
+    frames = drain(listener, 0.3)
+    assert any(m.arbitration_id == 0x000 and bytes(m.data) == b"\x02\x01" for m in frames), "NMT stop at shutdown"
+    wait_for(lambda: sim_motion(sim)[0] != "OPERATION_ENABLED", 5.0, "stopped")
