@@ -8,6 +8,7 @@ inherits the matching built-in so callers can catch what they already know::
     │   └── EdsError                          an EDS that is missing, unreadable or lacks objects
     ├── MotorError                            motor_driver
     │   ├── BootError                         a drive could not be configured (step, object, code)
+    │   ├── UnitError (ValueError)            a unit object the drive reports is implausible
     │   ├── SdoError                          SDO abort (carries abort_code) ...
     │   │   └── SdoTimeoutError (TimeoutError)  ... or no answer
     │   ├── DriveStateError                   CiA 402 transition refused / drive faulted / lost
@@ -51,6 +52,16 @@ class BootError(MotorError):
         self.index = index
         self.subindex = subindex
         self.abort_code = abort_code
+
+
+class UnitError(MotorError, ValueError):
+    """A unit or scaling object a drive reports (or a value derived from it) is out of its
+    plausible range; carries the object and the value. Nothing is written with it."""
+
+    def __init__(self, message: str, *, index: int, value: float) -> None:
+        super().__init__(message)
+        self.index = index
+        self.value = value
 
 
 class SdoError(MotorError):

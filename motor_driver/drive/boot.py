@@ -20,9 +20,10 @@ import can
 import canopen
 from canopen.objectdictionary import ObjectDictionary
 
+from can_config.codec import value_format
 from can_config.config import GENERIC_EDS, DriveConfig
 from can_config.eds import consumer_subs, has_object, variable
-from can_config.errors import BootError, BusLostError, DriveStateError, DriveTimeoutError, MotorError, SdoError
+from can_config.errors import BootError, BusLostError, DriveStateError, DriveTimeoutError, MotorError, SdoError, UnitError
 from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
 from motor_driver.cia402 import SW, Command, State, decode_state
 from motor_driver.drive.channel import CommandChannel
@@ -33,7 +34,7 @@ from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
 from motor_driver.pdo import PdoPlan, mapping_writes
 from motor_driver.safety import SafetyCheck, judge
-from motor_driver.units import read_unit_objects, scale_from_objects
+from motor_driver.units import check_drive_value, read_unit_objects, scale_from_objects
 
 logger = logging.getLogger(__name__)
 
@@ -140,6 +141,11 @@ class Boot:
         cfg = self.config
         if not cfg.is_continuous and has_object(self.od, OD.SOFTWARE_POSITION_LIMIT, 2):
             low, high = self._cache.scale.limits_to_counts(cfg.min_deg, cfg.max_deg)  # type: ignore[arg-type]
+            if not -(2**31) <= low <= high < 2**31:
+                raise BootError(f"node {self.node_id} ({self.name}): boot step 'position limits' refused: min_deg/"
+                                f"max_deg are {low}..{high} in the drive's units, beyond INTEGER32; its unit objects"
+                                " or the limits are wrong. Nothing was written.", node_id=self.node_id,
+                                step="position limits", index=OD.SOFTWARE_POSITION_LIMIT, subindex=1)
             self._at(OD.SOFTWARE_POSITION_LIMIT, 1)
             self._sdo.write_typed(OD.SOFTWARE_POSITION_LIMIT, 1, low)
             self._at(OD.SOFTWARE_POSITION_LIMIT, 2)
@@ -148,16 +154,28 @@ class Boot:
     def _write_profile(self) -> None:
         cfg = self.config
         to_drive, accel_to_drive = self._cache.scale.magnitude_to_drive, self._cache.scale.acceleration_to_drive
-        for index, value in ((OD.PROFILE_VELOCITY, to_drive(cfg.profile_velocity_deg_s)),
-                             (OD.PROFILE_ACCELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2)),
-                             (OD.PROFILE_DECELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2)),
-                             (OD.MAX_PROFILE_VELOCITY, to_drive(cfg.max_velocity_deg_s))):
+        for index, value, key in ((OD.PROFILE_VELOCITY, to_drive(cfg.profile_velocity_deg_s), "profile_velocity_deg_s"),
+                                  (OD.PROFILE_ACCELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2),
+                                   "profile_acceleration_deg_s2"),
+                                  (OD.PROFILE_DECELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2),
+                                   "profile_acceleration_deg_s2"),
+                                  (OD.MAX_PROFILE_VELOCITY, to_drive(cfg.max_velocity_deg_s), "max_velocity_deg_s")):
             if has_object(self.od, index):
                 self._at(index, 0)
-                self._sdo.write_typed(index, 0, value)
+                self._sdo.write_typed(index, 0, self._checked(index, value, key))
         if has_object(self.od, OD.QUICK_STOP_DECELERATION):
             self._at(OD.QUICK_STOP_DECELERATION, 0)
-            self._sdo.write_typed(OD.QUICK_STOP_DECELERATION, 0, self._quick_stop_decel())
+            self._sdo.write_typed(OD.QUICK_STOP_DECELERATION, 0,
+                                  self._checked(OD.QUICK_STOP_DECELERATION, self._quick_stop_decel(),
+                                                "quick_stop_decel_deg_s2"))
+
+    def _checked(self, index: int, value: float, key: str) -> int:
+        """A profile value in drive units: never 0, never beyond its type (a boot error, not a write)."""
+        try:
+            return check_drive_value(index, value, f"({key})", value_format(self.od, index, 0))
+        except UnitError as err:
+            raise BootError(f"node {self.node_id} ({self.name}): boot step 'profile parameters' refused: {err}",
+                            node_id=self.node_id, step="profile parameters", index=index, subindex=0) from err
 
     def _write_settings(self) -> None:
         for setting in self.config.sdo:
@@ -318,8 +336,12 @@ class Boot:
         WARNING); later boots say it at DEBUG."""
         cfg = self.config
         objects = read_unit_objects(self._sdo.read_optional)
-        scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
-                                          invert=cfg.invert, offset_deg=cfg.offset_deg)
+        try:
+            scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
+                                              invert=cfg.invert, offset_deg=cfg.offset_deg)
+        except UnitError as err:
+            raise BootError(f"node {self.node_id} ({self.name}): boot step 'units' refused: {err}",
+                            node_id=self.node_id, step="units", index=err.index, subindex=0) from err
         self._cache.set_scale(scale)
         for note in notes:
             level = logging.WARNING if "(config says" in note else logging.INFO
