@@ -17,7 +17,8 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from can_config.errors import CommandRejected, UnitError
+from can_config.errors import CommandRejected
+from motor_driver.unit_ranges import check_unit_objects, check_units_per_deg, si_parts
 
 INT32_MIN = -(2**31)
 INT32_MAX = 2**31 - 1
@@ -134,70 +135,6 @@ ASSUMED_COUNTS_PER_REV = 4096
 UNIT_OBJECTS: tuple[tuple[int, tuple[int, ...]], ...] = (
     (0x608F, (1, 2)), (0x6091, (1, 2)), (0x6092, (1, 2)), (0x60A8, (0,)), (0x60A9, (0,)), (0x60AA, (0,)),
     (0x6076, (0,)))
-#: What each is, for the notes.
-UNIT_OBJECT_NAMES = {0x608F: "position encoder resolution", 0x6091: "gear ratio", 0x6092: "feed constant",
-                     0x60A8: "SI unit position", 0x60A9: "SI unit velocity", 0x60AA: "SI unit acceleration",
-                     0x6076: "motor rated torque"}
-
-
-#: The plausible range of each unit object a drive reports (docs/safety.md): anything outside is
-#: a misreading, a firmware fault or a hostile node, and the drive is not booted on it.
-#: (low, high, what the value is). Ratios (0x608F, 0x6091, 0x6092) are numerator / denominator.
-UNIT_RANGES: dict[int, tuple[float, float, str]] = {
-    0x608F: (1.0, 2.0**26, "encoder increments per motor revolution"),
-    0x6091: (1e-3, 1e4, "motor revolutions per shaft revolution"),
-    0x6092: (1e-3, 1e9, "feed units per shaft revolution"),
-    0x6076: (1.0, 1e7, "rated torque in mNm"),
-}
-#: The SI prefix of 0x60A8-0x60AA (a power of ten, CiA 303-2): at most this far from 10^0.
-SI_PREFIX_MAX = 9
-#: A joint's resolution, in drive units per degree, whatever it comes from.
-UNITS_PER_DEG_RANGE = (1e-3, 1e8)
-
-
-def check_unit_objects(objects: dict[tuple[int, int], int]) -> None:
-    """Every unit object against its plausible range (:data:`UNIT_RANGES`, :data:`SI_PREFIX_MAX`);
-    a :class:`UnitError` names the object, the value and the range."""
-    for index, (low, high, what) in UNIT_RANGES.items():
-        if index == 0x6076:
-            value: float | None = objects.get((index, 0)) or None
-        else:
-            num, den = objects.get((index, 1)), objects.get((index, 2))
-            if num is None and den is None:
-                continue
-            if not num or not den:
-                raise UnitError(f"0x{index:04X} {UNIT_OBJECT_NAMES[index]}: {num}/{den} has a zero term; a drive"
-                                " reporting it cannot be scaled. Check the drive's parameters.", index=index,
-                                value=float(num or 0))
-            value = num / den
-        if value is not None and not low <= value <= high:
-            raise UnitError(f"0x{index:04X} {UNIT_OBJECT_NAMES[index]} = {value:g} ({what}) is outside the plausible"
-                            f" {low:g} to {high:g}; the drive is not booted on it. Check the drive's parameters.",
-                            index=index, value=value)
-    for index in (0x60A8, 0x60A9, 0x60AA):
-        code = objects.get((index, 0))
-        if code and abs(_si(code)[0]) > SI_PREFIX_MAX:
-            raise UnitError(f"0x{index:04X} {UNIT_OBJECT_NAMES[index]} = 0x{code:08X}: prefix 10^{_si(code)[0]} is"
-                            f" outside 10^-{SI_PREFIX_MAX} to 10^{SI_PREFIX_MAX}; the drive is not booted on it.",
-                            index=index, value=float(code))
-
-
-def check_drive_value(index: int, value: float, what: str, fmt: str | None) -> int:
-    """A magnitude (speed, acceleration, deceleration) in drive units, before it is packed for
-    0x``index``: at least 1 (never 0: a zero quick-stop deceleration does not stop) and within the
-    object's type, never saturated; :class:`UnitError` says which and why."""
-    high = TYPE_MAX.get(fmt or "<i", 2**31 - 1)
-    number = round(value)
-    if not 1 <= number <= high:
-        raise UnitError(f"0x{index:04X} {what}: {value:g} in the drive's units is outside 1 to {high} (the object's"
-                        " type); its unit objects or the config value are wrong. Nothing was written.", index=index,
-                        value=float(value))
-    return int(number)
-
-
-#: The largest value of each packed integer type (struct formats of can_config.codec).
-TYPE_MAX = {"<B": 0xFF, "<H": 0xFFFF, "<I": 0xFFFF_FFFF, "<Q": 2**64 - 1, "<b": 0x7F, "<h": 0x7FFF,
-            "<i": 0x7FFF_FFFF, "<q": 2**63 - 1}
 
 
 def read_unit_objects(upload: Callable[[int, int], bytes | None]) -> dict[tuple[int, int], int]:
@@ -218,12 +155,6 @@ def _ratio(objects: dict[tuple[int, int], int], index: int) -> float | None:
     if not num or not den:
         return None
     return num / den
-
-
-def _si(code: int) -> tuple[int, int, int]:
-    """(prefix as a signed power of ten, numerator, denominator) of an SI unit code."""
-    prefix = (code >> 24) & 0xFF
-    return (prefix - 256 if prefix >= 128 else prefix), (code >> 16) & 0xFF, (code >> 8) & 0xFF
 
 
 def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torque_nm: float,
@@ -253,7 +184,7 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
             notes.append(f"gear ratio {gear_obj:g} from 0x6091 (config says {gear_ratio:g})")
         gear = gear_obj
     position_si = objects.get((0x60A8, 0))
-    p_prefix, p_num, _ = _si(position_si) if position_si else (0, SI_INCREMENT, 0)
+    p_prefix, p_num, _ = si_parts(position_si) if position_si else (0, SI_INCREMENT, 0)
     if feed is not None and feed != 1.0:
         units_per_joint_rev = feed
         notes.append(f"position in feed units: {feed:g} per joint revolution (0x6092)")
@@ -276,12 +207,7 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
     counts_per_deg = units_per_joint_rev / 360.0
     velocity = _velocity_per_unit(objects, gear, counts_per_deg, notes)
     acceleration = _acceleration_per_unit(objects, gear, counts_per_deg, notes)
-    low, high = UNITS_PER_DEG_RANGE
-    for what, per_deg in (("position", counts_per_deg), ("velocity", velocity), ("acceleration", acceleration)):
-        if per_deg and not low <= per_deg <= high:
-            raise UnitError(f"the drive's {what} unit makes {per_deg:g} units per degree, outside the plausible"
-                            f" {low:g} to {high:g} (from 0x608F/0x6091/0x6092/0x60A8-0x60AA); not booted on it.",
-                            index=0x60A8, value=per_deg)
+    check_units_per_deg(position=counts_per_deg, velocity=velocity, acceleration=acceleration)
     rated = rated_torque_nm
     mnm = objects.get((0x6076, 0))
     if mnm:
@@ -297,7 +223,7 @@ def _velocity_per_unit(objects: dict[tuple[int, int], int], gear: float, counts_
     si = objects.get((0x60A9, 0))
     if not si:
         return 0.0
-    prefix, numerator, denominator = _si(si)
+    prefix, numerator, denominator = si_parts(si)
     per_s = {SI_SECOND: 1.0, SI_MINUTE: 60.0}.get(denominator)
     if numerator == SI_REVOLUTION and per_s is not None:
         # value x 10^prefix motor revolutions per (s|min) -> joint deg/s
@@ -314,7 +240,7 @@ def _acceleration_per_unit(objects: dict[tuple[int, int], int], gear: float, cou
     si_acc = objects.get((0x60AA, 0))
     if not si_acc:
         return 0.0
-    prefix, numerator, denominator = _si(si_acc)
+    prefix, numerator, denominator = si_parts(si_acc)
     if denominator == SI_SECOND_SQUARED and numerator == SI_INCREMENT:
         return counts_per_deg / 10.0**prefix
     if denominator == SI_SECOND_SQUARED and numerator == SI_REVOLUTION:

@@ -34,7 +34,8 @@ from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
 from motor_driver.pdo import PdoPlan, mapping_writes
 from motor_driver.safety import SafetyCheck, judge
-from motor_driver.units import check_drive_value, read_unit_objects, scale_from_objects
+from motor_driver.unit_ranges import check_drive_value
+from motor_driver.units import read_unit_objects, scale_from_objects
 
 logger = logging.getLogger(__name__)
 
