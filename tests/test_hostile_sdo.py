@@ -9,6 +9,8 @@ request in the way a test asks for."""
 from __future__ import annotations
 
 import struct
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -21,9 +23,11 @@ from hypothesis import strategies as st
 from can_config import parse_config, with_bus_overrides
 from can_config.errors import BootError, MotorError, SdoError, SdoTimeoutError
 from motor_driver import MotorDriver
-from motor_driver.drive import SDO_TRANSFER_TIMEOUTS
+from motor_driver.drive import SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
 from virtual_can import BusEngine, SocketcandServer
 from virtual_can.server import RAWMODE_HOLD_S
+
+from .conftest import REPO
 
 NODE = 5
 SDO_TIMEOUT_S = 0.2
@@ -66,6 +70,10 @@ class HostileDrive:
             return
         if kind == "short":
             self.send(0x580 + NODE, b"\x43")
+        elif kind.startswith("bytes "):  # an expedited answer of n bytes (n = 0, 1 or 3)
+            n = int(kind.split()[1])
+            head = 0x42 if n == 0 else 0x43 | (4 - n) << 2
+            self.send(0x580 + NODE, bytes([head]) + index + sub + b"\x07" * n)
         elif kind == "wrong index":
             self.send(0x580 + NODE, bytes([0x43]) + struct.pack("<H", 0x1234) + sub + b"\x01\x02\x03\x04")
         elif kind == "unknown abort":
@@ -174,3 +182,29 @@ def test_fuzzed_answers_never_raise_outside_the_tree(server: SocketcandServer, a
         stop.set()
         thread.join()
         bus.shutdown()
+
+
+def bench(port: int, *args: str) -> subprocess.CompletedProcess[str]:
+    """A bench command against the hostile node; the subprocess timeout is the hang detector."""
+    return subprocess.run([sys.executable, "-m", "rovercan", *args, "-i", "socketcand", "-c", "can0", "--bus-kwargs",
+                           "host=127.0.0.1", f"port={port}"], cwd=REPO, capture_output=True, text=True, timeout=60,
+                          check=False)
+
+
+@pytest.mark.parametrize("kind", ["endless", "huge size", "bytes 0", "bytes 1", "bytes 3"])
+@pytest.mark.parametrize("command", [("sdo", "read", str(NODE), "0x1000"), ("sdo", "read", str(NODE), "0x1008"),
+                                     ("info", str(NODE))])
+def test_the_bench_reads_through_the_bounded_port(server: SocketcandServer, kind: str, command: tuple[str, ...]) -> None:
+    """The bench's SDO reads are the driver's: an endless segmented upload is cut off (the landed
+    bench was still reading at 60 s) and a short answer is one line, never a struct.error."""
+    drive_bus = HostileDrive(server.port, kind)
+    try:
+        result = bench(server.port, *command, "--json")
+    finally:
+        drive_bus.close()
+    assert "Traceback" not in result.stderr and "struct.error" not in result.stderr, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.startswith("rovercan:")]
+    assert result.returncode == 0 or (result.returncode == 1 and len(lines) == 1), (result.returncode, result.stderr)
+    # cut off by size (SDO_UPLOAD_MAX_BYTES without an EDS: about 150 segments for one read, a few
+    # reads for info), not the tens of thousands of frames of an unbounded read
+    assert drive_bus.requests < 3 * (SDO_UPLOAD_MAX_BYTES // 7 + 10), drive_bus.requests

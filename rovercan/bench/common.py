@@ -22,9 +22,11 @@ from canopen.objectdictionary import ObjectDictionary
 
 from can_config import RoverConfig, load_config, load_od, parse_config
 from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN
-from can_config.errors import BusLostError, ConfigError, RovercanError
+from can_config.errors import BusLostError, ConfigError, RovercanError, SdoError, SdoTimeoutError
 from can_config.objects import sdo_abort_text
 from motor_driver.adapters import connection_closed
+from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS
+from motor_driver.drive.sdo import SdoPort
 from motor_driver.driver import open_bus as driver_open_bus
 from motor_driver.driver import wait_for_server
 from rovercan.argtypes import real, whole
@@ -164,18 +166,41 @@ def remote_node(args: argparse.Namespace, node_id: int) -> Iterator[tuple[canope
 
 @contextmanager
 def sdo_errors(node_id: int, what: str, timeout_s: float) -> Iterator[None]:
-    """canopen's SDO failures as one-line CLI errors naming the node, the object and the cause."""
+    """SDO failures as one-line CLI errors naming the node, the object and the cause."""
     try:
         yield
-    except canopen.SdoAbortedError as err:
-        raise CliError(f"node {node_id}: {what} aborted: 0x{err.code:08X} {sdo_abort_text(err.code)}") from err
-    except canopen.SdoCommunicationError as err:
+    except SdoTimeoutError as err:
+        if "took over" in str(err):  # it answered, and went on answering: a transfer without end
+            raise CliError(f"node {node_id}: {what}: the transfer ran past {SDO_TRANSFER_TIMEOUTS} x the SDO timeout"
+                           f" ({timeout_s:g} s) and was aborted") from err
         raise CliError(f"node {node_id}: no answer to {what} within {timeout_s:g} s; {CAUSES}") from err
+    except SdoError as err:
+        if err.abort_code is not None:
+            raise CliError(f"node {node_id}: {what} aborted: 0x{err.abort_code:08X} {sdo_abort_text(err.abort_code)}") from err
+        detail = str(err).split(f"0x{err.index:04X}:{err.subindex}", 1)[-1].lstrip(": ")
+        raise CliError(f"node {node_id}: {what}: {detail}") from err
+
+
+def sdo_port(node: canopen.RemoteNode, timeout_s: float = SDO_TIMEOUT_S) -> SdoPort:
+    """The driver's SDO port for a node the bench talks to: bounded in size and time, one
+    transfer at a time, one typed codec (motor_driver.drive.sdo)."""
+    return SdoPort(f"node {node.id}", node, node.object_dictionary, timeout_s)
 
 
 def sdo_upload(node: canopen.RemoteNode, index: int, sub: int) -> bytes:
     with sdo_errors(node.id, f"SDO read 0x{index:04X}:{sub}", SDO_TIMEOUT_S):
-        return bytes(node.sdo.upload(index, sub))
+        return sdo_port(node).read(index, sub)
+
+
+def sdo_download(node: canopen.RemoteNode, index: int, sub: int, data: bytes, timeout_s: float = SDO_TIMEOUT_S,
+                 what: str = "") -> None:
+    with sdo_errors(node.id, what or f"SDO write 0x{index:04X}:{sub}", timeout_s):
+        sdo_port(node, timeout_s).write(index, sub, data)
+
+
+def _u8(raw: bytes) -> int:
+    """The first byte of an answer; an empty answer reads as 0 (a drive's short answer, never an IndexError)."""
+    return raw[0] if raw else 0
 
 
 def _u32(raw: bytes) -> int:

@@ -23,10 +23,10 @@ from can_config.objects import OD, SUPPORTED_MODE_BIT, NmtCommand, NmtState, Ope
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     CAUSES,
-    SDO_TIMEOUT_S,
     CliError,
     _heard_from,
     _text,
+    _u8,
     _u32,
     _untyped,
     add_bus_args,
@@ -39,7 +39,7 @@ from rovercan.bench.common import (
     receive,
     refuse_beside_a_master,
     remote_node,
-    sdo_errors,
+    sdo_download,
     sdo_upload,
 )
 from rovercan.decode import node_of
@@ -123,10 +123,10 @@ def cmd_info(args: argparse.Namespace) -> int:
             info["supported_modes"] = "(0x6502 not available)"
         info["rpdos"] = _pdo_mapping(node, od, OD.RPDO_COMM)
         info["tpdos"] = _pdo_mapping(node, od, OD.TPDO_COMM)
-        info["error_register"] = f"0x{sdo_upload(node, OD.ERROR_REGISTER, 0)[0]:02X}"
+        info["error_register"] = f"0x{_u8(sdo_upload(node, OD.ERROR_REGISTER, 0)):02X}"
         history = []
         try:
-            count = sdo_upload(node, OD.PREDEFINED_ERROR_FIELD, 0)[0]
+            count = _u8(sdo_upload(node, OD.PREDEFINED_ERROR_FIELD, 0))
             for sub in range(1, count + 1):
                 from can_config.objects import emcy_text
                 code = _u32(sdo_upload(node, OD.PREDEFINED_ERROR_FIELD, sub)) & 0xFFFF
@@ -148,8 +148,8 @@ def _pdo_mapping(node: canopen.RemoteNode, od: ObjectDictionary, comm_base: int)
         if cob & 0x8000_0000:
             out.append(f"{n + 1}: disabled")
             continue
-        tt = sdo_upload(node, comm_base + n, 2)[0]
-        count = sdo_upload(node, comm_base + 0x200 + n, 0)[0]
+        tt = _u8(sdo_upload(node, comm_base + n, 2))
+        count = _u8(sdo_upload(node, comm_base + 0x200 + n, 0))
         names = []
         for sub in range(1, count + 1):
             entry = _u32(sdo_upload(node, comm_base + 0x200 + n, sub))
@@ -216,8 +216,7 @@ def cmd_sdo(args: argparse.Namespace) -> int:
             logger.warning("node %d: forced SDO write of protected 0x%04X:%d = %s (%s)", node_id, index, sub,
                            args.value, reason)
         data = sdo_value_bytes(args.value, fmt, args.size, f"0x{index:04X}:{sub}{f' ({name})' if name else ''}")
-        with sdo_errors(node_id, f"SDO write 0x{index:04X}:{sub}", SDO_TIMEOUT_S):
-            node.sdo.download(index, sub, data)
+        sdo_download(node, index, sub, data)
         emit(args, {"node": node_id, "index": f"0x{index:04X}", "sub": sub, "written": data.hex(" ")}, "written")
     return 0
 
@@ -254,10 +253,8 @@ def cmd_save(args: argparse.Namespace) -> int:
     """0x1010:SUB = "save": the drive keeps its current parameters over resets and power cycles."""
     node_id = parse_node(args.node)
     with remote_node(args, node_id) as (node, _):
-        node.sdo.RESPONSE_TIMEOUT = SAVE_TIMEOUT_S
         started = time.monotonic()
-        with sdo_errors(node_id, f"the save (0x1010:{args.sub})", SAVE_TIMEOUT_S):
-            node.sdo.download(OD.STORE_PARAMETERS, args.sub, b"save")
+        sdo_download(node, OD.STORE_PARAMETERS, args.sub, b"save", SAVE_TIMEOUT_S, f"the save (0x1010:{args.sub})")
         took = time.monotonic() - started
     emit(args, {"node": node_id, "saved": SAVE_WHAT[args.sub], "object": f"0x1010:{args.sub}",
                 "answer_ms": round(took * 1000)}, f"node {node_id} saved")
