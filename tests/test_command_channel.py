@@ -21,6 +21,7 @@ from can_config.config import GENERIC_EDS
 from can_config.errors import CommandRejected, DriveStateError
 from can_config.objects import OperationMode
 from motor_driver.cia402 import Command
+from motor_driver.drive.busy import Op
 from motor_driver.drive.channel import CommandChannel
 from motor_driver.pdo import plan_pdos
 
@@ -272,3 +273,132 @@ def test_a_controlword_by_sdo_is_followed_by_the_stop_decided_meanwhile() -> Non
     assert sdo_writes == [ENABLE, QUICK_STOP, QUICK_STOP]
     assert not wire.frames
 
+
+
+# ---------------------------------------------------------------------------- exact frames
+def rpdo(wire: Wire, cob: int) -> list[tuple[int, bytes]]:
+    return [(cw, rest) for c, cw, rest in wire.frames if c == cob]
+
+
+def test_motion_frames_byte_by_byte(wire: Wire) -> None:
+    channel = make_channel(wire)
+    enabled(channel)
+    with channel.command("velocity command") as frames:
+        frames.velocity(-1000, live=True, stream=True)
+    assert rpdo(wire, RPDO3)[-1] == (ENABLE, (-1000).to_bytes(4, "little", signed=True))
+    assert channel.velocity_commanded and channel.stream_velocity_counts_s == -1000
+    assert channel.last_velocity_cmd > 0
+    with channel.command("velocity command") as frames:
+        frames.velocity(5, live=False)
+    assert channel.stream_velocity_counts_s == -1000 and not channel.velocity_commanded  # not a stream
+    with channel.command("torque command") as frames:
+        frames.torque(-250, live=True)
+    assert rpdo(wire, RPDO4)[-1] == (ENABLE, (-250).to_bytes(2, "little", signed=True))
+    assert channel.velocity_commanded
+    with channel.command("move") as frames:
+        frames.setpoint(123456)
+    assert rpdo(wire, RPDO2)[-1] == (ENABLE | 0x10 | 0x20, (123456).to_bytes(4, "little", signed=True))
+    assert channel.target_counts == 123456
+
+
+def test_halt_is_kept_on_targets_and_cleared_by_a_setpoint(wire: Wire) -> None:
+    channel = make_channel(wire)
+    enabled(channel)
+    with channel.command("halt") as frames:
+        frames.halt(True)
+    assert wire.words()[-1] == ENABLE | 0x100 and channel.cw == ENABLE | 0x100
+    with channel.command("velocity command") as frames:
+        frames.velocity(7, live=True)
+        frames.torque(7, live=True)
+    assert rpdo(wire, RPDO3)[-1][0] == ENABLE | 0x100 and rpdo(wire, RPDO4)[-1][0] == ENABLE | 0x100
+    with channel.command("move") as frames:
+        frames.setpoint(10)  # a new target clears the halt
+    assert rpdo(wire, RPDO2)[-1][0] == ENABLE | 0x30 and channel.cw == ENABLE
+    with channel.command("halt") as frames:
+        frames.halt(True)
+        frames.halt(False)
+    assert wire.words()[-1] == ENABLE and channel.cw == ENABLE
+
+
+def test_streamed_positions_byte_by_byte(wire: Wire) -> None:
+    channel = make_channel(wire)
+    enabled(channel)
+    with channel.command("set-point") as frames:
+        frames.stream_position(OperationMode.CYCLIC_SYNC_POSITION, -42, False)
+    assert rpdo(wire, RPDO2)[-1] == (ENABLE, (-42).to_bytes(4, "little", signed=True))
+    with channel.command("set-point") as frames:
+        frames.stream_position(OperationMode.CYCLIC_SYNC_POSITION, 43, True)  # its target went by SDO
+    assert wire.frames[-1][:2] == (RPDO1, ENABLE) and channel.target_counts == 43
+    with channel.command("set-point") as frames:
+        frames.stream_position(OperationMode.INTERPOLATED_POSITION, 44, True)
+    assert wire.frames[-1][:2] == (RPDO1, ENABLE | 0x10)  # enable ip mode beside it
+
+
+def test_a_brake_sends_zero_and_ends_the_velocity_command(wire: Wire) -> None:
+    channel = make_channel(wire)
+    enabled(channel)
+    for velocity_mode, cob, zero in ((True, RPDO3, bytes(4)), (False, RPDO4, bytes(2))):
+        with channel.command("command") as frames:
+            frames.velocity(99, live=True) if velocity_mode else frames.torque(99, live=True)
+            assert frames.brake(velocity_mode=velocity_mode)
+        assert rpdo(wire, cob)[-1] == (ENABLE, zero)
+        assert not channel.velocity_commanded
+
+
+def test_a_refusal_names_the_command(wire: Wire) -> None:
+    channel = make_channel(wire)
+    for send, doing in ((lambda f: f.velocity(1, live=True), "velocity command"),
+                        (lambda f: f.torque(1, live=True), "torque command"), (lambda f: f.setpoint(1), "move"),
+                        (lambda f: f.stream_position(OperationMode.CYCLIC_SYNC_POSITION, 1, False), "set-point")):
+        with pytest.raises(CommandRejected, match=f"joint1: {doing} refused: a stop came first"), \
+                channel.command(doing) as frames:
+            send(frames)
+    frames = channel.try_command("the watchdog")
+    assert frames is not None
+    try:
+        with pytest.raises(CommandRejected, match="the watchdog refused"):
+            frames.velocity(1, live=True)
+    finally:
+        channel.release()
+    with channel.operation("enable") as op:
+        channel.stop(Command.QUICK_STOP, "quick stop")
+        with pytest.raises(DriveStateError, match="joint1 \\(node 1\\): enable interrupted by quick stop"):
+            channel.mark_enabled(op, lambda: None)
+    assert not channel.was_enabled
+
+
+def test_enabled_by_us_is_this_drivers_last_word_or_a_recent_enable(wire: Wire) -> None:
+    channel = make_channel(wire)
+    assert not channel.enabled_by_us(0.0, 1.0)
+    enabled(channel)
+    sent = channel.last_enable_sent
+    assert channel.enabled_by_us(sent + 100.0, 1.0)  # the last word is Enable Operation
+    channel.stop(Command.QUICK_STOP, "quick stop")
+    assert channel.enabled_by_us(sent + 0.5, 1.0)  # a stop followed it, but it was sent just now
+    assert not channel.enabled_by_us(sent + 1.0, 1.0) and not channel.enabled_by_us(sent + 2.0, 1.0)
+
+
+def test_forgetting_ends_what_was_commanded(wire: Wire) -> None:
+    channel = make_channel(wire)
+    enabled(channel)
+    with channel.command("velocity command") as frames:
+        frames.velocity(10, live=True)
+    channel.mark_enabled(Op(0, "enable", channel.generation), lambda: None)
+    assert channel.was_enabled and channel.velocity_commanded
+    channel.forget_commanded()
+    assert not channel.was_enabled and not channel.velocity_commanded
+    assert wire.words()[-1] == ENABLE  # forgetting sends nothing
+
+
+def test_no_stop_is_written_again_after_a_transition_by_sdo_that_no_stop_followed() -> None:
+    wire = Wire()
+    plan = plan_pdos(load_drive_od(str(GENERIC_EDS), 1), 1)
+    channel = CommandChannel("joint1", 1, dataclasses.replace(plan, rpdos=()), wire.send, wire.sdo_words.append,
+                             lambda: None)
+    with channel.operation("enable") as op:
+        channel.transition(op, "enable", Command.SHUTDOWN)
+    assert wire.sdo_words == [int(Command.SHUTDOWN)]  # a stop word, but no stop came: written once
+    channel.stop(Command.QUICK_STOP, "quick stop")
+    with channel.operation("enable") as later:
+        channel.transition(later, "enable", Command.ENABLE_OPERATION)
+    assert wire.sdo_words == [int(Command.SHUTDOWN), QUICK_STOP, ENABLE]  # the stop came before it began

@@ -83,10 +83,20 @@ class CommandChannel:
     def handshake_idle(self) -> bool:
         return self._handshake.idle
 
+    @property
+    def last_enable_sent(self) -> float:
+        """When this driver last sent Enable Operation (monotonic), 0.0 never."""
+        return self._enable_sent_at
+
+    @property
+    def generation(self) -> int:
+        return self._generation
+
     def enabled_by_us(self, now: float, within_s: float) -> bool:
         """This driver's last controlword was Enable Operation, or it sent one within ``within_s``."""
         enable = int(Command.ENABLE_OPERATION)
-        return self.cw & enable == enable or now - self._enable_sent_at < within_s
+        sent = self._enable_sent_at
+        return self.cw & enable == enable or (sent > 0.0 and now - sent < within_s)
 
     def set_hook(self, hook: Callable[[str], None] | None) -> None:
         """Tests only: ``hook(point)`` at the named points of the channel (see the module doc)."""
