@@ -129,7 +129,7 @@ def test_per_drive_topics_and_joint_states(graph: Graph) -> None:
     states = graph.listen(MotorState, f"wheels/{joint}/motor_state")
     joints = graph.listen(JointState, "/joint_states")
     degree = graph.probe.create_publisher(Float32, f"wheels/{joint}/degree_cmd", COMMAND_QOS)
-    time.sleep(0.3)
+    wait_for(lambda: degree.get_subscription_count() > 0, 10.0, "degree_cmd matched")
     degree.publish(Float32(data=120.0))
     eventually(lambda: bool(states) and abs(states[-1].angle - 120.0) < 0.2, 8.0, "angle 120")
     assert states[-1].name == joint and states[-1].enabled
@@ -216,7 +216,8 @@ def test_bad_commands_refused_no_motion_warning_diagnostic(graph: Graph, bad: fl
     pub = graph.probe.create_publisher(Float32, f"wheels/{joint}/degree_cmd", COMMAND_QOS)
     vel = graph.probe.create_publisher(Float32, f"wheels/{joint}/velocity_cmd", COMMAND_QOS)
     commands = graph.probe.create_publisher(JointState, "/joint_commands", COMMAND_QOS)
-    time.sleep(0.3)
+    wait_for(lambda: all(p.get_subscription_count() > 0 for p in (pub, vel, commands)), 10.0, "the topics matched")
+    target = drive.channel.target_counts
     pub.publish(Float32(data=bad))
     vel.publish(Float32(data=bad))
     commands.publish(JointState(name=["no_such_joint"], position=[0.1]))
@@ -228,7 +229,8 @@ def test_bad_commands_refused_no_motion_warning_diagnostic(graph: Graph, bad: fl
     eventually(lambda: warned(joint, "refused"), 3.0, "a WARN diagnostic for the refused command")
     eventually(lambda: warned("command input", "unknown joint 'no_such_joint'"), 3.0,
                "a WARN diagnostic for the unknown joint")
-    time.sleep(0.2)
+    # nothing moved, by what the driver sent: no new target, no velocity command (both were refused)
+    assert drive.channel.target_counts == target and not drive.velocity_commanded
     assert drive.angle_deg == pytest.approx(before, abs=0.01)
     pub.publish(Float32(data=15.0))  # still alive, still obeys
     eventually(lambda: abs(drive.angle_deg - 15.0) < 0.2, 5.0, "good command after bad ones")
@@ -274,7 +276,8 @@ def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph:
     eventually(lambda: any(st.name == "rovercan: command input" and st.level == bytes([1]) and
                            "/cmd_vel with non-finite values" in st.message for a in diags for st in a.status),
                3.0, "a WARN diagnostic for the NaN twist")
-    time.sleep(0.3)
+    # the NaN was refused before any frame: no wheel has a velocity command live
+    assert not any(graph.driver.drive(w).velocity_commanded for w in WHEELS)
     assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
 
 
@@ -412,39 +415,28 @@ def test_a_slow_enable_service_never_stalls_commands_or_other_joints_topics(grap
     degree = graph.probe.create_publisher(Float32, "wheels/wheel_front_left/degree_cmd", COMMAND_QOS)
     client = graph.probe.create_client(Trigger, "wheels/wheel_front_left/enable")
     assert client.wait_for_service(timeout_sec=5.0)
-    time.sleep(0.3)
+    wait_for(lambda: degree.get_subscription_count() > 0, 10.0, "the degree topic matched")
     future = client.call_async(Trigger.Request())
-    t0 = time.monotonic()
     drive = graph.driver.drive("wheel_front_left")
-    eventually(lambda: drive.busy == "enable", 2.0, "the enable service to start")
-    t_busy = time.monotonic()
+    eventually(lambda: drive.busy == "enable", 10.0, "the enable service to start")
     n0 = len(other)
-    worst = 0.0
     refused = 0
-    while time.monotonic() - t0 < 5.0:
+    while not future.done() and refused < 30:
         degree.publish(Float32(data=30.0))  # the hot executor refuses it at once
-        start = time.perf_counter()
         try:
             drive.move_to(30.0)  # what the topic callback runs
         except CommandRejected as err:
             assert "busy with enable" in str(err)
+            # refused at once, not after waiting: the enable it would have waited for still runs
+            assert drive.busy == "enable" and not future.done()
             refused += 1
-        else:
-            assert drive.busy is None, "accepted while the drive was busy"  # only once the enable is done
-            break
-        worst = max(worst, time.perf_counter() - start)
-        time.sleep(0.02)
-    elapsed = time.monotonic() - t_busy
-    eventually(future.done, 2.0, "the enable service's answer")
-    assert future.result().success and elapsed >= 1.5 and refused >= 30, (elapsed, refused)
-    assert worst < 0.005, worst
-    # joint B's MotorState kept coming meanwhile: a stall behind the enable's waits (0.7 s per
-    # step) would leave a gap of that size; a loaded machine's scheduling leaves less (the rate
-    # is no target here: on a 2-core machine kept busy by other processes it was 39 Hz of 50,
-    # and the longest gap 0.31 s)
-    during = [t for t in other[n0:] if t <= t_busy + elapsed]
-    gaps = [b - a for a, b in zip([t_busy, *during], [*during, t_busy + elapsed], strict=True)]
-    assert len(during) >= 0.5 * 50.0 * elapsed and max(gaps) < 0.5, (len(during), elapsed, max(gaps))
+        drive.cache.wait_until(future.done, 0.02)
+    eventually(future.done, 15.0, "the enable service's answer")
+    during = len(other) - n0
+    assert future.result().success and refused >= 30, refused
+    # order, not rate (the benchmarks time it): joint B's MotorState kept coming while the enable
+    # service waited (about 2 s at 50 Hz); a stall behind it would have left none in that time
+    assert during >= 10, during
     eventually(lambda: any("busy with enable" in kv.value for a in diags for st in a.status if "wheel_front_left" in st.name
                            for kv in st.values), 3.0, "the refusal in /diagnostics")
 

@@ -7,8 +7,6 @@ import threading
 import time
 from collections.abc import Callable
 
-import pytest
-
 from can_config import RoverConfig
 from can_config.errors import CommandRejected, DriveStateError
 from motor_driver import MotorDriver, State
@@ -29,19 +27,15 @@ def test_a_rebooting_drive_blocks_neither_the_watchdog_nor_heartbeat_checks_of_a
     # worker is stuck in SDO timeouts and retries for seconds
     apply_action(sim, {"action": "sdo", "node": 1, "delay_s": 3.0})
     apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.1})
-    wait_for(lambda: a.rebooted.is_set() or not a.booted, 2.0, "A's boot-up seen")
-    time.sleep(0.3)  # A's re-configuration is under way
+    wait_for(lambda: a.rebooted.is_set() or not a.booted, 10.0, "A's boot-up seen")
     for _ in range(10):
         b.set_velocity(90.0)
-        time.sleep(0.02)
-    t_last = time.monotonic()
-    wait_for(lambda: b.watchdog_stops > 0, 2.0, "B's watchdog")
-    assert time.monotonic() - t_last == pytest.approx(0.3, abs=0.05 + 0.02)  # its configured time +-50 ms
+    # order, not time (the benchmarks time them): B's watchdog and C's loss both act while A's
+    # re-configuration is still stuck on the bus's worker
+    wait_for(lambda: b.watchdog_stops > 0, 10.0, "B's watchdog")
+    assert not a.booted
     apply_action(sim, {"action": "unplug", "node": 3})
-    t_unplug = time.monotonic()
-    wait_for(lambda: c.lost, 2.0, "C's heartbeat loss")
-    # the last heartbeat came up to one period (100 ms) before the unplug
-    assert 0.35 - 0.1 - 0.05 <= time.monotonic() - t_unplug <= 0.35 + 0.05
+    wait_for(lambda: c.lost, 10.0, "C's heartbeat loss")
     assert not a.booted  # A was still being configured all along
 
 
@@ -53,22 +47,21 @@ def test_a_command_to_a_drive_busy_enabling_is_refused_at_once(driver_factory: D
     enabling = threading.Thread(target=a.enable)
     t0 = time.monotonic()
     enabling.start()
-    time.sleep(0.2)
-    worst = 0.0
+    wait_for(lambda: a.busy == "enable", 10.0, "the enable under way")
     refused = 0
-    while enabling.is_alive() and time.monotonic() - t0 < 5:
-        start = time.perf_counter()
+    while enabling.is_alive() and refused < 30:
         try:
             a.move_to(10.0)
         except CommandRejected as err:
             assert "busy with enable" in str(err)
+            # refused at once: the enable it would have waited for is still running
+            assert enabling.is_alive() and a.busy == "enable"
             refused += 1
-        worst = max(worst, time.perf_counter() - start)
         b.move_to(float(refused % 20))  # the other drive is not held up at all
-        time.sleep(0.01)
+        a.cache.wait_until(lambda: not enabling.is_alive(), 0.01)
     enabling.join()
-    assert time.monotonic() - t0 >= 1.8 and a.state is State.OPERATION_ENABLED
-    assert refused > 50 and worst < 0.005, (refused, worst)
+    assert a.state is State.OPERATION_ENABLED
+    assert refused >= 30, refused
     a.move_to(5.0, wait=True)  # and afterwards it takes commands
 
 
@@ -86,11 +79,8 @@ def test_a_stop_preempts_a_slow_enable(driver_factory: DriverFactory) -> None:
 
     enabling = threading.Thread(target=enable)
     enabling.start()
-    time.sleep(0.3)
-    t0 = time.monotonic()
-    a.disable_voltage()  # never waits for the enable
-    assert time.monotonic() - t0 < 0.2
-    enabling.join(3.0)
+    wait_for(lambda: a.busy == "enable", 10.0, "the enable under way")
+    a.disable_voltage()  # never waits for the enable: had it waited, the enable would have succeeded
+    enabling.join(10.0)
     assert errors and "interrupted by" in str(errors[0])
-    time.sleep(1.0)
-    assert a.state is State.SWITCH_ON_DISABLED
+    wait_for(lambda: a.state is State.SWITCH_ON_DISABLED, 10.0, "switch on disabled")

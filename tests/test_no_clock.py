@@ -1,0 +1,183 @@
+"""No clock in a test (issue 40): a shared runner is slow at random, so a test checks order and
+outcome and waits on conditions; timing claims live in the benchmarks. An AST scan of tests/:
+
+- a ``time.sleep`` outside any loop stands for "long enough": a bare wait. A sleep inside a
+  ``while``/``for`` loop paces a stream or a poll whose condition is the loop's (allowed).
+- an ``assert`` that compares a measured duration (``time.monotonic()``/``time.time()``/
+  ``time.perf_counter()`` minus something, or a name assigned from one) with a constant under
+  1 s is a wall-clock bound. A deadline of a second or more only catches a hang (allowed).
+
+The scan is also run on broken snippets, so it can fail.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from .conftest import REPO
+
+CLOCKS = {"monotonic", "time", "perf_counter", "monotonic_ns", "perf_counter_ns"}
+#: Bare sleeps not yet turned into waits on a condition: known debt (docs/testing.md), listed by
+#: test function so that a new one anywhere fails this check. Shrink it; never grow it.
+ALLOWED_BARE_SLEEPS: frozenset[str] = frozenset({
+    "conftest.py::listener_factory",
+    "test_bench_manners.py::test_ctrl_c_at_any_moment_gives_one_line_and_no_traceback",
+    "test_cli_inputs.py::test_ctrl_c_during_a_step_test_stops_the_drive_without_a_traceback",
+    "test_cli_rules.py::test_replay_leaves_commands_out_unless_allowed_and_filters",
+    "test_cyclic_jobs.py::test_each_job_keeps_its_period_among_many_idle_ones_and_a_deleted_one_stops",
+    "test_cyclic_modes.py::test_csv_follows_the_stream_then_the_watchdog_stops_it",
+    "test_cyclic_modes.py::test_joint_commands_velocity_and_effort_stream_csv_and_cst",
+    "test_extended_ids.py::test_spoofed_extended_frames_change_no_state",
+    "test_faults.py::test_disconnected_client_sees_the_bus_go",
+    "test_faults.py::test_scenario_file",
+    "test_faults.py::test_sdo_delay_and_abort",
+    "test_host_loss.py::run_and_stop",
+    "test_host_loss.py::signal_and_wait",
+    "test_host_loss.py::watching",
+    "test_hostile_sdo.py::__init__",
+    "test_hostile_sdo.py::test_fuzzed_answers_never_raise_outside_the_tree",
+    "test_kernel_tier.py::test_a_candump_of_a_session_decodes_and_replays",
+    "test_kernel_tier.py::test_a_second_masters_sync_is_noticed_within_a_second_and_the_drivers_own_never",
+    "test_kernel_tier.py::test_the_interface_down_then_up_stops_commands_and_configures_again_unarmed",
+    "test_launch.py::test_the_rover_launch_names_each_node_once_and_its_parameters_answer_alike",
+    "test_lifecycle.py::test_each_transition_is_confirmed_on_the_bus",
+    "test_limits.py::test_a_single_velocity_command_is_stopped_by_the_guard",
+    "test_limits.py::test_limit_guard_is_per_drive",
+    "test_limits.py::test_streamed_positions_are_refused_beyond_a_limit",
+    "test_look_before_reset.py::test_bench_commands_beside_a_running_driver_refuse_and_its_drive_stays_enabled",
+    "test_reliability.py::test_bus_server_dies_driver_reports_reconnects_reconfigures_no_leaks",
+    "test_reliability.py::test_frame_faults_no_crash_no_wrong_state",
+    "test_reliability.py::test_random_frames_never_crash_the_driver",
+    "test_ros_interface.py::test_cmd_vel_beyond_every_limit_is_scaled_whole_and_nothing_moves_after_it_stops",
+    "test_ros_interface.py::test_home_and_move_joint_actions_give_feedback_and_cancel_stops_the_joint",
+    "test_ros_limits.py::test_inverted_joint_with_offset_in_motor_state_and_joint_states",
+    "test_ros_limits.py::test_joint_commands_velocity_never_passes_the_limit",
+    "test_ros_limits.py::test_velocity_cmd_at_full_speed_never_passes_the_limit",
+    "test_second_master.py::test_a_drive_another_master_left_enabled_is_disabled_when_configured_again",
+    "test_second_master.py::test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master",
+    "test_second_master.py::test_a_second_driver_is_noticed_refused_and_control_comes_back",
+    "test_second_master.py::test_an_nmt_command_from_a_bench_tool_marks_the_drive",
+    "test_second_master.py::test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_does_not",
+    "test_server.py::test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout",
+    "test_server.py::test_client_cap_and_slow_client_do_not_hurt_others",
+    "test_server.py::test_frames_reach_every_other_client_in_order",
+    "test_server.py::test_half_open_client_is_dropped_and_others_continue",
+    "test_server.py::test_hostile_and_idle_clients_never_starve_a_well_behaved_one",
+    "test_server.py::test_hostile_client_affects_only_itself",
+    "test_server_slots.py::test_full_slots_and_resetting_clients_do_not_end_the_accept_loop",
+    "test_server_slots.py::test_idle_hostile_connections_give_way_to_a_well_behaved_client",
+    "test_shutdown.py::test_node_leaves_drives_safe_on_signal",
+    "test_sim_cli.py::test_demo_runs_and_exits_zero",
+    "test_sim_cli.py::test_other_process_sees_heartbeats_pdos_and_reads_identity",
+    "test_sim_model.py::test_a_constant_load_is_held_by_the_servo",
+    "test_sim_pdo.py::test_sync_cyclic_every_third_sync_and_nothing_in_pre_operational",
+    "test_units_from_drive.py::test_an_eds_of_another_vendor_fails_at_boot_naming_both_ids",
+})
+
+
+def _is_call_to(node: ast.AST, names: set[str], module: str = "time") -> bool:
+    return (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in names
+            and isinstance(node.func.value, ast.Name) and node.func.value.id == module)
+
+
+def _measures_time(node: ast.AST, timed: set[str]) -> bool:
+    """An expression that is a duration measured by a clock: clock() - x, a name holding one, or
+    max/min/sum of such (the worst of many)."""
+    if isinstance(node, ast.Name):
+        return node.id in timed
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Sub):
+        return _is_call_to(node.left, CLOCKS) or _measures_time(node.left, timed)
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("max", "min", "sum"):
+        return any(_measures_time(arg, timed) for arg in node.args)
+    return False
+
+
+def _constant(node: ast.AST) -> float | None:
+    if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)) and not isinstance(node.value, bool):
+        return float(node.value)
+    return None
+
+
+class Scan(ast.NodeVisitor):
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.loops = 0
+        self.function = ""
+        self.timed: set[str] = set()
+        self.problems: list[str] = []
+
+    def _loop(self, node: ast.While | ast.For | ast.AsyncFor) -> None:
+        self.loops += 1
+        self.generic_visit(node)
+        self.loops -= 1
+
+    visit_While = visit_For = visit_AsyncFor = _loop  # noqa: N815 - ast.NodeVisitor's names
+
+    def visit_FunctionDef(self, node: ast.FunctionDef) -> None:
+        loops, self.loops = self.loops, 0  # a function defined in a loop runs when called, not per turn
+        outer, self.function = self.function, self.function or node.name
+        self.generic_visit(node)
+        self.loops, self.function = loops, outer
+
+    def visit_Assign(self, node: ast.Assign) -> None:
+        if _measures_time(node.value, self.timed):
+            self.timed |= {t.id for t in node.targets if isinstance(t, ast.Name)}
+        self.generic_visit(node)
+
+    def visit_Call(self, node: ast.Call) -> None:
+        if _is_call_to(node, {"sleep"}) and not self.loops and f"{self.name}::{self.function}" not in ALLOWED_BARE_SLEEPS:
+            self.problems.append(f"{self.name}:{node.lineno} ({self.function}): a bare time.sleep (wait for a"
+                                 " condition instead)")
+        self.generic_visit(node)
+
+    def visit_Assert(self, node: ast.Assert) -> None:
+        """An upper bound under 1 s on a measured duration (a slow runner breaks it; a lower bound,
+        "at least this late", it cannot)."""
+        for compare in (n for n in ast.walk(node.test) if isinstance(n, ast.Compare)):
+            sides = [compare.left, *compare.comparators]
+            for left, op, right in zip(sides, compare.ops, sides[1:]):
+                below = (isinstance(op, (ast.Lt, ast.LtE)) and _measures_time(left, self.timed) and _constant(right))
+                above = (isinstance(op, (ast.Gt, ast.GtE)) and _measures_time(right, self.timed) and _constant(left))
+                bound = _constant(right) if below else _constant(left) if above else None
+                if bound is not None and bound < 1.0:
+                    self.problems.append(f"{self.name}:{node.lineno}: asserts a duration under {bound:g} s"
+                                         " (a timing claim: a benchmark's, not a test's)")
+        self.generic_visit(node)
+
+
+def scan(source: str, name: str) -> list[str]:
+    visitor = Scan(name)
+    visitor.visit(ast.parse(source))
+    return visitor.problems
+
+
+def test_no_test_waits_on_a_bare_sleep_or_asserts_a_short_duration() -> None:
+    problems = [p for path in sorted((REPO / "tests").glob("*.py")) for p in scan(path.read_text(), path.name)]
+    assert problems == [], "\n".join(problems)
+
+
+def test_the_scan_finds_a_bare_sleep_and_a_clock_assert() -> None:
+    broken = ("import time\n"
+              "def test_x():\n"
+              "    start = time.monotonic()\n"
+              "    time.sleep(0.3)\n"
+              "    took = time.monotonic() - start\n"
+              "    assert took < 0.05\n"
+              "    assert time.monotonic() - start <= 0.5\n"
+              "    worst = max(0.0, time.perf_counter() - start)\n"
+              "    assert 0.005 > worst\n")
+    found = scan(broken, "broken.py")
+    assert [p.split(":", 2)[1].split(" ")[0] for p in found] == ["4", "6", "7", "9"], found
+    fine = ("import time\n"
+            "def test_y(ready):\n"
+            "    start = time.monotonic()\n"
+            "    while not ready():\n"
+            "        time.sleep(0.01)\n"
+            "    assert time.monotonic() - start < 30.0\n"
+            "    assert time.monotonic() - start >= 0.18\n")
+    assert scan(fine, "fine.py") == []
+
+
+def test_the_kernel_tier_and_every_tier_are_scanned() -> None:
+    assert Path(REPO / "tests" / "test_kernel_tier.py").is_file()
