@@ -136,7 +136,7 @@ class Scan(ast.NodeVisitor):
         "at least this late", it cannot)."""
         for compare in (n for n in ast.walk(node.test) if isinstance(n, ast.Compare)):
             sides = [compare.left, *compare.comparators]
-            for left, op, right in zip(sides, compare.ops, sides[1:]):
+            for left, op, right in zip(sides[:-1], compare.ops, sides[1:], strict=True):
                 below = (isinstance(op, (ast.Lt, ast.LtE)) and _measures_time(left, self.timed) and _constant(right))
                 above = (isinstance(op, (ast.Gt, ast.GtE)) and _measures_time(right, self.timed) and _constant(left))
                 bound = _constant(right) if below else _constant(left) if above else None

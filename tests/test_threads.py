@@ -4,7 +4,6 @@ heartbeat check, and a command to a drive busy in a long operation is answered a
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 
 from can_config import RoverConfig
@@ -45,7 +44,6 @@ def test_a_command_to_a_drive_busy_enabling_is_refused_at_once(driver_factory: D
     b.enable()
     apply_action(sim, {"action": "slow_enable", "node": 1, "delay_s": 0.7})  # enable takes about 2 s
     enabling = threading.Thread(target=a.enable)
-    t0 = time.monotonic()
     enabling.start()
     wait_for(lambda: a.busy == "enable", 10.0, "the enable under way")
     refused = 0
