@@ -1,0 +1,56 @@
+"""Interleaved A/B stack runs of two source trees on one machine (the code before and after a
+change): each round runs every shipped config on A, then on B, so that the machine's drift hits
+both alike. Prints each run and the medians as JSON lines.
+
+    python benchmarks/ab.py BEFORE_TREE AFTER_TREE [--rounds 3] [--seconds 10]
+
+Each tree is imported from itself (PYTHONPATH), the venv's other packages are shared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+FIGURES = ("cmd_latency_p50_ms", "cmd_latency_p99_ms", "cpu_core_fraction", "tpdo_loss")
+RUN = ("import json, sys; sys.path.insert(0, 'benchmarks'); from stack_run import SHIPPED, run_stack;"
+       " print('RESULT ' + json.dumps(run_stack(SHIPPED[sys.argv[1]], float(sys.argv[2]), 100.0)))")
+
+
+def stack_run(tree: Path, config: str, seconds: float) -> dict[str, float]:
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    out = subprocess.run([sys.executable, "-c", RUN, config, str(seconds)], cwd=tree, env=env, capture_output=True,
+                         text=True, timeout=600, check=True).stdout
+    result = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
+    return {key: value for key, value in result.items() if any(key.endswith(f) for f in FIGURES)}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("before", type=Path)
+    parser.add_argument("after", type=Path)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--configs", nargs="+", default=["default", "rover"])
+    args = parser.parse_args()
+    runs: dict[tuple[str, str], list[dict[str, float]]] = {}
+    for round_ in range(args.rounds):
+        for config in args.configs:
+            for label, tree in (("before", args.before), ("after", args.after)):
+                result = stack_run(tree.resolve(), config, args.seconds)
+                runs.setdefault((config, label), []).append(result)
+                print(json.dumps({"round": round_, "config": config, "code": label, **result}), flush=True)
+    for (config, label), results in sorted(runs.items()):
+        medians = {key: round(statistics.median(r[key] for r in results), 3) for key in results[0]}
+        spread = {key: [min(r[key] for r in results), max(r[key] for r in results)] for key in results[0]}
+        print(json.dumps({"config": config, "code": label, "median": medians, "range": spread}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
