@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -210,8 +211,16 @@ def resolved(path: Path) -> Path:
         raise ConfigError(f"{path}: cannot resolve the path ({err}); check its symlinks.") from err
 
 
+#: The environment variable naming the config file that ``load_config()`` reads when given no
+#: path (a rover's own file on the Orin; a simulator on another port in tests).
+CONFIG_ENV = "ROVERCAN_CONFIG"
+
+
 def load_config(path: Path | str | None = None) -> RoverConfig:
-    """Read and validate a YAML config; ``None`` loads the embedded default."""
+    """Read and validate a YAML config; ``None`` loads the file named by ``$ROVERCAN_CONFIG``
+    when it is set, else the embedded default."""
+    if path is None:
+        path = os.environ.get(CONFIG_ENV) or None
     source = Path(path) if path is not None else DEFAULT_CONFIG
     data = load_yaml(source, "config file")
     return parse_config(data, source)
@@ -235,6 +244,6 @@ def with_bus_overrides(config: RoverConfig, **kwargs: Any) -> RoverConfig:
 
 
 # the names callers imported from here before the split (can_config.config stays their door)
-__all__ = ["DEFAULT_CONFIG", "GEAR_RATIO_MAX", "GEAR_RATIO_MIN", "GENERIC_EDS", "ON_HOST_LOSS", "BusConfig", "DriveConfig",
+__all__ = ["CONFIG_ENV", "DEFAULT_CONFIG", "GEAR_RATIO_MAX", "GEAR_RATIO_MIN", "GENERIC_EDS", "ON_HOST_LOSS", "BusConfig", "DriveConfig",
            "DriveSystemConfig", "IdentityConfig", "RecorderConfig", "RoverConfig", "SdoSetting", "SimModelConfig",
            "config_to_dict", "load_config", "parse_config", "resolve_eds_path", "resolved", "with_bus_overrides"]

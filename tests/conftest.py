@@ -46,6 +46,12 @@ os.environ.setdefault("ROVERCAN_INCIDENT_DIR", tempfile.mkdtemp(prefix="rovercan
 # DDS discovery on loopback only, for every graph the suite starts (subprocesses inherit it):
 # by default Fast DDS multicasts on every interface, and the tests' traffic stays on this machine
 os.environ.setdefault(*LOCAL_DISCOVERY)
+# pytest-xdist runs modules side by side (./dev test): each worker's ROS graphs in a DDS domain
+# of their own, or one worker's /cmd_vel would reach another's driver
+if (_worker := os.environ.get("PYTEST_XDIST_WORKER", "")).startswith("gw"):
+    os.environ["ROS_DOMAIN_ID"] = str(60 + int(_worker[2:]))
+# load_config() reads $ROVERCAN_CONFIG when set: the suite's calls mean the embedded default
+os.environ.pop("ROVERCAN_CONFIG", None)
 
 
 #: The drives' host-watch consumer time in rigs built by make_config: the simulator, the driver
