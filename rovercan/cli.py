@@ -7,6 +7,7 @@ failed (message on stderr), 2 bad usage or configuration.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import re
@@ -14,6 +15,7 @@ import signal
 import sys
 import time
 from collections.abc import Sequence
+from contextlib import ExitStack
 from decimal import Decimal
 from pathlib import Path
 from typing import Any
@@ -42,52 +44,71 @@ def _setup_logging(verbose: int) -> None:
 
 
 # ---------------------------------------------------------------------------- sim
-def cmd_sim(args: argparse.Namespace) -> int:
-    if getattr(args, "bus_interface", None):  # python-can's bus arguments default to "absent"
-        return _sim_on_bus(args)
-    from virtual_can.server import DEFAULT_PORT
-    from virtual_can.service import SimService, specs_for_count, specs_from_config
-
-    port = args.port
-    steps = None
+def _sim_steps(args: argparse.Namespace) -> list[dict[str, Any]] | None:
+    """The fault steps of --scenario or --scenario-from-log, refused before anything is served."""
     if args.scenario and args.scenario_from_log:
         raise ConfigError("give --scenario or --scenario-from-log, not both")
     if args.scenario:
         from virtual_can.scenario import load_scenario
-        steps = load_scenario(args.scenario)  # a bad scenario is refused before anything is served
-    elif args.scenario_from_log:
+        return load_scenario(args.scenario)
+    if args.scenario_from_log:
         from can_config.incident import fault_steps
         steps = fault_steps(args.scenario_from_log, args.scenario_delay)
         if not steps:
             raise ConfigError(f"{args.scenario_from_log}: the incident has no drive faults to replay (no EMCY,"
                               " silence or reboot of a configured drive in its frames)")
-    if args.config:
-        config = load_config(args.config)
-        specs = specs_from_config(config)
-        if port is None:  # serve where the config's driver will look
-            port = int(config.buses[0].kwargs.get("port", DEFAULT_PORT))
-    else:
+        return steps
+    return None
+
+
+def sim_servers(args: argparse.Namespace, playing: bool) -> list[Any]:
+    """What ``rovercan sim`` serves: with --config, one server per socketcand port of its buses
+    (``virtual_can.service.served_ports``); else --drives on --channel at --port."""
+    from virtual_can.server import DEFAULT_PORT
+    from virtual_can.service import ServedPort, served_ports, specs_for_count
+
+    if not args.config:
         from can_config.config import GENERIC_EDS
         specs = specs_for_count(args.drives, Path(args.eds) if args.eds else GENERIC_EDS, args.channel)
-    with StopSignal() as stop, SimService(specs, host=args.host, port=DEFAULT_PORT if port is None else port,
-                                          wire_time=args.wire_time, bitrate=args.bitrate,
-                                          allow_remote=args.allow_remote) as sim:
-        channels = ", ".join(sim.simulators)
-        print(f"rovercan sim: {len(specs)} simulated drive(s) on {channels}, socketcand protocol on"
-              f" {sim.host}:{sim.port}", flush=True)
-        for channel in sim.simulators:
-            print(f"  python-can arguments: {sim.python_can_args(channel)}", flush=True)
+        return [ServedPort(DEFAULT_PORT if args.port is None else args.port, (args.channel,), tuple(specs))]
+    served = served_ports(load_config(args.config))
+    ports = ", ".join(str(s.port) for s in served)
+    if args.port is not None and len(served) > 1:
+        raise ConfigError(f"--port {args.port}: {args.config} has buses on ports {ports}; each is served at its"
+                          " own: drop --port")
+    if playing and len(served) > 1:
+        raise ConfigError(f"{args.config}: a scenario plays on one server, and its buses use ports {ports};"
+                          " serve one port's buses per `rovercan sim`")
+    return [dataclasses.replace(served[0], port=args.port)] if args.port is not None else served
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    if getattr(args, "bus_interface", None):  # python-can's bus arguments default to "absent"
+        return _sim_on_bus(args)
+    from virtual_can.service import SimService
+
+    steps = _sim_steps(args)
+    served = sim_servers(args, steps is not None)
+    with StopSignal() as stop, ExitStack() as stack:
+        sims = [stack.enter_context(SimService(s.specs, host=args.host, port=s.port, extra_channels=s.channels,
+                                               wire_time=args.wire_time, bitrate=args.bitrate,
+                                               allow_remote=args.allow_remote)) for s in served]
+        for sim in sims:
+            print(f"rovercan sim: {sum(len(x.drives) for x in sim.simulators.values())} simulated drive(s) on"
+                  f" {', '.join(sim.simulators)}, socketcand protocol on {sim.host}:{sim.port}", flush=True)
+            for channel in sim.simulators:
+                print(f"  python-can arguments: {sim.python_can_args(channel)}", flush=True)
         if steps is not None:
             from virtual_can.scenario import run_steps_in_background
             print(f"rovercan sim: playing {len(steps)} fault step(s) of"
                   f" {args.scenario or args.scenario_from_log}", flush=True)
-            run_steps_in_background(sim, steps, stop.event)
+            run_steps_in_background(sims[0], steps, stop.event)
         heap.settle()  # the drives' object dictionaries live as long as the server: out of the collector's walks
         next_status = time.monotonic() + args.status_period if args.status_period else None
         while not stop.event.wait(0.2):
             if next_status is not None and time.monotonic() >= next_status:
                 next_status += args.status_period
-                for simulator in sim.simulators.values():
+                for simulator in (x for sim in sims for x in sim.simulators.values()):
                     for drive in simulator.drives.values():
                         print(simulator.call(drive.status_line), flush=True)
         print("rovercan sim: stopped", flush=True)

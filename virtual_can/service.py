@@ -15,6 +15,7 @@ from pathlib import Path
 
 from can_config import RoverConfig, load_drive_od
 from can_config.config import GENERIC_EDS, SimModelConfig
+from can_config.errors import ConfigError
 from virtual_can.bus import VirtualBus
 from virtual_can.engine import BusEngine
 from virtual_can.server import DEFAULT_HOST, DEFAULT_PORT, SocketcandServer
@@ -43,6 +44,35 @@ def specs_from_config(config: RoverConfig) -> list[SimDriveSpec]:
     """The simulator as a twin of the rover: one drive per configured drive, on its bus's channel."""
     return [SimDriveSpec(d.node_id, d.eds, config.bus(d.bus).channel, d.name, d.counts_per_rev, d.sim)
             for d in config.drives]
+
+
+@dataclass(frozen=True)
+class ServedPort:
+    """One socketcand server of a config's twin: its TCP port, the channels (the buses of the
+    config that name this port) and their simulated drives."""
+
+    port: int
+    channels: tuple[str, ...]
+    specs: tuple[SimDriveSpec, ...]
+
+
+def served_ports(config: RoverConfig) -> list[ServedPort]:
+    """The servers a twin of ``config`` needs: one per distinct socketcand port of its buses (a
+    bus without one is served on the default port), each with its buses' channels and drives."""
+    specs = specs_from_config(config)
+    by_port: dict[int, list[str]] = {}
+    for bus in config.buses:
+        port = int(bus.kwargs.get("port", DEFAULT_PORT))
+        if bus.channel in by_port.setdefault(port, []):
+            raise ConfigError(f"{config.source or 'config'}: two buses on port {port} share channel {bus.channel!r};"
+                              " give each bus of one port a channel of its own")
+        by_port[port].append(bus.channel)
+    served = []
+    for port, channels in by_port.items():
+        mine = tuple(s for s, d in zip(specs, config.drives, strict=True)
+                     if int(config.bus(d.bus).kwargs.get("port", DEFAULT_PORT)) == port)
+        served.append(ServedPort(port, tuple(channels), mine))
+    return served
 
 
 def specs_for_count(n: int, eds: Path = GENERIC_EDS, channel: str = "can0") -> list[SimDriveSpec]:

@@ -31,6 +31,7 @@ from rovercan.bench.common import (
     add_bus_args,
     add_drive_args,
     add_json,
+    config_bus,
     emit,
     one_drive_config,
     open_bus,
@@ -48,20 +49,25 @@ logger = logging.getLogger(__name__)
 
 
 # ------------------------------------------------------------------------------ safety-check
-def safety_configs(args: argparse.Namespace) -> RoverConfig:
-    """The drives to check: every drive of --config (on its first bus), or --node N ... with --eds."""
+def safety_configs(args: argparse.Namespace) -> list[RoverConfig]:
+    """The drives to check, one config per bus: every drive of --config on each of its buses (or
+    on the one -c names), or --node N ... with --eds on the bus given."""
     if args.config:
         config = load_config(args.config)
-        bus = config.buses[0]
-        drives = tuple(d for d in config.drives if d.bus == bus.name and (not args.node or d.node_id in args.node))
-        if not drives:
-            raise ConfigError(f"{args.config}: no drive on bus {bus.name!r}"
+        buses = [config_bus(args, config)] if getattr(args, "channel", None) else list(config.buses)
+        out = []
+        for bus in buses:
+            drives = tuple(d for d in config.drives if d.bus == bus.name and (not args.node or d.node_id in args.node))
+            if drives:
+                out.append(RoverConfig((bus,), drives, None, config.source))
+        if not out:
+            raise ConfigError(f"{args.config}: no drive on bus {' or '.join(b.name for b in buses)}"
                               f"{' with node id ' + str(args.node) if args.node else ''}")
-        return RoverConfig((bus,), drives, None, config.source)
+        return out
     if not args.node:
         raise ConfigError("safety-check: give --config FILE, or --eds FILE with --node N (repeatable)")
-    configs = [one_drive_config(args, node) for node in args.node]
-    return RoverConfig(configs[0].buses, tuple(c.drives[0] for c in configs), None, None)
+    configs = [one_drive_config(args, str(node)) for node in args.node]
+    return [RoverConfig(configs[0].buses, tuple(c.drives[0] for c in configs), None, None)]
 
 
 def _host_heartbeat(bus: can.BusABC, bus_cfg: BusConfig, listen_s: float) -> SafetyCheck:
@@ -108,12 +114,27 @@ def _drive_safety_rows(network: canopen.Network, cfg: DriveConfig, bus_cfg: BusC
 
 def cmd_safety_check(args: argparse.Namespace) -> int:
     """Read back from each drive what keeps it safe when the host is gone; judge it by the
-    driver's own rules (motor_driver.safety); and look for the host heartbeat on the bus."""
+    driver's own rules (motor_driver.safety); and look for the host heartbeat on each bus."""
     if args.listen is not None and not (math.isfinite(args.listen) and 0 < args.listen <= 60):
         raise ConfigError(f"--listen {args.listen}: allowed 0 < seconds <= 60")
-    config = safety_configs(args)
+    failed: list[dict[str, Any]] = []
+    for config in safety_configs(args):
+        bus_cfg = config.buses[0]
+        args.config_bus = bus_cfg.name if args.config else None
+        rows = _safety_rows(args, config, args.listen or max(0.3, 4 * bus_cfg.host_heartbeat_s))
+        emit(args, rows, f"safety check ({bus_cfg.name})", ["node", "drive", "check", "object", "expected", "actual",
+                                                             "status"])
+        failed += [r for r in rows if r["status"] == "FAIL"]
+    if failed:
+        names = ", ".join(f"{r['drive']} {r['check']} ({r['object']})" for r in failed)
+        print(f"rovercan: safety check failed: {names}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _safety_rows(args: argparse.Namespace, config: RoverConfig, listen_s: float) -> list[dict[str, Any]]:
+    """The host heartbeat and every drive's rows of one bus."""
     bus_cfg = config.buses[0]
-    listen_s = args.listen or max(0.3, 4 * bus_cfg.host_heartbeat_s)
     bus = open_bus(args)
     rows: list[dict[str, Any]] = []
     try:
@@ -130,13 +151,7 @@ def cmd_safety_check(args: argparse.Namespace) -> int:
                 network.notifier.stop(1.0)
     finally:
         bus.shutdown()
-    emit(args, rows, f"safety check ({bus_cfg.name})", ["node", "drive", "check", "object", "expected", "actual", "status"])
-    failed = [r for r in rows if r["status"] == "FAIL"]
-    if failed:
-        names = ", ".join(f"{r['drive']} {r['check']} ({r['object']})" for r in failed)
-        print(f"rovercan: safety check failed: {names}", file=sys.stderr)
-        return 1
-    return 0
+    return rows
 
 
 # ------------------------------------------------------------------------------ plan / can-up
@@ -254,7 +269,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     """The checks commands' parsers."""
     p = sub.add_parser("safety-check", help="read back what stops each drive when the host is gone; pass/fail")
     p.add_argument("--node", type=whole(1, 127), action="append", help="node id (repeatable; default:"
-                   " every drive of --config on its first bus)")
+                   " every drive of --config, on each of its buses or on the one -c names)")
     add_drive_args(p)
     add_bus_args(p)
     p.add_argument("--listen", type=real(0.05, 600), help="seconds to watch for the host heartbeat (default 4 periods)")

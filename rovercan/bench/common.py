@@ -21,7 +21,7 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config import RoverConfig, load_config, load_od, parse_config
-from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN
+from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN, BusConfig, DriveConfig
 from can_config.errors import BusLostError, ConfigError, RovercanError, SdoError, SdoTimeoutError
 from can_config.objects import sdo_abort_text
 from motor_driver.adapters import connection_closed
@@ -55,8 +55,16 @@ def connect_timeout(args: argparse.Namespace) -> float:
     return float(getattr(args, "timeout", CLI_CONNECT_TIMEOUT_S))
 
 
+CONFIG_HELP = ("the rover config: its drives by name or node id, their buses (-c BUS picks one), units and"
+               " settings")
+
+
+def add_config_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help=CONFIG_HELP)
+
+
 def add_drive_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", help="the rover config (bus, drives, units)")
+    add_config_arg(parser)
     parser.add_argument("--eds", help="EDS of a drive on its own (default: the generic CiA 402 EDS)")
     parser.add_argument("--counts-per-rev", type=whole(1, 2**31 - 1), help="encoder counts per motor revolution")
     parser.add_argument("--gear-ratio", type=real(GEAR_RATIO_MIN, GEAR_RATIO_MAX), default=1.0,
@@ -71,10 +79,61 @@ NO_BUS = ("no bus given: pass -i INTERFACE -c CHANNEL (e.g. -i socketcan -c can0
           " --bus-kwargs host=127.0.0.1 port=29536) or --config FILE")
 
 
+def config_bus(args: argparse.Namespace, config: RoverConfig) -> BusConfig:
+    """The bus of --config a command works on: the bus of the drive it names (resolve_drive),
+    else the one -c/--channel names (a bus name or channel of the config), else the first."""
+    chosen = getattr(args, "config_bus", None)
+    if chosen:
+        return config.bus(chosen)
+    wanted = getattr(args, "channel", None)
+    if not wanted:
+        return config.buses[0]
+    matching = [b for b in config.buses if wanted in (b.name, b.channel)]
+    if not matching:
+        raise ConfigError(f"{args.config}: no bus named {wanted!r} or on channel {wanted!r}; buses:"
+                          f" {', '.join(f'{b.name} (channel {b.channel})' for b in config.buses)}")
+    return matching[0]
+
+
+def resolve_drive(args: argparse.Namespace, spec: str) -> tuple[int, DriveConfig | None]:
+    """The drive a bench command works on: ``spec`` is a node id, or with --config a drive name
+    or a node id; -c/--channel picks among the config's buses (each bus has its own node ids).
+    Every setting then comes from the drive named. Records its bus for :func:`open_bus`."""
+    config_path = getattr(args, "config", None)
+    if not config_path:
+        return parse_node(spec), None
+    config = load_config(config_path)
+    wanted = getattr(args, "channel", None)
+    on_bus = [d for d in config.drives if not wanted or wanted in (config.bus(d.bus).name, config.bus(d.bus).channel)]
+    by_name = {d.name: d for d in config.drives}
+    listing = ", ".join(f"{d.name} (node {d.node_id} on {d.bus})" for d in config.drives)
+    if spec in by_name:
+        drive = by_name[spec]
+        if drive not in on_bus:
+            raise ConfigError(f"{config_path}: drive {spec} is on bus {drive.bus}, not {wanted}; drop -c or name"
+                              " a drive of that bus")
+    else:
+        try:
+            node_id = parse_node(spec)
+        except ConfigError:
+            raise ConfigError(f"{spec!r}: neither a drive of {config_path} nor a node id 1..127; drives: {listing}") from None
+        found = [d for d in on_bus if d.node_id == node_id]
+        where = f" on bus {wanted}" if wanted else ""
+        if not found:
+            raise ConfigError(f"{config_path}: no drive with node id {node_id}{where}; drives: {listing}")
+        if len(found) > 1:
+            raise ConfigError(f"{config_path}: node id {node_id} is on several buses ("
+                              f"{', '.join(f'{d.name} on {d.bus}' for d in found)}): name the drive, or the bus"
+                              " with -c BUS")
+        drive = found[0]
+    args.config_bus = drive.bus
+    return drive.node_id, drive
+
+
 def open_bus(args: argparse.Namespace) -> can.BusABC:
     if getattr(args, "interface", None) is None and getattr(args, "config", None):
         config = load_config(args.config)
-        return driver_open_bus(config.buses[0].bus_kwargs(), connect_timeout(args))
+        return driver_open_bus(config_bus(args, config).bus_kwargs(), connect_timeout(args))
     if getattr(args, "interface", None) is None:
         raise ConfigError(NO_BUS)
     tuned: dict[str, Any] = {"tcp_tune": True} if args.interface == "socketcand" else {}  # --bus-kwargs overrides
@@ -104,7 +163,7 @@ def parse_node(text: str) -> int:
     try:
         node = int(text, 0)
     except ValueError:
-        raise ConfigError(f"node {text!r}: expected a node id 1..127") from None
+        raise ConfigError(f"node {text!r}: expected a node id 1..127 (or a drive's name, with --config FILE)") from None
     if not 1 <= node <= 127:
         raise ConfigError(f"node {node}: CANopen node ids are 1..127")
     return node
@@ -147,13 +206,16 @@ def emit(args: argparse.Namespace, data: Any, title: str, columns: list[str] | N
 
 
 @contextmanager
-def remote_node(args: argparse.Namespace, node_id: int) -> Iterator[tuple[canopen.RemoteNode, can.BusABC]]:
+def remote_node(args: argparse.Namespace, node_id: int, drive: DriveConfig | None = None,
+                ) -> Iterator[tuple[canopen.RemoteNode, can.BusABC]]:
+    """A canopen node of ``node_id`` on the command's bus, with the EDS of ``drive`` (of --config)
+    or of --eds, else an empty dictionary."""
     bus = open_bus(args)
     network = canopen.Network(bus)
     network.NOTIFIER_CYCLE = 0.1  # so stopping it is quick and precedes the bus shutdown
     network.connect()
     try:
-        eds = getattr(args, "eds", None)
+        eds = drive.eds if drive is not None else getattr(args, "eds", None)
         od: ObjectDictionary | str = load_od(eds, node_id) if eds else ObjectDictionary()
         node = canopen.RemoteNode(node_id, od)
         node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
@@ -265,7 +327,7 @@ def refuse_beside_a_master(args: argparse.Namespace, bus: can.BusABC, node_ids: 
 
     host_id, period = 127, 0.05
     if getattr(args, "config", None):
-        bus_cfg = load_config(args.config).buses[0]
+        bus_cfg = config_bus(args, load_config(args.config))
         host_id, period = bus_cfg.host_node_id, bus_cfg.host_heartbeat_s
     evidence = look_for_master(bus, host_id, node_ids, look_window_s(period))
     if evidence and not getattr(args, "force", False):
@@ -275,16 +337,14 @@ def refuse_beside_a_master(args: argparse.Namespace, bus: can.BusABC, node_ids: 
 
 
 # ------------------------------------------------------------------------------ drive commands
-def one_drive_config(args: argparse.Namespace, node_id: int) -> RoverConfig:
-    """A config with the one drive at ``node_id``: from --config, or built from --eds and units."""
-    if args.config:
+def one_drive_config(args: argparse.Namespace, spec: str) -> RoverConfig:
+    """A config with the one drive ``spec`` names (resolve_drive): from --config, or built from
+    --eds and units."""
+    node_id, found = resolve_drive(args, spec)
+    if found is not None:
         config = load_config(args.config)
-        drives = [d for d in config.drives if d.node_id == node_id]
-        if not drives:
-            raise ConfigError(f"{args.config}: no drive with node id {node_id}; drives:"
-                              f" {[(d.name, d.node_id) for d in config.drives]}")
-        bus = dataclasses.replace(config.bus(drives[0].bus), connect_timeout_s=connect_timeout(args))
-        drive = drives[0]
+        bus = dataclasses.replace(config.bus(found.bus), connect_timeout_s=connect_timeout(args))
+        drive = found
         if getattr(args, "allow_no_host_watch", False):
             drive = dataclasses.replace(drive, allow_no_host_watch=True)
         return RoverConfig((bus,), (drive,), None, config.source)
@@ -297,10 +357,11 @@ def one_drive_config(args: argparse.Namespace, node_id: int) -> RoverConfig:
 
 
 @contextmanager
-def bench_driver(args: argparse.Namespace, node_id: int) -> Iterator[Any]:
+def bench_driver(args: argparse.Namespace, spec: str) -> Iterator[Any]:
+    """A driver of the one drive ``spec`` names (a node id, or a drive of --config)."""
     from motor_driver import MotorDriver
 
-    config = one_drive_config(args, node_id)
+    config = one_drive_config(args, spec)
     bus = open_bus(args) if getattr(args, "interface", None) else None
     driver = MotorDriver(config, {config.buses[0].name: bus} if bus is not None else None)
     try:

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 from can_config.errors import CommandRejected, ConfigError
 from can_config.objects import SUPPORTED_MODE_BIT, OperationMode
 from rovercan.argtypes import real
-from rovercan.bench.common import CliError, add_bus_args, add_drive_args, add_json, add_master_flags, bench_driver, emit, parse_node
+from rovercan.bench.common import CliError, add_bus_args, add_drive_args, add_json, add_master_flags, bench_driver, emit
 
 if TYPE_CHECKING:
     from motor_driver.drive import Drive, DriveState
@@ -28,8 +28,8 @@ logger = logging.getLogger(__name__)
 
 
 def cmd_drive(args: argparse.Namespace) -> int:
-    node_id = parse_node(args.node)
-    with bench_driver(args, node_id) as drive:
+    with bench_driver(args, args.node) as drive:
+        node_id = drive.node_id
         if args.action == "fault-reset":
             drive.recover()
         elif args.action == "disable":
@@ -145,8 +145,8 @@ def stream_to(drive: Drive, target_deg: float, speed_deg_s: float | None = None,
 
 
 def cmd_move(args: argparse.Namespace) -> int:
-    node_id = parse_node(args.node)
-    with bench_driver(args, node_id) as drive:
+    with bench_driver(args, args.node) as drive:
+        node_id = drive.node_id
         if args.speed is not None and not 0 < args.speed <= drive.config.max_velocity_deg_s:
             raise ConfigError(f"--speed {args.speed:g} deg/s: allowed 0 < speed <= {drive.config.max_velocity_deg_s:g}"
                               " (max_velocity_deg_s)")
@@ -205,8 +205,8 @@ def stream_jog(drive: Drive, velocity: float, seconds: float) -> DriveState:
 
 
 def cmd_jog(args: argparse.Namespace) -> int:
-    node_id = parse_node(args.node)
-    with bench_driver(args, node_id) as drive:
+    with bench_driver(args, args.node) as drive:
+        node_id = drive.node_id
         drive.enable()
         if not has_profile_velocity(drive):  # a position-only drive: a streamed ramp
             peak = stream_jog(drive, args.velocity, args.seconds)
@@ -279,8 +279,8 @@ def _plot_step(png: Path, node_id: int, step: float, metrics: dict[str, Any], ts
 
 
 def cmd_step_test(args: argparse.Namespace) -> int:
-    node_id = parse_node(args.node)
-    with bench_driver(args, node_id) as drive:
+    with bench_driver(args, args.node) as drive:
+        node_id = drive.node_id
         if drive.config.is_continuous and abs(args.step) >= 180:
             raise ConfigError(f"--step {args.step:g}: a continuous joint moves the short way, so a step test"
                               " needs |step| < 180 deg")

@@ -30,15 +30,16 @@ from rovercan.bench.common import (
     _u32,
     _untyped,
     add_bus_args,
+    add_config_arg,
     add_json,
     add_master_flags,
     emit,
     open_bus,
     parse_index,
-    parse_node,
     receive,
     refuse_beside_a_master,
     remote_node,
+    resolve_drive,
     sdo_download,
     sdo_upload,
 )
@@ -101,8 +102,8 @@ def _state_name(value: int) -> str:
 
 # ------------------------------------------------------------------------------ info
 def cmd_info(args: argparse.Namespace) -> int:
-    node_id = parse_node(args.node)
-    with remote_node(args, node_id) as (node, _):
+    node_id, drive = resolve_drive(args, args.node)
+    with remote_node(args, node_id, drive) as (node, _):
         od = node.object_dictionary if len(node.object_dictionary) else load_od(GENERIC_EDS, node_id)
         info: dict[str, Any] = {"node": node_id, "device_type": f"0x{_u32(sdo_upload(node, OD.DEVICE_TYPE, 0)):08X}"}
         for sub, key in ((1, "vendor_id"), (2, "product_code"), (3, "revision"), (4, "serial")):
@@ -185,9 +186,9 @@ STRUCT_NAMES = {"<b": "INTEGER8", "<B": "UNSIGNED8", "<h": "INTEGER16", "<H": "U
 
 
 def cmd_sdo(args: argparse.Namespace) -> int:
-    node_id = parse_node(args.node)
+    node_id, drive = resolve_drive(args, args.node)
     index, sub = parse_index(args.index)
-    with remote_node(args, node_id) as (node, _):
+    with remote_node(args, node_id, drive) as (node, _):
         # without --eds/--config the standard objects of CiA 301/402 are still known: the
         # project's generic CiA 402 EDS lists them with their names and types
         od = node.object_dictionary if len(node.object_dictionary) else load_od(GENERIC_EDS, node_id)
@@ -251,8 +252,8 @@ SAVE_WHAT = {1: "all parameters", 2: "communication parameters", 3: "application
 
 def cmd_save(args: argparse.Namespace) -> int:
     """0x1010:SUB = "save": the drive keeps its current parameters over resets and power cycles."""
-    node_id = parse_node(args.node)
-    with remote_node(args, node_id) as (node, _):
+    node_id, drive = resolve_drive(args, args.node)
+    with remote_node(args, node_id, drive) as (node, _):
         started = time.monotonic()
         sdo_download(node, OD.STORE_PARAMETERS, args.sub, b"save", SAVE_TIMEOUT_S, f"the save (0x1010:{args.sub})")
         took = time.monotonic() - started
@@ -268,7 +269,7 @@ NMT_CONFIRM_S = 1.5
 
 
 def cmd_nmt(args: argparse.Namespace) -> int:
-    node_id = 0 if args.node == "all" else parse_node(args.node)
+    node_id = 0 if args.node == "all" else resolve_drive(args, args.node)[0]
     command = NMT_COMMANDS[args.action]
     bus = open_bus(args)
     try:
@@ -296,6 +297,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p = sub.add_parser("scan", help="find CANopen nodes: heartbeats and an SDO probe of 0x1000/0x1018 over ids 1-127")
     add_bus_args(p)
     p.add_argument("--listen", type=real(0.05, 600), default=1.2, help="seconds to collect answers and heartbeats")
+    add_config_arg(p)
     add_json(p)
     p.set_defaults(func=cmd_scan)
 
@@ -303,6 +305,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("node")
     add_bus_args(p)
     p.add_argument("--eds", help="EDS for object names")
+    add_config_arg(p)
     add_json(p)
     p.set_defaults(func=cmd_info)
 
@@ -315,6 +318,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--force", action="store_true", help="write an object the driver protects (bench only; logged)")
     add_bus_args(p)
     p.add_argument("--eds", help="EDS for the object's type and name")
+    add_config_arg(p)
     add_json(p)
     p.set_defaults(func=cmd_sdo)
 
@@ -323,13 +327,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--sub", type=whole(1, 4), default=1,
                    help="1 all (default), 2 communication, 3 application, 4 manufacturer parameters")
     add_bus_args(p)
+    add_config_arg(p)
     add_json(p)
     p.set_defaults(func=cmd_save)
 
     p = sub.add_parser("nmt", help="NMT command to a node or all nodes")
     p.add_argument("action", choices=tuple(NMT_COMMANDS))
-    p.add_argument("node", help="node id or 'all'")
+    p.add_argument("node", help="node id, a drive's name (with --config) or 'all'")
     add_bus_args(p)
+    add_config_arg(p)
     add_master_flags(p)
     add_json(p)
     p.set_defaults(func=cmd_nmt)
