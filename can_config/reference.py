@@ -41,6 +41,12 @@ def _num(value: float) -> str:
     return f"{int(value):,}" if float(value).is_integer() and abs(value) < 1e15 else f"{value:g}"
 
 
+def yaml_number(value: float) -> str:
+    """A default as a YAML number that reads back as itself when copied into a config (no
+    thousands separators: ``1,000`` would be a text)."""
+    return str(int(value)) if float(value).is_integer() and abs(value) < 1e15 else f"{value:g}"
+
+
 def _default(field: Field) -> str:
     if field.default is REQUIRED:
         return "required"
@@ -50,7 +56,7 @@ def _default(field: Field) -> str:
     if isinstance(value, bool):
         return str(value).lower()
     if isinstance(value, (int, float)):
-        return _num(value)
+        return yaml_number(value)
     if value in ({}, []):
         return "none"
     return f"`{value}`" if value != "" else '`""`'

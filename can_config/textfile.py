@@ -4,6 +4,7 @@ with ``node_id: 1`` and then ``node_id: 2`` would drive node 2)."""
 
 from __future__ import annotations
 
+import re
 import stat
 from pathlib import Path
 from typing import Any
@@ -64,7 +65,14 @@ def read_text_file(path: Path, what: str, hint: str = "give the YAML file", max_
 
 
 class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses a key given twice in one mapping."""
+    """SafeLoader that refuses a key given twice in one mapping, and reads every number in
+    exponent notation (``2e-4``, ``1e3``, ``-5E+2``, ``1.5e3``) as a float, as YAML 1.2 does
+    (PyYAML follows YAML 1.1, where those are strings)."""
+
+
+#: YAML 1.2's floats with an exponent that YAML 1.1 lacks (no dot, or an unsigned exponent).
+EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$")
+_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", EXPONENT_FLOAT, list("-+.0123456789"))
 
 
 def _mapping_without_duplicates(loader: _StrictLoader, node: yaml.MappingNode) -> dict[Any, Any]:
