@@ -21,6 +21,20 @@ from nodes.qos import COMMAND_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, state_qos
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
 
 
+def not_armed(blocked: list[Drive]) -> str:
+    """Why the wheels in ``blocked`` cannot be driven, and how to arm them."""
+    first = blocked[0].snapshot()
+    if first.lost:
+        why = f"wheel {blocked[0].name} is lost (no heartbeat)"
+    elif first.state.name == "OPERATION_ENABLED":
+        why = f"wheel {blocked[0].name} is not armed by this driver (the drive says OPERATION_ENABLED)"
+    else:
+        why = f"wheel {blocked[0].name} is {first.state.name}"
+    others = f" (and {len(blocked) - 1} more)" if len(blocked) > 1 else ""
+    return (f"{why}{others}; arm the rover with the service /arm (std_srvs/Trigger), or launch with"
+            " arm:=true")
+
+
 class DriveSystemNode(Node):
     """/cmd_vel -> skid-steer wheel velocities (ramped, stale commands stop), /odom from wheel feedback.
 
@@ -74,9 +88,7 @@ class DriveSystemNode(Node):
                 # all or none: a turn driven by one side only is worse than no motion
                 blocked = [d for d in self.wheels if not d.snapshot().enabled]
                 if blocked:
-                    state = blocked[0].snapshot()
-                    self._halt(f"/cmd_vel not applied: wheel {blocked[0].name} is"
-                               f" {'lost' if state.lost else state.state.name}; no wheel is driven")
+                    self._halt(f"/cmd_vel not applied: {not_armed(blocked)}; no wheel is driven")
                     self._publish_odom(dt)
                     return
                 self.active = True

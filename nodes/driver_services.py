@@ -1,8 +1,9 @@
 """The driver's services as two nodes, each on an executor thread of its own: the stops
-(``quick_stop``, ``disable``, ``halt``), which answer at once whatever else runs, and the rest
-(``enable``, ``recover``, ``home``, ``set_mode``, SDO read and write), which block for up to
-seconds. A slow service never delays a topic, and never a stop: a stop preempts the operation
-it interrupts in the driver (the command channel) and must not queue behind it in ROS either.
+(``quick_stop``, ``disable``, ``halt`` per drive, ``disarm`` for the whole rover), which answer
+at once whatever else runs, and the rest (``enable``, ``recover``, ``home``, ``set_mode``, SDO
+read and write per drive, ``arm`` for the whole rover), which block for up to seconds. A slow
+service never delays a topic, and never a stop: a stop preempts the operation it interrupts in
+the driver (the command channel) and must not queue behind it in ROS either.
 """
 
 from __future__ import annotations
@@ -36,9 +37,36 @@ def trigger(driver: MotorDriver, joint: str, service: str, action: Callable[[], 
     return call
 
 
+def every_drive(driver: MotorDriver, service: str, action: Callable[[Drive], object]) -> Callable[[Any, Any], Any]:
+    """A std_srvs/Trigger callback that runs ``action`` on every drive, each whatever the others
+    did, and says which failed (success only when none did)."""
+    def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        failed = []
+        for drive in driver:
+            try:
+                action(drive)
+            except RovercanError as err:
+                failed.append(str(err))
+            except Exception as err:
+                failed.append(f"{drive.name}: {service} failed unexpectedly: {err!r}")
+        states = ", ".join(f"{d.name} {d.state.name}" for d in driver)
+        response.success = not failed
+        response.message = (f"{service}: {'; '.join(failed)}; now {states}" if failed
+                            else f"{service} done: {states}")
+        return response
+    return call
+
+
+def disarm(drive: Drive) -> None:
+    """Quick stop (the drive decelerates on its own ramp), then disable: no torque."""
+    drive.quick_stop()
+    drive.disable()
+
+
 class DriverStopsNode(Node):
-    """The per-drive stops (``quick_stop``, ``disable``, ``halt``), in a node of their own on an
-    executor thread of their own (see main): nothing but another stop is ever ahead of one."""
+    """The per-drive stops (``quick_stop``, ``disable``, ``halt``) and ``disarm`` (every drive
+    quick-stopped, then disabled), in a node of their own on an executor thread of their own
+    (see main): nothing but another stop is ever ahead of one."""
 
     def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
         super().__init__("rovercan_driver_stops", **kwargs)
@@ -47,6 +75,7 @@ class DriverStopsNode(Node):
             for service, action in (("quick_stop", drive.quick_stop), ("disable", drive.disable),
                                     ("halt", drive.halt)):
                 self.create_service(Trigger, f"{base}/{service}", trigger(driver, name, service, action))
+        self.create_service(Trigger, "disarm", every_drive(driver, "disarm", disarm))
 
 
 class DriverServicesNode(Node):
@@ -57,6 +86,7 @@ class DriverServicesNode(Node):
     def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
         super().__init__("rovercan_driver_services", **kwargs)
         self.driver = driver
+        self.create_service(Trigger, "arm", every_drive(driver, "arm", lambda drive: drive.enable()))
         for name, drive in driver.drives.items():
             base = drive.config.ros_prefix
             for service, action in (("enable", drive.enable), ("recover", drive.recover), ("home", drive.home)):

@@ -374,7 +374,8 @@ def test_a_wheel_that_cannot_follow_stops_the_whole_drive_system(graph: Graph) -
     apply_action(graph.sim, {"action": "fault", "node": 2, "code": 0x2310})  # wheel_middle_left (can0)
     drive_for(1.5)  # /cmd_vel still fresh, but one wheel is in FAULT: none is driven
     assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
-    assert any("wheel wheel_middle_left is FAULT; no wheel is driven" in st.message for a in diags for st in a.status)
+    assert any("wheel wheel_middle_left is FAULT; arm the rover with the service /arm" in st.message
+               and st.message.endswith("; no wheel is driven") for a in diags for st in a.status)
     graph.driver.drive("wheel_middle_left").recover()
     graph.driver.drive("wheel_middle_left").enable()
     # recovered, but no fresh /cmd_vel: nothing moves, not even briefly. The /cmd_vel refused

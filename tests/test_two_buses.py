@@ -13,9 +13,11 @@ documented keys only: the left wheels on can0, the right wheels on can1, mounted
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,11 +25,13 @@ from pathlib import Path
 import pytest
 import yaml
 
-from .conftest import REPO
+from .conftest import REPO, requires_ros, wait_for
 from .test_sim_cli import free_port
 
 SIDES = {"can0": ("left", False), "can1": ("right", True)}
 WHEEL = {"counts_per_rev": 4096, "gear_ratio": 50.0, "max_velocity_deg_s": 720}
+ROVER_LAUNCH = REPO / "ros" / "rovercan_bringup" / "launch" / "rover_launch.xml"
+HANG_S = 90.0  # catches a hang only: three Python processes start on two busy cores
 
 
 def six_wheels(port0: int, port1: int) -> dict[str, object]:
@@ -131,3 +135,84 @@ def _json_rows(text: str) -> list[dict[str, object]]:
         value, at = decoder.raw_decode(text, at)
         rows += value
     return rows
+
+
+@requires_ros
+def test_a_rover_from_the_documented_keys_is_checked_served_launched_armed_and_driven(tmp_path: Path) -> None:
+    """The whole path a newcomer follows: a six-wheel two-bus config from the documented keys,
+    `rovercan check`, the rover launch with its simulator twin (both ports served), the one arm
+    service, then /cmd_vel forward: /odom moves, every joint turns forward, and on the bus each
+    left motor turned forward and each (inverted) right motor backwards."""
+    import rclpy
+    from geometry_msgs.msg import Twist
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    from nodes.runtime import SpinThread
+
+    rover = Rover(tmp_path / "six_wheels.yaml", {"can0": free_port(), "can1": free_port()})
+    rover.config.write_text(yaml.safe_dump(six_wheels(rover.ports["can0"], rover.ports["can1"])))
+    check = rovercan("check", "--config", str(rover.config))
+    assert check.returncode == 0, check.stderr
+    launch = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(ROVER_LAUNCH), f"config:={rover.config}",
+                               "sim:=true", "--duration", "300"], cwd=REPO, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("two_bus_newcomer", context=context)
+    odom: list[float] = []
+    joints: dict[str, float] = {}
+    node.create_subscription(Odometry, "/odom", lambda m: odom.append(m.pose.pose.position.x), qos_profile_sensor_data)
+    node.create_subscription(JointState, "/joint_states", lambda m: joints.update(zip(m.name, m.position, strict=False)),
+                             qos_profile_sensor_data)
+    cmd_vel = node.create_publisher(Twist, "/cmd_vel", 10)
+    arm = node.create_client(Trigger, "/arm")
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    spin = SpinThread(executor, "two-bus-probe")
+    out = ""
+    try:
+        assert arm.wait_for_service(timeout_sec=HANG_S), "no /arm service from the launched rover"
+        before = {(ch, n): position(rover, ch, n) for ch in ("can0", "can1") for n in (1, 2, 3)}
+        armed = arm.call_async(Trigger.Request())
+        wait_for(armed.done, HANG_S, "/arm answered")
+        assert armed.result().success, armed.result().message
+        wait_for(lambda: cmd_vel.get_subscription_count() > 0 and bool(odom) and len(joints) == 6, HANG_S,
+                 "/cmd_vel matched, /odom and /joint_states heard")
+        start_x, start_joints = odom[-1], dict(joints)
+        forward = Twist()
+        forward.linear.x = 0.2
+        deadline = time.monotonic() + HANG_S
+        while not (odom[-1] - start_x > 0.05 and all(joints[j] - start_joints[j] > 10.0 for j in joints)):
+            assert time.monotonic() < deadline, f"not driven: odom {odom[-1] - start_x}, joints {joints}"
+            cmd_vel.publish(forward)
+            time.sleep(0.05)  # the stream's pace (a /cmd_vel older than cmd_timeout_ms stops the wheels)
+        after = {(ch, n): position(rover, ch, n) for ch in ("can0", "can1") for n in (1, 2, 3)}
+        for (channel, node_id), counts in after.items():
+            turned = counts - before[(channel, node_id)]
+            assert (turned > 0) if channel == "can0" else (turned < 0), (channel, node_id, before, after)
+        script = tmp_path / "drive_it.py"  # the manual's own snippet, as a user runs it
+        script.write_text(drive_it_snippet())
+        drove = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+        assert drove.returncode == 0, drove.stderr[-3000:]
+        moved = re.search(r"odom: moved (-?[0-9.]+) m", drove.stdout)
+        assert moved is not None and float(moved.group(1)) > 0.1, drove.stdout
+    finally:
+        spin.stop(5.0)
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        launch.terminate()
+        out, _ = launch.communicate(timeout=30)
+    assert launch.returncode == 0, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+
+
+def drive_it_snippet() -> str:
+    """The "Drive it" script of docs/ros.md."""
+    page = (REPO / "docs" / "ros.md").read_text()
+    found = re.search(r"```python title=drive_it.py\n(.*?)```", page, re.DOTALL)
+    assert found is not None, "docs/ros.md has no drive_it.py block"
+    return found.group(1)
