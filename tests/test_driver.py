@@ -313,3 +313,26 @@ def test_unhandled_error_still_leaves_drives_safe(sim_factory: Callable[[RoverCo
     frames = drain(listener, 0.2)
     controlwords = [int.from_bytes(m.data[:2], "little") for m in frames if m.arbitration_id == 0x201]
     assert controlwords[:2] == [0x02, 0x00]  # quick stop, then disable voltage, before the bus closed
+
+
+def test_halt_sets_bit_8_on_the_wire_and_clears_it(driver_factory: DriverFactory,
+                                                   listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    """halt() is the controlword with bit 8 (Halt) beside Enable Operation, halt(False) the same
+    without it: read on the bus by an independent listener, in order."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    listener = listener_factory(sim)
+
+    def next_controlword() -> int:
+        deadline = time.monotonic() + 5.0  # a hang, not a timing claim
+        while time.monotonic() < deadline:
+            msg = listener.recv(0.5)
+            if msg is not None and msg.arbitration_id == 0x201:
+                return int.from_bytes(msg.data[:2], "little")
+        raise AssertionError("no controlword on RPDO 0x201")
+
+    drive.halt()
+    assert next_controlword() == 0x010F
+    drive.halt(False)
+    assert next_controlword() == 0x000F

@@ -136,6 +136,8 @@ class PowerStateMachine:
                                             statusword=self._cache.statusword)
 
             self._channel.mark_enabled(op, verdict)  # the verdict and a stop are ordered too
+        if parent is None:
+            logger.info("%s (node %d): armed (Operation Enabled)", self.name, self.node_id)
 
     def _walk_to_enabled(self, op: Op, timeout_s: float) -> None:
         """One transition at a time, each planned from the state the drive shows; a drive that
@@ -213,7 +215,7 @@ class PowerStateMachine:
         """Disable voltage (transitions 7, 9, 10, 12): power stage off, Switch On Disabled."""
         self._stop("disable voltage", Command.DISABLE_VOLTAGE, {State.SWITCH_ON_DISABLED}, timeout_s)
 
-    def halt(self, on: bool = True) -> None:
+    def halt(self, on: bool) -> None:
         """Set or clear the halt bit (8): stop on the profile deceleration, stay enabled."""
         with self._channel.command("halt") as frames:
             self.require_usable("halt")
