@@ -390,6 +390,21 @@ def test_forgetting_ends_what_was_commanded(wire: Wire) -> None:
     assert wire.words()[-1] == ENABLE  # forgetting sends nothing
 
 
+@pytest.mark.parametrize("stop", [Command.QUICK_STOP, Command.SHUTDOWN, Command.DISABLE_VOLTAGE])
+def test_a_stop_ends_what_was_commanded(wire: Wire, stop: Command) -> None:
+    """After a stop no velocity command is live (the watchdog has nothing to end) and the drive
+    is not taken for enabled by this driver (recover() does not re-enable it)."""
+    channel = make_channel(wire)
+    enabled(channel)
+    with channel.command("velocity command") as frames:
+        frames.velocity(10, live=True)
+    channel.mark_enabled(Op(0, "enable", channel.generation), lambda: None)
+    assert channel.was_enabled is True and channel.velocity_commanded is True
+    channel.stop(stop, "a stop")
+    assert channel.was_enabled is False and channel.velocity_commanded is False
+    assert wire.words()[-1] == int(stop)
+
+
 def test_no_stop_is_written_again_after_a_transition_by_sdo_that_no_stop_followed() -> None:
     wire = Wire()
     plan = plan_pdos(load_drive_od(str(GENERIC_EDS), 1), 1)
