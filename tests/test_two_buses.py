@@ -66,7 +66,10 @@ def rover(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rover]:
     ports = {"can0": free_port(), "can1": free_port()}
     path = tmp_path_factory.mktemp("rover") / "six_wheels.yaml"
     path.write_text(yaml.safe_dump(six_wheels(ports["can0"], ports["can1"])))
-    assert rovercan("check", "--config", str(path)).returncode == 0
+    check = rovercan("check", "--config", str(path))
+    assert check.returncode == 0, check.stderr
+    assert (f"serves it as 2 server(s) on 127.0.0.1: port {ports['can0']}: can0 (3 drive(s)); port {ports['can1']}:"
+            " can1 (3 drive(s))") in check.stdout
     proc = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--config", str(path)], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -177,6 +177,15 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def served_text(config: RoverConfig) -> str:
+    """How `rovercan sim --config` serves this config: one server per socketcand port."""
+    from virtual_can.service import served_ports
+
+    served = served_ports(config)
+    servers = "; ".join(f"port {s.port}: {', '.join(s.channels)} ({len(s.specs)} drive(s))" for s in served)
+    return f"rovercan sim --config serves it as {len(served)} server(s) on 127.0.0.1: {servers}"
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     """A config checked without a bus: parsed, each drive's EDS read (with the objects the driver
     needs for its host watch), the drive system's wheels known, each bus's planned load. Exit 0,
@@ -203,6 +212,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     if system is not None and not args.json:
         print(f"drive system: left {', '.join(system.left)}; right {', '.join(system.right)}; track"
               f" {system.track_width_m:g} m, wheel radius {system.wheel_radius_m:g} m")
+    if not args.json:
+        print(served_text(config))
     worst = max(loads.values(), default=0.0)
     if worst > MAX_LOAD:
         raise ConfigError(f"{args.config}: a bus is planned at {worst:.0%} of its bitrate, over {MAX_LOAD:.0%}: it"
