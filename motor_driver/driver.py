@@ -59,7 +59,7 @@ from motor_driver.connect import (
 )
 from motor_driver.drive import Drive, DriveState
 from motor_driver.recorder import FlightRecorder
-from motor_driver.supervisor import SUPERVISOR_PERIOD_S, Supervision
+from motor_driver.supervisor import SUPERVISOR_PERIOD_S, Supervision, supervisor_log
 from motor_driver.traffic import (
     FOREIGN_HOLD_S,
     SYNC_RATE_WINDOW_S,
@@ -93,6 +93,7 @@ class MotorDriver(Supervision):
                 logger.warning("bus %s: planned load %.0f%% of %d bit/s (worst case)", load.bus,
                                load.load * 100, load.bitrate)
         self._handles: dict[str, BusHandle] = {}
+        self._rate_limited = supervisor_log()
         self.drives: dict[str, Drive] = {}
         self._closed = False
         self._stop = threading.Event()

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import queue
 import subprocess
@@ -57,6 +58,14 @@ WRITER_POLL_S = 0.2
 SAMPLE_EVERY = 5
 #: close() waits this long for a plot still being drawn.
 PLOT_WAIT_S = 5.0
+#: An incident of the kind and drive (or bus) of one written within this long is counted in
+#: the next one written instead: a flapping drive makes one incident a minute, not one a second.
+REPEAT_WINDOW_S = 60.0
+#: No plot process is started within this long of the host heartbeat going out late (a starved
+#: process gets no third process beside it).
+NO_PLOT_AFTER_LATE_S = 30.0
+#: Incidents kept in memory (their summaries) when the directory cannot be written.
+KEPT_IN_MEMORY = 20
 
 
 @dataclass(frozen=True)
@@ -112,6 +121,11 @@ class FlightRecorder:
         self.written: list[Path] = []  # the JSON of each incident written (writer thread)
         self._helpers: list[subprocess.Popen[bytes]] = []  # plot processes (writer thread, then close)
         self._samples = 0  # supervisor passes seen by sample()
+        self._late_at = -math.inf  # monotonic time the host heartbeat was last late (process_late)
+        self._last_written: dict[tuple[str, str], float] = {}  # (kind, drive or bus) -> its t (writer)
+        self._repeats: dict[tuple[str, str], int] = {}  # incidents not written since (writer)
+        self.kept: deque[dict[str, Any]] = deque(maxlen=KEPT_IN_MEMORY)  # summaries not written (writer)
+        self._unwritable_said = False
         self._thread = threading.Thread(target=self._run, daemon=True, name="rovercan-recorder")
         self._thread.start()
 
@@ -145,6 +159,10 @@ class FlightRecorder:
         while self._states and self._states[0][0] < now - self._keep_s:
             self._states.popleft()
 
+    def process_late(self) -> None:
+        """Supervisor: the host heartbeat went out late (this process is starved)."""
+        self._late_at = time.monotonic()
+
     def trigger(self, kind: str, bus: str, *, node: int | None = None, drive: str | None = None,
                 code: int | None = None, text: str = "", t: float | None = None) -> None:
         if drive is None and node is not None:
@@ -176,16 +194,34 @@ class FlightRecorder:
             self._write_safely(rest)
 
     def _write_safely(self, events: list[IncidentEvent]) -> None:
+        first = events[0]
+        key = (first.kind, first.drive or first.bus)
+        if first.t - self._last_written.get(key, -math.inf) < REPEAT_WINDOW_S:
+            self._repeats[key] = self._repeats.get(key, 0) + 1
+            logger.debug("flight recorder: %s (%s) again within %.0f s: counted, not written", *key, REPEAT_WINDOW_S)
+            return
+        self._last_written[key] = first.t
         try:
-            self.written.append(self.write(events))
+            self.written.append(self.write(events, self._repeats.pop(key, 0)))
+        except OSError as err:  # a read-only root, a full disk: say it once, keep the incident here
+            if not self._unwritable_said:
+                self._unwritable_said = True
+                logger.warning("flight recorder: cannot write incidents to %s (%s); the last %d are kept in memory"
+                               " instead. Set recorder.dir in the config (or $ROVERCAN_INCIDENT_DIR) to a writable"
+                               " directory.", self.directory, err.strerror or err, KEPT_IN_MEMORY)
         except Exception:  # the recorder must never take the driver down
-            logger.exception("flight recorder: the incident %s could not be written", events[0].kind)
+            logger.exception("flight recorder: the incident %s could not be written", first.kind)
 
-    def write(self, events: list[IncidentEvent]) -> Path:
-        """Write one incident (the ring as it is now); returns the JSON's path."""
+    def write(self, events: list[IncidentEvent], repeats: int = 0) -> Path:
+        """Write one incident (the ring as it is now); returns the JSON's path. ``repeats``:
+        incidents of its kind and drive counted, not written, since the last one. Its summary is
+        kept in memory first, so an unwritable directory (OSError) loses nothing recent."""
         first = events[0]
         frames = list(self._frames.copy())
         states = list(self._states.copy())
+        summary_kept: dict[str, Any] = {"kind": first.kind, "t": first.t, "events": [asdict(e) for e in events],
+                                        "repeats": repeats, "frames": len(frames)}
+        self.kept.append(summary_kept)
         self.directory.mkdir(parents=True, exist_ok=True)
         stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(first.t)) + f"-{int(first.t * 1000) % 1000:03d}"
         who = first.drive or (f"node{first.node}" if first.node is not None else first.bus)
@@ -203,6 +239,7 @@ class FlightRecorder:
             "time": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(first.t)),
             "t": first.t,
             "events": [asdict(e) for e in events],
+            "repeats": repeats,
             "window_s": [frames[0][0] - first.t, frames[-1][0] - first.t] if frames else [0, 0],
             "frames": len(frames),
             "channels": {str(i): bus for bus, i in channel_of.items()},
@@ -214,10 +251,12 @@ class FlightRecorder:
         }
         summary["states"] = _state_series(states, first.t)
         json_path = base.with_suffix(".json")
-        if self.config.plot and states:
+        plot = self.config.plot and bool(states) and time.monotonic() - self._late_at > NO_PLOT_AFTER_LATE_S
+        if plot:
             summary["png"] = base.with_suffix(".png").name  # drawn by a helper process, below
         json_path.write_text(json.dumps(summary, indent=1) + "\n")
-        if self.config.plot and states:
+        self.kept.remove(summary_kept)
+        if plot:
             self._plot_in_helper(json_path)
         logger.warning("flight recorder: %s (%s) written to %s", first.kind, who, json_path)
         _enforce_cap(self.directory, self.config.max_mb * 1e6, keep=base.name)

@@ -17,6 +17,7 @@ import can
 
 from can_config import RoverConfig
 from can_config.errors import BusLostError, MotorError
+from can_config.ratelimit import RateLimitedLog
 from motor_driver.adapters import connection_closed
 from motor_driver.bushandle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
 from motor_driver.connect import open_bus
@@ -28,6 +29,12 @@ from motor_driver.traffic import FOREIGN_HOLD_S, FOREIGN_RELEASE_S
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
+
+
+def supervisor_log() -> RateLimitedLog:
+    """The supervisor's repeated warnings (a late heartbeat, each pass of a starved process), rate
+    limited with a count."""
+    return RateLimitedLog(logger)
 
 
 class Supervision:
@@ -44,6 +51,7 @@ class Supervision:
     _take_over: bool
     _reboots: dict[str, Future[None]]
     _host_loss_seen: dict[str, int]
+    _rate_limited: RateLimitedLog  # repeated warnings of this module (supervisor_log())
 
     def _supervise(self) -> None:
         while not self._stop.wait(SUPERVISOR_PERIOD_S):
@@ -90,10 +98,13 @@ class Supervision:
                 handle.beat(bus_cfg.host_node_id)
                 if handle.last_beat and now - handle.last_beat > 2 * bus_cfg.host_heartbeat_s:
                     handle.late_beats += 1
-                    logger.warning("bus %s: host heartbeat %.0f ms late (period %.0f ms): this process is starved;"
-                                   " the drives stop by themselves when it is later than their host timeout",
-                                   name, (now - handle.last_beat - bus_cfg.host_heartbeat_s) * 1000,
-                                   bus_cfg.host_heartbeat_s * 1000)
+                    if self.recorder is not None:
+                        self.recorder.process_late()
+                    self._rate_limited.log(logging.WARNING, ("late", name),
+                                           "bus %s: host heartbeat %.0f ms late (period %.0f ms): this process is"
+                                           " starved; the drives stop by themselves when it is later than their"
+                                           " host timeout", name, (now - handle.last_beat - bus_cfg.host_heartbeat_s)
+                                           * 1000, bus_cfg.host_heartbeat_s * 1000)
                 handle.last_beat = now
                 handle.next_beat = max(handle.next_beat + bus_cfg.host_heartbeat_s, now)
 
