@@ -25,6 +25,8 @@ PARAMS: dict[str, Param] = {
     "config": Param("", "rover config YAML (buses, drives, drive system); empty: the embedded default"),
     "executor": Param("events", "hot-path executor: events (rclpy's EventsExecutor, measured fastest) or single"),
     "arm": Param(False, "enable every drive at start; off by default: arming is an explicit act"),
+    "drive_system": Param(True, "run the config's drive_system (/cmd_vel -> wheels -> /odom); false: leave the"
+                                " wheels to another (ros2_control's diff_drive_controller)"),
     "default_joint": Param("", "joint served on /motor_degree_cmd and /motor_state; empty: the first drive"),
     "state_rate_hz": Param(50.0, "rate of MotorState and /joint_states", 1.0, 500.0),
     "diagnostics_rate_hz": Param(1.0, "rate of /diagnostics", 0.1, 10.0),

@@ -59,7 +59,7 @@ class DriverNode(Node):
 
     def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
         super().__init__("rovercan_driver", **kwargs)
-        declare(self, "config", "executor", "arm", "default_joint", "state_rate_hz", "diagnostics_rate_hz",
+        declare(self, "config", "executor", "arm", "drive_system", "default_joint", "state_rate_hz", "diagnostics_rate_hz",
                 "state_qos_depth")
         self.driver = driver
         self._state_qos = state_qos(qos_depth(self))
@@ -238,7 +238,7 @@ def _run(stop: StopSignal) -> int:
         node = DriverNode(driver)
         nodes.append(node)
         handler = bridge_core_logging(node)
-        if config.drive_system is not None:
+        if config.drive_system is not None and node.get_parameter("drive_system").value:
             nodes.append(DriveSystemNode(driver, config, node.refusals))
         services = DriverServicesNode(driver)
         stop_services = DriverStopsNode(driver)

@@ -219,3 +219,49 @@ def drive_it_snippet() -> str:
     found = re.search(r"```python title=drive_it.py\n(.*?)```", page, re.DOTALL)
     assert found is not None, "docs/ros.md has no drive_it.py block"
     return found.group(1)
+
+
+@requires_ros
+def test_without_its_drive_system_the_rover_leaves_cmd_vel_to_another(tmp_path: Path) -> None:
+    """docs/ros2_control.md: `drive_system:=false` (ros2_control's diff_drive_controller drives the
+    wheels then): nothing subscribes /cmd_vel, while /arm arms the wheels and /joint_states runs."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    from nodes.runtime import SpinThread
+
+    rover = Rover(tmp_path / "six_wheels.yaml", {"can0": free_port(), "can1": free_port()})
+    rover.config.write_text(yaml.safe_dump(six_wheels(rover.ports["can0"], rover.ports["can1"])))
+    launch = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(ROVER_LAUNCH), f"config:={rover.config}",
+                               "sim:=true", "drive_system:=false", "--duration", "300"], cwd=REPO,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("ros2_control_side", context=context)
+    joints: dict[str, float] = {}
+    node.create_subscription(JointState, "/joint_states", lambda m: joints.update(zip(m.name, m.position, strict=False)),
+                             qos_profile_sensor_data)
+    arm = node.create_client(Trigger, "/arm")
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    spin = SpinThread(executor, "ros2-control-probe")
+    try:
+        assert arm.wait_for_service(timeout_sec=HANG_S), "no /arm service from the launched rover"
+        wait_for(lambda: len(joints) == 6, HANG_S, "/joint_states of the six wheels")
+        armed = arm.call_async(Trigger.Request())
+        wait_for(armed.done, HANG_S, "/arm answered")
+        assert armed.result().success, armed.result().message
+        # the driver's nodes are all up (its services answered): a drive system would be among them
+        names = {name for name, _ in node.get_node_names_and_namespaces()}
+        assert "rovercan_driver" in names and "drive_system" not in names, names
+        assert node.count_subscribers("/cmd_vel") == 0
+    finally:
+        spin.stop(5.0)
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        launch.terminate()
+        out, _ = launch.communicate(timeout=30)
+    assert launch.returncode == 0, out[-3000:]
