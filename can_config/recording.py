@@ -5,7 +5,9 @@ naming the file, the format and what is wrong, never a reader's own exception.""
 
 from __future__ import annotations
 
+import logging
 import math
+import re
 import sqlite3
 import struct
 import zlib
@@ -18,6 +20,8 @@ from can.io.blf import BLFParseError
 
 from can_config.errors import ConfigError
 from can_config.textfile import read_text_file
+
+logger = logging.getLogger(__name__)
 
 TEXT_RECORDINGS = (".asc", ".csv", ".log", ".trc", ".txt")
 #: What python-can's readers raise on a damaged file (a truncated or bit-flipped BLF, a .db that
@@ -54,6 +58,24 @@ def frame_problem(msg: can.Message) -> str | None:
     return None
 
 
+#: candump's screen output ("  can0  701   [1]  05"): interface, id, [dlc], bytes, no timestamp.
+CANDUMP_SCREEN = re.compile(r"^\s*\S+\s+[0-9A-Fa-f]{3,8}\s+\[\d\]")
+
+
+def _hint(file: Path, suffix: str) -> str:
+    """What the file looks like instead, when it can be told."""
+    if suffix in TEXT_RECORDINGS:
+        try:
+            with file.open(encoding="utf-8", errors="replace") as text:
+                first = text.readline()
+        except OSError:
+            return ""
+        if CANDUMP_SCREEN.match(first):
+            return ("; it looks like candump's screen output, which has no times: record with"
+                    " `candump -L can0 > session.log` (python-can reads that)")
+    return ""
+
+
 def read_recording(path: str) -> list[can.Message]:
     """Every frame of a recording, or :class:`ConfigError` naming the file and what is wrong."""
     file = Path(path)
@@ -72,8 +94,9 @@ def read_recording(path: str) -> list[can.Message]:
     except NotImplementedError as err:  # a reader whose optional package is missing (.mf4: asammdf)
         raise ConfigError(f"{path}: python-can cannot read {suffix} files here ({err})") from err
     except RECORDING_ERRORS as err:
+        logger.debug("%s: %s reader: %r", path, suffix, err)  # Python's words for it: not for the user
         raise ConfigError(f"{path}: not a valid {suffix} recording, the file is damaged or of another format"
-                          f" ({type(err).__name__}: {err})") from err
+                          f"{_hint(file, suffix)}") from err
     if not frames:
         raise ConfigError(f"{path}: no CAN frames in this {suffix} file")
     for i, msg in enumerate(frames):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import logging
+import re
 from collections.abc import Callable, Iterator
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -122,6 +123,12 @@ def run_in_process(argv: list[str]) -> tuple[int, str]:
     return code, err.getvalue()
 
 
+#: Python's own words for an error, which a user cannot act on: "TypeError: ...", "__init__() missing
+#: 1 required positional argument", "too many values to unpack", "could not convert string to float".
+PYTHON_ERROR_TEXT = re.compile(r"\b[A-Z]\w*(Error|Exception): |__init__\(\)|positional argument|values to unpack|"
+                               r"could not convert string")
+
+
 def test_every_subcommand_with_generated_arguments(sim: tuple[SimService, Path]) -> None:
     service, tmp = sim
     runner = service.simulators["can0"]
@@ -135,6 +142,7 @@ def test_every_subcommand_with_generated_arguments(sim: tuple[SimService, Path])
         seen[code] = seen.get(code, 0) + 1
         assert code in (0, 1, 2), (argv, code, err[-2000:])
         assert "Traceback" not in err, (argv, err[-3000:])
+        assert not PYTHON_ERROR_TEXT.search(err), (argv, err[-3000:])  # the user's words, not Python's
         enabled = runner.call(lambda: [n for n in (1, 2) if runner.drive(n).state.name == "OPERATION_ENABLED"])
         assert not enabled, (argv, enabled, err[-2000:])
 

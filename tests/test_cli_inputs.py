@@ -174,3 +174,21 @@ def test_ctrl_c_during_a_step_test_stops_the_drive_without_a_traceback(tmp_path:
         sim.send_signal(signal.SIGTERM)
         sim.wait(10)
     assert proc.returncode == 1 and "stopped by SIGINT" in err and "Traceback" not in err, err
+
+
+def test_socketcand_without_its_address_and_candump_screen_output_say_what_to_do(tmp_path: Path) -> None:
+    """Two messages that were Python's: `-i socketcand` without host and port ("__init__() missing 2
+    required positional arguments"), and `decode` of candump's screen output ("too many values
+    to unpack")."""
+    from .test_cli_generated import PYTHON_ERROR_TEXT
+
+    scan = subprocess.run([sys.executable, "-m", "rovercan", "scan", "-i", "socketcand", "-c", "can0"], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert scan.returncode == 2 and "needs --bus-kwargs host=HOST port=PORT" in scan.stderr
+    screen = tmp_path / "screen.txt"
+    screen.write_text("  can0  701   [1]  05\n  can0  181   [8]  37 02 00 00 00 00 00 00\n")
+    decode = subprocess.run([sys.executable, "-m", "rovercan", "decode", str(screen)], cwd=REPO, capture_output=True,
+                            text=True, timeout=60)
+    assert decode.returncode == 2 and "candump -L" in decode.stderr
+    for err in (scan.stderr, decode.stderr):
+        assert not PYTHON_ERROR_TEXT.search(err), err

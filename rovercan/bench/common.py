@@ -23,6 +23,7 @@ from canopen.objectdictionary import ObjectDictionary
 from can_config import RoverConfig, load_config, load_od, parse_config
 from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN, BusConfig, DriveConfig
 from can_config.errors import BusLostError, ConfigError, RovercanError, SdoError, SdoTimeoutError
+from can_config.model import SOCKETCAND_PORT
 from can_config.objects import sdo_abort_text
 from motor_driver.adapters import connection_closed
 from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS
@@ -140,7 +141,10 @@ def open_bus(args: argparse.Namespace) -> can.BusABC:
     extra = getattr(args, "bus_kwargs", None) or {}
     if "port" in extra:
         extra["port"] = tcp_port(extra["port"])
-    if args.interface == "socketcand" and "host" in extra and "port" in extra:
+    if args.interface == "socketcand" and not ("host" in extra and "port" in extra):
+        raise ConfigError("-i socketcand needs --bus-kwargs host=HOST port=PORT (rovercan sim prints them, e.g."
+                          f" host=127.0.0.1 port={SOCKETCAND_PORT})")
+    if args.interface == "socketcand":
         wait_for_server(str(extra["host"]), int(extra["port"]), connect_timeout(args))  # python-can's loop spins
     try:
         return can.cli.create_bus_from_namespace(args, **tuned)
