@@ -207,17 +207,3 @@ def rovercan_sim(*args: str) -> Iterator[int]:
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=10)
-
-
-def cpu_share_of_a_new_process(seconds: float = 0.5) -> float:
-    """The share of one core a busy process started now gets (1.0 on an idle machine; about 0.67
-    with two other busy processes on two cores): how loaded the machine is right now, for tests
-    whose figures are timing targets a saturated machine cannot meet."""
-    import subprocess
-    import sys
-
-    probe = ("import time\nt0, c0 = time.monotonic(), time.process_time()\n"
-             f"while time.monotonic() - t0 < {seconds}: pass\n"
-             "print((time.process_time() - c0) / (time.monotonic() - t0))")
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=30)
-    return float(out.stdout)
