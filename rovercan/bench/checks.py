@@ -29,6 +29,7 @@ from rovercan.bench.common import (
     CliError,
     _u32,
     add_bus_args,
+    add_config_arg,
     add_drive_args,
     add_json,
     config_bus,
@@ -152,6 +153,34 @@ def _safety_rows(args: argparse.Namespace, config: RoverConfig, listen_s: float)
     finally:
         bus.shutdown()
     return rows
+
+
+# ------------------------------------------------------------------------------ bus-health
+def cmd_bus_health(args: argparse.Namespace) -> int:
+    """The bus's health as its kernel knows it (motor_driver.bushealth): state, error counters,
+    bitrate, restarts. Exit 0 when up and ERROR-ACTIVE (or a vcan, which has no controller), else 1
+    naming what is wrong and what to do. A bus that is not a kernel interface: said to be unknown."""
+    from motor_driver.bushealth import read_kernel_health
+
+    interface, channel = getattr(args, "interface", None), getattr(args, "channel", None)
+    if getattr(args, "config", None):
+        bus_cfg = config_bus(args, load_config(args.config))
+        interface, channel = interface or bus_cfg.interface, bus_cfg.channel if interface is None else channel
+    if not interface or not channel:
+        raise ConfigError("bus-health: give -i socketcan -c CHANNEL (e.g. -c can0), or --config FILE [-c BUS]")
+    if interface != "socketcan":
+        emit(args, {"interface": interface, "channel": channel, "state": "unknown",
+                    "why": "only a kernel (socketcan) interface has a controller state to read"},
+             f"bus health of {channel}")
+        return 0
+    health = read_kernel_health(channel)
+    row = {k: ("unknown" if v is None else v) for k, v in health.as_dict().items()}
+    if health.kind != "can":
+        row["state"] = f"none ({health.kind}: no controller)"
+    emit(args, row, f"bus health of {channel}")
+    for problem in health.problems():
+        print(f"rovercan bus-health: {problem}", file=sys.stderr)
+    return 0 if health.ok else 1
 
 
 # ------------------------------------------------------------------------------ plan / can-up
@@ -286,6 +315,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--listen", type=real(0.05, 600), help="seconds to watch for the host heartbeat (default 4 periods)")
     add_json(p)
     p.set_defaults(func=cmd_safety_check)
+
+    p = sub.add_parser("bus-health", help="the kernel's view of a CAN bus: state, error counters, bitrate, restarts;"
+                                          " exit 1 unless up and ERROR-ACTIVE")
+    add_bus_args(p)
+    add_config_arg(p)
+    add_json(p)
+    p.set_defaults(func=cmd_bus_health)
 
     p = sub.add_parser("check", help="validate a config without a bus: keys, EDS files, host watch, drive system, load")
     p.add_argument("--config", required=True)
