@@ -417,3 +417,46 @@ def test_no_stop_is_written_again_after_a_transition_by_sdo_that_no_stop_followe
     with channel.operation("enable") as later:
         channel.transition(later, "enable", Command.ENABLE_OPERATION)
     assert wire.sdo_words == [int(Command.SHUTDOWN), QUICK_STOP, ENABLE]  # the stop came before it began
+
+
+def test_a_new_channel_has_commanded_nothing(wire: Wire) -> None:
+    """Before anything: not enabled by this driver (so recover() does not enable a drive it never
+    enabled), no velocity live, no target, no stop yet, not closed, no frame sent."""
+    channel = make_channel(wire)
+    assert (channel.cw, channel.target_counts, channel.stream_velocity_counts_s, channel.generation) == (0, 0, 0, 0)
+    assert channel.was_enabled is False and channel.velocity_commanded is False and channel.closed is False
+    assert channel.last_velocity_cmd == 0.0 and channel.last_enable_sent == 0.0
+    assert channel.busy is None and wire.frames == []
+    with channel.operation("enable") as op:  # the first operation is not taken for preempted
+        channel.check(op, "enable")
+
+
+def test_only_an_enable_word_is_stamped_as_sent(wire: Wire) -> None:
+    channel = make_channel(wire)
+    with channel.operation("enable") as op:
+        channel.transition(op, "enable", Command.SHUTDOWN)
+        channel.transition(op, "enable", Command.SWITCH_ON)
+        assert channel.last_enable_sent == 0.0
+        channel.transition(op, "enable", Command.ENABLE_OPERATION)
+    assert channel.last_enable_sent > 0.0
+
+
+def test_reset_forget_and_close(wire: Wire) -> None:
+    channel = make_channel(wire)
+    enabled(channel)
+    with channel.command("velocity command") as frames:
+        frames.velocity(10, live=True)
+    channel.mark_enabled(Op(0, "enable", channel.generation), lambda: None)
+    channel.reset(123)  # a boot: nothing commanded, the target where the shaft is
+    assert (channel.cw, channel.target_counts) == (0, 123)
+    assert channel.was_enabled is False and channel.velocity_commanded is False
+    channel.forget(456)
+    assert channel.target_counts == 456
+    channel.forget()
+    assert channel.target_counts == 456  # no position given: the target stays
+    sent = len(wire.frames)
+    channel.close()
+    assert channel.closed is True and wire.wakes >= 1
+    with pytest.raises(DriveStateError, match="shut down"), channel.operation("enable") as op:
+        channel.check(op, "enable")
+    assert len(wire.frames) == sent  # none of this sent a frame
