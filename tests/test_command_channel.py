@@ -51,6 +51,15 @@ def make_channel(wire: Wire) -> CommandChannel:
                                                                                                 wire.wakes + 1))
 
 
+def commanding(channel: CommandChannel) -> CommandChannel:
+    """The channel as after an enable marked done and a live velocity command."""
+    enabled(channel)
+    with channel.command("velocity command") as frames:
+        frames.velocity(10, live=True)
+    channel.mark_enabled(Op(0, "enable", channel.generation), lambda: None)
+    return channel
+
+
 def enabled(channel: CommandChannel) -> None:
     """The channel as after an enable: this driver's last word Enable Operation."""
     with channel.operation("enable") as op:
@@ -379,11 +388,7 @@ def test_enabled_by_us_is_this_drivers_last_word_or_a_recent_enable(wire: Wire) 
 
 
 def test_forgetting_ends_what_was_commanded(wire: Wire) -> None:
-    channel = make_channel(wire)
-    enabled(channel)
-    with channel.command("velocity command") as frames:
-        frames.velocity(10, live=True)
-    channel.mark_enabled(Op(0, "enable", channel.generation), lambda: None)
+    channel = commanding(make_channel(wire))
     assert channel.was_enabled and channel.velocity_commanded
     channel.forget_commanded()
     assert not channel.was_enabled and not channel.velocity_commanded
@@ -394,11 +399,7 @@ def test_forgetting_ends_what_was_commanded(wire: Wire) -> None:
 def test_a_stop_ends_what_was_commanded(wire: Wire, stop: Command) -> None:
     """After a stop no velocity command is live (the watchdog has nothing to end) and the drive
     is not taken for enabled by this driver (recover() does not re-enable it)."""
-    channel = make_channel(wire)
-    enabled(channel)
-    with channel.command("velocity command") as frames:
-        frames.velocity(10, live=True)
-    channel.mark_enabled(Op(0, "enable", channel.generation), lambda: None)
+    channel = commanding(make_channel(wire))
     assert channel.was_enabled is True and channel.velocity_commanded is True
     channel.stop(stop, "a stop")
     assert channel.was_enabled is False and channel.velocity_commanded is False
@@ -442,11 +443,7 @@ def test_only_an_enable_word_is_stamped_as_sent(wire: Wire) -> None:
 
 
 def test_reset_forget_and_close(wire: Wire) -> None:
-    channel = make_channel(wire)
-    enabled(channel)
-    with channel.command("velocity command") as frames:
-        frames.velocity(10, live=True)
-    channel.mark_enabled(Op(0, "enable", channel.generation), lambda: None)
+    channel = commanding(make_channel(wire))
     channel.reset(123)  # a boot: nothing commanded, the target where the shaft is
     assert (channel.cw, channel.target_counts) == (0, 123)
     assert channel.was_enabled is False and channel.velocity_commanded is False

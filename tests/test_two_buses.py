@@ -19,8 +19,10 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -140,15 +142,29 @@ def _json_rows(text: str) -> list[dict[str, object]]:
     return rows
 
 
-@requires_ros
-def test_a_rover_from_the_documented_keys_is_checked_served_launched_armed_and_driven(tmp_path: Path) -> None:
-    """The whole path a newcomer follows: a six-wheel two-bus config from the documented keys,
-    `rovercan check`, the rover launch with its simulator twin (both ports served), the one arm
-    service, then /cmd_vel forward: /odom moves, every joint turns forward, and on the bus each
-    left motor turned forward and each (inverted) right motor backwards."""
+@dataclass
+class Probe:
+    """A ROS node of the test's beside the launched rover: /joint_states heard, /arm to call."""
+
+    node: Any
+    joints: dict[str, float]
+    arm_client: Any
+
+    def arm(self) -> None:
+        from std_srvs.srv import Trigger
+
+        assert self.arm_client.wait_for_service(timeout_sec=HANG_S), "no /arm service from the launched rover"
+        armed = self.arm_client.call_async(Trigger.Request())
+        wait_for(armed.done, HANG_S, "/arm answered")
+        assert armed.result().success, armed.result().message
+
+
+@contextmanager
+def launched_rover(tmp_path: Path, name: str, *launch_args: str) -> Iterator[tuple[Rover, Probe]]:
+    """The six-wheel two-bus rover written from the documented keys, checked with `rovercan
+    check`, launched with its simulator twin (rover_launch.xml, sim:=true, ``launch_args``), and a
+    probe node spinning beside it; on the way out the launch must end cleanly (exit 0, no traceback)."""
     import rclpy
-    from geometry_msgs.msg import Twist
-    from nav_msgs.msg import Odometry
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import JointState
@@ -161,28 +177,48 @@ def test_a_rover_from_the_documented_keys_is_checked_served_launched_armed_and_d
     check = rovercan("check", "--config", str(rover.config))
     assert check.returncode == 0, check.stderr
     launch = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(ROVER_LAUNCH), f"config:={rover.config}",
-                               "sim:=true", "--duration", "300"], cwd=REPO, stdout=subprocess.PIPE,
+                               "sim:=true", *launch_args, "--duration", "300"], cwd=REPO, stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
     context = rclpy.Context()
     rclpy.init(context=context)
-    node = rclpy.create_node("two_bus_newcomer", context=context)
-    odom: list[float] = []
+    node = rclpy.create_node(name, context=context)
     joints: dict[str, float] = {}
-    node.create_subscription(Odometry, "/odom", lambda m: odom.append(m.pose.pose.position.x), qos_profile_sensor_data)
     node.create_subscription(JointState, "/joint_states", lambda m: joints.update(zip(m.name, m.position, strict=False)),
                              qos_profile_sensor_data)
-    cmd_vel = node.create_publisher(Twist, "/cmd_vel", 10)
-    arm = node.create_client(Trigger, "/arm")
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    spin = SpinThread(executor, "two-bus-probe")
-    out = ""
+    spin = SpinThread(executor, f"{name}-probe")
     try:
-        assert arm.wait_for_service(timeout_sec=HANG_S), "no /arm service from the launched rover"
+        yield rover, Probe(node, joints, node.create_client(Trigger, "/arm"))
+    finally:
+        spin.stop(5.0)
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        launch.terminate()
+        out, _ = launch.communicate(timeout=30)
+    assert launch.returncode == 0, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+
+
+@requires_ros
+def test_a_rover_from_the_documented_keys_is_checked_served_launched_armed_and_driven(tmp_path: Path) -> None:
+    """The whole path a newcomer follows: a six-wheel two-bus config from the documented keys,
+    `rovercan check`, the rover launch with its simulator twin (both ports served), the one arm
+    service, then /cmd_vel forward: /odom moves, every joint turns forward, and on the bus each
+    left motor turned forward and each (inverted) right motor backwards."""
+    from geometry_msgs.msg import Twist
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import qos_profile_sensor_data
+
+    with launched_rover(tmp_path, "two_bus_newcomer") as (rover, probe):
+        odom: list[float] = []
+        probe.node.create_subscription(Odometry, "/odom", lambda m: odom.append(m.pose.pose.position.x),
+                                       qos_profile_sensor_data)
+        cmd_vel = probe.node.create_publisher(Twist, "/cmd_vel", 10)
+        joints = probe.joints
+        assert probe.arm_client.wait_for_service(timeout_sec=HANG_S), "no /arm service from the launched rover"
         before = {(ch, n): position(rover, ch, n) for ch in ("can0", "can1") for n in (1, 2, 3)}
-        armed = arm.call_async(Trigger.Request())
-        wait_for(armed.done, HANG_S, "/arm answered")
-        assert armed.result().success, armed.result().message
+        probe.arm()
         wait_for(lambda: cmd_vel.get_subscription_count() > 0 and bool(odom) and len(joints) == 6, HANG_S,
                  "/cmd_vel matched, /odom and /joint_states heard")
         start_x, start_joints = odom[-1], dict(joints)
@@ -203,14 +239,6 @@ def test_a_rover_from_the_documented_keys_is_checked_served_launched_armed_and_d
         assert drove.returncode == 0, drove.stderr[-3000:]
         moved = re.search(r"odom: moved (-?[0-9.]+) m", drove.stdout)
         assert moved is not None and float(moved.group(1)) > 0.1, drove.stdout
-    finally:
-        spin.stop(5.0)
-        node.destroy_node()
-        rclpy.shutdown(context=context)
-        launch.terminate()
-        out, _ = launch.communicate(timeout=30)
-    assert launch.returncode == 0, out[-3000:]
-    assert "Traceback" not in out, out[-3000:]
 
 
 def drive_it_snippet() -> str:
@@ -225,43 +253,10 @@ def drive_it_snippet() -> str:
 def test_without_its_drive_system_the_rover_leaves_cmd_vel_to_another(tmp_path: Path) -> None:
     """docs/ros2_control.md: `drive_system:=false` (ros2_control's diff_drive_controller drives the
     wheels then): nothing subscribes /cmd_vel, while /arm arms the wheels and /joint_states runs."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import qos_profile_sensor_data
-    from sensor_msgs.msg import JointState
-    from std_srvs.srv import Trigger
-
-    from nodes.runtime import SpinThread
-
-    rover = Rover(tmp_path / "six_wheels.yaml", {"can0": free_port(), "can1": free_port()})
-    rover.config.write_text(yaml.safe_dump(six_wheels(rover.ports["can0"], rover.ports["can1"])))
-    launch = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(ROVER_LAUNCH), f"config:={rover.config}",
-                               "sim:=true", "drive_system:=false", "--duration", "300"], cwd=REPO,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node("ros2_control_side", context=context)
-    joints: dict[str, float] = {}
-    node.create_subscription(JointState, "/joint_states", lambda m: joints.update(zip(m.name, m.position, strict=False)),
-                             qos_profile_sensor_data)
-    arm = node.create_client(Trigger, "/arm")
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    spin = SpinThread(executor, "ros2-control-probe")
-    try:
-        assert arm.wait_for_service(timeout_sec=HANG_S), "no /arm service from the launched rover"
-        wait_for(lambda: len(joints) == 6, HANG_S, "/joint_states of the six wheels")
-        armed = arm.call_async(Trigger.Request())
-        wait_for(armed.done, HANG_S, "/arm answered")
-        assert armed.result().success, armed.result().message
+    with launched_rover(tmp_path, "ros2_control_side", "drive_system:=false") as (_, probe):
+        wait_for(lambda: len(probe.joints) == 6, HANG_S, "/joint_states of the six wheels")
+        probe.arm()
         # the driver's nodes are all up (its services answered): a drive system would be among them
-        names = {name for name, _ in node.get_node_names_and_namespaces()}
+        names = {name for name, _ in probe.node.get_node_names_and_namespaces()}
         assert "rovercan_driver" in names and "drive_system" not in names, names
-        assert node.count_subscribers("/cmd_vel") == 0
-    finally:
-        spin.stop(5.0)
-        node.destroy_node()
-        rclpy.shutdown(context=context)
-        launch.terminate()
-        out, _ = launch.communicate(timeout=30)
-    assert launch.returncode == 0, out[-3000:]
+        assert probe.node.count_subscribers("/cmd_vel") == 0
