@@ -9,6 +9,10 @@ result into diagnostic_msgs). The rules:
   the heartbeat is older than 1.5 producer periods, the drive is not booted, or it has no
   drive-side stop on host loss and the config allows that (``allow_no_host_watch``).
 * OK: otherwise (enabled or safely disabled).
+
+A bus (:func:`bus_health`): ERROR when lost, down or BUS-OFF; WARN when its controller is
+ERROR-WARNING or ERROR-PASSIVE, or its load is over 50 %; its state and counters from the
+kernel where it is a kernel interface (:mod:`motor_driver.bushealth`), "unknown" elsewhere.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from can_config.objects import emcy_text
+from motor_driver.bushealth import KernelBusHealth
 from motor_driver.cia402 import FAULT_STATES, SW
 from motor_driver.drive import DriveState
 from motor_driver.safety import ALLOWED, SafetyCheck
@@ -81,3 +86,33 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         return Health(WARN, "NO drive-side stop on host loss (allowed by allow_no_host_watch): if this process"
                       " dies while the drive is enabled, nothing stops it", values)
     return Health(OK, "enabled" if state.enabled else f"ready ({state.state.name})", values)
+
+
+#: The kernel's figures a bus's status carries, where the kernel has them.
+KERNEL_VALUES = ("state", "tx_errors", "rx_errors", "bitrate", "restart_ms", "restarts", "bus_off", "error_passive",
+                 "error_warning", "bus_errors", "rx_dropped", "tx_dropped")
+
+
+def bus_health(*, load: float, lost: bool, frames: int, error_frames: int, kernel: KernelBusHealth | None,
+               why_unknown: str = "") -> Health:
+    """One bus graded: lost, down or BUS-OFF is ERROR; ERROR-WARNING, ERROR-PASSIVE or a load over
+    50 % is WARN. ``kernel``: what the kernel says (None: not a kernel interface, ``why_unknown``)."""
+    values = {"load": f"{load:.4f}", "frames_received": str(frames), "error_frames": str(error_frames)}
+    if kernel is None:
+        values["can_state"] = f"unknown ({why_unknown})" if why_unknown else "unknown"
+    else:
+        for key in KERNEL_VALUES:
+            value = getattr(kernel, key)
+            values["can_state" if key == "state" else key] = ("none (no controller)" if key == "state" else "unknown") \
+                if value is None else str(value)
+        values["link"] = "up" if kernel.link_up else "down"
+    problems = kernel.problems() if kernel is not None else []
+    if lost:
+        return Health(ERROR, "bus lost", values)
+    if kernel is not None and (not kernel.link_up or kernel.state == "BUS-OFF"):
+        return Health(ERROR, "; ".join(problems), values)
+    if problems:
+        return Health(WARN, "; ".join(problems), values)
+    if load > 0.5:
+        return Health(WARN, f"load {load:.1%}", values)
+    return Health(OK, f"load {load:.1%}" + (f", {kernel.state}" if kernel is not None and kernel.state else ""), values)

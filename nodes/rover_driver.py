@@ -40,7 +40,7 @@ from can_config import heap, load_config
 from can_config.errors import RovercanError
 from can_config.stop import StopSignal
 from motor_driver import Drive, MotorDriver
-from motor_driver.health import drive_health
+from motor_driver.health import bus_health, drive_health
 from nodes import runtime
 from nodes.actions import DriverActionsNode
 from nodes.drive_system import DriveSystemNode
@@ -185,15 +185,13 @@ class DriverNode(Node):
                 hardware_id="ros", values=[KeyValue(key="refused_commands", value=str(refused)),
                                            KeyValue(key="last_refusal", value=last)]))
             for bus_name, handle in self.driver.buses.items():
-                load = handle.stats.sample()
-                lost = self.driver.bus_lost.get(bus_name, False)
-                level = 2 if lost else 1 if load > 0.5 else 0
+                kernel, why = self.driver.kernel_health(bus_name)
+                health = bus_health(load=handle.stats.sample(), lost=self.driver.bus_lost.get(bus_name, False),
+                                    frames=handle.stats.frames, error_frames=handle.stats.error_frames,
+                                    kernel=kernel, why_unknown=why)
                 array.status.append(DiagnosticStatus(
-                    level=bytes([level]), name=f"rovercan: bus {bus_name}",
-                    message="bus lost" if lost else f"load {load:.1%}", hardware_id=bus_name,
-                    values=[KeyValue(key="load", value=f"{load:.4f}"),
-                            KeyValue(key="frames_received", value=str(handle.stats.frames)),
-                            KeyValue(key="error_frames", value=str(handle.stats.error_frames))]))
+                    level=bytes([health.level]), name=f"rovercan: bus {bus_name}", message=health.message,
+                    hardware_id=bus_name, values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
             self._diag_pub.publish(array)
         except Exception as err:
             self.get_logger().error(f"diagnostics publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)

@@ -15,6 +15,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from motor_driver.bushealth import STATES, XSTATS_FIELDS, health_from_link
+from motor_driver.health import ERROR, OK, WARN, bus_health
 
 from .conftest import REPO
 
@@ -99,3 +100,24 @@ def test_bus_health_of_a_bus_that_is_no_kernel_interface_says_unknown() -> None:
                           "-c", "can1", "--json"], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert run.returncode == 0, run.stderr
     assert '"state": "unknown"' in run.stdout and '"channel": "can1"' in run.stdout
+
+
+@pytest.mark.parametrize(("fields", "level", "words"), [
+    ({}, OK, "ERROR-ACTIVE"), ({"state": 1}, WARN, "check termination"), ({"state": 2}, WARN, "ERROR-PASSIVE"),
+    ({"state": 3}, ERROR, "BUS-OFF"), ({"up": False, "state": 4}, ERROR, "is down")])
+def test_a_bus_status_carries_the_kernels_state_and_counters(fields: dict[str, object], level: int, words: str) -> None:
+    """What /diagnostics publishes for each bus (nodes/rover_driver.py turns it into a DiagnosticStatus)."""
+    kernel = health_from_link(link(txerr=97, rxerr=3, counters=(10, 2, 1, 0, 0, 1), **fields))
+    health = bus_health(load=0.2, lost=False, frames=1000, error_frames=4, kernel=kernel)
+    assert health.level == level and words in health.message, health
+    assert {k: health.values[k] for k in ("tx_errors", "rx_errors", "bitrate", "restarts", "error_passive")} == {
+        "tx_errors": "97", "rx_errors": "3", "bitrate": "1000000", "restarts": "1", "error_passive": "1"}
+    assert health.values["can_state"] == kernel.state
+
+
+def test_a_bus_status_without_a_kernel_controller_says_unknown_and_lost_wins() -> None:
+    unknown = bus_health(load=0.7, lost=False, frames=1, error_frames=0, kernel=None, why_unknown="socketcand")
+    assert unknown.level == WARN and unknown.values["can_state"] == "unknown (socketcand)"  # the load warns
+    assert bus_health(load=0.1, lost=True, frames=1, error_frames=0, kernel=None).level == ERROR
+    vcan = bus_health(load=0.1, lost=False, frames=1, error_frames=0, kernel=health_from_link(link("vcan0", kind="vcan")))
+    assert vcan.level == OK and vcan.values["can_state"] == "none (no controller)"
