@@ -140,25 +140,26 @@ class MotorDriver(Supervision):
             raise
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self, *, reset: bool = True, take_over: bool = False) -> MotorDriver:
+    def start(self, *, reset: bool = True, take_over: bool = False, look_s: float | None = None) -> MotorDriver:
         """Look for another master, boot every drive (buses in parallel), start SYNC and
         supervision; enable only drives configured with ``arm_on_start``.
 
         Before its first NMT command the driver listens two host-heartbeat periods (at least
         LOOK_MIN_S) on each bus: another live master (a heartbeat with this driver's host id,
         SYNC, NMT commands, RPDOs or SDO writes to its drives) makes it refuse with
-        :class:`ForeignMasterError`, nothing sent, unless ``take_over``."""
+        :class:`ForeignMasterError`, nothing sent, unless ``take_over``. ``look_s``: listen this
+        long instead (the bench's ``--look``)."""
         self._take_over = take_over
         try:
-            self._look(take_over)
+            self._look(take_over, look_s)
             self._start(reset)
         except BaseException:  # a failed or interrupted start leaves nothing armed or open
             self.close()
             raise
         return self
 
-    def _look(self, take_over: bool) -> None:
-        window = max(look_window_s(b.host_heartbeat_s) for b in self.config.buses)
+    def _look(self, take_over: bool, look_s: float | None = None) -> None:
+        window = look_s if look_s is not None else max(look_window_s(b.host_heartbeat_s) for b in self.config.buses)
         since = time.monotonic()
         time.sleep(window)
         for name, handle in self._handles.items():

@@ -29,6 +29,10 @@ FOREIGN_RELEASE_S = 2.0
 #: Before its first NMT command the driver (and each bench command) listens this long, at least,
 #: for another master: two periods of the host heartbeat, if longer (:func:`look_for_master`).
 LOOK_MIN_S = 0.2
+#: A bench command, which may reset drives, listens this long by default: the longest host
+#: heartbeat or SYNC period a config allows (1000 ms, can_config.model) and a tenth, so another
+#: master within those bounds is heard at least once (LOOK_MIN_S missed a 1 s master half the time).
+LOOK_BENCH_S = 1.1
 #: A receive that failed is tried again after this pause (python-can's notifier loops on).
 RX_ERROR_PAUSE_S = 0.05
 

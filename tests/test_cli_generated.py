@@ -32,6 +32,8 @@ SECONDS = st.sampled_from(["0.1", "0.2", "0", "-1", "nan", "0.05", "0.3", "1e9"]
 INDEX = st.sampled_from(["0x1000", "1018:1", "0x6064", "0x1018:300", "zz", "0x10000", "6065", "0x1017", "0x2345",
                          "0x607A", "0x1008", "1A00:0", ":", "0x6041:0x1"])
 VALUE = st.sampled_from(["1", "abc", "-1", "0x7fffffff", "1e3", "99999999999", "250", "0", ""])
+#: --look of the commands that may reset: mostly short (each default look is 1.1 s), some refused
+LOOK = st.sampled_from([["--look", "0.2"], ["--look", "0.2"], ["--look", "0.2"], ["--look", "0"], ["--look", "nan"], []])
 
 
 @pytest.fixture(scope="module")
@@ -79,15 +81,15 @@ def invocation(draw: Callable[[Any], Any], port: int, tmp: str) -> list[str]:
         return [command, action, draw(NODE), draw(INDEX), *value, *extra, *bus, *json_flag]
     if command == "nmt":
         return [command, draw(st.sampled_from(["start", "stop", "preop", "reset", "reset-comm"])),
-                draw(st.sampled_from(["1", "2", "all", "9", "0", "x"])), *bus]
+                draw(st.sampled_from(["1", "2", "all", "9", "0", "x"])), *draw(LOOK), *bus]
     if command in ("enable", "disable", "fault-reset", "home"):
         hold = ["--hold", draw(SECONDS)] if command == "enable" and draw(st.booleans()) else []
-        return [command, draw(NODE), *hold, *drive, *bus, *json_flag]
+        return [command, draw(NODE), *hold, *drive, *draw(LOOK), *bus, *json_flag]
     if command == "move":
         speed = ["--speed", draw(NUMBER)] if draw(st.booleans()) else []
-        return [command, draw(NODE), draw(NUMBER), *speed, *drive, *bus, *json_flag]
+        return [command, draw(NODE), draw(NUMBER), *speed, *drive, *draw(LOOK), *bus, *json_flag]
     if command == "jog":
-        return [command, draw(NODE), draw(NUMBER), "--for", draw(SECONDS), *drive, *bus, *json_flag]
+        return [command, draw(NODE), draw(NUMBER), "--for", draw(SECONDS), *drive, *draw(LOOK), *bus, *json_flag]
     if command in ("monitor", "record"):
         target = [f"{tmp}/out{draw(st.sampled_from(['.log', '.asc', '.xyz', '']))}"] if command == "record" else []
         return [command, *target, "--seconds", draw(st.sampled_from(["0.1", "0.2", "-1", "nan"])), *bus]
@@ -98,7 +100,7 @@ def invocation(draw: Callable[[Any], Any], port: int, tmp: str) -> list[str]:
         return [command, file, *extra, *(bus if command == "replay" else [])]
     if command == "step-test":
         return [command, draw(NODE), "--step", draw(NUMBER), "--seconds", draw(SECONDS), "--out", f"{tmp}/step",
-                *drive, *bus, *json_flag]
+                *drive, *draw(LOOK), *bus, *json_flag]
     if command == "safety-check":
         return [command, *drive, *bus, "--listen", draw(SECONDS), *json_flag]
     if command == "plan":

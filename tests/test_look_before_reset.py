@@ -125,3 +125,41 @@ def test_the_driver_refuses_to_start_beside_a_live_master_unless_told_to_take_ov
                 forced.drive("joint1").enable()
         finally:
             master.close()
+
+
+def test_the_bench_listens_longer_than_any_period_a_config_allows() -> None:
+    """A master whose host heartbeat and SYNC come every 1000 ms (the most a config allows) is
+    heard at least once in the bench's default window; the schema's bounds are read, not copied."""
+    from can_config.fields import BUS_FIELDS
+    from motor_driver.traffic import LOOK_BENCH_S
+
+    longest_s = max(BUS_FIELDS[key].high for key in ("host_heartbeat_ms", "sync_period_ms")) / 1000  # type: ignore[operator]
+    assert longest_s < LOOK_BENCH_S
+
+
+def test_a_master_with_a_one_second_period_is_heard_and_the_wait_said_on_screen() -> None:
+    """Another master sending its heartbeat and SYNC once a second (the attack that reset its
+    drive in 4 of 8 runs when the bench listened 0.2 s): `move` refuses, says how long it
+    listened, and nothing of it reaches the bus (no NMT, no RPDO)."""
+    with SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "wheel", 4096)], port=0) as sim, \
+            can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port) as master:
+        stop = threading.Event()
+
+        def beat() -> None:
+            while not stop.is_set():  # a paced stream: the other master's 1 s period
+                master.send(can.Message(arbitration_id=0x77F, data=b"\x05", is_extended_id=False))
+                master.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+                stop.wait(1.0)
+
+        thread = threading.Thread(target=beat, daemon=True)
+        thread.start()
+        try:
+            with watching(sim, ["can0"]) as watches:
+                moved = rovercan("move", "1", "45", "--counts-per-rev", "4096", *bench(sim))
+        finally:
+            stop.set()
+            thread.join(10.0)
+    assert moved.returncode == 1 and "another master is live on the bus" in moved.stderr, moved.stderr
+    assert "listening 1.1 s for another master" in moved.stderr
+    sent = [m for w in watches.values() for _, m in w.frames if m.arbitration_id in (0x000, 0x201, 0x301, 0x401, 0x601)]
+    assert not sent, sent

@@ -10,6 +10,7 @@ import dataclasses
 import json
 import logging
 import re
+import sys
 import time
 from collections.abc import Collection, Iterator
 from contextlib import contextmanager
@@ -30,6 +31,7 @@ from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.driver import open_bus as driver_open_bus
 from motor_driver.driver import wait_for_server
+from motor_driver.traffic import LOOK_BENCH_S
 from rovercan.argtypes import real, whole
 
 logger = logging.getLogger(__name__)
@@ -301,6 +303,9 @@ def add_master_flags(parser: argparse.ArgumentParser) -> None:
     cannot watch this host."""
     parser.add_argument("--force", action="store_true",
                         help="take the bus over even when another master (a running driver) is live on it")
+    parser.add_argument("--look", type=real(0.05, 60), default=LOOK_BENCH_S, metavar="S",
+                        help=f"seconds to listen for another master before the first NMT command (default"
+                             f" {LOOK_BENCH_S:g}: the longest heartbeat or SYNC period a config allows, and a tenth)")
     parser.add_argument("--allow-no-host-watch", action="store_true",
                         help="arm a drive that cannot watch this host (no 0x1016, or node guarding on a bus without"
                              " remote frames): if this command dies, NOTHING stops the drive")
@@ -324,16 +329,24 @@ def _heard_from(bus: can.BusABC, node_id: int, timeout_s: float, *, probe: bool,
     return False
 
 
+def say_look(args: argparse.Namespace, where: str) -> float:
+    """The look-before-reset window of the command, said on stderr before it is spent."""
+    window = float(getattr(args, "look", LOOK_BENCH_S))
+    print(f"rovercan {args.command}: listening {window:g} s for another master on {where} before any NMT command"
+          " (--look S)", file=sys.stderr, flush=True)
+    return window
+
+
 def refuse_beside_a_master(args: argparse.Namespace, bus: can.BusABC, node_ids: Collection[int]) -> None:
     """Before the first NMT command or enable of a bench command: listen for another master (two
     host-heartbeat periods) and refuse, naming what was heard, unless --force."""
-    from motor_driver.driver import look_for_master, look_window_s, other_master_error
+    from motor_driver.driver import look_for_master, other_master_error
 
-    host_id, period = 127, 0.05
+    host_id = 127
     if getattr(args, "config", None):
-        bus_cfg = config_bus(args, load_config(args.config))
-        host_id, period = bus_cfg.host_node_id, bus_cfg.host_heartbeat_s
-    evidence = look_for_master(bus, host_id, node_ids, look_window_s(period))
+        host_id = config_bus(args, load_config(args.config)).host_node_id
+    window = say_look(args, bus.channel_info)
+    evidence = look_for_master(bus, host_id, node_ids, window)
     if evidence and not getattr(args, "force", False):
         raise other_master_error(f"rovercan {args.command}", evidence)
     if evidence:
@@ -369,7 +382,8 @@ def bench_driver(args: argparse.Namespace, spec: str) -> Iterator[Any]:
     bus = open_bus(args) if getattr(args, "interface", None) else None
     driver = MotorDriver(config, {config.buses[0].name: bus} if bus is not None else None)
     try:
-        driver.start(take_over=bool(getattr(args, "force", False)))
+        look = say_look(args, f"bus {config.buses[0].name}") if hasattr(args, "look") else None
+        driver.start(take_over=bool(getattr(args, "force", False)), look_s=look)
         yield driver.drive(config.drives[0].name)
     finally:
         driver.close()  # quick stop + disable: the bench never leaves a drive armed by accident
