@@ -37,7 +37,10 @@ def load_incident(path: Path | str) -> dict[str, Any]:
         summary = json.loads(read_text_file(json_path, "incident summary", "give the .json of an incident",
                                             max_bytes=SUMMARY_MAX_BYTES))
     except json.JSONDecodeError as err:
-        raise ConfigError(f"{json_path}: not an incident summary (invalid JSON: {err})") from err
+        raise ConfigError(f"{json_path}: not an incident summary (invalid JSON: {err.msg}, line {err.lineno})") from err
+    except (RecursionError, ValueError) as err:  # nesting past the parser's depth; a 5,000-digit number
+        raise ConfigError(f"{json_path}: not an incident summary (it nests deeper, or holds longer numbers, than"
+                          " any summary the flight recorder writes); give a .json the flight recorder wrote") from err
     if not isinstance(summary, dict) or summary.get("format") != FORMAT:
         raise ConfigError(f"{json_path}: not a rovercan incident summary (format {FORMAT!r} expected);"
                           " give a .json the flight recorder wrote")

@@ -24,6 +24,16 @@ from can_config.textfile import read_text_file
 logger = logging.getLogger(__name__)
 
 TEXT_RECORDINGS = (".asc", ".csv", ".log", ".trc", ".txt")
+#: A recording holds at most this many frames (about 1 GB of python-can messages): a bench or
+#: incident recording is far smaller; past it, split the file (python -m can.logconvert).
+FRAMES_MAX = 2_000_000
+#: One BLF container inflates to at most this much: python-can writes 128 KiB containers, Vector
+#: tools about that; a container that inflates past it is a zip bomb or damage.
+BLF_CONTAINER_MAX = 16 * 1024 * 1024
+_BLF_FILE_HEADER = struct.Struct("<4sL")
+_BLF_OBJ_HEADER = struct.Struct("<4sHHLL")  # LOBJ, header size, version, object size, object type
+_BLF_LOG_CONTAINER = 10
+_BLF_ZLIB = 2
 #: What python-can's readers raise on a damaged file (a truncated or bit-flipped BLF, a .db that
 #: is no database, a text line that does not parse).
 RECORDING_ERRORS: tuple[type[BaseException], ...] = (
@@ -76,6 +86,55 @@ def _hint(file: Path, suffix: str) -> str:
     return ""
 
 
+def blf_problem(file: Path) -> str | None:
+    """What makes a BLF file unsafe to hand to python-can's reader, which trusts every size in
+    it: an object larger than what is left of the file (it would read, and allocate, that much),
+    or a container that inflates past BLF_CONTAINER_MAX (checked by inflating it, bounded: the
+    size it declares may lie). None when it is sound."""
+    size = file.stat().st_size
+    with file.open("rb") as blf:
+        head = blf.read(_BLF_FILE_HEADER.size)
+        if len(head) < _BLF_FILE_HEADER.size or head[:4] != b"LOGG":
+            return "it does not start as a BLF file (LOGG)"
+        pos = _BLF_FILE_HEADER.unpack(head)[1]
+        while pos < size:
+            blf.seek(pos)
+            base = blf.read(_BLF_OBJ_HEADER.size)
+            if len(base) < _BLF_OBJ_HEADER.size:
+                return None  # a truncated tail: python-can stops there
+            signature, _, _, obj_size, obj_type = _BLF_OBJ_HEADER.unpack(base)
+            if signature != b"LOBJ" or obj_size < _BLF_OBJ_HEADER.size or pos + obj_size > size:
+                return f"an object at byte {pos} claims {obj_size} bytes, past the end of the file"
+            if obj_type == _BLF_LOG_CONTAINER:
+                body = blf.read(obj_size - _BLF_OBJ_HEADER.size)
+                if len(body) >= 16 and int.from_bytes(body[:2], "little") == _BLF_ZLIB:
+                    inflate = zlib.decompressobj()
+                    try:
+                        inflate.decompress(body[16:], BLF_CONTAINER_MAX)
+                    except zlib.error:
+                        return f"the container at byte {pos} does not inflate (damaged)"
+                    if inflate.unconsumed_tail:
+                        return (f"the container at byte {pos} inflates past {BLF_CONTAINER_MAX // (1024 * 1024)} MiB"
+                                " (a zip bomb, or damage)")
+            pos += obj_size + obj_size % 4
+    return None
+
+
+def _sqlite_problem(file: Path) -> str | None:
+    """python-can reads the table ``messages``; a view of that name may never end (a recursive
+    one), so only a table is read."""
+    try:
+        with sqlite3.connect(f"file:{file}?mode=ro", uri=True) as db:
+            row = db.execute("SELECT type FROM sqlite_master WHERE name = 'messages'").fetchone()
+    except sqlite3.Error as err:
+        return f"not a database python-can reads ({err})"
+    if row is None:
+        return "no table 'messages' (python-can's sqlite recordings have one)"
+    if row[0] != "table":
+        return f"'messages' is a {row[0]}, not a table: only a table is read (a view may never end)"
+    return None
+
+
 def read_recording(path: str) -> list[can.Message]:
     """Every frame of a recording, or :class:`ConfigError` naming the file and what is wrong."""
     file = Path(path)
@@ -88,9 +147,17 @@ def read_recording(path: str) -> list[can.Message]:
         raise ConfigError(f"{path}: no such recording (or not a regular file)")
     if suffix in TEXT_RECORDINGS:
         read_text_file(file, "recording", "give a recording", max_bytes=None)  # binary or UTF-16 content is named
+    unsafe = blf_problem(file) if suffix == ".blf" else _sqlite_problem(file) if suffix == ".db" else None
+    if unsafe:
+        raise ConfigError(f"{path}: not read: {unsafe}")
+    frames: list[can.Message] = []
     try:
         with readers[suffix](path) as reader:
-            frames = list(reader)
+            for msg in reader:
+                if len(frames) == FRAMES_MAX:
+                    raise ConfigError(f"{path}: more than {FRAMES_MAX:,} frames; split it first"
+                                      " (python -m can.logconvert) or give a shorter recording")
+                frames.append(msg)
     except NotImplementedError as err:  # a reader whose optional package is missing (.mf4: asammdf)
         raise ConfigError(f"{path}: python-can cannot read {suffix} files here ({err})") from err
     except RECORDING_ERRORS as err:

@@ -70,6 +70,22 @@ class _StrictLoader(yaml.SafeLoader):
     (PyYAML follows YAML 1.1, where those are strings)."""
 
 
+#: No config value needs a number longer than this (digits and signs); a longer one is refused
+#: with its line before Python converts it (past 4300 digits it raised ValueError with a traceback).
+NUMBER_MAX_CHARS = 40
+
+
+def _number_of_a_sane_length(loader: _StrictLoader, node: yaml.ScalarNode) -> Any:
+    if len(str(node.value)) > NUMBER_MAX_CHARS:
+        raise ConstructorError(None, None, f"a number of {len(str(node.value))} characters; no config value needs more"
+                               f" than {NUMBER_MAX_CHARS}", node.start_mark)
+    return (loader.construct_yaml_int if node.tag.endswith(":int") else loader.construct_yaml_float)(node)
+
+
+_StrictLoader.add_constructor("tag:yaml.org,2002:int", _number_of_a_sane_length)
+_StrictLoader.add_constructor("tag:yaml.org,2002:float", _number_of_a_sane_length)
+
+
 #: YAML 1.2's floats with an exponent that YAML 1.1 lacks (no dot, or an unsigned exponent).
 EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$")
 _StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", EXPONENT_FLOAT, list("-+.0123456789"))

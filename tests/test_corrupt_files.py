@@ -208,3 +208,43 @@ def test_a_wrong_typed_field_is_named(tmp_path: Path) -> None:
     code, stderr = cli("incident", str(json_path))
     assert code == 2
     assert "events[0].code is '0x2310', not int or null" in stderr, stderr
+
+
+def hostile_files(tmp: Path) -> dict[str, Path]:
+    """Files made to hurt a reader that trusts them (issue 39): an sqlite `messages` view that
+    never ends, a BLF container that inflates to 64 MiB, a BLF object that claims 3 GB, a config
+    with a 5,000-digit number, an incident nested 200,000 deep."""
+    import sqlite3
+    import struct
+    import zlib
+
+    out = {name: tmp / name for name in ("view.db", "bomb.blf", "lie.blf", "bignumber.yaml", "deep.json")}
+    with sqlite3.connect(out["view.db"]) as db:
+        db.execute("CREATE VIEW messages AS WITH RECURSIVE n(x) AS (SELECT 1 UNION ALL SELECT x + 1 FROM n)"
+                   " SELECT x AS ts, 1 AS arbitration_id, 0 AS extended, 0 AS remote, 0 AS error, 0 AS dlc,"
+                   " x'' AS data FROM n")
+    head = struct.pack("<4sL", b"LOGG", 144) + bytes(136)
+    inflated = 64 * 1024 * 1024
+    body = struct.pack("<H6xL4x", 2, inflated) + zlib.compress(bytes(inflated), 9)
+    bomb = struct.pack("<4sHHLL", b"LOBJ", 16, 1, 16 + len(body), 10) + body
+    out["bomb.blf"].write_bytes(head + bomb + bytes(len(bomb) % 4))
+    out["lie.blf"].write_bytes(head + struct.pack("<4sHHLL", b"LOBJ", 16, 1, 3_000_000_000, 10) + bytes(32))
+    out["bignumber.yaml"].write_text("buses: [{name: can0, interface: socketcand, channel: can0}]\n"
+                                     f"drives:\n  - {{name: m, node_id: {'9' * 5000}}}\n")
+    out["deep.json"].write_text('{"format": ' + "[" * 200_000 + "]" * 200_000 + "}")
+    return out
+
+
+@pytest.mark.parametrize(("name", "command", "says"), [
+    ("view.db", "decode", "is a view, not a table"), ("view.db", "replay", "is a view, not a table"),
+    ("bomb.blf", "decode", "inflates past 16 MiB"), ("lie.blf", "decode", "claims 3000000000 bytes"),
+    ("bignumber.yaml", "check", "a number of 5000 characters"), ("deep.json", "incident", "nests deeper")])
+def test_a_hostile_file_is_one_line_and_read_no_further(tmp_path: Path, name: str, command: str, says: str) -> None:
+    """Each is refused before its reader runs away (a view never ends; a bomb or a size lie
+    allocates gigabytes; Python's int and JSON parsers raise their own errors): one line, exit 2."""
+    path = hostile_files(tmp_path)[name]
+    argv = {"decode": ["decode", str(path)], "replay": ["replay", str(path), *NO_BUS],
+            "check": ["check", "--config", str(path)], "incident": ["incident", str(path)]}[command]
+    code, err = cli(*argv)
+    assert_one_clear_line(code, err, path)
+    assert says in err, err
