@@ -128,3 +128,68 @@ def test_the_driver_s_cyclic_job_is_never_taken_for_idle(monkeypatch: pytest.Mon
             task.stop()
             for sock in held:
                 sock.close()
+
+
+def test_echoing_clients_give_way_to_a_newcomer() -> None:
+    """64 connections that hold every slot and say '< echo >' over and over (the attack: one
+    echo every 20 s held every slot for ever): an echo is no frame and no command, so once the
+    idle time has passed a newcomer gets a slot, and an echoer gives way."""
+    idle_s = 0.5
+    with BusEngine() as engine, SocketcandServer(engine, port=0, channels=("can0",), idle_timeout_s=idle_s) as srv:
+        held = [hostile(srv.port, "raw") for _ in range(DEFAULT_MAX_CLIENTS)]
+        try:
+            wait_for(lambda: len(srv.clients) == DEFAULT_MAX_CLIENTS, 5.0, "every slot taken")
+            deadline = time.monotonic() + 10.0  # a hang, not a timing claim
+            while True:
+                for sock in held:  # echo, echo: keeping every connection "heard"
+                    try:
+                        sock.sendall(b"< echo >")
+                    except OSError:
+                        pass  # this one was given away already
+                with socket.create_connection(("127.0.0.1", srv.port), timeout=2.0) as newcomer:
+                    if newcomer.recv(64).startswith(b"< hi >"):
+                        break
+                assert time.monotonic() < deadline, "no slot ever freed from the echoing clients"
+                time.sleep(0.05)  # the echoes' pace
+            assert srv.idle_closed >= 1
+        finally:
+            for sock in held:
+                sock.close()
+
+
+def job_socket(port: int) -> socket.socket:
+    sock = socket.create_connection(("127.0.0.1", port), timeout=2.0)
+    sock.recv(64)  # < hi >
+    sock.sendall(b"< open can0 >")
+    sock.recv(64)  # < ok >
+    return sock
+
+
+def add(sock: socket.socket, can_id: int, period_us: int) -> bytes:
+    """'< add >' a job; what the server answers within 0.3 s (nothing: accepted)."""
+    sock.sendall(f"< add 0 {period_us} {can_id:X} 1 00 >".encode())
+    sock.settimeout(0.3)
+    try:
+        return sock.recv(256)
+    except TimeoutError:
+        return b""
+
+
+def test_a_clients_cyclic_jobs_have_a_frame_rate_budget() -> None:
+    """The cyclic jobs of one client send at most 2,000 frames a second together (a quarter of
+    a 1 Mbit/s bus): 65,536 one-second jobs, or 1,000 jobs at 0.5 ms, starved another client's
+    SYNC. Past the budget a job is refused with what it would cost; another client keeps its own."""
+    with BusEngine() as engine, SocketcandServer(engine, port=0, channels=("can0",)) as srv:
+        greedy, other = job_socket(srv.port), job_socket(srv.port)
+        try:
+            assert add(greedy, 0x100, 1000) == b""  # 1,000 frames/s
+            assert add(greedy, 0x101, 1000) == b""  # 2,000 frames/s: the budget
+            refused = add(greedy, 0x102, 1000)
+            assert b"would send 3000 frames/s, over its 2000" in refused, refused
+            assert add(greedy, 0x101, 2000) == b""  # replacing a job counts its new period only: 1,500
+            assert add(greedy, 0x103, 2000) == b""  # 2,000 again
+            assert add(other, 0x080, 1000) == b""  # another client's SYNC has a budget of its own
+            assert b"over its 2000" in add(greedy, 0x104, 500)  # 0.5 ms: 2,000 frames/s by itself
+        finally:
+            greedy.close()
+            other.close()

@@ -45,6 +45,10 @@ CLIENT_ERROR_LIMIT = 100
 #: After the rawmode '< ok >', frames wait this long (or until the client speaks) so that the
 #: reply reaches the client's handshake read on its own.
 RAWMODE_HOLD_S = 0.05
+#: Cyclic job commands ('< add >', '< update >', '< delete >') one client may give per second, in
+#: bursts of up to as many: past it the client's own reader waits, so a flood of commands (8 MB
+#: of '< add >' replacing one job) slows that client, not the server's timer and other clients.
+JOB_COMMANDS_PER_S = 1_000.0
 #: Linux's SO_TIMESTAMPNS (the socket module does not name it): each read carries the time its
 #: data reached the socket, which is when the client's frame reached the bus. A frame is stamped
 #: with it, as a CAN controller stamps a frame on the wire, not with the moment this server's
@@ -174,6 +178,10 @@ class Client:
         self._spoke = threading.Event()
         self._arrival = 0.0  # when the newest read reached the socket; the reader's own
         self.last_heard = time.monotonic()  # written by the reader, read by the accept loop
+        # the last frame or command other than an echo (reader), read by the accept loop: an echo
+        # every few seconds keeps a connection open but is no use of the bus
+        self.last_active = self.last_heard
+        self._job_tokens, self._job_tokens_at = JOB_COMMANDS_PER_S, self.last_heard  # the reader's
         _stamp_arrivals(sock)
         name = f"{addr[0]}:{addr[1]}"
         self.reader = threading.Thread(target=self._read_loop, daemon=True, name=f"socketcand-rx-{name}")
@@ -301,6 +309,8 @@ class Client:
             self._error("empty command")
             return
         cmd = words[0]
+        if cmd != "echo":  # an echo keeps the connection, but is no use of the bus
+            self.last_active = time.monotonic()
         if cmd == "send" and self.channel is not None:
             try:
                 msg = parse_send(line)
@@ -328,9 +338,20 @@ class Client:
         elif cmd == "echo":
             self._reply("< echo >")
         elif cmd in ("add", "update", "delete") and self.channel is not None:
+            self._pace_job_commands()
             self._cyclic(cmd, words, line)
         else:
             self._error("unknown command")
+
+    def _pace_job_commands(self) -> None:
+        """Reader: a token per job command, JOB_COMMANDS_PER_S of them a second; none left: wait."""
+        now = time.monotonic()
+        self._job_tokens = min(JOB_COMMANDS_PER_S, self._job_tokens + (now - self._job_tokens_at) * JOB_COMMANDS_PER_S)
+        self._job_tokens_at = now
+        if self._job_tokens < 1.0:
+            self._closed.wait((1.0 - self._job_tokens) / JOB_COMMANDS_PER_S)
+            self._job_tokens, self._job_tokens_at = 1.0, time.monotonic()
+        self._job_tokens -= 1.0
 
     def _cyclic(self, cmd: str, words: list[str], line: str) -> None:
         jobs = self.server.cyclic

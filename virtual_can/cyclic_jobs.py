@@ -32,6 +32,12 @@ MAX_CYCLIC_PERIOD_S = 3600.0
 #: Cyclic jobs one client may hold, and all clients together (a job is about 600 bytes).
 CYCLIC_JOBS_PER_CLIENT = 65_536
 CYCLIC_JOBS_TOTAL = 131_072
+#: Frames per second the cyclic jobs of one client may send together, and of all clients: a
+#: 1 Mbit/s bus carries about 8,000 frames a second (8 data bytes), so no one client takes more
+#: than a quarter of a bus, and the timer is never asked for more than a bus carries. Within
+#: them one client's jobs cannot delay another's beyond a few frames' time.
+CYCLIC_RATE_PER_CLIENT = 2_000.0
+CYCLIC_RATE_TOTAL = 8_000.0
 #: Periods whose phase is remembered (jobs of one period share a wake-up).
 PHASES_MAX = 4096
 #: The cyclic timer spins to each due time for at most / at least this long (see CyclicJobs):
@@ -49,6 +55,7 @@ HARD_SPIN_S = 0.00015
 
 @dataclass(eq=False)
 class _CyclicJob:
+    owner: object
     channel: Channel
     msg: can.Message
     period_s: float
@@ -71,7 +78,9 @@ class CyclicJobs:
     of idle jobs: 50,000 one-hour jobs of one client do not delay another's 10 ms SYNC
     (benchmarks/cyclic_jobs.py). A deleted or rescheduled job leaves its old entry behind, skipped
     when it surfaces; the heap is rebuilt when such entries outnumber the live ones. A client
-    holds at most ``max_per_client`` jobs, the server ``max_total``.
+    holds at most ``max_per_client`` jobs sending ``rate_per_client`` frames/s together, the
+    server ``max_total`` and ``rate_total``; a job added is woken for only when it is due before
+    the one the timer waits for (a flood of adds does not keep waking the timer).
 
     A timed wait in Python wakes 0.2-1 ms late on a loaded machine, so the thread wakes that
     much early (the longest recent lateness, doubled, at most ``SPIN_MAX_S``, or
@@ -81,9 +90,14 @@ class CyclicJobs:
     Thread rules: every field is guarded by ``_cond``; the timer thread sends outside it.
     """
 
-    def __init__(self, max_per_client: int = CYCLIC_JOBS_PER_CLIENT, max_total: int = CYCLIC_JOBS_TOTAL) -> None:
+    def __init__(self, max_per_client: int = CYCLIC_JOBS_PER_CLIENT, max_total: int = CYCLIC_JOBS_TOTAL,
+                 rate_per_client: float = CYCLIC_RATE_PER_CLIENT, rate_total: float = CYCLIC_RATE_TOTAL) -> None:
         self._jobs: dict[tuple[object, int], _CyclicJob] = {}
         self._by_owner: dict[object, set[int]] = {}
+        self._rate: dict[object, float] = {}  # frames/s of each owner's jobs
+        self._last_sent: dict[object, float] = {}  # when each owner's jobs last sent a frame (monotonic)
+        self.rate_per_client = rate_per_client
+        self.rate_total = rate_total
         self._heap: list[tuple[float, int, _CyclicJob]] = []
         self._seq = itertools.count()
         self._phase: dict[float, float] = {}  # period -> the due time of its first job
@@ -104,27 +118,36 @@ class CyclicJobs:
         """Raises :class:`CyclicJobError` over a limit (a job replaced does not count)."""
         with self._cond:
             key = (owner, msg.arbitration_id)
-            if key not in self._jobs:
+            old = self._jobs.get(key)
+            if old is None:
                 if len(self._by_owner.get(owner, ())) >= self.max_per_client:
                     raise CyclicJobError(f"too many cyclic jobs (this client has {self.max_per_client})")
                 if len(self._jobs) >= self.max_total:
                     raise CyclicJobError(f"too many cyclic jobs (the server has {self.max_total})")
+            more = 1.0 / period_s - (1.0 / old.period_s if old is not None else 0.0)
+            mine = self._rate.get(owner, 0.0) + more
+            if mine > self.rate_per_client * (1 + 1e-9):
+                raise CyclicJobError(f"this client's cyclic jobs would send {mine:.0f} frames/s, over its"
+                                     f" {self.rate_per_client:.0f} (a 1 Mbit/s bus carries about 8000)")
+            if sum(self._rate.values()) + more > self.rate_total * (1 + 1e-9):
+                raise CyclicJobError(f"the server's cyclic jobs would send over {self.rate_total:.0f} frames/s")
+            self._rate[owner] = mine
             now = time.monotonic()
             if len(self._phase) > PHASES_MAX:  # a client inventing periods: alignment is a nicety
                 self._phase.clear()
             phase = self._phase.setdefault(period_s, now)  # same period: same phase
             due = phase + math.ceil(max(0.0, now - phase) / period_s) * period_s
-            old = self._jobs.get(key)
             if old is not None:
                 old.deleted = True
-            job = _CyclicJob(channel, msg, period_s, due)
+            job = _CyclicJob(owner, channel, msg, period_s, due)
             self._jobs[key] = job
             self._by_owner.setdefault(owner, set()).add(msg.arbitration_id)
             self._push(job)
             if self._thread is None and not self._stop:
                 self._thread = threading.Thread(target=self._run, daemon=True, name="socketcand-bcm")
                 self._thread.start()
-            self._cond.notify()
+            if self._heap[0][2] is job:  # due before what the timer waits for: wake it (else let it sleep)
+                self._cond.notify()
 
     def _push(self, job: _CyclicJob) -> None:
         job.entry = next(self._seq)
@@ -150,6 +173,7 @@ class CyclicJobs:
             if job is None:
                 return False
             job.deleted = True
+            self._rate[owner] = max(0.0, self._rate.get(owner, 0.0) - 1.0 / job.period_s)
             self._by_owner[owner].discard(can_id)
             if not self._by_owner[owner]:
                 del self._by_owner[owner]
@@ -159,10 +183,17 @@ class CyclicJobs:
         with self._cond:
             return owner in self._by_owner
 
+    def last_sent(self, owner: object) -> float:
+        """When ``owner``'s jobs last sent a frame (time.monotonic()), -inf never."""
+        with self._cond:
+            return self._last_sent.get(owner, -math.inf)
+
     def drop(self, owner: object) -> None:
         with self._cond:
             for can_id in self._by_owner.pop(owner, set()):
                 self._jobs.pop((owner, can_id)).deleted = True
+            self._rate.pop(owner, None)
+            self._last_sent.pop(owner, None)
             if not self._jobs:
                 self._heap.clear()
 
@@ -199,6 +230,7 @@ class CyclicJobs:
                     continue  # deleted or replaced meanwhile
                 job.due = due + job.period_s if now - due < job.period_s else now + job.period_s
                 self._push(job)  # its old entry is stale now, popped when it surfaces
+                self._last_sent[job.owner] = now
                 msg, channel = job.msg, job.channel
             frame = can.Message(arbitration_id=msg.arbitration_id, data=msg.data, dlc=msg.dlc,
                                 is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame)
@@ -213,6 +245,8 @@ class CyclicJobs:
             self._stop = True
             self._jobs.clear()
             self._by_owner.clear()
+            self._rate.clear()
+            self._last_sent.clear()
             self._heap.clear()
             self._cond.notify()
             thread = self._thread

@@ -52,9 +52,10 @@ DEFAULT_MAX_CLIENTS = 64
 #: A client that has not reached rawmode (nor added a cyclic job) this long after connecting is
 #: closed (idle connections would otherwise hold every client slot).
 HANDSHAKE_TIMEOUT_S = 5.0
-#: With every slot taken, a new client gets the slot of the client silent longest, when that
-#: one has sent nothing (no frame, no command, no echo) for this long: longer than any idle of
-#: python-can's socketcand bus or of the driver's cyclic job, which says ``< echo >`` every 10 s.
+#: With every slot taken, a new client gets the slot of the client idle longest, when that one
+#: has sent no frame and no command for this long, nor its cyclic jobs a frame: an ``< echo >``
+#: keeps a connection open but does not hold a slot against a newcomer (64 clients echoing every
+#: 20 s held every slot for ever). The driver's SYNC job sends every period: never idle.
 IDLE_TIMEOUT_S = 60.0
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
@@ -134,16 +135,17 @@ class SocketcandServer:
         client.start()
 
     def _free_an_idle_slot(self, newcomer: tuple[str, int]) -> bool:
-        """Slots full: close the client silent longest, if silent for ``idle_timeout_s`` (in
-        rawmode or BCM mode alike: a connection that only holds a slot, or a cyclic job, and
-        never speaks)."""
+        """Slots full: close the client idle longest (no frame and no command but echoes, and no
+        frame of its cyclic jobs), if idle for ``idle_timeout_s`` (see IDLE_TIMEOUT_S)."""
         now = time.monotonic()
         with self._lock:
-            idle = max(self._clients, key=lambda c: now - c.last_heard, default=None)
-        if idle is None or now - idle.last_heard < self.idle_timeout_s:
+            clients = list(self._clients)
+        idle_s = {c: now - max(c.last_active, self.cyclic.last_sent(c)) for c in clients}
+        idle = max(clients, key=idle_s.__getitem__, default=None)
+        if idle is None or idle_s[idle] < self.idle_timeout_s:
             return False
-        logger.info("slots full: closing client %s (silent for %.0f s) to admit %s", idle.addr,
-                    now - idle.last_heard, newcomer)
+        logger.info("slots full: closing client %s (no frame or command for %.0f s) to admit %s", idle.addr,
+                    idle_s[idle], newcomer)
         idle.close()
         self.idle_closed += 1
         return True
