@@ -5,7 +5,12 @@ the driver uses it) runs a 10 ms SYNC on a connection of its own; a listener rea
 the server's timestamps (stamped when the timer sent each frame) and the figure is the p99 of
 ``|period - 10 ms|``, with no idle jobs and with N. Target: under 1 ms with 50,000.
 
-``python benchmarks/cyclic_jobs.py [--jobs N] [--seconds S]`` prints the figures as JSON.
+``--attack`` measures the victim's SYNC (frames received of those due, period error p99) beside
+each attack of issue 39: one client asking for 65,536 one-second jobs, or 1,000 at 0.5 ms (both
+now refused past the client's frame-rate budget), and one flooding '< add >' lines that replace
+a single job (paced per client). Target: the victim gets at least 99 % of its SYNC frames.
+
+``python benchmarks/cyclic_jobs.py [--jobs N] [--seconds S] [--attack]`` prints the figures as JSON.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import socket
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -88,6 +94,73 @@ def sync_error_p99_ms(port: int, seconds: float) -> dict[str, float]:
             "frames": float(len(stamps)), "expected": seconds / SYNC_PERIOD_S}
 
 
+def _drain(sock: socket.socket, stop: threading.Event) -> None:
+    """Read (and drop) the server's answers, so that its replies never back up."""
+    sock.settimeout(0.2)
+    while not stop.is_set():
+        try:
+            if not sock.recv(65536):
+                return
+        except TimeoutError:
+            continue
+        except OSError:
+            return
+
+
+def _attack(port: int, kind: str, stop: threading.Event) -> list[threading.Thread]:
+    """The hostile client of ``kind``: 'many' (65,536 one-second jobs), 'fast' (1,000 jobs at
+    0.5 ms) or 'flood' ('< add >' replacing one job, as fast as the socket takes it)."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    _reply(sock, b"< hi >")
+    sock.sendall(b"< open can0 >")
+    _reply(sock, b"< ok >")
+
+    def send() -> None:
+        try:
+            if kind == "flood":
+                line = b"< add 0 10000 1FFFFFFF 1 00 >" * 1000
+                while not stop.is_set():
+                    sock.sendall(line)
+                return
+            n, period = (65_536, "1 0") if kind == "many" else (1_000, "0 500")
+            for start in range(0, n, 1000):
+                sock.sendall(b"".join(f"< add {period} {0x1000_0000 + i:08X} 1 00 >".encode()
+                                      for i in range(start, min(n, start + 1000))))
+            stop.wait()
+        except OSError:
+            pass
+        finally:
+            sock.close()
+
+    threads = [threading.Thread(target=send, daemon=True), threading.Thread(target=_drain, args=(sock, stop), daemon=True)]
+    for thread in threads:
+        thread.start()
+    return threads
+
+
+def measure_attacks(seconds: float = 10.0) -> dict[str, Any]:
+    """The victim's SYNC beside each attack, the bus server alone in its own process."""
+    out: dict[str, Any] = {}
+    for kind in ("many", "fast", "flood"):
+        child = subprocess.Popen([sys.executable, __file__, "--serve"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True)
+        stop = threading.Event()
+        try:
+            assert child.stdout is not None
+            port = int(child.stdout.readline())
+            threads = _attack(port, kind, stop)
+            time.sleep(1.0)  # the attack under way
+            victim = sync_error_p99_ms(port, seconds)
+            stop.set()
+            for thread in threads:
+                thread.join(10.0)
+        finally:
+            child.communicate(timeout=30)
+        out[f"attack_{kind}_sync_frames_fraction"] = round(victim["frames"] / victim["expected"], 3)
+        out[f"attack_{kind}_sync_error_p99_ms"] = round(victim["p99"], 3)
+    return out
+
+
 def measure(jobs: int = IDLE_JOBS, seconds: float = 10.0) -> dict[str, Any]:
     sys.path.insert(0, str(REPO))
     child = subprocess.Popen([sys.executable, __file__, "--serve"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
@@ -117,11 +190,12 @@ def main() -> int:
     parser.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--jobs", type=int, default=IDLE_JOBS)
     parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--attack", action="store_true", help="the victim's SYNC beside each attack instead")
     args = parser.parse_args()
     if args.serve:
         serve()
         return 0
-    print(json.dumps(measure(args.jobs, args.seconds), indent=2))
+    print(json.dumps(measure_attacks(args.seconds) if args.attack else measure(args.jobs, args.seconds), indent=2))
     return 0
 
 

@@ -185,6 +185,17 @@ def match_latencies(listeners: dict[str, Any], sent: dict[tuple[str, int, int], 
     return latencies, by_order, published_at, matched
 
 
+def profiler(pid: int, seconds: float) -> subprocess.Popen[bytes] | None:
+    """With $ROVERCAN_PROFILE=FILE.svg: py-spy samples the measured process (native frames too)
+    for the measured window and writes a flame graph there (issue 43's profile). Without: None."""
+    out = os.environ.get("ROVERCAN_PROFILE")
+    if not out:
+        return None
+    return subprocess.Popen([str(Path(sys.executable).parent / "py-spy"), "record", "--pid", str(pid), "--rate", "250",
+                             "--native", "--nonblocking", "--duration", str(max(1, int(seconds))), "--output", out],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
 def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str, Any]:
     """The measured process runs a shipped config as a user gets it; only the simulator's port
     is put into it. Every drive gets a ``degree_cmd`` at ``command_hz`` (0.1 % slow: below)."""
@@ -243,6 +254,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
             time.sleep(0.5)
             sent: dict[tuple[str, int, int], list[float]] = {}
             cpu0, wall0 = proc_cpu_s(proc.pid), time.monotonic()
+            spy = profiler(proc.pid, seconds)
             window0 = time.time()
             # the command clock runs 0.1 % slow: over each 10 s the bursts pass once through every
             # phase of the SYNC period. At exactly the SYNC's rate one run would see one phase only
@@ -260,6 +272,8 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
                 next_t += period
                 time.sleep(max(0.0, next_t - time.monotonic()))
             cpu = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
+            if spy is not None:
+                spy.wait(60)
             sync_timer_realtime = fifo_thread_count(SIM_PIDS[-1]) > 0
             window1 = time.time()
             rss = proc_rss_peak_mb(proc.pid)
