@@ -221,8 +221,7 @@ def _run(stop: StopSignal) -> int:
     try:
         hot = runtime.make_executor(executor_kind)
         config = load_config(path)
-        driver = MotorDriver(config)
-        driver.start()
+        driver = MotorDriver(config)  # buses opened, drives made: nothing sent, no heartbeat yet
     except RovercanError as err:
         print(f"rover_driver: {err}", file=sys.stderr)
         rclpy.try_shutdown()
@@ -233,6 +232,9 @@ def _run(stop: StopSignal) -> int:
     goals: runtime.SpinThread | None = None
     handler = None
     try:
+        # every ROS entity first: making them holds the interpreter (rclpy's C++ under the GIL) for
+        # up to a second on a slow machine, and once the driver has started, its heartbeat must not
+        # wait (the drives' 150 ms host watch tripped in 2 of 10 launches of the shipped rover)
         node = DriverNode(driver)
         nodes.append(node)
         handler = bridge_core_logging(node)
@@ -248,11 +250,20 @@ def _run(stop: StopSignal) -> int:
         for n in nodes:
             hot.add_node(n)
         nodes += [services, stop_services, actions]
+        heap.settle()  # the nodes are built: what exists now lives as long as the process (a full
+        # collection stops every thread, so it comes before the heartbeat starts)
+        try:
+            driver.start()  # look for another master, boot every drive: the host watch is armed now
+        except RovercanError as err:
+            print(f"rover_driver: {err}", file=sys.stderr)
+            return 2
+        node.get_logger().info(f"{len(driver.drives)} drive(s) on {len(config.buses)} bus(es) booted; "
+                               + ("arming them" if node.get_parameter("arm").value else
+                                  "not armed: call /arm (std_srvs/Trigger) or launch with arm:=true"))
         cold = runtime.spin_alone(services, "rovercan-services")
         stops = runtime.spin_alone(stop_services, "rovercan-stops")
         goals = runtime.spin_alone(actions, "rovercan-actions")
         node.arm_if_asked()
-        heap.settle()  # the nodes are built: what exists now lives as long as the process
         runtime.spin_until(hot, stop.event)
     finally:
         # order: drives safe first (a service blocked on a drive then fails fast), then the
