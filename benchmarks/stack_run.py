@@ -186,13 +186,17 @@ def match_latencies(listeners: dict[str, Any], sent: dict[tuple[str, int, int], 
 
 
 def profiler(pid: int, seconds: float) -> subprocess.Popen[bytes] | None:
-    """With $ROVERCAN_PROFILE=FILE.svg: py-spy samples the measured process (native frames too)
-    for the measured window and writes a flame graph there (issue 43's profile). Without: None."""
+    """With $ROVERCAN_PROFILE=FILE.svg (a flame graph) or FILE.txt (collapsed stacks): py-spy
+    samples the measured process 250 times a second for the measured window, only the thread that
+    holds the interpreter (--gil: where its CPU goes, not where threads wait), without pausing it
+    (issue 43's profile). Without: None."""
     out = os.environ.get("ROVERCAN_PROFILE")
     if not out:
         return None
+    fmt = "raw" if out.endswith(".txt") else "flamegraph"  # .txt: collapsed stacks, to rank the entries
     return subprocess.Popen([str(Path(sys.executable).parent / "py-spy"), "record", "--pid", str(pid), "--rate", "250",
-                             "--native", "--nonblocking", "--duration", str(max(1, int(seconds))), "--output", out],
+                             "--gil", "--nonblocking", "--duration", str(max(1, int(seconds))), "--format", fmt,
+                             "--output", out],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 

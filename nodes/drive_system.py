@@ -136,6 +136,8 @@ class DriveSystemNode(Node):
             return sum(math.radians(d.snapshot().velocity_deg_s) for d in drives) / len(drives)
 
         pose, twist = self.steer.odometry(mean_rad_s(self.left), mean_rad_s(self.right), dt)
+        if self._odom_pub.get_subscription_count() == 0:
+            return  # integrated all the same; built and published only for a reader
         odom = Odometry()
         stamp_header(odom.header, time.time())
         odom.header.frame_id = self._odom_frame

@@ -144,23 +144,35 @@ class DriverNode(Node):
 
     # --------------------------------------------------------------------- publishing
     def _publish_states(self) -> None:
+        """MotorState per joint, /motor_state and /joint_states: each built and published only
+        while something subscribes (a message nobody reads was a fifth of the node's interpreter
+        time in the six-drive profile, docs/performance.md)."""
         try:
+            joints = self._joint_pub.get_subscription_count() > 0
             joint = JointState()
             newest = 0.0
             for name, drive in self.driver.drives.items():
+                mine = self._state_pubs[name].get_subscription_count() > 0
+                demo = name == self._default and self._demo_state_pub.get_subscription_count() > 0
+                if not (mine or demo or joints):
+                    continue
                 state = drive.snapshot()
-                msg = fill_motor_state(self._states[name], state, drive.config.is_continuous)
-                self._state_pubs[name].publish(msg)
-                if name == self._default:
-                    self._demo_state_pub.publish(msg)
-                joint.name.append(name)
-                stale = math.nan if state.stale else 1.0  # stale joints: NaN, not the last values again
-                joint.position.append(math.radians(state.angle_deg) * stale)
-                joint.velocity.append(math.radians(state.velocity_deg_s) * stale)
-                joint.effort.append(state.torque_nm * stale)
-                newest = max(newest, state.stamp)
-            stamp_header(joint.header, newest or time.time())
-            self._joint_pub.publish(joint)
+                if mine or demo:
+                    msg = fill_motor_state(self._states[name], state, drive.config.is_continuous)
+                    if mine:
+                        self._state_pubs[name].publish(msg)
+                    if demo:
+                        self._demo_state_pub.publish(msg)
+                if joints:
+                    joint.name.append(name)
+                    stale = math.nan if state.stale else 1.0  # stale joints: NaN, not the last values again
+                    joint.position.append(math.radians(state.angle_deg) * stale)
+                    joint.velocity.append(math.radians(state.velocity_deg_s) * stale)
+                    joint.effort.append(state.torque_nm * stale)
+                    newest = max(newest, state.stamp)
+            if joints:
+                stamp_header(joint.header, newest or time.time())
+                self._joint_pub.publish(joint)
         except Exception as err:
             self.get_logger().error(f"state publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
 
