@@ -31,6 +31,7 @@ from typing import Any, TypeVar
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.executors import Executor
 from rclpy.node import Node
 from rovercan_msgs.msg import MotorState
 from sensor_msgs.msg import JointState
@@ -239,10 +240,9 @@ def _run(stop: StopSignal) -> int:
         rclpy.try_shutdown()
         return 2
     nodes: list[Node] = []
-    cold: runtime.SpinThread | None = None
-    stops: runtime.SpinThread | None = None
-    goals: runtime.SpinThread | None = None
+    spinning: list[runtime.SpinThread] = []
     handler = None
+    rc = 0
     try:
         # every ROS entity first: making them holds the interpreter (rclpy's C++ under the GIL) for
         # up to a second on a slow machine, and once the driver has started, its heartbeat must not
@@ -252,44 +252,48 @@ def _run(stop: StopSignal) -> int:
         handler = bridge_core_logging(node)
         if config.drive_system is not None and node.get_parameter("drive_system").value:
             nodes.append(DriveSystemNode(driver, config, node.refusals))
-        services = DriverServicesNode(driver)
-        stop_services = DriverStopsNode(driver)
-        actions = DriverActionsNode(driver)
+        waiting = (DriverServicesNode(driver), DriverStopsNode(driver), DriverActionsNode(driver))
         # executors (measured: README): the hot one for commands, state and the drive system;
         # a cold one, on its own thread, for the services that block (enable, home); one for
         # the stops, which never queue behind those; one for the actions, whose goals are
         # coroutines (nodes/actions.py)
         for n in nodes:
             hot.add_node(n)
-        nodes += [services, stop_services, actions]
+        nodes += waiting
         heap.settle()  # the nodes are built: what exists now lives as long as the process (a full
         # collection stops every thread, so it comes before the heartbeat starts)
-        try:
-            driver.start()  # look for another master, boot every drive: the host watch is armed now
-        except RovercanError as err:
-            print(f"rover_driver: {err}", file=sys.stderr)
-            return 2
-        node.get_logger().info(f"{len(driver.drives)} drive(s) on {len(config.buses)} bus(es) booted; "
-                               + ("arming them" if node.get_parameter("arm").value else
-                                  "not armed: call /arm (std_srvs/Trigger) or launch with arm:=true"))
-        cold = runtime.spin_alone(services, "rovercan-services")
-        stops = runtime.spin_alone(stop_services, "rovercan-stops")
-        goals = runtime.spin_alone(actions, "rovercan-actions")
-        node.arm_if_asked()
-        runtime.spin_until(hot, stop.event)
+        rc = _start_and_spin(driver, node, waiting, hot, spinning, stop)
     finally:
         # order: drives safe first (a service blocked on a drive then fails fast), then the
         # service thread joined, then nodes destroyed, then the context
         driver.close()
-        joined = cold is None or cold.stop(timeout_s=SERVICE_JOIN_S)
-        joined = (stops is None or stops.stop(timeout_s=SERVICE_JOIN_S)) and joined
-        joined = (goals is None or goals.stop(timeout_s=SERVICE_JOIN_S)) and joined
+        joined = all([spin.stop(timeout_s=SERVICE_JOIN_S) for spin in spinning])  # every one stopped
         if handler is not None:
             unbridge(handler)
         if joined:  # a thread still inside rclpy must not see its node destroyed under it
             for n in nodes:
                 n.destroy_node()
         rclpy.try_shutdown()
+    return rc
+
+
+def _start_and_spin(driver: MotorDriver, node: DriverNode, waiting: tuple[Node, Node, Node], hot: Executor,
+                    spinning: list[runtime.SpinThread], stop: StopSignal) -> int:
+    """Start the driver (look for another master, boot every drive: their host watch is armed
+    from here on), the threads of the services, stops and actions, arm if asked, and spin the hot
+    executor until stopped."""
+    try:
+        driver.start()
+    except RovercanError as err:
+        print(f"rover_driver: {err}", file=sys.stderr)
+        return 2
+    node.get_logger().info(f"{len(driver.drives)} drive(s) on {len(driver.config.buses)} bus(es) booted; "
+                           + ("arming them" if node.get_parameter("arm").value else
+                              "not armed: call /arm (std_srvs/Trigger) or launch with arm:=true"))
+    for waiter, name in zip(waiting, ("rovercan-services", "rovercan-stops", "rovercan-actions"), strict=True):
+        spinning.append(runtime.spin_alone(waiter, name))
+    node.arm_if_asked()
+    runtime.spin_until(hot, stop.event)
     return 0
 
 
