@@ -17,7 +17,7 @@ from typing import Any
 import can
 
 from can_config.errors import ConfigError
-from can_config.recording import RECORDING_ERRORS, frame_problem
+from can_config.recording import RECORDING_ERRORS, blf_problem, frame_problem
 from can_config.textfile import read_text_file
 
 FORMAT = "rovercan-incident-1"
@@ -111,6 +111,11 @@ def incident_frames(path: Path | str, summary: dict[str, Any]) -> list[tuple[str
     """(bus name, frame) of the incident's BLF, in time order."""
     blf = Path(path).with_name(str(summary.get("blf") or Path(path).with_suffix(".blf").name))
     channels: dict[str, str] = summary.get("channels", {})
+    if blf.exists() and not blf.is_file():  # a FIFO would block for ever; a device or directory is no recording
+        raise ConfigError(f"{path}: the incident's frames {blf} are not a regular file; the summary is still readable"
+                          " with 'rovercan incident'")
+    if blf.is_file() and (unsafe := blf_problem(blf)):
+        raise ConfigError(f"{path}: the incident's frames {blf} are not read: {unsafe}")
     try:
         with can.BLFReader(blf) as reader:
             frames = [(channels.get(str(msg.channel), str(msg.channel)), msg) for msg in reader]

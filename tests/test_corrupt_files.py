@@ -248,3 +248,21 @@ def test_a_hostile_file_is_one_line_and_read_no_further(tmp_path: Path, name: st
     code, err = cli(*argv)
     assert_one_clear_line(code, err, path)
     assert says in err, err
+
+
+def test_an_incident_whose_frames_are_a_fifo_is_refused_not_waited_on(tmp_path: Path) -> None:
+    """`incident --scenario` opened the BLF its summary names; a FIFO there blocked for ever."""
+    import os
+
+    summary = {"format": FORMAT, "kind": "emcy", "time": "2026-11-25T00:00:00", "t": 1.0,
+               "events": [{"kind": "emcy", "t": 1.0, "bus": "can0", "node": 1, "drive": "m", "code": 0x2310,
+                           "text": "over-current"}],
+               "window_s": [0, 0], "frames": 0, "channels": {"1": "can0"}, "bus_channels": {"can0": "can0"},
+               "drives": [{"name": "m", "bus": "can0", "node_id": 1}], "config": None, "blf": "frames.blf",
+               "png": None, "states": {}}
+    path = tmp_path / "incident.json"
+    path.write_text(json.dumps(summary))
+    os.mkfifo(tmp_path / "frames.blf")
+    code, err = cli("incident", str(path), "--scenario")
+    assert_one_clear_line(code, err, path)
+    assert code == 2 and "not a regular file" in err, err
