@@ -41,6 +41,8 @@ def _setup_logging(verbose: int) -> None:
     logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
     if verbose == 0:  # the command reports failures itself, with their meaning
         logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)
+        # its receive errors carry a Python traceback in the text; receive() says it in one line
+        logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.CRITICAL)
 
 
 # ---------------------------------------------------------------------------- sim

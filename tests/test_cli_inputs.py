@@ -192,3 +192,52 @@ def test_socketcand_without_its_address_and_candump_screen_output_say_what_to_do
     assert decode.returncode == 2 and "candump -L" in decode.stderr
     for err in (scan.stderr, decode.stderr):
         assert not PYTHON_ERROR_TEXT.search(err), err
+
+
+def test_monitor_beside_a_server_that_sends_no_can_frames_says_so_in_one_line() -> None:
+    """A hostile 'socketcand' server: the handshake, then lines that are no CAN frame (a time
+    that is no number, an id that is no hex). python-can's client raised ValueError with a
+    traceback and failed on the same line at every receive."""
+    import socket
+    import threading
+
+    from .test_cli_generated import PYTHON_ERROR_TEXT
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    done = threading.Event()
+
+    def accept() -> None:  # every connection: the bench probes the server first with one of its own
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            threading.Thread(target=serve, args=(conn,), daemon=True).start()
+
+    def serve(conn: socket.socket) -> None:
+        with conn:
+            conn.sendall(b"< hi >")
+            said = b""
+            while b"rawmode" not in said:
+                chunk = conn.recv(4096)
+                if not chunk:
+                    return
+                said += chunk
+                conn.sendall(b"< ok >")
+            done.wait(1.0)  # after python-can's handshake, before the junk
+            conn.sendall(b"< frame 123 zz.zz 11 >< frame XYZ 1.5 >")
+            done.wait(30.0)
+
+    threading.Thread(target=accept, daemon=True).start()
+    try:
+        run = subprocess.run([sys.executable, "-m", "rovercan", "monitor", "-i", "socketcand", "-c", "can0",
+                              "--bus-kwargs", "host=127.0.0.1", f"port={server.getsockname()[1]}", "--seconds", "5"],
+                             cwd=REPO, capture_output=True, text=True, timeout=60)
+    finally:
+        done.set()
+        server.close()
+    assert run.returncode == 1, run.stderr
+    assert "the bus server sent what is no CAN frame" in run.stderr
+    assert "Traceback" not in run.stderr and not PYTHON_ERROR_TEXT.search(run.stderr), run.stderr

@@ -290,8 +290,14 @@ def _text(raw: bytes) -> str:
 
 def receive(bus: can.BusABC, timeout_s: float) -> can.Message | None:
     """``bus.recv`` that raises :class:`BusLostError` once the bus server has gone away (python-can's
-    socketcand client would otherwise return None forever, spinning)."""
-    msg = bus.recv(timeout_s)
+    socketcand client would otherwise return None forever, spinning), or sent a line that is no
+    CAN frame (python-can's client then fails on that line at every receive)."""
+    try:
+        msg = bus.recv(timeout_s)
+    except can.CanError as err:
+        logger.debug("receive failed: %s", err)
+        raise BusLostError(f"{bus.channel_info}: the bus server sent what is no CAN frame (or the receive failed);"
+                           " is it a socketcand server (rovercan sim, socketcand), and is it the right port?") from err
     if msg is None and connection_closed(bus):
         raise BusLostError(f"{bus.channel_info}: the bus server closed the connection; is 'rovercan sim' (or"
                            " socketcand) still running?")
