@@ -13,6 +13,7 @@ documented keys only: the left wheels on can0, the right wheels on can1, mounted
 from __future__ import annotations
 
 import json
+import math
 import re
 import signal
 import subprocess
@@ -183,8 +184,9 @@ def launched_rover(tmp_path: Path, name: str, *launch_args: str) -> Iterator[tup
     rclpy.init(context=context)
     node = rclpy.create_node(name, context=context)
     joints: dict[str, float] = {}
-    node.create_subscription(JointState, "/joint_states", lambda m: joints.update(zip(m.name, m.position, strict=False)),
-                             qos_profile_sensor_data)
+    node.create_subscription(JointState, "/joint_states", lambda m: joints.update(
+        (name, p) for name, p in zip(m.name, m.position, strict=False) if math.isfinite(p)),  # stale: NaN, skipped
+        qos_profile_sensor_data)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     spin = SpinThread(executor, f"{name}-probe")
