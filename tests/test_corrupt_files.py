@@ -266,3 +266,25 @@ def test_an_incident_whose_frames_are_a_fifo_is_refused_not_waited_on(tmp_path: 
     code, err = cli("incident", str(path), "--scenario")
     assert_one_clear_line(code, err, path)
     assert code == 2 and "not a regular file" in err, err
+
+
+def test_an_incident_of_a_hundred_thousand_events_shows_its_ends_and_says_so(tmp_path: Path) -> None:
+    """A flapping drive's summary can hold 100,000 events (laying them all out in a table took
+    43 s): the table shows the first and last 50 and says how many there are; --json has all."""
+    events = [{"kind": "emcy", "t": 1.0 + i * 1e-3, "bus": "can0", "node": 1, "drive": "m", "code": 0x2310,
+               "text": "over-current"} for i in range(100_000)]
+    summary = {"format": FORMAT, "kind": "emcy", "time": "2026-11-25T00:00:00", "t": 1.0, "events": events,
+               "window_s": [0, 0], "frames": 0, "channels": {"1": "can0"}, "bus_channels": {"can0": "can0"},
+               "drives": [{"name": "m", "bus": "can0", "node_id": 1}], "config": None, "blf": None, "png": None,
+               "states": {}}
+    path = tmp_path / "flapping.json"
+    path.write_text(json.dumps(summary))
+    out = io.StringIO()
+    with redirect_stdout(out), redirect_stderr(io.StringIO()):
+        assert main(["incident", str(path)]) == 0
+    assert out.getvalue().count("0x2310") == 100
+    assert "the first and last 50 of 100,000 events; --json gives every one" in out.getvalue()
+    full = io.StringIO()
+    with redirect_stdout(full), redirect_stderr(io.StringIO()):
+        assert main(["incident", str(path), "--json"]) == 0
+    assert len(json.loads(full.getvalue())["events"]) == 100_000

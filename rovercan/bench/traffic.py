@@ -191,6 +191,11 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------ incident
+#: An incident's table shows the first and the last this many events (a flapping drive's can
+#: have a hundred thousand: laying them all out took 43 s); --json gives every one.
+EVENTS_SHOWN = 50
+
+
 def cmd_incident(args: argparse.Namespace) -> int:
     """The summary the flight recorder wrote, or its drives' faults as a simulator scenario."""
     from can_config.incident import fault_steps, load_incident
@@ -205,15 +210,19 @@ def cmd_incident(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
+    every = summary["events"]
+    shown = every if len(every) <= 2 * EVENTS_SHOWN else every[:EVENTS_SHOWN] + every[-EVENTS_SHOWN:]
     events = [{"t_s": round(e["t"] - summary["t"], 3), "kind": e["kind"], "bus": e["bus"],
                "drive": e.get("drive") or "", "node": e.get("node") or "",
                "code": f"0x{e['code']:04X}" if e.get("code") is not None else "", "what": e.get("text", "")}
-              for e in summary["events"]]
+              for e in shown]
     print(f"incident {summary['kind']} at {summary['time']}: {summary['frames']} frames kept from"
           f" {summary['window_s'][0]:+.2f} s to {summary['window_s'][1]:+.2f} s"
           f" (buses {', '.join(summary['channels'].values())}); files: {summary['blf']}"
           f"{', ' + summary['png'] if summary.get('png') else ''}")
     emit(args, events, "events", ["t_s", "kind", "bus", "drive", "node", "code", "what"])
+    if len(shown) < len(every):
+        print(f"(the first and last {EVENTS_SHOWN} of {len(every):,} events; --json gives every one)")
     return 0
 
 
