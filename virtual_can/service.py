@@ -60,17 +60,17 @@ def served_ports(config: RoverConfig) -> list[ServedPort]:
     """The servers a twin of ``config`` needs: one per distinct socketcand port of its buses (a
     bus without one is served on the default port), each with its buses' channels and drives."""
     specs = specs_from_config(config)
-    port_of = {bus.name: int(bus.kwargs.get("port", DEFAULT_PORT)) for bus in config.buses}
     by_port: dict[int, list[str]] = {}
     for bus in config.buses:
-        port = port_of[bus.name]
+        port = int(bus.kwargs.get("port", DEFAULT_PORT))
         if bus.channel in by_port.setdefault(port, []):
             raise ConfigError(f"{config.source or 'config'}: two buses on port {port} share channel {bus.channel!r};"
                               " give each bus of one port a channel of its own")
         by_port[port].append(bus.channel)
     served = []
     for port, channels in by_port.items():
-        mine = tuple(s for s, d in zip(specs, config.drives, strict=True) if port_of[d.bus] == port)
+        mine = tuple(s for s, d in zip(specs, config.drives, strict=True)
+                     if int(config.bus(d.bus).kwargs.get("port", DEFAULT_PORT)) == port)
         served.append(ServedPort(port, tuple(channels), mine))
     return served
 

@@ -82,11 +82,6 @@ NO_BUS = ("no bus given: pass -i INTERFACE -c CHANNEL (e.g. -i socketcan -c can0
           " --bus-kwargs host=127.0.0.1 port=29536) or --config FILE")
 
 
-def names_bus(wanted: str, bus: BusConfig) -> bool:
-    """-c/--channel with --config names a bus by its name or its channel."""
-    return wanted in (bus.name, bus.channel)
-
-
 def config_bus(args: argparse.Namespace, config: RoverConfig) -> BusConfig:
     """The bus of --config a command works on: the bus of the drive it names (resolve_drive),
     else the one -c/--channel names (a bus name or channel of the config), else the first."""
@@ -96,7 +91,7 @@ def config_bus(args: argparse.Namespace, config: RoverConfig) -> BusConfig:
     wanted = getattr(args, "channel", None)
     if not wanted:
         return config.buses[0]
-    matching = [b for b in config.buses if names_bus(wanted, b)]
+    matching = [b for b in config.buses if wanted in (b.name, b.channel)]
     if not matching:
         raise ConfigError(f"{args.config}: no bus named {wanted!r} or on channel {wanted!r}; buses:"
                           f" {', '.join(f'{b.name} (channel {b.channel})' for b in config.buses)}")
@@ -112,7 +107,7 @@ def resolve_drive(args: argparse.Namespace, spec: str) -> tuple[int, DriveConfig
         return parse_node(spec), None
     config = load_config(config_path)
     wanted = getattr(args, "channel", None)
-    on_bus = [d for d in config.drives if not wanted or names_bus(wanted, config.bus(d.bus))]
+    on_bus = [d for d in config.drives if not wanted or wanted in (config.bus(d.bus).name, config.bus(d.bus).channel)]
     by_name = {d.name: d for d in config.drives}
     listing = ", ".join(f"{d.name} (node {d.node_id} on {d.bus})" for d in config.drives)
     if spec in by_name:
