@@ -259,7 +259,11 @@ def test_without_its_drive_system_the_rover_leaves_cmd_vel_to_another(tmp_path: 
     with launched_rover(tmp_path, "ros2_control_side", "drive_system:=false") as (_, probe):
         wait_for(lambda: len(probe.joints) == 6, HANG_S, "/joint_states of the six wheels")
         probe.arm()
-        # the driver's nodes are all up (its services answered): a drive system would be among them
+        # the driver's nodes are all up (its services answered) and, once the probe's graph has
+        # the driver's process (its nodes come in one discovery message), a drive system would
+        # be among them
+        wait_for(lambda: "rovercan_driver" in {n for n, _ in probe.node.get_node_names_and_namespaces()}, HANG_S,
+                 "the driver's node in the probe's graph")
         names = {name for name, _ in probe.node.get_node_names_and_namespaces()}
-        assert "rovercan_driver" in names and "drive_system" not in names, names
+        assert "drive_system" not in names, names
         assert probe.node.count_subscribers("/cmd_vel") == 0
