@@ -89,6 +89,29 @@ class KernelBusHealth:
         return asdict(self)
 
 
+#: Counters whose rise between two reads of one interface is a problem, each with what to do.
+RISING = {
+    "tx_errors": "check termination and bitrate", "rx_errors": "check termination and bitrate",
+    "bus_errors": "check termination and bitrate", "error_warning": "check termination and bitrate",
+    "error_passive": "check termination and bitrate", "bus_off": "check termination and bitrate",
+    "restarts": "the controller was restarted after a bus-off: check termination and bitrate",
+    "rx_dropped": "received frames the host did not read in time (a starved process, or a receive buffer too"
+                  " small)",
+    "tx_dropped": "frames not sent (a full transmit queue: is any node acknowledging?)",
+}
+
+
+def rising(before: KernelBusHealth, after: KernelBusHealth, seconds: float) -> list[str]:
+    """The counters of one interface that rose between two reads ``seconds`` apart, each said
+    with what to do (empty: none rose; a counter the kernel does not have is left out). Pure."""
+    out = []
+    for name, advice in RISING.items():
+        was, now = getattr(before, name), getattr(after, name)
+        if was is not None and now is not None and now > was:
+            out.append(f"{after.interface}: {name} rose by {now - was} in {seconds:.1f} s ({was} -> {now}): {advice}")
+    return out
+
+
 def health_from_link(msg: Any) -> KernelBusHealth:
     """Decode one rtnetlink link message (pyroute2 ``ifinfmsg``, decoded). Pure."""
     name = str(msg.get_attr("IFLA_IFNAME"))
@@ -148,4 +171,5 @@ def read_kernel_health(interface: str) -> KernelBusHealth:
     return health_from_link(links[0])
 
 
-__all__ = ["ADVICE", "STATES", "KernelBusHealth", "health_from_link", "read_kernel_health", "xstats"]
+__all__ = ["ADVICE", "RISING", "STATES", "KernelBusHealth", "health_from_link", "read_kernel_health", "rising",
+           "xstats"]

@@ -11,7 +11,8 @@ result into diagnostic_msgs). The rules:
 * OK: otherwise (enabled or safely disabled).
 
 A bus (:func:`bus_health`): ERROR when lost, down or BUS-OFF; WARN when its controller is
-ERROR-WARNING or ERROR-PASSIVE, or its load is over 50 %; its state and counters from the
+ERROR-WARNING or ERROR-PASSIVE, a frame was not sent for a full transmit queue, or its load is
+over 50 %; its state and counters from the
 kernel where it is a kernel interface (:mod:`motor_driver.bushealth`), "unknown" elsewhere.
 """
 
@@ -94,10 +95,13 @@ KERNEL_VALUES = ("state", "tx_errors", "rx_errors", "bitrate", "restart_ms", "re
 
 
 def bus_health(*, load: float, lost: bool, frames: int, error_frames: int, kernel: KernelBusHealth | None,
-               why_unknown: str = "") -> Health:
-    """One bus graded: lost, down or BUS-OFF is ERROR; ERROR-WARNING, ERROR-PASSIVE or a load over
-    50 % is WARN. ``kernel``: what the kernel says (None: not a kernel interface, ``why_unknown``)."""
-    values = {"load": f"{load:.4f}", "frames_received": str(frames), "error_frames": str(error_frames)}
+               why_unknown: str = "", tx_queue_full: int = 0, tx_not_sent: int = 0) -> Health:
+    """One bus graded: lost, down or BUS-OFF is ERROR; ERROR-WARNING, ERROR-PASSIVE, a frame not
+    sent for a full transmit queue or a load over 50 % is WARN. ``kernel``: what the kernel says
+    (None: not a kernel interface, ``why_unknown``); ``tx_queue_full``: sends refused with ENOBUFS
+    (each retried), ``tx_not_sent``: frames given up on."""
+    values = {"load": f"{load:.4f}", "frames_received": str(frames), "error_frames": str(error_frames),
+              "tx_queue_full": str(tx_queue_full), "tx_not_sent": str(tx_not_sent)}
     if kernel is None:
         values["can_state"] = f"unknown ({why_unknown})" if why_unknown else "unknown"
     else:
@@ -111,6 +115,9 @@ def bus_health(*, load: float, lost: bool, frames: int, error_frames: int, kerne
         return Health(ERROR, "bus lost", values)
     if kernel is not None and (not kernel.link_up or kernel.state == "BUS-OFF"):
         return Health(ERROR, "; ".join(problems), values)
+    if tx_not_sent:
+        problems.append(f"{tx_not_sent} frame(s) not sent: the transmit queue stayed full (ENOBUFS); check that"
+                        " the drives acknowledge (cabling, termination, bitrate)")
     if problems:
         return Health(WARN, "; ".join(problems), values)
     if load > 0.5:

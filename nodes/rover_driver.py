@@ -201,7 +201,8 @@ class DriverNode(Node):
                 kernel, why = self.driver.kernel_health(bus_name)
                 health = bus_health(load=handle.stats.sample(), lost=self.driver.bus_lost.get(bus_name, False),
                                     frames=handle.stats.frames, error_frames=handle.stats.error_frames,
-                                    kernel=kernel, why_unknown=why)
+                                    kernel=kernel, why_unknown=why, tx_queue_full=handle.network.tx_queue_full,
+                                    tx_not_sent=handle.network.tx_queue_dropped)
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: bus {bus_name}", message=health.message,
                     hardware_id=bus_name, values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))

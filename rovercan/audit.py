@@ -27,7 +27,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
@@ -36,6 +36,9 @@ from can_config.bits import frame_bits
 from can_config.errors import ConfigError, MotorError
 from rovercan.argtypes import real
 from rovercan.bench.common import CliError, add_bus_args, add_json, emit, open_bus
+
+if TYPE_CHECKING:
+    from motor_driver.bushealth import KernelBusHealth
 
 #: Targets (the README's Performance section; SYNC error is the acceptance bound, 200 us the aim).
 TARGETS = {"sync_error_p99_us": 500.0, "cmd_latency_p99_ms": 2.0, "tpdo_loss": 0, "late_tpdo_fraction": 0.01,
@@ -215,10 +218,34 @@ def _tpdo_figures(node: int, tpdos: Any, inside: list[can.Message], syncs: list[
     return figures
 
 
+def kernel_health(config: RoverConfig) -> KernelBusHealth | None:
+    """The audited bus as its kernel knows it (a socketcan bus), else None."""
+    from motor_driver.bushealth import read_kernel_health
+
+    bus = config.buses[0]
+    return read_kernel_health(bus.channel) if bus.interface == "socketcan" else None
+
+
+def kernel_figures(before: KernelBusHealth | None, after: KernelBusHealth | None, seconds: float) -> list[Figure]:
+    """The controller's state after the run (ERROR-ACTIVE, or a vcan's none) and the error and drop
+    counters that rose during it (motor_driver.bushealth.rising: each with what to do)."""
+    from motor_driver.bushealth import rising
+
+    if before is None or after is None:
+        return []
+    problems = after.problems() + rising(before, after, seconds)
+    return [Figure(f"{after.interface}: controller state {after.state or 'none (' + after.kind + ')'}",
+                   after.tx_errors, "ERROR-ACTIVE (or no controller)", after.ok),
+            Figure(f"{after.interface}: counters risen during the audit" + (f" ({'; '.join(problems)})"
+                                                                            if problems else ""),
+                   len(problems), "0", not problems)]
+
+
 def cmd_audit(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.seconds) and 0.5 <= args.seconds <= 600):
         raise ConfigError(f"--seconds {args.seconds}: allowed 0.5 to 600")
     config = one_bus(load_config(args.config), args.bus)
+    kernel_before = kernel_health(config)
     listener = open_bus(args)
     recorder = Recorder(listener)
     recorder.start()
@@ -236,6 +263,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
         recorder.join(2.0)
         listener.shutdown()
     figures = analyse(config, recorder.frames, sent, rtts, window, booted)
+    figures += kernel_figures(kernel_before, kernel_health(config), window[1] - window[0])
     emit(args, [f.row() for f in figures], f"audit of bus {config.buses[0].name} ({args.seconds:g} s)",
          ["figure", "measured", "target", "status"])
     missed = [f.name for f in figures if not f.ok]

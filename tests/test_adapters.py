@@ -3,6 +3,7 @@ python-can and canopen: an upgrade that changes them fails here, not on the rove
 
 from __future__ import annotations
 
+import errno
 import inspect
 import socket
 import time
@@ -11,7 +12,7 @@ import can
 import canopen
 import pytest
 
-from motor_driver.adapters import SOCKETCAND_SOCKET_ATTRIBUTE, GuardedNetwork, connection_closed
+from motor_driver.adapters import SOCKETCAND_SOCKET_ATTRIBUTE, GuardedNetwork, connection_closed, queue_full
 from virtual_can import SimService
 
 
@@ -61,3 +62,59 @@ def _plain(callback: object) -> canopen.Network:
     network = canopen.Network()
     network.subscribe(0x181, callback)
     return network
+
+
+class FullQueueBus(can.BusABC):  # type: ignore[misc]
+    """A python-can bus whose first ``refusals`` sends fail as SocketCAN's do on a full transmit
+    queue (python-can raises CanOperationError with the errno; the kernel tier makes a real one
+    with a qdisc, tests/test_kernel_tier.py), then sends to a virtual bus."""
+
+    def __init__(self, refusals: int) -> None:
+        super().__init__(channel="full")
+        self.refusals = refusals
+        self.out = can.Bus(interface="virtual", channel="full-queue")
+        self.sent: list[can.Message] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self.refusals:
+            self.refusals -= 1
+            raise can.CanOperationError("Failed to transmit: No buffer space available", errno.ENOBUFS)
+        self.sent.append(msg)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self.out.recv(timeout), False
+
+    def shutdown(self) -> None:
+        self.out.shutdown()
+        super().shutdown()
+
+
+@pytest.mark.parametrize("refusals", [1, 5])
+def test_a_full_transmit_queue_is_retried_and_counted(refusals: int) -> None:
+    bus = FullQueueBus(refusals)
+    network = GuardedNetwork(bus)
+    try:
+        network.send_message(0x201, b"\x0f\x00")
+        assert [m.arbitration_id for m in bus.sent] == [0x201]
+        assert (network.tx_queue_full, network.tx_queue_dropped) == (refusals, 0)
+    finally:
+        bus.shutdown()
+
+
+def test_a_queue_that_stays_full_gives_the_frame_up_with_what_to_check() -> None:
+    bus = FullQueueBus(10**9)
+    network = GuardedNetwork(bus)
+    try:
+        with pytest.raises(can.CanOperationError, match=r"transmit queue stayed full .* frame 0x201 not sent.*termination"):
+            network.send_message(0x201, b"\x0f\x00")
+        assert network.tx_queue_dropped == 1 and network.tx_queue_full >= 2 and bus.sent == []
+        bus.refusals = 0
+        network.send_message(0x202, b"")  # the next frame, once it drains
+        assert [m.arbitration_id for m in bus.sent] == [0x202]
+    finally:
+        bus.shutdown()
+
+
+def test_another_send_error_is_not_taken_for_a_full_queue() -> None:
+    assert not queue_full(can.CanOperationError("Failed to transmit: Network is down", errno.ENETDOWN))
+    assert queue_full(OSError(errno.ENOBUFS, "No buffer space available"))

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from motor_driver.bushealth import STATES, XSTATS_FIELDS, health_from_link
+from motor_driver.bushealth import RISING, STATES, XSTATS_FIELDS, KernelBusHealth, health_from_link, rising
 from motor_driver.health import ERROR, OK, WARN, bus_health
 
 from .conftest import REPO
@@ -121,3 +121,34 @@ def test_a_bus_status_without_a_kernel_controller_says_unknown_and_lost_wins() -
     assert bus_health(load=0.1, lost=True, frames=1, error_frames=0, kernel=None).level == ERROR
     vcan = bus_health(load=0.1, lost=False, frames=1, error_frames=0, kernel=health_from_link(link("vcan0", kind="vcan")))
     assert vcan.level == OK and vcan.values["can_state"] == "none (no controller)"
+
+
+@given(st.sampled_from(sorted(RISING)), st.integers(0, 2**31), st.integers(1, 1000))
+def test_a_counter_that_rose_between_two_reads_is_named_with_what_to_do(counter: str, start: int, rise: int) -> None:
+    """rising(): every error and drop counter the kernel has, compared between two reads; one that
+    went down (an error counter recovering) or stayed is no problem."""
+    fields = {"txerr": "tx_errors", "rxerr": "rx_errors"}
+    def read(value: int) -> KernelBusHealth:
+        if counter in fields.values():
+            key = next(k for k, v in fields.items() if v == counter)
+            return health_from_link(link(**{key: min(value, 255)}))
+        if counter in XSTATS_FIELDS:
+            return health_from_link(link(counters=tuple(value if n == counter else 0 for n in XSTATS_FIELDS)))
+        return health_from_link(link(dropped=(value, 0) if counter == "rx_dropped" else (0, value)))
+    low, high = (min(start, 254), min(start, 254) + 1) if counter in fields.values() else (start, start + rise)
+    said = rising(read(low), read(high), 2.0)
+    assert len(said) == 1 and counter in said[0] and f"{low} -> {high}" in said[0] and RISING[counter] in said[0]
+    assert rising(read(high), read(low), 2.0) == [] and rising(read(low), read(low), 2.0) == []
+
+
+def test_a_vcan_has_no_counters_to_rise() -> None:
+    vcan = health_from_link(link("vcan0", kind="vcan"))
+    assert rising(vcan, vcan, 1.0) == []
+
+
+def test_frames_given_up_for_a_full_transmit_queue_warn_and_say_what_to_do() -> None:
+    kernel = health_from_link(link())
+    counted = bus_health(load=0.1, lost=False, frames=10, error_frames=0, kernel=kernel, tx_queue_full=3)
+    assert counted.level == OK and counted.values["tx_queue_full"] == "3"  # retried and sent: counted only
+    dropped = bus_health(load=0.1, lost=False, frames=10, error_frames=0, kernel=kernel, tx_queue_full=9, tx_not_sent=2)
+    assert dropped.level == WARN and "2 frame(s) not sent" in dropped.message and "termination" in dropped.message

@@ -158,9 +158,10 @@ def _safety_rows(args: argparse.Namespace, config: RoverConfig, listen_s: float)
 # ------------------------------------------------------------------------------ bus-health
 def cmd_bus_health(args: argparse.Namespace) -> int:
     """The bus's health as its kernel knows it (motor_driver.bushealth): state, error counters,
-    bitrate, restarts. Exit 0 when up and ERROR-ACTIVE (or a vcan, which has no controller), else 1
-    naming what is wrong and what to do. A bus that is not a kernel interface: said to be unknown."""
-    from motor_driver.bushealth import read_kernel_health
+    bitrate, restarts. Exit 0 when up and ERROR-ACTIVE (or a vcan, which has no controller) and,
+    with --watch, no error or drop counter rose; else 1 naming what is wrong and what to do. A bus
+    that is not a kernel interface: said to be unknown."""
+    from motor_driver.bushealth import read_kernel_health, rising
 
     interface, channel = getattr(args, "interface", None), getattr(args, "channel", None)
     if getattr(args, "config", None):
@@ -174,13 +175,19 @@ def cmd_bus_health(args: argparse.Namespace) -> int:
              f"bus health of {channel}")
         return 0
     health = read_kernel_health(channel)
+    problems = health.problems()
+    if args.watch:  # a second read: counters that rise while nothing else changed
+        first = health
+        time.sleep(args.watch)
+        health = read_kernel_health(channel)
+        problems = health.problems() + rising(first, health, args.watch)
     row = {k: ("unknown" if v is None else v) for k, v in health.as_dict().items()}
     if health.kind != "can":
         row["state"] = f"none ({health.kind}: no controller)"
     emit(args, row, f"bus health of {channel}")
-    for problem in health.problems():
+    for problem in problems:
         print(f"rovercan bus-health: {problem}", file=sys.stderr)
-    return 0 if health.ok else 1
+    return 0 if health.ok and not problems else 1
 
 
 # ------------------------------------------------------------------------------ plan / can-up
@@ -320,6 +327,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                                           " exit 1 unless up and ERROR-ACTIVE")
     add_bus_args(p)
     add_config_arg(p)
+    p.add_argument("--watch", type=real(0.1, 3600), metavar="S", help="read twice, S seconds apart: exit 1 also when"
+                   " an error or drop counter rose")
     add_json(p)
     p.set_defaults(func=cmd_bus_health)
 
