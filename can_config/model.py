@@ -39,6 +39,12 @@ class BusConfig:
     channel: str = key("str", help="python-can channel: `can0`, `vcan0`, `PCAN_USBBUS1`, ...")
     bitrate: int = key("int", 1_000_000, 10_000, 8_000_000, unit="bit/s",
                        help="the bus bitrate (bus load planning; set on the interface by `can-up`)")
+    restart_ms: int = key("int", 100, 0, 60_000, unit="ms",
+                          help="a SocketCAN controller's automatic restart after a bus-off, set on the interface by"
+                               " `can-up` (0: it stays off until restarted by hand)")
+    txqueuelen: int = key("int", 1000, 10, 100_000,
+                          help="a SocketCAN interface's transmit queue in frames, set by `can-up` (a controller's"
+                               " default of 10 fills with one burst)")
     kwargs: Mapping[str, Any] = key(
         "map", {},
         help="more python-can arguments, e.g. `{host: 127.0.0.1, port: 29536}` for socketcand")

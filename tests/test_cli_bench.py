@@ -210,6 +210,15 @@ def test_plan_and_can_up(tmp_path: Path) -> None:
     vcan = run(None, "can-up", "vcan0", "--dry-run")  # CI's virtual interface: created, no bitrate
     assert vcan.returncode == 0 and "ip link add dev vcan0 type vcan" in vcan.stdout and "bitrate" not in vcan.stdout
     from_config = run(None, "can-up", "can1", "--dry-run", "--config", str(REPO / "config" / "rover.yaml"))
-    assert from_config.returncode == 0 and "bitrate 1000000 bit/s from bus can1 of" in from_config.stdout
+    assert from_config.returncode == 0, from_config.stderr
+    assert "bitrate 1000000 bit/s, restart-ms 100, txqueuelen 1000 from bus can1 of" in from_config.stdout
+    tuned = tmp_path / "tuned.yaml"  # the bring-up's settings from the config, a flag over one of them
+    tuned.write_text("buses: [{name: can0, interface: socketcan, channel: can0, bitrate: 500000, restart_ms: 250,"
+                     " txqueuelen: 64}]\ndrives: [{name: a, node_id: 1}]\n")
+    from_tuned = run(None, "can-up", "can0", "--dry-run", "--config", str(tuned), "--restart-ms", "0")
+    assert from_tuned.returncode == 0, from_tuned.stderr
+    assert "ip link set can0 type can bitrate 500000 restart-ms 0 berr-reporting on" in from_tuned.stdout
+    assert "ip link set can0 txqueuelen 64" in from_tuned.stdout
+    assert "from --restart-ms; the rest from bus can0 of" in from_tuned.stdout
     bare = run(None, "can-up", "can0", "--dry-run")  # the embedded default knows the bitrate
     assert bare.returncode == 0 and "type can bitrate 1000000" in bare.stdout

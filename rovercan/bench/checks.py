@@ -283,21 +283,27 @@ def can_up_commands(interface: str, bitrate: int, restart_ms: int, txqueuelen: i
             ["ip", "link", "set", interface, "up"]]
 
 
-def can_up_bitrate(args: argparse.Namespace) -> tuple[int, str]:
-    """--bitrate, else the bitrate of the --config bus on the interface, else the embedded default's."""
-    if args.bitrate is not None:
-        return int(args.bitrate), "--bitrate"
+def can_up_settings(args: argparse.Namespace) -> tuple[int, int, int, str]:
+    """(bitrate, restart-ms, txqueuelen, where they come from): each given flag, else the --config
+    bus on the interface's, else the embedded default config's."""
     config = load_config(args.config)  # None: the embedded default
     on_it = [b for b in config.buses if b.channel == args.interface_name] or list(config.buses[:1])
-    return on_it[0].bitrate, f"bus {on_it[0].name} of {args.config or 'the embedded default config'}"
+    bus = on_it[0]
+    source = f"bus {bus.name} of {args.config or 'the embedded default config'}"
+    given = [flag for flag, value in (("--bitrate", args.bitrate), ("--restart-ms", args.restart_ms),
+                                      ("--txqueuelen", args.txqueuelen)) if value is not None]
+    return (args.bitrate if args.bitrate is not None else bus.bitrate,
+            args.restart_ms if args.restart_ms is not None else bus.restart_ms,
+            args.txqueuelen if args.txqueuelen is not None else bus.txqueuelen,
+            ", ".join(given) + (f"; the rest from {source}" if len(given) < 3 else "") if given else source)
 
 
 def cmd_can_up(args: argparse.Namespace) -> int:
-    bitrate, source = can_up_bitrate(args)
+    bitrate, restart_ms, txqueuelen, source = can_up_settings(args)
     vcan = args.interface_name.startswith("vcan")
     if not vcan:
-        print(f"# bitrate {bitrate} bit/s from {source}", flush=True)
-    commands = can_up_commands(args.interface_name, bitrate, args.restart_ms, args.txqueuelen)
+        print(f"# bitrate {bitrate} bit/s, restart-ms {restart_ms}, txqueuelen {txqueuelen} from {source}", flush=True)
+    commands = can_up_commands(args.interface_name, bitrate, restart_ms, txqueuelen)
     for argv in commands:
         print(" ".join(argv), flush=True)
         if args.dry_run:
@@ -346,8 +352,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("interface_name", metavar="INTERFACE")
     p.add_argument("--bitrate", type=whole(10_000, 1_000_000),
                    help="bit/s (default: the --config bus on INTERFACE, else the embedded default config's)")
-    p.add_argument("--config", help="take the bitrate from this config's bus on INTERFACE")
-    p.add_argument("--restart-ms", type=whole(0, 60_000), default=100)
-    p.add_argument("--txqueuelen", type=whole(10, 100_000), default=1000)
+    p.add_argument("--config", help="take bitrate, restart-ms and txqueuelen from this config's bus on INTERFACE")
+    p.add_argument("--restart-ms", type=whole(0, 60_000), help="automatic restart after a bus-off (default: the"
+                   " config's restart_ms, 100)")
+    p.add_argument("--txqueuelen", type=whole(10, 100_000), help="transmit queue in frames (default: the config's"
+                   " txqueuelen, 1000)")
     p.add_argument("--dry-run", action="store_true", help="print the commands only")
     p.set_defaults(func=cmd_can_up)
