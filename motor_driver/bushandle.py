@@ -80,6 +80,8 @@ class BusHandle:
         self.reported_error = 0.0
         self.reported_losing = 0.0
         self.send_failing: tuple[float, str] | None = None
+        self.reported_queue_full = 0  # supervisor's: ENOBUFS refusals already said
+        self.link_down_said = False  # supervisor's: a kernel link's going down said, until it is back
 
     def disconnect(self) -> None:
         """Drop a lost bus: SYNC, receive thread and socket (the network object stays)."""

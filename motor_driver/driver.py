@@ -46,7 +46,6 @@ import can
 from can_config import RoverConfig, load_drive_od
 from can_config.errors import BusLostError, ConfigError, MotorError
 from motor_driver.bushandle import BusHandle, sync_daemon
-from motor_driver.bushealth import KernelBusHealth, read_kernel_health
 from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
 from motor_driver.cia402 import State
 from motor_driver.connect import (
@@ -207,25 +206,6 @@ class MotorDriver(Supervision):
     @property
     def buses(self) -> dict[str, BusHandle]:
         return dict(self._handles)
-
-    def kernel_health(self, bus: str) -> tuple[KernelBusHealth | None, str]:
-        """What the kernel says of ``bus`` (state, counters: a socketcan bus), or None and why it
-        cannot say (another interface; no such interface)."""
-        cfg = self.config.bus(bus)
-        if cfg.interface != "socketcan":
-            return None, f"{cfg.interface}: no kernel controller to read"
-        try:
-            return read_kernel_health(cfg.channel), ""
-        except ConfigError as err:
-            return None, str(err)
-
-
-
-
-
-
-
-
 
     # ------------------------------------------------------------------ shutdown
     def safe_stop(self) -> None:

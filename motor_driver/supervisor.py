@@ -16,10 +16,11 @@ from concurrent.futures import Future
 import can
 
 from can_config import RoverConfig
-from can_config.errors import BusLostError, MotorError
+from can_config.errors import BusLostError, ConfigError, MotorError
 from can_config.ratelimit import RateLimitedLog
 from motor_driver.adapters import connection_closed
 from motor_driver.bushandle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
+from motor_driver.bushealth import KernelBusHealth, read_kernel_health
 from motor_driver.connect import open_bus
 from motor_driver.cyclic import DaemonCyclicTask
 from motor_driver.drive import Drive
@@ -52,6 +53,17 @@ class Supervision:
     _reboots: dict[str, Future[None]]
     _host_loss_seen: dict[str, int]
     _rate_limited: RateLimitedLog  # repeated warnings of this module (supervisor_log())
+
+    def kernel_health(self, bus: str) -> tuple[KernelBusHealth | None, str]:
+        """What the kernel says of ``bus`` (state, counters: a socketcan bus), or None and why it
+        cannot say (another interface; no such interface)."""
+        cfg = self.config.bus(bus)
+        if cfg.interface != "socketcan":
+            return None, f"{cfg.interface}: no kernel controller to read"
+        try:
+            return read_kernel_health(cfg.channel), ""
+        except ConfigError as err:
+            return None, str(err)
 
     def _supervise(self) -> None:
         while not self._stop.wait(SUPERVISOR_PERIOD_S):
@@ -127,6 +139,7 @@ class Supervision:
             timeout = max((d.config.heartbeat_timeout_s for d in drives), default=1.0)
             closed = connection_closed(handle.bus)
             losing = self._bus_error(name, handle)
+            self._queue_full(name, handle)
             failing = handle.send_failing
             send_failed = failing is not None and now - failing[0] > SEND_FAILING_BEATS * bus_cfg.host_heartbeat_s
             if exc is not None or closed or losing or send_failed or (
@@ -169,12 +182,27 @@ class Supervision:
             self.recorder.trigger("bus_error", name, code=last[1].classes, text=last[1].text)
         return last[1].text if losing else ""
 
+    def _queue_full(self, name: str, handle: BusHandle) -> None:
+        """Sends the kernel refused for a full transmit queue (ENOBUFS; each retried) are counted
+        and said, at a bounded rate; they are in /diagnostics too."""
+        full = handle.network.tx_queue_full
+        if full != handle.reported_queue_full:
+            handle.reported_queue_full = full
+            self._rate_limited.log(logging.WARNING, ("queue", name), "bus %s: transmit queue full (ENOBUFS) %d times"
+                                   " so far, %d frame(s) given up on: the controller cannot send (no node"
+                                   " acknowledging? check cabling, termination and bitrate)", name, full,
+                                   handle.network.tx_queue_dropped)
+
     def _reconnect(self, name: str, handle: BusHandle, drop: bool = False) -> None:
         """On the bus's worker: drop the lost connection (``drop``), open the bus again and boot
-        its drives; back off on failure."""
+        its drives; back off on failure. A kernel interface that is down is waited for (said
+        once, when it goes and when it is back), not opened over and over."""
         if drop:
             handle.disconnect()
         bus_cfg = self.config.bus(name)
+        if not self._link_up(name, handle):
+            handle.next_attempt = time.monotonic() + RECONNECT_MIN_S
+            return
         try:
             handle.reconnect(open_bus(bus_cfg.bus_kwargs(), connect_timeout_s=0.0))  # one try: the back-off is ours
         except (can.CanError, OSError, ValueError, TimeoutError, BusLostError) as err:
@@ -200,6 +228,23 @@ class Supervision:
         handle.start_sync()
         self.bus_lost[name] = False
         logger.warning("bus %s re-established; drives configured again (not enabled)", name)
+
+    def _link_up(self, name: str, handle: BusHandle) -> bool:
+        """A kernel interface's link as the kernel has it (True where that cannot be known: not
+        a kernel bus, no netlink); the link going down and coming back each said once."""
+        health, _ = self.kernel_health(name)
+        if health is None:
+            return True
+        if not health.link_up and not handle.link_down_said:
+            handle.link_down_said = True
+            logger.error("bus %s: link down (%s is down); the drives' own host watch stops them; waiting for the"
+                         " link, then the drives are configured again and left disabled", name, health.interface)
+            if self.recorder is not None:
+                self.recorder.trigger("link_down", name, text=f"{health.interface} is down")
+        elif health.link_up and handle.link_down_said:
+            handle.link_down_said = False
+            logger.warning("bus %s: link up again (%s %s)", name, health.interface, health.state or "")
+        return health.link_up
 
     def _supervise_drive(self, drive: Drive, now: float) -> None:
         cfg = drive.config
