@@ -107,6 +107,22 @@ def kernel_can_available(channel: str = "vcan0") -> str | None:
     return None
 
 
+def kernel_controllers_available() -> str | None:
+    """None when can0 and can1 are CAN controllers here (the kernel tier's VM: QEMU's emulated
+    SJA1000 pair on one emulated bus), else why not."""
+    if (why := kernel_can_available("vcan0")) is not None:
+        return why
+    try:
+        from motor_driver.bushealth import read_kernel_health
+
+        kinds = [read_kernel_health(name).kind for name in ("can0", "can1")]
+    except Exception as err:
+        return f"no CAN controllers can0 and can1 here ({err}); `{KERNEL_TIER_COMMAND}` runs a VM with an SJA1000 pair"
+    if kinds != ["can", "can"]:
+        return f"can0 and can1 are {kinds}, not CAN controllers; `{KERNEL_TIER_COMMAND}` runs a VM with an SJA1000 pair"
+    return None
+
+
 def make_config(n: int = 1, *, eds: str = "generic", **drive: object) -> RoverConfig:
     drive.setdefault("host_timeout_ms", IN_PROCESS_HOST_TIMEOUT_MS)
     drive.setdefault("heartbeat_timeout_ms", IN_PROCESS_HEARTBEAT_TIMEOUT_MS)

@@ -13,38 +13,35 @@ import sys
 import can
 import pytest
 
-from .conftest import KERNEL_TIER_COMMAND, REPO, kernel_can_available
+from rovercan.cli import main
+
+from .conftest import REPO, kernel_controllers_available
 
 HANG_S = 120.0  # a hang, not a timing claim (the VM's Python is about 12x slower)
 
 
-def controllers_here() -> str | None:
-    """None when can0 and can1 are CAN controllers here, else why not."""
-    if (why := kernel_can_available("vcan0")) is not None:
-        return why
-    try:
-        from motor_driver.bushealth import read_kernel_health
-
-        kinds = [read_kernel_health(name).kind for name in ("can0", "can1")]
-    except Exception as err:
-        return f"no CAN controllers can0 and can1 here ({err}); `{KERNEL_TIER_COMMAND}` runs a VM with an SJA1000 pair"
-    if kinds != ["can", "can"]:
-        return f"can0 and can1 are {kinds}, not CAN controllers; `{KERNEL_TIER_COMMAND}` runs a VM with an SJA1000 pair"
-    return None
-
-
-pytestmark = [pytest.mark.kernel, pytest.mark.skipif(controllers_here() is not None, reason=str(controllers_here()))]
+pytestmark = [pytest.mark.kernel, pytest.mark.skipif(kernel_controllers_available() is not None,
+                                                         reason=str(kernel_controllers_available()))]
 
 
 def rovercan(*args: str) -> subprocess.CompletedProcess[str]:
+    """The command as a user runs it: its own process (5-15 s to start in the VM)."""
     return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
                           timeout=HANG_S)
 
 
-def test_can_up_sets_the_controller_and_bus_health_reads_it_back_error_active() -> None:
+def rovercan_here(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    """The same command's code in this process: (exit status, stdout, stderr)."""
+    capsys.readouterr()
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_can_up_sets_the_controller_and_bus_health_reads_it_back_error_active(capsys: pytest.CaptureFixture[str]) -> None:
     for name in ("can0", "can1"):
-        up = rovercan("can-up", name, "--bitrate", "1000000", "--restart-ms", "100")
-        assert up.returncode == 0, up.stderr
+        code, _, err = rovercan_here(capsys, "can-up", name, "--bitrate", "1000000", "--restart-ms", "100")
+        assert code == 0, err
     health = rovercan("bus-health", "-i", "socketcan", "-c", "can0", "--json")
     assert health.returncode == 0, health.stderr
     row = json.loads(health.stdout)
@@ -57,13 +54,13 @@ def test_can_up_sets_the_controller_and_bus_health_reads_it_back_error_active() 
     assert msg is not None and msg.arbitration_id == 0x123 and bytes(msg.data) == b"\x01\x02"
 
 
-def test_a_controller_that_is_down_is_reported_with_what_to_do() -> None:
-    assert rovercan("can-up", "can1", "--bitrate", "500000").returncode == 0
+def test_a_controller_that_is_down_is_reported_with_what_to_do(capsys: pytest.CaptureFixture[str]) -> None:
+    assert rovercan_here(capsys, "can-up", "can1", "--bitrate", "500000")[0] == 0
     subprocess.run(["ip", "link", "set", "can1", "down"], check=True, timeout=HANG_S)
     try:
-        health = rovercan("bus-health", "-i", "socketcan", "-c", "can1", "--json")
-        assert health.returncode == 1 and "can1 is down" in health.stderr and "can-up" in health.stderr
-        row = json.loads(health.stdout)
+        code, out, err = rovercan_here(capsys, "bus-health", "-i", "socketcan", "-c", "can1", "--json")
+        assert code == 1 and "can1 is down" in err and "can-up" in err
+        row = json.loads(out)
         assert row["link_up"] is False and row["bitrate"] == 500000  # what it was set to, though down
     finally:
-        assert rovercan("can-up", "can1", "--bitrate", "1000000").returncode == 0
+        assert rovercan_here(capsys, "can-up", "can1", "--bitrate", "1000000")[0] == 0

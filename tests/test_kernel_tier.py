@@ -31,24 +31,70 @@ from can_config import GENERIC_EDS, load_config, load_drive_od
 from can_config.errors import MotorError
 from motor_driver import MotorDriver, State
 from motor_driver.driver import is_kernel_bus
-from virtual_can.sim import SimulatedDrive
+from virtual_can.sim import MotorParams, SimulatedDrive
 from virtual_can.sim.runner import DriveSimulator
 
-from .conftest import HAVE_ROS, KERNEL_BUS, KERNEL_DRIVE, REPO, SHARED_EDS, kernel_can_available, wait_for
+from .conftest import HAVE_ROS, KERNEL_BUS, KERNEL_DRIVE, REPO, SHARED_EDS, kernel_can_available, kernel_controllers_available, wait_for
 
 pytestmark = [pytest.mark.kernel, pytest.mark.skipif(kernel_can_available() is not None,
                                                      reason=kernel_can_available() or "")]
-CHANNEL = "vcan0"
 TECHNOSOFT_EDS = SHARED_EDS / "technosoft_ipos_v1_04_via_ros2_canopen.eds"
 #: Processes start slowly in the VM: python-can and canopen import in seconds there.
 START_S = 60.0
 
 
-def write_kernel_config(path: Path, *, nodes: tuple[int, ...] = (1,), eds: Path | None = None) -> Path:
+@dataclass(frozen=True)
+class Wiring:
+    """Where the driver and the simulated drives are: both on one vcan interface, or the driver
+    on one emulated SJA1000 controller and the drives on the other, one emulated bus between them
+    (frames cross a real CAN controller driver: bitrate, echo on transmit, qlen 10)."""
+
+    name: str
+    driver: str  # the driver's interface (the config's channel)
+    drives: str  # the simulated drives' interface
+
+    def __str__(self) -> str:
+        return self.name
+
+
+VCAN = Wiring("vcan0", "vcan0", "vcan0")
+SJA1000 = Wiring("sja1000", "can0", "can1")
+NEEDS_CONTROLLERS = pytest.mark.skipif(kernel_controllers_available() is not None,
+                                       reason=kernel_controllers_available() or "")
+#: A test marked so runs on vcan0 and on the SJA1000 pair (where the VM has it).
+BOTH_WIRINGS = pytest.mark.parametrize("wiring", [VCAN, pytest.param(SJA1000, marks=NEEDS_CONTROLLERS)], ids=str)
+
+
+@pytest.fixture
+def wiring() -> Wiring:
+    """A test not parametrized by BOTH_WIRINGS: vcan0."""
+    return VCAN
+
+
+def bring_up(wiring: Wiring) -> None:
+    """The SJA1000 pair at 1 Mbit/s with restart-ms 100, as `rovercan can-up` sets a controller
+    (left as it is when it already is: a controller's bitrate cannot change while it is up)."""
+    if wiring is VCAN:
+        return
+    from motor_driver.bushealth import read_kernel_health
+
+    for name in (wiring.driver, wiring.drives):
+        health = read_kernel_health(name)
+        if health.link_up and health.bitrate == 1_000_000:
+            continue
+        subprocess.run(["ip", "link", "set", name, "down"], check=True)
+        subprocess.run(["ip", "link", "set", name, "type", "can", "bitrate", "1000000", "restart-ms", "100"], check=True)
+        subprocess.run(["ip", "link", "set", name, "up"], check=True)
+
+
+def write_kernel_config(path: Path, *, nodes: tuple[int, ...] = (1,), eds: Path | None = None,
+                        wiring: Wiring = VCAN) -> Path:
+    bring_up(wiring)
     bus = ", ".join(f"{k}: {v}" for k, v in KERNEL_BUS.items())
     drive = ", ".join(f"{k}: {v}" for k, v in KERNEL_DRIVE.items()) + (f", eds: {eds}" if eds else "")
     drives = "".join(f"  - {{name: wheel{n}, node_id: {n}, {drive}}}\n" for n in nodes)
-    path.write_text(f"buses:\n  - {{name: can0, interface: socketcan, channel: {CHANNEL}, {bus}}}\ndrives:\n{drives}")
+    path.write_text(f"buses:\n  - {{name: can0, interface: socketcan, channel: {wiring.driver}, {bus}}}\n"
+                    f"drives:\n{drives}")
     return path
 
 
@@ -58,10 +104,25 @@ def rovercan(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[st
 
 
 @contextmanager
-def simulator(config: Path) -> Iterator[subprocess.Popen[str]]:
-    """`rovercan sim --config CONFIG --bus-interface socketcan --bus-channel vcan0`, its own process."""
+def simulator(config: Path, wiring: Wiring = VCAN) -> Iterator[DriveSimulator]:
+    """The config's drives simulated in this process on the wiring's drive side, the way
+    `rovercan sim --bus-interface socketcan` runs them (one DriveSimulator on a python-can
+    SocketCAN bus); a process start costs 5-15 s in the VM, so only the tests of the user's
+    command (and of a driver sharing no interpreter with them) use :func:`sim_process`."""
+    loaded = load_config(config)
+    drives = [SimulatedDrive(d.node_id, load_drive_od(d.eds, d.node_id), MotorParams.from_model(d.sim, d.counts_per_rev),
+                             name=d.name) for d in loaded.drives]
+    with can.Bus(interface="socketcan", channel=wiring.drives) as bus, DriveSimulator(bus, drives) as runner:
+        runner.start()
+        yield runner
+
+
+@contextmanager
+def sim_process(config: Path, wiring: Wiring = VCAN) -> Iterator[subprocess.Popen[str]]:
+    """`rovercan sim --config CONFIG --bus-interface socketcan --bus-channel IF`, its own process,
+    on the wiring's drive side."""
     proc = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--config", str(config), "--bus-interface",
-                             "socketcan", "--bus-channel", CHANNEL], cwd=REPO, stdout=subprocess.PIPE,
+                             "socketcan", "--bus-channel", wiring.drives], cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
@@ -79,19 +140,26 @@ def simulator(config: Path) -> Iterator[subprocess.Popen[str]]:
 
 @dataclass
 class Listener:
-    """An independent raw socket on vcan0: every frame, with the kernel's receive time."""
+    """An independent raw socket on the driver's interface: every frame (the drives' from the
+    wire, the driver's by the kernel's echo), with the kernel's receive time."""
 
-    bus: can.BusABC = field(default_factory=lambda: can.Bus(interface="socketcan", channel=CHANNEL))
+    channel: str = VCAN.driver
+    bus: can.BusABC = field(init=False)
     frames: list[can.Message] = field(default_factory=list)
     stop: threading.Event = field(default_factory=threading.Event)
 
     def __post_init__(self) -> None:
+        self.bus = can.Bus(interface="socketcan", channel=self.channel)
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:
         while not self.stop.is_set():
-            msg = self.bus.recv(0.05)
+            try:
+                msg = self.bus.recv(0.05)
+            except can.CanOperationError:  # the interface went down (ENETDOWN, once): it listens on when it is up
+                self.stop.wait(0.05)
+                continue
             if msg is not None:
                 self.frames.append(msg)
 
@@ -107,15 +175,18 @@ class Listener:
 
 
 @pytest.fixture
-def listener() -> Iterator[Listener]:
-    watch = Listener()
+def listener(wiring: Wiring) -> Iterator[Listener]:
+    bring_up(wiring)
+    watch = Listener(wiring.driver)
     yield watch
     watch.close()
 
 
-def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Path, listener: Listener) -> None:
-    config = write_kernel_config(tmp_path / "kernel.yaml")
-    with simulator(config), MotorDriver(load_config(config)) as driver:
+@BOTH_WIRINGS
+def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Path, listener: Listener,
+                                                                    wiring: Wiring) -> None:
+    config = write_kernel_config(tmp_path / "kernel.yaml", wiring=wiring)
+    with sim_process(config, wiring), MotorDriver(load_config(config)) as driver:
         driver.start()
         handle = driver.buses["can0"]
         assert is_kernel_bus(handle.bus)
@@ -147,6 +218,23 @@ def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Pa
     assert len(syncs) >= 0.5 * elapsed / (KERNEL_BUS["sync_period_ms"] / 1000), (len(syncs), elapsed)
 
 
+@BOTH_WIRINGS
+def test_rovercan_move_turns_the_drive_and_reads_the_angle_back(tmp_path: Path, listener: Listener,
+                                                               wiring: Wiring) -> None:
+    """The bench command a user runs first on a new bus: `rovercan move` by the config's drive name
+    (its units, its bus); the drive's own TPDOs on the driver's interface show it enabled, then
+    disabled again when the command is done."""
+    config = write_kernel_config(tmp_path / "kernel.yaml", wiring=wiring)
+    with simulator(config, wiring):
+        moved = rovercan("move", "wheel1", "30", "--config", str(config), "--json", timeout=300)
+    assert moved.returncode == 0, moved.stderr[-3000:]
+    assert json.loads(moved.stdout)["angle_deg"] == pytest.approx(30.0, abs=0.5), moved.stdout
+    words = [sw for _, sw in listener.statuswords(1)]
+    enabled = [i for i, sw in enumerate(words) if sw & 0x6F == 0x27]
+    assert enabled, "the drive never reported Operation Enabled"
+    assert any(sw & 0x6F != 0x27 for sw in words[enabled[-1] + 1:]), "the drive was left enabled"
+
+
 def test_a_second_masters_sync_is_noticed_within_a_second_and_the_drivers_own_never(tmp_path: Path) -> None:
     config = write_kernel_config(tmp_path / "kernel.yaml")
     with simulator(config), MotorDriver(load_config(config)) as driver:
@@ -155,7 +243,7 @@ def test_a_second_masters_sync_is_noticed_within_a_second_and_the_drivers_own_ne
         drive.enable()
         time.sleep(2.0)
         assert not drive.foreign_master  # two seconds of its own kernel SYNC
-        with can.Bus(interface="socketcan", channel=CHANNEL) as other:  # a second driver on this host
+        with can.Bus(interface="socketcan", channel=VCAN.driver) as other:  # a second driver on this host
             started = time.monotonic()
             task = other.send_periodic(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False),
                                        KERNEL_BUS["sync_period_ms"] / 1000)
@@ -168,20 +256,22 @@ def test_a_second_masters_sync_is_noticed_within_a_second_and_the_drivers_own_ne
         assert drive.state != State.OPERATION_ENABLED or drive.snapshot().velocity_deg_s == 0.0
 
 
-@pytest.mark.parametrize("watch", ["heartbeat", "guarding"])
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP])
-def test_a_killed_or_stopped_driver_lets_every_drive_stop_itself(tmp_path: Path, listener: Listener,
+@pytest.mark.parametrize(("wiring", "sig", "watch"), [
+    *((VCAN, sig, watch) for sig in (signal.SIGKILL, signal.SIGSTOP) for watch in ("heartbeat", "guarding")),
+    pytest.param(SJA1000, signal.SIGKILL, "heartbeat", marks=NEEDS_CONTROLLERS)], ids=str)
+def test_a_killed_or_stopped_driver_lets_every_drive_stop_itself(tmp_path: Path, listener: Listener, wiring: Wiring,
                                                                   sig: signal.Signals, watch: str) -> None:
     """Heartbeat: the generic drive's consumer (0x1016). Guarding: a drive built from the
-    Technosoft iPOS EDS (0x100C/0x100D, no 0x1016), node-guarded by the driver's supervisor."""
+    Technosoft iPOS EDS (0x100C/0x100D, no 0x1016), node-guarded by the driver's supervisor.
+    On the SJA1000 pair: the driver's process on can0 killed, the drive on can1."""
     eds = None
     if watch == "guarding":
         if not TECHNOSOFT_EDS.is_file():
             pytest.skip(f"no {TECHNOSOFT_EDS} (../shared is not beside this clone)")
         eds = TECHNOSOFT_EDS
-    config = write_kernel_config(tmp_path / "kernel.yaml", eds=eds)
+    config = write_kernel_config(tmp_path / "kernel.yaml", eds=eds, wiring=wiring)
     client = REPO / "tests" / "clients" / "hold_velocity.py"
-    with simulator(config):
+    with simulator(config, wiring):
         proc = subprocess.Popen([sys.executable, str(client), str(config), "30"], cwd=REPO,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
@@ -222,7 +312,7 @@ def test_a_candump_of_a_session_decodes_and_replays(tmp_path: Path, listener: Li
     config = write_kernel_config(tmp_path / "kernel.yaml")
     log = tmp_path / "session.log"
     with simulator(config), log.open("w") as out:
-        dump = subprocess.Popen(["candump", "-L", CHANNEL], stdout=out, text=True)
+        dump = subprocess.Popen(["candump", "-L", VCAN.driver], stdout=out, text=True)
         try:
             with MotorDriver(load_config(config)) as driver:
                 driver.start()
@@ -238,14 +328,14 @@ def test_a_candump_of_a_session_decodes_and_replays(tmp_path: Path, listener: Li
     texts = [json.loads(line)["text"] for line in decoded.stdout.splitlines()]
     assert any("statusword" in t for t in texts) and any("SYNC" in t for t in texts), texts[:20]
     before = len(listener.frames)
-    replayed = rovercan("replay", str(log), "-i", "socketcan", "-c", CHANNEL, "--fast")
+    replayed = rovercan("replay", str(log), "-i", "socketcan", "-c", VCAN.driver, "--fast")
     assert replayed.returncode == 0, replayed.stderr
     assert "command frames" in replayed.stderr  # NMT, RPDOs and SDO requests left out by default
     wait_for(lambda: len(listener.frames) > before + 10, 10.0, "the replayed frames on vcan0")
 
 
-def ip_link(state: str) -> None:
-    subprocess.run(["ip", "link", "set", CHANNEL, state], check=True)
+def ip_link(state: str, interface: str = VCAN.driver) -> None:
+    subprocess.run(["ip", "link", "set", interface, state], check=True)
 
 
 def lost_then_configured_again(driver: MotorDriver, drive_name: str, what: str) -> None:
@@ -267,7 +357,7 @@ def lost_then_configured_again(driver: MotorDriver, drive_name: str, what: str) 
 def test_the_interface_down_then_up_stops_commands_and_configures_again_unarmed(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     config = write_kernel_config(tmp_path / "kernel.yaml")
-    with simulator(config) as sim:
+    with sim_process(config) as sim:
         try:
             with MotorDriver(load_config(config)) as driver:
                 driver.start()
@@ -283,16 +373,111 @@ def test_the_interface_down_then_up_stops_commands_and_configures_again_unarmed(
                 lost_then_configured_again(driver, "wheel1", "the interface went down and up")
                 assert sim.poll() is None  # the simulator lives through it
         finally:
-            subprocess.run(["ip", "link", "set", CHANNEL, "up"], check=False)
+            subprocess.run(["ip", "link", "set", VCAN.driver, "up"], check=False)
     assert "Traceback" not in caplog.text
     assert "bus can0 lost" in caplog.text
 
+
+class Output:
+    """A process's stdout and stderr, line by line, gathered by a thread (waited on by condition)."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        assert proc.stdout is not None
+        self.lines: list[str] = []
+        self._stream = proc.stdout
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        for line in self._stream:
+            self.lines.append(line.rstrip("\n"))
+
+    def has(self, text: str) -> bool:
+        return any(text in line for line in list(self.lines))
+
+    def text(self) -> str:
+        return "\n".join(self.lines[-60:])
+
+
+@BOTH_WIRINGS
+def test_the_drivers_link_down_for_2_s_under_an_application_that_keeps_commanding(
+        tmp_path: Path, listener: Listener, wiring: Wiring) -> None:
+    """An application (its own process, the API) keeps commanding a velocity; the driver's
+    interface goes down for 2 s and comes back (on the SJA1000 pair: can0, the drive on can1).
+    The drive, hearing no host, stops itself; the driver says the link went down, lives, configures
+    the drive again when the link is back and leaves it stopped while the application goes on
+    commanding (each command refused)."""
+    config = write_kernel_config(tmp_path / "kernel.yaml", wiring=wiring)
+    client = REPO / "tests" / "clients" / "hold_velocity.py"
+    with simulator(config, wiring):
+        proc = subprocess.Popen([sys.executable, str(client), str(config), "30", "--keep-commanding"], cwd=REPO,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        out = Output(proc)
+        try:
+            wait_for(lambda: out.has("READY") or proc.poll() is not None, 2 * START_S, "the drive turning")
+            assert out.has("READY"), out.text()
+            ip_link("down", wiring.driver)
+            try:
+                wait_for(lambda: out.has("link down"), 60.0, "the driver saying the link went down")
+                down_until = time.monotonic() + 2.0  # the scenario: the link stays down for 2 s
+                while time.monotonic() < down_until:
+                    assert proc.poll() is None, out.text()  # and the application lives through it
+                    time.sleep(0.1)
+            finally:
+                ip_link("up", wiring.driver)
+            wait_for(lambda: out.has("re-established") or proc.poll() is not None, 120.0, "the bus back")
+            assert out.has("re-established"), out.text()
+            back = time.time()
+            wait_for(lambda: sum(m.arbitration_id == 0x281 and m.timestamp > back for m in list(listener.frames)) >= 20,
+                     60.0, "20 SYNC TPDOs of the drive after the bus came back")
+            assert proc.poll() is None, out.text()  # the application and its driver live
+        finally:
+            proc.kill()
+            proc.wait()
+    assert [sw for _, sw in listener.statuswords(1, back) if sw & 0x6F == 0x27] == [], "enabled again"
+    speeds = [int.from_bytes(m.data[4:8], "little", signed=True) for m in list(listener.frames)
+              if m.arbitration_id == 0x281 and m.timestamp > back and len(m.data) >= 8]
+    assert speeds and all(abs(v) < 5 for v in speeds[-10:]), speeds[-10:]  # counts/s: standing still
+    assert out.has("REFUSED") and "Traceback" not in out.text(), out.text()
+
+
+@pytest.mark.parametrize("wiring", [pytest.param(SJA1000, marks=NEEDS_CONTROLLERS)], ids=str)
+def test_a_full_transmit_queue_is_counted_and_said_never_a_crash(
+        tmp_path: Path, wiring: Wiring, caplog: pytest.LogCaptureFixture) -> None:
+    """The controller's transmit queue full (ENOBUFS): a token-bucket qdisc at 1 kbit/s on can0
+    holds two frames, so the kernel refuses the driver's sends. Each refusal is counted (and
+    retried for a moment), the driver says so and stays up; a queue that stays full for host
+    heartbeats in a row loses the bus (nothing it sends gets out); once the queue drains, the
+    drive is configured again and not enabled."""
+    config = write_kernel_config(tmp_path / "kernel.yaml", wiring=wiring)
+    with simulator(config, wiring), MotorDriver(load_config(config)) as driver:
+        driver.start()
+        drive = driver.drive("wheel1")
+        drive.enable()
+        network = driver.buses["can0"].network
+        subprocess.run(["tc", "qdisc", "add", "dev", wiring.driver, "root", "tbf", "rate", "1kbit", "burst", "32",
+                        "limit", "32"], check=True)
+        try:
+            for _ in range(600):  # an application commanding until the driver refuses
+                try:
+                    drive.set_velocity(10.0)
+                except MotorError:
+                    break
+                if drive.cache.wait_until(lambda: network.tx_queue_full > 0 and driver.bus_lost["can0"], 0.05):
+                    break
+            wait_for(lambda: network.tx_queue_full > 0, 30.0, "a send refused for a full queue")
+            wait_for(lambda: "transmit queue full (ENOBUFS)" in caplog.text, 30.0, "the full queue said")
+        finally:
+            subprocess.run(["tc", "qdisc", "del", "dev", wiring.driver, "root"], check=True)
+        wait_for(lambda: not driver.bus_lost["can0"] and drive.booted and not drive.lost, 120.0, "the bus usable again")
+        assert drive.state != State.OPERATION_ENABLED
+    assert "Traceback" not in caplog.text
 
 def test_error_frames_are_reported_and_a_bus_off_stops_commands(tmp_path: Path, caplog: pytest.LogCaptureFixture,
                                                                  listener: Listener) -> None:
     config = write_kernel_config(tmp_path / "kernel.yaml")
     with simulator(config), MotorDriver(load_config(config)) as driver, \
-            can.Bus(interface="socketcan", channel=CHANNEL) as controller:  # stands in for the CAN controller
+            can.Bus(interface="socketcan", channel=VCAN.driver) as controller:  # stands in for the CAN controller
         driver.start()
         drive = driver.drive("wheel1")
         drive.enable()
@@ -308,18 +493,20 @@ def test_error_frames_are_reported_and_a_bus_off_stops_commands(tmp_path: Path, 
     assert "error frame: bus-off" in caplog.text and "Traceback" not in caplog.text
 
 
+@BOTH_WIRINGS
 @pytest.mark.skipif(not HAVE_ROS, reason="rclpy / rovercan_msgs not installed (run ./dev setup)")
-def test_the_ros_drive_system_turns_and_stops_the_wheels_on_vcan0(tmp_path: Path) -> None:
+def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring: Wiring) -> None:
     """/cmd_vel in, through the drive-system node and the driver on a socketcan config: the
     wheels turn by the kinematics and stop when /cmd_vel goes stale (rclpy graph in this process)."""
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import Twist
 
-    from nodes.qos import COMMAND_QOS
+    from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS
     from nodes.rover_driver import DriverNode, DriveSystemNode
     from nodes.runtime import SpinThread, make_executor
 
-    config_path = write_kernel_config(tmp_path / "kernel.yaml", nodes=(1, 2))
+    config_path = write_kernel_config(tmp_path / "kernel.yaml", nodes=(1, 2), wiring=wiring)
     # ROS entities are created with the interpreter held for seconds under the VM's emulation:
     # they are made before the driver starts, and this test's drives watch the host for 5 s
     text = config_path.read_text().replace(f"host_timeout_ms: {KERNEL_DRIVE['host_timeout_ms']}", "host_timeout_ms: 5000")
@@ -329,13 +516,17 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels_on_vcan0(tmp_path: Path
     config = load_config(config_path)
     assert config.drives[0].host_timeout_s == 5.0 and config.drives[0].heartbeat_timeout_s == 5.0
     os.environ.setdefault("ROS_LOG_DIR", str(tmp_path / "ros-log"))  # the VM's root file system is read-only
-    with simulator(config_path), MotorDriver(config) as driver:
+    with sim_process(config_path, wiring), MotorDriver(config) as driver:
         context = rclpy.Context()
         rclpy.init(context=context)
         driver_node = DriverNode(driver, context=context)
         system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
         probe = rclpy.create_node("kernel_probe", context=context)
         cmd = probe.create_publisher(Twist, "/cmd_vel", COMMAND_QOS)
+        bus_status: list[dict[str, str]] = []  # the bus's status on /diagnostics, as key -> value
+        probe.create_subscription(DiagnosticArray, "/diagnostics", lambda array: bus_status.extend(
+            {kv.key: kv.value for kv in st.values} | {"message": st.message} for st in array.status
+            if st.name == "rovercan: bus can0"), DIAGNOSTICS_QOS)
         executor = make_executor("events", context)
         for node in (driver_node, system_node, probe):
             executor.add_node(node)
@@ -355,6 +546,14 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels_on_vcan0(tmp_path: Path
             assert left > 30.0 and right > 2.0 * left, (left, right)  # turning, the right side faster
             wait_for(lambda: all(abs(d.snapshot().velocity_deg_s) < 1.0 for d in driver), 30.0,
                      "the wheels stopped after /cmd_vel went stale")
+            wait_for(lambda: bool(bus_status), 30.0, "the bus's status on /diagnostics")
+            status = bus_status[-1]  # one status per bus, with what the kernel says of it
+            if wiring is SJA1000:
+                assert (status["can_state"], status["bitrate"], status["link"]) == ("ERROR-ACTIVE", "1000000", "up")
+                assert status["tx_errors"] == status["rx_errors"] == "0" and status["restart_ms"] == "100", status
+            else:
+                assert status["can_state"] == "none (no controller)" and status["link"] == "up", status
+            assert int(status["frames_received"]) > 0 and status["tx_not_sent"] == "0", status
         finally:
             spin.stop(10.0)
             for node in (driver_node, system_node, probe):
@@ -375,17 +574,19 @@ def guarded_generic_eds(path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("cause", ["heartbeat silent", "guard silent", "guard toggle stuck"])
-def test_a_drive_that_falls_silent_while_turning_is_told_to_stop(tmp_path: Path, listener: Listener,
+@pytest.mark.parametrize(("wiring", "cause"), [
+    *((VCAN, cause) for cause in ("heartbeat silent", "guard silent", "guard toggle stuck")),
+    pytest.param(SJA1000, "heartbeat silent", marks=NEEDS_CONTROLLERS)], ids=str)
+def test_a_drive_that_falls_silent_while_turning_is_told_to_stop(tmp_path: Path, listener: Listener, wiring: Wiring,
                                                                   cause: str) -> None:
     """The drive hears and obeys but its answers stop (a broken transmit line) or come with a
     stuck toggle: the driver declares it lost and tells it to stop (quick-stop RPDO, NMT stop,
     SDO); the simulated drive, in this process on vcan0, is read directly."""
     guarded = cause.startswith("guard")
     eds = guarded_generic_eds(tmp_path / "guarded.eds") if guarded else GENERIC_EDS
-    config = write_kernel_config(tmp_path / "kernel.yaml", eds=eds)
+    config = write_kernel_config(tmp_path / "kernel.yaml", eds=eds, wiring=wiring)
     sim_drive = SimulatedDrive(1, load_drive_od(eds, 1))
-    with can.Bus(interface="socketcan", channel=CHANNEL) as sim_bus, DriveSimulator(sim_bus, [sim_drive]) as runner, \
+    with can.Bus(interface="socketcan", channel=wiring.drives) as sim_bus, DriveSimulator(sim_bus, [sim_drive]) as runner, \
             MotorDriver(load_config(config)) as driver:
         runner.start()
         driver.start()
