@@ -200,9 +200,10 @@ def profiler(pid: int, seconds: float) -> subprocess.Popen[bytes] | None:
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str, Any]:
+def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tuple[str, ...] = ()) -> dict[str, Any]:
     """The measured process runs a shipped config as a user gets it; only the simulator's port
-    is put into it. Every drive gets a ``degree_cmd`` at ``command_hz`` (0.1 % slow: below)."""
+    is put into it. Every drive gets a ``degree_cmd`` at ``command_hz`` (0.1 % slow: below).
+    ``sim_args``: more arguments of ``rovercan sim`` (``--drive-processes``)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float32
@@ -213,7 +214,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float) -> dict[str,
 
     shipped = load_config(config_path)
     channels = {b.name: b.channel for b in shipped.buses}
-    with simulator("--config", str(config_path)) as port, tempfile.TemporaryDirectory() as tmp:
+    with simulator("--config", str(config_path), *sim_args) as port, tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / config_path.name
         config.write_text(config_path.read_text().replace("port: 29536", f"port: {port}"))
         # the listener first: it must see every TPDO the drives send to count the loss

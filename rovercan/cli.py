@@ -91,6 +91,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     steps = _sim_steps(args)
     served = sim_servers(args, steps is not None)
+    if args.drive_processes:
+        from rovercan.sim_processes import serve_with_drive_processes
+        return serve_with_drive_processes(args, served, steps is not None)
     with StopSignal() as stop, ExitStack() as stack:
         sims = [stack.enter_context(SimService(s.specs, host=args.host, port=s.port, extra_channels=s.channels,
                                                wire_time=args.wire_time, bitrate=args.bitrate,
@@ -301,6 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario-delay", type=real(0, 3600), default=2.0,
                    help="seconds from the start to the incident's first fault (default 2: time for a driver to boot)")
     p.add_argument("--status-period", type=real(0, 3600), default=0.0, help="print a status line per drive every S seconds")
+    p.add_argument("--drive-processes", action="store_true", help="with --config: each bus's drives in a process of its"
+                   " own, the server alone in this one (its SYNC timer then waits for no drive model)")
     _sim_bus_args(p)
     p.set_defaults(func=cmd_sim)
 

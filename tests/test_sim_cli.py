@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import can
 import canopen
@@ -160,3 +161,48 @@ def test_sim_on_a_bus_serves_the_drives_of_that_config_bus_only() -> None:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+
+
+def test_drive_processes_serve_the_rover_and_a_dead_one_stops_the_twin(tmp_path: Path) -> None:
+    """`rovercan sim --config rover.yaml --drive-processes`: the server here, each bus's drives in a
+    process of their own (issue 43: its SYNC timer waits for no drive model). The driver boots and
+    enables all six wheels through it; a drive process killed stops the twin with exit 1, naming
+    its channel (a twin with drives missing is not the rover's)."""
+    from can_config import load_config, with_bus_overrides
+    from motor_driver import MotorDriver
+
+    port = free_port()
+    proc = subprocess.Popen(rovercan("sim", "--config", str(REPO / "config" / "rover.yaml"), "--drive-processes",
+                                     "--port", str(port)), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()
+        assert "6 simulated drive(s) on can0, can1 (each bus's drives in a process of their own)" in first, \
+            first + (proc.stderr.read() if proc.poll() is not None and proc.stderr else "")
+        children = [int(p) for p in subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
+                                                    text=True).stdout.split()]
+        assert len(children) == 2, children
+        config = with_bus_overrides(load_config(REPO / "config" / "rover.yaml"), host="127.0.0.1", port=port)
+        with MotorDriver(config) as driver:
+            driver.start()
+            for drive in driver:
+                drive.enable()
+            assert all(d.snapshot().enabled for d in driver)
+        os.kill(children[0], signal.SIGKILL)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 1 and "the simulated drives of channel can" in err and "exited (-9)" in err, err
+        assert "Traceback" not in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (["--drives", "2"], "--drive-processes: give --config"),
+    (["--config", "config/rover.yaml", "--status-period", "1"], "need the drives in the server's process")])
+def test_drive_processes_are_refused_where_they_cannot_serve(args: list[str], says: str) -> None:
+    done = subprocess.run(rovercan("sim", "--drive-processes", "--port", "0", *args), cwd=REPO, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 2 and says in done.stderr and "Traceback" not in done.stderr, done.stderr

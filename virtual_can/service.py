@@ -80,18 +80,19 @@ def specs_for_count(n: int, eds: Path = GENERIC_EDS, channel: str = "can0") -> l
 
 
 class SimService:
-    """Engine, socketcand server and one simulator thread per channel."""
+    """Engine, socketcand server and one simulator thread per channel (``drive_models=False``:
+    the server alone; the drives run elsewhere, as its clients: ``rovercan sim --drive-processes``)."""
 
     def __init__(self, specs: Sequence[SimDriveSpec], *, host: str = DEFAULT_HOST,
                  port: int = DEFAULT_PORT, wire_time: bool = False, bitrate: int = 1_000_000,
                  allow_remote: bool = False, tick_s: float = DEFAULT_TICK_S,
-                 extra_channels: Sequence[str] = ()) -> None:
+                 extra_channels: Sequence[str] = (), drive_models: bool = True) -> None:
         self.engine = BusEngine(bitrate=bitrate, wire_time=wire_time)
         channels = tuple(dict.fromkeys([*(s.channel for s in specs), *extra_channels])) or ("can0",)
         self.simulators: dict[str, DriveSimulator] = {}
         self._buses: list[VirtualBus] = []
         try:
-            for channel in channels:
+            for channel in channels if drive_models else ():
                 drives = [SimulatedDrive(s.node_id, load_drive_od(s.eds, s.node_id), s.motor(), name=s.name)
                           for s in specs if s.channel == channel]
                 bus = VirtualBus(channel, engine=self.engine)
