@@ -230,21 +230,28 @@ class Supervision:
         logger.warning("bus %s re-established; drives configured again (not enabled)", name)
 
     def _link_up(self, name: str, handle: BusHandle) -> bool:
-        """A kernel interface's link as the kernel has it (True where that cannot be known: not
-        a kernel bus, no netlink); the link going down and coming back each said once."""
+        """A kernel interface ready to carry frames as the kernel has it: up and not BUS-OFF (True
+        where that cannot be known: not a kernel bus, no netlink). Its going and its coming back
+        are each said once; a BUS-OFF controller is left to the kernel's restart-ms (with 0 it
+        stays off: said, with the command that restarts it)."""
         health, _ = self.kernel_health(name)
         if health is None:
             return True
-        if not health.link_up and not handle.link_down_said:
+        ready = health.link_up and health.state != "BUS-OFF"
+        if not ready and not handle.link_down_said:
             handle.link_down_said = True
-            logger.error("bus %s: link down (%s is down); the drives' own host watch stops them; waiting for the"
-                         " link, then the drives are configured again and left disabled", name, health.interface)
+            why = (f"{health.interface} is down" if not health.link_up else
+                   f"{health.interface} is BUS-OFF; the kernel restarts it after restart-ms {health.restart_ms}"
+                   if health.restart_ms else f"{health.interface} is BUS-OFF and restart-ms is 0: it stays off"
+                   f" until `ip link set {health.interface} type can restart`")
+            logger.error("bus %s: link down (%s); the drives' own host watch stops them; waiting for the link, then"
+                         " the drives are configured again and left disabled", name, why)
             if self.recorder is not None:
-                self.recorder.trigger("link_down", name, text=f"{health.interface} is down")
-        elif health.link_up and handle.link_down_said:
+                self.recorder.trigger("link_down", name, text=why)
+        elif ready and handle.link_down_said:
             handle.link_down_said = False
             logger.warning("bus %s: link up again (%s %s)", name, health.interface, health.state or "")
-        return health.link_up
+        return ready
 
     def _supervise_drive(self, drive: Drive, now: float) -> None:
         cfg = drive.config

@@ -152,3 +152,28 @@ def test_frames_given_up_for_a_full_transmit_queue_warn_and_say_what_to_do() -> 
     assert counted.level == OK and counted.values["tx_queue_full"] == "3"  # retried and sent: counted only
     dropped = bus_health(load=0.1, lost=False, frames=10, error_frames=0, kernel=kernel, tx_queue_full=9, tx_not_sent=2)
     assert dropped.level == WARN and "2 frame(s) not sent" in dropped.message and "termination" in dropped.message
+
+
+@pytest.mark.parametrize(("fields", "says"), [
+    ({"up": False}, "link down (can0 is down)"),
+    ({"state": 3}, "can0 is BUS-OFF; the kernel restarts it after restart-ms 100"),
+    ({"state": 3, "restart_ms": 0}, "restart-ms is 0: it stays off until `ip link set can0 type can restart`")])
+def test_the_driver_waits_for_a_link_that_is_down_or_bus_off_and_says_so_once(
+        fields: dict[str, object], says: str, caplog: pytest.LogCaptureFixture) -> None:
+    """The supervisor's wait for a lost kernel bus (motor_driver.supervisor._link_up), fed the
+    kernel's link messages (QEMU's SJA1000 never goes BUS-OFF; the kernel tier takes a real one
+    down): not ready while down or BUS-OFF, said once with what to do, and once when it is back."""
+    import can
+
+    from can_config import parse_config
+    from motor_driver import MotorDriver
+
+    config = parse_config({"buses": [{"name": "can0", "interface": "socketcan", "channel": "can0"}],
+                           "drives": [{"name": "m", "node_id": 1}]})
+    with can.Bus(interface="virtual", channel="link-test") as bus, MotorDriver(config, {"can0": bus}) as driver:
+        reads = [health_from_link(link(**fields))] * 3 + [health_from_link(link())]
+        driver.kernel_health = lambda name: (reads.pop(0), "")  # type: ignore[method-assign]
+        handle = driver.buses["can0"]
+        assert [driver._link_up("can0", handle) for _ in range(4)] == [False, False, False, True]
+    said = [r.getMessage() for r in caplog.records if "bus can0: link" in r.getMessage()]
+    assert len(said) == 2 and says in said[0] and "left disabled" in said[0] and "link up again" in said[1], said
