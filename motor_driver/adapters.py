@@ -84,7 +84,8 @@ class GuardedNetwork(canopen.Network):
         #: called with each frame sent (the flight recorder), after it went out
         self.on_sent: Callable[[can.Message], None] | None = None
         #: sends the kernel refused with ENOBUFS (a full transmit queue: a real controller's
-        #: qlen is 10), each retried; and the frames given up on after TX_QUEUE_FULL_RETRY_S
+        #: qlen is 10), each retried (the host heartbeat's counted here too, not retried); and
+        #: the frames given up on after TX_QUEUE_FULL_RETRY_S
         self.tx_queue_full = 0
         self.tx_queue_dropped = 0
 

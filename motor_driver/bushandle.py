@@ -18,7 +18,7 @@ from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
-from motor_driver.adapters import GuardedNetwork
+from motor_driver.adapters import GuardedNetwork, queue_full
 from motor_driver.connect import is_kernel_bus
 from motor_driver.cyclic import DaemonCyclicTask
 from motor_driver.recorder import FlightRecorder
@@ -158,6 +158,8 @@ class BusHandle:
                 self.recorder.record_sent(self.name, beat)
         except (can.CanError, OSError, ValueError) as err:  # the supervisor decides when the bus is lost
             logger.debug("bus %s: host heartbeat not sent: %s", self.name, err)
+            if queue_full(err):  # counted with the network's (not retried: this loop never waits)
+                self.network.tx_queue_full += 1
             if self.send_failing is None:
                 self.send_failing = (time.monotonic(), str(err))
 

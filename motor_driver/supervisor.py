@@ -127,6 +127,7 @@ class Supervision:
         on the bus's worker and its drives are booted again (not re-armed: commands are refused
         until someone enables them)."""
         bus_cfg = self.config.bus(name)
+        self._queue_full(name, handle)
         if not self.bus_lost[name]:
             sync = handle.sync_task
             if isinstance(sync, DaemonCyclicTask) and not sync.keep_alive(now) and handle.job_done():
@@ -139,7 +140,6 @@ class Supervision:
             timeout = max((d.config.heartbeat_timeout_s for d in drives), default=1.0)
             closed = connection_closed(handle.bus)
             losing = self._bus_error(name, handle)
-            self._queue_full(name, handle)
             failing = handle.send_failing
             send_failed = failing is not None and now - failing[0] > SEND_FAILING_BEATS * bus_cfg.host_heartbeat_s
             if exc is not None or closed or losing or send_failed or (

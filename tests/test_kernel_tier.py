@@ -258,7 +258,8 @@ def test_a_second_masters_sync_is_noticed_within_a_second_and_the_drivers_own_ne
 
 @pytest.mark.parametrize(("wiring", "sig", "watch"), [
     *((VCAN, sig, watch) for sig in (signal.SIGKILL, signal.SIGSTOP) for watch in ("heartbeat", "guarding")),
-    pytest.param(SJA1000, signal.SIGKILL, "heartbeat", marks=NEEDS_CONTROLLERS)], ids=str)
+    pytest.param(SJA1000, signal.SIGKILL, "heartbeat", marks=NEEDS_CONTROLLERS)],
+    ids=lambda v: v.name if isinstance(v, signal.Signals) else str(v))
 def test_a_killed_or_stopped_driver_lets_every_drive_stop_itself(tmp_path: Path, listener: Listener, wiring: Wiring,
                                                                   sig: signal.Signals, watch: str) -> None:
     """Heartbeat: the generic drive's consumer (0x1016). Guarding: a drive built from the
