@@ -8,6 +8,7 @@ request in the way a test asks for."""
 
 from __future__ import annotations
 
+import logging
 import struct
 import subprocess
 import sys
@@ -41,6 +42,8 @@ class HostileDrive:
         self.bus = can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port)
         self.stop = threading.Event()
         self.requests = 0
+        self.aborts = 0  # of the requests: the client's aborts (0x80)
+        self.stale_sent = False
         self.thread = threading.Thread(target=self.run, daemon=True)
         self.thread.start()
         time.sleep(RAWMODE_HOLD_S + 0.02)
@@ -61,12 +64,24 @@ class HostileDrive:
                 self.send(0x700 + NODE, b"\x00")  # boot-up
             elif msg.arbitration_id == 0x600 + NODE:
                 self.requests += 1
+                self.aborts += msg.data[0] == 0x80
                 self.reply(bytes(msg.data))
 
     def reply(self, req: bytes) -> None:
         cmd, index, sub = req[0], req[1:3], req[3:4]
         kind = self.answer
         if kind == "silence":
+            return
+        if kind == "stale once":  # an answer to an earlier upload, late, instead of this one's; then honest
+            if cmd == 0x80:
+                return  # the client's abort: no answer
+            if not self.stale_sent:
+                self.stale_sent = True
+                self.send(0x580 + NODE, bytes([0x43]) + struct.pack("<H", 0x1018) + b"\x01" + b"\x9a\x00\x00\x00")
+            elif cmd & 0xE0 == 0x40:
+                self.send(0x580 + NODE, bytes([0x43]) + index + sub + struct.pack("<I", 0x00020192))
+            else:
+                self.send(0x580 + NODE, bytes([0x60]) + index + sub + b"\x00" * 4)
             return
         if kind == "short":
             self.send(0x580 + NODE, b"\x43")
@@ -135,6 +150,27 @@ def test_each_malformed_answer_is_an_sdo_error_within_its_bound(server: Socketca
                     assert err.value.abort_code == 0x12345678 and "0x12345678" in str(err.value)
     finally:
         drive_bus.close()
+
+
+@pytest.mark.parametrize("what", ["read", "write"])
+def test_an_answer_to_an_earlier_request_gets_the_transfer_tried_once_more(server: SocketcandServer, what: str,
+                                                                          caplog: pytest.LogCaptureFixture) -> None:
+    """A late answer to an earlier request taken for this one's (seen at boot on a loaded machine:
+    "Unexpected response 0x43" to a write failed the rover's start): canopen aborts, and the
+    transfer is tried once more, which the drive answers."""
+    caplog.set_level(logging.INFO, logger="motor_driver.drive.sdo")
+    drive_bus = HostileDrive(server.port, "stale once")
+    try:
+        with MotorDriver(config(server.port)) as driver:
+            sdo = driver.drive("hostile").sdo
+            if what == "read":
+                assert sdo.read(0x1000, 0) == struct.pack("<I", 0x00020192)
+            else:
+                sdo.write(0x6060, 0, b"\x01")
+            assert drive_bus.requests - drive_bus.aborts == 2 and drive_bus.stale_sent  # the transfer, once more
+    finally:
+        drive_bus.close()
+    assert "an answer not to this request" in caplog.text and "trying once more" in caplog.text
 
 
 @pytest.mark.parametrize("kind", ["endless", "huge size"])

@@ -198,6 +198,7 @@ def launched_rover(tmp_path: Path, name: str, *launch_args: str) -> Iterator[tup
         rclpy.shutdown(context=context)
         launch.terminate()
         out, _ = launch.communicate(timeout=30)
+        (tmp_path / f"{name}-launch.log").write_text(out)  # kept with the test's tmp_path, for a failure's story
     assert launch.returncode == 0, out[-3000:]
     assert "Traceback" not in out, out[-3000:]
 

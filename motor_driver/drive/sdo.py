@@ -104,7 +104,11 @@ class SdoPort:
         has one (else SDO_UPLOAD_MAX_BYTES), and SDO_TRANSFER_TIMEOUTS x the SDO timeout in all,
         whatever the drive announces or keeps sending (a transfer past either is aborted)."""
         with self._lock, self._sdo_errors("read", index, subindex):
-            return self._bounded_upload(index, subindex)
+            try:
+                return self._bounded_upload(index, subindex)
+            except canopen.SdoCommunicationError as err:
+                self._crossed(err, "read", index, subindex)
+                return self._bounded_upload(index, subindex)
 
     def _bounded_upload(self, index: int, subindex: int) -> bytes:
         var = variable(self.od, index, subindex)
@@ -135,7 +139,22 @@ class SdoPort:
 
     def write(self, index: int, subindex: int, data: bytes) -> None:
         with self._lock, self._sdo_errors("write", index, subindex):
-            self._node.sdo.download(index, subindex, data)
+            try:
+                self._node.sdo.download(index, subindex, data)
+            except canopen.SdoCommunicationError as err:
+                self._crossed(err, "write", index, subindex)
+                self._node.sdo.download(index, subindex, data)
+
+    def _crossed(self, err: canopen.SdoCommunicationError, what: str, index: int, subindex: int) -> None:
+        """An answer that was not to this request (its command or its object another's: an
+        answer to an earlier request that came after that one's timeout, seen at boot on a
+        loaded machine, where it failed the rover's start) gets the transfer tried once more:
+        canopen has aborted it and empties its queue of answers before the next request. No
+        answer at all is raised (a silent node is not waited for twice)."""
+        if "No SDO response" in str(err):
+            raise err
+        logger.info("node %d: SDO %s 0x%04X:%d: an answer not to this request (%s); trying once more",
+                    self.node_id, what, index, subindex, err)
 
     def write_checked(self, index: int, subindex: int, value: int) -> None:
         """SDO write for tools and services: refuses the objects that move the motor or set its
