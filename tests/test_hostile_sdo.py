@@ -72,16 +72,8 @@ class HostileDrive:
         kind = self.answer
         if kind == "silence":
             return
-        if kind == "stale once":  # an answer to an earlier upload, late, instead of this one's; then honest
-            if cmd == 0x80:
-                return  # the client's abort: no answer
-            if not self.stale_sent:
-                self.stale_sent = True
-                self.send(0x580 + NODE, bytes([0x43]) + struct.pack("<H", 0x1018) + b"\x01" + b"\x9a\x00\x00\x00")
-            elif cmd & 0xE0 == 0x40:
-                self.send(0x580 + NODE, bytes([0x43]) + index + sub + struct.pack("<I", 0x00020192))
-            else:
-                self.send(0x580 + NODE, bytes([0x60]) + index + sub + b"\x00" * 4)
+        if kind == "stale once":
+            self.reply_stale_once(cmd, index, sub)
             return
         if kind == "short":
             self.send(0x580 + NODE, b"\x43")
@@ -104,6 +96,18 @@ class HostileDrive:
                 toggle ^= 0x10
             self.send(0x580 + NODE, bytes([toggle]) + b"\x11" * 7)
         elif cmd & 0xE0 == 0x20:  # a download: acknowledged
+            self.send(0x580 + NODE, bytes([0x60]) + index + sub + b"\x00" * 4)
+
+    def reply_stale_once(self, cmd: int, index: bytes, sub: bytes) -> None:
+        """The first request gets an answer to an earlier upload (late) instead of its own; then honest."""
+        if cmd == 0x80:
+            return  # the client's abort: no answer
+        if not self.stale_sent:
+            self.stale_sent = True
+            self.send(0x580 + NODE, bytes([0x43]) + struct.pack("<H", 0x1018) + b"\x01" + b"\x9a\x00\x00\x00")
+        elif cmd & 0xE0 == 0x40:
+            self.send(0x580 + NODE, bytes([0x43]) + index + sub + struct.pack("<I", 0x00020192))
+        else:
             self.send(0x580 + NODE, bytes([0x60]) + index + sub + b"\x00" * 4)
 
     def close(self) -> None:
