@@ -14,21 +14,24 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import can
+import canopen
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from can_config import parse_config, with_bus_overrides
+from can_config import RoverConfig, parse_config, with_bus_overrides
 from can_config.errors import BootError, MotorError, SdoError, SdoTimeoutError
 from motor_driver import MotorDriver
 from motor_driver.drive import SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
-from virtual_can import BusEngine, SocketcandServer
+from motor_driver.drive.sdo import SdoPort
+from motor_driver.drive.sdo_client import sdo_node
+from virtual_can import BusEngine, SimService, SocketcandServer
 from virtual_can.server import RAWMODE_HOLD_S
 
-from .conftest import REPO
+from .conftest import REPO, make_config, wait_for
 
 NODE = 5
 SDO_TIMEOUT_S = 0.2
@@ -72,8 +75,8 @@ class HostileDrive:
         kind = self.answer
         if kind == "silence":
             return
-        if kind == "stale once":
-            self.reply_stale_once(cmd, index, sub)
+        if kind in ("others first", "toggle once"):
+            (self.reply_others_first if kind == "others first" else self.reply_toggle_once)(cmd, index, sub)
             return
         if kind == "short":
             self.send(0x580 + NODE, b"\x43")
@@ -98,17 +101,31 @@ class HostileDrive:
         elif cmd & 0xE0 == 0x20:  # a download: acknowledged
             self.send(0x580 + NODE, bytes([0x60]) + index + sub + b"\x00" * 4)
 
-    def reply_stale_once(self, cmd: int, index: bytes, sub: bytes) -> None:
-        """The first request gets an answer to an earlier upload (late) instead of its own; then honest."""
-        if cmd == 0x80:
+    def reply_others_first(self, cmd: int, index: bytes, sub: bytes) -> None:
+        """Each initiate gets, before its own answer, what a second client's transfers or a late
+        answer to an earlier request look like on the shared COB-ID: an abort of another object,
+        an upload answer about another object and a download answer about another object."""
+        if cmd & 0xE0 not in (0x20, 0x40):
             return  # the client's abort: no answer
-        if not self.stale_sent:
-            self.stale_sent = True
-            self.send(0x580 + NODE, bytes([0x43]) + struct.pack("<H", 0x1018) + b"\x01" + b"\x9a\x00\x00\x00")
-        elif cmd & 0xE0 == 0x40:
+        self.send(0x580 + NODE, bytes([0x80]) + struct.pack("<H", 0x6061) + b"\x00" + struct.pack("<I", 0x06020000))
+        self.send(0x580 + NODE, bytes([0x43]) + struct.pack("<H", 0x1018) + b"\x01" + b"\x9a\x00\x00\x00")
+        self.send(0x580 + NODE, bytes([0x60]) + struct.pack("<H", 0x1017) + b"\x00" + b"\x00" * 4)
+        if cmd & 0xE0 == 0x40:
             self.send(0x580 + NODE, bytes([0x43]) + index + sub + struct.pack("<I", 0x00020192))
         else:
             self.send(0x580 + NODE, bytes([0x60]) + index + sub + b"\x00" * 4)
+
+    def reply_toggle_once(self, cmd: int, index: bytes, sub: bytes) -> None:
+        """A segmented upload of b"abc" whose first segment answer has the wrong toggle, once
+        (a segment of another transfer: no multiplexer tells it apart); then honest."""
+        if cmd & 0xE0 == 0x40:
+            self.send(0x580 + NODE, bytes([0x41]) + index + sub + struct.pack("<I", 3))
+        elif cmd & 0xE0 == 0x60:
+            toggle = cmd & 0x10
+            if not self.stale_sent:
+                self.stale_sent = True
+                toggle ^= 0x10
+            self.send(0x580 + NODE, bytes([toggle | 0x09]) + b"abc" + b"\x00" * 4)  # 3 bytes, the last segment
 
     def close(self) -> None:
         self.stop.set()
@@ -157,13 +174,14 @@ def test_each_malformed_answer_is_an_sdo_error_within_its_bound(server: Socketca
 
 
 @pytest.mark.parametrize("what", ["read", "write"])
-def test_an_answer_to_an_earlier_request_gets_the_transfer_tried_once_more(server: SocketcandServer, what: str,
-                                                                          caplog: pytest.LogCaptureFixture) -> None:
-    """A late answer to an earlier request taken for this one's (seen at boot on a loaded machine:
-    "Unexpected response 0x43" to a write failed the rover's start): canopen aborts, and the
-    transfer is tried once more, which the drive answers."""
-    caplog.set_level(logging.INFO, logger="motor_driver.drive.sdo")
-    drive_bus = HostileDrive(server.port, "stale once")
+def test_answers_to_other_requests_are_dropped_and_the_own_one_taken(server: SocketcandServer, what: str,
+                                                                    caplog: pytest.LogCaptureFixture) -> None:
+    """Two clients of one node share its SDO answer COB-ID (a bench read beside the booting
+    driver took the driver's "object does not exist" abort for its own and failed), and a late
+    answer to an earlier request comes on it too: each answer that names another object, or is
+    of another kind, is dropped, and the transfer's own answer is taken, with no retry."""
+    caplog.set_level(logging.INFO, logger="motor_driver.drive.sdo_client")
+    drive_bus = HostileDrive(server.port, "others first")
     try:
         with MotorDriver(config(server.port)) as driver:
             sdo = driver.drive("hostile").sdo
@@ -171,7 +189,24 @@ def test_an_answer_to_an_earlier_request_gets_the_transfer_tried_once_more(serve
                 assert sdo.read(0x1000, 0) == struct.pack("<I", 0x00020192)
             else:
                 sdo.write(0x6060, 0, b"\x01")
-            assert drive_bus.requests - drive_bus.aborts == 2 and drive_bus.stale_sent  # the transfer, once more
+            assert drive_bus.requests == 1 and drive_bus.aborts == 0  # its own answer, the first time
+    finally:
+        drive_bus.close()
+    assert "an abort of 0x6061:0, not of" in caplog.text
+    assert "it answers 0x1018:1, not 0x1000:0" in caplog.text if what == "read" else "not the 0x60" in caplog.text
+    assert "trying once more" not in caplog.text
+
+
+def test_a_segment_of_another_transfer_gets_the_transfer_tried_once_more(server: SocketcandServer,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
+    """A segment answer carries no object: one with the wrong toggle (another transfer's) makes
+    canopen abort, and the transfer is tried once more, which the drive answers."""
+    caplog.set_level(logging.INFO, logger="motor_driver.drive.sdo")
+    drive_bus = HostileDrive(server.port, "toggle once")
+    try:
+        with MotorDriver(config(server.port)) as driver:
+            assert driver.drive("hostile").sdo.read(0x1008, 0) == b"abc"
+            assert drive_bus.aborts == 1 and drive_bus.stale_sent  # the crossed transfer, aborted once
     finally:
         drive_bus.close()
     assert "an answer not to this request" in caplog.text and "trying once more" in caplog.text
@@ -248,3 +283,34 @@ def test_the_bench_reads_through_the_bounded_port(server: SocketcandServer, kind
     # cut off by size (SDO_UPLOAD_MAX_BYTES without an EDS: about 150 segments for one read, a few
     # reads for info), not the tens of thousands of frames of an unbounded read
     assert drive_bus.requests < 3 * (SDO_UPLOAD_MAX_BYTES // 7 + 10), drive_bus.requests
+
+
+def test_a_second_client_beside_the_driver_gets_its_own_answers(
+        driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
+    """The driver and a bench tool on one node at once (the two-bus test's SDO read failed with
+    the driver's "object does not exist"): the driver reads an object the drive lacks, over and
+    over, while the tool reads 0x6064; every one of the tool's reads is its own answer."""
+    sim, driver = driver_factory(make_config(1))
+    stop, aborts = threading.Event(), [0]
+
+    def driver_reads_a_missing_object() -> None:
+        while not stop.is_set():
+            aborts[0] += driver.drive("joint1").sdo.read_optional(0x2FFF, 0) is None
+
+    bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    network = canopen.Network(bus)
+    network.connect()
+    node = sdo_node(1, driver.drive("joint1").od)
+    network.add_node(node)
+    tool = SdoPort("bench", node, node.object_dictionary, 1.0)
+    thread = threading.Thread(target=driver_reads_a_missing_object, daemon=True)
+    thread.start()
+    try:
+        wait_for(lambda: aborts[0] > 0, 30, "the driver's first abort")
+        for _ in range(100):
+            assert len(tool.read(0x6064, 0)) == 4
+        assert aborts[0] > 10  # the aborts went on beside the tool's reads
+    finally:
+        stop.set()
+        thread.join()
+        network.disconnect()

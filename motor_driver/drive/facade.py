@@ -38,6 +38,7 @@ from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.motion import Motion
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
+from motor_driver.drive.sdo_client import sdo_node
 from motor_driver.drive.state import DriveCache
 from motor_driver.drive.values import DriveState, Emcy
 from motor_driver.pdo import PdoPlan, plan_pdos
@@ -56,7 +57,7 @@ class Drive:
         self.name, self.node_id = config.name, config.node_id
         self.network = network
         self.od = od
-        self.node = canopen.RemoteNode(config.node_id, od)
+        self.node = sdo_node(config.node_id, od)  # its SDO client takes only its own answers
         network.add_node(self.node)
         # the driver decodes EMCY itself (the cache); canopen's consumer would keep every EMCY in
         # a list that is never trimmed, for as long as the process runs

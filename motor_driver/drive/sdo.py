@@ -146,11 +146,11 @@ class SdoPort:
                 self._node.sdo.download(index, subindex, data)
 
     def _crossed(self, err: canopen.SdoCommunicationError, what: str, index: int, subindex: int) -> None:
-        """An answer that was not to this request (its command or its object another's: an
-        answer to an earlier request that came after that one's timeout, seen at boot on a
-        loaded machine, where it failed the rover's start) gets the transfer tried once more:
-        canopen has aborted it and empties its queue of answers before the next request. No
-        answer at all is raised (a silent node is not waited for twice)."""
+        """An answer that was not to this request and that the node's client could not tell
+        apart (it drops those naming another object or of another kind: see
+        :mod:`motor_driver.drive.sdo_client`), such as a segment of another transfer, gets the
+        transfer tried once more: canopen has aborted it and empties its queue of answers before
+        the next request. No answer at all is raised (a silent node is not waited for twice)."""
         if "No SDO response" in str(err):
             raise err
         logger.info("node %d: SDO %s 0x%04X:%d: an answer not to this request (%s); trying once more",

@@ -23,6 +23,7 @@ from can_config.codec import unpack_value, value_format
 from can_config.eds import consumer_subs, variable
 from can_config.errors import ConfigError
 from can_config.objects import OD
+from motor_driver.drive.sdo_client import sdo_node
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     SDO_TIMEOUT_S,
@@ -92,7 +93,7 @@ def _drive_safety_rows(network: canopen.Network, cfg: DriveConfig, bus_cfg: BusC
 
     rows: list[dict[str, Any]] = []
     od = load_drive_od(cfg.eds, cfg.node_id)
-    node = canopen.RemoteNode(cfg.node_id, od)
+    node = sdo_node(cfg.node_id, od)
     node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
     network.add_node(node)
 
