@@ -38,11 +38,11 @@ from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.motion import Motion
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.sdo_client import sdo_node
 from motor_driver.drive.state import DriveCache
 from motor_driver.drive.values import DriveState, Emcy
 from motor_driver.pdo import PdoPlan, plan_pdos
 from motor_driver.safety import SafetyCheck
+from motor_driver.sdo_client import OwnAnswersNode
 from motor_driver.units import Scale
 
 logger = logging.getLogger(__name__)
@@ -57,7 +57,7 @@ class Drive:
         self.name, self.node_id = config.name, config.node_id
         self.network = network
         self.od = od
-        self.node = sdo_node(config.node_id, od)  # its SDO client takes only its own answers
+        self.node = OwnAnswersNode(config.node_id, od)  # its SDO client takes only its own answers
         network.add_node(self.node)
         # the driver decodes EMCY itself (the cache); canopen's consumer would keep every EMCY in
         # a list that is never trimmed, for as long as the process runs

@@ -23,7 +23,7 @@ from can_config.codec import unpack_value, value_format
 from can_config.eds import consumer_subs, variable
 from can_config.errors import ConfigError
 from can_config.objects import OD
-from motor_driver.drive.sdo_client import sdo_node
+from motor_driver.sdo_client import OwnAnswersNode
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     SDO_TIMEOUT_S,
@@ -93,7 +93,7 @@ def _drive_safety_rows(network: canopen.Network, cfg: DriveConfig, bus_cfg: BusC
 
     rows: list[dict[str, Any]] = []
     od = load_drive_od(cfg.eds, cfg.node_id)
-    node = sdo_node(cfg.node_id, od)
+    node = OwnAnswersNode(cfg.node_id, od)
     node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
     network.add_node(node)
 

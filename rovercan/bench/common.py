@@ -29,9 +29,9 @@ from can_config.objects import sdo_abort_text
 from motor_driver.adapters import connection_closed
 from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.sdo_client import sdo_node
 from motor_driver.driver import open_bus as driver_open_bus
 from motor_driver.driver import wait_for_server
+from motor_driver.sdo_client import OwnAnswersNode
 from motor_driver.traffic import LOOK_BENCH_S
 from rovercan.argtypes import real, whole
 
@@ -224,7 +224,7 @@ def remote_node(args: argparse.Namespace, node_id: int, drive: DriveConfig | Non
     try:
         eds = drive.eds if drive is not None else getattr(args, "eds", None)
         od: ObjectDictionary | str = load_od(eds, node_id) if eds else ObjectDictionary()
-        node = sdo_node(node_id, od)
+        node = OwnAnswersNode(node_id, od)
         node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
         network.add_node(node)
         yield node, bus

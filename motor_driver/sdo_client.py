@@ -35,7 +35,7 @@ _ANSWER_CLASS = {0x40: 0x40,  # upload initiate -> upload initiate answer (names
 _NAMES_OBJECT = (0x40, 0x60)
 
 
-class MultiplexedSdoClient(SdoClient):
+class MultiplexedSdoClient(SdoClient):  # type: ignore[misc]
     """canopen's SDO client, keeping only answers of the kind and object of its own request."""
 
     def __init__(self, rx_cobid: int, tx_cobid: int, od: ObjectDictionary) -> None:
@@ -89,11 +89,12 @@ def _name(multiplexer: bytes) -> str:
     return f"0x{int.from_bytes(multiplexer[:2], 'little'):04X}:{multiplexer[2]}"
 
 
-def sdo_node(node_id: int, od: ObjectDictionary | str) -> canopen.RemoteNode:
-    """canopen's RemoteNode with its default SDO channel a MultiplexedSdoClient; add it to the
-    network after (the network subscribes the channel's answers then)."""
-    node = canopen.RemoteNode(node_id, od)
-    client = MultiplexedSdoClient(0x600 + node.id, 0x580 + node.id, node.object_dictionary)
-    node.sdo_channels[node.sdo_channels.index(node.sdo)] = client
-    node.sdo = client
-    return node
+class OwnAnswersNode(canopen.RemoteNode):  # type: ignore[misc]
+    """canopen's RemoteNode whose SDO channels are MultiplexedSdoClients."""
+
+    def add_sdo(self, rx_cobid: int, tx_cobid: int) -> MultiplexedSdoClient:
+        client = MultiplexedSdoClient(rx_cobid, tx_cobid, self.object_dictionary)
+        self.sdo_channels.append(client)
+        if self.has_network():
+            self.network.subscribe(client.tx_cobid, client.on_response)
+        return client
