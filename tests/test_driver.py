@@ -11,7 +11,7 @@ import can
 import pytest
 
 from can_config import RoverConfig
-from can_config.errors import BootError, CommandRejected, DriveStateError
+from can_config.errors import BootError, CommandRejected, DriveStateError, DriveTimeoutError
 from motor_driver import MotorDriver, State
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -200,7 +200,28 @@ def test_homing_sets_zero(driver_factory: DriverFactory) -> None:
     drive.enable()
     drive.move_to(20.0, wait=True)
     drive.home()
-    wait_for(lambda: abs(drive.snapshot().angle_deg) < 0.05, 1.0, "homed at zero")
+    assert abs(drive.snapshot().angle_deg) < 0.05  # home() returns with the new zero, not the old angle
+
+
+def test_homing_attained_with_no_position_after_it_is_an_error_not_the_old_angle(driver_factory: DriverFactory) -> None:
+    """The drive says "homing attained" and then sends no position: the new zero is unknown,
+    and home() says so (the landed code returned after 3 SYNC periods, and a snapshot then still
+    showed the angle before homing: seen under load as 63 deg after `rovercan home`)."""
+    sim, driver = driver_factory(make_config(1))
+    runner = sim.simulators["can0"]
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.move_to(20.0, wait=True)
+
+    def silence(point: str) -> None:
+        if point == "home: attained":
+            runner.call(lambda: setattr(runner.drive(1).faults, "tpdo_silent", True))
+
+    drive.interleave = silence
+    with pytest.raises(DriveTimeoutError, match="homing attained, but no position came from the drive"):
+        drive.home()
+    drive.interleave = None
+    runner.call(lambda: setattr(runner.drive(1).faults, "tpdo_silent", False))
 
 
 def test_cyclic_synchronous_position_streams_and_refuses_jumps(

@@ -20,6 +20,7 @@ from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.cia402 import CW, FAULT_STATES, SW, Command, State
 from motor_driver.drive.busy import Op
 from motor_driver.drive.channel import CommandChannel
+from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
@@ -67,11 +68,23 @@ class Homing:
             self._channel.transition(op, "home", Command.ENABLE_OPERATION, edge=CW.NEW_SETPOINT)
             self._wait_attained(op, timeout_s or cfg.homing_timeout_s)
             self._cache.trust_next_position()  # homing moves the zero: the next position is taken as it comes
-            seq = self._cache.position_seq
-            self._cache.wait_until(lambda: self._cache.position_seq != seq, 3 * self._cache.sync_period_s + 0.05)
+            self._channel.point("home: attained")
+            self._wait_new_position()
             self._channel.transition(op, "home", Command.ENABLE_OPERATION)
             self._power.set_mode(OperationMode.PROFILE_POSITION, parent=op)
             self._channel.forget(self._cache.position_counts)
+
+    def _wait_new_position(self) -> None:
+        """The first position after homing (the new zero), waited for by its arrival: a
+        snapshot taken before it would still show the position before homing (under load the
+        next TPDO can be later than a few SYNC periods)."""
+        seq = self._cache.position_seq
+        bound_s = max(TRANSITION_TIMEOUT_S, 10 * self._cache.sync_period_s)
+        if not self._cache.wait_until(lambda: self._cache.position_seq != seq, bound_s):
+            raise DriveTimeoutError(f"{self.name}: homing attained, but no position came from the drive within"
+                                    f" {bound_s:g} s after it; its new zero is unknown. Check the bus and the"
+                                    " drive's TPDOs, then home again.", node_id=self.node_id,
+                                    statusword=self._cache.statusword)
 
     def _wait_attained(self, op: Op, timeout_s: float) -> None:
         cache = self._cache
