@@ -63,11 +63,6 @@ NEEDS_CONTROLLERS = pytest.mark.skipif(kernel_controllers_available() is not Non
                                        reason=kernel_controllers_available() or "")
 #: A test marked so runs on vcan0 and on the SJA1000 pair (where the VM has it).
 BOTH_WIRINGS = pytest.mark.parametrize("wiring", [VCAN, pytest.param(SJA1000, marks=NEEDS_CONTROLLERS)], ids=str)
-#: A test marked so runs on the wiring the rover deploys, a real controller's driver (the
-#: SJA1000 pair) where the VM has it, else on vcan0: the driver's SocketCAN path is the same
-#: on both (raw socket, BCM, netlink), and each such test costs a minute at the VM's speed.
-DEPLOYED_WIRING = pytest.mark.parametrize("wiring", [SJA1000 if kernel_controllers_available() is None else VCAN],
-                                          ids=str)
 
 
 @pytest.fixture
@@ -223,7 +218,7 @@ def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Pa
     assert len(syncs) >= 0.5 * elapsed / (KERNEL_BUS["sync_period_ms"] / 1000), (len(syncs), elapsed)
 
 
-@DEPLOYED_WIRING
+@BOTH_WIRINGS
 def test_rovercan_move_turns_the_drive_and_reads_the_angle_back(tmp_path: Path, listener: Listener,
                                                                wiring: Wiring) -> None:
     """The bench command a user runs first on a new bus: `rovercan move` by the config's drive name
@@ -405,7 +400,7 @@ class Output:
         return "\n".join(self.lines[-60:])
 
 
-@DEPLOYED_WIRING
+@BOTH_WIRINGS
 def test_the_drivers_link_down_for_2_s_under_an_application_that_keeps_commanding(
         tmp_path: Path, listener: Listener, wiring: Wiring) -> None:
     """An application (its own process, the API) keeps commanding a velocity; the driver's
@@ -499,7 +494,7 @@ def test_error_frames_are_reported_and_a_bus_off_stops_commands(tmp_path: Path, 
     assert "error frame: bus-off" in caplog.text and "Traceback" not in caplog.text
 
 
-@DEPLOYED_WIRING
+@BOTH_WIRINGS
 @pytest.mark.skipif(not HAVE_ROS, reason="rclpy / rovercan_msgs not installed (run ./dev setup)")
 def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring: Wiring) -> None:
     """/cmd_vel in, through the drive-system node and the driver on a socketcan config: the
