@@ -126,8 +126,8 @@ def _sqlite_problem(file: Path) -> str | None:
     try:
         with sqlite3.connect(f"file:{file}?mode=ro", uri=True) as db:
             row = db.execute("SELECT type FROM sqlite_master WHERE name = 'messages'").fetchone()
-    except sqlite3.Error as err:
-        return f"not a database python-can reads ({err})"
+    except (sqlite3.Error, UnicodeDecodeError) as err:  # a damaged schema's text need not be UTF-8
+        return f"not a database python-can reads ({' '.join(str(err).split())})"  # one line, whatever it quotes
     if row is None:
         return "no table 'messages' (python-can's sqlite recordings have one)"
     if row[0] != "table":

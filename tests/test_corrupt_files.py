@@ -288,3 +288,21 @@ def test_an_incident_of_a_hundred_thousand_events_shows_its_ends_and_says_so(tmp
     with redirect_stdout(full), redirect_stderr(io.StringIO()):
         assert main(["incident", str(path), "--json"]) == 0
     assert len(json.loads(full.getvalue())["events"]) == 100_000
+
+
+@pytest.mark.parametrize("token", [b"'\x80", b"'\n"], ids=["not-utf8", "newline"])
+def test_a_database_whose_schema_is_damaged_gets_one_line(tmp_path: Path, token: bytes) -> None:
+    """The schema text of a damaged .db need not be UTF-8 nor one line (hypothesis found both:
+    a UnicodeDecodeError traceback, and an error of two lines quoting the damaged token)."""
+    import sqlite3
+
+    path = tmp_path / "damaged.db"
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE messages(ts REAL, xyzzy INTEGER)")
+    raw = path.read_bytes()
+    assert raw.count(b"xyzzy") == 1
+    path.write_bytes(raw.replace(b"xyzzy", b"xy" + token + b"zy"))
+    for command in (["decode", str(path)], ["replay", str(path), "--fast", *NO_BUS]):
+        code, err = cli(*command)
+        assert code == 2, err
+        assert_one_clear_line(code, err, path)
