@@ -208,8 +208,13 @@ def profiler(pid: int, seconds: float) -> subprocess.Popen[bytes] | None:
     if not out:
         return None
     fmt = "raw" if out.endswith(".txt") else "flamegraph"  # .txt: collapsed stacks, to rank the entries
+    # ROVERCAN_PROFILE_NATIVE=1: every running thread with its native (C/C++) frames instead:
+    # where the CPU goes that the interpreter's holder does not show
+    # (py-spy then pauses the process for each sample: figures of such a run are not comparable)
+    native = os.environ.get("ROVERCAN_PROFILE_NATIVE") == "1"
+    scope = ["--native", "--threads"] if native else ["--gil", "--nonblocking"]
     return subprocess.Popen([str(Path(sys.executable).parent / "py-spy"), "record", "--pid", str(pid), "--rate", "250",
-                             "--gil", "--nonblocking", "--duration", str(max(1, int(seconds))), "--format", fmt,
+                             *scope, "--duration", str(max(1, int(seconds))), "--format", fmt,
                              "--output", out],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
