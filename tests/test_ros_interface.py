@@ -16,7 +16,7 @@ from motor_driver import MotorDriver, State
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
-from .conftest import HAVE_ROS, IN_PROCESS_HEARTBEAT_TIMEOUT_MS, REPO, requires_ros, wait_for
+from .conftest import HAVE_ROS, REPO, requires_ros, wait_for
 
 pytestmark = requires_ros
 
@@ -72,14 +72,18 @@ class Graph:
 #: server, the driver, the nodes and the test share one interpreter: the suite's process (six
 #: drives simulated in Python at 1 kHz, a server thread per client, ROS entities created while
 #: drives are enabled) has held the driver's supervisor up to 0.1 s, which the shipped 150 ms
-#: does not cover. The driver process alone is measured by the benchmarks (host heartbeat gap).
-IN_PROCESS_HOST_TIMEOUT_S = 0.5
+#: does not cover; with two busy loops beside the suite on two cores the whole process was once
+#: starved 0.9 s, and every drive rightly stopped itself in the middle of a test of the drive
+#: system. The driver process alone is measured by the benchmarks (host heartbeat gap).
+IN_PROCESS_HOST_TIMEOUT_S = 2.0
+#: The driver's consumer time of the drives' heartbeats in these graphs, for the same reason.
+GRAPH_HEARTBEAT_TIMEOUT_S = 2.5
 
 
 def in_process_host_timeout(config: RoverConfig) -> RoverConfig:
-    """The in-process consumer times both ways (conftest's IN_PROCESS_HEARTBEAT_TIMEOUT_MS)."""
+    """The in-process consumer times both ways, longer than a starved test process's pause."""
     drives = tuple(dataclasses.replace(d, host_timeout_s=IN_PROCESS_HOST_TIMEOUT_S,
-                                       heartbeat_timeout_s=IN_PROCESS_HEARTBEAT_TIMEOUT_MS / 1000)
+                                       heartbeat_timeout_s=GRAPH_HEARTBEAT_TIMEOUT_S)
                    for d in config.drives)
     return dataclasses.replace(config, drives=drives)
 
@@ -206,7 +210,7 @@ def test_diagnostics_levels_follow_the_rules(graph: Graph) -> None:
     assert "0x4210" in status("wheel_middle_left").message and "temperature" in status("wheel_middle_left").message
     apply_action(graph.sim, {"action": "unplug", "node": 3})  # wheel_rear_left
     eventually(lambda: status("wheel_rear_left").level == bytes([2]) and "heartbeat lost" in status("wheel_rear_left").message,
-               3.0, "ERROR on heartbeat loss")
+               10.0, "ERROR on heartbeat loss")
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, 1e9])
@@ -293,8 +297,8 @@ def test_bus_lost_is_published_and_nodes_keep_running(graph: Graph) -> None:
         return any(st.name == "rovercan: bus can0" and st.level == bytes([2]) and st.message == "bus lost"
                    for array in diags[-3:] for st in array.status)
 
-    eventually(bus_error, 5.0, "bus lost on /diagnostics")
-    eventually(lambda: bool(states) and states[-1].state == "LOST" and states[-1].fault, 3.0, "MotorState LOST")
+    eventually(bus_error, 15.0, "bus lost on /diagnostics")
+    eventually(lambda: bool(states) and states[-1].state == "LOST" and states[-1].fault, 10.0, "MotorState LOST")
     count = len(states)
     eventually(lambda: len(states) > count + 10, 2.0, "MotorState still published")
 
