@@ -1,11 +1,26 @@
 """The console entry point of ``rovercan``, kept free of heavy imports: a Ctrl-C at any moment,
 while the interpreter still imports python-can, canopen and the rest, ends with one line and exit
 130 instead of a KeyboardInterrupt traceback. Once a command runs, :func:`rovercan.cli.main`
-handles the signals itself (drives stopped, one line)."""
+handles the signals itself (drives stopped, one line).
+
+The handler is installed as this module is imported: the console script imports it and only then
+calls :func:`main`, and a Ctrl-C in between (seen under load) would otherwise be Python's own
+KeyboardInterrupt outside any ``try``."""
 
 from __future__ import annotations
 
+import signal
 import sys
+
+INTERRUPTED = "rovercan: interrupted (Ctrl-C)"
+
+
+def _interrupted(signum: int, frame: object) -> None:
+    print(INTERRUPTED, file=sys.stderr)
+    raise SystemExit(130)  # no traceback: nothing has touched a bus before the command's own handlers
+
+
+signal.signal(signal.SIGINT, _interrupted)
 
 
 def main() -> int:
@@ -13,6 +28,6 @@ def main() -> int:
         from rovercan.cli import main as cli_main
 
         return cli_main()
-    except KeyboardInterrupt:
-        print("rovercan: interrupted (Ctrl-C)", file=sys.stderr)
+    except KeyboardInterrupt:  # a handler of Python's own, restored by a library: the same line
+        print(INTERRUPTED, file=sys.stderr)
         return 130
