@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import can
+import pytest
 
 from can_config import RoverConfig
 from motor_driver import MotorDriver
@@ -62,3 +63,26 @@ def test_a_lost_drive_is_told_to_stop_when_the_driver_shuts_down(driver_factory:
     frames = drain(listener, 0.3)
     assert any(m.arbitration_id == 0x000 and bytes(m.data) == b"\x02\x01" for m in frames), "NMT stop at shutdown"
     wait_for(lambda: sim_motion(sim)[0] != "OPERATION_ENABLED", 5.0, "stopped")
+
+
+def test_a_lost_drive_heard_again_in_the_stop_it_was_told_is_configured_again_not_called_another_master(
+        driver_factory: DriverFactory, caplog: pytest.LogCaptureFixture) -> None:
+    """The driver's own NMT stop of a lost drive (what a starved driver does to every drive
+    whose heartbeat it read late) is no other master's: when the drive is heard again, STOPPED,
+    it is configured again (NMT start, left disabled) and can be enabled; nothing says "another
+    master" and no command is refused for one."""
+    sim, driver = driver_factory(make_config(1, joint="continuous", heartbeat_timeout_ms=300.0))
+    turning_then_deaf(sim, driver)
+    drive = driver.drive("joint1")
+    boots = drive.boot_count
+    runner = sim.simulators["can0"]
+    wait_for(lambda: drive.lost, 5.0, "the driver declares it lost")
+    wait_for(lambda: runner.call(lambda: runner.drive(1).nmt.name) == "STOPPED", 5.0, "the drive NMT-stopped")
+    apply_action(sim, {"action": "tx_dead", "node": 1, "on": False})
+    wait_for(lambda: drive.boot_count > boots and drive.booted and not drive.lost, 10.0, "configured again")
+    assert runner.call(lambda: runner.drive(1).nmt.name) == "OPERATIONAL"
+    assert sim_motion(sim)[0] != "OPERATION_ENABLED"  # configured again, left disabled
+    drive.enable()
+    assert sim_motion(sim)[0] == "OPERATION_ENABLED"
+    said = [r.getMessage() for r in caplog.records if "another master" in r.getMessage()]
+    assert not said and drive.foreign_master == "", said

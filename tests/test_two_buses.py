@@ -32,7 +32,12 @@ from .conftest import REPO, requires_ros, wait_for
 from .test_sim_cli import free_port
 
 SIDES = {"can0": ("left", False), "can1": ("right", True)}
-WHEEL = {"counts_per_rev": 4096, "gear_ratio": 50.0, "max_velocity_deg_s": 720}
+#: host_timeout_ms and heartbeat_timeout_ms (documented keys) longer than shipped: under load the
+#: launched driver was starved for 300 ms, later than the shipped 150 ms host timeout, and every
+#: drive rightly stopped itself mid-test. These tests are of the path a newcomer takes; the
+#: timing of the stops is tests/test_host_loss.py's (a killed driver) and the benchmarks'.
+WHEEL = {"counts_per_rev": 4096, "gear_ratio": 50.0, "max_velocity_deg_s": 720, "host_timeout_ms": 2000,
+         "heartbeat_timeout_ms": 2500}
 ROVER_LAUNCH = REPO / "ros" / "rovercan_bringup" / "launch" / "rover_launch.xml"
 HANG_S = 90.0  # catches a hang only: three Python processes start on two busy cores
 

@@ -362,13 +362,22 @@ class Boot:
             return high
         return wanted
 
+    def _wake_stopped(self) -> bool:
+        """A drive heard in NMT STOPPED (told so while it was lost, or by another master) answers
+        no SDO: NMT pre-operational first, then it is reset as a first boot resets it. True then."""
+        if self._cache.reported_nmt != "STOPPED":
+            return False
+        self._send_nmt(NmtCommand.ENTER_PREOPERATIONAL)
+        self._cache.wait_until(lambda: self._cache.reported_nmt != "STOPPED", self.config.heartbeat_timeout_s)
+        return True
+
     def reconfigure(self) -> None:
         """Bus worker: configure a drive that reset or power-cycled (boot-up seen) again; enable
         it again only when it was enabled and the config says ``restore_enable_after_reboot``."""
         restore = self._channel.was_enabled and self.config.restore_enable_after_reboot
         self._channel.forget_commanded()
         try:
-            self.boot(reset=False)
+            self.boot(reset=self._wake_stopped())
             if restore and not self._channel.closed:
                 self._power.enable()
         except MotorError as err:

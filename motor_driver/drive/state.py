@@ -342,8 +342,8 @@ class DriveCache:
                 self._booted = False
                 self.rebooted.set()
             return
-        # compared with what the drive itself said last, never with what boot assumed after its
-        # NMT start: a heartbeat sent just before the drive obeyed it is still on its way then
+        # behind our back: a change from what the drive said last (not what boot assumed: a heartbeat sent just
+        # before the NMT start is on its way then), while not lost (a lost drive is told NMT stop by this driver)
         was = self._reported_nmt
         try:
             self._nmt = NmtState(state).name
@@ -352,12 +352,17 @@ class DriveCache:
         self._reported_nmt = self._nmt
         if state == NmtState.OPERATIONAL:
             self._operational_at = self._last_heartbeat
-        if self._booted and state != NmtState.OPERATIONAL and was == "OPERATIONAL":  # the change, not the state
+        if self._booted and not self._lost and state != NmtState.OPERATIONAL and was == "OPERATIONAL":
             self._behind_back = (self._last_heartbeat, f"node {self.node_id} went {self._nmt} without an NMT"
                                                        " command from this driver")
-        # a heartbeat brings back only a drive whose heartbeat was late (still booted); one whose
-        # bus was lost is back when boot configured it again
-        if self._lost and self._booted:
+        # a heartbeat brings back a drive whose heartbeat was late (still booted) in OPERATIONAL; out of it (the
+        # NMT stop it was told while lost), or its bus lost, it is back when boot configured it again
+        if self._lost and self._booted and state != NmtState.OPERATIONAL:
+            logger.warning("node %d (%s): heard again in NMT %s (told to stop while lost); configuring it again,"
+                           " left disabled", self.node_id, self.name, self._nmt)
+            self._booted = False
+            self.rebooted.set()
+        elif self._lost and self._booted:
             logger.warning("node %d (%s): heartbeat back", self.node_id, self.name)
             self._lost = False
 
@@ -375,17 +380,14 @@ class DriveCache:
     # ------------------------------------------------------------------ the snapshot
     def snapshot(self, foreign_master: str = "") -> DriveState:
         rx = self._rx
-        sw = rx.statusword
-        state = decode_state(sw)
-        emcy = self.last_emcy
-        error_code = emcy.code if emcy is not None else 0
+        sw, state = rx.statusword, decode_state(rx.statusword)
+        error_code = emcy.code if (emcy := self.last_emcy) is not None else 0
         now = time.monotonic()
         hb_age = now - self._last_heartbeat if self._last_heartbeat else math.inf
         data_age = now - rx.rx_monotonic if rx.rx_monotonic else math.inf
         stale = data_age > self.config.stale_after_syncs * self.sync_period_s
-        scale = self._scale
+        scale, lost = self._scale, self._lost
         torque = scale.permille_to_nm(rx.torque_permille) if self._has_torque else math.nan
-        lost = self._lost
         return DriveState(
             name=self.name, node_id=self.node_id, angle_deg=scale.counts_to_deg(rx.position_counts),
             velocity_deg_s=scale.counts_s_to_deg_s(rx.velocity_counts_s), torque_nm=torque,
