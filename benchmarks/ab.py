@@ -17,14 +17,17 @@ import subprocess
 import sys
 from pathlib import Path
 
-FIGURES = ("cmd_latency_p50_ms", "cmd_latency_p99_ms", "cpu_core_fraction", "tpdo_loss")
+FIGURES = ("cmd_latency_p50_ms", "cmd_latency_p99_ms", "cpu_core_fraction", "tpdo_loss", "sync_jitter_p99_us")
 RUN = ("import json, sys; sys.path.insert(0, 'benchmarks'); from stack_run import SHIPPED, run_stack;"
-       " print('RESULT ' + json.dumps(run_stack(SHIPPED[sys.argv[1]], float(sys.argv[2]), 100.0)))")
+       " print('RESULT ' + json.dumps(run_stack(SHIPPED[sys.argv[1]], float(sys.argv[2]), 100.0, tuple(sys.argv[3:]))))")
+#: More arguments of `rovercan sim` per config, as benchmarks/run.py runs them.
+SIM_ARGS = {"rover": ("--drive-processes",)}
 
 
 def stack_run(tree: Path, config: str, seconds: float) -> dict[str, float]:
     env = {**os.environ, "PYTHONPATH": str(tree)}
-    out = subprocess.run([sys.executable, "-c", RUN, config, str(seconds)], cwd=tree, env=env, capture_output=True,
+    command = [sys.executable, "-c", RUN, config, str(seconds), *SIM_ARGS.get(config, ())]
+    out = subprocess.run(command, cwd=tree, env=env, capture_output=True,
                          text=True, timeout=600, check=True).stdout
     result = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
     return {key: value for key, value in result.items() if any(key.endswith(f) for f in FIGURES)}

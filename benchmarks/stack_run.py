@@ -25,6 +25,7 @@ import itertools
 import json
 import multiprocessing
 import os
+import re
 import socket
 import statistics
 import subprocess
@@ -63,15 +64,30 @@ def proc_cpu_s(pid: int) -> float:
     return _stat_cpu_s(Path(f"/proc/{pid}/stat"))
 
 
-def thread_cpu_s(pid: int) -> dict[str, float]:
-    """CPU seconds of each thread of ``pid`` so far, summed by thread name (/proc/PID/task):
-    where the CPU goes outside the interpreter too (DDS's threads, the receive threads)."""
+def python_thread_names(pid: int) -> dict[int, str]:
+    """Thread id -> Python thread name of ``pid`` (``py-spy dump --nonblocking``: the process is
+    not paused), {} without py-spy: Python 3.11 leaves its threads named after the process."""
+    try:
+        spy = str(Path(sys.executable).parent / "py-spy")
+        dump = subprocess.run([spy, "dump", "--nonblocking", "--pid", str(pid)], capture_output=True, text=True,
+                              timeout=30).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return {}
+    return {int(tid): name for tid, name in re.findall(r'^Thread (\d+) \([a-z ]+\): "(.*)"$', dump, re.MULTILINE)}
+
+
+def thread_cpu_s(pid: int, names: dict[int, str] | None = None) -> dict[str, float]:
+    """CPU seconds of each thread of ``pid`` so far, summed by thread name (/proc/PID/task; the
+    Python name from ``names`` where it has the thread, as ``py:NAME``): where the CPU goes
+    outside the interpreter too (DDS's threads, the receive threads, each executor)."""
     out: dict[str, float] = {}
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
             name, cpu_s = (task / "comm").read_text().strip(), _stat_cpu_s(task / "stat")
         except OSError:
             continue  # the thread ended meanwhile
+        if names and int(task.name) in names:
+            name = "py:" + re.sub(r"-\d+$", "-N", names[int(task.name)])  # numbered alike: one row
         out[name] = out.get(name, 0.0) + cpu_s
     return out
 
@@ -93,6 +109,7 @@ def _listen(port: int, channel: str, conn: Connection) -> None:
     to stop; ``("send", cob, data)`` puts a frame on the bus."""
     bus = can.Bus(interface="socketcand", channel=channel, host="127.0.0.1", port=port, tcp_tune=True)
     frames: list[tuple[float, int, bytes]] = []
+    sync_lags: list[float] = []  # a SYNC's arrival here after its bus time (the server's stamp), s
     conn.send("ready")
     try:
         while True:
@@ -104,7 +121,9 @@ def _listen(port: int, channel: str, conn: Connection) -> None:
             msg = bus.recv(0.05)
             if msg is not None:
                 frames.append((msg.timestamp, msg.arbitration_id, bytes(msg.data)))
-        conn.send(frames)
+                if msg.arbitration_id == 0x080:
+                    sync_lags.append(time.time() - msg.timestamp)
+        conn.send((frames, sync_lags))
     finally:
         bus.shutdown()
 
@@ -119,6 +138,7 @@ class Listener:
         self._proc = multiprocessing.get_context("spawn").Process(target=_listen, args=(port, channel, child),
                                                                   daemon=True)
         self.frames: list[tuple[float, int, bytes]] = []
+        self.sync_lags: list[float] = []
 
     def start(self) -> None:
         self._proc.start()
@@ -133,7 +153,7 @@ class Listener:
         if self._proc.is_alive():
             self._conn.send("stop")
             if self._conn.poll(30):
-                self.frames = self._conn.recv()
+                self.frames, self.sync_lags = self._conn.recv()
         self._proc.join(10)
 
 
@@ -216,7 +236,7 @@ def profiler(pid: int, seconds: float) -> subprocess.Popen[bytes] | None:
     # where the CPU goes that the interpreter's holder does not show
     # (py-spy then pauses the process for each sample: figures of such a run are not comparable)
     native = os.environ.get("ROVERCAN_PROFILE_NATIVE") == "1"
-    scope = ["--native", "--threads"] if native else ["--gil", "--nonblocking"]
+    scope = ["--native", "--threads"] if native else ["--gil", "--nonblocking", "--threads"]  # by thread
     return subprocess.Popen([str(Path(sys.executable).parent / "py-spy"), "record", "--pid", str(pid), "--rate", "250",
                              *scope, "--duration", str(max(1, int(seconds))), "--format", fmt,
                              "--output", out],
@@ -281,7 +301,8 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
                 time.sleep(0.05)
             time.sleep(0.5)
             sent: dict[tuple[str, int, int], list[float]] = {}
-            cpu0, wall0, threads0 = proc_cpu_s(proc.pid), time.monotonic(), thread_cpu_s(proc.pid)
+            names = python_thread_names(proc.pid)
+            cpu0, wall0, threads0 = proc_cpu_s(proc.pid), time.monotonic(), thread_cpu_s(proc.pid, names)
             spy = profiler(proc.pid, seconds)
             window0 = time.time()
             # the command clock runs 0.1 % slow: over each 10 s the bursts pass once through every
@@ -301,10 +322,10 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
                 time.sleep(max(0.0, next_t - time.monotonic()))
             cpu = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
             threads = {name: (t - threads0.get(name, 0.0)) / (time.monotonic() - wall0)
-                       for name, t in thread_cpu_s(proc.pid).items()}
+                       for name, t in thread_cpu_s(proc.pid, names).items()}
             if spy is not None:
                 spy.wait(60)
-            sync_timer_realtime = fifo_thread_count(SIM_PIDS[-1]) > 0
+            sync_timer_realtime = fifo_thread_count(SIM_PIDS[-1], children=True) > 0
             window1 = time.time()
             rss = proc_rss_peak_mb(proc.pid)
             first = listeners[min(listeners)]
@@ -360,6 +381,8 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             "cpu_core_fraction": round(cpu, 3), "rss_mb": round(rss, 1),
             "cpu_by_thread": {name: round(f, 3) for name, f in sorted(threads.items(), key=lambda kv: -kv[1]) if f >= 0.002},
             "sync_jitter_p99_us": round(pct(jitter, 0.99), 1) if jitter else None,
+            # how late the listener (a client like the drives) heard the SYNC after its bus time
+            "sync_delivery_p99_us": round(pct(first.sync_lags, 0.99) * 1e6, 1) if first.sync_lags else None,
             "sync_timer_realtime": sync_timer_realtime}
 
 

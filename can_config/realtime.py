@@ -20,9 +20,10 @@ REALTIME_PRIORITY = 10
 ENV_SWITCH = "ROVERCAN_REALTIME"
 
 
-def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY) -> bool:
-    """Put the calling thread under ``SCHED_FIFO`` at ``priority``; True if it now is.
-    A thread only: the other threads of the process keep their scheduling."""
+def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY, *, pid: int = 0) -> bool:
+    """Put the calling thread (or the single-threaded process ``pid``) under ``SCHED_FIFO`` at
+    ``priority``; True if it now is. A thread only: the other threads of the process keep their
+    scheduling."""
     if os.environ.get(ENV_SWITCH, "1") == "0":
         logger.info("%s: real-time scheduling off (%s=0)", what, ENV_SWITCH)
         return False
@@ -30,7 +31,7 @@ def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY) -> bool:
         logger.info("%s: this OS has no SCHED_FIFO; an ordinary thread", what)
         return False
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))  # 0: this thread (a Linux task)
+        os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(priority))  # 0: this thread (a Linux task)
     except OSError as err:
         logger.info("%s: an ordinary thread: real-time scheduling refused (%s); give the interpreter"
                     " CAP_SYS_NICE or an rtprio limit for a steadier period on a busy machine", what, err)
@@ -39,15 +40,18 @@ def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY) -> bool:
     return True
 
 
-def fifo_thread_count(pid: int) -> int:
-    """Threads of process ``pid`` under SCHED_FIFO (/proc/PID/task/TID/stat, field 41); 0 where
-    there is no /proc."""
+def fifo_thread_count(pid: int, *, children: bool = False) -> int:
+    """Threads of process ``pid`` (and, with ``children``, of its child processes: the bus
+    server's timer is one) under SCHED_FIFO (/proc/PID/task/TID/stat, field 41); 0 where there is
+    no /proc."""
     from pathlib import Path
 
     count = 0
-    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+    for task in Path(f"/proc/{pid}/task").glob("*"):
         try:
-            count += int(stat.read_text().rsplit(")", 1)[1].split()[38]) == os.SCHED_FIFO
+            count += int((task / "stat").read_text().rsplit(")", 1)[1].split()[38]) == os.SCHED_FIFO
+            kids = (task / "children").read_text().split() if children else []
         except OSError:
-            pass  # the thread ended meanwhile
+            continue  # the thread ended meanwhile
+        count += sum(fifo_thread_count(int(kid), children=True) for kid in kids)
     return count

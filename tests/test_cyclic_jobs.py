@@ -4,14 +4,20 @@ timing under 50,000 idle jobs is a benchmark (benchmarks/cyclic_jobs.py), not a 
 
 from __future__ import annotations
 
+import os
+import signal
 import socket
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import can
 
 from virtual_can import BusEngine, SocketcandServer
 
-from .conftest import wait_for
+from .conftest import REPO, drain, wait_for
+from .test_sim_cli import free_port
 
 
 def bcm_client(port: int) -> socket.socket:
@@ -80,3 +86,99 @@ def test_each_job_keeps_its_period_among_many_idle_ones_and_a_deleted_one_stops(
         assert abs(period_ms(0x181) - 20) < 1.0
         assert abs(period_ms(0x182) - 10) < 1.0 and {bytes(m.data) for m in seen[0x182]} == {b"\x04"}
         assert 0x183 not in seen
+
+
+def process_gone(pid: int) -> bool:
+    """No such process, or a zombie nobody reaped (the container's init may not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+def syncs_after(listener: can.BusABC, count: int) -> list[can.Message]:
+    """The next ``count`` SYNC frames the listener hears (a hang is the test's timeout)."""
+    seen: list[can.Message] = []
+    while len(seen) < count:
+        msg = listener.recv(HANG_S)
+        assert msg is not None, f"no SYNC for {HANG_S} s"
+        if msg.arbitration_id == 0x080:
+            seen.append(msg)
+    return seen
+
+
+HANG_S = 10.0
+
+
+def test_a_killed_timer_process_is_started_again_with_every_job_and_a_closed_server_ends_it() -> None:
+    """The timer is a process of its own (nothing of the server's delays a tick): if it dies the
+    server says so and starts another, which is told every job; closing the server ends it."""
+    with BusEngine() as engine, SocketcandServer(engine, port=0) as srv, \
+            can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as listener:
+        jobs = bcm_client(srv.port)
+        try:
+            assert srv.cyclic.timer_pid is None  # no job, no timer
+            jobs.sendall(b"< add 0 10000 080 0 >< add 3600 0 181 1 01 >")
+            assert b"error" not in replies(jobs)
+            syncs_after(listener, 3)
+            first = srv.cyclic.timer_pid
+            assert first is not None
+            os.kill(first, signal.SIGKILL)
+            wait_for(lambda: srv.cyclic.restarts == 1 and srv.cyclic.timer_pid != first, HANG_S, "a new timer")
+            drain(listener, 0.0)
+            syncs_after(listener, 3)  # the SYNC job was handed to the new timer
+            second = srv.cyclic.timer_pid
+        finally:
+            jobs.close()
+        assert second is not None
+    wait_for(lambda: process_gone(second), HANG_S, "the timer ended with its server")
+
+
+def test_a_killed_server_takes_its_timer_process_with_it() -> None:
+    """A server killed outright (no close) leaves no timer behind: the timer ends when its socket
+    to the server closes."""
+    port = free_port()
+    sim = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--drives", "1", "--port", str(port)], cwd=REPO,
+                           stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    kids: list[int] = []
+    try:
+        assert sim.stdout is not None and "simulated drive" in sim.stdout.readline()
+        jobs = bcm_client(port)
+        jobs.sendall(b"< add 0 10000 080 0 >")
+        assert b"error" not in replies(jobs)
+        wait_for(lambda: bool(children(sim.pid)), HANG_S, "the timer process")
+        kids += children(sim.pid)
+        jobs.close()
+    finally:
+        sim.kill()
+        sim.wait(HANG_S)
+    wait_for(lambda: all(process_gone(pid) for pid in kids), HANG_S, "the timer gone with its server")
+
+
+def children(pid: int) -> list[int]:
+    return [int(kid) for task in Path(f"/proc/{pid}/task").glob("*")
+            for kid in (task / "children").read_text().split()]
+
+
+def test_a_scheduled_frame_goes_on_the_bus_at_its_time_before_any_later_frame() -> None:
+    """The broadcast manager's frames are scheduled ahead with their bus time (the timer's tick
+    comes early): one goes on the channel before the first frame stamped at or after its time
+    (whoever delivers it), or when flushed at its time; frames stamped before it go first."""
+    with BusEngine() as engine:
+        channel = engine.channel("can0")
+        heard: list[tuple[int, float]] = []
+        channel.attach(lambda m: heard.append((m.arbitration_id, m.timestamp)), "listener")
+        sender = channel.attach(lambda m: None, "sender")
+        base = time.time() + 100.0  # bus times ahead of now: only frames and flushes move them
+        channel.schedule(can.Message(arbitration_id=0x080, timestamp=base + 0.010, is_extended_id=False))
+        channel.schedule(can.Message(arbitration_id=0x080, timestamp=base + 0.020, is_extended_id=False))
+        sender.send(can.Message(arbitration_id=0x181, timestamp=base + 0.005, is_extended_id=False))
+        assert heard == [(0x181, base + 0.005)]  # before the SYNC's time: the SYNC waits
+        sender.send(can.Message(arbitration_id=0x182, timestamp=base + 0.010, is_extended_id=False))
+        assert heard[1:] == [(0x080, base + 0.010), (0x182, base + 0.010)]  # the SYNC first, at its time
+        channel.flush_scheduled(base + 0.015)
+        assert len(heard) == 3  # the second SYNC's time has not come
+        channel.flush_scheduled(base + 0.020)
+        assert heard[3:] == [(0x080, base + 0.020)]
+        sender.send(can.Message(arbitration_id=0x183, timestamp=base + 0.019, is_extended_id=False))
+        assert heard[4:] == [(0x183, base + 0.020)]  # late to the server: after the SYNC, never stamped before it

@@ -409,12 +409,12 @@ def _realtime_allowed() -> bool:
 
 
 @pytest.mark.parametrize("how", ["default", "switched off", "not permitted"])
-def test_the_cyclic_timer_is_a_real_time_thread_where_the_os_allows_it(how: str) -> None:
-    """`rovercan sim`'s broadcast-manager timer (the SYNC of a socketcand driver) runs under
-    SCHED_FIFO where it may: a timer among the simulated drives' threads woke 0.5-2 ms late at
-    p99 (benchmarks/stack_run.py: SYNC period error 1.2-2.4 ms at a listener, 0.07-0.5 with it).
-    ROVERCAN_REALTIME=0 switches it off; without CAP_SYS_NICE it stays ordinary and the SYNC
-    still runs."""
+def test_the_cyclic_timer_is_a_real_time_process_where_the_os_allows_it(how: str) -> None:
+    """`rovercan sim`'s broadcast-manager timer (the SYNC of a socketcand driver) is a process of
+    its own, under SCHED_FIFO where it may: a timer among the simulated drives' threads woke
+    0.5-2 ms late at p99 (benchmarks/stack_run.py: SYNC period error 1.2-2.4 ms at a listener,
+    0.07-0.5 with it). ROVERCAN_REALTIME=0 switches it off; without CAP_SYS_NICE it stays
+    ordinary and the SYNC still runs."""
     if not hasattr(os, "sched_setscheduler"):
         pytest.skip("this OS has no SCHED_FIFO")
     command = [sys.executable, "-m", "rovercan", "sim", "--drives", "1", "--port", "0"]
@@ -433,7 +433,7 @@ def test_the_cyclic_timer_is_a_real_time_thread_where_the_os_allows_it(how: str)
         assert proc.stdout is not None
         assert "simulated drive" in proc.stdout.readline()
         port = int(proc.stdout.readline().rsplit("port=", 1)[1])
-        assert fifo_thread_count(proc.pid) == 0  # no job, no timer thread
+        assert fifo_thread_count(proc.pid, children=True) == 0  # no job, no timer process
         with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port) as listener:
             sock = socket.create_connection(("127.0.0.1", port), timeout=2.0)
             try:
@@ -443,7 +443,7 @@ def test_the_cyclic_timer_is_a_real_time_thread_where_the_os_allows_it(how: str)
                 sock.sendall(b"< add 0 10000 080 0 >")
                 syncs = [m for m in drain(listener, 0.5) if m.arbitration_id == 0x080]
                 assert len(syncs) >= 20  # the SYNC runs either way
-                assert fifo_thread_count(proc.pid) == int(expected)  # the timer thread, and only it
+                assert fifo_thread_count(proc.pid, children=True) == int(expected)  # the timer process, and only it
             finally:
                 sock.close()
     finally:

@@ -11,8 +11,6 @@ import ctypes
 import logging
 import select
 import socket
-import struct
-import sys
 import threading
 import time
 from collections import deque
@@ -25,6 +23,7 @@ import can
 from can_config.errors import ProtocolError
 from virtual_can.cyclic_jobs import MAX_CYCLIC_PERIOD_S, MIN_CYCLIC_PERIOD_S, POLL_S
 from virtual_can.engine import Channel, Endpoint
+from virtual_can.wire import ARRIVAL_ANCILLARY_BYTES, arrival_time, stamp_arrivals
 
 if TYPE_CHECKING:
     from virtual_can.server import SocketcandServer
@@ -49,34 +48,6 @@ RAWMODE_HOLD_S = 0.05
 #: bursts of up to as many: past it the client's own reader waits, so a flood of commands (8 MB
 #: of '< add >' replacing one job) slows that client, not the server's timer and other clients.
 JOB_COMMANDS_PER_S = 1_000.0
-#: Linux's SO_TIMESTAMPNS (the socket module does not name it): each read carries the time its
-#: data reached the socket, which is when the client's frame reached the bus. A frame is stamped
-#: with it, as a CAN controller stamps a frame on the wire, not with the moment this server's
-#: interpreter got round to it (its drive threads can hold it for a tick).
-_SO_TIMESTAMPNS: int | None = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform == "linux" else None)
-_TIMESPEC = struct.Struct("@ll")
-_ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
-
-
-def _stamp_arrivals(sock: socket.socket) -> None:
-    """Ask the kernel to stamp every read of ``sock`` (where it can; else frames are stamped
-    when read)."""
-    if _SO_TIMESTAMPNS is not None:
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
-        except OSError:
-            pass
-
-
-def _arrival(ancillary: list[tuple[int, int, bytes]]) -> float:
-    """The kernel's arrival time of a read, or now where it gave none."""
-    for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
-            sec, nsec = _TIMESPEC.unpack_from(data)
-            return float(sec + nsec * 1e-9)
-    return time.time()
-
-
 def _load_malloc_trim() -> Callable[[int], int] | None:
     try:
         return ctypes.CDLL("libc.so.6").malloc_trim  # type: ignore[no-any-return]
@@ -182,7 +153,7 @@ class Client:
         # every few seconds keeps a connection open but is no use of the bus
         self.last_active = self.last_heard
         self._job_tokens, self._job_tokens_at = JOB_COMMANDS_PER_S, self.last_heard  # the reader's
-        _stamp_arrivals(sock)
+        stamp_arrivals(sock)
         name = f"{addr[0]}:{addr[1]}"
         self.reader = threading.Thread(target=self._read_loop, daemon=True, name=f"socketcand-rx-{name}")
         self.writer = threading.Thread(target=self._write_loop, daemon=True, name=f"socketcand-tx-{name}")
@@ -263,8 +234,8 @@ class Client:
                     break
                 if not readable:
                     continue
-                chunk, ancillary, _, _ = sock.recvmsg(65536, _ANCILLARY_BYTES)
-                self._arrival = _arrival(ancillary)
+                chunk, ancillary, _, _ = sock.recvmsg(65536, ARRIVAL_ANCILLARY_BYTES)
+                self._arrival = arrival_time(ancillary)
                 self.last_heard = time.monotonic()
             except (OSError, ValueError):
                 break

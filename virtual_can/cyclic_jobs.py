@@ -1,8 +1,10 @@
-"""The server's broadcast-manager timer: every client's cyclic jobs ('< add >', '< update >',
-'< delete >') in one heap, sent by one timer thread as a kernel's BCM would.
+"""The server's broadcast manager: every client's cyclic jobs ('< add >', '< update >',
+'< delete >'), their frames sent at the ticks of a timer process of their own, as a kernel's
+BCM would send them.
 
-Owner: the timer thread (``_run``) sends; clients' reader threads add, update and delete
-under the jobs' lock, which the timer never holds while it waits.
+Owner: the jobs' table is guarded by one lock; clients' reader threads add, update and delete,
+and tell the timer process (:mod:`virtual_can.bcm_timer`) the schedules; the tick reader thread
+puts a ticked job's frame on its channel, stamped with the tick's kernel arrival time.
 """
 
 from __future__ import annotations
@@ -11,16 +13,22 @@ import heapq
 import itertools
 import logging
 import math
+import select
+import socket
+import subprocess
+import sys
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 
 import can
 
 from can_config.errors import ProtocolError
 from can_config.realtime import make_thread_realtime
+from virtual_can.bcm_timer import ADD, DELETE, KIND_ADD, KIND_DELETE, TICK
 from virtual_can.engine import Channel
+from virtual_can.wire import ARRIVAL_ANCILLARY_BYTES, arrival_time, stamp_arrivals
 
 logger = logging.getLogger(__name__)
 
@@ -40,17 +48,10 @@ CYCLIC_RATE_PER_CLIENT = 2_000.0
 CYCLIC_RATE_TOTAL = 8_000.0
 #: Periods whose phase is remembered (jobs of one period share a wake-up).
 PHASES_MAX = 4096
-#: The cyclic timer spins to each due time for at most / at least this long (see CyclicJobs):
-#: an ordinary thread wakes up to a millisecond late and yields to other threads while it spins.
-SPIN_MAX_S = 0.001
-SPIN_MIN_S = 0.00005
-#: Under SCHED_FIFO the wake-up is on time and the spin only covers getting the interpreter
-#: back, but it holds the interpreter and a core, and a client's frame that arrives during it
-#: reaches the bus after the SYNC (six-drive stack runs: a 1 ms cap gave a command p99 of
-#: 2.3 ms and a SYNC error p99 of 36 us; 0.2 ms gave 1.5 ms and 216-324 us).
-SPIN_MAX_REALTIME_S = 0.0002
-#: ... of which this last part without yielding the interpreter to other threads.
-HARD_SPIN_S = 0.00015
+#: The timer process's script (run by path with the standard library only: it starts in milliseconds).
+TIMER_SCRIPT = Path(__file__).with_name("bcm_timer.py")
+#: How long close() waits for the timer process to end after its socket closed, before killing it.
+TIMER_EXIT_S = 2.0
 
 
 @dataclass(eq=False)
@@ -59,9 +60,7 @@ class _CyclicJob:
     channel: Channel
     msg: can.Message
     period_s: float
-    due: float
-    entry: int = 0  # the sequence number of its live heap entry
-    deleted: bool = False
+    number: int  # the timer process's name for it (never reused)
 
 
 class CyclicJobError(ProtocolError):
@@ -69,54 +68,63 @@ class CyclicJobError(ProtocolError):
 
 
 class CyclicJobs:
-    """The server's broadcast manager: frames sent on a timer of its own, one thread for every
-    job of every client. Each job keeps its own schedule (start + n x period), so one late
-    wake-up does not shift the ones after it; a job added with the period of another starts in
-    its phase, so that one wake-up serves both. Jobs are keyed by (client, CAN id).
+    """The server's broadcast manager: frames sent on a timer of their own, one process for
+    every job of every client. The schedules are the timer process's (:mod:`virtual_can.bcm_timer`:
+    a heap of due times, each job on its own start + n x period, so 50,000 one-hour jobs of one
+    client do not delay another's 10 ms SYNC, benchmarks/cyclic_jobs.py); the frames, their
+    owners and the limits are this object's. A job added with the period of another starts in its
+    phase, so that one wake-up serves both. Jobs are keyed by (client, CAN id); an update changes
+    the frame only, here. A client holds at most ``max_per_client`` jobs sending
+    ``rate_per_client`` frames/s together, the server ``max_total`` and ``rate_total``.
 
-    The jobs wait in a heap ordered by due time, so a wake-up costs O(log n) whatever the number
-    of idle jobs: 50,000 one-hour jobs of one client do not delay another's 10 ms SYNC
-    (benchmarks/cyclic_jobs.py). A deleted or rescheduled job leaves its old entry behind, skipped
-    when it surfaces; the heap is rebuilt when such entries outnumber the live ones. A client
-    holds at most ``max_per_client`` jobs sending ``rate_per_client`` frames/s together, the
-    server ``max_total`` and ``rate_total``; a job added is woken for only when it is due before
-    the one the timer waits for (a flood of adds does not keep waking the timer).
+    Why a process: a thread of the server shares its interpreter with the client readers, the
+    frame fan-out and (in one process) the drive models, and a SYNC waited for them: its period
+    error at a listener grew with the number of drives (557 us p99 with six). The timer process
+    has nothing else to run; it is put under SCHED_FIFO where the OS allows it
+    (:mod:`can_config.realtime`, ``realtime``). Its ticks come ``LEAD_S`` ahead of their due
+    time, and the tick reader schedules each frame on its channel with that bus time
+    (:meth:`~virtual_can.engine.Channel.schedule`): it goes on the bus before any frame stamped
+    later, and when its time comes at the latest. It starts with the first job, is started again
+    (with every job) if it dies, and ends with the last job, with :meth:`close`, or with this
+    process (it ends when its socket closes).
 
-    A timed wait in Python wakes 0.2-1 ms late on a loaded machine, so the thread wakes that
-    much early (the longest recent lateness, doubled, at most ``SPIN_MAX_S``, or
-    ``SPIN_MAX_REALTIME_S`` under SCHED_FIFO, which wakes on time) and spins to the
-    due time: the emulator's stand-in for the kernel timer a real socketcand uses.
-
-    Thread rules: every field is guarded by ``_cond``; the timer thread sends outside it.
+    Thread rules: every field is guarded by ``_lock``; the tick reader sends frames outside it.
     """
 
     def __init__(self, max_per_client: int = CYCLIC_JOBS_PER_CLIENT, max_total: int = CYCLIC_JOBS_TOTAL,
                  rate_per_client: float = CYCLIC_RATE_PER_CLIENT, rate_total: float = CYCLIC_RATE_TOTAL) -> None:
         self._jobs: dict[tuple[object, int], _CyclicJob] = {}
+        self._numbered: dict[int, _CyclicJob] = {}
         self._by_owner: dict[object, set[int]] = {}
         self._rate: dict[object, float] = {}  # frames/s of each owner's jobs
         self._last_sent: dict[object, float] = {}  # when each owner's jobs last sent a frame (monotonic)
         self.rate_per_client = rate_per_client
         self.rate_total = rate_total
-        self._heap: list[tuple[float, int, _CyclicJob]] = []
-        self._seq = itertools.count()
+        self._numbers = itertools.count(1)
         self._phase: dict[float, float] = {}  # period -> the due time of its first job
-        self._cond = threading.Condition()
-        self._stop = False
-        self._thread: threading.Thread | None = None
-        self._lateness: deque[float] = deque(maxlen=100)
+        self._lock = threading.Lock()
+        self._closed = False
+        self._timer: subprocess.Popen[bytes] | None = None
+        self._sock: socket.socket | None = None  # the server's end of the timer's socket
+        self._reader: threading.Thread | None = None
         self.max_per_client = max_per_client
         self.max_total = max_total
         self.sent = 0
-        self.realtime = False  # the timer thread runs under SCHED_FIFO
+        self.restarts = 0  # timer processes started again after one died
+        self.realtime = False  # the timer process runs under SCHED_FIFO
 
     def __len__(self) -> int:
-        with self._cond:
+        with self._lock:
             return len(self._jobs)
+
+    @property
+    def timer_pid(self) -> int | None:
+        timer = self._timer
+        return timer.pid if timer is not None else None
 
     def add(self, owner: object, channel: Channel, msg: can.Message, period_s: float) -> None:
         """Raises :class:`CyclicJobError` over a limit (a job replaced does not count)."""
-        with self._cond:
+        with self._lock:
             key = (owner, msg.arbitration_id)
             old = self._jobs.get(key)
             if old is None:
@@ -132,123 +140,178 @@ class CyclicJobs:
             if sum(self._rate.values()) + more > self.rate_total * (1 + 1e-9):
                 raise CyclicJobError(f"the server's cyclic jobs would send over {self.rate_total:.0f} frames/s")
             self._rate[owner] = mine
-            now = time.monotonic()
-            if len(self._phase) > PHASES_MAX:  # a client inventing periods: alignment is a nicety
-                self._phase.clear()
-            phase = self._phase.setdefault(period_s, now)  # same period: same phase
-            due = phase + math.ceil(max(0.0, now - phase) / period_s) * period_s
             if old is not None:
-                old.deleted = True
-            job = _CyclicJob(owner, channel, msg, period_s, due)
+                self._forget(old)
+            job = _CyclicJob(owner, channel, msg, period_s, next(self._numbers))
             self._jobs[key] = job
+            self._numbered[job.number] = job
             self._by_owner.setdefault(owner, set()).add(msg.arbitration_id)
-            self._push(job)
-            if self._thread is None and not self._stop:
-                self._thread = threading.Thread(target=self._run, daemon=True, name="socketcand-bcm")
-                self._thread.start()
-            if self._heap[0][2] is job:  # due before what the timer waits for: wake it (else let it sleep)
-                self._cond.notify()
+            if self._timer is None:
+                self._start_timer()  # it is told every job, this one too
+            else:
+                self._schedule(job)
 
-    def _push(self, job: _CyclicJob) -> None:
-        job.entry = next(self._seq)
-        heapq.heappush(self._heap, (job.due, job.entry, job))
-        if len(self._heap) > 1024 and len(self._heap) > 2 * len(self._jobs):  # mostly stale entries: rebuild
-            self._heap = [e for e in self._heap if self._live(e)]
-            heapq.heapify(self._heap)
+    def _due(self, period_s: float) -> float:
+        """The first due time of a job of this period: in the phase of the first job that had it."""
+        now = time.monotonic()
+        if len(self._phase) > PHASES_MAX:  # a client inventing periods: alignment is a nicety
+            self._phase.clear()
+        phase = self._phase.setdefault(period_s, now)  # same period: same phase
+        return phase + math.ceil(max(0.0, now - phase) / period_s) * period_s
 
-    @staticmethod
-    def _live(entry: tuple[float, int, _CyclicJob]) -> bool:
-        return not entry[2].deleted and entry[2].entry == entry[1]
+    def _tell(self, packet: bytes) -> None:
+        """Under the lock: a command to the timer process (a dead one is started again by the tick reader)."""
+        if self._sock is not None:
+            try:
+                self._sock.send(packet)
+            except OSError as err:
+                logger.debug("broadcast manager timer not told: %s", err)
+
+    def _schedule(self, job: _CyclicJob) -> None:
+        self._tell(ADD.pack(KIND_ADD, job.number, job.period_s, self._due(job.period_s)))
+
+    def _forget(self, job: _CyclicJob) -> None:
+        """Under the lock: the job out of the table, and out of the timer's schedule."""
+        self._numbered.pop(job.number, None)
+        self._tell(DELETE.pack(KIND_DELETE, job.number))
+
+    def _start_timer(self) -> None:
+        """Under the lock: the timer process, told every job there is."""
+        if self._closed:
+            return
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        stamp_arrivals(mine)
+        with theirs:
+            timer = subprocess.Popen([sys.executable, "-S", "-I", str(TIMER_SCRIPT), str(theirs.fileno())],
+                                     pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
+        self._timer, self._sock = timer, mine
+        self.realtime = make_thread_realtime("socketcand broadcast manager timer process", pid=timer.pid)
+        for job in self._numbered.values():
+            self._schedule(job)
+        self._reader = threading.Thread(target=self._read_ticks, args=(mine, timer), daemon=True,
+                                        name="socketcand-bcm")
+        self._reader.start()
+
+    def _read_ticks(self, sock: socket.socket, timer: subprocess.Popen[bytes]) -> None:
+        """The tick reader: each tick's frame scheduled on its channel with its bus time (the due
+        time, or the tick's arrival if that is later), and delivered when that time comes."""
+        flushes: list[tuple[float, int, Channel]] = []  # (bus time, seq, channel)
+        order = itertools.count()
+        while True:
+            now = time.time()
+            while flushes and flushes[0][0] <= now:
+                heapq.heappop(flushes)[2].flush_scheduled(now)
+            try:
+                if not select.select([sock], [], [], max(0.0, flushes[0][0] - now) if flushes else None)[0]:
+                    continue
+                packet, ancillary, _, _ = sock.recvmsg(TICK.size, ARRIVAL_ANCILLARY_BYTES)
+            except (OSError, ValueError):
+                packet = b""
+            if len(packet) != TICK.size:
+                break
+            number, due = TICK.unpack(packet)
+            bus_time = max(due + time.time() - time.monotonic(), arrival_time(ancillary))
+            with self._lock:
+                job = self._numbered.get(number)
+                if job is None:
+                    continue  # deleted or replaced meanwhile
+                self._last_sent[job.owner] = time.monotonic()
+                msg, channel = job.msg, job.channel
+            frame = can.Message(arbitration_id=msg.arbitration_id, data=msg.data, dlc=msg.dlc, timestamp=bus_time,
+                                is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame)
+            try:
+                channel.schedule(frame)
+                heapq.heappush(flushes, (bus_time, next(order), channel))
+                self.sent += 1
+            except can.CanError as err:
+                logger.debug("cyclic frame 0x%X not sent: %s", msg.arbitration_id, err)
+        self._timer_ended(sock, timer)
+
+    def _timer_ended(self, sock: socket.socket, timer: subprocess.Popen[bytes]) -> None:
+        with self._lock:
+            if self._closed or self._timer is not timer:
+                return
+            logger.error("the broadcast manager's timer process ended (exit status %s); starting it again",
+                         timer.poll())
+            sock.close()
+            self.restarts += 1
+            self._start_timer()
 
     def update(self, owner: object, msg: can.Message) -> bool:
-        with self._cond:
+        with self._lock:
             job = self._jobs.get((owner, msg.arbitration_id))
             if job is not None:
                 job.msg = msg
             return job is not None
 
     def delete(self, owner: object, can_id: int) -> bool:
-        with self._cond:
+        with self._lock:
             job = self._jobs.pop((owner, can_id), None)
             if job is None:
                 return False
-            job.deleted = True
+            self._forget(job)
             self._rate[owner] = max(0.0, self._rate.get(owner, 0.0) - 1.0 / job.period_s)
             self._by_owner[owner].discard(can_id)
             if not self._by_owner[owner]:
                 del self._by_owner[owner]
-            return True
+        self._idle()
+        return True
 
     def owns(self, owner: object) -> bool:
-        with self._cond:
+        with self._lock:
             return owner in self._by_owner
 
     def last_sent(self, owner: object) -> float:
         """When ``owner``'s jobs last sent a frame (time.monotonic()), -inf never."""
-        with self._cond:
+        with self._lock:
             return self._last_sent.get(owner, -math.inf)
 
     def drop(self, owner: object) -> None:
-        with self._cond:
+        with self._lock:
             for can_id in self._by_owner.pop(owner, set()):
-                self._jobs.pop((owner, can_id)).deleted = True
+                self._forget(self._jobs.pop((owner, can_id)))
             self._rate.pop(owner, None)
             self._last_sent.pop(owner, None)
-            if not self._jobs:
-                self._heap.clear()
+        self._idle()
 
-    def _spin_s(self) -> float:
-        cap = SPIN_MAX_REALTIME_S if self.realtime else SPIN_MAX_S
-        return min(cap, max(SPIN_MIN_S, 2.0 * max(self._lateness, default=cap)))
+    def _detach_timer(self) -> tuple[subprocess.Popen[bytes] | None, socket.socket | None, threading.Thread | None]:
+        """Under the lock: the timer, its socket and its tick reader, no longer this object's."""
+        timer, sock, reader = self._timer, self._sock, self._reader
+        self._timer = self._sock = self._reader = None
+        return timer, sock, reader
 
-    def _run(self) -> None:
-        realtime = make_thread_realtime("socketcand broadcast manager timer")
-        self.realtime = realtime
-        while True:
-            with self._cond:
-                while self._heap and not self._live(self._heap[0]):
-                    heapq.heappop(self._heap)
-                if self._stop or not self._heap:
-                    self._thread = None  # the thread lives while there are jobs; add() starts another
-                    return
-                due, entry, job = self._heap[0]
-                wait = due - self._spin_s() - time.monotonic()
-                if wait > 0:
-                    timed = wait < POLL_S
-                    wake_at = time.monotonic() + wait
-                    if not self._cond.wait(min(wait, POLL_S)) and timed:  # timed out: how late?
-                        self._lateness.append(max(0.0, time.monotonic() - wake_at))
-                    continue
-            while not realtime and time.monotonic() < due - HARD_SPIN_S:  # the last stretch: spin (no
-                time.sleep(0)  # lock), letting other threads run (a real-time thread would lose the
-                # interpreter to them and wait for it: it spins on), ...
-            while time.monotonic() < due:  # ... but for the very last of it
-                pass
-            now = time.monotonic()
-            with self._cond:
-                if job.deleted or job.entry != entry:
-                    continue  # deleted or replaced meanwhile
-                job.due = due + job.period_s if now - due < job.period_s else now + job.period_s
-                self._push(job)  # its old entry is stale now, popped when it surfaces
-                self._last_sent[job.owner] = now
-                msg, channel = job.msg, job.channel
-            frame = can.Message(arbitration_id=msg.arbitration_id, data=msg.data, dlc=msg.dlc,
-                                is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame)
+    @staticmethod
+    def _end_timer(timer: subprocess.Popen[bytes] | None, sock: socket.socket | None,
+                   reader: threading.Thread | None) -> None:
+        """Outside the lock: the timer process and its tick reader end (the socket closes)."""
+        if sock is not None:
             try:
-                channel.send(frame)
-                self.sent += 1
-            except can.CanError as err:
-                logger.debug("cyclic frame 0x%X not sent: %s", msg.arbitration_id, err)
+                sock.shutdown(socket.SHUT_RDWR)  # the timer reads the end of its commands, the reader its ticks'
+            except OSError:
+                pass  # closed by the tick reader (a timer that died, being started again)
+            sock.close()
+        if timer is not None:
+            try:
+                timer.wait(TIMER_EXIT_S)
+            except subprocess.TimeoutExpired:
+                timer.kill()
+                timer.wait()
+        if reader is not None and reader is not threading.current_thread():
+            reader.join(timeout=2.0)
+
+    def _idle(self) -> None:
+        """After a delete or drop: no job left, no timer (the next add starts one)."""
+        with self._lock:
+            parts = self._detach_timer() if not self._jobs else (None, None, None)
+        self._end_timer(*parts)
 
     def close(self) -> None:
-        with self._cond:
-            self._stop = True
+        with self._lock:
+            self._closed = True
             self._jobs.clear()
+            self._numbered.clear()
             self._by_owner.clear()
             self._rate.clear()
             self._last_sent.clear()
-            self._heap.clear()
-            self._cond.notify()
-            thread = self._thread
-        if thread is not None:
-            thread.join(timeout=2.0)
+            parts = self._detach_timer()
+        self._end_timer(*parts)

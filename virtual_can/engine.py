@@ -10,6 +10,10 @@ order, to every other endpoint attached to that channel. Optional per channel:
   idle wire starts when it was sent, and the frames sent while another is on the wire
   contend when it ends, however late the wire thread gets to run;
 * fault injection: drop, delay or corrupt frames with a given probability.
+
+A frame may also be scheduled ahead with its bus time (:meth:`Channel.schedule`: the broadcast
+manager's cyclic frames, as a controller with a timed transmission queues them): it goes on the
+channel before any frame stamped at or after that time, and at that time at the latest.
 """
 
 from __future__ import annotations
@@ -97,6 +101,7 @@ class Channel:
         self._wire_thread: threading.Thread | None = None
         self._timers: set[threading.Timer] = set()
         self._last_stamp = 0.0  # of the newest frame delivered; guarded by _lock
+        self._scheduled: list[tuple[float, int, can.Message]] = []  # (bus time, seq, frame); guarded by _lock
         if wire_time:
             self._wire_thread = threading.Thread(target=self._wire_loop, daemon=True,
                                                  name=f"virtual_can-wire-{name}")
@@ -134,16 +139,45 @@ class Channel:
             return
         self._deliver(msg, sender)
 
+    def schedule(self, msg: can.Message) -> None:
+        """A frame whose bus time (``msg.timestamp``, ``time.time()``'s clock) is known ahead: it
+        is delivered before any frame stamped at or after it, or by :meth:`flush_scheduled` once
+        that time has come, whichever is first. In wire-time mode it is sent then instead (it
+        contends for the wire like any frame)."""
+        if self._closed:
+            raise can.CanOperationError(f"channel {self.name} is closed")
+        with self._lock:
+            heapq.heappush(self._scheduled, (msg.timestamp, next(self._seq), msg))
+
+    def flush_scheduled(self, now: float) -> None:
+        """Deliver the scheduled frames whose bus time is ``now`` (``time.time()``) or earlier."""
+        due: list[can.Message] = []
+        with self._lock:
+            while self._scheduled and self._scheduled[0][0] <= now:
+                due.append(heapq.heappop(self._scheduled)[2])
+            if not self._wire_time:
+                for msg in due:
+                    self._deliver_locked(msg, None)
+        for msg in due if self._wire_time else ():
+            msg.timestamp = 0.0
+            self.send(msg)
+
     def _deliver(self, msg: can.Message, sender: Endpoint | None) -> None:
         with self._lock:  # one frame at a time: every endpoint sees the same order
-            self.stats.frames += 1
             # stamped when it reached the bus (a server's reader gives the kernel's arrival time)
             # or now; never before the frame delivered before it: one wire, one order in time
             stamp = msg.timestamp or time.time()
-            msg.timestamp = self._last_stamp = max(stamp, self._last_stamp)
-            for endpoint in self._endpoints:
-                if endpoint is not sender:
-                    endpoint.deliver(msg)
+            while self._scheduled and self._scheduled[0][0] <= stamp and not self._wire_time:
+                self._deliver_locked(heapq.heappop(self._scheduled)[2], None)  # its bus time came first
+            msg.timestamp = stamp
+            self._deliver_locked(msg, sender)
+
+    def _deliver_locked(self, msg: can.Message, sender: Endpoint | None) -> None:
+        self.stats.frames += 1
+        msg.timestamp = self._last_stamp = max(msg.timestamp, self._last_stamp)
+        for endpoint in self._endpoints:
+            if endpoint is not sender:
+                endpoint.deliver(msg)
 
     def _inject(self, msg: can.Message, sender: Endpoint | None) -> can.Message | None:
         faults = self.faults

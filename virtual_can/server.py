@@ -11,7 +11,7 @@ channel="can0", host="127.0.0.1", port=29536)``. Raw mode of the socketcand prot
     client: < echo >           server: < echo >
 
 and the broadcast manager's cyclic jobs (BCM mode, also accepted in raw mode), which a kernel
-timer runs on a real socketcand; here one timer thread of the server does::
+timer runs on a real socketcand; here a timer process of the server's (:mod:`virtual_can.bcm_timer`) does::
 
     client: < add SEC USEC ID LEN B0 .. >   (send this frame every SEC.USEC seconds)
     client: < update ID LEN B0 .. >         (new data for the job, same period)
