@@ -110,6 +110,7 @@ def _listen(port: int, channel: str, conn: Connection) -> None:
     bus = can.Bus(interface="socketcand", channel=channel, host="127.0.0.1", port=port, tcp_tune=True)
     frames: list[tuple[float, int, bytes]] = []
     sync_lags: list[float] = []  # a SYNC's arrival here after its bus time (the server's stamp), s
+    tpdo_lags: list[float] = []  # the same for the TPDOs: what every frame takes to reach a client
     conn.send("ready")
     try:
         while True:
@@ -123,7 +124,9 @@ def _listen(port: int, channel: str, conn: Connection) -> None:
                 frames.append((msg.timestamp, msg.arbitration_id, bytes(msg.data)))
                 if msg.arbitration_id == 0x080:
                     sync_lags.append(time.time() - msg.timestamp)
-        conn.send((frames, sync_lags))
+                elif is_tpdo(msg.arbitration_id):
+                    tpdo_lags.append(time.time() - msg.timestamp)
+        conn.send((frames, sync_lags, tpdo_lags))
     finally:
         bus.shutdown()
 
@@ -139,6 +142,7 @@ class Listener:
                                                                   daemon=True)
         self.frames: list[tuple[float, int, bytes]] = []
         self.sync_lags: list[float] = []
+        self.tpdo_lags: list[float] = []
 
     def start(self) -> None:
         self._proc.start()
@@ -153,7 +157,7 @@ class Listener:
         if self._proc.is_alive():
             self._conn.send("stop")
             if self._conn.poll(30):
-                self.frames, self.sync_lags = self._conn.recv()
+                self.frames, self.sync_lags, self.tpdo_lags = self._conn.recv()
         self._proc.join(10)
 
 
@@ -183,7 +187,8 @@ def simulator(*args: str) -> Iterator[int]:
             deadline = time.monotonic() + 30
             while "simulated drive" not in (out.seek(0) or out.read()):
                 if time.monotonic() > deadline or proc.poll() is not None:
-                    raise RuntimeError(f"the simulator did not start: {out.read()}")
+                    out.seek(0)
+                    raise RuntimeError(f"the simulator did not start (exit status {proc.poll()}): {out.read()}")
                 time.sleep(0.05)
             yield port
         finally:
@@ -383,6 +388,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             "sync_jitter_p99_us": round(pct(jitter, 0.99), 1) if jitter else None,
             # how late the listener (a client like the drives) heard the SYNC after its bus time
             "sync_delivery_p99_us": round(pct(first.sync_lags, 0.99) * 1e6, 1) if first.sync_lags else None,
+            "tpdo_delivery_p99_us": round(pct(first.tpdo_lags, 0.99) * 1e6, 1) if first.tpdo_lags else None,
             "sync_timer_realtime": sync_timer_realtime}
 
 
