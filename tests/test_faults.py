@@ -202,7 +202,9 @@ def test_a_drive_enabled_again_does_not_resume_its_old_target(
     if how == "fault":
         apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
         wait_for(lambda: drive.state in (State.FAULT_REACTION_ACTIVE, State.FAULT), 3.0, "the fault")
-        wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, _stop_timeout_s(drive),
+        # stopped, as the simulated drive has it (one low sample of the driver's was seen mid-reaction)
+        runner = sim.simulators["can0"]
+        wait_for(lambda: runner.call(lambda: abs(runner.drive(1).omega)) < 1e-3, _stop_timeout_s(drive),
                  "stopped by the fault reaction")
         wait_for(lambda: drive.state is State.FAULT, 3.0, "the fault reaction's end")
         drive.recover()  # enables again: it was enabled before the fault
@@ -218,6 +220,10 @@ def test_a_drive_enabled_again_does_not_resume_its_old_target(
         drive.disable()
         drive.enable()
     assert drive.state is State.OPERATION_ENABLED
+    # from the first velocity sampled after the enable: the one before it is history (a CI run
+    # read the fault reaction's last sample, 10.6 deg/s, while the bus showed 0 from then on)
+    fresh = drive.cache.position_seq + 1
+    wait_for(lambda: drive.cache.position_seq >= fresh, 3.0, "a velocity sampled after the enable")
     fastest, t_end = 0.0, time.monotonic() + 0.4  # inside the driver's 500 ms command watchdog
     while time.monotonic() < t_end:
         fastest = max(fastest, abs(drive.snapshot().velocity_deg_s))
