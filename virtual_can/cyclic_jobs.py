@@ -228,14 +228,19 @@ class CyclicJobs:
         self._timer_ended(sock, timer)
 
     def _timer_ended(self, sock: socket.socket, timer: subprocess.Popen[bytes]) -> None:
+        """The tick reader, its timer's socket at its end: a timer still this object's died; it is
+        reaped and another started, told every job."""
         with self._lock:
             if self._closed or self._timer is not timer:
                 return
-            logger.error("the broadcast manager's timer process ended (exit status %s); starting it again",
-                         timer.poll())
-            sock.close()
-            self.restarts += 1
-            self._start_timer()
+            self._detach_timer()
+        self._end_timer(timer, sock, None)
+        logger.error("the broadcast manager's timer process ended (exit status %s); starting it again",
+                     timer.returncode)
+        with self._lock:
+            if not self._closed and self._timer is None and self._jobs:
+                self.restarts += 1
+                self._start_timer()
 
     def update(self, owner: object, msg: can.Message) -> bool:
         with self._lock:

@@ -158,7 +158,8 @@ class Channel:
             if not self._wire_time:
                 for msg in due:
                     self._deliver_locked(msg, None)
-        for msg in due if self._wire_time else ():
+                return
+        for msg in due:  # wire-time mode: onto the wire now, where it contends
             msg.timestamp = 0.0
             self.send(msg)
 
