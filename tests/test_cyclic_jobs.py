@@ -182,3 +182,27 @@ def test_a_scheduled_frame_goes_on_the_bus_at_its_time_before_any_later_frame() 
         assert heard[3:] == [(0x080, base + 0.020)]
         sender.send(can.Message(arbitration_id=0x183, timestamp=base + 0.019, is_extended_id=False))
         assert heard[4:] == [(0x183, base + 0.020)]  # late to the server: after the SYNC, never stamped before it
+
+
+def test_ticks_the_server_was_too_stalled_to_take_are_dropped_not_sent_as_a_burst() -> None:
+    """While the server cannot take its timer's ticks (here its jobs' lock is held, as a starved
+    interpreter would), the timer goes on ticking; afterwards the backlog is not put on the bus:
+    a driver counting SYNCs took such a burst for another master's."""
+    with BusEngine() as engine, SocketcandServer(engine, port=0) as srv, \
+            can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as listener:
+        jobs = bcm_client(srv.port)
+        try:
+            jobs.sendall(b"< add 0 10000 080 0 >")
+            assert b"error" not in replies(jobs)
+            syncs_after(listener, 3)
+            drain(listener, 0.0)
+            with srv.cyclic._lock:  # the tick reader waits here; the timer's ticks queue up
+                held_from = time.time()
+                while time.time() < held_from + 0.3:  # thirty periods held
+                    pass
+                held_to = time.time()
+            after = syncs_after(listener, 35)  # the backlog would be about thirty
+        finally:
+            jobs.close()
+    stale = [m.timestamp for m in after if held_from + 0.02 < m.timestamp < held_to - 0.02]
+    assert len(stale) <= 1, f"{len(stale)} SYNCs from the stall put on the bus afterwards"

@@ -216,7 +216,9 @@ class CyclicJobs:
                 if job is None:
                     continue  # deleted or replaced meanwhile
                 self._last_sent[job.owner] = time.monotonic()
-                msg, channel = job.msg, job.channel
+                msg, channel, period_s = job.msg, job.channel, job.period_s
+            if bus_time < time.time() - period_s:
+                continue  # read more than a period late (this server was stalled): a bus never carries the backlog
             frame = can.Message(arbitration_id=msg.arbitration_id, data=msg.data, dlc=msg.dlc, timestamp=bus_time,
                                 is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame)
             try:
