@@ -213,7 +213,9 @@ def match_latencies(listeners: dict[str, Any], sent: dict[tuple[str, int, int], 
     for ch, listener in listeners.items():
         for t, cob, data in listener.frames:
             node_id = cob - 0x300
-            if (ch, node_id) in per_rev and len(data) >= 6 and data[0] & 0x10:
+            # the target RPDO (controlword + target) with Enable Operation: a profile-position
+            # set-point (bit 4 rising) or a streamed one (position_mode: cyclic, no handshake)
+            if (ch, node_id) in per_rev and len(data) >= 6 and data[0] & 0x0F == 0x0F:
                 # continuous joints go the short way: the target on the wire is multi-turn, so match
                 # it modulo one revolution of the joint
                 times = sent.get((ch, node_id, int.from_bytes(data[2:6], "little", signed=True) % per_rev[(ch, node_id)]), [])

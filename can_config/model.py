@@ -193,6 +193,11 @@ class DriveConfig:
                                 help="from NMT reset to the drive's boot-up")
     sdo: tuple[SdoSetting, ...] = key("list", [], nested=SdoSetting,
                                       help="vendor parameters written at boot, in order (table below)")
+    position_mode: str = key("str", "profile", choices=("profile", "cyclic"),
+                             help="how `degree_cmd` and /joint_commands positions are sent: `profile` (PP, the set-point"
+                                  " handshake: any target within the limits) or `cyclic` (a stream: CSP, or IP where the"
+                                  " drive lists no CSP; each set-point within max_velocity_deg_s over two SYNC periods of"
+                                  " the last)")
     velocity_mode: str = key("str", "profile", choices=("profile", "cyclic"),
                              help="how /joint_commands velocities are sent: `profile` (PV) or `cyclic` (CSV)")
     torque_mode: str = key("str", "profile", choices=("profile", "cyclic"),

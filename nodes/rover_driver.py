@@ -2,7 +2,7 @@
 
 Per drive (under the drive's ``namespace`` from the config, if any, then its joint name;
 relative to the node's namespace):
-  topics   <joint>/degree_cmd (std_msgs/Float32, deg), <joint>/velocity_cmd (Float32, deg/s),
+  topics   <joint>/degree_cmd (std_msgs/Float32, deg; the joint's position_mode), <joint>/velocity_cmd (Float32, deg/s),
            <joint>/motor_state (rovercan_msgs/MotorState)
   services <joint>/enable, disable, halt, quick_stop, recover, home (std_srvs/Trigger),
            <joint>/set_mode (SetMode), <joint>/sdo_read (SdoRead), <joint>/sdo_write (SdoWrite)
@@ -114,7 +114,7 @@ class DriverNode(Node):
         drive = self.driver.drives[joint]
 
         def on_message(msg: Float32) -> None:
-            self._guard(joint, f"degree command {msg.data!r}", partial(drive.move_to, msg.data))
+            self._guard(joint, f"degree command {msg.data!r}", partial(drive.command_position, msg.data))
         return on_message
 
     def _on_velocity(self, joint: str) -> Callable[[Float32], None]:
@@ -135,7 +135,7 @@ class DriverNode(Node):
             # topic-based hardware interface sends NaN in the fields it does not command)
             position, velocity, effort = (_given(values, i) for values in (msg.position, msg.velocity, msg.effort))
             if position is not None:
-                self._guard(name, "joint position", partial(drive.move_to, position * DEG))
+                self._guard(name, "joint position", partial(drive.command_position, position * DEG))
             elif velocity is not None:
                 self._guard(name, "joint velocity", partial(drive.command_velocity, velocity * DEG))
             elif effort is not None:

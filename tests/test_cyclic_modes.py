@@ -21,7 +21,7 @@ from virtual_can.service import SimService
 from .conftest import HAVE_ROS, IN_PROCESS_HOST_TIMEOUT_MS, REPO, drain, make_config, requires_ros, wait_for
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
-CYCLIC = {"velocity_mode": "cyclic", "torque_mode": "cyclic"}
+CYCLIC = {"velocity_mode": "cyclic", "torque_mode": "cyclic", "position_mode": "cyclic"}
 
 
 def stream(fn: Callable[[float], None], values: list[float], period_s: float) -> None:
@@ -111,6 +111,30 @@ def test_command_velocity_and_torque_take_the_configured_mode(driver_factory: Dr
     assert other.snapshot().mode == OperationMode.PROFILE_VELOCITY
 
 
+def test_command_position_streams_where_the_config_says_cyclic_and_moves_by_profile_elsewhere(
+        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    sim, driver = driver_factory(make_config(1, position_mode="cyclic", max_velocity_deg_s=360.0))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.command_position(0.2)  # switches to CSP (SDO) once
+    listener = listener_factory(sim)
+    for i in range(1, 6):
+        drive.command_position(0.2 + 0.5 * i)
+    wait_for(lambda: abs(drive.snapshot().angle_deg - 2.7) < 0.05, 2.0, "the shaft at the stream's last set-point")
+    assert drive.snapshot().mode == OperationMode.CYCLIC_SYNC_POSITION
+    sent = [m for m in drain(listener, 0.05) if m.arbitration_id in (0x201, 0x301)]
+    # one RPDO per set-point, controlword Enable Operation without bit 4: no handshake, no reply
+    assert [(m.arbitration_id, bytes(m.data[:2])) for m in sent] == [(0x301, b"\x0f\x00")] * 5
+    # a stream jumps no further than max velocity over two SYNC periods (360 deg/s x 20 ms)
+    with pytest.raises(CommandRejected, match=r"jumps 87\.\d+ deg .* at most 7\.200 deg per step"):
+        drive.command_position(90.0)
+    _, profile = driver_factory(make_config(1))
+    other = profile.drive("joint1")
+    other.enable()
+    other.command_position(90.0)  # a profile-position move takes any target within the limits
+    assert other.snapshot().mode == OperationMode.PROFILE_POSITION
+
+
 if HAVE_ROS:
     import rclpy
     from sensor_msgs.msg import JointState
@@ -164,3 +188,23 @@ def test_joint_commands_velocity_and_effort_stream_csv_and_cst(ros_driver: tuple
         time.sleep(0.01)
     wait_for(lambda: drive.snapshot().mode == OperationMode.CYCLIC_SYNC_TORQUE, 1.0, "CST")
     wait_for(lambda: abs(drive.snapshot().torque_nm - 0.1) < 0.01, 1.0, "0.1 Nm")
+
+
+@requires_ros
+def test_degree_cmd_of_a_cyclic_joint_is_a_stream_and_a_jump_is_refused_not_moved(
+        ros_driver: tuple[MotorDriver, object]) -> None:
+    from std_msgs.msg import Float32
+
+    driver, probe = ros_driver
+    drive = driver.drive("wheel")
+    drive.enable()
+    pub = probe.create_publisher(Float32, "wheel/degree_cmd", COMMAND_QOS)  # type: ignore[attr-defined]
+    wait_for(lambda: pub.get_subscription_count() > 0, 5.0, "the node's degree_cmd subscription")
+    for i in range(1, 11):  # each set-point taken before the next (the topic keeps the newest only)
+        pub.publish(Float32(data=0.5 * i))
+        wait_for(lambda i=i: abs(drive.snapshot().angle_deg - 0.5 * i) < 0.05, 2.0, f"set-point {0.5 * i}")
+    assert drive.snapshot().mode == OperationMode.CYCLIC_SYNC_POSITION
+    pub.publish(Float32(data=180.0))  # beyond one step of the stream: refused, the shaft stays
+    pub.publish(Float32(data=5.5))  # and the stream goes on
+    wait_for(lambda: abs(drive.snapshot().angle_deg - 5.5) < 0.05, 2.0, "the set-point after the refused one")
+    assert drive.snapshot().angle_deg < 6.0

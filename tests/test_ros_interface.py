@@ -134,7 +134,10 @@ def test_per_drive_topics_and_joint_states(graph: Graph) -> None:
     joints = graph.listen(JointState, "/joint_states")
     degree = graph.probe.create_publisher(Float32, f"wheels/{joint}/degree_cmd", COMMAND_QOS)
     wait_for(lambda: degree.get_subscription_count() > 0, 10.0, "degree_cmd matched")
-    degree.publish(Float32(data=120.0))
+    drive = graph.driver.drive(joint)
+    for step in range(1, 13):  # the wheels' degree_cmd is a stream (position_mode: cyclic): 10 deg steps
+        degree.publish(Float32(data=10.0 * step))
+        eventually(lambda step=step: abs(drive.angle_deg - 10.0 * step) < 1.0, 5.0, f"angle {10 * step}")
     eventually(lambda: bool(states) and abs(states[-1].angle - 120.0) < 0.2, 8.0, "angle 120")
     assert states[-1].name == joint and states[-1].enabled
     velocity = graph.probe.create_publisher(Float32, f"wheels/{joint}/velocity_cmd", COMMAND_QOS)
@@ -239,8 +242,8 @@ def test_bad_commands_refused_no_motion_warning_diagnostic(graph: Graph, bad: fl
     # nothing moved, by what the driver sent: no new target, no velocity command (both were refused)
     assert drive.channel.target_counts == target and not drive.velocity_commanded
     assert drive.angle_deg == pytest.approx(before, abs=0.01)
-    pub.publish(Float32(data=15.0))  # still alive, still obeys
-    eventually(lambda: abs(drive.angle_deg - 15.0) < 0.2, 5.0, "good command after bad ones")
+    pub.publish(Float32(data=before + 10.0))  # still alive, still obeys (one step of the wheel's stream)
+    eventually(lambda: abs(drive.angle_deg - before - 10.0) < 0.2, 5.0, "good command after bad ones")
 
 
 def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph: Graph) -> None:

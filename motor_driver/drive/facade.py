@@ -330,6 +330,9 @@ class Drive:
     def stream_torque(self, torque_nm: float) -> None:
         self.motion.stream_torque(torque_nm)
 
+    def command_position(self, angle_deg: float) -> None:
+        self.motion.command_position(angle_deg)
+
     def command_velocity(self, velocity_deg_s: float) -> None:
         self.motion.command_velocity(velocity_deg_s)
 

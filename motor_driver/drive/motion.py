@@ -288,6 +288,14 @@ class Motion:
         drive whose 0x6502 does not list CST."""
         self._torque_command(torque_nm, OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point", "CST torque")
 
+    def command_position(self, angle_deg: float) -> None:
+        """A position command in the drive's configured way: a profile-position move, or one
+        set-point of a stream (``position_mode: cyclic``: CSP or IP, no handshake)."""
+        if self.config.position_mode == "cyclic":
+            self.stream_position(angle_deg)
+        else:
+            self.move_to(angle_deg)
+
     def command_velocity(self, velocity_deg_s: float) -> None:
         """A velocity command in the drive's configured way: profile velocity, or CSV
         (``velocity_mode: cyclic``)."""
@@ -338,7 +346,8 @@ class Motion:
         if step > max_step_deg:
             raise CommandRejected(f"{self.name}: CSP setpoint jumps {step:.3f} deg from the last one; at most"
                                   f" {max_step_deg:.3f} deg per step (max_velocity_deg_s over two SYNC"
-                                  " periods) is allowed. Nothing was sent.")
+                                  " periods) is allowed. Nothing was sent. A point-to-point move is a profile-position"
+                                  " move (move_to, the move_joint action).")
 
     def _streaming_mode(self) -> OperationMode:
         mode = self._cache.mode_display
