@@ -50,7 +50,14 @@ class DriverActionsNode(Node):
     async def _pause(self) -> None:
         """FEEDBACK_PERIOD_S without holding the executor: a timer thread completes a future."""
         done = Future(executor=self.executor)
-        timer = threading.Timer(FEEDBACK_PERIOD_S, lambda: done.done() or done.set_result(True))
+
+        def finish() -> None:
+            if not done.done():
+                done.set_result(True)
+            executor = self.executor
+            if executor is not None:  # the goal resumes at the executor's next turn: a task makes one now (it does
+                executor.create_task(lambda: None)  # not poll; wake() alone makes its spin_once wait again)
+        timer = threading.Timer(FEEDBACK_PERIOD_S, finish)
         timer.daemon = True
         timer.start()
         await done

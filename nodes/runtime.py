@@ -20,6 +20,7 @@ from rclpy.context import Context
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.task import Future
 
 from can_config import heap
 from can_config.errors import ConfigError
@@ -59,11 +60,24 @@ def make_executor(kind: str, context: Context | None = None) -> Executor:
     return SingleThreadedExecutor(context=context)
 
 
-def spin_until(executor: Executor, stop: threading.Event) -> None:
-    """Spin ``executor`` until ``stop`` is set or the context is shut down by someone else."""
+def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S) -> None:
+    """Spin ``executor`` until ``stop`` is set or the context is shut down by someone else,
+    looking at both every ``poll_s`` at the latest (sooner where the stopper wakes the executor).
+
+    The EventsExecutor dispatches everything that comes in ``poll_s`` in one call into C++
+    (``spin_until_future_complete`` of a future nobody completes, a new one each time: that call
+    adds a callback to it): ``spin_once`` would come back to Python after every single callback,
+    and the loop's own checks were about 7 % of the hot thread's interpreter time in the six-drive
+    profile (docs/performance.md)."""
+    if isinstance(executor, Executor):
+        def step() -> None:
+            executor.spin_once(timeout_sec=poll_s)
+    else:  # rclpy's EventsExecutor (C++; not an rclpy Executor subclass)
+        def step() -> None:
+            executor.spin_until_future_complete(Future(), timeout_sec=poll_s)
     try:
         while not stop.is_set() and executor.context.ok():
-            executor.spin_once(timeout_sec=POLL_S)
+            step()
     except ExternalShutdownException:
         pass
 
@@ -86,18 +100,29 @@ def spin_node(node: Node, stop: threading.Event, *, on_stop: Callable[[], None] 
             rclpy.try_shutdown()
 
 
+#: How long a :class:`SpinThread` of an rclpy executor waits for work before it looks at its stop
+#: event again: :meth:`SpinThread.stop` gives the executor a task, so this only bounds a missed wake-up. The three
+#: mostly idle executors of the driver (stops, services, actions) each rebuilt their wait set in
+#: Python ten times a second at POLL_S: about 0.003 of a core each.
+IDLE_POLL_S = 2.0
+
+
 class SpinThread:
-    """An executor spinning on its own thread, stopped and joined by :meth:`stop`."""
+    """An executor spinning on its own thread, stopped (the executor woken) and joined by :meth:`stop`."""
 
     def __init__(self, executor: Executor, name: str) -> None:
         self.executor = executor
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=spin_until, args=(executor, self._stop), daemon=True, name=name)
+        # rclpy's executors wake from their wait set at wake(); the EventsExecutor's timed spin does not
+        poll_s = IDLE_POLL_S if isinstance(executor, Executor) else POLL_S
+        self._thread = threading.Thread(target=spin_until, args=(executor, self._stop, poll_s), daemon=True, name=name)
         self._thread.start()
 
     def stop(self, timeout_s: float) -> bool:
         """Stop spinning; True once the thread has left the executor (then it may be destroyed)."""
         self._stop.set()
+        if isinstance(self.executor, Executor):  # out of its wait now, not at the next IDLE_POLL_S: a task is
+            self.executor.create_task(lambda: None)  # work (wake() alone makes its spin_once wait again)
         self._thread.join(timeout_s)
         if self._thread.is_alive():
             logger.error("%s: still inside a callback after %.1f s", self._thread.name, timeout_s)
@@ -113,5 +138,5 @@ def spin_alone(node: Node, name: str) -> SpinThread:
     return SpinThread(executor, name)
 
 
-__all__ = ["EXECUTORS", "POLL_S", "SpinThread", "StopSignal", "init", "make_executor", "spin_alone", "spin_node",
+__all__ = ["EXECUTORS", "IDLE_POLL_S", "POLL_S", "SpinThread", "StopSignal", "init", "make_executor", "spin_alone", "spin_node",
            "spin_until"]

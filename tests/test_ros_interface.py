@@ -33,6 +33,7 @@ if HAVE_ROS:
     from std_msgs.msg import Float32
     from std_srvs.srv import Trigger
 
+    from nodes import runtime
     from nodes.actions import DriverActionsNode
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
     from nodes.rover_driver import DriverNode, DriverServicesNode, DriverStopsNode, DriveSystemNode
@@ -89,7 +90,9 @@ def in_process_host_timeout(config: RoverConfig) -> RoverConfig:
 
 
 @pytest.fixture
-def graph() -> Iterator[Graph]:
+def graph(monkeypatch: pytest.MonkeyPatch) -> Iterator[Graph]:
+    # the idle executors never poll here: whatever they serve must wake them (a goal's pause, a stop)
+    monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)
     config = in_process_host_timeout(load_config(REPO / "config" / "rover.yaml"))
     sim = SimService.from_config(config, port=0)
     driver = MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)).start()
