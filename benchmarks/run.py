@@ -76,8 +76,14 @@ def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
         out["cmd_latency_ratio_same_burst"] = round(out["cmd_latency_p50_ms"] / out[burst], 2)
     out.update(stack_run.baseline_canopen(6, 10.0, seconds))
     out.update(stack_run.driver_only(6, 10.0, seconds))
-    if out.get("cpu_core_fraction") and out.get("baseline_canopen_cpu_core_fraction"):
-        out["cpu_ratio_canopen"] = round(out["cpu_core_fraction"] / out["baseline_canopen_cpu_core_fraction"], 2)
+    base = out.get("baseline_canopen_cpu_core_fraction")
+    if out.get("cpu_core_fraction") and base:
+        out["cpu_ratio_canopen"] = round(out["cpu_core_fraction"] / base, 2)
+    bare = out.get(f"bare_{out['drives']}_topics_cpu_core_fraction")
+    if bare is not None and base:
+        # the lowest ratio any node could reach in this process model: rclpy's own cost for the
+        # commands (the bare path, one frame sent per command) plus the canopen library's for the state
+        out["cpu_floor_ratio_canopen"] = round((bare + base) / base, 2)
     return out
 
 

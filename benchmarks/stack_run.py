@@ -16,6 +16,8 @@ socketcand client that sees every frame with the server's wire timestamp). Figur
 * cpu_core_fraction, rss_mb: /proc of the measured process (CPU time / wall time; VmHWM).
 * sync_jitter_p99_us: SYNC period error at the listener.
 * baseline: the same state run done the canopen library's way (BaseNode402 + PDO callbacks).
+* the bare path's CPU (``bare_path``): rclpy taking the same commands and python-can sending one
+  frame each, nothing else; with the baseline, the floor of the node's CPU.
 """
 
 from __future__ import annotations
@@ -425,6 +427,7 @@ def bare_path(seconds: float, topics: int = 1) -> dict[str, Any]:
             time.sleep(0.5)
             sent: dict[tuple[int, int], float] = {}
             start = time.monotonic()
+            cpu0 = proc_cpu_s(peer.pid)
             next_t = start
             k = 0
             while time.monotonic() - start < seconds:
@@ -435,6 +438,7 @@ def bare_path(seconds: float, topics: int = 1) -> dict[str, Any]:
                     pub.publish(Float32(data=angle))
                 next_t += 0.01
                 time.sleep(max(0.0, next_t - time.monotonic()))
+            cpu = (proc_cpu_s(peer.pid) - cpu0) / (time.monotonic() - start)
             time.sleep(0.3)
         finally:
             peer.terminate()
@@ -445,7 +449,10 @@ def bare_path(seconds: float, topics: int = 1) -> dict[str, Any]:
     latencies = [(t - sent.pop((cob, int.from_bytes(d[2:6], "little", signed=True)))) * 1000
                  for t, cob, d in listener.frames if (cob, int.from_bytes(d[2:6], "little", signed=True)) in sent]
     key = "bare_latency_p50_ms" if topics == 1 else f"bare_latency_{topics}_topics_p50_ms"
-    return {key: round(statistics.median(latencies), 3)}
+    # what rclpy itself costs to take the commands and python-can to send them: the floor under
+    # any driver node's CPU for the same commands
+    cpu_key = "bare_cpu_core_fraction" if topics == 1 else f"bare_{topics}_topics_cpu_core_fraction"
+    return {key: round(statistics.median(latencies), 3), cpu_key: round(cpu, 3)}
 
 
 def state_run(script: str, prefix: str, n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]:
