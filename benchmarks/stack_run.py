@@ -322,7 +322,9 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             k = 0
             while time.monotonic() - wall0 < seconds:
                 k += 1
-                angle = (k % 3000) * 0.1 + 0.05
+                # the team's demo ramp, +0.1 deg a command, modulo 360: continuous on a continuous joint
+                # (a streamed joint, position_mode: cyclic, refuses a jump; modulo 300 jumped 60 deg)
+                angle = (k % 3600) * 0.1 + 0.05
                 for (d, ch, scale, per_rev), pub in zip(drives, pubs, strict=True):
                     sent.setdefault((ch, d.node_id, scale.deg_to_counts(angle) % per_rev), []).append(time.time())
                     pub.publish(Float32(data=angle))
@@ -432,7 +434,7 @@ def bare_path(seconds: float, topics: int = 1) -> dict[str, Any]:
             k = 0
             while time.monotonic() - start < seconds:
                 k += 1
-                angle = (k % 3000) * 0.1 + 0.05
+                angle = (k % 3600) * 0.1 + 0.05
                 for i, pub in enumerate(pubs):
                     sent[(0x301 + i, round(angle * BARE_COUNTS_PER_DEG))] = time.time()
                     pub.publish(Float32(data=angle))
