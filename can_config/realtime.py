@@ -1,4 +1,5 @@
-"""Real-time scheduling for the one thread whose timing is the product: where the OS allows it.
+"""Real-time scheduling where timing is the product (the emulator's SYNC timer, the driver's
+process): where the OS allows it.
 
 A Linux thread under ``SCHED_FIFO`` runs the moment it is ready, ahead of every ordinary
 (``SCHED_OTHER``) thread on its core; a timed wait wakes it within tens of microseconds however
@@ -20,15 +21,22 @@ REALTIME_PRIORITY = 10
 ENV_SWITCH = "ROVERCAN_REALTIME"
 
 
-def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY, *, pid: int = 0) -> bool:
-    """Put the calling thread (or the single-threaded process ``pid``) under ``SCHED_FIFO`` at
-    ``priority``; True if it now is. A thread only: the other threads of the process keep their
-    scheduling."""
+def _may_try(what: str) -> bool:
+    """Real-time scheduling is neither switched off (ROVERCAN_REALTIME=0) nor missing from the OS."""
     if os.environ.get(ENV_SWITCH, "1") == "0":
         logger.info("%s: real-time scheduling off (%s=0)", what, ENV_SWITCH)
         return False
     if not hasattr(os, "sched_setscheduler"):
-        logger.info("%s: this OS has no SCHED_FIFO; an ordinary thread", what)
+        logger.info("%s: this OS has no SCHED_FIFO; ordinary scheduling", what)
+        return False
+    return True
+
+
+def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY, *, pid: int = 0) -> bool:
+    """Put the calling thread (or the single-threaded process ``pid``) under ``SCHED_FIFO`` at
+    ``priority``; True if it now is. A thread only: the other threads of the process keep their
+    scheduling."""
+    if not _may_try(what):
         return False
     try:
         os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(priority))  # 0: this thread (a Linux task)
@@ -38,6 +46,41 @@ def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY, *, pid: i
         return False
     logger.info("%s: SCHED_FIFO priority %d", what, priority)
     return True
+
+
+def make_process_realtime(what: str, priority: int) -> bool:
+    """Every thread of this process under ``SCHED_FIFO`` at ``priority``, and so every thread it
+    starts later (a new thread inherits its creator's scheduling); True if so. A process it starts
+    inherits it too: the thread that starts one that must not (a plot helper) calls
+    :func:`make_thread_ordinary` first.
+
+    On a busy machine an ordinary thread that wakes for a frame or a command waits for a core
+    behind whatever runs there: the six-drive stack run's command latency p99 was 2.9 ms with the
+    driver's threads ordinary and 1.2-1.6 ms with them under SCHED_FIFO (docs/performance.md)."""
+    if not _may_try(what) or not os.path.isdir("/proc/self/task"):
+        return False
+    try:
+        for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):
+            try:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            except ProcessLookupError:
+                continue  # the thread ended meanwhile
+    except OSError as err:
+        logger.warning("%s: ordinary scheduling: SCHED_FIFO refused (%s); give the interpreter CAP_SYS_NICE or an"
+                       " rtprio limit (docs/deployment.md) for a steady latency on a busy machine", what, err)
+        return False
+    logger.info("%s: every thread under SCHED_FIFO priority %d", what, priority)
+    return True
+
+
+def make_thread_ordinary() -> None:
+    """The calling thread back to ordinary scheduling (always allowed): a process it starts then
+    starts ordinary too (a child takes the scheduling of the thread that forked it)."""
+    if hasattr(os, "sched_setscheduler"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except OSError as err:
+            logger.debug("ordinary scheduling: %s", err)
 
 
 def fifo_thread_count(pid: int, *, children: bool = False) -> int:

@@ -44,6 +44,7 @@ import can
 from can_config.config import RecorderConfig
 from can_config.incident import FORMAT
 from can_config.objects import emcy_text
+from can_config.realtime import make_thread_ordinary
 from motor_driver.drive import DriveState
 
 logger = logging.getLogger(__name__)
@@ -263,9 +264,11 @@ class FlightRecorder:
         return json_path
 
     def _plot_in_helper(self, json_path: Path) -> None:
-        """The PNG is drawn by a process of its own at low priority: matplotlib in this one would
-        hold the interpreter for a second or two, and the supervisor's host heartbeat with it."""
+        """The PNG is drawn by a process of its own at low priority (ordinary scheduling, nice 10):
+        matplotlib in this one would hold the interpreter for a second or two, and the supervisor's
+        host heartbeat with it."""
         self._helpers = [p for p in self._helpers if p.poll() is None]
+        make_thread_ordinary()  # the helper takes this thread's scheduling: never the driver's SCHED_FIFO
         self._helpers.append(subprocess.Popen([sys.executable, "-m", "motor_driver.recorder", str(json_path)],
                                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                               stderr=subprocess.DEVNULL))

@@ -22,6 +22,7 @@ from can_config.stop import StopSignal
 from motor_driver import DriveState, MotorDriver
 from nodes import runtime
 from nodes.logbridge import bridge_core_logging, unbridge
+from nodes.params import declare
 from nodes.qos import COMMAND_QOS, STATE_QOS
 
 WARN_THROTTLE_S = 1.0
@@ -53,8 +54,10 @@ class MotorControllerNode(Node):
     def __init__(self, driver: MotorDriver | None = None, **kwargs: object) -> None:
         super().__init__("motor_controller", **kwargs)  # type: ignore[arg-type]
         self.declare_parameter("config", "")
+        declare(self, "realtime_priority")
         self._owns_driver = driver is None
-        if driver is None:  # standalone (ros2 run / launch): the node owns its driver
+        if driver is None:  # standalone (ros2 run / launch): the node owns its driver, and its process
+            runtime.go_realtime(self)  # real-time before the driver's threads start: they inherit it
             driver = start_driver(load_config(str(self.get_parameter("config").value) or None))
         self.driver = driver
         self._log_handler = bridge_core_logging(self)

@@ -60,8 +60,8 @@ class DriverNode(Node):
 
     def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
         super().__init__("rovercan_driver", **kwargs)
-        declare(self, "config", "executor", "arm", "drive_system", "default_joint", "state_rate_hz", "diagnostics_rate_hz",
-                "state_qos_depth")
+        declare(self, "config", "executor", "realtime_priority", "arm", "drive_system", "default_joint", "state_rate_hz",
+                "diagnostics_rate_hz", "state_qos_depth")
         self.driver = driver
         self._state_qos = state_qos(qos_depth(self))
         self.refusals = RefusalLog(self)
@@ -228,10 +228,18 @@ def main(args: list[str] | None = None) -> int:
 def _run(stop: StopSignal) -> int:
     # read before the driver node exists (same name, so a params file's values apply)
     boot = rclpy.create_node("rovercan_driver")
-    declare(boot, "config", "executor")
+    declare(boot, "config", "executor", "realtime_priority")
     path = str(boot.get_parameter("config").value) or None
     executor_kind = str(boot.get_parameter("executor").value)
-    boot.destroy_node()
+    try:
+        # before the driver's threads exist: each inherits it (DDS's, made already, are set here)
+        runtime.go_realtime(boot)
+    except RovercanError as err:
+        print(f"rover_driver: {err}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    finally:
+        boot.destroy_node()
     try:
         hot = runtime.make_executor(executor_kind)
         config = load_config(path)

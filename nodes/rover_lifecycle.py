@@ -39,7 +39,7 @@ logger = logging.getLogger(__name__)
 class DriveLifecycleNode(LifecycleNode):
     def __init__(self, hot: Executor | None = None, **kwargs: Any) -> None:
         super().__init__("rovercan_lifecycle", **kwargs)
-        declare(self, "config", "autostart")
+        declare(self, "config", "autostart", "realtime_priority")
         self.hot = hot  # where the drives' ROS interface spins (None: no interface, tests of the bus alone)
         self.driver: MotorDriver | None = None
         self.interface: list[Node] = []
@@ -129,6 +129,7 @@ def main(args: list[str] | None = None) -> int:
     with runtime.StopSignal() as stop:
         hot = runtime.make_executor("events")
         node = DriveLifecycleNode(hot)
+        runtime.go_realtime(node)  # before configure makes the driver's threads: they inherit it
         cold = SingleThreadedExecutor()
         cold.add_node(node)
         transitions = runtime.SpinThread(cold, "rovercan-lifecycle")

@@ -24,6 +24,7 @@ from rclpy.task import Future
 
 from can_config import heap
 from can_config.errors import ConfigError
+from can_config.realtime import make_process_realtime
 from can_config.stop import StopSignal
 
 logger = logging.getLogger(__name__)
@@ -58,6 +59,16 @@ def make_executor(kind: str, context: Context | None = None) -> Executor:
         else:
             return EventsExecutor(context=context)
     return SingleThreadedExecutor(context=context)
+
+
+def go_realtime(node: Node) -> bool:
+    """Every thread of this process (and every one it starts later) under SCHED_FIFO at the
+    node's ``realtime_priority``, where the OS allows it; 0: ordinary. True if real-time now."""
+    value = node.get_parameter("realtime_priority").value
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 99:
+        raise ConfigError(f"parameter realtime_priority = {value!r}: expected a whole number from 0 (ordinary"
+                          " scheduling) to 99; set -p realtime_priority:=20 (the default) or 0")
+    return value > 0 and make_process_realtime(node.get_name(), value)
 
 
 def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S) -> None:
@@ -138,5 +149,5 @@ def spin_alone(node: Node, name: str) -> SpinThread:
     return SpinThread(executor, name)
 
 
-__all__ = ["EXECUTORS", "IDLE_POLL_S", "POLL_S", "SpinThread", "StopSignal", "init", "make_executor", "spin_alone", "spin_node",
-           "spin_until"]
+__all__ = ["EXECUTORS", "IDLE_POLL_S", "POLL_S", "SpinThread", "StopSignal", "go_realtime", "init", "make_executor",
+           "spin_alone", "spin_node", "spin_until"]

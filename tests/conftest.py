@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -223,3 +224,19 @@ def rovercan_sim(*args: str) -> Iterator[int]:
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=10)
+
+
+def realtime_allowed() -> bool:
+    """This process may put a thread under SCHED_FIFO (root, CAP_SYS_NICE, an rtprio limit)."""
+    result: list[bool] = []
+
+    def attempt() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))  # this short-lived thread only
+            result.append(True)
+        except OSError:
+            result.append(False)
+    thread = threading.Thread(target=attempt)
+    thread.start()
+    thread.join()
+    return result[0]

@@ -71,6 +71,7 @@ def test_the_unit_starts_the_image_after_can0_with_the_config_mounted() -> None:
     start = shlex.split(unit["Service"]["ExecStart"])
     assert start[:3] == ["/usr/bin/docker", "run", "--rm"] and start[-1] == "rovercan:latest"
     assert "--network" in start and start[start.index("--network") + 1] == "host"  # SocketCAN is the host's
+    assert "--cap-add" in start and start[start.index("--cap-add") + 1] == "SYS_NICE"  # the driver's SCHED_FIFO
     mount = start[start.index("-v") + 1].split(":")
     assert mount[1] == "/etc/rovercan"  # where ROVERCAN_CONFIG points in the image
     volumes = [start[i + 1].split(":") for i, word in enumerate(start) if word == "-v"]

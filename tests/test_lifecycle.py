@@ -130,8 +130,9 @@ def test_a_failed_configure_leaves_nothing_behind(rig: tuple[Any, SimService, Li
 
 
 def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) -> None:
-    """The demo's auto-start: `autostart:=true` configures and activates at start; SIGTERM (what
-    systemd and docker stop send) stops and disables every drive before the bus closes."""
+    """The demo's auto-start: `autostart:=true` configures and activates at start (every thread
+    under SCHED_FIFO where allowed); SIGTERM (what systemd and docker stop send) stops and disables
+    every drive before the bus closes."""
     import os
     import signal
     import subprocess
@@ -139,7 +140,8 @@ def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) 
 
     from rovercan.launch import parse_launch
 
-    from .conftest import REPO
+    from .conftest import REPO, realtime_allowed
+    from .test_shutdown import thread_policies
 
     launched = parse_launch(REPO / "ros" / "rovercan_bringup" / "launch" / "rover_launch.xml",
                             {"config": "/x.yaml", "lifecycle": "true", "autostart": "true"})
@@ -157,6 +159,8 @@ def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) 
         runner = sim.simulators["can0"]
         try:
             wait_for(lambda: runner.call(lambda: runner.drive(1).state.name) == "OPERATION_ENABLED", 20.0, "armed")
+            if realtime_allowed():  # the driver it made runs every thread under SCHED_FIFO, as rover_driver's
+                assert set(thread_policies(proc.pid)) == {os.SCHED_FIFO}
         finally:
             proc.send_signal(signal.SIGTERM)
             out, _ = proc.communicate(timeout=20)

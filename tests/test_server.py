@@ -24,7 +24,7 @@ from virtual_can import BusEngine, SocketcandServer, VirtualBus
 from virtual_can.server import format_frame, parse_send
 from virtual_can.wire import frame_bits
 
-from .conftest import REPO, drain
+from .conftest import REPO, drain, realtime_allowed
 
 
 @pytest.fixture
@@ -393,21 +393,6 @@ def test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout() -> None:
             listener.shutdown()
 
 
-def _realtime_allowed() -> bool:
-    result: list[bool] = []
-
-    def attempt() -> None:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))  # this short-lived thread only
-            result.append(True)
-        except OSError:
-            result.append(False)
-    thread = threading.Thread(target=attempt)
-    thread.start()
-    thread.join()
-    return result[0]
-
-
 @pytest.mark.parametrize("how", ["default", "switched off", "not permitted"])
 def test_the_cyclic_timer_is_a_real_time_process_where_the_os_allows_it(how: str) -> None:
     """`rovercan sim`'s broadcast-manager timer (the SYNC of a socketcand driver) is a process of
@@ -419,7 +404,7 @@ def test_the_cyclic_timer_is_a_real_time_process_where_the_os_allows_it(how: str
         pytest.skip("this OS has no SCHED_FIFO")
     command = [sys.executable, "-m", "rovercan", "sim", "--drives", "1", "--port", "0"]
     env = dict(os.environ)
-    expected = _realtime_allowed()
+    expected = realtime_allowed()
     if how == "switched off":
         env["ROVERCAN_REALTIME"] = "0"
         expected = False

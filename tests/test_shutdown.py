@@ -15,22 +15,38 @@ import pytest
 
 from virtual_can import SimDriveSpec, SimService
 
-from .conftest import REPO, drain, requires_ros
+from .conftest import REPO, drain, realtime_allowed, requires_ros
 
 pytestmark = requires_ros
 
 
-CASES = [  # (module, extra parameters, nodes): the driver node on both executors, the demo controller
+CASES = [  # (module, extra parameters, nodes): the driver node on both executors, the demo controller,
+    # the driver with ordinary scheduling
     ("nodes.rover_driver", ["-p", "executor:=events"], (1, 2)),
     ("nodes.rover_driver", ["-p", "executor:=single"], (1, 2)),
     ("nodes.motor_controller", ["-p", "joint:=a"], (1,)),
+    ("nodes.rover_driver", ["-p", "realtime_priority:=0"], (1,)),
 ]
 
 
-@pytest.mark.parametrize(("module", "extra", "nodes"), CASES, ids=["driver-events", "driver-single", "motor_controller"])
+def thread_policies(pid: int) -> list[int]:
+    """The scheduling policy of each thread of ``pid`` (/proc/PID/task/TID/stat, field 41)."""
+    policies = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            policies.append(int((task / "stat").read_text().rsplit(")", 1)[1].split()[38]))
+        except OSError:
+            continue  # the thread ended meanwhile
+    return policies
+
+
+@pytest.mark.parametrize(("module", "extra", "nodes"), CASES,
+                         ids=["driver-events", "driver-single", "motor_controller", "driver-ordinary"])
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_node_leaves_drives_safe_on_signal(tmp_path: Path, sig: int, module: str, extra: list[str],
                                            nodes: tuple[int, ...]) -> None:
+    """... and runs every thread (receive, commands, supervisor, DDS) under SCHED_FIFO where the OS
+    allows it, unless told realtime_priority:=0."""
     with SimService([SimDriveSpec(n) for n in nodes], port=0) as sim:
         config = tmp_path / "rover.yaml"
         config.write_text("buses:\n  - {name: can0, interface: socketcand, channel: can0,"
@@ -50,6 +66,11 @@ def test_node_leaves_drives_safe_on_signal(tmp_path: Path, sig: int, module: str
             while sim.simulator_for(1).call(lambda: drive.state.name) != "OPERATION_ENABLED":
                 assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()[0] if proc.poll() else "timeout"
                 time.sleep(0.05)
+            policies = thread_policies(proc.pid)
+            if realtime_allowed() and "realtime_priority:=0" not in extra:
+                assert policies and set(policies) == {os.SCHED_FIFO}, policies
+            else:
+                assert os.SCHED_FIFO not in policies, policies
             time.sleep(0.3)
             drain(listener, 0.05)
             proc.send_signal(sig)
