@@ -1,7 +1,8 @@
 """The bare path's subscriber, in its own process like the driver node:
 
-    python bare_peer.py HOST PORT [N]  -> on ``bare_cmd_<i>`` (Float32, deg; i < N, default 1)
-                                         sends one RPDO 0x301 + i
+    python bare_peer.py HOST PORT [N [PRIORITY]]  -> on ``bare_cmd_<i>`` (Float32, deg; i < N,
+        default 1) sends one RPDO 0x301 + i; PRIORITY > 0: every thread under SCHED_FIFO at it,
+        as the driver node runs (its realtime_priority), where the OS allows it
 
 Nothing but rclpy (the EventsExecutor the node uses) and one python-can send per message;
 SIGTERM ends it.
@@ -20,6 +21,7 @@ from rclpy.experimental import EventsExecutor
 from std_msgs.msg import Float32
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from can_config.realtime import make_process_realtime
 from nodes import runtime
 from nodes.qos import COMMAND_QOS
 
@@ -30,6 +32,9 @@ logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR
 def main() -> int:
     host, port = sys.argv[1], int(sys.argv[2])
     topics = int(sys.argv[3]) if len(sys.argv) > 3 else 1
+    priority = int(sys.argv[4]) if len(sys.argv) > 4 else 0
+    if priority:
+        make_process_realtime("bare_peer", priority)  # before its threads start: they inherit it
     bus = can.Bus(interface="socketcand", channel="can0", host=host, port=port, tcp_tune=True)
     runtime.init(None)
     node = rclpy.create_node("bare_peer")

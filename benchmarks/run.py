@@ -36,6 +36,7 @@ os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns 
 
 from can_config import GENERIC_EDS, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
+from nodes.params import PARAMS
 from virtual_can import BusEngine, SimService, SocketcandServer, VirtualBus
 
 logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
@@ -67,11 +68,17 @@ def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
     out: dict[str, Any] = stack_run.run_stack(stack_run.SHIPPED["rover"], seconds, 100.0, ("--drive-processes",))
     default = stack_run.run_stack(stack_run.SHIPPED["default"], min(seconds, 10.0), 100.0)
     out.update({f"default_{k}": v for k, v in default.items()})
+    # the bare path as the node runs (its threads under SCHED_FIFO: realtime_priority, the default),
+    # the ratio's reference; and ordinary, as it was measured before the node went real-time
+    priority = int(PARAMS["realtime_priority"].default)  # type: ignore[call-overload]
+    out.update(stack_run.bare_path(min(seconds, 10.0), 1, priority))
+    out.update(stack_run.bare_path(min(seconds, 10.0), out["drives"], priority))  # the same burst: one command per drive
     out.update(stack_run.bare_path(min(seconds, 10.0)))
-    out.update(stack_run.bare_path(min(seconds, 10.0), out["drives"]))  # the same burst of one command per drive
-    burst = f"bare_latency_{out['drives']}_topics_p50_ms"
+    burst = f"bare_rt_latency_{out['drives']}_topics_p50_ms"
+    if out.get("cmd_latency_p50_ms") and out.get("bare_rt_latency_p50_ms"):
+        out["cmd_latency_ratio"] = round(out["cmd_latency_p50_ms"] / out["bare_rt_latency_p50_ms"], 2)
     if out.get("cmd_latency_p50_ms") and out.get("bare_latency_p50_ms"):
-        out["cmd_latency_ratio"] = round(out["cmd_latency_p50_ms"] / out["bare_latency_p50_ms"], 2)
+        out["cmd_latency_ratio_ordinary_bare"] = round(out["cmd_latency_p50_ms"] / out["bare_latency_p50_ms"], 2)
     if out.get("cmd_latency_p50_ms") and out.get(burst):
         out["cmd_latency_ratio_same_burst"] = round(out["cmd_latency_p50_ms"] / out[burst], 2)
     out.update(stack_run.baseline_canopen(6, 10.0, seconds))
@@ -79,7 +86,7 @@ def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
     base = out.get("baseline_canopen_cpu_core_fraction")
     if out.get("cpu_core_fraction") and base:
         out["cpu_ratio_canopen"] = round(out["cpu_core_fraction"] / base, 2)
-    bare = out.get(f"bare_{out['drives']}_topics_cpu_core_fraction")
+    bare = out.get(f"bare_rt_{out['drives']}_topics_cpu_core_fraction")
     if bare is not None and base:
         # the lowest ratio any node could reach in this process model: rclpy's own cost for the
         # commands (the bare path, one frame sent per command) plus the canopen library's for the state

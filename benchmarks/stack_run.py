@@ -398,13 +398,15 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             "sync_timer_realtime": sync_timer_realtime}
 
 
-def bare_path(seconds: float, topics: int = 1) -> dict[str, Any]:
+def bare_path(seconds: float, topics: int = 1, priority: int = 0) -> dict[str, Any]:
     """rclpy publish -> subscription callback -> one python-can send, to the listener, for
     ``topics`` topics published in a burst every 10 ms, as the stack run publishes one command
     per drive.
 
     The subscriber is its own process (``bare_peer.py``), as the driver node is: publisher and
     subscriber in one process would take DDS's intra-process shortcut the node never gets.
+    ``priority`` > 0: its threads under SCHED_FIFO, as the node's (``realtime_priority``); the
+    keys then say ``bare_rt``.
     """
     import rclpy
     from std_msgs.msg import Float32
@@ -415,7 +417,7 @@ def bare_path(seconds: float, topics: int = 1) -> dict[str, Any]:
         listener = Listener(port)
         listener.start()
         peer = subprocess.Popen([sys.executable, str(Path(__file__).resolve().parent / "bare_peer.py"), "127.0.0.1",
-                                 str(port), str(topics)],
+                                 str(port), str(topics), str(priority)],
                                 cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         context = rclpy.Context()
         rclpy.init(context=context)
@@ -450,10 +452,11 @@ def bare_path(seconds: float, topics: int = 1) -> dict[str, Any]:
             listener.close()
     latencies = [(t - sent.pop((cob, int.from_bytes(d[2:6], "little", signed=True)))) * 1000
                  for t, cob, d in listener.frames if (cob, int.from_bytes(d[2:6], "little", signed=True)) in sent]
-    key = "bare_latency_p50_ms" if topics == 1 else f"bare_latency_{topics}_topics_p50_ms"
+    name = "bare_rt" if priority else "bare"
+    key = f"{name}_latency_p50_ms" if topics == 1 else f"{name}_latency_{topics}_topics_p50_ms"
     # what rclpy itself costs to take the commands and python-can to send them: the floor under
     # any driver node's CPU for the same commands
-    cpu_key = "bare_cpu_core_fraction" if topics == 1 else f"bare_{topics}_topics_cpu_core_fraction"
+    cpu_key = f"{name}_cpu_core_fraction" if topics == 1 else f"{name}_{topics}_topics_cpu_core_fraction"
     return {key: round(statistics.median(latencies), 3), cpu_key: round(cpu, 3)}
 
 
