@@ -387,6 +387,12 @@ def test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout() -> None:
             assert idle.recv(64) == b""  # the idle one was closed
             drain(listener, 0.05)
             assert len([m for m in drain(listener, 0.2) if m.arbitration_id == 0x080]) >= 8
+            # its job deleted (a driver closing), it is still no idle client: it is served until it closes
+            # (the demo's end logged "no rawmode (nor a cyclic job)" for the driver's SYNC connection)
+            job.sendall(b"< delete 080 >")
+            time.sleep(0.5)  # the server's read loop looks more than once meanwhile
+            job.sendall(b"< echo >")
+            assert "< echo >" in read_until(job, "< echo >")
         finally:
             idle.close()
             job.close()

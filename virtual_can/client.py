@@ -221,14 +221,16 @@ class Client:
         buf = ""
         sock = self.sock
         connected = time.monotonic()
+        handshaken = False  # rawmode, or a cyclic job once: a BCM client's later < delete > does not undo it
         # the socket stays blocking for the writer: a client that pauses reading is not dropped
         # for a short stall, only after SLOW_CLIENT_DROP_LIMIT frames lost in a row; the reader
         # waits with select so that it notices shutdown
         while not self._closed.is_set():
             try:
                 readable, _, _ = select.select([sock], [], [], POLL_S)
-                if not self.raw and time.monotonic() - connected > self.server.handshake_timeout_s \
-                        and not self.server.cyclic.owns(self):  # a BCM-mode client with a cyclic job stays
+                if not self.raw and not handshaken and self.server.cyclic.owns(self):
+                    handshaken = True  # a BCM-mode client with a cyclic job stays
+                if not self.raw and not handshaken and time.monotonic() - connected > self.server.handshake_timeout_s:
                     logger.info("socketcand client %s: no rawmode (nor a cyclic job) within %g s; closing it",
                                 self.addr, self.server.handshake_timeout_s)
                     break
