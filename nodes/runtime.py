@@ -73,7 +73,7 @@ def go_realtime(node: Node) -> bool:
 
 def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S) -> None:
     """Spin ``executor`` until ``stop`` is set or the context is shut down by someone else,
-    looking at both every ``poll_s`` at the latest (sooner where the stopper wakes the executor).
+    looking at both every ``poll_s`` at the latest (sooner where the stopper gives the executor work).
 
     The EventsExecutor dispatches everything that comes in ``poll_s`` in one call into C++
     (``spin_until_future_complete`` of a future nobody completes, a new one each time: that call
@@ -119,12 +119,12 @@ IDLE_POLL_S = 2.0
 
 
 class SpinThread:
-    """An executor spinning on its own thread, stopped (the executor woken) and joined by :meth:`stop`."""
+    """An executor spinning on its own thread, stopped (the executor given a task) and joined by :meth:`stop`."""
 
     def __init__(self, executor: Executor, name: str) -> None:
         self.executor = executor
         self._stop = threading.Event()
-        # rclpy's executors wake from their wait set at wake(); the EventsExecutor's timed spin does not
+        # rclpy's executors leave their wait at a task (stop() gives one); the EventsExecutor's timed spin does not
         poll_s = IDLE_POLL_S if isinstance(executor, Executor) else POLL_S
         self._thread = threading.Thread(target=spin_until, args=(executor, self._stop, poll_s), daemon=True, name=name)
         self._thread.start()
