@@ -30,6 +30,18 @@ def stream(fn: Callable[[float], None], values: list[float], period_s: float) ->
         time.sleep(period_s)
 
 
+def stream_until(fn: Callable[[float], None], value: float, period_s: float, done: Callable[[], bool], what: str,
+                 most: int = 500) -> None:
+    """``value`` streamed once per period until ``done()``: a sample read once after a fixed count
+    may predate the stream on a starved machine (a torque of NaN: no torque TPDO applied yet)."""
+    for _ in range(most):
+        fn(value)
+        time.sleep(period_s)
+        if done():
+            return
+    raise AssertionError(f"{what} not seen after {most} set-points of {value}")
+
+
 def test_csv_follows_the_stream_then_the_watchdog_stops_it(
         driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
     sim, driver = driver_factory(make_config(1, gear_ratio=10.0, counts_per_rev=4096, watchdog_ms=300))
@@ -40,10 +52,10 @@ def test_csv_follows_the_stream_then_the_watchdog_stops_it(
     listener = listener_factory(sim)
     drain(listener, 0.02)
     ramp = [10.0 * i for i in range(1, 19)]  # 10 deg/s per SYNC: 1000 deg/s^2 up to 180 deg/s
-    stream(drive.stream_velocity, ramp + [180.0] * 40, period)
-    state = drive.snapshot()
-    assert state.mode == OperationMode.CYCLIC_SYNC_VELOCITY
-    assert state.velocity_deg_s == pytest.approx(180.0, rel=0.03)
+    stream(drive.stream_velocity, ramp, period)
+    stream_until(drive.stream_velocity, 180.0, period, lambda: drive.snapshot().velocity_deg_s == pytest.approx(180.0, rel=0.03),
+                 "180 deg/s")
+    assert drive.snapshot().mode == OperationMode.CYCLIC_SYNC_VELOCITY
     frames = drain(listener, 0.05)
     assert not [m for m in frames if m.arbitration_id == 0x601]  # set-points by RPDO, no SDO
     # the stream stops: the watchdog (300 ms) sends zero velocity, once (a loaded machine that
@@ -74,13 +86,13 @@ def test_cst_drives_the_commanded_torque(driver_factory: DriverFactory) -> None:
     drive.enable()
     with pytest.raises(CommandRejected, match=r"max_torque_nm=0.8"):
         drive.stream_torque(0.9)
-    stream(drive.stream_torque, [0.2] * 20, drive.sync_period_s)
-    state = drive.snapshot()
-    assert state.mode == OperationMode.CYCLIC_SYNC_TORQUE
-    assert state.torque_nm == pytest.approx(0.2, abs=0.01)
-    assert state.velocity_deg_s > 50.0  # 0.2 Nm against 0.03 Nm of friction speeds the joint up
-    stream(drive.stream_torque, [0.0] * 5, drive.sync_period_s)
-    assert drive.snapshot().torque_nm == pytest.approx(0.0, abs=0.03)  # friction brakes it, no torque
+    # 0.2 Nm against 0.03 Nm of friction speeds the joint up
+    stream_until(drive.stream_torque, 0.2, drive.sync_period_s,
+                 lambda: abs(drive.snapshot().torque_nm - 0.2) <= 0.01 and drive.snapshot().velocity_deg_s > 50.0,
+                 "0.2 Nm and the joint speeding up")
+    assert drive.snapshot().mode == OperationMode.CYCLIC_SYNC_TORQUE
+    stream_until(drive.stream_torque, 0.0, drive.sync_period_s, lambda: abs(drive.snapshot().torque_nm) <= 0.03,
+                 "no torque")  # friction brakes it
 
 
 def test_cyclic_modes_are_refused_on_a_drive_without_them(tmp_path: Path, driver_factory: DriverFactory) -> None:
