@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 logger = logging.getLogger(__name__)
 
@@ -51,8 +53,8 @@ def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY, *, pid: i
 def make_process_realtime(what: str, priority: int) -> bool:
     """Every thread of this process under ``SCHED_FIFO`` at ``priority``, and so every thread it
     starts later (a new thread inherits its creator's scheduling); True if so. A process it starts
-    inherits it too: the thread that starts one that must not (a plot helper) calls
-    :func:`make_thread_ordinary` first.
+    inherits it too: the thread that starts one that must not (a plot helper) does it inside
+    :func:`ordinary_thread`.
 
     On a busy machine an ordinary thread that wakes for a frame or a command waits for a core
     behind whatever runs there: the six-drive stack run's command latency p99 was 2.9 ms with the
@@ -73,14 +75,26 @@ def make_process_realtime(what: str, priority: int) -> bool:
     return True
 
 
-def make_thread_ordinary() -> None:
-    """The calling thread back to ordinary scheduling (always allowed): a process it starts then
-    starts ordinary too (a child takes the scheduling of the thread that forked it)."""
-    if hasattr(os, "sched_setscheduler"):
+@contextmanager
+def ordinary_thread() -> Iterator[None]:
+    """The calling thread under ordinary scheduling (always allowed) for the block, then back to
+    what it was: a process started inside starts ordinary (a child takes the scheduling of the
+    thread that forked it), and the thread is real-time again after."""
+    if not hasattr(os, "sched_setscheduler"):
+        yield
+        return
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError as err:
+        logger.debug("ordinary scheduling: %s", err)
+    try:
+        yield
+    finally:
         try:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        except OSError as err:
-            logger.debug("ordinary scheduling: %s", err)
+            os.sched_setscheduler(0, policy, param)
+        except OSError as err:  # it was allowed before; if no longer, this thread stays ordinary
+            logger.debug("scheduling not restored: %s", err)
 
 
 def fifo_thread_count(pid: int, *, children: bool = False) -> int:

@@ -44,7 +44,7 @@ import can
 from can_config.config import RecorderConfig
 from can_config.incident import FORMAT
 from can_config.objects import emcy_text
-from can_config.realtime import make_thread_ordinary
+from can_config.realtime import ordinary_thread
 from motor_driver.drive import DriveState
 
 logger = logging.getLogger(__name__)
@@ -268,10 +268,10 @@ class FlightRecorder:
         matplotlib in this one would hold the interpreter for a second or two, and the supervisor's
         host heartbeat with it."""
         self._helpers = [p for p in self._helpers if p.poll() is None]
-        make_thread_ordinary()  # the helper takes this thread's scheduling: never the driver's SCHED_FIFO
-        self._helpers.append(subprocess.Popen([sys.executable, "-m", "motor_driver.recorder", str(json_path)],
-                                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                              stderr=subprocess.DEVNULL))
+        with ordinary_thread():  # the helper takes this thread's scheduling: never the driver's SCHED_FIFO
+            self._helpers.append(subprocess.Popen([sys.executable, "-m", "motor_driver.recorder", str(json_path)],
+                                                  stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                                  stderr=subprocess.DEVNULL))
 
     def close(self) -> None:
         if self._stop.is_set():

@@ -23,9 +23,16 @@ from motor_driver.recorder import FlightRecorder
 assert make_process_realtime("test", 10)
 recorder = FlightRecorder(RecorderConfig(dir=Path(sys.argv[1]).parent, plot=True), {"wheel": ("can0", 1)},
                           {"can0": "can0"})
-thread = threading.Thread(target=recorder._plot_in_helper, args=(Path(sys.argv[1]),))  # as its writer thread
+after = []
+
+def writer():  # as the recorder's writer thread: real-time again once the helper is started
+    recorder._plot_in_helper(Path(sys.argv[1]))
+    after.append(os.sched_getscheduler(0))
+
+thread = threading.Thread(target=writer)
 thread.start()
 thread.join()
+print("writer policy after", after[0])
 helper = recorder._helpers[-1]
 stat = Path(f"/proc/{helper.pid}/stat").read_text()  # it waits to open the FIFO: alive
 print("helper policy", int(stat.rsplit(")", 1)[1].split()[38]))
@@ -46,3 +53,4 @@ def test_the_plot_helper_of_a_real_time_driver_runs_ordinary(tmp_path: Path) -> 
     assert out.returncode == 0, out.stderr[-2000:]
     assert f"helper policy {os.SCHED_OTHER}" in out.stdout, out.stdout
     assert f"own policy {os.SCHED_FIFO}" in out.stdout, out.stdout  # the driver's main thread stays real-time
+    assert f"writer policy after {os.SCHED_FIFO}" in out.stdout, out.stdout  # and the writer, once the helper is out
