@@ -24,6 +24,7 @@ from rovercan_msgs.action import Home, MoveJoint
 
 from can_config.errors import RovercanError
 from motor_driver import MotorDriver
+from nodes import runtime
 
 logger = logging.getLogger(__name__)
 
@@ -55,8 +56,8 @@ class DriverActionsNode(Node):
             if not done.done():
                 done.set_result(True)
             executor = self.executor
-            if executor is not None:  # the goal resumes at the executor's next turn: a task makes one now (it does
-                executor.create_task(lambda: None)  # not poll; wake() alone makes its spin_once wait again)
+            if executor is not None:  # the goal resumes at the executor's next turn, now (it does not poll)
+                runtime.give_work(executor)
         timer = threading.Timer(FEEDBACK_PERIOD_S, finish)
         timer.daemon = True
         timer.start()

@@ -111,6 +111,13 @@ def spin_node(node: Node, stop: threading.Event, *, on_stop: Callable[[], None] 
             rclpy.try_shutdown()
 
 
+def give_work(executor: Executor) -> None:
+    """Make an rclpy executor's waiting ``spin_once`` return now: a task is work (``wake()`` alone
+    makes it wait again). What it resumes then (a goal's coroutine, its loop's stop check) runs at
+    once instead of at its next poll."""
+    executor.create_task(lambda: None)
+
+
 #: How long a :class:`SpinThread` of an rclpy executor waits for work before it looks at its stop
 #: event again: :meth:`SpinThread.stop` gives the executor a task, so this only bounds a missed wake-up. The three
 #: mostly idle executors of the driver (stops, services, actions) each rebuilt their wait set in
@@ -132,8 +139,8 @@ class SpinThread:
     def stop(self, timeout_s: float) -> bool:
         """Stop spinning; True once the thread has left the executor (then it may be destroyed)."""
         self._stop.set()
-        if isinstance(self.executor, Executor):  # out of its wait now, not at the next IDLE_POLL_S: a task is
-            self.executor.create_task(lambda: None)  # work (wake() alone makes its spin_once wait again)
+        if isinstance(self.executor, Executor):
+            give_work(self.executor)  # out of its wait now, not at the next IDLE_POLL_S
         self._thread.join(timeout_s)
         if self._thread.is_alive():
             logger.error("%s: still inside a callback after %.1f s", self._thread.name, timeout_s)
@@ -149,5 +156,5 @@ def spin_alone(node: Node, name: str) -> SpinThread:
     return SpinThread(executor, name)
 
 
-__all__ = ["EXECUTORS", "IDLE_POLL_S", "POLL_S", "SpinThread", "StopSignal", "go_realtime", "init", "make_executor",
+__all__ = ["EXECUTORS", "IDLE_POLL_S", "POLL_S", "SpinThread", "StopSignal", "give_work", "go_realtime", "init", "make_executor",
            "spin_alone", "spin_node", "spin_until"]
