@@ -129,7 +129,13 @@ def main(args: list[str] | None = None) -> int:
     with runtime.StopSignal() as stop:
         hot = runtime.make_executor("events")
         node = DriveLifecycleNode(hot)
-        runtime.go_realtime(node)  # before configure makes the driver's threads: they inherit it
+        try:
+            runtime.go_realtime(node)  # before configure makes the driver's threads: they inherit it
+        except RovercanError as err:
+            print(f"rover_lifecycle: {err}", file=sys.stderr)
+            node.destroy_node()
+            rclpy.try_shutdown()
+            return 2
         cold = SingleThreadedExecutor()
         cold.add_node(node)
         transitions = runtime.SpinThread(cold, "rovercan-lifecycle")

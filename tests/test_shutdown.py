@@ -106,6 +106,15 @@ def test_unknown_executor_is_refused_before_the_bus_is_touched(tmp_path: Path) -
     assert frames == []  # no NMT, no SDO: nothing was sent
 
 
+@pytest.mark.parametrize("module", ["nodes.rover_driver", "nodes.rover_lifecycle", "nodes.motor_controller"])
+def test_a_realtime_priority_out_of_range_is_refused_by_name(module: str) -> None:
+    out = subprocess.run([sys.executable, "-m", module, "--ros-args", "-p", "realtime_priority:=200"], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert "parameter realtime_priority = 200: expected a whole number from 0" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
 def test_a_params_file_reaches_the_parameters_read_before_the_driver_starts(tmp_path: Path) -> None:
     """config and executor are read first, by a node of the same name, so --params-file applies."""
     params = tmp_path / "params.yaml"
