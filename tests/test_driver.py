@@ -224,6 +224,39 @@ def test_homing_attained_with_no_position_after_it_is_an_error_not_the_old_angle
     runner.call(lambda: setattr(runner.drive(1).faults, "tpdo_silent", False))
 
 
+def test_a_statusword_on_its_way_when_homing_starts_is_not_its_answer(
+        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    """The frames a drive sent just before it took the homing start (a standing profile-velocity
+    drive's statusword has bits 10 and 12 set, which homing reads as 'attained') reach the driver
+    after the start went out. home() must not take them for its answer: it returned at once with
+    the angle before homing (CI: 63.457 deg after `rovercan home`, the angle a jog left)."""
+    sim, driver = driver_factory(make_config(1, homing_method=1, homing_speed_deg_s=30.0))  # searches its index
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.move_to(20.0, wait=True)
+    spy, injector = listener_factory(sim), listener_factory(sim)
+    drive.command_velocity(0.0)  # profile velocity, standing: bits 10 (reached) and 12 (speed 0)
+    stale: dict[int, can.Message] = {}
+    wait_for(lambda: stale.update({m.arbitration_id: m for m in drain(spy, 0.02)}) or
+             (0x381 in stale and 0x281 in stale and stale[0x381].data[3] & 0x14 == 0x14),
+             5.0, "the standing drive's statusword (bits 10 and 12) and its position")
+    taken = threading.Event()  # set by the driver's receive thread as it takes the stale statusword
+    driver.buses["can0"].network.subscribe(
+        0x381, lambda _cob, data, _t: taken.set() if bytes(data) == bytes(stale[0x381].data) else None)
+
+    def on_its_way(point: str) -> None:
+        if point == "home: start sent":
+            for frame in (stale[0x381], stale[0x281]):
+                injector.send(can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False))
+            assert taken.wait(5.0)  # in the driver's cache before home() looks: on the bus before its next frame
+
+    drive.interleave = on_its_way
+    drive.home()
+    drive.interleave = None
+    assert sim.simulator_for(1).drive(1).homing_done
+    assert abs(drive.snapshot().angle_deg) < 0.05  # the new zero, not 20 deg or a position on the way
+
+
 def test_cyclic_synchronous_position_streams_and_refuses_jumps(
         driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
     sim, driver = driver_factory(make_config(1))

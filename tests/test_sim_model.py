@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import can
 import pytest
 import yaml
 
@@ -162,3 +163,36 @@ def test_step_test_overshoot_and_settling_follow_the_sim_gains(tmp_path: Path) -
     assert stiff["overshoot_pct"] < 0.5, stiff
     assert soft["overshoot_pct"] > 3.0, soft  # ~7 % in the model
     assert soft["settling_time_s"] > stiff["settling_time_s"] + 0.1, (stiff, soft)
+
+
+def test_a_sync_between_two_ticks_sends_one_instant_of_the_drive() -> None:
+    """A SYNC answered between two simulator ticks sends what the object dictionary holds then:
+    the mode's statusword bits must change with 0x6061, and 'homing attained' with the new zero.
+    They changed a tick later, and a TPDO in between paired the new with the old (CI: a standing
+    profile-velocity drive's bits 10 and 12 read as 'attained', then the angle before homing)."""
+    drive = SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))
+    drive.on_frame(can.Message(arbitration_id=0x000, data=[0x01, 1], is_extended_id=False), 0.0)  # NMT start
+    drive.store.values[(OD.MODES_OF_OPERATION_DISPLAY, 0)] = int(OperationMode.PROFILE_VELOCITY)
+    drive.store.values[(OD.PROFILE_ACCELERATION, 0)] = drive.store.values[(OD.PROFILE_DECELERATION, 0)] = 200_000
+    drive.store.values[(OD.HOMING_METHOD, 0)] = 35  # here: the current position is the zero
+    drive.state = SimState.OPERATION_ENABLED
+    now = 0.0
+    for target in (100_000, 0):  # turn, then stand: a standing PV drive shows bits 10 and 12
+        drive.store.values[(OD.TARGET_VELOCITY, 0)] = target
+        for _ in range(500):
+            now += 0.002
+            drive.tick(now, 0.002)
+
+    def objects() -> tuple[int, int]:
+        return int(drive.store.get(OD.STATUSWORD, 0)), int(drive.store.get(OD.POSITION_ACTUAL, 0))  # type: ignore[arg-type]
+
+    sw, position = objects()
+    assert sw & 0x1400 == 0x1400 and position > 10_000
+    sdo = drive.on_frame(can.Message(arbitration_id=0x601, data=[0x2F, 0x60, 0x60, 0, int(OperationMode.HOMING), 0, 0, 0],
+                                     is_extended_id=False), now)  # 0x6060 = homing, by SDO
+    assert sdo and sdo[0].data[0] == 0x60
+    sw, position = objects()
+    assert sw & 0x1400 != 0x1400  # homing, not started: not 'attained'
+    drive.on_frame(can.Message(arbitration_id=0x201, data=[0x1F, 0x00], is_extended_id=False), now)  # the start, by RPDO
+    sw, position = objects()
+    assert sw & 0x1400 == 0x1400 and position == 0  # attained, and the new zero, before the next tick

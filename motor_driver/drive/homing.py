@@ -66,7 +66,8 @@ class Homing:
                 self._power.enable(parent=op)
             self._channel.transition(op, "home", Command.ENABLE_OPERATION)
             self._channel.transition(op, "home", Command.ENABLE_OPERATION, edge=CW.NEW_SETPOINT)
-            self._wait_attained(op, timeout_s or cfg.homing_timeout_s)
+            self._channel.point("home: start sent")
+            self._wait_attained(op, timeout_s or cfg.homing_timeout_s, *self._after_start())
             self._cache.trust_next_position()  # homing moves the zero: the next position is taken as it comes
             self._channel.point("home: attained")
             self._wait_new_position()
@@ -86,11 +87,20 @@ class Homing:
                                     " drive's TPDOs, then home again.", node_id=self.node_id,
                                     statusword=self._cache.statusword)
 
-    def _wait_attained(self, op: Op, timeout_s: float) -> None:
+    def _after_start(self) -> tuple[int, int]:
+        """The drive's statusword after it saw the start, and the count of statuswords received by
+        then: an SDO read of 0x6041, which the drive answers after the start's RPDO (it takes frames
+        in order). Statuswords counted later were sent later. One already on its way when the start
+        went out (the last mode's bits 10 and 12, an earlier homing's 'attained') is not this
+        homing's answer."""
+        word = self._sdo.read_number(OD.STATUSWORD)
+        return self._cache.status_seq, word
+
+    def _wait_attained(self, op: Op, timeout_s: float, since: int, answered: int) -> None:
         cache = self._cache
 
         def attained() -> bool:
-            sw = cache.statusword
+            sw = cache.statusword if cache.status_seq != since else answered
             if sw & SW.FOLLOWING_ERROR:
                 raise DriveStateError(f"{self.name}: homing error reported (statusword 0x{sw:04X})",
                                       node_id=self.node_id, statusword=sw)

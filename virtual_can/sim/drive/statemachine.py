@@ -73,6 +73,7 @@ class StateMachine(ErrorStack):
         self.pp_target = None
         self.homing_active = False
         self._hold_position()
+        self._update_status()  # 0x6061 and the statusword's mode bits change in one cycle
 
     def _hold_position(self) -> None:
         self.sp_pos = self.position_counts
@@ -121,6 +122,8 @@ class StateMachine(ErrorStack):
         self.homing_active = False
         self.homing_done = True
         self._hold_position()
+        # 'attained' and the new zero in one cycle: a SYNC before the next tick sends this position
+        self.store.values[(OD.POSITION_ACTUAL, 0)] = self._as_type(OD.POSITION_ACTUAL, self.position_counts)
 
     def _update_status(self) -> None:
         sw = STATUS_BITS[self.state] | SW_REMOTE
