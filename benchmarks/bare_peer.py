@@ -23,7 +23,7 @@ from std_msgs.msg import Float32
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from can_config.realtime import make_process_realtime
 from nodes import runtime
-from nodes.qos import COMMAND_QOS
+from nodes.qos import SETPOINT_QOS
 
 COUNTS_PER_DEG = 4096 / 360.0
 logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
@@ -47,7 +47,7 @@ def main() -> int:
         return send
 
     for i in range(topics):
-        node.create_subscription(Float32, f"bare_cmd_{i}", on_cmd(0x301 + i), COMMAND_QOS)
+        node.create_subscription(Float32, f"bare_cmd_{i}", on_cmd(0x301 + i), SETPOINT_QOS)
     executor = EventsExecutor()
     executor.add_node(node)
     with runtime.StopSignal() as stop:

@@ -17,7 +17,7 @@ from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.skid_steer import SkidSteer, Twist2D
 from nodes.params import declare, qos_depth
-from nodes.qos import COMMAND_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, state_qos
+from nodes.qos import NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
 
 
@@ -66,7 +66,7 @@ class DriveSystemNode(Node):
         self.active = False  # commanding the wheels (fresh /cmd_vel or ramping down after it)
         self._odom_frame = str(self.get_parameter("odom_frame").value)
         self._base_frame = str(self.get_parameter("base_frame").value)
-        self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
         self._odom_pub = self.create_publisher(Odometry, "/odom", state_qos(qos_depth(self)), event_callbacks=NO_PUB_EVENTS)
         self.create_timer(1.0 / float(self.get_parameter("odom_rate_hz").value), self._tick)
 

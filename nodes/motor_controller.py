@@ -23,7 +23,7 @@ from motor_driver import DriveState, MotorDriver
 from nodes import runtime
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.params import declare
-from nodes.qos import COMMAND_QOS, STATE_QOS
+from nodes.qos import SETPOINT_QOS, STATE_QOS
 
 WARN_THROTTLE_S = 1.0
 
@@ -69,7 +69,7 @@ class MotorControllerNode(Node):
         self._continuous = self.drive.config.is_continuous
         self.refused = 0
         self._state_pub = self.create_publisher(MotorState, "/motor_state", STATE_QOS)
-        self.create_subscription(Float32, "/motor_degree_cmd", self._on_command, COMMAND_QOS)
+        self.create_subscription(Float32, "/motor_degree_cmd", self._on_command, SETPOINT_QOS)
         rate = float(self.get_parameter("state_rate_hz").value)
         self.create_timer(1.0 / rate, self._publish_state)
         self._msg = MotorState()

@@ -1,8 +1,13 @@
 """QoS profiles, chosen on purpose:
 
-* commands: reliable, keep last 1, volatile. Only the newest command matters; a late stale
-  command must not be replayed to a moving joint (depth 1), and reliable so that a single
-  one-off command (bench, service-like use) is not silently lost.
+* commands, as published (``COMMAND_QOS``): reliable, keep last 1, volatile. Only the newest
+  command matters; a late stale command must not be replayed to a moving joint (depth 1).
+* commands, as the driver takes them (``SETPOINT_QOS``): best effort, keep last 1. A best-effort
+  subscription takes reliable and best-effort publishers alike (a reliable one refused the
+  best-effort ones); it answers no heartbeats, which at 600 commands a second was a tenth of the
+  node's process (Fast DDS's event thread, docs/performance.md). A set-point stream's next
+  message supersedes a lost one; a stream that stops (a lost last one included) ends in the
+  command watchdog's stop; a one-off move whose result matters is the ``move_joint`` action.
 * state (MotorState, /joint_states, /odom): reliable, keep last ``state_qos_depth`` (10, in
   the params file), as ros2_control's joint_state_broadcaster and diff_drive_controller
   publish. A reliable publisher is read by reliable subscribers (rclpy's and RViz's default,
@@ -24,6 +29,7 @@ from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallba
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 COMMAND_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+SETPOINT_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
 STATE_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 

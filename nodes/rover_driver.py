@@ -49,7 +49,7 @@ from nodes.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStop
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.motor_controller import fill_motor_state
 from nodes.params import declare, qos_depth
-from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, state_qos
+from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
 
 T = TypeVar("T")
@@ -76,9 +76,9 @@ class DriverNode(Node):
         self._default = default
         self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", self._state_qos,
                                                      event_callbacks=NO_PUB_EVENTS)
-        self.create_subscription(Float32, "/motor_degree_cmd", self._on_degree(default), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        self.create_subscription(Float32, "/motor_degree_cmd", self._on_degree(default), SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
         self._joint_pub = self.create_publisher(JointState, "/joint_states", self._state_qos, event_callbacks=NO_PUB_EVENTS)
-        self.create_subscription(JointState, "/joint_commands", self._on_joint_commands, COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        self.create_subscription(JointState, "/joint_commands", self._on_joint_commands, SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=NO_PUB_EVENTS)
         self.create_timer(1.0 / float(self.get_parameter("state_rate_hz").value), self._publish_states)
         self.create_timer(1.0 / float(self.get_parameter("diagnostics_rate_hz").value), self._publish_diagnostics)
@@ -97,8 +97,8 @@ class DriverNode(Node):
         base = drive.config.ros_prefix
         self._state_pubs[name] = self.create_publisher(MotorState, f"{base}/motor_state", self._state_qos,
                                                        event_callbacks=NO_PUB_EVENTS)
-        self.create_subscription(Float32, f"{base}/degree_cmd", self._on_degree(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
-        self.create_subscription(Float32, f"{base}/velocity_cmd", self._on_velocity(name), COMMAND_QOS, event_callbacks=NO_SUB_EVENTS)
+        self.create_subscription(Float32, f"{base}/degree_cmd", self._on_degree(name), SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
+        self.create_subscription(Float32, f"{base}/velocity_cmd", self._on_velocity(name), SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
 
     def _guard(self, joint: str, what: str, fn: Callable[[], T]) -> T | None:
         """Run a driver call; every failure becomes a throttled warning and a diagnostic."""

@@ -467,6 +467,34 @@ def test_default_qos_subscribers_receive_the_state_topics(graph: Graph) -> None:
     eventually(lambda: all(inboxes.values()), 5.0, "a message on every state topic")
 
 
+def test_best_effort_and_reliable_command_publishers_both_drive_a_wheel(graph: Graph) -> None:
+    """The driver takes set-points best effort: a best-effort publisher (a joystick bridge, a
+    sensor-data profile) drives a wheel, where the reliable subscription it had refused it
+    ("offering incompatible QoS", nothing moved); a reliable publisher still does."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    joint = "wheel_front_right"
+    drive = graph.driver.drive(joint)
+    assert graph.call(Trigger, f"wheels/{joint}/enable").success
+    best_effort = graph.probe.create_publisher(Float32, f"wheels/{joint}/velocity_cmd",
+                                               QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+    reliable = graph.probe.create_publisher(Float32, f"wheels/{joint}/velocity_cmd", COMMAND_QOS)
+    for pub, target in ((best_effort, 60.0), (reliable, -60.0)):
+        wait_for(lambda pub=pub: pub.get_subscription_count() > 0, 10.0, "velocity_cmd matched")
+
+        def turning(pub: Any = pub, target: float = target) -> bool:
+            pub.publish(Float32(data=target))  # a stream, as a teleop sends it
+            return abs(drive.snapshot().velocity_deg_s - target) < 2.0
+        eventually(turning, 5.0, f"{target} deg/s from a {pub.qos_profile.reliability.name} publisher")
+    assert graph.call(Trigger, f"wheels/{joint}/quick_stop").success
+    # the rule on every command topic of the node, as the graph reports it
+    topics = ["/cmd_vel", "/joint_commands", "/motor_degree_cmd"] + [f"wheels/{w}/{kind}_cmd" for w in WHEELS
+                                                                     for kind in ("degree", "velocity")]
+    for topic in topics:
+        subs = graph.probe.get_subscriptions_info_by_topic(graph.probe.resolve_topic_name(topic))
+        assert subs and all(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in subs), topic
+
+
 def test_home_and_move_joint_actions_give_feedback_and_cancel_stops_the_joint(graph: Graph) -> None:
     from rclpy.action import ActionClient
     from rovercan_msgs.action import Home, MoveJoint
