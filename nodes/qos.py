@@ -6,8 +6,9 @@
   subscription takes reliable and best-effort publishers alike (a reliable one refused the
   best-effort ones); it answers no heartbeats, which at 600 commands a second was a tenth of the
   node's process (Fast DDS's event thread, docs/performance.md). A set-point stream's next
-  message supersedes a lost one; a stream that stops (a lost last one included) ends in the
-  command watchdog's stop; a one-off move whose result matters is the ``move_joint`` action.
+  message supersedes a lost one; a velocity stream that stops (a lost last one included) ends
+  in the command watchdog's stop, a position stream holds its last target; a one-off move
+  whose result matters is the ``move_joint`` action.
 * state (MotorState, /joint_states, /odom): reliable, keep last ``state_qos_depth`` (10, in
   the params file), as ros2_control's joint_state_broadcaster and diff_drive_controller
   publish. A reliable publisher is read by reliable subscribers (rclpy's and RViz's default,
