@@ -197,7 +197,7 @@ def settled_controlwords(listener: can.BusABC) -> list[int]:
     return controlwords(collect(listener, 0.4))
 
 
-@pytest.mark.parametrize("point", ["mode switch: 0x6060 written", "home: parameters written"])
+@pytest.mark.parametrize("point", ["mode switch: 0x6060 written", "home: parameters written", "home: start sent"])
 def test_a_stop_during_homings_sdo_writes_wins_and_nothing_of_homing_follows(
         driver_factory: DriverFactory, listener_factory: ListenerFactory, point: str) -> None:
     """Homing's enable runs under homing's operation: a stop that lands during homing's own SDO
