@@ -61,7 +61,7 @@ class Plant(StateMachine):
     def _publish_actuals(self, rated: float) -> None:
         """Position, velocity, torque and following error into the object dictionary, in the drive's units."""
         store, k = self.store, self._rad_per_count
-        store.values[(OD.POSITION_ACTUAL, 0)] = self._as_type(OD.POSITION_ACTUAL, self.position_counts)
+        self._publish_position()
         store.values[(OD.VELOCITY_ACTUAL, 0)] = self._as_type(OD.VELOCITY_ACTUAL, self.omega / k / self._vconv)
         if store.has(OD.TORQUE_ACTUAL):
             store.values[(OD.TORQUE_ACTUAL, 0)] = self._as_type(OD.TORQUE_ACTUAL,

@@ -122,7 +122,10 @@ class StateMachine(ErrorStack):
         self.homing_active = False
         self.homing_done = True
         self._hold_position()
-        # 'attained' and the new zero in one cycle: a SYNC before the next tick sends this position
+        self._publish_position()  # 'attained' and the new zero in one cycle: a SYNC before the next tick sends it
+
+    def _publish_position(self) -> None:
+        """The position actual (0x6064) into the object dictionary, in the drive's units."""
         self.store.values[(OD.POSITION_ACTUAL, 0)] = self._as_type(OD.POSITION_ACTUAL, self.position_counts)
 
     def _update_status(self) -> None:
