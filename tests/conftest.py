@@ -198,11 +198,13 @@ def drain(bus: can.BusABC, seconds: float) -> list[can.Message]:
     return out
 
 
-def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
+def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, said: Callable[[], str] | None = None) -> None:
+    """Wait for ``predicate``; at the timeout fail naming ``what`` and, with ``said``, what the
+    thing waited on said meanwhile (a subprocess's output)."""
     deadline = time.monotonic() + timeout_s
     while not predicate():
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}" + (f"; it said:\n{said()}" if said else ""))
         time.sleep(0.005)
 
 

@@ -415,18 +415,18 @@ def test_the_drivers_link_down_for_2_s_under_an_application_that_keeps_commandin
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         out = Output(proc)
         try:
-            wait_for(lambda: out.has("READY") or proc.poll() is not None, 2 * START_S, "the drive turning")
+            wait_for(lambda: out.has("READY") or proc.poll() is not None, 2 * START_S, "the drive turning", out.text)
             assert out.has("READY"), out.text()
             ip_link("down", wiring.driver)
             try:
-                wait_for(lambda: out.has("link down"), 60.0, "the driver saying the link went down")
+                wait_for(lambda: out.has("link down"), 60.0, "the driver saying the link went down", out.text)
                 down_until = time.monotonic() + 2.0  # the scenario: the link stays down for 2 s
                 while time.monotonic() < down_until:
                     assert proc.poll() is None, out.text()  # and the application lives through it
                     time.sleep(0.1)
             finally:
                 ip_link("up", wiring.driver)
-            wait_for(lambda: out.has("re-established") or proc.poll() is not None, 120.0, "the bus back")
+            wait_for(lambda: out.has("re-established") or proc.poll() is not None, 120.0, "the bus back", out.text)
             assert out.has("re-established"), out.text()
             back = time.time()
             wait_for(lambda: sum(m.arbitration_id == 0x281 and m.timestamp > back for m in list(listener.frames)) >= 20,
