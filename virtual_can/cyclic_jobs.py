@@ -241,8 +241,8 @@ class CyclicJobs:
                      timer.returncode)
         with self._lock:
             if not self._closed and self._timer is None and self._jobs:
-                self.restarts += 1
                 self._start_timer()
+                self.restarts += 1  # after the start: whoever sees the count sees the new timer
 
     def update(self, owner: object, msg: can.Message) -> bool:
         with self._lock:
