@@ -1,6 +1,7 @@
 """The supervisor thread (``rovercan-supervisor``), period SUPERVISOR_PERIOD_S, never blocks:
 the host heartbeat on every bus, the drives' heartbeats, the velocity watchdog and the limit
-guard, another master, lost buses; re-boots and reconnects are handed to the bus's worker.
+guard, another master, every period; lost buses every BUS_CHECK_PERIODS; re-boots and
+reconnects are handed to the bus's worker.
 
 Owner: this thread owns ``bus_lost``, ``_host_loss_seen`` and each BusHandle's reconnect
 bookkeeping; it changes a drive only through its methods, none of which waits.
@@ -8,6 +9,7 @@ bookkeeping; it changes a drive only through its methods, none of which waits.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
@@ -30,6 +32,11 @@ from motor_driver.traffic import FOREIGN_HOLD_S, FOREIGN_RELEASE_S
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
+#: A bus is looked at (its connection, error frames, the SYNC job, silence) every this many
+#: periods: a bus that goes is marked lost within 50 ms, inside the drives' own 150 ms host
+#: timeout, which is what stops them; every period it was half the supervisor's CPU (a socket
+#: peek and a select per bus, issue 43). Drives are looked at every period.
+BUS_CHECK_PERIODS = 5
 
 
 def supervisor_log() -> RateLimitedLog:
@@ -66,6 +73,7 @@ class Supervision:
             return None, str(err)
 
     def _supervise(self) -> None:
+        periods = itertools.count()
         while not self._stop.wait(SUPERVISOR_PERIOD_S):
             now = time.monotonic()
             self._beat(now)
@@ -78,6 +86,8 @@ class Supervision:
                     logger.error("supervisor: %s", err)
                 except Exception:
                     logger.exception("supervisor: unexpected error on %s", drive.name)
+            if next(periods) % BUS_CHECK_PERIODS:
+                continue
             for name, handle in self._handles.items():
                 try:
                     self._supervise_bus(name, handle, now)
