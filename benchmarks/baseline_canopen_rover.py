@@ -2,8 +2,9 @@
 the config's buses (a ``canopen.Network`` each), each drive's PDOs as rovercan maps them (TPDO1
 statusword + mode on change, TPDO2 position + velocity and TPDO3 torque + statusword on SYNC;
 RPDO2 controlword + target position), the SYNC on every bus, every drive enabled in cyclic
-synchronous position (BaseNode402) and sent the stack run's ramp (+0.1 deg a command, modulo 360)
-by RPDO at COMMAND_HZ, 0.1 % slow as there.
+synchronous position (BaseNode402) and sent the stack run's ramp (+0.1 deg a command)
+by RPDO at COMMAND_HZ, 0.1 % slow as there (unwrapped: the driver takes a continuous
+joint's wrap the short way, a raw CSP target would jump a turn).
 
     python baseline_canopen_rover.py CONFIG COMMAND_HZ SECONDS [PRIORITY]
 
@@ -92,7 +93,7 @@ def main() -> int:
     k = 0
     while time.monotonic() - start < seconds + 1.0:
         k += 1
-        angle = (k % 3600) * 0.1 + 0.05
+        angle = k * 0.1 + 0.05  # the driver takes a wheel's 359.95 -> 0.05 the short way; a raw RPDO cannot
         for node, target, scale in drives:
             target.raw = scale.deg_to_counts(angle)
             node.rpdo[2].transmit()
