@@ -210,7 +210,7 @@ def bench_boot(runs: int) -> dict[str, Any]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="short version (under 2 minutes)")
+    parser.add_argument("--quick", action="store_true", help="short version (about 4 minutes)")
     args = parser.parse_args()
     # the flight recorder of the measured drivers writes the runs' incidents (the drives' host-loss
     # EMCYs when a run ends) here, not into the user's ~/.local/state

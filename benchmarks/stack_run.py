@@ -15,7 +15,9 @@ socketcand client that sees every frame with the server's wire timestamp). Figur
   pre-operational" stopped the drives sending.
 * cpu_core_fraction, rss_mb: /proc of the measured process (CPU time / wall time; VmHWM).
 * sync_jitter_p99_us: SYNC period error at the listener.
-* baseline: the same state run done the canopen library's way (BaseNode402 + PDO callbacks).
+* baselines: a state run (one bus, six drives' TPDOs) done the canopen library's way
+  (BaseNode402 + PDO callbacks) and by the driver alone; the stack run's whole CAN work done the
+  library's way is ``same_work.py`` (the reference of the CPU ratio).
 * the bare path's CPU (``bare_path``): rclpy taking the same commands and python-can sending one
   frame each, nothing else; with the baseline, the floor of the node's CPU.
 """
