@@ -22,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -60,6 +61,17 @@ def bench_cyclic_jobs(seconds: float) -> dict[str, Any]:
     return cyclic_jobs.measure(cyclic_jobs.IDLE_JOBS, seconds)
 
 
+def measured(out: dict[str, Any], name: str, fn: Callable[..., dict[str, Any]], *args: Any) -> None:
+    """``out`` updated with one benchmark's figures; one that fails is recorded under ``errors``
+    (and said), and the others still run: a failing baseline at the end of a 15-minute run must
+    not take every other figure with it."""
+    try:
+        out.update(fn(*args))
+    except Exception as err:  # recorded, and main() exits 1
+        out.setdefault("errors", {})[name] = f"{type(err).__name__}: {err}"
+        print(f"benchmark {name} FAILED: {type(err).__name__}: {err}", file=sys.stderr, flush=True)
+
+
 def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
     import same_work
     import stack_run
@@ -67,14 +79,17 @@ def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
     # the six-drive twin as docs/performance.md says to run it: each bus's drive models in a
     # process of their own, so the server's SYNC timer waits for none of them (issue 43)
     out: dict[str, Any] = stack_run.run_stack(stack_run.SHIPPED["rover"], seconds, 100.0, ("--drive-processes",))
-    default = stack_run.run_stack(stack_run.SHIPPED["default"], min(seconds, 10.0), 100.0)
-    out.update({f"default_{k}": v for k, v in default.items()})
+    default: dict[str, Any] = {}
+    measured(default, "stack run, embedded default", stack_run.run_stack, stack_run.SHIPPED["default"], min(seconds, 10.0),
+             100.0)
+    out.update({f"default_{k}": v for k, v in default.items() if k != "errors"})
+    out.update({"errors": default["errors"]} if "errors" in default else {})
     # the bare path as the node runs (its threads under SCHED_FIFO: realtime_priority, the default),
     # the ratio's reference; and ordinary, as it was measured before the node went real-time
     priority = int(PARAMS["realtime_priority"].default)  # type: ignore[call-overload]
-    out.update(stack_run.bare_path(min(seconds, 10.0), 1, priority))
-    out.update(stack_run.bare_path(min(seconds, 10.0), out["drives"], priority))  # the same burst: one command per drive
-    out.update(stack_run.bare_path(min(seconds, 10.0)))
+    measured(out, "bare path", stack_run.bare_path, min(seconds, 10.0), 1, priority)
+    measured(out, "bare path, same burst", stack_run.bare_path, min(seconds, 10.0), out["drives"], priority)
+    measured(out, "bare path, ordinary", stack_run.bare_path, min(seconds, 10.0))
     burst = f"bare_rt_latency_{out['drives']}_topics_p50_ms"
     if out.get("cmd_latency_p50_ms") and out.get("bare_rt_latency_p50_ms"):
         out["cmd_latency_ratio"] = round(out["cmd_latency_p50_ms"] / out["bare_rt_latency_p50_ms"], 2)
@@ -82,13 +97,14 @@ def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
         out["cmd_latency_ratio_ordinary_bare"] = round(out["cmd_latency_p50_ms"] / out["bare_latency_p50_ms"], 2)
     if out.get("cmd_latency_p50_ms") and out.get(burst):
         out["cmd_latency_ratio_same_burst"] = round(out["cmd_latency_p50_ms"] / out[burst], 2)
-    out.update(stack_run.baseline_canopen(6, 10.0, seconds))
-    out.update(stack_run.driver_only(6, 10.0, seconds))
+    measured(out, "canopen state run", stack_run.baseline_canopen, 6, 10.0, seconds)
+    measured(out, "driver alone, state run", stack_run.driver_only, 6, 10.0, seconds)
     # the issue's "canopen baseline, same work": the canopen library doing the stack run's CAN work
     # (the shipped config's two buses, the same PDOs, SYNC, every drive enabled in CSP and sent the
     # same ramp by RPDO at 100 Hz), its threads scheduled as the node's; and ordinary, for comparison
-    out.update(same_work.baseline_same_work(stack_run.SHIPPED["rover"], seconds, 100.0, priority))
-    out.update(same_work.baseline_same_work(stack_run.SHIPPED["rover"], min(seconds, 10.0), 100.0))
+    measured(out, "canopen same work", same_work.baseline_same_work, stack_run.SHIPPED["rover"], seconds, 100.0, priority)
+    measured(out, "canopen same work, ordinary", same_work.baseline_same_work, stack_run.SHIPPED["rover"],
+             min(seconds, 10.0), 100.0)
     base = out.get("baseline_canopen_same_work_rt_cpu_core_fraction")
     state_base = out.get("baseline_canopen_cpu_core_fraction")
     if out.get("cpu_core_fraction") and base:
@@ -232,14 +248,20 @@ def main() -> int:
                           ("another client's SYNC beside 50,000 idle cyclic jobs", bench_cyclic_jobs,
                            5.0 if args.quick else 30.0)):
         print(f"benchmark: {name} ...", flush=True)
-        results.update(fn(arg))  # type: ignore[operator]
+        measured(results, name, fn, arg)
     print("benchmark: stack runs on config/rover.yaml and the embedded default (driver + ROS node,"
           " listener, baselines) ...", flush=True)
-    results.update(bench_stack(10.0 if args.quick else 60.0, not args.quick))
+    errors = results.pop("errors", {})
+    measured(results, "stack run, config/rover.yaml", bench_stack, 10.0 if args.quick else 60.0, not args.quick)
+    errors.update(results.pop("errors", {}))
+    if errors:
+        results["errors"] = errors
     results["targets"] = TARGETS
     OUT.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))
-    return 0
+    if errors:
+        print(f"benchmarks that failed (results.json has the rest): {', '.join(errors)}", file=sys.stderr)
+    return 1 if errors else 0
 
 
 if __name__ == "__main__":
