@@ -252,9 +252,15 @@ class FlightRecorder:
         }
         summary["states"] = _state_series(states, first.t)
         json_path = base.with_suffix(".json")
-        plot = self.config.plot and bool(states) and time.monotonic() - self._late_at > NO_PLOT_AFTER_LATE_S
+        late = time.monotonic() - self._late_at <= NO_PLOT_AFTER_LATE_S
+        plot = self.config.plot and bool(states) and not late
         if plot:
             summary["png"] = base.with_suffix(".png").name  # drawn by a helper process, below
+        else:  # why there is none (`python -m motor_driver.recorder INCIDENT.json` still draws it)
+            summary["plot_skipped"] = ("plot: false in the recorder config" if not self.config.plot else
+                                       "no drive states recorded" if not states else
+                                       f"the host heartbeat went out late within {NO_PLOT_AFTER_LATE_S:.0f} s (a"
+                                       " starved process gets no plot process beside it)")
         json_path.write_text(json.dumps(summary, indent=1) + "\n")
         self.kept.remove(summary_kept)
         if plot:

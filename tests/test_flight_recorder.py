@@ -71,7 +71,15 @@ def test_an_emcy_is_recorded_read_back_and_replayed_as_a_regression(tmp_path: Pa
     assert len(frames) == summary["frames"] > 500
     ids = {msg.arbitration_id for _, msg in frames}
     assert {0x080, 0x081, 0x181, 0x701, 0x77F} <= ids  # SYNC, the EMCY, a TPDO, heartbeats, the host's own
-    png = incidents / summary["png"]  # drawn by a helper process
+    if summary["png"] is None:  # the process went late on a busy runner: by design no plot process beside it
+        assert "late" in summary["plot_skipped"], summary["plot_skipped"]
+        assert "no plot: the host heartbeat went out late" in run("incident", str(written)).stdout
+        drawn = subprocess.run([sys.executable, "-m", "motor_driver.recorder", str(written)], cwd=REPO, timeout=120)
+        assert drawn.returncode == 0
+        png = written.with_suffix(".png")  # what the helper would have drawn
+    else:
+        assert "plot_skipped" not in summary
+        png = incidents / summary["png"]  # drawn by a helper process
     wait_for(lambda: png.exists() and png.stat().st_size > 10_000, 20.0, "the incident's plot")
     assert set(summary["states"]) == {"wheel", "arm"} and len(summary["states"]["wheel"]["t_s"]) > 30
 

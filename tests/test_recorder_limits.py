@@ -82,7 +82,8 @@ def test_no_plot_process_while_the_process_is_late(tmp_path: Path) -> None:
         wait_for(lambda: len(rec.written) == 1, HANG_S, "the incident written")
     finally:
         rec.close()
-    assert json.loads(rec.written[0].read_text())["png"] is None
+    summary = json.loads(rec.written[0].read_text())
+    assert summary["png"] is None and "went out late" in summary["plot_skipped"]
     assert not list(tmp_path.glob("*.png"))
 
 

@@ -220,6 +220,9 @@ def cmd_incident(args: argparse.Namespace) -> int:
           f" {summary['window_s'][0]:+.2f} s to {summary['window_s'][1]:+.2f} s"
           f" (buses {', '.join(summary['channels'].values())}); files: {summary['blf']}"
           f"{', ' + summary['png'] if summary.get('png') else ''}")
+    if summary.get("plot_skipped"):
+        print(f"no plot: {summary['plot_skipped']}; draw it with: python -m motor_driver.recorder"
+              f" {Path(args.file).with_suffix('.json')}")
     emit(args, events, "events", ["t_s", "kind", "bus", "drive", "node", "code", "what"])
     if len(shown) < len(every):
         print(f"(the first and last {EVENTS_SHOWN} of {len(every):,} events; --json gives every one)")
