@@ -8,6 +8,7 @@ import sys
 import time
 
 import canopen
+from baseline_canopen_rover import map_tpdos
 from canopen.profiles.p402 import BaseNode402
 
 from can_config import GENERIC_EDS
@@ -23,26 +24,9 @@ def main() -> int:
         node = BaseNode402(node_id, str(GENERIC_EDS))
         network.add_node(node)
         node.nmt.state = "PRE-OPERATIONAL"
-        node.tpdo.read()
-        node.tpdo[1].clear()
-        node.tpdo[1].add_variable(0x6041)
-        node.tpdo[1].add_variable(0x6061)
-        node.tpdo[1].trans_type = 255
-        node.tpdo[1].enabled = True
-        node.tpdo[2].clear()
-        node.tpdo[2].add_variable(0x6064)
-        node.tpdo[2].add_variable(0x606C)
-        node.tpdo[2].trans_type = 1
-        node.tpdo[2].enabled = True
-        node.tpdo[3].clear()
-        node.tpdo[3].add_variable(0x6077)
-        node.tpdo[3].add_variable(0x6041)
-        node.tpdo[3].trans_type = 1
-        node.tpdo[3].enabled = True
+        map_tpdos(node, received)
         node.tpdo.save()
         node.setup_402_state_machine(read_pdos=False)
-        for tpdo in (node.tpdo[1], node.tpdo[2], node.tpdo[3]):
-            tpdo.add_callback(lambda _m: received.__setitem__(0, received[0] + 1))
         nodes.append(node)
     for node in nodes:
         node.nmt.state = "OPERATIONAL"

@@ -35,13 +35,9 @@ CSP = 8
 TPDOS = (((0x6041, 0x6061), 255), ((0x6064, 0x606C), 1), ((0x6077, 0x6041), 1))
 
 
-def drive_node(network: canopen.Network, node_id: int, eds: Path, received: list[int]) -> tuple[BaseNode402, Any]:
-    """One drive, mapped, in CSP, enabled; returns it and the target position of its RPDO2."""
-    node = BaseNode402(node_id, str(eds))
-    network.add_node(node)
-    node.nmt.state = "PRE-OPERATIONAL"
+def map_tpdos(node: BaseNode402, received: list[int]) -> None:
+    """TPDO1-3 as rovercan's driver maps them (read from the drive first), each counted in ``received[0]``."""
     node.tpdo.read()
-    node.rpdo.read()
     for n, (objects, trans_type) in enumerate(TPDOS, start=1):
         node.tpdo[n].clear()
         for index in objects:
@@ -49,6 +45,15 @@ def drive_node(network: canopen.Network, node_id: int, eds: Path, received: list
         node.tpdo[n].trans_type = trans_type
         node.tpdo[n].enabled = True
         node.tpdo[n].add_callback(lambda _m: received.__setitem__(0, received[0] + 1))
+
+
+def drive_node(network: canopen.Network, node_id: int, eds: Path, received: list[int]) -> tuple[BaseNode402, Any]:
+    """One drive, mapped, in CSP, enabled; returns it and the target position of its RPDO2."""
+    node = BaseNode402(node_id, str(eds))
+    network.add_node(node)
+    node.nmt.state = "PRE-OPERATIONAL"
+    map_tpdos(node, received)
+    node.rpdo.read()
     node.tpdo[4].enabled = False
     node.rpdo[2].clear()
     node.rpdo[2].add_variable(0x6040)

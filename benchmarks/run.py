@@ -61,18 +61,19 @@ def bench_cyclic_jobs(seconds: float) -> dict[str, Any]:
     return cyclic_jobs.measure(cyclic_jobs.IDLE_JOBS, seconds)
 
 
-def measured(out: dict[str, Any], name: str, fn: Callable[..., dict[str, Any]], *args: Any) -> None:
-    """``out`` updated with one benchmark's figures; one that fails is recorded under ``errors``
-    (and said), and the others still run: a failing baseline at the end of a 15-minute run must
-    not take every other figure with it."""
+def measured(out: dict[str, Any], errors: dict[str, str], name: str, fn: Callable[..., dict[str, Any]],
+             *args: Any) -> None:
+    """``out`` updated with one benchmark's figures; one that fails goes into ``errors`` (and is
+    said), and the others still run: a failing baseline at the end of a 15-minute run must not
+    take every other figure with it."""
     try:
         out.update(fn(*args))
     except Exception as err:  # recorded, and main() exits 1
-        out.setdefault("errors", {})[name] = f"{type(err).__name__}: {err}"
+        errors[name] = f"{type(err).__name__}: {err}"
         print(f"benchmark {name} FAILED: {type(err).__name__}: {err}", file=sys.stderr, flush=True)
 
 
-def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
+def bench_stack(seconds: float, errors: dict[str, str]) -> dict[str, Any]:
     import same_work
     import stack_run
 
@@ -80,16 +81,15 @@ def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
     # process of their own, so the server's SYNC timer waits for none of them (issue 43)
     out: dict[str, Any] = stack_run.run_stack(stack_run.SHIPPED["rover"], seconds, 100.0, ("--drive-processes",))
     default: dict[str, Any] = {}
-    measured(default, "stack run, embedded default", stack_run.run_stack, stack_run.SHIPPED["default"], min(seconds, 10.0),
-             100.0)
-    out.update({f"default_{k}": v for k, v in default.items() if k != "errors"})
-    out.update({"errors": default["errors"]} if "errors" in default else {})
+    measured(default, errors, "stack run, embedded default", stack_run.run_stack, stack_run.SHIPPED["default"],
+             min(seconds, 10.0), 100.0)
+    out.update({f"default_{k}": v for k, v in default.items()})
     # the bare path as the node runs (its threads under SCHED_FIFO: realtime_priority, the default),
     # the ratio's reference; and ordinary, as it was measured before the node went real-time
     priority = int(PARAMS["realtime_priority"].default)  # type: ignore[call-overload]
-    measured(out, "bare path", stack_run.bare_path, min(seconds, 10.0), 1, priority)
-    measured(out, "bare path, same burst", stack_run.bare_path, min(seconds, 10.0), out["drives"], priority)
-    measured(out, "bare path, ordinary", stack_run.bare_path, min(seconds, 10.0))
+    measured(out, errors, "bare path", stack_run.bare_path, min(seconds, 10.0), 1, priority)
+    measured(out, errors, "bare path, same burst", stack_run.bare_path, min(seconds, 10.0), out["drives"], priority)
+    measured(out, errors, "bare path, ordinary", stack_run.bare_path, min(seconds, 10.0))
     burst = f"bare_rt_latency_{out['drives']}_topics_p50_ms"
     if out.get("cmd_latency_p50_ms") and out.get("bare_rt_latency_p50_ms"):
         out["cmd_latency_ratio"] = round(out["cmd_latency_p50_ms"] / out["bare_rt_latency_p50_ms"], 2)
@@ -97,13 +97,13 @@ def bench_stack(seconds: float, full: bool) -> dict[str, Any]:
         out["cmd_latency_ratio_ordinary_bare"] = round(out["cmd_latency_p50_ms"] / out["bare_latency_p50_ms"], 2)
     if out.get("cmd_latency_p50_ms") and out.get(burst):
         out["cmd_latency_ratio_same_burst"] = round(out["cmd_latency_p50_ms"] / out[burst], 2)
-    measured(out, "canopen state run", stack_run.baseline_canopen, 6, 10.0, seconds)
-    measured(out, "driver alone, state run", stack_run.driver_only, 6, 10.0, seconds)
+    measured(out, errors, "canopen state run", stack_run.baseline_canopen, 6, 10.0, seconds)
+    measured(out, errors, "driver alone, state run", stack_run.driver_only, 6, 10.0, seconds)
     # the issue's "canopen baseline, same work": the canopen library doing the stack run's CAN work
     # (the shipped config's two buses, the same PDOs, SYNC, every drive enabled in CSP and sent the
     # same ramp by RPDO at 100 Hz), its threads scheduled as the node's; and ordinary, for comparison
-    measured(out, "canopen same work", same_work.baseline_same_work, stack_run.SHIPPED["rover"], seconds, 100.0, priority)
-    measured(out, "canopen same work, ordinary", same_work.baseline_same_work, stack_run.SHIPPED["rover"],
+    measured(out, errors, "canopen same work", same_work.baseline_same_work, stack_run.SHIPPED["rover"], seconds, 100.0, priority)
+    measured(out, errors, "canopen same work, ordinary", same_work.baseline_same_work, stack_run.SHIPPED["rover"],
              min(seconds, 10.0), 100.0)
     base = out.get("baseline_canopen_same_work_rt_cpu_core_fraction")
     state_base = out.get("baseline_canopen_cpu_core_fraction")
@@ -239,6 +239,7 @@ def main() -> int:
                     "python": platform.python_version()},
         "versions": {"python-can": can.__version__, "canopen": canopen.__version__},
     }
+    errors: dict[str, str] = {}
     for name, fn, arg in (("in-process bus", bench_inprocess, 100_000 * scale),
                           ("socketcand server, two client processes", bench_socketcand, 5.0 if args.quick else 60.0),
                           ("wire time", bench_wire_time, 5_000 * scale),
@@ -248,12 +249,10 @@ def main() -> int:
                           ("another client's SYNC beside 50,000 idle cyclic jobs", bench_cyclic_jobs,
                            5.0 if args.quick else 30.0)):
         print(f"benchmark: {name} ...", flush=True)
-        measured(results, name, fn, arg)
+        measured(results, errors, name, fn, arg)
     print("benchmark: stack runs on config/rover.yaml and the embedded default (driver + ROS node,"
           " listener, baselines) ...", flush=True)
-    errors = results.pop("errors", {})
-    measured(results, "stack run, config/rover.yaml", bench_stack, 10.0 if args.quick else 60.0, not args.quick)
-    errors.update(results.pop("errors", {}))
+    measured(results, errors, "stack run, config/rover.yaml", bench_stack, 10.0 if args.quick else 60.0, errors)
     if errors:
         results["errors"] = errors
     results["targets"] = TARGETS

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from stack_run import REPO, Listener, is_tpdo, proc_cpu_s, python_thread_names, simulator, thread_cpu_s
+from stack_run import REPO, Listener, on_port, proc_cpu_s, python_thread_names, simulator, thread_cpu_s, tpdos_on_wire
 
 
 def baseline_same_work(config_path: Path, seconds: float, command_hz: float, priority: int = 0) -> dict[str, Any]:
@@ -25,8 +25,7 @@ def baseline_same_work(config_path: Path, seconds: float, command_hz: float, pri
     prefix = "baseline_canopen_same_work" + ("_rt" if priority else "")
     with simulator("--config", str(config_path), "--drive-processes") as port, tempfile.TemporaryDirectory() as tmp, \
             tempfile.TemporaryFile("w+") as err:  # a pipe nobody reads could block it
-        config = Path(tmp) / config_path.name
-        config.write_text(config_path.read_text().replace("port: 29536", f"port: {port}"))
+        config = on_port(config_path, port, tmp)
         listeners = [Listener(port, ch) for ch in channels]
         for listener in listeners:
             listener.start()
@@ -61,7 +60,7 @@ def baseline_same_work(config_path: Path, seconds: float, command_hz: float, pri
     if not out["followed_deg"] > ramp_deg / 2:
         raise RuntimeError(f"the canopen baseline's drives did not follow its commands (moved {out['followed_deg']} deg of"
                            f" a {ramp_deg:.0f} deg ramp): it did not do the same work")
-    sent = sum(1 for listener in listeners for t, cob, _ in listener.frames if is_tpdo(cob) and t < t_stop + 0.5)
+    sent = tpdos_on_wire(listeners, t_stop)
     return {f"{prefix}_tpdo_sent": sent, f"{prefix}_tpdo_loss": sent - out["received"], f"{prefix}_followed_deg": out["followed_deg"],
             f"{prefix}_cpu_core_fraction": round(cpu, 3),
             f"{prefix}_cpu_by_thread": {name: round(f, 3) for name, f in sorted(threads.items(), key=lambda kv: -kv[1])

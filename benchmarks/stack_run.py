@@ -36,7 +36,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -200,6 +200,18 @@ def simulator(*args: str) -> Iterator[int]:
             proc.wait(20)
 
 
+def on_port(config_path: Path, port: int, directory: str) -> Path:
+    """The shipped config as a user gets it, only the simulator's port put in (a copy in ``directory``)."""
+    config = Path(directory) / config_path.name
+    config.write_text(config_path.read_text().replace("port: 29536", f"port: {port}"))
+    return config
+
+
+def tpdos_on_wire(listeners: Iterable[Listener], t_stop: float) -> int:
+    """The TPDOs the listeners saw up to just after the drives were told to stop sending at ``t_stop``."""
+    return sum(1 for listener in listeners for t, cob, _ in listener.frames if is_tpdo(cob) and t < t_stop + 0.5)
+
+
 def is_tpdo(cob: int) -> bool:
     return cob & 0x7F != 0 and cob & 0x780 in TPDO_BASES
 
@@ -269,8 +281,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
     shipped = load_config(config_path)
     channels = {b.name: b.channel for b in shipped.buses}
     with simulator("--config", str(config_path), *sim_args) as port, tempfile.TemporaryDirectory() as tmp:
-        config = Path(tmp) / config_path.name
-        config.write_text(config_path.read_text().replace("port: 29536", f"port: {port}"))
+        config = on_port(config_path, port, tmp)
         # the listener first: it must see every TPDO the drives send to count the loss
         listeners = {ch: Listener(port, ch) for ch in sorted(set(channels.values()))}
         for listener in listeners.values():
@@ -364,8 +375,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             proc.wait(20)
             for listener in listeners.values():
                 listener.close()
-    tpdo_sent = sum(1 for listener in listeners.values() for t, cob, _ in listener.frames
-                    if is_tpdo(cob) and t < t_stop + 0.5)
+    tpdo_sent = tpdos_on_wire(listeners.values(), t_stop)
     latencies, by_order, published_at, matched = match_latencies(listeners, sent, drives)
     unmatched = sum(len(v) for v in sent.values())
     syncs = [t for t, cob, _ in first.frames if cob == 0x080]
