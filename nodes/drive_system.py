@@ -58,7 +58,7 @@ class DriveSystemNode(Node):
         self.steer = SkidSteer(system.track_width_m, system.wheel_radius_m, system.max_accel_m_s2,
                                system.max_speed_m_s, max_angular_rad_s=system.max_angular_rad_s,
                                max_wheel_rad_s=math.radians(slowest_deg_s))
-        self.refusals = refusals or RefusalLog(self)
+        self.refusals = refusals or RefusalLog(self.get_logger().warning)
         self._target = Twist2D()
         self._last_cmd = -math.inf
         self._last_tick = time.monotonic()

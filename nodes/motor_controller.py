@@ -24,8 +24,7 @@ from nodes import runtime
 from nodes.logbridge import bridge_core_logging, unbridge
 from nodes.params import declare
 from nodes.qos import SETPOINT_QOS, STATE_QOS
-
-WARN_THROTTLE_S = 1.0
+from nodes.refusals import WARN_THROTTLE_S, RefusalLog
 
 
 def fill_motor_state(msg: MotorState, state: DriveState, continuous: bool) -> MotorState:
@@ -68,6 +67,7 @@ class MotorControllerNode(Node):
         self.drive = driver.drive(joint)
         self._continuous = self.drive.config.is_continuous
         self.refused = 0
+        self._refusals = RefusalLog(self.get_logger().warning)
         self._state_pub = self.create_publisher(MotorState, "/motor_state", STATE_QOS)
         self.create_subscription(Float32, "/motor_degree_cmd", self._on_command, SETPOINT_QOS)
         rate = float(self.get_parameter("state_rate_hz").value)
@@ -87,15 +87,15 @@ class MotorControllerNode(Node):
         try:
             self.drive.move_to(msg.data)
         except CommandRejected as err:
-            self.refused += 1
-            self.get_logger().warning(f"command refused: {err}", throttle_duration_sec=WARN_THROTTLE_S)
+            self._refuse(f"command refused: {err}")
         except MotorError as err:
-            self.refused += 1
-            self.get_logger().warning(f"command not executed: {err}", throttle_duration_sec=WARN_THROTTLE_S)
+            self._refuse(f"command not executed: {err}")
         except Exception as err:  # never raise into the executor
-            self.refused += 1
-            self.get_logger().error(f"unexpected error on command {msg.data!r}: {err!r}",
-                                    throttle_duration_sec=WARN_THROTTLE_S)
+            self._refuse(f"unexpected error on command {msg.data!r}: {err!r}")
+
+    def _refuse(self, why: str) -> None:
+        self.refused += 1
+        self._refusals.refuse(self.drive.name, why)
 
     def _publish_state(self) -> None:
         try:

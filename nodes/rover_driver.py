@@ -64,7 +64,7 @@ class DriverNode(Node):
                 "diagnostics_rate_hz", "state_qos_depth")
         self.driver = driver
         self._state_qos = state_qos(qos_depth(self))
-        self.refusals = RefusalLog(self)
+        self.refusals = RefusalLog(self.get_logger().warning)
         self._states: dict[str, MotorState] = {}
         self._state_pubs: dict[str, Any] = {}
         joints = list(driver.drives)
