@@ -3,6 +3,12 @@ worker thread for the bus's blocking jobs.
 
 Owner: the supervisor thread (reconnect bookkeeping, the host heartbeat's send); the worker
 runs the blocking jobs handed to it (re-boots, reconnects), one at a time.
+
+The bus's receive thread (python-can's Notifier) runs under ordinary scheduling, also in a driver
+whose other threads are SCHED_FIFO (nodes/runtime.go_realtime): real-time, it woke at once for
+each arrival, about three times a SYNC period per bus (the SYNC's echo, then the TPDOs as they
+came), at up to 0.1 ms of CPU a wake-up; ordinary, it takes what has come when it gets a core.
+The commands, the host heartbeat, the stops and DDS stay real-time (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
+from can_config.realtime import ordinary_thread
 from motor_driver.adapters import GuardedNetwork, queue_full
 from motor_driver.connect import is_kernel_bus
 from motor_driver.cyclic import DaemonCyclicTask
@@ -63,7 +70,8 @@ class BusHandle:
         if recorder is not None:
             self.network.listeners.append(recorder.listener(name))
             self.network.on_sent = functools.partial(recorder.record_sent, name)
-        self.network.connect()
+        with ordinary_thread():  # the receive thread starts ordinary: module docstring
+            self.network.connect()
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | DaemonCyclicTask | None = None
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"rovercan-{name}")
         self.job: Future[None] | None = None  # the bus's reconnect, while it runs
@@ -98,7 +106,8 @@ class BusHandle:
     def reconnect(self, bus: can.BusABC) -> None:
         self.bus = bus
         self.network.bus = bus
-        self.network.notifier = can.Notifier(bus, self.network.listeners, NOTIFIER_TIMEOUT_S)
+        with ordinary_thread():  # the receive thread starts ordinary: module docstring
+            self.network.notifier = can.Notifier(bus, self.network.listeners, NOTIFIER_TIMEOUT_S)
 
     def start_sync(self) -> None:
         """SYNC by the bus's own timer where there is one: the socketcand daemon's broadcast

@@ -1,6 +1,8 @@
-"""A real-time driver's process (every thread under SCHED_FIFO: nodes/runtime.go_realtime) starts
+"""A real-time driver's process (its threads under SCHED_FIFO: nodes/runtime.go_realtime) starts
 its flight recorder's plot helper ordinary: matplotlib at real-time priority would take a core
-from the driver's own threads for a second or two, at an incident, when they matter most."""
+from the driver's own threads for a second or two, at an incident, when they matter most. Its
+buses' receive threads run ordinary too, on first connect and on every reconnect (they take a
+SYNC period's frames in fewer wake-ups: motor_driver/bushandle.py)."""
 
 from __future__ import annotations
 
@@ -54,3 +56,42 @@ def test_the_plot_helper_of_a_real_time_driver_runs_ordinary(tmp_path: Path) -> 
     assert f"helper policy {os.SCHED_OTHER}" in out.stdout, out.stdout
     assert f"own policy {os.SCHED_FIFO}" in out.stdout, out.stdout  # the driver's main thread stays real-time
     assert f"writer policy after {os.SCHED_FIFO}" in out.stdout, out.stdout  # and the writer, once the helper is out
+
+
+RECEIVE_SCRIPT = """
+import os, sys, threading
+from can_config import parse_config
+from can_config.realtime import make_process_realtime
+from motor_driver import MotorDriver
+from motor_driver.connect import open_bus
+
+def receive_policies():
+    return sorted(os.sched_getscheduler(t.native_id) for t in threading.enumerate()
+                  if t.name.startswith("Notifier for bus") and t.is_alive())
+
+assert make_process_realtime("test", 10)
+config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
+                                  "kwargs": {"host": "127.0.0.1", "port": int(sys.argv[1])}}],
+                       "drives": [{"name": "a", "node_id": 1}]})
+with MotorDriver(config) as driver:
+    print("connected", receive_policies())
+    handle = driver._handles["can0"]
+    handle.disconnect()
+    handle.reconnect(open_bus(config.bus("can0").bus_kwargs()))
+    print("reconnected", receive_policies())
+    print("own policy", os.sched_getscheduler(0))
+"""
+
+
+def test_a_real_time_drivers_receive_threads_run_ordinary_after_connect_and_reconnect() -> None:
+    if not realtime_allowed():
+        pytest.skip("needs SCHED_FIFO (root, CAP_SYS_NICE or an rtprio limit)")
+    from virtual_can.service import SimDriveSpec, SimService
+
+    with SimService([SimDriveSpec(1)], port=0) as sim:
+        out = subprocess.run([sys.executable, "-c", RECEIVE_SCRIPT, str(sim.port)], cwd=REPO, capture_output=True,
+                             text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert f"connected [{os.SCHED_OTHER}]" in out.stdout, out.stdout
+    assert f"reconnected [{os.SCHED_OTHER}]" in out.stdout, out.stdout  # the old thread gone, the new one ordinary
+    assert f"own policy {os.SCHED_FIFO}" in out.stdout, out.stdout  # the thread that started them stays real-time
