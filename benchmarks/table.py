@@ -22,7 +22,10 @@ ROWS = [
      "baseline_canopen_cpu_core_fraction"),
     ("baseline_canopen_same_work_rt_cpu_core_fraction", "CPU of the canopen library doing the same CAN work (two buses,"
      " the same PDOs, SYNC, 600 CSP RPDOs/s), SCHED_FIFO as the node", "", "baseline_canopen_same_work_cpu_core_fraction"),
-    ("cpu_ratio_canopen", "CPU of driver + ROS node / the canopen library's same work, same run", "<= 2.5", None),
+    ("cpu_ratio_canopen", "CPU of driver + ROS node / the canopen library's same work, same run: the median of"
+     " pairs run side by side", "<= 2.5", None),
+    ("cpu_ratio_canopen_pairs", "each pair's ratio (the first: the main 60 s runs; the others 20 s, in turn base first)",
+     "", None),
     ("cpu_ratio_canopen_state_run", "the same over the canopen library's state run (one bus, no commands: the first"
      " measure)", "", None),
     ("cpu_floor_ratio_canopen", "the floor of that ratio: (rclpy taking the same commands, one send each + the canopen"
