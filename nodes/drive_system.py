@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
@@ -19,6 +19,9 @@ from motor_driver.skid_steer import SkidSteer, Twist2D
 from nodes.params import declare, qos_depth
 from nodes.qos import NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
+
+if TYPE_CHECKING:
+    from nodes.rover_driver import DriverNode
 
 
 def not_armed(blocked: list[Drive]) -> str:
@@ -68,7 +71,17 @@ class DriveSystemNode(Node):
         self._base_frame = str(self.get_parameter("base_frame").value)
         self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
         self._odom_pub = self.create_publisher(Odometry, "/odom", state_qos(qos_depth(self)), event_callbacks=NO_PUB_EVENTS)
-        self.create_timer(1.0 / float(self.get_parameter("odom_rate_hz").value), self._tick)
+        self._period_s = 1.0 / float(self.get_parameter("odom_rate_hz").value)
+        self._timer = self.create_timer(self._period_s, self._tick)
+
+    def tick_with(self, driver_node: DriverNode) -> bool:
+        """The control loop run from the driver node's state timer when their rates match (one
+        wake-up of the executor they share, not two; measured in docs/performance.md); True if so.
+        Both nodes must spin on the same executor."""
+        if not driver_node.share_tick(self._period_s, self._tick):
+            return False
+        self.destroy_timer(self._timer)
+        return True
 
     def _on_cmd_vel(self, msg: Twist) -> None:
         v, w = msg.linear.x, msg.angular.z

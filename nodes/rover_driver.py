@@ -80,7 +80,9 @@ class DriverNode(Node):
         self._joint_pub = self.create_publisher(JointState, "/joint_states", self._state_qos, event_callbacks=NO_PUB_EVENTS)
         self.create_subscription(JointState, "/joint_commands", self._on_joint_commands, SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=NO_PUB_EVENTS)
-        self.create_timer(1.0 / float(self.get_parameter("state_rate_hz").value), self._publish_states)
+        self.state_period_s = 1.0 / float(self.get_parameter("state_rate_hz").value)
+        self._tick_hooks: list[Callable[[], None]] = []
+        self.create_timer(self.state_period_s, self._tick)
         self.create_timer(1.0 / float(self.get_parameter("diagnostics_rate_hz").value), self._publish_diagnostics)
 
     def arm_if_asked(self) -> None:
@@ -144,6 +146,23 @@ class DriverNode(Node):
                 self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort (or only NaN)")
 
     # --------------------------------------------------------------------- publishing
+    def share_tick(self, period_s: float, hook: Callable[[], None]) -> bool:
+        """Run ``hook`` from this node's state timer, before the states are published, when its
+        period is this timer's (True; the caller then drops its own timer): one wake-up of the
+        hot executor a period instead of two (the drive system's control loop: docs/performance.md)."""
+        if not math.isclose(period_s, self.state_period_s, rel_tol=1e-9):
+            return False
+        self._tick_hooks.append(hook)
+        return True
+
+    def _tick(self) -> None:
+        for hook in self._tick_hooks:
+            try:
+                hook()
+            except Exception as err:  # the states are published all the same
+                self.get_logger().error(f"tick of {hook!r} failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+        self._publish_states()
+
     def _publish_states(self) -> None:
         """MotorState per joint, /motor_state and /joint_states: each built and published only
         while something subscribes (a message nobody reads was a fifth of the node's interpreter
@@ -260,7 +279,9 @@ def _run(stop: StopSignal) -> int:
         nodes.append(node)
         handler = bridge_core_logging(node)
         if config.drive_system is not None and node.get_parameter("drive_system").value:
-            nodes.append(DriveSystemNode(driver, config, node.refusals))
+            system = DriveSystemNode(driver, config, node.refusals)
+            system.tick_with(node)  # both on the hot executor
+            nodes.append(system)
         waiting = (DriverServicesNode(driver), DriverStopsNode(driver), DriverActionsNode(driver))
         # executors (measured: README): the hot one for commands, state and the drive system;
         # a cold one, on its own thread, for the services that block (enable, home); one for

@@ -58,7 +58,9 @@ class DriveLifecycleNode(LifecycleNode):
             node = DriverNode(self.driver, context=self.context)
             self.interface = [node, DriverServicesNode(self.driver, context=self.context)]
             if config.drive_system is not None:
-                self.interface.append(DriveSystemNode(self.driver, config, node.refusals, context=self.context))
+                system = DriveSystemNode(self.driver, config, node.refusals, context=self.context)
+                system.tick_with(node)  # both on the hot executor
+                self.interface.append(system)
             for n in self.interface:
                 self.hot.add_node(n)
             actions = DriverActionsNode(self.driver, context=self.context)

@@ -100,6 +100,7 @@ def graph(monkeypatch: pytest.MonkeyPatch) -> Iterator[Graph]:
     rclpy.init(context=context)
     driver_node = DriverNode(driver, context=context, parameter_overrides=[Parameter("diagnostics_rate_hz", value=5.0)])
     system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
+    assert system_node.tick_with(driver_node)  # the control loop on the state timer, as rover_driver runs it
     services = DriverServicesNode(driver, context=context)
     stops = DriverStopsNode(driver, context=context)
     actions = DriverActionsNode(driver, context=context)
@@ -292,6 +293,19 @@ def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph:
     # the NaN was refused before any frame: no wheel has a velocity command live
     assert not any(graph.driver.drive(w).velocity_commanded for w in WHEELS)
     assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
+
+
+def test_the_control_loop_shares_the_state_timer_only_at_its_rate(graph: Graph) -> None:
+    """rover_driver runs the drive system's loop from the driver node's state timer (one wake-up
+    of their executor a period, not two; the test above drove the wheels and read /odom so); a
+    drive system at another rate keeps a timer of its own."""
+    assert not list(graph.system_node.timers)
+    other = DriveSystemNode(graph.driver, load_config(REPO / "config" / "rover.yaml"), context=graph.context,
+                            parameter_overrides=[Parameter("odom_rate_hz", value=20.0)])
+    try:
+        assert not other.tick_with(graph.driver_node) and len(list(other.timers)) == 1
+    finally:
+        other.destroy_node()
 
 
 def test_bus_lost_is_published_and_nodes_keep_running(graph: Graph) -> None:
