@@ -114,6 +114,9 @@ class ForeignTraffic(can.Listener):
         #: node -> when an RPDO to it passed: only another master's before this driver sends any
         #: (read by :meth:`master_evidence`, the look before the first NMT command)
         self.rpdo: dict[int, float] = {}
+        #: when the newest of what :meth:`evidence` reports came (SYNC, NMT, host twin, SDO): the
+        #: supervisor asks for each drive every period, and nearly always nothing came
+        self.newest = 0.0
 
     def on_message_received(self, msg: can.Message) -> None:
         cob = msg.arbitration_id
@@ -123,7 +126,7 @@ class ForeignTraffic(can.Listener):
             now = time.monotonic()
             period = self.own_sync_period_s
             if period <= 0 or (self.marks_local_frames and msg.is_rx):
-                self.sync = now
+                self.sync = self.newest = now
                 return
             # counted by the bus's timestamps, not by arrival: a busy process reads a burst of them
             wire = msg.timestamp or time.time()
@@ -132,19 +135,24 @@ class ForeignTraffic(can.Listener):
             while wire - syncs[0] > SYNC_RATE_WINDOW_S:
                 syncs.popleft()
             if len(syncs) > 1.5 * SYNC_RATE_WINDOW_S / period + 2:
-                self.sync = now
                 self.sync_excess = (len(syncs), SYNC_RATE_WINDOW_S / period)
+                self.sync = self.newest = now
         elif cob == 0x000 and len(msg.data) == 2:
-            self.nmt[msg.data[1], msg.data[0]] = time.monotonic()  # each command kept: a reset then a start
+            self.nmt[msg.data[1], msg.data[0]] = self.newest = time.monotonic()  # each kept: a reset then a start
         elif cob == FunctionCode.HEARTBEAT + self.host_node_id:
-            self.host_twin = time.monotonic()
+            self.host_twin = self.newest = time.monotonic()
         elif 0x601 <= cob <= 0x67F and cob - 0x600 in self.node_ids and msg.data and msg.data[0] & 0xE0 == 0x20:
-            self.sdo[cob - 0x600] = time.monotonic()  # a download (write); reads by bench tools are harmless
+            self.sdo[cob - 0x600] = self.newest = time.monotonic()  # a download (write); bench reads are harmless
         elif 0x200 <= cob < 0x580 and not cob & 0x80 and cob & 0x7F in self.node_ids:
             self.rpdo[cob & 0x7F] = time.monotonic()  # RPDO1-4 (0x200, 0x300, 0x400, 0x500 + node)
 
     def evidence(self, node_id: int, since: float) -> str:
         """What shows another master acting on ``node_id`` after ``since`` ('' when nothing)."""
+        if self.newest <= since:
+            return ""  # nothing of it came since: the supervisor's usual answer, without building one
+        return self._evidence(node_id, since)
+
+    def _evidence(self, node_id: int, since: float) -> str:
         found = []
         if self.host_twin > since:
             found.append(f"heartbeats of node {self.host_node_id}, this driver's own id: a second driver?")

@@ -26,7 +26,6 @@ import math
 import sys
 import time
 from collections.abc import Callable, Sequence
-from functools import partial
 from typing import Any, TypeVar
 
 import rclpy
@@ -102,28 +101,29 @@ class DriverNode(Node):
         self.create_subscription(Float32, f"{base}/degree_cmd", self._on_degree(name), SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
         self.create_subscription(Float32, f"{base}/velocity_cmd", self._on_velocity(name), SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
 
-    def _guard(self, joint: str, what: str, fn: Callable[[], T]) -> T | None:
-        """Run a driver call; every failure becomes a throttled warning and a diagnostic."""
+    def _guard(self, joint: str, what: str, fn: Callable[..., T], *args: float) -> T | None:
+        """``fn(*args)``; every failure becomes a throttled warning and a diagnostic. ``what``
+        (with ``{!r}`` for the value, if it shows it) is formatted only then: not once per command."""
         try:
-            return fn()
+            return fn(*args)
         except RovercanError as err:
-            self.refusals.refuse(joint, f"{what}: {err}")
+            self.refusals.refuse(joint, f"{what.format(*args)}: {err}")
         except Exception as err:  # never raise into the executor
-            self.refusals.refuse(joint, f"{what}: unexpected {err!r}")
+            self.refusals.refuse(joint, f"{what.format(*args)}: unexpected {err!r}")
         return None
 
     def _on_degree(self, joint: str) -> Callable[[Float32], None]:
         drive = self.driver.drives[joint]
 
         def on_message(msg: Float32) -> None:
-            self._guard(joint, f"degree command {msg.data!r}", partial(drive.command_position, msg.data))
+            self._guard(joint, "degree command {!r}", drive.command_position, msg.data)
         return on_message
 
     def _on_velocity(self, joint: str) -> Callable[[Float32], None]:
         drive = self.driver.drives[joint]
 
         def on_message(msg: Float32) -> None:
-            self._guard(joint, f"velocity command {msg.data!r}", partial(drive.command_velocity, msg.data))
+            self._guard(joint, "velocity command {!r}", drive.command_velocity, msg.data)
         return on_message
 
     def _on_joint_commands(self, msg: JointState) -> None:
@@ -137,11 +137,11 @@ class DriverNode(Node):
             # topic-based hardware interface sends NaN in the fields it does not command)
             position, velocity, effort = (_given(values, i) for values in (msg.position, msg.velocity, msg.effort))
             if position is not None:
-                self._guard(name, "joint position", partial(drive.command_position, position * DEG))
+                self._guard(name, "joint position", drive.command_position, position * DEG)
             elif velocity is not None:
-                self._guard(name, "joint velocity", partial(drive.command_velocity, velocity * DEG))
+                self._guard(name, "joint velocity", drive.command_velocity, velocity * DEG)
             elif effort is not None:
-                self._guard(name, "joint effort", partial(drive.command_torque, effort))
+                self._guard(name, "joint effort", drive.command_torque, effort)
             else:
                 self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort (or only NaN)")
 

@@ -240,7 +240,8 @@ def test_bad_commands_refused_no_motion_warning_diagnostic(graph: Graph, bad: fl
         return any(st.name == f"rovercan: {name}" and st.level == bytes([1]) and text in st.message
                    for array in diags for st in array.status)
 
-    eventually(lambda: warned(joint, "refused"), 3.0, "a WARN diagnostic for the refused command")
+    # the refusal names the command and its value (formatted only for a refused one)
+    eventually(lambda: warned(joint, f" command {Float32(data=bad).data!r}: "), 3.0, "a WARN diagnostic for the refused command")
     eventually(lambda: warned("command input", "unknown joint 'no_such_joint'"), 3.0,
                "a WARN diagnostic for the unknown joint")
     # nothing moved, by what the driver sent: no new target, no velocity command (both were refused)

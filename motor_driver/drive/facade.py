@@ -110,6 +110,10 @@ class Drive:
         return self.cache.angle_deg
 
     @property
+    def velocity_deg_s(self) -> float:
+        return self.cache.velocity_deg_s
+
+    @property
     def position_counts(self) -> int:
         return self.cache.position_counts
 
