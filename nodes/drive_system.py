@@ -74,6 +74,14 @@ class DriveSystemNode(Node):
         self._period_s = 1.0 / float(self.get_parameter("odom_rate_hz").value)
         self._timer = self.create_timer(self._period_s, self._tick)
 
+    @classmethod
+    def beside(cls, driver_node: DriverNode, driver: MotorDriver, config: RoverConfig, **kwargs: Any) -> DriveSystemNode:
+        """The drive system of a process with ``driver_node`` on the same executor (rover_driver,
+        rover_lifecycle): its control loop on that node's state timer where the rates match."""
+        node = cls(driver, config, driver_node.refusals, **kwargs)
+        node.tick_with(driver_node)
+        return node
+
     def tick_with(self, driver_node: DriverNode) -> bool:
         """The control loop run from the driver node's state timer when their rates match (one
         wake-up of the executor they share, not two; measured in docs/performance.md); True if so.

@@ -279,9 +279,7 @@ def _run(stop: StopSignal) -> int:
         nodes.append(node)
         handler = bridge_core_logging(node)
         if config.drive_system is not None and node.get_parameter("drive_system").value:
-            system = DriveSystemNode(driver, config, node.refusals)
-            system.tick_with(node)  # both on the hot executor
-            nodes.append(system)
+            nodes.append(DriveSystemNode.beside(node, driver, config))  # both on the hot executor
         waiting = (DriverServicesNode(driver), DriverStopsNode(driver), DriverActionsNode(driver))
         # executors (measured: README): the hot one for commands, state and the drive system;
         # a cold one, on its own thread, for the services that block (enable, home); one for

@@ -58,9 +58,7 @@ class DriveLifecycleNode(LifecycleNode):
             node = DriverNode(self.driver, context=self.context)
             self.interface = [node, DriverServicesNode(self.driver, context=self.context)]
             if config.drive_system is not None:
-                system = DriveSystemNode(self.driver, config, node.refusals, context=self.context)
-                system.tick_with(node)  # both on the hot executor
-                self.interface.append(system)
+                self.interface.append(DriveSystemNode.beside(node, self.driver, config, context=self.context))
             for n in self.interface:
                 self.hot.add_node(n)
             actions = DriverActionsNode(self.driver, context=self.context)

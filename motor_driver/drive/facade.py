@@ -111,7 +111,8 @@ class Drive:
 
     @property
     def velocity_deg_s(self) -> float:
-        return self.cache.velocity_deg_s
+        """The newest TPDO's velocity (a snapshot's ``velocity_deg_s``, without the snapshot)."""
+        return self.cache.scale.counts_s_to_deg_s(self.cache.received.velocity_counts_s)
 
     @property
     def position_counts(self) -> int:

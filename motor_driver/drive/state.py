@@ -123,11 +123,6 @@ class DriveCache:
         return self._scale.counts_to_deg(self._rx.position_counts)
 
     @property
-    def velocity_deg_s(self) -> float:
-        """The newest TPDO's velocity (a snapshot's ``velocity_deg_s``, without the snapshot)."""
-        return self._scale.counts_s_to_deg_s(self._rx.velocity_counts_s)
-
-    @property
     def position_seq(self) -> int:
         return self._position_seq
 
