@@ -468,6 +468,8 @@ def test_a_full_transmit_queue_is_counted_and_said_never_a_crash(
                     break
             wait_for(lambda: network.tx_queue_full > 0, 30.0, "a send refused for a full queue")
             wait_for(lambda: "transmit queue full (ENOBUFS)" in caplog.text, 30.0, "the full queue said")
+            # a refused command can end the loop first: the queue stays full until the bus is lost
+            wait_for(lambda: driver.bus_lost["can0"], 60.0, "the bus lost (nothing the driver sends gets out)")
         finally:
             subprocess.run(["tc", "qdisc", "del", "dev", wiring.driver, "root"], check=True)
         wait_for(lambda: not driver.bus_lost["can0"] and drive.booted and not drive.lost, 120.0, "the bus usable again")
