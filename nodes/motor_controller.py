@@ -66,7 +66,6 @@ class MotorControllerNode(Node):
         joint = str(self.get_parameter("joint").value)
         self.drive = driver.drive(joint)
         self._continuous = self.drive.config.is_continuous
-        self.refused = 0
         self._refusals = RefusalLog(self.get_logger().warning)
         self._state_pub = self.create_publisher(MotorState, "/motor_state", STATE_QOS)
         self.create_subscription(Float32, "/motor_degree_cmd", self._on_command, SETPOINT_QOS)
@@ -94,8 +93,12 @@ class MotorControllerNode(Node):
             self._refuse(f"unexpected error on command {msg.data!r}: {err!r}")
 
     def _refuse(self, why: str) -> None:
-        self.refused += 1
         self._refusals.refuse(self.drive.name, why)
+
+    @property
+    def refused(self) -> int:
+        """Commands refused so far (the refusal log's count; nothing takes it here)."""
+        return self._refusals.count.get(self.drive.name, 0)
 
     def _publish_state(self) -> None:
         try:
