@@ -1,4 +1,4 @@
-"""The two places where the driver leans on a dependency's internals, kept in one module.
+"""The places where the driver leans on a dependency's internals, kept in one module.
 
 Each is pinned by ``tests/test_adapters.py`` against the installed version, so an upgrade
 that changes the behaviour fails there, loudly, instead of in the field:
@@ -6,6 +6,8 @@ that changes the behaviour fails there, loudly, instead of in the field:
 - :func:`connection_closed`: python-can's socketcand client reads the end of its TCP stream as
   "no frame" and never raises, so a vanished server is invisible through its public API; a
   peek at its socket (a name-mangled private attribute) tells.
+- :func:`hold_lone_sync`: the same socket's receive low-water mark, so that the echo of the
+  driver's own SYNC, alone, does not wake the bus's receive thread.
 - :class:`GuardedNetwork`: canopen's ``Network.notify`` stops the receive thread when one
   callback raises; this override isolates each callback (its loop mirrors canopen's). Its
   listener also drops 29-bit frames, which canopen would dispatch by their low bits.
@@ -43,6 +45,31 @@ def connection_closed(bus: can.BusABC) -> bool:
         return False
     except OSError:
         return True
+
+
+#: socketcand's text of a SYNC (its ``< frame %03X %ld.%06ld  >`` with no data, a Unix-time stamp:
+#: socketcand's rawmode and the simulator's server both write it so): 32 bytes until the year 2286.
+#: A frame with data is longer; of the rest only a remote frame (no data in rawmode) is as short.
+SYNC_TEXT_BYTES = len(f"< frame 080 {2_000_000_000:.6f}  >")
+
+
+def hold_lone_sync(bus: can.BusABC, hold: bool) -> bool:
+    """With ``hold``, a socketcand bus's receive thread wakes only once more than a SYNC's text
+    has come (SO_RCVLOWAT): the echo of the driver's own SYNC (the daemon's timer sends it, and it
+    reaches this connection as it reaches every other) then waits for the frames that follow it
+    (the TPDOs it asks for, within its period) instead of waking the thread alone, about a third
+    of its wake-ups (docs/performance.md). Any frame with data wakes it at once, and so does the
+    end of the connection; only a frame without data (SYNC, a remote frame) waits, for the next
+    frame. Without ``hold``: every byte wakes it. Returns False where there is no such socket
+    (other interfaces: nothing to do) or it is closed."""
+    sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
+    if not isinstance(sock, socket.socket):
+        return False
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, SYNC_TEXT_BYTES + 1 if hold else 1)
+    except OSError:
+        return False
+    return True
 
 
 class ElevenBitListener(canopen.network.MessageListener):  # type: ignore[misc]

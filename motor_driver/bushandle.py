@@ -25,7 +25,7 @@ from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
 from can_config.realtime import ordinary_thread
-from motor_driver.adapters import GuardedNetwork, queue_full
+from motor_driver.adapters import GuardedNetwork, hold_lone_sync, queue_full
 from motor_driver.connect import is_kernel_bus
 from motor_driver.cyclic import DaemonCyclicTask
 from motor_driver.recorder import FlightRecorder
@@ -119,6 +119,7 @@ class BusHandle:
                 self.foreign.own_sync_period_s = self.sync_period_s  # its SYNC reaches us: judge by rate
                 try:
                     self.sync_task = DaemonCyclicTask(host, port, channel, msg, self.sync_period_s)
+                    hold_lone_sync(self.bus, True)  # its echo alone does not wake the receive thread
                     return
                 except BusLostError as err:
                     logger.warning("bus %s: %s; SYNC from a thread of this process instead", self.name, err)
@@ -154,6 +155,7 @@ class BusHandle:
         if self.sync_task is not None:
             self.sync_task.stop()
             self.sync_task = None
+            hold_lone_sync(self.bus, False)  # no SYNC comes to push a frame without data through
 
     def beat(self, host_node_id: int) -> None:
         """One host heartbeat (NMT state operational), sent from the supervisor loop."""

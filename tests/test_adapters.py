@@ -11,9 +11,21 @@ import time
 import can
 import canopen
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from motor_driver.adapters import SOCKETCAND_SOCKET_ATTRIBUTE, GuardedNetwork, connection_closed, queue_full
+from motor_driver.adapters import (
+    SOCKETCAND_SOCKET_ATTRIBUTE,
+    SYNC_TEXT_BYTES,
+    GuardedNetwork,
+    connection_closed,
+    hold_lone_sync,
+    queue_full,
+)
 from virtual_can import SimService
+from virtual_can.client import format_frame
+
+from .conftest import wait_for
 
 
 def test_the_socketcand_client_keeps_its_socket_where_connection_closed_looks() -> None:
@@ -118,3 +130,52 @@ def test_a_queue_that_stays_full_gives_the_frame_up_with_what_to_check() -> None
 def test_another_send_error_is_not_taken_for_a_full_queue() -> None:
     assert not queue_full(can.CanOperationError("Failed to transmit: Network is down", errno.ENETDOWN))
     assert queue_full(OSError(errno.ENOBUFS, "No buffer space available"))
+
+
+@given(st.integers(0, 0x7FF), st.booleans(), st.binary(min_size=1, max_size=8),
+       st.floats(1_000_000_000, 9_999_999_999))
+def test_only_a_frame_without_data_is_as_short_as_a_sync(can_id: int, extended: bool, data: bytes, stamp: float) -> None:
+    """hold_lone_sync's mark: every frame with data, as the server writes it, wakes the receive
+    thread by itself; a SYNC is exactly the mark's length, and waits."""
+    msg = can.Message(arbitration_id=can_id, is_extended_id=extended, data=data, timestamp=stamp)
+    assert len(format_frame(msg)) > SYNC_TEXT_BYTES
+    sync = can.Message(arbitration_id=0x080, is_extended_id=False, data=b"", timestamp=stamp)
+    assert len(format_frame(sync)) == SYNC_TEXT_BYTES
+
+
+def test_a_held_sync_waits_for_the_next_frame_and_a_frame_with_data_never_waits() -> None:
+    sim = SimService([], port=0)
+    bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    peer = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE)
+
+    def queued() -> int:  # bytes the server has written to the bus's socket, not yet read
+        try:
+            return len(sock.recv(256, socket.MSG_PEEK | socket.MSG_DONTWAIT))
+        except BlockingIOError:
+            return 0
+
+    sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
+    beat = can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False)
+    try:
+        assert hold_lone_sync(bus, True)
+        peer.send(beat)  # with data, alone: it wakes the thread (a mark too high would hold it)
+        got = bus.recv(10.0)
+        assert got is not None and got.arbitration_id == 0x701
+        peer.send(sync)
+        wait_for(lambda: queued() == SYNC_TEXT_BYTES, 10.0, "the SYNC in the bus's socket")
+        assert bus.recv(0) is None  # there, and not woken for
+        peer.send(beat)
+        first, second = bus.recv(10.0), bus.recv(10.0)
+        assert first is not None and second is not None
+        assert (first.arbitration_id, second.arbitration_id) == (0x080, 0x701)  # nothing lost or reordered
+        assert hold_lone_sync(bus, False)
+        peer.send(sync)
+        got = bus.recv(10.0)
+        assert got is not None and got.arbitration_id == 0x080
+    finally:
+        peer.shutdown()
+        bus.shutdown()
+        sim.close()
+    assert not hold_lone_sync(bus, False)  # closed: nothing to do, no error
+    assert not hold_lone_sync(can.Bus(interface="virtual", channel="pin"), True)  # other interfaces

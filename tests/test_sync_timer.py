@@ -5,6 +5,7 @@ can ask for the thread; a second master's SYNC is still seen (by the rate)."""
 from __future__ import annotations
 
 import itertools
+import socket
 import time
 from collections.abc import Callable
 
@@ -12,6 +13,7 @@ import can
 
 from can_config import RoverConfig, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
+from motor_driver.adapters import SOCKETCAND_SOCKET_ATTRIBUTE, SYNC_TEXT_BYTES
 from motor_driver.cyclic import DaemonCyclicTask, add_command
 from virtual_can.service import SimService
 
@@ -69,3 +71,22 @@ def test_a_config_can_keep_the_sync_in_a_thread(driver_factory: DriverFactory,
     listener = listener_factory(sim)
     syncs = sync_times(listener, 0.3)
     assert 25 <= len(syncs) <= 35
+
+
+def test_the_sync_echo_is_held_back_only_while_the_daemon_sends_the_sync(driver_factory: DriverFactory) -> None:
+    """adapters.hold_lone_sync: set with the daemon's SYNC job, cleared when the job stops (no
+    SYNC would then push a frame without data through) and never set with the thread's SYNC."""
+    def mark(driver: MotorDriver) -> int:
+        sock = getattr(driver.buses["can0"].bus, SOCKETCAND_SOCKET_ATTRIBUTE)
+        return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT))
+
+    _, driver = driver_factory(config())
+    handle = driver.buses["can0"]
+    assert isinstance(handle.sync_task, DaemonCyclicTask)
+    assert mark(driver) == SYNC_TEXT_BYTES + 1
+    handle.stop_sync()
+    assert mark(driver) == 1
+    handle.restart_sync()
+    assert mark(driver) == SYNC_TEXT_BYTES + 1
+    _, threaded = driver_factory(config(sync_timer="thread"))
+    assert mark(threaded) == 1
