@@ -28,8 +28,10 @@ SIM_ARGS = {"rover": ("--drive-processes",)}
 def stack_run(tree: Path, config: str, seconds: float) -> dict[str, float]:
     env = {**os.environ, "PYTHONPATH": str(tree)}
     command = [sys.executable, "-c", RUN, config, str(seconds), *SIM_ARGS.get(config, ())]
-    out = subprocess.run(command, cwd=tree, env=env, capture_output=True,
-                         text=True, timeout=600, check=True).stdout
+    done = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True, timeout=600)
+    if done.returncode:  # say why: a run that fails is a finding, not noise
+        raise SystemExit(f"{tree} {config}: the stack run failed ({done.returncode}):\n{done.stderr[-3000:]}")
+    out = done.stdout
     result = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
     figures = {key: value for key, value in result.items() if any(key.endswith(f) for f in FIGURES)}
     # each thread's CPU too: a change to one thread shows there above the whole process's noise
