@@ -1,6 +1,6 @@
 """What every driver node shares: a refused command said once a second per joint, header stamps.
 
-The once a second is counted here, before rclpy's logger is called: rclpy's own throttle
+The once a second is counted here (can_config.ratelimit's Throttle), before rclpy's logger is called: rclpy's own throttle
 (``throttle_duration_sec``) finds its caller's file and line (``inspect``, a ``stat`` per
 frame) before it decides to stay silent, about 200 us a call; a publisher whose every command
 is refused (600 a second: six drives at 100 Hz, the drives stopped) took the driver's main thread
@@ -14,9 +14,11 @@ import time
 from collections.abc import Callable, Collection
 from typing import Any
 
+from can_config.ratelimit import KINDS_MAX, Throttle
+
 WARN_THROTTLE_S = 1.0
 #: Joints whose last line is remembered; beyond it the oldest are forgotten (made-up names).
-SAID_MAX = 64
+SAID_MAX = KINDS_MAX
 DEG = 180.0 / math.pi
 
 
@@ -32,23 +34,18 @@ class RefusalLog:
 
     def __init__(self, say: Callable[[str], Any], clock: Callable[[], float] = time.monotonic) -> None:
         self._say = say
-        self._clock = clock
         self.count: dict[str, int] = {}
         self.last: dict[str, str] = {}
-        self._said: dict[str, tuple[float, int]] = {}  # joint -> (when last said, held back since)
+        self.said = Throttle(WARN_THROTTLE_S, clock, SAID_MAX)
 
     def refuse(self, joint: str, why: str) -> None:
         self.count[joint] = self.count.pop(joint, 0) + 1  # re-inserted: the newest refusal is last
         self.last[joint] = why
-        now = self._clock()
-        said, held = self._said.pop(joint, (-math.inf, 0))
-        if now - said < WARN_THROTTLE_S:
-            self._said[joint] = (said, held + 1)
+        passed = self.said.admit(joint)
+        if passed is None:
             return
-        if len(self._said) >= SAID_MAX:  # a publisher of made-up names cannot grow it
-            del self._said[next(iter(self._said))]
-        self._said[joint] = (now, 0)
-        more = f" ({held} more refused in the last {now - said:.0f} s)" if held else ""
+        held, since = passed
+        more = f" ({held} more refused in the last {since:.0f} s)" if held else ""
         self._say(f"{joint}: refused: {why}{more}")
 
     def take(self, joint: str) -> tuple[int, str]:

@@ -58,7 +58,7 @@ def test_every_refusal_is_said_or_counted_and_lines_are_a_period_apart(steps: li
         lines = [(t, line) for t, line in said if line.startswith(f"{joint}: ")]
         assert lines, f"{joint}: its first refusal was not said"
         assert all(b[0] - a[0] >= WARN_THROTTLE_S for a, b in itertools.pairwise(lines))
-        accounted = sum(1 + held_in(line) for _, line in lines) + log._said[joint][1]
+        accounted = sum(1 + held_in(line) for _, line in lines) + log.said.held(joint)
         assert accounted == total  # said, or held and said with the next line (or still held)
         assert log.take(joint)[0] == total
 
@@ -68,5 +68,5 @@ def test_made_up_joint_names_cannot_grow_the_table() -> None:
     log = RefusalLog(said.append, clock)
     for i in range(10 * SAID_MAX):
         log.refuse(f"made_up_{i}", "unknown joint")
-    assert len(log._said) == SAID_MAX and len(said) == 10 * SAID_MAX
+    assert len(log.said) == SAID_MAX and len(said) == 10 * SAID_MAX
     assert log.take_others(())[0] == 10 * SAID_MAX  # /diagnostics still counts every one, once
