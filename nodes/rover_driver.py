@@ -169,7 +169,7 @@ class DriverNode(Node):
         time in the six-drive profile, docs/performance.md)."""
         try:
             joints = self._joint_pub.get_subscription_count() > 0
-            joint = JointState()
+            joint = JointState() if joints else None  # a message's constructor: ~20 us, 50 times a second
             newest = 0.0
             for name, drive in self.driver.drives.items():
                 mine = self._state_pubs[name].get_subscription_count() > 0
@@ -183,14 +183,14 @@ class DriverNode(Node):
                         self._state_pubs[name].publish(msg)
                     if demo:
                         self._demo_state_pub.publish(msg)
-                if joints:
+                if joint is not None:
                     joint.name.append(name)
                     stale = math.nan if state.stale else 1.0  # stale joints: NaN, not the last values again
                     joint.position.append(math.radians(state.angle_deg) * stale)
                     joint.velocity.append(math.radians(state.velocity_deg_s) * stale)
                     joint.effort.append(state.torque_nm * stale)
                     newest = max(newest, state.stamp)
-            if joints:
+            if joint is not None:
                 stamp_header(joint.header, newest or time.time())
                 self._joint_pub.publish(joint)
         except Exception as err:
