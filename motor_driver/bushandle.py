@@ -8,6 +8,7 @@ The bus's receive thread (python-can's Notifier) runs under ordinary scheduling,
 whose other threads are SCHED_FIFO (nodes/runtime.go_realtime): real-time, it woke at once for
 each arrival, about three times a SYNC period per bus (the SYNC's echo, then the TPDOs as they
 came), at up to 0.1 ms of CPU a wake-up; ordinary, it takes what has come when it gets a core.
+The echo of the daemon's SYNC does not wake it alone (adapters.hold_lone_sync, while the job runs).
 The commands, the host heartbeat, the stops and DDS stay real-time (docs/performance.md).
 """
 
