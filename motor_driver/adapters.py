@@ -108,8 +108,8 @@ class GuardedNetwork(canopen.Network):
         super().__init__(bus)
         self.listeners: list[can.Listener] = [ElevenBitListener(self)]  # before connect(): its Notifier takes it
         self.rejected_frames = 0
-        #: called with each frame sent (the flight recorder), after it went out
-        self.on_sent: Callable[[can.Message], None] | None = None
+        #: called with each frame sent (the flight recorder), after it went out: (id, data, remote)
+        self.on_sent: Callable[[int, bytes | bytearray, bool], None] | None = None
         #: sends the kernel refused with ENOBUFS (a full transmit queue: a real controller's
         #: qlen is 10), each retried (the host heartbeat's counted here too, not retried); and
         #: the frames given up on after TX_QUEUE_FULL_RETRY_S
@@ -137,8 +137,7 @@ class GuardedNetwork(canopen.Network):
                 time.sleep(TX_QUEUE_FULL_PAUSE_S)  # a frame's time at 1 Mbit/s is about 0.1 ms
         hook = self.on_sent
         if hook is not None:
-            hook(can.Message(arbitration_id=can_id, data=bytes(data), is_extended_id=can_id > 0x7FF,
-                             is_remote_frame=remote, timestamp=time.time()))
+            hook(can_id, data, remote)
 
     def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
         callbacks = self.subscribers.get(can_id)

@@ -70,7 +70,7 @@ class BusHandle:
         self.network.listeners += [self.stats, self.foreign]  # before connect(): its Notifier copies the list
         if recorder is not None:
             self.network.listeners.append(recorder.listener(name))
-            self.network.on_sent = functools.partial(recorder.record_sent, name)
+            self.network.on_sent = functools.partial(recorder.record_frame, name)
         with ordinary_thread():  # the receive thread starts ordinary: module docstring
             self.network.connect()
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | DaemonCyclicTask | None = None

@@ -135,18 +135,25 @@ class FlightRecorder:
         return _BusTap(self, bus)
 
     def append(self, bus: str, msg: can.Message) -> None:
-        frames = self._frames
-        t = msg.timestamp or time.time()
-        frames.append((t, bus, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame,
-                       msg.dlc, bytes(msg.data)))
-        horizon = t - self._keep_s
-        while frames and frames[0][0] < horizon:
-            frames.popleft()
+        self._push((msg.timestamp or time.time(), bus, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                    msg.is_error_frame, msg.dlc, bytes(msg.data)))
 
     def record_sent(self, bus: str, msg: can.Message) -> None:
         if not msg.timestamp:
             msg.timestamp = time.time()
         self.append(bus, msg)
+
+    def record_frame(self, bus: str, can_id: int, data: bytes | bytearray, remote: bool = False) -> None:
+        """A frame this driver sent, as canopen hands it to the bus (GuardedNetwork.on_sent):
+        kept without a can.Message made for it (every command's RPDO comes this way)."""
+        self._push((time.time(), bus, can_id, can_id > 0x7FF, remote, False, len(data), bytes(data)))
+
+    def _push(self, frame: Frame) -> None:
+        frames = self._frames
+        frames.append(frame)
+        horizon = frame[0] - self._keep_s
+        while frames and frames[0][0] < horizon:
+            frames.popleft()
 
     def wants_sample(self) -> bool:
         """Supervisor: whether this pass should call :meth:`sample` (every SAMPLE_EVERY-th)."""

@@ -106,9 +106,12 @@ def test_a_full_transmit_queue_is_retried_and_counted(refusals: int) -> None:
     bus = FullQueueBus(refusals)
     network = GuardedNetwork(bus)
     try:
+        told: list[tuple[int, bytes | bytearray, bool]] = []
+        network.on_sent = lambda *frame: told.append(frame)
         network.send_message(0x201, b"\x0f\x00")
         assert [m.arbitration_id for m in bus.sent] == [0x201]
         assert (network.tx_queue_full, network.tx_queue_dropped) == (refusals, 0)
+        assert told == [(0x201, b"\x0f\x00", False)]  # the flight recorder's: once, after it went out
     finally:
         bus.shutdown()
 
@@ -116,13 +119,16 @@ def test_a_full_transmit_queue_is_retried_and_counted(refusals: int) -> None:
 def test_a_queue_that_stays_full_gives_the_frame_up_with_what_to_check() -> None:
     bus = FullQueueBus(10**9)
     network = GuardedNetwork(bus)
+    told: list[tuple[int, bytes | bytearray, bool]] = []
+    network.on_sent = lambda *frame: told.append(frame)
     try:
         with pytest.raises(can.CanOperationError, match=r"transmit queue stayed full .* frame 0x201 not sent.*termination"):
             network.send_message(0x201, b"\x0f\x00")
         assert network.tx_queue_dropped == 1 and network.tx_queue_full >= 2 and bus.sent == []
+        assert told == []  # a frame given up on is not recorded as sent
         bus.refusals = 0
         network.send_message(0x202, b"")  # the next frame, once it drains
-        assert [m.arbitration_id for m in bus.sent] == [0x202]
+        assert [m.arbitration_id for m in bus.sent] == [0x202] and told == [(0x202, b"", False)]
     finally:
         bus.shutdown()
 

@@ -142,6 +142,7 @@ def test_the_ring_costs_the_garbage_collector_nothing_and_keeps_every_field(tmp_
         for i in range(n):
             recorder.append("can0", can.Message(timestamp=t0 + i * 1e-4, arbitration_id=0x181 + i % 3,
                                                 data=i.to_bytes(4, "little")))
+        recorder.record_frame("can0", 0x201, bytearray(b"\x0f\x00\x10\x27\x00\x00"))  # an RPDO, as canopen sends it
         recorder.record_sent("can0", can.Message(arbitration_id=0x1FFFFFF, is_extended_id=True,
                                                  is_remote_frame=True, dlc=8))
         gc.collect()
@@ -151,7 +152,10 @@ def test_the_ring_costs_the_garbage_collector_nothing_and_keeps_every_field(tmp_
         recorder.close()
     summary = load_incident(written)
     frames = [msg for _, msg in incident_frames(written, summary)]
-    assert len(frames) == n + 1
+    assert len(frames) == n + 2
+    rpdo = frames[-2]
+    assert (rpdo.arbitration_id, rpdo.is_extended_id, rpdo.is_remote_frame, rpdo.dlc) == (0x201, False, False, 6)
+    assert bytes(rpdo.data) == b"\x0f\x00\x10\x27\x00\x00" and rpdo.timestamp >= t0
     assert frames[7].arbitration_id == 0x182 and bytes(frames[7].data) == (7).to_bytes(4, "little")
     assert abs(frames[7].timestamp - (t0 + 7e-4)) < 1e-5
     last = frames[-1]
