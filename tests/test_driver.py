@@ -281,6 +281,18 @@ def test_cyclic_synchronous_position_streams_and_refuses_jumps(
     assert drive.snapshot().mode == 8
     with pytest.raises(CommandRejected, match=r"CSP setpoint jumps (29\.9|30\.0)\d* deg.*at most 7\.200 deg"):
         drive.stream_position(50.0)
+    # streaming already (the mode is CSP), a set-point is still decided in the channel: refused
+    # while stopped or while an operation runs, and nothing goes out
+    drive.disable()
+    assert drive.snapshot().mode == 8
+    drain(listener, 0.05)
+    with pytest.raises(DriveStateError, match=r"CSP setpoint refused: the drive is \w+; enable\(\) it first"):
+        drive.stream_position(20.0)
+    drive.enable()
+    with drive.channel.operation("a test's operation"), \
+            pytest.raises(CommandRejected, match=r"CSP setpoint refused: the drive is busy with a test's operation"):
+        drive.stream_position(20.0)
+    assert not [m for m in drain(listener, 0.05) if m.arbitration_id == 0x301]
 
 
 def test_profile_torque_and_its_limit(driver_factory: DriverFactory) -> None:

@@ -324,17 +324,18 @@ class Motion:
         counts = self._position_target_counts(angle_deg)
         mode = self._streaming_mode()
         doing = "CSP setpoint" if mode == OperationMode.CYCLIC_SYNC_POSITION else "IP setpoint"
-        self._ensure_mode(mode, doing)
+        if self._cache.mode_display != mode:  # streaming already (each set-point after the first):
+            self._ensure_mode(mode, doing)  # busy, enabled and the mode are decided in the channel, with the frame
         target = OD.TARGET_POSITION if mode == OperationMode.CYCLIC_SYNC_POSITION else OD.INTERPOLATION_DATA
         if self._plan.rpdo_with(target) is None:
             with self._channel.operation(f"{doing} (target by SDO)") as op:
                 self._check_position_step(counts, max_step_deg)
                 self._sdo.write_typed(target, 1 if target == OD.INTERPOLATION_DATA else 0, counts)
-                with self._channel.command("set-point", op) as frames:
+                with self._channel.command(doing, op) as frames:
                     self._require_motion(mode, doing)
                     frames.stream_position(mode, counts, sdo_written=True)
             return
-        with self._channel.command("set-point") as frames:
+        with self._channel.command(doing) as frames:
             self._require_motion(mode, doing)
             self._check_position_step(counts, max_step_deg)
             frames.stream_position(mode, counts, sdo_written=False)
