@@ -185,6 +185,29 @@ def test_a_parked_target_on_a_drive_without_a_pdo_target_is_never_sent_by_sdo_fr
     assert threads and set(threads) == {threading.current_thread().name}, threads
 
 
+def test_a_streamed_set_point_to_a_stopped_drive_without_a_pdo_target_writes_no_sdo(
+        driver_factory: DriverFactory, tmp_path: Path) -> None:
+    """Streaming already, a set-point whose target goes by SDO is still checked before that SDO:
+    the drive disabled, it is refused and 0x607A is not written."""
+    _, driver = driver_factory(make_config(1, eds=str(no_pdo_target_eds(tmp_path / "no-pdo-target.eds"))))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.stream_position(drive.snapshot().angle_deg)  # switches to CSP, the target by SDO
+    assert drive.snapshot().mode == 8
+    written: list[int] = []
+    download = drive.node.sdo.download
+
+    def recording(index: int, *args: object, **kwargs: object) -> None:
+        written.append(index)
+        download(index, *args, **kwargs)  # type: ignore[arg-type]
+
+    drive.node.sdo.download = recording  # type: ignore[method-assign]
+    drive.disable()
+    with pytest.raises(DriveStateError, match=r"CSP setpoint refused: the drive is \w+; enable\(\) it first"):
+        drive.stream_position(drive.snapshot().angle_deg)
+    assert 0x607A not in written, [hex(i) for i in written]
+
+
 def no_pdo_velocity_eds(path: Path) -> Path:
     od = canopen.import_od(str(GENERIC_EDS), 1)
     od[0x60FF].pdo_mappable = False  # the target velocity only by SDO

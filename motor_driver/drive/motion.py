@@ -324,10 +324,11 @@ class Motion:
         counts = self._position_target_counts(angle_deg)
         mode = self._streaming_mode()
         doing = "CSP setpoint" if mode == OperationMode.CYCLIC_SYNC_POSITION else "IP setpoint"
-        if self._cache.mode_display != mode:  # streaming already (each set-point after the first):
-            self._ensure_mode(mode, doing)  # busy, enabled and the mode are decided in the channel, with the frame
         target = OD.TARGET_POSITION if mode == OperationMode.CYCLIC_SYNC_POSITION else OD.INTERPOLATION_DATA
-        if self._plan.rpdo_with(target) is None:
+        by_sdo = self._plan.rpdo_with(target) is None
+        if by_sdo or self._cache.mode_display != mode:  # before an SDO or a mode switch; streaming by RPDO
+            self._ensure_mode(mode, doing)  # already, the channel decides busy, enabled and mode with the frame
+        if by_sdo:
             with self._channel.operation(f"{doing} (target by SDO)") as op:
                 self._check_position_step(counts, max_step_deg)
                 self._sdo.write_typed(target, 1 if target == OD.INTERPOLATION_DATA else 0, counts)
