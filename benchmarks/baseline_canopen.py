@@ -1,5 +1,8 @@
 """The baseline: the python canopen library's way (BaseNode402 + PDO callbacks) for the same
-state run. usage: baseline_canopen.py HOST PORT N_DRIVES SYNC_MS SECONDS; prints JSON."""
+state run. usage: baseline_canopen.py HOST PORT N_DRIVES SYNC_MS SECONDS; prints JSON.
+
+Connected as the driver's buses are by default (python-can's ``tcp_tune``): without it the
+library's SYNCs leave in clumps (Nagle's algorithm, delayed ACKs; same_work.py)."""
 
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ from can_config import GENERIC_EDS
 def main() -> int:
     host, port, n, sync_ms, seconds = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
     network = canopen.Network()
-    network.connect(interface="socketcand", channel="can0", host=host, port=port)
+    network.connect(interface="socketcand", channel="can0", host=host, port=port, tcp_tune=True)
     received = [0]
     nodes = []
     for node_id in range(1, n + 1):

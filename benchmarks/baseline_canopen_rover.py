@@ -83,7 +83,7 @@ def main() -> int:
     networks: dict[str, canopen.Network] = {}
     for bus in config.buses:
         networks[bus.name] = canopen.Network()
-        networks[bus.name].connect(interface=bus.interface, channel=bus.channel, **bus.kwargs)
+        networks[bus.name].connect(**bus.bus_kwargs())
     drives = []
     for d in config.drives:
         node, target = drive_node(networks[d.bus], d.node_id, d.eds, received)

@@ -2,10 +2,19 @@
 the stack run measures the driver node: the same simulator (``rovercan sim --config`` with the
 drive models in processes of their own), the same config with only its port changed, CPU from
 /proc over the same window, TPDO loss against an independent listener after the drives were
-stopped by NMT. The reference of the issue's CPU ratio: "the canopen baseline, same work"."""
+stopped by NMT. The reference of the issue's CPU ratio: "the canopen baseline, same work".
+
+The same work includes its timing: the SYNC every period and each drive's set-point every
+command period, on the wire. Opened without the config's transport settings (python-can's
+``tcp_tune``, which the driver's buses have by default) the library's SYNCs and RPDOs left in
+clumps every 40-50 ms (Nagle's algorithm waiting for delayed ACKs) and its receive threads read
+five periods' TPDOs at once: a fifth of the wake-ups, not the same work. It now connects with
+the config's own bus arguments, and a run whose SYNC or set-points did not keep their period on
+the wire fails (:func:`cadence`)."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -14,7 +23,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-from stack_run import REPO, Listener, on_port, proc_cpu_s, python_thread_names, simulator, thread_cpu_s, tpdos_on_wire
+from stack_run import REPO, Listener, on_port, pct, proc_cpu_s, python_thread_names, simulator, thread_cpu_s, tpdos_on_wire
+
+#: The longest gap, p99, between two SYNCs, or two set-points to one drive, on the wire, in
+#: periods: the library's own cyclic thread and command loop run late by a few milliseconds on a
+#: busy machine; clumped by Nagle's algorithm they came 4-5 periods apart.
+CADENCE_MAX_PERIODS = 2.0
+
+
+def cadence(frames: list[tuple[float, int, bytes]], cob_id: int, start: float, end: float) -> float:
+    """The p99 gap (s) between consecutive frames ``cob_id`` stamped within [start, end] on the wire."""
+    stamps = [t for t, cob, _ in frames if cob == cob_id and start <= t <= end]
+    gaps = [b - a for a, b in itertools.pairwise(stamps)]
+    return pct(gaps, 0.99) if gaps else float("inf")
 
 
 def baseline_same_work(config_path: Path, seconds: float, command_hz: float, priority: int = 0) -> dict[str, Any]:
@@ -41,7 +62,9 @@ def baseline_same_work(config_path: Path, seconds: float, command_hz: float, pri
             names = python_thread_names(proc.pid)
             time.sleep(0.5)
             cpu0, wall0, threads0 = proc_cpu_s(proc.pid), time.monotonic(), thread_cpu_s(proc.pid, names)
+            window0 = time.time()
             time.sleep(seconds - 0.5)
+            window1 = time.time()
             wall = time.monotonic() - wall0
             cpu = (proc_cpu_s(proc.pid) - cpu0) / wall
             threads = {name: (t - threads0.get(name, 0.0)) / wall for name, t in thread_cpu_s(proc.pid, names).items()}
@@ -61,7 +84,20 @@ def baseline_same_work(config_path: Path, seconds: float, command_hz: float, pri
         raise RuntimeError(f"the canopen baseline's drives did not follow its commands (moved {out['followed_deg']} deg of"
                            f" a {ramp_deg:.0f} deg ramp): it did not do the same work")
     sent = tpdos_on_wire(listeners, t_stop)
-    return {f"{prefix}_tpdo_sent": sent, f"{prefix}_tpdo_loss": sent - out["received"], f"{prefix}_followed_deg": out["followed_deg"],
+    config = load_config(config_path)
+    sync_gap = max(cadence(listener.frames, 0x080, window0, window1) for listener in listeners)
+    by_channel = {listener.channel: listener.frames for listener in listeners}
+    buses = {b.name: b.channel for b in config.buses}
+    # each drive's set-point: RPDO2 (COB-ID 0x300 + node), as baseline_canopen_rover.py sends it
+    command_gap = max(cadence(by_channel[buses[d.bus]], 0x300 + d.node_id, window0, window1) for d in config.drives)
+    sync_s = min(b.sync_period_s for b in config.buses)
+    if sync_gap > CADENCE_MAX_PERIODS * sync_s or command_gap > CADENCE_MAX_PERIODS * 1.001 / command_hz:
+        raise RuntimeError(f"the canopen baseline's frames did not keep their period on the wire (p99 gap: SYNC"
+                           f" {sync_gap * 1000:.1f} ms, set-points {command_gap * 1000:.1f} ms; periods {sync_s * 1000:g}"
+                           f" and {1000 / command_hz:g} ms): it did not do the same work")
+    return {f"{prefix}_tpdo_sent": sent, f"{prefix}_sync_gap_p99_ms": round(sync_gap * 1000, 2),
+            f"{prefix}_command_gap_p99_ms": round(command_gap * 1000, 2),
+            f"{prefix}_tpdo_loss": sent - out["received"], f"{prefix}_followed_deg": out["followed_deg"],
             f"{prefix}_cpu_core_fraction": round(cpu, 3),
             f"{prefix}_cpu_by_thread": {name: round(f, 3) for name, f in sorted(threads.items(), key=lambda kv: -kv[1])
                                         if f >= 0.002}}
