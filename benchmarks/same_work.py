@@ -41,8 +41,10 @@ def cadence(frames: list[tuple[float, int, bytes]], cob_id: int, start: float, e
 def baseline_same_work(config_path: Path, seconds: float, command_hz: float, priority: int = 0) -> dict[str, Any]:
     """``priority`` > 0: the baseline's threads under SCHED_FIFO, as the node's; the keys then say ``_rt``."""
     from can_config import load_config
+    from can_config.objects import FunctionCode
 
-    channels = sorted({b.channel for b in load_config(config_path).buses})
+    shipped = load_config(config_path)
+    channels = sorted({b.channel for b in shipped.buses})
     prefix = "baseline_canopen_same_work" + ("_rt" if priority else "")
     with simulator("--config", str(config_path), "--drive-processes") as port, tempfile.TemporaryDirectory() as tmp, \
             tempfile.TemporaryFile("w+") as err:  # a pipe nobody reads could block it
@@ -84,13 +86,13 @@ def baseline_same_work(config_path: Path, seconds: float, command_hz: float, pri
         raise RuntimeError(f"the canopen baseline's drives did not follow its commands (moved {out['followed_deg']} deg of"
                            f" a {ramp_deg:.0f} deg ramp): it did not do the same work")
     sent = tpdos_on_wire(listeners, t_stop)
-    config = load_config(config_path)
-    sync_gap = max(cadence(listener.frames, 0x080, window0, window1) for listener in listeners)
+    sync_gap = max(cadence(listener.frames, FunctionCode.SYNC, window0, window1) for listener in listeners)
     by_channel = {listener.channel: listener.frames for listener in listeners}
-    buses = {b.name: b.channel for b in config.buses}
-    # each drive's set-point: RPDO2 (COB-ID 0x300 + node), as baseline_canopen_rover.py sends it
-    command_gap = max(cadence(by_channel[buses[d.bus]], 0x300 + d.node_id, window0, window1) for d in config.drives)
-    sync_s = min(b.sync_period_s for b in config.buses)
+    buses = {b.name: b.channel for b in shipped.buses}
+    # each drive's set-point: RPDO2, as baseline_canopen_rover.py sends it
+    command_gap = max(cadence(by_channel[buses[d.bus]], FunctionCode.RPDO2 + d.node_id, window0, window1)
+                      for d in shipped.drives)
+    sync_s = min(b.sync_period_s for b in shipped.buses)
     if sync_gap > CADENCE_MAX_PERIODS * sync_s or command_gap > CADENCE_MAX_PERIODS * 1.001 / command_hz:
         raise RuntimeError(f"the canopen baseline's frames did not keep their period on the wire (p99 gap: SYNC"
                            f" {sync_gap * 1000:.1f} ms, set-points {command_gap * 1000:.1f} ms; periods {sync_s * 1000:g}"
