@@ -20,6 +20,8 @@ logger = logging.getLogger(__name__)
 
 #: Above ordinary threads, below the kernel's own (threaded interrupts run at 50).
 REALTIME_PRIORITY = 10
+#: A driver process's threads (the nodes' ``realtime_priority``, the demo's ``--realtime-priority``).
+DRIVER_PRIORITY = 20
 ENV_SWITCH = "ROVERCAN_REALTIME"
 
 

@@ -22,6 +22,7 @@ from typing import Any
 
 from can_config import RoverConfig, heap, load_config, with_bus_overrides
 from can_config.errors import CommandRejected, ConfigError, RovercanError, SimError
+from can_config.realtime import DRIVER_PRIORITY, make_process_realtime
 from can_config.stop import StopSignal, stop_on_signals
 from rovercan.argtypes import BusKwargs, real, whole
 from rovercan.launch import LOCAL_DISCOVERY
@@ -197,11 +198,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     joint = config.drives[0].name
+    # as the deployed node: every thread under SCHED_FIFO where allowed, before any starts (they
+    # inherit it). An ordinary process on a busy machine can be held past the drive's host timeout
+    # (3 host heartbeats), and the drive then stops itself, as it is told to.
+    realtime = args.realtime_priority > 0 and make_process_realtime("rovercan demo", args.realtime_priority)
     with StopSignal() as stop, SimService.from_config(config, port=args.port) as sim:
         config = with_bus_overrides(config, host=sim.host, port=sim.port)
         print(f"rovercan demo: simulated drive(s) on {sim.host}:{sim.port}; joint {joint!r};"
               f" {'until Ctrl+C' if args.duration is None else f'{args.duration:g} s'};"
-              f" ROS discovery {os.environ[LOCAL_DISCOVERY[0]]}", flush=True)
+              f" ROS discovery {os.environ[LOCAL_DISCOVERY[0]]};"
+              f" {f'SCHED_FIFO {args.realtime_priority}' if realtime else 'ordinary scheduling'}", flush=True)
         runtime.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
         driver = MotorDriver(config)
         nodes: list[object] = []
@@ -254,14 +260,23 @@ def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[An
     return monitor, last, latest
 
 
-def _demo_verdict(cmd: float, state: object | None) -> int:
+def _demo_verdict(cmd: float, state: Any) -> int:
+    """0 when the drive is still enabled at the end and its angle followed the command; a
+    MotorState (or None when none came)."""
     if state is None:
         print("rovercan demo: no MotorState received", file=sys.stderr)
         return EXIT_FAILED
-    angle = float(state.angle)  # type: ignore[attr-defined]
+    angle = float(state.angle)
     error = abs((angle - cmd + 180.0) % 360.0 - 180.0)
     print(f"rovercan demo: done; last command {cmd:.2f} deg, angle {angle:.2f} deg, error {error:.2f} deg",
           flush=True)
+    if not state.enabled:
+        fault = f", fault 0x{state.error_code:04X}" if state.fault else ""
+        print(f"rovercan demo: the drive ended in {state.state}{fault}, not Operation Enabled: it stopped during"
+              " the run. The log above says why; a 'host heartbeat ... late' warning with EMCY 0x8130 means this"
+              " process was held longer than the drive's host timeout and the drive stopped itself, as told"
+              " (give it real-time scheduling: run as root or with CAP_SYS_NICE)", file=sys.stderr)
+        return EXIT_FAILED
     if error > 2.0:
         print("rovercan demo: the motor did not follow the command", file=sys.stderr)
         return EXIT_FAILED
@@ -315,6 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=whole(0, 65535), default=0, help="simulator port (default: any free)")
     p.add_argument("--step", type=real(-360, 360), default=0.1, help="degrees added per 0.1 s command (default 0.1)")
     p.add_argument("--print-period", type=real(0.05, 3600), default=0.5, help="seconds between printed states")
+    p.add_argument("--realtime-priority", type=whole(0, 99), default=DRIVER_PRIORITY,
+                   help=f"SCHED_FIFO priority of every thread, as the deployed node (default {DRIVER_PRIORITY}; 0: ordinary)")
     p.set_defaults(func=cmd_demo)
 
     _bench_parsers(sub)

@@ -18,7 +18,7 @@ import pytest
 
 from can_config import GENERIC_EDS
 
-from .conftest import REPO, drain, requires_ros
+from .conftest import REPO, drain, realtime_allowed, requires_ros
 
 
 def free_port() -> int:
@@ -97,7 +97,10 @@ def test_sim_refuses_a_non_loopback_bind_without_the_flag() -> None:
 
 @requires_ros
 def test_demo_runs_and_exits_zero() -> None:
-    env = {k: v for k, v in os.environ.items() if k != "ROS_AUTOMATIC_DISCOVERY_RANGE"}
+    """The demo as a user runs it: its process real-time where this one may be (as the deployed
+    node: an ordinary one held past the drive's host timeout on a busy runner makes the drive
+    stop itself, and the demo then fails, saying so)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROVERCAN_REALTIME")}
     result = subprocess.run(rovercan("demo", "--duration", "3", "--print-period", "0.5"), cwd=REPO,
                             capture_output=True, text=True, timeout=60, env=env)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -106,7 +109,24 @@ def test_demo_runs_and_exits_zero() -> None:
     assert "OPERATION_ENABLED" in lines[-1]
     assert "rovercan demo: done" in result.stdout
     assert "ROS discovery LOCALHOST" in result.stdout  # its graph never multicasts beyond loopback
-    time.sleep(0)
+    assert ("SCHED_FIFO 20" if realtime_allowed() else "ordinary scheduling") in result.stdout.splitlines()[0]
+
+
+@requires_ros
+@pytest.mark.parametrize("enabled", [True, False])
+def test_the_demo_fails_a_drive_that_stopped_during_the_run_and_says_why(enabled: bool,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """An angle that followed is not enough: a drive that stopped itself near the end (the host
+    held past its host timeout) must fail the demo, named with its state."""
+    from rovercan_msgs.msg import MotorState
+
+    from rovercan.cli import EXIT_FAILED, EXIT_OK, _demo_verdict
+
+    state = MotorState(angle=2.9, enabled=enabled, state="OPERATION_ENABLED" if enabled else "SWITCH_ON_DISABLED")
+    assert _demo_verdict(3.0, state) == (EXIT_OK if enabled else EXIT_FAILED)
+    err = capsys.readouterr().err
+    assert ("" if enabled else "ended in SWITCH_ON_DISABLED, not Operation Enabled") in err
+    assert enabled or ("host heartbeat" in err and "CAP_SYS_NICE" in err)
 
 
 def test_sim_on_a_kernel_interface_reports_why_it_cannot() -> None:
