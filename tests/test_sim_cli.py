@@ -17,6 +17,7 @@ import canopen
 import pytest
 
 from can_config import GENERIC_EDS
+from can_config.realtime import DRIVER_PRIORITY
 
 from .conftest import REPO, drain, realtime_allowed, requires_ros
 
@@ -109,7 +110,7 @@ def test_demo_runs_and_exits_zero() -> None:
     assert "OPERATION_ENABLED" in lines[-1]
     assert "rovercan demo: done" in result.stdout
     assert "ROS discovery LOCALHOST" in result.stdout  # its graph never multicasts beyond loopback
-    assert ("SCHED_FIFO 20" if realtime_allowed() else "ordinary scheduling") in result.stdout.splitlines()[0]
+    assert (f"SCHED_FIFO {DRIVER_PRIORITY}" if realtime_allowed() else "ordinary scheduling") in result.stdout.splitlines()[0]
 
 
 @requires_ros
