@@ -26,6 +26,10 @@ class PositionFilter:
         self._last_t = 0.0
         self._suspect: tuple[int, int] | None = None  # (value, samples agreeing since)
         self.implausible = 0
+        #: the position reference: counted up whenever a sample is taken that need not follow from the
+        #: one before (the first after boot or homing, a confirmed jump such as a reboot's): positions of
+        #: two references are never subtracted (odometry, motor_driver/odometry.py)
+        self.reference = 0
         self.accel_counts_s2 = 0.0
         self._accel_from = (0, 0.0)
 
@@ -45,6 +49,7 @@ class PositionFilter:
         last_t = self._last_t
         self._last_t = timestamp
         if not last_t:
+            self.reference += 1
             return True
         limit = self._max_counts_s * 2.0 * max(timestamp - last_t, 0.001) + self._jump_margin_counts
         if abs(value - last) <= limit:
@@ -54,6 +59,7 @@ class PositionFilter:
         if suspect is not None and abs(value - suspect[0]) <= limit:
             if suspect[1] + 1 >= JUMP_CONFIRMATIONS:
                 self._suspect = None
+                self.reference += 1
                 return True  # confirmed
             self._suspect = (value, suspect[1] + 1)
             return False

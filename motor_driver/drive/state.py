@@ -296,7 +296,7 @@ class DriveCache:
             elif index == OD.MODES_OF_OPERATION_DISPLAY:
                 mode = value
         now = time.monotonic()
-        self._rx = Received(sw, mode, position, velocity, torque, timestamp, now)
+        self._rx = Received(sw, mode, position, velocity, torque, timestamp, now, self._positions.reference)
         self._tpdo_count += 1
         if OD.STATUSWORD in layout.indexes:
             self._status_seq += 1
@@ -397,4 +397,4 @@ class DriveCache:
             error_text=emcy_text(error_code) if error_code else "",
             stamp=rx.stamp, heartbeat_age_s=hb_age,
             target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age, stale=stale,
-            foreign_master=foreign_master)
+            foreign_master=foreign_master, reference=rx.reference)

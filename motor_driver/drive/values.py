@@ -41,6 +41,7 @@ class DriveState:
     data_age_s: float = math.inf  # since the last TPDO arrived
     stale: bool = False  # no TPDO for stale_after_syncs SYNC periods: the values above are old
     foreign_master: str = ""  # evidence that another master drives it: commands are refused
+    reference: int = 0  # the position reference (boot, homing, a reboot's jump start a new one)
 
 
 class Received(NamedTuple):
@@ -53,6 +54,7 @@ class Received(NamedTuple):
     torque_permille: float = math.nan
     stamp: float = 0.0  # time.time() of the frame
     rx_monotonic: float = 0.0  # when it arrived
+    reference: int = 0  # the position reference it belongs to (PositionFilter.reference)
 
 
 class StatusSink(Protocol):
