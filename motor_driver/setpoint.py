@@ -17,12 +17,28 @@ at most once, and targets go out in command order.
 
 Owner of its state: this object (``_lock``); :meth:`idle` and :attr:`target` may be read
 from any thread.
+
+The streamed position modes (CSP, IP) have no handshake; their one reference is the last
+set-point, checked for a jump. After a switch into such a mode, the drive holds where its shaft
+was when the switch reached it, so the first set-point is judged from a position sampled after
+the switch (:func:`rebase_after_switch`), not from one read before it: a shaft that kept turning
+meanwhile (coasting after a torque command, a velocity profile still running, a slow SDO) would
+have let a set-point near the old position through and the drive jump back to it, and refused
+one where the drive really is.
 """
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from motor_driver.drive.channel import CommandChannel
+    from motor_driver.drive.state import DriveCache
+
+#: SYNC periods to wait for a position sampled after a mode switch (one more is a bound).
+SAMPLES_AFTER_SWITCH = 3
 
 
 class SetpointHandshake:
@@ -80,3 +96,11 @@ class SetpointHandshake:
         except BaseException:
             self._awaiting = False  # nothing went out: the drive will not acknowledge
             raise
+
+
+def rebase_after_switch(cache: DriveCache, channel: CommandChannel) -> None:
+    """After a switch into a streamed position mode: wait (at most a few SYNC periods) for a
+    position sampled after it, and make that the reference of the first set-point."""
+    seq = cache.position_seq
+    cache.wait_until(lambda: cache.position_seq != seq, SAMPLES_AFTER_SWITCH * cache.sync_period_s + 0.05)
+    channel.forget(cache.position_counts)

@@ -147,6 +147,30 @@ def test_command_position_streams_where_the_config_says_cyclic_and_moves_by_prof
     assert other.snapshot().mode == OperationMode.PROFILE_POSITION
 
 
+def test_the_first_streamed_set_point_after_a_switch_is_judged_from_where_the_drive_holds(
+        driver_factory: DriverFactory) -> None:
+    """The shaft turns on while the switch to CSP is under way (a drive answering SDO in 200 ms,
+    a velocity profile still running; in the kernel tier's VM: a shaft coasting after a torque
+    command). The drive holds where its shaft was when the switch reached it: a set-point at the
+    position read before the switch is a jump back, refused; one where the drive holds is taken."""
+    sim, driver = driver_factory(make_config(1, max_velocity_deg_s=360.0, watchdog_ms=10_000))
+    drive = driver.drive("joint1")
+    drive.enable()
+    stream_until(drive.set_velocity, 180.0, drive.sync_period_s, lambda: drive.snapshot().velocity_deg_s > 150.0,
+                 "the shaft turning at 180 deg/s")
+    runner = sim.simulators["can0"]
+    runner.call(lambda: setattr(runner.drive(1).faults, "sdo_delay_s", 0.2))  # ~36 deg before the drive switches
+    before = drive.snapshot().angle_deg
+    with pytest.raises(CommandRejected, match=r"CSP setpoint jumps .* at most 7\.200 deg per step"):
+        drive.stream_position(before)
+    assert drive.snapshot().mode == OperationMode.CYCLIC_SYNC_POSITION  # switched; nothing streamed
+    runner.call(lambda: setattr(runner.drive(1).faults, "sdo_delay_s", 0.0))
+    held = drive.snapshot().angle_deg
+    assert held - before > 7.2, (before, held)  # where it holds: past one step from where it was
+    stream_until(drive.stream_position, held, drive.sync_period_s, lambda: abs(drive.snapshot().angle_deg - held) < 0.5,
+                 f"the shaft at {held:.2f} deg")
+
+
 if HAVE_ROS:
     import rclpy
     from sensor_msgs.msg import JointState

@@ -28,6 +28,7 @@ from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
 from motor_driver.pdo import PdoPlan
+from motor_driver.setpoint import rebase_after_switch
 from motor_driver.units import check_counts, check_limits, nearest_equivalent, require_finite
 
 logger = logging.getLogger(__name__)
@@ -327,7 +328,11 @@ class Motion:
         target = OD.TARGET_POSITION if mode == OperationMode.CYCLIC_SYNC_POSITION else OD.INTERPOLATION_DATA
         by_sdo = self._plan.rpdo_with(target) is None
         if by_sdo or self._cache.mode_display != mode:  # before an SDO or a mode switch; streaming by RPDO
+            switching = self._cache.mode_display != mode
             self._ensure_mode(mode, doing)  # already, the channel decides busy, enabled and mode with the frame
+            if switching:  # the first set-point: from where the drive holds after the switch (setpoint.py)
+                rebase_after_switch(self._cache, self._channel)
+                counts = self._position_target_counts(angle_deg)
         if by_sdo:
             with self._channel.operation(f"{doing} (target by SDO)") as op:
                 self._check_position_step(counts, max_step_deg)
