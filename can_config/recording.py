@@ -11,7 +11,7 @@ import re
 import sqlite3
 import struct
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -137,6 +137,18 @@ def _sqlite_problem(file: Path) -> str | None:
 
 def read_recording(path: str) -> list[can.Message]:
     """Every frame of a recording, or :class:`ConfigError` naming the file and what is wrong."""
+    frames: list[can.Message] = []
+    for msg in iter_recording(path):
+        if len(frames) == FRAMES_MAX:
+            raise ConfigError(f"{path}: more than {FRAMES_MAX:,} frames; split it first"
+                              " (python -m can.logconvert) or give a shorter recording")
+        frames.append(msg)
+    return frames
+
+
+def iter_recording(path: str) -> Iterator[can.Message]:
+    """The frames of a recording as they are read (any length, in bounded memory), each checked;
+    :class:`ConfigError` naming the file and what is wrong, at the frame where it is found."""
     file = Path(path)
     readers = recording_readers()
     suffix = file.suffix.lower()
@@ -150,23 +162,21 @@ def read_recording(path: str) -> list[can.Message]:
     unsafe = blf_problem(file) if suffix == ".blf" else _sqlite_problem(file) if suffix == ".db" else None
     if unsafe:
         raise ConfigError(f"{path}: not read: {unsafe}")
-    frames: list[can.Message] = []
+    n = 0
     try:
         with readers[suffix](path) as reader:
             for msg in reader:
-                if len(frames) == FRAMES_MAX:
-                    raise ConfigError(f"{path}: more than {FRAMES_MAX:,} frames; split it first"
-                                      " (python -m can.logconvert) or give a shorter recording")
-                frames.append(msg)
+                n += 1
+                if problem := frame_problem(msg):
+                    raise ConfigError(f"{path}: frame {n} of this {suffix} recording is damaged: {problem}")
+                yield msg
+    except ConfigError:
+        raise
     except NotImplementedError as err:  # a reader whose optional package is missing (.mf4: asammdf)
         raise ConfigError(f"{path}: python-can cannot read {suffix} files here ({err})") from err
     except RECORDING_ERRORS as err:
         logger.debug("%s: %s reader: %r", path, suffix, err)  # Python's words for it: not for the user
         raise ConfigError(f"{path}: not a valid {suffix} recording, the file is damaged or of another format"
                           f"{_hint(file, suffix)}") from err
-    if not frames:
+    if not n:
         raise ConfigError(f"{path}: no CAN frames in this {suffix} file")
-    for i, msg in enumerate(frames):
-        if problem := frame_problem(msg):
-            raise ConfigError(f"{path}: frame {i + 1} of this {suffix} recording is damaged: {problem}")
-    return frames

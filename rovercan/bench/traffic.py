@@ -61,7 +61,9 @@ def _field_name(od: ObjectDictionary, index: int, sub: int) -> str:
 
 
 def cmd_monitor(args: argparse.Namespace) -> int:
-
+    if args.foxglove is not None:
+        from rovercan.bench.views import monitor_foxglove
+        return monitor_foxglove(args)
     layouts = pdo_layouts_for(args)
     bus = open_bus(args)
     print(f"rovercan monitor: listening on {bus.channel_info}", file=sys.stderr, flush=True)
@@ -97,20 +99,23 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
+    from rovercan.bench.views import open_buses, read_buses, record_mcap
+
+    if Path(args.file).suffix.lower() == ".mcap":
+        return record_mcap(args)
     check_recording_target(args.file)
-    bus = open_bus(args)
-    print(f"rovercan record: recording {bus.channel_info} to {args.file}", file=sys.stderr, flush=True)
+    buses = open_buses(args)
+    print(f"rovercan record: recording {', '.join(name for name, _ in buses)} to {args.file}", file=sys.stderr,
+          flush=True)
     n = 0
     with StopSignal() as stop, can.Logger(args.file) as logger:
-        try:
-            end = time.monotonic() + args.seconds if args.seconds else math.inf
-            while not stop.event.is_set() and time.monotonic() < end:
-                msg = receive(bus, 0.2)
-                if msg is not None:
-                    logger(msg)
-                    n += 1
-        finally:
-            bus.shutdown()
+        for name, got in read_buses(buses, stop.event, args.seconds):
+            msg = got if len(buses) == 1 else can.Message(  # which bus, in a file of several
+                timestamp=got.timestamp, arbitration_id=got.arbitration_id, data=got.data, dlc=got.dlc,
+                is_extended_id=got.is_extended_id, is_remote_frame=got.is_remote_frame,
+                is_error_frame=got.is_error_frame, is_rx=got.is_rx, channel=name)
+            logger(msg)
+            n += 1
     print(f"rovercan record: {n} frames to {args.file}", file=sys.stderr)
     return 0
 
@@ -173,6 +178,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
+    if args.output:
+        from rovercan.bench.views import decode_mcap
+        return decode_mcap(args)
     frames = read_recording(args.file)
     layouts = pdo_layouts_for(args)
     n = 0
@@ -237,6 +245,15 @@ def _decoding_args(parser: argparse.ArgumentParser) -> None:
     add_json(parser)
 
 
+def add_foxglove_args(parser: argparse.ArgumentParser) -> None:
+    """``--foxglove PORT`` and its address (monitor, sim, launch)."""
+    parser.add_argument("--foxglove", type=whole(0, 65535), metavar="PORT", default=None,
+                        help="serve the frames and, with --config, every drive decoded over the Foxglove WebSocket"
+                             " protocol on PORT (open ws://127.0.0.1:PORT in Foxglove)")
+    parser.add_argument("--foxglove-host", default="127.0.0.1", metavar="ADDRESS",
+                        help="the address it is served on (default 127.0.0.1: this machine only)")
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """The traffic commands' parsers."""
     p = sub.add_parser("monitor", help="live CANopen-decoded traffic")
@@ -245,11 +262,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--table", action="store_true", help="a per-node table at the end instead of lines")
     p.add_argument("--seconds", type=real(0, 1e6), default=0.0, help="stop after S seconds (default: Ctrl+C)")
     _decoding_args(p)
+    add_foxglove_args(p)
     p.set_defaults(func=cmd_monitor)
 
-    p = sub.add_parser("record", help="record the bus to a python-can log (.log .asc .blf .trc .csv)")
+    p = sub.add_parser("record", help="record the bus to a file: .mcap (ROS 2 messages, with --config every drive"
+                       " decoded) or a python-can log (.log .asc .blf .trc .csv)")
     p.add_argument("file")
     add_bus_args(p)
+    p.add_argument("--config", help="record every bus of this config (-c BUS: one), and with .mcap decode its drives")
     p.add_argument("--seconds", type=real(0, 1e6), default=0.0, help="stop after S seconds (default: Ctrl+C)")
     p.set_defaults(func=cmd_record)
 
@@ -266,6 +286,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p = sub.add_parser("decode", help="CANopen-decoded transcript of a recording")
     p.add_argument("file")
     p.add_argument("--node", type=whole(1, 127), help="only this node")
+    p.add_argument("-o", "--output", metavar="OUT.mcap",
+                   help="write the recording as ROS 2 messages to OUT.mcap (with --config every drive decoded)")
     _decoding_args(p)
     p.set_defaults(func=cmd_decode)
 

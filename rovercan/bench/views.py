@@ -1,0 +1,275 @@
+"""The bus as ROS 2 messages on the bench: ``record FILE.mcap``, ``decode FILE -o OUT.mcap`` and the
+live Foxglove view (``monitor --foxglove PORT``, also started by ``sim`` and ``launch``).
+
+The messages are :class:`motor_driver.busview.BusView`'s; this module opens the buses (every bus
+of ``--config`` unless ``-c`` or bus arguments name one), reads them (a thread per bus, each
+frame handed to the command's thread through a queue) and serves or writes what the view makes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import math
+import queue
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+
+from can_config import load_config
+from can_config.errors import BusLostError, ConfigError
+from can_config.model import RoverConfig
+from can_config.recording import iter_recording
+from can_config.stop import StopSignal
+from motor_driver.busview import BusView, Frame, view_drives
+from motor_driver.driver import open_bus as driver_open_bus
+from motor_driver.ros2defs import schema_text
+from rovercan.bench.common import connect_timeout, open_bus, receive
+
+logger = logging.getLogger(__name__)
+
+#: The live view's address unless told otherwise: this machine only.
+FOXGLOVE_HOST = "127.0.0.1"
+#: A bus's reader thread hands over at most this many frames not yet taken (a stalled writer
+#: loses the newest, never the process's memory).
+QUEUE_FRAMES = 100_000
+#: The live view's server starts, or stops, within this long.
+FOXGLOVE_START_S = 10.0
+
+
+def open_buses(args: argparse.Namespace) -> list[tuple[str, can.BusABC]]:
+    """(name, bus) of every bus a command reads: the one the bus arguments or ``-c`` name, else
+    with ``--config`` every bus of it."""
+    if getattr(args, "interface", None) is None and getattr(args, "config", None) and not getattr(args, "channel", None):
+        config = load_config(args.config)
+        opened: list[tuple[str, can.BusABC]] = []
+        try:
+            for bus_config in config.buses:
+                opened.append((bus_config.name, driver_open_bus(bus_config.bus_kwargs(), connect_timeout(args))))
+        except BaseException:
+            for _, each in opened:
+                each.shutdown()
+            raise
+        return opened
+    one = open_bus(args)
+    return [(str(getattr(args, "channel", None) or one.channel_info), one)]
+
+
+def frame_of(msg: can.Message, bus: str) -> Frame:
+    return (msg.timestamp or time.time(), bus, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+            msg.is_error_frame, msg.dlc, bytes(msg.data))
+
+
+def read_buses(buses: list[tuple[str, can.BusABC]], stop: threading.Event, seconds: float = 0.0
+               ) -> Iterator[tuple[str, can.Message]]:
+    """Every frame of ``buses`` as it comes, until ``stop`` is set or ``seconds`` have passed; a
+    bus lost ends it with :class:`BusLostError`. The buses are shut down at the end."""
+    frames: queue.Queue[tuple[str, can.Message | BaseException]] = queue.Queue(QUEUE_FRAMES)
+    done = threading.Event()
+
+    def reader(name: str, bus: can.BusABC) -> None:
+        try:
+            while not done.is_set():
+                msg = receive(bus, 0.2)
+                if msg is not None:
+                    try:
+                        frames.put_nowait((name, msg))
+                    except queue.Full:
+                        logger.warning("%s: frames not taken in time; one dropped", name)
+        except (BusLostError, can.CanError, OSError) as err:
+            frames.put((name, err))
+
+    threads = [threading.Thread(target=reader, args=item, daemon=True, name=f"rovercan-read-{item[0]}")
+               for item in buses]
+    for thread in threads:
+        thread.start()
+    end = time.monotonic() + seconds if seconds else math.inf
+    try:
+        while not stop.is_set() and time.monotonic() < end:
+            try:
+                name, item = frames.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if isinstance(item, BaseException):
+                raise item
+            yield name, item
+    finally:
+        done.set()
+        for thread in threads:
+            thread.join(timeout=2.0)
+        for _, bus in buses:
+            bus.shutdown()
+
+
+def config_of(args: argparse.Namespace) -> RoverConfig | None:
+    return load_config(args.config) if getattr(args, "config", None) else None
+
+
+def record_mcap(args: argparse.Namespace) -> int:
+    """``rovercan record FILE.mcap``: frames and, with --config, every drive decoded."""
+    from motor_driver.mcap_out import McapSink
+
+    config = config_of(args)
+    buses = open_buses(args)
+    names = ", ".join(name for name, _ in buses)
+    print(f"rovercan record: recording {names} to {args.file}", file=sys.stderr, flush=True)
+    n = 0
+    with StopSignal() as stop, McapSink(args.file, {"command": "rovercan record", "buses": names,
+                                                      "config": str(args.config or "")}) as sink:
+        view = BusView(view_drives(config) if config else [], sink)
+        try:
+            for name, msg in read_buses(buses, stop.event, args.seconds):
+                view.feed(frame_of(msg, name))
+                n += 1
+        finally:
+            view.finish()
+    print(f"rovercan record: {n} frames to {args.file}", file=sys.stderr)
+    return 0
+
+
+def recording_frames(path: str, config: RoverConfig | None) -> Iterator[Frame]:
+    """A recording's frames, read as they come, each given its bus: a channel that names a bus of
+    the config (its name or channel, or the number of its channel), else the config's first bus."""
+    buses = config.buses if config else ()
+    default = buses[0].name if buses else "can0"
+    by_channel: dict[object, str] = {}
+    for bus in buses:
+        by_channel.update({bus.name: bus.name, bus.channel: bus.name})
+        digits = "".join(c for c in bus.channel if c.isdigit())
+        if digits:
+            by_channel.setdefault(int(digits), bus.name)
+    for msg in iter_recording(path):
+        yield frame_of(msg, by_channel.get(msg.channel, default) if msg.channel is not None else default)
+
+
+def decode_mcap(args: argparse.Namespace) -> int:
+    """``rovercan decode FILE -o OUT.mcap``: the recording as ROS 2 messages."""
+    from motor_driver.mcap_out import write_mcap
+
+    if Path(args.output).suffix.lower() != ".mcap":
+        raise ConfigError(f"-o {args.output}: decode writes .mcap files; name it OUT.mcap")
+    config = config_of(args)
+    n = write_mcap(args.output, recording_frames(args.file, config), config,
+                   {"command": "rovercan decode", "source": str(args.file), "config": str(args.config or "")})
+    print(f"rovercan decode: {n} frames to {args.output}", file=sys.stderr)
+    return 0
+
+
+class FoxgloveSink:
+    """The view's channels served over the Foxglove WebSocket protocol (subprotocol
+    ``foxglove.websocket.v1``, the foxglove-websocket server: foxglove-sdk's speaks only its newer
+    ``foxglove.sdk.v1`` and refuses a client of the first), each advertised from the start; a
+    message is encoded only while a client subscribes to its channel. The server runs on an event
+    loop of its own thread (``rovercan-foxglove``); the caller's thread hands messages to it."""
+
+    def __init__(self, channels: list[tuple[str, str]], host: str, port: int) -> None:
+        try:
+            from foxglove_websocket.server import FoxgloveServer
+            from mcap_ros2._dynamic import serialize_dynamic
+        except ImportError as err:
+            raise ConfigError(f"--foxglove needs {err.name}: pip install 'rovercan[cli]' (./dev setup does)") from err
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, daemon=True, name="rovercan-foxglove")
+        self._thread.start()
+        self._encoders: dict[str, Callable[[Any], bytes]] = {}
+        self._subscribed: set[int] = set()  # the loop's thread writes it (one add or discard each)
+
+        async def start() -> tuple[Any, dict[str, int], int]:
+            server = FoxgloveServer(host, port, "rovercan", supported_encodings=["cdr"], logger=logger)
+            server.set_listener(_Subscriptions(self._subscribed))
+            server.start()
+            opened = asyncio.ensure_future(server.wait_opened())
+            await asyncio.wait([opened, server._task], timeout=FOXGLOVE_START_S, return_when=asyncio.FIRST_COMPLETED)
+            if not opened.done():
+                opened.cancel()
+                err = server._task.exception() if server._task.done() else TimeoutError("no answer")
+                raise ConfigError(f"--foxglove {port}: cannot serve on {host}:{port} ({err}); pick a free port")
+            ids = {}
+            for topic, type_name in channels:
+                ids[topic] = await server.add_channel({"topic": topic, "encoding": "cdr", "schemaName": type_name,
+                                                       "schema": schema_text(type_name), "schemaEncoding": "ros2msg"})
+            return server, ids, int(opened.result().sockets[0].getsockname()[1])
+
+        try:
+            self._server, self._ids, self.port = asyncio.run_coroutine_threadsafe(start(), self._loop).result()
+        except BaseException:
+            self._stop_loop()
+            raise
+        self._encoders = {topic: serialize_dynamic(type_name, schema_text(type_name))[type_name]
+                          for topic, type_name in channels}
+
+    def __call__(self, topic: str, type_name: str, message: dict[str, Any], time_ns: int) -> None:
+        chan = self._ids[topic]
+        if chan in self._subscribed:
+            data = self._encoders[topic](message)
+            asyncio.run_coroutine_threadsafe(self._server.send_message(chan, time_ns, data), self._loop)
+
+    def close(self) -> None:
+        async def stop() -> None:
+            self._server.close()
+            await self._server.wait_closed()
+
+        try:
+            asyncio.run_coroutine_threadsafe(stop(), self._loop).result(timeout=FOXGLOVE_START_S)
+        finally:
+            self._stop_loop()
+
+    def _stop_loop(self) -> None:
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=FOXGLOVE_START_S)
+        if not self._thread.is_alive():
+            self._loop.close()
+
+
+class _Subscriptions:
+    """The server's listener: which channels some client subscribes to (the loop's thread)."""
+
+    def __init__(self, subscribed: set[int]) -> None:
+        self._subscribed = subscribed
+
+    def on_subscribe(self, server: Any, channel_id: int) -> None:
+        self._subscribed.add(channel_id)
+
+    def on_unsubscribe(self, server: Any, channel_id: int) -> None:
+        self._subscribed.discard(channel_id)
+
+
+def _nowhere(topic: str, type_name: str, message: dict[str, Any], time_ns: int) -> None:
+    """An emit that keeps nothing (a view asked only for its channels)."""
+
+
+def serve_view(buses: list[tuple[str, can.BusABC]], config: RoverConfig | None, host: str, port: int,
+               stop: threading.Event, seconds: float = 0.0, say: Callable[[str], None] | None = None) -> int:
+    """Serve the view of ``buses`` until ``stop``; returns the frames seen."""
+    drives = view_drives(config) if config else []
+    sink = FoxgloveSink(BusView(drives, _nowhere).channels(), host, port)
+    view = BusView(drives, sink)
+    if say:
+        say(f"Foxglove WebSocket on ws://{host}:{sink.port}: {len(view.channels())} channels"
+            f" ({', '.join(name for name, _ in buses)}); open it in Foxglove with the layout"
+            " docs/foxglove/rover_drives.json")
+    n = 0
+    try:
+        for name, msg in read_buses(buses, stop, seconds):
+            view.feed(frame_of(msg, name))
+            n += 1
+    finally:
+        sink.close()
+    return n
+
+
+def monitor_foxglove(args: argparse.Namespace) -> int:
+    """``rovercan monitor --foxglove PORT``: the live view instead of printed lines."""
+    config = config_of(args)
+    buses = open_buses(args)
+    with StopSignal() as stop:
+        n = serve_view(buses, config, args.foxglove_host, args.foxglove, stop.event, args.seconds,
+                       lambda text: print(f"rovercan monitor: {text}", file=sys.stderr, flush=True))
+    print(f"rovercan monitor: {n} frames", file=sys.stderr)
+    return 0
