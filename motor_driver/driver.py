@@ -38,7 +38,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import can
@@ -208,12 +208,17 @@ class MotorDriver(Supervision):
         return dict(self._handles)
 
     # ------------------------------------------------------------------ shutdown
-    def safe_stop(self) -> None:
-        """Quick-stop and disable every drive that is powered (errors are collected, not lost)."""
-        errors: list[str] = []
-        for drive in self.drives.values():
+    def safe_stop(self, drives: Iterable[Drive] | None = None) -> list[str]:
+        """The one safe stop, for every caller (this driver's close, the lifecycle node's
+        deactivate, the /disarm service): each powered drive of ``drives`` (default: all)
+        quick-stopped if Operation Enabled, then its voltage disabled (Switch On Disabled, no
+        torque), whatever the others did. A drive lost after its boot gets one last stop it need
+        not answer. Returns what was not confirmed, one line a drive (empty: every drive is safe)."""
+        unconfirmed: list[str] = []
+        for drive in self.drives.values() if drives is None else drives:
             if drive.lost and drive.booted:
                 drive.watch.lost_while_closing()  # unheard, maybe turning: one last stop it needs not answer
+                unconfirmed.append(f"{drive.name}: lost; a last quick stop was sent, unanswered")
                 continue
             if drive.lost or not drive.booted:
                 continue
@@ -222,9 +227,9 @@ class MotorDriver(Supervision):
                     drive.quick_stop()
                 drive.disable_voltage()
             except MotorError as err:
-                errors.append(str(err))
-        for message in errors:
-            logger.error("safe stop: %s", message)
+                unconfirmed.append(str(err))
+                logger.error("safe stop: %s", err)
+        return unconfirmed
 
     def close(self) -> None:
         """Quick stop + disable drives, stop SYNC, stop threads, close buses. Idempotent."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Mapping
 from typing import Any
 
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
@@ -23,7 +24,7 @@ from rclpy.task import Future
 from rovercan_msgs.action import Home, MoveJoint
 
 from can_config.errors import RovercanError
-from motor_driver import MotorDriver
+from motor_driver import Drive, MotorDriver
 from nodes import runtime
 
 logger = logging.getLogger(__name__)
@@ -37,9 +38,10 @@ TARGET_WINDOW_DEG = 0.5
 
 
 class DriverActionsNode(Node):
-    def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
+    def __init__(self, driver: MotorDriver, drives: Mapping[str, Drive] | None = None, **kwargs: Any) -> None:
         super().__init__("rovercan_driver_actions", **kwargs)
         self.driver = driver
+        self.drives = dict(driver.drives) if drives is None else drives  # the joints it takes goals for
         group = ReentrantCallbackGroup()
         self._home = ActionServer(self, Home, "home_joint", execute_callback=self._execute_home,
                                   goal_callback=self._known_joint, cancel_callback=self._accept_cancel,
@@ -69,8 +71,8 @@ class DriverActionsNode(Node):
         super().destroy_node()
 
     def _known_joint(self, goal: Any) -> GoalResponse:
-        if goal.joint not in self.driver.drives:
-            logger.warning("goal for unknown joint %r refused; joints: %s", goal.joint, list(self.driver.drives))
+        if goal.joint not in self.drives:
+            logger.warning("goal for unknown joint %r refused; joints: %s", goal.joint, list(self.drives))
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
@@ -79,7 +81,7 @@ class DriverActionsNode(Node):
         return CancelResponse.ACCEPT
 
     def _finish(self, goal: Any, result: Any, joint: str, success: bool, message: str) -> Any:
-        state = self.driver.drive(joint).snapshot()
+        state = self.drives[joint].snapshot()
         result.success, result.message = success, message
         result.angle, result.state = float(state.angle_deg), state.state.name
         if goal.is_cancel_requested:
@@ -92,7 +94,7 @@ class DriverActionsNode(Node):
 
     async def _execute_move(self, goal: Any) -> Any:
         request = goal.request
-        drive = self.driver.drive(request.joint)
+        drive = self.drives[request.joint]
         feedback = MoveJoint.Feedback()
         try:
             if request.speed_deg_s > 0:
@@ -121,7 +123,7 @@ class DriverActionsNode(Node):
 
     async def _execute_home(self, goal: Any) -> Any:
         joint = goal.request.joint
-        drive = self.driver.drive(joint)
+        drive = self.drives[joint]
         failure: list[str] = []
 
         def run() -> None:

@@ -1,17 +1,25 @@
-"""The driver's services as two nodes, each on an executor thread of its own: the stops
-(``quick_stop``, ``disable``, ``halt`` per drive, ``disarm`` for the whole rover), which answer
-at once whatever else runs, and the rest (``enable``, ``recover``, ``home``, ``set_mode``, SDO
-read and write per drive, ``arm`` for the whole rover), which block for up to seconds. A slow
-service never delays a topic, and never a stop: a stop preempts the operation it interrupts in
-the driver (the command channel) and must not queue behind it in ROS either.
+"""The driver's services as two nodes, each on an executor of its own (nodes/assembly.py): the
+stops (``quick_stop``, ``disable``, ``halt`` per drive, ``disarm`` for the whole rover), which
+answer at once whatever else runs, and the rest (``enable``, ``recover``, ``home``, ``set_mode``,
+SDO read and write per drive, ``arm`` for the whole rover), which block for up to seconds (homing:
+up to ``homing_timeout_s``). A slow service never delays a topic, and never a stop: a stop
+preempts the operation it interrupts in the driver (the command channel) and must not queue
+behind it in ROS either.
+
+The services that wait are in one callback group per joint and one for the rover's ``arm``
+(:attr:`DriverServicesNode.groups`), on a multi-threaded executor with a thread per group: a
+joint's calls wait for that joint's long operation only, never for another joint's. Two calls
+on one joint are taken one after the other; the driver refuses at once an operation on a drive
+busy with another (``arm`` reports a homing drive as busy, and enables the others).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from struct import error as struct_error
 from typing import Any
 
+from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rovercan_msgs.srv import SdoRead, SdoWrite, SetMode
 from std_srvs.srv import Trigger
@@ -23,77 +31,93 @@ from motor_driver import Drive, MotorDriver
 SERVICE_JOIN_S = 5.0  # longest a service callback may take to notice the driver is closed
 
 
-def trigger(driver: MotorDriver, joint: str, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
+def trigger(drive: Drive, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
     """A std_srvs/Trigger callback that runs ``action`` and says what happened."""
     def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             action()
-            response.success, response.message = True, f"{joint}: {service} done; state {driver.drives[joint].state.name}"
+            response.success, response.message = True, f"{drive.name}: {service} done; state {drive.state.name}"
         except RovercanError as err:
             response.success, response.message = False, str(err)
         except Exception as err:
-            response.success, response.message = False, f"{joint}: {service} failed unexpectedly: {err!r}"
+            response.success, response.message = False, f"{drive.name}: {service} failed unexpectedly: {err!r}"
         return response
     return call
 
 
-def every_drive(driver: MotorDriver, service: str, action: Callable[[Drive], object]) -> Callable[[Any, Any], Any]:
-    """A std_srvs/Trigger callback that runs ``action`` on every drive, each whatever the others
-    did, and says which failed (success only when none did)."""
+def answer(response: Trigger.Response, service: str, failed: list[str], drives: Mapping[str, Drive]) -> Trigger.Response:
+    """``response`` for a whole-rover service: success only when nothing failed, the failures
+    named, and every drive's state."""
+    states = ", ".join(f"{d.name} {d.state.name}" for d in drives.values())
+    response.success = not failed
+    response.message = f"{service}: {'; '.join(failed)}; now {states}" if failed else f"{service} done: {states}"
+    return response
+
+
+def arm(drives: Mapping[str, Drive]) -> Callable[[Any, Any], Any]:
+    """/arm: enable every drive, each whatever the others did; a drive busy (homing) is refused at
+    once and named."""
     def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         failed = []
-        for drive in driver:
+        for drive in drives.values():
             try:
-                action(drive)
+                drive.enable()
             except RovercanError as err:
                 failed.append(str(err))
             except Exception as err:
-                failed.append(f"{drive.name}: {service} failed unexpectedly: {err!r}")
-        states = ", ".join(f"{d.name} {d.state.name}" for d in driver)
-        response.success = not failed
-        response.message = (f"{service}: {'; '.join(failed)}; now {states}" if failed
-                            else f"{service} done: {states}")
-        return response
+                failed.append(f"{drive.name}: arm failed unexpectedly: {err!r}")
+        return answer(response, "arm", failed, drives)
     return call
 
 
-def disarm(drive: Drive) -> None:
-    """Quick stop (the drive decelerates on its own ramp), then disable: no torque."""
-    drive.quick_stop()
-    drive.disable()
+def disarm(driver: MotorDriver, drives: Mapping[str, Drive]) -> Callable[[Any, Any], Any]:
+    """/disarm: the driver's one safe stop (:meth:`MotorDriver.safe_stop`: quick stop, then
+    disable voltage, no torque) on every drive, each whatever the others did."""
+    def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            failed = driver.safe_stop(drives.values())
+        except Exception as err:
+            failed = [f"disarm failed unexpectedly: {err!r}"]
+        return answer(response, "disarm", failed, drives)
+    return call
 
 
 class DriverStopsNode(Node):
-    """The per-drive stops (``quick_stop``, ``disable``, ``halt``) and ``disarm`` (every drive
-    quick-stopped, then disabled), in a node of their own on an executor thread of their own
-    (see main): nothing but another stop is ever ahead of one."""
+    """The per-drive stops (``quick_stop``, ``disable``, ``halt``) and ``disarm`` (the driver's
+    safe stop on every drive), in a node of their own on an executor thread of their own
+    (nodes/assembly.py): nothing but another stop is ever ahead of one."""
 
-    def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
+    def __init__(self, driver: MotorDriver, drives: Mapping[str, Drive] | None = None, **kwargs: Any) -> None:
         super().__init__("rovercan_driver_stops", **kwargs)
-        for name, drive in driver.drives.items():
+        drives = dict(driver.drives) if drives is None else drives
+        for drive in drives.values():
             base = drive.config.ros_prefix
             for service, action in (("quick_stop", drive.quick_stop), ("disable", drive.disable),
                                     ("halt", drive.halt)):
-                self.create_service(Trigger, f"{base}/{service}", trigger(driver, name, service, action))
-        self.create_service(Trigger, "disarm", every_drive(driver, "disarm", disarm))
+                self.create_service(Trigger, f"{base}/{service}", trigger(drive, service, action))
+        self.create_service(Trigger, "disarm", disarm(driver, drives))
 
 
 class DriverServicesNode(Node):
-    """The per-drive services that wait (``enable``, ``recover``, ``home``, set mode, SDO), in a
-    node of their own: they block for up to seconds, so they run on their own executor thread
-    while topics, timers and the stops stay on theirs (see main)."""
+    """The per-drive services that wait (``enable``, ``recover``, ``home``, set mode, SDO) and the
+    rover's ``arm``, in a node of their own, each joint's in a callback group of its own
+    (:attr:`groups`; the module docstring says why)."""
 
-    def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
+    def __init__(self, driver: MotorDriver, drives: Mapping[str, Drive] | None = None, **kwargs: Any) -> None:
         super().__init__("rovercan_driver_services", **kwargs)
         self.driver = driver
-        self.create_service(Trigger, "arm", every_drive(driver, "arm", lambda drive: drive.enable()))
-        for name, drive in driver.drives.items():
+        drives = dict(driver.drives) if drives is None else drives
+        #: the callback group of each joint, and of the whole rover's services (key ``""``)
+        self.groups: dict[str, CallbackGroup] = {"": MutuallyExclusiveCallbackGroup()}
+        self.create_service(Trigger, "arm", arm(drives), callback_group=self.groups[""])
+        for name, drive in drives.items():
+            group = self.groups[name] = MutuallyExclusiveCallbackGroup()
             base = drive.config.ros_prefix
             for service, action in (("enable", drive.enable), ("recover", drive.recover), ("home", drive.home)):
-                self.create_service(Trigger, f"{base}/{service}", trigger(driver, name, service, action))
-            self.create_service(SetMode, f"{base}/set_mode", self._set_mode(drive))
-            self.create_service(SdoRead, f"{base}/sdo_read", self._sdo_read(drive))
-            self.create_service(SdoWrite, f"{base}/sdo_write", self._sdo_write(drive))
+                self.create_service(Trigger, f"{base}/{service}", trigger(drive, service, action), callback_group=group)
+            self.create_service(SetMode, f"{base}/set_mode", self._set_mode(drive), callback_group=group)
+            self.create_service(SdoRead, f"{base}/sdo_read", self._sdo_read(drive), callback_group=group)
+            self.create_service(SdoWrite, f"{base}/sdo_write", self._sdo_write(drive), callback_group=group)
 
     def _set_mode(self, drive: Drive) -> Callable[[Any, Any], Any]:
         def call(request: SetMode.Request, response: SetMode.Response) -> SetMode.Response:

@@ -1,6 +1,9 @@
 """Every ROS parameter of the rovercan nodes, declared in one place with a description and a range.
 
-Values come from ``config/rovercan.params.yaml`` (``--ros-args --params-file``) or ``-p``.
+Values come from ``config/rovercan.params.yaml`` (``--ros-args --params-file``) or ``-p``. A
+parameter read once at start (the config, the executor, the scheduling, what the node is made
+of) is declared read-only: a set at run time is refused, the reason naming what to do (restart
+with the new value); the others take effect when set.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ class Param:
     description: str
     low: float | None = None
     high: float | None = None
+    at_start: bool = True  #: read once at start: read-only (a set at run time is refused)
 
 
 PARAMS: dict[str, Param] = {
@@ -28,9 +32,12 @@ PARAMS: dict[str, Param] = {
     "arm": Param(False, "enable every drive at start; off by default: arming is an explicit act"),
     "drive_system": Param(True, "run the config's drive_system (/cmd_vel -> wheels -> /odom); false: leave the"
                                 " wheels to another (ros2_control's diff_drive_controller)"),
-    "default_joint": Param("", "joint served on /motor_degree_cmd and /motor_state; empty: the first drive"),
-    "state_rate_hz": Param(50.0, "rate of MotorState and /joint_states", 1.0, 500.0),
-    "diagnostics_rate_hz": Param(1.0, "rate of /diagnostics", 0.1, 10.0),
+    "default_joint": Param("", "joint that /motor_degree_cmd moves and /motor_state reports (the team's demo topics);"
+                               " empty: none (the topics are not served)"),
+    "joint": Param("", "motor_controller: the one joint it serves, on /motor_degree_cmd and /motor_state too"),
+    "state_rate_hz": Param(50.0, "rate of MotorState and /joint_states; set at run time: takes effect unless the"
+                                 " drive system's control loop shares the timer", 1.0, 500.0, at_start=False),
+    "diagnostics_rate_hz": Param(1.0, "rate of /diagnostics", 0.1, 10.0, at_start=False),
     "state_qos_depth": Param(10, "keep-last depth of the reliable state topics (MotorState, /joint_states, /odom),"
                                  " 1 to 1000"),
     "autostart": Param(False, "rover_lifecycle: configure and activate at start (the demo); off: a lifecycle"
@@ -44,10 +51,16 @@ PARAMS: dict[str, Param] = {
 }
 
 
+#: Why a parameter read once at start refuses a set at run time (rclpy says "read-only" and this).
+AT_START = "read once at start: restart the node with the new value (-p NAME:=VALUE or --params-file)"
+
+
 def declare(node: Node, *names: str) -> None:
     for name in names:
         spec = PARAMS[name]
-        descriptor = ParameterDescriptor(description=spec.description)
+        descriptor = ParameterDescriptor(description=spec.description, read_only=spec.at_start)
+        if spec.at_start:
+            descriptor.additional_constraints = AT_START
         if spec.low is not None and spec.high is not None:
             descriptor.floating_point_range = [FloatingPointRange(from_value=spec.low, to_value=spec.high)]
         node.declare_parameter(name, spec.default, descriptor)

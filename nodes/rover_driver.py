@@ -10,11 +10,13 @@ All drives: /joint_states (rad, rad/s, Nm), /joint_commands (sensor_msgs/JointSt
 /diagnostics; actions home_joint (rovercan_msgs/Home) and move_joint (MoveJoint) with
 feedback and cancel (nodes/actions.py). The default joint also serves the team's /motor_degree_cmd and /motor_state.
 With a ``drive_system`` in the config, ``drive_system`` takes /cmd_vel and publishes /odom.
+The demo topics /motor_degree_cmd and /motor_state are served for ``default_joint`` only when
+it is set: the team's demo publisher moves no joint on a guess.
 
-Executors, by measurement (README): two single-threaded executors, a hot one for commands,
-state and the drive system (small wait set: every wake-up rebuilds it in Python) and a cold
-one, on its own thread, for the services, which block for up to seconds (enable, home); the
-actions on one of their own (their goals are coroutines: nodes/actions.py).
+The process (executors, callback groups, start order, safe stop) is assembled in
+:mod:`nodes.assembly`, the same for every entry point: four executors, the hot one for commands,
+state and the drive system, one for the stops, one for the services that wait (a callback group
+per joint: one joint's homing holds no other joint's services) and one for the actions.
 
 What lives where: this module (the joints' topics, ``main``), :mod:`nodes.driver_services`
 (services), :mod:`nodes.drive_system` (/cmd_vel), :mod:`nodes.refusals` (shared helpers).
@@ -28,25 +30,20 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.executors import Executor
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rovercan_msgs.msg import MotorState
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32
 
-from can_config import heap, load_config
 from can_config.errors import RovercanError
 from can_config.stop import StopSignal
 from motor_driver import Drive, MotorDriver
 from motor_driver.health import bus_health, drive_health
 from nodes import runtime
-from nodes.actions import DriverActionsNode
-from nodes.drive_system import DriveSystemNode
-from nodes.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStopsNode
-from nodes.logbridge import bridge_core_logging, unbridge
-from nodes.motor_controller import fill_motor_state
+from nodes.messages import fill_motor_state
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
@@ -55,42 +52,69 @@ T = TypeVar("T")
 
 
 class DriverNode(Node):
-    """Topics, services and diagnostics of every drive of a :class:`MotorDriver`."""
+    """Topics and diagnostics of the drives of a :class:`MotorDriver`: every drive, or the
+    ``joints`` named (``motor_controller``: one)."""
 
-    def __init__(self, driver: MotorDriver, **kwargs: Any) -> None:
-        super().__init__("rovercan_driver", **kwargs)
+    def __init__(self, driver: MotorDriver, name: str = "rovercan_driver", joints: Sequence[str] | None = None,
+                 **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
         declare(self, "config", "executor", "realtime_priority", "arm", "drive_system", "default_joint", "state_rate_hz",
                 "diagnostics_rate_hz", "state_qos_depth")
         self.driver = driver
+        self.drives = served(driver, joints)
         self._state_qos = state_qos(qos_depth(self))
         self.refusals = RefusalLog(self.get_logger().warning)
         self._states: dict[str, MotorState] = {}
         self._state_pubs: dict[str, Any] = {}
-        joints = list(driver.drives)
-        default = str(self.get_parameter("default_joint").value) or joints[0]
-        if default not in driver.drives:
-            raise RovercanError(f"default_joint {default!r} is not a configured joint; joints: {joints}")
-        for name, drive in driver.drives.items():
-            self._add_drive(name, drive)
+        default = str(self.get_parameter("default_joint").value)
+        if default and default not in self.drives:
+            raise RovercanError(f"parameter default_joint = {default!r}: not a joint of this node; joints:"
+                                f" {list(self.drives)}; set -p default_joint:=<joint>, or leave it empty (no demo topics)")
+        for joint, drive in self.drives.items():
+            self._add_drive(joint, drive)
         self._default = default
-        self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", self._state_qos,
-                                                     event_callbacks=NO_PUB_EVENTS)
-        self.create_subscription(Float32, "/motor_degree_cmd", self._on_degree(default), SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
+        self._demo_state_pub = None
+        if default:  # the team's demo topics, for the joint named: never for a guessed one
+            self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", self._state_qos,
+                                                         event_callbacks=NO_PUB_EVENTS)
+            self.create_subscription(Float32, "/motor_degree_cmd", self._on_degree(default), SETPOINT_QOS,
+                                     event_callbacks=NO_SUB_EVENTS)
         self._joint_pub = self.create_publisher(JointState, "/joint_states", self._state_qos, event_callbacks=NO_PUB_EVENTS)
         self.create_subscription(JointState, "/joint_commands", self._on_joint_commands, SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=NO_PUB_EVENTS)
         self.state_period_s = 1.0 / float(self.get_parameter("state_rate_hz").value)
         self._tick_hooks: list[Callable[[], None]] = []
-        self.create_timer(self.state_period_s, self._tick)
-        self.create_timer(1.0 / float(self.get_parameter("diagnostics_rate_hz").value), self._publish_diagnostics)
+        self._state_timer = self.create_timer(self.state_period_s, self._tick)
+        self._diag_timer = self.create_timer(1.0 / float(self.get_parameter("diagnostics_rate_hz").value),
+                                             self._publish_diagnostics)
+        self.add_on_set_parameters_callback(self._may_set)
+        self.add_post_set_parameters_callback(self._apply_set)
 
     def arm_if_asked(self) -> None:
         """Enable every drive when the ``arm`` parameter says so. Called once every node and
         entity exists: creating ROS entities holds the interpreter (C++ under the GIL), and
         the drives watch the driver's heartbeat from the moment they are armed."""
         if self.get_parameter("arm").value:
-            for drive in self.driver:
-                self._guard(drive.name, "arm", drive.enable)
+            for name, drive in self.drives.items():
+                self._guard(name, "arm", drive.enable)
+
+    # --------------------------------------------------------------------- parameters set at run time
+    def _may_set(self, params: list[Parameter]) -> SetParametersResult:
+        """Those read once at start are read-only (rclpy refuses them first: nodes/params.py); the
+        state rate is refused while the drive system's control loop shares its timer."""
+        if self._tick_hooks and any(p.name == "state_rate_hz" for p in params):
+            return SetParametersResult(successful=False, reason=(
+                "state_rate_hz: the drive system's control loop runs on this timer at odom_rate_hz, read at start;"
+                " restart the node with both rates set"))
+        return SetParametersResult(successful=True)
+
+    def _apply_set(self, params: list[Parameter]) -> None:
+        for p in params:
+            if p.name == "state_rate_hz":
+                self.state_period_s = 1.0 / float(p.value)
+                self._state_timer.timer_period_ns = int(self.state_period_s * 1e9)
+            elif p.name == "diagnostics_rate_hz":
+                self._diag_timer.timer_period_ns = int(1e9 / float(p.value))
 
     # --------------------------------------------------------------------- wiring
     def _add_drive(self, name: str, drive: Drive) -> None:
@@ -113,14 +137,14 @@ class DriverNode(Node):
         return None
 
     def _on_degree(self, joint: str) -> Callable[[Float32], None]:
-        drive = self.driver.drives[joint]
+        drive = self.drives[joint]
 
         def on_message(msg: Float32) -> None:
             self._guard(joint, "degree command {!r}", drive.command_position, msg.data)
         return on_message
 
     def _on_velocity(self, joint: str) -> Callable[[Float32], None]:
-        drive = self.driver.drives[joint]
+        drive = self.drives[joint]
 
         def on_message(msg: Float32) -> None:
             self._guard(joint, "velocity command {!r}", drive.command_velocity, msg.data)
@@ -128,10 +152,10 @@ class DriverNode(Node):
 
     def _on_joint_commands(self, msg: JointState) -> None:
         for i, name in enumerate(msg.name):
-            drive = self.driver.drives.get(name)
+            drive = self.drives.get(name)
             if drive is None:
                 self.refusals.refuse(name or "?", f"/joint_commands names unknown joint {name!r};"
-                                     f" joints: {sorted(self.driver.drives)}")
+                                     f" joints: {sorted(self.drives)}")
                 continue
             # the first field given for this joint; NaN means "not commanded" (ros2_control's
             # topic-based hardware interface sends NaN in the fields it does not command)
@@ -171,9 +195,10 @@ class DriverNode(Node):
             joints = self._joint_pub.get_subscription_count() > 0
             joint = JointState() if joints else None  # a message's constructor: ~20 us, 50 times a second
             newest = 0.0
-            for name, drive in self.driver.drives.items():
+            for name, drive in self.drives.items():
                 mine = self._state_pubs[name].get_subscription_count() > 0
-                demo = name == self._default and self._demo_state_pub.get_subscription_count() > 0
+                demo = (name == self._default and self._demo_state_pub is not None
+                        and self._demo_state_pub.get_subscription_count() > 0)
                 if not (mine or demo or joints):
                     continue
                 state = drive.snapshot()
@@ -181,7 +206,7 @@ class DriverNode(Node):
                     msg = fill_motor_state(self._states[name], state, drive.config.is_continuous)
                     if mine:
                         self._state_pubs[name].publish(msg)
-                    if demo:
+                    if demo and self._demo_state_pub is not None:
                         self._demo_state_pub.publish(msg)
                 if joint is not None:
                     joint.name.append(name)
@@ -200,7 +225,7 @@ class DriverNode(Node):
         try:
             array = DiagnosticArray()
             stamp_header(array.header, time.time())
-            for name, drive in self.driver.drives.items():
+            for name, drive in self.drives.items():
                 refused, last = self.refusals.take(name)
                 health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s,
                                       refused_since_last=refused, last_refusal=last,
@@ -210,7 +235,7 @@ class DriverNode(Node):
                     level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
                     hardware_id=f"{drive.config.bus}/node{drive.node_id}",
                     values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
-            refused, last = self.refusals.take_others(self.driver.drives)
+            refused, last = self.refusals.take_others(self.drives)
             array.status.append(DiagnosticStatus(
                 level=bytes([1 if refused else 0]), name="rovercan: command input",
                 message=f"{refused} command(s) refused: {last}" if refused else "no refused commands",
@@ -238,94 +263,25 @@ def _given(values: Sequence[float], i: int) -> float | None:
     return float(values[i])
 
 
+def served(driver: MotorDriver, joints: Sequence[str] | None) -> dict[str, Drive]:
+    """The drives a node serves: every drive of ``driver``, or those of ``joints``, by name."""
+    if joints is None:
+        return dict(driver.drives)
+    unknown = [j for j in joints if j not in driver.drives]
+    if unknown:
+        raise RovercanError(f"joint(s) {unknown} not in the config; joints: {list(driver.drives)}")
+    return {j: driver.drives[j] for j in joints}
+
+
 def main(args: list[str] | None = None) -> int:
+    from nodes.assembly import run  # the assembly builds this module's node
+
     runtime.init(args)
     with StopSignal() as stop:
-        return _run(stop)
+        return run("rover_driver", stop)
 
 
-def _run(stop: StopSignal) -> int:
-    # read before the driver node exists (same name, so a params file's values apply)
-    boot = rclpy.create_node("rovercan_driver")
-    declare(boot, "config", "executor", "realtime_priority")
-    path = str(boot.get_parameter("config").value) or None
-    executor_kind = str(boot.get_parameter("executor").value)
-    try:
-        # before the driver's threads exist: each inherits it (DDS's, made already, are set here)
-        runtime.go_realtime(boot)
-    except RovercanError as err:
-        print(f"rover_driver: {err}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    finally:
-        boot.destroy_node()
-    try:
-        hot = runtime.make_executor(executor_kind)
-        config = load_config(path)
-        driver = MotorDriver(config)  # buses opened, drives made: nothing sent, no heartbeat yet
-    except RovercanError as err:
-        print(f"rover_driver: {err}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    nodes: list[Node] = []
-    spinning: list[runtime.SpinThread] = []
-    handler = None
-    rc = 0
-    try:
-        # every ROS entity first: making them holds the interpreter (rclpy's C++ under the GIL) for
-        # up to a second on a slow machine, and once the driver has started, its heartbeat must not
-        # wait (the drives' 150 ms host watch tripped in 2 of 10 launches of the shipped rover)
-        node = DriverNode(driver)
-        nodes.append(node)
-        handler = bridge_core_logging(node)
-        if config.drive_system is not None and node.get_parameter("drive_system").value:
-            nodes.append(DriveSystemNode.beside(node, driver, config))  # both on the hot executor
-        waiting = (DriverServicesNode(driver), DriverStopsNode(driver), DriverActionsNode(driver))
-        # executors (measured: README): the hot one for commands, state and the drive system;
-        # a cold one, on its own thread, for the services that block (enable, home); one for
-        # the stops, which never queue behind those; one for the actions, whose goals are
-        # coroutines (nodes/actions.py)
-        for n in nodes:
-            hot.add_node(n)
-        nodes += waiting
-        heap.settle()  # the nodes are built: what exists now lives as long as the process (a full
-        # collection stops every thread, so it comes before the heartbeat starts)
-        rc = _start_and_spin(driver, node, waiting, hot, spinning, stop)
-    finally:
-        # order: drives safe first (a service blocked on a drive then fails fast), then the
-        # service thread joined, then nodes destroyed, then the context
-        driver.close()
-        joined = all([spin.stop(timeout_s=SERVICE_JOIN_S) for spin in spinning])  # every one stopped
-        if handler is not None:
-            unbridge(handler)
-        if joined:  # a thread still inside rclpy must not see its node destroyed under it
-            for n in nodes:
-                n.destroy_node()
-        rclpy.try_shutdown()
-    return rc
-
-
-def _start_and_spin(driver: MotorDriver, node: DriverNode, waiting: tuple[Node, Node, Node], hot: Executor,
-                    spinning: list[runtime.SpinThread], stop: StopSignal) -> int:
-    """Start the driver (look for another master, boot every drive: their host watch is armed
-    from here on), the threads of the services, stops and actions, arm if asked, and spin the hot
-    executor until stopped."""
-    try:
-        driver.start()
-    except RovercanError as err:
-        print(f"rover_driver: {err}", file=sys.stderr)
-        return 2
-    node.get_logger().info(f"{len(driver.drives)} drive(s) on {len(driver.config.buses)} bus(es) booted; "
-                           + ("arming them" if node.get_parameter("arm").value else
-                              "not armed: call /arm (std_srvs/Trigger) or launch with arm:=true"))
-    for waiter, name in zip(waiting, ("rovercan-services", "rovercan-stops", "rovercan-actions"), strict=True):
-        spinning.append(runtime.spin_alone(waiter, name))
-    node.arm_if_asked()
-    runtime.spin_until(hot, stop.event)
-    return 0
-
-
-__all__ = ["DriveSystemNode", "DriverNode", "DriverServicesNode", "DriverStopsNode", "main"]
+__all__ = ["DriverNode", "main", "served"]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -8,6 +8,11 @@ or a lifecycle manager brings the rover up in order. Each transition is confirme
   cleanup     the ROS interface goes, the driver closes: the bus is released
   shutdown    from any state: as deactivate and cleanup
 
+The drives' process is the assembly of ``rover_driver`` (:mod:`nodes.assembly`: the same nodes,
+executors, callback groups and start order, the parameters ``drive_system`` and ``default_joint``
+alike); each transition is a step of it: configure builds and starts it, activate arms, deactivate
+is the driver's safe stop, cleanup closes it. The ROS interface spins on the hot executor given.
+
 With ``autostart`` (the team's demo) it configures and activates itself. A failed transition
 logs why and returns FAILURE; the node stays where it was (after a failed configure, with no
 driver and no bus).
@@ -23,119 +28,102 @@ import rclpy
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.lifecycle import Node as LifecycleNode
 from rclpy.lifecycle import State, TransitionCallbackReturn
-from rclpy.node import Node
 
 from can_config import heap, load_config
 from can_config.errors import RovercanError
 from motor_driver import MotorDriver
-from motor_driver import State as DriveState
 from nodes import runtime
-from nodes.actions import DriverActionsNode
+from nodes.assembly import Assembly
 from nodes.params import declare
-from nodes.rover_driver import DriverNode, DriverServicesNode, DriverStopsNode, DriveSystemNode
 
 logger = logging.getLogger(__name__)
 
+
 class DriveLifecycleNode(LifecycleNode):
-    def __init__(self, hot: Executor | None = None, **kwargs: Any) -> None:
+    def __init__(self, hot: Executor, **kwargs: Any) -> None:
         super().__init__("rovercan_lifecycle", **kwargs)
-        declare(self, "config", "autostart", "realtime_priority")
-        self.hot = hot  # where the drives' ROS interface spins (None: no interface, tests of the bus alone)
-        self.driver: MotorDriver | None = None
-        self.interface: list[Node] = []
-        self._threads: list[runtime.SpinThread] = []  # the actions' and the stops' executors
+        declare(self, "config", "autostart", "realtime_priority", "executor")
+        self.hot = hot  # where the drives' ROS interface spins
+        self.assembly: Assembly | None = None
+
+    @property
+    def driver(self) -> MotorDriver | None:
+        return None if self.assembly is None else self.assembly.driver
 
     # ------------------------------------------------------------------ transitions
     def on_configure(self, state: State) -> TransitionCallbackReturn:
         try:
-            config = load_config(str(self.get_parameter("config").value) or None)
-            self.driver = MotorDriver(config).start()  # connect and boot; nothing enabled
+            driver = MotorDriver(load_config(str(self.get_parameter("config").value) or None))  # nothing sent yet
         except RovercanError as err:
             self.get_logger().error(f"configure failed: {err}")
-            self.driver = None
             return TransitionCallbackReturn.FAILURE
-        if self.hot is not None:
-            node = DriverNode(self.driver, context=self.context)
-            self.interface = [node, DriverServicesNode(self.driver, context=self.context)]
-            if config.drive_system is not None:
-                self.interface.append(DriveSystemNode.beside(node, self.driver, config, context=self.context))
-            for n in self.interface:
-                self.hot.add_node(n)
-            actions = DriverActionsNode(self.driver, context=self.context)
-            stops = DriverStopsNode(self.driver, context=self.context)
-            self.interface += [actions, stops]
-            self._threads = [runtime.spin_alone(actions, "rovercan-actions"), runtime.spin_alone(stops, "rovercan-stops")]
-        self.get_logger().info(f"configured: {len(self.driver.drives)} drive(s) booted, not enabled")
+        self.assembly = Assembly(driver, self.hot, context=self.context)
+        try:
+            self.assembly.build()  # the ROS interface first, then the bus (nodes/assembly.py says why)
+            self.assembly.start(arm=False)  # connect and boot; nothing enabled: that is activate
+        except RovercanError as err:
+            self.get_logger().error(f"configure failed: {err}")
+            self.release()
+            return TransitionCallbackReturn.FAILURE
+        self.get_logger().info(f"configured: {len(driver.drives)} drive(s) booted, not enabled")
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
-        assert self.driver is not None
-        try:
-            for drive in self.driver:
-                drive.enable()  # confirmed by the drive's statusword
-        except RovercanError as err:
-            self.get_logger().error(f"activate failed: {err}; every drive is stopped again")
-            self._stop_drives()
+        assert self.assembly is not None
+        failed = self.assembly.arm()
+        if failed:
+            self.get_logger().error(f"activate failed: {'; '.join(failed)}; every drive is stopped again")
+            self.assembly.stop_drives()
             return TransitionCallbackReturn.FAILURE
         return super().on_activate(state)
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
-        return super().on_deactivate(state) if self._stop_drives() else TransitionCallbackReturn.FAILURE
+        failed = self.stop_drives()
+        return TransitionCallbackReturn.FAILURE if failed else super().on_deactivate(state)
 
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
-        self._release()
+        self.release()
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: State) -> TransitionCallbackReturn:
-        self._stop_drives()
-        self._release()
+        self.release()  # the driver's close: its safe stop first
         return TransitionCallbackReturn.SUCCESS
 
     def on_error(self, state: State) -> TransitionCallbackReturn:
-        self._stop_drives()
-        self._release()
+        self.release()
         return TransitionCallbackReturn.SUCCESS
 
-    # ------------------------------------------------------------------ helpers
-    def _stop_drives(self) -> bool:
-        """Quick stop, then disable voltage, on every drive; True when each confirmed it."""
-        ok = True
-        for drive in self.driver or ():
-            try:
-                if drive.state == DriveState.OPERATION_ENABLED:
-                    drive.quick_stop()
-                drive.disable_voltage()
-            except RovercanError as err:
-                self.get_logger().error(f"{drive.name}: stop failed: {err}")
-                ok = False
-        return ok
+    # ------------------------------------------------------------------ steps
+    def stop_drives(self) -> list[str]:
+        """The driver's safe stop; what was not confirmed, each also logged."""
+        failed = [] if self.assembly is None else self.assembly.stop_drives()
+        for line in failed:
+            self.get_logger().error(f"stop not confirmed: {line}")
+        return failed
 
-    def _release(self) -> None:
-        for thread in self._threads:
-            thread.stop(5.0)
-        self._threads = []
-        for n in self.interface:
-            if self.hot is not None and n in self.hot.get_nodes():
-                self.hot.remove_node(n)
-            n.destroy_node()
-        self.interface = []
-        if self.driver is not None:
-            self.driver.close()
-            self.driver = None
+    def release(self) -> None:
+        """The assembly closed (drives safe, threads joined, interface gone, bus released)."""
+        if self.assembly is not None:
+            self.assembly.close()
+            self.assembly = None
 
 
 def main(args: list[str] | None = None) -> int:
     runtime.init(args)
     with runtime.StopSignal() as stop:
-        hot = runtime.make_executor("events")
-        node = DriveLifecycleNode(hot)
         try:
-            runtime.go_realtime(node)  # before configure makes the driver's threads: they inherit it
+            boot = rclpy.create_node("rovercan_lifecycle")  # its parameters, before anything is made
+            declare(boot, "executor", "realtime_priority")
+            try:
+                runtime.go_realtime(boot)  # before configure makes the driver's threads: they inherit it
+                hot = runtime.make_executor(str(boot.get_parameter("executor").value))
+            finally:
+                boot.destroy_node()
         except RovercanError as err:
             print(f"rover_lifecycle: {err}", file=sys.stderr)
-            node.destroy_node()
             rclpy.try_shutdown()
             return 2
+        node = DriveLifecycleNode(hot)
         cold = SingleThreadedExecutor()
         cold.add_node(node)
         transitions = runtime.SpinThread(cold, "rovercan-lifecycle")
@@ -148,8 +136,7 @@ def main(args: list[str] | None = None) -> int:
             runtime.spin_until(hot, stop.event)
         finally:
             transitions.stop(5.0)
-            node._stop_drives()
-            node._release()
+            node.release()
             node.destroy_node()
             rclpy.try_shutdown()
     return 0

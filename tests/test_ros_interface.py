@@ -34,20 +34,19 @@ if HAVE_ROS:
     from std_srvs.srv import Trigger
 
     from nodes import runtime
-    from nodes.actions import DriverActionsNode
+    from nodes.assembly import Assembly
+    from nodes.drive_system import DriveSystemNode
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
-    from nodes.rover_driver import DriverNode, DriverServicesNode, DriverStopsNode, DriveSystemNode
-    from nodes.runtime import SpinThread, make_executor, spin_alone
+    from nodes.runtime import SpinThread, make_executor
 
 WHEELS = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left",
           "wheel_front_right", "wheel_middle_right", "wheel_rear_right"]
 
 
 class Graph:
-    def __init__(self, sim: SimService, driver: MotorDriver, context: Any, probe: Any, driver_node: Any,
-                 system_node: Any) -> None:
-        self.sim, self.driver, self.context, self.probe = sim, driver, context, probe
-        self.driver_node, self.system_node = driver_node, system_node
+    def __init__(self, sim: SimService, assembly: Assembly, context: Any, probe: Any) -> None:
+        self.sim, self.assembly, self.driver, self.context, self.probe = sim, assembly, assembly.driver, context, probe
+        self.driver_node, self.system_node = assembly.nodes[0], assembly.nodes[1]
         self.inbox: dict[str, list[Any]] = {}
         self.clients: dict[str, Any] = {}
 
@@ -89,41 +88,43 @@ def in_process_host_timeout(config: RoverConfig) -> RoverConfig:
     return dataclasses.replace(config, drives=drives)
 
 
+#: The wheel that homes slowly in these graphs (no other test homes it): method 17 at 0.5 deg/s
+#: toward the index, which the test that needs it moves far away in the simulated drive.
+SLOW_HOMING = "wheel_middle_right"
+
+
+def slow_homing(config: RoverConfig, joint: str) -> RoverConfig:
+    drives = tuple(dataclasses.replace(d, homing_method=17, homing_speed_deg_s=0.5, homing_timeout_s=600.0)
+                   if d.name == joint else d for d in config.drives)
+    return dataclasses.replace(config, drives=drives)
+
+
 @pytest.fixture
 def graph(monkeypatch: pytest.MonkeyPatch) -> Iterator[Graph]:
+    """The rover_driver process as its entry point assembles it (nodes/assembly.py), in this
+    process: the hot executor on a thread of the test's, a probe node on it."""
     # the idle executors never poll here: whatever they serve must wake them (a goal's pause, a stop)
     monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)
-    config = in_process_host_timeout(load_config(REPO / "config" / "rover.yaml"))
+    config = slow_homing(in_process_host_timeout(load_config(REPO / "config" / "rover.yaml")), SLOW_HOMING)
     sim = SimService.from_config(config, port=0)
-    driver = MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)).start()
     context = rclpy.Context()
     rclpy.init(context=context)
-    driver_node = DriverNode(driver, context=context, parameter_overrides=[Parameter("diagnostics_rate_hz", value=5.0)])
-    system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
-    assert system_node.tick_with(driver_node)  # the control loop on the state timer, as rover_driver runs it
-    services = DriverServicesNode(driver, context=context)
-    stops = DriverStopsNode(driver, context=context)
-    actions = DriverActionsNode(driver, context=context)
-    probe = rclpy.create_node("probe", context=context)
-    # the executors the rover_driver node runs: topics on the EventsExecutor, services on a
-    # single-threaded one of their own (rclpy's MultiThreadedExecutor starves the driver's
-    # other threads for 0.1-0.5 s at a time: measured, and the drives' host watch sees it)
     hot = make_executor("events", context)
-    for node in (driver_node, system_node, probe):
-        hot.add_node(node)
-    cold = SingleThreadedExecutor(context=context)
-    cold.add_node(services)
-    goals = SingleThreadedExecutor(context=context)
-    goals.add_node(actions)
-    spinning = [SpinThread(hot, "test-hot"), SpinThread(cold, "test-services"), SpinThread(goals, "test-actions"),
-                spin_alone(stops, "test-stops")]
-    yield Graph(sim, driver, context, probe, driver_node, system_node)
-    for spin in spinning:
-        spin.stop(5.0)
-    for node in (driver_node, system_node, services, stops, actions, probe):
-        node.destroy_node()
+    assembly = Assembly(MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)), hot, context=context,
+                        overrides=[Parameter("diagnostics_rate_hz", value=5.0),
+                                   Parameter("default_joint", value="wheel_front_left")])
+    assembly.build()
+    assert isinstance(assembly.nodes[1], DriveSystemNode)
+    assert not list(assembly.nodes[1].timers)  # the control loop on the state timer, as rover_driver runs it
+    probe = rclpy.create_node("probe", context=context)
+    hot.add_node(probe)
+    assembly.start()
+    spin = SpinThread(hot, "test-hot")
+    yield Graph(sim, assembly, context, probe)
+    spin.stop(5.0)
+    assembly.close()
+    probe.destroy_node()
     rclpy.shutdown(context=context)
-    driver.close()
     sim.close()
 
 
@@ -584,3 +585,61 @@ def test_a_stop_service_answers_while_a_slow_service_is_still_running(graph: Gra
     wait_for(home.done, 15.0, "/home answered")
     assert not home.result().success and "interrupted by quick stop" in home.result().message
     assert graph.driver.drive(homing).state.name != "OPERATION_ENABLED"
+
+
+def test_one_joints_services_and_arm_answer_while_another_joint_homes(graph: Graph) -> None:
+    """A joint homing slowly (until stopped) holds no other joint's services: another joint's
+    /enable and the rover's /arm answer while it runs (order, not a clock: each answer arrives
+    while /home has not answered and the joint is still busy homing). The landed code ran every
+    service that waits on one thread: a second joint's /enable answered after a 10 s /home."""
+    homing, other = SLOW_HOMING, "wheel_front_right"  # both on can1
+    drive = graph.driver.drive(homing)
+    runner = graph.sim.simulators["can1"]
+    runner.call(lambda: setattr(runner.drive(drive.node_id).params, "index_position_counts", 10**9))
+    assert graph.call(Trigger, f"wheels/{homing}/enable").success
+    home_client = graph.probe.create_client(Trigger, f"wheels/{homing}/home")
+    assert home_client.wait_for_service(timeout_sec=5.0)
+    home = home_client.call_async(Trigger.Request())
+    wait_for(lambda: drive.busy == "home", 10.0, "homing under way")
+    enabled = graph.call(Trigger, f"wheels/{other}/enable")
+    assert enabled.success and "OPERATION_ENABLED" in enabled.message, enabled.message
+    assert not home.done() and drive.busy == "home"  # answered while the home runs
+    armed = graph.call(Trigger, "/arm")
+    assert not home.done() and drive.busy == "home"
+    # every other wheel enabled; the homing one refused at once, named, not waited for
+    assert not armed.success and f"{homing}: enable refused: the drive is busy with home" in armed.message, armed.message
+    assert all(graph.driver.drive(w).state is State.OPERATION_ENABLED for w in WHEELS if w != homing)
+    disarmed = graph.call(Trigger, "/disarm")  # the driver's safe stop: the homing ends too
+    assert disarmed.success, disarmed.message
+    wait_for(home.done, 15.0, "/home answered")
+    assert not home.result().success
+    # quick stop, then disable voltage (not shutdown): no drive is left with voltage
+    assert all(graph.driver.drive(w).state is State.SWITCH_ON_DISABLED for w in WHEELS)
+
+
+def test_a_parameter_read_at_start_refuses_a_set_and_a_rate_takes_one(graph: Graph) -> None:
+    """`ros2 param set /rovercan_driver config /etc/shadow` was accepted and silently ignored: now
+    refused, saying why; the diagnostics rate takes effect; the state rate is refused while the
+    drive system's control loop runs on its timer."""
+    from rcl_interfaces.msg import Parameter as ParameterMsg
+    from rcl_interfaces.srv import DescribeParameters, SetParameters
+    from rclpy.parameter import Parameter as RclpyParameter
+
+    def set_one(name: str, value: Any) -> Any:
+        msg: ParameterMsg = RclpyParameter(name, value=value).to_parameter_msg()
+        reply = graph.call(SetParameters, "/rovercan_driver/set_parameters", SetParameters.Request(parameters=[msg]))
+        return reply.results[0]
+
+    for name, value in (("config", "/etc/shadow"), ("executor", "single"), ("realtime_priority", 0),
+                        ("default_joint", "wheel_rear_left"), ("arm", True)):
+        result = set_one(name, value)
+        assert not result.successful and "read-only" in result.reason, (name, result)
+        assert graph.driver_node.get_parameter(name).value != value
+    described = graph.call(DescribeParameters, "/rovercan_driver/describe_parameters",
+                           DescribeParameters.Request(names=["config"])).descriptors[0]
+    assert described.read_only and "restart the node" in described.additional_constraints
+    result = set_one("diagnostics_rate_hz", 2.0)
+    assert result.successful, result.reason
+    assert graph.driver_node._diag_timer.timer_period_ns == 500_000_000
+    result = set_one("state_rate_hz", 20.0)
+    assert not result.successful and "control loop" in result.reason, result

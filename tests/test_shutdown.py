@@ -124,3 +124,11 @@ def test_a_params_file_reaches_the_parameters_read_before_the_driver_starts(tmp_
                          cwd=REPO, capture_output=True, text=True, timeout=30)
     assert out.returncode == 2, out.stderr
     assert "absent.yaml" in out.stderr
+
+
+def test_motor_controller_moves_no_joint_it_is_not_named() -> None:
+    """/motor_degree_cmd moved the config's first drive when no joint was given: now refused."""
+    out = subprocess.run([sys.executable, "-m", "nodes.motor_controller", "--ros-args", "-p", "realtime_priority:=0"],
+                         cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert "parameter joint is empty" in out.stderr and "-p joint:=" in out.stderr and "Traceback" not in out.stderr

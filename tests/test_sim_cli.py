@@ -121,10 +121,11 @@ def test_the_demo_fails_a_drive_that_stopped_during_the_run_and_says_why(enabled
     held past its host timeout) must fail the demo, named with its state."""
     from rovercan_msgs.msg import MotorState
 
-    from rovercan.cli import EXIT_FAILED, EXIT_OK, _demo_verdict
+    from rovercan.cli import EXIT_FAILED, EXIT_OK
+    from rovercan.demo import demo_verdict
 
     state = MotorState(angle=2.9, enabled=enabled, state="OPERATION_ENABLED" if enabled else "SWITCH_ON_DISABLED")
-    assert _demo_verdict(3.0, state) == (EXIT_OK if enabled else EXIT_FAILED)
+    assert demo_verdict(3.0, state) == (EXIT_OK if enabled else EXIT_FAILED)
     err = capsys.readouterr().err
     assert ("" if enabled else "ended in SWITCH_ON_DISABLED, not Operation Enabled") in err
     assert enabled or ("host heartbeat" in err and "CAP_SYS_NICE" in err)

@@ -1,0 +1,200 @@
+"""The driver's ROS process, put together in one place for every entry point: ``rover_driver``,
+``rover_lifecycle`` (its transitions are this assembly's steps), ``motor_controller`` (the same,
+restricted to one joint) and ``rovercan demo``. They choose from it; none builds its own.
+
+Start order (:meth:`Assembly.build`, then :meth:`Assembly.start`):
+1. every ROS entity (nodes, topics, services, actions, timers, executors): making them holds the
+   interpreter (rclpy's C++ under the GIL) for up to a second on a slow machine; made after the
+   driver had started, they held its heartbeat, and every drive's host watch tripped in 2 of 10
+   launches of the shipped rover. Nothing is sent on the bus yet.
+2. the driver started (another master looked for, every drive booted: the host watch armed).
+3. the executors' threads, then ``arm`` if the node's parameter asks (the lifecycle: at activate).
+
+Executors and callback groups (measured: docs/ros.md, README):
+- hot (the caller spins it, on its own thread): the driver node (commands, state, diagnostics,
+  parameters) and the drive system: rclpy's EventsExecutor (parameter ``executor``).
+- ``rovercan-stops``: the stops alone, single-threaded: nothing but a stop is ahead of a stop.
+- ``rovercan-services``: the services that wait (enable, recover, home, set_mode, SDO, /arm) on a
+  MultiThreadedExecutor, a MutuallyExclusiveCallbackGroup per joint and one for /arm, a thread per
+  group: one joint's homing (up to ``homing_timeout_s``) holds no other joint's services. (Its
+  threads wait in rcl when idle; the hot path never runs on it.)
+- ``rovercan-actions``: the actions' goals, coroutines on a single-threaded executor.
+
+Stop (:meth:`Assembly.close`): the driver closed first (its one safe stop,
+:meth:`motor_driver.MotorDriver.safe_stop`: every drive quick-stopped and its voltage disabled;
+a service blocked on a drive then fails fast), the executor threads joined, the nodes destroyed.
+The rclpy context is the caller's to shut down.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from can_config import heap, load_config
+from can_config.errors import ConfigError, RovercanError
+from can_config.stop import StopSignal
+from motor_driver import MotorDriver
+from nodes import runtime
+from nodes.actions import DriverActionsNode
+from nodes.drive_system import DriveSystemNode
+from nodes.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStopsNode
+from nodes.logbridge import RclpyLogHandler, bridge_core_logging, unbridge
+from nodes.params import declare
+from nodes.rover_driver import DriverNode
+
+logger = logging.getLogger(__name__)
+
+#: The threads of the executors beside the hot one, by the node each spins.
+THREADS = {"rovercan_driver_stops": "rovercan-stops", "rovercan_driver_services": "rovercan-services",
+           "rovercan_driver_actions": "rovercan-actions"}
+
+
+class Assembly:
+    """A driver's nodes and executors: :meth:`build`, :meth:`start`, the caller spins :attr:`hot`,
+    then :meth:`close`. ``joints``: the drives served (None: every drive); ``overrides``: parameters
+    of the driver node that the entry point fixes (the demo's ``arm``)."""
+
+    def __init__(self, driver: MotorDriver, hot: Executor, *, name: str = "rovercan_driver",
+                 joints: Sequence[str] | None = None, context: Context | None = None,
+                 overrides: Sequence[Parameter] = ()) -> None:
+        self.driver, self.hot = driver, hot
+        self._name, self._joints, self._overrides = name, joints, list(overrides)
+        self._kwargs: dict[str, Any] = {} if context is None else {"context": context}
+        self.node: DriverNode | None = None
+        self.nodes: list[Node] = []  # every node made here, the hot ones first
+        self.executors: dict[str, Executor] = {}  # node name -> its executor (the hot one included)
+        self._threads: list[runtime.SpinThread] = []
+        self._log_handler: RclpyLogHandler | None = None
+        self._started = False
+        self._closed = False
+
+    # ------------------------------------------------------------------ steps
+    def build(self) -> DriverNode:
+        """Every ROS entity, added to its executor; nothing sent on the bus."""
+        node = self.node = DriverNode(self.driver, self._name, self._joints, parameter_overrides=self._overrides,
+                                      **self._kwargs)
+        self._log_handler = bridge_core_logging(node)
+        hot: list[Node] = [node]
+        config = self.driver.config
+        if config.drive_system is not None and self._joints is None and node.get_parameter("drive_system").value:
+            hot.append(DriveSystemNode.beside(node, self.driver, config, **self._kwargs))  # on the same executor
+        for n in hot:
+            self.hot.add_node(n)
+            self.executors[n.get_name()] = self.hot
+        self.nodes += hot
+        services = DriverServicesNode(self.driver, node.drives, **self._kwargs)
+        waiting: list[tuple[Node, Executor]] = [
+            (DriverStopsNode(self.driver, node.drives, **self._kwargs), SingleThreadedExecutor(**self._kwargs)),
+            (services, MultiThreadedExecutor(num_threads=len(services.groups), **self._kwargs)),
+            (DriverActionsNode(self.driver, node.drives, **self._kwargs), SingleThreadedExecutor(**self._kwargs))]
+        for n, executor in waiting:
+            executor.add_node(n)
+            self.executors[n.get_name()] = executor
+            self.nodes.append(n)
+        heap.settle()  # what exists now lives as long as the process (a full collection stops
+        # every thread, so it comes before the heartbeat starts)
+        return node
+
+    def start(self, *, arm: bool = True) -> None:
+        """The driver started (unless it was), the executors' threads, and, with ``arm``, every
+        drive enabled when the node's ``arm`` parameter asks. Raises the driver's start error."""
+        assert self.node is not None, "build() first"
+        if not self._started:
+            self._started = True
+            self.driver.start()
+        self.node.get_logger().info(
+            f"{len(self.node.drives)} drive(s) on {len(self.driver.config.buses)} bus(es) booted; "
+            + ("arming them" if arm and self.node.get_parameter("arm").value else "not armed: call /arm (std_srvs/Trigger)"))
+        for n in self.nodes:
+            executor = self.executors[n.get_name()]
+            if executor is not self.hot and n.get_name() in THREADS:
+                self._threads.append(runtime.SpinThread(executor, THREADS[n.get_name()]))
+        if arm:
+            self.node.arm_if_asked()
+
+    def arm(self) -> list[str]:
+        """Enable every served drive, each whatever the others did; what failed, one line a drive."""
+        assert self.node is not None
+        failed = []
+        for drive in self.node.drives.values():
+            try:
+                drive.enable()  # confirmed by the drive's statusword
+            except RovercanError as err:
+                failed.append(str(err))
+        return failed
+
+    def stop_drives(self) -> list[str]:
+        """The driver's safe stop on the served drives; what was not confirmed (empty: all safe)."""
+        return self.driver.safe_stop(None if self.node is None else self.node.drives.values())
+
+    def close(self) -> None:
+        """Drives safe (the driver closed), threads joined, nodes destroyed. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self.driver.close()
+        joined = all([spin.stop(timeout_s=SERVICE_JOIN_S) for spin in self._threads])  # every one stopped
+        if self._log_handler is not None:
+            unbridge(self._log_handler)
+        hot = self.hot
+        for n in self.nodes:
+            if n in hot.get_nodes():
+                hot.remove_node(n)
+        if joined:  # a thread still inside rclpy must not see its node destroyed under it
+            for n in self.nodes:
+                n.destroy_node()
+
+    def layout(self) -> dict[str, tuple[str, str]]:
+        """Node name -> (executor class, thread: ``hot`` or the thread's name): what the tests
+        compare across entry points."""
+        return {name: (type(executor).__name__, "hot" if executor is self.hot else THREADS[name])
+                for name, executor in self.executors.items()}
+
+
+def run(program: str, stop: StopSignal, *, name: str = "rovercan_driver", one_joint: bool = False) -> int:
+    """An entry point's process: parameters read once, real-time scheduling, the driver and the
+    assembly, the hot executor spun on this thread until ``stop``, then the assembly closed.
+    ``one_joint``: the node serves the joint of its ``joint`` parameter only (motor_controller)."""
+    boot = rclpy.create_node(name)  # the node's name: a params file's values apply
+    declare(boot, "config", "executor", "realtime_priority", *(("joint",) if one_joint else ()))
+    try:
+        path = str(boot.get_parameter("config").value) or None
+        executor_kind = str(boot.get_parameter("executor").value)
+        runtime.go_realtime(boot)  # before the driver's threads exist: each inherits it
+        joint = str(boot.get_parameter("joint").value) if one_joint else ""
+        if one_joint and not joint:
+            raise ConfigError(f"parameter joint is empty: {program} moves only the joint named;"
+                              " set -p joint:=<joint of the config>")
+        hot = runtime.make_executor(executor_kind)
+        driver = MotorDriver(load_config(path))  # buses opened, drives made: nothing sent yet
+    except RovercanError as err:
+        print(f"{program}: {err}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    finally:
+        boot.destroy_node()
+    overrides = [Parameter("default_joint", value=joint)] if one_joint else []
+    assembly = Assembly(driver, hot, name=name, joints=[joint] if one_joint else None, overrides=overrides)
+    try:
+        assembly.build()
+        assembly.start()
+        runtime.spin_until(hot, stop.event)
+    except RovercanError as err:
+        print(f"{program}: {err}", file=sys.stderr)
+        return 2
+    finally:
+        assembly.close()
+        rclpy.try_shutdown()
+    return 0
+
+
+__all__ = ["THREADS", "Assembly", "run"]
