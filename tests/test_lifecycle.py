@@ -15,6 +15,7 @@ from can_config import GENERIC_EDS
 from virtual_can import SimDriveSpec, SimService
 
 from .conftest import HAVE_ROS, requires_ros, wait_for
+from .test_ros_interface import check_assembly
 
 pytestmark = requires_ros
 
@@ -100,6 +101,7 @@ def test_each_transition_is_confirmed_on_the_bus(rig: tuple[Any, SimService, Lis
     node.trigger_configure()
     assert node._state_machine.current_state[1] == "inactive"
     assert node.driver is not None and all(d.booted for d in node.driver)
+    check_assembly(node.assembly, "rovercan_driver", ["a", "b"])  # rover_driver's nodes, executors, groups
     assert states(sim) == ["SWITCH_ON_DISABLED"] * 2  # booted, not enabled
     wait_for(lambda: len(listener.since(t, 0x77F)) >= 2, 2.0, "the driver's host heartbeat")
     assert {d[:2] for d in listener.since(t, 0x000)} >= {bytes([0x81, 1]), bytes([0x81, 2])}  # NMT reset: boot

@@ -13,6 +13,7 @@ from motor_driver import MotorDriver
 from virtual_can import SimService
 
 from .conftest import HAVE_ROS, make_config, requires_ros
+from .test_ros_interface import check_assembly
 
 pytestmark = requires_ros
 
@@ -49,6 +50,7 @@ def graph(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) 
     pub = probe.create_publisher(Float32, "/motor_degree_cmd", COMMAND_QOS)
     hot.add_node(probe)
     assembly.start()
+    check_assembly(assembly, NODE_NAME, ["joint1"])  # rover_driver's, restricted to one joint
     spin = SpinThread(hot, "test-hot")
 
     def spin_until(pred: Callable[[], bool], timeout_s: float) -> bool:

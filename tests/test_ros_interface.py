@@ -25,6 +25,7 @@ if HAVE_ROS:
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import Twist
     from nav_msgs.msg import Odometry
+    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from rovercan_msgs.msg import MotorState
@@ -36,7 +37,9 @@ if HAVE_ROS:
     from nodes import runtime
     from nodes.assembly import Assembly
     from nodes.drive_system import DriveSystemNode
+    from nodes.driver_services import DriverServicesNode
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
+    from nodes.rover_driver import DriverNode
     from nodes.runtime import SpinThread, make_executor
 
 WHEELS = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left",
@@ -119,6 +122,7 @@ def graph(monkeypatch: pytest.MonkeyPatch) -> Iterator[Graph]:
     probe = rclpy.create_node("probe", context=context)
     hot.add_node(probe)
     assembly.start()
+    check_assembly(assembly, "rovercan_driver", WHEELS)  # rover_driver's
     spin = SpinThread(hot, "test-hot")
     yield Graph(sim, assembly, context, probe)
     spin.stop(5.0)
@@ -126,6 +130,26 @@ def graph(monkeypatch: pytest.MonkeyPatch) -> Iterator[Graph]:
     probe.destroy_node()
     rclpy.shutdown(context=context)
     sim.close()
+
+
+def check_assembly(assembly: Assembly, driver_node: str, joints: list[str]) -> None:
+    """What every entry point's process is made of (nodes/assembly.py): the driver node (and the
+    drive system, with every joint) on the hot executor; the stops, the waiting services and the
+    actions each on an executor thread of their own; the services in one callback group per joint
+    and one for /arm; /motor_degree_cmd on the command path of the joints' degree_cmd."""
+    hot = type(assembly.hot).__name__
+    expected = {driver_node: (hot, "hot"),
+                "rovercan_driver_stops": ("SingleThreadedExecutor", "rovercan-stops"),
+                "rovercan_driver_services": ("MultiThreadedExecutor", "rovercan-services"),
+                "rovercan_driver_actions": ("SingleThreadedExecutor", "rovercan-actions")}
+    if assembly.driver.config.drive_system is not None and len(joints) == len(assembly.driver.drives):
+        expected["drive_system"] = (hot, "hot")
+    assert assembly.layout() == expected
+    services = next(n for n in assembly.nodes if isinstance(n, DriverServicesNode))
+    assert sorted(services.groups) == sorted(["", *joints])
+    assert len({id(g) for g in services.groups.values()}) == len(services.groups)  # one group each
+    assert all(isinstance(g, MutuallyExclusiveCallbackGroup) for g in services.groups.values())
+    assert isinstance(assembly.node, DriverNode) and list(assembly.node.drives) == joints
 
 
 def eventually(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
