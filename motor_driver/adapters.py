@@ -11,6 +11,11 @@ that changes the behaviour fails there, loudly, instead of in the field:
 - :class:`GuardedNetwork`: canopen's ``Network.notify`` stops the receive thread when one
   callback raises; this override isolates each callback (its loop mirrors canopen's). Its
   listener also drops 29-bit frames, which canopen would dispatch by their low bits.
+- :func:`brief_error`, :class:`ReceiveErrors`, :func:`quiet_dependency_tracebacks`: a lost bus is
+  one line. python-can's socketcand client puts a formatted traceback in its "Failed to receive"
+  error (and logs it), its broadcast manager logs a send error with its traceback, and its
+  Notifier re-raises a receive error in its thread (Python prints that traceback) unless a
+  listener takes it.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import logging
 import socket
 import time
 from collections.abc import Callable
+from typing import Any
 
 import can
 import canopen
@@ -72,6 +78,59 @@ def hold_lone_sync(bus: can.BusABC, hold: bool) -> bool:
     return True
 
 
+#: python-can's loggers that put traceback text into their records when a bus goes away.
+TRACEBACK_LOGGERS = ("can.interfaces.socketcand.socketcand", "can.bcm")
+
+
+def brief_error(err: BaseException) -> str:
+    """An error in one line: its own text up to any traceback python-can put in it, and the
+    cause it was raised from (``ConnectionResetError: [Errno 104] Connection reset by peer``)."""
+    text = str(err).split("Traceback (most recent call last)")[0].strip().splitlines()
+    line = text[0].strip() if text else type(err).__name__
+    cause = err.__cause__ or err.__context__
+    if cause is not None and str(cause) and str(cause) not in line:
+        line = f"{line.rstrip(':')}: {type(cause).__name__}: {brief_error(cause)}"
+    return line
+
+
+class _OneLine(logging.Filter):
+    """Turns a record of python-can's that carries a traceback into a DEBUG line without it: the
+    driver says the loss itself, once (the supervisor's "bus ... lost (why)")."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        text = record.getMessage()
+        if record.exc_info or "Traceback" in text or record.name == "can.bcm":
+            record.msg, record.args = text.split("Traceback (most recent call last)")[0].strip(), None
+            record.exc_info = record.exc_text = None
+            record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+        return True
+
+
+_ONE_LINE = _OneLine()
+
+
+def quiet_dependency_tracebacks() -> None:
+    """python-can's records of a lost bus become one DEBUG line each (idempotent)."""
+    for name in TRACEBACK_LOGGERS:
+        dependency = logging.getLogger(name)
+        if _ONE_LINE not in dependency.filters:
+            dependency.addFilter(_ONE_LINE)
+
+
+class ReceiveErrors(can.Listener):  # type: ignore[misc]
+    """Takes the receive thread's error (python-can's Notifier then keeps it in ``exception``,
+    where the supervisor finds it, instead of re-raising it in its thread with a traceback)."""
+
+    def on_message_received(self, msg: can.Message) -> None:
+        pass
+
+    def on_error(self, exc: Exception) -> None:
+        logger.debug("receive failed: %s", brief_error(exc))
+
+    def stop(self, *args: Any) -> None:
+        pass
+
+
 class ElevenBitListener(canopen.network.MessageListener):  # type: ignore[misc]
     """canopen's frame listener for CANopen's own frames only: CiA 301 uses 11-bit identifiers,
     and canopen dispatches an extended frame by its identifier alone (an extended 0x181 carrying
@@ -104,17 +163,23 @@ class GuardedNetwork(canopen.Network):
     is isolated; rejected frames are counted.
     """
 
-    def __init__(self, bus: can.BusABC | None = None) -> None:
+    def __init__(self, bus: can.BusABC | None = None, listeners: tuple[can.Listener, ...] = (),
+                 on_sent: Callable[[int, bytes | bytearray, bool], None] | None = None) -> None:
         super().__init__(bus)
-        self.listeners: list[can.Listener] = [ElevenBitListener(self)]  # before connect(): its Notifier takes it
+        # before connect(): its Notifier takes the list
+        self.listeners: list[can.Listener] = [ElevenBitListener(self), *listeners]
         self.rejected_frames = 0
         #: called with each frame sent (the flight recorder), after it went out: (id, data, remote)
-        self.on_sent: Callable[[int, bytes | bytearray, bool], None] | None = None
+        self.on_sent = on_sent
         #: sends the kernel refused with ENOBUFS (a full transmit queue: a real controller's
         #: qlen is 10), each retried (the host heartbeat's counted here too, not retried); and
         #: the frames given up on after TX_QUEUE_FULL_RETRY_S
         self.tx_queue_full = 0
         self.tx_queue_dropped = 0
+
+    def count_queue_full(self) -> None:
+        """A send refused with ENOBUFS that was not retried (the host heartbeat's)."""
+        self.tx_queue_full += 1
 
     def send_message(self, can_id: int, data: bytes | bytearray, remote: bool = False) -> None:
         deadline = 0.0

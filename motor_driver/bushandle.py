@@ -1,8 +1,11 @@
 """One bus of the driver: the python-can bus, its canopen network, the SYNC producer and the
 worker thread for the bus's blocking jobs.
 
-Owner: the supervisor thread (reconnect bookkeeping, the host heartbeat's send); the worker
-runs the blocking jobs handed to it (re-boots, reconnects), one at a time.
+Owners: the connection (``bus``, the network's notifier, ``sync_task``) is set up by the
+driver's constructor and ``start`` before any thread runs, and from then on changed only by jobs
+on the bus's worker (reconnect, SYNC restart), one at a time; the supervisor thread sends the
+host heartbeat through it (:meth:`BusHandle.beat`, which counts ``host_beats``). The supervisor's
+bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.runtime.BusRuntime`.
 
 The bus's receive thread (python-can's Notifier) runs under ordinary scheduling, also in a driver
 whose other threads are SCHED_FIFO (nodes/runtime.go_realtime): real-time, it woke at once for
@@ -16,8 +19,7 @@ from __future__ import annotations
 
 import functools
 import logging
-import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 
 import can
 
@@ -26,7 +28,7 @@ from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
 from can_config.realtime import ordinary_thread
-from motor_driver.adapters import GuardedNetwork, hold_lone_sync, queue_full
+from motor_driver.adapters import GuardedNetwork, ReceiveErrors, brief_error, hold_lone_sync, queue_full
 from motor_driver.connect import is_kernel_bus
 from motor_driver.cyclic import DaemonCyclicTask
 from motor_driver.recorder import FlightRecorder
@@ -58,39 +60,23 @@ class BusHandle:
                  daemon: tuple[str, int, str] | None = None, recorder: FlightRecorder | None = None) -> None:
         self.name = name
         self.recorder = recorder
-        self.daemon = daemon  # (host, port, channel): the socketcand daemon's timer sends the SYNC
+        self.daemon_address = daemon  # (host, port, channel): the socketcand daemon's timer sends the SYNC
         self.bus = bus
         self.owned = owned
         self.sync_period_s = sync_period_s
         self.stats = BusStats(bitrate)
-        self.network = GuardedNetwork(bus)
-        self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         self.foreign = foreign or ForeignTraffic(0, ())
-        self.foreign.marks_local_frames = is_kernel_bus(bus)
-        self.network.listeners += [self.stats, self.foreign]  # before connect(): its Notifier copies the list
-        if recorder is not None:
-            self.network.listeners.append(recorder.listener(name))
-            self.network.on_sent = functools.partial(recorder.record_frame, name)
+        self.foreign.set_marks_local_frames(is_kernel_bus(bus))
+        # ReceiveErrors keeps a receive error quiet (the supervisor says the loss)
+        listeners: tuple[can.Listener, ...] = (self.stats, self.foreign, ReceiveErrors())
+        self.network = GuardedNetwork(bus, listeners + ((recorder.listener(name),) if recorder is not None else ()),
+                                      functools.partial(recorder.record_frame, name) if recorder is not None else None)
+        self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         with ordinary_thread():  # the receive thread starts ordinary: module docstring
             self.network.connect()
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | DaemonCyclicTask | None = None
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"rovercan-{name}")
-        self.job: Future[None] | None = None  # the bus's reconnect, while it runs
-        self.host_beats = 0
-        self.late_beats = 0
-        self.last_beat = 0.0
-        self.next_beat = 0.0
-        self.backoff_s = RECONNECT_MIN_S
-        self.next_attempt = 0.0
-        self.last_frames = 0
-        self.last_rx = 0.0
-        #: supervisor's: the newest error frame it reported, and since when sends have failed
-        #: (a host heartbeat that could not be sent: ENETDOWN, ENOBUFS) with the last error
-        self.reported_error = 0.0
-        self.reported_losing = 0.0
-        self.send_failing: tuple[float, str] | None = None
-        self.reported_queue_full = 0  # supervisor's: ENOBUFS refusals already said
-        self.link_down_said = False  # supervisor's: a kernel link's going down said, until it is back
+        self.host_beats = 0  # the supervisor thread's (beat)
 
     def disconnect(self) -> None:
         """Drop a lost bus: SYNC, receive thread and socket (the network object stays)."""
@@ -115,9 +101,9 @@ class BusHandle:
         manager, or (python-can on SocketCAN) the kernel's; else python-can's thread."""
         if self.sync_task is None and self.sync_period_s > 0:
             msg = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
-            if self.daemon is not None:
-                host, port, channel = self.daemon
-                self.foreign.own_sync_period_s = self.sync_period_s  # its SYNC reaches us: judge by rate
+            if self.daemon_address is not None:
+                host, port, channel = self.daemon_address
+                self.foreign.set_own_sync(self.sync_period_s)  # its SYNC reaches us: judge by rate
                 try:
                     self.sync_task = DaemonCyclicTask(host, port, channel, msg, self.sync_period_s)
                     hold_lone_sync(self.bus, True)  # its echo alone does not wake the receive thread
@@ -128,19 +114,16 @@ class BusHandle:
             # kernel loops its frames back to this one: judged by their rate, from the first one
             # on (it can arrive before send_periodic returns); a thread sends through the
             # driver's own socket, which does not receive its own frames: any SYNC is another's
-            self.foreign.own_sync_period_s = self.sync_period_s
+            self.foreign.set_own_sync(self.sync_period_s)
             # not started yet: python-can's thread-based task must have its on_error before its
             # thread runs (a server that died during start-up raised in that thread, unhandled)
             task = self.bus.send_periodic(msg, self.sync_period_s, store_task=False, autostart=False)
             self.sync_task = task
             if isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask):
-                self.foreign.own_sync_period_s = 0.0
+                self.foreign.set_own_sync(0.0)
                 task.on_error = self._sync_failed
             if isinstance(task, can.broadcastmanager.RestartableCyclicTaskABC):
                 task.start()
-
-    def job_done(self) -> bool:
-        return self.job is None or self.job.done()
 
     def restart_sync(self) -> None:
         """On the bus's worker: a SYNC job the daemon dropped is set up again."""
@@ -148,8 +131,8 @@ class BusHandle:
         self.start_sync()
 
     def _sync_failed(self, exc: Exception) -> bool:
-        """The SYNC thread could not send (bus gone): stop it; the supervisor reconnects."""
-        logger.error("bus %s: SYNC stopped: %s", self.name, exc)
+        """The SYNC thread could not send (bus gone): stop it; the supervisor says the loss and reconnects."""
+        logger.info("bus %s: SYNC stopped: %s", self.name, brief_error(exc))
         return False
 
     def stop_sync(self) -> None:
@@ -158,22 +141,22 @@ class BusHandle:
             self.sync_task = None
             hold_lone_sync(self.bus, False)  # no SYNC comes to push a frame without data through
 
-    def beat(self, host_node_id: int) -> None:
-        """One host heartbeat (NMT state operational), sent from the supervisor loop."""
+    def beat(self, host_node_id: int) -> str | None:
+        """One host heartbeat (NMT state operational), sent from the supervisor loop; why it could
+        not be sent, or None."""
         try:
             beat = can.Message(arbitration_id=FunctionCode.HEARTBEAT + host_node_id, data=bytes([NmtState.OPERATIONAL]),
                                is_extended_id=False)
             self.bus.send(beat)
             self.host_beats += 1
-            self.send_failing = None
             if self.recorder is not None:
                 self.recorder.record_sent(self.name, beat)
         except (can.CanError, OSError, ValueError) as err:  # the supervisor decides when the bus is lost
             logger.debug("bus %s: host heartbeat not sent: %s", self.name, err)
             if queue_full(err):  # counted with the network's (not retried: this loop never waits)
-                self.network.tx_queue_full += 1
-            if self.send_failing is None:
-                self.send_failing = (time.monotonic(), str(err))
+                self.network.count_queue_full()
+            return brief_error(err)
+        return None
 
     def close(self) -> None:
         self.stop_sync()

@@ -8,13 +8,17 @@ thread for the bus's blocking jobs (re-boot of a drive that reset, reconnection 
 
 Threads and what they own:
 - the notifier thread of each bus (canopen/python-can): decodes frames into each Drive's
-  received state and notifies waiters; it sends nothing but the set-point handshake's reply.
-- the supervisor thread (``rovercan-supervisor``), period SUPERVISOR_PERIOD_S, never blocks:
-  produces the host heartbeat on every bus, checks the drives' heartbeats, runs the velocity
-  watchdog and the limit guard, notices lost buses and hands re-boots and reconnects to the
-  bus's worker. It owns ``bus_lost`` and each BusHandle's reconnect bookkeeping.
-- one worker per bus (``rovercan-<bus>``): the re-boots and reconnects, one at a time.
-- the caller's threads: commands, each serialised per drive by the Drive's lock.
+  received state and notifies waiters; it sends nothing but the set-point handshake's reply, and
+  posts the heartbeats that may change a judgement to the supervisor.
+- the supervisor thread (``rovercan-supervisor``, :class:`motor_driver.supervisor.Supervisor`),
+  period SUPERVISOR_PERIOD_S, never blocks: produces the host heartbeat on every bus, checks the
+  drives' heartbeats, runs the velocity watchdog and the limit guard, notices lost buses and hands
+  re-boots and reconnects to the bus's worker. It alone writes the runtime state (lost, booted,
+  another master, reconnect and back-off: :mod:`motor_driver.runtime`); ``bus_lost`` reads it.
+- one worker per bus (``rovercan-<bus>``): the re-boots and reconnects, one at a time; each
+  reports its result to the supervisor.
+- the caller's threads: commands, each decided and sent through the drive's command channel
+  (its one lock, held only to decide and send a frame).
 - the flight recorder's writer (``rovercan-recorder``, :mod:`motor_driver.recorder`): the
   others append frames, states and incidents to it without waiting; it writes the files.
 
@@ -36,16 +40,17 @@ lifecycle: start, safe stop, close).
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Iterable, Iterator, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 
 import can
 
 from can_config import RoverConfig, load_drive_od
 from can_config.errors import BusLostError, ConfigError, MotorError
+from motor_driver.adapters import quiet_dependency_tracebacks
 from motor_driver.bushandle import BusHandle, sync_daemon
+from motor_driver.bushealth import KernelBusHealth
 from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
 from motor_driver.cia402 import State
 from motor_driver.connect import (
@@ -59,7 +64,7 @@ from motor_driver.connect import (
 )
 from motor_driver.drive import Drive, DriveState
 from motor_driver.recorder import FlightRecorder
-from motor_driver.supervisor import SUPERVISOR_PERIOD_S, Supervision, supervisor_log
+from motor_driver.supervisor import SUPERVISOR_PERIOD_S, Supervisor
 from motor_driver.traffic import (
     FOREIGN_HOLD_S,
     SYNC_RATE_WINDOW_S,
@@ -73,7 +78,7 @@ from motor_driver.traffic import (
 logger = logging.getLogger(__name__)
 
 
-class MotorDriver(Supervision):
+class MotorDriver:
     """All drives of a :class:`RoverConfig`. A context manager; ``close()`` is idempotent.
 
     ``buses`` maps bus names to already-open python-can buses (tests, the emulator); any
@@ -92,20 +97,14 @@ class MotorDriver(Supervision):
             if load.load > WARN_LOAD:
                 logger.warning("bus %s: planned load %.0f%% of %d bit/s (worst case)", load.bus,
                                load.load * 100, load.bitrate)
+        quiet_dependency_tracebacks()  # a lost bus is one line (the supervisor's), no traceback
         self._handles: dict[str, BusHandle] = {}
-        self._rate_limited = supervisor_log()
         self.drives: dict[str, Drive] = {}
         self._closed = False
-        self._stop = threading.Event()
-        self._supervisor: threading.Thread | None = None
-        self.bus_lost: dict[str, bool] = {}
-        self._reboots: dict[str, Future[None]] = {}  # drive name -> its re-boot on the bus worker
         given = dict(buses or {})
         self.recorder = FlightRecorder(config.recorder, {d.name: (d.bus, d.node_id) for d in config.drives},
                                        {b.name: b.channel for b in config.buses},
                                        config.source) if config.recorder.enabled else None
-        self._host_loss_seen: dict[str, int] = {}  # supervisor: host-loss stops already reported
-        self._take_over = False  # start(take_over=True): another master's traffic is not held against it
         # every EDS is loaded and checked before any hardware is touched
         ods = {d.name: load_drive_od(d.eds, d.node_id) for d in config.drives}
         try:
@@ -125,13 +124,16 @@ class MotorDriver(Supervision):
                 self._handles[bus_cfg.name] = BusHandle(bus_cfg.name, bus, owned, bus_cfg.sync_period_s,
                                                         bus_cfg.bitrate, foreign, sync_daemon(bus_cfg),
                                                         self.recorder)
-                self.bus_lost[bus_cfg.name] = False
+            self.supervisor = Supervisor(config, self._handles, self.recorder)
             for drive_cfg in config.drives:
                 bus_cfg = config.bus(drive_cfg.bus)
-                self.drives[drive_cfg.name] = Drive(drive_cfg, self._handles[drive_cfg.bus].network,
-                                                    ods[drive_cfg.name], host_node_id=bus_cfg.host_node_id,
-                                                    sync_period_s=bus_cfg.sync_period_s)
-                self.drives[drive_cfg.name].watch.set_remote_frames(carries_remote_frames(self._handles[drive_cfg.bus].bus))
+                runtime, port = self.supervisor.port(drive_cfg.name)
+                drive = Drive(drive_cfg, self._handles[drive_cfg.bus].network, ods[drive_cfg.name],
+                              host_node_id=bus_cfg.host_node_id, sync_period_s=bus_cfg.sync_period_s,
+                              runtime=runtime, port=port)
+                drive.watch.set_remote_frames(carries_remote_frames(self._handles[drive_cfg.bus].bus))
+                self.drives[drive_cfg.name] = drive
+                self.supervisor.add(drive)
         except BaseException:
             self._close_buses()
             if self.recorder is not None:
@@ -148,10 +150,9 @@ class MotorDriver(Supervision):
         SYNC, NMT commands, RPDOs or SDO writes to its drives) makes it refuse with
         :class:`ForeignMasterError`, nothing sent, unless ``take_over``. ``look_s``: listen this
         long instead (the bench's ``--look``)."""
-        self._take_over = take_over
         try:
             self._look(take_over, look_s)
-            self._start(reset)
+            self._start(reset, take_over)
         except BaseException:  # a failed or interrupted start leaves nothing armed or open
             self.close()
             raise
@@ -169,7 +170,7 @@ class MotorDriver(Supervision):
                 raise other_master_error(f"bus {name}", evidence)
             logger.warning("bus %s: another master is live (%s); taking the bus over as told", name, evidence)
 
-    def _start(self, reset: bool) -> None:
+    def _start(self, reset: bool, take_over: bool) -> None:
         with ThreadPoolExecutor(max_workers=max(1, len(self.drives)),
                                 thread_name_prefix="rovercan-boot") as pool:
             futures = [pool.submit(d.boot, reset=reset) for d in self.drives.values()]
@@ -178,9 +179,7 @@ class MotorDriver(Supervision):
         for handle in self._handles.values():
             handle.start_sync()
             handle.worker.submit(lambda: None).result()  # its thread now, not at the first bus loss
-        self._supervisor = threading.Thread(target=self._supervise, daemon=True,
-                                            name="rovercan-supervisor")
-        self._supervisor.start()
+        self.supervisor.start(take_over)
         for drive in self.drives.values():
             if drive.config.arm_on_start:
                 drive.enable()
@@ -206,6 +205,15 @@ class MotorDriver(Supervision):
     @property
     def buses(self) -> dict[str, BusHandle]:
         return dict(self._handles)
+
+    @property
+    def bus_lost(self) -> dict[str, bool]:
+        """Each bus: lost (the supervisor's judgement, read)."""
+        return {name: rt.lost for name, rt in self.supervisor.bus.runtime.items()}
+
+    def kernel_health(self, bus: str) -> tuple[KernelBusHealth | None, str]:
+        """What the kernel says of ``bus`` (state, counters: a socketcan bus), or None and why."""
+        return self.supervisor.bus.kernel_health(bus)
 
     # ------------------------------------------------------------------ shutdown
     def safe_stop(self, drives: Iterable[Drive] | None = None) -> list[str]:
@@ -241,9 +249,7 @@ class MotorDriver(Supervision):
         try:
             self.safe_stop()  # the host heartbeat goes on meanwhile: no drive reacts to its loss yet
         finally:
-            self._stop.set()
-            if self._supervisor is not None and self._supervisor is not threading.current_thread():
-                self._supervisor.join(timeout=2.0)
+            self.supervisor.stop()
             for handle in self._handles.values():
                 handle.worker.shutdown(wait=True, cancel_futures=True)  # a re-boot under way ends first
             self._release_host_watch()

@@ -118,6 +118,14 @@ class ForeignTraffic(can.Listener):
         #: supervisor asks for each drive every period, and nearly always nothing came
         self.newest = 0.0
 
+
+    def set_own_sync(self, period_s: float) -> None:
+        """The bus handle: this driver's SYNC reaches this listener at this period (0: it does not)."""
+        self.own_sync_period_s = period_s
+
+    def set_marks_local_frames(self, marks: bool) -> None:
+        """The bus handle: the bus marks frames made on this host (SocketCAN's is_rx)."""
+        self.marks_local_frames = marks
     def on_message_received(self, msg: can.Message) -> None:
         cob = msg.arbitration_id
         if msg.is_error_frame or msg.is_extended_id:

@@ -249,7 +249,7 @@ def test_a_stop_during_enable_leaves_no_busy_mark(driver_factory: DriverFactory,
         drive.enable()
     drive.interleave = None
     assert drive.busy is None
-    assert drive.stop_velocity()  # the watchdog is not locked out
+    assert drive.limits.stop_velocity()  # the watchdog is not locked out
     other: list[BaseException] = []
 
     def enable_and_move() -> None:

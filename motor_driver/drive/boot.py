@@ -3,9 +3,12 @@
 Owner: the bus's worker (or the caller of :meth:`Boot.boot`), while the drive is not booted:
 nothing else commands it meanwhile (the cache says not booted, so every command is refused).
 Its own state: the safety check's result, the boot count, the host-loss stops it found, the
-object a step is at (for its error). Each step reads or writes by SDO through the drive's SDO
-port; what the steps read (statusword, position, mode, units) is handed to the state cache and
-the command channel through their methods, in one place at the end.
+object a step is at (for its error). Whether the drive is booted is the supervisor's: a boot
+reports its beginning and its end (:class:`motor_driver.runtime.Booting`, ``Booted``) and a
+failed re-configuration (``RebootFailed``), and goes on once the supervisor has taken it in.
+Each step reads or writes by SDO through the drive's SDO port; what the steps read (statusword,
+position, mode, units) is handed to the state cache and the command channel through their
+methods, in one place at the end.
 """
 
 from __future__ import annotations
@@ -17,7 +20,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import can
-import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config.codec import value_format
@@ -33,6 +35,7 @@ from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
 from motor_driver.pdo import PdoPlan, mapping_writes
+from motor_driver.runtime import Booted, Booting, RebootFailed, RuntimePort
 from motor_driver.safety import SafetyCheck, judge
 from motor_driver.unit_ranges import check_drive_value
 from motor_driver.units import read_unit_objects, scale_from_objects
@@ -43,19 +46,19 @@ logger = logging.getLogger(__name__)
 class Boot:
     """Boot of one drive, a table of steps, and re-configuration after a reset."""
 
-    def __init__(self, config: DriveConfig, od: ObjectDictionary, plan: PdoPlan, network: canopen.Network,
-                 cache: DriveCache, channel: CommandChannel, sdo: SdoPort, power: PowerStateMachine,
-                 watch: HostWatch) -> None:
+    def __init__(self, config: DriveConfig, od: ObjectDictionary, plan: PdoPlan, cache: DriveCache,
+                 channel: CommandChannel, sdo: SdoPort, power: PowerStateMachine,
+                 watch: HostWatch, port: RuntimePort) -> None:
         self.config = config
         self.name, self.node_id = config.name, config.node_id
         self.od = od
         self.plan = plan
-        self._network = network
         self._cache = cache
         self._channel = channel
         self._sdo = sdo
         self._power = power
         self._watch = watch
+        self._port = port
         self.safety: tuple[SafetyCheck, ...] = ()  # read back after each boot (motor_driver.safety)
         self.host_loss_stops = 0  # boots that found the drive stopped by its host watch
         self.boot_count = 0
@@ -64,7 +67,7 @@ class Boot:
 
     def boot(self, *, reset: bool = True) -> None:
         """Reset (NMT), check identity, configure PDOs and parameters, NMT start. Does not enable."""
-        self._cache.mark_unbooted()
+        self._port.report(Booting(self.name))
         self._power.forget_modes()  # a replaced drive may support other modes
         if reset:
             self._reset_node()
@@ -220,8 +223,9 @@ class Boot:
     def _start(self) -> None:
         """NMT start: the drive is booted (not enabled)."""
         self._send_nmt(NmtCommand.START)
-        self.boot_count += 1
-        self._cache.mark_booted()
+        self._cache.note_started()
+        self._port.report(Booted(self.name))
+        self.boot_count += 1  # after: a caller that sees the count sees the drive booted
         logger.info("node %d (%s) booted: %d RPDOs, %d TPDOs%s", self.node_id, self.name,
                     len(self.plan.rpdos), len(self.plan.tpdos),
                     f"; by SDO: {', '.join(f'0x{i:04X}' for i in self.plan.sdo_only)}"
@@ -229,7 +233,7 @@ class Boot:
 
     def _send_nmt(self, command: NmtCommand) -> None:
         try:
-            self._network.send_message(0x000, bytes([command, self.node_id]))
+            self._watch.nmt_ledger.send(command)
         except (can.CanError, OSError, RuntimeError) as err:
             raise BusLostError(f"{self.name} (node {self.node_id}): cannot send NMT {command.name}: the bus is"
                                f" gone ({err})") from err
@@ -383,5 +387,4 @@ class Boot:
         except MotorError as err:
             logger.error("%s: re-configuration after a reset failed: %s; retrying in %g s", self.name, err,
                          REBOOT_RETRY_S)
-            time.sleep(REBOOT_RETRY_S)
-            self._cache.rebooted.set()  # the supervisor hands it to the worker again
+            self._port.report(RebootFailed(self.name, REBOOT_RETRY_S))  # the supervisor hands it over again

@@ -159,11 +159,12 @@ class CommandChannel:
             op = self._busy.add(by, self._generation)
         yield from self._run_registered(op)
 
-    def stop(self, command: Command, by: str) -> None:
+    def stop(self, command: Command, by: str, timeout_s: float = -1.0) -> bool:
         """The frame of a stop: decided and sent in one critical section that bumps the
         generation, so no frame decided before it can follow it. Forgets the set-point handshake
-        and the commanded state; wakes every operation waiting for the drive."""
-        self._acquire(by)
+        and the commanded state; wakes every operation waiting; False, nothing sent, without the lock in ``timeout_s``."""
+        if not self._acquire(by, timeout_s):
+            return False
         try:
             self._generation += 1
             self._preempted = (self._generation, by)
@@ -178,6 +179,7 @@ class CommandChannel:
         if sdo_word is not None:
             self._write_cw_sdo(sdo_word)
         self._wake()
+        return True
 
     def transition(self, op: Op, doing: str, command: Command | int, edge: int = 0) -> None:
         """One controlword of an operation (enable, recover, homing): sent only if no stop came
@@ -303,11 +305,13 @@ class CommandChannel:
             if position_counts is not None:
                 self.target_counts = position_counts
 
-    def forget_commanded(self) -> None:
-        """A drive lost or handed to another master: nothing is commanded any more."""
-        with self._lock:
-            self.was_enabled = False
-            self.velocity_commanded = False
+    def forget_commanded(self, timeout_s: float = -1.0) -> bool:
+        """A drive lost or another master's: nothing commanded any more (False: no lock in ``timeout_s``)."""
+        if not self._lock.acquire(timeout=timeout_s):
+            return False
+        self.was_enabled = self.velocity_commanded = False  # nothing here raises: released below
+        self._lock.release()
+        return True
 
     def close(self) -> None:
         """The driver shuts down: every operation ends, no command is taken (stops still are)."""

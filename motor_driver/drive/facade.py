@@ -9,7 +9,9 @@ composes ``sdo``, ``pdo``, ``nmt`` and ``emcy``:
 - ``watch`` (:class:`HostWatch`), ``power``, ``limits``, ``motion``, ``homing``, ``boot``:
   collaborators built on those.
 
-This class adds no state and no rule: it builds the parts in order, connects the cache to the
+Lost, booted and another master are the driver's supervisor's judgement (``runtime``, a
+:class:`motor_driver.runtime.DriveRuntime` the parts read); the parts hand it what they find
+through ``port``. This class adds no state and no rule: it builds the parts in order, connects the cache to the
 channel, and hands the drive's COB-IDs to the receive thread last, so that a frame never meets
 a half-built drive. Its methods and properties forward to the part that owns each.
 """
@@ -18,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import struct
-import threading
 from collections.abc import Callable
 
 import can
@@ -41,6 +42,7 @@ from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
 from motor_driver.drive.values import DriveState, Emcy
 from motor_driver.pdo import PdoPlan, plan_pdos
+from motor_driver.runtime import DriveRuntime, NmtLedger, RuntimePort
 from motor_driver.safety import SafetyCheck
 from motor_driver.sdo_client import OwnAnswersNode
 from motor_driver.units import Scale
@@ -52,7 +54,8 @@ class Drive:
     """One drive. Created by :class:`motor_driver.driver.MotorDriver`; methods are thread-safe."""
 
     def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
-                 host_node_id: int = 127, sync_period_s: float = 0.01) -> None:
+                 host_node_id: int = 127, sync_period_s: float = 0.01, runtime: DriveRuntime,
+                 port: RuntimePort) -> None:
         self.config = config
         self.name, self.node_id = config.name, config.node_id
         self.network = network
@@ -67,17 +70,20 @@ class Drive:
             logger.warning("node %d: 0x%04X cannot be PDO-mapped on this drive; using SDO for it", config.node_id, index)
         scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio, invert=config.invert,
                       offset_deg=config.offset_deg)
-        self.cache = DriveCache(config, network, self.plan, scale, sync_period_s=sync_period_s)
+        self.runtime = runtime
+        self.cache = DriveCache(config, network, self.plan, scale, sync_period_s=sync_period_s, runtime=runtime,
+                                port=port)
         self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s)
         self.channel = CommandChannel(config.name, config.node_id, self.plan, self._send, self._write_cw_sdo,
                                       self.cache.wake)
-        self.watch = HostWatch(config, od, network, self.cache, self.channel, self.sdo, host_node_id)
+        self.watch = HostWatch(config, od, network, self.cache, self.channel, self.sdo, host_node_id,
+                               runtime=runtime, nmt=NmtLedger(config.node_id, self._send))
         self.power = PowerStateMachine(config, od, self.cache, self.channel, self.sdo, self.watch)
         self.limits = LimitGuard(config, self.cache, self.channel)
         self.motion = Motion(config, od, self.plan, self.cache, self.channel, self.sdo, self.power, self.limits)
         self.homing = Homing(config, od, self.cache, self.channel, self.sdo, self.power)
-        self.boot_part = Boot(config, od, self.plan, network, self.cache, self.channel, self.sdo, self.power,
-                              self.watch)
+        self.boot_part = Boot(config, od, self.plan, self.cache, self.channel, self.sdo, self.power,
+                              self.watch, port)
         self.cache.connect(self.channel)
         self.cache.subscribe()
 
@@ -170,9 +176,6 @@ class Drive:
     def lost(self) -> bool:
         return self.cache.lost
 
-    @property
-    def rebooted(self) -> threading.Event:
-        return self.cache.rebooted
 
     # ------------------------------------------------------------------ the channel's
     @property
@@ -231,30 +234,12 @@ class Drive:
     def watch_mode(self) -> str:
         return self.watch.watch_mode()
 
-    def guard(self, now: float) -> None:
-        self.watch.guard(now)
-
-    def check_heartbeat(self, now: float) -> Callable[[], None] | None:
-        return self.watch.check_heartbeat(now)
-
-    def set_foreign_master(self, evidence: str) -> bool:
-        return self.watch.set_foreign_master(evidence)
-
-    def quick_stop_by_sdo(self, since: float) -> None:
-        self.watch.quick_stop_by_sdo(since)
-
-    def mark_lost(self) -> None:
-        self.watch.mark_lost()
-
     def release_host_watch(self) -> None:
         self.watch.release_host_watch()
 
     # ------------------------------------------------------------------ boot's
     def boot(self, *, reset: bool = True) -> None:
         self.boot_part.boot(reset=reset)
-
-    def reconfigure(self) -> None:
-        self.boot_part.reconfigure()
 
     @property
     def boot_count(self) -> int:
@@ -304,12 +289,6 @@ class Drive:
     @property
     def watchdog_stops(self) -> int:
         return self.limits.watchdog_stops
-
-    def guard_limits(self) -> None:
-        self.limits.guard_limits()
-
-    def stop_velocity(self) -> bool:
-        return self.limits.stop_velocity()
 
     def check_position(self, angle_deg: float) -> float:
         return self.motion.check_position(angle_deg)

@@ -1,13 +1,14 @@
-"""How the drive watches the host (heartbeat consumer or node guarding), how the driver's
-supervisor watches the drive (its heartbeat, another master on the bus), and what the driver
-does about a drive it stops hearing: it tells it to stop.
+"""How the drive watches the host (heartbeat consumer or node guarding), and the frames the
+driver's supervisor sends a drive it stops hearing or loses to another master: it tells it to stop.
 
 Owners: boot (the bus's worker, drive not booted) writes ``host_watch``, ``host_watch_problem``
-and ``remote_frames`` through :meth:`configure`; the supervisor thread owns ``_next_guard``,
-``foreign_master`` and the lost drive's stop bookkeeping (``_lost_since``, ``_next_stop``,
-``lost_stops``), and calls :meth:`guard`, :meth:`check_heartbeat`, :meth:`set_foreign_master`
-and :meth:`mark_lost`, none of which waits; blocking SDO work (the SDO copy of a stop) is
-handed back to the caller to run on the bus's worker.
+and ``guardable`` through :meth:`choose` and :meth:`configure`; the driver sets ``remote_frames``
+once, before the first boot. This object keeps no runtime state: lost, another master and the
+stop bookkeeping are the supervisor's (:class:`motor_driver.runtime.DriveRuntime`, read here),
+which decides when :meth:`send_guard`, :meth:`stop_lost` and :meth:`lose_control` run, on its
+thread; none of them waits (the channel's lock is tried, not waited for). Blocking SDO work (the
+SDO copy of a stop) runs on the bus's worker. Every NMT command goes through the drive's
+:class:`motor_driver.runtime.NmtLedger`, so that a state it causes is known as this driver's.
 
 A drive declared lost may still be turning (a broken transmit line, a hung CAN task): the
 driver tells it to stop by every means that needs no answer from it, the quick-stop
@@ -21,7 +22,6 @@ from __future__ import annotations
 import logging
 import struct
 import time
-from collections.abc import Callable
 
 import can
 import canopen
@@ -36,6 +36,7 @@ from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import NO_HOST_WATCH, QUICK_STOP_THEN_DISABLE, VALUE_RANGE_ABORTS
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
+from motor_driver.runtime import DriveRuntime, NmtLedger
 from motor_driver.safety import guard_settings
 
 logger = logging.getLogger(__name__)
@@ -50,7 +51,8 @@ class HostWatch:
     """The drive's watch of the host, and the supervisor's of the drive."""
 
     def __init__(self, config: DriveConfig, od: ObjectDictionary, network: canopen.Network, cache: DriveCache,
-                 channel: CommandChannel, sdo: SdoPort, host_node_id: int) -> None:
+                 channel: CommandChannel, sdo: SdoPort, host_node_id: int, *, runtime: DriveRuntime,
+                 nmt: NmtLedger) -> None:
         self.config = config
         self.name, self.node_id = config.name, config.node_id
         self._od = od
@@ -59,20 +61,22 @@ class HostWatch:
         self._channel = channel
         self._sdo = sdo
         self.host_node_id = host_node_id
+        self._runtime = runtime  # the supervisor's: read only
+        self.nmt_ledger = nmt
         #: the bus carries remote frames (a kernel bus; socketcand's rawmode cannot)
         self.remote_frames = False
         #: how the drive watches the host (after boot), or None: nothing stops it if the host dies
         self.host_watch: str | None = None
         self.host_watch_problem: str | None = None
         self.guardable = False  # node guarding chosen and possible on this bus (boot's)
-        self._next_guard = 0.0
-        self.foreign_master = ""
-        self._lost_since = 0.0  # supervisor: when the drive was declared lost (0: it is not)
-        self._next_stop = 0.0
-        self.lost_stops = 0  # stop frames sent to lost drives
 
     def set_remote_frames(self, carried: bool) -> None:
         self.remote_frames = carried
+
+    @property
+    def foreign_master(self) -> str:
+        """Evidence that another master drives it (the supervisor's judgement): commands are refused."""
+        return self._runtime.foreign_master
 
     # ------------------------------------------------------------------ boot's
     def choose(self) -> bool:
@@ -146,7 +150,6 @@ class HostWatch:
         self.host_watch = (f"node guarding every {guard_ms} ms, life time {guard_ms * factor} ms (0x100C x 0x100D),"
                            f" then {self._reaction()}")
         self.host_watch_problem = None
-        self._next_guard = 0.0
         self._cache.set_guarding(True)
 
     def release_host_watch(self) -> None:
@@ -162,49 +165,29 @@ class HostWatch:
         self.host_watch = None
 
     # ------------------------------------------------------------------ the supervisor's
-    def guard(self, now: float) -> None:
-        """Supervisor: the guard (a remote frame on 0x700 + id) when one is due. Its answer is the
-        drive's 'heartbeat': a missing one makes the drive lost after heartbeat_timeout_ms. A lost
-        drive is guarded no more: its life guarding then trips too."""
-        if not self._cache.guarding or now < self._next_guard or self._lost_since:
-            return
-        self._next_guard = max(self._next_guard + self.config.heartbeat_period_s, now)
+    def send_guard(self) -> None:
+        """Supervisor, when a guard is due: a remote frame on 0x700 + id. Its answer is the
+        drive's 'heartbeat': a missing one makes the drive lost after heartbeat_timeout_ms."""
         try:
             self._network.send_message(FunctionCode.HEARTBEAT + self.node_id, b"", remote=True)
         except (can.CanError, OSError, RuntimeError) as err:  # a lost bus is the supervisor's to find
             logger.debug("node %d: guard not sent: %s", self.node_id, err)
 
-    def check_heartbeat(self, now: float) -> Callable[[], None] | None:
-        """Supervisor: declare the drive lost when its heartbeat is overdue, and tell it to stop
-        (again every heartbeat period while it stays lost). Returns the SDO copy of the stop for
-        the bus's worker when the drive was declared lost just now."""
-        cache = self._cache
-        if self._lost_since and not cache.lost:
-            logger.warning("node %d (%s): heard again after %.1f s lost; it was told to stop %d times; enable it"
-                           " again to drive it", self.node_id, self.name, now - self._lost_since, self.lost_stops)
-            self._lost_since = 0.0
-        if cache.booted and not cache.lost and cache.last_heartbeat and \
-                now - cache.last_heartbeat > self.config.heartbeat_timeout_s:
-            cache.mark_lost()
-            self._lost_since = now
-            logger.error("node %d (%s): heartbeat lost (none for %.0f ms, consumer time %.0f ms); telling it to stop"
-                         " (quick stop by RPDO and SDO, NMT stop) until it is heard again", self.node_id, self.name,
-                         (now - cache.last_heartbeat) * 1000, self.config.heartbeat_timeout_s * 1000)
-            self._stop_lost(now)
-            return self.quick_stop_lost_by_sdo
-        if self._lost_since and cache.booted and now >= self._next_stop:
-            self._stop_lost(now)
-        return None
-
-    def _stop_lost(self, now: float) -> None:
-        """The stops that need no answer: the quick-stop controlword on the RPDO, then NMT stop."""
-        self._next_stop = now + self.config.heartbeat_period_s
-        self.lost_stops += 1
+    def stop_lost(self) -> bool:
+        """Supervisor: the stops that need no answer, the quick-stop controlword on the RPDO, then
+        NMT stop. False when the channel was busy (its lock is tried, never waited for): the RPDO
+        goes at the caller's next period; the NMT stop went."""
+        sent = False
         try:
-            self._channel.stop(Command.QUICK_STOP, "the drive was lost")
-            self._network.send_message(0x000, bytes([NmtCommand.STOP, self.node_id]))
+            sent = self._channel.stop(Command.QUICK_STOP, "the drive was lost", timeout_s=0.0)
         except (MotorError, can.CanError, OSError, RuntimeError) as err:
             logger.debug("node %d: stop of a lost drive not sent: %s", self.node_id, err)
+            sent = True  # tried: the bus is the trouble, not the lock
+        try:
+            self.nmt_ledger.send(NmtCommand.STOP)
+        except (can.CanError, OSError, RuntimeError) as err:
+            logger.debug("node %d: NMT stop of a lost drive not sent: %s", self.node_id, err)
+        return sent
 
     def quick_stop_lost_by_sdo(self) -> None:
         """Bus worker: the quick stop as an SDO write as well (a drive whose PDOs are off still
@@ -214,33 +197,26 @@ class HostWatch:
         except MotorError as err:
             logger.info("%s: quick stop by SDO to the lost drive: %s", self.name, err)
 
-    def set_foreign_master(self, evidence: str) -> bool:
-        """Supervisor: another master drives this drive ("" once it has been gone long enough).
-        A drive this driver had enabled gets a quick stop (nothing else of this driver's goes to
-        it meanwhile); when it clears, the drive is configured again (not enabled): the other
-        master may have reset or re-mapped it. True when the quick stop went out as an RPDO: the
-        caller sends it by SDO as well (:meth:`quick_stop_by_sdo`, on the bus worker), since a
-        drive the other master put in PRE-OPERATIONAL ignores PDOs and would keep moving."""
-        stopped = False
-        if evidence and not self.foreign_master:
-            logger.error("%s (node %d): another master on the bus: %s; commands are refused", self.name,
-                         self.node_id, evidence)
-            if self._channel.was_enabled and self._cache.state == State.OPERATION_ENABLED:
-                # two masters on one drive is no state to keep moving in: the last thing this
-                # driver sends it is a quick stop (the watchdog no longer runs for it)
-                stopped = True
-                try:
-                    self._channel.stop(Command.QUICK_STOP, "another master on the bus")
-                except MotorError as err:
-                    logger.error("%s: quick stop on losing control not sent: %s", self.name, err)
-            self._channel.forget_commanded()
-        elif not evidence and self.foreign_master:
-            logger.warning("%s (node %d): the other master is gone; configuring the drive again (not enabled)",
-                           self.name, self.node_id)
-            self._cache.mark_unbooted()
-            self._cache.rebooted.set()
-        self.foreign_master = evidence
-        return stopped
+    def lose_control(self, evidence: str) -> bool | None:
+        """Supervisor: another master drives this drive. A drive this driver had enabled gets a
+        quick stop (nothing else of this driver's goes to it meanwhile). True when the quick stop
+        went out as an RPDO: the caller sends it by SDO as well (:meth:`quick_stop_by_sdo`, on the
+        bus worker), since a drive the other master put in PRE-OPERATIONAL ignores PDOs and would
+        keep moving. None when the channel was busy (nothing done: the caller tries again)."""
+        stopping = self._channel.was_enabled and self._cache.state == State.OPERATION_ENABLED
+        if stopping:
+            # two masters on one drive is no state to keep moving in: the last thing this
+            # driver sends it is a quick stop (the watchdog no longer runs for it)
+            try:
+                if not self._channel.stop(Command.QUICK_STOP, "another master on the bus", timeout_s=0.0):
+                    return None
+            except MotorError as err:
+                logger.error("%s: quick stop on losing control not sent: %s", self.name, err)
+        elif not self._channel.forget_commanded(timeout_s=0.0):
+            return None
+        logger.error("%s (node %d): another master on the bus: %s; commands are refused", self.name,
+                     self.node_id, evidence)
+        return stopping
 
     def quick_stop_by_sdo(self, since: float) -> None:
         """Bus worker: the quick stop of losing control once more, as an SDO write of the
@@ -259,13 +235,11 @@ class HostWatch:
         except MotorError as err:
             logger.error("%s: quick stop by SDO on losing control failed: %s", self.name, err)
 
-    def mark_lost(self) -> None:
-        """Supervisor: the drive's bus is gone; nothing is commanded until it is booted again."""
-        self._cache.mark_lost(booted=False)
-        self._channel.forget_commanded()
-        self._lost_since = 0.0
-
     def lost_while_closing(self) -> None:
         """The driver shuts down with the drive lost: one last quick stop and NMT stop, unanswered."""
         if self._cache.lost:
-            self._stop_lost(time.monotonic())
+            try:
+                self._channel.stop(Command.QUICK_STOP, "the drive was lost")
+                self.nmt_ledger.send(NmtCommand.STOP)
+            except (MotorError, can.CanError, OSError, RuntimeError) as err:
+                logger.debug("node %d: last stop of a lost drive not sent: %s", self.node_id, err)

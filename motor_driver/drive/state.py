@@ -8,9 +8,13 @@ set-point handshake's reply is the command channel's (``StatusSink.on_status``).
 
 Written through this object's methods by others, each on a field of its own (one writer each):
 boot (the bus's worker, drive not booted) seeds the state it read by SDO (:meth:`seed`), sets
-the scale and the guarding flag, and marks the drive booted; the supervisor marks it lost; a
-command thread acknowledges faults and EMCYs it has dealt with (an acknowledgement is a
-sequence number, so a FAULT that arrives after it is never erased by it).
+the scale and the guarding flag, and notes the NMT start; a command thread acknowledges faults
+and EMCYs it has dealt with (an acknowledgement is a sequence number, so a FAULT that arrives
+after it is never erased by it).
+
+Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.runtime.DriveRuntime`),
+read here, never written: the receive thread posts each heartbeat that may change it
+(:class:`motor_driver.runtime.Heard`) and goes on.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.values import DriveState, Emcy, Received, StatusSink
 from motor_driver.pdo import PdoPlan, TpdoLayout
+from motor_driver.runtime import DriveRuntime, Heard, RuntimePort
 from motor_driver.units import Scale
 
 logger = logging.getLogger(__name__)
@@ -40,8 +45,10 @@ class DriveCache:
     """Identity, the PDO layouts, and the received state of one drive."""
 
     def __init__(self, config: DriveConfig, network: canopen.Network, plan: PdoPlan, scale: Scale, *,
-                 sync_period_s: float) -> None:
+                 sync_period_s: float, runtime: DriveRuntime, port: RuntimePort) -> None:
         self.config = config
+        self._runtime = runtime  # the supervisor's: read only
+        self._port = port
         self.name, self.node_id = config.name, config.node_id
         self._network = network
         self.sync_period_s = sync_period_s
@@ -70,13 +77,10 @@ class DriveCache:
         self._guard_toggle = 0
         self._guard_errors = 0
         self._bootup = threading.Event()
-        self.rebooted = threading.Event()  # set by the receive thread (a boot-up) or the supervisor
         # written by others through methods, one writer each
         self._fault_ack = 0  # command threads (enable, recover)
         self._emcy_ack: Emcy | None = None  # command threads (recover)
         self._guarding = False  # boot
-        self._booted = False  # boot (True), the receive thread (a boot-up: False)
-        self._lost = False  # the supervisor (True), the receive thread (a heartbeat back: False), boot
 
     def connect(self, sink: StatusSink) -> None:
         """The channel that gets the statusword (before :meth:`subscribe`)."""
@@ -179,11 +183,11 @@ class DriveCache:
 
     @property
     def booted(self) -> bool:
-        return self._booted
+        return self._runtime.booted
 
     @property
     def lost(self) -> bool:
-        return self._lost
+        return self._runtime.lost
 
     def expect_bootup(self) -> None:
         """Boot, before its NMT reset: the next boot-up is the one it waits for."""
@@ -247,24 +251,11 @@ class DriveCache:
         self._guarding = on
         self._guard_toggle = 0
 
-    def mark_booted(self) -> None:
-        """Boot, at NMT start."""
+    def note_started(self) -> None:
+        """Boot, at NMT start (the supervisor marks the drive booted when boot reports it)."""
         self._nmt = "OPERATIONAL"
         self._last_heartbeat = time.monotonic()
         self._fault_ack = self._fault_seq
-        self._lost = False
-        self._booted = True
-
-    def mark_unbooted(self) -> None:
-        """Boot begins, or another master may have reset it: configure it again."""
-        self._booted = False
-        self.rebooted.clear()
-
-    def mark_lost(self, *, booted: bool = True) -> None:
-        """The supervisor: heartbeat lost (``booted`` stays) or the bus gone (not booted)."""
-        self._lost = True
-        if not booted:
-            self._booted = False
 
     # ------------------------------------------------------------------ the receive thread
     def on_tpdo(self, cob_id: int, data: bytearray, timestamp: float) -> None:
@@ -305,7 +296,7 @@ class DriveCache:
     def _on_statusword(self, sw: int, now: float) -> None:
         now_enabled = decode_state(sw) == State.OPERATION_ENABLED
         sink = self._sink
-        if now_enabled and not self._sw_enabled and self._booted and sink is not None and \
+        if now_enabled and not self._sw_enabled and self._runtime.booted and sink is not None and \
                 not sink.enabled_by_us(now, TRANSITION_TIMEOUT_S):
             self._behind_back = (now, f"node {self.node_id} became OPERATION_ENABLED, which this driver did not"
                                       " command")
@@ -331,40 +322,24 @@ class DriveCache:
                 self._guard_toggle = toggle ^ 1  # in step again from the next answer on
                 return
             self._guard_toggle ^= 1
-        self._last_heartbeat = time.monotonic()
+        now = self._last_heartbeat = time.monotonic()
+        was = self._reported_nmt
         if state == NmtState.BOOTUP:
             self._nmt = self._reported_nmt = "BOOTUP"
-            self._bootup_at = self._last_heartbeat
+            self._bootup_at = now
             self._bootup.set()
-            if self._booted:
-                logger.warning("node %d (%s) sent boot-up: it power-cycled or reset; it will be"
-                               " configured again", self.node_id, self.name)
-                self._booted = False
-                self.rebooted.set()
+            self._port.post(Heard(self.name, state, was, now))
             return
-        # behind our back: a change from what the drive said last (not what boot assumed: a heartbeat sent just
-        # before the NMT start is on its way then), while not lost (a lost drive is told NMT stop by this driver)
-        was = self._reported_nmt
         try:
             self._nmt = NmtState(state).name
         except ValueError:
             self._nmt = f"0x{state:02X}"
         self._reported_nmt = self._nmt
         if state == NmtState.OPERATIONAL:
-            self._operational_at = self._last_heartbeat
-        if self._booted and not self._lost and state != NmtState.OPERATIONAL and was == "OPERATIONAL":
-            self._behind_back = (self._last_heartbeat, f"node {self.node_id} went {self._nmt} without an NMT"
-                                                       " command from this driver")
-        # a heartbeat brings back a drive whose heartbeat was late (still booted) in OPERATIONAL; out of it (the
-        # NMT stop it was told while lost), or its bus lost, it is back when boot configured it again
-        if self._lost and self._booted and state != NmtState.OPERATIONAL:
-            logger.warning("node %d (%s): heard again in NMT %s (told to stop while lost); configuring it again,"
-                           " left disabled", self.node_id, self.name, self._nmt)
-            self._booted = False
-            self.rebooted.set()
-        elif self._lost and self._booted:
-            logger.warning("node %d (%s): heartbeat back", self.node_id, self.name)
-            self._lost = False
+            self._operational_at = now
+        # the supervisor judges a change (another master's, or its own NMT command's) and a lost drive heard again
+        if self._nmt != was or self._runtime.lost:
+            self._port.post(Heard(self.name, state, was, now))
 
     def on_emcy(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 3:
@@ -386,7 +361,7 @@ class DriveCache:
         hb_age = now - self._last_heartbeat if self._last_heartbeat else math.inf
         data_age = now - rx.rx_monotonic if rx.rx_monotonic else math.inf
         stale = data_age > self.config.stale_after_syncs * self.sync_period_s
-        scale, lost = self._scale, self._lost
+        scale, lost = self._scale, self._runtime.lost
         torque = scale.permille_to_nm(rx.torque_permille) if self._has_torque else math.nan
         return DriveState(
             name=self.name, node_id=self.node_id, angle_deg=scale.counts_to_deg(rx.position_counts),

@@ -1,0 +1,173 @@
+"""The driver's runtime state: what it has judged of each drive and each bus (lost, booted, to be
+configured again, another master, the stops of a lost drive, the watchdog's and the guard's
+times; a bus's reconnect and back-off, its host heartbeat), and the NMT commands it sent.
+
+Owner: the :class:`motor_driver.supervisor.Supervisor`, on its thread, alone writes a
+:class:`DriveRuntime` and a :class:`BusRuntime` (tests/test_ownership.py checks that no other
+module assigns their fields). Every other thread reads them and hands the supervisor what it
+found instead: the receive thread posts each heartbeat that may change a judgement
+(:class:`Heard`, without waiting), a boot or a reconnect on the bus's worker reports its result
+(:class:`Booting`, :class:`Booted`, :class:`RebootFailed`, :class:`BusBack`, :class:`BusDown`)
+and waits until the supervisor has applied it.
+
+:class:`NmtLedger` is the one way an NMT command leaves for a drive: it sends and remembers the
+command and when, so that a state the driver caused (its own NMT stop of a lost drive, taking
+effect after a heartbeat sent just before it) is never taken for another master's.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+
+from can_config.objects import NmtCommand, NmtState
+
+#: The state each NMT command puts a node in (CiA 301).
+NMT_TARGET = {NmtCommand.START: NmtState.OPERATIONAL, NmtCommand.STOP: NmtState.STOPPED,
+              NmtCommand.ENTER_PREOPERATIONAL: NmtState.PRE_OPERATIONAL,
+              NmtCommand.RESET_NODE: NmtState.BOOTUP, NmtCommand.RESET_COMMUNICATION: NmtState.BOOTUP}
+
+
+class DriveRuntime:
+    """The supervisor's judgement of one drive (read by anyone, written by the supervisor)."""
+
+    def __init__(self) -> None:
+        self.lost = False
+        self.booted = False
+        self.booted_at = 0.0  # when the last boot ended: a heartbeat heard before it is history
+        #: configure it again (a boot-up, a stop it was told, the other master gone, a failed try)
+        self.reboot_wanted = False
+        self.reboot_at = 0.0  # not before this (a failed re-configuration waits)
+        self.reboot_job: Future[None] | None = None
+        self.foreign_master = ""  # evidence that another master drives it: commands are refused
+        #: the newest NMT state change nobody here commanded: (when, what)
+        self.behind_back: tuple[float, str] = (0.0, "")
+        self.lost_since = 0.0  # when its heartbeat was declared lost (0: it is not)
+        self.next_stop = 0.0  # the next stop told to it while lost
+        self.lost_stops = 0  # stop frames sent to it while lost
+        self.stop_pending = False  # the channel was busy: the quick stop goes next period
+        self.forget_pending = False  # the channel was busy: commanded state forgotten next period
+        self.next_guard = 0.0  # node guarding: the next guard
+        self.host_loss_seen = 0  # host-loss stops already reported
+
+
+class BusRuntime:
+    """The supervisor's judgement of one bus (read by anyone, written by the supervisor)."""
+
+    def __init__(self) -> None:
+        self.lost = False
+        self.job: Future[None] | None = None  # the bus's reconnect or SYNC restart, while it runs
+        self.backoff_s = 0.0
+        self.next_attempt = 0.0
+        self.last_beat = 0.0
+        self.next_beat = 0.0
+        self.late_beats = 0
+        self.last_frames = 0
+        self.last_rx = 0.0
+        self.reported_error = 0.0  # the newest error frame reported
+        self.reported_losing = 0.0
+        self.send_failing: tuple[float, str] | None = None  # since when host heartbeats fail, and why
+        self.reported_queue_full = 0  # ENOBUFS refusals already said
+        self.link_down_said = False  # a kernel link's going down said, until it is back
+
+    def job_done(self) -> bool:
+        return self.job is None or self.job.done()
+
+
+# ---------------------------------------------------------------------- what others hand it
+@dataclass(frozen=True)
+class Heard:
+    """The receive thread: a heartbeat (or guard answer) of ``drive`` in NMT ``state``;
+    ``was`` is the state the drive said before it."""
+
+    drive: str
+    state: int
+    was: str
+    at: float
+
+
+@dataclass(frozen=True)
+class Booting:
+    """A boot of ``drive`` begins: it is not booted until it reports :class:`Booted`."""
+
+    drive: str
+
+
+@dataclass(frozen=True)
+class Booted:
+    """A boot of ``drive`` ended with NMT start."""
+
+    drive: str
+
+
+@dataclass(frozen=True)
+class RebootFailed:
+    """A re-configuration of ``drive`` failed: tried again after ``retry_s``."""
+
+    drive: str
+    retry_s: float
+
+
+@dataclass(frozen=True)
+class BusBack:
+    """The bus's worker: ``bus`` reconnected and its drives booted."""
+
+    bus: str
+
+
+@dataclass(frozen=True)
+class BusDown:
+    """The bus's worker: ``bus`` could not be (re)opened (``why``; ``link_down``: the kernel's
+    interface is not ready, and why); try again after ``retry_s`` (None: the back-off doubles)."""
+
+    bus: str
+    retry_s: float | None
+    link_down: str
+    why: str
+
+
+Event = Heard | Booting | Booted | RebootFailed | BusBack | BusDown
+
+
+class RuntimePort:
+    """How a part hands the supervisor what it found: ``post`` (never waits: the receive thread)
+    and ``report`` (returns once the supervisor applied it: a worker, a caller's thread)."""
+
+    def __init__(self, post: Callable[[Event], None], report: Callable[[Event], None]) -> None:
+        self.post = post
+        self.report = report
+
+
+class NmtLedger:
+    """The NMT commands sent to one node: each leaves through :meth:`send`, which remembers the
+    command and when, before the frame goes (one assignment of an immutable pair: no lock is
+    held while the bus may make a sender wait; of two senders the newest is kept)."""
+
+    def __init__(self, node_id: int, send: Callable[[int, bytes], None]) -> None:
+        self.node_id = node_id
+        self._send = send
+        self._last: tuple[NmtCommand | None, float] = (None, 0.0)
+
+    def send(self, command: NmtCommand) -> None:
+        """Send ``command`` to the node; errors are the caller's."""
+        self._last = (command, time.monotonic())
+        self._send(0x000, bytes([command, self.node_id]))
+
+    @property
+    def last(self) -> tuple[NmtCommand | None, float]:
+        return self._last
+
+    def explains(self, state: int, at: float, within_s: float) -> bool:
+        """The newest NMT command this driver sent the node asks for ``state``, and was sent
+        within ``within_s`` before ``at``: a change this driver caused."""
+        command, when = self._last
+        return command is not None and NMT_TARGET.get(command) == state and at - when <= within_s
+
+    def in_flight(self, state: int, at: float, within_s: float) -> bool:
+        """A heartbeat in another state than the newest command asks for, heard within
+        ``within_s`` of sending it: sent before the drive obeyed (on its way, or queued on a
+        loaded host), no change of the drive's."""
+        command, when = self._last
+        return command is not None and NMT_TARGET.get(command) != state and 0.0 <= at - when <= within_s
