@@ -34,7 +34,7 @@ from virtual_can.sim import SimulatedDrive
 logger = logging.getLogger(__name__)
 
 ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "tpdos", "slow_enable", "slow_ack", "frames", "sdo",
-           "disconnect_clients", "load", "tx_dead", "guard_toggle_stuck")
+           "disconnect_clients", "load", "tx_dead", "guard_toggle_stuck", "heartbeat_deaf")
 
 
 def _channel_faults(sim: SimService, step: Mapping[str, Any]) -> None:
@@ -63,6 +63,8 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
         drive.faults.tx_dead = bool(step.get("on", True))
     elif action == "guard_toggle_stuck":  # its node-guarding answers keep toggle bit 0
         drive.faults.guard_toggle_stuck = bool(step.get("on", True))
+    elif action == "heartbeat_deaf":  # it stops hearing heartbeats (its RX filter, a stalled host): its host watch trips
+        drive.faults.heartbeat_deaf = bool(step.get("on", True))
     elif action == "slow_enable":  # each enabling transition takes delay_s
         drive.faults.enable_step_delay_s = float(step.get("delay_s", 0.0))
     elif action == "slow_ack":  # the set-point acknowledge comes 0..max_s late

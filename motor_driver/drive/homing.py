@@ -109,6 +109,9 @@ class Homing:
             if cache.state in FAULT_STATES:
                 raise self._power.fault_error("home")
             self._channel.check(op, "home")
+            stopped = self._power.stopped_itself("homing")
+            if stopped is not None:
+                raise stopped
             return False
 
         if not cache.wait_until(attained, timeout_s):

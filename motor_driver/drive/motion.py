@@ -160,9 +160,14 @@ class Motion:
             cfg = self.config
             timeout_s = 2.0 + span / cfg.profile_velocity_deg_s + 2 * cfg.profile_velocity_deg_s / cfg.profile_acceleration_deg_s2
 
+        since = Op(0, "move", self._channel.generation)  # a stop of ours after this ends the wait as ours
+
         def reached() -> bool:
             if cache.state in FAULT_STATES:
                 raise self._power.fault_error("move")
+            self._channel.check(since, "move")
+            if (stopped := self._power.stopped_itself("the move")) is not None:
+                raise stopped
             return self._channel.handshake_idle and bool(cache.statusword & SW.TARGET_REACHED)
 
         if not cache.wait_until(reached, timeout_s):

@@ -18,7 +18,7 @@ from canopen.objectdictionary import ObjectDictionary
 from can_config.config import DriveConfig
 from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
-from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
+from can_config.objects import EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
 from motor_driver.cia402 import FAULT_STATES, SW, Command, State, next_step_to_enable
 from motor_driver.drive.busy import Op
 from motor_driver.drive.channel import CommandChannel
@@ -79,6 +79,30 @@ class PowerStateMachine:
         return DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is in FAULT"
                                f" ({what}); call recover() to reset it", node_id=self.node_id,
                                statusword=self._cache.statusword, error_code=code)
+
+    def stopped_itself(self, doing: str) -> DriveStateError | None:
+        """The error for an operation that needs Operation Enabled (homing, a move) when the drive
+        left it on its own: it is lost, its NMT state is no longer OPERATIONAL, or its statusword
+        left Operation Enabled (its host watch, a limit, its own quick stop): the operation ends
+        now, with the reason, rather than at its timeout. A stop of this driver's own is the
+        command channel's to say (checked first by the callers)."""
+        cache = self._cache
+        nmt, state = cache.nmt_state, cache.state
+        if not cache.lost and nmt == "OPERATIONAL" and state == State.OPERATION_ENABLED:
+            return None
+        emcy = cache.last_emcy
+        said = f", after EMCY 0x{emcy.code:04X} {emcy.text}" if emcy is not None and emcy.code else ""
+        if cache.lost:
+            why = "the drive is lost (no heartbeat): check its power and CAN cable"
+        elif nmt != "OPERATIONAL":
+            why = f"the drive went NMT {nmt}{said}"
+        else:
+            why = f"the drive left Operation Enabled by itself (now {state.name}{said})"
+        hint = " (0x8130: it heard no heartbeat from this host: was this process stalled?)" \
+            if emcy is not None and emcy.code == EMCY_HEARTBEAT_LOST else ""
+        return DriveStateError(f"{self.name} (node {self.node_id}): {doing} ended: {why}{hint}; enable it again"
+                               " to retry", node_id=self.node_id, statusword=cache.statusword,
+                               error_code=emcy.code if emcy is not None else None)
 
     def wait_state(self, wanted: set[State], timeout_s: float, doing: str, *, fault_ok: bool = False,
                    op: Op | None = None, left: State | None = None, after: int | None = None) -> State:

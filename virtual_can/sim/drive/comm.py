@@ -159,6 +159,8 @@ class CommNode(Plant):
                     self._consumers[sub] = (node, time_ms / 1000.0)
 
     def _on_heartbeat(self, node: int, now: float) -> None:
+        if self.faults.heartbeat_deaf:
+            return
         for sub, (watched, _) in self._consumers.items():
             if watched == node:
                 self._consumer_seen[sub] = now

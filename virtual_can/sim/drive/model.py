@@ -205,6 +205,7 @@ class Faults:
     tpdo_silent: bool = False  # heartbeat and SDO go on, no TPDO leaves (a PDO set lost, a stuck stack)
     tx_dead: bool = False  # it receives and acts, sends nothing (a broken TX line, a hung CAN task)
     guard_toggle_stuck: bool = False  # its node-guarding answers keep toggle bit 0
+    heartbeat_deaf: bool = False  # it no longer hears others' heartbeats: its consumer (host watch) trips
     sto_low: bool = False
     sdo_delay_s: float = 0.0
     ack_delay_max_s: float = 0.0  # the set-point acknowledge comes after a random delay up to this

@@ -1,0 +1,139 @@
+"""An operation waiting on a drive ends, with the reason, as soon as the drive stops by itself
+(issue 52: a home waited 27 s for a drive whose host watch had stopped it 3 s in, then said
+"homing not attained within 30 s").
+
+The drive is made to stop itself the way a stalled host makes it: it stops hearing the driver's
+heartbeat (the simulator's ``heartbeat_deaf`` fault), its consumer trips, it quick-stops and
+sends EMCY 0x8130. The verdict is the reason named, and that the home ended long before its own
+timeout (a bound on the homing, not a stopwatch: the homing would run for minutes)."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+from can_config import RoverConfig
+from can_config.errors import DriveStateError, RovercanError
+from motor_driver import MotorDriver
+from virtual_can import SimService
+from virtual_can.scenario import apply_action
+
+from .conftest import make_config, wait_for
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+#: a homing that searches its index (at 0, the drives start 20 deg away) at 1 deg/s: 20 s; its timeout is 600
+SLOW_HOMING = {"homing_method": 1, "homing_speed_deg_s": 1.0, "homing_timeout_s": 600.0}
+
+
+def test_a_home_ends_when_the_drives_host_watch_stops_it(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(1, **SLOW_HOMING))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.move_to(20.0, wait=True)
+    started = threading.Event()
+    outcome: list[BaseException | None] = []
+
+    def on_point(point: str) -> None:
+        if point == "home: start sent":
+            started.set()
+
+    def home() -> None:
+        try:
+            drive.home()
+            outcome.append(None)
+        except RovercanError as err:
+            outcome.append(err)
+
+    drive.interleave = on_point
+    worker = threading.Thread(target=home, name="test-home")
+    worker.start()
+    assert started.wait(30.0)
+    apply_action(sim, {"action": "heartbeat_deaf", "node": 1})
+    worker.join(60.0)  # a bound for a hang: homing itself would need 20 s, its timeout is 600 s
+    drive.interleave = None
+    assert not worker.is_alive(), "home() still waits for a drive that stopped itself"
+    assert len(outcome) == 1 and isinstance(outcome[0], DriveStateError), outcome
+    text = str(outcome[0])
+    assert "homing ended" in text and "EMCY 0x8130" in text and "left Operation Enabled" in text, text
+    assert not sim.simulator_for(1).drive(1).homing_done
+
+
+def test_a_drive_that_resets_during_homing_ends_it(driver_factory: DriverFactory) -> None:
+    """A drive that power-cycles mid-homing (boot-up, then configured again by the driver, left
+    disabled) ends the home at once, naming the state it is in now."""
+    sim, driver = driver_factory(make_config(1, **SLOW_HOMING))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.move_to(20.0, wait=True)
+    started = threading.Event()
+    drive.interleave = lambda point: started.set() if point == "home: start sent" else None
+    errors: list[BaseException] = []
+
+    def home() -> None:
+        try:
+            drive.home()
+        except RovercanError as err:
+            errors.append(err)
+
+    worker = threading.Thread(target=home, name="test-home")
+    worker.start()
+    assert started.wait(30.0)
+    # homing under way (the drive left 20 deg): its statusword read after the start has been answered
+    wait_for(lambda: drive.snapshot().angle_deg < 19.5, 30.0, "homing under way")
+    apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.2})
+    worker.join(60.0)
+    drive.interleave = None
+    assert not worker.is_alive()
+    assert errors and isinstance(errors[0], DriveStateError)
+    text = str(errors[0])
+    assert "homing ended" in text and ("NMT" in text or "left Operation Enabled" in text), text
+
+
+def test_a_drive_that_keeps_operation_enabled_homes_as_before(driver_factory: DriverFactory) -> None:
+    """The new check does not end a homing that goes well (the check before it, a mutant that
+    always ends, fails here)."""
+    _, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.move_to(10.0, wait=True)
+    drive.home()
+    assert abs(drive.snapshot().angle_deg) < 0.05
+
+
+def _waited_move(drive: object, errors: list[BaseException]) -> threading.Thread:
+    def move() -> None:
+        try:
+            drive.move_to(170.0, wait=True)  # type: ignore[attr-defined]
+        except RovercanError as err:
+            errors.append(err)
+
+    worker = threading.Thread(target=move, name="test-move")
+    worker.start()
+    return worker
+
+
+def test_a_waited_move_ends_when_the_drive_stops_itself_and_names_why(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(1, profile_velocity_deg_s=5.0))  # 170 deg at 5 deg/s: 34 s
+    drive = driver.drive("joint1")
+    drive.enable()
+    errors: list[BaseException] = []
+    worker = _waited_move(drive, errors)
+    wait_for(lambda: drive.snapshot().angle_deg > 0.5, 30.0, "the move under way")
+    apply_action(sim, {"action": "heartbeat_deaf", "node": 1})
+    worker.join(60.0)
+    assert not worker.is_alive()
+    assert errors and "the move ended" in str(errors[0]) and "0x8130" in str(errors[0]), errors
+
+
+def test_a_waited_move_ended_by_our_own_stop_says_so(driver_factory: DriverFactory) -> None:
+    """Our quick stop is not "the drive stopped by itself": the channel's stop is named."""
+    _, driver = driver_factory(make_config(1, profile_velocity_deg_s=5.0))
+    drive = driver.drive("joint1")
+    drive.enable()
+    errors: list[BaseException] = []
+    worker = _waited_move(drive, errors)
+    wait_for(lambda: drive.snapshot().angle_deg > 0.5, 30.0, "the move under way")
+    drive.quick_stop()
+    worker.join(60.0)
+    assert not worker.is_alive()
+    assert errors and "interrupted by quick stop" in str(errors[0]), errors
