@@ -144,11 +144,20 @@ def _list_names(where: Where, key: str, value: Any, spec: Field) -> Any:
     return tuple(value)
 
 
+def _variances(where: Where, key: str, value: Any, spec: Field) -> Any:
+    ok = isinstance(value, list) and len(value) == 6 and all(
+        not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in value)
+    if not ok:
+        raise where.fail(key, f"got {value!r}; expected a list of six finite numbers over 0 (x, y, z, roll, pitch,"
+                         " yaw; a variance of 0 claims a perfect measurement: use 1e6 for what is not measured).")
+    return tuple(float(v) for v in value)
+
+
 #: Each field kind's converter (the kinds of :class:`Field`).
 _CONVERTERS: dict[str, Callable[[Where, str, Any, Field], Any]] = {
     "bool": _bool, "int": _int, "float": _float, "opt_float": _float, "str": _text, "name": _text, "path": _text,
     "namespace": _namespace, "map": _map, "list": _list, "number": _number, "opt_int": _byte_size,
-    "list_names": _list_names,
+    "list_names": _list_names, "variances": _variances,
 }
 
 

@@ -16,7 +16,8 @@ REQUIRED: Any = object()
 @dataclass(frozen=True)
 class Field:
     """One YAML key. ``kind``: "int", "float", "opt_float", "bool", "str", "name", "namespace",
-    "path", "map", "list", "list_names", "opt_int" (a byte size), "number" (int or float)."""
+    "path", "map", "list", "list_names", "opt_int" (a byte size), "number" (int or float), "variances" (six
+    numbers over 0: a covariance's diagonal)."""
 
     kind: str
     default: Any = REQUIRED  # as the YAML says it (ms for a time whose field holds s)

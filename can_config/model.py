@@ -242,6 +242,17 @@ class DriveSystemConfig:
                                help="body speed and every wheel's rim speed")
     max_angular_rad_s: float = key("float", 2.0, 0.0, 100.0, low_open=True, unit="rad/s",
                                    help="turn rate; a faster /cmd_vel is scaled down as a whole")
+    on_wheel_loss: str = key("str", "stop", choices=("stop", "continue"),
+                             help="a wheel lost, stale or faulted while driving: `stop` every wheel, or `continue` on"
+                                  " the others (that wheel told to stop and left out, the body speed cut to the share"
+                                  " of wheels left on the weaker side; a side with none left stops all)")
+    pose_covariance_diagonal: tuple[float, ...] = key(
+        "variances", (0.001, 0.001, 1.0e6, 1.0e6, 1.0e6, 0.01),
+        help="/odom pose variances x, y, z, roll, pitch, yaw (m^2, rad^2), each over 0; z, roll and pitch are not"
+             " measured (large). While no trusted wheel is left on a side every entry is 1e6")
+    twist_covariance_diagonal: tuple[float, ...] = key(
+        "variances", (0.001, 0.001, 1.0e6, 1.0e6, 1.0e6, 0.01),
+        help="/odom twist variances vx, vy, vz, wx, wy, wz ((m/s)^2, (rad/s)^2), each over 0")
 
 
 

@@ -57,6 +57,8 @@ def _default(field: Field) -> str:
         return str(value).lower()
     if isinstance(value, (int, float)):
         return yaml_number(value)
+    if isinstance(value, tuple):
+        return "`[" + ", ".join(yaml_number(v) for v in value) + "]`"
     if value in ({}, []):
         return "none"
     return f"`{value}`" if value != "" else '`""`'
@@ -69,7 +71,7 @@ def _allowed(field: Field) -> str:
         return f"{'over ' if field.low_open else ''}{_num(field.low)} to {_num(field.high)}"
     return {"bool": "true / false", "map": "mapping", "list": "list", "list_names": "list of drive names",
             "path": "path or `generic`", "name": "a name", "namespace": "a ROS namespace", "str": "text",
-            "number": "a number"}.get(field.kind, field.kind)
+            "number": "a number", "variances": "six numbers over 0"}.get(field.kind, field.kind)
 
 
 def missing_descriptions() -> list[str]:

@@ -1,8 +1,9 @@
 """Skid-steer kinematics, acceleration ramp and odometry of the rover's drive system (pure).
 
 Body twist (v m/s, w rad/s) -> wheel speeds: left = (v - w*T/2)/r, right = (v + w*T/2)/r
-(rad/s), T the track width and r the wheel radius. Odometry integrates the measured wheel
-speeds back into a pose with the midpoint rule. No I/O and no ROS: the node feeds it.
+(rad/s), T the track width and r the wheel radius. No I/O and no ROS: the node feeds it. The
+odometry is :mod:`motor_driver.odometry`'s: the wheels' measured position deltas, never a speed
+times a tick.
 
 Limits never bend a turn: a command beyond any limit (body speed, body turn rate, any wheel's
 rim speed or drive speed) is scaled as a whole, v and w by one factor, so its curvature
@@ -62,7 +63,7 @@ def integrate(pose: Pose2D, twist: Twist2D, dt: float) -> Pose2D:
 
 
 class SkidSteer:
-    """Commanded twist -> desaturated, ramped wheel speed setpoints; wheel speeds -> odometry."""
+    """Commanded twist -> desaturated, ramped wheel speed setpoints."""
 
     def __init__(self, track_width_m: float, wheel_radius_m: float, max_accel_m_s2: float,
                  max_speed_m_s: float, *, max_angular_rad_s: float = math.inf,
@@ -76,24 +77,25 @@ class SkidSteer:
         self.max_wheel_rad_s = min(max_wheel_rad_s, max_speed_m_s / wheel_radius_m)
         self.left_rad_s = 0.0
         self.right_rad_s = 0.0
-        self.pose = Pose2D()
+        #: the share of every limit in force (1.0; less while wheels are left out: the drive system's
+        #: on_wheel_loss: continue)
+        self.share = 1.0
 
     def desaturate(self, twist: Twist2D) -> Twist2D:
         """``twist`` scaled as a whole (same curvature) so that every limit holds."""
         v, w = twist.linear_m_s, twist.angular_rad_s
+        share = self.share
+        if share <= 0.0:
+            return Twist2D()
         factor = 1.0
-        if abs(v) > self.max_speed_m_s:
-            factor = min(factor, self.max_speed_m_s / abs(v))
-        if abs(w) > self.max_angular_rad_s:
-            factor = min(factor, self.max_angular_rad_s / abs(w))
+        if abs(v) > self.max_speed_m_s * share:
+            factor = min(factor, self.max_speed_m_s * share / abs(v))
+        if abs(w) > self.max_angular_rad_s * share:
+            factor = min(factor, self.max_angular_rad_s * share / abs(w))
         peak = max(abs(x) for x in wheel_speeds_rad_s(twist, self.track_width_m, self.wheel_radius_m))
-        if peak > self.max_wheel_rad_s:
-            factor = min(factor, self.max_wheel_rad_s / peak)
+        if peak > self.max_wheel_rad_s * share:
+            factor = min(factor, self.max_wheel_rad_s * share / peak)
         return Twist2D(v * factor, w * factor)
-
-    def clamp(self, twist: Twist2D) -> Twist2D:
-        """Kept for callers of the old name: the whole command scaled, see :meth:`desaturate`."""
-        return self.desaturate(twist)
 
     def step(self, target: Twist2D, dt: float) -> tuple[float, float]:
         """(left, right) wheel setpoints in rad/s toward the desaturated ``target``; neither side
@@ -113,8 +115,3 @@ class SkidSteer:
         """Forget the ramp: the wheels were stopped by someone else (a refusal, a fault). The
         next command ramps up from standstill; a stale one never brings them back."""
         self.left_rad_s = self.right_rad_s = 0.0
-
-    def odometry(self, left_rad_s: float, right_rad_s: float, dt: float) -> tuple[Pose2D, Twist2D]:
-        twist = body_twist(left_rad_s, right_rad_s, self.track_width_m, self.wheel_radius_m)
-        self.pose = integrate(self.pose, twist, dt)
-        return self.pose, twist

@@ -1,45 +1,56 @@
-"""The rover's /cmd_vel drive system: skid-steer wheels from a Twist, odometry, stops on a
-command timeout; a node beside the driver node, in the same process.
+"""The rover's /cmd_vel drive system: skid-steer wheels from a Twist, odometry from the wheels'
+measured positions (/odom and /tf odom -> base_link), stops on a command timeout, and what to
+do when a wheel is lost (``drive_system.on_wheel_loss``); a node beside the driver node, in the
+same process.
+
+What it publishes is what was measured: /odom integrates each wheel's own position deltas
+(:mod:`motor_driver.odometry`), never a command or a velocity times a tick; a side with no
+trusted wheel stops the integration (pose kept, twist zero, every variance 1e6) and
+/diagnostics says why. Every refusal names the real cause and what helps (:mod:`nodes.wheels`).
+
+Owner: the executor thread that runs its tick (the driver node's state timer, or its own),
+which alone touches the ramp, the odometry and the wheels-out book; a wheel left out is told to
+stop on a worker of its own (a stop waits for the drive; the tick never does).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
-from geometry_msgs.msg import Twist
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import TransformStamped, Twist
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from tf2_msgs.msg import TFMessage
 
 from can_config import RoverConfig
 from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
+from motor_driver.drive import DriveState
+from motor_driver.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
 from motor_driver.skid_steer import SkidSteer, Twist2D
 from nodes.params import declare, qos_depth
-from nodes.qos import NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
+from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
+from nodes.wheels import WheelsOut, odometry_sample, problems
 
 if TYPE_CHECKING:
     from nodes.rover_driver import DriverNode
 
-
-def not_armed(blocked: list[Drive]) -> str:
-    """Why the wheels in ``blocked`` cannot be driven, and how to arm them."""
-    first = blocked[0].snapshot()
-    if first.lost:
-        why = f"wheel {blocked[0].name} is lost (no heartbeat)"
-    elif first.state.name == "OPERATION_ENABLED":
-        why = f"wheel {blocked[0].name} is not armed by this driver (the drive says OPERATION_ENABLED)"
-    else:
-        why = f"wheel {blocked[0].name} is {first.state.name}"
-    others = f" (and {len(blocked) - 1} more)" if len(blocked) > 1 else ""
-    return (f"{why}{others}; arm the rover with the service /arm (std_srvs/Trigger), or launch with"
-            " arm:=true")
+logger = logging.getLogger(__name__)
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+#: tf2's own publishers keep 100 (a late listener's buffer fills from them)
+TF_QOS = QoSProfile(depth=100)
 
 
 class DriveSystemNode(Node):
-    """/cmd_vel -> skid-steer wheel velocities (ramped, stale commands stop), /odom from wheel feedback.
+    """/cmd_vel -> skid-steer wheel velocities (ramped, stale commands stop), /odom and /tf from
+    the wheels' measured positions.
 
     The node commands the wheels only while /cmd_vel is fresh and while it ramps them down after
     /cmd_vel went stale; once stopped it leaves them alone (bench tools and per-joint topics
@@ -49,7 +60,8 @@ class DriveSystemNode(Node):
     def __init__(self, driver: MotorDriver, config: RoverConfig, refusals: RefusalLog | None = None,
                  **kwargs: Any) -> None:
         super().__init__("drive_system", **kwargs)
-        declare(self, "odom_rate_hz", "odom_frame", "base_frame", "state_qos_depth")
+        declare(self, "odom_rate_hz", "odom_frame", "base_frame", "state_qos_depth", "publish_tf",
+                "diagnostics_rate_hz")
         system = config.drive_system
         if system is None:
             raise RovercanError("the config has no drive_system section")
@@ -61,18 +73,32 @@ class DriveSystemNode(Node):
         self.steer = SkidSteer(system.track_width_m, system.wheel_radius_m, system.max_accel_m_s2,
                                system.max_speed_m_s, max_angular_rad_s=system.max_angular_rad_s,
                                max_wheel_rad_s=math.radians(slowest_deg_s))
+        self.odometry = WheelOdometry(system.left, system.right, system.track_width_m, system.wheel_radius_m)
+        self.wheels_out = WheelsOut(system.left, system.right) if system.on_wheel_loss == "continue" else None
         self.refusals = refusals or RefusalLog(self.get_logger().warning)
         self._target = Twist2D()
         self._last_cmd = -math.inf
         self._last_tick = time.monotonic()
         self.stale = True
         self.active = False  # commanding the wheels (fresh /cmd_vel or ramping down after it)
+        self.halted = ""  # why every wheel was stopped, until a fresh /cmd_vel drives again
+        self.last_odometry = OdometryStep(self.odometry.pose, Twist2D(), False, "odometry: no wheel sampled yet")
+        self._stopper = ThreadPoolExecutor(1, thread_name_prefix="drive_system-stop")
+        self._stops: dict[str, Future[None]] = {}
         self._odom_frame = str(self.get_parameter("odom_frame").value)
         self._base_frame = str(self.get_parameter("base_frame").value)
         self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
         self._odom_pub = self.create_publisher(Odometry, "/odom", state_qos(qos_depth(self)), event_callbacks=NO_PUB_EVENTS)
+        self._tf_pub = self.create_publisher(TFMessage, "/tf", TF_QOS, event_callbacks=NO_PUB_EVENTS) \
+            if self.get_parameter("publish_tf").value else None
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS,
+                                               event_callbacks=NO_PUB_EVENTS)
         self._period_s = 1.0 / float(self.get_parameter("odom_rate_hz").value)
         self._timer = self.create_timer(self._period_s, self._tick)
+        # /diagnostics from the tick every so many periods (no wake-up of its own), and at once on a change
+        self._diag_every = max(1, round(float(self.get_parameter("odom_rate_hz").value) /
+                                        float(self.get_parameter("diagnostics_rate_hz").value)))
+        self._ticks = 0
 
     @classmethod
     def beside(cls, driver_node: DriverNode, driver: MotorDriver, config: RoverConfig, **kwargs: Any) -> DriveSystemNode:
@@ -91,6 +117,10 @@ class DriveSystemNode(Node):
         self.destroy_timer(self._timer)
         return True
 
+    def destroy_node(self) -> None:
+        self._stopper.shutdown(wait=False, cancel_futures=True)
+        super().destroy_node()
+
     def _on_cmd_vel(self, msg: Twist) -> None:
         v, w = msg.linear.x, msg.angular.z
         if not (math.isfinite(v) and math.isfinite(w)):
@@ -99,40 +129,81 @@ class DriveSystemNode(Node):
         self._target = Twist2D(v, w)
         self._last_cmd = time.monotonic()
 
+    # ------------------------------------------------------------------ the control loop
     def _tick(self) -> None:
         try:
             now = time.monotonic()
             dt = min(now - self._last_tick, 0.5)
             self._last_tick = now
-            self.stale = now - self._last_cmd > self.system.cmd_timeout_s
-            if not self.stale:
-                # all or none: a turn driven by one side only is worse than no motion
-                blocked = [d for d in self.wheels if not d.snapshot().enabled]
-                if blocked:
-                    self._halt(f"/cmd_vel not applied: {not_armed(blocked)}; no wheel is driven")
-                    self._publish_odom(dt)
-                    return
-                self.active = True
-            left, right = self.steer.step(Twist2D() if self.stale else self._target, dt)
-            if self.stale and not self.active:
-                self._publish_odom(dt)
-                return
-            if self.stale and left == 0.0 and right == 0.0:
-                self.active = False  # stopped: send this last zero, then leave the wheels to others
-            for drives, speed in ((self.left, left), (self.right, right)):
-                for drive in drives:
-                    if self.stale and not drive.snapshot().enabled:
-                        continue  # ramping down: the others still stop
-                    try:
-                        drive.set_velocity(speed * DEG)
-                    except RovercanError as err:
-                        self._halt(f"/cmd_vel not applied: wheel {drive.name} refused {speed:.2f} rad/s ({err});"
-                                   " every wheel stopped")
-                        self._publish_odom(dt)
-                        return
-            self._publish_odom(dt)
+            states = {d.name: d.snapshot() for d in self.wheels}
+            self._integrate(states)
+            self._control(states, now, dt)
+            self._ticks += 1
+            if self._ticks % self._diag_every == 0:
+                self.publish_diagnostics()
         except Exception as err:
             self.get_logger().error(f"drive system tick failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+
+    def _control(self, states: dict[str, DriveState], now: float, dt: float) -> None:
+        self.stale = now - self._last_cmd > self.system.cmd_timeout_s
+        if self.wheels_out is not None:
+            self._book_wheels_out(states)
+        if not self.stale:
+            blocked = [s for s in states.values() if not s.enabled and not (self.wheels_out and s.name in self.wheels_out.out)]
+            if self.wheels_out is not None and self.wheels_out.share() <= 0.0:
+                self._halt(f"/cmd_vel not applied: a side has no wheel left ({self.wheels_out.summary()}); every wheel"
+                           " stopped")
+                return
+            if blocked:  # on_wheel_loss: stop (all or none: a turn driven by some wheels is worse than none)
+                self._halt(f"/cmd_vel not applied: {problems(blocked)}; no wheel is driven")
+                return
+            self.active = True
+            self.halted = ""
+        left, right = self.steer.step(Twist2D() if self.stale else self._target, dt)
+        if self.stale and not self.active:
+            return
+        if self.stale and left == 0.0 and right == 0.0:
+            self.active = False  # stopped: send this last zero, then leave the wheels to others
+        for drives, speed in ((self.left, left), (self.right, right)):
+            for drive in drives:
+                if (self.stale and not states[drive.name].enabled) or (self.wheels_out and drive.name in self.wheels_out.out):
+                    continue  # ramping down: the others still stop; a wheel out is left alone
+                try:
+                    drive.set_velocity(speed * DEG)
+                except RovercanError as err:
+                    self._halt(f"/cmd_vel not applied: wheel {drive.name} refused {speed:.2f} rad/s ({err});"
+                               " every wheel stopped")
+                    return
+
+    def _book_wheels_out(self, states: dict[str, DriveState]) -> None:
+        """on_wheel_loss: continue: a wheel that cannot be driven while the rover drives is told to
+        stop and left out; the body's limits shrink to the wheels left."""
+        assert self.wheels_out is not None
+        went, back = self.wheels_out.update(states, driving=self.active or not self.stale)
+        for name in went + self.wheels_out.still_running(states):
+            self._tell_to_stop(name)
+        for name in went:
+            self.get_logger().warning(f"degraded: {name} out ({self.wheels_out.out[name].reason}); driving on the others")
+        for name in back:
+            self.get_logger().info(f"{name} is back in the drive system (enabled again)")
+        self.steer.share = self.wheels_out.share()
+        if went or back:
+            self.publish_diagnostics()
+
+    def _tell_to_stop(self, name: str) -> None:
+        pending = self._stops.get(name)
+        if pending is not None and not pending.done():
+            return
+        drive = next(d for d in self.wheels if d.name == name)
+        self._stops[name] = self._stopper.submit(self._quick_stop, drive)
+
+    @staticmethod
+    def _quick_stop(drive: Drive) -> None:
+        try:
+            drive.quick_stop()
+        except RovercanError as err:  # it cannot hear us: its own host watch stops it
+            logger.warning("drive system: %s left out, its quick stop failed (%s); it stops by itself when it"
+                           " hears no heartbeat from this host", drive.name, err)
 
     def _halt(self, reason: str) -> None:
         """Stop every wheel that still runs and forget the ramp, so that nothing (a stale
@@ -150,23 +221,76 @@ class DriveSystemNode(Node):
                     except RovercanError:
                         pass  # that wheel cannot move anyway
         self.active = False
+        if self.halted != reason:
+            self.halted = reason
+            self.publish_diagnostics()
         self.refusals.refuse("drive_system", reason)
 
-    def _publish_odom(self, dt: float) -> None:
-        def mean_rad_s(drives: list[Drive]) -> float:
-            return sum(math.radians(d.velocity_deg_s) for d in drives) / len(drives)  # not a snapshot each, 50 Hz
+    # ------------------------------------------------------------------ what was measured
+    def _integrate(self, states: dict[str, DriveState]) -> None:
+        step = self.odometry.step({name: odometry_sample(s) for name, s in states.items()})
+        was = self.last_odometry.trusted
+        self.last_odometry = step
+        if was != step.trusted:
+            self.publish_diagnostics()
+        stamp = max((s.stamp for s in states.values() if s.stamp), default=0.0) if step.trusted else 0.0
+        self._publish_odom(step, stamp or time.time())
 
-        pose, twist = self.steer.odometry(mean_rad_s(self.left), mean_rad_s(self.right), dt)
-        if self._odom_pub.get_subscription_count() == 0:
-            return  # integrated all the same; built and published only for a reader
-        odom = Odometry()
-        stamp_header(odom.header, time.time())
-        odom.header.frame_id = self._odom_frame
-        odom.child_frame_id = self._base_frame
-        odom.pose.pose.position.x = pose.x_m
-        odom.pose.pose.position.y = pose.y_m
-        odom.pose.pose.orientation.z = math.sin(pose.yaw_rad / 2.0)
-        odom.pose.pose.orientation.w = math.cos(pose.yaw_rad / 2.0)
-        odom.twist.twist.linear.x = twist.linear_m_s
-        odom.twist.twist.angular.z = twist.angular_rad_s
-        self._odom_pub.publish(odom)
+    def _publish_odom(self, step: OdometryStep, stamp: float) -> None:
+        pose, twist = step.pose, step.twist
+        qz, qw = math.sin(pose.yaw_rad / 2.0), math.cos(pose.yaw_rad / 2.0)
+        if self._odom_pub.get_subscription_count():
+            odom = Odometry()
+            stamp_header(odom.header, stamp)
+            odom.header.frame_id = self._odom_frame
+            odom.child_frame_id = self._base_frame
+            odom.pose.pose.position.x = pose.x_m
+            odom.pose.pose.position.y = pose.y_m
+            odom.pose.pose.orientation.z = qz
+            odom.pose.pose.orientation.w = qw
+            odom.twist.twist.linear.x = twist.linear_m_s
+            odom.twist.twist.angular.z = twist.angular_rad_s
+            odom.pose.covariance = covariance(self.system.pose_covariance_diagonal, step.trusted)
+            odom.twist.covariance = covariance(self.system.twist_covariance_diagonal, step.trusted)
+            self._odom_pub.publish(odom)
+        if self._tf_pub is not None and self._tf_pub.get_subscription_count():
+            tf = TransformStamped()
+            stamp_header(tf.header, stamp)
+            tf.header.frame_id = self._odom_frame
+            tf.child_frame_id = self._base_frame
+            tf.transform.translation.x = pose.x_m
+            tf.transform.translation.y = pose.y_m
+            tf.transform.rotation.z = qz
+            tf.transform.rotation.w = qw
+            self._tf_pub.publish(TFMessage(transforms=[tf]))
+
+    def health(self) -> tuple[int, str, dict[str, str]]:
+        """The drive system's level, message and values for /diagnostics."""
+        odom = self.last_odometry
+        values = {"on_wheel_loss": self.system.on_wheel_loss, "odometry": "integrating" if odom.trusted else
+                  odom.why_not, "wheels_out": self.wheels_out.summary() if self.wheels_out else "", "driving": str(self.active)}
+        if self.halted:
+            return ERROR, f"stopped: {self.halted}" + ("" if odom.trusted else f"; {odom.why_not}"), values
+        if self.wheels_out is not None and self.wheels_out.out:
+            return WARN, f"degraded: {self.wheels_out.summary()}", values
+        if not odom.trusted:
+            return ERROR if self.active else WARN, odom.why_not, values
+        return OK, "driving" if self.active else "idle", values
+
+    def publish_diagnostics(self) -> None:
+        level, message, values = self.health()
+        array = DiagnosticArray()
+        stamp_header(array.header, time.time())
+        status = DiagnosticStatus(level=level, name="rovercan: drive_system", message=message,
+                                  hardware_id="drive_system")
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        array.status = [status]
+        self._diag_pub.publish(array)
+
+
+def covariance(diagonal: tuple[float, ...], trusted: bool) -> list[float]:
+    """A 6x6 row-major covariance with ``diagonal`` (every entry UNKNOWN_VARIANCE when not trusted)."""
+    out = [0.0] * 36
+    for i, value in enumerate(diagonal):
+        out[i * 7] = value if trusted else UNKNOWN_VARIANCE
+    return out

@@ -48,6 +48,8 @@ PARAMS: dict[str, Param] = {
     "odom_rate_hz": Param(50.0, "rate of the drive system's control loop and /odom", 1.0, 200.0),
     "odom_frame": Param("odom", "frame_id of /odom"),
     "base_frame": Param("base_link", "child_frame_id of /odom"),
+    "publish_tf": Param(True, "drive_system: publish /tf odom -> base_link from the wheel odometry; false: another"
+                              " node fuses odometry (robot_localization) and owns that transform"),
 }
 
 

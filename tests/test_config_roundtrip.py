@@ -49,6 +49,8 @@ def value_of(field: Field) -> st.SearchStrategy[Any]:
         return st.integers(-(2**31), 2**32 - 1) | st.floats(-1e6, 1e6, allow_nan=False)
     if field.kind == "opt_int":
         return st.sampled_from([None, 1, 2, 4, 8])
+    if field.kind == "variances":
+        return st.lists(st.floats(1e-12, 1e9, allow_nan=False), min_size=6, max_size=6)
     raise AssertionError(f"no strategy for kind {field.kind}")
 
 

@@ -427,7 +427,8 @@ def test_a_wheel_that_cannot_follow_stops_the_whole_drive_system(graph: Graph) -
     apply_action(graph.sim, {"action": "fault", "node": 2, "code": 0x2310})  # wheel_middle_left (can0)
     drive_for(1.5)  # /cmd_vel still fresh, but one wheel is in FAULT: none is driven
     assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
-    assert any("wheel wheel_middle_left is FAULT; arm the rover with the service /arm" in st.message
+    # the real cause and what helps (issue 52: "arm the rover" was said for a wheel in FAULT)
+    assert any("wheel_middle_left is in FAULT, EMCY 0x2310" in st.message and "/recover" in st.message
                and st.message.endswith("; no wheel is driven") for a in diags for st in a.status)
     graph.driver.drive("wheel_middle_left").recover()
     graph.driver.drive("wheel_middle_left").enable()

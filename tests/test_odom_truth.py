@@ -1,0 +1,228 @@
+"""What the rover publishes under faults (issue 52), in a real rclpy graph: the shipped six-wheel
+config, the simulator over socketcand, the driver node and the drive system as rover_driver runs
+them, a probe subscribing to /odom, /tf, /joint_states and /diagnostics.
+
+The yaw "the wheel positions give" is computed here, independently of the odometry, from the
+/joint_states messages: for each pair of consecutive messages, each side's mean position change
+over the wheels with a position in both (a lost wheel is NaN) and no jump (a new zero after a
+reboot), times the radius, the difference over the track width. Every verdict waits on
+conditions (counts of messages, states); no wall-clock bound decides anything."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from can_config import RoverConfig, load_config
+from motor_driver import MotorDriver
+from virtual_can import SimService
+from virtual_can.scenario import apply_action
+
+from .conftest import REPO, wait_for, with_bus_overrides
+
+rclpy = pytest.importorskip("rclpy")
+pytestmark = pytest.mark.ros
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import Twist  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from tf2_msgs.msg import TFMessage  # noqa: E402
+
+from nodes.drive_system import DriveSystemNode  # noqa: E402
+from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS  # noqa: E402
+from nodes.rover_driver import DriverNode  # noqa: E402
+from nodes.runtime import SpinThread, make_executor  # noqa: E402
+
+LEFT = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left"]
+RIGHT = ["wheel_front_right", "wheel_middle_right", "wheel_rear_right"]
+#: a position change between two /joint_states messages (20 ms) larger than any wheel can turn
+#: (720 deg/s = 0.25 rad in 20 ms): a new zero, not motion
+JUMP_RAD = 1.0
+YAW_TOLERANCE_RAD = math.radians(2.0)
+#: the consumer times both ways in a graph that shares one interpreter with six simulated
+#: drives (tests/test_ros_interface.py says why)
+HOST_TIMEOUT_S, HEARTBEAT_TIMEOUT_S = 2.0, 2.5
+
+
+class Rover:
+    def __init__(self, on_wheel_loss: str) -> None:
+        config = load_config(REPO / "config" / "rover.yaml")
+        assert config.drive_system is not None
+        drives = tuple(dataclasses.replace(d, host_timeout_s=HOST_TIMEOUT_S, heartbeat_timeout_s=HEARTBEAT_TIMEOUT_S)
+                       for d in config.drives)
+        config = dataclasses.replace(config, drives=drives, drive_system=dataclasses.replace(
+            config.drive_system, on_wheel_loss=on_wheel_loss))
+        self.config: RoverConfig = config
+        self.sim = SimService.from_config(config, port=0)
+        self.driver = MotorDriver(with_bus_overrides(config, host=self.sim.host, port=self.sim.port)).start()
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.driver_node = DriverNode(self.driver, context=self.context,
+                                      parameter_overrides=[Parameter("diagnostics_rate_hz", value=5.0)])
+        self.system = DriveSystemNode.beside(self.driver_node, self.driver, config, context=self.context)
+        self.probe = rclpy.create_node("probe", context=self.context)
+        self.odom: list[Any] = []
+        self.joints: list[Any] = []
+        self.tf: list[Any] = []
+        self.diags: list[Any] = []
+        self.probe.create_subscription(Odometry, "/odom", self.odom.append, STATE_QOS)
+        self.probe.create_subscription(JointState, "/joint_states", self.joints.append, STATE_QOS)
+        self.probe.create_subscription(TFMessage, "/tf", self.tf.append, 100)
+        self.probe.create_subscription(DiagnosticArray, "/diagnostics", self.diags.append, DIAGNOSTICS_QOS)
+        self.cmd = self.probe.create_publisher(Twist, "/cmd_vel", COMMAND_QOS)
+        self.hot = make_executor("events", self.context)
+        for node in (self.driver_node, self.system, self.probe):
+            self.hot.add_node(node)
+        self.spin = SpinThread(self.hot, "test-hot")
+        self.sim_closed = False
+
+    def close(self) -> None:
+        self.spin.stop(5.0)
+        for node in (self.driver_node, self.system, self.probe):
+            node.destroy_node()
+        rclpy.shutdown(context=self.context)
+        self.driver.close()
+        if not self.sim_closed:
+            self.sim.close()
+
+    def arm(self) -> None:
+        for name in LEFT + RIGHT:
+            drive = self.driver.drive(name)
+            wait_for(lambda drive=drive: drive.booted and not drive.lost, 30.0, f"{drive.name} configured")
+            drive.enable()
+
+    def drive_until(self, v: float, w: float, done: Any, what: str) -> None:
+        """Publish /cmd_vel (v, w) at each new /odom message until ``done()``."""
+        twist = Twist()
+        twist.linear.x, twist.angular.z = v, w
+
+        def step() -> bool:
+            self.cmd.publish(twist)
+            seen = len(self.odom)
+            wait_for(lambda: len(self.odom) > seen, 10.0, "the next /odom")
+            return bool(done())
+
+        wait_for(step, 60.0, what)
+
+    def stand_still(self) -> None:
+        wait_for(lambda: all(abs(self.driver.drive(n).snapshot().velocity_deg_s) < 0.5 for n in LEFT + RIGHT
+                             if not self.driver.drive(n).lost), 30.0, "every wheel stopped")
+
+    def odom_yaw(self) -> float:
+        q = self.odom[-1].pose.pose.orientation
+        return 2.0 * math.atan2(q.z, q.w)
+
+    def wheel_yaw(self, since: int = 0) -> float:
+        """The heading change the /joint_states positions give, from message ``since`` on."""
+        cfg = self.config.drive_system
+        assert cfg is not None
+        yaw = 0.0
+        msgs = self.joints[since:]
+        for a, b in zip(msgs, msgs[1:]):
+            pa, pb = dict(zip(a.name, a.position)), dict(zip(b.name, b.position))
+
+            def side(names: list[str], pa: dict[str, float] = pa, pb: dict[str, float] = pb) -> float | None:
+                deltas = [pb[n] - pa[n] for n in names if math.isfinite(pa[n]) and math.isfinite(pb[n])
+                          and abs(pb[n] - pa[n]) < JUMP_RAD]
+                return sum(deltas) / len(deltas) if deltas else None
+
+            left, right = side(LEFT), side(RIGHT)
+            if left is not None and right is not None:
+                yaw += (right - left) * cfg.wheel_radius_m / cfg.track_width_m
+        return yaw
+
+    def said(self, text: str) -> bool:
+        return any(text in st.message for array in self.diags for st in array.status
+                   if st.name == "rovercan: drive_system")
+
+
+@pytest.fixture
+def rover(request: pytest.FixtureRequest) -> Iterator[Rover]:
+    rover = Rover(getattr(request, "param", "stop"))
+    yield rover
+    rover.close()
+
+
+def yaw_error(rover: Rover) -> float:
+    return abs(math.remainder(rover.odom_yaw() - rover.wheel_yaw(), math.tau))
+
+
+def test_odom_yaw_stays_the_wheels_through_an_unplugged_wheel_and_every_wheel_stops(rover: Rover) -> None:
+    rover.arm()
+    wait_for(lambda: len(rover.joints) > 2 and len(rover.odom) > 2, 30.0, "the state topics")
+    rover.drive_until(0.3, 0.4, lambda: rover.odom_yaw() > 0.15, "a turn of 0.15 rad")
+    assert yaw_error(rover) < YAW_TOLERANCE_RAD, (rover.odom_yaw(), rover.wheel_yaw())
+    apply_action(rover.sim, {"action": "unplug", "node": 2, "channel": "can0"})  # wheel_middle_left
+    # /cmd_vel keeps coming; on_wheel_loss: stop (the default): every wheel stops
+    rover.drive_until(0.3, 0.4, lambda: rover.driver.drive("wheel_middle_left").lost, "the wheel lost")
+    rover.drive_until(0.3, 0.4, lambda: all(abs(rover.driver.drive(n).snapshot().velocity_deg_s) < 0.5
+                                            for n in LEFT + RIGHT if n != "wheel_middle_left"),
+                      "every other wheel stopped")
+    assert rover.system.halted and "wheel_middle_left is lost" in rover.system.halted, rover.system.halted
+    wait_for(lambda: rover.said("stopped: /cmd_vel not applied: wheel_middle_left is lost"), 30.0,
+             "the real cause on /diagnostics")
+    apply_action(rover.sim, {"action": "plug", "node": 2, "channel": "can0"})
+    rover.arm()  # back: configured again (a new position reference), re-armed
+    before = rover.odom_yaw()
+    rover.drive_until(0.3, 0.4, lambda: rover.odom_yaw() > before + 0.15, "another turn of 0.15 rad")
+    cmd_stop = Twist()
+    rover.cmd.publish(cmd_stop)
+    rover.stand_still()
+    seen = len(rover.odom)
+    wait_for(lambda: len(rover.odom) > seen + 5, 30.0, "odometry after standstill")
+    assert yaw_error(rover) < YAW_TOLERANCE_RAD, (rover.odom_yaw(), rover.wheel_yaw())
+
+
+@pytest.mark.parametrize("rover", ["continue"], indirect=True)
+def test_with_continue_the_other_wheels_drive_on_and_diagnostics_say_degraded(rover: Rover) -> None:
+    rover.arm()
+    wait_for(lambda: len(rover.joints) > 2 and len(rover.odom) > 2, 30.0, "the state topics")
+    rover.drive_until(0.3, 0.0, lambda: rover.odom[-1].pose.pose.position.x > 0.1, "0.1 m straight")
+    apply_action(rover.sim, {"action": "unplug", "node": 1, "channel": "can1"})  # wheel_front_right
+    rover.drive_until(0.3, 0.0, lambda: "wheel_front_right" in rover.system.wheels_out.out, "the wheel left out")
+    x = rover.odom[-1].pose.pose.position.x
+    rover.drive_until(0.3, 0.0, lambda: rover.odom[-1].pose.pose.position.x > x + 0.2, "0.2 m more on five wheels")
+    others = [n for n in LEFT + RIGHT if n != "wheel_front_right"]
+    assert all(rover.driver.drive(n).snapshot().velocity_deg_s > 20.0 for n in others)  # still driving
+    assert not rover.system.halted
+    wait_for(lambda: rover.said("degraded: wheel_front_right out"), 30.0, "degraded on /diagnostics")
+    assert yaw_error(rover) < YAW_TOLERANCE_RAD, (rover.odom_yaw(), rover.wheel_yaw())
+    assert abs(rover.odom_yaw()) < YAW_TOLERANCE_RAD  # straight
+
+
+def test_a_killed_bus_leaves_odom_standing_with_a_large_covariance(rover: Rover) -> None:
+    rover.arm()
+    wait_for(lambda: len(rover.odom) > 2, 30.0, "/odom")
+    rover.drive_until(0.3, 0.0, lambda: rover.odom[-1].pose.pose.position.x > 0.1, "0.1 m")
+    rover.sim.close()  # both buses' server dies; /cmd_vel keeps coming
+    rover.sim_closed = True
+    rover.drive_until(0.3, 0.0, lambda: rover.odom[-1].pose.covariance[0] >= 1e6, "a large covariance")
+    held = rover.odom[-1].pose.pose.position.x
+    seen = len(rover.odom)
+    rover.drive_until(0.3, 0.0, lambda: len(rover.odom) > seen + 50, "50 more /odom")
+    after = rover.odom[seen:]
+    assert all(m.pose.pose.position.x == held and m.twist.twist.linear.x == 0.0 for m in after)
+    assert all(m.pose.covariance[0] >= 1e6 and m.twist.covariance[0] >= 1e6 for m in after)
+    wait_for(lambda: rover.said("odometry stopped: no trusted wheel"), 30.0, "the reason on /diagnostics")
+
+
+def test_tf_carries_odom_to_base_link_from_the_same_odometry(rover: Rover) -> None:
+    rover.arm()
+    rover.drive_until(0.3, 0.3, lambda: len(rover.tf) > 10 and rover.odom[-1].pose.pose.position.x > 0.05, "/tf")
+    transforms = [t for m in rover.tf for t in m.transforms]
+    assert {(t.header.frame_id, t.child_frame_id) for t in transforms} == {("odom", "base_link")}
+    by_stamp = {(o.header.stamp.sec, o.header.stamp.nanosec): o for o in rover.odom}
+    paired = [(t, by_stamp[(t.header.stamp.sec, t.header.stamp.nanosec)]) for t in transforms
+              if (t.header.stamp.sec, t.header.stamp.nanosec) in by_stamp]
+    assert paired, "a /tf with the stamp of an /odom"
+    for tf, odom in paired:
+        assert tf.transform.translation.x == odom.pose.pose.position.x
+        assert tf.transform.rotation.z == odom.pose.pose.orientation.z
+    pose_cov = rover.odom[-1].pose.covariance
+    assert pose_cov[0] == 0.001 and pose_cov[35] == 0.01 and min(pose_cov[i * 7] for i in range(6)) > 0

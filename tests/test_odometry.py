@@ -1,0 +1,114 @@
+"""Tier 1: odometry from the wheels' measured positions (pure; motor_driver/odometry.py).
+
+The properties the rover's /odom stands on: the heading is the wheels' own (whichever step
+each wheel's sample lands in), a new position reference is never a jump, a lost wheel adds
+nothing, a side with no trusted wheel stops the integration and says why."""
+
+from __future__ import annotations
+
+import math
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from motor_driver.odometry import WheelOdometry, WheelSample, yaw_from_wheels
+
+LEFT, RIGHT = ("fl", "ml", "rl"), ("fr", "mr", "rr")
+TRACK_M, RADIUS_M = 0.6, 0.1
+
+
+def odometry() -> WheelOdometry:
+    return WheelOdometry(LEFT, RIGHT, TRACK_M, RADIUS_M)
+
+
+def samples(angles: dict[str, float], t: float, reference: int = 1, velocity: float = 0.0,
+            **trust: bool) -> dict[str, WheelSample]:
+    return {n: WheelSample(a, t, reference, trust.get(n, True), "" if trust.get(n, True) else "lost", forget=True,
+                           velocity_rad_s=velocity) for n, a in angles.items()}
+
+
+def test_straight_driving_moves_forward_by_the_rim_travel() -> None:
+    odo = odometry()
+    for k in range(101):
+        step = odo.step(samples({n: 0.1 * k for n in LEFT + RIGHT}, 0.01 * k, velocity=10.0))
+    assert step.trusted
+    assert math.isclose(step.pose.x_m, 10.0 * RADIUS_M, rel_tol=1e-9)  # 10 rad at 0.1 m
+    assert abs(step.pose.yaw_rad) < 1e-12
+    assert math.isclose(step.twist.linear_m_s, 1.0, rel_tol=1e-9)  # 10 rad/s at 0.1 m
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.lists(st.floats(-0.5, 0.5), min_size=6, max_size=6),
+                          st.lists(st.booleans(), min_size=6, max_size=6)), min_size=2, max_size=60))
+def test_the_heading_is_the_wheels_whichever_step_their_samples_land_in(
+        moves: list[tuple[list[float], list[bool]]]) -> None:
+    """Each wheel moves by its own increments and is sampled at its own times (a sample may be
+    late: the wheel sends nothing new in a step); at the end, after every wheel sent its newest
+    position, the yaw is exactly what the wheel positions say."""
+    odo = odometry()
+    names = LEFT + RIGHT
+    angle = dict.fromkeys(names, 0.0)
+    sent = {n: WheelSample(0.0, 0.0, 1) for n in names}
+    odo.step(sent)
+    for k, (deltas, fresh) in enumerate(moves, start=1):
+        for n, d, f in zip(names, deltas, fresh, strict=True):
+            angle[n] += d
+            if f:
+                sent[n] = WheelSample(angle[n], float(k), 1)
+        odo.step(dict(sent))
+    final = {n: WheelSample(angle[n], float(len(moves) + 1), 1) for n in names}
+    step = odo.step(final)
+    want = yaw_from_wheels([angle[n] for n in LEFT], [angle[n] for n in RIGHT], TRACK_M, RADIUS_M)
+    assert math.isclose(math.remainder(step.pose.yaw_rad - want, math.tau), 0.0, abs_tol=1e-9)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(-1e6, 1e6), st.sampled_from(LEFT + RIGHT), st.integers(1, 20))
+def test_a_new_position_reference_is_never_a_jump(jump_rad: float, wheel: str, at: int) -> None:
+    """A reboot or a homing gives a wheel a new zero: its first sample in the new reference
+    starts anew (here the rover stands still, so nothing may move, whatever the jump)."""
+    odo = odometry()
+    for k in range(30):
+        reference = 2 if k >= at else 1
+        angles = {n: (jump_rad if n == wheel and k >= at else 0.0) for n in LEFT + RIGHT}
+        step = odo.step({n: WheelSample(a, float(k), reference if n == wheel else 1) for n, a in angles.items()})
+        assert step.trusted or k == 0
+        assert step.pose.x_m == 0.0 and step.pose.y_m == 0.0 and step.pose.yaw_rad == 0.0
+
+
+def test_a_side_with_no_trusted_wheel_stops_the_integration_and_says_why() -> None:
+    odo = odometry()
+    odo.step(samples(dict.fromkeys(LEFT + RIGHT, 0.0), 0.0))
+    moved = odo.step(samples(dict.fromkeys(LEFT + RIGHT, 1.0), 0.1))
+    assert moved.trusted and moved.pose.x_m > 0
+    lost = odo.step(samples(dict.fromkeys(LEFT + RIGHT, 5.0), 0.2, fl=False, ml=False, rl=False))
+    assert not lost.trusted and lost.pose == moved.pose and lost.twist.linear_m_s == 0.0
+    assert "left side" in lost.why_not and "fl lost" in lost.why_not
+    # back: the left wheels start anew (no jump, and the right side's travel meanwhile cannot be
+    # paired with anything on the left: not integrated), then both sides count again
+    restart = odo.step(samples(dict.fromkeys(LEFT + RIGHT, 9.0), 0.3))
+    assert not restart.trusted and restart.pose == moved.pose and "new position reference" in restart.why_not
+    again = odo.step(samples(dict.fromkeys(LEFT + RIGHT, 10.0), 0.4))
+    assert again.trusted and abs(again.pose.yaw_rad) < 1e-12
+    assert math.isclose(again.pose.x_m, 2 * RADIUS_M, rel_tol=1e-9)
+
+
+def test_one_wheel_lost_the_side_carries_on_with_the_others() -> None:
+    odo = odometry()
+    odo.step(samples(dict.fromkeys(LEFT + RIGHT, 0.0), 0.0))
+    angles = dict.fromkeys(LEFT + RIGHT, 1.0)
+    angles["fl"] = 50.0  # lost, and whatever it says is not believed
+    step = odo.step(samples(angles, 0.1, fl=False))
+    assert step.trusted and abs(step.pose.yaw_rad) < 1e-12
+    assert math.isclose(step.pose.x_m, RADIUS_M, rel_tol=1e-9)
+
+
+def test_a_late_wheel_keeps_its_last_sample_and_counts_the_gap_after() -> None:
+    """Data that is only late (stale, the reference unchanged) adds nothing meanwhile; the next
+    sample carries what the encoder counted over the gap: no distance is lost."""
+    odo = odometry()
+    odo.step(samples(dict.fromkeys(LEFT + RIGHT, 0.0), 0.0))
+    stale = {n: WheelSample(0.0, 0.0, 1, False, "stale") for n in LEFT + RIGHT}
+    assert not odo.step(stale).trusted
+    step = odo.step(samples(dict.fromkeys(LEFT + RIGHT, 2.0), 0.5))
+    assert step.trusted and math.isclose(step.pose.x_m, 2.0 * RADIUS_M, rel_tol=1e-9)
