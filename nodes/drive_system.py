@@ -44,6 +44,8 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+#: the drive system's own /diagnostics status, besides every change of it
+DIAGNOSTICS_PERIOD_S = 1.0
 #: tf2's own publishers keep 100 (a late listener's buffer fills from them)
 TF_QOS = QoSProfile(depth=100)
 
@@ -60,8 +62,7 @@ class DriveSystemNode(Node):
     def __init__(self, driver: MotorDriver, config: RoverConfig, refusals: RefusalLog | None = None,
                  **kwargs: Any) -> None:
         super().__init__("drive_system", **kwargs)
-        declare(self, "odom_rate_hz", "odom_frame", "base_frame", "state_qos_depth", "publish_tf",
-                "diagnostics_rate_hz")
+        declare(self, "odom_rate_hz", "odom_frame", "base_frame", "state_qos_depth", "publish_tf")
         system = config.drive_system
         if system is None:
             raise RovercanError("the config has no drive_system section")
@@ -95,9 +96,8 @@ class DriveSystemNode(Node):
                                                event_callbacks=NO_PUB_EVENTS)
         self._period_s = 1.0 / float(self.get_parameter("odom_rate_hz").value)
         self._timer = self.create_timer(self._period_s, self._tick)
-        # /diagnostics from the tick every so many periods (no wake-up of its own), and at once on a change
-        self._diag_every = max(1, round(float(self.get_parameter("odom_rate_hz").value) /
-                                        float(self.get_parameter("diagnostics_rate_hz").value)))
+        # /diagnostics from the tick every DIAGNOSTICS_PERIOD_S (no wake-up of its own), and at once on a change
+        self._diag_every = max(1, round(float(self.get_parameter("odom_rate_hz").value) * DIAGNOSTICS_PERIOD_S))
         self._ticks = 0
 
     @classmethod
