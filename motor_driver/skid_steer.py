@@ -111,6 +111,10 @@ class SkidSteer:
             self.right_rad_s += d_right * step / largest
         return self.left_rad_s, self.right_rad_s
 
+    def limit_to(self, share: float) -> None:
+        """Every limit cut to ``share`` of itself (1.0: all of it; 0.0: no motion)."""
+        self.share = min(max(share, 0.0), 1.0)
+
     def halt(self) -> None:
         """Forget the ramp: the wheels were stopped by someone else (a refusal, a fault). The
         next command ramps up from standstill; a stale one never brings them back."""

@@ -154,6 +154,8 @@ class DriveSystemNode(Node):
                 self._halt(f"/cmd_vel not applied: a side has no wheel left ({self.wheels_out.summary()}); every wheel"
                            " stopped")
                 return
+            if self.wheels_out is not None:
+                blocked = []  # continue: what is left is only late (stale): not driven until it is fresh
             if blocked:  # on_wheel_loss: stop (all or none: a turn driven by some wheels is worse than none)
                 self._halt(f"/cmd_vel not applied: {problems(blocked)}; no wheel is driven")
                 return
@@ -166,8 +168,10 @@ class DriveSystemNode(Node):
             self.active = False  # stopped: send this last zero, then leave the wheels to others
         for drives, speed in ((self.left, left), (self.right, right)):
             for drive in drives:
-                if (self.stale and not states[drive.name].enabled) or (self.wheels_out and drive.name in self.wheels_out.out):
-                    continue  # ramping down: the others still stop; a wheel out is left alone
+                if not states[drive.name].enabled and (self.stale or self.wheels_out is not None):
+                    continue  # ramping down: the others still stop; continue: a late wheel waits
+                if self.wheels_out is not None and drive.name in self.wheels_out.out:
+                    continue  # a wheel out is left alone
                 try:
                     drive.set_velocity(speed * DEG)
                 except RovercanError as err:
@@ -186,7 +190,7 @@ class DriveSystemNode(Node):
             self.get_logger().warning(f"degraded: {name} out ({self.wheels_out.out[name].reason}); driving on the others")
         for name in back:
             self.get_logger().info(f"{name} is back in the drive system (enabled again)")
-        self.steer.share = self.wheels_out.share()
+        self.steer.limit_to(self.wheels_out.share())
         if went or back:
             self.publish_diagnostics()
 

@@ -88,7 +88,8 @@ class OutWheel:
 
 class WheelsOut:
     """``on_wheel_loss: continue``: the wheels left out, each with its reason. A wheel goes out
-    when it cannot be driven while the rover drives; it comes back only once it has left
+    when it is lost, faulted, another master's or no longer enabled while the rover drives (one
+    whose data is only late is not driven meanwhile, and not taken out); it comes back only once it has left
     Operation Enabled (stopped) and is enabled again (/arm, recover): never by itself, still
     running from before."""
 
@@ -102,7 +103,10 @@ class WheelsOut:
         for name, state in states.items():
             out = self.out.get(name)
             if out is None:
-                if driving and not state.enabled:
+                # out: lost, faulted, another master's, or no longer enabled; data that is only late
+                # (stale: a stalled bus or host) leaves the wheel undriven meanwhile, not out
+                if driving and not state.enabled and (state.lost or state.fault or state.foreign_master or
+                                                      state.state != State.OPERATION_ENABLED):
                     self.out[name] = OutWheel(wheel_problem(state))
                     went.append(name)
                 continue

@@ -48,6 +48,8 @@ def test_a_wheel_out_comes_back_only_stopped_then_enabled_again() -> None:
     book = WheelsOut(["a", "b"], ["c"])
     states = {"a": state(name="a"), "b": state(name="b"), "c": state(name="c")}
     assert book.update(states, driving=True) == ([], [])
+    states["a"] = state(name="a", stale=True, enabled=False)  # only late: not driven meanwhile, not out
+    assert book.update(states, driving=True) == ([], []) and book.share() == 1.0
     states["a"] = state(name="a", lost=True, enabled=False, fault=True)
     assert book.update(states, driving=True) == (["a"], [])
     assert book.share() == 0.5 and "a out (a is lost" in book.summary()
