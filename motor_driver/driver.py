@@ -103,7 +103,7 @@ class MotorDriver(Supervision):
         given = dict(buses or {})
         self.recorder = FlightRecorder(config.recorder, {d.name: (d.bus, d.node_id) for d in config.drives},
                                        {b.name: b.channel for b in config.buses},
-                                       config.source) if config.recorder.enabled else None
+                                       config.source, config) if config.recorder.enabled else None
         self._host_loss_seen: dict[str, int] = {}  # supervisor: host-loss stops already reported
         self._take_over = False  # start(take_over=True): another master's traffic is not held against it
         # every EDS is loaded and checked before any hardware is touched
