@@ -10,33 +10,22 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from typing import Any
 
 import can
 import pytest
-import websockets
 
 from can_config import load_config
 
 from .conftest import REPO
-from .test_foxglove import ANSWER_S, CONNECT_S
+from .test_foxglove import ANSWER_S, connect
 from .test_mcap import ROVER
 from .test_sim_cli import free_port
 
 
 async def advertised(port: int, topic: str) -> tuple[dict[str, dict[str, Any]], bytes]:
     """serverInfo and advertise; then one message of ``topic`` after subscribing to it."""
-    deadline = time.monotonic() + CONNECT_S
-    while True:
-        try:
-            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"])
-            break
-        except OSError:
-            if time.monotonic() > deadline:
-                raise
-            await asyncio.sleep(0.2)
-    async with ws:
+    async with await connect(port) as ws:
         got: dict[str, dict[str, Any]] = {}
         while "advertise" not in got or "serverInfo" not in got:
             message = json.loads(await asyncio.wait_for(ws.recv(), ANSWER_S))
