@@ -104,7 +104,7 @@ class MotorDriver:
         given = dict(buses or {})
         self.recorder = FlightRecorder(config.recorder, {d.name: (d.bus, d.node_id) for d in config.drives},
                                        {b.name: b.channel for b in config.buses},
-                                       config.source) if config.recorder.enabled else None
+                                       config.source, config) if config.recorder.enabled else None
         # every EDS is loaded and checked before any hardware is touched
         ods = {d.name: load_drive_od(d.eds, d.node_id) for d in config.drives}
         try:

@@ -156,12 +156,26 @@ def _stop(proc: Process) -> None:
                   file=sys.stderr, flush=True)
 
 
-def run_launch(path: Path, overrides: dict[str, str], duration_s: float | None) -> int:
+def foxglove_monitor(processes: list[Process], port: int, host: str) -> Process:
+    """``--foxglove PORT``: a ``rovercan monitor`` of the driver's config (its nodes' ``config``
+    parameter, else the embedded default) serving the live view, started after the others."""
+    from can_config import DEFAULT_CONFIG
+
+    given = [arg.partition(":=")[2] for proc in processes for arg in proc.argv if arg.startswith("config:=")]
+    config = next((value for value in given if value), str(DEFAULT_CONFIG))
+    return Process("foxglove", [sys.executable, "-m", "rovercan", "monitor", "--config", config, "--foxglove", str(port),
+                                "--foxglove-host", host])
+
+
+def run_launch(path: Path, overrides: dict[str, str], duration_s: float | None, foxglove: int | None = None,
+               foxglove_host: str = "127.0.0.1") -> int:
     """Starts the processes in file order, each in its own session (a terminal's Ctrl+C
     reaches only this runner), and stops them in reverse order, each gone before the next is
     signalled: the driver brings its drives to a safe state while the bus (the simulator) is
-    still there."""
+    still there. ``foxglove``: also the live view on that port (:func:`foxglove_monitor`)."""
     processes = parse_launch(path, overrides)
+    if foxglove is not None:
+        processes.append(foxglove_monitor(processes, foxglove, foxglove_host))
     stop = {"flag": False}
 
     def on_signal(signum: int, frame: object) -> None:

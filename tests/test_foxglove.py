@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 import websockets
@@ -26,18 +27,21 @@ CONNECT_S = 30.0
 ANSWER_S = 20.0
 
 
-async def talk(port: int) -> tuple[dict[str, dict], bytes]:
-    """serverInfo and advertise; then one message of /joint_states after subscribing to it."""
+async def connect(port: int) -> Any:
+    """A client of subprotocol foxglove.websocket.v1, once the server listens."""
     deadline = time.monotonic() + CONNECT_S
     while True:
         try:
-            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"])
-            break
+            return await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"])
         except OSError:
             if time.monotonic() > deadline:
                 raise
             await asyncio.sleep(0.1)
-    async with ws:
+
+
+async def talk(port: int) -> tuple[dict[str, dict], bytes]:
+    """serverInfo and advertise; then one message of /joint_states after subscribing to it."""
+    async with await connect(port) as ws:
         assert ws.subprotocol == "foxglove.websocket.v1"
         got: dict[str, dict] = {}
         while "advertise" not in got or "serverInfo" not in got:

@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -262,6 +263,54 @@ def serve_view(buses: list[tuple[str, can.BusABC]], config: RoverConfig | None, 
     finally:
         sink.close()
     return n
+
+
+def sim_buses(sims: list[Any], config: RoverConfig | None) -> list[tuple[str, can.BusABC]]:
+    """A client bus on every channel the simulator servers (:class:`virtual_can.SimService`) serve,
+    named as the config names it (else by its channel)."""
+    def client(sim: Any, channel: str) -> can.BusABC:
+        host = "127.0.0.1" if sim.host in ("0.0.0.0", "") else sim.host
+        return can.Bus(interface="socketcand", channel=channel, host=host, port=sim.port)
+
+    if config is None:
+        return [(channel, client(sim, channel)) for sim in sims for channel in sim.simulators]
+    opened: list[tuple[str, can.BusABC]] = []
+    for bus in config.buses:
+        serving = [sim for sim in sims if bus.channel in sim.simulators and (
+            len(sims) == 1 or sim.port == bus.bus_kwargs().get("port"))]
+        if serving:
+            opened.append((bus.name, client(serving[0], bus.channel)))
+    return opened
+
+
+@contextmanager
+def serve_sims_view(sims: list[Any], config_path: str | None, host: str, port: int) -> Iterator[None]:
+    """``rovercan sim --foxglove PORT``: the live view of the simulator's own buses, served from a
+    thread of its own while the block runs."""
+    config = load_config(config_path) if config_path else None
+    stop = threading.Event()
+    started = threading.Event()
+
+    def say(text: str) -> None:
+        print(f"rovercan sim: {text}", flush=True)
+        started.set()
+
+    def run() -> None:
+        try:
+            serve_view(sim_buses(sims, config), config, host, port, stop, say=say)
+        except Exception as err:  # the view must never take the simulator down
+            logger.error("rovercan sim: the Foxglove view stopped: %s", err)
+        finally:
+            started.set()
+
+    thread = threading.Thread(target=run, daemon=True, name="rovercan-foxglove")
+    thread.start()
+    started.wait(FOXGLOVE_START_S)
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(FOXGLOVE_START_S)
 
 
 def monitor_foxglove(args: argparse.Namespace) -> int:

@@ -9,9 +9,11 @@ history). Each writes, into the configured directory (capped in size, oldest fir
   the JSON names the bus of each BLF channel),
 - ``<stamp>-<kind>-<who>.json``: the summary (``rovercan incident FILE`` prints it),
 - ``<stamp>-<kind>-<who>.png``: angle, velocity, torque and state of every drive around it,
-  drawn by a helper process at low priority (``python -m motor_driver.recorder FILE.json``)
-  from the states the JSON carries: matplotlib in the driver's process would hold its
-  interpreter for a second or more, and the host heartbeat with it.
+  drawn by a helper process at low priority (``python -m motor_driver.recorder FILE.json``,
+  :mod:`.plot`) from the states the JSON carries: matplotlib in the driver's process would hold
+  its interpreter for a second or more, and the host heartbeat with it. While the process is
+  starved (its host heartbeat went out late within NO_PLOT_AFTER_LATE_S) the plot waits until it
+  is not, or until close(); an incident without drive states says why it has no plot.
 
 Threads and what each owns: the buses' receive threads append received frames to the ring
 (one deque append each; the deque is bounded by time, trimmed by whoever appends) and flag an
@@ -43,9 +45,14 @@ import can
 
 from can_config.config import RecorderConfig
 from can_config.incident import FORMAT
+from can_config.model import RoverConfig
 from can_config.objects import emcy_text
 from can_config.realtime import ordinary_thread
 from motor_driver.drive import DriveState
+from motor_driver.recorder.incident_mcap import write_incident_mcap
+from motor_driver.recorder.plot import plot_incident, state_series
+
+__all__ = ["INCIDENT_KINDS", "FlightRecorder", "Frame", "IncidentEvent", "plot_incident"]
 
 logger = logging.getLogger(__name__)
 
@@ -104,8 +111,11 @@ class FlightRecorder:
     what is pending and stops the writer; it is idempotent."""
 
     def __init__(self, config: RecorderConfig, drives: Mapping[str, tuple[str, int]],
-                 bus_channels: Mapping[str, str], source: Path | None = None) -> None:
+                 bus_channels: Mapping[str, str], source: Path | None = None, rover: RoverConfig | None = None) -> None:
+        """``rover``: the config the drives are decoded by in the incident's .mcap (without it, the
+        .mcap holds the raw frames only)."""
         self.config = config
+        self._rover = rover
         self._bus_channels = dict(bus_channels)
         self.directory = config.directory
         self._names = {(bus, node): name for name, (bus, node) in drives.items()}
@@ -121,6 +131,7 @@ class FlightRecorder:
         self._source = source
         self.written: list[Path] = []  # the JSON of each incident written (writer thread)
         self._helpers: list[subprocess.Popen[bytes]] = []  # plot processes (writer thread, then close)
+        self._deferred: list[Path] = []  # incidents whose plot waits for the process to be on time (writer)
         self._samples = 0  # supervisor passes seen by sample()
         self._late_at = -math.inf  # monotonic time the host heartbeat was last late (process_late)
         self._last_written: dict[tuple[str, str], float] = {}  # (kind, drive or bus) -> its t (writer)
@@ -183,6 +194,8 @@ class FlightRecorder:
             try:
                 first = self._events.get(timeout=WRITER_POLL_S)
             except queue.Empty:
+                if self._deferred and time.monotonic() - self._late_at > NO_PLOT_AFTER_LATE_S:
+                    self._plot_deferred()
                 continue
             events = [first]
             deadline = time.monotonic() + self.config.after_s
@@ -200,6 +213,12 @@ class FlightRecorder:
                 break
         if rest:
             self._write_safely(rest)
+        self._plot_deferred()  # the driver stops: what waited is drawn now
+
+    def _plot_deferred(self) -> None:
+        for json_path in self._deferred:
+            self._plot_in_helper(json_path)
+        self._deferred = []
 
     def _write_safely(self, events: list[IncidentEvent]) -> None:
         first = events[0]
@@ -255,26 +274,46 @@ class FlightRecorder:
             "drives": [{"name": name, "bus": bus, "node_id": node} for (bus, node), name in self._names.items()],
             "config": str(self._source) if self._source else None,
             "blf": base.with_suffix(".blf").name,
+            "mcap": None,
             "png": None,
         }
-        summary["states"] = _state_series(states, first.t)
+        summary["states"] = state_series(states, first.t)
         json_path = base.with_suffix(".json")
+        self._write_mcap(base.with_suffix(".mcap"), frames, events, summary)
         late = time.monotonic() - self._late_at <= NO_PLOT_AFTER_LATE_S
-        plot = self.config.plot and bool(states) and not late
+        plot = self.config.plot and bool(summary["states"])
         if plot:
             summary["png"] = base.with_suffix(".png").name  # drawn by a helper process, below
-        else:  # why there is none (`python -m motor_driver.recorder INCIDENT.json` still draws it)
+            if late:
+                summary["plot_deferred"] = (f"the host heartbeat went out late within {NO_PLOT_AFTER_LATE_S:.0f} s:"
+                                            " drawn once it has been on time that long, or when the driver stops")
+        else:  # why there is none (`python -m motor_driver.recorder INCIDENT.json` still draws what it can)
             summary["plot_skipped"] = ("plot: false in the recorder config" if not self.config.plot else
-                                       "no drive states recorded" if not states else
-                                       f"the host heartbeat went out late within {NO_PLOT_AFTER_LATE_S:.0f} s (a"
-                                       " starved process gets no plot process beside it)")
+                                       "no drive states recorded")
         json_path.write_text(json.dumps(summary, indent=1) + "\n")
         self.kept.remove(summary_kept)
-        if plot:
+        if plot and late:
+            self._deferred.append(json_path)
+        elif plot:
             self._plot_in_helper(json_path)
         logger.warning("flight recorder: %s (%s) written to %s", first.kind, who, json_path)
         _enforce_cap(self.directory, self.config.max_mb * 1e6, keep=base.name)
         return json_path
+
+    def _write_mcap(self, path: Path, frames: list[Frame], events: list[IncidentEvent], summary: dict[str, Any]) -> None:
+        """The incident's .mcap (named in ``summary``): a failure costs it alone, not the BLF and JSON."""
+        told = [(e.t, e.drive or e.bus, f"incident {e.kind}" + (f": 0x{e.code:04X}" if e.code is not None else "")
+                 + (f" {e.text}" if e.text else "")) for e in events]
+        metadata = {"incident": summary["kind"], "time": summary["time"], "config": summary["config"] or ""}
+        try:
+            write_incident_mcap(path, frames, told, self._rover, metadata)
+        except OSError:
+            raise  # the directory: handled as the BLF's
+        except Exception:
+            logger.exception("flight recorder: the incident's .mcap could not be written (its .blf is)")
+            path.unlink(missing_ok=True)
+            return
+        summary["mcap"] = path.name
 
     def _plot_in_helper(self, json_path: Path) -> None:
         """The PNG is drawn by a process of its own at low priority (ordinary scheduling, nice 10):
@@ -298,52 +337,11 @@ class FlightRecorder:
                 logger.info("flight recorder: a plot is still being drawn (pid %d)", helper.pid)
 
 
-def _state_series(states: list[tuple[float, tuple[DriveState, ...]]], t0: float) -> dict[str, Any]:
-    """The drives' states as series per drive, times in s from the incident."""
-    series: dict[str, dict[str, list[float]]] = {}
-    for t, snap in states:
-        for s in snap:
-            row = series.setdefault(s.name, {"t_s": [], "angle_deg": [], "velocity_deg_s": [], "torque_nm": [],
-                                             "state": []})
-            row["t_s"].append(round(t - t0, 4))
-            row["angle_deg"].append(round(s.angle_deg, 4))
-            row["velocity_deg_s"].append(round(s.velocity_deg_s, 3))
-            row["torque_nm"].append(s.torque_nm if s.torque_nm == s.torque_nm else 0.0)  # NaN: no 0x6077
-            row["state"].append(int(s.state))
-    return series
-
-
-def plot_incident(json_path: Path) -> Path:
-    """Draw ``<stem>.png`` from an incident's summary: angle, velocity, torque and state."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    summary = json.loads(json_path.read_text())
-    fig, axes = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
-    for name, row in summary.get("states", {}).items():
-        for ax, key in zip(axes, ("angle_deg", "velocity_deg_s", "torque_nm", "state"), strict=True):
-            ax.plot(row["t_s"], row[key], label=name)
-    for ax, label in zip(axes, ("angle, deg", "velocity, deg/s", "torque, Nm", "CiA 402 state"), strict=True):
-        ax.set_ylabel(label)
-        ax.axvline(0.0, color="red", linewidth=0.8)
-        ax.grid(True)
-    axes[0].legend(fontsize="small", loc="upper left")
-    first = summary["events"][0]
-    axes[0].set_title(f"{first['kind']} {first.get('drive') or first['bus']} {first.get('text', '')}")
-    axes[-1].set_xlabel("s from the incident")
-    fig.tight_layout()
-    png = json_path.with_suffix(".png")
-    fig.savefig(png)
-    plt.close(fig)
-    return png
-
-
 def _enforce_cap(directory: Path, max_bytes: float, keep: str) -> None:
     """Remove the oldest incidents (all files of one stem together) while the directory is over."""
     groups: dict[str, list[Path]] = {}
     for path in directory.iterdir():
-        if path.suffix in (".blf", ".json", ".png") and path.is_file():
+        if path.suffix in (".blf", ".mcap", ".json", ".png") and path.is_file():
             groups.setdefault(path.stem, []).append(path)
     total = sum(p.stat().st_size for paths in groups.values() for p in paths)
     for stem in sorted(groups, key=lambda s: min(p.stat().st_mtime for p in groups[s])):
@@ -355,25 +353,3 @@ def _enforce_cap(directory: Path, max_bytes: float, keep: str) -> None:
             total -= path.stat().st_size
             os.remove(path)
         logger.info("flight recorder: removed incident %s (directory over %.0f MB)", stem, max_bytes / 1e6)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m motor_driver.recorder INCIDENT.json``: draw its PNG, at low priority."""
-    args = list(sys.argv[1:] if argv is None else argv)
-    if len(args) != 1:
-        print("usage: python -m motor_driver.recorder INCIDENT.json", file=sys.stderr)
-        return 2
-    try:
-        os.nice(10)
-    except OSError:
-        pass
-    try:
-        plot_incident(Path(args[0]))
-    except ImportError:
-        print("no matplotlib: no plot (pip install rovercan[cli])", file=sys.stderr)
-        return 1
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
