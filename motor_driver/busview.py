@@ -82,13 +82,13 @@ class ViewDrive:
     statusword: int = 0
     controlword: int = 0
     mode: int = 0
-    position: int = 0
-    velocity: int = 0
-    torque: int | None = None
+    position_counts: int = 0
+    velocity_counts_s: int = 0
+    torque_permille: int | None = None
     nmt: str = ""
     emcy_code: int = 0
     last_heartbeat: float | None = None
-    lost: bool = False
+    heartbeat_missing: bool = False  # no heartbeat within its timeout (lost)
     got: set[int] = field(default_factory=set)  # TPDOs of this cycle
     newest: float = 0.0  # the time of the newest of them
 
@@ -108,11 +108,11 @@ class ViewDrive:
             if index == OD.STATUSWORD:
                 self.statusword = value
             elif index == OD.POSITION_ACTUAL:
-                self.position = value
+                self.position_counts = value
             elif index == OD.VELOCITY_ACTUAL:
-                self.velocity = value
+                self.velocity_counts_s = value
             elif index == OD.TORQUE_ACTUAL:
-                self.torque = value
+                self.torque_permille = value
             elif index == OD.MODES_OF_OPERATION_DISPLAY:
                 self.mode = value
         self.got.add(cob)
@@ -221,22 +221,22 @@ class BusView:
         nan = math.nan
         self._emit(JOINT_STATES_TOPIC, JOINT_STATE, {
             "header": {"stamp": stamp(newest), "frame_id": ""}, "name": [d.name for d in named],
-            "position": [math.radians(d.scale.counts_to_deg(d.position)) if d.has_position else nan for d in named],
-            "velocity": [math.radians(d.scale.counts_s_to_deg_s(d.velocity)) if d.has_position else nan for d in named],
+            "position": [math.radians(d.scale.counts_to_deg(d.position_counts)) if d.has_position else nan for d in named],
+            "velocity": [math.radians(d.scale.counts_s_to_deg_s(d.velocity_counts_s)) if d.has_position else nan for d in named],
             "effort": [self._torque_nm(d) for d in named]}, round(newest * 1e9))
 
     @staticmethod
     def _torque_nm(d: ViewDrive) -> float:
-        fresh = d.torque is not None and any(OD.TORQUE_ACTUAL in d.layouts[c].indexes for c in d.got)
-        return d.scale.permille_to_nm(d.torque) if fresh and d.torque is not None else math.nan
+        fresh = d.torque_permille is not None and any(OD.TORQUE_ACTUAL in d.layouts[c].indexes for c in d.got)
+        return d.scale.permille_to_nm(d.torque_permille) if fresh and d.torque_permille is not None else math.nan
 
     def _status(self, d: ViewDrive) -> dict[str, Any]:
         state = decode_state(d.statusword)
         fresh = d.has_position
         motor = {
             "header": {"stamp": stamp(d.newest), "frame_id": d.bus}, "name": d.name,
-            "angle": d.scale.counts_to_deg(d.position) if fresh else math.nan,
-            "velocity": d.scale.counts_s_to_deg_s(d.velocity) if fresh else math.nan,
+            "angle": d.scale.counts_to_deg(d.position_counts) if fresh else math.nan,
+            "velocity": d.scale.counts_s_to_deg_s(d.velocity_counts_s) if fresh else math.nan,
             "torque": self._torque_nm(d), "state": state.name, "enabled": state == State.OPERATION_ENABLED,
             "fault": state in FAULT_STATES, "error_code": d.emcy_code, "stale": False, "data_age": 0.0}
         return {"motor": motor, "bus": d.bus, "node_id": d.node_id, "statusword": d.statusword,
@@ -255,14 +255,14 @@ class BusView:
         d.nmt = _name(NmtState, state)
         if state == NmtState.BOOTUP:
             self._diagnose(t, [(WARN, d.name, "boot-up: the drive reset or was power-cycled", {})])
-        elif d.lost:
-            d.lost = False
+        elif d.heartbeat_missing:
+            d.heartbeat_missing = False
             self._diagnose(t, [(OK, d.name, f"heartbeat back ({d.nmt})", {})])
 
     def _look_for_lost(self, t: float) -> None:
         for d in self.drives:
-            if not d.lost and d.last_heartbeat is not None and t - d.last_heartbeat > d.heartbeat_timeout_s:
-                d.lost = True
+            if not d.heartbeat_missing and d.last_heartbeat is not None and t - d.last_heartbeat > d.heartbeat_timeout_s:
+                d.heartbeat_missing = True
                 self._expected.discard(d.name)
                 self._diagnose(t, [(ERROR, d.name, f"heartbeat lost: none for {t - d.last_heartbeat:.2f} s (timeout"
                                                    f" {d.heartbeat_timeout_s:g} s)", {})])
@@ -271,9 +271,9 @@ class BusView:
         rows: list[tuple[int, str, str, dict[str, object]]] = []
         for d in self.drives:
             state = decode_state(d.statusword)
-            level = STALE if d.last_heartbeat is None and not d.statusword else ERROR if d.lost or state in FAULT_STATES \
+            level = STALE if d.last_heartbeat is None and not d.statusword else ERROR if d.heartbeat_missing or state in FAULT_STATES \
                 else OK
-            text = "lost" if d.lost else f"{state.name}, NMT {d.nmt or '?'}" + (
+            text = "lost" if d.heartbeat_missing else f"{state.name}, NMT {d.nmt or '?'}" + (
                 f", EMCY 0x{d.emcy_code:04X} {emcy_text(d.emcy_code)}" if d.emcy_code else "")
             rows.append((level, d.name, text, {"statusword": f"0x{d.statusword:04X}", "mode": _name(OperationMode, d.mode)}))
         self._diagnose(t, rows)

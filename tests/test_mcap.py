@@ -22,6 +22,7 @@ from motor_driver.drive.state import DriveCache
 from motor_driver.mcap_out import write_mcap
 from motor_driver.pdo import plan_pdos
 from motor_driver.ros2defs import DEFINITIONS
+from motor_driver.runtime import DriveRuntime, RuntimePort
 from motor_driver.units import Scale
 
 from .conftest import REPO, rovercan_sim
@@ -91,6 +92,10 @@ def rover_frames(seconds: float = 3.0) -> list[tuple[float, str, int, bool, bool
     return sorted(frames)
 
 
+def ignore(event: object) -> None:
+    """The cache's reports to a supervisor (heartbeats, boot): none here, only TPDOs are fed."""
+
+
 def test_mcap_values_agree_with_the_drivers_own_decoding(tmp_path: Path) -> None:
     """Every JointState value read back equals the driver's DriveCache fed the same frames."""
     config = load_config(ROVER)
@@ -102,7 +107,8 @@ def test_mcap_values_agree_with_the_drivers_own_decoding(tmp_path: Path) -> None
         plan = plan_pdos(load_drive_od(d.eds, d.node_id), d.node_id)
         scale = Scale(d.counts_per_deg, d.rated_torque_nm, d.gear_ratio, invert=d.invert, offset_deg=d.offset_deg)
         bus = config.bus(d.bus)
-        caches[(d.bus, d.node_id)] = DriveCache(d, None, plan, scale, sync_period_s=bus.sync_period_s)  # type: ignore[arg-type]
+        caches[(d.bus, d.node_id)] = DriveCache(d, None, plan, scale, sync_period_s=bus.sync_period_s,  # type: ignore[arg-type]
+                                                runtime=DriveRuntime(), port=RuntimePort(ignore, ignore))
     expected: dict[str, list[tuple[float, float, float]]] = {}
     for t, bus, cob, *_rest, data in frames:
         cache = caches[(bus, cob & 0x7F)]
