@@ -3,8 +3,11 @@
 Run by ``./dev kernel-test`` (part of ``./dev test``): natively where the kernel has vcan, else
 inside a small VM (QEMU under software emulation, a distribution kernel with vcan, can-raw and
 can-bcm, the host's root file system). Python runs about 12x slower there, so the configs use
-generous periods (SYNC 50 ms, host heartbeat 100 ms, consumer times 1 s) and these tests check
-behaviour, not timing. The simulator runs in a process of its own on vcan0, as `rovercan sim
+generous periods (SYNC 50 ms, host heartbeat 100 ms, consumer times 5 s: above the worst stall
+measured there beside the host tier, tests/kernel_stall.py) and these tests check order and
+outcome, not timing: how fast a drive stops is measured on the host tier and in benchmarks/. A
+test whose drive a stall tripped anyway says so in its message (MACHINE STALL, not a product
+failure). The simulator runs in a process of its own on vcan0, as `rovercan sim
 --bus-interface socketcan` does for a user; so does the driver where the failure is its process's.
 """
 
@@ -35,12 +38,25 @@ from virtual_can.sim import MotorParams, SimulatedDrive
 from virtual_can.sim.runner import DriveSimulator
 
 from .conftest import HAVE_ROS, KERNEL_BUS, KERNEL_DRIVE, REPO, SHARED_EDS, kernel_can_available, kernel_controllers_available, wait_for
+from .kernel_stall import SEEN, Evidence, StallWatch, told_apart
 
 pytestmark = [pytest.mark.kernel, pytest.mark.skipif(kernel_can_available() is not None,
                                                      reason=kernel_can_available() or "")]
 TECHNOSOFT_EDS = SHARED_EDS / "technosoft_ipos_v1_04_via_ros2_canopen.eds"
 #: Processes start slowly in the VM: python-can and canopen import in seconds there.
 START_S = 60.0
+#: A bound on a wait in the VM: a hang, not a timing claim (Python there is about 12x slower,
+#: and a process is held a second and more at times beside the host tier).
+HANG_S = 60.0
+
+
+@pytest.fixture(autouse=True)
+def stall_watch(request: pytest.FixtureRequest) -> Iterator[StallWatch]:
+    """How long this process was held at most during the test (kept for the session's summary)."""
+    watch = StallWatch()
+    yield watch
+    watch.close()
+    SEEN.append((request.node.name, watch.worst_s))
 
 
 @dataclass(frozen=True)
@@ -168,6 +184,11 @@ class Listener:
         self.thread.join()
         self.bus.shutdown()
 
+    def evidence(self, watch: StallWatch, node: int = 1) -> Evidence:
+        """What this bus shows of a stall, against the kernel configs' consumer times."""
+        return Evidence(lambda: list(self.frames), node, KERNEL_DRIVE["host_timeout_ms"] / 1000,
+                        KERNEL_DRIVE["heartbeat_timeout_ms"] / 1000, watch)
+
     def statuswords(self, node: int, after: float = 0.0) -> list[tuple[float, int]]:
         """(kernel time, statusword) of the event TPDO1 (0x180 + node), as the driver maps it."""
         return [(m.timestamp, int.from_bytes(m.data[:2], "little")) for m in list(self.frames)
@@ -184,9 +205,10 @@ def listener(wiring: Wiring) -> Iterator[Listener]:
 
 @BOTH_WIRINGS
 def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Path, listener: Listener,
-                                                                    wiring: Wiring) -> None:
+                                                                    wiring: Wiring, stall_watch: StallWatch) -> None:
     config = write_kernel_config(tmp_path / "kernel.yaml", wiring=wiring)
-    with sim_process(config, wiring), MotorDriver(load_config(config)) as driver:
+    with sim_process(config, wiring), MotorDriver(load_config(config)) as driver, \
+            told_apart(listener.evidence(stall_watch)):
         driver.start()
         handle = driver.buses["can0"]
         assert is_kernel_bus(handle.bus)
@@ -195,27 +217,35 @@ def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Pa
         drive = driver.drive("wheel1")
         t0 = time.time()
         drive.enable()
-        drive.move_to(30.0, wait=True, timeout_s=30.0)
+        drive.move_to(30.0, wait=True, timeout_s=HANG_S)
         assert drive.snapshot().angle_deg == pytest.approx(30.0, abs=0.3)
         for _ in range(20):  # profile velocity
             drive.set_velocity(45.0)
             time.sleep(0.05)
-        wait_for(lambda: drive.snapshot().velocity_deg_s > 20.0, 10.0, "turning in profile velocity")
+        wait_for(lambda: drive.snapshot().velocity_deg_s > 20.0, HANG_S, "turning in profile velocity")
         drive.set_velocity(0.0)
-        wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 10.0, "stopped")
+        wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, HANG_S, "stopped")
         drive.set_torque(0.05)  # profile torque
-        wait_for(lambda: abs(drive.snapshot().torque_nm) > 0.0, 10.0, "torque")
+        wait_for(lambda: abs(drive.snapshot().torque_nm) > 0.0, HANG_S, "torque")
         drive.set_torque(0.0)
+        # the shaft coasts on after the torque (a full turn and more while a slow VM waited for
+        # the torque): a stream starts from where it has come to rest, as a user's would
+        wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, HANG_S, "the shaft at rest after the torque")
         start = drive.snapshot().angle_deg
+        t_stream = time.time()
         for i in range(1, 21):  # streamed position (CSP)
             drive.stream_position(start + i * 0.25)
             time.sleep(KERNEL_BUS["sync_period_ms"] / 1000)
-        wait_for(lambda: abs(drive.snapshot().angle_deg - (start + 5.0)) < 0.5, 10.0, "the streamed target")
+        t1 = time.time()
+        wait_for(lambda: abs(drive.snapshot().angle_deg - (start + 5.0)) < 0.5, HANG_S, "the streamed target")
         assert drive.snapshot().mode == 8 and not drive.foreign_master  # its own SYNC is no other master
-        elapsed = time.time() - t0
         drive.quick_stop()
-    syncs = [m for m in listener.frames if m.arbitration_id == 0x080 and m.timestamp >= t0]
-    assert len(syncs) >= 0.5 * elapsed / (KERNEL_BUS["sync_period_ms"] / 1000), (len(syncs), elapsed)
+    # the kernel's SYNC went on through the steps: while the drive was enabled before the stream,
+    # and during the stream (a second of set-points, one per SYNC period)
+    syncs = [m.timestamp for m in listener.frames if m.arbitration_id == 0x080]
+    enabled = next(t for t, sw in listener.statuswords(1, t0) if sw & 0x6F == 0x27)
+    assert any(enabled < t < t_stream for t in syncs), "no SYNC between the enable and the stream"
+    assert any(t_stream < t < t1 for t in syncs), "no SYNC during the stream"
 
 
 @BOTH_WIRINGS
@@ -235,24 +265,26 @@ def test_rovercan_move_turns_the_drive_and_reads_the_angle_back(tmp_path: Path, 
     assert any(sw & 0x6F != 0x27 for sw in words[enabled[-1] + 1:]), "the drive was left enabled"
 
 
-def test_a_second_masters_sync_is_noticed_within_a_second_and_the_drivers_own_never(tmp_path: Path) -> None:
+def test_a_second_masters_sync_is_noticed_and_the_drivers_own_never(tmp_path: Path, listener: Listener) -> None:
+    """Order and outcome on the kernel's loopback: 40 SYNCs of its own (the broadcast manager's)
+    leave the driver calm; a second driver's SYNC on this host is noticed. How soon (within the
+    rate window, under a second) is checked frame by frame in tests/test_kernel_sync.py."""
     config = write_kernel_config(tmp_path / "kernel.yaml")
     with simulator(config), MotorDriver(load_config(config)) as driver:
         driver.start()
         drive = driver.drive("wheel1")
         drive.enable()
-        time.sleep(2.0)
-        assert not drive.foreign_master  # two seconds of its own kernel SYNC
+        enabled = time.time()
+        wait_for(lambda: sum(m.arbitration_id == 0x080 and m.timestamp > enabled for m in list(listener.frames)) >= 40,
+                 HANG_S, "40 SYNCs of the driver's own")
+        assert not drive.foreign_master  # its own kernel SYNC is no other master
         with can.Bus(interface="socketcan", channel=VCAN.driver) as other:  # a second driver on this host
-            started = time.monotonic()
             task = other.send_periodic(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False),
                                        KERNEL_BUS["sync_period_ms"] / 1000)
             try:
-                wait_for(lambda: "SYNC frames this driver did not send" in drive.foreign_master, 5.0, "noticed")
-                noticed = time.monotonic() - started
+                wait_for(lambda: "SYNC frames this driver did not send" in drive.foreign_master, HANG_S, "noticed")
             finally:
                 task.stop()
-        assert noticed < 1.0, noticed
         assert drive.state != State.OPERATION_ENABLED or drive.snapshot().velocity_deg_s == 0.0
 
 
@@ -261,10 +293,13 @@ def test_a_second_masters_sync_is_noticed_within_a_second_and_the_drivers_own_ne
     pytest.param(SJA1000, signal.SIGKILL, "heartbeat", marks=NEEDS_CONTROLLERS)],
     ids=lambda v: v.name if isinstance(v, signal.Signals) else str(v))
 def test_a_killed_or_stopped_driver_lets_every_drive_stop_itself(tmp_path: Path, listener: Listener, wiring: Wiring,
-                                                                  sig: signal.Signals, watch: str) -> None:
+                                                                  sig: signal.Signals, watch: str,
+                                                                  stall_watch: StallWatch) -> None:
     """Heartbeat: the generic drive's consumer (0x1016). Guarding: a drive built from the
     Technosoft iPOS EDS (0x100C/0x100D, no 0x1016), node-guarded by the driver's supervisor.
-    On the SJA1000 pair: the driver's process on can0 killed, the drive on can1."""
+    On the SJA1000 pair: the driver's process on can0 killed, the drive on can1. Order and
+    outcome: enabled until the signal, then stopped by itself saying why (EMCY 0x8130); how soon
+    after its consumer time is measured on the host tier (tests/test_host_loss.py), not here."""
     eds = None
     if watch == "guarding":
         if not TECHNOSOFT_EDS.is_file():
@@ -281,15 +316,18 @@ def test_a_killed_or_stopped_driver_lets_every_drive_stop_itself(tmp_path: Path,
                 proc.kill()
                 raise AssertionError(f"the driver process did not get ready: {proc.communicate()[1][-3000:]}")
             t_signal = time.time()
+            with told_apart(listener.evidence(stall_watch)):  # a stall before the signal: said as one
+                words = [sw for t, sw in listener.statuswords(1) if t < t_signal]
+                assert words and words[-1] & 0x6F == 0x27, "the drive had stopped before its driver was signalled"
             proc.send_signal(sig)
-            bound = KERNEL_DRIVE["host_timeout_ms"] / 1000 + 0.5
-            deadline = time.monotonic() + bound + 5.0
-            stopped_at = None
-            while stopped_at is None and time.monotonic() < deadline:
-                stopped_at = next((t for t, sw in listener.statuswords(1, t_signal) if sw & 0x6F != 0x27), None)
-                time.sleep(0.05)
-            assert stopped_at is not None, "the drive stayed enabled"
-            assert stopped_at - t_signal <= bound, stopped_at - t_signal
+
+            def stopped() -> float | None:
+                return next((t for t, sw in listener.statuswords(1, t_signal) if sw & 0x6F != 0x27), None)
+
+            wait_for(lambda: stopped() is not None, KERNEL_DRIVE["host_timeout_ms"] / 1000 + HANG_S,
+                     f"the drive stopping itself after its driver's {sig.name}")
+            emcy = [m for m in list(listener.frames) if m.arbitration_id == 0x081 and m.timestamp >= t_signal]
+            assert any(bytes(m.data[:2]) == b"\x30\x81" for m in emcy), f"no EMCY 0x8130 (host lost) after it: {emcy}"
         finally:
             if sig == signal.SIGSTOP:
                 proc.send_signal(signal.SIGCONT)
@@ -332,7 +370,7 @@ def test_a_candump_of_a_session_decodes_and_replays(tmp_path: Path, listener: Li
     replayed = rovercan("replay", str(log), "-i", "socketcan", "-c", VCAN.driver, "--fast")
     assert replayed.returncode == 0, replayed.stderr
     assert "command frames" in replayed.stderr  # NMT, RPDOs and SDO requests left out by default
-    wait_for(lambda: len(listener.frames) > before + 10, 10.0, "the replayed frames on vcan0")
+    wait_for(lambda: len(listener.frames) > before + 10, HANG_S, "the replayed frames on vcan0")
 
 
 def ip_link(state: str, interface: str = VCAN.driver) -> None:
@@ -404,13 +442,14 @@ class Output:
 def test_the_drivers_link_down_for_2_s_under_an_application_that_keeps_commanding(
         tmp_path: Path, listener: Listener, wiring: Wiring) -> None:
     """An application (its own process, the API) keeps commanding a velocity; the driver's
-    interface goes down for 2 s and comes back (on the SJA1000 pair: can0, the drive on can1).
-    The drive, hearing no host, stops itself; the driver says the link went down, lives, configures
+    interface goes down for 2 s, and longer until the drive, hearing no host, has stopped itself
+    (its consumer time is above the VM's stalls), and comes back (on the SJA1000 pair: can0, the
+    drive on can1). The driver says the link went down, lives, configures
     the drive again when the link is back and leaves it stopped while the application goes on
     commanding (each command refused)."""
     config = write_kernel_config(tmp_path / "kernel.yaml", wiring=wiring)
     client = REPO / "tests" / "clients" / "hold_velocity.py"
-    with simulator(config, wiring):
+    with simulator(config, wiring) as runner:
         proc = subprocess.Popen([sys.executable, str(client), str(config), "30", "--keep-commanding"], cwd=REPO,
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         out = Output(proc)
@@ -420,10 +459,15 @@ def test_the_drivers_link_down_for_2_s_under_an_application_that_keeps_commandin
             ip_link("down", wiring.driver)
             try:
                 wait_for(lambda: out.has("link down"), 60.0, "the driver saying the link went down", out.text)
-                down_until = time.monotonic() + 2.0  # the scenario: the link stays down for 2 s
-                while time.monotonic() < down_until:
+                down_until = time.monotonic() + 2.0  # the scenario: the link stays down for 2 s at least
+
+                def stopped_itself() -> bool:
                     assert proc.poll() is None, out.text()  # and the application lives through it
-                    time.sleep(0.1)
+                    state = runner.call(lambda: runner.drive(1).state.name, HANG_S)
+                    return time.monotonic() >= down_until and state != "OPERATION_ENABLED"
+
+                wait_for(stopped_itself, KERNEL_DRIVE["host_timeout_ms"] / 1000 + HANG_S,
+                         "the drive stopping itself, hearing no host", out.text)
             finally:
                 ip_link("up", wiring.driver)
             wait_for(lambda: out.has("re-established") or proc.poll() is not None, 120.0, "the bus back", out.text)
@@ -511,11 +555,10 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring:
 
     config_path = write_kernel_config(tmp_path / "kernel.yaml", nodes=(1, 2), wiring=wiring)
     # ROS entities are created with the interpreter held for seconds under the VM's emulation:
-    # they are made before the driver starts, and this test's drives watch the host for 5 s
-    text = config_path.read_text().replace(f"host_timeout_ms: {KERNEL_DRIVE['host_timeout_ms']}", "host_timeout_ms: 5000")
-    text = text.replace(f"heartbeat_timeout_ms: {KERNEL_DRIVE['heartbeat_timeout_ms']}", "heartbeat_timeout_ms: 5000")
-    config_path.write_text(text + "drive_system: {left: [wheel1], right: [wheel2], track_width_m: 0.6,"
-                           " wheel_radius_m: 0.1, cmd_timeout_ms: 1000, max_accel_m_s2: 1.0, max_speed_m_s: 1.0}\n")
+    # they are made before the driver starts, and the drives watch the host for 5 s (KERNEL_DRIVE);
+    # /cmd_vel goes stale after 3 s, above the VM's stalls, not the shipped 0.5 s
+    config_path.write_text(config_path.read_text() + "drive_system: {left: [wheel1], right: [wheel2], track_width_m: 0.6,"
+                           " wheel_radius_m: 0.1, cmd_timeout_ms: 3000, max_accel_m_s2: 1.0, max_speed_m_s: 1.0}\n")
     config = load_config(config_path)
     assert config.drives[0].host_timeout_s == 5.0 and config.drives[0].heartbeat_timeout_s == 5.0
     os.environ.setdefault("ROS_LOG_DIR", str(tmp_path / "ros-log"))  # the VM's root file system is read-only
