@@ -197,15 +197,16 @@ class Supervisor:
             return
         name = drive.cache.nmt_state if event.state != NmtState.OPERATIONAL else "OPERATIONAL"
         if runtime.lost and runtime.booted:
-            logger.warning("node %d (%s): heard again after %.1f s lost, in NMT %s; it was told to stop %d times; %s",
-                           drive.node_id, drive.name, event.at - runtime.lost_since if runtime.lost_since else 0.0,
-                           name, runtime.lost_stops, "enable it again to drive it" if event.state ==
-                           NmtState.OPERATIONAL else "configuring it again, left disabled")
-            runtime.lost_since = 0.0
             if event.state == NmtState.OPERATIONAL:
+                logger.warning("node %d (%s): heartbeat back after %.1f s lost; it was told to stop %d times; enable"
+                               " it again to drive it", drive.node_id, drive.name,
+                               event.at - runtime.lost_since if runtime.lost_since else 0.0, runtime.lost_stops)
                 runtime.lost = False
             else:
+                logger.warning("node %d (%s): heard again in NMT %s (told to stop while lost); configuring it again,"
+                               " left disabled", drive.node_id, drive.name, name)
                 self._configure_again(runtime)
+            runtime.lost_since = 0.0
             return
         if not runtime.booted or runtime.lost or event.state == NmtState.OPERATIONAL or event.was != "OPERATIONAL":
             return

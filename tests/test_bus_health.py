@@ -160,7 +160,7 @@ def test_frames_given_up_for_a_full_transmit_queue_warn_and_say_what_to_do() -> 
     ({"state": 3, "restart_ms": 0}, "restart-ms is 0: it stays off until `ip link set can0 type can restart`")])
 def test_the_driver_waits_for_a_link_that_is_down_or_bus_off_and_says_so_once(
         fields: dict[str, object], says: str, caplog: pytest.LogCaptureFixture) -> None:
-    """The supervisor's wait for a lost kernel bus (motor_driver.supervisor._link_up), fed the
+    """The supervisor's wait for a lost kernel bus (motor_driver.supervise_bus: _link_down, _link_said), fed the
     kernel's link messages (QEMU's SJA1000 never goes BUS-OFF; the kernel tier takes a real one
     down): not ready while down or BUS-OFF, said once with what to do, and once when it is back."""
     import can
@@ -172,8 +172,13 @@ def test_the_driver_waits_for_a_link_that_is_down_or_bus_off_and_says_so_once(
                            "drives": [{"name": "m", "node_id": 1}]})
     with can.Bus(interface="virtual", channel="link-test") as bus, MotorDriver(config, {"can0": bus}) as driver:
         reads = [health_from_link(link(**fields))] * 3 + [health_from_link(link())]
-        driver.kernel_health = lambda name: (reads.pop(0), "")  # type: ignore[method-assign]
-        handle = driver.buses["can0"]
-        assert [driver._link_up("can0", handle) for _ in range(4)] == [False, False, False, True]
+        buses = driver.supervisor.bus  # the worker asks (_link_down), the supervisor says (_link_said)
+        buses.kernel_health = lambda name: (reads.pop(0), "")  # type: ignore[method-assign]
+        ready = []
+        for _ in range(4):
+            why = buses._link_down("can0")
+            ready.append(not why)
+            buses._link_said("can0", buses.runtime["can0"], why)
+        assert ready == [False, False, False, True]
     said = [r.getMessage() for r in caplog.records if "bus can0: link" in r.getMessage()]
     assert len(said) == 2 and says in said[0] and "left disabled" in said[0] and "link up again" in said[1], said
