@@ -2,11 +2,13 @@
 
 What lives where:
 
-* :mod:`motor_driver.drive` - one drive, a stack of layers (state cache, SDO, frames, power
-  state machine, limit guard, motion, homing, host watch, boot; :class:`Drive`)
+* :mod:`motor_driver.drive` - one drive, its parts composed (state cache, SDO port, command
+  channel, power state machine, limit guard, motion, homing, host watch, boot; :class:`Drive`)
 * :mod:`motor_driver.driver` - every bus and drive of a config: start, safe stop, close
-* :mod:`motor_driver.supervisor`, :mod:`motor_driver.bushandle`, :mod:`motor_driver.connect`,
-  :mod:`motor_driver.traffic` - the supervisor's period, one bus, opening a bus, what the bus shows
+* :mod:`motor_driver.supervisor`, :mod:`motor_driver.supervise_bus`, :mod:`motor_driver.runtime`,
+  :mod:`motor_driver.bushandle`, :mod:`motor_driver.connect`, :mod:`motor_driver.traffic` - the
+  supervisor's period (the one writer of the runtime state), the runtime state and the NMT
+  ledger, one bus, opening a bus, what the bus shows
 * :mod:`motor_driver.cia402`, :mod:`motor_driver.pdo`, :mod:`motor_driver.units`,
   :mod:`motor_driver.safety`, :mod:`motor_driver.setpoint` - pure rules: state machine, PDO
   plan, units, the safety judgement, the set-point handshake

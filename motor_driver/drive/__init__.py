@@ -16,7 +16,7 @@ What lives where (each module's docstring names the thread that owns its state):
 - :mod:`.motion`: motion commands, one family per operation mode
 - :mod:`.homing`: homing
 - :mod:`.hostwatch`: the drive's watch of the host (heartbeat consumer, node guarding) and the
-  supervisor's watch of the drive
+  frames the supervisor sends a drive it stops hearing or loses to another master
 - :mod:`.boot`: boot as a table of steps; re-configuration after a reset
 - :mod:`.facade`: :class:`Drive`, the layers stacked
 - :mod:`.constants`: timeouts and fixed codes

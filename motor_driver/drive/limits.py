@@ -119,8 +119,8 @@ class LimitGuard:
             braked = self._brake(frames)
         finally:
             self._channel.release()
-        if braked and torque_mode:
-            self._channel.stop(Command.QUICK_STOP, "the limit guard's quick stop")
+        if braked and torque_mode:  # a command holding the channel meanwhile is checked against the limit itself
+            self._channel.stop(Command.QUICK_STOP, "the limit guard's quick stop", timeout_s=0.0)
 
     def stop_velocity(self) -> bool:
         """Watchdog action: zero velocity or zero torque. Never waits: when a command or an
