@@ -6,11 +6,16 @@ tick). A wheel counts only while its data can be trusted:
 
 * a sample is taken only from a wheel that is fresh, not lost and not faulted (``WheelSample.trusted``);
   a lost or faulted wheel forgets its last sample (``forget``), so its next trusted one starts anew;
-  a wheel whose data is only late (stale) adds nothing meanwhile and keeps its last sample: its
-  next one, in the same reference, carries the motion the encoder counted over the gap;
+  a wheel whose data is only late (stale) keeps its last sample: while its side's other wheels
+  measure, it is taken to travel as they do, and when it is heard again its own delta over the
+  gap settles the difference (a wheel lost meanwhile leaves their estimate standing); while its
+  whole side is late, its next sample carries the gap (the other side's travel waits for it);
 * two samples are subtracted only within one position reference (``reference``: boot, homing and a
   reboot's jump start a new one): the first sample of a new reference is never a jump;
-* a sample no newer than the last one is no motion (the same PDO read twice).
+* a sample no newer than the last one is no motion (the same PDO read twice);
+* while a side has no trusted wheel nothing is integrated, and the other side's travel is kept to
+  be paired with the late side's next sample, or dropped where that side's wheels were lost
+  (:meth:`WheelOdometry.step`).
 
 Each side's distance is the mean of its wheels' deltas since the last step; the body moves by
 the midpoint rule. A side with no trusted wheel stops the integration: the pose is kept, the twist
@@ -52,6 +57,25 @@ class OdometryStep:
     why_not: str = ""  # which side has no trusted wheel, and why each of its wheels is out
 
 
+@dataclass(frozen=True)
+class _Update:
+    """What a step does to one wheel's last sample."""
+
+    name: str
+    sample: WheelSample | None  # the new last sample (None: keep the old one)
+    forget: bool  # drop the last sample (lost, faulted)
+    restart: bool = False  # ``sample`` starts a new reference (no delta of its own)
+
+
+@dataclass(frozen=True)
+class _Side:
+    distance_m: float
+    speed_m_s: float
+    counted: int
+    updates: list[_Update]
+    late: list[str]  # wheels only late this step (their last sample kept)
+
+
 class WheelOdometry:
     """Pose from the wheels of a skid-steer rover; one instance, called from one thread."""
 
@@ -64,63 +88,105 @@ class WheelOdometry:
         self.wheel_radius_m = wheel_radius_m
         self.pose = Pose2D()
         self._last: dict[str, WheelSample] = {}
+        #: late wheels' travel already counted as their side's others' (m): taken off their next delta
+        self._attributed: dict[str, float] = {}
 
     def reset(self, pose: Pose2D | None = None) -> None:
         """Start again at ``pose`` (the origin by default), every wheel's reference forgotten."""
         self.pose = pose or Pose2D()
         self._last.clear()
+        self._attributed.clear()
 
-    def _delta(self, name: str, sample: WheelSample | None) -> float | None:
-        """Radians turned since this wheel's last sample (0.0: nothing new), or None where it
-        counts for nothing; the new sample becomes the last one."""
+    def _delta(self, name: str, sample: WheelSample | None) -> tuple[float | None, _Update]:
+        """(radians turned since this wheel's last sample, 0.0 for nothing new, None where it
+        counts for nothing; what becomes of its last sample: kept, replaced, or forgotten)."""
         last = self._last.get(name)
         if sample is None or not sample.trusted or not math.isfinite(sample.angle_rad):
-            if sample is None or sample.forget or not math.isfinite(sample.angle_rad):
-                self._last.pop(name, None)
-            return None
+            forget = sample is None or sample.forget or not math.isfinite(sample.angle_rad)
+            return None, _Update(name, None, forget)
         if last is not None and sample.stamp <= last.stamp:
-            return 0.0  # nothing new: no motion, still trusted
-        self._last[name] = sample
+            return 0.0, _Update(name, None, False)  # nothing new: no motion, still trusted
         if last is None or last.reference != sample.reference:
-            return None  # a new reference starts here
-        return sample.angle_rad - last.angle_rad
+            return None, _Update(name, sample, False, restart=True)  # a new reference starts here
+        turned = sample.angle_rad - last.angle_rad - self._attributed.get(name, 0.0) / self.wheel_radius_m
+        return turned, _Update(name, sample, False)
 
-    def _side(self, names: tuple[str, ...], samples: Mapping[str, WheelSample]) -> tuple[float, float, int]:
-        """(mean distance m, mean rim speed m/s, wheels that count) of one side. A wheel with no
-        new sample counts as no motion: a side's mean over a fixed set of wheels adds up to the
-        mean of their whole travel, whichever step each delta lands in. The speed is the trusted
-        wheels' own velocity actual values (a PDO that carries no position makes no delta of
-        its own time)."""
+    def _side(self, names: tuple[str, ...], samples: Mapping[str, WheelSample]) -> _Side:
+        """One side: its mean distance (m), mean rim speed (m/s), the wheels that count, and the
+        updates of their last samples. A wheel with no new sample counts as no motion: a side's
+        mean over a fixed set of wheels adds up to the mean of their whole travel, whichever step
+        each delta lands in. The speed is the trusted wheels' own velocity actual values (a PDO
+        that carries no position makes no delta of its own time)."""
         distance = 0.0
         counted = 0
         speeds = []
+        updates = []
+        late = []
         for name in names:
             sample = samples.get(name)
-            turned = self._delta(name, sample)
+            turned, update = self._delta(name, sample)
+            updates.append(update)
             if sample is not None and sample.trusted and math.isfinite(sample.velocity_rad_s):
                 speeds.append(sample.velocity_rad_s * self.wheel_radius_m)
             if turned is None:
+                if update.sample is None and not update.forget and name in self._last:
+                    late.append(name)
                 continue
             counted += 1
             distance += turned * self.wheel_radius_m
         if not counted:
-            return 0.0, 0.0, 0
-        return distance / counted, sum(speeds) / len(speeds) if speeds else 0.0, counted
+            return _Side(0.0, 0.0, 0, updates, late)
+        return _Side(distance / counted, sum(speeds) / len(speeds) if speeds else 0.0, counted, updates, late)
+
+    def _commit(self, updates: list[_Update], *, deltas: bool) -> None:
+        """Apply the updates: forgotten and restarted wheels always; a sample that carried a delta
+        only with ``deltas`` (else its delta stays to be counted at the next trusted step)."""
+        for update in updates:
+            if update.forget:
+                self._last.pop(update.name, None)
+                self._attributed.pop(update.name, None)
+            elif update.sample is not None and (deltas or update.restart):
+                self._last[update.name] = update.sample
+                self._attributed.pop(update.name, None)
+
+    def _attribute(self, side: _Side) -> None:
+        """A side's late wheels are taken to have travelled as its measuring wheels did (their mean):
+        counted so now, and taken off their own delta when they are heard again."""
+        for name in side.late:
+            self._attributed[name] = self._attributed.get(name, 0.0) + side.distance_m
 
     def step(self, samples: Mapping[str, WheelSample]) -> OdometryStep:
-        """Integrate what the wheels measured since the last step."""
-        left_m, left_m_s, left_n = self._side(self.left, samples)
-        right_m, right_m_s, right_n = self._side(self.right, samples)
-        if not left_n or not right_n:
-            side = "left" if not left_n else "right"
-            wheels = self.left if not left_n else self.right
-            reasons = ", ".join(f"{n} {self._why(samples.get(n))}" for n in wheels)
+        """Integrate what the wheels measured since the last step.
+
+        A step with a side that has no trusted wheel integrates nothing. Whether the other side's
+        travel meanwhile is kept for later or dropped depends on the silent side: if one of its
+        wheels is only late (its last sample kept), its next sample will carry the gap, so the
+        other side's travel is kept to be paired with it; if all of them were lost or start anew,
+        nothing of theirs will cover the gap, and the other side's travel over it is dropped too
+        (the heading stays the wheels': both sides lose the same interval)."""
+        left, right = self._side(self.left, samples), self._side(self.right, samples)
+        if not left.counted or not right.counted:
+            silent = self.left if not left.counted else self.right
+            updates = left.updates + right.updates  # committed before `late` is judged: forgets count
+            self._commit([u for u in updates if u.forget or u.restart], deltas=False)
+            silent_updates = left.updates if not left.counted else right.updates
+            late = any(u.sample is None and not u.forget and u.name in self._last for u in silent_updates)
+            if not late:  # nothing will carry the gap on the silent side: drop the other's too
+                self._commit(updates, deltas=True)
+                self._attribute(left)
+                self._attribute(right)
+            side = "left" if not left.counted else "right"
+            reasons = ", ".join(f"{n} {self._why(samples.get(n))}" for n in silent)
             return OdometryStep(self.pose, Twist2D(), False,
                                 f"odometry stopped: no trusted wheel on the {side} side ({reasons})")
-        forward = (left_m + right_m) / 2.0
-        turn = (right_m - left_m) / self.track_width_m
+        self._commit(left.updates + right.updates, deltas=True)
+        self._attribute(left)
+        self._attribute(right)
+        forward = (left.distance_m + right.distance_m) / 2.0
+        turn = (right.distance_m - left.distance_m) / self.track_width_m
         self.pose = integrate(self.pose, Twist2D(forward, turn), 1.0)  # distances: one unit of "time"
-        twist = Twist2D((left_m_s + right_m_s) / 2.0, (right_m_s - left_m_s) / self.track_width_m)
+        twist = Twist2D((left.speed_m_s + right.speed_m_s) / 2.0,
+                        (right.speed_m_s - left.speed_m_s) / self.track_width_m)
         return OdometryStep(self.pose, twist, True)
 
     def _why(self, sample: WheelSample | None) -> str:

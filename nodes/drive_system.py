@@ -168,8 +168,9 @@ class DriveSystemNode(Node):
             self.active = False  # stopped: send this last zero, then leave the wheels to others
         for drives, speed in ((self.left, left), (self.right, right)):
             for drive in drives:
-                if not states[drive.name].enabled and (self.stale or self.wheels_out is not None):
-                    continue  # ramping down: the others still stop; continue: a late wheel waits
+                state = states[drive.name]
+                if state.lost or (not state.enabled and not state.stale):
+                    continue  # it cannot hear us, or is not ours to drive (ramping down: the others still stop)
                 if self.wheels_out is not None and drive.name in self.wheels_out.out:
                     continue  # a wheel out is left alone
                 try:
@@ -218,8 +219,8 @@ class DriveSystemNode(Node):
         self._last_cmd = -math.inf
         self.stale = True
         if self.active:
-            for drive in self.wheels:
-                if drive.snapshot().enabled:
+            for drive in self.wheels:  # a wheel whose data is only late hears us: it stops too
+                if not drive.snapshot().lost:
                     try:
                         drive.set_velocity(0.0)
                     except RovercanError:

@@ -89,7 +89,7 @@ class OutWheel:
 class WheelsOut:
     """``on_wheel_loss: continue``: the wheels left out, each with its reason. A wheel goes out
     when it is lost, faulted, another master's or no longer enabled while the rover drives (one
-    whose data is only late is not driven meanwhile, and not taken out); it comes back only once it has left
+    whose data is only late is not taken out: it still hears its side's commands); it comes back only once it has left
     Operation Enabled (stopped) and is enabled again (/arm, recover): never by itself, still
     running from before."""
 
@@ -104,7 +104,7 @@ class WheelsOut:
             out = self.out.get(name)
             if out is None:
                 # out: lost, faulted, another master's, or no longer enabled; data that is only late
-                # (stale: a stalled bus or host) leaves the wheel undriven meanwhile, not out
+                # (stale: a stalled bus or host) does not take it out: it hears the commands
                 if driving and not state.enabled and (state.lost or state.fault or state.foreign_master or
                                                       state.state != State.OPERATION_ENABLED):
                     self.out[name] = OutWheel(wheel_problem(state))

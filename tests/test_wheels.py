@@ -48,7 +48,7 @@ def test_a_wheel_out_comes_back_only_stopped_then_enabled_again() -> None:
     book = WheelsOut(["a", "b"], ["c"])
     states = {"a": state(name="a"), "b": state(name="b"), "c": state(name="c")}
     assert book.update(states, driving=True) == ([], [])
-    states["a"] = state(name="a", stale=True, enabled=False)  # only late: not driven meanwhile, not out
+    states["a"] = state(name="a", stale=True, enabled=False)  # only late: not out (it hears the commands)
     assert book.update(states, driving=True) == ([], []) and book.share() == 1.0
     states["a"] = state(name="a", lost=True, enabled=False, fault=True)
     assert book.update(states, driving=True) == (["a"], [])
