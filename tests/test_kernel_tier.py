@@ -549,8 +549,8 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring:
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import Twist
 
-    from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS
     from nodes.drive_system import DriveSystemNode
+    from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS
     from nodes.rover_driver import DriverNode
     from nodes.runtime import SpinThread, make_executor
 
