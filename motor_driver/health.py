@@ -68,7 +68,8 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     if state.foreign_master:
         return Health(ERROR, f"not under control: another master on the bus ({state.foreign_master})", values)
     if state.lost:
-        return Health(ERROR, f"heartbeat lost ({values['heartbeat_age_s']} s)", values)
+        return Health(ERROR, f"heartbeat lost ({values['heartbeat_age_s']} s): check the drive's power and CAN cable;"
+                      " it is configured again (disabled) when heard, then arm it", values)
     if state.state in FAULT_STATES:
         code = state.error_code
         return Health(ERROR, f"fault: EMCY 0x{code:04X} {emcy_text(code)}" if code else "fault", values)
@@ -76,7 +77,8 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         return Health(ERROR, "safety check failed: " + "; ".join(f"{c.check} ({c.object} is {c.actual},"
                                                                  f" expected {c.expected})" for c in failed), values)
     if state.stale and state.nmt == "OPERATIONAL":
-        return Health(ERROR, f"stale: no PDO for {values['data_age_s']} s; the values shown are old", values)
+        return Health(ERROR, f"stale: no PDO for {values['data_age_s']} s; the values shown are old (its bus or"
+                      " this host is stalled: arming does not help)", values)
     if refused_since_last:
         return Health(WARN, f"{refused_since_last} command(s) refused: {last_refusal}", values)
     if state.statusword & SW.WARNING:

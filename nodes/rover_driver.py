@@ -74,6 +74,8 @@ class DriverNode(Node):
             self._add_drive(joint, drive)
         self._default = default
         self._demo_state_pub = None
+        self.get_logger().info(f"the demo topic /motor_degree_cmd moves {default} (default_joint)" if default else
+                               "the demo topic /motor_degree_cmd moves no joint (default_joint is empty)")
         if default:  # the team's demo topics, for the joint named: never for a guessed one
             self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", self._state_qos,
                                                          event_callbacks=NO_PUB_EVENTS)

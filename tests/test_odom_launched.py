@@ -208,3 +208,5 @@ def test_odom_stands_still_with_the_bus_killed_and_holds_its_heading_after(tmp_p
             stop(sim)
         (tmp_path / "launch.log").write_text(out)
     assert "Traceback" not in out, out[-3000:]
+    # the rover launch says what the team's demo topic drives: nothing, unless default_joint names it
+    assert "the demo topic /motor_degree_cmd moves no joint (default_joint is empty)" in out, out[-3000:]
