@@ -256,7 +256,8 @@ def test_rovercan_move_turns_the_drive_and_reads_the_angle_back(tmp_path: Path, 
     disabled again when the command is done."""
     config = write_kernel_config(tmp_path / "kernel.yaml", wiring=wiring)
     with simulator(config, wiring):
-        moved = rovercan("move", "wheel1", "30", "--config", str(config), "--json", timeout=300)
+        # --wait: a bound for a hang (the VM is software-emulated); the outcome is the verdict
+        moved = rovercan("move", "wheel1", "30", "--config", str(config), "--json", "--wait", "120", timeout=300)
     assert moved.returncode == 0, moved.stderr[-3000:]
     assert json.loads(moved.stdout)["angle_deg"] == pytest.approx(30.0, abs=0.5), moved.stdout
     words = [sw for _, sw in listener.statuswords(1)]

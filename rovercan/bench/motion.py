@@ -165,7 +165,7 @@ def cmd_move(args: argparse.Namespace) -> int:
             sampler = threading.Thread(target=sample_until_done, daemon=True, name="rovercan-unit-check")
             sampler.start()
             try:
-                drive.wait_target_reached()
+                drive.wait_target_reached(args.wait)
             finally:
                 sampling.set()
                 sampler.join()
@@ -345,6 +345,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("node")
     p.add_argument("degrees", type=real(-1e6, 1e6), help="joint angle (limits: the config's)")
     p.add_argument("--speed", type=real(0.001, 1e6), help="profile velocity, deg/s")
+    p.add_argument("--wait", type=real(0.1, 3600), default=None, metavar="S",
+                   help="seconds to wait for target reached (default: 2 s + the move's own time at its profile)")
     _drive_command_args(p)
     p.set_defaults(func=cmd_move)
 
