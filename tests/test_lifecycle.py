@@ -100,7 +100,7 @@ def test_each_transition_is_confirmed_on_the_bus(rig: tuple[Any, SimService, Lis
     t = time.monotonic()
     node.trigger_configure()
     assert node._state_machine.current_state[1] == "inactive"
-    assert node.driver is not None and all(d.booted for d in node.driver)
+    assert node.driver is not None and all(d.cache.booted for d in node.driver)
     check_assembly(node.assembly, "rovercan_driver", ["a", "b"])  # rover_driver's nodes, executors, groups
     assert states(sim) == ["SWITCH_ON_DISABLED"] * 2  # booted, not enabled
     wait_for(lambda: len(listener.since(t, 0x77F)) >= 2, 2.0, "the driver's host heartbeat")

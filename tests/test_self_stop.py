@@ -44,13 +44,13 @@ def test_a_home_ends_when_the_drives_host_watch_stops_it(driver_factory: DriverF
         except RovercanError as err:
             outcome.append(err)
 
-    drive.interleave = on_point
+    drive.channel.set_hook(on_point)
     worker = threading.Thread(target=home, name="test-home")
     worker.start()
     assert started.wait(30.0)
     apply_action(sim, {"action": "heartbeat_deaf", "node": 1})
     worker.join(60.0)  # a bound for a hang: homing itself would need 20 s, its timeout is 600 s
-    drive.interleave = None
+    drive.channel.set_hook(None)
     assert not worker.is_alive(), "home() still waits for a drive that stopped itself"
     assert len(outcome) == 1 and isinstance(outcome[0], DriveStateError), outcome
     text = str(outcome[0])
@@ -66,7 +66,7 @@ def test_a_drive_that_resets_during_homing_ends_it(driver_factory: DriverFactory
     drive.enable()
     drive.move_to(20.0, wait=True)
     started = threading.Event()
-    drive.interleave = lambda point: started.set() if point == "home: start sent" else None
+    drive.channel.set_hook(lambda point: started.set() if point == "home: start sent" else None)
     errors: list[BaseException] = []
 
     def home() -> None:
@@ -82,7 +82,7 @@ def test_a_drive_that_resets_during_homing_ends_it(driver_factory: DriverFactory
     wait_for(lambda: drive.snapshot().angle_deg < 19.5, 30.0, "homing under way")
     apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.2})
     worker.join(60.0)
-    drive.interleave = None
+    drive.channel.set_hook(None)
     assert not worker.is_alive()
     assert errors and isinstance(errors[0], DriveStateError)
     text = str(errors[0])

@@ -1,6 +1,6 @@
 """A stop always wins: each interleaving of a stop with enable(), a disable with enable(), and a
 mode switch with other commands is forced at a named point of the state machine
-(``Drive.interleave``), not hoped for in a stress run. After a stop returns, the drive is not
+(``CommandChannel.set_hook``), not hoped for in a stress run. After a stop returns, the drive is not
 Operation Enabled, and the last controlword on the bus is the stop's."""
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ class StopAt:
         self.fired = False
         self.error: BaseException | None = None
         self.took_s = 0.0
-        drive.interleave = self
+        drive.channel.set_hook(self)
 
     def __call__(self, point: str) -> None:
         if point != self.point or self.fired:
@@ -100,7 +100,7 @@ def test_a_stop_during_each_step_of_enable_wins(driver_factory: DriverFactory, l
     frames = collect(listener, 0.4)  # the drive has settled: its last word came in long ago
     words = controlwords(frames)
     assert words and words[-1] == stop_cw, [hex(w) for w in words]  # nothing of enable() after the stop
-    assert sim_state(sim) in stopped_states and drive.state.name in stopped_states, (sim_state(sim), drive.state)
+    assert sim_state(sim) in stopped_states and drive.cache.state.name in stopped_states, (sim_state(sim), drive.cache.state)
     drive.enable()  # a later enable that asks for it is obeyed
     assert sim_state(sim) == "OPERATION_ENABLED"
 
@@ -147,11 +147,11 @@ def test_a_motion_command_after_a_stop_sends_nothing(driver_factory: DriverFacto
 
     def velocity_right_after_the_stop_frame(point: str) -> None:
         if point == "quick stop: sent":
-            drive.interleave = None
+            drive.channel.set_hook(None)
             with pytest.raises((DriveStateError, CommandRejected)):
                 drive.set_velocity(20.0)
 
-    drive.interleave = velocity_right_after_the_stop_frame
+    drive.channel.set_hook(velocity_right_after_the_stop_frame)
     drive.quick_stop()
     frames = collect(listener, 0.3)
     assert not [m for m in frames if m.arbitration_id == 0x401 and int.from_bytes(m.data[2:6], "little")]
@@ -235,7 +235,7 @@ def test_a_stop_during_homings_sdo_writes_wins_and_nothing_of_homing_follows(
     words = settled_controlwords(listener)
     assert words and words[-1] == 0x0002, [hex(w) for w in words]
     assert 0x000F not in words[words.index(0x0002):], [hex(w) for w in words]
-    assert sim_state(sim) != "OPERATION_ENABLED" and drive.busy is None
+    assert sim_state(sim) != "OPERATION_ENABLED" and drive.channel.busy is None
 
 
 @pytest.mark.parametrize("point", ENABLE_POINTS)
@@ -247,8 +247,8 @@ def test_a_stop_during_enable_leaves_no_busy_mark(driver_factory: DriverFactory,
     StopAt(drive, point, drive.quick_stop)
     with pytest.raises(DriveStateError):
         drive.enable()
-    drive.interleave = None
-    assert drive.busy is None
+    drive.channel.set_hook(None)
+    assert drive.channel.busy is None
     assert drive.limits.stop_velocity()  # the watchdog is not locked out
     other: list[BaseException] = []
 
@@ -263,7 +263,7 @@ def test_a_stop_during_enable_leaves_no_busy_mark(driver_factory: DriverFactory,
     thread.start()
     thread.join(10.0)
     assert not other, other
-    assert drive.velocity_commanded
+    assert drive.channel.velocity_commanded
 
 
 def test_a_stop_does_not_wait_behind_a_velocity_target_written_by_sdo(
@@ -334,7 +334,7 @@ def test_a_stop_while_homings_method_write_waits_on_a_slow_drive_wins(
     assert errors and "interrupted by quick stop" in str(errors[0]), errors
     words = controlwords(frames + collect(listener, 0.6))
     assert words and words[-1] == 0x0002, [hex(w) for w in words]
-    assert sim_state(sim) != "OPERATION_ENABLED" and drive.busy is None
+    assert sim_state(sim) != "OPERATION_ENABLED" and drive.channel.busy is None
 
 
 def test_a_stop_whose_wait_outlives_the_enable_it_ended_leaves_no_busy_mark(driver_factory: DriverFactory) -> None:
@@ -359,13 +359,13 @@ def test_a_stop_whose_wait_outlives_the_enable_it_ended_leaves_no_busy_mark(driv
         elif point == "quick stop: sent":
             assert enable_done.wait(10.0), "the enable did not end"  # the stop's wait outlives it
 
-    drive.interleave = hook
+    drive.channel.set_hook(hook)
     with pytest.raises(DriveStateError, match="interrupted by quick stop"):
         drive.enable()
     enable_done.set()
     stopper.join(10.0)
-    drive.interleave = None
+    drive.channel.set_hook(None)
     assert not stop_errors, stop_errors
-    assert drive.busy is None, drive.busy
+    assert drive.channel.busy is None, drive.channel.busy
     drive.enable()  # from here: commands are taken again
     drive.set_velocity(5.0)
