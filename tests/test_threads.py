@@ -12,7 +12,7 @@ from motor_driver import MotorDriver, State
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
-from .conftest import make_config, wait_for
+from .conftest import in_thread, make_config, wait_for
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 
@@ -67,16 +67,7 @@ def test_a_stop_preempts_a_slow_enable(driver_factory: DriverFactory) -> None:
     sim, driver = driver_factory(make_config(1))
     a = driver.drive("joint1")
     apply_action(sim, {"action": "slow_enable", "node": 1, "delay_s": 0.7})
-    errors: list[BaseException] = []
-
-    def enable() -> None:
-        try:
-            a.enable(timeout_s=2.0)
-        except DriveStateError as err:
-            errors.append(err)
-
-    enabling = threading.Thread(target=enable)
-    enabling.start()
+    enabling, errors = in_thread(lambda: a.enable(timeout_s=2.0), DriveStateError)
     wait_for(lambda: a.channel.busy == "enable", 10.0, "the enable under way")
     a.disable_voltage()  # never waits for the enable: had it waited, the enable would have succeeded
     enabling.join(10.0)
