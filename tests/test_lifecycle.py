@@ -163,14 +163,14 @@ def test_through_the_lifecycle_services_one_joints_enable_answers_while_another_
         runner.call(lambda: setattr(runner.drive(1).params, "index_position_counts", 10**9))  # far: a homes until stopped
         drive_a = node.driver.drive("a")
         home = ask(Trigger, "a/home", Trigger.Request())
-        wait_for(lambda: drive_a.busy == "home", 10.0, "a homing")
+        wait_for(lambda: drive_a.channel.busy == "home", 10.0, "a homing")
         for service in ("b/quick_stop", "b/enable"):
             reply = answer(ask(Trigger, service, Trigger.Request()), service)
             assert reply.success, reply.message
-            assert not home.done() and drive_a.busy == "home", service  # answered while a still homes
+            assert not home.done() and drive_a.channel.busy == "home", service  # answered while a still homes
         assert states(sim)[1] == "OPERATION_ENABLED"
         armed = answer(ask(Trigger, "arm", Trigger.Request()), "/arm")
-        assert not home.done() and drive_a.busy == "home"
+        assert not home.done() and drive_a.channel.busy == "home"
         assert not armed.success and "busy with home" in armed.message, armed.message  # a named, b enabled
         reply = answer(ask(ChangeState, "/rovercan_lifecycle/change_state",
                            ChangeState.Request(transition=Transition(id=Transition.TRANSITION_DEACTIVATE))), "deactivate")
