@@ -24,7 +24,7 @@ def main() -> int:
         print("measuring", flush=True)
         time.sleep(seconds + 1.0)
         time.sleep(1.0)  # the caller stops the drives' TPDOs meanwhile
-        print(json.dumps({"received": sum(d.tpdo_count for d in driver)}), flush=True)
+        print(json.dumps({"received": sum(d.cache.tpdo_count for d in driver)}), flush=True)
     return 0
 
 

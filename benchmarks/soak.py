@@ -61,14 +61,14 @@ def inject(sim: SimService, d: Any, node: int, kind: str, boots: int) -> bool:
     """One fault of ``kind`` on ``node``; True when the driver noticed it in time."""
     if kind == "emcy":
         apply_action(sim, {"action": "fault", "node": node, "code": 0x2310})
-        return wait(lambda: d.state is State.FAULT and d.snapshot().error_code == 0x2310, 2.0)
+        return wait(lambda: d.cache.state is State.FAULT and d.snapshot().error_code == 0x2310, 2.0)
     if kind == "unplug":
         apply_action(sim, {"action": "unplug", "node": node})
-        ok = wait(lambda: d.lost, 2.0)
+        ok = wait(lambda: d.cache.lost, 2.0)
         apply_action(sim, {"action": "plug", "node": node})
         return ok
     apply_action(sim, {"action": "power_cycle", "node": node, "off_s": 0.3})
-    return wait(lambda: d.boot_count > boots, 5.0)
+    return wait(lambda: d.boot.boot_count > boots, 5.0)
 
 
 def main() -> int:
@@ -110,7 +110,7 @@ def main() -> int:
             """RPDOs the drive received, less the zero-velocity frames the driver's own watchdog sent."""
             s = sim.simulator_for(node)
             received = int(s.call(lambda: s.drive(node).counters["rpdo"]))  # type: ignore[arg-type]
-            return received - driver.drive(f"j{node}").watchdog_stops
+            return received - driver.drive(f"j{node}").limits.watchdog_stops
 
         time.sleep(1.0)
         threads0, fds0 = threading.active_count(), fds()
@@ -142,15 +142,15 @@ def main() -> int:
             time.sleep(0.05)  # in-flight commands land
             lost_commands += (sent[node] - base[node][0]) - (rpdos(node) - base[node][1])
             faults["injected"] += 1
-            boots = d.boot_count
+            boots = d.boot.boot_count
             faults["detected"] += inject(sim, d, node, kind, boots)
             try:
                 if kind == "unplug":
-                    wait(lambda d=d: not d.lost, 2.0)
+                    wait(lambda d=d: not d.cache.lost, 2.0)
                 if kind == "emcy":
                     d.recover()
                 d.enable()
-                recovered = d.state is State.OPERATION_ENABLED
+                recovered = d.cache.state is State.OPERATION_ENABLED
             except MotorError as err:
                 print(f"recovery of j{node} after {kind} failed: {err}", file=sys.stderr)
                 recovered = False
@@ -169,7 +169,7 @@ def main() -> int:
             "commands_sent": sum(sent), "commands_lost": lost_commands,
             "faults_injected": faults["injected"], "faults_detected": faults["detected"],
             "faults_recovered": faults["recovered"],
-            "watchdog_stops": sum(d.watchdog_stops for d in driver),
+            "watchdog_stops": sum(d.limits.watchdog_stops for d in driver),
             "rss_growth_mb": round(rss_mb() - rss0, 2), "rss_peak_mb": round(rss_mb(), 1),
             "rss_growth_since_first_commands_mb": round(rss_mb() - rss_commands, 2),
             "threads_start": threads0, "threads_end": threading.active_count(),

@@ -173,7 +173,7 @@ class MotorDriver:
     def _start(self, reset: bool, take_over: bool) -> None:
         with ThreadPoolExecutor(max_workers=max(1, len(self.drives)),
                                 thread_name_prefix="rovercan-boot") as pool:
-            futures = [pool.submit(d.boot, reset=reset) for d in self.drives.values()]
+            futures = [pool.submit(d.boot.boot, reset=reset) for d in self.drives.values()]
             for future in futures:
                 future.result()
         for handle in self._handles.values():
@@ -224,14 +224,14 @@ class MotorDriver:
         not answer. Returns what was not confirmed, one line a drive (empty: every drive is safe)."""
         unconfirmed: list[str] = []
         for drive in self.drives.values() if drives is None else drives:
-            if drive.lost and drive.booted:
+            if drive.cache.lost and drive.cache.booted:
                 drive.watch.lost_while_closing()  # unheard, maybe turning: one last stop it needs not answer
                 unconfirmed.append(f"{drive.name}: lost; a last quick stop was sent, unanswered")
                 continue
-            if drive.lost or not drive.booted:
+            if drive.cache.lost or not drive.cache.booted:
                 continue
             try:
-                if drive.state == State.OPERATION_ENABLED:
+                if drive.cache.state == State.OPERATION_ENABLED:
                     drive.quick_stop()
                 drive.disable_voltage()
             except MotorError as err:
@@ -260,7 +260,7 @@ class MotorDriver:
     def _release_host_watch(self) -> None:
         for drive in self.drives.values():
             try:
-                drive.release_host_watch()
+                drive.watch.release_host_watch()
             except MotorError as err:
                 logger.info("%s: host watch left armed (%s); the drive reports the host's silence", drive.name, err)
 

@@ -220,7 +220,7 @@ class BusSupervision:
             return
         try:
             for drive in (d for d in self._drives.values() if d.config.bus == name):
-                drive.boot_part.boot(reset=True)
+                drive.boot.boot(reset=True)
         except BusLostError as err:  # opened, but nothing goes out (an interface still down)
             handle.disconnect()
             self._report(BusDown(name, None, "", f"still not usable ({brief_error(err)})"))

@@ -240,11 +240,11 @@ class Supervisor:
             job = runtime.reboot_job
             if (job is None or job.done()) and now >= runtime.reboot_at and not self.bus.runtime[cfg.bus].lost:
                 runtime.reboot_wanted = False
-                runtime.reboot_job = self.handles[cfg.bus].worker.submit(drive.boot_part.reconfigure)
+                runtime.reboot_job = self.handles[cfg.bus].worker.submit(drive.boot.reconfigure)
             return
         self._check_heartbeat(drive, runtime, now)
-        if drive.boot_part.host_loss_stops != runtime.host_loss_seen:
-            runtime.host_loss_seen = drive.boot_part.host_loss_stops
+        if drive.boot.host_loss_stops != runtime.host_loss_seen:
+            runtime.host_loss_seen = drive.boot.host_loss_stops
             self._incident("host_loss_stop", drive, "the drive had stopped itself: the host was gone (0x8130)")
         channel = drive.channel
         if channel.velocity_commanded and now - channel.last_velocity_cmd > cfg.watchdog_s:

@@ -98,7 +98,7 @@ class DriverActionsNode(Node):
         feedback = MoveJoint.Feedback()
         try:
             if request.speed_deg_s > 0:
-                drive.set_profile_velocity(float(request.speed_deg_s))
+                drive.motion.set_profile_velocity(float(request.speed_deg_s))
             target = drive.move_to(float(request.target_deg))
             while True:
                 await self._pause()

@@ -36,7 +36,7 @@ def trigger(drive: Drive, service: str, action: Callable[[], object]) -> Callabl
     def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             action()
-            response.success, response.message = True, f"{drive.name}: {service} done; state {drive.state.name}"
+            response.success, response.message = True, f"{drive.name}: {service} done; state {drive.cache.state.name}"
         except RovercanError as err:
             response.success, response.message = False, str(err)
         except Exception as err:
@@ -48,7 +48,7 @@ def trigger(drive: Drive, service: str, action: Callable[[], object]) -> Callabl
 def answer(response: Trigger.Response, service: str, failed: list[str], drives: Mapping[str, Drive]) -> Trigger.Response:
     """``response`` for a whole-rover service: success only when nothing failed, the failures
     named, and every drive's state."""
-    states = ", ".join(f"{d.name} {d.state.name}" for d in drives.values())
+    states = ", ".join(f"{d.name} {d.cache.state.name}" for d in drives.values())
     response.success = not failed
     response.message = f"{service}: {'; '.join(failed)}; now {states}" if failed else f"{service} done: {states}"
     return response
@@ -139,7 +139,7 @@ class DriverServicesNode(Node):
     def _sdo_read(self, drive: Drive) -> Callable[[Any, Any], Any]:
         def call(request: SdoRead.Request, response: SdoRead.Response) -> SdoRead.Response:
             try:
-                value = drive.sdo_read_value(request.index, request.subindex)
+                value = drive.sdo.read_value(request.index, request.subindex)
             except RovercanError as err:
                 response.success, response.message = False, str(err)
                 return response
@@ -157,7 +157,7 @@ class DriverServicesNode(Node):
     def _sdo_write(self, drive: Drive) -> Callable[[Any, Any], Any]:
         def call(request: SdoWrite.Request, response: SdoWrite.Response) -> SdoWrite.Response:
             try:
-                drive.sdo_write_checked(request.index, request.subindex, request.value)
+                drive.sdo.write_checked(request.index, request.subindex, request.value)
                 response.success, response.message = True, f"0x{request.index:04X}:{request.subindex} written"
             except RovercanError as err:
                 response.success, response.message = False, str(err)

@@ -232,7 +232,7 @@ class DriverNode(Node):
                 health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s,
                                       refused_since_last=refused, last_refusal=last,
                                       bus_lost=self.driver.bus_lost.get(drive.config.bus, False),
-                                      tpdos_applied=drive.tpdo_count, safety=drive.safety)
+                                      tpdos_applied=drive.cache.tpdo_count, safety=drive.boot.safety)
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
                     hardware_id=f"{drive.config.bus}/node{drive.node_id}",

@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -199,6 +200,38 @@ def drain(bus: can.BusABC, seconds: float) -> list[can.Message]:
         if msg is not None:
             out.append(msg)
     return out
+
+
+def in_thread(call: Callable[[], object], catch: type[BaseException] = BaseException, *, name: str | None = None,
+              start: bool = True) -> tuple[threading.Thread, list[BaseException]]:
+    """``call`` on a thread of its own (started unless ``start`` is False); what it raises of
+    ``catch`` lands in the list returned with the thread, anything else fails the thread."""
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            call()
+        except catch as err:
+            errors.append(err)
+
+    thread = threading.Thread(target=run, name=name)
+    if start:
+        thread.start()
+    return thread, errors
+
+
+def ros_probe(name: str) -> tuple[Any, Any, Any]:
+    """A fresh rclpy context, a node ``name`` in it and a single-threaded executor that spins
+    only that node: (context, node, executor); the caller shuts them down."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    probe = rclpy.create_node(name, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(probe)
+    return context, probe, executor
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, said: Callable[[], str] | None = None) -> None:

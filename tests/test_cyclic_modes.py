@@ -47,7 +47,7 @@ def test_csv_follows_the_stream_then_the_watchdog_stops_it(
     sim, driver = driver_factory(make_config(1, gear_ratio=10.0, counts_per_rev=4096, watchdog_ms=300))
     drive = driver.drive("joint1")
     drive.enable()
-    period = drive.sync_period_s
+    period = drive.cache.sync_period_s
     drive.stream_velocity(5.0)  # switches to CSV (SDO) once
     listener = listener_factory(sim)
     drain(listener, 0.02)
@@ -60,11 +60,11 @@ def test_csv_follows_the_stream_then_the_watchdog_stops_it(
     assert not [m for m in frames if m.arbitration_id == 0x601]  # set-points by RPDO, no SDO
     # the stream stops: the watchdog (300 ms) sends zero velocity, once (a loaded machine that
     # held this test's thread for 300 ms mid-stream had the watchdog stop it there too, rightly)
-    stops, t0 = drive.watchdog_stops, time.monotonic()
+    stops, t0 = drive.limits.watchdog_stops, time.monotonic()
     wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 2.0, "the watchdog's stop")
     assert time.monotonic() - t0 < 0.3 + 0.3
     time.sleep(0.3)
-    assert drive.watchdog_stops == stops + 1
+    assert drive.limits.watchdog_stops == stops + 1
 
 
 def test_csv_refuses_a_jump_up_and_a_speed_beyond_the_limit(driver_factory: DriverFactory) -> None:
@@ -87,11 +87,11 @@ def test_cst_drives_the_commanded_torque(driver_factory: DriverFactory) -> None:
     with pytest.raises(CommandRejected, match=r"max_torque_nm=0.8"):
         drive.stream_torque(0.9)
     # 0.2 Nm against 0.03 Nm of friction speeds the joint up
-    stream_until(drive.stream_torque, 0.2, drive.sync_period_s,
+    stream_until(drive.stream_torque, 0.2, drive.cache.sync_period_s,
                  lambda: abs(drive.snapshot().torque_nm - 0.2) <= 0.01 and drive.snapshot().velocity_deg_s > 50.0,
                  "0.2 Nm and the joint speeding up")
     assert drive.snapshot().mode == OperationMode.CYCLIC_SYNC_TORQUE
-    stream_until(drive.stream_torque, 0.0, drive.sync_period_s, lambda: abs(drive.snapshot().torque_nm) <= 0.03,
+    stream_until(drive.stream_torque, 0.0, drive.cache.sync_period_s, lambda: abs(drive.snapshot().torque_nm) <= 0.03,
                  "no torque")  # friction brakes it
 
 
@@ -158,7 +158,7 @@ def test_the_first_streamed_set_point_after_a_switch_is_judged_from_where_the_dr
                                              min_deg=-100_000.0, max_deg=100_000.0))
     drive = driver.drive("joint1")
     drive.enable()
-    stream_until(drive.set_velocity, 180.0, drive.sync_period_s, lambda: drive.snapshot().velocity_deg_s > 150.0,
+    stream_until(drive.set_velocity, 180.0, drive.cache.sync_period_s, lambda: drive.snapshot().velocity_deg_s > 150.0,
                  "the shaft turning at 180 deg/s")
     runner = sim.simulators["can0"]
     runner.call(lambda: setattr(runner.drive(1).faults, "sdo_delay_s", 0.2))  # ~36 deg before the drive switches
@@ -169,7 +169,7 @@ def test_the_first_streamed_set_point_after_a_switch_is_judged_from_where_the_dr
     runner.call(lambda: setattr(runner.drive(1).faults, "sdo_delay_s", 0.0))
     held = drive.snapshot().angle_deg
     assert held - before > 7.2, (before, held)  # where it holds: past one step from where it was
-    stream_until(drive.stream_position, held, drive.sync_period_s, lambda: abs(drive.snapshot().angle_deg - held) < 0.5,
+    stream_until(drive.stream_position, held, drive.cache.sync_period_s, lambda: abs(drive.snapshot().angle_deg - held) < 0.5,
                  f"the shaft at {held:.2f} deg")
 
 

@@ -24,9 +24,9 @@ DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 def test_boot_does_not_enable_and_configures_pdos(driver_factory: DriverFactory) -> None:
     sim, driver = driver_factory(make_config(2))
     for drive in driver:
-        assert drive.booted
-        assert drive.state is State.SWITCH_ON_DISABLED  # safe by default: not armed
-        assert drive.nmt_state == "OPERATIONAL"
+        assert drive.cache.booted
+        assert drive.cache.state is State.SWITCH_ON_DISABLED  # safe by default: not armed
+        assert drive.cache.nmt_state == "OPERATIONAL"
     # the mapping the driver wrote is what the simulated drive now runs
     sim_drive = sim.simulator_for(1).drive(1)
     assert [p.cob_id for p in sim_drive.tpdos] == [0x181, 0x281, 0x381]
@@ -38,7 +38,7 @@ def test_enable_move_and_report_in_degrees(driver_factory: DriverFactory) -> Non
     _, driver = driver_factory(make_config(1, gear_ratio=10.0))
     drive = driver.drive("joint1")
     drive.enable()
-    assert drive.state is State.OPERATION_ENABLED
+    assert drive.cache.state is State.OPERATION_ENABLED
     drive.move_to(45.0, wait=True)
     state = drive.snapshot()
     assert state.angle_deg == pytest.approx(45.0, abs=0.05)
@@ -70,13 +70,13 @@ def test_emcy_fault_is_reported_commands_refused_and_recover_restores(driver_fac
     drive = driver.drive("joint1")
     drive.enable()
     apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
-    wait_for(lambda: drive.state is State.FAULT, 2.0, "FAULT")
+    wait_for(lambda: drive.cache.state is State.FAULT, 2.0, "FAULT")
     state = drive.snapshot()
     assert state.fault and state.error_code == 0x2310 and "over-current" in state.error_text
     with pytest.raises(DriveStateError, match=r"FAULT \(EMCY 0x2310 continuous over-current\)"):
         drive.move_to(10.0)
     drive.recover()
-    assert drive.state is State.OPERATION_ENABLED  # back to the enable state it had
+    assert drive.cache.state is State.OPERATION_ENABLED  # back to the enable state it had
     drive.move_to(10.0, wait=True)
     # one EMCY consumer, the driver's: canopen's own would keep every EMCY for good
     assert driver.buses["can0"].network.subscribers[0x81] == [drive.cache.on_emcy]
@@ -90,7 +90,7 @@ def test_heartbeat_loss_detected_others_keep_moving_then_reconfigured(driver_fac
     lost = driver.drive("joint2")
     apply_action(sim, {"action": "unplug", "node": 2})
     t0 = time.monotonic()
-    wait_for(lambda: lost.lost, 1.0, "heartbeat loss")
+    wait_for(lambda: lost.cache.lost, 1.0, "heartbeat loss")
     # within the consumer time (350 ms) plus one heartbeat period and the supervisor tick
     assert time.monotonic() - t0 < 0.35 + 0.1 + 0.05
     assert lost.snapshot().fault
@@ -99,11 +99,11 @@ def test_heartbeat_loss_detected_others_keep_moving_then_reconfigured(driver_fac
     driver.drive("joint1").move_to(30.0, wait=True)
     driver.drive("joint3").move_to(-30.0, wait=True)
     # it power-cycles: boot-up, re-configured without restarting anything
-    boots = lost.boot_count
+    boots = lost.boot.boot_count
     apply_action(sim, {"action": "plug", "node": 2})
     apply_action(sim, {"action": "power_cycle", "node": 2, "off_s": 0.2})
-    wait_for(lambda: lost.boot_count > boots and not lost.lost, 3.0, "re-configuration after boot-up")
-    assert lost.state is State.SWITCH_ON_DISABLED  # not re-armed: restore_enable_after_reboot is off
+    wait_for(lambda: lost.boot.boot_count > boots and not lost.cache.lost, 3.0, "re-configuration after boot-up")
+    assert lost.cache.state is State.SWITCH_ON_DISABLED  # not re-armed: restore_enable_after_reboot is off
     lost.enable()
     lost.move_to(15.0, wait=True)
 
@@ -217,10 +217,10 @@ def test_homing_attained_with_no_position_after_it_is_an_error_not_the_old_angle
         if point == "home: attained":
             runner.call(lambda: setattr(runner.drive(1).faults, "tpdo_silent", True))
 
-    drive.interleave = silence
+    drive.channel.set_hook(silence)
     with pytest.raises(DriveTimeoutError, match="homing attained, but no position came from the drive"):
         drive.home()
-    drive.interleave = None
+    drive.channel.set_hook(None)
     runner.call(lambda: setattr(runner.drive(1).faults, "tpdo_silent", False))
 
 
@@ -250,9 +250,9 @@ def test_a_statusword_on_its_way_when_homing_starts_is_not_its_answer(
                 injector.send(can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False))
             assert taken.wait(5.0)  # in the driver's cache before home() looks: on the bus before its next frame
 
-    drive.interleave = on_its_way
+    drive.channel.set_hook(on_its_way)
     drive.home()
-    drive.interleave = None
+    drive.channel.set_hook(None)
     assert sim.simulator_for(1).drive(1).homing_done
     assert abs(drive.snapshot().angle_deg) < 0.05  # the new zero, not 20 deg or a position on the way
 
@@ -327,7 +327,7 @@ def test_many_buses_one_process(sim_factory: Callable[[RoverConfig], tuple[SimSe
             drive.move_to(target)
         for drive, target in zip(driver, (10.0, 20.0, -30.0), strict=True):
             drive.wait_target_reached()
-            assert drive.angle_deg == pytest.approx(target, abs=0.05)
+            assert drive.cache.angle_deg == pytest.approx(target, abs=0.05)
         # same node id on two buses: two drives, two simulators
         assert sim.simulator_for(1, "can1").drive(1).position_counts != sim.simulator_for(1, "can0").drive(1).position_counts
 
@@ -351,20 +351,20 @@ def test_a_blocked_drive_does_not_block_the_others(driver_factory: DriverFactory
     wait_for(lambda: homing.snapshot().velocity_deg_s < -10.0, 2.0, "homing under way")
     for target in (20.0, -15.0):
         other.move_to(target, wait=True)
-        assert other.angle_deg == pytest.approx(target, abs=0.05)
+        assert other.cache.angle_deg == pytest.approx(target, abs=0.05)
     assert not done.is_set()  # both moves finished while homing still blocked its caller
     thread.join(10.0)
     # zeroed at the index while moving at 30 deg/s, then it stops a little past it
-    assert done.is_set() and homing.angle_deg == pytest.approx(0.0, abs=0.5)
+    assert done.is_set() and homing.cache.angle_deg == pytest.approx(0.0, abs=0.5)
 
 
 def test_restore_enable_after_reboot_when_configured(driver_factory: DriverFactory) -> None:
     sim, driver = driver_factory(make_config(1, restore_enable_after_reboot=True))
     drive = driver.drive("joint1")
     drive.enable()
-    boots = drive.boot_count
+    boots = drive.boot.boot_count
     apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.1})
-    wait_for(lambda: drive.boot_count > boots and drive.state is State.OPERATION_ENABLED, 3.0, "re-armed after reboot")
+    wait_for(lambda: drive.boot.boot_count > boots and drive.cache.state is State.OPERATION_ENABLED, 3.0, "re-armed after reboot")
 
 
 def test_unhandled_error_still_leaves_drives_safe(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]],

@@ -27,23 +27,23 @@ def test_spoofed_extended_frames_change_no_state(driver_factory: DriverFactory,
     drive = driver.drive("joint1")
     runner = sim.simulators["can0"]
     sim_drive = runner.drive(1)
-    assert drive.state is State.SWITCH_ON_DISABLED
+    assert drive.cache.state is State.SWITCH_ON_DISABLED
     sdo = runner.call(lambda: sim_drive.counters["sdo"])
     spoofer = listener_factory(sim)
     seen: list[State] = []
     for _ in range(50):  # statusword 0x0627 "Operation Enabled" on the drive's TPDO ids, extended
         for cob in (0x181, 0x381):
             spoofer.send(extended(cob, b"\x27\x06\x00\x00\x00\x00\x00\x00"))
-        seen.append(drive.state)
+        seen.append(drive.cache.state)
         time.sleep(0.002)
     spoofer.send(extended(0x000, b"\x81\x00"))  # "reset every node", extended
     spoofer.send(extended(0x601, bytes([0x40, 0x00, 0x10, 0, 0, 0, 0, 0])))  # an SDO upload, extended
     spoofer.send(extended(0x201, b"\x0f\x00"))  # "enable operation" on RPDO1's id, extended
     time.sleep(0.3)
     answers = [m for m in drain(spoofer, 0.2) if m.arbitration_id in (0x581, 0x701) and not m.is_extended_id]
-    assert all(state is State.SWITCH_ON_DISABLED for state in seen) and drive.state is State.SWITCH_ON_DISABLED
+    assert all(state is State.SWITCH_ON_DISABLED for state in seen) and drive.cache.state is State.SWITCH_ON_DISABLED
     assert runner.call(lambda: sim_drive.state.name) == "SWITCH_ON_DISABLED"
     assert runner.call(lambda: sim_drive.counters["sdo"]) == sdo  # no SDO request taken
     assert not [m for m in answers if m.arbitration_id == 0x581]
     assert not [m for m in answers if m.arbitration_id == 0x701 and m.data[:1] == b"\x00"]  # no boot-up: no reset
-    assert drive.booted and not drive.foreign_master
+    assert drive.cache.booted and not drive.watch.foreign_master

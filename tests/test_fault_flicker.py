@@ -39,8 +39,8 @@ def test_one_fault_sample_stops_motion_until_recover_and_enable(
     drive.set_velocity(20.0)
     spoofer = listener_factory(sim)
     spoofer.send(spoofed_fault(driver))
-    wait_for(lambda: drive.fault_seen is not None, 2.0, "the FAULT sample taken")
-    wait_for(lambda: drive.state is State.OPERATION_ENABLED, 2.0, "the drive's own next TPDO")
+    wait_for(lambda: drive.cache.fault_seen is not None, 2.0, "the FAULT sample taken")
+    wait_for(lambda: drive.cache.state is State.OPERATION_ENABLED, 2.0, "the drive's own next TPDO")
     drain(spoofer, 0.05)
     with pytest.raises(DriveStateError, match=r"reported FAULT \(statusword 0x0008\).*recover\(\) and enable\(\)"):
         drive.set_velocity(30.0)
@@ -69,7 +69,7 @@ def test_a_statusword_flipping_every_5_ms_lets_no_velocity_command_through(
     flipper = threading.Thread(target=flip, daemon=True)
     flipper.start()
     try:
-        wait_for(lambda: drive.fault_seen is not None, 2.0, "the first FAULT sample")
+        wait_for(lambda: drive.cache.fault_seen is not None, 2.0, "the first FAULT sample")
         accepted = 0
         for i in range(200):
             try:

@@ -118,7 +118,7 @@ def test_following_error_trips_fault_8611(driver_factory: Callable[[RoverConfig]
     drive.sdo_write(0x6065, 0, (50).to_bytes(4, "little"))  # following error window: 50 counts
     drive.enable()
     drive.move_to(170.0)
-    wait_for(lambda: drive.state is State.FAULT, 3.0, "following error fault")
+    wait_for(lambda: drive.cache.state is State.FAULT, 3.0, "following error fault")
     assert drive.snapshot().error_code == 0x8611
     assert drive.snapshot().error_text == "following error"
 
@@ -170,7 +170,7 @@ def test_boot_enable_move_on_each_interface(interface: str,
         drive = driver.drive("joint1")
         drive.enable()
         drive.move_to(33.0, wait=True)
-        assert drive.angle_deg == pytest.approx(33.0, abs=0.2)
+        assert drive.cache.angle_deg == pytest.approx(33.0, abs=0.2)
 
 
 def _stop_timeout_s(drive: Drive) -> float:
@@ -201,12 +201,12 @@ def test_a_drive_enabled_again_does_not_resume_its_old_target(
     wait_for(lambda: abs(drive.snapshot().velocity_deg_s) > 30.0, 3.0, "turning")
     if how == "fault":
         apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
-        wait_for(lambda: drive.state in (State.FAULT_REACTION_ACTIVE, State.FAULT), 3.0, "the fault")
+        wait_for(lambda: drive.cache.state in (State.FAULT_REACTION_ACTIVE, State.FAULT), 3.0, "the fault")
         # stopped, as the simulated drive has it (one low sample of the driver's was seen mid-reaction)
         runner = sim.simulators["can0"]
         wait_for(lambda: runner.call(lambda: abs(runner.drive(1).omega)) < 1e-3, _stop_timeout_s(drive),
                  "stopped by the fault reaction")
-        wait_for(lambda: drive.state is State.FAULT, 3.0, "the fault reaction's end")
+        wait_for(lambda: drive.cache.state is State.FAULT, 3.0, "the fault reaction's end")
         drive.recover()  # enables again: it was enabled before the fault
     else:
         drive.quick_stop()
@@ -219,7 +219,7 @@ def test_a_drive_enabled_again_does_not_resume_its_old_target(
                                  f" {truth[0]} at {truth[1]:.2f} rad/s") from err
         drive.disable()
         drive.enable()
-    assert drive.state is State.OPERATION_ENABLED
+    assert drive.cache.state is State.OPERATION_ENABLED
     # from the first velocity sampled after the enable: the one before it is history (a CI run
     # read the fault reaction's last sample, 10.6 deg/s, while the bus showed 0 from then on)
     fresh = drive.cache.position_seq + 1
@@ -252,7 +252,7 @@ def test_a_streaming_drive_enabled_again_holds_where_it_is_not_its_old_set_point
             drive.stream_position(angle)
         if how == "fault":  # at once: a set-point later, the drive would have stopped at the last one
             apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
-            wait_for(lambda: drive.state is State.FAULT, 3.0, "the fault")
+            wait_for(lambda: drive.cache.state is State.FAULT, 3.0, "the fault")
         else:
             drive.quick_stop()
         wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 0.5, 5.0, "come to rest")
@@ -261,7 +261,7 @@ def test_a_streaming_drive_enabled_again_holds_where_it_is_not_its_old_set_point
         else:
             drive.disable()
             drive.enable()
-        assert drive.state is State.OPERATION_ENABLED
+        assert drive.cache.state is State.OPERATION_ENABLED
         return angle
 
     for _ in range(3):  # a run starved between the last set-point and the stop rests at it: again

@@ -232,17 +232,17 @@ def test_a_drive_that_cannot_watch_the_host_is_not_armed_unless_allowed(eds: Pat
     _, cfg = sim_factory(make_config(1, eds=str(eds), host_timeout_ms=150))
     with MotorDriver(cfg).start() as driver:
         drive = driver.drive("joint1")
-        assert drive.host_watch is None
+        assert drive.watch.host_watch is None
         text = eds.read_text(errors="replace")
         reason = ("refuses 0x1016:1 = 0x007F0096" if "1016" in text else
                   "node guarding needs remote frames" if "[100C]" in text else "has no consumer heartbeat")
         with pytest.raises(CommandRejected, match=f"enable refused: no drive-side stop on host loss: .*{reason}"):
             drive.enable()
-        assert drive.state is not State.OPERATION_ENABLED
+        assert drive.cache.state is not State.OPERATION_ENABLED
     _, cfg = sim_factory(make_config(1, eds=str(eds), allow_no_host_watch=True, host_timeout_ms=150))
     with MotorDriver(cfg).start() as driver:
         driver.drive("joint1").enable()
-        assert driver.drive("joint1").state is State.OPERATION_ENABLED
+        assert driver.drive("joint1").cache.state is State.OPERATION_ENABLED
 
 
 def test_boot_writes_the_host_watch_and_close_releases_it(sim_factory: SimFactory) -> None:

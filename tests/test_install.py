@@ -32,7 +32,7 @@ def test_core_installs_and_imports_without_ros(tmp_path: Path) -> None:
             "with SimService.from_config(cfg, port=0) as sim:\n"
             "    with MotorDriver(with_bus_overrides(cfg, port=sim.port)) as d:\n"
             "        d.start(); j = d.drive('motor'); j.enable(); j.move_to(12.0, wait=True)\n"
-            "        print(j.angle_deg)\n")
+            "        print(j.cache.angle_deg)\n")
     run = subprocess.run([str(py), "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
     assert abs(float(run.stdout) - 12.0) < 0.15  # 'target reached' holds within the position window

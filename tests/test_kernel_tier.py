@@ -238,7 +238,7 @@ def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Pa
             time.sleep(KERNEL_BUS["sync_period_ms"] / 1000)
         t1 = time.time()
         wait_for(lambda: abs(drive.snapshot().angle_deg - (start + 5.0)) < 0.5, HANG_S, "the streamed target")
-        assert drive.snapshot().mode == 8 and not drive.foreign_master  # its own SYNC is no other master
+        assert drive.snapshot().mode == 8 and not drive.watch.foreign_master  # its own SYNC is no other master
         drive.quick_stop()
     # the kernel's SYNC went on through the steps: while the drive was enabled before the stream,
     # and during the stream (a second of set-points, one per SYNC period)
@@ -278,15 +278,15 @@ def test_a_second_masters_sync_is_noticed_and_the_drivers_own_never(tmp_path: Pa
         enabled = time.time()
         wait_for(lambda: sum(m.arbitration_id == 0x080 and m.timestamp > enabled for m in list(listener.frames)) >= 40,
                  HANG_S, "40 SYNCs of the driver's own")
-        assert not drive.foreign_master  # its own kernel SYNC is no other master
+        assert not drive.watch.foreign_master  # its own kernel SYNC is no other master
         with can.Bus(interface="socketcan", channel=VCAN.driver) as other:  # a second driver on this host
             task = other.send_periodic(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False),
                                        KERNEL_BUS["sync_period_ms"] / 1000)
             try:
-                wait_for(lambda: "SYNC frames this driver did not send" in drive.foreign_master, HANG_S, "noticed")
+                wait_for(lambda: "SYNC frames this driver did not send" in drive.watch.foreign_master, HANG_S, "noticed")
             finally:
                 task.stop()
-        assert drive.state != State.OPERATION_ENABLED or drive.snapshot().velocity_deg_s == 0.0
+        assert drive.cache.state != State.OPERATION_ENABLED or drive.snapshot().velocity_deg_s == 0.0
 
 
 @pytest.mark.parametrize(("wiring", "sig", "watch"), [
@@ -385,9 +385,9 @@ def lost_then_configured_again(driver: MotorDriver, drive_name: str, what: str) 
     wait_for(lambda: driver.bus_lost["can0"], 30.0, f"the bus lost after {what}")
     with pytest.raises(MotorError):
         drive.set_velocity(20.0)
-    wait_for(lambda: not driver.bus_lost["can0"] and drive.booted and not drive.lost, 90.0,
+    wait_for(lambda: not driver.bus_lost["can0"] and drive.cache.booted and not drive.cache.lost, 90.0,
              f"the drive configured again after {what}")
-    assert drive.state != State.OPERATION_ENABLED
+    assert drive.cache.state != State.OPERATION_ENABLED
     with pytest.raises(MotorError):
         drive.set_velocity(20.0)  # not re-armed
     drive.enable()
@@ -517,8 +517,8 @@ def test_a_full_transmit_queue_is_counted_and_said_never_a_crash(
             wait_for(lambda: driver.bus_lost["can0"], 60.0, "the bus lost (nothing the driver sends gets out)")
         finally:
             subprocess.run(["tc", "qdisc", "del", "dev", wiring.driver, "root"], check=True)
-        wait_for(lambda: not driver.bus_lost["can0"] and drive.booted and not drive.lost, 120.0, "the bus usable again")
-        assert drive.state != State.OPERATION_ENABLED
+        wait_for(lambda: not driver.bus_lost["can0"] and drive.cache.booted and not drive.cache.lost, 120.0, "the bus usable again")
+        assert drive.cache.state != State.OPERATION_ENABLED
     assert "Traceback" not in caplog.text
 
 def test_error_frames_are_reported_and_a_bus_off_stops_commands(tmp_path: Path, caplog: pytest.LogCaptureFixture,
@@ -640,7 +640,7 @@ def test_a_drive_that_falls_silent_while_turning_is_told_to_stop(tmp_path: Path,
         runner.start()
         driver.start()
         drive = driver.drive("wheel1")
-        assert drive.guarding == guarded, drive.host_watch
+        assert drive.cache.guarding == guarded, drive.watch.host_watch
         drive.enable()
         drive.set_velocity(30.0)
         wait_for(lambda: runner.call(lambda: abs(sim_drive.omega)) > 0.1, 30.0, "the shaft turning")  # type: ignore[operator]
@@ -651,9 +651,9 @@ def test_a_drive_that_falls_silent_while_turning_is_told_to_stop(tmp_path: Path,
                 drive.set_velocity(30.0)
             except MotorError:
                 break
-            if drive.cache.wait_until(lambda: drive.lost, 0.1):
+            if drive.cache.wait_until(lambda: drive.cache.lost, 0.1):
                 break
-        wait_for(lambda: drive.lost, 30.0, "the drive declared lost")
+        wait_for(lambda: drive.cache.lost, 30.0, "the drive declared lost")
         wait_for(lambda: runner.call(lambda: sim_drive.state.name != "OPERATION_ENABLED" and abs(sim_drive.omega) < 1e-3),
                  30.0, "the silent drive stopped")
     stops = [m for m in list(listener.frames) if m.arbitration_id == 0x000 and bytes(m.data) == b"\x02\x01"]

@@ -14,7 +14,7 @@ import pytest
 from can_config import ConfigError
 from rovercan.launch import EXECUTABLES, parse_launch
 
-from .conftest import REPO, requires_ros
+from .conftest import REPO, requires_ros, ros_probe
 from .test_sim_cli import free_port
 
 LAUNCH = REPO / "ros" / "rovercan_bringup" / "launch" / "motor_launch.xml"
@@ -150,7 +150,6 @@ def test_the_rover_launch_names_each_node_once_and_its_parameters_answer_alike(t
     graph, and /rovercan_driver/list_parameters answers the same each time."""
     import rclpy
     from rcl_interfaces.srv import ListParameters
-    from rclpy.executors import SingleThreadedExecutor
 
     port = free_port()
     config = tmp_path / "rover.yaml"
@@ -166,11 +165,7 @@ def test_the_rover_launch_names_each_node_once_and_its_parameters_answer_alike(t
                              f"config:={config}", "--duration", "90"], cwd=REPO, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    probe = rclpy.create_node("launch_probe", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(probe)
+    context, probe, executor = ros_probe("launch_probe")
     try:
         names: list[str] = []
         deadline = time.monotonic() + 60.0  # the processes start on two cores, then DDS discovery

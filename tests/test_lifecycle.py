@@ -100,7 +100,7 @@ def test_each_transition_is_confirmed_on_the_bus(rig: tuple[Any, SimService, Lis
     t = time.monotonic()
     node.trigger_configure()
     assert node._state_machine.current_state[1] == "inactive"
-    assert node.driver is not None and all(d.booted for d in node.driver)
+    assert node.driver is not None and all(d.cache.booted for d in node.driver)
     check_assembly(node.assembly, "rovercan_driver", ["a", "b"])  # rover_driver's nodes, executors, groups
     assert states(sim) == ["SWITCH_ON_DISABLED"] * 2  # booted, not enabled
     wait_for(lambda: len(listener.since(t, 0x77F)) >= 2, 2.0, "the driver's host heartbeat")
@@ -163,14 +163,14 @@ def test_through_the_lifecycle_services_one_joints_enable_answers_while_another_
         runner.call(lambda: setattr(runner.drive(1).params, "index_position_counts", 10**9))  # far: a homes until stopped
         drive_a = node.driver.drive("a")
         home = ask(Trigger, "a/home", Trigger.Request())
-        wait_for(lambda: drive_a.busy == "home", 10.0, "a homing")
+        wait_for(lambda: drive_a.channel.busy == "home", 10.0, "a homing")
         for service in ("b/quick_stop", "b/enable"):
             reply = answer(ask(Trigger, service, Trigger.Request()), service)
             assert reply.success, reply.message
-            assert not home.done() and drive_a.busy == "home", service  # answered while a still homes
+            assert not home.done() and drive_a.channel.busy == "home", service  # answered while a still homes
         assert states(sim)[1] == "OPERATION_ENABLED"
         armed = answer(ask(Trigger, "arm", Trigger.Request()), "/arm")
-        assert not home.done() and drive_a.busy == "home"
+        assert not home.done() and drive_a.channel.busy == "home"
         assert not armed.success and "busy with home" in armed.message, armed.message  # a named, b enabled
         reply = answer(ask(ChangeState, "/rovercan_lifecycle/change_state",
                            ChangeState.Request(transition=Transition(id=Transition.TRANSITION_DEACTIVATE))), "deactivate")

@@ -103,7 +103,7 @@ def test_a_single_velocity_command_is_stopped_by_the_guard(driver_factory: Drive
     drive.enable()
     watch = Extremes(sim)
     drive.set_velocity(100.0)
-    wait_for(lambda: drive.limit_stops > 0, 3.0, "the limit guard")
+    wait_for(lambda: drive.limits.limit_stops > 0, 3.0, "the limit guard")
     time.sleep(0.6)
     _low, high = watch.stop()
     assert 80.0 < high <= 90.0 and abs(drive.snapshot().velocity_deg_s) < 1.0
@@ -116,7 +116,7 @@ def test_torque_toward_a_limit_is_stopped(driver_factory: DriverFactory) -> None
     watch = Extremes(sim)
     for push in range(1, 7):  # pushed again and again from where it stopped: never past the limit
         drive.set_torque(12.0)  # accelerates the joint toward +90 at about 2300 deg/s^2
-        wait_for(lambda push=push: drive.limit_stops >= push, 3.0, "the limit guard")
+        wait_for(lambda push=push: drive.limits.limit_stops >= push, 3.0, "the limit guard")
         wait_for(lambda: sim_state(sim) == "SWITCH_ON_DISABLED", 1.0, "quick stop done")  # a torque loop has no brake
         drive.enable()
     _low, high = watch.stop()
@@ -135,13 +135,13 @@ def test_streamed_positions_are_refused_beyond_a_limit(driver_factory: DriverFac
         while True:
             angle += 1.0
             drive.stream_position(angle)
-            time.sleep(drive.sync_period_s)
+            time.sleep(drive.cache.sync_period_s)
     time.sleep(0.3)
     _low, high = watch.stop()
     # the stream stops dead from 100 deg/s at 90: the servo overshoots a little (the simulated
     # drive's model: about 0.1 motor rev), less than its limit tolerance, so it does not fault
     assert angle == 91.0 and high <= 90.0 + LIMIT_TOLERANCE_REV * 360.0 / GEAR
-    assert drive.state is State.OPERATION_ENABLED
+    assert drive.cache.state is State.OPERATION_ENABLED
 
 
 def test_the_drive_gets_its_limits_and_faults_beyond_them_by_itself(driver_factory: DriverFactory) -> None:
@@ -156,7 +156,7 @@ def test_the_drive_gets_its_limits_and_faults_beyond_them_by_itself(driver_facto
     drive.enable()
     drive.set_mode(3)  # profile velocity
     drive.sdo_write(0x60FF, 0, int(360 * COUNTS_PER_DEG).to_bytes(4, "little", signed=True))  # behind the driver's back
-    wait_for(lambda: drive.state is State.FAULT, 3.0, "the drive's own limit fault")
+    wait_for(lambda: drive.cache.state is State.FAULT, 3.0, "the drive's own limit fault")
     assert drive.snapshot().error_code == 0x8612  # reference limit
     # within its limit tolerance and quick-stop distance
     assert Extremes(sim).stop()[1] < 90.0 + LIMIT_TOLERANCE_REV * 360.0 / GEAR + 360.0 * 360.0 / (2 * 4 * 720.0) + 1.0
@@ -219,6 +219,6 @@ def test_limit_guard_is_per_drive(driver_factory: DriverFactory) -> None:
     drive.enable()
     drive.set_velocity(360.0)
     time.sleep(1.5)  # > 500 deg: far past any limit a limited joint could have
-    assert drive.limit_stops == 0 and drive.snapshot().velocity_deg_s == pytest.approx(360.0, rel=0.05)
+    assert drive.limits.limit_stops == 0 and drive.snapshot().velocity_deg_s == pytest.approx(360.0, rel=0.05)
     with pytest.raises(MotorError):
         driver.drive("joint2").set_velocity(10.0)  # not enabled: refused as before

@@ -42,22 +42,22 @@ def test_a_drive_whose_transmitter_dies_while_turning_is_stopped(driver_factory:
     listener = listener_factory(sim)
     turning_then_deaf(sim, driver)
     drive = driver.drive("joint1")
-    wait_for(lambda: drive.lost, 5.0, "the driver declares it lost")
+    wait_for(lambda: drive.cache.lost, 5.0, "the driver declares it lost")
     wait_for(lambda: sim_motion(sim)[0] != "OPERATION_ENABLED" and sim_motion(sim)[1] < 1e-3, 10.0,
              "the deaf drive stopped")
     frames = drain(listener, 0.3)
     assert any(m.arbitration_id == 0x201 and m.data[0] == 0x02 for m in frames), "the quick-stop RPDO"
     assert any(m.arbitration_id == 0x000 and bytes(m.data) == b"\x02\x01" for m in frames), "NMT stop of node 1"
     assert not any(m.arbitration_id == 0x000 and m.data[1] == 2 for m in frames), "the other drive left alone"
-    assert driver.drive("joint2").state.name != "FAULT" and not driver.drive("joint2").lost
-    assert drive.runtime.lost_stops >= 2  # told again while it stays unheard
+    assert driver.drive("joint2").cache.state.name != "FAULT" and not driver.drive("joint2").cache.lost
+    assert driver.supervisor.runtimes["joint1"].lost_stops >= 2  # told again while it stays unheard
 
 
 def test_a_lost_drive_is_told_to_stop_when_the_driver_shuts_down(driver_factory: DriverFactory,
                                                                  listener_factory: ListenerFactory) -> None:
     sim, driver = driver_factory(make_config(1, joint="continuous", heartbeat_timeout_ms=300.0))
     turning_then_deaf(sim, driver)
-    wait_for(lambda: driver.drive("joint1").lost, 5.0, "the driver declares it lost")
+    wait_for(lambda: driver.drive("joint1").cache.lost, 5.0, "the driver declares it lost")
     listener = listener_factory(sim)
     driver.close()
     frames = drain(listener, 0.3)
@@ -74,15 +74,15 @@ def test_a_lost_drive_heard_again_in_the_stop_it_was_told_is_configured_again_no
     sim, driver = driver_factory(make_config(1, joint="continuous", heartbeat_timeout_ms=300.0))
     turning_then_deaf(sim, driver)
     drive = driver.drive("joint1")
-    boots = drive.boot_count
+    boots = drive.boot.boot_count
     runner = sim.simulators["can0"]
-    wait_for(lambda: drive.lost, 5.0, "the driver declares it lost")
+    wait_for(lambda: drive.cache.lost, 5.0, "the driver declares it lost")
     wait_for(lambda: runner.call(lambda: runner.drive(1).nmt.name) == "STOPPED", 5.0, "the drive NMT-stopped")
     apply_action(sim, {"action": "tx_dead", "node": 1, "on": False})
-    wait_for(lambda: drive.boot_count > boots and drive.booted and not drive.lost, 10.0, "configured again")
+    wait_for(lambda: drive.boot.boot_count > boots and drive.cache.booted and not drive.cache.lost, 10.0, "configured again")
     assert runner.call(lambda: runner.drive(1).nmt.name) == "OPERATIONAL"
     assert sim_motion(sim)[0] != "OPERATION_ENABLED"  # configured again, left disabled
     drive.enable()
     assert sim_motion(sim)[0] == "OPERATION_ENABLED"
     said = [r.getMessage() for r in caplog.records if "another master" in r.getMessage()]
-    assert not said and drive.foreign_master == "", said
+    assert not said and drive.watch.foreign_master == "", said

@@ -89,9 +89,9 @@ def test_a_guarded_drive_on_socketcand_is_not_armed_and_says_why() -> None:
         with MotorDriver(cfg) as driver:
             driver.start()
             drive = driver.drive("joint1")
-            assert drive.watch_mode() == "guarding"
-            assert drive.host_watch is None
-            assert "remote frames" in (drive.host_watch_problem or "")
+            assert drive.watch.watch_mode() == "guarding"
+            assert drive.watch.host_watch is None
+            assert "remote frames" in (drive.watch.host_watch_problem or "")
             with pytest.raises(MotorError, match="remote frames"):
                 drive.enable()
 

@@ -104,7 +104,7 @@ class Rover:
     def arm(self) -> None:
         for name in LEFT + RIGHT:
             drive = self.driver.drive(name)
-            wait_for(lambda drive=drive: drive.booted and not drive.lost, 30.0, f"{drive.name} configured")
+            wait_for(lambda drive=drive: drive.cache.booted and not drive.cache.lost, 30.0, f"{drive.name} configured")
             drive.enable()
 
     def drive_until(self, v: float, w: float, done: Any, what: str) -> None:
@@ -122,7 +122,7 @@ class Rover:
 
     def stand_still(self) -> None:
         wait_for(lambda: all(abs(self.driver.drive(n).snapshot().velocity_deg_s) < 0.5 for n in LEFT + RIGHT
-                             if not self.driver.drive(n).lost), 30.0, "every wheel stopped")
+                             if not self.driver.drive(n).cache.lost), 30.0, "every wheel stopped")
 
     def odom_yaw(self) -> float:
         q = self.odom[-1].pose.pose.orientation
@@ -176,7 +176,7 @@ def test_odom_yaw_stays_the_wheels_through_an_unplugged_wheel_and_every_wheel_st
     assert yaw_error(rover) < YAW_TOLERANCE_RAD, (rover.odom_yaw(), rover.wheel_yaw())
     apply_action(rover.sim, {"action": "unplug", "node": 2, "channel": "can0"})  # wheel_middle_left
     # /cmd_vel keeps coming; on_wheel_loss: stop (the default): every wheel stops
-    rover.drive_until(0.3, 0.4, lambda: rover.driver.drive("wheel_middle_left").lost, "the wheel lost")
+    rover.drive_until(0.3, 0.4, lambda: rover.driver.drive("wheel_middle_left").cache.lost, "the wheel lost")
     rover.drive_until(0.3, 0.4, lambda: all(abs(rover.driver.drive(n).snapshot().velocity_deg_s) < 0.5
                                             for n in LEFT + RIGHT if n != "wheel_middle_left"),
                       "every other wheel stopped")

@@ -46,16 +46,16 @@ def test_the_drivers_own_nmt_stop_taking_effect_after_an_operational_heartbeat_i
     drive.enable()
     bench = listener_factory(sim)
     apply_action(sim, {"action": "tx_dead", "node": 1})  # the driver stops hearing it (as if starved)
-    wait_for(lambda: drive.lost, 5.0, "lost")
+    wait_for(lambda: drive.cache.lost, 5.0, "lost")
     wait_for(lambda: sim_nmt(sim) == "STOPPED", 5.0, "the driver's NMT stop taken")
     # the heartbeat the drive sent before the stop took effect, arriving late: OPERATIONAL
     bench.send(can.Message(arbitration_id=0x701, data=bytes([NmtState.OPERATIONAL]), is_extended_id=False))
-    wait_for(lambda: not drive.lost, 2.0, "heard again, OPERATIONAL: back")
-    assert drive.booted and not drive.foreign_master
-    boots = drive.boot_count
+    wait_for(lambda: not drive.cache.lost, 2.0, "heard again, OPERATIONAL: back")
+    assert drive.cache.booted and not drive.watch.foreign_master
+    boots = drive.boot.boot_count
     apply_action(sim, {"action": "tx_dead", "node": 1, "on": False})  # now its STOPPED heartbeat
-    wait_for(lambda: drive.boot_count > boots and drive.booted, 10.0, "configured again (its own stop's state)")
-    assert not drive.foreign_master and not another_master_said(caplog), another_master_said(caplog)
+    wait_for(lambda: drive.boot.boot_count > boots and drive.cache.booted, 10.0, "configured again (its own stop's state)")
+    assert not drive.watch.foreign_master and not another_master_said(caplog), another_master_said(caplog)
     assert any("as this driver told it (STOP" in r.getMessage() for r in caplog.records)
     assert sim_nmt(sim) == "OPERATIONAL" and sim_state(sim) != "OPERATION_ENABLED"  # left disabled
     drive.enable()  # and it can be armed again
@@ -70,7 +70,7 @@ def test_a_drive_that_goes_stopped_without_a_command_of_this_driver_is_another_m
     wait_for(lambda: drive.cache.reported_nmt == "OPERATIONAL", 2.0, "its own OPERATIONAL heartbeat")
     runner = sim.simulators["can0"]
     runner.call(lambda: setattr(runner.drive(1), "nmt", NmtState.STOPPED))  # nobody on the bus sent it
-    wait_for(lambda: "went STOPPED without an NMT command from this driver" in drive.foreign_master, 2.0, "marked")
+    wait_for(lambda: "went STOPPED without an NMT command from this driver" in drive.watch.foreign_master, 2.0, "marked")
     assert another_master_said(caplog)
 
 
@@ -83,8 +83,8 @@ def test_a_bench_tools_nmt_stop_is_another_masters(driver_factory: DriverFactory
     drive = driver.drive("joint1")
     bench = listener_factory(sim)
     bench.send(can.Message(arbitration_id=0x000, data=bytes([0x02, 1]), is_extended_id=False))
-    wait_for(lambda: bool(drive.foreign_master), 2.0, "marked")
-    assert "NMT command 0x02 to node 1" in drive.foreign_master or "went STOPPED" in drive.foreign_master
+    wait_for(lambda: bool(drive.watch.foreign_master), 2.0, "marked")
+    assert "NMT command 0x02 to node 1" in drive.watch.foreign_master or "went STOPPED" in drive.watch.foreign_master
 
 
 def test_the_supervisor_never_waits_for_a_busy_channel(driver_factory: DriverFactory,
@@ -99,14 +99,14 @@ def test_the_supervisor_never_waits_for_a_busy_channel(driver_factory: DriverFac
     assert drive.channel._lock.acquire(timeout=1.0)  # what a send in progress holds
     try:
         apply_action(sim, {"action": "tx_dead", "node": 1})
-        wait_for(lambda: drive.lost and drive.runtime.stop_pending, 5.0, "lost, its RPDO stop pending")
+        wait_for(lambda: drive.cache.lost and driver.supervisor.runtimes["joint1"].stop_pending, 5.0, "lost, its RPDO stop pending")
         beats = handle.host_beats
         wait_for(lambda: handle.host_beats >= beats + 3, 5.0, "the host heartbeat going on meanwhile")
         wait_for(lambda: sim_nmt(sim) == "STOPPED", 5.0, "the NMT stop, which needs no channel")
         listener = listener_factory(sim)
-        assert drive.runtime.stop_pending
+        assert driver.supervisor.runtimes["joint1"].stop_pending
     finally:
         drive.channel._lock.release()
-    wait_for(lambda: not drive.runtime.stop_pending, 2.0, "the RPDO stop sent once the channel was free")
+    wait_for(lambda: not driver.supervisor.runtimes["joint1"].stop_pending, 2.0, "the RPDO stop sent once the channel was free")
     frames = drain(listener, 0.3)
     assert any(m.arbitration_id == 0x201 and m.data[0] == 0x02 for m in frames), "the quick-stop RPDO"

@@ -58,7 +58,7 @@ def test_bus_server_dies_driver_reports_reconnects_reconfigures_no_leaks(
     for drive in driver:
         drive.enable()
     threads1, fds1 = settled_threads(), open_fds()
-    boots = [d.boot_count for d in driver]
+    boots = [d.boot.boot_count for d in driver]
     sim.close()  # the bus server dies
     wait_for(lambda: driver.bus_lost["can0"], 2.0, "bus reported lost")
     drive = driver.drive("joint1")
@@ -69,8 +69,8 @@ def test_bus_server_dies_driver_reports_reconnects_reconfigures_no_leaks(
     second = SimService.from_config(make_config(2), port=port)  # the bus returns
     try:
         wait_for(lambda: not driver.bus_lost["can0"], 10.0, "bus re-established")
-        assert [d.boot_count for d in driver] == [b + 1 for b in boots]  # configured again ...
-        assert all(d.state is State.SWITCH_ON_DISABLED for d in driver)  # ... but not re-armed
+        assert [d.boot.boot_count for d in driver] == [b + 1 for b in boots]  # configured again ...
+        assert all(d.cache.state is State.SWITCH_ON_DISABLED for d in driver)  # ... but not re-armed
         with pytest.raises(MotorError):
             drive.move_to(10.0)
         drive.enable()
@@ -93,12 +93,12 @@ def test_a_heartbeat_received_after_the_bus_was_lost_does_not_bring_the_drive_ba
     _sim, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")
     driver.supervisor.mark_lost("joint1")  # what the supervisor does to each drive of a lost bus
-    beats = drive.last_heartbeat
-    wait_for(lambda: drive.last_heartbeat > beats + 0.05, 3.0, "two more heartbeats of the drive")
+    beats = drive.cache.last_heartbeat
+    wait_for(lambda: drive.cache.last_heartbeat > beats + 0.05, 3.0, "two more heartbeats of the drive")
     assert drive.snapshot().lost and drive.snapshot().fault
     with pytest.raises(MotorError):
         drive.move_to(10.0)
-    drive.boot()  # what the reconnect does once the bus is back
+    drive.boot.boot()  # what the reconnect does once the bus is back
     assert not drive.snapshot().lost
 
 
@@ -126,7 +126,7 @@ def test_frame_faults_no_crash_no_wrong_state(driver_factory: DriverFactory, rat
         simulated = sim.simulator_for(drive.node_id).call(
             lambda d=drive: sim.simulator_for(d.node_id).drive(d.node_id).position_counts)
         # what the driver reports is what the drive has (within one SYNC of motion)
-        assert drive.position_counts == pytest.approx(simulated, abs=50)
+        assert drive.cache.position_counts == pytest.approx(simulated, abs=50)
     assert driver.supervisor.alive
     assert all(h.network.notifier is not None and h.network.notifier.exception is None for h in driver.buses.values())
 
@@ -147,22 +147,22 @@ def _position_receiving(driver_factory: DriverFactory) -> tuple[Drive, Callable[
 
 def test_corrupted_position_is_not_reported(driver_factory: DriverFactory) -> None:
     drive, feed = _position_receiving(driver_factory)
-    before = drive.position_counts
+    before = drive.cache.position_counts
     feed(before + 2**20, time.time())
-    assert drive.position_counts == before  # a one-off jump beyond max velocity is held back
-    assert drive.implausible_samples == 1
+    assert drive.cache.position_counts == before  # a one-off jump beyond max velocity is held back
+    assert drive.cache.implausible_samples == 1
 
 
 def test_a_jump_is_taken_only_when_two_more_samples_agree(driver_factory: DriverFactory) -> None:
     """The same corruption twice in a row is still held back; a real jump (homing, a reboot)
     is taken with the third sample that agrees."""
     drive, feed = _position_receiving(driver_factory)
-    before = drive.position_counts
+    before = drive.cache.position_counts
     jumped = before + 2**29
     t = time.time()
     for i, expected in enumerate((before, before, jumped)):
         feed(jumped, t + 0.001 * i)
-        assert drive.position_counts == expected, f"after {i + 1} sample(s) of the jump"
+        assert drive.cache.position_counts == expected, f"after {i + 1} sample(s) of the jump"
 
 
 FRAME = st.tuples(st.integers(0, 0x7FF), st.binary(max_size=8))
@@ -185,8 +185,8 @@ def test_random_frames_never_crash_the_driver(one_driver: MotorDriver, frames: l
         network.notify(cob, bytearray(data), time.time())  # raises if any callback does
     time.sleep(0.005)  # let the driver's own threads run between bursts
     drive = driver.drive("joint1")
-    assert 0 <= drive.statusword <= 0xFFFF and isinstance(drive.state, State)
-    assert -(2**31) <= drive.position_counts < 2**31
+    assert 0 <= drive.cache.statusword <= 0xFFFF and isinstance(drive.cache.state, State)
+    assert -(2**31) <= drive.cache.position_counts < 2**31
 
 
 class ScriptedDaemon:

@@ -90,18 +90,18 @@ def test_wrap_takes_the_short_way(graph: dict[str, object]) -> None:
     pub.publish(Float32(data=0.0))  # type: ignore[attr-defined]
     assert spin_until(lambda: states[-1].angle < 0.1 or states[-1].angle > 359.95, 5.0)  # type: ignore[operator, index]
     driver = graph["driver"]
-    assert abs(driver.drive("joint1").angle_deg) < 0.2  # type: ignore[attr-defined]  # -0.1 -> 0.0, not 359.9 -> 0.0
+    assert abs(driver.drive("joint1").cache.angle_deg) < 0.2  # type: ignore[attr-defined]  # -0.1 -> 0.0, not 359.9 -> 0.0
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_bad_command_is_refused_no_motion_node_alive(graph: dict[str, object], bad: float) -> None:
     pub, states, spin_until, drive = graph["pub"], graph["states"], graph["spin_until"], graph["drive"]
     assert spin_until(lambda: bool(states), 3.0)  # type: ignore[operator]
-    before = drive.angle_deg  # type: ignore[attr-defined]
+    before = drive.cache.angle_deg  # type: ignore[attr-defined]
     pub.publish(Float32(data=bad))  # type: ignore[attr-defined]
     assert spin_until(lambda: graph["refused"]() >= 1, 2.0)  # type: ignore[operator]  # a WARN diagnostic
     count = len(states)  # type: ignore[arg-type]
     assert spin_until(lambda: len(states) > count + 5, 2.0)  # type: ignore[arg-type, operator]  # still publishing
-    assert drive.angle_deg == pytest.approx(before, abs=0.01)  # type: ignore[attr-defined]
+    assert drive.cache.angle_deg == pytest.approx(before, abs=0.01)  # type: ignore[attr-defined]
     pub.publish(Float32(data=10.0))  # type: ignore[attr-defined]  # and still obeys good commands
     assert spin_until(lambda: abs(states[-1].angle - 10.0) < 0.1, 5.0)  # type: ignore[index, operator]

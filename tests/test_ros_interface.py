@@ -166,7 +166,7 @@ def test_per_drive_topics_and_joint_states(graph: Graph) -> None:
     drive = graph.driver.drive(joint)
     for step in range(1, 13):  # the wheels' degree_cmd is a stream (position_mode: cyclic): 10 deg steps
         degree.publish(Float32(data=10.0 * step))
-        eventually(lambda step=step: abs(drive.angle_deg - 10.0 * step) < 1.0, 5.0, f"angle {10 * step}")
+        eventually(lambda step=step: abs(drive.cache.angle_deg - 10.0 * step) < 1.0, 5.0, f"angle {10 * step}")
     eventually(lambda: bool(states) and abs(states[-1].angle - 120.0) < 0.2, 8.0, "angle 120")
     assert states[-1].name == joint and states[-1].enabled
     velocity = graph.probe.create_publisher(Float32, f"wheels/{joint}/velocity_cmd", COMMAND_QOS)
@@ -189,7 +189,7 @@ def test_services_answer_with_what_happened(graph: Graph) -> None:
     assert reply.success and "OPERATION_ENABLED" in reply.message
     assert graph.call(Trigger, f"wheels/{joint}/halt").success
     assert graph.call(Trigger, f"wheels/{joint}/disable").success
-    assert drive.state is State.READY_TO_SWITCH_ON
+    assert drive.cache.state is State.READY_TO_SWITCH_ON
     mode = graph.call(SetMode, f"wheels/{joint}/set_mode", SetMode.Request(mode="profile_velocity"))
     assert mode.success and "confirmed by 0x6061" in mode.message
     bad = graph.call(SetMode, f"wheels/{joint}/set_mode", SetMode.Request(mode="warp"))
@@ -209,13 +209,13 @@ def test_services_answer_with_what_happened(graph: Graph) -> None:
     assert graph.call(Trigger, f"wheels/{joint}/enable").success
     assert graph.call(Trigger, f"wheels/{joint}/home").success
     stop = graph.call(Trigger, f"wheels/{joint}/quick_stop")
-    assert stop.success and drive.state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED), stop.message
+    assert stop.success and drive.cache.state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED), stop.message
     assert graph.call(Trigger, f"wheels/{joint}/enable").success
     apply_action(graph.sim, {"action": "fault", "node": 1, "code": 0x2310})  # node 1 on can0
-    eventually(lambda: drive.state is State.FAULT, 2.0, "fault")
+    eventually(lambda: drive.cache.state is State.FAULT, 2.0, "fault")
     recover = graph.call(Trigger, f"wheels/{joint}/recover")
     assert recover.success, recover.message
-    assert drive.state is State.OPERATION_ENABLED
+    assert drive.cache.state is State.OPERATION_ENABLED
 
 
 def test_diagnostics_levels_follow_the_rules(graph: Graph) -> None:
@@ -251,7 +251,7 @@ def test_bad_commands_refused_no_motion_warning_diagnostic(graph: Graph, bad: fl
     drive = graph.driver.drive(joint)
     assert graph.call(Trigger, f"wheels/{joint}/enable").success
     diags = graph.listen(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
-    before = drive.angle_deg
+    before = drive.cache.angle_deg
     pub = graph.probe.create_publisher(Float32, f"wheels/{joint}/degree_cmd", COMMAND_QOS)
     vel = graph.probe.create_publisher(Float32, f"wheels/{joint}/velocity_cmd", COMMAND_QOS)
     commands = graph.probe.create_publisher(JointState, "/joint_commands", COMMAND_QOS)
@@ -270,10 +270,10 @@ def test_bad_commands_refused_no_motion_warning_diagnostic(graph: Graph, bad: fl
     eventually(lambda: warned("command input", "unknown joint 'no_such_joint'"), 3.0,
                "a WARN diagnostic for the unknown joint")
     # nothing moved, by what the driver sent: no new target, no velocity command (both were refused)
-    assert drive.channel.target_counts == target and not drive.velocity_commanded
-    assert drive.angle_deg == pytest.approx(before, abs=0.01)
+    assert drive.channel.target_counts == target and not drive.channel.velocity_commanded
+    assert drive.cache.angle_deg == pytest.approx(before, abs=0.01)
     pub.publish(Float32(data=before + 10.0))  # still alive, still obeys (one step of the wheel's stream)
-    eventually(lambda: abs(drive.angle_deg - before - 10.0) < 0.2, 5.0, "good command after bad ones")
+    eventually(lambda: abs(drive.cache.angle_deg - before - 10.0) < 0.2, 5.0, "good command after bad ones")
 
 
 def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph: Graph) -> None:
@@ -317,7 +317,7 @@ def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph:
                            "/cmd_vel with non-finite values" in st.message for a in diags for st in a.status),
                3.0, "a WARN diagnostic for the NaN twist")
     # the NaN was refused before any frame: no wheel has a velocity command live
-    assert not any(graph.driver.drive(w).velocity_commanded for w in WHEELS)
+    assert not any(graph.driver.drive(w).channel.velocity_commanded for w in WHEELS)
     assert all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
 
 
@@ -381,7 +381,7 @@ def test_cmd_vel_beyond_every_limit_is_scaled_whole_and_nothing_moves_after_it_s
         assert math.radians(peak) >= 10.0 * 0.9
         last = odom[-1].twist.twist
         assert last.angular.z / last.linear.x == pytest.approx(4.0, rel=0.15)
-        assert not graph.system_node.stale and graph.driver.drive("wheel_front_right").watchdog_stops == 0
+        assert not graph.system_node.stale and graph.driver.drive("wheel_front_right").limits.watchdog_stops == 0
         # /cmd_vel stops: the wheels ramp down (10 rad/s at 10 rad/s^2 after the 0.5 s timeout)
         time.sleep(1.8)
         listeners += [can.Bus(interface="socketcand", channel=ch, host=graph.sim.host, port=graph.sim.port)
@@ -473,7 +473,7 @@ def test_a_slow_enable_service_never_stalls_commands_or_other_joints_topics(grap
     wait_for(lambda: degree.get_subscription_count() > 0, 10.0, "the degree topic matched")
     future = client.call_async(Trigger.Request())
     drive = graph.driver.drive("wheel_front_left")
-    eventually(lambda: drive.busy == "enable", 10.0, "the enable service to start")
+    eventually(lambda: drive.channel.busy == "enable", 10.0, "the enable service to start")
     n0 = len(other)
     refused = 0
     while not future.done() and refused < 30:
@@ -483,7 +483,7 @@ def test_a_slow_enable_service_never_stalls_commands_or_other_joints_topics(grap
         except CommandRejected as err:
             assert "busy with enable" in str(err)
             # refused at once, not after waiting: the enable it would have waited for still runs
-            assert drive.busy == "enable" and not future.done()
+            assert drive.channel.busy == "enable" and not future.done()
             refused += 1
         drive.cache.wait_until(future.done, 0.02)
     eventually(future.done, 15.0, "the enable service's answer")
@@ -601,15 +601,15 @@ def test_a_stop_service_answers_while_a_slow_service_is_still_running(graph: Gra
     home_client = graph.probe.create_client(Trigger, f"wheels/{homing}/home")
     assert home_client.wait_for_service(timeout_sec=5.0)
     home = home_client.call_async(Trigger.Request())
-    wait_for(lambda: graph.driver.drive(homing).busy == "home", 10.0, "homing under way")
+    wait_for(lambda: graph.driver.drive(homing).channel.busy == "home", 10.0, "homing under way")
     stopped = graph.call(Trigger, f"wheels/{other}/quick_stop")
     assert stopped.success, stopped.message
-    assert not home.done() and graph.driver.drive(homing).busy == "home"  # answered while /home runs
+    assert not home.done() and graph.driver.drive(homing).channel.busy == "home"  # answered while /home runs
     stopped = graph.call(Trigger, f"wheels/{homing}/quick_stop")
     assert stopped.success, stopped.message
     wait_for(home.done, 15.0, "/home answered")
     assert not home.result().success and "interrupted by quick stop" in home.result().message
-    assert graph.driver.drive(homing).state.name != "OPERATION_ENABLED"
+    assert graph.driver.drive(homing).cache.state.name != "OPERATION_ENABLED"
 
 
 def test_one_joints_services_and_arm_answer_while_another_joint_homes(graph: Graph) -> None:
@@ -625,21 +625,21 @@ def test_one_joints_services_and_arm_answer_while_another_joint_homes(graph: Gra
     home_client = graph.probe.create_client(Trigger, f"wheels/{homing}/home")
     assert home_client.wait_for_service(timeout_sec=5.0)
     home = home_client.call_async(Trigger.Request())
-    wait_for(lambda: drive.busy == "home", 10.0, "homing under way")
+    wait_for(lambda: drive.channel.busy == "home", 10.0, "homing under way")
     enabled = graph.call(Trigger, f"wheels/{other}/enable")
     assert enabled.success and "OPERATION_ENABLED" in enabled.message, enabled.message
-    assert not home.done() and drive.busy == "home"  # answered while the home runs
+    assert not home.done() and drive.channel.busy == "home"  # answered while the home runs
     armed = graph.call(Trigger, "/arm")
-    assert not home.done() and drive.busy == "home"
+    assert not home.done() and drive.channel.busy == "home"
     # every other wheel enabled; the homing one refused at once, named, not waited for
     assert not armed.success and f"{homing}: enable refused: the drive is busy with home" in armed.message, armed.message
-    assert all(graph.driver.drive(w).state is State.OPERATION_ENABLED for w in WHEELS if w != homing)
+    assert all(graph.driver.drive(w).cache.state is State.OPERATION_ENABLED for w in WHEELS if w != homing)
     disarmed = graph.call(Trigger, "/disarm")  # the driver's safe stop: the homing ends too
     assert disarmed.success, disarmed.message
     wait_for(home.done, 15.0, "/home answered")
     assert not home.result().success
     # quick stop, then disable voltage (not shutdown): no drive is left with voltage
-    assert all(graph.driver.drive(w).state is State.SWITCH_ON_DISABLED for w in WHEELS)
+    assert all(graph.driver.drive(w).cache.state is State.SWITCH_ON_DISABLED for w in WHEELS)
 
 
 def test_a_parameter_read_at_start_refuses_a_set_and_a_rate_takes_one(graph: Graph) -> None:

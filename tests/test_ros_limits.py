@@ -91,7 +91,7 @@ def test_velocity_cmd_at_full_speed_never_passes_the_limit(rig: Rig) -> None:
     time.sleep(0.3)
     _, high = watch.stop()
     assert 80.0 < high <= 90.0, high
-    assert rig.driver.drive("arm").limit_stops > 0
+    assert rig.driver.drive("arm").limits.limit_stops > 0
 
 
 def test_joint_commands_velocity_never_passes_the_limit(rig: Rig) -> None:

@@ -56,7 +56,7 @@ def test_a_correctly_booted_rover_passes(rover: tuple[SimService, MotorDriver, P
     assert by[("wheel", "software limits")]["status"] == "n/a"
     assert all(r["status"] in (PASS, "n/a") for r in rows), rows
     # the driver's own read-back after boot agrees
-    assert all(not c.failed for d in driver for c in d.safety)
+    assert all(not c.failed for d in driver for c in d.boot.safety)
 
 
 def test_a_cleared_consumer_heartbeat_fails_naming_the_object(rover: tuple[SimService, MotorDriver, Path]) -> None:
@@ -83,11 +83,11 @@ def test_a_failed_check_is_an_error_in_diagnostics(driver_factory: object) -> No
     _, driver = driver_factory(make_config(1))  # type: ignore[operator]
     drive = driver.drive("joint1")
     wait_for(lambda: not drive.snapshot().stale, 1.0, "the first PDOs")
-    assert drive.safety and all(c.status in (PASS, "n/a") for c in drive.safety)
-    health = drive_health(drive.snapshot(), heartbeat_period_s=0.1, safety=drive.safety)
+    assert drive.boot.safety and all(c.status in (PASS, "n/a") for c in drive.boot.safety)
+    health = drive_health(drive.snapshot(), heartbeat_period_s=0.1, safety=drive.boot.safety)
     assert health.level == 0, health.message
     broken = tuple(c if c.check != "host watch" else type(c)(c.check, c.object, c.expected, "no entry", FAIL)
-                   for c in drive.safety)
+                   for c in drive.boot.safety)
     health = drive_health(drive.snapshot(), heartbeat_period_s=0.1, safety=broken)
     assert health.level == ERROR and "safety check failed: host watch (0x1016 is no entry" in health.message
 
@@ -100,6 +100,6 @@ def test_a_drive_allowed_without_host_watch_warns_in_diagnostics(driver_factory:
     _, driver = driver_factory(make_config(1, eds=str(BLIND_EDS[0]), allow_no_host_watch=True))  # type: ignore[operator]
     drive = driver.drive("joint1")
     drive.enable()
-    assert drive.state is State.OPERATION_ENABLED
-    health = drive_health(drive.snapshot(), heartbeat_period_s=0.1, safety=drive.safety)
+    assert drive.cache.state is State.OPERATION_ENABLED
+    health = drive_health(drive.snapshot(), heartbeat_period_s=0.1, safety=drive.boot.safety)
     assert health.level == WARN and "NO drive-side stop on host loss" in health.message

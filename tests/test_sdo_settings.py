@@ -23,7 +23,7 @@ def test_the_sdo_list_is_written_at_boot_in_order_and_checked(sim_factory: SimFa
                                                {"index": 0x6066, "sub": 0, "value": 25, "check": False}]))
     with MotorDriver(cfg).start() as driver:
         drive = driver.drive("joint1")
-        assert drive.sdo_read_value(0x6065) == 4321 and drive.sdo_read_value(0x6066) == 25
+        assert drive.sdo.read_value(0x6065) == 4321 and drive.sdo.read_value(0x6066) == 25
     runner = sim.simulators["can0"]
     assert runner.call(lambda: runner.drive(1).store.get(0x6065, 0)) == 4321  # on the drive itself
 

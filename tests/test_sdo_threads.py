@@ -26,7 +26,7 @@ def test_eight_threads_reading_one_drive_at_once_all_get_their_values(
         start.wait()
         for _ in range(15):
             try:
-                values.append((index, drive.sdo_read_value(index)))
+                values.append((index, drive.sdo.read_value(index)))
             except BaseException as err:
                 errors.append(err)
 

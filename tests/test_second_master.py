@@ -62,16 +62,16 @@ def test_a_second_driver_is_noticed_refused_and_control_comes_back(sim_factory: 
         drive.enable()
         drive.set_velocity(30.0)
         wait_for(lambda: drive.snapshot().velocity_deg_s > 25.0, 2.0, "turning")
-        boots = drive.boot_count
+        boots = drive.boot.boot_count
         truth = TruthWatch(sim, first)
         t_second = time.monotonic()
         second = MotorDriver(cfg).start(take_over=True)  # a forgotten bench script forced: NMT reset, SDO, SYNC
         try:
-            wait_for(lambda: bool(drive.foreign_master), 1.0, "the first driver to notice the second")
+            wait_for(lambda: bool(drive.watch.foreign_master), 1.0, "the first driver to notice the second")
             noticed = time.monotonic() - t_second
-            assert "NMT command 0x81 to node 1" in drive.foreign_master  # its reset came first
-            wait_for(lambda: "SYNC frames this driver did not send" in drive.foreign_master
-                     and "this driver's own id: a second driver?" in drive.foreign_master, 1.0, "its SYNC and heartbeat")
+            assert "NMT command 0x81 to node 1" in drive.watch.foreign_master  # its reset came first
+            wait_for(lambda: "SYNC frames this driver did not send" in drive.watch.foreign_master
+                     and "this driver's own id: a second driver?" in drive.watch.foreign_master, 1.0, "its SYNC and heartbeat")
             with pytest.raises(DriveStateError, match="not under this driver's control: another master is on the bus"):
                 drive.set_velocity(10.0)
             with pytest.raises(DriveStateError, match="another master"):
@@ -80,13 +80,13 @@ def test_a_second_driver_is_noticed_refused_and_control_comes_back(sim_factory: 
             assert health.level == ERROR and health.message.startswith("not under control")
             # the second was told to take the bus over: the first one's traffic is not held against it
             time.sleep(0.5)
-            assert not second.drive("joint1").foreign_master
+            assert not second.drive("joint1").watch.foreign_master
         finally:
             second.close()
-        wait_for(lambda: not drive.foreign_master and drive.booted, 6.0, "control back")
-        assert drive.boot_count == boots + 1  # configured again ...
+        wait_for(lambda: not drive.watch.foreign_master and drive.cache.booted, 6.0, "control back")
+        assert drive.boot.boot_count == boots + 1  # configured again ...
         wait_for(lambda: drive.snapshot().stamp > 0 and not drive.snapshot().stale, 1.0, "fresh PDOs")
-        assert drive.state is not State.OPERATION_ENABLED and not drive.snapshot().enabled  # ... not re-armed
+        assert drive.cache.state is not State.OPERATION_ENABLED and not drive.snapshot().enabled  # ... not re-armed
         drive.enable()
         drive.move_to(drive.snapshot().angle_deg + 10.0, wait=True)
         false_claims = truth.stop()
@@ -105,14 +105,14 @@ def test_an_nmt_command_from_a_bench_tool_marks_the_drive(sim_factory: SimFactor
         try:
             time.sleep(0.1)
             bench.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 2]), is_extended_id=False))  # pre-op node 2
-            wait_for(lambda: bool(driver.drive("joint2").foreign_master), 1.0, "node 2 marked")
-            assert "NMT command 0x80 to node 2" in driver.drive("joint2").foreign_master
-            assert not driver.drive("joint1").foreign_master  # only the node it was sent to
+            wait_for(lambda: bool(driver.drive("joint2").watch.foreign_master), 1.0, "node 2 marked")
+            assert "NMT command 0x80 to node 2" in driver.drive("joint2").watch.foreign_master
+            assert not driver.drive("joint1").watch.foreign_master  # only the node it was sent to
         finally:
             bench.shutdown()
-        wait_for(lambda: not driver.drive("joint2").foreign_master and driver.drive("joint2").booted, 6.0,
+        wait_for(lambda: not driver.drive("joint2").watch.foreign_master and driver.drive("joint2").cache.booted, 6.0,
                  "configured again after the quiet period")
-        assert driver.drive("joint2").nmt_state == "OPERATIONAL"
+        assert driver.drive("joint2").cache.nmt_state == "OPERATIONAL"
 
 
 def test_stopped_pdos_are_reported_stale_within_n_sync_periods(sim_factory: SimFactory) -> None:
@@ -151,9 +151,9 @@ def test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_doe
             node = bench.add_node(1, load_drive_od(GENERIC_EDS, 1))
             node.sdo.upload(0x1000, 0)  # a bench read (rovercan info, scan)
             time.sleep(0.6)
-            assert not drive.foreign_master and drive.snapshot().enabled
+            assert not drive.watch.foreign_master and drive.snapshot().enabled
             node.sdo.download(0x6065, 0, (1000).to_bytes(4, "little"))  # a write behind the driver's back
-            wait_for(lambda: "SDO writes to node 1 from another client" in drive.foreign_master, 1.0, "marked")
+            wait_for(lambda: "SDO writes to node 1 from another client" in drive.watch.foreign_master, 1.0, "marked")
             runner = sim.simulators["can0"]
             wait_for(lambda: runner.call(lambda: runner.drive(1).state.name) != "OPERATION_ENABLED", 1.0,
                      "the quick stop the driver sent on losing control")
@@ -174,19 +174,20 @@ def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master
         runner = sim.simulators["can0"]
         wait_for(lambda: drive.cache.reported_nmt == "OPERATIONAL", 2.0, "the drive's own OPERATIONAL heartbeat")
         runner.call(lambda: setattr(runner.drive(1), "nmt", NmtState.PRE_OPERATIONAL))  # as after a reset
-        wait_for(lambda: drive.nmt_state == "PRE_OPERATIONAL", 1.0, "a PRE-OPERATIONAL heartbeat")
+        wait_for(lambda: drive.cache.nmt_state == "PRE_OPERATIONAL", 1.0, "a PRE-OPERATIONAL heartbeat")
         # the supervisor marks that change (within its hold time); only then is the mark cleared,
         # or a late supervisor (a loaded machine) would mark it again after the clear
-        wait_for(lambda: bool(drive.foreign_master), 2.0, "the supervisor's mark of the change")
-        wait_for(lambda: drive.runtime.behind_back[0] < time.monotonic() - FOREIGN_HOLD_S - 0.05, 2.0, "the hold over")
+        wait_for(lambda: bool(drive.watch.foreign_master), 2.0, "the supervisor's mark of the change")
+        runtime = driver.supervisor.runtimes["joint1"]
+        wait_for(lambda: runtime.behind_back[0] < time.monotonic() - FOREIGN_HOLD_S - 0.05, 2.0, "the hold over")
         driver.supervisor.call(lambda: driver.supervisor.release_foreign("joint1"))  # it went there on its own
-        drive.boot(reset=False)  # ... ends with NMT start
+        drive.boot.boot(reset=False)  # ... ends with NMT start
         drive.cache.on_heartbeat(0x701, bytearray([NmtState.PRE_OPERATIONAL]), 0.0)  # the one on its way
         time.sleep(0.6)
-        assert not drive.foreign_master
-        wait_for(lambda: drive.nmt_state == "OPERATIONAL", 1.0, "the drive's own OPERATIONAL heartbeat")
+        assert not drive.watch.foreign_master
+        wait_for(lambda: drive.cache.nmt_state == "OPERATIONAL", 1.0, "the drive's own OPERATIONAL heartbeat")
         runner.call(lambda: setattr(runner.drive(1), "nmt", NmtState.PRE_OPERATIONAL))  # now it is a change
-        wait_for(lambda: "went PRE_OPERATIONAL without an NMT command" in drive.foreign_master, 1.0, "marked")
+        wait_for(lambda: "went PRE_OPERATIONAL without an NMT command" in drive.watch.foreign_master, 1.0, "marked")
 
 
 def sim_state(sim: SimService) -> tuple[str, float]:
@@ -213,7 +214,7 @@ def test_a_turning_drive_another_master_puts_in_pre_operational_is_stopped(sim_f
             bench.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 1]), is_extended_id=False))
         finally:
             bench.shutdown()
-        wait_for(lambda: bool(drive.foreign_master), 1.0, "the other master noticed")
+        wait_for(lambda: bool(drive.watch.foreign_master), 1.0, "the other master noticed")
         wait_for(lambda: sim_state(sim) == ("SWITCH_ON_DISABLED", 0.0), 1.0, "the drive stopped by the driver's quick stop")
 
 
@@ -237,10 +238,10 @@ def test_a_drive_another_master_left_enabled_is_disabled_when_configured_again(s
             for cw in (0x06, 0x07, 0x0F):  # shutdown, switch on, enable operation
                 node.sdo.download(0x6040, 0, cw.to_bytes(2, "little"))
             assert sim_state(sim)[0] == "OPERATION_ENABLED"
-            wait_for(lambda: bool(drive.foreign_master), 1.0, "the bench tool noticed")
+            wait_for(lambda: bool(drive.watch.foreign_master), 1.0, "the bench tool noticed")
         finally:
             bench.disconnect()
-        wait_for(lambda: not drive.foreign_master and drive.booted, 6.0, "configured again after the quiet period")
+        wait_for(lambda: not drive.watch.foreign_master and drive.cache.booted, 6.0, "configured again after the quiet period")
         assert sim_state(sim)[0] == "SWITCH_ON_DISABLED"
         assert not drive.snapshot().enabled
         drive.enable()  # armed again only when asked

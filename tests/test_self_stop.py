@@ -14,11 +14,11 @@ from collections.abc import Callable
 
 from can_config import RoverConfig
 from can_config.errors import DriveStateError, RovercanError
-from motor_driver import MotorDriver
+from motor_driver import Drive, MotorDriver
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
-from .conftest import make_config, wait_for
+from .conftest import in_thread, make_config, wait_for
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 #: a homing that searches its index (at 0, the drives start 20 deg away) at 1 deg/s: 20 s; its timeout is 600
@@ -44,13 +44,13 @@ def test_a_home_ends_when_the_drives_host_watch_stops_it(driver_factory: DriverF
         except RovercanError as err:
             outcome.append(err)
 
-    drive.interleave = on_point
+    drive.channel.set_hook(on_point)
     worker = threading.Thread(target=home, name="test-home")
     worker.start()
     assert started.wait(30.0)
     apply_action(sim, {"action": "heartbeat_deaf", "node": 1})
     worker.join(60.0)  # a bound for a hang: homing itself would need 20 s, its timeout is 600 s
-    drive.interleave = None
+    drive.channel.set_hook(None)
     assert not worker.is_alive(), "home() still waits for a drive that stopped itself"
     assert len(outcome) == 1 and isinstance(outcome[0], DriveStateError), outcome
     text = str(outcome[0])
@@ -66,23 +66,14 @@ def test_a_drive_that_resets_during_homing_ends_it(driver_factory: DriverFactory
     drive.enable()
     drive.move_to(20.0, wait=True)
     started = threading.Event()
-    drive.interleave = lambda point: started.set() if point == "home: start sent" else None
-    errors: list[BaseException] = []
-
-    def home() -> None:
-        try:
-            drive.home()
-        except RovercanError as err:
-            errors.append(err)
-
-    worker = threading.Thread(target=home, name="test-home")
-    worker.start()
+    drive.channel.set_hook(lambda point: started.set() if point == "home: start sent" else None)
+    worker, errors = in_thread(drive.home, RovercanError, name="test-home")
     assert started.wait(30.0)
     # homing under way (the drive left 20 deg): its statusword read after the start has been answered
     wait_for(lambda: drive.snapshot().angle_deg < 19.5, 30.0, "homing under way")
     apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.2})
     worker.join(60.0)
-    drive.interleave = None
+    drive.channel.set_hook(None)
     assert not worker.is_alive()
     assert errors and isinstance(errors[0], DriveStateError)
     text = str(errors[0])
@@ -100,24 +91,15 @@ def test_a_drive_that_keeps_operation_enabled_homes_as_before(driver_factory: Dr
     assert abs(drive.snapshot().angle_deg) < 0.05
 
 
-def _waited_move(drive: object, errors: list[BaseException]) -> threading.Thread:
-    def move() -> None:
-        try:
-            drive.move_to(170.0, wait=True)  # type: ignore[attr-defined]
-        except RovercanError as err:
-            errors.append(err)
-
-    worker = threading.Thread(target=move, name="test-move")
-    worker.start()
-    return worker
+def _waited_move(drive: Drive) -> tuple[threading.Thread, list[BaseException]]:
+    return in_thread(lambda: drive.move_to(170.0, wait=True), RovercanError, name="test-move")
 
 
 def test_a_waited_move_ends_when_the_drive_stops_itself_and_names_why(driver_factory: DriverFactory) -> None:
     sim, driver = driver_factory(make_config(1, profile_velocity_deg_s=5.0))  # 170 deg at 5 deg/s: 34 s
     drive = driver.drive("joint1")
     drive.enable()
-    errors: list[BaseException] = []
-    worker = _waited_move(drive, errors)
+    worker, errors = _waited_move(drive)
     wait_for(lambda: drive.snapshot().angle_deg > 0.5, 30.0, "the move under way")
     apply_action(sim, {"action": "heartbeat_deaf", "node": 1})
     worker.join(60.0)
@@ -130,8 +112,7 @@ def test_a_waited_move_ended_by_our_own_stop_says_so(driver_factory: DriverFacto
     _, driver = driver_factory(make_config(1, profile_velocity_deg_s=5.0))
     drive = driver.drive("joint1")
     drive.enable()
-    errors: list[BaseException] = []
-    worker = _waited_move(drive, errors)
+    worker, errors = _waited_move(drive)
     wait_for(lambda: drive.snapshot().angle_deg > 0.5, 30.0, "the move under way")
     drive.quick_stop()
     worker.join(60.0)

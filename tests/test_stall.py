@@ -25,7 +25,7 @@ from can_config import GENERIC_EDS
 from virtual_can import SimService
 from virtual_can.service import SimDriveSpec
 
-from .conftest import REPO, requires_ros, wait_for
+from .conftest import REPO, requires_ros, ros_probe, wait_for
 
 #: Heartbeats (100 ms apart) of a drive the stalled driver does not read: 0.8 s, past its 300 ms timeout.
 STALL_HEARTBEATS = 8
@@ -76,7 +76,6 @@ def armed(probe: Any, executor: Any, within_s: float = 30.0) -> tuple[bool, str]
 @pytest.mark.parametrize("entry", sorted(ENTRY_POINTS))
 def test_a_stalled_driver_process_is_no_other_master_and_arms_again(tmp_path: Path, entry: str) -> None:
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
 
     specs = [SimDriveSpec(n, GENERIC_EDS, "can0", name, 4096) for n, name in ((1, "a"), (2, "b"))]
     with SimService(specs, port=0) as sim:
@@ -91,11 +90,7 @@ def test_a_stalled_driver_process_is_no_other_master_and_arms_again(tmp_path: Pa
                                 env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         out = Output(proc)
-        context = rclpy.Context()
-        rclpy.init(context=context)
-        probe = rclpy.create_node("stall_probe", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(probe)
+        context, probe, executor = ros_probe("stall_probe")
         try:
             if entry != "lifecycle":  # the lifecycle node's autostart arms them itself
                 answer = armed(probe, executor)

@@ -103,7 +103,7 @@ class StopAlwaysWins(RuleBasedStateMachine):
         thread = threading.Thread(target=self._quietly, args=(run,))
         thread.start()
         if action in ("enable", "home", "recover"):  # the stop lands while the operation runs (or after it)
-            wait_for(lambda: self.drive.busy is not None or not thread.is_alive(), JOIN_S, f"{action} under way")
+            wait_for(lambda: self.drive.channel.busy is not None or not thread.is_alive(), JOIN_S, f"{action} under way")
         self._quietly(getattr(self.drive, stop))
         thread.join(JOIN_S)
         assert not thread.is_alive(), f"{action} did not end"
@@ -127,7 +127,7 @@ class StopAlwaysWins(RuleBasedStateMachine):
 
     @invariant()
     def no_stale_busy_mark(self) -> None:
-        assert self.drive.busy is None
+        assert self.drive.channel.busy is None
 
 
 StopAlwaysWins.TestCase.settings = settings(max_examples=6, stateful_step_count=8, deadline=None,

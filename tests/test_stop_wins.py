@@ -1,6 +1,6 @@
 """A stop always wins: each interleaving of a stop with enable(), a disable with enable(), and a
 mode switch with other commands is forced at a named point of the state machine
-(``Drive.interleave``), not hoped for in a stress run. After a stop returns, the drive is not
+(``CommandChannel.set_hook``), not hoped for in a stress run. After a stop returns, the drive is not
 Operation Enabled, and the last controlword on the bus is the stop's."""
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from motor_driver import MotorDriver
 from motor_driver.drive import Drive
 from virtual_can import SimService
 
-from .conftest import make_config, wait_for
+from .conftest import drain, in_thread, make_config, wait_for
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 ListenerFactory = Callable[[SimService], can.BusABC]
@@ -45,16 +45,6 @@ def controlwords(frames: list[can.Message]) -> list[int]:
     return [int.from_bytes(m.data[:2], "little") for m in frames if m.arbitration_id == RPDO1]
 
 
-def collect(listener: can.BusABC, seconds: float) -> list[can.Message]:
-    out = []
-    deadline = time.monotonic() + seconds
-    while (remaining := deadline - time.monotonic()) > 0:
-        msg = listener.recv(remaining)
-        if msg is not None:
-            out.append(msg)
-    return out
-
-
 class StopAt:
     """When the drive's thread reaches ``point``, ``action`` runs to completion on another thread
     while that thread waits; what it raised and how long it took are kept."""
@@ -64,7 +54,7 @@ class StopAt:
         self.fired = False
         self.error: BaseException | None = None
         self.took_s = 0.0
-        drive.interleave = self
+        drive.channel.set_hook(self)
 
     def __call__(self, point: str) -> None:
         if point != self.point or self.fired:
@@ -97,10 +87,10 @@ def test_a_stop_during_each_step_of_enable_wins(driver_factory: DriverFactory, l
     with pytest.raises(DriveStateError, match=f"interrupted by {stop_name}"):
         drive.enable()
     assert at.fired and at.error is None, at.error
-    frames = collect(listener, 0.4)  # the drive has settled: its last word came in long ago
+    frames = drain(listener, 0.4)  # the drive has settled: its last word came in long ago
     words = controlwords(frames)
     assert words and words[-1] == stop_cw, [hex(w) for w in words]  # nothing of enable() after the stop
-    assert sim_state(sim) in stopped_states and drive.state.name in stopped_states, (sim_state(sim), drive.state)
+    assert sim_state(sim) in stopped_states and drive.cache.state.name in stopped_states, (sim_state(sim), drive.cache.state)
     drive.enable()  # a later enable that asks for it is obeyed
     assert sim_state(sim) == "OPERATION_ENABLED"
 
@@ -128,7 +118,7 @@ def test_a_stop_during_a_mode_switch_wins_and_other_commands_are_refused_at_once
     assert at.fired and at.error is None, at.error
     assert len(refused) == 3 and all("busy with mode switch" in text and took < 0.05 for text, took in refused), refused
     assert at.took_s < 1.0  # the stop did not wait for the switch's SDO round trips
-    frames = collect(listener, 0.4)
+    frames = drain(listener, 0.4)
     assert not [m for m in frames if m.arbitration_id == 0x401], "a velocity RPDO went out"
     assert controlwords(frames)[-1] == 0x0002
     assert sim_state(sim) != "OPERATION_ENABLED"
@@ -147,13 +137,13 @@ def test_a_motion_command_after_a_stop_sends_nothing(driver_factory: DriverFacto
 
     def velocity_right_after_the_stop_frame(point: str) -> None:
         if point == "quick stop: sent":
-            drive.interleave = None
+            drive.channel.set_hook(None)
             with pytest.raises((DriveStateError, CommandRejected)):
                 drive.set_velocity(20.0)
 
-    drive.interleave = velocity_right_after_the_stop_frame
+    drive.channel.set_hook(velocity_right_after_the_stop_frame)
     drive.quick_stop()
-    frames = collect(listener, 0.3)
+    frames = drain(listener, 0.3)
     assert not [m for m in frames if m.arbitration_id == 0x401 and int.from_bytes(m.data[2:6], "little")]
     assert sim_state(sim) in {"SWITCH_ON_DISABLED", "QUICK_STOP_ACTIVE"}
 
@@ -217,7 +207,7 @@ def no_pdo_velocity_eds(path: Path) -> Path:
 
 def settled_controlwords(listener: can.BusABC) -> list[int]:
     """Every controlword of node 1 on the wire until the bus has been quiet of them a while."""
-    return controlwords(collect(listener, 0.4))
+    return controlwords(drain(listener, 0.4))
 
 
 @pytest.mark.parametrize("point", ["mode switch: 0x6060 written", "home: parameters written", "home: start sent"])
@@ -235,7 +225,7 @@ def test_a_stop_during_homings_sdo_writes_wins_and_nothing_of_homing_follows(
     words = settled_controlwords(listener)
     assert words and words[-1] == 0x0002, [hex(w) for w in words]
     assert 0x000F not in words[words.index(0x0002):], [hex(w) for w in words]
-    assert sim_state(sim) != "OPERATION_ENABLED" and drive.busy is None
+    assert sim_state(sim) != "OPERATION_ENABLED" and drive.channel.busy is None
 
 
 @pytest.mark.parametrize("point", ENABLE_POINTS)
@@ -247,8 +237,8 @@ def test_a_stop_during_enable_leaves_no_busy_mark(driver_factory: DriverFactory,
     StopAt(drive, point, drive.quick_stop)
     with pytest.raises(DriveStateError):
         drive.enable()
-    drive.interleave = None
-    assert drive.busy is None
+    drive.channel.set_hook(None)
+    assert drive.channel.busy is None
     assert drive.limits.stop_velocity()  # the watchdog is not locked out
     other: list[BaseException] = []
 
@@ -263,7 +253,7 @@ def test_a_stop_during_enable_leaves_no_busy_mark(driver_factory: DriverFactory,
     thread.start()
     thread.join(10.0)
     assert not other, other
-    assert drive.velocity_commanded
+    assert drive.channel.velocity_commanded
 
 
 def test_a_stop_does_not_wait_behind_a_velocity_target_written_by_sdo(
@@ -279,16 +269,7 @@ def test_a_stop_does_not_wait_behind_a_velocity_target_written_by_sdo(
     runner = sim.simulators["can0"]
     runner.call(lambda: setattr(runner.drive(1).faults, "sdo_delay_s", 0.2))
     listener = listener_factory(sim)
-    errors: list[BaseException] = []
-
-    def command() -> None:
-        try:
-            drive.set_velocity(20.0)
-        except BaseException as err:
-            errors.append(err)
-
-    thread = threading.Thread(target=command)
-    thread.start()
+    thread, _ = in_thread(lambda: drive.set_velocity(20.0))
     frames: list[can.Message] = []
     while not any(m.arbitration_id == 0x601 and bytes(m.data[1:3]) == b"\xff\x60" for m in frames):
         msg = listener.recv(5.0)
@@ -296,7 +277,7 @@ def test_a_stop_does_not_wait_behind_a_velocity_target_written_by_sdo(
         frames.append(msg)
     drive.quick_stop()
     thread.join(10.0)
-    frames += collect(listener, 0.4)
+    frames += drain(listener, 0.4)
     order = [("stop" if m.arbitration_id == RPDO1 and m.data[0] == 0x02 else "answer")
              for m in frames if m.arbitration_id == 0x581 or (m.arbitration_id == RPDO1 and m.data[0] == 0x02)]
     assert order and order[0] == "stop", order  # the stop before the write's answer
@@ -314,16 +295,7 @@ def test_a_stop_while_homings_method_write_waits_on_a_slow_drive_wins(
     runner = sim.simulators["can0"]
     runner.call(lambda: setattr(runner.drive(1).faults, "sdo_delay_s", 0.2))
     listener = listener_factory(sim)
-    errors: list[BaseException] = []
-
-    def home() -> None:
-        try:
-            drive.home(timeout_s=5.0)
-        except BaseException as err:
-            errors.append(err)
-
-    thread = threading.Thread(target=home)
-    thread.start()
+    thread, errors = in_thread(lambda: drive.home(timeout_s=5.0))
     frames: list[can.Message] = []
     while not any(m.arbitration_id == 0x601 and bytes(m.data[1:3]) == b"\x98\x60" for m in frames):
         msg = listener.recv(10.0)
@@ -332,9 +304,9 @@ def test_a_stop_while_homings_method_write_waits_on_a_slow_drive_wins(
     drive.quick_stop(timeout_s=3.0)
     thread.join(20.0)
     assert errors and "interrupted by quick stop" in str(errors[0]), errors
-    words = controlwords(frames + collect(listener, 0.6))
+    words = controlwords(frames + drain(listener, 0.6))
     assert words and words[-1] == 0x0002, [hex(w) for w in words]
-    assert sim_state(sim) != "OPERATION_ENABLED" and drive.busy is None
+    assert sim_state(sim) != "OPERATION_ENABLED" and drive.channel.busy is None
 
 
 def test_a_stop_whose_wait_outlives_the_enable_it_ended_leaves_no_busy_mark(driver_factory: DriverFactory) -> None:
@@ -343,15 +315,7 @@ def test_a_stop_whose_wait_outlives_the_enable_it_ended_leaves_no_busy_mark(driv
     _, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")
     enable_done = threading.Event()
-    stop_errors: list[BaseException] = []
-
-    def stop() -> None:
-        try:
-            drive.quick_stop()
-        except BaseException as err:
-            stop_errors.append(err)
-
-    stopper = threading.Thread(target=stop)
+    stopper, stop_errors = in_thread(drive.quick_stop, start=False)
 
     def hook(point: str) -> None:
         if point == "enable: sent transition 3" and not stopper.is_alive() and not enable_done.is_set():
@@ -359,13 +323,13 @@ def test_a_stop_whose_wait_outlives_the_enable_it_ended_leaves_no_busy_mark(driv
         elif point == "quick stop: sent":
             assert enable_done.wait(10.0), "the enable did not end"  # the stop's wait outlives it
 
-    drive.interleave = hook
+    drive.channel.set_hook(hook)
     with pytest.raises(DriveStateError, match="interrupted by quick stop"):
         drive.enable()
     enable_done.set()
     stopper.join(10.0)
-    drive.interleave = None
+    drive.channel.set_hook(None)
     assert not stop_errors, stop_errors
-    assert drive.busy is None, drive.busy
+    assert drive.channel.busy is None, drive.channel.busy
     drive.enable()  # from here: commands are taken again
     drive.set_velocity(5.0)

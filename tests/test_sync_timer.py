@@ -61,7 +61,7 @@ def test_the_daemon_sends_the_sync_and_a_busy_driver_does_not_shift_it() -> None
                 listener.shutdown()
             assert len(syncs) >= 80, len(syncs)
             assert max(b - a for a, b in itertools.pairwise(syncs)) < 0.03  # no SYNC held back
-            assert driver.drive("joint1").foreign_master == ""  # its own SYNC, reaching it, is not another master's
+            assert driver.drive("joint1").watch.foreign_master == ""  # its own SYNC, reaching it, is not another master's
 
 
 def test_a_config_can_keep_the_sync_in_a_thread(driver_factory: DriverFactory,

@@ -119,7 +119,7 @@ def test_motion_without_a_known_resolution_is_refused_naming_counts_per_rev(sim_
         drive.enable()  # holding still is not motion
         for command in (lambda: drive.move_to(10.0), lambda: drive.set_velocity(10.0),
                         lambda: drive.set_torque(0.1), lambda: drive.stream_position(1.0),
-                        lambda: drive.stream_velocity(1.0), lambda: drive.set_profile_velocity(10.0),
+                        lambda: drive.stream_velocity(1.0), lambda: drive.motion.set_profile_velocity(10.0),
                         drive.home):
             with pytest.raises(CommandRejected, match=r"position resolution is unknown.*Set counts_per_rev"):
                 command()
@@ -140,7 +140,7 @@ def test_a_drive_with_its_units_reports_them_at_info_once_not_as_warnings(
     caplog.set_level("DEBUG", logger="motor_driver.drive")
     with MotorDriver(cfg) as driver:
         driver.start()
-        driver.drive("joint1").boot(reset=True)  # a second boot
+        driver.drive("joint1").boot.boot(reset=True)  # a second boot
     notes = [r for r in caplog.records if "(0x60A9)" in r.getMessage()]
     assert [r.levelname for r in notes] == ["INFO", "DEBUG"], [(r.levelname, r.getMessage()) for r in notes]
 

@@ -30,7 +30,7 @@ def test_vendor_drive_boots_enables_moves(eds: str, driver_factory: Callable[[Ro
                                            allow_no_host_watch=not can_watch_host(SHARED_EDS / eds)))
     drive = driver.drive("joint1")
     drive.enable()
-    assert drive.state is State.OPERATION_ENABLED
+    assert drive.cache.state is State.OPERATION_ENABLED
     if eds == "schunk_prl120.eds":
         # its 0x6502 = 0x60 lists only homing and interpolated position: profile position is
         # refused, clearly; it moves by streamed IP set-points (0x60C1:1 in its second RPDO)
@@ -41,7 +41,7 @@ def test_vendor_drive_boots_enables_moves(eds: str, driver_factory: Callable[[Ro
             drive.stream_position(i * 0.5)
             time.sleep(0.01)
         wait_for(lambda: abs(drive.snapshot().angle_deg - 30.0) < 0.2, 2.0, "IP to 30 deg")
-        assert drive.snapshot().mode == 7 and drive.statusword & 0x1000  # ip mode active
+        assert drive.snapshot().mode == 7 and drive.cache.statusword & 0x1000  # ip mode active
         with pytest.raises(CommandRejected, match=r"this drive has no homing mode \(no 0x6098 in its EDS\)"):
             drive.home()
         return

@@ -9,16 +9,18 @@ What lives where (each module's docstring names the thread that owns its state):
 
 - :mod:`.state`: the state cache, the receive thread's only room (TPDO, heartbeat, EMCY)
 - :mod:`.sdo`: SDO access, bounded, one typed codec; the objects no tool may write
-- :mod:`.frames`: the frames of a command (controlword, targets), RPDO else SDO
-- :mod:`.power`: the CiA 402 power state machine (owner of the controlword, busy and
-  preemption: a stop always wins) and the mode switch
+- :mod:`.channel`: the command channel, the one way out for a controlword or a set-point
+  (busy, preemption: a stop always wins)
+- :mod:`.part`: the ports every part is handed (:class:`~.part.Ports`)
+- :mod:`.power`: the CiA 402 power state machine (enable, the stops, recover) and the mode switch
 - :mod:`.limits`: the stopping-distance limit guard and the velocity watchdog
 - :mod:`.motion`: motion commands, one family per operation mode
 - :mod:`.homing`: homing
 - :mod:`.hostwatch`: the drive's watch of the host (heartbeat consumer, node guarding) and the
   frames the supervisor sends a drive it stops hearing or loses to another master
 - :mod:`.boot`: boot as a table of steps; re-configuration after a reset
-- :mod:`.facade`: :class:`Drive`, the layers stacked
+- :mod:`.facade`: :class:`Drive`, the parts composed (``drive.cache``, ``drive.power``, ...)
+  and the user's small API
 - :mod:`.constants`: timeouts and fixed codes
 """
 

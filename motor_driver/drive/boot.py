@@ -20,21 +20,18 @@ from collections.abc import Callable
 from pathlib import Path
 
 import can
-from canopen.objectdictionary import ObjectDictionary
 
 from can_config.codec import value_format
-from can_config.config import GENERIC_EDS, DriveConfig
+from can_config.config import GENERIC_EDS
 from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import BootError, BusLostError, DriveStateError, DriveTimeoutError, MotorError, SdoError, UnitError
 from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
 from motor_driver.cia402 import SW, Command, State, decode_state
-from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
 from motor_driver.drive.hostwatch import HostWatch
+from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
-from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache
-from motor_driver.pdo import PdoPlan, mapping_writes
+from motor_driver.pdo import mapping_writes
 from motor_driver.runtime import Booted, Booting, RebootFailed, RuntimePort
 from motor_driver.safety import SafetyCheck, judge
 from motor_driver.unit_ranges import check_drive_value
@@ -46,16 +43,9 @@ logger = logging.getLogger(__name__)
 class Boot:
     """Boot of one drive, a table of steps, and re-configuration after a reset."""
 
-    def __init__(self, config: DriveConfig, od: ObjectDictionary, plan: PdoPlan, cache: DriveCache,
-                 channel: CommandChannel, sdo: SdoPort, power: PowerStateMachine,
-                 watch: HostWatch, port: RuntimePort) -> None:
-        self.config = config
-        self.name, self.node_id = config.name, config.node_id
-        self.od = od
-        self.plan = plan
-        self._cache = cache
-        self._channel = channel
-        self._sdo = sdo
+    def __init__(self, ports: Ports, power: PowerStateMachine, watch: HostWatch, port: RuntimePort) -> None:
+        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
+        self.name, self.node_id = ports.config.name, ports.config.node_id
         self._power = power
         self._watch = watch
         self._port = port
@@ -114,14 +104,14 @@ class Boot:
             logger.warning("node %d: device type 0x%08X is not a CiA 402 drive profile", self.node_id, device_type)
 
     def _disarm(self) -> None:
-        if has_object(self.od, OD.STATUSWORD) and has_object(self.od, OD.CONTROLWORD):
+        if has_object(self._od, OD.STATUSWORD) and has_object(self._od, OD.CONTROLWORD):
             self._at(OD.STATUSWORD, 0)
             self._disarm_by_sdo()
 
     def _write_pdo_mapping(self) -> None:
-        for index, sub, data, what in mapping_writes(self.plan):
+        for index, sub, data, what in mapping_writes(self._plan):
             self._at(index, sub)
-            var = variable(self.od, index, sub)
+            var = variable(self._od, index, sub)
             if var is not None and var.access_type in ("ro", "const"):
                 logger.info("node %d: %s: 0x%04X:%d is read-only in the EDS; keeping the device's"
                             " value", self.node_id, what, index, sub)
@@ -143,7 +133,7 @@ class Boot:
 
     def _write_position_limits(self) -> None:
         cfg = self.config
-        if not cfg.is_continuous and has_object(self.od, OD.SOFTWARE_POSITION_LIMIT, 2):
+        if not cfg.is_continuous and has_object(self._od, OD.SOFTWARE_POSITION_LIMIT, 2):
             low, high = self._cache.scale.limits_to_counts(cfg.min_deg, cfg.max_deg)  # type: ignore[arg-type]
             if not -(2**31) <= low <= high < 2**31:
                 raise BootError(f"node {self.node_id} ({self.name}): boot step 'position limits' refused: min_deg/"
@@ -164,10 +154,10 @@ class Boot:
                                   (OD.PROFILE_DECELERATION, accel_to_drive(cfg.profile_acceleration_deg_s2),
                                    "profile_acceleration_deg_s2"),
                                   (OD.MAX_PROFILE_VELOCITY, to_drive(cfg.max_velocity_deg_s), "max_velocity_deg_s")):
-            if has_object(self.od, index):
+            if has_object(self._od, index):
                 self._at(index, 0)
                 self._sdo.write_typed(index, 0, self._checked(index, value, key))
-        if has_object(self.od, OD.QUICK_STOP_DECELERATION):
+        if has_object(self._od, OD.QUICK_STOP_DECELERATION):
             self._at(OD.QUICK_STOP_DECELERATION, 0)
             self._sdo.write_typed(OD.QUICK_STOP_DECELERATION, 0,
                                   self._checked(OD.QUICK_STOP_DECELERATION, self._quick_stop_decel(),
@@ -176,7 +166,7 @@ class Boot:
     def _checked(self, index: int, value: float, key: str) -> int:
         """A profile value in drive units: never 0, never beyond its type (a boot error, not a write)."""
         try:
-            return check_drive_value(index, value, f"({key})", value_format(self.od, index, 0))
+            return check_drive_value(index, value, f"({key})", value_format(self._od, index, 0))
         except UnitError as err:
             raise BootError(f"node {self.node_id} ({self.name}): boot step 'profile parameters' refused: {err}",
                             node_id=self.node_id, step="profile parameters", index=index, subindex=0) from err
@@ -210,7 +200,7 @@ class Boot:
     def _safety_check(self) -> None:
         try:
             self.safety = tuple(judge(self.config, self._watch.host_node_id, self._cache.scale, self._sdo.read_int,
-                                      consumer_subs=consumer_subs(self.od), guarding=self._watch.guardable))
+                                      consumer_subs=consumer_subs(self._od), guarding=self._watch.guardable))
         except SdoError as err:
             raise BootError(f"node {self.node_id} ({self.name}): boot step 'safety check' failed: {err}",
                             node_id=self.node_id, step="safety check", index=err.index, subindex=err.subindex,
@@ -227,9 +217,9 @@ class Boot:
         self._port.report(Booted(self.name))
         self.boot_count += 1  # after: a caller that sees the count sees the drive booted
         logger.info("node %d (%s) booted: %d RPDOs, %d TPDOs%s", self.node_id, self.name,
-                    len(self.plan.rpdos), len(self.plan.tpdos),
-                    f"; by SDO: {', '.join(f'0x{i:04X}' for i in self.plan.sdo_only)}"
-                    if self.plan.sdo_only else "")
+                    len(self._plan.rpdos), len(self._plan.tpdos),
+                    f"; by SDO: {', '.join(f'0x{i:04X}' for i in self._plan.sdo_only)}"
+                    if self._plan.sdo_only else "")
 
     def _send_nmt(self, command: NmtCommand) -> None:
         try:
@@ -243,7 +233,7 @@ class Boot:
         newest entry of its error history 0x1003 is 0x8130)? Counted for the flight recorder
         (``host_loss_stops``), and the history is cleared so that it is counted once. Only a
         drive heard within HOST_LOSS_CHECK_WAIT_S is asked: an absent one does not slow the boot."""
-        if not has_object(self.od, OD.PREDEFINED_ERROR_FIELD, 1):
+        if not has_object(self._od, OD.PREDEFINED_ERROR_FIELD, 1):
             return
         deadline = time.monotonic() + HOST_LOSS_CHECK_WAIT_S
         while not self._cache.last_heartbeat and time.monotonic() < deadline:
@@ -276,10 +266,10 @@ class Boot:
         eds = Path(self.config.eds)
         if eds.resolve() == GENERIC_EDS.resolve():
             return wanted
-        info = self.od.device_information
+        info = self._od.device_information
         for sub, what, number, name in ((1, "vendor id", info.vendor_number, info.vendor_name),
                                         (2, "product code", info.product_number, info.product_name)):
-            var = variable(self.od, OD.IDENTITY, sub)
+            var = variable(self._od, OD.IDENTITY, sub)
             values = {v for v in (number, var.default if var is not None else None) if isinstance(v, int) and v}
             if values:
                 wanted.append((sub, what, frozenset(values), f"its EDS {eds.name}{f' ({name})' if name else ''} names"))
@@ -357,7 +347,7 @@ class Boot:
         """The configured quick-stop deceleration in drive units, at most what the drive takes
         (its EDS HighLimit): the fastest stop it allows, said in a warning."""
         wanted = self._cache.scale.acceleration_to_drive(self.config.quick_stop_decel_deg_s2)
-        var = variable(self.od, OD.QUICK_STOP_DECELERATION, 0)
+        var = variable(self._od, OD.QUICK_STOP_DECELERATION, 0)
         high = var.max if var is not None else None
         if isinstance(high, int) and wanted > high:
             logger.warning("node %d (%s): quick-stop deceleration %g deg/s^2 is beyond the drive's range"

@@ -13,14 +13,15 @@ Lost, booted and another master are the driver's supervisor's judgement (``runti
 :class:`motor_driver.runtime.DriveRuntime` the parts read); the parts hand it what they find
 through ``port``. This class adds no state and no rule: it builds the parts in order, connects the cache to the
 channel, and hands the drive's COB-IDs to the receive thread last, so that a frame never meets
-a half-built drive. Its methods and properties forward to the part that owns each.
+a half-built drive. Its few methods are the user's API (enable, the stops, moves, streams,
+velocity, torque, SDO, a snapshot); everything else is asked of the part that owns it
+(``drive.cache.statusword``, ``drive.power.supported_modes()``, ``drive.boot.boot_count``).
 """
 
 from __future__ import annotations
 
 import logging
 import struct
-from collections.abc import Callable
 
 import can
 import canopen
@@ -29,7 +30,6 @@ from canopen.objectdictionary import ObjectDictionary
 from can_config.config import DriveConfig
 from can_config.errors import BusLostError
 from can_config.objects import OD, FunctionCode, OperationMode
-from motor_driver.cia402 import State
 from motor_driver.drive.boot import Boot
 from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
@@ -37,13 +37,13 @@ from motor_driver.drive.homing import Homing
 from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.motion import Motion
+from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
-from motor_driver.drive.values import DriveState, Emcy
+from motor_driver.drive.values import DriveState
 from motor_driver.pdo import PdoPlan, plan_pdos
 from motor_driver.runtime import DriveRuntime, NmtLedger, RuntimePort
-from motor_driver.safety import SafetyCheck
 from motor_driver.sdo_client import OwnAnswersNode
 from motor_driver.units import Scale
 
@@ -70,20 +70,19 @@ class Drive:
             logger.warning("node %d: 0x%04X cannot be PDO-mapped on this drive; using SDO for it", config.node_id, index)
         scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio, invert=config.invert,
                       offset_deg=config.offset_deg)
-        self.runtime = runtime
         self.cache = DriveCache(config, network, self.plan, scale, sync_period_s=sync_period_s, runtime=runtime,
                                 port=port)
         self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s)
         self.channel = CommandChannel(config.name, config.node_id, self.plan, self._send, self._write_cw_sdo,
                                       self.cache.wake)
-        self.watch = HostWatch(config, od, network, self.cache, self.channel, self.sdo, host_node_id,
-                               runtime=runtime, nmt=NmtLedger(config.node_id, self._send))
-        self.power = PowerStateMachine(config, od, self.cache, self.channel, self.sdo, self.watch)
-        self.limits = LimitGuard(config, self.cache, self.channel)
-        self.motion = Motion(config, od, self.plan, self.cache, self.channel, self.sdo, self.power, self.limits)
-        self.homing = Homing(config, od, self.cache, self.channel, self.sdo, self.power)
-        self.boot_part = Boot(config, od, self.plan, self.cache, self.channel, self.sdo, self.power,
-                              self.watch, port)
+        ports = Ports(config, od, self.plan, self.cache, self.channel, self.sdo)
+        self.watch = HostWatch(ports, network, host_node_id, runtime=runtime,
+                               nmt=NmtLedger(config.node_id, self._send))
+        self.power = PowerStateMachine(ports, self.watch)
+        self.limits = LimitGuard(ports)
+        self.motion = Motion(ports, self.power, self.limits)
+        self.homing = Homing(ports, self.power)
+        self.boot = Boot(ports, self.power, self.watch, port)
         self.cache.connect(self.channel)
         self.cache.subscribe()
 
@@ -99,164 +98,14 @@ class Drive:
     def _write_cw_sdo(self, word: int) -> None:
         self.sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", word))
 
-    # ------------------------------------------------------------------ state (the cache's)
+    # ------------------------------------------------------------------ the user's API
     def snapshot(self) -> DriveState:
         return self.cache.snapshot(self.watch.foreign_master)
-
-    @property
-    def state(self) -> State:
-        return self.cache.state
-
-    @property
-    def statusword(self) -> int:
-        return self.cache.statusword
-
-    @property
-    def angle_deg(self) -> float:
-        return self.cache.angle_deg
-
-    @property
-    def velocity_deg_s(self) -> float:
-        """The newest TPDO's velocity (a snapshot's ``velocity_deg_s``, without the snapshot)."""
-        return self.cache.scale.counts_s_to_deg_s(self.cache.received.velocity_counts_s)
-
-    @property
-    def position_counts(self) -> int:
-        return self.cache.position_counts
-
-    @property
-    def mode_display(self) -> int:
-        return self.cache.mode_display
-
-    @property
-    def scale(self) -> Scale:
-        return self.cache.scale
-
-    @property
-    def sync_period_s(self) -> float:
-        return self.cache.sync_period_s
-
-    @property
-    def nmt_state(self) -> str:
-        return self.cache.nmt_state
-
-    @property
-    def last_heartbeat(self) -> float:
-        return self.cache.last_heartbeat
-
-    @property
-    def last_emcy(self) -> Emcy | None:
-        return self.cache.last_emcy
-
-    @property
-    def fault_seen(self) -> int | None:
-        return self.cache.fault_seen
-
-    @property
-    def tpdo_count(self) -> int:
-        return self.cache.tpdo_count
-
-    @property
-    def implausible_samples(self) -> int:
-        return self.cache.implausible_samples
-
-    @property
-    def guard_errors(self) -> int:
-        return self.cache.guard_errors
-
-    @property
-    def behind_back(self) -> tuple[float, str]:
-        return self.cache.behind_back
-
-    @property
-    def booted(self) -> bool:
-        return self.cache.booted
-
-    @property
-    def lost(self) -> bool:
-        return self.cache.lost
-
-
-    # ------------------------------------------------------------------ the channel's
-    @property
-    def busy(self) -> str | None:
-        return self.channel.busy
-
-    @property
-    def closed(self) -> bool:
-        return self.channel.closed
 
     def close(self) -> None:
         """The driver shuts down: no command is taken from here on (stops still are)."""
         self.channel.close()
 
-    @property
-    def was_enabled(self) -> bool:
-        return self.channel.was_enabled
-
-    @property
-    def velocity_commanded(self) -> bool:
-        return self.channel.velocity_commanded
-
-    @property
-    def last_velocity_cmd(self) -> float:
-        return self.channel.last_velocity_cmd
-
-    @property
-    def interleave(self) -> Callable[[str], None] | None:
-        return self.channel._hook
-
-    @interleave.setter
-    def interleave(self, hook: Callable[[str], None] | None) -> None:
-        self.channel.set_hook(hook)
-
-    # ------------------------------------------------------------------ the host watch's
-    @property
-    def foreign_master(self) -> str:
-        return self.watch.foreign_master
-
-    @property
-    def host_watch(self) -> str | None:
-        return self.watch.host_watch
-
-    @property
-    def host_watch_problem(self) -> str | None:
-        return self.watch.host_watch_problem
-
-    @property
-    def remote_frames(self) -> bool:
-        return self.watch.remote_frames
-
-    @property
-    def guarding(self) -> bool:
-        return self.cache.guarding
-
-    def watch_mode(self) -> str:
-        return self.watch.watch_mode()
-
-    def release_host_watch(self) -> None:
-        self.watch.release_host_watch()
-
-    # ------------------------------------------------------------------ boot's
-    def boot(self, *, reset: bool = True) -> None:
-        self.boot_part.boot(reset=reset)
-
-    @property
-    def boot_count(self) -> int:
-        return self.boot_part.boot_count
-
-    @property
-    def safety(self) -> tuple[SafetyCheck, ...]:
-        return self.boot_part.safety
-
-    @property
-    def host_loss_stops(self) -> int:
-        return self.boot_part.host_loss_stops
-
-    def expected_identity(self) -> list[tuple[int, str, frozenset[int], str]]:
-        return self.boot_part.expected_identity()
-
-    # ------------------------------------------------------------------ the power state machine's
     def enable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         self.power.enable(timeout_s)
 
@@ -275,23 +124,11 @@ class Drive:
     def recover(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         self.power.recover(timeout_s)
 
-    def supported_modes(self) -> int:
-        return self.power.supported_modes()
-
     def set_mode(self, mode: OperationMode | int) -> None:
         self.power.set_mode(mode)
 
-    # ------------------------------------------------------------------ limits and motion
-    @property
-    def limit_stops(self) -> int:
-        return self.limits.limit_stops
-
-    @property
-    def watchdog_stops(self) -> int:
-        return self.limits.watchdog_stops
-
-    def check_position(self, angle_deg: float) -> float:
-        return self.motion.check_position(angle_deg)
+    def home(self, timeout_s: float | None = None) -> None:
+        self.homing.home(timeout_s)
 
     def move_to(self, angle_deg: float, *, wait: bool = False, timeout_s: float | None = None) -> float:
         return self.motion.move_to(angle_deg, wait=wait, timeout_s=timeout_s)
@@ -299,14 +136,14 @@ class Drive:
     def wait_target_reached(self, timeout_s: float | None = None) -> None:
         self.motion.wait_target_reached(timeout_s)
 
-    def set_profile_velocity(self, velocity_deg_s: float) -> None:
-        self.motion.set_profile_velocity(velocity_deg_s)
-
     def set_velocity(self, velocity_deg_s: float) -> None:
         self.motion.set_velocity(velocity_deg_s)
 
     def set_torque(self, torque_nm: float) -> None:
         self.motion.set_torque(torque_nm)
+
+    def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None) -> None:
+        self.motion.stream_position(angle_deg, max_step_deg=max_step_deg)
 
     def stream_velocity(self, velocity_deg_s: float) -> None:
         self.motion.stream_velocity(velocity_deg_s)
@@ -323,21 +160,8 @@ class Drive:
     def command_torque(self, torque_nm: float) -> None:
         self.motion.command_torque(torque_nm)
 
-    def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None) -> None:
-        self.motion.stream_position(angle_deg, max_step_deg=max_step_deg)
-
-    def home(self, timeout_s: float | None = None) -> None:
-        self.homing.home(timeout_s)
-
-    # ------------------------------------------------------------------ SDO (the port's)
     def sdo_read(self, index: int, subindex: int = 0) -> bytes:
         return self.sdo.read(index, subindex)
 
-    def sdo_read_value(self, index: int, subindex: int = 0) -> int | float | bytes:
-        return self.sdo.read_value(index, subindex)
-
     def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
         self.sdo.write(index, subindex, data)
-
-    def sdo_write_checked(self, index: int, subindex: int, value: int) -> None:
-        self.sdo.write_checked(index, subindex, value)

@@ -25,17 +25,14 @@ import time
 
 import can
 import canopen
-from canopen.objectdictionary import ObjectDictionary
 
-from can_config.config import ON_HOST_LOSS, DriveConfig
+from can_config.config import ON_HOST_LOSS
 from can_config.eds import has_object
 from can_config.errors import MotorError, SdoError
 from can_config.objects import OD, FunctionCode, NmtCommand, sdo_abort_text
 from motor_driver.cia402 import Command, State
-from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import NO_HOST_WATCH, QUICK_STOP_THEN_DISABLE, VALUE_RANGE_ABORTS
-from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache
+from motor_driver.drive.part import Ports
 from motor_driver.runtime import DriveRuntime, NmtLedger
 from motor_driver.safety import guard_settings
 
@@ -50,16 +47,11 @@ def host_consumer_entry(host_node_id: int, timeout_s: float) -> int:
 class HostWatch:
     """The drive's watch of the host, and the supervisor's of the drive."""
 
-    def __init__(self, config: DriveConfig, od: ObjectDictionary, network: canopen.Network, cache: DriveCache,
-                 channel: CommandChannel, sdo: SdoPort, host_node_id: int, *, runtime: DriveRuntime,
+    def __init__(self, ports: Ports, network: canopen.Network, host_node_id: int, *, runtime: DriveRuntime,
                  nmt: NmtLedger) -> None:
-        self.config = config
-        self.name, self.node_id = config.name, config.node_id
-        self._od = od
+        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
+        self.name, self.node_id = ports.config.name, ports.config.node_id
         self._network = network
-        self._cache = cache
-        self._channel = channel
-        self._sdo = sdo
         self.host_node_id = host_node_id
         self._runtime = runtime  # the supervisor's: read only
         self.nmt_ledger = nmt

@@ -14,20 +14,15 @@ from __future__ import annotations
 import logging
 from typing import NamedTuple
 
-from canopen.objectdictionary import ObjectDictionary
-
-from can_config.config import DriveConfig
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.cia402 import FAULT_STATES, SW, State
 from motor_driver.drive.busy import Op
-from motor_driver.drive.channel import CommandChannel, Frames
+from motor_driver.drive.channel import Frames
 from motor_driver.drive.constants import CONTINUOUS_COMMAND_LIMIT_DEG, ENABLED_CW_MASK
 from motor_driver.drive.limits import LimitGuard
+from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
-from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache
-from motor_driver.pdo import PdoPlan
 from motor_driver.setpoint import rebase_after_switch
 from motor_driver.units import check_counts, check_limits, nearest_equivalent, require_finite
 
@@ -46,15 +41,9 @@ class Approach(NamedTuple):
 class Motion:
     """Motion commands of one drive, one family per operation mode, limits checked on each."""
 
-    def __init__(self, config: DriveConfig, od: ObjectDictionary, plan: PdoPlan, cache: DriveCache,
-                 channel: CommandChannel, sdo: SdoPort, power: PowerStateMachine, limits: LimitGuard) -> None:
-        self.config = config
-        self.name, self.node_id = config.name, config.node_id
-        self._od = od
-        self._plan = plan
-        self._cache = cache
-        self._channel = channel
-        self._sdo = sdo
+    def __init__(self, ports: Ports, power: PowerStateMachine, limits: LimitGuard) -> None:
+        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
+        self.name, self.node_id = ports.config.name, ports.config.node_id
         self._power = power
         self._limits = limits
 

@@ -32,7 +32,7 @@ from motor_driver.drive.constants import SDO_ABORT_OUT_OF_MEMORY, SDO_ABORT_TIME
 logger = logging.getLogger(__name__)
 
 
-#: Objects no tool or service may write by SDO (see Drive.sdo_write_checked), each with why:
+#: Objects no tool or service may write by SDO (see SdoPort.write_checked), each with why:
 #: they move the motor, bypass a limit, or undo what stops the drive when the host is gone.
 _TARGET = "it is a motion target; use move/jog (limits enforced)"
 PROTECTED_OBJECTS: dict[int, str] = {

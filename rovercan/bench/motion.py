@@ -91,7 +91,7 @@ class UnitCheck:
 
 
 def has_profile_position(drive: Drive) -> bool:
-    return bool(drive.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_POSITION] & 1)
+    return bool(drive.power.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_POSITION] & 1)
 
 
 def command_angle(drive: Drive, angle_deg: float) -> float:
@@ -107,8 +107,8 @@ def stream_to(drive: Drive, target_deg: float, speed_deg_s: float | None = None,
     a trapezoid of set-points, one per SYNC period, through the driver's streaming path (limits
     enforced there), then waits until the joint is within 0.2 deg. Returns the target."""
     cfg = drive.config
-    drive.check_position(command_angle(drive, target_deg))  # beyond a limit: refused before anything is sent
-    period = drive.sync_period_s
+    drive.motion.check_position(command_angle(drive, target_deg))  # beyond a limit: refused before anything is sent
+    period = drive.cache.sync_period_s
     speed = min(speed_deg_s or cfg.profile_velocity_deg_s, cfg.max_velocity_deg_s)
     accel = cfg.profile_acceleration_deg_s2
     start = drive.snapshot().angle_deg
@@ -153,7 +153,7 @@ def cmd_move(args: argparse.Namespace) -> int:
         drive.enable()
         if has_profile_position(drive):
             if args.speed is not None:
-                drive.set_profile_velocity(args.speed)
+                drive.motion.set_profile_velocity(args.speed)
             check = UnitCheck(drive)
             target = drive.move_to(args.degrees)
             sampling = threading.Event()
@@ -179,7 +179,7 @@ def cmd_move(args: argparse.Namespace) -> int:
 
 
 def has_profile_velocity(drive: Drive) -> bool:
-    return bool(drive.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_VELOCITY] & 1)
+    return bool(drive.power.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.PROFILE_VELOCITY] & 1)
 
 
 def stream_jog(drive: Drive, velocity: float, seconds: float) -> DriveState:
@@ -187,7 +187,7 @@ def stream_jog(drive: Drive, velocity: float, seconds: float) -> DriveState:
     acceleration up to ``velocity``, held for ``seconds``, ramped down. Returns the state seen at
     the end of the hold."""
     cfg = drive.config
-    period = drive.sync_period_s
+    period = drive.cache.sync_period_s
     dv = cfg.profile_acceleration_deg_s2 * period
     position = drive.snapshot().angle_deg
     v = 0.0

@@ -34,7 +34,7 @@ def main() -> int:
         driver = stack.enter_context(MotorDriver(config).start())
         for drive in driver:
             drive.enable()
-        moving = [d for d in driver if d.supported_modes() >> 2 & 1]  # profile velocity (others stay enabled, still)
+        moving = [d for d in driver if d.power.supported_modes() >> 2 & 1]  # profile velocity (others stay enabled, still)
         announced = False
         refused = ""
         while True:
