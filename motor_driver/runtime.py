@@ -159,11 +159,12 @@ class NmtLedger:
     def last(self) -> tuple[NmtCommand | None, float]:
         return self._last
 
-    def explains(self, state: int, at: float, within_s: float) -> bool:
-        """The newest NMT command this driver sent the node asks for ``state``, and was sent
-        within ``within_s`` before ``at``: a change this driver caused."""
-        command, when = self._last
-        return command is not None and NMT_TARGET.get(command) == state and at - when <= within_s
+    def explains(self, state: int) -> bool:
+        """The newest NMT command this driver sent the node asks for ``state``: a change this
+        driver caused, however late it is heard (a starved host hears it seconds later). Another
+        master's NMT command to the same state shows as its NMT frame (the bus listener), not here."""
+        command, _ = self._last
+        return command is not None and NMT_TARGET.get(command) == state
 
     def in_flight(self, state: int, at: float, within_s: float) -> bool:
         """A heartbeat in another state than the newest command asks for, heard within

@@ -45,10 +45,6 @@ from motor_driver.traffic import FOREIGN_HOLD_S, FOREIGN_RELEASE_S
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
-#: A state the drive reports within this many heartbeat timeouts (at least NMT_EFFECT_MIN_S) of
-#: the NMT command of this driver that asks for it is this driver's doing, never another master's.
-NMT_EFFECT_TIMEOUTS = 2.0
-NMT_EFFECT_MIN_S = 1.0
 
 __all__ = ["BUS_CHECK_PERIODS", "SUPERVISOR_PERIOD_S", "Supervisor"]
 
@@ -210,10 +206,9 @@ class Supervisor:
             return
         if not runtime.booted or runtime.lost or event.state == NmtState.OPERATIONAL or event.was != "OPERATIONAL":
             return
-        window = max(NMT_EFFECT_TIMEOUTS * drive.config.heartbeat_timeout_s, NMT_EFFECT_MIN_S)
         if drive.watch.nmt_ledger.in_flight(event.state, event.at, drive.config.heartbeat_period_s):
             return  # sent before it obeyed this driver's newest NMT command
-        if drive.watch.nmt_ledger.explains(event.state, event.at, window):
+        if drive.watch.nmt_ledger.explains(event.state):
             command, when = drive.watch.nmt_ledger.last
             logger.warning("node %d (%s): now NMT %s, as this driver told it (%s, %.0f ms before); configuring it"
                            " again, left disabled", drive.node_id, drive.name, name,

@@ -110,3 +110,21 @@ def test_the_supervisor_never_waits_for_a_busy_channel(driver_factory: DriverFac
     wait_for(lambda: not driver.supervisor.runtimes["joint1"].stop_pending, 2.0, "the RPDO stop sent once the channel was free")
     frames = drain(listener, 0.3)
     assert any(m.arbitration_id == 0x201 and m.data[0] == 0x02 for m in frames), "the quick-stop RPDO"
+
+
+def test_the_ledger_explains_its_own_command_however_late_the_state_is_heard() -> None:
+    """A starved host hears the STOPPED heartbeat its own NMT stop caused seconds later (seen: the
+    lifecycle node under load, 'went STOPPED without an NMT command from this driver' with a 1 s
+    window). What decides is the newest command sent, not how long ago: a START sent after it
+    means a STOPPED state is no longer this driver's doing."""
+    from can_config.objects import NmtCommand
+    from motor_driver.runtime import NmtLedger
+
+    sent: list[bytes] = []
+    ledger = NmtLedger(1, lambda cob, data: sent.append(data))
+    assert not ledger.explains(NmtState.STOPPED)  # nothing sent yet
+    ledger.send(NmtCommand.STOP)
+    assert ledger.explains(NmtState.STOPPED) and not ledger.explains(NmtState.PRE_OPERATIONAL)
+    ledger.send(NmtCommand.START)
+    assert not ledger.explains(NmtState.STOPPED) and ledger.explains(NmtState.OPERATIONAL)
+    assert sent == [bytes([NmtCommand.STOP, 1]), bytes([NmtCommand.START, 1])]
