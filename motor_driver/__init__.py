@@ -37,10 +37,10 @@ from can_config.errors import (
     SdoError,
     SdoTimeoutError,
 )
-from can_config.stop import StopRequested, stop_on_signals
 from motor_driver.cia402 import Command, State
 from motor_driver.drive import Drive, DriveState, Emcy
 from motor_driver.driver import MotorDriver
+from motor_driver.stop import StopRequested, stop_on_signals
 
 __all__ = [
     "BootError",

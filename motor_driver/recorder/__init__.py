@@ -44,11 +44,11 @@ from typing import Any
 import can
 
 from can_config.config import RecorderConfig
-from can_config.incident import FORMAT
 from can_config.model import RoverConfig
 from can_config.objects import emcy_text
 from can_config.realtime import ordinary_thread
 from motor_driver.drive import DriveState
+from motor_driver.recorder.incident import FORMAT
 from motor_driver.recorder.incident_mcap import write_incident_mcap
 from motor_driver.recorder.plot import plot_incident, state_series
 
