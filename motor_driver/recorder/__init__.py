@@ -22,6 +22,12 @@ the supervisor appends drive-state samples and flags its own incidents. The writ
 (``rovercan-recorder``) waits ``after_s`` so that what follows is kept, takes a copy of the
 ring (``deque.copy`` runs under the GIL in one step) and writes the files. Nothing waits on
 the writer, and no lock is shared with the bus.
+
+What lives where: this module (the ring, the incidents, the writer thread),
+:mod:`.incident_mcap` (an incident's frames as MCAP beside its BLF), :mod:`.plot` (its PNG,
+drawn by the helper process :mod:`.__main__`), :mod:`.incident` (an incident read back: the
+summary, the frames, the fault steps of a scenario) and :mod:`.recording` (any CAN recording
+read, each frame checked).
 """
 
 from __future__ import annotations
