@@ -3,11 +3,26 @@
 Imports neither ``motor_driver`` nor ``virtual_can`` (nor rclpy): both of them, the nodes and
 the CLI build on it.
 
-What lives where: :mod:`can_config.model` (the config's dataclasses, each field declaring its
-key: :mod:`can_config.keys`), :mod:`can_config.fields` (the checks), :mod:`can_config.config` (parse, load, dump),
-:mod:`can_config.reference` (the docs' key reference, generated), :mod:`can_config.eds`,
-:mod:`can_config.objects` (CANopen tables), :mod:`can_config.errors` (the exception tree),
-:mod:`can_config.recording`, :mod:`can_config.errorframes`, :mod:`can_config.bits`.
+What lives where:
+
+- :mod:`can_config.model`: the config's dataclasses, each field declaring its key
+  (:mod:`can_config.keys`); :mod:`can_config.fields`: the checks; :mod:`can_config.config`:
+  parse, load, dump; :mod:`can_config.reference`: the docs' key reference, generated
+- :mod:`can_config.eds`: EDS files; :mod:`can_config.objects`: the passive CANopen tables
+  (object indexes, data types, codes); :mod:`can_config.bits`: the bit timing of a frame
+- :mod:`can_config.errors`: the project's one exception tree
+- :mod:`can_config.textfile`: reading a text input (size, encoding, YAML without duplicate
+  keys): the config's own reader, and the simulator's for its scenarios
+- :mod:`can_config.realtime`: SCHED_FIFO for a thread or a process. Not configuration, but
+  both the simulator (its SYNC timer thread) and the driver's processes use it, and this is the
+  one package both may import (``virtual_can`` never imports ``motor_driver``)
+
+The runtime helpers that only the driver, the nodes or the CLI use live in ``motor_driver``:
+signals (:mod:`motor_driver.stop`), heap settling (:mod:`motor_driver.heap`), rate-limited logs
+(:mod:`motor_driver.ratelimit`), the SDO value codec (:mod:`motor_driver.codec`: the simulator
+has its own, written from the standard), error frames (:mod:`motor_driver.errorframes`), CAN
+recordings and incident files (:mod:`motor_driver.recorder.recording`,
+:mod:`motor_driver.recorder.incident`).
 """
 
 from can_config.config import (

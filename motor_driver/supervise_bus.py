@@ -17,13 +17,13 @@ import can
 
 from can_config import RoverConfig
 from can_config.errors import BusLostError, ConfigError, MotorError
-from can_config.ratelimit import RateLimitedLog
 from motor_driver.adapters import brief_error, connection_closed
 from motor_driver.bushandle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
 from motor_driver.bushealth import KernelBusHealth, read_kernel_health
 from motor_driver.connect import open_bus
 from motor_driver.cyclic import DaemonCyclicTask
 from motor_driver.drive import Drive
+from motor_driver.ratelimit import RateLimitedLog
 from motor_driver.recorder import FlightRecorder
 from motor_driver.runtime import BusBack, BusDown, BusRuntime, DriveRuntime, Event
 

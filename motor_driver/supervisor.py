@@ -26,9 +26,9 @@ from concurrent.futures import Future
 from can_config import RoverConfig
 from can_config.errors import MotorError
 from can_config.objects import NmtState
-from can_config.ratelimit import RateLimitedLog
 from motor_driver.bushandle import BusHandle
 from motor_driver.drive import Drive
+from motor_driver.ratelimit import RateLimitedLog
 from motor_driver.recorder import FlightRecorder
 from motor_driver.runtime import (
     Booted,

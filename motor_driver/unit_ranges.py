@@ -81,7 +81,7 @@ def check_drive_value(index: int, value: float, what: str, fmt: str | None) -> i
     return int(number)
 
 
-#: The largest value of each packed integer type (struct formats of can_config.codec).
+#: The largest value of each packed integer type (struct formats of motor_driver.codec).
 TYPE_MAX = {"<B": 0xFF, "<H": 0xFFFF, "<I": 0xFFFF_FFFF, "<Q": 2**64 - 1, "<b": 0x7F, "<h": 0x7FFF,
             "<i": 0x7FFF_FFFF, "<q": 2**63 - 1}
 

@@ -39,10 +39,10 @@ from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from can_config import heap, load_config
+from can_config import load_config
 from can_config.errors import ConfigError, RovercanError
-from can_config.stop import StopSignal
-from motor_driver import MotorDriver
+from motor_driver import MotorDriver, heap
+from motor_driver.stop import StopSignal
 from nodes import runtime
 from nodes.actions import DriverActionsNode
 from nodes.drive_system import DriveSystemNode

@@ -39,9 +39,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32
 
 from can_config.errors import RovercanError
-from can_config.stop import StopSignal
 from motor_driver import Drive, MotorDriver
 from motor_driver.health import bus_health, drive_health
+from motor_driver.stop import StopSignal
 from nodes import runtime
 from nodes.messages import fill_motor_state
 from nodes.params import declare, qos_depth

@@ -29,9 +29,9 @@ from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.lifecycle import Node as LifecycleNode
 from rclpy.lifecycle import State, TransitionCallbackReturn
 
-from can_config import heap, load_config
+from can_config import load_config
 from can_config.errors import RovercanError
-from motor_driver import MotorDriver
+from motor_driver import MotorDriver, heap
 from nodes import runtime
 from nodes.assembly import Assembly
 from nodes.params import declare

@@ -22,10 +22,10 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
-from can_config import heap
 from can_config.errors import ConfigError
 from can_config.realtime import make_process_realtime
-from can_config.stop import StopSignal
+from motor_driver import heap
+from motor_driver.stop import StopSignal
 
 logger = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from can_config.errors import CommandRejected, ConfigError, RovercanError, SimError
 from can_config.realtime import DRIVER_PRIORITY
-from can_config.stop import stop_on_signals
+from motor_driver.stop import stop_on_signals
 from rovercan.argtypes import real, whole
 
 logger = logging.getLogger(__name__)

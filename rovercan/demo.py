@@ -17,7 +17,7 @@ from typing import Any
 from can_config import load_config, with_bus_overrides
 from can_config.errors import ConfigError
 from can_config.realtime import make_process_realtime
-from can_config.stop import StopSignal
+from motor_driver.stop import StopSignal
 from rovercan.cli import EXIT_FAILED, EXIT_OK
 from rovercan.launch import LOCAL_DISCOVERY
 

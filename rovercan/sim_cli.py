@@ -12,9 +12,10 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-from can_config import RoverConfig, heap, load_config
+from can_config import RoverConfig, load_config
 from can_config.errors import ConfigError
-from can_config.stop import StopSignal
+from motor_driver import heap
+from motor_driver.stop import StopSignal
 from rovercan.argtypes import BusKwargs, real, whole
 from rovercan.bench.traffic import add_foxglove_args
 from rovercan.cli import EXIT_FAILED, EXIT_OK
@@ -53,7 +54,7 @@ def _sim_steps(args: argparse.Namespace) -> list[dict[str, Any]] | None:
         from virtual_can.scenario import load_scenario
         return load_scenario(args.scenario)
     if args.scenario_from_log:
-        from can_config.incident import fault_steps
+        from motor_driver.recorder.incident import fault_steps
         steps = fault_steps(args.scenario_from_log, args.scenario_delay)
         if not steps:
             raise ConfigError(f"{args.scenario_from_log}: the incident has no drive faults to replay (no EMCY,"

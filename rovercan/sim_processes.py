@@ -24,9 +24,9 @@ from collections.abc import Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from typing import Any
 
-from can_config import heap
 from can_config.errors import ConfigError
-from can_config.stop import StopSignal
+from motor_driver import heap
+from motor_driver.stop import StopSignal
 from rovercan.bench.common import CliError
 
 #: A drive process imports python-can, canopen and the EDS files before it says it runs.

@@ -1,4 +1,4 @@
-"""can_config.heap: a long-running process's start-up objects leave the collector's walks,
+"""motor_driver.heap: a long-running process's start-up objects leave the collector's walks,
 and garbage made afterwards is still collected."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import gc
 import weakref
 
-from can_config import heap
+from motor_driver import heap
 
 
 class _Node:

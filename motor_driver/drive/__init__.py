@@ -1,18 +1,23 @@
 """One CiA 402 drive on a CANopen network: boot, state machine, commands, PDO state.
 
-Hot path: TPDO callbacks (canopen's notifier thread) unpack with one precompiled struct and
-store plain attributes; commands build their payload with a pure function and send one
-frame. Every failure raises a typed error from :mod:`can_config.errors`; nothing is logged
-and swallowed.
+A drive is composed of parts, as canopen's ``RemoteNode`` composes ``sdo``, ``pdo`` and ``nmt``:
+each part owns its state, is handed only the ports it needs and offers methods; no part writes
+another's attributes. Hot path: TPDO callbacks (canopen's notifier thread) unpack with one
+precompiled struct and publish one immutable value; a command is decided and its frame sent
+by the command channel under its lock. Every failure raises a typed error from
+:mod:`can_config.errors`; nothing is logged and swallowed.
 
 What lives where (each module's docstring names the thread that owns its state):
 
-- :mod:`.state`: the state cache, the receive thread's only room (TPDO, heartbeat, EMCY)
-- :mod:`.sdo`: SDO access, bounded, one typed codec; the objects no tool may write
-- :mod:`.channel`: the command channel, the one way out for a controlword or a set-point
-  (busy, preemption: a stop always wins)
+- :mod:`.state`: the state cache, the receive thread's only room (TPDO, heartbeat, EMCY), with
+  :mod:`.position` (which position samples to believe) and :mod:`.values` (what it publishes)
+- :mod:`.sdo`: the SDO port, bounded, one typed codec; the objects no tool may write
+- :mod:`.channel`: the command channel, owner of the controlword, the targets, the generation
+  and the busy registry (:mod:`.busy`): the one way out for a controlword or a set-point, and
+  a stop always wins
 - :mod:`.part`: the ports every part is handed (:class:`~.part.Ports`)
-- :mod:`.power`: the CiA 402 power state machine (enable, the stops, recover) and the mode switch
+- :mod:`.power`: the CiA 402 power state machine (enable, stops, recover) and the mode switch,
+  every controlword sent through the channel
 - :mod:`.limits`: the stopping-distance limit guard and the velocity watchdog
 - :mod:`.motion`: motion commands, one family per operation mode
 - :mod:`.homing`: homing

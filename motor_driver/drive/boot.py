@@ -21,12 +21,12 @@ from pathlib import Path
 
 import can
 
-from can_config.codec import value_format
 from can_config.config import GENERIC_EDS
 from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import BootError, BusLostError, DriveStateError, DriveTimeoutError, MotorError, SdoError, UnitError
 from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
 from motor_driver.cia402 import SW, Command, State, decode_state
+from motor_driver.codec import value_format
 from motor_driver.drive.constants import HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
 from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.drive.part import Ports

@@ -22,6 +22,12 @@ the supervisor appends drive-state samples and flags its own incidents. The writ
 (``rovercan-recorder``) waits ``after_s`` so that what follows is kept, takes a copy of the
 ring (``deque.copy`` runs under the GIL in one step) and writes the files. Nothing waits on
 the writer, and no lock is shared with the bus.
+
+What lives where: this module (the ring, the incidents, the writer thread),
+:mod:`.incident_mcap` (an incident's frames as MCAP beside its BLF), :mod:`.plot` (its PNG,
+drawn by the helper process :mod:`.__main__`), :mod:`.incident` (an incident read back: the
+summary, the frames, the fault steps of a scenario) and :mod:`.recording` (any CAN recording
+read, each frame checked).
 """
 
 from __future__ import annotations
@@ -44,11 +50,11 @@ from typing import Any
 import can
 
 from can_config.config import RecorderConfig
-from can_config.incident import FORMAT
 from can_config.model import RoverConfig
 from can_config.objects import emcy_text
 from can_config.realtime import ordinary_thread
 from motor_driver.drive import DriveState
+from motor_driver.recorder.incident import FORMAT
 from motor_driver.recorder.incident_mcap import write_incident_mcap
 from motor_driver.recorder.plot import plot_incident, state_series
 

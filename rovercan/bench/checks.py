@@ -19,10 +19,10 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config import RoverConfig, load_config, load_drive_od
-from can_config.codec import unpack_value, value_format
 from can_config.eds import consumer_subs, variable
 from can_config.errors import ConfigError
 from can_config.objects import OD
+from motor_driver.codec import unpack_value, value_format
 from motor_driver.sdo_client import OwnAnswersNode
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (

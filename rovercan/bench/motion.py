@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from can_config.errors import CommandRejected, ConfigError
 from can_config.objects import SUPPORTED_MODE_BIT, OperationMode
+from motor_driver.trajectory import trapezoid
 from rovercan.argtypes import real
 from rovercan.bench.common import CliError, add_bus_args, add_drive_args, add_json, add_master_flags, bench_driver, emit
 
@@ -104,35 +105,18 @@ def command_angle(drive: Drive, angle_deg: float) -> float:
 def stream_to(drive: Drive, target_deg: float, speed_deg_s: float | None = None,
               on_tick: Callable[[], None] | None = None) -> float:
     """A move on a drive whose only position modes are cyclic or interpolated (the SCHUNK PRL120):
-    a trapezoid of set-points, one per SYNC period, through the driver's streaming path (limits
-    enforced there), then waits until the joint is within 0.2 deg. Returns the target."""
+    a trapezoid of set-points (:func:`motor_driver.trajectory.trapezoid`), one per SYNC period,
+    through the driver's streaming path (limits enforced there), then waits until the joint is
+    within 0.2 deg. Returns the target."""
     cfg = drive.config
     drive.motion.check_position(command_angle(drive, target_deg))  # beyond a limit: refused before anything is sent
     period = drive.cache.sync_period_s
     speed = min(speed_deg_s or cfg.profile_velocity_deg_s, cfg.max_velocity_deg_s)
-    accel = cfg.profile_acceleration_deg_s2
-    start = drive.snapshot().angle_deg
-    distance = target_deg - start
-    direction = 1.0 if distance >= 0 else -1.0
-    span = abs(distance)
-    ramp = min(speed * speed / (2 * accel), span / 2)  # distance of each ramp (v^2 / 2a, or half the way)
-    peak = math.sqrt(2 * accel * ramp)  # the speed reached
-    t_ramp = peak / accel if accel else 0.0
-    t_total = 2 * t_ramp + ((span - 2 * ramp) / peak if peak else 0.0)
-    t = 0.0
-    while t < t_total:
-        t = min(t + period, t_total)
-        if t < t_ramp:
-            done = 0.5 * accel * t * t
-        elif t > t_total - t_ramp:
-            done = span - 0.5 * accel * (t_total - t) ** 2
-        else:
-            done = ramp + peak * (t - t_ramp)
-        drive.stream_position(command_angle(drive, start + direction * done))
+    for position in trapezoid(drive.snapshot().angle_deg, target_deg, speed, cfg.profile_acceleration_deg_s2, period):
+        drive.stream_position(command_angle(drive, position))
         if on_tick is not None:
             on_tick()
         time.sleep(period)
-    drive.stream_position(command_angle(drive, target_deg))
     if on_tick is not None:
         return target_deg  # the caller keeps sampling
     deadline = time.monotonic() + 3.0

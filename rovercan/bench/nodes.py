@@ -16,10 +16,10 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config import GENERIC_EDS, load_od
-from can_config.codec import pack_value, unpack_value, value_format
 from can_config.eds import variable
 from can_config.errors import ConfigError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, NmtCommand, NmtState, OperationMode
+from motor_driver.codec import pack_value, unpack_value, value_format
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     CAUSES,

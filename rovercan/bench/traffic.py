@@ -20,8 +20,8 @@ from can_config import load_config, load_drive_od
 from can_config.eds import variable
 from can_config.errors import ConfigError
 from can_config.objects import OD, STRUCT_FORMAT
-from can_config.recording import read_recording
-from can_config.stop import StopSignal
+from motor_driver.recorder.recording import read_recording
+from motor_driver.stop import StopSignal
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import add_bus_args, add_json, emit, open_bus, receive
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
@@ -206,7 +206,7 @@ EVENTS_SHOWN = 50
 
 def cmd_incident(args: argparse.Namespace) -> int:
     """The summary the flight recorder wrote, or its drives' faults as a simulator scenario."""
-    from can_config.incident import fault_steps, load_incident
+    from motor_driver.recorder.incident import fault_steps, load_incident
 
     summary = load_incident(args.file)
     if args.scenario:

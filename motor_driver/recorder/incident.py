@@ -1,6 +1,6 @@
-"""The flight recorder's incident files, as a passive format shared by the driver (which
-writes them, :mod:`motor_driver.recorder`) and the simulator (which replays them,
-``rovercan sim --scenario-from-log``).
+"""The flight recorder's incident files read back: the driver writes them
+(:mod:`motor_driver.recorder`), the CLI prints them (``rovercan incident``) and turns them into a
+simulator scenario (``rovercan sim --scenario-from-log``; the simulator itself never reads one).
 
 An incident is ``<stem>.json`` (this summary) beside ``<stem>.blf`` (every frame of every bus,
 BLF channel ``n`` being the bus ``channels[str(n)]``) and, with matplotlib, ``<stem>.png``.
@@ -17,8 +17,8 @@ from typing import Any
 import can
 
 from can_config.errors import ConfigError
-from can_config.recording import RECORDING_ERRORS, blf_problem, frame_problem
 from can_config.textfile import read_text_file
+from motor_driver.recorder.recording import RECORDING_ERRORS, blf_problem, frame_problem
 
 FORMAT = "rovercan-incident-1"
 #: A drive's heartbeat gap longer than this many of its periods (and SILENCE_MIN_S) is a silence.

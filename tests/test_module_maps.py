@@ -1,0 +1,102 @@
+"""The module maps say what the tree holds: each package's ``__init__`` docstring names (as
+``:mod:`` references, in backticks) every module and subpackage of its package and nothing that
+does not exist; README's "Layers, and the rooms inside them" names no module that does not exist.
+And the layers stay: the core never imports rclpy, the driver and the simulator never import
+each other, the configuration imports neither."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+from .conftest import REPO
+
+PACKAGES = ("can_config", "motor_driver", "virtual_can", "nodes", "rovercan")
+ALL_PACKAGES = sorted(path.parent for root in PACKAGES for path in (REPO / root).rglob("__init__.py"))
+MOD_ROLE = re.compile(r":mod:`~?([\w.]+)`")
+README_SECTION = "## Layers, and the rooms inside them"
+#: What each core package must never import (by the first part of a name it imports).
+FORBIDDEN = {"can_config": {"rclpy", "motor_driver", "virtual_can", "nodes", "rovercan"},
+             "motor_driver": {"rclpy", "virtual_can", "nodes", "rovercan"},
+             "virtual_can": {"rclpy", "motor_driver", "nodes", "rovercan"}}
+
+
+def dotted(package: Path) -> str:
+    return ".".join(package.relative_to(REPO).parts)
+
+
+def exists(name: str) -> bool:
+    """A module (``a/b.py``) or a package (``a/b/__init__.py``) of the repository."""
+    path = REPO.joinpath(*name.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def resolve(reference: str, package: str) -> str:
+    """``:mod:`.state``` inside ``motor_driver.drive`` is ``motor_driver.drive.state``."""
+    if not reference.startswith("."):
+        return reference
+    level = len(reference) - len(reference.lstrip("."))
+    base = package.split(".")[: len(package.split(".")) - (level - 1)]
+    return ".".join([*base, reference[level:]]) if reference[level:] else ".".join(base)
+
+
+def children(package: Path) -> set[str]:
+    """The package's own modules and subpackages (``__main__`` counts: it is a module)."""
+    modules = {p.stem for p in package.glob("*.py") if p.name != "__init__.py"}
+    return modules | {p.parent.name for p in package.glob("*/__init__.py")}
+
+
+@pytest.mark.parametrize("package", ALL_PACKAGES, ids=dotted)
+def test_each_package_docstring_maps_every_module_and_only_those(package: Path) -> None:
+    name, where = dotted(package), package.relative_to(REPO) / "__init__.py"
+    doc = ast.get_docstring(ast.parse((package / "__init__.py").read_text())) or ""
+    named = {resolve(ref, name) for ref in MOD_ROLE.findall(doc)}
+    stale = sorted(ref for ref in named if not exists(ref))
+    assert not stale, f"{where} names modules that do not exist: {stale}"
+    missing = sorted(child for child in children(package) if f"{name}.{child}" not in named)
+    assert not missing, (f"{where} does not name its modules {missing}: add each as :mod:`.{missing[0]}`"
+                         " with what it holds")
+
+
+def readme_bullets() -> list[str]:
+    text = (REPO / "README.md").read_text()
+    assert README_SECTION in text, f"README.md lost its section {README_SECTION!r}"
+    section = text.split(README_SECTION, 1)[1].split("\n## ", 1)[0]
+    return re.split(r"\n(?=- )", section.strip().split("\n\n", 1)[0])  # the list, not what follows it
+
+
+def test_the_readme_map_names_only_modules_that_exist() -> None:
+    bullets = [b for b in readme_bullets() if b.startswith("- `")]
+    roots_seen: set[str] = set()
+    for bullet in bullets:
+        head, _, body = bullet.partition(":")
+        roots = [REPO / r.rstrip("/") for r in re.findall(r"`([\w/]+/)`", head)]
+        assert roots and all(root.is_dir() for root in roots), f"README map: {head!r} names no directory of the tree"
+        roots_seen |= {root.name for root in roots}
+        tree = {p.stem for root in roots for p in root.rglob("*.py")} | {
+            p.name for root in roots for p in root.rglob("*") if p.is_dir() and not p.name.startswith((".", "_"))}
+        names = [n.rstrip("/").rsplit("/", 1)[-1] for n in re.findall(r"`([a-z_][a-z0-9_/]*)`", body)]
+        stale = sorted({n for n in names if n not in tree})
+        assert not stale, f"README map under {head!r}: no module or folder {stale} in {[r.name for r in roots]}"
+    assert set(PACKAGES) <= roots_seen, f"README map: no entry for {sorted(set(PACKAGES) - roots_seen)}"
+
+
+def imported_roots(path: Path) -> set[str]:
+    roots: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            roots |= {alias.name.split(".")[0] for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            roots.add(node.module.split(".")[0])
+    return roots
+
+
+@pytest.mark.parametrize("package", sorted(FORBIDDEN))
+def test_the_core_keeps_its_layers(package: str) -> None:
+    crossing = {str(path.relative_to(REPO)): sorted(imported_roots(path) & FORBIDDEN[package])
+                for path in sorted((REPO / package).rglob("*.py"))}
+    crossing = {path: names for path, names in crossing.items() if names}
+    assert not crossing, f"{package} imports what its layer must not: {crossing}"
