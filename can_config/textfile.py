@@ -4,6 +4,7 @@ with ``node_id: 1`` and then ``node_id: 2`` would drive node 2)."""
 
 from __future__ import annotations
 
+import codecs
 import re
 import stat
 from pathlib import Path
@@ -62,6 +63,38 @@ def read_text_file(path: Path, what: str, hint: str = "give the YAML file", max_
     except UnicodeDecodeError as err:
         raise ConfigError(f"{path}: the {what} is not UTF-8 text (byte 0x{raw[err.start]:02X} at offset"
                           f" {err.start}); save it as UTF-8.") from err
+
+
+#: The piece a text file is checked in by :func:`check_text_file`.
+TEXT_CHECK_CHUNK_BYTES = 1 << 20
+
+
+def check_text_file(path: Path, what: str, hint: str) -> None:
+    """As :func:`read_text_file` judges a file (UTF-8 text, not binary, not UTF-16), read in pieces
+    and kept in none: a recording of any length is checked in bounded memory."""
+    check_regular_file(path, what, None)
+    decoder = codecs.getincrementaldecoder("utf-8")()
+    offset = 0
+    try:
+        with path.open("rb") as file:
+            while chunk := file.read(TEXT_CHECK_CHUNK_BYTES):
+                if offset == 0 and chunk.startswith((b"\xff\xfe", b"\xfe\xff")):
+                    raise ConfigError(f"{path}: the {what} is UTF-16 text; save it as UTF-8.")
+                if b"\x00" in chunk:
+                    raise ConfigError(f"{path}: the {what} is a binary file, not text; {hint}.")
+                try:
+                    decoder.decode(chunk)
+                except UnicodeDecodeError as err:
+                    raise ConfigError(f"{path}: the {what} is not UTF-8 text (byte 0x{chunk[err.start]:02X} at"
+                                      f" offset {offset + err.start}); save it as UTF-8.") from err
+                offset += len(chunk)
+            decoder.decode(b"", final=True)
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: the {what} is not UTF-8 text (it ends inside a character); save it as"
+                          " UTF-8.") from err
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read the {what} ({err.strerror or err}); check the path and its"
+                          " permissions.") from err
 
 
 class _StrictLoader(yaml.SafeLoader):

@@ -19,7 +19,7 @@ import can
 from can.io.blf import BLFParseError
 
 from can_config.errors import ConfigError
-from can_config.textfile import read_text_file
+from can_config.textfile import check_text_file
 
 logger = logging.getLogger(__name__)
 
@@ -158,7 +158,7 @@ def iter_recording(path: str) -> Iterator[can.Message]:
     if not file.is_file():
         raise ConfigError(f"{path}: no such recording (or not a regular file)")
     if suffix in TEXT_RECORDINGS:
-        read_text_file(file, "recording", "give a recording", max_bytes=None)  # binary or UTF-16 content is named
+        check_text_file(file, "recording", "give a recording")  # binary or UTF-16 content is named, in pieces
     unsafe = blf_problem(file) if suffix == ".blf" else _sqlite_problem(file) if suffix == ".db" else None
     if unsafe:
         raise ConfigError(f"{path}: not read: {unsafe}")
