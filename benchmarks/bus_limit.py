@@ -78,8 +78,8 @@ def traffic(frames: list[tuple[float, int, bytes]]) -> dict[str, float]:
             "load_worst_case": worst / span / WIRE_BITRATE}
 
 
-def stack(config: Path, seconds: float) -> dict[str, Any]:
-    """The stack run on ``config`` at HZ, keys prefixed ``bus_limit_``, with the traffic the listener saw."""
+def stack(config: Path, seconds: float, hz: float = HZ) -> dict[str, Any]:
+    """The stack run on ``config`` commanded at ``hz``, keys prefixed ``bus_limit_``, with the traffic the listener saw."""
     seen: list[list[tuple[float, int, bytes]]] = []
 
     class Recording(stack_run.Listener):
@@ -90,13 +90,13 @@ def stack(config: Path, seconds: float) -> dict[str, Any]:
     listener = stack_run.Listener
     stack_run.Listener = Recording  # type: ignore[misc]  # the run's own listener, its frames kept
     try:
-        out = stack_run.run_stack(config, seconds, HZ, ("--drive-processes",))
+        out = stack_run.run_stack(config, seconds, hz, ("--drive-processes",))
     finally:
         stack_run.Listener = listener  # type: ignore[misc]
     carried = traffic(seen[0]) if seen else {}
     out.pop("config", None)
     figures = {f"bus_limit_{k}": v for k, v in out.items()}
-    figures.update({"bus_limit_hz": HZ, "bus_limit_frames_per_s": round(carried.get("frames_per_s", 0.0)),
+    figures.update({"bus_limit_hz": hz, "bus_limit_frames_per_s": round(carried.get("frames_per_s", 0.0)),
                     "bus_limit_bus_load": round(carried.get("load", 0.0), 3),
                     "bus_limit_bus_load_worst_case_stuffing": round(carried.get("load_worst_case", 0.0), 3)})
     return figures
