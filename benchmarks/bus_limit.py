@@ -64,12 +64,13 @@ def limit_config(drives: int = DRIVES, hz: float = HZ) -> Iterator[Path]:
 
 def traffic(frames: list[tuple[float, int, bytes]]) -> dict[str, float]:
     """Frames/s and bus load (over 1 Mbit/s, without and with worst-case stuffing) of the frames
-    a listener saw while every drive was commanded: from the first set-point RPDO to the last TPDO."""
-    rpdos = [t for t, cob, _ in frames if 0x301 <= cob <= 0x37F]
-    tpdos = [t for t, cob, _ in frames if is_tpdo(cob)]
-    if not rpdos or not tpdos:
+    a listener saw while every drive was commanded: between the 2nd and the 98th percentile of the
+    set-point RPDOs' stamps (a few set-points go out at enable, before the commands; none after
+    them, while the run still reads its figures)."""
+    rpdos = sorted(t for t, cob, _ in frames if 0x301 <= cob <= 0x37F)
+    if len(rpdos) < 10 or not any(is_tpdo(cob) for _, cob, _ in frames):
         return {}
-    start, end = rpdos[0], max(rpdos[-1], tpdos[-1])
+    start, end = rpdos[len(rpdos) // 50], rpdos[len(rpdos) * 49 // 50]
     window = [(cob, data) for t, cob, data in frames if start <= t <= end]
     span = max(end - start, 1e-9)
     nominal = sum(frame_bits(len(d), worst_case_stuffing=False) for _, d in window)

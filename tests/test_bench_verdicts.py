@@ -75,3 +75,19 @@ def test_the_bus_limit_counts_only_when_the_emulator_carried_the_load() -> None:
     rows = {r.figure: r.verdict for r in verdicts({"bus_limit_sync_jitter_p99_us": 12_000.0,
                                                     "invalid": {"bus limit: emulator": reason}})}
     assert rows["bus_limit_sync_jitter_p99_us"] == f"no verdict: bus limit: emulator: {reason}"
+
+
+def test_the_traffic_carried_is_counted_while_the_drives_are_commanded() -> None:
+    """One drive at 100 Hz, 2 s commanded (SYNC, RPDO, two TPDOs a cycle: 400 frames/s), then 1 s
+    of SYNC and TPDOs only while the run reads its figures: that second is not the load."""
+    from bus_limit import traffic
+
+    frames = []
+    for k in range(300):
+        t = k * 0.01
+        frames += [(t, 0x080, b""), (t + 0.001, 0x281, bytes(8)), (t + 0.002, 0x381, bytes(4))]
+        if k < 200:
+            frames.append((t + 0.005, 0x301, bytes(6)))
+    carried = traffic(sorted(frames))
+    assert 390 <= carried["frames_per_s"] <= 410
+    assert 0 < carried["load"] < carried["load_worst_case"] < 0.2
