@@ -131,13 +131,32 @@ def cpu_ratio_pairs(pairs: int, seconds: float, priority: int) -> dict[str, Any]
     return {"more_pairs": ratios, "cpu_ratio_canopen_pairs_dropped_invalid": dropped}
 
 
+def carried_stack_run(seconds: float, invalid: dict[str, str]) -> dict[str, Any]:
+    """The rover's stack run, once more when the emulator did not carry its SYNC and TPDOs (the
+    machine starved it: bus_limit.not_carried); still not, the reason goes into ``invalid`` and the
+    figures resting on it get no verdict."""
+    import bus_limit
+    import stack_run
+
+    can0_drives = sum(1 for d in load_config(stack_run.SHIPPED["rover"]).drives if d.bus == "can0")
+    for attempt in (1, 2):
+        out = bus_limit.stack(stack_run.SHIPPED["rover"], seconds, 100.0, prefix="")
+        reason = bus_limit.not_carried(out, can0_drives, 100.0, prefix="")
+        if reason is None:
+            invalid.pop("stack run: emulator", None)
+            break
+        invalid["stack run: emulator"] = reason
+        print(f"stack run invalid (run {attempt} of 2): {reason}", file=sys.stderr, flush=True)
+    return out
+
+
 def bench_stack(seconds: float, pairs: int, errors: dict[str, str], invalid: dict[str, str]) -> dict[str, Any]:
     import same_work
     import stack_run
 
     # the six-drive twin as docs/performance.md says to run it: each bus's drive models in a
     # process of their own, so the server's SYNC timer waits for none of them (issue 43)
-    out: dict[str, Any] = stack_run.run_stack(stack_run.SHIPPED["rover"], seconds, 100.0, ("--drive-processes",))
+    out = carried_stack_run(seconds, invalid)
     priority = int(PARAMS["realtime_priority"].default)  # type: ignore[call-overload]
     # the issue's "canopen baseline, same work": the canopen library doing the stack run's CAN work
     # (the shipped config's two buses, the same PDOs, SYNC, every drive enabled in CSP and sent the

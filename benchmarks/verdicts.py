@@ -38,7 +38,11 @@ REFERENCE = frozenset({"cmd_latency_p50_ms", "cpu_core_fraction"})
 #: figure -> the baselines (run.py's benchmark names) its verdict rests on
 DEPENDS: dict[str, tuple[str, ...]] = {
     "cpu_ratio_canopen": ("canopen same work",),
-    "cmd_latency_ratio": ("bare path",),
+    "cmd_latency_ratio": ("stack run: emulator", "bare path"),
+    "cmd_latency_p99_ms": ("stack run: emulator",),
+    "sync_jitter_p99_us": ("stack run: emulator",),
+    "tpdo_loss": ("stack run: emulator",),
+    "host_heartbeat_gap_max_ms": ("stack run: emulator",),
     "bus_limit_cpu_ratio_canopen": ("bus limit: emulator", "bus limit: canopen same work"),
     "bus_limit_tpdo_loss": ("bus limit: emulator",),
     "bus_limit_cmd_latency_p99_ms": ("bus limit: emulator",),
