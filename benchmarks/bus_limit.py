@@ -122,7 +122,7 @@ def not_carried(figures: dict[str, Any], drives: int = DRIVES, hz: float = HZ, p
     due = (1 + 2 * drives) * hz  # its SYNC and two TPDOs per drive every cycle
     seen = figures.get(f"{prefix}emulator_frames_per_s", 0)
     if seen < CARRIED_MIN * due:
-        return f"the emulator carried {seen} of the {due:.0f} SYNC and TPDO frames/s due ({seen / due:.0%})"
+        return f"the listener saw {seen} of the {due:.0f} SYNC and TPDO frames/s the emulator owes ({seen / due:.0%})"
     loss = figures.get(f"{prefix}tpdo_loss") or 0
     if loss < 0:
         return f"the listener missed {-loss} TPDOs the driver applied"

@@ -71,7 +71,7 @@ def test_the_bus_limit_counts_only_when_the_emulator_carried_the_load() -> None:
 
     assert not_carried({"bus_limit_emulator_frames_per_s": 6480, "bus_limit_tpdo_loss": 0}) is None
     reason = not_carried({"bus_limit_emulator_frames_per_s": 1100, "bus_limit_frames_per_s": 9500})
-    assert reason is not None and "1100 of the 6500 SYNC and TPDO frames/s" in reason
+    assert reason is not None and "1100 of the 6500 SYNC and TPDO frames/s the emulator owes" in reason
     assert not_carried({"emulator_frames_per_s": 690}, 3, 100.0, prefix="") is None  # the rover's can0
     assert "missed 327 TPDOs" in str(not_carried({"bus_limit_emulator_frames_per_s": 6500,
                                                   "bus_limit_tpdo_loss": -327}))
