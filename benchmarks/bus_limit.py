@@ -17,6 +17,7 @@ the load reported here is the traffic measured at the listener over 1 Mbit/s.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import tempfile
 from collections.abc import Iterator
@@ -26,6 +27,8 @@ from typing import Any
 
 import yaml
 
+# a DDS domain of its own unless one is set (run.py's reason: another graph's /diagnostics and topics)
+os.environ.setdefault("ROS_DOMAIN_ID", str(70 + os.getpid() % 30))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import stack_run
 from stack_run import REPO, is_tpdo

@@ -39,6 +39,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from rovercan.launch import LOCAL_DISCOVERY
 
 os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns inherit it
+# a DDS domain of the run's own (unless one is set): another graph on this machine in the default
+# domain (a test's rover_driver) shares the wheels' topic names and /diagnostics, and its counts
+# or commands would be taken for the measured process's
+os.environ.setdefault("ROS_DOMAIN_ID", str(70 + os.getpid() % 30))
 
 from can_config import GENERIC_EDS, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
