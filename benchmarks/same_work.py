@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from stack_run import REPO, Listener, on_port, pct, proc_cpu_s, python_thread_names, simulator, thread_cpu_s, tpdos_on_wire
+from verdicts import InvalidBaseline
 
 #: The longest gap, p99, between two SYNCs, or two set-points to one drive, on the wire, in
 #: periods: the library's own cyclic thread and command loop run late by a few milliseconds on a
@@ -83,7 +84,7 @@ def baseline_same_work(config_path: Path, seconds: float, command_hz: float, pri
                 listener.close()
     ramp_deg = 0.1 * command_hz * seconds
     if not out["followed_deg"] > ramp_deg / 2:
-        raise RuntimeError(f"the canopen baseline's drives did not follow its commands (moved {out['followed_deg']} deg of"
+        raise InvalidBaseline(f"the canopen baseline's drives did not follow its commands (moved {out['followed_deg']} deg of"
                            f" a {ramp_deg:.0f} deg ramp): it did not do the same work")
     sent = tpdos_on_wire(listeners, t_stop)
     sync_gap = max(cadence(listener.frames, FunctionCode.SYNC, window0, window1) for listener in listeners)
@@ -94,7 +95,7 @@ def baseline_same_work(config_path: Path, seconds: float, command_hz: float, pri
                       for d in shipped.drives)
     sync_s = min(b.sync_period_s for b in shipped.buses)
     if sync_gap > CADENCE_MAX_PERIODS * sync_s or command_gap > CADENCE_MAX_PERIODS * 1.001 / command_hz:
-        raise RuntimeError(f"the canopen baseline's frames did not keep their period on the wire (p99 gap: SYNC"
+        raise InvalidBaseline(f"the canopen baseline's frames did not keep their period on the wire (p99 gap: SYNC"
                            f" {sync_gap * 1000:.1f} ms, set-points {command_gap * 1000:.1f} ms; periods {sync_s * 1000:g}"
                            f" and {1000 / command_hz:g} ms): it did not do the same work")
     return {f"{prefix}_tpdo_sent": sent, f"{prefix}_sync_gap_p99_ms": round(sync_gap * 1000, 2),

@@ -48,6 +48,13 @@ ROWS = [
     ("server_rss_peak_mb", "bus server peak RSS in that run, MB", "", None),
     ("cyclic_sync_error_p99_ms", "a 10 ms SYNC beside another client's 50,000 idle cyclic jobs, period error p99, ms",
      "< 1", "cyclic_sync_error_p99_ms_no_jobs"),
+    ("bus_limit_tpdo_loss", "bus at its limit (6 drives, one bus, 500 Hz CSP): TPDO loss", "0", None),
+    ("bus_limit_cpu_ratio_canopen", "bus at its limit: CPU of driver + ROS node / the canopen library's same work",
+     "<= 2", "bus_limit_baseline_canopen_same_work_rt_cpu_core_fraction"),
+    ("bus_limit_cmd_latency_p99_ms", "bus at its limit: command latency p99, ms", "<= 2", None),
+    ("bus_limit_sync_jitter_p99_us", "bus at its limit: SYNC period error p99, us", "<= 200", None),
+    ("bus_limit_frames_per_s", "bus at its limit: frames/s the emulator carried (9,500 due)", "", "bus_limit_bus_load"),
+    ("scaling_cost_spread", "CPU per drive-cycle, largest / smallest - 1 (1-18 drives, 100-500 Hz)", "<= 0.2", None),
 ]
 
 
@@ -66,7 +73,9 @@ def main() -> None:
                  "baseline_canopen_cpu_core_fraction": "canopen lib, state run",
                  "baseline_canopen_same_work_cpu_core_fraction": "ordinary scheduling",
                  "cyclic_sync_error_p99_ms_no_jobs": "no idle jobs",
-                 "bare_rt_6_topics_cpu_core_fraction": "bare path's CPU, 6 topics", "tpdo_delivery_p99_us": "a TPDO"}.get(base or "", "")
+                 "bare_rt_6_topics_cpu_core_fraction": "bare path's CPU, 6 topics", "tpdo_delivery_p99_us": "a TPDO",
+                 "bus_limit_baseline_canopen_same_work_rt_cpu_core_fraction": "canopen lib's CPU",
+                 "bus_limit_bus_load": "bus load"}.get(base or "", "")
         print(f"| {what} | {data.get(key)} | {target} | {f'{baseline} ({label})' if baseline is not None else ''} |")
 
 

@@ -1,0 +1,97 @@
+"""The benchmark run's verdicts (benchmarks/verdicts.py): a figure whose baseline the machine made
+invalid gets "no verdict" with the reason, not a failure; a valid measurement over its target is
+MISSED and only that makes the run exit 1 (a crashed benchmark: 2)."""
+
+from __future__ import annotations
+
+import sys
+
+from .conftest import REPO
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+from verdicts import TARGETS, exit_status, table, verdict, verdicts
+
+LATE = "SYNC p99 gap 22.0 ms for a 10 ms period"
+
+
+def test_a_figure_within_its_target_passes_and_over_it_is_missed() -> None:
+    assert verdict("cmd_latency_p99_ms", {"cmd_latency_p99_ms": 1.9}).verdict == "pass"
+    assert verdict("cmd_latency_p99_ms", {"cmd_latency_p99_ms": 2.1}).verdict == "MISSED"
+    assert verdict("tpdo_loss", {"tpdo_loss": 1}).verdict == "MISSED"
+    assert verdict("emulator_fps_socketcand", {"emulator_fps_socketcand": 9000}).verdict == "MISSED"
+    assert verdict("emulator_fps_socketcand", {"emulator_fps_socketcand": 10_000}).verdict == "pass"
+
+
+def test_an_invalid_baseline_gives_no_verdict_with_its_reason() -> None:
+    results = {"cpu_ratio_canopen": 9.0, "invalid": {"canopen same work": LATE}}
+    row = verdict("cpu_ratio_canopen", results)
+    assert row.verdict == f"no verdict: canopen same work: {LATE}"
+    assert exit_status([row], {}) == 0  # not a failure of the stack
+
+
+def test_an_invalid_baseline_takes_only_the_figures_resting_on_it() -> None:
+    results = {"cpu_ratio_canopen": 9.0, "cmd_latency_p99_ms": 3.0, "invalid": {"canopen same work": LATE}}
+    rows = {r.figure: r.verdict for r in verdicts(results)}
+    assert rows["cpu_ratio_canopen"].startswith("no verdict")
+    assert rows["cmd_latency_p99_ms"] == "MISSED"
+    assert exit_status(verdicts(results), {}) == 1
+
+
+def test_a_crashed_baseline_gives_no_verdict_and_the_run_says_it_crashed() -> None:
+    results = {"cpu_ratio_canopen": 1.0, "errors": {"canopen same work": "RuntimeError: boom"}}
+    rows = verdicts(results)
+    assert [r.verdict for r in rows] == ["no verdict: canopen same work failed"]
+    assert exit_status(rows, results["errors"]) == 2
+
+
+def test_a_figure_not_measured_is_no_verdict_and_an_unrun_benchmark_is_left_out() -> None:
+    assert verdict("bus_limit_tpdo_loss", {}).verdict == "no verdict: not measured"
+    assert verdicts({}) == []
+    assert len(verdicts({}, measured_only=False)) == len(TARGETS)
+
+
+def test_reference_figures_are_shown_never_gated() -> None:
+    rows = verdicts({"cpu_core_fraction": 0.3, "cmd_latency_p50_ms": 0.4})
+    assert {r.figure: r.verdict for r in rows} == {"cpu_core_fraction": "over (reference, not gated)",
+                                                   "cmd_latency_p50_ms": "pass (reference)"}
+    assert exit_status(rows, {}) == 0
+
+
+def test_the_table_has_a_row_per_figure() -> None:
+    text = table(verdicts({"tpdo_loss": 0, "sync_jitter_p99_us": 933.0}))
+    assert "| tpdo_loss | 0 | == 0 | pass |" in text
+    assert "| sync_jitter_p99_us | 933.0 | <= 200 | MISSED |" in text
+
+
+def test_the_bus_limit_counts_only_when_the_emulator_carried_the_load() -> None:
+    """Six drives at 500 Hz: the emulator owes 6,500 SYNC and TPDO frames/s; a run that saw 1,100 (a
+    busy machine) measured the machine, and its SYNC error and latencies get no verdict. The driver's
+    own set-points do not count: too few of them is the driver's miss."""
+    from bus_limit import not_carried
+
+    assert not_carried({"bus_limit_emulator_frames_per_s": 6480, "bus_limit_tpdo_loss": 0}) is None
+    reason = not_carried({"bus_limit_emulator_frames_per_s": 1100, "bus_limit_frames_per_s": 9500})
+    assert reason is not None and "1100 of the 6500 SYNC and TPDO frames/s the emulator owes" in reason
+    assert not_carried({"emulator_frames_per_s": 690}, 3, 100.0, prefix="") is None  # the rover's can0
+    assert "missed 327 TPDOs" in str(not_carried({"bus_limit_emulator_frames_per_s": 6500,
+                                                  "bus_limit_tpdo_loss": -327}))
+    rows = {r.figure: r.verdict for r in verdicts({"bus_limit_sync_jitter_p99_us": 12_000.0,
+                                                    "invalid": {"bus limit: emulator": reason}})}
+    assert rows["bus_limit_sync_jitter_p99_us"] == f"no verdict: bus limit: emulator: {reason}"
+
+
+def test_the_traffic_carried_is_counted_while_the_drives_are_commanded() -> None:
+    """One drive at 100 Hz, 2 s commanded (SYNC, RPDO, two TPDOs a cycle: 400 frames/s), then 1 s
+    of SYNC and TPDOs only while the run reads its figures: that second is not the load."""
+    from bus_limit import traffic
+
+    frames = []
+    for k in range(300):
+        t = k * 0.01
+        frames += [(t, 0x080, b""), (t + 0.001, 0x281, bytes(8)), (t + 0.002, 0x381, bytes(4))]
+        if k < 200:
+            frames.append((t + 0.005, 0x301, bytes(6)))
+    carried = traffic(sorted(frames))
+    assert 390 <= carried["frames_per_s"] <= 410
+    assert 290 <= carried["emulator_frames_per_s"] <= 310
+    assert 0 < carried["load"] < carried["load_worst_case"] < 0.2
