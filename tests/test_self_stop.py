@@ -118,3 +118,30 @@ def test_a_waited_move_ended_by_our_own_stop_says_so(driver_factory: DriverFacto
     worker.join(60.0)
     assert not worker.is_alive()
     assert errors and "interrupted by quick stop" in str(errors[0]), errors
+
+
+def test_an_enable_after_the_drive_stopped_itself_unseen_really_enables_it(driver_factory: DriverFactory) -> None:
+    """A stalled host's cache still says Operation Enabled while the drive has stopped itself (its
+    host watch): here its TPDOs are held back meanwhile, so the driver cannot see the stop. An
+    enable judged by the cache returned at once ("armed") and left the drive disabled; the drive's
+    state is asked by SDO first, and the enable walks it back to Operation Enabled."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    runner = sim.simulator_for(1)
+    # its heartbeat consumer is armed by the first host heartbeat it hears after 0x1016 was written
+    wait_for(lambda: bool(runner.call(lambda: dict(runner.drive(1)._consumer_seen))), 30.0, "its host watch armed")
+    apply_action(sim, {"action": "tpdos", "node": 1, "on": False})  # the driver hears no statusword now
+    apply_action(sim, {"action": "heartbeat_deaf", "node": 1})  # its host watch trips: it stops itself
+    wait_for(lambda: runner.call(lambda: runner.drive(1).state.name) != "OPERATION_ENABLED", 30.0,
+             "the drive stopped by itself")
+    apply_action(sim, {"action": "heartbeat_deaf", "node": 1, "on": False})
+    assert drive.cache.state.name == "OPERATION_ENABLED"  # what the driver still believes
+    drive.channel.set_hook(lambda point: apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
+                           if point.startswith("enable: before transition") else None)
+    try:
+        drive.enable()
+    finally:
+        drive.channel.set_hook(None)
+        apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
+    assert runner.call(lambda: runner.drive(1).state.name) == "OPERATION_ENABLED"

@@ -16,7 +16,7 @@ import time
 from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
-from motor_driver.cia402 import FAULT_STATES, SW, Command, State, next_step_to_enable
+from motor_driver.cia402 import FAULT_STATES, SW, Command, State, decode_state, next_step_to_enable
 from motor_driver.drive.busy import Op
 from motor_driver.drive.constants import (
     ENABLE_STEPS,
@@ -140,9 +140,13 @@ class PowerStateMachine:
                                       " drive (bench: --allow-no-host-watch) to arm it anyway. Nothing was sent.")
             self._cache.acknowledge_faults()  # asked again: from here on a FAULT stops motion anew
             self._channel.forget(self._cache.position_counts)
-            if self._cache.state != State.OPERATION_ENABLED:
+            # the drive's state now, by SDO (answered after this request): the cache may still show
+            # Operation Enabled from before a stall in which the drive stopped itself (its host
+            # watch), and an enable judged by that returned "armed" for a disabled drive
+            now = decode_state(self._sdo.read_number(OD.STATUSWORD))
+            if now != State.OPERATION_ENABLED:
                 self._clear_held_target()
-            self._walk_to_enabled(op, timeout_s)
+            self._walk_to_enabled(op, timeout_s, now)
 
             def verdict() -> None:
                 if self._cache.state != State.OPERATION_ENABLED:
@@ -153,12 +157,12 @@ class PowerStateMachine:
         if parent is None:
             logger.info("%s (node %d): armed (Operation Enabled)", self.name, self.node_id)
 
-    def _walk_to_enabled(self, op: Op, timeout_s: float) -> None:
-        """One transition at a time, each planned from the state the drive shows; a drive that
-        shows another state than the one a step was planned from (a statusword that was on its
-        way, a stop of another's) is planned for again from there."""
-        for _ in range(ENABLE_STEPS):
-            state = self._cache.state
+    def _walk_to_enabled(self, op: Op, timeout_s: float, first: State) -> None:
+        """One transition at a time, each planned from the state the drive shows (the first from
+        ``first``, read by SDO); a drive that shows another state than the one a step was planned
+        from (a statusword that was on its way, a stop of another's) is planned for again from there."""
+        for step_number in range(ENABLE_STEPS):
+            state = first if step_number == 0 else self._cache.state
             if state == State.OPERATION_ENABLED:
                 if self._channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:  # enabled, but not by this driver's word
                     self._channel.transition(op, "enable", Command.ENABLE_OPERATION)
