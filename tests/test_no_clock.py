@@ -92,9 +92,17 @@ def _measures_time(node: ast.AST, timed: set[str]) -> bool:
     return False
 
 
+ARITHMETIC = {ast.Add: float.__add__, ast.Sub: float.__sub__, ast.Mult: float.__mul__, ast.Div: float.__truediv__}
+
+
 def _constant(node: ast.AST) -> float | None:
+    """A number written in the test: a literal, or arithmetic of literals (``0.35 + 0.1 + 0.05``)."""
     if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)) and not isinstance(node.value, bool):
         return float(node.value)
+    if isinstance(node, ast.BinOp) and type(node.op) in ARITHMETIC:
+        left, right = _constant(node.left), _constant(node.right)
+        if left is not None and right is not None and not (isinstance(node.op, ast.Div) and right == 0):
+            return ARITHMETIC[type(node.op)](left, right)
     return None
 
 
@@ -165,9 +173,10 @@ def test_the_scan_finds_a_bare_sleep_and_a_clock_assert() -> None:
               "    assert took < 0.05\n"
               "    assert time.monotonic() - start <= 0.5\n"
               "    worst = max(0.0, time.perf_counter() - start)\n"
-              "    assert 0.005 > worst\n")
+              "    assert 0.005 > worst\n"
+              "    assert time.monotonic() - start < 0.35 + 0.1 + 5 * 0.01\n")
     found = scan(broken, "broken.py")
-    assert [p.split(":", 2)[1].split(" ")[0] for p in found] == ["4", "6", "7", "9"], found
+    assert [p.split(":", 2)[1].split(" ")[0] for p in found] == ["4", "6", "7", "9", "10"], found
     fine = ("import time\n"
             "def test_y(ready):\n"
             "    start = time.monotonic()\n"
