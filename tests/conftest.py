@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import os
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -244,12 +246,30 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, said: C
         time.sleep(0.005)
 
 
+#: What a bench command's stderr says when its drive stopped itself because this host's heartbeat
+#: went silent: a busy machine held the command's process past the drive's host timeout. The drive
+#: did right; the test's premise (the process gets the CPU) did not hold.
+HOST_SILENT = "EMCY 0x8130"
+
+
+def rovercan_cli(*args: str, timeout: float = 60, stalls: int = 2) -> subprocess.CompletedProcess[str]:
+    """`python -m rovercan ARGS` from the repository; run again (at most ``stalls`` times, said on
+    stderr) when it failed only because it was held past its drive's host timeout. A command that
+    never keeps its host heartbeat fails every time, so the test still fails."""
+    for attempt in range(stalls + 1):
+        result = subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
+                                timeout=timeout, check=False)
+        if result.returncode == 0 or HOST_SILENT not in result.stderr or attempt == stalls:
+            break
+        print(f"a stall, not a failure: `rovercan {' '.join(args)}` was held past its drive's host timeout"
+              f" (run {attempt + 1}); once more", file=sys.stderr)
+    return result
+
+
 @contextmanager
 def rovercan_sim(*args: str) -> Iterator[int]:
     """`rovercan sim ARGS` in its own process on a free port, until the block ends; yields the port."""
     import signal
-    import subprocess
-    import sys
 
     from .test_sim_cli import free_port
 

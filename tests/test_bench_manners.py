@@ -13,14 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import REPO, rovercan_sim
+from .conftest import REPO, rovercan_cli, rovercan_sim
 
 GENERIC_EDS_ARG = "generic"
 
 
 def run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=60, check=False)
+    return rovercan_cli(*args)
 
 
 def bus(port: int) -> list[str]:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import REPO, SHARED_TRAFFIC, requires_shared, rovercan_sim
+from .conftest import REPO, SHARED_TRAFFIC, requires_shared, rovercan_cli, rovercan_sim
 from .test_sim_cli import free_port
 
 GENERIC = str(REPO / "can_config" / "data" / "generic_cia402.eds")
@@ -25,8 +25,7 @@ def sim_port() -> Iterator[int]:
 
 def run(port: int | None, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
     bus = ["-i", "socketcand", "-c", "can0", "--bus-kwargs", "host=127.0.0.1", f"port={port}"] if port else []
-    return subprocess.run([sys.executable, "-m", "rovercan", *args, *bus], cwd=REPO, capture_output=True,
-                          text=True, timeout=timeout)
+    return rovercan_cli(*args, *bus, timeout=timeout)
 
 
 def as_json(result: subprocess.CompletedProcess[str]) -> object:

@@ -19,7 +19,7 @@ from can_config import load_config
 from can_config.errors import ConfigError
 from rovercan.cli import build_parser, main
 
-from .conftest import REPO
+from .conftest import REPO, rovercan_cli
 from .test_sim_cli import free_port
 
 
@@ -78,8 +78,7 @@ def test_a_bad_number_names_the_argument_and_the_range_and_exits_2(
 
 
 def run(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout)
+    return rovercan_cli(*args, timeout=timeout)
 
 
 @pytest.mark.parametrize(("args", "says"), [

@@ -5,13 +5,12 @@ sent. Drive commands never run on a bus nobody named."""
 from __future__ import annotations
 
 import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from .conftest import REPO, rovercan_sim
+from .conftest import REPO, rovercan_cli, rovercan_sim
 from .test_sim_cli import free_port
 
 
@@ -22,8 +21,7 @@ def sim_port() -> Iterator[int]:
 
 
 def run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=60)
+    return rovercan_cli(*args)
 
 
 def bus(port: int) -> list[str]:

@@ -21,7 +21,7 @@ from motor_driver import ForeignMasterError, MotorDriver
 from motor_driver.pdo import plan_pdos
 from virtual_can import SimDriveSpec, SimService
 
-from .conftest import REPO, make_config
+from .conftest import REPO, make_config, rovercan_cli
 from .test_host_loss import CLIENT, statusword_enabled, watching, write_config
 
 
@@ -39,8 +39,7 @@ def statusword_tpdos(eds: Path, node: int) -> dict[int, int]:
 
 
 def rovercan(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=60, check=False)
+    return rovercan_cli(*args)
 
 
 def bench(sim: SimService) -> list[str]:

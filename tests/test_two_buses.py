@@ -28,7 +28,7 @@ from typing import Any
 import pytest
 import yaml
 
-from .conftest import REPO, requires_ros, wait_for
+from .conftest import REPO, requires_ros, rovercan_cli, wait_for
 from .test_sim_cli import free_port
 
 SIDES = {"can0": ("left", False), "can1": ("right", True)}
@@ -65,8 +65,7 @@ class Rover:
 
 
 def rovercan(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout)
+    return rovercan_cli(*args, timeout=timeout)
 
 
 @pytest.fixture(scope="module")

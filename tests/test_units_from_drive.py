@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -24,7 +23,7 @@ from can_config.objects import DataType
 from motor_driver import MotorDriver
 from virtual_can import SimService
 
-from .conftest import REPO, SHARED_EDS, make_config, requires_shared
+from .conftest import SHARED_EDS, make_config, requires_shared, rovercan_cli
 
 SimFactory = Callable[[RoverConfig], tuple[SimService, RoverConfig]]
 EPOS4 = SHARED_EDS / "maxon_epos4_module50_5.eds"
@@ -51,8 +50,7 @@ def crafted_eds(path: Path, *, drop: tuple[int, ...] = (), vendor: int | None = 
 
 
 def rovercan(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "rovercan", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout, check=False)
+    return rovercan_cli(*args, timeout=timeout)
 
 
 def bus_args(sim: SimService) -> list[str]:
