@@ -58,7 +58,7 @@ class DriveCache:
         self._event = threading.Condition()
         self.received = Received()
         self.scale = scale
-        self._positions = PositionFilter(config.node_id, sync_period_s)
+        self.positions = PositionFilter(config.node_id, sync_period_s)  # others read it; only this module calls it
         self.set_scale(scale)
         # receive thread
         self._fault_seq = 0  # FAULT statuswords seen
@@ -95,33 +95,12 @@ class DriveCache:
     # ------------------------------------------------------------------ what others read
     # (besides the plain attributes above: read by anyone, written only here, tests/test_ownership.py)
     @property
-    def statusword(self) -> int:
-        return self.received.statusword
-
-    @property
     def state(self) -> State:
         return decode_state(self.received.statusword)
 
     @property
-    def mode_display(self) -> int:
-        return self.received.mode
-
-    @property
-    def position_counts(self) -> int:
-        return self.received.position_counts
-
-    @property
     def angle_deg(self) -> float:
         return self.scale.counts_to_deg(self.received.position_counts)
-
-    @property
-    def accel_counts_s2(self) -> float:
-        """The slope of the last velocity samples, counts/s^2 (0 after a gap)."""
-        return self._positions.accel_counts_s2
-
-    @property
-    def implausible_samples(self) -> int:
-        return self._positions.implausible
 
     @property
     def fault_seen(self) -> int | None:
@@ -177,14 +156,14 @@ class DriveCache:
     def set_scale(self, scale: Scale) -> None:
         """Boot: the drive's units (read from it) replace the config's."""
         self.scale = scale
-        self._positions.set_bound(int(abs(scale.counts_per_deg * self.config.max_velocity_deg_s)),
+        self.positions.set_bound(int(abs(scale.counts_per_deg * self.config.max_velocity_deg_s)),
                                   scale.counts_per_deg)
 
     def seed(self, statusword: int, position_counts: int, mode: int) -> None:
         """Boot (drive not booted, no PDO flows yet): the state read by SDO; the next position
         TPDO is trusted as it comes."""
         self.received = self.received._replace(statusword=statusword, position_counts=position_counts, mode=mode)
-        self._positions.trust_next()
+        self.positions.trust_next()
 
     def note_mode(self, mode: int) -> None:
         """A mode switch confirmed by SDO (0x6061): the cache shows it before the next TPDO."""
@@ -196,7 +175,7 @@ class DriveCache:
 
     def trust_next_position(self) -> None:
         """Homing moved the zero: the next position is taken as it comes."""
-        self._positions.trust_next()
+        self.positions.trust_next()
 
     def acknowledge_faults(self) -> None:
         """enable()/recover(): faults seen until now are dealt with; a later one stops motion anew."""
@@ -236,18 +215,18 @@ class DriveCache:
                     self._fault_word = value
                     self._fault_seq += 1
             elif index == OD.POSITION_ACTUAL:
-                if self._positions.plausible(value, position, timestamp):
+                if self.positions.plausible(value, position, timestamp):
                     position = value
                     self.position_seq += 1
             elif index == OD.VELOCITY_ACTUAL:
-                self._positions.track_accel(value, timestamp)
+                self.positions.track_accel(value, timestamp)
                 velocity = value
             elif index == OD.TORQUE_ACTUAL:
                 torque = value
             elif index == OD.MODES_OF_OPERATION_DISPLAY:
                 mode = value
         now = time.monotonic()
-        self.received = Received(sw, mode, position, velocity, torque, timestamp, now, self._positions.reference)
+        self.received = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference)
         self.tpdo_count += 1
         if OD.STATUSWORD in layout.indexes:
             self.status_seq += 1
