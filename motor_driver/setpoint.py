@@ -103,4 +103,4 @@ def rebase_after_switch(cache: DriveCache, channel: CommandChannel) -> None:
     position sampled after it, and make that the reference of the first set-point."""
     seq = cache.position_seq
     cache.wait_until(lambda: cache.position_seq != seq, SAMPLES_AFTER_SWITCH * cache.sync_period_s + 0.05)
-    channel.forget(cache.position_counts)
+    channel.forget(cache.received.position_counts)

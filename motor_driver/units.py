@@ -205,8 +205,8 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
                          f" the drive; readings assume {ASSUMED_COUNTS_PER_REV} counts/rev and motion is refused")
         units_per_joint_rev = motor_counts * gear
     counts_per_deg = units_per_joint_rev / 360.0
-    velocity = _velocity_per_unit(objects, gear, counts_per_deg, notes)
-    acceleration = _acceleration_per_unit(objects, gear, counts_per_deg, notes)
+    velocity = _per_unit(objects, 0x60A9, "velocity", gear, counts_per_deg, notes)
+    acceleration = _per_unit(objects, 0x60AA, "acceleration", gear, counts_per_deg, notes)
     check_units_per_deg(position=counts_per_deg, velocity=velocity, acceleration=acceleration)
     rated = rated_torque_nm
     mnm = objects.get((0x6076, 0))
@@ -217,33 +217,30 @@ def scale_from_objects(counts_per_rev: int | None, gear_ratio: float, rated_torq
     return Scale(counts_per_deg, rated, gear, velocity, invert, offset_deg, acceleration, known), notes
 
 
-def _velocity_per_unit(objects: dict[tuple[int, int], int], gear: float, counts_per_deg: float,
-                       notes: list[str]) -> float:
-    """Joint deg/s per unit of the drive's velocity (0x60A9), or 0.0 where it does not say."""
-    si = objects.get((0x60A9, 0))
+#: The time units of 0x60A9 (velocity) and 0x60AA (acceleration) this driver reads: SI
+#: denominator -> (seconds per that unit, its name in a note).
+_PER_TIME: dict[int, dict[int, tuple[float, str]]] = {
+    0x60A9: {SI_SECOND: (1.0, "s"), SI_MINUTE: (60.0, "min")},
+    0x60AA: {SI_SECOND_SQUARED: (1.0, "s^2")},
+}
+
+
+def _per_unit(objects: dict[tuple[int, int], int], index: int, what: str, gear: float, counts_per_deg: float,
+              notes: list[str]) -> float:
+    """Joint deg/s (0x60A9, velocity) or deg/s^2 (0x60AA, acceleration) per unit of the drive's
+    ``what``, or 0.0 where it does not say."""
+    si = objects.get((index, 0))
     if not si:
         return 0.0
     prefix, numerator, denominator = si_parts(si)
-    per_s = {SI_SECOND: 1.0, SI_MINUTE: 60.0}.get(denominator)
-    if numerator == SI_REVOLUTION and per_s is not None:
-        # value x 10^prefix motor revolutions per (s|min) -> joint deg/s
-        notes.append(f"velocity in 10^{prefix} rev/{'min' if per_s == 60 else 's'} (0x60A9)")
-        return per_s / (10.0**prefix * 360.0 / gear)
-    if numerator == SI_INCREMENT and per_s is not None:
-        return counts_per_deg * per_s / 10.0**prefix
-    return 0.0
-
-
-def _acceleration_per_unit(objects: dict[tuple[int, int], int], gear: float, counts_per_deg: float,
-                           notes: list[str]) -> float:
-    """Joint deg/s^2 per unit of the drive's acceleration (0x60AA), or 0.0 where it does not say."""
-    si_acc = objects.get((0x60AA, 0))
-    if not si_acc:
+    per = _PER_TIME[index].get(denominator)
+    if per is None:
         return 0.0
-    prefix, numerator, denominator = si_parts(si_acc)
-    if denominator == SI_SECOND_SQUARED and numerator == SI_INCREMENT:
-        return counts_per_deg / 10.0**prefix
-    if denominator == SI_SECOND_SQUARED and numerator == SI_REVOLUTION:
-        notes.append(f"acceleration in 10^{prefix} rev/s^2 (0x60AA)")
-        return 1.0 / (10.0**prefix * 360.0 / gear)
+    seconds, unit = per
+    if numerator == SI_REVOLUTION:
+        # value x 10^prefix motor revolutions per (s|min|s^2) -> joint deg/s (deg/s^2)
+        notes.append(f"{what} in 10^{prefix} rev/{unit} (0x{index:04X})")
+        return seconds / (10.0**prefix * 360.0 / gear)
+    if numerator == SI_INCREMENT:
+        return counts_per_deg * seconds / 10.0**prefix
     return 0.0

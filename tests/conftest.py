@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -19,6 +20,7 @@ import pytest
 
 from can_config import RoverConfig, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver, heap
+from motor_driver.drive import Drive
 from rovercan.launch import LOCAL_DISCOVERY
 from virtual_can import SimService
 from virtual_can.server import RAWMODE_HOLD_S
@@ -175,6 +177,20 @@ def driver_factory(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverC
         driver.close()
 
 
+#: The torque limit of :func:`torque_limited_drive`, and the refusal a command above it gets.
+TORQUE_LIMIT_NM = 0.8
+TORQUE_REFUSAL = r"max_torque_nm=0.8"
+
+
+@pytest.fixture
+def torque_limited_drive(driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> Drive:
+    """joint1 of a one-drive rover with max_torque_nm=TORQUE_LIMIT_NM, enabled."""
+    _, driver = driver_factory(make_config(1, max_torque_nm=TORQUE_LIMIT_NM))
+    drive = driver.drive("joint1")
+    drive.enable()
+    return drive
+
+
 @pytest.fixture
 def listener_factory() -> Iterator[Callable[[SimService], can.BusABC]]:
     """An independent python-can socketcand client on the simulator's bus."""
@@ -202,6 +218,13 @@ def drain(bus: can.BusABC, seconds: float) -> list[can.Message]:
         if msg is not None:
             out.append(msg)
     return out
+
+
+def received_id(bus: can.BusABC, timeout_s: float) -> int | None:
+    """The arbitration id of the next frame ``bus`` receives within ``timeout_s`` (a bound for a
+    hang), or None if none came."""
+    msg = bus.recv(timeout_s)
+    return None if msg is None else msg.arbitration_id
 
 
 def in_thread(call: Callable[[], object], catch: type[BaseException] = BaseException, *, name: str | None = None,
@@ -234,6 +257,41 @@ def ros_probe(name: str) -> tuple[Any, Any, Any]:
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(probe)
     return context, probe, executor
+
+
+@contextmanager
+def driver_node_spinning(driver: MotorDriver, *, probe_apart: bool = False) -> Iterator[Any]:
+    """``driver`` behind a DriverNode on a hot 'events' executor, spinning, and a node 'probe' in
+    the same fresh rclpy context, spun by that executor or (``probe_apart``) by one of its own;
+    yields the probe. At the end the threads stop, the nodes go and the context shuts down (the
+    driver is the caller's)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from nodes.rover_driver import DriverNode
+    from nodes.runtime import SpinThread, make_executor
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = DriverNode(driver, context=context)
+    probe = rclpy.create_node("probe", context=context)
+    hot = make_executor("events", context)
+    hot.add_node(node)
+    spinning = [SpinThread(hot, "test-hot")]
+    if probe_apart:
+        probe_executor = SingleThreadedExecutor(context=context)
+        probe_executor.add_node(probe)
+        spinning.append(SpinThread(probe_executor, "test-probe"))
+    else:
+        hot.add_node(probe)
+    try:
+        yield probe
+    finally:
+        for spin in spinning:
+            spin.stop(5.0)
+        node.destroy_node()
+        probe.destroy_node()
+        rclpy.shutdown(context=context)
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, said: Callable[[], str] | None = None) -> None:
@@ -269,8 +327,6 @@ def rovercan_cli(*args: str, timeout: float = 60, stalls: int = 2) -> subprocess
 @contextmanager
 def rovercan_sim(*args: str) -> Iterator[int]:
     """`rovercan sim ARGS` in its own process on a free port, until the block ends; yields the port."""
-    import signal
-
     from .test_sim_cli import free_port
 
     port = free_port()
@@ -282,6 +338,17 @@ def rovercan_sim(*args: str) -> Iterator[int]:
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=10)
+
+
+def stop_process(proc: subprocess.Popen[str], timeout_s: float = 30.0) -> None:
+    """SIGTERM to ``proc``, and its end awaited with its pipes drained; killed if it has not ended
+    within ``timeout_s`` (a bound for a hang: the whole suite loads two cores)."""
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
 
 
 def realtime_allowed() -> bool:

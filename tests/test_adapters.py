@@ -25,7 +25,7 @@ from motor_driver.adapters import (
 from virtual_can import SimService
 from virtual_can.client import format_frame
 
-from .conftest import wait_for
+from .conftest import received_id, wait_for
 
 
 def test_the_socketcand_client_keeps_its_socket_where_connection_closed_looks() -> None:
@@ -166,8 +166,7 @@ def test_a_held_sync_waits_for_the_next_frame_and_a_frame_with_data_never_waits(
     try:
         assert hold_lone_sync(bus, True)
         peer.send(beat)  # with data, alone: it wakes the thread (a mark too high would hold it)
-        got = bus.recv(10.0)
-        assert got is not None and got.arbitration_id == 0x701
+        assert received_id(bus, 10.0) == 0x701
         peer.send(sync)
         wait_for(lambda: queued() == SYNC_TEXT_BYTES, 10.0, "the SYNC in the bus's socket")
         assert bus.recv(0) is None  # there, and not woken for
@@ -177,8 +176,7 @@ def test_a_held_sync_waits_for_the_next_frame_and_a_frame_with_data_never_waits(
         assert (first.arbitration_id, second.arbitration_id) == (0x080, 0x701)  # nothing lost or reordered
         assert hold_lone_sync(bus, False)
         peer.send(sync)
-        got = bus.recv(10.0)
-        assert got is not None and got.arbitration_id == 0x080
+        assert received_id(bus, 10.0) == 0x080
     finally:
         peer.shutdown()
         bus.shutdown()

@@ -46,22 +46,20 @@ def test_wrong_type_names_file_key_value_and_allowed(tmp_path: Path) -> None:
     assert str(path) in text and "drives[0].gear_ratio" in text and "'fast'" in text and "expected a number" in text
 
 
-def test_unknown_key_suggests_the_close_one(tmp_path: Path) -> None:
-    path = write(tmp_path, GOOD.replace("gear_ratio:", "gear_ration:"))
-    with pytest.raises(ConfigError, match=r"drives\[0\]\.gear_ration: unknown key\. Did you mean 'gear_ratio'\?"):
-        load_config(path)
-
-
-def test_out_of_range_node_id(tmp_path: Path) -> None:
-    path = write(tmp_path, GOOD.replace("node_id: 1", "node_id: 128"))
-    with pytest.raises(ConfigError, match=r"node_id: got 128; expected a value >= 1 and <= 127"):
-        load_config(path)
-
-
-def test_malformed_yaml_names_the_line(tmp_path: Path) -> None:
-    path = write(tmp_path, "buses: [\n  - name: can0\n")
-    with pytest.raises(ConfigError, match=r"line \d+, column \d+: not valid YAML"):
-        load_config(path)
+@pytest.mark.parametrize(("text", "error"), [
+    pytest.param(GOOD.replace("gear_ratio:", "gear_ration:"),
+                 r"drives\[0\]\.gear_ration: unknown key\. Did you mean 'gear_ratio'\?", id="unknown key, the close one"),
+    pytest.param(GOOD.replace("node_id: 1", "node_id: 128"),
+                 r"node_id: got 128; expected a value >= 1 and <= 127", id="node id out of range"),
+    pytest.param("buses: [\n  - name: can0\n", r"line \d+, column \d+: not valid YAML", id="malformed YAML, its line"),
+    pytest.param(GOOD.replace("joint: continuous", "joint: limited\n    min_deg: 10\n    max_deg: -10"),
+                 r"min_deg must be below max_deg", id="limited joint, limits out of order"),
+    pytest.param(GOOD.replace("name: motor", "name: !!python/object/apply:os.system ['true']"), None,
+                 id="YAML never evaluated"),
+])
+def test_a_bad_config_says_what_is_wrong(tmp_path: Path, text: str, error: str | None) -> None:
+    with pytest.raises(ConfigError, match=error):
+        load_config(write(tmp_path, text))
 
 
 def test_missing_eds_is_a_clear_error(tmp_path: Path) -> None:
@@ -69,18 +67,6 @@ def test_missing_eds_is_a_clear_error(tmp_path: Path) -> None:
     config = load_config(path)
     with pytest.raises(EdsError, match=r"nowhere\.eds: EDS file not found"):
         load_drive_od(config.drives[0].eds)
-
-
-def test_limited_joint_needs_ordered_limits(tmp_path: Path) -> None:
-    path = write(tmp_path, GOOD.replace("joint: continuous", "joint: limited\n    min_deg: 10\n    max_deg: -10"))
-    with pytest.raises(ConfigError, match=r"min_deg must be below max_deg"):
-        load_config(path)
-
-
-def test_yaml_is_never_evaluated(tmp_path: Path) -> None:
-    path = write(tmp_path, GOOD.replace("name: motor", "name: !!python/object/apply:os.system ['true']"))
-    with pytest.raises(ConfigError):
-        load_config(path)
 
 
 @requires_shared

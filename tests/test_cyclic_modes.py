@@ -16,9 +16,21 @@ from can_config.config import GENERIC_EDS
 from can_config.errors import CommandRejected
 from can_config.objects import OperationMode
 from motor_driver import MotorDriver
+from motor_driver.drive import Drive
 from virtual_can.service import SimService
 
-from .conftest import HAVE_ROS, IN_PROCESS_HOST_TIMEOUT_MS, REPO, drain, make_config, requires_ros, wait_for
+from .conftest import (
+    HAVE_ROS,
+    IN_PROCESS_HOST_TIMEOUT_MS,
+    REPO,
+    TORQUE_LIMIT_NM,
+    TORQUE_REFUSAL,
+    drain,
+    driver_node_spinning,
+    make_config,
+    requires_ros,
+    wait_for,
+)
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 CYCLIC = {"velocity_mode": "cyclic", "torque_mode": "cyclic", "position_mode": "cyclic"}
@@ -79,12 +91,10 @@ def test_csv_refuses_a_jump_up_and_a_speed_beyond_the_limit(driver_factory: Driv
     drive.stream_velocity(0.0)  # slowing down is never refused
 
 
-def test_cst_drives_the_commanded_torque(driver_factory: DriverFactory) -> None:
-    _, driver = driver_factory(make_config(1, max_torque_nm=0.8))
-    drive = driver.drive("joint1")
-    drive.enable()
-    with pytest.raises(CommandRejected, match=r"max_torque_nm=0.8"):
-        drive.stream_torque(0.9)
+def test_cst_drives_the_commanded_torque(torque_limited_drive: Drive) -> None:
+    drive = torque_limited_drive
+    with pytest.raises(CommandRejected, match=TORQUE_REFUSAL):
+        drive.stream_torque(TORQUE_LIMIT_NM + 0.1)
     # 0.2 Nm against 0.03 Nm of friction speeds the joint up
     stream_until(drive.stream_torque, 0.2, drive.cache.sync_period_s,
                  lambda: abs(drive.snapshot().torque_nm - 0.2) <= 0.01 and drive.snapshot().velocity_deg_s > 50.0,
@@ -173,12 +183,9 @@ def test_the_first_streamed_set_point_after_a_switch_is_judged_from_where_the_dr
 
 
 if HAVE_ROS:
-    import rclpy
     from sensor_msgs.msg import JointState
 
     from nodes.qos import COMMAND_QOS
-    from nodes.rover_driver import DriverNode
-    from nodes.runtime import SpinThread, make_executor
 
 
 @pytest.fixture
@@ -190,21 +197,10 @@ def ros_driver() -> Iterator[tuple[MotorDriver, object]]:
     with SimService.from_config(config, port=0) as sim:
         from can_config import with_bus_overrides
         driver = MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)).start()
-        context = rclpy.Context()
-        rclpy.init(context=context)
-        node = DriverNode(driver, context=context)
-        probe = rclpy.create_node("probe", context=context)
-        executor = make_executor("events", context)
-        executor.add_node(node)
-        executor.add_node(probe)
-        spin = SpinThread(executor, "test-cyclic")
         try:
-            yield driver, probe
+            with driver_node_spinning(driver) as probe:
+                yield driver, probe
         finally:
-            spin.stop(5.0)
-            node.destroy_node()
-            probe.destroy_node()
-            rclpy.shutdown(context=context)
             driver.close()
 
 

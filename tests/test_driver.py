@@ -13,10 +13,11 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import BootError, CommandRejected, DriveStateError, DriveTimeoutError
 from motor_driver import MotorDriver, State
+from motor_driver.drive import Drive
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
-from .conftest import drain, make_config, wait_for
+from .conftest import TORQUE_LIMIT_NM, TORQUE_REFUSAL, drain, make_config, wait_for
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 
@@ -292,12 +293,10 @@ def test_cyclic_synchronous_position_streams_and_refuses_jumps(
     assert not [m for m in drain(listener, 0.05) if m.arbitration_id == 0x301]
 
 
-def test_profile_torque_and_its_limit(driver_factory: DriverFactory) -> None:
-    _, driver = driver_factory(make_config(1, max_torque_nm=0.8))
-    drive = driver.drive("joint1")
-    drive.enable()
-    with pytest.raises(CommandRejected, match=r"max_torque_nm=0.8"):
-        drive.set_torque(0.9)
+def test_profile_torque_and_its_limit(torque_limited_drive: Drive) -> None:
+    drive = torque_limited_drive
+    with pytest.raises(CommandRejected, match=TORQUE_REFUSAL):
+        drive.set_torque(TORQUE_LIMIT_NM + 0.1)
     for _ in range(10):
         drive.set_torque(0.5)
         time.sleep(0.02)

@@ -15,6 +15,7 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import DriveStateError
 from motor_driver import MotorDriver, State
+from motor_driver.drive import Drive
 from virtual_can import SimService
 
 from .conftest import drain, make_config, wait_for
@@ -31,14 +32,23 @@ def spoofed_fault(driver: MotorDriver) -> can.Message:
     return can.Message(arbitration_id=cob, data=layout.codec.pack(*values), is_extended_id=False)
 
 
-def test_one_fault_sample_stops_motion_until_recover_and_enable(
-        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
+Moving = tuple[Drive, can.BusABC, can.Message]
+
+
+@pytest.fixture
+def moving(driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> Moving:
+    """joint1 enabled and turning at 10 deg/s, a second client on its bus (the spoofer), and the
+    spoofed FAULT TPDO of it."""
     sim, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")
     drive.enable()
-    drive.set_velocity(20.0)
-    spoofer = listener_factory(sim)
-    spoofer.send(spoofed_fault(driver))
+    drive.set_velocity(10.0)
+    return drive, listener_factory(sim), spoofed_fault(driver)
+
+
+def test_one_fault_sample_stops_motion_until_recover_and_enable(moving: Moving) -> None:
+    drive, spoofer, fault = moving
+    spoofer.send(fault)
     wait_for(lambda: drive.cache.fault_seen is not None, 2.0, "the FAULT sample taken")
     wait_for(lambda: drive.cache.state is State.OPERATION_ENABLED, 2.0, "the drive's own next TPDO")
     drain(spoofer, 0.05)
@@ -51,14 +61,8 @@ def test_one_fault_sample_stops_motion_until_recover_and_enable(
     drive.set_velocity(30.0)  # asked again: moves again
 
 
-def test_a_statusword_flipping_every_5_ms_lets_no_velocity_command_through(
-        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
-    sim, driver = driver_factory(make_config(1))
-    drive = driver.drive("joint1")
-    drive.enable()
-    drive.set_velocity(10.0)
-    spoofer = listener_factory(sim)
-    fault = spoofed_fault(driver)
+def test_a_statusword_flipping_every_5_ms_lets_no_velocity_command_through(moving: Moving) -> None:
+    drive, spoofer, fault = moving
     stop = threading.Event()
 
     def flip() -> None:

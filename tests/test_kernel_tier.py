@@ -37,7 +37,17 @@ from motor_driver.driver import is_kernel_bus
 from virtual_can.sim import MotorParams, SimulatedDrive
 from virtual_can.sim.runner import DriveSimulator
 
-from .conftest import HAVE_ROS, KERNEL_BUS, KERNEL_DRIVE, REPO, SHARED_EDS, kernel_can_available, kernel_controllers_available, wait_for
+from .conftest import (
+    HAVE_ROS,
+    KERNEL_BUS,
+    KERNEL_DRIVE,
+    REPO,
+    SHARED_EDS,
+    kernel_can_available,
+    kernel_controllers_available,
+    stop_process,
+    wait_for,
+)
 from .kernel_stall import SEEN, Evidence, StallWatch, told_apart
 
 pytestmark = [pytest.mark.kernel, pytest.mark.skipif(kernel_can_available() is not None,
@@ -146,12 +156,7 @@ def sim_process(config: Path, wiring: Wiring = VCAN) -> Iterator[subprocess.Pope
         assert "simulated drive" in line, (line, proc.stderr.read() if proc.poll() is not None and proc.stderr else "")
         yield proc
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
+        stop_process(proc)
 
 
 @dataclass

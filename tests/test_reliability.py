@@ -126,7 +126,7 @@ def test_frame_faults_no_crash_no_wrong_state(driver_factory: DriverFactory, rat
         simulated = sim.simulator_for(drive.node_id).call(
             lambda d=drive: sim.simulator_for(d.node_id).drive(d.node_id).position_counts)
         # what the driver reports is what the drive has (within one SYNC of motion)
-        assert drive.cache.position_counts == pytest.approx(simulated, abs=50)
+        assert drive.cache.received.position_counts == pytest.approx(simulated, abs=50)
     assert driver.supervisor.alive
     assert all(h.network.notifier is not None and h.network.notifier.exception is None for h in driver.buses.values())
 
@@ -147,22 +147,22 @@ def _position_receiving(driver_factory: DriverFactory) -> tuple[Drive, Callable[
 
 def test_corrupted_position_is_not_reported(driver_factory: DriverFactory) -> None:
     drive, feed = _position_receiving(driver_factory)
-    before = drive.cache.position_counts
+    before = drive.cache.received.position_counts
     feed(before + 2**20, time.time())
-    assert drive.cache.position_counts == before  # a one-off jump beyond max velocity is held back
-    assert drive.cache.implausible_samples == 1
+    assert drive.cache.received.position_counts == before  # a one-off jump beyond max velocity is held back
+    assert drive.cache.positions.implausible == 1
 
 
 def test_a_jump_is_taken_only_when_two_more_samples_agree(driver_factory: DriverFactory) -> None:
     """The same corruption twice in a row is still held back; a real jump (homing, a reboot)
     is taken with the third sample that agrees."""
     drive, feed = _position_receiving(driver_factory)
-    before = drive.cache.position_counts
+    before = drive.cache.received.position_counts
     jumped = before + 2**29
     t = time.time()
     for i, expected in enumerate((before, before, jumped)):
         feed(jumped, t + 0.001 * i)
-        assert drive.cache.position_counts == expected, f"after {i + 1} sample(s) of the jump"
+        assert drive.cache.received.position_counts == expected, f"after {i + 1} sample(s) of the jump"
 
 
 FRAME = st.tuples(st.integers(0, 0x7FF), st.binary(max_size=8))
@@ -185,8 +185,8 @@ def test_random_frames_never_crash_the_driver(one_driver: MotorDriver, frames: l
         network.notify(cob, bytearray(data), time.time())  # raises if any callback does
     time.sleep(0.005)  # let the driver's own threads run between bursts
     drive = driver.drive("joint1")
-    assert 0 <= drive.cache.statusword <= 0xFFFF and isinstance(drive.cache.state, State)
-    assert -(2**31) <= drive.cache.position_counts < 2**31
+    assert 0 <= drive.cache.received.statusword <= 0xFFFF and isinstance(drive.cache.state, State)
+    assert -(2**31) <= drive.cache.received.position_counts < 2**31
 
 
 class ScriptedDaemon:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -12,7 +11,7 @@ from can_config import RoverConfig
 from motor_driver import MotorDriver
 from virtual_can import SimService
 
-from .conftest import HAVE_ROS, make_config, requires_ros
+from .conftest import HAVE_ROS, make_config, requires_ros, wait_for
 from .test_ros_interface import check_assembly
 
 pytestmark = requires_ros
@@ -53,19 +52,11 @@ def graph(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) 
     check_assembly(assembly, NODE_NAME, ["joint1"])  # rover_driver's, restricted to one joint
     spin = SpinThread(hot, "test-hot")
 
-    def spin_until(pred: Callable[[], bool], timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if pred():
-                return True
-            time.sleep(0.01)
-        return False
-
     def refused() -> int:
         return sum(st.level == bytes([1]) and "degree command" in st.message
                    for array in list(diags) for st in array.status if st.name == "rovercan: joint1")
 
-    yield {"pub": pub, "states": states, "spin_until": spin_until, "refused": refused,
+    yield {"pub": pub, "states": states, "refused": refused,
            "drive": assembly.driver.drive("joint1"), "driver": assembly.driver}
     spin.stop(5.0)
     assembly.close()
@@ -74,34 +65,35 @@ def graph(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) 
 
 
 def test_motor_state_angle_reaches_the_command(graph: dict[str, object]) -> None:
-    pub, states, spin_until = graph["pub"], graph["states"], graph["spin_until"]
-    assert spin_until(lambda: bool(states) and states[-1].enabled, 3.0)  # type: ignore[operator, attr-defined]
+    pub, states = graph["pub"], graph["states"]
+    wait_for(lambda: bool(states) and states[-1].enabled, 3.0, "an enabled /motor_state")  # type: ignore[attr-defined, index]
     pub.publish(Float32(data=42.0))  # type: ignore[attr-defined]
-    assert spin_until(lambda: abs(states[-1].angle - 42.0) < 0.1, 5.0), states[-1]  # type: ignore[operator, index]
+    wait_for(lambda: abs(states[-1].angle - 42.0) < 0.1, 5.0, "the angle at 42 deg",  # type: ignore[index]
+             lambda: str(states[-1]))  # type: ignore[index]
     last = states[-1]  # type: ignore[index]
     assert last.name == "joint1" and last.state == "OPERATION_ENABLED" and not last.fault
     assert last.header.stamp.sec > 0 and 0.0 < last.torque < 1.0
 
 
 def test_wrap_takes_the_short_way(graph: dict[str, object]) -> None:
-    pub, states, spin_until = graph["pub"], graph["states"], graph["spin_until"]
+    pub, states = graph["pub"], graph["states"]
     pub.publish(Float32(data=359.9))  # type: ignore[attr-defined]
-    assert spin_until(lambda: bool(states) and abs(states[-1].angle - 359.9) < 0.1, 5.0)  # type: ignore[operator, index]
+    wait_for(lambda: bool(states) and abs(states[-1].angle - 359.9) < 0.1, 5.0, "359.9 deg")  # type: ignore[index]
     pub.publish(Float32(data=0.0))  # type: ignore[attr-defined]
-    assert spin_until(lambda: states[-1].angle < 0.1 or states[-1].angle > 359.95, 5.0)  # type: ignore[operator, index]
+    wait_for(lambda: states[-1].angle < 0.1 or states[-1].angle > 359.95, 5.0, "0 deg")  # type: ignore[index]
     driver = graph["driver"]
     assert abs(driver.drive("joint1").cache.angle_deg) < 0.2  # type: ignore[attr-defined]  # -0.1 -> 0.0, not 359.9 -> 0.0
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_bad_command_is_refused_no_motion_node_alive(graph: dict[str, object], bad: float) -> None:
-    pub, states, spin_until, drive = graph["pub"], graph["states"], graph["spin_until"], graph["drive"]
-    assert spin_until(lambda: bool(states), 3.0)  # type: ignore[operator]
+    pub, states, drive = graph["pub"], graph["states"], graph["drive"]
+    wait_for(lambda: bool(states), 3.0, "a /motor_state")
     before = drive.cache.angle_deg  # type: ignore[attr-defined]
     pub.publish(Float32(data=bad))  # type: ignore[attr-defined]
-    assert spin_until(lambda: graph["refused"]() >= 1, 2.0)  # type: ignore[operator]  # a WARN diagnostic
+    wait_for(lambda: graph["refused"]() >= 1, 2.0, "a WARN diagnostic of the refusal")  # type: ignore[operator]
     count = len(states)  # type: ignore[arg-type]
-    assert spin_until(lambda: len(states) > count + 5, 2.0)  # type: ignore[arg-type, operator]  # still publishing
+    wait_for(lambda: len(states) > count + 5, 2.0, "more /motor_state: still publishing")  # type: ignore[arg-type]
     assert drive.cache.angle_deg == pytest.approx(before, abs=0.01)  # type: ignore[attr-defined]
     pub.publish(Float32(data=10.0))  # type: ignore[attr-defined]  # and still obeys good commands
-    assert spin_until(lambda: abs(states[-1].angle - 10.0) < 0.1, 5.0)  # type: ignore[index, operator]
+    wait_for(lambda: abs(states[-1].angle - 10.0) < 0.1, 5.0, "the angle at 10 deg")  # type: ignore[index]

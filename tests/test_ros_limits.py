@@ -16,22 +16,18 @@ from can_config import load_config
 from motor_driver import MotorDriver
 from virtual_can import SimService
 
-from .conftest import HAVE_ROS, requires_ros, wait_for
+from .conftest import HAVE_ROS, driver_node_spinning, requires_ros, wait_for
 from .test_limits import COUNTS_PER_DEG, Extremes
 from .test_ros_interface import in_process_host_timeout
 
 pytestmark = requires_ros
 
 if HAVE_ROS:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rovercan_msgs.msg import MotorState
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float32
 
     from nodes.qos import COMMAND_QOS, STATE_QOS
-    from nodes.rover_driver import DriverNode
-    from nodes.runtime import SpinThread, make_executor
 
 CONFIG = """buses:
   - {{name: can0, interface: socketcand, channel: can0, kwargs: {{host: 127.0.0.1, port: {port}}}}}
@@ -56,21 +52,8 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
     driver = MotorDriver(in_process_host_timeout(load_config(path))).start()
     for drive in driver:
         drive.enable()
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = DriverNode(driver, context=context)
-    probe = rclpy.create_node("probe", context=context)
-    hot = make_executor("events", context)
-    hot.add_node(node)
-    probe_executor = SingleThreadedExecutor(context=context)
-    probe_executor.add_node(probe)
-    spinning = [SpinThread(hot, "test-hot"), SpinThread(probe_executor, "test-probe")]
-    yield Rig(sim, driver, probe)
-    for spin in spinning:
-        spin.stop(5.0)
-    node.destroy_node()
-    probe.destroy_node()
-    rclpy.shutdown(context=context)
+    with driver_node_spinning(driver, probe_apart=True) as probe:
+        yield Rig(sim, driver, probe)
     driver.close()
     sim.close()
 

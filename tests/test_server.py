@@ -24,7 +24,7 @@ from virtual_can import BusEngine, SocketcandServer, VirtualBus
 from virtual_can.server import format_frame, parse_send
 from virtual_can.wire import frame_bits
 
-from .conftest import REPO, drain, realtime_allowed
+from .conftest import REPO, drain, realtime_allowed, received_id
 
 
 @pytest.fixture
@@ -107,11 +107,9 @@ def test_hostile_client_affects_only_itself(server: SocketcandServer) -> None:
         assert "< error" in reply
         time.sleep(0.05)
         engine_bus.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
-        msg = good.recv(2.0)
-        assert msg is not None and msg.arbitration_id == 0x181
+        assert received_id(good, 2.0) == 0x181
         good.send(can.Message(arbitration_id=0x201, data=b"\x02", is_extended_id=False))
-        got = engine_bus.recv(2.0)
-        assert got is not None and got.arbitration_id == 0x201
+        assert received_id(engine_bus, 2.0) == 0x201
     finally:
         bad.close()
         good.shutdown()

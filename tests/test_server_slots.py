@@ -16,7 +16,7 @@ from motor_driver import cyclic
 from virtual_can import BusEngine, SocketcandServer
 from virtual_can.server import DEFAULT_MAX_CLIENTS
 
-from .conftest import wait_for
+from .conftest import received_id, wait_for
 
 
 def resetting_connect(port: int) -> None:
@@ -44,8 +44,7 @@ def test_full_slots_and_resetting_clients_do_not_end_the_accept_loop() -> None:
                     can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as b:
                 time.sleep(0.1)
                 a.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
-                got = b.recv(2.0)
-                assert got is not None and got.arbitration_id == 0x123  # and it reads frames
+                assert received_id(b, 2.0) == 0x123  # and it reads frames
         finally:
             for sock in held:
                 sock.close()
@@ -81,8 +80,7 @@ def test_idle_hostile_connections_give_way_to_a_well_behaved_client() -> None:
                         can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as b:
                     time.sleep(0.1)
                     a.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
-                    got = b.recv(1.0)
-                    assert got is not None and got.arbitration_id == 0x123
+                    assert received_id(b, 1.0) == 0x123
                     assert time.monotonic() - started < 1.5
             assert srv.idle_closed >= 2
         finally:

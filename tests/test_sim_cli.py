@@ -19,7 +19,7 @@ import pytest
 from can_config import GENERIC_EDS
 from can_config.realtime import DRIVER_PRIORITY
 
-from .conftest import REPO, drain, realtime_allowed, requires_ros
+from .conftest import REPO, drain, realtime_allowed, requires_ros, stop_process
 
 
 def free_port() -> int:
@@ -177,12 +177,7 @@ def test_sim_on_a_bus_serves_the_drives_of_that_config_bus_only() -> None:
                         deadline = min(deadline, time.monotonic() + 0.5)  # a second drive per id would come now
             assert sorted(boot_ups) == [1, 2, 3], boot_ups
         finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            stop_process(proc)
 
 
 def test_drive_processes_serve_the_rover_and_a_dead_one_stops_the_twin(tmp_path: Path) -> None:

@@ -41,7 +41,7 @@ def test_vendor_drive_boots_enables_moves(eds: str, driver_factory: Callable[[Ro
             drive.stream_position(i * 0.5)
             time.sleep(0.01)
         wait_for(lambda: abs(drive.snapshot().angle_deg - 30.0) < 0.2, 2.0, "IP to 30 deg")
-        assert drive.snapshot().mode == 7 and drive.cache.statusword & 0x1000  # ip mode active
+        assert drive.snapshot().mode == 7 and drive.cache.received.statusword & 0x1000  # ip mode active
         with pytest.raises(CommandRejected, match=r"this drive has no homing mode \(no 0x6098 in its EDS\)"):
             drive.home()
         return

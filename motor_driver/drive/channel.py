@@ -62,8 +62,8 @@ class CommandChannel:
         self.cw = 0
         self.target_counts = 0
         self.stream_velocity_counts_s = 0
-        self._enable_sent_at = 0.0
-        self._generation = 0
+        self.last_enable_sent = 0.0  # when this driver last sent Enable Operation (monotonic), 0.0 never
+        self.generation = 0
         self._preempted: tuple[int, str] = (0, "")
         self._busy = BusyRegistry()
         self.closed = False
@@ -83,19 +83,10 @@ class CommandChannel:
     def handshake_idle(self) -> bool:
         return self._handshake.idle
 
-    @property
-    def last_enable_sent(self) -> float:
-        """When this driver last sent Enable Operation (monotonic), 0.0 never."""
-        return self._enable_sent_at
-
-    @property
-    def generation(self) -> int:
-        return self._generation
-
     def enabled_by_us(self, now: float, within_s: float) -> bool:
         """This driver's last controlword was Enable Operation, or it sent one within ``within_s``."""
         enable = int(Command.ENABLE_OPERATION)
-        sent = self._enable_sent_at
+        sent = self.last_enable_sent
         return self.cw & enable == enable or (sent > 0.0 and now - sent < within_s)
 
     def set_hook(self, hook: Callable[[str], None] | None) -> None:
@@ -127,8 +118,8 @@ class CommandChannel:
             if self._busy:
                 raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {self.busy};"
                                       " nothing was sent. Try again when it is done.")
-            self._generation += 1
-            op = self._busy.add(name, self._generation)
+            self.generation += 1
+            op = self._busy.add(name, self.generation)
         finally:
             self._lock.release()
         yield from self._run_registered(op)
@@ -156,7 +147,7 @@ class CommandChannel:
         the drive to get there (commands meanwhile are refused; another stop is not)."""
         self.stop(command, by)
         with self._lock:
-            op = self._busy.add(by, self._generation)
+            op = self._busy.add(by, self.generation)
         yield from self._run_registered(op)
 
     def stop(self, command: Command, by: str, timeout_s: float = -1.0) -> bool:
@@ -166,8 +157,8 @@ class CommandChannel:
         if not self._acquire(by, timeout_s):
             return False
         try:
-            self._generation += 1
-            self._preempted = (self._generation, by)
+            self.generation += 1
+            self._preempted = (self.generation, by)
             self.was_enabled = False
             self.velocity_commanded = False
             self._handshake.reset()
@@ -190,7 +181,7 @@ class CommandChannel:
             self.point(f"{doing}: decided")
             self.cw = int(command)
             if self.cw & ENABLED_CW_MASK == ENABLED_CW_MASK:
-                self._enable_sent_at = time.monotonic()
+                self.last_enable_sent = time.monotonic()
             sdo_word = self._emit_cw(self.cw | edge)
         finally:
             self._lock.release()

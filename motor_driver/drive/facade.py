@@ -15,7 +15,7 @@ through ``port``. This class adds no state and no rule: it builds the parts in o
 channel, and hands the drive's COB-IDs to the receive thread last, so that a frame never meets
 a half-built drive. Its few methods are the user's API (enable, the stops, moves, streams,
 velocity, torque, SDO, a snapshot); everything else is asked of the part that owns it
-(``drive.cache.statusword``, ``drive.power.supported_modes()``, ``drive.boot.boot_count``).
+(``drive.cache.received.statusword``, ``drive.power.supported_modes()``, ``drive.boot.boot_count``).
 """
 
 from __future__ import annotations

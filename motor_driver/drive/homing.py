@@ -63,7 +63,7 @@ class Homing:
             self._wait_new_position()
             self._channel.transition(op, "home", Command.ENABLE_OPERATION)
             self._power.set_mode(OperationMode.PROFILE_POSITION, parent=op)
-            self._channel.forget(self._cache.position_counts)
+            self._channel.forget(self._cache.received.position_counts)
 
     def _wait_new_position(self) -> None:
         """The first position after homing (the new zero), waited for by its arrival: a
@@ -75,7 +75,7 @@ class Homing:
             raise DriveTimeoutError(f"{self.name}: homing attained, but no position came from the drive within"
                                     f" {bound_s:g} s after it; its new zero is unknown. Check the bus and the"
                                     " drive's TPDOs, then home again.", node_id=self.node_id,
-                                    statusword=self._cache.statusword)
+                                    statusword=self._cache.received.statusword)
 
     def _after_start(self) -> tuple[int, int]:
         """The drive's statusword after it saw the start, and the count of statuswords received by
@@ -90,7 +90,7 @@ class Homing:
         cache = self._cache
 
         def attained() -> bool:
-            sw = cache.statusword if cache.status_seq != since else answered
+            sw = cache.received.statusword if cache.status_seq != since else answered
             if sw & SW.FOLLOWING_ERROR:
                 raise DriveStateError(f"{self.name}: homing error reported (statusword 0x{sw:04X})",
                                       node_id=self.node_id, statusword=sw)
@@ -106,4 +106,4 @@ class Homing:
 
         if not cache.wait_until(attained, timeout_s):
             raise DriveTimeoutError(f"{self.name}: homing not attained within {timeout_s:g} s", node_id=self.node_id,
-                                    statusword=cache.statusword)
+                                    statusword=cache.received.statusword)

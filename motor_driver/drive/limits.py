@@ -45,7 +45,7 @@ class LimitGuard:
         rx = cache.received
         scale = cache.scale
         velocity = scale.counts_s_to_deg_s(rx.velocity_counts_s)
-        accel = scale.counts_s_to_deg_s(cache.accel_counts_s2) if torque_mode else 0.0
+        accel = scale.counts_s_to_deg_s(cache.positions.accel_counts_s2) if torque_mode else 0.0
         accel = accel if accel * direction > 0 else 0.0  # only speeding up toward the limit counts
         age = min(max(time.time() - rx.stamp, 0.0), MAX_EXTRAPOLATION_S) if rx.stamp else 0.0
         # where the joint is now, and how fast, not when its TPDO was sampled
@@ -74,7 +74,7 @@ class LimitGuard:
 
     def after_brake(self, refusal: CommandRejected) -> None:
         """Outside the channel's lock: in a torque mode the brake ends in a quick stop; then the refusal."""
-        if self._cache.mode_display in TORQUE_MODES:
+        if self._cache.received.mode in TORQUE_MODES:
             self._channel.stop(Command.QUICK_STOP, "the limit guard's quick stop")
         raise refusal
 
@@ -84,7 +84,7 @@ class LimitGuard:
         if self._cache.state != State.OPERATION_ENABLED:
             frames.commanded(False)
             return False
-        mode = self._cache.mode_display
+        mode = self._cache.received.mode
         if mode not in VELOCITY_MODES and mode not in TORQUE_MODES:
             frames.commanded(False)
             return False
@@ -100,7 +100,7 @@ class LimitGuard:
             return
         cache = self._cache
         velocity = cache.scale.counts_s_to_deg_s(cache.received.velocity_counts_s)
-        torque_mode = cache.mode_display in TORQUE_MODES
+        torque_mode = cache.received.mode in TORQUE_MODES
         decel = self.config.quick_stop_decel_deg_s2 if torque_mode else self.config.profile_acceleration_deg_s2
         limit = self.limit_ahead(velocity, abs(velocity), decel, torque_mode)
         if limit is None:
@@ -127,7 +127,7 @@ class LimitGuard:
         if frames is None:
             return False
         try:
-            mode = self._cache.mode_display
+            mode = self._cache.received.mode
             if self._cache.state != State.OPERATION_ENABLED or (mode not in VELOCITY_MODES and mode not in TORQUE_MODES):
                 frames.commanded(False)
                 return True

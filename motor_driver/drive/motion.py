@@ -12,6 +12,7 @@ channel under that operation: a stop meanwhile wins.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import NamedTuple
 
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
@@ -65,13 +66,13 @@ class Motion:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing} refused: the drive reported FAULT"
                                   f" (statusword 0x{seen:04X}) since it was enabled, though it shows"
                                   f" {state.name} now; recover() and enable() it again",
-                                  node_id=self.node_id, statusword=cache.statusword)
+                                  node_id=self.node_id, statusword=cache.received.statusword)
         if state != State.OPERATION_ENABLED or self._channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
             if state in FAULT_STATES:
                 raise self._power.fault_error(doing)
             shown = state.name if state != State.OPERATION_ENABLED else "stopping"
             raise DriveStateError(f"{self.name}: {doing} refused: the drive is {shown}; enable() it"
-                                  " first", node_id=self.node_id, statusword=cache.statusword)
+                                  " first", node_id=self.node_id, statusword=cache.received.statusword)
 
     def _ensure_mode(self, mode: OperationMode, doing: str) -> None:
         """Before a motion command, outside the channel: the drive enabled and in ``mode`` (a mode
@@ -81,7 +82,7 @@ class Motion:
             raise CommandRejected(f"{self.name}: {doing} refused: the drive is busy with {busy};"
                                   " nothing was sent. Send it again when that is done.")
         self._require_enabled(doing)
-        if self._cache.mode_display != mode:
+        if self._cache.received.mode != mode:
             self._power.set_mode(mode)
 
     def _require_motion(self, mode: OperationMode, doing: str) -> None:
@@ -89,9 +90,9 @@ class Motion:
         is usable, this driver's last controlword was Enable Operation (no stop since), the last
         statusword said Operation Enabled, and the mode is still ``mode``."""
         self._require_enabled(doing)
-        if self._cache.mode_display != mode:
+        if self._cache.received.mode != mode:
             raise CommandRejected(f"{self.name}: {doing} refused: the drive left {mode.name} meanwhile (now"
-                                  f" {self._cache.mode_display}); nothing was sent. Send it again.")
+                                  f" {self._cache.received.mode}); nothing was sent. Send it again.")
 
     # ------------------------------------------------------------------ profile position
     def _position_target_counts(self, angle_deg: float) -> int:
@@ -145,7 +146,7 @@ class Motion:
     def wait_target_reached(self, timeout_s: float | None = None) -> None:
         cache = self._cache
         if timeout_s is None:
-            span = cache.scale.span_deg(self._channel.target_counts - cache.position_counts)
+            span = cache.scale.span_deg(self._channel.target_counts - cache.received.position_counts)
             cfg = self.config
             timeout_s = 2.0 + span / cfg.profile_velocity_deg_s + 2 * cfg.profile_velocity_deg_s / cfg.profile_acceleration_deg_s2
 
@@ -157,13 +158,13 @@ class Motion:
             self._channel.check(since, "move")
             if (stopped := self._power.stopped_itself("the move")) is not None:
                 raise stopped
-            return self._channel.handshake_idle and bool(cache.statusword & SW.TARGET_REACHED)
+            return self._channel.handshake_idle and bool(cache.received.statusword & SW.TARGET_REACHED)
 
         if not cache.wait_until(reached, timeout_s):
             raise DriveTimeoutError(f"{self.name}: target not reached within {timeout_s:.1f} s"
                                     f" (at {cache.angle_deg:.2f} deg, target"
                                     f" {cache.scale.counts_to_deg(self._channel.target_counts):.2f} deg)",
-                                    node_id=self.node_id, statusword=cache.statusword)
+                                    node_id=self.node_id, statusword=cache.received.statusword)
         # the statusword comes on change, the position on SYNC: wait for a position sampled
         # after the drive said 'reached', so the caller's snapshot is not one period old
         seq = cache.position_seq
@@ -283,29 +284,30 @@ class Motion:
         drive whose 0x6502 does not list CST."""
         self._torque_command(torque_nm, OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point", "CST torque")
 
+    @staticmethod
+    def _as_configured(mode: str, streamed: Callable[[float], object], profiled: Callable[[float], object],
+                       value: float) -> None:
+        """A command in the drive's configured way: one set-point of a stream (``mode`` is
+        ``cyclic``), else through the profile."""
+        if mode == "cyclic":
+            streamed(value)
+        else:
+            profiled(value)
+
     def command_position(self, angle_deg: float) -> None:
         """A position command in the drive's configured way: a profile-position move, or one
         set-point of a stream (``position_mode: cyclic``: CSP or IP, no handshake)."""
-        if self.config.position_mode == "cyclic":
-            self.stream_position(angle_deg)
-        else:
-            self.move_to(angle_deg)
+        self._as_configured(self.config.position_mode, self.stream_position, self.move_to, angle_deg)
 
     def command_velocity(self, velocity_deg_s: float) -> None:
         """A velocity command in the drive's configured way: profile velocity, or CSV
         (``velocity_mode: cyclic``)."""
-        if self.config.velocity_mode == "cyclic":
-            self.stream_velocity(velocity_deg_s)
-        else:
-            self.set_velocity(velocity_deg_s)
+        self._as_configured(self.config.velocity_mode, self.stream_velocity, self.set_velocity, velocity_deg_s)
 
     def command_torque(self, torque_nm: float) -> None:
         """A torque command in the drive's configured way: profile torque, or CST
         (``torque_mode: cyclic``)."""
-        if self.config.torque_mode == "cyclic":
-            self.stream_torque(torque_nm)
-        else:
-            self.set_torque(torque_nm)
+        self._as_configured(self.config.torque_mode, self.stream_torque, self.set_torque, torque_nm)
 
     # ------------------------------------------------------------------ streamed positions
     def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None) -> None:
@@ -321,8 +323,8 @@ class Motion:
         doing = "CSP setpoint" if mode == OperationMode.CYCLIC_SYNC_POSITION else "IP setpoint"
         target = OD.TARGET_POSITION if mode == OperationMode.CYCLIC_SYNC_POSITION else OD.INTERPOLATION_DATA
         by_sdo = self._plan.rpdo_with(target) is None
-        if by_sdo or self._cache.mode_display != mode:  # before an SDO or a mode switch; streaming by RPDO
-            switching = self._cache.mode_display != mode
+        if by_sdo or self._cache.received.mode != mode:  # before an SDO or a mode switch; streaming by RPDO
+            switching = self._cache.received.mode != mode
             self._ensure_mode(mode, doing)  # already, the channel decides busy, enabled and mode with the frame
             if switching:  # the first set-point: from where the drive holds after the switch (setpoint.py)
                 rebase_after_switch(self._cache, self._channel)
@@ -351,7 +353,7 @@ class Motion:
                                   " move (move_to, the move_joint action).")
 
     def _streaming_mode(self) -> OperationMode:
-        mode = self._cache.mode_display
+        mode = self._cache.received.mode
         if mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
             return OperationMode(mode)  # the hot path: streaming already
         supported = self._power.supported_modes()

@@ -68,7 +68,7 @@ class PowerStateMachine:
         what = f"EMCY 0x{code:04X} {emcy_text(code)}" if code else "no EMCY received"
         return DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is in FAULT"
                                f" ({what}); call recover() to reset it", node_id=self.node_id,
-                               statusword=self._cache.statusword, error_code=code)
+                               statusword=self._cache.received.statusword, error_code=code)
 
     def stopped_itself(self, doing: str) -> DriveStateError | None:
         """The error for an operation that needs Operation Enabled (homing, a move) when the drive
@@ -91,7 +91,7 @@ class PowerStateMachine:
         hint = " (0x8130: it heard no heartbeat from this host: was this process stalled?)" \
             if emcy is not None and emcy.code == EMCY_HEARTBEAT_LOST else ""
         return DriveStateError(f"{self.name} (node {self.node_id}): {doing} ended: {why}{hint}; enable it again"
-                               " to retry", node_id=self.node_id, statusword=cache.statusword,
+                               " to retry", node_id=self.node_id, statusword=cache.received.statusword,
                                error_code=emcy.code if emcy is not None else None)
 
     def wait_state(self, wanted: set[State], timeout_s: float, doing: str, *, fault_ok: bool = False,
@@ -116,7 +116,7 @@ class PowerStateMachine:
 
         if cache.wait_until(done, timeout_s):
             return cache.state
-        state, sw = cache.state, cache.statusword
+        state, sw = cache.state, cache.received.statusword
         hint = ""
         if state == State.READY_TO_SWITCH_ON and not sw & SW.VOLTAGE_ENABLED:
             hint = " The drive reports no voltage: is STO low or the E-stop pressed?"
@@ -139,7 +139,7 @@ class PowerStateMachine:
                                       " Give it a heartbeat consumer, or set allow_no_host_watch: true for this"
                                       " drive (bench: --allow-no-host-watch) to arm it anyway. Nothing was sent.")
             self._cache.acknowledge_faults()  # asked again: from here on a FAULT stops motion anew
-            self._channel.forget(self._cache.position_counts)
+            self._channel.forget(self._cache.received.position_counts)
             # the drive's state now, by SDO (answered after this request): the cache may still show
             # Operation Enabled from before a stall in which the drive stopped itself (its host
             # watch), and an enable judged by that returned "armed" for a disabled drive
@@ -151,7 +151,7 @@ class PowerStateMachine:
             def verdict() -> None:
                 if self._cache.state != State.OPERATION_ENABLED:
                     raise DriveTimeoutError(f"{self.name}: could not reach OPERATION_ENABLED", node_id=self.node_id,
-                                            statusword=self._cache.statusword)
+                                            statusword=self._cache.received.statusword)
 
             self._channel.mark_enabled(op, verdict)  # the verdict and a stop are ordered too
         if parent is None:
@@ -184,7 +184,7 @@ class PowerStateMachine:
                             f"enable (transition {number} to {target.name})", op=op, left=state, after=seq)
         raise DriveTimeoutError(f"{self.name} (node {self.node_id}): enable: not OPERATION_ENABLED after"
                                 f" {ENABLE_STEPS} transitions (now {self._cache.state.name}); is another master"
-                                " commanding it?", node_id=self.node_id, statusword=self._cache.statusword)
+                                " commanding it?", node_id=self.node_id, statusword=self._cache.received.statusword)
 
     def _clear_held_target(self) -> None:
         """Before enabling: the drive still holds the last target from before a fault or a stop
@@ -194,7 +194,7 @@ class PowerStateMachine:
         (0x607A / 0x60C1:1) and jumped back to it (9 deg); so where the shaft is now (0x6064,
         read now: the braked shaft does not move). By SDO: the RPDO that carries the target
         also carries the controlword "enable operation"."""
-        mode = self._cache.mode_display
+        mode = self._cache.received.mode
         if mode in VELOCITY_MODES:
             self._sdo.write_typed(OD.TARGET_VELOCITY, 0, 0)
         elif mode in TORQUE_MODES:
@@ -275,7 +275,7 @@ class PowerStateMachine:
         registered an operation (``op``; none at boot); a stop meanwhile preempts it."""
         if op is not None:
             self._channel.check(op, f"mode switch to {mode.name}")
-            self._channel.forget(self._cache.position_counts)
+            self._channel.forget(self._cache.received.position_counts)
         self._sdo.write_typed(OD.MODES_OF_OPERATION, 0, int(mode))
         self._channel.point("mode switch: 0x6060 written")
         deadline = time.monotonic() + MODE_SWITCH_TIMEOUT_S
@@ -289,7 +289,7 @@ class PowerStateMachine:
             if time.monotonic() > deadline:
                 raise DriveTimeoutError(f"node {self.node_id}: mode {mode.name} written to 0x6060 but"
                                         f" 0x6061 still shows {shown} after {MODE_SWITCH_TIMEOUT_S:g} s",
-                                        node_id=self.node_id, statusword=self._cache.statusword)
+                                        node_id=self.node_id, statusword=self._cache.received.statusword)
             time.sleep(STATE_POLL_S)
 
     def set_mode(self, mode: OperationMode | int, parent: Op | None = None) -> None:
@@ -302,7 +302,7 @@ class PowerStateMachine:
             raise CommandRejected(f"{self.name}: mode {mode.name} is not supported by node"
                                   f" {self.node_id} (0x6502 = 0x{supported:08X}); supported:"
                                   f" {', '.join(m.name for m, b in SUPPORTED_MODE_BIT.items() if supported >> b & 1)}")
-        if self._cache.mode_display == mode:
+        if self._cache.received.mode == mode:
             return
         with self._channel.operation("mode switch", parent) as op:
             self.switch_mode_sdo(mode, op)

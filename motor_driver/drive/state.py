@@ -56,31 +56,31 @@ class DriveCache:
         self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in plan.tpdos}
         self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in plan.tpdos)
         self._event = threading.Condition()
-        self._rx = Received()
-        self._scale = scale
-        self._positions = PositionFilter(config.node_id, sync_period_s)
+        self.received = Received()
+        self.scale = scale
+        self.positions = PositionFilter(config.node_id, sync_period_s)  # others read it; only this module calls it
         self.set_scale(scale)
         # receive thread
         self._fault_seq = 0  # FAULT statuswords seen
         self._fault_word = 0  # the last of them
-        self._position_seq = 0
-        self._status_seq = 0  # statuswords received
-        self._tpdo_count = 0
+        self.position_seq = 0
+        self.status_seq = 0  # statuswords received: one that arrives after a frame was sent has a higher number
+        self.tpdo_count = 0
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
-        self._nmt = "UNKNOWN"
-        self._reported_nmt = "UNKNOWN"
+        self.nmt_state = "UNKNOWN"
+        self.reported_nmt = "UNKNOWN"
         self._bootup_at = 0.0
         self._operational_at = 0.0
-        self._last_heartbeat = 0.0
+        self.last_heartbeat = 0.0
         self._last_emcy: Emcy | None = None
         self._guard_toggle = 0
-        self._guard_errors = 0
+        self.guard_errors = 0
         self._bootup = threading.Event()
         # written by others through methods, one writer each
         self._fault_ack = 0  # command threads (enable, recover)
         self._emcy_ack: Emcy | None = None  # command threads (recover)
-        self._guarding = False  # boot
+        self.guarding = False  # boot
 
     def connect(self, sink: StatusSink) -> None:
         """The channel that gets the statusword (before :meth:`subscribe`)."""
@@ -93,55 +93,14 @@ class DriveCache:
         self._network.subscribe(FunctionCode.EMCY + self.node_id, self.on_emcy)
 
     # ------------------------------------------------------------------ what others read
-    @property
-    def scale(self) -> Scale:
-        return self._scale
-
-    @property
-    def received(self) -> Received:
-        return self._rx
-
-    @property
-    def statusword(self) -> int:
-        return self._rx.statusword
-
+    # (besides the plain attributes above: read by anyone, written only here, tests/test_ownership.py)
     @property
     def state(self) -> State:
-        return decode_state(self._rx.statusword)
-
-    @property
-    def mode_display(self) -> int:
-        return self._rx.mode
-
-    @property
-    def position_counts(self) -> int:
-        return self._rx.position_counts
-
-    @property
-    def accel_counts_s2(self) -> float:
-        """The slope of the last velocity samples, counts/s^2 (0 after a gap)."""
-        return self._positions.accel_counts_s2
+        return decode_state(self.received.statusword)
 
     @property
     def angle_deg(self) -> float:
-        return self._scale.counts_to_deg(self._rx.position_counts)
-
-    @property
-    def position_seq(self) -> int:
-        return self._position_seq
-
-    @property
-    def status_seq(self) -> int:
-        """Statuswords received so far: one that arrives after a frame was sent has a higher number."""
-        return self._status_seq
-
-    @property
-    def tpdo_count(self) -> int:
-        return self._tpdo_count
-
-    @property
-    def implausible_samples(self) -> int:
-        return self._positions.implausible
+        return self.scale.counts_to_deg(self.received.position_counts)
 
     @property
     def fault_seen(self) -> int | None:
@@ -153,18 +112,6 @@ class DriveCache:
         emcy = self._last_emcy
         return None if emcy is self._emcy_ack else emcy
 
-    @property
-    def last_heartbeat(self) -> float:
-        return self._last_heartbeat
-
-    @property
-    def nmt_state(self) -> str:
-        return self._nmt
-
-    @property
-    def reported_nmt(self) -> str:
-        return self._reported_nmt
-
     def reset_since_operational(self) -> bool:
         """A boot-up came after the drive's last OPERATIONAL heartbeat."""
         return self._bootup_at > self._operational_at
@@ -172,14 +119,6 @@ class DriveCache:
     @property
     def behind_back(self) -> tuple[float, str]:
         return self._behind_back
-
-    @property
-    def guarding(self) -> bool:
-        return self._guarding
-
-    @property
-    def guard_errors(self) -> int:
-        return self._guard_errors
 
     @property
     def booted(self) -> bool:
@@ -216,27 +155,27 @@ class DriveCache:
     # ------------------------------------------------------------------ others' writes, one each
     def set_scale(self, scale: Scale) -> None:
         """Boot: the drive's units (read from it) replace the config's."""
-        self._scale = scale
-        self._positions.set_bound(int(abs(scale.counts_per_deg * self.config.max_velocity_deg_s)),
+        self.scale = scale
+        self.positions.set_bound(int(abs(scale.counts_per_deg * self.config.max_velocity_deg_s)),
                                   scale.counts_per_deg)
 
     def seed(self, statusword: int, position_counts: int, mode: int) -> None:
         """Boot (drive not booted, no PDO flows yet): the state read by SDO; the next position
         TPDO is trusted as it comes."""
-        self._rx = self._rx._replace(statusword=statusword, position_counts=position_counts, mode=mode)
-        self._positions.trust_next()
+        self.received = self.received._replace(statusword=statusword, position_counts=position_counts, mode=mode)
+        self.positions.trust_next()
 
     def note_mode(self, mode: int) -> None:
         """A mode switch confirmed by SDO (0x6061): the cache shows it before the next TPDO."""
-        self._rx = self._rx._replace(mode=mode)
+        self.received = self.received._replace(mode=mode)
 
     def note_statusword(self, statusword: int) -> None:
         """Boot: a statusword read by SDO before PDOs flow."""
-        self._rx = self._rx._replace(statusword=statusword)
+        self.received = self.received._replace(statusword=statusword)
 
     def trust_next_position(self) -> None:
         """Homing moved the zero: the next position is taken as it comes."""
-        self._positions.trust_next()
+        self.positions.trust_next()
 
     def acknowledge_faults(self) -> None:
         """enable()/recover(): faults seen until now are dealt with; a later one stops motion anew."""
@@ -248,13 +187,13 @@ class DriveCache:
 
     def set_guarding(self, on: bool) -> None:
         """Boot: the drive answers guards (its toggle starts at 0 after a reset)."""
-        self._guarding = on
+        self.guarding = on
         self._guard_toggle = 0
 
     def note_started(self) -> None:
         """Boot, at NMT start (the supervisor marks the drive booted when boot reports it)."""
-        self._nmt = "OPERATIONAL"
-        self._last_heartbeat = time.monotonic()
+        self.nmt_state = "OPERATIONAL"
+        self.last_heartbeat = time.monotonic()
         self._fault_ack = self._fault_seq
 
     # ------------------------------------------------------------------ the receive thread
@@ -266,7 +205,7 @@ class DriveCache:
             logger.warning("node %d: TPDO 0x%03X with %d bytes, expected %d; ignored",
                            self.node_id, cob_id, len(data), layout.codec.size)
             return
-        rx = self._rx
+        rx = self.received
         sw, mode, position, velocity, torque = rx.statusword, rx.mode, rx.position_counts, rx.velocity_counts_s, \
             rx.torque_permille
         for index, value in zip(layout.indexes, values, strict=True):
@@ -276,21 +215,21 @@ class DriveCache:
                     self._fault_word = value
                     self._fault_seq += 1
             elif index == OD.POSITION_ACTUAL:
-                if self._positions.plausible(value, position, timestamp):
+                if self.positions.plausible(value, position, timestamp):
                     position = value
-                    self._position_seq += 1
+                    self.position_seq += 1
             elif index == OD.VELOCITY_ACTUAL:
-                self._positions.track_accel(value, timestamp)
+                self.positions.track_accel(value, timestamp)
                 velocity = value
             elif index == OD.TORQUE_ACTUAL:
                 torque = value
             elif index == OD.MODES_OF_OPERATION_DISPLAY:
                 mode = value
         now = time.monotonic()
-        self._rx = Received(sw, mode, position, velocity, torque, timestamp, now, self._positions.reference)
-        self._tpdo_count += 1
+        self.received = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference)
+        self.tpdo_count += 1
         if OD.STATUSWORD in layout.indexes:
-            self._status_seq += 1
+            self.status_seq += 1
             self._on_statusword(sw, now)
 
     def _on_statusword(self, sw: int, now: float) -> None:
@@ -313,32 +252,32 @@ class DriveCache:
         if not data:
             return
         state = data[0] & 0x7F
-        if self._guarding and state != NmtState.BOOTUP:  # a guard's answer: its toggle must alternate
+        if self.guarding and state != NmtState.BOOTUP:  # a guard's answer: its toggle must alternate
             toggle = data[0] >> 7
             if toggle != self._guard_toggle:
-                self._guard_errors += 1
+                self.guard_errors += 1
                 logger.warning("node %d (%s): node guarding answer with toggle %d, expected %d; not counted",
                                self.node_id, self.name, toggle, self._guard_toggle)
                 self._guard_toggle = toggle ^ 1  # in step again from the next answer on
                 return
             self._guard_toggle ^= 1
-        now = self._last_heartbeat = time.monotonic()
-        was = self._reported_nmt
+        now = self.last_heartbeat = time.monotonic()
+        was = self.reported_nmt
         if state == NmtState.BOOTUP:
-            self._nmt = self._reported_nmt = "BOOTUP"
+            self.nmt_state = self.reported_nmt = "BOOTUP"
             self._bootup_at = now
             self._bootup.set()
             self._port.post(Heard(self.name, state, was, now))
             return
         try:
-            self._nmt = NmtState(state).name
+            self.nmt_state = NmtState(state).name
         except ValueError:
-            self._nmt = f"0x{state:02X}"
-        self._reported_nmt = self._nmt
+            self.nmt_state = f"0x{state:02X}"
+        self.reported_nmt = self.nmt_state
         if state == NmtState.OPERATIONAL:
             self._operational_at = now
         # the supervisor judges a change (another master's, or its own NMT command's) and a lost drive heard again
-        if self._nmt != was or self._runtime.lost:
+        if self.nmt_state != was or self._runtime.lost:
             self._port.post(Heard(self.name, state, was, now))
 
     def on_emcy(self, cob_id: int, data: bytearray, timestamp: float) -> None:
@@ -354,19 +293,19 @@ class DriveCache:
 
     # ------------------------------------------------------------------ the snapshot
     def snapshot(self, foreign_master: str = "") -> DriveState:
-        rx = self._rx
+        rx = self.received
         sw, state = rx.statusword, decode_state(rx.statusword)
         error_code = emcy.code if (emcy := self.last_emcy) is not None else 0
         now = time.monotonic()
-        hb_age = now - self._last_heartbeat if self._last_heartbeat else math.inf
+        hb_age = now - self.last_heartbeat if self.last_heartbeat else math.inf
         data_age = now - rx.rx_monotonic if rx.rx_monotonic else math.inf
         stale = data_age > self.config.stale_after_syncs * self.sync_period_s
-        scale, lost = self._scale, self._runtime.lost
+        scale, lost = self.scale, self._runtime.lost
         torque = scale.permille_to_nm(rx.torque_permille) if self._has_torque else math.nan
         return DriveState(
             name=self.name, node_id=self.node_id, angle_deg=scale.counts_to_deg(rx.position_counts),
             velocity_deg_s=scale.counts_s_to_deg_s(rx.velocity_counts_s), torque_nm=torque,
-            statusword=sw, state=state, mode=rx.mode, nmt=self._nmt,
+            statusword=sw, state=state, mode=rx.mode, nmt=self.nmt_state,
             enabled=state == State.OPERATION_ENABLED and not lost and not stale,
             fault=state in FAULT_STATES or lost, lost=lost, error_code=error_code,
             error_text=emcy_text(error_code) if error_code else "",

@@ -8,6 +8,7 @@ import logging
 import struct
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 import can
@@ -292,22 +293,29 @@ def cmd_nmt(args: argparse.Namespace) -> int:
 
 
 
+def _node_options(p: argparse.ArgumentParser, func: Callable[[argparse.Namespace], int], *, eds_help: str = "",
+                  master_flags: bool = False) -> None:
+    """What every nodes command takes after its own arguments: the bus, an EDS (where it names
+    objects), the rover config, --json; and the function that runs it."""
+    add_bus_args(p)
+    if eds_help:
+        p.add_argument("--eds", help=eds_help)
+    add_config_arg(p)
+    if master_flags:
+        add_master_flags(p)
+    add_json(p)
+    p.set_defaults(func=func)
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """The nodes commands' parsers."""
     p = sub.add_parser("scan", help="find CANopen nodes: heartbeats and an SDO probe of 0x1000/0x1018 over ids 1-127")
-    add_bus_args(p)
     p.add_argument("--listen", type=real(0.05, 600), default=1.2, help="seconds to collect answers and heartbeats")
-    add_config_arg(p)
-    add_json(p)
-    p.set_defaults(func=cmd_scan)
+    _node_options(p, cmd_scan)
 
     p = sub.add_parser("info", help="identity, firmware, modes, PDO mapping and error history of a node")
     p.add_argument("node")
-    add_bus_args(p)
-    p.add_argument("--eds", help="EDS for object names")
-    add_config_arg(p)
-    add_json(p)
-    p.set_defaults(func=cmd_info)
+    _node_options(p, cmd_info, eds_help="EDS for object names")
 
     p = sub.add_parser("sdo", help="SDO read or write (types and names from --eds)")
     p.add_argument("action", choices=("read", "write"))
@@ -316,26 +324,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("value", nargs="?")
     p.add_argument("--size", type=int, default=4, choices=(1, 2, 4), help="bytes to write without an EDS")
     p.add_argument("--force", action="store_true", help="write an object the driver protects (bench only; logged)")
-    add_bus_args(p)
-    p.add_argument("--eds", help="EDS for the object's type and name")
-    add_config_arg(p)
-    add_json(p)
-    p.set_defaults(func=cmd_sdo)
+    _node_options(p, cmd_sdo, eds_help="EDS for the object's type and name")
 
     p = sub.add_parser("save", help="store the drive's parameters in its memory (0x1010 'save')")
     p.add_argument("node")
     p.add_argument("--sub", type=whole(1, 4), default=1,
                    help="1 all (default), 2 communication, 3 application, 4 manufacturer parameters")
-    add_bus_args(p)
-    add_config_arg(p)
-    add_json(p)
-    p.set_defaults(func=cmd_save)
+    _node_options(p, cmd_save)
 
     p = sub.add_parser("nmt", help="NMT command to a node or all nodes")
     p.add_argument("action", choices=tuple(NMT_COMMANDS))
     p.add_argument("node", help="node id, a drive's name (with --config) or 'all'")
-    add_bus_args(p)
-    add_config_arg(p)
-    add_master_flags(p)
-    add_json(p)
-    p.set_defaults(func=cmd_nmt)
+    _node_options(p, cmd_nmt, master_flags=True)

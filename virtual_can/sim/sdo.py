@@ -8,11 +8,14 @@ request payload to one response payload, so it is tested byte for byte.
 from __future__ import annotations
 
 import struct
+from typing import TypeVar
 
 from virtual_can.sim.objects import ABORT_GENERAL, ObjectStore, SdoAbort
 
 ABORT_TOGGLE = 0x0503_0000
 ABORT_COMMAND = 0x0504_0001
+
+_Buffer = TypeVar("_Buffer", bytes, bytearray)
 
 
 def abort_frame(index: int, subindex: int, code: int) -> bytes:
@@ -67,13 +70,19 @@ class SdoServer:
         self._toggle = 0
         return struct.pack("<BHBI", 0x41, index, subindex, len(data))
 
-    def _upload_segment(self, req: bytes) -> bytes:
-        if self._upload is None:
-            raise SdoAbort(ABORT_COMMAND, *self._mux, "no upload in progress")
+    def _segment(self, req: bytes, pending: _Buffer | None, what: str) -> tuple[_Buffer, int]:
+        """The transfer a segment request continues, and its toggle bit: aborts a segment of no
+        transfer, or one whose toggle does not alternate."""
+        if pending is None:
+            raise SdoAbort(ABORT_COMMAND, *self._mux, f"no {what} in progress")
         toggle = (req[0] >> 4) & 1
         if toggle != self._toggle:
             raise SdoAbort(ABORT_TOGGLE, *self._mux, "toggle bit")
-        chunk, self._upload = self._upload[:7], self._upload[7:]
+        return pending, toggle
+
+    def _upload_segment(self, req: bytes) -> bytes:
+        upload, toggle = self._segment(req, self._upload, "upload")
+        chunk, self._upload = upload[:7], upload[7:]
         last = not self._upload
         n = 7 - len(chunk)
         head = (toggle << 4) | (n << 1) | int(last)
@@ -95,15 +104,11 @@ class SdoServer:
         return struct.pack("<BHBI", 0x60, index, subindex, 0)
 
     def _download_segment(self, req: bytes) -> bytes:
-        if self._download is None:
-            raise SdoAbort(ABORT_COMMAND, *self._mux, "no download in progress")
-        toggle = (req[0] >> 4) & 1
-        if toggle != self._toggle:
-            raise SdoAbort(ABORT_TOGGLE, *self._mux, "toggle bit")
+        download, toggle = self._segment(req, self._download, "download")
         n = (req[0] >> 1) & 0x07
-        self._download += req[1:8 - n]
+        download += req[1:8 - n]
         self._toggle ^= 1
         if req[0] & 0x01:
-            data, self._download = bytes(self._download), None
+            data, self._download = bytes(download), None
             self.store.write(*self._mux, data)
         return bytes([0x20 | (toggle << 4)]) + bytes(7)
