@@ -198,34 +198,6 @@ SUPPORTED_MODE_BIT: dict[OperationMode, int] = {
 #: CiA 402 device profile number in the low 16 bits of 0x1000.
 CIA402_PROFILE = 402
 
-
-class Cia402State(IntEnum):
-    """CiA 402 power drive states (figure 'state machine'). UNKNOWN is no drive's state: it is
-    what a master reads from a statusword that codes none of them."""
-
-    NOT_READY_TO_SWITCH_ON = 0
-    SWITCH_ON_DISABLED = 1
-    READY_TO_SWITCH_ON = 2
-    SWITCHED_ON = 3
-    OPERATION_ENABLED = 4
-    QUICK_STOP_ACTIVE = 5
-    FAULT_REACTION_ACTIVE = 6
-    FAULT = 7
-    UNKNOWN = 8
-
-
-#: (mask, value) of statusword bits 0-3, 5, 6 for each state (CiA 402 table 'state coding').
-STATE_CODING: dict[Cia402State, tuple[int, int]] = {
-    Cia402State.NOT_READY_TO_SWITCH_ON: (0x4F, 0x00),
-    Cia402State.SWITCH_ON_DISABLED: (0x4F, 0x40),
-    Cia402State.READY_TO_SWITCH_ON: (0x6F, 0x21),
-    Cia402State.SWITCHED_ON: (0x6F, 0x23),
-    Cia402State.OPERATION_ENABLED: (0x6F, 0x27),
-    Cia402State.QUICK_STOP_ACTIVE: (0x6F, 0x07),
-    Cia402State.FAULT_REACTION_ACTIVE: (0x4F, 0x0F),
-    Cia402State.FAULT: (0x4F, 0x08),
-}
-
 #: SDO abort codes (CiA 301, 7.2.4.3.17) and their meaning.
 SDO_ABORT_TEXT: dict[int, str] = {
     0x0503_0000: "toggle bit not alternated",

@@ -1,20 +1,26 @@
 """CiA 402 drive profile as data: states, controlword commands, the transition table.
 
-Pure functions only; :class:`motor_driver.drive.Drive` does the I/O. The states and their
-statusword coding are can_config's passive table (one definition, shared with the simulator;
-tests/test_cia402.py checks it against real drives' statuswords); the commands and the
-transition table are written from CiA 402 (IEC 61800-7-201) on their own, independently of
-the simulator's state machine.
+Pure functions only; :class:`motor_driver.drive.Drive` does the I/O. Written from CiA 402
+(IEC 61800-7-201) on its own, independently of the simulator's state machine.
 """
 
 from __future__ import annotations
 
 from enum import IntEnum
 
-from can_config.objects import STATE_CODING, Cia402State
 
-#: The drive states (one definition in can_config, shared with the simulator).
-State = Cia402State
+class State(IntEnum):
+    """Power drive states (CiA 402 figure 'state machine')."""
+
+    NOT_READY_TO_SWITCH_ON = 0
+    SWITCH_ON_DISABLED = 1
+    READY_TO_SWITCH_ON = 2
+    SWITCHED_ON = 3
+    OPERATION_ENABLED = 4
+    QUICK_STOP_ACTIVE = 5
+    FAULT_REACTION_ACTIVE = 6
+    FAULT = 7
+    UNKNOWN = 8
 
 
 class Command(IntEnum):
@@ -57,9 +63,17 @@ class CW(IntEnum):
     HALT = 1 << 8
 
 
-#: (mask, value, state) of the statusword, in the order decode_state tries them.
-_STATE_CODING: tuple[tuple[int, int, State], ...] = tuple(
-    (mask, value, state) for state, (mask, value) in STATE_CODING.items())
+#: (mask, value) of the statusword for each state (CiA 402 table 'state coding').
+_STATE_CODING: tuple[tuple[int, int, State], ...] = (
+    (0x4F, 0x00, State.NOT_READY_TO_SWITCH_ON),
+    (0x4F, 0x40, State.SWITCH_ON_DISABLED),
+    (0x6F, 0x21, State.READY_TO_SWITCH_ON),
+    (0x6F, 0x23, State.SWITCHED_ON),
+    (0x6F, 0x27, State.OPERATION_ENABLED),
+    (0x6F, 0x07, State.QUICK_STOP_ACTIVE),
+    (0x4F, 0x0F, State.FAULT_REACTION_ACTIVE),
+    (0x4F, 0x08, State.FAULT),
+)
 
 
 #: The states of a drive in fault (its reaction running, or done).

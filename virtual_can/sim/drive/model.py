@@ -10,19 +10,38 @@ import logging
 import math
 import struct
 from dataclasses import dataclass, field
+from enum import IntEnum
 
 from can_config.config import SimModelConfig
-from can_config.objects import STATE_CODING, Cia402State
 from virtual_can.sim.objects import ObjectStore
 
 logger = logging.getLogger(__name__)
 
-#: The drive states (one definition in can_config, shared with the driver).
-State = Cia402State
+
+class State(IntEnum):
+    """CiA 402 power state machine states (the simulator's own definition)."""
+
+    NOT_READY_TO_SWITCH_ON = 0
+    SWITCH_ON_DISABLED = 1
+    READY_TO_SWITCH_ON = 2
+    SWITCHED_ON = 3
+    OPERATION_ENABLED = 4
+    QUICK_STOP_ACTIVE = 5
+    FAULT_REACTION_ACTIVE = 6
+    FAULT = 7
 
 
 #: Statusword bits 0-3, 5, 6 for each state (CiA 402 table 30).
-STATUS_BITS: dict[State, int] = {state: value for state, (_mask, value) in STATE_CODING.items()}
+STATUS_BITS: dict[State, int] = {
+    State.NOT_READY_TO_SWITCH_ON: 0x0000,
+    State.SWITCH_ON_DISABLED: 0x0040,
+    State.READY_TO_SWITCH_ON: 0x0021,
+    State.SWITCHED_ON: 0x0023,
+    State.OPERATION_ENABLED: 0x0027,
+    State.QUICK_STOP_ACTIVE: 0x0007,
+    State.FAULT_REACTION_ACTIVE: 0x000F,
+    State.FAULT: 0x0008,
+}
 
 #: Longest integration step of the motor model.
 PHYSICS_STEP_S = 0.001
