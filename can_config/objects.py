@@ -198,6 +198,25 @@ SUPPORTED_MODE_BIT: dict[OperationMode, int] = {
 #: CiA 402 device profile number in the low 16 bits of 0x1000.
 CIA402_PROFILE = 402
 
+
+class Cia402State(IntEnum):
+    """The names of the CiA 402 power drive states (figure 'state machine'), a passive
+    definition both sides use. How a statusword codes them is not here: the driver
+    (motor_driver/cia402.py) and the simulator (virtual_can/sim/drive/model.py) each read it from
+    the standard on their own, so that a misreading is not baked into both. UNKNOWN is no
+    drive's state: what a master makes of a statusword that codes none of them."""
+
+    NOT_READY_TO_SWITCH_ON = 0
+    SWITCH_ON_DISABLED = 1
+    READY_TO_SWITCH_ON = 2
+    SWITCHED_ON = 3
+    OPERATION_ENABLED = 4
+    QUICK_STOP_ACTIVE = 5
+    FAULT_REACTION_ACTIVE = 6
+    FAULT = 7
+    UNKNOWN = 8
+
+
 #: SDO abort codes (CiA 301, 7.2.4.3.17) and their meaning.
 SDO_ABORT_TEXT: dict[int, str] = {
     0x0503_0000: "toggle bit not alternated",

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 
 logger = logging.getLogger(__name__)
@@ -36,20 +36,35 @@ def _may_try(what: str) -> bool:
     return True
 
 
+def _set_fifo(what: str, tasks: Callable[[], Iterable[int]], priority: int, *, skip_ended: bool,
+              refused: tuple[int, str], done: str) -> bool:
+    """Each Linux task ``tasks()`` lists under ``SCHED_FIFO`` at ``priority``, said in the log
+    (``done``, or at ``refused``'s level its text with the reason); True if they all are.
+    ``skip_ended``: a task that ended meanwhile is passed over (a thread of this process), not a
+    refusal (a pid someone asked for)."""
+    try:
+        for tid in tasks():
+            try:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            except ProcessLookupError:
+                if not skip_ended:
+                    raise
+    except OSError as err:
+        level, text = refused
+        logger.log(level, "%s: " + text, what, err)
+        return False
+    logger.info("%s: " + done, what, priority)
+    return True
+
+
 def make_thread_realtime(what: str, priority: int = REALTIME_PRIORITY, *, pid: int = 0) -> bool:
     """Put the calling thread (or the single-threaded process ``pid``) under ``SCHED_FIFO`` at
     ``priority``; True if it now is. A thread only: the other threads of the process keep their
     scheduling."""
-    if not _may_try(what):
-        return False
-    try:
-        os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(priority))  # 0: this thread (a Linux task)
-    except OSError as err:
-        logger.info("%s: an ordinary thread: real-time scheduling refused (%s); give the interpreter"
-                    " CAP_SYS_NICE or an rtprio limit for a steadier period on a busy machine", what, err)
-        return False
-    logger.info("%s: SCHED_FIFO priority %d", what, priority)
-    return True
+    return _may_try(what) and _set_fifo(
+        what, lambda: [pid], priority, skip_ended=False, done="SCHED_FIFO priority %d",  # 0: this thread
+        refused=(logging.INFO, "an ordinary thread: real-time scheduling refused (%s); give the interpreter"
+                               " CAP_SYS_NICE or an rtprio limit for a steadier period on a busy machine"))
 
 
 def make_process_realtime(what: str, priority: int) -> bool:
@@ -61,20 +76,11 @@ def make_process_realtime(what: str, priority: int) -> bool:
     On a busy machine an ordinary thread that wakes for a frame or a command waits for a core
     behind whatever runs there: the six-drive stack run's command latency p99 was 2.9 ms with the
     driver's threads ordinary and 1.2-1.6 ms with them under SCHED_FIFO (docs/performance.md)."""
-    if not _may_try(what) or not os.path.isdir("/proc/self/task"):
-        return False
-    try:
-        for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):
-            try:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-            except ProcessLookupError:
-                continue  # the thread ended meanwhile
-    except OSError as err:
-        logger.warning("%s: ordinary scheduling: SCHED_FIFO refused (%s); give the interpreter CAP_SYS_NICE or an"
-                       " rtprio limit (docs/deployment.md) for a steady latency on a busy machine", what, err)
-        return False
-    logger.info("%s: every thread under SCHED_FIFO priority %d", what, priority)
-    return True
+    return _may_try(what) and os.path.isdir("/proc/self/task") and _set_fifo(
+        what, lambda: sorted(int(t) for t in os.listdir("/proc/self/task")), priority, skip_ended=True,
+        done="every thread under SCHED_FIFO priority %d",
+        refused=(logging.WARNING, "ordinary scheduling: SCHED_FIFO refused (%s); give the interpreter CAP_SYS_NICE"
+                                  " or an rtprio limit (docs/deployment.md) for a steady latency on a busy machine"))
 
 
 @contextmanager

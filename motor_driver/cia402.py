@@ -8,19 +8,11 @@ from __future__ import annotations
 
 from enum import IntEnum
 
+from can_config.objects import Cia402State
 
-class State(IntEnum):
-    """Power drive states (CiA 402 figure 'state machine')."""
-
-    NOT_READY_TO_SWITCH_ON = 0
-    SWITCH_ON_DISABLED = 1
-    READY_TO_SWITCH_ON = 2
-    SWITCHED_ON = 3
-    OPERATION_ENABLED = 4
-    QUICK_STOP_ACTIVE = 5
-    FAULT_REACTION_ACTIVE = 6
-    FAULT = 7
-    UNKNOWN = 8
+#: Power drive states (CiA 402 figure 'state machine'): their names are can_config's passive
+#: definition; how a statusword codes them (below) is this module's own reading.
+State = Cia402State
 
 
 class Command(IntEnum):

@@ -10,25 +10,17 @@ import logging
 import math
 import struct
 from dataclasses import dataclass, field
-from enum import IntEnum
 
 from can_config.config import SimModelConfig
+from can_config.objects import Cia402State
 from virtual_can.sim.objects import ObjectStore
 
 logger = logging.getLogger(__name__)
 
 
-class State(IntEnum):
-    """CiA 402 power state machine states (the simulator's own definition)."""
-
-    NOT_READY_TO_SWITCH_ON = 0
-    SWITCH_ON_DISABLED = 1
-    READY_TO_SWITCH_ON = 2
-    SWITCHED_ON = 3
-    OPERATION_ENABLED = 4
-    QUICK_STOP_ACTIVE = 5
-    FAULT_REACTION_ACTIVE = 6
-    FAULT = 7
+#: CiA 402 power states: the names are can_config's passive definition; their statusword coding
+#: (below) and the state machine are the simulator's own reading of the standard.
+State = Cia402State
 
 
 #: Statusword bits 0-3, 5, 6 for each state (CiA 402 table 30).
