@@ -168,8 +168,8 @@ def test_boot_enable_move_on_each_interface(interface: str,
             MotorDriver(config) as driver:
         driver.start()
         drive = driver.drive("joint1")
-        drive.enable()
-        drive.move_to(33.0, wait=True)
+        drive.enable(60.0)  # per transition, and the move's wait: bounds for a hang in the VM's emulation
+        drive.move_to(33.0, wait=True, timeout_s=60.0)
         assert drive.cache.angle_deg == pytest.approx(33.0, abs=0.2)
 
 

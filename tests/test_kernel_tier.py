@@ -221,7 +221,7 @@ def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Pa
         assert type(handle.sync_task).__module__ == "can.interfaces.socketcan.socketcan", type(handle.sync_task)
         drive = driver.drive("wheel1")
         t0 = time.time()
-        drive.enable()
+        drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
         drive.move_to(30.0, wait=True, timeout_s=HANG_S)
         assert drive.snapshot().angle_deg == pytest.approx(30.0, abs=0.3)
         for _ in range(20):  # profile velocity
@@ -244,7 +244,7 @@ def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Pa
         t1 = time.time()
         wait_for(lambda: abs(drive.snapshot().angle_deg - (start + 5.0)) < 0.5, HANG_S, "the streamed target")
         assert drive.snapshot().mode == 8 and not drive.watch.foreign_master  # its own SYNC is no other master
-        drive.quick_stop()
+        drive.quick_stop(HANG_S)
     # the kernel's SYNC went on through the steps: while the drive was enabled before the stream,
     # and during the stream (a second of set-points, one per SYNC period)
     syncs = [m.timestamp for m in listener.frames if m.arbitration_id == 0x080]
@@ -279,7 +279,7 @@ def test_a_second_masters_sync_is_noticed_and_the_drivers_own_never(tmp_path: Pa
     with simulator(config), MotorDriver(load_config(config)) as driver:
         driver.start()
         drive = driver.drive("wheel1")
-        drive.enable()
+        drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
         enabled = time.time()
         wait_for(lambda: sum(m.arbitration_id == 0x080 and m.timestamp > enabled for m in list(listener.frames)) >= 40,
                  HANG_S, "40 SYNCs of the driver's own")
@@ -362,7 +362,7 @@ def test_a_candump_of_a_session_decodes_and_replays(tmp_path: Path, listener: Li
             with MotorDriver(load_config(config)) as driver:
                 driver.start()
                 drive = driver.drive("wheel1")
-                drive.enable()
+                drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
                 drive.move_to(10.0, wait=True, timeout_s=30.0)
             time.sleep(0.5)
         finally:
@@ -395,7 +395,7 @@ def lost_then_configured_again(driver: MotorDriver, drive_name: str, what: str) 
     assert drive.cache.state != State.OPERATION_ENABLED
     with pytest.raises(MotorError):
         drive.set_velocity(20.0)  # not re-armed
-    drive.enable()
+    drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
     drive.set_velocity(20.0)  # usable again once asked
 
 
@@ -407,7 +407,7 @@ def test_the_interface_down_then_up_stops_commands_and_configures_again_unarmed(
             with MotorDriver(load_config(config)) as driver:
                 driver.start()
                 drive = driver.drive("wheel1")
-                drive.enable()
+                drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
                 drive.set_velocity(20.0)
                 ip_link("down")
                 try:
@@ -504,7 +504,7 @@ def test_a_full_transmit_queue_is_counted_and_said_never_a_crash(
     with simulator(config, wiring), MotorDriver(load_config(config)) as driver:
         driver.start()
         drive = driver.drive("wheel1")
-        drive.enable()
+        drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
         network = driver.buses["can0"].network
         subprocess.run(["tc", "qdisc", "add", "dev", wiring.driver, "root", "tbf", "rate", "1kbit", "burst", "32",
                         "limit", "32"], check=True)
@@ -533,7 +533,7 @@ def test_error_frames_are_reported_and_a_bus_off_stops_commands(tmp_path: Path, 
             can.Bus(interface="socketcan", channel=VCAN.driver) as controller:  # stands in for the CAN controller
         driver.start()
         drive = driver.drive("wheel1")
-        drive.enable()
+        drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
         drive.set_velocity(20.0)
         controller.send(can.Message(arbitration_id=0x004, data=bytes([0, 0x20, 0, 0, 0, 0, 0, 0]),
                                     is_error_frame=True, is_extended_id=False))  # controller: error passive (tx)
@@ -588,7 +588,7 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring:
         try:
             driver.start()
             for drive in driver:
-                drive.enable()
+                drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
             twist = Twist()
             twist.linear.x, twist.angular.z = 0.3, 0.5  # left (0.3 - 0.15) / 0.1 = 1.5 rad/s, right 4.5 rad/s
             t_end = time.monotonic() + 8.0
@@ -646,11 +646,11 @@ def test_a_drive_that_falls_silent_while_turning_is_told_to_stop(tmp_path: Path,
         driver.start()
         drive = driver.drive("wheel1")
         assert drive.cache.guarding == guarded, drive.watch.host_watch
-        drive.enable()
+        drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
         drive.set_velocity(30.0)
-        wait_for(lambda: runner.call(lambda: abs(sim_drive.omega)) > 0.1, 30.0, "the shaft turning")  # type: ignore[operator]
+        wait_for(lambda: runner.call(lambda: abs(sim_drive.omega), HANG_S) > 0.1, HANG_S, "the shaft turning")  # type: ignore[operator]
         fault = "guard_toggle_stuck" if cause == "guard toggle stuck" else "tx_dead"
-        runner.call(lambda: setattr(sim_drive.faults, fault, True))
+        runner.call(lambda: setattr(sim_drive.faults, fault, True), HANG_S)
         for _ in range(300):  # an application that keeps commanding, as a ROS node does, until refused
             try:
                 drive.set_velocity(30.0)
@@ -659,7 +659,7 @@ def test_a_drive_that_falls_silent_while_turning_is_told_to_stop(tmp_path: Path,
             if drive.cache.wait_until(lambda: drive.cache.lost, 0.1):
                 break
         wait_for(lambda: drive.cache.lost, 30.0, "the drive declared lost")
-        wait_for(lambda: runner.call(lambda: sim_drive.state.name != "OPERATION_ENABLED" and abs(sim_drive.omega) < 1e-3),
-                 30.0, "the silent drive stopped")
+        wait_for(lambda: runner.call(lambda: sim_drive.state.name != "OPERATION_ENABLED" and abs(sim_drive.omega) < 1e-3,
+                                     HANG_S), HANG_S, "the silent drive stopped")
     stops = [m for m in list(listener.frames) if m.arbitration_id == 0x000 and bytes(m.data) == b"\x02\x01"]
     assert stops, "no NMT stop went to the lost drive"
