@@ -12,6 +12,7 @@ import argparse
 import os
 import sys
 import threading
+import time
 from typing import Any
 
 from can_config import load_config, with_bus_overrides
@@ -77,6 +78,7 @@ def run_demo(args: argparse.Namespace) -> int:
                 ends.daemon = True
                 ends.start()
             runtime.spin_until(hot, stop.event)
+            _await_fresh_state(hot, latest)
             result = demo_verdict(last["cmd"], latest[0] if latest else None)
         finally:
             assembly.close()  # drives safe first
@@ -112,6 +114,30 @@ def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[An
     return monitor, last, latest
 
 
+#: How long the demo waits at its end for a MotorState of fresh data when the last one was stale.
+FRESH_WAIT_S = 5.0
+
+
+def _await_fresh_state(hot: Any, latest: list[Any]) -> None:
+    """A stale last MotorState (no PDO for a while: the process was held, or the drive went
+    silent) says nothing of the drive's state: the verdict waits up to FRESH_WAIT_S for a fresh
+    one and, without it, judges the stale one (which fails, saying it was stale)."""
+    from nodes import runtime
+
+    if not latest or not latest[0].stale:
+        return
+    done = threading.Event()
+
+    def watch() -> None:
+        deadline = time.monotonic() + FRESH_WAIT_S
+        while latest[0].stale and time.monotonic() < deadline:
+            time.sleep(0.02)
+        done.set()
+
+    threading.Thread(target=watch, name="demo-fresh-wait", daemon=True).start()
+    runtime.spin_until(hot, done)  # the monitor's subscription brings the next MotorState
+
+
 def demo_verdict(cmd: float, state: Any) -> int:
     """0 when the drive is still enabled at the end and its angle followed the command; a
     MotorState (or None when none came)."""
@@ -122,6 +148,11 @@ def demo_verdict(cmd: float, state: Any) -> int:
     error = abs((angle - cmd + 180.0) % 360.0 - 180.0)
     print(f"rovercan demo: done; last command {cmd:.2f} deg, angle {angle:.2f} deg, error {error:.2f} deg",
           flush=True)
+    if state.stale:
+        print(f"rovercan demo: no fresh data from the drive at the end ({state.data_age:.1f} s old after"
+              f" {FRESH_WAIT_S:g} s more): its state is unknown. The log above says why: a 'host heartbeat ... late'"
+              " warning means this process was starved; a lost drive is named", file=sys.stderr)
+        return EXIT_FAILED
     if not state.enabled:
         fault = f", fault 0x{state.error_code:04X}" if state.fault else ""
         print(f"rovercan demo: the drive ended in {state.state}{fault}, not Operation Enabled: it stopped during"

@@ -131,6 +131,23 @@ def test_the_demo_fails_a_drive_that_stopped_during_the_run_and_says_why(enabled
     assert enabled or ("host heartbeat" in err and "CAP_SYS_NICE" in err)
 
 
+@requires_ros
+def test_the_demo_judges_no_stale_state(capsys: pytest.CaptureFixture[str]) -> None:
+    """A stale last MotorState (a starved process at the end: CI saw 'the drive ended in
+    OPERATION_ENABLED, not Operation Enabled') is no state: the demo says its data were stale."""
+    import math
+
+    from rovercan_msgs.msg import MotorState
+
+    from rovercan.cli import EXIT_FAILED
+    from rovercan.demo import demo_verdict
+
+    state = MotorState(angle=math.nan, enabled=False, stale=True, data_age=0.4, state="OPERATION_ENABLED")
+    assert demo_verdict(3.0, state) == EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "no fresh data from the drive at the end (0.4 s old" in err and "not Operation Enabled" not in err
+
+
 def test_sim_on_a_kernel_interface_reports_why_it_cannot() -> None:
     from .conftest import kernel_can_available
     reason = kernel_can_available()
