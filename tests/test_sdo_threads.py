@@ -16,7 +16,8 @@ from .conftest import make_config
 
 def test_eight_threads_reading_one_drive_at_once_all_get_their_values(
         driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
-    _, driver = driver_factory(make_config(1))
+    # eight readers queue at the lock: on a busy machine one transfer's wait passed 4 x 0.5 s
+    _, driver = driver_factory(make_config(1, sdo_timeout_ms=2000))
     drive = driver.drive("joint1")
     start = threading.Barrier(8)
     errors: list[BaseException] = []

@@ -24,7 +24,8 @@ DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 def config(**bus: object) -> RoverConfig:
     return parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
                                     "kwargs": {"host": "127.0.0.1", "port": 1}, **bus}],
-                         "drives": [{"name": "joint1", "node_id": 1, "host_timeout_ms": IN_PROCESS_HOST_TIMEOUT_MS}]},
+                         "drives": [{"name": "joint1", "node_id": 1, "host_timeout_ms": IN_PROCESS_HOST_TIMEOUT_MS,
+                                     "sdo_timeout_ms": 2000}]},  # the simulator shares this test's CPU
                         source=REPO / "tests" / "generated.yaml")
 
 
