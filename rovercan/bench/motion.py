@@ -217,6 +217,21 @@ def cmd_jog(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------ step test
+#: Stale-data periods the step test waits for a fresh position before it starts.
+FRESH_START_SYNCS = 50
+
+
+def fresh_angle(drive: Drive) -> float:
+    """The joint angle from fresh data: a stale snapshot's angle is NaN (a start from it would
+    leave every metric NaN). Waits up to FRESH_START_SYNCS SYNC periods (1 s at least)."""
+    bound_s = max(1.0, FRESH_START_SYNCS * drive.cache.sync_period_s)
+    if not drive.cache.wait_until(lambda: not drive.snapshot().stale, bound_s):
+        raise CliError(f"node {drive.node_id}: no fresh position from the drive within {bound_s:g} s after enabling"
+                       " it (its TPDOs stopped, or this process was starved): nothing was moved; check the bus and"
+                       " the drive's TPDOs, then run the step test again")
+    return drive.snapshot().angle_deg
+
+
 def step_metrics(t: list[float], y: list[float], start: float, step: float, torque: list[float]) -> dict[str, float]:
     """Rise time (10-90 %), overshoot (%), settling time (2 % band), steady-state error, peak torque."""
     final = start + step
@@ -269,7 +284,7 @@ def cmd_step_test(args: argparse.Namespace) -> int:
             raise ConfigError(f"--step {args.step:g}: a continuous joint moves the short way, so a step test"
                               " needs |step| < 180 deg")
         drive.enable()
-        start = drive.snapshot().angle_deg
+        start = fresh_angle(drive)
         t0 = time.monotonic()
         ts: list[float] = []
         setpoint: list[float] = []
