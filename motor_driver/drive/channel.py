@@ -45,6 +45,10 @@ logger = logging.getLogger(__name__)
 
 #: The controlwords of the stops: the channel re-sends one after a controlword written by SDO.
 STOP_WORDS = frozenset({int(Command.QUICK_STOP), int(Command.SHUTDOWN), int(Command.DISABLE_VOLTAGE)})
+#: A streamed set-point's controlword and target object by mode; enum members read once (issue 55)
+_STREAM_CW_TARGET = {OperationMode.CYCLIC_SYNC_POSITION: (int(Command.ENABLE_OPERATION), OD.TARGET_POSITION),
+                     OperationMode.INTERPOLATED_POSITION: (Command.ENABLE_OPERATION | CW.NEW_SETPOINT, OD.INTERPOLATION_DATA)}
+_CONTROLWORD = OD.CONTROLWORD
 
 
 class CommandChannel:
@@ -368,14 +372,10 @@ class Frames:
         c = self._c
         c._require_enabled_word(self._doing)
         c.target_counts = counts
-        cw = int(Command.ENABLE_OPERATION)
-        target = OD.TARGET_POSITION
-        if mode == OperationMode.INTERPOLATED_POSITION:
-            cw |= CW.NEW_SETPOINT  # enable ip mode: the drive follows 0x60C1:1 at each SYNC
-            target = OD.INTERPOLATION_DATA
+        cw, target = _STREAM_CW_TARGET[mode]  # IP: "enable ip mode", the drive follows 0x60C1:1 at each SYNC
         pdo = c._plan.rpdo_with(target)
         if pdo is not None and not sdo_written:
-            c._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, target: counts}))
+            c._send(pdo.cob_id, encode_rpdo(pdo, {_CONTROLWORD: cw, target: counts}))
         else:
             c._send_rpdo_cw(cw)
 
