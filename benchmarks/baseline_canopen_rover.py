@@ -29,6 +29,9 @@ from can_config import load_config
 from can_config.realtime import make_process_realtime
 from motor_driver.units import Scale
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stack_run import command_rates, due
+
 logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
 
 CSP = 8
@@ -93,13 +96,16 @@ def main() -> int:
         networks[bus.name].sync.start(bus.sync_period_s)
     starts = [node.sdo[0x6064].raw for node, _, _ in drives]
     print("measuring", flush=True)
-    period = 1.001 / command_hz
+    buses = {b.name: b.sync_period_s for b in config.buses}
+    loop_hz, every = command_rates([buses[d.bus] for d in config.drives], command_hz)  # as the stack run
+    period = 1.001 / loop_hz
     start = next_t = time.monotonic()
     k = 0
     while time.monotonic() - start < seconds + 1.0:
         k += 1
-        angle = k * 0.1 + 0.05  # the driver takes a wheel's 359.95 -> 0.05 the short way; a raw RPDO cannot
-        for node, target, scale in drives:
+        for i in due(k, every):
+            (node, target, scale), n = drives[i], every[i]
+            angle = k // n * 0.1 + 0.05  # the driver takes a wheel's 359.95 -> 0.05 the short way; a raw RPDO cannot
             target.raw = scale.deg_to_counts(angle)
             node.rpdo[2].transmit()
         next_t += period

@@ -11,7 +11,11 @@ planner (motor_driver/busload.py) counts each drive's event TPDO1 every SYNC and
 stuffing, 132 % of 1 Mbit/s, and refuses the config; the simulator does not model wire time, and
 the load reported here is the traffic measured at the listener over 1 Mbit/s.
 
-``python benchmarks/bus_limit.py [SECONDS]`` prints the figures as JSON.
+The second run (keys ``bus_limit_12_*``): twelve drives on three buses, config/rover.yaml's six
+wheels on can0 and can1 (SYNC every 10 ms, each commanded at 100 Hz) beside the six drives above
+moved to ``can2`` (500 Hz); whether the emulator carried it is judged on can2's listener.
+
+``python benchmarks/bus_limit.py [SECONDS] [--six | --twelve]`` prints the figures as JSON.
 """
 
 from __future__ import annotations
@@ -53,15 +57,32 @@ def config_text(drives: int = DRIVES, hz: float = HZ, bitrate: int = 2 * WIRE_BI
                                       for i in range(1, drives + 1)]}, sort_keys=False)
 
 
+#: The second run: config/rover.yaml's six wheels on their two buses (SYNC every 10 ms, commanded
+#: at 100 Hz) beside a six-joint arm on a third bus, ``can2``, at 500 Hz (the arm's joints with the
+#: wheels' settings: this module's six drives, moved to can2)
+ARM_BUS = "can2"
+
+
+def twelve_config_text() -> str:
+    """Twelve drives on three buses: the rover's wheels as shipped, and the six-drive config's bus and drives as ``can2``."""
+    rover = yaml.safe_load((REPO / "config" / "rover.yaml").read_text())
+    arm = yaml.safe_load(config_text())
+    arm["buses"][0].update(name=ARM_BUS, channel=ARM_BUS)
+    for d in arm["drives"]:
+        d.update(bus=ARM_BUS, namespace="arm")
+    return yaml.safe_dump({**rover, "buses": rover["buses"] + arm["buses"], "drives": rover["drives"] + arm["drives"]},
+                          sort_keys=False)
+
+
 @contextmanager
-def limit_config(drives: int = DRIVES, hz: float = HZ) -> Iterator[Path]:
-    """The generated config in a temporary directory under benchmarks/out/ (ignored by git): the
-    stack run names its config relative to the repository."""
+def limit_config(drives: int = DRIVES, hz: float = HZ, text: str | None = None) -> Iterator[Path]:
+    """The generated config (``text``, by default :func:`config_text`) in a temporary directory
+    under benchmarks/out/ (ignored by git): the stack run names its config relative to the repository."""
     out = REPO / "benchmarks" / "out"
     out.mkdir(exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out) as tmp:
-        path = Path(tmp) / f"limit_{drives}x{hz:g}hz.yaml"
-        path.write_text(config_text(drives, hz))
+        path = Path(tmp) / (f"limit_{drives}x{hz:g}hz.yaml" if text is None else "limit_12_three_buses.yaml")
+        path.write_text(text if text is not None else config_text(drives, hz))
         yield path
 
 
@@ -85,14 +106,16 @@ def traffic(frames: list[tuple[float, int, bytes]]) -> dict[str, float]:
             "load_worst_case": worst / span / WIRE_BITRATE}
 
 
-def stack(config: Path, seconds: float, hz: float = HZ, prefix: str = "bus_limit_") -> dict[str, Any]:
-    """The stack run on ``config`` commanded at ``hz``, keys prefixed, with the traffic the first bus's listener saw."""
+def stack(config: Path, seconds: float, hz: float = HZ, prefix: str = "bus_limit_", channel: str = "can0") -> dict[str, Any]:
+    """The stack run on ``config`` commanded at ``hz`` (0: each drive at its bus's SYNC rate), keys
+    prefixed, with the traffic the listener of ``channel`` saw."""
     seen: list[list[tuple[float, int, bytes]]] = []
 
     class Recording(stack_run.Listener):
         def close(self) -> None:
             super().close()
-            seen.append(self.frames)
+            if self.channel == channel:
+                seen.append(self.frames)
 
     listener = stack_run.Listener
     stack_run.Listener = Recording  # type: ignore[misc]  # the run's own listener, its frames kept
@@ -132,32 +155,45 @@ def not_carried(figures: dict[str, Any], drives: int = DRIVES, hz: float = HZ, p
     return None
 
 
-def ratio(figures: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
+def ratio(figures: dict[str, Any], base: dict[str, Any], prefix: str = "bus_limit_") -> dict[str, Any]:
     """The canopen same work's figures (prefixed) and the CPU ratio, where both were measured."""
-    out = {f"bus_limit_{k}": v for k, v in base.items()}
-    cpu, base_cpu = figures.get("bus_limit_cpu_core_fraction"), base.get("baseline_canopen_same_work_rt_cpu_core_fraction")
+    out = {f"{prefix}{k}": v for k, v in base.items()}
+    cpu, base_cpu = figures.get(f"{prefix}cpu_core_fraction"), base.get("baseline_canopen_same_work_rt_cpu_core_fraction")
     if cpu and base_cpu:
-        out["bus_limit_cpu_ratio_canopen"] = round(cpu / base_cpu, 2)
+        out[f"{prefix}cpu_ratio_canopen"] = round(cpu / base_cpu, 2)
     return out
 
 
-def main() -> int:
+def measured(text: str | None, seconds: float, hz: float, prefix: str, channel: str, priority: int) -> dict[str, Any]:
+    """One run: the stack on the generated config (``text``; None: the six drives), whether the
+    emulator carried ``channel``'s load (its six drives at 500 Hz), and the canopen same work."""
     import same_work
     from verdicts import InvalidBaseline
 
-    from nodes.params import PARAMS
-
-    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 15.0
-    priority = int(PARAMS["realtime_priority"].default)  # type: ignore[call-overload]
-    with limit_config() as config:
-        figures = stack(config, seconds)
-        figures["bus_limit_not_carried"] = not_carried(figures)
+    with limit_config(text=text) as config:
+        figures = stack(config, seconds, hz, prefix, channel)
+        figures[f"{prefix}not_carried"] = not_carried(figures, prefix=prefix)
         try:
-            base = same_work.baseline_same_work(config, seconds, HZ, priority)
+            base = same_work.baseline_same_work(config, seconds, hz, priority)
         except InvalidBaseline as err:
             base = {}
-            figures["bus_limit_baseline_invalid"] = str(err)
-    figures.update(ratio(figures, base))
+            figures[f"{prefix}baseline_invalid"] = str(err)
+    figures.update(ratio(figures, base, prefix))
+    return figures
+
+
+def main() -> int:
+    """``bus_limit.py [SECONDS] [--six | --twelve]``: both runs by default."""
+    from nodes.params import PARAMS
+
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
+    seconds = float(args[0]) if args else 15.0
+    priority = int(PARAMS["realtime_priority"].default)  # type: ignore[call-overload]
+    figures: dict[str, Any] = {}
+    if "--twelve" not in sys.argv:
+        figures.update(measured(None, seconds, HZ, "bus_limit_", "can0", priority))
+    if "--six" not in sys.argv:  # each drive commanded at its bus's SYNC rate: wheels 100 Hz, the arm 500 Hz
+        figures.update(measured(twelve_config_text(), seconds, 0.0, "bus_limit_12_", ARM_BUS, priority))
     print(json.dumps(figures, indent=2))
     return 0
 

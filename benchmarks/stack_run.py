@@ -266,9 +266,25 @@ def profiler(pid: int, seconds: float) -> subprocess.Popen[bytes] | None:
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
+def command_rates(sync_periods_s: list[float], command_hz: float) -> tuple[float, list[int]]:
+    """The command loop's rate and, per drive, every how many of its ticks the drive is commanded:
+    every drive at ``command_hz``, or (``command_hz`` 0) each at its bus's SYNC rate
+    (``sync_periods_s``, one a drive), the loop at the fastest."""
+    if command_hz > 0:
+        return command_hz, [1] * len(sync_periods_s)
+    fastest = min(sync_periods_s)
+    return 1.0 / fastest, [max(1, round(p / fastest)) for p in sync_periods_s]
+
+
+def due(tick: int, every: list[int]) -> list[int]:
+    """The drives (indexes) commanded at the command loop's ``tick`` (:func:`command_rates`)."""
+    return [i for i, n in enumerate(every) if tick % n == 0]
+
+
 def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tuple[str, ...] = ()) -> dict[str, Any]:
     """The measured process runs a shipped config as a user gets it; only the simulator's port
-    is put into it. Every drive gets a ``degree_cmd`` at ``command_hz`` (0.1 % slow: below).
+    is put into it. Every drive gets a ``degree_cmd`` at ``command_hz`` (0.1 % slow: below), or
+    with ``command_hz`` 0 at its bus's SYNC rate (:func:`command_rates`).
     ``sim_args``: more arguments of ``rovercan sim`` (``--drive-processes``)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -280,6 +296,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
 
     shipped = load_config(config_path)
     channels = {b.name: b.channel for b in shipped.buses}
+    sync_s = {b.name: b.sync_period_s for b in shipped.buses}
     with simulator("--config", str(config_path), *sim_args) as port, tempfile.TemporaryDirectory() as tmp:
         config = on_port(config_path, port, tmp)
         # the listener first: it must see every TPDO the drives send to count the loss
@@ -330,15 +347,17 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             # the command clock runs 0.1 % slow: over each 10 s the bursts pass once through every
             # phase of the SYNC period. At exactly the SYNC's rate one run would see one phase only
             # (on one clock the two stay locked), and the p50 would be 0.9 or 1.5 ms by luck
-            period = 1.001 / command_hz
+            loop_hz, every = command_rates([sync_s[d.bus] for d in shipped.drives], command_hz)
+            period = 1.001 / loop_hz
             next_t = time.monotonic()
             k = 0
             while time.monotonic() - wall0 < seconds:
                 k += 1
-                # the team's demo ramp, +0.1 deg a command, modulo 360: continuous on a continuous joint
-                # (a streamed joint, position_mode: cyclic, refuses a jump; modulo 300 jumped 60 deg)
-                angle = (k % 3600) * 0.1 + 0.05
-                for (d, ch, scale, per_rev), pub in zip(drives, pubs, strict=True):
+                for i in due(k, every):
+                    (d, ch, scale, per_rev), pub, n = drives[i], pubs[i], every[i]
+                    # the team's demo ramp, +0.1 deg a command, modulo 360: continuous on a continuous joint
+                    # (a streamed joint, position_mode: cyclic, refuses a jump; modulo 300 jumped 60 deg)
+                    angle = (k // n % 3600) * 0.1 + 0.05
                     sent.setdefault((ch, d.node_id, scale.deg_to_counts(angle) % per_rev), []).append(time.time())
                     pub.publish(Float32(data=angle))
                 executor.spin_once(timeout_sec=0)

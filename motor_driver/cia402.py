@@ -72,12 +72,24 @@ _STATE_CODING: tuple[tuple[int, int, State], ...] = (
 FAULT_STATES = frozenset({State.FAULT, State.FAULT_REACTION_ACTIVE})
 
 
-def decode_state(statusword: int) -> State:
-    """The CiA 402 state a statusword reports."""
+def _decode_by_coding(statusword: int) -> State:
     for mask, value, state in _STATE_CODING:
         if statusword & mask == value:
             return state
     return State.UNKNOWN
+
+
+#: The bits the state coding reads, and the state of each of their values: decode_state runs on
+#: every statusword received and every command (issue 55), one lookup instead of up to eight masks.
+_CODING_BITS = 0
+for _mask, _, _ in _STATE_CODING:
+    _CODING_BITS |= _mask
+_STATE_BY_BITS = tuple(_decode_by_coding(bits) for bits in range(_CODING_BITS + 1))
+
+
+def decode_state(statusword: int) -> State:
+    """The CiA 402 state a statusword reports."""
+    return _STATE_BY_BITS[statusword & _CODING_BITS]
 
 
 #: Transition table: (from, to) -> (transition number, command). Automatic transitions

@@ -46,6 +46,7 @@ from nodes import runtime
 from nodes.messages import fill_motor_state
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
+from nodes.rawcmd import float32_data
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
 
 T = TypeVar("T")
@@ -79,8 +80,7 @@ class DriverNode(Node):
         if default:  # the team's demo topics, for the joint named: never for a guessed one
             self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", self._state_qos,
                                                          event_callbacks=NO_PUB_EVENTS)
-            self.create_subscription(Float32, "/motor_degree_cmd", self._on_degree(default), SETPOINT_QOS,
-                                     event_callbacks=NO_SUB_EVENTS)
+            self._command_topic("/motor_degree_cmd", default, "degree command {!r}", self.drives[default].command_position)
         self._joint_pub = self.create_publisher(JointState, "/joint_states", self._state_qos, event_callbacks=NO_PUB_EVENTS)
         self.create_subscription(JointState, "/joint_commands", self._on_joint_commands, SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=NO_PUB_EVENTS)
@@ -124,8 +124,8 @@ class DriverNode(Node):
         base = drive.config.ros_prefix
         self._state_pubs[name] = self.create_publisher(MotorState, f"{base}/motor_state", self._state_qos,
                                                        event_callbacks=NO_PUB_EVENTS)
-        self.create_subscription(Float32, f"{base}/degree_cmd", self._on_degree(name), SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
-        self.create_subscription(Float32, f"{base}/velocity_cmd", self._on_velocity(name), SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
+        self._command_topic(f"{base}/degree_cmd", name, "degree command {!r}", drive.command_position)
+        self._command_topic(f"{base}/velocity_cmd", name, "velocity command {!r}", drive.command_velocity)
 
     def _guard(self, joint: str, what: str, fn: Callable[..., T], *args: float) -> T | None:
         """``fn(*args)``; every failure becomes a throttled warning and a diagnostic. ``what``
@@ -138,19 +138,21 @@ class DriverNode(Node):
             self.refusals.refuse(joint, f"{what.format(*args)}: unexpected {err!r}")
         return None
 
-    def _on_degree(self, joint: str) -> Callable[[Float32], None]:
-        drive = self.drives[joint]
-
-        def on_message(msg: Float32) -> None:
-            self._guard(joint, "degree command {!r}", drive.command_position, msg.data)
+    def _on_float(self, topic: str, joint: str, what: str, command: Callable[[float], None]) -> Callable[[bytes], None]:
+        """A Float32 command topic's callback, its message taken raw (nodes/rawcmd.py: no
+        message object made per command)."""
+        def on_message(raw: bytes) -> None:
+            try:
+                value = float32_data(raw, topic)
+            except RovercanError as err:
+                self.refusals.refuse(joint, str(err))
+                return
+            self._guard(joint, what, command, value)
         return on_message
 
-    def _on_velocity(self, joint: str) -> Callable[[Float32], None]:
-        drive = self.drives[joint]
-
-        def on_message(msg: Float32) -> None:
-            self._guard(joint, "velocity command {!r}", drive.command_velocity, msg.data)
-        return on_message
+    def _command_topic(self, topic: str, joint: str, what: str, command: Callable[[float], None]) -> None:
+        self.create_subscription(Float32, topic, self._on_float(topic, joint, what, command),
+                                 SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS, raw=True)
 
     def _on_joint_commands(self, msg: JointState) -> None:
         for i, name in enumerate(msg.name):

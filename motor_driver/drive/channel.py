@@ -45,6 +45,10 @@ logger = logging.getLogger(__name__)
 
 #: The controlwords of the stops: the channel re-sends one after a controlword written by SDO.
 STOP_WORDS = frozenset({int(Command.QUICK_STOP), int(Command.SHUTDOWN), int(Command.DISABLE_VOLTAGE)})
+#: A streamed set-point's controlword and target object by mode; enum members read once (issue 55)
+_STREAM_CW_TARGET = {OperationMode.CYCLIC_SYNC_POSITION: (int(Command.ENABLE_OPERATION), OD.TARGET_POSITION),
+                     OperationMode.INTERPOLATED_POSITION: (Command.ENABLE_OPERATION | CW.NEW_SETPOINT, OD.INTERPOLATION_DATA)}
+_CONTROLWORD = OD.CONTROLWORD
 
 
 class CommandChannel:
@@ -215,26 +219,27 @@ class CommandChannel:
         return None
 
     # ------------------------------------------------------------------ commands (one frame)
-    @contextmanager
-    def command(self, name: str, op: Op | None = None) -> Iterator[Frames]:
-        """A command of a frame or two: the lock for at most COMMAND_LOCK_WAIT_S; refused at once
-        while an operation other than ``op`` runs, and, with ``op``, when a stop preempted it."""
+    def command(self, name: str, op: Op | None = None) -> Frames:
+        """``with command(name) as frames``, a command of a frame or two: the lock for at most
+        COMMAND_LOCK_WAIT_S; refused at once while an operation other than ``op`` runs, and, with
+        ``op``, when a stop preempted it (Frames, not a generator context manager: 1 us less a command)."""
+        return Frames(self, name, op)
+
+    def _enter_command(self, name: str, op: Op | None) -> None:
         if not self._acquire(name, COMMAND_LOCK_WAIT_S):
             raise CommandRejected(f"{self.name}: {name} refused: another command holds the drive; nothing was sent")
         try:
-            other = self._busy.other_than(op)
-            if other:
+            if self._busy and (other := self._busy.other_than(op)):
                 raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {other};"
                                       " nothing was sent. Send it again when that is done.")
             if op is not None:
                 self.check(op, name)
-            yield Frames(self, name)
-        finally:
+        except BaseException:
             self._lock.release()
+            raise
 
     def try_command(self, name: str) -> Frames | None:
-        """The supervisor's way in (it never waits): the lock now, or None; the caller must
-        :meth:`release`. Refused (None) while any operation runs."""
+        """The supervisor's way in (never waits): the lock now, or None while any operation runs; then :meth:`release`."""
         if not self._lock.acquire(blocking=False):
             return None
         if self._busy:
@@ -242,7 +247,7 @@ class CommandChannel:
             return None
         return Frames(self, name)
 
-    def release(self) -> None:
+    def release(self) -> None:  # after try_command
         self._lock.release()
 
     # the senders below run under the lock (reached only through Frames or the handshake)
@@ -315,9 +320,17 @@ class Frames:
     """The frames a command may send, handed out by :meth:`CommandChannel.command` while it
     holds the lock: each checks that this driver's last controlword was Enable Operation."""
 
-    def __init__(self, channel: CommandChannel, doing: str) -> None:
-        self._c = channel
-        self._doing = doing
+    __slots__ = ("_c", "_doing", "_op")
+
+    def __init__(self, channel: CommandChannel, doing: str, op: Op | None = None) -> None:
+        self._c, self._doing, self._op = channel, doing, op
+
+    def __enter__(self) -> Frames:
+        self._c._enter_command(self._doing, self._op)
+        return self
+
+    def __exit__(self, *exc: object) -> None:  # the lock taken in __enter__
+        self._c._lock.release()
 
     @property
     def cw(self) -> int:
@@ -359,14 +372,10 @@ class Frames:
         c = self._c
         c._require_enabled_word(self._doing)
         c.target_counts = counts
-        cw = int(Command.ENABLE_OPERATION)
-        target = OD.TARGET_POSITION
-        if mode == OperationMode.INTERPOLATED_POSITION:
-            cw |= CW.NEW_SETPOINT  # enable ip mode: the drive follows 0x60C1:1 at each SYNC
-            target = OD.INTERPOLATION_DATA
+        cw, target = _STREAM_CW_TARGET[mode]  # IP: "enable ip mode", the drive follows 0x60C1:1 at each SYNC
         pdo = c._plan.rpdo_with(target)
         if pdo is not None and not sdo_written:
-            c._send(pdo.cob_id, encode_rpdo(pdo, {OD.CONTROLWORD: cw, target: counts}))
+            c._send(pdo.cob_id, encode_rpdo(pdo, {_CONTROLWORD: cw, target: counts}))
         else:
             c._send_rpdo_cw(cw)
 

@@ -29,6 +29,13 @@ from motor_driver.units import check_counts, check_limits, nearest_equivalent, r
 
 logger = logging.getLogger(__name__)
 
+#: The streamed position modes by number (a lookup on every set-point, issue 55: no enum call),
+#: and what each is called and where its target goes
+_STREAMING = {int(m): m for m in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION)}
+_STREAMED = {OperationMode.CYCLIC_SYNC_POSITION: ("CSP setpoint", OD.TARGET_POSITION),
+             OperationMode.INTERPOLATED_POSITION: ("IP setpoint", OD.INTERPOLATION_DATA)}
+_ENABLED = State.OPERATION_ENABLED
+
 
 class Approach(NamedTuple):
     """A command's way toward a limit: its direction, speed, the braking the guard assumes, and what it is."""
@@ -67,10 +74,10 @@ class Motion:
                                   f" (statusword 0x{seen:04X}) since it was enabled, though it shows"
                                   f" {state.name} now; recover() and enable() it again",
                                   node_id=self.node_id, statusword=cache.received.statusword)
-        if state != State.OPERATION_ENABLED or self._channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
+        if state != _ENABLED or self._channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
             if state in FAULT_STATES:
                 raise self._power.fault_error(doing)
-            shown = state.name if state != State.OPERATION_ENABLED else "stopping"
+            shown = state.name if state != _ENABLED else "stopping"
             raise DriveStateError(f"{self.name}: {doing} refused: the drive is {shown}; enable() it"
                                   " first", node_id=self.node_id, statusword=cache.received.statusword)
 
@@ -320,8 +327,7 @@ class Motion:
         """
         counts = self._position_target_counts(angle_deg)
         mode = self._streaming_mode()
-        doing = "CSP setpoint" if mode == OperationMode.CYCLIC_SYNC_POSITION else "IP setpoint"
-        target = OD.TARGET_POSITION if mode == OperationMode.CYCLIC_SYNC_POSITION else OD.INTERPOLATION_DATA
+        doing, target = _STREAMED[mode]
         by_sdo = self._plan.rpdo_with(target) is None
         if by_sdo or self._cache.received.mode != mode:  # before an SDO or a mode switch; streaming by RPDO
             switching = self._cache.received.mode != mode
@@ -353,9 +359,9 @@ class Motion:
                                   " move (move_to, the move_joint action).")
 
     def _streaming_mode(self) -> OperationMode:
-        mode = self._cache.received.mode
-        if mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
-            return OperationMode(mode)  # the hot path: streaming already
+        streaming = _STREAMING.get(self._cache.received.mode)
+        if streaming is not None:
+            return streaming  # the hot path: streaming already
         supported = self._power.supported_modes()
         for candidate in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
             if supported >> SUPPORTED_MODE_BIT[candidate] & 1:

@@ -40,6 +40,11 @@ from motor_driver.units import Scale
 
 logger = logging.getLogger(__name__)
 
+#: The objects a TPDO carries, read once: an enum member's lookup (about 0.13 us) was made up to
+#: ten times a TPDO, 6,000 TPDOs a second at six drives and 500 Hz (issue 55)
+_STATUSWORD, _POSITION, _VELOCITY = OD.STATUSWORD, OD.POSITION_ACTUAL, OD.VELOCITY_ACTUAL
+_TORQUE, _MODE = OD.TORQUE_ACTUAL, OD.MODES_OF_OPERATION_DISPLAY
+
 
 class DriveCache:
     """Identity, the PDO layouts, and the received state of one drive."""
@@ -209,26 +214,26 @@ class DriveCache:
         sw, mode, position, velocity, torque = rx.statusword, rx.mode, rx.position_counts, rx.velocity_counts_s, \
             rx.torque_permille
         for index, value in zip(layout.indexes, values, strict=True):
-            if index == OD.STATUSWORD:
+            if index == _STATUSWORD:
                 sw = value
                 if decode_state(value) in FAULT_STATES:
                     self._fault_word = value
                     self._fault_seq += 1
-            elif index == OD.POSITION_ACTUAL:
+            elif index == _POSITION:
                 if self.positions.plausible(value, position, timestamp):
                     position = value
                     self.position_seq += 1
-            elif index == OD.VELOCITY_ACTUAL:
+            elif index == _VELOCITY:
                 self.positions.track_accel(value, timestamp)
                 velocity = value
-            elif index == OD.TORQUE_ACTUAL:
+            elif index == _TORQUE:
                 torque = value
-            elif index == OD.MODES_OF_OPERATION_DISPLAY:
+            elif index == _MODE:
                 mode = value
         now = time.monotonic()
         self.received = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference)
         self.tpdo_count += 1
-        if OD.STATUSWORD in layout.indexes:
+        if _STATUSWORD in layout.indexes:
             self.status_seq += 1
             self._on_statusword(sw, now)
 
