@@ -5,5 +5,6 @@ every entry point), :mod:`nodes.motor_degree` and :mod:`nodes.motor_controller` 
 :mod:`nodes.rover_driver` (every joint's topics; ``main``), :mod:`nodes.driver_services`,
 :mod:`nodes.actions`, :mod:`nodes.drive_system` (/cmd_vel) with :mod:`nodes.wheels` (what it says
 of a wheel), :mod:`nodes.rover_lifecycle` (the managed node), and the shared
-:mod:`nodes.messages` (snapshots into messages), :mod:`nodes.refusals`, :mod:`nodes.params`,
+:mod:`nodes.messages` (snapshots into messages), :mod:`nodes.rawcmd` (a Float32 command's raw
+bytes), :mod:`nodes.refusals`, :mod:`nodes.params`,
 :mod:`nodes.qos`, :mod:`nodes.runtime`, :mod:`nodes.logbridge`."""
