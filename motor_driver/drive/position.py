@@ -42,16 +42,19 @@ class PositionFilter:
         """The next position is taken as it comes (after boot's SDO read, after homing)."""
         self._last_t = 0.0
 
-    def plausible(self, value: int, last: int, timestamp: float) -> bool:
+    def plausible(self, value: int, last: int, timestamp: float, velocity_counts_s: int = 0) -> bool:
         """Reject a position the joint cannot have reached since the last one (a corrupted or
         foreign frame), unless JUMP_CONFIRMATIONS further samples agree with it (homing, a
-        reboot, a real jump)."""
+        reboot, a real jump). "Cannot" is judged at the faster of the joint's limit and the
+        velocity the drive last measured: a shaft coasting past the limit (after a torque
+        command) moves that far, and holding its position back would repeat a stale one."""
         last_t = self._last_t
         self._last_t = timestamp
         if not last_t:
             self.reference += 1
             return True
-        limit = self._max_counts_s * 2.0 * max(timestamp - last_t, 0.001) + self._jump_margin_counts
+        speed = max(self._max_counts_s, abs(velocity_counts_s))
+        limit = speed * 2.0 * max(timestamp - last_t, 0.001) + self._jump_margin_counts
         if abs(value - last) <= limit:
             self._suspect = None
             return True

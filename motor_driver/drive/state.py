@@ -220,7 +220,7 @@ class DriveCache:
                     self._fault_word = value
                     self._fault_seq += 1
             elif index == _POSITION:
-                if self.positions.plausible(value, position, timestamp):
+                if self.positions.plausible(value, position, timestamp, velocity):  # the last measured velocity
                     position = value
                     self.position_seq += 1
             elif index == _VELOCITY:
