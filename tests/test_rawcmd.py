@@ -7,11 +7,15 @@ import math
 import struct
 
 import pytest
-from rclpy.serialization import deserialize_message, serialize_message
-from std_msgs.msg import Float32
 
 from can_config.errors import CommandRejected
 from nodes.rawcmd import float32_data
+
+pytest.importorskip("rclpy")  # the comparison with rclpy's own conversion: skipped on a machine without ROS
+pytestmark = pytest.mark.ros
+
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
+from std_msgs.msg import Float32  # noqa: E402
 
 
 @pytest.mark.parametrize("value", [0.0, -0.0, 0.05, 359.95, -1e-30, 3.4e38, math.inf, -math.inf])
