@@ -40,6 +40,11 @@ MAX_ACCEL_GAP_S = 0.2
 #: corruption twice in a row (at the emulator's 10 % corruption rate, estimated at one two-second
 #: run in a hundred; seen once: a wheel reported 47 million degrees for a SYNC period).
 JUMP_CONFIRMATIONS = 2
+#: A position jump is judged at the drive's measured speed up to this many times the joint's
+#: limit: a shaft coasting past the limit keeps its position current (the simulator's wheel
+#: coasted at 30x its limit after a torque command in the kernel tier), while a velocity from a
+#: bad frame cannot open the check without bound.
+MEASURED_SPEED_CAP = 50
 NO_HOST_WATCH = "no drive-side stop on host loss"
 #: SDO aborts of a value out of the object's range (CiA 301): the drive cannot take that entry.
 VALUE_RANGE_ABORTS = frozenset({0x0609_0030, 0x0609_0031, 0x0609_0032, 0x0609_0036})

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 
-from motor_driver.drive.constants import JUMP_CONFIRMATIONS, MAX_ACCEL_GAP_S
+from motor_driver.drive.constants import JUMP_CONFIRMATIONS, MAX_ACCEL_GAP_S, MEASURED_SPEED_CAP
 
 logger = logging.getLogger(__name__)
 
@@ -22,6 +22,7 @@ class PositionFilter:
         self._node_id = node_id
         self._sync_period_s = sync_period_s
         self._max_counts_s = 1
+        self._counts_per_velocity_unit = 1.0  # position counts per second in one unit of 0x606C
         self._jump_margin_counts = 4.0
         self._last_t = 0.0
         self._suspect: tuple[int, int] | None = None  # (value, samples agreeing since)
@@ -33,27 +34,31 @@ class PositionFilter:
         self.accel_counts_s2 = 0.0
         self._accel_from = (0, 0.0)
 
-    def set_bound(self, max_counts_s: int, counts_per_deg: float) -> None:
-        """The fastest the joint can go (counts/s), and one degree as the margin of a jump."""
+    def set_bound(self, max_counts_s: int, counts_per_deg: float, counts_per_velocity_unit: float = 1.0) -> None:
+        """The fastest the joint can go (counts/s), one degree as the margin of a jump, and what
+        one unit of the drive's velocity (0x606C, its 0x60A9 unit) is in position counts/s."""
         self._max_counts_s = max_counts_s or 1
         self._jump_margin_counts = max(4.0, counts_per_deg)
+        self._counts_per_velocity_unit = counts_per_velocity_unit
 
     def trust_next(self) -> None:
         """The next position is taken as it comes (after boot's SDO read, after homing)."""
         self._last_t = 0.0
 
-    def plausible(self, value: int, last: int, timestamp: float, velocity_counts_s: int = 0) -> bool:
+    def plausible(self, value: int, last: int, timestamp: float, velocity: int = 0) -> bool:
         """Reject a position the joint cannot have reached since the last one (a corrupted or
         foreign frame), unless JUMP_CONFIRMATIONS further samples agree with it (homing, a
         reboot, a real jump). "Cannot" is judged at the faster of the joint's limit and the
-        velocity the drive last measured: a shaft coasting past the limit (after a torque
+        velocity the drive measured before (``velocity``, in its 0x606C unit), up to
+        MEASURED_SPEED_CAP times the limit: a shaft coasting past the limit (after a torque
         command) moves that far, and holding its position back would repeat a stale one."""
         last_t = self._last_t
         self._last_t = timestamp
         if not last_t:
             self.reference += 1
             return True
-        speed = max(self._max_counts_s, abs(velocity_counts_s))
+        measured = abs(velocity) * self._counts_per_velocity_unit
+        speed = min(max(self._max_counts_s, measured), MEASURED_SPEED_CAP * self._max_counts_s)
         limit = speed * 2.0 * max(timestamp - last_t, 0.001) + self._jump_margin_counts
         if abs(value - last) <= limit:
             self._suspect = None

@@ -162,7 +162,7 @@ class DriveCache:
         """Boot: the drive's units (read from it) replace the config's."""
         self.scale = scale
         self.positions.set_bound(int(abs(scale.counts_per_deg * self.config.max_velocity_deg_s)),
-                                  scale.counts_per_deg)
+                                  scale.counts_per_deg, abs(scale.counts_s_to_deg_s(1.0) * scale.counts_per_deg))
 
     def seed(self, statusword: int, position_counts: int, mode: int) -> None:
         """Boot (drive not booted, no PDO flows yet): the state read by SDO; the next position
@@ -220,7 +220,7 @@ class DriveCache:
                     self._fault_word = value
                     self._fault_seq += 1
             elif index == _POSITION:
-                if self.positions.plausible(value, position, timestamp, velocity):  # the last measured velocity
+                if self.positions.plausible(value, position, timestamp, rx.velocity_counts_s):  # measured before
                     position = value
                     self.position_seq += 1
             elif index == _VELOCITY:
