@@ -73,12 +73,19 @@ def run_demo(args: argparse.Namespace) -> int:
             for node in extra:
                 hot.add_node(node)
             assembly.start()  # boot, the executors' threads, arm
+            timed_out = threading.Event()
+
+            def time_is_up() -> None:
+                timed_out.set()
+                stop.event.set()
+
             if args.duration is not None:
-                ends = threading.Timer(args.duration, stop.event.set)
+                ends = threading.Timer(args.duration, time_is_up)
                 ends.daemon = True
                 ends.start()
             runtime.spin_until(hot, stop.event)
-            _await_fresh_state(hot, latest)
+            if timed_out.is_set() and stop.signum is None:  # a Ctrl+C or SIGTERM is obeyed at once
+                _await_fresh_state(hot, extra.pop(0), latest)
             result = demo_verdict(last["cmd"], latest[0] if latest else None)
         finally:
             assembly.close()  # drives safe first
@@ -118,12 +125,15 @@ def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[An
 FRESH_WAIT_S = 5.0
 
 
-def _await_fresh_state(hot: Any, latest: list[Any]) -> None:
+def _await_fresh_state(hot: Any, degree: Any, latest: list[Any]) -> None:
     """A stale last MotorState (no PDO for a while: the process was held, or the drive went
     silent) says nothing of the drive's state: the verdict waits up to FRESH_WAIT_S for a fresh
-    one and, without it, judges the stale one (which fails, saying it was stale)."""
+    one and, without it, judges the stale one (which fails, saying it was stale). The degree
+    node is gone first: no command is published while the verdict waits."""
     from nodes import runtime
 
+    hot.remove_node(degree)
+    degree.destroy_node()
     if not latest or not latest[0].stale:
         return
     done = threading.Event()

@@ -10,6 +10,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -319,8 +320,8 @@ def rovercan_cli(*args: str, timeout: float = 60, stalls: int = 2) -> subprocess
                                 timeout=timeout, check=False)
         if result.returncode == 0 or HOST_SILENT not in result.stderr or attempt == stalls:
             break
-        print(f"a stall, not a failure: `rovercan {' '.join(args)}` was held past its drive's host timeout"
-              f" (run {attempt + 1}); once more", file=sys.stderr)
+        warnings.warn(f"a stall, not a failure: `rovercan {' '.join(args)}` was held past its drive's host timeout"
+                      f" (run {attempt + 1}); run once more", stacklevel=2)  # in pytest's warnings summary
     return result
 
 
