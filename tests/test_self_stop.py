@@ -12,6 +12,8 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
+import can
+
 from can_config import RoverConfig
 from can_config.errors import DriveStateError, RovercanError
 from motor_driver import Drive, MotorDriver
@@ -145,3 +147,23 @@ def test_an_enable_after_the_drive_stopped_itself_unseen_really_enables_it(drive
         drive.channel.set_hook(None)
         apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
     assert runner.call(lambda: runner.drive(1).state.name) == "OPERATION_ENABLED"
+
+
+def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_ends_no_move(
+        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    """A PRE-OPERATIONAL heartbeat on its way when the NMT start went out, read after it by a
+    starved process, stays the drive's NMT state until its next heartbeat (the kernel tier: "the
+    move ended: the drive went NMT PRE_OPERATIONAL"). Its PDOs still come, which a drive sends only
+    when OPERATIONAL: the move goes on. Staged with a 2 s heartbeat, the stale one sent just after
+    the boot; fails on a power.py that takes the heartbeat alone."""
+    sim, driver = driver_factory(make_config(1, heartbeat_period_ms=2000, heartbeat_timeout_ms=6000))
+    injector = listener_factory(sim)
+    heard = threading.Event()
+    driver.buses["can0"].network.subscribe(0x701, lambda _cob, data, _t: heard.set() if data[0] == 0x7F else None)
+    injector.send(can.Message(arbitration_id=0x701, data=b"\x7f", is_extended_id=False))
+    wait_for(heard.is_set, 10.0, "the stale heartbeat taken by the driver")
+    drive = driver.drive("joint1")
+    assert drive.cache.nmt_state == "PRE_OPERATIONAL"  # what the heartbeat said, until the next one
+    drive.enable()
+    drive.move_to(10.0, wait=True, timeout_s=30.0)
+    assert abs(drive.snapshot().angle_deg - 10.0) < 0.5

@@ -78,6 +78,8 @@ class PowerStateMachine:
         command channel's to say (checked first by the callers)."""
         cache = self._cache
         nmt, state = cache.nmt_state, cache.state
+        if nmt != "OPERATIONAL" and not cache.data_stale():
+            nmt = "OPERATIONAL"  # its PDOs still come: a heartbeat sent before it obeyed NMT start, heard late
         if not cache.lost and nmt == "OPERATIONAL" and state == State.OPERATION_ENABLED:
             return None
         emcy = cache.last_emcy

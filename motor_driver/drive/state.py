@@ -103,6 +103,13 @@ class DriveCache:
     def state(self) -> State:
         return decode_state(self.received.statusword)
 
+    def data_stale(self) -> bool:
+        """No PDO for stale_after_syncs SYNC periods (what the snapshot calls stale). A drive sends
+        PDOs only when OPERATIONAL: while they come, a PRE-OPERATIONAL or STOPPED heartbeat was
+        sent before it obeyed an NMT start (on its way, or read late by a starved process)."""
+        rx_at = self.received.rx_monotonic
+        return not rx_at or time.monotonic() - rx_at > self.config.stale_after_syncs * self.sync_period_s
+
     @property
     def angle_deg(self) -> float:
         return self.scale.counts_to_deg(self.received.position_counts)
