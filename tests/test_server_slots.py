@@ -40,6 +40,8 @@ def test_full_slots_and_resetting_clients_do_not_end_the_accept_loop() -> None:
             wait_for(lambda: len(srv.clients) <= DEFAULT_MAX_CLIENTS - 2, 5.0, "two slots free")
             with socket.create_connection(("127.0.0.1", srv.port), timeout=2.0) as good:
                 assert good.recv(64).startswith(b"< hi >")
+            # its slot is free once the server saw it close (the next two clients need both)
+            wait_for(lambda: len(srv.clients) <= DEFAULT_MAX_CLIENTS - 2, 5.0, "the good client's slot free again")
             with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as a, \
                     can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as b:
                 time.sleep(0.1)
