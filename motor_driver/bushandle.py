@@ -158,6 +158,9 @@ class BusHandle:
             return brief_error(err)
         return None
 
+    def beats_sent(self) -> int:
+        return self.host_beats
+
     def close(self) -> None:
         self.stop_sync()
         self.worker.shutdown(wait=True, cancel_futures=True)

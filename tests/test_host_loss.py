@@ -263,6 +263,40 @@ def test_boot_writes_the_host_watch_and_close_releases_it(sim_factory: SimFactor
     assert read(0x1016, 1) == 0  # a clean close leaves no armed watch behind: no EMCY after exit
 
 
+def test_enable_waits_until_the_drive_watches_the_host(driver_factory: Callable[[RoverConfig], tuple[SimService,
+                                                                                                    MotorDriver]],
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """CiA 301: a heartbeat consumer starts at the first heartbeat it hears after its entry is
+    written. An enable before that (the lifecycle node's autostart enables right after the boot)
+    armed a drive that nothing stopped if the process died then (test_stall[lifecycle]: SIGSTOP
+    there left a drive Operation Enabled). The supervisor's host heartbeats are held back (sent
+    by nobody, as by a starved loop) across a new boot: enable is refused and nothing sent; held
+    until the enable waits for them, then let go: it returns with the drive watching."""
+    sim, driver = driver_factory(make_config(1))
+    drive, handle = driver.drive("joint1"), driver.buses["can0"]
+    runner = sim.simulators["can0"]
+    send_beat, held = handle.beat, threading.Event()
+    held.set()
+    monkeypatch.setattr(handle, "beat", lambda host: None if held.is_set() else send_beat(host))
+
+    def sim_watching() -> bool:
+        return bool(runner.call(lambda: dict(runner.drive(1)._consumer_seen)))
+
+    drive.boot.boot()  # told to watch the host again: a consumer that waits for its first heartbeat
+    with pytest.raises(CommandRejected, match=r"enable refused: the drive is not watching the host yet \(no host"
+                                              r" heartbeat \(node 127\) has gone out"):
+        drive.enable()
+    assert runner.call(lambda: runner.drive(1).state) != State.OPERATION_ENABLED and not sim_watching()
+    drive.channel.set_hook(lambda point: held.clear() if point == "enable: host watch" else None)
+    try:
+        drive.enable(timeout_s=30.0)  # a bound for a hang
+    finally:
+        drive.channel.set_hook(None)
+        held.clear()
+    # the enable's own frames went after the heartbeats, and the drive answered them: it heard those
+    assert sim_watching() and drive.cache.state is State.OPERATION_ENABLED
+
+
 def test_default_config_has_the_host_watch() -> None:
     config = load_config()
     assert config.buses[0].host_node_id == 127 and config.buses[0].host_heartbeat_s == 0.05

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import struct
+from collections.abc import Callable
 
 import can
 import canopen
@@ -55,7 +56,7 @@ class Drive:
 
     def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
                  host_node_id: int = 127, sync_period_s: float = 0.01, runtime: DriveRuntime,
-                 port: RuntimePort) -> None:
+                 port: RuntimePort, host_beats: Callable[[], int]) -> None:
         self.config = config
         self.name, self.node_id = config.name, config.node_id
         self.network = network
@@ -77,7 +78,7 @@ class Drive:
                                       self.cache.wake)
         ports = Ports(config, od, self.plan, self.cache, self.channel, self.sdo)
         self.watch = HostWatch(ports, network, host_node_id, runtime=runtime,
-                               nmt=NmtLedger(config.node_id, self._send))
+                               nmt=NmtLedger(config.node_id, self._send), host_beats=host_beats)
         self.power = PowerStateMachine(ports, self.watch)
         self.limits = LimitGuard(ports)
         self.motion = Motion(ports, self.power, self.limits)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import struct
 import time
+from collections.abc import Callable
 
 import can
 import canopen
@@ -48,7 +49,7 @@ class HostWatch:
     """The drive's watch of the host, and the supervisor's of the drive."""
 
     def __init__(self, ports: Ports, network: canopen.Network, host_node_id: int, *, runtime: DriveRuntime,
-                 nmt: NmtLedger) -> None:
+                 nmt: NmtLedger, host_beats: Callable[[], int]) -> None:
         self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
         self.name, self.node_id = ports.config.name, ports.config.node_id
         self._network = network
@@ -61,6 +62,9 @@ class HostWatch:
         self.host_watch: str | None = None
         self.host_watch_problem: str | None = None
         self.guardable = False  # node guarding chosen and possible on this bus (boot's)
+        self._host_beats = host_beats  # host heartbeats sent on the drive's bus so far (the supervisor's count)
+        #: boot's: that count, and the time, once the drive was told to watch the host
+        self._told_at: tuple[int, float] = (0, 0.0)
 
     def set_remote_frames(self, carried: bool) -> None:
         self.remote_frames = carried
@@ -91,6 +95,7 @@ class HostWatch:
             self._configure_guarding()
         elif has_object(self._od, OD.CONSUMER_HEARTBEAT_TIME, 1) and cfg.host_timeout_s is not None:
             self._configure_consumer(cfg.host_timeout_s)
+        self._told_at = (self._host_beats(), time.monotonic())
         if self.host_watch is None and cfg.allow_no_host_watch:
             logger.warning("node %d (%s): %s; allowed by allow_no_host_watch: if this process dies, hangs or"
                            " loses power while the drive is enabled, NOTHING stops it", self.node_id, self.name,
@@ -98,6 +103,19 @@ class HostWatch:
         elif self.host_watch is None:
             logger.warning("node %d (%s): %s; it will not be enabled (allow_no_host_watch: true overrides)",
                            self.node_id, self.name, self.host_watch_problem)
+
+    def not_watching_yet(self) -> str:
+        """Why the drive told to watch the host is not watching it yet ('' once it is). CiA 301
+        starts a heartbeat consumer at the first heartbeat it hears after its entry is written,
+        life guarding at the first guard: a drive enabled before that keeps moving if the host
+        dies then. A heartbeat counts once sent after the drive answered the write: the second
+        sent since (the first may have been on its way); a guard once the drive has answered one."""
+        beats, at = self._told_at
+        if self._cache.guarding:
+            return "" if self._cache.last_heartbeat > at else "the drive has answered no guard since it was told to"
+        if self._host_beats() >= beats + 2:
+            return ""
+        return f"no host heartbeat (node {self.host_node_id}) has gone out on its bus since it was told to"
 
     def _reaction(self) -> str:
         return self.config.on_host_loss if has_object(self._od, OD.ABORT_CONNECTION_OPTION) else \

@@ -140,6 +140,7 @@ class PowerStateMachine:
                                       " so it would keep moving if this process were killed, hung or lost power."
                                       " Give it a heartbeat consumer, or set allow_no_host_watch: true for this"
                                       " drive (bench: --allow-no-host-watch) to arm it anyway. Nothing was sent.")
+            self._wait_watching(op, timeout_s)
             self._cache.acknowledge_faults()  # asked again: from here on a FAULT stops motion anew
             self._channel.forget(self._cache.received.position_counts)
             # the drive's state now, by SDO (answered after this request): the cache may still show
@@ -158,6 +159,23 @@ class PowerStateMachine:
             self._channel.mark_enabled(op, verdict)  # the verdict and a stop are ordered too
         if parent is None:
             logger.info("%s (node %d): armed (Operation Enabled)", self.name, self.node_id)
+
+    def _wait_watching(self, op: Op, timeout_s: float) -> None:
+        """Enable only a drive that is watching the host (its first host heartbeat or guard after
+        its boot told it to): one enabled before would keep moving if this process died then."""
+        if self._watch.host_watch is None:
+            return
+        self._channel.point("enable: host watch")
+
+        def watching() -> bool:
+            self._channel.check(op, "enable")
+            return not self._watch.not_watching_yet()
+
+        if not self._cache.wait_until(watching, timeout_s):
+            raise CommandRejected(f"{self.name} (node {self.node_id}): enable refused: the drive is not watching the"
+                                  f" host yet ({self._watch.not_watching_yet()}, {timeout_s:g} s); enabled now, it"
+                                  " would keep moving if this process died. This process is starved or cannot send"
+                                  " on the bus: see the bus's diagnostics, then enable again. Nothing was sent.")
 
     def _walk_to_enabled(self, op: Op, timeout_s: float, first: State) -> None:
         """One transition at a time, each planned from the state the drive shows (the first from
