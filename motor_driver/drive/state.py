@@ -107,8 +107,14 @@ class DriveCache:
         """No PDO for stale_after_syncs SYNC periods (what the snapshot calls stale). A drive sends
         PDOs only when OPERATIONAL: while they come, a PRE-OPERATIONAL or STOPPED heartbeat was
         sent before it obeyed an NMT start (on its way, or read late by a starved process)."""
-        rx_at = self.received.rx_monotonic
-        return not rx_at or time.monotonic() - rx_at > self.config.stale_after_syncs * self.sync_period_s
+        return self._stale(self._data_age(self.received, time.monotonic()))
+
+    @staticmethod
+    def _data_age(rx: Received, now: float) -> float:
+        return now - rx.rx_monotonic if rx.rx_monotonic else math.inf
+
+    def _stale(self, data_age: float) -> bool:
+        return data_age > self.config.stale_after_syncs * self.sync_period_s
 
     @property
     def angle_deg(self) -> float:
@@ -310,8 +316,8 @@ class DriveCache:
         error_code = emcy.code if (emcy := self.last_emcy) is not None else 0
         now = time.monotonic()
         hb_age = now - self.last_heartbeat if self.last_heartbeat else math.inf
-        data_age = now - rx.rx_monotonic if rx.rx_monotonic else math.inf
-        stale = data_age > self.config.stale_after_syncs * self.sync_period_s
+        data_age = self._data_age(rx, now)
+        stale = self._stale(data_age)
         scale, lost = self.scale, self._runtime.lost
         torque = scale.permille_to_nm(rx.torque_permille) if self._has_torque else math.nan
         return DriveState(
