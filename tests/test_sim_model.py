@@ -196,3 +196,36 @@ def test_a_sync_between_two_ticks_sends_one_instant_of_the_drive() -> None:
     drive.on_frame(can.Message(arbitration_id=0x201, data=[0x1F, 0x00], is_extended_id=False), now)  # the start, by RPDO
     sw, position = objects()
     assert sw & 0x1400 == 0x1400 and position == 0  # attained, and the new zero, before the next tick
+
+
+@pytest.mark.parametrize("syncs_per_tick", [1, 5])
+def test_a_csp_stream_at_the_ticks_rate_is_followed_at_its_speed(syncs_per_tick: int) -> None:
+    """CSP at 500 Hz (issue 55's arm: a set-point every 2 ms, the simulator's tick): the cyclic
+    set-point moved on only in a tick that brought no new one, so streamed every tick it stood
+    still while the velocity fed forward grew with the distance left, and the bus-limit run's six
+    drives faulted (EMCY 0x8611) within 0.2 s. A late process that takes five SYNCs' set-points
+    in one tick must move them at the stream's speed too, not five cycles' way in one."""
+    drive = SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))
+    drive.on_frame(can.Message(arbitration_id=0x000, data=[0x01, 1], is_extended_id=False), 0.0)  # NMT start
+    drive.on_frame(can.Message(arbitration_id=0x601, data=[0x2F, 0x60, 0x60, 0, int(OperationMode.CYCLIC_SYNC_POSITION),
+                                                           0, 0, 0], is_extended_id=False), 0.0)
+    drive.state = SimState.OPERATION_ENABLED
+    cycle, step = 0.002, 57  # counts a cycle: 28,500 counts/s, the bus-limit run's joints at 50 deg/s
+    now = bus_time = 0.0
+    target, speeds, lags = 0, [], []
+    for k in range(1, 1000 // syncs_per_tick):
+        for _ in range(syncs_per_tick):  # each SYNC stamped with its bus time, then its set-point
+            bus_time += cycle
+            drive.on_frame(can.Message(arbitration_id=0x080, timestamp=bus_time, is_extended_id=False), now)
+            target += step
+            drive.on_frame(can.Message(arbitration_id=0x601, data=[0x23, 0x7A, 0x60, 0, *target.to_bytes(4, "little")],
+                                       is_extended_id=False), now)
+        now += cycle * syncs_per_tick
+        drive.tick(now, cycle * syncs_per_tick)
+        if k * syncs_per_tick > 200:  # the SYNC period measured, the servo settled
+            speeds.append(drive.sp_vel)
+            lags.append(target - drive.sp_pos)
+    assert drive.state == SimState.OPERATION_ENABLED
+    assert statistics.median(speeds) == pytest.approx(step / cycle, rel=0.05)
+    assert max(speeds) < 1.5 * step / cycle, max(speeds)
+    assert max(lags) <= (syncs_per_tick + 1) * step, max(lags)  # a cycle behind, or the late process's cycles

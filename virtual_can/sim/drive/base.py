@@ -70,6 +70,9 @@ class DriveBase:
         self._csp_t = 0.0
         self._csp_from = 0.0  # the cyclic set-point being left, and the cycle it is left over
         self._csp_period = 1e-3
+        self._syncs = 0  # SYNCs heard
+        self._csp_written = 0  # the SYNC count when the newest cyclic set-point was written
+        self._csp_sync = 0  # ... and when the one being followed was, last
         self._last_sync = -1.0
         self._sync_period_s = 0.01  # measured from the SYNCs (a drive's 0x1006 / 0x60C2)
         self.error_code = 0

@@ -209,7 +209,7 @@ class CommNode(Plant):
             self._on_heartbeat(cob - 0x700, now)
             return []
         if cob == (int(self.store.get(OD.COB_ID_SYNC, 0, 0x80)) & 0x7FF):  # type: ignore[arg-type]
-            return self._on_sync(now)
+            return self._on_sync(now, msg.timestamp or now)
         if self.nmt == NmtState.STOPPED:
             return []
         if cob == FunctionCode.SDO_RX + self.node_id:
@@ -292,9 +292,12 @@ class CommNode(Plant):
                         out += self._send_pdo(pdo, data, now)
         return out
 
-    def _on_sync(self, now: float) -> list[can.Message]:
-        interval = now - self._last_sync
-        self._last_sync = now
+    def _on_sync(self, now: float, stamp: float) -> list[can.Message]:
+        """A SYNC, at bus time ``stamp``: the cycle is measured by the bus's clock, not by when this
+        process got to it (a late process takes several SYNCs at once)."""
+        interval = stamp - self._last_sync
+        self._last_sync = stamp
+        self._syncs += 1
         if 0.0005 < interval < CYCLIC_GAP_S:  # the cycle the cyclic modes interpolate over
             self._sync_period_s += 0.2 * (interval - self._sync_period_s)
         if self.nmt != NmtState.OPERATIONAL:

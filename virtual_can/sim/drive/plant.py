@@ -108,15 +108,21 @@ class Plant(StateMachine):
             self.sp_vel = self.sp_acc = 0.0
 
     def _cyclic_position_step(self, target: float, now: float) -> None:
-        """CSP / IP: a new cyclic set-point is reached over one SYNC cycle."""
-        if target != self._csp_last:
-            fresh = self._csp_last is not None and now - self._csp_t <= CYCLIC_GAP_S
-            self._csp_from = self.sp_pos if fresh else target
-            self._csp_period = self._sync_period_s
-            self._csp_last, self._csp_t = target, now
-        # linear interpolation from the last set-point to this one over the cycle, as
-        # drives do (0x60C2): no jump per cycle, no velocity left over when it ends
-        done = (now - self._csp_t) / self._csp_period
+        """CSP / IP: a new cyclic set-point is reached over one SYNC cycle, or over the cycles
+        since the one left behind was written, when this process took several SYNCs' set-points
+        in one go (it ran late): the set-point then moves at the stream's speed, not several
+        cycles' way in one (a velocity many times the stream's, fed forward over a late tick).
+        Linear interpolation, as drives do (0x60C2): no jump per cycle, no velocity left over."""
+        last = self._csp_last
+        done = min(1.0, (now - self._csp_t) / self._csp_period)
+        if target != last:
+            fresh = last is not None and now - self._csp_t <= CYCLIC_GAP_S
+            # from where the set-point is now on its way to the one left behind
+            self._csp_from = self._csp_from + (last - self._csp_from) * done if fresh and last is not None else target
+            cycles = max(1, self._csp_written - self._csp_sync) if fresh else 1
+            self._csp_period = self._sync_period_s * cycles
+            self._csp_last, self._csp_t, self._csp_sync = target, now, self._csp_written
+            done = 0.0
         if done >= 1.0:
             self.sp_pos, self.sp_vel = target, 0.0
         else:

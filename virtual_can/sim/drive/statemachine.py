@@ -102,6 +102,13 @@ class StateMachine(ErrorStack):
             self.pp_target = float(self.store.get(OD.TARGET_POSITION, 0))  # type: ignore[arg-type]
         elif self.mode == OperationMode.INTERPOLATED_POSITION and self._ip_enabled:
             self.pp_target = float(self.store.get(OD.INTERPOLATION_DATA, 1, 0))  # type: ignore[arg-type]
+        else:
+            return
+        # the SYNC it came with: the cycles between the set-point followed (held while written
+        # again unchanged) and a new one (plant._cyclic_position_step)
+        self._csp_written = self._syncs
+        if self.pp_target == self._csp_last:
+            self._csp_sync = self._syncs
 
     @property
     def _ip_enabled(self) -> bool:
