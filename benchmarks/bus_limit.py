@@ -143,12 +143,16 @@ CARRIED_MIN = 0.9
 
 
 def not_carried(figures: dict[str, Any], drives: int = DRIVES, hz: float = HZ, prefix: str = "bus_limit_") -> str | None:
-    """Why the stack run's figures do not count (the emulator did not carry the load), or None.
+    """Why the stack run's figures do not count (the emulator did not carry the load, or a drive
+    faulted or stopped itself: its EMCY), or None.
     ``drives``: on the bus whose listener the figures came from."""
     due = (1 + 2 * drives) * hz  # its SYNC and two TPDOs per drive every cycle
     seen = figures.get(f"{prefix}emulator_frames_per_s", 0)
     if seen < CARRIED_MIN * due:
         return f"the listener saw {seen} of the {due:.0f} SYNC and TPDO frames/s the emulator owes ({seen / due:.0%})"
+    emcy = figures.get(f"{prefix}emcy_in_window")
+    if emcy:
+        return f"drives faulted or stopped themselves during the run ({', '.join(emcy)})"
     loss = figures.get(f"{prefix}tpdo_loss") or 0
     if loss < 0:
         return f"the listener missed {-loss} TPDOs the driver applied"

@@ -420,6 +420,11 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
     # the driver's heartbeat (node 127) as the drives see it: its longest gap is what their
     # consumer time (150 ms by default) must cover while the process is busy
     beats = [t for t, cob, _ in first.frames if cob == 0x77F and window0 <= t <= window1]
+    # a drive that faulted or stopped itself in the window (its EMCY, not an error reset): the
+    # figures then measure a run that stopped carrying its load
+    emcy = sorted({f"{ch} node {cob - 0x80} EMCY 0x{int.from_bytes(d[:2], 'little'):04X}"
+                   for ch, listener in listeners.items() for t, cob, d in listener.frames
+                   if 0x081 <= cob <= 0x0FF and window0 <= t <= window1 and d[:2] != b"\0\0"})
     gaps = [(b - a) * 1000 for a, b in itertools.pairwise(beats)]
     return {"config": str(config_path.relative_to(REPO)), "drives": len(drives),
             "host_heartbeat_gap_p99_ms": round(pct(gaps, 0.99), 1) if gaps else None,
@@ -437,7 +442,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             # how late the listener (a client like the drives) heard the SYNC after its bus time
             "sync_delivery_p99_us": round(pct(first.sync_lags, 0.99) * 1e6, 1) if first.sync_lags else None,
             "tpdo_delivery_p99_us": round(pct(first.tpdo_lags, 0.99) * 1e6, 1) if first.tpdo_lags else None,
-            "sync_timer_realtime": sync_timer_realtime}
+            "sync_timer_realtime": sync_timer_realtime, "emcy_in_window": emcy, "drive_stops": len(emcy)}
 
 
 def bare_path(seconds: float, topics: int = 1, priority: int = 0) -> dict[str, Any]:

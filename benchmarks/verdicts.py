@@ -30,6 +30,8 @@ TARGETS: dict[str, tuple[str, float]] = {
     "bus_limit_tpdo_loss": ("==", 0), "bus_limit_cpu_ratio_canopen": ("<=", 2.0),
     "bus_limit_cmd_latency_p99_ms": ("<=", 2.0), "bus_limit_sync_jitter_p99_us": ("<=", 200),
     "scaling_cost_spread": ("<=", 0.2),
+    # a drive that faulted or stopped itself during a stack run (its EMCY): never excused as the machine's
+    "drive_stops": ("==", 0), "bus_limit_drive_stops": ("==", 0),
     # reference only: absolute figures of this machine (their ratios above are the verdicts)
     "cmd_latency_p50_ms": ("<=", 0.5), "cpu_core_fraction": ("<=", 0.15),
 }

@@ -78,6 +78,13 @@ def test_the_bus_limit_counts_only_when_the_emulator_carried_the_load() -> None:
     rows = {r.figure: r.verdict for r in verdicts({"bus_limit_sync_jitter_p99_us": 12_000.0,
                                                     "invalid": {"bus limit: emulator": reason}})}
     assert rows["bus_limit_sync_jitter_p99_us"] == f"no verdict: bus limit: emulator: {reason}"
+    # a drive that faulted or stopped itself: its figures do not count, and the stop itself is a miss
+    stopped = not_carried({"bus_limit_emulator_frames_per_s": 6500, "bus_limit_tpdo_loss": 0,
+                           "bus_limit_emcy_in_window": ["can0 node 3 EMCY 0x8130"], "bus_limit_drive_stops": 1})
+    assert "drives faulted or stopped themselves during the run (can0 node 3 EMCY 0x8130)" in str(stopped)
+    rows = {r.figure: r.verdict for r in verdicts({"bus_limit_drive_stops": 1, "bus_limit_tpdo_loss": 0,
+                                                    "invalid": {"bus limit: emulator": str(stopped)}})}
+    assert rows["bus_limit_drive_stops"] == "MISSED" and rows["bus_limit_tpdo_loss"].startswith("no verdict")
 
 
 def test_the_traffic_carried_is_counted_while_the_drives_are_commanded() -> None:
