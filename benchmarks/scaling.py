@@ -3,6 +3,11 @@
 measured process's CPU per drive-cycle (CPU seconds / (drives x command rate x seconds), in us),
 with command p99 and SYNC error p99. Linear growth keeps it constant: ``scaling_cost_spread`` is
 the largest over the smallest, minus 1, over the runs the emulator carried (bus_limit.not_carried).
+That figure also divides the process's fixed cost (executors, supervisor, DDS: paid with one drive
+as with eighteen) and its cost per SYNC cycle among the drive-cycles, so it is large for any
+process with a fixed cost. What each added drive costs, (CPU(N) - CPU(1)) / ((N - 1) x rate) at
+one rate, has both taken out: ``scaling_added_cost_spread`` is its spread, and a knee (a cost per
+drive that grows with the load) shows there.
 
 A combination whose traffic (a SYNC, a set-point RPDO and two TPDOs per drive every cycle, no bit
 stuffing) exceeds one 1 Mbit/s bus is dropped and named in ``scaling_dropped``. The configs are
@@ -70,16 +75,33 @@ def curve(seconds: float) -> dict[str, Any]:
                     print(f"scaling: {drives} drives at {hz:g} Hz failed (run {attempt} of 2): {err}", file=sys.stderr)
             else:
                 failed.append({"drives": drives, "hz": hz})
+    added_costs(points)
     costs = [p["cpu_us_per_drive_cycle"] for p in points if p["not_carried"] is None]
+    added = [p["added_us_per_drive_cycle"] for p in points if p.get("added_carried")]
     out: dict[str, Any] = {"scaling_curve": points, "scaling_dropped": dropped, "scaling_failed": failed,
                            "scaling_seconds": seconds}
     if costs:
         out["scaling_cost_spread"] = round(max(costs) / min(costs) - 1, 2)
+    if len(added) > 1 and min(added) > 0:
+        out["scaling_added_cost_spread"] = round(max(added) / min(added) - 1, 2)
     every = [p["cpu_us_per_drive_cycle"] for p in points]
     if every:  # runs the emulator did not carry too: what the machine gave, no verdict
         out["scaling_cost_spread_all_runs"] = round(max(every) / min(every) - 1, 2)
     out.update(fit(points))
     return out
+
+
+def added_costs(points: list[dict[str, Any]]) -> None:
+    """Each run of more than one drive: what the drives beyond the first cost per drive-cycle, against
+    the one-drive run at its rate (``added_us_per_drive_cycle``); ``added_carried`` when the emulator
+    carried both runs."""
+    alone = {p["hz"]: p for p in points if p["drives"] == 1}
+    for p in points:
+        one = alone.get(p["hz"])
+        if p["drives"] > 1 and one is not None:
+            added = (p["cpu_core_fraction"] - one["cpu_core_fraction"]) / ((p["drives"] - 1) * p["hz"])
+            p["added_us_per_drive_cycle"] = round(added * 1e6, 1)
+            p["added_carried"] = p["not_carried"] is None and one["not_carried"] is None
 
 
 def fit(points: list[dict[str, Any]]) -> dict[str, Any]:
@@ -96,12 +118,13 @@ def fit(points: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def table(out: dict[str, Any]) -> str:
-    lines = ["| drives | Hz | bus load | CPU (core) | CPU per drive-cycle, us | command p99, ms | SYNC p99, us |"
-             " TPDO loss | carried |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| drives | Hz | bus load | CPU (core) | CPU per drive-cycle, us | per added drive-cycle, us |"
+             " command p99, ms | SYNC p99, us | TPDO loss | carried |", "|---|---|---|---|---|---|---|---|---|---|"]
     for p in out["scaling_curve"]:
         lines.append(f"| {p['drives']} | {p['hz']:g} | {p['bus_load']:.0%} | {p['cpu_core_fraction']} |"
-                     f" {p['cpu_us_per_drive_cycle']} | {p['cmd_latency_p99_ms']} | {p['sync_jitter_p99_us']} |"
-                     f" {p['tpdo_loss']} | {p['not_carried'] or 'yes'} |")
+                     f" {p['cpu_us_per_drive_cycle']} | {p.get('added_us_per_drive_cycle', '')} |"
+                     f" {p['cmd_latency_p99_ms']} | {p['sync_jitter_p99_us']} | {p['tpdo_loss']} |"
+                     f" {p['not_carried'] or 'yes'} |")
     return "\n".join(lines)
 
 
@@ -146,6 +169,7 @@ def main() -> int:
     plot(out, args.png)
     print(table(out))
     print(f"\nscaling_cost_spread: {out.get('scaling_cost_spread')} (all runs: {out.get('scaling_cost_spread_all_runs')});"
+          f" scaling_added_cost_spread: {out.get('scaling_added_cost_spread')};"
           f" fixed {out.get('scaling_fixed_cpu_core_fraction')} of a core + {out.get('scaling_marginal_us_per_drive_cycle')}"
           f" us per drive-cycle; dropped (over one bus): {out['scaling_dropped']}; failed: {out['scaling_failed']}")
     return 0
