@@ -6,8 +6,10 @@ the largest over the smallest, minus 1, over the runs the emulator carried (bus_
 That figure also divides the process's fixed cost (executors, supervisor, DDS: paid with one drive
 as with eighteen) and its cost per SYNC cycle among the drive-cycles, so it is large for any
 process with a fixed cost. What each added drive costs, (CPU(N) - CPU(1)) / ((N - 1) x rate) at
-one rate, has both taken out: ``scaling_added_cost_spread`` is its spread, and a knee (a cost per
-drive that grows with the load) shows there.
+one rate, has both taken out: ``scaling_added_cost_spread`` is its largest spread within one rate
+(from 1 to N drives: growth in drives, the curve's question), and a knee (a cost per drive that
+grows with the load) shows there. Across rates it differs by what a drive costs per second
+whatever the rate (its state published at a rate of its own): ``scaling_added_cost_by_rate``.
 
 A combination whose traffic (a SYNC, a set-point RPDO and two TPDOs per drive every cycle, no bit
 stuffing) exceeds one 1 Mbit/s bus is dropped and named in ``scaling_dropped``. The configs are
@@ -75,15 +77,12 @@ def curve(seconds: float) -> dict[str, Any]:
                     print(f"scaling: {drives} drives at {hz:g} Hz failed (run {attempt} of 2): {err}", file=sys.stderr)
             else:
                 failed.append({"drives": drives, "hz": hz})
-    added_costs(points)
     costs = [p["cpu_us_per_drive_cycle"] for p in points if p["not_carried"] is None]
-    added = [p["added_us_per_drive_cycle"] for p in points if p.get("added_carried")]
     out: dict[str, Any] = {"scaling_curve": points, "scaling_dropped": dropped, "scaling_failed": failed,
                            "scaling_seconds": seconds}
     if costs:
         out["scaling_cost_spread"] = round(max(costs) / min(costs) - 1, 2)
-    if len(added) > 1 and min(added) > 0:
-        out["scaling_added_cost_spread"] = round(max(added) / min(added) - 1, 2)
+    out.update(added_costs(points))
     every = [p["cpu_us_per_drive_cycle"] for p in points]
     if every:  # runs the emulator did not carry too: what the machine gave, no verdict
         out["scaling_cost_spread_all_runs"] = round(max(every) / min(every) - 1, 2)
@@ -91,17 +90,25 @@ def curve(seconds: float) -> dict[str, Any]:
     return out
 
 
-def added_costs(points: list[dict[str, Any]]) -> None:
+def added_costs(points: list[dict[str, Any]]) -> dict[str, Any]:
     """Each run of more than one drive: what the drives beyond the first cost per drive-cycle, against
-    the one-drive run at its rate (``added_us_per_drive_cycle``); ``added_carried`` when the emulator
-    carried both runs."""
+    the one-drive run at its rate (``added_us_per_drive_cycle``; ``added_carried`` when the emulator
+    carried both runs). Returns the largest spread of those within one rate, and them by rate."""
     alone = {p["hz"]: p for p in points if p["drives"] == 1}
+    by_rate: dict[float, list[float]] = {}
     for p in points:
         one = alone.get(p["hz"])
         if p["drives"] > 1 and one is not None:
             added = (p["cpu_core_fraction"] - one["cpu_core_fraction"]) / ((p["drives"] - 1) * p["hz"])
             p["added_us_per_drive_cycle"] = round(added * 1e6, 1)
             p["added_carried"] = p["not_carried"] is None and one["not_carried"] is None
+            if p["added_carried"]:
+                by_rate.setdefault(p["hz"], []).append(p["added_us_per_drive_cycle"])
+    spreads = [max(costs) / min(costs) - 1 for costs in by_rate.values() if len(costs) > 1 and min(costs) > 0]
+    if not spreads:
+        return {}
+    return {"scaling_added_cost_spread": round(max(spreads), 2),
+            "scaling_added_cost_by_rate": {f"{hz:g}": costs for hz, costs in by_rate.items()}}
 
 
 def fit(points: list[dict[str, Any]]) -> dict[str, Any]:
@@ -137,7 +144,10 @@ def plot(out: dict[str, Any], png: Path) -> None:
     fig, (ax_cpu, ax_p99) = plt.subplots(1, 2, figsize=(10, 4))
     for hz in RATES:
         pts = [p for p in out["scaling_curve"] if p["hz"] == hz]
-        ax_cpu.plot([p["drives"] for p in pts], [p["cpu_us_per_drive_cycle"] for p in pts], "o-", label=f"{hz:g} Hz")
+        line, = ax_cpu.plot([p["drives"] for p in pts], [p["cpu_us_per_drive_cycle"] for p in pts], "o-", label=f"{hz:g} Hz")
+        more = [p for p in pts if "added_us_per_drive_cycle" in p]
+        ax_cpu.plot([p["drives"] for p in more], [p["added_us_per_drive_cycle"] for p in more], "s--",
+                    color=line.get_color(), label=f"{hz:g} Hz, per added drive-cycle")
         ax_p99.plot([p["drives"] for p in pts], [p["cmd_latency_p99_ms"] for p in pts], "o-", label=f"{hz:g} Hz")
         late = [p for p in pts if p["not_carried"]]  # the emulator did not carry the load: hollow, no verdict
         for ax, key in ((ax_cpu, "cpu_us_per_drive_cycle"), (ax_p99, "cmd_latency_p99_ms")):

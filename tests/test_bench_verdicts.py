@@ -106,24 +106,25 @@ def test_the_traffic_carried_is_counted_while_the_drives_are_commanded() -> None
 
 
 def test_the_added_cost_per_drive_takes_out_the_fixed_cost_and_shows_a_knee() -> None:
-    """CPU = 0.06 of a core + 20 us per SYNC cycle + 100 us per drive-cycle: CPU per drive-cycle
-    spreads widely (the fixed parts divided among few drive-cycles), what each added drive costs
-    does not; a cost per drive that grows with the load (a knee at 12 drives) shows there."""
+    """CPU = 0.06 of a core + 20 us per SYNC cycle + 100 us per drive-cycle (+ 3 ms a second per
+    drive, whatever the rate): CPU per drive-cycle spreads widely (the fixed parts divided among
+    few drive-cycles), what each added drive costs at one rate does not; a cost per drive that
+    grows with the load (a knee at 12 drives) shows there."""
     from scaling import added_costs
 
-    def points(knee: float) -> list[dict[str, Any]]:
-        out = []
+    def points(knee: float) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+        out: list[dict[str, Any]] = []
         for hz in (100.0, 500.0):
             for n in (1, 3, 6, 12):
-                cpu = 0.06 + 20e-6 * hz + 100e-6 * n * hz * (knee if n == 12 else 1.0)
+                cpu = 0.06 + 20e-6 * hz + 3e-3 * n + 100e-6 * n * hz * (knee if n == 12 else 1.0)
                 out.append({"drives": n, "hz": hz, "cpu_core_fraction": cpu, "not_carried": None,
                             "cpu_us_per_drive_cycle": cpu / (n * hz) * 1e6})
-        added_costs(out)
-        return out
+        return out, added_costs(out)
 
-    linear = points(1.0)
+    linear, figures = points(1.0)
     per_cycle = [p["cpu_us_per_drive_cycle"] for p in linear]
     assert max(per_cycle) / min(per_cycle) > 3
-    assert {p.get("added_us_per_drive_cycle") for p in linear} == {None, 100.0}
-    kneed = [p["added_us_per_drive_cycle"] for p in points(1.5) if p["drives"] > 1]
-    assert max(kneed) / min(kneed) - 1 > 0.2
+    assert {p.get("added_us_per_drive_cycle") for p in linear} == {None, 130.0, 106.0}  # 100 + 3000 / rate
+    assert figures["scaling_added_cost_spread"] == 0.0
+    assert figures["scaling_added_cost_by_rate"] == {"100": [130.0] * 3, "500": [106.0] * 3}
+    assert points(1.5)[1]["scaling_added_cost_spread"] > 0.2
