@@ -379,6 +379,10 @@ def main() -> int:
     results["targets"] = {k: list(v) for k, v in TARGETS.items()}
     rows = verdicts(results)
     results["verdicts"] = [row._asdict() for row in rows]
+    # the scaling curve is scaling.py's (minutes, not part of this run; it gives its own verdicts):
+    # its last figures stay in the file beside this run's
+    before = json.loads(OUT.read_text()) if OUT.exists() else {}
+    results.update({k: v for k, v in before.items() if k.startswith("scaling_")})
     OUT.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))
     print(f"\n{table(rows)}")

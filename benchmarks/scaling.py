@@ -29,6 +29,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bus_limit
+import verdicts
 from stack_run import REPO
 
 sys.path.insert(0, str(REPO))
@@ -178,11 +179,13 @@ def main() -> int:
     OUT.write_text(json.dumps(results, indent=2) + "\n")
     plot(out, args.png)
     print(table(out))
+    rows = verdicts.verdicts(out)
+    print(f"\n{verdicts.table(rows)}")
     print(f"\nscaling_cost_spread: {out.get('scaling_cost_spread')} (all runs: {out.get('scaling_cost_spread_all_runs')});"
           f" scaling_added_cost_spread: {out.get('scaling_added_cost_spread')};"
           f" fixed {out.get('scaling_fixed_cpu_core_fraction')} of a core + {out.get('scaling_marginal_us_per_drive_cycle')}"
           f" us per drive-cycle; dropped (over one bus): {out['scaling_dropped']}; failed: {out['scaling_failed']}")
-    return 0
+    return verdicts.exit_status(rows, {f"{p['drives']} drives at {p['hz']:g} Hz": "failed" for p in out["scaling_failed"]})
 
 
 if __name__ == "__main__":
