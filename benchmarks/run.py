@@ -347,7 +347,10 @@ def main() -> int:
     # EMCYs when a run ends) here, not into the user's ~/.local/state
     os.environ.setdefault("ROVERCAN_INCIDENT_DIR", tempfile.mkdtemp(prefix="rovercan-bench-incidents-"))
     scale = 1 if args.quick else 10
+    import stack_run
+
     results: dict[str, Any] = {
+        "harness_nice": stack_run.harness_ahead(),
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "mode": "quick" if args.quick else "full",
         "machine": {"platform": platform.platform(), "processor": platform.machine(),

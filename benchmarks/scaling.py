@@ -29,6 +29,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bus_limit
+import stack_run
 import verdicts
 from stack_run import REPO
 
@@ -173,6 +174,7 @@ def main() -> int:
     if args.replot:
         plot(json.loads(OUT.read_text()), args.png)
         return 0
+    stack_run.harness_ahead()
     out = curve(args.seconds)
     results = json.loads(OUT.read_text()) if OUT.exists() else {}
     results.update(out)

@@ -7,6 +7,8 @@ from __future__ import annotations
 import sys
 from typing import Any
 
+import pytest
+
 from .conftest import REPO
 
 sys.path.insert(0, str(REPO / "benchmarks"))
@@ -128,3 +130,18 @@ def test_the_added_cost_per_drive_takes_out_the_fixed_cost_and_shows_a_knee() ->
     assert figures["scaling_added_cost_spread"] == 0.0
     assert figures["scaling_added_cost_by_rate"] == {"100": [130.0] * 3, "500": [106.0] * 3}
     assert points(1.5)[1]["scaling_added_cost_spread"] > 0.2
+
+
+def test_the_harness_runs_ahead_of_other_load_and_its_children_with_it() -> None:
+    """run.py, bus_limit.py and scaling.py put their own processes at HARNESS_NICE: a busy loop
+    beside the run must delay the stack, not the harness's stamps; what they start inherits it."""
+    import os
+    import subprocess
+
+    if os.geteuid() != 0:
+        pytest.skip("raising a process's priority needs root (CAP_SYS_NICE); the harness then runs as it is")
+    code = ("import subprocess, stack_run; n = stack_run.harness_ahead();"
+            " print(n, subprocess.run(['nice'], capture_output=True, text=True).stdout.strip())")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO / "benchmarks", capture_output=True, text=True,
+                         timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert out.stdout.split() == ["-10", "-10"], out.stderr[-2000:]
