@@ -130,7 +130,8 @@ class MotorDriver:
                 runtime, port = self.supervisor.port(drive_cfg.name)
                 drive = Drive(drive_cfg, self._handles[drive_cfg.bus].network, ods[drive_cfg.name],
                               host_node_id=bus_cfg.host_node_id, sync_period_s=bus_cfg.sync_period_s,
-                              runtime=runtime, port=port, host_beats=self._handles[drive_cfg.bus].beats_sent)
+                              runtime=runtime, port=port, host_beats=self._handles[drive_cfg.bus].beats_sent,
+                              host_heartbeat_s=bus_cfg.host_heartbeat_s)
                 drive.watch.set_remote_frames(carries_remote_frames(self._handles[drive_cfg.bus].bus))
                 self.drives[drive_cfg.name] = drive
                 self.supervisor.add(drive)

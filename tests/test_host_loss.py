@@ -24,7 +24,7 @@ import pytest
 
 from can_config import RoverConfig, load_config, load_drive_od
 from can_config.config import GENERIC_EDS
-from can_config.errors import CommandRejected
+from can_config.errors import CommandRejected, DriveTimeoutError
 from motor_driver import MotorDriver, State
 from motor_driver.pdo import plan_pdos
 from virtual_can import SimDriveSpec, SimService
@@ -283,8 +283,8 @@ def test_enable_waits_until_the_drive_watches_the_host(driver_factory: Callable[
         return bool(runner.call(lambda: dict(runner.drive(1)._consumer_seen)))
 
     drive.boot.boot()  # told to watch the host again: a consumer that waits for its first heartbeat
-    with pytest.raises(CommandRejected, match=r"enable refused: the drive is not watching the host yet \(no host"
-                                              r" heartbeat \(node 127\) has gone out"):
+    with pytest.raises(DriveTimeoutError, match=r"enable refused: the drive is not watching the host after 1 s: 0 of"
+                                                r" the 2 host heartbeats \(node 127, every 50 ms\) it needs"):
         drive.enable()
     assert runner.call(lambda: runner.drive(1).state) != State.OPERATION_ENABLED and not sim_watching()
     drive.channel.set_hook(lambda point: held.clear() if point == "enable: host watch" else None)

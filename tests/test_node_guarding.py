@@ -9,17 +9,19 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
+from pathlib import Path
 
 import can
 import pytest
 
-from can_config import GENERIC_EDS, load_drive_od, with_bus_overrides
-from can_config.errors import MotorError
+from can_config import GENERIC_EDS, load_drive_od, parse_config, with_bus_overrides
+from can_config.errors import DriveTimeoutError, MotorError
 from can_config.objects import OD, NmtCommand, NmtState
-from motor_driver import MotorDriver
+from motor_driver import MotorDriver, State
 from motor_driver.safety import guard_settings
 from virtual_can import SimService
-from virtual_can.sim import SimulatedDrive
+from virtual_can.sim import DriveSimulator, SimulatedDrive
 from virtual_can.sim.drive import State as SimState
 
 from .conftest import REPO, SHARED_EDS, make_config, requires_shared
@@ -113,3 +115,43 @@ def test_the_bench_arms_a_guarded_drive_on_socketcand_only_when_told() -> None:
                                   *bus], cwd=REPO, capture_output=True, text=True, timeout=120)
         assert allowed.returncode == 0, allowed.stderr
         assert "NOTHING stops it" in allowed.stderr
+
+
+def test_enable_waits_until_a_guarded_drive_answers_guards(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A node-guarded drive's life guarding starts at the first guard it hears (CiA 301): enabled
+    before that, nothing stops it if the host dies. The guard answers are counted by the receive
+    thread: boot's own NMT start had counted as one (a review found the guarded path always
+    passed). On a python-can virtual bus (it carries remote frames, as a kernel bus does), the
+    supervisor's guards held back across a new boot: enable is refused, nothing sent; let go,
+    it returns with the drive guarded."""
+    from tests.test_kernel_tier import guarded_generic_eds
+
+    eds = guarded_generic_eds(tmp_path / "guarded.eds")
+    channel = f"guarding-{tmp_path.name}"
+    config = parse_config({"buses": [{"name": "can0", "interface": "virtual", "channel": channel}],
+                           "drives": [{"name": "joint1", "node_id": 1, "eds": str(eds), "host_watch": "guarding",
+                                       "heartbeat_timeout_ms": 30_000}]},  # held guards: not lost meanwhile
+                          source=tmp_path / "rover.yaml")
+    sim_drive = SimulatedDrive(1, load_drive_od(eds, 1))
+    with can.Bus(interface="virtual", channel=channel) as sim_bus, DriveSimulator(sim_bus, [sim_drive]) as runner, \
+            MotorDriver(config) as driver:
+        runner.start()
+        driver.start()
+        drive = driver.drive("joint1")
+        assert drive.cache.guarding, drive.watch.host_watch
+        held = threading.Event()
+        held.set()
+        send_guard = drive.watch.send_guard
+        monkeypatch.setattr(drive.watch, "send_guard", lambda: None if held.is_set() else send_guard())
+        drive.boot.boot()  # told to be guarded again: its life guarding waits for a first guard
+        with pytest.raises(DriveTimeoutError, match=r"enable refused: the drive is not watching the host after .* s: 0"
+                                                    r" of the 2 guard answers it needs"):
+            drive.enable()
+        assert runner.call(lambda: sim_drive.state) != SimState.OPERATION_ENABLED
+        drive.channel.set_hook(lambda point: held.clear() if point == "enable: host watch" else None)
+        try:
+            drive.enable(timeout_s=30.0)  # a bound for a hang
+        finally:
+            drive.channel.set_hook(None)
+            held.clear()
+        assert runner.call(lambda: sim_drive._guarded_at) is not None and drive.cache.state is State.OPERATION_ENABLED

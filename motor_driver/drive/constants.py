@@ -68,3 +68,10 @@ ENABLE_STEPS = 8
 #: statusword only on change is taken at its last one after this many SYNC periods (plus a margin).
 FRESH_STATUS_SYNCS = 3
 FRESH_STATUS_MARGIN_S = 0.05
+
+#: An enabled drive must be watching the host (its consumer or life guarding started): the host
+#: heartbeats sent, or guard answers taken, since it was told to watch, before it is enabled
+#: (drive/hostwatch.py: the first may have been on its way)
+WATCH_START_BEATS = 2
+#: ... waited for at least this many of their periods by enable, whatever its own timeout
+WATCH_START_PERIODS = 4

@@ -56,7 +56,7 @@ class Drive:
 
     def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
                  host_node_id: int = 127, sync_period_s: float = 0.01, runtime: DriveRuntime,
-                 port: RuntimePort, host_beats: Callable[[], int]) -> None:
+                 port: RuntimePort, host_beats: Callable[[], int], host_heartbeat_s: float) -> None:
         self.config = config
         self.name, self.node_id = config.name, config.node_id
         self.network = network
@@ -78,7 +78,8 @@ class Drive:
                                       self.cache.wake)
         ports = Ports(config, od, self.plan, self.cache, self.channel, self.sdo)
         self.watch = HostWatch(ports, network, host_node_id, runtime=runtime,
-                               nmt=NmtLedger(config.node_id, self._send), host_beats=host_beats)
+                               nmt=NmtLedger(config.node_id, self._send), host_beats=host_beats,
+                               host_heartbeat_s=host_heartbeat_s)
         self.power = PowerStateMachine(ports, self.watch)
         self.limits = LimitGuard(ports)
         self.motion = Motion(ports, self.power, self.limits)

@@ -1,14 +1,17 @@
 """How the drive watches the host (heartbeat consumer or node guarding), and the frames the
 driver's supervisor sends a drive it stops hearing or loses to another master: it tells it to stop.
 
-Owners: boot (the bus's worker, drive not booted) writes ``host_watch``, ``host_watch_problem``
-and ``guardable`` through :meth:`choose` and :meth:`configure`; the driver sets ``remote_frames``
-once, before the first boot. This object keeps no runtime state: lost, another master and the
-stop bookkeeping are the supervisor's (:class:`motor_driver.runtime.DriveRuntime`, read here),
-which decides when :meth:`send_guard`, :meth:`stop_lost` and :meth:`lose_control` run, on its
-thread; none of them waits (the channel's lock is tried, not waited for). Blocking SDO work (the
-SDO copy of a stop) runs on the bus's worker. Every NMT command goes through the drive's
-:class:`motor_driver.runtime.NmtLedger`, so that a state it causes is known as this driver's.
+Owners: boot (the bus's worker, drive not booted) writes ``host_watch``, ``host_watch_problem``,
+``guardable`` and when the drive was told to watch (``_told_at``) through :meth:`choose` and
+:meth:`configure`; the driver sets ``remote_frames`` once, before the first boot. The count of host
+heartbeats sent on the drive's bus is the supervisor's (its bus handle, read through
+``host_beats``); the count of guard answers is the receive thread's (the cache). This object
+keeps no runtime state: lost, another master and the stop bookkeeping are the supervisor's
+(:class:`motor_driver.runtime.DriveRuntime`, read here), which decides when :meth:`send_guard`,
+:meth:`stop_lost` and :meth:`lose_control` run, on its thread; none of them waits (the
+channel's lock is tried, not waited for). Blocking SDO work (the SDO copy of a stop) runs on the
+bus's worker. Every NMT command goes through the drive's :class:`motor_driver.runtime.NmtLedger`,
+so that a state it causes is known as this driver's.
 
 A drive declared lost may still be turning (a broken transmit line, a hung CAN task): the
 driver tells it to stop by every means that needs no answer from it, the quick-stop
@@ -32,7 +35,13 @@ from can_config.eds import has_object
 from can_config.errors import MotorError, SdoError
 from can_config.objects import OD, FunctionCode, NmtCommand, sdo_abort_text
 from motor_driver.cia402 import Command, State
-from motor_driver.drive.constants import NO_HOST_WATCH, QUICK_STOP_THEN_DISABLE, VALUE_RANGE_ABORTS
+from motor_driver.drive.constants import (
+    NO_HOST_WATCH,
+    QUICK_STOP_THEN_DISABLE,
+    VALUE_RANGE_ABORTS,
+    WATCH_START_BEATS,
+    WATCH_START_PERIODS,
+)
 from motor_driver.drive.part import Ports
 from motor_driver.runtime import DriveRuntime, NmtLedger
 from motor_driver.safety import guard_settings
@@ -49,7 +58,7 @@ class HostWatch:
     """The drive's watch of the host, and the supervisor's of the drive."""
 
     def __init__(self, ports: Ports, network: canopen.Network, host_node_id: int, *, runtime: DriveRuntime,
-                 nmt: NmtLedger, host_beats: Callable[[], int]) -> None:
+                 nmt: NmtLedger, host_beats: Callable[[], int], host_heartbeat_s: float) -> None:
         self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
         self.name, self.node_id = ports.config.name, ports.config.node_id
         self._network = network
@@ -63,8 +72,9 @@ class HostWatch:
         self.host_watch_problem: str | None = None
         self.guardable = False  # node guarding chosen and possible on this bus (boot's)
         self._host_beats = host_beats  # host heartbeats sent on the drive's bus so far (the supervisor's count)
-        #: boot's: that count, and the time, once the drive was told to watch the host
-        self._told_at: tuple[int, float] = (0, 0.0)
+        self._host_heartbeat_s = host_heartbeat_s
+        #: boot's: that count, and the cache's count of guard answers, once the drive was told to watch the host
+        self._told_at: tuple[int, int] = (0, 0)
 
     def set_remote_frames(self, carried: bool) -> None:
         self.remote_frames = carried
@@ -95,7 +105,7 @@ class HostWatch:
             self._configure_guarding()
         elif has_object(self._od, OD.CONSUMER_HEARTBEAT_TIME, 1) and cfg.host_timeout_s is not None:
             self._configure_consumer(cfg.host_timeout_s)
-        self._told_at = (self._host_beats(), time.monotonic())
+        self._told_at = (self._host_beats(), self._cache.guard_answers)
         if self.host_watch is None and cfg.allow_no_host_watch:
             logger.warning("node %d (%s): %s; allowed by allow_no_host_watch: if this process dies, hangs or"
                            " loses power while the drive is enabled, NOTHING stops it", self.node_id, self.name,
@@ -105,17 +115,33 @@ class HostWatch:
                            self.node_id, self.name, self.host_watch_problem)
 
     def not_watching_yet(self) -> str:
-        """Why the drive told to watch the host is not watching it yet ('' once it is). CiA 301
-        starts a heartbeat consumer at the first heartbeat it hears after its entry is written,
-        life guarding at the first guard: a drive enabled before that keeps moving if the host
-        dies then. A heartbeat counts once sent after the drive answered the write: the second
-        sent since (the first may have been on its way); a guard once the drive has answered one."""
-        beats, at = self._told_at
+        """Why the drive told to watch the host is not watching it yet, and what helps ('' once it
+        is). CiA 301 starts a heartbeat consumer at the first heartbeat it hears after its entry
+        is written, life guarding at the first guard: a drive enabled before that keeps moving if
+        the host dies then. Counted from when the drive answered the last write: the second host
+        heartbeat sent since (one thread sends them, each counted once sent: the first may have
+        been on its way), or the second guard answer taken since (the first may answer a guard
+        sent before)."""
+        beats, answers = self._told_at
         if self._cache.guarding:
-            return "" if self._cache.last_heartbeat > at else "the drive has answered no guard since it was told to"
-        if self._host_beats() >= beats + 2:
+            got = self._cache.guard_answers - answers
+            if got >= WATCH_START_BEATS:
+                return ""
+            guard_ms, _ = guard_settings(self.config)
+            return (f"{got} of the {WATCH_START_BEATS} guard answers it needs since it was told to (guard time"
+                    f" {guard_ms} ms): does it answer node guarding on this bus? See its heartbeat and guard"
+                    " errors in the diagnostics")
+        got = self._host_beats() - beats
+        if got >= WATCH_START_BEATS:
             return ""
-        return f"no host heartbeat (node {self.host_node_id}) has gone out on its bus since it was told to"
+        return (f"{got} of the {WATCH_START_BEATS} host heartbeats (node {self.host_node_id}, every"
+                f" {self._host_heartbeat_s * 1000:g} ms) it needs have gone out since it was told to: this"
+                " process is starved or cannot send on the bus; see the bus's diagnostics")
+
+    def start_bound_s(self) -> float:
+        """How long the drive's watch may take to start: WATCH_START_PERIODS of what it waits for."""
+        period = guard_settings(self.config)[0] / 1000 if self._cache.guarding else self._host_heartbeat_s
+        return WATCH_START_PERIODS * period
 
     def _reaction(self) -> str:
         return self.config.on_host_loss if has_object(self._od, OD.ABORT_CONNECTION_OPTION) else \

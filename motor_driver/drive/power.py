@@ -171,11 +171,12 @@ class PowerStateMachine:
             self._channel.check(op, "enable")
             return not self._watch.not_watching_yet()
 
-        if not self._cache.wait_until(watching, timeout_s):
-            raise CommandRejected(f"{self.name} (node {self.node_id}): enable refused: the drive is not watching the"
-                                  f" host yet ({self._watch.not_watching_yet()}, {timeout_s:g} s); enabled now, it"
-                                  " would keep moving if this process died. This process is starved or cannot send"
-                                  " on the bus: see the bus's diagnostics, then enable again. Nothing was sent.")
+        bound = max(timeout_s, self._watch.start_bound_s())
+        if not self._cache.wait_until(watching, bound):
+            raise DriveTimeoutError(f"{self.name} (node {self.node_id}): enable refused: the drive is not watching"
+                                    f" the host after {bound:g} s: {self._watch.not_watching_yet()}. Enabled now, it"
+                                    " would keep moving if this process died. Nothing was sent; enable it again.",
+                                    node_id=self.node_id)
 
     def _walk_to_enabled(self, op: Op, timeout_s: float, first: State) -> None:
         """One transition at a time, each planned from the state the drive shows (the first from

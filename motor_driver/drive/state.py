@@ -81,6 +81,7 @@ class DriveCache:
         self._last_emcy: Emcy | None = None
         self._guard_toggle = 0
         self.guard_errors = 0
+        self.guard_answers = 0  # the receive thread's: guard answers taken (their toggle right)
         self._bootup = threading.Event()
         # written by others through methods, one writer each
         self._fault_ack = 0  # command threads (enable, recover)
@@ -279,6 +280,7 @@ class DriveCache:
                 self._guard_toggle = toggle ^ 1  # in step again from the next answer on
                 return
             self._guard_toggle ^= 1
+            self.guard_answers += 1
         now = self.last_heartbeat = time.monotonic()
         was = self.reported_nmt
         if state == NmtState.BOOTUP:
