@@ -374,3 +374,15 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
 
     if line := summary():
         terminalreporter.write_line(line)
+
+
+def enable_letting_go(drive: Drive, held: threading.Event) -> None:
+    """Enable ``drive`` while ``held`` (the host heartbeats or guards a test holds back) stays set
+    until the enable waits for the drive's host watch, then cleared: the enable must return only
+    once the drive heard what was let go."""
+    drive.channel.set_hook(lambda point: held.clear() if point == "enable: host watch" else None)
+    try:
+        drive.enable(timeout_s=30.0)  # a bound for a hang
+    finally:
+        drive.channel.set_hook(None)
+        held.clear()

@@ -30,7 +30,7 @@ from motor_driver.pdo import plan_pdos
 from virtual_can import SimDriveSpec, SimService
 from virtual_can.server import RAWMODE_HOLD_S
 
-from .conftest import REPO, SHARED_EDS, make_config, requires_shared, wait_for
+from .conftest import REPO, SHARED_EDS, enable_letting_go, make_config, requires_shared, wait_for
 
 SimFactory = Callable[[RoverConfig], tuple[SimService, RoverConfig]]
 CLIENT = REPO / "tests" / "clients" / "hold_velocity.py"
@@ -287,12 +287,7 @@ def test_enable_waits_until_the_drive_watches_the_host(driver_factory: Callable[
                                                 r" the 2 host heartbeats \(node 127, every 50 ms\) it needs"):
         drive.enable()
     assert runner.call(lambda: runner.drive(1).state) != State.OPERATION_ENABLED and not sim_watching()
-    drive.channel.set_hook(lambda point: held.clear() if point == "enable: host watch" else None)
-    try:
-        drive.enable(timeout_s=30.0)  # a bound for a hang
-    finally:
-        drive.channel.set_hook(None)
-        held.clear()
+    enable_letting_go(drive, held)
     # the enable's own frames went after the heartbeats, and the drive answered them: it heard those
     assert sim_watching() and drive.cache.state is State.OPERATION_ENABLED
 

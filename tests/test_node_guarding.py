@@ -24,7 +24,7 @@ from virtual_can import SimService
 from virtual_can.sim import DriveSimulator, SimulatedDrive
 from virtual_can.sim.drive import State as SimState
 
-from .conftest import REPO, SHARED_EDS, make_config, requires_shared
+from .conftest import REPO, SHARED_EDS, enable_letting_go, make_config, requires_shared
 
 TECHNOSOFT = SHARED_EDS / "technosoft_ipos_v1_04_via_ros2_canopen.eds"
 GUARD = can.Message(arbitration_id=0x702, is_remote_frame=True, dlc=1, is_extended_id=False)
@@ -148,10 +148,5 @@ def test_enable_waits_until_a_guarded_drive_answers_guards(tmp_path: Path, monke
                                                     r" of the 2 guard answers it needs"):
             drive.enable()
         assert runner.call(lambda: sim_drive.state) != SimState.OPERATION_ENABLED
-        drive.channel.set_hook(lambda point: held.clear() if point == "enable: host watch" else None)
-        try:
-            drive.enable(timeout_s=30.0)  # a bound for a hang
-        finally:
-            drive.channel.set_hook(None)
-            held.clear()
+        enable_letting_go(drive, held)
         assert runner.call(lambda: sim_drive._guarded_at) is not None and drive.cache.state is State.OPERATION_ENABLED
