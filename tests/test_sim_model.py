@@ -229,3 +229,41 @@ def test_a_csp_stream_at_the_ticks_rate_is_followed_at_its_speed(syncs_per_tick:
     assert statistics.median(speeds) == pytest.approx(step / cycle, rel=0.05)
     assert max(speeds) < 1.5 * step / cycle, max(speeds)
     assert max(lags) <= (syncs_per_tick + 1) * step, max(lags)  # a cycle behind, or the late process's cycles
+
+
+def test_a_csp_stream_enabled_again_from_quick_stop_goes_on_from_where_the_stop_left_it() -> None:
+    """Quick stop with 0x605A = 6 (stay in Quick Stop Active), then within 0.1 s transition 16 back to
+    Operation Enabled (no hold of position on the way): the next set-point is interpolated from
+    where the quick stop's ramp left the set-point, not from the stream's old path (the set-point
+    jumped back over the ramp's distance)."""
+    drive = SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))
+    drive.on_frame(can.Message(arbitration_id=0x000, data=[0x01, 1], is_extended_id=False), 0.0)  # NMT start
+
+    def sdo(index: int, size: int, value: int) -> None:
+        command = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
+        data = [command, index & 0xFF, index >> 8, 0, *value.to_bytes(4, "little", signed=True)]
+        drive.on_frame(can.Message(arbitration_id=0x601, data=data, is_extended_id=False), now)
+
+    now = bus_time = 0.0
+    sdo(OD.QUICK_STOP_OPTION, 2, 6)
+    sdo(OD.MODES_OF_OPERATION, 1, int(OperationMode.CYCLIC_SYNC_POSITION))
+    drive.state = SimState.OPERATION_ENABLED
+    target, steps = 0, []
+    for k in range(600):
+        if k == 300:
+            sdo(OD.CONTROLWORD, 2, 0x0002)  # quick stop: the set-point ramps down from the stream's speed
+        if k == 330:
+            assert drive.state == SimState.QUICK_STOP_ACTIVE
+            sdo(OD.CONTROLWORD, 2, 0x000F)  # transition 16: Operation Enabled again
+            assert drive.state == SimState.OPERATION_ENABLED
+            target = round(drive.sp_pos)  # the stream goes on from where the drive stands
+        bus_time += 0.002
+        drive.on_frame(can.Message(arbitration_id=0x080, timestamp=bus_time, is_extended_id=False), now)
+        if not 300 <= k < 330:
+            target += 57
+            sdo(OD.TARGET_POSITION, 4, target)
+        before = drive.sp_pos
+        now += 0.002
+        drive.tick(now, 0.002)
+        steps.append(drive.sp_pos - before)
+    assert max(abs(step) for step in steps[330:]) < 3 * 57, max(steps[330:], key=abs)

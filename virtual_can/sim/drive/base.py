@@ -73,6 +73,7 @@ class DriveBase:
         self._syncs = 0  # SYNCs heard
         self._csp_written = 0  # the SYNC count when the newest cyclic set-point was written
         self._csp_sync = 0  # ... and when the one being followed was, last
+        self._csp_left: float | None = None  # the set-point the last cyclic step left
         self._last_sync = -1.0
         self._sync_period_s = 0.01  # measured from the SYNCs (a drive's 0x1006 / 0x60C2)
         self.error_code = 0

@@ -117,8 +117,11 @@ class Plant(StateMachine):
         done = min(1.0, (now - self._csp_t) / self._csp_period)
         if target != last:
             fresh = last is not None and now - self._csp_t <= CYCLIC_GAP_S
-            # from where the set-point is now on its way to the one left behind
-            self._csp_from = self._csp_from + (last - self._csp_from) * done if fresh and last is not None else target
+            # from where the set-point is now on its way to the one left behind; from where it
+            # stands if something else moved it since this step's last (a quick stop's ramp)
+            on_path = fresh and last is not None and self.sp_pos == self._csp_left
+            here = self._csp_from + (last - self._csp_from) * done if on_path and last is not None else self.sp_pos
+            self._csp_from = here if fresh else target
             cycles = max(1, self._csp_written - self._csp_sync) if fresh else 1
             self._csp_period = self._sync_period_s * cycles
             self._csp_last, self._csp_t, self._csp_sync = target, now, self._csp_written
@@ -129,6 +132,7 @@ class Plant(StateMachine):
             self.sp_vel = (target - self._csp_from) / self._csp_period
             self.sp_pos = self._csp_from + (target - self._csp_from) * done
         self.sp_acc = 0.0
+        self._csp_left = self.sp_pos
 
     def _homing_step(self, accel: float, decel: float, dt: float) -> None:
         """Homing: toward the index at the homing speed; 20 revolutions without it is an error."""

@@ -105,7 +105,8 @@ class StateMachine(ErrorStack):
         else:
             return
         # the SYNC it came with: the cycles between the set-point followed (held while written
-        # again unchanged) and a new one (plant._cyclic_position_step)
+        # again unchanged) and a new one (plant._cyclic_position_step). A pause in the stream (IP
+        # with bit 4 off, set-points not written) spreads the next one over it, up to CYCLIC_GAP_S
         self._csp_written = self._syncs
         if self.pp_target == self._csp_last:
             self._csp_sync = self._syncs
