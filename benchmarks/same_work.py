@@ -23,7 +23,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-from stack_run import REPO, Listener, on_port, pct, proc_cpu_s, python_thread_names, simulator, thread_cpu_s, tpdos_on_wire
+from stack_run import (
+    REPO,
+    Listener,
+    on_port,
+    pct,
+    proc_cpu_s,
+    python_thread_names,
+    simulator,
+    thread_cpu_s,
+    tpdos_on_wire,
+    unboosted,
+)
 from verdicts import InvalidBaseline
 
 #: The longest gap, p99, between two SYNCs, or two set-points to one drive, on the wire, in
@@ -53,8 +64,8 @@ def baseline_same_work(config_path: Path, seconds: float, command_hz: float, pri
         listeners = [Listener(port, ch) for ch in channels]
         for listener in listeners:
             listener.start()
-        proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve().parent / "baseline_canopen_rover.py"),
-                                 str(config), str(command_hz), str(seconds), str(priority)],
+        proc = subprocess.Popen(unboosted([sys.executable, str(Path(__file__).resolve().parent / "baseline_canopen_rover.py"),
+                                 str(config), str(command_hz), str(seconds), str(priority)]),
                                 cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True)
         try:
             assert proc.stdout is not None

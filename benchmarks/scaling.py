@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -175,7 +176,7 @@ def main() -> int:
         plot(json.loads(OUT.read_text()), args.png)
         return 0
     stack_run.harness_ahead()
-    out = curve(args.seconds)
+    out = {"scaling_date": datetime.now(timezone.utc).isoformat(timespec="seconds"), **curve(args.seconds)}
     results = json.loads(OUT.read_text()) if OUT.exists() else {}
     results.update(out)
     OUT.write_text(json.dumps(results, indent=2) + "\n")
