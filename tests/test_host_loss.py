@@ -22,7 +22,7 @@ import can
 import canopen
 import pytest
 
-from can_config import RoverConfig, load_config, load_drive_od
+from can_config import RoverConfig, load_config, load_drive_od, parse_config
 from can_config.config import GENERIC_EDS
 from can_config.errors import CommandRejected, DriveTimeoutError
 from motor_driver import MotorDriver, State
@@ -290,6 +290,23 @@ def test_enable_waits_until_the_drive_watches_the_host(driver_factory: Callable[
     enable_letting_go(drive, held)
     # the enable's own frames went after the heartbeats, and the drive answered them: it heard those
     assert sim_watching() and drive.cache.state is State.OPERATION_ENABLED
+
+
+def test_a_slow_host_heartbeat_still_lets_a_drive_be_enabled(sim_factory: SimFactory) -> None:
+    """host_heartbeat_ms may be up to 1000: the two heartbeats a drive's watch needs after a boot
+    then take up to two seconds, longer than enable's own 1 s timeout. The wait lasts at least
+    WATCH_START_PERIODS periods, so the enable right after a boot succeeds (bounded by the enable's
+    timeout alone, it was refused every time)."""
+    config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
+                                      "kwargs": {"host": "127.0.0.1", "port": 1}, "host_heartbeat_ms": 1000}],
+                           "drives": [{"name": "joint1", "node_id": 1, "host_timeout_ms": 3000}]},
+                          source=REPO / "tests" / "generated.yaml")
+    _, cfg = sim_factory(config)
+    with MotorDriver(cfg).start() as driver:
+        drive = driver.drive("joint1")
+        drive.boot.boot()  # told to watch again: the next two heartbeats, up to 2 s away
+        drive.enable()
+        assert drive.cache.state is State.OPERATION_ENABLED and not drive.watch.not_watching_yet()
 
 
 def test_default_config_has_the_host_watch() -> None:
