@@ -17,9 +17,11 @@ from pathlib import Path
 from typing import Any
 
 import can
+import canopen
 import pytest
+from canopen.objectdictionary import ODVariable, datatypes
 
-from can_config import RoverConfig, load_config, parse_config, with_bus_overrides
+from can_config import GENERIC_EDS, RoverConfig, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver, heap
 from motor_driver.drive import Drive
 from rovercan.launch import LOCAL_DISCOVERY
@@ -386,3 +388,16 @@ def enable_letting_go(drive: Drive, held: threading.Event) -> None:
     finally:
         drive.channel.set_hook(None)
         held.clear()
+
+
+def guarded_generic_eds(path: Path) -> Path:
+    """The generic drive as a node-guarded one: 0x100C/0x100D, no heartbeat consumer (0x1016)."""
+    od = canopen.import_od(str(GENERIC_EDS), 1)
+    del od[0x1016]
+    for index, name, data_type in ((0x100C, "Guard time", datatypes.UNSIGNED16),
+                                   (0x100D, "Life time factor", datatypes.UNSIGNED8)):
+        var = ODVariable(name, index)
+        var.data_type, var.access_type, var.default = data_type, "rw", 0
+        od.add_object(var)
+    canopen.export_od(od, str(path), doc_type="eds")
+    return path

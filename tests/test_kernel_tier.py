@@ -26,9 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import can
-import canopen
 import pytest
-from canopen.objectdictionary import ODVariable, datatypes
 
 from can_config import GENERIC_EDS, load_config, load_drive_od
 from can_config.errors import MotorError
@@ -43,6 +41,7 @@ from .conftest import (
     KERNEL_DRIVE,
     REPO,
     SHARED_EDS,
+    guarded_generic_eds,
     kernel_can_available,
     kernel_controllers_available,
     stop_process,
@@ -613,19 +612,6 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring:
             for node in (driver_node, system_node, probe):
                 node.destroy_node()
             rclpy.shutdown(context=context)
-
-
-def guarded_generic_eds(path: Path) -> Path:
-    """The generic drive as a node-guarded one: 0x100C/0x100D, no heartbeat consumer (0x1016)."""
-    od = canopen.import_od(str(GENERIC_EDS), 1)
-    del od[0x1016]
-    for index, name, data_type in ((0x100C, "Guard time", datatypes.UNSIGNED16),
-                                   (0x100D, "Life time factor", datatypes.UNSIGNED8)):
-        var = ODVariable(name, index)
-        var.data_type, var.access_type, var.default = data_type, "rw", 0
-        od.add_object(var)
-    canopen.export_od(od, str(path), doc_type="eds")
-    return path
 
 
 @pytest.mark.parametrize(("wiring", "cause"), [

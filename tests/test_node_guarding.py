@@ -24,7 +24,7 @@ from virtual_can import SimService
 from virtual_can.sim import DriveSimulator, SimulatedDrive
 from virtual_can.sim.drive import State as SimState
 
-from .conftest import REPO, SHARED_EDS, enable_letting_go, make_config, requires_shared
+from .conftest import REPO, SHARED_EDS, enable_letting_go, guarded_generic_eds, make_config, requires_shared
 
 TECHNOSOFT = SHARED_EDS / "technosoft_ipos_v1_04_via_ros2_canopen.eds"
 GUARD = can.Message(arbitration_id=0x702, is_remote_frame=True, dlc=1, is_extended_id=False)
@@ -124,8 +124,6 @@ def test_enable_waits_until_a_guarded_drive_answers_guards(tmp_path: Path, monke
     passed). On a python-can virtual bus (it carries remote frames, as a kernel bus does), the
     supervisor's guards held back across a new boot: enable is refused, nothing sent; let go,
     it returns with the drive guarded."""
-    from tests.test_kernel_tier import guarded_generic_eds
-
     eds = guarded_generic_eds(tmp_path / "guarded.eds")
     channel = f"guarding-{tmp_path.name}"
     config = parse_config({"buses": [{"name": "can0", "interface": "virtual", "channel": channel}],

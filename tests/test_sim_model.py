@@ -198,6 +198,13 @@ def test_a_sync_between_two_ticks_sends_one_instant_of_the_drive() -> None:
     assert sw & 0x1400 == 0x1400 and position == 0  # attained, and the new zero, before the next tick
 
 
+def sdo_write(drive: SimulatedDrive, index: int, size: int, value: int, now: float) -> None:
+    """An expedited SDO download of ``value`` (``size`` bytes) to ``index``:0 of node 1."""
+    command = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
+    data = [command, index & 0xFF, index >> 8, 0, *value.to_bytes(4, "little", signed=True)]
+    drive.on_frame(can.Message(arbitration_id=0x601, data=data, is_extended_id=False), now)
+
+
 @pytest.mark.parametrize("syncs_per_tick", [1, 5])
 def test_a_csp_stream_at_the_ticks_rate_is_followed_at_its_speed(syncs_per_tick: int) -> None:
     """CSP at 500 Hz (issue 55's arm: a set-point every 2 ms, the simulator's tick): the cyclic
@@ -207,8 +214,7 @@ def test_a_csp_stream_at_the_ticks_rate_is_followed_at_its_speed(syncs_per_tick:
     in one tick must move them at the stream's speed too, not five cycles' way in one."""
     drive = SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))
     drive.on_frame(can.Message(arbitration_id=0x000, data=[0x01, 1], is_extended_id=False), 0.0)  # NMT start
-    drive.on_frame(can.Message(arbitration_id=0x601, data=[0x2F, 0x60, 0x60, 0, int(OperationMode.CYCLIC_SYNC_POSITION),
-                                                           0, 0, 0], is_extended_id=False), 0.0)
+    sdo_write(drive, OD.MODES_OF_OPERATION, 1, int(OperationMode.CYCLIC_SYNC_POSITION), 0.0)
     drive.state = SimState.OPERATION_ENABLED
     cycle, step = 0.002, 57  # counts a cycle: 28,500 counts/s, the bus-limit run's joints at 50 deg/s
     now = bus_time = 0.0
@@ -218,8 +224,7 @@ def test_a_csp_stream_at_the_ticks_rate_is_followed_at_its_speed(syncs_per_tick:
             bus_time += cycle
             drive.on_frame(can.Message(arbitration_id=0x080, timestamp=bus_time, is_extended_id=False), now)
             target += step
-            drive.on_frame(can.Message(arbitration_id=0x601, data=[0x23, 0x7A, 0x60, 0, *target.to_bytes(4, "little")],
-                                       is_extended_id=False), now)
+            sdo_write(drive, OD.TARGET_POSITION, 4, target, now)
         now += cycle * syncs_per_tick
         drive.tick(now, cycle * syncs_per_tick)
         if k * syncs_per_tick > 200:  # the SYNC period measured, the servo settled
@@ -239,29 +244,24 @@ def test_a_csp_stream_enabled_again_from_quick_stop_goes_on_from_where_the_stop_
     drive = SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))
     drive.on_frame(can.Message(arbitration_id=0x000, data=[0x01, 1], is_extended_id=False), 0.0)  # NMT start
 
-    def sdo(index: int, size: int, value: int) -> None:
-        command = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
-        data = [command, index & 0xFF, index >> 8, 0, *value.to_bytes(4, "little", signed=True)]
-        drive.on_frame(can.Message(arbitration_id=0x601, data=data, is_extended_id=False), now)
-
     now = bus_time = 0.0
-    sdo(OD.QUICK_STOP_OPTION, 2, 6)
-    sdo(OD.MODES_OF_OPERATION, 1, int(OperationMode.CYCLIC_SYNC_POSITION))
+    sdo_write(drive, OD.QUICK_STOP_OPTION, 2, 6, now)
+    sdo_write(drive, OD.MODES_OF_OPERATION, 1, int(OperationMode.CYCLIC_SYNC_POSITION), now)
     drive.state = SimState.OPERATION_ENABLED
     target, steps = 0, []
     for k in range(600):
         if k == 300:
-            sdo(OD.CONTROLWORD, 2, 0x0002)  # quick stop: the set-point ramps down from the stream's speed
+            sdo_write(drive, OD.CONTROLWORD, 2, 0x0002, now)  # quick stop: the set-point ramps down from the stream's speed
         if k == 330:
             assert drive.state == SimState.QUICK_STOP_ACTIVE
-            sdo(OD.CONTROLWORD, 2, 0x000F)  # transition 16: Operation Enabled again
+            sdo_write(drive, OD.CONTROLWORD, 2, 0x000F, now)  # transition 16: Operation Enabled again
             assert drive.state == SimState.OPERATION_ENABLED
             target = round(drive.sp_pos)  # the stream goes on from where the drive stands
         bus_time += 0.002
         drive.on_frame(can.Message(arbitration_id=0x080, timestamp=bus_time, is_extended_id=False), now)
         if not 300 <= k < 330:
             target += 57
-            sdo(OD.TARGET_POSITION, 4, target)
+            sdo_write(drive, OD.TARGET_POSITION, 4, target, now)
         before = drive.sp_pos
         now += 0.002
         drive.tick(now, 0.002)
