@@ -263,6 +263,21 @@ def test_boot_writes_the_host_watch_and_close_releases_it(sim_factory: SimFactor
     assert read(0x1016, 1) == 0  # a clean close leaves no armed watch behind: no EMCY after exit
 
 
+def test_boot_sets_the_quick_stop_to_end_disabled_whatever_the_drive_defaults_to(tmp_path: Path,
+                                                                                   sim_factory: SimFactory) -> None:
+    """A drive whose own default is to stay in Quick Stop Active (0x605A = 6, maxon's EPOS4) is told
+    2 at boot, as one whose default is 2 already: a host-loss quick stop then ends disabled."""
+    od = canopen.import_od(str(GENERIC_EDS), 1)
+    od[0x605A].default, od[0x605A].default_raw = 6, "6"
+    eds = tmp_path / "quick_stop_6.eds"
+    canopen.export_od(od, str(eds), doc_type="eds")
+    sim, cfg = sim_factory(make_config(1, eds=str(eds)))
+    sim_drive = sim.simulators["can0"].drive(1)
+    assert sim.simulators["can0"].call(lambda: sim_drive.store.get(0x605A, 0)) == 6
+    with MotorDriver(cfg).start():
+        assert sim.simulators["can0"].call(lambda: sim_drive.store.get(0x605A, 0)) == 2
+
+
 def test_enable_waits_until_the_drive_watches_the_host(driver_factory: Callable[[RoverConfig], tuple[SimService,
                                                                                                     MotorDriver]],
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
@@ -275,6 +290,8 @@ def test_enable_waits_until_the_drive_watches_the_host(driver_factory: Callable[
     sim, driver = driver_factory(make_config(1))
     drive, handle = driver.drive("joint1"), driver.buses["can0"]
     runner = sim.simulators["can0"]
+    # heartbeats went out before the new boot: its count starts from theirs, not from zero
+    wait_for(lambda: handle.beats_sent() >= 3, 30.0, "three host heartbeats sent")
     send_beat, held = handle.beat, threading.Event()
     held.set()
     monkeypatch.setattr(handle, "beat", lambda host: None if held.is_set() else send_beat(host))
@@ -284,12 +301,41 @@ def test_enable_waits_until_the_drive_watches_the_host(driver_factory: Callable[
 
     drive.boot.boot()  # told to watch the host again: a consumer that waits for its first heartbeat
     with pytest.raises(DriveTimeoutError, match=r"enable refused: the drive is not watching the host after 1 s: 0 of"
-                                                r" the 2 host heartbeats \(node 127, every 50 ms\) it needs"):
+                                                r" the 2 host heartbeats \(node 127, every 50 ms\) it needs") as refused:
         drive.enable()
+    assert refused.value.node_id == 1
     assert runner.call(lambda: runner.drive(1).state) != State.OPERATION_ENABLED and not sim_watching()
     enable_letting_go(drive, held)
     # the enable's own frames went after the heartbeats, and the drive answered them: it heard those
     assert sim_watching() and drive.cache.state is State.OPERATION_ENABLED
+
+
+def test_two_host_heartbeats_after_a_boot_let_a_drive_be_enabled_and_it_then_watches(
+        driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The wait is for two heartbeats sent since the boot, not more: with the supervisor's held
+    back, two sent by hand while the enable waits let it through. The host then stays silent,
+    and the drive, watching, stops itself (3 s after the last: the enable's own steps within it
+    on a busy machine)."""
+    sim, driver = driver_factory(make_config(1, host_timeout_ms=3000))
+    drive, handle = driver.drive("joint1"), driver.buses["can0"]
+    runner = sim.simulators["can0"]
+    wait_for(lambda: handle.beats_sent() >= 3, 30.0, "three host heartbeats sent")
+    send_beat = handle.beat
+    monkeypatch.setattr(handle, "beat", lambda host: None)  # the supervisor's: never sent from here on
+    drive.boot.boot()
+
+    def two_beats(point: str) -> None:
+        if point == "enable: host watch":
+            for _ in range(2):
+                send_beat(127)
+
+    drive.channel.set_hook(two_beats)
+    try:
+        drive.enable(timeout_s=30.0)  # a bound for a hang: refused at its end if two were not enough
+    finally:
+        drive.channel.set_hook(None)
+    wait_for(lambda: runner.call(lambda: runner.drive(1).state) != State.OPERATION_ENABLED, 30.0,
+             "the drive to stop itself with the host silent")
 
 
 def test_a_slow_host_heartbeat_still_lets_a_drive_be_enabled(sim_factory: SimFactory) -> None:

@@ -24,7 +24,7 @@ from virtual_can import SimService
 from virtual_can.sim import DriveSimulator, SimulatedDrive
 from virtual_can.sim.drive import State as SimState
 
-from .conftest import REPO, SHARED_EDS, enable_letting_go, guarded_generic_eds, make_config, requires_shared
+from .conftest import REPO, SHARED_EDS, enable_letting_go, guarded_generic_eds, make_config, requires_shared, wait_for
 
 TECHNOSOFT = SHARED_EDS / "technosoft_ipos_v1_04_via_ros2_canopen.eds"
 GUARD = can.Message(arbitration_id=0x702, is_remote_frame=True, dlc=1, is_extended_id=False)
@@ -137,6 +137,8 @@ def test_enable_waits_until_a_guarded_drive_answers_guards(tmp_path: Path, monke
         driver.start()
         drive = driver.drive("joint1")
         assert drive.cache.guarding, drive.watch.host_watch
+        # guards answered before the new boot: its count starts from theirs, not from zero
+        wait_for(lambda: drive.cache.guard_answers >= 3, 30.0, "three guard answers")
         held = threading.Event()
         held.set()
         send_guard = drive.watch.send_guard
