@@ -1,6 +1,6 @@
 """The bus server's cyclic jobs: limited per client (and in all), each job on its own schedule
 whatever else waits in the timer's heap, and a deleted or replaced job never sent again. The
-timing under 50,000 idle jobs is a benchmark (benchmarks/cyclic_jobs.py), not a test."""
+timing under 65,536 idle jobs is a benchmark (benchmarks/cyclic_jobs.py), not a test."""
 
 from __future__ import annotations
 
