@@ -458,7 +458,11 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             "cmd_latency_p50_ms_by_publish_order": [round(statistics.median(by_order[i]), 3) for i in sorted(by_order)],
             "cmd_latency_p50_ms_by_sync_phase": [round(statistics.median(by_phase[i]), 3) if i in by_phase else None
                                                  for i in range(10)],
+            # set-point loss: commands published that never went on the wire as a set-point (a
+            # profile-position set-point superseded before it was sent, or a command the ROS layer
+            # dropped); a CSP drive takes one set-point a SYNC, the newest, whatever the count
             "commands_matched": matched, "commands_superseded": unmatched,
+            "setpoint_loss_fraction": round(unmatched / (matched + unmatched), 5) if matched + unmatched else None,
             "tpdo_sent": tpdo_sent, "tpdo_applied": tpdo_applied, "tpdo_loss": tpdo_sent - tpdo_applied,
             "cpu_core_fraction": round(cpu, 3), "rss_mb": round(rss, 1),
             "cpu_by_thread": {name: round(f, 3) for name, f in sorted(threads.items(), key=lambda kv: -kv[1]) if f >= 0.002},

@@ -51,6 +51,8 @@ ROWS = [
     ("cyclic_sync_arrival_error_p99_ms", "the same measured from outside: between its arrivals at another client, ms",
      "< 1", "cyclic_sync_arrival_error_p99_ms_no_jobs"),
     ("bus_limit_tpdo_loss", "bus at its limit (6 drives, one bus, 500 Hz CSP): TPDO loss", "0", None),
+    ("bus_limit_setpoint_loss_fraction", "bus at its limit: set-point loss (commands published that never went on"
+     " the wire as a set-point), fraction", "", None),
     ("bus_limit_cpu_ratio_canopen", "bus at its limit: CPU of driver + ROS node / the canopen library's same work",
      "<= 2", "bus_limit_baseline_canopen_same_work_rt_cpu_core_fraction"),
     ("bus_limit_cmd_latency_p99_ms", "bus at its limit: command latency p99, ms", "<= 2", None),
