@@ -314,9 +314,9 @@ def test_two_host_heartbeats_after_a_boot_let_a_drive_be_enabled_and_it_then_wat
         driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]], monkeypatch: pytest.MonkeyPatch) -> None:
     """The wait is for two heartbeats sent since the boot, not more: with the supervisor's held
     back, two sent by hand while the enable waits let it through. The host then stays silent,
-    and the drive, watching, stops itself (3 s after the last: the enable's own steps within it
-    on a busy machine)."""
-    sim, driver = driver_factory(make_config(1, host_timeout_ms=3000))
+    and the drive, watching, stops itself (its consumer time after the last: 5 s, ten times the
+    in-process rigs' 0.5 s, for the enable's own steps on a busy machine)."""
+    sim, driver = driver_factory(make_config(1, host_timeout_ms=5000))
     drive, handle = driver.drive("joint1"), driver.buses["can0"]
     runner = sim.simulators["can0"]
     wait_for(lambda: handle.beats_sent() >= 3, 30.0, "three host heartbeats sent")
@@ -334,8 +334,10 @@ def test_two_host_heartbeats_after_a_boot_let_a_drive_be_enabled_and_it_then_wat
         drive.enable(timeout_s=30.0)  # a bound for a hang: refused at its end if two were not enough
     finally:
         drive.channel.set_hook(None)
-    wait_for(lambda: runner.call(lambda: runner.drive(1).state) != State.OPERATION_ENABLED, 30.0,
+    assert runner.call(lambda: dict(runner.drive(1)._consumer_seen)), "enabled, but the drive is not watching the host"
+    wait_for(lambda: runner.call(lambda: runner.drive(1).state) != State.OPERATION_ENABLED, 60.0,
              "the drive to stop itself with the host silent")
+    assert not runner.call(lambda: dict(runner.drive(1)._consumer_seen))  # disarmed: its consumer tripped
 
 
 def test_a_slow_host_heartbeat_still_lets_a_drive_be_enabled(sim_factory: SimFactory) -> None:
