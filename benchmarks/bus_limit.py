@@ -200,7 +200,7 @@ def main() -> int:
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     seconds = float(args[0]) if args else 15.0
     priority = int(PARAMS["realtime_priority"].default)  # type: ignore[call-overload]
-    figures: dict[str, Any] = {"harness_nice": stack_run.harness_ahead()}
+    figures: dict[str, Any] = {"harness_nice": stack_run.harness_ahead(), "harness_fifo_priority": stack_run.harness_priority()}
     if "--twelve" not in sys.argv:
         figures.update(measured(None, seconds, HZ, "bus_limit_", "can0", priority))
     if "--six" not in sys.argv:  # each drive commanded at its bus's SYNC rate: wheels 100 Hz, the arm 500 Hz

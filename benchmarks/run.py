@@ -355,7 +355,7 @@ def main() -> int:
     import stack_run
 
     results: dict[str, Any] = {
-        "harness_nice": stack_run.harness_ahead(),
+        "harness_nice": stack_run.harness_ahead(), "harness_fifo_priority": stack_run.harness_priority(),
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "mode": "quick" if args.quick else "full",
         "machine": {"platform": platform.platform(), "processor": platform.machine(),

@@ -138,17 +138,23 @@ def test_the_added_cost_per_drive_takes_out_the_fixed_cost_and_shows_a_knee() ->
 
 
 def test_the_harness_runs_ahead_of_other_load_and_its_children_with_it() -> None:
-    """run.py, bus_limit.py and scaling.py put their own processes at HARNESS_NICE: a busy loop
-    beside the run must delay the stack, not the harness's stamps; what they start inherits it,
-    but the processes measured (the driver, the canopen baselines) run unboosted."""
+    """run.py, bus_limit.py and scaling.py put their own processes under SCHED_FIFO at
+    HARNESS_PRIORITY (below the node's) and at HARNESS_NICE: a busy loop beside the run must delay
+    the stack, not the harness's stamps; what they start inherits both, but the processes
+    measured (the driver, the canopen baselines) run unboosted: ordinary scheduling, niceness 0."""
     import os
     import subprocess
 
     if os.geteuid() != 0:
         pytest.skip("raising a process's priority needs root (CAP_SYS_NICE); the harness then runs as it is")
-    code = ("import subprocess, stack_run; n = stack_run.harness_ahead(); run = lambda c: subprocess.run(c,"
-            " capture_output=True, text=True).stdout.strip(); print(n, run(['nice']), run(stack_run.unboosted(['nice'])))")
-    out = subprocess.run([sys.executable, "-c", code], cwd=REPO / "benchmarks", capture_output=True, text=True,
+    probe = [sys.executable, "-c", "import os; print(os.nice(0), os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)"]
+    code = ("import subprocess, sys, stack_run; n = stack_run.harness_ahead(); run = lambda c: subprocess.run(c,"
+            " capture_output=True, text=True).stdout.strip(); probe = sys.argv[1:];"
+            " print(n, stack_run.harness_priority(), '|', run(probe), '|', run(stack_run.unboosted(probe)))")
+    out = subprocess.run([sys.executable, "-c", code, *probe], cwd=REPO / "benchmarks", capture_output=True, text=True,
                          timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
-    # the harness and what it starts at -10; a measured process (the driver, a baseline) back at 0
-    assert out.stdout.split() == ["-10", "-10", "0"], out.stderr[-2000:]
+    harness, child, measured = (part.split() for part in out.stdout.split("|"))
+    # the harness and what it starts: nice -10, SCHED_FIFO at 10; a measured process: nice 0, ordinary
+    assert harness == ["-10", "10"], out.stderr[-2000:]
+    assert child == ["-10", str(os.SCHED_FIFO), "10"], out.stderr[-2000:]
+    assert measured == ["0", str(os.SCHED_OTHER), "0"], out.stderr[-2000:]
