@@ -341,6 +341,15 @@ def _tpdos_applied(diags: list[Any]) -> list[int]:
     return []
 
 
+def every_topic_matched(pubs: list[Any], deadline: float, proc: subprocess.Popen[bytes]) -> None:
+    """Wait until the measured process subscribes to every command topic (the last drive's topic
+    alone had been waited for: another's first commands could be lost before its match)."""
+    while any(pub.get_subscription_count() == 0 for pub in pubs):
+        if time.monotonic() > deadline or proc.poll() is not None:
+            raise RuntimeError("the measured process did not subscribe to every command topic")
+        time.sleep(0.05)
+
+
 def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tuple[str, ...] = ()) -> dict[str, Any]:
     """The measured process runs a shipped config as a user gets it; only the simulator's port
     is put into it. Every drive gets a ``degree_cmd`` at ``command_hz`` (0.1 % slow: below), or
@@ -396,8 +405,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
                 if time.monotonic() > deadline or proc.poll() is not None:
                     raise RuntimeError("the measured process did not enable its drives")
                 executor.spin_once(timeout_sec=0.1)
-            while node.count_subscribers(f"{shipped.drives[-1].ros_prefix}/degree_cmd") == 0:
-                time.sleep(0.05)
+            every_topic_matched(pubs, deadline, proc)
             time.sleep(0.5)
             sent: dict[tuple[str, int, int], list[float]] = {}
             names = python_thread_names(proc.pid)

@@ -81,6 +81,13 @@ def test_the_bus_limit_counts_only_when_the_emulator_carried_the_load() -> None:
     rows = {r.figure: r.verdict for r in verdicts({"bus_limit_sync_jitter_p99_us": 12_000.0,
                                                     "invalid": {"bus limit: emulator": reason}})}
     assert rows["bus_limit_sync_jitter_p99_us"] == f"no verdict: bus limit: emulator: {reason}"
+    # a streamed joint that refused its ramp measured less work than the run claims (the twelve-drive
+    # run's arm: 76 % of its commands refused as jumps after a start that lost a few)
+    refused = not_carried({"bus_limit_emulator_frames_per_s": 6500, "bus_limit_tpdo_loss": 0,
+                           "bus_limit_setpoint_loss_fraction": 0.756})
+    assert "76% of the commands never went on the wire as a set-point" in str(refused)
+    assert not_carried({"bus_limit_emulator_frames_per_s": 6500, "bus_limit_tpdo_loss": 0,
+                        "bus_limit_setpoint_loss_fraction": 0.004}) is None
     # a drive that faulted or stopped itself: its figures do not count, and the stop itself is a miss
     stopped = not_carried({"bus_limit_emulator_frames_per_s": 6500, "bus_limit_tpdo_loss": 0,
                            "bus_limit_emcy_in_window": ["can0 node 3 EMCY 0x8130"], "bus_limit_drive_stops": 1})
