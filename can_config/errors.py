@@ -14,6 +14,7 @@ inherits the matching built-in so callers can catch what they already know::
     │   ├── DriveStateError                   CiA 402 transition refused / drive faulted / lost
     │   │   └── DriveTimeoutError (TimeoutError)
     │   ├── CommandRejected (ValueError)      NaN, out of limits, unsupported mode: nothing sent
+    │   │   └── CommandWouldWait              asked to go out at once, it needs the drive's answer first
     │   ├── ForeignMasterError                another master is live on the bus: nothing was sent
     │   └── BusLostError (ConnectionError)    the bus went away
     └── SimError                              virtual_can: emulator misuse
@@ -97,6 +98,12 @@ class DriveTimeoutError(DriveStateError, TimeoutError):
 
 class CommandRejected(MotorError, ValueError):
     """A command was refused before anything was sent (NaN, beyond a limit, unsupported)."""
+
+
+class CommandWouldWait(CommandRejected):
+    """A command asked to go out at once (``at_once=True``: frames only) needs the drive's answer
+    first (a mode switch, a target the drive takes only by SDO). Nothing was sent; send it again
+    from a thread that may wait (the ROS node hands it to a worker of its joint)."""
 
 
 class ForeignMasterError(MotorError):

@@ -10,13 +10,16 @@ trusted wheel stops the integration (pose kept, twist zero, every variance 1e6) 
 
 Owner: the executor thread that runs its tick (the driver node's state timer, or its own),
 which alone touches the ramp, the odometry and the wheels-out book; a wheel left out is told to
-stop on a worker of its own (a stop waits for the drive; the tick never does).
+stop on a worker of its own (a stop waits for the drive; the tick never does). A wheel's
+velocity that must wait for the drive (its first, a switch to profile velocity) goes through the
+driver node's handoff (nodes/handoff.py), whose worker hands a refusal back to the next tick.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import queue
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
@@ -34,6 +37,7 @@ from motor_driver import Drive, MotorDriver
 from motor_driver.drive import DriveState
 from motor_driver.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
 from motor_driver.skid_steer import SkidSteer, Twist2D
+from nodes.handoff import Handoff
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
@@ -60,7 +64,7 @@ class DriveSystemNode(Node):
     """
 
     def __init__(self, driver: MotorDriver, config: RoverConfig, refusals: RefusalLog | None = None,
-                 **kwargs: Any) -> None:
+                 handoff: Handoff | None = None, **kwargs: Any) -> None:
         super().__init__("drive_system", **kwargs)
         declare(self, "odom_rate_hz", "odom_frame", "base_frame", "state_qos_depth", "publish_tf")
         system = config.drive_system
@@ -77,6 +81,10 @@ class DriveSystemNode(Node):
         self.odometry = WheelOdometry(system.left, system.right, system.track_width_m, system.wheel_radius_m)
         self.wheels_out = WheelsOut(system.left, system.right) if system.on_wheel_loss == "continue" else None
         self.refusals = refusals or RefusalLog(self.get_logger().warning)
+        # the driver node's (one book of which joint's command is with a worker), else its own
+        self._own_handoff = handoff is None
+        self.handoff = handoff or Handoff([d.name for d in self.wheels])
+        self._refused_late: queue.SimpleQueue[tuple[str, float, Exception]] = queue.SimpleQueue()
         self._target = Twist2D()
         self._last_cmd = -math.inf
         self._last_tick = time.monotonic()
@@ -104,7 +112,7 @@ class DriveSystemNode(Node):
     def beside(cls, driver_node: DriverNode, driver: MotorDriver, config: RoverConfig, **kwargs: Any) -> DriveSystemNode:
         """The drive system of a process with ``driver_node`` on the same executor (rover_driver,
         rover_lifecycle): its control loop on that node's state timer where the rates match."""
-        node = cls(driver, config, driver_node.refusals, **kwargs)
+        node = cls(driver, config, driver_node.refusals, driver_node.handoff, **kwargs)
         node.tick_with(driver_node)
         return node
 
@@ -119,6 +127,8 @@ class DriveSystemNode(Node):
 
     def destroy_node(self) -> None:
         self._stopper.shutdown(wait=False, cancel_futures=True)
+        if self._own_handoff:
+            self.handoff.close()
         super().destroy_node()
 
     def _on_cmd_vel(self, msg: Twist) -> None:
@@ -145,6 +155,10 @@ class DriveSystemNode(Node):
             self.get_logger().error(f"drive system tick failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
 
     def _control(self, states: dict[str, DriveState], now: float, dt: float) -> None:
+        if not self._refused_late.empty():  # a wheel's velocity refused on the handoff's worker: as if here
+            name, speed, err = self._refused_late.get()
+            self._halt(f"/cmd_vel not applied: wheel {name} refused {speed:.2f} rad/s ({err}); every wheel stopped")
+            return
         self.stale = now - self._last_cmd > self.system.cmd_timeout_s
         if self.wheels_out is not None:
             self._book_wheels_out(states)
@@ -174,7 +188,7 @@ class DriveSystemNode(Node):
                 if self.wheels_out is not None and drive.name in self.wheels_out.out:
                     continue  # a wheel out is left alone
                 try:
-                    drive.set_velocity(speed * DEG)
+                    self.handoff.send(drive.name, drive.set_velocity, speed * DEG, "velocity", self._wheel_refused)
                 except RovercanError as err:
                     self._halt(f"/cmd_vel not applied: wheel {drive.name} refused {speed:.2f} rad/s ({err});"
                                " every wheel stopped")
@@ -194,6 +208,10 @@ class DriveSystemNode(Node):
         self.steer.limit_to(self.wheels_out.share())
         if went or back:
             self.publish_diagnostics()
+
+    def _wheel_refused(self, name: str, what: str, value: float, err: Exception) -> None:
+        """The handoff's worker: a wheel's velocity refused there; the next tick halts them all."""
+        self._refused_late.put((name, value / DEG, err))
 
     def _tell_to_stop(self, name: str) -> None:
         pending = self._stops.get(name)
@@ -222,7 +240,7 @@ class DriveSystemNode(Node):
             for drive in self.wheels:  # a wheel whose data is only late hears us: it stops too
                 if not drive.snapshot().lost:
                     try:
-                        drive.set_velocity(0.0)
+                        self.handoff.send(drive.name, drive.set_velocity, 0.0, "stop", _cannot_move)
                     except RovercanError:
                         pass  # that wheel cannot move anyway
         self.active = False
@@ -291,6 +309,10 @@ class DriveSystemNode(Node):
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         array.status = [status]
         self._diag_pub.publish(array)
+
+
+def _cannot_move(name: str, what: str, value: float, err: Exception) -> None:
+    """A halted wheel's zero refused on the handoff's worker: that wheel cannot move anyway."""
 
 
 def covariance(diagonal: tuple[float, ...], trusted: bool) -> list[float]:

@@ -10,6 +10,7 @@ to two thirds of its CPU in that (the six-drive profile, docs/performance.md).
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable, Collection
 from typing import Any
@@ -30,18 +31,21 @@ def stamp_header(msg_header: Any, stamp: float) -> None:
 class RefusalLog:
     """Counts refused commands per joint for /diagnostics and says them with ``say`` (a node's
     ``get_logger().warning``), at most once per joint every WARN_THROTTLE_S, with the count of
-    those held back since."""
+    those held back since. Thread-safe: the hot thread and the handoff's workers refuse
+    (nodes/handoff.py), the diagnostics timer takes."""
 
     def __init__(self, say: Callable[[str], Any], clock: Callable[[], float] = time.monotonic) -> None:
         self._say = say
+        self._lock = threading.Lock()
         self.count: dict[str, int] = {}
         self.last: dict[str, str] = {}
         self.said = Throttle(WARN_THROTTLE_S, clock, SAID_MAX)
 
     def refuse(self, joint: str, why: str) -> None:
-        self.count[joint] = self.count.pop(joint, 0) + 1  # re-inserted: the newest refusal is last
-        self.last[joint] = why
-        passed = self.said.admit(joint)
+        with self._lock:
+            self.count[joint] = self.count.pop(joint, 0) + 1  # re-inserted: the newest refusal is last
+            self.last[joint] = why
+            passed = self.said.admit(joint)
         if passed is None:
             return
         held, since = passed
@@ -50,15 +54,17 @@ class RefusalLog:
 
     def take(self, joint: str) -> tuple[int, str]:
         """Refusals of one joint since the last call, and the newest reason; cleared."""
-        return self.count.pop(joint, 0), self.last.pop(joint, "")
+        with self._lock:
+            return self.count.pop(joint, 0), self.last.pop(joint, "")
 
     def take_others(self, joints: Collection[str]) -> tuple[int, str]:
         """Refusals not about a configured joint (unknown names, /cmd_vel), summed with the newest
         reason, and cleared: a publisher of made-up joint names cannot grow these tables."""
-        others = [k for k in self.count if k not in joints]
-        newest = self.last.get(others[-1], "") if others else ""
-        total = 0
-        for key in others:
-            total += self.count.pop(key)
-            self.last.pop(key, None)
+        with self._lock:
+            others = [k for k in self.count if k not in joints]
+            newest = self.last.get(others[-1], "") if others else ""
+            total = 0
+            for key in others:
+                total += self.count.pop(key)
+                self.last.pop(key, None)
         return total, newest

@@ -28,7 +28,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
@@ -43,13 +43,12 @@ from motor_driver import Drive, MotorDriver
 from motor_driver.health import bus_health, drive_health
 from motor_driver.stop import StopSignal
 from nodes import runtime
+from nodes.handoff import Handoff
 from nodes.messages import fill_motor_state
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.rawcmd import float32_data
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
-
-T = TypeVar("T")
 
 
 class DriverNode(Node):
@@ -65,6 +64,9 @@ class DriverNode(Node):
         self.drives = served(driver, joints)
         self._state_qos = state_qos(qos_depth(self))
         self.refusals = RefusalLog(self.get_logger().warning)
+        #: the joints' commands that must wait for their drive, off the hot thread (nodes/handoff.py);
+        #: the drive system beside this node sends through it too
+        self.handoff = Handoff(self.drives)
         self._states: dict[str, MotorState] = {}
         self._state_pubs: dict[str, Any] = {}
         default = str(self.get_parameter("default_joint").value)
@@ -98,7 +100,10 @@ class DriverNode(Node):
         the drives watch the driver's heartbeat from the moment they are armed."""
         if self.get_parameter("arm").value:
             for name, drive in self.drives.items():
-                self._guard(name, "arm", drive.enable)
+                try:
+                    drive.enable()
+                except Exception as err:  # every drive is tried; each failure said
+                    self.refused(name, "arm", 0.0, err)
 
     # --------------------------------------------------------------------- parameters set at run time
     def _may_set(self, params: list[Parameter]) -> SetParametersResult:
@@ -127,18 +132,26 @@ class DriverNode(Node):
         self._command_topic(f"{base}/degree_cmd", name, "degree command {!r}", drive.command_position)
         self._command_topic(f"{base}/velocity_cmd", name, "velocity command {!r}", drive.command_velocity)
 
-    def _guard(self, joint: str, what: str, fn: Callable[..., T], *args: float) -> T | None:
-        """``fn(*args)``; every failure becomes a throttled warning and a diagnostic. ``what``
-        (with ``{!r}`` for the value, if it shows it) is formatted only then: not once per command."""
-        try:
-            return fn(*args)
-        except RovercanError as err:
-            self.refusals.refuse(joint, f"{what.format(*args)}: {err}")
-        except Exception as err:  # never raise into the executor
-            self.refusals.refuse(joint, f"{what.format(*args)}: unexpected {err!r}")
-        return None
+    def destroy_node(self) -> None:
+        self.handoff.close()
+        super().destroy_node()
 
-    def _on_float(self, topic: str, joint: str, what: str, command: Callable[[float], None]) -> Callable[[bytes], None]:
+    def command(self, joint: str, what: str, command: Callable[..., object], value: float) -> None:
+        """``command(value)`` for ``joint``: sent at once from this (the hot) thread, or by the
+        handoff's worker when it must wait for the drive (nodes/handoff.py); a refusal, here or
+        there, is counted and said by :meth:`refused`."""
+        try:
+            self.handoff.send(joint, command, value, what, self.refused)
+        except Exception as err:  # never raise into the executor
+            self.refused(joint, what, value, err)
+
+    def refused(self, joint: str, what: str, value: float, err: Exception) -> None:
+        """A command of ``joint`` was refused: a throttled warning and a diagnostic (``what``, with
+        ``{!r}`` for the value if it shows it, is formatted only now: not once per command)."""
+        why = str(err) if isinstance(err, RovercanError) else f"unexpected {err!r}"
+        self.refusals.refuse(joint, f"{what.format(value)}: {why}")
+
+    def _on_float(self, topic: str, joint: str, what: str, command: Callable[..., None]) -> Callable[[bytes], None]:
         """A Float32 command topic's callback, its message taken raw (nodes/rawcmd.py: no
         message object made per command)."""
         def on_message(raw: bytes) -> None:
@@ -147,10 +160,10 @@ class DriverNode(Node):
             except RovercanError as err:
                 self.refusals.refuse(joint, str(err))
                 return
-            self._guard(joint, what, command, value)
+            self.command(joint, what, command, value)
         return on_message
 
-    def _command_topic(self, topic: str, joint: str, what: str, command: Callable[[float], None]) -> None:
+    def _command_topic(self, topic: str, joint: str, what: str, command: Callable[..., None]) -> None:
         self.create_subscription(Float32, topic, self._on_float(topic, joint, what, command),
                                  SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS, raw=True)
 
@@ -165,11 +178,11 @@ class DriverNode(Node):
             # topic-based hardware interface sends NaN in the fields it does not command)
             position, velocity, effort = (_given(values, i) for values in (msg.position, msg.velocity, msg.effort))
             if position is not None:
-                self._guard(name, "joint position", drive.command_position, position * DEG)
+                self.command(name, "joint position", drive.command_position, position * DEG)
             elif velocity is not None:
-                self._guard(name, "joint velocity", drive.command_velocity, velocity * DEG)
+                self.command(name, "joint velocity", drive.command_velocity, velocity * DEG)
             elif effort is not None:
-                self._guard(name, "joint effort", drive.command_torque, effort)
+                self.command(name, "joint effort", drive.command_torque, effort)
             else:
                 self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort (or only NaN)")
 

@@ -138,29 +138,31 @@ class Drive:
     def wait_target_reached(self, timeout_s: float | None = None) -> None:
         self.motion.wait_target_reached(timeout_s)
 
-    def set_velocity(self, velocity_deg_s: float) -> None:
-        self.motion.set_velocity(velocity_deg_s)
+    # at_once: frames only; a command that would wait for the drive (a mode switch, a target by
+    # SDO) raises CommandWouldWait before anything is sent (motor_driver/drive/motion.py)
+    def set_velocity(self, velocity_deg_s: float, *, at_once: bool = False) -> None:
+        self.motion.set_velocity(velocity_deg_s, at_once=at_once)
 
-    def set_torque(self, torque_nm: float) -> None:
-        self.motion.set_torque(torque_nm)
+    def set_torque(self, torque_nm: float, *, at_once: bool = False) -> None:
+        self.motion.set_torque(torque_nm, at_once=at_once)
 
-    def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None) -> None:
-        self.motion.stream_position(angle_deg, max_step_deg=max_step_deg)
+    def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None, at_once: bool = False) -> None:
+        self.motion.stream_position(angle_deg, max_step_deg=max_step_deg, at_once=at_once)
 
-    def stream_velocity(self, velocity_deg_s: float) -> None:
-        self.motion.stream_velocity(velocity_deg_s)
+    def stream_velocity(self, velocity_deg_s: float, *, at_once: bool = False) -> None:
+        self.motion.stream_velocity(velocity_deg_s, at_once=at_once)
 
-    def stream_torque(self, torque_nm: float) -> None:
-        self.motion.stream_torque(torque_nm)
+    def stream_torque(self, torque_nm: float, *, at_once: bool = False) -> None:
+        self.motion.stream_torque(torque_nm, at_once=at_once)
 
-    def command_position(self, angle_deg: float) -> None:
-        self.motion.command_position(angle_deg)
+    def command_position(self, angle_deg: float, *, at_once: bool = False) -> None:
+        self.motion.command_position(angle_deg, at_once=at_once)
 
-    def command_velocity(self, velocity_deg_s: float) -> None:
-        self.motion.command_velocity(velocity_deg_s)
+    def command_velocity(self, velocity_deg_s: float, *, at_once: bool = False) -> None:
+        self.motion.command_velocity(velocity_deg_s, at_once=at_once)
 
-    def command_torque(self, torque_nm: float) -> None:
-        self.motion.command_torque(torque_nm)
+    def command_torque(self, torque_nm: float, *, at_once: bool = False) -> None:
+        self.motion.command_torque(torque_nm, at_once=at_once)
 
     def sdo_read(self, index: int, subindex: int = 0) -> bytes:
         return self.sdo.read(index, subindex)

@@ -7,6 +7,11 @@ its frame inside one command of the channel (:meth:`CommandChannel.command`), wh
 checks that no stop came first. A target the drive takes only by SDO is written inside an
 operation of its own (the drive busy, no lock held while the SDO waits), then confirmed in the
 channel under that operation: a stop meanwhile wins.
+
+``at_once=True`` (the ROS node's hot thread, which carries every joint's commands): a command that
+would wait for its drive first (a mode switch, a target only the SDO takes) raises
+:class:`CommandWouldWait` before anything is sent, instead of holding that thread for the round
+trips; the caller sends it again where waiting is allowed. Every other check is made at once.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ import logging
 from collections.abc import Callable
 from typing import NamedTuple
 
-from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
+from can_config.errors import CommandRejected, CommandWouldWait, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.cia402 import FAULT_STATES, SW, State
 from motor_driver.drive.busy import Op
@@ -81,16 +86,22 @@ class Motion:
             raise DriveStateError(f"{self.name}: {doing} refused: the drive is {shown}; enable() it"
                                   " first", node_id=self.node_id, statusword=cache.received.statusword)
 
-    def _ensure_mode(self, mode: OperationMode, doing: str) -> None:
+    def _ensure_mode(self, mode: OperationMode, doing: str, at_once: bool = False) -> None:
         """Before a motion command, outside the channel: the drive enabled and in ``mode`` (a mode
-        switch is an operation of its own)."""
+        switch is an operation of its own; with ``at_once``, :class:`CommandWouldWait` instead)."""
         busy = self._channel.busy
         if busy:
             raise CommandRejected(f"{self.name}: {doing} refused: the drive is busy with {busy};"
                                   " nothing was sent. Send it again when that is done.")
         self._require_enabled(doing)
         if self._cache.received.mode != mode:
+            self._would_wait(at_once, doing, f"a switch to {mode.name} first")
             self._power.set_mode(mode)
+
+    def _would_wait(self, at_once: bool, doing: str, needs: str) -> None:
+        if at_once:
+            raise CommandWouldWait(f"{self.name}: {doing} needs {needs}, which waits for the drive; asked to go out"
+                                   " at once, nothing was sent")
 
     def _require_motion(self, mode: OperationMode, doing: str) -> None:
         """Inside the channel, right before a motion frame, decided with it as one step: the drive
@@ -122,14 +133,15 @@ class Motion:
         :class:`CommandRejected` naming the limit; nothing is sent."""
         return self._cache.scale.counts_to_deg(self._position_target_counts(angle_deg))
 
-    def move_to(self, angle_deg: float, *, wait: bool = False, timeout_s: float | None = None) -> float:
+    def move_to(self, angle_deg: float, *, wait: bool = False, timeout_s: float | None = None,
+                at_once: bool = False) -> float:
         """Profile-position move to ``angle_deg``; returns the (multi-turn) target in degrees.
 
         A continuous joint takes the short way round; a limited joint refuses targets beyond
         its limits. Nothing is sent for a refused command.
         """
         counts = self._position_target_counts(angle_deg)
-        self._ensure_mode(OperationMode.PROFILE_POSITION, "move")
+        self._ensure_mode(OperationMode.PROFILE_POSITION, "move", at_once)
         if self._plan.rpdo_with(OD.CONTROLWORD) is None:
             raise CommandRejected(f"{self.name} (node {self.node_id}): move refused: the controlword cannot be"
                                   " PDO-mapped on this drive, and the set-point handshake's replies come from the"
@@ -137,6 +149,7 @@ class Motion:
         if self._plan.rpdo_with(OD.TARGET_POSITION) is None:
             # 0x607A only by SDO (the SCHUNK PRL120): written on the caller's thread with the
             # drive busy (no lock held while the SDO waits); the handshake sends only the edge
+            self._would_wait(at_once, "move", "its target written by SDO")
             with self._channel.operation("move (target by SDO)") as op:
                 self._sdo.write_typed(OD.TARGET_POSITION, 0, counts)
                 with self._channel.command("move", op) as frames:
@@ -209,12 +222,13 @@ class Motion:
         return torque
 
     def _target(self, mode: OperationMode, doing: str, value: int, *, live: bool, guard: Approach,
-                check_step: float | None = None) -> None:
+                check_step: float | None = None, at_once: bool = False) -> None:
         """A velocity or torque target in ``mode``: limit-guarded and sent in one command of the
         channel; on a drive that takes it only by SDO, written inside an operation first."""
         torque_mode = mode in (OperationMode.PROFILE_TORQUE, OperationMode.CYCLIC_SYNC_TORQUE)
         index = OD.TARGET_TORQUE if torque_mode else OD.TARGET_VELOCITY
         if self._plan.rpdo_with(index) is None:
+            self._would_wait(at_once, doing, "its target written by SDO")
             with self._channel.operation(f"{doing} (target by SDO)") as op:
                 self._sdo.write_typed(index, 0, value)
                 self._send_target(mode, doing, value, live, guard, check_step, op)
@@ -255,69 +269,71 @@ class Motion:
                                   f" at most {max_step:.1f} deg/s per step speeding up (the quick-stop"
                                   " deceleration over two SYNC periods). Ramp it. Nothing was sent.")
 
-    def set_velocity(self, velocity_deg_s: float) -> None:
+    def set_velocity(self, velocity_deg_s: float, *, at_once: bool = False) -> None:
         """Profile-velocity command in deg/s, limited by max_velocity_deg_s; feeds the watchdog."""
         velocity, counts_s = self._checked_velocity(velocity_deg_s)
-        self._ensure_mode(OperationMode.PROFILE_VELOCITY, "velocity command")
+        self._ensure_mode(OperationMode.PROFILE_VELOCITY, "velocity command", at_once)
         self._target(OperationMode.PROFILE_VELOCITY, "velocity command", counts_s, live=velocity != 0.0,
                      guard=Approach(velocity, abs(velocity), self.config.profile_acceleration_deg_s2,
-                                    f"velocity {velocity:g} deg/s"))
+                                    f"velocity {velocity:g} deg/s"), at_once=at_once)
 
-    def stream_velocity(self, velocity_deg_s: float) -> None:
+    def stream_velocity(self, velocity_deg_s: float, *, at_once: bool = False) -> None:
         """Cyclic synchronous velocity (CSV): one target per SYNC period, which the drive takes
         at the next SYNC without a ramp of its own (the caller's stream is the ramp). Limited by
         max_velocity_deg_s; speeding up by more than the quick-stop deceleration over two SYNC
         periods in one step is refused (slowing down never is); feeds the watchdog. Refused on a
         drive whose 0x6502 does not list CSV."""
         velocity, counts_s = self._checked_velocity(velocity_deg_s)
-        self._ensure_mode(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point")
+        self._ensure_mode(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point", at_once)
         self._target(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point", counts_s, live=velocity != 0.0,
                      guard=Approach(velocity, abs(velocity), self.config.quick_stop_decel_deg_s2,
-                                    f"CSV velocity {velocity:g} deg/s"), check_step=velocity)
+                                    f"CSV velocity {velocity:g} deg/s"), check_step=velocity, at_once=at_once)
 
-    def _torque_command(self, torque_nm: float, mode: OperationMode, doing: str, what: str) -> None:
+    def _torque_command(self, torque_nm: float, mode: OperationMode, doing: str, what: str, at_once: bool) -> None:
         torque = self._checked_torque(torque_nm)
-        self._ensure_mode(mode, doing)
+        self._ensure_mode(mode, doing, at_once)
         self._target(mode, doing, self._cache.scale.nm_to_permille(torque), live=torque != 0.0,
-                     guard=Approach(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"{what} {torque:g} Nm"))
+                     guard=Approach(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"{what} {torque:g} Nm"),
+                     at_once=at_once)
 
-    def set_torque(self, torque_nm: float) -> None:
+    def set_torque(self, torque_nm: float, *, at_once: bool = False) -> None:
         """Profile-torque command in Nm at the joint, limited by max_torque_nm; feeds the watchdog."""
-        self._torque_command(torque_nm, OperationMode.PROFILE_TORQUE, "torque command", "torque")
+        self._torque_command(torque_nm, OperationMode.PROFILE_TORQUE, "torque command", "torque", at_once)
 
-    def stream_torque(self, torque_nm: float) -> None:
+    def stream_torque(self, torque_nm: float, *, at_once: bool = False) -> None:
         """Cyclic synchronous torque (CST): one torque target in Nm at the joint per SYNC period,
         limited by max_torque_nm; feeds the watchdog (which sends zero torque). Refused on a
         drive whose 0x6502 does not list CST."""
-        self._torque_command(torque_nm, OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point", "CST torque")
+        self._torque_command(torque_nm, OperationMode.CYCLIC_SYNC_TORQUE, "CST set-point", "CST torque", at_once)
 
     @staticmethod
-    def _as_configured(mode: str, streamed: Callable[[float], object], profiled: Callable[[float], object],
-                       value: float) -> None:
+    def _as_configured(mode: str, streamed: Callable[..., object], profiled: Callable[..., object],
+                       value: float, at_once: bool) -> None:
         """A command in the drive's configured way: one set-point of a stream (``mode`` is
         ``cyclic``), else through the profile."""
         if mode == "cyclic":
-            streamed(value)
+            streamed(value, at_once=at_once)
         else:
-            profiled(value)
+            profiled(value, at_once=at_once)
 
-    def command_position(self, angle_deg: float) -> None:
+    def command_position(self, angle_deg: float, *, at_once: bool = False) -> None:
         """A position command in the drive's configured way: a profile-position move, or one
         set-point of a stream (``position_mode: cyclic``: CSP or IP, no handshake)."""
-        self._as_configured(self.config.position_mode, self.stream_position, self.move_to, angle_deg)
+        self._as_configured(self.config.position_mode, self.stream_position, self.move_to, angle_deg, at_once)
 
-    def command_velocity(self, velocity_deg_s: float) -> None:
+    def command_velocity(self, velocity_deg_s: float, *, at_once: bool = False) -> None:
         """A velocity command in the drive's configured way: profile velocity, or CSV
         (``velocity_mode: cyclic``)."""
-        self._as_configured(self.config.velocity_mode, self.stream_velocity, self.set_velocity, velocity_deg_s)
+        self._as_configured(self.config.velocity_mode, self.stream_velocity, self.set_velocity, velocity_deg_s,
+                            at_once)
 
-    def command_torque(self, torque_nm: float) -> None:
+    def command_torque(self, torque_nm: float, *, at_once: bool = False) -> None:
         """A torque command in the drive's configured way: profile torque, or CST
         (``torque_mode: cyclic``)."""
-        self._as_configured(self.config.torque_mode, self.stream_torque, self.set_torque, torque_nm)
+        self._as_configured(self.config.torque_mode, self.stream_torque, self.set_torque, torque_nm, at_once)
 
     # ------------------------------------------------------------------ streamed positions
-    def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None) -> None:
+    def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None, at_once: bool = False) -> None:
         """One position set-point per SYNC period, no handshake: cyclic synchronous position,
         or interpolated position (0x60C1:1, controlword bit 4 "enable ip mode") on a drive
         whose 0x6502 lists IP but not CSP (the SCHUNK PRL120 is one).
@@ -331,7 +347,9 @@ class Motion:
         by_sdo = self._plan.rpdo_with(target) is None
         if by_sdo or self._cache.received.mode != mode:  # before an SDO or a mode switch; streaming by RPDO
             switching = self._cache.received.mode != mode
-            self._ensure_mode(mode, doing)  # already, the channel decides busy, enabled and mode with the frame
+            self._ensure_mode(mode, doing, at_once)  # already, the channel decides busy, enabled and mode with the frame
+            if by_sdo:
+                self._would_wait(at_once, doing, "its target written by SDO")
             if switching:  # the first set-point: from where the drive holds after the switch (setpoint.py)
                 rebase_after_switch(self._cache, self._channel)
                 counts = self._position_target_counts(angle_deg)

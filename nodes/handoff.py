@@ -1,0 +1,105 @@
+"""Commands that must wait for their drive, taken off the hot thread.
+
+The hot executor's one thread carries every joint's commands: the per-joint topics,
+/joint_commands and the drive system's tick. A command that needs its drive's answer before it
+can go out (a mode switch: the first set-point of a stream, the first velocity after a position
+move; a target the drive takes only by SDO) held every other joint's commands for its round
+trips: the six wheels' first streamed commands held a 500 Hz arm about 60 ms, and the arm's next
+set-point, beyond its step limit by then, was refused, and so was the rest of its ramp
+(docs/performance.md).
+
+:meth:`Handoff.send` sends a command at once where it can (``at_once=True``: the core refuses
+with :class:`CommandWouldWait` before anything is sent otherwise) and hands the others to a
+worker thread. The joint's commands that come while one is with the worker follow it there,
+in order; only the newest is kept (set-points: the newest is the one that matters, as the
+keep-last-1 subscriptions already do), so no backlog forms behind a slow drive.
+
+Owner: the lock below guards which joints have a command with the worker and each one's newest
+waiting command; nothing else here is shared. The workers are made when first needed (none
+exists while every command goes at once), at most one per joint at a time.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Collection
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+from can_config.errors import CommandRejected, CommandWouldWait
+
+logger = logging.getLogger(__name__)
+
+
+class Call(NamedTuple):
+    """A command for the worker: ``command(value)``, named by ``what`` (``{!r}`` for the value),
+    and what to do with its failure (``failed(joint, what, value, error)``)."""
+
+    command: Callable[..., object]
+    value: float
+    what: str
+    failed: Callable[[str, str, float, Exception], None]
+
+
+class Handoff:
+    """Sends each joint's commands at once, or on a worker when they must wait for the drive."""
+
+    def __init__(self, joints: Collection[str]) -> None:
+        self._pool = ThreadPoolExecutor(max_workers=max(1, len(joints)), thread_name_prefix="rovercan-handoff")
+        self._lock = threading.Lock()
+        self._with_worker: set[str] = set()
+        self._newest: dict[str, Call] = {}
+        self._closed = False
+
+    def send(self, joint: str, command: Callable[..., object], value: float, what: str,
+             failed: Callable[[str, str, float, Exception], None]) -> None:
+        """``command(value, at_once=True)`` now; a refusal raises here, as from the command. When
+        it would wait, or a command of ``joint`` is still with the worker, the command goes to the
+        worker, and a failure there to ``failed(joint, what, value, error)``."""
+        with self._lock:  # the command at once inside it: the worker never overtakes it
+            if joint in self._with_worker:
+                self._newest[joint] = Call(command, value, what, failed)
+                return
+            try:
+                command(value, at_once=True)
+                return
+            except CommandWouldWait:
+                pass
+            if self._closed:
+                raise CommandRejected(f"{joint}: the node is shutting down; a command that waits for the drive is"
+                                      " not taken now. Nothing was sent.")
+            self._with_worker.add(joint)
+            self._pool.submit(self._work, joint, Call(command, value, what, failed))
+
+    def busy(self, joint: str) -> bool:
+        """A command of ``joint`` is with the worker (or waits behind it)."""
+        with self._lock:
+            return joint in self._with_worker
+
+    def waiting(self, joint: str) -> float | None:
+        """The value of ``joint``'s newest command waiting behind the one with the worker, if any."""
+        with self._lock:
+            call = self._newest.get(joint)
+            return None if call is None else call.value
+
+    def _work(self, joint: str, call: Call | None) -> None:
+        while call is not None:
+            try:
+                call.command(call.value)
+            except Exception as err:  # every failure is said: never lost on a worker
+                call.failed(joint, call.what, call.value, err)
+            with self._lock:
+                call = self._newest.pop(joint, None)
+                if call is None:
+                    self._with_worker.discard(joint)
+
+    def close(self) -> None:
+        """No more work; a command with a worker ends as the driver's stop ends it."""
+        with self._lock:
+            self._closed = True
+            self._newest.clear()
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+__all__ = ["Call", "Handoff"]
