@@ -407,10 +407,9 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
                 executor.spin_once(timeout_sec=0.1)
             every_topic_matched(pubs, deadline, proc)
             # each joint's first command (the ramp's start) before the measured window: a stream's
-            # first set-point switches its drive's mode by SDO on the node's executor thread, which
-            # holds every other joint's commands meanwhile (the twelve-drive run's arm refused its
-            # stream after the wheels' first commands: docs/performance.md); the window measures
-            # the streams running
+            # first set-point switches its drive's mode by SDO (on a worker of its joint since
+            # nodes/handoff.py; it held every other joint's commands before: docs/performance.md);
+            # the window measures the streams running, not their start
             for pub in pubs:
                 pub.publish(Float32(data=0.05))
             time.sleep(0.5)

@@ -19,6 +19,9 @@ Executors and callback groups (measured: docs/ros.md, README):
   group: one joint's homing (up to ``homing_timeout_s``) holds no other joint's services. (Its
   threads wait in rcl when idle; the hot path never runs on it.)
 - ``rovercan-actions``: the actions' goals, coroutines on a single-threaded executor.
+- ``rovercan-handoff_N``: not an executor; the driver node's workers for a command that must wait
+  for its drive (a mode switch, a target by SDO), one joint's at a time, made when first needed
+  (:mod:`nodes.handoff`): the hot thread never waits for a drive.
 
 Stop (:meth:`Assembly.close`): the driver closed first (its one safe stop,
 :meth:`motor_driver.MotorDriver.safe_stop`: every drive quick-stopped and its voltage disabled;

@@ -155,9 +155,10 @@ class DriveSystemNode(Node):
             self.get_logger().error(f"drive system tick failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
 
     def _control(self, states: dict[str, DriveState], now: float, dt: float) -> None:
-        if not self._refused_late.empty():  # a wheel's velocity refused on the handoff's worker: as if here
-            name, speed, err = self._refused_late.get()
-            self._halt(f"/cmd_vel not applied: wheel {name} refused {speed:.2f} rad/s ({err}); every wheel stopped")
+        late = self._refused_on_workers()
+        if late:  # a wheel's velocity refused on the handoff's worker: as if here
+            self._halt("/cmd_vel not applied: " + "; ".join(f"wheel {name} refused {speed:.2f} rad/s ({err})"
+                                                            for name, speed, err in late) + "; every wheel stopped")
             return
         self.stale = now - self._last_cmd > self.system.cmd_timeout_s
         if self.wheels_out is not None:
@@ -212,6 +213,15 @@ class DriveSystemNode(Node):
     def _wheel_refused(self, name: str, what: str, value: float, err: Exception) -> None:
         """The handoff's worker: a wheel's velocity refused there; the next tick halts them all."""
         self._refused_late.put((name, value / DEG, err))
+
+    def _refused_on_workers(self) -> list[tuple[str, float, Exception]]:
+        """Every wheel refused on a worker since the last tick, but a wheel left out (continue)."""
+        late = []
+        while not self._refused_late.empty():
+            name, speed, err = self._refused_late.get()
+            if self.wheels_out is None or name not in self.wheels_out.out:
+                late.append((name, speed, err))
+        return late
 
     def _tell_to_stop(self, name: str) -> None:
         pending = self._stops.get(name)
@@ -312,7 +322,10 @@ class DriveSystemNode(Node):
 
 
 def _cannot_move(name: str, what: str, value: float, err: Exception) -> None:
-    """A halted wheel's zero refused on the handoff's worker: that wheel cannot move anyway."""
+    """A halted wheel's zero refused on the handoff's worker: logged (such a wheel is faulted, lost
+    or not enabled, or else the driver's command watchdog stops it when no velocity follows)."""
+    logger.warning("drive system: the stop of %s was refused on its worker (%s)", name,
+                   err if isinstance(err, RovercanError) else repr(err))
 
 
 def covariance(diagonal: tuple[float, ...], trusted: bool) -> list[float]:

@@ -58,6 +58,8 @@ class Handoff:
         it would wait, or a command of ``joint`` is still with the worker, the command goes to the
         worker, and a failure there to ``failed(joint, what, value, error)``."""
         with self._lock:  # the command at once inside it: the worker never overtakes it
+            if self._closed:
+                raise CommandRejected(f"{joint}: the node is shutting down; no command is taken. Nothing was sent.")
             if joint in self._with_worker:
                 self._newest[joint] = Call(command, value, what, failed)
                 return
@@ -66,11 +68,12 @@ class Handoff:
                 return
             except CommandWouldWait:
                 pass
-            if self._closed:
-                raise CommandRejected(f"{joint}: the node is shutting down; a command that waits for the drive is"
-                                      " not taken now. Nothing was sent.")
-            self._with_worker.add(joint)
-            self._pool.submit(self._work, joint, Call(command, value, what, failed))
+            try:
+                self._pool.submit(self._work, joint, Call(command, value, what, failed))
+            except RuntimeError as err:  # no thread to be had (the interpreter is going): said, not lost
+                raise CommandRejected(f"{joint}: no worker to send a command that waits for the drive ({err});"
+                                      " nothing was sent") from err
+            self._with_worker.add(joint)  # under the lock: the worker cannot be done before this
 
     def busy(self, joint: str) -> bool:
         """A command of ``joint`` is with the worker (or waits behind it)."""
@@ -83,23 +86,44 @@ class Handoff:
             call = self._newest.get(joint)
             return None if call is None else call.value
 
-    def _work(self, joint: str, call: Call | None) -> None:
-        while call is not None:
-            try:
-                call.command(call.value)
-            except Exception as err:  # every failure is said: never lost on a worker
-                call.failed(joint, call.what, call.value, err)
-            with self._lock:
-                call = self._newest.pop(joint, None)
-                if call is None:
-                    self._with_worker.discard(joint)
+    def _work(self, joint: str, call: Call) -> None:
+        freed = False
+        try:
+            while True:
+                try:
+                    call.command(call.value)
+                except Exception as err:  # every failure is said: never lost on a worker
+                    _say(call, joint, err)
+                with self._lock:
+                    following = None if self._closed else self._newest.pop(joint, None)
+                    if following is None:  # in the same hold as the look: nothing left behind
+                        self._free(joint)
+                        freed = True
+                        return
+                call = following
+        finally:
+            if not freed:  # something escaped even _say: the joint's next command is taken all the same
+                with self._lock:
+                    self._free(joint)
+
+    def _free(self, joint: str) -> None:
+        self._with_worker.discard(joint)
+        self._newest.pop(joint, None)
 
     def close(self) -> None:
-        """No more work; a command with a worker ends as the driver's stop ends it."""
+        """No command is taken from here on, nor one waiting behind a worker; the one with a
+        worker ends as the driver's stop ends it (closed first: nothing moves)."""
         with self._lock:
             self._closed = True
             self._newest.clear()
         self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _say(call: Call, joint: str, err: Exception) -> None:
+    try:
+        call.failed(joint, call.what, call.value, err)
+    except Exception:  # a refusal that could not be said is logged here
+        logger.exception("%s: %s refused (%s), and saying so failed", joint, call.what.format(call.value), err)
 
 
 __all__ = ["Call", "Handoff"]

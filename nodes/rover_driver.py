@@ -18,8 +18,10 @@ The process (executors, callback groups, start order, safe stop) is assembled in
 state and the drive system, one for the stops, one for the services that wait (a callback group
 per joint: one joint's homing holds no other joint's services) and one for the actions.
 
-What lives where: this module (the joints' topics, ``main``), :mod:`nodes.driver_services`
-(services), :mod:`nodes.drive_system` (/cmd_vel), :mod:`nodes.refusals` (shared helpers).
+What lives where: this module (the joints' topics, ``main``), :mod:`nodes.handoff` (a command
+that waits for its drive, sent by a worker of its joint, off the hot thread),
+:mod:`nodes.driver_services` (services), :mod:`nodes.drive_system` (/cmd_vel), :mod:`nodes.refusals`
+(shared helpers).
 """
 
 from __future__ import annotations

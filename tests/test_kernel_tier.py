@@ -572,7 +572,7 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring:
         context = rclpy.Context()
         rclpy.init(context=context)
         driver_node = DriverNode(driver, context=context)
-        system_node = DriveSystemNode(driver, config, driver_node.refusals, context=context)
+        system_node = DriveSystemNode(driver, config, driver_node.refusals, driver_node.handoff, context=context)
         assert system_node.tick_with(driver_node)  # as rover_driver runs it
         probe = rclpy.create_node("kernel_probe", context=context)
         cmd = probe.create_publisher(Twist, "/cmd_vel", COMMAND_QOS)

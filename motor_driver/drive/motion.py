@@ -11,7 +11,10 @@ channel under that operation: a stop meanwhile wins.
 ``at_once=True`` (the ROS node's hot thread, which carries every joint's commands): a command that
 would wait for its drive first (a mode switch, a target only the SDO takes) raises
 :class:`CommandWouldWait` before anything is sent, instead of holding that thread for the round
-trips; the caller sends it again where waiting is allowed. Every other check is made at once.
+trips; the caller sends it again where waiting is allowed. Checks of the input and of the drive's
+state that need no answer from it are made first (a refusal at once); those that do (the
+supported modes, a step judged after a switch) are the waiting call's. A limit guard's quick stop
+in a torque mode still takes the channel's lock (a stop: bounded by the other holder's frames).
 """
 
 from __future__ import annotations
@@ -141,6 +144,8 @@ class Motion:
         its limits. Nothing is sent for a refused command.
         """
         counts = self._position_target_counts(angle_deg)
+        if at_once and wait:
+            raise CommandWouldWait(f"{self.name}: move with wait=True asked to go out at once; nothing was sent")
         self._ensure_mode(OperationMode.PROFILE_POSITION, "move", at_once)
         if self._plan.rpdo_with(OD.CONTROLWORD) is None:
             raise CommandRejected(f"{self.name} (node {self.node_id}): move refused: the controlword cannot be"
@@ -342,11 +347,15 @@ class Motion:
         over two SYNC periods) from the previous one: a streamed trajectory must be smooth.
         """
         counts = self._position_target_counts(angle_deg)
-        mode = self._streaming_mode()
+        streaming = _STREAMING.get(self._cache.received.mode)  # one read decides: streaming already, or not
+        if streaming is None and at_once:  # a switch first (the supported modes may take an SDO too)
+            self._require_enabled("a streamed set-point")
+            self._would_wait(True, "a streamed set-point", "a switch to a streamed position mode first")
+        mode = streaming or self._streaming_mode()
         doing, target = _STREAMED[mode]
         by_sdo = self._plan.rpdo_with(target) is None
-        if by_sdo or self._cache.received.mode != mode:  # before an SDO or a mode switch; streaming by RPDO
-            switching = self._cache.received.mode != mode
+        if by_sdo or streaming is None:  # before an SDO or a mode switch; streaming by RPDO
+            switching = streaming is None
             self._ensure_mode(mode, doing, at_once)  # already, the channel decides busy, enabled and mode with the frame
             if by_sdo:
                 self._would_wait(at_once, doing, "its target written by SDO")
