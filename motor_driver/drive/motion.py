@@ -92,14 +92,18 @@ class Motion:
     def _ensure_mode(self, mode: OperationMode, doing: str, at_once: bool = False) -> None:
         """Before a motion command, outside the channel: the drive enabled and in ``mode`` (a mode
         switch is an operation of its own; with ``at_once``, :class:`CommandWouldWait` instead)."""
+        self._require_free_and_enabled(doing)
+        if self._cache.received.mode != mode:
+            self._would_wait(at_once, doing, f"a switch to {mode.name} first")
+            self._power.set_mode(mode)
+
+    def _require_free_and_enabled(self, doing: str) -> None:
+        """No operation of another's runs on the drive (refused at once, not queued), and it is enabled."""
         busy = self._channel.busy
         if busy:
             raise CommandRejected(f"{self.name}: {doing} refused: the drive is busy with {busy};"
                                   " nothing was sent. Send it again when that is done.")
         self._require_enabled(doing)
-        if self._cache.received.mode != mode:
-            self._would_wait(at_once, doing, f"a switch to {mode.name} first")
-            self._power.set_mode(mode)
 
     def _would_wait(self, at_once: bool, doing: str, needs: str) -> None:
         if at_once:
@@ -349,7 +353,7 @@ class Motion:
         counts = self._position_target_counts(angle_deg)
         streaming = _STREAMING.get(self._cache.received.mode)  # one read decides: streaming already, or not
         if streaming is None and at_once:  # a switch first (the supported modes may take an SDO too)
-            self._require_enabled("a streamed set-point")
+            self._require_free_and_enabled("a streamed set-point")
             self._would_wait(True, "a streamed set-point", "a switch to a streamed position mode first")
         mode = streaming or self._streaming_mode()
         doing, target = _STREAMED[mode]
