@@ -355,7 +355,7 @@ class Motion:
         if streaming is None and at_once:  # a switch first (the supported modes may take an SDO too)
             self._require_free_and_enabled("a streamed set-point")
             self._would_wait(True, "a streamed set-point", "a switch to a streamed position mode first")
-        mode = streaming or self._streaming_mode()
+        mode = streaming or self._mode_to_stream_in()
         doing, target = _STREAMED[mode]
         by_sdo = self._plan.rpdo_with(target) is None
         if by_sdo or streaming is None:  # before an SDO or a mode switch; streaming by RPDO
@@ -389,10 +389,8 @@ class Motion:
                                   " periods) is allowed. Nothing was sent. A point-to-point move is a profile-position"
                                   " move (move_to, the move_joint action).")
 
-    def _streaming_mode(self) -> OperationMode:
-        streaming = _STREAMING.get(self._cache.received.mode)
-        if streaming is not None:
-            return streaming  # the hot path: streaming already
+    def _mode_to_stream_in(self) -> OperationMode:
+        """The streamed position mode to switch into: CSP where 0x6502 lists it, else IP."""
         supported = self._power.supported_modes()
         for candidate in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
             if supported >> SUPPORTED_MODE_BIT[candidate] & 1:
