@@ -130,12 +130,16 @@ def cpu_ratio_pairs(pairs: int, seconds: float, priority: int) -> dict[str, Any]
     ratios = []
     dropped = 0
     for i in range(pairs):
-        if i % 2:
-            stack = stack_cpu()
-            base = base_cpu()
-        else:  # the base first: the first pair (the main runs) had the stack run first
-            base = base_cpu()
-            stack = stack_cpu()
+        try:
+            if i % 2:
+                stack = stack_cpu()
+                base = base_cpu()
+            else:  # the base first: the first pair (the main runs) had the stack run first
+                base = base_cpu()
+                stack = stack_cpu()
+        except RuntimeError as err:  # a run that did not start (a busy machine timed it out): no pair
+            print(f"CPU ratio pair {i + 1} dropped: {err}", file=sys.stderr, flush=True)
+            base = None
         if base is None:
             dropped += 1  # a pair without a valid baseline is no ratio
         else:

@@ -25,6 +25,7 @@ socketcand client that sees every frame with the server's wire timestamp). Figur
 from __future__ import annotations
 
 import bisect
+import collections
 import itertools
 import json
 import multiprocessing
@@ -265,15 +266,42 @@ def is_tpdo(cob: int) -> bool:
     return cob & 0x7F != 0 and cob & 0x780 in TPDO_BASES
 
 
+def count_by_bus(sent: dict[tuple[str, int, int], list[float]]) -> collections.Counter[str]:
+    """The commands published, by bus (before matching takes them)."""
+    out: collections.Counter[str] = collections.Counter()
+    for (ch, _, _), times in sent.items():
+        out[ch] += len(times)
+    return out
+
+
+def catch_up_by_bus(sent: dict[tuple[str, int, int], list[float]]) -> dict[str, float]:
+    """By bus: the fraction of commands the harness published less than half its drive's period
+    (the median gap) after that drive's previous one: published late, then caught up. Of such a
+    pair a keep-last-1 subscription may keep only the newest: set-point loss of the harness's
+    making, not the driver's."""
+    times: dict[tuple[str, int], list[float]] = {}
+    for (ch, node_id, _), stamps in sent.items():
+        times.setdefault((ch, node_id), []).extend(stamps)
+    short: collections.Counter[str] = collections.Counter()
+    total: collections.Counter[str] = collections.Counter()
+    for (ch, _), stamps in times.items():
+        gaps = [b - a for a, b in itertools.pairwise(sorted(stamps))]
+        if gaps:
+            half = statistics.median(gaps) / 2
+            short[ch] += sum(g < half for g in gaps)
+            total[ch] += len(gaps)
+    return {ch: round(short[ch] / n, 5) for ch, n in sorted(total.items()) if n}
+
+
 def match_latencies(listeners: dict[str, Any], sent: dict[tuple[str, int, int], list[float]],
-                    drives: list[Any]) -> tuple[list[float], dict[int, list[float]], list[float], int]:
+                    drives: list[Any]) -> tuple[list[float], dict[int, list[float]], list[float], collections.Counter[str]]:
     """Each position RPDO on the wire matched to the degree command that asked for it: latencies
-    (ms), by the command's place in each burst, when each was published, and how many matched."""
+    (ms), by the command's place in each burst, when each was published, and how many matched, by bus."""
     latencies = []
     by_order: dict[int, list[float]] = {}  # latency by the command's place in each burst of publishes
     published_at: list[float] = []  # of each latency
     order = {(ch, d.node_id): i for i, (d, ch, _, _) in enumerate(drives)}
-    matched = 0
+    matched: collections.Counter[str] = collections.Counter()  # by bus
     per_rev = {(ch, d.node_id): rev for d, ch, _, rev in drives}
     for ch, listener in listeners.items():
         for t, cob, data in listener.frames:
@@ -291,7 +319,7 @@ def match_latencies(listeners: dict[str, Any], sent: dict[tuple[str, int, int], 
                     latencies.append((t - published) * 1000)
                     by_order.setdefault(order[(ch, node_id)], []).append(latencies[-1])
                     published_at.append(published)
-                    matched += 1
+                    matched[ch] += 1
     return latencies, by_order, published_at, matched
 
 
@@ -469,8 +497,10 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             for listener in listeners.values():
                 listener.close()
     tpdo_sent = tpdos_on_wire(listeners.values(), t_stop)
-    n_published = sum(len(v) for v in sent.values())
-    latencies, by_order, published_at, matched = match_latencies(listeners, sent, drives)
+    published_by_bus, caught_up = count_by_bus(sent), catch_up_by_bus(sent)
+    n_published = sum(published_by_bus.values())
+    latencies, by_order, published_at, matched_by_bus = match_latencies(listeners, sent, drives)
+    matched = sum(matched_by_bus.values())
     unmatched = sum(len(v) for v in sent.values())
     syncs = [t for t, cob, _ in first.frames if cob == 0x080]
     sync_s = shipped.buses[0].sync_period_s
@@ -505,6 +535,8 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             # command of the same value (the ramp comes round) has gone out
             "commands_published": n_published, "commands_matched": matched, "commands_superseded": unmatched,
             "setpoint_loss_fraction": round((n_published - matched) / n_published, 5) if n_published else None,
+            "setpoint_loss_by_bus": {ch: round((n - matched_by_bus[ch]) / n, 5) for ch, n in sorted(published_by_bus.items()) if n},
+            "harness_catch_up_by_bus": caught_up,
             "tpdo_sent": tpdo_sent, "tpdo_applied": tpdo_applied, "tpdo_loss": tpdo_sent - tpdo_applied,
             "cpu_core_fraction": round(cpu, 3), "rss_mb": round(rss, 1),
             "cpu_by_thread": {name: round(f, 3) for name, f in sorted(threads.items(), key=lambda kv: -kv[1]) if f >= 0.002},

@@ -7,12 +7,16 @@ on the bus's worker (reconnect, SYNC restart), one at a time; the supervisor thr
 host heartbeat through it (:meth:`BusHandle.beat`, which counts ``host_beats``). The supervisor's
 bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.runtime.BusRuntime`.
 
-The bus's receive thread (python-can's Notifier) runs under ordinary scheduling, also in a driver
-whose other threads are SCHED_FIFO (nodes/runtime.go_realtime): real-time, it woke at once for
-each arrival, about three times a SYNC period per bus (the SYNC's echo, then the TPDOs as they
-came), at up to 0.1 ms of CPU a wake-up; ordinary, it takes what has come when it gets a core.
+The bus's receive thread (python-can's Notifier) runs as every other thread of the driver's
+process does: under SCHED_FIFO where the node made it real-time (nodes/runtime.go_realtime). It
+ran ordinary for a while (round five: it took a SYNC period's frames in fewer wake-ups, 0.026 of
+a core less on the rover), but it holds the interpreter while it decodes a frame, and an ordinary
+thread holding it was preempted there by any real-time or favoured work on its core: every other
+thread of the driver (the commands, the host heartbeat) then waited for the interpreter. With
+twelve drives on three buses beside real-time load the command thread stood still for 5-31 ms at
+a time, 5-14 % of a 500 Hz arm's set-points were lost, and in one run the host heartbeat's gaps
+grew until every drive stopped itself; real-time, none lost, at the same CPU (docs/performance.md).
 The echo of the daemon's SYNC does not wake it alone (adapters.hold_lone_sync, while the job runs).
-The commands, the host heartbeat, the stops and DDS stay real-time (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -27,7 +31,6 @@ from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
-from can_config.realtime import ordinary_thread
 from motor_driver.adapters import GuardedNetwork, ReceiveErrors, brief_error, hold_lone_sync, queue_full
 from motor_driver.connect import is_kernel_bus
 from motor_driver.cyclic import DaemonCyclicTask
@@ -72,8 +75,7 @@ class BusHandle:
         self.network = GuardedNetwork(bus, listeners + ((recorder.listener(name),) if recorder is not None else ()),
                                       functools.partial(recorder.record_frame, name) if recorder is not None else None)
         self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
-        with ordinary_thread():  # the receive thread starts ordinary: module docstring
-            self.network.connect()
+        self.network.connect()  # its receive thread takes this thread's scheduling: module docstring
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | DaemonCyclicTask | None = None
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"rovercan-{name}")
         self.host_beats = 0  # the supervisor thread's (beat)
@@ -93,8 +95,8 @@ class BusHandle:
     def reconnect(self, bus: can.BusABC) -> None:
         self.bus = bus
         self.network.bus = bus
-        with ordinary_thread():  # the receive thread starts ordinary: module docstring
-            self.network.notifier = can.Notifier(bus, self.network.listeners, NOTIFIER_TIMEOUT_S)
+        # the new receive thread takes this thread's scheduling (the bus's worker: the process's)
+        self.network.notifier = can.Notifier(bus, self.network.listeners, NOTIFIER_TIMEOUT_S)
 
     def start_sync(self) -> None:
         """SYNC by the bus's own timer where there is one: the socketcand daemon's broadcast

@@ -1,8 +1,9 @@
 """A real-time driver's process (its threads under SCHED_FIFO: nodes/runtime.go_realtime) starts
 its flight recorder's plot helper ordinary: matplotlib at real-time priority would take a core
 from the driver's own threads for a second or two, at an incident, when they matter most. Its
-buses' receive threads run ordinary too, on first connect and on every reconnect (they take a
-SYNC period's frames in fewer wake-ups: motor_driver/bushandle.py)."""
+buses' receive threads run real-time like the rest, on first connect and on every reconnect: an
+ordinary one holding the interpreter was preempted there by real-time work, and every other
+thread of the driver waited for it (motor_driver/bushandle.py)."""
 
 from __future__ import annotations
 
@@ -66,8 +67,8 @@ from motor_driver import MotorDriver
 from motor_driver.connect import open_bus
 
 def receive_policies():
-    return sorted(os.sched_getscheduler(t.native_id) for t in threading.enumerate()
-                  if t.name.startswith("Notifier for bus") and t.is_alive())
+    return sorted((os.sched_getscheduler(t.native_id), os.sched_getparam(t.native_id).sched_priority)
+                  for t in threading.enumerate() if t.name.startswith("Notifier for bus") and t.is_alive())
 
 assert make_process_realtime("test", 10)
 config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
@@ -83,7 +84,7 @@ with MotorDriver(config) as driver:
 """
 
 
-def test_a_real_time_drivers_receive_threads_run_ordinary_after_connect_and_reconnect() -> None:
+def test_a_real_time_drivers_receive_threads_run_real_time_after_connect_and_reconnect() -> None:
     if not realtime_allowed():
         pytest.skip("needs SCHED_FIFO (root, CAP_SYS_NICE or an rtprio limit)")
     from virtual_can.service import SimDriveSpec, SimService
@@ -92,6 +93,6 @@ def test_a_real_time_drivers_receive_threads_run_ordinary_after_connect_and_reco
         out = subprocess.run([sys.executable, "-c", RECEIVE_SCRIPT, str(sim.port)], cwd=REPO, capture_output=True,
                              text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert f"connected [{os.SCHED_OTHER}]" in out.stdout, out.stdout
-    assert f"reconnected [{os.SCHED_OTHER}]" in out.stdout, out.stdout  # the old thread gone, the new one ordinary
+    assert f"connected [({os.SCHED_FIFO}, 10)]" in out.stdout, out.stdout  # the process's priority
+    assert f"reconnected [({os.SCHED_FIFO}, 10)]" in out.stdout, out.stdout  # the old thread gone, the new one real-time
     assert f"own policy {os.SCHED_FIFO}" in out.stdout, out.stdout  # the thread that started them stays real-time
