@@ -10,8 +10,9 @@ bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_drive
 The bus's receive thread (python-can's Notifier) runs as every other thread of the driver's
 process does: under SCHED_FIFO where the node made it real-time (nodes/runtime.go_realtime). It
 ran ordinary for a while (round five: it took a SYNC period's frames in fewer wake-ups, 0.026 of
-a core less on the rover), but it holds the interpreter while it decodes a frame, and an ordinary
-thread holding it was preempted there by any real-time or favoured work on its core: every other
+a core less with the rover's config on the benchmark machine), but it holds the interpreter while
+it decodes a frame, and an ordinary thread holding it was preempted there by any real-time or
+favoured work on its core: every other
 thread of the driver (the commands, the host heartbeat) then waited for the interpreter. With
 twelve drives on three buses beside real-time load the command thread stood still for 5-31 ms at
 a time, 5-14 % of a 500 Hz arm's set-points were lost, and in one run the host heartbeat's gaps

@@ -43,7 +43,7 @@ PARAMS: dict[str, Param] = {
     "autostart": Param(False, "rover_lifecycle: configure and activate at start (the demo); off: a lifecycle"
                               " manager drives the transitions"),
     "realtime_priority": Param(DRIVER_PRIORITY, "SCHED_FIFO priority of the driver process's threads (commands, supervisor, stops,"
-                                   " DDS; each bus's receive thread ordinary), 1 to 99, where the OS allows it (CAP_SYS_NICE, an rtprio"
+                                   " DDS, each bus's receive thread), 1 to 99, where the OS allows it (CAP_SYS_NICE, an rtprio"
                                    " limit; else ordinary, said once); 0: ordinary scheduling"),
     "odom_rate_hz": Param(50.0, "rate of the drive system's control loop and /odom", 1.0, 200.0),
     "odom_frame": Param("odom", "frame_id of /odom"),
