@@ -15,6 +15,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from motor_driver.adapters import (
+    CLOSED_PAUSE_S,
     SOCKETCAND_SOCKET_ATTRIBUTE,
     SYNC_TEXT_BYTES,
     GuardedNetwork,
@@ -22,6 +23,7 @@ from motor_driver.adapters import (
     hold_lone_sync,
     queue_full,
 )
+from motor_driver.connect import open_bus
 from virtual_can import SimService
 from virtual_can.client import format_frame
 
@@ -44,6 +46,32 @@ def test_the_socketcand_client_keeps_its_socket_where_connection_closed_looks() 
         bus.shutdown()
         sim.close()
     assert not connection_closed(can.Bus(interface="virtual", channel="pin"))  # other interfaces: False
+
+
+def test_a_socketcand_bus_whose_server_went_pauses_its_reads_instead_of_spinning() -> None:
+    """python-can reads a lost server's end of stream as 'no frame' at once: recv() went round
+    thousands of times until its timeout, and a real-time receive thread with it. Opened as the
+    driver opens it, the bus pauses CLOSED_PAUSE_S after each such read: at most a read per pause
+    (the count is bounded by the sleeps, not by how fast the machine is)."""
+    sim = SimService([], port=0)
+    bus = open_bus({"interface": "socketcand", "channel": "can0", "host": sim.host, "port": sim.port})
+    reads = 0
+    inner = bus._recv_internal
+
+    def counted(timeout: float | None) -> tuple[can.Message | None, bool]:
+        nonlocal reads
+        reads += 1
+        return inner(timeout)  # type: ignore[no-any-return]
+
+    try:
+        sim.close()
+        wait_for(lambda: connection_closed(bus), 10.0, "the server gone")
+        bus._recv_internal = counted  # type: ignore[method-assign]
+        assert bus.recv(0.3) is None
+        assert reads <= 0.3 / CLOSED_PAUSE_S + 2, reads
+    finally:
+        bus.shutdown()
+        sim.close()
 
 
 def test_canopen_notify_is_what_guarded_network_overrides() -> None:
