@@ -20,13 +20,10 @@ from can_config.errors import CommandRejected, ConfigError, RovercanError, SimEr
 from can_config.realtime import DRIVER_PRIORITY
 from motor_driver.stop import stop_on_signals
 from rovercan.argtypes import real, whole
+from rovercan.exits import EXIT_FAILED, EXIT_OK, EXIT_USAGE
 
 logger = logging.getLogger(__name__)
 
-#: The one rule for exit codes (README, Bench testing).
-EXIT_OK = 0  # done
-EXIT_FAILED = 1  # the bus or a drive failed or refused
-EXIT_USAGE = 2  # bad usage, a bad config or input, or a command refused before it was sent
 
 
 def _setup_logging(verbose: int) -> None:

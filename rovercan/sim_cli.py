@@ -18,7 +18,7 @@ from motor_driver import heap
 from motor_driver.stop import StopSignal
 from rovercan.argtypes import BusKwargs, real, whole
 from rovercan.bench.traffic import add_foxglove_args
-from rovercan.cli import EXIT_FAILED, EXIT_OK
+from rovercan.exits import EXIT_FAILED, EXIT_OK
 
 
 def add_sim_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

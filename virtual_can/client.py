@@ -16,17 +16,29 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import can
 
 from can_config.errors import ProtocolError
-from virtual_can.cyclic_jobs import MAX_CYCLIC_PERIOD_S, MIN_CYCLIC_PERIOD_S, POLL_S
-from virtual_can.engine import Channel, Endpoint
+from virtual_can.cyclic_jobs import MAX_CYCLIC_PERIOD_S, MIN_CYCLIC_PERIOD_S, POLL_S, CyclicJobs
+from virtual_can.engine import BusEngine, Channel, Endpoint
 from virtual_can.wire import ARRIVAL_ANCILLARY_BYTES, arrival_time, stamp_arrivals
 
-if TYPE_CHECKING:
-    from virtual_can.server import SocketcandServer
+
+class ClientHost(Protocol):
+    """What a client needs of the server that accepted it (the server is one; the client does not
+    import it): the bus, the cyclic jobs, the channels it may open, and a way to be forgotten."""
+
+    engine: BusEngine
+    cyclic: CyclicJobs
+    channels: tuple[str, ...]
+    handshake_timeout_s: float
+
+    def channel_allowed(self, name: str) -> bool: ...
+
+    def forget(self, client: Client) -> None: ...
+
 
 logger = logging.getLogger(__name__)
 
@@ -130,7 +142,7 @@ class ClientStats:
 
 
 class Client:
-    def __init__(self, server: SocketcandServer, sock: socket.socket, addr: tuple[str, int]) -> None:
+    def __init__(self, server: ClientHost, sock: socket.socket, addr: tuple[str, int]) -> None:
         self.server = server
         self.sock = sock
         self.addr = addr
@@ -356,7 +368,7 @@ class Client:
         with self._out_cond:
             self._out.clear()  # the queued frames' memory goes with the client
             self._out_frame_bytes = 0
-        self.server._forget(self)
+        self.server.forget(self)
         _return_free_memory()
 
     def join(self, timeout: float) -> None:

@@ -150,7 +150,8 @@ class SocketcandServer:
         self.idle_closed += 1
         return True
 
-    def _forget(self, client: Client) -> None:
+    def forget(self, client: Client) -> None:
+        """A closed client's slot is free (the client calls it as it closes)."""
         with self._lock:
             self._clients.discard(client)
 
