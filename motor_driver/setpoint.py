@@ -34,7 +34,6 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from motor_driver.drive.channel import CommandChannel
     from motor_driver.drive.state import DriveCache
 
 #: SYNC periods to wait for a position sampled after a mode switch (one more is a bound).
@@ -98,9 +97,10 @@ class SetpointHandshake:
             raise
 
 
-def rebase_after_switch(cache: DriveCache, channel: CommandChannel) -> None:
+def rebase_after_switch(cache: DriveCache, forget: Callable[[int], None]) -> None:
     """After a switch into a streamed position mode: wait (at most a few SYNC periods) for a
-    position sampled after it, and make that the reference of the first set-point."""
+    position sampled after it, and hand it to ``forget`` (the command channel's) as the reference of
+    the first set-point."""
     seq = cache.position_seq
     cache.wait_until(lambda: cache.position_seq != seq, SAMPLES_AFTER_SWITCH * cache.sync_period_s + 0.05)
-    channel.forget(cache.received.position_counts)
+    forget(cache.received.position_counts)

@@ -364,7 +364,7 @@ class Motion:
             if by_sdo:
                 self._would_wait(at_once, doing, "its target written by SDO")
             if switching:  # the first set-point: from where the drive holds after the switch (setpoint.py)
-                rebase_after_switch(self._cache, self._channel)
+                rebase_after_switch(self._cache, self._channel.forget)
                 counts = self._position_target_counts(angle_deg)
         if by_sdo:
             with self._channel.operation(f"{doing} (target by SDO)") as op:
