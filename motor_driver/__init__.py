@@ -24,10 +24,8 @@ What lives where:
   recordings back; :mod:`motor_driver.errorframes` - SocketCAN error frames decoded;
   :mod:`motor_driver.busview`, :mod:`motor_driver.ros2defs`, :mod:`motor_driver.mcap_out` - the
   bus as ROS 2 messages (no rclpy), for MCAP files and the live Foxglove view
-* :mod:`motor_driver.stop`, :mod:`motor_driver.heap`, :mod:`motor_driver.ratelimit` - a
-  process's life: stop on signals, the heap settled once built, repeated log lines at a bounded
-  rate (used by the driver, the nodes and the CLI; the simulator needs none of them, so they are
-  here and not in ``can_config``)
+* :mod:`motor_driver.process` - a process's life: stop on signals, the heap settled once built,
+  repeated log lines at a bounded rate
 
     from can_config import load_config
     from motor_driver import MotorDriver, stop_on_signals
@@ -55,7 +53,7 @@ from can_config.errors import (
 from motor_driver.cia402 import Command, State
 from motor_driver.drive import Drive, DriveState, Emcy
 from motor_driver.driver import MotorDriver
-from motor_driver.stop import StopRequested, stop_on_signals
+from motor_driver.process.stop import StopRequested, stop_on_signals
 
 __all__ = [
     "BootError",

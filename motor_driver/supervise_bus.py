@@ -23,7 +23,7 @@ from motor_driver.bushealth import KernelBusHealth, read_kernel_health
 from motor_driver.connect import open_bus
 from motor_driver.cyclic import DaemonCyclicTask
 from motor_driver.drive import Drive
-from motor_driver.ratelimit import RateLimitedLog
+from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recorder import FlightRecorder
 from motor_driver.runtime import BusBack, BusDown, BusRuntime, DriveRuntime, Event
 

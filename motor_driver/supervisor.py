@@ -28,7 +28,7 @@ from can_config.errors import MotorError
 from can_config.objects import NmtState
 from motor_driver.bushandle import BusHandle
 from motor_driver.drive import Drive
-from motor_driver.ratelimit import RateLimitedLog
+from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recorder import FlightRecorder
 from motor_driver.runtime import (
     Booted,

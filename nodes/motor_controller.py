@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 
-from motor_driver.stop import StopSignal
+from motor_driver.process.stop import StopSignal
 from nodes import runtime
 from nodes.assembly import run
 

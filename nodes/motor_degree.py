@@ -8,7 +8,7 @@ import sys
 from rclpy.node import Node
 from std_msgs.msg import Float32
 
-from motor_driver.stop import StopSignal
+from motor_driver.process.stop import StopSignal
 from nodes import runtime
 from nodes.qos import COMMAND_QOS
 

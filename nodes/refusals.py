@@ -1,6 +1,6 @@
 """What every driver node shares: a refused command said once a second per joint, header stamps.
 
-The once a second is counted here (motor_driver.ratelimit's Throttle), before rclpy's logger is called: rclpy's own throttle
+The once a second is counted here (motor_driver.process.ratelimit's Throttle), before rclpy's logger is called: rclpy's own throttle
 (``throttle_duration_sec``) finds its caller's file and line (``inspect``, a ``stat`` per
 frame) before it decides to stay silent, about 200 us a call; a publisher whose every command
 is refused (600 a second: six drives at 100 Hz, the drives stopped) took the driver's main thread
@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Collection
 from typing import Any
 
-from motor_driver.ratelimit import KINDS_MAX, Throttle
+from motor_driver.process.ratelimit import KINDS_MAX, Throttle
 
 WARN_THROTTLE_S = 1.0
 #: Joints whose last line is remembered; beyond it the oldest are forgotten (made-up names).

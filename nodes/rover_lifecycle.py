@@ -31,7 +31,8 @@ from rclpy.lifecycle import State, TransitionCallbackReturn
 
 from can_config import load_config
 from can_config.errors import RovercanError
-from motor_driver import MotorDriver, heap
+from motor_driver import MotorDriver
+from motor_driver.process import heap
 from nodes import runtime
 from nodes.assembly import Assembly
 from nodes.params import declare

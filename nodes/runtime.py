@@ -24,8 +24,8 @@ from rclpy.task import Future
 
 from can_config.errors import ConfigError
 from can_config.realtime import make_process_realtime
-from motor_driver import heap
-from motor_driver.stop import StopSignal
+from motor_driver.process import heap
+from motor_driver.process.stop import StopSignal
 
 logger = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from can_config.errors import CommandRejected, ConfigError, RovercanError, SimError
 from can_config.realtime import DRIVER_PRIORITY
-from motor_driver.stop import stop_on_signals
+from motor_driver.process.stop import stop_on_signals
 from rovercan.argtypes import real, whole
 from rovercan.exits import EXIT_FAILED, EXIT_OK, EXIT_USAGE
 

@@ -18,7 +18,7 @@ from typing import Any
 from can_config import load_config, with_bus_overrides
 from can_config.errors import ConfigError
 from can_config.realtime import make_process_realtime
-from motor_driver.stop import StopSignal
+from motor_driver.process.stop import StopSignal
 from rovercan.exits import EXIT_FAILED, EXIT_OK
 from rovercan.launch import LOCAL_DISCOVERY
 

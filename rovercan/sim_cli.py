@@ -14,8 +14,8 @@ from typing import Any
 
 from can_config import RoverConfig, load_config
 from can_config.errors import ConfigError
-from motor_driver import heap
-from motor_driver.stop import StopSignal
+from motor_driver.process import heap
+from motor_driver.process.stop import StopSignal
 from rovercan.argtypes import BusKwargs, real, whole
 from rovercan.bench.traffic import add_foxglove_args
 from rovercan.exits import EXIT_FAILED, EXIT_OK

@@ -25,8 +25,8 @@ from contextlib import ExitStack, contextmanager
 from typing import Any
 
 from can_config.errors import ConfigError
-from motor_driver import heap
-from motor_driver.stop import StopSignal
+from motor_driver.process import heap
+from motor_driver.process.stop import StopSignal
 from rovercan.bench.common import CliError
 
 #: A drive process imports python-can, canopen and the EDS files before it says it runs.

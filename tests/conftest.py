@@ -22,8 +22,9 @@ import pytest
 from canopen.objectdictionary import ODVariable, datatypes
 
 from can_config import GENERIC_EDS, RoverConfig, load_config, parse_config, with_bus_overrides
-from motor_driver import MotorDriver, heap
+from motor_driver import MotorDriver
 from motor_driver.drive import Drive
+from motor_driver.process import heap
 from rovercan.launch import LOCAL_DISCOVERY
 from virtual_can import SimService
 from virtual_can.server import RAWMODE_HOLD_S
@@ -77,7 +78,7 @@ IN_PROCESS_HEARTBEAT_TIMEOUT_MS = 1000.0
 
 @pytest.fixture(autouse=True)
 def _settled_heap() -> None:
-    """Each test starts with the suite's heap settled (motor_driver.heap.settle), as every node and
+    """Each test starts with the suite's heap settled (motor_driver.process.heap.settle), as every node and
     the simulator settle theirs once built. The suite's own process accumulates what hundreds of
     tests built; a full garbage collection then walked it all, stopping every thread for 110-190
     ms on an idle machine (a gc callback, mid-suite) and about twice that with both cores busy:

@@ -1,4 +1,4 @@
-"""motor_driver.heap: a long-running process's start-up objects leave the collector's walks,
+"""motor_driver.process.heap: a long-running process's start-up objects leave the collector's walks,
 and garbage made afterwards is still collected."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import gc
 import weakref
 
-from motor_driver import heap
+from motor_driver.process import heap
 
 
 class _Node:

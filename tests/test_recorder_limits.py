@@ -18,7 +18,7 @@ import pytest
 
 from can_config import config_to_dict, with_bus_overrides
 from can_config.config import RecorderConfig
-from motor_driver.ratelimit import RateLimitedLog
+from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recorder import REPEAT_WINDOW_S, FlightRecorder
 from virtual_can import SimService
 
@@ -112,7 +112,7 @@ def test_a_repeated_warning_is_one_line_per_period_with_a_count(caplog: pytest.L
 DRIVER = """
 import sys
 from can_config import load_config
-from motor_driver.stop import StopSignal
+from motor_driver.process.stop import StopSignal
 from motor_driver import MotorDriver
 with StopSignal() as stop, MotorDriver(load_config(sys.argv[1])) as driver:
     driver.start()

@@ -121,8 +121,8 @@ def test_the_demo_fails_a_drive_that_stopped_during_the_run_and_says_why(enabled
     held past its host timeout) must fail the demo, named with its state."""
     from rovercan_msgs.msg import MotorState
 
-    from rovercan.exits import EXIT_FAILED, EXIT_OK
     from rovercan.demo import demo_verdict
+    from rovercan.exits import EXIT_FAILED, EXIT_OK
 
     state = MotorState(angle=2.9, enabled=enabled, state="OPERATION_ENABLED" if enabled else "SWITCH_ON_DISABLED")
     assert demo_verdict(3.0, state) == (EXIT_OK if enabled else EXIT_FAILED)
@@ -139,8 +139,8 @@ def test_the_demo_judges_no_stale_state(capsys: pytest.CaptureFixture[str]) -> N
 
     from rovercan_msgs.msg import MotorState
 
-    from rovercan.exits import EXIT_FAILED
     from rovercan.demo import demo_verdict
+    from rovercan.exits import EXIT_FAILED
 
     state = MotorState(angle=math.nan, enabled=False, stale=True, data_age=0.4, state="OPERATION_ENABLED")
     assert demo_verdict(3.0, state) == EXIT_FAILED

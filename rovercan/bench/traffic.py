@@ -20,8 +20,8 @@ from can_config import load_config, load_drive_od
 from can_config.eds import variable
 from can_config.errors import ConfigError
 from can_config.objects import OD, STRUCT_FORMAT
+from motor_driver.process.stop import StopSignal
 from motor_driver.recorder.recording import read_recording
-from motor_driver.stop import StopSignal
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import add_bus_args, add_json, emit, open_bus, receive
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
