@@ -20,6 +20,7 @@ import can
 import canopen
 import pytest
 from canopen.objectdictionary import ODVariable, datatypes
+from hypothesis import HealthCheck, settings
 
 from can_config import GENERIC_EDS, RoverConfig, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
@@ -33,6 +34,11 @@ REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"
 SHARED_EDS = SHARED / "eds"
 SHARED_TRAFFIC = SHARED / "traffic"
+
+# Hypothesis's own clock off for every property test: its 200 ms deadline per example and its
+# too-slow health check are wall-clock verdicts, and a crowded runner fails them at random
+settings.register_profile("rovercan", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("rovercan")
 
 def _have_ros() -> bool:
     """rclpy and the interface package import here (a venv without the ROS wheels: no)."""
