@@ -17,9 +17,9 @@ What lives where:
   :mod:`motor_driver.unit_ranges`, :mod:`motor_driver.safety`, :mod:`motor_driver.setpoint`,
   :mod:`motor_driver.trajectory` - pure rules: state machine, PDO plan, units and their
   plausible ranges, the safety judgement, the set-point handshake, the streamed move's trapezoid
-* :mod:`motor_driver.health`, :mod:`motor_driver.skid_steer`, :mod:`motor_driver.odometry`,
-  :mod:`motor_driver.busload` - pure judgements for the nodes and the CLI: a drive's health, the
-  drive system's kinematics and odometry, the bus load a config makes
+* :mod:`motor_driver.health`, :mod:`motor_driver.busload` - pure judgements for the nodes and the
+  CLI: a drive's health, the bus load a config makes
+* :mod:`motor_driver.rover` - the rover's kinematics and odometry (pure; the drive system feeds them)
 * :mod:`motor_driver.recorder` - the flight recorder, and reading its incidents and CAN
   recordings back; :mod:`motor_driver.errorframes` - SocketCAN error frames decoded;
   :mod:`motor_driver.busview`, :mod:`motor_driver.ros2defs`, :mod:`motor_driver.mcap_out` - the

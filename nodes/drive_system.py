@@ -4,7 +4,7 @@ do when a wheel is lost (``drive_system.on_wheel_loss``); a node beside the driv
 same process.
 
 What it publishes is what was measured: /odom integrates each wheel's own position deltas
-(:mod:`motor_driver.odometry`), never a command or a velocity times a tick; a side with no
+(:mod:`motor_driver.rover.odometry`), never a command or a velocity times a tick; a side with no
 trusted wheel stops the integration (pose kept, twist zero, every variance 1e6) and
 /diagnostics says why. Every refusal names the real cause and what helps (:mod:`nodes.wheels`).
 
@@ -35,8 +35,8 @@ from can_config import RoverConfig
 from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive import DriveState
-from motor_driver.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
-from motor_driver.skid_steer import SkidSteer, Twist2D
+from motor_driver.rover.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
+from motor_driver.rover.skid_steer import SkidSteer, Twist2D
 from nodes.handoff import Handoff
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos

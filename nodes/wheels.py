@@ -3,7 +3,7 @@
 :func:`wheel_problem` names the real cause a wheel cannot be driven (another master, lost,
 stale data, a fault, not armed) and the action that helps; every refusal and diagnostic of the
 drive system uses it. :func:`odometry_sample` turns a wheel's snapshot into what the odometry may
-use (:mod:`motor_driver.odometry`). :class:`WheelsOut` is ``on_wheel_loss: continue``'s book of
+use (:mod:`motor_driver.rover.odometry`). :class:`WheelsOut` is ``on_wheel_loss: continue``'s book of
 the wheels left out, and when each may come back.
 
 Owner: the drive system's control loop (one thread, the executor that runs its tick).
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from motor_driver.cia402 import FAULT_STATES, State
 from motor_driver.drive import DriveState
-from motor_driver.odometry import WheelSample
+from motor_driver.rover.odometry import WheelSample
 
 ARM = "arm the rover with the service /arm (std_srvs/Trigger), or launch with arm:=true"
 

@@ -1,4 +1,4 @@
-"""Tier 1: odometry from the wheels' measured positions (pure; motor_driver/odometry.py).
+"""Tier 1: odometry from the wheels' measured positions (pure; motor_driver/rover/odometry.py).
 
 The properties the rover's /odom stands on: the heading is the wheels' own (whichever step
 each wheel's sample lands in), a new position reference is never a jump, a lost wheel adds
@@ -11,7 +11,7 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from motor_driver.odometry import WheelOdometry, WheelSample, yaw_from_wheels
+from motor_driver.rover.odometry import WheelOdometry, WheelSample, yaw_from_wheels
 
 LEFT, RIGHT = ("fl", "ml", "rl"), ("fr", "mr", "rr")
 TRACK_M, RADIUS_M = 0.6, 0.1

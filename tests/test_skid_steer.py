@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from motor_driver.skid_steer import Pose2D, SkidSteer, Twist2D, body_twist, integrate, ramp, wheel_speeds_rad_s
+from motor_driver.rover.skid_steer import Pose2D, SkidSteer, Twist2D, body_twist, integrate, ramp, wheel_speeds_rad_s
 
 
 def test_kinematics_round_trip() -> None:

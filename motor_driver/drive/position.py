@@ -29,7 +29,7 @@ class PositionFilter:
         self.implausible = 0
         #: the position reference: counted up whenever a sample is taken that need not follow from the
         #: one before (the first after boot or homing, a confirmed jump such as a reboot's): positions of
-        #: two references are never subtracted (odometry, motor_driver/odometry.py)
+        #: two references are never subtracted (odometry, motor_driver/rover/odometry.py)
         self.reference = 0
         self.accel_counts_s2 = 0.0
         self._accel_from = (0, 0.0)

@@ -29,7 +29,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from motor_driver.skid_steer import Pose2D, Twist2D, integrate
+from motor_driver.rover.skid_steer import Pose2D, Twist2D, integrate
 
 #: the variance published for what is not measured (a planar robot's z, roll, pitch; all of it
 #: while the odometry stands still for want of trusted wheels)

@@ -2,7 +2,7 @@
 
 Body twist (v m/s, w rad/s) -> wheel speeds: left = (v - w*T/2)/r, right = (v + w*T/2)/r
 (rad/s), T the track width and r the wheel radius. No I/O and no ROS: the node feeds it. The
-odometry is :mod:`motor_driver.odometry`'s: the wheels' measured position deltas, never a speed
+odometry is :mod:`motor_driver.rover.odometry`'s: the wheels' measured position deltas, never a speed
 times a tick.
 
 Limits never bend a turn: a command beyond any limit (body speed, body turn rate, any wheel's
