@@ -27,7 +27,7 @@ from canopen.profiles.p402 import BaseNode402
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from can_config import load_config
 from can_config.realtime import make_process_realtime
-from motor_driver.units import Scale
+from motor_driver.protocol.units import Scale
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from stack_run import command_rates, due

@@ -3,7 +3,7 @@
 Generates N minutes (default 60) of the shipped rover (config/rover.yaml: six wheel drives on
 can0 and can1), streamed to a recording as it is made, never held in memory: on each bus a SYNC
 every 10 ms (the config's period) and, after it, every TPDO the driver maps for transmission on
-SYNC, laid out by the driver's own PDO plan (:func:`motor_driver.pdo.plan_pdos`) and packed by its
+SYNC, laid out by the driver's own PDO plan (:func:`motor_driver.protocol.pdo.plan_pdos`) and packed by its
 codec, each drive on its own ramp; each drive's event TPDO (statusword, mode) once at the start.
 Then converts it with the CLI in a child process (``rovercan decode FILE -o OUT.mcap --config
 config/rover.yaml``) and reports its wall time, its peak RSS (``getrusage(RUSAGE_CHILDREN)``),
@@ -39,7 +39,7 @@ from can_config.eds import load_drive_od  # noqa: E402
 from can_config.model import RoverConfig  # noqa: E402
 from can_config.objects import OD, FunctionCode, OperationMode  # noqa: E402
 from motor_driver.busview import DIAGNOSTICS_TOPIC, FRAMES_TOPIC, JOINT_STATES_TOPIC, status_topic  # noqa: E402
-from motor_driver.pdo import TT_SYNC, PdoMap, encode_rpdo, plan_pdos  # noqa: E402
+from motor_driver.protocol.pdo import TT_SYNC, PdoMap, encode_rpdo, plan_pdos  # noqa: E402
 
 ROVER = REPO / "config" / "rover.yaml"
 T0 = 1_800_000_000.0

@@ -388,7 +388,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
     from std_msgs.msg import Float32
 
     from can_config import load_config
-    from motor_driver.units import Scale
+    from motor_driver.protocol.units import Scale
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS
 
     shipped = load_config(config_path)

@@ -202,7 +202,7 @@ CIA402_PROFILE = 402
 class Cia402State(IntEnum):
     """The names of the CiA 402 power drive states (figure 'state machine'), a passive
     definition both sides use. How a statusword codes them is not here: the driver
-    (motor_driver/cia402.py) and the simulator (virtual_can/sim/drive/model.py) each read it from
+    (motor_driver/protocol/cia402.py) and the simulator (virtual_can/sim/drive/model.py) each read it from
     the standard on their own, so that a misreading is not baked into both. UNKNOWN is no
     drive's state: what a master makes of a statusword that codes none of them."""
 

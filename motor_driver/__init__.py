@@ -10,20 +10,21 @@ What lives where:
   :mod:`motor_driver.bushealth` - the supervisor's period (the one writer of the runtime state),
   the runtime state and the NMT ledger, one bus, opening a bus, what the bus's traffic shows,
   what the kernel says of the link
-* :mod:`motor_driver.sdo_client`, :mod:`motor_driver.codec`, :mod:`motor_driver.cyclic`,
+* :mod:`motor_driver.sdo_client`, :mod:`motor_driver.protocol.codec`, :mod:`motor_driver.cyclic`,
   :mod:`motor_driver.adapters` - an SDO client that takes only its own answers, the typed codec
   of SDO values, the SYNC on the bus daemon's timer, where a dependency's internals are leaned on
-* :mod:`motor_driver.cia402`, :mod:`motor_driver.pdo`, :mod:`motor_driver.units`,
-  :mod:`motor_driver.unit_ranges`, :mod:`motor_driver.safety`, :mod:`motor_driver.setpoint`,
+* :mod:`motor_driver.protocol.cia402`, :mod:`motor_driver.protocol.pdo`, :mod:`motor_driver.protocol.units`,
+  :mod:`motor_driver.protocol.unit_ranges`, :mod:`motor_driver.protocol.safety`, :mod:`motor_driver.setpoint`,
   :mod:`motor_driver.trajectory` - pure rules: state machine, PDO plan, units and their
   plausible ranges, the safety judgement, the set-point handshake, the streamed move's trapezoid
 * :mod:`motor_driver.health`, :mod:`motor_driver.busload` - pure judgements for the nodes and the
   CLI: a drive's health, the bus load a config makes
 * :mod:`motor_driver.rover` - the rover's kinematics and odometry (pure; the drive system feeds them)
 * :mod:`motor_driver.recorder` - the flight recorder, and reading its incidents and CAN
-  recordings back; :mod:`motor_driver.errorframes` - SocketCAN error frames decoded;
+  recordings back; :mod:`motor_driver.protocol.errorframes` - SocketCAN error frames decoded;
   :mod:`motor_driver.busview`, :mod:`motor_driver.ros2defs`, :mod:`motor_driver.mcap_out` - the
   bus as ROS 2 messages (no rclpy), for MCAP files and the live Foxglove view
+* :mod:`motor_driver.protocol` - CANopen and CiA 402 as pure rules and codecs
 * :mod:`motor_driver.process` - a process's life: stop on signals, the heap settled once built,
   repeated log lines at a bounded rate
 
@@ -50,10 +51,10 @@ from can_config.errors import (
     SdoError,
     SdoTimeoutError,
 )
-from motor_driver.cia402 import Command, State
 from motor_driver.drive import Drive, DriveState, Emcy
 from motor_driver.driver import MotorDriver
 from motor_driver.process.stop import StopRequested, stop_on_signals
+from motor_driver.protocol.cia402 import Command, State
 
 __all__ = [
     "BootError",

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from can_config import RoverConfig, load_drive_od
 from can_config.bits import frame_bits
 from can_config.objects import STRUCT_FORMAT
-from motor_driver.pdo import plan_pdos
+from motor_driver.protocol.pdo import plan_pdos
 
 WARN_LOAD = 0.5
 MAX_LOAD = 1.0

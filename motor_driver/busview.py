@@ -15,9 +15,9 @@ by its EDS and the driver's PDO map, for MCAP files and the live Foxglove view.
 - ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): what the flight recorder watches for (an
   EMCY, a boot-up, a heartbeat lost and back) when it is seen, and every drive once a second.
 
-The PDO layouts are the driver's own (:func:`motor_driver.pdo.plan_pdos`, decoded with its
-:class:`~motor_driver.pdo.TpdoLayout`), the units its :class:`~motor_driver.units.Scale` from the
-config, the states :func:`motor_driver.cia402.decode_state`. Owner: the one thread that feeds it.
+The PDO layouts are the driver's own (:func:`motor_driver.protocol.pdo.plan_pdos`, decoded with its
+:class:`~motor_driver.protocol.pdo.TpdoLayout`), the units its :class:`~motor_driver.protocol.units.Scale` from the
+config, the states :func:`motor_driver.protocol.cia402.decode_state`. Owner: the one thread that feeds it.
 """
 
 from __future__ import annotations
@@ -30,10 +30,10 @@ from typing import Any
 from can_config.eds import load_drive_od
 from can_config.model import RoverConfig
 from can_config.objects import OD, FunctionCode, NmtState, OperationMode, emcy_text
-from motor_driver.cia402 import FAULT_STATES, State, decode_state
-from motor_driver.pdo import TpdoLayout, plan_pdos
+from motor_driver.protocol.cia402 import FAULT_STATES, State, decode_state
+from motor_driver.protocol.pdo import TpdoLayout, plan_pdos
+from motor_driver.protocol.units import Scale
 from motor_driver.ros2defs import CAN_FRAME, DIAGNOSTIC_ARRAY, DRIVE_STATUS, JOINT_STATE
-from motor_driver.units import Scale
 
 #: One frame: time.time(), bus name, COB-ID, extended, remote, error frame, DLC, data.
 Frame = tuple[float, str, int, bool, bool, bool, int, bytes]

@@ -52,7 +52,6 @@ from motor_driver.adapters import quiet_dependency_tracebacks
 from motor_driver.bushandle import BusHandle, sync_daemon
 from motor_driver.bushealth import KernelBusHealth
 from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
-from motor_driver.cia402 import State
 from motor_driver.connect import (
     CONNECT_TIMEOUT_S,
     HANDSHAKE_TIMEOUT_S,
@@ -63,6 +62,7 @@ from motor_driver.connect import (
     wait_for_server,
 )
 from motor_driver.drive import Drive, DriveState
+from motor_driver.protocol.cia402 import State
 from motor_driver.recorder import FlightRecorder
 from motor_driver.supervisor import SUPERVISOR_PERIOD_S, Supervisor
 from motor_driver.traffic import (

@@ -4,7 +4,7 @@ result into diagnostic_msgs). The rules:
 * ERROR: the drive is lost (no heartbeat within the consumer time), in FAULT or FAULT
   REACTION ACTIVE, its bus is lost, another master drives it, its PDOs stopped while it is
   operational (stale data), or a safety check read back after boot failed
-  (:mod:`motor_driver.safety`: nothing would stop it if the host died, limits not set, ...).
+  (:mod:`motor_driver.protocol.safety`: nothing would stop it if the host died, limits not set, ...).
 * WARN: the statusword warning bit is set, a command was refused since the last report,
   the heartbeat is older than 1.5 producer periods, the drive is not booted, or it has no
   drive-side stop on host loss and the config allows that (``allow_no_host_watch``).
@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 from can_config.objects import emcy_text
 from motor_driver.bushealth import KernelBusHealth
-from motor_driver.cia402 import FAULT_STATES, SW
 from motor_driver.drive import DriveState
-from motor_driver.safety import ALLOWED, SafetyCheck
+from motor_driver.protocol.cia402 import FAULT_STATES, SW
+from motor_driver.protocol.safety import ALLOWED, SafetyCheck
 
 OK, WARN, ERROR = 0, 1, 2
 

@@ -17,7 +17,7 @@ import can
 from can_config.bits import frame_bits
 from can_config.errors import ForeignMasterError
 from can_config.objects import FunctionCode
-from motor_driver.errorframes import ErrorFrame, decode_error_frame
+from motor_driver.protocol.errorframes import ErrorFrame, decode_error_frame
 
 logger = logging.getLogger(__name__)
 

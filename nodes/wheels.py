@@ -15,8 +15,8 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-from motor_driver.cia402 import FAULT_STATES, State
 from motor_driver.drive import DriveState
+from motor_driver.protocol.cia402 import FAULT_STATES, State
 from motor_driver.rover.odometry import WheelSample
 
 ARM = "arm the rover with the service /arm (std_srvs/Trigger), or launch with arm:=true"

@@ -126,7 +126,7 @@ def analyse(config: RoverConfig, frames: list[can.Message], sent: dict[int, list
             rtts: dict[int, list[float]], window: tuple[float, float], booted: float | None = None) -> list[Figure]:
     from can_config import load_drive_od
     from motor_driver.busload import plan_load
-    from motor_driver.pdo import plan_pdos
+    from motor_driver.protocol.pdo import plan_pdos
 
     bus_cfg = config.buses[0]
     t0, t1 = window

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import can
 
 from can_config.objects import NmtCommand, NmtState, emcy_text, sdo_abort_text
-from motor_driver.errorframes import decode_error_frame
+from motor_driver.protocol.errorframes import decode_error_frame
 
 PDO_NAMES = {0x180: "TPDO1", 0x200: "RPDO1", 0x280: "TPDO2", 0x300: "RPDO2", 0x380: "TPDO3", 0x400: "RPDO3",
              0x480: "TPDO4", 0x500: "RPDO4"}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from motor_driver.cia402 import TRANSITIONS, Command, State, controlword, decode_state, next_step_to_enable
+from motor_driver.protocol.cia402 import TRANSITIONS, Command, State, controlword, decode_state, next_step_to_enable
 
 
 @pytest.mark.parametrize(("statusword", "state"), [

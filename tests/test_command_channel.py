@@ -20,10 +20,10 @@ from can_config import load_drive_od
 from can_config.config import GENERIC_EDS
 from can_config.errors import CommandRejected, DriveStateError
 from can_config.objects import OperationMode
-from motor_driver.cia402 import Command
 from motor_driver.drive.busy import Op
 from motor_driver.drive.channel import CommandChannel
-from motor_driver.pdo import plan_pdos
+from motor_driver.protocol.cia402 import Command
+from motor_driver.protocol.pdo import plan_pdos
 
 RPDO1, RPDO2, RPDO3, RPDO4 = 0x201, 0x301, 0x401, 0x501
 QUICK_STOP, ENABLE = int(Command.QUICK_STOP), int(Command.ENABLE_OPERATION)

@@ -26,7 +26,7 @@ from can_config import RoverConfig, load_config, load_drive_od, parse_config
 from can_config.config import GENERIC_EDS
 from can_config.errors import CommandRejected, DriveTimeoutError
 from motor_driver import MotorDriver, State
-from motor_driver.pdo import plan_pdos
+from motor_driver.protocol.pdo import plan_pdos
 from virtual_can import SimDriveSpec, SimService
 from virtual_can.server import RAWMODE_HOLD_S
 

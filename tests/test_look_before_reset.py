@@ -18,7 +18,7 @@ import pytest
 from can_config import load_drive_od
 from can_config.config import GENERIC_EDS
 from motor_driver import ForeignMasterError, MotorDriver
-from motor_driver.pdo import plan_pdos
+from motor_driver.protocol.pdo import plan_pdos
 from virtual_can import SimDriveSpec, SimService
 
 from .conftest import REPO, make_config, rovercan_cli

@@ -13,8 +13,8 @@ import can
 
 from can_config import load_config
 from can_config.config import RecorderConfig
-from motor_driver.cia402 import State
 from motor_driver.drive import DriveState
+from motor_driver.protocol.cia402 import State
 from motor_driver.recorder import FlightRecorder, IncidentEvent
 from motor_driver.recorder.incident import load_incident
 from motor_driver.recorder.plot import draw

@@ -19,7 +19,7 @@ from can_config import GENERIC_EDS, load_drive_od, parse_config, with_bus_overri
 from can_config.errors import DriveTimeoutError, MotorError
 from can_config.objects import OD, NmtCommand, NmtState
 from motor_driver import MotorDriver, State
-from motor_driver.safety import guard_settings
+from motor_driver.protocol.safety import guard_settings
 from virtual_can import SimService
 from virtual_can.sim import DriveSimulator, SimulatedDrive
 from virtual_can.sim.drive import State as SimState

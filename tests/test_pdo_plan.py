@@ -8,7 +8,7 @@ import pytest
 
 from can_config import GENERIC_EDS, load_drive_od, load_od
 from can_config.objects import OD
-from motor_driver.pdo import encode_rpdo, mapping_writes, plan_pdos
+from motor_driver.protocol.pdo import encode_rpdo, mapping_writes, plan_pdos
 
 from .conftest import SHARED_EDS, requires_shared
 

@@ -19,8 +19,8 @@ from can_config.config import GENERIC_EDS
 from can_config.errors import BootError, UnitError
 from can_config.objects import DataType
 from motor_driver import MotorDriver
-from motor_driver.unit_ranges import TYPE_MAX, check_drive_value
-from motor_driver.units import scale_from_objects
+from motor_driver.protocol.unit_ranges import TYPE_MAX, check_drive_value
+from motor_driver.protocol.units import scale_from_objects
 from virtual_can import SimService
 
 from .conftest import REPO, make_config

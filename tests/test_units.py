@@ -7,7 +7,7 @@ import math
 import pytest
 
 from can_config.errors import CommandRejected
-from motor_driver.units import Scale, check_limits, nearest_equivalent, require_finite
+from motor_driver.protocol.units import Scale, check_limits, nearest_equivalent, require_finite
 
 
 def test_degrees_to_counts_with_gear_ratio() -> None:
@@ -46,7 +46,7 @@ def test_limits_name_the_limit() -> None:
 
 
 def test_scale_from_the_drives_own_objects() -> None:
-    from motor_driver.units import scale_from_objects
+    from motor_driver.protocol.units import scale_from_objects
 
     # Ingenia Everest: 0x608F = 2000/1 increments per motor rev, feed 1:1 -> increments
     scale, notes = scale_from_objects(None, 1.0, 1.0, {(0x608F, 1): 2000, (0x608F, 2): 1,

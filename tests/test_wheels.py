@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from motor_driver.cia402 import State
 from motor_driver.drive import DriveState
+from motor_driver.protocol.cia402 import State
 from nodes.wheels import WheelsOut, odometry_sample, problems, wheel_problem
 
 BASE = DriveState(name="w1", node_id=1, angle_deg=90.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0637,

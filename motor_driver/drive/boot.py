@@ -25,17 +25,17 @@ from can_config.config import GENERIC_EDS
 from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import BootError, BusLostError, DriveStateError, DriveTimeoutError, MotorError, SdoError, UnitError
 from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
-from motor_driver.cia402 import SW, Command, State, decode_state
-from motor_driver.codec import value_format
 from motor_driver.drive.constants import HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
 from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
-from motor_driver.pdo import mapping_writes
+from motor_driver.protocol.cia402 import SW, Command, State, decode_state
+from motor_driver.protocol.codec import value_format
+from motor_driver.protocol.pdo import mapping_writes
+from motor_driver.protocol.safety import SafetyCheck, judge
+from motor_driver.protocol.unit_ranges import check_drive_value
+from motor_driver.protocol.units import read_unit_objects, scale_from_objects
 from motor_driver.runtime import Booted, Booting, RebootFailed, RuntimePort
-from motor_driver.safety import SafetyCheck, judge
-from motor_driver.unit_ranges import check_drive_value
-from motor_driver.units import read_unit_objects, scale_from_objects
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ class Boot:
         self._power = power
         self._watch = watch
         self._port = port
-        self.safety: tuple[SafetyCheck, ...] = ()  # read back after each boot (motor_driver.safety)
+        self.safety: tuple[SafetyCheck, ...] = ()  # read back after each boot (motor_driver.protocol.safety)
         self.host_loss_stops = 0  # boots that found the drive stopped by its host watch
         self.boot_count = 0
         self._boot_object = (0, 0)  # the object the running boot step is at (for its error)

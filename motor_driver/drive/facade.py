@@ -43,10 +43,10 @@ from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
 from motor_driver.drive.values import DriveState
-from motor_driver.pdo import PdoPlan, plan_pdos
+from motor_driver.protocol.pdo import PdoPlan, plan_pdos
+from motor_driver.protocol.units import Scale
 from motor_driver.runtime import DriveRuntime, NmtLedger, RuntimePort
 from motor_driver.sdo_client import OwnAnswersNode
-from motor_driver.units import Scale
 
 logger = logging.getLogger(__name__)
 

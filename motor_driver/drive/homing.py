@@ -14,11 +14,11 @@ import logging
 from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
-from motor_driver.cia402 import CW, FAULT_STATES, SW, Command, State
 from motor_driver.drive.busy import Op
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
+from motor_driver.protocol.cia402 import CW, FAULT_STATES, SW, Command, State
 
 logger = logging.getLogger(__name__)
 

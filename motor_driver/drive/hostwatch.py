@@ -34,7 +34,6 @@ from can_config.config import ON_HOST_LOSS
 from can_config.eds import has_object
 from can_config.errors import MotorError, SdoError
 from can_config.objects import OD, FunctionCode, NmtCommand, sdo_abort_text
-from motor_driver.cia402 import Command, State
 from motor_driver.drive.constants import (
     NO_HOST_WATCH,
     QUICK_STOP_THEN_DISABLE,
@@ -43,8 +42,9 @@ from motor_driver.drive.constants import (
     WATCH_START_PERIODS,
 )
 from motor_driver.drive.part import Ports
+from motor_driver.protocol.cia402 import Command, State
+from motor_driver.protocol.safety import guard_settings
 from motor_driver.runtime import DriveRuntime, NmtLedger
-from motor_driver.safety import guard_settings
 
 logger = logging.getLogger(__name__)
 

@@ -15,10 +15,10 @@ import logging
 import time
 
 from can_config.errors import CommandRejected
-from motor_driver.cia402 import Command, State
 from motor_driver.drive.channel import Frames
 from motor_driver.drive.constants import LIMIT_ACCEL_MARGIN_S, LIMIT_MARGIN_S, MAX_EXTRAPOLATION_S, TORQUE_MODES, VELOCITY_MODES
 from motor_driver.drive.part import Ports
+from motor_driver.protocol.cia402 import Command, State
 
 logger = logging.getLogger(__name__)
 

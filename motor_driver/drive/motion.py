@@ -25,15 +25,15 @@ from typing import NamedTuple
 
 from can_config.errors import CommandRejected, CommandWouldWait, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
-from motor_driver.cia402 import FAULT_STATES, SW, State
 from motor_driver.drive.busy import Op
 from motor_driver.drive.channel import Frames
 from motor_driver.drive.constants import CONTINUOUS_COMMAND_LIMIT_DEG, ENABLED_CW_MASK
 from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
+from motor_driver.protocol.cia402 import FAULT_STATES, SW, State
+from motor_driver.protocol.units import check_counts, check_limits, nearest_equivalent, require_finite
 from motor_driver.setpoint import rebase_after_switch
-from motor_driver.units import check_counts, check_limits, nearest_equivalent, require_finite
 
 logger = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ from can_config.config import DriveConfig
 from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
-from motor_driver.pdo import PdoPlan
+from motor_driver.protocol.pdo import PdoPlan
 
 
 class Ports(NamedTuple):

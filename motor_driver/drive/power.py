@@ -16,7 +16,6 @@ import time
 from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
-from motor_driver.cia402 import FAULT_STATES, SW, Command, State, decode_state, next_step_to_enable
 from motor_driver.drive.busy import Op
 from motor_driver.drive.constants import (
     ENABLE_STEPS,
@@ -31,6 +30,7 @@ from motor_driver.drive.constants import (
 )
 from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.drive.part import Ports
+from motor_driver.protocol.cia402 import FAULT_STATES, SW, Command, State, decode_state, next_step_to_enable
 
 logger = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ thread asks (canopen's SdoClient has no lock of its own: two threads' transfers 
 answer each other's requests). Called from the bus's worker (boot), command threads
 (operations that wait), the supervisor's worker jobs and the bench CLI; never from the receive
 thread (which never waits) nor the supervisor thread, never under the command channel's lock.
-One typed codec (:mod:`motor_driver.codec`, by the EDS's data type) is used for every read and
+One typed codec (:mod:`motor_driver.protocol.codec`, by the EDS's data type) is used for every read and
 write, here and by the bench CLI (which builds an :class:`SdoPort` for each node it talks to).
 """
 
@@ -26,8 +26,8 @@ from can_config.config import SdoSetting
 from can_config.eds import has_object, variable
 from can_config.errors import BootError, BusLostError, CommandRejected, SdoError, SdoTimeoutError
 from can_config.objects import OD, sdo_abort_text
-from motor_driver.codec import pack_value, unpack_value, value_format
 from motor_driver.drive.constants import SDO_ABORT_OUT_OF_MEMORY, SDO_ABORT_TIMEOUT, SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
+from motor_driver.protocol.codec import pack_value, unpack_value, value_format
 
 logger = logging.getLogger(__name__)
 

@@ -30,13 +30,13 @@ import canopen
 
 from can_config.config import DriveConfig
 from can_config.objects import OD, FunctionCode, NmtState, emcy_text
-from motor_driver.cia402 import FAULT_STATES, SW, State, decode_state
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.values import DriveState, Emcy, Received, StatusSink
-from motor_driver.pdo import PdoPlan, TpdoLayout
+from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
+from motor_driver.protocol.pdo import PdoPlan, TpdoLayout
+from motor_driver.protocol.units import Scale
 from motor_driver.runtime import DriveRuntime, Heard, RuntimePort
-from motor_driver.units import Scale
 
 logger = logging.getLogger(__name__)
 

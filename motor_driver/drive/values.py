@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
-from motor_driver.cia402 import State
+from motor_driver.protocol.cia402 import State
 
 
 @dataclass(frozen=True)

@@ -16,8 +16,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from motor_driver.cia402 import State
 from motor_driver.drive import DriveState
+from motor_driver.protocol.cia402 import State
 
 #: The series of one drive in the summary, in the order of the plot's axes.
 SERIES = ("angle_deg", "velocity_deg_s", "torque_nm", "state")

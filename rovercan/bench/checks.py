@@ -22,7 +22,7 @@ from can_config import RoverConfig, load_config, load_drive_od
 from can_config.eds import consumer_subs, variable
 from can_config.errors import ConfigError
 from can_config.objects import OD
-from motor_driver.codec import unpack_value, value_format
+from motor_driver.protocol.codec import unpack_value, value_format
 from motor_driver.sdo_client import OwnAnswersNode
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
@@ -45,7 +45,7 @@ if TYPE_CHECKING:
     import can
 
     from can_config.config import BusConfig, DriveConfig
-    from motor_driver.safety import SafetyCheck
+    from motor_driver.protocol.safety import SafetyCheck
 
 logger = logging.getLogger(__name__)
 
@@ -74,7 +74,7 @@ def safety_configs(args: argparse.Namespace) -> list[RoverConfig]:
 
 def _host_heartbeat(bus: can.BusABC, bus_cfg: BusConfig, listen_s: float) -> SafetyCheck:
     """The host heartbeat on the bus for ``listen_s``, judged against its configured period."""
-    from motor_driver.safety import host_heartbeat_check
+    from motor_driver.protocol.safety import host_heartbeat_check
 
     beats: list[float] = []
     deadline = time.monotonic() + listen_s
@@ -88,8 +88,8 @@ def _host_heartbeat(bus: can.BusABC, bus_cfg: BusConfig, listen_s: float) -> Saf
 
 def _drive_safety_rows(network: canopen.Network, cfg: DriveConfig, bus_cfg: BusConfig) -> list[dict[str, Any]]:
     """One drive's safety objects read back by SDO and judged by the driver's rules."""
-    from motor_driver.safety import judge
-    from motor_driver.units import UNIT_OBJECTS, scale_from_objects
+    from motor_driver.protocol.safety import judge
+    from motor_driver.protocol.units import UNIT_OBJECTS, scale_from_objects
 
     rows: list[dict[str, Any]] = []
     od = load_drive_od(cfg.eds, cfg.node_id)
@@ -116,7 +116,7 @@ def _drive_safety_rows(network: canopen.Network, cfg: DriveConfig, bus_cfg: BusC
 
 def cmd_safety_check(args: argparse.Namespace) -> int:
     """Read back from each drive what keeps it safe when the host is gone; judge it by the
-    driver's own rules (motor_driver.safety); and look for the host heartbeat on each bus."""
+    driver's own rules (motor_driver.protocol.safety); and look for the host heartbeat on each bus."""
     if args.listen is not None and not (math.isfinite(args.listen) and 0 < args.listen <= 60):
         raise ConfigError(f"--listen {args.listen}: allowed 0 < seconds <= 60")
     failed: list[dict[str, Any]] = []

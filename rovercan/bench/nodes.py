@@ -20,7 +20,7 @@ from can_config import GENERIC_EDS, load_od
 from can_config.eds import variable
 from can_config.errors import ConfigError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, NmtCommand, NmtState, OperationMode
-from motor_driver.codec import pack_value, unpack_value, value_format
+from motor_driver.protocol.codec import pack_value, unpack_value, value_format
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     CAUSES,
@@ -225,7 +225,7 @@ def cmd_sdo(args: argparse.Namespace) -> int:
 
 def standard_meaning(index: int, value: Any) -> str | None:
     """What a CiA 402 status, control or mode value says, in words (None: nothing to add)."""
-    from motor_driver.cia402 import CW, SW, decode_state
+    from motor_driver.protocol.cia402 import CW, SW, decode_state
 
     if not isinstance(value, int) or isinstance(value, bool):
         return None

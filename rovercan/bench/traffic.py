@@ -32,7 +32,7 @@ logger = logging.getLogger(__name__)
 # ------------------------------------------------------------------------------ traffic
 def pdo_layouts_for(args: argparse.Namespace) -> PdoLayouts:
     """PDO layouts the driver would configure, for decoding (config or EDS given)."""
-    from motor_driver.pdo import plan_pdos
+    from motor_driver.protocol.pdo import plan_pdos
 
     layouts: dict[int, tuple[PdoField, ...]] = {}
     drives = []

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 from can_config.config import ON_HOST_LOSS, DriveConfig
 from can_config.objects import OD
-from motor_driver.units import Scale
+from motor_driver.protocol.units import Scale
 
 PASS, FAIL, NOT_APPLICABLE, ALLOWED = "pass", "FAIL", "n/a", "allowed"
 #: 0x605A codes that bring the motor to a stop (CiA 402): 0 would let it coast.

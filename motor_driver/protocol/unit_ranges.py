@@ -1,7 +1,7 @@
 """The plausible range of every unit and scaling object a drive reports, and of every value
 packed for the wire from them (issue 39: nothing a drive says is trusted unbounded).
 
-Pure functions and tables; :mod:`motor_driver.units` checks the objects before it derives a
+Pure functions and tables; :mod:`motor_driver.protocol.units` checks the objects before it derives a
 scale, boot checks each profile value before it writes it. The ranges are in docs/safety.md.
 """
 
@@ -81,7 +81,7 @@ def check_drive_value(index: int, value: float, what: str, fmt: str | None) -> i
     return int(number)
 
 
-#: The largest value of each packed integer type (struct formats of motor_driver.codec).
+#: The largest value of each packed integer type (struct formats of motor_driver.protocol.codec).
 TYPE_MAX = {"<B": 0xFF, "<H": 0xFFFF, "<I": 0xFFFF_FFFF, "<Q": 2**64 - 1, "<b": 0x7F, "<h": 0x7FFF,
             "<i": 0x7FFF_FFFF, "<q": 2**63 - 1}
 

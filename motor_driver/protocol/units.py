@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from can_config.errors import CommandRejected
-from motor_driver.unit_ranges import check_unit_objects, check_units_per_deg, si_parts
+from motor_driver.protocol.unit_ranges import check_unit_objects, check_units_per_deg, si_parts
 
 INT32_MIN = -(2**31)
 INT32_MAX = 2**31 - 1
