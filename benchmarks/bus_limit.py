@@ -7,7 +7,7 @@ The config is generated from config/rover.yaml's wheel settings: six drives (nod
 SYNC every 2 ms, every joint commanded at 500 Hz. Per cycle: one SYNC, six RPDOs (6 bytes), six
 TPDO2 (8 bytes) and six TPDO3 (4 bytes): 19 frames, 9,500 frames/s, 88 % of 1 Mbit/s without bit
 stuffing (106 % with the worst case). The config declares ``bitrate: 2000000``: the driver's
-planner (motor_driver/busload.py) counts each drive's event TPDO1 every SYNC and worst-case
+planner (motor_driver/bus/load.py) counts each drive's event TPDO1 every SYNC and worst-case
 stuffing, 132 % of 1 Mbit/s, and refuses the config; the simulator does not model wire time, and
 the load reported here is the traffic measured at the listener over 1 Mbit/s.
 

@@ -80,7 +80,7 @@ def add_idle_jobs(port: int, n: int) -> socket.socket:
 def sync_error_p99_ms(port: int, seconds: float) -> dict[str, float]:
     import can
 
-    from motor_driver.cyclic import DaemonCyclicTask
+    from motor_driver.bus.cyclic import DaemonCyclicTask
 
     with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port) as listener:
         task = DaemonCyclicTask("127.0.0.1", port, "can0", can.Message(arbitration_id=0x080, data=b"",

@@ -6,24 +6,25 @@ What lives where:
   channel, power state machine, limit guard, motion, homing, host watch, boot; :class:`Drive`)
 * :mod:`motor_driver.driver` - every bus and drive of a config: start, safe stop, close
 * :mod:`motor_driver.supervisor`, :mod:`motor_driver.supervise_bus`, :mod:`motor_driver.runtime`,
-  :mod:`motor_driver.bushandle`, :mod:`motor_driver.connect`, :mod:`motor_driver.traffic`,
-  :mod:`motor_driver.bushealth` - the supervisor's period (the one writer of the runtime state),
+  :mod:`motor_driver.bus.handle`, :mod:`motor_driver.bus.connect`, :mod:`motor_driver.bus.traffic`,
+  :mod:`motor_driver.bus.link` - the supervisor's period (the one writer of the runtime state),
   the runtime state and the NMT ledger, one bus, opening a bus, what the bus's traffic shows,
   what the kernel says of the link
-* :mod:`motor_driver.sdo_client`, :mod:`motor_driver.protocol.codec`, :mod:`motor_driver.cyclic`,
-  :mod:`motor_driver.adapters` - an SDO client that takes only its own answers, the typed codec
+* :mod:`motor_driver.bus.sdo_client`, :mod:`motor_driver.protocol.codec`, :mod:`motor_driver.bus.cyclic`,
+  :mod:`motor_driver.bus.adapters` - an SDO client that takes only its own answers, the typed codec
   of SDO values, the SYNC on the bus daemon's timer, where a dependency's internals are leaned on
 * :mod:`motor_driver.protocol.cia402`, :mod:`motor_driver.protocol.pdo`, :mod:`motor_driver.protocol.units`,
   :mod:`motor_driver.protocol.unit_ranges`, :mod:`motor_driver.protocol.safety`, :mod:`motor_driver.setpoint`,
   :mod:`motor_driver.trajectory` - pure rules: state machine, PDO plan, units and their
   plausible ranges, the safety judgement, the set-point handshake, the streamed move's trapezoid
-* :mod:`motor_driver.health`, :mod:`motor_driver.busload` - pure judgements for the nodes and the
+* :mod:`motor_driver.health`, :mod:`motor_driver.bus.load` - pure judgements for the nodes and the
   CLI: a drive's health, the bus load a config makes
 * :mod:`motor_driver.rover` - the rover's kinematics and odometry (pure; the drive system feeds them)
 * :mod:`motor_driver.recorder` - the flight recorder, and reading its incidents and CAN
   recordings back; :mod:`motor_driver.protocol.errorframes` - SocketCAN error frames decoded;
   :mod:`motor_driver.busview`, :mod:`motor_driver.ros2defs`, :mod:`motor_driver.mcap_out` - the
   bus as ROS 2 messages (no rclpy), for MCAP files and the live Foxglove view
+* :mod:`motor_driver.bus` - one CAN bus: opening it, its network and SYNC, its traffic and link
 * :mod:`motor_driver.protocol` - CANopen and CiA 402 as pure rules and codecs
 * :mod:`motor_driver.process` - a process's life: stop on signals, the heap settled once built,
   repeated log lines at a bounded rate

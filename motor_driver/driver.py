@@ -2,7 +2,7 @@
 
 Per bus: a python-can bus (opened from config, or given), a canopen ``Network`` (its notifier
 thread runs the PDO callbacks), a SYNC producer outside this interpreter where the bus has a
-timer of its own (the socketcand daemon's cyclic job, :mod:`motor_driver.cyclic`; the kernel's
+timer of its own (the socketcand daemon's cyclic job, :mod:`motor_driver.bus.cyclic`; the kernel's
 BCM through python-can's periodic send on SocketCAN; else python-can's thread), and a worker
 thread for the bus's blocking jobs (re-boot of a drive that reset, reconnection of a lost bus).
 
@@ -31,8 +31,8 @@ Safe by default: start() boots and configures but enables only drives with
 ``arm_on_start``; close() quick-stops and disables every drive, stops SYNC, stops threads,
 and closes the buses it opened, in that order.
 
-What lives where: :mod:`motor_driver.connect` (opening a bus), :mod:`motor_driver.traffic`
-(bus statistics, another master), :mod:`motor_driver.bushandle` (one bus: network, SYNC,
+What lives where: :mod:`motor_driver.bus.connect` (opening a bus), :mod:`motor_driver.bus.traffic`
+(bus statistics, another master), :mod:`motor_driver.bus.handle` (one bus: network, SYNC,
 worker), :mod:`motor_driver.supervisor` (the supervisor's period), this module (the
 lifecycle: start, safe stop, close).
 """
@@ -48,11 +48,8 @@ import can
 
 from can_config import RoverConfig, load_drive_od
 from can_config.errors import BusLostError, ConfigError, MotorError
-from motor_driver.adapters import quiet_dependency_tracebacks
-from motor_driver.bushandle import BusHandle, sync_daemon
-from motor_driver.bushealth import KernelBusHealth
-from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
-from motor_driver.connect import (
+from motor_driver.bus.adapters import quiet_dependency_tracebacks
+from motor_driver.bus.connect import (
     CONNECT_TIMEOUT_S,
     HANDSHAKE_TIMEOUT_S,
     OPEN_ATTEMPTS,
@@ -61,11 +58,10 @@ from motor_driver.connect import (
     open_bus,
     wait_for_server,
 )
-from motor_driver.drive import Drive, DriveState
-from motor_driver.protocol.cia402 import State
-from motor_driver.recorder import FlightRecorder
-from motor_driver.supervisor import SUPERVISOR_PERIOD_S, Supervisor
-from motor_driver.traffic import (
+from motor_driver.bus.handle import BusHandle, sync_daemon
+from motor_driver.bus.link import KernelBusHealth
+from motor_driver.bus.load import MAX_LOAD, WARN_LOAD, plan_load
+from motor_driver.bus.traffic import (
     FOREIGN_HOLD_S,
     SYNC_RATE_WINDOW_S,
     BusStats,
@@ -74,6 +70,10 @@ from motor_driver.traffic import (
     look_window_s,
     other_master_error,
 )
+from motor_driver.drive import Drive, DriveState
+from motor_driver.protocol.cia402 import State
+from motor_driver.recorder import FlightRecorder
+from motor_driver.supervisor import SUPERVISOR_PERIOD_S, Supervisor
 
 logger = logging.getLogger(__name__)
 

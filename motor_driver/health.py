@@ -13,7 +13,7 @@ result into diagnostic_msgs). The rules:
 A bus (:func:`bus_health`): ERROR when lost, down or BUS-OFF; WARN when its controller is
 ERROR-WARNING or ERROR-PASSIVE, a frame was not sent for a full transmit queue, or its load is
 over 50 %; its state and counters from the
-kernel where it is a kernel interface (:mod:`motor_driver.bushealth`), "unknown" elsewhere.
+kernel where it is a kernel interface (:mod:`motor_driver.bus.link`), "unknown" elsewhere.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from can_config.objects import emcy_text
-from motor_driver.bushealth import KernelBusHealth
+from motor_driver.bus.link import KernelBusHealth
 from motor_driver.drive import DriveState
 from motor_driver.protocol.cia402 import FAULT_STATES, SW
 from motor_driver.protocol.safety import ALLOWED, SafetyCheck

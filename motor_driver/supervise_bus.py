@@ -17,11 +17,11 @@ import can
 
 from can_config import RoverConfig
 from can_config.errors import BusLostError, ConfigError, MotorError
-from motor_driver.adapters import brief_error, connection_closed
-from motor_driver.bushandle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
-from motor_driver.bushealth import KernelBusHealth, read_kernel_health
-from motor_driver.connect import open_bus
-from motor_driver.cyclic import DaemonCyclicTask
+from motor_driver.bus.adapters import brief_error, connection_closed
+from motor_driver.bus.connect import open_bus
+from motor_driver.bus.cyclic import DaemonCyclicTask
+from motor_driver.bus.handle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
+from motor_driver.bus.link import KernelBusHealth, read_kernel_health
 from motor_driver.drive import Drive
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recorder import FlightRecorder

@@ -26,7 +26,8 @@ from concurrent.futures import Future
 from can_config import RoverConfig
 from can_config.errors import MotorError
 from can_config.objects import NmtState
-from motor_driver.bushandle import BusHandle
+from motor_driver.bus.handle import BusHandle
+from motor_driver.bus.traffic import FOREIGN_HOLD_S, FOREIGN_RELEASE_S
 from motor_driver.drive import Drive
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recorder import FlightRecorder
@@ -40,7 +41,6 @@ from motor_driver.runtime import (
     RuntimePort,
 )
 from motor_driver.supervise_bus import BUS_CHECK_PERIODS, BusSupervision
-from motor_driver.traffic import FOREIGN_HOLD_S, FOREIGN_RELEASE_S
 
 logger = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ from rovercan.argtypes import real
 from rovercan.bench.common import CliError, add_bus_args, add_json, emit, open_bus
 
 if TYPE_CHECKING:
-    from motor_driver.bushealth import KernelBusHealth
+    from motor_driver.bus.link import KernelBusHealth
 
 #: Targets (the README's Performance section; SYNC error is the acceptance bound, 200 us the aim).
 TARGETS = {"sync_error_p99_us": 500.0, "cmd_latency_p99_ms": 2.0, "tpdo_loss": 0, "late_tpdo_fraction": 0.01,
@@ -125,7 +125,7 @@ def exercise(config: RoverConfig, seconds: float,
 def analyse(config: RoverConfig, frames: list[can.Message], sent: dict[int, list[float]],
             rtts: dict[int, list[float]], window: tuple[float, float], booted: float | None = None) -> list[Figure]:
     from can_config import load_drive_od
-    from motor_driver.busload import plan_load
+    from motor_driver.bus.load import plan_load
     from motor_driver.protocol.pdo import plan_pdos
 
     bus_cfg = config.buses[0]
@@ -220,7 +220,7 @@ def _tpdo_figures(node: int, tpdos: Any, inside: list[can.Message], syncs: list[
 
 def kernel_health(config: RoverConfig) -> KernelBusHealth | None:
     """The audited bus as its kernel knows it (a socketcan bus), else None."""
-    from motor_driver.bushealth import read_kernel_health
+    from motor_driver.bus.link import read_kernel_health
 
     bus = config.buses[0]
     return read_kernel_health(bus.channel) if bus.interface == "socketcan" else None
@@ -228,8 +228,8 @@ def kernel_health(config: RoverConfig) -> KernelBusHealth | None:
 
 def kernel_figures(before: KernelBusHealth | None, after: KernelBusHealth | None, seconds: float) -> list[Figure]:
     """The controller's state after the run (ERROR-ACTIVE, or a vcan's none) and the error and drop
-    counters that rose during it (motor_driver.bushealth.rising: each with what to do)."""
-    from motor_driver.bushealth import rising
+    counters that rose during it (motor_driver.bus.link.rising: each with what to do)."""
+    from motor_driver.bus.link import rising
 
     if before is None or after is None:
         return []

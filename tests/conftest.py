@@ -132,7 +132,7 @@ def kernel_controllers_available() -> str | None:
     if (why := kernel_can_available("vcan0")) is not None:
         return why
     try:
-        from motor_driver.bushealth import read_kernel_health
+        from motor_driver.bus.link import read_kernel_health
 
         kinds = [read_kernel_health(name).kind for name in ("can0", "can1")]
     except Exception as err:

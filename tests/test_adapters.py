@@ -1,4 +1,4 @@
-"""Pins the dependency internals motor_driver/adapters.py relies on, against the installed
+"""Pins the dependency internals motor_driver/bus/adapters.py relies on, against the installed
 python-can and canopen: an upgrade that changes them fails here, not on the rover."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from motor_driver.adapters import (
+from motor_driver.bus.adapters import (
     CLOSED_PAUSE_S,
     SOCKETCAND_SOCKET_ATTRIBUTE,
     SYNC_TEXT_BYTES,
@@ -23,7 +23,7 @@ from motor_driver.adapters import (
     hold_lone_sync,
     queue_full,
 )
-from motor_driver.connect import open_bus
+from motor_driver.bus.connect import open_bus
 from virtual_can import SimService
 from virtual_can.client import format_frame
 

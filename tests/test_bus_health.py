@@ -1,4 +1,4 @@
-"""The kernel's view of a bus, decoded (motor_driver.bushealth): rtnetlink link messages as the
+"""The kernel's view of a bus, decoded (motor_driver.bus.link): rtnetlink link messages as the
 kernel sends them, built and encoded with pyroute2, then decoded as the driver reads them.
 Every state is fed here, also those an emulated controller never reaches (QEMU's SJA1000 sees a
 perfect bus); the kernel tier reads a real controller driver's (tests/test_kernel_tier.py)."""
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from motor_driver.bushealth import RISING, STATES, XSTATS_FIELDS, KernelBusHealth, health_from_link, rising
+from motor_driver.bus.link import RISING, STATES, XSTATS_FIELDS, KernelBusHealth, health_from_link, rising
 from motor_driver.health import ERROR, OK, WARN, bus_health
 
 from .conftest import REPO

@@ -11,7 +11,7 @@ import can
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from motor_driver.traffic import ForeignTraffic
+from motor_driver.bus.traffic import ForeignTraffic
 
 HOST, NODES = 0x7F, (1, 2, 3)
 

@@ -25,9 +25,9 @@ from hypothesis import strategies as st
 from can_config import RoverConfig, parse_config, with_bus_overrides
 from can_config.errors import BootError, MotorError, SdoError, SdoTimeoutError
 from motor_driver import MotorDriver
+from motor_driver.bus.sdo_client import OwnAnswersNode
 from motor_driver.drive import SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.sdo_client import OwnAnswersNode
 from virtual_can import BusEngine, SimService, SocketcandServer
 from virtual_can.server import RAWMODE_HOLD_S
 
@@ -180,7 +180,7 @@ def test_answers_to_other_requests_are_dropped_and_the_own_one_taken(server: Soc
     driver took the driver's "object does not exist" abort for its own and failed), and a late
     answer to an earlier request comes on it too: each answer that names another object, or is
     of another kind, is dropped, and the transfer's own answer is taken, with no retry."""
-    caplog.set_level(logging.INFO, logger="motor_driver.sdo_client")
+    caplog.set_level(logging.INFO, logger="motor_driver.bus.sdo_client")
     drive_bus = HostileDrive(server.port, "others first")
     try:
         with MotorDriver(config(server.port)) as driver:

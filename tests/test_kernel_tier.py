@@ -101,7 +101,7 @@ def bring_up(wiring: Wiring) -> None:
     (left as it is when it already is: a controller's bitrate cannot change while it is up)."""
     if wiring is VCAN:
         return
-    from motor_driver.bushealth import read_kernel_health
+    from motor_driver.bus.link import read_kernel_health
 
     for name in (wiring.driver, wiring.drives):
         health = read_kernel_health(name)

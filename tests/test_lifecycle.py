@@ -223,7 +223,7 @@ def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) 
         try:
             wait_for(lambda: runner.call(lambda: runner.drive(1).state.name) == "OPERATION_ENABLED", 20.0, "armed")
             if realtime_allowed():  # the driver it made runs its threads under SCHED_FIFO, as rover_driver's
-                policies = thread_policies(proc.pid)  # the bus's receive thread included (motor_driver/bushandle.py)
+                policies = thread_policies(proc.pid)  # the bus's receive thread included (motor_driver/bus/handle.py)
                 assert set(policies) == {os.SCHED_FIFO}, policies
         finally:
             proc.send_signal(signal.SIGTERM)

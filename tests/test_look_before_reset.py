@@ -130,7 +130,7 @@ def test_the_bench_listens_longer_than_any_period_a_config_allows() -> None:
     """A master whose host heartbeat and SYNC come every 1000 ms (the most a config allows) is
     heard at least once in the bench's default window; the schema's bounds are read, not copied."""
     from can_config.fields import BUS_FIELDS
-    from motor_driver.traffic import LOOK_BENCH_S
+    from motor_driver.bus.traffic import LOOK_BENCH_S
 
     longest_s = max(BUS_FIELDS[key].high for key in ("host_heartbeat_ms", "sync_period_ms")) / 1000  # type: ignore[operator]
     assert longest_s < LOOK_BENCH_S

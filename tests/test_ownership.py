@@ -156,7 +156,7 @@ def test_the_check_finds_a_write_into_another_part() -> None:
 def test_only_the_supervisor_writes_the_runtime_state() -> None:
     decl = declarations()
     writes = "def f(runtime, bus):\n    runtime.lost = True\n    bus.backoff_s = 1.0\n"
-    for module in ("motor_driver/drive/state.py", "motor_driver/drive/boot.py", "motor_driver/bushandle.py",
+    for module in ("motor_driver/drive/state.py", "motor_driver/drive/boot.py", "motor_driver/bus/handle.py",
                    "nodes/rover_driver.py"):
         others = {m: n for m, n in decl.items() if m != module and m in reach(REPO / module)}
         assert len(violations(writes, set(), others, module)) == 2, module

@@ -3,7 +3,7 @@ its flight recorder's plot helper ordinary: matplotlib at real-time priority wou
 from the driver's own threads for a second or two, at an incident, when they matter most. Its
 buses' receive threads run real-time like the rest, on first connect and on every reconnect: an
 ordinary one holding the interpreter was preempted there by real-time work, and every other
-thread of the driver waited for it (motor_driver/bushandle.py)."""
+thread of the driver waited for it (motor_driver/bus/handle.py)."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ import os, sys, threading
 from can_config import parse_config
 from can_config.realtime import make_process_realtime
 from motor_driver import MotorDriver
-from motor_driver.connect import open_bus
+from motor_driver.bus.connect import open_bus
 
 def receive_policies():
     return sorted((os.sched_getscheduler(t.native_id), os.sched_getparam(t.native_id).sched_priority)

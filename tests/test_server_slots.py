@@ -12,7 +12,7 @@ import time
 import can
 import pytest
 
-from motor_driver import cyclic
+from motor_driver.bus import cyclic
 from virtual_can import BusEngine, SocketcandServer
 from virtual_can.server import DEFAULT_MAX_CLIENTS
 

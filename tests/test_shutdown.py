@@ -68,7 +68,7 @@ def test_node_leaves_drives_safe_on_signal(tmp_path: Path, sig: int, module: str
                 time.sleep(0.05)
             policies = thread_policies(proc.pid)
             if realtime_allowed() and "realtime_priority:=0" not in extra:
-                # every thread real-time, the bus's receive thread included (motor_driver/bushandle.py)
+                # every thread real-time, the bus's receive thread included (motor_driver/bus/handle.py)
                 assert set(policies) == {os.SCHED_FIFO}, policies
             else:
                 assert os.SCHED_FIFO not in policies, policies

@@ -9,7 +9,7 @@ from typing import Any
 
 import can
 
-from motor_driver.bushandle import BusHandle
+from motor_driver.bus.handle import BusHandle
 
 from .conftest import wait_for
 

@@ -12,8 +12,8 @@ import can
 
 from can_config import RoverConfig, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
-from motor_driver.adapters import SOCKETCAND_SOCKET_ATTRIBUTE, SYNC_TEXT_BYTES
-from motor_driver.cyclic import DaemonCyclicTask, add_command
+from motor_driver.bus.adapters import SOCKETCAND_SOCKET_ATTRIBUTE, SYNC_TEXT_BYTES
+from motor_driver.bus.cyclic import DaemonCyclicTask, add_command
 from virtual_can.service import SimService
 
 from .conftest import IN_PROCESS_HOST_TIMEOUT_MS, REPO, drain, rovercan_sim, wait_for

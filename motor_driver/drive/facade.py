@@ -31,6 +31,7 @@ from canopen.objectdictionary import ObjectDictionary
 from can_config.config import DriveConfig
 from can_config.errors import BusLostError
 from can_config.objects import OD, FunctionCode, OperationMode
+from motor_driver.bus.sdo_client import OwnAnswersNode
 from motor_driver.drive.boot import Boot
 from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
@@ -46,7 +47,6 @@ from motor_driver.drive.values import DriveState
 from motor_driver.protocol.pdo import PdoPlan, plan_pdos
 from motor_driver.protocol.units import Scale
 from motor_driver.runtime import DriveRuntime, NmtLedger, RuntimePort
-from motor_driver.sdo_client import OwnAnswersNode
 
 logger = logging.getLogger(__name__)
 

@@ -148,7 +148,7 @@ class SdoPort:
     def _crossed(self, err: canopen.SdoCommunicationError, what: str, index: int, subindex: int) -> None:
         """An answer that was not to this request and that the node's client could not tell
         apart (it drops those naming another object or of another kind: see
-        :mod:`motor_driver.sdo_client`), such as a segment of another transfer, gets the
+        :mod:`motor_driver.bus.sdo_client`), such as a segment of another transfer, gets the
         transfer tried once more: canopen has aborted it and empties its queue of answers before
         the next request. No answer at all is raised (a silent node is not waited for twice)."""
         if "No SDO response" in str(err):

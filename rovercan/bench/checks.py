@@ -22,8 +22,8 @@ from can_config import RoverConfig, load_config, load_drive_od
 from can_config.eds import consumer_subs, variable
 from can_config.errors import ConfigError
 from can_config.objects import OD
+from motor_driver.bus.sdo_client import OwnAnswersNode
 from motor_driver.protocol.codec import unpack_value, value_format
-from motor_driver.sdo_client import OwnAnswersNode
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import (
     SDO_TIMEOUT_S,
@@ -158,11 +158,11 @@ def _safety_rows(args: argparse.Namespace, config: RoverConfig, listen_s: float)
 
 # ------------------------------------------------------------------------------ bus-health
 def cmd_bus_health(args: argparse.Namespace) -> int:
-    """The bus's health as its kernel knows it (motor_driver.bushealth): state, error counters,
+    """The bus's health as its kernel knows it (motor_driver.bus.link): state, error counters,
     bitrate, restarts. Exit 0 when up and ERROR-ACTIVE (or a vcan, which has no controller) and,
     with --watch, no error or drop counter rose; else 1 naming what is wrong and what to do. A bus
     that is not a kernel interface: said to be unknown."""
-    from motor_driver.bushealth import read_kernel_health, rising
+    from motor_driver.bus.link import read_kernel_health, rising
 
     interface, channel = getattr(args, "interface", None), getattr(args, "channel", None)
     if getattr(args, "config", None):
@@ -193,7 +193,7 @@ def cmd_bus_health(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------ plan / can-up
 def cmd_plan(args: argparse.Namespace) -> int:
-    from motor_driver.busload import MAX_LOAD, WARN_LOAD, plan_load
+    from motor_driver.bus.load import MAX_LOAD, WARN_LOAD, plan_load
 
     loads = plan_load(load_config(args.config))
     rows = []
@@ -228,7 +228,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     needs for its host watch), the drive system's wheels known, each bus's planned load. Exit 0,
     or 2 with the first problem (a ConfigError names file, key and what is allowed)."""
     from can_config.eds import has_object
-    from motor_driver.busload import MAX_LOAD, plan_load
+    from motor_driver.bus.load import MAX_LOAD, plan_load
 
     config = load_config(args.config)
     rows: list[dict[str, Any]] = []

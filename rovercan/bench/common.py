@@ -26,13 +26,13 @@ from can_config.config import GEAR_RATIO_MAX, GEAR_RATIO_MIN, BusConfig, DriveCo
 from can_config.errors import BusLostError, ConfigError, RovercanError, SdoError, SdoTimeoutError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import sdo_abort_text
-from motor_driver.adapters import connection_closed
+from motor_driver.bus.adapters import connection_closed
+from motor_driver.bus.sdo_client import OwnAnswersNode
+from motor_driver.bus.traffic import LOOK_BENCH_S
 from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.driver import open_bus as driver_open_bus
 from motor_driver.driver import wait_for_server
-from motor_driver.sdo_client import OwnAnswersNode
-from motor_driver.traffic import LOOK_BENCH_S
 from rovercan.argtypes import real, whole
 
 logger = logging.getLogger(__name__)

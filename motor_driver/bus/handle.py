@@ -32,11 +32,11 @@ from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
-from motor_driver.adapters import GuardedNetwork, ReceiveErrors, brief_error, hold_lone_sync, queue_full
-from motor_driver.connect import is_kernel_bus
-from motor_driver.cyclic import DaemonCyclicTask
+from motor_driver.bus.adapters import GuardedNetwork, ReceiveErrors, brief_error, hold_lone_sync, queue_full
+from motor_driver.bus.connect import is_kernel_bus
+from motor_driver.bus.cyclic import DaemonCyclicTask
+from motor_driver.bus.traffic import BusStats, ForeignTraffic
 from motor_driver.recorder import FlightRecorder
-from motor_driver.traffic import BusStats, ForeignTraffic
 
 logger = logging.getLogger(__name__)
 

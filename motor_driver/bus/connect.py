@@ -16,7 +16,7 @@ from typing import Any
 import can
 
 from can_config.errors import BusLostError
-from motor_driver.adapters import pause_when_closed
+from motor_driver.bus.adapters import pause_when_closed
 
 logger = logging.getLogger(__name__)
 
