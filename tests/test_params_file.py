@@ -23,6 +23,8 @@ from .test_mcap import ROVER, rover_on_port
 rclpy = pytest.importorskip("rclpy")
 
 if True:  # ROS present
+    from rclpy.parameter import Parameter
+
     from nodes.assembly import assemble
     from nodes.motor_degree import MotorDegreeNode
     from nodes.params import BEGIN, DRIVER, END, NODES, PARAMS, table
@@ -115,6 +117,9 @@ def test_the_driver_entry_points_take_the_file(rig: tuple[dict[str, dict[str, An
     try:
         check(assembly.nodes, values, {name: NODES[name], **({} if one_joint else {"drive_system": NODES["drive_system"]})})
         assert type(assembly.hot).__name__ == "SingleThreadedExecutor"  # executor: single, from the file
+        for param, value in (("config", "/etc/shadow"), ("executor", "events"), ("realtime_priority", 20)):
+            result = assembly.nodes[0].set_parameters([Parameter(param, value=value)])[0]
+            assert not result.successful and "read-only" in result.reason, (param, result)  # read once, at start
     finally:
         assembly.close()
 
