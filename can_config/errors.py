@@ -16,7 +16,8 @@ inherits the matching built-in so callers can catch what they already know::
     │   ├── CommandRejected (ValueError)      NaN, out of limits, unsupported mode: nothing sent
     │   │   └── CommandWouldWait              asked to go out at once, it needs the drive's answer first
     │   ├── ForeignMasterError                another master is live on the bus: nothing was sent
-    │   └── BusLostError (ConnectionError)    the bus went away
+    │   ├── BusLostError (ConnectionError)    the bus went away
+    │   └── CdrError (ValueError)             a message that does not fit its ROS 2 type (motor_driver.cdr)
     └── SimError                              virtual_can: emulator misuse
         └── ProtocolError (ValueError)        a malformed socketcand line
 
@@ -94,6 +95,10 @@ class DriveStateError(MotorError):
 
 class DriveTimeoutError(DriveStateError, TimeoutError):
     """A CiA 402 transition or mode switch was not confirmed in time."""
+
+
+class CdrError(MotorError, ValueError):
+    """A message that does not fit its ROS 2 type's definition (a field missing or of the wrong kind)."""
 
 
 class CommandRejected(MotorError, ValueError):

@@ -22,8 +22,9 @@ What lives where:
 * :mod:`motor_driver.rover` - the rover's kinematics and odometry (pure; the drive system feeds them)
 * :mod:`motor_driver.recorder` - the flight recorder, and reading its incidents and CAN
   recordings back; :mod:`motor_driver.protocol.errorframes` - SocketCAN error frames decoded;
-  :mod:`motor_driver.busview`, :mod:`motor_driver.ros2defs`, :mod:`motor_driver.mcap_out` - the
-  bus as ROS 2 messages (no rclpy), for MCAP files and the live Foxglove view
+  :mod:`motor_driver.busview`, :mod:`motor_driver.ros2defs`, :mod:`motor_driver.cdr`,
+  :mod:`motor_driver.mcap_out` - the bus as ROS 2 messages (no rclpy), their CDR, for MCAP files
+  and the live Foxglove view
 * :mod:`motor_driver.bus` - one CAN bus: opening it, its network and SYNC, its traffic and link
 * :mod:`motor_driver.protocol` - CANopen and CiA 402 as pure rules and codecs
 * :mod:`motor_driver.process` - a process's life: stop on signals, the heap settled once built,

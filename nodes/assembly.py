@@ -27,6 +27,12 @@ Stop (:meth:`Assembly.close`): the driver closed first (its one safe stop,
 :meth:`motor_driver.MotorDriver.safe_stop`: every drive quick-stopped and its voltage disabled;
 a service blocked on a drive then fails fast), the executor threads joined, the nodes destroyed.
 The rclpy context is the caller's to shut down.
+
+The process set-up (:func:`set_up`), the same for every entry point (:func:`run` for
+``rover_driver`` and ``motor_controller``, ``rover_lifecycle``, ``rovercan demo``): from the entry
+point's own node, whose ``executor`` and ``realtime_priority`` it declares and reads, every thread
+under SCHED_FIFO (before the driver's threads exist: each inherits it) and the hot executor. The
+heap is settled by :meth:`Assembly.build` once everything lasting exists.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from __future__ import annotations
 import logging
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import rclpy
 from rclpy.context import Context
@@ -43,16 +49,16 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from can_config import load_config
-from can_config.errors import ConfigError, RovercanError
-from motor_driver import MotorDriver
+from can_config.errors import RovercanError
 from motor_driver.process import heap
+from motor_driver import MotorDriver
 from motor_driver.process.stop import StopSignal
 from nodes import runtime
 from nodes.actions import DriverActionsNode
 from nodes.drive_system import DriveSystemNode
 from nodes.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStopsNode
 from nodes.logbridge import RclpyLogHandler, bridge_core_logging, unbridge
-from nodes.params import declare
+from nodes.params import PROCESS, declare
 from nodes.rover_driver import DriverNode
 
 logger = logging.getLogger(__name__)
@@ -62,18 +68,36 @@ THREADS = {"rovercan_driver_stops": "rovercan-stops", "rovercan_driver_services"
            "rovercan_driver_actions": "rovercan-actions"}
 
 
+class Process(NamedTuple):
+    """What :func:`set_up` made of the process."""
+    hot: Executor  #: the hot executor, of the ``executor`` parameter
+    realtime: bool  #: every thread under SCHED_FIFO now
+
+
+def set_up(node: Node) -> Process:
+    """The process set-up of every entry point, from ``node`` (the entry point's own, made before
+    the driver): its ``executor`` and ``realtime_priority`` declared and read, every thread of the
+    process under SCHED_FIFO where the OS allows it (before the driver's threads exist: each
+    inherits it), and the hot executor. Raises :class:`ConfigError` naming a bad value."""
+    declare(node, *PROCESS)
+    realtime = runtime.go_realtime(node)
+    return Process(runtime.make_executor(str(node.get_parameter("executor").value), node.context), realtime)
+
+
 class Assembly:
     """A driver's nodes and executors: :meth:`build`, :meth:`start`, the caller spins :attr:`hot`,
     then :meth:`close`. ``joints``: the drives served (None: every drive); ``overrides``: parameters
-    of the driver node that the entry point fixes (the demo's ``arm``)."""
+    of the driver node that the entry point fixes (the demo's ``arm``); ``node``: the driver node
+    the entry point made first to read the process's parameters (:func:`set_up`), served by
+    :meth:`build` (else build makes one)."""
 
     def __init__(self, driver: MotorDriver, hot: Executor, *, name: str = "rovercan_driver",
                  joints: Sequence[str] | None = None, context: Context | None = None,
-                 overrides: Sequence[Parameter] = ()) -> None:
+                 overrides: Sequence[Parameter] = (), node: DriverNode | None = None) -> None:
         self.driver, self.hot = driver, hot
         self._name, self._joints, self._overrides = name, joints, list(overrides)
         self._kwargs: dict[str, Any] = {} if context is None else {"context": context}
-        self.node: DriverNode | None = None
+        self.node: DriverNode | None = node
         self.nodes: list[Node] = []  # every node made here, the hot ones first
         self.executors: dict[str, Executor] = {}  # node name -> its executor (the hot one included)
         self._threads: list[runtime.SpinThread] = []
@@ -84,8 +108,12 @@ class Assembly:
     # ------------------------------------------------------------------ steps
     def build(self) -> DriverNode:
         """Every ROS entity, added to its executor; nothing sent on the bus."""
-        node = self.node = DriverNode(self.driver, self._name, self._joints, parameter_overrides=self._overrides,
-                                      **self._kwargs)
+        if self.node is None:
+            node = self.node = DriverNode(self.driver, self._name, self._joints, parameter_overrides=self._overrides,
+                                          **self._kwargs)
+        else:
+            node = self.node
+            node.serve(self.driver, self._joints)
         self._log_handler = bridge_core_logging(node)
         hot: list[Node] = [node]
         config = self.driver.config
@@ -164,41 +192,46 @@ class Assembly:
                 for name, executor in self.executors.items()}
 
 
-def run(program: str, stop: StopSignal, *, name: str = "rovercan_driver", one_joint: bool = False) -> int:
-    """An entry point's process: parameters read once, real-time scheduling, the driver and the
-    assembly, the hot executor spun on this thread until ``stop``, then the assembly closed.
-    ``one_joint``: the node serves the joint of its ``joint`` parameter only (motor_controller)."""
-    boot = rclpy.create_node(name)  # the node's name: a params file's values apply
-    declare(boot, "config", "executor", "realtime_priority", *(("joint",) if one_joint else ()))
+def assemble(name: str = "rovercan_driver", *, one_joint: bool = False, context: Context | None = None) -> Assembly:
+    """An entry point's driver node with its parameters, the process set-up (:func:`set_up`), the
+    driver of its ``config`` and their assembly built: nothing sent on the bus yet. ``one_joint``:
+    the node serves the joint of its ``joint`` parameter only (motor_controller). Raises the
+    :class:`RovercanError` of a bad parameter or config, with what was made undone."""
+    kwargs: dict[str, Any] = {} if context is None else {"context": context}
+    node = DriverNode(None, name, one_joint=one_joint, **kwargs)  # the node's name: a params file's values apply
+    assembly = None
     try:
-        path = str(boot.get_parameter("config").value) or None
-        executor_kind = str(boot.get_parameter("executor").value)
-        runtime.go_realtime(boot)  # before the driver's threads exist: each inherits it
-        joint = str(boot.get_parameter("joint").value) if one_joint else ""
-        if one_joint and not joint:
-            raise ConfigError(f"parameter joint is empty: {program} moves only the joint named;"
-                              " set -p joint:=<joint of the config>")
-        hot = runtime.make_executor(executor_kind)
-        driver = MotorDriver(load_config(path))  # buses opened, drives made: nothing sent yet
-    except RovercanError as err:
-        print(f"{program}: {err}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    finally:
-        boot.destroy_node()
-    overrides = [Parameter("default_joint", value=joint)] if one_joint else []
-    assembly = Assembly(driver, hot, name=name, joints=[joint] if one_joint else None, overrides=overrides)
-    try:
+        declare(node, "config")
+        process = set_up(node)
+        joints = [node.joint()] if one_joint else None
+        driver = MotorDriver(load_config(str(node.get_parameter("config").value) or None))  # nothing sent yet
+        assembly = Assembly(driver, process.hot, name=name, joints=joints, context=context, node=node)
         assembly.build()
+    except BaseException:
+        if assembly is not None:
+            assembly.close()
+        else:
+            node.destroy_node()
+        raise
+    return assembly
+
+
+def run(program: str, stop: StopSignal, *, name: str = "rovercan_driver", one_joint: bool = False) -> int:
+    """An entry point's process: :func:`assemble`, the driver started, the hot executor spun on
+    this thread until ``stop``, then the assembly closed."""
+    assembly = None
+    try:
+        assembly = assemble(name, one_joint=one_joint)
         assembly.start()
-        runtime.spin_until(hot, stop.event)
+        runtime.spin_until(assembly.hot, stop.event)
     except RovercanError as err:
         print(f"{program}: {err}", file=sys.stderr)
         return 2
     finally:
-        assembly.close()
+        if assembly is not None:
+            assembly.close()
         rclpy.try_shutdown()
     return 0
 
 
-__all__ = ["THREADS", "Assembly", "run"]
+__all__ = ["THREADS", "Assembly", "Process", "assemble", "run", "set_up"]

@@ -10,6 +10,7 @@ from std_msgs.msg import Float32
 
 from motor_driver.process.stop import StopSignal
 from nodes import runtime
+from nodes.params import NODES, declare
 from nodes.qos import COMMAND_QOS
 
 TENTHS_PER_TURN = 3600
@@ -18,9 +19,7 @@ TENTHS_PER_TURN = 3600
 class MotorDegreeNode(Node):
     def __init__(self, **kwargs: object) -> None:
         super().__init__("motor_degree", **kwargs)  # type: ignore[arg-type]
-        self.declare_parameter("period_s", 0.1)
-        self.declare_parameter("step_deg", 0.1)
-        self.declare_parameter("start_deg", 0.0)
+        declare(self, *NODES["motor_degree"])
         period = float(self.get_parameter("period_s").value)
         self._step_tenths = round(float(self.get_parameter("step_deg").value) * 10)
         self._tenths = round(float(self.get_parameter("start_deg").value) * 10)

@@ -40,14 +40,14 @@ from rovercan_msgs.msg import MotorState
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32
 
-from can_config.errors import RovercanError
+from can_config.errors import ConfigError, RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.health import bus_health, drive_health
 from motor_driver.process.stop import StopSignal
 from nodes import runtime
 from nodes.handoff import Handoff
 from nodes.messages import fill_motor_state
-from nodes.params import declare, qos_depth
+from nodes.params import DRIVER, ONE_JOINT, declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.rawcmd import float32_data
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
@@ -57,11 +57,31 @@ class DriverNode(Node):
     """Topics and diagnostics of the drives of a :class:`MotorDriver`: every drive, or the
     ``joints`` named (``motor_controller``: one)."""
 
-    def __init__(self, driver: MotorDriver, name: str = "rovercan_driver", joints: Sequence[str] | None = None,
-                 **kwargs: Any) -> None:
+    def __init__(self, driver: MotorDriver | None, name: str = "rovercan_driver", joints: Sequence[str] | None = None,
+                 *, one_joint: bool = False, **kwargs: Any) -> None:
+        """Its parameters declared; with ``driver``, :meth:`serve` at once. ``one_joint``
+        (``motor_controller``): the node serves the joint of its ``joint`` parameter, which is its
+        demo joint too. Without ``driver`` the entry point reads the process's parameters from this
+        node first (nodes/assembly.py: the scheduling before the driver's threads exist), then serves."""
         super().__init__(name, **kwargs)
-        declare(self, "config", "executor", "realtime_priority", "arm", "drive_system", "default_joint", "state_rate_hz",
-                "diagnostics_rate_hz", "state_qos_depth")
+        declare(self, *(ONE_JOINT if one_joint else DRIVER))
+        self._one_joint = one_joint
+        if driver is not None:
+            self.serve(driver, joints)
+
+    def joint(self) -> str:
+        """``one_joint``: the ``joint`` parameter, which must name a joint (nothing moves on a guess)."""
+        joint = str(self.get_parameter("joint").value)
+        if not joint:
+            raise ConfigError(f"parameter joint is empty: {self.get_name()} moves only the joint named;"
+                              " set -p joint:=<joint of the config>")
+        return joint
+
+    def serve(self, driver: MotorDriver, joints: Sequence[str] | None = None) -> None:
+        """Every ROS entity of the drives of ``driver`` (all, those of ``joints``, or with
+        ``one_joint`` the ``joint`` parameter's); nothing sent on the bus."""
+        if self._one_joint:
+            joints = [self.joint()]
         self.driver = driver
         self.drives = served(driver, joints)
         self._state_qos = state_qos(qos_depth(self))
@@ -71,7 +91,7 @@ class DriverNode(Node):
         self.handoff = Handoff(self.drives)
         self._states: dict[str, MotorState] = {}
         self._state_pubs: dict[str, Any] = {}
-        default = str(self.get_parameter("default_joint").value)
+        default = self.joint() if self._one_joint else str(self.get_parameter("default_joint").value)
         if default and default not in self.drives:
             raise RovercanError(f"parameter default_joint = {default!r}: not a joint of this node; joints:"
                                 f" {list(self.drives)}; set -p default_joint:=<joint>, or leave it empty (no demo topics)")
@@ -79,7 +99,7 @@ class DriverNode(Node):
             self._add_drive(joint, drive)
         self._default = default
         self._demo_state_pub = None
-        self.get_logger().info(f"the demo topic /motor_degree_cmd moves {default} (default_joint)" if default else
+        self.get_logger().info(f"the demo topic /motor_degree_cmd moves {default}" if default else
                                "the demo topic /motor_degree_cmd moves no joint (default_joint is empty)")
         if default:  # the team's demo topics, for the joint named: never for a guessed one
             self._demo_state_pub = self.create_publisher(MotorState, "/motor_state", self._state_qos,
@@ -135,7 +155,8 @@ class DriverNode(Node):
         self._command_topic(f"{base}/velocity_cmd", name, "velocity command {!r}", drive.command_velocity)
 
     def destroy_node(self) -> None:
-        self.handoff.close()
+        if hasattr(self, "handoff"):  # served
+            self.handoff.close()
         super().destroy_node()
 
     def command(self, joint: str, what: str, command: Callable[..., object], value: float) -> None:

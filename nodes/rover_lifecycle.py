@@ -34,17 +34,19 @@ from can_config.errors import RovercanError
 from motor_driver import MotorDriver
 from motor_driver.process import heap
 from nodes import runtime
-from nodes.assembly import Assembly
+from nodes.assembly import Assembly, set_up
 from nodes.params import declare
 
 logger = logging.getLogger(__name__)
 
 
 class DriveLifecycleNode(LifecycleNode):
-    def __init__(self, hot: Executor, **kwargs: Any) -> None:
+    def __init__(self, hot: Executor | None = None, **kwargs: Any) -> None:
+        """``hot``: where the drives' ROS interface spins; None (``main``): the process set-up from
+        this node's parameters (nodes/assembly.py), which may raise :class:`ConfigError`."""
         super().__init__("rovercan_lifecycle", **kwargs)
-        declare(self, "config", "autostart", "realtime_priority", "executor")
-        self.hot = hot  # where the drives' ROS interface spins
+        declare(self, "config", "autostart")
+        self.hot = set_up(self).hot if hot is None else hot
         self.assembly: Assembly | None = None
 
     @property
@@ -113,18 +115,12 @@ def main(args: list[str] | None = None) -> int:
     runtime.init(args)
     with runtime.StopSignal() as stop:
         try:
-            boot = rclpy.create_node("rovercan_lifecycle")  # its parameters, before anything is made
-            declare(boot, "executor", "realtime_priority")
-            try:
-                runtime.go_realtime(boot)  # before configure makes the driver's threads: they inherit it
-                hot = runtime.make_executor(str(boot.get_parameter("executor").value))
-            finally:
-                boot.destroy_node()
+            node = DriveLifecycleNode()  # the process set-up before configure makes the driver's threads
         except RovercanError as err:
             print(f"rover_lifecycle: {err}", file=sys.stderr)
             rclpy.try_shutdown()
             return 2
-        node = DriveLifecycleNode(hot)
+        hot = node.hot
         cold = SingleThreadedExecutor()
         cold.add_node(node)
         transitions = runtime.SpinThread(cold, "rovercan-lifecycle")

@@ -17,7 +17,6 @@ from typing import Any
 
 from can_config import load_config, with_bus_overrides
 from can_config.errors import ConfigError
-from can_config.realtime import make_process_realtime
 from motor_driver.process.stop import StopSignal
 from rovercan.exits import EXIT_FAILED, EXIT_OK
 from rovercan.launch import LOCAL_DISCOVERY
@@ -50,20 +49,15 @@ def run_demo(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     joint = config.drives[0].name  # the demo names its joint: the config's first
-    # as the deployed node: every thread under SCHED_FIFO where allowed, before any starts (they
-    # inherit it). An ordinary process on a busy machine can be held past the drive's host timeout
-    # (3 host heartbeats), and the drive then stops itself, as it is told to.
-    realtime = args.realtime_priority > 0 and make_process_realtime("rovercan demo", args.realtime_priority)
+    runtime.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
+    driver_node, hot, realtime = _demo_process(joint, args.realtime_priority)
     with StopSignal() as stop, SimService.from_config(config, port=args.port) as sim:
         config = with_bus_overrides(config, host=sim.host, port=sim.port)
         print(f"rovercan demo: simulated drive(s) on {sim.host}:{sim.port}; joint {joint!r};"
               f" {'until Ctrl+C' if args.duration is None else f'{args.duration:g} s'};"
               f" ROS discovery {os.environ[LOCAL_DISCOVERY[0]]};"
               f" {f'SCHED_FIFO {args.realtime_priority}' if realtime else 'ordinary scheduling'}", flush=True)
-        runtime.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
-        hot = runtime.make_executor("events")
-        assembly = Assembly(MotorDriver(config), hot, name=NODE_NAME, joints=[joint],
-                            overrides=[Parameter("arm", value=True), Parameter("default_joint", value=joint)])
+        assembly = Assembly(MotorDriver(config), hot, name=NODE_NAME, joints=[joint], node=driver_node)
         extra: list[Any] = []
         try:
             assembly.build()
@@ -94,6 +88,31 @@ def run_demo(args: argparse.Namespace) -> int:
                 node.destroy_node()
             rclpy.try_shutdown()
     return result
+
+
+def _demo_process(joint: str, realtime_priority: int) -> tuple[Any, Any, bool]:
+    """``motor_controller``'s driver node for ``joint``, armed, and its process set-up
+    (nodes/assembly.py): every thread under SCHED_FIFO where allowed, before the simulator's and
+    the driver's start (they inherit it; an ordinary process on a busy machine can be held past the
+    drive's host timeout, 3 host heartbeats, and the drive then stops itself, as it is told to).
+    Returns the node, the hot executor and whether the process is real-time."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from nodes.assembly import set_up
+    from nodes.motor_controller import NODE_NAME
+    from nodes.rover_driver import DriverNode
+
+    node = DriverNode(None, NODE_NAME, one_joint=True, parameter_overrides=[
+        Parameter("joint", value=joint), Parameter("arm", value=True), Parameter("executor", value="events"),
+        Parameter("realtime_priority", value=realtime_priority)])
+    try:
+        hot, realtime = set_up(node)
+    except BaseException:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        raise
+    return node, hot, realtime
 
 
 def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[Any]]:

@@ -664,13 +664,13 @@ def test_a_parameter_read_at_start_refuses_a_set_and_a_rate_takes_one(graph: Gra
         reply = graph.call(SetParameters, "/rovercan_driver/set_parameters", SetParameters.Request(parameters=[msg]))
         return reply.results[0]
 
-    for name, value in (("config", "/etc/shadow"), ("executor", "single"), ("realtime_priority", 0),
-                        ("default_joint", "wheel_rear_left"), ("arm", True)):
+    # config, executor and realtime_priority: the entry point's (tests/test_params_file.py)
+    for name, value in (("default_joint", "wheel_rear_left"), ("arm", True), ("drive_system", False)):
         result = set_one(name, value)
         assert not result.successful and "read-only" in result.reason, (name, result)
         assert graph.driver_node.get_parameter(name).value != value
     described = graph.call(DescribeParameters, "/rovercan_driver/describe_parameters",
-                           DescribeParameters.Request(names=["config"])).descriptors[0]
+                           DescribeParameters.Request(names=["default_joint"])).descriptors[0]
     assert described.read_only and "restart the node" in described.additional_constraints
     result = set_one("diagnostics_rate_hz", 2.0)
     assert result.successful, result.reason

@@ -117,7 +117,7 @@ def test_a_realtime_priority_out_of_range_is_refused_by_name(module: str) -> Non
 
 
 def test_a_params_file_reaches_the_parameters_read_before_the_driver_starts(tmp_path: Path) -> None:
-    """config and executor are read first, by a node of the same name, so --params-file applies."""
+    """config and executor are read first, on the driver node itself (made before its driver), so --params-file applies."""
     params = tmp_path / "params.yaml"
     params.write_text(f"rovercan_driver:\n  ros__parameters:\n    config: {tmp_path / 'absent.yaml'}\n")
     out = subprocess.run([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "--params-file", str(params)],

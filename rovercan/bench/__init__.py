@@ -10,7 +10,8 @@ What lives where (each module has its commands and their ``add_parsers``):
 - :mod:`.nodes`: scan, info, sdo, save, nmt (CiA 301 services to one node)
 - :mod:`.motion`: enable, disable, fault-reset, home, move, jog, step-test (through the driver)
 - :mod:`.traffic`: monitor, record, replay, decode, incident
-- :mod:`.views`: the bus as ROS 2 messages for :mod:`.traffic` (MCAP, the live Foxglove view)
+- :mod:`.views`: the bus as ROS 2 messages for :mod:`.traffic` (MCAP, the live Foxglove view),
+  :mod:`.liveview` the live view's server (a bounded queue per client)
 - :mod:`.checks`: safety-check, check, plan, can-up
 """
 

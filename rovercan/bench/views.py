@@ -3,13 +3,13 @@ live Foxglove view (``monitor --foxglove PORT``, also started by ``sim`` and ``l
 
 The messages are :class:`motor_driver.busview.BusView`'s; this module opens the buses (every bus
 of ``--config`` unless ``-c`` or bus arguments name one), reads them (a thread per bus, each
-frame handed to the command's thread through a queue) and serves or writes what the view makes.
+frame handed to the command's thread through a queue) and serves (:mod:`rovercan.bench.liveview`)
+or writes what the view makes.
 """
 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import logging
 import math
 import queue
@@ -28,9 +28,8 @@ from can_config.errors import BusLostError, ConfigError
 from can_config.model import RoverConfig
 from motor_driver.busview import BusView, Frame, view_drives
 from motor_driver.driver import open_bus as driver_open_bus
-from motor_driver.process.stop import StopSignal
 from motor_driver.recorder.recording import iter_recording
-from motor_driver.ros2defs import schema_text
+from motor_driver.process.stop import StopSignal
 from rovercan.bench.common import connect_timeout, open_bus, receive
 
 logger = logging.getLogger(__name__)
@@ -162,85 +161,6 @@ def decode_mcap(args: argparse.Namespace) -> int:
     return 0
 
 
-class FoxgloveSink:
-    """The view's channels served over the Foxglove WebSocket protocol (subprotocol
-    ``foxglove.websocket.v1``, the foxglove-websocket server: foxglove-sdk's speaks only its newer
-    ``foxglove.sdk.v1`` and refuses a client of the first), each advertised from the start; a
-    message is encoded only while a client subscribes to its channel. The server runs on an event
-    loop of its own thread (``rovercan-foxglove``); the caller's thread hands messages to it."""
-
-    def __init__(self, channels: list[tuple[str, str]], host: str, port: int) -> None:
-        try:
-            from foxglove_websocket.server import FoxgloveServer
-            from mcap_ros2._dynamic import serialize_dynamic
-        except ImportError as err:
-            raise ConfigError(f"--foxglove needs {err.name}: pip install 'rovercan[cli]' (./dev setup does)") from err
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_forever, daemon=True, name="rovercan-foxglove")
-        self._thread.start()
-        self._encoders: dict[str, Callable[[Any], bytes]] = {}
-        self._subscribed: set[int] = set()  # the loop's thread writes it (one add or discard each)
-
-        async def start() -> tuple[Any, dict[str, int], int]:
-            server = FoxgloveServer(host, port, "rovercan", supported_encodings=["cdr"], logger=logger)
-            server.set_listener(_Subscriptions(self._subscribed))
-            server.start()
-            opened = asyncio.ensure_future(server.wait_opened())
-            await asyncio.wait([opened, server._task], timeout=FOXGLOVE_START_S, return_when=asyncio.FIRST_COMPLETED)
-            if not opened.done():
-                opened.cancel()
-                err = server._task.exception() if server._task.done() else TimeoutError("no answer")
-                raise ConfigError(f"--foxglove {port}: cannot serve on {host}:{port} ({err}); pick a free port")
-            ids = {}
-            for topic, type_name in channels:
-                ids[topic] = await server.add_channel({"topic": topic, "encoding": "cdr", "schemaName": type_name,
-                                                       "schema": schema_text(type_name), "schemaEncoding": "ros2msg"})
-            return server, ids, int(opened.result().sockets[0].getsockname()[1])
-
-        try:
-            self._server, self._ids, self.port = asyncio.run_coroutine_threadsafe(start(), self._loop).result()
-        except BaseException:
-            self._stop_loop()
-            raise
-        self._encoders = {topic: serialize_dynamic(type_name, schema_text(type_name))[type_name]
-                          for topic, type_name in channels}
-
-    def __call__(self, topic: str, type_name: str, message: dict[str, Any], time_ns: int) -> None:
-        chan = self._ids[topic]
-        if chan in self._subscribed:
-            data = self._encoders[topic](message)
-            asyncio.run_coroutine_threadsafe(self._server.send_message(chan, time_ns, data), self._loop)
-
-    def close(self) -> None:
-        async def stop() -> None:
-            self._server.close()
-            await self._server.wait_closed()
-
-        try:
-            asyncio.run_coroutine_threadsafe(stop(), self._loop).result(timeout=FOXGLOVE_START_S)
-        finally:
-            self._stop_loop()
-
-    def _stop_loop(self) -> None:
-        self._loop.call_soon_threadsafe(self._loop.stop)
-        self._thread.join(timeout=FOXGLOVE_START_S)
-        if not self._thread.is_alive():
-            self._loop.close()
-
-
-class _Subscriptions:
-    """The server's listener: which channels some client subscribes to (the loop's thread)."""
-
-    def __init__(self, subscribed: set[int]) -> None:
-        self._subscribed = subscribed
-
-    def on_subscribe(self, server: Any, channel_id: int) -> None:
-        self._subscribed.add(channel_id)
-
-    def on_unsubscribe(self, server: Any, channel_id: int) -> None:
-        self._subscribed.discard(channel_id)
-
-
 def _nowhere(topic: str, type_name: str, message: dict[str, Any], time_ns: int) -> None:
     """An emit that keeps nothing (a view asked only for its channels)."""
 
@@ -248,8 +168,12 @@ def _nowhere(topic: str, type_name: str, message: dict[str, Any], time_ns: int) 
 def serve_view(buses: list[tuple[str, can.BusABC]], config: RoverConfig | None, host: str, port: int,
                stop: threading.Event, seconds: float = 0.0, say: Callable[[str], None] | None = None) -> int:
     """Serve the view of ``buses`` until ``stop``; returns the frames seen."""
+    try:
+        from rovercan.bench.liveview import LiveView
+    except ImportError as err:
+        raise ConfigError(f"--foxglove needs {err.name}: pip install 'rovercan[cli]' (./dev setup does)") from err
     drives = view_drives(config) if config else []
-    sink = FoxgloveSink(BusView(drives, _nowhere).channels(), host, port)
+    sink = LiveView(BusView(drives, _nowhere).channels(), host, port)
     view = BusView(drives, sink)
     if say:
         say(f"Foxglove WebSocket on ws://{host}:{sink.port}: {len(view.channels())} channels"
