@@ -14,9 +14,8 @@ What lives where:
   :mod:`motor_driver.bus.adapters` - an SDO client that takes only its own answers, the typed codec
   of SDO values, the SYNC on the bus daemon's timer, where a dependency's internals are leaned on
 * :mod:`motor_driver.protocol.cia402`, :mod:`motor_driver.protocol.pdo`, :mod:`motor_driver.protocol.units`,
-  :mod:`motor_driver.protocol.unit_ranges`, :mod:`motor_driver.protocol.safety`, :mod:`motor_driver.setpoint`,
-  :mod:`motor_driver.trajectory` - pure rules: state machine, PDO plan, units and their
-  plausible ranges, the safety judgement, the set-point handshake, the streamed move's trapezoid
+  :mod:`motor_driver.protocol.unit_ranges`, :mod:`motor_driver.protocol.safety` - pure rules: state machine, PDO plan, units and their
+  plausible ranges, the safety judgement
 * :mod:`motor_driver.health`, :mod:`motor_driver.bus.load` - pure judgements for the nodes and the
   CLI: a drive's health, the bus load a config makes
 * :mod:`motor_driver.rover` - the rover's kinematics and odometry (pure; the drive system feeds them)

@@ -50,8 +50,8 @@ from rclpy.parameter import Parameter
 
 from can_config import load_config
 from can_config.errors import RovercanError
-from motor_driver.process import heap
 from motor_driver import MotorDriver
+from motor_driver.process import heap
 from motor_driver.process.stop import StopSignal
 from nodes import runtime
 from nodes.actions import DriverActionsNode

@@ -14,7 +14,7 @@ import pytest
 
 from can_config import RoverConfig
 from motor_driver import MotorDriver
-from motor_driver.setpoint import SetpointHandshake
+from motor_driver.drive.setpoint import SetpointHandshake
 from virtual_can import SimService
 
 from .conftest import make_config, wait_for

@@ -14,12 +14,14 @@ What lives where (each module's docstring names the thread that owns its state):
 - :mod:`.sdo`: the SDO port, bounded, one typed codec; the objects no tool may write
 - :mod:`.channel`: the command channel, owner of the controlword, the targets, the generation
   and the busy registry (:mod:`.busy`): the one way out for a controlword or a set-point, and
-  a stop always wins
+  a stop always wins; with :mod:`.setpoint` (the profile-position set-point handshake it and the
+  receive thread share)
 - :mod:`.part`: the ports every part is handed (:class:`~.part.Ports`)
 - :mod:`.power`: the CiA 402 power state machine (enable, stops, recover) and the mode switch,
   every controlword sent through the channel
 - :mod:`.limits`: the stopping-distance limit guard and the velocity watchdog
-- :mod:`.motion`: motion commands, one family per operation mode
+- :mod:`.motion`: motion commands, one family per operation mode, with :mod:`.trajectory` (the
+  streamed move's set-points, pure generators)
 - :mod:`.homing`: homing
 - :mod:`.hostwatch`: the drive's watch of the host (heartbeat consumer, node guarding) and the
   frames the supervisor sends a drive it stops hearing or loses to another master

@@ -31,9 +31,9 @@ from motor_driver.drive.constants import CONTINUOUS_COMMAND_LIMIT_DEG, ENABLED_C
 from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.setpoint import rebase_after_switch
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State
 from motor_driver.protocol.units import check_counts, check_limits, nearest_equivalent, require_finite
-from motor_driver.setpoint import rebase_after_switch
 
 logger = logging.getLogger(__name__)
 
