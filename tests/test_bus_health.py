@@ -15,7 +15,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from motor_driver.bus.link import RISING, STATES, XSTATS_FIELDS, KernelBusHealth, health_from_link, rising
-from motor_driver.health import ERROR, OK, WARN, bus_health
+from motor_driver.runtime.health import ERROR, OK, WARN, bus_health
 
 from .conftest import REPO
 
@@ -160,7 +160,7 @@ def test_frames_given_up_for_a_full_transmit_queue_warn_and_say_what_to_do() -> 
     ({"state": 3, "restart_ms": 0}, "restart-ms is 0: it stays off until `ip link set can0 type can restart`")])
 def test_the_driver_waits_for_a_link_that_is_down_or_bus_off_and_says_so_once(
         fields: dict[str, object], says: str, caplog: pytest.LogCaptureFixture) -> None:
-    """The supervisor's wait for a lost kernel bus (motor_driver.supervise_bus: _link_down, _link_said), fed the
+    """The supervisor's wait for a lost kernel bus (motor_driver.runtime.supervise_bus: _link_down, _link_said), fed the
     kernel's link messages (QEMU's SJA1000 never goes BUS-OFF; the kernel tier takes a real one
     down): not ready while down or BUS-OFF, said once with what to do, and once when it is back."""
     import can

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import can
 
-from motor_driver.driver import ForeignTraffic, is_kernel_bus
+from motor_driver.runtime.driver import ForeignTraffic, is_kernel_bus
 
 PERIOD_S = 0.01
 

@@ -31,7 +31,7 @@ import pytest
 from can_config import GENERIC_EDS, load_config, load_drive_od
 from can_config.errors import MotorError
 from motor_driver import MotorDriver, State
-from motor_driver.driver import is_kernel_bus
+from motor_driver.runtime.driver import is_kernel_bus
 from virtual_can.sim import MotorParams, SimulatedDrive
 from virtual_can.sim.runner import DriveSimulator
 

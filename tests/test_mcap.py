@@ -23,7 +23,7 @@ from motor_driver.mcap_out import write_mcap
 from motor_driver.protocol.pdo import plan_pdos
 from motor_driver.protocol.units import Scale
 from motor_driver.ros2defs import DEFINITIONS
-from motor_driver.runtime import DriveRuntime, RuntimePort
+from motor_driver.runtime.ledger import DriveRuntime, RuntimePort
 
 from .conftest import REPO, rovercan_sim
 

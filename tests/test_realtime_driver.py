@@ -77,7 +77,7 @@ config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "ch
 with MotorDriver(config) as driver:
     print("connected", receive_policies())
     handle = driver._handles["can0"]
-    # on the bus's worker, as the supervisor's reconnect runs (motor_driver/supervise_bus.py)
+    # on the bus's worker, as the supervisor's reconnect runs (motor_driver/runtime/supervise_bus.py)
     def again():
         handle.disconnect()
         handle.reconnect(open_bus(config.bus("can0").bus_kwargs()))

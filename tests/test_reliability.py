@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from can_config import RoverConfig, with_bus_overrides
 from can_config.errors import BusLostError, MotorError
 from motor_driver import Drive, MotorDriver, State
-from motor_driver.driver import HANDSHAKE_TIMEOUT_S, OPEN_ATTEMPTS
+from motor_driver.runtime.driver import HANDSHAKE_TIMEOUT_S, OPEN_ATTEMPTS
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 

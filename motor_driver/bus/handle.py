@@ -5,7 +5,7 @@ Owners: the connection (``bus``, the network's notifier, ``sync_task``) is set u
 driver's constructor and ``start`` before any thread runs, and from then on changed only by jobs
 on the bus's worker (reconnect, SYNC restart), one at a time; the supervisor thread sends the
 host heartbeat through it (:meth:`BusHandle.beat`, which counts ``host_beats``). The supervisor's
-bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.runtime.BusRuntime`.
+bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.runtime.ledger.BusRuntime`.
 
 The bus's receive thread (python-can's Notifier) runs as every other thread of the driver's
 process does: under SCHED_FIFO where the node made it real-time (nodes/runtime.go_realtime). It

@@ -4,7 +4,7 @@ Owner: the bus's worker (or the caller of :meth:`Boot.boot`), while the drive is
 nothing else commands it meanwhile (the cache says not booted, so every command is refused).
 Its own state: the safety check's result, the boot count, the host-loss stops it found, the
 object a step is at (for its error). Whether the drive is booted is the supervisor's: a boot
-reports its beginning and its end (:class:`motor_driver.runtime.Booting`, ``Booted``) and a
+reports its beginning and its end (:class:`motor_driver.runtime.ledger.Booting`, ``Booted``) and a
 failed re-configuration (``RebootFailed``), and goes on once the supervisor has taken it in.
 Each step reads or writes by SDO through the drive's SDO port; what the steps read (statusword,
 position, mode, units) is handed to the state cache and the command channel through their
@@ -35,7 +35,7 @@ from motor_driver.protocol.pdo import mapping_writes
 from motor_driver.protocol.safety import SafetyCheck, judge
 from motor_driver.protocol.unit_ranges import check_drive_value
 from motor_driver.protocol.units import read_unit_objects, scale_from_objects
-from motor_driver.runtime import Booted, Booting, RebootFailed, RuntimePort
+from motor_driver.runtime.ledger import Booted, Booting, RebootFailed, RuntimePort
 
 logger = logging.getLogger(__name__)
 

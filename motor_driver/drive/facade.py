@@ -10,7 +10,7 @@ composes ``sdo``, ``pdo``, ``nmt`` and ``emcy``:
   collaborators built on those.
 
 Lost, booted and another master are the driver's supervisor's judgement (``runtime``, a
-:class:`motor_driver.runtime.DriveRuntime` the parts read); the parts hand it what they find
+:class:`motor_driver.runtime.ledger.DriveRuntime` the parts read); the parts hand it what they find
 through ``port``. This class adds no state and no rule: it builds the parts in order, connects the cache to the
 channel, and hands the drive's COB-IDs to the receive thread last, so that a frame never meets
 a half-built drive. Its few methods are the user's API (enable, the stops, moves, streams,
@@ -46,13 +46,13 @@ from motor_driver.drive.state import DriveCache
 from motor_driver.drive.values import DriveState
 from motor_driver.protocol.pdo import PdoPlan, plan_pdos
 from motor_driver.protocol.units import Scale
-from motor_driver.runtime import DriveRuntime, NmtLedger, RuntimePort
+from motor_driver.runtime.ledger import DriveRuntime, NmtLedger, RuntimePort
 
 logger = logging.getLogger(__name__)
 
 
 class Drive:
-    """One drive. Created by :class:`motor_driver.driver.MotorDriver`; methods are thread-safe."""
+    """One drive. Created by :class:`motor_driver.runtime.driver.MotorDriver`; methods are thread-safe."""
 
     def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
                  host_node_id: int = 127, sync_period_s: float = 0.01, runtime: DriveRuntime,

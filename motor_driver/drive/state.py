@@ -12,9 +12,9 @@ the scale and the guarding flag, and notes the NMT start; a command thread ackno
 and EMCYs it has dealt with (an acknowledgement is a sequence number, so a FAULT that arrives
 after it is never erased by it).
 
-Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.runtime.DriveRuntime`),
+Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.runtime.ledger.DriveRuntime`),
 read here, never written: the receive thread posts each heartbeat that may change it
-(:class:`motor_driver.runtime.Heard`) and goes on.
+(:class:`motor_driver.runtime.ledger.Heard`) and goes on.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from motor_driver.drive.values import DriveState, Emcy, Received, StatusSink
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
 from motor_driver.protocol.pdo import PdoPlan, TpdoLayout
 from motor_driver.protocol.units import Scale
-from motor_driver.runtime import DriveRuntime, Heard, RuntimePort
+from motor_driver.runtime.ledger import DriveRuntime, Heard, RuntimePort
 
 logger = logging.getLogger(__name__)
 

@@ -31,8 +31,8 @@ from motor_driver.bus.sdo_client import OwnAnswersNode
 from motor_driver.bus.traffic import LOOK_BENCH_S
 from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.driver import open_bus as driver_open_bus
-from motor_driver.driver import wait_for_server
+from motor_driver.runtime.driver import open_bus as driver_open_bus
+from motor_driver.runtime.driver import wait_for_server
 from rovercan.argtypes import real, whole
 
 logger = logging.getLogger(__name__)
@@ -347,7 +347,7 @@ def say_look(args: argparse.Namespace, where: str) -> float:
 def refuse_beside_a_master(args: argparse.Namespace, bus: can.BusABC, node_ids: Collection[int]) -> None:
     """Before the first NMT command or enable of a bench command: listen for another master (two
     host-heartbeat periods) and refuse, naming what was heard, unless --force."""
-    from motor_driver.driver import look_for_master, other_master_error
+    from motor_driver.runtime.driver import look_for_master, other_master_error
 
     host_id = 127
     if getattr(args, "config", None):

@@ -27,9 +27,9 @@ from can_config import load_config
 from can_config.errors import BusLostError, ConfigError
 from can_config.model import RoverConfig
 from motor_driver.busview import BusView, Frame, view_drives
-from motor_driver.driver import open_bus as driver_open_bus
 from motor_driver.process.stop import StopSignal
 from motor_driver.recorder.recording import iter_recording
+from motor_driver.runtime.driver import open_bus as driver_open_bus
 from rovercan.bench.common import connect_timeout, open_bus, receive
 
 logger = logging.getLogger(__name__)

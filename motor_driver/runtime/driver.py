@@ -10,11 +10,11 @@ Threads and what they own:
 - the notifier thread of each bus (canopen/python-can): decodes frames into each Drive's
   received state and notifies waiters; it sends nothing but the set-point handshake's reply, and
   posts the heartbeats that may change a judgement to the supervisor.
-- the supervisor thread (``rovercan-supervisor``, :class:`motor_driver.supervisor.Supervisor`),
+- the supervisor thread (``rovercan-supervisor``, :class:`motor_driver.runtime.supervisor.Supervisor`),
   period SUPERVISOR_PERIOD_S, never blocks: produces the host heartbeat on every bus, checks the
   drives' heartbeats, runs the velocity watchdog and the limit guard, notices lost buses and hands
   re-boots and reconnects to the bus's worker. It alone writes the runtime state (lost, booted,
-  another master, reconnect and back-off: :mod:`motor_driver.runtime`); ``bus_lost`` reads it.
+  another master, reconnect and back-off: :mod:`motor_driver.runtime.ledger`); ``bus_lost`` reads it.
 - one worker per bus (``rovercan-<bus>``): the re-boots and reconnects, one at a time; each
   reports its result to the supervisor.
 - the caller's threads: commands, each decided and sent through the drive's command channel
@@ -33,7 +33,7 @@ and closes the buses it opened, in that order.
 
 What lives where: :mod:`motor_driver.bus.connect` (opening a bus), :mod:`motor_driver.bus.traffic`
 (bus statistics, another master), :mod:`motor_driver.bus.handle` (one bus: network, SYNC,
-worker), :mod:`motor_driver.supervisor` (the supervisor's period), this module (the
+worker), :mod:`motor_driver.runtime.supervisor` (the supervisor's period), this module (the
 lifecycle: start, safe stop, close).
 """
 
@@ -73,7 +73,7 @@ from motor_driver.bus.traffic import (
 from motor_driver.drive import Drive, DriveState
 from motor_driver.protocol.cia402 import State
 from motor_driver.recorder import FlightRecorder
-from motor_driver.supervisor import SUPERVISOR_PERIOD_S, Supervisor
+from motor_driver.runtime.supervisor import SUPERVISOR_PERIOD_S, Supervisor
 
 logger = logging.getLogger(__name__)
 
@@ -272,7 +272,7 @@ class MotorDriver:
             handle.close()
 
 
-# the names callers imported from here before the split (motor_driver.driver stays their door)
+# the names callers imported from here before the split (motor_driver.runtime.driver stays their door)
 __all__ = ["CONNECT_TIMEOUT_S", "FOREIGN_HOLD_S", "HANDSHAKE_TIMEOUT_S", "OPEN_ATTEMPTS", "SUPERVISOR_PERIOD_S",
            "SYNC_RATE_WINDOW_S", "BusHandle", "BusStats", "ForeignTraffic", "MotorDriver", "carries_remote_frames",
            "is_kernel_bus", "look_for_master", "look_window_s", "open_bus", "other_master_error", "sync_daemon",

@@ -1,10 +1,10 @@
 """The supervisor (thread ``rovercan-supervisor``), period SUPERVISOR_PERIOD_S, never blocks: the
 host heartbeat on every bus, the drives' heartbeats, the velocity watchdog and the limit guard,
-another master, every period; lost buses every BUS_CHECK_PERIODS (:mod:`motor_driver.supervise_bus`).
+another master, every period; lost buses every BUS_CHECK_PERIODS (:mod:`motor_driver.runtime.supervise_bus`).
 Re-boots and reconnects run on the bus's worker.
 
 Owner: the :class:`Supervisor`, on its thread, alone writes the runtime state
-(:mod:`motor_driver.runtime`): one :class:`DriveRuntime` per drive and one :class:`BusRuntime`
+(:mod:`motor_driver.runtime.ledger`): one :class:`DriveRuntime` per drive and one :class:`BusRuntime`
 per bus. The receive thread posts what it heard (:meth:`Supervisor.post`, never waits); a boot
 or a reconnect on a worker reports its result (:meth:`Supervisor.report`) and goes on once the
 supervisor applied it, within a period. Before its thread starts (the boots of ``start``) and
@@ -31,7 +31,7 @@ from motor_driver.bus.traffic import FOREIGN_HOLD_S, FOREIGN_RELEASE_S
 from motor_driver.drive import Drive
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recorder import FlightRecorder
-from motor_driver.runtime import (
+from motor_driver.runtime.ledger import (
     Booted,
     Booting,
     DriveRuntime,
@@ -40,7 +40,7 @@ from motor_driver.runtime import (
     RebootFailed,
     RuntimePort,
 )
-from motor_driver.supervise_bus import BUS_CHECK_PERIODS, BusSupervision
+from motor_driver.runtime.supervise_bus import BUS_CHECK_PERIODS, BusSupervision
 
 logger = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 configured again, another master, the stops of a lost drive, the watchdog's and the guard's
 times; a bus's reconnect and back-off, its host heartbeat), and the NMT commands it sent.
 
-Owner: the :class:`motor_driver.supervisor.Supervisor`, on its thread, alone writes a
+Owner: the :class:`motor_driver.runtime.supervisor.Supervisor`, on its thread, alone writes a
 :class:`DriveRuntime` and a :class:`BusRuntime` (tests/test_ownership.py checks that no other
 module assigns their fields). Every other thread reads them and hands the supervisor what it
 found instead: the receive thread posts each heartbeat that may change a judgement

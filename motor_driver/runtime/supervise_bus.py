@@ -1,10 +1,10 @@
-"""The supervisor's work on buses (part of :class:`motor_driver.supervisor.Supervisor`, on its
+"""The supervisor's work on buses (part of :class:`motor_driver.runtime.supervisor.Supervisor`, on its
 thread): the host heartbeat every period, and every BUS_CHECK_PERIODS a look at each bus (its
 connection, error frames, the SYNC job, silence); a lost bus the driver opened is reconnected
 with back-off by a job on the bus's worker, which reports back (:class:`BusBack`,
 :class:`BusDown`) instead of writing anything of the supervisor's.
 
-Owner: the supervisor thread writes each :class:`BusRuntime` (:mod:`motor_driver.runtime`); the
+Owner: the supervisor thread writes each :class:`BusRuntime` (:mod:`motor_driver.runtime.ledger`); the
 worker's job only opens, closes and boots, through the bus handle's and the drives' methods.
 """
 
@@ -25,7 +25,7 @@ from motor_driver.bus.link import KernelBusHealth, read_kernel_health
 from motor_driver.drive import Drive
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recorder import FlightRecorder
-from motor_driver.runtime import BusBack, BusDown, BusRuntime, DriveRuntime, Event
+from motor_driver.runtime.ledger import BusBack, BusDown, BusRuntime, DriveRuntime, Event
 
 logger = logging.getLogger(__name__)
 
