@@ -38,8 +38,8 @@ from can_config import load_config  # noqa: E402
 from can_config.eds import load_drive_od  # noqa: E402
 from can_config.model import RoverConfig  # noqa: E402
 from can_config.objects import OD, FunctionCode, OperationMode  # noqa: E402
-from motor_driver.busview import DIAGNOSTICS_TOPIC, FRAMES_TOPIC, JOINT_STATES_TOPIC, status_topic  # noqa: E402
 from motor_driver.protocol.pdo import TT_SYNC, PdoMap, encode_rpdo, plan_pdos  # noqa: E402
+from motor_driver.recording.busview import DIAGNOSTICS_TOPIC, FRAMES_TOPIC, JOINT_STATES_TOPIC, status_topic  # noqa: E402
 
 ROVER = REPO / "config" / "rover.yaml"
 T0 = 1_800_000_000.0

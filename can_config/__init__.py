@@ -21,8 +21,8 @@ The runtime helpers that only the driver, the nodes or the CLI use live in ``mot
 signals (:mod:`motor_driver.process.stop`), heap settling (:mod:`motor_driver.process.heap`), rate-limited logs
 (:mod:`motor_driver.process.ratelimit`), the SDO value codec (:mod:`motor_driver.protocol.codec`: the simulator
 has its own, written from the standard), error frames (:mod:`motor_driver.protocol.errorframes`), CAN
-recordings and incident files (:mod:`motor_driver.recorder.recording`,
-:mod:`motor_driver.recorder.incident`).
+recordings and incident files (:mod:`motor_driver.recording.files`,
+:mod:`motor_driver.recording.incident`).
 """
 
 from can_config.config import (

@@ -17,7 +17,7 @@ inherits the matching built-in so callers can catch what they already know::
     │   │   └── CommandWouldWait              asked to go out at once, it needs the drive's answer first
     │   ├── ForeignMasterError                another master is live on the bus: nothing was sent
     │   ├── BusLostError (ConnectionError)    the bus went away
-    │   └── CdrError (ValueError)             a message that does not fit its ROS 2 type (motor_driver.cdr)
+    │   └── CdrError (ValueError)             a message that does not fit its ROS 2 type (motor_driver.recording.cdr)
     └── SimError                              virtual_can: emulator misuse
         └── ProtocolError (ValueError)        a malformed socketcand line
 

@@ -19,11 +19,8 @@ What lives where:
 * :mod:`motor_driver.runtime.health`, :mod:`motor_driver.bus.load` - pure judgements for the nodes and the
   CLI: a drive's health, the bus load a config makes
 * :mod:`motor_driver.rover` - the rover's kinematics and odometry (pure; the drive system feeds them)
-* :mod:`motor_driver.recorder` - the flight recorder, and reading its incidents and CAN
-  recordings back; :mod:`motor_driver.protocol.errorframes` - SocketCAN error frames decoded;
-  :mod:`motor_driver.busview`, :mod:`motor_driver.ros2defs`, :mod:`motor_driver.cdr`,
-  :mod:`motor_driver.mcap_out` - the bus as ROS 2 messages (no rclpy), their CDR, for MCAP files
-  and the live Foxglove view
+* :mod:`motor_driver.recording` - the flight recorder, CAN recordings read back, and the bus as
+  ROS 2 messages (no rclpy) for MCAP files and the live Foxglove view
 * :mod:`motor_driver.runtime` - the driver at run time: start, supervise, stop; the runtime state
 * :mod:`motor_driver.bus` - one CAN bus: opening it, its network and SYNC, its traffic and link
 * :mod:`motor_driver.protocol` - CANopen and CiA 402 as pure rules and codecs

@@ -54,7 +54,7 @@ def _sim_steps(args: argparse.Namespace) -> list[dict[str, Any]] | None:
         from virtual_can.scenario import load_scenario
         return load_scenario(args.scenario)
     if args.scenario_from_log:
-        from motor_driver.recorder.incident import fault_steps
+        from motor_driver.recording.incident import fault_steps
         steps = fault_steps(args.scenario_from_log, args.scenario_delay)
         if not steps:
             raise ConfigError(f"{args.scenario_from_log}: the incident has no drive faults to replay (no EMCY,"

@@ -1,4 +1,4 @@
-"""motor_driver.cdr encodes each of the project's ROS 2 types byte for byte as mcap-ros2-support's
+"""motor_driver.recording.cdr encodes each of the project's ROS 2 types byte for byte as mcap-ros2-support's
 writer does (read back raw from an MCAP file it wrote), and its reader decodes the bytes to the
 values given; a message that does not fit its type is refused by field name."""
 
@@ -13,8 +13,8 @@ from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer
 
 from can_config.errors import CdrError
-from motor_driver.cdr import encode, fields
-from motor_driver.ros2defs import CAN_FRAME, DEFINITIONS, DIAGNOSTIC_ARRAY, DRIVE_STATUS, JOINT_STATE, schema_text
+from motor_driver.recording.cdr import encode, fields
+from motor_driver.recording.ros2defs import CAN_FRAME, DEFINITIONS, DIAGNOSTIC_ARRAY, DRIVE_STATUS, JOINT_STATE, schema_text
 
 STAMP = {"stamp": {"sec": 1_700_000_000, "nanosec": 123_456_789}, "frame_id": "can0"}
 MOTOR = {"angle": 12.5, "torque": -0.25, "header": STAMP, "name": "wheel_front_left", "velocity": 3.0,

@@ -26,7 +26,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from motor_driver.recorder.incident import FORMAT
+from motor_driver.recording.incident import FORMAT
 from rovercan.cli import main
 
 FORMATS = [".asc", ".blf", ".csv", ".db", ".log", ".trc", ".txt"]

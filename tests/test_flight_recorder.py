@@ -21,8 +21,8 @@ from mcap_ros2.decoder import DecoderFactory
 from can_config import parse_config, with_bus_overrides
 from can_config.config import RecorderConfig
 from motor_driver import MotorDriver
-from motor_driver.recorder import FlightRecorder, IncidentEvent, _enforce_cap
-from motor_driver.recorder.incident import fault_steps, incident_frames, load_incident
+from motor_driver.recording.flight import FlightRecorder, IncidentEvent, _enforce_cap
+from motor_driver.recording.incident import fault_steps, incident_frames, load_incident
 
 from .conftest import IN_PROCESS_HOST_TIMEOUT_MS, REPO, rovercan_sim, wait_for
 

@@ -19,7 +19,7 @@ from rovercan.bench.liveview import SUBPROTOCOL, ClientStats, LiveView
 
 websockets = pytest.importorskip("websockets")
 
-from motor_driver.ros2defs import DIAGNOSTIC_ARRAY  # noqa: E402
+from motor_driver.recording.ros2defs import DIAGNOSTIC_ARRAY  # noqa: E402
 
 #: Bound for hangs, not a verdict.
 HANG_S = 60.0

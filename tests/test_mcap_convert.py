@@ -17,8 +17,8 @@ from mcap.reader import make_reader
 
 from can_config import load_config
 from can_config.eds import load_drive_od
-from motor_driver.busview import DIAGNOSTICS_TOPIC, FRAMES_TOPIC, JOINT_STATES_TOPIC, status_topic
 from motor_driver.protocol.pdo import TT_SYNC, plan_pdos
+from motor_driver.recording.busview import DIAGNOSTICS_TOPIC, FRAMES_TOPIC, JOINT_STATES_TOPIC, status_topic
 
 from .conftest import REPO
 

@@ -15,9 +15,9 @@ from can_config import load_config
 from can_config.config import RecorderConfig
 from motor_driver.drive import DriveState
 from motor_driver.protocol.cia402 import State
-from motor_driver.recorder import FlightRecorder, IncidentEvent
-from motor_driver.recorder.incident import load_incident
-from motor_driver.recorder.plot import draw
+from motor_driver.recording.flight import FlightRecorder, IncidentEvent
+from motor_driver.recording.incident import load_incident
+from motor_driver.recording.plot import draw
 
 from .conftest import REPO
 from .test_mcap import ROVER, decoded, rover_frames
@@ -89,7 +89,7 @@ def test_the_plot_helper_says_why_there_is_no_plot(tmp_path: Path) -> None:
     finally:
         recorder.close()
     assert load_incident(written)["plot_skipped"] == "no drive states recorded"
-    helper = subprocess.run([sys.executable, "-W", "error::RuntimeWarning", "-m", "motor_driver.recorder", str(written)],
+    helper = subprocess.run([sys.executable, "-W", "error::RuntimeWarning", "-m", "motor_driver.recording", str(written)],
                             cwd=REPO, capture_output=True, text=True, timeout=120)
     assert helper.returncode == 1 and "no plot:" in helper.stderr and "no drive states" in helper.stderr, helper.stderr
     assert "RuntimeWarning" not in helper.stderr

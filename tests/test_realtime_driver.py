@@ -21,7 +21,7 @@ import os, sys, threading
 from pathlib import Path
 from can_config.config import RecorderConfig
 from can_config.realtime import make_process_realtime
-from motor_driver.recorder import FlightRecorder
+from motor_driver.recording.flight import FlightRecorder
 
 assert make_process_realtime("test", 10)
 recorder = FlightRecorder(RecorderConfig(dir=Path(sys.argv[1]).parent, plot=True), {"wheel": ("can0", 1)},

@@ -19,7 +19,7 @@ import pytest
 from can_config import config_to_dict, with_bus_overrides
 from can_config.config import RecorderConfig
 from motor_driver.process.ratelimit import RateLimitedLog
-from motor_driver.recorder import REPEAT_WINDOW_S, FlightRecorder
+from motor_driver.recording.flight import REPEAT_WINDOW_S, FlightRecorder
 from virtual_can import SimService
 
 from .conftest import REPO, make_config, wait_for
@@ -38,7 +38,7 @@ def test_an_unwritable_directory_is_one_warning_and_the_incidents_are_kept(tmp_p
     blocker = tmp_path / "a-file"
     blocker.write_text("not a directory")
     rec = recorder(blocker / "incidents", plot=False)  # a path under a file: no one can create it, not even root
-    caplog.set_level(logging.DEBUG, logger="motor_driver.recorder")
+    caplog.set_level(logging.DEBUG, logger="motor_driver.recording.flight")
     try:
         for i, kind in enumerate(("emcy", "heartbeat_lost", "watchdog_stop")):
             rec.trigger(kind, "can0", node=1, t=1000.0 + i)

@@ -36,7 +36,7 @@ from motor_driver.bus.adapters import GuardedNetwork, ReceiveErrors, brief_error
 from motor_driver.bus.connect import is_kernel_bus
 from motor_driver.bus.cyclic import DaemonCyclicTask
 from motor_driver.bus.traffic import BusStats, ForeignTraffic
-from motor_driver.recorder import FlightRecorder
+from motor_driver.recording.flight import FlightRecorder
 
 logger = logging.getLogger(__name__)
 

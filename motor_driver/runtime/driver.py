@@ -19,7 +19,7 @@ Threads and what they own:
   reports its result to the supervisor.
 - the caller's threads: commands, each decided and sent through the drive's command channel
   (its one lock, held only to decide and send a frame).
-- the flight recorder's writer (``rovercan-recorder``, :mod:`motor_driver.recorder`): the
+- the flight recorder's writer (``rovercan-recorder``, :mod:`motor_driver.recording.flight`): the
   others append frames, states and incidents to it without waiting; it writes the files.
 
 The host heartbeat (node ``host_node_id``, every ``host_heartbeat_ms``) is sent by the
@@ -72,7 +72,7 @@ from motor_driver.bus.traffic import (
 )
 from motor_driver.drive import Drive, DriveState
 from motor_driver.protocol.cia402 import State
-from motor_driver.recorder import FlightRecorder
+from motor_driver.recording.flight import FlightRecorder
 from motor_driver.runtime.supervisor import SUPERVISOR_PERIOD_S, Supervisor
 
 logger = logging.getLogger(__name__)

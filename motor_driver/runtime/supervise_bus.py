@@ -24,7 +24,7 @@ from motor_driver.bus.handle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILI
 from motor_driver.bus.link import KernelBusHealth, read_kernel_health
 from motor_driver.drive import Drive
 from motor_driver.process.ratelimit import RateLimitedLog
-from motor_driver.recorder import FlightRecorder
+from motor_driver.recording.flight import FlightRecorder
 from motor_driver.runtime.ledger import BusBack, BusDown, BusRuntime, DriveRuntime, Event
 
 logger = logging.getLogger(__name__)

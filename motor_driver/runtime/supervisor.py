@@ -30,7 +30,7 @@ from motor_driver.bus.handle import BusHandle
 from motor_driver.bus.traffic import FOREIGN_HOLD_S, FOREIGN_RELEASE_S
 from motor_driver.drive import Drive
 from motor_driver.process.ratelimit import RateLimitedLog
-from motor_driver.recorder import FlightRecorder
+from motor_driver.recording.flight import FlightRecorder
 from motor_driver.runtime.ledger import (
     Booted,
     Booting,

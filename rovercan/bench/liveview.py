@@ -1,6 +1,6 @@
 """The live view's server: the Foxglove WebSocket protocol (subprotocol ``foxglove.websocket.v1``,
 which Foxglove, Lichtblick and ros-foxglove-bridge's clients speak) on the websockets library,
-messages as ROS 2 CDR (:mod:`motor_driver.cdr`).
+messages as ROS 2 CDR (:mod:`motor_driver.recording.cdr`).
 
 A client gets ``serverInfo`` and the ``advertise`` of every channel when it connects; it
 subscribes to the channels it shows, and a message is encoded only while some client subscribes
@@ -32,9 +32,9 @@ from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
 from can_config.errors import ConfigError
-from motor_driver.cdr import encode
 from motor_driver.process.ratelimit import RateLimitedLog
-from motor_driver.ros2defs import schema_text
+from motor_driver.recording.cdr import encode
+from motor_driver.recording.ros2defs import schema_text
 
 logger = logging.getLogger(__name__)
 
@@ -110,7 +110,7 @@ class ClientStats:
 class LiveView:
     """The server of ``channels`` ((topic, ROS 2 type) pairs) on ``host``:``port`` (0: any free
     one; :attr:`port` says which) until :meth:`close`. Call it as a
-    :data:`motor_driver.busview.Emit`: ``view(topic, type, message, time_ns)``."""
+    :data:`motor_driver.recording.busview.Emit`: ``view(topic, type, message, time_ns)``."""
 
     def __init__(self, channels: list[tuple[str, str]], host: str, port: int, *, queue_size: int = CLIENT_QUEUE,
                  ping_interval_s: float | None = 20.0) -> None:

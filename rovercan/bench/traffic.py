@@ -21,7 +21,7 @@ from can_config.eds import variable
 from can_config.errors import ConfigError
 from can_config.objects import OD, STRUCT_FORMAT
 from motor_driver.process.stop import StopSignal
-from motor_driver.recorder.recording import read_recording
+from motor_driver.recording.files import read_recording
 from rovercan.argtypes import real, whole
 from rovercan.bench.common import add_bus_args, add_json, emit, open_bus, receive
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
@@ -206,7 +206,7 @@ EVENTS_SHOWN = 50
 
 def cmd_incident(args: argparse.Namespace) -> int:
     """The summary the flight recorder wrote, or its drives' faults as a simulator scenario."""
-    from motor_driver.recorder.incident import fault_steps, load_incident
+    from motor_driver.recording.incident import fault_steps, load_incident
 
     summary = load_incident(args.file)
     if args.scenario:
@@ -229,7 +229,7 @@ def cmd_incident(args: argparse.Namespace) -> int:
           f" (buses {', '.join(summary['channels'].values())}); files: {summary['blf']}"
           f"{', ' + summary['png'] if summary.get('png') else ''}")
     if summary.get("plot_skipped"):
-        print(f"no plot: {summary['plot_skipped']}; draw it with: python -m motor_driver.recorder"
+        print(f"no plot: {summary['plot_skipped']}; draw it with: python -m motor_driver.recording"
               f" {Path(args.file).with_suffix('.json')}")
     emit(args, events, "events", ["t_s", "kind", "bus", "drive", "node", "code", "what"])
     if len(shown) < len(every):

@@ -1,7 +1,7 @@
 """The bus as ROS 2 messages on the bench: ``record FILE.mcap``, ``decode FILE -o OUT.mcap`` and the
 live Foxglove view (``monitor --foxglove PORT``, also started by ``sim`` and ``launch``).
 
-The messages are :class:`motor_driver.busview.BusView`'s; this module opens the buses (every bus
+The messages are :class:`motor_driver.recording.busview.BusView`'s; this module opens the buses (every bus
 of ``--config`` unless ``-c`` or bus arguments name one), reads them (a thread per bus, each
 frame handed to the command's thread through a queue) and serves (:mod:`rovercan.bench.liveview`)
 or writes what the view makes.
@@ -26,9 +26,9 @@ import can
 from can_config import load_config
 from can_config.errors import BusLostError, ConfigError
 from can_config.model import RoverConfig
-from motor_driver.busview import BusView, Frame, view_drives
 from motor_driver.process.stop import StopSignal
-from motor_driver.recorder.recording import iter_recording
+from motor_driver.recording.busview import BusView, Frame, view_drives
+from motor_driver.recording.files import iter_recording
 from motor_driver.runtime.driver import open_bus as driver_open_bus
 from rovercan.bench.common import connect_timeout, open_bus, receive
 
@@ -113,7 +113,7 @@ def config_of(args: argparse.Namespace) -> RoverConfig | None:
 
 def record_mcap(args: argparse.Namespace) -> int:
     """``rovercan record FILE.mcap``: frames and, with --config, every drive decoded."""
-    from motor_driver.mcap_out import McapSink
+    from motor_driver.recording.mcap_out import McapSink
 
     config = config_of(args)
     buses = open_buses(args)
@@ -150,7 +150,7 @@ def recording_frames(path: str, config: RoverConfig | None) -> Iterator[Frame]:
 
 def decode_mcap(args: argparse.Namespace) -> int:
     """``rovercan decode FILE -o OUT.mcap``: the recording as ROS 2 messages."""
-    from motor_driver.mcap_out import write_mcap
+    from motor_driver.recording.mcap_out import write_mcap
 
     if Path(args.output).suffix.lower() != ".mcap":
         raise ConfigError(f"-o {args.output}: decode writes .mcap files; name it OUT.mcap")

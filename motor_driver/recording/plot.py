@@ -1,5 +1,5 @@
 """The incident's PNG: angle, velocity, torque and CiA 402 state of every drive around it,
-drawn from the states its JSON carries (``python -m motor_driver.recorder INCIDENT.json``, a
+drawn from the states its JSON carries (``python -m motor_driver.recording INCIDENT.json``, a
 helper process at low priority).
 
 What the driver did not know is drawn as missing: a sample of a drive lost or stale carries no
@@ -91,11 +91,11 @@ def plot_incident(json_path: Path) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m motor_driver.recorder INCIDENT.json``: draw its PNG, at low priority; when it
+    """``python -m motor_driver.recording INCIDENT.json``: draw its PNG, at low priority; when it
     cannot, say why."""
     args = list(sys.argv[1:] if argv is None else argv)
     if len(args) != 1:
-        print("usage: python -m motor_driver.recorder INCIDENT.json", file=sys.stderr)
+        print("usage: python -m motor_driver.recording INCIDENT.json", file=sys.stderr)
         return 2
     try:
         os.nice(10)

@@ -2,7 +2,7 @@
 by its EDS and the driver's PDO map, for MCAP files and the live Foxglove view.
 
 :class:`BusView` takes frames (:data:`Frame`, time-ordered) and hands out messages as plain dicts
-(``emit(topic, type, message, time_ns)``, types from :mod:`motor_driver.ros2defs`):
+(``emit(topic, type, message, time_ns)``, types from :mod:`motor_driver.recording.ros2defs`):
 
 - ``/can/frames`` (rovercan_msgs/CanFrame): each frame, its bus, id, flags, data and time;
 - ``/joint_states`` (sensor_msgs/JointState): the drives' angle (rad), velocity (rad/s) and
@@ -33,7 +33,7 @@ from can_config.objects import OD, FunctionCode, NmtState, OperationMode, emcy_t
 from motor_driver.protocol.cia402 import FAULT_STATES, State, decode_state
 from motor_driver.protocol.pdo import TpdoLayout, plan_pdos
 from motor_driver.protocol.units import Scale
-from motor_driver.ros2defs import CAN_FRAME, DIAGNOSTIC_ARRAY, DRIVE_STATUS, JOINT_STATE
+from motor_driver.recording.ros2defs import CAN_FRAME, DIAGNOSTIC_ARRAY, DRIVE_STATUS, JOINT_STATE
 
 #: One frame: time.time(), bus name, COB-ID, extended, remote, error frame, DLC, data.
 Frame = tuple[float, str, int, bool, bool, bool, int, bytes]

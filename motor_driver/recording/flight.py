@@ -9,7 +9,7 @@ history). Each writes, into the configured directory (capped in size, oldest fir
   the JSON names the bus of each BLF channel),
 - ``<stamp>-<kind>-<who>.json``: the summary (``rovercan incident FILE`` prints it),
 - ``<stamp>-<kind>-<who>.png``: angle, velocity, torque and state of every drive around it,
-  drawn by a helper process at low priority (``python -m motor_driver.recorder FILE.json``,
+  drawn by a helper process at low priority (``python -m motor_driver.recording FILE.json``,
   :mod:`.plot`) from the states the JSON carries: matplotlib in the driver's process would hold
   its interpreter for a second or more, and the host heartbeat with it. While the process is
   starved (its host heartbeat went out late within NO_PLOT_AFTER_LATE_S) the plot waits until it
@@ -54,9 +54,9 @@ from can_config.model import RoverConfig
 from can_config.objects import emcy_text
 from can_config.realtime import ordinary_thread
 from motor_driver.drive import DriveState
-from motor_driver.recorder.incident import FORMAT
-from motor_driver.recorder.incident_mcap import write_incident_mcap
-from motor_driver.recorder.plot import plot_incident, state_series
+from motor_driver.recording.incident import FORMAT
+from motor_driver.recording.incident_mcap import write_incident_mcap
+from motor_driver.recording.plot import plot_incident, state_series
 
 __all__ = ["INCIDENT_KINDS", "FlightRecorder", "Frame", "IncidentEvent", "plot_incident"]
 
@@ -293,7 +293,7 @@ class FlightRecorder:
             if late:
                 summary["plot_deferred"] = (f"the host heartbeat went out late within {NO_PLOT_AFTER_LATE_S:.0f} s:"
                                             " drawn once it has been on time that long, or when the driver stops")
-        else:  # why there is none (`python -m motor_driver.recorder INCIDENT.json` still draws what it can)
+        else:  # why there is none (`python -m motor_driver.recording INCIDENT.json` still draws what it can)
             summary["plot_skipped"] = ("plot: false in the recorder config" if not self.config.plot else
                                        "no drive states recorded")
         json_path.write_text(json.dumps(summary, indent=1) + "\n")
@@ -327,7 +327,7 @@ class FlightRecorder:
         host heartbeat with it."""
         self._helpers = [p for p in self._helpers if p.poll() is None]
         with ordinary_thread():  # the helper takes this thread's scheduling: never the driver's SCHED_FIFO
-            self._helpers.append(subprocess.Popen([sys.executable, "-m", "motor_driver.recorder", str(json_path)],
+            self._helpers.append(subprocess.Popen([sys.executable, "-m", "motor_driver.recording", str(json_path)],
                                                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                                   stderr=subprocess.DEVNULL))
 

@@ -1,5 +1,5 @@
 """The flight recorder's incident files read back: the driver writes them
-(:mod:`motor_driver.recorder`), the CLI prints them (``rovercan incident``) and turns them into a
+(:mod:`motor_driver.recording.flight`), the CLI prints them (``rovercan incident``) and turns them into a
 simulator scenario (``rovercan sim --scenario-from-log``; the simulator itself never reads one).
 
 An incident is ``<stem>.json`` (this summary) beside ``<stem>.blf`` (every frame of every bus,
@@ -18,7 +18,7 @@ import can
 
 from can_config.errors import ConfigError
 from can_config.textfile import read_text_file
-from motor_driver.recorder.recording import RECORDING_ERRORS, blf_problem, frame_problem
+from motor_driver.recording.files import RECORDING_ERRORS, blf_problem, frame_problem
 
 FORMAT = "rovercan-incident-1"
 #: A drive's heartbeat gap longer than this many of its periods (and SILENCE_MIN_S) is a silence.

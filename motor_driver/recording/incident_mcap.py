@@ -1,6 +1,6 @@
 """An incident's frames as an MCAP file beside its BLF (ROS 2 messages, as Foxglove and
 ``ros2 bag`` open them): the raw frames, and with the rover's config every drive decoded
-(:class:`motor_driver.busview.BusView`), the incident's events as diagnostics at their times."""
+(:class:`motor_driver.recording.busview.BusView`), the incident's events as diagnostics at their times."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from can_config.model import RoverConfig
-from motor_driver.busview import ERROR, BusView, Frame, view_drives
-from motor_driver.mcap_out import McapSink
+from motor_driver.recording.busview import ERROR, BusView, Frame, view_drives
+from motor_driver.recording.mcap_out import McapSink
 
 
 def write_incident_mcap(path: Path, frames: Sequence[Frame], events: Sequence[tuple[float, str, str]],

@@ -1,4 +1,4 @@
-"""CDR of the project's ROS 2 messages (:mod:`motor_driver.ros2defs`), as rclpy serializes them:
+"""CDR of the project's ROS 2 messages (:mod:`motor_driver.recording.ros2defs`), as rclpy serializes them:
 pure, no rclpy, from the definitions' own text. The live Foxglove view sends these bytes.
 
 The encoding (OMG CDR, little-endian, as ROS 2's Fast DDS and Cyclone write it): a 4-byte
@@ -21,7 +21,7 @@ from functools import cache
 from typing import Any
 
 from can_config.errors import CdrError
-from motor_driver.ros2defs import DEFINITIONS
+from motor_driver.recording.ros2defs import DEFINITIONS
 
 #: Primitive type -> its struct format (its size is its alignment).
 PRIMITIVES = {"bool": "?", "byte": "B", "char": "B", "uint8": "B", "int8": "b", "uint16": "H", "int16": "h",

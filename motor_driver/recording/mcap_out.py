@@ -14,8 +14,8 @@ from types import TracebackType
 from typing import IO, Any
 
 from can_config.model import RoverConfig
-from motor_driver.busview import BusView, Frame, view_drives
-from motor_driver.ros2defs import schema_text
+from motor_driver.recording.busview import BusView, Frame, view_drives
+from motor_driver.recording.ros2defs import schema_text
 
 logger = logging.getLogger(__name__)
 
@@ -26,7 +26,7 @@ LIBRARY = "rovercan"
 
 class McapSink:
     """An MCAP file being written; call it with (topic, type, message, time ns) as
-    :data:`motor_driver.busview.Emit`. ``close()`` writes the summary; it is idempotent."""
+    :data:`motor_driver.recording.busview.Emit`. ``close()`` writes the summary; it is idempotent."""
 
     def __init__(self, path: str | Path, metadata: dict[str, str] | None = None) -> None:
         from mcap.writer import CompressionType

@@ -1,8 +1,0 @@
-"""``python -m motor_driver.recorder INCIDENT.json``: draw the incident's PNG (a module of its
-own, so that runpy does not run the package already imported by the driver)."""
-
-import sys
-
-from motor_driver.recorder.plot import main
-
-sys.exit(main())

@@ -1,0 +1,8 @@
+"""``python -m motor_driver.recording INCIDENT.json``: draw the incident's PNG (a module of its
+own, so that runpy does not run the package already imported by the driver)."""
+
+import sys
+
+from motor_driver.recording.plot import main
+
+sys.exit(main())
