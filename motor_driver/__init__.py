@@ -24,9 +24,10 @@ What lives where:
   recordings back; :mod:`motor_driver.errorframes` - SocketCAN error frames decoded;
   :mod:`motor_driver.busview`, :mod:`motor_driver.ros2defs`, :mod:`motor_driver.mcap_out` - the
   bus as ROS 2 messages (no rclpy), for MCAP files and the live Foxglove view
-* :mod:`motor_driver.stop`, :mod:`motor_driver.heap`, :mod:`motor_driver.ratelimit` - a
-  process's life: stop on signals, the heap settled once built, repeated log lines at a bounded
-  rate (used by the driver, the nodes and the CLI; the simulator needs none of them, so they are
+* :mod:`motor_driver.stop`, :mod:`motor_driver.heap`, :mod:`motor_driver.ratelimit`,
+  :mod:`motor_driver.jobs` - a process's life: stop on signals, the heap settled once built,
+  repeated log lines at a bounded rate, background jobs supervised (an unexpected exception
+  counted, logged and retried) (used by the driver, the nodes and the CLI; the simulator needs none of them, so they are
   here and not in ``can_config``)
 
     from can_config import load_config
