@@ -70,6 +70,8 @@ INCIDENT_KINDS = ("emcy", "heartbeat_lost", "watchdog_stop", "bus_lost", "host_l
 WRITER_POLL_S = 0.2
 #: The drives' states are kept from every SAMPLE_EVERY-th supervisor pass (20 Hz).
 SAMPLE_EVERY = 5
+#: The same EMCY of a node again within this long is no new incident (the frames are kept all the same).
+EMCY_REPEAT_S = 1.0
 #: close() waits this long for a plot still being drawn.
 PLOT_WAIT_S = 5.0
 #: An incident of the kind and drive (or bus) of one written within this long is counted in
@@ -101,13 +103,17 @@ class _BusTap(can.Listener):
     def __init__(self, recorder: FlightRecorder, bus: str) -> None:
         self.recorder = recorder
         self.bus = bus
+        self._emcy_said: dict[int, tuple[int, float]] = {}  # node -> (code, when) of its last EMCY incident
 
     def on_message_received(self, msg: can.Message) -> None:
         self.recorder.append(self.bus, msg)
         cob = msg.arbitration_id
         if 0x081 <= cob <= 0x0FF and not msg.is_extended_id and len(msg.data) >= 3:
             code = int.from_bytes(msg.data[:2], "little")
-            if code:
+            said_code, said_at = self._emcy_said.get(cob, (0, -EMCY_REPEAT_S))
+            now = time.monotonic()
+            if code and (code != said_code or now - said_at >= EMCY_REPEAT_S):  # a babbling node: one a second
+                self._emcy_said[cob] = (code, now)
                 self.recorder.trigger("emcy", self.bus, node=cob - 0x80, code=code, text=emcy_text(code),
                                       t=msg.timestamp or time.time())
 
