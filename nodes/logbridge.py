@@ -1,4 +1,7 @@
-"""Bridge Python logging (the core's loggers) to a node's rclpy logger."""
+"""Bridge Python logging to a node's rclpy logger: the core's loggers, the nodes' own module
+loggers (``nodes.*``: a worker's line, a refused goal) and the libraries' (canopen's "Transfer
+aborted by client ...", python-can's). A logger with no handler of its own would otherwise reach
+Python's last-resort handler, which writes to the terminal outside the ROS log."""
 
 from __future__ import annotations
 
@@ -29,17 +32,27 @@ class RclpyLogHandler(logging.Handler):
             self.handleError(record)
 
 
+#: Loggers bridged at the node's level: the core's and the nodes' own.
+OWN_LOGGERS = ("motor_driver", "can_config", "virtual_can", "nodes")
+#: The libraries' loggers, bridged from WARNING (their INFO and DEBUG are their internals).
+LIBRARY_LOGGERS = ("canopen", "can")
+
+
 def bridge_core_logging(node: Node, level: int = logging.INFO) -> RclpyLogHandler:
     handler = RclpyLogHandler(node)
-    for name in ("motor_driver", "can_config", "virtual_can"):
+    for name in OWN_LOGGERS:
         core = logging.getLogger(name)
         core.addHandler(handler)
         core.setLevel(level)
+    for name in LIBRARY_LOGGERS:
+        library = logging.getLogger(name)
+        library.addHandler(handler)
+        library.setLevel(max(level, logging.WARNING))
     # python-can's socketcand client warns on every TCP read that splits a line: noise
     logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
     return handler
 
 
 def unbridge(handler: RclpyLogHandler) -> None:
-    for name in ("motor_driver", "can_config", "virtual_can"):
+    for name in OWN_LOGGERS + LIBRARY_LOGGERS:
         logging.getLogger(name).removeHandler(handler)
