@@ -78,6 +78,7 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     allowed = [c for c in safety if c.status == ALLOWED]
     values["data_age_s"] = "never" if math.isinf(state.data_age_s) else f"{state.data_age_s:.3f}"
     values["foreign_master"] = state.foreign_master
+    graded = rejections(state, values, rejected, rejected_age_s)  # its values whatever the grade
     if bus_lost:
         return Health(ERROR, "bus lost", values)
     if state.foreign_master:
@@ -91,7 +92,6 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     if failed:
         return Health(ERROR, "safety check failed: " + "; ".join(f"{c.check} ({c.object} is {c.actual},"
                                                                  f" expected {c.expected})" for c in failed), values)
-    graded = rejections(state, values, rejected, rejected_age_s)
     if graded is not None:
         return graded
     if state.stale and state.nmt == "OPERATIONAL":

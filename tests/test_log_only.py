@@ -6,12 +6,15 @@ logger, Python's last-resort handler and a thread's traceback would each be one)
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import signal
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 from virtual_can import SimDriveSpec, SimService
 from virtual_can.scenario import apply_action
@@ -61,4 +64,31 @@ def test_a_run_with_a_lost_drive_writes_nothing_outside_the_log(tmp_path: Path) 
     assert "heartbeat lost" in said()
     assert "Transfer aborted by client" in said()  # canopen's line, through the log
     outside = [line for line in out + err if not ROS_LINE.match(line)]
+    assert not outside, "".join(outside)
+
+
+def test_a_node_modules_line_and_canopens_go_through_the_ros_log(capfd: pytest.CaptureFixture[str]) -> None:
+    import rclpy
+
+    from nodes.logbridge import bridge_core_logging, unbridge
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("log_check", context=context)
+    handler = bridge_core_logging(node)
+    try:
+        logging.getLogger("nodes.actions").warning("goal for unknown joint %r refused; joints: %s", "wheel_x", ["a"])
+        logging.getLogger("nodes.drive_system").warning("drive system: %s left out, its quick stop failed (%s)", "b",
+                                                        "timeout")
+        logging.getLogger("canopen.sdo.client").error("Transfer aborted by client with code 0x%08X", 0x05040000)
+    finally:
+        unbridge(handler)
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+    out, err = capfd.readouterr()
+    lines = (out + err).splitlines(keepends=True)
+    for text in ("goal for unknown joint 'wheel_x' refused", "drive system: b left out",
+                 "Transfer aborted by client with code 0x05040000"):
+        assert any(text in line and ROS_LINE.match(line) for line in lines), (text, lines)
+    outside = [line for line in lines if not ROS_LINE.match(line)]
     assert not outside, "".join(outside)

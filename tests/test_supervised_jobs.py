@@ -154,7 +154,7 @@ def rejected_count(driver: MotorDriver) -> int:
     return 0 if rejected is None else rejected.count
 
 
-def test_the_driver_status_on_diagnostics_says_a_failed_job(driver_factory: DriverFactory,
+def test_diagnostics_say_a_failed_job_and_rejected_frames(driver_factory: DriverFactory,
                                                             monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("rclpy")
     from diagnostic_msgs.msg import DiagnosticArray
@@ -164,6 +164,13 @@ def test_the_driver_status_on_diagnostics_says_a_failed_job(driver_factory: Driv
     from .conftest import driver_node_spinning
 
     sim, driver = driver_factory(make_config(1))
+    network = driver.buses["can0"].network
+
+    def broken_decoding(cob_id: int, data: bytearray, timestamp: float) -> None:
+        raise Boom("cannot decode")
+
+    network.subscribe(0x701, broken_decoding)  # beside the drive's own: its heartbeats still count
+    wait_for(lambda: rejected_count(driver) > 0, 10.0, "a heartbeat rejected")
     opening, _ = failing(1_000_000, supervise_bus_module.open_bus)
     monkeypatch.setattr(supervise_bus_module, "open_bus", opening)
     apply_action(sim, {"action": "disconnect_clients"})
@@ -171,9 +178,10 @@ def test_the_driver_status_on_diagnostics_says_a_failed_job(driver_factory: Driv
     with driver_node_spinning(driver) as probe:
         probe.create_subscription(DiagnosticArray, "/diagnostics", seen.append, DIAGNOSTICS_QOS)
 
-        def said() -> bool:
-            return any(s.name == "rovercan: driver" and s.level == bytes([WARN]) and "Boom" in s.message
-                       and any(kv.key == "reconnect" and kv.value != "0" for kv in s.values)
+        def said(name: str, key: str) -> bool:
+            return any(s.name == name and s.level >= bytes([WARN]) and "Boom" in s.message + str(s.values)
+                       and any(kv.key == key and kv.value != "0" for kv in s.values)
                        for array in seen for s in array.status)
 
-        wait_for(said, 30.0, "the failed reconnect on /diagnostics")
+        wait_for(lambda: said("rovercan: driver", "reconnect"), 30.0, "the failed reconnect on /diagnostics")
+        wait_for(lambda: said("rovercan: joint1", "rejected_frames"), 30.0, "the rejected frames on /diagnostics")
