@@ -12,6 +12,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -25,6 +26,8 @@ pytestmark = requires_ros
 
 #: rcutils' console format: "[SEVERITY] [seconds.nanoseconds] [logger]: message".
 ROS_LINE = re.compile(r"^\[(DEBUG|INFO|WARN|ERROR|FATAL)\] \[\d+\.\d+\] \[[\w./-]+\]: ")
+#: The traceback a log line carries, after it (the bridge puts it in the line's text).
+TRACEBACK_LINE = re.compile(r"^(Traceback \(most recent call last\):|  |\S*Boom: in a thread$)")
 
 
 def test_a_run_with_a_lost_drive_writes_nothing_outside_the_log(tmp_path: Path) -> None:
@@ -81,6 +84,9 @@ def test_a_node_modules_line_and_canopens_go_through_the_ros_log(capfd: pytest.C
         logging.getLogger("nodes.drive_system").warning("drive system: %s left out, its quick stop failed (%s)", "b",
                                                         "timeout")
         logging.getLogger("canopen.sdo.client").error("Transfer aborted by client with code 0x%08X", 0x05040000)
+        thread = threading.Thread(target=boom, name="test-boom")
+        thread.start()
+        thread.join(10.0)
     finally:
         unbridge(handler)
         node.destroy_node()
@@ -88,7 +94,15 @@ def test_a_node_modules_line_and_canopens_go_through_the_ros_log(capfd: pytest.C
     out, err = capfd.readouterr()
     lines = (out + err).splitlines(keepends=True)
     for text in ("goal for unknown joint 'wheel_x' refused", "drive system: b left out",
-                 "Transfer aborted by client with code 0x05040000"):
+                 "Transfer aborted by client with code 0x05040000", "thread test-boom ended: Boom: in a thread"):
         assert any(text in line and ROS_LINE.match(line) for line in lines), (text, lines)
-    outside = [line for line in lines if not ROS_LINE.match(line)]
+    outside = [line for line in lines if not ROS_LINE.match(line) and not TRACEBACK_LINE.match(line)]
     assert not outside, "".join(outside)
+
+
+class Boom(Exception):
+    """An exception of a type no code names."""
+
+
+def boom() -> None:
+    raise Boom("in a thread")
