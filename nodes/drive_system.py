@@ -10,7 +10,10 @@ trusted wheel stops the integration (pose kept, twist zero, every variance 1e6) 
 
 Owner: the executor thread that runs its tick (the driver node's state timer, or its own),
 which alone touches the ramp, the odometry and the wheels-out book; a wheel left out is told to
-stop on a worker of its own (a stop waits for the drive; the tick never does). A wheel's
+stop on a worker of its own (a stop waits for the drive; the tick never does); the tick reads
+each stop's result: a stop that failed (whatever it raised) is logged with its cause, counted,
+said in /diagnostics (ERROR until a stop of that wheel succeeds) and tried again after
+STOP_RETRY_S. A wheel's
 velocity that must wait for the drive (its first, a switch to profile velocity) goes through the
 driver node's handoff (nodes/handoff.py), whose worker hands a refusal back to the next tick.
 """
@@ -35,6 +38,7 @@ from can_config import RoverConfig
 from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive import DriveState
+from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.rover.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
 from motor_driver.rover.skid_steer import SkidSteer, Twist2D
 from nodes.handoff import Handoff
@@ -50,6 +54,8 @@ logger = logging.getLogger(__name__)
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 #: the drive system's own /diagnostics status, besides every change of it
 DIAGNOSTICS_PERIOD_S = 1.0
+#: A wheel's stop that failed is tried again after this long.
+STOP_RETRY_S = 0.5
 #: tf2's own publishers keep 100 (a late listener's buffer fills from them)
 TF_QOS = QoSProfile(depth=100)
 
@@ -94,6 +100,10 @@ class DriveSystemNode(Node):
         self.last_odometry = OdometryStep(self.odometry.pose, Twist2D(), False, "odometry: no wheel sampled yet")
         self._stopper = ThreadPoolExecutor(1, thread_name_prefix="drive_system-stop")
         self._stops: dict[str, Future[None]] = {}
+        self._stop_retry_at: dict[str, float] = {}  # a failed stop's next try (the tick's)
+        self.stop_failing: dict[str, str] = {}  # a wheel whose last stop failed, and why (the tick's)
+        self.stop_failures = 0  # stops that failed so far (the tick's)
+        self._stop_log = RateLimitedLog(logger)
         self._odom_frame = str(self.get_parameter("odom_frame").value)
         self._base_frame = str(self.get_parameter("base_frame").value)
         self.create_subscription(Twist, "/cmd_vel", self._on_cmd_vel, SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS)
@@ -200,8 +210,11 @@ class DriveSystemNode(Node):
         stop and left out; the body's limits shrink to the wheels left."""
         assert self.wheels_out is not None
         went, back = self.wheels_out.update(states, driving=self.active or not self.stale)
-        for name in went + self.wheels_out.still_running(states):
-            self._tell_to_stop(name)
+        now = time.monotonic()
+        self._read_stops(now)
+        for name in [*self.stop_failing, *went, *self.wheels_out.still_running(states)]:
+            if now >= self._stop_retry_at.get(name, 0.0):
+                self._tell_to_stop(name)
         for name in went:
             self.get_logger().warning(f"degraded: {name} out ({self.wheels_out.out[name].reason}); driving on the others")
         for name in back:
@@ -232,11 +245,29 @@ class DriveSystemNode(Node):
 
     @staticmethod
     def _quick_stop(drive: Drive) -> None:
-        try:
-            drive.quick_stop()
-        except RovercanError as err:  # it cannot hear us: its own host watch stops it
-            logger.warning("drive system: %s left out, its quick stop failed (%s); it stops by itself when it"
-                           " hears no heartbeat from this host", drive.name, err)
+        drive.quick_stop()  # what it raises is read by the tick (_failed_stops)
+
+    def _read_stops(self, now: float) -> None:
+        """The tick: each finished stop read; a wheel whose stop failed, whatever the failure was,
+        is in ``stop_failing`` (tried again once STOP_RETRY_S passed) until a stop of it succeeds."""
+        for name, stop in list(self._stops.items()):
+            if not stop.done():
+                continue
+            del self._stops[name]
+            err = None if stop.cancelled() else stop.exception()
+            if err is None:
+                self.stop_failing.pop(name, None)
+                continue
+            self.stop_failures += 1
+            self.stop_failing[name] = f"{type(err).__name__}: {err}"
+            self._stop_retry_at[name] = now + STOP_RETRY_S
+            if isinstance(err, RovercanError):  # it cannot hear us: its own host watch stops it
+                self._stop_log.log(logging.WARNING, (name, "refused"), "drive system: %s left out, its quick stop"
+                                   " failed (%s); it stops by itself when it hears no heartbeat from this host;"
+                                   " tried again", name, err)
+            else:
+                self._stop_log.log(logging.ERROR, (name, type(err)), "drive system: %s left out, its quick stop"
+                                   " failed unexpectedly (%s); tried again", name, self.stop_failing[name])
 
     def _halt(self, reason: str) -> None:
         """Stop every wheel that still runs and forget the ramp, so that nothing (a stale
@@ -301,7 +332,11 @@ class DriveSystemNode(Node):
         """The drive system's level, message and values for /diagnostics."""
         odom = self.last_odometry
         values = {"on_wheel_loss": self.system.on_wheel_loss, "odometry": "integrating" if odom.trusted else
-                  odom.why_not, "wheels_out": self.wheels_out.summary() if self.wheels_out else "", "driving": str(self.active)}
+                  odom.why_not, "wheels_out": self.wheels_out.summary() if self.wheels_out else "", "driving": str(self.active),
+                  "stop_failures": str(self.stop_failures)}
+        if self.stop_failing:
+            return ERROR, "a wheel's stop failed, tried again: " + "; ".join(
+                f"{name} ({why})" for name, why in self.stop_failing.items()), values
         if self.halted:
             return ERROR, f"stopped: {self.halted}" + ("" if odom.trusted else f"; {odom.why_not}"), values
         if self.wheels_out is not None and self.wheels_out.out:

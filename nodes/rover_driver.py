@@ -267,10 +267,13 @@ class DriverNode(Node):
             stamp_header(array.header, time.time())
             for name, drive in self.drives.items():
                 refused, last = self.refusals.take(name)
+                rejected = self.driver.rejected(drive)
                 health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s,
                                       refused_since_last=refused, last_refusal=last,
                                       bus_lost=self.driver.bus_lost.get(drive.config.bus, False),
-                                      tpdos_applied=drive.cache.tpdo_count, safety=drive.boot.safety)
+                                      tpdos_applied=drive.cache.tpdo_count, safety=drive.boot.safety,
+                                      rejected=rejected, rejected_age_s=time.monotonic() - rejected.at
+                                      if rejected is not None else math.inf)
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
                     hardware_id=f"{drive.config.bus}/node{drive.node_id}",
@@ -286,10 +289,15 @@ class DriverNode(Node):
                 health = bus_health(load=handle.stats.sample(), lost=self.driver.bus_lost.get(bus_name, False),
                                     frames=handle.stats.frames, error_frames=handle.stats.error_frames,
                                     kernel=kernel, why_unknown=why, tx_queue_full=handle.network.tx_queue_full,
-                                    tx_not_sent=handle.network.tx_queue_dropped)
+                                    tx_not_sent=handle.network.tx_queue_dropped,
+                                    rejected_frames=handle.network.rejected_frames)
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: bus {bus_name}", message=health.message,
                     hardware_id=bus_name, values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
+            jobs = self.driver.jobs_health()
+            array.status.append(DiagnosticStatus(
+                level=bytes([jobs.level]), name="rovercan: driver", message=jobs.message, hardware_id="driver",
+                values=[KeyValue(key=k, value=v) for k, v in jobs.values.items()]))
             self._diag_pub.publish(array)
         except Exception as err:
             self.get_logger().error(f"diagnostics publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)

@@ -25,10 +25,13 @@ import logging
 import socket
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import can
 import canopen
+
+from motor_driver.process.ratelimit import Throttle
 
 logger = logging.getLogger(__name__)
 
@@ -178,13 +181,30 @@ def queue_full(err: BaseException) -> bool:
     return code == errno.ENOBUFS or (isinstance(err.__cause__, OSError) and err.__cause__.errno == errno.ENOBUFS)
 
 
+#: A frame rejection (callback and cause) is logged at most once every this long.
+REJECTED_LOG_PERIOD_S = 10.0
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """Frames of one node a receive callback raised on: how many, the newest cause (``callback:
+    Type: text``) and when (the receive thread's monotonic clock)."""
+
+    count: int
+    cause: str
+    at: float
+
+
 class GuardedNetwork(canopen.Network):
     """A canopen Network whose frame dispatch survives a failing callback.
 
     canopen's own consumers (EMCY, NMT) raise on malformed frames (a 2-byte EMCY, an empty NMT
     command: found by the random-frame test), and an exception in the receive thread stops
     python-can's Notifier, i.e. the driver would go deaf from one bad frame. Here each callback
-    is isolated; rejected frames are counted.
+    is isolated; a rejected frame is counted per node (:meth:`rejected`: the count and the newest
+    cause, for /diagnostics) and logged with its cause at a bounded rate (one line per callback and
+    cause every REJECTED_LOG_PERIOD_S, with the count held back). The receive thread alone writes
+    the counts (one assignment of an immutable :class:`Rejected` per node).
     """
 
     def __init__(self, bus: can.BusABC | None = None, listeners: tuple[can.Listener, ...] = (),
@@ -193,6 +213,8 @@ class GuardedNetwork(canopen.Network):
         # before connect(): its Notifier takes the list
         self.listeners: list[can.Listener] = [ElevenBitListener(self), *listeners]
         self.rejected_frames = 0
+        self._rejected: dict[int, Rejected] = {}  # node id (the COB-ID's low 7 bits) -> its rejections
+        self._rejected_log = Throttle(REJECTED_LOG_PERIOD_S)
         #: called with each frame sent (the flight recorder), after it went out: (id, data, remote)
         self.on_sent = on_sent
         #: sends the kernel refused with ENOBUFS (a full transmit queue: a real controller's
@@ -235,7 +257,24 @@ class GuardedNetwork(canopen.Network):
                 try:
                     callback(can_id, data, timestamp)
                 except Exception as err:  # a malformed frame must not stop the receive thread
-                    self.rejected_frames += 1
-                    logger.debug("frame 0x%03X %s rejected by %s: %r", can_id, bytes(data).hex(),
-                                 getattr(callback, "__qualname__", callback), err)
+                    self._reject(can_id, data, callback, err)
         self.scanner.on_message_received(can_id)
+
+    def _reject(self, can_id: int, data: bytearray, callback: Callable[..., object], err: Exception) -> None:
+        """Receive thread: a frame a callback raised on, counted for its node and logged (bounded)."""
+        self.rejected_frames += 1
+        where = str(getattr(callback, "__qualname__", callback))
+        cause = f"{where}: {type(err).__name__}: {err}"
+        node = can_id & 0x7F
+        before = self._rejected.get(node)
+        self._rejected[node] = Rejected(before.count + 1 if before else 1, cause, time.monotonic())
+        passed = self._rejected_log.admit((where, type(err)))
+        if passed is not None:
+            logger.warning("frame 0x%03X %s rejected by %s: %s: %s (%d frame(s) of node %d rejected so far%s)",
+                           can_id, bytes(data).hex(), where, type(err).__name__, err, self._rejected[node].count,
+                           node, f"; {passed[0]} like this not logged in the last {passed[1]:.0f} s"
+                           if passed[0] else "")
+
+    def rejected(self, node_id: int) -> Rejected | None:
+        """The frames of ``node_id`` a receive callback raised on (None: none)."""
+        return self._rejected.get(node_id)

@@ -12,6 +12,12 @@ the scale and the guarding flag, and notes the NMT start; a command thread ackno
 and EMCYs it has dealt with (an acknowledgement is a sequence number, so a FAULT that arrives
 after it is never erased by it).
 
+An EMCY costs the receive thread little (a babbling node sends thousands a second): its log
+lines are at most one every EMCY_LOG_PERIOD_S per drive, each with the count held back since
+the last. The cause of a fault (the newest EMCY with an error code) is kept until this driver
+resets the fault (:meth:`DriveCache.acknowledge_emcy`): an EMCY 0x0000 (error reset) that comes
+while the drive still says FAULT, a spoofed one or one ahead of its statusword, clears nothing.
+
 Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.runtime.ledger.DriveRuntime`),
 read here, never written: the receive thread posts each heartbeat that may change it
 (:class:`motor_driver.runtime.ledger.Heard`) and goes on.
@@ -33,6 +39,7 @@ from can_config.objects import OD, FunctionCode, NmtState, emcy_text
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.values import DriveState, Emcy, Received, StatusSink
+from motor_driver.process.ratelimit import Throttle
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
 from motor_driver.protocol.pdo import PdoPlan, TpdoLayout
 from motor_driver.protocol.units import Scale
@@ -44,6 +51,9 @@ logger = logging.getLogger(__name__)
 #: ten times a TPDO, 6,000 TPDOs a second at six drives and 500 Hz (issue 55)
 _STATUSWORD, _POSITION, _VELOCITY = OD.STATUSWORD, OD.POSITION_ACTUAL, OD.VELOCITY_ACTUAL
 _TORQUE, _MODE = OD.TORQUE_ACTUAL, OD.MODES_OF_OPERATION_DISPLAY
+_EMCY_HEAD = struct.Struct("<HB")
+#: A drive's EMCY log lines: at most one every this long (the others counted, said with the next).
+EMCY_LOG_PERIOD_S = 1.0
 
 
 class DriveCache:
@@ -71,6 +81,7 @@ class DriveCache:
         self.position_seq = 0
         self.status_seq = 0  # statuswords received: one that arrives after a frame was sent has a higher number
         self.tpdo_count = 0
+        self.emcy_count = 0  # EMCYs received (logged or not)
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
         self.nmt_state = "UNKNOWN"
@@ -79,6 +90,7 @@ class DriveCache:
         self._operational_at = 0.0
         self.last_heartbeat = 0.0
         self._last_emcy: Emcy | None = None
+        self._emcy_log = Throttle(EMCY_LOG_PERIOD_S)  # the receive thread's
         self._guard_toggle = 0
         self.guard_errors = 0
         self.guard_answers = 0  # the receive thread's: guard answers taken (their toggle right)
@@ -303,13 +315,19 @@ class DriveCache:
     def on_emcy(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 3:
             return
-        code, register = struct.unpack_from("<HB", data)
-        self._last_emcy = Emcy(code, register, emcy_text(code), timestamp)
+        code, register = _EMCY_HEAD.unpack_from(data)
+        self.emcy_count += 1
+        if code or decode_state(self.received.statusword) not in FAULT_STATES:  # a fault's cause stays
+            self._last_emcy = Emcy(code, register, emcy_text(code), timestamp)
+        passed = self._emcy_log.admit(None)
+        if passed is None:
+            return
+        held = f" ({passed[0]} more EMCY from it in the last {passed[1]:.1f} s not logged)" if passed[0] else ""
         if code:
-            logger.error("node %d (%s): EMCY 0x%04X %s (error register 0x%02X)", self.node_id,
-                         self.name, code, emcy_text(code), register)
+            logger.error("node %d (%s): EMCY 0x%04X %s (error register 0x%02X)%s", self.node_id,
+                         self.name, code, emcy_text(code), register, held)
         else:
-            logger.info("node %d (%s): EMCY error reset", self.node_id, self.name)
+            logger.info("node %d (%s): EMCY error reset%s", self.node_id, self.name, held)
 
     # ------------------------------------------------------------------ the snapshot
     def snapshot(self, foreign_master: str = "") -> DriveState:

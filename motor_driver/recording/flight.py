@@ -13,7 +13,9 @@ history). Each writes, into the configured directory (capped in size, oldest fir
   :mod:`.plot`) from the states the JSON carries: matplotlib in the driver's process would hold
   its interpreter for a second or more, and the host heartbeat with it. While the process is
   starved (its host heartbeat went out late within NO_PLOT_AFTER_LATE_S) the plot waits until it
-  is not, or until close(); an incident without drive states says why it has no plot.
+  is not, or until close(); an incident without drive states says why it has no plot. A helper
+  that finished is reaped at the writer's next poll (no zombie child while the driver runs);
+  close() gives the helpers still drawing PLOT_WAIT_S in all, then terminates them.
 
 Threads and what each owns: the buses' receive threads append received frames to the ring
 (one deque append each; the deque is bounded by time, trimmed by whoever appends) and flag an
@@ -70,8 +72,14 @@ INCIDENT_KINDS = ("emcy", "heartbeat_lost", "watchdog_stop", "bus_lost", "host_l
 WRITER_POLL_S = 0.2
 #: The drives' states are kept from every SAMPLE_EVERY-th supervisor pass (20 Hz).
 SAMPLE_EVERY = 5
-#: close() waits this long for a plot still being drawn.
+#: The same EMCY of a node again within this long is no new incident (the frames are kept all the same).
+EMCY_REPEAT_S = 1.0
+#: close() waits this long, in all, for the plots still being drawn; a helper still drawing then
+#: is terminated (killed TERMINATE_WAIT_S later): the PNG is missing, the JSON still draws it.
 PLOT_WAIT_S = 5.0
+TERMINATE_WAIT_S = 1.0
+#: The plot helper's command, the incident's JSON appended (tests hold it with a command of theirs).
+PLOT_COMMAND: tuple[str, ...] = (sys.executable, "-m", "motor_driver.recording")
 #: An incident of the kind and drive (or bus) of one written within this long is counted in
 #: the next one written instead: a flapping drive makes one incident a minute, not one a second.
 REPEAT_WINDOW_S = 60.0
@@ -101,13 +109,17 @@ class _BusTap(can.Listener):
     def __init__(self, recorder: FlightRecorder, bus: str) -> None:
         self.recorder = recorder
         self.bus = bus
+        self._emcy_said: dict[int, tuple[int, float]] = {}  # node -> (code, when) of its last EMCY incident
 
     def on_message_received(self, msg: can.Message) -> None:
         self.recorder.append(self.bus, msg)
         cob = msg.arbitration_id
         if 0x081 <= cob <= 0x0FF and not msg.is_extended_id and len(msg.data) >= 3:
             code = int.from_bytes(msg.data[:2], "little")
-            if code:
+            said_code, said_at = self._emcy_said.get(cob, (0, -EMCY_REPEAT_S))
+            now = time.monotonic()
+            if code and (code != said_code or now - said_at >= EMCY_REPEAT_S):  # a babbling node: one a second
+                self._emcy_said[cob] = (code, now)
                 self.recorder.trigger("emcy", self.bus, node=cob - 0x80, code=code, text=emcy_text(code),
                                       t=msg.timestamp or time.time())
 
@@ -200,6 +212,7 @@ class FlightRecorder:
             try:
                 first = self._events.get(timeout=WRITER_POLL_S)
             except queue.Empty:
+                self._reap()
                 if self._deferred and time.monotonic() - self._late_at > NO_PLOT_AFTER_LATE_S:
                     self._plot_deferred()
                 continue
@@ -325,22 +338,47 @@ class FlightRecorder:
         """The PNG is drawn by a process of its own at low priority (ordinary scheduling, nice 10):
         matplotlib in this one would hold the interpreter for a second or two, and the supervisor's
         host heartbeat with it."""
-        self._helpers = [p for p in self._helpers if p.poll() is None]
+        self._reap()
         with ordinary_thread():  # the helper takes this thread's scheduling: never the driver's SCHED_FIFO
-            self._helpers.append(subprocess.Popen([sys.executable, "-m", "motor_driver.recording", str(json_path)],
+            self._helpers.append(subprocess.Popen([*PLOT_COMMAND, str(json_path)],
                                                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                                   stderr=subprocess.DEVNULL))
 
+    def _reap(self) -> None:
+        """Writer: the helpers that finished are waited for (no zombie stays while the driver runs)."""
+        self._helpers = [p for p in self._helpers if p.poll() is None]
+
+    def helper_pids(self) -> list[int]:
+        """The plot helpers not yet reaped (tests, tools)."""
+        return [p.pid for p in self._helpers]
+
     def close(self) -> None:
+        """Write what is pending, stop the writer, and end the plot helpers within PLOT_WAIT_S in all:
+        one still drawing then is terminated, so a shutdown is bounded whatever is being drawn."""
         if self._stop.is_set():
             return
         self._stop.set()
         self._thread.join(timeout=30.0)
-        for helper in self._helpers:  # no zombie left behind; a plot still drawing finishes on its own
+        deadline = time.monotonic() + PLOT_WAIT_S
+        for helper in self._helpers:  # none left running, none left a zombie
             try:
-                helper.wait(timeout=PLOT_WAIT_S)
+                helper.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                logger.info("flight recorder: a plot is still being drawn (pid %d)", helper.pid)
+                logger.warning("flight recorder: a plot was still being drawn after %.0f s (pid %d): stopped; draw it"
+                               " with `python -m motor_driver.recording` and the incident's JSON", PLOT_WAIT_S,
+                               helper.pid)
+                _end_helper(helper)
+        self._helpers = []
+
+
+def _end_helper(helper: subprocess.Popen[bytes]) -> None:
+    """Terminate a plot helper, kill it if it does not end within TERMINATE_WAIT_S, and reap it."""
+    helper.terminate()
+    try:
+        helper.wait(timeout=TERMINATE_WAIT_S)
+    except subprocess.TimeoutExpired:
+        helper.kill()
+        helper.wait()
 
 
 def _enforce_cap(directory: Path, max_bytes: float, keep: str) -> None:

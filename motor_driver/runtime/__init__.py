@@ -5,7 +5,8 @@ What lives where: :mod:`.driver` (:class:`MotorDriver`: start, safe stop, close)
 (the period that never blocks: heartbeats, watchdog, limit guard, another master) with
 :mod:`.supervise_bus` (its work on buses: the host heartbeat, connection, SYNC, reconnect),
 :mod:`.ledger` (the runtime state the supervisor alone writes: lost, booted, another master,
-reconnect and back-off; the NMT ledger), :mod:`.health` (a drive's and a bus's grade for
+reconnect and back-off; the NMT ledger), :mod:`.jobs` (background jobs supervised: an unexpected
+exception counted, logged and retried), :mod:`.health` (a drive's and a bus's grade for
 diagnostics, pure).
 
 Owner: the supervisor thread (``rovercan-supervisor``) writes the ledger; each bus's worker runs

@@ -48,7 +48,7 @@ import can
 
 from can_config import RoverConfig, load_drive_od
 from can_config.errors import BusLostError, ConfigError, MotorError
-from motor_driver.bus.adapters import quiet_dependency_tracebacks
+from motor_driver.bus.adapters import Rejected, quiet_dependency_tracebacks
 from motor_driver.bus.connect import (
     CONNECT_TIMEOUT_S,
     HANDSHAKE_TIMEOUT_S,
@@ -73,6 +73,7 @@ from motor_driver.bus.traffic import (
 from motor_driver.drive import Drive, DriveState
 from motor_driver.protocol.cia402 import State
 from motor_driver.recording.flight import FlightRecorder
+from motor_driver.runtime.health import Health, jobs_health
 from motor_driver.runtime.supervisor import SUPERVISOR_PERIOD_S, Supervisor
 
 logger = logging.getLogger(__name__)
@@ -211,6 +212,16 @@ class MotorDriver:
     def bus_lost(self) -> dict[str, bool]:
         """Each bus: lost (the supervisor's judgement, read)."""
         return {name: rt.lost for name, rt in self.supervisor.bus.runtime.items()}
+
+    def rejected(self, drive: Drive) -> Rejected | None:
+        """The frames of ``drive`` a receive callback of its bus raised on (None: none)."""
+        return self._handles[drive.config.bus].network.rejected(drive.node_id)
+
+    def jobs_health(self) -> Health:
+        """The supervisor's loop and the background jobs' unexpected failures, graded."""
+        supervisor = self.supervisor
+        return jobs_health(supervisor.faults.snapshot(), ended=supervisor.ended, alive=not supervisor.dead,
+                           now=time.monotonic())
 
     def kernel_health(self, bus: str) -> tuple[KernelBusHealth | None, str]:
         """What the kernel says of ``bus`` (state, counters: a socketcan bus), or None and why."""

@@ -10,6 +10,14 @@ result into diagnostic_msgs). The rules:
   drive-side stop on host loss and the config allows that (``allow_no_host_watch``).
 * OK: otherwise (enabled or safely disabled).
 
+Frames of a drive that a receive callback raised on (:func:`rejections`): within
+REJECTED_RECENT_S, ERROR when its data is stale (the driver's decoding, not the bus, is the
+likely cause: said so), else WARN.
+
+The driver's own work (:func:`jobs_health`): ERROR when the supervisor's loop ended (every drive
+was told to stop); WARN while a background job failed unexpectedly within JOB_FAULT_RECENT_S (it
+was retried); the counts per kind in the values either way.
+
 A bus (:func:`bus_health`): ERROR when lost, down or BUS-OFF; WARN when its controller is
 ERROR-WARNING or ERROR-PASSIVE, a frame was not sent for a full transmit queue, or its load is
 over 50 %; its state and counters from the
@@ -19,16 +27,22 @@ kernel where it is a kernel interface (:mod:`motor_driver.bus.link`), "unknown" 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from can_config.objects import emcy_text
+from motor_driver.bus.adapters import Rejected
 from motor_driver.bus.link import KernelBusHealth
 from motor_driver.drive import DriveState
 from motor_driver.protocol.cia402 import FAULT_STATES, SW
 from motor_driver.protocol.safety import ALLOWED, SafetyCheck
+from motor_driver.runtime.jobs import JOB_KINDS, JobFault
 
 OK, WARN, ERROR = 0, 1, 2
+#: A drive's rejected frames count in its grade for this long after the newest.
+REJECTED_RECENT_S = 10.0
+#: A background job's unexpected failure makes the driver's status WARN for this long.
+JOB_FAULT_RECENT_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -40,7 +54,8 @@ class Health:
 
 def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_last: int = 0,
                  last_refusal: str = "", bus_lost: bool = False, tpdos_applied: int = 0,
-                 safety: Sequence[SafetyCheck] = ()) -> Health:
+                 safety: Sequence[SafetyCheck] = (), rejected: Rejected | None = None,
+                 rejected_age_s: float = math.inf) -> Health:
     values = {
         "node_id": str(state.node_id),
         "nmt_state": state.nmt,
@@ -63,6 +78,7 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     allowed = [c for c in safety if c.status == ALLOWED]
     values["data_age_s"] = "never" if math.isinf(state.data_age_s) else f"{state.data_age_s:.3f}"
     values["foreign_master"] = state.foreign_master
+    graded = rejections(state, values, rejected, rejected_age_s)  # its values whatever the grade
     if bus_lost:
         return Health(ERROR, "bus lost", values)
     if state.foreign_master:
@@ -76,6 +92,8 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     if failed:
         return Health(ERROR, "safety check failed: " + "; ".join(f"{c.check} ({c.object} is {c.actual},"
                                                                  f" expected {c.expected})" for c in failed), values)
+    if graded is not None:
+        return graded
     if state.stale and state.nmt == "OPERATIONAL":
         return Health(ERROR, f"stale: no PDO for {values['data_age_s']} s; the values shown are old (its bus or"
                       " this host is stalled: arming does not help)", values)
@@ -91,19 +109,57 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     return Health(OK, "enabled" if state.enabled else f"ready ({state.state.name})", values)
 
 
+def rejections(state: DriveState, values: dict[str, str], rejected: Rejected | None, age_s: float) -> Health | None:
+    """Frames of the drive a receive callback raised on (the newest ``age_s`` ago): in
+    ``values`` always; the grade while the newest is recent."""
+    count, cause = (rejected.count, rejected.cause) if rejected is not None else (0, "")
+    values["rejected_frames"] = str(count)
+    values["last_rejection"] = cause
+    if not count or age_s > REJECTED_RECENT_S:
+        return None
+    if state.stale:
+        return Health(ERROR, f"stale: {count} frame(s) from it rejected by the driver ({cause}): a fault in this"
+                      " driver's decoding, not the bus; report it with the flight recorder's incident", values)
+    return Health(WARN, f"{count} frame(s) from it rejected by the driver ({cause})", values)
+
+
+def jobs_health(faults: Mapping[str, JobFault], *, ended: str, alive: bool, now: float) -> Health:
+    """The driver's own background work: the supervisor's loop (``alive``; ``ended``: why it
+    ended on its own) and the unexpected failures of its jobs per kind (``now``: the clock of
+    their ``at``)."""
+    values = {kind: str(faults[kind].count if kind in faults else 0) for kind in (*JOB_KINDS, *faults)}
+    newest = max(faults.values(), key=lambda f: f.at, default=None)
+    values["last_failure"] = f"{newest.where}: {newest.cause}" if newest is not None else ""
+    values["supervisor"] = "running" if alive else (ended or "not running")
+    if ended:
+        return Health(ERROR, ended, values)
+    if not alive:
+        return Health(ERROR, "the supervisor does not run: nothing watches the drives; restart the driver", values)
+    if newest is not None and now - newest.at < JOB_FAULT_RECENT_S:
+        return Health(WARN, f"{newest.where}: a {_kind_of(faults, newest)} failed unexpectedly ({newest.cause});"
+                      " retried", values)
+    return Health(OK, "supervisor running" + (f"; {sum(f.count for f in faults.values())} job failure(s) so far"
+                                              if faults else ""), values)
+
+
+def _kind_of(faults: Mapping[str, JobFault], fault: JobFault) -> str:
+    return next(kind for kind, f in faults.items() if f is fault)
+
+
 #: The kernel's figures a bus's status carries, where the kernel has them.
 KERNEL_VALUES = ("state", "tx_errors", "rx_errors", "bitrate", "restart_ms", "restarts", "bus_off", "error_passive",
                  "error_warning", "bus_errors", "rx_dropped", "tx_dropped")
 
 
 def bus_health(*, load: float, lost: bool, frames: int, error_frames: int, kernel: KernelBusHealth | None,
-               why_unknown: str = "", tx_queue_full: int = 0, tx_not_sent: int = 0) -> Health:
+               why_unknown: str = "", tx_queue_full: int = 0, tx_not_sent: int = 0, rejected_frames: int = 0) -> Health:
     """One bus graded: lost, down or BUS-OFF is ERROR; ERROR-WARNING, ERROR-PASSIVE, a frame not
     sent for a full transmit queue or a load over 50 % is WARN. ``kernel``: what the kernel says
     (None: not a kernel interface, ``why_unknown``); ``tx_queue_full``: sends refused with ENOBUFS
     (each retried), ``tx_not_sent``: frames given up on."""
     values = {"load": f"{load:.4f}", "frames_received": str(frames), "error_frames": str(error_frames),
-              "tx_queue_full": str(tx_queue_full), "tx_not_sent": str(tx_not_sent)}
+              "tx_queue_full": str(tx_queue_full), "tx_not_sent": str(tx_not_sent),
+              "rejected_frames": str(rejected_frames)}
     if kernel is None:
         values["can_state"] = f"unknown ({why_unknown})" if why_unknown else "unknown"
     else:

@@ -25,6 +25,7 @@ from motor_driver.bus.link import KernelBusHealth, read_kernel_health
 from motor_driver.drive import Drive
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recording.flight import FlightRecorder
+from motor_driver.runtime.jobs import JobFaults, cause_of
 from motor_driver.runtime.ledger import BusBack, BusDown, BusRuntime, DriveRuntime, Event
 
 logger = logging.getLogger(__name__)
@@ -41,8 +42,10 @@ class BusSupervision:
 
     def __init__(self, config: RoverConfig, handles: dict[str, BusHandle], recorder: FlightRecorder | None,
                  rate_limited: RateLimitedLog, drives: dict[str, Drive], runtimes: dict[str, DriveRuntime],
-                 drive_gone: Callable[[Drive], None], report: Callable[[Event], None]) -> None:
+                 drive_gone: Callable[[Drive], None], report: Callable[[Event], None],
+                 faults: JobFaults | None = None) -> None:
         self.config = config
+        self.faults = faults or JobFaults()
         self.handles = handles
         self.recorder = recorder
         self._rate_limited = rate_limited
@@ -92,8 +95,8 @@ class BusSupervision:
         for name, handle in self.handles.items():
             try:
                 self._supervise_bus(name, handle, self.runtime[name], now)
-            except Exception:
-                logger.exception("supervisor: unexpected error on bus %s", name)
+            except Exception as err:
+                self.faults.failed("supervisor", f"bus {name}", err)
 
     def _lost_why(self, name: str, handle: BusHandle, rt: BusRuntime, now: float) -> str:
         """Why the bus counts as lost now ('' while it does not): its receive thread failed, the
@@ -126,7 +129,8 @@ class BusSupervision:
         if not rt.lost:
             sync = handle.sync_task
             if isinstance(sync, DaemonCyclicTask) and not sync.keep_alive(now) and rt.job_done():
-                rt.job = handle.worker.submit(handle.restart_sync)  # the daemon dropped the SYNC job
+                rt.job = handle.worker.submit(self.faults.supervised(  # the daemon dropped the SYNC job
+                    "sync_restart", f"bus {name}", handle.restart_sync))  # failed: tried again at the next look
             why = self._lost_why(name, handle, rt, now)
             if not why:
                 return
@@ -140,12 +144,12 @@ class BusSupervision:
             rt.last_beat = 0.0  # no heartbeat while the bus is gone: that is not lateness
             if handle.owned:  # reconnected on the bus's worker: joining a notifier can take a second
                 rt.next_attempt = float("inf")  # until the job says when to try again
-                rt.job = handle.worker.submit(self._reconnect, name, handle, True)
+                rt.job = handle.worker.submit(self._reconnect_job(name, handle, True))
             return
         if not handle.owned or now < rt.next_attempt or not rt.job_done():
             return
         rt.next_attempt = float("inf")
-        rt.job = handle.worker.submit(self._reconnect, name, handle)
+        rt.job = handle.worker.submit(self._reconnect_job(name, handle))
 
     def bus_event(self, event: Event, now: float) -> None:
         """A reconnect job's result, on the supervisor's thread."""
@@ -203,6 +207,19 @@ class BusSupervision:
                                    handle.network.tx_queue_dropped)
 
     # ------------------------------------------------------------------ the bus's worker
+    def _reconnect_job(self, name: str, handle: BusHandle, drop: bool = False) -> Callable[[], None]:
+        """The reconnect as a supervised job: whatever it raises is counted, logged and reported
+        as a failed try (the connection dropped, the back-off doubles), never left in its Future
+        with ``next_attempt`` at infinity."""
+
+        def failed(err: BaseException) -> None:
+            try:
+                handle.disconnect()
+            finally:
+                self._report(BusDown(name, None, "", f"reconnect failed unexpectedly ({cause_of(err)})"))
+
+        return self.faults.supervised("reconnect", f"bus {name}", lambda: self._reconnect(name, handle, drop), failed)
+
     def _reconnect(self, name: str, handle: BusHandle, drop: bool = False) -> None:
         """On the bus's worker: drop the lost connection (``drop``), open the bus again and boot
         its drives; each outcome is reported to the supervisor (back-off is its own). A kernel

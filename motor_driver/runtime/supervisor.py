@@ -7,7 +7,11 @@ Owner: the :class:`Supervisor`, on its thread, alone writes the runtime state
 (:mod:`motor_driver.runtime.ledger`): one :class:`DriveRuntime` per drive and one :class:`BusRuntime`
 per bus. The receive thread posts what it heard (:meth:`Supervisor.post`, never waits); a boot
 or a reconnect on a worker reports its result (:meth:`Supervisor.report`) and goes on once the
-supervisor applied it, within a period. Before its thread starts (the boots of ``start``) and
+supervisor applied it, within a period. Its jobs on a worker are supervised
+(:mod:`motor_driver.runtime.jobs`): what one raises unexpectedly is counted, logged and retried. A period
+that raises is counted and logged and the loop goes on; SUPERVISOR_FAILURES_MAX periods in a row
+end the loop: every drive is told to stop (quick stop through its command channel) and
+``ended`` says why (an ERROR in /diagnostics), written once by this thread as it ends. Before its thread starts (the boots of ``start``) and
 after it ended, a report is applied on the caller's thread, under the supervisor's lock: nothing
 else writes then. It changes a drive only through the drive's parts, none of which waits (the
 channel's lock is tried; a busy channel is tried again the next period).
@@ -29,8 +33,11 @@ from can_config.objects import NmtState
 from motor_driver.bus.handle import BusHandle
 from motor_driver.bus.traffic import FOREIGN_HOLD_S, FOREIGN_RELEASE_S
 from motor_driver.drive import Drive
+from motor_driver.drive.constants import REBOOT_RETRY_S
 from motor_driver.process.ratelimit import RateLimitedLog
+from motor_driver.protocol.cia402 import Command
 from motor_driver.recording.flight import FlightRecorder
+from motor_driver.runtime.jobs import JobFaults, cause_of
 from motor_driver.runtime.ledger import (
     Booted,
     Booting,
@@ -45,6 +52,10 @@ from motor_driver.runtime.supervise_bus import BUS_CHECK_PERIODS, BusSupervision
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
+#: Periods in a row that raise before the loop ends (one bad period is counted and passed over).
+SUPERVISOR_FAILURES_MAX = 5
+#: How long the loop's end waits for each drive's command channel to send the stop.
+END_STOP_LOCK_S = 0.1
 
 __all__ = ["BUS_CHECK_PERIODS", "SUPERVISOR_PERIOD_S", "Supervisor"]
 
@@ -58,8 +69,11 @@ class Supervisor:
         self.recorder = recorder
         self.drives: dict[str, Drive] = {}
         self.runtimes: dict[str, DriveRuntime] = {}
+        self.faults = JobFaults()
         self.bus = BusSupervision(config, handles, recorder, RateLimitedLog(logger), self.drives, self.runtimes,
-                                  self._drive_gone, self.report)
+                                  self._drive_gone, self.report, self.faults)
+        #: why the loop ended on its own ('' while it runs, or stopped by stop()): this thread's, once
+        self.ended = ""
         self._inbox: queue.SimpleQueue[tuple[Event | Callable[[], object], Future[object] | None]] = \
             queue.SimpleQueue()
         self._lock = threading.Lock()  # the inbox's: running or not, and a report applied inline
@@ -108,6 +122,11 @@ class Supervisor:
     def alive(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
+    @property
+    def dead(self) -> bool:
+        """Its thread was started and has ended without stop() (read by /diagnostics: an ERROR)."""
+        return self._thread is not None and not self._thread.is_alive() and not self._stop.is_set()
+
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
         thread = self._thread
@@ -117,6 +136,8 @@ class Supervisor:
     def _run(self) -> None:
         try:
             self._supervise()
+        except Exception as err:
+            self._end(err)
         finally:
             with self._lock:
                 self._running = False
@@ -124,22 +145,50 @@ class Supervisor:
 
     def _supervise(self) -> None:
         periods = itertools.count()
+        failing = 0
         while not self._stop.wait(SUPERVISOR_PERIOD_S):
-            now = time.monotonic()
-            self._drain(now)
-            self.bus.beat(now)
-            if self.recorder is not None and self.recorder.wants_sample():
-                self.recorder.sample([d.snapshot() for d in self.drives.values()])
-            for drive in self.drives.values():
-                try:
-                    self._supervise_drive(drive, self.runtimes[drive.name], now)
-                except MotorError as err:
-                    logger.error("supervisor: %s", err)
-                except Exception:
-                    logger.exception("supervisor: unexpected error on %s", drive.name)
-            if next(periods) % BUS_CHECK_PERIODS:
-                continue
-            self.bus.supervise_buses(now)
+            try:
+                self._period(next(periods))
+                failing = 0
+            except Exception as err:
+                failing += 1
+                self.faults.failed("supervisor", "supervisor", err)
+                if failing >= SUPERVISOR_FAILURES_MAX:
+                    raise
+
+    def _end(self, err: Exception) -> None:
+        """The loop failed SUPERVISOR_FAILURES_MAX periods in a row: nothing watches the drives any
+        more (no host heartbeat either): each is told to stop now, and ``ended`` says why."""
+        self.ended = (f"the supervisor ended after {SUPERVISOR_FAILURES_MAX} failed periods in a row"
+                      f" ({cause_of(err)}); every drive was told to stop; restart the driver")
+        logger.error("%s", self.ended)
+        for drive in self.drives.values():
+            try:
+                if not drive.channel.stop(Command.QUICK_STOP, "the supervisor ended", timeout_s=END_STOP_LOCK_S):
+                    logger.error("%s: not told to stop (its command channel stayed busy); it stops by itself on"
+                                 " host loss", drive.name)
+            except Exception as stop_err:  # the bus may be the trouble: the drive's host watch stops it
+                logger.error("%s: not told to stop (%s); it stops by itself on host loss", drive.name,
+                             cause_of(stop_err))
+
+    def _period(self, period: int) -> None:
+        """One period: reports, host heartbeat, recorder sample, each drive, and every
+        BUS_CHECK_PERIODS the buses."""
+        now = time.monotonic()
+        self._drain(now)
+        self.bus.beat(now)
+        if self.recorder is not None and self.recorder.wants_sample():
+            self.recorder.sample([d.snapshot() for d in self.drives.values()])
+        for drive in self.drives.values():
+            try:
+                self._supervise_drive(drive, self.runtimes[drive.name], now)
+            except MotorError as err:
+                logger.error("supervisor: %s", err)
+            except Exception as err:
+                self.faults.failed("supervisor", f"supervisor: {drive.name}", err)
+        if period % BUS_CHECK_PERIODS:
+            return
+        self.bus.supervise_buses(now)
 
     def _drain(self, now: float) -> None:
         while True:
@@ -155,7 +204,7 @@ class Supervisor:
                     result = None
             except Exception as err:
                 if reply is None:
-                    logger.exception("supervisor: %s not applied", item)
+                    self.faults.failed("supervisor", f"supervisor: {item} not applied", err)
                 else:
                     reply.set_exception(err)
                 continue
@@ -235,7 +284,9 @@ class Supervisor:
             job = runtime.reboot_job
             if (job is None or job.done()) and now >= runtime.reboot_at and not self.bus.runtime[cfg.bus].lost:
                 runtime.reboot_wanted = False
-                runtime.reboot_job = self.handles[cfg.bus].worker.submit(drive.boot.reconfigure)
+                runtime.reboot_job = self.handles[cfg.bus].worker.submit(self.faults.supervised(
+                    "reconfigure", drive.name, drive.boot.reconfigure,
+                    lambda err: self.report(RebootFailed(drive.name, REBOOT_RETRY_S))))
             return
         self._check_heartbeat(drive, runtime, now)
         if drive.boot.host_loss_stops != runtime.host_loss_seen:
@@ -264,7 +315,8 @@ class Supervisor:
                          " (quick stop by RPDO and SDO, NMT stop) until it is heard again", drive.node_id, drive.name,
                          (now - cache.last_heartbeat) * 1000, cfg.heartbeat_timeout_s * 1000)
             self._stop_lost(drive, runtime, now)
-            self.handles[cfg.bus].worker.submit(drive.watch.quick_stop_lost_by_sdo)
+            self.handles[cfg.bus].worker.submit(self.faults.supervised(  # its RPDO copy is repeated meanwhile
+                "stop_by_sdo", drive.name, drive.watch.quick_stop_lost_by_sdo))
             self._incident("heartbeat_lost", drive, "heartbeat lost; told to stop")
         elif runtime.lost_since and runtime.booted and (now >= runtime.next_stop or runtime.stop_pending):
             self._stop_lost(drive, runtime, now)
@@ -290,7 +342,8 @@ class Supervisor:
                 return  # the channel was busy: next period
             runtime.foreign_master = evidence
             if stopped:  # an SDO waits: on the bus's worker
-                self.handles[drive.config.bus].worker.submit(drive.watch.quick_stop_by_sdo, now)
+                self.handles[drive.config.bus].worker.submit(self.faults.supervised(
+                    "stop_by_sdo", drive.name, lambda: drive.watch.quick_stop_by_sdo(now)))
         elif evidence:
             runtime.foreign_master = evidence
         elif runtime.foreign_master and not foreign.evidence(drive.node_id, now - FOREIGN_RELEASE_S) \

@@ -1,0 +1,60 @@
+"""The drive system reads every stop it hands to its worker: a wheel left out whose quick stop
+raises anything (``Boom``, no type the code names) is logged with the cause, counted, said on
+/diagnostics (ERROR) and told to stop again. The shipped six-wheel rover on the simulator, the
+driver node and the drive system in a real rclpy graph (tests/test_odom_truth.py's rig)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from virtual_can.scenario import apply_action
+
+from .conftest import wait_for
+
+pytest.importorskip("rclpy")
+pytestmark = pytest.mark.ros
+
+from .test_odom_truth import Rover  # noqa: E402
+
+WHEEL = "wheel_front_right"
+
+
+class Boom(Exception):
+    """An exception of a type no code of the driver names."""
+
+
+@pytest.fixture
+def rover() -> Iterator[Rover]:
+    rover = Rover("continue")
+    yield rover
+    rover.close()
+
+
+def test_a_left_out_wheels_stop_that_raises_is_said_counted_and_tried_again(
+        rover: Rover, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    drive = rover.driver.drive(WHEEL)
+    calls: list[int] = []
+
+    def quick_stop(*args: Any, **kwargs: Any) -> None:
+        calls.append(1)
+        raise Boom(f"stop {len(calls)} failed")
+
+    monkeypatch.setattr(drive, "quick_stop", quick_stop)
+    rover.arm()
+    wait_for(lambda: len(rover.odom) > 2, 30.0, "/odom")
+    rover.drive_until(0.3, 0.0, lambda: rover.odom[-1].pose.pose.position.x > 0.05, "driving")
+    apply_action(rover.sim, {"action": "unplug", "node": 1, "channel": "can1"})  # wheel_front_right
+    rover.drive_until(0.3, 0.0, lambda: len(calls) >= 3, "its stop tried again after it raised")
+    assert rover.system.stop_failures >= 2 and "Boom: stop" in rover.system.stop_failing[WHEEL]
+
+    def said() -> bool:
+        return any(st.name == "rovercan: drive_system" and st.level == bytes([2]) and "Boom" in st.message
+                   for array in rover.diags for st in array.status)
+
+    wait_for(said, 30.0, "the failed stop on /diagnostics")
+    lines = [r for r in caplog.records if "Boom" in r.getMessage() and r.levelno >= logging.ERROR]
+    assert 1 <= len(lines) < len(calls)  # said with its cause, repeats held back and counted

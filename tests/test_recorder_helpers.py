@@ -1,0 +1,69 @@
+"""The flight recorder's plot helpers (a process each): one that finished is reaped while the
+driver runs (no zombie child stays), and close() ends within its budget whatever a helper is
+drawing: one still drawing at the budget is terminated and reaped. The helper's command is held
+by a hook (``PLOT_COMMAND``): one that ends at once, one that waits for a signal for ever."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from can_config.model import RecorderConfig
+from motor_driver.drive import DriveState
+from motor_driver.protocol.cia402 import State
+from motor_driver.recording import flight as recorder_module
+from motor_driver.recording.flight import FlightRecorder, IncidentEvent
+
+from .conftest import in_thread, wait_for
+
+STATE = DriveState(name="wheel", node_id=1, angle_deg=90.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0637,
+                   state=State.OPERATION_ENABLED, mode=9, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
+                   error_code=0, error_text="", stamp=100.0, heartbeat_age_s=0.01, target_reached=False,
+                   data_age_s=0.01, stale=False, foreign_master="", reference=1)
+
+
+def ours(pid: int) -> str:
+    """The state of ``pid`` if it is a child of this process ('Z': a zombie), else ''."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return ""
+    return fields[0] if int(fields[1]) == os.getpid() else ""
+
+
+def incident(recorder: FlightRecorder, code: int) -> None:
+    recorder.sample([STATE])
+    recorder.write([IncidentEvent("emcy", time.time(), "can0", node=1, drive="wheel", code=code)])
+
+
+def test_a_finished_plot_helper_is_reaped_while_the_driver_runs(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(recorder_module, "PLOT_COMMAND", (sys.executable, "-c", "pass"))
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, plot=True), {"wheel": ("can0", 1)}, {"can0": "can0"})
+    try:
+        incident(recorder, 0x2310)
+        incident(recorder, 0x3210)
+        pids = recorder.helper_pids()
+        assert len(pids) == 2
+        wait_for(lambda: not any(ours(pid) for pid in pids), 20.0, "both helpers ended and reaped",
+                 lambda: str([ours(pid) for pid in pids]))
+    finally:
+        recorder.close()
+    assert recorder.helper_pids() == []
+
+
+def test_close_ends_a_plot_still_being_drawn_at_its_budget(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(recorder_module, "PLOT_COMMAND", (sys.executable, "-c", "import signal; signal.pause()"))
+    monkeypatch.setattr(recorder_module, "PLOT_WAIT_S", 0.5)
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, plot=True), {"wheel": ("can0", 1)}, {"can0": "can0"})
+    incident(recorder, 0x2310)
+    (pid,) = recorder.helper_pids()
+    assert ours(pid) not in ("", "Z")  # drawing (held)
+    closing, errors = in_thread(recorder.close, name="test-close")
+    closing.join(30.0)  # a hang bound: close() waits PLOT_WAIT_S, then ends the helper
+    assert not closing.is_alive() and not errors
+    assert ours(pid) == ""  # ended and reaped
