@@ -25,7 +25,9 @@ What lives where:
 * :mod:`motor_driver.recorder` - the flight recorder, and reading its incidents and CAN
   recordings back; :mod:`motor_driver.errorframes` - SocketCAN error frames decoded;
   :mod:`motor_driver.busview`, :mod:`motor_driver.ros2defs`, :mod:`motor_driver.mcap_out` - the
-  bus as ROS 2 messages (no rclpy), for MCAP files and the live Foxglove view
+  bus as ROS 2 messages (no rclpy), for MCAP files and the live Foxglove view, in frame time
+  order (:mod:`motor_driver.timemerge`); :mod:`motor_driver.published` - what the state topics
+  say of a drive, one conversion for the live nodes and the bus view
 * :mod:`motor_driver.stop`, :mod:`motor_driver.heap`, :mod:`motor_driver.ratelimit` - a
   process's life: stop on signals, the heap settled once built, repeated log lines at a bounded
   rate (used by the driver, the nodes and the CLI; the simulator needs none of them, so they are
