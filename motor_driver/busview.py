@@ -55,7 +55,7 @@ from motor_driver.verdict import DriveFacts, Verdict, judge
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DIAGNOSTICS_TOPIC", "FRAMES_TOPIC", "JOINT_STATES_TOPIC", "BusView", "Emit", "Frame", "UnitObjects", "ViewDrive",
+__all__ = ["DIAGNOSTICS_TOPIC", "FRAMES_TOPIC", "FROM_DRIVER", "JOINT_STATES_TOPIC", "BusView", "Emit", "Frame", "UnitObjects", "ViewDrive",
            "drive_row", "key_of", "key_text", "status_topic", "view_drives"]
 
 #: Where the messages go: (topic, message type, message, log time in ns).
@@ -70,8 +70,9 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 SUMMARY_PERIOD_S = 1.0
 LOST_CHECK_S = 0.1
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
-#: Where a drive's units came from (:meth:`BusView.units`).
-FROM_DRIVE, FROM_RECORDING, FROM_CONFIG = "drive", "recording", "config"
+#: Where a drive's units came from (:meth:`BusView.units`): its answers seen in the frames, a
+#: recording's metadata, the driver's own boot (an incident's .mcap), the config alone.
+FROM_DRIVE, FROM_RECORDING, FROM_DRIVER, FROM_CONFIG = "drive", "recording", "driver", "config"
 
 
 def status_topic(drive: str) -> str:
@@ -222,17 +223,18 @@ class ViewDrive:
             reference=rx.reference), verdict
 
 
-def view_drives(config: RoverConfig, units: Mapping[str, UnitObjects] | None = None) -> list[ViewDrive]:
+def view_drives(config: RoverConfig, units: Mapping[str, UnitObjects] | None = None,
+                source: str = FROM_RECORDING) -> list[ViewDrive]:
     """The config's drives, each with the PDO map the driver gives it and its units: ``units``
-    (drive name -> unit objects, a recording's metadata) where given, else the config's until the
-    drive's answers to a boot's reads of them are seen."""
+    (drive name -> unit objects, from ``source``: a recording's metadata, the driver) where given,
+    else the config's until the drive's answers to a boot's reads of them are seen."""
     drives = []
     for d in config.drives:
         plan = plan_pdos(load_drive_od(d.eds, d.node_id), d.node_id)
         drive = ViewDrive(d, config.bus(d.bus).sync_period_s, {p.cob_id: TpdoLayout.from_map(p) for p in plan.tpdos},
                           frozenset(p.cob_id for p in plan.rpdos if p.indexes[:1] == (OD.CONTROLWORD,)))
         if units and d.name in units:
-            drive.take_units(units[d.name], FROM_RECORDING)
+            drive.take_units(units[d.name], source)
         drives.append(drive)
     return drives
 

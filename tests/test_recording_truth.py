@@ -226,6 +226,7 @@ def test_the_recorded_angle_is_the_drivers(tmp_path: Path, encoder: int) -> None
         wheel.enable()
         for target in (170.0, 340.0, 150.0):  # the short way round each time: 510 deg of travel
             wheel.move_to(target, wait=True)
+        wait_for(lambda: wheel.snapshot().velocity_deg_s == 0.0, HANG_S, "the wheel at rest")
         live = wheel.snapshot()
         wait_for(lambda: any(m.arbitration_id in (0x281, 0x381) and m.timestamp > live.stamp
                              for m in list(capture.frames["can0"])), HANG_S, "a TPDO after the live snapshot")
@@ -268,3 +269,45 @@ def test_a_recording_without_the_drives_units_says_so(tmp_path: Path) -> None:
     assert "warning: wheel decoded in the config's units" in done.stderr
     assert metadata(out, "rovercan.units")["drives_in_config_units"] == "wheel"
     assert json.loads(metadata(out, "rovercan.units")["wheel"])["from"] == "config"
+
+
+def test_an_incident_is_decoded_in_the_units_the_driver_read(tmp_path: Path) -> None:
+    """The flight recorder's .mcap of an incident long after boot (its ring holds no unit object):
+    the wheel in the units the driver read from its 0x608F, its angle the live MotorState's."""
+    sim = SimService([SimDriveSpec(1, counts_per_rev=1000)], port=0)
+    config_path = tmp_path / "wheel.yaml"
+    config_path.write_text(GENERIC_WHEEL.replace("PORT", str(sim.port))
+                           + f"recorder: {{dir: {tmp_path / 'incidents'}, seconds: 1, after_s: 0, plot: false}}\n")
+    config = with_bus_overrides(load_config(config_path), host=sim.host, port=sim.port)
+    capture = Capture(sim, ["can0"])
+    driver = MotorDriver(config)
+    try:
+        driver.start()
+        wheel = driver.drive("wheel")
+        wheel.enable()
+        for target in (170.0, 340.0, 150.0):
+            wheel.move_to(target, wait=True)
+        wait_for(lambda: wheel.snapshot().velocity_deg_s == 0.0, HANG_S, "the wheel at rest")
+        live = wheel.snapshot()
+
+        def ring_past_boot() -> bool:  # the ring (1 s) holds frames newer than the boot's last SDO answer
+            frames = list(capture.frames["can0"])
+            answered = [m.timestamp for m in frames if m.arbitration_id == 0x581]
+            return bool(answered) and frames[-1].timestamp - answered[-1] > 2.0
+        wait_for(ring_past_boot, HANG_S, "two seconds of frames after the boot")
+        from virtual_can.scenario import apply_action
+        apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
+        recorder = driver.recorder
+        assert recorder is not None
+        wait_for(lambda: bool(recorder.written), HANG_S, "the incident written")
+    finally:
+        capture.close()
+        driver.close()
+        sim.close()
+    mcap = recorder.written[0].with_suffix(".mcap")
+    read = messages(mcap)
+    assert not any(topic == "/can/frames" and m.id == 0x581 for topic, m in read), "an SDO answer in the ring: the premise"
+    motor = [m.motor for topic, m in read if topic == "/drives/wheel/status"][-1]  # standing where it stopped
+    assert motor.angle == pytest.approx(live.angle_deg % 360.0, abs=0.5)
+    units = json.loads(metadata(mcap, "rovercan.units")["wheel"])
+    assert (units["from"], units["objects"]["0x608F:1"]) == ("driver", 1000)
