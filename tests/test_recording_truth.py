@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import subprocess
 import sys
 import threading
@@ -162,16 +163,23 @@ def test_a_two_bus_recording_has_no_false_loss_and_full_joint_states(tmp_path: P
         capture.close()
     out = tmp_path / "rover.mcap"
     decode(write_log(tmp_path / "rover.log", in_arrival_order(capture.frames)), ROVER, out)
+    frames = [(channel, m.arbitration_id, m.timestamp) for channel, msgs in capture.frames.items() for m in msgs]
+    said_what_the_frames_say(messages(out), frames)
+
+
+def said_what_the_frames_say(read: list[tuple[str, Any]], frames: list[tuple[str, int, float]]) -> None:
+    """No "heartbeat lost" for a drive whose own heartbeat (among ``frames``: channel, id, time)
+    came within its timeout, no /joint_states NaN for a drive whose own TPDO came within its
+    staleness bound, and some /joint_states complete."""
     config = load_config(ROVER)
     drives = {d.name: d for d in config.drives}
     heartbeats: dict[str, list[float]] = {}
     tpdos: dict[str, list[float]] = {}
     for d in config.drives:
-        frames = capture.frames[config.bus(d.bus).channel]
-        heartbeats[d.name] = [m.timestamp for m in frames if m.arbitration_id == 0x700 + d.node_id]
-        tpdos[d.name] = [m.timestamp for m in frames if m.arbitration_id in (0x180 + d.node_id, 0x280 + d.node_id,
-                                                                            0x380 + d.node_id, 0x480 + d.node_id)]
-    read = messages(out)
+        mine = [(cob, t) for channel, cob, t in sorted(frames, key=lambda f: f[2]) if channel == config.bus(d.bus).channel]
+        heartbeats[d.name] = [t for cob, t in mine if cob == 0x700 + d.node_id]
+        tpdos[d.name] = [t for cob, t in mine if cob in (0x180 + d.node_id, 0x280 + d.node_id, 0x380 + d.node_id,
+                                                        0x480 + d.node_id)]
     for topic, msg in read:
         if topic != "/diagnostics":
             continue
@@ -195,6 +203,33 @@ def test_a_two_bus_recording_has_no_false_loss_and_full_joint_states(tmp_path: P
                     f"{name} NaN at {t:.3f} while its TPDO of {before[-1]:.3f} was fresh (bound {bound} s)"
         complete += not any(math.isnan(p) for p in msg.position)
     assert complete > 0, f"none of {len(joint_states)} /joint_states complete"
+
+
+def test_rovercan_record_of_the_driving_rover_agrees_with_its_own_frames(tmp_path: Path,
+                                                                        rover: tuple[SimService, MotorDriver]) -> None:
+    """`rovercan record FILE.mcap --config` of the shipped rover while its driver runs, read back:
+    its /diagnostics and /joint_states say what its own /can/frames say (the issue's recording said
+    "heartbeat lost: none for 0.36 s" for the can1 wheels while its frames held their heartbeats
+    every 100 ms)."""
+    sim, driver = rover
+    config = tmp_path / "rover.yaml"
+    config.write_text(ROVER.read_text().replace("port: 29536", f"port: {sim.port}"))
+    out = tmp_path / "run.mcap"
+    rec = subprocess.Popen([sys.executable, "-m", "rovercan", "record", str(out), "--config", str(config)], cwd=REPO,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert rec.stderr is not None and "recording can0, can1" in rec.stderr.readline()
+        wheel = driver.drive("wheel_rear_right").cache
+        start = wheel.tpdo_count
+        wait_for(lambda: wheel.tpdo_count - start > 2 * RECORDED_S / 0.01, HANG_S, f"{RECORDED_S} s of SYNC cycles")
+    finally:
+        rec.send_signal(signal.SIGINT)
+        _, err = rec.communicate(timeout=HANG_S)
+    assert rec.returncode == 0, err
+    read = messages(out)
+    frames = [(m.header.frame_id, m.id, m.header.stamp.sec + m.header.stamp.nanosec * 1e-9)
+              for topic, m in read if topic == "/can/frames"]
+    said_what_the_frames_say(read, frames)
 
 
 # ---------------------------------------------------------------------------------- units, angle
