@@ -97,10 +97,11 @@ def check_text_file(path: Path, what: str, hint: str) -> None:
                           " permissions.") from err
 
 
-class _StrictLoader(yaml.SafeLoader):
+class StrictLoader(yaml.SafeLoader):
     """SafeLoader that refuses a key given twice in one mapping, and reads every number in
     exponent notation (``2e-4``, ``1e3``, ``-5E+2``, ``1.5e3``) as a float, as YAML 1.2 does
-    (PyYAML follows YAML 1.1, where those are strings)."""
+    (PyYAML follows YAML 1.1, where those are strings). A file kind with rules of its own
+    subclasses it (virtual_can's scenarios) and passes the subclass to :func:`load_yaml`."""
 
 
 #: No config value needs a number longer than this (digits and signs); a longer one is refused
@@ -108,23 +109,23 @@ class _StrictLoader(yaml.SafeLoader):
 NUMBER_MAX_CHARS = 40
 
 
-def _number_of_a_sane_length(loader: _StrictLoader, node: yaml.ScalarNode) -> Any:
+def _number_of_a_sane_length(loader: StrictLoader, node: yaml.ScalarNode) -> Any:
     if len(str(node.value)) > NUMBER_MAX_CHARS:
         raise ConstructorError(None, None, f"a number of {len(str(node.value))} characters; no config value needs more"
                                f" than {NUMBER_MAX_CHARS}", node.start_mark)
     return (loader.construct_yaml_int if node.tag.endswith(":int") else loader.construct_yaml_float)(node)
 
 
-_StrictLoader.add_constructor("tag:yaml.org,2002:int", _number_of_a_sane_length)
-_StrictLoader.add_constructor("tag:yaml.org,2002:float", _number_of_a_sane_length)
+StrictLoader.add_constructor("tag:yaml.org,2002:int", _number_of_a_sane_length)
+StrictLoader.add_constructor("tag:yaml.org,2002:float", _number_of_a_sane_length)
 
 
 #: YAML 1.2's floats with an exponent that YAML 1.1 lacks (no dot, or an unsigned exponent).
 EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$")
-_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", EXPONENT_FLOAT, list("-+.0123456789"))
+StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", EXPONENT_FLOAT, list("-+.0123456789"))
 
 
-def _mapping_without_duplicates(loader: _StrictLoader, node: yaml.MappingNode) -> dict[Any, Any]:
+def _mapping_without_duplicates(loader: StrictLoader, node: yaml.MappingNode) -> dict[Any, Any]:
     seen: dict[Any, int] = {}
     for key_node, _ in node.value:
         key = loader.construct_object(key_node, deep=True)
@@ -139,14 +140,14 @@ def _mapping_without_duplicates(loader: _StrictLoader, node: yaml.MappingNode) -
     return loader.construct_mapping(node, deep=True)
 
 
-_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_duplicates)
+StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_duplicates)
 
 
-def load_yaml(path: Path, what: str) -> Any:
+def load_yaml(path: Path, what: str, loader: type[StrictLoader] = StrictLoader) -> Any:
     """A YAML file's data, or :class:`ConfigError` naming the file, the line and the problem."""
     text = read_text_file(path, what)
     try:
-        data = yaml.load(text, Loader=_StrictLoader)
+        data = yaml.load(text, Loader=loader)
     except RecursionError as err:
         raise ConfigError(f"{path}: the {what} nests deeper than YAML can be read here (over"
                           f" {YAML_MAX_DEPTH} levels are never a {what}).") from err

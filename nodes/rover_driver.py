@@ -43,6 +43,7 @@ from std_msgs.msg import Float32
 from can_config.errors import ConfigError, RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.process.stop import StopSignal
+from motor_driver.recording.published import joint_entry
 from motor_driver.runtime.health import bus_health, drive_health
 from nodes import runtime
 from nodes.handoff import Handoff
@@ -250,10 +251,10 @@ class DriverNode(Node):
                         self._demo_state_pub.publish(msg)
                 if joint is not None:
                     joint.name.append(name)
-                    stale = math.nan if state.stale else 1.0  # stale joints: NaN, not the last values again
-                    joint.position.append(math.radians(state.angle_deg) * stale)
-                    joint.velocity.append(math.radians(state.velocity_deg_s) * stale)
-                    joint.effort.append(state.torque_nm * stale)
+                    position, velocity, effort = joint_entry(state)  # stale joints: NaN, not the last values again
+                    joint.position.append(position)
+                    joint.velocity.append(velocity)
+                    joint.effort.append(effort)
                     newest = max(newest, state.stamp)
             if joint is not None:
                 stamp_header(joint.header, newest or time.time())

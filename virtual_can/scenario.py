@@ -10,31 +10,111 @@
       - {at_s: 8.0, node: 1, action: sdo, delay_s: 0.2}
       - {at_s: 9.0, node: 1, action: sdo, abort: 0x08000022}
       - {at_s: 10.0, action: disconnect_clients}
-      - {at_s: 11.0, node: 2, channel: can1, action: tpdos, on: false}
+      - {at_s: 11.0, node: 2, channel: can1, action: tpdos, on: false}   # its TPDOs stop
+      - {at_s: 11.5, node: 2, channel: can1, action: tpdos, on: true}    # and come again
       - {at_s: 12.0, node: 1, action: slow_enable, delay_s: 0.7}
       - {at_s: 13.0, node: 1, action: slow_ack, max_s: 0.004}
       - {at_s: 14.0, node: 1, action: load, nm: 0.05}      # a slope: motor-side load torque
       - {at_s: 15.0, node: 1, action: load, stall: true}   # the wheel jams: the shaft cannot turn
+      - {at_s: 16.0, node: 1, action: tx_dead, on: true}   # it hears and obeys, sends nothing
+      - {at_s: 17.0, node: 1, action: tx_dead, on: false}
+      - {at_s: 18.0, node: 1, action: heartbeat_deaf, on: true}
+      - {at_s: 19.0, node: 1, action: heartbeat_deaf, on: false}
+      - {at_s: 20.0, node: 1, action: guard_toggle_stuck, on: true}
+      - {at_s: 21.0, node: 1, action: guard_toggle_stuck, on: false}
+
+A scenario's keys are read as written: only ``true`` and ``false`` are booleans (YAML 1.2), so
+``on`` and ``off`` (YAML 1.1's booleans, which PyYAML reads as such) are plain words here and
+``on: false`` means what it says. A step with a key its action does not take, a value of the
+wrong kind, or an unknown action is refused with its line and what the action allows
+(:data:`ACTION_KEYS`). Steps are played on a thread of their own (``virtual_can-scenario``),
+each handed to its drive simulator's thread (``DriveSimulator.call``).
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from can_config.errors import ConfigError
-from can_config.textfile import load_yaml
+from can_config.textfile import StrictLoader, load_yaml
 from virtual_can.service import SimService
 from virtual_can.sim import SimulatedDrive
 
 logger = logging.getLogger(__name__)
 
-ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "tpdos", "slow_enable", "slow_ack", "frames", "sdo",
-           "disconnect_clients", "load", "tx_dead", "guard_toggle_stuck", "heartbeat_deaf")
+#: The keys every step may have besides its action's own: when (seconds from the start) and what.
+COMMON_KEYS: dict[str, type] = {"at_s": float, "action": str}
+_DRIVE: dict[str, type] = {"node": int, "channel": str}
+_SWITCH: dict[str, type] = {**_DRIVE, "on": bool}
+#: Each action's own keys and the kind of value each takes (float: any number).
+ACTION_KEYS: dict[str, dict[str, type]] = {
+    "unplug": _DRIVE, "plug": _DRIVE, "power_cycle": {**_DRIVE, "off_s": float},
+    "fault": {**_DRIVE, "code": int}, "sto": {**_DRIVE, "low": bool}, "tpdos": _SWITCH,
+    "slow_enable": {**_DRIVE, "delay_s": float}, "slow_ack": {**_DRIVE, "max_s": float},
+    "frames": {"channel": str, "drop": float, "delay": float, "delay_s": float, "corrupt": float},
+    "sdo": {**_DRIVE, "delay_s": float, "abort": int}, "disconnect_clients": {},
+    "load": {**_DRIVE, "nm": float, "stall": bool}, "tx_dead": _SWITCH, "guard_toggle_stuck": _SWITCH,
+    "heartbeat_deaf": _SWITCH}
+ACTIONS = tuple(ACTION_KEYS)
+_KIND_NAMES = {float: "a number", int: "a whole number", bool: "true or false", str: "a name"}
+
+
+def _is_kind(value: object, kind: type) -> bool:
+    if isinstance(value, bool):
+        return kind is bool
+    if kind is float:
+        return isinstance(value, (int, float))
+    return isinstance(value, kind)
+
+
+def check_step(step: Mapping[Any, Any], where: str = "scenario step") -> None:
+    """Refuse a step whose action is unknown, or with a key its action does not take or a value
+    of the wrong kind, naming ``where`` (the file and line) and what is allowed."""
+    action = step.get("action")
+    if not isinstance(action, str) or action not in ACTION_KEYS:
+        raise ConfigError(f"{where}: action {action!r} is not a scenario action; use one of {', '.join(ACTIONS)}")
+    allowed = {**COMMON_KEYS, **ACTION_KEYS[action]}
+    for key, value in step.items():
+        if key not in allowed:
+            raise ConfigError(f"{where}: {action} takes no key {key!r}; its keys are {', '.join(allowed)}")
+        if not _is_kind(value, allowed[key]):
+            raise ConfigError(f"{where}: {action}'s {key} is {value!r}; give {_KIND_NAMES[allowed[key]]}")
+
+
+class _Step(dict[Any, Any]):
+    """A mapping of a scenario file, with the line it starts on (1-based)."""
+
+    line = 0
+
+
+class _ScenarioLoader(StrictLoader):
+    """The config files' loader with YAML 1.2's booleans (``true``, ``false``): YAML 1.1's ``on``,
+    ``off``, ``yes`` and ``no`` stay words, so a step's key ``on`` is ``"on"``. Each mapping is a
+    :class:`_Step` that knows its line."""
+
+
+_BOOL_TAG = "tag:yaml.org,2002:bool"
+_ScenarioLoader.yaml_implicit_resolvers = {
+    first: [(tag, pattern) for tag, pattern in resolvers if tag != _BOOL_TAG]
+    for first, resolvers in StrictLoader.yaml_implicit_resolvers.items()}
+_ScenarioLoader.add_implicit_resolver(_BOOL_TAG, re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
+
+
+def _located_mapping(loader: _ScenarioLoader, node: yaml.MappingNode) -> _Step:
+    mapping = _Step(StrictLoader.yaml_constructors[yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG](loader, node))
+    mapping.line = node.start_mark.line + 1
+    return mapping
+
+
+_ScenarioLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _located_mapping)
 
 
 def _channel_faults(sim: SimService, step: Mapping[str, Any]) -> None:
@@ -83,9 +163,8 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
 
 def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
     """Apply one fault-injection step (also used directly from Python)."""
-    action = step.get("action")
-    if action not in ACTIONS:
-        raise ConfigError(f"scenario action {action!r}: expected one of {', '.join(ACTIONS)}")
+    check_step(step)
+    action = step["action"]
     if action == "disconnect_clients":
         sim.server.disconnect_clients()
         return
@@ -101,13 +180,17 @@ def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
 
 
 def load_scenario(path: str | Path) -> list[dict[str, Any]]:
-    data = load_yaml(Path(path), "scenario")
+    """A scenario file's steps, sorted by ``at_s``; :class:`ConfigError` naming the step's line
+    and what its action allows for a step that is not one."""
+    data = load_yaml(Path(path), "scenario", _ScenarioLoader)
     steps = data.get("steps") if isinstance(data, dict) else None
     if not isinstance(steps, list):
         raise ConfigError(f"{path}: expected a mapping with a 'steps' list")
     for i, step in enumerate(steps):
-        if not isinstance(step, dict) or step.get("action") not in ACTIONS:
-            raise ConfigError(f"{path}: steps[{i}]: expected a mapping with action one of {', '.join(ACTIONS)}")
+        where = f"{path}: steps[{i}]" + (f" (line {step.line})" if isinstance(step, _Step) else "")
+        if not isinstance(step, dict):
+            raise ConfigError(f"{where}: expected a mapping such as {{at_s: 1.0, node: 1, action: unplug}}")
+        check_step(step, where)
     return sorted(steps, key=lambda s: float(s.get("at_s", 0.0)))
 
 

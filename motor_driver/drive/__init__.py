@@ -10,7 +10,10 @@ by the command channel under its lock. Every failure raises a typed error from
 What lives where (each module's docstring names the thread that owns its state):
 
 - :mod:`.state`: the state cache, the receive thread's only room (TPDO, heartbeat, EMCY), with
-  :mod:`.position` (which position samples to believe) and :mod:`.values` (what it publishes)
+  :mod:`.position` (which position samples to believe), :mod:`.tpdo` (one TPDO's values, decoded
+  alike for the recorder's view) and :mod:`.values` (what it publishes)
+- :mod:`.verdict`: one verdict per drive, judged once from what the driver knows (pure); every
+  consumer reads it
 - :mod:`.sdo`: the SDO port, bounded, one typed codec; the objects no tool may write
 - :mod:`.channel`: the command channel, owner of the controlword, the targets, the generation
   and the busy registry (:mod:`.busy`): the one way out for a controlword or a set-point, and

@@ -3,7 +3,8 @@
 Owner: the bus's worker (or the caller of :meth:`Boot.boot`), while the drive is not booted:
 nothing else commands it meanwhile (the cache says not booted, so every command is refused).
 Its own state: the safety check's result, the boot count, the host-loss stops it found, the
-object a step is at (for its error). Whether the drive is booted is the supervisor's: a boot
+object a step is at (for its error), the unit objects the drive reported (replaced whole at each
+boot; the flight recorder reads them for its incidents). Whether the drive is booted is the supervisor's: a boot
 reports its beginning and its end (:class:`motor_driver.runtime.ledger.Booting`, ``Booted``) and a
 failed re-configuration (``RebootFailed``), and goes on once the supervisor has taken it in.
 Each step reads or writes by SDO through the drive's SDO port; what the steps read (statusword,
@@ -54,6 +55,7 @@ class Boot:
         self.boot_count = 0
         self._boot_object = (0, 0)  # the object the running boot step is at (for its error)
         self._mode = 0  # the mode the boot left the drive in (0x6061)
+        self.unit_objects: dict[tuple[int, int], int] = {}  # what the drive reported at the last boot
 
     def boot(self, *, reset: bool = True) -> None:
         """Reset (NMT), check identity, configure PDOs and parameters, NMT start. Does not enable."""
@@ -331,6 +333,7 @@ class Boot:
         WARNING); later boots say it at DEBUG."""
         cfg = self.config
         objects = read_unit_objects(self._sdo.read_optional)
+        self.unit_objects = objects
         try:
             scale, notes = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
                                               invert=cfg.invert, offset_deg=cfg.offset_deg)

@@ -2,7 +2,8 @@
 speeds up.
 
 Owner: the bus's receive thread (the state cache calls it for each position and velocity
-sample); boot sets its speed bound from the drive's units (:meth:`set_bound`, drive not booted)
+sample; the bus view has one of its own, on its feeding thread); boot sets its speed bound from
+the drive's units (:meth:`set_units`, drive not booted)
 and homing tells it to take the next position as it comes (:meth:`trust_next`).
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 import logging
 
 from motor_driver.drive.constants import JUMP_CONFIRMATIONS, MAX_ACCEL_GAP_S, MEASURED_SPEED_CAP
+from motor_driver.protocol.units import Scale
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +42,11 @@ class PositionFilter:
         self._max_counts_s = max_counts_s or 1
         self._jump_margin_counts = max(4.0, counts_per_deg)
         self._counts_per_velocity_unit = counts_per_velocity_unit
+
+    def set_units(self, scale: Scale, max_velocity_deg_s: float) -> None:
+        """The bound of :meth:`set_bound` from a drive's units and its joint's top speed."""
+        self.set_bound(int(abs(scale.counts_per_deg * max_velocity_deg_s)), scale.counts_per_deg,
+                       abs(scale.counts_s_to_deg_s(1.0) * scale.counts_per_deg))
 
     def trust_next(self) -> None:
         """The next position is taken as it comes (after boot's SDO read, after homing)."""

@@ -137,6 +137,29 @@ UNIT_OBJECTS: tuple[tuple[int, tuple[int, ...]], ...] = (
     (0x6076, (0,)))
 
 
+_UNIT_KEYS = frozenset((index, sub) for index, subs in UNIT_OBJECTS for sub in subs)
+_SDO_UPLOAD_REPLY, _SDO_ABORT = 2, 4
+
+
+def unit_object_answer(data: bytes) -> tuple[tuple[int, int], int | None] | None:
+    """A drive's SDO answer (its frame 0x580 + node) to the read of one of :data:`UNIT_OBJECTS`,
+    as the driver's boot reads them, seen on the bus: ((index, sub), value) for an expedited
+    upload (decoded as :func:`read_unit_objects` does), ((index, sub), None) for an abort (no such
+    object); None for any other frame."""
+    if len(data) < 4:
+        return None
+    key = (int.from_bytes(data[1:3], "little"), data[3])
+    if key not in _UNIT_KEYS:
+        return None
+    command = data[0] >> 5
+    if command == _SDO_ABORT:
+        return key, None
+    if command != _SDO_UPLOAD_REPLY or not data[0] & 0x02 or len(data) < 8:
+        return None
+    unused = (data[0] >> 2) & 3 if data[0] & 1 else 0
+    return key, int.from_bytes(data[4:8 - unused], "little")
+
+
 def read_unit_objects(upload: Callable[[int, int], bytes | None]) -> dict[tuple[int, int], int]:
     """The unit objects a drive has, decoded as UNSIGNED32. ``upload(index, sub)`` reads one by
     SDO and returns None where the drive answers that it has no such object (an abort); the

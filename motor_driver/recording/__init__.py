@@ -7,7 +7,9 @@ state, written when something goes wrong), :mod:`.incident` (its incident files 
 ``python -m motor_driver.recording INCIDENT.json``, :mod:`.__main__`), :mod:`.files` (reading CAN
 recordings of every format), :mod:`.busview` (every frame, and each drive decoded, as ROS 2
 messages), :mod:`.ros2defs` (the message definitions), :mod:`.cdr` (their CDR encoding),
-:mod:`.mcap_out` (writing them to MCAP).
+:mod:`.mcap_out` (writing them to MCAP), :mod:`.published` (what the state topics say of a drive,
+the one conversion the live nodes and recordings share), :mod:`.timemerge` (several buses' frames
+in time order).
 
 Owner: the flight recorder's ring is appended to by every thread and written by its own writer
 thread (``rovercan-recorder``); the rest are values and functions of the caller's thread.

@@ -44,7 +44,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -56,6 +56,7 @@ from can_config.model import RoverConfig
 from can_config.objects import emcy_text
 from can_config.realtime import ordinary_thread
 from motor_driver.drive import DriveState
+from motor_driver.recording.busview import UnitObjects
 from motor_driver.recording.incident import FORMAT
 from motor_driver.recording.incident_mcap import write_incident_mcap
 from motor_driver.recording.plot import plot_incident, state_series
@@ -129,11 +130,14 @@ class FlightRecorder:
     what is pending and stops the writer; it is idempotent."""
 
     def __init__(self, config: RecorderConfig, drives: Mapping[str, tuple[str, int]],
-                 bus_channels: Mapping[str, str], source: Path | None = None, rover: RoverConfig | None = None) -> None:
+                 bus_channels: Mapping[str, str], source: Path | None = None, rover: RoverConfig | None = None,
+                 unit_objects: Callable[[], Mapping[str, UnitObjects]] | None = None) -> None:
         """``rover``: the config the drives are decoded by in the incident's .mcap (without it, the
-        .mcap holds the raw frames only)."""
+        .mcap holds the raw frames only); ``unit_objects``: each drive's unit objects as the driver
+        read them at boot, which the .mcap is decoded by and holds in its metadata."""
         self.config = config
         self._rover = rover
+        self._unit_objects = unit_objects
         self._bus_channels = dict(bus_channels)
         self.directory = config.directory
         self._names = {(bus, node): name for name, (bus, node) in drives.items()}
@@ -325,7 +329,8 @@ class FlightRecorder:
                  + (f" {e.text}" if e.text else "")) for e in events]
         metadata = {"incident": summary["kind"], "time": summary["time"], "config": summary["config"] or ""}
         try:
-            write_incident_mcap(path, frames, told, self._rover, metadata)
+            units = self._unit_objects() if self._unit_objects is not None else {}
+            write_incident_mcap(path, frames, told, self._rover, metadata, units)
         except OSError:
             raise  # the directory: handled as the BLF's
         except Exception:

@@ -105,7 +105,7 @@ class MotorDriver:
         given = dict(buses or {})
         self.recorder = FlightRecorder(config.recorder, {d.name: (d.bus, d.node_id) for d in config.drives},
                                        {b.name: b.channel for b in config.buses},
-                                       config.source, config) if config.recorder.enabled else None
+                                       config.source, config, self._unit_objects) if config.recorder.enabled else None
         # every EDS is loaded and checked before any hardware is touched
         ods = {d.name: load_drive_od(d.eds, d.node_id) for d in config.drives}
         try:
@@ -250,6 +250,11 @@ class MotorDriver:
                 unconfirmed.append(str(err))
                 logger.error("safe stop: %s", err)
         return unconfirmed
+
+    def _unit_objects(self) -> dict[str, dict[tuple[int, int], int]]:
+        """Each booted drive's unit objects as it reported them at its last boot (the flight
+        recorder's writer thread reads them: each drive's dict is replaced whole by its boot)."""
+        return {name: drive.boot.unit_objects for name, drive in list(self.drives.items()) if drive.boot.unit_objects}
 
     def close(self) -> None:
         """Quick stop + disable drives, stop SYNC, stop threads, close buses. Idempotent."""

@@ -112,8 +112,9 @@ def config_of(args: argparse.Namespace) -> RoverConfig | None:
 
 
 def record_mcap(args: argparse.Namespace) -> int:
-    """``rovercan record FILE.mcap``: frames and, with --config, every drive decoded."""
-    from motor_driver.recording.mcap_out import McapSink
+    """``rovercan record FILE.mcap``: frames and, with --config, every drive decoded, with its units
+    in the file's metadata."""
+    from motor_driver.recording.mcap_out import UNITS_METADATA, McapSink, config_units_warning, units_metadata
 
     config = config_of(args)
     buses = open_buses(args)
@@ -129,6 +130,10 @@ def record_mcap(args: argparse.Namespace) -> int:
                 n += 1
         finally:
             view.finish()
+            if config:
+                sink.add_metadata(UNITS_METADATA, units_metadata(view))
+    if config and (guessed := view.config_units()):
+        print(config_units_warning("rovercan record", guessed), file=sys.stderr)
     print(f"rovercan record: {n} frames to {args.file}", file=sys.stderr)
     return 0
 
@@ -148,15 +153,52 @@ def recording_frames(path: str, config: RoverConfig | None) -> Iterator[Frame]:
         yield frame_of(msg, by_channel.get(msg.channel, default) if msg.channel is not None else default)
 
 
+def mcap_recording(path: str) -> tuple[Iterator[Frame], dict[str, dict[tuple[int, int], int]]]:
+    """The frames of an MCAP recording (its /can/frames, each on the bus it names) and the drives'
+    unit objects its metadata holds (:data:`motor_driver.recording.mcap_out.UNITS_METADATA`)."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from motor_driver.recording.busview import FRAMES_TOPIC
+    from motor_driver.recording.mcap_out import UNITS_METADATA, recorded_units
+
+    try:
+        with open(path, "rb") as file:
+            units: dict[str, dict[tuple[int, int], int]] = {}
+            for record in make_reader(file).iter_metadata():
+                if record.name == UNITS_METADATA:
+                    units = recorded_units(record.metadata)
+    except (OSError, McapError, ValueError) as err:
+        raise ConfigError(f"{path}: not an MCAP file this can read ({err}); give a recording of `rovercan record"
+                          " FILE.mcap`") from err
+
+    def frames() -> Iterator[Frame]:
+        with open(path, "rb") as file:
+            reader = make_reader(file, decoder_factories=[DecoderFactory()])
+            for _, _, _, m in reader.iter_decoded_messages(topics=[FRAMES_TOPIC]):
+                yield (m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, m.header.frame_id, m.id, m.is_extended,
+                       m.is_rtr, m.is_error, m.dlc, bytes(m.data))
+
+    return frames(), units
+
+
 def decode_mcap(args: argparse.Namespace) -> int:
-    """``rovercan decode FILE -o OUT.mcap``: the recording as ROS 2 messages."""
-    from motor_driver.recording.mcap_out import write_mcap
+    """``rovercan decode FILE -o OUT.mcap``: the recording as ROS 2 messages; an MCAP recording's
+    drives in the units its metadata holds."""
+    from motor_driver.recording.mcap_out import config_units_warning, write_mcap
 
     if Path(args.output).suffix.lower() != ".mcap":
         raise ConfigError(f"-o {args.output}: decode writes .mcap files; name it OUT.mcap")
     config = config_of(args)
-    n = write_mcap(args.output, recording_frames(args.file, config), config,
-                   {"command": "rovercan decode", "source": str(args.file), "config": str(args.config or "")})
+    if Path(args.file).suffix.lower() == ".mcap":
+        frames, units = mcap_recording(args.file)
+    else:
+        frames, units = recording_frames(args.file, config), {}
+    n, guessed = write_mcap(args.output, frames, config, {"command": "rovercan decode", "source": str(args.file),
+                                                          "config": str(args.config or "")}, units)
+    if guessed:
+        print(config_units_warning("rovercan decode", guessed), file=sys.stderr)
     print(f"rovercan decode: {n} frames to {args.output}", file=sys.stderr)
     return 0
 

@@ -1,0 +1,55 @@
+"""What the state topics say of a drive (pure): a MotorState's fields and a /joint_states entry
+made from a :class:`~motor_driver.drive.DriveState`. One conversion for the live nodes
+(``nodes/messages.py``, ``nodes/rover_driver.py``) and the bus view of recordings and the
+Foxglove view (:mod:`motor_driver.recording.busview`), so a recording says what the live topics said.
+
+The rules: a MotorState's angle is wrapped to [0, 360) on a continuous joint (a wheel) and as
+measured on a limited one; /joint_states carries the angle as measured (rad, never wrapped: a
+wheel's travel), its velocity (rad/s) and torque (Nm). Values of stale data are not repeated as
+if they were news: NaN, with ``stale`` and the data's age. No state of its own.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+from motor_driver.drive.values import DriveState
+
+#: The largest data age a MotorState carries (a drive never heard: infinite, said as this).
+DATA_AGE_MAX_S = 1e9
+
+
+class MotorStateFields(NamedTuple):
+    """rovercan_msgs/MotorState's fields but its header (stamped ``stamp``, frame ``name``)."""
+
+    name: str
+    state: str
+    angle: float
+    velocity: float
+    torque: float
+    enabled: bool
+    fault: bool
+    error_code: int
+    stale: bool
+    data_age: float
+    stamp: float
+
+
+def motor_state_fields(state: DriveState, continuous: bool) -> MotorStateFields:
+    """A MotorState of ``state`` (see the module's rules)."""
+    angle = state.angle_deg % 360.0 if continuous else state.angle_deg
+    stale = state.stale
+    return MotorStateFields(
+        name=state.name, state="LOST" if state.lost else state.state.name,
+        angle=math.nan if stale else float(angle), velocity=math.nan if stale else float(state.velocity_deg_s),
+        torque=math.nan if stale else float(state.torque_nm), enabled=state.enabled, fault=state.fault,
+        error_code=state.error_code, stale=stale, data_age=float(min(state.data_age_s, DATA_AGE_MAX_S)),
+        stamp=state.stamp)
+
+
+def joint_entry(state: DriveState) -> tuple[float, float, float]:
+    """A drive's /joint_states position (rad), velocity (rad/s) and effort (Nm); NaN when stale."""
+    if state.stale:
+        return math.nan, math.nan, math.nan
+    return math.radians(state.angle_deg), math.radians(state.velocity_deg_s), state.torque_nm
