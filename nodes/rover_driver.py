@@ -42,9 +42,9 @@ from std_msgs.msg import Float32
 
 from can_config.errors import ConfigError, RovercanError
 from motor_driver import Drive, MotorDriver
+from motor_driver.drive.health import bus_health, drive_health
 from motor_driver.process.stop import StopSignal
 from motor_driver.recording.published import joint_entry
-from motor_driver.runtime.health import bus_health, drive_health
 from nodes import runtime
 from nodes.handoff import Handoff
 from nodes.messages import fill_motor_state

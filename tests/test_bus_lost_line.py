@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from motor_driver.bus.adapters import brief_error
+from motor_driver.process.jobs import brief_error
 
 from .conftest import REPO, wait_for
 from .test_sim_cli import free_port

@@ -18,12 +18,12 @@ from mcap_ros2.decoder import DecoderFactory
 
 from can_config import load_config
 from can_config.eds import load_drive_od
+from motor_driver.drive.ledger import DriveRuntime, RuntimePort
 from motor_driver.drive.state import DriveCache
 from motor_driver.protocol.pdo import plan_pdos
 from motor_driver.protocol.units import Scale
 from motor_driver.recording.mcap_out import write_mcap
 from motor_driver.recording.ros2defs import DEFINITIONS
-from motor_driver.runtime.ledger import DriveRuntime, RuntimePort
 
 from .conftest import REPO, rovercan_sim
 

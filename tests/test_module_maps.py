@@ -100,3 +100,37 @@ def test_the_core_keeps_its_layers(package: str) -> None:
                 for path in sorted((REPO / package).rglob("*.py"))}
     crossing = {path: names for path, names in crossing.items() if names}
     assert not crossing, f"{package} imports what its layer must not: {crossing}"
+
+
+#: motor_driver's folders, lowest first: each imports only folders before it (rover/ stands alone).
+FOLDER_ORDER = ("process", "protocol", "rover", "bus", "drive", "recording", "runtime")
+
+
+def folder_imports(root: Path) -> list[tuple[str, str, str]]:
+    """(importing folder, imported folder, file) for every import of one motor_driver folder by another."""
+    found = []
+    for path in sorted((root / "motor_driver").rglob("*.py")):
+        parts = path.relative_to(root).parts
+        if len(parts) < 3:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [alias.name for alias in node.names] if isinstance(node, ast.Import) else (
+                [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module else [])
+            for name in names:
+                target = name.split(".")
+                if target[0] == "motor_driver" and len(target) > 1 and target[1] != parts[1] and target[1] in FOLDER_ORDER:
+                    found.append((parts[1], target[1], str(path.relative_to(root))))
+    return found
+
+
+def test_motor_driver_is_folders_in_layers() -> None:
+    """Every module of motor_driver sits in a named folder but its ``__init__``, and no folder
+    imports one above it (FOLDER_ORDER)."""
+    loose = sorted(p.name for p in (REPO / "motor_driver").glob("*.py") if p.name != "__init__.py")
+    assert not loose, f"motor_driver/ modules outside a named folder: {loose}"
+    folders = sorted(p.parent.name for p in (REPO / "motor_driver").glob("*/__init__.py"))
+    assert folders == sorted(FOLDER_ORDER), f"motor_driver's folders {folders} against FOLDER_ORDER {FOLDER_ORDER}"
+    upward = [f"{file}: {low} imports {high}" for low, high, file in folder_imports(REPO)
+              if FOLDER_ORDER.index(high) > FOLDER_ORDER.index(low)]
+    assert not upward, "imports from a lower folder to a higher one:\n" + "\n".join(upward)
+

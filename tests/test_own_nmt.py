@@ -119,7 +119,7 @@ def test_the_ledger_explains_its_own_command_however_late_the_state_is_heard() -
     window). What decides is the newest command sent, not how long ago: a START sent after it
     means a STOPPED state is no longer this driver's doing."""
     from can_config.objects import NmtCommand
-    from motor_driver.runtime.ledger import NmtLedger
+    from motor_driver.drive.ledger import NmtLedger
 
     sent: list[bytes] = []
     ledger = NmtLedger(1, lambda cob, data: sent.append(data))

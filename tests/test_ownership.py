@@ -5,7 +5,7 @@ through what it offers (issues 38, 53). An AST scan of the production code, the 
 - the attributes a module declares are those it assigns as ``self.<name>``;
 - anywhere in the production code, an assignment to ``<x>.<name>`` (``x`` not ``self``, or
   ``self.<part>.<name>``) of a name that only other modules declare is a violation;
-- the runtime state (:mod:`motor_driver.runtime.ledger`: lost, booted, another master, reconnect and
+- the runtime state (:mod:`motor_driver.drive.ledger`: lost, booted, another master, reconnect and
   back-off) has one writer, the supervisor (its two modules, one thread); nobody else assigns it.
 
 The checker is tried on broken snippets too, so the test can fail.
@@ -24,7 +24,7 @@ DRIVE = REPO / "motor_driver" / "drive"
 DECLARING = [REPO / "motor_driver", REPO / "nodes"]
 PRODUCTION = [*DECLARING, REPO / "rovercan", REPO / "can_config", REPO / "virtual_can"]
 #: The modules of the one writer of each module's state, where it is not the module itself.
-WRITERS = {"motor_driver/runtime/ledger.py": {"motor_driver/runtime/supervisor.py", "motor_driver/runtime/supervise_bus.py"}}
+WRITERS = {"motor_driver/drive/ledger.py": {"motor_driver/runtime/supervisor.py", "motor_driver/runtime/supervise_bus.py"}}
 #: Every part keeps a read-only copy of the drive's identity; messages and others have fields of
 #: these names too (MotorState.name), so they say nothing about ownership.
 IDENTITY = frozenset({"name", "node_id", "config"})
@@ -156,7 +156,7 @@ def test_the_check_finds_a_write_into_another_part() -> None:
 def test_only_the_supervisor_writes_the_runtime_state() -> None:
     decl = declarations()
     writes = "def f(runtime, bus):\n    runtime.lost = True\n    bus.backoff_s = 1.0\n"
-    for module in ("motor_driver/drive/state.py", "motor_driver/drive/boot.py", "motor_driver/bus/handle.py",
+    for module in ("motor_driver/drive/state.py", "motor_driver/drive/boot.py", "motor_driver/drive/hostwatch.py",
                    "nodes/rover_driver.py"):
         others = {m: n for m, n in decl.items() if m != module and m in reach(REPO / module)}
         assert len(violations(writes, set(), others, module)) == 2, module

@@ -13,8 +13,8 @@ import pytest
 
 from can_config import load_config
 from motor_driver import MotorDriver, State
+from motor_driver.drive.health import ERROR, WARN, drive_health
 from motor_driver.protocol.safety import FAIL, PASS
-from motor_driver.runtime.health import ERROR, WARN, drive_health
 from virtual_can import SimService
 
 from .conftest import REPO, make_config, wait_for

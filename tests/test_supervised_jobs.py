@@ -2,7 +2,7 @@
 lists) forced into each background job of the driver (a bus's reconnect, a drive's
 re-configuration, the supervisor's period, a receive callback) is logged with its cause, counted,
 and ends in a retry or a stop, and the driver's status for /diagnostics says so
-(:func:`motor_driver.runtime.health.jobs_health`, :func:`motor_driver.runtime.health.drive_health`). The driver
+(:func:`motor_driver.drive.health.jobs_health`, :func:`motor_driver.drive.health.drive_health`). The driver
 runs on the simulator over socketcand; each verdict waits for an outcome (a hang bound, no clock)."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ import pytest
 
 from can_config import RoverConfig
 from motor_driver import MotorDriver
+from motor_driver.drive.health import ERROR, WARN, drive_health
 from motor_driver.runtime import supervise_bus as supervise_bus_module
-from motor_driver.runtime.health import ERROR, WARN, drive_health
 from motor_driver.runtime.supervisor import SUPERVISOR_FAILURES_MAX
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -66,7 +66,7 @@ def test_a_reconnect_that_raises_anything_is_logged_counted_and_tried_again(
     assert fault.count == 2 and "Boom: forced failure 2" in fault.cause and fault.where == "bus can0"
     health = driver.jobs_health()
     assert health.level == WARN and "Boom" in health.message and health.values["reconnect"] == "2"
-    lines = [r for r in boom_lines(caplog) if r.name == "motor_driver.runtime.jobs"]
+    lines = [r for r in boom_lines(caplog) if r.name == "motor_driver.process.jobs"]
     assert len(lines) == 1 and lines[0].levelno == logging.ERROR and lines[0].exc_info is not None  # its traceback
     assert any("next try in" in r.getMessage() for r in boom_lines(caplog))  # each try said with its back-off
 

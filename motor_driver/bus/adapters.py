@@ -11,7 +11,7 @@ that changes the behaviour fails there, loudly, instead of in the field:
 - :class:`GuardedNetwork`: canopen's ``Network.notify`` stops the receive thread when one
   callback raises; this override isolates each callback (its loop mirrors canopen's). Its
   listener also drops 29-bit frames, which canopen would dispatch by their low bits.
-- :func:`brief_error`, :class:`ReceiveErrors`, :func:`quiet_dependency_tracebacks`: a lost bus is
+- :class:`ReceiveErrors`, :func:`quiet_dependency_tracebacks`: a lost bus is
   one line. python-can's socketcand client puts a formatted traceback in its "Failed to receive"
   error (and logs it), its broadcast manager logs a send error with its traceback, and its
   Notifier re-raises a receive error in its thread (Python prints that traceback) unless a
@@ -31,6 +31,7 @@ from typing import Any
 import can
 import canopen
 
+from motor_driver.process.jobs import brief_error
 from motor_driver.process.ratelimit import Throttle
 
 logger = logging.getLogger(__name__)
@@ -108,16 +109,6 @@ def hold_lone_sync(bus: can.BusABC, hold: bool) -> bool:
 #: python-can's loggers that put traceback text into their records when a bus goes away.
 TRACEBACK_LOGGERS = ("can.interfaces.socketcand.socketcand", "can.bcm")
 
-
-def brief_error(err: BaseException) -> str:
-    """An error in one line: its own text up to any traceback python-can put in it, and the
-    cause it was raised from (``ConnectionResetError: [Errno 104] Connection reset by peer``)."""
-    text = str(err).split("Traceback (most recent call last)")[0].strip().splitlines()
-    line = text[0].strip() if text else type(err).__name__
-    cause = err.__cause__ or err.__context__
-    if cause is not None and str(cause) and str(cause) not in line:
-        line = f"{line.rstrip(':')}: {type(cause).__name__}: {brief_error(cause)}"
-    return line
 
 
 class _OneLine(logging.Filter):

@@ -5,7 +5,7 @@ Owners: the connection (``bus``, the network's notifier, ``sync_task``) is set u
 driver's constructor and ``start`` before any thread runs, and from then on changed only by jobs
 on the bus's worker (reconnect, SYNC restart), one at a time; the supervisor thread sends the
 host heartbeat through it (:meth:`BusHandle.beat`, which counts ``host_beats``). The supervisor's
-bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.runtime.ledger.BusRuntime`.
+bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.drive.ledger.BusRuntime`.
 
 The bus's receive thread (python-can's Notifier) runs as every other thread of the driver's
 process does: under SCHED_FIFO where the node made it real-time (nodes/runtime.go_realtime). It
@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import logging
 from concurrent.futures import ThreadPoolExecutor
+from typing import Protocol
 
 import can
 
@@ -32,11 +33,11 @@ from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
-from motor_driver.bus.adapters import GuardedNetwork, ReceiveErrors, brief_error, hold_lone_sync, queue_full
+from motor_driver.bus.adapters import GuardedNetwork, ReceiveErrors, hold_lone_sync, queue_full
 from motor_driver.bus.connect import is_kernel_bus
 from motor_driver.bus.cyclic import DaemonCyclicTask
 from motor_driver.bus.traffic import BusStats, ForeignTraffic
-from motor_driver.recording.flight import FlightRecorder
+from motor_driver.process.jobs import brief_error
 
 logger = logging.getLogger(__name__)
 
@@ -56,12 +57,23 @@ def sync_daemon(bus_cfg: BusConfig) -> tuple[str, int, str] | None:
     return str(kwargs.get("host", "127.0.0.1")), int(kwargs.get("port", SOCKETCAND_PORT)), bus_cfg.channel
 
 
+class FrameRecorder(Protocol):
+    """What a bus hands the flight recorder (:class:`motor_driver.recording.flight.FlightRecorder`
+    is one; the bus, a layer below, does not import it): every frame heard and every frame sent."""
+
+    def listener(self, bus: str) -> can.Listener: ...
+
+    def record_sent(self, bus: str, msg: can.Message) -> None: ...
+
+    def record_frame(self, bus: str, can_id: int, data: bytes | bytearray, remote: bool = False) -> None: ...
+
+
 class BusHandle:
     """One bus with its canopen network and SYNC task."""
 
     def __init__(self, name: str, bus: can.BusABC, owned: bool, sync_period_s: float,
                  bitrate: int = 1_000_000, foreign: ForeignTraffic | None = None,
-                 daemon: tuple[str, int, str] | None = None, recorder: FlightRecorder | None = None) -> None:
+                 daemon: tuple[str, int, str] | None = None, recorder: FrameRecorder | None = None) -> None:
         self.name = name
         self.recorder = recorder
         self.daemon_address = daemon  # (host, port, channel): the socketcand daemon's timer sends the SYNC

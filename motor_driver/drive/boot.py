@@ -5,7 +5,7 @@ nothing else commands it meanwhile (the cache says not booted, so every command 
 Its own state: the safety check's result, the boot count, the host-loss stops it found, the
 object a step is at (for its error), the unit objects the drive reported (replaced whole at each
 boot; the flight recorder reads them for its incidents). Whether the drive is booted is the supervisor's: a boot
-reports its beginning and its end (:class:`motor_driver.runtime.ledger.Booting`, ``Booted``) and a
+reports its beginning and its end (:class:`motor_driver.drive.ledger.Booting`, ``Booted``) and a
 failed re-configuration (``RebootFailed``), and goes on once the supervisor has taken it in.
 Each step reads or writes by SDO through the drive's SDO port; what the steps read (statusword,
 position, mode, units) is handed to the state cache and the command channel through their
@@ -28,6 +28,7 @@ from can_config.errors import BootError, BusLostError, DriveStateError, DriveTim
 from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
 from motor_driver.drive.constants import HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
 from motor_driver.drive.hostwatch import HostWatch
+from motor_driver.drive.ledger import Booted, Booting, RebootFailed, RuntimePort
 from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.protocol.cia402 import SW, Command, State, decode_state
@@ -36,7 +37,6 @@ from motor_driver.protocol.pdo import mapping_writes
 from motor_driver.protocol.safety import SafetyCheck, judge
 from motor_driver.protocol.unit_ranges import check_drive_value
 from motor_driver.protocol.units import read_unit_objects, scale_from_objects
-from motor_driver.runtime.ledger import Booted, Booting, RebootFailed, RuntimePort
 
 logger = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ composes ``sdo``, ``pdo``, ``nmt`` and ``emcy``:
   collaborators built on those.
 
 Lost, booted and another master are the driver's supervisor's judgement (``runtime``, a
-:class:`motor_driver.runtime.ledger.DriveRuntime` the parts read); the parts hand it what they find
+:class:`motor_driver.drive.ledger.DriveRuntime` the parts read); the parts hand it what they find
 through ``port``. This class adds no state and no rule: it builds the parts in order, connects the cache to the
 channel, and hands the drive's COB-IDs to the receive thread last, so that a frame never meets
 a half-built drive. Its few methods are the user's API (enable, the stops, moves, streams,
@@ -37,6 +37,7 @@ from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.homing import Homing
 from motor_driver.drive.hostwatch import HostWatch
+from motor_driver.drive.ledger import DriveRuntime, NmtLedger, RuntimePort
 from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.motion import Motion
 from motor_driver.drive.part import Ports
@@ -46,7 +47,6 @@ from motor_driver.drive.state import DriveCache
 from motor_driver.drive.values import DriveState
 from motor_driver.protocol.pdo import PdoPlan, plan_pdos
 from motor_driver.protocol.units import Scale
-from motor_driver.runtime.ledger import DriveRuntime, NmtLedger, RuntimePort
 
 logger = logging.getLogger(__name__)
 

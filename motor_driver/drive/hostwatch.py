@@ -7,10 +7,10 @@ Owners: boot (the bus's worker, drive not booted) writes ``host_watch``, ``host_
 heartbeats sent on the drive's bus is the supervisor's (its bus handle, read through
 ``host_beats``); the count of guard answers is the receive thread's (the cache). This object
 keeps no runtime state: lost, another master and the stop bookkeeping are the supervisor's
-(:class:`motor_driver.runtime.ledger.DriveRuntime`, read here), which decides when :meth:`send_guard`,
+(:class:`motor_driver.drive.ledger.DriveRuntime`, read here), which decides when :meth:`send_guard`,
 :meth:`stop_lost` and :meth:`lose_control` run, on its thread; none of them waits (the
 channel's lock is tried, not waited for). Blocking SDO work (the SDO copy of a stop) runs on the
-bus's worker. Every NMT command goes through the drive's :class:`motor_driver.runtime.ledger.NmtLedger`,
+bus's worker. Every NMT command goes through the drive's :class:`motor_driver.drive.ledger.NmtLedger`,
 so that a state it causes is known as this driver's.
 
 A drive declared lost may still be turning (a broken transmit line, a hung CAN task): the
@@ -41,10 +41,10 @@ from motor_driver.drive.constants import (
     WATCH_START_BEATS,
     WATCH_START_PERIODS,
 )
+from motor_driver.drive.ledger import DriveRuntime, NmtLedger
 from motor_driver.drive.part import Ports
 from motor_driver.protocol.cia402 import Command, State
 from motor_driver.protocol.safety import guard_settings
-from motor_driver.runtime.ledger import DriveRuntime, NmtLedger
 
 logger = logging.getLogger(__name__)
 

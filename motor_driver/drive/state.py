@@ -18,9 +18,9 @@ the last. The cause of a fault (the newest EMCY with an error code) is kept unti
 resets the fault (:meth:`DriveCache.acknowledge_emcy`): an EMCY 0x0000 (error reset) that comes
 while the drive still says FAULT, a spoofed one or one ahead of its statusword, clears nothing.
 
-Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.runtime.ledger.DriveRuntime`),
+Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.drive.ledger.DriveRuntime`),
 read here, never written: the receive thread posts each heartbeat that may change it
-(:class:`motor_driver.runtime.ledger.Heard`) and goes on.
+(:class:`motor_driver.drive.ledger.Heard`) and goes on.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ import canopen
 from can_config.config import DriveConfig
 from can_config.objects import OD, FunctionCode, NmtState, emcy_text
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
+from motor_driver.drive.ledger import DriveRuntime, Heard, RuntimePort
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Emcy, Received, StatusSink
@@ -44,7 +45,6 @@ from motor_driver.process.ratelimit import Throttle
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
 from motor_driver.protocol.pdo import PdoPlan, TpdoLayout
 from motor_driver.protocol.units import Scale
-from motor_driver.runtime.ledger import DriveRuntime, Heard, RuntimePort
 
 logger = logging.getLogger(__name__)
 

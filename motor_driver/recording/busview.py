@@ -41,6 +41,7 @@ from can_config.eds import load_drive_od
 from can_config.errors import UnitError
 from can_config.model import RoverConfig
 from can_config.objects import OD, FunctionCode, NmtState, OperationMode, emcy_text
+from motor_driver.drive.health import drive_health
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Received
@@ -51,7 +52,6 @@ from motor_driver.protocol.units import Scale, scale_from_objects, unit_object_a
 from motor_driver.recording.published import joint_entry, motor_state_fields
 from motor_driver.recording.ros2defs import CAN_FRAME, DIAGNOSTIC_ARRAY, DRIVE_STATUS, JOINT_STATE
 from motor_driver.recording.timemerge import LIVE_HOLD_S, Frame, TimeMerge
-from motor_driver.runtime.health import drive_health
 
 logger = logging.getLogger(__name__)
 
@@ -241,7 +241,7 @@ def view_drives(config: RoverConfig, units: Mapping[str, UnitObjects] | None = N
 
 def drive_row(state: DriveState, verdict: Verdict, config: DriveConfig) -> tuple[int, str, dict[str, object]]:
     """A drive's /diagnostics level, message and values, by the live /diagnostics' rules
-    (:func:`motor_driver.runtime.health.drive_health`), with the verdict on it."""
+    (:func:`motor_driver.drive.health.drive_health`), with the verdict on it."""
     health = drive_health(state, heartbeat_period_s=config.heartbeat_period_s)
     return health.level, health.message, {**health.values, "verdict": verdict.text()}
 

@@ -3,12 +3,9 @@ what the driver has judged of each.
 
 What lives where: :mod:`.driver` (:class:`MotorDriver`: start, safe stop, close), :mod:`.supervisor`
 (the period that never blocks: heartbeats, watchdog, limit guard, another master) with
-:mod:`.supervise_bus` (its work on buses: the host heartbeat, connection, SYNC, reconnect),
-:mod:`.ledger` (the runtime state the supervisor alone writes: lost, booted, another master,
-reconnect and back-off; the NMT ledger), :mod:`.jobs` (background jobs supervised: an unexpected
-exception counted, logged and retried), :mod:`.health` (a drive's and a bus's grade for
-diagnostics, pure).
+:mod:`.supervise_bus` (its work on buses: the host heartbeat, connection, SYNC, reconnect).
 
-Owner: the supervisor thread (``rovercan-supervisor``) writes the ledger; each bus's worker runs
-boots and reconnects and reports their results to it; the caller's thread starts and closes.
+Owner: the supervisor thread (``rovercan-supervisor``) alone writes the ledger of its judgements
+(:mod:`motor_driver.drive.ledger`); each bus's worker runs boots and reconnects and reports
+their results to it; the caller's thread starts and closes.
 """

@@ -14,7 +14,7 @@ Threads and what they own:
   period SUPERVISOR_PERIOD_S, never blocks: produces the host heartbeat on every bus, checks the
   drives' heartbeats, runs the velocity watchdog and the limit guard, notices lost buses and hands
   re-boots and reconnects to the bus's worker. It alone writes the runtime state (lost, booted,
-  another master, reconnect and back-off: :mod:`motor_driver.runtime.ledger`); ``bus_lost`` reads it.
+  another master, reconnect and back-off: :mod:`motor_driver.drive.ledger`); ``bus_lost`` reads it.
 - one worker per bus (``rovercan-<bus>``): the re-boots and reconnects, one at a time; each
   reports its result to the supervisor.
 - the caller's threads: commands, each decided and sent through the drive's command channel
@@ -71,9 +71,9 @@ from motor_driver.bus.traffic import (
     other_master_error,
 )
 from motor_driver.drive import Drive, DriveState
+from motor_driver.drive.health import Health, jobs_health
 from motor_driver.protocol.cia402 import State
 from motor_driver.recording.flight import FlightRecorder
-from motor_driver.runtime.health import Health, jobs_health
 from motor_driver.runtime.supervisor import SUPERVISOR_PERIOD_S, Supervisor
 
 logger = logging.getLogger(__name__)

@@ -4,7 +4,7 @@ connection, error frames, the SYNC job, silence); a lost bus the driver opened i
 with back-off by a job on the bus's worker, which reports back (:class:`BusBack`,
 :class:`BusDown`) instead of writing anything of the supervisor's.
 
-Owner: the supervisor thread writes each :class:`BusRuntime` (:mod:`motor_driver.runtime.ledger`); the
+Owner: the supervisor thread writes each :class:`BusRuntime` (:mod:`motor_driver.drive.ledger`); the
 worker's job only opens, closes and boots, through the bus handle's and the drives' methods.
 """
 
@@ -17,16 +17,16 @@ import can
 
 from can_config import RoverConfig
 from can_config.errors import BusLostError, ConfigError, MotorError
-from motor_driver.bus.adapters import brief_error, connection_closed
+from motor_driver.bus.adapters import connection_closed
 from motor_driver.bus.connect import open_bus
 from motor_driver.bus.cyclic import DaemonCyclicTask
 from motor_driver.bus.handle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
 from motor_driver.bus.link import KernelBusHealth, read_kernel_health
 from motor_driver.drive import Drive
+from motor_driver.drive.ledger import BusBack, BusDown, BusRuntime, DriveRuntime, Event
+from motor_driver.process.jobs import JobFaults, brief_error, cause_of
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recording.flight import FlightRecorder
-from motor_driver.runtime.jobs import JobFaults, cause_of
-from motor_driver.runtime.ledger import BusBack, BusDown, BusRuntime, DriveRuntime, Event
 
 logger = logging.getLogger(__name__)
 

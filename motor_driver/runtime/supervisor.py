@@ -4,11 +4,11 @@ another master, every period; lost buses every BUS_CHECK_PERIODS (:mod:`motor_dr
 Re-boots and reconnects run on the bus's worker.
 
 Owner: the :class:`Supervisor`, on its thread, alone writes the runtime state
-(:mod:`motor_driver.runtime.ledger`): one :class:`DriveRuntime` per drive and one :class:`BusRuntime`
+(:mod:`motor_driver.drive.ledger`): one :class:`DriveRuntime` per drive and one :class:`BusRuntime`
 per bus. The receive thread posts what it heard (:meth:`Supervisor.post`, never waits); a boot
 or a reconnect on a worker reports its result (:meth:`Supervisor.report`) and goes on once the
 supervisor applied it, within a period. Its jobs on a worker are supervised
-(:mod:`motor_driver.runtime.jobs`): what one raises unexpectedly is counted, logged and retried. A period
+(:mod:`motor_driver.process.jobs`): what one raises unexpectedly is counted, logged and retried. A period
 that raises is counted and logged and the loop goes on; SUPERVISOR_FAILURES_MAX periods in a row
 end the loop: every drive is told to stop (quick stop through its command channel) and
 ``ended`` says why (an ERROR in /diagnostics), written once by this thread as it ends. Before its thread starts (the boots of ``start``) and
@@ -34,11 +34,7 @@ from motor_driver.bus.handle import BusHandle
 from motor_driver.bus.traffic import FOREIGN_HOLD_S, FOREIGN_RELEASE_S
 from motor_driver.drive import Drive
 from motor_driver.drive.constants import REBOOT_RETRY_S
-from motor_driver.process.ratelimit import RateLimitedLog
-from motor_driver.protocol.cia402 import Command
-from motor_driver.recording.flight import FlightRecorder
-from motor_driver.runtime.jobs import JobFaults, cause_of
-from motor_driver.runtime.ledger import (
+from motor_driver.drive.ledger import (
     Booted,
     Booting,
     DriveRuntime,
@@ -47,6 +43,10 @@ from motor_driver.runtime.ledger import (
     RebootFailed,
     RuntimePort,
 )
+from motor_driver.process.jobs import JobFaults, cause_of
+from motor_driver.process.ratelimit import RateLimitedLog
+from motor_driver.protocol.cia402 import Command
+from motor_driver.recording.flight import FlightRecorder
 from motor_driver.runtime.supervise_bus import BUS_CHECK_PERIODS, BusSupervision
 
 logger = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""The driver's runtime state: what it has judged of each drive and each bus (lost, booted, to be
+"""The ledger of the supervisor's judgements: what the driver has judged of each drive and each bus (lost, booted, to be
 configured again, another master, the stops of a lost drive, the watchdog's and the guard's
 times; a bus's reconnect and back-off, its host heartbeat), and the NMT commands it sent.
 
@@ -13,6 +13,9 @@ and waits until the supervisor has applied it.
 :class:`NmtLedger` is the one way an NMT command leaves for a drive: it sends and remembers the
 command and when, so that a state the driver caused (its own NMT stop of a lost drive, taking
 effect after a heartbeat sent just before it) is never taken for another master's.
+
+It lives with the drive's parts because they read it and post to it (through :class:`RuntimePort`);
+the supervisor (:mod:`motor_driver.runtime`), the layer above, is its one writer.
 """
 
 from __future__ import annotations

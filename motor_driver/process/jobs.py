@@ -1,7 +1,7 @@
 """Background work supervised: a job that fails in a way nobody foresaw (an exception of any
 type its own code does not handle) is logged with its cause, counted per kind of job, and handed
 to the caller's ``on_fail`` (which retries it with its back-off, or stops), instead of ending in
-a Future nobody reads. The counts are in /diagnostics (:func:`motor_driver.runtime.health.jobs_health`).
+a Future nobody reads. The counts are in /diagnostics (:func:`motor_driver.drive.health.jobs_health`).
 
 Kinds (:data:`JOB_KINDS`): ``reconnect`` (a lost bus opened again), ``reconfigure`` (a drive
 configured again after a reset), ``sync_restart`` (the daemon's SYNC job set up again),
@@ -22,7 +22,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from motor_driver.bus.adapters import brief_error
 from motor_driver.process.ratelimit import PERIOD_S, Throttle
 
 logger = logging.getLogger(__name__)
@@ -38,6 +37,17 @@ class JobFault:
     where: str
     cause: str
     at: float
+
+
+def brief_error(err: BaseException) -> str:
+    """An error in one line: its own text up to any traceback python-can put in it, and the
+    cause it was raised from (``ConnectionResetError: [Errno 104] Connection reset by peer``)."""
+    text = str(err).split("Traceback (most recent call last)")[0].strip().splitlines()
+    line = text[0].strip() if text else type(err).__name__
+    cause = err.__cause__ or err.__context__
+    if cause is not None and str(cause) and str(cause) not in line:
+        line = f"{line.rstrip(':')}: {type(cause).__name__}: {brief_error(cause)}"
+    return line
 
 
 def cause_of(err: BaseException) -> str:

@@ -34,9 +34,9 @@ from can_config.objects import emcy_text
 from motor_driver.bus.adapters import Rejected
 from motor_driver.bus.link import KernelBusHealth
 from motor_driver.drive import DriveState
+from motor_driver.process.jobs import JOB_KINDS, JobFault
 from motor_driver.protocol.cia402 import FAULT_STATES, SW
 from motor_driver.protocol.safety import ALLOWED, SafetyCheck
-from motor_driver.runtime.jobs import JOB_KINDS, JobFault
 
 OK, WARN, ERROR = 0, 1, 2
 #: A drive's rejected frames count in its grade for this long after the newest.
