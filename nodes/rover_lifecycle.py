@@ -132,6 +132,13 @@ class DriveLifecycleNode(LifecycleNode):
             self.get_logger().error(f"stop not confirmed: {line}")
         return failed
 
+    def destroy_node(self) -> None:
+        super().destroy_node()
+        # rclpy's LifecycleNode leaves its state machine, which holds the node's handle: the node
+        # stayed in the graph after it was destroyed and its context shut down (a stale
+        # rovercan_lifecycle whose change_state nobody answers)
+        self._state_machine.destroy_when_not_in_use()
+
     def release(self) -> None:
         """The assembly closed (drives safe, threads joined, interface gone, bus released)."""
         if self.assembly is not None:

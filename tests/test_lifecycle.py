@@ -34,9 +34,12 @@ if HAVE_ROS:
 
 
 class Listener(threading.Thread):
-    def __init__(self, sim: SimService) -> None:
+    """An independent python-can client of the simulator's bus: every frame, in order, with when it came."""
+
+    def __init__(self, sim: SimService | None, *, port: int = 0, channel: str = "can0") -> None:
         super().__init__(daemon=True)
-        self.bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        host, port = (sim.host, sim.port) if sim is not None else ("127.0.0.1", port)
+        self.bus = can.Bus(interface="socketcand", channel=channel, host=host, port=port)
         self.frames: list[tuple[float, int, bytes]] = []
         self.stop = threading.Event()
         self.start()
@@ -251,8 +254,18 @@ def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) 
 INACTIVE = "rovercan_lifecycle is inactive: activate it"
 #: The wheels of the drive system: a left, b right.
 DRIVE_SYSTEM = "drive_system: {left: [a], right: [b], track_width_m: 0.6, wheel_radius_m: 0.1, cmd_timeout_ms: 500}\n"
-#: Every RPDO of the two drives: a controlword or a set-point (nothing else goes host -> drive on them).
-RPDOS = {base + n for base in (0x200, 0x300, 0x400, 0x500) for n in (1, 2)}
+
+
+def rpdo(cob_id: int) -> bool:
+    """An RPDO of a drive: a controlword or a set-point (nothing else goes host -> drive on them)."""
+    return cob_id & 0x780 in (0x200, 0x300, 0x400, 0x500) and cob_id & 0x7F != 0
+
+
+def set_point(cob_id: int) -> bool:
+    """An RPDO but the first (the controlword's): a target."""
+    return rpdo(cob_id) and cob_id & 0x780 != 0x200
+
+
 #: The fence's SDO upload request: 0x1000 (device type), which nothing but a boot reads.
 FENCE = bytes([0x40, 0x00, 0x10, 0x00])
 
@@ -285,12 +298,12 @@ class Probe:
             client.destroy()
         self.node.destroy_node()
 
-    def call(self, srv_type: Any, name: str, request: Any) -> Any:
+    def call(self, srv_type: Any, name: str, request: Any, hang_s: float = 30.0) -> Any:
         client = self.node.create_client(srv_type, name)
         try:
-            assert client.wait_for_service(timeout_sec=10.0), f"no service {name}"
+            assert client.wait_for_service(timeout_sec=hang_s), f"no service {name}"
             future = client.call_async(request)
-            wait_for(future.done, 30.0, f"{name} answered")
+            wait_for(future.done, hang_s, f"{name} answered")
             return future.result()
         finally:
             self.node.destroy_client(client)
@@ -402,7 +415,7 @@ def fence(probe: Probe, listener: Listener, since: int) -> int:
 def moving_frames(frames: list[tuple[int, bytes]]) -> list[str]:
     """Frames that enable or move: any RPDO (a controlword or a set-point), an SDO write."""
     return [f"0x{c:03X} {d.hex()}" for c, d in frames
-            if c in RPDOS or (0x601 <= c <= 0x602 and d[0] >> 5 == 1)]
+            if rpdo(c) or (0x600 < c < 0x680 and d[0] >> 5 == 1)]
 
 
 def check_every_entry_refused(node: Any, sim: SimService, listener: Listener, probe: Probe) -> None:
@@ -445,7 +458,7 @@ def check_active_drives(node: Any, sim: SimService, listener: Listener, probe: P
 
     wait_for(turning, 30.0, "both wheels turning on /cmd_vel")
     assert states(sim) == ["OPERATION_ENABLED"] * 2
-    assert {c for _, c, _ in listener.frames[since:]} & RPDOS  # set-points on the bus
+    assert any(set_point(c) for _, c, _ in listener.frames[since:])  # set-points on the bus
 
 
 @pytest.mark.parametrize("state", ["unconfigured", "configured", "deactivated"])
@@ -488,3 +501,100 @@ def check_nothing_served(node: Any, sim: SimService, probe: Probe) -> None:
     assert not topics, topics
     assert len(sim.server.clients) == 1  # only the listener: the driver does not exist
     assert states(sim) == ["SWITCH_ON_DISABLED"] * 2
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_the_launched_rover_with_lifecycle_moves_nothing_while_inactive(tmp_path: Path) -> None:
+    """The shipped six-wheel rover as a user starts it (`rovercan sim`, then `rovercan launch
+    rover_launch.xml lifecycle:=true`), driven through the standard lifecycle service: configured
+    (inactive) and deactivated after driving, /arm, a wheel's enable and /cmd_vel are refused
+    with the lifecycle state, and independent listeners on both buses see no RPDO and no SDO write
+    from the driver, no drive Operation Enabled; active, /arm and /cmd_vel drive the wheels."""
+    import subprocess
+    import sys
+
+    from geometry_msgs.msg import Twist
+
+    from .conftest import REPO
+    from .test_odom_launched import HANG_S, ROVER_LAUNCH, WHEELS, shipped_rover, start_simulator, stop
+    from .test_sim_cli import free_port
+
+    port = free_port()
+    config = shipped_rover(tmp_path, port)
+    sim = start_simulator(config)
+    log = (tmp_path / "launch.log").open("w")
+    launch = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(ROVER_LAUNCH), f"config:={config}",
+                               "lifecycle:=true", "--duration", "600"], cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+    listeners = [Listener(None, port=port, channel=bus) for bus in ("can0", "can1")]
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    probe = Probe(context)
+    fences = {"can0": "wheels/wheel_front_left", "can1": "wheels/wheel_front_right"}  # node 1 of each bus
+    forward = Twist()
+    forward.linear.x = 0.2
+
+    def change(transition: int) -> None:
+        reply = probe.call(ChangeState, "/rovercan_lifecycle/change_state",
+                           ChangeState.Request(transition=Transition(id=transition)), HANG_S)  # six drives' boot
+        assert reply.success, (transition, (tmp_path / "launch.log").read_text()[-3000:])
+
+    def bus_fence(since: list[int]) -> list[list[tuple[int, bytes]]]:
+        """What each bus carried from ``since`` up to a read of node 1's device type through the
+        driver (the newest frame it sent there); each wheel checked not Operation Enabled."""
+        from rovercan_msgs.srv import SdoRead
+
+        for wheel in WHEELS:
+            read = probe.call(SdoRead, f"wheels/{wheel}/sdo_read", SdoRead.Request(index=0x6041, subindex=0))
+            assert read.success and read.value & 0x6F != 0x27, (wheel, read.message)
+        seen = []
+        for listener, (bus, prefix), start in zip(listeners, fences.items(), since, strict=True):
+            assert probe.call(SdoRead, f"{prefix}/sdo_read", SdoRead.Request(index=0x1000, subindex=0)).success
+            wait_for(lambda listener=listener, start=start: any(c == 0x601 and d[:4] == FENCE
+                                                                for _, c, d in listener.frames[start:]), 30.0,
+                     f"the fence on {bus}")
+            seen.append([(c, d) for _, c, d in list(listener.frames)[start:]])
+        return seen
+
+    def check_refused() -> None:
+        since = [len(f) for f in (listener.frames for listener in listeners)]
+        synced = bus_fence(since)  # what the driver sent before (its stops) read, then counted from here
+        since = [start + len(frames) for start, frames in zip(since, synced, strict=True)]
+        for service in ("arm", "wheels/wheel_front_left/enable"):
+            said = probe.call(Trigger, service, Trigger.Request()).message
+            assert INACTIVE in said, (service, said)
+        said = probe.refused_on_topic(Twist, "/cmd_vel", forward, "rovercan: command input", "/cmd_vel not applied")
+        assert INACTIVE in said, said
+        moved = [moving for frames in bus_fence(since) for moving in moving_frames(frames)]
+        assert not moved, moved
+
+    def check_drives() -> None:
+        change(Transition.TRANSITION_ACTIVATE)
+        armed = probe.call(Trigger, "arm", Trigger.Request())
+        assert armed.success, armed.message
+        since = [len(listener.frames) for listener in listeners]
+        cmd_vel = probe.publisher(Twist, "/cmd_vel")
+
+        def set_points() -> bool:
+            cmd_vel.publish(forward)
+            return all(any(set_point(c) for _, c, _ in list(listener.frames)[start:])
+                       for listener, start in zip(listeners, since, strict=True))
+
+        wait_for(set_points, 60.0, "set-points on both buses")
+
+    try:
+        change(Transition.TRANSITION_CONFIGURE)
+        check_refused()
+        check_drives()
+        change(Transition.TRANSITION_DEACTIVATE)
+        check_refused()
+    finally:
+        probe.close()
+        rclpy.shutdown(context=context)
+        for listener in listeners:
+            listener.stop.set()
+            listener.join(2)
+            listener.bus.shutdown()
+        stop(launch)
+        stop(sim)
+        log.close()
