@@ -15,7 +15,7 @@ import pytest
 from can_config import GENERIC_EDS
 from virtual_can import SimDriveSpec, SimService
 
-from .conftest import HAVE_ROS, requires_ros, wait_for
+from .conftest import HAVE_ROS, IN_PROCESS_HEARTBEAT_TIMEOUT_MS, IN_PROCESS_HOST_TIMEOUT_MS, requires_ros, wait_for
 from .test_ros_interface import check_assembly
 
 pytestmark = requires_ros
@@ -54,8 +54,10 @@ class Listener(threading.Thread):
         return [d for tt, c, d in list(self.frames) if tt >= t and c == cob]
 
 
+#: The drives and the test share one interpreter: the in-process host and heartbeat timeouts (conftest says why).
+_TIMEOUTS = f"host_timeout_ms: {IN_PROCESS_HOST_TIMEOUT_MS:g}, heartbeat_timeout_ms: {IN_PROCESS_HEARTBEAT_TIMEOUT_MS:g}"
 RIG_DRIVES = ("drives: [{name: a, node_id: 1, counts_per_rev: 4096, homing_method: 17, homing_speed_deg_s: 0.5,"
-              " homing_timeout_s: 600}, {name: b, node_id: 2, counts_per_rev: 4096}]\n")
+              f" homing_timeout_s: 600, {_TIMEOUTS}}}, {{name: b, node_id: 2, counts_per_rev: 4096, {_TIMEOUTS}}}]\n")
 
 
 @contextmanager
@@ -271,8 +273,10 @@ FENCE = bytes([0x40, 0x00, 0x10, 0x00])
 
 
 class Probe:
-    """A client node of the graph on an executor of its own: services, actions, publishers, and
-    every /diagnostics status it heard."""
+    """A client node of the graph on an executor of its own, spun on the test's thread while it
+    waits (rclpy's clients match an answer to a request recorded after it was sent: an executor
+    spinning on another thread can take the answer first and drop it): services, actions,
+    publishers, and every /diagnostics status it heard."""
 
     def __init__(self, context: Any) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
@@ -287,13 +291,19 @@ class Probe:
         self.actions = {"move_joint": ActionClient(self.node, MoveJoint, "move_joint"),
                         "home_joint": ActionClient(self.node, Home, "home_joint")}
         self.pubs: dict[str, Any] = {}
-        self.spin = SpinThread(self.executor, "test-probe")
 
     def _on_diagnostics(self, msg: Any) -> None:
         self.statuses += [(s.name, s.message, {kv.key: kv.value for kv in s.values}) for s in msg.status]
 
+    def wait(self, done: Any, hang_s: float, what: str, said: Any = None) -> None:
+        """``wait_for(done)``, the probe's node spun meanwhile."""
+        def spun() -> bool:
+            self.executor.spin_once(timeout_sec=0.005)
+            return bool(done())
+        wait_for(spun, hang_s, what, said)
+
     def close(self) -> None:
-        self.spin.stop(5.0)
+        self.executor.shutdown()
         for client in self.actions.values():
             client.destroy()
         self.node.destroy_node()
@@ -303,7 +313,7 @@ class Probe:
         try:
             assert client.wait_for_service(timeout_sec=hang_s), f"no service {name}"
             future = client.call_async(request)
-            wait_for(future.done, hang_s, f"{name} answered")
+            self.wait(future.done, hang_s, f"{name} answered")
             return future.result()
         finally:
             self.node.destroy_client(client)
@@ -312,12 +322,12 @@ class Probe:
         client = self.actions[action]
         assert client.wait_for_server(timeout_sec=10.0), f"no action server {action}"
         sent = client.send_goal_async(goal)
-        wait_for(sent.done, 30.0, f"{action} goal answered")
+        self.wait(sent.done, 30.0, f"{action} goal answered")
         handle = sent.result()
         if not handle.accepted:
             return None
         result = handle.get_result_async()
-        wait_for(result.done, 30.0, f"{action} result")
+        self.wait(result.done, 30.0, f"{action} result")
         return result.result().result
 
     def publisher(self, msg_type: Any, topic: str) -> Any:
@@ -341,7 +351,7 @@ class Probe:
                     return True
             return False
 
-        wait_for(refused, 20.0, f"a refusal of {topic} on /diagnostics ({status})",
+        self.wait(refused, 20.0, f"a refusal of {topic} on /diagnostics ({status})",
                  lambda: "\n".join(f"{n}: {m}" for n, m, _ in self.statuses[since:][-10:]))
         return found[0]
 
@@ -456,7 +466,8 @@ def check_active_drives(node: Any, sim: SimService, listener: Listener, probe: P
         cmd_vel.publish(forward)
         return all(abs(p - q) > 100 for p, q in zip(sim_positions(sim), positions, strict=True))
 
-    wait_for(turning, 30.0, "both wheels turning on /cmd_vel")
+    probe.wait(turning, 30.0, "both wheels turning on /cmd_vel",
+             lambda: "\n".join(f"{n}: {m}" for n, m, _ in probe.statuses[-8:]))
     assert states(sim) == ["OPERATION_ENABLED"] * 2
     assert any(set_point(c) for _, c, _ in listener.frames[since:])  # set-points on the bus
 
@@ -580,7 +591,7 @@ def test_the_launched_rover_with_lifecycle_moves_nothing_while_inactive(tmp_path
             return all(any(set_point(c) for _, c, _ in list(listener.frames)[start:])
                        for listener, start in zip(listeners, since, strict=True))
 
-        wait_for(set_points, 60.0, "set-points on both buses")
+        probe.wait(set_points, 60.0, "set-points on both buses")
 
     try:
         change(Transition.TRANSITION_CONFIGURE)
