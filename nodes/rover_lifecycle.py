@@ -19,8 +19,9 @@ the state topics still publish (docs/ros.md).
 
 The drives' process is the assembly of ``rover_driver`` (:mod:`nodes.assembly`: the same nodes,
 executors, callback groups and start order, the parameters ``drive_system`` and ``default_joint``
-alike); each transition is a step of it: configure builds and starts it, activate arms, deactivate
-is the driver's safe stop, cleanup closes it. The ROS interface spins on the hot executor given.
+alike); each transition is a step of it: configure builds and starts it, activate takes motion (and
+arms when asked), deactivate holds motion and is the driver's safe stop, cleanup closes it. The ROS
+interface spins on the hot executor given.
 
 With ``autostart`` (the team's demo) it configures and activates itself: the drives are enabled
 only with ``arm`` too (``rover_launch.xml lifecycle:=true autostart:=true arm:=true``), as
