@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Any, NamedTuple
 
 import rclpy
@@ -145,7 +145,8 @@ class Assembly:
             self.driver.start()
         self.node.get_logger().info(
             f"{len(self.node.drives)} drive(s) on {len(self.driver.config.buses)} bus(es) booted; "
-            + ("arming them" if arm and self.node.get_parameter("arm").value else "not armed: call /arm (std_srvs/Trigger)"))
+            + ("arming them" if arm and self.node.get_parameter("arm").value
+               else f"not armed: {self.driver.motion_held or 'call /arm (std_srvs/Trigger)'}"))
         for n in self.nodes:
             executor = self.executors[n.get_name()]
             if executor is not self.hot and n.get_name() in THREADS:
@@ -153,11 +154,14 @@ class Assembly:
         if arm:
             self.node.arm_if_asked()
 
-    def arm(self) -> list[str]:
-        """Enable every served drive, each whatever the others did; what failed, one line a drive."""
+    def arm(self, joints: Collection[str] | None = None) -> list[str]:
+        """Enable every served drive (or those of ``joints``), each whatever the others did; what
+        failed, one line a drive."""
         assert self.node is not None
         failed = []
         for drive in self.node.drives.values():
+            if joints is not None and drive.name not in joints:
+                continue
             try:
                 drive.enable()  # confirmed by the drive's statusword
             except RovercanError as err:

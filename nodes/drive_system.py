@@ -174,6 +174,10 @@ class DriveSystemNode(Node):
         if self.wheels_out is not None:
             self._book_wheels_out(states)
         if not self.stale:
+            held = next((d.channel.held for d in self.wheels if d.channel.held), "")
+            if held:  # the drives' own verdict (the lifecycle node inactive): said as it is, not as "not armed"
+                self._halt(f"/cmd_vel not applied: {held}; nothing was sent")
+                return
             blocked = [s for s in states.values() if not s.enabled and not (self.wheels_out and s.name in self.wheels_out.out)]
             if self.wheels_out is not None and self.wheels_out.share() <= 0.0:
                 self._halt(f"/cmd_vel not applied: a side has no wheel left ({self.wheels_out.summary()}); every wheel"

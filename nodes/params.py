@@ -36,7 +36,8 @@ class Param:
 PARAMS: dict[str, Param] = {
     "config": Param("", "rover config YAML (buses, drives, drive system); empty: the embedded default"),
     "executor": Param("events", "hot-path executor: events (rclpy's EventsExecutor, measured fastest) or single"),
-    "arm": Param(False, "enable every drive at start; off by default: arming is an explicit act"),
+    "arm": Param(False, "enable every drive at start (rover_lifecycle: at activate); off by default: arming is an"
+                        " explicit act"),
     "drive_system": Param(True, "run the config's drive_system (/cmd_vel -> wheels -> /odom); false: leave the"
                                 " wheels to another (ros2_control's diff_drive_controller)"),
     "default_joint": Param("", "joint that /motor_degree_cmd moves and /motor_state reports (the team's demo topics);"

@@ -2,18 +2,30 @@
 or a lifecycle manager brings the rover up in order. Each transition is confirmed on the bus:
 
   configure   connect and boot every drive (not enabled); the drives' ROS interface (topics,
-              services, actions, /cmd_vel) comes up
-  activate    enable every drive (arm): each confirms Operation Enabled
-  deactivate  quick stop, then disable voltage: each confirms Switch On Disabled
+              services, actions, /cmd_vel) comes up, its motion held
+  activate    motion taken; a drive is enabled only when asked: /arm, <joint>/enable, or the
+              ``arm`` parameter (every drive, each confirming Operation Enabled) or a drive's
+              ``arm_on_start``
+  deactivate  motion held, then quick stop and disable voltage: each confirms Switch On Disabled
   cleanup     the ROS interface goes, the driver closes: the bus is released
   shutdown    from any state: as deactivate and cleanup
 
+Motion held (unconfigured there is no driver at all; inactive, the driver's
+:meth:`~motor_driver.MotorDriver.hold_motion`): every drive's command channel, the one way a
+controlword or a set-point leaves, refuses every motion entry (/arm, <joint>/enable, recover,
+home, set_mode, sdo_write, /cmd_vel, /joint_commands, the degree and velocity topics, the
+actions) with "<node> is inactive: activate it", nothing sent; the stops are still taken and
+the state topics still publish (docs/ros.md).
+
 The drives' process is the assembly of ``rover_driver`` (:mod:`nodes.assembly`: the same nodes,
 executors, callback groups and start order, the parameters ``drive_system`` and ``default_joint``
-alike); each transition is a step of it: configure builds and starts it, activate arms, deactivate
-is the driver's safe stop, cleanup closes it. The ROS interface spins on the hot executor given.
+alike); each transition is a step of it: configure builds and starts it, activate takes motion (and
+arms when asked), deactivate holds motion and is the driver's safe stop, cleanup closes it. The ROS
+interface spins on the hot executor given.
 
-With ``autostart`` (the team's demo) it configures and activates itself. A failed transition
+With ``autostart`` (the team's demo) it configures and activates itself: the drives are enabled
+only with ``arm`` too (``rover_launch.xml lifecycle:=true autostart:=true arm:=true``), as
+``rover_driver`` enables them at start only with ``arm``. A failed transition
 logs why and returns FAILURE; the node stays where it was (after a failed configure, with no
 driver and no bus).
 """
@@ -53,6 +65,11 @@ class DriveLifecycleNode(LifecycleNode):
     def driver(self) -> MotorDriver | None:
         return None if self.assembly is None else self.assembly.driver
 
+    @property
+    def inactive(self) -> str:
+        """Why motion is refused while the node is not active, and what to do."""
+        return f"{self.get_name()} is inactive: activate it"
+
     # ------------------------------------------------------------------ transitions
     def on_configure(self, state: State) -> TransitionCallbackReturn:
         try:
@@ -60,6 +77,7 @@ class DriveLifecycleNode(LifecycleNode):
         except RovercanError as err:
             self.get_logger().error(f"configure failed: {err}")
             return TransitionCallbackReturn.FAILURE
+        driver.hold_motion(self.inactive)  # before anything could enable a drive (arm_on_start included)
         self.assembly = Assembly(driver, self.hot, context=self.context)
         try:
             self.assembly.build()  # the ROS interface first, then the bus (nodes/assembly.py says why)
@@ -72,16 +90,30 @@ class DriveLifecycleNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
-        assert self.assembly is not None
-        failed = self.assembly.arm()
+        assembly = self.assembly
+        assert assembly is not None and assembly.node is not None
+        assembly.driver.allow_motion()
+        drives = assembly.node.drives
+        asked = None if assembly.node.get_parameter("arm").value else [
+            name for name, drive in drives.items() if drive.config.arm_on_start]
+        failed = assembly.arm(asked)
         if failed:
             self.get_logger().error(f"activate failed: {'; '.join(failed)}; every drive is stopped again")
-            self.assembly.stop_drives()
+            assembly.driver.hold_motion(self.inactive)
+            assembly.stop_drives()
             return TransitionCallbackReturn.FAILURE
+        self.get_logger().info("active: " + ("every drive armed" if asked is None else
+                                             f"{', '.join(asked)} armed (arm_on_start); the others on /arm" if asked
+                                             else "no drive enabled: call /arm (std_srvs/Trigger)"))
         return super().on_activate(state)
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        if self.driver is not None:
+            self.driver.hold_motion(self.inactive)  # first: nothing re-enables a drive once it is stopped
         failed = self.stop_drives()
+        if failed and self.driver is not None:  # the node stays active, its motion held all the same
+            self.driver.hold_motion(f"{self.get_name()}'s deactivate did not confirm every stop"
+                                    f" ({'; '.join(failed)}): deactivate it again")
         return TransitionCallbackReturn.FAILURE if failed else super().on_deactivate(state)
 
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
@@ -103,6 +135,13 @@ class DriveLifecycleNode(LifecycleNode):
         for line in failed:
             self.get_logger().error(f"stop not confirmed: {line}")
         return failed
+
+    def destroy_node(self) -> None:
+        super().destroy_node()
+        # rclpy's LifecycleNode leaves its state machine, which holds the node's handle: the node
+        # stayed in the graph after it was destroyed and its context shut down (a stale
+        # rovercan_lifecycle whose change_state nobody answers)
+        self._state_machine.destroy_when_not_in_use()
 
     def release(self) -> None:
         """The assembly closed (drives safe, threads joined, interface gone, bus released)."""

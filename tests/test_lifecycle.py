@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +15,7 @@ import pytest
 from can_config import GENERIC_EDS
 from virtual_can import SimDriveSpec, SimService
 
-from .conftest import HAVE_ROS, requires_ros, wait_for
+from .conftest import HAVE_ROS, IN_PROCESS_HEARTBEAT_TIMEOUT_MS, IN_PROCESS_HOST_TIMEOUT_MS, requires_ros, wait_for
 from .test_ros_interface import check_assembly
 
 pytestmark = requires_ros
@@ -33,9 +34,12 @@ if HAVE_ROS:
 
 
 class Listener(threading.Thread):
-    def __init__(self, sim: SimService) -> None:
+    """An independent python-can client of the simulator's bus: every frame, in order, with when it came."""
+
+    def __init__(self, sim: SimService | None, *, port: int = 0, channel: str = "can0") -> None:
         super().__init__(daemon=True)
-        self.bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        host, port = (sim.host, sim.port) if sim is not None else ("127.0.0.1", port)
+        self.bus = can.Bus(interface="socketcand", channel=channel, host=host, port=port)
         self.frames: list[tuple[float, int, bytes]] = []
         self.stop = threading.Event()
         self.start()
@@ -50,8 +54,16 @@ class Listener(threading.Thread):
         return [d for tt, c, d in list(self.frames) if tt >= t and c == cob]
 
 
-@pytest.fixture
-def rig(tmp_path: Path) -> Iterator[tuple[Any, SimService, Listener, Any]]:
+#: The drives and the test share one interpreter: the in-process host and heartbeat timeouts (conftest says why).
+_TIMEOUTS = f"host_timeout_ms: {IN_PROCESS_HOST_TIMEOUT_MS:g}, heartbeat_timeout_ms: {IN_PROCESS_HEARTBEAT_TIMEOUT_MS:g}"
+RIG_DRIVES = ("drives: [{name: a, node_id: 1, counts_per_rev: 4096, homing_method: 17, homing_speed_deg_s: 0.5,"
+              f" homing_timeout_s: 600, {_TIMEOUTS}}}, {{name: b, node_id: 2, counts_per_rev: 4096, {_TIMEOUTS}}}]\n")
+
+
+@contextmanager
+def make_rig(tmp_path: Path, *, args: tuple[str, ...] = (), extra: str = "") -> Iterator[tuple[Any, SimService, Listener, Any]]:
+    """The lifecycle node on a simulated bus of two drives, spun as ``main`` spins it; ``args``:
+    parameters of every node of the process (``-p name:=value``); ``extra``: config appended."""
     sim = SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "a", 4096), SimDriveSpec(2, GENERIC_EDS, "can0", "b", 4096)],
                      port=0)
     config = tmp_path / "rover.yaml"
@@ -59,10 +71,9 @@ def rig(tmp_path: Path) -> Iterator[tuple[Any, SimService, Listener, Any]]:
                       f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}]\n"
                       # a homes slowly (method 17 at 0.5 deg/s toward the index: the simulated drive's is
                       # moved far away by the test that needs it); every other test leaves homing alone
-                      "drives: [{name: a, node_id: 1, counts_per_rev: 4096, homing_method: 17, homing_speed_deg_s: 0.5,"
-                      " homing_timeout_s: 600}, {name: b, node_id: 2, counts_per_rev: 4096}]\n")
+                      + RIG_DRIVES + extra)
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, args=["--ros-args", *(a for arg in args for a in ("-p", arg))] if args else None)
     hot = make_executor("events", context)
     spin = SpinThread(hot, "test-hot")
     node = DriveLifecycleNode(hot, context=context, parameter_overrides=[Parameter("config", value=str(config))])
@@ -70,16 +81,25 @@ def rig(tmp_path: Path) -> Iterator[tuple[Any, SimService, Listener, Any]]:
     cold.add_node(node)
     transitions = SpinThread(cold, "test-lifecycle")
     listener = Listener(sim)
-    yield node, sim, listener, config
-    listener.stop.set()
-    listener.join(2)
-    listener.bus.shutdown()
-    node.release()
-    transitions.stop(5.0)
-    spin.stop(5.0)
-    node.destroy_node()
-    rclpy.shutdown(context=context)
-    sim.close()
+    try:
+        yield node, sim, listener, config
+    finally:
+        listener.stop.set()
+        listener.join(2)
+        listener.bus.shutdown()
+        node.release()
+        transitions.stop(5.0)
+        spin.stop(5.0)
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        sim.close()
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[tuple[Any, SimService, Listener, Any]]:
+    """Activate arms every drive (``arm:=true``, as ``autostart`` with ``arm`` does)."""
+    with make_rig(tmp_path, args=("arm:=true",)) as made:
+        yield made
 
 
 def states(sim: SimService) -> list[str]:
@@ -193,7 +213,7 @@ def test_a_failed_configure_leaves_nothing_behind(rig: tuple[Any, SimService, Li
 
 
 def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) -> None:
-    """The demo's auto-start: `autostart:=true` configures and activates at start (every thread
+    """The demo's auto-start: `autostart:=true arm:=true` configures, activates and arms at start (every thread
     under SCHED_FIFO where allowed); SIGTERM (what systemd and docker stop send) stops and disables
     every drive before the bus closes."""
     import os
@@ -207,8 +227,8 @@ def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) 
     from .test_shutdown import thread_policies
 
     launched = parse_launch(REPO / "ros" / "rovercan_bringup" / "launch" / "rover_launch.xml",
-                            {"config": "/x.yaml", "lifecycle": "true", "autostart": "true"})
-    assert [p.name for p in launched] == ["rover_lifecycle"] and "autostart:=true" in launched[0].argv
+                            {"config": "/x.yaml", "lifecycle": "true", "autostart": "true", "arm": "true"})
+    assert [p.name for p in launched] == ["rover_lifecycle"] and {"autostart:=true", "arm:=true"} <= set(launched[0].argv)
     assert "nodes.rover_lifecycle" in launched[0].argv and "__node:=" not in " ".join(launched[0].argv)  # its own name
     with SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "a", 4096)], port=0) as sim:
         config = tmp_path / "rover.yaml"
@@ -216,7 +236,7 @@ def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) 
                           f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}]\n"
                           "drives: [{name: a, node_id: 1, counts_per_rev: 4096}]\n")
         proc = subprocess.Popen([sys.executable, "-m", "nodes.rover_lifecycle", "--ros-args", "-p",
-                                 f"config:={config}", "-p", "autostart:=true"], cwd=REPO,
+                                 f"config:={config}", "-p", "autostart:=true", "-p", "arm:=true"], cwd=REPO,
                                 env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         runner = sim.simulators["can0"]
@@ -230,3 +250,362 @@ def test_autostart_arms_the_drives_and_sigterm_leaves_them_safe(tmp_path: Path) 
             out, _ = proc.communicate(timeout=20)
         assert proc.returncode == 0, out[-2000:]
         assert runner.call(lambda: runner.drive(1).state.name) == "SWITCH_ON_DISABLED", out[-2000:]
+
+
+# ---------------------------------------------------------------------------- motion held while not active
+INACTIVE = "rovercan_lifecycle is inactive: activate it"
+#: The wheels of the drive system: a left, b right.
+DRIVE_SYSTEM = "drive_system: {left: [a], right: [b], track_width_m: 0.6, wheel_radius_m: 0.1, cmd_timeout_ms: 500}\n"
+
+
+def rpdo(cob_id: int) -> bool:
+    """An RPDO of a drive: a controlword or a set-point (nothing else goes host -> drive on them)."""
+    return cob_id & 0x780 in (0x200, 0x300, 0x400, 0x500) and cob_id & 0x7F != 0
+
+
+def set_point(cob_id: int) -> bool:
+    """An RPDO but the first (the controlword's): a target."""
+    return rpdo(cob_id) and cob_id & 0x780 != 0x200
+
+
+#: The fence's SDO upload request: 0x1000 (device type), which nothing but a boot reads.
+FENCE = bytes([0x40, 0x00, 0x10, 0x00])
+
+
+class Probe:
+    """A client node of the graph on an executor of its own, spun on the test's thread while it
+    waits (rclpy's clients match an answer to a request recorded after it was sent: an executor
+    spinning on another thread can take the answer first and drop it): services, actions,
+    publishers, and every /diagnostics status it heard."""
+
+    def __init__(self, context: Any) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.action import ActionClient
+        from rovercan_msgs.action import Home, MoveJoint
+
+        self.node = rclpy.create_node("lifecycle_motion_probe", context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.statuses: list[tuple[str, str, dict[str, str]]] = []
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
+        self.actions = {"move_joint": ActionClient(self.node, MoveJoint, "move_joint"),
+                        "home_joint": ActionClient(self.node, Home, "home_joint")}
+        self.pubs: dict[str, Any] = {}
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        self.statuses += [(s.name, s.message, {kv.key: kv.value for kv in s.values}) for s in msg.status]
+
+    def wait(self, done: Any, hang_s: float, what: str, said: Any = None) -> None:
+        """``wait_for(done)``, the probe's node spun meanwhile."""
+        def spun() -> bool:
+            self.executor.spin_once(timeout_sec=0.005)
+            return bool(done())
+        wait_for(spun, hang_s, what, said)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        for client in self.actions.values():
+            client.destroy()
+        self.node.destroy_node()
+
+    def call(self, srv_type: Any, name: str, request: Any, hang_s: float = 30.0) -> Any:
+        client = self.node.create_client(srv_type, name)
+        try:
+            assert client.wait_for_service(timeout_sec=hang_s), f"no service {name}"
+            future = client.call_async(request)
+            self.wait(future.done, hang_s, f"{name} answered")
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def goal(self, action: str, goal: Any) -> Any:
+        client = self.actions[action]
+        assert client.wait_for_server(timeout_sec=10.0), f"no action server {action}"
+        sent = client.send_goal_async(goal)
+        self.wait(sent.done, 30.0, f"{action} goal answered")
+        handle = sent.result()
+        if not handle.accepted:
+            return None
+        result = handle.get_result_async()
+        self.wait(result.done, 30.0, f"{action} result")
+        return result.result().result
+
+    def publisher(self, msg_type: Any, topic: str) -> Any:
+        if topic not in self.pubs:
+            self.pubs[topic] = self.node.create_publisher(msg_type, topic, 10)
+        return self.pubs[topic]
+
+    def refused_on_topic(self, msg_type: Any, topic: str, msg: Any, status: str, *said: str) -> str:
+        """Publish ``msg`` on ``topic`` until /diagnostics' ``status`` reports a refusal saying
+        each of ``said`` (every refusal is counted there, none held back); that report."""
+        pub = self.publisher(msg_type, topic)
+        since = len(self.statuses)
+        found: list[str] = []
+
+        def refused() -> bool:
+            pub.publish(msg)
+            for name, message, values in self.statuses[since:]:
+                text = values.get("last_refusal") or message
+                if name == status and all(s in text for s in said):
+                    found.append(text)
+                    return True
+            return False
+
+        self.wait(refused, 20.0, f"a refusal of {topic} on /diagnostics ({status})",
+                 lambda: "\n".join(f"{n}: {m}" for n, m, _ in self.statuses[since:][-10:]))
+        return found[0]
+
+
+def motion_entries() -> list[tuple[str, Any]]:
+    """Every motion entry of the node: (what, how to try it with a Probe -> what it answered).
+    Read from the code: the services that wait (nodes/driver_services.py), the command topics
+    (nodes/rover_driver.py, the drive system's /cmd_vel) and the actions (nodes/actions.py)."""
+    from geometry_msgs.msg import Twist
+    from rovercan_msgs.action import Home, MoveJoint
+    from rovercan_msgs.srv import SdoWrite, SetMode
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float32
+
+    def trigger(name: str) -> Any:
+        return lambda probe: probe.call(Trigger, name, Trigger.Request()).message
+
+    def topic(msg_type: Any, name: str, msg: Any, status: str, said: str) -> Any:
+        return lambda probe: probe.refused_on_topic(msg_type, name, msg, status, said)
+
+    def action(name: str, goal: Any) -> Any:
+        def run(probe: Probe) -> str:
+            result = probe.goal(name, goal)
+            return "goal rejected without a word" if result is None else result.message
+        return run
+
+    return [
+        ("/arm", trigger("arm")),
+        ("a/enable", trigger("a/enable")),
+        ("a/recover", trigger("a/recover")),
+        ("a/home", trigger("a/home")),
+        ("a/set_mode (the mode it is in)", lambda probe: probe.call(
+            SetMode, "a/set_mode", SetMode.Request(mode="profile_position")).message),
+        ("a/set_mode", lambda probe: probe.call(SetMode, "a/set_mode", SetMode.Request(mode="profile_velocity")).message),
+        ("a/sdo_write", lambda probe: probe.call(
+            SdoWrite, "a/sdo_write", SdoWrite.Request(index=0x6065, subindex=0, value=1000)).message),
+        ("a/degree_cmd", topic(Float32, "a/degree_cmd", Float32(data=5.0), "rovercan: a", "degree command 5.0")),
+        ("a/velocity_cmd", topic(Float32, "a/velocity_cmd", Float32(data=3.0), "rovercan: a", "velocity command 3.0")),
+        ("/motor_degree_cmd", topic(Float32, "/motor_degree_cmd", Float32(data=7.0), "rovercan: a", "degree command 7.0")),
+        ("/joint_commands", topic(JointState, "/joint_commands", JointState(name=["b"], velocity=[1.0]), "rovercan: b",
+                                  "joint velocity")),
+        ("/cmd_vel", topic(Twist, "/cmd_vel", Twist(), "rovercan: command input", "/cmd_vel not applied")),
+        ("move_joint", action("move_joint", MoveJoint.Goal(joint="a", target_deg=10.0, speed_deg_s=30.0))),
+        ("move_joint (no speed)", action("move_joint", MoveJoint.Goal(joint="b", target_deg=10.0))),
+        ("home_joint", action("home_joint", Home.Goal(joint="a"))),
+    ]
+
+
+def sim_positions(sim: SimService) -> list[int]:
+    runner = sim.simulators["can0"]
+    return runner.call(lambda: [runner.drive(n).position_counts for n in (1, 2)])
+
+
+def fence(probe: Probe, listener: Listener, since: int) -> int:
+    """Each drive's statusword read by SDO through the driver (checked: not Operation Enabled),
+    then its device type, which nothing but a boot reads: that request is the newest frame the
+    driver sent (one connection, frames in order), so everything it sent before is on the
+    listener's list before it. The index just past the fence."""
+    from rovercan_msgs.srv import SdoRead
+
+    for joint, node_id in (("a", 1), ("b", 2)):
+        read = probe.call(SdoRead, f"{joint}/sdo_read", SdoRead.Request(index=0x6041, subindex=0))
+        assert read.success and read.value & 0x6F != 0x27, (joint, read.message)  # not Operation Enabled
+        assert probe.call(SdoRead, f"{joint}/sdo_read", SdoRead.Request(index=0x1000, subindex=0)).success
+        wait_for(lambda node_id=node_id: any(c == 0x600 + node_id and d[:4] == FENCE
+                                             for _, c, d in listener.frames[since:]), 10.0, f"the fence of {joint}")
+    frames = list(listener.frames)  # the listener appends meanwhile
+    return 1 + max(i for i, (_, c, d) in enumerate(frames) if i >= since and c in (0x601, 0x602) and d[:4] == FENCE)
+
+
+def moving_frames(frames: list[tuple[int, bytes]]) -> list[str]:
+    """Frames that enable or move: any RPDO (a controlword or a set-point), an SDO write."""
+    return [f"0x{c:03X} {d.hex()}" for c, d in frames
+            if rpdo(c) or (0x600 < c < 0x680 and d[0] >> 5 == 1)]
+
+
+def check_every_entry_refused(node: Any, sim: SimService, listener: Listener, probe: Probe) -> None:
+    """Every motion entry refused, saying the lifecycle state and what helps; on the bus, no
+    frame that enables or moves; no drive enabled, none moved."""
+    since, positions = fence(probe, listener, len(listener.frames)), sim_positions(sim)  # the stops before: read
+    wrong = []
+    for what, attempt in motion_entries():
+        try:
+            said = attempt(probe)
+        except AssertionError as err:  # a topic's command not refused at all
+            said = str(err)
+        if INACTIVE not in said:
+            wrong.append(f"{what}: {said}")
+    assert not wrong, "\n".join(wrong)
+    moved = moving_frames([(c, d) for _, c, d in listener.frames[since:fence(probe, listener, since)]])
+    assert not moved, moved
+    assert states(sim) == ["SWITCH_ON_DISABLED"] * 2
+    assert sim_positions(sim) == positions
+
+
+def check_active_drives(node: Any, sim: SimService, listener: Listener, probe: Probe) -> None:
+    """Activated: nothing enabled by that alone; /arm enables both, /cmd_vel turns the wheels
+    (set-points on the bus)."""
+    from geometry_msgs.msg import Twist
+
+    node.trigger_activate()
+    assert node._state_machine.current_state[1] == "active"
+    assert states(sim) == ["SWITCH_ON_DISABLED"] * 2  # activate enables nothing by itself (arm is false)
+    armed = probe.call(Trigger, "arm", Trigger.Request())
+    assert armed.success, armed.message
+    since, positions = len(listener.frames), sim_positions(sim)
+    cmd_vel = probe.publisher(Twist, "/cmd_vel")
+    forward = Twist()
+    forward.linear.x = 0.2
+
+    def turning() -> bool:
+        cmd_vel.publish(forward)
+        return all(abs(p - q) > 100 for p, q in zip(sim_positions(sim), positions, strict=True))
+
+    probe.wait(turning, 30.0, "both wheels turning on /cmd_vel",
+             lambda: "\n".join(f"{n}: {m}" for n, m, _ in probe.statuses[-8:]))
+    assert states(sim) == ["OPERATION_ENABLED"] * 2
+    assert any(set_point(c) for _, c, _ in listener.frames[since:])  # set-points on the bus
+
+
+@pytest.mark.parametrize("state", ["unconfigured", "configured", "deactivated"])
+def test_while_not_active_every_motion_entry_is_refused_and_nothing_moves(tmp_path: Path, state: str) -> None:
+    """Unconfigured: no driver, no motion entry served, nothing on the bus. Configured (inactive)
+    and deactivated after driving: every motion entry (motion_entries) answers or reports
+    "rovercan_lifecycle is inactive: activate it"; an independent listener on the bus sees no
+    RPDO (no controlword, no set-point) and no SDO write from the driver, the simulated drives stay
+    Switch On Disabled where they were. Then activate, /arm and /cmd_vel drive the wheels."""
+    args = ("diagnostics_rate_hz:=10.0", "default_joint:=a")
+    with make_rig(tmp_path, args=args, extra=DRIVE_SYSTEM) as (node, sim, listener, _):
+        probe = Probe(node.context)
+        try:
+            if state == "unconfigured":
+                check_nothing_served(node, sim, probe)
+                node.trigger_configure()
+            else:
+                node.trigger_configure()
+                assert node._state_machine.current_state[1] == "inactive"
+                if state == "deactivated":
+                    check_active_drives(node, sim, listener, probe)
+                    node.trigger_deactivate()  # while /cmd_vel is fresh: the drive system was driving
+                    assert node._state_machine.current_state[1] == "inactive"
+                check_every_entry_refused(node, sim, listener, probe)
+            check_active_drives(node, sim, listener, probe)
+        finally:
+            probe.close()
+
+
+def check_nothing_served(node: Any, sim: SimService, probe: Probe) -> None:
+    """Unconfigured: no motion entry exists (no driver: nothing could be sent), the bus is not
+    even connected; the node's own lifecycle services are (the graph is up to date)."""
+    assert node._state_machine.current_state[1] == "unconfigured" and node.driver is None
+    wait_for(lambda: "/rovercan_lifecycle/change_state" in dict(probe.node.get_service_names_and_types()), 10.0,
+             "the lifecycle services in the graph")
+    made = [n for n in probe.node.get_node_names() if n not in ("rovercan_lifecycle", probe.node.get_name())]
+    assert not made, made  # no node to serve /arm, a joint's services, the actions
+    topics = [t for t in ("/a/degree_cmd", "/a/velocity_cmd", "/motor_degree_cmd", "/joint_commands", "/cmd_vel")
+              if probe.node.count_subscribers(t)]
+    assert not topics, topics
+    assert len(sim.server.clients) == 1  # only the listener: the driver does not exist
+    assert states(sim) == ["SWITCH_ON_DISABLED"] * 2
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_the_launched_rover_with_lifecycle_moves_nothing_while_inactive(tmp_path: Path) -> None:
+    """The shipped six-wheel rover as a user starts it (`rovercan sim`, then `rovercan launch
+    rover_launch.xml lifecycle:=true`), driven through the standard lifecycle service: configured
+    (inactive) and deactivated after driving, /arm, a wheel's enable and /cmd_vel are refused
+    with the lifecycle state, and independent listeners on both buses see no RPDO and no SDO write
+    from the driver, no drive Operation Enabled; active, /arm and /cmd_vel drive the wheels."""
+    import subprocess
+    import sys
+
+    from geometry_msgs.msg import Twist
+
+    from .conftest import REPO
+    from .test_odom_launched import HANG_S, ROVER_LAUNCH, WHEELS, shipped_rover, start_simulator, stop
+    from .test_sim_cli import free_port
+
+    port = free_port()
+    config = shipped_rover(tmp_path, port)
+    sim = start_simulator(config)
+    log = (tmp_path / "launch.log").open("w")
+    launch = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(ROVER_LAUNCH), f"config:={config}",
+                               "lifecycle:=true", "--duration", "600"], cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+    listeners = [Listener(None, port=port, channel=bus) for bus in ("can0", "can1")]
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    probe = Probe(context)
+    fences = {"can0": "wheels/wheel_front_left", "can1": "wheels/wheel_front_right"}  # node 1 of each bus
+    forward = Twist()
+    forward.linear.x = 0.2
+
+    def change(transition: int) -> None:
+        reply = probe.call(ChangeState, "/rovercan_lifecycle/change_state",
+                           ChangeState.Request(transition=Transition(id=transition)), HANG_S)  # six drives' boot
+        assert reply.success, (transition, (tmp_path / "launch.log").read_text()[-3000:])
+
+    def bus_fence(since: list[int]) -> list[list[tuple[int, bytes]]]:
+        """What each bus carried from ``since`` up to a read of node 1's device type through the
+        driver (the newest frame it sent there); each wheel checked not Operation Enabled."""
+        from rovercan_msgs.srv import SdoRead
+
+        for wheel in WHEELS:
+            read = probe.call(SdoRead, f"wheels/{wheel}/sdo_read", SdoRead.Request(index=0x6041, subindex=0))
+            assert read.success and read.value & 0x6F != 0x27, (wheel, read.message)
+        seen = []
+        for listener, (bus, prefix), start in zip(listeners, fences.items(), since, strict=True):
+            assert probe.call(SdoRead, f"{prefix}/sdo_read", SdoRead.Request(index=0x1000, subindex=0)).success
+            wait_for(lambda listener=listener, start=start: any(c == 0x601 and d[:4] == FENCE
+                                                                for _, c, d in listener.frames[start:]), 30.0,
+                     f"the fence on {bus}")
+            seen.append([(c, d) for _, c, d in list(listener.frames)[start:]])
+        return seen
+
+    def check_refused() -> None:
+        since = [len(f) for f in (listener.frames for listener in listeners)]
+        synced = bus_fence(since)  # what the driver sent before (its stops) read, then counted from here
+        since = [start + len(frames) for start, frames in zip(since, synced, strict=True)]
+        for service in ("arm", "wheels/wheel_front_left/enable"):
+            said = probe.call(Trigger, service, Trigger.Request()).message
+            assert INACTIVE in said, (service, said)
+        said = probe.refused_on_topic(Twist, "/cmd_vel", forward, "rovercan: command input", "/cmd_vel not applied")
+        assert INACTIVE in said, said
+        moved = [moving for frames in bus_fence(since) for moving in moving_frames(frames)]
+        assert not moved, moved
+
+    def check_drives() -> None:
+        change(Transition.TRANSITION_ACTIVATE)
+        armed = probe.call(Trigger, "arm", Trigger.Request())
+        assert armed.success, armed.message
+        since = [len(listener.frames) for listener in listeners]
+        cmd_vel = probe.publisher(Twist, "/cmd_vel")
+
+        def set_points() -> bool:
+            cmd_vel.publish(forward)
+            return all(any(set_point(c) for _, c, _ in list(listener.frames)[start:])
+                       for listener, start in zip(listeners, since, strict=True))
+
+        probe.wait(set_points, 60.0, "set-points on both buses")
+
+    try:
+        change(Transition.TRANSITION_CONFIGURE)
+        check_refused()
+        check_drives()
+        change(Transition.TRANSITION_DEACTIVATE)
+        check_refused()
+    finally:
+        probe.close()
+        rclpy.shutdown(context=context)
+        for listener in listeners:
+            listener.stop.set()
+            listener.join(2)
+            listener.bus.shutdown()
+        stop(launch)
+        stop(sim)
+        log.close()

@@ -3,7 +3,7 @@ drives while they stop themselves (their host watch); on waking it marks them lo
 NMT stop, the drives' queued OPERATIONAL heartbeats bring them "back", then the stop takes
 effect. That is this driver's own doing (issue 53): nothing says "another master", the drives are
 configured again, and /arm arms the rover again. The real processes: the ROS driver node (and
-the lifecycle node, configured and activated at start) as subprocesses, the simulator in this
+the lifecycle node, configured, activated and armed at start) as subprocesses, the simulator in this
 one; the stall lasts until the simulated drives have stopped themselves (a condition, not a
 clock)."""
 
@@ -85,14 +85,14 @@ def test_a_stalled_driver_process_is_no_other_master_and_arms_again(tmp_path: Pa
                           "drives: [{name: a, node_id: 1, counts_per_rev: 4096, heartbeat_period_ms: 100,"
                           " heartbeat_timeout_ms: 300}, {name: b, node_id: 2, counts_per_rev: 4096,"
                           " heartbeat_period_ms: 100, heartbeat_timeout_ms: 300}]\n")
-        args = ["--ros-args", "-p", f"config:={config}"] + (["-p", "autostart:=true"] if entry == "lifecycle" else [])
+        args = ["--ros-args", "-p", f"config:={config}"] + (["-p", "autostart:=true", "-p", "arm:=true"] if entry == "lifecycle" else [])
         proc = subprocess.Popen([sys.executable, "-m", *ENTRY_POINTS[entry], *args], cwd=REPO,
                                 env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         out = Output(proc)
         context, probe, executor = ros_probe("stall_probe")
         try:
-            if entry != "lifecycle":  # the lifecycle node's autostart arms them itself
+            if entry != "lifecycle":  # the lifecycle node's autostart with arm arms them itself
                 answer = armed(probe, executor)
                 assert answer[0], (answer, out.text()[-3000:])
             wait_for(lambda: sim_states(sim) == ["OPERATION_ENABLED"] * 2, 30.0, "armed", out.text)

@@ -17,6 +17,7 @@ import pytest
 from can_config import RoverConfig
 from can_config.config import GENERIC_EDS
 from can_config.errors import CommandRejected, DriveStateError
+from can_config.objects import OperationMode
 from motor_driver import MotorDriver
 from motor_driver.drive import Drive
 from virtual_can import SimService
@@ -333,3 +334,73 @@ def test_a_stop_whose_wait_outlives_the_enable_it_ended_leaves_no_busy_mark(driv
     assert drive.channel.busy is None, drive.channel.busy
     drive.enable()  # from here: commands are taken again
     drive.set_velocity(5.0)
+
+
+HELD = "the test's owner is inactive: activate it"
+#: A controlword that enables (the walk to Operation Enabled: transitions 2, 3, 4).
+ENABLING = {0x0006, 0x0007, 0x000F}
+#: Every way to move the drive, each refused while motion is held.
+HELD_ENTRIES: dict[str, Callable[[Drive], object]] = {
+    "enable": Drive.enable, "recover": Drive.recover, "home": Drive.home,
+    "set_mode (the mode it is in)": lambda d: d.set_mode(OperationMode.PROFILE_POSITION),
+    "set_mode": lambda d: d.set_mode(OperationMode.PROFILE_VELOCITY),
+    "move_to": lambda d: d.move_to(10.0), "set_velocity": lambda d: d.set_velocity(5.0),
+    "stream_position": lambda d: d.stream_position(0.0), "set_torque": lambda d: d.set_torque(0.1),
+    "halt released": lambda d: d.halt(False), "SDO write": lambda d: d.sdo.write_checked(0x6065, 0, 1000),
+}
+
+
+#: The fence's SDO upload request: 0x1000 (device type), which nothing but a boot reads.
+FENCE = b"\x40\x00\x10\x00"
+
+
+def frames_until_fence(listener: can.BusABC, drive: Drive) -> list[can.Message]:
+    """Every frame up to the driver's SDO read of the device type, sent after anything the test
+    did before (one connection, frames in order)."""
+    drive.sdo.read(0x1000, 0)
+    frames: list[can.Message] = []
+    deadline = time.monotonic() + 10.0  # a hang bound
+    while not frames or not (frames[-1].arbitration_id == 0x601 and bytes(frames[-1].data[:4]) == FENCE):
+        assert time.monotonic() < deadline, "the fence never came"
+        msg = listener.recv(0.5)
+        if msg is not None:
+            frames.append(msg)
+    return frames
+
+
+@pytest.mark.parametrize("point", ENABLE_POINTS)
+def test_motion_held_during_each_step_of_enable_ends_it_and_nothing_enables_until_allowed(
+        driver_factory: DriverFactory, listener_factory: ListenerFactory, point: str) -> None:
+    """The lifecycle node's deactivate (the driver's hold_motion, then its safe stop) at each step
+    of an enable ends it with the hold's reason; held, every motion entry is refused with it and
+    nothing enabling or moving reaches the bus (a stop and a halt are still taken); allowed again,
+    an enable asked for is obeyed."""
+    sim, driver = driver_factory(make_config(1, counts_per_rev=4096))
+    drive = driver.drive("joint1")
+    listener = listener_factory(sim)
+    at = StopAt(drive, point, lambda: (driver.hold_motion(HELD), driver.safe_stop()))
+    with pytest.raises(CommandRejected, match=HELD):
+        drive.enable()
+    assert at.fired and at.error is None, at.error
+    wrong = []
+    for what, entry in HELD_ENTRIES.items():
+        try:
+            entry(drive)
+            wrong.append(f"{what}: taken")
+        except CommandRejected as err:
+            if HELD not in str(err):
+                wrong.append(f"{what}: {err}")
+    assert not wrong, wrong
+    drive.halt(True)  # stops are taken
+    drive.quick_stop()
+    frames = frames_until_fence(listener, drive)
+    stops = [i for i, m in enumerate(frames) if m.arbitration_id == RPDO1 and controlwords([m])[0] in (0x0000, 0x0002)]
+    assert stops, [(hex(m.arbitration_id), m.data.hex()) for m in frames]  # the safe stop's frame
+    after = frames[stops[0]:]
+    assert not ENABLING & set(controlwords(after)), [hex(w) for w in controlwords(frames)]
+    assert not [m for m in after if m.arbitration_id in (0x301, 0x401, 0x501)], "a set-point went out"
+    assert not [m for m in after if m.arbitration_id == 0x601 and m.data[0] >> 5 == 1], "an SDO write went out"
+    assert sim_state(sim) == "SWITCH_ON_DISABLED" and driver.motion_held == HELD
+    driver.allow_motion()
+    drive.enable()
+    assert sim_state(sim) == "OPERATION_ENABLED"

@@ -19,6 +19,11 @@ The rule, kept by construction:
   so after a stop nothing but a later, explicitly requested enable reaches the drive.
 - A controlword the drive takes only by SDO (no RPDO maps it) is decided under the lock and
   written after it; a stop decided meanwhile is written again after such a write.
+- While motion is held (:meth:`CommandChannel.hold`, with its reason: the lifecycle node
+  inactive), every operation and command is refused with that reason before anything is sent,
+  and an operation under way ends at its next step; the stops (and a halt) are still taken.
+  :meth:`CommandChannel.admit` is that one verdict: the drive's other ways in (a mode switch
+  already done, a tool's SDO write, the drive system) ask it too, for the reason to be the one said.
 
 ``set_hook`` is the seam for tests that force an interleaving: the hook is called at named
 points, some inside the critical section (``"<what>: decided"``) and where a caller finds the
@@ -71,6 +76,7 @@ class CommandChannel:
         self._preempted: tuple[int, str] = (0, "")
         self._busy = BusyRegistry()
         self.closed = False
+        self.held = ""  # why no motion is taken (the stops are), "" while it is
         self.was_enabled = False
         self.velocity_commanded = False
         self.last_velocity_cmd = 0.0
@@ -108,6 +114,29 @@ class CommandChannel:
         self.point(f"{what}: waiting for the lock")
         return self._lock.acquire(timeout=timeout_s)
 
+    # ------------------------------------------------------------------ motion held
+    def hold(self, reason: str) -> None:
+        """No operation or command from here on, each refused with ``reason`` (what to do
+        included), until :meth:`allow`; one under way ends at its next step (its generation is
+        preempted); nothing is re-enabled after a reset. Sends nothing: the caller's stop does."""
+        with self._lock:
+            self.held = reason
+            self.generation += 1
+            self._preempted = (self.generation, reason)
+            self.was_enabled = False  # a drive that resets meanwhile is not enabled again
+        self._wake()
+
+    def allow(self) -> None:
+        """Motion taken again (each command still needs its enable: nothing is enabled here)."""
+        with self._lock:
+            self.held = ""
+
+    def admit(self, doing: str) -> None:
+        """Refuse ``doing`` while motion is held: the one verdict every way to the drive asks."""
+        reason = self.held
+        if reason:
+            raise CommandRejected(f"{self.name}: {doing} refused: {reason}. Nothing was sent.")
+
     # ------------------------------------------------------------------ operations and stops
     @contextmanager
     def operation(self, name: str, parent: Op | None = None) -> Iterator[Op]:
@@ -119,6 +148,7 @@ class CommandChannel:
             return
         self._acquire(name)
         try:
+            self.admit(name)
             if self._busy:
                 raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {self.busy};"
                                       " nothing was sent. Try again when it is done.")
@@ -140,6 +170,7 @@ class CommandChannel:
         if self.closed:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the driver shut down meanwhile",
                                   node_id=self.node_id)
+        self.admit(doing)
         before, by = self._preempted
         if op.generation < before:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing} interrupted by {by}",
@@ -219,16 +250,19 @@ class CommandChannel:
         return None
 
     # ------------------------------------------------------------------ commands (one frame)
-    def command(self, name: str, op: Op | None = None) -> Frames:
+    def command(self, name: str, op: Op | None = None, *, stop: bool = False) -> Frames:
         """``with command(name) as frames``, a command of a frame or two: the lock for at most
-        COMMAND_LOCK_WAIT_S; refused at once while an operation other than ``op`` runs, and, with
-        ``op``, when a stop preempted it (Frames, not a generator context manager: 1 us less a command)."""
-        return Frames(self, name, op)
+        COMMAND_LOCK_WAIT_S; refused at once while an operation other than ``op`` runs, while motion
+        is held (unless it is a ``stop``: a halt), and, with ``op``, when a stop preempted it
+        (Frames, not a generator context manager: 1 us less a command)."""
+        return Frames(self, name, op, stop)
 
-    def _enter_command(self, name: str, op: Op | None) -> None:
+    def _enter_command(self, name: str, op: Op | None, stop: bool) -> None:
         if not self._acquire(name, COMMAND_LOCK_WAIT_S):
             raise CommandRejected(f"{self.name}: {name} refused: another command holds the drive; nothing was sent")
         try:
+            if not stop:
+                self.admit(name)
             if self._busy and (other := self._busy.other_than(op)):
                 raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {other};"
                                       " nothing was sent. Send it again when that is done.")
@@ -320,13 +354,13 @@ class Frames:
     """The frames a command may send, handed out by :meth:`CommandChannel.command` while it
     holds the lock: each checks that this driver's last controlword was Enable Operation."""
 
-    __slots__ = ("_c", "_doing", "_op")
+    __slots__ = ("_c", "_doing", "_op", "_stop")
 
-    def __init__(self, channel: CommandChannel, doing: str, op: Op | None = None) -> None:
-        self._c, self._doing, self._op = channel, doing, op
+    def __init__(self, channel: CommandChannel, doing: str, op: Op | None = None, stop: bool = False) -> None:
+        self._c, self._doing, self._op, self._stop = channel, doing, op, stop
 
     def __enter__(self) -> Frames:
-        self._c._enter_command(self._doing, self._op)
+        self._c._enter_command(self._doing, self._op, self._stop)
         return self
 
     def __exit__(self, *exc: object) -> None:  # the lock taken in __enter__

@@ -73,9 +73,9 @@ class Drive:
                       offset_deg=config.offset_deg)
         self.cache = DriveCache(config, network, self.plan, scale, sync_period_s=sync_period_s, runtime=runtime,
                                 port=port)
-        self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s)
         self.channel = CommandChannel(config.name, config.node_id, self.plan, self._send, self._write_cw_sdo,
                                       self.cache.wake)
+        self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s, admit=self.channel.admit)
         ports = Ports(config, od, self.plan, self.cache, self.channel, self.sdo)
         self.watch = HostWatch(ports, network, host_node_id, runtime=runtime,
                                nmt=NmtLedger(config.node_id, self._send), host_beats=host_beats,

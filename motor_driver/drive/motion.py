@@ -73,6 +73,7 @@ class Motion:
                                   " (bench: --counts-per-rev N). Nothing was sent.")
 
     def _require_enabled(self, doing: str) -> None:
+        self._channel.admit(doing)  # motion held (the lifecycle node inactive) is said before "not enabled"
         self._power.require_usable(doing)
         cache = self._cache
         state = cache.state

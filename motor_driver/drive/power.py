@@ -256,7 +256,7 @@ class PowerStateMachine:
 
     def halt(self, on: bool) -> None:
         """Set or clear the halt bit (8): stop on the profile deceleration, stay enabled."""
-        with self._channel.command("halt") as frames:
+        with self._channel.command("halt", stop=on) as frames:  # a halt is a stop; its release is not
             self.require_usable("halt")
             frames.halt(on)
 
@@ -316,6 +316,7 @@ class PowerStateMachine:
     def set_mode(self, mode: OperationMode | int, parent: Op | None = None) -> None:
         """Switch the mode of operation; refuses modes 0x6502 does not list; waits for 0x6061.
         The drive is busy meanwhile (commands refused at once, a stop preempts it)."""
+        self._channel.admit("mode switch")  # refused while held even when the drive is in ``mode`` already
         mode = OperationMode(mode)
         bit = SUPPORTED_MODE_BIT.get(mode)
         supported = self.supported_modes()

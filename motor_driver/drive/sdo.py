@@ -15,7 +15,7 @@ import logging
 import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import can
@@ -68,10 +68,12 @@ def protected_reason(index: int) -> str | None:
 class SdoPort:
     """SDO access to one node, bounded in size and time, with one typed codec, one transfer at a time."""
 
-    def __init__(self, name: str, node: canopen.RemoteNode, od: ObjectDictionary, timeout_s: float) -> None:
+    def __init__(self, name: str, node: canopen.RemoteNode, od: ObjectDictionary, timeout_s: float,
+                 admit: Callable[[str], None] | None = None) -> None:
         self.name, self.node_id = name, node.id
         self.od = od
         self._node = node
+        self._admit = admit  # the drive's verdict on motion (its channel's): a tool's write is refused while held
         self._timeout_s = timeout_s
         node.sdo.RESPONSE_TIMEOUT = timeout_s
         self._lock = threading.Lock()
@@ -162,6 +164,8 @@ class SdoPort:
         reason = protected_reason(index)
         if reason is not None:
             raise CommandRejected(f"{self.name}: writing 0x{index:04X} by SDO is refused: {reason}.")
+        if self._admit is not None:
+            self._admit(f"SDO write 0x{index:04X}:{subindex}")
         self.write_typed(index, subindex, value)
 
     def read_value(self, index: int, subindex: int = 0) -> int | float | bytes:

@@ -28,8 +28,9 @@ hung or stopped process falls silent and every drive, told at boot to watch it (
 stops by itself within its consumer time.
 
 Safe by default: start() boots and configures but enables only drives with
-``arm_on_start``; close() quick-stops and disables every drive, stops SYNC, stops threads,
-and closes the buses it opened, in that order.
+``arm_on_start`` (none while motion is held: :meth:`MotorDriver.hold_motion`); close()
+quick-stops and disables every drive, stops SYNC, stops threads, and closes the buses it
+opened, in that order.
 
 What lives where: :mod:`motor_driver.bus.connect` (opening a bus), :mod:`motor_driver.bus.traffic`
 (bus statistics, another master), :mod:`motor_driver.bus.handle` (one bus: network, SYNC,
@@ -183,8 +184,26 @@ class MotorDriver:
             handle.worker.submit(lambda: None).result()  # its thread now, not at the first bus loss
         self.supervisor.start(take_over)
         for drive in self.drives.values():
-            if drive.config.arm_on_start:
+            if drive.config.arm_on_start and not drive.channel.held:
                 drive.enable()
+
+    def hold_motion(self, reason: str) -> None:
+        """From here on every drive refuses every motion (enable, recover, home, a mode switch, a
+        move, a set-point, a tool's SDO write) with ``reason`` and sends nothing, until
+        :meth:`allow_motion`; an operation under way ends at its next step. The stops are still
+        taken; this sends none (the caller stops the drives: :meth:`safe_stop`)."""
+        for drive in self.drives.values():
+            drive.channel.hold(reason)
+
+    @property
+    def motion_held(self) -> str:
+        """Why motion is held (:meth:`hold_motion`), or "" while it is taken."""
+        return next((d.channel.held for d in self.drives.values() if d.channel.held), "")
+
+    def allow_motion(self) -> None:
+        """Motion taken again; nothing is enabled by it."""
+        for drive in self.drives.values():
+            drive.channel.allow()
 
     def __enter__(self) -> MotorDriver:
         return self
