@@ -7,6 +7,8 @@ What lives where: :mod:`can_config.model` (the dataclasses; each field declares 
 kind, range, default, unit and description, :mod:`can_config.keys`), :mod:`can_config.fields`
 (the checks), this module (parsing a document into the model, loading a file, and back to a
 dict, both derived from the declarations).
+
+Owner: none; values only (frozen dataclasses) and pure functions.
 """
 
 from __future__ import annotations

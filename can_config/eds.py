@@ -3,6 +3,8 @@
 The EDS is parsed by the python ``canopen`` library's importer; this module turns parse
 failures into :class:`EdsError` with the file name, and checks that a file describes a
 CiA 402 drive the stack can run (the objects it needs, and whether they can be PDO-mapped).
+
+Owner: none; values only, and pure functions of a file's text.
 """
 
 from __future__ import annotations

@@ -22,6 +22,8 @@ inherits the matching built-in so callers can catch what they already know::
         └── ProtocolError (ValueError)        a malformed socketcand line
 
 The tree lives in ``can_config`` because every layer may import it and it imports nothing.
+
+Owner: none; exception types only.
 """
 
 from __future__ import annotations

@@ -1,6 +1,8 @@
 """The checks that turn a YAML value into a typed one with an error that names the key, and each
 section's key table, derived from the dataclass fields that declare the keys
 (:mod:`can_config.keys`, :mod:`can_config.model`).
+
+Owner: none; pure checks and values.
 """
 
 from __future__ import annotations

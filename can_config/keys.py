@@ -1,7 +1,10 @@
 """Each configuration key declared once, as metadata of its dataclass field (:mod:`can_config.model`):
 its YAML name, kind, default, range or choices, unit and description. Parsing, defaults, the
 ms -> s conversion, ``config_to_dict`` and the reference in the docs are all derived from it.
-No imports of the rest of the package (the model imports this)."""
+No imports of the rest of the package (the model imports this).
+
+Owner: none; values only.
+"""
 
 from __future__ import annotations
 

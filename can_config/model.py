@@ -1,5 +1,7 @@
 """The configuration's frozen dataclasses (buses, drives, drive system, recorder) and their
 fixed values; what the rest of the stack reads. No parsing here (:mod:`can_config.config`).
+
+Owner: none; values only (frozen dataclasses).
 """
 
 from __future__ import annotations

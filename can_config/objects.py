@@ -3,6 +3,8 @@
 Only data lives here: object indexes, COB-ID bases, data types, and the code tables of
 CiA 301 (SDO abort codes, EMCY error codes) and CiA 402. No behaviour: the driver and the
 simulated drive each implement the protocol on their own (see STYLE.md).
+
+Owner: none; values only.
 """
 
 from __future__ import annotations

@@ -1,7 +1,10 @@
 """The configuration reference of docs/configuration.md, generated from the config's own field
 definitions (type, default, range, choices) and the descriptions below: one table per section.
 ``python -m can_config.reference`` prints it; tests/test_config_docs.py checks that the manual
-holds exactly this and that every field has a description."""
+holds exactly this and that every field has a description.
+
+Owner: none; a pure function of the declarations.
+"""
 
 from __future__ import annotations
 

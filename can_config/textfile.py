@@ -1,6 +1,9 @@
 """Reading the project's text inputs (configs, scenarios): UTF-8 only, binary and UTF-16 files
 refused by name, and YAML without duplicate keys (PyYAML keeps the last one silently: a config
-with ``node_id: 1`` and then ``node_id: 2`` would drive node 2)."""
+with ``node_id: 1`` and then ``node_id: 2`` would drive node 2).
+
+Owner: none; pure functions of a file's bytes.
+"""
 
 from __future__ import annotations
 

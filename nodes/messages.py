@@ -1,4 +1,7 @@
-"""Driver snapshots into ROS messages, for every node that publishes them."""
+"""Driver snapshots into ROS messages, for every node that publishes them.
+
+Owner: none; pure conversions, called on the publishing node's executor thread.
+"""
 
 from __future__ import annotations
 

@@ -5,6 +5,8 @@ nothing moves on a guess) served by the driver node of ``rover_driver`` restrict
 
 The process is the same assembly as ``rover_driver`` (:mod:`nodes.assembly`): the same
 executors, callback groups, start order and safe stop.
+
+Owner: the process's executors (nodes/assembly.py), as for ``rover_driver``.
 """
 
 from __future__ import annotations

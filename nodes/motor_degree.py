@@ -1,5 +1,8 @@
 """``motor_degree``: the team's demo publisher. Every 0.1 s the command grows by 0.1 degree,
-modulo 360, on ``/motor_degree_cmd`` (std_msgs/Float32)."""
+modulo 360, on ``/motor_degree_cmd`` (std_msgs/Float32).
+
+Owner: its executor's one thread (the timer callback).
+"""
 
 from __future__ import annotations
 

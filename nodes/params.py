@@ -10,6 +10,8 @@ Each parameter is declared once, by the code that reads it: the process set-up
 (:func:`nodes.assembly.set_up`) declares ``executor`` and ``realtime_priority`` on the entry
 point's own node, the entry point ``config``, each node the rest. docs/ros.md's table is
 :func:`table` (``python -m nodes.params``; tests/test_params_file.py holds the two in step).
+
+Owner: none; values only, read where a node declares its parameters.
 """
 
 from __future__ import annotations

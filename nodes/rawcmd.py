@@ -5,6 +5,8 @@ the hot executor's time a command on the development machine): at six drives com
 500 Hz (issue 55, docs/performance.md) that is 3,000 objects a second made to read one float.
 A Float32 is four bytes of encapsulation header and the float: read here, from the header's
 byte order. Anything else (another encapsulation, a short payload) is refused with what came.
+
+Owner: none; a pure decode, on the hot executor's thread that takes the message.
 """
 
 from __future__ import annotations

@@ -28,6 +28,9 @@ only with ``arm`` too (``rover_launch.xml lifecycle:=true autostart:=true arm:=t
 ``rover_driver`` enables them at start only with ``arm``. A failed transition
 logs why and returns FAILURE; the node stays where it was (after a failed configure, with no
 driver and no bus).
+
+Owner: the lifecycle transitions run on the node's service executor thread; the nodes it
+makes at configure are served by the process's executors (nodes/assembly.py).
 """
 
 from __future__ import annotations

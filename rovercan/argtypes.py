@@ -1,5 +1,8 @@
 """argparse types of the CLI: every number is checked where it is read, so a bad one is refused
-with its argument's name and the allowed range (exit 2) before any bus is opened."""
+with its argument's name and the allowed range (exit 2) before any bus is opened.
+
+Owner: none; pure checks, called by argparse on the CLI's main thread.
+"""
 
 from __future__ import annotations
 

@@ -15,6 +15,8 @@ with its bus timestamp. From those frames:
 * bus load (worst-case stuffing) and error frames, beside the planned load (``rovercan plan``).
 
 Each figure is compared with its target; exit 1 names every target missed.
+
+Owner: the CLI's main thread.
 """
 
 from __future__ import annotations

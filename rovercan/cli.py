@@ -2,6 +2,8 @@
 
 Each subcommand is a thin function over the library. Exit codes: 0 ok, 1 the operation
 failed (message on stderr), 2 bad usage or configuration.
+
+Owner: the CLI's main thread.
 """
 
 from __future__ import annotations

@@ -4,6 +4,8 @@ joint, armed), with the team's degree publisher and a monitor on its hot executo
 MotorState printed, and a verdict at the end.
 
 ROS is imported inside :func:`run_demo`: the rest of the CLI runs where ROS is absent.
+
+Owner: the CLI's main thread; the simulator and the node's executors own their threads.
 """
 
 from __future__ import annotations

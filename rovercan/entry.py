@@ -5,7 +5,10 @@ handles the signals itself (drives stopped, one line).
 
 The handler is installed as this module is imported: the console script imports it and only then
 calls :func:`main`, and a Ctrl-C in between (seen under load) would otherwise be Python's own
-KeyboardInterrupt outside any ``try``."""
+KeyboardInterrupt outside any ``try``.
+
+Owner: the CLI's main thread.
+"""
 
 from __future__ import annotations
 

@@ -7,6 +7,8 @@ substitutions and ``if``/``unless`` attributes. Nodes of ``rovercan_bringup`` ru
 ``python -m nodes.<exec>`` subprocesses; anything else is refused with a clear error.
 On SIGINT/SIGTERM (or ``--duration``) the processes are stopped in reverse start order, each
 with SIGINT, then SIGTERM, then SIGKILL, and each gone before the next one is signalled.
+
+Owner: the CLI's main thread, which starts, watches and ends the launched processes.
 """
 
 from __future__ import annotations

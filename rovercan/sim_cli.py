@@ -1,6 +1,9 @@
 """``rovercan sim``: serve a virtual CAN bus with simulated CiA 402 drives (socketcand protocol
 on loopback), or put them on a python-can bus; ``--foxglove PORT`` serves the live view of the
-buses it serves (:func:`rovercan.bench.views.serve_sims_view`)."""
+buses it serves (:func:`rovercan.bench.views.serve_sims_view`).
+
+Owner: the CLI's main thread; the simulator's service owns its threads.
+"""
 
 from __future__ import annotations
 

@@ -19,6 +19,8 @@ A tick the server's socket has no room for is dropped, never waited for: a timer
 stalled server would hold the server's commands. Each job keeps its own schedule (first due + n x
 period): a late tick does not shift the next; one later than a whole period restarts the schedule
 from then.
+
+Owner: the timer process's one thread, alone; the server talks to it over a pipe.
 """
 
 from __future__ import annotations

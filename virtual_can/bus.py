@@ -4,6 +4,8 @@ Registered as the python-can interface ``rovercan`` (entry point), so code that 
 bus from configuration can take it too: ``can.Bus(interface="rovercan", channel="can0",
 engine=engine)``. Unlike python-can's ``virtual`` interface it shares the engine's wire
 time, fault injection and statistics with the socketcand server.
+
+Owner: the caller's thread sends and receives; the engine's thread delivers into the bus's queue.
 """
 
 from __future__ import annotations

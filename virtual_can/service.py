@@ -4,6 +4,9 @@ This is what ``rovercan sim`` runs and what tests and the demo start in-process:
 
     with SimService.from_config(load_config(), port=0) as sim:
         bus = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+
+Owner: the thread that starts and closes it; the engine, the server and each channel's
+simulator run on threads of their own, each owning its state.
 """
 
 from __future__ import annotations

@@ -6,6 +6,8 @@ timer process) reached the bus when its bytes reached the socket: Linux's ``SO_T
 (the socket module does not name it) gives every read that time, and the frame is stamped with
 it, as a CAN controller stamps a frame on the wire, not with the moment this server's interpreter
 got round to it (its drive threads can hold it for a tick).
+
+Owner: none; pure functions of a frame and the wire's timing.
 """
 
 from __future__ import annotations

@@ -11,6 +11,9 @@ object (index and sub-index, the multiplexer), and each request has one kind of 
 client drops, while it waits, an answer of another kind or about another object (logged), and
 waits on for its own within the same timeout. What it cannot tell apart (a segment of another
 transfer of the same kind) is left to canopen's toggle check and SdoPort's one retry.
+
+Owner: the calling thread, one transfer at a time (the drive's SDO port serialises callers);
+the bus's receive thread only hands it the answers to its own request.
 """
 
 from __future__ import annotations

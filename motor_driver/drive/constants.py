@@ -2,6 +2,8 @@
 
 Read-only at run time; module constants so that tests and benchmarks can see what the driver
 waits for.
+
+Owner: none; values only, read-only at run time.
 """
 
 from can_config.objects import OperationMode

@@ -1,5 +1,8 @@
 """``python -m motor_driver.recording INCIDENT.json``: draw the incident's PNG (a module of its
-own, so that runpy does not run the package already imported by the driver)."""
+own, so that runpy does not run the package already imported by the driver).
+
+Owner: the helper process's one thread.
+"""
 
 import sys
 

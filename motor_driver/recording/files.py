@@ -1,7 +1,10 @@
 """Reading CAN recordings (every format python-can reads, and ``candump -L`` output as .txt):
 read in full before anything is done with them (a file that breaks half way never
 half-replays), each frame checked, and a damaged file answered with one :class:`ConfigError`
-naming the file, the format and what is wrong, never a reader's own exception."""
+naming the file, the format and what is wrong, never a reader's own exception.
+
+Owner: the calling thread; no state kept between calls.
+"""
 
 from __future__ import annotations
 

@@ -4,6 +4,8 @@ simulator scenario (``rovercan sim --scenario-from-log``; the simulator itself n
 
 An incident is ``<stem>.json`` (this summary) beside ``<stem>.blf`` (every frame of every bus,
 BLF channel ``n`` being the bus ``channels[str(n)]``) and, with matplotlib, ``<stem>.png``.
+
+Owner: the calling thread; no state kept between calls.
 """
 
 from __future__ import annotations

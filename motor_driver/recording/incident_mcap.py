@@ -1,6 +1,9 @@
 """An incident's frames as an MCAP file beside its BLF (ROS 2 messages, as Foxglove and
 ``ros2 bag`` open them): the raw frames, and with the rover's config every drive decoded
-(:class:`motor_driver.recording.busview.BusView`), the incident's events as diagnostics at their times."""
+(:class:`motor_driver.recording.busview.BusView`), the incident's events as diagnostics at their times.
+
+Owner: the flight recorder's writer thread, or the CLI's thread that calls; no state kept.
+"""
 
 from __future__ import annotations
 

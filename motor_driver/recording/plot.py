@@ -4,7 +4,10 @@ helper process at low priority).
 
 What the driver did not know is drawn as missing: a sample of a drive lost or stale carries no
 values (``null`` in the JSON, NaN on the plot, a gap in its line), never its last values again.
-The state axis names the CiA 402 states."""
+The state axis names the CiA 402 states.
+
+Owner: the helper process's one thread (its drawing); no state kept.
+"""
 
 from __future__ import annotations
 

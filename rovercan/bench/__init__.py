@@ -13,6 +13,8 @@ What lives where (each module has its commands and their ``add_parsers``):
 - :mod:`.views`: the bus as ROS 2 messages for :mod:`.traffic` (MCAP, the live Foxglove view),
   :mod:`.liveview` the live view's server (a bounded queue per client)
 - :mod:`.checks`: safety-check, check, plan, can-up
+
+Owner: the CLI's main thread (a command that starts threads names them in its module).
 """
 
 from rovercan.bench.checks import can_up_commands

@@ -1,4 +1,6 @@
 """Bench commands that check without moving: safety-check, check, plan; and can-up.
+
+Owner: the CLI's main thread.
 """
 
 from __future__ import annotations

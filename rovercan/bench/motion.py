@@ -1,5 +1,7 @@
 """Bench commands that move a drive through the driver (limits enforced): enable/disable/
 fault-reset/home, move, jog, step-test.
+
+Owner: the CLI's main thread; the driver it starts owns its own threads.
 """
 
 from __future__ import annotations

@@ -1,4 +1,6 @@
 """Bench commands that address one node over CiA 301 services: scan, info, sdo, save, nmt.
+
+Owner: the CLI's main thread.
 """
 
 from __future__ import annotations

@@ -1,4 +1,6 @@
 """Bench commands on the bus's traffic: monitor, record, replay, decode, incident.
+
+Owner: the CLI's main thread; a bus's reader threads only hand it frames.
 """
 
 from __future__ import annotations

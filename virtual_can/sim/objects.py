@@ -3,6 +3,8 @@
 Built from an EDS (parsed by ``can_config``), written and read by the SDO server and by
 the drive's own logic. Errors are :class:`SdoAbort` with the CiA 301 abort code, which the
 SDO server turns into an abort frame.
+
+Owner: the simulator's runner thread, all of it.
 """
 
 from __future__ import annotations

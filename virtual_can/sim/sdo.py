@@ -3,6 +3,8 @@
 Expedited and segmented upload and download; block transfer is answered with an abort
 (command specifier not supported), as many drives do. :meth:`SdoServer.handle` maps one
 request payload to one response payload, so it is tested byte for byte.
+
+Owner: the simulator's runner thread, all of it.
 """
 
 from __future__ import annotations

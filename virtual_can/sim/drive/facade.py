@@ -18,6 +18,8 @@ and per mille of the rated torque.
 
 It does no I/O: :meth:`on_frame` and :meth:`tick` return the frames to send; a
 :class:`~virtual_can.sim.runner.DriveSimulator` moves them on a python-can bus.
+
+Owner: the simulator's runner thread, all of it.
 """
 
 from __future__ import annotations
