@@ -61,11 +61,14 @@ def test_each_package_docstring_maps_every_module_and_only_those(package: Path) 
                          " with what it holds")
 
 
-def readme_bullets() -> list[str]:
+def readme_section() -> str:
     text = (REPO / "README.md").read_text()
     assert README_SECTION in text, f"README.md lost its section {README_SECTION!r}"
-    section = text.split(README_SECTION, 1)[1].split("\n## ", 1)[0]
-    return re.split(r"\n(?=- )", section.strip().split("\n\n", 1)[0])  # the list, not what follows it
+    return text.split(README_SECTION, 1)[1].split("\n## ", 1)[0]
+
+
+def readme_bullets() -> list[str]:
+    return re.split(r"\n(?=- )", readme_section().strip().split("\n\n", 1)[0])  # the list, not what follows it
 
 
 def test_the_readme_map_names_only_modules_that_exist() -> None:
@@ -134,3 +137,9 @@ def test_motor_driver_is_folders_in_layers() -> None:
               if FOLDER_ORDER.index(high) > FOLDER_ORDER.index(low)]
     assert not upward, "imports from a lower folder to a higher one:\n" + "\n".join(upward)
 
+
+
+def test_the_readme_tour_lists_each_folder_of_motor_driver() -> None:
+    """README's "Layers" gives each folder of motor_driver a line of its own, in FOLDER_ORDER."""
+    listed = [m.group(1) for m in re.finditer(r"^  - `motor_driver/(\w+)/`:", readme_section(), re.M)]
+    assert listed == list(FOLDER_ORDER), f"README's tour lists {listed}; the tree's layers are {list(FOLDER_ORDER)}"
