@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 
@@ -88,7 +89,8 @@ def make_process_realtime(what: str, priority: int) -> bool:
                                   " or an rtprio limit (docs/deployment.md) for a steady latency on a busy machine"))
 
 
-_sim_refusal_said = False
+_sim_refusal_said = False  # written under _sim_refusal_lock, by whichever thread is refused first
+_sim_refusal_lock = threading.Lock()
 
 
 def ensure_thread_realtime(what: str, priority: int = SIM_PRIORITY) -> bool:
@@ -102,12 +104,14 @@ def ensure_thread_realtime(what: str, priority: int = SIM_PRIORITY) -> bool:
         return True
     if not _may_try(what):
         return False
-    level = logging.DEBUG if _sim_refusal_said else logging.WARNING
-    done = _set_fifo(what, lambda: [0], priority, skip_ended=False, done="SCHED_FIFO priority %d", refused=(
-        level, "ordinary scheduling: SCHED_FIFO refused (%s); on a busy machine its frames are then handled late"
-               " (their bus stamps still decide a heartbeat's verdict); give the interpreter CAP_SYS_NICE or an"
-               " rtprio limit (docs/simulator.md)"))
-    _sim_refusal_said = _sim_refusal_said or not done
+    with _sim_refusal_lock:
+        level = logging.DEBUG if _sim_refusal_said else logging.WARNING
+        done = _set_fifo(what, lambda: [0], priority, skip_ended=False, done="SCHED_FIFO priority %d", refused=(
+            level, f"the simulated drives and the bus server run at ordinary scheduling: SCHED_FIFO {priority}"
+                   " refused (%s); on a busy machine their frames are then handled late (their bus stamps still"
+                   " decide a heartbeat's verdict); give the interpreter CAP_SYS_NICE or an rtprio limit"
+                   " (docs/simulator.md)"))
+        _sim_refusal_said = _sim_refusal_said or not done
     return done
 
 

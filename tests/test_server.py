@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from can_config.errors import ProtocolError
-from can_config.realtime import fifo_thread_count
+from can_config.realtime import SIM_PRIORITY, fifo_thread_count
 from virtual_can import BusEngine, SocketcandServer, VirtualBus
 from virtual_can.server import format_frame, parse_send
 from virtual_can.wire import frame_bits
@@ -418,7 +418,7 @@ def test_the_cyclic_timer_is_a_real_time_process_where_the_os_allows_it(how: str
             pytest.skip("needs setpriv and the right to drop CAP_SYS_NICE (root)")
         command = ["setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice", *command]
         expected = False
-    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
         assert "simulated drive" in proc.stdout.readline()
@@ -442,7 +442,9 @@ def test_the_cyclic_timer_is_a_real_time_process_where_the_os_allows_it(how: str
                 sock.close()
     finally:
         proc.terminate()
-        proc.wait(30)
+        _, err = proc.communicate(timeout=30)
+    # refused: said once, at start, for the runner and the server together
+    assert err.count(f"SCHED_FIFO {SIM_PRIORITY} refused") == (how == "not permitted"), err
 
 
 def test_a_frame_is_stamped_when_it_reached_the_server_not_when_read(server: SocketcandServer) -> None:
