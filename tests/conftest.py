@@ -307,6 +307,18 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, said: C
         time.sleep(0.005)
 
 
+def publish_until(publish: Callable[[], object], done: Callable[[], bool], timeout_s: float, what: str,
+                  period_s: float = 0.05) -> None:
+    """Publish a stream (every ``period_s``) until ``done``: its outcome, not a span of the wall
+    clock (a crowded machine reaches it later); at the timeout fail naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while not done():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s publishing until {what}")
+        publish()
+        time.sleep(period_s)
+
+
 #: What a bench command's stderr says when its drive stopped itself because this host's heartbeat
 #: went silent: a busy machine held the command's process past the drive's host timeout. The drive
 #: did right; the test's premise (the process gets the CPU) did not hold.
