@@ -24,6 +24,7 @@ from virtual_can import SimService
 from virtual_can.bus import VirtualBus
 from virtual_can.service import specs_for_count
 from virtual_can.sim import DriveSimulator
+from virtual_can.sim.runner import LOOK_GAP_S, SETTLE_LOOKS, BusClock
 
 from .conftest import make_config, wait_for
 
@@ -181,3 +182,23 @@ def test_a_host_that_stops_its_heartbeats_on_a_silent_bus_is_caught() -> None:
             assert not runner.call(lambda: dict(runner.drive(1)._consumer_seen))  # tripped, and disarmed
         finally:
             host.close()
+
+
+def test_the_bus_clock_stands_still_after_a_hold_and_then_takes_the_stamps_and_the_wall() -> None:
+    """Pure: a look long after the one before (the runner was held) does not move the bus time the
+    drives are judged on for SETTLE_LOOKS looks, whatever was stamped meanwhile (the server's
+    threads, held with it, may not have delivered a heartbeat stamped before that SYNC); then the
+    newest stamp counts, and the wall clock at steady looks that emptied the queue."""
+    clock, t = BusClock(), time.time()  # frames are stamped on the wall clock
+    for _ in range(SETTLE_LOOKS + 1):  # the first look follows none: a hold
+        t += 0.002
+        clock.look(t, emptied=True)
+    assert clock.look(t + 0.002, emptied=True) == t + 0.002  # steady: the wall clock
+    t += 0.002
+    judged = t
+    t += 10 * LOOK_GAP_S  # held
+    clock.stamp(can.Message(arbitration_id=0x80, timestamp=t - 0.001))  # a SYNC stamped late in the hold
+    settling = [clock.look(t + i * 0.002, emptied=False) for i in range(SETTLE_LOOKS)]  # a queue never emptied
+    assert settling == [judged] * SETTLE_LOOKS
+    assert clock.look(t + SETTLE_LOOKS * 0.002, emptied=False) == t - 0.001  # then the newest stamp
+    assert clock.look(t + (SETTLE_LOOKS + 1) * 0.002, emptied=True) == t + (SETTLE_LOOKS + 1) * 0.002

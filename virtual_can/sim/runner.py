@@ -9,7 +9,9 @@ the bus time up to which this thread has seen every frame (:class:`BusClock`). A
 reached the bus in time is in time however late it is handled; a host that really went silent is
 caught when other frames on the bus (SYNC, other nodes) are stamped past its consumer time, or,
 on a silent bus, by the wall clock, but only at a look that followed the previous one closely: a
-thread that was held (a starved process, a test's hook) looks at what queued meanwhile first.
+thread that was held (a starved process, a test's hook) looks at what queued meanwhile first, and
+judges nothing for a few looks more, while the bus server's threads, held with it, deliver what
+reached their sockets during the hold (with the stamps of its arrival).
 
 Owner: the runner thread owns the drives, the bus clock and the hook's calls; other threads reach
 the drives through :meth:`DriveSimulator.call`.
@@ -42,6 +44,11 @@ MAX_FRAMES_PER_TICK = 256
 #: test's hook), and the frames that queued meanwhile are looked at before the wall clock may
 #: convict a silent producer. Many ticks: an ordinary thread on a busy core waits a few ms.
 LOOK_GAP_S = 0.05
+#: After a look that followed a hold, the bus time the drives are judged on stands still for this
+#: many looks (a tick each, each with a wait on the bus): the bus server's threads, held with the
+#: runner when the whole process was starved, deliver what reached their sockets meanwhile (a
+#: heartbeat stamped in time must not lose the race to a SYNC stamped after it).
+SETTLE_LOOKS = 5
 #: A frame stamped further than this from the wall clock carries another clock (an interface's
 #: own, from its boot): it is taken as stamped when it was handled.
 STAMP_TRUST_S = 60.0
@@ -53,12 +60,15 @@ class BusClock:
 
     ``newest`` is the newest stamp of a frame handled; ``looked`` the wall time before a look that
     emptied the queue and followed the previous look within ``LOOK_GAP_S``: every frame that
-    reached the bus by then has been handled. The bus time is the later of the two."""
+    reached the bus by then has been handled. The bus time is the later of the two; after a hold
+    the drives are judged on the one before it for ``SETTLE_LOOKS`` looks."""
 
     def __init__(self) -> None:
         self.newest = 0.0
         self.looked = 0.0
         self._last_look: float | None = None
+        self._settling = 0  # looks left before the bus time the drives are judged on moves again
+        self._judged = 0.0  # the bus time they were last judged on
 
     def stamp(self, msg: can.Message) -> float:
         """The time ``msg`` reached the bus; taken as the bus's newest."""
@@ -68,12 +78,19 @@ class BusClock:
         return stamp
 
     def look(self, wall: float, emptied: bool) -> float:
-        """A look at the bus begun at ``wall`` (``emptied``: it found the queue empty); the bus time."""
+        """A look at the bus begun at ``wall`` (``emptied``: it found the queue empty); the bus time
+        to judge the drives' watch on."""
         steady = self._last_look is not None and wall - self._last_look <= LOOK_GAP_S
         self._last_look = wall
+        if not steady and not self._settling:
+            self._settling = SETTLE_LOOKS
         if emptied and steady:
             self.looked = max(self.looked, wall)
-        return self.now
+        if self._settling:
+            self._settling -= 1
+            return self._judged
+        self._judged = self.now
+        return self._judged
 
     @property
     def now(self) -> float:
