@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 
@@ -22,6 +23,11 @@ logger = logging.getLogger(__name__)
 REALTIME_PRIORITY = 10
 #: A driver process's threads (the nodes' ``realtime_priority``, the demo's ``--realtime-priority``).
 DRIVER_PRIORITY = 20
+#: What stands in for the rover's hardware: the simulated drives' runner, the bus server's threads
+#: and its broadcast manager's timer. Below the driver's, so it never takes the driver's turn; above
+#: real-time work of lesser weight (a CI run's other tests, a robot's bursts at 10), which starved
+#: an ordinary simulator until its drives took the host for lost (docs/simulator.md).
+SIM_PRIORITY = 15
 ENV_SWITCH = "ROVERCAN_REALTIME"
 
 
@@ -81,6 +87,32 @@ def make_process_realtime(what: str, priority: int) -> bool:
         done="every thread under SCHED_FIFO priority %d",
         refused=(logging.WARNING, "ordinary scheduling: SCHED_FIFO refused (%s); give the interpreter CAP_SYS_NICE"
                                   " or an rtprio limit (docs/deployment.md) for a steady latency on a busy machine"))
+
+
+_sim_refusal_said = False  # written under _sim_refusal_lock, by whichever thread is refused first
+_sim_refusal_lock = threading.Lock()
+
+
+def ensure_thread_realtime(what: str, priority: int = SIM_PRIORITY) -> bool:
+    """The calling thread under ``SCHED_FIFO`` at ``priority`` at least (as it is when it inherited
+    that from its creator: then nothing is said); True if so. A refusal is said once per process,
+    as a warning: the simulator's runner and the bus server's threads each ask, and on a machine
+    that refuses them all one line says what a busy machine will do to them."""
+    global _sim_refusal_said
+    if hasattr(os, "sched_getscheduler") and os.sched_getscheduler(0) == os.SCHED_FIFO \
+            and os.sched_getparam(0).sched_priority >= priority:
+        return True
+    if not _may_try(what):
+        return False
+    with _sim_refusal_lock:
+        level = logging.DEBUG if _sim_refusal_said else logging.WARNING
+        done = _set_fifo(what, lambda: [0], priority, skip_ended=False, done="SCHED_FIFO priority %d", refused=(
+            level, f"the simulated drives and the bus server run at ordinary scheduling: SCHED_FIFO {priority}"
+                   " refused (%s); on a busy machine their frames are then handled late (their bus stamps still"
+                   " decide a heartbeat's verdict); give the interpreter CAP_SYS_NICE or an rtprio limit"
+                   " (docs/simulator.md)"))
+        _sim_refusal_said = _sim_refusal_said or not done
+    return done
 
 
 @contextmanager

@@ -9,34 +9,57 @@ import json
 import signal
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import pytest
 import websockets
 
 from can_config import load_config
 
-from .conftest import REPO, rovercan_sim
+from .conftest import REPO, rovercan_sim, wait_for
 from .test_mcap import ROVER, rover_on_port
 from .test_sim_cli import free_port
 
 #: Bounds for hangs, not verdicts.
-CONNECT_S = 30.0
+LISTEN_S = 120.0  # a launch of the nodes and a monitor on a crowded machine
 ANSWER_S = 20.0
+#: What a view says once it listens (``rovercan monitor`` on stderr, ``rovercan sim`` on stdout).
+LISTENS = "Foxglove WebSocket on ws://"
+
+
+class Said:
+    """A process's output stream, read by a thread of its own into lines (the process never
+    blocks on a full pipe), so that a test can wait for what it says."""
+
+    def __init__(self, stream: IO[str] | None) -> None:
+        assert stream is not None
+        self.lines: list[str] = []
+        self._thread = threading.Thread(target=self._read, args=(stream,), daemon=True, name="test-said")
+        self._thread.start()
+
+    def _read(self, stream: IO[str]) -> None:
+        for line in stream:
+            self.lines.append(line)
+
+    def wait(self, text: str, what: str) -> None:
+        wait_for(lambda: any(text in line for line in list(self.lines)), LISTEN_S, what, said=self.text)
+
+    def text(self) -> str:
+        self._thread.join(0.1)
+        return "".join(self.lines)
+
+    def close(self) -> str:
+        """All it said, once the process has ended."""
+        self._thread.join(30)
+        return "".join(self.lines)
 
 
 async def connect(port: int) -> Any:
-    """A client of subprotocol foxglove.websocket.v1, once the server listens."""
-    deadline = time.monotonic() + CONNECT_S
-    while True:
-        try:
-            return await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"])
-        except OSError:
-            if time.monotonic() > deadline:
-                raise
-            await asyncio.sleep(0.1)
+    """A client of subprotocol foxglove.websocket.v1, of a view that said it listens (once: a
+    refused connect is the test's failure, not a race with the server's start)."""
+    return await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"])
 
 
 async def talk(port: int) -> tuple[dict[str, dict], bytes]:
@@ -61,19 +84,22 @@ def test_monitor_serves_foxglove_websocket(tmp_path: Path) -> None:
     with rovercan_sim("--config", str(ROVER)) as sim_port:
         config = rover_on_port(tmp_path, sim_port)
         mon = subprocess.Popen([sys.executable, "-m", "rovercan", "monitor", "--config", str(config), "--foxglove",
-                                str(port)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                str(port)], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        said = Said(mon.stderr)
         jog = None
         try:
             jog = subprocess.Popen([sys.executable, "-m", "rovercan", "jog", "wheel_front_left", "30", "--for", "20",
                                     "--config", str(config)], cwd=REPO, stdout=subprocess.DEVNULL,
                                    stderr=subprocess.DEVNULL)
+            said.wait(LISTENS, "the monitor's view to listen")
             got, data = asyncio.run(talk(port))
         finally:
             if jog is not None:
                 jog.send_signal(signal.SIGINT)
                 jog.wait(timeout=30)
             mon.send_signal(signal.SIGINT)
-            _, err = mon.communicate(timeout=30)
+            mon.wait(timeout=30)
+            err = said.close()
     assert mon.returncode == 0, err
     assert got["serverInfo"]["name"] == "rovercan"
     channels = {c["topic"]: c for c in got["advertise"]["channels"]}

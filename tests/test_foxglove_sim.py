@@ -18,7 +18,7 @@ import pytest
 from can_config import load_config
 
 from .conftest import REPO
-from .test_foxglove import ANSWER_S, connect
+from .test_foxglove import ANSWER_S, LISTENS, Said, connect
 from .test_mcap import ROVER
 from .test_sim_cli import free_port
 
@@ -38,10 +38,11 @@ async def advertised(port: int, topic: str) -> tuple[dict[str, dict[str, Any]], 
                 return got, data
 
 
-def stopped(proc: subprocess.Popen[str]) -> str:
+def stopped(proc: subprocess.Popen[str], *said: Said) -> str:
+    """Stopped with SIGINT; what it said on the streams read by ``said`` (stderr last)."""
     proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
-    return err
+    proc.wait(timeout=60)
+    return "".join(s.close() for s in said)
 
 
 @pytest.mark.slow
@@ -50,6 +51,7 @@ def test_sim_serves_the_view_of_its_buses() -> None:
     sim = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", "--config", str(ROVER), "--port", str(port),
                             "--foxglove", str(view)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert sim.stdout is not None and "simulated drive" in sim.stdout.readline()
+    out, err_said = Said(sim.stdout), Said(sim.stderr)
     done = threading.Event()
 
     def traffic() -> None:  # an idle simulated drive says nothing: another node on can1 does
@@ -60,11 +62,12 @@ def test_sim_serves_the_view_of_its_buses() -> None:
     talker = threading.Thread(target=traffic, daemon=True)
     talker.start()
     try:
+        out.wait(LISTENS, "the simulator's view to listen")
         got, data = asyncio.run(advertised(view, "/can/frames"))
     finally:
         done.set()
         talker.join(10)
-        err = stopped(sim)
+        err = stopped(sim, out, err_said)
     assert sim.returncode == 0, err
     topics = {c["topic"] for c in got["advertise"]["channels"]}
     assert {"/can/frames", "/joint_states", *(f"/drives/{d.name}/status" for d in load_config(ROVER).drives)} <= topics
@@ -77,9 +80,11 @@ def test_launch_serves_the_view_beside_the_nodes() -> None:
     launch = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", "ros/rovercan_bringup/launch/motor_launch.xml",
                                "sim:=true", "--foxglove", str(view)], cwd=REPO, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True)
+    out, err_said = Said(launch.stdout), Said(launch.stderr)
     try:
+        err_said.wait(LISTENS, "the launch's monitor to say its view listens")  # the monitor's stderr is the launch's
         got, _ = asyncio.run(advertised(view, "/can/frames"))
     finally:
-        err = stopped(launch)
+        err = stopped(launch, out, err_said)
     assert got["serverInfo"]["name"] == "rovercan", err
     assert {"/can/frames", "/joint_states"} <= {c["topic"] for c in got["advertise"]["channels"]}

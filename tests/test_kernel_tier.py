@@ -44,6 +44,7 @@ from .conftest import (
     guarded_generic_eds,
     kernel_can_available,
     kernel_controllers_available,
+    publish_until,
     stop_process,
     wait_for,
 )
@@ -590,13 +591,14 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring:
                 drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
             twist = Twist()
             twist.linear.x, twist.angular.z = 0.3, 0.5  # left (0.3 - 0.15) / 0.1 = 1.5 rad/s, right 4.5 rad/s
-            t_end = time.monotonic() + 8.0
-            while time.monotonic() < t_end:
-                cmd.publish(twist)
-                time.sleep(0.1)
-            left = driver.drive("wheel1").snapshot().velocity_deg_s
-            right = driver.drive("wheel2").snapshot().velocity_deg_s
-            assert left > 30.0 and right > 2.0 * left, (left, right)  # turning, the right side faster
+
+            def turning() -> bool:  # the right side faster
+                left = driver.drive("wheel1").snapshot().velocity_deg_s
+                right = driver.drive("wheel2").snapshot().velocity_deg_s
+                return left > 30.0 and right > 2.0 * left
+
+            publish_until(lambda: cmd.publish(twist), turning, HANG_S, "the wheels turning the rover left",
+                          period_s=0.1)
             wait_for(lambda: all(abs(d.snapshot().velocity_deg_s) < 1.0 for d in driver), 30.0,
                      "the wheels stopped after /cmd_vel went stale")
             wait_for(lambda: bool(bus_status), 30.0, "the bus's status on /diagnostics")

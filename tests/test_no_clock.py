@@ -6,6 +6,15 @@ outcome and waits on conditions; timing claims live in the benchmarks. An AST sc
 - an ``assert`` that compares a measured duration (``time.monotonic()``/``time.time()``/
   ``time.perf_counter()`` minus something, or a name assigned from one) with a constant under
   1 s is a wall-clock bound. A deadline of a second or more only catches a hang (allowed).
+- a loop that runs for a span of the wall clock (``while time.monotonic() < t_end``, leaving on
+  nothing else), or a call of a function of the file that runs one, followed by an assertion:
+  publishing /cmd_vel for 2 s and then expecting the wheels at speed fails when the machine is
+  busy. Loop until the outcome instead (``publish_until``, ``wait_for``), with a hang bound.
+- a connect retried in a loop on ``OSError``/``ConnectionRefusedError``: a deadline decides whether
+  the listener came up in time. Wait for the server to say it listens, then connect once.
+- commands paced to a wall-clock schedule (``start + (i + 1) * period`` and a sleep) with no
+  ``except CommandRejected``: a starved sender finds the drive's channel held by the work its
+  previous command started, and that refusal (nothing sent) is an outcome to count, not a failure.
 
 The scan is also run on broken snippets, so it can fail.
 """
@@ -153,10 +162,122 @@ class Scan(ast.NodeVisitor):
         self.generic_visit(node)
 
 
+def _walk_here(node: ast.AST) -> list[ast.AST]:
+    """``node`` and what is under it, but not inside a function or class defined there (that runs
+    when called, not here)."""
+    found, todo = [], [node]
+    while todo:
+        item = todo.pop()
+        found.append(item)
+        todo += [child for child in ast.iter_child_nodes(item)
+                 if not isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef))]
+    return found
+
+
+def _clock_names(tree: ast.AST) -> set[str]:
+    """Names given a reading of the clock (``start = time.monotonic()``, ``t_end = time.monotonic() + 2``),
+    alone or in a tuple assignment."""
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Assign):
+            continue
+        pairs: list[tuple[ast.AST, ast.AST]] = []
+        for target in node.targets:
+            if isinstance(target, ast.Tuple) and isinstance(node.value, ast.Tuple):
+                pairs += zip(target.elts, node.value.elts, strict=False)
+            else:
+                pairs.append((target, node.value))
+        for target, value in pairs:
+            if isinstance(target, ast.Name) and any(_is_call_to(n, CLOCKS) for n in ast.walk(value)):
+                names.add(target.id)
+    return names
+
+
+def _runs_a_span(loop: ast.AST, clocks: set[str]) -> bool:
+    """A ``while`` that runs until the clock reaches a time (``while time.monotonic() < t_end``) and
+    leaves on nothing else: it lasts a span of the wall clock, whatever happened in it."""
+    if not isinstance(loop, ast.While) or not isinstance(loop.test, ast.Compare):
+        return False
+    sides = [loop.test.left, *loop.test.comparators]
+    reads_clock = any(_is_call_to(side, CLOCKS) for side in sides)
+    until = any((isinstance(side, ast.Name) and side.id in clocks) or isinstance(side, ast.BinOp) for side in sides)
+    leaves = any(isinstance(n, (ast.Break, ast.Return, ast.Raise)) for stmt in loop.body for n in _walk_here(stmt))
+    return reads_clock and until and not leaves
+
+
+def _called_name(node: ast.AST) -> str:
+    if isinstance(node, ast.Call):
+        func = node.func
+        return func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else ""
+    return ""
+
+
+def _span_then_assert(tree: ast.AST, name: str) -> list[str]:
+    """A loop over a span of the wall clock (or a call of a function of the file that runs one),
+    followed by an assertion on what it reached: on a crowded machine the span passes with the
+    work undone (publishing /cmd_vel for 2 s, then expecting the wheels at speed)."""
+    clocks = _clock_names(tree)
+    spanning = {f.name for f in ast.walk(tree) if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
+                and any(_runs_a_span(n, clocks) for stmt in f.body for n in _walk_here(stmt))}
+    problems = []
+    for block in (getattr(n, field, None) for n in ast.walk(tree) for field in ("body", "orelse", "finalbody")):
+        if not isinstance(block, list):
+            continue
+        for i, stmt in enumerate(block):
+            span = _runs_a_span(stmt, clocks) or (isinstance(stmt, ast.Expr) and _called_name(stmt.value) in spanning)
+            if span and any(isinstance(n, ast.Assert) for later in block[i + 1:] for n in _walk_here(later)):
+                problems.append(f"{name}:{stmt.lineno}: a loop over a span of the wall clock, then an assertion on"
+                                " what it reached (loop until the outcome, with a hang bound)")
+    return problems
+
+
+CONNECT_ERRORS = {"OSError", "ConnectionRefusedError", "ConnectionError"}
+
+
+def _connect_retried(tree: ast.AST, name: str) -> list[str]:
+    """A connect tried again and again until the listener happens to be up (a deadline of the
+    wall clock decides whether it was up in time): wait for the server to say it listens (its
+    output line, a ready event, a port it reports) and connect once."""
+    problems = []
+    for loop in (n for n in ast.walk(tree) if isinstance(n, (ast.While, ast.For, ast.AsyncFor))):
+        for node in (n for stmt in loop.body for n in _walk_here(stmt)):
+            if not isinstance(node, ast.Try):
+                continue
+            caught = {n.id for h in node.handlers if h.type is not None for n in ast.walk(h.type) if isinstance(n, ast.Name)}
+            connects = any("connect" in _called_name(n).lower() for stmt in node.body for n in _walk_here(stmt))
+            if connects and caught & CONNECT_ERRORS:
+                problems.append(f"{name}:{node.lineno}: a connect retried until the listener is up (wait for it to"
+                                " say it listens, then connect once)")
+    return problems
+
+
+def _schedule_without_refusals(tree: ast.AST, name: str) -> list[str]:
+    """A stream of commands paced to a wall-clock schedule (``start + (i + 1) * period``) that takes
+    no refusal: a sender starved past its slot finds the drive's channel held by the work the
+    previous command started, and the refusal (CommandRejected, nothing sent) is an outcome."""
+    starts = {n.targets[0].id for n in ast.walk(tree) if isinstance(n, ast.Assign) and len(n.targets) == 1
+              and isinstance(n.targets[0], ast.Name) and _is_call_to(n.value, CLOCKS)}
+    problems = []
+    for loop in (n for n in ast.walk(tree) if isinstance(n, (ast.While, ast.For))):
+        inside = [n for stmt in loop.body for n in _walk_here(stmt)]
+        paced = any(isinstance(n, ast.BinOp) and isinstance(n.op, ast.Add) and isinstance(n.left, ast.Name)
+                    and n.left.id in starts and isinstance(n.right, ast.BinOp) and isinstance(n.right.op, ast.Mult)
+                    for n in inside)
+        paced = paced and any(_is_call_to(n, {"sleep"}) for n in inside)
+        takes = any(isinstance(n, ast.ExceptHandler) and n.type is not None
+                    and any(isinstance(t, ast.Name) and t.id == "CommandRejected" for t in ast.walk(n.type)) for n in inside)
+        if paced and not takes:
+            problems.append(f"{name}:{loop.lineno}: commands paced to a wall-clock schedule with no refusal taken"
+                            " (a starved sender's command is refused: count it, send the next)")
+    return problems
+
+
 def scan(source: str, name: str) -> list[str]:
     visitor = Scan(name)
-    visitor.visit(ast.parse(source))
-    return visitor.problems
+    tree = ast.parse(source)
+    visitor.visit(tree)
+    return visitor.problems + _span_then_assert(tree, name) + _connect_retried(tree, name) + \
+        _schedule_without_refusals(tree, name)
 
 
 def test_no_test_waits_on_a_bare_sleep_or_asserts_a_short_duration() -> None:
@@ -184,6 +305,59 @@ def test_the_scan_finds_a_bare_sleep_and_a_clock_assert() -> None:
             "        time.sleep(0.01)\n"
             "    assert time.monotonic() - start < 30.0\n"
             "    assert time.monotonic() - start >= 0.18\n")
+    assert scan(fine, "fine.py") == []
+
+
+def test_the_scan_finds_a_span_then_an_assertion_a_connect_retried_and_a_schedule_without_refusals() -> None:
+    broken = ("import time, socket\n"
+              "def test_x(cmd, wheel):\n"
+              "    t_end = time.monotonic() + 2.0\n"
+              "    while time.monotonic() < t_end:\n"
+              "        cmd.publish()\n"
+              "        time.sleep(0.05)\n"
+              "    assert wheel.speed() == 2.5\n"
+              "    def drive_for(seconds):\n"
+              "        until = time.monotonic() + seconds\n"
+              "        while time.monotonic() < until:\n"
+              "            cmd.publish()\n"
+              "    drive_for(1.5)\n"
+              "    assert wheel.speed() > 100\n"
+              "    while True:\n"
+              "        try:\n"
+              "            sock = socket.create_connection(('127.0.0.1', 1))\n"
+              "        except ConnectionRefusedError:\n"
+              "            time.sleep(0.1)\n"
+              "    start = time.monotonic()\n"
+              "    for i in range(1000):\n"
+              "        wheel.move_to(i)\n"
+              "        time.sleep(max(0.0, start + (i + 1) * 0.001 - time.monotonic()))\n")
+    found = scan(broken, "broken.py")
+    assert [p.split(":", 2)[1].split(" ")[0] for p in found] == ["4", "12", "15", "20"], found
+    assert ["span" in found[0], "span" in found[1], "connect" in found[2], "schedule" in found[3]] == [True] * 4
+    fine = ("import time, socket\n"
+            "from can_config.errors import CommandRejected\n"
+            "def test_y(cmd, wheel, said):\n"
+            "    deadline = time.monotonic() + 30.0\n"
+            "    while wheel.speed() < 2.5:\n"
+            "        assert time.monotonic() < deadline\n"
+            "        cmd.publish()\n"
+            "        time.sleep(0.05)\n"
+            "    assert wheel.speed() == 2.5\n"
+            "    while time.monotonic() < deadline:\n"
+            "        if wheel.stopped():\n"
+            "            break\n"
+            "    assert wheel.stopped()\n"
+            "    said.wait('listens')\n"
+            "    sock = socket.create_connection(('127.0.0.1', 1))\n"
+            "    start = time.monotonic()\n"
+            "    for i in range(1000):\n"
+            "        try:\n"
+            "            wheel.move_to(i)\n"
+            "        except CommandRejected:\n"
+            "            pass\n"
+            "        time.sleep(max(0.0, start + (i + 1) * 0.001 - time.monotonic()))\n"
+            "    t0 = time.time()\n"
+            "    frames = [t0 + i * 1e-4 for i in range(10)]\n")
     assert scan(fine, "fine.py") == []
 
 

@@ -6,7 +6,6 @@ not command, velocity commands at the controller rate, a best-effort sensor-data
 from __future__ import annotations
 
 import math
-import time
 import xml.etree.ElementTree as ET
 from typing import Any
 
@@ -15,7 +14,7 @@ import yaml
 
 from can_config import load_config
 
-from .conftest import HAVE_ROS, REPO, requires_ros, wait_for
+from .conftest import HAVE_ROS, REPO, publish_until, requires_ros, wait_for
 from .test_ros_interface import WHEELS, Graph, graph  # noqa: F401 (the fixture)
 
 EXAMPLE = REPO / "ros" / "rovercan_bringup" / "ros2_control"
@@ -70,12 +69,14 @@ def test_the_bridge_s_velocity_commands_turn_the_wheels_and_stopping_them_stops_
     graph.probe.create_subscription(JointState, "/joint_states", states.append, qos_profile_sensor_data)
     commands = graph.probe.create_publisher(JointState, "/joint_commands", COMMAND_QOS)
     wanted = {w: (2.0 if "left" in w else 3.0) for w in WHEELS}  # rad/s: a left turn
-    t_end = time.monotonic() + 2.0
-    while time.monotonic() < t_end:  # the controller manager's 50 Hz
-        commands.publish(bridge_command(wanted))
-        time.sleep(0.02)
-    for wheel, rad_s in wanted.items():
-        assert math.radians(graph.driver.drive(wheel).snapshot().velocity_deg_s) == pytest.approx(rad_s, rel=0.1)
+
+    def at_speed() -> bool:
+        return all(math.radians(graph.driver.drive(wheel).snapshot().velocity_deg_s) == pytest.approx(rad_s, rel=0.1)
+                   for wheel, rad_s in wanted.items())
+
+    # the controller manager's 50 Hz, until the wheels turn at the commanded speeds
+    publish_until(lambda: commands.publish(bridge_command(wanted)), at_speed, 30.0, "every wheel at its speed",
+                  period_s=0.02)
     wait_for(lambda: bool(states), 5.0, "/joint_states at the bridge's best-effort subscriber")
     last = states[-1]
     assert set(last.name) == set(WHEELS)

@@ -101,10 +101,15 @@ def test_the_driver_s_cyclic_job_is_never_taken_for_idle(monkeypatch: pytest.Mon
         held = [hostile(srv.port, "bcm") for _ in range(DEFAULT_MAX_CLIENTS - 1)]
         try:
             wait_for(lambda: len(srv.clients) == DEFAULT_MAX_CLIENTS, 5.0, "every slot taken")
-            deadline = time.monotonic() + idle_s + 0.2
-            while time.monotonic() < deadline:
+            task_client = max(srv.clients, key=srv.cyclic.last_sent)  # the one whose job runs
+
+            def hostile_idle() -> bool:  # by the server's own measure, as its slot rule judges
                 assert task.keep_alive(time.monotonic())
-                time.sleep(0.05)
+                now = time.monotonic()
+                return all(now - max(c.last_active, srv.cyclic.last_sent(c)) > idle_s + 0.1
+                           for c in srv.clients if c is not task_client)
+
+            wait_for(hostile_idle, 30.0, "every hostile connection idle past the idle timeout")
             newcomers = []
             for _ in range(DEFAULT_MAX_CLIENTS - 1):  # every hostile slot is taken over, one by one
                 assert task.keep_alive(time.monotonic())
@@ -115,12 +120,11 @@ def test_the_driver_s_cyclic_job_is_never_taken_for_idle(monkeypatch: pytest.Mon
                 sock.close()
             wait_for(lambda: len(srv.clients) < DEFAULT_MAX_CLIENTS, 5.0, "a slot free")
             with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as listener:
-                until = time.monotonic() + 0.5
-                syncs = 0
-                while time.monotonic() < until:
+                syncs, deadline = 0, time.monotonic() + 30.0
+                while syncs < 10:  # the SYNC runs on
+                    assert time.monotonic() < deadline, f"{syncs} SYNCs in 30 s"
                     msg = listener.recv(0.1)
                     syncs += msg is not None and msg.arbitration_id == 0x080
-                assert syncs >= 10  # the SYNC runs on
             for sock in newcomers:
                 sock.close()
             assert task.keep_alive(time.monotonic())

@@ -13,7 +13,8 @@ from typing import Any
 import pytest
 
 from can_config import RoverConfig
-from motor_driver import MotorDriver
+from can_config.errors import CommandRejected
+from motor_driver import Drive, MotorDriver
 from motor_driver.drive.setpoint import SetpointHandshake
 from virtual_can import SimService
 
@@ -149,9 +150,13 @@ def test_a_failed_send_leaves_nothing_awaited() -> None:
 def test_100k_profile_position_commands_at_1khz_never_send_a_stale_target(
         driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
     counts_per_deg = 2**20 / 360.0
+    # 100 s of a 1 kHz stream in one process with the driver and the drives: on a crowded machine
+    # (load 11 on two cores) it was starved past 1 s, and the driver rightly took the drive for lost.
+    # This test is about the order of targets, not heartbeats: its watches are long
     sim, driver = driver_factory(make_config(1, joint="limited", min_deg=-1000.0, max_deg=1000.0,
                                              counts_per_rev=2**20, max_velocity_deg_s=3600.0,
-                                             profile_velocity_deg_s=3600.0, profile_acceleration_deg_s2=100_000.0))
+                                             profile_velocity_deg_s=3600.0, profile_acceleration_deg_s2=100_000.0,
+                                             heartbeat_timeout_ms=20_000, host_timeout_ms=20_000))
     runner = sim.simulators["can0"]
     sim_drive = runner.drive(1)
 
@@ -165,20 +170,38 @@ def test_100k_profile_position_commands_at_1khz_never_send_a_stale_target(
     drive.enable()
     n = 100_000
     commanded = [round((-900.0 + i * 0.018) * counts_per_deg) for i in range(n)]
+    refused, last_refused = 0, False
     start = time.monotonic()
     for i in range(n):
-        drive.move_to(commanded[i] / counts_per_deg)
+        try:
+            drive.move_to(commanded[i] / counts_per_deg)
+            last_refused = False
+        except CommandRejected as err:  # this thread or the acknowledge's starved: nothing was sent
+            assert "another command holds the drive" in str(err), err
+            refused, last_refused = refused + 1, True
         next_t = start + (i + 1) * 0.001
         delay = next_t - time.monotonic()
         if delay > 0:
             time.sleep(delay)
-    wait_for(lambda: drive.channel.handshake_idle, 2.0, "the last acknowledge")
+    if last_refused:
+        wait_for(lambda: accept_last(drive, commanded[-1] / counts_per_deg), 30.0, "the last target sent")
+    wait_for(lambda: drive.channel.handshake_idle, 30.0, "the last acknowledge")
     accepted = [round(t) for t in runner.call(lambda: list(sim_drive.accepted_targets or []))]  # type: ignore[union-attr]
     index = {c: i for i, c in enumerate(commanded)}
     order = [index[c] for c in accepted]
     assert accepted[-1] == commanded[-1]  # the drive ends at the newest target
     assert all(a < b for a, b in itertools.pairwise(order)), "a target older than one before it was sent"
     assert len(accepted) > 1000  # it really ran the handshake many times (most targets superseded)
+    assert refused < n // 2, f"{refused} of {n} refused: the stream hardly ran"
+
+
+def accept_last(drive: Drive, angle_deg: float) -> bool:
+    """The stream's last target, sent (again) until it is not refused: the verdict needs it sent."""
+    try:
+        drive.move_to(angle_deg)
+    except CommandRejected:
+        return False
+    return True
 
 
 def test_a_drive_that_reads_its_controlword_once_per_cycle_gets_the_newest_target(

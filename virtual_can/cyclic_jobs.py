@@ -25,7 +25,7 @@ from pathlib import Path
 import can
 
 from can_config.errors import ProtocolError
-from can_config.realtime import make_thread_realtime
+from can_config.realtime import SIM_PRIORITY, make_thread_realtime
 from virtual_can.bcm_timer import ADD, DELETE, KIND_ADD, KIND_DELETE, TICK
 from virtual_can.engine import Channel
 from virtual_can.wire import ARRIVAL_ANCILLARY_BYTES, arrival_time, stamp_arrivals
@@ -185,7 +185,8 @@ class CyclicJobs:
             timer = subprocess.Popen([sys.executable, "-S", "-I", str(TIMER_SCRIPT), str(theirs.fileno())],
                                      pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
         self._timer, self._sock = timer, mine
-        self.realtime = make_thread_realtime("socketcand broadcast manager timer process", pid=timer.pid)
+        self.realtime = make_thread_realtime("socketcand broadcast manager timer process", SIM_PRIORITY,
+                                             pid=timer.pid)
         for job in self._numbered.values():
             self._schedule(job)
         self._reader = threading.Thread(target=self._read_ticks, args=(mine, timer), daemon=True,

@@ -40,6 +40,7 @@ import time
 
 from can_config.errors import SimError
 from can_config.model import SOCKETCAND_PORT
+from can_config.realtime import SIM_PRIORITY, ensure_thread_realtime
 from virtual_can.client import CLIENT_QUEUE_BYTES, RAWMODE_HOLD_S, SLOW_CLIENT_DROP_LIMIT, Client, format_frame, parse_send
 from virtual_can.cyclic_jobs import CYCLIC_JOBS_PER_CLIENT, CYCLIC_JOBS_TOTAL, POLL_S, CyclicJobError, CyclicJobs
 from virtual_can.engine import BusEngine
@@ -103,6 +104,9 @@ class SocketcandServer:
             return list(self._clients)
 
     def _accept_loop(self) -> None:
+        # the clients' reader and writer threads start from this one and inherit its scheduling: the
+        # bus's stamps and deliveries go on however busy the machine is (below the driver's priority)
+        ensure_thread_realtime(f"bus server on port {self.port}", SIM_PRIORITY)
         while not self._stop.is_set():
             try:
                 sock, addr = self._sock.accept()

@@ -1,6 +1,20 @@
 """Runs simulated drives on any python-can bus: the emulator's own, socketcand, or a kernel
 ``vcan``/``can`` interface. One thread serves every drive on the bus: it receives frames,
 hands them to the drives, advances their physics every ``tick_s`` and sends what they say.
+
+The drives' watch on other nodes (the heartbeat consumer, life guarding) is judged on the bus's
+time line, never on when this thread got to look: each frame carries the time it reached the
+bus (``Message.timestamp``: the bus server's or the kernel's stamp), and a tick tells the drives
+the bus time up to which this thread has seen every frame (:class:`BusClock`). A heartbeat that
+reached the bus in time is in time however late it is handled; a host that really went silent is
+caught when other frames on the bus (SYNC, other nodes) are stamped past its consumer time, or,
+on a silent bus, by the wall clock, but only at a look that followed the previous one closely: a
+thread that was held (a starved process, a test's hook) looks at what queued meanwhile first, and
+judges nothing for a few looks more, while the bus server's threads, held with it, deliver what
+reached their sockets during the hold (with the stamps of its arrival).
+
+Owner: the runner thread owns the drives, the bus clock and the hook's calls; other threads reach
+the drives through :meth:`DriveSimulator.call`.
 """
 
 from __future__ import annotations
@@ -14,6 +28,7 @@ from collections.abc import Callable, Iterable
 import can
 
 from can_config.errors import SimError
+from can_config.realtime import SIM_PRIORITY, ensure_thread_realtime
 from virtual_can.sim.drive import SimulatedDrive
 
 logger = logging.getLogger(__name__)
@@ -25,6 +40,61 @@ logger = logging.getLogger(__name__)
 DEFAULT_TICK_S = 0.002
 #: Frames handled before the drives' time moves on (a bound, so that a flood cannot stop time).
 MAX_FRAMES_PER_TICK = 256
+#: Two looks at the bus further apart than this: the runner was held in between (starved, or a
+#: test's hook), and the frames that queued meanwhile are looked at before the wall clock may
+#: convict a silent producer. Many ticks: an ordinary thread on a busy core waits a few ms.
+LOOK_GAP_S = 0.05
+#: After a look that followed a hold, the bus time the drives are judged on stands still for this
+#: many looks (a tick each, each with a wait on the bus): the bus server's threads, held with the
+#: runner when the whole process was starved, deliver what reached their sockets meanwhile (a
+#: heartbeat stamped in time must not lose the race to a SYNC stamped after it).
+SETTLE_LOOKS = 5
+#: A frame stamped further than this from the wall clock carries another clock (an interface's
+#: own, from its boot): it is taken as stamped when it was handled.
+STAMP_TRUST_S = 60.0
+
+
+class BusClock:
+    """The bus's time line as the runner has seen it (``time.time()``'s clock, as the bus stamps).
+    Runner thread only.
+
+    ``newest`` is the newest stamp of a frame handled; ``looked`` the wall time before a look that
+    emptied the queue and followed the previous look within ``LOOK_GAP_S``: every frame that
+    reached the bus by then has been handled. The bus time is the later of the two; after a hold
+    the drives are judged on the one before it for ``SETTLE_LOOKS`` looks."""
+
+    def __init__(self) -> None:
+        self.newest = 0.0
+        self.looked = 0.0
+        self._last_look: float | None = None
+        self._settling = 0  # looks left before the bus time the drives are judged on moves again
+        self._judged = 0.0  # the bus time they were last judged on
+
+    def stamp(self, msg: can.Message) -> float:
+        """The time ``msg`` reached the bus; taken as the bus's newest."""
+        wall = time.time()
+        stamp = msg.timestamp if abs(msg.timestamp - wall) < STAMP_TRUST_S else wall
+        self.newest = max(self.newest, stamp)
+        return stamp
+
+    def look(self, wall: float, emptied: bool) -> float:
+        """A look at the bus begun at ``wall`` (``emptied``: it found the queue empty); the bus time
+        to judge the drives' watch on."""
+        steady = self._last_look is not None and wall - self._last_look <= LOOK_GAP_S
+        self._last_look = wall
+        if not steady and not self._settling:
+            self._settling = SETTLE_LOOKS
+        if emptied and steady:
+            self.looked = max(self.looked, wall)
+        if self._settling:
+            self._settling -= 1
+            return self._judged
+        self._judged = self.now
+        return self._judged
+
+    @property
+    def now(self) -> float:
+        return max(self.newest, self.looked)
 
 
 class DriveSimulator:
@@ -45,6 +115,20 @@ class DriveSimulator:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name=f"virtual_can-{name}")
         self._started = False
+        self._name = name
+        self._hook: Callable[[str], None] | None = None
+        self.clock = BusClock()  # the runner thread's
+
+    def set_hook(self, hook: Callable[[str], None] | None) -> None:
+        """Tests only: ``hook(point)`` on the runner thread at its named points: ``"looked"``, right
+        after a wait on the bus, before the runner reads its clocks (a hook that holds there stands
+        for a starved thread that has not looked at what arrived since)."""
+        self._hook = hook
+
+    def _at(self, point: str) -> None:
+        hook = self._hook
+        if hook is not None:
+            hook(point)
 
     def start(self) -> DriveSimulator:
         if not self._started:
@@ -81,9 +165,10 @@ class DriveSimulator:
                 logger.debug("simulator send failed: %s", err)
 
     def _deliver(self, drives: list[SimulatedDrive], msg: can.Message, now: float) -> None:
+        stamp = self.clock.stamp(msg)
         for drive in drives:
             try:
-                out = drive.on_frame(msg, now)
+                out = drive.on_frame(msg, now, stamp)
             except Exception:  # a drive must never take the simulator down
                 self.errors += 1
                 logger.exception("simulated drive %d failed on frame %s", drive.node_id, msg)
@@ -103,7 +188,44 @@ class DriveSimulator:
             except Exception as err:
                 reply.put(err)
 
+    def _handle_queued(self, drives: list[SimulatedDrive], msg: can.Message | None, now: float) -> bool:
+        """``msg`` and every frame already queued behind it, up to MAX_FRAMES_PER_TICK; True if the
+        queue was found empty."""
+        for _ in range(MAX_FRAMES_PER_TICK):
+            if msg is None:
+                return True
+            if not msg.is_error_frame:
+                self._deliver(drives, msg, now)
+            try:
+                msg = self.bus.recv(timeout=0.0)
+            except (can.CanError, OSError, ValueError):
+                return False
+        return False
+
+    def _tick(self, drives: list[SimulatedDrive], now: float, dt: float) -> None:
+        """The drives' time moves on, judged against the bus time of a look begun now: what queued
+        while this thread was held is handled before any verdict on a silence."""
+        wall = time.time()
+        try:
+            first = self.bus.recv(timeout=0.0)
+        except (can.CanError, OSError, ValueError):
+            first = None
+            emptied = False
+        else:
+            emptied = self._handle_queued(drives, first, now)
+        bus_now = self.clock.look(wall, emptied)
+        for drive in drives:
+            try:
+                out = drive.tick(now, dt, bus_now)
+            except Exception:
+                self.errors += 1
+                logger.exception("simulated drive %d failed in tick", drive.node_id)
+                continue
+            if out and not drive.faults.tx_dead:
+                self._send(out)
+
     def _run(self) -> None:
+        ensure_thread_realtime(f"simulated drives on {self._name}", SIM_PRIORITY)
         drives = list(self.drives.values())
         tick = self.tick_s
         last = time.monotonic()
@@ -119,18 +241,9 @@ class DriveSimulator:
                 logger.warning("simulator bus receive failed (%s); retrying", err)
                 time.sleep(0.05)
                 continue
+            self._at("looked")
             now = time.monotonic()
-            # every frame already waiting is handled before the drives' time moves on: a thread
-            # that ran late must not tick a drive past a heartbeat that is in its queue
-            for _ in range(MAX_FRAMES_PER_TICK):
-                if msg is None:
-                    break
-                if not msg.is_error_frame:
-                    self._deliver(drives, msg, now)
-                try:
-                    msg = self.bus.recv(timeout=0.0)
-                except (can.CanError, OSError, ValueError):
-                    break
+            self._handle_queued(drives, msg, now)
             self._run_calls()
             if now >= next_tick:
                 dt = min(now - last, 10 * tick)
@@ -138,15 +251,7 @@ class DriveSimulator:
                 next_tick += tick
                 if next_tick < now:
                     next_tick = now + tick
-                for drive in drives:
-                    try:
-                        out = drive.tick(now, dt)
-                    except Exception:
-                        self.errors += 1
-                        logger.exception("simulated drive %d failed in tick", drive.node_id)
-                        continue
-                    if out and not drive.faults.tx_dead:
-                        self._send(out)
+                self._tick(drives, now, dt)
 
     def close(self) -> None:
         self._stop.set()

@@ -90,9 +90,9 @@ class DriveBase:
         self._cycle_rpdos: list[tuple[Pdo, bytes]] = []  # faults.cw_per_cycle: read at the tick
         self._delayed_sdo: tuple[float, bytes] | None = None
         self._consumers: dict[int, tuple[int, float]] = {}  # 0x1016 sub -> (watched node, consumer time s)
-        self._consumer_seen: dict[int, float] = {}  # 0x1016 sub -> when its producer was last heard
+        self._consumer_seen: dict[int, float] = {}  # 0x1016 sub -> bus time its producer was last heard
         self._guard_toggle = 0  # node guarding: the toggle bit of the next answer (0 after a reset)
-        self._guarded_at: float | None = None  # the last guard; life guarding armed by the first one
+        self._guarded_at: float | None = None  # the last guard's bus time; life guarding armed by the first
         self._next_heartbeat = 0.0
 
     def _report_encoder(self) -> None:

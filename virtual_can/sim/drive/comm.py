@@ -1,6 +1,12 @@
 """The simulated drive's CANopen communication: NMT, SDO server, PDO engine (configured from
 the object dictionary, re-configurable by SDO with the CiA 301 procedure enforced),
 heartbeat consumer and node guarding, frames in. Runner thread only.
+
+The heartbeat consumer and life guarding keep the bus time of what they heard (the frame's stamp,
+the time it reached the bus) and are judged against the bus time the runner gives a tick: a frame
+handled late is still in time if it reached the bus in time (a real drive's controller stamps its
+receive FIFO; a simulator starved of the CPU must not take its own lateness for a silent host).
+Without a bus time (a frame with no stamp, a tick given none) the handling time stands for it.
 """
 
 from __future__ import annotations
@@ -45,9 +51,9 @@ class CommNode(Plant):
     def _reset_comm(self, now: float, announce: bool) -> list[can.Message]:
         self.store.reset(0x1000, 0x1FFF)
         self.nmt = NmtState.PRE_OPERATIONAL
-        self._consumer_seen = {}  # 0x1016 sub -> when its producer was last heard
+        self._consumer_seen = {}  # 0x1016 sub -> bus time its producer was last heard
         self._guard_toggle = 0  # node guarding: the toggle bit of the next answer (0 after a reset)
-        self._guarded_at = None  # the last guard; life guarding armed by the first one
+        self._guarded_at = None  # the bus time of the last guard; life guarding armed by the first one
         self._load_consumers()
         self._rebuild_pdos()
         self._next_heartbeat = now
@@ -158,58 +164,65 @@ class CommNode(Plant):
                 if node and time_ms:
                     self._consumers[sub] = (node, time_ms / 1000.0)
 
-    def _on_heartbeat(self, node: int, now: float) -> None:
+    def _on_heartbeat(self, node: int, stamp: float) -> None:
         if self.faults.heartbeat_deaf:
             return
         for sub, (watched, _) in self._consumers.items():
             if watched == node:
-                self._consumer_seen[sub] = now
+                self._consumer_seen[sub] = stamp
 
-    def _check_consumers(self, now: float) -> list[can.Message]:
+    def _check_consumers(self, now: float, bus_now: float) -> list[can.Message]:
+        """Each armed consumer whose producer was not heard for its consumer time, on the bus's
+        time line (``bus_now``: every frame that reached the bus by then was heard)."""
         out: list[can.Message] = []
         for sub, (node, timeout_s) in self._consumers.items():
             seen = self._consumer_seen.get(sub)
-            if seen is not None and now - seen > timeout_s:
+            if seen is not None and bus_now - seen > timeout_s:
                 del self._consumer_seen[sub]  # disarmed until that producer is heard again
                 logger.warning("node %d: heartbeat of node %d lost (consumer time %.0f ms)", self.node_id,
                                node, timeout_s * 1000)
                 out += self._connection_lost(now)
         return out
 
-    def _on_guard(self, now: float) -> list[can.Message]:
+    def _on_guard(self, stamp: float) -> list[can.Message]:
         """CiA 301 node guarding, the slave's side: answer toggle bit + NMT state; the first
-        guard arms life guarding."""
+        guard arms life guarding (``stamp``: the guard's bus time)."""
         answer = self._guard_toggle << 7 | int(self.nmt)
         if not self.faults.guard_toggle_stuck:
             self._guard_toggle ^= 1
-        self._guarded_at = now
+        self._guarded_at = stamp
         return [self._msg(FunctionCode.HEARTBEAT + self.node_id, bytes([answer]))]
 
-    def _check_life_guard(self, now: float) -> list[can.Message]:
+    def _check_life_guard(self, now: float, bus_now: float) -> list[can.Message]:
         """Life guarding: no guard for guard time x life time factor (0x100C x 0x100D, both set)
-        is a lost master: EMCY 0x8130 and the 0x6007 reaction, as for a heartbeat consumer."""
+        on the bus's time line is a lost master: EMCY 0x8130 and the 0x6007 reaction, as for a
+        heartbeat consumer."""
         guard_ms = int(self.store.get(OD.GUARD_TIME, 0, 0))  # type: ignore[arg-type]
         factor = int(self.store.get(OD.LIFE_TIME_FACTOR, 0, 0))  # type: ignore[arg-type]
-        if self._guarded_at is None or not guard_ms or not factor or now - self._guarded_at <= guard_ms * factor / 1000:
+        if (self._guarded_at is None or not guard_ms or not factor
+                or bus_now - self._guarded_at <= guard_ms * factor / 1000):
             return []
         self._guarded_at = None  # disarmed until the next guard
         logger.warning("node %d: life guarding event (no guard for %d ms x %d)", self.node_id, guard_ms, factor)
         return self._connection_lost(now)
 
-    def on_frame(self, msg: can.Message, now: float) -> list[can.Message]:
+    def on_frame(self, msg: can.Message, now: float, stamp: float | None = None) -> list[can.Message]:
+        """A frame handled at ``now`` (the runner's monotonic time) that reached the bus at
+        ``stamp`` (the bus's time line; default: its own stamp, else ``now``)."""
         if self.faults.unplugged or now < self.faults.power_off_until or msg.is_extended_id:
             return []  # CANopen (CiA 301) uses 11-bit identifiers only
+        stamp = stamp if stamp is not None else msg.timestamp or now
         if msg.is_remote_frame:  # the one remote frame CANopen uses: the master's node guard
-            return self._on_guard(now) if msg.arbitration_id == FunctionCode.HEARTBEAT + self.node_id else []
+            return self._on_guard(stamp) if msg.arbitration_id == FunctionCode.HEARTBEAT + self.node_id else []
         cob = msg.arbitration_id
         data = bytes(msg.data)
         if cob == 0:
             return self._on_nmt(data, now)
         if 0x701 <= cob <= 0x77F and cob != FunctionCode.HEARTBEAT + self.node_id and data:
-            self._on_heartbeat(cob - 0x700, now)
+            self._on_heartbeat(cob - 0x700, stamp)
             return []
         if cob == (int(self.store.get(OD.COB_ID_SYNC, 0, 0x80)) & 0x7FF):  # type: ignore[arg-type]
-            return self._on_sync(now, msg.timestamp or now)
+            return self._on_sync(now, stamp)
         if self.nmt == NmtState.STOPPED:
             return []
         if cob == FunctionCode.SDO_RX + self.node_id:

@@ -43,8 +43,11 @@ class SimulatedDrive(CommNode):
         self.faults.power_off_until = now + off_s
         self.state = State.NOT_READY_TO_SWITCH_ON
 
-    def tick(self, now: float, dt: float) -> list[can.Message]:
-        """Advance the simulation by ``dt`` seconds; return the frames the drive sends."""
+    def tick(self, now: float, dt: float, bus_now: float | None = None) -> list[can.Message]:
+        """Advance the simulation by ``dt`` seconds; return the frames the drive sends.
+        ``bus_now``: the bus time up to which every frame was handled, that the watch on other
+        nodes is judged on (default ``now``: the caller keeps one clock)."""
+        bus_now = now if bus_now is None else bus_now
         self._now = now
         if self.faults.power_off_until:
             if now < self.faults.power_off_until:
@@ -64,9 +67,9 @@ class SimulatedDrive(CommNode):
         if self.faults.sto_low and self.state in POWERED and self.state != State.FAULT_REACTION_ACTIVE:
             out += self._raise_fault(EMCY_STO, now)
         if self._consumer_seen:
-            out += self._check_consumers(now)
+            out += self._check_consumers(now, bus_now)
         if self._guarded_at is not None:
-            out += self._check_life_guard(now)
+            out += self._check_life_guard(now, bus_now)
         if self._cycle_rpdos:  # the objects hold the last value written; the drive reads them once
             written: set[int] = set()
             for pdo, data in self._cycle_rpdos:
