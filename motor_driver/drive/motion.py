@@ -342,6 +342,10 @@ class Motion:
         self._as_configured(self.config.torque_mode, self.stream_torque, self.set_torque, torque_nm, at_once)
 
     # ------------------------------------------------------------------ streamed positions
+    def streaming(self) -> bool:
+        """The drive is in a streamed position mode (CSP or IP): a set-point goes out without a switch."""
+        return self._cache.received.mode in _STREAMING
+
     def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None, at_once: bool = False) -> None:
         """One position set-point per SYNC period, no handshake: cyclic synchronous position,
         or interpolated position (0x60C1:1, controlword bit 4 "enable ip mode") on a drive

@@ -87,6 +87,13 @@ class DriveCache:
         self._fault_ack = 0  # command threads (enable, recover)
         self._emcy_ack: Emcy | None = None  # command threads (recover)
         self.guarding = False  # boot
+        self._on_sample: Callable[[], None] | None = None  # a trajectory group's (on_sample)
+
+    def on_sample(self, callback: Callable[[], None] | None) -> None:
+        """``callback()`` on the receive thread after each new position sample (one per SYNC): a
+        trajectory group's clock (motor_driver/follow.py). It must only wake a thread (set an
+        event); None removes it."""
+        self._on_sample = callback
 
     def connect(self, sink: StatusSink) -> None:
         """The channel that gets the statusword (before :meth:`subscribe`)."""
@@ -225,6 +232,7 @@ class DriveCache:
                            self.node_id, cob_id, len(data), layout.codec.size)
             return
         rx = self.received
+        position_seq = self.position_seq
         sw, mode, position, velocity, torque = rx.statusword, rx.mode, rx.position_counts, rx.velocity_counts_s, \
             rx.torque_permille
         for index, value in zip(layout.indexes, values, strict=True):
@@ -245,8 +253,11 @@ class DriveCache:
             elif index == _MODE:
                 mode = value
         now = time.monotonic()
+        sampled = position_seq != self.position_seq
         self.received = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference)
         self.tpdo_count += 1
+        if sampled and (tick := self._on_sample) is not None:
+            tick()
         if _STATUSWORD in layout.indexes:
             self.status_seq += 1
             self._on_statusword(sw, now)
