@@ -37,6 +37,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -51,6 +52,11 @@ logger = logging.getLogger(__name__)
 
 #: Slack on the velocity limit for the sampled set-points (rounding of a spline that touches it).
 VELOCITY_SLACK = 1e-6
+#: A clock sample older than this share of the SYNC period when its set-points would go out (or
+#: one with a newer sample behind it) is let go: they wait for the next SYNC, so that no SYNC is
+#: followed by two set-points of a joint (the trajectory waits a period; nothing is skipped). Its
+#: age is counted from the sample's frame on the bus, which comes a little after its SYNC.
+LATE_SHARE = 0.5
 #: How long close() waits for the group's thread.
 JOIN_S = 2.0
 
@@ -169,6 +175,7 @@ class TrajectoryGroup:
         first = self.drives[config.joints[0]]
         self.period_s = first.cache.sync_period_s
         self.errors = 0  # unexpected errors of the thread (each ended a goal in a stop)
+        self.late = 0  # SYNCs let go because this thread took their sample too late (LATE_SHARE)
         self._lock = threading.Lock()
         self._pending: GoalRun | None = None
         self._wake = threading.Event()
@@ -203,11 +210,11 @@ class TrajectoryGroup:
         self._tick.set()  # a thread waiting for the clock takes it now
         return run
 
-    def _prepare(self, drive: Drive) -> None:
-        """A joint not streaming yet: switched to CSP (or IP) with one set-point where it stands,
-        on this (the caller's) thread, which may wait; the group's thread never switches modes."""
-        if not drive.motion.streaming():
-            drive.stream_position(drive.cache.angle_deg)
+    @staticmethod
+    def _prepare(drive: Drive) -> None:
+        """A joint not streaming yet: switched to CSP (or IP), holding where it stands, on this (the
+        caller's) thread, which may wait; the group's thread never switches modes."""
+        drive.motion.start_stream()
 
     def close(self) -> None:
         """The thread ends (after its tick); a goal running ends with 'the driver shut down'. Idempotent."""
@@ -217,6 +224,11 @@ class TrajectoryGroup:
         self._tick.set()
         if self._thread is not threading.current_thread():
             self._thread.join(JOIN_S)
+
+    @property
+    def ramping(self) -> bool:
+        """Some joint is still ramping down (a cancelled or failed goal's)."""
+        return bool(self._ramp)
 
     # ------------------------------------------------------------------ the checks
     def plan(self, goal: TrajectoryGoal) -> Plan:
@@ -395,7 +407,7 @@ class TrajectoryGroup:
         if pending is not None:
             self._start(pending)
         ticked = self._wait_tick()
-        if ticked is None:  # a new goal or the shutdown came first
+        if ticked is None:  # a new goal or the shutdown came first, or the sample came too late
             return
         if not ticked:
             self._silences += 1
@@ -430,7 +442,7 @@ class TrajectoryGroup:
         self._running = _Running(run, spline, drives, delay_ticks=delay,
                                  last_desired=tuple((p, v or 0.0, a or 0.0) for p, v, a in start),
                                  seen=[d.cache.position_seq for d in drives], quiet=[0] * len(drives))
-        self._set_clock(self._running.joints[-1])
+        self._set_clock(self._running.joints[0])  # the first joint: its sample comes early after the SYNC
 
     def _set_clock(self, drive: Drive) -> None:
         if self._clock is drive:
@@ -443,7 +455,8 @@ class TrajectoryGroup:
 
     def _wait_tick(self) -> bool | None:
         """Until the clock drive's next position sample (True), for longer than its data may be
-        late before they are stale (False), or until a new goal or the shutdown (None)."""
+        late before they are stale (False), or until a new goal, the shutdown or a sample taken
+        too late (None)."""
         clock = self._clock
         if clock is None:
             return False
@@ -455,8 +468,20 @@ class TrajectoryGroup:
             with self._lock:
                 if self._closed or self._pending is not None:
                     return None
-        self._clock_seq = clock.cache.position_seq
+        self._clock_seq = seq = clock.cache.position_seq
+        if self._age(clock) > LATE_SHARE * self.period_s or clock.cache.position_seq != seq:
+            self.late += 1
+            return None
         return True
+
+    @staticmethod
+    def _age(clock: Drive) -> float:
+        """How long ago the clock's sample was on the bus: by the frame's own time where it is this
+        host's clock (SocketCAN, a local socketcand daemon: a receive thread that was late itself
+        does not hide it), else since the receive thread took it."""
+        rx = clock.cache.received
+        on_bus = time.time() - rx.stamp
+        return on_bus if 0.0 <= on_bus < 1.0 else time.monotonic() - rx.rx_monotonic
 
     def _judge_silence(self) -> None:
         """No sample from the clock: a lost drive ends the goal; after a second silence the clock
