@@ -23,14 +23,15 @@ from motor_driver.trajectory import Spline, sample_times
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
-from .conftest import make_config, wait_for
+from .conftest import IN_PROCESS_STALE_SYNCS, make_config, wait_for
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 ListenerFactory = Callable[[SimService], can.BusABC]
 
 #: The arm's joints here: limited to +-90 deg, 180 deg/s at most.
 ARM = {"joint": "limited", "min_deg": -90.0, "max_deg": 90.0, "counts_per_rev": 4096, "gear_ratio": 50.0,
-       "max_velocity_deg_s": 180.0, "profile_acceleration_deg_s2": 720.0}
+       "max_velocity_deg_s": 180.0, "profile_acceleration_deg_s2": 720.0,
+       "stale_after_syncs": IN_PROCESS_STALE_SYNCS}
 SYNC = 0x080
 #: joint1's position TPDO: the group's clock (its first joint's sample after each SYNC)
 CLOCK_SAMPLE = 0x281
