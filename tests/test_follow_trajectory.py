@@ -9,8 +9,12 @@ arm beside the wheels are the benchmark's (benchmarks/follow_trajectory.py)."""
 from __future__ import annotations
 
 import math
+import re
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import can
@@ -20,7 +24,7 @@ from can_config import with_bus_overrides
 from motor_driver import MotorDriver
 from virtual_can import SimService
 
-from .conftest import HAVE_ROS, IN_PROCESS_STALE_SYNCS, make_config, requires_ros, wait_for
+from .conftest import HAVE_ROS, IN_PROCESS_STALE_SYNCS, REPO, make_config, requires_ros, wait_for
 
 pytestmark = requires_ros
 
@@ -184,3 +188,15 @@ def test_a_goal_beyond_a_limit_is_refused_with_its_code_and_nothing_moves(rig: R
     assert "joint1" in done.result.error_string and "max_deg=90" in done.result.error_string
     assert not [m for m in frames if m.arbitration_id in SETPOINTS or 0x601 <= m.arbitration_id <= 0x602], \
         "a refused goal put a set-point or an SDO on the bus"
+
+
+def test_the_client_example_of_the_docs_runs(rig: Rig, tmp_path: Path) -> None:
+    """docs/ros.md's plain client, as a user would paste it into a file, against this graph."""
+    text = (REPO / "docs" / "ros.md").read_text()
+    found = re.search(r"<!-- example: follow_joint_trajectory client -->\n```py\n(.*?)^```", text, re.DOTALL | re.MULTILINE)
+    assert found, "docs/ros.md has the client example"
+    script = tmp_path / "client.py"
+    script.write_text(found.group(1))
+    run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]
+    assert "error_code 0" in run.stdout
