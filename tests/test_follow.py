@@ -89,6 +89,16 @@ def streamed_later(arm: Arm, ids: tuple[int, ...] = (0x301, 0x302)) -> list[can.
     return [m for m in frames[second:] if m.arbitration_id in ids]
 
 
+def ramped_down(arm: Arm, node: int) -> None:
+    """The joint's last set-points slow down step by step (a ramp at the stop deceleration), not a
+    cut from full speed: the last moving steps shrink, each by about decel x period^2."""
+    steps = [b - a for a, b in itertools.pairwise(setpoints(arm.frames, node))]
+    moving = [abs(s) for s in steps if s != 0]
+    assert len(moving) > 3
+    tail = moving[-3:]
+    assert tail[0] > tail[1] > tail[2], f"no ramp: the last steps {moving[-6:]} counts"
+
+
 def refused(arm: Arm, bad: TrajectoryGoal, code: TrajectoryCode, *words: str) -> None:
     mark = len(arm.frames)
     with pytest.raises(TrajectoryRejected) as caught:
@@ -239,6 +249,8 @@ def test_cancel_ramps_the_group_down_and_it_holds(arm: Arm) -> None:
     run.cancel()
     assert finished(run) == TrajectoryCode.SUCCESSFUL and run.outcome is not None and run.outcome.canceled
     assert not streamed_later(arm), "streamed after the result"
+    ramped_down(arm, 1)
+    ramped_down(arm, 2)
     runner = arm.sim.simulators["can0"]
     wait_for(lambda: runner.call(lambda: max(abs(runner.drive(n).omega) for n in (1, 2))) < 1e-3,  # type: ignore[arg-type]
              10.0, "both shafts at rest")
@@ -253,6 +265,7 @@ def test_a_drive_lost_mid_goal_aborts_and_stops_the_group(arm: Arm) -> None:
     assert run.outcome is not None and "joint2" in run.outcome.message
     wait_for(lambda: not arm.group.ramping, RESULT_S, "the ramp done")
     assert not streamed_later(arm, (0x301,)), "joint1 streamed after its ramp"
+    ramped_down(arm, 1)
     runner = arm.sim.simulators["can0"]
     wait_for(lambda: abs(runner.call(lambda: runner.drive(1).omega)) < 1e-3, 10.0, "joint1 at rest")  # type: ignore[arg-type]
     assert angle(arm, "joint1") < 55.0
