@@ -91,7 +91,7 @@ class DriveCache:
 
     def on_sample(self, callback: Callable[[], None] | None) -> None:
         """``callback()`` on the receive thread after each new position sample (one per SYNC): a
-        trajectory group's clock (motor_driver/follow.py). It must only wake a thread (set an
+        trajectory group's clock (motor_driver/follow/group.py). It must only wake a thread (set an
         event); None removes it."""
         self._on_sample = callback
 

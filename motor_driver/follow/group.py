@@ -3,7 +3,7 @@ control_msgs/FollowJointTrajectory, one :class:`TrajectoryGroup` per configured 
 (``trajectory_groups``). No rclpy: the node (nodes/follow_trajectory.py) turns goals into
 :class:`TrajectoryGoal` and :class:`GoalRun` into results and feedback.
 
-Before anything moves (:meth:`TrajectoryGroup.plan`, on the caller's thread) a goal is refused with
+Before anything moves (:meth:`TrajectoryGroup.plan`, on the caller's thread: :mod:`motor_driver.follow.checks`) a goal is refused with
 the standard's code (:class:`TrajectoryRejected`): joints unknown, repeated or of another group
 (INVALID_JOINTS); points of the wrong length, not finite, times not strictly increasing, a point or
 any sampled set-point beyond a joint's limits or its max velocity, a joint not armed or not fresh,
@@ -40,18 +40,16 @@ import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from enum import IntEnum
 
-from can_config.errors import RovercanError, TrajectoryRejected
+from can_config.errors import RovercanError
 from can_config.model import TrajectoryGroupConfig
 from motor_driver.drive import Drive
-from motor_driver.drive.constants import ENABLED_CW_MASK
-from motor_driver.trajectory import Knot, Spline, sample_times
+from motor_driver.follow.checks import GoalChecks
+from motor_driver.follow.goal import GoalRun, Outcome, Plan, Progress, TrajectoryCode, TrajectoryGoal, refuse
+from motor_driver.trajectory import Knot, Spline
 
 logger = logging.getLogger(__name__)
 
-#: Slack on the velocity limit for the sampled set-points (rounding of a spline that touches it).
-VELOCITY_SLACK = 1e-6
 #: A clock sample older than this share of the SYNC period when its set-points would go out (or
 #: one with a newer sample behind it) is let go: they wait for the next SYNC, so that no SYNC is
 #: followed by two set-points of a joint (the trajectory waits a period; nothing is skipped). Its
@@ -59,95 +57,6 @@ VELOCITY_SLACK = 1e-6
 LATE_SHARE = 0.5
 #: How long close() waits for the group's thread.
 JOIN_S = 2.0
-
-
-class TrajectoryCode(IntEnum):
-    """control_msgs/action/FollowJointTrajectory's result codes (the standard's numbers)."""
-
-    SUCCESSFUL = 0
-    INVALID_GOAL = -1
-    INVALID_JOINTS = -2
-    OLD_HEADER_TIMESTAMP = -3
-    PATH_TOLERANCE_VIOLATED = -4
-    GOAL_TOLERANCE_VIOLATED = -5
-
-
-@dataclass(frozen=True)
-class Tolerance:
-    """A joint's tolerance as the standard gives it: 0 the group's default, -1 none, else the bound."""
-
-    position_deg: float = 0.0
-    velocity_deg_s: float = 0.0
-
-
-@dataclass(frozen=True)
-class TrajectoryGoal:
-    """A trajectory in degrees: ``positions_deg[k][j]`` of ``joints[j]`` at ``times_s[k]``; a point's
-    velocities or accelerations are empty or one per joint."""
-
-    joints: tuple[str, ...]
-    times_s: tuple[float, ...]
-    positions_deg: tuple[tuple[float, ...], ...]
-    velocities_deg_s: tuple[tuple[float, ...], ...] = ()
-    accelerations_deg_s2: tuple[tuple[float, ...], ...] = ()
-    path_tolerance: Mapping[str, Tolerance] = field(default_factory=dict)
-    goal_tolerance: Mapping[str, Tolerance] = field(default_factory=dict)
-    goal_time_tolerance_s: float = 0.0  # 0: the group's
-    start_delay_s: float = 0.0  # from now (a header stamp in the future)
-
-
-@dataclass(frozen=True)
-class Outcome:
-    code: TrajectoryCode
-    message: str
-    canceled: bool = False
-
-
-@dataclass(frozen=True)
-class Progress:
-    """One tick of a running goal, in degrees: what was sent, what was measured."""
-
-    time_s: float
-    joints: tuple[str, ...]
-    desired: tuple[tuple[float, float, float], ...]  # (position, velocity, acceleration) per joint
-    actual: tuple[tuple[float, float], ...]  # (position, velocity) per joint
-
-
-@dataclass(frozen=True)
-class Plan:
-    """A checked goal: its spline's knots without the start state (added by the group's thread)."""
-
-    goal: TrajectoryGoal
-    times_s: tuple[float, ...]  # > 0
-    knots: tuple[tuple[Knot, ...], ...]
-    path: tuple[Tolerance, ...]  # resolved per joint: -1 none
-    final: tuple[Tolerance, ...]
-    goal_time_s: float
-
-
-class GoalRun:
-    """A goal handed to a group: :attr:`done` is set when :attr:`outcome` is; :attr:`progress` is the
-    last tick's. Written by the group's thread only."""
-
-    def __init__(self, plan: Plan) -> None:
-        self.plan = plan
-        self.done = threading.Event()
-        self.outcome: Outcome | None = None
-        self.progress: Progress | None = None
-        self.cancel_requested = False  # set by cancel(), read by the group's thread
-
-    def cancel(self) -> None:
-        """Stop the goal: its joints ramp down and hold; the outcome comes once they stand."""
-        self.cancel_requested = True
-
-    def finish(self, outcome: Outcome) -> None:
-        if self.outcome is None:
-            self.outcome = outcome
-            self.done.set()
-
-
-def _refuse(code: TrajectoryCode, message: str) -> TrajectoryRejected:
-    return TrajectoryRejected(message, code=int(code))
 
 
 @dataclass
@@ -188,6 +97,7 @@ class TrajectoryGroup:
         self._clock: Drive | None = None
         self._clock_seq = -1
         self._silences = 0  # the clock's waits in a row that ended without a sample
+        self._checks = GoalChecks(config, self.drives, self.period_s)
         self._thread = threading.Thread(target=self._loop, name=f"rovercan-follow-{self.name}", daemon=True)
         self._thread.start()
 
@@ -202,7 +112,7 @@ class TrajectoryGroup:
         run = GoalRun(plan)
         with self._lock:
             if self._closed:
-                raise _refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: the driver shut down")
+                raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: the driver shut down")
             older, self._pending = self._pending, run
         if older is not None:
             older.finish(Outcome(TrajectoryCode.INVALID_GOAL, "preempted by a newer goal before it started"))
@@ -230,136 +140,9 @@ class TrajectoryGroup:
         """Some joint is still ramping down (a cancelled or failed goal's)."""
         return bool(self._ramp)
 
-    # ------------------------------------------------------------------ the checks
     def plan(self, goal: TrajectoryGoal) -> Plan:
         """``goal`` checked against the group, the joints' limits and their drives (nothing sent)."""
-        self._check_joints(goal.joints)
-        times, knots = self._check_points(goal)
-        drives = [self.drives[j] for j in goal.joints]
-        for drive in drives:
-            self._check_armed(drive)
-        start = self._reference(goal.joints)
-        if goal.times_s[0] == 0.0:
-            self._check_start(goal, drives)
-        self._check_samples(goal.joints, times, knots, start)
-        path = tuple(self._tolerance(goal.path_tolerance.get(j), self.config.path_tolerance_deg) for j in goal.joints)
-        final = tuple(self._tolerance(goal.goal_tolerance.get(j), self.config.goal_tolerance_deg) for j in goal.joints)
-        goal_time = goal.goal_time_tolerance_s if goal.goal_time_tolerance_s > 0 else self.config.goal_time_tolerance_s
-        return Plan(goal, times, knots, path, final, goal_time)
-
-    def _check_joints(self, joints: Sequence[str]) -> None:
-        if not joints:
-            raise _refuse(TrajectoryCode.INVALID_JOINTS, f"trajectory group {self.name}: the goal names no joint;"
-                          f" its joints: {list(self.drives)}")
-        for name in joints:
-            if name not in self.drives:
-                raise _refuse(TrajectoryCode.INVALID_JOINTS, f"trajectory group {self.name}: joint {name!r} is not"
-                              f" one of its joints {list(self.drives)}; nothing moved")
-        if len(set(joints)) != len(joints):
-            raise _refuse(TrajectoryCode.INVALID_JOINTS, f"trajectory group {self.name}: joints {list(joints)}"
-                          " name a joint twice; nothing moved")
-
-    def _check_points(self, goal: TrajectoryGoal) -> tuple[tuple[float, ...], tuple[tuple[Knot, ...], ...]]:
-        """The points with a time over 0, as knots; INVALID_GOAL for a malformed one."""
-        n, count = len(goal.joints), len(goal.times_s)
-        bad = _refuse
-        if count == 0 or len(goal.positions_deg) != count:
-            raise bad(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: {count} point time(s) and"
-                      f" {len(goal.positions_deg)} position list(s): give one or more points, each with positions")
-        previous = -math.inf
-        for k, t in enumerate(goal.times_s):
-            if not (math.isfinite(t) and t >= 0.0 and t > previous):
-                raise bad(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: point {k} at {t!r} s: the"
-                          " times must be finite, >= 0 and strictly increasing; nothing moved")
-            previous = t
-        if count == 1 and goal.times_s[0] == 0.0:
-            raise bad(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: one point at time 0 leaves no"
-                      " time to move: give it a time_from_start; nothing moved")
-        knots: list[tuple[Knot, ...]] = []
-        for k in range(count):
-            row = []
-            for j, name in enumerate(goal.joints):
-                row.append(self._knot(goal, k, j, n, name))
-            knots.append(tuple(row))
-        first = 1 if goal.times_s[0] == 0.0 else 0
-        return goal.times_s[first:], tuple(knots[first:])
-
-    def _knot(self, goal: TrajectoryGoal, k: int, j: int, n: int, name: str) -> Knot:
-        values: list[float | None] = []
-        for what, rows in (("positions", goal.positions_deg), ("velocities", goal.velocities_deg_s),
-                           ("accelerations", goal.accelerations_deg_s2)):
-            row = rows[k] if k < len(rows) else ()
-            if what != "positions" and len(row) == 0:
-                values.append(None)
-                continue
-            if len(row) != n or not math.isfinite(row[j]):
-                raise _refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: point {k}: {what}"
-                              f" {list(row)!r} for {n} joint(s) {list(goal.joints)}: give one finite value per joint"
-                              f"{'' if what == 'positions' else ' or none'}; nothing moved")
-            values.append(float(row[j]))
-        position, velocity, acceleration = values
-        assert position is not None
-        drive = self.drives[name]
-        cfg = drive.config
-        low, high = cfg.min_deg, cfg.max_deg
-        if low is not None and high is not None and not low <= position <= high:
-            raise _refuse(TrajectoryCode.INVALID_GOAL, f"{name}: point {k} at {position:g} deg is beyond the joint's"
-                          f" limits min_deg={low:g}, max_deg={high:g}; nothing moved")
-        if velocity is not None and abs(velocity) > cfg.max_velocity_deg_s:
-            raise _refuse(TrajectoryCode.INVALID_GOAL, f"{name}: point {k} asks {velocity:g} deg/s, beyond"
-                          f" max_velocity_deg_s={cfg.max_velocity_deg_s:g}; nothing moved")
-        return (position, velocity, acceleration)
-
-    def _check_armed(self, drive: Drive) -> None:
-        state = drive.snapshot()
-        why = ""
-        if state.foreign_master:
-            why = f"another master drives it ({state.foreign_master})"
-        elif state.lost:
-            why = "its drive is lost (no heartbeat)"
-        elif state.stale:
-            why = f"its data are stale (no PDO for {state.data_age_s:.2f} s)"
-        elif state.fault:
-            why = f"its drive is faulted ({state.state.name}{', ' + state.error_text if state.error_text else ''})"
-        elif not state.enabled or drive.channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
-            why = f"it is not armed ({state.state.name}); enable it (/arm or <joint>/enable) first"
-        if why:
-            raise _refuse(TrajectoryCode.INVALID_GOAL, f"{drive.name}: {why}; nothing moved")
-
-    def _check_start(self, goal: TrajectoryGoal, drives: Sequence[Drive]) -> None:
-        limit = self.config.start_tolerance_deg
-        for j, drive in enumerate(drives):
-            start, actual = goal.positions_deg[0][j], drive.cache.angle_deg
-            if abs(start - actual) > limit:
-                raise _refuse(TrajectoryCode.INVALID_GOAL, f"{drive.name}: the trajectory starts at {start:g} deg,"
-                              f" {abs(start - actual):.3g} deg from where the joint is ({actual:.3f} deg); at most"
-                              f" start_tolerance_deg={limit:g}. Plan from the current state; nothing moved")
-
-    def _check_samples(self, joints: Sequence[str], times: tuple[float, ...], knots: tuple[tuple[Knot, ...], ...],
-                       start: tuple[Knot, ...]) -> None:
-        """Every set-point the spline will give, at each SYNC, within the limits (a cubic can overshoot its points)."""
-        spline = Spline((0.0, *times), (start, *knots))
-        cfgs = [self.drives[j].config for j in joints]
-        for t in sample_times(spline.end_s, self.period_s):
-            for cfg, (p, v, _) in zip(cfgs, spline.sample(t), strict=True):
-                low, high = cfg.min_deg, cfg.max_deg
-                if low is not None and high is not None and not low <= p <= high:
-                    raise _refuse(TrajectoryCode.INVALID_GOAL, f"{cfg.name}: the trajectory passes {p:.3f} deg at"
-                                  f" {t:.3f} s, beyond the joint's limits min_deg={low:g}, max_deg={high:g} (between its"
-                                  " points); nothing moved")
-                if abs(v) > cfg.max_velocity_deg_s * (1 + VELOCITY_SLACK):
-                    raise _refuse(TrajectoryCode.INVALID_GOAL, f"{cfg.name}: the trajectory moves at {v:.1f} deg/s at"
-                                  f" {t:.3f} s, beyond max_velocity_deg_s={cfg.max_velocity_deg_s:g}; slow it down;"
-                                  " nothing moved")
-
-    @staticmethod
-    def _tolerance(given: Tolerance | None, default_deg: float) -> Tolerance:
-        """A joint's tolerance: the goal's where it gives one (-1: none), else the group's (0: none)."""
-        position = given.position_deg if given is not None else 0.0
-        velocity = given.velocity_deg_s if given is not None else 0.0
-        if position == 0.0:
-            position = default_deg if default_deg > 0 else -1.0
-        return Tolerance(position, velocity if velocity != 0.0 else -1.0)
+        return self._checks.plan(goal, self._reference)
 
     def _reference(self, joints: Sequence[str]) -> tuple[Knot, ...]:
         """Where each joint's set-points are now, and how fast they move (read from any thread: a
@@ -534,7 +317,7 @@ class TrajectoryGroup:
                            " the group stops")
                 return
         running.last_desired = desired
-        running.run.progress = Progress(min(t, spline.end_s), running.run.plan.goal.joints, desired, actual)
+        running.run.report(Progress(min(t, spline.end_s), running.run.plan.goal.joints, desired, actual))
 
     def _strayed(self, running: _Running, actual: tuple[tuple[float, float], ...]) -> str | None:
         """The first joint outside its path tolerance (from the set-point it is following), lost, or
@@ -570,7 +353,7 @@ class TrajectoryGroup:
             if tol.velocity_deg_s > 0 and abs(av) > tol.velocity_deg_s:
                 far = f"{drive.name}: still moving at {av:.2f} deg/s; goal velocity tolerance {tol.velocity_deg_s:g} deg/s"
                 break
-        running.run.progress = Progress(running.spline.end_s, plan.goal.joints, running.last_desired, actual)
+        running.run.report(Progress(running.spline.end_s, plan.goal.joints, running.last_desired, actual))
         if far is None:
             self._running = None
             running.run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "at the goal"))
