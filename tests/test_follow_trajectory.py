@@ -200,3 +200,19 @@ def test_the_client_example_of_the_docs_runs(rig: Rig, tmp_path: Path) -> None:
     run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     assert "error_code 0" in run.stdout
+
+
+def test_an_unknown_joint_and_a_past_stamp_are_refused_with_their_codes(rig: Rig) -> None:
+    from action_msgs.msg import GoalStatus
+
+    unknown = half_sine(10.0, 1.0)
+    unknown.trajectory.joint_names = ["joint1", "knee"]
+    done = result_of(send(rig, unknown))
+    assert done.status == GoalStatus.STATUS_ABORTED
+    assert done.result.error_code == FollowJointTrajectory.Result.INVALID_JOINTS and "'knee'" in done.result.error_string
+    past = half_sine(10.0, 1.0)
+    now = rig.assembly.node.get_clock().now().nanoseconds
+    past.trajectory.header.stamp.sec = int(now // 10**9) - 10  # its 1 s ended 9 s ago
+    done = result_of(send(rig, past))
+    assert done.status == GoalStatus.STATUS_ABORTED
+    assert done.result.error_code == FollowJointTrajectory.Result.OLD_HEADER_TIMESTAMP, done.result.error_string
