@@ -273,7 +273,7 @@ class TrajectoryGroupConfig:
     path_tolerance_deg: float = key("float", 5.0, 0.0, 360.0, unit="deg",
                                     help="a joint further than this from the trajectory while it runs aborts the goal"
                                          " (PATH_TOLERANCE_VIOLATED); 0: not checked. A goal's own tolerance wins")
-    goal_tolerance_deg: float = key("float", 0.5, 0.0, 360.0, unit="deg",
+    goal_tolerance_deg: float = key("float", 0.2, 0.0, 360.0, unit="deg",
                                     help="each joint within this of the last point, or the goal aborts"
                                          " (GOAL_TOLERANCE_VIOLATED); 0: not checked. A goal's own tolerance wins")
     goal_time_tolerance_s: float = key("float", 1000.0, 0.0, 60_000.0, yaml="goal_time_tolerance_ms", scale=1000,

@@ -28,7 +28,7 @@ def test_without_the_key_every_limited_joint_is_the_arm_controller() -> None:
     text["drives"] = text["drives"][:3]
     (group,) = parse_config(text).trajectory_groups
     assert group.name == "arm_controller" and group.joints == ("shoulder", "elbow")
-    assert group.goal_tolerance_deg == 0.5 and group.goal_time_tolerance_s == 1.0
+    assert group.goal_tolerance_deg == 0.2 and group.goal_time_tolerance_s == 1.0
     no_arm = {"buses": BUSES, "drives": [{"name": "wheel", "node_id": 1}]}
     assert parse_config(no_arm).trajectory_groups == ()
     assert parse_config(config([])).trajectory_groups == ()
