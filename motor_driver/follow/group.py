@@ -307,6 +307,10 @@ class TrajectoryGroup:
         if running.final_sent:
             self._settle(running, actual, t - spline.end_s)
             return
+        # this SYNC's measurement against the set-point in force at it (sent the tick before, taken by
+        # the drive at this SYNC): the trajectory at its time, as joint_trajectory_controller pairs them
+        running.run.report(Progress(max(t - self.period_s, 0.0), running.run.plan.goal.joints, running.last_desired,
+                                    actual))
         running.final_sent = t >= spline.end_s - 1e-9 * self.period_s  # the tick sample_times() ends on
         desired = spline.sample(min(t, spline.end_s))
         for drive, (p, _, _) in zip(running.joints, desired, strict=True):
@@ -317,7 +321,6 @@ class TrajectoryGroup:
                            " the group stops")
                 return
         running.last_desired = desired
-        running.run.report(Progress(min(t, spline.end_s), running.run.plan.goal.joints, desired, actual))
 
     def _strayed(self, running: _Running, actual: tuple[tuple[float, float], ...]) -> str | None:
         """The first joint outside its path tolerance (from the set-point it is following), lost, or
