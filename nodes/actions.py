@@ -1,8 +1,7 @@
 """``home_joint`` and ``move_joint``: the long-running drive operations as ROS 2 actions
 (rovercan_msgs/Home, rovercan_msgs/MoveJoint): feedback while they run, cancel that stops the
 joint. The Trigger services stay for scripts. And each trajectory group's
-``<group>/follow_joint_trajectory`` (control_msgs/FollowJointTrajectory, nodes/follow_trajectory.py):
-every goal of every action passes the same gate (:meth:`DriverActionsNode.accepting`).
+``<group>/follow_joint_trajectory`` (control_msgs/FollowJointTrajectory, nodes/follow_trajectory.py).
 
 The goals are coroutines on a single-threaded executor of the node's own: between two looks
 at the drive a goal awaits a future that a timer thread completes, so the executor serves the
@@ -54,12 +53,8 @@ class DriverActionsNode(Node):
         self._move = ActionServer(self, MoveJoint, "move_joint", execute_callback=self._execute_move,
                                   goal_callback=self._known_joint, cancel_callback=self._accept_cancel,
                                   callback_group=group)
-        self._trajectories = [FollowTrajectoryServer(self, g, accepting=self.accepting, pause=self._pause,
-                                                     callback_group=group) for g in (trajectory_groups or {}).values()]
-
-    def accepting(self) -> bool:
-        """The gate of every goal (home, move, trajectories): True while motion goals are taken."""
-        return True
+        self._trajectories = [FollowTrajectoryServer(self, g, pause=self._pause, callback_group=group)
+                              for g in (trajectory_groups or {}).values()]
 
     async def _pause(self, period_s: float = FEEDBACK_PERIOD_S) -> None:
         """``period_s`` without holding the executor: a timer thread completes a future."""
@@ -84,8 +79,6 @@ class DriverActionsNode(Node):
         super().destroy_node()
 
     def _known_joint(self, goal: Any) -> GoalResponse:
-        if not self.accepting():
-            return GoalResponse.REJECT
         if goal.joint not in self.drives:
             logger.warning("goal for unknown joint %r refused; joints: %s", goal.joint, list(self.drives))
             return GoalResponse.REJECT

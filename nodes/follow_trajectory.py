@@ -6,9 +6,11 @@ runs it on its own thread at the bus's SYNC; this side publishes feedback at the
 ``feedback_rate_hz``, passes a cancel on, and turns the run's outcome into the result's
 ``error_code`` and ``error_string``.
 
-Every goal the gate lets in is accepted, then checked: a refusal is an aborted goal whose result
-carries the standard's code (INVALID_JOINTS, INVALID_GOAL, OLD_HEADER_TIMESTAMP) and a message naming
-the joint and the limit; nothing moved. A cancelled goal ends CANCELED once its joints stand; a goal
+Every goal is accepted, then checked: a refusal is an aborted goal whose result carries the standard's
+code (INVALID_JOINTS, INVALID_GOAL, OLD_HEADER_TIMESTAMP) and a message naming the joint and the limit;
+nothing moved. Whatever holds the drives' motion (a stop, the lifecycle node inactive) holds it in
+each drive's command channel, where every set-point and mode switch of a goal goes: such a goal ends
+INVALID_GOAL with the channel's reason, as every other motion entry is refused. A cancelled goal ends CANCELED once its joints stand; a goal
 preempted by a newer one ends ABORTED with INVALID_GOAL (as joint_trajectory_controller does).
 
 The goals are coroutines on the actions' executor (nodes/actions.py): between two looks at the run a
@@ -95,23 +97,19 @@ def fill_feedback(feedback: Any, progress: Progress) -> Any:
 
 
 class FollowTrajectoryServer:
-    """One group's action server on ``node``. ``accepting()``: the gate every motion goal passes
-    (False: the goal is rejected); ``pause(period_s)``: an awaitable that holds no executor thread."""
+    """One group's action server on ``node``. ``pause(period_s)``: an awaitable that holds no executor thread."""
 
-    def __init__(self, node: Node, group: TrajectoryGroup, *, accepting: Callable[[], bool],
-                 pause: Callable[[float], Awaitable[None]], callback_group: CallbackGroup | None = None) -> None:
+    def __init__(self, node: Node, group: TrajectoryGroup, *, pause: Callable[[float], Awaitable[None]],
+                 callback_group: CallbackGroup | None = None) -> None:
         self._node, self._group = node, group
-        self._accepting, self._pause = accepting, pause
+        self._pause = pause
         self._period_s = 1.0 / group.config.feedback_rate_hz
         self._server = ActionServer(node, FollowJointTrajectory, f"{group.name}/follow_joint_trajectory",
-                                    execute_callback=self._execute, goal_callback=self._goal,
+                                    execute_callback=self._execute, goal_callback=lambda _goal: GoalResponse.ACCEPT,
                                     cancel_callback=lambda _goal: CancelResponse.ACCEPT, callback_group=callback_group)
 
     def destroy(self) -> None:
         self._server.destroy()
-
-    def _goal(self, _request: Any) -> GoalResponse:
-        return GoalResponse.ACCEPT if self._accepting() else GoalResponse.REJECT
 
     async def _execute(self, goal_handle: Any) -> Any:
         result = Result()
