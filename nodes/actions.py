@@ -28,7 +28,6 @@ from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.follow import TrajectoryGroup
 from nodes import runtime
-from nodes.follow_trajectory import FollowTrajectoryServer
 
 logger = logging.getLogger(__name__)
 
@@ -53,8 +52,12 @@ class DriverActionsNode(Node):
         self._move = ActionServer(self, MoveJoint, "move_joint", execute_callback=self._execute_move,
                                   goal_callback=self._known_joint, cancel_callback=self._accept_cancel,
                                   callback_group=group)
-        self._trajectories = [FollowTrajectoryServer(self, g, pause=self._pause, callback_group=group)
-                              for g in (trajectory_groups or {}).values()]
+        self._trajectories: list[Any] = []
+        if trajectory_groups:  # control_msgs is needed only then (a wheels-only rover runs without it)
+            from nodes.follow_trajectory import FollowTrajectoryServer
+
+            self._trajectories = [FollowTrajectoryServer(self, g, pause=self._pause, callback_group=group)
+                                  for g in trajectory_groups.values()]
 
     async def _pause(self, period_s: float = FEEDBACK_PERIOD_S) -> None:
         """``period_s`` without holding the executor: a timer thread completes a future."""
