@@ -30,6 +30,7 @@ from can_config.fields import (
 from can_config.keys import table, yaml_keys
 from can_config.model import (
     DEFAULT_CONFIG,
+    DEFAULT_TRAJECTORY_GROUP,
     GEAR_RATIO_MAX,
     GEAR_RATIO_MIN,
     GENERIC_EDS,
@@ -42,6 +43,7 @@ from can_config.model import (
     RoverConfig,
     SdoSetting,
     SimModelConfig,
+    TrajectoryGroupConfig,
 )
 from can_config.textfile import load_yaml
 
@@ -116,8 +118,9 @@ def parse_config(data: Any, source: Path | str | None = None) -> RoverConfig:
     recorder = build(where, "recorder.", data.get("recorder") or {}, RecorderConfig)
     if recorder["dir"] is not None:
         recorder["dir"] = resolved(base_dir / Path(recorder["dir"]).expanduser())
+    groups = _parse_trajectory_groups(where, data.get("trajectory_groups"), drives)
     return RoverConfig(tuple(buses), tuple(drives), drive_system,
-                       Path(source) if source is not None else None, RecorderConfig(**recorder))
+                       Path(source) if source is not None else None, RecorderConfig(**recorder), groups)
 
 
 def _parse_buses(where: Where, raw_buses: Any) -> list[BusConfig]:
@@ -164,6 +167,42 @@ def _parse_drive_system(where: Where, raw: Any, known: set[str]) -> DriveSystemC
                 raise where.fail(f"drive_system.{side}", f"names drive {name!r}, which is not"
                                  f" configured; configured drives: {sorted(known)}.")
     return DriveSystemConfig(**values)
+
+
+def _parse_trajectory_groups(where: Where, raw: Any, drives: list[DriveConfig]) -> tuple[TrajectoryGroupConfig, ...]:
+    """The groups given, or (no ``trajectory_groups`` key) one group of every limited joint
+    (:data:`DEFAULT_TRAJECTORY_GROUP`) where the config has any; ``[]``: none."""
+    if raw is None:
+        arm = [d.name for d in drives if d.joint == "limited"]
+        raw = [{"name": DEFAULT_TRAJECTORY_GROUP, "joints": arm}] if arm else []
+    if not isinstance(raw, list):
+        raise where.fail("trajectory_groups", f"got {raw!r}; expected a list of groups ({{name, joints}}).")
+    by_name = {d.name: d for d in drives}
+    groups: list[TrajectoryGroupConfig] = []
+    owner: dict[str, str] = {}
+    for i, entry in enumerate(raw):
+        prefix = f"trajectory_groups[{i}]."
+        group = TrajectoryGroupConfig(**build(where, prefix, entry, TrajectoryGroupConfig))
+        if group.name in {g.name for g in groups}:
+            raise where.fail(prefix + "name", f"{group.name!r} is used twice; group names must be unique.")
+        for name in group.joints:
+            drive = by_name.get(name)
+            if drive is None:
+                raise where.fail(prefix + "joints", f"names drive {name!r}, which is not configured; configured"
+                                 f" drives: {sorted(by_name)}.")
+            if drive.joint != "limited":
+                raise where.fail(prefix + "joints", f"{name!r} is a continuous joint; a trajectory group takes limited"
+                                 " joints only (joint: limited, min_deg, max_deg).")
+            if name in owner:
+                raise where.fail(prefix + "joints", f"{name!r} is in group {owner[name]!r} already; a joint is in one"
+                                 " group at most.")
+            owner[name] = group.name
+        buses = sorted({by_name[n].bus for n in group.joints})
+        if len(buses) > 1:
+            raise where.fail(prefix + "joints", f"the joints are on buses {buses}; a group follows one bus's SYNC"
+                             " clock: put its joints on one bus, or make a group per bus.")
+        groups.append(group)
+    return tuple(groups)
 
 
 def _check_drive(where: Where, prefix: str, drive: DriveConfig) -> None:
@@ -235,6 +274,7 @@ def config_to_dict(config: RoverConfig) -> dict[str, Any]:
                            "recorder": dump(config.recorder)}
     if config.drive_system is not None:
         out["drive_system"] = dump(config.drive_system)
+    out["trajectory_groups"] = [dump(g) for g in config.trajectory_groups]
     return out
 
 
@@ -248,4 +288,4 @@ def with_bus_overrides(config: RoverConfig, **kwargs: Any) -> RoverConfig:
 # the names callers imported from here before the split (can_config.config stays their door)
 __all__ = ["CONFIG_ENV", "DEFAULT_CONFIG", "GEAR_RATIO_MAX", "GEAR_RATIO_MIN", "GENERIC_EDS", "ON_HOST_LOSS", "BusConfig", "DriveConfig",
            "DriveSystemConfig", "IdentityConfig", "RecorderConfig", "RoverConfig", "SdoSetting", "SimModelConfig",
-           "config_to_dict", "load_config", "parse_config", "resolve_eds_path", "resolved", "with_bus_overrides"]
+           "TrajectoryGroupConfig", "config_to_dict", "load_config", "parse_config", "resolve_eds_path", "resolved", "with_bus_overrides"]

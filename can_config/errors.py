@@ -14,7 +14,8 @@ inherits the matching built-in so callers can catch what they already know::
     │   ├── DriveStateError                   CiA 402 transition refused / drive faulted / lost
     │   │   └── DriveTimeoutError (TimeoutError)
     │   ├── CommandRejected (ValueError)      NaN, out of limits, unsupported mode: nothing sent
-    │   │   └── CommandWouldWait              asked to go out at once, it needs the drive's answer first
+    │   │   ├── CommandWouldWait              asked to go out at once, it needs the drive's answer first
+    │   │   └── TrajectoryRejected            a joint trajectory refused (carries its control_msgs code)
     │   ├── ForeignMasterError                another master is live on the bus: nothing was sent
     │   ├── BusLostError (ConnectionError)    the bus went away
     │   └── CdrError (ValueError)             a message that does not fit its ROS 2 type (motor_driver.recording.cdr)
@@ -111,6 +112,15 @@ class CommandWouldWait(CommandRejected):
     """A command asked to go out at once (``at_once=True``: frames only) needs the drive's answer
     first (a mode switch, a target the drive takes only by SDO). Nothing was sent; send it again
     from a thread that may wait (the ROS node hands it to a worker of its joint)."""
+
+
+class TrajectoryRejected(CommandRejected):
+    """A joint trajectory (FollowJointTrajectory) refused before anything moved, or ended; carries
+    the standard's error code (``code``: control_msgs/FollowJointTrajectory's, e.g. -1 INVALID_GOAL)."""
+
+    def __init__(self, message: str, *, code: int) -> None:
+        super().__init__(message)
+        self.code = code
 
 
 class ForeignMasterError(MotorError):

@@ -24,6 +24,7 @@ from can_config.model import (
     RecorderConfig,
     SdoSetting,
     SimModelConfig,
+    TrajectoryGroupConfig,
 )
 
 NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
@@ -37,7 +38,8 @@ SIM_FIELDS = table(SimModelConfig)
 SDO_FIELDS = table(SdoSetting)
 DRIVE_SYSTEM_FIELDS = table(DriveSystemConfig)
 RECORDER_FIELDS = table(RecorderConfig)
-TOP_FIELDS = ("buses", "drives", "drive_system", "recorder")
+TRAJECTORY_GROUP_FIELDS = table(TrajectoryGroupConfig)
+TOP_FIELDS = ("buses", "drives", "drive_system", "recorder", "trajectory_groups")
 
 
 class Where:

@@ -259,6 +259,36 @@ class DriveSystemConfig:
 
 
 
+#: The trajectory group a config without ``trajectory_groups`` gets: every limited joint (the arm's),
+#: named as MoveIt's controller config expects (``/arm_controller/follow_joint_trajectory``).
+DEFAULT_TRAJECTORY_GROUP = "arm_controller"
+
+
+@dataclass(frozen=True)
+class TrajectoryGroupConfig:
+    """A group of joints that follows FollowJointTrajectory goals on its bus's SYNC clock (``trajectory_groups:``)."""
+
+    name: str = key("name", help="the group's name: its action is `/<name>/follow_joint_trajectory` (MoveIt's"
+                                 " controller name)")
+    joints: tuple[str, ...] = key("list_names", help="its joints: limited joints (`joint: limited`) on one bus, each"
+                                                      " in one group at most")
+    path_tolerance_deg: float = key("float", 5.0, 0.0, 360.0, unit="deg",
+                                    help="a joint further than this from the trajectory while it runs aborts the goal"
+                                         " (PATH_TOLERANCE_VIOLATED); 0: not checked. A goal's own tolerance wins")
+    goal_tolerance_deg: float = key("float", 0.2, 0.0, 360.0, unit="deg",
+                                    help="each joint within this of the last point, or the goal aborts"
+                                         " (GOAL_TOLERANCE_VIOLATED); 0: not checked. A goal's own tolerance wins")
+    goal_time_tolerance_s: float = key("float", 1000.0, 0.0, 60_000.0, yaml="goal_time_tolerance_ms", scale=1000,
+                                       unit="ms", help="how long after the trajectory's end the joints may take to get"
+                                                       " within the goal tolerance (a goal's own value wins)")
+    start_tolerance_deg: float = key("float", 2.0, 0.0, 360.0, low_open=True, unit="deg",
+                                     help="a trajectory whose first point (at time 0) is further than this from where a"
+                                          " joint is is refused (INVALID_GOAL): nothing moves")
+    stop_deceleration_deg_s2: float = key("float", 360.0, 0.0, 10_000_000.0, low_open=True, unit="deg/s^2",
+                                          help="a cancelled or failed goal's joints ramp down at this, then hold")
+    feedback_rate_hz: float = key("float", 20.0, 1.0, 100.0, unit="Hz", help="the action's feedback rate")
+
+
 @dataclass(frozen=True)
 class RecorderConfig:
     """The driver's flight recorder (``recorder:``): the last ``seconds`` of frames and drive
@@ -292,6 +322,7 @@ class RoverConfig:
     drive_system: DriveSystemConfig | None = None
     source: Path | None = None
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    trajectory_groups: tuple[TrajectoryGroupConfig, ...] = ()
 
     def bus(self, name: str) -> BusConfig:
         for bus in self.buses:

@@ -13,6 +13,8 @@ before it; tests/test_module_maps.py holds the order):
   internals
 * :mod:`motor_driver.drive` - one drive, its parts composed (state cache, SDO port, command
   channel, power state machine, limit guard, motion, homing, host watch, boot; :class:`Drive`)
+* :mod:`motor_driver.follow` - a joint trajectory (FollowJointTrajectory) followed by a group of
+  joints on their bus's SYNC clock
 * :mod:`motor_driver.recording` - the flight recorder, CAN recordings read back, and the bus as
   ROS 2 messages (no rclpy) for MCAP files and the live Foxglove view
 * :mod:`motor_driver.runtime` - the driver at run time: every bus and drive of a config started,

@@ -4,7 +4,8 @@ What lives where: :mod:`nodes.assembly` (the one assembly of the driver's ROS pr
 every entry point), :mod:`nodes.motor_degree` and :mod:`nodes.motor_controller` (the degree demo),
 :mod:`nodes.rover_driver` (every joint's topics; ``main``) with :mod:`nodes.handoff` (a command that waits for
 its drive, off the hot thread), :mod:`nodes.driver_services`,
-:mod:`nodes.actions`, :mod:`nodes.drive_system` (/cmd_vel) with :mod:`nodes.wheels` (what it says
+:mod:`nodes.actions` with :mod:`nodes.follow_trajectory` (FollowJointTrajectory per trajectory group),
+:mod:`nodes.drive_system` (/cmd_vel) with :mod:`nodes.wheels` (what it says
 of a wheel), :mod:`nodes.rover_lifecycle` (the managed node), and the shared
 :mod:`nodes.messages` (snapshots into messages), :mod:`nodes.rawcmd` (a Float32 command's raw
 bytes), :mod:`nodes.refusals`, :mod:`nodes.params`,

@@ -1,6 +1,7 @@
 """``home_joint`` and ``move_joint``: the long-running drive operations as ROS 2 actions
 (rovercan_msgs/Home, rovercan_msgs/MoveJoint): feedback while they run, cancel that stops the
-joint. The Trigger services stay for scripts.
+joint. The Trigger services stay for scripts. And each trajectory group's
+``<group>/follow_joint_trajectory`` (control_msgs/FollowJointTrajectory, nodes/follow_trajectory.py).
 
 The goals are coroutines on a single-threaded executor of the node's own: between two looks
 at the drive a goal awaits a future that a timer thread completes, so the executor serves the
@@ -25,6 +26,7 @@ from rovercan_msgs.action import Home, MoveJoint
 
 from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
+from motor_driver.follow import TrajectoryGroup
 from nodes import runtime
 
 logger = logging.getLogger(__name__)
@@ -38,7 +40,8 @@ TARGET_WINDOW_DEG = 0.5
 
 
 class DriverActionsNode(Node):
-    def __init__(self, driver: MotorDriver, drives: Mapping[str, Drive] | None = None, **kwargs: Any) -> None:
+    def __init__(self, driver: MotorDriver, drives: Mapping[str, Drive] | None = None, *,
+                 trajectory_groups: Mapping[str, TrajectoryGroup] | None = None, **kwargs: Any) -> None:
         super().__init__("rovercan_driver_actions", **kwargs)
         self.driver = driver
         self.drives = dict(driver.drives) if drives is None else drives  # the joints it takes goals for
@@ -49,9 +52,15 @@ class DriverActionsNode(Node):
         self._move = ActionServer(self, MoveJoint, "move_joint", execute_callback=self._execute_move,
                                   goal_callback=self._known_joint, cancel_callback=self._accept_cancel,
                                   callback_group=group)
+        self._trajectories: list[Any] = []
+        if trajectory_groups:  # control_msgs is needed only then (a wheels-only rover runs without it)
+            from nodes.follow_trajectory import FollowTrajectoryServer
 
-    async def _pause(self) -> None:
-        """FEEDBACK_PERIOD_S without holding the executor: a timer thread completes a future."""
+            self._trajectories = [FollowTrajectoryServer(self, g, pause=self._pause, callback_group=group)
+                                  for g in trajectory_groups.values()]
+
+    async def _pause(self, period_s: float = FEEDBACK_PERIOD_S) -> None:
+        """``period_s`` without holding the executor: a timer thread completes a future."""
         done = Future(executor=self.executor)
 
         def finish() -> None:
@@ -60,7 +69,7 @@ class DriverActionsNode(Node):
             executor = self.executor
             if executor is not None:  # the goal resumes at the executor's next turn, now (it does not poll)
                 runtime.give_work(executor)
-        timer = threading.Timer(FEEDBACK_PERIOD_S, finish)
+        timer = threading.Timer(period_s, finish)
         timer.daemon = True
         timer.start()
         await done
@@ -68,6 +77,8 @@ class DriverActionsNode(Node):
     def destroy_node(self) -> None:
         self._home.destroy()
         self._move.destroy()
+        for server in self._trajectories:
+            server.destroy()
         super().destroy_node()
 
     def _known_joint(self, goal: Any) -> GoalResponse:

@@ -18,7 +18,9 @@ Executors and callback groups (measured: docs/ros.md, README):
   MultiThreadedExecutor, a MutuallyExclusiveCallbackGroup per joint and one for /arm, a thread per
   group: one joint's homing (up to ``homing_timeout_s``) holds no other joint's services. (Its
   threads wait in rcl when idle; the hot path never runs on it.)
-- ``rovercan-actions``: the actions' goals, coroutines on a single-threaded executor.
+- ``rovercan-actions``: the actions' goals, coroutines on a single-threaded executor, the trajectory
+  groups' FollowJointTrajectory among them (each group's set-points go out from a thread of its own,
+  ``rovercan-follow-<group>``, at its bus's SYNC: :mod:`motor_driver.follow`).
 - ``rovercan-handoff_N``: not an executor; the driver node's workers for a command that must wait
   for its drive (a mode switch, a target by SDO), one joint's at a time, made when first needed
   (:mod:`nodes.handoff`): the hot thread never waits for a drive.
@@ -51,6 +53,7 @@ from rclpy.parameter import Parameter
 from can_config import load_config
 from can_config.errors import RovercanError
 from motor_driver import MotorDriver
+from motor_driver.follow import TrajectoryGroup, groups_of
 from motor_driver.process import heap
 from motor_driver.process.stop import StopSignal
 from nodes import runtime
@@ -101,6 +104,7 @@ class Assembly:
         self.nodes: list[Node] = []  # every node made here, the hot ones first
         self.executors: dict[str, Executor] = {}  # node name -> its executor (the hot one included)
         self._threads: list[runtime.SpinThread] = []
+        self.trajectories: dict[str, TrajectoryGroup] = {}  # the trajectory groups whose joints are all served
         self._log_handler: RclpyLogHandler | None = None
         self._started = False
         self._closed = False
@@ -124,10 +128,12 @@ class Assembly:
             self.executors[n.get_name()] = self.hot
         self.nodes += hot
         services = DriverServicesNode(self.driver, node.drives, **self._kwargs)
+        self.trajectories = groups_of(config.trajectory_groups, node.drives)
         waiting: list[tuple[Node, Executor]] = [
             (DriverStopsNode(self.driver, node.drives, **self._kwargs), SingleThreadedExecutor(**self._kwargs)),
             (services, MultiThreadedExecutor(num_threads=len(services.groups), **self._kwargs)),
-            (DriverActionsNode(self.driver, node.drives, **self._kwargs), SingleThreadedExecutor(**self._kwargs))]
+            (DriverActionsNode(self.driver, node.drives, trajectory_groups=self.trajectories, **self._kwargs),
+             SingleThreadedExecutor(**self._kwargs))]
         for n, executor in waiting:
             executor.add_node(n)
             self.executors[n.get_name()] = executor
@@ -177,6 +183,8 @@ class Assembly:
         if self._closed:
             return
         self._closed = True
+        for group in self.trajectories.values():  # no set-point of theirs after the driver's safe stop
+            group.close()
         self.driver.close()
         joined = all([spin.stop(timeout_s=SERVICE_JOIN_S) for spin in self._threads])  # every one stopped
         if self._log_handler is not None:

@@ -82,6 +82,10 @@ IN_PROCESS_HOST_TIMEOUT_MS = 2000.0
 #: were seen silent for more than the default 350 ms, and the driver rightly took them for lost.
 #: Tests of heartbeat loss itself give heartbeat_timeout_ms explicitly.
 IN_PROCESS_HEARTBEAT_TIMEOUT_MS = 1000.0
+#: A drive's data are stale after this many SYNC periods in the in-process rigs that judge freshness
+#: (a trajectory's checks): the simulated drives, the driver and the test share one interpreter, and
+#: a starved process found them 130 ms old (13 periods) at random. Tests of staleness wait for it.
+IN_PROCESS_STALE_SYNCS = 50
 
 
 @pytest.fixture(autouse=True)

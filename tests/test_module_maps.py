@@ -106,7 +106,7 @@ def test_the_core_keeps_its_layers(package: str) -> None:
 
 
 #: motor_driver's folders, lowest first: each imports only folders before it (rover/ stands alone).
-FOLDER_ORDER = ("process", "protocol", "rover", "bus", "drive", "recording", "runtime")
+FOLDER_ORDER = ("process", "protocol", "rover", "bus", "drive", "follow", "recording", "runtime")
 
 
 def folder_imports(root: Path) -> list[tuple[str, str, str]]:

@@ -9,7 +9,7 @@ import math
 import pytest
 
 from can_config.errors import CommandRejected
-from motor_driver.drive.trajectory import trapezoid
+from motor_driver.drive.trajectory import Spline, evaluate, sample_times, segment, trapezoid
 
 PERIOD_S = 0.01
 
@@ -61,3 +61,56 @@ def test_a_move_of_no_distance_is_its_target_once() -> None:
 def test_bad_input_is_refused_naming_it_before_any_set_point(args: tuple[float, ...], named: str) -> None:
     with pytest.raises(CommandRejected, match=named):
         trapezoid(*args)
+
+
+# ---------------------------------------------------------------------- the joint trajectory's spline
+def test_a_cubic_meets_both_knots_and_their_velocities() -> None:
+    c = segment(0.0, 0.0, None, 1.0, 0.0, None, 1.0)
+    assert c == (0.0, 0.0, 3.0, -2.0)  # 3t^2 - 2t^3
+    assert evaluate(c, 0.5) == (0.5, 1.5, 0.0)
+    assert evaluate(c, 1.0) == (1.0, 0.0, -6.0)
+    moving = segment(10.0, 4.0, None, 20.0, -2.0, None, 2.0)
+    p, v, _ = evaluate(moving, 2.0)
+    assert (p, v) == pytest.approx((20.0, -2.0), abs=1e-12)
+
+
+def test_a_quintic_meets_position_velocity_and_acceleration_at_both_knots() -> None:
+    c = segment(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0)
+    assert c == (0.0, 0.0, 0.0, 10.0, -15.0, 6.0)  # the minimum-jerk polynomial
+    assert evaluate(c, 0.5) == (0.5, 1.875, 0.0)
+    general = segment(-5.0, 3.0, -1.0, 7.0, 2.0, 4.0, 1.5)
+    assert evaluate(general, 0.0) == (-5.0, 3.0, -1.0)
+    assert evaluate(general, 1.5) == pytest.approx((7.0, 2.0, 4.0), abs=1e-9)
+
+
+def test_positions_only_are_joined_by_lines() -> None:
+    c = segment(2.0, None, None, 6.0, None, None, 4.0)
+    assert c == (2.0, 1.0)
+    assert evaluate(c, 1.0) == (3.0, 1.0, 0.0)
+    # a knot with velocity beside one without: the line (the lowest order both give)
+    assert segment(2.0, 5.0, None, 6.0, None, None, 4.0) == (2.0, 1.0)
+
+
+def test_a_spline_samples_each_segment_and_rests_after_the_end() -> None:
+    spline = Spline((0.0, 1.0, 3.0), (((0.0, 0.0, 0.0), (1.0, None, None)),
+                                      ((1.0, 0.0, 0.0), (3.0, None, None)),
+                                      ((0.0, 0.0, 0.0), (4.0, None, None))))
+    assert spline.sample(-1.0) == ((0.0, 0.0, 0.0), (1.0, 2.0, 0.0))
+    assert spline.sample(0.5) == ((0.5, 1.875, 0.0), (2.0, 2.0, 0.0))
+    assert spline.sample(2.0) == ((0.5, -0.9375, 0.0), (3.5, 0.5, 0.0))  # the second segment: 1 s of 2, half way
+    assert spline.sample(5.0) == ((0.0, 0.0, 0.0), (4.0, 0.0, 0.0))
+    assert spline.end_s == 3.0
+
+
+def test_a_spline_refuses_times_that_do_not_increase() -> None:
+    knot = ((0.0, None, None),)
+    for times in ((0.0,), (0.5, 1.0), (0.0, 1.0, 1.0)):
+        with pytest.raises(CommandRejected, match="strictly increasing"):
+            Spline(times, (knot,) * len(times))
+
+
+def test_sample_times_one_a_period_and_the_end_exactly() -> None:
+    assert list(sample_times(0.05, 0.02)) == [0.02, 0.04, 0.05]
+    assert list(sample_times(0.04, 0.02)) == [0.02, 0.04]
+    assert list(sample_times(0.001, 0.02)) == [0.001]
+    assert len(list(sample_times(4.0, 0.002))) == 2000

@@ -343,6 +343,20 @@ class Motion:
         self._as_configured(self.config.torque_mode, self.stream_torque, self.set_torque, torque_nm, at_once)
 
     # ------------------------------------------------------------------ streamed positions
+    def streaming(self) -> bool:
+        """The drive is in a streamed position mode (CSP or IP): a set-point goes out without a switch."""
+        return self._cache.received.mode in _STREAMING
+
+    def start_stream(self) -> None:
+        """Into the streamed position mode (CSP, else IP) without a set-point, where it is not yet:
+        the drive holds where its shaft is, and the next set-point is judged from a position sampled
+        after the switch (a trajectory group's first SYNC then carries its first set-point alone)."""
+        if self.streaming():
+            return
+        mode = self._mode_to_stream_in()
+        self._ensure_mode(mode, _STREAMED[mode][0])
+        rebase_after_switch(self._cache, self._channel.forget)
+
     def stream_position(self, angle_deg: float, *, max_step_deg: float | None = None, at_once: bool = False) -> None:
         """One position set-point per SYNC period, no handshake: cyclic synchronous position,
         or interpolated position (0x60C1:1, controlword bit 4 "enable ip mode") on a drive

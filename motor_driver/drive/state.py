@@ -97,6 +97,13 @@ class DriveCache:
         self._fault_ack = 0  # command threads (enable, recover)
         self._emcy_ack: Emcy | None = None  # command threads (recover)
         self.guarding = False  # boot
+        self._on_sample: Callable[[], None] | None = None  # a trajectory group's (on_sample)
+
+    def on_sample(self, callback: Callable[[], None] | None) -> None:
+        """``callback()`` on the receive thread after each new position sample (one per SYNC): a
+        trajectory group's clock (motor_driver/follow/group.py). It must only wake a thread (set an
+        event); None removes it."""
+        self._on_sample = callback
 
     def connect(self, sink: StatusSink) -> None:
         """The channel that gets the statusword (before :meth:`subscribe`)."""
@@ -244,6 +251,8 @@ class DriveCache:
         now = time.monotonic()
         self.received = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference)
         self.tpdo_count += 1
+        if took and (tick := self._on_sample) is not None:
+            tick()
         if has_statusword:
             self.status_seq += 1
             self._on_statusword(sw, now)

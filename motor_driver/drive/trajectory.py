@@ -6,10 +6,16 @@ where the value is sent, not here.
 :func:`trapezoid` is the point-to-point move of a drive without profile position mode (the
 SCHUNK PRL120): accelerate at the profile acceleration, cruise at the speed, decelerate, so that
 the set-points never ask for more than either; a move too short to reach the speed is a triangle.
+
+:class:`Spline` is a joint trajectory's interpolation (FollowJointTrajectory, :mod:`motor_driver.follow`):
+between two points a quintic, a cubic or a line, as ros2_control's joint_trajectory_controller does,
+sampled at each SYNC by the group that follows it.
 """
 
 from __future__ import annotations
 
+import bisect
+import itertools
 import math
 from collections.abc import Iterator
 
@@ -54,3 +60,78 @@ def _trapezoid(start_deg: float, target_deg: float, speed: float, accel: float, 
             done = ramp + peak * (t - t_ramp)
         yield start_deg + direction * done
     yield target_deg
+
+
+# ---------------------------------------------------------------------- a joint trajectory's spline
+#: A knot of one joint: position (deg), velocity (deg/s) or None, acceleration (deg/s^2) or None.
+Knot = tuple[float, float | None, float | None]
+
+
+def segment(p0: float, v0: float | None, a0: float | None, p1: float, v1: float | None, a1: float | None,
+            duration_s: float) -> tuple[float, ...]:
+    """The polynomial (coefficients c0, c1, ... of t^0, t^1, ...) from one knot to the next over
+    ``duration_s``, as ros2_control's joint_trajectory_controller interpolates: quintic where both
+    knots give velocity and acceleration, cubic where both give velocity, else linear (positions only).
+    The polynomial meets each knot's position, and its velocity and acceleration where it uses them."""
+    t = duration_s
+    if v0 is not None and v1 is not None and a0 is not None and a1 is not None:
+        t2, t3 = t * t, t * t * t
+        return (p0, v0, a0 / 2,
+                (-20 * p0 + 20 * p1 - 3 * a0 * t2 + a1 * t2 - 12 * v0 * t - 8 * v1 * t) / (2 * t3),
+                (30 * p0 - 30 * p1 + 3 * a0 * t2 - 2 * a1 * t2 + 16 * v0 * t + 14 * v1 * t) / (2 * t3 * t),
+                (-12 * p0 + 12 * p1 - a0 * t2 + a1 * t2 - 6 * v0 * t - 6 * v1 * t) / (2 * t3 * t2))
+    if v0 is not None and v1 is not None:
+        return (p0, v0, (-3 * p0 + 3 * p1 - 2 * v0 * t - v1 * t) / (t * t),
+                (2 * p0 - 2 * p1 + v0 * t + v1 * t) / (t * t * t))
+    return (p0, (p1 - p0) / t)
+
+
+def evaluate(coefficients: tuple[float, ...], t: float) -> tuple[float, float, float]:
+    """Position, velocity and acceleration of a polynomial at ``t`` (Horner)."""
+    p = v = a = 0.0
+    n = len(coefficients)
+    for i in range(n - 1, -1, -1):
+        c = coefficients[i]
+        p = p * t + c
+        if i >= 1:
+            v = v * t + i * c
+        if i >= 2:
+            a = a * t + i * (i - 1) * c
+    return p, v, a
+
+
+class Spline:
+    """One trajectory of several joints: knots at ``times_s`` (the first at 0, strictly increasing),
+    ``knots[k][j]`` the knot of joint ``j`` at ``times_s[k]``. :meth:`sample` gives each joint's
+    position, velocity and acceleration at a time: the start before 0, the last knot's position at
+    rest after the end. Built once, never changed; pure (no clock, no I/O)."""
+
+    def __init__(self, times_s: tuple[float, ...], knots: tuple[tuple[Knot, ...], ...]) -> None:
+        if len(times_s) < 2 or times_s[0] != 0.0 or any(b <= a for a, b in itertools.pairwise(times_s)):
+            raise CommandRejected(f"knot times {times_s!r}: allowed two or more, the first 0, strictly increasing")
+        self.times_s = times_s
+        self.end_s = times_s[-1]
+        self._last = tuple(k[0] for k in knots[-1])
+        self._polys = [tuple(segment(*a, *b, t1 - t0) for a, b in zip(knots[i], knots[i + 1], strict=True))
+                       for i, (t0, t1) in enumerate(itertools.pairwise(times_s))]
+        self._first = tuple(evaluate(p, 0.0) for p in self._polys[0])
+
+    def sample(self, t: float) -> tuple[tuple[float, float, float], ...]:
+        """(position, velocity, acceleration) of every joint at ``t`` s from the start."""
+        if t <= 0.0:
+            return self._first
+        if t >= self.end_s:
+            return tuple((p, 0.0, 0.0) for p in self._last)
+        i = bisect.bisect_right(self.times_s, t) - 1
+        local = t - self.times_s[i]
+        return tuple(evaluate(p, local) for p in self._polys[i])
+
+
+def sample_times(end_s: float, period_s: float) -> Iterator[float]:
+    """The times of a trajectory's set-points, one a period from ``period_s`` on, the last at
+    ``end_s`` exactly (the tick that lands on or just after the end)."""
+    _positive("period_s", period_s)
+    ticks = max(1, math.ceil(end_s / period_s - 1e-9))
+    for tick in range(1, ticks):
+        yield tick * period_s
+    yield end_s

@@ -1,0 +1,156 @@
+"""A joint trajectory's checks before anything moves (:mod:`motor_driver.follow`): each refusal a
+:class:`TrajectoryRejected` with the standard's code and a message naming the joint and the limit.
+No state of its own beyond the group's config and drives; called on the caller's thread."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+
+from can_config.model import TrajectoryGroupConfig
+from motor_driver.drive import Drive
+from motor_driver.drive.constants import ENABLED_CW_MASK
+from motor_driver.drive.trajectory import Knot, Spline, sample_times
+from motor_driver.follow.goal import Plan, Tolerance, TrajectoryCode, TrajectoryGoal, refuse
+
+#: Slack on the velocity limit for the sampled set-points (rounding of a spline that touches it).
+VELOCITY_SLACK = 1e-6
+
+
+class GoalChecks:
+    """The checks of one trajectory group's goals."""
+
+    def __init__(self, config: TrajectoryGroupConfig, drives: Mapping[str, Drive], period_s: float) -> None:
+        self.config, self.name, self.drives, self.period_s = config, config.name, drives, period_s
+
+    def plan(self, goal: TrajectoryGoal, reference: Callable[[Sequence[str]], tuple[Knot, ...]]) -> Plan:
+        """``goal`` checked against the group, the joints' limits and their drives (nothing sent);
+        ``reference(joints)``: where the group's set-points of those joints are now."""
+        self._check_joints(goal.joints)
+        times, knots = self._check_points(goal)
+        drives = [self.drives[j] for j in goal.joints]
+        for drive in drives:
+            self._check_armed(drive)
+        start = reference(goal.joints)
+        if goal.times_s[0] == 0.0:
+            self._check_start(goal, drives)
+        self._check_samples(goal.joints, times, knots, start)
+        path = tuple(self._tolerance(goal.path_tolerance.get(j), self.config.path_tolerance_deg) for j in goal.joints)
+        final = tuple(self._tolerance(goal.goal_tolerance.get(j), self.config.goal_tolerance_deg) for j in goal.joints)
+        goal_time = goal.goal_time_tolerance_s if goal.goal_time_tolerance_s > 0 else self.config.goal_time_tolerance_s
+        return Plan(goal, times, knots, path, final, goal_time)
+
+    def _check_joints(self, joints: Sequence[str]) -> None:
+        if not joints:
+            raise refuse(TrajectoryCode.INVALID_JOINTS, f"trajectory group {self.name}: the goal names no joint;"
+                          f" its joints: {list(self.drives)}")
+        for name in joints:
+            if name not in self.drives:
+                raise refuse(TrajectoryCode.INVALID_JOINTS, f"trajectory group {self.name}: joint {name!r} is not"
+                              f" one of its joints {list(self.drives)}; nothing moved")
+        if len(set(joints)) != len(joints):
+            raise refuse(TrajectoryCode.INVALID_JOINTS, f"trajectory group {self.name}: joints {list(joints)}"
+                          " name a joint twice; nothing moved")
+
+    def _check_points(self, goal: TrajectoryGoal) -> tuple[tuple[float, ...], tuple[tuple[Knot, ...], ...]]:
+        """The points with a time over 0, as knots; INVALID_GOAL for a malformed one."""
+        n, count = len(goal.joints), len(goal.times_s)
+        bad = refuse
+        if count == 0 or len(goal.positions_deg) != count:
+            raise bad(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: {count} point time(s) and"
+                      f" {len(goal.positions_deg)} position list(s): give one or more points, each with positions")
+        previous = -math.inf
+        for k, t in enumerate(goal.times_s):
+            if not (math.isfinite(t) and t >= 0.0 and t > previous):
+                raise bad(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: point {k} at {t!r} s: the"
+                          " times must be finite, >= 0 and strictly increasing; nothing moved")
+            previous = t
+        if count == 1 and goal.times_s[0] == 0.0:
+            raise bad(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: one point at time 0 leaves no"
+                      " time to move: give it a time_from_start; nothing moved")
+        knots: list[tuple[Knot, ...]] = []
+        for k in range(count):
+            row = []
+            for j, name in enumerate(goal.joints):
+                row.append(self._knot(goal, k, j, n, name))
+            knots.append(tuple(row))
+        first = 1 if goal.times_s[0] == 0.0 else 0
+        return goal.times_s[first:], tuple(knots[first:])
+
+    def _knot(self, goal: TrajectoryGoal, k: int, j: int, n: int, name: str) -> Knot:
+        values: list[float | None] = []
+        for what, rows in (("positions", goal.positions_deg), ("velocities", goal.velocities_deg_s),
+                           ("accelerations", goal.accelerations_deg_s2)):
+            row = rows[k] if k < len(rows) else ()
+            if what != "positions" and len(row) == 0:
+                values.append(None)
+                continue
+            if len(row) != n or not math.isfinite(row[j]):
+                raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: point {k}: {what}"
+                              f" {list(row)!r} for {n} joint(s) {list(goal.joints)}: give one finite value per joint"
+                              f"{'' if what == 'positions' else ' or none'}; nothing moved")
+            values.append(float(row[j]))
+        position, velocity, acceleration = values
+        assert position is not None
+        drive = self.drives[name]
+        cfg = drive.config
+        low, high = cfg.min_deg, cfg.max_deg
+        if low is not None and high is not None and not low <= position <= high:
+            raise refuse(TrajectoryCode.INVALID_GOAL, f"{name}: point {k} at {position:g} deg is beyond the joint's"
+                          f" limits min_deg={low:g}, max_deg={high:g}; nothing moved")
+        if velocity is not None and abs(velocity) > cfg.max_velocity_deg_s:
+            raise refuse(TrajectoryCode.INVALID_GOAL, f"{name}: point {k} asks {velocity:g} deg/s, beyond"
+                          f" max_velocity_deg_s={cfg.max_velocity_deg_s:g}; nothing moved")
+        return (position, velocity, acceleration)
+
+    def _check_armed(self, drive: Drive) -> None:
+        state = drive.snapshot()
+        why = ""
+        if state.foreign_master:
+            why = f"another master drives it ({state.foreign_master})"
+        elif state.lost:
+            why = "its drive is lost (no heartbeat)"
+        elif state.stale:
+            why = f"its data are stale (no PDO for {state.data_age_s:.2f} s)"
+        elif state.fault:
+            why = f"its drive is faulted ({state.state.name}{', ' + state.error_text if state.error_text else ''})"
+        elif not state.enabled or drive.channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
+            why = f"it is not armed ({state.state.name}); enable it (/arm or <joint>/enable) first"
+        if why:
+            raise refuse(TrajectoryCode.INVALID_GOAL, f"{drive.name}: {why}; nothing moved")
+
+    def _check_start(self, goal: TrajectoryGoal, drives: Sequence[Drive]) -> None:
+        limit = self.config.start_tolerance_deg
+        for j, drive in enumerate(drives):
+            start, actual = goal.positions_deg[0][j], drive.cache.angle_deg
+            if abs(start - actual) > limit:
+                raise refuse(TrajectoryCode.INVALID_GOAL, f"{drive.name}: the trajectory starts at {start:g} deg,"
+                              f" {abs(start - actual):.3g} deg from where the joint is ({actual:.3f} deg); at most"
+                              f" start_tolerance_deg={limit:g}. Plan from the current state; nothing moved")
+
+    def _check_samples(self, joints: Sequence[str], times: tuple[float, ...], knots: tuple[tuple[Knot, ...], ...],
+                       start: tuple[Knot, ...]) -> None:
+        """Every set-point the spline will give, at each SYNC, within the limits (a cubic can overshoot its points)."""
+        spline = Spline((0.0, *times), (start, *knots))
+        cfgs = [self.drives[j].config for j in joints]
+        for t in sample_times(spline.end_s, self.period_s):
+            for cfg, (p, v, _) in zip(cfgs, spline.sample(t), strict=True):
+                low, high = cfg.min_deg, cfg.max_deg
+                if low is not None and high is not None and not low <= p <= high:
+                    raise refuse(TrajectoryCode.INVALID_GOAL, f"{cfg.name}: the trajectory passes {p:.3f} deg at"
+                                  f" {t:.3f} s, beyond the joint's limits min_deg={low:g}, max_deg={high:g} (between its"
+                                  " points); nothing moved")
+                if abs(v) > cfg.max_velocity_deg_s * (1 + VELOCITY_SLACK):
+                    raise refuse(TrajectoryCode.INVALID_GOAL, f"{cfg.name}: the trajectory moves at {v:.1f} deg/s at"
+                                  f" {t:.3f} s, beyond max_velocity_deg_s={cfg.max_velocity_deg_s:g}; slow it down;"
+                                  " nothing moved")
+
+    @staticmethod
+    def _tolerance(given: Tolerance | None, default_deg: float) -> Tolerance:
+        """A joint's tolerance: the goal's where it gives one (-1: none), else the group's (0: none)."""
+        position = given.position_deg if given is not None else 0.0
+        velocity = given.velocity_deg_s if given is not None else 0.0
+        if position == 0.0:
+            position = default_deg if default_deg > 0 else -1.0
+        return Tolerance(position, velocity if velocity != 0.0 else -1.0)
+

@@ -1,0 +1,431 @@
+"""A joint trajectory followed on the drives' own SYNC clock: the driver's side of
+control_msgs/FollowJointTrajectory, one :class:`TrajectoryGroup` per configured group
+(``trajectory_groups``). No rclpy: the node (nodes/follow_trajectory.py) turns goals into
+:class:`TrajectoryGoal` and :class:`GoalRun` into results and feedback.
+
+Before anything moves (:meth:`TrajectoryGroup.plan`, on the caller's thread: :mod:`motor_driver.follow.checks`) a goal is refused with
+the standard's code (:class:`TrajectoryRejected`): joints unknown, repeated or of another group
+(INVALID_JOINTS); points of the wrong length, not finite, times not strictly increasing, a point or
+any sampled set-point beyond a joint's limits or its max velocity, a joint not armed or not fresh,
+a first point (at time 0) further than ``start_tolerance_deg`` from where its joint is
+(INVALID_GOAL); a header stamp whose trajectory is over already (OLD_HEADER_TIMESTAMP, the node's).
+
+The clock: the group's thread (``rovercan-follow-<group>``) wakes on each position sample of one of
+its drives (:meth:`DriveCache.on_sample`, set by the receive thread: one a SYNC) and sends every
+joint's next set-point then, a CSP (or IP) set-point through the drive's command channel
+(``stream_position``), so a stop still wins. The trajectory's time is the count of SYNCs seen:
+set-point ``k`` is the spline at ``k`` periods (:class:`motor_driver.drive.trajectory.Spline`); a SYNC the
+thread missed delays the rest by one period rather than skipping a set-point. A goal starts from
+where the group's set-points are (a running goal's or ramp's, else the drive's last target) with that
+velocity, so a new goal preempts the old without a jump; the first point at time 0 stands for it.
+
+A goal ends: SUCCESSFUL once every joint is within its goal tolerance after the last set-point
+(within the goal time tolerance: else GOAL_TOLERANCE_VIOLATED); PATH_TOLERANCE_VIOLATED when a joint
+strays further than its path tolerance, or its drive is lost, stale, faulted or refuses a set-point;
+cancelled; or preempted by a newer goal. Every end but success and preemption ramps the group's
+joints down at ``stop_deceleration_deg_s2`` and then holds (no more set-points: a CSP drive holds
+its last target); a cancel's result comes once the ramp is done.
+
+Owners: the group's thread owns the running goal, the ramp and the tick count; callers hand it goals
+and cancels (:meth:`TrajectoryGroup.follow`, :meth:`GoalRun.cancel`) under ``_lock`` and read the
+immutable :class:`Progress` and :class:`Outcome` each run publishes; the receive thread only sets the
+tick event. An unexpected error in the thread is logged and counted, ends the goal and stops the group.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+from can_config.errors import RovercanError
+from can_config.model import TrajectoryGroupConfig
+from motor_driver.drive import Drive
+from motor_driver.drive.trajectory import Knot, Spline
+from motor_driver.follow.checks import GoalChecks
+from motor_driver.follow.goal import GoalRun, Outcome, Plan, Progress, TrajectoryCode, TrajectoryGoal, refuse
+
+logger = logging.getLogger(__name__)
+
+#: A clock sample older than this share of the SYNC period when its set-points would go out (or
+#: one with a newer sample behind it) is let go: they wait for the next SYNC, so that no SYNC is
+#: followed by two set-points of a joint (the trajectory waits a period; nothing is skipped). Its
+#: age is counted from the sample's frame on the bus, which comes a little after its SYNC.
+LATE_SHARE = 0.5
+#: How long close() waits for the group's thread.
+JOIN_S = 2.0
+
+
+@dataclass
+class _Running:
+    """The group thread's running goal (its own, never shared)."""
+
+    run: GoalRun
+    spline: Spline
+    joints: tuple[Drive, ...]
+    tick: int = 0
+    delay_ticks: int = 0
+    final_sent: bool = False
+    last_desired: tuple[tuple[float, float, float], ...] = ()
+    seen: list[int] = field(default_factory=list)  # each joint's position sample count when it last changed
+    quiet: list[int] = field(default_factory=list)  # the clock's SYNCs since then
+
+
+class TrajectoryGroup:
+    """The joints of one ``trajectory_groups`` entry, following one goal at a time."""
+
+    def __init__(self, config: TrajectoryGroupConfig, drives: Mapping[str, Drive]) -> None:
+        self.config = config
+        self.name = config.name
+        self.drives = {j: drives[j] for j in config.joints}
+        first = self.drives[config.joints[0]]
+        self.period_s = first.cache.sync_period_s
+        self.errors = 0  # unexpected errors of the thread (each ended a goal in a stop)
+        self.late = 0  # SYNCs let go because this thread took their sample too late (LATE_SHARE)
+        self._lock = threading.Lock()
+        self._pending: GoalRun | None = None
+        self._wake = threading.Event()
+        self._tick = threading.Event()
+        self._closed = False
+        # the thread's own
+        self._running: _Running | None = None
+        self._ramp: dict[str, tuple[float, float]] = {}  # joint -> (position, velocity) ramping down
+        self._stopping: list[GoalRun] = []  # cancelled runs whose result waits for the ramp
+        self._clock: Drive | None = None
+        self._clock_seq = -1
+        self._silences = 0  # the clock's waits in a row that ended without a sample
+        self._checks = GoalChecks(config, self.drives, self.period_s)
+        self._thread = threading.Thread(target=self._loop, name=f"rovercan-follow-{self.name}", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ callers
+    def follow(self, goal: TrajectoryGoal) -> GoalRun:
+        """Check ``goal`` (:class:`TrajectoryRejected` with its code: nothing moved), switch its
+        joints to streaming where they are not, and hand it to the group's thread, which preempts
+        the goal running. Returns at once; the run says how it ends."""
+        plan = self.plan(goal)
+        for name in goal.joints:
+            self._prepare(self.drives[name])
+        run = GoalRun(plan)
+        with self._lock:
+            if self._closed:
+                raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: the driver shut down")
+            older, self._pending = self._pending, run
+        if older is not None:
+            older.finish(Outcome(TrajectoryCode.INVALID_GOAL, "preempted by a newer goal before it started"))
+        self._wake.set()
+        self._tick.set()  # a thread waiting for the clock takes it now
+        return run
+
+    @staticmethod
+    def _prepare(drive: Drive) -> None:
+        """A joint not streaming yet: switched to CSP (or IP), holding where it stands, on this (the
+        caller's) thread, which may wait; the group's thread never switches modes."""
+        drive.motion.start_stream()
+
+    def close(self) -> None:
+        """The thread ends (after its tick); a goal running ends with 'the driver shut down'. Idempotent."""
+        with self._lock:
+            self._closed = True
+        self._wake.set()
+        self._tick.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(JOIN_S)
+
+    @property
+    def ramping(self) -> bool:
+        """Some joint is still ramping down (a cancelled or failed goal's)."""
+        return bool(self._ramp)
+
+    def plan(self, goal: TrajectoryGoal) -> Plan:
+        """``goal`` checked against the group, the joints' limits and their drives (nothing sent)."""
+        return self._checks.plan(goal, self._reference)
+
+    def _reference(self, joints: Sequence[str]) -> tuple[Knot, ...]:
+        """Where each joint's set-points are now, and how fast they move (read from any thread: a
+        running goal's last set-point, a ramp's, else the drive's last target or its position)."""
+        running, ramp = self._running, dict(self._ramp)
+        desired = dict(zip((d.name for d in running.joints), running.last_desired, strict=False)) if running else {}
+        out: list[Knot] = []
+        for name in joints:
+            if name in desired:
+                p, v, a = desired[name]
+                out.append((p, v, a))
+            elif name in ramp:
+                p, v = ramp[name]
+                out.append((p, v, 0.0))
+            else:
+                drive = self.drives[name]
+                held = drive.motion.streaming()
+                position = drive.cache.scale.counts_to_deg(drive.channel.target_counts) if held else drive.cache.angle_deg
+                out.append((position, 0.0, 0.0))
+        return tuple(out)
+
+    # ------------------------------------------------------------------ the group's thread
+    def _loop(self) -> None:
+        while True:
+            with self._lock:
+                closed = self._closed
+            if closed:
+                self._shut_down()
+                return
+            if self._running is None and not self._ramp and self._pending is None:
+                self._wake.wait()
+                self._wake.clear()
+                continue
+            try:
+                self._cycle()
+            except Exception as err:  # supervised: logged, counted, the goal ended in a stop
+                self.errors += 1
+                logger.exception("trajectory group %s: unexpected error; the goal ends and the group stops", self.name)
+                self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"trajectory group {self.name}: internal error {err!r}")
+
+    def _cycle(self) -> None:
+        """One SYNC: take a new goal or a cancel, then every joint's next set-point."""
+        with self._lock:
+            pending, self._pending = self._pending, None
+        if pending is not None:
+            self._start(pending)
+        ticked = self._wait_tick()
+        if ticked is None:  # a new goal or the shutdown came first, or the sample came too late
+            return
+        if not ticked:
+            self._silences += 1
+            self._judge_silence()
+            return
+        self._silences = 0
+        running = self._running
+        if running is not None:
+            if running.run.cancel_requested:
+                self._stopping.append(running.run)
+                self._to_ramp(running)
+            else:
+                self._step(running)
+        self._step_ramp()
+
+    def _start(self, run: GoalRun) -> None:
+        if run.cancel_requested:
+            run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "cancelled before it started", canceled=True))
+            return
+        plan = run.plan
+        joints = plan.goal.joints
+        start = self._reference(joints)
+        old = self._running
+        if old is not None:
+            old.run.finish(Outcome(TrajectoryCode.INVALID_GOAL, "preempted by a newer goal"))
+            self._to_ramp(old, keep=joints)
+        for name in joints:
+            self._ramp.pop(name, None)
+        delay = max(0, round(plan.goal.start_delay_s / self.period_s))
+        spline = Spline((0.0, *plan.times_s), (start, *plan.knots))
+        drives = tuple(self.drives[j] for j in joints)
+        self._running = _Running(run, spline, drives, delay_ticks=delay,
+                                 last_desired=tuple((p, v or 0.0, a or 0.0) for p, v, a in start),
+                                 seen=[d.cache.position_seq for d in drives], quiet=[0] * len(drives))
+        self._set_clock(self._running.joints[0])  # the first joint: its sample comes early after the SYNC
+
+    def _set_clock(self, drive: Drive) -> None:
+        if self._clock is drive:
+            return
+        if self._clock is not None:
+            self._clock.cache.on_sample(None)
+        self._clock = drive
+        self._clock_seq = drive.cache.position_seq
+        drive.cache.on_sample(self._tick.set)
+
+    def _wait_tick(self) -> bool | None:
+        """Until the clock drive's next position sample (True), for longer than its data may be
+        late before they are stale (False), or until a new goal, the shutdown or a sample taken
+        too late (None)."""
+        clock = self._clock
+        if clock is None:
+            return False
+        limit = clock.config.stale_after_syncs * self.period_s
+        while clock.cache.position_seq == self._clock_seq:
+            if not self._tick.wait(limit):
+                return False
+            self._tick.clear()
+            with self._lock:
+                if self._closed or self._pending is not None:
+                    return None
+        self._clock_seq = seq = clock.cache.position_seq
+        if self._age(clock) > LATE_SHARE * self.period_s or clock.cache.position_seq != seq:
+            self.late += 1
+            return None
+        return True
+
+    @staticmethod
+    def _age(clock: Drive) -> float:
+        """How long ago the clock's sample was on the bus: by the frame's own time where it is this
+        host's clock (SocketCAN, a local socketcand daemon: a receive thread that was late itself
+        does not hide it), else since the receive thread took it."""
+        rx = clock.cache.received
+        on_bus = time.time() - rx.stamp
+        return on_bus if 0.0 <= on_bus < 1.0 else time.monotonic() - rx.rx_monotonic
+
+    def _judge_silence(self) -> None:
+        """No sample from the clock: a lost drive ends the goal; after a second silence the clock
+        moves to another joint (which then counts the silent one's SYNCs without a sample: stale).
+        Not judged by time alone: a starved process wakes to find every drive late."""
+        running = self._running
+        if running is not None:
+            for drive in running.joints:
+                if (why := self._unusable(drive)) is not None:
+                    self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"{drive.name}: {why} mid-goal; the group stops")
+                    break
+        streamed = [d for d in self.drives.values() if d.name in self._ramp or (
+            self._running is not None and d in self._running.joints)]
+        live = [d for d in streamed if self._unusable(d) is None]
+        if not live:
+            if self._running is None:
+                self._ramp.clear()  # nothing can be sent: what is left holds, or stopped by itself
+                self._finish_stopping()
+            return
+        others = [d for d in live if d is not self._clock]
+        if self._silences > 1 and others:
+            self._set_clock(others[-1])
+
+    @staticmethod
+    def _unusable(drive: Drive) -> str | None:
+        """Lost: the supervisor's judgement (stale data are counted in SYNCs by :meth:`_strayed`)."""
+        return "its drive is lost (no heartbeat)" if drive.cache.lost else None
+
+    def _step(self, running: _Running) -> None:
+        running.tick += 1
+        t = (running.tick - running.delay_ticks) * self.period_s
+        if t <= 0.0:
+            return
+        spline = running.spline
+        actual = tuple((d.cache.angle_deg, d.cache.scale.counts_s_to_deg_s(d.cache.received.velocity_counts_s))
+                       for d in running.joints)
+        if (error := self._strayed(running, actual)) is not None:
+            self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, error)
+            return
+        if running.final_sent:
+            self._settle(running, actual, t - spline.end_s)
+            return
+        # this SYNC's measurement against the set-point in force at it (sent the tick before, taken by
+        # the drive at this SYNC): the trajectory at its time, as joint_trajectory_controller pairs them
+        running.run.report(Progress(max(t - self.period_s, 0.0), running.run.plan.goal.joints, running.last_desired,
+                                    actual))
+        running.final_sent = t >= spline.end_s - 1e-9 * self.period_s  # the tick sample_times() ends on
+        desired = spline.sample(min(t, spline.end_s))
+        for drive, (p, _, _) in zip(running.joints, desired, strict=True):
+            try:
+                drive.stream_position(p)
+            except RovercanError as err:
+                self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"{drive.name}: set-point refused mid-goal: {err};"
+                           " the group stops")
+                return
+        running.last_desired = desired
+
+    def _strayed(self, running: _Running, actual: tuple[tuple[float, float], ...]) -> str | None:
+        """The first joint outside its path tolerance (from the set-point it is following), lost, or
+        without a position sample for more than its stale_after_syncs of the clock's SYNCs (counted,
+        not timed: a starved process catches up on the samples in order)."""
+        for i, (drive, tol, (p, v, _), (ap, av)) in enumerate(zip(running.joints, running.run.plan.path,
+                                                                  running.last_desired, actual, strict=True)):
+            seq = drive.cache.position_seq
+            running.quiet[i] = 0 if seq != running.seen[i] else running.quiet[i] + 1
+            running.seen[i] = seq
+            if running.quiet[i] > drive.config.stale_after_syncs:
+                return (f"{drive.name}: no position sample for {running.quiet[i]} SYNCs (stale_after_syncs="
+                        f"{drive.config.stale_after_syncs}) mid-goal; the group stops")
+            if (why := self._unusable(drive)) is not None:
+                return f"{drive.name}: {why} mid-goal; the group stops"
+            if tol.position_deg > 0 and abs(ap - p) > tol.position_deg:
+                return (f"{drive.name}: {abs(ap - p):.3f} deg from the trajectory ({ap:.3f} deg, set-point {p:.3f});"
+                        f" path tolerance {tol.position_deg:g} deg")
+            if tol.velocity_deg_s > 0 and abs(av - v) > tol.velocity_deg_s:
+                return (f"{drive.name}: {av:.2f} deg/s against {v:.2f} deg/s on the trajectory; path velocity"
+                        f" tolerance {tol.velocity_deg_s:g} deg/s")
+        return None
+
+    def _settle(self, running: _Running, actual: tuple[tuple[float, float], ...], after_s: float) -> None:
+        """After the last set-point: success once every joint is within its goal tolerance."""
+        plan = running.run.plan
+        far = None
+        for drive, tol, (p, _, _), (ap, av) in zip(running.joints, plan.final, running.last_desired, actual,
+                                                   strict=True):
+            if tol.position_deg > 0 and abs(ap - p) > tol.position_deg:
+                far = f"{drive.name}: {abs(ap - p):.3f} deg from the goal {p:.3f} deg; goal tolerance {tol.position_deg:g} deg"
+                break
+            if tol.velocity_deg_s > 0 and abs(av) > tol.velocity_deg_s:
+                far = f"{drive.name}: still moving at {av:.2f} deg/s; goal velocity tolerance {tol.velocity_deg_s:g} deg/s"
+                break
+        running.run.report(Progress(running.spline.end_s, plan.goal.joints, running.last_desired, actual))
+        if far is None:
+            self._running = None
+            running.run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "at the goal"))
+        elif after_s > plan.goal_time_s:
+            self._running = None  # it holds the last set-point
+            running.run.finish(Outcome(TrajectoryCode.GOAL_TOLERANCE_VIOLATED,
+                                       f"{far}, {after_s:.2f} s after the trajectory's end (goal time tolerance"
+                                       f" {plan.goal_time_s:g} s)"))
+
+    # ------------------------------------------------------------------ stopping
+    def _fail(self, code: TrajectoryCode, message: str) -> None:
+        running = self._running
+        if running is None:
+            self._ramp.clear()
+            self._finish_stopping()
+            return
+        logger.warning("trajectory group %s: goal aborted: %s", self.name, message)
+        running.run.finish(Outcome(code, message))
+        self._to_ramp(running)
+
+    def _to_ramp(self, running: _Running, keep: Sequence[str] = ()) -> None:
+        """A goal's joints (but ``keep``, which a new goal takes) ramp down from their last set-point."""
+        for drive, (p, v, _) in zip(running.joints, running.last_desired, strict=True):
+            if drive.name not in keep and self._unusable(drive) is None:
+                self._ramp[drive.name] = (p, v)
+        if self._running is running:
+            self._running = None
+
+    def _step_ramp(self) -> None:
+        """One set-point of each ramping joint: the velocity cut by the stop deceleration a period,
+        clamped to the joint's limits; a joint at rest leaves the ramp (it holds)."""
+        dv = self.config.stop_deceleration_deg_s2 * self.period_s
+        for name, (p, v) in list(self._ramp.items()):
+            drive = self.drives[name]
+            slower = math.copysign(max(abs(v) - dv, 0.0), v)
+            position = p + (v + slower) / 2 * self.period_s
+            cfg = drive.config
+            if cfg.min_deg is not None and cfg.max_deg is not None:
+                position = min(max(position, cfg.min_deg), cfg.max_deg)
+            try:
+                drive.stream_position(position)
+            except RovercanError as err:
+                logger.warning("trajectory group %s: %s's stop ramp refused (%s); it holds or stopped itself",
+                               self.name, name, err)
+                slower = 0.0
+            if slower == 0.0:
+                del self._ramp[name]
+            else:
+                self._ramp[name] = (position, slower)
+        if not self._ramp:
+            self._finish_stopping()
+
+    def _finish_stopping(self) -> None:
+        for run in self._stopping:
+            run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "cancelled: the joints ramped down and hold", canceled=True))
+        self._stopping.clear()
+
+    def _shut_down(self) -> None:
+        if self._clock is not None:
+            self._clock.cache.on_sample(None)
+        with self._lock:
+            pending, self._pending = self._pending, None
+        runs = [r for r in (pending, self._running.run if self._running else None) if r is not None] + self._stopping
+        for run in runs:
+            run.finish(Outcome(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: the driver shut down"))
+        self._running = None
+        self._stopping.clear()
+
+
+def groups_of(configs: Sequence[TrajectoryGroupConfig], drives: Mapping[str, Drive]) -> dict[str, TrajectoryGroup]:
+    """A group for each config whose joints are all among ``drives`` (a node serving one joint has none)."""
+    return {c.name: TrajectoryGroup(c, drives) for c in configs if all(j in drives for j in c.joints)}

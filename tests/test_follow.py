@@ -1,0 +1,271 @@
+"""motor_driver.follow: a joint trajectory followed on the bus's SYNC clock, against the simulator, with
+an independent listener on the bus. Each refusal leaves nothing on the wire; each set-point follows a
+SYNC's position sample of the group's clock (by the order of frames) and the set-points are the
+sampled spline; tolerances, preemption, cancel and a
+drive lost mid-goal, judged by the frames and the simulated drives, never by a clock."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import struct
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import can
+import pytest
+
+from can_config import RoverConfig
+from can_config.errors import TrajectoryRejected
+from motor_driver import MotorDriver
+from motor_driver.drive.trajectory import Spline, sample_times
+from motor_driver.follow import GoalRun, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
+from virtual_can import SimService
+from virtual_can.scenario import apply_action
+
+from .conftest import IN_PROCESS_STALE_SYNCS, make_config, wait_for
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+ListenerFactory = Callable[[SimService], can.BusABC]
+
+#: The arm's joints here: limited to +-90 deg, 180 deg/s at most.
+ARM = {"joint": "limited", "min_deg": -90.0, "max_deg": 90.0, "counts_per_rev": 4096, "gear_ratio": 50.0,
+       "max_velocity_deg_s": 180.0, "profile_acceleration_deg_s2": 720.0,
+       "stale_after_syncs": IN_PROCESS_STALE_SYNCS}
+SYNC = 0x080
+#: joint1's position TPDO: the group's clock (its first joint's sample after each SYNC)
+CLOCK_SAMPLE = 0x281
+#: A CSP set-point: RPDO2 of the drive (controlword, target position)
+SETPOINT = 0x300
+#: Frames that could move a drive or change it: RPDOs and SDO requests to nodes 1-3.
+MOTION_IDS = {base + n for base in (0x200, 0x300, 0x400, 0x500, 0x600) for n in (1, 2, 3)}
+RESULT_S = 30.0  # hang bound of a run
+
+
+@dataclass
+class Arm:
+    sim: SimService
+    driver: MotorDriver
+    group: TrajectoryGroup
+    frames: list[can.Message]  # every frame the listener heard since the arm was ready, in order
+
+
+@pytest.fixture
+def arm(driver_factory: DriverFactory, listener_factory: ListenerFactory) -> Iterator[Arm]:
+    """Three limited joints, joint1 and joint2 armed (joint3 not), their group, a listener."""
+    sim, driver = driver_factory(make_config(3, **ARM))
+    for name in ("joint1", "joint2"):
+        driver.drive(name).enable()
+    (config,) = driver.config.trajectory_groups
+    group = TrajectoryGroup(config, driver.drives)
+    frames: list[can.Message] = []
+    notifier = can.Notifier(listener_factory(sim), [frames.append], timeout=0.1)
+    yield Arm(sim, driver, group, frames)
+    group.close()
+    notifier.stop()
+
+
+def goal(*points: tuple[float, tuple[float, ...]], joints: tuple[str, ...] = ("joint1", "joint2"),
+         velocities: bool = True, **kwargs: object) -> TrajectoryGoal:
+    """Points (time, positions) at rest (velocities 0) unless ``velocities`` is False."""
+    return TrajectoryGoal(joints=joints, times_s=tuple(t for t, _ in points), positions_deg=tuple(p for _, p in points),
+                          velocities_deg_s=tuple((0.0,) * len(joints) for _ in points) if velocities else (),
+                          **kwargs)  # type: ignore[arg-type]
+
+
+def frames_after(arm: Arm, since: int = 0, syncs: int = 3) -> list[can.Message]:
+    """The frames heard from index ``since`` until ``syncs`` SYNCs after now: whatever the driver
+    sent before now reaches the listener before them (one server, frames in order)."""
+    mark = len(arm.frames)
+    wait_for(lambda: sum(m.arbitration_id == SYNC for m in arm.frames[mark:]) >= syncs, 10.0, f"{syncs} SYNC frames")
+    return arm.frames[since:]
+
+
+def streamed_later(arm: Arm, ids: tuple[int, ...] = (0x301, 0x302)) -> list[can.Message]:
+    """Set-points of ``ids`` the bus carried after the second SYNC from now: one sent before now
+    may still be on its way to the listener, and reaches it before the SYNC after it."""
+    frames = frames_after(arm, len(arm.frames), syncs=6)
+    second = [i for i, m in enumerate(frames) if m.arbitration_id == SYNC][1]
+    return [m for m in frames[second:] if m.arbitration_id in ids]
+
+
+def ramped_down(arm: Arm, node: int) -> None:
+    """The joint's last set-points slow down step by step (a ramp at the stop deceleration), not a
+    cut from full speed: the last moving steps shrink, each by about decel x period^2."""
+    steps = [b - a for a, b in itertools.pairwise(setpoints(arm.frames, node))]
+    moving = [abs(s) for s in steps if s != 0]
+    assert len(moving) > 3
+    tail = moving[-3:]
+    assert tail[0] > tail[1] > tail[2], f"no ramp: the last steps {moving[-6:]} counts"
+
+
+def refused(arm: Arm, bad: TrajectoryGoal, code: TrajectoryCode, *words: str) -> None:
+    mark = len(arm.frames)
+    with pytest.raises(TrajectoryRejected) as caught:
+        arm.group.follow(bad)
+    assert caught.value.code == code, caught.value
+    for word in words:
+        assert word in str(caught.value), str(caught.value)
+    sent = [m for m in frames_after(arm, mark) if m.arbitration_id in MOTION_IDS]
+    assert not sent, f"refused, yet on the wire: {sent}"
+
+
+def angle(arm: Arm, joint: str) -> float:
+    return arm.driver.drive(joint).cache.angle_deg
+
+
+def finished(run: GoalRun) -> TrajectoryCode:
+    assert run.done.wait(RESULT_S), "no outcome"
+    assert run.outcome is not None
+    return run.outcome.code
+
+
+def test_an_unknown_joint_is_refused_with_nothing_on_the_wire(arm: Arm) -> None:
+    refused(arm, goal((1.0, (10.0, 5.0)), joints=("joint1", "elbow")), TrajectoryCode.INVALID_JOINTS,
+            "'elbow'", "joint1")
+    refused(arm, goal((1.0, (10.0, 5.0)), joints=("joint1", "joint1")), TrajectoryCode.INVALID_JOINTS, "twice")
+
+
+def test_a_point_beyond_a_limit_is_refused_naming_the_joint_and_the_limit(arm: Arm) -> None:
+    refused(arm, goal((1.0, (10.0, 5.0)), (2.0, (10.0, 95.0))), TrajectoryCode.INVALID_GOAL,
+            "joint2", "point 1", "max_deg=90")
+    refused(arm, TrajectoryGoal(("joint1", "joint2"), (1.0,), ((10.0, 5.0),), ((200.0, 0.0),)),
+            TrajectoryCode.INVALID_GOAL, "joint1", "point 0", "max_velocity_deg_s=180")
+    # the points are within the limits, the cubic between them is not: from 80 deg at 170 deg/s to
+    # 89 deg at rest in 0.5 s it passes 95 deg
+    overshoot = TrajectoryGoal(("joint1",), (1.0, 1.5), ((80.0,), (89.0,)), ((170.0,), (0.0,)))
+    refused(arm, overshoot, TrajectoryCode.INVALID_GOAL, "joint1", "max_deg=90", "between its points")
+    # 80 deg in 0.2 s: 400 deg/s, beyond 180
+    refused(arm, goal((0.2, (80.0, 0.0)), velocities=False), TrajectoryCode.INVALID_GOAL, "joint1",
+            "max_velocity_deg_s=180")
+
+
+def test_times_that_do_not_increase_are_refused(arm: Arm) -> None:
+    refused(arm, goal((1.0, (5.0, 5.0)), (1.0, (6.0, 6.0))), TrajectoryCode.INVALID_GOAL, "point 1", "strictly increasing")
+    refused(arm, goal((-0.5, (5.0, 5.0))), TrajectoryCode.INVALID_GOAL, "point 0")
+    refused(arm, goal((0.0, (0.0, 0.0))), TrajectoryCode.INVALID_GOAL, "no time to move")
+    refused(arm, TrajectoryGoal(("joint1", "joint2"), (1.0,), ((5.0,),)), TrajectoryCode.INVALID_GOAL, "one finite value")
+    refused(arm, TrajectoryGoal(("joint1", "joint2"), (1.0,), ((5.0, math.nan),)), TrajectoryCode.INVALID_GOAL,
+            "one finite value")
+
+
+def test_a_joint_not_armed_is_refused(arm: Arm) -> None:
+    refused(arm, goal((1.0, (5.0, 5.0, 5.0)), joints=("joint1", "joint2", "joint3")), TrajectoryCode.INVALID_GOAL,
+            "joint3", "not armed")
+
+
+def test_a_stale_joint_is_refused(arm: Arm) -> None:
+    apply_action(arm.sim, {"action": "tx_dead", "node": 2})
+    drive = arm.driver.drive("joint2")
+    wait_for(lambda: drive.snapshot().stale, 10.0, "joint2 stale")
+    mark = len(arm.frames)
+    with pytest.raises(TrajectoryRejected) as caught:
+        arm.group.follow(goal((1.0, (5.0, 5.0))))
+    assert caught.value.code == TrajectoryCode.INVALID_GOAL
+    assert "joint2" in str(caught.value) and ("stale" in str(caught.value) or "lost" in str(caught.value))
+    # (a lost joint2 is told to stop on its own ids by the supervisor: not a motion of the goal)
+    sent = [m for m in frames_after(arm, mark) if m.arbitration_id in MOTION_IDS - {0x202, 0x602}]
+    assert not sent, sent
+
+
+def test_a_start_far_from_the_joints_is_refused(arm: Arm) -> None:
+    refused(arm, goal((0.0, (0.0, 12.0)), (1.0, (5.0, 12.0))), TrajectoryCode.INVALID_GOAL, "joint2",
+            "start_tolerance_deg=2")
+
+
+def setpoints(frames: list[can.Message], node: int) -> list[int]:
+    return [struct.unpack_from("<i", m.data, 2)[0] for m in frames if m.arbitration_id == SETPOINT + node]
+
+
+def test_setpoints_follow_the_sync_and_are_the_sampled_trajectory(arm: Arm) -> None:
+    drives = [arm.driver.drive(j) for j in ("joint1", "joint2")]
+    for drive in drives:
+        drive.motion.start_stream()  # CSP, holding where it stands: the spline's start
+    scale = drives[0].cache.scale
+    start = tuple((scale.counts_to_deg(d.channel.target_counts), 0.0, 0.0) for d in drives)
+    mark = len(arm.frames)
+    target = goal((0.0, (0.0, 0.0)), (0.6, (20.0, -10.0)), (1.0, (25.0, -10.0)))
+    run = arm.group.follow(target)
+    assert finished(run) == TrajectoryCode.SUCCESSFUL, run.outcome
+    # the k-th set-point of each joint answers the k-th new position sample of the group's clock
+    # (joint1's TPDO 0x281, one a SYNC): it never comes before k samples were on the bus (k - 1:
+    # the first may have passed the listener before it was marked)
+    frames = [m for m in frames_after(arm, mark) if m.arbitration_id in (CLOCK_SAMPLE, 0x301, 0x302)]
+    samples, sent = 0, {0x301: 0, 0x302: 0}
+    for i, m in enumerate(frames):  # i: the frame's place, for the message
+        if m.arbitration_id == CLOCK_SAMPLE:
+            samples += 1
+        else:
+            sent[m.arbitration_id] += 1
+            assert sent[m.arbitration_id] <= samples + 1, f"set-point {m.arbitration_id:03X} (frame {i}) ahead of the SYNCs"
+    period = arm.group.period_s
+    wire = [setpoints(frames, 1), setpoints(frames, 2)]
+    spline = Spline((0.0, 0.6, 1.0), (start, ((20.0, 0.0, None), (-10.0, 0.0, None)),
+                                      ((25.0, 0.0, None), (-10.0, 0.0, None))))
+    for j, sent in enumerate(wire):
+        expected = [scale.deg_to_counts(spline.sample(t)[j][0]) for t in sample_times(1.0, period)]
+        assert sent == expected, f"joint{j + 1}"
+
+
+def test_a_path_tolerance_violated_aborts_and_the_group_ramps_down(arm: Arm) -> None:
+    tight = {"joint1": Tolerance(position_deg=1e-4), "joint2": Tolerance(position_deg=1e-4)}
+    run = arm.group.follow(goal((2.0, (40.0, -40.0)), path_tolerance=tight))
+    assert finished(run) == TrajectoryCode.PATH_TOLERANCE_VIOLATED
+    assert run.outcome is not None and "path tolerance" in run.outcome.message
+    wait_for(lambda: not arm.group.ramping, RESULT_S, "the ramp done")
+    assert not streamed_later(arm), "streamed after the ramp"
+    assert abs(angle(arm, "joint1")) < 20.0  # stopped well before the goal
+
+
+def test_a_goal_tolerance_violated_aborts(arm: Arm) -> None:
+    # 10.0001 deg is not a whole count (568.9 counts a degree): the joint ends 0.0007 deg away
+    exact = {"joint1": Tolerance(position_deg=1e-4), "joint2": Tolerance(position_deg=1e-4)}
+    run = arm.group.follow(goal((0.5, (10.0001, 0.0)), goal_tolerance=exact, goal_time_tolerance_s=0.1))
+    assert finished(run) == TrajectoryCode.GOAL_TOLERANCE_VIOLATED
+    assert run.outcome is not None and "joint1" in run.outcome.message and "goal tolerance" in run.outcome.message
+
+
+def test_a_new_goal_preempts_the_old_at_its_setpoint_without_a_jump(arm: Arm) -> None:
+    first = arm.group.follow(goal((4.0, (60.0, 0.0))))
+    wait_for(lambda: first.progress is not None and first.progress.time_s > 1.5, 20.0, "the first goal half way")
+    here = angle(arm, "joint1")
+    second = arm.group.follow(goal((0.0, (here, 0.0)), (2.0, (0.0, 0.0))))
+    assert finished(first) == TrajectoryCode.INVALID_GOAL and "preempted" in (first.outcome.message if first.outcome else "")
+    assert finished(second) == TrajectoryCode.SUCCESSFUL, second.outcome
+    scale = arm.driver.drive("joint1").cache.scale
+    path = [scale.counts_to_deg(c) for c in setpoints(frames_after(arm), 1)]
+    steps = [b - a for a, b in itertools.pairwise(path)]
+    assert max(abs(s) for s in steps) <= 180.0 * arm.group.period_s  # never faster than the joint may go
+    # the velocity changes smoothly across the switch: one period's step never differs from the
+    # last by more than the steepest acceleration of either spline (under 100 deg/s^2) allows
+    bends = [abs(b - a) for a, b in itertools.pairwise(steps)]
+    assert max(bends) < 100.0 * arm.group.period_s ** 2 * 2, max(bends)
+    assert path[-1] == pytest.approx(0.0, abs=0.01)
+
+
+def test_cancel_ramps_the_group_down_and_it_holds(arm: Arm) -> None:
+    run = arm.group.follow(goal((3.0, (60.0, -60.0))))
+    wait_for(lambda: run.progress is not None and run.progress.time_s > 1.0, 20.0, "the goal under way")
+    run.cancel()
+    assert finished(run) == TrajectoryCode.SUCCESSFUL and run.outcome is not None and run.outcome.canceled
+    assert not streamed_later(arm), "streamed after the result"
+    ramped_down(arm, 1)
+    ramped_down(arm, 2)
+    runner = arm.sim.simulators["can0"]
+    wait_for(lambda: runner.call(lambda: max(abs(runner.drive(n).omega) for n in (1, 2))) < 1e-3,  # type: ignore[arg-type]
+             10.0, "both shafts at rest")
+    assert 5.0 < angle(arm, "joint1") < 59.0 and -59.0 < angle(arm, "joint2") < -5.0
+
+
+def test_a_drive_lost_mid_goal_aborts_and_stops_the_group(arm: Arm) -> None:
+    run = arm.group.follow(goal((4.0, (60.0, -60.0))))
+    wait_for(lambda: run.progress is not None and run.progress.time_s > 1.0, 20.0, "the goal under way")
+    apply_action(arm.sim, {"action": "tx_dead", "node": 2})
+    assert finished(run) == TrajectoryCode.PATH_TOLERANCE_VIOLATED
+    assert run.outcome is not None and "joint2" in run.outcome.message
+    wait_for(lambda: not arm.group.ramping, RESULT_S, "the ramp done")
+    assert not streamed_later(arm, (0x301,)), "joint1 streamed after its ramp"
+    ramped_down(arm, 1)
+    runner = arm.sim.simulators["can0"]
+    wait_for(lambda: abs(runner.call(lambda: runner.drive(1).omega)) < 1e-3, 10.0, "joint1 at rest")  # type: ignore[arg-type]
+    assert angle(arm, "joint1") < 55.0

@@ -1,0 +1,218 @@
+"""``/arm_controller/follow_joint_trajectory`` on a real rclpy graph: the driver's process as its entry
+point assembles it (nodes/assembly.py), the arm on the simulator, and an independent client of the
+standard type (rclpy's ActionClient of control_msgs/action/FollowJointTrajectory, in a context of
+its own). A half-sine of two joints is tracked and succeeds; a cancel leaves the joints still; a goal
+beyond a limit is refused with its code and nothing reaches the bus. Tracking is measured on the
+controller's own error (a measure of the simulated plant, at each SYNC); the figures of a 500 Hz
+arm beside the wheels are the benchmark's (benchmarks/follow_trajectory.py)."""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+
+from can_config import with_bus_overrides
+from motor_driver import MotorDriver
+from virtual_can import SimService
+
+from .conftest import HAVE_ROS, IN_PROCESS_STALE_SYNCS, REPO, make_config, requires_ros, wait_for
+
+pytestmark = requires_ros
+
+if HAVE_ROS:
+    import rclpy
+    from builtin_interfaces.msg import Duration
+    from control_msgs.action import FollowJointTrajectory
+    from rclpy.action import ActionClient
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectoryPoint
+
+    from nodes import runtime
+    from nodes.assembly import Assembly
+    from nodes.qos import STATE_QOS
+    from nodes.runtime import SpinThread, make_executor
+
+ListenerFactory = Callable[[SimService], can.BusABC]
+ARM = {"joint": "limited", "min_deg": -90.0, "max_deg": 90.0, "counts_per_rev": 4096, "gear_ratio": 50.0,
+       "max_velocity_deg_s": 180.0, "profile_acceleration_deg_s2": 720.0,
+       "stale_after_syncs": IN_PROCESS_STALE_SYNCS}
+ACTION = "/arm_controller/follow_joint_trajectory"
+SYNC, SETPOINTS = 0x080, (0x301, 0x302)
+HANG_S = 30.0
+
+
+@dataclass
+class Rig:
+    sim: SimService
+    assembly: Any
+    client: Any  # ActionClient
+    states: list[Any]  # /joint_states as the client hears them
+
+
+@pytest.fixture
+def rig(monkeypatch: pytest.MonkeyPatch) -> Iterator[Rig]:
+    monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a goal's pause wakes them
+    config = make_config(2, **ARM)
+    sim = SimService.from_config(config, port=0)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    hot = make_executor("events", context)
+    assembly = Assembly(MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)), hot, context=context,
+                        overrides=[Parameter("arm", value=True), Parameter("state_rate_hz", value=100.0)])
+    assembly.build()
+    assembly.start()
+    spin = SpinThread(hot, "test-hot")
+    theirs = rclpy.Context()  # the client: another participant, as MoveIt would be
+    rclpy.init(context=theirs)
+    node = rclpy.create_node("trajectory_client", context=theirs)
+    states: list[Any] = []
+    node.create_subscription(JointState, "/joint_states", states.append, STATE_QOS)
+    client = ActionClient(node, FollowJointTrajectory, ACTION)
+    executor = SingleThreadedExecutor(context=theirs)
+    executor.add_node(node)
+    client_spin = SpinThread(executor, "test-client")
+    try:
+        assert client.wait_for_server(timeout_sec=HANG_S), f"{ACTION} not served"
+        wait_for(lambda: all(d.snapshot().enabled for d in assembly.driver), HANG_S, "the arm armed")
+        yield Rig(sim, assembly, client, states)
+    finally:
+        client_spin.stop(5.0)
+        node.destroy_node()
+        rclpy.shutdown(context=theirs)
+        spin.stop(5.0)
+        assembly.close()
+        rclpy.shutdown(context=context)
+        sim.close()
+
+
+def half_sine(amplitude_deg: float, duration_s: float, points: int = 41) -> Any:
+    """joint1 up and back, joint2 down and back, over ``duration_s``: positions and velocities."""
+    goal = FollowJointTrajectory.Goal()
+    goal.trajectory.joint_names = ["joint1", "joint2"]
+    a, w = math.radians(amplitude_deg), math.pi / duration_s
+    for k in range(points):
+        t = duration_s * k / (points - 1)
+        p, v = a * math.sin(w * t), a * w * math.cos(w * t)
+        seconds = int(t)
+        goal.trajectory.points.append(JointTrajectoryPoint(
+            positions=[p, -p], velocities=[v, -v], time_from_start=Duration(sec=seconds, nanosec=int((t - seconds) * 1e9))))
+    return goal
+
+
+def send(rig: Rig, goal: Any, feedback: list[Any] | None = None) -> Any:
+    sent = rig.client.send_goal_async(goal, feedback_callback=(lambda f: feedback.append(f.feedback))
+                                      if feedback is not None else None)
+    wait_for(sent.done, HANG_S, "the goal answered")
+    return sent.result()
+
+
+def result_of(handle: Any) -> Any:
+    future = handle.get_result_async()
+    wait_for(future.done, HANG_S, "the result")
+    return future.result()
+
+
+def positions(rig: Rig) -> tuple[float, float]:
+    msg = rig.states[-1]
+    return math.degrees(msg.position[0]), math.degrees(msg.position[1])
+
+
+def test_a_half_sine_of_two_joints_is_tracked_and_succeeds(rig: Rig) -> None:
+    from action_msgs.msg import GoalStatus
+
+    feedback: list[Any] = []
+    handle = send(rig, half_sine(30.0, 4.0), feedback)
+    assert handle.accepted
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.error_string
+    assert done.result.error_code == FollowJointTrajectory.Result.SUCCESSFUL
+    assert len(feedback) >= 10 and all(list(f.joint_names) == ["joint1", "joint2"] for f in feedback)
+    times = [f.desired.time_from_start.sec + f.desired.time_from_start.nanosec * 1e-9 for f in feedback]
+    assert times == sorted(times) and 2.0 < times[-1] <= 4.0  # through the run, on the trajectory's clock
+    errors = [math.degrees(e) for f in feedback for e in f.error.positions]
+    rms = math.sqrt(sum(e * e for e in errors) / len(errors))
+    assert rms <= 0.5 and max(abs(e) for e in errors) <= 1.5, (rms, max(abs(e) for e in errors))
+    n = len(rig.states)
+    wait_for(lambda: len(rig.states) > n + 2, HANG_S, "/joint_states after the result")
+    assert max(abs(p) for p in positions(rig)) <= 0.3, positions(rig)
+
+
+def test_a_cancelled_goal_leaves_the_joints_still(rig: Rig) -> None:
+    from action_msgs.msg import GoalStatus
+
+    feedback: list[Any] = []
+    handle = send(rig, half_sine(40.0, 4.0), feedback)
+    ended = handle.get_result_async()
+    wait_for(lambda: ended.done() or (bool(feedback) and feedback[-1].desired.time_from_start.sec >= 1), HANG_S,
+             "the goal under way")
+    assert not ended.done(), ended.result().result.error_string
+    cancel = handle.cancel_goal_async()
+    wait_for(cancel.done, HANG_S, "the cancel answered")
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_CANCELED
+    # the joints settle where the ramp left them (no set-point follows the result: tests/test_follow.py)
+    # and stay: 50 /joint_states in a row (half a second at 100 a second) within 0.01 deg
+    def still() -> bool:
+        last = [math.degrees(s.position[0]) for s in rig.states[-50:]]
+        return len(last) == 50 and max(last) - min(last) < 0.01
+    wait_for(still, HANG_S, "joint1 still")
+    assert 10.0 < positions(rig)[0] < 40.0  # stopped on its way, not at the end
+
+
+def test_a_goal_beyond_a_limit_is_refused_with_its_code_and_nothing_moves(rig: Rig,
+                                                                          listener_factory: ListenerFactory) -> None:
+    from action_msgs.msg import GoalStatus
+
+    frames: list[can.Message] = []
+    notifier = can.Notifier(listener_factory(rig.sim), [frames.append], timeout=0.1)
+    try:
+        beyond = half_sine(100.0, 4.0)  # joint1 to 100 deg: max_deg is 90
+        done = result_of(send(rig, beyond))
+        mark = len(frames)
+        wait_for(lambda: sum(m.arbitration_id == SYNC for m in frames[mark:]) >= 3, HANG_S, "3 SYNCs after the result")
+    finally:
+        notifier.stop()
+    assert done.status == GoalStatus.STATUS_ABORTED
+    assert done.result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
+    assert "joint1" in done.result.error_string and "max_deg=90" in done.result.error_string
+    assert not [m for m in frames if m.arbitration_id in SETPOINTS or 0x601 <= m.arbitration_id <= 0x602], \
+        "a refused goal put a set-point or an SDO on the bus"
+
+
+def test_the_client_example_of_the_docs_runs(rig: Rig, tmp_path: Path) -> None:
+    """docs/ros.md's plain client, as a user would paste it into a file, against this graph."""
+    text = (REPO / "docs" / "ros.md").read_text()
+    found = re.search(r"<!-- example: follow_joint_trajectory client -->\n```py\n(.*?)^```", text, re.DOTALL | re.MULTILINE)
+    assert found, "docs/ros.md has the client example"
+    script = tmp_path / "client.py"
+    script.write_text(found.group(1))
+    run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]
+    assert "error_code 0" in run.stdout
+
+
+def test_an_unknown_joint_and_a_past_stamp_are_refused_with_their_codes(rig: Rig) -> None:
+    from action_msgs.msg import GoalStatus
+
+    unknown = half_sine(10.0, 1.0)
+    unknown.trajectory.joint_names = ["joint1", "knee"]
+    done = result_of(send(rig, unknown))
+    assert done.status == GoalStatus.STATUS_ABORTED
+    assert done.result.error_code == FollowJointTrajectory.Result.INVALID_JOINTS and "'knee'" in done.result.error_string
+    past = half_sine(10.0, 1.0)
+    now = rig.assembly.node.get_clock().now().nanoseconds
+    past.trajectory.header.stamp.sec = int(now // 10**9) - 10  # its 1 s ended 9 s ago
+    done = result_of(send(rig, past))
+    assert done.status == GoalStatus.STATUS_ABORTED
+    assert done.result.error_code == FollowJointTrajectory.Result.OLD_HEADER_TIMESTAMP, done.result.error_string
