@@ -15,6 +15,8 @@
       - {at_s: 13.0, node: 1, action: slow_ack, max_s: 0.004}
       - {at_s: 14.0, node: 1, action: load, nm: 0.05}      # a slope: motor-side load torque
       - {at_s: 15.0, node: 1, action: load, stall: true}   # the wheel jams: the shaft cannot turn
+      - {at_s: 16.0, node: 1, action: sdo_reset, at_writes: [15, 4]}  # resets at the 15th SDO write, again 4 later
+      - {at_s: 17.0, node: 1, action: sdo_reset, index: 0x1600, subindex: 0, answer: false}
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from virtual_can.sim import SimulatedDrive
 logger = logging.getLogger(__name__)
 
 ACTIONS = ("unplug", "plug", "power_cycle", "fault", "sto", "tpdos", "slow_enable", "slow_ack", "frames", "sdo",
-           "disconnect_clients", "load", "tx_dead", "guard_toggle_stuck", "heartbeat_deaf")
+           "disconnect_clients", "load", "tx_dead", "guard_toggle_stuck", "heartbeat_deaf", "sdo_reset")
 
 
 def _channel_faults(sim: SimService, step: Mapping[str, Any]) -> None:
@@ -46,13 +48,28 @@ def _channel_faults(sim: SimService, step: Mapping[str, Any]) -> None:
     chan.faults.corrupt = float(step.get("corrupt", 0.0))
 
 
+def _arm_sdo_reset(drive: SimulatedDrive, step: Mapping[str, Any]) -> None:
+    """The ``sdo_reset`` action: ``at_writes`` (a count, or counts each after the reset before),
+    or ``index`` (and ``subindex``); ``answer``: the write is answered before the reset;
+    ``bootup``: the boot-up frame goes out (False: it is lost). Given neither count nor index,
+    the armed resets are cleared."""
+    faults = drive.faults
+    at = step.get("at_writes", [])
+    faults.reset_at_writes = [int(n) for n in (at if isinstance(at, list) else [at])]
+    if any(n < 1 for n in faults.reset_at_writes):
+        raise ConfigError(f"sdo_reset at_writes {at!r}: each count is 1 or more (1: the next write)")
+    index, sub = step.get("index"), step.get("subindex")
+    faults.reset_at_object = (int(index), int(sub) if sub is not None else None) if index is not None else None
+    faults.reset_answers = bool(step.get("answer", True))
+    faults.reset_bootup = bool(step.get("bootup", True))
+    faults.reset_pending = False
+
+
 def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -> None:
     """One drive's fault switch, on its simulator's thread."""
     now = time.monotonic()
-    if action == "unplug":
-        drive.faults.unplugged = True
-    elif action == "plug":
-        drive.faults.unplugged = False
+    if action in ("unplug", "plug"):
+        drive.faults.unplugged = action == "unplug"
     elif action == "power_cycle":
         drive.power_cycle(now, float(step.get("off_s", 0.5)))
     elif action == "fault":
@@ -75,6 +92,8 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
         drive.faults.stalled = bool(step.get("stall", False))
     elif action == "sto":
         drive.faults.sto_low = bool(step.get("low", True))
+    elif action == "sdo_reset":  # it resets itself at the n-th SDO write from now, or at a write to an object
+        _arm_sdo_reset(drive, step)
     elif action == "sdo":
         drive.faults.sdo_delay_s = float(step.get("delay_s", 0.0))
         abort = step.get("abort")
