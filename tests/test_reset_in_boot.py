@@ -23,6 +23,7 @@ from can_config.errors import BootError
 from motor_driver import MotorDriver
 from motor_driver.cia402 import State
 from motor_driver.drive import Drive
+from motor_driver.drive.boot import configuration_stamp
 from motor_driver.pdo import mapping_writes
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -246,3 +247,8 @@ def test_a_reset_heard_as_the_boot_reports_its_end_is_configured_again(driver_fa
     drive.enable()
     assert sim_state(sim) is SimState.OPERATION_ENABLED
     assert_asked(pdo_objects(sim))
+
+
+def test_the_0x1020_stamp_counts_days_from_1984_and_ms_from_midnight() -> None:
+    assert configuration_stamp(441_763_200.0) == (0, 0)  # 1984-01-01 00:00:00 UTC
+    assert configuration_stamp(441_763_200.0 + 86_400 * 3 + 3_723.5) == (3, 3_723_500)

@@ -7,7 +7,7 @@ object a step is at (for its error), the boot-ups heard when a try began and its
 the unexpected failures of re-configuration in a row. Whether the drive is booted is the
 supervisor's: a boot reports its beginning and its end (:class:`motor_driver.runtime.Booting`, ``Booted``) and a
 failed re-configuration (``RebootFailed``), and goes on once the supervisor has taken it in.
-A drive is called booted only with its configuration confirmed (:meth:`Boot._confirm`): a
+A drive is called booted only with its configuration confirmed (:meth:`Boot._held`): a
 boot-up heard at any step, or objects that do not hold what was written, start the configuration
 again (:class:`motor_driver.runtime.BootRestarted`, at most BOOT_RESTARTS_MAX times). Tests
 hook in through the command channel's hook: ``boot: <step>`` before each step, ``boot: started``
@@ -132,16 +132,17 @@ class Boot:
         return f"it sent boot-up{during} (it reset)" if self._cache.bootups != self._bootups else ""
 
     def _boot_steps(self) -> tuple[tuple[str, Callable[[], str | None]], ...]:
-        """The steps of a boot in order, each named as a BootError names it; the last two read
-        what the others did, and say why the configuration must start again, or ''."""
+        """The steps of a boot in order, each named as a BootError names it. The last but two
+        reads back what the others wrote, the last starts the drive and reads its statusword:
+        each says why the configuration must start again, or ''."""
         return (("identity", self._check_identity), ("device type", self._check_device_type),
                 ("configuration stamp", self._write_stamp),
                 ("disarm", self._disarm), ("units", self._read_units), ("PDO mapping", self._write_pdo_mapping),
                 ("heartbeat", self._write_heartbeat), ("host watch", self._watch.configure),
                 ("position limits", self._write_position_limits), ("profile parameters", self._write_profile),
                 ("sdo settings", self._write_settings), ("operation mode", self._boot_mode),
-                ("read state", self._read_state), ("safety check", self._safety_check),
-                ("confirm configuration", self._confirm))
+                ("read state", self._read_state), ("confirm configuration", self._held),
+                ("safety check", self._safety_check), ("start", self._start_confirmed))
 
     def _at(self, index: int, subindex: int) -> None:
         """The object the boot step is at: a failure names it."""
@@ -272,7 +273,7 @@ class Boot:
     def _write_stamp(self) -> None:
         """Where the drive has 0x1020 (CiA 301 verify configuration) to write: a stamp, the
         configuration's date and time, written before any configuration and read back after it
-        (:meth:`_confirm`). A reset in between restores its saved value, which this stamp never
+        (:meth:`_held`). A reset in between restores its saved value, which this stamp never
         is (it differs from the value found here, after any reset of this boot)."""
         self._stamp = None
         if not all(writable(self._od, OD.VERIFY_CONFIGURATION, sub) for sub in (1, 2)):
@@ -287,16 +288,17 @@ class Boot:
             self._sdo.write_typed(OD.VERIFY_CONFIGURATION, sub, value)
         self._stamp = stamp
 
-    def _confirm(self) -> str:
+    def _held(self) -> str:
         """What the drive holds before it may ever be enabled: the stamp of 0x1020 where it has
-        one, else every PDO object this boot wrote, read back; then NMT start and its statusword,
-        read and decoded. A reset before the start cannot pass: it restored the stamp or the
-        PDO objects, or its boot-up came before these answers (:meth:`_reset_why`). After the
-        start a reset leaves it pre-operational, where no RPDO reaches it, until it is
-        configured again. '' or why the configuration must start again."""
-        why = self._stamp_kept() if self._stamp is not None else self._pdos_kept()
-        if why or (why := self._reset_why()):
-            return why
+        one, else every PDO object this boot wrote, read back. A reset since the stamp or the
+        PDO writes restored them, whether its boot-up was heard or not. '' or why not."""
+        return self._stamp_kept() if self._stamp is not None else self._pdos_kept()
+
+    def _start_confirmed(self) -> str:
+        """NMT start, then the statusword read and decoded. A reset before the start cannot
+        pass: its boot-up came before this answer (:meth:`_reset_why`, after the step). After
+        the start a reset leaves the drive pre-operational, where no RPDO reaches it, until it
+        is configured again. '' or why the configuration must start again."""
         self._send_nmt(NmtCommand.START)
         self._at(OD.STATUSWORD, 0)
         statusword = self._sdo.read_number(OD.STATUSWORD)
