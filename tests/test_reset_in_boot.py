@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from can_config import RoverConfig
-from can_config.errors import BootError
+from can_config.errors import BootError, ConfigError
 from motor_driver import MotorDriver
 from motor_driver.cia402 import State
 from motor_driver.drive import Drive
@@ -252,3 +252,10 @@ def test_a_reset_heard_as_the_boot_reports_its_end_is_configured_again(driver_fa
 def test_the_0x1020_stamp_counts_days_from_1984_and_ms_from_midnight() -> None:
     assert configuration_stamp(441_763_200.0) == (0, 0)  # 1984-01-01 00:00:00 UTC
     assert configuration_stamp(441_763_200.0 + 86_400 * 3 + 3_723.5) == (3, 3_723_500)
+
+
+def test_an_sdo_reset_at_write_0_is_refused_naming_the_range(
+        sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) -> None:
+    sim, _ = sim_factory(make_config(1))
+    with pytest.raises(ConfigError, match=r"sdo_reset at_writes \[3, 0\]: each count is 1 or more"):
+        apply_action(sim, {"action": "sdo_reset", "node": NODE, "at_writes": [3, 0]})
