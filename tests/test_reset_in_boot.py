@@ -170,6 +170,16 @@ def test_a_drive_that_keeps_resetting_is_a_boot_error_naming_it(
         driver.start()
 
 
+def test_a_drive_whose_statusword_shows_no_state_is_not_booted(
+        sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) -> None:
+    sim, cfg = sim_factory(make_config(1))
+    simulator = sim.simulator_for(NODE)
+    simulator.call(lambda: setattr(simulator.drive(NODE).faults, "garbled_statusword", True))
+    with pytest.raises(BootError, match=r"node 1 \(joint1\): configured 9 times.*its statusword after NMT start,"
+                                        r" 0x0201, is no CiA 402 state.*its firmware"), MotorDriver(cfg) as driver:
+        driver.start()
+
+
 def test_an_unexpected_error_in_a_reconfiguration_is_logged_counted_and_retried(
         driver_factory: Factory, caplog: pytest.LogCaptureFixture) -> None:
     sim, driver = driver_factory(make_config(1))

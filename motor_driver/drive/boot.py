@@ -83,9 +83,10 @@ class Boot:
             restarts += 1
             if restarts > BOOT_RESTARTS_MAX:
                 raise BootError(f"node {self.node_id} ({self.name}): configured {restarts} times, and each time"
-                                f" it did not hold (the last: {why}). It keeps resetting: check its supply (a"
-                                " brown-out), its own watchdog and error history (0x1003), and that no other tool"
-                                " sends it NMT reset. It is left unconfigured and is not enabled.",
+                                f" it did not hold (the last: {why}). A drive that keeps resetting: check its supply"
+                                " (a brown-out), its own watchdog and error history (0x1003), and that no other tool"
+                                " sends it NMT reset; one that does not keep what is written or shows no CiA 402"
+                                " state: its firmware and its EDS. It is left unconfigured and is not enabled.",
                                 node_id=self.node_id, step="confirm configuration")
             logger.warning("node %d (%s): %s; configuring it again from the start (%d of at most %d)",
                            self.node_id, self.name, why, restarts, BOOT_RESTARTS_MAX)

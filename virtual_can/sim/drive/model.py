@@ -213,4 +213,5 @@ class Faults:
     reset_answers: bool = True  # the write that resets it is answered first (False: the answer is lost)
     reset_bootup: bool = True  # it sends its boot-up after that reset (False: the frame is lost)
     reset_pending: bool = False  # a write asked for the reset: it follows that write's answer
+    garbled_statusword: bool = False  # its statusword's state bits show no CiA 402 state (broken firmware)
     pending: list[int] = field(default_factory=list)  # EMCY codes to raise at the next tick
