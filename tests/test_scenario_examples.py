@@ -56,7 +56,8 @@ def _copy(drive: SimulatedDrive) -> dict[str, Any]:
             "sto_low": faults.sto_low, "sdo_delay_s": faults.sdo_delay_s, "force_abort": drive.sdo.force_abort,
             "enable_step_delay_s": faults.enable_step_delay_s, "ack_delay_max_s": faults.ack_delay_max_s,
             "stalled": faults.stalled, "load_nm": drive.params.load_nm, "off": faults.power_off_until > 0,
-            "statusword": drive.statusword}
+            "statusword": drive.statusword, "reset_at_writes": list(faults.reset_at_writes),
+            "reset_at_object": faults.reset_at_object, "reset_answers": faults.reset_answers}
 
 
 #: What each action's step must leave in the model: a check of (model, step).
@@ -76,6 +77,9 @@ EFFECTS: dict[str, Callable[[Any, dict[str, Any]], bool]] = {
     "tx_dead": lambda m, s: m["tx_dead"] is s["on"],
     "heartbeat_deaf": lambda m, s: m["heartbeat_deaf"] is s["on"],
     "guard_toggle_stuck": lambda m, s: m["guard_toggle_stuck"] is s["on"],
+    "sdo_reset": lambda m, s: (m["reset_at_writes"] == list(s.get("at_writes", []))
+                               and m["reset_at_object"] == ((s["index"], s.get("subindex")) if "index" in s else None)
+                               and m["reset_answers"] == s.get("answer", True)),
 }
 
 

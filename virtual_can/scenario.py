@@ -22,6 +22,8 @@
       - {at_s: 19.0, node: 1, action: heartbeat_deaf, on: false}
       - {at_s: 20.0, node: 1, action: guard_toggle_stuck, on: true}
       - {at_s: 21.0, node: 1, action: guard_toggle_stuck, on: false}
+      - {at_s: 16.0, node: 1, action: sdo_reset, at_writes: [15, 4]}  # resets at the 15th SDO write, again 4 later
+      - {at_s: 17.0, node: 1, action: sdo_reset, index: 0x1600, subindex: 0, answer: false}
 
 A scenario's keys are read as written: only ``true`` and ``false`` are booleans (YAML 1.2), so
 ``on`` and ``off`` (YAML 1.1's booleans, which PyYAML reads as such) are plain words here and
@@ -62,9 +64,11 @@ ACTION_KEYS: dict[str, dict[str, type]] = {
     "frames": {"channel": str, "drop": float, "delay": float, "delay_s": float, "corrupt": float},
     "sdo": {**_DRIVE, "delay_s": float, "abort": int}, "disconnect_clients": {},
     "load": {**_DRIVE, "nm": float, "stall": bool}, "tx_dead": _SWITCH, "guard_toggle_stuck": _SWITCH,
-    "heartbeat_deaf": _SWITCH}
+    "heartbeat_deaf": _SWITCH,
+    "sdo_reset": {**_DRIVE, "at_writes": list, "index": int, "subindex": int, "answer": bool, "bootup": bool}}
 ACTIONS = tuple(ACTION_KEYS)
-_KIND_NAMES = {float: "a number", int: "a whole number", bool: "true or false", str: "a name"}
+_KIND_NAMES = {float: "a number", int: "a whole number", bool: "true or false", str: "a name",
+               list: "a whole number or a list of them"}
 
 
 def _is_kind(value: object, kind: type) -> bool:
@@ -72,6 +76,8 @@ def _is_kind(value: object, kind: type) -> bool:
         return kind is bool
     if kind is float:
         return isinstance(value, (int, float))
+    if kind is list:  # one count or several
+        return all(isinstance(v, int) and not isinstance(v, bool) for v in (value if isinstance(value, list) else [value]))
     return isinstance(value, kind)
 
 
@@ -126,13 +132,28 @@ def _channel_faults(sim: SimService, step: Mapping[str, Any]) -> None:
     chan.faults.corrupt = float(step.get("corrupt", 0.0))
 
 
+def _arm_sdo_reset(drive: SimulatedDrive, step: Mapping[str, Any]) -> None:
+    """The ``sdo_reset`` action: ``at_writes`` (a count, or counts each after the reset before),
+    or ``index`` (and ``subindex``); ``answer``: the write is answered before the reset;
+    ``bootup``: the boot-up frame goes out (False: it is lost). Given neither count nor index,
+    the armed resets are cleared."""
+    faults = drive.faults
+    at = step.get("at_writes", [])
+    faults.reset_at_writes = [int(n) for n in (at if isinstance(at, list) else [at])]
+    if any(n < 1 for n in faults.reset_at_writes):
+        raise ConfigError(f"sdo_reset at_writes {at!r}: each count is 1 or more (1: the next write)")
+    index, sub = step.get("index"), step.get("subindex")
+    faults.reset_at_object = (int(index), int(sub) if sub is not None else None) if index is not None else None
+    faults.reset_answers = bool(step.get("answer", True))
+    faults.reset_bootup = bool(step.get("bootup", True))
+    faults.reset_pending = False
+
+
 def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -> None:
     """One drive's fault switch, on its simulator's thread."""
     now = time.monotonic()
-    if action == "unplug":
-        drive.faults.unplugged = True
-    elif action == "plug":
-        drive.faults.unplugged = False
+    if action in ("unplug", "plug"):
+        drive.faults.unplugged = action == "unplug"
     elif action == "power_cycle":
         drive.power_cycle(now, float(step.get("off_s", 0.5)))
     elif action == "fault":
@@ -155,6 +176,8 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
         drive.faults.stalled = bool(step.get("stall", False))
     elif action == "sto":
         drive.faults.sto_low = bool(step.get("low", True))
+    elif action == "sdo_reset":  # it resets itself at the n-th SDO write from now, or at a write to an object
+        _arm_sdo_reset(drive, step)
     elif action == "sdo":
         drive.faults.sdo_delay_s = float(step.get("delay_s", 0.0))
         abort = step.get("abort")

@@ -4,9 +4,16 @@ Owner: the bus's worker (or the caller of :meth:`Boot.boot`), while the drive is
 nothing else commands it meanwhile (the cache says not booted, so every command is refused).
 Its own state: the safety check's result, the boot count, the host-loss stops it found, the
 object a step is at (for its error), the unit objects the drive reported (replaced whole at each
-boot; the flight recorder reads them for its incidents). Whether the drive is booted is the supervisor's: a boot
-reports its beginning and its end (:class:`motor_driver.drive.ledger.Booting`, ``Booted``) and a
+boot; the flight recorder reads them for its incidents), the boot-ups heard when a try began and
+its 0x1020 stamp, the unexpected failures of re-configuration in a row. Whether the drive is
+booted is the supervisor's: a boot reports its beginning and its end
+(:class:`motor_driver.drive.ledger.Booting`, ``Booted``) and a
 failed re-configuration (``RebootFailed``), and goes on once the supervisor has taken it in.
+A drive is called booted only with its configuration confirmed (:meth:`Boot._held`): a
+boot-up heard at any step, or objects that do not hold what was written, start the configuration
+again (:class:`motor_driver.drive.ledger.BootRestarted`, at most BOOT_RESTARTS_MAX times). Tests
+hook in through the command channel's hook: ``boot: <step>`` before each step, ``boot: started``
+before the Booted report.
 Each step reads or writes by SDO through the drive's SDO port; what the steps read (statusword,
 position, mode, units) is handed to the state cache and the command channel through their
 methods, in one place at the end.
@@ -21,14 +28,22 @@ from collections.abc import Callable
 from pathlib import Path
 
 import can
+from canopen.objectdictionary import ObjectDictionary
 
 from can_config.config import GENERIC_EDS
 from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import BootError, BusLostError, DriveStateError, DriveTimeoutError, MotorError, SdoError, UnitError
 from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
-from motor_driver.drive.constants import HOST_LOSS_CHECK_WAIT_S, REBOOT_RETRY_S, STATE_POLL_S, TRANSITION_TIMEOUT_S
+from motor_driver.drive.constants import (
+    BOOT_RESTARTS_MAX,
+    HOST_LOSS_CHECK_WAIT_S,
+    REBOOT_BACKOFF_MAX_S,
+    REBOOT_RETRY_S,
+    STATE_POLL_S,
+    TRANSITION_TIMEOUT_S,
+)
 from motor_driver.drive.hostwatch import HostWatch
-from motor_driver.drive.ledger import Booted, Booting, RebootFailed, RuntimePort
+from motor_driver.drive.ledger import Booted, Booting, BootRestarted, RebootFailed, RuntimePort
 from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.protocol.cia402 import SW, Command, State, decode_state
@@ -56,35 +71,82 @@ class Boot:
         self._boot_object = (0, 0)  # the object the running boot step is at (for its error)
         self._mode = 0  # the mode the boot left the drive in (0x6061)
         self.unit_objects: dict[tuple[int, int], int] = {}  # what the drive reported at the last boot
+        self._bootups = 0  # the drive's boot-ups heard when the running try began
+        self._stamp: tuple[int, int] | None = None  # 0x1020 as the running try wrote it (None: not written)
+        self._unexpected_in_row = 0  # re-configurations that failed unexpectedly, in a row (the back-off)
 
     def boot(self, *, reset: bool = True) -> None:
-        """Reset (NMT), check identity, configure PDOs and parameters, NMT start. Does not enable."""
+        """Reset (NMT), check identity, configure PDOs and parameters, confirm them, NMT start.
+        Does not enable. A drive that resets during it (a boot-up heard, at any step) or does
+        not hold what was written is configured again from the start (without an NMT reset when
+        it has just reset itself), at most BOOT_RESTARTS_MAX times; then a BootError."""
         self._port.report(Booting(self.name))
+        restarts = 0
+        while why := self._configure(reset):
+            restarts += 1
+            if restarts > BOOT_RESTARTS_MAX:
+                raise BootError(f"node {self.node_id} ({self.name}): configured {restarts} times, and each time"
+                                f" it did not hold (the last: {why}). A drive that keeps resetting: check its supply"
+                                " (a brown-out), its own watchdog and error history (0x1003), and that no other tool"
+                                " sends it NMT reset; one that does not keep what is written or shows no CiA 402"
+                                " state: its firmware and its EDS. It is left unconfigured and is not enabled.",
+                                node_id=self.node_id, step="confirm configuration")
+            logger.warning("node %d (%s): %s; configuring it again from the start (%d of at most %d)",
+                           self.node_id, self.name, why, restarts, BOOT_RESTARTS_MAX)
+            self._port.report(BootRestarted(self.name, why))
+            reset = self._cache.bootups == self._bootups  # it reset itself: it is fresh already
+
+    def _configure(self, reset: bool) -> str:
+        """One try: '' once the drive is started with its configuration confirmed, else why it
+        must be configured again."""
         self._power.forget_modes()  # a replaced drive may support other modes
         if reset:
             self._reset_node()
+        self._bootups = self._cache.bootups  # a boot-up numbered above this is a reset during the try
         self._boot_object = (OD.IDENTITY, 1)
         for step, run in self._boot_steps():
-            try:
-                run()
-            except BootError:
-                raise
-            except (SdoError, DriveStateError) as err:
-                index, sub = self._boot_object
-                raise BootError(f"node {self.node_id} ({self.name}): boot step '{step}' failed at"
-                                f" 0x{index:04X}:{sub}: {err}", node_id=self.node_id, step=step, index=index,
-                                subindex=sub, abort_code=getattr(err, "abort_code", None)) from err
-        self._safety_check()
-        self._start()
+            if why := self._run_step(step, run):
+                return why
+        self._started()
+        return ""
 
-    def _boot_steps(self) -> tuple[tuple[str, Callable[[], None]], ...]:
-        """The steps of a boot in order, each named as a BootError names it."""
+    def _run_step(self, step: str, run: Callable[[], str | None]) -> str:
+        """One step: '' or why the configuration must start again (what the step found, or a
+        boot-up heard by the end of it). A step that failed after the drive reset is that reset;
+        any other failure is a BootError naming the step and the object."""
+        self._channel.point(f"boot: {step}")
+        try:
+            why = run()
+        except MotorError as err:
+            if reset := self._reset_why():
+                return f"{reset} during boot step '{step}', which then failed ({err})"
+            if isinstance(err, BootError) or not isinstance(err, (SdoError, DriveStateError)):
+                raise
+            index, sub = self._boot_object
+            raise BootError(f"node {self.node_id} ({self.name}): boot step '{step}' failed at"
+                            f" 0x{index:04X}:{sub}: {err}", node_id=self.node_id, step=step, index=index,
+                            subindex=sub, abort_code=getattr(err, "abort_code", None)) from err
+        return why or self._reset_why(f" during boot step '{step}'")
+
+    def _reset_why(self, during: str = "") -> str:
+        """A boot-up heard since the try began: the drive reset and its objects are back to their
+        defaults. The receive thread counts boot-ups in the order frames come, and a drive sends
+        its boot-up before it answers anything after its reset: a step's SDO answer seen here
+        comes with every boot-up sent before it."""
+        return f"it sent boot-up{during} (it reset)" if self._cache.bootups != self._bootups else ""
+
+    def _boot_steps(self) -> tuple[tuple[str, Callable[[], str | None]], ...]:
+        """The steps of a boot in order, each named as a BootError names it. The last but two
+        reads back what the others wrote, the last starts the drive and reads its statusword:
+        each says why the configuration must start again, or ''."""
         return (("identity", self._check_identity), ("device type", self._check_device_type),
+                ("configuration stamp", self._write_stamp),
                 ("disarm", self._disarm), ("units", self._read_units), ("PDO mapping", self._write_pdo_mapping),
                 ("heartbeat", self._write_heartbeat), ("host watch", self._watch.configure),
                 ("position limits", self._write_position_limits), ("profile parameters", self._write_profile),
                 ("sdo settings", self._write_settings), ("operation mode", self._boot_mode),
-                ("read state", self._read_state))
+                ("read state", self._read_state), ("confirm configuration", self._held),
+                ("safety check", self._safety_check), ("start", self._start_confirmed))
 
     def _at(self, index: int, subindex: int) -> None:
         """The object the boot step is at: a failure names it."""
@@ -212,11 +274,71 @@ class Boot:
                 logger.error("node %d (%s): safety check failed: %s: %s is %s, expected %s", self.node_id,
                              self.name, check.check, check.object, check.actual, check.expected)
 
-    def _start(self) -> None:
-        """NMT start: the drive is booted (not enabled)."""
+    def _write_stamp(self) -> None:
+        """Where the drive has 0x1020 (CiA 301 verify configuration) to write: a stamp, the
+        configuration's date and time, written before any configuration and read back after it
+        (:meth:`_held`). A reset in between restores its saved value, which this stamp never
+        is (it differs from the value found here, after any reset of this boot)."""
+        self._stamp = None
+        if not all(writable(self._od, OD.VERIFY_CONFIGURATION, sub) for sub in (1, 2)):
+            return
+        self._at(OD.VERIFY_CONFIGURATION, 1)
+        found = (self._sdo.read_int(OD.VERIFY_CONFIGURATION, 1), self._sdo.read_int(OD.VERIFY_CONFIGURATION, 2))
+        stamp = configuration_stamp(time.time())
+        if stamp == found:
+            stamp = (stamp[0], (stamp[1] + 1) % MS_PER_DAY)
+        for sub, value in zip((1, 2), stamp, strict=True):
+            self._at(OD.VERIFY_CONFIGURATION, sub)
+            self._sdo.write_typed(OD.VERIFY_CONFIGURATION, sub, value)
+        self._stamp = stamp
+
+    def _held(self) -> str:
+        """What the drive holds before it may ever be enabled: the stamp of 0x1020 where it has
+        one, else every PDO object this boot wrote, read back. A reset since the stamp or the
+        PDO writes restored them, whether its boot-up was heard or not. '' or why not."""
+        return self._stamp_kept() if self._stamp is not None else self._pdos_kept()
+
+    def _start_confirmed(self) -> str:
+        """NMT start, then the statusword read and decoded. A reset before the start cannot
+        pass: its boot-up came before this answer (:meth:`_reset_why`, after the step). After
+        the start a reset leaves the drive pre-operational, where no RPDO reaches it, until it
+        is configured again. '' or why the configuration must start again."""
         self._send_nmt(NmtCommand.START)
+        self._at(OD.STATUSWORD, 0)
+        statusword = self._sdo.read_number(OD.STATUSWORD)
+        if decode_state(statusword) == State.UNKNOWN:
+            return f"its statusword after NMT start, 0x{statusword:04X}, is no CiA 402 state"
+        self._cache.note_statusword(statusword)
+        return ""
+
+    def _stamp_kept(self) -> str:
+        self._at(OD.VERIFY_CONFIGURATION, 1)
+        held = (self._sdo.read_int(OD.VERIFY_CONFIGURATION, 1), self._sdo.read_int(OD.VERIFY_CONFIGURATION, 2))
+        if held == self._stamp:
+            return ""
+        return (f"0x1020 (verify configuration) holds {held[0]}/{held[1]}, not the stamp {self._stamp[0]}/"  # type: ignore[index]
+                f"{self._stamp[1]} written before its configuration (it reset)")  # type: ignore[index]
+
+    def _pdos_kept(self) -> str:
+        """Every PDO object this boot wrote, read back by SDO against the last value written."""
+        wanted: dict[tuple[int, int], tuple[bytes, str]] = {}
+        for index, sub, data, what in mapping_writes(self._plan):
+            var = variable(self._od, index, sub)
+            if var is None or var.access_type not in ("ro", "const"):  # as _write_pdo_mapping
+                wanted[(index, sub)] = (data, what)
+        for (index, sub), (data, what) in wanted.items():
+            self._at(index, sub)
+            held = int.from_bytes(self._sdo.read(index, sub), "little")
+            if held != int.from_bytes(data, "little"):
+                return (f"it does not hold its PDO configuration: 0x{index:04X}:{sub} ({what}) reads 0x{held:X},"
+                        f" 0x{int.from_bytes(data, 'little'):X} was written")
+        return ""
+
+    def _started(self) -> None:
+        """The drive is started with its configuration confirmed: booted (not enabled)."""
         self._cache.note_started()
-        self._port.report(Booted(self.name))
+        self._channel.point("boot: started")
+        self._port.report(Booted(self.name, self._bootups))
         self.boot_count += 1  # after: a caller that sees the count sees the drive booted
         logger.info("node %d (%s) booted: %d RPDOs, %d TPDOs%s", self.node_id, self.name,
                     len(self._plan.rpdos), len(self._plan.tpdos),
@@ -370,14 +492,45 @@ class Boot:
 
     def reconfigure(self) -> None:
         """Bus worker: configure a drive that reset or power-cycled (boot-up seen) again; enable
-        it again only when it was enabled and the config says ``restore_enable_after_reboot``."""
-        restore = self._channel.was_enabled and self.config.restore_enable_after_reboot
-        self._channel.forget_commanded()
+        it again only when it was enabled and the config says ``restore_enable_after_reboot``.
+        A failure is reported, and the supervisor hands it over again: a drive's or a bus's error
+        after REBOOT_RETRY_S; anything else (a fault of this driver's) is logged with its cause and
+        tried again after a back-off doubling up to REBOOT_BACKOFF_MAX_S. It never ends the
+        re-configuration for good."""
         try:
+            restore = self._channel.was_enabled and self.config.restore_enable_after_reboot
+            self._channel.forget_commanded()
             self.boot(reset=self._wake_stopped())
             if restore and not self._channel.closed:
                 self._power.enable()
         except MotorError as err:
+            self._unexpected_in_row = 0
             logger.error("%s: re-configuration after a reset failed: %s; retrying in %g s", self.name, err,
                          REBOOT_RETRY_S)
-            self._port.report(RebootFailed(self.name, REBOOT_RETRY_S))  # the supervisor hands it over again
+            self._port.report(RebootFailed(self.name, REBOOT_RETRY_S, str(err)))
+        except Exception as err:
+            retry_s = min(REBOOT_RETRY_S * 2**self._unexpected_in_row, REBOOT_BACKOFF_MAX_S)
+            self._unexpected_in_row += 1
+            logger.error("%s: re-configuration after a reset failed unexpectedly (%s: %s; %d in a row); retrying"
+                         " in %g s", self.name, type(err).__name__, err, self._unexpected_in_row, retry_s,
+                         exc_info=self._unexpected_in_row == 1)  # the traceback once, not at each retry
+            self._port.report(RebootFailed(self.name, retry_s, f"{type(err).__name__}: {err}"))
+        else:
+            self._unexpected_in_row = 0
+
+
+#: CiA 301 dates count days from 1984-01-01 (the Unix time of its start, in days).
+EPOCH_1984_DAYS = 5113
+MS_PER_DAY = 86_400_000
+
+
+def configuration_stamp(unix_s: float) -> tuple[int, int]:
+    """0x1020's date (days since 1984-01-01) and time (ms after midnight) of ``unix_s``."""
+    days, rest_s = divmod(unix_s, 86_400.0)
+    return int(days) - EPOCH_1984_DAYS, int(rest_s * 1000) % MS_PER_DAY
+
+
+def writable(od: ObjectDictionary, index: int, subindex: int) -> bool:
+    """The EDS lists the object, writable by SDO."""
+    var = variable(od, index, subindex)
+    return var is not None and "w" in var.access_type

@@ -20,6 +20,12 @@ TRANSITION_TIMEOUT_S = 1.0
 MODE_SWITCH_TIMEOUT_S = 1.0
 STATE_POLL_S = 0.002
 REBOOT_RETRY_S = 0.5
+#: A re-configuration that failed unexpectedly (not a drive's or a bus's error: a bug) is tried
+#: again after REBOOT_RETRY_S, doubled at each failure in a row up to this.
+REBOOT_BACKOFF_MAX_S = 8.0
+#: A boot starts its configuration again when the drive reset during it (a boot-up heard), or
+#: does not hold what was written, at most this many times; then it is a BootError.
+BOOT_RESTARTS_MAX = 8
 #: How long a command waits for the command channel before it is refused. The channel's lock is
 #: held only to decide and send one frame (never an SDO or a wait), so this bounds a hang, not
 #: a queue: a few frames and a thread switch of the interpreter (5 ms) fit many times. An

@@ -7,8 +7,8 @@ Owner: the :class:`motor_driver.runtime.supervisor.Supervisor`, on its thread, a
 module assigns their fields). Every other thread reads them and hands the supervisor what it
 found instead: the receive thread posts each heartbeat that may change a judgement
 (:class:`Heard`, without waiting), a boot or a reconnect on the bus's worker reports its result
-(:class:`Booting`, :class:`Booted`, :class:`RebootFailed`, :class:`BusBack`, :class:`BusDown`)
-and waits until the supervisor has applied it.
+(:class:`Booting`, :class:`Booted`, :class:`BootRestarted`, :class:`RebootFailed`, :class:`BusBack`,
+:class:`BusDown`) and waits until the supervisor has applied it.
 
 :class:`NmtLedger` is the one way an NMT command leaves for a drive: it sends and remembers the
 command and when, so that a state the driver caused (its own NMT stop of a lost drive, taking
@@ -54,6 +54,13 @@ class DriveRuntime:
         self.forget_pending = False  # the channel was busy: commanded state forgotten next period
         self.next_guard = 0.0  # node guarding: the next guard
         self.host_loss_seen = 0  # host-loss stops already reported
+        #: the drive's boot-ups (DriveCache.bootups) its last configuration accounted for: one
+        #: numbered above is a reset since, never history
+        self.bootups_confirmed = 0
+        self.boot_restarts = 0  # configurations started again: it reset in one, or did not hold what was written
+        self.boot_restart_why = ""  # ... the newest reason
+        self.reconfigure_failures = 0  # re-configurations that failed (each retried)
+        self.reconfigure_error = ""  # ... the newest one's error
 
 
 class BusRuntime:
@@ -83,12 +90,14 @@ class BusRuntime:
 @dataclass(frozen=True)
 class Heard:
     """The receive thread: a heartbeat (or guard answer) of ``drive`` in NMT ``state``;
-    ``was`` is the state the drive said before it."""
+    ``was`` is the state the drive said before it; ``bootups``: the drive's boot-ups heard so far,
+    this one included."""
 
     drive: str
     state: int
     was: str
     at: float
+    bootups: int = 0
 
 
 @dataclass(frozen=True)
@@ -100,17 +109,30 @@ class Booting:
 
 @dataclass(frozen=True)
 class Booted:
-    """A boot of ``drive`` ended with NMT start."""
+    """A boot of ``drive`` ended with NMT start, its configuration confirmed with the drive's
+    boot-ups (:attr:`motor_driver.drive.state.DriveCache.bootups`) at ``bootups``: a boot-up heard
+    beyond them is a reset since."""
 
     drive: str
+    bootups: int = 0
+
+
+@dataclass(frozen=True)
+class BootRestarted:
+    """A boot of ``drive`` starts its configuration again (``why``: it reset meanwhile, or it
+    does not hold what was written)."""
+
+    drive: str
+    why: str
 
 
 @dataclass(frozen=True)
 class RebootFailed:
-    """A re-configuration of ``drive`` failed: tried again after ``retry_s``."""
+    """A re-configuration of ``drive`` failed (``error``): tried again after ``retry_s``."""
 
     drive: str
     retry_s: float
+    error: str = ""
 
 
 @dataclass(frozen=True)
@@ -131,7 +153,7 @@ class BusDown:
     why: str
 
 
-Event = Heard | Booting | Booted | RebootFailed | BusBack | BusDown
+Event = Heard | Booting | Booted | BootRestarted | RebootFailed | BusBack | BusDown
 
 
 class RuntimePort:

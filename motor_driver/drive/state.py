@@ -85,6 +85,7 @@ class DriveCache:
         self.nmt_state = "UNKNOWN"
         self.reported_nmt = "UNKNOWN"
         self._bootup_at = 0.0
+        self.bootups = 0  # boot-ups heard: one numbered above what a configuration began with is a reset in it
         self._operational_at = 0.0
         self.last_heartbeat = 0.0
         self._last_emcy: Emcy | None = None
@@ -292,8 +293,9 @@ class DriveCache:
         if state == NmtState.BOOTUP:
             self.nmt_state = self.reported_nmt = "BOOTUP"
             self._bootup_at = now
+            self.bootups += 1
             self._bootup.set()
-            self._port.post(Heard(self.name, state, was, now))
+            self._port.post(Heard(self.name, state, was, now, self.bootups))
             return
         try:
             self.nmt_state = NmtState(state).name

@@ -37,6 +37,7 @@ from motor_driver.drive.constants import REBOOT_RETRY_S
 from motor_driver.drive.ledger import (
     Booted,
     Booting,
+    BootRestarted,
     DriveRuntime,
     Event,
     Heard,
@@ -215,31 +216,52 @@ class Supervisor:
     def _apply(self, event: Event, now: float) -> None:
         if isinstance(event, Heard):
             self._heard(event)
+        elif isinstance(event, BootRestarted):
+            runtime = self.runtimes[event.drive]
+            runtime.boot_restarts += 1
+            runtime.boot_restart_why = event.why
         elif isinstance(event, (Booting, Booted, RebootFailed)):
             runtime = self.runtimes[event.drive]
             runtime.booted = isinstance(event, Booted)
             if isinstance(event, Booted):
-                runtime.lost, runtime.lost_since, runtime.reboot_wanted = False, 0.0, False
-                runtime.booted_at = now
+                self._booted(event, runtime, now)
             elif isinstance(event, Booting):
                 runtime.reboot_wanted = False
             else:
                 runtime.reboot_wanted, runtime.reboot_at = True, now + event.retry_s
+                runtime.reconfigure_failures += 1
+                runtime.reconfigure_error = event.error
         else:
             self.bus.bus_event(event, now)
+
+    def _booted(self, event: Booted, runtime: DriveRuntime, now: float) -> None:
+        """A boot ended. A boot-up heard after the boot's last look (its report was on its way) is
+        a reset that undid the configuration: not booted, configured again."""
+        runtime.lost, runtime.lost_since, runtime.reboot_wanted = False, 0.0, False
+        runtime.booted_at = now
+        runtime.bootups_confirmed = event.bootups
+        drive = self.drives.get(event.drive)
+        if drive is not None and drive.cache.bootups > event.bootups:
+            why = "it sent boot-up as its boot ended"
+            logger.warning("node %d (%s): %s: it reset; it will be configured again", drive.node_id, drive.name, why)
+            runtime.boot_restarts += 1
+            runtime.boot_restart_why = why
+            self._configure_again(runtime)
 
     def _heard(self, event: Heard) -> None:
         """A heartbeat the receive thread posted: a boot-up, a lost drive heard again, or a change of
         NMT state, this driver's doing (an NMT command it sent asks for it) or another master's."""
         drive, runtime = self.drives[event.drive], self.runtimes[event.drive]
-        if event.at <= runtime.booted_at:
-            return  # heard before the boot that followed it ended (posted while the supervisor was not running)
         if event.state == NmtState.BOOTUP:
-            if runtime.booted:
+            # one the last configuration accounted for is history; one during a boot is the boot's
+            # to see (it starts its configuration again), or this thread's when its Booted comes
+            if event.bootups > runtime.bootups_confirmed and runtime.booted:
                 logger.warning("node %d (%s) sent boot-up: it power-cycled or reset; it will be configured again",
                                drive.node_id, drive.name)
                 self._configure_again(runtime)
             return
+        if event.at <= runtime.booted_at:
+            return  # heard before the boot that followed it ended (posted while the supervisor was not running)
         name = drive.cache.nmt_state if event.state != NmtState.OPERATIONAL else "OPERATIONAL"
         if runtime.lost and runtime.booted:
             if event.state == NmtState.OPERATIONAL:

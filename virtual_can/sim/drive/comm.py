@@ -138,6 +138,7 @@ class CommNode(Plant):
         logger.info("node %d: %d parameters saved (0x1010:%d)", self.node_id, kept, subindex)
 
     def _on_sdo_write(self, index: int, subindex: int) -> None:
+        self._count_write_for_reset(index, subindex)
         if 0x1600 <= index <= 0x17FF or 0x1A00 <= index <= 0x1BFF:
             self._check_mapping_write(index, subindex)
             self._rebuild_pdos()
@@ -248,7 +249,25 @@ class CommNode(Plant):
     def _sdo(self, data: bytes) -> list[can.Message]:
         self.counters["sdo"] += 1
         resp = self.sdo.handle(data)
-        return [self._msg(FunctionCode.SDO_TX + self.node_id, resp)] if resp is not None else []
+        out = [self._msg(FunctionCode.SDO_TX + self.node_id, resp)] if resp is not None else []
+        if self.faults.reset_pending:  # fault injection: it resets after (or instead of) answering
+            self.faults.reset_pending = False
+            logger.warning("node %d: resets itself at an SDO write (fault injection)", self.node_id)
+            return (out if self.faults.reset_answers else []) + self._reset_node(self._now, self.faults.reset_bootup)
+        return out
+
+    def _count_write_for_reset(self, index: int, subindex: int) -> None:
+        """Fault injection: is this SDO write the one the drive resets at (Faults.reset_at_*)?"""
+        faults = self.faults
+        at = faults.reset_at_object
+        if at is not None and at[0] == index and at[1] in (None, subindex):
+            faults.reset_at_object = None
+            faults.reset_pending = True
+        if faults.reset_at_writes:
+            faults.reset_at_writes[0] -= 1
+            if faults.reset_at_writes[0] <= 0:
+                faults.reset_at_writes.pop(0)
+                faults.reset_pending = True
 
     def _on_nmt(self, data: bytes, now: float) -> list[can.Message]:
         if len(data) != 2 or data[1] not in (0, self.node_id):

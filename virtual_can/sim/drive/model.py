@@ -205,4 +205,13 @@ class Faults:
     power_off_until: float = 0.0
     stalled: bool = False  # the shaft is blocked (a wheel jammed against a rock): it cannot turn
     cw_per_cycle: bool = False  # event RPDOs taken once per cycle, the last of each (many drives)
+    #: it resets itself (NMT reset node: objects back to their saved or EDS values, boot-up) at the
+    #: n-th SDO write from when this is set, then at the n-th write after that reset for the next
+    #: entry, and so on (a brown-out or a watchdog in the middle of a master's configuration)
+    reset_at_writes: list[int] = field(default_factory=list)
+    reset_at_object: tuple[int, int | None] | None = None  # ... or at the next write to (index, sub; None: any)
+    reset_answers: bool = True  # the write that resets it is answered first (False: the answer is lost)
+    reset_bootup: bool = True  # it sends its boot-up after that reset (False: the frame is lost)
+    reset_pending: bool = False  # a write asked for the reset: it follows that write's answer
+    garbled_statusword: bool = False  # its statusword's state bits show no CiA 402 state (broken firmware)
     pending: list[int] = field(default_factory=list)  # EMCY codes to raise at the next tick

@@ -145,6 +145,8 @@ class StateMachine(ErrorStack):
             sw |= self._mode_status_bits(self.mode)
         if self.following_since is not None:
             sw |= SW_WARNING
+        if self.faults.garbled_statusword:  # bits 0-3, 5, 6: "ready to switch on" alone is no state
+            sw = (sw & ~0x6F) | 0x01
         self.store.values[(OD.STATUSWORD, 0)] = sw
 
     def _pp_status_bits(self) -> int:
