@@ -63,6 +63,8 @@ class Condition(Enum):
 PRECEDENCE = (Condition.ANOTHER_MASTER, Condition.LOST, Condition.REBOOTING, Condition.NOT_CONFIGURED,
               Condition.LATE, Condition.FAULTED, Condition.OUT, Condition.STOPPED_ITSELF, Condition.NOT_ARMED,
               Condition.USABLE)
+#: Conditions in which a drive cannot hear or answer this driver: every command is refused.
+UNREACHABLE = frozenset({Condition.ANOTHER_MASTER, Condition.LOST, Condition.REBOOTING, Condition.NOT_CONFIGURED})
 #: What /arm (enable every drive) helps with.
 ARM = "/arm enables it again"
 
@@ -114,7 +116,7 @@ class Verdict:
         return f"{self.name}: {self.cause}" + (f"; {self.helps}" if self.helps else "")
 
 
-_NOT_MEASURED = frozenset({Condition.LOST, Condition.LATE, Condition.REBOOTING, Condition.NOT_CONFIGURED})
+_NOT_MEASURED = (UNREACHABLE - {Condition.ANOTHER_MASTER}) | {Condition.LATE}
 
 
 def ms(age_s: float) -> str:
@@ -136,7 +138,8 @@ def judge(facts: DriveFacts) -> Verdict:
         return Verdict(f.name, condition, age, cause, helps)
 
     if f.foreign_master:
-        return say(Condition.ANOTHER_MASTER, f"another master drives it ({f.foreign_master})",
+        return say(Condition.ANOTHER_MASTER, "not under this driver's control: another master is on the bus"
+                   f" ({f.foreign_master})",
                    "stop the other driver or bench tool; this driver configures it again once the bus is its own,"
                    " then /arm")
     if f.lost:

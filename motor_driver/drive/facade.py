@@ -47,6 +47,7 @@ from motor_driver.pdo import PdoPlan, plan_pdos
 from motor_driver.runtime import DriveRuntime, NmtLedger, RuntimePort
 from motor_driver.sdo_client import OwnAnswersNode
 from motor_driver.units import Scale
+from motor_driver.verdict import Verdict
 
 logger = logging.getLogger(__name__)
 
@@ -102,7 +103,11 @@ class Drive:
 
     # ------------------------------------------------------------------ the user's API
     def snapshot(self) -> DriveState:
-        return self.cache.snapshot(self.watch.foreign_master)
+        return self.cache.snapshot(self.power.facts())
+
+    def verdict(self) -> Verdict:
+        """The one judgement of this drive (:mod:`motor_driver.verdict`)."""
+        return self.snapshot().verdict
 
     def close(self) -> None:
         """The driver shuts down: no command is taken from here on (stops still are)."""

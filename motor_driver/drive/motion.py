@@ -34,6 +34,7 @@ from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.setpoint import rebase_after_switch
 from motor_driver.units import check_counts, check_limits, nearest_equivalent, require_finite
+from motor_driver.verdict import Condition, judge
 
 logger = logging.getLogger(__name__)
 
@@ -73,7 +74,7 @@ class Motion:
                                   " (bench: --counts-per-rev N). Nothing was sent.")
 
     def _require_enabled(self, doing: str) -> None:
-        self._power.require_usable(doing)
+        self._power.require_usable(doing, fresh=True)
         cache = self._cache
         state = cache.state
         seen = cache.fault_seen
@@ -85,6 +86,10 @@ class Motion:
         if state != _ENABLED or self._channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
             if state in FAULT_STATES:
                 raise self._power.fault_error(doing)
+            verdict = judge(self._power.facts())
+            if verdict.condition is Condition.STOPPED_ITSELF:
+                raise DriveStateError(f"{verdict.text()} ({doing} refused; nothing was sent)", node_id=self.node_id,
+                                      statusword=cache.received.statusword)
             shown = state.name if state != _ENABLED else "stopping"
             raise DriveStateError(f"{self.name}: {doing} refused: the drive is {shown}; enable() it"
                                   " first", node_id=self.node_id, statusword=cache.received.statusword)
