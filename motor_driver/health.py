@@ -1,14 +1,16 @@
 """Clear rules that grade a drive's state as OK / WARN / ERROR (pure; the node turns the
-result into diagnostic_msgs). The rules:
+result into diagnostic_msgs). A drive is graded from its verdict (:mod:`motor_driver.verdict`,
+carried by its snapshot), whose cause and what helps are the message; nothing here combines the
+drive's flags again. The rules, first match wins:
 
-* ERROR: the drive is lost (no heartbeat within the consumer time), in FAULT or FAULT
-  REACTION ACTIVE, its bus is lost, another master drives it, its PDOs stopped while it is
-  operational (stale data), or a safety check read back after boot failed
+* ERROR: its bus is lost; its verdict is another master, lost, not configured, late, faulted or
+  stopped itself (:data:`GRADE`); or a safety check read back after boot failed
   (:mod:`motor_driver.safety`: nothing would stop it if the host died, limits not set, ...).
-* WARN: the statusword warning bit is set, a command was refused since the last report,
-  the heartbeat is older than 1.5 producer periods, the drive is not booted, or it has no
-  drive-side stop on host loss and the config allows that (``allow_no_host_watch``).
-* OK: otherwise (enabled or safely disabled).
+* WARN: its verdict is re-booting (being configured again) or out (the drive system left it
+  out); a command was refused since the last report; the statusword warning bit is set; the
+  heartbeat is older than 1.5 producer periods; it has no drive-side stop on host loss and the
+  config allows that (``allow_no_host_watch``).
+* OK: otherwise (usable, or not armed: safely disabled).
 
 A bus (:func:`bus_health`): ERROR when lost, down or BUS-OFF; WARN when its controller is
 ERROR-WARNING or ERROR-PASSIVE, a frame was not sent for a full transmit queue, or its load is
@@ -24,11 +26,17 @@ from dataclasses import dataclass
 
 from can_config.objects import emcy_text
 from motor_driver.bushealth import KernelBusHealth
-from motor_driver.cia402 import FAULT_STATES, SW
+from motor_driver.cia402 import SW
 from motor_driver.drive import DriveState
 from motor_driver.safety import ALLOWED, SafetyCheck
+from motor_driver.verdict import Condition
 
 OK, WARN, ERROR = 0, 1, 2
+
+#: The level of each verdict (the rules above may raise it, never lower it).
+GRADE = {Condition.USABLE: OK, Condition.NOT_ARMED: OK, Condition.OUT: WARN, Condition.REBOOTING: WARN,
+         Condition.ANOTHER_MASTER: ERROR, Condition.LOST: ERROR, Condition.NOT_CONFIGURED: ERROR,
+         Condition.LATE: ERROR, Condition.FAULTED: ERROR, Condition.STOPPED_ITSELF: ERROR}
 
 
 @dataclass(frozen=True)
@@ -63,22 +71,18 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     allowed = [c for c in safety if c.status == ALLOWED]
     values["data_age_s"] = "never" if math.isinf(state.data_age_s) else f"{state.data_age_s:.3f}"
     values["foreign_master"] = state.foreign_master
+    verdict = state.verdict
+    values["condition"] = verdict.condition.value
     if bus_lost:
         return Health(ERROR, "bus lost", values)
-    if state.foreign_master:
-        return Health(ERROR, f"not under control: another master on the bus ({state.foreign_master})", values)
-    if state.lost:
-        return Health(ERROR, f"heartbeat lost ({values['heartbeat_age_s']} s): check the drive's power and CAN cable;"
-                      " it is configured again (disabled) when heard, then arm it", values)
-    if state.state in FAULT_STATES:
-        code = state.error_code
-        return Health(ERROR, f"fault: EMCY 0x{code:04X} {emcy_text(code)}" if code else "fault", values)
+    said = verdict.cause + (f"; {verdict.helps}" if verdict.helps else "")
+    if GRADE[verdict.condition] == ERROR:
+        return Health(ERROR, said, values)
     if failed:
         return Health(ERROR, "safety check failed: " + "; ".join(f"{c.check} ({c.object} is {c.actual},"
                                                                  f" expected {c.expected})" for c in failed), values)
-    if state.stale and state.nmt == "OPERATIONAL":
-        return Health(ERROR, f"stale: no PDO for {values['data_age_s']} s; the values shown are old (its bus or"
-                      " this host is stalled: arming does not help)", values)
+    if GRADE[verdict.condition] == WARN:
+        return Health(WARN, said, values)
     if refused_since_last:
         return Health(WARN, f"{refused_since_last} command(s) refused: {last_refusal}", values)
     if state.statusword & SW.WARNING:
@@ -88,7 +92,7 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     if allowed:
         return Health(WARN, "NO drive-side stop on host loss (allowed by allow_no_host_watch): if this process"
                       " dies while the drive is enabled, nothing stops it", values)
-    return Health(OK, "enabled" if state.enabled else f"ready ({state.state.name})", values)
+    return Health(OK, "enabled" if verdict.usable else f"ready: {verdict.cause}", values)
 
 
 #: The kernel's figures a bus's status carries, where the kernel has them.

@@ -143,7 +143,7 @@ def judge(facts: DriveFacts) -> Verdict:
                    "stop the other driver or bench tool; this driver configures it again once the bus is its own,"
                    " then /arm")
     if f.lost:
-        return say(Condition.LOST, f"lost: no heartbeat for {ms(f.heartbeat_age_s)}",
+        return say(Condition.LOST, f"heartbeat lost: none for {ms(f.heartbeat_age_s)}",
                    "check its power and CAN cable; it is configured again (disabled) when heard, then /arm")
     if f.rebooting:
         return say(Condition.REBOOTING, f"re-booting: it reset (NMT {f.nmt}) and is being configured again",
