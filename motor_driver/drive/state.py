@@ -380,5 +380,5 @@ class DriveCache:
             error_text=emcy_text(error_code) if error_code else "",
             stamp=rx.stamp, heartbeat_age_s=hb_age,
             target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age, stale=stale,
-            foreign_master=facts.foreign_master, reference=rx.reference, facts=facts, verdict=verdict,
-            rx_monotonic=rx.rx_monotonic)
+            foreign_master=facts.foreign_master, reference=rx.reference, rx_monotonic=rx.rx_monotonic,
+            judged=(facts, verdict))

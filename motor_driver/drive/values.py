@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from typing import NamedTuple, Protocol
 
 from motor_driver.cia402 import State
-from motor_driver.verdict import Condition, DriveFacts, Verdict, judge
+from motor_driver.verdict import DriveFacts, Verdict, judge
 
 
 @dataclass(frozen=True)
@@ -16,10 +16,6 @@ class Emcy:
     register: int
     text: str
     timestamp: float
-
-
-_UNJUDGED: DriveFacts = DriveFacts("")
-_UNSET: Verdict = Verdict("", Condition.NOT_CONFIGURED, math.inf, "")
 
 
 @dataclass(frozen=True)
@@ -47,21 +43,23 @@ class DriveState:
     stale: bool = False  # no TPDO for stale_after_syncs SYNC periods: the values above are old
     foreign_master: str = ""  # evidence that another master drives it: commands are refused
     reference: int = 0  # the position reference (boot, homing, a reboot's jump start a new one)
-    #: what the driver knows of it, and the one judgement of it every consumer reads (a snapshot
-    #: made by hand, a test's or a recording's, is judged from its own fields)
-    facts: DriveFacts = field(default_factory=lambda: _UNJUDGED)
-    verdict: Verdict = field(default_factory=lambda: _UNSET)
     rx_monotonic: float = 0.0  # when the PDOs carrying this state arrived (monotonic; 0.0 never)
+    #: the facts and verdict the driver judged (the snapshot's); None: judged from the fields
+    #: above (a snapshot made by hand, a test's or a recording's, and every dataclasses.replace)
+    judged: InitVar[tuple[DriveFacts, Verdict] | None] = None
+    #: what the driver knows of it, and the one judgement of it every consumer reads
+    facts: DriveFacts = field(init=False, compare=False)
+    verdict: Verdict = field(init=False, compare=False)
 
-    def __post_init__(self) -> None:
-        if self.facts is _UNJUDGED:
-            object.__setattr__(self, "facts", DriveFacts(
-                self.name, data_age_s=self.data_age_s, stale_after_s=-1.0 if self.stale else math.inf,
-                heartbeat_age_s=self.heartbeat_age_s, nmt=self.nmt, state=self.state, lost=self.lost, booted=True,
-                foreign_master=self.foreign_master, armed=self.enabled, emcy_code=self.error_code,
-                emcy_text=self.error_text))
-        if self.verdict is _UNSET:
-            object.__setattr__(self, "verdict", judge(self.facts))
+    def __post_init__(self, judged: tuple[DriveFacts, Verdict] | None) -> None:
+        if judged is None:
+            facts = DriveFacts(self.name, data_age_s=self.data_age_s, stale_after_s=-1.0 if self.stale else math.inf,
+                               heartbeat_age_s=self.heartbeat_age_s, nmt=self.nmt, state=self.state, lost=self.lost,
+                               booted=True, foreign_master=self.foreign_master, armed=self.enabled,
+                               emcy_code=self.error_code, emcy_text=self.error_text)
+            judged = facts, judge(facts)
+        object.__setattr__(self, "facts", judged[0])
+        object.__setattr__(self, "verdict", judged[1])
 
 
 class Received(NamedTuple):
