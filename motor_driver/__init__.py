@@ -18,7 +18,7 @@ What lives where:
   :mod:`motor_driver.trajectory` - pure rules: state machine, PDO plan, units and their
   plausible ranges, the safety judgement, the set-point handshake, the streamed move's trapezoid
 * :mod:`motor_driver.verdict` - one verdict per drive (usable, late, lost, ...), the one judgement
-  every consumer reads
+  every consumer reads; :mod:`motor_driver.frameloss` - a drive's frames expected against received
 * :mod:`motor_driver.health`, :mod:`motor_driver.skid_steer`, :mod:`motor_driver.odometry`,
   :mod:`motor_driver.busload` - pure judgements for the nodes and the CLI: a drive's health, the
   drive system's kinematics and odometry, the bus load a config makes

@@ -7,9 +7,11 @@ drive's flags again. The rules, first match wins:
   stopped itself (:data:`GRADE`); or a safety check read back after boot failed
   (:mod:`motor_driver.safety`: nothing would stop it if the host died, limits not set, ...).
 * WARN: its verdict is re-booting (being configured again) or out (the drive system left it
-  out); a command was refused since the last report; the statusword warning bit is set; the
-  heartbeat is older than 1.5 producer periods; it has no drive-side stop on host loss and the
-  config allows that (``allow_no_host_watch``).
+  out); more of its TPDOs or heartbeats lost over the measured window than
+  ``frame_loss_warn_percent`` (:mod:`motor_driver.frameloss`); a command was refused since the
+  last report; the statusword warning bit is set; the heartbeat is older than 1.5 producer
+  periods; it has no drive-side stop on host loss and the config allows that
+  (``allow_no_host_watch``).
 * OK: otherwise (usable, or not armed: safely disabled).
 
 A bus (:func:`bus_health`): ERROR when lost, down or BUS-OFF; WARN when its controller is
@@ -28,6 +30,7 @@ from can_config.objects import emcy_text
 from motor_driver.bushealth import KernelBusHealth
 from motor_driver.cia402 import SW
 from motor_driver.drive import DriveState
+from motor_driver.frameloss import Loss
 from motor_driver.safety import ALLOWED, SafetyCheck
 from motor_driver.verdict import Condition
 
@@ -48,7 +51,9 @@ class Health:
 
 def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_last: int = 0,
                  last_refusal: str = "", bus_lost: bool = False, tpdos_applied: int = 0,
-                 safety: Sequence[SafetyCheck] = ()) -> Health:
+                 safety: Sequence[SafetyCheck] = (), frame_loss: Loss | None = None,
+                 frame_loss_warn_percent: float = 100.0) -> Health:
+    """One drive graded by the rules above; ``frame_loss``: its measured window (None: still measuring)."""
     values = {
         "node_id": str(state.node_id),
         "nmt_state": state.nmt,
@@ -73,6 +78,7 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     values["foreign_master"] = state.foreign_master
     verdict = state.verdict
     values["condition"] = verdict.condition.value
+    values["frame_loss"] = frame_loss.text() if frame_loss is not None else "measuring"
     if bus_lost:
         return Health(ERROR, "bus lost", values)
     said = verdict.cause + (f"; {verdict.helps}" if verdict.helps else "")
@@ -83,6 +89,9 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
                                                                  f" expected {c.expected})" for c in failed), values)
     if GRADE[verdict.condition] == WARN:
         return Health(WARN, said, values)
+    if frame_loss is not None and frame_loss.worst_percent > frame_loss_warn_percent:
+        return Health(WARN, f"frames lost: {frame_loss.text()} (over {frame_loss_warn_percent:g} %): check the"
+                      " cabling, termination and bus load", values)
     if refused_since_last:
         return Health(WARN, f"{refused_since_last} command(s) refused: {last_refusal}", values)
     if state.statusword & SW.WARNING:
@@ -101,13 +110,16 @@ KERNEL_VALUES = ("state", "tx_errors", "rx_errors", "bitrate", "restart_ms", "re
 
 
 def bus_health(*, load: float, lost: bool, frames: int, error_frames: int, kernel: KernelBusHealth | None,
-               why_unknown: str = "", tx_queue_full: int = 0, tx_not_sent: int = 0) -> Health:
+               why_unknown: str = "", tx_queue_full: int = 0, tx_not_sent: int = 0,
+               frame_loss: Loss | None = None) -> Health:
     """One bus graded: lost, down or BUS-OFF is ERROR; ERROR-WARNING, ERROR-PASSIVE, a frame not
     sent for a full transmit queue or a load over 50 % is WARN. ``kernel``: what the kernel says
     (None: not a kernel interface, ``why_unknown``); ``tx_queue_full``: sends refused with ENOBUFS
-    (each retried), ``tx_not_sent``: frames given up on."""
+    (each retried), ``tx_not_sent``: frames given up on; ``frame_loss``: its drives' frames lost,
+    summed (:func:`motor_driver.frameloss.total`)."""
     values = {"load": f"{load:.4f}", "frames_received": str(frames), "error_frames": str(error_frames),
-              "tx_queue_full": str(tx_queue_full), "tx_not_sent": str(tx_not_sent)}
+              "tx_queue_full": str(tx_queue_full), "tx_not_sent": str(tx_not_sent),
+              "frame_loss": frame_loss.text() if frame_loss is not None else "measuring"}
     if kernel is None:
         values["can_state"] = f"unknown ({why_unknown})" if why_unknown else "unknown"
     else:

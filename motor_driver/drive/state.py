@@ -41,7 +41,7 @@ from motor_driver.cia402 import FAULT_STATES, SW, State, decode_state
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.values import DriveState, Emcy, Noted, Received, StatusSink
-from motor_driver.pdo import PdoPlan, TpdoLayout
+from motor_driver.pdo import TT_SYNC, PdoPlan, TpdoLayout
 from motor_driver.runtime import DriveRuntime, Heard, RuntimePort
 from motor_driver.units import Scale
 from motor_driver.verdict import DriveFacts, judge
@@ -68,6 +68,8 @@ class DriveCache:
         self._sink: StatusSink | None = None
         self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in plan.tpdos}
         self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in plan.tpdos)
+        self._per_sync = frozenset(p.cob_id for p in plan.tpdos if p.trans_type == TT_SYNC)
+        self.tpdos_per_sync = len(self._per_sync)
         self._event = threading.Condition()
         self._rx = Received()  # the receive thread's
         self._noted: Noted | None = None  # the SDO readers' (boot, a mode switch)
@@ -80,6 +82,8 @@ class DriveCache:
         self.position_seq = 0
         self.status_seq = 0  # statuswords received: one that arrives after a frame was sent has a higher number
         self.tpdo_count = 0
+        self.sync_tpdos = 0  # TPDOs received of those sent every SYNC (frame loss: expected per SYNC)
+        self.heartbeats = 0  # heartbeats (or guard answers) received
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
         self._heard_nmt = "UNKNOWN"
@@ -273,6 +277,8 @@ class DriveCache:
         now = time.monotonic()
         self._rx = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference, rx.noted_at)
         self.tpdo_count += 1
+        if cob_id in self._per_sync:
+            self.sync_tpdos += 1
         if _STATUSWORD in layout.indexes:
             self.status_seq += 1
             self._on_statusword(sw, now)
@@ -296,6 +302,7 @@ class DriveCache:
     def on_heartbeat(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         if not data:
             return
+        self.heartbeats += 1
         state = data[0] & 0x7F
         if self._guard_seen != self._guard_generation:  # boot restarted guarding: the toggle starts at 0
             self._guard_seen, self._guard_toggle = self._guard_generation, 0
