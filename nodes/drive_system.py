@@ -46,7 +46,7 @@ from motor_driver import Drive, MotorDriver
 from motor_driver.drive import DriveState
 from motor_driver.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
 from motor_driver.skid_steer import SkidSteer, Twist2D
-from motor_driver.verdict import UNREACHABLE, Condition
+from motor_driver.verdict import UNREACHABLE
 from nodes.handoff import Handoff
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
@@ -266,11 +266,8 @@ class DriveSystemNode(Node):
         self._last_cmd = -math.inf
         self.stale = True
         if self.active:
-            for drive in self.wheels:
-                condition = drive.verdict().condition
-                if condition is Condition.LATE:  # it hears us, its state is unknown: a quick stop
-                    self._tell_to_stop(drive.name)
-                elif condition not in UNREACHABLE:
+            for drive in self.wheels:  # a wheel whose data is only late hears us: a zero is taken on late data
+                if drive.verdict().condition not in UNREACHABLE:
                     try:
                         self.handoff.send(drive.name, drive.set_velocity, 0.0, "stop", _cannot_move)
                     except RovercanError:

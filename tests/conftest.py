@@ -73,6 +73,16 @@ IN_PROCESS_HOST_TIMEOUT_MS = 500.0
 #: were seen silent for more than the default 350 ms, and the driver rightly took them for lost.
 #: Tests of heartbeat loss itself give heartbeat_timeout_ms explicitly.
 IN_PROCESS_HEARTBEAT_TIMEOUT_MS = 1000.0
+#: How long a simulated drive's TPDOs may be unseen in those rigs before its data is late (the
+#: verdict that refuses set-points and takes a wheel out): with both cores busy a whole bus's
+#: TPDOs were seen 50-90 ms late, past the default five SYNC periods. Tests of late data itself
+#: silence the TPDOs, which no bound outlasts.
+IN_PROCESS_STALE_S = 0.3
+
+
+def in_process_stale_after_syncs(sync_period_s: float) -> int:
+    """``stale_after_syncs`` for IN_PROCESS_STALE_S at this SYNC period."""
+    return max(5, round(IN_PROCESS_STALE_S / sync_period_s))
 
 
 @pytest.fixture(autouse=True)
