@@ -165,7 +165,7 @@ def judge(facts: DriveFacts) -> Verdict:
     if not enabled:
         by = f", stopped by {f.stopped_by}" if f.stopped_by else ""
         return say(Condition.NOT_ARMED, f"not armed ({f.state.name}{by})",
-                   "arm the rover with /arm (std_srvs/Trigger), or launch with arm:=true")
+                   "arm the rover with the service /arm (std_srvs/Trigger), or launch with arm:=true")
     return say(Condition.USABLE, "usable")
 
 
