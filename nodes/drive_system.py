@@ -227,7 +227,7 @@ class DriveSystemNode(Node):
         if out is None:
             return state
         verdict = out_verdict(state, out.reason)
-        return dataclasses.replace(state, judged=(dataclasses.replace(state.facts, left_out=out.reason), verdict))
+        return dataclasses.replace(state, judged=(state.facts._replace(left_out=out.reason), verdict))
 
     def _wheel_refused(self, name: str, what: str, value: float, err: Exception) -> None:
         """The handoff's worker: a wheel's velocity refused there; the next tick halts them all."""

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 from motor_driver.cia402 import State
 from motor_driver.drive import DriveState
@@ -29,7 +29,7 @@ def wheel_problem(state: DriveState) -> str:
 
 def out_verdict(state: DriveState, reason: str) -> Verdict:
     """The verdict on a wheel the drive system left out for ``reason``."""
-    return judge(replace(state.facts, left_out=reason))
+    return judge(state.facts._replace(left_out=reason))
 
 
 def problems(states: Iterable[DriveState]) -> str:

@@ -114,7 +114,7 @@ def test_a_wheel_quick_stopped_or_left_out_adds_nothing() -> None:
 
 
 def out_of_the_drive_system(state: DriveState) -> DriveState:
-    facts = dataclasses.replace(state.facts, left_out="it was late")
+    facts = state.facts._replace(left_out="it was late")
     return dataclasses.replace(state, judged=(facts, judge(facts)))
 
 

@@ -58,10 +58,10 @@ def test_a_wheel_out_disabled_quick_stopped_or_rebooting_counts_for_nothing() ->
                     {"enabled": False, "state": State.QUICK_STOP_ACTIVE}):
         sample = odometry_sample(state(**changes), PDO_S)
         assert not sample.trusted and sample.forget, changes
-    rebooting = dataclasses.replace(BASE.facts, rebooting=True, booted=False)
+    rebooting = BASE.facts._replace(rebooting=True, booted=False)
     sample = odometry_sample(dataclasses.replace(BASE, judged=(rebooting, judge(rebooting))), PDO_S)
     assert not sample.trusted and sample.forget and "re-booting" in sample.why_not
-    out = dataclasses.replace(BASE.facts, left_out="it was lost")
+    out = BASE.facts._replace(left_out="it was lost")
     sample = odometry_sample(dataclasses.replace(BASE, judged=(out, judge(out))), PDO_S)
     assert not sample.trusted and sample.forget and "out of the drive system" in sample.why_not
 
