@@ -185,8 +185,11 @@ class DriveConfig:
     host_watch: str = key(
         "str", "auto", choices=("auto", "heartbeat", "guarding"),
         help="`auto` (heartbeat consumer where the drive has 0x1016, else node guarding), `heartbeat`, `guarding`")
-    stale_after_syncs: int = key("int", 5, 2, 1000, unit="SYNC periods",
-                                 help="no PDO for this many SYNC periods: the drive's data are reported stale")
+    #: 20: a starved non-real-time host sees a whole bus's TPDOs 50-90 ms late now and then; late
+    #: data refuses set-points and takes a wheel out, so the bound is past such a pause
+    stale_after_syncs: int = key("int", 20, 2, 1000, unit="SYNC periods",
+                                 help="no PDO for this many SYNC periods: the drive's data are late (reported stale;"
+                                      " set-points that would move it are refused)")
     frame_loss_window_syncs: int = key("int", 500, 20, 1_000_000, unit="SYNC periods",
                                        help="frame loss is measured over this many SYNC periods (TPDOs expected per"
                                             " SYNC against received; heartbeats expected per period against received)")

@@ -28,9 +28,11 @@ Where each input comes from, one writer each (:meth:`motor_driver.drive.DriveCac
 them): the data's age, the statusword, the NMT state, the heartbeat's age and the EMCY are the
 bus's receive thread's (:mod:`motor_driver.drive.state`; boot's NMT start is a field of its own
 there); lost, booted, re-booting and another master are the supervisor's
-(:mod:`motor_driver.runtime`); ``armed``, ``stopped_by`` and ``closed`` are the command channel's
+(:mod:`motor_driver.runtime`); ``armed`` and ``stopped_by`` are the command channel's
 (:mod:`motor_driver.drive.channel`, under its lock); ``left_out`` is the drive system's control
-loop's (``nodes/drive_system.py``), which judges a copy of the facts with it set.
+loop's (``nodes/drive_system.py``), which judges a copy of the facts with it set. A reader of a
+recording judges the facts it rebuilds from the frames the same way (``judge(DriveFacts(...))``;
+a :class:`motor_driver.drive.DriveState` made without them is judged from its own fields).
 """
 
 from __future__ import annotations
