@@ -187,8 +187,17 @@ class DriveConfig:
     host_watch: str = key(
         "str", "auto", choices=("auto", "heartbeat", "guarding"),
         help="`auto` (heartbeat consumer where the drive has 0x1016, else node guarding), `heartbeat`, `guarding`")
-    stale_after_syncs: int = key("int", 5, 2, 1000, unit="SYNC periods",
-                                 help="no PDO for this many SYNC periods: the drive's data are reported stale")
+    #: 20: a starved non-real-time host sees a whole bus's TPDOs 50-90 ms late now and then; late
+    #: data refuses set-points and takes a wheel out, so the bound is past such a pause
+    stale_after_syncs: int = key("int", 20, 2, 1000, unit="SYNC periods",
+                                 help="no PDO for this many SYNC periods: the drive's data are late (reported stale;"
+                                      " set-points that would move it are refused)")
+    frame_loss_window_syncs: int = key("int", 500, 20, 1_000_000, unit="SYNC periods",
+                                       help="frame loss is measured over this many SYNC periods (TPDOs expected per"
+                                            " SYNC against received; heartbeats expected per period against received)")
+    frame_loss_warn_percent: float = key("float", 2.0, 0.0, 100.0, low_open=True, unit="%",
+                                         help="more of the drive's TPDOs or heartbeats lost than this over the window:"
+                                              " WARN in /diagnostics")
     sdo_timeout_s: float = key("float", 500.0, 10.0, 10_000.0, yaml="sdo_timeout_ms", scale=1000, unit="ms",
                                help="one SDO answer (a whole read: 4x this at most)")
     boot_timeout_s: float = key("float", 2000.0, 100.0, 60_000.0, yaml="boot_timeout_ms", scale=1000, unit="ms",

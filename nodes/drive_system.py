@@ -3,10 +3,18 @@ measured positions (/odom and /tf odom -> base_link), stops on a command timeout
 do when a wheel is lost (``drive_system.on_wheel_loss``); a node beside the driver node, in the
 same process.
 
-What it publishes is what was measured: /odom integrates each wheel's own position deltas
-(:mod:`motor_driver.rover.odometry`), never a command or a velocity times a tick; a side with no
+It reads each wheel's verdict (:mod:`motor_driver.drive.verdict`; a wheel it left out is judged with
+that fact) and nothing else: it drives only usable wheels; with ``on_wheel_loss: stop`` any
+wheel not usable stops every wheel, with ``continue`` a wheel not usable (late too) is left out
+and told to stop, and a side with no wheel left stops every wheel, naming the side.
+
+What it publishes is what was measured: /odom integrates each usable wheel's own position
+deltas (:mod:`motor_driver.rover.odometry`), never a command or a velocity times a tick; a side with no
 trusted wheel stops the integration (pose kept, twist zero, every variance 1e6) and
-/diagnostics says why. Every refusal names the real cause and what helps (:mod:`nodes.wheels`).
+/diagnostics says why; the pose variances grow with the travel estimated rather than measured.
+/tf states only measured poses: while the odometry is not trusted no transform is sent (none
+stamped later than the last trusted step). Every refusal names the real cause and what helps
+(:mod:`nodes.wheels`).
 
 Owner: the executor thread that runs its tick (the driver node's state timer, or its own),
 which alone touches the ramp, the odometry and the wheels-out book; a wheel left out is told to
@@ -20,6 +28,7 @@ driver node's handoff (nodes/handoff.py), whose worker hands a refusal back to t
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import queue
@@ -38,6 +47,7 @@ from can_config import RoverConfig
 from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive import DriveState
+from motor_driver.drive.verdict import UNREACHABLE
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.rover.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
 from motor_driver.rover.skid_steer import SkidSteer, Twist2D
@@ -45,7 +55,7 @@ from nodes.handoff import Handoff
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
-from nodes.wheels import WheelsOut, odometry_sample, problems
+from nodes.wheels import WheelsOut, odometry_samples, out_verdict, problems
 
 if TYPE_CHECKING:
     from nodes.rover_driver import DriverNode
@@ -58,6 +68,7 @@ DIAGNOSTICS_PERIOD_S = 1.0
 STOP_RETRY_S = 0.5
 #: tf2's own publishers keep 100 (a late listener's buffer fills from them)
 TF_QOS = QoSProfile(depth=100)
+
 
 
 class DriveSystemNode(Node):
@@ -80,6 +91,7 @@ class DriveSystemNode(Node):
         self.left = [driver.drive(n) for n in system.left]
         self.right = [driver.drive(n) for n in system.right]
         self.wheels = self.left + self.right
+        self._pdo_period_s = {d.name: d.cache.sync_period_s for d in self.wheels}  # a TPDO every SYNC
         slowest_deg_s = min(d.config.max_velocity_deg_s for d in self.wheels)
         self.steer = SkidSteer(system.track_width_m, system.wheel_radius_m, system.max_accel_m_s2,
                                system.max_speed_m_s, max_angular_rad_s=system.max_angular_rad_s,
@@ -156,6 +168,9 @@ class DriveSystemNode(Node):
             dt = min(now - self._last_tick, 0.5)
             self._last_tick = now
             states = {d.name: d.snapshot() for d in self.wheels}
+            if self.wheels_out is not None:
+                self._book_wheels_out(states, now)
+                states = {n: self._judged(s) for n, s in states.items()}
             self._integrate(states)
             self._control(states, now, dt)
             self._ticks += 1
@@ -171,20 +186,18 @@ class DriveSystemNode(Node):
                                                             for name, speed, err in late) + "; every wheel stopped")
             return
         self.stale = now - self._last_cmd > self.system.cmd_timeout_s
-        if self.wheels_out is not None:
-            self._book_wheels_out(states)
         if not self.stale:
             held = next((d.channel.held for d in self.wheels if d.channel.held), "")
             if held:  # the drives' own verdict (the lifecycle node inactive): said as it is, not as "not armed"
                 self._halt(f"/cmd_vel not applied: {held}; nothing was sent")
                 return
-            blocked = [s for s in states.values() if not s.enabled and not (self.wheels_out and s.name in self.wheels_out.out)]
-            if self.wheels_out is not None and self.wheels_out.share() <= 0.0:
-                self._halt(f"/cmd_vel not applied: a side has no wheel left ({self.wheels_out.summary()}); every wheel"
-                           " stopped")
+            side = self.wheels_out.empty_side() if self.wheels_out is not None else ""
+            if side:
+                names = self.left if side == "left" else self.right
+                self._halt(f"/cmd_vel not applied: the {side} side has no usable wheel ({problems(states[d.name] for d in names)});"
+                           " every wheel stopped")
                 return
-            if self.wheels_out is not None:
-                blocked = []  # continue: what is left is only late (stale): not driven until it is fresh
+            blocked = [s for s in states.values() if not s.verdict.usable] if self.wheels_out is None else []
             if blocked:  # on_wheel_loss: stop (all or none: a turn driven by some wheels is worse than none)
                 self._halt(f"/cmd_vel not applied: {problems(blocked)}; no wheel is driven")
                 return
@@ -197,11 +210,8 @@ class DriveSystemNode(Node):
             self.active = False  # stopped: send this last zero, then leave the wheels to others
         for drives, speed in ((self.left, left), (self.right, right)):
             for drive in drives:
-                state = states[drive.name]
-                if state.lost or (not state.enabled and not state.stale):
-                    continue  # it cannot hear us, or is not ours to drive (ramping down: the others still stop)
-                if self.wheels_out is not None and drive.name in self.wheels_out.out:
-                    continue  # a wheel out is left alone
+                if not states[drive.name].verdict.usable:
+                    continue  # not ours to drive (ramping down: the others still stop); a wheel out is left alone
                 try:
                     self.handoff.send(drive.name, drive.set_velocity, speed * DEG, "velocity", self._wheel_refused)
                 except RovercanError as err:
@@ -209,12 +219,12 @@ class DriveSystemNode(Node):
                                " every wheel stopped")
                     return
 
-    def _book_wheels_out(self, states: dict[str, DriveState]) -> None:
-        """on_wheel_loss: continue: a wheel that cannot be driven while the rover drives is told to
-        stop and left out; the body's limits shrink to the wheels left."""
+    def _book_wheels_out(self, states: dict[str, DriveState], now: float) -> None:
+        """on_wheel_loss: continue: a wheel that is not usable while the rover drives (late too) is
+        told to stop and left out; the body's limits shrink to the wheels left."""
         assert self.wheels_out is not None
-        went, back = self.wheels_out.update(states, driving=self.active or not self.stale)
-        now = time.monotonic()
+        driving = self.active or now - self._last_cmd <= self.system.cmd_timeout_s
+        went, back = self.wheels_out.update(states, driving=driving)
         self._read_stops(now)
         for name in [*self.stop_failing, *went, *self.wheels_out.still_running(states)]:
             if now >= self._stop_retry_at.get(name, 0.0):
@@ -226,6 +236,14 @@ class DriveSystemNode(Node):
         self.steer.limit_to(self.wheels_out.share())
         if went or back:
             self.publish_diagnostics()
+
+    def _judged(self, state: DriveState) -> DriveState:
+        """A wheel's snapshot with the verdict that counts here: "out" while the book has it out."""
+        out = self.wheels_out.out.get(state.name) if self.wheels_out is not None else None
+        if out is None:
+            return state
+        verdict = out_verdict(state, out.reason)
+        return dataclasses.replace(state, judged=(state.facts._replace(left_out=out.reason), verdict))
 
     def _wheel_refused(self, name: str, what: str, value: float, err: Exception) -> None:
         """The handoff's worker: a wheel's velocity refused there; the next tick halts them all."""
@@ -282,8 +300,8 @@ class DriveSystemNode(Node):
         self._last_cmd = -math.inf
         self.stale = True
         if self.active:
-            for drive in self.wheels:  # a wheel whose data is only late hears us: it stops too
-                if not drive.snapshot().lost:
+            for drive in self.wheels:  # a wheel whose data is only late hears us: a zero is taken on late data
+                if drive.verdict().condition not in UNREACHABLE:
                     try:
                         self.handoff.send(drive.name, drive.set_velocity, 0.0, "stop", _cannot_move)
                     except RovercanError:
@@ -296,7 +314,8 @@ class DriveSystemNode(Node):
 
     # ------------------------------------------------------------------ what was measured
     def _integrate(self, states: dict[str, DriveState]) -> None:
-        step = self.odometry.step({name: odometry_sample(s) for name, s in states.items()})
+        sides = (self.system.left, self.system.right)
+        step = self.odometry.step(odometry_samples(states, sides, self._pdo_period_s))
         was = self.last_odometry.trusted
         self.last_odometry = step
         if was != step.trusted:
@@ -318,10 +337,12 @@ class DriveSystemNode(Node):
             odom.pose.pose.orientation.w = qw
             odom.twist.twist.linear.x = twist.linear_m_s
             odom.twist.twist.angular.z = twist.angular_rad_s
-            odom.pose.covariance = covariance(self.system.pose_covariance_diagonal, step.trusted)
+            odom.pose.covariance = covariance(self.system.pose_covariance_diagonal, step.trusted,
+                                              estimated=pose_estimate_variance(step, self.system.track_width_m))
             odom.twist.covariance = covariance(self.system.twist_covariance_diagonal, step.trusted)
             self._odom_pub.publish(odom)
-        if self._tf_pub is not None and self._tf_pub.get_subscription_count():
+        if self._tf_pub is not None and step.trusted and self._tf_pub.get_subscription_count():
+            # only a measured pose: while untrusted no transform claims where base_link is now
             tf = TransformStamped()
             stamp_header(tf.header, stamp)
             tf.header.frame_id = self._odom_frame
@@ -367,9 +388,18 @@ def _cannot_move(name: str, what: str, value: float, err: Exception) -> None:
                    err if isinstance(err, RovercanError) else repr(err))
 
 
-def covariance(diagonal: tuple[float, ...], trusted: bool) -> list[float]:
-    """A 6x6 row-major covariance with ``diagonal`` (every entry UNKNOWN_VARIANCE when not trusted)."""
+def covariance(diagonal: tuple[float, ...], trusted: bool, estimated: tuple[float, ...] = ()) -> list[float]:
+    """A 6x6 row-major covariance with ``diagonal`` plus ``estimated`` (every entry
+    UNKNOWN_VARIANCE when not trusted)."""
     out = [0.0] * 36
     for i, value in enumerate(diagonal):
-        out[i * 7] = value if trusted else UNKNOWN_VARIANCE
+        extra = estimated[i] if i < len(estimated) else 0.0
+        out[i * 7] = min(value + extra, UNKNOWN_VARIANCE) if trusted else UNKNOWN_VARIANCE
     return out
+
+
+def pose_estimate_variance(step: OdometryStep, track_width_m: float) -> tuple[float, ...]:
+    """The variances (x, y, z, roll, pitch, yaw) the travel estimated rather than measured adds:
+    its square on x and y, and the heading it could have turned, squared, on yaw."""
+    e = step.estimated_m
+    return e * e, e * e, 0.0, 0.0, 0.0, (e / track_width_m) ** 2

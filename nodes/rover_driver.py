@@ -41,8 +41,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32
 
 from can_config.errors import ConfigError, RovercanError
-from motor_driver import Drive, MotorDriver
-from motor_driver.drive.health import bus_health, drive_health
+from motor_driver import Drive, DriveState, MotorDriver
+from motor_driver.drive.frameloss import Counts, FrameLoss, Loss, total
+from motor_driver.drive.health import Rejections, bus_health, drive_health
 from motor_driver.process.stop import StopSignal
 from motor_driver.recording.published import joint_entry
 from nodes import runtime
@@ -87,6 +88,10 @@ class DriverNode(Node):
         self.drives = served(driver, joints)
         self._state_qos = state_qos(qos_depth(self))
         self.refusals = RefusalLog(self.get_logger().warning)
+        #: each drive's frames expected against received (the diagnostics timer's alone)
+        self.frame_loss = {name: FrameLoss(d.cache.tpdos_per_sync, d.cache.sync_period_s,
+                                           None if d.cache.guarding else d.config.heartbeat_period_s,
+                                           d.config.frame_loss_window_syncs) for name, d in self.drives.items()}
         #: the joints' commands that must wait for their drive, off the hot thread (nodes/handoff.py);
         #: the drive system beside this node sends through it too
         self.handoff = Handoff(self.drives)
@@ -266,15 +271,20 @@ class DriverNode(Node):
         try:
             array = DiagnosticArray()
             stamp_header(array.header, time.time())
+            losses: dict[str, list[Loss]] = {}
             for name, drive in self.drives.items():
                 refused, last = self.refusals.take(name)
                 rejected = self.driver.rejected(drive)
-                health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s,
+                state = drive.snapshot()
+                loss = self._frame_loss(name, drive, state)
+                if loss is not None:
+                    losses.setdefault(drive.config.bus, []).append(loss)
+                health = drive_health(state, heartbeat_period_s=drive.config.heartbeat_period_s,
                                       refused_since_last=refused, last_refusal=last,
                                       bus_lost=self.driver.bus_lost.get(drive.config.bus, False),
                                       tpdos_applied=drive.cache.tpdo_count, safety=drive.boot.safety,
-                                      rejected=rejected, rejected_age_s=time.monotonic() - rejected.at
-                                      if rejected is not None else math.inf)
+                                      rejected=Rejections.of(rejected, time.monotonic()),
+                                      frame_loss=loss, frame_loss_warn_percent=drive.config.frame_loss_warn_percent)
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
                     hardware_id=f"{drive.config.bus}/node{drive.node_id}",
@@ -291,7 +301,8 @@ class DriverNode(Node):
                                     frames=handle.stats.frames, error_frames=handle.stats.error_frames,
                                     kernel=kernel, why_unknown=why, tx_queue_full=handle.network.tx_queue_full,
                                     tx_not_sent=handle.network.tx_queue_dropped,
-                                    rejected_frames=handle.network.rejected_frames)
+                                    rejected_frames=handle.network.rejected_frames,
+                                    frame_loss=total(losses.get(bus_name, ())))
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: bus {bus_name}", message=health.message,
                     hardware_id=bus_name, values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
@@ -302,6 +313,17 @@ class DriverNode(Node):
             self._diag_pub.publish(array)
         except Exception as err:
             self.get_logger().error(f"diagnostics publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+
+
+    def _frame_loss(self, name: str, drive: Drive, state: DriveState) -> Loss | None:
+        """The drive's counters into its window (measured only while its data is news and it is
+        operational), and the window's figures."""
+        cache = drive.cache
+        syncs = self.driver.buses[drive.config.bus].stats.syncs
+        window = self.frame_loss[name]
+        window.add(Counts(time.monotonic(), syncs, cache.sync_tpdos, cache.heartbeats),
+                   measuring=state.verdict.fresh and state.nmt == "OPERATIONAL")
+        return window.loss()
 
 
 def _given(values: Sequence[float], i: int) -> float | None:

@@ -1,10 +1,10 @@
 """What the drive system says of a wheel, and which wheels it has left out (pure: no rclpy).
 
-:func:`wheel_problem` names the real cause a wheel cannot be driven (another master, lost,
-stale data, a fault, not armed) and the action that helps; every refusal and diagnostic of the
-drive system uses it. :func:`odometry_sample` turns a wheel's snapshot into what the odometry may
-use (:mod:`motor_driver.rover.odometry`). :class:`WheelsOut` is ``on_wheel_loss: continue``'s book of
-the wheels left out, and when each may come back.
+Every judgement here is the wheel's verdict (:mod:`motor_driver.drive.verdict`, carried by its
+snapshot): :func:`wheel_problem` says it (the cause and what helps); :func:`odometry_sample`
+turns a wheel's snapshot into what the odometry may count (:mod:`motor_driver.rover.odometry`): only a
+usable wheel heard within its PDO period; :class:`WheelsOut` is ``on_wheel_loss: continue``'s
+book of the wheels left out, and when each may come back.
 
 Owner: the drive system's control loop (one thread, the executor that runs its tick).
 """
@@ -12,40 +12,24 @@ Owner: the drive system's control loop (one thread, the executor that runs its t
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from motor_driver.drive import DriveState
-from motor_driver.protocol.cia402 import FAULT_STATES, State
+from motor_driver.drive.verdict import Condition, Verdict, judge, ms
+from motor_driver.protocol.cia402 import State
 from motor_driver.rover.odometry import WheelSample
-
-ARM = "arm the rover with the service /arm (std_srvs/Trigger), or launch with arm:=true"
-
-
-def _ms(age_s: float) -> str:
-    return "ever" if math.isinf(age_s) else f"{age_s * 1000:.0f} ms"
 
 
 def wheel_problem(state: DriveState) -> str:
     """Why the wheel of ``state`` cannot be driven, and what helps; "" when it can."""
-    name = state.name
-    if state.foreign_master:
-        return (f"{name} is driven by another master ({state.foreign_master}): stop the other driver or bench tool;"
-                " this driver configures it again once the bus is its own, then /arm")
-    if state.lost:
-        return (f"{name} is lost (no heartbeat for {_ms(state.heartbeat_age_s)}): check its power and CAN cable;"
-                " it is configured again (disabled) when heard, then /arm")
-    if state.stale:
-        return (f"{name}'s data is stale (no PDO for {_ms(state.data_age_s)}): its bus or the drive is stalled;"
-                " it is driven again once its PDOs are fresh (/arm does not help)")
-    if state.state in FAULT_STATES:
-        emcy = f", EMCY 0x{state.error_code:04X} {state.error_text}" if state.error_code else ""
-        return f"{name} is in {state.state.name}{emcy}: clear it with the service {name}/recover, then /arm"
-    if state.nmt != "OPERATIONAL":
-        return f"{name} is in NMT {state.nmt}: it is configured again by the driver, then /arm"
-    if not state.enabled:
-        return f"{name} is not armed ({state.state.name}): {ARM}"
-    return ""
+    verdict = state.verdict
+    return "" if verdict.usable else verdict.text()
+
+
+def out_verdict(state: DriveState, reason: str) -> Verdict:
+    """The verdict on a wheel the drive system left out for ``reason``."""
+    return judge(state.facts._replace(left_out=reason))
 
 
 def problems(states: Iterable[DriveState]) -> str:
@@ -58,25 +42,47 @@ def problems(states: Iterable[DriveState]) -> str:
     return said[0][1] + more
 
 
-def odometry_sample(state: DriveState) -> WheelSample:
-    """What the odometry may take from a wheel: its position at the PDO's time and reference;
-    not trusted while stale (its last sample kept: the reference says whether the next one
-    follows from it), forgotten when lost or faulted."""
-    trusted = not (state.lost or state.stale or state.fault or not state.stamp)
-    keep = not (state.lost or state.fault)
-    return WheelSample(math.radians(state.angle_deg), state.stamp, state.reference, trusted,
-                       "" if trusted else _short(state), forget=not keep,
+#: a wheel not heard for longer than this many of its PDO periods (SYNC periods) is counted by
+#: the odometry as late, not as standing still (its next sample settles the gap)
+PDO_SILENCE_PERIODS = 1.5
+#: nor is a wheel whose newest sample is older than its side's newest by more than this many
+#: periods: a sample of an earlier SYNC than its side's others is late too
+SIDE_LAG_PERIODS = 0.5
+
+
+def odometry_sample(state: DriveState, pdo_period_s: float, *, driven: bool = True,
+                    side_newest_s: float = 0.0) -> WheelSample:
+    """What the odometry may take from a wheel: its position at its receive time (monotonic) and
+    reference. Counted only when usable and heard within PDO_SILENCE_PERIODS of its PDO period
+    and in its side's newest SYNC (``side_newest_s``, the newest receive time of its side);
+    else, if usable or only late, it keeps its last sample (its next one settles the gap);
+    anything else (lost, out, disabled, quick-stopped, faulted, re-booting) forgets it.
+    ``driven``: some wheel of the rover is usable; when none is (the rover disarmed, standing or
+    pushed), every wheel whose data is news counts: what they measure is all the motion there is."""
+    verdict = state.verdict
+    silent = state.data_age_s > PDO_SILENCE_PERIODS * pdo_period_s or \
+        side_newest_s - state.rx_monotonic > SIDE_LAG_PERIODS * pdo_period_s
+    if verdict.usable or (not driven and verdict.fresh and not state.lost):
+        trusted, forget, why = not silent, False, f"silent for {ms(state.data_age_s)}" if silent else ""
+    else:
+        trusted, forget, why = False, verdict.condition is not Condition.LATE, verdict.cause
+    return WheelSample(math.radians(state.angle_deg), state.rx_monotonic, state.reference, trusted and
+                       bool(state.rx_monotonic), why or ("" if state.rx_monotonic else "no position yet"),
+                       forget=forget, silent=not forget and not trusted and verdict.condition is not Condition.LATE,
                        velocity_rad_s=math.radians(state.velocity_deg_s))
 
 
-def _short(state: DriveState) -> str:
-    if state.lost:
-        return f"lost (no heartbeat for {_ms(state.heartbeat_age_s)})"
-    if state.fault:
-        return f"faulted ({state.state.name})"
-    if state.stale:
-        return f"stale (no PDO for {_ms(state.data_age_s)})"
-    return "no position yet"
+def odometry_samples(states: Mapping[str, DriveState], sides: Iterable[Sequence[str]],
+                     pdo_period_s: Mapping[str, float]) -> dict[str, WheelSample]:
+    """Every wheel's :func:`odometry_sample`, each side's newest receive time and whether any
+    wheel is driven judged once."""
+    driven = any(s.verdict.usable for s in states.values())
+    samples = {}
+    for side in sides:
+        newest = max((states[n].rx_monotonic for n in side if states[n].verdict.fresh), default=0.0)
+        for name in side:
+            samples[name] = odometry_sample(states[name], pdo_period_s[name], driven=driven, side_newest_s=newest)
+    return samples
 
 
 @dataclass
@@ -88,9 +94,9 @@ class OutWheel:
 
 class WheelsOut:
     """``on_wheel_loss: continue``: the wheels left out, each with its reason. A wheel goes out
-    when it is lost, faulted, another master's or no longer enabled while the rover drives (one
-    whose data is only late is not taken out: it still hears its side's commands); it comes back only once it has left
-    Operation Enabled (stopped) and is enabled again (/arm, recover): never by itself, still
+    when its verdict is not usable while the rover drives (lost, late, faulted, another master's,
+    stopped): it is told to stop; it comes back only once its data is fresh, it has left
+    Operation Enabled (stopped) and it is enabled again (/arm, recover): never by itself, still
     running from before."""
 
     def __init__(self, left: Sequence[str], right: Sequence[str]) -> None:
@@ -101,18 +107,16 @@ class WheelsOut:
         """(wheels that went out now, wheels that came back now)."""
         went, back = [], []
         for name, state in states.items():
+            verdict = state.verdict
             out = self.out.get(name)
             if out is None:
-                # out: lost, faulted, another master's, or no longer enabled; data that is only late
-                # (stale: a stalled bus or host) does not take it out: it hears the commands
-                if driving and not state.enabled and (state.lost or state.fault or state.foreign_master or
-                                                      state.state != State.OPERATION_ENABLED):
-                    self.out[name] = OutWheel(wheel_problem(state))
+                if driving and not verdict.usable:
+                    self.out[name] = OutWheel(verdict.text())
                     went.append(name)
                 continue
-            if state.state != State.OPERATION_ENABLED and not state.lost:
+            if verdict.fresh and not state.lost and state.state != State.OPERATION_ENABLED:
                 out.seen_down = True
-            if out.seen_down and state.enabled:
+            if out.seen_down and verdict.usable:
                 del self.out[name]
                 back.append(name)
         return went, back
@@ -120,13 +124,18 @@ class WheelsOut:
     def still_running(self, states: dict[str, DriveState]) -> list[str]:
         """Wheels out that still run under their own steam (heard in Operation Enabled, not yet
         stopped): told to stop again."""
-        return [n for n, o in self.out.items() if not o.seen_down and states[n].enabled]
+        return [n for n, o in self.out.items() if not o.seen_down and states[n].verdict.usable]
 
     def share(self) -> float:
         """The share of wheels left on the weaker side (1.0: all; 0.0: a side has none)."""
-        left = sum(1 for n in self.left if n not in self.out) / len(self.left)
-        right = sum(1 for n in self.right if n not in self.out) / len(self.right)
-        return min(left, right)
+        return min(self._left(self.left), self._left(self.right))
+
+    def _left(self, side: tuple[str, ...]) -> float:
+        return sum(1 for n in side if n not in self.out) / len(side)
+
+    def empty_side(self) -> str:
+        """The side with no wheel left ("left", "right"), or ""."""
+        return "left" if not self._left(self.left) else "right" if not self._left(self.right) else ""
 
     def summary(self) -> str:
         return "; ".join(f"{n} out ({o.reason})" for n, o in self.out.items())

@@ -87,6 +87,17 @@ IN_PROCESS_HEARTBEAT_TIMEOUT_MS = 1000.0
 #: a starved process found them 130 ms old (13 periods) at random. Tests of staleness wait for it.
 IN_PROCESS_STALE_SYNCS = 50
 
+#: How long a simulated drive's TPDOs may be unseen in those rigs before its data is late (the
+#: verdict that refuses set-points and takes a wheel out): with both cores busy a whole bus's
+#: TPDOs were seen 50-90 ms late, past the default five SYNC periods. Tests of late data itself
+#: silence the TPDOs, which no bound outlasts.
+IN_PROCESS_STALE_S = 0.3
+
+
+def in_process_stale_after_syncs(sync_period_s: float) -> int:
+    """``stale_after_syncs`` for IN_PROCESS_STALE_S at this SYNC period."""
+    return max(5, round(IN_PROCESS_STALE_S / sync_period_s))
+
 
 @pytest.fixture(autouse=True)
 def _settled_heap() -> None:
@@ -151,6 +162,7 @@ def kernel_controllers_available() -> str | None:
 def make_config(n: int = 1, *, eds: str = "generic", **drive: object) -> RoverConfig:
     drive.setdefault("host_timeout_ms", IN_PROCESS_HOST_TIMEOUT_MS)
     drive.setdefault("heartbeat_timeout_ms", IN_PROCESS_HEARTBEAT_TIMEOUT_MS)
+    drive.setdefault("stale_after_syncs", in_process_stale_after_syncs(0.01))  # the bus's default SYNC period
     drives = [{"name": f"joint{i}", "node_id": i, "eds": eds, **drive} for i in range(1, n + 1)]
     return parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
                                     "kwargs": {"host": "127.0.0.1", "port": 1}}],

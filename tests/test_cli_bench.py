@@ -81,6 +81,9 @@ def test_nmt_and_drive_commands(sim_port: int) -> None:
     assert run(sim_port, "nmt", "preop", "all").returncode == 0
     moved = as_json(run(sim_port, "move", "2", "30", "--counts-per-rev", "4096", "--speed", "120", "--json"))
     assert moved["angle_deg"] == pytest.approx(30.0, abs=0.2)  # type: ignore[index]
+    # the state it left the drive in, read after the disable (it said OPERATION_ENABLED)
+    assert moved["state"] in ("READY_TO_SWITCH_ON", "SWITCH_ON_DISABLED", "SWITCHED_ON"), moved  # type: ignore[index]
+    assert moved["verdict"].startswith("not armed"), moved  # type: ignore[index]
     jog = as_json(run(sim_port, "jog", "2", "45", "--for", "0.8", "--counts-per-rev", "4096", "--json"))
     assert jog["velocity_deg_s"] == pytest.approx(45.0, abs=2.0)  # type: ignore[index]
     enabled = as_json(run(sim_port, "enable", "1", "--counts-per-rev", "4096", "--json"))

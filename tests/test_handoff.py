@@ -30,6 +30,7 @@ from .conftest import (
     IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
     IN_PROCESS_HOST_TIMEOUT_MS,
     REPO,
+    in_process_stale_after_syncs,
     make_config,
     requires_ros,
     wait_for,
@@ -54,7 +55,8 @@ class Arm:
 
     def __init__(self, sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]]) -> None:
         drives = [{"name": j, "node_id": i, "position_mode": "cyclic", "max_velocity_deg_s": 720, "gear_ratio": 50.0,
-                   "host_timeout_ms": IN_PROCESS_HOST_TIMEOUT_MS, "heartbeat_timeout_ms": IN_PROCESS_HEARTBEAT_TIMEOUT_MS}
+                   "host_timeout_ms": IN_PROCESS_HOST_TIMEOUT_MS, "heartbeat_timeout_ms": IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
+                   "stale_after_syncs": in_process_stale_after_syncs(0.002)}
                   for i, j in enumerate(JOINTS, start=1)]
         config = parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
                                           "kwargs": {"host": "127.0.0.1", "port": 1}, "sync_period_ms": 2}],
@@ -315,7 +317,7 @@ def test_a_wheels_velocity_refused_on_the_worker_stops_every_wheel() -> None:
     """The drive system's first /cmd_vel switches every wheel to profile velocity on the
     handoff's workers; one wheel's switch fails there: the next tick stops every wheel and says
     which wheel refused, as a refusal on the hot thread did (a turn by some wheels is worse than none)."""
-    from .test_odom_truth import Rover
+    from .test_odom_truth import LEFT, RIGHT, Rover
 
     rover = Rover("stop")
     try:
@@ -332,6 +334,9 @@ def test_a_wheels_velocity_refused_on_the_worker_stops_every_wheel() -> None:
                               "the drive system stopped, naming the wheel refused on the worker")
         finally:
             wheel.channel.set_hook(None)
+        # every wheel stops on the simulated drives (no /cmd_vel is sent after the halt)
+        wait_for(lambda: rover.sim_stopped(LEFT + RIGHT), 30.0, "every simulated wheel stopped",
+                 lambda: str({n: rover.sim_speed_rad_s(n) for n in LEFT + RIGHT}))
         said = [st.message for array in rover.diags for st in array.status if st.name == "rovercan: drive_system"
                 and "wheel wheel_rear_right refused" in st.message]
         assert said[0].startswith("stopped: /cmd_vel not applied: wheel wheel_rear_right refused") \

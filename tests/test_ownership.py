@@ -146,7 +146,7 @@ def test_no_module_writes_another_modules_attributes() -> None:
 
 def test_the_check_finds_a_write_into_another_part() -> None:
     decl = declarations()
-    broken = "def f(drive):\n    drive.cache.received = None\n    drive.channel.cw = 0\n"
+    broken = "def f(drive):\n    drive.cache.tpdo_count = 0\n    drive.channel.cw = 0\n"
     found = violations(broken, set(), decl)
     assert len(found) == 2 and "state.py" in found[0] and "channel.py" in found[1], found
     inside = "class Boot:\n    def f(self):\n        self._cache.guarding = True\n"

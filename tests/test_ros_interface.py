@@ -16,7 +16,7 @@ from motor_driver import MotorDriver, State
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
-from .conftest import HAVE_ROS, REPO, publish_until, requires_ros, wait_for
+from .conftest import HAVE_ROS, REPO, in_process_stale_after_syncs, publish_until, requires_ros, wait_for
 
 pytestmark = requires_ros
 
@@ -84,9 +84,11 @@ GRAPH_HEARTBEAT_TIMEOUT_S = 2.5
 
 
 def in_process_host_timeout(config: RoverConfig) -> RoverConfig:
-    """The in-process consumer times both ways, longer than a starved test process's pause."""
+    """The in-process consumer times both ways and the staleness bound, longer than a starved test
+    process's pause."""
     drives = tuple(dataclasses.replace(d, host_timeout_s=IN_PROCESS_HOST_TIMEOUT_S,
-                                       heartbeat_timeout_s=GRAPH_HEARTBEAT_TIMEOUT_S)
+                                       heartbeat_timeout_s=GRAPH_HEARTBEAT_TIMEOUT_S,
+                                       stale_after_syncs=in_process_stale_after_syncs(config.bus(d.bus).sync_period_s))
                    for d in config.drives)
     return dataclasses.replace(config, drives=drives)
 
@@ -441,7 +443,7 @@ def test_a_wheel_that_cannot_follow_stops_the_whole_drive_system(graph: Graph) -
         return all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS)
 
     def said_why() -> bool:  # the real cause and what helps (issue 52: "arm the rover" was said for a wheel in FAULT)
-        return any("wheel_middle_left is in FAULT, EMCY 0x2310" in st.message and "/recover" in st.message
+        return any("wheel_middle_left: faulted (FAULT: EMCY 0x2310" in st.message and "/recover" in st.message
                    and st.message.endswith("; no wheel is driven") for a in diags for st in a.status)
 
     publish_until(lambda: cmd.publish(twist), lambda: all_faster_than(100.0), HANG_S, "all six wheels driven")

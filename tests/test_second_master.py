@@ -77,7 +77,7 @@ def test_a_second_driver_is_noticed_refused_and_control_comes_back(sim_factory: 
             with pytest.raises(DriveStateError, match="another master"):
                 drive.enable()
             health = drive_health(drive.snapshot(), heartbeat_period_s=0.1)
-            assert health.level == ERROR and health.message.startswith("not under control")
+            assert health.level == ERROR and health.message.startswith("not under this driver's control")
             # the second was told to take the bus over: the first one's traffic is not held against it
             time.sleep(0.5)
             assert not second.drive("joint1").watch.foreign_master
@@ -129,7 +129,7 @@ def test_stopped_pdos_are_reported_stale_within_n_sync_periods(sim_factory: SimF
         state = drive.snapshot()
         assert not state.enabled and state.data_age_s >= 0.05  # never before 5 SYNC periods of 10 ms
         health = drive_health(state, heartbeat_period_s=0.1)
-        assert health.level == ERROR and health.message.startswith("stale: no PDO")
+        assert health.level == ERROR and health.message.startswith("no data for ")
         apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
         wait_for(lambda: not drive.snapshot().stale and drive.snapshot().enabled, 10.0, "fresh again")
 

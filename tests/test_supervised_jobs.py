@@ -16,7 +16,7 @@ import pytest
 
 from can_config import RoverConfig
 from motor_driver import MotorDriver
-from motor_driver.drive.health import ERROR, WARN, drive_health
+from motor_driver.drive.health import ERROR, WARN, Rejections, drive_health
 from motor_driver.runtime import supervise_bus as supervise_bus_module
 from motor_driver.runtime.supervisor import SUPERVISOR_FAILURES_MAX
 from virtual_can import SimService
@@ -141,8 +141,8 @@ def test_frames_a_receive_callback_raises_on_are_counted_said_and_do_not_read_as
              "its TPDOs rejected until its data is stale")
     rejected = driver.rejected(drive)
     assert rejected is not None and "broken_decoding: Boom: cannot decode 0x" in rejected.cause
-    health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s, rejected=rejected,
-                          rejected_age_s=0.0)
+    health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s,
+                          rejected=Rejections(rejected.count, rejected.cause, 0.0))
     assert health.level == ERROR and "rejected by the driver" in health.message and "Boom" in health.message
     assert "bus or this host is stalled" not in health.message
     assert health.values["rejected_frames"] == str(rejected.count)

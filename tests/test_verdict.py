@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import replace
 
 from hypothesis import given
 from hypothesis import strategies as st
@@ -65,7 +64,7 @@ def test_every_flag_combination_exhaustively() -> None:
     for foreign, lost, reboot, booted, late, state, out, armed, emcy in itertools.product(
             ("", "x"), (False, True), (False, True), (False, True), (False, True), list(State), ("", "x"),
             (False, True), (0, EMCY_HEARTBEAT_LOST)):
-        facts = replace(base, foreign_master=foreign, lost=lost, rebooting=reboot, booted=booted,
+        facts = base._replace(foreign_master=foreign, lost=lost, rebooting=reboot, booted=booted,
                         data_age_s=1.0 if late else 0.0, state=state, left_out=out, armed=armed, emcy_code=emcy)
         assert judge(facts).condition is expected(facts), facts
 
@@ -73,7 +72,7 @@ def test_every_flag_combination_exhaustively() -> None:
 def _usable(**changes: object) -> DriveFacts:
     facts = DriveFacts("wheel_x", data_age_s=0.005, stale_after_s=0.05, heartbeat_age_s=0.05, nmt="OPERATIONAL",
                        state=State.OPERATION_ENABLED, booted=True, armed=True)
-    return replace(facts, **changes)  # type: ignore[arg-type]
+    return facts._replace(**changes)  # type: ignore[arg-type]
 
 
 def test_usable() -> None:

@@ -1,4 +1,5 @@
-"""Tier 1: what the drive system says of a wheel and its book of wheels left out (pure)."""
+"""Tier 1: what the drive system says of a wheel, what the odometry may count of it, and its book
+of wheels left out (pure): each from the wheel's verdict."""
 
 from __future__ import annotations
 
@@ -6,13 +7,14 @@ import dataclasses
 import math
 
 from motor_driver.drive import DriveState
+from motor_driver.drive.verdict import judge
 from motor_driver.protocol.cia402 import State
 from nodes.wheels import WheelsOut, odometry_sample, problems, wheel_problem
 
 BASE = DriveState(name="w1", node_id=1, angle_deg=90.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0637,
                   state=State.OPERATION_ENABLED, mode=9, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
                   error_code=0, error_text="", stamp=100.0, heartbeat_age_s=0.01, target_reached=False,
-                  data_age_s=0.01, stale=False, foreign_master="", reference=1)
+                  data_age_s=0.01, stale=False, foreign_master="", reference=1, rx_monotonic=50.0)
 
 
 def state(**changes: object) -> DriveState:
@@ -22,37 +24,69 @@ def state(**changes: object) -> DriveState:
 def test_each_cause_is_named_with_what_helps() -> None:
     assert wheel_problem(BASE) == ""
     lost = wheel_problem(state(enabled=False, lost=True, fault=True, heartbeat_age_s=0.75))
-    assert "w1 is lost (no heartbeat for 750 ms)" in lost and "cable" in lost and "arm the rover" not in lost
+    assert "w1: heartbeat lost: none for 750 ms" in lost and "cable" in lost and "arm the rover" not in lost
     stale = wheel_problem(state(enabled=False, stale=True, data_age_s=0.12))
-    assert "stale (no PDO for 120 ms)" in stale and "/arm does not help" in stale
+    assert stale.startswith("w1: no data for 120 ms (bus or drive stalled)") and "/arm does not help" in stale
     fault = wheel_problem(state(enabled=False, state=State.FAULT, fault=True, error_code=0x2310,
                                 error_text="continuous over-current"))
-    assert "FAULT, EMCY 0x2310 continuous over-current" in fault and "w1/recover" in fault
+    assert "FAULT: EMCY 0x2310 continuous over-current" in fault and "w1/recover" in fault
     foreign = wheel_problem(state(enabled=False, foreign_master="NMT stop from elsewhere"))
     assert "another master" in foreign
     assert "not armed (SWITCH_ON_DISABLED)" in wheel_problem(state(enabled=False, state=State.SWITCH_ON_DISABLED))
     said = problems([state(name="a", enabled=False, lost=True), BASE, state(name="b", enabled=False, stale=True)])
-    assert said.startswith("a is lost") and said.endswith("(and 1 more: b)")
+    assert said.startswith("a: heartbeat lost") and said.endswith("(and 1 more: b)")
+
+
+PDO_S = 0.015
 
 
 def test_odometry_takes_a_fresh_wheel_keeps_a_late_one_and_forgets_a_lost_one() -> None:
-    fresh = odometry_sample(BASE)
+    fresh = odometry_sample(BASE, PDO_S)
     assert fresh.trusted and math.isclose(fresh.angle_rad, math.pi / 2) and fresh.reference == 1
-    late = odometry_sample(state(stale=True, enabled=False))
-    assert not late.trusted and not late.forget and "stale" in late.why_not
-    lost = odometry_sample(state(lost=True, fault=True, enabled=False))
-    assert not lost.trusted and lost.forget and "lost" in lost.why_not
+    assert fresh.stamp == BASE.rx_monotonic  # ordered by the receive thread's clock, not the frame's
+    late = odometry_sample(state(stale=True, enabled=False), PDO_S)
+    assert not late.trusted and not late.forget and not late.silent and "no data" in late.why_not
+    silent = odometry_sample(state(data_age_s=0.03), PDO_S)  # usable, but its PDO is a period late
+    assert not silent.trusted and not silent.forget and silent.silent and "silent for 30 ms" in silent.why_not
+    lost = odometry_sample(state(lost=True, fault=True, enabled=False), PDO_S)
+    assert not lost.trusted and lost.forget and "heartbeat lost" in lost.why_not
+
+
+def test_a_wheel_out_disabled_quick_stopped_or_rebooting_counts_for_nothing() -> None:
+    """Each forgets its last sample: its next one starts anew (it adds nothing meanwhile)."""
+    for changes in ({"enabled": False, "state": State.SWITCH_ON_DISABLED},
+                    {"enabled": False, "state": State.QUICK_STOP_ACTIVE}):
+        sample = odometry_sample(state(**changes), PDO_S)
+        assert not sample.trusted and sample.forget, changes
+    rebooting = BASE.facts._replace(rebooting=True, booted=False)
+    sample = odometry_sample(dataclasses.replace(BASE, judged=(rebooting, judge(rebooting))), PDO_S)
+    assert not sample.trusted and sample.forget and "re-booting" in sample.why_not
+    out = BASE.facts._replace(left_out="it was lost")
+    sample = odometry_sample(dataclasses.replace(BASE, judged=(out, judge(out))), PDO_S)
+    assert not sample.trusted and sample.forget and "out of the drive system" in sample.why_not
+
+
+def test_with_no_wheel_driven_every_measured_wheel_counts() -> None:
+    """The rover disarmed (standing, or pushed): what the wheels measure is all the motion there is."""
+    idle = state(enabled=False, state=State.SWITCH_ON_DISABLED)
+    assert odometry_sample(idle, PDO_S, driven=False).trusted
+    assert not odometry_sample(state(lost=True, enabled=False), PDO_S, driven=False).trusted
 
 
 def test_a_wheel_out_comes_back_only_stopped_then_enabled_again() -> None:
     book = WheelsOut(["a", "b"], ["c"])
     states = {"a": state(name="a"), "b": state(name="b"), "c": state(name="c")}
     assert book.update(states, driving=True) == ([], [])
-    states["a"] = state(name="a", stale=True, enabled=False)  # only late: not out (it hears the commands)
-    assert book.update(states, driving=True) == ([], []) and book.share() == 1.0
+    states["b"] = state(name="b", stale=True, enabled=False)  # late: out like a lost one (it is not measured)
+    assert book.update(states, driving=True) == (["b"], []) and book.share() == 0.5
+    assert "b out (b: no data for" in book.summary()
     states["a"] = state(name="a", lost=True, enabled=False, fault=True)
     assert book.update(states, driving=True) == (["a"], [])
-    assert book.share() == 0.5 and "a out (a is lost" in book.summary()
+    assert book.share() == 0.0 and book.empty_side() == "left" and "a out (a: heartbeat lost" in book.summary()
+    states["b"] = state(name="b", state=State.QUICK_STOP_ACTIVE, enabled=False)  # fresh again, stopped as told
+    assert book.update(states, driving=True) == ([], [])
+    states["b"] = state(name="b")  # /arm
+    assert book.update(states, driving=True) == ([], ["b"])
     # heard again, still Operation Enabled from before (our stop never reached it): not back, told again
     states["a"] = state(name="a")
     assert book.update(states, driving=True) == ([], []) and book.still_running(states) == ["a"]

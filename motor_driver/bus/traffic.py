@@ -50,6 +50,7 @@ class BusStats(can.Listener):
     def __init__(self, bitrate: int) -> None:
         self.bitrate = bitrate
         self.frames = 0
+        self.syncs = 0  # SYNC frames seen (this driver's own where the bus echoes them: a daemon's timer)
         self.error_frames = 0
         #: the newest error frame: (monotonic time, decoded); and the newest that loses the bus
         #: (bus-off, no ACK). Written by the receive thread (one assignment each), read by the
@@ -72,6 +73,8 @@ class BusStats(can.Listener):
                 self.last_losing_error = now
             return
         self.frames += 1
+        if msg.arbitration_id == 0x080 and not msg.is_extended_id:
+            self.syncs += 1
         bits = frame_bits(min(msg.dlc, 8), extended=msg.is_extended_id)
         self.bits += bits
         self._window_bits += bits

@@ -13,7 +13,8 @@ What lives where (each module's docstring names the thread that owns its state):
   :mod:`.position` (which position samples to believe), :mod:`.tpdo` (one TPDO's values, decoded
   alike for the recorder's view) and :mod:`.values` (what it publishes)
 - :mod:`.verdict`: one verdict per drive, judged once from what the driver knows (pure); every
-  consumer reads it, :mod:`.health` (the grade /diagnostics gives a drive and a bus) among them
+  consumer reads it, :mod:`.health` (the grade /diagnostics gives a drive and a bus) among them,
+  with :mod:`.frameloss` (its TPDOs and heartbeats expected against received)
 - :mod:`.ledger`: the supervisor's judgements of each drive and bus (its one writer) and the NMT
   ledger, which the parts read and post to
 - :mod:`.sdo`: the SDO port, bounded, one typed codec; the objects no tool may write

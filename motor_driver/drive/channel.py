@@ -90,6 +90,11 @@ class CommandChannel:
         return self._busy.oldest
 
     @property
+    def stopped_by(self) -> str:
+        """The newest stop of this driver's (who and why), "" none yet."""
+        return self._preempted[1]
+
+    @property
     def handshake_idle(self) -> bool:
         return self._handshake.idle
 

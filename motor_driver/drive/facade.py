@@ -45,6 +45,7 @@ from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
 from motor_driver.drive.values import DriveState
+from motor_driver.drive.verdict import Verdict
 from motor_driver.protocol.pdo import PdoPlan, plan_pdos
 from motor_driver.protocol.units import Scale
 
@@ -102,7 +103,11 @@ class Drive:
 
     # ------------------------------------------------------------------ the user's API
     def snapshot(self) -> DriveState:
-        return self.cache.snapshot(self.watch.foreign_master)
+        return self.cache.snapshot(self.power.facts())
+
+    def verdict(self) -> Verdict:
+        """The one judgement of this drive (:mod:`motor_driver.drive.verdict`)."""
+        return self.snapshot().verdict
 
     def close(self) -> None:
         """The driver shuts down: no command is taken from here on (stops still are)."""

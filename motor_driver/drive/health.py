@@ -1,14 +1,20 @@
 """Clear rules that grade a drive's state as OK / WARN / ERROR (pure; the node turns the
-result into diagnostic_msgs). The rules:
+result into diagnostic_msgs). A drive is graded from its verdict (:mod:`motor_driver.drive.verdict`,
+carried by its snapshot), whose cause and what helps are the message; nothing here combines the
+drive's flags again. The rules, first match wins:
 
-* ERROR: the drive is lost (no heartbeat within the consumer time), in FAULT or FAULT
-  REACTION ACTIVE, its bus is lost, another master drives it, its PDOs stopped while it is
-  operational (stale data), or a safety check read back after boot failed
+* ERROR: its bus is lost; its verdict is another master, lost, not configured, late, faulted or
+  stopped itself (:data:`GRADE`); or a safety check read back after boot failed
   (:mod:`motor_driver.protocol.safety`: nothing would stop it if the host died, limits not set, ...).
-* WARN: the statusword warning bit is set, a command was refused since the last report,
-  the heartbeat is older than 1.5 producer periods, the drive is not booted, or it has no
-  drive-side stop on host loss and the config allows that (``allow_no_host_watch``).
-* OK: otherwise (enabled or safely disabled).
+* WARN: its verdict is re-booting (being configured again) or out (the drive system left it
+  out); more of its TPDOs or heartbeats lost over the measured window than
+  ``frame_loss_warn_percent`` (:mod:`motor_driver.drive.frameloss`); a command was refused since the
+  last report; the statusword warning bit is set; the heartbeat is older than 1.5 producer
+  periods; it has no drive-side stop on host loss and the config allows that
+  (``allow_no_host_watch``).
+* Frames of the drive a receive callback raised on (:func:`rejections`): ERROR while its data is
+  late for it (the driver's decoding, not the bus), WARN while recent.
+* OK: otherwise (usable, or not armed: safely disabled).
 
 Frames of a drive that a receive callback raised on (:func:`rejections`): within
 REJECTED_RECENT_S, ERROR when its data is stale (the driver's decoding, not the bus, is the
@@ -29,13 +35,16 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from can_config.objects import emcy_text
 from motor_driver.bus.adapters import Rejected
 from motor_driver.bus.link import KernelBusHealth
 from motor_driver.drive import DriveState
+from motor_driver.drive.frameloss import Loss
+from motor_driver.drive.verdict import Condition
 from motor_driver.process.jobs import JOB_KINDS, JobFault
-from motor_driver.protocol.cia402 import FAULT_STATES, SW
+from motor_driver.protocol.cia402 import SW
 from motor_driver.protocol.safety import ALLOWED, SafetyCheck
 
 OK, WARN, ERROR = 0, 1, 2
@@ -43,6 +52,11 @@ OK, WARN, ERROR = 0, 1, 2
 REJECTED_RECENT_S = 10.0
 #: A background job's unexpected failure makes the driver's status WARN for this long.
 JOB_FAULT_RECENT_S = 30.0
+
+#: The level of each verdict (the rules above may raise it, never lower it).
+GRADE = {Condition.USABLE: OK, Condition.NOT_ARMED: OK, Condition.OUT: WARN, Condition.REBOOTING: WARN,
+         Condition.ANOTHER_MASTER: ERROR, Condition.LOST: ERROR, Condition.NOT_CONFIGURED: ERROR,
+         Condition.LATE: ERROR, Condition.FAULTED: ERROR, Condition.STOPPED_ITSELF: ERROR}
 
 
 @dataclass(frozen=True)
@@ -52,10 +66,29 @@ class Health:
     values: dict[str, str]
 
 
-def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_last: int = 0,
+class Rejections(NamedTuple):
+    """Frames of a drive a receive callback raised on: how many, the newest's cause and age."""
+
+    frames: int = 0
+    cause: str = ""
+    age_s: float = math.inf
+
+    @classmethod
+    def of(cls, rejected: Rejected | None, now: float) -> Rejections:
+        """From the driver's count (``now``: the receive thread's monotonic clock)."""
+        return cls() if rejected is None else cls(rejected.count, rejected.cause, now - rejected.at)
+
+
+NO_REJECTIONS = Rejections()
+
+
+def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_last: int = 0,  # noqa: PLR0913
                  last_refusal: str = "", bus_lost: bool = False, tpdos_applied: int = 0,
-                 safety: Sequence[SafetyCheck] = (), rejected: Rejected | None = None,
-                 rejected_age_s: float = math.inf) -> Health:
+                 safety: Sequence[SafetyCheck] = (), rejected: Rejections = NO_REJECTIONS,
+                 frame_loss: Loss | None = None,
+                 frame_loss_warn_percent: float = 100.0) -> Health:
+    """One drive graded by the rules above; ``frame_loss``: its measured window (None: still
+    measuring); ``rejected``: its frames a receive callback raised on."""
     values = {
         "node_id": str(state.node_id),
         "nmt_state": state.nmt,
@@ -78,25 +111,27 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     allowed = [c for c in safety if c.status == ALLOWED]
     values["data_age_s"] = "never" if math.isinf(state.data_age_s) else f"{state.data_age_s:.3f}"
     values["foreign_master"] = state.foreign_master
-    graded = rejections(state, values, rejected, rejected_age_s)  # its values whatever the grade
+    graded = rejections(state, values, rejected)  # its values whatever the grade
+    verdict = state.verdict
+    values["condition"] = verdict.condition.value
+    values["frame_loss"] = frame_loss.text() if frame_loss is not None else "measuring"
     if bus_lost:
         return Health(ERROR, "bus lost", values)
-    if state.foreign_master:
-        return Health(ERROR, f"not under control: another master on the bus ({state.foreign_master})", values)
-    if state.lost:
-        return Health(ERROR, f"heartbeat lost ({values['heartbeat_age_s']} s): check the drive's power and CAN cable;"
-                      " it is configured again (disabled) when heard, then arm it", values)
-    if state.state in FAULT_STATES:
-        code = state.error_code
-        return Health(ERROR, f"fault: EMCY 0x{code:04X} {emcy_text(code)}" if code else "fault", values)
+    if graded is not None and graded.level == ERROR:
+        return graded  # late because the driver rejected its frames: not the bus or the drive
+    said = verdict.cause + (f"; {verdict.helps}" if verdict.helps else "")
+    if GRADE[verdict.condition] == ERROR:
+        return Health(ERROR, said, values)
     if failed:
         return Health(ERROR, "safety check failed: " + "; ".join(f"{c.check} ({c.object} is {c.actual},"
                                                                  f" expected {c.expected})" for c in failed), values)
     if graded is not None:
         return graded
-    if state.stale and state.nmt == "OPERATIONAL":
-        return Health(ERROR, f"stale: no PDO for {values['data_age_s']} s; the values shown are old (its bus or"
-                      " this host is stalled: arming does not help)", values)
+    if GRADE[verdict.condition] == WARN:
+        return Health(WARN, said, values)
+    if frame_loss is not None and frame_loss.worst_percent > frame_loss_warn_percent:
+        return Health(WARN, f"frames lost: {frame_loss.text()} (over {frame_loss_warn_percent:g} %): check the"
+                      " cabling, termination and bus load", values)
     if refused_since_last:
         return Health(WARN, f"{refused_since_last} command(s) refused: {last_refusal}", values)
     if state.statusword & SW.WARNING:
@@ -106,16 +141,16 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     if allowed:
         return Health(WARN, "NO drive-side stop on host loss (allowed by allow_no_host_watch): if this process"
                       " dies while the drive is enabled, nothing stops it", values)
-    return Health(OK, "enabled" if state.enabled else f"ready ({state.state.name})", values)
+    return Health(OK, "enabled" if verdict.usable else f"ready: {verdict.cause}", values)
 
 
-def rejections(state: DriveState, values: dict[str, str], rejected: Rejected | None, age_s: float) -> Health | None:
-    """Frames of the drive a receive callback raised on (the newest ``age_s`` ago): in
-    ``values`` always; the grade while the newest is recent."""
-    count, cause = (rejected.count, rejected.cause) if rejected is not None else (0, "")
+def rejections(state: DriveState, values: dict[str, str], rejected: Rejections) -> Health | None:
+    """Frames of the drive a receive callback raised on: in ``values`` always; the grade while
+    the newest is recent."""
+    count, cause = rejected.frames, rejected.cause
     values["rejected_frames"] = str(count)
     values["last_rejection"] = cause
-    if not count or age_s > REJECTED_RECENT_S:
+    if not count or rejected.age_s > REJECTED_RECENT_S:
         return None
     if state.stale:
         return Health(ERROR, f"stale: {count} frame(s) from it rejected by the driver ({cause}): a fault in this"
@@ -151,15 +186,19 @@ KERNEL_VALUES = ("state", "tx_errors", "rx_errors", "bitrate", "restart_ms", "re
                  "error_warning", "bus_errors", "rx_dropped", "tx_dropped")
 
 
-def bus_health(*, load: float, lost: bool, frames: int, error_frames: int, kernel: KernelBusHealth | None,
-               why_unknown: str = "", tx_queue_full: int = 0, tx_not_sent: int = 0, rejected_frames: int = 0) -> Health:
+def bus_health(*, load: float, lost: bool, frames: int, error_frames: int,  # noqa: PLR0913 (one bus's figures)
+               kernel: KernelBusHealth | None,
+               why_unknown: str = "", tx_queue_full: int = 0, tx_not_sent: int = 0, rejected_frames: int = 0,
+               frame_loss: Loss | None = None) -> Health:
     """One bus graded: lost, down or BUS-OFF is ERROR; ERROR-WARNING, ERROR-PASSIVE, a frame not
     sent for a full transmit queue or a load over 50 % is WARN. ``kernel``: what the kernel says
     (None: not a kernel interface, ``why_unknown``); ``tx_queue_full``: sends refused with ENOBUFS
-    (each retried), ``tx_not_sent``: frames given up on."""
+    (each retried), ``tx_not_sent``: frames given up on; ``frame_loss``: its drives' frames lost,
+    summed (:func:`motor_driver.drive.frameloss.total`)."""
     values = {"load": f"{load:.4f}", "frames_received": str(frames), "error_frames": str(error_frames),
               "tx_queue_full": str(tx_queue_full), "tx_not_sent": str(tx_not_sent),
-              "rejected_frames": str(rejected_frames)}
+              "rejected_frames": str(rejected_frames),
+              "frame_loss": frame_loss.text() if frame_loss is not None else "measuring"}
     if kernel is None:
         values["can_state"] = f"unknown ({why_unknown})" if why_unknown else "unknown"
     else:

@@ -45,7 +45,7 @@ class Homing:
             raise CommandRejected(f"{self.name}: this drive has no homing mode ({why}); nothing was sent. Home it"
                                   " with the vendor's tool, or set offset_deg in the config.")
         with self._channel.operation("home") as op:
-            self._power.require_usable("home")
+            self._power.require_usable("home", fresh=True)  # it moves the drive: not on late data
             self._power.set_mode(OperationMode.HOMING, parent=op)
             self._channel.check(op, "home")
             self._sdo.write_typed(OD.HOMING_METHOD, 0, cfg.homing_method)

@@ -32,6 +32,7 @@ from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.setpoint import rebase_after_switch
+from motor_driver.drive.verdict import Condition, judge
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State
 from motor_driver.protocol.units import check_counts, check_limits, nearest_equivalent, require_finite
 
@@ -72,9 +73,10 @@ class Motion:
                                   " degrees cannot be turned into the drive's units. Set counts_per_rev for this drive"
                                   " (bench: --counts-per-rev N). Nothing was sent.")
 
-    def _require_enabled(self, doing: str) -> None:
+    def _require_enabled(self, doing: str, live: bool = True) -> None:
+        """A set-point that moves (``live``) needs fresh data; a zero (a stop) is taken on late data too."""
         self._channel.admit(doing)  # motion held (the lifecycle node inactive) is said before "not enabled"
-        self._power.require_usable(doing)
+        self._power.require_usable(doing, fresh=live)
         cache = self._cache
         state = cache.state
         seen = cache.fault_seen
@@ -86,36 +88,40 @@ class Motion:
         if state != _ENABLED or self._channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
             if state in FAULT_STATES:
                 raise self._power.fault_error(doing)
+            verdict = judge(self._power.facts())
+            if verdict.condition is Condition.STOPPED_ITSELF:
+                raise DriveStateError(f"{verdict.text()} ({doing} refused; nothing was sent)", node_id=self.node_id,
+                                      statusword=cache.received.statusword)
             shown = state.name if state != _ENABLED else "stopping"
             raise DriveStateError(f"{self.name}: {doing} refused: the drive is {shown}; enable() it"
                                   " first", node_id=self.node_id, statusword=cache.received.statusword)
 
-    def _ensure_mode(self, mode: OperationMode, doing: str, at_once: bool = False) -> None:
+    def _ensure_mode(self, mode: OperationMode, doing: str, at_once: bool = False, live: bool = True) -> None:
         """Before a motion command, outside the channel: the drive enabled and in ``mode`` (a mode
         switch is an operation of its own; with ``at_once``, :class:`CommandWouldWait` instead)."""
-        self._require_free_and_enabled(doing)
+        self._require_free_and_enabled(doing, live)
         if self._cache.received.mode != mode:
             self._would_wait(at_once, doing, f"a switch to {mode.name} first")
             self._power.set_mode(mode)
 
-    def _require_free_and_enabled(self, doing: str) -> None:
+    def _require_free_and_enabled(self, doing: str, live: bool = True) -> None:
         """No operation of another's runs on the drive (refused at once, not queued), and it is enabled."""
         busy = self._channel.busy
         if busy:
             raise CommandRejected(f"{self.name}: {doing} refused: the drive is busy with {busy};"
                                   " nothing was sent. Send it again when that is done.")
-        self._require_enabled(doing)
+        self._require_enabled(doing, live)
 
     def _would_wait(self, at_once: bool, doing: str, needs: str) -> None:
         if at_once:
             raise CommandWouldWait(f"{self.name}: {doing} needs {needs}, which waits for the drive; asked to go out"
                                    " at once, nothing was sent")
 
-    def _require_motion(self, mode: OperationMode, doing: str) -> None:
+    def _require_motion(self, mode: OperationMode, doing: str, live: bool = True) -> None:
         """Inside the channel, right before a motion frame, decided with it as one step: the drive
         is usable, this driver's last controlword was Enable Operation (no stop since), the last
         statusword said Operation Enabled, and the mode is still ``mode``."""
-        self._require_enabled(doing)
+        self._require_enabled(doing, live)
         if self._cache.received.mode != mode:
             raise CommandRejected(f"{self.name}: {doing} refused: the drive left {mode.name} meanwhile (now"
                                   f" {self._cache.received.mode}); nothing was sent. Send it again.")
@@ -252,7 +258,7 @@ class Motion:
             refusal = self._limits.brake_if_past(frames, guard.direction, guard.speed_deg_s, guard.decel_deg_s2,
                                                  guard.what, torque_mode)
             if refusal is None:
-                self._require_motion(mode, doing)
+                self._require_motion(mode, doing, live)
                 if check_step is not None:
                     self._check_stream_step(check_step)
                 self._emit(frames, torque_mode, value, live, by_sdo=op is not None, stream=check_step is not None)
@@ -282,7 +288,7 @@ class Motion:
     def set_velocity(self, velocity_deg_s: float, *, at_once: bool = False) -> None:
         """Profile-velocity command in deg/s, limited by max_velocity_deg_s; feeds the watchdog."""
         velocity, counts_s = self._checked_velocity(velocity_deg_s)
-        self._ensure_mode(OperationMode.PROFILE_VELOCITY, "velocity command", at_once)
+        self._ensure_mode(OperationMode.PROFILE_VELOCITY, "velocity command", at_once, live=velocity != 0.0)
         self._target(OperationMode.PROFILE_VELOCITY, "velocity command", counts_s, live=velocity != 0.0,
                      guard=Approach(velocity, abs(velocity), self.config.profile_acceleration_deg_s2,
                                     f"velocity {velocity:g} deg/s"), at_once=at_once)
@@ -294,14 +300,14 @@ class Motion:
         periods in one step is refused (slowing down never is); feeds the watchdog. Refused on a
         drive whose 0x6502 does not list CSV."""
         velocity, counts_s = self._checked_velocity(velocity_deg_s)
-        self._ensure_mode(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point", at_once)
+        self._ensure_mode(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point", at_once, live=velocity != 0.0)
         self._target(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point", counts_s, live=velocity != 0.0,
                      guard=Approach(velocity, abs(velocity), self.config.quick_stop_decel_deg_s2,
                                     f"CSV velocity {velocity:g} deg/s"), check_step=velocity, at_once=at_once)
 
     def _torque_command(self, torque_nm: float, mode: OperationMode, doing: str, what: str, at_once: bool) -> None:
         torque = self._checked_torque(torque_nm)
-        self._ensure_mode(mode, doing, at_once)
+        self._ensure_mode(mode, doing, at_once, live=torque != 0.0)
         self._target(mode, doing, self._cache.scale.nm_to_permille(torque), live=torque != 0.0,
                      guard=Approach(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"{what} {torque:g} Nm"),
                      at_once=at_once)

@@ -30,6 +30,7 @@ from motor_driver.drive.constants import (
 )
 from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.drive.part import Ports
+from motor_driver.drive.verdict import UNREACHABLE, Condition, DriveFacts, judge
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, Command, State, decode_state, next_step_to_enable
 
 logger = logging.getLogger(__name__)
@@ -45,22 +46,22 @@ class PowerStateMachine:
         self._supported_modes: int | None = None
 
     # ------------------------------------------------------------------ checks
-    def require_usable(self, doing: str) -> None:
+    def facts(self) -> DriveFacts:
+        """What the verdict on the drive is judged from: the cache's, the host watch's and the channel's."""
+        channel = self._channel
+        return self._cache.facts(foreign_master=self._watch.foreign_master, armed=channel.was_enabled,
+                                 stopped_by=channel.stopped_by)
+
+    def require_usable(self, doing: str, *, fresh: bool = False) -> None:
+        """Refuse ``doing`` (nothing sent) unless the drive can hear and answer this driver: the
+        driver not shut down, and its verdict not another master, lost, re-booting or not
+        configured; with ``fresh`` (a set-point: it acts on the state as read), not late either."""
         if self._channel.closed:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the driver is shut down;"
                                   " nothing was sent", node_id=self.node_id)
-        if self._cache.lost:
-            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is lost (no"
-                                  " heartbeat); nothing was sent", node_id=self.node_id)
-        if self._watch.foreign_master:
-            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing} refused: the drive is not under"
-                                  f" this driver's control: another master is on the bus ({self._watch.foreign_master})."
-                                  " Stop the other driver or bench tool; this one configures the drive again"
-                                  " (not enabled) once the bus is its own. Nothing was sent.", node_id=self.node_id)
-        if not self._cache.booted:
-            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the drive is not"
-                                  " booted (boot() it, or wait for re-configuration after a reset)",
-                                  node_id=self.node_id)
+        verdict = judge(self.facts())
+        if verdict.condition in UNREACHABLE or (fresh and verdict.condition is Condition.LATE):
+            raise DriveStateError(f"{verdict.text()} ({doing} refused; nothing was sent)", node_id=self.node_id)
 
     def fault_error(self, doing: str) -> DriveStateError:
         emcy = self._cache.last_emcy

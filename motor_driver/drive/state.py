@@ -1,16 +1,22 @@
 """The state cache: what the driver knows of one drive, fed by the bus's receive thread.
 
 Owner: the bus's receive thread (``on_tpdo``, ``on_heartbeat``, ``on_emcy``), the only writer of
-the received state: each TPDO's values are published as one immutable :class:`Received` in a
-single assignment, so a reader never sees half a frame; heartbeat, EMCY, the guard toggle and
-the counters are its own too. It notifies waiters (:meth:`wait_until`) and sends nothing: the
-set-point handshake's reply is the command channel's (``StatusSink.on_status``).
+the received state (``_rx``): each TPDO's values are published as one immutable :class:`Received`
+in a single assignment, so a reader never sees half a frame; the heard NMT state and heartbeat
+time, EMCY, the guard toggle and the counters are its own too. It notifies waiters
+(:meth:`wait_until`) and sends nothing: the set-point handshake's reply is the command channel's
+(``StatusSink.on_status``).
 
-Written through this object's methods by others, each on a field of its own (one writer each):
-boot (the bus's worker, drive not booted) seeds the state it read by SDO (:meth:`seed`), sets
-the scale and the guarding flag, and notes the NMT start; a command thread acknowledges faults
-and EMCYs it has dealt with (an acknowledgement is a sequence number, so a FAULT that arrives
-after it is never erased by it).
+Written through this object's methods by others, each on a field of its own (one writer each),
+never on the receive thread's: what boot or a mode switch read by SDO (:meth:`seed`,
+:meth:`note_statusword`, :meth:`note_mode`: the bus's worker or a command thread, one at a time
+under the channel's busy registry) is a :class:`Noted` of its own, laid over the TPDOs' values
+while it is the newer (:attr:`received`) and carried into the next TPDO's by the receive thread;
+boot sets the scale, the guarding flag and its generation (the receive thread restarts its
+toggle when the generation changes), and notes the NMT start (``_started_at``: the NMT state and
+heartbeat time read it with the heard ones); a command thread acknowledges faults and EMCYs it
+has dealt with (an acknowledgement is a sequence number, so a FAULT that arrives after it is
+never erased by it).
 
 An EMCY costs the receive thread little (a babbling node sends thousands a second): its log
 lines are at most one every EMCY_LOG_PERIOD_S per drive, each with the count held back since
@@ -20,7 +26,8 @@ while the drive still says FAULT, a spoofed one or one ahead of its statusword, 
 
 Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.drive.ledger.DriveRuntime`),
 read here, never written: the receive thread posts each heartbeat that may change it
-(:class:`motor_driver.drive.ledger.Heard`) and goes on.
+(:class:`motor_driver.drive.ledger.Heard`) and goes on. :meth:`facts` gathers what the verdict on the
+drive is judged from (:mod:`motor_driver.drive.verdict`); the snapshot carries the verdict.
 """
 
 from __future__ import annotations
@@ -40,10 +47,11 @@ from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.ledger import DriveRuntime, Heard, RuntimePort
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.tpdo import decode_tpdo
-from motor_driver.drive.values import DriveState, Emcy, Received, StatusSink
+from motor_driver.drive.values import DriveState, Emcy, Noted, Received, StatusSink
+from motor_driver.drive.verdict import DriveFacts, judge
 from motor_driver.process.ratelimit import Throttle
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
-from motor_driver.protocol.pdo import PdoPlan, TpdoLayout
+from motor_driver.protocol.pdo import TT_SYNC, PdoPlan, TpdoLayout
 from motor_driver.protocol.units import Scale
 
 logger = logging.getLogger(__name__)
@@ -68,8 +76,11 @@ class DriveCache:
         self._sink: StatusSink | None = None
         self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in plan.tpdos}
         self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in plan.tpdos)
+        self._per_sync = frozenset(p.cob_id for p in plan.tpdos if p.trans_type == TT_SYNC)
+        self.tpdos_per_sync = len(self._per_sync)
         self._event = threading.Condition()
-        self.received = Received()
+        self._rx = Received()  # the receive thread's
+        self._noted: Noted | None = None  # the SDO readers' (boot, a mode switch)
         self.scale = scale
         self.positions = PositionFilter(config.node_id, sync_period_s)  # others read it; only this module calls it
         self.set_scale(scale)
@@ -80,17 +91,20 @@ class DriveCache:
         self.status_seq = 0  # statuswords received: one that arrives after a frame was sent has a higher number
         self.tpdo_count = 0
         self.emcy_count = 0  # EMCYs received (logged or not)
+        self.sync_tpdos = 0  # TPDOs received of those sent every SYNC (frame loss: expected per SYNC)
+        self.heartbeats = 0  # heartbeats (or guard answers) received
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
-        self.nmt_state = "UNKNOWN"
+        self._heard_nmt = "UNKNOWN"
         self.reported_nmt = "UNKNOWN"
         self._bootup_at = 0.0
         self.bootups = 0  # boot-ups heard: one numbered above what a configuration began with is a reset in it
         self._operational_at = 0.0
-        self.last_heartbeat = 0.0
+        self._heard_at = 0.0  # the newest heartbeat (monotonic)
         self._last_emcy: Emcy | None = None
         self._emcy_log = Throttle(EMCY_LOG_PERIOD_S)  # the receive thread's
         self._guard_toggle = 0
+        self._guard_seen = 0  # the guarding generation the toggle belongs to
         self.guard_errors = 0
         self.guard_answers = 0  # the receive thread's: guard answers taken (their toggle right)
         self._bootup = threading.Event()
@@ -98,6 +112,8 @@ class DriveCache:
         self._fault_ack = 0  # command threads (enable, recover)
         self._emcy_ack: Emcy | None = None  # command threads (recover)
         self.guarding = False  # boot
+        self._guard_generation = 0  # boot: each set_guarding starts the toggle at 0
+        self._started_at = 0.0  # boot: its NMT start (monotonic)
         self._on_sample: Callable[[], None] | None = None  # a trajectory group's (on_sample)
 
     def on_sample(self, callback: Callable[[], None] | None) -> None:
@@ -118,6 +134,21 @@ class DriveCache:
 
     # ------------------------------------------------------------------ what others read
     # (besides the plain attributes above: read by anyone, written only here, tests/test_ownership.py)
+    @property
+    def received(self) -> Received:
+        """What the drive said last: the TPDOs' values, with what an SDO read noted since laid over them."""
+        return self._noted.over(self._rx) if self._noted is not None else self._rx
+
+    @property
+    def nmt_state(self) -> str:
+        """The NMT state heard last, or OPERATIONAL from boot's NMT start when that is newer."""
+        return "OPERATIONAL" if self._started_at > self._heard_at else self._heard_nmt
+
+    @property
+    def last_heartbeat(self) -> float:
+        """The newest heartbeat (monotonic; boot's NMT start counts as one); 0.0 never."""
+        return max(self._heard_at, self._started_at)
+
     @property
     def state(self) -> State:
         return decode_state(self.received.statusword)
@@ -198,16 +229,16 @@ class DriveCache:
     def seed(self, statusword: int, position_counts: int, mode: int) -> None:
         """Boot (drive not booted, no PDO flows yet): the state read by SDO; the next position
         TPDO is trusted as it comes."""
-        self.received = self.received._replace(statusword=statusword, position_counts=position_counts, mode=mode)
+        self._noted = Noted(time.monotonic(), statusword=statusword, position_counts=position_counts, mode=mode)
         self.positions.trust_next()
 
     def note_mode(self, mode: int) -> None:
         """A mode switch confirmed by SDO (0x6061): the cache shows it before the next TPDO."""
-        self.received = self.received._replace(mode=mode)
+        self._noted = Noted(time.monotonic(), mode=mode)
 
     def note_statusword(self, statusword: int) -> None:
         """Boot: a statusword read by SDO before PDOs flow."""
-        self.received = self.received._replace(statusword=statusword)
+        self._noted = Noted(time.monotonic(), statusword=statusword)
 
     def trust_next_position(self) -> None:
         """Homing moved the zero: the next position is taken as it comes."""
@@ -224,12 +255,11 @@ class DriveCache:
     def set_guarding(self, on: bool) -> None:
         """Boot: the drive answers guards (its toggle starts at 0 after a reset)."""
         self.guarding = on
-        self._guard_toggle = 0
+        self._guard_generation += 1
 
     def note_started(self) -> None:
         """Boot, at NMT start (the supervisor marks the drive booted when boot reports it)."""
-        self.nmt_state = "OPERATIONAL"
-        self.last_heartbeat = time.monotonic()
+        self._started_at = time.monotonic()
         self._fault_ack = self._fault_seq
 
     # ------------------------------------------------------------------ the receive thread
@@ -250,8 +280,10 @@ class DriveCache:
             self._fault_word = sw
             self._fault_seq += 1
         now = time.monotonic()
-        self.received = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference)
+        self._rx = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference, rx.noted_at)
         self.tpdo_count += 1
+        if cob_id in self._per_sync:
+            self.sync_tpdos += 1
         if took and (tick := self._on_sample) is not None:
             tick()
         if has_statusword:
@@ -277,7 +309,10 @@ class DriveCache:
     def on_heartbeat(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         if not data:
             return
+        self.heartbeats += 1
         state = data[0] & 0x7F
+        if self._guard_seen != self._guard_generation:  # boot restarted guarding: the toggle starts at 0
+            self._guard_seen, self._guard_toggle = self._guard_generation, 0
         if self.guarding and state != NmtState.BOOTUP:  # a guard's answer: its toggle must alternate
             toggle = data[0] >> 7
             if toggle != self._guard_toggle:
@@ -288,24 +323,24 @@ class DriveCache:
                 return
             self._guard_toggle ^= 1
             self.guard_answers += 1
-        now = self.last_heartbeat = time.monotonic()
+        now = self._heard_at = time.monotonic()
         was = self.reported_nmt
         if state == NmtState.BOOTUP:
-            self.nmt_state = self.reported_nmt = "BOOTUP"
+            self._heard_nmt = self.reported_nmt = "BOOTUP"
             self._bootup_at = now
             self.bootups += 1
             self._bootup.set()
             self._port.post(Heard(self.name, state, was, now, self.bootups))
             return
         try:
-            self.nmt_state = NmtState(state).name
+            heard = NmtState(state).name
         except ValueError:
-            self.nmt_state = f"0x{state:02X}"
-        self.reported_nmt = self.nmt_state
+            heard = f"0x{state:02X}"
+        self._heard_nmt = self.reported_nmt = heard
         if state == NmtState.OPERATIONAL:
             self._operational_at = now
         # the supervisor judges a change (another master's, or its own NMT command's) and a lost drive heard again
-        if self.nmt_state != was or self._runtime.lost:
+        if heard != was or self._runtime.lost:
             self._port.post(Heard(self.name, state, was, now))
 
     def on_emcy(self, cob_id: int, data: bytearray, timestamp: float) -> None:
@@ -326,23 +361,45 @@ class DriveCache:
             logger.info("node %d (%s): EMCY error reset%s", self.node_id, self.name, held)
 
     # ------------------------------------------------------------------ the snapshot
-    def snapshot(self, foreign_master: str = "") -> DriveState:
+    def facts(self, *, foreign_master: str = "", armed: bool = False, stopped_by: str = "",
+              now: float | None = None) -> DriveFacts:
+        """What the verdict on this drive is judged from (:mod:`motor_driver.drive.verdict`), each read
+        once from its one writer; ``foreign_master``, ``armed`` and ``stopped_by`` are the host
+        watch's and the command channel's (the facade passes them)."""
+        rx, runtime = self.received, self._runtime
+        now = time.monotonic() if now is None else now
+        emcy = self.last_emcy
+        job = runtime.reboot_job
+        rebooting = not runtime.booted and (runtime.reboot_wanted or self.reset_since_operational() or
+                                            (job is not None and not job.done()))
+        heard = self.last_heartbeat
+        return DriveFacts(self.name, data_age_s=self._data_age(rx, now),
+                          stale_after_s=self.config.stale_after_syncs * self.sync_period_s,
+                          heartbeat_age_s=now - heard if heard else math.inf, nmt=self.nmt_state,
+                          state=decode_state(rx.statusword), lost=runtime.lost, booted=runtime.booted,
+                          rebooting=rebooting, foreign_master=foreign_master, armed=armed, stopped_by=stopped_by,
+                          emcy_code=emcy.code if emcy is not None else 0, emcy_text=emcy.text if emcy is not None else "",
+                          emcy_stamp=emcy.timestamp if emcy is not None else 0.0)
+
+    def snapshot(self, facts: DriveFacts | None = None) -> DriveState:
+        """What the driver knows of the drive, with the verdict on it (judged from ``facts``, by
+        default the cache's alone: no other master, not armed)."""
         rx = self.received
         sw, state = rx.statusword, decode_state(rx.statusword)
         error_code = emcy.code if (emcy := self.last_emcy) is not None else 0
-        now = time.monotonic()
-        hb_age = now - self.last_heartbeat if self.last_heartbeat else math.inf
-        data_age = self._data_age(rx, now)
+        facts = self.facts() if facts is None else facts
+        verdict = judge(facts)
+        data_age, hb_age = facts.data_age_s, facts.heartbeat_age_s
         stale = self._stale(data_age)
-        scale, lost = self.scale, self._runtime.lost
+        scale, lost = self.scale, facts.lost
         torque = scale.permille_to_nm(rx.torque_permille) if self._has_torque else math.nan
         return DriveState(
             name=self.name, node_id=self.node_id, angle_deg=scale.counts_to_deg(rx.position_counts),
             velocity_deg_s=scale.counts_s_to_deg_s(rx.velocity_counts_s), torque_nm=torque,
-            statusword=sw, state=state, mode=rx.mode, nmt=self.nmt_state,
-            enabled=state == State.OPERATION_ENABLED and not lost and not stale,
+            statusword=sw, state=state, mode=rx.mode, nmt=facts.nmt, enabled=verdict.usable,
             fault=state in FAULT_STATES or lost, lost=lost, error_code=error_code,
             error_text=emcy_text(error_code) if error_code else "",
             stamp=rx.stamp, heartbeat_age_s=hb_age,
             target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age, stale=stale,
-            foreign_master=foreign_master, reference=rx.reference)
+            foreign_master=facts.foreign_master, reference=rx.reference, rx_monotonic=rx.rx_monotonic,
+            judged=(facts, verdict))

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import InitVar, dataclass, field
 from typing import NamedTuple, Protocol
 
+from motor_driver.drive.verdict import DriveFacts, Verdict, judge
 from motor_driver.protocol.cia402 import State
 
 
@@ -42,6 +43,23 @@ class DriveState:
     stale: bool = False  # no TPDO for stale_after_syncs SYNC periods: the values above are old
     foreign_master: str = ""  # evidence that another master drives it: commands are refused
     reference: int = 0  # the position reference (boot, homing, a reboot's jump start a new one)
+    rx_monotonic: float = 0.0  # when the PDOs carrying this state arrived (monotonic; 0.0 never)
+    #: the facts and verdict the driver judged (the snapshot's); None: judged from the fields
+    #: above (a snapshot made by hand, a test's or a recording's, and every dataclasses.replace)
+    judged: InitVar[tuple[DriveFacts, Verdict] | None] = None
+    #: what the driver knows of it, and the one judgement of it every consumer reads
+    facts: DriveFacts = field(init=False, compare=False)
+    verdict: Verdict = field(init=False, compare=False)
+
+    def __post_init__(self, judged: tuple[DriveFacts, Verdict] | None) -> None:
+        if judged is None:
+            facts = DriveFacts(self.name, data_age_s=self.data_age_s, stale_after_s=-1.0 if self.stale else math.inf,
+                               heartbeat_age_s=self.heartbeat_age_s, nmt=self.nmt, state=self.state, lost=self.lost,
+                               booted=True, foreign_master=self.foreign_master, armed=self.enabled,
+                               emcy_code=self.error_code, emcy_text=self.error_text)
+            judged = facts, judge(facts)
+        object.__setattr__(self, "facts", judged[0])
+        object.__setattr__(self, "verdict", judged[1])
 
 
 class Received(NamedTuple):
@@ -55,6 +73,27 @@ class Received(NamedTuple):
     stamp: float = 0.0  # time.time() of the frame
     rx_monotonic: float = 0.0  # when it arrived
     reference: int = 0  # the position reference it belongs to (PositionFilter.reference)
+    noted_at: float = 0.0  # the SDO note (Noted.at) its values carry already (0.0: none)
+
+
+@dataclass(frozen=True)
+class Noted:
+    """What an SDO read found (boot's seed, a confirmed mode switch): laid over the TPDOs' values
+    until the receive thread carries it into the next :class:`Received` (``noted_at``). A field of
+    its own, so that the reader of the SDO never writes the receive thread's value."""
+
+    at: float  # when it was read (monotonic): its identity
+    statusword: int | None = None
+    position_counts: int | None = None
+    mode: int | None = None
+
+    def over(self, rx: Received) -> Received:
+        if rx.noted_at == self.at:
+            return rx  # carried already: the TPDOs' newer values stand
+        sw = rx.statusword if self.statusword is None else self.statusword
+        position = rx.position_counts if self.position_counts is None else self.position_counts
+        mode = rx.mode if self.mode is None else self.mode
+        return rx._replace(statusword=sw, position_counts=position, mode=mode, noted_at=self.at)
 
 
 class StatusSink(Protocol):

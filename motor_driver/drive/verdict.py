@@ -28,17 +28,19 @@ Where each input comes from, one writer each (:meth:`motor_driver.drive.DriveCac
 them): the data's age, the statusword, the NMT state, the heartbeat's age and the EMCY are the
 bus's receive thread's (:mod:`motor_driver.drive.state`; boot's NMT start is a field of its own
 there); lost, booted, re-booting and another master are the supervisor's
-(:mod:`motor_driver.runtime`); ``armed``, ``stopped_by`` and ``closed`` are the command channel's
+(:mod:`motor_driver.runtime`); ``armed`` and ``stopped_by`` are the command channel's
 (:mod:`motor_driver.drive.channel`, under its lock); ``left_out`` is the drive system's control
-loop's (``nodes/drive_system.py``), which judges a copy of the facts with it set.
+loop's (``nodes/drive_system.py``), which judges a copy of the facts with it set. A reader of a
+recording judges the facts it rebuilds from the frames the same way (``judge(DriveFacts(...))``;
+a :class:`motor_driver.drive.DriveState` made without them is judged from its own fields).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 from enum import Enum
+from typing import NamedTuple
 
 from can_config.objects import EMCY_HEARTBEAT_LOST
 from motor_driver.protocol.cia402 import FAULT_STATES, State
@@ -63,13 +65,16 @@ class Condition(Enum):
 PRECEDENCE = (Condition.ANOTHER_MASTER, Condition.LOST, Condition.REBOOTING, Condition.NOT_CONFIGURED,
               Condition.LATE, Condition.FAULTED, Condition.OUT, Condition.STOPPED_ITSELF, Condition.NOT_ARMED,
               Condition.USABLE)
+#: Conditions in which a drive cannot hear or answer this driver: every command is refused.
+UNREACHABLE = frozenset({Condition.ANOTHER_MASTER, Condition.LOST, Condition.REBOOTING, Condition.NOT_CONFIGURED})
 #: What /arm (enable every drive) helps with.
 ARM = "/arm enables it again"
 
 
-@dataclass(frozen=True)
-class DriveFacts:
-    """What the driver knows of one drive; ages on the receive thread's monotonic clock (s)."""
+class DriveFacts(NamedTuple):
+    """What the driver knows of one drive; ages on the receive thread's monotonic clock (s).
+    (A NamedTuple, not a frozen dataclass: it is made for every command checked, and a frozen
+    dataclass's constructor cost ten times as much.)"""
 
     name: str
     data_age_s: float = math.inf  # since its newest TPDO (inf: never)
@@ -89,8 +94,7 @@ class DriveFacts:
     left_out: str = ""  # why the drive system left it out ("" it did not)
 
 
-@dataclass(frozen=True)
-class Verdict:
+class Verdict(NamedTuple):
     """A drive's condition, the age of the data it rests on (s), the cause, and what helps."""
 
     name: str
@@ -114,7 +118,7 @@ class Verdict:
         return f"{self.name}: {self.cause}" + (f"; {self.helps}" if self.helps else "")
 
 
-_NOT_MEASURED = frozenset({Condition.LOST, Condition.LATE, Condition.REBOOTING, Condition.NOT_CONFIGURED})
+_NOT_MEASURED = (UNREACHABLE - {Condition.ANOTHER_MASTER}) | {Condition.LATE}
 
 
 def ms(age_s: float) -> str:
@@ -136,11 +140,12 @@ def judge(facts: DriveFacts) -> Verdict:
         return Verdict(f.name, condition, age, cause, helps)
 
     if f.foreign_master:
-        return say(Condition.ANOTHER_MASTER, f"another master drives it ({f.foreign_master})",
+        return say(Condition.ANOTHER_MASTER, "not under this driver's control: another master is on the bus"
+                   f" ({f.foreign_master})",
                    "stop the other driver or bench tool; this driver configures it again once the bus is its own,"
                    " then /arm")
     if f.lost:
-        return say(Condition.LOST, f"lost: no heartbeat for {ms(f.heartbeat_age_s)}",
+        return say(Condition.LOST, f"heartbeat lost: none for {ms(f.heartbeat_age_s)}",
                    "check its power and CAN cable; it is configured again (disabled) when heard, then /arm")
     if f.rebooting:
         return say(Condition.REBOOTING, f"re-booting: it reset (NMT {f.nmt}) and is being configured again",
@@ -162,7 +167,7 @@ def judge(facts: DriveFacts) -> Verdict:
     if not enabled:
         by = f", stopped by {f.stopped_by}" if f.stopped_by else ""
         return say(Condition.NOT_ARMED, f"not armed ({f.state.name}{by})",
-                   "arm the rover with /arm (std_srvs/Trigger), or launch with arm:=true")
+                   "arm the rover with the service /arm (std_srvs/Trigger), or launch with arm:=true")
     return say(Condition.USABLE, "usable")
 
 

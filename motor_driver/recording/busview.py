@@ -220,7 +220,7 @@ class ViewDrive:
             fault=facts.state in FAULT_STATES or facts.lost, lost=facts.lost, error_code=code,
             error_text=emcy_text(code) if code else "", stamp=rx.stamp, heartbeat_age_s=facts.heartbeat_age_s,
             target_reached=bool(rx.statusword & SW.TARGET_REACHED), data_age_s=facts.data_age_s, stale=stale,
-            reference=rx.reference), verdict
+            reference=rx.reference, judged=(facts, verdict)), verdict
 
 
 def view_drives(config: RoverConfig, units: Mapping[str, UnitObjects] | None = None,

@@ -5,8 +5,9 @@ Foxglove view (:mod:`motor_driver.recording.busview`), so a recording says what 
 
 The rules: a MotorState's angle is wrapped to [0, 360) on a continuous joint (a wheel) and as
 measured on a limited one; /joint_states carries the angle as measured (rad, never wrapped: a
-wheel's travel), its velocity (rad/s) and torque (Nm). Values of stale data are not repeated as
-if they were news: NaN, with ``stale`` and the data's age. No state of its own.
+wheel's travel), its velocity (rad/s) and torque (Nm). Values whose data is not news by the drive's
+verdict (late, lost, re-booting, not configured) are not repeated as if they were: NaN, with
+``stale`` and the data's age; ``enabled`` is the verdict's usable. No state of its own.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import math
 from typing import NamedTuple
 
 from motor_driver.drive.values import DriveState
+from motor_driver.drive.verdict import Condition
 
 #: The largest data age a MotorState carries (a drive never heard: infinite, said as this).
 DATA_AGE_MAX_S = 1e9
@@ -39,17 +41,19 @@ class MotorStateFields(NamedTuple):
 def motor_state_fields(state: DriveState, continuous: bool) -> MotorStateFields:
     """A MotorState of ``state`` (see the module's rules)."""
     angle = state.angle_deg % 360.0 if continuous else state.angle_deg
-    stale = state.stale
+    verdict = state.verdict
+    stale = not verdict.fresh
     return MotorStateFields(
-        name=state.name, state="LOST" if state.lost else state.state.name,
+        name=state.name, state="LOST" if verdict.condition is Condition.LOST else state.state.name,
         angle=math.nan if stale else float(angle), velocity=math.nan if stale else float(state.velocity_deg_s),
-        torque=math.nan if stale else float(state.torque_nm), enabled=state.enabled, fault=state.fault,
+        torque=math.nan if stale else float(state.torque_nm), enabled=verdict.usable, fault=state.fault,
         error_code=state.error_code, stale=stale, data_age=float(min(state.data_age_s, DATA_AGE_MAX_S)),
         stamp=state.stamp)
 
 
 def joint_entry(state: DriveState) -> tuple[float, float, float]:
-    """A drive's /joint_states position (rad), velocity (rad/s) and effort (Nm); NaN when stale."""
-    if state.stale:
+    """A drive's /joint_states position (rad), velocity (rad/s) and effort (Nm); NaN where its
+    verdict says the data is not news (late, lost, re-booting, not configured)."""
+    if not state.verdict.fresh:
         return math.nan, math.nan, math.nan
     return math.radians(state.angle_deg), math.radians(state.velocity_deg_s), state.torque_nm

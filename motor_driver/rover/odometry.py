@@ -1,15 +1,20 @@
 """Skid-steer odometry from measured wheel motion (pure: no I/O, no ROS; the drive system feeds it).
 
 What it integrates, as ros2_control's diff_drive_controller does with position feedback: each
-wheel's own position delta between two of its own samples (the PDO's time, not the caller's
-tick). A wheel counts only while its data can be trusted:
+wheel's own position delta between two of its own samples (ordered by the driver's monotonic
+receive time, never the frame's wall clock: a clock step back is not "no motion"; not the
+caller's tick). A wheel counts only while its data can be trusted (the caller judges it from the
+drive's verdict, ``nodes/wheels.py``):
 
-* a sample is taken only from a wheel that is fresh, not lost and not faulted (``WheelSample.trusted``);
-  a lost or faulted wheel forgets its last sample (``forget``), so its next trusted one starts anew;
-  a wheel whose data is only late (stale) keeps its last sample: while its side's other wheels
-  measure, it is taken to travel as they do, and when it is heard again its own delta over the
-  gap settles the difference (a wheel lost meanwhile leaves their estimate standing); while its
-  whole side is late, its next sample carries the gap (the other side's travel waits for it);
+* a sample is taken only from a wheel that is usable and heard within its PDO period
+  (``WheelSample.trusted``); a wheel that cannot count (lost, out, disabled, quick-stopped,
+  faulted, re-booting) forgets its last sample (``forget``), so its next trusted one starts anew;
+  a wheel whose data is only late (silent for longer than its PDO period, or stale) keeps its last
+  sample: while its side's other wheels measure, it is taken to travel as they do, and when it is
+  heard again its own delta over the gap settles the difference (a wheel lost meanwhile leaves
+  their estimate standing); while its whole side is late, its next sample carries the gap (the
+  other side's travel waits for it). The travel estimated rather than measured, settled or not,
+  is :attr:`OdometryStep.estimated_m`, for the caller's covariance;
 * two samples are subtracted only within one position reference (``reference``: boot, homing and a
   reboot's jump start a new one): the first sample of a new reference is never a jump;
 * a sample no newer than the last one is no motion (the same PDO read twice);
@@ -41,11 +46,12 @@ class WheelSample:
     """One wheel's newest position as the driver received it."""
 
     angle_rad: float
-    stamp: float  # the time of the PDO that carried it (s)
+    stamp: float  # when the driver received the PDO that carried it (monotonic, s)
     reference: int  # the position reference it belongs to
     trusted: bool = True
     why_not: str = ""  # the reason it is not trusted, for diagnostics ("stale for 120 ms")
     forget: bool = False  # untrusted and its last sample no longer to be followed (lost, faulted)
+    silent: bool = False  # untrusted only for silence shorter than its staleness bound (a PDO late)
     velocity_rad_s: float = 0.0  # the drive's own velocity actual value, sent with the position
 
 
@@ -55,6 +61,9 @@ class OdometryStep:
     twist: Twist2D  # measured: the trusted wheels' own velocity actual values; zero when untrusted
     trusted: bool
     why_not: str = ""  # which side has no trusted wheel, and why each of its wheels is out
+    #: travel taken to be as the side's other wheels' for wheels not heard (m): not yet settled by
+    #: their own samples, or never (they were lost); per wheel, over its side's wheel count
+    estimated_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -87,15 +96,18 @@ class WheelOdometry:
         self.track_width_m = track_width_m
         self.wheel_radius_m = wheel_radius_m
         self.pose = Pose2D()
+        self._twist = Twist2D()
         self._last: dict[str, WheelSample] = {}
         #: late wheels' travel already counted as their side's others' (m): taken off their next delta
         self._attributed: dict[str, float] = {}
+        self._never_settled_m = 0.0  # estimates of wheels forgotten before they were heard again
 
     def reset(self, pose: Pose2D | None = None) -> None:
         """Start again at ``pose`` (the origin by default), every wheel's reference forgotten."""
         self.pose = pose or Pose2D()
         self._last.clear()
         self._attributed.clear()
+        self._never_settled_m = 0.0
 
     def _delta(self, name: str, sample: WheelSample | None) -> tuple[float | None, _Update]:
         """(radians turned since this wheel's last sample, 0.0 for nothing new, None where it
@@ -144,7 +156,7 @@ class WheelOdometry:
         for update in updates:
             if update.forget:
                 self._last.pop(update.name, None)
-                self._attributed.pop(update.name, None)
+                self._never_settled_m += abs(self._attributed.pop(update.name, 0.0)) / self._side_size(update.name)
             elif update.sample is not None and (deltas or update.restart):
                 self._last[update.name] = update.sample
                 self._attributed.pop(update.name, None)
@@ -154,6 +166,15 @@ class WheelOdometry:
         counted so now, and taken off their own delta when they are heard again."""
         for name in side.late:
             self._attributed[name] = self._attributed.get(name, 0.0) + side.distance_m
+
+    def _side_size(self, name: str) -> int:
+        return len(self.left) if name in self.left else len(self.right)
+
+    @property
+    def estimated_m(self) -> float:
+        """Travel (m) estimated rather than measured so far: late wheels' shares not yet settled by
+        their own samples, and those never settled."""
+        return self._never_settled_m + sum(abs(m) / self._side_size(n) for n, m in self._attributed.items())
 
     def step(self, samples: Mapping[str, WheelSample]) -> OdometryStep:
         """Integrate what the wheels measured since the last step.
@@ -175,19 +196,24 @@ class WheelOdometry:
                 self._commit(updates, deltas=True)
                 self._attribute(left)
                 self._attribute(right)
+            waiting = [samples.get(n) for n in silent]
+            if any(w is not None and w.silent for w in waiting) and \
+                    all(w is not None and (w.silent or w.forget) for w in waiting):
+                # a PDO or two late (within the staleness bound): the pose waits for them, still trusted
+                return OdometryStep(self.pose, self._twist, True, estimated_m=self.estimated_m)
             side = "left" if not left.counted else "right"
             reasons = ", ".join(f"{n} {self._why(samples.get(n))}" for n in silent)
             return OdometryStep(self.pose, Twist2D(), False,
-                                f"odometry stopped: no trusted wheel on the {side} side ({reasons})")
+                                f"odometry stopped: no trusted wheel on the {side} side ({reasons})", self.estimated_m)
         self._commit(left.updates + right.updates, deltas=True)
         self._attribute(left)
         self._attribute(right)
         forward = (left.distance_m + right.distance_m) / 2.0
         turn = (right.distance_m - left.distance_m) / self.track_width_m
         self.pose = integrate(self.pose, Twist2D(forward, turn), 1.0)  # distances: one unit of "time"
-        twist = Twist2D((left.speed_m_s + right.speed_m_s) / 2.0,
-                        (right.speed_m_s - left.speed_m_s) / self.track_width_m)
-        return OdometryStep(self.pose, twist, True)
+        twist = self._twist = Twist2D((left.speed_m_s + right.speed_m_s) / 2.0,
+                                      (right.speed_m_s - left.speed_m_s) / self.track_width_m)
+        return OdometryStep(self.pose, twist, True, estimated_m=self.estimated_m)
 
     def _why(self, sample: WheelSample | None) -> str:
         if sample is None:

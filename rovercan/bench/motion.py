@@ -158,9 +158,10 @@ def cmd_move(args: argparse.Namespace) -> int:
             check.warn()
         else:  # cyclic or interpolated position only: streamed set-points
             target = stream_to(drive, args.degrees, args.speed)
+        drive.disable()  # the bench never leaves a drive armed: what is said is the state it is left in
         state = drive.snapshot()
         emit(args, {"node": node_id, "target_deg": round(target, 3), "angle_deg": round(state.angle_deg, 3),
-                    "state": state.state.name}, f"node {node_id} moved")
+                    "state": state.state.name, "verdict": state.verdict.cause}, f"node {node_id} moved")
     return 0
 
 

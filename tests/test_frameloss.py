@@ -1,0 +1,110 @@
+"""Frames lost, measured and said (motor_driver/drive/frameloss.py; the driver node's /diagnostics):
+per drive, the TPDOs it sends every SYNC expected against received, and its heartbeats expected
+per period against received, over a window of SYNC periods; a WARN above the config's
+``frame_loss_warn_percent``; the bus's figure in its status. The live test drops 5 % of the
+simulated bus's frames and judges by the count of SYNCs seen, never by seconds."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from can_config import RoverConfig
+from motor_driver import MotorDriver
+from motor_driver.drive.frameloss import Counts, FrameLoss, Loss, total
+from virtual_can import SimService
+from virtual_can.scenario import apply_action
+
+from .conftest import make_config, wait_for
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+
+
+def test_a_window_needs_its_syncs_then_says_what_was_lost() -> None:
+    loss = FrameLoss(tpdos_per_sync=3, sync_period_s=0.01, heartbeat_period_s=0.1, window_syncs=100)
+    loss.add(Counts(0.0, 0, 0, 0))
+    loss.add(Counts(0.5, 50, 150, 5))
+    assert loss.loss() is None and loss.progress() == "measuring (50 of 100 SYNCs)"
+    loss.add(Counts(1.0, 100, 285, 9))  # 15 of 300 TPDOs lost, 1 of 10 heartbeats
+    figure = loss.loss()
+    assert figure == Loss(100, 300, 285, 10, 9)
+    assert figure.text() == "TPDOs 15 of 300 lost (5.0 %), heartbeats 1 of 10 (10.0 %) over 100 SYNCs"
+    assert figure.worst_percent == 10.0
+
+
+def test_the_window_slides_and_starts_again_when_not_measuring() -> None:
+    loss = FrameLoss(tpdos_per_sync=2, sync_period_s=0.01, heartbeat_period_s=None, window_syncs=100)
+    for k in range(0, 31):  # 10 SYNCs a sample, none lost
+        loss.add(Counts(k * 0.1, k * 10, k * 20, 0))
+    assert loss.loss() == Loss(100, 200, 200)  # the newest 100 SYNCs only
+    loss.add(Counts(3.1, 310, 620, 0), measuring=False)  # its data went stale: the window starts again
+    loss.add(Counts(3.2, 320, 640, 0))
+    assert loss.loss() is None
+
+
+def test_a_bus_that_shows_no_sync_is_measured_by_time() -> None:
+    loss = FrameLoss(tpdos_per_sync=1, sync_period_s=0.01, heartbeat_period_s=None, window_syncs=100)
+    loss.add(Counts(10.0, 0, 0, 0))
+    loss.add(Counts(11.0, 0, 90, 0))  # 100 SYNC periods by the clock, 90 TPDOs
+    assert loss.loss() == Loss(100, 100, 90)
+
+
+def test_a_bus_figure_sums_its_drives() -> None:
+    assert total([Loss(100, 300, 297), Loss(100, 300, 291, 10, 10)]) == Loss(100, 600, 588, 10, 10)
+    assert total([]) is None
+
+
+@pytest.mark.ros
+def test_five_percent_frame_loss_is_graded_warn_within_a_bounded_count_of_syncs(driver_factory: DriverFactory) -> None:
+    rclpy = pytest.importorskip("rclpy")
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.parameter import Parameter
+
+    from nodes.qos import DIAGNOSTICS_QOS
+    from nodes.rover_driver import DriverNode
+    from nodes.runtime import SpinThread, make_executor
+
+    window = 200
+    sim, driver = driver_factory(make_config(1, frame_loss_window_syncs=window, frame_loss_warn_percent=2.0))
+    driver.drive("joint1").enable()
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=None if os.environ.get("ROS_DOMAIN_ID") else 150 + os.getpid() % 80)
+    node = DriverNode(driver, context=context, parameter_overrides=[Parameter("diagnostics_rate_hz", value=10.0)])
+    probe = rclpy.create_node("probe", context=context)
+    diags: list[Any] = []
+    probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, DIAGNOSTICS_QOS)
+    hot = make_executor("events", context)
+    hot.add_node(node)
+    hot.add_node(probe)
+    spin = SpinThread(hot, "test-hot")
+    stats = driver.buses["can0"].stats
+
+    def status(name: str) -> Any:
+        return next((st for array in reversed(list(diags)) for st in array.status if st.name == name), None)
+
+    def figure(name: str) -> str:
+        st = status(name)
+        return {kv.key: kv.value for kv in st.values}.get("frame_loss", "") if st is not None else ""
+
+    try:
+        wait_for(lambda: figure("rovercan: joint1").startswith("TPDOs"), 60.0, "a whole window measured")
+        assert status("rovercan: joint1").level == bytes([0]), status("rovercan: joint1")  # nothing lost: OK
+        assert figure("rovercan: bus can0").startswith("TPDOs")  # the bus's figure
+        apply_action(sim, {"action": "frames", "channel": "can0", "drop": 0.05})
+        syncs_at_drop, seen = stats.syncs, len(diags)
+        wait_for(lambda: any(st.name == "rovercan: joint1" and st.message.startswith("frames lost:")
+                             for array in diags[seen:] for st in array.status), 120.0, "the frame loss WARN")
+        graded_after = stats.syncs - syncs_at_drop
+        st = status("rovercan: joint1")
+        assert st.level == bytes([1]) and "over 2 %" in st.message, st
+        # a window of 200 SYNCs fills with lost frames, then a diagnostics period or two: by SYNCs, not seconds
+        assert graded_after <= 3 * window, graded_after
+    finally:
+        apply_action(sim, {"action": "frames", "channel": "can0", "drop": 0.0})
+        spin.stop(5.0)
+        node.destroy_node()
+        probe.destroy_node()
+        rclpy.shutdown(context=context)

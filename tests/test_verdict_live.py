@@ -1,0 +1,111 @@
+"""The verdict on a drive of the simulator, as the driver's consumers read it: a set-point on data
+its drive stopped sending is refused with its age and cause, a drive whose host watch stopped it
+is named so (by the refusal and /diagnostics' grading), a drive that re-booted and is not yet
+configured again is not OK. Every wait is on a condition; none decides by the clock."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+
+import pytest
+
+from can_config import RoverConfig
+from can_config.errors import DriveStateError
+from motor_driver import MotorDriver
+from motor_driver.drive.health import ERROR, OK, drive_health
+from motor_driver.drive.verdict import Condition
+from virtual_can import SimService
+from virtual_can.scenario import apply_action
+
+from .conftest import driver_node_spinning, make_config, wait_for
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+
+
+def test_a_set_point_on_stale_data_is_refused_with_its_age(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.set_velocity(10.0)
+    apply_action(sim, {"action": "tpdos", "node": 1, "on": False})  # heartbeats go on: stale, not lost
+    wait_for(drive.cache.data_stale, 10.0, "its data stale")
+    with pytest.raises(DriveStateError, match=r"^joint1: no data for \d+ ms \(bus or drive stalled\)"):
+        drive.set_velocity(5.0)
+    with pytest.raises(DriveStateError, match=r"^joint1: no data for \d+ ms \(bus or drive stalled\)"):
+        drive.command_velocity(5.0, at_once=True)  # a per-joint topic's way in
+    drive.set_velocity(0.0)  # a stop is taken on late data all the same
+    assert drive.snapshot().verdict.condition is Condition.LATE
+    apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
+    wait_for(lambda: not drive.cache.data_stale(), 10.0, "its data fresh again")
+    drive.set_velocity(5.0)  # taken again
+
+
+def test_a_host_watch_stop_is_named_by_the_refusal_and_diagnostics(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    runner = sim.simulator_for(1)
+    wait_for(lambda: bool(runner.call(lambda: dict(runner.drive(1)._consumer_seen))), 30.0, "its host watch armed")
+    apply_action(sim, {"action": "heartbeat_deaf", "node": 1})  # its consumer trips: it stops itself, EMCY 0x8130
+    wait_for(lambda: drive.cache.state.name != "OPERATION_ENABLED" and drive.cache.last_emcy is not None, 30.0,
+             "the drive stopped by itself")
+    with pytest.raises(DriveStateError, match=r"^joint1: stopped itself: host heartbeat lost at [0-9:.]+ .*; /arm"
+                                              r" enables it again"):
+        drive.set_velocity(5.0)
+    health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s)
+    assert health.level == ERROR and health.message.startswith("stopped itself: host heartbeat lost at"), health
+
+
+def test_a_rebooted_drive_not_yet_configured_is_not_ok(driver_factory: DriverFactory) -> None:
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    apply_action(sim, {"action": "sdo", "node": 1, "abort": 0x08000000})  # its re-configuration fails
+    apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.2})
+    wait_for(lambda: drive.cache.reset_since_operational() and not drive.cache.booted, 30.0, "its boot-up heard")
+    health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s)
+    assert health.level != OK, health  # it said OK "ready (OPERATION_ENABLED)": its last TPDO's word
+    assert drive.snapshot().verdict.condition in (Condition.REBOOTING, Condition.NOT_CONFIGURED)
+    assert "re-booting" in health.message or "not configured" in health.message, health
+
+
+@pytest.mark.ros
+def test_a_per_joint_command_on_stale_data_is_refused_and_said(driver_factory: DriverFactory) -> None:
+    """The per-joint velocity topic, the driver node between: the refusal reaches /diagnostics with
+    its cause, and MotorState carries no old values as news."""
+    pytest.importorskip("rclpy")
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rovercan_msgs.msg import MotorState
+    from std_msgs.msg import Float32
+
+    from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
+
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.set_velocity(0.0)
+    with driver_node_spinning(driver) as probe:
+        diags: list[DiagnosticArray] = []
+        states: list[MotorState] = []
+        probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, DIAGNOSTICS_QOS)
+        probe.create_subscription(MotorState, f"{drive.config.ros_prefix}/motor_state", states.append, STATE_QOS)
+        pub = probe.create_publisher(Float32, f"{drive.config.ros_prefix}/velocity_cmd", COMMAND_QOS)
+        apply_action(sim, {"action": "tpdos", "node": 1, "on": False})
+        wait_for(drive.cache.data_stale, 10.0, "its data stale")
+
+        def refusal() -> str:
+            pub.publish(Float32(data=5.0))
+            for array in list(diags):
+                for st in array.status:
+                    values = {kv.key: kv.value for kv in st.values}
+                    if st.name == "rovercan: joint1" and "no data for" in values.get("last_refusal", ""):
+                        return values["last_refusal"]
+            return ""
+
+        wait_for(lambda: bool(refusal()), 30.0, "the refusal on /diagnostics")
+        assert re.search(r"joint1: no data for \d+ ms \(bus or drive stalled\)", refusal())
+        wait_for(lambda: bool(states) and states[-1].stale, 30.0, "a stale MotorState")
+        assert math.isnan(states[-1].velocity) and not states[-1].enabled
+        apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
