@@ -59,10 +59,10 @@ from motor_driver.process.stop import StopSignal
 from nodes import runtime
 from nodes.actions import DriverActionsNode
 from nodes.drive_system import DriveSystemNode
+from nodes.driver_node import DriverNode
 from nodes.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStopsNode
 from nodes.logbridge import RclpyLogHandler, bridge_core_logging, unbridge
 from nodes.params import PROCESS, declare
-from nodes.rover_driver import DriverNode
 
 logger = logging.getLogger(__name__)
 

@@ -58,7 +58,7 @@ from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
 from nodes.wheels import WheelsOut, odometry_samples, out_verdict, problems
 
 if TYPE_CHECKING:
-    from nodes.rover_driver import DriverNode
+    from nodes.driver_node import DriverNode
 
 logger = logging.getLogger(__name__)
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR

@@ -102,8 +102,8 @@ def _demo_process(joint: str, realtime_priority: int) -> tuple[Any, Any, bool]:
     from rclpy.parameter import Parameter
 
     from nodes.assembly import set_up
+    from nodes.driver_node import DriverNode
     from nodes.motor_controller import NODE_NAME
-    from nodes.rover_driver import DriverNode
 
     node = DriverNode(None, NODE_NAME, one_joint=True, parameter_overrides=[
         Parameter("joint", value=joint), Parameter("arm", value=True), Parameter("executor", value="events"),

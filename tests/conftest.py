@@ -296,7 +296,7 @@ def driver_node_spinning(driver: MotorDriver, *, probe_apart: bool = False) -> I
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    from nodes.rover_driver import DriverNode
+    from nodes.driver_node import DriverNode
     from nodes.runtime import SpinThread, make_executor
 
     context = rclpy.Context()

@@ -63,8 +63,8 @@ def test_five_percent_frame_loss_is_graded_warn_within_a_bounded_count_of_syncs(
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.parameter import Parameter
 
+    from nodes.driver_node import DriverNode
     from nodes.qos import DIAGNOSTICS_QOS
-    from nodes.rover_driver import DriverNode
     from nodes.runtime import SpinThread, make_executor
 
     window = 200

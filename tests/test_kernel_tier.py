@@ -556,8 +556,8 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring:
     from geometry_msgs.msg import Twist
 
     from nodes.drive_system import DriveSystemNode
+    from nodes.driver_node import DriverNode
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS
-    from nodes.rover_driver import DriverNode
     from nodes.runtime import SpinThread, make_executor
 
     config_path = write_kernel_config(tmp_path / "kernel.yaml", nodes=(1, 2), wiring=wiring)

@@ -143,3 +143,68 @@ def test_the_readme_tour_lists_each_folder_of_motor_driver() -> None:
     """README's "Layers" gives each folder of motor_driver a line of its own, in FOLDER_ORDER."""
     listed = [m.group(1) for m in re.finditer(r"^  - `motor_driver/(\w+)/`:", readme_section(), re.M)]
     assert listed == list(FOLDER_ORDER), f"README's tour lists {listed}; the tree's layers are {list(FOLDER_ORDER)}"
+
+
+def import_graph(root: Path) -> dict[str, set[str]]:
+    """Every module of the product and the product modules it imports (anywhere in it, a
+    type-checking import included: a circle there is still a circle)."""
+    modules = {".".join(p.relative_to(root).with_suffix("").parts).removesuffix(".__init__"): p
+               for package in PACKAGES for p in (root / package).rglob("*.py")}
+
+    def owner(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {name: set() for name in modules}
+    for name, path in modules.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                targets = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+            else:
+                continue
+            for target in map(owner, targets):
+                if target and target != name and not name.startswith(target + "."):
+                    graph[name].add(target)
+    return graph
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import circles (strongly connected components of more than one module)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for nxt in graph[node]:
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = [stack.pop()]
+            while component[-1] != node:
+                component.append(stack.pop())
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in graph:
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_no_import_circle_in_the_product() -> None:
+    found = circles(import_graph(REPO))
+    assert not found, f"import circles: {found}"
+
+
+def test_the_circle_scan_finds_a_circle() -> None:
+    assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert circles({"a": {"b"}, "b": set()}) == []

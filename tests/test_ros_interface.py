@@ -37,9 +37,9 @@ if HAVE_ROS:
     from nodes import runtime
     from nodes.assembly import Assembly
     from nodes.drive_system import DriveSystemNode
+    from nodes.driver_node import DriverNode
     from nodes.driver_services import DriverServicesNode
     from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
-    from nodes.rover_driver import DriverNode
     from nodes.runtime import SpinThread, make_executor
 
 WHEELS = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left",
