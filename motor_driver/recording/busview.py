@@ -291,11 +291,6 @@ class BusView:
         """The drives decoded in the config's units alone (no unit object of theirs seen or given)."""
         return [d.name for d in self.drives if d.units_from == FROM_CONFIG]
 
-    @property
-    def late_frames(self) -> int:
-        """Frames that came after a newer one had gone out (a bus quiet past the hold, then heard)."""
-        return self._merge.late
-
     def feed(self, frame: Frame) -> None:
         """One frame of any bus, in the order it was read."""
         for each in self._merge.push(frame):
