@@ -26,7 +26,7 @@ from typing import NamedTuple
 from can_config.errors import CommandRejected, CommandWouldWait, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.drive.busy import Op
-from motor_driver.drive.channel import Frames
+from motor_driver.drive.channel import LockedCommand
 from motor_driver.drive.constants import CONTINUOUS_COMMAND_LIMIT_DEG, ENABLED_CW_MASK
 from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.part import Ports
@@ -266,7 +266,7 @@ class Motion:
             self._limits.after_brake(refusal)
 
     @staticmethod
-    def _emit(frames: Frames, torque_mode: bool, value: int, live: bool, *, by_sdo: bool, stream: bool) -> None:
+    def _emit(frames: LockedCommand, torque_mode: bool, value: int, live: bool, *, by_sdo: bool, stream: bool) -> None:
         if by_sdo:
             frames.commanded(live)
         elif torque_mode:
