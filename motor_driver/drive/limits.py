@@ -14,10 +14,11 @@ from __future__ import annotations
 import logging
 import time
 
+from can_config.config import DriveConfig
 from can_config.errors import CommandRejected
-from motor_driver.drive.channel import LockedCommand
+from motor_driver.drive.channel import CommandChannel, LockedCommand
 from motor_driver.drive.constants import LIMIT_ACCEL_MARGIN_S, LIMIT_MARGIN_S, MAX_EXTRAPOLATION_S, TORQUE_MODES, VELOCITY_MODES
-from motor_driver.drive.part import Ports
+from motor_driver.drive.state import DriveCache
 from motor_driver.protocol.cia402 import Command, State
 
 logger = logging.getLogger(__name__)
@@ -26,9 +27,9 @@ logger = logging.getLogger(__name__)
 class LimitGuard:
     """The limit guard and the velocity watchdog of one drive."""
 
-    def __init__(self, ports: Ports) -> None:
-        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
-        self.name, self.node_id = ports.config.name, ports.config.node_id
+    def __init__(self, config: DriveConfig, cache: DriveCache, channel: CommandChannel) -> None:
+        self.config, self._cache, self._channel = config, cache, channel
+        self.name, self.node_id = config.name, config.node_id
         self.limit_stops = 0
         self.watchdog_stops = 0
 
