@@ -47,22 +47,23 @@ from can_config import RoverConfig
 from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive import DriveState
+from motor_driver.drive.health import ERROR, OK, WARN
 from motor_driver.drive.verdict import UNREACHABLE
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.rover.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
 from motor_driver.rover.skid_steer import SkidSteer, Twist2D
 from nodes.handoff import Handoff
+from nodes.messages import stamp_header
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
-from nodes.refusals import WARN_THROTTLE_S, RefusalLog, stamp_header
+from nodes.refusals import WARN_THROTTLE_S, RefusalLog
 from nodes.wheels import WheelsOut, odometry_samples, out_verdict, problems
 
 if TYPE_CHECKING:
     from nodes.driver_node import DriverNode
 
 logger = logging.getLogger(__name__)
-OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 #: the drive system's own /diagnostics status, besides every change of it
 DIAGNOSTICS_PERIOD_S = 1.0
 #: A wheel's stop that failed is tried again after this long.
@@ -375,7 +376,7 @@ class DriveSystemNode(Node):
         level, message, values = self.health()
         array = DiagnosticArray()
         stamp_header(array.header, time.time())
-        status = DiagnosticStatus(level=level, name="rovercan: drive_system", message=message,
+        status = DiagnosticStatus(level=bytes([level]), name="rovercan: drive_system", message=message,
                                   hardware_id="drive_system")
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         array.status = [status]

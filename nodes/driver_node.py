@@ -47,11 +47,11 @@ from motor_driver.drive.health import Rejections, bus_health, drive_health
 from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.recording.published import joint_entry
 from nodes.handoff import Handoff
-from nodes.messages import fill_motor_state
+from nodes.messages import fill_motor_state, stamp_header
 from nodes.params import DRIVER, ONE_JOINT, declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.rawcmd import float32_data
-from nodes.refusals import WARN_THROTTLE_S, RefusalLog, stamp_header
+from nodes.refusals import WARN_THROTTLE_S, RefusalLog
 
 
 class DriverNode(Node):
