@@ -50,7 +50,7 @@ logger = logging.getLogger(__name__)
 
 #: The controlwords of the stops: the channel re-sends one after a controlword written by SDO.
 STOP_WORDS = frozenset({int(Command.QUICK_STOP), int(Command.SHUTDOWN), int(Command.DISABLE_VOLTAGE)})
-#: A streamed set-point's controlword and target object by mode; enum members read once (issue 55)
+#: A streamed set-point's controlword and target object by mode; enum members read once here, not per set-point
 _STREAM_CW_TARGET = {OperationMode.CYCLIC_SYNC_POSITION: (int(Command.ENABLE_OPERATION), OD.TARGET_POSITION),
                      OperationMode.INTERPOLATED_POSITION: (Command.ENABLE_OPERATION | CW.NEW_SETPOINT, OD.INTERPOLATION_DATA)}
 _CONTROLWORD = OD.CONTROLWORD

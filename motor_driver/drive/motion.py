@@ -41,7 +41,7 @@ from motor_driver.protocol.units import check_counts, check_limits, nearest_equi
 
 logger = logging.getLogger(__name__)
 
-#: The streamed position modes by number (a lookup on every set-point, issue 55: no enum call),
+#: The streamed position modes by number (a dict lookup on every set-point, no enum call),
 #: and what each is called and where its target goes
 _STREAMING = {int(m): m for m in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION)}
 _STREAMED = {OperationMode.CYCLIC_SYNC_POSITION: ("CSP setpoint", OD.TARGET_POSITION),

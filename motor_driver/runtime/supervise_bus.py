@@ -32,8 +32,8 @@ logger = logging.getLogger(__name__)
 
 #: A bus is looked at (its connection, error frames, the SYNC job, silence) every this many
 #: periods: a bus that goes is marked lost within 50 ms, inside the drives' own 150 ms host
-#: timeout, which is what stops them; every period it was half the supervisor's CPU (a socket
-#: peek and a select per bus, issue 43). Drives are looked at every period.
+#: timeout, which is what stops them; every period it would be half the supervisor's CPU (a
+#: socket peek and a select per bus). Drives are looked at every period.
 BUS_CHECK_PERIODS = 5
 
 
