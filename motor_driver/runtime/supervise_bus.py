@@ -80,7 +80,6 @@ class BusSupervision:
             elif rt.send_failing is None:
                 rt.send_failing = (now, failed)
             if rt.last_beat and now - rt.last_beat > 2 * bus_cfg.host_heartbeat_s:
-                rt.late_beats += 1
                 if self.recorder is not None:
                     self.recorder.process_late()
                 self._rate_limited.log(logging.WARNING, ("late", name),
