@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import canopen
@@ -34,18 +33,6 @@ REQUIRED_OBJECTS: dict[int, str] = {
 
 #: The largest vendor EDS files are a few hundred kB.
 EDS_MAX_BYTES = 16 << 20
-
-
-@dataclass(frozen=True)
-class ObjectInfo:
-    """What the EDS says about one variable."""
-
-    index: int
-    subindex: int
-    name: str
-    data_type: int
-    pdo_mappable: bool
-    default: int | float | str | bytes | None
 
 
 def load_od(path: Path | str, node_id: int = 1) -> ObjectDictionary:
@@ -103,14 +90,6 @@ def variable(od: ObjectDictionary, index: int, subindex: int = 0) -> ODVariable 
     except KeyError:
         return None
     return var if isinstance(var, ODVariable) else None
-
-
-def object_info(od: ObjectDictionary, index: int, subindex: int = 0) -> ObjectInfo | None:
-    var = variable(od, index, subindex)
-    if var is None:
-        return None
-    return ObjectInfo(index, subindex, var.name, int(var.data_type), bool(var.pdo_mappable),
-                      var.default)
 
 
 def check_cia402(od: ObjectDictionary, path: Path | str) -> None:

@@ -47,21 +47,23 @@ from can_config import RoverConfig
 from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive import DriveState
+from motor_driver.drive.health import ERROR, OK, WARN
 from motor_driver.drive.verdict import UNREACHABLE
 from motor_driver.process.ratelimit import RateLimitedLog
+from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.rover.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
 from motor_driver.rover.skid_steer import SkidSteer, Twist2D
 from nodes.handoff import Handoff
+from nodes.messages import stamp_header
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
-from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
+from nodes.refusals import WARN_THROTTLE_S, RefusalLog
 from nodes.wheels import WheelsOut, odometry_samples, out_verdict, problems
 
 if TYPE_CHECKING:
     from nodes.driver_node import DriverNode
 
 logger = logging.getLogger(__name__)
-OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 #: the drive system's own /diagnostics status, besides every change of it
 DIAGNOSTICS_PERIOD_S = 1.0
 #: A wheel's stop that failed is tried again after this long.
@@ -72,11 +74,11 @@ TF_QOS = QoSProfile(depth=100)
 
 
 class DriveSystemNode(Node):
-    """/cmd_vel -> skid-steer wheel velocities (ramped, stale commands stop), /odom and /tf from
-    the wheels' measured positions.
+    """/cmd_vel -> skid-steer wheel velocities (ramped, a timed-out /cmd_vel stops), /odom and /tf
+    from the wheels' measured positions.
 
     The node commands the wheels only while /cmd_vel is fresh and while it ramps them down after
-    /cmd_vel went stale; once stopped it leaves them alone (bench tools and per-joint topics
+    /cmd_vel timed out (cmd_timed_out); once stopped it leaves them alone (bench tools and per-joint topics
     may then use them).
     """
 
@@ -106,7 +108,7 @@ class DriveSystemNode(Node):
         self._target = Twist2D()
         self._last_cmd = -math.inf
         self._last_tick = time.monotonic()
-        self.stale = True
+        self.cmd_timed_out = True
         self.active = False  # commanding the wheels (fresh /cmd_vel or ramping down after it)
         self.halted = ""  # why every wheel was stopped, until a fresh /cmd_vel drives again
         self.last_odometry = OdometryStep(self.odometry.pose, Twist2D(), False, "odometry: no wheel sampled yet")
@@ -185,8 +187,8 @@ class DriveSystemNode(Node):
             self._halt("/cmd_vel not applied: " + "; ".join(f"wheel {name} refused {speed:.2f} rad/s ({err})"
                                                             for name, speed, err in late) + "; every wheel stopped")
             return
-        self.stale = now - self._last_cmd > self.system.cmd_timeout_s
-        if not self.stale:
+        self.cmd_timed_out = now - self._last_cmd > self.system.cmd_timeout_s
+        if not self.cmd_timed_out:
             held = next((d.channel.held for d in self.wheels if d.channel.held), "")
             if held:  # the drives' own verdict (the lifecycle node inactive): said as it is, not as "not armed"
                 self._halt(f"/cmd_vel not applied: {held}; nothing was sent")
@@ -203,17 +205,17 @@ class DriveSystemNode(Node):
                 return
             self.active = True
             self.halted = ""
-        left, right = self.steer.step(Twist2D() if self.stale else self._target, dt)
-        if self.stale and not self.active:
+        left, right = self.steer.step(Twist2D() if self.cmd_timed_out else self._target, dt)
+        if self.cmd_timed_out and not self.active:
             return
-        if self.stale and left == 0.0 and right == 0.0:
+        if self.cmd_timed_out and left == 0.0 and right == 0.0:
             self.active = False  # stopped: send this last zero, then leave the wheels to others
         for drives, speed in ((self.left, left), (self.right, right)):
             for drive in drives:
                 if not states[drive.name].verdict.usable:
                     continue  # not ours to drive (ramping down: the others still stop); a wheel out is left alone
                 try:
-                    self.handoff.send(drive.name, drive.set_velocity, speed * DEG, "velocity", self._wheel_refused)
+                    self.handoff.send(drive.name, drive.set_velocity, speed * DEG_PER_RAD, "velocity", self._wheel_refused)
                 except RovercanError as err:
                     self._halt(f"/cmd_vel not applied: wheel {drive.name} refused {speed:.2f} rad/s ({err});"
                                " every wheel stopped")
@@ -247,7 +249,7 @@ class DriveSystemNode(Node):
 
     def _wheel_refused(self, name: str, what: str, value: float, err: Exception) -> None:
         """The handoff's worker: a wheel's velocity refused there; the next tick halts them all."""
-        self._refused_late.put((name, value / DEG, err))
+        self._refused_late.put((name, value / DEG_PER_RAD, err))
 
     def _refused_on_workers(self) -> list[tuple[str, float, Exception]]:
         """Every wheel refused on a worker since the last tick, but a wheel left out (continue)."""
@@ -298,7 +300,7 @@ class DriveSystemNode(Node):
         six for a moment when the wheel came back within its timeout)."""
         self.steer.halt()
         self._last_cmd = -math.inf
-        self.stale = True
+        self.cmd_timed_out = True
         if self.active:
             for drive in self.wheels:  # a wheel whose data is only late hears us: a zero is taken on late data
                 if drive.verdict().condition not in UNREACHABLE:
@@ -374,7 +376,7 @@ class DriveSystemNode(Node):
         level, message, values = self.health()
         array = DiagnosticArray()
         stamp_header(array.header, time.time())
-        status = DiagnosticStatus(level=level, name="rovercan: drive_system", message=message,
+        status = DiagnosticStatus(level=bytes([level]), name="rovercan: drive_system", message=message,
                                   hardware_id="drive_system")
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         array.status = [status]

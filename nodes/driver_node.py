@@ -44,13 +44,14 @@ from can_config.errors import ConfigError, RovercanError
 from motor_driver import Drive, DriveState, MotorDriver
 from motor_driver.drive.frameloss import Counts, FrameLoss, Loss, total
 from motor_driver.drive.health import Rejections, bus_health, drive_health
+from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.recording.published import joint_entry
 from nodes.handoff import Handoff
-from nodes.messages import fill_motor_state
+from nodes.messages import fill_motor_state, stamp_header
 from nodes.params import DRIVER, ONE_JOINT, declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.rawcmd import float32_data
-from nodes.refusals import DEG, WARN_THROTTLE_S, RefusalLog, stamp_header
+from nodes.refusals import WARN_THROTTLE_S, RefusalLog
 
 
 class DriverNode(Node):
@@ -205,9 +206,9 @@ class DriverNode(Node):
             # topic-based hardware interface sends NaN in the fields it does not command)
             position, velocity, effort = (_given(values, i) for values in (msg.position, msg.velocity, msg.effort))
             if position is not None:
-                self.command(name, "joint position", drive.command_position, position * DEG)
+                self.command(name, "joint position", drive.command_position, position * DEG_PER_RAD)
             elif velocity is not None:
-                self.command(name, "joint velocity", drive.command_velocity, velocity * DEG)
+                self.command(name, "joint velocity", drive.command_velocity, velocity * DEG_PER_RAD)
             elif effort is not None:
                 self.command(name, "joint effort", drive.command_torque, effort)
             else:

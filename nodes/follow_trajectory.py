@@ -32,7 +32,7 @@ from trajectory_msgs.msg import JointTrajectoryPoint
 
 from can_config.errors import RovercanError, TrajectoryRejected
 from motor_driver.follow import Progress, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
-from nodes.refusals import DEG
+from motor_driver.protocol.units import DEG_PER_RAD
 
 Result = FollowJointTrajectory.Result
 
@@ -42,13 +42,13 @@ def _seconds(duration: Any) -> float:
 
 
 def _degrees(values: Any) -> tuple[float, ...]:
-    return tuple(float(v) * DEG for v in values)
+    return tuple(float(v) * DEG_PER_RAD for v in values)
 
 
 def _tolerances(entries: Any) -> dict[str, Tolerance]:
     """JointTolerance[] in degrees; the special values 0 (the default) and -1 (none) kept as they are."""
     def deg(value: float) -> float:
-        return value if value in (0.0, -1.0) else float(value) * DEG
+        return value if value in (0.0, -1.0) else float(value) * DEG_PER_RAD
     return {t.name: Tolerance(deg(t.position), deg(t.velocity)) for t in entries}
 
 

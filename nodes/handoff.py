@@ -3,10 +3,10 @@
 The hot executor's one thread carries every joint's commands: the per-joint topics,
 /joint_commands and the drive system's tick. A command that needs its drive's answer before it
 can go out (a mode switch: the first set-point of a stream, the first velocity after a position
-move; a target the drive takes only by SDO) held every other joint's commands for its round
-trips: the six wheels' first streamed commands held a 500 Hz arm about 60 ms, and the arm's next
-set-point, beyond its step limit by then, was refused, and so was the rest of its ramp
-(docs/performance.md).
+move; a target the drive takes only by SDO) would hold every other joint's commands for its round
+trips there: the six wheels' first streamed commands would hold a 500 Hz arm about 60 ms, and the
+arm's next set-point, beyond its step limit by then, would be refused, and so would the rest of
+its ramp (docs/performance.md).
 
 :meth:`Handoff.send` sends a command at once where it can (``at_once=True``: the core refuses
 with :class:`CommandWouldWait` before anything is sent otherwise) and hands the others to a

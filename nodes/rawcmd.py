@@ -2,7 +2,7 @@
 
 rclpy's own conversion builds a Python message object for every message taken (about 4 us of
 the hot executor's time a command on the development machine): at six drives commanded at
-500 Hz (issue 55, docs/performance.md) that is 3,000 objects a second made to read one float.
+500 Hz (docs/performance.md) that is 3,000 objects a second made to read one float.
 A Float32 is four bytes of encapsulation header and the float: read here, from the header's
 byte order. Anything else (another encapsulation, a short payload) is refused with what came.
 

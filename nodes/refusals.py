@@ -1,4 +1,4 @@
-"""What every driver node shares: a refused command said once a second per joint, header stamps.
+"""What every driver node shares: a refused command said once a second per joint.
 
 The once a second is counted here (motor_driver.process.ratelimit's Throttle), before rclpy's logger is called: rclpy's own throttle
 (``throttle_duration_sec``) finds its caller's file and line (``inspect``, a ``stat`` per
@@ -9,7 +9,6 @@ to two thirds of its CPU in that (the six-drive profile, docs/performance.md).
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections.abc import Callable, Collection
@@ -20,12 +19,6 @@ from motor_driver.process.ratelimit import KINDS_MAX, Throttle
 WARN_THROTTLE_S = 1.0
 #: Joints whose last line is remembered; beyond it the oldest are forgotten (made-up names).
 SAID_MAX = KINDS_MAX
-DEG = 180.0 / math.pi
-
-
-def stamp_header(msg_header: Any, stamp: float) -> None:
-    msg_header.stamp.sec = int(stamp)
-    msg_header.stamp.nanosec = int((stamp - int(stamp)) * 1e9)
 
 
 class RefusalLog:

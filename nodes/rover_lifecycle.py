@@ -142,7 +142,7 @@ class DriveLifecycleNode(LifecycleNode):
     def destroy_node(self) -> None:
         super().destroy_node()
         # rclpy's LifecycleNode leaves its state machine, which holds the node's handle: the node
-        # stayed in the graph after it was destroyed and its context shut down (a stale
+        # would stay in the graph after it was destroyed and its context shut down (a stale
         # rovercan_lifecycle whose change_state nobody answers)
         self._state_machine.destroy_when_not_in_use()
 

@@ -149,12 +149,5 @@ class SpinThread:
         return True
 
 
-def spin_alone(node: Node, name: str) -> SpinThread:
-    """``node`` on a single-threaded executor of its own, spinning on a thread named ``name``."""
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
-    return SpinThread(executor, name)
-
-
 __all__ = ["EXECUTORS", "IDLE_POLL_S", "POLL_S", "SpinThread", "StopSignal", "give_work", "go_realtime", "init", "make_executor",
-           "spin_alone", "spin_node", "spin_until"]
+           "spin_node", "spin_until"]

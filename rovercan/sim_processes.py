@@ -2,7 +2,7 @@
 simulated drives in a process of their own, connected to it as socketcand clients (the
 ``--bus-interface socketcand`` form of ``rovercan sim``).
 
-Why (issue 43): a Python process runs one thread at a time. With six drive models in the
+Why: a Python process runs one thread at a time. With six drive models in the
 server's process, the cyclic timer that sends the SYNC waits for them to let go of the
 interpreter, and the SYNC's period error grew with the number of drives (about 0.55 ms p99 with
 six, 0.04 ms with one). Here the server's process holds the server alone: its clients' threads,

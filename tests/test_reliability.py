@@ -92,7 +92,8 @@ def test_a_heartbeat_received_after_the_bus_was_lost_does_not_bring_the_drive_ba
     heartbeat after the mark is such a late one: the drive stays lost until it is booted again."""
     _sim, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")
-    driver.supervisor.mark_lost("joint1")  # what the supervisor does to each drive of a lost bus
+    supervisor = driver.supervisor
+    supervisor.call(lambda: supervisor._drive_gone(drive))  # what it does to each drive of a lost bus
     beats = drive.cache.last_heartbeat
     wait_for(lambda: drive.cache.last_heartbeat > beats + 0.05, 3.0, "two more heartbeats of the drive")
     assert drive.snapshot().lost and drive.snapshot().fault
@@ -124,7 +125,7 @@ def test_frame_faults_no_crash_no_wrong_state(driver_factory: DriverFactory, rat
             lambda d=drive: sim.simulator_for(d.node_id).drive(d.node_id).position_counts)
         # what the driver reports is what the drive has (within one SYNC of motion)
         assert drive.cache.received.position_counts == pytest.approx(simulated, abs=50)
-    assert driver.supervisor.alive
+    assert not driver.supervisor.dead
     assert all(h.network.notifier is not None and h.network.notifier.exception is None for h in driver.buses.values())
 
 

@@ -16,6 +16,7 @@ pytestmark = requires_ros
 
 if HAVE_ROS:
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
 
     from nodes import runtime
@@ -35,7 +36,9 @@ def test_an_idle_spin_thread_leaves_at_once_when_stopped_not_at_its_next_poll(
     node = rclpy.create_node("idle", context=context)
     served = threading.Event()
     node.create_service(Trigger, "poke", lambda _req, resp: served.set() or resp)
-    spin = runtime.spin_alone(node, "test-idle")
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    spin = runtime.SpinThread(executor, "test-idle")
     client = rclpy.create_node("client", context=context)
     poke = client.create_client(Trigger, "poke")
     assert poke.wait_for_service(timeout_sec=10.0)

@@ -118,10 +118,6 @@ class Channel:
         with self._lock:
             self._endpoints = tuple(e for e in self._endpoints if e is not endpoint)
 
-    @property
-    def endpoint_count(self) -> int:
-        return len(self._endpoints)
-
     # -- sending
     def send(self, msg: can.Message, sender: Endpoint | None = None) -> None:
         """Put a frame on the channel; every endpoint but ``sender`` receives it."""

@@ -217,10 +217,6 @@ def load_scenario(path: str | Path) -> list[dict[str, Any]]:
     return sorted(steps, key=lambda s: float(s.get("at_s", 0.0)))
 
 
-def run_scenario_in_background(sim: SimService, path: str | Path, stop: threading.Event) -> threading.Thread:
-    return run_steps_in_background(sim, load_scenario(path), stop)
-
-
 def run_steps_in_background(sim: SimService, steps: list[dict[str, Any]], stop: threading.Event) -> threading.Thread:
     """Play ``steps`` (sorted by ``at_s``) from now, in a thread, until ``stop``."""
 

@@ -8,15 +8,14 @@ host heartbeat through it (:meth:`BusHandle.beat`, which counts ``host_beats``).
 bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.drive.ledger.BusRuntime`.
 
 The bus's receive thread (python-can's Notifier) runs as every other thread of the driver's
-process does: under SCHED_FIFO where the node made it real-time (nodes/runtime.go_realtime). It
-ran ordinary for a while (round five: it took a SYNC period's frames in fewer wake-ups, 0.026 of
-a core less with the rover's config on the benchmark machine), but it holds the interpreter while
-it decodes a frame, and an ordinary thread holding it was preempted there by any real-time or
-favoured work on its core: every other
-thread of the driver (the commands, the host heartbeat) then waited for the interpreter. With
-twelve drives on three buses beside real-time load the command thread stood still for 5-31 ms at
-a time, 5-14 % of a 500 Hz arm's set-points were lost, and in one run the host heartbeat's gaps
-grew until every drive stopped itself; real-time, none lost, at the same CPU (docs/performance.md).
+process does: under SCHED_FIFO where the node made it real-time (nodes/runtime.go_realtime). Run
+ordinary, it would take a SYNC period's frames in fewer wake-ups (0.026 of a core less with the
+rover's config), but it holds the interpreter while it decodes a frame, and an ordinary thread
+holding it is preempted there by any real-time or favoured work on its core: every other thread
+of the driver (the commands, the host heartbeat) then waits for the interpreter. With twelve
+drives on three buses beside real-time load that stood the command thread still for 5-31 ms at a
+time, lost 5-14 % of a 500 Hz arm's set-points and let the host heartbeat's gaps grow until every
+drive stopped itself; real-time, none is lost, at the same CPU (docs/performance.md).
 The echo of the daemon's SYNC does not wake it alone (adapters.hold_lone_sync, while the job runs).
 """
 

@@ -22,7 +22,6 @@ What lives where (each module's docstring names the thread that owns its state):
   and the busy registry (:mod:`.busy`): the one way out for a controlword or a set-point, and
   a stop always wins; with :mod:`.setpoint` (the profile-position set-point handshake it and the
   receive thread share)
-- :mod:`.part`: the ports every part is handed (:class:`~.part.Ports`)
 - :mod:`.power`: the CiA 402 power state machine (enable, stops, recover) and the mode switch,
   every controlword sent through the channel
 - :mod:`.limits`: the stopping-distance limit guard and the velocity watchdog

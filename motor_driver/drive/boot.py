@@ -30,10 +30,11 @@ from pathlib import Path
 import can
 from canopen.objectdictionary import ObjectDictionary
 
-from can_config.config import GENERIC_EDS
+from can_config.config import GENERIC_EDS, DriveConfig
 from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import BootError, BusLostError, DriveStateError, DriveTimeoutError, MotorError, SdoError, UnitError
 from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
+from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import (
     BOOT_RESTARTS_MAX,
     HOST_LOSS_CHECK_WAIT_S,
@@ -44,11 +45,12 @@ from motor_driver.drive.constants import (
 )
 from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.drive.ledger import Booted, Booting, BootRestarted, RebootFailed, RuntimePort
-from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.sdo import SdoPort
+from motor_driver.drive.state import DriveCache
 from motor_driver.protocol.cia402 import SW, Command, State, decode_state
 from motor_driver.protocol.codec import value_format
-from motor_driver.protocol.pdo import mapping_writes
+from motor_driver.protocol.pdo import PdoPlan, mapping_writes
 from motor_driver.protocol.safety import SafetyCheck, judge
 from motor_driver.protocol.unit_ranges import check_drive_value
 from motor_driver.protocol.units import read_unit_objects, scale_from_objects
@@ -59,9 +61,10 @@ logger = logging.getLogger(__name__)
 class Boot:
     """Boot of one drive, a table of steps, and re-configuration after a reset."""
 
-    def __init__(self, ports: Ports, power: PowerStateMachine, watch: HostWatch, port: RuntimePort) -> None:
-        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
-        self.name, self.node_id = ports.config.name, ports.config.node_id
+    def __init__(self, config: DriveConfig, od: ObjectDictionary, plan: PdoPlan, cache: DriveCache,
+                 channel: CommandChannel, sdo: SdoPort, power: PowerStateMachine, watch: HostWatch, port: RuntimePort) -> None:
+        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = config, od, plan, cache, channel, sdo
+        self.name, self.node_id = config.name, config.node_id
         self._power = power
         self._watch = watch
         self._port = port

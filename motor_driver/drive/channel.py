@@ -50,7 +50,7 @@ logger = logging.getLogger(__name__)
 
 #: The controlwords of the stops: the channel re-sends one after a controlword written by SDO.
 STOP_WORDS = frozenset({int(Command.QUICK_STOP), int(Command.SHUTDOWN), int(Command.DISABLE_VOLTAGE)})
-#: A streamed set-point's controlword and target object by mode; enum members read once (issue 55)
+#: A streamed set-point's controlword and target object by mode; enum members read once here, not per set-point
 _STREAM_CW_TARGET = {OperationMode.CYCLIC_SYNC_POSITION: (int(Command.ENABLE_OPERATION), OD.TARGET_POSITION),
                      OperationMode.INTERPOLATED_POSITION: (Command.ENABLE_OPERATION | CW.NEW_SETPOINT, OD.INTERPOLATION_DATA)}
 _CONTROLWORD = OD.CONTROLWORD
@@ -255,12 +255,12 @@ class CommandChannel:
         return None
 
     # ------------------------------------------------------------------ commands (one frame)
-    def command(self, name: str, op: Op | None = None, *, stop: bool = False) -> Frames:
+    def command(self, name: str, op: Op | None = None, *, stop: bool = False) -> LockedCommand:
         """``with command(name) as frames``, a command of a frame or two: the lock for at most
         COMMAND_LOCK_WAIT_S; refused at once while an operation other than ``op`` runs, while motion
         is held (unless it is a ``stop``: a halt), and, with ``op``, when a stop preempted it
-        (Frames, not a generator context manager: 1 us less a command)."""
-        return Frames(self, name, op, stop)
+        (LockedCommand, not a generator context manager: 1 us less a command)."""
+        return LockedCommand(self, name, op, stop)
 
     def _enter_command(self, name: str, op: Op | None, stop: bool) -> None:
         if not self._acquire(name, COMMAND_LOCK_WAIT_S):
@@ -277,19 +277,19 @@ class CommandChannel:
             self._lock.release()
             raise
 
-    def try_command(self, name: str) -> Frames | None:
+    def try_command(self, name: str) -> LockedCommand | None:
         """The supervisor's way in (never waits): the lock now, or None while any operation runs; then :meth:`release`."""
         if not self._lock.acquire(blocking=False):
             return None
         if self._busy:
             self._lock.release()
             return None
-        return Frames(self, name)
+        return LockedCommand(self, name)
 
     def release(self) -> None:  # after try_command
         self._lock.release()
 
-    # the senders below run under the lock (reached only through Frames or the handshake)
+    # the senders below run under the lock (reached only through LockedCommand or the handshake)
     def _require_enabled_word(self, doing: str) -> None:
         if self.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
             raise CommandRejected(f"{self.name}: {doing} refused: a stop came first (controlword"
@@ -355,16 +355,17 @@ class CommandChannel:
         self._wake()
 
 
-class Frames:
-    """The frames a command may send, handed out by :meth:`CommandChannel.command` while it
-    holds the lock: each checks that this driver's last controlword was Enable Operation."""
+class LockedCommand:
+    """One command holding the channel's lock (taken on enter, released on exit), handed out by
+    :meth:`CommandChannel.command`: the frames it may send, each checking that this driver's last
+    controlword was Enable Operation."""
 
     __slots__ = ("_c", "_doing", "_op", "_stop")
 
     def __init__(self, channel: CommandChannel, doing: str, op: Op | None = None, stop: bool = False) -> None:
         self._c, self._doing, self._op, self._stop = channel, doing, op, stop
 
-    def __enter__(self) -> Frames:
+    def __enter__(self) -> LockedCommand:
         self._c._enter_command(self._doing, self._op, self._stop)
         return self
 

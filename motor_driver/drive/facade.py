@@ -36,11 +36,10 @@ from motor_driver.drive.boot import Boot
 from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.homing import Homing
-from motor_driver.drive.hostwatch import HostWatch
+from motor_driver.drive.hostwatch import Host, HostWatch
 from motor_driver.drive.ledger import DriveRuntime, NmtLedger, RuntimePort
 from motor_driver.drive.limits import LimitGuard
 from motor_driver.drive.motion import Motion
-from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
@@ -77,15 +76,14 @@ class Drive:
         self.channel = CommandChannel(config.name, config.node_id, self.plan, self._send, self._write_cw_sdo,
                                       self.cache.wake)
         self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s, admit=self.channel.admit)
-        ports = Ports(config, od, self.plan, self.cache, self.channel, self.sdo)
-        self.watch = HostWatch(ports, network, host_node_id, runtime=runtime,
-                               nmt=NmtLedger(config.node_id, self._send), host_beats=host_beats,
-                               host_heartbeat_s=host_heartbeat_s)
-        self.power = PowerStateMachine(ports, self.watch)
-        self.limits = LimitGuard(ports)
-        self.motion = Motion(ports, self.power, self.limits)
-        self.homing = Homing(ports, self.power)
-        self.boot = Boot(ports, self.power, self.watch, port)
+        cache, channel, sdo = self.cache, self.channel, self.sdo  # each part is handed those it uses
+        self.watch = HostWatch(config, od, cache, channel, sdo, network, Host(host_node_id, host_heartbeat_s, host_beats),
+                               runtime=runtime, nmt=NmtLedger(config.node_id, self._send))
+        self.power = PowerStateMachine(config, od, cache, channel, sdo, self.watch)
+        self.limits = LimitGuard(config, cache, channel)
+        self.motion = Motion(config, self.plan, cache, channel, sdo, self.power, self.limits)
+        self.homing = Homing(config, od, cache, channel, sdo, self.power)
+        self.boot = Boot(config, od, self.plan, cache, channel, sdo, self.power, self.watch, port)
         self.cache.connect(self.channel)
         self.cache.subscribe()
 

@@ -47,7 +47,9 @@ from motor_driver.process.jobs import JOB_KINDS, JobFault
 from motor_driver.protocol.cia402 import SW
 from motor_driver.protocol.safety import ALLOWED, SafetyCheck
 
-OK, WARN, ERROR = 0, 1, 2
+#: The levels of diagnostic_msgs/DiagnosticStatus: every grade on /diagnostics, the driver's and the
+#: recorder's, is one of them (STALE: not heard at all).
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
 #: A drive's rejected frames count in its grade for this long after the newest.
 REJECTED_RECENT_S = 10.0
 #: A background job's unexpected failure makes the driver's status WARN for this long.

@@ -11,13 +11,18 @@ from __future__ import annotations
 
 import logging
 
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config.config import DriveConfig
 from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.drive.busy import Op
+from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
-from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.sdo import SdoPort
+from motor_driver.drive.state import DriveCache
 from motor_driver.protocol.cia402 import CW, FAULT_STATES, SW, Command, State
 
 logger = logging.getLogger(__name__)
@@ -26,9 +31,10 @@ logger = logging.getLogger(__name__)
 class Homing:
     """Homing of one drive (CiA 402 mode 6)."""
 
-    def __init__(self, ports: Ports, power: PowerStateMachine) -> None:
-        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
-        self.name, self.node_id = ports.config.name, ports.config.node_id
+    def __init__(self, config: DriveConfig, od: ObjectDictionary, cache: DriveCache, channel: CommandChannel,
+                 sdo: SdoPort, power: PowerStateMachine) -> None:
+        self.config, self._od, self._cache, self._channel, self._sdo = config, od, cache, channel, sdo
+        self.name, self.node_id = config.name, config.node_id
         self._power = power
 
     def home(self, timeout_s: float | None = None) -> None:

@@ -26,14 +26,17 @@ import logging
 import struct
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import can
 import canopen
+from canopen.objectdictionary import ObjectDictionary
 
-from can_config.config import ON_HOST_LOSS
+from can_config.config import ON_HOST_LOSS, DriveConfig
 from can_config.eds import has_object
 from can_config.errors import MotorError, SdoError
 from can_config.objects import OD, FunctionCode, NmtCommand, sdo_abort_text
+from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import (
     NO_HOST_WATCH,
     QUICK_STOP_THEN_DISABLE,
@@ -42,7 +45,8 @@ from motor_driver.drive.constants import (
     WATCH_START_PERIODS,
 )
 from motor_driver.drive.ledger import DriveRuntime, NmtLedger
-from motor_driver.drive.part import Ports
+from motor_driver.drive.sdo import SdoPort
+from motor_driver.drive.state import DriveCache
 from motor_driver.protocol.cia402 import Command, State
 from motor_driver.protocol.safety import guard_settings
 
@@ -54,15 +58,25 @@ def host_consumer_entry(host_node_id: int, timeout_s: float) -> int:
     return (host_node_id & 0x7F) << 16 | max(1, min(0xFFFF, int(round(timeout_s * 1000))))
 
 
+@dataclass(frozen=True)
+class Host:
+    """The host as a drive watches it: its node id, its heartbeat period, and how many of its
+    heartbeats have gone out on the drive's bus so far (the supervisor's count)."""
+
+    node_id: int
+    heartbeat_s: float
+    beats: Callable[[], int]
+
+
 class HostWatch:
     """The drive's watch of the host, and the supervisor's of the drive."""
 
-    def __init__(self, ports: Ports, network: canopen.Network, host_node_id: int, *, runtime: DriveRuntime,
-                 nmt: NmtLedger, host_beats: Callable[[], int], host_heartbeat_s: float) -> None:
-        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
-        self.name, self.node_id = ports.config.name, ports.config.node_id
+    def __init__(self, config: DriveConfig, od: ObjectDictionary, cache: DriveCache, channel: CommandChannel,
+                 sdo: SdoPort, network: canopen.Network, host: Host, *, runtime: DriveRuntime, nmt: NmtLedger) -> None:
+        self.config, self._od, self._cache, self._channel, self._sdo = config, od, cache, channel, sdo
+        self.name, self.node_id = config.name, config.node_id
         self._network = network
-        self.host_node_id = host_node_id
+        self.host_node_id = host.node_id
         self._runtime = runtime  # the supervisor's: read only
         self.nmt_ledger = nmt
         #: the bus carries remote frames (a kernel bus; socketcand's rawmode cannot)
@@ -71,8 +85,8 @@ class HostWatch:
         self.host_watch: str | None = None
         self.host_watch_problem: str | None = None
         self.guardable = False  # node guarding chosen and possible on this bus (boot's)
-        self._host_beats = host_beats  # host heartbeats sent on the drive's bus so far (the supervisor's count)
-        self._host_heartbeat_s = host_heartbeat_s
+        self._host_beats = host.beats
+        self._host_heartbeat_s = host.heartbeat_s
         #: boot's: that count, and the cache's count of guard answers, once the drive was told to watch the host
         self._told_at: tuple[int, int] = (0, 0)
 

@@ -73,7 +73,6 @@ class BusRuntime:
         self.next_attempt = 0.0
         self.last_beat = 0.0
         self.next_beat = 0.0
-        self.late_beats = 0
         self.last_frames = 0
         self.last_rx = 0.0
         self.reported_error = 0.0  # the newest error frame reported

@@ -14,10 +14,11 @@ from __future__ import annotations
 import logging
 import time
 
+from can_config.config import DriveConfig
 from can_config.errors import CommandRejected
-from motor_driver.drive.channel import Frames
+from motor_driver.drive.channel import CommandChannel, LockedCommand
 from motor_driver.drive.constants import LIMIT_ACCEL_MARGIN_S, LIMIT_MARGIN_S, MAX_EXTRAPOLATION_S, TORQUE_MODES, VELOCITY_MODES
-from motor_driver.drive.part import Ports
+from motor_driver.drive.state import DriveCache
 from motor_driver.protocol.cia402 import Command, State
 
 logger = logging.getLogger(__name__)
@@ -26,9 +27,9 @@ logger = logging.getLogger(__name__)
 class LimitGuard:
     """The limit guard and the velocity watchdog of one drive."""
 
-    def __init__(self, ports: Ports) -> None:
-        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
-        self.name, self.node_id = ports.config.name, ports.config.node_id
+    def __init__(self, config: DriveConfig, cache: DriveCache, channel: CommandChannel) -> None:
+        self.config, self._cache, self._channel = config, cache, channel
+        self.name, self.node_id = config.name, config.node_id
         self.limit_stops = 0
         self.watchdog_stops = 0
 
@@ -59,7 +60,7 @@ class LimitGuard:
             return f"min_deg={cfg.min_deg:g}"
         return None
 
-    def brake_if_past(self, frames: Frames, direction: float, speed_deg_s: float, decel_deg_s2: float, what: str,
+    def brake_if_past(self, frames: LockedCommand, direction: float, speed_deg_s: float, decel_deg_s2: float, what: str,
                       torque_mode: bool = False) -> CommandRejected | None:
         """Inside a command: brake (with its frames) when the command would pass a limit, and
         return the refusal for the caller to raise once the channel is released (then
@@ -78,7 +79,7 @@ class LimitGuard:
             self._channel.stop(Command.QUICK_STOP, "the limit guard's quick stop")
         raise refusal
 
-    def _brake(self, frames: Frames) -> bool:
+    def _brake(self, frames: LockedCommand) -> bool:
         """Zero velocity (the drive brakes on its profile deceleration) or zero torque, without
         waiting; only to a drive that is enabled."""
         if self._cache.state != State.OPERATION_ENABLED:

@@ -23,22 +23,25 @@ import logging
 from collections.abc import Callable
 from typing import NamedTuple
 
+from can_config.config import DriveConfig
 from can_config.errors import CommandRejected, CommandWouldWait, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.drive.busy import Op
-from motor_driver.drive.channel import Frames
+from motor_driver.drive.channel import CommandChannel, LockedCommand
 from motor_driver.drive.constants import CONTINUOUS_COMMAND_LIMIT_DEG, ENABLED_CW_MASK
 from motor_driver.drive.limits import LimitGuard
-from motor_driver.drive.part import Ports
 from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.setpoint import rebase_after_switch
+from motor_driver.drive.state import DriveCache
 from motor_driver.drive.verdict import Condition, judge
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State
+from motor_driver.protocol.pdo import PdoPlan
 from motor_driver.protocol.units import check_counts, check_limits, nearest_equivalent, require_finite
 
 logger = logging.getLogger(__name__)
 
-#: The streamed position modes by number (a lookup on every set-point, issue 55: no enum call),
+#: The streamed position modes by number (a dict lookup on every set-point, no enum call),
 #: and what each is called and where its target goes
 _STREAMING = {int(m): m for m in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION)}
 _STREAMED = {OperationMode.CYCLIC_SYNC_POSITION: ("CSP setpoint", OD.TARGET_POSITION),
@@ -58,9 +61,10 @@ class Approach(NamedTuple):
 class Motion:
     """Motion commands of one drive, one family per operation mode, limits checked on each."""
 
-    def __init__(self, ports: Ports, power: PowerStateMachine, limits: LimitGuard) -> None:
-        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
-        self.name, self.node_id = ports.config.name, ports.config.node_id
+    def __init__(self, config: DriveConfig, plan: PdoPlan, cache: DriveCache, channel: CommandChannel, sdo: SdoPort,
+                 power: PowerStateMachine, limits: LimitGuard) -> None:
+        self.config, self._plan, self._cache, self._channel, self._sdo = config, plan, cache, channel, sdo
+        self.name, self.node_id = config.name, config.node_id
         self._power = power
         self._limits = limits
 
@@ -266,7 +270,7 @@ class Motion:
             self._limits.after_brake(refusal)
 
     @staticmethod
-    def _emit(frames: Frames, torque_mode: bool, value: int, live: bool, *, by_sdo: bool, stream: bool) -> None:
+    def _emit(frames: LockedCommand, torque_mode: bool, value: int, live: bool, *, by_sdo: bool, stream: bool) -> None:
         if by_sdo:
             frames.commanded(live)
         elif torque_mode:

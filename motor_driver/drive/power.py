@@ -13,10 +13,14 @@ from __future__ import annotations
 import logging
 import time
 
+from canopen.objectdictionary import ObjectDictionary
+
+from can_config.config import DriveConfig
 from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
 from motor_driver.drive.busy import Op
+from motor_driver.drive.channel import CommandChannel
 from motor_driver.drive.constants import (
     ENABLE_STEPS,
     ENABLED_CW_MASK,
@@ -29,7 +33,8 @@ from motor_driver.drive.constants import (
     VELOCITY_MODES,
 )
 from motor_driver.drive.hostwatch import HostWatch
-from motor_driver.drive.part import Ports
+from motor_driver.drive.sdo import SdoPort
+from motor_driver.drive.state import DriveCache
 from motor_driver.drive.verdict import UNREACHABLE, Condition, DriveFacts, judge
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, Command, State, decode_state, next_step_to_enable
 
@@ -39,9 +44,10 @@ logger = logging.getLogger(__name__)
 class PowerStateMachine:
     """Enable, the stops, recover and the mode switch, through the command channel."""
 
-    def __init__(self, ports: Ports, watch: HostWatch) -> None:
-        self.config, self._od, self._plan, self._cache, self._channel, self._sdo = ports
-        self.name, self.node_id = ports.config.name, ports.config.node_id
+    def __init__(self, config: DriveConfig, od: ObjectDictionary, cache: DriveCache, channel: CommandChannel,
+                 sdo: SdoPort, watch: HostWatch) -> None:
+        self.config, self._od, self._cache, self._channel, self._sdo = config, od, cache, channel, sdo
+        self.name, self.node_id = config.name, config.node_id
         self._watch = watch
         self._supported_modes: int | None = None
 

@@ -15,8 +15,8 @@ from can_config.objects import OD
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.values import Received
 
-#: The objects a TPDO carries, read once: an enum member's lookup (about 0.13 us) was made up to
-#: ten times a TPDO, 6,000 TPDOs a second at six drives and 500 Hz
+#: The objects a TPDO carries, read once: an enum member's lookup costs about 0.13 us, and a TPDO
+#: would make up to ten, 6,000 TPDOs a second at six drives and 500 Hz
 _STATUSWORD, _POSITION, _VELOCITY = OD.STATUSWORD, OD.POSITION_ACTUAL, OD.VELOCITY_ACTUAL
 _TORQUE, _MODE = OD.TORQUE_ACTUAL, OD.MODES_OF_OPERATION_DISPLAY
 

@@ -80,7 +80,7 @@ def _decode_by_coding(statusword: int) -> State:
 
 
 #: The bits the state coding reads, and the state of each of their values: decode_state runs on
-#: every statusword received and every command (issue 55), one lookup instead of up to eight masks.
+#: every statusword received and every command, one lookup instead of up to eight masks.
 _CODING_BITS = 0
 for _mask, _, _ in _STATE_CODING:
     _CODING_BITS |= _mask

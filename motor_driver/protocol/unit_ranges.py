@@ -1,5 +1,5 @@
 """The plausible range of every unit and scaling object a drive reports, and of every value
-packed for the wire from them (issue 39: nothing a drive says is trusted unbounded).
+packed for the wire from them: nothing a drive says is trusted unbounded.
 
 Pure functions and tables; :mod:`motor_driver.protocol.units` checks the objects before it derives a
 scale, boot checks each profile value before it writes it. The ranges are in docs/safety.md.

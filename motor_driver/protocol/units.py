@@ -20,6 +20,9 @@ from dataclasses import dataclass
 from can_config.errors import CommandRejected
 from motor_driver.protocol.unit_ranges import check_unit_objects, check_units_per_deg, si_parts
 
+#: Degrees in a radian: ROS speaks radians, the driver's API degrees.
+DEG_PER_RAD = 180.0 / math.pi
+
 INT32_MIN = -(2**31)
 INT32_MAX = 2**31 - 1
 

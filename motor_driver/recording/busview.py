@@ -41,7 +41,7 @@ from can_config.eds import load_drive_od
 from can_config.errors import UnitError
 from can_config.model import RoverConfig
 from can_config.objects import OD, FunctionCode, NmtState, OperationMode, emcy_text
-from motor_driver.drive.health import drive_health
+from motor_driver.drive.health import ERROR, OK, STALE, WARN, drive_health
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Received
@@ -69,7 +69,6 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 #: Every drive's diagnostics this often (frame time), and lost drives looked for this often.
 SUMMARY_PERIOD_S = 1.0
 LOST_CHECK_S = 0.1
-OK, WARN, ERROR, STALE = 0, 1, 2, 3
 #: Where a drive's units came from (:meth:`BusView.units`): its answers seen in the frames, a
 #: recording's metadata, the driver's own boot (an incident's .mcap), the config alone.
 FROM_DRIVE, FROM_RECORDING, FROM_DRIVER, FROM_CONFIG = "drive", "recording", "driver", "config"
@@ -290,11 +289,6 @@ class BusView:
     def config_units(self) -> list[str]:
         """The drives decoded in the config's units alone (no unit object of theirs seen or given)."""
         return [d.name for d in self.drives if d.units_from == FROM_CONFIG]
-
-    @property
-    def late_frames(self) -> int:
-        """Frames that came after a newer one had gone out (a bus quiet past the hold, then heard)."""
-        return self._merge.late
 
     def feed(self, frame: Frame) -> None:
         """One frame of any bus, in the order it was read."""

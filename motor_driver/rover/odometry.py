@@ -102,13 +102,6 @@ class WheelOdometry:
         self._attributed: dict[str, float] = {}
         self._never_settled_m = 0.0  # estimates of wheels forgotten before they were heard again
 
-    def reset(self, pose: Pose2D | None = None) -> None:
-        """Start again at ``pose`` (the origin by default), every wheel's reference forgotten."""
-        self.pose = pose or Pose2D()
-        self._last.clear()
-        self._attributed.clear()
-        self._never_settled_m = 0.0
-
     def _delta(self, name: str, sample: WheelSample | None) -> tuple[float | None, _Update]:
         """(radians turned since this wheel's last sample, 0.0 for nothing new, None where it
         counts for nothing; what becomes of its last sample: kept, replaced, or forgotten)."""

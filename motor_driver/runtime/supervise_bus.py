@@ -32,8 +32,8 @@ logger = logging.getLogger(__name__)
 
 #: A bus is looked at (its connection, error frames, the SYNC job, silence) every this many
 #: periods: a bus that goes is marked lost within 50 ms, inside the drives' own 150 ms host
-#: timeout, which is what stops them; every period it was half the supervisor's CPU (a socket
-#: peek and a select per bus, issue 43). Drives are looked at every period.
+#: timeout, which is what stops them; every period it would be half the supervisor's CPU (a
+#: socket peek and a select per bus). Drives are looked at every period.
 BUS_CHECK_PERIODS = 5
 
 
@@ -80,7 +80,6 @@ class BusSupervision:
             elif rt.send_failing is None:
                 rt.send_failing = (now, failed)
             if rt.last_beat and now - rt.last_beat > 2 * bus_cfg.host_heartbeat_s:
-                rt.late_beats += 1
                 if self.recorder is not None:
                     self.recorder.process_late()
                 self._rate_limited.log(logging.WARNING, ("late", name),

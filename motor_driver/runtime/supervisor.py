@@ -120,10 +120,6 @@ class Supervisor:
         self._thread.start()
 
     @property
-    def alive(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
-    @property
     def dead(self) -> bool:
         """Its thread was started and has ended without stop() (read by /diagnostics: an ERROR)."""
         return self._thread is not None and not self._thread.is_alive() and not self._stop.is_set()
@@ -375,20 +371,11 @@ class Supervisor:
             runtime.foreign_master = ""
             self._configure_again(runtime)
 
-    def release_foreign(self, drive: str) -> None:
-        """Tests and tools, on this thread (:meth:`call`): forget another master's mark now."""
-        self.runtimes[drive].foreign_master = ""
-        self.runtimes[drive].behind_back = (0.0, "")
-
     def _drive_gone(self, drive: Drive) -> None:
         """The drive's bus is gone: lost, not booted; nothing is commanded until it is booted again."""
         runtime = self.runtimes[drive.name]
         runtime.lost, runtime.booted, runtime.lost_since = True, False, 0.0
         runtime.forget_pending = not drive.channel.forget_commanded(timeout_s=0.0)
-
-    def mark_lost(self, drive: str) -> None:
-        """What the supervisor does to each drive of a lost bus (tests), run on its thread."""
-        self.call(lambda: self._drive_gone(self.drives[drive]))
 
     def _incident(self, kind: str, drive: Drive, text: str) -> None:
         if self.recorder is not None:

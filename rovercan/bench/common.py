@@ -37,7 +37,6 @@ from rovercan.argtypes import real, whole
 
 logger = logging.getLogger(__name__)
 
-SCAN_TIMEOUT_S = 0.3
 SDO_TIMEOUT_S = 0.5
 #: The bench waits this long for a socketcand server by default (--timeout; the driver in a node: 10 s).
 CLI_CONNECT_TIMEOUT_S = 3.0

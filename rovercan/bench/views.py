@@ -34,8 +34,6 @@ from rovercan.bench.common import connect_timeout, open_bus, receive
 
 logger = logging.getLogger(__name__)
 
-#: The live view's address unless told otherwise: this machine only.
-FOXGLOVE_HOST = "127.0.0.1"
 #: A bus's reader thread hands over at most this many frames not yet taken (a stalled writer
 #: loses the newest, never the process's memory).
 QUEUE_FRAMES = 100_000
