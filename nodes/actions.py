@@ -24,8 +24,9 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rovercan_msgs.action import Home, MoveJoint
 
-from can_config.errors import RovercanError
+from can_config.errors import DriveStateError, RovercanError
 from motor_driver import Drive, MotorDriver
+from motor_driver.drive.verdict import Condition
 from motor_driver.follow import TrajectoryGroup
 from nodes import runtime
 
@@ -114,8 +115,11 @@ class DriverActionsNode(Node):
             while True:
                 await self._pause()
                 state = drive.snapshot()
-                if state.fault:
-                    drive.wait_target_reached(0.0)  # raises the fault with its EMCY text
+                if state.fault or state.verdict.condition not in (Condition.USABLE, Condition.LATE):
+                    # faulted, stopped (a deactivate, /disarm, its own host watch) or lost: the move
+                    # cannot end at its target (late data only delays the feedback); raises the cause
+                    drive.wait_target_reached(0.0)
+                    raise DriveStateError(f"{request.joint}: the move ended: {state.verdict.text()}", node_id=drive.node_id)
                 if state.target_reached and abs(target - state.angle_deg) < TARGET_WINDOW_DEG:
                     drive.wait_target_reached(1.0)  # the handshake's last word, and a fresh position
                     break
@@ -142,6 +146,9 @@ class DriverActionsNode(Node):
                 drive.home()
             except RovercanError as err:
                 failure.append(str(err))
+            except Exception as err:  # a fault of this driver's: never "homed"
+                logger.exception("%s: homing failed unexpectedly", joint)
+                failure.append(f"homing failed unexpectedly ({type(err).__name__}: {err}); the joint is not referenced")
 
         homing = threading.Thread(target=run, name=f"rovercan-home-{joint}", daemon=True)
         homing.start()

@@ -228,7 +228,13 @@ class DriveSystemNode(Node):
         driving = self.active or now - self._last_cmd <= self.system.cmd_timeout_s
         went, back = self.wheels_out.update(states, driving=driving)
         self._read_stops(now)
-        for name in [*self.stop_failing, *went, *self.wheels_out.still_running(states)]:
+        for name in back:  # taken back (armed again): a stop of its time out is neither tried again nor sent late
+            self.stop_failing.pop(name, None)
+            self._stop_retry_at.pop(name, None)
+            if (pending := self._stops.get(name)) is not None:
+                pending.cancel()  # one not yet started; the tick still reads it (_read_stops)
+        retried = [name for name in self.stop_failing if name in self.wheels_out.out]
+        for name in [*retried, *went, *self.wheels_out.still_running(states)]:
             if now >= self._stop_retry_at.get(name, 0.0):
                 self._tell_to_stop(name)
         for name in went:

@@ -43,7 +43,7 @@ from std_msgs.msg import Float32
 from can_config.errors import ConfigError, RovercanError
 from motor_driver import Drive, DriveState, MotorDriver
 from motor_driver.drive.frameloss import Counts, FrameLoss, Loss, total
-from motor_driver.drive.health import Rejections, bus_health, drive_health
+from motor_driver.drive.health import Rejections, bus_health, drive_health, with_boot
 from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.recording.published import joint_entry
 from nodes.handoff import Handoff
@@ -284,6 +284,9 @@ class DriverNode(Node):
                                       tpdos_applied=drive.cache.tpdo_count, safety=drive.boot.safety,
                                       rejected=Rejections.of(rejected, time.monotonic()),
                                       frame_loss=loss, frame_loss_warn_percent=drive.config.frame_loss_warn_percent)
+                if (runtime := self.driver.supervisor.runtimes.get(name)) is not None:
+                    health = with_boot(health, runtime)
+                health.values["wrong_length_tpdos"] = str(drive.cache.wrong_length_tpdos)
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
                     hardware_id=f"{drive.config.bus}/node{drive.node_id}",

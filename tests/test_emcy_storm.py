@@ -106,7 +106,7 @@ def test_an_emcy_error_reset_that_is_not_the_drivers_keeps_the_cause_of_the_faul
     wait_for(heard.is_set, 10.0, "the spoofed error reset at the driver")
     state = drive.snapshot()
     health = drive_health(state, heartbeat_period_s=drive.config.heartbeat_period_s)
-    assert state.error_code == 0x2310 and health.level == ERROR and health.message.startswith("fault: EMCY 0x2310")
+    assert state.error_code == 0x2310 and health.level == ERROR and health.message.startswith("faulted (FAULT: EMCY 0x2310")
     drive.recover()  # the driver's own reset clears it
     wait_for(lambda: not drive.snapshot().fault, 10.0, "the fault reset")
     assert drive.snapshot().error_code == 0

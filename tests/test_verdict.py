@@ -22,6 +22,7 @@ HOLDS = {
     Condition.NOT_CONFIGURED: lambda f: not f.booted,
     Condition.LATE: lambda f: f.data_age_s > f.stale_after_s,
     Condition.FAULTED: lambda f: f.state in (State.FAULT, State.FAULT_REACTION_ACTIVE),
+    Condition.HELD: lambda f: bool(f.held),
     Condition.OUT: lambda f: bool(f.left_out),
     Condition.STOPPED_ITSELF: lambda f: f.state != State.OPERATION_ENABLED and (
         f.armed or f.emcy_code == EMCY_HEARTBEAT_LOST),
@@ -36,7 +37,8 @@ FACTS = st.builds(
     state=st.sampled_from(list(State)), lost=st.booleans(), booted=st.booleans(), rebooting=st.booleans(),
     foreign_master=st.sampled_from(["", "NMT frame 0x000 seen"]), armed=st.booleans(),
     stopped_by=st.sampled_from(["", "disarm"]), emcy_code=st.sampled_from([0, EMCY_HEARTBEAT_LOST, 0x2310]),
-    emcy_stamp=st.floats(0.0, 2e9), left_out=st.sampled_from(["", "it was lost"]))
+    emcy_stamp=st.floats(0.0, 2e9), left_out=st.sampled_from(["", "it was lost"]),
+    held=st.sampled_from(["", "rovercan_lifecycle is inactive: activate it"]))
 
 
 def expected(facts: DriveFacts) -> Condition:
@@ -61,11 +63,12 @@ def test_every_combination_gives_the_first_condition_that_holds(facts: DriveFact
 def test_every_flag_combination_exhaustively() -> None:
     """The flags crossed in full (the property test samples; this covers every corner)."""
     base = DriveFacts("w", data_age_s=0.0, stale_after_s=0.1)
-    for foreign, lost, reboot, booted, late, state, out, armed, emcy in itertools.product(
+    for foreign, lost, reboot, booted, late, state, out, armed, emcy, held in itertools.product(
             ("", "x"), (False, True), (False, True), (False, True), (False, True), list(State), ("", "x"),
-            (False, True), (0, EMCY_HEARTBEAT_LOST)):
+            (False, True), (0, EMCY_HEARTBEAT_LOST), ("", "held")):
         facts = base._replace(foreign_master=foreign, lost=lost, rebooting=reboot, booted=booted,
-                        data_age_s=1.0 if late else 0.0, state=state, left_out=out, armed=armed, emcy_code=emcy)
+                        data_age_s=1.0 if late else 0.0, state=state, left_out=out, armed=armed, emcy_code=emcy,
+                        held=held)
         assert judge(facts).condition is expected(facts), facts
 
 
@@ -112,3 +115,10 @@ def test_fresh_data_of_a_drive_that_cannot_be_driven_is_still_news() -> None:
     assert judge(_usable(state=State.SWITCH_ON_DISABLED, armed=False)).fresh
     assert judge(_usable(state=State.FAULT)).fresh
     assert not judge(_usable(lost=True)).fresh
+
+
+def test_held_motion_is_said_with_what_lets_it_go() -> None:
+    """The lifecycle node inactive: not usable, its reason the remedy, whatever the drive still shows."""
+    verdict = judge(_usable(held="rovercan_lifecycle is inactive: activate it"))
+    assert verdict.condition is Condition.HELD and not verdict.usable and verdict.fresh
+    assert verdict.text() == "wheel_x: motion held; rovercan_lifecycle is inactive: activate it"

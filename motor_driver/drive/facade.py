@@ -75,7 +75,7 @@ class Drive:
                                 port=port)
         self.channel = CommandChannel(config.name, config.node_id, self.plan, self._send, self._write_cw_sdo,
                                       self.cache.wake)
-        self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s, admit=self.channel.admit)
+        self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s, admit=self._admit_tool_write)
         cache, channel, sdo = self.cache, self.channel, self.sdo  # each part is handed those it uses
         self.watch = HostWatch(config, od, cache, channel, sdo, network, Host(host_node_id, host_heartbeat_s, host_beats),
                                runtime=runtime, nmt=NmtLedger(config.node_id, self._send))
@@ -131,6 +131,12 @@ class Drive:
 
     def set_mode(self, mode: OperationMode | int) -> None:
         self.power.set_mode(mode)
+
+    def _admit_tool_write(self, doing: str) -> None:
+        """A tool's SDO write: refused while motion is held, and to a drive that cannot hear this
+        driver as configured (lost, re-booting, not configured, another master's)."""
+        self.channel.admit(doing)
+        self.power.require_usable(doing)
 
     def home(self, timeout_s: float | None = None) -> None:
         self.homing.home(timeout_s)

@@ -42,6 +42,7 @@ from motor_driver.bus.adapters import Rejected
 from motor_driver.bus.link import KernelBusHealth
 from motor_driver.drive import DriveState
 from motor_driver.drive.frameloss import Loss
+from motor_driver.drive.ledger import DriveRuntime
 from motor_driver.drive.verdict import Condition
 from motor_driver.process.jobs import JOB_KINDS, JobFault
 from motor_driver.protocol.cia402 import SW
@@ -56,7 +57,7 @@ REJECTED_RECENT_S = 10.0
 JOB_FAULT_RECENT_S = 30.0
 
 #: The level of each verdict (the rules above may raise it, never lower it).
-GRADE = {Condition.USABLE: OK, Condition.NOT_ARMED: OK, Condition.OUT: WARN, Condition.REBOOTING: WARN,
+GRADE = {Condition.USABLE: OK, Condition.NOT_ARMED: OK, Condition.HELD: OK, Condition.OUT: WARN, Condition.REBOOTING: WARN,
          Condition.ANOTHER_MASTER: ERROR, Condition.LOST: ERROR, Condition.NOT_CONFIGURED: ERROR,
          Condition.LATE: ERROR, Condition.FAULTED: ERROR, Condition.STOPPED_ITSELF: ERROR}
 
@@ -120,7 +121,7 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     if bus_lost:
         return Health(ERROR, "bus lost", values)
     if graded is not None and graded.level == ERROR:
-        return graded  # late because the driver rejected its frames: not the bus or the drive
+        return graded  # only late: because the driver rejected its frames, not the bus or the drive
     said = verdict.cause + (f"; {verdict.helps}" if verdict.helps else "")
     if GRADE[verdict.condition] == ERROR:
         return Health(ERROR, said, values)
@@ -154,10 +155,27 @@ def rejections(state: DriveState, values: dict[str, str], rejected: Rejections) 
     values["last_rejection"] = cause
     if not count or rejected.age_s > REJECTED_RECENT_S:
         return None
-    if state.stale:
+    if state.verdict.condition is Condition.LATE:  # late because its frames were rejected, nothing worse
         return Health(ERROR, f"stale: {count} frame(s) from it rejected by the driver ({cause}): a fault in this"
                       " driver's decoding, not the bus; report it with the flight recorder's incident", values)
     return Health(WARN, f"{count} frame(s) from it rejected by the driver ({cause})", values)
+
+
+#: Re-configurations of one drive that failed before its grade is ERROR (each is retried).
+RECONFIGURE_FAILURES_ERROR = 3
+
+
+def with_boot(health: Health, runtime: DriveRuntime) -> Health:
+    """A drive's grade with what its boots went through (the supervisor's ledger): restarts of a
+    configuration and failed re-configurations in its values; ERROR once re-configuration has
+    failed RECONFIGURE_FAILURES_ERROR times, naming the newest error."""
+    values = {**health.values, "boot_restarts": str(runtime.boot_restarts),
+              "boot_restart_why": runtime.boot_restart_why, "reconfigure_failures": str(runtime.reconfigure_failures),
+              "reconfigure_error": runtime.reconfigure_error}
+    if runtime.reconfigure_failures >= RECONFIGURE_FAILURES_ERROR and health.level < ERROR:
+        return Health(ERROR, f"re-configuration failed {runtime.reconfigure_failures} times ({runtime.reconfigure_error});"
+                      " it is retried: check its power, wiring and EDS", values)
+    return Health(health.level, health.message, values)
 
 
 def jobs_health(faults: Mapping[str, JobFault], *, ended: str, alive: bool, now: float) -> Health:

@@ -56,7 +56,7 @@ class PowerStateMachine:
         """What the verdict on the drive is judged from: the cache's, the host watch's and the channel's."""
         channel = self._channel
         return self._cache.facts(foreign_master=self._watch.foreign_master, armed=channel.was_enabled,
-                                 stopped_by=channel.stopped_by)
+                                 stopped_by=channel.stopped_by, held=channel.held)
 
     def require_usable(self, doing: str, *, fresh: bool = False) -> None:
         """Refuse ``doing`` (nothing sent) unless the drive can hear and answer this driver: the
@@ -324,6 +324,7 @@ class PowerStateMachine:
         """Switch the mode of operation; refuses modes 0x6502 does not list; waits for 0x6061.
         The drive is busy meanwhile (commands refused at once, a stop preempts it)."""
         self._channel.admit("mode switch")  # refused while held even when the drive is in ``mode`` already
+        self.require_usable("mode switch")  # not to a drive lost, re-booting, unconfigured or another's
         mode = OperationMode(mode)
         bit = SUPPORTED_MODE_BIT.get(mode)
         supported = self.supported_modes()

@@ -102,7 +102,8 @@ class DriveCache:
         self._operational_at = 0.0
         self._heard_at = 0.0  # the newest heartbeat (monotonic)
         self._last_emcy: Emcy | None = None
-        self._emcy_log = Throttle(EMCY_LOG_PERIOD_S)  # the receive thread's
+        self._emcy_log = Throttle(EMCY_LOG_PERIOD_S)  # the receive thread's (EMCY lines, wrong-length TPDOs)
+        self.wrong_length_tpdos = 0  # TPDOs of a length this driver's mapping does not give (receive thread)
         self._guard_toggle = 0
         self._guard_seen = 0  # the guarding generation the toggle belongs to
         self.guard_errors = 0
@@ -268,8 +269,12 @@ class DriveCache:
         try:
             values = layout.codec.unpack_from(data)
         except struct.error:
-            logger.warning("node %d: TPDO 0x%03X with %d bytes, expected %d; ignored",
-                           self.node_id, cob_id, len(data), layout.codec.size)
+            self.wrong_length_tpdos += 1
+            if (passed := self._emcy_log.admit(("tpdo length", cob_id))) is not None:  # at most one line a period
+                held = f" ({passed[0]} more not logged in the last {passed[1]:.1f} s)" if passed[0] else ""
+                logger.warning("node %d: TPDO 0x%03X with %d bytes, expected %d; ignored: its PDO mapping is not the"
+                               " one this driver wrote (reset, or another tool remapped it)%s",
+                               self.node_id, cob_id, len(data), layout.codec.size, held)
             return
         rx = self.received
         sw, mode, position, velocity, torque, took = decode_tpdo(layout.indexes, values, rx, timestamp, self.positions)
@@ -361,11 +366,11 @@ class DriveCache:
             logger.info("node %d (%s): EMCY error reset%s", self.node_id, self.name, held)
 
     # ------------------------------------------------------------------ the snapshot
-    def facts(self, *, foreign_master: str = "", armed: bool = False, stopped_by: str = "",
+    def facts(self, *, foreign_master: str = "", armed: bool = False, stopped_by: str = "", held: str = "",
               now: float | None = None) -> DriveFacts:
         """What the verdict on this drive is judged from (:mod:`motor_driver.drive.verdict`), each read
-        once from its one writer; ``foreign_master``, ``armed`` and ``stopped_by`` are the host
-        watch's and the command channel's (the facade passes them)."""
+        once from its one writer; ``foreign_master``, ``armed``, ``stopped_by`` and ``held`` are the
+        host watch's and the command channel's (the facade passes them)."""
         rx, runtime = self.received, self._runtime
         now = time.monotonic() if now is None else now
         emcy = self.last_emcy
@@ -378,6 +383,7 @@ class DriveCache:
                           heartbeat_age_s=now - heard if heard else math.inf, nmt=self.nmt_state,
                           state=decode_state(rx.statusword), lost=runtime.lost, booted=runtime.booted,
                           rebooting=rebooting, foreign_master=foreign_master, armed=armed, stopped_by=stopped_by,
+                          held=held,
                           emcy_code=emcy.code if emcy is not None else 0, emcy_text=emcy.text if emcy is not None else "",
                           emcy_stamp=emcy.timestamp if emcy is not None else 0.0)
 

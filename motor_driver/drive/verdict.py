@@ -14,11 +14,13 @@ The conditions, first match wins (the precedence):
 4. ``not configured``: not booted (before the first boot, or a boot that failed).
 5. ``late``: its data (TPDOs) is older than its staleness bound: every value is old.
 6. ``faulted``: its statusword says FAULT or FAULT REACTION ACTIVE.
-7. ``out``: the drive system left it out (``on_wheel_loss: continue``) and told it to stop.
-8. ``stopped itself``: it left Operation Enabled with no stop of this driver's (its host watch
+7. ``motion held``: the process holds every motion (a lifecycle node inactive); the reason says
+   what lets it go ("rovercan_lifecycle is inactive: activate it").
+8. ``out``: the drive system left it out (``on_wheel_loss: continue``) and told it to stop.
+9. ``stopped itself``: it left Operation Enabled with no stop of this driver's (its host watch
    on host heartbeat loss, EMCY 0x8130; a limit; its own quick stop).
-9. ``not armed``: not in Operation Enabled (never enabled, or stopped by this driver: who, why).
-10. ``usable``: Operation Enabled with fresh data.
+10. ``not armed``: not in Operation Enabled (never enabled, or stopped by this driver: who, why).
+11. ``usable``: Operation Enabled with fresh data.
 
 Precedence: what makes the data meaningless (another master, lost, a reset, never configured,
 stale) comes before what the data says (fault, stopped), and what the driver did (out, a stop of
@@ -29,7 +31,8 @@ them): the data's age, the statusword, the NMT state, the heartbeat's age and th
 bus's receive thread's (:mod:`motor_driver.drive.state`; boot's NMT start is a field of its own
 there); lost, booted, re-booting and another master are the supervisor's
 (:mod:`motor_driver.runtime`); ``armed`` and ``stopped_by`` are the command channel's
-(:mod:`motor_driver.drive.channel`, under its lock); ``left_out`` is the drive system's control
+(:mod:`motor_driver.drive.channel`, under its lock), and so is ``held`` (motion held: the
+lifecycle node inactive); ``left_out`` is the drive system's control
 loop's (``nodes/drive_system.py``), which judges a copy of the facts with it set. A reader of a
 recording judges the facts it rebuilds from the frames the same way (``judge(DriveFacts(...))``;
 a :class:`motor_driver.drive.DriveState` made without them is judged from its own fields).
@@ -58,13 +61,14 @@ class Condition(Enum):
     NOT_CONFIGURED = "not configured"
     ANOTHER_MASTER = "another master"
     OUT = "out"
+    HELD = "motion held"
     NOT_ARMED = "not armed"
 
 
 #: The order :func:`judge` tries the conditions in (``usable`` last: nothing else holds).
 PRECEDENCE = (Condition.ANOTHER_MASTER, Condition.LOST, Condition.REBOOTING, Condition.NOT_CONFIGURED,
-              Condition.LATE, Condition.FAULTED, Condition.OUT, Condition.STOPPED_ITSELF, Condition.NOT_ARMED,
-              Condition.USABLE)
+              Condition.LATE, Condition.FAULTED, Condition.HELD, Condition.OUT, Condition.STOPPED_ITSELF,
+              Condition.NOT_ARMED, Condition.USABLE)
 #: Conditions in which a drive cannot hear or answer this driver: every command is refused.
 UNREACHABLE = frozenset({Condition.ANOTHER_MASTER, Condition.LOST, Condition.REBOOTING, Condition.NOT_CONFIGURED})
 #: What /arm (enable every drive) helps with.
@@ -92,6 +96,7 @@ class DriveFacts(NamedTuple):
     emcy_text: str = ""
     emcy_stamp: float = 0.0  # the EMCY frame's wall-clock time (for people: "lost at 12:03:04")
     left_out: str = ""  # why the drive system left it out ("" it did not)
+    held: str = ""  # why motion is held ("" it is not: the lifecycle node active, or no lifecycle)
 
 
 class Verdict(NamedTuple):
@@ -159,6 +164,8 @@ def judge(facts: DriveFacts) -> Verdict:
     if f.state in FAULT_STATES:
         emcy = f": EMCY 0x{f.emcy_code:04X} {f.emcy_text}" if f.emcy_code else ""
         return say(Condition.FAULTED, f"faulted ({f.state.name}{emcy})", f"clear it with {f.name}/recover, then /arm")
+    if f.held:
+        return say(Condition.HELD, "motion held", f.held)  # the holder's reason says what lets it go
     if f.left_out:
         return say(Condition.OUT, f"out of the drive system ({f.left_out})", "/arm takes it back once it is usable")
     enabled = f.state == State.OPERATION_ENABLED

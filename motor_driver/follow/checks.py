@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 
+from can_config.errors import CommandRejected
 from can_config.model import TrajectoryGroupConfig
 from motor_driver.drive import Drive
 from motor_driver.drive.constants import ENABLED_CW_MASK
@@ -104,20 +105,19 @@ class GoalChecks:
         return (position, velocity, acceleration)
 
     def _check_armed(self, drive: Drive) -> None:
-        state = drive.snapshot()
-        why = ""
-        if state.foreign_master:
-            why = f"another master drives it ({state.foreign_master})"
-        elif state.lost:
-            why = "its drive is lost (no heartbeat)"
-        elif state.stale:
-            why = f"its data are stale (no PDO for {state.data_age_s:.2f} s)"
-        elif state.fault:
-            why = f"its drive is faulted ({state.state.name}{', ' + state.error_text if state.error_text else ''})"
-        elif not state.enabled or drive.channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
-            why = f"it is not armed ({state.state.name}); enable it (/arm or <joint>/enable) first"
-        if why:
-            raise refuse(TrajectoryCode.INVALID_GOAL, f"{drive.name}: {why}; nothing moved")
+        """The joint may be moved: motion not held (the lifecycle node active), its verdict usable
+        (the one every part reads), and this driver's last controlword Enable Operation."""
+        try:
+            drive.channel.admit("trajectory goal")
+        except CommandRejected as err:
+            raise refuse(TrajectoryCode.INVALID_GOAL, str(err)) from err
+        verdict = drive.snapshot().verdict
+        if not verdict.usable:
+            raise refuse(TrajectoryCode.INVALID_GOAL, f"{verdict.name}: {verdict.condition.value}: {verdict.cause}"
+                          + (f"; {verdict.helps}" if verdict.helps else "") + "; nothing moved")
+        if drive.channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
+            raise refuse(TrajectoryCode.INVALID_GOAL, f"{drive.name}: not armed by this driver; enable it (/arm or"
+                          " <joint>/enable) first; nothing moved")
 
     def _check_start(self, goal: TrajectoryGoal, drives: Sequence[Drive]) -> None:
         limit = self.config.start_tolerance_deg

@@ -113,6 +113,9 @@ class TrajectoryGroup:
         with self._lock:
             if self._closed:
                 raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: the driver shut down")
+            if not self._thread.is_alive():  # a goal handed to no thread would never end
+                raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: its thread has ended"
+                             " (see the log); restart the driver")
             older, self._pending = self._pending, run
         if older is not None:
             older.finish(Outcome(TrajectoryCode.INVALID_GOAL, "preempted by a newer goal before it started"))
@@ -188,7 +191,12 @@ class TrajectoryGroup:
         with self._lock:
             pending, self._pending = self._pending, None
         if pending is not None:
-            self._start(pending)
+            try:
+                self._start(pending)
+            except Exception as err:  # the new goal ends too, not only the one running
+                pending.finish(Outcome(TrajectoryCode.PATH_TOLERANCE_VIOLATED,
+                                       f"trajectory group {self.name}: the goal could not start ({err!r})"))
+                raise
         ticked = self._wait_tick()
         if ticked is None:  # a new goal or the shutdown came first, or the sample came too late
             return

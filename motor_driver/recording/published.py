@@ -7,7 +7,8 @@ The rules: a MotorState's angle is wrapped to [0, 360) on a continuous joint (a 
 measured on a limited one; /joint_states carries the angle as measured (rad, never wrapped: a
 wheel's travel), its velocity (rad/s) and torque (Nm). Values whose data is not news by the drive's
 verdict (late, lost, re-booting, not configured) are not repeated as if they were: NaN, with
-``stale`` and the data's age; ``enabled`` is the verdict's usable. No state of its own.
+``stale`` and the data's age, and a state that is the verdict's condition (``LATE``, ``LOST``,
+``REBOOTING``, ...) rather than the last CiA 402 state read; ``enabled`` is the verdict's usable. No state of its own.
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ import math
 from typing import NamedTuple
 
 from motor_driver.drive.values import DriveState
-from motor_driver.drive.verdict import Condition
 
 #: The largest data age a MotorState carries (a drive never heard: infinite, said as this).
 DATA_AGE_MAX_S = 1e9
@@ -44,7 +44,7 @@ def motor_state_fields(state: DriveState, continuous: bool) -> MotorStateFields:
     verdict = state.verdict
     stale = not verdict.fresh
     return MotorStateFields(
-        name=state.name, state="LOST" if verdict.condition is Condition.LOST else state.state.name,
+        name=state.name, state=state.state.name if verdict.fresh else verdict.condition.name,
         angle=math.nan if stale else float(angle), velocity=math.nan if stale else float(state.velocity_deg_s),
         torque=math.nan if stale else float(state.torque_nm), enabled=verdict.usable, fault=state.fault,
         error_code=state.error_code, stale=stale, data_age=float(min(state.data_age_s, DATA_AGE_MAX_S)),
