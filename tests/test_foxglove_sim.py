@@ -75,6 +75,7 @@ def test_sim_serves_the_view_of_its_buses() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # the launched rover, its simulator and the view: beside another worker and the VM, over the 120 s test bound
 def test_launch_serves_the_view_beside_the_nodes() -> None:
     view = free_port()
     launch = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", "ros/rovercan_bringup/launch/motor_launch.xml",

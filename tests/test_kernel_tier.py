@@ -321,6 +321,10 @@ def test_a_killed_or_stopped_driver_lets_every_drive_stop_itself(tmp_path: Path,
             if proc.stdout.readline().strip() != "READY":
                 proc.kill()
                 raise AssertionError(f"the driver process did not get ready: {proc.communicate()[1][-3000:]}")
+            # the client is ready once its driver saw Operation Enabled; the drive's next TPDO says it
+            # on the wire too (a SYNC later; in the emulated VM that can come after READY)
+            wait_for(lambda: any(sw & 0x6F == 0x27 for _, sw in listener.statuswords(1)), HANG_S,
+                     "the drive's statusword Operation Enabled on the wire")
             t_signal = time.time()
             with told_apart(listener.evidence(stall_watch)):  # a stall before the signal: said as one
                 words = [sw for t, sw in listener.statuswords(1) if t < t_signal]

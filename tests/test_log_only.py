@@ -75,6 +75,11 @@ def test_a_node_modules_line_and_canopens_go_through_the_ros_log(capfd: pytest.C
 
     from nodes.logbridge import bridge_core_logging, unbridge
 
+    # an in-process CLI run earlier in this worker may have quieted canopen's logger (its
+    # --verbose 0); what is tested is the bridge, so the logger passes its records here
+    canopen_log = logging.getLogger("canopen.sdo.client")
+    level = canopen_log.level
+    canopen_log.setLevel(logging.NOTSET)
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node("log_check", context=context)
@@ -91,6 +96,7 @@ def test_a_node_modules_line_and_canopens_go_through_the_ros_log(capfd: pytest.C
         unbridge(handler)
         node.destroy_node()
         rclpy.shutdown(context=context)
+        canopen_log.setLevel(level)
     out, err = capfd.readouterr()
     lines = (out + err).splitlines(keepends=True)
     for text in ("goal for unknown joint 'wheel_x' refused", "drive system: b left out",

@@ -322,7 +322,7 @@ def test_cmd_vel_drives_the_wheels_by_the_kinematics_and_stops_when_stale(graph:
     # no more /cmd_vel: after the timeout (0.5 s) the wheels ramp down (1 m/s^2) and stop
     eventually(lambda: all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS), HANG_S,
                "wheels stopped after /cmd_vel went stale")
-    assert graph.system_node.stale
+    assert graph.system_node.cmd_timed_out
     diags = graph.listen(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
     eventually(lambda: bool(diags), 10.0, "a first /diagnostics")  # matched: a refusal is said once
     bad = Twist()
@@ -397,7 +397,7 @@ def test_cmd_vel_beyond_every_limit_is_scaled_whole_and_nothing_moves_after_it_s
         assert math.radians(peak) >= 10.0 * 0.9
         last = odom[-1].twist.twist
         assert last.angular.z / last.linear.x == pytest.approx(4.0, rel=0.15)
-        assert not graph.system_node.stale and graph.driver.drive("wheel_front_right").limits.watchdog_stops == 0
+        assert not graph.system_node.cmd_timed_out and graph.driver.drive("wheel_front_right").limits.watchdog_stops == 0
         # /cmd_vel stops: the wheels ramp down (10 rad/s at 10 rad/s^2 after the 0.5 s timeout)
         wait_for(lambda: all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 0.5 for w in WHEELS), 30.0,
                  "the wheels stopped after /cmd_vel did")
@@ -462,7 +462,7 @@ def test_a_wheel_that_cannot_follow_stops_the_whole_drive_system(graph: Graph) -
     def watched() -> bool:
         nonlocal fastest
         fastest = max([fastest, *(abs(graph.driver.drive(w).snapshot().velocity_deg_s) for w in WHEELS)])
-        return bool(graph.system_node.stale)
+        return bool(graph.system_node.cmd_timed_out)
 
     wait_for(watched, HANG_S, "the drive system to take /cmd_vel for stale")
     wheel = graph.driver.drive("wheel_middle_left")
