@@ -218,9 +218,11 @@ def test_a_path_tolerance_violated_aborts_and_the_group_ramps_down(arm: Arm) -> 
 
 
 def test_a_goal_tolerance_violated_aborts(arm: Arm) -> None:
-    # 10.0001 deg is not a whole count (568.9 counts a degree): the joint ends 0.0007 deg away
+    # 10.0009 deg is 5689.4 counts (568.89 counts a degree): every whole count the joint can end on
+    # is at least 0.0007 deg from it (10.0001 was 5688.95 counts: the count it rounds to lies within
+    # 1e-4 deg, and a joint that settled exactly there met the tolerance)
     exact = {"joint1": Tolerance(position_deg=1e-4), "joint2": Tolerance(position_deg=1e-4)}
-    run = arm.group.follow(goal((0.5, (10.0001, 0.0)), goal_tolerance=exact, goal_time_tolerance_s=0.1))
+    run = arm.group.follow(goal((0.5, (10.0009, 0.0)), goal_tolerance=exact, goal_time_tolerance_s=0.1))
     assert finished(run) == TrajectoryCode.GOAL_TOLERANCE_VIOLATED
     assert run.outcome is not None and "joint1" in run.outcome.message and "goal tolerance" in run.outcome.message
 
