@@ -14,6 +14,7 @@ failure). The simulator runs in a process of its own on vcan0, as `rovercan sim
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -236,13 +237,15 @@ def test_boot_enable_move_in_each_mode_family_with_the_kernels_sync(tmp_path: Pa
         # the shaft coasts on after the torque (a full turn and more while a slow VM waited for
         # the torque): a stream starts from where it has come to rest, as a user's would
         wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, HANG_S, "the shaft at rest after the torque")
-        start = drive.snapshot().angle_deg
+        # a continuous joint takes its targets within a turn and goes the short way: the same place
+        start = math.remainder(drive.snapshot().angle_deg, 360.0)
         t_stream = time.time()
         for i in range(1, 21):  # streamed position (CSP)
             drive.stream_position(start + i * 0.25)
             time.sleep(KERNEL_BUS["sync_period_ms"] / 1000)
         t1 = time.time()
-        wait_for(lambda: abs(drive.snapshot().angle_deg - (start + 5.0)) < 0.5, HANG_S, "the streamed target")
+        wait_for(lambda: abs(math.remainder(drive.snapshot().angle_deg - (start + 5.0), 360.0)) < 0.5, HANG_S,
+                 "the streamed target")
         assert drive.snapshot().mode == 8 and not drive.watch.foreign_master  # its own SYNC is no other master
         drive.quick_stop(HANG_S)
     # the kernel's SYNC went on through the steps: while the drive was enabled before the stream,
