@@ -457,3 +457,16 @@ def test_reset_forget_and_close(wire: Wire) -> None:
     with pytest.raises(DriveStateError, match="shut down"), channel.operation("enable") as op:
         channel.check(op, "enable")
     assert len(wire.frames) == sent  # none of this sent a frame
+
+
+def test_operation_enabled_during_this_drivers_own_enable_is_its_own_however_late(wire: Wire) -> None:
+    """Judged by order: while an enable of this driver's is under way, a drive's Operation Enabled
+    is its doing, even long after the Enable Operation frame (a starved process reads it late);
+    with no enable under way and another word since, it is not (another master's)."""
+    channel = make_channel(wire)
+    with channel.operation("enable") as op:
+        channel.transition(op, "enable", Command.ENABLE_OPERATION)
+        channel.transition(op, "enable", Command.SHUTDOWN)  # its last word no longer Enable Operation
+        late = channel.last_enable_sent + 60.0  # a minute later by the receive thread's clock
+        assert channel.enabled_by_us(late, within_s=1.0)
+    assert not channel.enabled_by_us(late, within_s=1.0)

@@ -43,5 +43,9 @@ class BusyRegistry:
         """The oldest operation under way that is not ``op``, or None."""
         return next((name for token, name in self._ops.items() if op is None or token != op.token), None)
 
+    def under_way(self, name: str) -> bool:
+        """An operation named ``name`` is under way (a read of one snapshot of the names)."""
+        return name in tuple(self._ops.values())
+
     def __bool__(self) -> bool:
         return bool(self._ops)

@@ -99,10 +99,12 @@ class CommandChannel:
         return self._handshake.idle
 
     def enabled_by_us(self, now: float, within_s: float) -> bool:
-        """This driver's last controlword was Enable Operation, or it sent one within ``within_s``."""
+        """This driver's last controlword was Enable Operation, an enable of its own is under way (a
+        drive's Operation Enabled reaches a starved process after its enable's steps, however late),
+        or it sent one within ``within_s``."""
         enable = int(Command.ENABLE_OPERATION)
         sent = self.last_enable_sent
-        return self.cw & enable == enable or (sent > 0.0 and now - sent < within_s)
+        return self.cw & enable == enable or self._busy.under_way("enable") or (sent > 0.0 and now - sent < within_s)
 
     def set_hook(self, hook: Callable[[str], None] | None) -> None:
         """Tests only: ``hook(point)`` at the named points of the channel (see the module doc)."""
