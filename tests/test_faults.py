@@ -164,7 +164,8 @@ def test_boot_enable_move_on_each_interface(interface: str,
     sim_bus = can.Bus(interface="socketcan", channel="vcan0")
     config = parse_config({"buses": [{"name": "can0", "interface": "socketcan", "channel": "vcan0", **KERNEL_BUS}],
                            "drives": [{"name": "joint1", "node_id": 1, **KERNEL_DRIVE}]})
-    with sim_bus, DriveSimulator(sim_bus, [SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))]), \
+    # ordinary scheduling, as the driver beside it in this process has (DriveSimulator's realtime)
+    with sim_bus, DriveSimulator(sim_bus, [SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))], realtime=False), \
             MotorDriver(config) as driver:
         driver.start()
         drive = driver.drive("joint1")

@@ -139,7 +139,9 @@ def simulator(config: Path, wiring: Wiring = VCAN) -> Iterator[DriveSimulator]:
     loaded = load_config(config)
     drives = [SimulatedDrive(d.node_id, load_drive_od(d.eds, d.node_id), MotorParams.from_model(d.sim, d.counts_per_rev),
                              name=d.name) for d in loaded.drives]
-    with can.Bus(interface="socketcan", channel=wiring.drives) as bus, DriveSimulator(bus, drives) as runner:
+    # ordinary scheduling, as the driver beside it in this process has (DriveSimulator's realtime)
+    with can.Bus(interface="socketcan", channel=wiring.drives) as bus, \
+            DriveSimulator(bus, drives, realtime=False) as runner:
         runner.start()
         yield runner
 
@@ -635,7 +637,7 @@ def test_a_drive_that_falls_silent_while_turning_is_told_to_stop(tmp_path: Path,
     eds = guarded_generic_eds(tmp_path / "guarded.eds") if guarded else GENERIC_EDS
     config = write_kernel_config(tmp_path / "kernel.yaml", eds=eds, wiring=wiring)
     sim_drive = SimulatedDrive(1, load_drive_od(eds, 1))
-    with can.Bus(interface="socketcan", channel=wiring.drives) as sim_bus, DriveSimulator(sim_bus, [sim_drive]) as runner, \
+    with can.Bus(interface="socketcan", channel=wiring.drives) as sim_bus, DriveSimulator(sim_bus, [sim_drive], realtime=False) as runner, \
             MotorDriver(load_config(config)) as driver:
         runner.start()
         driver.start()

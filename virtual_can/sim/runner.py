@@ -102,11 +102,18 @@ class DriveSimulator:
 
     Fault injection and inspection go through :meth:`call`, which runs a function in the
     simulator thread, so nothing races the drives.
+
+    ``realtime``: the runner thread takes SIM_PRIORITY (below a driver's) where the OS allows it,
+    as a simulator standing in for the hardware in a process of its own does. False beside a
+    driver of this process that runs at ordinary scheduling: a runner above it would take the
+    driver's turn, the reverse of the order the rover has (and a runner that cannot keep up with
+    its ticks, as under a VM's emulation, would never leave the core to it).
     """
 
     def __init__(self, bus: can.BusABC, drives: Iterable[SimulatedDrive], *,
-                 tick_s: float = DEFAULT_TICK_S, name: str = "sim") -> None:
+                 tick_s: float = DEFAULT_TICK_S, name: str = "sim", realtime: bool = True) -> None:
         self.bus = bus
+        self.realtime = realtime
         self.drives = {d.node_id: d for d in drives}
         self.tick_s = tick_s
         self.errors = 0
@@ -225,7 +232,8 @@ class DriveSimulator:
                 self._send(out)
 
     def _run(self) -> None:
-        ensure_thread_realtime(f"simulated drives on {self._name}", SIM_PRIORITY)
+        if self.realtime:
+            ensure_thread_realtime(f"simulated drives on {self._name}", SIM_PRIORITY)
         drives = list(self.drives.values())
         tick = self.tick_s
         last = time.monotonic()
