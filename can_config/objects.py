@@ -170,18 +170,9 @@ class OperationMode(IntEnum):
     CYCLIC_SYNC_TORQUE = 10
 
 
-#: Bit of 0x6502 (supported drive modes) for each mode.
+#: Bit of 0x6502 (supported drive modes) for each mode: CiA 402 gives mode n bit n - 1.
 SUPPORTED_MODE_BIT: dict[OperationMode, int] = {
-    OperationMode.PROFILE_POSITION: 0,
-    OperationMode.VELOCITY: 1,
-    OperationMode.PROFILE_VELOCITY: 2,
-    OperationMode.PROFILE_TORQUE: 3,
-    OperationMode.HOMING: 5,
-    OperationMode.INTERPOLATED_POSITION: 6,
-    OperationMode.CYCLIC_SYNC_POSITION: 7,
-    OperationMode.CYCLIC_SYNC_VELOCITY: 8,
-    OperationMode.CYCLIC_SYNC_TORQUE: 9,
-}
+    mode: mode - 1 for mode in OperationMode if mode is not OperationMode.NO_MODE}
 
 #: CiA 402 device profile number in the low 16 bits of 0x1000.
 CIA402_PROFILE = 402
