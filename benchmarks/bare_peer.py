@@ -48,14 +48,9 @@ def main() -> int:
 
     for i in range(topics):
         node.create_subscription(Float32, f"bare_cmd_{i}", on_cmd(0x301 + i), SETPOINT_QOS)
-    executor = EventsExecutor()
-    executor.add_node(node)
     with runtime.StopSignal() as stop:
         print("ready", flush=True)
-        runtime.spin_until(executor, stop.event)
-    executor.shutdown(timeout_sec=0)
-    node.destroy_node()
-    rclpy.try_shutdown()
+        runtime.spin_node(node, stop.event, executor=EventsExecutor())
     bus.shutdown()
     return 0
 

@@ -13,6 +13,8 @@ import struct
 from enum import IntEnum
 from typing import Final
 
+from canopen.objectdictionary import datatypes
+
 
 class OD(IntEnum):
     """Object dictionary indexes used by the stack (CiA 301 and CiA 402)."""
@@ -127,26 +129,9 @@ class NmtState(IntEnum):
     PRE_OPERATIONAL = 0x7F
 
 
-class DataType(IntEnum):
-    """CiA 301 data type codes as they appear in an EDS."""
-
-    BOOLEAN = 0x01
-    INTEGER8 = 0x02
-    INTEGER16 = 0x03
-    INTEGER32 = 0x04
-    UNSIGNED8 = 0x05
-    UNSIGNED16 = 0x06
-    UNSIGNED32 = 0x07
-    REAL32 = 0x08
-    VISIBLE_STRING = 0x09
-    OCTET_STRING = 0x0A
-    UNICODE_STRING = 0x0B
-    DOMAIN = 0x0F
-    INTEGER24 = 0x10
-    REAL64 = 0x11
-    INTEGER64 = 0x15
-    UNSIGNED24 = 0x16
-    UNSIGNED64 = 0x1B
+#: The CiA 301 data type codes as they appear in an EDS (``DataType.UNSIGNED32``): canopen's own
+#: table, the one its object dictionary and SDO client read them by.
+DataType = datatypes
 
 
 #: Little-endian struct formats of the fixed-size data types.
@@ -185,18 +170,9 @@ class OperationMode(IntEnum):
     CYCLIC_SYNC_TORQUE = 10
 
 
-#: Bit of 0x6502 (supported drive modes) for each mode.
+#: Bit of 0x6502 (supported drive modes) for each mode: CiA 402 gives mode n bit n - 1.
 SUPPORTED_MODE_BIT: dict[OperationMode, int] = {
-    OperationMode.PROFILE_POSITION: 0,
-    OperationMode.VELOCITY: 1,
-    OperationMode.PROFILE_VELOCITY: 2,
-    OperationMode.PROFILE_TORQUE: 3,
-    OperationMode.HOMING: 5,
-    OperationMode.INTERPOLATED_POSITION: 6,
-    OperationMode.CYCLIC_SYNC_POSITION: 7,
-    OperationMode.CYCLIC_SYNC_VELOCITY: 8,
-    OperationMode.CYCLIC_SYNC_TORQUE: 9,
-}
+    mode: mode - 1 for mode in OperationMode if mode is not OperationMode.NO_MODE}
 
 #: CiA 402 device profile number in the low 16 bits of 0x1000.
 CIA402_PROFILE = 402

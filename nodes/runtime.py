@@ -93,10 +93,13 @@ def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S
         pass
 
 
-def spin_node(node: Node, stop: threading.Event, *, on_stop: Callable[[], None] | None = None) -> None:
-    """One node on a single-threaded executor until ``stop``; then ``on_stop`` (drives safe),
-    the node destroyed and the context shut down, in that order, whatever happened."""
-    executor = SingleThreadedExecutor()
+def spin_node(node: Node, stop: threading.Event, *, on_stop: Callable[[], None] | None = None,
+              executor: Executor | None = None) -> None:
+    """One node on ``executor`` (default: a single-threaded one) until ``stop``; then ``on_stop``
+    (drives safe), the executor shut down, the node destroyed and the context shut down, in that
+    order, whatever happened."""
+    if executor is None:
+        executor = SingleThreadedExecutor()
     executor.add_node(node)
     heap.settle()  # the node is built: what exists now lives as long as the process
     try:

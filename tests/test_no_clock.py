@@ -280,6 +280,15 @@ def scan(source: str, name: str) -> list[str]:
         _schedule_without_refusals(tree, name)
 
 
+def check_snippets(broken: str, lines: list[str], fine: str) -> list[str]:
+    """The scan flags ``broken`` at exactly ``lines`` and ``fine`` (the same steps done right)
+    nowhere; returns what it said of ``broken``."""
+    found = scan(broken, "broken.py")
+    assert [p.split(":", 2)[1].split(" ")[0] for p in found] == lines, found
+    assert scan(fine, "fine.py") == []
+    return found
+
+
 def test_no_test_waits_on_a_bare_sleep_or_asserts_a_short_duration() -> None:
     problems = [p for path in sorted((REPO / "tests").glob("*.py")) for p in scan(path.read_text(), path.name)]
     assert problems == [], "\n".join(problems)
@@ -296,8 +305,6 @@ def test_the_scan_finds_a_bare_sleep_and_a_clock_assert() -> None:
               "    worst = max(0.0, time.perf_counter() - start)\n"
               "    assert 0.005 > worst\n"
               "    assert time.monotonic() - start < 0.35 + 0.1 + 5 * 0.01\n")
-    found = scan(broken, "broken.py")
-    assert [p.split(":", 2)[1].split(" ")[0] for p in found] == ["4", "6", "7", "9", "10"], found
     fine = ("import time\n"
             "def test_y(ready):\n"
             "    start = time.monotonic()\n"
@@ -305,7 +312,7 @@ def test_the_scan_finds_a_bare_sleep_and_a_clock_assert() -> None:
             "        time.sleep(0.01)\n"
             "    assert time.monotonic() - start < 30.0\n"
             "    assert time.monotonic() - start >= 0.18\n")
-    assert scan(fine, "fine.py") == []
+    check_snippets(broken, ["4", "6", "7", "9", "10"], fine)
 
 
 def test_the_scan_finds_a_span_then_an_assertion_a_connect_retried_and_a_schedule_without_refusals() -> None:
@@ -331,9 +338,6 @@ def test_the_scan_finds_a_span_then_an_assertion_a_connect_retried_and_a_schedul
               "    for i in range(1000):\n"
               "        wheel.move_to(i)\n"
               "        time.sleep(max(0.0, start + (i + 1) * 0.001 - time.monotonic()))\n")
-    found = scan(broken, "broken.py")
-    assert [p.split(":", 2)[1].split(" ")[0] for p in found] == ["4", "12", "15", "20"], found
-    assert ["span" in found[0], "span" in found[1], "connect" in found[2], "schedule" in found[3]] == [True] * 4
     fine = ("import time, socket\n"
             "from can_config.errors import CommandRejected\n"
             "def test_y(cmd, wheel, said):\n"
@@ -358,7 +362,8 @@ def test_the_scan_finds_a_span_then_an_assertion_a_connect_retried_and_a_schedul
             "        time.sleep(max(0.0, start + (i + 1) * 0.001 - time.monotonic()))\n"
             "    t0 = time.time()\n"
             "    frames = [t0 + i * 1e-4 for i in range(10)]\n")
-    assert scan(fine, "fine.py") == []
+    found = check_snippets(broken, ["4", "12", "15", "20"], fine)
+    assert ["span" in found[0], "span" in found[1], "connect" in found[2], "schedule" in found[3]] == [True] * 4
 
 
 def test_the_kernel_tier_and_every_tier_are_scanned() -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import can
 import pytest
@@ -23,6 +24,7 @@ from can_config.errors import BootError, ConfigError
 from motor_driver import MotorDriver
 from motor_driver.drive import Drive
 from motor_driver.drive.boot import configuration_stamp
+from motor_driver.drive.ledger import DriveRuntime
 from motor_driver.protocol.cia402 import State
 from motor_driver.protocol.pdo import mapping_writes
 from virtual_can import SimService
@@ -65,6 +67,29 @@ def assert_asked(objects: Objects) -> None:
     assert [objects[(0x1601, sub)] for sub in range(3)] == [2, 0x60400010, 0x607A0020]
     assert [objects[(0x1602, sub)] for sub in range(3)] == [2, 0x60400010, 0x60FF0020]
     assert [objects[(0x1A00, sub)] for sub in range(3)] == [2, 0x60410010, 0x60610008]
+
+
+def assert_enabled_as_asked(sim: SimService, drive: Drive) -> None:
+    """The drive enables, holding the configuration asked."""
+    drive.enable()
+    assert sim_state(sim) is SimState.OPERATION_ENABLED
+    assert_asked(pdo_objects(sim))
+
+
+def one_drive(driver_factory: Factory) -> tuple[SimService, Drive, DriveRuntime]:
+    """One drive booted, and what the supervisor keeps of it."""
+    sim, driver = driver_factory(make_config(1))
+    return sim, driver.drive("joint1"), driver.supervisor.runtimes["joint1"]
+
+
+@contextmanager
+def hooked(drive: Drive, hook: Callable[[str], None]) -> Iterator[int]:
+    """``hook`` in the drive's command channel while the block runs; yields the boot count before it."""
+    drive.channel.set_hook(hook)
+    try:
+        yield drive.boot.boot_count
+    finally:
+        drive.channel.set_hook(None)
 
 
 @pytest.fixture
@@ -154,9 +179,7 @@ def test_a_reset_at_the_first_write_of_0x1600_is_not_booted_before_it_is_configu
             assert len(held_when_booted) == 1
             assert_asked(held_when_booted[0])
             assert states_when_booted[0] is not State.UNKNOWN
-            drive.enable()
-            assert sim_state(sim) is SimState.OPERATION_ENABLED
-            assert_asked(pdo_objects(sim))
+            assert_enabled_as_asked(sim, drive)
     finally:
         logging.getLogger("motor_driver.drive.boot").removeHandler(hook)
 
@@ -182,9 +205,7 @@ def test_a_drive_whose_statusword_shows_no_state_is_not_booted(
 
 def test_an_unexpected_error_in_a_reconfiguration_is_logged_counted_and_retried(
         driver_factory: Factory, caplog: pytest.LogCaptureFixture) -> None:
-    sim, driver = driver_factory(make_config(1))
-    drive = driver.drive("joint1")
-    runtime = driver.supervisor.runtimes["joint1"]
+    sim, drive, runtime = one_drive(driver_factory)
     raised: list[str] = []
 
     def hook(point: str) -> None:
@@ -192,19 +213,15 @@ def test_an_unexpected_error_in_a_reconfiguration_is_logged_counted_and_retried(
             raised.append(point)
             raise RuntimeError("a fault of the driver's own, injected")
 
-    drive.channel.set_hook(hook)
-    boots = drive.boot.boot_count
-    apply_action(sim, {"action": "power_cycle", "node": NODE, "off_s": 0.05})
-    wait_for(lambda: runtime.reconfigure_failures == 1, HANG_S, "the failed re-configuration counted")
-    assert "RuntimeError: a fault of the driver's own, injected" in runtime.reconfigure_error
-    wait_for(lambda: drive.boot.boot_count > boots and drive.cache.booted, HANG_S, "the retry")
-    drive.channel.set_hook(None)
+    with hooked(drive, hook) as boots:
+        apply_action(sim, {"action": "power_cycle", "node": NODE, "off_s": 0.05})
+        wait_for(lambda: runtime.reconfigure_failures == 1, HANG_S, "the failed re-configuration counted")
+        assert "RuntimeError: a fault of the driver's own, injected" in runtime.reconfigure_error
+        wait_for(lambda: drive.boot.boot_count > boots and drive.cache.booted, HANG_S, "the retry")
     said = [r for r in caplog.records if "failed unexpectedly" in r.getMessage()]
     assert len(said) == 1 and said[0].levelno == logging.ERROR and said[0].exc_info is not None
     assert runtime.reconfigure_failures == 1
-    drive.enable()
-    assert sim_state(sim) is SimState.OPERATION_ENABLED
-    assert_asked(pdo_objects(sim))
+    assert_enabled_as_asked(sim, drive)
 
 
 def asked_of(drive: Drive) -> Objects:
@@ -237,9 +254,7 @@ def test_a_reset_whose_boot_up_is_lost_is_caught_by_what_the_drive_holds(
 def test_a_reset_heard_as_the_boot_reports_its_end_is_configured_again(driver_factory: Factory) -> None:
     """The drive resets after the boot's last look and its boot-up is heard before the boot's
     report reaches the supervisor (held there by a hook): not booted, configured again."""
-    sim, driver = driver_factory(make_config(1))
-    drive = driver.drive("joint1")
-    runtime = driver.supervisor.runtimes["joint1"]
+    sim, drive, runtime = one_drive(driver_factory)
     fired: list[int] = []
 
     def hook(point: str) -> None:
@@ -248,15 +263,11 @@ def test_a_reset_heard_as_the_boot_reports_its_end_is_configured_again(driver_fa
             apply_action(sim, {"action": "power_cycle", "node": NODE, "off_s": 0.01})
             wait_for(lambda: drive.cache.bootups > fired[0], HANG_S, "its boot-up heard")
 
-    drive.channel.set_hook(hook)
-    boots = drive.boot.boot_count
-    apply_action(sim, {"action": "power_cycle", "node": NODE, "off_s": 0.05})
-    wait_for(lambda: drive.boot.boot_count > boots + 1 and drive.cache.booted, HANG_S, "configured again")
-    drive.channel.set_hook(None)
+    with hooked(drive, hook) as boots:
+        apply_action(sim, {"action": "power_cycle", "node": NODE, "off_s": 0.05})
+        wait_for(lambda: drive.boot.boot_count > boots + 1 and drive.cache.booted, HANG_S, "configured again")
     assert fired and runtime.boot_restarts == 1 and runtime.boot_restart_why == "it sent boot-up as its boot ended"
-    drive.enable()
-    assert sim_state(sim) is SimState.OPERATION_ENABLED
-    assert_asked(pdo_objects(sim))
+    assert_enabled_as_asked(sim, drive)
 
 
 def test_the_0x1020_stamp_counts_days_from_1984_and_ms_from_midnight() -> None:

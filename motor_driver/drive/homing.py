@@ -10,6 +10,7 @@ No lock is held while it waits for 'homing attained'.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 from canopen.objectdictionary import ObjectDictionary
 
@@ -28,27 +29,29 @@ from motor_driver.protocol.cia402 import CW, FAULT_STATES, SW, Command, State
 logger = logging.getLogger(__name__)
 
 
+@dataclass(eq=False)
 class Homing:
-    """Homing of one drive (CiA 402 mode 6)."""
+    """Homing of one drive (CiA 402 mode 6), through the parts of the drive it is handed."""
 
-    def __init__(self, config: DriveConfig, od: ObjectDictionary, cache: DriveCache, channel: CommandChannel,
-                 sdo: SdoPort, power: PowerStateMachine) -> None:
-        self.config, self._od, self._cache, self._channel, self._sdo = config, od, cache, channel, sdo
-        self.name, self.node_id = config.name, config.node_id
-        self._power = power
+    config: DriveConfig
+    _od: ObjectDictionary
+    _cache: DriveCache
+    _channel: CommandChannel
+    _sdo: SdoPort
+    _power: PowerStateMachine
 
     def home(self, timeout_s: float | None = None) -> None:
         """Homing with the configured method and speed; waits for 'homing attained'. The drive
         is busy meanwhile: commands are refused, a stop preempts it."""
         cfg = self.config
         if not self._cache.scale.resolution_known:
-            raise CommandRejected(f"{self.name} (node {self.node_id}): homing refused: the position resolution is"
+            raise CommandRejected(f"{self.config.name} (node {self.config.node_id}): homing refused: the position resolution is"
                                   " unknown (no counts_per_rev in the config, no 0x608F or 0x60A8 on the drive)."
                                   " Set counts_per_rev for this drive. Nothing was sent.")
         if not has_object(self._od, OD.HOMING_METHOD) or \
                 not self._power.supported_modes() >> SUPPORTED_MODE_BIT[OperationMode.HOMING] & 1:
             why = "no 0x6098 in its EDS" if not has_object(self._od, OD.HOMING_METHOD) else "0x6502 lists no homing"
-            raise CommandRejected(f"{self.name}: this drive has no homing mode ({why}); nothing was sent. Home it"
+            raise CommandRejected(f"{self.config.name}: this drive has no homing mode ({why}); nothing was sent. Home it"
                                   " with the vendor's tool, or set offset_deg in the config.")
         with self._channel.operation("home") as op:
             self._power.require_usable("home", fresh=True)  # it moves the drive: not on late data
@@ -78,9 +81,9 @@ class Homing:
         seq = self._cache.position_seq
         bound_s = max(TRANSITION_TIMEOUT_S, 10 * self._cache.sync_period_s)
         if not self._cache.wait_until(lambda: self._cache.position_seq != seq, bound_s):
-            raise DriveTimeoutError(f"{self.name}: homing attained, but no position came from the drive within"
+            raise DriveTimeoutError(f"{self.config.name}: homing attained, but no position came from the drive within"
                                     f" {bound_s:g} s after it; its new zero is unknown. Check the bus and the"
-                                    " drive's TPDOs, then home again.", node_id=self.node_id,
+                                    " drive's TPDOs, then home again.", node_id=self.config.node_id,
                                     statusword=self._cache.received.statusword)
 
     def _after_start(self) -> tuple[int, int]:
@@ -98,8 +101,8 @@ class Homing:
         def attained() -> bool:
             sw = cache.received.statusword if cache.status_seq != since else answered
             if sw & SW.FOLLOWING_ERROR:
-                raise DriveStateError(f"{self.name}: homing error reported (statusword 0x{sw:04X})",
-                                      node_id=self.node_id, statusword=sw)
+                raise DriveStateError(f"{self.config.name}: homing error reported (statusword 0x{sw:04X})",
+                                      node_id=self.config.node_id, statusword=sw)
             if sw & SW.SETPOINT_ACK and sw & SW.TARGET_REACHED:
                 return True
             if cache.state in FAULT_STATES:
@@ -111,5 +114,5 @@ class Homing:
             return False
 
         if not cache.wait_until(attained, timeout_s):
-            raise DriveTimeoutError(f"{self.name}: homing not attained within {timeout_s:g} s", node_id=self.node_id,
+            raise DriveTimeoutError(f"{self.config.name}: homing not attained within {timeout_s:g} s", node_id=self.config.node_id,
                                     statusword=cache.received.statusword)

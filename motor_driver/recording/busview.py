@@ -112,6 +112,9 @@ class ViewDrive:
     controlword_rpdos: frozenset[int]
     scale: Scale = field(init=False)
     positions: PositionFilter = field(init=False)
+    name: str = field(init=False)  # name, bus and node id: the config's, for short
+    bus: str = field(init=False)
+    node_id: int = field(init=False)
     units_from: str = FROM_CONFIG
     unit_objects: dict[tuple[int, int], int] = field(default_factory=dict)  # the drive's, as answered
     rx: Received = field(default_factory=Received)
@@ -127,23 +130,12 @@ class ViewDrive:
     sync_cobs: frozenset[int] = frozenset()
 
     def __post_init__(self) -> None:
+        self.name, self.bus, self.node_id = self.config.name, self.config.bus, self.config.node_id
         self.sync_cobs = frozenset(c for c, layout in self.layouts.items() if set(layout.indexes) & {
             OD.POSITION_ACTUAL, OD.VELOCITY_ACTUAL, OD.TORQUE_ACTUAL})
         self.has_torque = any(OD.TORQUE_ACTUAL in layout.indexes for layout in self.layouts.values())
         self.positions = PositionFilter(self.config.node_id, self.sync_period_s)
         self._rescale()
-
-    @property
-    def name(self) -> str:
-        return self.config.name
-
-    @property
-    def bus(self) -> str:
-        return self.config.bus
-
-    @property
-    def node_id(self) -> int:
-        return self.config.node_id
 
     def take_units(self, objects: UnitObjects, source: str) -> None:
         """The drive's unit objects (its answers seen on the bus, or a recording's metadata)."""

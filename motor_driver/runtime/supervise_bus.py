@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import can
 
@@ -37,23 +38,24 @@ logger = logging.getLogger(__name__)
 BUS_CHECK_PERIODS = 5
 
 
+@dataclass(eq=False)
 class BusSupervision:
-    """The buses' part of the supervisor (composed into it, same thread)."""
+    """The buses' part of the supervisor (composed into it, same thread). ``drives`` and
+    ``runtimes`` are the supervisor's, read here; ``drive_gone`` and ``report`` are its ways back."""
 
-    def __init__(self, config: RoverConfig, handles: dict[str, BusHandle], recorder: FlightRecorder | None,
-                 rate_limited: RateLimitedLog, drives: dict[str, Drive], runtimes: dict[str, DriveRuntime],
-                 drive_gone: Callable[[Drive], None], report: Callable[[Event], None],
-                 faults: JobFaults | None = None) -> None:
-        self.config = config
-        self.faults = faults or JobFaults()
-        self.handles = handles
-        self.recorder = recorder
-        self._rate_limited = rate_limited
-        self._drives = drives
-        self._runtimes = runtimes
-        self._drive_gone = drive_gone
-        self._report = report
-        self.runtime = {name: BusRuntime() for name in handles}
+    config: RoverConfig
+    handles: dict[str, BusHandle]
+    recorder: FlightRecorder | None
+    rate_limited: RateLimitedLog
+    drives: dict[str, Drive]
+    runtimes: dict[str, DriveRuntime]
+    drive_gone: Callable[[Drive], None]
+    report: Callable[[Event], None]
+    faults: JobFaults = field(default_factory=JobFaults)
+    runtime: dict[str, BusRuntime] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.runtime = {name: BusRuntime() for name in self.handles}
 
     def kernel_health(self, bus: str) -> tuple[KernelBusHealth | None, str]:
         """What the kernel says of ``bus`` (state, counters: a socketcan bus), or None and why it
@@ -82,7 +84,7 @@ class BusSupervision:
             if rt.last_beat and now - rt.last_beat > 2 * bus_cfg.host_heartbeat_s:
                 if self.recorder is not None:
                     self.recorder.process_late()
-                self._rate_limited.log(logging.WARNING, ("late", name),
+                self.rate_limited.log(logging.WARNING, ("late", name),
                                        "bus %s: host heartbeat %.0f ms late (period %.0f ms): this process is"
                                        " starved; the drives stop by themselves when it is later than their"
                                        " host timeout", name, (now - rt.last_beat - bus_cfg.host_heartbeat_s)
@@ -102,7 +104,7 @@ class BusSupervision:
         server closed the connection, an error frame that loses it, sends that keep failing, or
         every drive on it lost and nothing at all received for a consumer time."""
         exc = handle.network.notifier.exception if handle.network.notifier else None
-        drives = [d for d in self._drives.values() if d.config.bus == name]
+        drives = [d for d in self.drives.values() if d.config.bus == name]
         if handle.stats.frames != rt.last_frames:
             rt.last_frames, rt.last_rx = handle.stats.frames, now
         silent_for = now - rt.last_rx if rt.last_rx else 0.0
@@ -117,7 +119,7 @@ class BusSupervision:
             return f"error frame: {losing}"
         if failing is not None and now - failing[0] > SEND_FAILING_BEATS * self.config.bus(name).host_heartbeat_s:
             return f"sends fail: {failing[1]}"
-        if drives and all(self._runtimes[d.name].lost for d in drives) and silent_for > timeout:
+        if drives and all(self.runtimes[d.name].lost for d in drives) and silent_for > timeout:
             return f"nothing received for {silent_for:.1f} s"
         return ""
 
@@ -133,9 +135,9 @@ class BusSupervision:
             why = self._lost_why(name, handle, rt, now)
             if not why:
                 return
-            for drive in self._drives.values():  # first: no command passes once the bus counts as lost
+            for drive in self.drives.values():  # first: no command passes once the bus counts as lost
                 if drive.config.bus == name:
-                    self._drive_gone(drive)
+                    self.drive_gone(drive)
             rt.lost, rt.send_failing, rt.backoff_s = True, None, RECONNECT_MIN_S
             logger.error("bus %s lost (%s)", name, why)
             if self.recorder is not None:
@@ -200,7 +202,7 @@ class BusSupervision:
         full = handle.network.tx_queue_full
         if full != rt.reported_queue_full:
             rt.reported_queue_full = full
-            self._rate_limited.log(logging.WARNING, ("queue", name), "bus %s: transmit queue full (ENOBUFS) %d times"
+            self.rate_limited.log(logging.WARNING, ("queue", name), "bus %s: transmit queue full (ENOBUFS) %d times"
                                    " so far, %d frame(s) given up on: the controller cannot send (no node"
                                    " acknowledging? check cabling, termination and bitrate)", name, full,
                                    handle.network.tx_queue_dropped)
@@ -215,7 +217,7 @@ class BusSupervision:
             try:
                 handle.disconnect()
             finally:
-                self._report(BusDown(name, None, "", f"reconnect failed unexpectedly ({cause_of(err)})"))
+                self.report(BusDown(name, None, "", f"reconnect failed unexpectedly ({cause_of(err)})"))
 
         return self.faults.supervised("reconnect", f"bus {name}", lambda: self._reconnect(name, handle, drop), failed)
 
@@ -227,27 +229,27 @@ class BusSupervision:
             handle.disconnect()
         link_down = self._link_down(name)
         if link_down:
-            self._report(BusDown(name, RECONNECT_MIN_S, link_down, "link down"))
+            self.report(BusDown(name, RECONNECT_MIN_S, link_down, "link down"))
             return
         try:
             handle.reconnect(open_bus(self.config.bus(name).bus_kwargs(), connect_timeout_s=0.0))  # one try
         except (can.CanError, OSError, ValueError, TimeoutError, BusLostError) as err:
-            self._report(BusDown(name, None, "", f"reconnect failed ({brief_error(err)})"))
+            self.report(BusDown(name, None, "", f"reconnect failed ({brief_error(err)})"))
             return
         try:
-            for drive in (d for d in self._drives.values() if d.config.bus == name):
+            for drive in (d for d in self.drives.values() if d.config.bus == name):
                 drive.boot.boot(reset=True)
         except BusLostError as err:  # opened, but nothing goes out (an interface still down)
             handle.disconnect()
-            self._report(BusDown(name, None, "", f"still not usable ({brief_error(err)})"))
+            self.report(BusDown(name, None, "", f"still not usable ({brief_error(err)})"))
             return
         except MotorError as err:
             logger.error("bus %s is back but a drive did not boot: %s; retrying", name, err)
             handle.disconnect()
-            self._report(BusDown(name, RECONNECT_MIN_S, "", "a drive did not boot"))
+            self.report(BusDown(name, RECONNECT_MIN_S, "", "a drive did not boot"))
             return
         handle.start_sync()
-        self._report(BusBack(name))
+        self.report(BusBack(name))
 
     def _link_down(self, name: str) -> str:
         """Why a kernel interface cannot carry frames as the kernel has it (down, BUS-OFF), or ''
