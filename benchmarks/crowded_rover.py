@@ -282,7 +282,7 @@ def verdict(figures: dict[str, Any]) -> tuple[bool, str]:
     if faults:
         return False, f"FAIL ({load}): " + "; ".join(faults)
     least = min(figures["wheel_travel_fraction"].values(), default=0.0)
-    return True, f"PASS ({load}): no EMCY 0x8130; {figures['seconds']:g} s driven, every wheel turned >= {least:.0%} of what was asked"
+    return True, f"PASS ({load}): no EMCY 0x8130; {figures['seconds']:g} s driven, every wheel turned >= {least:.1%} of what was asked"
 
 
 def run(args: argparse.Namespace) -> int:
