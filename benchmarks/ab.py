@@ -1,6 +1,7 @@
 """Interleaved A/B stack runs of two source trees on one machine (the code before and after a
-change): each round runs every shipped config on A, then on B, so that the machine's drift hits
-both alike. Prints each run and the medians as JSON lines.
+change): each round runs every shipped config on A and on B, A first in even rounds and B first in
+odd ones, so that the machine's drift and whatever the first run leaves behind hit both alike.
+Prints each run and the medians as JSON lines.
 
     python benchmarks/ab.py BEFORE_TREE AFTER_TREE [--rounds 3] [--seconds 10]
 
@@ -51,7 +52,8 @@ def main() -> int:
     runs: dict[tuple[str, str], list[dict[str, float]]] = {}
     for round_ in range(args.rounds):
         for config in args.configs:
-            for label, tree in (("before", args.before), ("after", args.after)):
+            pair = (("before", args.before), ("after", args.after))
+            for label, tree in pair if round_ % 2 == 0 else pair[::-1]:  # neither always runs second
                 result = stack_run(tree.resolve(), config, args.seconds)
                 runs.setdefault((config, label), []).append(result)
                 print(json.dumps({"round": round_, "config": config, "code": label, **result}), flush=True)
