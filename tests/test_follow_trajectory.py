@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+import signal
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -216,3 +217,50 @@ def test_an_unknown_joint_and_a_past_stamp_are_refused_with_their_codes(rig: Rig
     done = result_of(send(rig, past))
     assert done.status == GoalStatus.STATUS_ABORTED
     assert done.result.error_code == FollowJointTrajectory.Result.OLD_HEADER_TIMESTAMP, done.result.error_string
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])
+def test_the_driver_killed_mid_goal_leaves_the_arm_to_stop_itself(tmp_path: Path, sig: int) -> None:
+    """The driver's process as the launch runs it (``python -m nodes.rover_driver``, ``arm:=true``,
+    the arm's limited joints its default trajectory group) follows a 30 s goal of an independent
+    client; SIGKILL (or SIGSTOP: frozen, not dead) once the joints move: no handler of ours runs.
+    Each joint's drive stops itself on its host-heartbeat consumer: an independent listener sees its
+    EMCY 0x8130 and nothing of the host after it, the test's own SDO client reads it disabled and still."""
+    from can_config import GENERIC_EDS
+    from virtual_can import SimDriveSpec
+
+    from .test_host_loss import host_process, signal_the_host_and_see_the_drives_stop, watching, write_config
+
+    drives = [("joint1", 1, "can0", GENERIC_EDS), ("joint2", 2, "can0", GENERIC_EDS)]
+    arm = {k: v for k, v in ARM.items() if k != "stale_after_syncs"}  # a process of its own: the default
+    with SimService([SimDriveSpec(node, eds, ch, name, 4096) for name, node, ch, eds in drives], port=0) as sim:
+        config = write_config(tmp_path / "arm.yaml", sim.port, drives, **arm)
+        runner = sim.simulators["can0"]
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        node = rclpy.create_node("trajectory_client", context=context)
+        client = ActionClient(node, FollowJointTrajectory, ACTION)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        client_spin = SpinThread(executor, "test-client")
+        try:
+            with watching(sim, ["can0"]) as watches, host_process(
+                    [sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p", f"config:={config}",
+                     "-p", "arm:=true"], tmp_path / "driver.log") as proc:
+                assert client.wait_for_server(timeout_sec=HANG_S), f"{ACTION} not served"
+
+                def joints() -> list[tuple[str, float]]:
+                    return runner.call(lambda: [(runner.drive(n).state.name, runner.drive(n).omega) for n in (1, 2)])
+
+                wait_for(lambda: all(state == "OPERATION_ENABLED" for state, _ in joints()), HANG_S, "the arm armed")
+                feedback: list[Any] = []
+                handle = send(Rig(sim, None, client, []), half_sine(40.0, 30.0), feedback)  # no assembly here
+                assert handle.accepted
+                wait_for(lambda: bool(feedback) and feedback[-1].desired.time_from_start.sec >= 1
+                         and all(state == "OPERATION_ENABLED" and omega != 0.0 for state, omega in joints()),
+                         HANG_S, "both joints moving on the goal")
+                signal_the_host_and_see_the_drives_stop(proc, sim, watches, drives, sig)
+        finally:
+            client_spin.stop(5.0)
+            node.destroy_node()
+            rclpy.shutdown(context=context)

@@ -4,10 +4,16 @@ The driver runs in a process of its own (tests/clients/hold_velocity.py) and is 
 SIGKILL or frozen with SIGSTOP: no handler of ours runs. Independent clients on the bus (a
 python-can listener and a canopen SDO client of the test's own) show every drive leaving
 Operation Enabled within the consumer time + 100 ms and standing still.
+
+The ROS processes (the lifecycle node, the driver following a trajectory: their tests are in
+test_lifecycle.py and test_follow_trajectory.py) are killed or frozen as they move, and judged by
+``signal_the_host_and_see_the_drives_stop``: each drive's EMCY 0x8130 and nothing of the host after
+it, then the drive disabled and still, read by SDO; outcomes and order, no clock.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -464,3 +470,104 @@ def test_the_drives_stop_when_the_host_is_cut_off(driver_factory: Callable[[Rove
     stopped = seconds_until_stopped(sim, [1, 2])
     print(f"stop after {failure}: " + ", ".join(f"node {n} {dt * 1000:.0f} ms" for n, dt in stopped.items()))
     assert set(stopped) == {1, 2} and max(stopped.values()) <= BOUND_S, stopped
+
+
+# ------------------------------------------------------------------ a ROS process of ours killed while it moves
+#: A bound for a hang only: the verdicts below are outcomes and their order on the bus.
+HANG_S = 30.0
+HOST_HEARTBEAT = 0x77F  # node 127's
+
+
+def host_frame(cob_id: int) -> bool:
+    """A frame only the host sends: NMT, an RPDO (controlword or set-point), an SDO request, its
+    heartbeat. The SYNC is left out: the bus daemon's timer sends it while a frozen process keeps
+    its connection."""
+    return (cob_id in (0x000, HOST_HEARTBEAT) or 0x600 < cob_id < 0x680
+            or (cob_id & 0x780 in (0x200, 0x300, 0x400, 0x500) and cob_id & 0x7F != 0))
+
+
+def all_threads_stopped(pid: int) -> bool:
+    """Every thread of ``pid`` in the stopped state (``T`` in /proc/<pid>/task/*/stat)."""
+    states = []
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        text = stat.read_text()
+        states.append(text[text.rindex(")") + 2])
+    return bool(states) and set(states) == {"T"}
+
+
+@contextmanager
+def host_process(argv: list[str], log: Path) -> Iterator[subprocess.Popen[bytes]]:
+    """``argv`` run from the repository, its output to ``log`` (no pipe to fill and block it);
+    killed at the end, thawed first if it was frozen."""
+    with log.open("wb") as out:
+        proc = subprocess.Popen(argv, cwd=REPO, stdout=out, stderr=subprocess.STDOUT,
+                                env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+        try:
+            yield proc
+        finally:
+            proc.kill()
+            proc.send_signal(signal.SIGCONT)
+            proc.wait(HANG_S)
+
+
+def emcy_host_lost(frames: list[tuple[float, can.Message]], node: int, since: int) -> int | None:
+    """Index of the first EMCY 0x8130 (heartbeat consumer: the host is lost) of ``node`` from ``since``."""
+    for i in range(since, len(frames)):
+        msg = frames[i][1]
+        if msg.arbitration_id == 0x080 + node and bytes(msg.data[:2]) == b"\x30\x81":
+            return i
+    return None
+
+
+def signal_the_host_and_see_the_drives_stop(proc: subprocess.Popen[bytes], sim: SimService,
+                                            watches: dict[str, Watch], drives: list[tuple[str, int, str, Path]],
+                                            sig: int) -> None:
+    """``sig`` (SIGKILL or SIGSTOP) to the host's process ``proc`` while its drives are Operation
+    Enabled and moving; its end or freeze awaited. Then, on the bus, for each drive: its EMCY
+    0x8130 (its host-heartbeat consumer tripped) after the signal, and no frame of the host after
+    it while the drive's own heartbeats go on (it stopped itself: nothing of ours ran); and the
+    test's own SDO client reads it not Operation Enabled and at velocity 0."""
+    marks = {ch: len(w.frames) for ch, w in watches.items()}
+    proc.send_signal(sig)
+    if sig == signal.SIGKILL:
+        assert proc.wait(HANG_S) == -signal.SIGKILL
+    else:
+        wait_for(lambda: all_threads_stopped(proc.pid), HANG_S, "every thread of the host frozen")
+    for name, node, ch, _ in drives:
+        frames = watches[ch].frames
+        wait_for(lambda frames=frames, node=node, mark=marks[ch]: emcy_host_lost(frames, node, mark) is not None,
+                 HANG_S, f"{name}: EMCY 0x8130 (host lost) on the bus")
+        tripped = emcy_host_lost(frames, node, marks[ch])
+        assert tripped is not None
+        wait_for(lambda frames=frames, node=node, tripped=tripped:
+                 sum(m.arbitration_id == 0x700 + node for _, m in frames[tripped:]) >= 2,
+                 HANG_S, f"{name}: two of its heartbeats after its EMCY")
+        after = [f"0x{m.arbitration_id:03X} {bytes(m.data).hex()}" for _, m in frames[tripped:]
+                 if host_frame(m.arbitration_id)]
+        assert not after, f"{name}: the host sent after the drive stopped itself: {after[:5]}"
+    for ch in sorted({ch for _, _, ch, _ in drives}):
+        network = canopen.Network()
+        network.connect(interface="socketcand", channel=ch, host=sim.host, port=sim.port)
+        try:
+            for name, node, chan, eds in drives:
+                if chan == ch:
+                    check_still_and_not_enabled(network.add_node(node, load_drive_od(eds, node)), name)
+        finally:
+            network.disconnect()
+
+
+def check_still_and_not_enabled(remote: canopen.RemoteNode, name: str) -> None:
+    """The drive, asked by SDO until it answers so (a hang bound), is not Operation Enabled and at velocity 0."""
+    read: list[tuple[int, int]] = []
+
+    def stopped() -> bool:
+        try:
+            sw = int.from_bytes(remote.sdo.upload(0x6041, 0), "little")
+            velocity = int.from_bytes(remote.sdo.upload(0x606C, 0), "little", signed=True)
+        except canopen.SdoCommunicationError:
+            return False  # not answered in time on a busy machine: ask again
+        read.append((sw, velocity))
+        return not statusword_enabled(sw) and velocity == 0
+
+    wait_for(stopped, HANG_S, f"{name}: not Operation Enabled and still, read by SDO",
+             lambda: f"statusword, velocity: {[(hex(sw), v) for sw, v in read[-3:]]}")

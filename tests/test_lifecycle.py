@@ -3,6 +3,8 @@ transition checked on the bus by an independent listener and on the simulated dr
 
 from __future__ import annotations
 
+import signal
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -609,3 +611,52 @@ def test_the_launched_rover_with_lifecycle_moves_nothing_while_inactive(tmp_path
         stop(launch)
         stop(sim)
         log.close()
+
+
+# ---------------------------------------------------------------------------- the host gone while driving
+#: The wheels of the drive system, /cmd_vel held for a minute: they turn until the signal, not
+#: stopped before it by the drive system's own command timeout.
+DRIVE_SYSTEM_HELD = "drive_system: {left: [a], right: [b], track_width_m: 0.6, wheel_radius_m: 0.1, cmd_timeout_ms: 60000}\n"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])
+def test_the_active_node_killed_while_driving_leaves_each_drive_to_stop_itself(tmp_path: Path, sig: int) -> None:
+    """The managed node in a process of its own (as the launch runs it) on two simulated wheels,
+    configured and activated through its lifecycle service (``arm:=true``: activate enables), the
+    wheels turning on /cmd_vel; then SIGKILL, or SIGSTOP (frozen, not dead): no handler of ours
+    runs. Each drive's host-heartbeat consumer stops it: an independent listener sees its EMCY
+    0x8130 and nothing of the host after it, the test's own SDO client reads it disabled and still."""
+    from geometry_msgs.msg import Twist
+
+    from .test_host_loss import HANG_S, host_process, signal_the_host_and_see_the_drives_stop, watching, write_config
+
+    drives = [("a", 1, "can0", GENERIC_EDS), ("b", 2, "can0", GENERIC_EDS)]
+    with SimService([SimDriveSpec(node, eds, ch, name, 4096) for name, node, ch, eds in drives], port=0) as sim:
+        config = write_config(tmp_path / "rover.yaml", sim.port, drives)
+        config.write_text(config.read_text() + DRIVE_SYSTEM_HELD)
+        runner = sim.simulators["can0"]
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        probe = Probe(context)
+        try:
+            with watching(sim, ["can0"]) as watches, host_process(
+                    [sys.executable, "-m", "nodes.rover_lifecycle", "--ros-args", "-p", f"config:={config}",
+                     "-p", "arm:=true"], tmp_path / "lifecycle.log") as proc:
+                for step in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
+                    reply = probe.call(ChangeState, "/rovercan_lifecycle/change_state",
+                                       ChangeState.Request(transition=Transition(id=step)), HANG_S)
+                    assert reply.success, (step, (tmp_path / "lifecycle.log").read_text()[-3000:])
+                forward = Twist()
+                forward.linear.x = 0.2
+                cmd_vel = probe.publisher(Twist, "/cmd_vel")
+
+                def turning() -> bool:
+                    cmd_vel.publish(forward)
+                    wheels = runner.call(lambda: [(runner.drive(n).state.name, runner.drive(n).omega) for n in (1, 2)])
+                    return all(state == "OPERATION_ENABLED" and omega != 0.0 for state, omega in wheels)
+
+                probe.wait(turning, HANG_S, "both wheels enabled and turning on /cmd_vel")
+                signal_the_host_and_see_the_drives_stop(proc, sim, watches, drives, sig)
+        finally:
+            probe.close()
+            rclpy.shutdown(context=context)
