@@ -4,7 +4,7 @@ What lives where, in the order the folders build on each other (a folder imports
 before it; tests/test_module_maps.py holds the order):
 
 * :mod:`motor_driver.process` - a process's life: stop on signals, the heap settled once built,
-  repeated log lines at a bounded rate
+  repeated log lines at a bounded rate, waits that do not count a hold of the process
 * :mod:`motor_driver.protocol` - CANopen and CiA 402 as pure rules and codecs: the state machine,
   the PDO plan, SDO values, units and their plausible ranges, the host-loss safety judgement,
   SocketCAN error frames

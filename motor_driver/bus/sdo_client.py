@@ -21,11 +21,12 @@ from __future__ import annotations
 import logging
 import queue
 import struct
-import time
 
 import canopen
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
+
+from motor_driver.process.held import POLL_S, HeldDeadline
 
 logger = logging.getLogger(__name__)
 
@@ -56,12 +57,15 @@ class MultiplexedSdoClient(SdoClient):  # type: ignore[misc]
     def read_response(self) -> bytes:
         """The answer to this client's request, or canopen's errors (an abort of this transfer,
         no answer within RESPONSE_TIMEOUT); answers to other requests are dropped."""
-        deadline = time.monotonic() + self.RESPONSE_TIMEOUT
+        deadline = HeldDeadline(self.RESPONSE_TIMEOUT)  # a hold of this process is not the drive's silence
         while True:
+            left = deadline.remaining()
             try:
-                response: bytes = self.responses.get(block=True, timeout=max(0.0, deadline - time.monotonic()))
+                response: bytes = self.responses.get(block=True, timeout=max(0.0, min(left, POLL_S)))
             except queue.Empty:
-                raise canopen.SdoCommunicationError("No SDO response received") from None
+                if left > 0:
+                    continue
+                raise canopen.SdoCommunicationError("No SDO response received" + deadline.said()) from None
             why = self._not_ours(response)
             if why is None:
                 break

@@ -49,6 +49,7 @@ from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Emcy, Noted, Received, StatusSink
 from motor_driver.drive.verdict import DriveFacts, judge
+from motor_driver.process.held import POLL_S, HeldDeadline
 from motor_driver.process.ratelimit import Throttle
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
 from motor_driver.protocol.pdo import TT_SYNC, PdoPlan, TpdoLayout
@@ -208,13 +209,13 @@ class DriveCache:
     def wait_until(self, done: Callable[[], bool], timeout_s: float) -> bool:
         """Wait for ``done()`` (checked at each statusword and stop); False at the timeout.
         ``done`` may raise to end the wait."""
-        deadline = time.monotonic() + timeout_s
+        deadline = HeldDeadline(timeout_s)  # a hold of this process is not the drive's silence
         with self._event:
             while not done():
-                remaining = deadline - time.monotonic()
+                remaining = deadline.remaining()
                 if remaining <= 0:
                     return False
-                self._event.wait(min(remaining, 0.05))
+                self._event.wait(min(remaining, POLL_S))
         return True
 
     def wake(self) -> None:

@@ -1,0 +1,180 @@
+"""A hold of the whole process (a crowded machine, a VM's emulation) is not a drive's silence.
+
+On a crowded CI run the kernel tier's test process was held 3.5 s while an SDO write waited on
+its 2 s timeout: the answer sat in the socket's buffer, unread by the held receive thread, and the
+waiter, woken past its deadline, blamed the drive. Waits for an answer (the SDO client's, the
+state cache's) do not count such a hold (motor_driver.process.held), and a drive that never
+answers is still declared silent. The hooks below hold the waiting thread inside its wait and
+let the answer come only once the waiter runs again, as a held receive thread does; the waits
+before the fix (a plain deadline) fail every one of them.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import can
+import canopen
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from can_config import RoverConfig
+from can_config.eds import load_drive_od
+from can_config.errors import SdoTimeoutError
+from can_config.model import GENERIC_EDS
+from motor_driver import MotorDriver
+from motor_driver.bus.sdo_client import MultiplexedSdoClient, OwnAnswersNode
+from motor_driver.drive.sdo import SdoPort
+from motor_driver.process.held import HELD_GAP_S, POLL_S, HeldDeadline
+from virtual_can import SimService
+
+from .conftest import make_config
+
+NODE = 5
+TIMEOUT_S = 2.0
+HOLD_S = TIMEOUT_S + 0.5  # longer than the whole timeout, as the CI run's 3.5 s hold was
+DEVICE_TYPE = 0x00020192
+
+
+class Responder:
+    """Node 5's SDO server for one object (0x1000), on its own python-can bus: it answers a
+    request only once ``release`` is set (the answer reaches the waiter when its process runs)."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.release = threading.Event()
+        self.requests = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="responder", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        pending = False
+        while not self._stop.is_set():
+            msg = self.bus.recv(POLL_S)
+            if msg is not None and msg.arbitration_id == 0x600 + NODE and msg.data[0] == 0x40:
+                self.requests += 1
+                pending = True
+            if pending and self.release.is_set():
+                answer = bytes([0x43, 0x00, 0x10, 0x00]) + DEVICE_TYPE.to_bytes(4, "little")
+                self.bus.send(can.Message(arbitration_id=0x580 + NODE, data=answer, is_extended_id=False))
+                pending = False
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(30.0)
+        self.bus.shutdown()
+
+
+class HeldQueue(queue.Queue):  # type: ignore[type-arg]
+    """The SDO client's answer queue, with a hook inside its wait: the first wait is held
+    ``HOLD_S`` (the whole process held), and each wait after it calls ``after_hold``."""
+
+    def __init__(self, after_hold: Callable[[], None]) -> None:
+        super().__init__()
+        self.waits = 0
+        self._after_hold = after_hold
+
+    def get(self, block: bool = True, timeout: float | None = None) -> bytes:
+        self.waits += 1
+        if self.waits == 1:
+            time.sleep(HOLD_S)  # held: nothing delivered meanwhile
+        else:
+            self._after_hold()
+        answer: bytes = super().get(block, timeout)
+        return answer
+
+
+@pytest.fixture
+def sdo(request: pytest.FixtureRequest) -> Iterator[tuple[SdoPort, MultiplexedSdoClient, Responder]]:
+    channel = f"held-{request.node.name}"
+    responder = Responder(channel)
+    network = canopen.Network(can.Bus(interface="virtual", channel=channel))
+    network.connect()
+    node = OwnAnswersNode(NODE, load_drive_od(GENERIC_EDS, NODE))
+    network.add_node(node)
+    port = SdoPort("held", node, node.object_dictionary, TIMEOUT_S)
+    try:
+        yield port, node.sdo, responder
+    finally:
+        network.disconnect()
+        responder.close()
+
+
+def test_an_sdo_answer_that_comes_after_the_process_was_held_past_the_timeout_is_taken(
+        sdo: tuple[SdoPort, MultiplexedSdoClient, Responder]) -> None:
+    port, client, responder = sdo
+    client.responses = HeldQueue(after_hold=responder.release.set)
+    assert port.read_value(0x1000) == DEVICE_TYPE
+    assert responder.requests == 1  # answered, not asked again
+    assert client.responses.waits > 1
+
+
+def test_a_drive_that_never_answers_is_still_silent_and_the_hold_is_said(
+        sdo: tuple[SdoPort, MultiplexedSdoClient, Responder]) -> None:
+    port, client, responder = sdo
+    client.responses = HeldQueue(after_hold=lambda: None)  # never released
+    with pytest.raises(SdoTimeoutError, match=r"got no answer.*held 2\.\d s meanwhile, not counted"):
+        port.read_value(0x1000)
+    assert responder.requests == 1
+
+
+def test_a_state_wait_held_past_its_timeout_sees_what_came_meanwhile(
+        driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
+    _, driver = driver_factory(make_config(1))
+    cache = driver.drive("joint1").cache
+    looks = [0]
+
+    def done() -> bool:  # the hook inside the wait: its second look is held past the timeout
+        looks[0] += 1
+        if looks[0] == 2:
+            time.sleep(HOLD_S)
+        return looks[0] >= 3  # the statusword the held receive thread hands over once it runs
+
+    assert cache.wait_until(done, TIMEOUT_S)
+    never = [0]
+
+    def silent() -> bool:
+        never[0] += 1
+        if never[0] == 2:
+            time.sleep(HOLD_S)
+        return False
+
+    assert not cache.wait_until(silent, 0.2)  # a drive that never answers still times out
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@given(timeout=st.floats(0.05, 10.0), gaps=st.lists(st.floats(0.0, 8.0), min_size=1, max_size=400))
+def test_a_deadline_counts_the_waiters_running_time_and_excuses_only_a_bounded_hold(
+        timeout: float, gaps: list[float]) -> None:
+    clock = FakeClock()
+    deadline = HeldDeadline(timeout, clock)
+    holds = 0
+    for gap in gaps:
+        clock.now += gap
+        holds += gap > HELD_GAP_S
+        left = deadline.remaining()
+        elapsed = clock.now - 100.0
+        assert deadline.held_s <= deadline.excusable_s + 1e-9
+        if left <= 0:  # never before the waiter ran the whole timeout, holds excused
+            assert elapsed - deadline.held_s >= timeout - 1e-9
+            return
+        # bounded: what is left never exceeds the timeout plus the excused holds, or one look after a hold
+        resume = min(0.25, timeout)
+        assert left <= max(timeout + deadline.held_s + holds * resume - elapsed, resume) + 1e-9
+        if not holds and abs(elapsed - timeout) > 1e-9:
+            assert elapsed < timeout  # no hold: a plain timeout
+    if deadline.held_s >= deadline.excusable_s - 1e-9:  # held for good: the excuse runs out
+        clock.now += timeout + 1.0
+        assert deadline.remaining() <= 0
