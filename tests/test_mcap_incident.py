@@ -4,6 +4,7 @@ states named on the plot."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -14,6 +15,7 @@ import can
 from can_config import load_config
 from can_config.config import RecorderConfig
 from motor_driver.drive import DriveState
+from motor_driver.drive.verdict import judge
 from motor_driver.protocol.cia402 import State
 from motor_driver.recording.flight import FlightRecorder, IncidentEvent
 from motor_driver.recording.incident import load_incident
@@ -79,6 +81,24 @@ def test_a_lost_drive_is_drawn_missing_and_the_states_are_named(tmp_path: Path) 
     assert all(math.isnan(v) for v in angle.lines[0].get_ydata()[5:])
     labels = {t.get_text() for t in states.get_yticklabels()}
     assert {"operation enabled", "switch on disabled", "fault"} <= labels
+
+
+def test_a_drive_the_driver_judged_re_booting_is_drawn_missing_though_its_fields_look_fine(tmp_path: Path) -> None:
+    """The plot reads the driver's one verdict, not flags of its own: a drive re-booting (its
+    boot-up heard, being configured again) has TPDO fields that look fresh and are not news."""
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, seconds=60.0, plot=False), {"wheel": ("can0", 1)},
+                              {"can0": "can0"})
+    try:
+        for k in range(6):
+            fine = state("wheel", 10.0 * k)
+            facts = fine.facts._replace(rebooting=k >= 3)
+            recorder.sample([dataclasses.replace(fine, judged=(facts, judge(facts)))])
+        written = recorder.write([IncidentEvent("heartbeat_lost", 0.0, "can0", node=1, drive="wheel")])
+    finally:
+        recorder.close()
+    row = load_incident(written)["states"]["wheel"]
+    assert row["angle_deg"] == [0.0, 10.0, 20.0, None, None, None]
+    assert row["state"][3:] == [None] * 3
 
 
 def test_the_plot_helper_says_why_there_is_no_plot(tmp_path: Path) -> None:

@@ -28,14 +28,15 @@ LABELS = ("angle, deg", "velocity, deg/s", "torque, Nm", "CiA 402 state")
 
 
 def state_series(states: list[tuple[float, tuple[DriveState, ...]]], t0: float) -> dict[str, Any]:
-    """The drives' states as series per drive, times in s from the incident; a drive lost or
-    stale (or a torque it does not report) is ``None``: missing, not its last value."""
+    """The drives' states as series per drive, times in s from the incident; a drive whose values
+    the driver's verdict did not take as measured (lost, late, re-booting, not configured), or a
+    torque it does not report, is ``None``: missing, not its last value."""
     series: dict[str, dict[str, list[float | None]]] = {}
     for t, snap in states:
         for s in snap:
             row = series.setdefault(s.name, {"t_s": [], **{key: [] for key in SERIES}})
             row["t_s"].append(round(t - t0, 4))
-            known = not (s.lost or s.stale)
+            known = s.verdict.fresh
             row["angle_deg"].append(round(s.angle_deg, 4) if known else None)
             row["velocity_deg_s"].append(round(s.velocity_deg_s, 3) if known else None)
             row["torque_nm"].append(s.torque_nm if known and not math.isnan(s.torque_nm) else None)

@@ -228,11 +228,17 @@ def fresh_angle(drive: Drive) -> float:
     """The joint angle from fresh data: a stale snapshot's angle is NaN (a start from it would
     leave every metric NaN). Waits up to FRESH_START_SYNCS SYNC periods (1 s at least)."""
     bound_s = max(1.0, FRESH_START_SYNCS * drive.cache.sync_period_s)
-    if not drive.cache.wait_until(lambda: not drive.snapshot().stale, bound_s):
+    seen = [drive.snapshot()]
+
+    def measured() -> bool:  # the driver's verdict, read once per look: the angle returned is the one judged
+        seen[0] = drive.snapshot()
+        return seen[0].verdict.fresh
+
+    if not drive.cache.wait_until(measured, bound_s):
         raise CliError(f"node {drive.node_id}: no fresh position from the drive within {bound_s:g} s after enabling"
-                       " it (its TPDOs stopped, or this process was starved): nothing was moved; check the bus and"
-                       " the drive's TPDOs, then run the step test again")
-    return drive.snapshot().angle_deg
+                       f" it ({seen[0].verdict.text()}): nothing was moved; check the bus and the drive's TPDOs,"
+                       " then run the step test again")
+    return seen[0].angle_deg
 
 
 def step_metrics(t: list[float], y: list[float], start: float, step: float, torque: list[float]) -> dict[str, float]:
