@@ -14,13 +14,19 @@ INVALID_GOAL with the channel's reason, as every other motion entry is refused. 
 preempted by a newer one ends ABORTED with INVALID_GOAL (as joint_trajectory_controller does).
 
 The goals are coroutines on the actions' executor (nodes/actions.py): between two looks at the run a
-goal awaits the node's pause, so the executor serves cancels and other goals meanwhile.
+goal awaits the node's pause, so the executor serves cancels and other goals meanwhile. A goal's start
+(its checks, and each joint's switch to a streamed mode, which waits on the drive's SDO answers) runs
+on a thread of its own, watched the same way: a drive slow to answer holds its goal, never the
+executor.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import threading
 from collections.abc import Awaitable, Callable
+from concurrent.futures import Future
 from typing import Any
 
 from builtin_interfaces.msg import Duration
@@ -31,10 +37,11 @@ from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 from can_config.errors import RovercanError, TrajectoryRejected
-from motor_driver.follow import Progress, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
+from motor_driver.follow import GoalRun, Progress, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
 from motor_driver.protocol.units import DEG_PER_RAD
 
 Result = FollowJointTrajectory.Result
+logger = logging.getLogger(__name__)
 
 
 def _seconds(duration: Any) -> float:
@@ -111,15 +118,35 @@ class FollowTrajectoryServer:
     def destroy(self) -> None:
         self._server.destroy()
 
+    def _start(self, goal: TrajectoryGoal, starting: Future[GoalRun]) -> None:
+        """The goal checked and its joints switched to streaming (waits on the drives), on its own
+        thread; the outcome, or the error, is read by the goal's coroutine."""
+        try:
+            starting.set_result(self._group.follow(goal))
+        except BaseException as err:  # handed to the goal, which says it
+            starting.set_exception(err)
+
     async def _execute(self, goal_handle: Any) -> Any:
         result = Result()
         try:
             now_s = self._node.get_clock().now().nanoseconds * 1e-9
-            run = self._group.follow(goal_from_message(goal_handle.request, now_s))
+            goal = goal_from_message(goal_handle.request, now_s)
+            starting: Future[GoalRun] = Future()
+            threading.Thread(target=self._start, args=(goal, starting), daemon=True,
+                             name=f"rovercan-follow-start-{self._group.name}").start()
+            while not starting.done():  # the executor serves cancels and other goals meanwhile
+                await self._pause(self._period_s)
+            run = starting.result()
         except RovercanError as err:
             result.error_code = err.code if isinstance(err, TrajectoryRejected) else Result.INVALID_GOAL
             result.error_string = str(err)
             self._node.get_logger().warning(f"{self._group.name}: goal refused: {err}")
+            goal_handle.abort()
+            return result
+        except Exception as err:  # a fault of this driver's: logged with its trace, the goal aborted
+            logger.exception("%s: a goal's start failed unexpectedly", self._group.name)
+            result.error_code = Result.INVALID_GOAL
+            result.error_string = f"the goal's start failed unexpectedly ({type(err).__name__}: {err}); see the log"
             goal_handle.abort()
             return result
         feedback = FollowJointTrajectory.Feedback()

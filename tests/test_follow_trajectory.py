@@ -24,6 +24,7 @@ import pytest
 from can_config import with_bus_overrides
 from motor_driver import MotorDriver
 from virtual_can import SimService
+from virtual_can.scenario import apply_action
 
 from .conftest import HAVE_ROS, IN_PROCESS_STALE_SYNCS, REPO, make_config, requires_ros, wait_for
 
@@ -62,9 +63,9 @@ class Rig:
 
 
 @pytest.fixture
-def rig(monkeypatch: pytest.MonkeyPatch) -> Iterator[Rig]:
+def rig(monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> Iterator[Rig]:
     monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a goal's pause wakes them
-    config = make_config(2, **ARM)
+    config = make_config(2, **ARM | getattr(request, "param", {}))  # indirect: the drives' settings changed
     sim = SimService.from_config(config, port=0)
     context = rclpy.Context()
     rclpy.init(context=context)
@@ -169,6 +170,30 @@ def test_a_cancelled_goal_leaves_the_joints_still(rig: Rig) -> None:
         return len(last) == 50 and max(last) - min(last) < 0.01
     wait_for(still, HANG_S, "joint1 still")
     assert 10.0 < positions(rig)[0] < 40.0  # stopped on its way, not at the end
+
+
+@pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
+def test_the_server_answers_while_a_goals_switch_to_streaming_waits_on_the_drive(rig: Rig) -> None:
+    """A goal's start switches its joints to a streamed mode by SDO, which waits on the drive: with
+    joint1's SDO answers held 5 s (the drive's, below its 10 s SDO timeout), a cancel is answered while the switch still waits
+    (the drive has not answered yet), and the goal then ends CANCELED. Run on the actions' executor,
+    the start held every goal and cancel until the drive answered."""
+    from action_msgs.msg import GoalStatus
+
+    sim = rig.sim.simulator_for(1)
+    answered = sim.call(lambda: sim.drive(1).counters["sdo"])
+    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 5.0})
+    first = send(rig, half_sine(20.0, 2.0))
+    assert first.accepted
+    wait_for(lambda: sim.call(lambda: sim.drive(1)._delayed_sdo is not None), HANG_S, "the switch's SDO at the drive")
+    cancel = first.cancel_goal_async()
+    wait_for(cancel.done, HANG_S, "the cancel answered")
+    assert len(cancel.result().goals_canceling) == 1
+    assert sim.call(lambda: sim.drive(1)._delayed_sdo is not None and sim.drive(1).counters["sdo"] == answered), \
+        "the cancel was answered only after the drive answered the switch"
+    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 0.0})
+    done = result_of(first)  # the start ends when the held answer comes (5 s after it was asked)
+    assert done.status == GoalStatus.STATUS_CANCELED, done.result.error_string
 
 
 def test_a_goal_beyond_a_limit_is_refused_with_its_code_and_nothing_moves(rig: Rig,
