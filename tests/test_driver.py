@@ -360,7 +360,35 @@ def test_restore_enable_after_reboot_when_configured(driver_factory: DriverFacto
     drive.enable()
     boots = drive.boot.boot_count
     apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.1})
-    wait_for(lambda: drive.boot.boot_count > boots and drive.cache.state is State.OPERATION_ENABLED, 3.0, "re-armed after reboot")
+    wait_for(lambda: drive.boot.boot_count > boots and drive.cache.state is State.OPERATION_ENABLED, 30.0,
+             "re-armed after reboot")
+
+
+def test_an_enable_refused_after_a_good_re_configuration_leaves_the_drive_configured_and_disabled(
+        driver_factory: DriverFactory, caplog: pytest.LogCaptureFixture) -> None:
+    """A drive that reset comes back with STO low: configured again (its PDOs, limits, host watch),
+    the enable of restore_enable_after_reboot refused. It stays configured and disabled, said once;
+    it is not taken for unconfigured and reset again at each retry for a refusal of its enable."""
+    sim, driver = driver_factory(make_config(1, restore_enable_after_reboot=True))
+    drive = driver.drive("joint1")
+    drive.enable()
+    boots = drive.boot.boot_count
+    apply_action(sim, {"action": "sto", "node": 1, "low": True})
+    apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.1})
+    runtime = driver.supervisor.runtimes["joint1"]
+
+    def refused_and_done() -> bool:  # the job ends after what it reported was applied
+        said = "enabling it again failed" in caplog.text or "re-configuration after a reset failed" in caplog.text
+        return said and runtime.reboot_job is not None and runtime.reboot_job.done()
+
+    wait_for(refused_and_done, 60.0, "the enable after the re-configuration refused")
+    assert drive.boot.boot_count == boots + 1 and runtime.booted and not runtime.reboot_wanted, \
+        (runtime.booted, runtime.reboot_wanted, runtime.reconfigure_error)
+    assert runtime.reconfigure_failures == 0
+    verdict = drive.snapshot().verdict
+    assert verdict.condition.name == "NOT_ARMED", verdict
+    assert drive.cache.state is not State.OPERATION_ENABLED
+    assert "STO" in caplog.text or "voltage" in caplog.text  # the cause named
 
 
 def test_unhandled_error_still_leaves_drives_safe(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]],

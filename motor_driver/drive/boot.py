@@ -495,17 +495,15 @@ class Boot:
 
     def reconfigure(self) -> None:
         """Bus worker: configure a drive that reset or power-cycled (boot-up seen) again; enable
-        it again only when it was enabled and the config says ``restore_enable_after_reboot``.
-        A failure is reported, and the supervisor hands it over again: a drive's or a bus's error
-        after REBOOT_RETRY_S; anything else (a fault of this driver's) is logged with its cause and
-        tried again after a back-off doubling up to REBOOT_BACKOFF_MAX_S. It never ends the
-        re-configuration for good."""
+        it again only when it was enabled and the config says ``restore_enable_after_reboot`` (an
+        enable refused leaves it configured and disabled). A failure to configure is reported, and
+        the supervisor hands it over again: a drive's or a bus's error after REBOOT_RETRY_S;
+        anything else (a fault of this driver's) is logged with its cause and tried again after a
+        back-off doubling up to REBOOT_BACKOFF_MAX_S. It never ends the re-configuration for good."""
+        restore = self._channel.was_enabled and self.config.restore_enable_after_reboot
         try:
-            restore = self._channel.was_enabled and self.config.restore_enable_after_reboot
             self._channel.forget_commanded()
             self.boot(reset=self._wake_stopped())
-            if restore and not self._channel.closed:
-                self._power.enable()
         except MotorError as err:
             self._unexpected_in_row = 0
             logger.error("%s: re-configuration after a reset failed: %s; retrying in %g s", self.name, err,
@@ -520,6 +518,18 @@ class Boot:
             self._port.report(RebootFailed(self.name, retry_s, f"{type(err).__name__}: {err}"))
         else:
             self._unexpected_in_row = 0
+            if restore and not self._channel.closed:
+                self._enable_again()
+
+    def _enable_again(self) -> None:
+        """After a good re-configuration: enabled again as it was. A refusal of the drive's (STO
+        low, a fault) leaves it configured and disabled, said once; its configuration is not thrown
+        away and the drive is not reset again for it."""
+        try:
+            self._power.enable()
+        except MotorError as err:
+            logger.error("%s: configured again after a reset, but enabling it again failed: %s; it stays configured"
+                         " and disabled: arm it (/arm, or enable) once the cause is dealt with", self.name, err)
 
 
 #: CiA 301 dates count days from 1984-01-01 (the Unix time of its start, in days).
