@@ -270,6 +270,29 @@ def test_a_reset_heard_as_the_boot_reports_its_end_is_configured_again(driver_fa
     assert_enabled_as_asked(sim, drive)
 
 
+def test_a_reset_between_the_last_confirmation_and_the_start_whose_boot_up_is_lost_is_caught(
+        driver_factory: Factory) -> None:
+    """The drive resets, its boot-up lost, after its configuration was confirmed and before the NMT
+    start (a hook at the start step): started, it would run on its default PDO mapping. The look
+    after the start sees what it holds; configured again, it is enabled only as asked."""
+    sim, drive, runtime = one_drive(driver_factory)
+    simulator = sim.simulator_for(NODE)
+    peer = simulator.drive(NODE)
+    fired: list[bool] = []
+
+    def hook(point: str) -> None:
+        if point == "boot: start" and not fired:
+            fired.append(True)
+            simulator.call(lambda: peer._reset_node(peer._now, announce=False))  # no boot-up leaves it
+
+    with hooked(drive, hook) as boots:
+        apply_action(sim, {"action": "power_cycle", "node": NODE, "off_s": 0.05})
+        wait_for(lambda: drive.boot.boot_count > boots and drive.cache.booted, HANG_S, "configured again")
+    assert fired and runtime.boot_restarts == 1, runtime.boot_restart_why
+    assert runtime.boot_restart_why.startswith("after NMT start: it does not hold its PDO configuration")
+    assert_enabled_as_asked(sim, drive)
+
+
 def test_the_0x1020_stamp_counts_days_from_1984_and_ms_from_midnight() -> None:
     assert configuration_stamp(441_763_200.0) == (0, 0)  # 1984-01-01 00:00:00 UTC
     assert configuration_stamp(441_763_200.0 + 86_400 * 3 + 3_723.5) == (3, 3_723_500)

@@ -302,16 +302,20 @@ class Boot:
         return self._stamp_kept() if self._stamp is not None else self._pdos_kept()
 
     def _start_confirmed(self) -> str:
-        """NMT start, then the statusword read and decoded. A reset before the start cannot
-        pass: its boot-up came before this answer (:meth:`_reset_why`, after the step). After
-        the start a reset leaves the drive pre-operational, where no RPDO reaches it, until it
-        is configured again. '' or why the configuration must start again."""
+        """NMT start, the statusword read and decoded, then what the drive holds confirmed once
+        more. A reset since the last confirmation whose boot-up was heard fails the step
+        (:meth:`_reset_why`); one whose boot-up was lost restored the defaults that this second
+        look at the stamp (or the PDO objects) shows, before the drive is ever booted. A reset
+        after it leaves the drive pre-operational, where no RPDO reaches it, until it is
+        configured again. '' or why the configuration must start again."""
         self._send_nmt(NmtCommand.START)
         self._at(OD.STATUSWORD, 0)
         statusword = self._sdo.read_number(OD.STATUSWORD)
         if decode_state(statusword) == State.UNKNOWN:
             return f"its statusword after NMT start, 0x{statusword:04X}, is no CiA 402 state"
         self._cache.note_statusword(statusword)
+        if why := self._held():
+            return f"after NMT start: {why}"
         return ""
 
     def _stamp_kept(self) -> str:
