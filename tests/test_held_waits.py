@@ -29,7 +29,7 @@ from can_config.model import GENERIC_EDS
 from motor_driver import MotorDriver
 from motor_driver.bus.sdo_client import MultiplexedSdoClient, OwnAnswersNode
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.process.held import HELD_GAP_S, POLL_S, HeldDeadline
+from motor_driver.process.held import HELD_GAP_S, MAX_RESUMES, POLL_S, RESUME_S, HeldDeadline
 from virtual_can import SimService
 
 from .conftest import make_config
@@ -42,27 +42,38 @@ DEVICE_TYPE = 0x00020192
 
 class Responder:
     """Node 5's SDO server for one object (0x1000), on its own python-can bus: it answers a
-    request only once ``release`` is set (the answer reaches the waiter when its process runs)."""
+    request only once released, from the releasing thread at once when the request is there (the
+    answer reaches the waiter when its process runs again)."""
 
     def __init__(self, channel: str) -> None:
         self.bus = can.Bus(interface="virtual", channel=channel)
-        self.release = threading.Event()
         self.requests = 0
+        self._lock = threading.Lock()
+        self._released = False
+        self._pending = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="responder", daemon=True)
         self._thread.start()
 
+    def release(self) -> None:
+        with self._lock:
+            self._released = True
+            self._answer_if_due()
+
+    def _answer_if_due(self) -> None:
+        if self._pending and self._released:
+            answer = bytes([0x43, 0x00, 0x10, 0x00]) + DEVICE_TYPE.to_bytes(4, "little")
+            self.bus.send(can.Message(arbitration_id=0x580 + NODE, data=answer, is_extended_id=False))
+            self._pending = False
+
     def _run(self) -> None:
-        pending = False
         while not self._stop.is_set():
             msg = self.bus.recv(POLL_S)
             if msg is not None and msg.arbitration_id == 0x600 + NODE and msg.data[0] == 0x40:
-                self.requests += 1
-                pending = True
-            if pending and self.release.is_set():
-                answer = bytes([0x43, 0x00, 0x10, 0x00]) + DEVICE_TYPE.to_bytes(4, "little")
-                self.bus.send(can.Message(arbitration_id=0x580 + NODE, data=answer, is_extended_id=False))
-                pending = False
+                with self._lock:
+                    self.requests += 1
+                    self._pending = True
+                    self._answer_if_due()
 
     def close(self) -> None:
         self._stop.set()
@@ -108,7 +119,7 @@ def sdo(request: pytest.FixtureRequest) -> Iterator[tuple[SdoPort, MultiplexedSd
 def test_an_sdo_answer_that_comes_after_the_process_was_held_past_the_timeout_is_taken(
         sdo: tuple[SdoPort, MultiplexedSdoClient, Responder]) -> None:
     port, client, responder = sdo
-    client.responses = HeldQueue(after_hold=responder.release.set)
+    client.responses = HeldQueue(after_hold=responder.release)
     assert port.read_value(0x1000) == DEVICE_TYPE
     assert responder.requests == 1  # answered, not asked again
     assert client.responses.waits > 1
@@ -118,7 +129,7 @@ def test_a_drive_that_never_answers_is_still_silent_and_the_hold_is_said(
         sdo: tuple[SdoPort, MultiplexedSdoClient, Responder]) -> None:
     port, client, responder = sdo
     client.responses = HeldQueue(after_hold=lambda: None)  # never released
-    with pytest.raises(SdoTimeoutError, match=r"got no answer.*held 2\.\d s meanwhile, not counted"):
+    with pytest.raises(SdoTimeoutError, match=r"got no answer.*held up to 2\.\d s meanwhile; looked again after it"):
         port.read_value(0x1000)
     assert responder.requests == 1
 
@@ -149,32 +160,41 @@ def test_a_state_wait_held_past_its_timeout_sees_what_came_meanwhile(
 
 class FakeClock:
     def __init__(self) -> None:
-        self.now = 100.0
+        self.now = 0.0
 
     def __call__(self) -> float:
         return self.now
 
 
+def reference_left(timeout: float, looks: list[tuple[float, float]]) -> list[float]:
+    """The rule, written down on its own: at each look (its time from the start, the gap before
+    it), a gap over HELD_GAP_S that passed the deadline gives MAX_RESUMES looks at most, each
+    min(RESUME_S, timeout) long; what is left at each look."""
+    deadline, resumes, out = timeout, 0, []
+    for at, gap in looks:
+        if gap > HELD_GAP_S and at >= deadline and resumes < MAX_RESUMES:
+            resumes += 1
+            deadline = at + min(RESUME_S, timeout)
+        out.append(deadline - at)
+    return out
+
+
 @given(timeout=st.floats(0.05, 10.0), gaps=st.lists(st.floats(0.0, 8.0), min_size=1, max_size=400))
-def test_a_deadline_counts_the_waiters_running_time_and_excuses_only_a_bounded_hold(
-        timeout: float, gaps: list[float]) -> None:
+def test_a_deadline_looks_again_after_a_hold_and_never_waits_unbounded(timeout: float, gaps: list[float]) -> None:
     clock = FakeClock()
     deadline = HeldDeadline(timeout, clock)
-    holds = 0
+    looks: list[tuple[float, float]] = []
+    lefts: list[float] = []
     for gap in gaps:
         clock.now += gap
-        holds += gap > HELD_GAP_S
-        left = deadline.remaining()
-        elapsed = clock.now - 100.0
-        assert deadline.held_s <= deadline.excusable_s + 1e-9
-        if left <= 0:  # never before the waiter ran the whole timeout, holds excused
-            assert elapsed - deadline.held_s >= timeout - 1e-9
-            return
-        # bounded: what is left never exceeds the timeout plus the excused holds, or one look after a hold
-        resume = min(0.25, timeout)
-        assert left <= max(timeout + deadline.held_s + holds * resume - elapsed, resume) + 1e-9
-        if not holds and abs(elapsed - timeout) > 1e-9:
-            assert elapsed < timeout  # no hold: a plain timeout
-    if deadline.held_s >= deadline.excusable_s - 1e-9:  # held for good: the excuse runs out
-        clock.now += timeout + 1.0
-        assert deadline.remaining() <= 0
+        lefts.append(deadline.remaining())
+        looks.append((clock.now, gap))
+    assert lefts == pytest.approx(reference_left(timeout, looks), abs=1e-9)
+    resume = min(RESUME_S, timeout)
+    longest = max(gaps)
+    for (at, gap), left in zip(looks, lefts, strict=True):
+        assert left <= max(timeout - at, resume) + 1e-9  # never more than the timeout, or one look
+        if left > 0:  # still waiting: within the timeout and the looks after holds
+            assert at < timeout + MAX_RESUMES * (resume + longest) + 1e-9
+        if not any(g > HELD_GAP_S for _, g in looks[:looks.index((at, gap)) + 1]):
+            assert (left > 0) == (at < timeout) or abs(at - timeout) < 1e-9  # no hold: a plain timeout

@@ -13,9 +13,10 @@ import threading
 from collections.abc import Callable
 
 import can
+import pytest
 
 from can_config import RoverConfig
-from can_config.errors import DriveStateError, RovercanError
+from can_config.errors import DriveStateError, DriveTimeoutError, RovercanError
 from motor_driver import Drive, MotorDriver
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -167,3 +168,19 @@ def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_ends_no_move(
     drive.enable()
     drive.move_to(10.0, wait=True, timeout_s=30.0)
     assert abs(drive.snapshot().angle_deg - 10.0) < 0.5
+
+
+def test_a_homing_that_times_out_is_quick_stopped_not_left_searching(driver_factory: DriverFactory) -> None:
+    """A homing past its timeout is still searching (its index 20 deg away at 1 deg/s, a 1 s
+    timeout): the timeout quick-stops the drive and says so; the drive is not left turning."""
+    sim, driver = driver_factory(make_config(1, **SLOW_HOMING))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.move_to(20.0, wait=True)
+    with pytest.raises(DriveTimeoutError, match=r"homing not attained within 1 s; the drive was quick-stopped"):
+        drive.home(timeout_s=1.0)
+    peer = sim.simulator_for(1)
+    state = peer.call(lambda: peer.drive(1).state.name)
+    assert state in ("QUICK_STOP_ACTIVE", "SWITCH_ON_DISABLED"), state
+    wait_for(lambda: abs(peer.call(lambda: peer.drive(1).omega)) < 1e-3, 30.0, "the shaft still")  # type: ignore[arg-type]
+    assert not peer.call(lambda: peer.drive(1).homing_done)

@@ -16,7 +16,7 @@ from canopen.objectdictionary import ObjectDictionary
 
 from can_config.config import DriveConfig
 from can_config.eds import has_object
-from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
+from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError, MotorError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.drive.busy import Op
 from motor_driver.drive.channel import CommandChannel
@@ -113,6 +113,19 @@ class Homing:
                 raise stopped
             return False
 
-        if not cache.wait_until(attained, timeout_s):
-            raise DriveTimeoutError(f"{self.config.name}: homing not attained within {timeout_s:g} s", node_id=self.config.node_id,
-                                    statusword=cache.received.statusword)
+        if not cache.wait_until(attained, timeout_s, motion=True):
+            statusword = cache.received.statusword
+            raise DriveTimeoutError(f"{self.config.name}: homing not attained within {timeout_s:g} s; {self._stop()}."
+                                    " Check the homing method, its speed and the switches it looks for (or raise"
+                                    " homing_timeout_s for a long search), then home again.",
+                                    node_id=self.config.node_id, statusword=statusword)
+
+    def _stop(self) -> str:
+        """A homing that timed out is still searching: the drive is quick-stopped (a stop wins
+        over the homing's operation). What was done, for the error."""
+        try:
+            self._power.quick_stop()
+        except MotorError as err:
+            logger.error("%s: the quick stop after homing timed out was not confirmed: %s", self.config.name, err)
+            return f"its quick stop was sent but not confirmed ({err})"
+        return "the drive was quick-stopped"

@@ -206,13 +206,17 @@ class DriveCache:
         return self._bootup.wait(timeout_s)
 
     # ------------------------------------------------------------------ waiting
-    def wait_until(self, done: Callable[[], bool], timeout_s: float) -> bool:
+    def wait_until(self, done: Callable[[], bool], timeout_s: float, *, motion: bool = False) -> bool:
         """Wait for ``done()`` (checked at each statusword and stop); False at the timeout.
-        ``done`` may raise to end the wait."""
-        deadline = HeldDeadline(timeout_s)  # a hold of this process is not the drive's silence
+        ``done`` may raise to end the wait. A wait for the drive's answer looks once more after a
+        hold of this process that passed its deadline (:class:`HeldDeadline`); a wait for
+        ``motion`` (homing, a target reached) keeps its plain timeout: the drive moves on while
+        this process is held."""
+        deadline = HeldDeadline(timeout_s) if not motion else None
+        end = time.monotonic() + timeout_s
         with self._event:
             while not done():
-                remaining = deadline.remaining()
+                remaining = deadline.remaining() if deadline is not None else end - time.monotonic()
                 if remaining <= 0:
                     return False
                 self._event.wait(min(remaining, POLL_S))

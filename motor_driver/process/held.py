@@ -1,4 +1,4 @@
-"""A wait's timeout that does not count the time its process was held.
+"""A wait's timeout that gives its process one more look after a hold.
 
 A waiter for an answer (an SDO answer, a statusword) and the thread that hands it the answer
 (the bus's receive thread) live in one process. When the whole process is held (a machine
@@ -8,12 +8,14 @@ the receive thread has read the buffer, and a timeout would blame a drive that a
 simulated drives judge the host the same way (by when frames reached the bus, not when they got
 to look).
 
-:class:`HeldDeadline` is checked at least every ``POLL_S`` by its waiter. A gap between two
-checks longer than ``HELD_GAP_S`` is a hold: it is not counted (beyond the poll it stood for),
-and after it the waiter gets at least ``resume_s`` more, so the receive thread runs once before
-the verdict. What is excused is bounded (``excusable_s``): a process held for good still ends
-its wait, and a drive that does not answer is still declared silent once the waiter has run
-for the whole timeout.
+:class:`HeldDeadline` is checked at least every ``POLL_S`` by its waiter. When its deadline
+passed during a hold (a gap between two checks longer than ``HELD_GAP_S``), the wait goes on
+for ``resume_s`` more (``RESUME_S``, at most the timeout), so the receive thread runs once
+before the verdict; at most ``MAX_RESUMES`` times a wait. Nothing else is excused: a wait lasts
+its timeout plus at most those looks (and the holds themselves), however starved the process,
+and a drive that does not answer is still declared silent. Only waits for an answer use it;
+waits for motion (homing, a target reached) keep their plain timeout, as the drive moves on
+while the process is held.
 
 Owner: the one waiting thread.
 """
@@ -27,16 +29,14 @@ from collections.abc import Callable
 POLL_S = 0.05
 #: A gap between two checks longer than this (s) was a hold, not a poll.
 HELD_GAP_S = 0.25
-#: After a hold, the wait goes on at least this long (s), capped at the timeout: the receive
-#: thread gets to run once before the verdict.
+#: After a hold that passed the deadline, the wait goes on this long (s, at most the timeout).
 RESUME_S = 0.25
-#: At most this many times the timeout (and at least MIN_EXCUSABLE_S) of holds is excused.
-EXCUSABLE_FACTOR = 4.0
-MIN_EXCUSABLE_S = 5.0
+#: At most this many such looks in one wait.
+MAX_RESUMES = 2
 
 
 class HeldDeadline:
-    """A deadline ``timeout_s`` of this waiter's running time away (see the module)."""
+    """A deadline ``timeout_s`` away that gives one more look after a hold (see the module)."""
 
     def __init__(self, timeout_s: float, clock: Callable[[], float] = time.monotonic) -> None:
         self.timeout_s = timeout_s
@@ -44,21 +44,24 @@ class HeldDeadline:
         now = clock()
         self._deadline = now + timeout_s
         self._last = now
-        self.held_s = 0.0  # the holds excused so far
-        self.excusable_s = max(MIN_EXCUSABLE_S, EXCUSABLE_FACTOR * timeout_s)
+        self.resumes = 0  # looks given after a hold
+        self.held_s = 0.0  # the longest hold seen
         self._resume_s = min(RESUME_S, timeout_s)
 
     def remaining(self) -> float:
-        """Seconds left (<= 0: the time is up); a hold since the last call is not counted."""
+        """Seconds left (<= 0: the time is up)."""
         now = self._clock()
         gap = now - self._last
         self._last = now
-        if gap > HELD_GAP_S and self.held_s < self.excusable_s:
-            excused = min(gap - POLL_S, self.excusable_s - self.held_s)
-            self.held_s += excused
-            self._deadline = max(self._deadline + excused, now + self._resume_s)
+        if gap > HELD_GAP_S:
+            self.held_s = max(self.held_s, gap)
+            if now >= self._deadline and self.resumes < MAX_RESUMES:
+                self.resumes += 1
+                self._deadline = now + self._resume_s
         return self._deadline - now
 
     def said(self) -> str:
-        """The holds excused, for a timeout's message ('' when none)."""
-        return f" (this process was held {self.held_s:.1f} s meanwhile, not counted)" if self.held_s else ""
+        """The hold seen, for a timeout's message ('' when none)."""
+        if not self.held_s:
+            return ""
+        return f" (this process was held up to {self.held_s:.1f} s meanwhile; looked again after it)"
