@@ -81,6 +81,13 @@ class Responder:
         self.bus.shutdown()
 
 
+def hold_past(until: float) -> None:
+    """The calling thread held, looking at nothing, until the clock is past ``until`` (past the
+    wait's deadline: the hold the test injects, not a wait for a condition)."""
+    while time.monotonic() < until:
+        time.sleep(POLL_S)
+
+
 class HeldQueue(queue.Queue):  # type: ignore[type-arg]
     """The SDO client's answer queue, with a hook inside its wait: the first wait is held
     ``HOLD_S`` (the whole process held), and each wait after it calls ``after_hold``."""
@@ -93,7 +100,7 @@ class HeldQueue(queue.Queue):  # type: ignore[type-arg]
     def get(self, block: bool = True, timeout: float | None = None) -> bytes:
         self.waits += 1
         if self.waits == 1:
-            time.sleep(HOLD_S)  # held: nothing delivered meanwhile
+            hold_past(time.monotonic() + HOLD_S)  # held: nothing delivered meanwhile
         else:
             self._after_hold()
         answer: bytes = super().get(block, timeout)
@@ -143,7 +150,7 @@ def test_a_state_wait_held_past_its_timeout_sees_what_came_meanwhile(
     def done() -> bool:  # the hook inside the wait: its second look is held past the timeout
         looks[0] += 1
         if looks[0] == 2:
-            time.sleep(HOLD_S)
+            hold_past(time.monotonic() + HOLD_S)
         return looks[0] >= 3  # the statusword the held receive thread hands over once it runs
 
     assert cache.wait_until(done, TIMEOUT_S)
@@ -152,7 +159,7 @@ def test_a_state_wait_held_past_its_timeout_sees_what_came_meanwhile(
     def silent() -> bool:
         never[0] += 1
         if never[0] == 2:
-            time.sleep(HOLD_S)
+            hold_past(time.monotonic() + HOLD_S)
         return False
 
     assert not cache.wait_until(silent, 0.2)  # a drive that never answers still times out
