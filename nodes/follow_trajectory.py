@@ -16,17 +16,18 @@ preempted by a newer one ends ABORTED with INVALID_GOAL (as joint_trajectory_con
 The goals are coroutines on the actions' executor (nodes/actions.py): between two looks at the run a
 goal awaits the node's pause, so the executor serves cancels and other goals meanwhile. A goal's start
 (its checks, and each joint's switch to a streamed mode, which waits on the drive's SDO answers) runs
-on a thread of its own, watched the same way: a drive slow to answer holds its goal, never the
-executor.
+on the server's start worker, watched the same way: a drive slow to answer holds its goal, never the
+executor. One worker a server, so goals start in the order they came (a newer goal preempts an
+older one, never the other way round); a goal cancelled while it starts is never handed over and
+leaves the goal running alone; a server destroyed drops the starts not begun.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import threading
 from collections.abc import Awaitable, Callable
-from concurrent.futures import Future
+from concurrent.futures import CancelledError, ThreadPoolExecutor
 from typing import Any
 
 from builtin_interfaces.msg import Duration
@@ -37,7 +38,7 @@ from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 from can_config.errors import RovercanError, TrajectoryRejected
-from motor_driver.follow import GoalRun, Progress, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
+from motor_driver.follow import Progress, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
 from motor_driver.protocol.units import DEG_PER_RAD
 
 Result = FollowJointTrajectory.Result
@@ -111,29 +112,25 @@ class FollowTrajectoryServer:
         self._node, self._group = node, group
         self._pause = pause
         self._period_s = 1.0 / group.config.feedback_rate_hz
+        self._alive = True
+        # goals' starts, one at a time in the order they came; each start's Future is read by its goal
+        self._starter = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"rovercan-follow-start-{group.name}")
         self._server = ActionServer(node, FollowJointTrajectory, f"{group.name}/follow_joint_trajectory",
                                     execute_callback=self._execute, goal_callback=lambda _goal: GoalResponse.ACCEPT,
                                     cancel_callback=lambda _goal: CancelResponse.ACCEPT, callback_group=callback_group)
 
     def destroy(self) -> None:
+        self._alive = False  # a start under way hands nothing over
+        self._starter.shutdown(wait=False, cancel_futures=True)
         self._server.destroy()
-
-    def _start(self, goal: TrajectoryGoal, starting: Future[GoalRun]) -> None:
-        """The goal checked and its joints switched to streaming (waits on the drives), on its own
-        thread; the outcome, or the error, is read by the goal's coroutine."""
-        try:
-            starting.set_result(self._group.follow(goal))
-        except BaseException as err:  # handed to the goal, which says it
-            starting.set_exception(err)
 
     async def _execute(self, goal_handle: Any) -> Any:
         result = Result()
         try:
             now_s = self._node.get_clock().now().nanoseconds * 1e-9
             goal = goal_from_message(goal_handle.request, now_s)
-            starting: Future[GoalRun] = Future()
-            threading.Thread(target=self._start, args=(goal, starting), daemon=True,
-                             name=f"rovercan-follow-start-{self._group.name}").start()
+            starting = self._starter.submit(self._group.follow, goal,
+                                            lambda: goal_handle.is_cancel_requested or not self._alive)
             while not starting.done():  # the executor serves cancels and other goals meanwhile
                 await self._pause(self._period_s)
             run = starting.result()
@@ -141,6 +138,11 @@ class FollowTrajectoryServer:
             result.error_code = err.code if isinstance(err, TrajectoryRejected) else Result.INVALID_GOAL
             result.error_string = str(err)
             self._node.get_logger().warning(f"{self._group.name}: goal refused: {err}")
+            goal_handle.abort()
+            return result
+        except CancelledError:  # its start was dropped: the server is being destroyed
+            result.error_code = Result.INVALID_GOAL
+            result.error_string = f"{self._group.name}: the driver's actions shut down before the goal started"
             goal_handle.abort()
             return result
         except Exception as err:  # a fault of this driver's: logged with its trace, the goal aborted
@@ -152,10 +154,10 @@ class FollowTrajectoryServer:
         feedback = FollowJointTrajectory.Feedback()
         cancelled = False
         while not run.done.is_set():
-            await self._pause(self._period_s)
-            if goal_handle.is_cancel_requested and not cancelled:
+            if goal_handle.is_cancel_requested and not cancelled:  # before the first pause too
                 cancelled = True
                 run.cancel()
+            await self._pause(self._period_s)
             if (progress := run.progress) is not None and not run.done.is_set():
                 feedback.header.stamp = self._node.get_clock().now().to_msg()
                 goal_handle.publish_feedback(fill_feedback(feedback, progress))

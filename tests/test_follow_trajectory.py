@@ -194,6 +194,26 @@ def test_the_server_answers_while_a_goals_switch_to_streaming_waits_on_the_drive
     apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 0.0})
     done = result_of(first)  # the start ends when the held answer comes (5 s after it was asked)
     assert done.status == GoalStatus.STATUS_CANCELED, done.result.error_string
+    assert done.result.error_string == "cancelled before it started"  # never handed to the group's thread
+
+
+@pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
+def test_goals_start_in_the_order_they_came_while_the_first_waits_on_the_drive(rig: Rig) -> None:
+    """A second goal sent while the first one's switch to streaming waits on the drive starts
+    after it and preempts it, as a newer goal does; it is neither refused as "busy" nor run
+    before the first (which would then preempt the newer goal)."""
+    from action_msgs.msg import GoalStatus
+
+    sim = rig.sim.simulator_for(1)
+    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 3.0})
+    first = send(rig, half_sine(20.0, 2.0))
+    wait_for(lambda: sim.call(lambda: sim.drive(1)._delayed_sdo is not None), HANG_S, "the first switch at the drive")
+    second = send(rig, half_sine(10.0, 2.0))
+    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 0.0})
+    older, newer = result_of(first), result_of(second)
+    assert older.status == GoalStatus.STATUS_ABORTED and "preempted" in older.result.error_string, \
+        older.result.error_string
+    assert newer.status == GoalStatus.STATUS_SUCCEEDED, newer.result.error_string
 
 
 def test_a_goal_beyond_a_limit_is_refused_with_its_code_and_nothing_moves(rig: Rig,

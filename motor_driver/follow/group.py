@@ -38,7 +38,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from can_config.errors import RovercanError
@@ -102,10 +102,12 @@ class TrajectoryGroup:
         self._thread.start()
 
     # ------------------------------------------------------------------ callers
-    def follow(self, goal: TrajectoryGoal) -> GoalRun:
+    def follow(self, goal: TrajectoryGoal, cancelled: Callable[[], bool] | None = None) -> GoalRun:
         """Check ``goal`` (:class:`TrajectoryRejected` with its code: nothing moved), switch its
         joints to streaming where they are not, and hand it to the group's thread, which preempts
-        the goal running. Returns at once; the run says how it ends."""
+        the goal running. Returns once handed over (a mode switch may wait); the run says how it
+        ends. ``cancelled``: asked right before the handover; True ends the run "cancelled before
+        it started", and the goal running (or pending) goes on untouched."""
         plan = self.plan(goal)
         for name in goal.joints:
             self._prepare(self.drives[name])
@@ -116,6 +118,9 @@ class TrajectoryGroup:
             if not self._thread.is_alive():  # a goal handed to no thread would never end
                 raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: its thread has ended"
                              " (see the log); restart the driver")
+            if cancelled is not None and cancelled():
+                run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "cancelled before it started", canceled=True))
+                return run
             older, self._pending = self._pending, run
         if older is not None:
             older.finish(Outcome(TrajectoryCode.INVALID_GOAL, "preempted by a newer goal before it started"))
