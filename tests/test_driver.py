@@ -388,7 +388,36 @@ def test_an_enable_refused_after_a_good_re_configuration_leaves_the_drive_config
     verdict = drive.snapshot().verdict
     assert verdict.condition.name == "NOT_ARMED", verdict
     assert drive.cache.state is not State.OPERATION_ENABLED
-    assert "STO" in caplog.text or "voltage" in caplog.text  # the cause named
+    said = [r.getMessage() for r in caplog.records if "enabling it again failed" in r.getMessage()]
+    assert len(said) == 1 and "is STO low or the E-stop pressed?" in said[0], said  # once, with its cause
+
+
+def test_a_safe_stop_while_a_drive_is_configured_again_is_not_undone_by_its_restore(
+        driver_factory: DriverFactory) -> None:
+    """/disarm (the one safe stop) reaches a drive being configured again after a reset: nothing
+    can be sent to it then, and restore_enable_after_reboot must not enable it once configured."""
+    sim, driver = driver_factory(make_config(1, restore_enable_after_reboot=True))
+    drive = driver.drive("joint1")
+    drive.enable()
+    stopped: list[list[str]] = []
+
+    def hook(point: str) -> None:  # in the middle of the configuration, on the bus's worker
+        if point == "boot: PDO mapping" and not stopped:
+            stopped.append(driver.safe_stop())
+
+    boots = drive.boot.boot_count
+    drive.channel.set_hook(hook)
+    try:
+        apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.05})
+        wait_for(lambda: drive.boot.boot_count > boots and drive.cache.booted, 30.0, "configured again")
+        job = driver.supervisor.runtimes["joint1"].reboot_job
+        wait_for(lambda: job is not None and job.done(), 30.0, "the re-configuration's end")
+    finally:
+        drive.channel.set_hook(None)
+    assert stopped == [[]]
+    assert drive.cache.state is not State.OPERATION_ENABLED and not drive.channel.was_enabled
+    peer = sim.simulator_for(1)
+    assert peer.call(lambda: peer.drive(1).state.name) != "OPERATION_ENABLED"
 
 
 def test_unhandled_error_still_leaves_drives_safe(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]],

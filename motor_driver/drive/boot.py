@@ -505,6 +505,7 @@ class Boot:
         anything else (a fault of this driver's) is logged with its cause and tried again after a
         back-off doubling up to REBOOT_BACKOFF_MAX_S. It never ends the re-configuration for good."""
         restore = self._channel.was_enabled and self.config.restore_enable_after_reboot
+        mark = self._channel.stop_mark  # a stop during the configuration (a /disarm) cancels the restore
         try:
             self._channel.forget_commanded()
             self.boot(reset=self._wake_stopped())
@@ -523,17 +524,24 @@ class Boot:
         else:
             self._unexpected_in_row = 0
             if restore and not self._channel.closed:
-                self._enable_again()
+                if self._channel.stop_mark != mark:
+                    logger.warning("%s: configured again after a reset and left disabled: %s came while it was"
+                                   " configured", self.name, self._channel.stopped_by)
+                else:
+                    self._enable_again()
 
     def _enable_again(self) -> None:
         """After a good re-configuration: enabled again as it was. A refusal of the drive's (STO
-        low, a fault) leaves it configured and disabled, said once; its configuration is not thrown
-        away and the drive is not reset again for it."""
+        low, a fault), or a fault of this driver's, leaves it configured and disabled, said once;
+        its configuration is not thrown away and the drive is not reset again for it."""
         try:
             self._power.enable()
         except MotorError as err:
             logger.error("%s: configured again after a reset, but enabling it again failed: %s; it stays configured"
                          " and disabled: arm it (/arm, or enable) once the cause is dealt with", self.name, err)
+        except Exception:
+            logger.exception("%s: configured again after a reset, but enabling it again failed unexpectedly; it stays"
+                             " configured and disabled (report this with the trace)", self.name)
 
 
 #: CiA 301 dates count days from 1984-01-01 (the Unix time of its start, in days).

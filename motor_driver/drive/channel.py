@@ -95,6 +95,20 @@ class CommandChannel:
         return self._preempted[1]
 
     @property
+    def stop_mark(self) -> int:
+        """Where the newest stop (or hold) stands: a caller that saw another value before has
+        had a stop since."""
+        return self._preempted[0]
+
+    def stopped_unsent(self, by: str) -> None:
+        """A stop for a drive that cannot take one now (it is being configured again after a
+        reset, not enabled): nothing is sent, and it is not enabled again after its configuration."""
+        with self._lock:
+            self.generation += 1
+            self._preempted = (self.generation, by)
+            self.was_enabled = False
+
+    @property
     def handshake_idle(self) -> bool:
         return self._handshake.idle
 

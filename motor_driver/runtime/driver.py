@@ -260,6 +260,8 @@ class MotorDriver:
                 unconfirmed.append(f"{drive.name}: lost; a last quick stop was sent, unanswered")
                 continue
             if drive.cache.lost or not drive.cache.booted:
+                if not drive.cache.lost:  # being configured again: not enabled again after it
+                    drive.channel.stopped_unsent("a safe stop while it was configured again")
                 continue
             try:
                 if drive.cache.state == State.OPERATION_ENABLED:
