@@ -26,6 +26,7 @@ import time
 import can
 
 from can_config.errors import BusLostError
+from motor_driver.process.held import POLL_S, HeldDeadline
 
 logger = logging.getLogger(__name__)
 
@@ -104,13 +105,16 @@ class DaemonCyclicTask:
 
     def _line(self, timeout_s: float) -> str:
         assert self._sock is not None
-        deadline = time.monotonic() + timeout_s
+        deadline = HeldDeadline(timeout_s)  # a reply that came while this process was held is a reply
         while b">" not in self._buf:
-            remaining = deadline - time.monotonic()
+            remaining = deadline.remaining()
             if remaining <= 0:
-                raise BusLostError(f"{self.where}: no reply within {timeout_s:g} s")
-            self._sock.settimeout(remaining)
-            chunk = self._sock.recv(256)
+                raise BusLostError(f"{self.where}: no reply within {timeout_s:g} s{deadline.said()}")
+            self._sock.settimeout(min(remaining, POLL_S))
+            try:
+                chunk = self._sock.recv(256)
+            except TimeoutError:
+                continue
             if not chunk:
                 raise BusLostError(f"{self.where}: the daemon closed the connection")
             self._buf += chunk

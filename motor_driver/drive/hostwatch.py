@@ -277,7 +277,9 @@ class HostWatch:
         ours breaks them."""
         cache = self._cache
         deadline = since + self.config.heartbeat_timeout_s  # a heartbeat by then, or the drive is lost
-        cache.wait_until(lambda: cache.last_heartbeat > since, max(0.0, deadline - time.monotonic()))
+        # at least two heartbeat periods from now: a worker busy past the deadline still hears one
+        wait_s = max(2.0 * self.config.heartbeat_period_s, deadline - time.monotonic())
+        cache.wait_until(lambda: cache.last_heartbeat > since, wait_s)
         if cache.reset_since_operational() or cache.reported_nmt != "PRE_OPERATIONAL":
             return
         try:
