@@ -7,7 +7,8 @@ The goals are coroutines on a single-threaded executor of the node's own: betwee
 at the drive a goal awaits a future that a timer thread completes, so the executor serves the
 cancel requests and other goals meanwhile. (rclpy's MultiThreadedExecutor was measured
 starving the driver's own threads for 0.1-0.5 s: README.) Homing, which blocks in the driver,
-runs on a thread of its own and is watched the same way.
+runs on a thread of its own and is watched the same way; so do a move's start (its SDO writes, a
+mode switch) and its last wait, on the joint's own worker.
 """
 
 from __future__ import annotations
@@ -15,8 +16,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Callable, Mapping
+from concurrent.futures import CancelledError, ThreadPoolExecutor
+from typing import Any, TypeVar
 
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -31,6 +33,7 @@ from motor_driver.follow import TrajectoryGroup
 from nodes import runtime
 
 logger = logging.getLogger(__name__)
+T = TypeVar("T")
 
 #: How often feedback is published and a cancel request looked at.
 FEEDBACK_PERIOD_S = 0.05
@@ -53,6 +56,7 @@ class DriverActionsNode(Node):
         self._move = ActionServer(self, MoveJoint, "move_joint", execute_callback=self._execute_move,
                                   goal_callback=self._known_joint, cancel_callback=self._accept_cancel,
                                   callback_group=group)
+        self._workers: dict[str, ThreadPoolExecutor] = {}  # a joint's waits on its drive, one at a time
         self._trajectories: list[Any] = []
         if trajectory_groups:  # control_msgs is needed only then (a wheels-only rover runs without it)
             from nodes.follow_trajectory import FollowTrajectoryServer
@@ -75,7 +79,21 @@ class DriverActionsNode(Node):
         timer.start()
         await done
 
+    async def _off_executor(self, joint: str, work: Callable[[], T]) -> T:
+        """``work`` (it waits on the drive) on the joint's own worker, watched between pauses: the
+        executor serves cancels and other goals meanwhile; its result, or its error, is the goal's."""
+        worker = self._workers.get(joint)
+        if worker is None:
+            worker = self._workers[joint] = ThreadPoolExecutor(max_workers=1,
+                                                               thread_name_prefix=f"rovercan-action-{joint}")
+        future = worker.submit(work)
+        while not future.done():
+            await self._pause()
+        return future.result()
+
     def destroy_node(self) -> None:
+        for worker in self._workers.values():
+            worker.shutdown(wait=False, cancel_futures=True)
         self._home.destroy()
         self._move.destroy()
         for server in self._trajectories:
@@ -108,10 +126,18 @@ class DriverActionsNode(Node):
         request = goal.request
         drive = self.drives[request.joint]
         feedback = MoveJoint.Feedback()
-        try:
+        def start() -> float | None:  # waits on the drive (SDO writes, a mode switch): off the executor
             if request.speed_deg_s > 0:
                 drive.motion.set_profile_velocity(float(request.speed_deg_s))
-            target = drive.move_to(float(request.target_deg))
+            if goal.is_cancel_requested:
+                return None  # cancelled while it started: nothing moved
+            return drive.move_to(float(request.target_deg))
+
+        try:
+            started = await self._off_executor(request.joint, start)
+            if started is None:
+                return self._finish(goal, MoveJoint.Result(), request.joint, False, "canceled before it moved")
+            target = started
             while True:
                 await self._pause()
                 state = drive.snapshot()
@@ -121,7 +147,8 @@ class DriverActionsNode(Node):
                     drive.wait_target_reached(0.0)
                     raise DriveStateError(f"{request.joint}: the move ended: {state.verdict.text()}", node_id=drive.node_id)
                 if state.target_reached and abs(target - state.angle_deg) < TARGET_WINDOW_DEG:
-                    drive.wait_target_reached(1.0)  # the handshake's last word, and a fresh position
+                    # the handshake's last word, and a fresh position
+                    await self._off_executor(request.joint, lambda: drive.wait_target_reached(1.0))
                     break
                 feedback.angle, feedback.remaining_deg = float(state.angle_deg), float(target - state.angle_deg)
                 goal.publish_feedback(feedback)
@@ -134,6 +161,8 @@ class DriverActionsNode(Node):
                                         f"canceled: halted at {drive.snapshot().angle_deg:.2f} deg")
         except RovercanError as err:
             return self._finish(goal, MoveJoint.Result(), request.joint, False, str(err))
+        except CancelledError:  # its work was dropped: the node is being destroyed
+            return self._finish(goal, MoveJoint.Result(), request.joint, False, "the driver's actions shut down")
         return self._finish(goal, MoveJoint.Result(), request.joint, True, f"at {target:.2f} deg")
 
     async def _execute_home(self, goal: Any) -> Any:

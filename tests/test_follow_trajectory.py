@@ -198,6 +198,33 @@ def test_the_server_answers_while_a_goals_switch_to_streaming_waits_on_the_drive
 
 
 @pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
+def test_move_joint_answers_a_cancel_while_its_start_waits_on_the_drive(rig: Rig) -> None:
+    """move_joint's start writes the profile speed by SDO: with joint1's answers held 5 s, the
+    cancel is answered while the write still waits, and nothing moves (the move is never sent)."""
+    from action_msgs.msg import GoalStatus
+    from rovercan_msgs.action import MoveJoint
+
+    client = ActionClient(rig.client._node, MoveJoint, "move_joint")
+    assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
+    sim = rig.sim.simulator_for(1)
+    answered = sim.call(lambda: sim.drive(1).counters["sdo"])
+    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 5.0})
+    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=30.0, speed_deg_s=20.0))
+    wait_for(sent.done, HANG_S, "the goal answered")
+    handle = sent.result()
+    wait_for(lambda: sim.call(lambda: sim.drive(1)._delayed_sdo is not None), HANG_S, "the speed's SDO at the drive")
+    cancel = handle.cancel_goal_async()
+    wait_for(cancel.done, HANG_S, "the cancel answered")
+    assert sim.call(lambda: sim.drive(1)._delayed_sdo is not None and sim.drive(1).counters["sdo"] == answered), \
+        "the cancel was answered only after the drive answered the write"
+    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 0.0})
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_CANCELED and done.result.message == "canceled before it moved", \
+        done.result.message
+    client.destroy()
+
+
+@pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
 def test_goals_start_in_the_order_they_came_while_the_first_waits_on_the_drive(rig: Rig) -> None:
     """A second goal sent while the first one's switch to streaming waits on the drive starts
     after it and preempts it, as a newer goal does; it is neither refused as "busy" nor run
