@@ -27,6 +27,7 @@ from rclpy.task import Future
 from rovercan_msgs.action import Home, MoveJoint
 
 from can_config.errors import DriveStateError, RovercanError
+from can_config.objects import OperationMode
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive.verdict import Condition
 from motor_driver.follow import TrajectoryGroup
@@ -57,6 +58,7 @@ class DriverActionsNode(Node):
                                   goal_callback=self._known_joint, cancel_callback=self._accept_cancel,
                                   callback_group=group)
         self._workers: dict[str, ThreadPoolExecutor] = {}  # a joint's waits on its drive, one at a time
+        self._alive = True
         self._trajectories: list[Any] = []
         if trajectory_groups:  # control_msgs is needed only then (a wheels-only rover runs without it)
             from nodes.follow_trajectory import FollowTrajectoryServer
@@ -82,6 +84,8 @@ class DriverActionsNode(Node):
     async def _off_executor(self, joint: str, work: Callable[[], T]) -> T:
         """``work`` (it waits on the drive) on the joint's own worker, watched between pauses: the
         executor serves cancels and other goals meanwhile; its result, or its error, is the goal's."""
+        if not self._alive:
+            raise CancelledError(f"{joint}: the driver's actions shut down")  # said by the goal
         worker = self._workers.get(joint)
         if worker is None:
             worker = self._workers[joint] = ThreadPoolExecutor(max_workers=1,
@@ -92,6 +96,7 @@ class DriverActionsNode(Node):
         return future.result()
 
     def destroy_node(self) -> None:
+        self._alive = False  # no new work on the joints' workers
         for worker in self._workers.values():
             worker.shutdown(wait=False, cancel_futures=True)
         self._home.destroy()
@@ -129,7 +134,9 @@ class DriverActionsNode(Node):
         def start() -> float | None:  # waits on the drive (SDO writes, a mode switch): off the executor
             if request.speed_deg_s > 0:
                 drive.motion.set_profile_velocity(float(request.speed_deg_s))
-            if goal.is_cancel_requested:
+            if not goal.is_cancel_requested:
+                drive.power.set_mode(OperationMode.PROFILE_POSITION)  # where it is not: waits on the drive
+            if goal.is_cancel_requested or not self._alive:
                 return None  # cancelled while it started: nothing moved
             return drive.move_to(float(request.target_deg))
 
@@ -163,6 +170,10 @@ class DriverActionsNode(Node):
             return self._finish(goal, MoveJoint.Result(), request.joint, False, str(err))
         except CancelledError:  # its work was dropped: the node is being destroyed
             return self._finish(goal, MoveJoint.Result(), request.joint, False, "the driver's actions shut down")
+        except Exception as err:  # a fault of this driver's: logged with its trace, the goal aborted
+            logger.exception("%s: move_joint failed unexpectedly", request.joint)
+            return self._finish(goal, MoveJoint.Result(), request.joint, False,
+                                f"the move failed unexpectedly ({type(err).__name__}: {err}); see the log")
         return self._finish(goal, MoveJoint.Result(), request.joint, True, f"at {target:.2f} deg")
 
     async def _execute_home(self, goal: Any) -> Any:

@@ -129,6 +129,8 @@ class FollowTrajectoryServer:
         try:
             now_s = self._node.get_clock().now().nanoseconds * 1e-9
             goal = goal_from_message(goal_handle.request, now_s)
+            if not self._alive:
+                raise CancelledError
             starting = self._starter.submit(self._group.follow, goal,
                                             lambda: goal_handle.is_cancel_requested or not self._alive)
             while not starting.done():  # the executor serves cancels and other goals meanwhile
@@ -166,7 +168,7 @@ class FollowTrajectoryServer:
         result.error_code, result.error_string = int(outcome.code), outcome.message
         if goal_handle.is_cancel_requested:
             goal_handle.canceled()
-        elif outcome.code == TrajectoryCode.SUCCESSFUL:
+        elif outcome.code == TrajectoryCode.SUCCESSFUL and not outcome.canceled:  # not dropped at shutdown
             goal_handle.succeed()
         else:
             goal_handle.abort()

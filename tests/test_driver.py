@@ -392,8 +392,9 @@ def test_an_enable_refused_after_a_good_re_configuration_leaves_the_drive_config
     assert len(said) == 1 and "is STO low or the E-stop pressed?" in said[0], said  # once, with its cause
 
 
+@pytest.mark.parametrize("at", ["boot: PDO mapping", "boot: started"])
 def test_a_safe_stop_while_a_drive_is_configured_again_is_not_undone_by_its_restore(
-        driver_factory: DriverFactory) -> None:
+        driver_factory: DriverFactory, at: str) -> None:
     """/disarm (the one safe stop) reaches a drive being configured again after a reset: nothing
     can be sent to it then, and restore_enable_after_reboot must not enable it once configured."""
     sim, driver = driver_factory(make_config(1, restore_enable_after_reboot=True))
@@ -402,7 +403,7 @@ def test_a_safe_stop_while_a_drive_is_configured_again_is_not_undone_by_its_rest
     stopped: list[list[str]] = []
 
     def hook(point: str) -> None:  # in the middle of the configuration, on the bus's worker
-        if point == "boot: PDO mapping" and not stopped:
+        if point == at and not stopped:
             stopped.append(driver.safe_stop())
 
     boots = drive.boot.boot_count

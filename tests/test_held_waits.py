@@ -136,7 +136,7 @@ def test_a_drive_that_never_answers_is_still_silent_and_the_hold_is_said(
         sdo: tuple[SdoPort, MultiplexedSdoClient, Responder]) -> None:
     port, client, responder = sdo
     client.responses = HeldQueue(after_hold=lambda: None)  # never released
-    with pytest.raises(SdoTimeoutError, match=r"got no answer.*held up to 2\.\d s meanwhile; looked again after it"):
+    with pytest.raises(SdoTimeoutError, match=r"got no answer.*held up to 2\.\d s meanwhile; looked again after it\)"):
         port.read_value(0x1000)
     assert responder.requests == 1
 
@@ -175,13 +175,14 @@ class FakeClock:
 
 def reference_left(timeout: float, looks: list[tuple[float, float]]) -> list[float]:
     """The rule, written down on its own: at each look (its time from the start, the gap before
-    it), a gap over HELD_GAP_S that passed the deadline gives MAX_RESUMES looks at most, each
-    min(RESUME_S, timeout) long; what is left at each look."""
+    it), a gap over HELD_GAP_S that left less than a look (min(RESUME_S, timeout)) of the wait
+    gives one look from its end, MAX_RESUMES at most; what is left at each look."""
     deadline, resumes, out = timeout, 0, []
+    look = min(RESUME_S, timeout)
     for at, gap in looks:
-        if gap > HELD_GAP_S and at >= deadline and resumes < MAX_RESUMES:
+        if gap > HELD_GAP_S and at + look > deadline and resumes < MAX_RESUMES:
             resumes += 1
-            deadline = at + min(RESUME_S, timeout)
+            deadline = at + look
         out.append(deadline - at)
     return out
 
@@ -199,8 +200,12 @@ def test_a_deadline_looks_again_after_a_hold_and_never_waits_unbounded(timeout: 
     assert lefts == pytest.approx(reference_left(timeout, looks), abs=1e-9)
     resume = min(RESUME_S, timeout)
     longest = max(gaps)
+    resumes = 0
     for (at, gap), left in zip(looks, lefts, strict=True):
         assert left <= max(timeout - at, resume) + 1e-9  # never more than the timeout, or one look
+        if gap > HELD_GAP_S and resumes < MAX_RESUMES:  # a hold, looks left: at least one look after it
+            assert left >= resume - 1e-9
+            resumes += left - resume < 1e-9
         if left > 0:  # still waiting: within the timeout and the looks after holds
             assert at < timeout + MAX_RESUMES * (resume + longest) + 1e-9
         if not any(g > HELD_GAP_S for _, g in looks[:looks.index((at, gap)) + 1]):

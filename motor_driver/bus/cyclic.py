@@ -118,6 +118,7 @@ class DaemonCyclicTask:
             if not chunk:
                 raise BusLostError(f"{self.where}: the daemon closed the connection")
             self._buf += chunk
+        self._sock.settimeout(timeout_s)  # the sends after it: the caller's bound, not a poll's
         line, _, self._buf = self._buf.partition(b">")
         return (line + b">").decode("ascii", "replace").strip()
 

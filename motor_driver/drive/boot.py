@@ -305,7 +305,8 @@ class Boot:
         """NMT start, the statusword read and decoded, then what the drive holds confirmed once
         more. A reset since the last confirmation whose boot-up was heard fails the step
         (:meth:`_reset_why`); one whose boot-up was lost restored the defaults that this second
-        look at the stamp (or the PDO objects) shows, before the drive is ever booted. A reset
+        look at the stamp (or one PDO object away from its default) shows, before the drive is
+        ever booted. A reset
         after it leaves the drive pre-operational, where no RPDO reaches it, until it is
         configured again. '' or why the configuration must start again."""
         self._send_nmt(NmtCommand.START)
@@ -314,7 +315,7 @@ class Boot:
         if decode_state(statusword) == State.UNKNOWN:
             return f"its statusword after NMT start, 0x{statusword:04X}, is no CiA 402 state"
         self._cache.note_statusword(statusword)
-        if why := self._held():
+        if why := (self._stamp_kept() if self._stamp is not None else self._canary_kept()):
             return f"after NMT start: {why}"
         return ""
 
@@ -325,6 +326,26 @@ class Boot:
             return ""
         return (f"0x1020 (verify configuration) holds {held[0]}/{held[1]}, not the stamp {self._stamp[0]}/"  # type: ignore[index]
                 f"{self._stamp[1]} written before its configuration (it reset)")  # type: ignore[index]
+
+    def _canary_kept(self) -> str:
+        """One PDO object this boot wrote away from its EDS default, read back: a reset puts it
+        back to that default (one read where the full read-back, done before the start, takes
+        dozens). '' when every object written holds its default (a reset would change nothing)."""
+        last = {(index, sub): (data, what) for index, sub, data, what in mapping_writes(self._plan)}  # the final values
+        for (index, sub), (data, what) in last.items():
+            var = variable(self._od, index, sub)
+            if var is None or var.access_type in ("ro", "const") or not isinstance(var.default, int):
+                continue
+            written = int.from_bytes(data, "little")
+            if written == var.default:
+                continue
+            self._at(index, sub)
+            held = int.from_bytes(self._sdo.read(index, sub), "little")
+            if held != written:
+                return (f"it does not hold its PDO configuration: 0x{index:04X}:{sub} ({what}) reads 0x{held:X},"
+                        f" 0x{written:X} was written")
+            return ""
+        return ""
 
     def _pdos_kept(self) -> str:
         """Every PDO object this boot wrote, read back by SDO against the last value written."""
@@ -504,8 +525,8 @@ class Boot:
         the supervisor hands it over again: a drive's or a bus's error after REBOOT_RETRY_S;
         anything else (a fault of this driver's) is logged with its cause and tried again after a
         back-off doubling up to REBOOT_BACKOFF_MAX_S. It never ends the re-configuration for good."""
+        mark = self._channel.stop_mark  # a stop from here on (a /disarm) cancels the restore
         restore = self._channel.was_enabled and self.config.restore_enable_after_reboot
-        mark = self._channel.stop_mark  # a stop during the configuration (a /disarm) cancels the restore
         try:
             self._channel.forget_commanded()
             self.boot(reset=self._wake_stopped())
@@ -525,18 +546,22 @@ class Boot:
             self._unexpected_in_row = 0
             if restore and not self._channel.closed:
                 if self._channel.stop_mark != mark:
-                    logger.warning("%s: configured again after a reset and left disabled: %s came while it was"
-                                   " configured", self.name, self._channel.stopped_by)
+                    logger.warning("%s: configured again after a reset and left disabled, as stopped meanwhile (%s);"
+                                   " /arm (or enable) enables it", self.name, self._channel.stopped_by)
                 else:
-                    self._enable_again()
+                    self._enable_again(mark)
 
-    def _enable_again(self) -> None:
+    def _enable_again(self, mark: int) -> None:
         """After a good re-configuration: enabled again as it was. A refusal of the drive's (STO
         low, a fault), or a fault of this driver's, leaves it configured and disabled, said once;
         its configuration is not thrown away and the drive is not reset again for it."""
         try:
-            self._power.enable()
+            self._power.enable(unless_stopped_since=mark)  # a stop from now until the enable registers wins
         except MotorError as err:
+            if self._channel.stop_mark != mark:  # a stop won the race with the enable
+                logger.warning("%s: configured again after a reset and left disabled, as stopped meanwhile (%s);"
+                               " /arm (or enable) enables it", self.name, self._channel.stopped_by)
+                return
             logger.error("%s: configured again after a reset, but enabling it again failed: %s; it stays configured"
                          " and disabled: arm it (/arm, or enable) once the cause is dealt with", self.name, err)
         except Exception:

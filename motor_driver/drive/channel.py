@@ -107,6 +107,7 @@ class CommandChannel:
             self.generation += 1
             self._preempted = (self.generation, by)
             self.was_enabled = False
+        self._wake()
 
     @property
     def handshake_idle(self) -> bool:
@@ -160,9 +161,11 @@ class CommandChannel:
 
     # ------------------------------------------------------------------ operations and stops
     @contextmanager
-    def operation(self, name: str, parent: Op | None = None) -> Iterator[Op]:
+    def operation(self, name: str, parent: Op | None = None, *, unless_stopped_since: int | None = None
+                  ) -> Iterator[Op]:
         """An operation that waits for the drive: registered busy under its own token (refused
-        while another runs), or run under ``parent``'s token and generation (a nested call)."""
+        while another runs), or run under ``parent``'s token and generation (a nested call).
+        ``unless_stopped_since``: refused when a stop came after that :attr:`stop_mark`."""
         if parent is not None:
             self.check(parent, name)
             yield parent
@@ -170,6 +173,9 @@ class CommandChannel:
         self._acquire(name)
         try:
             self.admit(name)
+            if unless_stopped_since is not None and self._preempted[0] != unless_stopped_since:
+                raise DriveStateError(f"{self.name} (node {self.node_id}): {name} refused: stopped since it was asked"
+                                      f" ({self._preempted[1]}); nothing was sent", node_id=self.node_id)
             if self._busy:
                 raise CommandRejected(f"{self.name}: {name} refused: the drive is busy with {self.busy};"
                                       " nothing was sent. Try again when it is done.")

@@ -113,7 +113,7 @@ class Homing:
                 raise stopped
             return False
 
-        if not cache.wait_until(attained, timeout_s, motion=True):
+        if not cache.wait_until(attained, timeout_s):
             statusword = cache.received.statusword
             raise DriveTimeoutError(f"{self.config.name}: homing not attained within {timeout_s:g} s; {self._stop()}."
                                     " Check the homing method, its speed and the switches it looks for (or raise"
@@ -127,5 +127,8 @@ class Homing:
             self._power.quick_stop()
         except MotorError as err:
             logger.error("%s: the quick stop after homing timed out was not confirmed: %s", self.config.name, err)
-            return f"its quick stop was sent but not confirmed ({err})"
+            return f"a quick stop was tried but not confirmed ({err})"
+        except Exception as err:  # a fault of this driver's: said, never in place of the timeout
+            logger.exception("%s: the quick stop after homing timed out failed unexpectedly", self.config.name)
+            return f"a quick stop was tried and failed unexpectedly ({type(err).__name__}: {err})"
         return "the drive was quick-stopped"

@@ -278,7 +278,8 @@ class HostWatch:
         cache = self._cache
         deadline = since + self.config.heartbeat_timeout_s  # a heartbeat by then, or the drive is lost
         # at least two heartbeat periods from now: a worker busy past the deadline still hears one
-        wait_s = max(2.0 * self.config.heartbeat_period_s, deadline - time.monotonic())
+        cfg = self.config  # bounded by the consumer time: the bus's worker has other drives' stops to send
+        wait_s = max(min(2.0 * cfg.heartbeat_period_s, cfg.heartbeat_timeout_s), deadline - time.monotonic())
         cache.wait_until(lambda: cache.last_heartbeat > since, wait_s)
         if cache.reset_since_operational() or cache.reported_nmt != "PRE_OPERATIONAL":
             return

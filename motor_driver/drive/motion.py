@@ -200,7 +200,7 @@ class Motion:
                 raise stopped
             return self._channel.handshake_idle and bool(cache.received.statusword & SW.TARGET_REACHED)
 
-        if not cache.wait_until(reached, timeout_s, motion=True):
+        if not cache.wait_until(reached, timeout_s):
             raise DriveTimeoutError(f"{self.name}: target not reached within {timeout_s:.1f} s"
                                     f" (at {cache.angle_deg:.2f} deg, target"
                                     f" {cache.scale.counts_to_deg(self._channel.target_counts):.2f} deg)",

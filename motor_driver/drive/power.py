@@ -133,14 +133,17 @@ class PowerStateMachine:
                                 f" 0x{sw:04X}) after {timeout_s:g} s.{hint}", node_id=self.node_id, statusword=sw)
 
     # ------------------------------------------------------------------ enable
-    def enable(self, timeout_s: float = TRANSITION_TIMEOUT_S, parent: Op | None = None) -> None:
+    def enable(self, timeout_s: float = TRANSITION_TIMEOUT_S, parent: Op | None = None, *,
+               unless_stopped_since: int | None = None) -> None:
         """Walk the state machine to Operation Enabled (transitions 2, 3, 4), holding position.
 
         Refused for a drive that cannot watch the host (no 0x1016), unless the config allows it.
         A stop (quick stop, disable, the driver's close) preempts it; under ``parent`` (homing)
-        a stop that preempted the caller preempts this too.
+        a stop that preempted the caller preempts this too. ``unless_stopped_since``: a stop mark
+        (:attr:`CommandChannel.stop_mark`); a stop since then refuses it (decided with its
+        registration, so none can fall in between).
         """
-        with self._channel.operation("enable", parent) as op:
+        with self._channel.operation("enable", parent, unless_stopped_since=unless_stopped_since) as op:
             self.require_usable("enable")
             if self._watch.host_watch is None and not self.config.allow_no_host_watch:
                 raise CommandRejected(f"{self.name} (node {self.node_id}): enable refused: {self._watch.host_watch_problem},"

@@ -206,17 +206,15 @@ class DriveCache:
         return self._bootup.wait(timeout_s)
 
     # ------------------------------------------------------------------ waiting
-    def wait_until(self, done: Callable[[], bool], timeout_s: float, *, motion: bool = False) -> bool:
+    def wait_until(self, done: Callable[[], bool], timeout_s: float) -> bool:
         """Wait for ``done()`` (checked at each statusword and stop); False at the timeout.
-        ``done`` may raise to end the wait. A wait for the drive's answer looks once more after a
-        hold of this process that passed its deadline (:class:`HeldDeadline`); a wait for
-        ``motion`` (homing, a target reached) keeps its plain timeout: the drive moves on while
-        this process is held."""
-        deadline = HeldDeadline(timeout_s) if not motion else None
-        end = time.monotonic() + timeout_s
+        ``done`` may raise to end the wait. After a hold of this process that left less than a
+        look of the wait, it looks once more (:class:`HeldDeadline`): what the drive said while
+        the process was held is read before the verdict."""
+        deadline = HeldDeadline(timeout_s)
         with self._event:
             while not done():
-                remaining = deadline.remaining() if deadline is not None else end - time.monotonic()
+                remaining = deadline.remaining()
                 if remaining <= 0:
                     return False
                 self._event.wait(min(remaining, POLL_S))

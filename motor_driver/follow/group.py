@@ -109,16 +109,19 @@ class TrajectoryGroup:
         ends. ``cancelled``: asked right before the handover; True ends the run "cancelled before
         it started", and the goal running (or pending) goes on untouched."""
         plan = self.plan(goal)
-        for name in goal.joints:
-            self._prepare(self.drives[name])
         run = GoalRun(plan)
+        asked = cancelled or (lambda: False)
+        if not asked():  # a goal cancelled before its start switches no mode
+            for name in goal.joints:
+                self._prepare(self.drives[name])
+        stop = asked()  # asked outside the group's lock (the caller's own locks: an action server's)
         with self._lock:
             if self._closed:
                 raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: the driver shut down")
             if not self._thread.is_alive():  # a goal handed to no thread would never end
                 raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: its thread has ended"
                              " (see the log); restart the driver")
-            if cancelled is not None and cancelled():
+            if stop:
                 run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "cancelled before it started", canceled=True))
                 return run
             older, self._pending = self._pending, run

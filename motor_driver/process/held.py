@@ -8,14 +8,12 @@ the receive thread has read the buffer, and a timeout would blame a drive that a
 simulated drives judge the host the same way (by when frames reached the bus, not when they got
 to look).
 
-:class:`HeldDeadline` is checked at least every ``POLL_S`` by its waiter. When its deadline
-passed during a hold (a gap between two checks longer than ``HELD_GAP_S``), the wait goes on
-for ``resume_s`` more (``RESUME_S``, at most the timeout), so the receive thread runs once
-before the verdict; at most ``MAX_RESUMES`` times a wait. Nothing else is excused: a wait lasts
-its timeout plus at most those looks (and the holds themselves), however starved the process,
-and a drive that does not answer is still declared silent. Only waits for an answer use it;
-waits for motion (homing, a target reached) keep their plain timeout, as the drive moves on
-while the process is held.
+:class:`HeldDeadline` is checked at least every ``POLL_S`` by its waiter. When a hold (a gap
+between two checks longer than ``HELD_GAP_S``) left less than ``resume_s`` (``RESUME_S``, at most
+the timeout) of the wait, the wait goes on ``resume_s`` from the hold's end, so the receive
+thread runs once before the verdict; at most ``MAX_RESUMES`` times a wait. Nothing else is
+excused: a wait lasts its timeout plus at most those looks (and the holds themselves), however
+starved the process, and a drive that does not answer is still declared silent.
 
 Owner: the one waiting thread.
 """
@@ -29,7 +27,7 @@ from collections.abc import Callable
 POLL_S = 0.05
 #: A gap between two checks longer than this (s) was a hold, not a poll.
 HELD_GAP_S = 0.25
-#: After a hold that passed the deadline, the wait goes on this long (s, at most the timeout).
+#: After a hold that left less than this of the wait, it goes on this long (s, at most the timeout).
 RESUME_S = 0.25
 #: At most this many such looks in one wait.
 MAX_RESUMES = 2
@@ -55,8 +53,8 @@ class HeldDeadline:
         self._last = now
         if gap > HELD_GAP_S:
             self.held_s = max(self.held_s, gap)
-            if now >= self._deadline and self.resumes < MAX_RESUMES:
-                self.resumes += 1
+            if now + self._resume_s > self._deadline and self.resumes < MAX_RESUMES:
+                self.resumes += 1  # the hold left less than a look: one look from now
                 self._deadline = now + self._resume_s
         return self._deadline - now
 
@@ -64,4 +62,5 @@ class HeldDeadline:
         """The hold seen, for a timeout's message ('' when none)."""
         if not self.held_s:
             return ""
-        return f" (this process was held up to {self.held_s:.1f} s meanwhile; looked again after it)"
+        looked = "; looked again after it" if self.resumes else ""
+        return f" (this process was held up to {self.held_s:.1f} s meanwhile{looked})"
