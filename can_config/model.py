@@ -165,7 +165,7 @@ class DriveConfig:
     homing_method: int = key("int", 35, -128, 127, help="CiA 402 homing method (0x6098)")
     homing_speed_deg_s: float = key("float", 30.0, 0.0, 1_000_000.0, low_open=True, unit="deg/s",
                                     help="homing speed (0x6099)")
-    homing_timeout_s: float = key("float", 10.0, 0.1, 600.0, unit="s", help="homing gives up after this long")
+    homing_timeout_s: float = key("float", 10.0, 0.1, 600.0, unit="s", help="homing gives up after this long and quick-stops the drive")
     identity: IdentityConfig = key("map", {}, nested=IdentityConfig,
                                    help="expected 0x1018 (`vendor_id`, `product_code`, `revision`); default: the EDS's")
     invert: bool = key("bool", False, help="the joint turns the other way than the motor (a mirrored wheel)")
