@@ -123,7 +123,11 @@ def test_event_driven_position_respects_the_inhibit_time(sim: SimService, node: 
     node.sdo[0x6040].raw = 0x06
     gaps = timestamp_gaps(frames)
     assert len(gaps) >= 5
-    assert min(gaps) >= 0.099, gaps  # without the inhibit time: one per simulator tick (1 ms)
+    # without the inhibit time: one per simulator tick (1 ms). The gaps are the bus's arrival
+    # stamps, which carry each frame's own transit delay (a 100 ms pair measured 98.9 ms on a CI
+    # run): no gap near the tick, and the drive's 100 ms kept in the middle of them
+    assert min(gaps) > 0.05, gaps
+    assert sorted(gaps)[len(gaps) // 2] >= 0.099, gaps
     assert statistics.median(gaps) < 0.12, gaps  # the value keeps changing: sent as soon as allowed
     positions = [int.from_bytes(f.data[:4], "little", signed=True) for f in frames]
     assert positions == sorted(positions) and positions[-1] - positions[0] > 2000  # it moves
