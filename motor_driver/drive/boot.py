@@ -331,36 +331,38 @@ class Boot:
         """One PDO object this boot wrote away from its EDS default, read back: a reset puts it
         back to that default (one read where the full read-back, done before the start, takes
         dozens). '' when every object written holds its default (a reset would change nothing)."""
-        last = {(index, sub): (data, what) for index, sub, data, what in mapping_writes(self._plan)}  # the final values
-        for (index, sub), (data, what) in last.items():
+        for (index, sub), (data, what) in self._written_pdo_objects().items():
             var = variable(self._od, index, sub)
-            if var is None or var.access_type in ("ro", "const") or not isinstance(var.default, int):
-                continue
-            written = int.from_bytes(data, "little")
-            if written == var.default:
-                continue
-            self._at(index, sub)
-            held = int.from_bytes(self._sdo.read(index, sub), "little")
-            if held != written:
-                return (f"it does not hold its PDO configuration: 0x{index:04X}:{sub} ({what}) reads 0x{held:X},"
-                        f" 0x{written:X} was written")
-            return ""
+            if var is not None and isinstance(var.default, int) and int.from_bytes(data, "little") != var.default:
+                return self._object_kept(index, sub, data, what)
         return ""
 
     def _pdos_kept(self) -> str:
         """Every PDO object this boot wrote, read back by SDO against the last value written."""
+        for (index, sub), (data, what) in self._written_pdo_objects().items():
+            if why := self._object_kept(index, sub, data, what):
+                return why
+        return ""
+
+    def _written_pdo_objects(self) -> dict[tuple[int, int], tuple[bytes, str]]:
+        """Each PDO object this boot wrote (not read-only in the EDS, as _write_pdo_mapping) and
+        the last value written to it."""
         wanted: dict[tuple[int, int], tuple[bytes, str]] = {}
         for index, sub, data, what in mapping_writes(self._plan):
             var = variable(self._od, index, sub)
-            if var is None or var.access_type not in ("ro", "const"):  # as _write_pdo_mapping
+            if var is None or var.access_type not in ("ro", "const"):
                 wanted[(index, sub)] = (data, what)
-        for (index, sub), (data, what) in wanted.items():
-            self._at(index, sub)
-            held = int.from_bytes(self._sdo.read(index, sub), "little")
-            if held != int.from_bytes(data, "little"):
-                return (f"it does not hold its PDO configuration: 0x{index:04X}:{sub} ({what}) reads 0x{held:X},"
-                        f" 0x{int.from_bytes(data, 'little'):X} was written")
-        return ""
+        return wanted
+
+    def _object_kept(self, index: int, sub: int, data: bytes, what: str) -> str:
+        """'' when the drive holds ``data`` at (index, sub), else why not."""
+        self._at(index, sub)
+        held = int.from_bytes(self._sdo.read(index, sub), "little")
+        written = int.from_bytes(data, "little")
+        if held == written:
+            return ""
+        return (f"it does not hold its PDO configuration: 0x{index:04X}:{sub} ({what}) reads 0x{held:X},"
+                f" 0x{written:X} was written")
 
     def _started(self) -> None:
         """The drive is started with its configuration confirmed: booted (not enabled)."""
