@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 from motor_driver.drive import DriveState
 from motor_driver.drive.verdict import Condition, Verdict, judge, ms
-from motor_driver.protocol.cia402 import State
 from motor_driver.rover.odometry import WheelSample
 
 
@@ -88,16 +87,16 @@ def odometry_samples(states: Mapping[str, DriveState], sides: Iterable[Sequence[
 @dataclass
 class OutWheel:
     reason: str
-    seen_down: bool = False  # the drive has left Operation Enabled since it went out
-    told: int = 0  # stops sent to it
+    enables: int  # the driver's count of its completed enables when it went out
 
 
 class WheelsOut:
     """``on_wheel_loss: continue``: the wheels left out, each with its reason. A wheel goes out
     when its verdict is not usable while the rover drives (lost, late, faulted, another master's,
-    stopped): it is told to stop; it comes back only once its data is fresh, it has left
-    Operation Enabled (stopped) and it is enabled again (/arm, recover): never by itself, still
-    running from before."""
+    stopped): it is told to stop; it comes back only once its verdict is usable again after an
+    enable the driver completed since it went out (/arm, recover): never by itself, still running
+    from before. The enable is read from the driver's count of them, not from states seen between
+    two ticks: an /arm that stops and enables a wheel within one tick takes it back all the same."""
 
     def __init__(self, left: Sequence[str], right: Sequence[str]) -> None:
         self.left, self.right = tuple(left), tuple(right)
@@ -111,20 +110,18 @@ class WheelsOut:
             out = self.out.get(name)
             if out is None:
                 if driving and not verdict.usable:
-                    self.out[name] = OutWheel(verdict.text())
+                    self.out[name] = OutWheel(verdict.text(), state.facts.enables)
                     went.append(name)
                 continue
-            if verdict.fresh and not state.lost and state.state != State.OPERATION_ENABLED:
-                out.seen_down = True
-            if out.seen_down and verdict.usable:
+            if verdict.usable and state.facts.enables > out.enables:
                 del self.out[name]
                 back.append(name)
         return went, back
 
     def still_running(self, states: dict[str, DriveState]) -> list[str]:
-        """Wheels out that still run under their own steam (heard in Operation Enabled, not yet
-        stopped): told to stop again."""
-        return [n for n, o in self.out.items() if not o.seen_down and states[n].verdict.usable]
+        """Wheels out that still run under their own steam (usable, armed from before they went
+        out: no stop of ours reached the channel since, nor an enable): told to stop again."""
+        return [n for n in self.out if states[n].verdict.usable]
 
     def share(self) -> float:
         """The share of wheels left on the weaker side (1.0: all; 0.0: a side has none)."""

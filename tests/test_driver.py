@@ -106,6 +106,26 @@ def test_heartbeat_loss_detected_others_keep_moving_then_reconfigured(driver_fac
     lost.move_to(15.0, wait=True)
 
 
+def test_each_enable_completed_is_counted_and_a_refused_or_stopped_one_is_not(driver_factory: DriverFactory) -> None:
+    """The count the drive system takes a wheel back by (nodes/wheels.py): one per enable that
+    reached Operation Enabled, none for a stop or a refused enable."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    assert drive.snapshot().facts.enables == 0
+    drive.enable()
+    assert drive.snapshot().facts.enables == 1 and drive.snapshot().facts.armed
+    drive.quick_stop()
+    assert drive.snapshot().facts.enables == 1 and not drive.snapshot().facts.armed
+    apply_action(sim, {"action": "sto", "node": 1, "low": True})
+    with pytest.raises(DriveStateError, match=r"STO"):  # no voltage, or a fault (STO active)
+        drive.enable(timeout_s=0.3)
+    assert drive.snapshot().facts.enables == 1
+    apply_action(sim, {"action": "sto", "node": 1, "low": False})
+    drive.recover()
+    drive.enable()
+    assert drive.snapshot().facts.enables == 2
+
+
 def test_sto_low_is_reported_not_fought(driver_factory: DriverFactory) -> None:
     sim, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")

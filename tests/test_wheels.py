@@ -73,9 +73,15 @@ def test_with_no_wheel_driven_every_measured_wheel_counts() -> None:
     assert not odometry_sample(state(lost=True, enabled=False), PDO_S, driven=False).trusted
 
 
-def test_a_wheel_out_comes_back_only_stopped_then_enabled_again() -> None:
+def enabled(name: str, enables: int) -> DriveState:
+    """Armed, Operation Enabled and fresh, after the driver completed ``enables`` enables of it."""
+    facts = state(name=name).facts._replace(enables=enables)
+    return dataclasses.replace(BASE, name=name, judged=(facts, judge(facts)))
+
+
+def test_a_wheel_out_comes_back_only_after_an_enable_since_it_went_out() -> None:
     book = WheelsOut(["a", "b"], ["c"])
-    states = {"a": state(name="a"), "b": state(name="b"), "c": state(name="c")}
+    states = {"a": state(name="a"), "b": state(name="b"), "c": state(name="c")}  # enabled at start
     assert book.update(states, driving=True) == ([], [])
     states["b"] = state(name="b", stale=True, enabled=False)  # late: out like a lost one (it is not measured)
     assert book.update(states, driving=True) == (["b"], []) and book.share() == 0.5
@@ -85,15 +91,25 @@ def test_a_wheel_out_comes_back_only_stopped_then_enabled_again() -> None:
     assert book.share() == 0.0 and book.empty_side() == "left" and "a out (a: heartbeat lost" in book.summary()
     states["b"] = state(name="b", state=State.QUICK_STOP_ACTIVE, enabled=False)  # fresh again, stopped as told
     assert book.update(states, driving=True) == ([], [])
-    states["b"] = state(name="b")  # /arm
+    states["b"] = enabled("b", 1)  # /arm
     assert book.update(states, driving=True) == ([], ["b"])
-    # heard again, still Operation Enabled from before (our stop never reached it): not back, told again
+    # heard again, still Operation Enabled and armed from before (no stop of ours reached it, no
+    # enable since): not back, told again, however long it stays so
     states["a"] = state(name="a")
-    assert book.update(states, driving=True) == ([], []) and book.still_running(states) == ["a"]
-    states["a"] = state(name="a", state=State.SWITCH_ON_DISABLED, enabled=False)  # stopped now
-    assert book.update(states, driving=True) == ([], []) and book.still_running(states) == []
-    states["a"] = state(name="a")  # armed again (/arm, recover)
+    for _ in range(3):
+        assert book.update(states, driving=True) == ([], []) and book.still_running(states) == ["a"]
+    # /arm stopped and enabled it between two looks (its way down never seen): back all the same
+    states["a"] = enabled("a", 1)
     assert book.update(states, driving=True) == ([], ["a"]) and book.share() == 1.0
+
+
+def test_an_enable_that_a_stop_followed_takes_no_wheel_back() -> None:
+    book = WheelsOut(["a"], ["c"])
+    states = {"a": state(name="a", stale=True, enabled=False), "c": state(name="c")}
+    assert book.update(states, driving=True) == (["a"], [])
+    facts = state(name="a", state=State.QUICK_STOP_ACTIVE, enabled=False).facts._replace(enables=1)
+    states["a"] = dataclasses.replace(BASE, name="a", judged=(facts, judge(facts)))  # enabled, then stopped
+    assert book.update(states, driving=True) == ([], []) and book.still_running(states) == []
 
 
 def test_idle_wheels_are_not_taken_out_and_a_side_with_none_left_has_no_share() -> None:

@@ -78,6 +78,7 @@ class CommandChannel:
         self.closed = False
         self.held = ""  # why no motion is taken (the stops are), "" while it is
         self.was_enabled = False
+        self.enables = 0  # enables completed: a reader that saw fewer has had an enable since
         self.velocity_commanded = False
         self.last_velocity_cmd = 0.0
         self._handshake = SetpointHandshake(self._send_setpoint, self._clear_setpoint)
@@ -258,6 +259,7 @@ class CommandChannel:
             self.check(op, "enable")
             verdict()
             self.was_enabled = True
+            self.enables += 1
 
     def _restop_after_sdo(self, op: Op) -> None:
         """A controlword written by SDO after the lock: a stop decided meanwhile is written again."""

@@ -56,7 +56,7 @@ class PowerStateMachine:
         """What the verdict on the drive is judged from: the cache's, the host watch's and the channel's."""
         channel = self._channel
         return self._cache.facts(foreign_master=self._watch.foreign_master, armed=channel.was_enabled,
-                                 stopped_by=channel.stopped_by, held=channel.held)
+                                 stopped_by=channel.stopped_by, held=channel.held, enables=channel.enables)
 
     def require_usable(self, doing: str, *, fresh: bool = False) -> None:
         """Refuse ``doing`` (nothing sent) unless the drive can hear and answer this driver: the

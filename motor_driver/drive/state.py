@@ -370,10 +370,10 @@ class DriveCache:
 
     # ------------------------------------------------------------------ the snapshot
     def facts(self, *, foreign_master: str = "", armed: bool = False, stopped_by: str = "", held: str = "",
-              now: float | None = None) -> DriveFacts:
+              enables: int = 0, now: float | None = None) -> DriveFacts:
         """What the verdict on this drive is judged from (:mod:`motor_driver.drive.verdict`), each read
-        once from its one writer; ``foreign_master``, ``armed``, ``stopped_by`` and ``held`` are the
-        host watch's and the command channel's (the facade passes them)."""
+        once from its one writer; ``foreign_master``, ``armed``, ``stopped_by``, ``held`` and
+        ``enables`` are the host watch's and the command channel's (the facade passes them)."""
         rx, runtime = self.received, self._runtime
         now = time.monotonic() if now is None else now
         emcy = self.last_emcy
@@ -386,7 +386,7 @@ class DriveCache:
                           heartbeat_age_s=now - heard if heard else math.inf, nmt=self.nmt_state,
                           state=decode_state(rx.statusword), lost=runtime.lost, booted=runtime.booted,
                           rebooting=rebooting, foreign_master=foreign_master, armed=armed, stopped_by=stopped_by,
-                          held=held,
+                          held=held, enables=enables,
                           emcy_code=emcy.code if emcy is not None else 0, emcy_text=emcy.text if emcy is not None else "",
                           emcy_stamp=emcy.timestamp if emcy is not None else 0.0)
 

@@ -91,6 +91,7 @@ class DriveFacts(NamedTuple):
     rebooting: bool = False  # boot-up heard since it was operational, or configured again
     foreign_master: str = ""  # the evidence that another master drives it
     armed: bool = False  # this driver enabled it and sent no stop since
+    enables: int = 0  # enables of this driver's that it completed (one who saw fewer has had one since)
     stopped_by: str = ""  # this driver's newest stop (who and why), "" none
     emcy_code: int = 0  # its newest EMCY not yet dealt with (0: none)
     emcy_text: str = ""
