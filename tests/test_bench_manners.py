@@ -52,6 +52,22 @@ def test_ctrl_c_at_any_moment_gives_one_line_and_no_traceback(after_start_s: flo
     assert proc.returncode != 0 or "frames" in err, (proc.returncode, err)  # stopped, or done by then
 
 
+def test_a_ctrl_c_inside_an_interpreter_callback_still_ends_the_process() -> None:
+    """The Ctrl-C handled while the interpreter runs a callback of its own (an import lock's
+    weakref callback, where a fresh clone's run caught it): an exception raised there is printed
+    as "Exception ignored" and the program runs on, so the early handler ends the process itself."""
+    script = ("import os, signal, weakref\n"
+              "import rovercan.entry\n"
+              "class Lock: pass\n"
+              "lock = Lock()\n"
+              "ref = weakref.ref(lock, lambda _: os.kill(os.getpid(), signal.SIGINT))\n"
+              "del lock\n"
+              "print('ran on after the Ctrl-C', flush=True)\n")
+    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130 and "ran on" not in proc.stdout, (proc.returncode, proc.stdout, proc.stderr)
+    assert proc.stderr == "rovercan: interrupted (Ctrl-C)\n", proc.stderr
+
+
 def test_enable_says_the_drive_is_disabled_again_as_it_exits() -> None:
     with rovercan_sim() as port:
         result = run("enable", "1", "--eds", GENERIC_EDS_ARG, *bus(port), "--json")
