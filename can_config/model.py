@@ -194,7 +194,8 @@ class DriveConfig:
                                       " set-points that would move it are refused)")
     frame_loss_window_syncs: int = key("int", 500, 20, 1_000_000, unit="SYNC periods",
                                        help="frame loss is measured over this many SYNC periods (TPDOs expected per"
-                                            " SYNC against received; heartbeats expected per period against received)")
+                                            " SYNC against received; heartbeats due, one fewer than the window's"
+                                            " whole heartbeat periods, against received)")
     frame_loss_warn_percent: float = key("float", 2.0, 0.0, 100.0, low_open=True, unit="%",
                                          help="more of the drive's TPDOs or heartbeats lost than this over the window:"
                                               " WARN in /diagnostics")

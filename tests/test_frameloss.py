@@ -1,6 +1,6 @@
 """Frames lost, measured and said (motor_driver/drive/frameloss.py; the driver node's /diagnostics):
-per drive, the TPDOs it sends every SYNC expected against received, and its heartbeats expected
-per period against received, over a window of SYNC periods; a WARN above the config's
+per drive, the TPDOs it sends every SYNC expected against received, and its heartbeats due in
+the window against received, over a window of SYNC periods; a WARN above the config's
 ``frame_loss_warn_percent``; the bus's figure in its status. The live test drops 5 % of the
 simulated bus's frames and judges by the count of SYNCs seen, never by seconds."""
 
@@ -11,10 +11,12 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from can_config import RoverConfig
 from motor_driver import MotorDriver
-from motor_driver.drive.frameloss import Counts, FrameLoss, Loss, total
+from motor_driver.drive.frameloss import Counts, FrameLoss, Loss, heartbeats_due, total
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
@@ -28,11 +30,25 @@ def test_a_window_needs_its_syncs_then_says_what_was_lost() -> None:
     loss.add(Counts(0.0, 0, 0, 0))
     loss.add(Counts(0.5, 50, 150, 5))
     assert loss.loss() is None and loss.progress() == "measuring (50 of 100 SYNCs)"
-    loss.add(Counts(1.0, 100, 285, 9))  # 15 of 300 TPDOs lost, 1 of 10 heartbeats
+    loss.add(Counts(1.0, 100, 285, 7))  # 15 of 300 TPDOs lost, 2 of the 9 heartbeats due
     figure = loss.loss()
-    assert figure == Loss(100, 300, 285, 10, 9)
-    assert figure.text() == "TPDOs 15 of 300 lost (5.0 %), heartbeats 1 of 10 (10.0 %) over 100 SYNCs"
-    assert figure.worst_percent == 10.0
+    assert figure == Loss(100, 300, 285, 9, 7)
+    assert figure.text() == "TPDOs 15 of 300 lost (5.0 %), heartbeats 2 of 9 (22.2 %) over 100 SYNCs"
+    assert figure.worst_percent == pytest.approx(22.2222, abs=1e-3)
+
+
+@given(phase=st.floats(0.0, 0.1, exclude_max=True), start=st.floats(0.0, 5.0), span=st.floats(0.0, 5.0),
+       jitter=st.lists(st.floats(-0.0499, 0.0499), min_size=200, max_size=200))
+def test_a_heartbeat_none_of_which_is_lost_is_never_counted_lost(phase: float, start: float, span: float,
+                                                                 jitter: list[float]) -> None:
+    """Whatever the producer's phase, its jitter (under half a period) and where the window's
+    ends fall, every heartbeat sent is received: none is lost; and one fewer is counted lost once
+    the window holds a whole period or two: the allowance is the window's two ends, no more."""
+    sent = [phase + k * 0.1 + jitter[k] for k in range(200)]
+    received = sum(1 for t in sent if start < t <= start + span)
+    due = heartbeats_due(span, 0.1)
+    assert received >= due, (received, due)
+    assert received <= due + 3
 
 
 def test_the_window_slides_and_starts_again_when_not_measuring() -> None:

@@ -1,6 +1,6 @@
 """Frames lost, measured (pure: no I/O, no clock of its own): per drive, the TPDOs it sends every
-SYNC expected against those received, and its heartbeats expected per producer period against
-those received, over the last ``window_syncs`` SYNC periods.
+SYNC expected against those received, and its heartbeats due in the window (:func:`heartbeats_due`)
+against those received, over the last ``window_syncs`` SYNC periods.
 
 The SYNCs are those seen on the bus (:class:`motor_driver.bus.traffic.BusStats`: the driver's own
 where the bus echoes them, a bus daemon's timer); where a bus shows none, the time elapsed over
@@ -15,6 +15,7 @@ takes the counters each has one writer of (the receive thread's); a drive whose 
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -60,6 +61,14 @@ class Loss:
             hb_lost = max(0, self.heartbeats_expected - self.heartbeats_received)
             said += f", heartbeats {hb_lost} of {self.heartbeats_expected} ({self.heartbeat_percent:.1f} %)"
         return f"{said} over {self.syncs} SYNCs"
+
+
+def heartbeats_due(elapsed_s: float, period_s: float) -> int:
+    """The heartbeats that must have come in any ``elapsed_s`` of a producer of ``period_s``,
+    whatever its phase and a jitter under half a period: one fewer than the whole periods (each
+    end of the window can cut one). Counting the periods themselves called a window that began
+    just after a heartbeat and ended just before one a lost frame (1 of 20: 5 %, a WARN)."""
+    return max(0, math.floor(elapsed_s / period_s + 1e-9) - 1)
 
 
 def _percent(expected: int, received: int) -> float:
@@ -108,7 +117,7 @@ class FrameLoss:
         syncs = self._syncs(first, last)
         if syncs < self.window_syncs:
             return None
-        hb_expected = round((last.at - first.at) / self.heartbeat_period_s) if self.heartbeat_period_s else 0
+        hb_expected = heartbeats_due(last.at - first.at, self.heartbeat_period_s) if self.heartbeat_period_s else 0
         return Loss(round(syncs), round(syncs * self.tpdos_per_sync), last.tpdos - first.tpdos, hb_expected,
                     last.heartbeats - first.heartbeats if hb_expected else 0)
 
