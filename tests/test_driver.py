@@ -441,6 +441,35 @@ def test_a_safe_stop_while_a_drive_is_configured_again_is_not_undone_by_its_rest
     assert peer.call(lambda: peer.drive(1).state.name) != "OPERATION_ENABLED"
 
 
+def test_an_unforeseen_failure_of_the_enable_after_a_re_configuration_is_counted(driver_factory: DriverFactory) -> None:
+    """The enable of restore_enable_after_reboot fails in a way nobody foresaw (raised inside it,
+    on the bus's worker): counted as a job's failure (/diagnostics), the drive configured and
+    disabled, not configured again for it."""
+    sim, driver = driver_factory(make_config(1, restore_enable_after_reboot=True))
+    drive = driver.drive("joint1")
+    drive.enable()
+    boots = drive.boot.boot_count
+    raised: list[str] = []
+
+    def hook(point: str) -> None:  # the restore's enable, once the drive is configured again
+        if point == "enable: host watch" and drive.boot.boot_count > boots and not raised:
+            raised.append(point)
+            raise ZeroDivisionError("a fault of this driver's")
+
+    drive.channel.set_hook(hook)
+    runtime = driver.supervisor.runtimes["joint1"]
+    try:
+        apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.05})
+        wait_for(lambda: "restore_enable" in driver.supervisor.faults.snapshot(), 30.0, "the failure counted")
+        wait_for(lambda: runtime.reboot_job is not None and runtime.reboot_job.done(), 30.0, "the job's end")
+    finally:
+        drive.channel.set_hook(None)
+    fault = driver.supervisor.faults.snapshot()["restore_enable"]
+    assert fault.count == 1 and fault.cause == "ZeroDivisionError: a fault of this driver's", fault
+    assert runtime.booted and not runtime.reboot_wanted and drive.boot.boot_count == boots + 1
+    assert drive.snapshot().verdict.condition.name == "NOT_ARMED"
+
+
 def test_unhandled_error_still_leaves_drives_safe(sim_factory: Callable[[RoverConfig], tuple[SimService, RoverConfig]],
                                                   listener_factory: Callable[[SimService], can.BusABC]) -> None:
     sim, cfg = sim_factory(make_config(1))

@@ -44,10 +44,11 @@ from motor_driver.drive.constants import (
     TRANSITION_TIMEOUT_S,
 )
 from motor_driver.drive.hostwatch import HostWatch
-from motor_driver.drive.ledger import Booted, Booting, BootRestarted, RebootFailed, RuntimePort
+from motor_driver.drive.ledger import Booted, Booting, BootRestarted, RebootFailed, RestoreFailed, RuntimePort
 from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.state import DriveCache
+from motor_driver.process.jobs import cause_of
 from motor_driver.protocol.cia402 import SW, Command, State, decode_state
 from motor_driver.protocol.codec import value_format
 from motor_driver.protocol.pdo import PdoPlan, mapping_writes
@@ -566,9 +567,11 @@ class Boot:
                 return
             logger.error("%s: configured again after a reset, but enabling it again failed: %s; it stays configured"
                          " and disabled: arm it (/arm, or enable) once the cause is dealt with", self.name, err)
-        except Exception:
-            logger.exception("%s: configured again after a reset, but enabling it again failed unexpectedly; it stays"
-                             " configured and disabled (report this with the trace)", self.name)
+        except Exception as err:  # counted and logged with its trace by the supervisor, in /diagnostics
+            logger.error("%s: configured again after a reset, but enabling it again failed unexpectedly (%s); it"
+                         " stays configured and disabled: arm it (/arm, or enable), and report this", self.name,
+                         cause_of(err))
+            self._port.report(RestoreFailed(self.name, err))
 
 
 #: CiA 301 dates count days from 1984-01-01 (the Unix time of its start, in days).

@@ -7,7 +7,7 @@ Owner: the :class:`motor_driver.runtime.supervisor.Supervisor`, on its thread, a
 module assigns their fields). Every other thread reads them and hands the supervisor what it
 found instead: the receive thread posts each heartbeat that may change a judgement
 (:class:`Heard`, without waiting), a boot or a reconnect on the bus's worker reports its result
-(:class:`Booting`, :class:`Booted`, :class:`BootRestarted`, :class:`RebootFailed`, :class:`BusBack`,
+(:class:`Booting`, :class:`Booted`, :class:`BootRestarted`, :class:`RebootFailed`, :class:`RestoreFailed`, :class:`BusBack`,
 :class:`BusDown`) and waits until the supervisor has applied it.
 
 :class:`NmtLedger` is the one way an NMT command leaves for a drive: it sends and remembers the
@@ -135,6 +135,15 @@ class RebootFailed:
 
 
 @dataclass(frozen=True)
+class RestoreFailed:
+    """``drive``, configured again after a reset, was not enabled again: its enable failed in a
+    way nobody foresaw (``error``). It stays configured and disabled; counted as a job's failure."""
+
+    drive: str
+    error: BaseException
+
+
+@dataclass(frozen=True)
 class BusBack:
     """The bus's worker: ``bus`` reconnected and its drives booted."""
 
@@ -152,7 +161,7 @@ class BusDown:
     why: str
 
 
-Event = Heard | Booting | Booted | BootRestarted | RebootFailed | BusBack | BusDown
+Event = Heard | Booting | Booted | BootRestarted | RebootFailed | RestoreFailed | BusBack | BusDown
 
 
 class RuntimePort:

@@ -4,7 +4,8 @@ to the caller's ``on_fail`` (which retries it with its back-off, or stops), inst
 a Future nobody reads. The counts are in /diagnostics (:func:`motor_driver.drive.health.jobs_health`).
 
 Kinds (:data:`JOB_KINDS`): ``reconnect`` (a lost bus opened again), ``reconfigure`` (a drive
-configured again after a reset), ``sync_restart`` (the daemon's SYNC job set up again),
+configured again after a reset), ``restore_enable`` (its enable again after that, where the
+config restores it), ``sync_restart`` (the daemon's SYNC job set up again),
 ``stop_by_sdo`` (the SDO copy of a stop), ``supervisor`` (one period of the supervisor's loop),
 ``stop`` (a stop a node hands to a worker). A kind not in the list is counted all the same.
 
@@ -26,7 +27,7 @@ from motor_driver.process.ratelimit import PERIOD_S, Throttle
 
 logger = logging.getLogger(__name__)
 
-JOB_KINDS = ("reconnect", "reconfigure", "sync_restart", "stop_by_sdo", "supervisor", "stop")
+JOB_KINDS = ("reconnect", "reconfigure", "restore_enable", "sync_restart", "stop_by_sdo", "supervisor", "stop")
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ from motor_driver.drive.ledger import (
     Event,
     Heard,
     RebootFailed,
+    RestoreFailed,
     RuntimePort,
 )
 from motor_driver.process.jobs import JobFaults, cause_of
@@ -216,6 +217,9 @@ class Supervisor:
             runtime = self.runtimes[event.drive]
             runtime.boot_restarts += 1
             runtime.boot_restart_why = event.why
+        elif isinstance(event, RestoreFailed):
+            self.faults.failed("restore_enable", f"{event.drive}: enabling it again after its re-configuration",
+                               event.error)
         elif isinstance(event, (Booting, Booted, RebootFailed)):
             runtime = self.runtimes[event.drive]
             runtime.booted = isinstance(event, Booted)
