@@ -57,7 +57,9 @@ class DriverActionsNode(Node):
         self._move = ActionServer(self, MoveJoint, "move_joint", execute_callback=self._execute_move,
                                   goal_callback=self._known_joint, cancel_callback=self._accept_cancel,
                                   callback_group=group)
-        self._workers: dict[str, ThreadPoolExecutor] = {}  # a joint's waits on its drive, one at a time
+        # a joint's work on its drive, one at a time per lane: "start" (a goal's SDO writes and mode
+        # switch, in arrival order) and "wait" (a goal's last wait, never queued behind another's start)
+        self._workers: dict[tuple[str, str], ThreadPoolExecutor] = {}
         self._alive = True
         self._trajectories: list[Any] = []
         if trajectory_groups:  # control_msgs is needed only then (a wheels-only rover runs without it)
@@ -81,15 +83,16 @@ class DriverActionsNode(Node):
         timer.start()
         await done
 
-    async def _off_executor(self, joint: str, work: Callable[[], T]) -> T:
-        """``work`` (it waits on the drive) on the joint's own worker, watched between pauses: the
-        executor serves cancels and other goals meanwhile; its result, or its error, is the goal's."""
+    async def _off_executor(self, joint: str, work: Callable[[], T], lane: str = "start") -> T:
+        """``work`` (it waits on the drive) on the joint's own worker of ``lane``, watched between
+        pauses: the executor serves cancels and other goals meanwhile; its result, or its error, is
+        the goal's."""
         if not self._alive:
             raise CancelledError(f"{joint}: the driver's actions shut down")  # said by the goal
-        worker = self._workers.get(joint)
+        worker = self._workers.get((joint, lane))
         if worker is None:
-            worker = self._workers[joint] = ThreadPoolExecutor(max_workers=1,
-                                                               thread_name_prefix=f"rovercan-action-{joint}")
+            worker = self._workers[(joint, lane)] = ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix=f"rovercan-action-{joint}-{lane}")
         future = worker.submit(work)
         while not future.done():
             await self._pause()
@@ -155,7 +158,7 @@ class DriverActionsNode(Node):
                     raise DriveStateError(f"{request.joint}: the move ended: {state.verdict.text()}", node_id=drive.node_id)
                 if state.target_reached and abs(target - state.angle_deg) < TARGET_WINDOW_DEG:
                     # the handshake's last word, and a fresh position
-                    await self._off_executor(request.joint, lambda: drive.wait_target_reached(1.0))
+                    await self._off_executor(request.joint, lambda: drive.wait_target_reached(1.0), lane="wait")
                     break
                 feedback.angle, feedback.remaining_deg = float(state.angle_deg), float(target - state.angle_deg)
                 goal.publish_feedback(feedback)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -612,6 +613,35 @@ def test_home_and_move_joint_actions_give_feedback_and_cancel_stops_the_joint(gr
     finally:
         spin.stop(5.0)
         client_node.destroy_node()
+
+
+def test_a_goals_last_wait_is_not_queued_behind_another_goals_start(graph: Graph) -> None:
+    """A joint's goal starts (SDO writes, a mode switch) run one at a time in arrival order; a
+    goal's last wait on its drive runs beside them: it ended behind a slow start of the next
+    goal (order, not a clock: the wait ends while the start is still held)."""
+    from nodes.actions import DriverActionsNode
+
+    actions = next(n for n in graph.assembly.nodes if isinstance(n, DriverActionsNode))
+    executor = actions.executor
+    assert executor is not None
+    held = threading.Event()
+    started = threading.Event()
+
+    def slow_start() -> str:
+        started.set()
+        held.wait(60.0)
+        return "started"
+
+    start = executor.create_task(actions._off_executor("wheel_front_left", slow_start))
+    wait_for(started.is_set, 10.0, "the start under way on the joint's worker")
+    last = executor.create_task(actions._off_executor("wheel_front_left", lambda: "reached", lane="wait"))
+    try:
+        wait_for(last.done, 10.0, "the last wait, beside the held start")
+        assert last.result() == "reached" and not start.done()
+    finally:
+        held.set()
+    wait_for(start.done, 10.0, "the start's end")
+    assert start.result() == "started"
 
 
 def test_a_stop_service_answers_while_a_slow_service_is_still_running(graph: Graph) -> None:
