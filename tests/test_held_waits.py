@@ -28,6 +28,7 @@ from can_config.errors import SdoTimeoutError
 from can_config.model import GENERIC_EDS
 from motor_driver import MotorDriver
 from motor_driver.bus.sdo_client import MultiplexedSdoClient, OwnAnswersNode
+from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.process.held import HELD_GAP_S, MAX_RESUMES, POLL_S, RESUME_S, HeldDeadline
 from virtual_can import SimService
@@ -115,7 +116,7 @@ def sdo(request: pytest.FixtureRequest) -> Iterator[tuple[SdoPort, MultiplexedSd
     network.connect()
     node = OwnAnswersNode(NODE, load_drive_od(GENERIC_EDS, NODE))
     network.add_node(node)
-    port = SdoPort("held", node, node.object_dictionary, TIMEOUT_S)
+    port = SdoPort("held", node, node.object_dictionary, getattr(request, "param", TIMEOUT_S))
     try:
         yield port, node.sdo, responder
     finally:
@@ -130,6 +131,19 @@ def test_an_sdo_answer_that_comes_after_the_process_was_held_past_the_timeout_is
     assert port.read_value(0x1000) == DEVICE_TYPE
     assert responder.requests == 1  # answered, not asked again
     assert client.responses.waits > 1
+
+
+@pytest.mark.parametrize("sdo", [0.5], indirect=True)  # the port's SDO timeout
+def test_a_transfer_held_past_its_whole_bound_is_not_aborted_for_the_hold(
+        sdo: tuple[SdoPort, MultiplexedSdoClient, Responder]) -> None:
+    """The whole transfer's bound (SDO_TRANSFER_TIMEOUTS x the SDO timeout) is a held deadline
+    too: the hold here is longer than the whole bound of a port with a 0.5 s timeout, and the
+    answer, there once the process runs again, is taken (a plain deadline aborted the transfer)."""
+    port, client, responder = sdo
+    assert HOLD_S > SDO_TRANSFER_TIMEOUTS * 0.5
+    client.responses = HeldQueue(after_hold=responder.release)
+    assert port.read_value(0x1000) == DEVICE_TYPE
+    assert responder.requests == 1
 
 
 def test_a_drive_that_never_answers_is_still_silent_and_the_hold_is_said(

@@ -14,7 +14,6 @@ from __future__ import annotations
 import logging
 import struct
 import threading
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -27,6 +26,7 @@ from can_config.eds import has_object, variable
 from can_config.errors import BootError, BusLostError, CommandRejected, SdoError, SdoTimeoutError
 from can_config.objects import OD, sdo_abort_text
 from motor_driver.drive.constants import SDO_ABORT_OUT_OF_MEMORY, SDO_ABORT_TIMEOUT, SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
+from motor_driver.process.held import HeldDeadline
 from motor_driver.protocol.codec import pack_value, unpack_value, value_format
 
 logger = logging.getLogger(__name__)
@@ -118,7 +118,9 @@ class SdoPort:
         cap = max(8, fixed) if fixed else SDO_UPLOAD_MAX_BYTES  # some drives send a U32 for a smaller type
         sdo = self._node.sdo
         where = f"node {self.node_id}: SDO read 0x{index:04X}:{subindex}"
-        deadline = time.monotonic() + SDO_TRANSFER_TIMEOUTS * self._timeout_s
+        # a hold of the whole process at the end of the transfer is not the drive's: one more look
+        # (a gap between two segments longer than a hold's also counts as one: at most 2 x 0.25 s)
+        deadline = HeldDeadline(SDO_TRANSFER_TIMEOUTS * self._timeout_s)
         data = bytearray()
         with sdo.open(index, subindex, buffering=0) as stream:
             if stream.size is not None and stream.size > cap:
@@ -132,7 +134,7 @@ class SdoPort:
                     sdo.abort(SDO_ABORT_OUT_OF_MEMORY)
                     raise SdoError(f"{where}: the drive sent more than {cap} bytes; the transfer was aborted",
                                    node_id=self.node_id, index=index, subindex=subindex)
-                if time.monotonic() > deadline:
+                if deadline.remaining() <= 0.0:
                     sdo.abort(SDO_ABORT_TIMEOUT)
                     raise SdoTimeoutError(f"{where}: the transfer took over {SDO_TRANSFER_TIMEOUTS} x the SDO timeout"
                                           f" ({self._timeout_s:g} s); aborted", node_id=self.node_id,
