@@ -12,9 +12,11 @@ before the fix (a plain deadline) fail every one of them.
 from __future__ import annotations
 
 import queue
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import can
 import canopen
@@ -27,6 +29,7 @@ from can_config.eds import load_drive_od
 from can_config.errors import SdoTimeoutError
 from can_config.model import GENERIC_EDS
 from motor_driver import MotorDriver
+from motor_driver.bus import cyclic
 from motor_driver.bus.sdo_client import MultiplexedSdoClient, OwnAnswersNode
 from motor_driver.drive.constants import SDO_TRANSFER_TIMEOUTS
 from motor_driver.drive.sdo import SdoPort
@@ -224,3 +227,76 @@ def test_a_deadline_looks_again_after_a_hold_and_never_waits_unbounded(timeout: 
             assert at < timeout + MAX_RESUMES * (resume + longest) + 1e-9
         if not any(g > HELD_GAP_S for _, g in looks[:looks.index((at, gap)) + 1]):
             assert (left > 0) == (at < timeout) or abs(at - timeout) < 1e-9  # no hold: a plain timeout
+
+
+class SplitGreeting:
+    """A socketcand daemon on 127.0.0.1 that says half its greeting, the rest once told (while
+    the client is held), then answers ``< open ... >`` with ``< ok >``."""
+
+    def __init__(self) -> None:
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.rest = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name="split-greeting", daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        conn, _ = self.listener.accept()
+        with conn:
+            try:
+                conn.sendall(b"< h")
+                self.rest.wait(60.0)
+                conn.sendall(b"i >")
+                while data := conn.recv(256):
+                    if b"< open" in data:
+                        conn.sendall(b"< ok >")
+            except OSError:
+                pass  # the client gave up: its error is the test's
+
+    def close(self) -> None:
+        self.listener.close()
+        self._thread.join(30.0)
+
+
+class HeldSocket:
+    """The cyclic job's connection, with a hook in its first read: it returns what came, then the
+    daemon says the rest and the thread is held past the wait's deadline before it looks again."""
+
+    def __init__(self, sock: socket.socket, daemon: SplitGreeting, timeout_s: float) -> None:
+        self._sock, self._daemon, self._timeout_s = sock, daemon, timeout_s
+        self.reads = 0
+
+    def recv(self, size: int, *flags: int) -> bytes:
+        self.reads += 1
+        chunk = self._sock.recv(size, *flags)
+        if self.reads == 1:
+            self._daemon.rest.set()
+            hold_past(time.monotonic() + self._timeout_s + 0.5)
+        return chunk
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sock, name)
+
+
+def test_a_daemons_reply_that_came_while_the_process_was_held_is_read(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The socketcand daemon's greeting to a cyclic job, its end in the buffer while the job's
+    thread was held past its reply timeout: read, not a 'bus lost' (a plain deadline raised
+    before reading the buffer again)."""
+    daemon = SplitGreeting()
+    timeout_s = 0.5
+    held: list[HeldSocket] = []
+    connect = socket.create_connection
+
+    def held_connection(*args: Any, **kwargs: Any) -> Any:
+        held.append(HeldSocket(connect(*args, **kwargs), daemon, timeout_s))
+        return held[-1]
+
+    monkeypatch.setattr(cyclic.socket, "create_connection", held_connection)
+    try:
+        task = cyclic.DaemonCyclicTask("127.0.0.1", daemon.port, "can0",
+                                       can.Message(arbitration_id=0x80, data=b"", is_extended_id=False), 0.01,
+                                       timeout_s=timeout_s)
+        task.stop()
+    finally:
+        daemon.close()
+    assert held and held[0].reads >= 2
