@@ -7,6 +7,7 @@ The joint's true angle is read from the simulated drive (its shaft), not from th
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import sys
 import threading
@@ -19,6 +20,7 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import CommandRejected, MotorError
 from motor_driver import Drive, MotorDriver, State
+from motor_driver.drive.constants import LIMIT_ACCEL_MARGIN_S
 from virtual_can import SimService
 from virtual_can.sim.drive import LIMIT_TOLERANCE_REV
 
@@ -109,9 +111,23 @@ def test_a_single_velocity_command_is_stopped_by_the_guard(driver_factory: Drive
     assert 80.0 < high <= 90.0 and abs(drive.snapshot().velocity_deg_s) < 1.0
 
 
-def test_torque_toward_a_limit_is_stopped(driver_factory: DriverFactory) -> None:
+def test_torque_toward_a_limit_is_stopped(driver_factory: DriverFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each push is stopped by the limit guard, at or before the limit while the guard looks on
+    time (its margin covers a supervisor period and a SYNC: 25 ms). A process held longer lets a
+    torque-driven joint gain about 115 deg/s per 50 ms before the guard looks again, which no host
+    guard can take back (the drive's own 0x607D is the backstop): then only a bound of gross
+    failure is checked. Which case held is read from the guard's own looks (a hook that calls it),
+    so the verdict never depends on the process getting the CPU."""
     sim, driver = driver_factory(make_config(1, **LIMITED, watchdog_ms=10_000))
     drive = driver.drive("joint1")
+    looks: list[float] = []
+    guard = drive.limits.guard_limits
+
+    def looked() -> None:
+        looks.append(time.monotonic())
+        guard()
+
+    monkeypatch.setattr(drive.limits, "guard_limits", looked)
     drive.enable()
     watch = Extremes(sim)
     for push in range(1, 7):  # pushed again and again from where it stopped
@@ -124,11 +140,9 @@ def test_torque_toward_a_limit_is_stopped(driver_factory: DriverFactory) -> None
         wait_for(lambda: sim_state(sim) == "SWITCH_ON_DISABLED", 1.0, "quick stop done")  # a torque loop has no brake
         drive.enable()
     _low, high = watch.stop()
-    # every push was stopped by the guard near the limit. How near depends on how soon it acts:
-    # the joint gains about 115 deg/s in each 50 ms the process is held (a crowded run stopped a
-    # push at 92 deg); its margin covers one supervisor period and a SYNC, so a quiet process stops
-    # short of 90. That is a timing claim, not this test's: here no push runs on unchecked
-    assert 83.0 < high <= 95.0, high
+    worst_gap = max(b - a for a, b in itertools.pairwise(looks))
+    on_time = worst_gap <= LIMIT_ACCEL_MARGIN_S
+    assert 83.0 < high <= (90.0 if on_time else 95.0), (high, f"the guard's worst gap between looks: {worst_gap:.3f} s")
 
 
 def test_streamed_positions_are_refused_beyond_a_limit(driver_factory: DriverFactory) -> None:
