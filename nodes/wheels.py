@@ -94,7 +94,9 @@ class WheelsOut:
     """``on_wheel_loss: continue``: the wheels left out, each with its reason. A wheel goes out
     when its verdict is not usable while the rover drives (lost, late, faulted, another master's,
     stopped): it is told to stop; it comes back only once its verdict is usable again after an
-    enable the driver completed since it went out (/arm, recover): never by itself, still running
+    enable the driver completed since it went out (/arm, its own enable, or, with
+    restore_enable_after_reboot, the driver's enable after a reset it configured again unless a
+    stop came first): never by itself, still running
     from before. The enable is read from the driver's count of them, not from states seen between
     two ticks: an /arm that stops and enables a wheel within one tick takes it back all the same."""
 
