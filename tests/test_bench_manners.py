@@ -68,6 +68,26 @@ def test_a_ctrl_c_inside_an_interpreter_callback_still_ends_the_process() -> Non
     assert proc.stderr == "rovercan: interrupted (Ctrl-C)\n", proc.stderr
 
 
+def test_a_stop_signal_inside_an_interpreter_callback_still_leaves_the_block() -> None:
+    """stop_on_signals (every bench command's): the stop raised while the interpreter runs a
+    callback of its own was printed as "Exception ignored" and lost, the block ran on and every
+    later Ctrl-C was ignored (the first had been taken): it reaches the block now."""
+    script = ("import os, signal, time, weakref\n"
+              "from motor_driver.process.stop import stop_on_signals\n"
+              "class Lock: pass\n"
+              "with stop_on_signals() as stop:\n"
+              "    lock = Lock()\n"
+              "    ref = weakref.ref(lock, lambda _: os.kill(os.getpid(), signal.SIGINT))\n"
+              "    del lock\n"
+              "    for _ in range(3000):\n"
+              "        time.sleep(0.01)\n"
+              "    print('ran on', flush=True)\n"
+              "print('left on', signal.Signals(stop.signum).name, flush=True)\n")
+    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout == "left on SIGINT\n", (proc.stdout, proc.stderr)
+    assert "Exception ignored" not in proc.stderr, proc.stderr
+
+
 def test_enable_says_the_drive_is_disabled_again_as_it_exits() -> None:
     with rovercan_sim() as port:
         result = run("enable", "1", "--eds", GENERIC_EDS_ARG, *bus(port), "--json")

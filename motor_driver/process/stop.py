@@ -16,20 +16,28 @@ Two ways, one per kind of program:
           ...
 
   Only the first signal raises; a second one during the teardown is ignored, so the stop
-  cannot be interrupted half-way. SIGKILL, a hang or a power cut run no handler at all: for
+  cannot be interrupted half-way. A first one raised inside an interpreter callback (where an
+  exception is only printed) is sent again until it reaches the block. SIGKILL, a hang or a power cut run no handler at all: for
   those the drives watch the host's heartbeat themselves (see the README, Safety).
 """
 
 from __future__ import annotations
 
+import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from types import FrameType
+from typing import Any
 
 #: What systemd / docker stop (SIGTERM), Ctrl+C (SIGINT) and a closed terminal (SIGHUP) send.
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+#: After a stop lost in an interpreter callback, its signal is sent again this much later (s).
+REDELIVER_S = 0.05
 
 
 class StopSignal:
@@ -79,11 +87,28 @@ def stop_on_signals() -> Iterator[_Stop]:
             state.signum = signum
             raise StopRequested(signum)
 
+    previous_hook = sys.unraisablehook
+
+    def dropped(unraisable: Any) -> None:
+        """The stop raised while the interpreter ran a callback of its own (a weakref's, a
+        finalizer's) is printed as "Exception ignored" and lost, and the block would run on with
+        every later signal ignored: the signal is sent again, from a thread once this hook has
+        returned (a handler run inside the hook would be lost the same way), to reach the block."""
+        if isinstance(unraisable.exc_value, StopRequested) and state.signum is not None:
+            signum, state.signum = state.signum, None
+            again = threading.Timer(REDELIVER_S, os.kill, (os.getpid(), signum))
+            again.daemon = True
+            again.start()
+            return
+        previous_hook(unraisable)
+
     old = {sig: signal.signal(sig, handle) for sig in STOP_SIGNALS}
+    sys.unraisablehook = dropped
     try:
         yield state
     except StopRequested:
         pass
     finally:
+        sys.unraisablehook = previous_hook
         for sig, handler in old.items():
             signal.signal(sig, handler)
