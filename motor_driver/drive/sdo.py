@@ -137,7 +137,7 @@ class SdoPort:
                 if deadline.remaining() <= 0.0:
                     sdo.abort(SDO_ABORT_TIMEOUT)
                     raise SdoTimeoutError(f"{where}: the transfer took over {SDO_TRANSFER_TIMEOUTS} x the SDO timeout"
-                                          f" ({self._timeout_s:g} s); aborted", node_id=self.node_id,
+                                          f" ({self._timeout_s:g} s){deadline.said()}; aborted", node_id=self.node_id,
                                           index=index, subindex=subindex)
         return bytes(data[:fixed] if fixed and len(data) > fixed else data)
 
