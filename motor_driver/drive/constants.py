@@ -38,9 +38,11 @@ QUICK_STOP_THEN_DISABLE = 2
 LIMIT_MARGIN_S = 0.05
 #: The limit guard moves a sampled position on by its velocity for at most this long.
 MAX_EXTRAPOLATION_S = 0.2
-#: How long a torque-commanded joint goes on speeding up once the guard has decided to brake:
-#: the quick stop reaches the drive with the next SYNC, a supervisor period after the samples.
-LIMIT_ACCEL_MARGIN_S = 0.025
+#: How long a torque-commanded joint goes on speeding up before a brake decided at the guard's
+#: next look takes hold: that look (the supervisor's 10 ms period, late by up to 15 ms on a
+#: quiet CI machine) and the next SYNC (10 ms). 25 ms let a push pass the limit by 0.6 deg with
+#: the looks 25 ms apart.
+LIMIT_ACCEL_MARGIN_S = 0.035
 #: Velocity samples further apart than this give no acceleration (a gap, not a slope).
 MAX_ACCEL_GAP_S = 0.2
 #: A position the joint cannot have reached is taken only once this many further samples agree
