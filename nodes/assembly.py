@@ -25,6 +25,13 @@ Executors and callback groups (measured: docs/ros.md, README):
   for its drive (a mode switch, a target by SDO), one joint's at a time, made when first needed
   (:mod:`nodes.handoff`): the hot thread never waits for a drive.
 
+Callbacks (nodes/runtime.py, :func:`~nodes.runtime.supervise`): every service, timer and
+subscription callback of the assembly's nodes is supervised, at :meth:`Assembly.build` and again
+at :meth:`Assembly.start`: an unexpected exception is logged once with its trace, counted in the
+driver node's /diagnostics (``callback_failures``), a service answers a failed response naming
+itself, and no executor ends on one (each executor thread's spin, and the caller's spin of the
+hot one given :attr:`Assembly.failures`, catch what still escapes).
+
 Stop (:meth:`Assembly.close`): the driver closed first (its one safe stop,
 :meth:`motor_driver.MotorDriver.safe_stop`: every drive quick-stopped and its voltage disabled;
 a service blocked on a drive then fails fast), the executor threads joined, the nodes destroyed.
@@ -127,10 +134,12 @@ class Assembly:
             self.hot.add_node(n)
             self.executors[n.get_name()] = self.hot
         self.nodes += hot
-        services = DriverServicesNode(self.driver, node.drives, **self._kwargs)
+        failures = node.callback_failures
+        services = DriverServicesNode(self.driver, node.drives, failures=failures, **self._kwargs)
         self.trajectories = groups_of(config.trajectory_groups, node.drives)
         waiting: list[tuple[Node, Executor]] = [
-            (DriverStopsNode(self.driver, node.drives, **self._kwargs), SingleThreadedExecutor(**self._kwargs)),
+            (DriverStopsNode(self.driver, node.drives, failures=failures, **self._kwargs),
+             SingleThreadedExecutor(**self._kwargs)),
             (services, MultiThreadedExecutor(num_threads=len(services.groups), **self._kwargs)),
             (DriverActionsNode(self.driver, node.drives, trajectory_groups=self.trajectories, **self._kwargs),
              SingleThreadedExecutor(**self._kwargs))]
@@ -138,6 +147,7 @@ class Assembly:
             executor.add_node(n)
             self.executors[n.get_name()] = executor
             self.nodes.append(n)
+        self._supervise()
         heap.settle()  # what exists now lives as long as the process (a full collection stops
         # every thread, so it comes before the heartbeat starts)
         return node
@@ -153,12 +163,26 @@ class Assembly:
             f"{len(self.node.drives)} drive(s) on {len(self.driver.config.buses)} bus(es) booted; "
             + ("arming them" if arm and self.node.get_parameter("arm").value
                else f"not armed: {self.driver.motion_held or 'call /arm (std_srvs/Trigger)'}"))
+        self._supervise()  # and what was made since build
         for n in self.nodes:
             executor = self.executors[n.get_name()]
             if executor is not self.hot and n.get_name() in THREADS:
-                self._threads.append(runtime.SpinThread(executor, THREADS[n.get_name()]))
+                self._threads.append(runtime.SpinThread(executor, THREADS[n.get_name()], self.failures))
         if arm:
             self.node.arm_if_asked()
+
+    @property
+    def failures(self) -> runtime.CallbackFailures:
+        """The callbacks of this process's nodes that raised (the driver node's /diagnostics says them);
+        the caller's spin of :attr:`hot` counts there too (``runtime.spin_until(..., failures=...)``)."""
+        assert self.node is not None, "build() first"
+        return self.node.callback_failures
+
+    def _supervise(self) -> None:
+        """Every service, timer and subscription callback of the assembly's nodes supervised
+        (nodes/runtime.py): an exception is logged once, counted, a service answers; none ends an executor."""
+        for n in self.nodes:
+            runtime.supervise(n, self.failures)
 
     def arm(self, joints: Collection[str] | None = None) -> list[str]:
         """Enable every served drive (or those of ``joints``), each whatever the others did; what
@@ -235,7 +259,7 @@ def run(program: str, stop: StopSignal, *, name: str = "rovercan_driver", one_jo
     try:
         assembly = assemble(name, one_joint=one_joint)
         assembly.start()
-        runtime.spin_until(assembly.hot, stop.event)
+        runtime.spin_until(assembly.hot, stop.event, failures=assembly.failures)
     except RovercanError as err:
         print(f"{program}: {err}", file=sys.stderr)
         return 2

@@ -43,7 +43,7 @@ from std_msgs.msg import Float32
 from can_config.errors import ConfigError, RovercanError
 from motor_driver import Drive, DriveState, MotorDriver
 from motor_driver.drive.frameloss import Counts, FrameLoss, Loss, total
-from motor_driver.drive.health import Rejections, bus_health, drive_health, with_boot
+from motor_driver.drive.health import JOB_FAULT_RECENT_S, OK, WARN, Rejections, bus_health, drive_health, with_boot
 from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.recording.published import joint_entry
 from nodes.handoff import Handoff
@@ -52,6 +52,7 @@ from nodes.params import DRIVER, ONE_JOINT, declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.rawcmd import float32_data
 from nodes.refusals import WARN_THROTTLE_S, RefusalLog
+from nodes.runtime import CallbackFailures
 
 
 class DriverNode(Node):
@@ -65,6 +66,8 @@ class DriverNode(Node):
         demo joint too. Without ``driver`` the entry point reads the process's parameters from this
         node first (nodes/assembly.py: the scheduling before the driver's threads exist), then serves."""
         super().__init__(name, **kwargs)
+        #: the callbacks of this process's nodes that raised (nodes/runtime.py: supervise); in /diagnostics
+        self.callback_failures = CallbackFailures()
         declare(self, *(ONE_JOINT if one_joint else DRIVER))
         self._one_joint = one_joint
         if driver is not None:
@@ -308,14 +311,26 @@ class DriverNode(Node):
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: bus {bus_name}", message=health.message,
                     hardware_id=bus_name, values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
-            jobs = self.driver.jobs_health()
-            array.status.append(DiagnosticStatus(
-                level=bytes([jobs.level]), name="rovercan: driver", message=jobs.message, hardware_id="driver",
-                values=[KeyValue(key=k, value=v) for k, v in jobs.values.items()]))
+            array.status.append(self._driver_status())
             self._diag_pub.publish(array)
         except Exception as err:
             self.get_logger().error(f"diagnostics publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
 
+
+    def _driver_status(self) -> DiagnosticStatus:
+        """The driver's background jobs, and the callbacks of this process that raised (nodes/runtime.py:
+        a bug, answered and carried on): counted, the last named, WARN while recent as a job's failure."""
+        jobs = self.driver.jobs_health()
+        level, message = jobs.level, jobs.message
+        failed, last, age_s = self.callback_failures.snapshot()
+        if failed:
+            recent = age_s < JOB_FAULT_RECENT_S
+            level = max(level, WARN if recent else OK)
+            message += f"; {failed} callback failure(s), the last: {last}" if recent else \
+                f"; {failed} callback failure(s) so far"
+        values = {**jobs.values, "callback_failures": str(failed), "last_callback_failure": last}
+        return DiagnosticStatus(level=bytes([level]), name="rovercan: driver", message=message, hardware_id="driver",
+                                values=[KeyValue(key=k, value=v) for k, v in values.items()])
 
     def _frame_loss(self, name: str, drive: Drive, state: DriveState) -> Loss | None:
         """The drive's counters into its window (measured only while its data is news and it is

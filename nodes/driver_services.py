@@ -15,6 +15,7 @@ busy with another (``arm`` reports a homing drive as busy, and enables the other
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from struct import error as struct_error
 from typing import Any
@@ -27,20 +28,38 @@ from std_srvs.srv import Trigger
 from can_config.errors import RovercanError
 from can_config.objects import OperationMode, sdo_abort_text
 from motor_driver import Drive, MotorDriver
+from nodes.runtime import CallbackFailures
 
 SERVICE_JOIN_S = 5.0  # longest a service callback may take to notice the driver is closed
 
 
+#: The range of an SdoRead reply's ``value`` (int64).
+INT64_MIN, INT64_MAX = -(1 << 63), (1 << 63) - 1
+
+
+def reply_value(value: int | float | bytes) -> tuple[int, str, bool]:
+    """An SDO value as an SdoRead reply's ``value`` (int64) and ``text``, and whether the value
+    carries it: a number the int64 cannot carry (NaN, an infinity, a REAL beyond int64, an
+    UNSIGNED64 above int64) is ``value`` 0 and said by ``text`` alone ("nan", "inf", the exact
+    integer); a REAL's ``value`` is its whole part; a string's 0."""
+    if isinstance(value, bytes):
+        return 0, value.decode("latin-1", errors="replace"), True
+    text = repr(value) if isinstance(value, float) else str(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return 0, text, False
+    whole = int(value)
+    return (whole, text, True) if INT64_MIN <= whole <= INT64_MAX else (0, text, False)
+
+
 def trigger(drive: Drive, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
-    """A std_srvs/Trigger callback that runs ``action`` and says what happened."""
+    """A std_srvs/Trigger callback that runs ``action`` and says what happened. An unexpected
+    exception is the supervisor's (nodes/runtime.py: logged with its trace, counted, answered)."""
     def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             action()
             response.success, response.message = True, f"{drive.name}: {service} done; state {drive.cache.state.name}"
         except RovercanError as err:
             response.success, response.message = False, str(err)
-        except Exception as err:
-            response.success, response.message = False, f"{drive.name}: {service} failed unexpectedly: {err!r}"
         return response
     return call
 
@@ -54,9 +73,9 @@ def answer(response: Trigger.Response, service: str, failed: list[str], drives: 
     return response
 
 
-def arm(drives: Mapping[str, Drive]) -> Callable[[Any, Any], Any]:
+def arm(drives: Mapping[str, Drive], failures: CallbackFailures) -> Callable[[Any, Any], Any]:
     """/arm: enable every drive, each whatever the others did; a drive busy (homing) is refused at
-    once and named."""
+    once and named; an unexpected exception of one drive's is logged, counted and named."""
     def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         failed = []
         for drive in drives.values():
@@ -64,20 +83,20 @@ def arm(drives: Mapping[str, Drive]) -> Callable[[Any, Any], Any]:
                 drive.enable()
             except RovercanError as err:
                 failed.append(str(err))
-            except Exception as err:
-                failed.append(f"{drive.name}: arm failed unexpectedly: {err!r}")
+            except Exception as err:  # the others are armed all the same
+                failed.append(failures.record(f"service /arm on {drive.name}", err))
         return answer(response, "arm", failed, drives)
     return call
 
 
-def disarm(driver: MotorDriver, drives: Mapping[str, Drive]) -> Callable[[Any, Any], Any]:
+def disarm(driver: MotorDriver, drives: Mapping[str, Drive], failures: CallbackFailures) -> Callable[[Any, Any], Any]:
     """/disarm: the driver's one safe stop (:meth:`MotorDriver.safe_stop`: quick stop, then
     disable voltage, no torque) on every drive, each whatever the others did."""
     def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             failed = driver.safe_stop(drives.values())
-        except Exception as err:
-            failed = [f"disarm failed unexpectedly: {err!r}"]
+        except Exception as err:  # every drive's state is said all the same
+            failed = [failures.record("service /disarm", err)]
         return answer(response, "disarm", failed, drives)
     return call
 
@@ -87,15 +106,17 @@ class DriverStopsNode(Node):
     safe stop on every drive), in a node of their own on an executor thread of their own
     (nodes/assembly.py): nothing but another stop is ever ahead of one."""
 
-    def __init__(self, driver: MotorDriver, drives: Mapping[str, Drive] | None = None, **kwargs: Any) -> None:
+    def __init__(self, driver: MotorDriver, drives: Mapping[str, Drive] | None = None, *,
+                 failures: CallbackFailures | None = None, **kwargs: Any) -> None:
         super().__init__("rovercan_driver_stops", **kwargs)
         drives = dict(driver.drives) if drives is None else drives
+        failures = CallbackFailures() if failures is None else failures
         for drive in drives.values():
             base = drive.config.ros_prefix
             for service, action in (("quick_stop", drive.quick_stop), ("disable", drive.disable),
                                     ("halt", drive.halt)):
                 self.create_service(Trigger, f"{base}/{service}", trigger(drive, service, action))
-        self.create_service(Trigger, "disarm", disarm(driver, drives))
+        self.create_service(Trigger, "disarm", disarm(driver, drives, failures))
 
 
 class DriverServicesNode(Node):
@@ -103,13 +124,15 @@ class DriverServicesNode(Node):
     rover's ``arm``, in a node of their own, each joint's in a callback group of its own
     (:attr:`groups`; the module docstring says why)."""
 
-    def __init__(self, driver: MotorDriver, drives: Mapping[str, Drive] | None = None, **kwargs: Any) -> None:
+    def __init__(self, driver: MotorDriver, drives: Mapping[str, Drive] | None = None, *,
+                 failures: CallbackFailures | None = None, **kwargs: Any) -> None:
         super().__init__("rovercan_driver_services", **kwargs)
         self.driver = driver
         drives = dict(driver.drives) if drives is None else drives
+        failures = CallbackFailures() if failures is None else failures
         #: the callback group of each joint, and of the whole rover's services (key ``""``)
         self.groups: dict[str, CallbackGroup] = {"": MutuallyExclusiveCallbackGroup()}
-        self.create_service(Trigger, "arm", arm(drives), callback_group=self.groups[""])
+        self.create_service(Trigger, "arm", arm(drives, failures), callback_group=self.groups[""])
         for name, drive in drives.items():
             group = self.groups[name] = MutuallyExclusiveCallbackGroup()
             base = drive.config.ros_prefix
@@ -144,13 +167,10 @@ class DriverServicesNode(Node):
                 response.success, response.message = False, str(err)
                 return response
             response.success = True
-            if isinstance(value, int):
-                response.value, response.text = value, str(value)
-            elif isinstance(value, float):
-                response.value, response.text = int(value), repr(value)
-            else:
-                response.text = value.decode("latin-1", errors="replace")
+            response.value, response.text, carried = reply_value(value)
             response.message = f"0x{request.index:04X}:{request.subindex} = {response.text}"
+            if not carried:
+                response.message += " (value 0: the reply's int64 cannot carry it; text says it)"
             return response
         return call
 
@@ -164,7 +184,7 @@ class DriverServicesNode(Node):
                 code = getattr(err, "abort_code", None)
                 if code is not None and sdo_abort_text(code) not in response.message:
                     response.message += f" ({sdo_abort_text(code)})"
-            except struct_error as err:
+            except (struct_error, OverflowError, ValueError) as err:
                 response.success, response.message = False, f"value {request.value} does not fit the object: {err}"
             return response
         return call

@@ -1,4 +1,5 @@
-"""Process life cycle of the rovercan nodes: one stop path, one teardown order.
+"""Process life cycle of the rovercan nodes: one stop path, one teardown order, and no callback
+that ends an executor.
 
 rclpy's own signal handling shuts the context down (SIGTERM) or raises
 ``KeyboardInterrupt`` (SIGINT) under whatever is running, including an executor spinning on
@@ -7,13 +8,32 @@ another thread or an executor building its wait set. Both were seen to kill the 
 state. Here rclpy installs no handlers; SIGINT/SIGTERM set an event, the spin loops return,
 and the caller tears down in order: drives safe, executor threads joined, nodes destroyed,
 context shut down.
+
+Supervised callbacks (:func:`supervise`, :class:`CallbackFailures`): rclpy's executors end on a
+callback's exception. The SingleThreaded and MultiThreadedExecutor raise it out of ``spin_once``
+(the thread pool's future re-raised on the spinning thread at its next turn); the EventsExecutor
+logs it (FATAL, with its trace) and raises it out of its spin; a service whose callback raised
+sends no response, and its client waits for ever. One value a drive returned (an SDO read of NaN)
+ended the services' executor: every joint's enable went unanswered. So every service, timer and
+subscription callback of the assembly's nodes is wrapped where the assembly makes them: an
+unexpected exception is logged once with its trace, counted (the driver's /diagnostics, status
+"rovercan: driver": ``callback_failures``, ``last_callback_failure``), and a service answers a
+failed response naming itself. What still escapes (an action server's internals, a node added
+later) is caught by :func:`spin_until`, logged, counted, and the executor spins on.
+
+Owner: :class:`CallbackFailures` is written by any executor thread (under its lock) and read by
+the diagnostics timer; the rest keeps no state.
 """
 
 from __future__ import annotations
 
+import inspect
 import logging
+import math
 import threading
+import time
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import rclpy
 from rclpy.context import Context
@@ -71,26 +91,172 @@ def go_realtime(node: Node) -> bool:
     return value > 0 and make_process_realtime(node.get_name(), value)
 
 
-def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S) -> None:
+#: How often a callback that keeps failing the same way is said again (its first failure is said
+#: with its trace; each one is counted).
+REPEAT_LOG_S = 10.0
+
+
+class CallbackFailures:
+    """Callbacks that raised an unexpected exception: how many, and the last one named. Each is
+    logged once, with its trace the first time a callback fails with an exception of its type,
+    then at most every REPEAT_LOG_S (a timer failing at 50 Hz is one line, not fifty a second).
+    Written by any executor thread under its lock; read by the diagnostics timer."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._count = 0
+        self._last = ""
+        self._at = 0.0  # when the last one failed (monotonic)
+        self._said: dict[tuple[str, type], float] = {}  # (where, type) -> when said last (monotonic)
+
+    def record(self, where: str, err: BaseException, *, logged: bool = False) -> str:
+        """Count ``err``, raised by the callback ``where``; log it (unless ``logged``: rclpy said it
+        already). Returns the sentence a failed response carries."""
+        text = f"{where} failed unexpectedly: {err!r}"
+        now = time.monotonic()
+        key = (where, type(err))
+        with self._lock:
+            self._count += 1
+            self._last, self._at = text, now
+            said = self._said.get(key)
+            say = not logged and (said is None or now - said >= REPEAT_LOG_S)
+            if say:
+                self._said[key] = now
+            count = self._count
+        if say:
+            logger.error("%s (callback failure %d; answered and carried on: a bug, please report it with this"
+                         " trace)", text, count, exc_info=err if said is None else None)
+        return f"{text} (logged with its trace; counted in /diagnostics: callback_failures)"
+
+    def snapshot(self) -> tuple[int, str, float]:
+        """How many callbacks failed, the last one ("" none) and how long ago (s; inf: none)."""
+        with self._lock:
+            return self._count, self._last, time.monotonic() - self._at if self._count else math.inf
+
+
+def supervise(node: Node, failures: CallbackFailures) -> int:
+    """Wrap every service, timer and subscription callback of ``node`` not wrapped yet (see the
+    module's docstring): an unexpected exception is recorded in ``failures`` and a service answers
+    a failed response naming itself. Returns how many were wrapped now."""
+    wrapped = 0
+    for entity in (*node.services, *node.timers, *node.subscriptions):
+        callback = entity.callback
+        if getattr(callback, "__supervised__", False):
+            continue
+        if hasattr(entity, "srv_type"):
+            entity.callback = _service_callback(entity, callback, failures)
+        elif hasattr(entity, "msg_type"):
+            entity.callback = _subscription_callback(entity, callback, failures)
+        else:
+            entity.callback = _timer_callback(node, callback, failures)
+        wrapped += 1
+    return wrapped
+
+
+def failed_response(srv_type: Any, text: str) -> Any:
+    """A fresh response of ``srv_type``: ``success`` False and ``message`` ``text`` where it has them."""
+    response = srv_type.Response()
+    if hasattr(response, "success"):
+        response.success = False
+    if hasattr(response, "message"):
+        response.message = text
+    return response
+
+
+def _mark(wrapper: Callable[..., Any]) -> Callable[..., Any]:
+    wrapper.__supervised__ = True  # type: ignore[attr-defined]
+    return wrapper
+
+
+def _service_callback(service: Any, callback: Callable[..., Any], failures: CallbackFailures) -> Callable[..., Any]:
+    where = f"service {service.service_name}"
+    response_type = service.srv_type.Response
+
+    def answered(response: Any) -> Any:
+        if isinstance(response, response_type):
+            return response
+        return failed_response(service.srv_type, failures.record(where, TypeError(f"the callback returned {response!r}")))
+
+    if inspect.iscoroutinefunction(callback):
+        async def call_async(request: Any, response: Any) -> Any:
+            try:
+                return answered(await callback(request, response))
+            except Exception as err:
+                return failed_response(service.srv_type, failures.record(where, err))
+        return _mark(call_async)
+
+    def call(request: Any, response: Any) -> Any:
+        try:
+            return answered(callback(request, response))
+        except Exception as err:
+            return failed_response(service.srv_type, failures.record(where, err))
+    return _mark(call)
+
+
+def _subscription_callback(subscription: Any, callback: Callable[..., Any],
+                           failures: CallbackFailures) -> Callable[..., Any]:
+    where = f"subscription {subscription.topic_name}"
+    if subscription._callback_type is subscription.CallbackType.WithMessageInfo:
+        def with_info(msg: Any, info: Any) -> None:
+            try:
+                callback(msg, info)
+            except Exception as err:
+                failures.record(where, err)
+        return _mark(with_info)
+
+    def on_message(msg: Any) -> None:
+        try:
+            callback(msg)
+        except Exception as err:
+            failures.record(where, err)
+    return _mark(on_message)
+
+
+def _timer_callback(node: Node, callback: Callable[..., Any], failures: CallbackFailures) -> Callable[..., Any]:
+    where = f"timer {node.get_name()}: {getattr(callback, '__qualname__', repr(callback))}"
+    if inspect.iscoroutinefunction(callback):
+        async def tick_async() -> None:
+            try:
+                await callback()
+            except Exception as err:
+                failures.record(where, err)
+        return _mark(tick_async)
+
+    def tick() -> None:
+        try:
+            callback()
+        except Exception as err:
+            failures.record(where, err)
+    return _mark(tick)
+
+
+def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S,
+               failures: CallbackFailures | None = None) -> None:
     """Spin ``executor`` until ``stop`` is set or the context is shut down by someone else,
     looking at both every ``poll_s`` at the latest (sooner where the stopper gives the executor work).
+    A callback's exception that reaches here (one :func:`supervise` did not wrap) is logged, counted
+    in ``failures`` and the executor spins on: it never ends the loop.
 
     The EventsExecutor dispatches everything that comes in ``poll_s`` in one call into C++
     (``spin_until_future_complete`` of a future nobody completes, a new one each time: that call
     adds a callback to it): ``spin_once`` would come back to Python after every single callback,
     and the loop's own checks were about 7 % of the hot thread's interpreter time in the six-drive
     profile (docs/performance.md)."""
+    failures = CallbackFailures() if failures is None else failures
     if isinstance(executor, Executor):
         def step() -> None:
             executor.spin_once(timeout_sec=poll_s)
     else:  # rclpy's EventsExecutor (C++; not an rclpy Executor subclass)
         def step() -> None:
             executor.spin_until_future_complete(Future(), timeout_sec=poll_s)
-    try:
-        while not stop.is_set() and executor.context.ok():
+    while not stop.is_set() and executor.context.ok():
+        try:
             step()
-    except ExternalShutdownException:
-        pass
+        except ExternalShutdownException:
+            return
+        except Exception as err:  # a callback's, re-raised by the executor: logged, counted, spun on
+            failures.record(f"a callback of {type(executor).__name__}", err,
+                            logged=not isinstance(executor, Executor))  # the EventsExecutor logged it with its trace
 
 
 def spin_node(node: Node, stop: threading.Event, *, on_stop: Callable[[], None] | None = None,
@@ -131,12 +297,13 @@ IDLE_POLL_S = 2.0
 class SpinThread:
     """An executor spinning on its own thread, stopped (the executor given a task) and joined by :meth:`stop`."""
 
-    def __init__(self, executor: Executor, name: str) -> None:
+    def __init__(self, executor: Executor, name: str, failures: CallbackFailures | None = None) -> None:
         self.executor = executor
         self._stop = threading.Event()
         # rclpy's executors leave their wait at a task (stop() gives one); the EventsExecutor's timed spin does not
         poll_s = IDLE_POLL_S if isinstance(executor, Executor) else POLL_S
-        self._thread = threading.Thread(target=spin_until, args=(executor, self._stop, poll_s), daemon=True, name=name)
+        self._thread = threading.Thread(target=spin_until, args=(executor, self._stop, poll_s, failures), daemon=True,
+                                        name=name)
         self._thread.start()
 
     def stop(self, timeout_s: float) -> bool:
@@ -152,5 +319,5 @@ class SpinThread:
         return True
 
 
-__all__ = ["EXECUTORS", "IDLE_POLL_S", "POLL_S", "SpinThread", "StopSignal", "give_work", "go_realtime", "init", "make_executor",
-           "spin_node", "spin_until"]
+__all__ = ["EXECUTORS", "IDLE_POLL_S", "POLL_S", "CallbackFailures", "SpinThread", "StopSignal", "failed_response",
+           "give_work", "go_realtime", "init", "make_executor", "spin_node", "spin_until", "supervise"]

@@ -1,0 +1,233 @@
+"""Services that never die (issue 70): a value a reply cannot carry, an odd write, or any exception
+in a service, timer or subscription callback is answered or counted, logged once with its trace,
+said on /diagnostics, and every service (/arm and each joint's) still answers after it. A real
+rclpy graph: the driver's process as the assembly builds it (nodes/assembly.py), simulated drives
+on the bus, real rclpy service clients on a node spun by an executor of its own.
+
+The landed code: one ``<joint>/sdo_read`` of a REAL32 holding NaN raised ``ValueError`` in the
+services' MultiThreadedExecutor, which re-raised it out of its spin: no joint's enable or set_mode
+was answered again."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import canopen
+import pytest
+from canopen.objectdictionary import ODVariable, datatypes
+
+from can_config import GENERIC_EDS, with_bus_overrides
+from motor_driver import MotorDriver
+from virtual_can import SimService
+
+from .conftest import HAVE_ROS, make_config, requires_ros, wait_for
+
+pytestmark = requires_ros
+
+if HAVE_ROS:
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rovercan_msgs.srv import SdoRead, SdoWrite, SetMode
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    from nodes import runtime
+    from nodes.assembly import Assembly
+    from nodes.qos import DIAGNOSTICS_QOS, SETPOINT_QOS, STATE_QOS
+
+JOINTS = ["joint1", "joint2"]
+#: A bound for a hang: every answer comes much sooner, later on a crowded machine.
+HANG_S = 30.0
+#: Objects the test EDS adds to the generic drive: a REAL32, an UNSIGNED64 and a REAL64.
+REAL32, U64, REAL64 = 0x2100, 0x2101, 0x2102
+
+
+def odd_eds(path: Path) -> Path:
+    """The generic drive with a REAL32, an UNSIGNED64 and a REAL64 object (read-write)."""
+    od = canopen.import_od(str(GENERIC_EDS), 1)
+    for index, name, data_type in ((REAL32, "Real32 value", datatypes.REAL32), (U64, "Unsigned64 value",
+                                   datatypes.UNSIGNED64), (REAL64, "Real64 value", datatypes.REAL64)):
+        var = ODVariable(name, index)
+        var.data_type, var.access_type, var.default = data_type, "rw", 0
+        od.add_object(var)
+    canopen.export_od(od, str(path), doc_type="eds")
+    return path
+
+
+class Rig:
+    """The assembly on the simulator, and a probe node with a client per service."""
+
+    def __init__(self, sim: SimService, assembly: Assembly, probe: Any) -> None:
+        self.sim, self.assembly, self.probe = sim, assembly, probe
+        self.clients: dict[str, Any] = {}
+        self.diagnostics: list[Any] = []
+        probe.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, DIAGNOSTICS_QOS)
+
+    def call(self, srv_type: Any, name: str, request: Any = None) -> Any:
+        client = self.clients.get(name)
+        if client is None:
+            client = self.clients[name] = self.probe.create_client(srv_type, name)
+        assert client.wait_for_service(timeout_sec=HANG_S), f"no service {name}"
+        future = client.call_async(request if request is not None else srv_type.Request())
+        wait_for(future.done, HANG_S, f"an answer of {name}")
+        return future.result()
+
+    def hold(self, joint: str, index: int, value: float | int) -> None:
+        """The simulated drive of ``joint`` holds ``value`` in ``index``:0 (set from outside the driver)."""
+        runner = self.sim.simulators["can0"]
+        node_id = self.assembly.driver.drive(joint).node_id
+        runner.call(lambda: runner.drive(node_id).store.set(index, 0, value))
+
+    def driver_status(self) -> dict[str, str] | None:
+        """The newest "rovercan: driver" status's values, or None."""
+        for array in reversed(self.diagnostics):
+            for status in array.status:
+                if status.name == "rovercan: driver":
+                    return {kv.key: kv.value for kv in status.values} | {"level": str(status.level[0]),
+                                                                        "message": status.message}
+        return None
+
+    def every_service_answers(self) -> None:
+        """/arm, and each joint's enable, set_mode, sdo_read and quick_stop, answer."""
+        assert self.call(Trigger, "arm").message.startswith("arm")
+        for joint in JOINTS:
+            assert self.call(Trigger, f"{joint}/enable").success
+            assert self.call(SetMode, f"{joint}/set_mode", SetMode.Request(mode="profile_position")).message
+            read = self.call(SdoRead, f"{joint}/sdo_read", SdoRead.Request(index=0x1000, subindex=0))
+            assert read.success and read.value == 0x0002_0192, read.message
+            assert self.call(Trigger, f"{joint}/quick_stop").success
+
+
+@pytest.fixture
+def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Rig]:
+    monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a call must wake them
+    config = make_config(len(JOINTS), eds=str(odd_eds(tmp_path / "odd.eds")))
+    sim = SimService.from_config(config, port=0)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    hot = runtime.make_executor("events", context)
+    assembly = Assembly(MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)), hot, context=context,
+                        overrides=[Parameter("diagnostics_rate_hz", value=10.0)])
+    probe = rclpy.create_node("probe", context=context)
+    probe_executor = SingleThreadedExecutor(context=context)
+    probe_executor.add_node(probe)
+    spinning: list[runtime.SpinThread] = []
+    try:
+        assembly.build()
+        assembly.start()
+        spinning = [runtime.SpinThread(hot, "test-hot", assembly.failures),
+                    runtime.SpinThread(probe_executor, "test-probe")]
+        yield Rig(sim, assembly, probe)
+    finally:
+        for spin in spinning:
+            spin.stop(5.0)
+        assembly.close()
+        probe.destroy_node()
+        rclpy.shutdown(context=context)
+        sim.close()
+
+
+def test_sdo_reads_of_values_an_int64_cannot_carry_are_answered_as_text(rig: Rig) -> None:
+    """NaN, the infinities, 1e30 (REAL32 and REAL64) and UNSIGNED64 values above int64: each
+    answered, value 0, the text saying it; then every service answers."""
+    held = [(REAL32, math.nan, "nan"), (REAL32, math.inf, "inf"), (REAL32, -math.inf, "-inf"),
+            (REAL32, 1e30, None),
+            (REAL64, 1e30, "1e+30"), (REAL64, -1e300, "-1e+300"), (U64, 2**64 - 1, str(2**64 - 1)),
+            (U64, 2**63, str(2**63))]
+    for index, value, text in held:
+        rig.hold("joint1", index, value)
+        read = rig.call(SdoRead, "joint1/sdo_read", SdoRead.Request(index=index, subindex=0))
+        assert read.success and read.value == 0, (value, read)
+        if text is not None:
+            assert read.text == text, (value, read)
+        else:  # a REAL32 holds 1e30 as its nearest float32
+            assert float(read.text) == pytest.approx(1e30, rel=1e-6), read
+        assert "int64 cannot carry it" in read.message, read.message
+    rig.hold("joint1", U64, 2**63 - 1)  # the largest an int64 carries: carried
+    read = rig.call(SdoRead, "joint1/sdo_read", SdoRead.Request(index=U64, subindex=0))
+    assert read.value == 2**63 - 1 and read.text == str(2**63 - 1) and "cannot" not in read.message
+    rig.hold("joint1", REAL32, -2.75)
+    read = rig.call(SdoRead, "joint1/sdo_read", SdoRead.Request(index=REAL32, subindex=0))
+    assert (read.value, read.text) == (-2, "-2.75")
+    rig.every_service_answers()
+    assert rig.assembly.failures.snapshot()[0] == 0  # each answered by the service itself: no failure
+
+
+ODD_WRITES = [(U64, -1), (REAL32, 2**63 - 1), (REAL32, -(2**63)), (REAL64, 7), (0x1008, 12345),  # a string object
+              (0x6060, 300), (0x6060, -200), (0x1017, -1), (0x2345, 1), (0x1000, 1), (0x6040, 15), (0x607A, 99999)]
+
+
+def test_odd_sdo_writes_are_each_answered_and_every_service_answers_after(rig: Rig) -> None:
+    for index, value in ODD_WRITES:
+        reply = rig.call(SdoWrite, "joint2/sdo_write", SdoWrite.Request(index=index, subindex=0, value=value))
+        assert reply.message, (index, value, reply)
+    read = rig.call(SdoRead, "joint2/sdo_read", SdoRead.Request(index=REAL32, subindex=0))
+    assert read.success and read.text == repr(float(-(2**63))), read  # the last written, as a REAL32
+    assert read.value == -(2**63)  # the smallest int64: carried
+    rig.every_service_answers()
+
+
+def test_a_raising_service_callback_answers_naming_itself_and_is_counted_once(
+        rig: Rig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Any exception (not one of the project's) in a service: a failed answer naming the service,
+    one ERROR line with its trace, callback_failures 1 on /diagnostics; every service answers after."""
+    caplog.set_level(logging.INFO)
+
+    def boom(*args: object) -> object:
+        raise RuntimeError("Boom in sdo_read")
+
+    monkeypatch.setattr(rig.assembly.driver.drive("joint1").sdo, "read_value", boom)
+    reply = rig.call(SdoRead, "joint1/sdo_read", SdoRead.Request(index=0x1000, subindex=0))
+    assert not reply.success and "/joint1/sdo_read" in reply.message and "Boom in sdo_read" in reply.message
+    monkeypatch.undo()
+    rig.every_service_answers()
+    lines = [r for r in caplog.records if "Boom" in r.getMessage() and r.levelno >= logging.ERROR]
+    assert len(lines) == 1 and lines[0].exc_info is not None, [r.getMessage() for r in lines]
+    wait_for(lambda: (rig.driver_status() or {}).get("callback_failures") == "1", HANG_S, "the failure on /diagnostics")
+    status = rig.driver_status()
+    assert status is not None and "/joint1/sdo_read" in status["last_callback_failure"]
+    assert status["level"] == "1" and "callback failure" in status["message"]
+
+
+def test_a_raising_timer_and_subscription_never_end_the_hot_executor(
+        rig: Rig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """The state timer and the /joint_commands subscription raise (on the hot EventsExecutor): each
+    counted and said on /diagnostics, which the same executor goes on publishing; the states come
+    back once the timer stops raising."""
+    caplog.set_level(logging.INFO)
+    node = rig.assembly.node
+    assert node is not None
+    raised: list[int] = []
+
+    def boom() -> None:
+        raised.append(1)
+        raise RuntimeError("Boom in the state timer")
+
+    monkeypatch.setattr(node, "_publish_states", boom)
+    wait_for(lambda: len(raised) >= 3, HANG_S, "the state timer raising again and again")
+    monkeypatch.undo()
+
+    def refuse(*args: object) -> None:
+        raise RuntimeError("Boom in /joint_commands")
+
+    monkeypatch.setattr(node.refusals, "refuse", refuse)
+    commands = rig.probe.create_publisher(JointState, "/joint_commands", SETPOINT_QOS)
+    wait_for(lambda: commands.get_subscription_count() > 0, HANG_S, "/joint_commands matched")
+    commands.publish(JointState(name=["no_such_joint"], position=[0.0]))
+    wait_for(lambda: "/joint_commands" in (rig.driver_status() or {}).get("last_callback_failure", ""), HANG_S,
+             "the subscription's failure on /diagnostics")
+    monkeypatch.undo()
+    status = rig.driver_status()
+    assert status is not None and int(status["callback_failures"]) == len(raised) + 1
+    timer_lines = [r for r in caplog.records if "Boom in the state timer" in r.getMessage()]
+    assert len(timer_lines) == 1 and timer_lines[0].exc_info is not None  # said once, however often
+    states: list[Any] = []
+    rig.probe.create_subscription(JointState, "/joint_states", states.append, STATE_QOS)
+    wait_for(lambda: bool(states), HANG_S, "/joint_states after the timer raised")
+    rig.every_service_answers()
