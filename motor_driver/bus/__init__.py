@@ -7,7 +7,8 @@ What lives where: :mod:`.connect` (python-can's bus from config, a socketcand se
 statistics and evidence of another master), :mod:`.link` (the kernel's view of the link:
 controller state, error counters), :mod:`.cyclic` (a cyclic frame on the daemon's timer),
 :mod:`.load` (bus-load planning, pure), :mod:`.sdo_client` (an SDO client that takes only its own
-answers), :mod:`.adapters` (every reach into python-can's or canopen's internals).
+answers), :mod:`.adapters` (every reach into python-can's or canopen's internals), :mod:`.library_log`
+(canopen's log records at their level here).
 
 Owner: each module's docstring names its threads; the bus's receive thread (python-can's
 notifier) feeds :mod:`.traffic`, the bus's worker runs the blocking jobs of :mod:`.handle`.

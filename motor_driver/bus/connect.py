@@ -16,6 +16,7 @@ from typing import Any
 import can
 
 from can_config.errors import BusLostError
+from motor_driver.bus import library_log
 from motor_driver.bus.adapters import pause_when_closed
 
 logger = logging.getLogger(__name__)
@@ -42,6 +43,7 @@ class _QuietConnectRetries(logging.Filter):
 
 
 logging.getLogger("can.interfaces.socketcand.socketcand").addFilter(_QuietConnectRetries())
+library_log.install()  # canopen's abort of a transfer this driver ended on purpose: DEBUG
 
 
 def _greeting(sock: socket.socket, timeout_s: float) -> str:
