@@ -1,7 +1,10 @@
 """``rovercan demo``: the simulator, and the driver's ROS process as ``motor_controller`` runs it
 (nodes/assembly.py: the same nodes, executors and start order, restricted to the config's first
 joint, armed), with the team's degree publisher and a monitor on its hot executor; live
-MotorState printed, and a verdict at the end.
+MotorState printed, and a verdict at the end: the drive's own (its snapshot's
+:class:`~motor_driver.drive.verdict.Verdict`: fresh, usable, its cause), never flags of its own.
+Each log line is printed once: rclpy prints the driver's records (nodes/logbridge.py), so the CLI's
+console handler leaves them out while the demo runs.
 
 ROS is imported inside :func:`run_demo`: the rest of the CLI runs where ROS is absent.
 
@@ -15,13 +18,17 @@ import os
 import sys
 import threading
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from can_config import load_config, with_bus_overrides
 from can_config.errors import ConfigError
 from motor_driver.process.stop import StopSignal
 from rovercan.exits import EXIT_FAILED, EXIT_OK
 from rovercan.launch import LOCAL_DISCOVERY
+
+if TYPE_CHECKING:
+    from motor_driver.drive.verdict import Verdict
 
 
 def _require_ros() -> None:
@@ -45,6 +52,7 @@ def run_demo(args: argparse.Namespace) -> int:
     from motor_driver import MotorDriver
     from nodes import runtime
     from nodes.assembly import Assembly
+    from nodes.logbridge import consoles_print_once
     from nodes.motor_controller import NODE_NAME
     from nodes.motor_degree import MotorDegreeNode
     from virtual_can.service import SimService
@@ -53,7 +61,8 @@ def run_demo(args: argparse.Namespace) -> int:
     joint = config.drives[0].name  # the demo names its joint: the config's first
     runtime.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
     driver_node, hot, realtime = _demo_process(joint, args.realtime_priority)
-    with StopSignal() as stop, SimService.from_config(config, port=args.port) as sim:
+    # rclpy prints the driver's records (nodes/logbridge.py): the CLI's console leaves them out
+    with StopSignal() as stop, SimService.from_config(config, port=args.port) as sim, consoles_print_once():
         config = with_bus_overrides(config, host=sim.host, port=sim.port)
         print(f"rovercan demo: simulated drive(s) on {sim.host}:{sim.port}; joint {joint!r};"
               f" {'until Ctrl+C' if args.duration is None else f'{args.duration:g} s'};"
@@ -79,10 +88,11 @@ def run_demo(args: argparse.Namespace) -> int:
                 ends = threading.Timer(args.duration, time_is_up)
                 ends.daemon = True
                 ends.start()
-            runtime.spin_until(hot, stop.event)
+            runtime.spin_until(hot, stop.event, failures=assembly.failures)
+            drive = assembly.driver.drive(joint)
             if timed_out.is_set() and stop.signum is None:  # a Ctrl+C or SIGTERM is obeyed at once
-                _await_fresh_state(hot, extra.pop(0), latest)
-            result = demo_verdict(last["cmd"], latest[0] if latest else None)
+                _await_fresh_state(hot, extra.pop(0), lambda: drive.snapshot().verdict.fresh, assembly.failures)
+            result = demo_verdict(last["cmd"], latest[0] if latest else None, drive.snapshot().verdict)
         finally:
             assembly.close()  # drives safe first
             for node in extra:
@@ -146,32 +156,32 @@ def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[An
 FRESH_WAIT_S = 5.0
 
 
-def _await_fresh_state(hot: Any, degree: Any, latest: list[Any]) -> None:
-    """A stale last MotorState (no PDO for a while: the process was held, or the drive went
-    silent) says nothing of the drive's state: the verdict waits up to FRESH_WAIT_S for a fresh
-    one and, without it, judges the stale one (which fails, saying it was stale). The degree
-    node is gone first: no command is published while the verdict waits."""
+def _await_fresh_state(hot: Any, degree: Any, fresh: Callable[[], bool], failures: Any) -> None:
+    """Data that is not fresh at the end (no PDO for a while: the process was held, or the drive
+    went silent; the drive's verdict says it) says nothing of the drive's state: the verdict waits
+    up to FRESH_WAIT_S for fresh data and, without it, judges what it has (which fails, saying
+    why). The degree node is gone first: no command is published while the verdict waits."""
     from nodes import runtime
 
     hot.remove_node(degree)
     degree.destroy_node()
-    if not latest or not latest[0].stale:
+    if fresh():
         return
     done = threading.Event()
 
     def watch() -> None:
         deadline = time.monotonic() + FRESH_WAIT_S
-        while latest[0].stale and time.monotonic() < deadline:
+        while not fresh() and time.monotonic() < deadline:
             time.sleep(0.02)
         done.set()
 
     threading.Thread(target=watch, name="demo-fresh-wait", daemon=True).start()
-    runtime.spin_until(hot, done)  # the monitor's subscription brings the next MotorState
+    runtime.spin_until(hot, done, failures=failures)  # the monitor's subscription brings the next MotorState
 
 
-def demo_verdict(cmd: float, state: Any) -> int:
-    """0 when the drive is still enabled at the end and its angle followed the command; a
-    MotorState (or None when none came)."""
+def demo_verdict(cmd: float, state: Any, verdict: Verdict) -> int:
+    """0 when the drive is usable at the end (its ``verdict``: fresh data, Operation Enabled) and
+    its angle (the last MotorState, or None when none came) followed the command."""
     if state is None:
         print("rovercan demo: no MotorState received", file=sys.stderr)
         return EXIT_FAILED
@@ -179,16 +189,15 @@ def demo_verdict(cmd: float, state: Any) -> int:
     error = abs((angle - cmd + 180.0) % 360.0 - 180.0)
     print(f"rovercan demo: done; last command {cmd:.2f} deg, angle {angle:.2f} deg, error {error:.2f} deg",
           flush=True)
-    if state.stale:
-        print(f"rovercan demo: no fresh data from the drive at the end ({state.data_age:.1f} s old after"
-              f" {FRESH_WAIT_S:g} s more): its state is unknown. The log above says why: a 'host heartbeat ... late'"
-              " warning means this process was starved; a lost drive is named", file=sys.stderr)
+    if not verdict.fresh:
+        print(f"rovercan demo: no fresh data from the drive at the end ({verdict.text()}; after {FRESH_WAIT_S:g} s"
+              " more): its state is unknown. The log above says why: a 'host heartbeat ... late' warning means this"
+              " process was starved; a lost drive is named", file=sys.stderr)
         return EXIT_FAILED
-    if not state.enabled:
-        fault = f", fault 0x{state.error_code:04X}" if state.fault else ""
-        print(f"rovercan demo: the drive ended in {state.state}{fault}, not Operation Enabled: it stopped during"
-              " the run. The log above says why; a 'host heartbeat ... late' warning with EMCY 0x8130 means this"
-              " process was held longer than the drive's host timeout and the drive stopped itself, as told"
+    if not verdict.usable:
+        print(f"rovercan demo: the drive is {verdict.condition.value} at the end, not usable: {verdict.text()}. It"
+              " stopped during the run; the log above says why. A 'host heartbeat ... late' warning with EMCY 0x8130 means"
+              " this process was held longer than the drive's host timeout and the drive stopped itself, as told"
               " (give it real-time scheduling: run as root or with CAP_SYS_NICE)", file=sys.stderr)
         return EXIT_FAILED
     if error > 2.0:

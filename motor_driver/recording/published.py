@@ -8,7 +8,10 @@ measured on a limited one; /joint_states carries the angle as measured (rad, nev
 wheel's travel), its velocity (rad/s) and torque (Nm). Values whose data is not news by the drive's
 verdict (late, lost, re-booting, not configured) are not repeated as if they were: NaN, with
 ``stale`` and the data's age, and a state that is the verdict's condition (``LATE``, ``LOST``,
-``REBOOTING``, ...) rather than the last CiA 402 state read; ``enabled`` is the verdict's usable. No state of its own.
+``REBOOTING``, ...) rather than the last CiA 402 state read; ``enabled`` is the verdict's usable;
+``fault`` is the verdict's ``faulted`` or ``lost`` (the message's definition: Fault or Fault
+Reaction Active, or lost), never a flag of the snapshot's (a late drive's last FAULT statusword is
+old news, as its angle is). No state of its own.
 """
 
 from __future__ import annotations
@@ -17,7 +20,10 @@ import math
 from typing import NamedTuple
 
 from motor_driver.drive.values import DriveState
+from motor_driver.drive.verdict import Condition
 
+#: The verdicts a MotorState calls ``fault``.
+FAULT_CONDITIONS = frozenset({Condition.FAULTED, Condition.LOST})
 #: The largest data age a MotorState carries (a drive never heard: infinite, said as this).
 DATA_AGE_MAX_S = 1e9
 
@@ -46,7 +52,8 @@ def motor_state_fields(state: DriveState, continuous: bool) -> MotorStateFields:
     return MotorStateFields(
         name=state.name, state=state.state.name if verdict.fresh else verdict.condition.name,
         angle=math.nan if stale else float(angle), velocity=math.nan if stale else float(state.velocity_deg_s),
-        torque=math.nan if stale else float(state.torque_nm), enabled=verdict.usable, fault=state.fault,
+        torque=math.nan if stale else float(state.torque_nm), enabled=verdict.usable,
+        fault=verdict.condition in FAULT_CONDITIONS,
         error_code=state.error_code, stale=stale, data_age=float(min(state.data_age_s, DATA_AGE_MAX_S)),
         stamp=state.stamp)
 

@@ -1,0 +1,84 @@
+"""The demo's end verdict and MotorState's ``fault`` read the drive's verdict and nothing else
+(issue 71): where the verdict contradicts the flags they read before (a MotorState's ``stale``,
+``enabled`` and ``fault``; a snapshot's ``fault``), the verdict wins."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from motor_driver import DriveState, State
+from motor_driver.drive.verdict import DriveFacts, Verdict, judge
+from motor_driver.recording.published import motor_state_fields
+from rovercan.exits import EXIT_FAILED, EXIT_OK
+
+from .conftest import requires_ros
+
+FRESH = {"data_age_s": 0.001, "stale_after_s": 0.1, "heartbeat_age_s": 0.01, "nmt": "OPERATIONAL", "booted": True}
+
+
+def verdict(**facts: object) -> Verdict:
+    return judge(DriveFacts("motor", **{**FRESH, **facts}))  # type: ignore[arg-type]
+
+
+def snapshot(state: State, fault: bool, facts: DriveFacts) -> DriveState:
+    return DriveState(name="motor", node_id=1, angle_deg=10.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0,
+                      state=state, mode=1, nmt="OPERATIONAL", enabled=False, fault=fault, lost=False, error_code=0,
+                      error_text="", stamp=1.0, heartbeat_age_s=0.01, target_reached=False, data_age_s=0.001, judged=(facts, judge(facts)))
+
+
+def test_motor_state_fault_is_the_verdicts() -> None:
+    """A FAULT statusword of a drive whose data is late is old news (the old ``fault`` flag said
+    True); a lost drive (FAULT never read: the old flag's state part said False) is a fault."""
+    late = DriveFacts("motor", **{**FRESH, "data_age_s": 5.0}, state=State.FAULT)  # type: ignore[arg-type]
+    fields = motor_state_fields(snapshot(State.FAULT, True, late), continuous=False)
+    assert not fields.fault and fields.stale and fields.state == "LATE"
+    lost = DriveFacts("motor", **{**FRESH, "lost": True}, state=State.OPERATION_ENABLED)  # type: ignore[arg-type]
+    fields = motor_state_fields(snapshot(State.OPERATION_ENABLED, False, lost), continuous=False)
+    assert fields.fault and not fields.enabled
+    faulted = DriveFacts("motor", **FRESH, state=State.FAULT)  # type: ignore[arg-type]
+    assert motor_state_fields(snapshot(State.FAULT, False, faulted), continuous=False).fault
+
+
+@requires_ros
+def test_the_demo_fails_a_drive_whose_verdict_is_not_usable_whatever_the_message_says(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The last MotorState says enabled, fresh, no fault; the drive's verdict says it stopped itself
+    (its host heartbeat lost): the demo fails, naming the cause."""
+    from rovercan_msgs.msg import MotorState
+
+    from rovercan.demo import demo_verdict
+
+    state = MotorState(angle=2.9, enabled=True, stale=False, fault=False, state="OPERATION_ENABLED")
+    stopped = verdict(state=State.SWITCH_ON_DISABLED, armed=True, emcy_code=0x8130, emcy_text="heartbeat lost")
+    assert demo_verdict(3.0, state, stopped) == EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "stopped itself at the end, not usable" in err and "host heartbeat lost" in err and "CAP_SYS_NICE" in err
+
+
+@requires_ros
+def test_the_demo_passes_a_usable_drive_whatever_the_message_says(capsys: pytest.CaptureFixture[str]) -> None:
+    from rovercan_msgs.msg import MotorState
+
+    from rovercan.demo import demo_verdict
+
+    state = MotorState(angle=2.9, enabled=False, stale=True, fault=True, state="LATE")
+    usable = verdict(state=State.OPERATION_ENABLED, armed=True)
+    assert usable.usable and demo_verdict(3.0, state, usable) == EXIT_OK
+    assert capsys.readouterr().err == ""
+
+
+@requires_ros
+def test_the_demo_judges_no_data_that_is_not_fresh(capsys: pytest.CaptureFixture[str]) -> None:
+    """Data the verdict calls late is no state (CI saw 'the drive ended in OPERATION_ENABLED, not
+    Operation Enabled' from a starved process): the demo says its data were not fresh, and why."""
+    from rovercan_msgs.msg import MotorState
+
+    from rovercan.demo import demo_verdict
+
+    state = MotorState(angle=math.nan, enabled=True, stale=False, data_age=0.4, state="OPERATION_ENABLED")
+    late = verdict(state=State.OPERATION_ENABLED, armed=True, data_age_s=0.4)
+    assert demo_verdict(3.0, state, late) == EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "no fresh data from the drive at the end (motor: no data for 400 ms" in err and "not usable" not in err
