@@ -308,6 +308,8 @@ class DriverNode(Node):
                                     tx_not_sent=handle.network.tx_queue_dropped,
                                     rejected_frames=handle.network.rejected_frames,
                                     frame_loss=total(losses.get(bus_name, ())))
+                if self.driver.recorder is not None:  # a babbling node pushed frames out of the flight recorder
+                    health.values["recorder_frames_dropped"] = str(self.driver.recorder.dropped().get(bus_name, 0))
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: bus {bus_name}", message=health.message,
                     hardware_id=bus_name, values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))

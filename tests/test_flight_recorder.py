@@ -6,10 +6,13 @@ from __future__ import annotations
 
 import gc
 import json
+import logging
 import os
 import subprocess
 import sys
+import threading
 import time
+import tracemalloc
 from pathlib import Path
 from typing import Any
 
@@ -169,3 +172,75 @@ def test_the_ring_costs_the_garbage_collector_nothing_and_keeps_every_field(tmp_
     assert abs(frames[7].timestamp - (t0 + 7e-4)) < 1e-5
     last = frames[-1]
     assert last.is_extended_id and last.is_remote_frame and last.arbitration_id == 0x1FFFFFF and last.dlc == 8
+
+
+def test_a_babbling_node_at_full_rate_keeps_each_bus_ring_to_its_count_and_the_drops_are_said(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The emulator's EMCY storm (345,200 frames in 10 s, faster than any 1 Mbit/s bus) grew the
+    driver by 120 MB when only time bounded the ring: now each bus keeps what it can carry at full
+    rate for the window, the oldest pushed out are counted, and the incident and the log say so.
+    The storm's frames are given their times (no clock); the memory is Python's own count of it."""
+    rover = parse_config({"buses": [{"name": "can0", "interface": "virtual", "channel": "a"},
+                                                       {"name": "can1", "interface": "virtual", "channel": "b"}],
+                                             "drives": [{"name": "wheel", "node_id": 1}]})
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, seconds=10.0, after_s=1.0, plot=False),
+                              {"wheel": ("can0", 1)}, {"can0": "a", "can1": "b"}, rover=rover)
+    storm = 345_200  # 10 s at the emulator's rate
+    t0 = 1_000_000.0
+    emcy = can.Message(arbitration_id=0x081, data=bytes([0x10, 0x23, 1, 0, 0, 0, 0, 0]))
+    beat = can.Message(arbitration_id=0x702, data=b"\x05")
+    caplog.set_level(logging.WARNING, logger="motor_driver.recording.flight")
+    try:
+        tracemalloc.start()
+        before, _ = tracemalloc.get_traced_memory()
+        for i in range(storm):
+            emcy.timestamp = t0 + i / 34_520
+            recorder.append("can0", emcy)
+            if i % 345 == 0:  # the other bus's drive, every 10 ms: not pushed out by the babbler
+                beat.timestamp = emcy.timestamp
+                recorder.append("can1", beat)
+        grown, _ = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        assert grown - before < 20e6, f"the storm grew the ring by {(grown - before) / 1e6:.0f} MB"
+        cap = flight.frames_cap(rover.buses[0].bitrate, 11.0)  # 1 Mbit/s: 99,100 frames
+        assert recorder.frames_kept() == cap + storm // 345 + 1
+        assert recorder.dropped() == {"can0": storm - cap, "can1": 0}
+        wait_for(lambda: any("frame(s) dropped from the ring" in r.getMessage() for r in caplog.records), 30.0,
+                 "the writer's warning of the drops")
+        written = recorder.write([IncidentEvent("emcy", t0 + 9.0, "can0", node=1, drive="wheel", code=0x2310)])
+        again = recorder.write([IncidentEvent("emcy", t0 + 9.5, "can0", node=1, drive="wheel", code=0x2310)])
+    finally:
+        tracemalloc.stop()
+        recorder.close()
+    summary, later = load_incident(written), load_incident(again)
+    assert summary["frames_dropped"] == {"can0": storm - cap, "can1": 0} and later["frames_dropped"]["can0"] == 0
+    assert summary["frames_cap"]["can0"] == cap and summary["frames"] == cap + storm // 345 + 1
+    assert summary["window_s"][1] == pytest.approx(t0 + (storm - 1) / 34_520 - (t0 + 9.0))
+    said = [r.getMessage() for r in caplog.records if "written to" in r.getMessage()]
+    assert f"bus can0: {storm - cap} frame(s) dropped" in said[0]
+
+
+def test_the_writer_survives_an_exception_in_its_pass_and_counts_it(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch,
+                                                                    caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 70: the plot reaper ran outside any handler; one exception there ended the writer
+    thread silently and no incident was written after it."""
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, seconds=5.0, after_s=0.0, plot=False),
+                              {"wheel": ("can0", 1)}, {"can0": "can0"})
+    failed = threading.Event()
+
+    def broken_reap() -> None:
+        if not failed.is_set():
+            failed.set()
+            raise RuntimeError("reaper broke")
+
+    monkeypatch.setattr(recorder, "_reap", broken_reap)
+    caplog.set_level(logging.ERROR, logger="motor_driver.recording.flight")
+    try:
+        wait_for(failed.is_set, 30.0, "the reaper's exception")
+        recorder.trigger("heartbeat_lost", "can0", node=1, t=1_000_000.0)
+        wait_for(lambda: len(recorder.written) == 1, 30.0, "the incident after the exception written")
+    finally:
+        recorder.close()
+    assert recorder.writer_errors == 1
+    assert any(r.exc_info and "reaper broke" in str(r.exc_info[1]) for r in caplog.records)

@@ -55,6 +55,25 @@ class Listener(threading.Thread):
     def since(self, t: float, cob: int) -> list[bytes]:
         return [d for tt, c, d in list(self.frames) if tt >= t and c == cob]
 
+    def heard_marker(self, sim: SimService, number: int) -> int:
+        """Send marker ``number`` from another client of the bus and wait until this listener heard
+        it: everything the bus carried before it reached the listener too (the bus keeps the order).
+        Returns how many frames the listener had heard up to and with the marker."""
+        data = number.to_bytes(4, "little")
+        with can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port) as bus:
+            bus.send(can.Message(arbitration_id=MARKER_COB, data=data, is_extended_id=False))
+            wait_for(lambda: any(c == MARKER_COB and d == data for _, c, d in list(self.frames)), 10.0,
+                     f"marker {number} at the listener (is it listening?)")
+        return next(i for i, (_, c, d) in enumerate(list(self.frames)) if c == MARKER_COB and d == data) + 1
+
+    def between(self, first: int, last: int, cobs: tuple[int, ...]) -> list[int]:
+        """The COB-IDs of ``cobs`` heard between two markers (indexes from :meth:`heard_marker`)."""
+        return [c for _, c, _ in list(self.frames)[first:last] if c in cobs]
+
+
+#: A COB-ID no CANopen service of these drives uses: the test's markers.
+MARKER_COB = 0x500
+
 
 #: The drives and the test share one interpreter: the in-process host and heartbeat timeouts (conftest says why).
 _TIMEOUTS = f"host_timeout_ms: {IN_PROCESS_HOST_TIMEOUT_MS:g}, heartbeat_timeout_ms: {IN_PROCESS_HEARTBEAT_TIMEOUT_MS:g}"
@@ -116,8 +135,8 @@ def controlwords(listener: Listener, t: float, cob: int) -> list[int]:
 def test_each_transition_is_confirmed_on_the_bus(rig: tuple[Any, SimService, Listener, Any]) -> None:
     node, sim, listener, _ = rig
     assert node._state_machine.current_state[1] == "unconfigured"
-    time.sleep(0.3)
-    assert not listener.since(0.0, 0x77F)  # nothing of the driver on the bus yet
+    heard = listener.heard_marker(sim, 1)  # the listener heard everything up to now
+    assert not listener.between(0, heard, (0x77F, 0x080))  # nothing of the driver on the bus yet
 
     t = time.monotonic()
     node.trigger_configure()
@@ -145,11 +164,16 @@ def test_each_transition_is_confirmed_on_the_bus(rig: tuple[Any, SimService, Lis
 
     node.trigger_cleanup()
     assert node._state_machine.current_state[1] == "unconfigured" and node.driver is None
-    time.sleep(0.3)
-    t = time.monotonic()
-    time.sleep(0.5)
-    assert not listener.since(t, 0x77F) and not listener.since(t, 0x080)  # no heartbeat, no SYNC: bus released
-    assert len(sim.server.clients) == 1  # only the listener is connected
+    wait_for(lambda: len(sim.server.clients) == 1 and len(sim.server.cyclic) == 0, 10.0,
+             "the bus's own record: only the listener connected, no cyclic job (the SYNC's) left")
+    # and the listener shows it: between two markers a few of each drive's heartbeats apart (the
+    # bus's own clock, each 100 ms and longer than the SYNC and host heartbeat periods), no SYNC and
+    # no host heartbeat
+    first = listener.heard_marker(sim, 2)
+    wait_for(lambda: all(listener.between(first, len(listener.frames), (0x700 + n,)).count(0x700 + n) >= 3
+                         for n in (1, 2)), 10.0, "three heartbeats of each drive after the release")
+    last = listener.heard_marker(sim, 3)
+    assert not listener.between(first, last, (0x77F, 0x080))  # no heartbeat, no SYNC: bus released
 
     node.trigger_shutdown()
     assert node._state_machine.current_state[1] == "finalized"

@@ -237,8 +237,15 @@ def test_limit_guard_is_per_drive(driver_factory: DriverFactory) -> None:
     _, driver = driver_factory(config)
     drive: Drive = driver.drive("joint1")
     drive.enable()
+    start = drive.snapshot().angle_deg
     drive.set_velocity(360.0)
-    time.sleep(1.5)  # > 500 deg: far past any limit a limited joint could have
+    # > 500 deg on: far past any limit a limited joint could have; then the guard shown to have
+    # looked at it there (two host heartbeats later: a supervisor period, guard included, between
+    # them), not a span of the clock in which a held supervisor looks at nothing
+    wait_for(lambda: abs(drive.snapshot().angle_deg - start) > 500.0, 30.0, "the joint 500 deg on")
+    handle = driver.buses["can0"]
+    beats = handle.beats_sent()
+    wait_for(lambda: handle.beats_sent() >= beats + 2, 30.0, "a supervisor period with the joint 500 deg on")
     assert drive.limits.limit_stops == 0 and drive.snapshot().velocity_deg_s == pytest.approx(360.0, rel=0.05)
     with pytest.raises(MotorError):
         driver.drive("joint2").set_velocity(10.0)  # not enabled: refused as before

@@ -88,18 +88,31 @@ def test_joint_commands_velocity_never_passes_the_limit(rig: Rig) -> None:
     assert -90.0 <= low < -80.0, low
 
 
+def stamp_of(msg: Any) -> tuple[int, int]:
+    return msg.header.stamp.sec, msg.header.stamp.nanosec
+
+
 def test_inverted_joint_with_offset_in_motor_state_and_joint_states(rig: Rig) -> None:
+    """Each topic is judged by the message that shows the state judged: the /joint_states of the
+    measurement that put MotorState at 30 deg or a newer one (its stamp is the newest of its
+    joints' measurements), not the newest one the probe happens to hold: a starved probe held one
+    of the joint still on its way (0.5154 rad, issue 73)."""
     states: list[Any] = []
     joints: list[Any] = []
     rig.probe.create_subscription(MotorState, "mirrored/motor_state", states.append, STATE_QOS)
     rig.probe.create_subscription(JointState, "/joint_states", joints.append, STATE_QOS)
     pub = rig.probe.create_publisher(Float32, "mirrored/degree_cmd", COMMAND_QOS)
-    time.sleep(0.3)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10.0, "the driver node subscribed to degree_cmd")
     pub.publish(Float32(data=30.0))
     wait_for(lambda: bool(states) and abs(states[-1].angle - 30.0) < 0.2, 5.0, "MotorState at 30 deg")
+    at_30 = stamp_of(states[-1])
     runner = rig.sim.simulators["can0"]
     counts = float(runner.call(lambda: runner.drive(2).position_counts))  # type: ignore[arg-type]
     assert counts == pytest.approx(-20.0 * COUNTS_PER_DEG, abs=0.2 * COUNTS_PER_DEG)  # (30 - 10) deg, mirrored
-    wait_for(lambda: bool(joints) and "mirrored" in joints[-1].name, 2.0, "/joint_states")
-    last = joints[-1]
-    assert last.position[list(last.name).index("mirrored")] == pytest.approx(math.radians(30.0), abs=0.005)
+
+    def shown() -> list[Any]:
+        return [j for j in list(joints) if "mirrored" in j.name and stamp_of(j) >= at_30]
+
+    wait_for(lambda: bool(shown()), 5.0, "the /joint_states of MotorState's 30 deg or newer")
+    first = shown()[0]
+    assert first.position[list(first.name).index("mirrored")] == pytest.approx(math.radians(30.0), abs=0.005)

@@ -17,13 +17,23 @@ history). Each writes, into the configured directory (capped in size, oldest fir
   that finished is reaped at the writer's next poll (no zombie child while the driver runs);
   close() gives the helpers still drawing PLOT_WAIT_S in all, then terminates them.
 
-Threads and what each owns: the buses' receive threads append received frames to the ring
-(one deque append each; the deque is bounded by time, trimmed by whoever appends) and flag an
+The ring is bounded by time (``seconds`` + ``after_s``) and by count: each bus keeps at most
+what it can carry at its full rate for that window (:func:`frames_cap`: its bitrate over
+FULL_RATE_FRAME_BITS, the length of an 8-byte frame). A babbling node on a bus faster than its
+bitrate (the emulator: 345,200 EMCYs in 10 s grew the driver by 120 MB when only time bounded it)
+or of shorter frames pushes the oldest frames out early: each is counted (``dropped``), said in a
+WARNING (rate-limited) and in the next incident written (``frames_dropped``, ``frames_cap``).
+
+Threads and what each owns: the buses' receive threads append received frames to their bus's
+ring (one deque append each; trimmed by whoever appends; a frame is one packed ``bytes``, not
+watched by the garbage collector and 60 bytes instead of 220) and flag an
 EMCY as an incident (a queue put); command threads append the frames they send the same way;
 the supervisor appends drive-state samples and flags its own incidents. The writer thread
 (``rovercan-recorder``) waits ``after_s`` so that what follows is kept, takes a copy of the
-ring (``deque.copy`` runs under the GIL in one step) and writes the files. Nothing waits on
-the writer, and no lock is shared with the bus.
+rings (``deque.copy`` runs under the GIL in one step) and writes the files; each of its passes
+is supervised (an exception is logged and counted in ``writer_errors``, the thread goes on).
+Nothing waits on the writer, and no lock is shared with the bus. A ring's ``dropped`` count is
+incremented by the threads that append to its bus (a race may lose an increment, never make one).
 
 What lives where: this module (the ring, the incidents, the writer thread),
 :mod:`.incident_mcap` (an incident's frames as MCAP beside its BLF), :mod:`.plot` (its PNG,
@@ -39,6 +49,7 @@ import logging
 import math
 import os
 import queue
+import struct
 import subprocess
 import sys
 import threading
@@ -46,6 +57,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
+from heapq import merge
 from pathlib import Path
 from typing import Any
 
@@ -56,12 +68,13 @@ from can_config.model import RoverConfig
 from can_config.objects import emcy_text
 from can_config.realtime import ordinary_thread
 from motor_driver.drive import DriveState
+from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recording.busview import UnitObjects
 from motor_driver.recording.incident import FORMAT
 from motor_driver.recording.incident_mcap import write_incident_mcap
 from motor_driver.recording.plot import plot_incident, state_series
 
-__all__ = ["INCIDENT_KINDS", "FlightRecorder", "Frame", "IncidentEvent", "plot_incident"]
+__all__ = ["INCIDENT_KINDS", "FlightRecorder", "Frame", "IncidentEvent", "frames_cap", "plot_incident"]
 
 logger = logging.getLogger(__name__)
 
@@ -89,6 +102,33 @@ REPEAT_WINDOW_S = 60.0
 NO_PLOT_AFTER_LATE_S = 30.0
 #: Incidents kept in memory (their summaries) when the directory cannot be written.
 KEPT_IN_MEMORY = 20
+#: The bits of one 8-byte standard frame on the wire, interframe space included, no stuffing: a
+#: bus at its full rate of such frames (a babbling node's EMCYs) is what each bus's ring holds.
+FULL_RATE_FRAME_BITS = 111
+#: A bus the recorder has no config for is taken to run at this bitrate.
+DEFAULT_BITRATE = 1_000_000
+#: One kept frame packed: time.time(), COB-ID, flags (extended 1, remote 2, error 4), DLC; the data follows.
+_HEAD = struct.Struct("<dIBB")
+_EXTENDED, _REMOTE, _ERROR = 1, 2, 4
+_time_of = struct.Struct("<d").unpack_from  # a packed frame's time.time()
+
+
+def frames_cap(bitrate: int, window_s: float) -> int:
+    """The frames one bus's ring keeps at most: what the bus carries in ``window_s`` at its full
+    rate of 8-byte frames."""
+    return max(1, math.ceil(bitrate / FULL_RATE_FRAME_BITS * window_s))
+
+
+class _Ring:
+    """One bus's frames, oldest first, packed (see _HEAD), and what its count bound pushed out."""
+
+    __slots__ = ("cap", "dropped", "frames", "said")
+
+    def __init__(self, cap: int) -> None:
+        self.cap = cap
+        self.frames: deque[bytes] = deque(maxlen=cap)
+        self.dropped = 0  # pushed out by the count bound, since the start (the appending threads)
+        self.said = 0  # of them, named in an incident written already (writer thread)
 
 
 @dataclass(frozen=True)
@@ -142,11 +182,17 @@ class FlightRecorder:
         self.directory = config.directory
         self._names = {(bus, node): name for name, (bus, node) in drives.items()}
         self._keep_s = config.seconds + config.after_s
-        # a frame is kept as a tuple of plain values (see :data:`Frame`), not a can.Message: such a
-        # tuple is dropped from the garbage collector's watch, so 10 s of frames (50,000 at 6 drives)
-        # cost nothing in its full collections, which stop every thread of the process; as
-        # can.Messages they made one take 70 ms and the host heartbeat went out 110 ms late
-        self._frames: deque[Frame] = deque()
+        # a frame is kept as one packed bytes (see _HEAD), not a can.Message: the garbage collector
+        # does not watch it, so 10 s of frames (50,000 at 6 drives) cost nothing in its full
+        # collections, which stop every thread of the process; as can.Messages they made one take
+        # 70 ms and the host heartbeat went out 110 ms late
+        bitrates = {b.name: b.bitrate for b in rover.buses} if rover is not None else {}
+        self._rings = {bus: _Ring(frames_cap(bitrates.get(bus, DEFAULT_BITRATE), self._keep_s))
+                       for bus in {*self._bus_channels, *bitrates}}
+        self._rings_lock = threading.Lock()  # a bus first heard that has no ring yet (rare)
+        self._said_drops = RateLimitedLog(logger)
+        self._drops_logged: dict[str, int] = {}  # bus -> its dropped count when last looked at (writer)
+        self.writer_errors = 0  # writer passes that raised (writer thread)
         self._states: deque[tuple[float, tuple[DriveState, ...]]] = deque()
         self._events: queue.SimpleQueue[IncidentEvent] = queue.SimpleQueue()
         self._stop = threading.Event()
@@ -168,8 +214,9 @@ class FlightRecorder:
         return _BusTap(self, bus)
 
     def append(self, bus: str, msg: can.Message) -> None:
-        self._push((msg.timestamp or time.time(), bus, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
-                    msg.is_error_frame, msg.dlc, bytes(msg.data)))
+        flags = (_EXTENDED if msg.is_extended_id else 0) | (_REMOTE if msg.is_remote_frame else 0) \
+            | (_ERROR if msg.is_error_frame else 0)
+        self._push(bus, msg.timestamp or time.time(), msg.arbitration_id, flags, msg.dlc, msg.data)
 
     def record_sent(self, bus: str, msg: can.Message) -> None:
         if not msg.timestamp:
@@ -179,14 +226,34 @@ class FlightRecorder:
     def record_frame(self, bus: str, can_id: int, data: bytes | bytearray, remote: bool = False) -> None:
         """A frame this driver sent, as canopen hands it to the bus (GuardedNetwork.on_sent):
         kept without a can.Message made for it (every command's RPDO comes this way)."""
-        self._push((time.time(), bus, can_id, can_id > 0x7FF, remote, False, len(data), bytes(data)))
+        self._push(bus, time.time(), can_id, (_EXTENDED if can_id > 0x7FF else 0) | (_REMOTE if remote else 0),
+                   len(data), data)
 
-    def _push(self, frame: Frame) -> None:
-        frames = self._frames
-        frames.append(frame)
-        horizon = frame[0] - self._keep_s
-        while frames and frames[0][0] < horizon:
-            frames.popleft()
+    def _push(self, bus: str, t: float, cob: int, flags: int, dlc: int, data: bytes | bytearray) -> None:
+        ring = self._rings.get(bus) or self._new_ring(bus)
+        frames = ring.frames
+        horizon = t - self._keep_s
+        try:
+            while _time_of(frames[0])[0] < horizon:
+                frames.popleft()
+        except IndexError:  # empty (or emptied by another appending thread meanwhile)
+            pass
+        if len(frames) == ring.cap:  # the append pushes the oldest out before its time
+            ring.dropped += 1
+        frames.append(_HEAD.pack(t, cob, flags, dlc) + data)
+
+    def _new_ring(self, bus: str) -> _Ring:
+        with self._rings_lock:
+            return self._rings.setdefault(bus, _Ring(frames_cap(DEFAULT_BITRATE, self._keep_s)))
+
+    def dropped(self) -> dict[str, int]:
+        """Frames each bus's count bound pushed out of the ring before their time, since the start
+        (diagnostics, tests)."""
+        return {bus: ring.dropped for bus, ring in list(self._rings.items())}
+
+    def frames_kept(self) -> int:
+        """Frames in the rings now (tests, tools)."""
+        return sum(len(ring.frames) for ring in list(self._rings.values()))
 
     def wants_sample(self) -> bool:
         """Supervisor: whether this pass should call :meth:`sample` (every SAMPLE_EVERY-th)."""
@@ -213,21 +280,7 @@ class FlightRecorder:
     # ------------------------------------------------------------------ writer thread
     def _run(self) -> None:
         while not self._stop.is_set():
-            try:
-                first = self._events.get(timeout=WRITER_POLL_S)
-            except queue.Empty:
-                self._reap()
-                if self._deferred and time.monotonic() - self._late_at > NO_PLOT_AFTER_LATE_S:
-                    self._plot_deferred()
-                continue
-            events = [first]
-            deadline = time.monotonic() + self.config.after_s
-            while (left := deadline - time.monotonic()) > 0 and not self._stop.is_set():
-                try:  # what happens meanwhile is the same incident
-                    events.append(self._events.get(timeout=min(left, WRITER_POLL_S)))
-                except queue.Empty:
-                    pass
-            self._write_safely(events)
+            self._supervised(self._pass)
         rest: list[IncidentEvent] = []
         while True:
             try:
@@ -235,8 +288,47 @@ class FlightRecorder:
             except queue.Empty:
                 break
         if rest:
-            self._write_safely(rest)
-        self._plot_deferred()  # the driver stops: what waited is drawn now
+            self._supervised(lambda: self._write_safely(rest))
+        self._supervised(self._plot_deferred)  # the driver stops: what waited is drawn now
+
+    def _supervised(self, step: Callable[[], None]) -> None:
+        """One pass of the writer: an exception is logged with its traceback and counted, and the
+        writer goes on (issue 70: the plot reaper raised outside any handler and the thread died)."""
+        try:
+            step()
+        except Exception:  # the recorder must never take the driver down, nor stop recording
+            self.writer_errors += 1
+            logger.exception("flight recorder: the writer's pass failed (%d so far); it goes on", self.writer_errors)
+
+    def _pass(self) -> None:
+        """Wait for an incident (reap the plot helpers, say the drops, draw deferred plots meanwhile),
+        then for ``after_s`` more of it, and write it."""
+        try:
+            first = self._events.get(timeout=WRITER_POLL_S)
+        except queue.Empty:
+            self._reap()
+            self._say_drops()
+            if self._deferred and time.monotonic() - self._late_at > NO_PLOT_AFTER_LATE_S:
+                self._plot_deferred()
+            return
+        events = [first]
+        deadline = time.monotonic() + self.config.after_s
+        while (left := deadline - time.monotonic()) > 0 and not self._stop.is_set():
+            try:  # what happens meanwhile is the same incident
+                events.append(self._events.get(timeout=min(left, WRITER_POLL_S)))
+            except queue.Empty:
+                pass
+        self._write_safely(events)
+
+    def _say_drops(self) -> None:
+        """A WARNING (one per bus every PERIOD_S) while a bus's count bound pushes frames out."""
+        for bus, ring in list(self._rings.items()):
+            if ring.dropped > self._drops_logged.get(bus, 0):
+                self._drops_logged[bus] = ring.dropped
+                self._said_drops.log(logging.WARNING, bus, "flight recorder: bus %s: %d frame(s) dropped from the ring"
+                                     " so far: more than the bus carries at its full rate in %.0f s (%d frames);"
+                                     " a babbling node? (the incidents say how many each lost)",
+                                     bus, ring.dropped, self._keep_s, ring.cap)
 
     def _plot_deferred(self) -> None:
         for json_path in self._deferred:
@@ -267,10 +359,10 @@ class FlightRecorder:
         incidents of its kind and drive counted, not written, since the last one. Its summary is
         kept in memory first, so an unwritable directory (OSError) loses nothing recent."""
         first = events[0]
-        frames = list(self._frames.copy())
+        frames, dropped = self._take_frames()
         states = list(self._states.copy())
         summary_kept: dict[str, Any] = {"kind": first.kind, "t": first.t, "events": [asdict(e) for e in events],
-                                        "repeats": repeats, "frames": len(frames)}
+                                        "repeats": repeats, "frames": len(frames), "frames_dropped": dropped}
         self.kept.append(summary_kept)
         self.directory.mkdir(parents=True, exist_ok=True)
         stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(first.t)) + f"-{int(first.t * 1000) % 1000:03d}"
@@ -278,11 +370,7 @@ class FlightRecorder:
         base = self.directory / f"{stamp}-{first.kind}-{who}"
         buses = sorted({frame[1] for frame in frames} | {e.bus for e in events})
         channel_of = {bus: i + 1 for i, bus in enumerate(buses)}
-        with can.BLFWriter(base.with_suffix(".blf")) as blf:
-            for t, bus, cob, extended, remote, error, dlc, data in frames:
-                blf.on_message_received(can.Message(
-                    timestamp=t, arbitration_id=cob, is_extended_id=extended, is_remote_frame=remote,
-                    is_error_frame=error, dlc=dlc, data=data, channel=channel_of[bus]))
+        _write_blf(base.with_suffix(".blf"), frames, channel_of)
         summary: dict[str, Any] = {
             "format": FORMAT,
             "kind": first.kind,
@@ -292,6 +380,8 @@ class FlightRecorder:
             "repeats": repeats,
             "window_s": [frames[0][0] - first.t, frames[-1][0] - first.t] if frames else [0, 0],
             "frames": len(frames),
+            "frames_dropped": dropped,
+            "frames_cap": {bus: ring.cap for bus, ring in list(self._rings.items())},
             "channels": {str(i): bus for bus, i in channel_of.items()},
             "bus_channels": self._bus_channels,
             "drives": [{"name": name, "bus": bus, "node_id": node} for (bus, node), name in self._names.items()],
@@ -319,9 +409,24 @@ class FlightRecorder:
             self._deferred.append(json_path)
         elif plot:
             self._plot_in_helper(json_path)
-        logger.warning("flight recorder: %s (%s) written to %s", first.kind, who, json_path)
+        lost = "".join(f"; bus {bus}: {n} frame(s) dropped from the ring (count bound, a babbling node?)"
+                       for bus, n in dropped.items() if n)
+        logger.warning("flight recorder: %s (%s) written to %s%s", first.kind, who, json_path, lost)
         _enforce_cap(self.directory, self.config.max_mb * 1e6, keep=base.name)
         return json_path
+
+    def _take_frames(self) -> tuple[list[Frame], dict[str, int]]:
+        """Writer: every bus's ring now, merged in time order and unpacked, and the frames each
+        bus's count bound dropped since the last incident written (then counted as said)."""
+        per_bus: list[list[Frame]] = []
+        dropped: dict[str, int] = {}
+        for bus, ring in list(self._rings.items()):
+            total = ring.dropped
+            packed = ring.frames.copy()
+            dropped[bus], ring.said = total - ring.said, total
+            per_bus.append([(t, bus, cob, bool(flags & _EXTENDED), bool(flags & _REMOTE), bool(flags & _ERROR), dlc,
+                             raw[_HEAD.size:]) for raw in packed for t, cob, flags, dlc in (_HEAD.unpack_from(raw),)])
+        return list(merge(*per_bus, key=lambda frame: frame[0])), dropped
 
     def _write_mcap(self, path: Path, frames: list[Frame], events: list[IncidentEvent], summary: dict[str, Any]) -> None:
         """The incident's .mcap (named in ``summary``): a failure costs it alone, not the BLF and JSON."""
@@ -374,6 +479,15 @@ class FlightRecorder:
                                helper.pid)
                 _end_helper(helper)
         self._helpers = []
+
+
+def _write_blf(path: Path, frames: list[Frame], channel_of: Mapping[str, int]) -> None:
+    """An incident's frames as BLF, each bus a channel."""
+    with can.BLFWriter(path) as blf:
+        for t, bus, cob, extended, remote, error, dlc, data in frames:
+            blf.on_message_received(can.Message(
+                timestamp=t, arbitration_id=cob, is_extended_id=extended, is_remote_frame=remote,
+                is_error_frame=error, dlc=dlc, data=data, channel=channel_of[bus]))
 
 
 def _end_helper(helper: subprocess.Popen[bytes]) -> None:
