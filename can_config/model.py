@@ -297,6 +297,14 @@ class TrajectoryGroupConfig:
     stop_deceleration_deg_s2: float = key("float", 360.0, 0.0, 10_000_000.0, low_open=True, unit="deg/s^2",
                                           help="a cancelled or failed goal's joints ramp down at this, then hold")
     feedback_rate_hz: float = key("float", 20.0, 1.0, 100.0, unit="Hz", help="the action's feedback rate")
+    stopped_velocity_tolerance_deg_s: float = key(
+        "float", 0.573, 0.0, 100_000.0, unit="deg/s",
+        help="at the goal each joint slower than this, or it is not there yet (joint_trajectory_controller's"
+             " constraints.stopped_velocity_tolerance, 0.01 rad/s); 0: not checked. A goal's own velocity"
+             " tolerance wins")
+    allow_partial_joints_goal: bool = key("bool", False, help="accept a goal naming some of the group's joints (the"
+                                                              " others hold); false: a goal must name them all, as"
+                                                              " joint_trajectory_controller's default")
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,7 @@ drive lost mid-goal, judged by the frames and the simulated drives, never by a c
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import struct
@@ -18,8 +19,9 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import TrajectoryRejected
 from motor_driver import MotorDriver
-from motor_driver.drive.trajectory import Spline, sample_times
+from motor_driver.drive.trajectory import Spline
 from motor_driver.follow import GoalRun, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
+from motor_driver.follow.goal import PREEMPTED
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
@@ -52,12 +54,13 @@ class Arm:
 
 @pytest.fixture
 def arm(driver_factory: DriverFactory, listener_factory: ListenerFactory) -> Iterator[Arm]:
-    """Three limited joints, joint1 and joint2 armed (joint3 not), their group, a listener."""
+    """Three limited joints, joint1 and joint2 armed (joint3 not), their group (goals of some of
+    its joints allowed), a listener."""
     sim, driver = driver_factory(make_config(3, **ARM))
     for name in ("joint1", "joint2"):
         driver.drive(name).enable()
     (config,) = driver.config.trajectory_groups
-    group = TrajectoryGroup(config, driver.drives)
+    group = TrajectoryGroup(dataclasses.replace(config, allow_partial_joints_goal=True), driver.drives)
     frames: list[can.Message] = []
     notifier = can.Notifier(listener_factory(sim), [frames.append], timeout=0.1)
     yield Arm(sim, driver, group, frames)
@@ -124,6 +127,31 @@ def test_an_unknown_joint_is_refused_with_nothing_on_the_wire(arm: Arm) -> None:
     refused(arm, goal((1.0, (10.0, 5.0)), joints=("joint1", "elbow")), TrajectoryCode.INVALID_JOINTS,
             "'elbow'", "joint1")
     refused(arm, goal((1.0, (10.0, 5.0)), joints=("joint1", "joint1")), TrajectoryCode.INVALID_JOINTS, "twice")
+
+
+def test_a_goal_of_some_joints_is_refused_unless_the_config_allows_it(arm: Arm) -> None:
+    """joint_trajectory_controller's default (allow_partial_joints_goal false): a goal names every joint."""
+    strict = TrajectoryGroup(dataclasses.replace(arm.group.config, allow_partial_joints_goal=False), arm.driver.drives)
+    try:
+        with pytest.raises(TrajectoryRejected) as caught:
+            strict.plan(goal((1.0, (10.0, 5.0))))
+        assert caught.value.code == TrajectoryCode.INVALID_JOINTS and "joint3" in str(caught.value), caught.value
+    finally:
+        strict.close()
+
+
+def test_tolerances_take_the_controllers_meanings(arm: Arm) -> None:
+    """-1 none, 0 the group's default, other negatives refused; the stopped velocity at the goal."""
+    plan = arm.group.plan(goal((1.0, (10.0, 5.0)), path_tolerance={"joint1": Tolerance(-1.0, -1.0)},
+                               goal_tolerance={"joint2": Tolerance(0.5, 0.0)}))
+    cfg = arm.group.config
+    assert plan.path == (Tolerance(-1.0, -1.0), Tolerance(cfg.path_tolerance_deg, -1.0))
+    assert plan.final == (Tolerance(cfg.goal_tolerance_deg, cfg.stopped_velocity_tolerance_deg_s),
+                          Tolerance(0.5, cfg.stopped_velocity_tolerance_deg_s))
+    refused(arm, goal((1.0, (10.0, 5.0)), goal_tolerance={"joint2": Tolerance(-0.5, 0.0)}),
+            TrajectoryCode.INVALID_GOAL, "joint2", "goal position tolerance -0.5")
+    refused(arm, goal((1.0, (10.0, 5.0)), goal_time_tolerance_s=-1.0), TrajectoryCode.INVALID_GOAL,
+            "goal_time_tolerance")
 
 
 def test_a_point_beyond_a_limit_is_refused_naming_the_joint_and_the_limit(arm: Arm) -> None:
@@ -199,12 +227,26 @@ def test_setpoints_follow_the_sync_and_are_the_sampled_trajectory(arm: Arm) -> N
             sent[m.arbitration_id] += 1
             assert sent[m.arbitration_id] <= samples + 1, f"set-point {m.arbitration_id:03X} (frame {i}) ahead of the SYNCs"
     period = arm.group.period_s
-    wire = [setpoints(frames, 1), setpoints(frames, 2)]
+    wire = [[scale.counts_to_deg(c) for c in setpoints(frames, n)] for n in (1, 2)]
     spline = Spline((0.0, 0.6, 1.0), (start, ((20.0, 0.0, None), (-10.0, 0.0, None)),
                                       ((25.0, 0.0, None), (-10.0, 0.0, None))))
-    for j, sent in enumerate(wire):
-        expected = [scale.deg_to_counts(spline.sample(t)[j][0]) for t in sample_times(1.0, period)]
-        assert sent == expected, f"joint{j + 1}"
+    # each set-point is the spline at a time of the plan (the next SYNC's, on the clock from the
+    # goal's start: a SYNC missed does not stretch it): joint1 rises on it, so its set-point says
+    # the time; joint2's is the spline at that same time; the times only go forward; the last is the end
+    times = [when(spline, p) for p in wire[0]]
+    assert times == sorted(times) and len(times) <= math.ceil(1.0 / period) + 1
+    for t, p in zip(times, wire[1], strict=True):
+        assert abs(spline.sample(t)[1][0] - p) < 0.01, (t, p)
+    assert wire[0][-1] == pytest.approx(25.0, abs=0.002) and wire[1][-1] == pytest.approx(-10.0, abs=0.002)
+
+
+def when(spline: Spline, position_deg: float) -> float:
+    """The time at which joint1 (rising on ``spline``) is at ``position_deg``: bisection."""
+    low, high = 0.0, spline.end_s
+    for _ in range(60):
+        mid = (low + high) / 2
+        low, high = (mid, high) if spline.sample(mid)[0][0] < position_deg else (low, mid)
+    return high
 
 
 def test_a_path_tolerance_violated_aborts_and_the_group_ramps_down(arm: Arm) -> None:
@@ -232,15 +274,26 @@ def test_a_new_goal_preempts_the_old_at_its_setpoint_without_a_jump(arm: Arm) ->
     wait_for(lambda: first.progress is not None and first.progress.time_s > 1.5, 20.0, "the first goal half way")
     here = angle(arm, "joint1")
     second = arm.group.follow(goal((0.0, (here, 0.0)), (2.0, (0.0, 0.0))))
-    assert finished(first) == TrajectoryCode.INVALID_GOAL and "preempted" in (first.outcome.message if first.outcome else "")
+    # as joint_trajectory_controller: the older goal CANCELED with INVALID_GOAL and its words
+    assert finished(first) == TrajectoryCode.INVALID_GOAL and first.outcome is not None
+    assert first.outcome.canceled and first.outcome.message == PREEMPTED
     assert finished(second) == TrajectoryCode.SUCCESSFUL, second.outcome
     scale = arm.driver.drive("joint1").cache.scale
-    path = [scale.counts_to_deg(c) for c in setpoints(frames_after(arm), 1)]
-    steps = [b - a for a, b in itertools.pairwise(path)]
-    assert max(abs(s) for s in steps) <= 180.0 * arm.group.period_s  # never faster than the joint may go
+    # each set-point with the SYNC it follows: a SYNC the driver let go (late) is no jump, the plan
+    # is not stretched either (the next set-point is the plan's at its own SYNC)
+    syncs, at = 0, []
+    for m in frames_after(arm):
+        syncs += m.arbitration_id == SYNC
+        if m.arbitration_id == SETPOINT + 1:
+            at.append((syncs, scale.counts_to_deg(struct.unpack_from("<i", m.data, 2)[0])))
+    path = [p for _, p in at]
+    steps = [((b - a) / max(sb - sa, 1), sb - sa) for (sa, a), (sb, b) in itertools.pairwise(at)]
+    assert max(abs(s) for s, _ in steps) <= 180.0 * arm.group.period_s  # never faster than the joint may go
     # the velocity changes smoothly across the switch: one period's step never differs from the
-    # last by more than the steepest acceleration of either spline (under 100 deg/s^2) allows
-    bends = [abs(b - a) for a, b in itertools.pairwise(steps)]
+    # last by more than the steepest acceleration of either spline (under 100 deg/s^2) allows (set-points
+    # one SYNC apart each; one the busy host sent after its SYNC is judged by the limit above only)
+    bends = [abs(b - a) for (a, ga), (b, gb) in itertools.pairwise(steps) if ga == gb == 1]
+    assert len(bends) > len(steps) // 2
     assert max(bends) < 100.0 * arm.group.period_s ** 2 * 2, max(bends)
     assert path[-1] == pytest.approx(0.0, abs=0.01)
 
@@ -250,7 +303,8 @@ def test_cancel_ramps_the_group_down_and_it_holds(arm: Arm) -> None:
     wait_for(lambda: run.progress is not None and run.progress.time_s > 1.0, 20.0, "the goal under way")
     run.cancel()
     assert finished(run) == TrajectoryCode.SUCCESSFUL and run.outcome is not None and run.outcome.canceled
-    assert not streamed_later(arm), "streamed after the result"
+    wait_for(lambda: not arm.group.ramping, RESULT_S, "the ramp done")  # the result comes at once, the ramp after
+    assert not streamed_later(arm), "streamed after the ramp"
     ramped_down(arm, 1)
     ramped_down(arm, 2)
     runner = arm.sim.simulators["can0"]

@@ -29,17 +29,35 @@ class GoalChecks:
         ``reference(joints)``: where the group's set-points of those joints are now."""
         self._check_joints(goal.joints)
         times, knots = self._check_points(goal)
+        path, final, goal_time = self._tolerances(goal)
         drives = [self.drives[j] for j in goal.joints]
         for drive in drives:
             self._check_armed(drive)
         start = reference(goal.joints)
         if goal.times_s[0] == 0.0:
-            self._check_start(goal, drives)
+            self._check_start(goal, drives, start)
         self._check_samples(goal.joints, times, knots, start)
-        path = tuple(self._tolerance(goal.path_tolerance.get(j), self.config.path_tolerance_deg) for j in goal.joints)
-        final = tuple(self._tolerance(goal.goal_tolerance.get(j), self.config.goal_tolerance_deg) for j in goal.joints)
-        goal_time = goal.goal_time_tolerance_s if goal.goal_time_tolerance_s > 0 else self.config.goal_time_tolerance_s
         return Plan(goal, times, knots, path, final, goal_time)
+
+    def _tolerances(self, goal: TrajectoryGoal) -> tuple[tuple[Tolerance, ...], tuple[Tolerance, ...], float]:
+        """Each joint's path and goal tolerance and the goal time tolerance, as joint_trajectory_controller
+        resolves them: the goal's value where it gives one, 0 the group's default, -1 none; the group's
+        stopped velocity tolerance the default at the goal; any other negative refused (INVALID_GOAL)."""
+        cfg = self.config
+        for kind, given in (("path", goal.path_tolerance), ("goal", goal.goal_tolerance)):
+            for name in given:
+                if name not in goal.joints:
+                    raise refuse(TrajectoryCode.INVALID_JOINTS, f"trajectory group {self.name}: a {kind} tolerance"
+                                  f" for {name!r}, not one of the goal's joints {list(goal.joints)}; nothing moved")
+        path = tuple(self._tolerance(j, "path", goal.path_tolerance.get(j), cfg.path_tolerance_deg, 0.0)
+                     for j in goal.joints)
+        final = tuple(self._tolerance(j, "goal", goal.goal_tolerance.get(j), cfg.goal_tolerance_deg,
+                                      cfg.stopped_velocity_tolerance_deg_s) for j in goal.joints)
+        given_s = goal.goal_time_tolerance_s
+        if not (math.isfinite(given_s) and given_s >= 0.0):
+            raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: goal_time_tolerance {given_s!r} s:"
+                          " allowed 0 (the group's default) or more; nothing moved")
+        return path, final, given_s if given_s > 0 else cfg.goal_time_tolerance_s
 
     def _check_joints(self, joints: Sequence[str]) -> None:
         if not joints:
@@ -52,6 +70,10 @@ class GoalChecks:
         if len(set(joints)) != len(joints):
             raise refuse(TrajectoryCode.INVALID_JOINTS, f"trajectory group {self.name}: joints {list(joints)}"
                           " name a joint twice; nothing moved")
+        if not self.config.allow_partial_joints_goal and set(joints) != set(self.drives):
+            raise refuse(TrajectoryCode.INVALID_JOINTS, f"trajectory group {self.name}: the goal names {list(joints)},"
+                          f" not all of its joints {list(self.drives)} (allow_partial_joints_goal is false); nothing"
+                          " moved")
 
     def _check_points(self, goal: TrajectoryGoal) -> tuple[tuple[float, ...], tuple[tuple[Knot, ...], ...]]:
         """The points with a time over 0, as knots; INVALID_GOAL for a malformed one."""
@@ -119,14 +141,18 @@ class GoalChecks:
             raise refuse(TrajectoryCode.INVALID_GOAL, f"{drive.name}: not armed by this driver; enable it (/arm or"
                           " <joint>/enable) first; nothing moved")
 
-    def _check_start(self, goal: TrajectoryGoal, drives: Sequence[Drive]) -> None:
+    def _check_start(self, goal: TrajectoryGoal, drives: Sequence[Drive], start: tuple[Knot, ...]) -> None:
+        """A first point at time 0 stands for where the joint is: within ``start_tolerance_deg`` of its
+        set-point now (a replanned goal: the new plan is joined there) or of its measured position
+        (a plan from /joint_states, which lag the set-point while the joint moves)."""
         limit = self.config.start_tolerance_deg
         for j, drive in enumerate(drives):
-            start, actual = goal.positions_deg[0][j], drive.cache.angle_deg
-            if abs(start - actual) > limit:
-                raise refuse(TrajectoryCode.INVALID_GOAL, f"{drive.name}: the trajectory starts at {start:g} deg,"
-                              f" {abs(start - actual):.3g} deg from where the joint is ({actual:.3f} deg); at most"
-                              f" start_tolerance_deg={limit:g}. Plan from the current state; nothing moved")
+            first, actual, setpoint = goal.positions_deg[0][j], drive.cache.angle_deg, start[j][0]
+            off = min(abs(first - actual), abs(first - setpoint))
+            if not off <= limit:
+                raise refuse(TrajectoryCode.INVALID_GOAL, f"{drive.name}: the trajectory starts at {first:g} deg,"
+                              f" {off:.3g} deg from where the joint is ({actual:.3f} deg, set-point {setpoint:.3f});"
+                              f" at most start_tolerance_deg={limit:g}. Plan from the current state; nothing moved")
 
     def _check_samples(self, joints: Sequence[str], times: tuple[float, ...], knots: tuple[tuple[Knot, ...], ...],
                        start: tuple[Knot, ...]) -> None:
@@ -145,12 +171,14 @@ class GoalChecks:
                                   f" {t:.3f} s, beyond max_velocity_deg_s={cfg.max_velocity_deg_s:g}; slow it down;"
                                   " nothing moved")
 
-    @staticmethod
-    def _tolerance(given: Tolerance | None, default_deg: float) -> Tolerance:
+    def _tolerance(self, joint: str, kind: str, given: Tolerance | None, default_deg: float,
+                   default_deg_s: float) -> Tolerance:
         """A joint's tolerance: the goal's where it gives one (-1: none), else the group's (0: none)."""
-        position = given.position_deg if given is not None else 0.0
-        velocity = given.velocity_deg_s if given is not None else 0.0
-        if position == 0.0:
-            position = default_deg if default_deg > 0 else -1.0
-        return Tolerance(position, velocity if velocity != 0.0 else -1.0)
-
+        out = []
+        for what, value, default in (("position", given.position_deg if given else 0.0, default_deg),
+                                     ("velocity", given.velocity_deg_s if given else 0.0, default_deg_s)):
+            if not math.isfinite(value) or (value < 0.0 and value != -1.0):
+                raise refuse(TrajectoryCode.INVALID_GOAL, f"{joint}: {kind} {what} tolerance {value!r}: allowed -1"
+                              " (none), 0 (the group's default) or a bound > 0; nothing moved")
+            out.append(value if value != 0.0 else default if default > 0 else -1.0)
+        return Tolerance(out[0], out[1])

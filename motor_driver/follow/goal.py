@@ -5,7 +5,7 @@ thread only (its outcome once, its progress replaced whole); any thread reads it
 from __future__ import annotations
 
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -26,7 +26,8 @@ class TrajectoryCode(IntEnum):
 
 @dataclass(frozen=True)
 class Tolerance:
-    """A joint's tolerance as the standard gives it: 0 the group's default, -1 none, else the bound."""
+    """A joint's tolerance as the standard (control_msgs/JointTolerance) and joint_trajectory_controller
+    read it: 0 the group's default, -1 none, a positive value the bound; any other negative is refused."""
 
     position_deg: float = 0.0
     velocity_deg_s: float = 0.0
@@ -45,11 +46,17 @@ class TrajectoryGoal:
     path_tolerance: Mapping[str, Tolerance] = field(default_factory=dict)
     goal_tolerance: Mapping[str, Tolerance] = field(default_factory=dict)
     goal_time_tolerance_s: float = 0.0  # 0: the group's
-    start_delay_s: float = 0.0  # from now (a header stamp in the future)
+    start_delay_s: float = 0.0  # from its acceptance (a header stamp in the future)
+
+
+#: A goal preempted by a newer one ends CANCELED with INVALID_GOAL and joint_trajectory_controller's words.
+PREEMPTED = "Current goal cancelled due to new incoming action."
 
 
 @dataclass(frozen=True)
 class Outcome:
+    """How a goal ended: ``canceled`` for a cancel and a preemption (the action's CANCELED)."""
+
     code: TrajectoryCode
     message: str
     canceled: bool = False
@@ -79,18 +86,24 @@ class Plan:
 
 class GoalRun:
     """A goal handed to a group: :attr:`done` is set when :attr:`outcome` is; :attr:`progress` is the
-    last tick's. Written by the group's thread only."""
+    last tick's. Written by the group's thread only. ``start_at``: the plan's time zero on the
+    monotonic clock (its acceptance, or its header stamp); ``wake``: wakes the group's thread."""
 
-    def __init__(self, plan: Plan) -> None:
+    def __init__(self, plan: Plan, start_at: float = 0.0, wake: Callable[[], None] | None = None) -> None:
         self.plan = plan
+        self.start_at = start_at
         self.done = threading.Event()
         self.outcome: Outcome | None = None
         self.progress: Progress | None = None
         self.cancel_requested = False  # set by cancel(), read by the group's thread
+        self._wake = wake
 
     def cancel(self) -> None:
-        """Stop the goal: its joints ramp down and hold; the outcome comes once they stand."""
+        """Stop the goal: the group's thread, woken now whether or not a sample comes, ends it
+        CANCELED at once; its joints ramp down at the stop deceleration and hold."""
         self.cancel_requested = True
+        if self._wake is not None:
+            self._wake()
 
     def report(self, progress: Progress) -> None:
         self.progress = progress

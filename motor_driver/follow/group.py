@@ -13,23 +13,33 @@ a first point (at time 0) further than ``start_tolerance_deg`` from where its jo
 The clock: the group's thread (``rovercan-follow-<group>``) wakes on each position sample of one of
 its drives (:meth:`DriveCache.on_sample`, set by the receive thread: one a SYNC) and sends every
 joint's next set-point then, a CSP (or IP) set-point through the drive's command channel
-(``stream_position``), so a stop still wins. The trajectory's time is the count of SYNCs seen:
-set-point ``k`` is the spline at ``k`` periods (:class:`motor_driver.drive.trajectory.Spline`); a SYNC the
-thread missed delays the rest by one period rather than skipping a set-point. A goal starts from
-where the group's set-points are (a running goal's or ramp's, else the drive's last target) with that
-velocity, so a new goal preempts the old without a jump; the first point at time 0 stands for it.
+(``stream_position``), so a stop still wins. The trajectory's time is the monotonic clock's, from
+the plan's time zero (:attr:`GoalRun.start_at`: its acceptance, or its header stamp), read at the
+sample's reception (its SYNC): the set-point sent is the spline at the next SYNC's time, where the
+drive takes it (:class:`motor_driver.drive.trajectory.Spline`); a SYNC the thread missed does not
+stretch the plan (the next set-point is the plan's at its own time). Whatever must happen before
+motion (the checks, each joint's switch to streaming) happens before the goal is handed over. A
+goal starts from where the group's set-points are at its first set-point (a preempted goal's or a
+ramp's, else the drive's last target) with that velocity, so a new goal joins the old without a
+jump; the first point at time 0 stands for it. A goal stamped ahead waits: its joints ramp down (a
+preempted goal's) or hold until then.
 
-A goal ends: SUCCESSFUL once every joint is within its goal tolerance after the last set-point
-(within the goal time tolerance: else GOAL_TOLERANCE_VIOLATED); PATH_TOLERANCE_VIOLATED when a joint
-strays further than its path tolerance, or its drive is lost, stale, faulted or refuses a set-point;
-cancelled; or preempted by a newer goal. Every end but success and preemption ramps the group's
-joints down at ``stop_deceleration_deg_s2`` and then holds (no more set-points: a CSP drive holds
-its last target); a cancel's result comes once the ramp is done.
+A goal ends: SUCCESSFUL once every joint is within its goal tolerance (position, and the stopped
+velocity tolerance) after the last set-point (within the goal time tolerance: else
+GOAL_TOLERANCE_VIOLATED); PATH_TOLERANCE_VIOLATED when a joint strays further than its path
+tolerance, or refuses a set-point, or its drive's verdict (:mod:`motor_driver.drive.verdict`, the one
+every part reads) is not usable: lost, late beyond its staleness bound, faulted, held, stopped;
+CANCELED at once on a cancel (the group's thread is woken by it, whether or not a sample comes);
+CANCELED with INVALID_GOAL and joint_trajectory_controller's words (:data:`PREEMPTED`) when a newer
+goal is handed over. A cancel's or a failure's joints ramp down at ``stop_deceleration_deg_s2`` and
+then hold (no more set-points: a CSP drive holds its last target); a joint whose verdict is not
+usable is sent nothing more (it holds, or stopped itself).
 
 Owners: the group's thread owns the running goal, the ramp and the tick count; callers hand it goals
 and cancels (:meth:`TrajectoryGroup.follow`, :meth:`GoalRun.cancel`) under ``_lock`` and read the
 immutable :class:`Progress` and :class:`Outcome` each run publishes; the receive thread only sets the
-tick event. An unexpected error in the thread is logged and counted, ends the goal and stops the group.
+tick event. An unexpected error in the thread is logged and counted, ends the goal and stops the group;
+:meth:`TrajectoryGroup.counters` (errors, late samples, silences) is what /diagnostics says of it.
 """
 
 from __future__ import annotations
@@ -46,7 +56,16 @@ from can_config.model import TrajectoryGroupConfig
 from motor_driver.drive import Drive
 from motor_driver.drive.trajectory import Knot, Spline
 from motor_driver.follow.checks import GoalChecks
-from motor_driver.follow.goal import GoalRun, Outcome, Plan, Progress, TrajectoryCode, TrajectoryGoal, refuse
+from motor_driver.follow.goal import (
+    PREEMPTED,
+    GoalRun,
+    Outcome,
+    Plan,
+    Progress,
+    TrajectoryCode,
+    TrajectoryGoal,
+    refuse,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -57,6 +76,9 @@ logger = logging.getLogger(__name__)
 LATE_SHARE = 0.5
 #: How long close() waits for the group's thread.
 JOIN_S = 2.0
+#: The longest wait for a sample, in SYNC periods, before the group looks at its drives' verdicts
+#: (a silence): a goal whose joints fall silent ends within their staleness bound plus this.
+SILENCE_PERIODS = 2.0
 
 
 @dataclass
@@ -64,10 +86,11 @@ class _Running:
     """The group thread's running goal (its own, never shared)."""
 
     run: GoalRun
-    spline: Spline
     joints: tuple[Drive, ...]
-    tick: int = 0
-    delay_ticks: int = 0
+    spline: Spline | None = None  # built at its first set-point, from where the set-points are then
+    offset_s: float = 0.0  # the plan's time of the spline's start
+    anchor: tuple[object, int, float] = (None, 0, 0.0)  # (clock drive, its sample count, plan time then)
+    last_t: float = 0.0  # the plan time of the last set-point
     final_sent: bool = False
     last_desired: tuple[tuple[float, float, float], ...] = ()
     seen: list[int] = field(default_factory=list)  # each joint's position sample count when it last changed
@@ -85,6 +108,7 @@ class TrajectoryGroup:
         self.period_s = first.cache.sync_period_s
         self.errors = 0  # unexpected errors of the thread (each ended a goal in a stop)
         self.late = 0  # SYNCs let go because this thread took their sample too late (LATE_SHARE)
+        self.silences = 0  # waits for a sample that ended without one (SILENCE_PERIODS)
         self._lock = threading.Lock()
         self._pending: GoalRun | None = None
         self._wake = threading.Event()
@@ -93,7 +117,6 @@ class TrajectoryGroup:
         # the thread's own
         self._running: _Running | None = None
         self._ramp: dict[str, tuple[float, float]] = {}  # joint -> (position, velocity) ramping down
-        self._stopping: list[GoalRun] = []  # cancelled runs whose result waits for the ramp
         self._clock: Drive | None = None
         self._clock_seq = -1
         self._silences = 0  # the clock's waits in a row that ended without a sample
@@ -102,19 +125,35 @@ class TrajectoryGroup:
         self._thread.start()
 
     # ------------------------------------------------------------------ callers
+    def counters(self) -> dict[str, int]:
+        """The thread's background counts, for /diagnostics."""
+        return {"errors": self.errors, "late samples": self.late, "silences": self.silences}
+
     def follow(self, goal: TrajectoryGoal, cancelled: Callable[[], bool] | None = None) -> GoalRun:
         """Check ``goal`` (:class:`TrajectoryRejected` with its code: nothing moved), switch its
-        joints to streaming where they are not, and hand it to the group's thread, which preempts
-        the goal running. Returns once handed over (a mode switch may wait); the run says how it
-        ends. ``cancelled``: asked right before the handover; True ends the run "cancelled before
-        it started", and the goal running (or pending) goes on untouched."""
+        joints to streaming where they are not, and hand it over (:meth:`start`), its time zero
+        then. Returns once handed over (a mode switch may wait); the run says how it ends.
+        ``cancelled``: asked right before the handover; True ends the run "cancelled before it
+        started", and the goal running (or pending) goes on untouched."""
         plan = self.plan(goal)
-        run = GoalRun(plan)
         asked = cancelled or (lambda: False)
         if not asked():  # a goal cancelled before its start switches no mode
-            for name in goal.joints:
-                self._prepare(self.drives[name])
-        stop = asked()  # asked outside the group's lock (the caller's own locks: an action server's)
+            self.prepare(goal.joints)
+        return self.start(plan, time.monotonic() + goal.start_delay_s, cancelled=asked())
+
+    def prepare(self, joints: Sequence[str]) -> None:
+        """Each joint not streaming yet switched to CSP (or IP), holding where it stands, on the
+        caller's thread, which may wait on the drives: before a goal is accepted."""
+        for name in joints:
+            self._prepare(self.drives[name])
+
+    def start(self, plan: Plan, start_at: float, cancelled: bool = False) -> GoalRun:
+        """Hand a checked plan (its joints streaming: :meth:`prepare`) to the group's thread, which
+        takes it at once: the goal running (or pending) ends CANCELED (:data:`PREEMPTED`). ``start_at``:
+        the plan's time zero on the monotonic clock. ``cancelled``: the run ends "cancelled before it
+        started" and the goal running goes on."""
+        run = GoalRun(plan, start_at, wake=self._tick.set)
+        stop = cancelled
         with self._lock:
             if self._closed:
                 raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: the driver shut down")
@@ -126,7 +165,7 @@ class TrajectoryGroup:
                 return run
             older, self._pending = self._pending, run
         if older is not None:
-            older.finish(Outcome(TrajectoryCode.INVALID_GOAL, "preempted by a newer goal before it started"))
+            older.finish(Outcome(TrajectoryCode.INVALID_GOAL, PREEMPTED, canceled=True))
         self._wake.set()
         self._tick.set()  # a thread waiting for the clock takes it now
         return run
@@ -205,41 +244,36 @@ class TrajectoryGroup:
                 pending.finish(Outcome(TrajectoryCode.PATH_TOLERANCE_VIOLATED,
                                        f"trajectory group {self.name}: the goal could not start ({err!r})"))
                 raise
+        running = self._running
+        if running is not None and running.run.cancel_requested:  # at once, sample or not
+            running.run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "cancelled: the joints ramp down and hold",
+                                       canceled=True))
+            self._to_ramp(running)
         ticked = self._wait_tick()
-        if ticked is None:  # a new goal or the shutdown came first, or the sample came too late
+        if ticked is None:  # a new goal, a cancel or the shutdown came first, or the sample came too late
             return
         if not ticked:
+            self.silences += 1
             self._silences += 1
             self._judge_silence()
             return
         self._silences = 0
-        running = self._running
-        if running is not None:
-            if running.run.cancel_requested:
-                self._stopping.append(running.run)
-                self._to_ramp(running)
-            else:
-                self._step(running)
+        if self._running is not None and self._clock is not None:
+            self._step(self._running, self._clock)
         self._step_ramp()
 
     def _start(self, run: GoalRun) -> None:
         if run.cancel_requested:
             run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "cancelled before it started", canceled=True))
             return
-        plan = run.plan
-        joints = plan.goal.joints
+        joints = run.plan.goal.joints
         start = self._reference(joints)
         old = self._running
-        if old is not None:
-            old.run.finish(Outcome(TrajectoryCode.INVALID_GOAL, "preempted by a newer goal"))
-            self._to_ramp(old, keep=joints)
-        for name in joints:
-            self._ramp.pop(name, None)
-        delay = max(0, round(plan.goal.start_delay_s / self.period_s))
-        spline = Spline((0.0, *plan.times_s), (start, *plan.knots))
+        if old is not None:  # its joints ramp from its last set-point until the new spline takes them
+            old.run.finish(Outcome(TrajectoryCode.INVALID_GOAL, PREEMPTED, canceled=True))
+            self._to_ramp(old)
         drives = tuple(self.drives[j] for j in joints)
-        self._running = _Running(run, spline, drives, delay_ticks=delay,
-                                 last_desired=tuple((p, v or 0.0, a or 0.0) for p, v, a in start),
+        self._running = _Running(run, drives, last_desired=tuple((p, v or 0.0, a or 0.0) for p, v, a in start),
                                  seen=[d.cache.position_seq for d in drives], quiet=[0] * len(drives))
         self._set_clock(self._running.joints[0])  # the first joint: its sample comes early after the SYNC
 
@@ -253,13 +287,12 @@ class TrajectoryGroup:
         drive.cache.on_sample(self._tick.set)
 
     def _wait_tick(self) -> bool | None:
-        """Until the clock drive's next position sample (True), for longer than its data may be
-        late before they are stale (False), or until a new goal, the shutdown or a sample taken
-        too late (None)."""
+        """Until the clock drive's next position sample (True), for :data:`SILENCE_PERIODS` without
+        one (False), or until a new goal, a cancel, the shutdown or a sample taken too late (None)."""
         clock = self._clock
         if clock is None:
             return False
-        limit = clock.config.stale_after_syncs * self.period_s
+        limit = SILENCE_PERIODS * self.period_s
         while clock.cache.position_seq == self._clock_seq:
             if not self._tick.wait(limit):
                 return False
@@ -267,6 +300,9 @@ class TrajectoryGroup:
             with self._lock:
                 if self._closed or self._pending is not None:
                     return None
+            running = self._running
+            if running is not None and running.run.cancel_requested:
+                return None
         self._clock_seq = seq = clock.cache.position_seq
         if self._age(clock) > LATE_SHARE * self.period_s or clock.cache.position_seq != seq:
             self.late += 1
@@ -283,9 +319,9 @@ class TrajectoryGroup:
         return on_bus if 0.0 <= on_bus < 1.0 else time.monotonic() - rx.rx_monotonic
 
     def _judge_silence(self) -> None:
-        """No sample from the clock: a lost drive ends the goal; after a second silence the clock
-        moves to another joint (which then counts the silent one's SYNCs without a sample: stale).
-        Not judged by time alone: a starved process wakes to find every drive late."""
+        """No sample from the clock: a joint whose verdict is not usable (lost, or late beyond its
+        staleness bound: the verdict's judgement, not this thread's clock) ends the goal; after a
+        second silence the clock moves to another joint."""
         running = self._running
         if running is not None:
             for drive in running.joints:
@@ -298,7 +334,6 @@ class TrajectoryGroup:
         if not live:
             if self._running is None:
                 self._ramp.clear()  # nothing can be sent: what is left holds, or stopped by itself
-                self._finish_stopping()
             return
         others = [d for d in live if d is not self._clock]
         if self._silences > 1 and others:
@@ -306,29 +341,47 @@ class TrajectoryGroup:
 
     @staticmethod
     def _unusable(drive: Drive) -> str | None:
-        """Lost: the supervisor's judgement (stale data are counted in SYNCs by :meth:`_strayed`)."""
-        return "its drive is lost (no heartbeat)" if drive.cache.lost else None
+        """Why the joint may not be driven: its verdict (the one every part reads), else None."""
+        verdict = drive.snapshot().verdict
+        return None if verdict.usable else f"{verdict.condition.value}: {verdict.cause}" + (
+            f"; {verdict.helps}" if verdict.helps else "")
 
-    def _step(self, running: _Running) -> None:
-        running.tick += 1
-        t = (running.tick - running.delay_ticks) * self.period_s
-        if t <= 0.0:
-            return
+    def _step(self, running: _Running, clock: Drive) -> None:
+        """This SYNC's set-points: the plan at the next SYNC's time, where the drives take them. The
+        plan's time: the monotonic clock's at the first sample (when it came, from the plan's time
+        zero), then the SYNCs counted by the clock's samples (one a SYNC, counted by the receive
+        thread: a sample this thread let go still counts, a receive thread's jitter is no step)."""
+        seq = clock.cache.position_seq
+        if running.spline is None:
+            t = clock.cache.received.rx_monotonic + self.period_s - running.run.start_at
+            if t <= 0.0:
+                return  # stamped ahead: its joints hold (or ramp down) until then
+            self._join(running, t - self.period_s)
+            running.anchor = (clock, seq, t)
+        else:
+            drive, base_seq, base_t = running.anchor
+            if drive is not clock:  # the clock moved to another joint: counted from here on
+                running.anchor = (clock, seq - 1, running.last_t)
+                drive, base_seq, base_t = running.anchor
+            t = base_t + (seq - base_seq) * self.period_s
+        running.last_t = t
         spline = running.spline
+        assert spline is not None
+        local = t - running.offset_s
         actual = tuple((d.cache.angle_deg, d.cache.scale.counts_s_to_deg_s(d.cache.received.velocity_counts_s))
                        for d in running.joints)
         if (error := self._strayed(running, actual)) is not None:
             self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, error)
             return
         if running.final_sent:
-            self._settle(running, actual, t - spline.end_s)
+            self._settle(running, actual, local - spline.end_s)
             return
         # this SYNC's measurement against the set-point in force at it (sent the tick before, taken by
         # the drive at this SYNC): the trajectory at its time, as joint_trajectory_controller pairs them
         running.run.report(Progress(max(t - self.period_s, 0.0), running.run.plan.goal.joints, running.last_desired,
                                     actual))
-        running.final_sent = t >= spline.end_s - 1e-9 * self.period_s  # the tick sample_times() ends on
-        desired = spline.sample(min(t, spline.end_s))
+        running.final_sent = local >= spline.end_s - 1e-9 * self.period_s
+        desired = spline.sample(min(local, spline.end_s))
         for drive, (p, _, _) in zip(running.joints, desired, strict=True):
             try:
                 drive.stream_position(p)
@@ -337,6 +390,19 @@ class TrajectoryGroup:
                            " the group stops")
                 return
         running.last_desired = desired
+
+    def _join(self, running: _Running, now_s: float) -> None:
+        """The goal's spline from where its joints' set-points are now (a preempted goal's or a ramp's,
+        taken off the ramp), standing for the plan's time ``now_s`` (its first knot's time shortened
+        by it, so that the plan keeps its time from acceptance)."""
+        plan = running.run.plan
+        start = self._reference(plan.goal.joints)
+        for name in plan.goal.joints:
+            self._ramp.pop(name, None)
+        offset = now_s if 0.0 < now_s < 0.5 * plan.times_s[0] else 0.0
+        running.offset_s = offset
+        running.spline = Spline((0.0, *(t - offset for t in plan.times_s)), (start, *plan.knots))
+        running.last_desired = tuple((p, v or 0.0, a or 0.0) for p, v, a in start)
 
     def _strayed(self, running: _Running, actual: tuple[tuple[float, float], ...]) -> str | None:
         """The first joint outside its path tolerance (from the set-point it is following), lost, or
@@ -372,7 +438,7 @@ class TrajectoryGroup:
             if tol.velocity_deg_s > 0 and abs(av) > tol.velocity_deg_s:
                 far = f"{drive.name}: still moving at {av:.2f} deg/s; goal velocity tolerance {tol.velocity_deg_s:g} deg/s"
                 break
-        running.run.report(Progress(running.spline.end_s, plan.goal.joints, running.last_desired, actual))
+        running.run.report(Progress(plan.times_s[-1], plan.goal.joints, running.last_desired, actual))
         if far is None:
             self._running = None
             running.run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "at the goal"))
@@ -387,7 +453,6 @@ class TrajectoryGroup:
         running = self._running
         if running is None:
             self._ramp.clear()
-            self._finish_stopping()
             return
         logger.warning("trajectory group %s: goal aborted: %s", self.name, message)
         running.run.finish(Outcome(code, message))
@@ -422,24 +487,16 @@ class TrajectoryGroup:
                 del self._ramp[name]
             else:
                 self._ramp[name] = (position, slower)
-        if not self._ramp:
-            self._finish_stopping()
-
-    def _finish_stopping(self) -> None:
-        for run in self._stopping:
-            run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "cancelled: the joints ramped down and hold", canceled=True))
-        self._stopping.clear()
 
     def _shut_down(self) -> None:
         if self._clock is not None:
             self._clock.cache.on_sample(None)
         with self._lock:
             pending, self._pending = self._pending, None
-        runs = [r for r in (pending, self._running.run if self._running else None) if r is not None] + self._stopping
-        for run in runs:
-            run.finish(Outcome(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: the driver shut down"))
+        for run in (pending, self._running.run if self._running else None):
+            if run is not None:
+                run.finish(Outcome(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: the driver shut down"))
         self._running = None
-        self._stopping.clear()
 
 
 def groups_of(configs: Sequence[TrajectoryGroupConfig], drives: Mapping[str, Drive]) -> dict[str, TrajectoryGroup]:
