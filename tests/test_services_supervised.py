@@ -233,6 +233,35 @@ def test_a_raising_timer_and_subscription_never_end_the_hot_executor(
     rig.every_service_answers()
 
 
+def test_a_failing_hook_of_the_state_timer_is_counted_and_the_states_go_on(
+        rig: Rig, caplog: pytest.LogCaptureFixture) -> None:
+    """A hook on the state timer (the drive system's control loop runs there) that raises: the
+    states are published all the same, the failure counted on /diagnostics and said once with its
+    trace (it was a throttled line, never counted)."""
+    caplog.set_level(logging.INFO)
+    node = rig.assembly.node
+    assert node is not None
+    raised: list[int] = []
+
+    def hook() -> None:
+        raised.append(1)
+        raise RuntimeError("Boom in a tick hook")
+
+    assert node.share_tick(node.state_period_s, hook)
+    states: list[Any] = []
+    rig.probe.create_subscription(JointState, "/joint_states", states.append, STATE_QOS)
+    wait_for(lambda: len(states) >= 3 and len(raised) >= 3, HANG_S, "states published while the hook raises")
+
+    def said() -> bool:
+        status = rig.driver_status() or {}
+        return "Boom in a tick hook" in status.get("last_callback_failure", "") and \
+            int(status.get("callback_failures", "0")) >= 3
+
+    wait_for(said, HANG_S, "the hook's failures counted on /diagnostics")
+    lines = [r for r in caplog.records if "Boom in a tick hook" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].exc_info is not None
+
+
 @pytest.mark.parametrize("kind", ["events", "single", "multi"])
 def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, caplog: pytest.LogCaptureFixture) -> None:
     """A callback no one wrapped (an action server's internals, a node made later) raises on every
