@@ -51,7 +51,7 @@ from nodes.messages import fill_motor_state, stamp_header
 from nodes.params import DRIVER, ONE_JOINT, declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
 from nodes.rawcmd import float32_data
-from nodes.refusals import WARN_THROTTLE_S, RefusalLog
+from nodes.refusals import RefusalLog
 from nodes.runtime import CallbackFailures
 
 
@@ -231,8 +231,9 @@ class DriverNode(Node):
         for hook in self._tick_hooks:
             try:
                 hook()
-            except Exception as err:  # the states are published all the same
-                self.get_logger().error(f"tick of {hook!r} failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+            except Exception as err:  # the states are published all the same; logged once, counted
+                self.callback_failures.record(f"timer {self.get_name()}: tick of {getattr(hook, '__qualname__', hook)}",
+                                              err)
         self._publish_states()
 
     def _publish_states(self) -> None:
@@ -267,7 +268,7 @@ class DriverNode(Node):
                 stamp_header(joint.header, newest or time.time())
                 self._joint_pub.publish(joint)
         except Exception as err:
-            self.get_logger().error(f"state publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+            self.callback_failures.record(f"timer {self.get_name()}: the state publish", err)
 
     def _publish_diagnostics(self) -> None:
         try:
@@ -316,7 +317,7 @@ class DriverNode(Node):
             array.status.append(self._driver_status())
             self._diag_pub.publish(array)
         except Exception as err:
-            self.get_logger().error(f"diagnostics publish failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+            self.callback_failures.record(f"timer {self.get_name()}: the diagnostics publish", err)
 
 
     def _driver_status(self) -> DiagnosticStatus:

@@ -231,3 +231,73 @@ def test_a_raising_timer_and_subscription_never_end_the_hot_executor(
     rig.probe.create_subscription(JointState, "/joint_states", states.append, STATE_QOS)
     wait_for(lambda: bool(states), HANG_S, "/joint_states after the timer raised")
     rig.every_service_answers()
+
+
+def test_a_failing_hook_of_the_state_timer_is_counted_and_the_states_go_on(
+        rig: Rig, caplog: pytest.LogCaptureFixture) -> None:
+    """A hook on the state timer (the drive system's control loop runs there) that raises: the
+    states are published all the same, the failure counted on /diagnostics and said once with its
+    trace (it was a throttled line, never counted)."""
+    caplog.set_level(logging.INFO)
+    node = rig.assembly.node
+    assert node is not None
+    raised: list[int] = []
+
+    def hook() -> None:
+        raised.append(1)
+        raise RuntimeError("Boom in a tick hook")
+
+    assert node.share_tick(node.state_period_s, hook)
+    states: list[Any] = []
+    rig.probe.create_subscription(JointState, "/joint_states", states.append, STATE_QOS)
+    wait_for(lambda: len(states) >= 3 and len(raised) >= 3, HANG_S, "states published while the hook raises")
+
+    def said() -> bool:
+        status = rig.driver_status() or {}
+        return "Boom in a tick hook" in status.get("last_callback_failure", "") and \
+            int(status.get("callback_failures", "0")) >= 3
+
+    wait_for(said, HANG_S, "the hook's failures counted on /diagnostics")
+    lines = [r for r in caplog.records if "Boom in a tick hook" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].exc_info is not None
+
+
+@pytest.mark.parametrize("kind", ["events", "single", "multi"])
+def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, caplog: pytest.LogCaptureFixture) -> None:
+    """A callback no one wrapped (an action server's internals, a node made later) raises on every
+    call: rclpy's executors raise it out of their spin; spin_until counts it, says it once (rclpy's
+    EventsExecutor says it itself, with its trace) and spins on."""
+    import threading
+
+    from rclpy.executors import MultiThreadedExecutor
+
+    caplog.set_level(logging.INFO)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("raising", context=context)
+    executor = (runtime.make_executor("events", context) if kind == "events" else
+                SingleThreadedExecutor(context=context) if kind == "single" else
+                MultiThreadedExecutor(num_threads=2, context=context))
+    executor.add_node(node)
+    calls: list[int] = []
+
+    def tick() -> None:
+        calls.append(1)
+        raise RuntimeError("Boom unsupervised")
+
+    node.create_timer(0.01, tick)
+    failures = runtime.CallbackFailures()
+    stop = threading.Event()
+    spin = threading.Thread(target=runtime.spin_until, args=(executor, stop, 0.1, failures), name="test-spin")
+    spin.start()
+    try:
+        wait_for(lambda: failures.snapshot()[0] >= 3, HANG_S, "three failures counted, the spin going on")
+        assert spin.is_alive()
+    finally:
+        stop.set()
+        spin.join(HANG_S)
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+    ours = [r for r in caplog.records if r.name == "nodes.runtime" and "Boom unsupervised" in r.getMessage()]
+    assert len(ours) == (0 if kind == "events" else 1), [r.getMessage() for r in ours]
