@@ -23,7 +23,7 @@ import can
 from can_config.errors import ProtocolError
 from virtual_can.cyclic_jobs import MAX_CYCLIC_PERIOD_S, MIN_CYCLIC_PERIOD_S, POLL_S, CyclicJobs
 from virtual_can.engine import BusEngine, Channel, Endpoint
-from virtual_can.wire import ARRIVAL_ANCILLARY_BYTES, arrival_time, stamp_arrivals
+from virtual_can.wire import ARRIVAL_ANCILLARY_BYTES, arrival_time, stamp_arrivals, tcp_bytes_received
 
 
 class ClientHost(Protocol):
@@ -160,6 +160,8 @@ class Client:
         self._hold_frames = False  # set by rawmode: frames wait for _spoke or RAWMODE_HOLD_S
         self._spoke = threading.Event()
         self._arrival = 0.0  # when the newest read reached the socket; the reader's own
+        self._handled_bytes = 0  # bytes read from the socket whose frames are on the bus (the reader's)
+        self._handled_arrival = 0.0  # the kernel's arrival stamp of the newest read they came in (the reader's)
         self.last_heard = time.monotonic()  # written by the reader, read by the accept loop
         # the last frame or command other than an echo (reader), read by the accept loop: an echo
         # every few seconds keeps a connection open but is no use of the bus
@@ -278,11 +280,25 @@ class Client:
                     self._error("data outside '< ... >'")
                 buf = buf[end + 1:]
                 self._handle(line)
+            self._handled_arrival = self._arrival  # every whole frame of the read is on the bus now
+            self._handled_bytes += len(chunk)
             if self.stats.errors >= CLIENT_ERROR_LIMIT:
                 logger.warning("socketcand client %s sent %d bad lines; disconnecting it",
                                self.addr, self.stats.errors)
                 break
         self.close()
+
+    def on_bus_until(self, wall: float) -> float:
+        """The bus time up to which every frame this client sent is on the bus, asked at ``wall``:
+        ``wall`` when the kernel has received no byte of it that is not (the reader's count of the
+        bytes it handled against the kernel's of those received), else the arrival stamp of the
+        newest read the reader handled: what came after may still be in the socket, or read by a
+        reader thread starved before it put it on the bus. Any thread."""
+        handled, arrival = self._handled_bytes, self._handled_arrival
+        received = tcp_bytes_received(self.sock)
+        if received is None or received <= handled or self._closed.is_set():
+            return wall
+        return min(wall, arrival)
 
     def _error(self, what: str) -> None:
         self.stats.errors += 1

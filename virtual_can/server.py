@@ -103,6 +103,11 @@ class SocketcandServer:
         with self._lock:
             return list(self._clients)
 
+    def on_bus_until(self, wall: float) -> float:
+        """The bus time up to which every client's frames are on the bus, asked at ``wall``
+        (:meth:`Client.on_bus_until`): the drives judge a silence on no later time."""
+        return min([wall, *(client.on_bus_until(wall) for client in self.clients)])
+
     def _accept_loop(self) -> None:
         # the clients' reader and writer threads start from this one and inherit its scheduling: the
         # bus's stamps and deliveries go on however busy the machine is (below the driver's priority)

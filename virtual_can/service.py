@@ -107,6 +107,7 @@ class SimService:
             self._close_parts()
             raise
         for sim in self.simulators.values():
+            sim.clock.on_bus_until = self.server.on_bus_until  # a silence is judged once its clients' frames are in
             sim.start()
 
     @classmethod

@@ -19,12 +19,32 @@ import time
 
 from can_config.bits import frame_bits, frame_time_s
 
-__all__ = ["ARRIVAL_ANCILLARY_BYTES", "arrival_time", "frame_bits", "frame_time_s", "stamp_arrivals"]
+__all__ = ["ARRIVAL_ANCILLARY_BYTES", "arrival_time", "frame_bits", "frame_time_s", "stamp_arrivals",
+           "tcp_bytes_received"]
 
 _SO_TIMESTAMPNS: int | None = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform == "linux" else None)
 _TIMESPEC = struct.Struct("@ll")
 #: The ancillary buffer a ``recvmsg`` needs for the stamp.
 ARRIVAL_ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
+
+
+#: ``struct tcp_info`` (linux/tcp.h, Linux 4.1 on): ``tcpi_bytes_received``, a u64 at this offset.
+_TCP_INFO_BYTES_RECEIVED = struct.Struct("@Q")
+_TCP_INFO_BYTES_RECEIVED_AT = 128
+_TCP_INFO = getattr(socket, "TCP_INFO", 11 if sys.platform == "linux" else None)
+
+
+def tcp_bytes_received(sock: socket.socket) -> int | None:
+    """The bytes the kernel has received on a TCP socket so far, whatever this process read of
+    them (None where it does not say: not Linux, an older kernel, not TCP, closed)."""
+    if _TCP_INFO is None:
+        return None
+    end = _TCP_INFO_BYTES_RECEIVED_AT + _TCP_INFO_BYTES_RECEIVED.size
+    try:
+        info = sock.getsockopt(socket.IPPROTO_TCP, _TCP_INFO, end)
+    except OSError:
+        return None
+    return _TCP_INFO_BYTES_RECEIVED.unpack_from(info, _TCP_INFO_BYTES_RECEIVED_AT)[0] if len(info) >= end else None
 
 
 def stamp_arrivals(sock: socket.socket) -> None:

@@ -11,7 +11,11 @@ caught when other frames on the bus (SYNC, other nodes) are stamped past its con
 on a silent bus, by the wall clock, but only at a look that followed the previous one closely: a
 thread that was held (a starved process, a test's hook) looks at what queued meanwhile first, and
 judges nothing for a few looks more, while the bus server's threads, held with it, deliver what
-reached their sockets during the hold (with the stamps of its arrival).
+reached their sockets during the hold (with the stamps of its arrival). Where the frames come
+through the bus server, the drives are never judged on a bus time past the one up to which every
+client's bytes that reached this host are on the bus (the kernel's count of the bytes received on
+each connection against its reader's of those it put on the bus; issue 73): a SYNC from the
+server's timer, stamped while the host's heartbeat waited in a starved reader, convicts no one.
 
 Owner: the runner thread owns the drives, the bus clock and the hook's calls; other threads reach
 the drives through :meth:`DriveSimulator.call`.
@@ -20,6 +24,7 @@ the drives through :meth:`DriveSimulator.call`.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -64,6 +69,10 @@ class BusClock:
     the drives are judged on the one before it for ``SETTLE_LOOKS`` looks."""
 
     def __init__(self) -> None:
+        #: Where the bus's frames come from clients whose bytes can wait in a socket or a starved
+        #: reader thread (the socketcand server): ``on_bus_until(wall)`` is the bus time up to which
+        #: every one of them is on the bus (set by :class:`virtual_can.service.SimService`).
+        self.on_bus_until: Callable[[float], float] | None = None
         self.newest = 0.0
         self.looked = 0.0
         self._last_look: float | None = None
@@ -77,9 +86,11 @@ class BusClock:
         self.newest = max(self.newest, stamp)
         return stamp
 
-    def look(self, wall: float, emptied: bool) -> float:
-        """A look at the bus begun at ``wall`` (``emptied``: it found the queue empty); the bus time
-        to judge the drives' watch on."""
+    def look(self, wall: float, emptied: bool, on_bus_until: float = math.inf) -> float:
+        """A look at the bus begun at ``wall`` (``emptied``: it found the queue empty;
+        ``on_bus_until``: the bus time up to which every frame was on the bus at ``wall``); the bus
+        time to judge the drives' watch on: never past ``on_bus_until``, so that a SYNC stamped
+        after a heartbeat that waits in a starved reader does not convict its producer."""
         steady = self._last_look is not None and wall - self._last_look <= LOOK_GAP_S
         self._last_look = wall
         if not steady and not self._settling:
@@ -89,7 +100,7 @@ class BusClock:
         if self._settling:
             self._settling -= 1
             return self._judged
-        self._judged = self.now
+        self._judged = max(self._judged, min(self.now, on_bus_until))
         return self._judged
 
     @property
@@ -213,6 +224,7 @@ class DriveSimulator:
         """The drives' time moves on, judged against the bus time of a look begun now: what queued
         while this thread was held is handled before any verdict on a silence."""
         wall = time.time()
+        on_bus_until = self.clock.on_bus_until(wall) if self.clock.on_bus_until is not None else math.inf
         try:
             first = self.bus.recv(timeout=0.0)
         except (can.CanError, OSError, ValueError):
@@ -220,7 +232,7 @@ class DriveSimulator:
             emptied = False
         else:
             emptied = self._handle_queued(drives, first, now)
-        bus_now = self.clock.look(wall, emptied)
+        bus_now = self.clock.look(wall, emptied, on_bus_until)
         for drive in drives:
             try:
                 out = drive.tick(now, dt, bus_now)
