@@ -226,6 +226,27 @@ def test_move_joint_answers_a_cancel_while_its_start_waits_on_the_drive(rig: Rig
     client.destroy()
 
 
+def test_move_joint_gives_up_after_its_overall_timeout(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A joint whose shaft is blocked never gets to its target: move_joint halts it and aborts,
+    naming how far it is, after the move's own time and a margin (it waited for ever)."""
+    from action_msgs.msg import GoalStatus
+    from rovercan_msgs.action import MoveJoint
+
+    from nodes import actions
+
+    monkeypatch.setattr(actions, "MOVE_MARGIN_S", 0.5)
+    client = ActionClient(rig.client._node, MoveJoint, "move_joint")
+    assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
+    apply_action(rig.sim, {"action": "load", "node": 1, "stall": True})
+    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=30.0, speed_deg_s=60.0))
+    wait_for(sent.done, HANG_S, "the goal answered")
+    done = result_of(sent.result())
+    apply_action(rig.sim, {"action": "load", "node": 1, "stall": False})
+    assert done.status == GoalStatus.STATUS_ABORTED and not done.result.success
+    assert "joint1: not at 30.00 deg" in done.result.message and "short" in done.result.message, done.result.message
+    client.destroy()
+
+
 @pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
 def test_goals_start_in_the_order_they_came_while_the_first_waits_on_the_drive(rig: Rig) -> None:
     """A second goal sent while the first one's switch to streaming waits on the drive starts
