@@ -42,6 +42,15 @@ FEEDBACK_PERIOD_S = 0.05
 CANCEL_SETTLE_S = 3.0
 #: A move is done when the drive says "target reached" within this of the target.
 TARGET_WINDOW_DEG = 0.5
+#: A move's overall timeout beyond its profile's own time (distance / speed + 2 x speed / acceleration):
+#: a joint that does not get there (blocked, too weak, a drive that never says "target reached")
+#: is halted and the goal aborted, naming how far it is.
+MOVE_MARGIN_S = 5.0
+
+
+def move_timeout_s(distance_deg: float, speed_deg_s: float, accel_deg_s2: float) -> float:
+    """How long a profile-position move of ``distance_deg`` may take before it is given up."""
+    return MOVE_MARGIN_S + abs(distance_deg) / speed_deg_s + 2.0 * speed_deg_s / accel_deg_s2
 
 
 class DriverActionsNode(Node):
@@ -148,14 +157,24 @@ class DriverActionsNode(Node):
             if started is None:
                 return self._finish(goal, MoveJoint.Result(), request.joint, False, "canceled before it moved")
             target = started
+            cfg = drive.config
+            speed = float(request.speed_deg_s) if request.speed_deg_s > 0 else cfg.profile_velocity_deg_s
+            timeout_s = move_timeout_s(target - drive.snapshot().angle_deg, speed, cfg.profile_acceleration_deg_s2)
+            deadline = time.monotonic() + timeout_s
             while True:
                 await self._pause()
                 state = drive.snapshot()
-                if state.fault or state.verdict.condition not in (Condition.USABLE, Condition.LATE):
-                    # faulted, stopped (a deactivate, /disarm, its own host watch) or lost: the move
-                    # cannot end at its target (late data only delays the feedback); raises the cause
-                    drive.wait_target_reached(0.0)
-                    raise DriveStateError(f"{request.joint}: the move ended: {state.verdict.text()}", node_id=drive.node_id)
+                verdict = state.verdict  # the one judgement of the drive: nothing else is read
+                if not verdict.usable and verdict.condition is not Condition.LATE:
+                    # faulted, stopped (a deactivate, /disarm, its own host watch), held or lost: the
+                    # move cannot end at its target (late data only delays the feedback)
+                    raise DriveStateError(f"{request.joint}: the move ended: {verdict.text()}", node_id=drive.node_id)
+                if time.monotonic() > deadline:
+                    drive.halt()
+                    raise DriveStateError(f"{request.joint}: not at {target:.2f} deg after {timeout_s:.1f} s (the"
+                                          f" move's time and {MOVE_MARGIN_S:g} s); halted at {state.angle_deg:.2f} deg,"
+                                          f" {abs(target - state.angle_deg):.2f} deg short ({verdict.text()}). Is the"
+                                          " joint blocked or its speed too low?", node_id=drive.node_id)
                 if state.target_reached and abs(target - state.angle_deg) < TARGET_WINDOW_DEG:
                     # the handshake's last word, and a fresh position
                     await self._off_executor(request.joint, lambda: drive.wait_target_reached(1.0), lane="wait")

@@ -6,26 +6,32 @@ runs it on its own thread at the bus's SYNC; this side publishes feedback at the
 ``feedback_rate_hz``, passes a cancel on, and turns the run's outcome into the result's
 ``error_code`` and ``error_string``.
 
-Every goal is accepted, then checked: a refusal is an aborted goal whose result carries the standard's
-code (INVALID_JOINTS, INVALID_GOAL, OLD_HEADER_TIMESTAMP) and a message naming the joint and the limit;
-nothing moved. Whatever holds the drives' motion (a stop, the lifecycle node inactive) holds it in
-each drive's command channel, where every set-point and mode switch of a goal goes: such a goal ends
-INVALID_GOAL with the channel's reason, as every other motion entry is refused. A cancelled goal ends CANCELED once its joints stand; a goal
-preempted by a newer one ends ABORTED with INVALID_GOAL (as joint_trajectory_controller does).
+What can be judged at goal time is judged in the goal callback, as joint_trajectory_controller
+does, and a goal failing it is REJECTED, the reason logged (WARNING): joints unknown, repeated, of
+another group or not all of the group's (unless ``allow_partial_joints_goal``), points of the wrong
+size, not finite or not strictly increasing in time, beyond a joint's limits, a tolerance negative
+other than -1, a header stamp whose trajectory is over, a joint not usable or its motion held (the
+lifecycle node inactive). Each joint's switch to a streamed mode (SDO answers) happens there too,
+awaited off the executor: before acceptance, so that it never shifts the plan. Acceptance is the
+plan's time zero (header stamp zero), or the stamp: the group samples the plan at each SYNC's time
+from it (motor_driver/follow/group.py).
+
+A newer goal preempts: it is accepted and the older one ends CANCELED with INVALID_GOAL and "Current
+goal cancelled due to new incoming action." (the controller's words); the new plan is joined from
+the current set-point. A cancel is passed to the group in the cancel callback and wakes its thread:
+the goal ends CANCELED within a SYNC period whether or not samples come, its joints then ramp down
+and hold. What goes wrong later ends ABORTED with the standard's code and a message naming the joint.
 
 The goals are coroutines on the actions' executor (nodes/actions.py): between two looks at the run a
-goal awaits the node's pause, so the executor serves cancels and other goals meanwhile. A goal's start
-(its checks, and each joint's switch to a streamed mode, which waits on the drive's SDO answers) runs
-on the server's start worker, watched the same way: a drive slow to answer holds its goal, never the
-executor. One worker a server, so goals start in the order they came (a newer goal preempts an
-older one, never the other way round); a goal cancelled while it starts is never handed over and
-leaves the goal running alone; a server destroyed drops the starts not begun.
+goal awaits the node's pause, so the executor serves cancels and other goals meanwhile; a goal's
+switch to streaming runs on the server's start worker (one a server: in the order goals came).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import CancelledError, ThreadPoolExecutor
 from typing import Any
@@ -33,12 +39,13 @@ from typing import Any
 from builtin_interfaces.msg import Duration
 from control_msgs.action import FollowJointTrajectory
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.action.server import GoalEvent
 from rclpy.callback_groups import CallbackGroup
 from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 from can_config.errors import RovercanError, TrajectoryRejected
-from motor_driver.follow import Progress, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
+from motor_driver.follow import GoalRun, Plan, Progress, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
 from motor_driver.protocol.units import DEG_PER_RAD
 
 Result = FollowJointTrajectory.Result
@@ -54,10 +61,17 @@ def _degrees(values: Any) -> tuple[float, ...]:
 
 
 def _tolerances(entries: Any) -> dict[str, Tolerance]:
-    """JointTolerance[] in degrees; the special values 0 (the default) and -1 (none) kept as they are."""
-    def deg(value: float) -> float:
-        return value if value in (0.0, -1.0) else float(value) * DEG_PER_RAD
-    return {t.name: Tolerance(deg(t.position), deg(t.velocity)) for t in entries}
+    """JointTolerance[] in degrees; the special values 0 (the default) and -1 (none) kept as they are,
+    any other negative refused (joint_trajectory_controller's meanings)."""
+    def deg(name: str, what: str, value: float) -> float:
+        if value in (0.0, -1.0):
+            return float(value)
+        if not (math.isfinite(value) and value > 0.0):
+            raise TrajectoryRejected(f"{name}: {what} tolerance {value!r}: allowed -1 (none), 0 (the default) or a"
+                                     " bound > 0; nothing moved", code=int(TrajectoryCode.INVALID_GOAL))
+        return float(value) * DEG_PER_RAD
+    return {t.name: Tolerance(deg(t.name, "position", t.position), deg(t.name, "velocity", t.velocity))
+            for t in entries}
 
 
 def goal_from_message(request: Any, now_s: float) -> TrajectoryGoal:
@@ -104,6 +118,10 @@ def fill_feedback(feedback: Any, progress: Progress) -> Any:
     return feedback
 
 
+#: How often a goal's switch to streaming is looked at while the goal callback awaits it.
+START_POLL_S = 0.005
+
+
 class FollowTrajectoryServer:
     """One group's action server on ``node``. ``pause(period_s)``: an awaitable that holds no executor thread."""
 
@@ -113,66 +131,121 @@ class FollowTrajectoryServer:
         self._pause = pause
         self._period_s = 1.0 / group.config.feedback_rate_hz
         self._alive = True
-        # goals' starts, one at a time in the order they came; each start's Future is read by its goal
+        # goals' switches to streaming, one at a time in the order they came
         self._starter = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"rovercan-follow-start-{group.name}")
+        self._plans: dict[int, tuple[Any, Plan]] = {}  # id(goal request) -> (it, its plan): goal callback -> accepted
+        self._runs: dict[int, GoalRun | str] = {}  # id(goal handle) -> its run, or why it could not start
+        self._arrived = 0  # goals that came; those still judged, by arrival: accepted in that order
+        self._judging: set[int] = set()
         self._server = ActionServer(node, FollowJointTrajectory, f"{group.name}/follow_joint_trajectory",
-                                    execute_callback=self._execute, goal_callback=lambda _goal: GoalResponse.ACCEPT,
-                                    cancel_callback=lambda _goal: CancelResponse.ACCEPT, callback_group=callback_group)
+                                    execute_callback=self._execute, goal_callback=self._judge,
+                                    handle_accepted_callback=self._accepted, cancel_callback=self._cancel,
+                                    callback_group=callback_group)
 
     def destroy(self) -> None:
-        self._alive = False  # a start under way hands nothing over
+        self._alive = False  # a goal under judgement is rejected
         self._starter.shutdown(wait=False, cancel_futures=True)
         self._server.destroy()
 
-    async def _execute(self, goal_handle: Any) -> Any:
-        result = Result()
+    async def _judge(self, request: Any) -> GoalResponse:
+        """The goal callback: what can be judged at goal time, and each joint's switch to streaming;
+        accepted after every goal that came before it was answered (a newer goal preempts an older
+        one, never the other way round)."""
+        self._arrived += 1
+        mine = self._arrived
+        self._judging.add(mine)
         try:
-            now_s = self._node.get_clock().now().nanoseconds * 1e-9
-            goal = goal_from_message(goal_handle.request, now_s)
+            response = await self._checked(request)
+            while response == GoalResponse.ACCEPT and any(other < mine for other in self._judging):
+                await self._pause(START_POLL_S)
+            return response
+        finally:
+            self._judging.discard(mine)
+
+    async def _checked(self, request: Any) -> GoalResponse:
+        name = self._group.name
+        try:
             if not self._alive:
                 raise CancelledError
-            starting = self._starter.submit(self._group.follow, goal,
-                                            lambda: goal_handle.is_cancel_requested or not self._alive)
-            while not starting.done():  # the executor serves cancels and other goals meanwhile
-                await self._pause(self._period_s)
-            run = starting.result()
+            goal = goal_from_message(request, self._node.get_clock().now().nanoseconds * 1e-9)
+            plan = self._group.plan(goal)
+            if not all(self._group.drives[j].motion.streaming() for j in goal.joints):
+                switching = self._starter.submit(self._group.prepare, goal.joints)
+                while not switching.done():  # the executor serves cancels and other goals meanwhile
+                    await self._pause(START_POLL_S)
+                switching.result()
         except RovercanError as err:
-            result.error_code = err.code if isinstance(err, TrajectoryRejected) else Result.INVALID_GOAL
-            result.error_string = str(err)
-            self._node.get_logger().warning(f"{self._group.name}: goal refused: {err}")
-            goal_handle.abort()
-            return result
-        except CancelledError:  # its start was dropped: the server is being destroyed
-            result.error_code = Result.INVALID_GOAL
-            result.error_string = f"{self._group.name}: the driver's actions shut down before the goal started"
-            goal_handle.abort()
-            return result
+            self._node.get_logger().warning(f"{name}: goal rejected: {err}")
+            return GoalResponse.REJECT
+        except CancelledError:
+            self._node.get_logger().warning(f"{name}: goal rejected: the driver's actions shut down")
+            return GoalResponse.REJECT
+        except Exception as err:  # a fault of this driver's: logged with its trace, the goal rejected
+            logger.exception("%s: judging a goal failed unexpectedly", name)
+            self._node.get_logger().warning(f"{name}: goal rejected: unexpected {type(err).__name__}: {err}")
+            return GoalResponse.REJECT
+        self._plans[id(request)] = (request, plan)
+        return GoalResponse.ACCEPT
+
+    def _accepted(self, goal_handle: Any) -> None:
+        """Acceptance: the plan's time zero (or its stamp's); the group takes it at once, preempting."""
+        accepted_at = time.monotonic()
+        request = goal_handle.request
+        _, plan = self._plans.pop(id(request), (None, None))
+        stamp = _seconds(request.trajectory.header.stamp)
+        delay = stamp - self._node.get_clock().now().nanoseconds * 1e-9 if stamp > 0.0 else 0.0
+        try:
+            if plan is None:
+                raise RuntimeError("accepted without a plan")
+            self._runs[id(goal_handle)] = self._group.start(plan, accepted_at + delay)
+        except RovercanError as err:
+            self._runs[id(goal_handle)] = str(err)
         except Exception as err:  # a fault of this driver's: logged with its trace, the goal aborted
             logger.exception("%s: a goal's start failed unexpectedly", self._group.name)
-            result.error_code = Result.INVALID_GOAL
-            result.error_string = f"the goal's start failed unexpectedly ({type(err).__name__}: {err}); see the log"
-            goal_handle.abort()
+            self._runs[id(goal_handle)] = f"the goal's start failed unexpectedly ({type(err).__name__}: {err})"
+        goal_handle.execute()
+
+    def _cancel(self, goal_handle: Any) -> CancelResponse:
+        """Passed on at once: the group's thread is woken and ends the goal within a SYNC period."""
+        run = self._runs.get(id(goal_handle))
+        if isinstance(run, GoalRun):
+            run.cancel()
+        return CancelResponse.ACCEPT
+
+    async def _execute(self, goal_handle: Any) -> Any:
+        result = Result()
+        run = self._runs.get(id(goal_handle), "the goal was never started")
+        try:
+            if isinstance(run, str):
+                result.error_code, result.error_string = Result.INVALID_GOAL, run
+                goal_handle.abort()
+                return result
+            await self._follow(goal_handle, run)
+            outcome = run.outcome
+            assert outcome is not None  # done is set with it
+            result.error_code, result.error_string = int(outcome.code), outcome.message
+            if outcome.canceled and not goal_handle.is_cancel_requested:  # preempted: CANCELED, as the controller
+                goal_handle._update_state(GoalEvent.CANCEL_GOAL)  # rclpy's one way there (its cancel service's)
+            if goal_handle.is_cancel_requested or outcome.canceled:
+                goal_handle.canceled()
+            elif outcome.code == TrajectoryCode.SUCCESSFUL:
+                goal_handle.succeed()
+            else:
+                goal_handle.abort()
             return result
+        finally:
+            self._runs.pop(id(goal_handle), None)
+
+    async def _follow(self, goal_handle: Any, run: GoalRun) -> None:
+        """Until the run ends: feedback at the group's rate, a cancel passed on (the cancel callback's too)."""
         feedback = FollowJointTrajectory.Feedback()
-        cancelled = False
         while not run.done.is_set():
-            if goal_handle.is_cancel_requested and not cancelled:  # before the first pause too
-                cancelled = True
+            if goal_handle.is_cancel_requested and not run.cancel_requested:
                 run.cancel()
             await self._pause(self._period_s)
             if (progress := run.progress) is not None and not run.done.is_set():
                 feedback.header.stamp = self._node.get_clock().now().to_msg()
                 goal_handle.publish_feedback(fill_feedback(feedback, progress))
-        outcome = run.outcome
-        assert outcome is not None  # done is set with it
-        result.error_code, result.error_string = int(outcome.code), outcome.message
-        if goal_handle.is_cancel_requested:
-            goal_handle.canceled()
-        elif outcome.code == TrajectoryCode.SUCCESSFUL and not outcome.canceled:  # not dropped at shutdown
-            goal_handle.succeed()
-        else:
-            goal_handle.abort()
-        return result
 
 
 __all__ = ["FollowTrajectoryServer", "fill_feedback", "goal_from_message"]

@@ -174,27 +174,29 @@ def test_a_cancelled_goal_leaves_the_joints_still(rig: Rig) -> None:
 
 @pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
 def test_the_server_answers_while_a_goals_switch_to_streaming_waits_on_the_drive(rig: Rig) -> None:
-    """A goal's start switches its joints to a streamed mode by SDO, which waits on the drive: with
-    joint1's SDO answers held 5 s (the drive's, below its 10 s SDO timeout), a cancel is answered while the switch still waits
-    (the drive has not answered yet), and the goal then ends CANCELED. Run on the actions' executor,
-    the start held every goal and cancel until the drive answered."""
+    """A goal's switch of its joints to a streamed mode (SDO: it waits on the drive) happens in the
+    goal callback, before acceptance, so that it never shifts the plan: with joint1's SDO answers
+    held 5 s (below its 10 s SDO timeout), another goal (an unknown joint) is answered, rejected, while
+    the switch still waits; the first is accepted once the drive answered, and succeeds."""
     from action_msgs.msg import GoalStatus
 
     sim = rig.sim.simulator_for(1)
     answered = sim.call(lambda: sim.drive(1).counters["sdo"])
     apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 5.0})
-    first = send(rig, half_sine(20.0, 2.0))
-    assert first.accepted
+    first = rig.client.send_goal_async(half_sine(20.0, 2.0))
     wait_for(lambda: sim.call(lambda: sim.drive(1)._delayed_sdo is not None), HANG_S, "the switch's SDO at the drive")
-    cancel = first.cancel_goal_async()
-    wait_for(cancel.done, HANG_S, "the cancel answered")
-    assert len(cancel.result().goals_canceling) == 1
+    unknown = half_sine(10.0, 1.0)
+    unknown.trajectory.joint_names = ["joint1", "knee"]
+    assert not send(rig, unknown).accepted
     assert sim.call(lambda: sim.drive(1)._delayed_sdo is not None and sim.drive(1).counters["sdo"] == answered), \
-        "the cancel was answered only after the drive answered the switch"
+        "the other goal was answered only after the drive answered the switch"
+    assert not first.done(), "accepted before its joints could stream"
     apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 0.0})
-    done = result_of(first)  # the start ends when the held answer comes (5 s after it was asked)
-    assert done.status == GoalStatus.STATUS_CANCELED, done.result.error_string
-    assert done.result.error_string == "cancelled before it started"  # never handed to the group's thread
+    wait_for(first.done, HANG_S, "the first goal answered")
+    handle = first.result()
+    assert handle.accepted
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.error_string
 
 
 @pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
@@ -224,6 +226,27 @@ def test_move_joint_answers_a_cancel_while_its_start_waits_on_the_drive(rig: Rig
     client.destroy()
 
 
+def test_move_joint_gives_up_after_its_overall_timeout(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A joint whose shaft is blocked never gets to its target: move_joint halts it and aborts,
+    naming how far it is, after the move's own time and a margin (it waited for ever)."""
+    from action_msgs.msg import GoalStatus
+    from rovercan_msgs.action import MoveJoint
+
+    from nodes import actions
+
+    monkeypatch.setattr(actions, "MOVE_MARGIN_S", 0.5)
+    client = ActionClient(rig.client._node, MoveJoint, "move_joint")
+    assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
+    apply_action(rig.sim, {"action": "load", "node": 1, "stall": True})
+    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=30.0, speed_deg_s=60.0))
+    wait_for(sent.done, HANG_S, "the goal answered")
+    done = result_of(sent.result())
+    apply_action(rig.sim, {"action": "load", "node": 1, "stall": False})
+    assert done.status == GoalStatus.STATUS_ABORTED and not done.result.success
+    assert "joint1: not at 30.00 deg" in done.result.message and "short" in done.result.message, done.result.message
+    client.destroy()
+
+
 @pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
 def test_goals_start_in_the_order_they_came_while_the_first_waits_on_the_drive(rig: Rig) -> None:
     """A second goal sent while the first one's switch to streaming waits on the drive starts
@@ -233,32 +256,30 @@ def test_goals_start_in_the_order_they_came_while_the_first_waits_on_the_drive(r
 
     sim = rig.sim.simulator_for(1)
     apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 3.0})
-    first = send(rig, half_sine(20.0, 2.0))
+    asked = rig.client.send_goal_async(half_sine(20.0, 2.0))
     wait_for(lambda: sim.call(lambda: sim.drive(1)._delayed_sdo is not None), HANG_S, "the first switch at the drive")
-    second = send(rig, half_sine(10.0, 2.0))
+    again = rig.client.send_goal_async(half_sine(10.0, 2.0))
     apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 0.0})
+    wait_for(lambda: asked.done() and again.done(), HANG_S, "both goals answered")
+    first, second = asked.result(), again.result()
+    assert first.accepted and second.accepted
     older, newer = result_of(first), result_of(second)
-    assert older.status == GoalStatus.STATUS_ABORTED and "preempted" in older.result.error_string, \
-        older.result.error_string
+    assert older.status == GoalStatus.STATUS_CANCELED, older.result.error_string
+    assert older.result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
+    assert older.result.error_string == "Current goal cancelled due to new incoming action."
     assert newer.status == GoalStatus.STATUS_SUCCEEDED, newer.result.error_string
 
 
-def test_a_goal_beyond_a_limit_is_refused_with_its_code_and_nothing_moves(rig: Rig,
-                                                                          listener_factory: ListenerFactory) -> None:
-    from action_msgs.msg import GoalStatus
-
+def test_a_goal_beyond_a_limit_is_rejected_and_nothing_moves(rig: Rig, listener_factory: ListenerFactory) -> None:
     frames: list[can.Message] = []
     notifier = can.Notifier(listener_factory(rig.sim), [frames.append], timeout=0.1)
     try:
         beyond = half_sine(100.0, 4.0)  # joint1 to 100 deg: max_deg is 90
-        done = result_of(send(rig, beyond))
+        assert not send(rig, beyond).accepted  # rejected in the goal callback, as the controller does
         mark = len(frames)
         wait_for(lambda: sum(m.arbitration_id == SYNC for m in frames[mark:]) >= 3, HANG_S, "3 SYNCs after the result")
     finally:
         notifier.stop()
-    assert done.status == GoalStatus.STATUS_ABORTED
-    assert done.result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
-    assert "joint1" in done.result.error_string and "max_deg=90" in done.result.error_string
     assert not [m for m in frames if m.arbitration_id in SETPOINTS or 0x601 <= m.arbitration_id <= 0x602], \
         "a refused goal put a set-point or an SDO on the bus"
 
@@ -275,20 +296,76 @@ def test_the_client_example_of_the_docs_runs(rig: Rig, tmp_path: Path) -> None:
     assert "error_code 0" in run.stdout
 
 
-def test_an_unknown_joint_and_a_past_stamp_are_refused_with_their_codes(rig: Rig) -> None:
-    from action_msgs.msg import GoalStatus
+def test_what_can_be_judged_at_goal_time_is_rejected(rig: Rig) -> None:
+    """As joint_trajectory_controller's goal callback: an unknown joint, a goal of some joints
+    (allow_partial_joints_goal false), times not increasing, a past stamp, an illegal tolerance."""
+    from control_msgs.msg import JointTolerance
 
     unknown = half_sine(10.0, 1.0)
     unknown.trajectory.joint_names = ["joint1", "knee"]
-    done = result_of(send(rig, unknown))
-    assert done.status == GoalStatus.STATUS_ABORTED
-    assert done.result.error_code == FollowJointTrajectory.Result.INVALID_JOINTS and "'knee'" in done.result.error_string
+    partial = half_sine(10.0, 1.0)
+    partial.trajectory.joint_names = ["joint1"]
+    for point in partial.trajectory.points:
+        point.positions, point.velocities = point.positions[:1], point.velocities[:1]
+    backwards = half_sine(10.0, 1.0)
+    backwards.trajectory.points[3].time_from_start = Duration(sec=0, nanosec=0)
     past = half_sine(10.0, 1.0)
     now = rig.assembly.node.get_clock().now().nanoseconds
     past.trajectory.header.stamp.sec = int(now // 10**9) - 10  # its 1 s ended 9 s ago
-    done = result_of(send(rig, past))
-    assert done.status == GoalStatus.STATUS_ABORTED
-    assert done.result.error_code == FollowJointTrajectory.Result.OLD_HEADER_TIMESTAMP, done.result.error_string
+    illegal = half_sine(10.0, 1.0)
+    illegal.path_tolerance = [JointTolerance(name="joint1", position=-0.5)]
+    for name, goal in (("unknown", unknown), ("partial", partial), ("backwards", backwards), ("past", past),
+                       ("illegal", illegal)):
+        assert not send(rig, goal).accepted, name
+
+
+def test_a_replanned_goal_preempts_the_first_canceled_as_the_controller_does(rig: Rig) -> None:
+    """MoveIt's replan: a second goal from /joint_states 1.5 s into a first. It is accepted; the
+    first ends CANCELED with INVALID_GOAL and joint_trajectory_controller's message; the second
+    is joined from the set-point and succeeds. (It was refused on the start tolerance, and the
+    preempted goal ended ABORTED.)"""
+    from action_msgs.msg import GoalStatus
+
+    feedback: list[Any] = []
+    first = send(rig, half_sine(30.0, 4.0), feedback)
+    assert first.accepted
+    wait_for(lambda: bool(feedback) and feedback[-1].desired.time_from_start.sec * 1e9
+             + feedback[-1].desired.time_from_start.nanosec >= 1.5e9, HANG_S, "1.5 s into the first goal")
+    here = rig.states[-1]
+    replan = FollowJointTrajectory.Goal()
+    replan.trajectory.joint_names = list(here.name)
+    replan.trajectory.points = [
+        JointTrajectoryPoint(positions=list(here.position), time_from_start=Duration(sec=0)),
+        JointTrajectoryPoint(positions=[0.0, 0.0], velocities=[0.0, 0.0], time_from_start=Duration(sec=2))]
+    second = send(rig, replan)
+    assert second.accepted
+    older, newer = result_of(first), result_of(second)
+    assert older.status == GoalStatus.STATUS_CANCELED, older.result.error_string
+    assert older.result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
+    assert older.result.error_string == "Current goal cancelled due to new incoming action."
+    assert newer.status == GoalStatus.STATUS_SUCCEEDED, newer.result.error_string
+
+
+def test_a_cancel_is_honoured_while_no_sample_comes(rig: Rig) -> None:
+    """Every joint's TPDOs silenced mid-goal (heartbeats on), then a cancel: the goal ends CANCELED
+    while the drives are still silent (it waited for the data to come back)."""
+    from action_msgs.msg import GoalStatus
+
+    feedback: list[Any] = []
+    handle = send(rig, half_sine(30.0, 4.0), feedback)
+    wait_for(lambda: bool(feedback) and feedback[-1].desired.time_from_start.sec >= 1, HANG_S, "the goal under way")
+    for node in (1, 2):
+        apply_action(rig.sim, {"action": "tpdos", "node": node, "on": False})
+    seq = [d.cache.position_seq for d in rig.assembly.driver]
+    cancel = handle.cancel_goal_async()
+    wait_for(cancel.done, HANG_S, "the cancel answered")
+    done = result_of(handle)
+    silent = [d.cache.position_seq for d in rig.assembly.driver]
+    for node in (1, 2):
+        apply_action(rig.sim, {"action": "tpdos", "node": node, "on": True})
+    # a sample already on its way when they were silenced may have come; no more than that
+    assert all(b - a <= 1 for a, b in zip(seq, silent, strict=True)), (seq, silent)
+    assert done.status in (GoalStatus.STATUS_CANCELED, GoalStatus.STATUS_ABORTED), done.result.error_string
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])

@@ -76,6 +76,10 @@ logger = logging.getLogger(__name__)
 LATE_SHARE = 0.5
 #: How long close() waits for the group's thread.
 JOIN_S = 2.0
+#: The most the plan's time advances from one set-point to the next, in SYNC periods: a SYNC missed
+#: is caught up at once (the plan is not stretched); after a host stalled for longer the plan goes on
+#: from there (stretched by the stall) rather than jump further than its joints may move in a step.
+CATCH_UP_PERIODS = 2
 #: The longest wait for a sample, in SYNC periods, before the group looks at its drives' verdicts
 #: (a silence): a goal whose joints fall silent ends within their staleness bound plus this.
 SILENCE_PERIODS = 2.0
@@ -357,6 +361,7 @@ class TrajectoryGroup:
             if t <= 0.0:
                 return  # stamped ahead: its joints hold (or ramp down) until then
             self._join(running, t - self.period_s)
+            t = min(t, running.offset_s + CATCH_UP_PERIODS * self.period_s)
             running.anchor = (clock, seq, t)
         else:
             drive, base_seq, base_t = running.anchor
@@ -364,6 +369,9 @@ class TrajectoryGroup:
                 running.anchor = (clock, seq - 1, running.last_t)
                 drive, base_seq, base_t = running.anchor
             t = base_t + (seq - base_seq) * self.period_s
+            if t > running.last_t + CATCH_UP_PERIODS * self.period_s:  # a stalled host: no jump
+                t = running.last_t + CATCH_UP_PERIODS * self.period_s
+                running.anchor = (clock, seq, t)
         running.last_t = t
         spline = running.spline
         assert spline is not None
@@ -399,7 +407,7 @@ class TrajectoryGroup:
         start = self._reference(plan.goal.joints)
         for name in plan.goal.joints:
             self._ramp.pop(name, None)
-        offset = now_s if 0.0 < now_s < 0.5 * plan.times_s[0] else 0.0
+        offset = min(max(now_s, 0.0), 0.5 * plan.times_s[0])
         running.offset_s = offset
         running.spline = Spline((0.0, *(t - offset for t in plan.times_s)), (start, *plan.knots))
         running.last_desired = tuple((p, v or 0.0, a or 0.0) for p, v, a in start)
