@@ -59,7 +59,8 @@ def test_an_incident_has_an_mcap_with_the_raw_frames_and_every_drive_decoded(tmp
 def state(name: str, angle: float, *, lost: bool = False, s: State = State.OPERATION_ENABLED) -> DriveState:
     return DriveState(name=name, node_id=1, angle_deg=angle, velocity_deg_s=172.0, torque_nm=math.nan, statusword=0x0637,
                       state=s, mode=3, nmt="OPERATIONAL", enabled=True, fault=False, lost=lost, error_code=0,
-                      error_text="", stamp=0.0, heartbeat_age_s=0.0, target_reached=False)
+                      error_text="", stamp=0.0, heartbeat_age_s=0.0, target_reached=False,
+                      data_age_s=0.0)  # heard (never heard: no data, never usable, tests/test_verdict_once.py)
 
 
 def test_a_lost_drive_is_drawn_missing_and_the_states_are_named(tmp_path: Path) -> None:

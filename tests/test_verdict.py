@@ -20,8 +20,10 @@ HOLDS = {
     Condition.LOST: lambda f: f.lost,
     Condition.REBOOTING: lambda f: f.rebooting,
     Condition.NOT_CONFIGURED: lambda f: not f.booted,
-    Condition.LATE: lambda f: f.data_age_s > f.stale_after_s,
-    Condition.FAULTED: lambda f: f.state in (State.FAULT, State.FAULT_REACTION_ACTIVE),
+    # never heard (an infinite or NaN age) is late under any bound, an infinite one too
+    Condition.LATE: lambda f: math.isinf(f.data_age_s) or math.isnan(f.data_age_s) or math.isnan(f.stale_after_s)
+    or f.data_age_s > f.stale_after_s,
+    Condition.FAULTED: lambda f: f.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) or f.fault_seen != 0,
     Condition.HELD: lambda f: bool(f.held),
     Condition.OUT: lambda f: bool(f.left_out),
     Condition.STOPPED_ITSELF: lambda f: f.state != State.OPERATION_ENABLED and (
@@ -30,10 +32,15 @@ HOLDS = {
     Condition.USABLE: lambda f: True,
 }
 
+#: every default and infinity (and NaN) of the ages and the bound: a state made by hand is judged
+#: with an infinite bound, and data never heard has an infinite age
+AGES = st.one_of(st.just(math.inf), st.just(math.nan), st.just(0.0), st.floats(0.0, 5.0))
 FACTS = st.builds(
     DriveFacts, name=st.just("wheel_x"),
-    data_age_s=st.one_of(st.just(math.inf), st.floats(0.0, 5.0)), stale_after_s=st.floats(0.01, 1.0),
-    heartbeat_age_s=st.floats(0.0, 5.0), nmt=st.sampled_from(["OPERATIONAL", "PRE_OPERATIONAL", "BOOTUP", "STOPPED"]),
+    data_age_s=AGES,
+    stale_after_s=st.one_of(st.just(math.inf), st.just(math.nan), st.just(-1.0), st.floats(0.01, 1.0)),
+    heartbeat_age_s=AGES, fault_seen=st.sampled_from([0, 0x0008]), enables=st.integers(0, 3),
+    nmt=st.sampled_from(["OPERATIONAL", "PRE_OPERATIONAL", "BOOTUP", "STOPPED"]),
     state=st.sampled_from(list(State)), lost=st.booleans(), booted=st.booleans(), rebooting=st.booleans(),
     foreign_master=st.sampled_from(["", "NMT frame 0x000 seen"]), armed=st.booleans(),
     stopped_by=st.sampled_from(["", "disarm"]), emcy_code=st.sampled_from([0, EMCY_HEARTBEAT_LOST, 0x2310]),
@@ -55,7 +62,7 @@ def test_every_combination_gives_the_first_condition_that_holds(facts: DriveFact
     verdict = judge(facts)
     assert verdict.condition is expected(facts)
     assert verdict.usable == (verdict.condition is Condition.USABLE)
-    assert verdict.age_s == facts.data_age_s
+    assert verdict.age_s == facts.data_age_s or math.isnan(facts.data_age_s)
     assert verdict.cause and verdict.name == "wheel_x"
     assert verdict.condition is Condition.USABLE or verdict.helps  # every problem says what helps
 
@@ -122,3 +129,13 @@ def test_held_motion_is_said_with_what_lets_it_go() -> None:
     verdict = judge(_usable(held="rovercan_lifecycle is inactive: activate it"))
     assert verdict.condition is Condition.HELD and not verdict.usable and verdict.fresh
     assert verdict.text() == "wheel_x: motion held; rovercan_lifecycle is inactive: activate it"
+
+
+@given(st.builds(DriveFacts, name=st.just("wheel_x"), data_age_s=st.sampled_from([math.inf, math.nan]),
+                 stale_after_s=st.one_of(st.just(math.inf), st.just(math.nan), st.floats(-1.0, 1e9)),
+                 heartbeat_age_s=AGES, state=st.just(State.OPERATION_ENABLED), booted=st.just(True),
+                 armed=st.booleans()))
+def test_a_drive_never_heard_is_never_usable_whatever_its_bound(facts: DriveFacts) -> None:
+    """No data ever (an infinite age: the default) is never usable, under an infinite staleness
+    bound too (a state made by hand is judged with one: inf > inf is false, and it was usable)."""
+    assert not judge(facts).usable

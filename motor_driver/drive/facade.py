@@ -101,11 +101,11 @@ class Drive:
 
     # ------------------------------------------------------------------ the user's API
     def snapshot(self) -> DriveState:
-        return self.cache.snapshot(self.power.facts())
+        return self.power.snapshot()
 
     def verdict(self) -> Verdict:
         """The one judgement of this drive (:mod:`motor_driver.drive.verdict`)."""
-        return self.snapshot().verdict
+        return self.power.verdict()
 
     def close(self) -> None:
         """The driver shuts down: no command is taken from here on (stops still are)."""

@@ -3,15 +3,19 @@ result into diagnostic_msgs). A drive is graded from its verdict (:mod:`motor_dr
 carried by its snapshot), whose cause and what helps are the message; nothing here combines the
 drive's flags again. The rules, first match wins:
 
-* ERROR: its bus is lost; its verdict is another master, lost, not configured, late, faulted or
-  stopped itself (:data:`GRADE`); or a safety check read back after boot failed
+* ERROR: its verdict is another master, lost, not configured, late, faulted or stopped itself
+  (:data:`GRADE`); or a safety check read back after boot failed
   (:mod:`motor_driver.protocol.safety`: nothing would stop it if the host died, limits not set, ...).
 * WARN: its verdict is re-booting (being configured again) or out (the drive system left it
   out); more of its TPDOs or heartbeats lost over the measured window than
   ``frame_loss_warn_percent`` (:mod:`motor_driver.drive.frameloss`); a command was refused since the
-  last report; the statusword warning bit is set; the heartbeat is older than 1.5 producer
-  periods; it has no drive-side stop on host loss and the config allows that
-  (``allow_no_host_watch``).
+  last report; the statusword warning bit is set; it has no drive-side stop on host loss and
+  the config allows that (``allow_no_host_watch``).
+
+Health grades buses and jobs by their own figures, and drives by their verdict: a lost bus is its
+bus's status (:func:`bus_health`), and a drive on it is graded by what its verdict says of it
+(late within a few SYNC periods, then lost); a heartbeat's age is the verdict's (lost, at the
+consumer time), shown in the values, not graded again here.
 * Frames of the drive a receive callback raised on (:func:`rejections`): ERROR while its data is
   late for it (the driver's decoding, not the bus), WARN while recent.
 * OK: otherwise (usable, or not armed: safely disabled).
@@ -91,7 +95,8 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
                  frame_loss: Loss | None = None,
                  frame_loss_warn_percent: float = 100.0) -> Health:
     """One drive graded by the rules above; ``frame_loss``: its measured window (None: still
-    measuring); ``rejected``: its frames a receive callback raised on."""
+    measuring); ``rejected``: its frames a receive callback raised on. ``bus_lost`` and
+    ``heartbeat_period_s`` are shown in the values, never graded (the module docstring)."""
     values = {
         "node_id": str(state.node_id),
         "nmt_state": state.nmt,
@@ -104,6 +109,8 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         "last_emcy_code": f"0x{state.error_code:04X}",
         "last_emcy_text": emcy_text(state.error_code) if state.error_code else "",
         "heartbeat_age_s": "never" if math.isinf(state.heartbeat_age_s) else f"{state.heartbeat_age_s:.3f}",
+        "heartbeat_period_s": f"{heartbeat_period_s:g}",
+        "bus": "lost" if bus_lost else "up",
         "refused_commands": str(refused_since_last),
         "tpdos_applied": str(tpdos_applied),
         "last_refusal": last_refusal,
@@ -118,8 +125,6 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     verdict = state.verdict
     values["condition"] = verdict.condition.value
     values["frame_loss"] = frame_loss.text() if frame_loss is not None else "measuring"
-    if bus_lost:
-        return Health(ERROR, "bus lost", values)
     if graded is not None and graded.level == ERROR:
         return graded  # only late: because the driver rejected its frames, not the bus or the drive
     said = verdict.cause + (f"; {verdict.helps}" if verdict.helps else "")
@@ -139,8 +144,6 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         return Health(WARN, f"{refused_since_last} command(s) refused: {last_refusal}", values)
     if state.statusword & SW.WARNING:
         return Health(WARN, "drive warning bit set", values)
-    if state.heartbeat_age_s > 1.5 * heartbeat_period_s:
-        return Health(WARN, f"heartbeat late ({values['heartbeat_age_s']} s)", values)
     if allowed:
         return Health(WARN, "NO drive-side stop on host loss (allowed by allow_no_host_watch): if this process"
                       " dies while the drive is enabled, nothing stops it", values)

@@ -34,7 +34,7 @@ from motor_driver.drive.power import PowerStateMachine
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.setpoint import rebase_after_switch
 from motor_driver.drive.state import DriveCache
-from motor_driver.drive.verdict import Condition, judge
+from motor_driver.drive.verdict import UNREACHABLE, Condition
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State
 from motor_driver.protocol.pdo import PdoPlan
 from motor_driver.protocol.units import check_counts, check_limits, nearest_equivalent, require_finite
@@ -47,6 +47,8 @@ _STREAMING = {int(m): m for m in (OperationMode.CYCLIC_SYNC_POSITION, OperationM
 _STREAMED = {OperationMode.CYCLIC_SYNC_POSITION: ("CSP setpoint", OD.TARGET_POSITION),
              OperationMode.INTERPOLATED_POSITION: ("IP setpoint", OD.INTERPOLATION_DATA)}
 _ENABLED = State.OPERATION_ENABLED
+#: The verdicts a refused set-point names as they are (the cause and what helps)
+_SAID_AS_IT_IS = frozenset({Condition.FAULTED, Condition.STOPPED_ITSELF, Condition.HELD, Condition.OUT}) | UNREACHABLE
 
 
 class Approach(NamedTuple):
@@ -78,27 +80,27 @@ class Motion:
                                   " (bench: --counts-per-rev N). Nothing was sent.")
 
     def _require_enabled(self, doing: str, live: bool = True) -> None:
-        """A set-point that moves (``live``) needs fresh data; a zero (a stop) is taken on late data too."""
+        """Read from the drive's verdict (nothing else of the drive's): a set-point that moves
+        (``live``) needs it usable; a zero (a stop) is taken on late data too. Besides the verdict,
+        this driver's own last controlword must be Enable Operation (no stop of ours since)."""
         self._channel.admit(doing)  # motion held (the lifecycle node inactive) is said before "not enabled"
-        self._power.require_usable(doing, fresh=live)
-        cache = self._cache
-        state = cache.state
-        seen = cache.fault_seen
-        if seen is not None and state not in FAULT_STATES:
-            raise DriveStateError(f"{self.name} (node {self.node_id}): {doing} refused: the drive reported FAULT"
-                                  f" (statusword 0x{seen:04X}) since it was enabled, though it shows"
-                                  f" {state.name} now; recover() and enable() it again",
-                                  node_id=self.node_id, statusword=cache.received.statusword)
-        if state != _ENABLED or self._channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK:
-            if state in FAULT_STATES:
-                raise self._power.fault_error(doing)
-            verdict = judge(self._power.facts())
-            if verdict.condition is Condition.STOPPED_ITSELF:
-                raise DriveStateError(f"{verdict.text()} ({doing} refused; nothing was sent)", node_id=self.node_id,
-                                      statusword=cache.received.statusword)
-            shown = state.name if state != _ENABLED else "stopping"
-            raise DriveStateError(f"{self.name}: {doing} refused: the drive is {shown}; enable() it"
-                                  " first", node_id=self.node_id, statusword=cache.received.statusword)
+        verdict = self._power.require_usable(doing, fresh=live)
+        condition = verdict.condition
+        word_enabled = self._channel.cw & ENABLED_CW_MASK == ENABLED_CW_MASK
+        if (condition is Condition.USABLE or (condition is Condition.LATE and not live)) and word_enabled:
+            return
+        snapshot = self._power.snapshot()  # refused: its verdict and the state it was judged from (one read), named
+        verdict, condition, state = snapshot.verdict, snapshot.verdict.condition, snapshot.state
+        if (condition is Condition.USABLE or (condition is Condition.LATE and not live)) and word_enabled:
+            return  # judged again since (a newer frame): the verdict now
+        if condition is Condition.FAULTED and state in FAULT_STATES:
+            raise self._power.fault_error(doing)
+        if condition in _SAID_AS_IT_IS:  # faulted since enabled, stopped itself: the verdict says why
+            raise DriveStateError(f"{verdict.text()} ({doing} refused; nothing was sent)", node_id=self.node_id,
+                                  statusword=self._cache.received.statusword)
+        shown = "stopping" if condition in (Condition.USABLE, Condition.LATE) else state.name
+        raise DriveStateError(f"{self.name}: {doing} refused: the drive is {shown}; enable() it"
+                              " first", node_id=self.node_id, statusword=self._cache.received.statusword)
 
     def _ensure_mode(self, mode: OperationMode, doing: str, at_once: bool = False, live: bool = True) -> None:
         """Before a motion command, outside the channel: the drive enabled and in ``mode`` (a mode

@@ -34,11 +34,17 @@ from motor_driver.drive.constants import (
 )
 from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache
-from motor_driver.drive.verdict import UNREACHABLE, Condition, DriveFacts, judge
+from motor_driver.drive.state import DriveCache, Others
+from motor_driver.drive.values import DriveState
+from motor_driver.drive.verdict import UNREACHABLE, Condition, Verdict
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, Command, State, decode_state, next_step_to_enable
 
 logger = logging.getLogger(__name__)
+
+#: The verdicts an operation that needs Operation Enabled goes on under (late: nothing says it
+#: stopped), and those that mean the drive left Operation Enabled
+_GOES_ON = frozenset({Condition.USABLE, Condition.LATE})
+_LEFT_ENABLED = frozenset({Condition.STOPPED_ITSELF, Condition.FAULTED, Condition.NOT_ARMED})
 
 
 class PowerStateMachine:
@@ -52,22 +58,31 @@ class PowerStateMachine:
         self._supported_modes: int | None = None
 
     # ------------------------------------------------------------------ checks
-    def facts(self) -> DriveFacts:
-        """What the verdict on the drive is judged from: the cache's, the host watch's and the channel's."""
+    def others(self) -> Others:
+        """What the verdict is judged from besides the cache's: the host watch's and the channel's."""
         channel = self._channel
-        return self._cache.facts(foreign_master=self._watch.foreign_master, armed=channel.was_enabled,
-                                 stopped_by=channel.stopped_by, held=channel.held, enables=channel.enables)
+        return (self._watch.foreign_master, channel.was_enabled, channel.stopped_by, channel.held, channel.enables)
 
-    def require_usable(self, doing: str, *, fresh: bool = False) -> None:
+    def verdict(self) -> Verdict:
+        """The drive's verdict, read as a value (judged again only when an input changed)."""
+        return self._cache.verdict(self.others())
+
+    def snapshot(self) -> DriveState:
+        """The drive's snapshot: its verdict and values from one read of what it said."""
+        return self._cache.snapshot(self.others())
+
+    def require_usable(self, doing: str, *, fresh: bool = False) -> Verdict:
         """Refuse ``doing`` (nothing sent) unless the drive can hear and answer this driver: the
         driver not shut down, and its verdict not another master, lost, re-booting or not
-        configured; with ``fresh`` (a set-point: it acts on the state as read), not late either."""
+        configured; with ``fresh`` (a set-point: it acts on the state as read), not late either.
+        Returns the verdict it judged by."""
         if self._channel.closed:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the driver is shut down;"
                                   " nothing was sent", node_id=self.node_id)
-        verdict = judge(self.facts())
+        verdict = self.verdict()
         if verdict.condition in UNREACHABLE or (fresh and verdict.condition is Condition.LATE):
             raise DriveStateError(f"{verdict.text()} ({doing} refused; nothing was sent)", node_id=self.node_id)
+        return verdict
 
     def fault_error(self, doing: str) -> DriveStateError:
         emcy = self._cache.last_emcy
@@ -79,28 +94,21 @@ class PowerStateMachine:
 
     def stopped_itself(self, doing: str) -> DriveStateError | None:
         """The error for an operation that needs Operation Enabled (homing, a move) when the drive
-        left it on its own: it is lost, its NMT state is no longer OPERATIONAL, or its statusword
-        left Operation Enabled (its host watch, a limit, its own quick stop): the operation ends
-        now, with the reason, rather than at its timeout. A stop of this driver's own is the
+        left it on its own, read from its verdict: anything but usable ends the operation now, with
+        the verdict's cause, rather than at its timeout; late data alone does not (nothing says it
+        stopped: the operation's own timeout bounds it). A stop of this driver's own is the
         command channel's to say (checked first by the callers)."""
-        cache = self._cache
-        nmt, state = cache.nmt_state, cache.state
-        if nmt != "OPERATIONAL" and not cache.data_stale():
-            nmt = "OPERATIONAL"  # its PDOs still come: a heartbeat sent before it obeyed NMT start, heard late
-        if not cache.lost and nmt == "OPERATIONAL" and state == State.OPERATION_ENABLED:
+        verdict = self.verdict()
+        if verdict.condition in _GOES_ON:
             return None
-        emcy = cache.last_emcy
-        said = f", after EMCY 0x{emcy.code:04X} {emcy.text}" if emcy is not None and emcy.code else ""
-        if cache.lost:
-            why = "the drive is lost (no heartbeat): check its power and CAN cable"
-        elif nmt != "OPERATIONAL":
-            why = f"the drive went NMT {nmt}{said}"
-        else:
-            why = f"the drive left Operation Enabled by itself (now {state.name}{said})"
+        why = f"the drive left Operation Enabled by itself ({verdict.cause})" \
+            if verdict.condition in _LEFT_ENABLED else verdict.cause
+        helps = f" ({verdict.helps})" if verdict.helps and verdict.condition in UNREACHABLE else ""
+        emcy = self._cache.last_emcy
         hint = " (0x8130: it heard no heartbeat from this host: was this process stalled?)" \
             if emcy is not None and emcy.code == EMCY_HEARTBEAT_LOST else ""
-        return DriveStateError(f"{self.name} (node {self.node_id}): {doing} ended: {why}{hint}; enable it again"
-                               " to retry", node_id=self.node_id, statusword=cache.received.statusword,
+        return DriveStateError(f"{self.name} (node {self.node_id}): {doing} ended: {why}{helps}{hint}; enable it"
+                               " again to retry", node_id=self.node_id, statusword=self._cache.received.statusword,
                                error_code=emcy.code if emcy is not None else None)
 
     def wait_state(self, wanted: set[State], timeout_s: float, doing: str, *, fault_ok: bool = False,

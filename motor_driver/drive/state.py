@@ -26,8 +26,23 @@ while the drive still says FAULT, a spoofed one or one ahead of its statusword, 
 
 Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.drive.ledger.DriveRuntime`),
 read here, never written: the receive thread posts each heartbeat that may change it
-(:class:`motor_driver.drive.ledger.Heard`) and goes on. :meth:`facts` gathers what the verdict on the
-drive is judged from (:mod:`motor_driver.drive.verdict`); the snapshot carries the verdict.
+(:class:`motor_driver.drive.ledger.Heard`) and goes on.
+
+The verdict's inputs, one writer each: the received state, the heard NMT state and heartbeat
+time, the EMCY and the FAULT count are the receive thread's; ``_noted`` is the SDO readers'
+(boot, a mode switch: one at a time under the channel's busy registry); ``_started_at``,
+``_boot_fault_ack`` and ``_boot_trusts`` are boot's (the bus worker's); ``_fault_ack``,
+``_emcy_ack`` and ``_cmd_trusts`` are the command threads' (enable, recover, homing: one at a time
+under the busy registry). A request to take the next position as it comes is a count (boot's or a
+command thread's): the receive thread sees it change and tells its position filter itself, so
+the filter has one writer.
+
+Truth paid once: :meth:`snapshot` reads the received state once, and the verdict and every value
+published with it come from that one read. It is judged when one of its inputs changes, or a SYNC
+period passed (the ages it carries are then at most one period old; the staleness bound is
+judged exactly): otherwise every reader gets the same immutable :class:`DriveState`. The memo is
+a cache of a pure function of those inputs, replaced whole in one assignment by whichever reader
+judged first (two that race store equal values). The receive thread only decodes and stamps.
 """
 
 from __future__ import annotations
@@ -48,7 +63,7 @@ from motor_driver.drive.ledger import DriveRuntime, Heard, RuntimePort
 from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Emcy, Noted, Received, StatusSink
-from motor_driver.drive.verdict import DriveFacts, judge
+from motor_driver.drive.verdict import DriveFacts, Verdict, judge
 from motor_driver.process.held import POLL_S, HeldDeadline
 from motor_driver.process.ratelimit import Throttle
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
@@ -58,6 +73,10 @@ from motor_driver.protocol.units import Scale
 logger = logging.getLogger(__name__)
 
 _STATUSWORD = OD.STATUSWORD
+#: What the verdict is judged from besides the cache's own (the host watch's and the command
+#: channel's, handed by the facade): (another master's evidence, armed, stopped by, held, enables)
+Others = tuple[str, bool, str, str, int]
+NOBODY: Others = ("", False, "", "", 0)
 _EMCY_HEAD = struct.Struct("<HB")
 #: A drive's EMCY log lines: at most one every this long (the others counted, said with the next).
 EMCY_LOG_PERIOD_S = 1.0
@@ -105,18 +124,24 @@ class DriveCache:
         self._last_emcy: Emcy | None = None
         self._emcy_log = Throttle(EMCY_LOG_PERIOD_S)  # the receive thread's (EMCY lines, wrong-length TPDOs)
         self.wrong_length_tpdos = 0  # TPDOs of a length this driver's mapping does not give (receive thread)
-        self._guard_toggle = 0
-        self._guard_seen = 0  # the guarding generation the toggle belongs to
-        self.guard_errors = 0
-        self.guard_answers = 0  # the receive thread's: guard answers taken (their toggle right)
+        self._guard_toggle = self._guard_seen = 0  # the toggle, and the guarding generation it belongs to
+        self.guard_errors = self.guard_answers = 0  # guard answers refused, and taken (their toggle right)
         self._bootup = threading.Event()
+        self._trusts_seen = (0, 0)  # the trust requests (boot's, the command threads') acted on
         # written by others through methods, one writer each
-        self._fault_ack = 0  # command threads (enable, recover)
+        self._fault_ack = self._boot_fault_ack = 0  # FAULTs dealt with: command threads' (enable, recover); boot's
+        # take the next position as it comes: boot's count (its SDO seed), the command threads' (homing)
+        self._boot_trusts = self._cmd_trusts = 0
         self._emcy_ack: Emcy | None = None  # command threads (recover)
         self.guarding = False  # boot
         self._guard_generation = 0  # boot: each set_guarding starts the toggle at 0
         self._started_at = 0.0  # boot: its NMT start (monotonic)
         self._on_sample: Callable[[], None] | None = None  # a trajectory group's (on_sample)
+        self._stale_after_s, self._per_period = config.stale_after_syncs * sync_period_s, 1.0 / (sync_period_s or 1.0)
+        # the judged snapshot (received, SYNC period, key, snapshot) and verdict (key, SYNC period,
+        # verdict): any reader's, replaced whole (module docstring)
+        self._judged: tuple[Received, int, tuple[object, ...], DriveState] | None = None
+        self._verdict_memo: tuple[tuple[object, ...], int, Verdict] | None = None
 
     def on_sample(self, callback: Callable[[], None] | None) -> None:
         """``callback()`` on the receive thread after each new position sample (one per SYNC): a
@@ -174,8 +199,8 @@ class DriveCache:
 
     @property
     def fault_seen(self) -> int | None:
-        """The last FAULT statusword seen since faults were acknowledged, or None."""
-        return self._fault_word if self._fault_seq > self._fault_ack else None
+        """The last FAULT statusword seen since faults were acknowledged (by boot or a command), or None."""
+        return self._fault_word if self._fault_seq > max(self._fault_ack, self._boot_fault_ack) else None
 
     @property
     def last_emcy(self) -> Emcy | None:
@@ -234,7 +259,7 @@ class DriveCache:
         """Boot (drive not booted, no PDO flows yet): the state read by SDO; the next position
         TPDO is trusted as it comes."""
         self._noted = Noted(time.monotonic(), statusword=statusword, position_counts=position_counts, mode=mode)
-        self.positions.trust_next()
+        self._boot_trusts += 1
 
     def note_mode(self, mode: int) -> None:
         """A mode switch confirmed by SDO (0x6061): the cache shows it before the next TPDO."""
@@ -245,8 +270,8 @@ class DriveCache:
         self._noted = Noted(time.monotonic(), statusword=statusword)
 
     def trust_next_position(self) -> None:
-        """Homing moved the zero: the next position is taken as it comes."""
-        self.positions.trust_next()
+        """Homing moved the zero: the next position is taken as it comes (by the receive thread)."""
+        self._cmd_trusts += 1
 
     def acknowledge_faults(self) -> None:
         """enable()/recover(): faults seen until now are dealt with; a later one stops motion anew."""
@@ -264,7 +289,7 @@ class DriveCache:
     def note_started(self) -> None:
         """Boot, at NMT start (the supervisor marks the drive booted when boot reports it)."""
         self._started_at = time.monotonic()
-        self._fault_ack = self._fault_seq
+        self._boot_fault_ack = self._fault_seq
 
     # ------------------------------------------------------------------ the receive thread
     def on_tpdo(self, cob_id: int, data: bytearray, timestamp: float) -> None:
@@ -280,6 +305,9 @@ class DriveCache:
                                self.node_id, cob_id, len(data), layout.codec.size, held)
             return
         rx = self.received
+        if (trusts := (self._boot_trusts, self._cmd_trusts)) != self._trusts_seen:  # asked by boot or homing
+            self._trusts_seen = trusts
+            self.positions.trust_next()
         sw, mode, position, velocity, torque, took = decode_tpdo(layout.indexes, values, rx, timestamp, self.positions)
         if took:
             self.position_seq += 1
@@ -369,37 +397,67 @@ class DriveCache:
             logger.info("node %d (%s): EMCY error reset%s", self.node_id, self.name, held)
 
     # ------------------------------------------------------------------ the snapshot
-    def facts(self, *, foreign_master: str = "", armed: bool = False, stopped_by: str = "", held: str = "",
-              enables: int = 0, now: float | None = None) -> DriveFacts:
-        """What the verdict on this drive is judged from (:mod:`motor_driver.drive.verdict`), each read
-        once from its one writer; ``foreign_master``, ``armed``, ``stopped_by``, ``held`` and
-        ``enables`` are the host watch's and the command channel's (the facade passes them)."""
-        rx, runtime = self.received, self._runtime
-        now = time.monotonic() if now is None else now
+    def _key(self, rx: Received, now: float, others: Others) -> tuple[object, ...]:
+        """Every input of the verdict but the clock, and whether the data is past its bound: equal
+        keys judge alike (ages aside)."""
+        runtime, job = self._runtime, self._runtime.reboot_job
+        late = not now - rx.rx_monotonic <= self._stale_after_s if rx.rx_monotonic else True
+        return (rx.statusword, late, others, self._heard_at, self._started_at, self._last_emcy, self._emcy_ack,
+                self._fault_seq, self._fault_ack, self._boot_fault_ack, runtime.lost, runtime.booted,
+                runtime.reboot_wanted, job is not None and not job.done())
+
+    def verdict(self, others: Others = NOBODY) -> Verdict:
+        """The verdict alone (a command's check): judged again when an input changed; a verdict
+        other than usable also once per SYNC period (its cause names an age)."""
+        rx, now = self.received, time.monotonic()
+        key, tick = self._key(rx, now, others), int(now * self._per_period)
+        memo = self._verdict_memo
+        if memo is not None and memo[0] == key and (memo[2].usable or memo[1] == tick):
+            return memo[2]
+        verdict = judge(self._facts(rx, now, others))
+        self._verdict_memo = (key, tick, verdict)
+        return verdict
+
+    def snapshot(self, others: Others = NOBODY) -> DriveState:
+        """What the driver knows of the drive, with the verdict on it, from one read of what it
+        said: made again for a new frame, a changed input or a new SYNC period (module
+        docstring). ``others``: the host watch's and the command channel's inputs (by default: no
+        other master, not armed, no stop, nothing held, no enable)."""
+        rx = self.received  # the one read: the verdict and the values below are of this frame
+        now = time.monotonic()
+        key, tick = self._key(rx, now, others), int(now * self._per_period)
+        memo = self._judged
+        if memo is not None and memo[0] is rx and memo[1] == tick and memo[2] == key:
+            return memo[3]
+        state = self._judge(rx, now, others)
+        self._judged = (rx, tick, key, state)
+        self._verdict_memo = (key, tick, state.verdict)
+        return state
+
+    def _facts(self, rx: Received, now: float, others: Others) -> DriveFacts:
+        """What the verdict is judged from (:mod:`motor_driver.drive.verdict`), each input read once
+        from its one writer, the received state given (the snapshot's one read)."""
+        runtime = self._runtime
         emcy = self.last_emcy
         job = runtime.reboot_job
         rebooting = not runtime.booted and (runtime.reboot_wanted or self.reset_since_operational() or
                                             (job is not None and not job.done()))
         heard = self.last_heartbeat
-        return DriveFacts(self.name, data_age_s=self._data_age(rx, now),
-                          stale_after_s=self.config.stale_after_syncs * self.sync_period_s,
+        foreign_master, armed, stopped_by, held, enables = others
+        return DriveFacts(self.name, data_age_s=self._data_age(rx, now), stale_after_s=self._stale_after_s,
                           heartbeat_age_s=now - heard if heard else math.inf, nmt=self.nmt_state,
                           state=decode_state(rx.statusword), lost=runtime.lost, booted=runtime.booted,
                           rebooting=rebooting, foreign_master=foreign_master, armed=armed, stopped_by=stopped_by,
                           held=held, enables=enables,
                           emcy_code=emcy.code if emcy is not None else 0, emcy_text=emcy.text if emcy is not None else "",
-                          emcy_stamp=emcy.timestamp if emcy is not None else 0.0)
+                          emcy_stamp=emcy.timestamp if emcy is not None else 0.0, fault_seen=self.fault_seen or 0)
 
-    def snapshot(self, facts: DriveFacts | None = None) -> DriveState:
-        """What the driver knows of the drive, with the verdict on it (judged from ``facts``, by
-        default the cache's alone: no other master, not armed)."""
-        rx = self.received
-        sw, state = rx.statusword, decode_state(rx.statusword)
-        error_code = emcy.code if (emcy := self.last_emcy) is not None else 0
-        facts = self.facts() if facts is None else facts
+    def _judge(self, rx: Received, now: float, others: Others) -> DriveState:
+        facts = self._facts(rx, now, others)
         verdict = judge(facts)
-        data_age, hb_age = facts.data_age_s, facts.heartbeat_age_s
-        stale = self._stale(data_age)
+        sw, state = rx.statusword, facts.state
+        error_code = facts.emcy_code
+        data_age = facts.data_age_s
         scale, lost = self.scale, facts.lost
         torque = scale.permille_to_nm(rx.torque_permille) if self._has_torque else math.nan
         return DriveState(
@@ -407,8 +465,8 @@ class DriveCache:
             velocity_deg_s=scale.counts_s_to_deg_s(rx.velocity_counts_s), torque_nm=torque,
             statusword=sw, state=state, mode=rx.mode, nmt=facts.nmt, enabled=verdict.usable,
             fault=state in FAULT_STATES or lost, lost=lost, error_code=error_code,
-            error_text=emcy_text(error_code) if error_code else "",
-            stamp=rx.stamp, heartbeat_age_s=hb_age,
-            target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age, stale=stale,
+            error_text=facts.emcy_text if error_code else "",
+            stamp=rx.stamp, heartbeat_age_s=facts.heartbeat_age_s,
+            target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age, stale=self._stale(data_age),
             foreign_master=facts.foreign_master, reference=rx.reference, rx_monotonic=rx.rx_monotonic,
             judged=(facts, verdict))

@@ -1,4 +1,12 @@
-"""The values the state cache publishes: immutable, replaced whole, safe to read from any thread."""
+"""The values the state cache publishes: immutable, replaced whole, safe to read from any thread.
+
+A :class:`DriveState` is a drive's face: its verdict and the values published with it, made from
+one read of what the drive said (one :class:`Received`). Its flag fields (``enabled``, ``fault``,
+``lost``, ``stale``) are kept for the readers that still take them and are derived from the same
+facts; a reader reads ``verdict`` (:mod:`motor_driver.drive.verdict`). One made by hand (a
+recording's, a test's, ``dataclasses.replace``) is judged from its fields, with the same rule for
+data never heard (an infinite age: never usable, whatever the flags say).
+"""
 
 from __future__ import annotations
 
@@ -52,7 +60,7 @@ class DriveState:
     verdict: Verdict = field(init=False, compare=False)
 
     def __post_init__(self, judged: tuple[DriveFacts, Verdict] | None) -> None:
-        if judged is None:
+        if judged is None:  # judged from its own fields: a data age that is infinite (never heard) is late
             facts = DriveFacts(self.name, data_age_s=self.data_age_s, stale_after_s=-1.0 if self.stale else math.inf,
                                heartbeat_age_s=self.heartbeat_age_s, nmt=self.nmt, state=self.state, lost=self.lost,
                                booted=True, foreign_master=self.foreign_master, armed=self.enabled,

@@ -12,8 +12,11 @@ The conditions, first match wins (the precedence):
 2. ``lost``: no heartbeat within the consumer time.
 3. ``re-booting``: it sent boot-up (reset or power cycle) and is being configured again.
 4. ``not configured``: not booted (before the first boot, or a boot that failed).
-5. ``late``: its data (TPDOs) is older than its staleness bound: every value is old.
-6. ``faulted``: its statusword says FAULT or FAULT REACTION ACTIVE.
+5. ``late``: its data (TPDOs) is older than its staleness bound, or was never heard (an age that
+   is infinite or not a number, whatever the bound): every value is old or absent.
+6. ``faulted``: its statusword says FAULT or FAULT REACTION ACTIVE, or it reported FAULT since
+   this driver last dealt with its faults (a fault that cleared itself still stops motion until
+   recover and enable).
 7. ``motion held``: the process holds every motion (a lifecycle node inactive); the reason says
    what lets it go ("rovercan_lifecycle is inactive: activate it").
 8. ``out``: the drive system left it out (``on_wheel_loss: continue``) and told it to stop.
@@ -29,7 +32,8 @@ its own) before "not armed". Only ``usable`` may be driven or counted by odometr
 Where each input comes from, one writer each (:meth:`motor_driver.drive.DriveCache.facts` reads
 them): the data's age, the statusword, the NMT state, the heartbeat's age and the EMCY are the
 bus's receive thread's (:mod:`motor_driver.drive.state`; boot's NMT start is a field of its own
-there); lost, booted, re-booting and another master are the supervisor's
+there), and so is ``fault_seen`` (the receive thread counts the FAULT statuswords; boot and the
+command threads each acknowledge them in a field of their own); lost, booted, re-booting and another master are the supervisor's
 (:mod:`motor_driver.runtime`); ``armed`` and ``stopped_by`` are the command channel's
 (:mod:`motor_driver.drive.channel`, under its lock), and so is ``held`` (motion held: the
 lifecycle node inactive); ``left_out`` is the drive system's control
@@ -98,6 +102,7 @@ class DriveFacts(NamedTuple):
     emcy_stamp: float = 0.0  # the EMCY frame's wall-clock time (for people: "lost at 12:03:04")
     left_out: str = ""  # why the drive system left it out ("" it did not)
     held: str = ""  # why motion is held ("" it is not: the lifecycle node active, or no lifecycle)
+    fault_seen: int = 0  # a FAULT statusword it reported since its faults were last dealt with (0: none)
 
 
 class Verdict(NamedTuple):
@@ -129,7 +134,7 @@ _NOT_MEASURED = (UNREACHABLE - {Condition.ANOTHER_MASTER}) | {Condition.LATE}
 
 def ms(age_s: float) -> str:
     """An age for people: ``240 ms``, or ``ever`` (never heard)."""
-    return "ever" if math.isinf(age_s) else f"{age_s * 1000:.0f} ms"
+    return f"{age_s * 1000:.0f} ms" if age_s < math.inf else "ever"
 
 
 def clock_text(stamp: float) -> str:
@@ -159,12 +164,16 @@ def judge(facts: DriveFacts) -> Verdict:
     if not f.booted:
         return say(Condition.NOT_CONFIGURED, f"not configured (NMT {f.nmt})",
                    "boot it (the driver configures it once it answers), then /arm")
-    if age > f.stale_after_s:
+    if not (age < math.inf and age <= f.stale_after_s):  # never heard (inf, NaN) is late under any bound
         return say(Condition.LATE, f"no data for {ms(age)} (bus or drive stalled)",
                    "it is usable again once its data is fresh (/arm does not help)")
     if f.state in FAULT_STATES:
         emcy = f": EMCY 0x{f.emcy_code:04X} {f.emcy_text}" if f.emcy_code else ""
         return say(Condition.FAULTED, f"faulted ({f.state.name}{emcy})", f"clear it with {f.name}/recover, then /arm")
+    if f.fault_seen:
+        return say(Condition.FAULTED, f"faulted: it reported FAULT (statusword 0x{f.fault_seen:04X}) since it was"
+                   f" enabled, though it shows {f.state.name} now",
+                   f"recover() and enable() it again ({f.name}/recover, then /arm)")
     if f.held:
         return say(Condition.HELD, "motion held", f.held)  # the holder's reason says what lets it go
     if f.left_out:
