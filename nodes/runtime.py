@@ -123,9 +123,11 @@ class CallbackFailures:
             if say:
                 self._said[key] = now
             count = self._count
-        if say:
-            logger.error("%s (callback failure %d; answered and carried on: a bug, please report it with this"
-                         " trace)", text, count, exc_info=err if said is None else None)
+        if say and said is None:
+            logger.error("%s (callback failure %d; the executor carries on: a bug, please report it with this"
+                         " trace)", text, count, exc_info=err)
+        elif say:
+            logger.error("%s again (callback failure %d; its trace logged before)", text, count)
         return f"{text} (logged with its trace; counted in /diagnostics: callback_failures)"
 
     def snapshot(self) -> tuple[int, str, float]:
@@ -196,7 +198,7 @@ def _service_callback(service: Any, callback: Callable[..., Any], failures: Call
 def _subscription_callback(subscription: Any, callback: Callable[..., Any],
                            failures: CallbackFailures) -> Callable[..., Any]:
     where = f"subscription {subscription.topic_name}"
-    if subscription._callback_type is subscription.CallbackType.WithMessageInfo:
+    if not _takes_one(callback):  # rclpy gives the message info too (its own test of the callback's arity)
         def with_info(msg: Any, info: Any) -> None:
             try:
                 callback(msg, info)
@@ -210,6 +212,14 @@ def _subscription_callback(subscription: Any, callback: Callable[..., Any],
         except Exception as err:
             failures.record(where, err)
     return _mark(on_message)
+
+
+def _takes_one(callback: Callable[..., Any]) -> bool:
+    try:
+        inspect.signature(callback).bind(object())
+    except TypeError:
+        return False
+    return True
 
 
 def _timer_callback(node: Node, callback: Callable[..., Any], failures: CallbackFailures) -> Callable[..., Any]:
