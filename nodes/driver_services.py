@@ -11,6 +11,12 @@ The services that wait are in one callback group per joint and one for the rover
 joint's calls wait for that joint's long operation only, never for another joint's. Two calls
 on one joint are taken one after the other; the driver refuses at once an operation on a drive
 busy with another (``arm`` reports a homing drive as busy, and enables the others).
+
+Every answer says what happened: a refusal or a drive's error by its own text; an unexpected
+exception (a bug) by the supervisor that wraps each callback (:func:`nodes.runtime.supervise`: a
+failed answer naming the service, the trace logged once, counted on /diagnostics); an SDO value
+the SdoRead reply's int64 cannot carry (NaN, an infinity, an UNSIGNED64 above int64) as text, its
+``value`` 0 (:func:`reply_value`).
 """
 
 from __future__ import annotations

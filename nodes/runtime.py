@@ -123,9 +123,11 @@ class CallbackFailures:
             if say:
                 self._said[key] = now
             count = self._count
-        if say:
-            logger.error("%s (callback failure %d; answered and carried on: a bug, please report it with this"
-                         " trace)", text, count, exc_info=err if said is None else None)
+        if say and said is None:
+            logger.error("%s (callback failure %d; the executor carries on: a bug, please report it with this"
+                         " trace)", text, count, exc_info=err)
+        elif say:
+            logger.error("%s again (callback failure %d; its trace logged before)", text, count)
         return f"{text} (logged with its trace; counted in /diagnostics: callback_failures)"
 
     def snapshot(self) -> tuple[int, str, float]:
@@ -196,7 +198,7 @@ def _service_callback(service: Any, callback: Callable[..., Any], failures: Call
 def _subscription_callback(subscription: Any, callback: Callable[..., Any],
                            failures: CallbackFailures) -> Callable[..., Any]:
     where = f"subscription {subscription.topic_name}"
-    if subscription._callback_type is subscription.CallbackType.WithMessageInfo:
+    if not _takes_one(callback):  # rclpy gives the message info too (its own test of the callback's arity)
         def with_info(msg: Any, info: Any) -> None:
             try:
                 callback(msg, info)
@@ -210,6 +212,14 @@ def _subscription_callback(subscription: Any, callback: Callable[..., Any],
         except Exception as err:
             failures.record(where, err)
     return _mark(on_message)
+
+
+def _takes_one(callback: Callable[..., Any]) -> bool:
+    try:
+        inspect.signature(callback).bind(object())
+    except TypeError:
+        return False
+    return True
 
 
 def _timer_callback(node: Node, callback: Callable[..., Any], failures: CallbackFailures) -> Callable[..., Any]:
@@ -235,14 +245,15 @@ def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S
     """Spin ``executor`` until ``stop`` is set or the context is shut down by someone else,
     looking at both every ``poll_s`` at the latest (sooner where the stopper gives the executor work).
     A callback's exception that reaches here (one :func:`supervise` did not wrap) is logged, counted
-    in ``failures`` and the executor spins on: it never ends the loop.
+    in ``failures`` (None: those of the executor's driver node, when it has one then, else of this
+    loop alone) and the executor spins on: it never ends the loop.
 
     The EventsExecutor dispatches everything that comes in ``poll_s`` in one call into C++
     (``spin_until_future_complete`` of a future nobody completes, a new one each time: that call
     adds a callback to it): ``spin_once`` would come back to Python after every single callback,
     and the loop's own checks were about 7 % of the hot thread's interpreter time in the six-drive
     profile (docs/performance.md)."""
-    failures = CallbackFailures() if failures is None else failures
+    own = CallbackFailures()
     if isinstance(executor, Executor):
         def step() -> None:
             executor.spin_once(timeout_sec=poll_s)
@@ -255,8 +266,10 @@ def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S
         except ExternalShutdownException:
             return
         except Exception as err:  # a callback's, re-raised by the executor: logged, counted, spun on
-            failures.record(f"a callback of {type(executor).__name__}", err,
-                            logged=not isinstance(executor, Executor))  # the EventsExecutor logged it with its trace
+            counted = failures if failures is not None else next((n.callback_failures for n in executor.get_nodes()
+                                        if isinstance(getattr(n, "callback_failures", None), CallbackFailures)), own)
+            counted.record(f"a callback of {type(executor).__name__}", err,
+                           logged=not isinstance(executor, Executor))  # the EventsExecutor logged it with its trace
 
 
 def spin_node(node: Node, stop: threading.Event, *, on_stop: Callable[[], None] | None = None,

@@ -104,6 +104,15 @@ class Rig:
             assert self.call(Trigger, f"{joint}/quick_stop").success
 
 
+def said_once(caplog: pytest.LogCaptureFixture, what: str) -> None:
+    """``what`` logged with its trace once; any other line of it (at most one every
+    runtime.REPEAT_LOG_S while it keeps failing) says it again, without the trace."""
+    lines = [r for r in caplog.records if what in r.getMessage()]
+    traced = [r for r in lines if r.exc_info is not None]
+    assert len(traced) == 1 and lines[0] is traced[0], [r.getMessage() for r in lines]
+    assert all(" again " in r.getMessage() for r in lines[1:]), [r.getMessage() for r in lines]
+
+
 @pytest.fixture
 def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Rig]:
     monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a call must wake them
@@ -225,8 +234,7 @@ def test_a_raising_timer_and_subscription_never_end_the_hot_executor(
     monkeypatch.undo()
     status = rig.driver_status()
     assert status is not None and int(status["callback_failures"]) == len(raised) + 1
-    timer_lines = [r for r in caplog.records if "Boom in the state timer" in r.getMessage()]
-    assert len(timer_lines) == 1 and timer_lines[0].exc_info is not None  # said once, however often
+    said_once(caplog, "Boom in the state timer")  # however often it raised
     states: list[Any] = []
     rig.probe.create_subscription(JointState, "/joint_states", states.append, STATE_QOS)
     wait_for(lambda: bool(states), HANG_S, "/joint_states after the timer raised")
@@ -258,15 +266,17 @@ def test_a_failing_hook_of_the_state_timer_is_counted_and_the_states_go_on(
             int(status.get("callback_failures", "0")) >= 3
 
     wait_for(said, HANG_S, "the hook's failures counted on /diagnostics")
-    lines = [r for r in caplog.records if "Boom in a tick hook" in r.getMessage()]
-    assert len(lines) == 1 and lines[0].exc_info is not None
+    said_once(caplog, "Boom in a tick hook")
 
 
+@pytest.mark.parametrize("given", [True, False], ids=["failures given", "the node's"])
 @pytest.mark.parametrize("kind", ["events", "single", "multi"])
-def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, caplog: pytest.LogCaptureFixture) -> None:
+def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, given: bool,
+                                                                 caplog: pytest.LogCaptureFixture) -> None:
     """A callback no one wrapped (an action server's internals, a node made later) raises on every
-    call: rclpy's executors raise it out of their spin; spin_until counts it, says it once (rclpy's
-    EventsExecutor says it itself, with its trace) and spins on."""
+    call: rclpy's executors raise it out of their spin; spin_until counts it (in the failures it is
+    given, else in those of the executor's driver node: rover_lifecycle's hot spin), says it once
+    (rclpy's EventsExecutor says it itself, with its trace) and spins on."""
     import threading
 
     from rclpy.executors import MultiThreadedExecutor
@@ -287,8 +297,10 @@ def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, capl
 
     node.create_timer(0.01, tick)
     failures = runtime.CallbackFailures()
+    node.callback_failures = failures  # type: ignore[attr-defined]  # as a DriverNode carries them
     stop = threading.Event()
-    spin = threading.Thread(target=runtime.spin_until, args=(executor, stop, 0.1, failures), name="test-spin")
+    spin = threading.Thread(target=runtime.spin_until, args=(executor, stop, 0.1, failures if given else None),
+                            name="test-spin")
     spin.start()
     try:
         wait_for(lambda: failures.snapshot()[0] >= 3, HANG_S, "three failures counted, the spin going on")
