@@ -49,10 +49,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
         DEBT,
     "test_cyclic_jobs.py::test_each_job_keeps_its_period_among_many_idle_ones_and_a_deleted_one_stops":
         DEBT,
-    "test_cyclic_modes.py::test_csv_follows_the_stream_then_the_watchdog_stops_it":
-        DEBT,
-    "test_cyclic_modes.py::test_joint_commands_velocity_and_effort_stream_csv_and_cst":
-        DEBT,
     "test_extended_ids.py::test_spoofed_extended_frames_change_no_state":
         DEBT,
     "test_faults.py::test_disconnected_client_sees_the_bus_go":
