@@ -17,6 +17,7 @@ from typing import Any
 
 from can_config import RoverConfig, load_config
 from can_config.errors import ConfigError
+from can_config.realtime import ensure_thread_realtime
 from motor_driver.process import heap
 from motor_driver.process.stop import StopSignal
 from rovercan.argtypes import BusKwargs, real, whole
@@ -119,6 +120,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
             stack.enter_context(serve_sims_view(sims, args.config, args.foxglove_host, args.foxglove))
         heap.settle()  # the drives' object dictionaries live as long as the server: out of the collector's walks
         next_status = time.monotonic() + args.status_period if args.status_period else None
+        # this loop wakes 5 times a second: an ordinary thread holding the interpreter when other
+        # real-time work takes the cores would hold every simulator thread behind it (issue 73)
+        ensure_thread_realtime("rovercan sim's main thread")
         while not stop.event.wait(0.2):
             if next_status is not None and time.monotonic() >= next_status:
                 next_status += args.status_period

@@ -74,7 +74,11 @@ def test_csv_follows_the_stream_then_the_watchdog_stops_it(
     # mid-stream, and a 300 ms watchdog stopped it there too, rightly) sends zero velocity, once
     stops = drive.limits.watchdog_stops
     wait_for(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, 10.0, "the watchdog's stop")  # how soon: benchmarks
-    time.sleep(0.3)
+    # once: the supervisor (the watchdog's looker) shown to have looked again and again since,
+    # six host heartbeats of its own, not a span of the clock in which a held one looks at nothing
+    handle = driver.buses["can0"]
+    beats = handle.beats_sent()
+    wait_for(lambda: handle.beats_sent() >= beats + 6, 30.0, "six supervisor periods after the stop")
     assert drive.limits.watchdog_stops == stops + 1
 
 
@@ -210,7 +214,7 @@ def test_joint_commands_velocity_and_effort_stream_csv_and_cst(ros_driver: tuple
     drive = driver.drive("wheel")
     drive.enable()
     pub = probe.create_publisher(JointState, "/joint_commands", COMMAND_QOS)  # type: ignore[attr-defined]
-    time.sleep(0.3)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10.0, "the driver node subscribed to /joint_commands")
     for i in range(1, 30):  # rad/s, ramped: 0.1 rad/s (5.7 deg/s) per SYNC
         pub.publish(JointState(name=["wheel"], velocity=[min(0.1 * i, 1.0)]))
         time.sleep(0.01)

@@ -39,6 +39,7 @@ class Extremes:
     def __init__(self, sim: SimService, node: int = 1, counts_per_deg: float = COUNTS_PER_DEG) -> None:
         self.sim, self.node, self.k = sim, node, counts_per_deg
         self.low, self.high = float("inf"), float("-inf")
+        self.samples = 0  # taken so far (this thread's)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -52,7 +53,16 @@ class Extremes:
         while not self._stop.is_set():
             a = self.angle()
             self.low, self.high = min(self.low, a), max(self.high, a)
+            self.samples += 1
             time.sleep(0.002)
+
+    def after(self, done: Callable[[], bool], what: str) -> tuple[float, float]:
+        """Wait for ``done`` (the joint at rest), then for a sample taken after it, and stop: the
+        extremes include the joint's whole way to rest, not a span of the clock."""
+        wait_for(done, 30.0, what)
+        taken = self.samples
+        wait_for(lambda: self.samples > taken, 30.0, "a sample of the joint at rest")
+        return self.stop()
 
     def stop(self) -> tuple[float, float]:
         self._stop.set()
@@ -106,8 +116,7 @@ def test_a_single_velocity_command_is_stopped_by_the_guard(driver_factory: Drive
     watch = Extremes(sim)
     drive.set_velocity(100.0)
     wait_for(lambda: drive.limits.limit_stops > 0, 3.0, "the limit guard")
-    time.sleep(0.6)
-    _low, high = watch.stop()
+    _low, high = watch.after(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, "the joint braked to rest")
     assert 80.0 < high <= 90.0 and abs(drive.snapshot().velocity_deg_s) < 1.0
 
 
@@ -156,8 +165,8 @@ def test_streamed_positions_are_refused_beyond_a_limit(driver_factory: DriverFac
             angle += 1.0
             drive.stream_position(angle)
             time.sleep(drive.cache.sync_period_s)
-    time.sleep(0.3)
-    _low, high = watch.stop()
+    # the servo's overshoot settled: the drive's own velocity (its TPDO) near zero
+    _low, high = watch.after(lambda: abs(drive.snapshot().velocity_deg_s) < 1.0, "the joint at rest")
     # the stream stops dead from 100 deg/s at 90: the servo overshoots a little (the simulated
     # drive's model: about 0.1 motor rev), less than its limit tolerance, so it does not fault
     assert angle == 91.0 and high <= 90.0 + LIMIT_TOLERANCE_REV * 360.0 / GEAR

@@ -65,14 +65,18 @@ def publish_for(publisher: Any, msg: Any, seconds: float, rate_hz: float = 50.0)
         time.sleep(1.0 / rate_hz)
 
 
+def at_rest(rig: Rig) -> bool:
+    """The arm's own velocity (its TPDO) near zero: stopped by the guard or the watchdog."""
+    return abs(rig.driver.drive("arm").snapshot().velocity_deg_s) < 1.0
+
+
 def test_velocity_cmd_at_full_speed_never_passes_the_limit(rig: Rig) -> None:
     watch = Extremes(rig.sim, 1)
     pub = rig.probe.create_publisher(Float32, "arm/velocity_cmd", COMMAND_QOS)
-    time.sleep(0.3)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10.0, "the driver node subscribed to velocity_cmd")
     for speed in (300.0, 720.0, 40.0):  # fast, full (refused: it could not stop), then creeping on
         publish_for(pub, Float32(data=speed), 1.5)
-    time.sleep(0.3)
-    _, high = watch.stop()
+    _, high = watch.after(lambda: at_rest(rig), "the arm at rest (the watchdog's stop)")
     assert 80.0 < high <= 90.0, high
     assert rig.driver.drive("arm").limits.limit_stops > 0
 
@@ -80,11 +84,10 @@ def test_velocity_cmd_at_full_speed_never_passes_the_limit(rig: Rig) -> None:
 def test_joint_commands_velocity_never_passes_the_limit(rig: Rig) -> None:
     watch = Extremes(rig.sim, 1)
     pub = rig.probe.create_publisher(JointState, "/joint_commands", COMMAND_QOS)
-    time.sleep(0.3)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10.0, "the driver node subscribed to /joint_commands")
     for speed in (-5.0, -0.7):  # rad/s: 286 deg/s, then 40 deg/s, toward -90
         publish_for(pub, JointState(name=["arm"], velocity=[speed]), 1.5)
-    time.sleep(0.3)
-    low, _ = watch.stop()
+    low, _ = watch.after(lambda: at_rest(rig), "the arm at rest (the watchdog's stop)")
     assert -90.0 <= low < -80.0, low
 
 

@@ -296,8 +296,8 @@ class Client:
         reader thread starved before it put it on the bus. Any thread."""
         handled, arrival = self._handled_bytes, self._handled_arrival
         received = tcp_bytes_received(self.sock)
-        if received is None or received <= handled or self._closed.is_set():
-            return wall
+        if received is None or received <= handled or self._closed.is_set() or not self.reader.is_alive():
+            return wall  # nothing in flight, or no reader left to bring it
         return min(wall, arrival)
 
     def _error(self, what: str) -> None:
