@@ -348,9 +348,20 @@ def test_a_replanned_goal_preempts_the_first_canceled_as_the_controller_does(rig
 
 def test_a_cancel_is_honoured_while_no_sample_comes(rig: Rig) -> None:
     """Every joint's TPDOs silenced mid-goal (heartbeats on), then a cancel: the goal ends CANCELED
-    while the drives are still silent (it waited for the data to come back)."""
+    while the drives are still silent (it waited for the data to come back). The group's waits
+    without a sample reach /diagnostics ("rovercan: follow arm_controller")."""
     from action_msgs.msg import GoalStatus
+    from diagnostic_msgs.msg import DiagnosticArray
 
+    from nodes.qos import DIAGNOSTICS_QOS
+
+    said: list[Any] = []
+    rig.client._node.create_subscription(
+        DiagnosticArray, "/diagnostics",
+        lambda a: said.extend(s for s in a.status if s.name == "rovercan: follow arm_controller"), DIAGNOSTICS_QOS)
+    wait_for(lambda: bool(said), HANG_S, "the group's status on /diagnostics")
+    assert {v.key: v.value for v in said[-1].values} == {"errors": "0", "late samples": said[-1].values[1].value,
+                                                          "silences": said[-1].values[2].value}
     feedback: list[Any] = []
     handle = send(rig, half_sine(30.0, 4.0), feedback)
     wait_for(lambda: bool(feedback) and feedback[-1].desired.time_from_start.sec >= 1, HANG_S, "the goal under way")
@@ -366,6 +377,9 @@ def test_a_cancel_is_honoured_while_no_sample_comes(rig: Rig) -> None:
     # a sample already on its way when they were silenced may have come; no more than that
     assert all(b - a <= 1 for a, b in zip(seq, silent, strict=True)), (seq, silent)
     assert done.status in (GoalStatus.STATUS_CANCELED, GoalStatus.STATUS_ABORTED), done.result.error_string
+    mark = len(said)
+    wait_for(lambda: len(said) > mark and int({v.key: v.value for v in said[-1].values}["silences"]) > 0, HANG_S,
+             "the silences counted on /diagnostics")
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])

@@ -129,6 +129,16 @@ class TrajectoryGroup:
         self._thread.start()
 
     # ------------------------------------------------------------------ callers
+    @property
+    def alive(self) -> bool:
+        """The group's thread runs (it ends only on close)."""
+        return self._thread.is_alive()
+
+    @property
+    def busy(self) -> bool:
+        """A goal runs, waits to start, or its joints ramp down."""
+        return self._running is not None or self._pending is not None or bool(self._ramp)
+
     def counters(self) -> dict[str, int]:
         """The thread's background counts, for /diagnostics."""
         return {"errors": self.errors, "late samples": self.late, "silences": self.silences}
