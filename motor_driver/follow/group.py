@@ -77,9 +77,13 @@ LATE_SHARE = 0.5
 #: How long close() waits for the group's thread.
 JOIN_S = 2.0
 #: The most the plan's time advances from one set-point to the next, in SYNC periods: a SYNC missed
-#: is caught up at once (the plan is not stretched); after a host stalled for longer the plan goes on
-#: from there (stretched by the stall) rather than jump further than its joints may move in a step.
+#: is caught up at once; after a host stalled for longer the plan catches up at this pace rather than
+#: jump further than its joints may move in a step (the drive's guard: max velocity over two periods).
 CATCH_UP_PERIODS = 2
+#: How much of the gap between the SYNCs counted and the monotonic clock (the sample's reception) one
+#: set-point closes: the plan keeps the clock's time (a SYNC producer slower or faster than its period
+#: does not stretch it), while a receive thread's jitter moves a step by this share of it only.
+CLOCK_GAIN = 0.2
 #: The longest wait for a sample, in SYNC periods, before the group looks at its drives' verdicts
 #: (a silence): a goal whose joints fall silent ends within their staleness bound plus this.
 SILENCE_PERIODS = 2.0
@@ -93,7 +97,7 @@ class _Running:
     joints: tuple[Drive, ...]
     spline: Spline | None = None  # built at its first set-point, from where the set-points are then
     offset_s: float = 0.0  # the plan's time of the spline's start
-    anchor: tuple[object, int, float] = (None, 0, 0.0)  # (clock drive, its sample count, plan time then)
+    last: tuple[object, int] = (None, 0)  # the clock drive and its sample count at the last set-point
     last_t: float = 0.0  # the plan time of the last set-point
     final_sent: bool = False
     last_desired: tuple[tuple[float, float, float], ...] = ()
@@ -366,23 +370,19 @@ class TrajectoryGroup:
         zero), then the SYNCs counted by the clock's samples (one a SYNC, counted by the receive
         thread: a sample this thread let go still counts, a receive thread's jitter is no step)."""
         seq = clock.cache.position_seq
+        now = clock.cache.received.rx_monotonic + self.period_s - running.run.start_at
         if running.spline is None:
-            t = clock.cache.received.rx_monotonic + self.period_s - running.run.start_at
-            if t <= 0.0:
+            if now <= 0.0:
+                self._hold(running)
                 return  # stamped ahead: its joints hold (or ramp down) until then
-            self._join(running, t - self.period_s)
-            t = min(t, running.offset_s + CATCH_UP_PERIODS * self.period_s)
-            running.anchor = (clock, seq, t)
+            self._join(running, now - self.period_s)
+            t = min(now, running.offset_s + CATCH_UP_PERIODS * self.period_s)
         else:
-            drive, base_seq, base_t = running.anchor
-            if drive is not clock:  # the clock moved to another joint: counted from here on
-                running.anchor = (clock, seq - 1, running.last_t)
-                drive, base_seq, base_t = running.anchor
-            t = base_t + (seq - base_seq) * self.period_s
-            if t > running.last_t + CATCH_UP_PERIODS * self.period_s:  # a stalled host: no jump
-                t = running.last_t + CATCH_UP_PERIODS * self.period_s
-                running.anchor = (clock, seq, t)
-        running.last_t = t
+            drive, last_seq = running.last
+            counted = running.last_t + (seq - last_seq if drive is clock else 1) * self.period_s
+            t = counted + CLOCK_GAIN * (now - counted)
+            t = min(max(t, running.last_t), running.last_t + CATCH_UP_PERIODS * self.period_s)
+        running.last, running.last_t = (clock, seq), t
         spline = running.spline
         assert spline is not None
         local = t - running.offset_s
@@ -408,6 +408,17 @@ class TrajectoryGroup:
                            " the group stops")
                 return
         running.last_desired = desired
+
+    def _hold(self, running: _Running) -> None:
+        """A goal waiting for its stamp: its joints not ramping down hold their set-point, one a SYNC."""
+        for drive, (p, _, _) in zip(running.joints, running.last_desired, strict=True):
+            if drive.name not in self._ramp:
+                try:
+                    drive.stream_position(p)
+                except RovercanError as err:
+                    self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"{drive.name}: set-point refused while the goal"
+                               f" waits for its start: {err}; the group stops")
+                    return
 
     def _join(self, running: _Running, now_s: float) -> None:
         """The goal's spline from where its joints' set-points are now (a preempted goal's or a ramp's,
