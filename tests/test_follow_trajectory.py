@@ -434,6 +434,28 @@ def test_a_cancel_is_honoured_while_no_sample_comes(rig: Rig) -> None:
              "the silences counted on /diagnostics")
 
 
+def test_a_goal_whose_joints_fall_silent_ends_aborted_while_they_are_silent(rig: Rig) -> None:
+    """Every joint's TPDOs silenced mid-goal (heartbeats on), no cancel: the verdict says late once
+    their data is older than its staleness bound, and the goal ends ABORTED naming it, while the
+    drives are still silent (it waited for the data to come back)."""
+    from action_msgs.msg import GoalStatus
+
+    feedback: list[Any] = []
+    handle = send(rig, half_sine(30.0, 4.0), feedback)
+    wait_for(lambda: bool(feedback) and feedback[-1].desired.time_from_start.sec >= 1, HANG_S, "the goal under way")
+    for node in (1, 2):
+        apply_action(rig.sim, {"action": "tpdos", "node": node, "on": False})
+    seq = [d.cache.position_seq for d in rig.assembly.driver]
+    done = result_of(handle)
+    silent = [d.cache.position_seq for d in rig.assembly.driver]
+    for node in (1, 2):
+        apply_action(rig.sim, {"action": "tpdos", "node": node, "on": True})
+    assert all(b - a <= 1 for a, b in zip(seq, silent, strict=True)), (seq, silent)
+    assert done.status == GoalStatus.STATUS_ABORTED, done.result.error_string
+    assert done.result.error_code == FollowJointTrajectory.Result.PATH_TOLERANCE_VIOLATED
+    assert "late" in done.result.error_string and "joint" in done.result.error_string, done.result.error_string
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])
 def test_the_driver_killed_mid_goal_leaves_the_arm_to_stop_itself(tmp_path: Path, sig: int) -> None:
     """The driver's process as the launch runs it (``python -m nodes.rover_driver``, ``arm:=true``,

@@ -16,8 +16,10 @@ joint's next set-point then, a CSP (or IP) set-point through the drive's command
 (``stream_position``), so a stop still wins. The trajectory's time is the monotonic clock's, from
 the plan's time zero (:attr:`GoalRun.start_at`: its acceptance, or its header stamp), read at the
 sample's reception (its SYNC): the set-point sent is the spline at the next SYNC's time, where the
-drive takes it (:class:`motor_driver.drive.trajectory.Spline`); a SYNC the thread missed does not
-stretch the plan (the next set-point is the plan's at its own time). Whatever must happen before
+drive takes it (:class:`motor_driver.drive.trajectory.Spline`). Each set-point advances the plan by
+the SYNCs the receive thread counted and closes a share of the gap to the clock (:data:`CLOCK_GAIN`:
+a receive thread's jitter is no jump, a SYNC producer off its period no stretch); a SYNC the thread
+let go is caught up in the next set-point, never stretched. Whatever must happen before
 motion (the checks, each joint's switch to streaming) happens before the goal is handed over. A
 goal starts from where the group's set-points are at its first set-point (a preempted goal's or a
 ramp's, else the drive's last target) with that velocity, so a new goal joins the old without a
