@@ -85,7 +85,7 @@ CATCH_UP_PERIODS = 2
 #: How much of the gap between the SYNCs counted and the monotonic clock (the sample's reception) one
 #: set-point closes: the plan keeps the clock's time (a SYNC producer slower or faster than its period
 #: does not stretch it), while a receive thread's jitter moves a step by this share of it only.
-CLOCK_GAIN = 0.2
+CLOCK_GAIN = 0.5
 #: The longest wait for a sample, in SYNC periods, before the group looks at its drives' verdicts
 #: (a silence): a goal whose joints fall silent ends within their staleness bound plus this.
 SILENCE_PERIODS = 2.0
