@@ -457,6 +457,34 @@ def test_a_goal_whose_joints_fall_silent_ends_aborted_while_they_are_silent(rig:
     assert "late" in done.result.error_string and "joint" in done.result.error_string, done.result.error_string
 
 
+def test_a_jammed_joint_under_a_path_tolerance_ends_the_goal_and_the_joints_stand(rig: Rig) -> None:
+    """joint1's shaft blocked 1 s into a goal with a path tolerance of 0.05 rad: the goal ends
+    PATH_TOLERANCE_VIOLATED naming joint1, and both joints then stand (50 /joint_states in a row)."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.msg import JointTolerance
+
+    goal = half_sine(30.0, 4.0)
+    goal.path_tolerance = [JointTolerance(name=n, position=0.05) for n in ("joint1", "joint2")]
+    feedback: list[Any] = []
+    handle = send(rig, goal, feedback)
+    ended = handle.get_result_async()
+    wait_for(lambda: ended.done() or (bool(feedback) and feedback[-1].desired.time_from_start.sec >= 1), HANG_S,
+             "the goal under way")
+    assert not ended.done(), ended.result().result.error_string
+    apply_action(rig.sim, {"action": "load", "node": 1, "stall": True})
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_ABORTED, done.result.error_string
+    assert done.result.error_code == FollowJointTrajectory.Result.PATH_TOLERANCE_VIOLATED
+    assert "joint1" in done.result.error_string and "path tolerance" in done.result.error_string
+
+    def still() -> bool:
+        last = [(math.degrees(s.position[0]), math.degrees(s.position[1])) for s in rig.states[-50:]
+                if len(s.position) == 2]
+        return len(last) == 50 and all(max(c) - min(c) < 0.01 for c in zip(*last, strict=True))
+    wait_for(still, HANG_S, "both joints still")
+    apply_action(rig.sim, {"action": "load", "node": 1, "stall": False})
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])
 def test_the_driver_killed_mid_goal_leaves_the_arm_to_stop_itself(tmp_path: Path, sig: int) -> None:
     """The driver's process as the launch runs it (``python -m nodes.rover_driver``, ``arm:=true``,

@@ -4,11 +4,13 @@ control_msgs/FollowJointTrajectory, one :class:`TrajectoryGroup` per configured 
 :class:`TrajectoryGoal` and :class:`GoalRun` into results and feedback.
 
 Before anything moves (:meth:`TrajectoryGroup.plan`, on the caller's thread: :mod:`motor_driver.follow.checks`) a goal is refused with
-the standard's code (:class:`TrajectoryRejected`): joints unknown, repeated or of another group
-(INVALID_JOINTS); points of the wrong length, not finite, times not strictly increasing, a point or
-any sampled set-point beyond a joint's limits or its max velocity, a joint not armed or not fresh,
-a first point (at time 0) further than ``start_tolerance_deg`` from where its joint is
-(INVALID_GOAL); a header stamp whose trajectory is over already (OLD_HEADER_TIMESTAMP, the node's).
+the standard's code (:class:`TrajectoryRejected`): joints unknown, repeated, of another group or
+not all of the group's unless ``allow_partial_joints_goal`` (INVALID_JOINTS); points of the wrong
+length, not finite, times not strictly increasing, a point or any sampled set-point beyond a joint's
+limits or its max velocity, a tolerance negative other than -1, a joint not usable (its verdict) or
+its motion held, a first point (at time 0) further than ``start_tolerance_deg`` from both its joint's
+set-point and its measured position (INVALID_GOAL); a header stamp whose trajectory is over already
+(OLD_HEADER_TIMESTAMP, the node's).
 
 The clock: the group's thread (``rovercan-follow-<group>``) wakes on each position sample of one of
 its drives (:meth:`DriveCache.on_sample`, set by the receive thread: one a SYNC) and sends every
