@@ -59,6 +59,7 @@ from can_config.errors import RovercanError
 from can_config.model import TrajectoryGroupConfig
 from motor_driver.drive import Drive
 from motor_driver.drive.trajectory import Knot, Spline
+from motor_driver.drive.verdict import judge
 from motor_driver.follow.checks import GoalChecks
 from motor_driver.follow.goal import (
     PREEMPTED,
@@ -363,8 +364,9 @@ class TrajectoryGroup:
 
     @staticmethod
     def _unusable(drive: Drive) -> str | None:
-        """Why the joint may not be driven: its verdict (the one every part reads), else None."""
-        verdict = drive.snapshot().verdict
+        """Why the joint may not be driven: its verdict (the one every part reads, judged from the
+        drive's facts: a quarter of a snapshot's cost), else None."""
+        verdict = judge(drive.power.facts())
         return None if verdict.usable else f"{verdict.condition.value}: {verdict.cause}" + (
             f"; {verdict.helps}" if verdict.helps else "")
 
@@ -449,7 +451,9 @@ class TrajectoryGroup:
             if running.quiet[i] > drive.config.stale_after_syncs:
                 return (f"{drive.name}: no position sample for {running.quiet[i]} SYNCs (stale_after_syncs="
                         f"{drive.config.stale_after_syncs}) mid-goal; the group stops")
-            if (why := self._unusable(drive)) is not None:
+            # while set-points go out, each is refused with the verdict's cause by the drive's own
+            # check (stream_position: late, lost, not enabled); after the last one it is read here
+            if running.final_sent and (why := self._unusable(drive)) is not None:
                 return f"{drive.name}: {why} mid-goal; the group stops"
             if tol.position_deg > 0 and abs(ap - p) > tol.position_deg:
                 return (f"{drive.name}: {abs(ap - p):.3f} deg from the trajectory ({ap:.3f} deg, set-point {p:.3f});"
