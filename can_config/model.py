@@ -292,8 +292,8 @@ class TrajectoryGroupConfig:
                                        unit="ms", help="how long after the trajectory's end the joints may take to get"
                                                        " within the goal tolerance (a goal's own value wins)")
     start_tolerance_deg: float = key("float", 2.0, 0.0, 360.0, low_open=True, unit="deg",
-                                     help="a trajectory whose first point (at time 0) is further than this from where a"
-                                          " joint is is refused (INVALID_GOAL): nothing moves")
+                                     help="a trajectory whose first point (at time 0) is further than this from both a"
+                                          " joint's set-point and its measured position is rejected: nothing moves")
     stop_deceleration_deg_s2: float = key("float", 360.0, 0.0, 10_000_000.0, low_open=True, unit="deg/s^2",
                                           help="a cancelled or failed goal's joints ramp down at this, then hold")
     feedback_rate_hz: float = key("float", 20.0, 1.0, 100.0, unit="Hz", help="the action's feedback rate")

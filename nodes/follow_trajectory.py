@@ -22,6 +22,11 @@ the current set-point. A cancel is passed to the group in the cancel callback an
 the goal ends CANCELED within a SYNC period whether or not samples come, its joints then ramp down
 and hold. What goes wrong later ends ABORTED with the standard's code and a message naming the joint.
 
+Each second the server publishes its group's background counts on /diagnostics, as the status
+``rovercan: follow <group>``: the group thread's unexpected errors (each ended a goal in a stop), the
+samples it took too late (a SYNC let go) and its waits that ended without a sample; WARN once an
+error was counted, ERROR when the group's thread has ended.
+
 The goals are coroutines on the actions' executor (nodes/actions.py): between two looks at the run a
 goal awaits the node's pause, so the executor serves cancels and other goals meanwhile; a goal's
 switch to streaming runs on the server's start worker (one a server: in the order goals came).
@@ -38,6 +43,7 @@ from typing import Any
 
 from builtin_interfaces.msg import Duration
 from control_msgs.action import FollowJointTrajectory
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.action.server import GoalEvent
 from rclpy.callback_groups import CallbackGroup
@@ -47,6 +53,8 @@ from trajectory_msgs.msg import JointTrajectoryPoint
 from can_config.errors import RovercanError, TrajectoryRejected
 from motor_driver.follow import GoalRun, Plan, Progress, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
 from motor_driver.protocol.units import DEG_PER_RAD
+from nodes.messages import stamp_header
+from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS
 
 Result = FollowJointTrajectory.Result
 logger = logging.getLogger(__name__)
@@ -120,6 +128,23 @@ def fill_feedback(feedback: Any, progress: Progress) -> Any:
 
 #: How often a goal's switch to streaming is looked at while the goal callback awaits it.
 START_POLL_S = 0.005
+#: How often the group's counts go to /diagnostics.
+DIAGNOSTICS_PERIOD_S = 1.0
+
+
+def follow_status(group: TrajectoryGroup) -> DiagnosticStatus:
+    """The group's /diagnostics status: its thread's background counts, and its level."""
+    counts = group.counters()
+    if not group.alive:
+        level, message = DiagnosticStatus.ERROR, "its thread has ended (see the log): goals are refused; restart the driver"
+    elif counts["errors"]:
+        level, message = DiagnosticStatus.WARN, f"{counts['errors']} unexpected error(s), each ended a goal (see the log)"
+    else:
+        level, message = DiagnosticStatus.OK, "following" if group.busy else "idle"
+    status = DiagnosticStatus(level=level, name=f"rovercan: follow {group.name}", message=message,
+                              hardware_id=group.name)
+    status.values = [KeyValue(key=k, value=str(v)) for k, v in counts.items()]
+    return status
 
 
 class FollowTrajectoryServer:
@@ -141,9 +166,21 @@ class FollowTrajectoryServer:
                                     execute_callback=self._execute, goal_callback=self._judge,
                                     handle_accepted_callback=self._accepted, cancel_callback=self._cancel,
                                     callback_group=callback_group)
+        self._diagnostics = node.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS,
+                                                  event_callbacks=NO_PUB_EVENTS)
+        self._diag_timer = node.create_timer(DIAGNOSTICS_PERIOD_S, self.publish_diagnostics,
+                                             callback_group=callback_group)
+
+    def publish_diagnostics(self) -> None:
+        array = DiagnosticArray()
+        stamp_header(array.header, time.time())
+        array.status = [follow_status(self._group)]
+        self._diagnostics.publish(array)
 
     def destroy(self) -> None:
         self._alive = False  # a goal under judgement is rejected
+        self._node.destroy_timer(self._diag_timer)
+        self._node.destroy_publisher(self._diagnostics)
         self._starter.shutdown(wait=False, cancel_futures=True)
         self._server.destroy()
 

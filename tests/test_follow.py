@@ -282,13 +282,12 @@ def test_a_new_goal_preempts_the_old_at_its_setpoint_without_a_jump(arm: Arm) ->
     path = [scale.counts_to_deg(c) for c in setpoints(frames_after(arm), 1)]
     steps = [b - a for a, b in itertools.pairwise(path)]
     assert max(abs(s) for s in steps) <= 180.0 * arm.group.period_s  # never faster than the joint may go
-    # the velocity changes smoothly across the switch: one period's step never differs from the
-    # last by more than the steepest acceleration of either spline (under 100 deg/s^2) allows; a
-    # SYNC the busy host let go (its sample too late) is caught up in the next step, two periods'
-    # worth (the plan is not stretched)
-    bend = 100.0 * arm.group.period_s ** 2 * 2
-    for a, b in itertools.pairwise(steps):
-        assert min(abs(b - a), abs(b - 2 * a), abs(2 * b - a)) < bend, (a, b)
+    # the new plan is joined at the set-point with its velocity: joint1 slows down into its peak (the
+    # second spline's deceleration, under 100 deg/s^2), it is not cut there from full speed; a step
+    # is the plan's time between two set-points (a SYNC the busy host let go is caught up in the next)
+    peak = path.index(max(path))
+    into = steps[peak - 5:peak]
+    assert len(into) == 5 and max(abs(s) for s in into) < 0.3 * max(abs(s) for s in steps), (into, max(steps))
     assert path[-1] == pytest.approx(0.0, abs=0.01)
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import re
 import signal
+import statistics
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -148,6 +149,58 @@ def test_a_half_sine_of_two_joints_is_tracked_and_succeeds(rig: Rig) -> None:
     n = len(rig.states)
     wait_for(lambda: len(rig.states) > n + 2, HANG_S, "/joint_states after the result")
     assert max(abs(p) for p in positions(rig)) <= 0.3, positions(rig)
+
+
+def seconds(stamp: Any) -> float:
+    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
+
+
+def lag(rig: Rig, start_s: float, amplitude_deg: float, duration_s: float) -> float:
+    """How late (s) /joint_states (by their stamps: when measured) are against the half-sine timed from
+    ``start_s`` (node clock): the median over the run of each sample's error over the plan's velocity,
+    where it moves (a median: a sample published late on a busy host does not move it)."""
+    w = math.pi / duration_s
+    lags = []
+    for msg in list(rig.states):
+        t = seconds(msg.header.stamp) - start_s
+        velocity = amplitude_deg * w * math.cos(w * t)
+        at = dict(zip(msg.name, msg.position, strict=False))  # a joint whose data are not fresh is absent
+        if 0.0 <= t <= duration_s and abs(velocity) > 0.3 * amplitude_deg * w and {"joint1", "joint2"} <= set(at):
+            plan = amplitude_deg * math.sin(w * t)
+            lags += [(plan - math.degrees(at["joint1"])) / velocity, (math.degrees(at["joint2"]) + plan) / velocity]
+    assert len(lags) > 20 * duration_s, len(lags)
+    return statistics.median(lags)
+
+
+def test_the_plan_runs_from_its_acceptance(rig: Rig) -> None:
+    """Measured against the plan timed from the goal's acceptance (header stamp 0, as
+    joint_trajectory_controller reads it), not from the driver's hand-over after its checks and
+    mode switches (it ran about 0.1 s late): the joints lag it by the drive's response and a SYNC."""
+    from action_msgs.msg import GoalStatus
+
+    handle = send(rig, half_sine(30.0, 4.0))
+    assert handle.accepted
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.error_string
+    late = lag(rig, seconds(handle.stamp), 30.0, 4.0)
+    assert -0.02 < late < 0.06, late
+
+
+def test_a_plan_stamped_ahead_waits_then_tracks(rig: Rig) -> None:
+    """A header stamp 1 s after now: nothing moves before it, then the plan is tracked from it."""
+    from action_msgs.msg import GoalStatus
+
+    goal = half_sine(30.0, 2.0)
+    now = rig.assembly.node.get_clock().now().nanoseconds * 1e-9 + 1.0
+    goal.trajectory.header.stamp.sec, goal.trajectory.header.stamp.nanosec = int(now), int(now % 1 * 1e9)
+    handle = send(rig, goal)
+    assert handle.accepted
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.error_string
+    before = [m for m in rig.states if seconds(handle.stamp) < seconds(m.header.stamp) < now - 0.05]
+    assert len(before) > 20 and max(abs(math.degrees(p)) for m in before for p in m.position) < 0.2
+    late = lag(rig, now, 30.0, 2.0)
+    assert -0.02 < late < 0.06, late
 
 
 def test_a_cancelled_goal_leaves_the_joints_still(rig: Rig) -> None:
@@ -348,9 +401,20 @@ def test_a_replanned_goal_preempts_the_first_canceled_as_the_controller_does(rig
 
 def test_a_cancel_is_honoured_while_no_sample_comes(rig: Rig) -> None:
     """Every joint's TPDOs silenced mid-goal (heartbeats on), then a cancel: the goal ends CANCELED
-    while the drives are still silent (it waited for the data to come back)."""
+    while the drives are still silent (it waited for the data to come back). The group's waits
+    without a sample reach /diagnostics ("rovercan: follow arm_controller")."""
     from action_msgs.msg import GoalStatus
+    from diagnostic_msgs.msg import DiagnosticArray
 
+    from nodes.qos import DIAGNOSTICS_QOS
+
+    said: list[Any] = []
+    rig.client._node.create_subscription(
+        DiagnosticArray, "/diagnostics",
+        lambda a: said.extend(s for s in a.status if s.name == "rovercan: follow arm_controller"), DIAGNOSTICS_QOS)
+    wait_for(lambda: bool(said), HANG_S, "the group's status on /diagnostics")
+    assert {v.key: v.value for v in said[-1].values} == {"errors": "0", "late samples": said[-1].values[1].value,
+                                                          "silences": said[-1].values[2].value}
     feedback: list[Any] = []
     handle = send(rig, half_sine(30.0, 4.0), feedback)
     wait_for(lambda: bool(feedback) and feedback[-1].desired.time_from_start.sec >= 1, HANG_S, "the goal under way")
@@ -366,6 +430,59 @@ def test_a_cancel_is_honoured_while_no_sample_comes(rig: Rig) -> None:
     # a sample already on its way when they were silenced may have come; no more than that
     assert all(b - a <= 1 for a, b in zip(seq, silent, strict=True)), (seq, silent)
     assert done.status in (GoalStatus.STATUS_CANCELED, GoalStatus.STATUS_ABORTED), done.result.error_string
+    mark = len(said)
+    wait_for(lambda: len(said) > mark and int({v.key: v.value for v in said[-1].values}["silences"]) > 0, HANG_S,
+             "the silences counted on /diagnostics")
+
+
+def test_a_goal_whose_joints_fall_silent_ends_aborted_while_they_are_silent(rig: Rig) -> None:
+    """Every joint's TPDOs silenced mid-goal (heartbeats on), no cancel: the verdict says late once
+    their data is older than its staleness bound, and the goal ends ABORTED naming it, while the
+    drives are still silent (it waited for the data to come back)."""
+    from action_msgs.msg import GoalStatus
+
+    feedback: list[Any] = []
+    handle = send(rig, half_sine(30.0, 4.0), feedback)
+    wait_for(lambda: bool(feedback) and feedback[-1].desired.time_from_start.sec >= 1, HANG_S, "the goal under way")
+    for node in (1, 2):
+        apply_action(rig.sim, {"action": "tpdos", "node": node, "on": False})
+    seq = [d.cache.position_seq for d in rig.assembly.driver]
+    done = result_of(handle)
+    silent = [d.cache.position_seq for d in rig.assembly.driver]
+    for node in (1, 2):
+        apply_action(rig.sim, {"action": "tpdos", "node": node, "on": True})
+    assert all(b - a <= 1 for a, b in zip(seq, silent, strict=True)), (seq, silent)
+    assert done.status == GoalStatus.STATUS_ABORTED, done.result.error_string
+    assert done.result.error_code == FollowJointTrajectory.Result.PATH_TOLERANCE_VIOLATED
+    assert "late" in done.result.error_string and "joint" in done.result.error_string, done.result.error_string
+
+
+def test_a_jammed_joint_under_a_path_tolerance_ends_the_goal_and_the_joints_stand(rig: Rig) -> None:
+    """joint1's shaft blocked 1 s into a goal with a path tolerance of 0.05 rad: the goal ends
+    PATH_TOLERANCE_VIOLATED naming joint1, and both joints then stand (50 /joint_states in a row)."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.msg import JointTolerance
+
+    goal = half_sine(30.0, 4.0)
+    goal.path_tolerance = [JointTolerance(name=n, position=0.05) for n in ("joint1", "joint2")]
+    feedback: list[Any] = []
+    handle = send(rig, goal, feedback)
+    ended = handle.get_result_async()
+    wait_for(lambda: ended.done() or (bool(feedback) and feedback[-1].desired.time_from_start.sec >= 1), HANG_S,
+             "the goal under way")
+    assert not ended.done(), ended.result().result.error_string
+    apply_action(rig.sim, {"action": "load", "node": 1, "stall": True})
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_ABORTED, done.result.error_string
+    assert done.result.error_code == FollowJointTrajectory.Result.PATH_TOLERANCE_VIOLATED
+    assert "joint1" in done.result.error_string and "path tolerance" in done.result.error_string
+
+    def still() -> bool:
+        last = [(math.degrees(s.position[0]), math.degrees(s.position[1])) for s in rig.states[-50:]
+                if len(s.position) == 2]
+        return len(last) == 50 and all(max(c) - min(c) < 0.01 for c in zip(*last, strict=True))
+    wait_for(still, HANG_S, "both joints still")
+    apply_action(rig.sim, {"action": "load", "node": 1, "stall": False})
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])

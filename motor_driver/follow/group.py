@@ -4,11 +4,13 @@ control_msgs/FollowJointTrajectory, one :class:`TrajectoryGroup` per configured 
 :class:`TrajectoryGoal` and :class:`GoalRun` into results and feedback.
 
 Before anything moves (:meth:`TrajectoryGroup.plan`, on the caller's thread: :mod:`motor_driver.follow.checks`) a goal is refused with
-the standard's code (:class:`TrajectoryRejected`): joints unknown, repeated or of another group
-(INVALID_JOINTS); points of the wrong length, not finite, times not strictly increasing, a point or
-any sampled set-point beyond a joint's limits or its max velocity, a joint not armed or not fresh,
-a first point (at time 0) further than ``start_tolerance_deg`` from where its joint is
-(INVALID_GOAL); a header stamp whose trajectory is over already (OLD_HEADER_TIMESTAMP, the node's).
+the standard's code (:class:`TrajectoryRejected`): joints unknown, repeated, of another group or
+not all of the group's unless ``allow_partial_joints_goal`` (INVALID_JOINTS); points of the wrong
+length, not finite, times not strictly increasing, a point or any sampled set-point beyond a joint's
+limits or its max velocity, a tolerance negative other than -1, a joint not usable (its verdict) or
+its motion held, a first point (at time 0) further than ``start_tolerance_deg`` from both its joint's
+set-point and its measured position (INVALID_GOAL); a header stamp whose trajectory is over already
+(OLD_HEADER_TIMESTAMP, the node's).
 
 The clock: the group's thread (``rovercan-follow-<group>``) wakes on each position sample of one of
 its drives (:meth:`DriveCache.on_sample`, set by the receive thread: one a SYNC) and sends every
@@ -16,8 +18,10 @@ joint's next set-point then, a CSP (or IP) set-point through the drive's command
 (``stream_position``), so a stop still wins. The trajectory's time is the monotonic clock's, from
 the plan's time zero (:attr:`GoalRun.start_at`: its acceptance, or its header stamp), read at the
 sample's reception (its SYNC): the set-point sent is the spline at the next SYNC's time, where the
-drive takes it (:class:`motor_driver.drive.trajectory.Spline`); a SYNC the thread missed does not
-stretch the plan (the next set-point is the plan's at its own time). Whatever must happen before
+drive takes it (:class:`motor_driver.drive.trajectory.Spline`). Each set-point advances the plan by
+the SYNCs the receive thread counted and closes a share of the gap to the clock (:data:`CLOCK_GAIN`:
+a receive thread's jitter is no jump, a SYNC producer off its period no stretch); a SYNC the thread
+let go is caught up in the next set-point, never stretched. Whatever must happen before
 motion (the checks, each joint's switch to streaming) happens before the goal is handed over. A
 goal starts from where the group's set-points are at its first set-point (a preempted goal's or a
 ramp's, else the drive's last target) with that velocity, so a new goal joins the old without a
@@ -55,6 +59,7 @@ from can_config.errors import RovercanError
 from can_config.model import TrajectoryGroupConfig
 from motor_driver.drive import Drive
 from motor_driver.drive.trajectory import Knot, Spline
+from motor_driver.drive.verdict import judge
 from motor_driver.follow.checks import GoalChecks
 from motor_driver.follow.goal import (
     PREEMPTED,
@@ -77,9 +82,13 @@ LATE_SHARE = 0.5
 #: How long close() waits for the group's thread.
 JOIN_S = 2.0
 #: The most the plan's time advances from one set-point to the next, in SYNC periods: a SYNC missed
-#: is caught up at once (the plan is not stretched); after a host stalled for longer the plan goes on
-#: from there (stretched by the stall) rather than jump further than its joints may move in a step.
+#: is caught up at once; after a host stalled for longer the plan catches up at this pace rather than
+#: jump further than its joints may move in a step (the drive's guard: max velocity over two periods).
 CATCH_UP_PERIODS = 2
+#: How much of the gap between the SYNCs counted and the monotonic clock (the sample's reception) one
+#: set-point closes: the plan keeps the clock's time (a SYNC producer slower or faster than its period
+#: does not stretch it), while a receive thread's jitter moves a step by this share of it only.
+CLOCK_GAIN = 0.5
 #: The longest wait for a sample, in SYNC periods, before the group looks at its drives' verdicts
 #: (a silence): a goal whose joints fall silent ends within their staleness bound plus this.
 SILENCE_PERIODS = 2.0
@@ -93,7 +102,7 @@ class _Running:
     joints: tuple[Drive, ...]
     spline: Spline | None = None  # built at its first set-point, from where the set-points are then
     offset_s: float = 0.0  # the plan's time of the spline's start
-    anchor: tuple[object, int, float] = (None, 0, 0.0)  # (clock drive, its sample count, plan time then)
+    last: tuple[object, int] = (None, 0)  # the clock drive and its sample count at the last set-point
     last_t: float = 0.0  # the plan time of the last set-point
     final_sent: bool = False
     last_desired: tuple[tuple[float, float, float], ...] = ()
@@ -129,6 +138,16 @@ class TrajectoryGroup:
         self._thread.start()
 
     # ------------------------------------------------------------------ callers
+    @property
+    def alive(self) -> bool:
+        """The group's thread runs (it ends only on close)."""
+        return self._thread.is_alive()
+
+    @property
+    def busy(self) -> bool:
+        """A goal runs, waits to start, or its joints ramp down."""
+        return self._running is not None or self._pending is not None or bool(self._ramp)
+
     def counters(self) -> dict[str, int]:
         """The thread's background counts, for /diagnostics."""
         return {"errors": self.errors, "late samples": self.late, "silences": self.silences}
@@ -345,8 +364,9 @@ class TrajectoryGroup:
 
     @staticmethod
     def _unusable(drive: Drive) -> str | None:
-        """Why the joint may not be driven: its verdict (the one every part reads), else None."""
-        verdict = drive.snapshot().verdict
+        """Why the joint may not be driven: its verdict (the one every part reads, judged from the
+        drive's facts: a quarter of a snapshot's cost), else None."""
+        verdict = judge(drive.power.facts())
         return None if verdict.usable else f"{verdict.condition.value}: {verdict.cause}" + (
             f"; {verdict.helps}" if verdict.helps else "")
 
@@ -356,23 +376,19 @@ class TrajectoryGroup:
         zero), then the SYNCs counted by the clock's samples (one a SYNC, counted by the receive
         thread: a sample this thread let go still counts, a receive thread's jitter is no step)."""
         seq = clock.cache.position_seq
+        now = clock.cache.received.rx_monotonic + self.period_s - running.run.start_at
         if running.spline is None:
-            t = clock.cache.received.rx_monotonic + self.period_s - running.run.start_at
-            if t <= 0.0:
+            if now <= 0.0:
+                self._hold(running)
                 return  # stamped ahead: its joints hold (or ramp down) until then
-            self._join(running, t - self.period_s)
-            t = min(t, running.offset_s + CATCH_UP_PERIODS * self.period_s)
-            running.anchor = (clock, seq, t)
+            self._join(running, now - self.period_s)
+            t = min(now, running.offset_s + CATCH_UP_PERIODS * self.period_s)
         else:
-            drive, base_seq, base_t = running.anchor
-            if drive is not clock:  # the clock moved to another joint: counted from here on
-                running.anchor = (clock, seq - 1, running.last_t)
-                drive, base_seq, base_t = running.anchor
-            t = base_t + (seq - base_seq) * self.period_s
-            if t > running.last_t + CATCH_UP_PERIODS * self.period_s:  # a stalled host: no jump
-                t = running.last_t + CATCH_UP_PERIODS * self.period_s
-                running.anchor = (clock, seq, t)
-        running.last_t = t
+            drive, last_seq = running.last
+            counted = running.last_t + (seq - last_seq if drive is clock else 1) * self.period_s
+            t = counted + CLOCK_GAIN * (now - counted)
+            t = min(max(t, running.last_t), running.last_t + CATCH_UP_PERIODS * self.period_s)
+        running.last, running.last_t = (clock, seq), t
         spline = running.spline
         assert spline is not None
         local = t - running.offset_s
@@ -399,6 +415,17 @@ class TrajectoryGroup:
                 return
         running.last_desired = desired
 
+    def _hold(self, running: _Running) -> None:
+        """A goal waiting for its stamp: its joints not ramping down hold their set-point, one a SYNC."""
+        for drive, (p, _, _) in zip(running.joints, running.last_desired, strict=True):
+            if drive.name not in self._ramp:
+                try:
+                    drive.stream_position(p)
+                except RovercanError as err:
+                    self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"{drive.name}: set-point refused while the goal"
+                               f" waits for its start: {err}; the group stops")
+                    return
+
     def _join(self, running: _Running, now_s: float) -> None:
         """The goal's spline from where its joints' set-points are now (a preempted goal's or a ramp's,
         taken off the ramp), standing for the plan's time ``now_s`` (its first knot's time shortened
@@ -424,7 +451,9 @@ class TrajectoryGroup:
             if running.quiet[i] > drive.config.stale_after_syncs:
                 return (f"{drive.name}: no position sample for {running.quiet[i]} SYNCs (stale_after_syncs="
                         f"{drive.config.stale_after_syncs}) mid-goal; the group stops")
-            if (why := self._unusable(drive)) is not None:
+            # while set-points go out, each is refused with the verdict's cause by the drive's own
+            # check (stream_position: late, lost, not enabled); after the last one it is read here
+            if running.final_sent and (why := self._unusable(drive)) is not None:
                 return f"{drive.name}: {why} mid-goal; the group stops"
             if tol.position_deg > 0 and abs(ap - p) > tol.position_deg:
                 return (f"{drive.name}: {abs(ap - p):.3f} deg from the trajectory ({ap:.3f} deg, set-point {p:.3f});"
