@@ -89,7 +89,9 @@ def curve(seconds: float) -> dict[str, Any]:
     every = [p["cpu_us_per_drive_cycle"] for p in points]
     if every:  # runs the emulator did not carry too: what the machine gave, no verdict
         out["scaling_cost_spread_all_runs"] = round(max(every) / min(every) - 1, 2)
-    out.update(fit(points))
+    # the fit over the runs the emulator carried (as the spread): a run that measured refusals or a
+    # starved emulator is not a point of the driver's cost
+    out.update(fit([p for p in points if p["not_carried"] is None]))
     return out
 
 
@@ -115,19 +117,26 @@ def added_costs(points: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def fit(points: list[dict[str, Any]]) -> dict[str, Any]:
-    """CPU = fixed + per drive-cycle x drive-cycles/s, least squares over every run: the fixed cost
-    (fraction of a core) and the marginal one (us per drive-cycle) that CPU per drive-cycle mixes."""
-    if len(points) < 2:
-        return {}
+    """CPU = fixed + per drive-cycle x drive-cycles/s, least squares over ``points`` (the carried
+    runs): the fixed cost (fraction of a core) and the marginal one (us per drive-cycle) that CPU per
+    drive-cycle mixes, with the fit's R^2 and the runs it rests on. Fewer than three runs, or all
+    at one load: no fit (its verdicts then say "not measured")."""
     xs = [p["drives"] * p["hz"] for p in points]
+    if len(set(xs)) < 3:
+        return {"scaling_fit_runs": len(points)}
     ys = [p["cpu_core_fraction"] for p in points]
     mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
     slope = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sum((x - mx) ** 2 for x in xs)
-    return {"scaling_fixed_cpu_core_fraction": round(my - slope * mx, 3),
-            "scaling_marginal_us_per_drive_cycle": round(slope * 1e6, 1)}
+    fixed = my - slope * mx
+    residual = sum((y - fixed - slope * x) ** 2 for x, y in zip(xs, ys, strict=True))
+    spread = sum((y - my) ** 2 for y in ys)
+    return {"scaling_fixed_cpu_core_fraction": round(fixed, 3),
+            "scaling_marginal_us_per_drive_cycle": round(slope * 1e6, 1),
+            "scaling_fit_r2": round(1.0 - residual / spread, 3) if spread > 0 else 0.0, "scaling_fit_runs": len(points)}
 
 
 def table(out: dict[str, Any]) -> str:
+    """The runs, then the fit: CPU = fixed + cost per drive-cycle x drive-cycles/s, with its R^2."""
     lines = ["| drives | Hz | bus load | CPU (core) | CPU per drive-cycle, us | per added drive-cycle, us |"
              " command p99, ms | SYNC p99, us | TPDO loss | carried |", "|---|---|---|---|---|---|---|---|---|---|"]
     for p in out["scaling_curve"]:
@@ -135,6 +144,11 @@ def table(out: dict[str, Any]) -> str:
                      f" {p['cpu_us_per_drive_cycle']} | {p.get('added_us_per_drive_cycle', '')} |"
                      f" {p['cmd_latency_p99_ms']} | {p['sync_jitter_p99_us']} | {p['tpdo_loss']} |"
                      f" {p['not_carried'] or 'yes'} |")
+    if "scaling_fit_r2" in out:
+        lines += ["", "| fit: fixed cost (core) | fit: cost per drive-cycle, us | R^2 | carried runs |",
+                  "|---|---|---|---|",
+                  f"| {out['scaling_fixed_cpu_core_fraction']} | {out['scaling_marginal_us_per_drive_cycle']} |"
+                  f" {out['scaling_fit_r2']} | {out['scaling_fit_runs']} |"]
     return "\n".join(lines)
 
 
@@ -187,7 +201,8 @@ def main() -> int:
     print(f"\nscaling_cost_spread: {out.get('scaling_cost_spread')} (all runs: {out.get('scaling_cost_spread_all_runs')});"
           f" scaling_added_cost_spread: {out.get('scaling_added_cost_spread')};"
           f" fixed {out.get('scaling_fixed_cpu_core_fraction')} of a core + {out.get('scaling_marginal_us_per_drive_cycle')}"
-          f" us per drive-cycle; dropped (over one bus): {out['scaling_dropped']}; failed: {out['scaling_failed']}")
+          f" us per drive-cycle (R^2 {out.get('scaling_fit_r2')}); dropped (over one bus): {out['scaling_dropped']};"
+          f" failed: {out['scaling_failed']}")
     return verdicts.exit_status(rows, {f"{p['drives']} drives at {p['hz']:g} Hz": "failed" for p in out["scaling_failed"]})
 
 

@@ -23,13 +23,18 @@ class InvalidBaseline(RuntimeError):
 #: figure -> (comparison, bound)
 TARGETS: dict[str, tuple[str, float]] = {
     "cmd_latency_p99_ms": ("<=", 2.0), "cmd_latency_ratio": ("<=", 1.3), "tpdo_loss": ("==", 0),
-    "cpu_ratio_canopen": ("<=", 2.5), "sync_jitter_p99_us": ("<=", 200), "boot_6_drives_s": ("<=", 1.0),
+    # issue 72: the shipped rover at most 1.5x the canopen library's CPU for the same work, six
+    # drives at 500 Hz at most 1.2x; the scaling fit at most 80 us per drive-cycle and 0.08 of a
+    # core fixed, the fit's R^2 at least 0.9 (scaling.py)
+    "cpu_ratio_canopen": ("<=", 1.5), "sync_jitter_p99_us": ("<=", 200), "boot_6_drives_s": ("<=", 1.0),
     "sdo_rtt_p99_ms": ("<=", 5.0), "emulator_fps_socketcand": (">=", 9009), "emulator_fps_inprocess": (">=", 90_000),
     "rss_mb": ("<=", 150), "host_heartbeat_gap_max_ms": ("<", 150), "server_rss_growth_mb": ("<=", 10),
     "cyclic_sync_error_p99_ms": ("<", 1.0), "cyclic_sync_arrival_error_p99_ms": ("<", 1.0),
-    "bus_limit_tpdo_loss": ("==", 0), "bus_limit_cpu_ratio_canopen": ("<=", 2.0),
+    "bus_limit_tpdo_loss": ("==", 0), "bus_limit_cpu_ratio_canopen": ("<=", 1.2),
     "bus_limit_cmd_latency_p99_ms": ("<=", 2.0), "bus_limit_sync_jitter_p99_us": ("<=", 200),
     "scaling_cost_spread": ("<=", 0.2), "scaling_added_cost_spread": ("<=", 0.2),
+    "scaling_marginal_us_per_drive_cycle": ("<=", 80.0), "scaling_fixed_cpu_core_fraction": ("<=", 0.08),
+    "scaling_fit_r2": (">=", 0.9),
     # a drive that faulted or stopped itself during a stack run (its EMCY): never excused as the machine's
     "drive_stops": ("==", 0), "bus_limit_drive_stops": ("==", 0),
     # reference only: absolute figures of this machine (their ratios above are the verdicts)

@@ -11,6 +11,7 @@ import time
 import can
 import canopen
 import pytest
+from can.interfaces.socketcand.socketcand import convert_ascii_message_to_can_message
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -21,6 +22,7 @@ from motor_driver.bus.adapters import (
     GuardedNetwork,
     connection_closed,
     hold_lone_sync,
+    parse_frames,
     queue_full,
 )
 from motor_driver.bus.connect import open_bus
@@ -211,3 +213,36 @@ def test_a_held_sync_waits_for_the_next_frame_and_a_frame_with_data_never_waits(
         sim.close()
     assert not hold_lone_sync(bus, False)  # closed: nothing to do, no error
     assert not hold_lone_sync(can.Bus(interface="virtual", channel="pin"), True)  # other interfaces
+
+
+FRAMES = st.lists(st.builds(lambda i, ext, data, t: can.Message(arbitration_id=i, is_extended_id=ext, data=data, timestamp=t),
+                            st.integers(0, 0x7FF), st.booleans(), st.binary(max_size=8),
+                            st.floats(1_000_000_000, 9_999_999_999)), min_size=1, max_size=12)
+
+
+@given(FRAMES, st.lists(st.integers(0, 600), max_size=6), st.booleans())
+def test_a_batch_read_parses_what_python_can_parses_whatever_the_reads_cut(frames: list[can.Message], cuts: list[int],
+                                                                           noise: bool) -> None:
+    """batch_receive's one-pass parser against python-can's own converter (the reference): the
+    server's text of any frames, cut into reads anywhere, gives the same frames in order (id,
+    standard or extended, stamp, data); an ``< ok >`` between them is skipped."""
+    texts = [format_frame(m) for m in frames]
+    stream = ("< ok >" if noise else "").join(texts)
+    expected = [convert_ascii_message_to_can_message(t) for t in texts]
+    got: list[can.Message] = []
+    rest, start = "", 0
+    for cut in [*sorted(c for c in cuts if c < len(stream)), len(stream)]:
+        parsed, rest = parse_frames(rest + stream[start:cut], "can0")
+        got += parsed
+        start = max(start, cut)
+    assert rest == ""
+    assert [(m.arbitration_id, m.is_extended_id, m.timestamp, bytes(m.data), m.dlc, m.channel) for m in got] == \
+        [(m.arbitration_id, m.is_extended_id, m.timestamp, bytes(m.data), m.dlc, "can0") for m in expected]
+
+
+def test_an_error_frame_is_read_as_python_can_reads_it() -> None:
+    text = "< error 20000080 1700000000.250000 >"
+    (got,), rest = parse_frames(text, "can0")
+    want = convert_ascii_message_to_can_message(text)
+    assert rest == "" and got.is_error_frame and want.is_error_frame
+    assert (got.arbitration_id, got.timestamp, bytes(got.data)) == (want.arbitration_id, want.timestamp, bytes(want.data))

@@ -165,3 +165,28 @@ def test_the_harness_runs_ahead_of_other_load_and_its_children_with_it() -> None
     assert harness == ["-10", "10"], out.stderr[-2000:]
     assert child == ["-10", str(os.SCHED_FIFO), "10"], out.stderr[-2000:]
     assert measured == ["0", str(os.SCHED_OTHER), "0"], out.stderr[-2000:]
+
+
+def test_the_scaling_fit_rests_on_the_carried_runs_and_says_its_r2() -> None:
+    """issue 72: the fit's fixed cost, cost per drive-cycle and R^2 are gated; a run the emulator
+    did not carry is no point of the line (it measured refusals or a starved emulator)."""
+    from scaling import fit
+
+    line = [{"drives": d, "hz": hz, "cpu_core_fraction": 0.05 + 60e-6 * d * hz, "not_carried": None}
+            for d, hz in ((1, 100.0), (3, 100.0), (6, 250.0), (6, 500.0))]
+    figures = fit(line)
+    assert figures["scaling_fixed_cpu_core_fraction"] == 0.05 and figures["scaling_marginal_us_per_drive_cycle"] == 60.0
+    assert figures["scaling_fit_r2"] == 1.0 and figures["scaling_fit_runs"] == 4
+    rows = {r.figure: r.verdict for r in verdicts(figures)}
+    assert rows["scaling_marginal_us_per_drive_cycle"] == rows["scaling_fixed_cpu_core_fraction"] == "pass"
+    assert rows["scaling_fit_r2"] == "pass"
+    bent = [*line, {"drives": 12, "hz": 250.0, "cpu_core_fraction": 2.0, "not_carried": None}]
+    assert fit(bent)["scaling_fit_r2"] < 0.9
+    assert verdict("scaling_fit_r2", fit(bent)).verdict == "MISSED"
+    assert "scaling_fit_r2" not in fit(line[:2])  # two runs: no line to judge
+
+
+def test_the_cpu_ratios_are_gated_at_issue_72s_bounds() -> None:
+    assert verdict("bus_limit_cpu_ratio_canopen", {"bus_limit_cpu_ratio_canopen": 1.2}).verdict == "pass"
+    assert verdict("bus_limit_cpu_ratio_canopen", {"bus_limit_cpu_ratio_canopen": 1.3}).verdict == "MISSED"
+    assert verdict("cpu_ratio_canopen", {"cpu_ratio_canopen": 1.6}).verdict == "MISSED"

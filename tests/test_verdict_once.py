@@ -110,3 +110,27 @@ def test_the_verdict_is_judged_again_only_when_an_input_changes() -> None:
     c.on_tpdo(0x181, bytearray(b"\x40\x06\x08"), 1.01)  # the drive left Operation Enabled
     assert c.verdict(ARMED).condition is Condition.STOPPED_ITSELF
     assert c.verdict(("", False, "disarm", "", 1)).condition is Condition.NOT_ARMED  # the channel's input changed
+
+
+def _usable_state(**changes: object) -> DriveState:
+    state = DriveState(name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=ENABLED,
+                       state=State.OPERATION_ENABLED, mode=8, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
+                       error_code=0, error_text="", stamp=0.0, heartbeat_age_s=0.01, target_reached=False,
+                       data_age_s=0.01)
+    return dataclasses.replace(state, **changes)  # type: ignore[arg-type]
+
+
+def test_health_grades_a_drive_by_its_verdict_not_by_flags_of_its_own() -> None:
+    """drive/health.py had its own rules for a drive: "bus lost" from the bus's flag and "heartbeat
+    late" from the heartbeat's age, whatever the verdict said. A usable verdict is OK; a lost one is
+    the verdict's ERROR with its cause (fails on b9f6386: ERROR "bus lost", WARN "heartbeat late")."""
+    from motor_driver.drive.health import ERROR, OK, drive_health
+
+    usable = _usable_state(heartbeat_age_s=0.5)  # an old heartbeat the verdict does not count as lost
+    assert usable.verdict.usable
+    graded = drive_health(usable, heartbeat_period_s=0.1, bus_lost=True)
+    assert graded.level == OK, graded
+    assert graded.values["bus"] == "lost" and graded.values["heartbeat_age_s"] == "0.500"
+    lost = _usable_state(lost=True)  # the verdict says lost: graded so, with its cause
+    graded = drive_health(lost, heartbeat_period_s=0.1)
+    assert graded.level == ERROR and graded.message.startswith(lost.verdict.cause), graded

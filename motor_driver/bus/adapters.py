@@ -8,6 +8,9 @@ that changes the behaviour fails there, loudly, instead of in the field:
   peek at its socket (a name-mangled private attribute) tells.
 - :func:`hold_lone_sync`: the same socket's receive low-water mark, so that the echo of the
   driver's own SYNC, alone, does not wake the bus's receive thread.
+- :func:`batch_receive`: the same client's receive, read from its socket by this driver: every
+  frame of one read parsed in one pass (:func:`parse_frames`), without python-can's per-read debug
+  text and its warning for each frame a read cut in two.
 - :class:`GuardedNetwork`: canopen's ``Network.notify`` stops the receive thread when one
   callback raises; this override isolates each callback (its loop mirrors canopen's). Its
   listener also drops 29-bit frames, which canopen would dispatch by their low bits.
@@ -22,8 +25,10 @@ from __future__ import annotations
 
 import errno
 import logging
+import select
 import socket
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -78,6 +83,76 @@ def pause_when_closed(bus: can.BusABC) -> can.BusABC:
         return msg, filtered
 
     bus._recv_internal = recv_internal  # type: ignore[method-assign]  # this one bus, as python-can keeps it
+    return bus
+
+
+#: python-can's socketcand client keeps what it parsed and not yet returned, and the text not yet parsed, here
+SOCKETCAND_BUFFERS = ("_SocketCanDaemonBus__message_buffer", "_SocketCanDaemonBus__receive_buffer")
+SOCKETCAND_TCP_TUNE = "_SocketCanDaemonBus__tcp_tune"
+#: one read of the socket takes at most this much (a SYNC period's frames of three buses fit)
+RECEIVE_CHUNK_BYTES = 65536
+
+
+def parse_frames(text: str, channel: str | int | None) -> tuple[list[can.Message], str]:
+    """The frames of socketcand's rawmode text (``< frame ID SECONDS.MICROS DATA >``; ``< error
+    ID SECONDS.MICROS ... >`` an error frame, as python-can reads it) in one pass, and the text
+    after the last complete one (a frame a read cut in two). Other messages (``< ok >``) are
+    skipped. The same fields as python-can's ``convert_ascii_message_to_can_message``."""
+    out: list[can.Message] = []
+    end = 0
+    while (start := text.find("<", end)) != -1:
+        close = text.find(">", start)
+        if close == -1:
+            return out, text[start:] if len(text) - start <= 200 else ""  # python-can drops a longer one too
+        body = text[start + 1:close].split()
+        end = close + 1
+        if len(body) < 3 or body[0] not in ("frame", "error"):
+            continue
+        ident, stamp = body[1], float(body[2])
+        if body[0] == "frame":
+            data = bytearray.fromhex(body[3]) if len(body) > 3 else bytearray()
+            out.append(can.Message(timestamp=stamp, arbitration_id=int(ident, 16), data=data, dlc=len(data),
+                                   is_extended_id=len(ident) != 3, is_rx=True, channel=channel))
+        else:
+            out.append(can.Message(timestamp=stamp, arbitration_id=int(ident, 16) & 0x1FFFFFFF, is_error_frame=True,
+                                   data=bytearray(1), dlc=1, is_extended_id=True, is_rx=True, channel=channel))
+    return out, ""
+
+
+def batch_receive(bus: can.BusABC) -> can.BusABC:
+    """A socketcand bus whose receive reads its socket itself: one ``select`` and one read take
+    whatever has come (a SYNC period's frames), parsed in one pass (:func:`parse_frames`); the
+    next calls return them in order without touching the socket. python-can's own receive did
+    the same work with a debug line formatted per read and a WARNING logged for every frame a
+    read cut in two (the bus's receive thread's largest cost after the parsing itself,
+    docs/performance.md). The end of the stream is 'no frame', as python-can reads it
+    (:func:`connection_closed` tells). Other interfaces are left as they are. Returns ``bus``."""
+    sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
+    if not isinstance(sock, socket.socket):
+        return bus
+    parsed, unparsed = (getattr(bus, name) for name in SOCKETCAND_BUFFERS)
+    frames: deque[can.Message] = deque(parsed)  # what python-can parsed already (its handshake's read)
+    rest = [str(unparsed)]
+    quickack = bool(getattr(bus, SOCKETCAND_TCP_TUNE, False))
+    channel = getattr(bus, "channel", None)  # python-can's socketcand client sets it; BusABC does not declare it
+
+    def recv_internal(timeout: float | None) -> tuple[can.Message | None, bool]:
+        if frames:
+            return frames.popleft(), False
+        try:
+            ready, _, _ = select.select([sock], [], [], timeout)
+            if not ready:
+                return None, False
+            chunk = sock.recv(RECEIVE_CHUNK_BYTES)
+            if quickack:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_QUICKACK, 1)
+        except OSError as err:  # the interface went away: the notifier's error (ReceiveErrors, the supervisor)
+            raise can.CanOperationError(f"Failed to receive: {err}") from err
+        got, rest[0] = parse_frames(rest[0] + chunk.decode("ascii", "replace"), channel)
+        frames.extend(got)
+        return (frames.popleft() if frames else None), False
+
+    bus._recv_internal = recv_internal  # type: ignore[method-assign]  # this one bus, as pause_when_closed does
     return bus
 
 
@@ -213,6 +288,12 @@ class GuardedNetwork(canopen.Network):
         #: the frames given up on after TX_QUEUE_FULL_RETRY_S
         self.tx_queue_full = 0
         self.tx_queue_dropped = 0
+
+    def listen_with(self, listener: can.Listener) -> None:
+        """Before :meth:`connect`: ``listener`` is the receive thread's one listener, in place of
+        canopen's and the 11-bit filter (it dispatches the 11-bit frames to :meth:`notify` itself:
+        motor_driver.bus.handle.FrameDispatch)."""
+        self.listeners = [listener]
 
     def count_queue_full(self) -> None:
         """A send refused with ENOBUFS that was not retried (the host heartbeat's)."""

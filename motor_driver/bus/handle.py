@@ -32,7 +32,7 @@ from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
-from motor_driver.bus.adapters import GuardedNetwork, ReceiveErrors, hold_lone_sync, queue_full
+from motor_driver.bus.adapters import GuardedNetwork, hold_lone_sync, queue_full
 from motor_driver.bus.connect import is_kernel_bus
 from motor_driver.bus.cyclic import DaemonCyclicTask
 from motor_driver.bus.traffic import BusStats, ForeignTraffic
@@ -67,6 +67,37 @@ class FrameRecorder(Protocol):
     def record_frame(self, bus: str, can_id: int, data: bytes | bytearray, remote: bool = False) -> None: ...
 
 
+class FrameDispatch(can.Listener):  # type: ignore[misc]
+    """The one listener of the bus's receive thread: each frame dispatched to the drives'
+    callbacks (an 11-bit data frame: canopen would dispatch an extended one by its low bits),
+    counted, looked at for another master and handed to the flight recorder, in that order, in
+    one call. python-can's Notifier called five listeners a frame, each through
+    ``Listener.__call__``, and the dispatch went through canopen's listener and an 11-bit filter in
+    front of it (docs/performance.md: a third of the receive thread's own time). A receive error
+    is the counters' (:meth:`BusStats.on_error`: noted for the supervisor, paused)."""
+
+    def __init__(self, network: GuardedNetwork, stats: BusStats, foreign: ForeignTraffic,
+                 tap: can.Listener | None = None) -> None:
+        self._notify, self._stats, self._foreign = network.notify, stats.on_message_received, foreign.on_message_received
+        self._tap = tap.on_message_received if tap is not None else None
+        self._on_error = stats.on_error
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if not (msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame):
+            self._notify(msg.arbitration_id, msg.data, msg.timestamp)
+        self._stats(msg)
+        self._foreign(msg)
+        if (tap := self._tap) is not None:
+            tap(msg)
+
+    def on_error(self, exc: Exception) -> None:
+        logger.debug("receive failed: %s", brief_error(exc))
+        self._on_error(exc)
+
+    def stop(self, *args: object) -> None:
+        pass
+
+
 class BusHandle:
     """One bus with its canopen network and SYNC task."""
 
@@ -82,10 +113,11 @@ class BusHandle:
         self.stats = BusStats(bitrate)
         self.foreign = foreign or ForeignTraffic(0, ())
         self.foreign.set_marks_local_frames(is_kernel_bus(bus))
-        # ReceiveErrors keeps a receive error quiet (the supervisor says the loss)
-        listeners: tuple[can.Listener, ...] = (self.stats, self.foreign, ReceiveErrors())
-        self.network = GuardedNetwork(bus, listeners + ((recorder.listener(name),) if recorder is not None else ()),
-                                      functools.partial(recorder.record_frame, name) if recorder is not None else None)
+        self.network = GuardedNetwork(bus, (), functools.partial(recorder.record_frame, name)
+                                      if recorder is not None else None)
+        # one listener does it all (its on_error keeps a receive error quiet: the supervisor says the loss)
+        self.network.listen_with(FrameDispatch(self.network, self.stats, self.foreign,
+                                               recorder.listener(name) if recorder is not None else None))
         self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         self.network.connect()  # its receive thread takes this thread's scheduling: module docstring
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | DaemonCyclicTask | None = None
