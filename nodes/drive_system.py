@@ -12,9 +12,13 @@ What it publishes is what was measured: /odom integrates each usable wheel's own
 deltas (:mod:`motor_driver.rover.odometry`), never a command or a velocity times a tick; a side with no
 trusted wheel stops the integration (pose kept, twist zero, every variance 1e6) and
 /diagnostics says why; the pose variances grow with the travel estimated rather than measured.
-/tf states only measured poses: while the odometry is not trusted no transform is sent (none
-stamped later than the last trusted step). Every refusal names the real cause and what helps
-(:mod:`nodes.wheels`).
+/odom and /tf are stamped when the wheels measured the pose (the odometry's common instant of both
+sides' samples, each bus's own receive times paired: :mod:`motor_driver.rover.odometry`), and sent
+with a measured covariance only for a step both sides measured: while a side's data is late (within
+its staleness bound) nothing is sent, and once that side is not trusted (its bus dead, its wheels
+late, lost or stopped) /odom carries the last trusted pose with every variance 1e6, stamped now,
+and /tf nothing: no transform is stamped later than the last trusted step, however long it lasts.
+Every refusal names the real cause and what helps (:mod:`nodes.wheels`).
 
 Owner: the executor thread that runs its tick (the driver node's state timer, or its own),
 which alone touches the ramp, the odometry and the wheels-out book; a wheel left out is told to
@@ -112,6 +116,7 @@ class DriveSystemNode(Node):
         self.active = False  # commanding the wheels (fresh /cmd_vel or ramping down after it)
         self.halted = ""  # why every wheel was stopped, until a fresh /cmd_vel drives again
         self.last_odometry = OdometryStep(self.odometry.pose, Twist2D(), False, "odometry: no wheel sampled yet")
+        self._stamp_sent = 0.0  # the newest /odom stamp sent (wall clock, s)
         self._stopper = ThreadPoolExecutor(1, thread_name_prefix="drive_system-stop")
         self._stops: dict[str, Future[None]] = {}
         self._stop_retry_at: dict[str, float] = {}  # a failed stop's next try (the tick's)
@@ -328,8 +333,15 @@ class DriveSystemNode(Node):
         self.last_odometry = step
         if was != step.trusted:
             self.publish_diagnostics()
-        stamp = max((s.stamp for s in states.values() if s.stamp), default=0.0) if step.trusted else 0.0
-        self._publish_odom(step, stamp or time.time())
+        if not step.trusted:  # the last trusted pose, said to be unknown now (stamped now: it is no measurement)
+            stamp = time.time()
+        elif step.measured_at:  # a step measured on both sides: stamped when they measured it
+            stamp = step.measured_at + time.time() - time.monotonic()
+        else:  # trusted, but nothing measured on both sides since the last step (a side's PDO late,
+            return  # within its staleness bound): nothing is said as measured, nor repeated
+        if stamp > self._stamp_sent:  # /odom's and /tf's stamps only ever grow
+            self._stamp_sent = stamp
+            self._publish_odom(step, stamp)
 
     def _publish_odom(self, step: OdometryStep, stamp: float) -> None:
         pose, twist = step.pose, step.twist

@@ -68,7 +68,7 @@ def odometry_sample(state: DriveState, pdo_period_s: float, *, driven: bool = Tr
     return WheelSample(math.radians(state.angle_deg), state.rx_monotonic, state.reference, trusted and
                        bool(state.rx_monotonic), why or ("" if state.rx_monotonic else "no position yet"),
                        forget=forget, silent=not forget and not trusted and verdict.condition is not Condition.LATE,
-                       velocity_rad_s=math.radians(state.velocity_deg_s))
+                       velocity_rad_s=math.radians(state.velocity_deg_s), bus_stamp=state.stamp)
 
 
 def odometry_samples(states: Mapping[str, DriveState], sides: Iterable[Sequence[str]],
