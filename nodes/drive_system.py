@@ -12,9 +12,13 @@ What it publishes is what was measured: /odom integrates each usable wheel's own
 deltas (:mod:`motor_driver.rover.odometry`), never a command or a velocity times a tick; a side with no
 trusted wheel stops the integration (pose kept, twist zero, every variance 1e6) and
 /diagnostics says why; the pose variances grow with the travel estimated rather than measured.
-/tf states only measured poses: while the odometry is not trusted no transform is sent (none
-stamped later than the last trusted step). Every refusal names the real cause and what helps
-(:mod:`nodes.wheels`).
+/odom and /tf are stamped when the wheels measured the pose (the odometry's common instant of both
+sides' samples, each bus's own receive times paired: :mod:`motor_driver.rover.odometry`), and sent
+with a measured covariance only for a step both sides measured: while a side's data is late (within
+its staleness bound) nothing is sent, and once that side is not trusted (its bus dead, its wheels
+late, lost or stopped) /odom carries the last trusted pose with every variance 1e6, stamped now,
+and /tf nothing: no transform is stamped later than the last trusted step, however long it lasts.
+Every refusal names the real cause and what helps (:mod:`nodes.wheels`).
 
 Owner: the executor thread that runs its tick (the driver node's state timer, or its own),
 which alone touches the ramp, the odometry and the wheels-out book; a wheel left out is told to
@@ -48,7 +52,7 @@ from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive import DriveState
 from motor_driver.drive.health import ERROR, OK, WARN
-from motor_driver.drive.verdict import UNREACHABLE
+from motor_driver.drive.verdict import UNREACHABLE, Condition
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.rover.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
@@ -57,7 +61,7 @@ from nodes.handoff import Handoff
 from nodes.messages import stamp_header
 from nodes.params import declare, qos_depth
 from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
-from nodes.refusals import WARN_THROTTLE_S, RefusalLog
+from nodes.refusals import RefusalLog
 from nodes.wheels import WheelsOut, odometry_samples, out_verdict, problems
 
 if TYPE_CHECKING:
@@ -112,11 +116,15 @@ class DriveSystemNode(Node):
         self.active = False  # commanding the wheels (fresh /cmd_vel or ramping down after it)
         self.halted = ""  # why every wheel was stopped, until a fresh /cmd_vel drives again
         self.last_odometry = OdometryStep(self.odometry.pose, Twist2D(), False, "odometry: no wheel sampled yet")
+        self._stamp_sent = 0.0  # the newest /odom stamp sent (wall clock, s)
         self._stopper = ThreadPoolExecutor(1, thread_name_prefix="drive_system-stop")
         self._stops: dict[str, Future[None]] = {}
         self._stop_retry_at: dict[str, float] = {}  # a failed stop's next try (the tick's)
         self.stop_failing: dict[str, str] = {}  # a wheel whose last stop failed, and why (the tick's)
         self.stop_failures = 0  # stops that failed so far (the tick's)
+        self.tick_failures = 0  # ticks that raised so far (the tick's; /diagnostics says them)
+        self._tick_errors: set[type[BaseException]] = set()  # kinds of tick failure whose trace was logged
+        self.held = ""  # why motion is held, from the wheels' verdicts (the lifecycle node inactive), "" not
         self._stop_log = RateLimitedLog(logger)
         self._odom_frame = str(self.get_parameter("odom_frame").value)
         self._base_frame = str(self.get_parameter("base_frame").value)
@@ -170,6 +178,7 @@ class DriveSystemNode(Node):
             dt = min(now - self._last_tick, 0.5)
             self._last_tick = now
             states = {d.name: d.snapshot() for d in self.wheels}
+            self.held = next((s.verdict.helps for s in states.values() if s.verdict.condition is Condition.HELD), "")
             if self.wheels_out is not None:
                 self._book_wheels_out(states, now)
                 states = {n: self._judged(s) for n, s in states.items()}
@@ -179,7 +188,13 @@ class DriveSystemNode(Node):
             if self._ticks % self._diag_every == 0:
                 self.publish_diagnostics()
         except Exception as err:
-            self.get_logger().error(f"drive system tick failed: {err!r}", throttle_duration_sec=WARN_THROTTLE_S)
+            self.tick_failures += 1
+            if type(err) not in self._tick_errors:  # its trace once; then at most a line a period
+                self._tick_errors.add(type(err))
+                logger.exception("drive system tick failed (%d so far); the next tick tries again", self.tick_failures)
+            else:
+                self._stop_log.log(logging.ERROR, ("tick", type(err)), "drive system tick failed (%d so far): %r",
+                                   self.tick_failures, err)
 
     def _control(self, states: dict[str, DriveState], now: float, dt: float) -> None:
         late = self._refused_on_workers()
@@ -189,9 +204,8 @@ class DriveSystemNode(Node):
             return
         self.cmd_timed_out = now - self._last_cmd > self.system.cmd_timeout_s
         if not self.cmd_timed_out:
-            held = next((d.channel.held for d in self.wheels if d.channel.held), "")
-            if held:  # the drives' own verdict (the lifecycle node inactive): said as it is, not as "not armed"
-                self._halt(f"/cmd_vel not applied: {held}; nothing was sent")
+            if self.held:  # the drives' own verdict (the lifecycle node inactive): said as it is, not as "not armed"
+                self._halt(f"/cmd_vel not applied: {self.held}; nothing was sent", diagnose=False)
                 return
             side = self.wheels_out.empty_side() if self.wheels_out is not None else ""
             if side:
@@ -299,11 +313,12 @@ class DriveSystemNode(Node):
                 self._stop_log.log(logging.ERROR, (name, type(err)), "drive system: %s left out, its quick stop"
                                    " failed unexpectedly (%s); tried again", name, self.stop_failing[name])
 
-    def _halt(self, reason: str) -> None:
+    def _halt(self, reason: str, diagnose: bool = True) -> None:
         """Stop every wheel that still runs and forget the ramp, so that nothing (a stale
         ramp-down, a recovered wheel) brings them back without a fresh /cmd_vel. The command
         that was refused is spent: only one received after this drives again (it was driving all
-        six for a moment when the wheel came back within its timeout)."""
+        six for a moment when the wheel came back within its timeout). ``diagnose``: /diagnostics
+        says the stop until a command drives again (False: motion held, said as "inactive")."""
         self.steer.halt()
         self._last_cmd = -math.inf
         self.cmd_timed_out = True
@@ -315,7 +330,7 @@ class DriveSystemNode(Node):
                     except RovercanError:
                         pass  # that wheel cannot move anyway
         self.active = False
-        if self.halted != reason:
+        if diagnose and self.halted != reason:
             self.halted = reason
             self.publish_diagnostics()
         self.refusals.refuse("drive_system", reason)
@@ -328,8 +343,15 @@ class DriveSystemNode(Node):
         self.last_odometry = step
         if was != step.trusted:
             self.publish_diagnostics()
-        stamp = max((s.stamp for s in states.values() if s.stamp), default=0.0) if step.trusted else 0.0
-        self._publish_odom(step, stamp or time.time())
+        if not step.trusted:  # the last trusted pose, said to be unknown now (stamped now: it is no measurement)
+            stamp = time.time()
+        elif step.measured_at:  # a step measured on both sides: stamped when they measured it
+            stamp = step.measured_at + time.time() - time.monotonic()
+        else:  # trusted, but nothing measured on both sides since the last step (a side's PDO late,
+            return  # within its staleness bound): nothing is said as measured, nor repeated
+        if stamp > self._stamp_sent:  # /odom's and /tf's stamps only ever grow
+            self._stamp_sent = stamp
+            self._publish_odom(step, stamp)
 
     def _publish_odom(self, step: OdometryStep, stamp: float) -> None:
         pose, twist = step.pose, step.twist
@@ -366,10 +388,13 @@ class DriveSystemNode(Node):
         odom = self.last_odometry
         values = {"on_wheel_loss": self.system.on_wheel_loss, "odometry": "integrating" if odom.trusted else
                   odom.why_not, "wheels_out": self.wheels_out.summary() if self.wheels_out else "", "driving": str(self.active),
-                  "stop_failures": str(self.stop_failures)}
+                  "stop_failures": str(self.stop_failures), "tick_failures": str(self.tick_failures)}
         if self.stop_failing:
             return ERROR, "a wheel's stop failed, tried again: " + "; ".join(
                 f"{name} ({why})" for name, why in self.stop_failing.items()), values
+        if self.held:  # deliberately inactive (a lifecycle node): a state, not a failure
+            values["held"] = self.held
+            return OK, "inactive", values
         if self.halted:
             return ERROR, f"stopped: {self.halted}" + ("" if odom.trusted else f"; {odom.why_not}"), values
         if self.wheels_out is not None and self.wheels_out.out:

@@ -10,6 +10,14 @@ or a lifecycle manager brings the rover up in order. Each transition is confirme
   cleanup     the ROS interface goes, the driver closes: the bus is released
   shutdown    from any state: as deactivate and cleanup
 
+Each transition is logged at INFO with what was done to the drives ("configured: 6 drive(s)
+booted, not enabled; ...", "active: motion taken; no drive enabled: call /arm ...", "inactive:
+motion held; 6 drive(s) quick-stopped if enabled ...", "cleaned up: ...", "shut down from
+active: ..."); a failed one at ERROR with why. Once active, motion is no longer held: a drive
+not enabled is "not armed" (its verdict, :mod:`motor_driver.drive.verdict`), and a refusal and
+/diagnostics say that and what helps (/arm, or launch with arm:=true); the drive system's
+/diagnostics says "inactive" at level OK while the node is inactive.
+
 Motion held (unconfigured there is no driver at all; inactive, the driver's
 :meth:`~motor_driver.MotorDriver.hold_motion`): every drive's command channel, the one way a
 controlword or a set-point leaves, refuses every motion entry (/arm, <joint>/enable, recover,
@@ -89,7 +97,7 @@ class DriveLifecycleNode(LifecycleNode):
             self.get_logger().error(f"configure failed: {err}")
             self.release()
             return TransitionCallbackReturn.FAILURE
-        self.get_logger().info(f"configured: {len(driver.drives)} drive(s) booted, not enabled")
+        self.get_logger().info(f"configured: {len(driver.drives)} drive(s) booted, not enabled; motion held until activate")
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
@@ -105,9 +113,10 @@ class DriveLifecycleNode(LifecycleNode):
             assembly.driver.hold_motion(self.inactive)
             assembly.stop_drives()
             return TransitionCallbackReturn.FAILURE
-        self.get_logger().info("active: " + ("every drive armed" if asked is None else
-                                             f"{', '.join(asked)} armed (arm_on_start); the others on /arm" if asked
-                                             else "no drive enabled: call /arm (std_srvs/Trigger)"))
+        self.get_logger().info("active: motion taken; " + (
+            "every drive armed (arm:=true)" if asked is None else
+            f"{', '.join(asked)} armed (arm_on_start); the others on /arm" if asked
+            else "no drive enabled: call /arm (std_srvs/Trigger), or launch with arm:=true"))
         return super().on_activate(state)
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
@@ -117,19 +126,39 @@ class DriveLifecycleNode(LifecycleNode):
         if failed and self.driver is not None:  # the node stays active, its motion held all the same
             self.driver.hold_motion(f"{self.get_name()}'s deactivate did not confirm every stop"
                                     f" ({'; '.join(failed)}): deactivate it again")
-        return TransitionCallbackReturn.FAILURE if failed else super().on_deactivate(state)
+            self.get_logger().error(f"deactivate failed: {len(failed)} stop(s) not confirmed; motion held;"
+                                    " deactivate again")
+            return TransitionCallbackReturn.FAILURE
+        self.get_logger().info(f"inactive: motion held; {self._drives_safe()}; activate to take motion again")
+        return super().on_deactivate(state)
 
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        said = self._drives_safe()
         self.release()
+        self.get_logger().info(f"cleaned up: {said}; the driver closed and the bus released")
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        had = self.driver is not None
         self.release()  # the driver's close: its safe stop first
+        self.get_logger().info(f"shut down from {state.label}: " + (
+            "every drive quick-stopped if enabled and its voltage disabled, the driver closed and the bus released"
+            if had else "no driver (nothing was configured)"))
         return TransitionCallbackReturn.SUCCESS
 
     def on_error(self, state: State) -> TransitionCallbackReturn:
+        had = self.driver is not None
         self.release()
+        self.get_logger().error("error processing: " + ("the driver closed (its safe stop first), the bus released"
+                                                          if had else "no driver") + "; configure to start again")
         return TransitionCallbackReturn.SUCCESS
+
+    def _drives_safe(self) -> str:
+        """What the drives are now, for a transition's line."""
+        driver = self.driver
+        if driver is None:
+            return "no driver"
+        return f"{len(driver.drives)} drive(s) quick-stopped if enabled and their voltage disabled (Switch On Disabled)"
 
     # ------------------------------------------------------------------ steps
     def stop_drives(self) -> list[str]:

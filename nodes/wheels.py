@@ -59,16 +59,16 @@ def odometry_sample(state: DriveState, pdo_period_s: float, *, driven: bool = Tr
     ``driven``: some wheel of the rover is usable; when none is (the rover disarmed, standing or
     pushed), every wheel whose data is news counts: what they measure is all the motion there is."""
     verdict = state.verdict
-    silent = state.data_age_s > PDO_SILENCE_PERIODS * pdo_period_s or \
+    silent = verdict.age_s > PDO_SILENCE_PERIODS * pdo_period_s or \
         side_newest_s - state.rx_monotonic > SIDE_LAG_PERIODS * pdo_period_s
-    if verdict.usable or (not driven and verdict.fresh and not state.lost):
-        trusted, forget, why = not silent, False, f"silent for {ms(state.data_age_s)}" if silent else ""
+    if verdict.usable or (not driven and verdict.fresh):
+        trusted, forget, why = not silent, False, f"silent for {ms(verdict.age_s)}" if silent else ""
     else:
         trusted, forget, why = False, verdict.condition is not Condition.LATE, verdict.cause
     return WheelSample(math.radians(state.angle_deg), state.rx_monotonic, state.reference, trusted and
                        bool(state.rx_monotonic), why or ("" if state.rx_monotonic else "no position yet"),
                        forget=forget, silent=not forget and not trusted and verdict.condition is not Condition.LATE,
-                       velocity_rad_s=math.radians(state.velocity_deg_s))
+                       velocity_rad_s=math.radians(state.velocity_deg_s), bus_stamp=state.stamp)
 
 
 def odometry_samples(states: Mapping[str, DriveState], sides: Iterable[Sequence[str]],

@@ -53,9 +53,13 @@ HOST_TIMEOUT_S, HEARTBEAT_TIMEOUT_S = 2.0, 2.5
 
 
 class Rover:
-    def __init__(self, on_wheel_loss: str) -> None:
+    def __init__(self, on_wheel_loss: str, sync_period_s: dict[str, float] | None = None) -> None:
+        """``sync_period_s``: a bus's SYNC period other than the shipped one (by bus name)."""
         config = load_config(REPO / "config" / "rover.yaml")
         assert config.drive_system is not None
+        if sync_period_s:
+            config = dataclasses.replace(config, buses=tuple(
+                dataclasses.replace(b, sync_period_s=sync_period_s.get(b.name, b.sync_period_s)) for b in config.buses))
         drives = tuple(dataclasses.replace(d, host_timeout_s=HOST_TIMEOUT_S, heartbeat_timeout_s=HEARTBEAT_TIMEOUT_S,
                                            stale_after_syncs=in_process_stale_after_syncs(config.bus(d.bus).sync_period_s))
                        for d in config.drives)

@@ -15,6 +15,7 @@ from motor_driver.rover.odometry import WheelOdometry, WheelSample, yaw_from_whe
 
 LEFT, RIGHT = ("fl", "ml", "rl"), ("fr", "mr", "rr")
 TRACK_M, RADIUS_M = 0.6, 0.1
+ACCEL_RAD_S2 = 10.0  # a wheel's acceleration (1 m/s2 at the rim)
 
 
 def odometry() -> WheelOdometry:
@@ -137,3 +138,39 @@ def test_late_data_never_turns_the_heading(moves: list[tuple[float, float, list[
     want = yaw_from_wheels([angle[n] for n in LEFT], [angle[n] for n in RIGHT], TRACK_M, RADIUS_M)
     assert final.trusted
     assert math.isclose(math.remainder(final.pose.yaw_rad - want, math.tau), 0.0, abs_tol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(skew_s=st.floats(0.0, 0.0099), jitter=st.lists(st.floats(0.0, 0.004), min_size=1, max_size=8),
+       rate=st.floats(-10.0, 10.0).filter(lambda r: abs(r) > 0.01))
+def test_buses_with_skewed_syncs_are_paired_by_when_they_measured(skew_s: float, jitter: list[float],
+                                                                  rate: float) -> None:
+    """Two buses, SYNC every 10 ms, can1's ``skew_s`` after can0's; the step reads each side's
+    newest sample at 20 ms, whatever SYNC it came from, each received late by its own jitter (a
+    receive thread's wake-up) but stamped on the bus when it was sent. Every wheel turns alike:
+    once each wheel has been received with its least lateness (the alignment of bus stamps to the
+    receive clock learns it), the heading stays 0 at every step (within the alignment's slew allowance, OFFSET_DRIFT_S a
+    sample, and a straight line between two samples 10 ms apart at ACCEL_RAD_S2: 2e-4 rad; a sample
+    of one SYNC paired with one of another is 0.017 rad at 10 rad/s),
+    and the rover moves by each wheel's travel."""
+    odo = odometry()
+    period = 0.01
+    mono_minus_wall = 5000.0  # the receive clock (monotonic) against the bus stamps' (wall)
+    ramp_s = abs(rate) / ACCEL_RAD_S2
+
+    def travelled_s(t: float) -> float:  # seconds at full speed: from standing, at ACCEL_RAD_S2
+        return 0.0 if t <= 0.0 else 0.5 * t * t / ramp_s if t < ramp_s else t - 0.5 * ramp_s
+
+    def newest(side: tuple[str, ...], now: float, offset: float, k: int) -> dict[str, WheelSample]:
+        sync = math.floor((now - offset) / period) * period + offset  # the newest SYNC before now
+        lateness = jitter[k % len(jitter)]
+        angle = rate * travelled_s(sync - 1.5)  # standing until 1.5 s: the alignment learns each wheel's lateness
+        return {n: WheelSample(angle, sync + mono_minus_wall + 0.0005 + lateness, 1, bus_stamp=sync) for n in side}
+
+    for k in range(1, 100):
+        now = 1.0 + k * 0.02 + 0.003
+        step = odo.step(newest(LEFT, now, 0.0, k) | newest(RIGHT, now, skew_s, k + 3))
+        assert abs(step.pose.yaw_rad) < 2e-4, (k, step.pose.yaw_rad)
+    assert step.trusted and step.measured_at
+    assert math.isclose(step.pose.x_m, rate * travelled_s(step.measured_at - mono_minus_wall - 0.0005 - 1.5) * RADIUS_M,
+                        rel_tol=0.01, abs_tol=abs(rate) * 0.005 * RADIUS_M + 1e-9)

@@ -150,8 +150,11 @@ class CommandChannel:
         self._wake()
 
     def allow(self) -> None:
-        """Motion taken again (each command still needs its enable: nothing is enabled here)."""
+        """Motion taken again (each command still needs its enable: nothing is enabled here); the
+        hold's reason is no longer why the drive stands ("not armed", not "inactive")."""
         with self._lock:
+            if self._preempted[1] == self.held:
+                self._preempted = (self._preempted[0], "")
             self.held = ""
 
     def admit(self, doing: str) -> None:

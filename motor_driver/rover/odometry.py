@@ -4,7 +4,16 @@ What it integrates, as ros2_control's diff_drive_controller does with position f
 wheel's own position delta between two of its own samples (ordered by the driver's monotonic
 receive time, never the frame's wall clock: a clock step back is not "no motion"; not the
 caller's tick). A wheel counts only while its data can be trusted (the caller judges it from the
-drive's verdict, ``nodes/wheels.py``):
+drive's verdict, ``nodes/wheels.py``).
+
+Samples of different buses are paired by the moment they measure, not by the step that reads them:
+each step integrates up to one common instant, the oldest newest sample of the wheels that count
+(:attr:`OdometryStep.measured_at`), and every wheel's position at that instant is interpolated
+between two of its own samples (its position at the last instant, its previous and its newest
+sample; never extrapolated). Two buses whose SYNCs are apart (each bus has its own) thus give the
+heading the wheels had at one moment: the left side's newest sample is no longer paired with the
+right side's of a SYNC earlier. An interpolation error is not lost either: the next step's delta
+starts from the same interpolated point, so each wheel's sum of deltas is its own travel.
 
 * a sample is taken only from a wheel that is usable and heard within its PDO period
   (``WheelSample.trusted``); a wheel that cannot count (lost, out, disabled, quick-stopped,
@@ -17,7 +26,9 @@ drive's verdict, ``nodes/wheels.py``):
   is :attr:`OdometryStep.estimated_m`, for the caller's covariance;
 * two samples are subtracted only within one position reference (``reference``: boot, homing and a
   reboot's jump start a new one): the first sample of a new reference is never a jump;
-* a sample no newer than the last one is no motion (the same PDO read twice);
+* a sample no newer than the last one is no motion (the same PDO read twice); a step whose common
+  instant is not newer than the last one integrates nothing and says so (``measured_at`` 0.0: the
+  caller publishes nothing measured for it);
 * while a side has no trusted wheel nothing is integrated, and the other side's travel is kept to
   be paired with the late side's next sample, or dropped where that side's wheels were lost
   (:meth:`WheelOdometry.step`).
@@ -30,11 +41,21 @@ large covariance and say why. Nothing is ever extrapolated from a velocity or a 
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from motor_driver.rover.skid_steer import Pose2D, Twist2D, integrate
+
+#: A frame's receive time later than its bus stamp by more than this beyond the least seen (or
+#: earlier than that least by more): the wall clock stepped (or the process was starved); the
+#: alignment starts anew from this frame (s)
+CLOCK_STEP_S = 0.2
+#: How far the least receive-minus-bus-time offset may rise per sample: the wall clock's slew against
+#: the monotonic clock (NTP slews at most 0.5 ms/s; 50 samples a second)
+OFFSET_DRIFT_S = 1.0e-5
 
 #: the variance published for what is not measured (a planar robot's z, roll, pitch; all of it
 #: while the odometry stands still for want of trusted wheels)
@@ -53,6 +74,10 @@ class WheelSample:
     forget: bool = False  # untrusted and its last sample no longer to be followed (lost, faulted)
     silent: bool = False  # untrusted only for silence shorter than its staleness bound (a PDO late)
     velocity_rad_s: float = 0.0  # the drive's own velocity actual value, sent with the position
+    #: when the frame was on the bus (the bus's or kernel's stamp, wall clock; 0.0 unknown): what
+    #: the odometry pairs the buses by, aligned to ``stamp``'s clock (a receive thread's wake-up
+    #: varies by milliseconds, the bus's stamp does not)
+    bus_stamp: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -64,6 +89,9 @@ class OdometryStep:
     #: travel taken to be as the side's other wheels' for wheels not heard (m): not yet settled by
     #: their own samples, or never (they were lost); per wheel, over its side's wheel count
     estimated_m: float = 0.0
+    #: the instant (monotonic receive time, s) the pose was measured at, when this step integrated
+    #: one; 0.0: nothing new was measured on both sides (the pose is the last step's)
+    measured_at: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -97,26 +125,90 @@ class WheelOdometry:
         self.wheel_radius_m = wheel_radius_m
         self.pose = Pose2D()
         self._twist = Twist2D()
+        #: each wheel's position at the last common instant it was counted at (or its first
+        #: sample of a reference): where its next delta starts
         self._last: dict[str, WheelSample] = {}
+        #: each wheel's two newest trusted samples (newest, previous), of one reference: what its
+        #: position at a common instant is interpolated from
+        self._raw: dict[str, tuple[WheelSample, WheelSample | None]] = {}
+        self._instant = 0.0  # the last common instant integrated (monotonic, s)
+        #: each wheel's least (receive time - bus stamp) seen: its bus stamps on the monotonic clock
+        self._offset: dict[str, float] = {}
         #: late wheels' travel already counted as their side's others' (m): taken off their next delta
         self._attributed: dict[str, float] = {}
         self._never_settled_m = 0.0  # estimates of wheels forgotten before they were heard again
 
-    def _delta(self, name: str, sample: WheelSample | None) -> tuple[float | None, _Update]:
-        """(radians turned since this wheel's last sample, 0.0 for nothing new, None where it
-        counts for nothing; what becomes of its last sample: kept, replaced, or forgotten)."""
+    def _measured(self, name: str, sample: WheelSample) -> WheelSample:
+        """``sample`` stamped when it was on the bus, on the receive times' (monotonic) clock: its
+        bus stamp plus the least offset between the two clocks its wheel showed (never later than
+        its receive time)."""
+        if not sample.bus_stamp:
+            return sample
+        seen = sample.stamp - sample.bus_stamp
+        offset = self._offset.get(name)
+        if offset is None or abs(seen - offset) > CLOCK_STEP_S:
+            offset = seen
+        else:
+            offset = min(offset + OFFSET_DRIFT_S, seen)
+        self._offset[name] = offset
+        return dataclasses.replace(sample, stamp=min(sample.bus_stamp + offset, sample.stamp))
+
+    def _remember(self, samples: Mapping[str, WheelSample]) -> None:
+        """Each trusted sample into its wheel's history (two newest, one reference), stamped when
+        it was on the bus; a wheel to be forgotten loses its history."""
+        for name, given in samples.items():
+            if not math.isfinite(given.angle_rad) or (given.forget and not given.trusted):
+                self._raw.pop(name, None)
+                continue
+            if not given.trusted:
+                continue
+            sample = self._measured(name, given)
+            raw = self._raw.get(name)
+            if raw is None or raw[0].reference != sample.reference:
+                self._raw[name] = (sample, None)
+            elif sample.stamp > raw[0].stamp:
+                self._raw[name] = (sample, raw[0])
+
+    def _common_instant(self, samples: Mapping[str, WheelSample]) -> float:
+        """The instant this step integrates to: the oldest newest sample among the wheels that
+        may count, 0.0 if there is none."""
+        return min((self._raw[n][0].stamp for n, s in samples.items() if s.trusted and n in self._raw), default=0.0)
+
+    @staticmethod
+    def _interpolate(points: Sequence[WheelSample], instant: float) -> float | None:
+        """The angle at ``instant`` on the line through the two of ``points`` (in time order) around
+        it; None when it is outside them (never extrapolated)."""
+        for a, b in itertools.pairwise(points):
+            if a.stamp <= instant <= b.stamp:
+                share = (instant - a.stamp) / (b.stamp - a.stamp) if b.stamp > a.stamp else 1.0
+                return a.angle_rad + share * (b.angle_rad - a.angle_rad)
+        return points[0].angle_rad if len(points) == 1 and points[0].stamp == instant else None
+
+    def _delta(self, name: str, sample: WheelSample | None, instant: float) -> tuple[float | None, _Update]:
+        """(radians turned from this wheel's last point to ``instant``, 0.0 for nothing new, None
+        where it counts for nothing; what becomes of its last point: kept, replaced, or forgotten).
+        A wheel starting a reference starts at ``instant`` once its samples reach back to it (its
+        side's others start there too), and waits for that meanwhile."""
         last = self._last.get(name)
         if sample is None or not sample.trusted or not math.isfinite(sample.angle_rad):
             forget = sample is None or sample.forget or not math.isfinite(sample.angle_rad)
             return None, _Update(name, None, forget)
-        if last is not None and sample.stamp <= last.stamp:
-            return 0.0, _Update(name, None, False)  # nothing new: no motion, still trusted
+        newest, previous = self._raw[name]
         if last is None or last.reference != sample.reference:
-            return None, _Update(name, sample, False, restart=True)  # a new reference starts here
-        turned = sample.angle_rad - last.angle_rad - self._attributed.get(name, 0.0) / self.wheel_radius_m
-        return turned, _Update(name, sample, False)
+            start = self._interpolate([p for p in (previous, newest) if p is not None], instant)
+            if start is None:  # its first sample is newer than the others': it starts at a later step
+                return None, _Update(name, None, last is not None)
+            return None, _Update(name, WheelSample(start, instant, sample.reference), False, restart=True)
+        if instant <= last.stamp:
+            return 0.0, _Update(name, None, False)  # nothing new: no motion, still trusted
+        points = [last] + [p for p in (previous, newest) if p is not None and p.stamp > last.stamp]
+        angle = self._interpolate(points, instant)
+        if angle is None:  # the instant lies before its last point: nothing new of it
+            return 0.0, _Update(name, None, False)
+        turned = angle - last.angle_rad - self._attributed.get(name, 0.0) / self.wheel_radius_m
+        return turned, _Update(name, WheelSample(angle, instant, sample.reference), False)
 
-    def _side(self, names: tuple[str, ...], samples: Mapping[str, WheelSample]) -> _Side:
+    def _side(self, names: tuple[str, ...], samples: Mapping[str, WheelSample], instant: float) -> _Side:
         """One side: its mean distance (m), mean rim speed (m/s), the wheels that count, and the
         updates of their last samples. A wheel with no new sample counts as no motion: a side's
         mean over a fixed set of wheels adds up to the mean of their whole travel, whichever step
@@ -129,7 +221,7 @@ class WheelOdometry:
         late = []
         for name in names:
             sample = samples.get(name)
-            turned, update = self._delta(name, sample)
+            turned, update = self._delta(name, sample, instant)
             updates.append(update)
             if sample is not None and sample.trusted and math.isfinite(sample.velocity_rad_s):
                 speeds.append(sample.velocity_rad_s * self.wheel_radius_m)
@@ -178,7 +270,9 @@ class WheelOdometry:
         other side's travel is kept to be paired with it; if all of them were lost or start anew,
         nothing of theirs will cover the gap, and the other side's travel over it is dropped too
         (the heading stays the wheels': both sides lose the same interval)."""
-        left, right = self._side(self.left, samples), self._side(self.right, samples)
+        self._remember(samples)
+        instant = self._common_instant(samples)
+        left, right = self._side(self.left, samples, instant), self._side(self.right, samples, instant)
         if not left.counted or not right.counted:
             silent = self.left if not left.counted else self.right
             updates = left.updates + right.updates  # committed before `late` is judged: forgets count
@@ -198,6 +292,10 @@ class WheelOdometry:
             reasons = ", ".join(f"{n} {self._why(samples.get(n))}" for n in silent)
             return OdometryStep(self.pose, Twist2D(), False,
                                 f"odometry stopped: no trusted wheel on the {side} side ({reasons})", self.estimated_m)
+        if instant <= self._instant:  # nothing measured on both sides since the last step's instant
+            self._commit([u for u in left.updates + right.updates if u.forget or u.restart], deltas=False)
+            return OdometryStep(self.pose, self._twist, True, estimated_m=self.estimated_m)
+        self._instant = instant
         self._commit(left.updates + right.updates, deltas=True)
         self._attribute(left)
         self._attribute(right)
@@ -206,7 +304,7 @@ class WheelOdometry:
         self.pose = integrate(self.pose, Twist2D(forward, turn), 1.0)  # distances: one unit of "time"
         twist = self._twist = Twist2D((left.speed_m_s + right.speed_m_s) / 2.0,
                                       (right.speed_m_s - left.speed_m_s) / self.track_width_m)
-        return OdometryStep(self.pose, twist, True, estimated_m=self.estimated_m)
+        return OdometryStep(self.pose, twist, True, estimated_m=self.estimated_m, measured_at=instant)
 
     def _why(self, sample: WheelSample | None) -> str:
         if sample is None:
