@@ -206,11 +206,10 @@ class FollowTrajectoryServer:
                 raise CancelledError
             goal = goal_from_message(request, self._node.get_clock().now().nanoseconds * 1e-9)
             plan = self._group.plan(goal)
-            if not all(self._group.drives[j].motion.streaming() for j in goal.joints):
-                switching = self._starter.submit(self._group.prepare, goal.joints)
-                while not switching.done():  # the executor serves cancels and other goals meanwhile
-                    await self._pause(START_POLL_S)
-                switching.result()
+            switching = self._starter.submit(self._group.prepare, goal.joints)  # waits on the drives
+            while not switching.done():  # the executor serves cancels and other goals meanwhile
+                await self._pause(START_POLL_S)
+            switching.result()
         except RovercanError as err:
             self._node.get_logger().warning(f"{name}: goal rejected: {err}")
             return GoalResponse.REJECT

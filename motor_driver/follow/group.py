@@ -81,6 +81,8 @@ logger = logging.getLogger(__name__)
 LATE_SHARE = 0.5
 #: How long close() waits for the group's thread.
 JOIN_S = 2.0
+#: How long a goal's preparation waits for its joints' other operations (an enable under way) to end.
+BUSY_WAIT_S = 5.0
 #: The most the plan's time advances from one set-point to the next, in SYNC periods: a SYNC missed
 #: is caught up at once; after a host stalled for longer the plan catches up at this pace rather than
 #: jump further than its joints may move in a step (the drive's guard: max velocity over two periods).
@@ -165,10 +167,16 @@ class TrajectoryGroup:
         return self.start(plan, time.monotonic() + goal.start_delay_s, cancelled=asked())
 
     def prepare(self, joints: Sequence[str]) -> None:
-        """Each joint not streaming yet switched to CSP (or IP), holding where it stands, on the
-        caller's thread, which may wait on the drives: before a goal is accepted."""
+        """Each joint free of another operation of this driver's (an enable, a mode switch under way:
+        it would refuse the set-points; waited for up to :data:`BUSY_WAIT_S`, else refused) and
+        switched to CSP (or IP) where it is not yet, holding where it stands; on the caller's thread,
+        which may wait on the drives: before a goal is accepted."""
         for name in joints:
-            self._prepare(self.drives[name])
+            drive = self.drives[name]
+            if busy := self._wait_free(drive):
+                raise refuse(TrajectoryCode.INVALID_GOAL, f"{name}: busy with {busy} for {BUSY_WAIT_S:g} s; send the"
+                              " goal again when it is done; nothing moved")
+            self._prepare(drive)
 
     def start(self, plan: Plan, start_at: float, cancelled: bool = False) -> GoalRun:
         """Hand a checked plan (its joints streaming: :meth:`prepare`) to the group's thread, which
@@ -192,6 +200,15 @@ class TrajectoryGroup:
         self._wake.set()
         self._tick.set()  # a thread waiting for the clock takes it now
         return run
+
+    @staticmethod
+    def _wait_free(drive: Drive) -> str | None:
+        """Until no other operation runs on the drive (looked at with each statusword), at most
+        :data:`BUSY_WAIT_S`; the one still under way then, else None."""
+        channel = drive.channel
+        if channel.busy:
+            drive.cache.wait_until(lambda: not channel.busy, BUSY_WAIT_S)
+        return channel.busy
 
     @staticmethod
     def _prepare(drive: Drive) -> None:
