@@ -59,7 +59,6 @@ from can_config.errors import RovercanError
 from can_config.model import TrajectoryGroupConfig
 from motor_driver.drive import Drive
 from motor_driver.drive.trajectory import Knot, Spline
-from motor_driver.drive.verdict import judge
 from motor_driver.follow.checks import GoalChecks
 from motor_driver.follow.goal import (
     PREEMPTED,
@@ -381,9 +380,9 @@ class TrajectoryGroup:
 
     @staticmethod
     def _unusable(drive: Drive) -> str | None:
-        """Why the joint may not be driven: its verdict (the one every part reads, judged from the
-        drive's facts: a quarter of a snapshot's cost), else None."""
-        verdict = judge(drive.power.facts())
+        """Why the joint may not be driven: its verdict (the one every part reads, judged once per
+        input change and read here as a value), else None."""
+        verdict = drive.power.verdict()
         return None if verdict.usable else f"{verdict.condition.value}: {verdict.cause}" + (
             f"; {verdict.helps}" if verdict.helps else "")
 
