@@ -18,6 +18,7 @@ from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
 from .conftest import TORQUE_LIMIT_NM, TORQUE_REFUSAL, drain, make_config, wait_for
+from .drive_states import fault
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 
@@ -43,7 +44,7 @@ def test_enable_move_and_report_in_degrees(driver_factory: DriverFactory) -> Non
     drive.move_to(45.0, wait=True)
     state = drive.snapshot()
     assert state.angle_deg == pytest.approx(45.0, abs=0.05)
-    assert state.enabled and not state.fault
+    assert state.verdict.usable and not fault(state)
     # holding still: at most the static friction (0.03 Nm at the motor, x10 at the joint) remains
     assert abs(state.torque_nm) <= 0.3 * 1.05
 
@@ -73,7 +74,7 @@ def test_emcy_fault_is_reported_commands_refused_and_recover_restores(driver_fac
     apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
     wait_for(lambda: drive.cache.state is State.FAULT, 2.0, "FAULT")
     state = drive.snapshot()
-    assert state.fault and state.error_code == 0x2310 and "over-current" in state.error_text
+    assert fault(state) and state.error_code == 0x2310 and "over-current" in state.error_text
     with pytest.raises(DriveStateError, match=r"FAULT \(EMCY 0x2310 continuous over-current\)"):
         drive.move_to(10.0)
     drive.recover()
@@ -91,7 +92,7 @@ def test_heartbeat_loss_detected_others_keep_moving_then_reconfigured(driver_fac
     lost = driver.drive("joint2")
     apply_action(sim, {"action": "unplug", "node": 2})
     wait_for(lambda: lost.cache.lost, 10.0, "heartbeat loss")  # how soon after the consumer time: benchmarks
-    assert lost.snapshot().fault
+    assert fault(lost.snapshot())
     with pytest.raises(DriveStateError, match="lost"):
         lost.move_to(5.0)
     driver.drive("joint1").move_to(30.0, wait=True)

@@ -21,6 +21,7 @@ from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
 from .conftest import in_thread, make_config, wait_for
+from .drive_states import fault
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 ListenerFactory = Callable[[SimService], can.BusABC]
@@ -98,7 +99,7 @@ def test_an_emcy_error_reset_that_is_not_the_drivers_keeps_the_cause_of_the_faul
     drive = driver.drive("joint1")
     drive.enable()
     apply_action(sim, {"action": "fault", "node": 1, "code": 0x2310})
-    wait_for(lambda: drive.snapshot().fault and drive.snapshot().error_code == 0x2310, 10.0, "the fault and its EMCY")
+    wait_for(lambda: fault(drive.snapshot()) and drive.snapshot().error_code == 0x2310, 10.0, "the fault and its EMCY")
     heard = threading.Event()
     driver.buses["can0"].network.subscribe(0x081, lambda cob_id, data, timestamp: heard.set()
                                            if data[:2] == b"\0\0" else None)
@@ -108,5 +109,5 @@ def test_an_emcy_error_reset_that_is_not_the_drivers_keeps_the_cause_of_the_faul
     health = drive_health(state, heartbeat_period_s=drive.config.heartbeat_period_s)
     assert state.error_code == 0x2310 and health.level == ERROR and health.message.startswith("faulted (FAULT: EMCY 0x2310")
     drive.recover()  # the driver's own reset clears it
-    wait_for(lambda: not drive.snapshot().fault, 10.0, "the fault reset")
+    wait_for(lambda: not fault(drive.snapshot()), 10.0, "the fault reset")
     assert drive.snapshot().error_code == 0

@@ -26,6 +26,7 @@ from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
 from .conftest import IN_PROCESS_STALE_SYNCS, make_config, wait_for
+from .drive_states import stale
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 ListenerFactory = Callable[[SimService], can.BusABC]
@@ -185,7 +186,7 @@ def test_a_joint_not_armed_is_refused(arm: Arm) -> None:
 def test_a_stale_joint_is_refused(arm: Arm) -> None:
     apply_action(arm.sim, {"action": "tx_dead", "node": 2})
     drive = arm.driver.drive("joint2")
-    wait_for(lambda: drive.snapshot().stale, 10.0, "joint2 stale")
+    wait_for(lambda: stale(drive.snapshot()), 10.0, "joint2 stale")
     mark = len(arm.frames)
     with pytest.raises(TrajectoryRejected) as caught:
         arm.group.follow(goal((1.0, (5.0, 5.0))))

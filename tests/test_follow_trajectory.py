@@ -87,7 +87,7 @@ def rig(monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> Iter
     client_spin = SpinThread(executor, "test-client")
     try:
         assert client.wait_for_server(timeout_sec=HANG_S), f"{ACTION} not served"
-        wait_for(lambda: all(d.snapshot().enabled for d in assembly.driver), HANG_S, "the arm armed")
+        wait_for(lambda: all(d.snapshot().verdict.usable for d in assembly.driver), HANG_S, "the arm armed")
         yield Rig(sim, assembly, client, states)
     finally:
         client_spin.stop(5.0)

@@ -79,7 +79,7 @@ class Arm:
 
     def _ready(self, joint: str) -> Callable[[], bool]:
         drive, pub = self.driver.drive(joint), self.pubs[joint]
-        return lambda: drive.snapshot().enabled and pub.get_subscription_count() > 0
+        return lambda: drive.snapshot().verdict.usable and pub.get_subscription_count() > 0
 
     def close(self) -> None:
         self.spin.stop(5.0)

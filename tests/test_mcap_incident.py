@@ -22,6 +22,7 @@ from motor_driver.recording.incident import load_incident
 from motor_driver.recording.plot import draw
 
 from .conftest import REPO
+from .drive_states import drive_state
 from .test_mcap import ROVER, decoded, rover_frames
 
 
@@ -57,7 +58,7 @@ def test_an_incident_has_an_mcap_with_the_raw_frames_and_every_drive_decoded(tmp
 
 
 def state(name: str, angle: float, *, lost: bool = False, s: State = State.OPERATION_ENABLED) -> DriveState:
-    return DriveState(name=name, node_id=1, angle_deg=angle, velocity_deg_s=172.0, torque_nm=math.nan, statusword=0x0637,
+    return drive_state(name=name, node_id=1, angle_deg=angle, velocity_deg_s=172.0, torque_nm=math.nan, statusword=0x0637,
                       state=s, mode=3, nmt="OPERATIONAL", enabled=True, fault=False, lost=lost, error_code=0,
                       error_text="", stamp=0.0, heartbeat_age_s=0.0, target_reached=False,
                       data_age_s=0.0)  # heard (never heard: no data, never usable, tests/test_verdict_once.py)

@@ -23,15 +23,18 @@ from motor_driver.protocol.cia402 import State
 from motor_driver.rover.odometry import WheelOdometry
 from nodes.wheels import odometry_samples
 
+from .drive_states import drive_state
+
 LEFT, RIGHT = ("fl", "ml", "rl"), ("fr", "mr", "rr")
 TRACK_M, RADIUS_M = 0.6, 0.1
 SYNC_S, TICK_S = 0.01, 0.02
 STALE_S = 5 * SYNC_S  # stale_after_syncs: 5
 PERIODS = dict.fromkeys(LEFT + RIGHT, SYNC_S)  # a TPDO every SYNC
-BASE = DriveState(name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0637,
-                  state=State.OPERATION_ENABLED, mode=9, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
-                  error_code=0, error_text="", stamp=1.0e9, heartbeat_age_s=0.01, target_reached=False,
-                  data_age_s=0.0, stale=False, foreign_master="", reference=1, rx_monotonic=100.0)
+BASE_FIELDS: dict[str, object] = dict(
+    name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0637,
+    state=State.OPERATION_ENABLED, mode=9, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
+    error_code=0, error_text="", stamp=1.0e9, heartbeat_age_s=0.01, target_reached=False,
+    data_age_s=0.0, stale=False, foreign_master="", reference=1, rx_monotonic=100.0)
 
 
 class Rover:
@@ -57,7 +60,7 @@ class Rover:
         age = now - rx
         fields: dict[str, object] = {"name": name, "angle_deg": angle, "rx_monotonic": rx, "data_age_s": age,
                                      "stale": age > STALE_S, "enabled": age <= STALE_S, "stamp": 1.0e9 + rx}
-        return dataclasses.replace(BASE, **(fields | changes))  # type: ignore[arg-type]
+        return drive_state(**(BASE_FIELDS | fields | changes))
 
     def step(self, now: float, changes: dict[str, dict[str, object]] | None = None) -> float:
         changes = changes or {}
@@ -107,7 +110,7 @@ def test_a_wheel_quick_stopped_or_left_out_adds_nothing() -> None:
                 if k >= 10 and "out" in changes:
                     states["fr"] = out_of_the_drive_system(states["fr"])
                 elif k >= 10:
-                    states["fr"] = dataclasses.replace(states["fr"], **changes)  # type: ignore[arg-type]
+                    states["fr"] = rover.state("fr", now, **changes)
                 step = rover.odometry.step(odometry_samples(states, (LEFT, RIGHT), PERIODS))
                 assert step.trusted or k == 2, step.why_not
                 assert same_heading(step.pose.yaw_rad, rover.wheels_yaw(k, without="fr")), (k, changes)

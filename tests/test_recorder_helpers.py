@@ -13,14 +13,14 @@ from pathlib import Path
 import pytest
 
 from can_config.model import RecorderConfig
-from motor_driver.drive import DriveState
 from motor_driver.protocol.cia402 import State
 from motor_driver.recording import flight as recorder_module
 from motor_driver.recording.flight import FlightRecorder, IncidentEvent
 
 from .conftest import in_thread, wait_for
+from .drive_states import drive_state
 
-STATE = DriveState(name="wheel", node_id=1, angle_deg=90.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0637,
+STATE = drive_state(name="wheel", node_id=1, angle_deg=90.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0637,
                    state=State.OPERATION_ENABLED, mode=9, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
                    error_code=0, error_text="", stamp=100.0, heartbeat_age_s=0.01, target_reached=False,
                    data_age_s=0.01, stale=False, foreign_master="", reference=1)

@@ -22,6 +22,7 @@ from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
 from .conftest import make_config, wait_for
+from .drive_states import fault, lost
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 
@@ -62,7 +63,7 @@ def test_bus_server_dies_driver_reports_reconnects_reconfigures_no_leaks(
     sim.close()  # the bus server dies
     wait_for(lambda: driver.bus_lost["can0"], 2.0, "bus reported lost")
     drive = driver.drive("joint1")
-    assert drive.snapshot().lost and drive.snapshot().fault
+    assert lost(drive.snapshot()) and fault(drive.snapshot())
     with pytest.raises(MotorError):
         drive.move_to(10.0)  # no motion commanded while the bus is gone
     time.sleep(1.0)  # a few reconnect attempts with back-off
@@ -96,11 +97,11 @@ def test_a_heartbeat_received_after_the_bus_was_lost_does_not_bring_the_drive_ba
     supervisor.call(lambda: supervisor._drive_gone(drive))  # what it does to each drive of a lost bus
     beats = drive.cache.last_heartbeat
     wait_for(lambda: drive.cache.last_heartbeat > beats + 0.05, 3.0, "two more heartbeats of the drive")
-    assert drive.snapshot().lost and drive.snapshot().fault
+    assert lost(drive.snapshot()) and fault(drive.snapshot())
     with pytest.raises(MotorError):
         drive.move_to(10.0)
     drive.boot.boot()  # what the reconnect does once the bus is back
-    assert not drive.snapshot().lost
+    assert not lost(drive.snapshot())
 
 
 @pytest.mark.parametrize("rate", [0.01, 0.10])

@@ -18,6 +18,7 @@ from motor_driver.protocol.safety import FAIL, PASS
 from virtual_can import SimService
 
 from .conftest import REPO, make_config, wait_for
+from .drive_states import stale
 
 ROVER = """buses:
   - {{name: can0, interface: socketcand, channel: can0, kwargs: {{host: 127.0.0.1, port: {port}}}}}
@@ -82,7 +83,7 @@ def test_no_host_heartbeat_on_the_bus_fails(tmp_path: Path) -> None:
 def test_a_failed_check_is_an_error_in_diagnostics(driver_factory: object) -> None:
     _, driver = driver_factory(make_config(1))  # type: ignore[operator]
     drive = driver.drive("joint1")
-    wait_for(lambda: not drive.snapshot().stale, 1.0, "the first PDOs")
+    wait_for(lambda: not stale(drive.snapshot()), 1.0, "the first PDOs")
     assert drive.boot.safety and all(c.status in (PASS, "n/a") for c in drive.boot.safety)
     health = drive_health(drive.snapshot(), heartbeat_period_s=0.1, safety=drive.boot.safety)
     assert health.level == 0, health.message

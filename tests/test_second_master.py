@@ -18,6 +18,7 @@ from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
 from .conftest import make_config, wait_for
+from .drive_states import stale
 
 SimFactory = Callable[[RoverConfig], tuple[SimService, RoverConfig]]
 
@@ -38,7 +39,7 @@ class TruthWatch:
         runner = self.sim.simulators["can0"]
         drive = runner.drive(1)
         while not self._stop.is_set():
-            claims = self.driver.drive("joint1").snapshot().enabled
+            claims = self.driver.drive("joint1").snapshot().verdict.usable
             truth = runner.call(lambda: drive.state.name) == "OPERATION_ENABLED"
             now = time.monotonic()
             if claims and not truth:
@@ -88,8 +89,8 @@ def test_a_second_driver_is_noticed_refused_and_control_comes_back(sim_factory: 
         wait_for(lambda: not drive.watch.foreign_master and drive.cache.booted and drive.boot.boot_count > boots,
                  6.0, "control back, configured again")
         assert drive.boot.boot_count == boots + 1  # configured again, once ...
-        wait_for(lambda: drive.snapshot().stamp > 0 and not drive.snapshot().stale, 1.0, "fresh PDOs")
-        assert drive.cache.state is not State.OPERATION_ENABLED and not drive.snapshot().enabled  # ... not re-armed
+        wait_for(lambda: drive.snapshot().stamp > 0 and not stale(drive.snapshot()), 1.0, "fresh PDOs")
+        assert drive.cache.state is not State.OPERATION_ENABLED and not drive.snapshot().verdict.usable  # ... not re-armed
         drive.enable()
         drive.move_to(drive.snapshot().angle_deg + 10.0, wait=True)
         false_claims = truth.stop()
@@ -123,15 +124,15 @@ def test_stopped_pdos_are_reported_stale_within_n_sync_periods(sim_factory: SimF
     with MotorDriver(cfg).start() as driver:
         drive = driver.drive("joint1")
         drive.enable()
-        wait_for(lambda: drive.snapshot().enabled, 10.0, "fresh")
+        wait_for(lambda: drive.snapshot().verdict.usable, 10.0, "fresh")
         apply_action(sim, {"action": "tpdos", "node": 1, "on": False})
-        wait_for(lambda: drive.snapshot().stale, 10.0, "stale")  # how soon: benchmarks (a test asserts no clock)
+        wait_for(lambda: stale(drive.snapshot()), 10.0, "stale")  # how soon: benchmarks (a test asserts no clock)
         state = drive.snapshot()
-        assert not state.enabled and state.data_age_s >= 0.05  # never before 5 SYNC periods of 10 ms
+        assert not state.verdict.usable and state.data_age_s >= 0.05  # never before 5 SYNC periods of 10 ms
         health = drive_health(state, heartbeat_period_s=0.1)
         assert health.level == ERROR and health.message.startswith("no data for ")
         apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
-        wait_for(lambda: not drive.snapshot().stale and drive.snapshot().enabled, 10.0, "fresh again")
+        wait_for(lambda: not stale(drive.snapshot()) and drive.snapshot().verdict.usable, 10.0, "fresh again")
 
 
 def test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_does_not(sim_factory: SimFactory) -> None:
@@ -152,7 +153,7 @@ def test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_doe
             node = bench.add_node(1, load_drive_od(GENERIC_EDS, 1))
             node.sdo.upload(0x1000, 0)  # a bench read (rovercan info, scan)
             time.sleep(0.6)
-            assert not drive.watch.foreign_master and drive.snapshot().enabled
+            assert not drive.watch.foreign_master and drive.snapshot().verdict.usable
             node.sdo.download(0x6065, 0, (1000).to_bytes(4, "little"))  # a write behind the driver's back
             wait_for(lambda: "SDO writes to node 1 from another client" in drive.watch.foreign_master, 1.0, "marked")
             runner = sim.simulators["can0"]
@@ -246,6 +247,6 @@ def test_a_drive_another_master_left_enabled_is_disabled_when_configured_again(s
             bench.disconnect()
         wait_for(lambda: not drive.watch.foreign_master and drive.cache.booted, 6.0, "configured again after the quiet period")
         assert sim_state(sim)[0] == "SWITCH_ON_DISABLED"
-        assert not drive.snapshot().enabled
+        assert not drive.snapshot().verdict.usable
         drive.enable()  # armed again only when asked
         drive.move_to(10.0, wait=True)

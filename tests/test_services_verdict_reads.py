@@ -24,7 +24,7 @@ def verdict(**facts: object) -> Verdict:
 
 def snapshot(state: State, fault: bool, facts: DriveFacts) -> DriveState:
     return DriveState(name="motor", node_id=1, angle_deg=10.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0,
-                      state=state, mode=1, nmt="OPERATIONAL", enabled=False, fault=fault, lost=False, error_code=0,
+                      state=state, mode=1, nmt="OPERATIONAL", error_code=0,
                       error_text="", stamp=1.0, heartbeat_age_s=0.01, target_reached=False, data_age_s=0.001, judged=(facts, judge(facts)))
 
 

@@ -190,7 +190,7 @@ def test_drive_processes_serve_the_rover_and_a_dead_one_stops_the_twin(tmp_path:
             driver.start()
             for drive in driver:
                 drive.enable()
-            assert all(d.snapshot().enabled for d in driver)
+            assert all(d.snapshot().verdict.usable for d in driver)
         os.kill(children[0], signal.SIGKILL)
         _, err = proc.communicate(timeout=60)
         assert proc.returncode == 1 and "the simulated drives of channel can" in err and "exited (-9)" in err, err

@@ -28,6 +28,7 @@ from virtual_can.sim import SimulatedDrive
 from virtual_can.sim.drive import State as SimState
 
 from .conftest import REPO, make_config, rovercan_sim, wait_for
+from .drive_states import fault
 
 DriverFactory = Callable[..., tuple[SimService, MotorDriver]]
 
@@ -115,10 +116,10 @@ def test_a_stall_saturates_the_torque_at_0x6072_and_faults_with_8611(driver_fact
     drive.move_to(90.0)
     samples = record(drive, 0.6)
     # 0x6072 = 3000 per mille of the rated 1 Nm: 3 Nm at the motor, 150 Nm at the joint
-    torques = [s.torque_nm for s in samples if not s.fault]
+    torques = [s.torque_nm for s in samples if not fault(s)]
     assert max(torques) == pytest.approx(3.0 * GEAR, rel=0.01)
     assert max(abs(s.angle_deg) for s in samples) < 0.01  # the shaft never turned
-    wait_for(lambda: drive.snapshot().fault, 1.0, "following-error fault")
+    wait_for(lambda: fault(drive.snapshot()), 1.0, "following-error fault")
     state = drive.snapshot()
     assert state.error_code == 0x8611, hex(state.error_code)
     apply_action(sim, {"node": 1, "action": "load", "stall": False})

@@ -23,6 +23,7 @@ from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
 from .conftest import make_config, wait_for
+from .drive_states import stale
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 
@@ -137,7 +138,7 @@ def test_frames_a_receive_callback_raises_on_are_counted_said_and_do_not_read_as
     for cob in [c for c, callbacks in network.subscribers.items() if decode in callbacks]:
         network.unsubscribe(cob, decode)
         network.subscribe(cob, broken_decoding)
-    wait_for(lambda: drive.snapshot().stale and rejected_count(driver) > 10, 10.0,
+    wait_for(lambda: stale(drive.snapshot()) and rejected_count(driver) > 10, 10.0,
              "its TPDOs rejected until its data is stale")
     rejected = driver.rejected(drive)
     assert rejected is not None and "broken_decoding: Boom: cannot decode 0x" in rejected.cause

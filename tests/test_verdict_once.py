@@ -20,6 +20,7 @@ from motor_driver.protocol.pdo import plan_pdos
 from motor_driver.protocol.units import Scale
 
 from .conftest import REPO
+from .drive_states import drive_state
 
 ENABLED, DISABLED = 0x0637, 0x0640  # Operation Enabled, Switch On Disabled
 ARMED = ("", True, "", "", 1)  # the channel's inputs: armed (enabled by this driver), no stop
@@ -79,13 +80,13 @@ def test_a_never_heard_drive_is_not_usable_however_its_state_was_made() -> None:
     for enabled, stale, lost, fault, nmt, age in itertools.product(
             (True, False), (False, True), (False, True), (False, True), ("OPERATIONAL", "UNKNOWN"),
             (math.inf, math.nan)):
-        state = DriveState(name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=ENABLED,
+        state = drive_state(name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=ENABLED,
                            state=State.OPERATION_ENABLED, mode=8, nmt=nmt, enabled=enabled, fault=fault, lost=lost,
                            error_code=0, error_text="", stamp=0.0, heartbeat_age_s=0.0, target_reached=False,
                            stale=stale, data_age_s=age)
         assert not state.verdict.usable, state
         assert not dataclasses.replace(state, name="w2").verdict.usable
-    made = DriveState(name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=ENABLED,
+    made = drive_state(name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=ENABLED,
                       state=State.OPERATION_ENABLED, mode=8, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
                       error_code=0, error_text="", stamp=0.0, heartbeat_age_s=0.0, target_reached=False)
     assert made.verdict.condition is Condition.LATE  # every default: never heard
@@ -113,11 +114,11 @@ def test_the_verdict_is_judged_again_only_when_an_input_changes() -> None:
 
 
 def _usable_state(**changes: object) -> DriveState:
-    state = DriveState(name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=ENABLED,
-                       state=State.OPERATION_ENABLED, mode=8, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
-                       error_code=0, error_text="", stamp=0.0, heartbeat_age_s=0.01, target_reached=False,
-                       data_age_s=0.01)
-    return dataclasses.replace(state, **changes)  # type: ignore[arg-type]
+    fields: dict[str, object] = dict(
+        name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=ENABLED,
+        state=State.OPERATION_ENABLED, mode=8, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
+        error_code=0, error_text="", stamp=0.0, heartbeat_age_s=0.01, target_reached=False, data_age_s=0.01)
+    return drive_state(**(fields | changes))
 
 
 def test_health_grades_a_drive_by_its_verdict_not_by_flags_of_its_own() -> None:

@@ -11,14 +11,18 @@ from motor_driver.drive.verdict import judge
 from motor_driver.protocol.cia402 import State
 from nodes.wheels import WheelsOut, odometry_sample, problems, wheel_problem
 
-BASE = DriveState(name="w1", node_id=1, angle_deg=90.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0637,
-                  state=State.OPERATION_ENABLED, mode=9, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
-                  error_code=0, error_text="", stamp=100.0, heartbeat_age_s=0.01, target_reached=False,
-                  data_age_s=0.01, stale=False, foreign_master="", reference=1, rx_monotonic=50.0)
+from .drive_states import drive_state
+
+BASE_FIELDS: dict[str, object] = dict(
+    name="w1", node_id=1, angle_deg=90.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0637,
+    state=State.OPERATION_ENABLED, mode=9, nmt="OPERATIONAL", enabled=True, fault=False, lost=False,
+    error_code=0, error_text="", stamp=100.0, heartbeat_age_s=0.01, target_reached=False,
+    data_age_s=0.01, stale=False, foreign_master="", reference=1, rx_monotonic=50.0)
+BASE = drive_state(**BASE_FIELDS)
 
 
 def state(**changes: object) -> DriveState:
-    return dataclasses.replace(BASE, **changes)  # type: ignore[arg-type]
+    return drive_state(**(BASE_FIELDS | changes))
 
 
 def test_each_cause_is_named_with_what_helps() -> None:

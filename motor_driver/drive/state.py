@@ -458,15 +458,14 @@ class DriveCache:
         sw, state = rx.statusword, facts.state
         error_code = facts.emcy_code
         data_age = facts.data_age_s
-        scale, lost = self.scale, facts.lost
+        scale = self.scale
         torque = scale.permille_to_nm(rx.torque_permille) if self._has_torque else math.nan
         return DriveState(
             name=self.name, node_id=self.node_id, angle_deg=scale.counts_to_deg(rx.position_counts),
             velocity_deg_s=scale.counts_s_to_deg_s(rx.velocity_counts_s), torque_nm=torque,
-            statusword=sw, state=state, mode=rx.mode, nmt=facts.nmt, enabled=verdict.usable,
-            fault=state in FAULT_STATES or lost, lost=lost, error_code=error_code,
+            statusword=sw, state=state, mode=rx.mode, nmt=facts.nmt, error_code=error_code,
             error_text=facts.emcy_text if error_code else "",
             stamp=rx.stamp, heartbeat_age_s=facts.heartbeat_age_s,
-            target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age, stale=self._stale(data_age),
+            target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age,
             foreign_master=facts.foreign_master, reference=rx.reference, rx_monotonic=rx.rx_monotonic,
             judged=(facts, verdict))

@@ -1,11 +1,12 @@
 """The values the state cache publishes: immutable, replaced whole, safe to read from any thread.
 
 A :class:`DriveState` is a drive's face: its verdict and the values published with it, made from
-one read of what the drive said (one :class:`Received`). Its flag fields (``enabled``, ``fault``,
-``lost``, ``stale``) are kept for the readers that still take them and are derived from the same
-facts; a reader reads ``verdict`` (:mod:`motor_driver.drive.verdict`). One made by hand (a
-recording's, a test's, ``dataclasses.replace``) is judged from its fields, with the same rule for
-data never heard (an infinite age: never usable, whatever the flags say).
+one read of what the drive said (one :class:`Received`). It offers no flags (enabled, fault, lost,
+stale, held): whether a drive may be driven, is measured, faulted or lost is its ``verdict``
+(:mod:`motor_driver.drive.verdict`), and a reader reads that and nothing else. One made by hand
+(a recording's, a test's) carries the facts it was judged from (``judged``), or is judged from
+its values as a booted drive heard by nobody else, with the same rule for data never heard (an
+infinite age: never usable).
 """
 
 from __future__ import annotations
@@ -39,20 +40,16 @@ class DriveState:
     state: State
     mode: int
     nmt: str
-    enabled: bool
-    fault: bool
-    lost: bool
     error_code: int
     error_text: str
     stamp: float  # time.time() when the PDOs carrying this state arrived
     heartbeat_age_s: float
     target_reached: bool
     data_age_s: float = math.inf  # since the last TPDO arrived
-    stale: bool = False  # no TPDO for stale_after_syncs SYNC periods: the values above are old
     foreign_master: str = ""  # evidence that another master drives it: commands are refused
     reference: int = 0  # the position reference (boot, homing, a reboot's jump start a new one)
     rx_monotonic: float = 0.0  # when the PDOs carrying this state arrived (monotonic; 0.0 never)
-    #: the facts and verdict the driver judged (the snapshot's); None: judged from the fields
+    #: the facts and verdict the driver judged (the snapshot's); None: judged from the values
     #: above (a snapshot made by hand, a test's or a recording's, and every dataclasses.replace)
     judged: InitVar[tuple[DriveFacts, Verdict] | None] = None
     #: what the driver knows of it, and the one judgement of it every consumer reads
@@ -60,10 +57,9 @@ class DriveState:
     verdict: Verdict = field(init=False, compare=False)
 
     def __post_init__(self, judged: tuple[DriveFacts, Verdict] | None) -> None:
-        if judged is None:  # judged from its own fields: a data age that is infinite (never heard) is late
-            facts = DriveFacts(self.name, data_age_s=self.data_age_s, stale_after_s=-1.0 if self.stale else math.inf,
-                               heartbeat_age_s=self.heartbeat_age_s, nmt=self.nmt, state=self.state, lost=self.lost,
-                               booted=True, foreign_master=self.foreign_master, armed=self.enabled,
+        if judged is None:  # judged from its own values: a data age that is infinite (never heard) is late
+            facts = DriveFacts(self.name, data_age_s=self.data_age_s, heartbeat_age_s=self.heartbeat_age_s,
+                               nmt=self.nmt, state=self.state, booted=True, foreign_master=self.foreign_master,
                                emcy_code=self.error_code, emcy_text=self.error_text)
             judged = facts, judge(facts)
         object.__setattr__(self, "facts", judged[0])

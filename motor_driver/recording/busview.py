@@ -46,7 +46,7 @@ from motor_driver.drive.position import PositionFilter
 from motor_driver.drive.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Received
 from motor_driver.drive.verdict import DriveFacts, Verdict, judge
-from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
+from motor_driver.protocol.cia402 import SW, State, decode_state
 from motor_driver.protocol.pdo import TpdoLayout, plan_pdos
 from motor_driver.protocol.units import Scale, scale_from_objects, unit_object_answer
 from motor_driver.recording.published import joint_entry, motor_state_fields
@@ -201,16 +201,14 @@ class ViewDrive:
         facts = self.facts(now)
         verdict = judge(facts)
         rx, scale = self.rx, self.scale
-        stale = facts.data_age_s > facts.stale_after_s
         code = self.emcy_code
         return DriveState(
             name=self.name, node_id=self.node_id, angle_deg=scale.counts_to_deg(rx.position_counts),
             velocity_deg_s=scale.counts_s_to_deg_s(rx.velocity_counts_s),
             torque_nm=scale.permille_to_nm(rx.torque_permille) if self.has_torque else math.nan,
-            statusword=rx.statusword, state=facts.state, mode=rx.mode, nmt=facts.nmt, enabled=verdict.usable,
-            fault=facts.state in FAULT_STATES or facts.lost, lost=facts.lost, error_code=code,
+            statusword=rx.statusword, state=facts.state, mode=rx.mode, nmt=facts.nmt, error_code=code,
             error_text=emcy_text(code) if code else "", stamp=rx.stamp, heartbeat_age_s=facts.heartbeat_age_s,
-            target_reached=bool(rx.statusword & SW.TARGET_REACHED), data_age_s=facts.data_age_s, stale=stale,
+            target_reached=bool(rx.statusword & SW.TARGET_REACHED), data_age_s=facts.data_age_s,
             reference=rx.reference, judged=(facts, verdict)), verdict
 
 
