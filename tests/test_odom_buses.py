@@ -4,8 +4,9 @@ drive system as rover_driver runs them, a probe on /odom, /tf and /joint_states
 (tests/test_odom_truth.py's Rover).
 
 - Samples of the two buses are paired by the moment they measured, not by the tick that reads
-  them: with SYNCs of 40 ms on can0 and 60 ms on can1 (every skew between their SYNCs, in turn),
-  driving straight on six identical wheels, /odom's heading stays put while the rover cruises,
+  them: with SYNCs of 60 ms on can0 and 90 ms on can1 (every skew between their SYNCs, in turn),
+  driving straight on six identical wheels, /odom's heading stays put while the rover cruises
+  (bar the simulator's own jitter),
   and at standstill it is the simulated wheels' own.
 - One bus dead while driving (can1 drops every frame for 175 /odom messages, 3.5 s at 50 Hz):
   no /odom with a measured covariance and no /tf stamped past the last can1 measurement, while
@@ -22,6 +23,7 @@ from typing import Any
 
 import pytest
 
+from can_config.errors import RovercanError
 from virtual_can.scenario import apply_action
 
 from .conftest import wait_for
@@ -35,13 +37,15 @@ from geometry_msgs.msg import Twist  # noqa: E402
 from motor_driver.rover.odometry import UNKNOWN_VARIANCE  # noqa: E402
 
 #: SYNC periods whose phases slide past each other: every skew between the buses' SYNCs comes by
-SKEWED_SYNCS_S = {"can0": 0.04, "can1": 0.06}
+SKEWED_SYNCS_S = {"can0": 0.06, "can1": 0.09}
 SPEED_M_S = 0.5
-#: /odom's heading may wander this much while cruising straight: the simulator's own timing (its
-#: physics ticks every 2 ms and answers a SYNC from its last tick) moves a wheel's sample by a few
-#: ms. Pairing a can0 sample with a can1 sample of another SYNC swings it by up to
-#: SPEED_M_S * 60 ms / 0.6 m = 50 mrad each way (86 mrad measured before the fix)
-CRUISE_YAW_SPREAD_RAD = 0.02
+#: /odom's heading may wander this much (its 10th to 90th percentile) while cruising straight: the
+#: simulator's own timing (its physics ticks every 2 ms and answers a SYNC from its last tick; on a
+#: loaded machine a runner late by some ms stamps a sample later than it measured) moves a wheel's
+#: sample by a few ms, now and then by more (10th-90th percentile 4 mrad idle, up to 25 mrad at a
+#: load of 8 on two cores). Pairing a can0 sample with a can1 sample of another SYNC swings it by
+#: up to SPEED_M_S * 90 ms / 0.6 m = 75 mrad each way (72 mrad measured before the fix)
+CRUISE_YAW_SPREAD_RAD = 0.03
 STANDSTILL_YAW_TOLERANCE_RAD = 0.002
 LOSS_ODOM_MESSAGES = 175  # 3.5 s at odom_rate_hz 50
 #: a measured /odom is stamped at most this much past its newest can1 sample: the bus stamp
@@ -97,13 +101,35 @@ def test_straight_on_two_buses_with_skewed_syncs_keeps_the_heading(skewed: Rover
     rover.drive_until(SPEED_M_S, 0.0, lambda: rover.odom[-1].pose.pose.position.x > 2.5, "2.5 m straight")
     cruise = [yaw(m) for m in rover.odom if 0.5 < m.pose.pose.position.x <= 2.5 and measured(m)]
     assert len(cruise) > 50, len(cruise)
-    assert max(cruise) - min(cruise) < CRUISE_YAW_SPREAD_RAD, (min(cruise), max(cruise))
+    cruise.sort()
+    low, high = cruise[len(cruise) // 10], cruise[-1 - len(cruise) // 10]  # the 10th and 90th percentiles
+    assert high - low < CRUISE_YAW_SPREAD_RAD, (low, high, cruise[0], cruise[-1])
     rover.cmd.publish(Twist())
     rover.stand_still()
     seen = len(rover.odom)
     wait_for(lambda: len(rover.odom) > seen + 5 and measured(rover.odom[-1]), 30.0, "/odom at standstill")
     truth = sim_wheel_yaw(rover) - start
     assert abs(yaw(rover.odom[-1]) - truth) < STANDSTILL_YAW_TOLERANCE_RAD, (yaw(rover.odom[-1]), truth)
+
+
+def arm_when_back(rover: Rover) -> None:
+    """Every wheel enabled once it is configured again: an enable refused meanwhile (its
+    re-configuration under way, an SDO unanswered on a crowded machine) is tried again."""
+    for name in LEFT + RIGHT:
+        drive = rover.driver.drive(name)
+
+        def armed(drive: Any = drive) -> bool:
+            if drive.snapshot().verdict.usable:
+                return True
+            if not drive.cache.booted or drive.cache.lost:
+                return False
+            try:
+                drive.enable()
+            except RovercanError:
+                return False
+            return bool(drive.snapshot().verdict.usable)
+
+        wait_for(armed, 60.0, f"{name} armed again")
 
 
 def newest_can1_stamp(rover: Rover) -> float:
@@ -130,7 +156,7 @@ def test_a_dead_bus_publishes_nothing_measured_and_the_rover_drives_again(rover:
                if stamp_s(t) > last_can1 + STAMP_SLACK_S]
     assert not tf_late, f"/tf stamped past can1's last sample by {tf_late[:5]}"
 
-    rover.arm()  # can1's wheels configured again, disabled: armed again, as after any loss
+    arm_when_back(rover)  # can1's wheels configured again, disabled: armed again, as after any loss
     x = rover.odom[-1].pose.pose.position.x
     tf_back = len(rover.tf)
     rover.drive_until(0.3, 0.0, lambda: measured(rover.odom[-1]) and rover.odom[-1].pose.pose.position.x > x + 0.2,
