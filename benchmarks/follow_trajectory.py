@@ -47,7 +47,7 @@ import stack_run
 from stack_run import REPO, proc_cpu_s, simulator, unboosted
 
 sys.path.insert(0, str(REPO))
-from motor_driver.drive.trajectory import Spline, sample_times
+from motor_driver.follow.trajectory import Spline, sample_times
 
 JOINTS = [f"j{i}" for i in range(1, 7)]
 AMPLITUDE_DEG = 30.0

@@ -50,8 +50,8 @@ from tf2_msgs.msg import TFMessage
 from can_config import RoverConfig
 from can_config.errors import RovercanError
 from motor_driver import Drive, MotorDriver
+from motor_driver.diagnostics.health import ERROR, OK, WARN
 from motor_driver.drive import DriveState
-from motor_driver.drive.health import ERROR, OK, WARN
 from motor_driver.drive.verdict import UNREACHABLE, Condition
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.protocol.units import DEG_PER_RAD

@@ -42,8 +42,8 @@ from std_msgs.msg import Float32
 
 from can_config.errors import ConfigError, RovercanError
 from motor_driver import Drive, DriveState, MotorDriver
-from motor_driver.drive.frameloss import Counts, FrameLoss, Loss, total
-from motor_driver.drive.health import JOB_FAULT_RECENT_S, OK, WARN, Rejections, bus_health, drive_health, with_boot
+from motor_driver.diagnostics.frameloss import Counts, FrameLoss, Loss, total
+from motor_driver.diagnostics.health import JOB_FAULT_RECENT_S, OK, WARN, Rejections, bus_health, drive_health, with_boot
 from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.recording.published import joint_entry
 from nodes.handoff import Handoff

@@ -15,7 +15,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from motor_driver.bus.link import RISING, STATES, XSTATS_FIELDS, KernelBusHealth, health_from_link, rising
-from motor_driver.drive.health import ERROR, OK, WARN, bus_health
+from motor_driver.diagnostics.health import ERROR, OK, WARN, bus_health
 
 from .conftest import REPO
 

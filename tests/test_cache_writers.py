@@ -1,4 +1,4 @@
-"""One writer per field of the state cache (motor_driver/drive/state.py): what a worker learns by
+"""One writer per field of the state cache (motor_driver/drive/received/state.py): what a worker learns by
 SDO (a mode switch confirmed, boot's seed), boot's NMT start and its guarding restart are fields
 of their own, never a read-modify-write of the receive thread's. Each interleaving is forced by a
 hook inside the receive thread's decoding (between its read of the state and its write)."""
@@ -11,7 +11,7 @@ from can_config import load_config
 from can_config.eds import load_drive_od
 from can_config.objects import NmtState
 from motor_driver.drive.ledger import DriveRuntime, RuntimePort
-from motor_driver.drive.state import DriveCache
+from motor_driver.drive.received.state import DriveCache
 from motor_driver.protocol.pdo import plan_pdos
 from motor_driver.protocol.units import Scale
 

@@ -20,8 +20,8 @@ from can_config import load_drive_od
 from can_config.config import GENERIC_EDS
 from can_config.errors import CommandRejected, DriveStateError
 from can_config.objects import OperationMode
-from motor_driver.drive.busy import Op
-from motor_driver.drive.channel import CommandChannel
+from motor_driver.drive.command.busy import Op
+from motor_driver.drive.command.channel import CommandChannel
 from motor_driver.protocol.cia402 import Command
 from motor_driver.protocol.pdo import plan_pdos
 

@@ -16,7 +16,7 @@ import pytest
 
 from can_config import RoverConfig
 from motor_driver import MotorDriver
-from motor_driver.drive.health import ERROR, drive_health
+from motor_driver.diagnostics.health import ERROR, drive_health
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 

@@ -19,9 +19,9 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import TrajectoryRejected
 from motor_driver import MotorDriver
-from motor_driver.drive.trajectory import Spline
 from motor_driver.follow import GoalRun, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
 from motor_driver.follow.goal import PREEMPTED
+from motor_driver.follow.trajectory import Spline
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 

@@ -1,4 +1,4 @@
-"""Frames lost, measured and said (motor_driver/drive/frameloss.py; the driver node's /diagnostics):
+"""Frames lost, measured and said (motor_driver/diagnostics/frameloss.py; the driver node's /diagnostics):
 per drive, the TPDOs it sends every SYNC expected against received, and its heartbeats due in
 the window against received, over a window of SYNC periods; a WARN above the config's
 ``frame_loss_warn_percent``; the bus's figure in its status. The live test drops 5 % of the
@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from can_config import RoverConfig
 from motor_driver import MotorDriver
-from motor_driver.drive.frameloss import Counts, FrameLoss, Loss, heartbeats_due, total
+from motor_driver.diagnostics.frameloss import Counts, FrameLoss, Loss, heartbeats_due, total
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 

@@ -19,7 +19,7 @@ from mcap_ros2.decoder import DecoderFactory
 from can_config import load_config
 from can_config.eds import load_drive_od
 from motor_driver.drive.ledger import DriveRuntime, RuntimePort
-from motor_driver.drive.state import DriveCache
+from motor_driver.drive.received.state import DriveCache
 from motor_driver.protocol.pdo import plan_pdos
 from motor_driver.protocol.units import Scale
 from motor_driver.recording.mcap_out import write_mcap

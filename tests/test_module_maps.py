@@ -35,7 +35,7 @@ def exists(name: str) -> bool:
 
 
 def resolve(reference: str, package: str) -> str:
-    """``:mod:`.state``` inside ``motor_driver.drive`` is ``motor_driver.drive.state``."""
+    """``:mod:`.state``` inside ``motor_driver.drive`` is ``motor_driver.drive.received.state``."""
     if not reference.startswith("."):
         return reference
     level = len(reference) - len(reference.lstrip("."))
@@ -106,7 +106,7 @@ def test_the_core_keeps_its_layers(package: str) -> None:
 
 
 #: motor_driver's folders, lowest first: each imports only folders before it (rover/ stands alone).
-FOLDER_ORDER = ("process", "protocol", "rover", "bus", "drive", "follow", "recording", "runtime")
+FOLDER_ORDER = ("process", "protocol", "rover", "bus", "drive", "diagnostics", "follow", "recording", "runtime")
 
 
 def folder_imports(root: Path) -> list[tuple[str, str, str]]:
@@ -208,3 +208,65 @@ def test_no_import_circle_in_the_product() -> None:
 def test_the_circle_scan_finds_a_circle() -> None:
     assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert circles({"a": {"b"}, "b": set()}) == []
+
+
+def room_crossings(root: Path, package: str, floors: tuple[tuple[str, ...], ...], shared: tuple[str, ...],
+                   allowed: dict[tuple[str, str], str]) -> list[str]:
+    """Imports inside ``package`` that break its rooms' order: a room (a folder of ``floors``)
+    imports only rooms on a floor below its own and the ``shared`` modules of the package's top; a
+    shared module imports only shared modules; neither imports the package itself (its
+    ``__init__`` composes everything). The rest of the top (the facade, the entry points)
+    composes the rooms: it may import any. ``allowed``: crossings kept, each with its reason."""
+    base = root.joinpath(*package.split("."))
+    floor = {room: i for i, rooms in enumerate(floors) for room in rooms}
+    found = []
+    for path in sorted(base.rglob("*.py")):
+        parts = path.relative_to(base).parts
+        here = parts[0] if len(parts) > 1 else path.stem
+        if here not in floor and here not in shared:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [alias.name for alias in node.names] if isinstance(node, ast.Import) else (
+                [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module else [])
+            for name in names:
+                if name != package and not name.startswith(package + "."):
+                    continue
+                there = name[len(package) + 1:].split(".")[0] if name != package else "__init__"
+                fits = there in shared if here in shared else (
+                    there == here or there in shared or (there in floor and floor[there] < floor[here]))
+                file = str(path.relative_to(root))
+                if not fits and (file, name) not in allowed:
+                    found.append(f"{file}: {here} imports {name}")
+    return found
+
+
+def test_the_room_scan_finds_a_crossing(tmp_path: Path) -> None:
+    for name, text in {"pkg/__init__.py": "", "pkg/low/__init__.py": "", "pkg/low/a.py": "import pkg.high.b\n",
+                       "pkg/high/__init__.py": "", "pkg/high/b.py": "from pkg.low import a\n",
+                       "pkg/face.py": "from pkg.low.a import x\n"}.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    floors = (("low",), ("high",))
+    assert room_crossings(tmp_path, "pkg", floors, (), {}) == ["pkg/low/a.py: low imports pkg.high.b"]
+    assert room_crossings(tmp_path, "pkg", floors, ("face",), {}) == ["pkg/face.py: face imports pkg.low.a",
+                                                                      "pkg/low/a.py: low imports pkg.high.b"]
+    assert room_crossings(tmp_path, "pkg", floors, (), {("pkg/low/a.py", "pkg.high.b"): "why"}) == []
+
+
+#: motor_driver/drive's rooms, named by the thread that owns their state, lowest first; the
+#: shared modules of its top import no room; the facade (and __init__) composes them all.
+DRIVE_FLOORS = (("received",), ("command",), ("setup",))
+DRIVE_SHARED = ("constants", "verdict", "values", "ledger", "sdo")
+#: The crossings the order keeps, each with its reason: (file, module it imports).
+DRIVE_CROSSINGS = {("motor_driver/drive/command/power.py", "motor_driver.drive.setup.hostwatch"):
+                   "power reads the host watch boot configured (whether the drive watches the host, another"
+                   " master): reads of the bus worker's room, never a write"}
+
+
+def test_drive_is_rooms_by_owner_in_one_order() -> None:
+    rooms = sorted(p.parent.name for p in (REPO / "motor_driver" / "drive").glob("*/__init__.py"))
+    assert rooms == sorted(r for floor in DRIVE_FLOORS for r in floor), f"drive's rooms {rooms} against DRIVE_FLOORS"
+    found = room_crossings(REPO, "motor_driver.drive", DRIVE_FLOORS, DRIVE_SHARED, DRIVE_CROSSINGS)
+    assert not found, "imports against drive's order of rooms:\n" + "\n".join(found)
+    kept = {key for key in DRIVE_CROSSINGS if key[1] in (REPO / key[0]).read_text()}
+    assert kept == set(DRIVE_CROSSINGS), f"crossings no longer made (drop them): {set(DRIVE_CROSSINGS) - kept}"

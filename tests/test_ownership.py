@@ -156,7 +156,7 @@ def test_the_check_finds_a_write_into_another_part() -> None:
 def test_only_the_supervisor_writes_the_runtime_state() -> None:
     decl = declarations()
     writes = "def f(runtime, bus):\n    runtime.lost = True\n    bus.backoff_s = 1.0\n"
-    for module in ("motor_driver/drive/state.py", "motor_driver/drive/boot.py", "motor_driver/drive/hostwatch.py",
+    for module in ("motor_driver/drive/received/state.py", "motor_driver/drive/setup/boot.py", "motor_driver/drive/setup/hostwatch.py",
                    "nodes/rover_driver.py"):
         others = {m: n for m, n in decl.items() if m != module and m in reach(REPO / module)}
         assert len(violations(writes, set(), others, module)) == 2, module
@@ -174,7 +174,7 @@ def test_a_write_across_packages_is_found() -> None:
 
 def test_the_parts_are_composed_not_stacked() -> None:
     """Every class of the drive package stands alone (no base class of the package)."""
-    for path in sorted(DRIVE.glob("*.py")):
+    for path in sorted(DRIVE.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ClassDef):
                 bases = [ast.unparse(b) for b in node.bases]

@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from motor_driver.drive.constants import MEASURED_SPEED_CAP
-from motor_driver.drive.position import JUMP_CONFIRMATIONS, PositionFilter
+from motor_driver.drive.received.position import JUMP_CONFIRMATIONS, PositionFilter
 
 PERIOD_S = 0.01
 LIMIT_COUNTS_S = 1_000

@@ -23,8 +23,8 @@ from can_config import RoverConfig
 from can_config.errors import BootError, ConfigError
 from motor_driver import MotorDriver
 from motor_driver.drive import Drive
-from motor_driver.drive.boot import configuration_stamp
 from motor_driver.drive.ledger import DriveRuntime
+from motor_driver.drive.setup.boot import configuration_stamp
 from motor_driver.protocol.cia402 import State
 from motor_driver.protocol.pdo import mapping_writes
 from virtual_can import SimService
@@ -167,7 +167,7 @@ def test_a_reset_at_the_first_write_of_0x1600_is_not_booted_before_it_is_configu
                 states_when_booted.append(driver.drive("joint1").cache.state)
 
     hook = AtBooted()
-    logging.getLogger("motor_driver.drive.boot").addHandler(hook)
+    logging.getLogger("motor_driver.drive.setup.boot").addHandler(hook)
     caplog.set_level(logging.INFO, logger="motor_driver")
     try:
         with driver:
@@ -181,7 +181,7 @@ def test_a_reset_at_the_first_write_of_0x1600_is_not_booted_before_it_is_configu
             assert states_when_booted[0] is not State.UNKNOWN
             assert_enabled_as_asked(sim, drive)
     finally:
-        logging.getLogger("motor_driver.drive.boot").removeHandler(hook)
+        logging.getLogger("motor_driver.drive.setup.boot").removeHandler(hook)
 
 
 def test_a_drive_that_keeps_resetting_is_a_boot_error_naming_it(

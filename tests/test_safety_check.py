@@ -13,7 +13,7 @@ import pytest
 
 from can_config import load_config
 from motor_driver import MotorDriver, State
-from motor_driver.drive.health import ERROR, WARN, drive_health
+from motor_driver.diagnostics.health import ERROR, WARN, drive_health
 from motor_driver.protocol.safety import FAIL, PASS
 from virtual_can import SimService
 

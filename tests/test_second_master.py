@@ -12,7 +12,7 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import DriveStateError
 from motor_driver import MotorDriver, State
-from motor_driver.drive.health import ERROR, drive_health
+from motor_driver.diagnostics.health import ERROR, drive_health
 from motor_driver.runtime.driver import FOREIGN_HOLD_S
 from virtual_can import SimService
 from virtual_can.scenario import apply_action

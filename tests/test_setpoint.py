@@ -15,7 +15,7 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import CommandRejected
 from motor_driver import Drive, MotorDriver
-from motor_driver.drive.setpoint import SetpointHandshake
+from motor_driver.drive.command.setpoint import SetpointHandshake
 from virtual_can import SimService
 
 from .conftest import make_config, wait_for

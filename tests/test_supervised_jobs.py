@@ -2,7 +2,7 @@
 lists) forced into each background job of the driver (a bus's reconnect, a drive's
 re-configuration, the supervisor's period, a receive callback) is logged with its cause, counted,
 and ends in a retry or a stop, and the driver's status for /diagnostics says so
-(:func:`motor_driver.drive.health.jobs_health`, :func:`motor_driver.drive.health.drive_health`). The driver
+(:func:`motor_driver.diagnostics.health.jobs_health`, :func:`motor_driver.diagnostics.health.drive_health`). The driver
 runs on the simulator over socketcand; each verdict waits for an outcome (a hang bound, no clock)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import pytest
 
 from can_config import RoverConfig
 from motor_driver import MotorDriver
-from motor_driver.drive.health import ERROR, WARN, Rejections, drive_health
+from motor_driver.diagnostics.health import ERROR, WARN, Rejections, drive_health
 from motor_driver.runtime import supervise_bus as supervise_bus_module
 from motor_driver.runtime.supervisor import SUPERVISOR_FAILURES_MAX
 from virtual_can import SimService

@@ -1,4 +1,4 @@
-"""motor_driver.drive.trajectory: the streamed point-to-point move is a trapezoid that ends exactly on
+"""motor_driver.follow.trajectory: the streamed point-to-point move is a trapezoid that ends exactly on
 its target and never asks for more than the speed or the acceleration it was given."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import math
 import pytest
 
 from can_config.errors import CommandRejected
-from motor_driver.drive.trajectory import Spline, evaluate, sample_times, segment, trapezoid
+from motor_driver.follow.trajectory import Spline, evaluate, sample_times, segment, trapezoid
 
 PERIOD_S = 0.01
 

@@ -14,7 +14,7 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import DriveStateError
 from motor_driver import MotorDriver
-from motor_driver.drive.health import ERROR, OK, drive_health
+from motor_driver.diagnostics.health import ERROR, OK, drive_health
 from motor_driver.drive.verdict import Condition
 from virtual_can import SimService
 from virtual_can.scenario import apply_action

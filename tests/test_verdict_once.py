@@ -12,7 +12,7 @@ import time
 from can_config import load_config
 from can_config.eds import load_drive_od
 from motor_driver.drive.ledger import DriveRuntime, RuntimePort
-from motor_driver.drive.state import DriveCache
+from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.values import DriveState, Received
 from motor_driver.drive.verdict import Condition
 from motor_driver.protocol.cia402 import State, decode_state
@@ -125,7 +125,7 @@ def test_health_grades_a_drive_by_its_verdict_not_by_flags_of_its_own() -> None:
     """drive/health.py had its own rules for a drive: "bus lost" from the bus's flag and "heartbeat
     late" from the heartbeat's age, whatever the verdict said. A usable verdict is OK; a lost one is
     the verdict's ERROR with its cause (fails on b9f6386: ERROR "bus lost", WARN "heartbeat late")."""
-    from motor_driver.drive.health import ERROR, OK, drive_health
+    from motor_driver.diagnostics.health import ERROR, OK, drive_health
 
     usable = _usable_state(heartbeat_age_s=0.5)  # an old heartbeat the verdict does not count as lost
     assert usable.verdict.usable

@@ -32,17 +32,17 @@ from can_config.config import DriveConfig
 from can_config.errors import BusLostError
 from can_config.objects import OD, FunctionCode, OperationMode
 from motor_driver.bus.sdo_client import OwnAnswersNode
-from motor_driver.drive.boot import Boot
-from motor_driver.drive.channel import CommandChannel
+from motor_driver.drive.command.channel import CommandChannel
+from motor_driver.drive.command.homing import Homing
+from motor_driver.drive.command.limits import LimitGuard
+from motor_driver.drive.command.motion import Motion
+from motor_driver.drive.command.power import PowerStateMachine
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
-from motor_driver.drive.homing import Homing
-from motor_driver.drive.hostwatch import Host, HostWatch
 from motor_driver.drive.ledger import DriveRuntime, NmtLedger, RuntimePort
-from motor_driver.drive.limits import LimitGuard
-from motor_driver.drive.motion import Motion
-from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache
+from motor_driver.drive.setup.boot import Boot
+from motor_driver.drive.setup.hostwatch import Host, HostWatch
 from motor_driver.drive.values import DriveState
 from motor_driver.drive.verdict import Verdict
 from motor_driver.protocol.pdo import PdoPlan, plan_pdos
@@ -148,7 +148,7 @@ class Drive:
         self.motion.wait_target_reached(timeout_s)
 
     # at_once: frames only; a command that would wait for the drive (a mode switch, a target by
-    # SDO) raises CommandWouldWait before anything is sent (motor_driver/drive/motion.py)
+    # SDO) raises CommandWouldWait before anything is sent (motor_driver/drive/command/motion.py)
     def set_velocity(self, velocity_deg_s: float, *, at_once: bool = False) -> None:
         self.motion.set_velocity(velocity_deg_s, at_once=at_once)
 

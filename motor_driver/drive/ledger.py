@@ -109,7 +109,7 @@ class Booting:
 @dataclass(frozen=True)
 class Booted:
     """A boot of ``drive`` ended with NMT start, its configuration confirmed with the drive's
-    boot-ups (:attr:`motor_driver.drive.state.DriveCache.bootups`) at ``bootups``: a boot-up heard
+    boot-ups (:attr:`motor_driver.drive.received.state.DriveCache.bootups`) at ``bootups``: a boot-up heard
     beyond them is a reset since."""
 
     drive: str

@@ -31,11 +31,11 @@ its own) before "not armed". Only ``usable`` may be driven or counted by odometr
 
 Where each input comes from, one writer each (:meth:`motor_driver.drive.DriveCache.facts` reads
 them): the data's age, the statusword, the NMT state, the heartbeat's age and the EMCY are the
-bus's receive thread's (:mod:`motor_driver.drive.state`; boot's NMT start is a field of its own
+bus's receive thread's (:mod:`motor_driver.drive.received.state`; boot's NMT start is a field of its own
 there), and so is ``fault_seen`` (the receive thread counts the FAULT statuswords; boot and the
 command threads each acknowledge them in a field of their own); lost, booted, re-booting and another master are the supervisor's
 (:mod:`motor_driver.runtime`); ``armed`` and ``stopped_by`` are the command channel's
-(:mod:`motor_driver.drive.channel`, under its lock), and so is ``held`` (motion held: the
+(:mod:`motor_driver.drive.command.channel`, under its lock), and so is ``held`` (motion held: the
 lifecycle node inactive); ``left_out`` is the drive system's control
 loop's (``nodes/drive_system.py``), which judges a copy of the facts with it set. A reader of a
 recording judges the facts it rebuilds from the frames the same way (``judge(DriveFacts(...))``;

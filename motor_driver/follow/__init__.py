@@ -4,7 +4,8 @@ bus's SYNC clock, no rclpy (the node: nodes/follow_trajectory.py).
 What lives where: :mod:`motor_driver.follow.group` (:class:`TrajectoryGroup`: the group's thread,
 tolerances, cancel, preemption, the stop ramp), :mod:`motor_driver.follow.checks` (the checks before
 anything moves), :mod:`motor_driver.follow.goal` (the goal, the standard's codes, a run's outcome and
-progress); the spline itself is :mod:`motor_driver.drive.trajectory`'s.
+progress), :mod:`motor_driver.follow.trajectory` (the spline, and the streamed move's set-points: pure
+generators).
 
 Owner: each group's own thread (``rovercan-follow-<group>``) runs a goal; a caller's thread hands
 it goals and cancels, and reads its progress.

@@ -11,8 +11,8 @@ from can_config.errors import CommandRejected
 from can_config.model import TrajectoryGroupConfig
 from motor_driver.drive import Drive
 from motor_driver.drive.constants import ENABLED_CW_MASK
-from motor_driver.drive.trajectory import Knot, Spline, sample_times
 from motor_driver.follow.goal import Plan, Tolerance, TrajectoryCode, TrajectoryGoal, refuse
+from motor_driver.follow.trajectory import Knot, Spline, sample_times
 
 #: Slack on the velocity limit for the sampled set-points (rounding of a spline that touches it).
 VELOCITY_SLACK = 1e-6

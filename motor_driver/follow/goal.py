@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 from can_config.errors import TrajectoryRejected
-from motor_driver.drive.trajectory import Knot
+from motor_driver.follow.trajectory import Knot
 
 
 class TrajectoryCode(IntEnum):

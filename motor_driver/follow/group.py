@@ -18,7 +18,7 @@ joint's next set-point then, a CSP (or IP) set-point through the drive's command
 (``stream_position``), so a stop still wins. The trajectory's time is the monotonic clock's, from
 the plan's time zero (:attr:`GoalRun.start_at`: its acceptance, or its header stamp), read at the
 sample's reception (its SYNC): the set-point sent is the spline at the next SYNC's time, where the
-drive takes it (:class:`motor_driver.drive.trajectory.Spline`). Each set-point advances the plan by
+drive takes it (:class:`motor_driver.follow.trajectory.Spline`). Each set-point advances the plan by
 the SYNCs the receive thread counted and closes a share of the gap to the clock (:data:`CLOCK_GAIN`:
 a receive thread's jitter is no jump, a SYNC producer off its period no stretch); a SYNC the thread
 let go is caught up in the next set-point, never stretched. Whatever must happen before
@@ -58,7 +58,6 @@ from dataclasses import dataclass, field
 from can_config.errors import RovercanError
 from can_config.model import TrajectoryGroupConfig
 from motor_driver.drive import Drive
-from motor_driver.drive.trajectory import Knot, Spline
 from motor_driver.follow.checks import GoalChecks
 from motor_driver.follow.goal import (
     PREEMPTED,
@@ -70,6 +69,7 @@ from motor_driver.follow.goal import (
     TrajectoryGoal,
     refuse,
 )
+from motor_driver.follow.trajectory import Knot, Spline
 
 logger = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Background work supervised: a job that fails in a way nobody foresaw (an exception of any
 type its own code does not handle) is logged with its cause, counted per kind of job, and handed
 to the caller's ``on_fail`` (which retries it with its back-off, or stops), instead of ending in
-a Future nobody reads. The counts are in /diagnostics (:func:`motor_driver.drive.health.jobs_health`).
+a Future nobody reads. The counts are in /diagnostics (:func:`motor_driver.diagnostics.health.jobs_health`).
 
 Kinds (:data:`JOB_KINDS`): ``reconnect`` (a lost bus opened again), ``reconfigure`` (a drive
 configured again after a reset), ``restore_enable`` (its enable again after that, where the

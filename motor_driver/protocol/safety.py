@@ -1,6 +1,6 @@
 """What keeps a drive safe when the host is gone, read back from the drive and judged (pure).
 
-The driver writes these objects at boot (:meth:`motor_driver.drive.boot.Boot.boot`); the same
+The driver writes these objects at boot (:meth:`motor_driver.drive.setup.boot.Boot.boot`); the same
 rules judge what a drive reports afterwards, in the driver (after every boot, shown in
 /diagnostics) and in ``rovercan safety-check`` (from the bus, by anyone):
 

@@ -20,7 +20,7 @@ and hands out messages as plain dicts (``emit(topic, type, message, time_ns)``, 
   judged by the live /diagnostics' own rules (:func:`drive_row`).
 
 Every value is the driver's own conversion: its TPDO decoder and position filter
-(:func:`motor_driver.drive.tpdo.decode_tpdo`), its units (:func:`motor_driver.protocol.units.scale_from_objects`:
+(:func:`motor_driver.drive.received.tpdo.decode_tpdo`), its units (:func:`motor_driver.protocol.units.scale_from_objects`:
 the drive's unit objects as its SDO answers to the driver's boot show them on the bus, or as a
 recording's metadata gives them, else the config's, which :meth:`BusView.units` says), its
 verdict (:func:`motor_driver.drive.verdict.judge`) and its topics' conversion (:mod:`motor_driver.recording.published`).
@@ -41,9 +41,9 @@ from can_config.eds import load_drive_od
 from can_config.errors import UnitError
 from can_config.model import RoverConfig
 from can_config.objects import OD, FunctionCode, NmtState, OperationMode, emcy_text
-from motor_driver.drive.health import ERROR, OK, STALE, WARN, drive_health
-from motor_driver.drive.position import PositionFilter
-from motor_driver.drive.tpdo import decode_tpdo
+from motor_driver.diagnostics.health import ERROR, OK, STALE, WARN, drive_health
+from motor_driver.drive.received.position import PositionFilter
+from motor_driver.drive.received.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Received
 from motor_driver.drive.verdict import DriveFacts, Verdict, judge
 from motor_driver.protocol.cia402 import SW, State, decode_state
@@ -230,7 +230,7 @@ def view_drives(config: RoverConfig, units: Mapping[str, UnitObjects] | None = N
 
 def drive_row(state: DriveState, verdict: Verdict, config: DriveConfig) -> tuple[int, str, dict[str, object]]:
     """A drive's /diagnostics level, message and values, by the live /diagnostics' rules
-    (:func:`motor_driver.drive.health.drive_health`), with the verdict on it."""
+    (:func:`motor_driver.diagnostics.health.drive_health`), with the verdict on it."""
     health = drive_health(state, heartbeat_period_s=config.heartbeat_period_s)
     return health.level, health.message, {**health.values, "verdict": verdict.text()}
 

@@ -11,7 +11,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from can_config.model import RoverConfig
-from motor_driver.drive.health import ERROR
+from motor_driver.diagnostics.health import ERROR
 from motor_driver.recording.busview import FROM_DRIVER, BusView, Frame, UnitObjects, view_drives
 from motor_driver.recording.mcap_out import UNITS_METADATA, McapSink, units_metadata
 

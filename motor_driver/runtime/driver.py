@@ -71,8 +71,8 @@ from motor_driver.bus.traffic import (
     look_window_s,
     other_master_error,
 )
+from motor_driver.diagnostics.health import Health, jobs_health
 from motor_driver.drive import Drive, DriveState
-from motor_driver.drive.health import Health, jobs_health
 from motor_driver.protocol.cia402 import State
 from motor_driver.recording.flight import FlightRecorder
 from motor_driver.runtime.supervisor import SUPERVISOR_PERIOD_S, Supervisor

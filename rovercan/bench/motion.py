@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from can_config.errors import CommandRejected, ConfigError
 from can_config.objects import SUPPORTED_MODE_BIT, OperationMode
-from motor_driver.drive.trajectory import trapezoid
+from motor_driver.follow.trajectory import trapezoid
 from rovercan.argtypes import real
 from rovercan.bench.common import CliError, add_bus_args, add_drive_args, add_json, add_master_flags, bench_driver, emit
 
@@ -107,7 +107,7 @@ def command_angle(drive: Drive, angle_deg: float) -> float:
 def stream_to(drive: Drive, target_deg: float, speed_deg_s: float | None = None,
               on_tick: Callable[[], None] | None = None) -> float:
     """A move on a drive whose only position modes are cyclic or interpolated (the SCHUNK PRL120):
-    a trapezoid of set-points (:func:`motor_driver.drive.trajectory.trapezoid`), one per SYNC period,
+    a trapezoid of set-points (:func:`motor_driver.follow.trajectory.trapezoid`), one per SYNC period,
     through the driver's streaming path (limits enforced there), then waits until the joint is
     within 0.2 deg. Returns the target."""
     cfg = drive.config

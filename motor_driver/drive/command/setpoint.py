@@ -34,7 +34,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from motor_driver.drive.state import DriveCache
+    from motor_driver.drive.received.state import DriveCache
 
 #: SYNC periods to wait for a position sampled after a mode switch (one more is a bound).
 SAMPLES_AFTER_SWITCH = 3

@@ -16,9 +16,9 @@ import time
 
 from can_config.config import DriveConfig
 from can_config.errors import CommandRejected
-from motor_driver.drive.channel import CommandChannel, LockedCommand
+from motor_driver.drive.command.channel import CommandChannel, LockedCommand
 from motor_driver.drive.constants import LIMIT_ACCEL_MARGIN_S, LIMIT_MARGIN_S, MAX_EXTRAPOLATION_S, TORQUE_MODES, VELOCITY_MODES
-from motor_driver.drive.state import DriveCache
+from motor_driver.drive.received.state import DriveCache
 from motor_driver.protocol.cia402 import Command, State
 
 logger = logging.getLogger(__name__)

@@ -36,7 +36,7 @@ from can_config.config import ON_HOST_LOSS, DriveConfig
 from can_config.eds import has_object
 from can_config.errors import MotorError, SdoError
 from can_config.objects import OD, FunctionCode, NmtCommand, sdo_abort_text
-from motor_driver.drive.channel import CommandChannel
+from motor_driver.drive.command.channel import CommandChannel
 from motor_driver.drive.constants import (
     NO_HOST_WATCH,
     QUICK_STOP_THEN_DISABLE,
@@ -45,8 +45,8 @@ from motor_driver.drive.constants import (
     WATCH_START_PERIODS,
 )
 from motor_driver.drive.ledger import DriveRuntime, NmtLedger
+from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache
 from motor_driver.protocol.cia402 import Command, State
 from motor_driver.protocol.safety import guard_settings
 

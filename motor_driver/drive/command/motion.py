@@ -26,14 +26,14 @@ from typing import NamedTuple
 from can_config.config import DriveConfig
 from can_config.errors import CommandRejected, CommandWouldWait, DriveStateError, DriveTimeoutError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
-from motor_driver.drive.busy import Op
-from motor_driver.drive.channel import CommandChannel, LockedCommand
+from motor_driver.drive.command.busy import Op
+from motor_driver.drive.command.channel import CommandChannel, LockedCommand
+from motor_driver.drive.command.limits import LimitGuard
+from motor_driver.drive.command.power import PowerStateMachine
+from motor_driver.drive.command.setpoint import rebase_after_switch
 from motor_driver.drive.constants import CONTINUOUS_COMMAND_LIMIT_DEG, ENABLED_CW_MASK
-from motor_driver.drive.limits import LimitGuard
-from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.setpoint import rebase_after_switch
-from motor_driver.drive.state import DriveCache
 from motor_driver.drive.verdict import UNREACHABLE, Condition
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State
 from motor_driver.protocol.pdo import PdoPlan

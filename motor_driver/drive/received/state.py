@@ -60,8 +60,8 @@ from can_config.config import DriveConfig
 from can_config.objects import OD, FunctionCode, NmtState, emcy_text
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.ledger import DriveRuntime, Heard, RuntimePort
-from motor_driver.drive.position import PositionFilter
-from motor_driver.drive.tpdo import decode_tpdo
+from motor_driver.drive.received.position import PositionFilter
+from motor_driver.drive.received.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Emcy, Noted, Received, StatusSink
 from motor_driver.drive.verdict import DriveFacts, Verdict, judge
 from motor_driver.process.held import POLL_S, HeldDeadline

@@ -18,12 +18,12 @@ from can_config.config import DriveConfig
 from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError, MotorError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
-from motor_driver.drive.busy import Op
-from motor_driver.drive.channel import CommandChannel
+from motor_driver.drive.command.busy import Op
+from motor_driver.drive.command.channel import CommandChannel
+from motor_driver.drive.command.power import PowerStateMachine
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
-from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache
 from motor_driver.protocol.cia402 import CW, FAULT_STATES, SW, Command, State
 
 logger = logging.getLogger(__name__)

@@ -3,7 +3,7 @@ handed): the state cache decodes every TPDO with it on the bus's receive thread,
 view (:mod:`motor_driver.recording.busview`: recordings, the live Foxglove view) with its own filter on its
 feeding thread, so a recording says what the driver heard.
 
-Owner: the caller's thread; the :class:`~motor_driver.drive.position.PositionFilter` it passes is
+Owner: the caller's thread; the :class:`~motor_driver.drive.received.position.PositionFilter` it passes is
 that thread's too.
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from can_config.objects import OD
-from motor_driver.drive.position import PositionFilter
+from motor_driver.drive.received.position import PositionFilter
 from motor_driver.drive.values import Received
 
 #: The objects a TPDO carries, read once: an enum member's lookup costs about 0.13 us, and a TPDO

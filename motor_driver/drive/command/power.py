@@ -2,7 +2,7 @@
 
 Owner: command threads; the only state of its own is the supported-modes cache (0x6502, read
 once per boot). Every controlword it sends goes through the command channel
-(:mod:`motor_driver.drive.channel`), which owns the word, the busy registry and the
+(:mod:`motor_driver.drive.command.channel`), which owns the word, the busy registry and the
 generation: an operation that waits here (enable, recover, a mode switch) is registered busy
 and never holds a lock while it waits; a stop preempts it, and its frame is the last the drive
 gets. Nested calls (homing's enable and mode switches) run under their caller's operation.
@@ -19,8 +19,8 @@ from can_config.config import DriveConfig
 from can_config.eds import has_object
 from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
 from can_config.objects import EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
-from motor_driver.drive.busy import Op
-from motor_driver.drive.channel import CommandChannel
+from motor_driver.drive.command.busy import Op
+from motor_driver.drive.command.channel import CommandChannel
 from motor_driver.drive.constants import (
     ENABLE_STEPS,
     ENABLED_CW_MASK,
@@ -32,9 +32,9 @@ from motor_driver.drive.constants import (
     TRANSITION_TIMEOUT_S,
     VELOCITY_MODES,
 )
-from motor_driver.drive.hostwatch import HostWatch
+from motor_driver.drive.received.state import DriveCache, Others
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache, Others
+from motor_driver.drive.setup.hostwatch import HostWatch
 from motor_driver.drive.values import DriveState
 from motor_driver.drive.verdict import UNREACHABLE, Condition, Verdict
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, Command, State, decode_state, next_step_to_enable

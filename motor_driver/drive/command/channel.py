@@ -40,9 +40,9 @@ from contextlib import contextmanager
 
 from can_config.errors import CommandRejected, DriveStateError
 from can_config.objects import OD, OperationMode
-from motor_driver.drive.busy import BusyRegistry, Op
+from motor_driver.drive.command.busy import BusyRegistry, Op
+from motor_driver.drive.command.setpoint import SetpointHandshake
 from motor_driver.drive.constants import COMMAND_LOCK_WAIT_S, ENABLED_CW_MASK
-from motor_driver.drive.setpoint import SetpointHandshake
 from motor_driver.protocol.cia402 import CW, Command, controlword
 from motor_driver.protocol.pdo import PdoPlan, encode_rpdo
 

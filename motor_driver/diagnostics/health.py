@@ -8,7 +8,7 @@ drive's flags again. The rules, first match wins:
   (:mod:`motor_driver.protocol.safety`: nothing would stop it if the host died, limits not set, ...).
 * WARN: its verdict is re-booting (being configured again) or out (the drive system left it
   out); more of its TPDOs or heartbeats lost over the measured window than
-  ``frame_loss_warn_percent`` (:mod:`motor_driver.drive.frameloss`); a command was refused since the
+  ``frame_loss_warn_percent`` (:mod:`motor_driver.diagnostics.frameloss`); a command was refused since the
   last report; the statusword warning bit is set; it has no drive-side stop on host loss and
   the config allows that (``allow_no_host_watch``).
 
@@ -44,8 +44,8 @@ from typing import NamedTuple
 from can_config.objects import emcy_text
 from motor_driver.bus.adapters import Rejected
 from motor_driver.bus.link import KernelBusHealth
+from motor_driver.diagnostics.frameloss import Loss
 from motor_driver.drive import DriveState
-from motor_driver.drive.frameloss import Loss
 from motor_driver.drive.ledger import DriveRuntime
 from motor_driver.drive.verdict import Condition
 from motor_driver.process.jobs import JOB_KINDS, JobFault
@@ -217,7 +217,7 @@ def bus_health(*, load: float, lost: bool, frames: int, error_frames: int,  # no
     sent for a full transmit queue or a load over 50 % is WARN. ``kernel``: what the kernel says
     (None: not a kernel interface, ``why_unknown``); ``tx_queue_full``: sends refused with ENOBUFS
     (each retried), ``tx_not_sent``: frames given up on; ``frame_loss``: its drives' frames lost,
-    summed (:func:`motor_driver.drive.frameloss.total`)."""
+    summed (:func:`motor_driver.diagnostics.frameloss.total`)."""
     values = {"load": f"{load:.4f}", "frames_received": str(frames), "error_frames": str(error_frames),
               "tx_queue_full": str(tx_queue_full), "tx_not_sent": str(tx_not_sent),
               "rejected_frames": str(rejected_frames),

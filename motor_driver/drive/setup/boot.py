@@ -34,7 +34,8 @@ from can_config.config import GENERIC_EDS, DriveConfig
 from can_config.eds import consumer_subs, has_object, variable
 from can_config.errors import BootError, BusLostError, DriveStateError, DriveTimeoutError, MotorError, SdoError, UnitError
 from can_config.objects import CIA402_PROFILE, EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, NmtCommand, OperationMode
-from motor_driver.drive.channel import CommandChannel
+from motor_driver.drive.command.channel import CommandChannel
+from motor_driver.drive.command.power import PowerStateMachine
 from motor_driver.drive.constants import (
     BOOT_RESTARTS_MAX,
     HOST_LOSS_CHECK_WAIT_S,
@@ -43,11 +44,10 @@ from motor_driver.drive.constants import (
     STATE_POLL_S,
     TRANSITION_TIMEOUT_S,
 )
-from motor_driver.drive.hostwatch import HostWatch
 from motor_driver.drive.ledger import Booted, Booting, BootRestarted, RebootFailed, RestoreFailed, RuntimePort
-from motor_driver.drive.power import PowerStateMachine
+from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
-from motor_driver.drive.state import DriveCache
+from motor_driver.drive.setup.hostwatch import HostWatch
 from motor_driver.process.jobs import cause_of
 from motor_driver.protocol.cia402 import SW, Command, State, decode_state
 from motor_driver.protocol.codec import value_format
