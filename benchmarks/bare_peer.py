@@ -22,8 +22,8 @@ from std_msgs.msg import Float32
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from can_config.realtime import make_process_realtime
-from nodes import runtime
-from nodes.qos import SETPOINT_QOS
+from nodes.process import runtime
+from nodes.process.qos import SETPOINT_QOS
 
 COUNTS_PER_DEG = 4096 / 360.0
 logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)

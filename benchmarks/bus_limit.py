@@ -205,7 +205,7 @@ def measured(text: str | None, seconds: float, hz: float, prefix: str, channel: 
 
 def main() -> int:
     """``bus_limit.py [SECONDS] [--six | --twelve]``: both runs by default."""
-    from nodes.params import PARAMS
+    from nodes.process.params import PARAMS
 
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     seconds = float(args[0]) if args else 15.0

@@ -122,7 +122,7 @@ def publish_stream(seconds: float) -> None:
     import rclpy
     from sensor_msgs.msg import JointState
 
-    from nodes.qos import SETPOINT_QOS
+    from nodes.process.qos import SETPOINT_QOS
 
     rclpy.init()
     node = rclpy.create_node("bench_stream")
@@ -177,7 +177,7 @@ def main() -> int:
     from rclpy.action import ActionClient
     from rclpy.executors import SingleThreadedExecutor
 
-    from nodes.runtime import SpinThread
+    from nodes.process.runtime import SpinThread
 
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(dir=REPO / "benchmarks" / "out" if (REPO / "benchmarks" / "out").is_dir() else None) as tmp:

@@ -47,7 +47,7 @@ os.environ.setdefault("ROS_DOMAIN_ID", str(70 + os.getpid() % 30))
 
 from can_config import GENERIC_EDS, load_config, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
-from nodes.params import PARAMS
+from nodes.process.params import PARAMS
 from virtual_can import BusEngine, SimService, SocketcandServer, VirtualBus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

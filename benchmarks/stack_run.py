@@ -389,7 +389,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
 
     from can_config import load_config
     from motor_driver.protocol.units import Scale
-    from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS
+    from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS
 
     shipped = load_config(config_path)
     channels = {b.name: b.channel for b in shipped.buses}
@@ -436,7 +436,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             every_topic_matched(pubs, deadline, proc)
             # each joint's first command (the ramp's start) before the measured window: a stream's
             # first set-point switches its drive's mode by SDO (on a worker of its joint since
-            # nodes/handoff.py; it held every other joint's commands before: docs/performance.md);
+            # nodes/joints/handoff.py; it held every other joint's commands before: docs/performance.md);
             # the window measures the streams running, not their start
             for pub in pubs:
                 pub.publish(Float32(data=0.05))
@@ -560,7 +560,7 @@ def bare_path(seconds: float, topics: int = 1, priority: int = 0) -> dict[str, A
     import rclpy
     from std_msgs.msg import Float32
 
-    from nodes.qos import COMMAND_QOS
+    from nodes.process.qos import COMMAND_QOS
 
     with simulator("--drives", "1") as port:  # the same server process as the stack's (its drive stays pre-op)
         listener = Listener(port)

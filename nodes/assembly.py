@@ -23,9 +23,9 @@ Executors and callback groups (measured: docs/ros.md, README):
   ``rovercan-follow-<group>``, at its bus's SYNC: :mod:`motor_driver.follow`).
 - ``rovercan-handoff_N``: not an executor; the driver node's workers for a command that must wait
   for its drive (a mode switch, a target by SDO), one joint's at a time, made when first needed
-  (:mod:`nodes.handoff`): the hot thread never waits for a drive.
+  (:mod:`nodes.joints.handoff`): the hot thread never waits for a drive.
 
-Callbacks (nodes/runtime.py, :func:`~nodes.runtime.supervise`): every service, timer and
+Callbacks (nodes/process/runtime.py, :func:`~nodes.process.runtime.supervise`): every service, timer and
 subscription callback of the assembly's nodes is supervised, at :meth:`Assembly.build` and again
 at :meth:`Assembly.start`: an unexpected exception is logged once with its trace, counted in the
 driver node's /diagnostics (``callback_failures``), a service answers a failed response naming
@@ -63,13 +63,13 @@ from motor_driver import MotorDriver
 from motor_driver.follow import TrajectoryGroup, groups_of
 from motor_driver.process import heap
 from motor_driver.process.stop import StopSignal
-from nodes import runtime
-from nodes.actions import DriverActionsNode
-from nodes.drive_system import DriveSystemNode
-from nodes.driver_node import DriverNode
-from nodes.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStopsNode
-from nodes.logbridge import RclpyLogHandler, bridge_core_logging, unbridge
-from nodes.params import PROCESS, declare
+from nodes.actions.driver_actions import DriverActionsNode
+from nodes.joints.driver_node import DriverNode
+from nodes.joints.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStopsNode
+from nodes.process import runtime
+from nodes.process.logbridge import RclpyLogHandler, bridge_core_logging, unbridge
+from nodes.process.params import PROCESS, declare
+from nodes.rover.drive_system import DriveSystemNode
 
 logger = logging.getLogger(__name__)
 
@@ -180,7 +180,7 @@ class Assembly:
 
     def _supervise(self) -> None:
         """Every service, timer and subscription callback of the assembly's nodes supervised
-        (nodes/runtime.py): an exception is logged once, counted, a service answers; none ends an executor."""
+        (nodes/process/runtime.py): an exception is logged once, counted, a service answers; none ends an executor."""
         for n in self.nodes:
             runtime.supervise(n, self.failures)
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 import sys
 
 from motor_driver.process.stop import StopSignal
-from nodes import runtime
 from nodes.assembly import run
+from nodes.process import runtime
 
 NODE_NAME = "motor_controller"
 

@@ -12,9 +12,9 @@ from rclpy.node import Node
 from std_msgs.msg import Float32
 
 from motor_driver.process.stop import StopSignal
-from nodes import runtime
-from nodes.params import NODES, declare
-from nodes.qos import COMMAND_QOS
+from nodes.process import runtime
+from nodes.process.params import NODES, declare
+from nodes.process.qos import COMMAND_QOS
 
 TENTHS_PER_TURN = 3600
 

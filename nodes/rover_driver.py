@@ -1,7 +1,7 @@
 """``rover_driver``: the entry point of the driver's ROS 2 process (``python -m nodes.rover_driver``,
 ``ros2 run rovercan_bringup rover_driver``): every configured drive's topics, services and actions,
 and the drive system, put together by :mod:`nodes.assembly` (the node itself:
-:mod:`nodes.driver_node`).
+:mod:`nodes.joints.driver_node`).
 
 Owner: the process's main thread, until the assembly's executors own the nodes.
 """
@@ -11,8 +11,8 @@ from __future__ import annotations
 import sys
 
 from motor_driver.process.stop import StopSignal
-from nodes import runtime
 from nodes.assembly import run
+from nodes.process import runtime
 
 
 def main(args: list[str] | None = None) -> int:

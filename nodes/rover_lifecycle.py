@@ -56,9 +56,9 @@ from can_config import load_config
 from can_config.errors import RovercanError
 from motor_driver import MotorDriver
 from motor_driver.process import heap
-from nodes import runtime
 from nodes.assembly import Assembly, set_up
-from nodes.params import declare
+from nodes.process import runtime
+from nodes.process.params import declare
 
 logger = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@
 joint, armed), with the team's degree publisher and a monitor on its hot executor; live
 MotorState printed, and a verdict at the end: the drive's own (its snapshot's
 :class:`~motor_driver.drive.verdict.Verdict`: fresh, usable, its cause), never flags of its own.
-Each log line is printed once: rclpy prints the driver's records (nodes/logbridge.py), so the CLI's
+Each log line is printed once: rclpy prints the driver's records (nodes/process/logbridge.py), so the CLI's
 console handler leaves them out while the demo runs.
 
 ROS is imported inside :func:`run_demo`: the rest of the CLI runs where ROS is absent.
@@ -50,18 +50,18 @@ def run_demo(args: argparse.Namespace) -> int:
     from rclpy.parameter import Parameter
 
     from motor_driver import MotorDriver
-    from nodes import runtime
     from nodes.assembly import Assembly
-    from nodes.logbridge import consoles_print_once
     from nodes.motor_controller import NODE_NAME
     from nodes.motor_degree import MotorDegreeNode
+    from nodes.process import runtime
+    from nodes.process.logbridge import consoles_print_once
     from virtual_can.service import SimService
 
     config = load_config(args.config)
     joint = config.drives[0].name  # the demo names its joint: the config's first
     runtime.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
     driver_node, hot, realtime = _demo_process(joint, args.realtime_priority)
-    # rclpy prints the driver's records (nodes/logbridge.py): the CLI's console leaves them out
+    # rclpy prints the driver's records (nodes/process/logbridge.py): the CLI's console leaves them out
     with StopSignal() as stop, SimService.from_config(config, port=args.port) as sim, consoles_print_once():
         config = with_bus_overrides(config, host=sim.host, port=sim.port)
         print(f"rovercan demo: simulated drive(s) on {sim.host}:{sim.port}; joint {joint!r};"
@@ -112,7 +112,7 @@ def _demo_process(joint: str, realtime_priority: int) -> tuple[Any, Any, bool]:
     from rclpy.parameter import Parameter
 
     from nodes.assembly import set_up
-    from nodes.driver_node import DriverNode
+    from nodes.joints.driver_node import DriverNode
     from nodes.motor_controller import NODE_NAME
 
     node = DriverNode(None, NODE_NAME, one_joint=True, parameter_overrides=[
@@ -133,7 +133,7 @@ def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[An
     from rovercan_msgs.msg import MotorState
     from std_msgs.msg import Float32
 
-    from nodes.qos import COMMAND_QOS, STATE_QOS
+    from nodes.process.qos import COMMAND_QOS, STATE_QOS
 
     monitor = rclpy.create_node("demo_monitor")
     last: dict[str, float] = {"cmd": float("nan")}
@@ -161,7 +161,7 @@ def _await_fresh_state(hot: Any, degree: Any, fresh: Callable[[], bool], failure
     went silent; the drive's verdict says it) says nothing of the drive's state: the verdict waits
     up to FRESH_WAIT_S for fresh data and, without it, judges what it has (which fails, saying
     why). The degree node is gone first: no command is published while the verdict waits."""
-    from nodes import runtime
+    from nodes.process import runtime
 
     hot.remove_node(degree)
     degree.destroy_node()

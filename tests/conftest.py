@@ -296,8 +296,8 @@ def driver_node_spinning(driver: MotorDriver, *, probe_apart: bool = False) -> I
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    from nodes.driver_node import DriverNode
-    from nodes.runtime import SpinThread, make_executor
+    from nodes.joints.driver_node import DriverNode
+    from nodes.process.runtime import SpinThread, make_executor
 
     context = rclpy.Context()
     rclpy.init(context=context)

@@ -189,7 +189,7 @@ def test_the_first_streamed_set_point_after_a_switch_is_judged_from_where_the_dr
 if HAVE_ROS:
     from sensor_msgs.msg import JointState
 
-    from nodes.qos import COMMAND_QOS
+    from nodes.process.qos import COMMAND_QOS
 
 
 @pytest.fixture

@@ -108,7 +108,7 @@ def test_heartbeat_loss_detected_others_keep_moving_then_reconfigured(driver_fac
 
 
 def test_each_enable_completed_is_counted_and_a_refused_or_stopped_one_is_not(driver_factory: DriverFactory) -> None:
-    """The count the drive system takes a wheel back by (nodes/wheels.py): one per enable that
+    """The count the drive system takes a wheel back by (nodes/rover/wheels.py): one per enable that
     reached Operation Enabled, none for a stop or a refused enable."""
     sim, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")

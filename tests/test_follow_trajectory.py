@@ -41,10 +41,10 @@ if HAVE_ROS:
     from sensor_msgs.msg import JointState
     from trajectory_msgs.msg import JointTrajectoryPoint
 
-    from nodes import runtime
     from nodes.assembly import Assembly
-    from nodes.qos import STATE_QOS
-    from nodes.runtime import SpinThread, make_executor
+    from nodes.process import runtime
+    from nodes.process.qos import STATE_QOS
+    from nodes.process.runtime import SpinThread, make_executor
 
 ListenerFactory = Callable[[SimService], can.BusABC]
 ARM = {"joint": "limited", "min_deg": -90.0, "max_deg": 90.0, "counts_per_rev": 4096, "gear_ratio": 50.0,
@@ -406,7 +406,7 @@ def test_a_cancel_is_honoured_while_no_sample_comes(rig: Rig) -> None:
     from action_msgs.msg import GoalStatus
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from nodes.qos import DIAGNOSTICS_QOS
+    from nodes.process.qos import DIAGNOSTICS_QOS
 
     said: list[Any] = []
     rig.client._node.create_subscription(

@@ -79,9 +79,9 @@ def test_five_percent_frame_loss_is_graded_warn_within_a_bounded_count_of_syncs(
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.parameter import Parameter
 
-    from nodes.driver_node import DriverNode
-    from nodes.qos import DIAGNOSTICS_QOS
-    from nodes.runtime import SpinThread, make_executor
+    from nodes.joints.driver_node import DriverNode
+    from nodes.process.qos import DIAGNOSTICS_QOS
+    from nodes.process.runtime import SpinThread, make_executor
 
     window = 200
     sim, driver = driver_factory(make_config(1, frame_loss_window_syncs=window, frame_loss_warn_percent=2.0))

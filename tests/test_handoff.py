@@ -1,4 +1,4 @@
-"""A command that must wait for its drive holds no other joint's commands (nodes/handoff.py).
+"""A command that must wait for its drive holds no other joint's commands (nodes/joints/handoff.py).
 
 The hot executor's one thread carries every joint's commands. A joint's first streamed
 set-point switches its drive's mode by SDO; done on that thread, it held a 500 Hz arm's stream
@@ -22,7 +22,7 @@ from can_config.config import GENERIC_EDS
 from can_config.errors import CommandRejected, CommandWouldWait, DriveTimeoutError
 from can_config.objects import OD, OperationMode
 from motor_driver import MotorDriver
-from nodes.handoff import Handoff
+from nodes.joints.handoff import Handoff
 from virtual_can import SimService
 
 from .conftest import (
@@ -42,8 +42,8 @@ if HAVE_ROS:
     from std_msgs.msg import Float32
 
     from nodes.assembly import Assembly
-    from nodes.qos import COMMAND_QOS
-    from nodes.runtime import SpinThread, make_executor
+    from nodes.process.qos import COMMAND_QOS
+    from nodes.process.runtime import SpinThread, make_executor
 
 SWITCH_POINT = "mode switch: 0x6060 written"
 JOINTS = ("joint1", "joint2")

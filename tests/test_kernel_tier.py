@@ -564,10 +564,10 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring:
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import Twist
 
-    from nodes.drive_system import DriveSystemNode
-    from nodes.driver_node import DriverNode
-    from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS
-    from nodes.runtime import SpinThread, make_executor
+    from nodes.joints.driver_node import DriverNode
+    from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS
+    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.rover.drive_system import DriveSystemNode
 
     config_path = write_kernel_config(tmp_path / "kernel.yaml", nodes=(1, 2), wiring=wiring)
     # ROS entities are created with the interpreter held for seconds under the VM's emulation:

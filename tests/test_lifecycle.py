@@ -31,8 +31,8 @@ if HAVE_ROS:
     from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
+    from nodes.process.runtime import SpinThread, make_executor
     from nodes.rover_lifecycle import DriveLifecycleNode
-    from nodes.runtime import SpinThread, make_executor
 
 
 class Listener(threading.Thread):
@@ -384,8 +384,8 @@ class Probe:
 
 def motion_entries() -> list[tuple[str, Any]]:
     """Every motion entry of the node: (what, how to try it with a Probe -> what it answered).
-    Read from the code: the services that wait (nodes/driver_services.py), the command topics
-    (nodes/rover_driver.py, the drive system's /cmd_vel) and the actions (nodes/actions.py)."""
+    Read from the code: the services that wait (nodes/joints/driver_services.py), the command topics
+    (nodes/rover_driver.py, the drive system's /cmd_vel) and the actions (nodes/actions/driver_actions.py)."""
     from geometry_msgs.msg import Twist
     from rovercan_msgs.action import Home, MoveJoint
     from rovercan_msgs.srv import SdoWrite, SetMode

@@ -38,9 +38,9 @@ from rcl_interfaces.msg import Log  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
-from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS  # noqa: E402
+from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS  # noqa: E402
+from nodes.process.runtime import SpinThread, make_executor  # noqa: E402
 from nodes.rover_lifecycle import DriveLifecycleNode  # noqa: E402
-from nodes.runtime import SpinThread, make_executor  # noqa: E402
 
 NODE = "rovercan_lifecycle"
 HANG_S = 60.0  # a hang only

@@ -66,7 +66,7 @@ def test_canopen_reaches_the_ros_log_at_its_own_level(monkeypatch: pytest.Monkey
     import rclpy
 
     from motor_driver.bus import connect  # noqa: F401  (installs the canopen filter, as the driver does)
-    from nodes.logbridge import bridge_core_logging, unbridge
+    from nodes.process.logbridge import bridge_core_logging, unbridge
 
     context = rclpy.Context()
     rclpy.init(context=context)

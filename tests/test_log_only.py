@@ -73,7 +73,7 @@ def test_a_run_with_a_lost_drive_writes_nothing_outside_the_log(tmp_path: Path) 
 def test_a_node_modules_line_and_canopens_go_through_the_ros_log(capfd: pytest.CaptureFixture[str]) -> None:
     import rclpy
 
-    from nodes.logbridge import bridge_core_logging, unbridge
+    from nodes.process.logbridge import bridge_core_logging, unbridge
 
     # an in-process CLI run earlier in this worker may have quieted canopen's logger (its
     # --verbose 0); what is tested is the bridge, so the logger passes its records here
@@ -85,8 +85,8 @@ def test_a_node_modules_line_and_canopens_go_through_the_ros_log(capfd: pytest.C
     node = rclpy.create_node("log_check", context=context)
     handler = bridge_core_logging(node)
     try:
-        logging.getLogger("nodes.actions").warning("goal for unknown joint %r refused; joints: %s", "wheel_x", ["a"])
-        logging.getLogger("nodes.drive_system").warning("drive system: %s left out, its quick stop failed (%s)", "b",
+        logging.getLogger("nodes.actions.driver_actions").warning("goal for unknown joint %r refused; joints: %s", "wheel_x", ["a"])
+        logging.getLogger("nodes.rover.drive_system").warning("drive system: %s left out, its quick stop failed (%s)", "b",
                                                         "timeout")
         logging.getLogger("canopen.sdo.client").error("Transfer aborted by client with code 0x%08X", 0x05040000)
         thread = threading.Thread(target=boom, name="test-boom")

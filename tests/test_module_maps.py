@@ -270,3 +270,15 @@ def test_drive_is_rooms_by_owner_in_one_order() -> None:
     assert not found, "imports against drive's order of rooms:\n" + "\n".join(found)
     kept = {key for key in DRIVE_CROSSINGS if key[1] in (REPO / key[0]).read_text()}
     assert kept == set(DRIVE_CROSSINGS), f"crossings no longer made (drop them): {set(DRIVE_CROSSINGS) - kept}"
+
+
+#: nodes' folders by role, lowest first (rover and actions on one floor: neither imports the
+#: other); its top (the entry points and the assembly) puts them together.
+NODES_FLOORS = (("process",), ("joints",), ("rover", "actions"))
+
+
+def test_nodes_is_folders_by_role_in_one_order() -> None:
+    rooms = sorted(p.parent.name for p in (REPO / "nodes").glob("*/__init__.py"))
+    assert rooms == sorted(r for floor in NODES_FLOORS for r in floor), f"nodes' folders {rooms} against NODES_FLOORS"
+    found = room_crossings(REPO, "nodes", NODES_FLOORS, (), {})
+    assert not found, "imports against nodes' order of folders:\n" + "\n".join(found)

@@ -73,8 +73,8 @@ class Probe:
         from sensor_msgs.msg import JointState
         from std_srvs.srv import Trigger
 
-        from nodes.qos import STATE_QOS
-        from nodes.runtime import SpinThread
+        from nodes.process.qos import STATE_QOS
+        from nodes.process.runtime import SpinThread
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context)

@@ -35,10 +35,10 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
-from nodes.drive_system import DriveSystemNode  # noqa: E402
-from nodes.driver_node import DriverNode  # noqa: E402
-from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS  # noqa: E402
-from nodes.runtime import SpinThread, make_executor  # noqa: E402
+from nodes.joints.driver_node import DriverNode  # noqa: E402
+from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS  # noqa: E402
+from nodes.process.runtime import SpinThread, make_executor  # noqa: E402
+from nodes.rover.drive_system import DriveSystemNode  # noqa: E402
 
 LEFT = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left"]
 RIGHT = ["wheel_front_right", "wheel_middle_right", "wheel_rear_right"]

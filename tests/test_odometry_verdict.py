@@ -1,4 +1,4 @@
-"""Tier 1: the odometry counts only usable wheels, judged by their verdicts (nodes/wheels.py's
+"""Tier 1: the odometry counts only usable wheels, judged by their verdicts (nodes/rover/wheels.py's
 odometry_sample into motor_driver/rover/odometry.py, pure): a wheel disabled or left out adds nothing,
 a wheel silent for less than its staleness bound leaves no heading error (whichever moment it
 drops out and whether it is heard again or lost), and samples are ordered by the driver's
@@ -21,7 +21,7 @@ from motor_driver.drive import DriveState
 from motor_driver.drive.verdict import judge
 from motor_driver.protocol.cia402 import State
 from motor_driver.rover.odometry import WheelOdometry
-from nodes.wheels import odometry_samples
+from nodes.rover.wheels import odometry_samples
 
 from .drive_states import drive_state
 

@@ -27,7 +27,7 @@ if True:  # ROS present
 
     from nodes.assembly import assemble
     from nodes.motor_degree import MotorDegreeNode
-    from nodes.params import BEGIN, DRIVER, END, NODES, PARAMS, table
+    from nodes.process.params import BEGIN, DRIVER, END, NODES, PARAMS, table
     from nodes.rover_lifecycle import DriveLifecycleNode
 
 PARAMS_FILE = REPO / "config" / "rovercan.params.yaml"
@@ -43,7 +43,7 @@ def shipped() -> dict[str, dict[str, Any]]:
 def test_the_docs_hold_the_generated_table() -> None:
     text = DOCS.read_text()
     start, end = text.index(BEGIN), text.index(END) + len(END)
-    assert text[start:end] + "\n" == table(), "docs/ros.md is stale: python -m nodes.params"
+    assert text[start:end] + "\n" == table(), "docs/ros.md is stale: python -m nodes.process.params"
 
 
 def test_the_file_has_a_section_per_node_with_what_it_declares() -> None:

@@ -1,4 +1,4 @@
-"""The command topics' Float32 read from its serialized bytes (nodes/rawcmd.py) gives what
+"""The command topics' Float32 read from its serialized bytes (nodes/joints/rawcmd.py) gives what
 rclpy's own conversion gives, in either byte order, and refuses what is not a Float32."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import struct
 import pytest
 
 from can_config.errors import CommandRejected
-from nodes.rawcmd import float32_data
+from nodes.joints.rawcmd import float32_data
 
 pytest.importorskip("rclpy")  # the comparison with rclpy's own conversion: skipped on a machine without ROS
 pytestmark = pytest.mark.ros

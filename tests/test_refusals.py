@@ -1,5 +1,5 @@
 """A refused command is said at most once a second per joint, counted before rclpy's logger is
-called (whose own throttle costs about 200 us a call, silent or not: nodes/refusals.py), and no
+called (whose own throttle costs about 200 us a call, silent or not: nodes/joints/refusals.py), and no
 refusal is lost: each is said or counted in the joint's next line and in /diagnostics' count."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import itertools
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nodes.refusals import SAID_MAX, WARN_THROTTLE_S, RefusalLog
+from nodes.joints.refusals import SAID_MAX, WARN_THROTTLE_S, RefusalLog
 
 
 class Clock:

@@ -24,7 +24,7 @@ if HAVE_ROS:
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
 
-    from nodes.qos import COMMAND_QOS
+    from nodes.process.qos import COMMAND_QOS
 
 
 def test_the_example_urdf_and_controllers_parse_and_match_the_rover() -> None:

@@ -35,13 +35,13 @@ if HAVE_ROS:
     from std_msgs.msg import Float32
     from std_srvs.srv import Trigger
 
-    from nodes import runtime
     from nodes.assembly import Assembly
-    from nodes.drive_system import DriveSystemNode
-    from nodes.driver_node import DriverNode
-    from nodes.driver_services import DriverServicesNode
-    from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
-    from nodes.runtime import SpinThread, make_executor
+    from nodes.joints.driver_node import DriverNode
+    from nodes.joints.driver_services import DriverServicesNode
+    from nodes.process import runtime
+    from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
+    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.rover.drive_system import DriveSystemNode
 
 WHEELS = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left",
           "wheel_front_right", "wheel_middle_right", "wheel_rear_right"]
@@ -619,7 +619,7 @@ def test_a_goals_last_wait_is_not_queued_behind_another_goals_start(graph: Graph
     """A joint's goal starts (SDO writes, a mode switch) run one at a time in arrival order; a
     goal's last wait on its drive runs beside them: it ended behind a slow start of the next
     goal (order, not a clock: the wait ends while the start is still held)."""
-    from nodes.actions import DriverActionsNode
+    from nodes.actions.driver_actions import DriverActionsNode
 
     actions = next(n for n in graph.assembly.nodes if isinstance(n, DriverActionsNode))
     executor = actions.executor

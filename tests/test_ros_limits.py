@@ -27,7 +27,7 @@ if HAVE_ROS:
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float32
 
-    from nodes.qos import COMMAND_QOS, STATE_QOS
+    from nodes.process.qos import COMMAND_QOS, STATE_QOS
 
 CONFIG = """buses:
   - {{name: can0, interface: socketcand, channel: can0, kwargs: {{host: 127.0.0.1, port: {port}}}}}

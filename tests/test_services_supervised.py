@@ -37,9 +37,9 @@ if HAVE_ROS:
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
 
-    from nodes import runtime
     from nodes.assembly import Assembly
-    from nodes.qos import DIAGNOSTICS_QOS, SETPOINT_QOS, STATE_QOS
+    from nodes.process import runtime
+    from nodes.process.qos import DIAGNOSTICS_QOS, SETPOINT_QOS, STATE_QOS
 
 JOINTS = ["joint1", "joint2"]
 #: A bound for a hang: every answer comes much sooner, later on a crowded machine.
@@ -311,5 +311,5 @@ def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, give
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         rclpy.shutdown(context=context)
-    ours = [r for r in caplog.records if r.name == "nodes.runtime" and "Boom unsupervised" in r.getMessage()]
+    ours = [r for r in caplog.records if r.name == "nodes.process.runtime" and "Boom unsupervised" in r.getMessage()]
     assert len(ours) == (0 if kind == "events" else 1), [r.getMessage() for r in ours]

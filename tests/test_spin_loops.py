@@ -1,4 +1,4 @@
-"""The node's spin loops (nodes/runtime.py): an idle executor's thread waits for work, not for a
+"""The node's spin loops (nodes/process/runtime.py): an idle executor's thread waits for work, not for a
 poll, and still leaves at once when stopped; the hot EventsExecutor runs every callback that
 comes within one call and still sees its stop event."""
 
@@ -19,7 +19,7 @@ if HAVE_ROS:
     from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
 
-    from nodes import runtime
+    from nodes.process import runtime
 
 
 @pytest.fixture

@@ -160,7 +160,7 @@ def test_diagnostics_say_a_failed_job_and_rejected_frames(driver_factory: Driver
     pytest.importorskip("rclpy")
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from nodes.qos import DIAGNOSTICS_QOS
+    from nodes.process.qos import DIAGNOSTICS_QOS
 
     from .conftest import driver_node_spinning
 

@@ -80,7 +80,7 @@ def test_a_per_joint_command_on_stale_data_is_refused_and_said(driver_factory: D
     from rovercan_msgs.msg import MotorState
     from std_msgs.msg import Float32
 
-    from nodes.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
+    from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
 
     sim, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")

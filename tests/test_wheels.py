@@ -9,7 +9,7 @@ import math
 from motor_driver.drive import DriveState
 from motor_driver.drive.verdict import judge
 from motor_driver.protocol.cia402 import State
-from nodes.wheels import WheelsOut, odometry_sample, problems, wheel_problem
+from nodes.rover.wheels import WheelsOut, odometry_sample, problems, wheel_problem
 
 from .drive_states import drive_state
 

@@ -8,7 +8,7 @@ host heartbeat through it (:meth:`BusHandle.beat`, which counts ``host_beats``).
 bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.drive.ledger.BusRuntime`.
 
 The bus's receive thread (python-can's Notifier) runs as every other thread of the driver's
-process does: under SCHED_FIFO where the node made it real-time (nodes/runtime.go_realtime). Run
+process does: under SCHED_FIFO where the node made it real-time (nodes/process/runtime.go_realtime). Run
 ordinary, it would take a SYNC period's frames in fewer wake-ups (0.026 of a core less with the
 rover's config), but it holds the interpreter while it decodes a frame, and an ordinary thread
 holding it is preempted there by any real-time or favoured work on its core: every other thread

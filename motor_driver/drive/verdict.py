@@ -37,7 +37,7 @@ command threads each acknowledge them in a field of their own); lost, booted, re
 (:mod:`motor_driver.runtime`); ``armed`` and ``stopped_by`` are the command channel's
 (:mod:`motor_driver.drive.command.channel`, under its lock), and so is ``held`` (motion held: the
 lifecycle node inactive); ``left_out`` is the drive system's control
-loop's (``nodes/drive_system.py``), which judges a copy of the facts with it set. A reader of a
+loop's (``nodes/rover/drive_system.py``), which judges a copy of the facts with it set. A reader of a
 recording judges the facts it rebuilds from the frames the same way (``judge(DriveFacts(...))``;
 a :class:`motor_driver.drive.DriveState` made without them is judged from its own fields).
 """

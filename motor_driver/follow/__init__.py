@@ -1,5 +1,5 @@
 """A joint trajectory (control_msgs/FollowJointTrajectory) followed by a group of joints on their
-bus's SYNC clock, no rclpy (the node: nodes/follow_trajectory.py).
+bus's SYNC clock, no rclpy (the node: nodes/actions/follow_trajectory.py).
 
 What lives where: :mod:`motor_driver.follow.group` (:class:`TrajectoryGroup`: the group's thread,
 tolerances, cancel, preemption, the stop ramp), :mod:`motor_driver.follow.checks` (the checks before

@@ -1,6 +1,6 @@
 """A joint trajectory followed on the drives' own SYNC clock: the driver's side of
 control_msgs/FollowJointTrajectory, one :class:`TrajectoryGroup` per configured group
-(``trajectory_groups``). No rclpy: the node (nodes/follow_trajectory.py) turns goals into
+(``trajectory_groups``). No rclpy: the node (nodes/actions/follow_trajectory.py) turns goals into
 :class:`TrajectoryGoal` and :class:`GoalRun` into results and feedback.
 
 Before anything moves (:meth:`TrajectoryGroup.plan`, on the caller's thread: :mod:`motor_driver.follow.checks`) a goal is refused with

@@ -3,7 +3,7 @@ warning (227 lines in 25 s on a starved machine), and a publisher whose every co
 must not bury it in refusals. The first line of a kind is said at once; the same kind again within
 ``period_s`` is counted instead, and the count is said with the next line ("... (12 more like this
 in the last 10 s)"). :class:`Throttle` decides; :class:`RateLimitedLog` (the core's modules) and
-the nodes' refusal log (nodes/refusals.py) say. The clock is injectable so that tests need none.
+the nodes' refusal log (nodes/joints/refusals.py) say. The clock is injectable so that tests need none.
 
 Owner: whichever thread logs; each limiter keeps its counts under its own lock.
 """

@@ -1,6 +1,6 @@
 """What the state topics say of a drive (pure): a MotorState's fields and a /joint_states entry
 made from a :class:`~motor_driver.drive.DriveState`. One conversion for the live nodes
-(``nodes/messages.py``, ``nodes/rover_driver.py``) and the bus view of recordings and the
+(``nodes/joints/messages.py``, ``nodes/rover_driver.py``) and the bus view of recordings and the
 Foxglove view (:mod:`motor_driver.recording.busview`), so a recording says what the live topics said.
 
 The rules: a MotorState's angle is wrapped to [0, 360) on a continuous joint (a wheel) and as

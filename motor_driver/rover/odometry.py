@@ -4,7 +4,7 @@ What it integrates, as ros2_control's diff_drive_controller does with position f
 wheel's own position delta between two of its own samples (ordered by the driver's monotonic
 receive time, never the frame's wall clock: a clock step back is not "no motion"; not the
 caller's tick). A wheel counts only while its data can be trusted (the caller judges it from the
-drive's verdict, ``nodes/wheels.py``).
+drive's verdict, ``nodes/rover/wheels.py``).
 
 Samples of different buses are paired by the moment they measure, not by the step that reads them:
 each step integrates up to one common instant, the oldest newest sample of the wheels that count

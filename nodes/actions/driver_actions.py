@@ -1,7 +1,7 @@
 """``home_joint`` and ``move_joint``: the long-running drive operations as ROS 2 actions
 (rovercan_msgs/Home, rovercan_msgs/MoveJoint): feedback while they run, cancel that stops the
 joint. The Trigger services stay for scripts. And each trajectory group's
-``<group>/follow_joint_trajectory`` (control_msgs/FollowJointTrajectory, nodes/follow_trajectory.py).
+``<group>/follow_joint_trajectory`` (control_msgs/FollowJointTrajectory, nodes/actions/follow_trajectory.py).
 
 The goals are coroutines on a single-threaded executor of the node's own: between two looks
 at the drive a goal awaits a future that a timer thread completes, so the executor serves the
@@ -31,7 +31,7 @@ from can_config.objects import OperationMode
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive.verdict import Condition
 from motor_driver.follow import TrajectoryGroup
-from nodes import runtime
+from nodes.process import runtime
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -72,7 +72,7 @@ class DriverActionsNode(Node):
         self._alive = True
         self._trajectories: list[Any] = []
         if trajectory_groups:  # control_msgs is needed only then (a wheels-only rover runs without it)
-            from nodes.follow_trajectory import FollowTrajectoryServer
+            from nodes.actions.follow_trajectory import FollowTrajectoryServer
 
             self._trajectories = [FollowTrajectoryServer(self, g, pause=self._pause, callback_group=group)
                                   for g in trajectory_groups.values()]

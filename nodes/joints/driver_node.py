@@ -9,7 +9,7 @@ relative to the node's namespace):
            <joint>/set_mode (SetMode), <joint>/sdo_read (SdoRead), <joint>/sdo_write (SdoWrite)
 All drives: /joint_states (rad, rad/s, Nm), /joint_commands (sensor_msgs/JointState targets),
 /diagnostics; actions home_joint (rovercan_msgs/Home) and move_joint (MoveJoint) with
-feedback and cancel (nodes/actions.py). The default joint also serves the team's /motor_degree_cmd and /motor_state.
+feedback and cancel (nodes/actions/driver_actions.py). The default joint also serves the team's /motor_degree_cmd and /motor_state.
 With a ``drive_system`` in the config, ``drive_system`` takes /cmd_vel and publishes /odom.
 The demo topics /motor_degree_cmd and /motor_state are served for ``default_joint`` only when
 it is set: the team's demo publisher moves no joint on a guess.
@@ -19,9 +19,9 @@ The process (executors, callback groups, start order, safe stop) is assembled in
 state and the drive system, one for the stops, one for the services that wait (a callback group
 per joint: one joint's homing holds no other joint's services) and one for the actions.
 
-What lives where: this module (the joints' topics), :mod:`nodes.rover_driver` (``main``), :mod:`nodes.handoff` (a command
+What lives where: this module (the joints' topics), :mod:`nodes.rover_driver` (``main``), :mod:`nodes.joints.handoff` (a command
 that waits for its drive, sent by a worker of its joint, off the hot thread),
-:mod:`nodes.driver_services` (services), :mod:`nodes.drive_system` (/cmd_vel), :mod:`nodes.refusals`
+:mod:`nodes.joints.driver_services` (services), :mod:`nodes.rover.drive_system` (/cmd_vel), :mod:`nodes.joints.refusals`
 (shared helpers).
 """
 
@@ -46,13 +46,13 @@ from motor_driver.diagnostics.frameloss import Counts, FrameLoss, Loss, total
 from motor_driver.diagnostics.health import JOB_FAULT_RECENT_S, OK, WARN, Rejections, bus_health, drive_health, with_boot
 from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.recording.published import joint_entry
-from nodes.handoff import Handoff
-from nodes.messages import fill_motor_state, stamp_header
-from nodes.params import DRIVER, ONE_JOINT, declare, qos_depth
-from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
-from nodes.rawcmd import float32_data
-from nodes.refusals import RefusalLog
-from nodes.runtime import CallbackFailures
+from nodes.joints.handoff import Handoff
+from nodes.joints.messages import fill_motor_state, stamp_header
+from nodes.joints.rawcmd import float32_data
+from nodes.joints.refusals import RefusalLog
+from nodes.process.params import DRIVER, ONE_JOINT, declare, qos_depth
+from nodes.process.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
+from nodes.process.runtime import CallbackFailures
 
 
 class DriverNode(Node):
@@ -66,7 +66,7 @@ class DriverNode(Node):
         demo joint too. Without ``driver`` the entry point reads the process's parameters from this
         node first (nodes/assembly.py: the scheduling before the driver's threads exist), then serves."""
         super().__init__(name, **kwargs)
-        #: the callbacks of this process's nodes that raised (nodes/runtime.py: supervise); in /diagnostics
+        #: the callbacks of this process's nodes that raised (nodes/process/runtime.py: supervise); in /diagnostics
         self.callback_failures = CallbackFailures()
         declare(self, *(ONE_JOINT if one_joint else DRIVER))
         self._one_joint = one_joint
@@ -94,7 +94,7 @@ class DriverNode(Node):
         self.frame_loss = {name: FrameLoss(d.cache.tpdos_per_sync, d.cache.sync_period_s,
                                            None if d.cache.guarding else d.config.heartbeat_period_s,
                                            d.config.frame_loss_window_syncs) for name, d in self.drives.items()}
-        #: the joints' commands that must wait for their drive, off the hot thread (nodes/handoff.py);
+        #: the joints' commands that must wait for their drive, off the hot thread (nodes/joints/handoff.py);
         #: the drive system beside this node sends through it too
         self.handoff = Handoff(self.drives)
         self._states: dict[str, MotorState] = {}
@@ -137,7 +137,7 @@ class DriverNode(Node):
 
     # --------------------------------------------------------------------- parameters set at run time
     def _may_set(self, params: list[Parameter]) -> SetParametersResult:
-        """Those read once at start are read-only (rclpy refuses them first: nodes/params.py); the
+        """Those read once at start are read-only (rclpy refuses them first: nodes/process/params.py); the
         state rate is refused while the drive system's control loop shares its timer."""
         if self._tick_hooks and any(p.name == "state_rate_hz" for p in params):
             return SetParametersResult(successful=False, reason=(
@@ -169,7 +169,7 @@ class DriverNode(Node):
 
     def command(self, joint: str, what: str, command: Callable[..., object], value: float) -> None:
         """``command(value)`` for ``joint``: sent at once from this (the hot) thread, or by the
-        handoff's worker when it must wait for the drive (nodes/handoff.py); a refusal, here or
+        handoff's worker when it must wait for the drive (nodes/joints/handoff.py); a refusal, here or
         there, is counted and said by :meth:`refused`."""
         try:
             self.handoff.send(joint, command, value, what, self.refused)
@@ -183,7 +183,7 @@ class DriverNode(Node):
         self.refusals.refuse(joint, f"{what.format(value)}: {why}")
 
     def _on_float(self, topic: str, joint: str, what: str, command: Callable[..., None]) -> Callable[[bytes], None]:
-        """A Float32 command topic's callback, its message taken raw (nodes/rawcmd.py: no
+        """A Float32 command topic's callback, its message taken raw (nodes/joints/rawcmd.py: no
         message object made per command)."""
         def on_message(raw: bytes) -> None:
             try:
@@ -321,7 +321,7 @@ class DriverNode(Node):
 
 
     def _driver_status(self) -> DiagnosticStatus:
-        """The driver's background jobs, and the callbacks of this process that raised (nodes/runtime.py:
+        """The driver's background jobs, and the callbacks of this process that raised (nodes/process/runtime.py:
         a bug, answered and carried on): counted, the last named, WARN while recent as a job's failure."""
         jobs = self.driver.jobs_health()
         level, message = jobs.level, jobs.message

@@ -18,7 +18,7 @@ with a measured covariance only for a step both sides measured: while a side's d
 its staleness bound) nothing is sent, and once that side is not trusted (its bus dead, its wheels
 late, lost or stopped) /odom carries the last trusted pose with every variance 1e6, stamped now,
 and /tf nothing: no transform is stamped later than the last trusted step, however long it lasts.
-Every refusal names the real cause and what helps (:mod:`nodes.wheels`).
+Every refusal names the real cause and what helps (:mod:`nodes.rover.wheels`).
 
 Owner: the executor thread that runs its tick (the driver node's state timer, or its own),
 which alone touches the ramp, the odometry and the wheels-out book; a wheel left out is told to
@@ -27,7 +27,7 @@ each stop's result: a stop that failed (whatever it raised) is logged with its c
 said in /diagnostics (ERROR until a stop of that wheel succeeds) and tried again after
 STOP_RETRY_S. A wheel's
 velocity that must wait for the drive (its first, a switch to profile velocity) goes through the
-driver node's handoff (nodes/handoff.py), whose worker hands a refusal back to the next tick.
+driver node's handoff (nodes/joints/handoff.py), whose worker hands a refusal back to the next tick.
 """
 
 from __future__ import annotations
@@ -57,15 +57,15 @@ from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.rover.odometry import UNKNOWN_VARIANCE, OdometryStep, WheelOdometry
 from motor_driver.rover.skid_steer import SkidSteer, Twist2D
-from nodes.handoff import Handoff
-from nodes.messages import stamp_header
-from nodes.params import declare, qos_depth
-from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
-from nodes.refusals import RefusalLog
-from nodes.wheels import WheelsOut, odometry_samples, out_verdict, problems
+from nodes.joints.handoff import Handoff
+from nodes.joints.messages import stamp_header
+from nodes.joints.refusals import RefusalLog
+from nodes.process.params import declare, qos_depth
+from nodes.process.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
+from nodes.rover.wheels import WheelsOut, odometry_samples, out_verdict, problems
 
 if TYPE_CHECKING:
-    from nodes.driver_node import DriverNode
+    from nodes.joints.driver_node import DriverNode
 
 logger = logging.getLogger(__name__)
 #: the drive system's own /diagnostics status, besides every change of it

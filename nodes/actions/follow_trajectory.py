@@ -27,7 +27,7 @@ Each second the server publishes its group's background counts on /diagnostics, 
 samples it took too late (a SYNC let go) and its waits that ended without a sample; WARN once an
 error was counted, ERROR when the group's thread has ended.
 
-The goals are coroutines on the actions' executor (nodes/actions.py): between two looks at the run a
+The goals are coroutines on the actions' executor (nodes/actions/driver_actions.py): between two looks at the run a
 goal awaits the node's pause, so the executor serves cancels and other goals meanwhile; a goal's
 switch to streaming runs on the server's start worker (one a server: in the order goals came).
 """
@@ -53,8 +53,8 @@ from trajectory_msgs.msg import JointTrajectoryPoint
 from can_config.errors import RovercanError, TrajectoryRejected
 from motor_driver.follow import GoalRun, Plan, Progress, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
 from motor_driver.protocol.units import DEG_PER_RAD
-from nodes.messages import stamp_header
-from nodes.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS
+from nodes.joints.messages import stamp_header
+from nodes.process.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS
 
 Result = FollowJointTrajectory.Result
 logger = logging.getLogger(__name__)

@@ -25,7 +25,7 @@ class RefusalLog:
     """Counts refused commands per joint for /diagnostics and says them with ``say`` (a node's
     ``get_logger().warning``), at most once per joint every WARN_THROTTLE_S, with the count of
     those held back since. Thread-safe: the hot thread and the handoff's workers refuse
-    (nodes/handoff.py), the diagnostics timer takes."""
+    (nodes/joints/handoff.py), the diagnostics timer takes."""
 
     def __init__(self, say: Callable[[str], Any], clock: Callable[[], float] = time.monotonic) -> None:
         self._say = say
