@@ -22,7 +22,7 @@ from std_msgs.msg import Float32
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from can_config.realtime import make_process_realtime
-from nodes.process import runtime
+from nodes.process import spinning
 from nodes.process.qos import SETPOINT_QOS
 
 COUNTS_PER_DEG = 4096 / 360.0
@@ -36,7 +36,7 @@ def main() -> int:
     if priority:
         make_process_realtime("bare_peer", priority)  # before its threads start: they inherit it
     bus = can.Bus(interface="socketcand", channel="can0", host=host, port=port, tcp_tune=True)
-    runtime.init(None)
+    spinning.init(None)
     node = rclpy.create_node("bare_peer")
 
     def on_cmd(cob_id: int) -> Callable[[Float32], None]:
@@ -48,9 +48,9 @@ def main() -> int:
 
     for i in range(topics):
         node.create_subscription(Float32, f"bare_cmd_{i}", on_cmd(0x301 + i), SETPOINT_QOS)
-    with runtime.StopSignal() as stop:
+    with spinning.StopSignal() as stop:
         print("ready", flush=True)
-        runtime.spin_node(node, stop.event, executor=EventsExecutor())
+        spinning.spin_node(node, stop.event, executor=EventsExecutor())
     bus.shutdown()
     return 0
 

@@ -163,7 +163,7 @@ def arm_and_drive(seconds: float, speed_m_s: float, launch: subprocess.Popen[byt
     from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
 
-    from nodes.process.runtime import SpinThread
+    from nodes.process.spinning import SpinThread
 
     context = rclpy.Context()
     rclpy.init(context=context)

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from rovercan.launch import LOCAL_DISCOVERY
 
 os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns inherit it
-from nodes.process.runtime import spin_until
+from nodes.process.spinning import spin_until
 
 
 def measure(kind: str, seconds: float) -> dict[str, Any]:
@@ -45,7 +45,7 @@ def measure(kind: str, seconds: float) -> dict[str, Any]:
         from rclpy.experimental import EventsExecutor
         executor = EventsExecutor(context=context)
     executor.add_node(node)
-    stop = threading.Event()  # stopped the way the nodes stop (nodes/process/runtime.py)
+    stop = threading.Event()  # stopped the way the nodes stop (nodes/process/spinning.py)
     thread = threading.Thread(target=spin_until, args=(executor, stop), daemon=True)
     thread.start()
     time.sleep(0.5)

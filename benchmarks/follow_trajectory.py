@@ -177,7 +177,7 @@ def main() -> int:
     from rclpy.action import ActionClient
     from rclpy.executors import SingleThreadedExecutor
 
-    from nodes.process.runtime import SpinThread
+    from nodes.process.spinning import SpinThread
 
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(dir=REPO / "benchmarks" / "out" if (REPO / "benchmarks" / "out").is_dir() else None) as tmp:

@@ -28,7 +28,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import qos_profile_sensor_data
 from rovercan_msgs.msg import MotorState
 
-from nodes.process.runtime import SpinThread
+from nodes.process.spinning import SpinThread
 
 REPO = Path(__file__).resolve().parent.parent
 LAUNCH = REPO / "ros" / "rovercan_bringup" / "launch" / "rover_launch.xml"

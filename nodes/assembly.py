@@ -25,7 +25,7 @@ Executors and callback groups (measured: docs/ros.md, README):
   for its drive (a mode switch, a target by SDO), one joint's at a time, made when first needed
   (:mod:`nodes.joints.handoff`): the hot thread never waits for a drive.
 
-Callbacks (nodes/process/runtime.py, :func:`~nodes.process.runtime.supervise`): every service, timer and
+Callbacks (nodes/process/spinning.py, :func:`~nodes.process.spinning.supervise`): every service, timer and
 subscription callback of the assembly's nodes is supervised, at :meth:`Assembly.build` and again
 at :meth:`Assembly.start`: an unexpected exception is logged once with its trace, counted in the
 driver node's /diagnostics (``callback_failures``), a service answers a failed response naming
@@ -66,7 +66,7 @@ from motor_driver.process.stop import StopSignal
 from nodes.actions.driver_actions import DriverActionsNode
 from nodes.joints.driver_node import DriverNode
 from nodes.joints.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStopsNode
-from nodes.process import runtime
+from nodes.process import spinning
 from nodes.process.logbridge import RclpyLogHandler, bridge_core_logging, unbridge
 from nodes.process.params import PROCESS, declare
 from nodes.rover.drive_system import DriveSystemNode
@@ -90,8 +90,8 @@ def set_up(node: Node) -> Process:
     process under SCHED_FIFO where the OS allows it (before the driver's threads exist: each
     inherits it), and the hot executor. Raises :class:`ConfigError` naming a bad value."""
     declare(node, *PROCESS)
-    realtime = runtime.go_realtime(node)
-    return Process(runtime.make_executor(str(node.get_parameter("executor").value), node.context), realtime)
+    realtime = spinning.go_realtime(node)
+    return Process(spinning.make_executor(str(node.get_parameter("executor").value), node.context), realtime)
 
 
 class Assembly:
@@ -110,7 +110,7 @@ class Assembly:
         self.node: DriverNode | None = node
         self.nodes: list[Node] = []  # every node made here, the hot ones first
         self.executors: dict[str, Executor] = {}  # node name -> its executor (the hot one included)
-        self._threads: list[runtime.SpinThread] = []
+        self._threads: list[spinning.SpinThread] = []
         self.trajectories: dict[str, TrajectoryGroup] = {}  # the trajectory groups whose joints are all served
         self._log_handler: RclpyLogHandler | None = None
         self._started = False
@@ -167,12 +167,12 @@ class Assembly:
         for n in self.nodes:
             executor = self.executors[n.get_name()]
             if executor is not self.hot and n.get_name() in THREADS:
-                self._threads.append(runtime.SpinThread(executor, THREADS[n.get_name()], self.failures))
+                self._threads.append(spinning.SpinThread(executor, THREADS[n.get_name()], self.failures))
         if arm:
             self.node.arm_if_asked()
 
     @property
-    def failures(self) -> runtime.CallbackFailures:
+    def failures(self) -> spinning.CallbackFailures:
         """The callbacks of this process's nodes that raised (the driver node's /diagnostics says them);
         the caller's spin of :attr:`hot` counts there too (``runtime.spin_until(..., failures=...)``)."""
         assert self.node is not None, "build() first"
@@ -180,9 +180,9 @@ class Assembly:
 
     def _supervise(self) -> None:
         """Every service, timer and subscription callback of the assembly's nodes supervised
-        (nodes/process/runtime.py): an exception is logged once, counted, a service answers; none ends an executor."""
+        (nodes/process/spinning.py): an exception is logged once, counted, a service answers; none ends an executor."""
         for n in self.nodes:
-            runtime.supervise(n, self.failures)
+            spinning.supervise(n, self.failures)
 
     def arm(self, joints: Collection[str] | None = None) -> list[str]:
         """Enable every served drive (or those of ``joints``), each whatever the others did; what
@@ -259,7 +259,7 @@ def run(program: str, stop: StopSignal, *, name: str = "rovercan_driver", one_jo
     try:
         assembly = assemble(name, one_joint=one_joint)
         assembly.start()
-        runtime.spin_until(assembly.hot, stop.event, failures=assembly.failures)
+        spinning.spin_until(assembly.hot, stop.event, failures=assembly.failures)
     except RovercanError as err:
         print(f"{program}: {err}", file=sys.stderr)
         return 2

@@ -15,13 +15,13 @@ import sys
 
 from motor_driver.process.stop import StopSignal
 from nodes.assembly import run
-from nodes.process import runtime
+from nodes.process import spinning
 
 NODE_NAME = "motor_controller"
 
 
 def main(args: list[str] | None = None) -> int:
-    runtime.init(args)
+    spinning.init(args)
     with StopSignal() as stop:
         return run(NODE_NAME, stop, name=NODE_NAME, one_joint=True)
 

@@ -12,7 +12,7 @@ from rclpy.node import Node
 from std_msgs.msg import Float32
 
 from motor_driver.process.stop import StopSignal
-from nodes.process import runtime
+from nodes.process import spinning
 from nodes.process.params import NODES, declare
 from nodes.process.qos import COMMAND_QOS
 
@@ -36,9 +36,9 @@ class MotorDegreeNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    runtime.init(args)
+    spinning.init(args)
     with StopSignal() as stop:
-        runtime.spin_node(MotorDegreeNode(), stop.event)
+        spinning.spin_node(MotorDegreeNode(), stop.event)
     return 0
 
 

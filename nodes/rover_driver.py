@@ -12,11 +12,11 @@ import sys
 
 from motor_driver.process.stop import StopSignal
 from nodes.assembly import run
-from nodes.process import runtime
+from nodes.process import spinning
 
 
 def main(args: list[str] | None = None) -> int:
-    runtime.init(args)
+    spinning.init(args)
     with StopSignal() as stop:
         return run("rover_driver", stop)
 

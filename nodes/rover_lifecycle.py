@@ -57,7 +57,7 @@ from can_config.errors import RovercanError
 from motor_driver import MotorDriver
 from motor_driver.process import heap
 from nodes.assembly import Assembly, set_up
-from nodes.process import runtime
+from nodes.process import spinning
 from nodes.process.params import declare
 
 logger = logging.getLogger(__name__)
@@ -183,8 +183,8 @@ class DriveLifecycleNode(LifecycleNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    runtime.init(args)
-    with runtime.StopSignal() as stop:
+    spinning.init(args)
+    with spinning.StopSignal() as stop:
         try:
             node = DriveLifecycleNode()  # the process set-up before configure makes the driver's threads
         except RovercanError as err:
@@ -194,14 +194,14 @@ def main(args: list[str] | None = None) -> int:
         hot = node.hot
         cold = SingleThreadedExecutor()
         cold.add_node(node)
-        transitions = runtime.SpinThread(cold, "rovercan-lifecycle")
+        transitions = spinning.SpinThread(cold, "rovercan-lifecycle")
         try:
             if node.get_parameter("autostart").value:
                 node.trigger_configure()
                 if node.driver is not None:
                     node.trigger_activate()
             heap.settle()  # built (and, with autostart, the driver too): keep it out of the collector's walks
-            runtime.spin_until(hot, stop.event)
+            spinning.spin_until(hot, stop.event)
         finally:
             transitions.stop(5.0)
             node.release()

@@ -53,13 +53,13 @@ def run_demo(args: argparse.Namespace) -> int:
     from nodes.assembly import Assembly
     from nodes.motor_controller import NODE_NAME
     from nodes.motor_degree import MotorDegreeNode
-    from nodes.process import runtime
+    from nodes.process import spinning
     from nodes.process.logbridge import consoles_print_once
     from virtual_can.service import SimService
 
     config = load_config(args.config)
     joint = config.drives[0].name  # the demo names its joint: the config's first
-    runtime.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
+    spinning.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
     driver_node, hot, realtime = _demo_process(joint, args.realtime_priority)
     # rclpy prints the driver's records (nodes/process/logbridge.py): the CLI's console leaves them out
     with StopSignal() as stop, SimService.from_config(config, port=args.port) as sim, consoles_print_once():
@@ -88,7 +88,7 @@ def run_demo(args: argparse.Namespace) -> int:
                 ends = threading.Timer(args.duration, time_is_up)
                 ends.daemon = True
                 ends.start()
-            runtime.spin_until(hot, stop.event, failures=assembly.failures)
+            spinning.spin_until(hot, stop.event, failures=assembly.failures)
             drive = assembly.driver.drive(joint)
             if timed_out.is_set() and stop.signum is None:  # a Ctrl+C or SIGTERM is obeyed at once
                 _await_fresh_state(hot, extra.pop(0), lambda: drive.snapshot().verdict.fresh, assembly.failures)
@@ -161,7 +161,7 @@ def _await_fresh_state(hot: Any, degree: Any, fresh: Callable[[], bool], failure
     went silent; the drive's verdict says it) says nothing of the drive's state: the verdict waits
     up to FRESH_WAIT_S for fresh data and, without it, judges what it has (which fails, saying
     why). The degree node is gone first: no command is published while the verdict waits."""
-    from nodes.process import runtime
+    from nodes.process import spinning
 
     hot.remove_node(degree)
     degree.destroy_node()
@@ -176,7 +176,7 @@ def _await_fresh_state(hot: Any, degree: Any, fresh: Callable[[], bool], failure
         done.set()
 
     threading.Thread(target=watch, name="demo-fresh-wait", daemon=True).start()
-    runtime.spin_until(hot, done, failures=failures)  # the monitor's subscription brings the next MotorState
+    spinning.spin_until(hot, done, failures=failures)  # the monitor's subscription brings the next MotorState
 
 
 def demo_verdict(cmd: float, state: Any, verdict: Verdict) -> int:

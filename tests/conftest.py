@@ -297,7 +297,7 @@ def driver_node_spinning(driver: MotorDriver, *, probe_apart: bool = False) -> I
     from rclpy.executors import SingleThreadedExecutor
 
     from nodes.joints.driver_node import DriverNode
-    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.process.spinning import SpinThread, make_executor
 
     context = rclpy.Context()
     rclpy.init(context=context)

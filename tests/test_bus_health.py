@@ -178,7 +178,7 @@ def test_the_driver_waits_for_a_link_that_is_down_or_bus_off_and_says_so_once(
         for _ in range(4):
             why = buses._link_down("can0")
             ready.append(not why)
-            buses._link_said("can0", buses.runtime["can0"], why)
+            buses._link_said("can0", buses.bus_records["can0"], why)
         assert ready == [False, False, False, True]
     said = [r.getMessage() for r in caplog.records if "bus can0: link" in r.getMessage()]
     assert len(said) == 2 and says in said[0] and "left disabled" in said[0] and "link up again" in said[1], said

@@ -10,7 +10,7 @@ import struct
 from can_config import load_config
 from can_config.eds import load_drive_od
 from can_config.objects import NmtState
-from motor_driver.drive.ledger import DriveRuntime, RuntimePort
+from motor_driver.drive.ledger import DriveRecord, SupervisorPort
 from motor_driver.drive.received.state import DriveCache
 from motor_driver.protocol.pdo import plan_pdos
 from motor_driver.protocol.units import Scale
@@ -31,8 +31,8 @@ def cache() -> DriveCache:
     plan = plan_pdos(load_drive_od(d.eds, d.node_id), d.node_id)
     assert {p.cob_id for p in plan.tpdos} >= {STATUS_MODE, POSITION_VELOCITY}
     scale = Scale(d.counts_per_deg, d.rated_torque_nm, d.gear_ratio, invert=d.invert, offset_deg=d.offset_deg)
-    return DriveCache(d, None, plan, scale, sync_period_s=0.01, runtime=DriveRuntime(),  # type: ignore[arg-type]
-                      port=RuntimePort(ignore, ignore))
+    return DriveCache(d, None, plan, scale, sync_period_s=0.01, record=DriveRecord(),  # type: ignore[arg-type]
+                      port=SupervisorPort(ignore, ignore))
 
 
 def test_a_mode_noted_while_a_tpdo_is_decoded_is_not_rolled_back() -> None:

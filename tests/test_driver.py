@@ -396,16 +396,16 @@ def test_an_enable_refused_after_a_good_re_configuration_leaves_the_drive_config
     boots = drive.boot.boot_count
     apply_action(sim, {"action": "sto", "node": 1, "low": True})
     apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.1})
-    runtime = driver.supervisor.runtimes["joint1"]
+    record = driver.supervisor.records["joint1"]
 
     def refused_and_done() -> bool:  # the job ends after what it reported was applied
         said = "enabling it again failed" in caplog.text or "re-configuration after a reset failed" in caplog.text
-        return said and runtime.reboot_job is not None and runtime.reboot_job.done()
+        return said and record.reboot_job is not None and record.reboot_job.done()
 
     wait_for(refused_and_done, 60.0, "the enable after the re-configuration refused")
-    assert drive.boot.boot_count == boots + 1 and runtime.booted and not runtime.reboot_wanted, \
-        (runtime.booted, runtime.reboot_wanted, runtime.reconfigure_error)
-    assert runtime.reconfigure_failures == 0
+    assert drive.boot.boot_count == boots + 1 and record.booted and not record.reboot_wanted, \
+        (record.booted, record.reboot_wanted, record.reconfigure_error)
+    assert record.reconfigure_failures == 0
     verdict = drive.snapshot().verdict
     assert verdict.condition.name == "NOT_ARMED", verdict
     assert drive.cache.state is not State.OPERATION_ENABLED
@@ -432,7 +432,7 @@ def test_a_safe_stop_while_a_drive_is_configured_again_is_not_undone_by_its_rest
     try:
         apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.05})
         wait_for(lambda: drive.boot.boot_count > boots and drive.cache.booted, 30.0, "configured again")
-        job = driver.supervisor.runtimes["joint1"].reboot_job
+        job = driver.supervisor.records["joint1"].reboot_job
         wait_for(lambda: job is not None and job.done(), 30.0, "the re-configuration's end")
     finally:
         drive.channel.set_hook(None)
@@ -458,16 +458,16 @@ def test_an_unforeseen_failure_of_the_enable_after_a_re_configuration_is_counted
             raise ZeroDivisionError("a fault of this driver's")
 
     drive.channel.set_hook(hook)
-    runtime = driver.supervisor.runtimes["joint1"]
+    record = driver.supervisor.records["joint1"]
     try:
         apply_action(sim, {"action": "power_cycle", "node": 1, "off_s": 0.05})
         wait_for(lambda: "restore_enable" in driver.supervisor.faults.snapshot(), 30.0, "the failure counted")
-        wait_for(lambda: runtime.reboot_job is not None and runtime.reboot_job.done(), 30.0, "the job's end")
+        wait_for(lambda: record.reboot_job is not None and record.reboot_job.done(), 30.0, "the job's end")
     finally:
         drive.channel.set_hook(None)
     fault = driver.supervisor.faults.snapshot()["restore_enable"]
     assert fault.count == 1 and fault.cause == "ZeroDivisionError: a fault of this driver's", fault
-    assert runtime.booted and not runtime.reboot_wanted and drive.boot.boot_count == boots + 1
+    assert record.booted and not record.reboot_wanted and drive.boot.boot_count == boots + 1
     assert drive.snapshot().verdict.condition.name == "NOT_ARMED"
 
 

@@ -89,7 +89,7 @@ def test_ten_thousand_emcys_leave_the_log_short_and_every_heartbeat_between_them
     assert len(lines) < 100, len(lines)
     assert driver.drive("joint1").cache.emcy_count == BURST  # each counted, logged or not
     for drive in driver:
-        assert not drive.cache.lost and driver.supervisor.runtimes[drive.name].lost_stops == 0, drive.name
+        assert not drive.cache.lost and driver.supervisor.records[drive.name].lost_stops == 0, drive.name
     assert not any("heartbeat lost" in r.getMessage() for r in caplog.records)
 
 

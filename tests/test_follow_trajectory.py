@@ -42,9 +42,9 @@ if HAVE_ROS:
     from trajectory_msgs.msg import JointTrajectoryPoint
 
     from nodes.assembly import Assembly
-    from nodes.process import runtime
+    from nodes.process import spinning
     from nodes.process.qos import STATE_QOS
-    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.process.spinning import SpinThread, make_executor
 
 ListenerFactory = Callable[[SimService], can.BusABC]
 ARM = {"joint": "limited", "min_deg": -90.0, "max_deg": 90.0, "counts_per_rev": 4096, "gear_ratio": 50.0,
@@ -65,7 +65,7 @@ class Rig:
 
 @pytest.fixture
 def rig(monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> Iterator[Rig]:
-    monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a goal's pause wakes them
+    monkeypatch.setattr(spinning, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a goal's pause wakes them
     config = make_config(2, **ARM | getattr(request, "param", {}))  # indirect: the drives' settings changed
     sim = SimService.from_config(config, port=0)
     context = rclpy.Context()

@@ -81,7 +81,7 @@ def test_five_percent_frame_loss_is_graded_warn_within_a_bounded_count_of_syncs(
 
     from nodes.joints.driver_node import DriverNode
     from nodes.process.qos import DIAGNOSTICS_QOS
-    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.process.spinning import SpinThread, make_executor
 
     window = 200
     sim, driver = driver_factory(make_config(1, frame_loss_window_syncs=window, frame_loss_warn_percent=2.0))

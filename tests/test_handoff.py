@@ -43,7 +43,7 @@ if HAVE_ROS:
 
     from nodes.assembly import Assembly
     from nodes.process.qos import COMMAND_QOS
-    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.process.spinning import SpinThread, make_executor
 
 SWITCH_POINT = "mode switch: 0x6060 written"
 JOINTS = ("joint1", "joint2")

@@ -566,7 +566,7 @@ def test_the_ros_drive_system_turns_and_stops_the_wheels(tmp_path: Path, wiring:
 
     from nodes.joints.driver_node import DriverNode
     from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS
-    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.process.spinning import SpinThread, make_executor
     from nodes.rover.drive_system import DriveSystemNode
 
     config_path = write_kernel_config(tmp_path / "kernel.yaml", nodes=(1, 2), wiring=wiring)

@@ -31,7 +31,7 @@ if HAVE_ROS:
     from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
-    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.process.spinning import SpinThread, make_executor
     from nodes.rover_lifecycle import DriveLifecycleNode
 
 

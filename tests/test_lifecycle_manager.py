@@ -39,7 +39,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS  # noqa: E402
-from nodes.process.runtime import SpinThread, make_executor  # noqa: E402
+from nodes.process.spinning import SpinThread, make_executor  # noqa: E402
 from nodes.rover_lifecycle import DriveLifecycleNode  # noqa: E402
 
 NODE = "rovercan_lifecycle"

@@ -50,7 +50,7 @@ def test_a_drive_whose_transmitter_dies_while_turning_is_stopped(driver_factory:
     assert any(m.arbitration_id == 0x000 and bytes(m.data) == b"\x02\x01" for m in frames), "NMT stop of node 1"
     assert not any(m.arbitration_id == 0x000 and m.data[1] == 2 for m in frames), "the other drive left alone"
     assert driver.drive("joint2").cache.state.name != "FAULT" and not driver.drive("joint2").cache.lost
-    assert driver.supervisor.runtimes["joint1"].lost_stops >= 2  # told again while it stays unheard
+    assert driver.supervisor.records["joint1"].lost_stops >= 2  # told again while it stays unheard
 
 
 def test_a_lost_drive_is_told_to_stop_when_the_driver_shuts_down(driver_factory: DriverFactory,

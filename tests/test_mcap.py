@@ -18,7 +18,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from can_config import load_config
 from can_config.eds import load_drive_od
-from motor_driver.drive.ledger import DriveRuntime, RuntimePort
+from motor_driver.drive.ledger import DriveRecord, SupervisorPort
 from motor_driver.drive.received.state import DriveCache
 from motor_driver.protocol.pdo import plan_pdos
 from motor_driver.protocol.units import Scale
@@ -109,7 +109,7 @@ def test_mcap_values_agree_with_the_drivers_own_decoding(tmp_path: Path) -> None
         scale = Scale(d.counts_per_deg, d.rated_torque_nm, d.gear_ratio, invert=d.invert, offset_deg=d.offset_deg)
         bus = config.bus(d.bus)
         caches[(d.bus, d.node_id)] = DriveCache(d, None, plan, scale, sync_period_s=bus.sync_period_s,  # type: ignore[arg-type]
-                                                runtime=DriveRuntime(), port=RuntimePort(ignore, ignore))
+                                                record=DriveRecord(), port=SupervisorPort(ignore, ignore))
     expected: dict[str, list[tuple[float, float, float]]] = {}
     for t, bus, cob, *_rest, data in frames:
         cache = caches[(bus, cob & 0x7F)]

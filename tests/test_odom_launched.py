@@ -74,7 +74,7 @@ class Probe:
         from std_srvs.srv import Trigger
 
         from nodes.process.qos import STATE_QOS
-        from nodes.process.runtime import SpinThread
+        from nodes.process.spinning import SpinThread
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context)

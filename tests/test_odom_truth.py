@@ -37,7 +37,7 @@ from tf2_msgs.msg import TFMessage  # noqa: E402
 
 from nodes.joints.driver_node import DriverNode  # noqa: E402
 from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS  # noqa: E402
-from nodes.process.runtime import SpinThread, make_executor  # noqa: E402
+from nodes.process.spinning import SpinThread, make_executor  # noqa: E402
 from nodes.rover.drive_system import DriveSystemNode  # noqa: E402
 
 LEFT = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left"]

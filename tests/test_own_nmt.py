@@ -100,15 +100,15 @@ def test_the_supervisor_never_waits_for_a_busy_channel(driver_factory: DriverFac
     assert drive.channel._lock.acquire(timeout=1.0)  # what a send in progress holds
     try:
         apply_action(sim, {"action": "tx_dead", "node": 1})
-        wait_for(lambda: drive.cache.lost and driver.supervisor.runtimes["joint1"].stop_pending, 5.0, "lost, its RPDO stop pending")
+        wait_for(lambda: drive.cache.lost and driver.supervisor.records["joint1"].stop_pending, 5.0, "lost, its RPDO stop pending")
         beats = handle.host_beats
         wait_for(lambda: handle.host_beats >= beats + 3, 5.0, "the host heartbeat going on meanwhile")
         wait_for(lambda: sim_nmt(sim) == "STOPPED", 5.0, "the NMT stop, which needs no channel")
         listener = listener_factory(sim)
-        assert driver.supervisor.runtimes["joint1"].stop_pending
+        assert driver.supervisor.records["joint1"].stop_pending
     finally:
         drive.channel._lock.release()
-    wait_for(lambda: not driver.supervisor.runtimes["joint1"].stop_pending, 2.0, "the RPDO stop sent once the channel was free")
+    wait_for(lambda: not driver.supervisor.records["joint1"].stop_pending, 2.0, "the RPDO stop sent once the channel was free")
     frames = drain(listener, 0.3)
     assert any(m.arbitration_id == 0x201 and m.data[0] == 0x02 for m in frames), "the quick-stop RPDO"
 

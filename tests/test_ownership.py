@@ -5,7 +5,7 @@ through what it offers (issues 38, 53). An AST scan of the production code, the 
 - the attributes a module declares are those it assigns as ``self.<name>``;
 - anywhere in the production code, an assignment to ``<x>.<name>`` (``x`` not ``self``, or
   ``self.<part>.<name>``) of a name that only other modules declare is a violation;
-- the runtime state (:mod:`motor_driver.drive.ledger`: lost, booted, another master, reconnect and
+- the ledger's records (:mod:`motor_driver.drive.ledger`: lost, booted, another master, reconnect and
   back-off) has one writer, the supervisor (its two modules, one thread); nobody else assigns it.
 
 The checker is tried on broken snippets too, so the test can fail.

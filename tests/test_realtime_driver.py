@@ -1,4 +1,4 @@
-"""A real-time driver's process (its threads under SCHED_FIFO: nodes/process/runtime.go_realtime) starts
+"""A real-time driver's process (its threads under SCHED_FIFO: nodes/process/spinning.go_realtime) starts
 its flight recorder's plot helper ordinary: matplotlib at real-time priority would take a core
 from the driver's own threads for a second or two, at an incident, when they matter most. Its
 buses' receive threads run real-time like the rest, on first connect and on every reconnect: an

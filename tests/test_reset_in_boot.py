@@ -23,7 +23,7 @@ from can_config import RoverConfig
 from can_config.errors import BootError, ConfigError
 from motor_driver import MotorDriver
 from motor_driver.drive import Drive
-from motor_driver.drive.ledger import DriveRuntime
+from motor_driver.drive.ledger import DriveRecord
 from motor_driver.drive.setup.boot import configuration_stamp
 from motor_driver.protocol.cia402 import State
 from motor_driver.protocol.pdo import mapping_writes
@@ -76,10 +76,10 @@ def assert_enabled_as_asked(sim: SimService, drive: Drive) -> None:
     assert_asked(pdo_objects(sim))
 
 
-def one_drive(driver_factory: Factory) -> tuple[SimService, Drive, DriveRuntime]:
+def one_drive(driver_factory: Factory) -> tuple[SimService, Drive, DriveRecord]:
     """One drive booted, and what the supervisor keeps of it."""
     sim, driver = driver_factory(make_config(1))
-    return sim, driver.drive("joint1"), driver.supervisor.runtimes["joint1"]
+    return sim, driver.drive("joint1"), driver.supervisor.records["joint1"]
 
 
 @contextmanager
@@ -137,15 +137,15 @@ def test_a_drive_reset_at_any_write_of_its_configuration_is_enabled_only_as_conf
     first = data.draw(st.integers(1, writes), label="reset at write")
     again = data.draw(st.integers(1, writes + 1), label="and at write (of the next configuration)")
     answer = data.draw(st.booleans(), label="the write that resets it is answered")
-    runtime = driver.supervisor.runtimes["joint1"]
-    restarts = getattr(runtime, "boot_restarts", 0)
+    record = driver.supervisor.records["joint1"]
+    restarts = getattr(record, "boot_restarts", 0)
     drive = configure_with_resets(sim, driver, [first, again], answer)
     drive.enable()
     assert sim_state(sim) is SimState.OPERATION_ENABLED
     assert pdo_objects(sim) == reference
     drive.disable()
-    assert runtime.boot_restarts > restarts  # said where /diagnostics reads it
-    assert "boot-up" in runtime.boot_restart_why
+    assert record.boot_restarts > restarts  # said where /diagnostics reads it
+    assert "boot-up" in record.boot_restart_why
 
 
 def test_a_reset_at_the_first_write_of_0x1600_is_not_booted_before_it_is_configured(
@@ -173,8 +173,8 @@ def test_a_reset_at_the_first_write_of_0x1600_is_not_booted_before_it_is_configu
         with driver:
             driver.start()
             drive = driver.drive("joint1")
-            runtime = driver.supervisor.runtimes["joint1"]
-            assert runtime.boot_restarts == 1 and "boot-up" in runtime.boot_restart_why
+            record = driver.supervisor.records["joint1"]
+            assert record.boot_restarts == 1 and "boot-up" in record.boot_restart_why
             assert "configuring it again from the start" in caplog.text
             assert len(held_when_booted) == 1
             assert_asked(held_when_booted[0])
@@ -205,7 +205,7 @@ def test_a_drive_whose_statusword_shows_no_state_is_not_booted(
 
 def test_an_unexpected_error_in_a_reconfiguration_is_logged_counted_and_retried(
         driver_factory: Factory, caplog: pytest.LogCaptureFixture) -> None:
-    sim, drive, runtime = one_drive(driver_factory)
+    sim, drive, record = one_drive(driver_factory)
     raised: list[str] = []
 
     def hook(point: str) -> None:
@@ -215,12 +215,12 @@ def test_an_unexpected_error_in_a_reconfiguration_is_logged_counted_and_retried(
 
     with hooked(drive, hook) as boots:
         apply_action(sim, {"action": "power_cycle", "node": NODE, "off_s": 0.05})
-        wait_for(lambda: runtime.reconfigure_failures == 1, HANG_S, "the failed re-configuration counted")
-        assert "RuntimeError: a fault of the driver's own, injected" in runtime.reconfigure_error
+        wait_for(lambda: record.reconfigure_failures == 1, HANG_S, "the failed re-configuration counted")
+        assert "RuntimeError: a fault of the driver's own, injected" in record.reconfigure_error
         wait_for(lambda: drive.boot.boot_count > boots and drive.cache.booted, HANG_S, "the retry")
     said = [r for r in caplog.records if "failed unexpectedly" in r.getMessage()]
     assert len(said) == 1 and said[0].levelno == logging.ERROR and said[0].exc_info is not None
-    assert runtime.reconfigure_failures == 1
+    assert record.reconfigure_failures == 1
     assert_enabled_as_asked(sim, drive)
 
 
@@ -241,20 +241,20 @@ def test_a_reset_whose_boot_up_is_lost_is_caught_by_what_the_drive_holds(
     with MotorDriver(cfg) as driver:
         driver.start()
         drive = driver.drive("joint1")
-        runtime = driver.supervisor.runtimes["joint1"]
+        record = driver.supervisor.records["joint1"]
         drive.enable()
         assert sim_state(sim) is SimState.OPERATION_ENABLED
         held = pdo_objects(sim)
         assert {key: held[key] for key in asked_of(drive)} == asked_of(drive)
-        assert runtime.boot_restarts == 1
+        assert record.boot_restarts == 1
         said = "0x1020 (verify configuration) holds" if eds != "generic" else "it does not hold its PDO configuration"
-        assert said in runtime.boot_restart_why
+        assert said in record.boot_restart_why
 
 
 def test_a_reset_heard_as_the_boot_reports_its_end_is_configured_again(driver_factory: Factory) -> None:
     """The drive resets after the boot's last look and its boot-up is heard before the boot's
     report reaches the supervisor (held there by a hook): not booted, configured again."""
-    sim, drive, runtime = one_drive(driver_factory)
+    sim, drive, record = one_drive(driver_factory)
     fired: list[int] = []
 
     def hook(point: str) -> None:
@@ -266,7 +266,7 @@ def test_a_reset_heard_as_the_boot_reports_its_end_is_configured_again(driver_fa
     with hooked(drive, hook) as boots:
         apply_action(sim, {"action": "power_cycle", "node": NODE, "off_s": 0.05})
         wait_for(lambda: drive.boot.boot_count > boots + 1 and drive.cache.booted, HANG_S, "configured again")
-    assert fired and runtime.boot_restarts == 1 and runtime.boot_restart_why == "it sent boot-up as its boot ended"
+    assert fired and record.boot_restarts == 1 and record.boot_restart_why == "it sent boot-up as its boot ended"
     assert_enabled_as_asked(sim, drive)
 
 
@@ -275,7 +275,7 @@ def test_a_reset_between_the_last_confirmation_and_the_start_whose_boot_up_is_lo
     """The drive resets, its boot-up lost, after its configuration was confirmed and before the NMT
     start (a hook at the start step): started, it would run on its default PDO mapping. The look
     after the start sees what it holds; configured again, it is enabled only as asked."""
-    sim, drive, runtime = one_drive(driver_factory)
+    sim, drive, record = one_drive(driver_factory)
     simulator = sim.simulator_for(NODE)
     peer = simulator.drive(NODE)
     fired: list[bool] = []
@@ -288,8 +288,8 @@ def test_a_reset_between_the_last_confirmation_and_the_start_whose_boot_up_is_lo
     with hooked(drive, hook) as boots:
         apply_action(sim, {"action": "power_cycle", "node": NODE, "off_s": 0.05})
         wait_for(lambda: drive.boot.boot_count > boots and drive.cache.booted, HANG_S, "configured again")
-    assert fired and runtime.boot_restarts == 1, runtime.boot_restart_why
-    assert runtime.boot_restart_why.startswith("after NMT start: it does not hold its PDO configuration")
+    assert fired and record.boot_restarts == 1, record.boot_restart_why
+    assert record.boot_restart_why.startswith("after NMT start: it does not hold its PDO configuration")
     assert_enabled_as_asked(sim, drive)
 
 

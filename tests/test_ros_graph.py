@@ -26,7 +26,7 @@ if HAVE_ROS:
     from nodes.assembly import Assembly
     from nodes.motor_controller import NODE_NAME
     from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
-    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.process.spinning import SpinThread, make_executor
 
 
 @pytest.fixture

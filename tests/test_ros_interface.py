@@ -38,9 +38,9 @@ if HAVE_ROS:
     from nodes.assembly import Assembly
     from nodes.joints.driver_node import DriverNode
     from nodes.joints.driver_services import DriverServicesNode
-    from nodes.process import runtime
+    from nodes.process import spinning
     from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS, STATE_QOS
-    from nodes.process.runtime import SpinThread, make_executor
+    from nodes.process.spinning import SpinThread, make_executor
     from nodes.rover.drive_system import DriveSystemNode
 
 WHEELS = ["wheel_front_left", "wheel_middle_left", "wheel_rear_left",
@@ -110,7 +110,7 @@ def graph(monkeypatch: pytest.MonkeyPatch) -> Iterator[Graph]:
     """The rover_driver process as its entry point assembles it (nodes/assembly.py), in this
     process: the hot executor on a thread of the test's, a probe node on it."""
     # the idle executors never poll here: whatever they serve must wake them (a goal's pause, a stop)
-    monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)
+    monkeypatch.setattr(spinning, "IDLE_POLL_S", 600.0)
     config = slow_homing(in_process_host_timeout(load_config(REPO / "config" / "rover.yaml")), SLOW_HOMING)
     sim = SimService.from_config(config, port=0)
     context = rclpy.Context()

@@ -180,10 +180,10 @@ def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master
         # the supervisor marks that change (within its hold time); only then is the mark cleared,
         # or a late supervisor (a loaded machine) would mark it again after the clear
         wait_for(lambda: bool(drive.watch.foreign_master), 2.0, "the supervisor's mark of the change")
-        runtime = driver.supervisor.runtimes["joint1"]
-        wait_for(lambda: runtime.behind_back[0] < time.monotonic() - FOREIGN_HOLD_S - 0.05, 2.0, "the hold over")
+        record = driver.supervisor.records["joint1"]
+        wait_for(lambda: record.behind_back[0] < time.monotonic() - FOREIGN_HOLD_S - 0.05, 2.0, "the hold over")
         def release() -> None:  # it went there on its own: the supervisor forgets its mark
-            runtime.foreign_master, runtime.behind_back = "", (0.0, "")
+            record.foreign_master, record.behind_back = "", (0.0, "")
         driver.supervisor.call(release)
         drive.boot.boot(reset=False)  # ... ends with NMT start
         drive.cache.on_heartbeat(0x701, bytearray([NmtState.PRE_OPERATIONAL]), 0.0)  # the one on its way

@@ -38,7 +38,7 @@ if HAVE_ROS:
     from std_srvs.srv import Trigger
 
     from nodes.assembly import Assembly
-    from nodes.process import runtime
+    from nodes.process import spinning
     from nodes.process.qos import DIAGNOSTICS_QOS, SETPOINT_QOS, STATE_QOS
 
 JOINTS = ["joint1", "joint2"]
@@ -115,23 +115,23 @@ def said_once(caplog: pytest.LogCaptureFixture, what: str) -> None:
 
 @pytest.fixture
 def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Rig]:
-    monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a call must wake them
+    monkeypatch.setattr(spinning, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a call must wake them
     config = make_config(len(JOINTS), eds=str(odd_eds(tmp_path / "odd.eds")))
     sim = SimService.from_config(config, port=0)
     context = rclpy.Context()
     rclpy.init(context=context)
-    hot = runtime.make_executor("events", context)
+    hot = spinning.make_executor("events", context)
     assembly = Assembly(MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)), hot, context=context,
                         overrides=[Parameter("diagnostics_rate_hz", value=10.0)])
     probe = rclpy.create_node("probe", context=context)
     probe_executor = SingleThreadedExecutor(context=context)
     probe_executor.add_node(probe)
-    spinning: list[runtime.SpinThread] = []
+    spinning: list[spinning.SpinThread] = []
     try:
         assembly.build()
         assembly.start()
-        spinning = [runtime.SpinThread(hot, "test-hot", assembly.failures),
-                    runtime.SpinThread(probe_executor, "test-probe")]
+        spinning = [spinning.SpinThread(hot, "test-hot", assembly.failures),
+                    spinning.SpinThread(probe_executor, "test-probe")]
         yield Rig(sim, assembly, probe)
     finally:
         for spin in spinning:
@@ -285,7 +285,7 @@ def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, give
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node("raising", context=context)
-    executor = (runtime.make_executor("events", context) if kind == "events" else
+    executor = (spinning.make_executor("events", context) if kind == "events" else
                 SingleThreadedExecutor(context=context) if kind == "single" else
                 MultiThreadedExecutor(num_threads=2, context=context))
     executor.add_node(node)
@@ -296,10 +296,10 @@ def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, give
         raise RuntimeError("Boom unsupervised")
 
     node.create_timer(0.01, tick)
-    failures = runtime.CallbackFailures()
+    failures = spinning.CallbackFailures()
     node.callback_failures = failures  # type: ignore[attr-defined]  # as a DriverNode carries them
     stop = threading.Event()
-    spin = threading.Thread(target=runtime.spin_until, args=(executor, stop, 0.1, failures if given else None),
+    spin = threading.Thread(target=spinning.spin_until, args=(executor, stop, 0.1, failures if given else None),
                             name="test-spin")
     spin.start()
     try:
@@ -311,5 +311,5 @@ def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, give
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         rclpy.shutdown(context=context)
-    ours = [r for r in caplog.records if r.name == "nodes.process.runtime" and "Boom unsupervised" in r.getMessage()]
+    ours = [r for r in caplog.records if r.name == "nodes.process.spinning" and "Boom unsupervised" in r.getMessage()]
     assert len(ours) == (0 if kind == "events" else 1), [r.getMessage() for r in ours]

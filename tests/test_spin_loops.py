@@ -1,4 +1,4 @@
-"""The node's spin loops (nodes/process/runtime.py): an idle executor's thread waits for work, not for a
+"""The node's spin loops (nodes/process/spinning.py): an idle executor's thread waits for work, not for a
 poll, and still leaves at once when stopped; the hot EventsExecutor runs every callback that
 comes within one call and still sees its stop event."""
 
@@ -19,7 +19,7 @@ if HAVE_ROS:
     from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
 
-    from nodes.process import runtime
+    from nodes.process import spinning
 
 
 @pytest.fixture
@@ -32,13 +32,13 @@ def context() -> Iterator[Any]:
 
 def test_an_idle_spin_thread_leaves_at_once_when_stopped_not_at_its_next_poll(
         context: Any, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(runtime, "IDLE_POLL_S", 600.0)  # a poll would keep it in its wait for ten minutes
+    monkeypatch.setattr(spinning, "IDLE_POLL_S", 600.0)  # a poll would keep it in its wait for ten minutes
     node = rclpy.create_node("idle", context=context)
     served = threading.Event()
     node.create_service(Trigger, "poke", lambda _req, resp: served.set() or resp)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    spin = runtime.SpinThread(executor, "test-idle")
+    spin = spinning.SpinThread(executor, "test-idle")
     client = rclpy.create_node("client", context=context)
     poke = client.create_client(Trigger, "poke")
     assert poke.wait_for_service(timeout_sec=10.0)
@@ -51,7 +51,7 @@ def test_an_idle_spin_thread_leaves_at_once_when_stopped_not_at_its_next_poll(
 
 def test_the_hot_loop_runs_a_burst_of_callbacks_and_still_stops(context: Any) -> None:
     node = rclpy.create_node("hot", context=context)
-    executor = runtime.make_executor("events", context)
+    executor = spinning.make_executor("events", context)
     executor.add_node(node)
     stop = threading.Event()
     ticks: list[int] = []
@@ -61,7 +61,7 @@ def test_the_hot_loop_runs_a_burst_of_callbacks_and_still_stops(context: Any) ->
         if len(ticks) == 50:
             stop.set()
     node.create_timer(0.001, tick)
-    thread = threading.Thread(target=runtime.spin_until, args=(executor, stop))
+    thread = threading.Thread(target=spinning.spin_until, args=(executor, stop))
     thread.start()
     thread.join(60.0)
     assert not thread.is_alive() and len(ticks) >= 50

@@ -175,7 +175,7 @@ def launched_rover(tmp_path: Path, name: str, *launch_args: str) -> Iterator[tup
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
 
-    from nodes.process.runtime import SpinThread
+    from nodes.process.spinning import SpinThread
 
     rover = Rover(tmp_path / "six_wheels.yaml", {"can0": free_port(), "can1": free_port()})
     rover.config.write_text(yaml.safe_dump(six_wheels(rover.ports["can0"], rover.ports["can1"])))

@@ -11,7 +11,7 @@ import time
 
 from can_config import load_config
 from can_config.eds import load_drive_od
-from motor_driver.drive.ledger import DriveRuntime, RuntimePort
+from motor_driver.drive.ledger import DriveRecord, SupervisorPort
 from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.values import DriveState, Received
 from motor_driver.drive.verdict import Condition
@@ -48,10 +48,10 @@ def cache(kind: type[DriveCache] = DriveCache) -> DriveCache:
     d = config.drives[0]
     plan = plan_pdos(load_drive_od(d.eds, d.node_id), d.node_id)
     scale = Scale(d.counts_per_deg, d.rated_torque_nm, d.gear_ratio, invert=d.invert, offset_deg=d.offset_deg)
-    runtime = DriveRuntime()
-    runtime.booted = True
-    return kind(d, None, plan, scale, sync_period_s=0.01, runtime=runtime,  # type: ignore[arg-type]
-                port=RuntimePort(ignore, ignore))
+    record = DriveRecord()
+    record.booted = True
+    return kind(d, None, plan, scale, sync_period_s=0.01, record=record,  # type: ignore[arg-type]
+                port=SupervisorPort(ignore, ignore))
 
 
 def test_a_snapshots_verdict_and_values_come_from_one_frame() -> None:

@@ -5,10 +5,10 @@ Owners: the connection (``bus``, the network's notifier, ``sync_task``) is set u
 driver's constructor and ``start`` before any thread runs, and from then on changed only by jobs
 on the bus's worker (reconnect, SYNC restart), one at a time; the supervisor thread sends the
 host heartbeat through it (:meth:`BusHandle.beat`, which counts ``host_beats``). The supervisor's
-bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.drive.ledger.BusRuntime`.
+bookkeeping of the bus (lost, back-off, lateness) is its own :class:`motor_driver.drive.ledger.BusRecord`.
 
 The bus's receive thread (python-can's Notifier) runs as every other thread of the driver's
-process does: under SCHED_FIFO where the node made it real-time (nodes/process/runtime.go_realtime). Run
+process does: under SCHED_FIFO where the node made it real-time (nodes/process/spinning.go_realtime). Run
 ordinary, it would take a SYNC period's frames in fewer wake-ups (0.026 of a core less with the
 rover's config), but it holds the interpreter while it decodes a frame, and an ordinary thread
 holding it is preempted there by any real-time or favoured work on its core: every other thread

@@ -46,7 +46,7 @@ from motor_driver.bus.adapters import Rejected
 from motor_driver.bus.link import KernelBusHealth
 from motor_driver.diagnostics.frameloss import Loss
 from motor_driver.drive import DriveState
-from motor_driver.drive.ledger import DriveRuntime
+from motor_driver.drive.ledger import DriveRecord
 from motor_driver.drive.verdict import Condition
 from motor_driver.process.jobs import JOB_KINDS, JobFault
 from motor_driver.protocol.cia402 import SW
@@ -168,15 +168,15 @@ def rejections(state: DriveState, values: dict[str, str], rejected: Rejections) 
 RECONFIGURE_FAILURES_ERROR = 3
 
 
-def with_boot(health: Health, runtime: DriveRuntime) -> Health:
+def with_boot(health: Health, record: DriveRecord) -> Health:
     """A drive's grade with what its boots went through (the supervisor's ledger): restarts of a
     configuration and failed re-configurations in its values; ERROR once re-configuration has
     failed RECONFIGURE_FAILURES_ERROR times, naming the newest error."""
-    values = {**health.values, "boot_restarts": str(runtime.boot_restarts),
-              "boot_restart_why": runtime.boot_restart_why, "reconfigure_failures": str(runtime.reconfigure_failures),
-              "reconfigure_error": runtime.reconfigure_error}
-    if runtime.reconfigure_failures >= RECONFIGURE_FAILURES_ERROR and health.level < ERROR:
-        return Health(ERROR, f"re-configuration failed {runtime.reconfigure_failures} times ({runtime.reconfigure_error});"
+    values = {**health.values, "boot_restarts": str(record.boot_restarts),
+              "boot_restart_why": record.boot_restart_why, "reconfigure_failures": str(record.reconfigure_failures),
+              "reconfigure_error": record.reconfigure_error}
+    if record.reconfigure_failures >= RECONFIGURE_FAILURES_ERROR and health.level < ERROR:
+        return Health(ERROR, f"re-configuration failed {record.reconfigure_failures} times ({record.reconfigure_error});"
                       " it is retried: check its power, wiring and EDS", values)
     return Health(health.level, health.message, values)
 

@@ -9,8 +9,8 @@ composes ``sdo``, ``pdo``, ``nmt`` and ``emcy``:
 - ``watch`` (:class:`HostWatch`), ``power``, ``limits``, ``motion``, ``homing``, ``boot``:
   collaborators built on those.
 
-Lost, booted and another master are the driver's supervisor's judgement (``runtime``, a
-:class:`motor_driver.drive.ledger.DriveRuntime` the parts read); the parts hand it what they find
+Lost, booted and another master are the driver's supervisor's judgement (``record``, a
+:class:`motor_driver.drive.ledger.DriveRecord` the parts read); the parts hand it what they find
 through ``port``. This class adds no state and no rule: it builds the parts in order, connects the cache to the
 channel, and hands the drive's COB-IDs to the receive thread last, so that a frame never meets
 a half-built drive. Its few methods are the user's API (enable, the stops, moves, streams,
@@ -38,7 +38,7 @@ from motor_driver.drive.command.limits import LimitGuard
 from motor_driver.drive.command.motion import Motion
 from motor_driver.drive.command.power import PowerStateMachine
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
-from motor_driver.drive.ledger import DriveRuntime, NmtLedger, RuntimePort
+from motor_driver.drive.ledger import DriveRecord, NmtLedger, SupervisorPort
 from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.setup.boot import Boot
@@ -55,8 +55,8 @@ class Drive:
     """One drive. Created by :class:`motor_driver.runtime.driver.MotorDriver`; methods are thread-safe."""
 
     def __init__(self, config: DriveConfig, network: canopen.Network, od: ObjectDictionary, *,
-                 host_node_id: int = 127, sync_period_s: float = 0.01, runtime: DriveRuntime,
-                 port: RuntimePort, host_beats: Callable[[], int], host_heartbeat_s: float) -> None:
+                 host_node_id: int = 127, sync_period_s: float = 0.01, record: DriveRecord,
+                 port: SupervisorPort, host_beats: Callable[[], int], host_heartbeat_s: float) -> None:
         self.config = config
         self.name, self.node_id = config.name, config.node_id
         self.network = network
@@ -71,14 +71,14 @@ class Drive:
             logger.warning("node %d: 0x%04X cannot be PDO-mapped on this drive; using SDO for it", config.node_id, index)
         scale = Scale(config.counts_per_deg, config.rated_torque_nm, config.gear_ratio, invert=config.invert,
                       offset_deg=config.offset_deg)
-        self.cache = DriveCache(config, network, self.plan, scale, sync_period_s=sync_period_s, runtime=runtime,
+        self.cache = DriveCache(config, network, self.plan, scale, sync_period_s=sync_period_s, record=record,
                                 port=port)
         self.channel = CommandChannel(config.name, config.node_id, self.plan, self._send, self._write_cw_sdo,
                                       self.cache.wake)
         self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s, admit=self._admit_tool_write)
         cache, channel, sdo = self.cache, self.channel, self.sdo  # each part is handed those it uses
         self.watch = HostWatch(config, od, cache, channel, sdo, network, Host(host_node_id, host_heartbeat_s, host_beats),
-                               runtime=runtime, nmt=NmtLedger(config.node_id, self._send))
+                               record=record, nmt=NmtLedger(config.node_id, self._send))
         self.power = PowerStateMachine(config, od, cache, channel, sdo, self.watch)
         self.limits = LimitGuard(config, cache, channel)
         self.motion = Motion(config, self.plan, cache, channel, sdo, self.power, self.limits)

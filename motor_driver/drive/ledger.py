@@ -3,7 +3,7 @@ configured again, another master, the stops of a lost drive, the watchdog's and 
 times; a bus's reconnect and back-off, its host heartbeat), and the NMT commands it sent.
 
 Owner: the :class:`motor_driver.runtime.supervisor.Supervisor`, on its thread, alone writes a
-:class:`DriveRuntime` and a :class:`BusRuntime` (tests/test_ownership.py checks that no other
+:class:`DriveRecord` and a :class:`BusRecord` (tests/test_ownership.py checks that no other
 module assigns their fields). Every other thread reads them and hands the supervisor what it
 found instead: the receive thread posts each heartbeat that may change a judgement
 (:class:`Heard`, without waiting), a boot or a reconnect on the bus's worker reports its result
@@ -14,7 +14,7 @@ found instead: the receive thread posts each heartbeat that may change a judgeme
 command and when, so that a state the driver caused (its own NMT stop of a lost drive, taking
 effect after a heartbeat sent just before it) is never taken for another master's.
 
-It lives with the drive's parts because they read it and post to it (through :class:`RuntimePort`);
+It lives with the drive's parts because they read it and post to it (through :class:`SupervisorPort`);
 the supervisor (:mod:`motor_driver.runtime`), the layer above, is its one writer.
 """
 
@@ -33,7 +33,7 @@ NMT_TARGET = {NmtCommand.START: NmtState.OPERATIONAL, NmtCommand.STOP: NmtState.
               NmtCommand.RESET_NODE: NmtState.BOOTUP, NmtCommand.RESET_COMMUNICATION: NmtState.BOOTUP}
 
 
-class DriveRuntime:
+class DriveRecord:
     """The supervisor's judgement of one drive (read by anyone, written by the supervisor)."""
 
     def __init__(self) -> None:
@@ -63,7 +63,7 @@ class DriveRuntime:
         self.reconfigure_error = ""  # ... the newest one's error
 
 
-class BusRuntime:
+class BusRecord:
     """The supervisor's judgement of one bus (read by anyone, written by the supervisor)."""
 
     def __init__(self) -> None:
@@ -164,7 +164,7 @@ class BusDown:
 Event = Heard | Booting | Booted | BootRestarted | RebootFailed | RestoreFailed | BusBack | BusDown
 
 
-class RuntimePort:
+class SupervisorPort:
     """How a part hands the supervisor what it found: ``post`` (never waits: the receive thread)
     and ``report`` (returns once the supervisor applied it: a worker, a caller's thread)."""
 

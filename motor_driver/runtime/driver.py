@@ -13,7 +13,7 @@ Threads and what they own:
 - the supervisor thread (``rovercan-supervisor``, :class:`motor_driver.runtime.supervisor.Supervisor`),
   period SUPERVISOR_PERIOD_S, never blocks: produces the host heartbeat on every bus, checks the
   drives' heartbeats, runs the velocity watchdog and the limit guard, notices lost buses and hands
-  re-boots and reconnects to the bus's worker. It alone writes the runtime state (lost, booted,
+  re-boots and reconnects to the bus's worker. It alone writes the ledger's records (lost, booted,
   another master, reconnect and back-off: :mod:`motor_driver.drive.ledger`); ``bus_lost`` reads it.
 - one worker per bus (``rovercan-<bus>``): the re-boots and reconnects, one at a time; each
   reports its result to the supervisor.
@@ -129,10 +129,10 @@ class MotorDriver:
             self.supervisor = Supervisor(config, self._handles, self.recorder)
             for drive_cfg in config.drives:
                 bus_cfg = config.bus(drive_cfg.bus)
-                runtime, port = self.supervisor.port(drive_cfg.name)
+                record, port = self.supervisor.port(drive_cfg.name)
                 drive = Drive(drive_cfg, self._handles[drive_cfg.bus].network, ods[drive_cfg.name],
                               host_node_id=bus_cfg.host_node_id, sync_period_s=bus_cfg.sync_period_s,
-                              runtime=runtime, port=port, host_beats=self._handles[drive_cfg.bus].beats_sent,
+                              record=record, port=port, host_beats=self._handles[drive_cfg.bus].beats_sent,
                               host_heartbeat_s=bus_cfg.host_heartbeat_s)
                 drive.watch.set_remote_frames(carries_remote_frames(self._handles[drive_cfg.bus].bus))
                 self.drives[drive_cfg.name] = drive
@@ -230,7 +230,7 @@ class MotorDriver:
     @property
     def bus_lost(self) -> dict[str, bool]:
         """Each bus: lost (the supervisor's judgement, read)."""
-        return {name: rt.lost for name, rt in self.supervisor.bus.runtime.items()}
+        return {name: rt.lost for name, rt in self.supervisor.bus.bus_records.items()}
 
     def rejected(self, drive: Drive) -> Rejected | None:
         """The frames of ``drive`` a receive callback of its bus raised on (None: none)."""

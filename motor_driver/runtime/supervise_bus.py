@@ -4,7 +4,7 @@ connection, error frames, the SYNC job, silence); a lost bus the driver opened i
 with back-off by a job on the bus's worker, which reports back (:class:`BusBack`,
 :class:`BusDown`) instead of writing anything of the supervisor's.
 
-Owner: the supervisor thread writes each :class:`BusRuntime` (:mod:`motor_driver.drive.ledger`); the
+Owner: the supervisor thread writes each :class:`BusRecord` (:mod:`motor_driver.drive.ledger`); the
 worker's job only opens, closes and boots, through the bus handle's and the drives' methods.
 """
 
@@ -24,7 +24,7 @@ from motor_driver.bus.cyclic import DaemonCyclicTask
 from motor_driver.bus.handle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
 from motor_driver.bus.link import KernelBusHealth, read_kernel_health
 from motor_driver.drive import Drive
-from motor_driver.drive.ledger import BusBack, BusDown, BusRuntime, DriveRuntime, Event
+from motor_driver.drive.ledger import BusBack, BusDown, BusRecord, DriveRecord, Event
 from motor_driver.process.jobs import JobFaults, brief_error, cause_of
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.recording.flight import FlightRecorder
@@ -48,14 +48,14 @@ class BusSupervision:
     recorder: FlightRecorder | None
     rate_limited: RateLimitedLog
     drives: dict[str, Drive]
-    runtimes: dict[str, DriveRuntime]
+    records: dict[str, DriveRecord]
     drive_gone: Callable[[Drive], None]
     report: Callable[[Event], None]
     faults: JobFaults = field(default_factory=JobFaults)
-    runtime: dict[str, BusRuntime] = field(init=False)
+    bus_records: dict[str, BusRecord] = field(init=False)
 
     def __post_init__(self) -> None:
-        self.runtime = {name: BusRuntime() for name in self.handles}
+        self.bus_records = {name: BusRecord() for name in self.handles}
 
     def kernel_health(self, bus: str) -> tuple[KernelBusHealth | None, str]:
         """What the kernel says of ``bus`` (state, counters: a socketcan bus), or None and why it
@@ -72,7 +72,7 @@ class BusSupervision:
         """The host heartbeat on every bus that is up, from the supervisor's loop: when the loop
         stops (the process killed, hung, stopped), the heartbeat stops and the drives stop themselves."""
         for name, handle in self.handles.items():
-            rt = self.runtime[name]
+            rt = self.bus_records[name]
             if now < rt.next_beat or rt.lost:
                 continue
             bus_cfg = self.config.bus(name)
@@ -95,11 +95,11 @@ class BusSupervision:
     def supervise_buses(self, now: float) -> None:
         for name, handle in self.handles.items():
             try:
-                self._supervise_bus(name, handle, self.runtime[name], now)
+                self._supervise_bus(name, handle, self.bus_records[name], now)
             except Exception as err:
                 self.faults.failed("supervisor", f"bus {name}", err)
 
-    def _lost_why(self, name: str, handle: BusHandle, rt: BusRuntime, now: float) -> str:
+    def _lost_why(self, name: str, handle: BusHandle, rt: BusRecord, now: float) -> str:
         """Why the bus counts as lost now ('' while it does not): its receive thread failed, the
         server closed the connection, an error frame that loses it, sends that keep failing, or
         every drive on it lost and nothing at all received for a consumer time."""
@@ -119,11 +119,11 @@ class BusSupervision:
             return f"error frame: {losing}"
         if failing is not None and now - failing[0] > SEND_FAILING_BEATS * self.config.bus(name).host_heartbeat_s:
             return f"sends fail: {failing[1]}"
-        if drives and all(self.runtimes[d.name].lost for d in drives) and silent_for > timeout:
+        if drives and all(self.records[d.name].lost for d in drives) and silent_for > timeout:
             return f"nothing received for {silent_for:.1f} s"
         return ""
 
-    def _supervise_bus(self, name: str, handle: BusHandle, rt: BusRuntime, now: float) -> None:
+    def _supervise_bus(self, name: str, handle: BusHandle, rt: BusRecord, now: float) -> None:
         """A lost bus the driver opened itself is reconnected with back-off on the bus's worker and
         its drives are booted again (not re-armed: commands are refused until someone enables them)."""
         self._queue_full(name, handle, rt)
@@ -155,19 +155,19 @@ class BusSupervision:
     def bus_event(self, event: Event, now: float) -> None:
         """A reconnect job's result, on the supervisor's thread."""
         if isinstance(event, BusBack):
-            rt = self.runtime[event.bus]
+            rt = self.bus_records[event.bus]
             self._link_said(event.bus, rt, "")
             rt.lost, rt.backoff_s = False, RECONNECT_MIN_S
             logger.warning("bus %s re-established; drives configured again (not enabled)", event.bus)
         elif isinstance(event, BusDown):
-            rt = self.runtime[event.bus]
+            rt = self.bus_records[event.bus]
             self._link_said(event.bus, rt, event.link_down)
             if event.retry_s is None:
                 rt.backoff_s = min(max(rt.backoff_s, RECONNECT_MIN_S) * 2, RECONNECT_MAX_S)
                 logger.warning("bus %s: %s; next try in %.1f s", event.bus, event.why, rt.backoff_s)
             rt.next_attempt = now + (rt.backoff_s if event.retry_s is None else event.retry_s)
 
-    def _link_said(self, name: str, rt: BusRuntime, link_down: str) -> None:
+    def _link_said(self, name: str, rt: BusRecord, link_down: str) -> None:
         """A kernel link's going down and its coming back are each said once."""
         if link_down and not rt.link_down_said:
             rt.link_down_said = True
@@ -179,7 +179,7 @@ class BusSupervision:
             rt.link_down_said = False
             logger.warning("bus %s: link up again", name)
 
-    def _bus_error(self, name: str, handle: BusHandle, rt: BusRuntime) -> str:
+    def _bus_error(self, name: str, handle: BusHandle, rt: BusRecord) -> str:
         """Report the newest error frame that came since the last look (log, flight recorder; the
         count is in /diagnostics); return what it says when one since then loses the bus (bus-off,
         no ACK: the driver's frames reach no drive), else ''."""
@@ -196,7 +196,7 @@ class BusSupervision:
             self.recorder.trigger("bus_error", name, code=last[1].classes, text=last[1].text)
         return last[1].text if losing else ""
 
-    def _queue_full(self, name: str, handle: BusHandle, rt: BusRuntime) -> None:
+    def _queue_full(self, name: str, handle: BusHandle, rt: BusRecord) -> None:
         """Sends the kernel refused for a full transmit queue (ENOBUFS; each retried) are counted
         and said, at a bounded rate; they are in /diagnostics too."""
         full = handle.network.tx_queue_full

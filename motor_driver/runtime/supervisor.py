@@ -3,8 +3,8 @@ host heartbeat on every bus, the drives' heartbeats, the velocity watchdog and t
 another master, every period; lost buses every BUS_CHECK_PERIODS (:mod:`motor_driver.runtime.supervise_bus`).
 Re-boots and reconnects run on the bus's worker.
 
-Owner: the :class:`Supervisor`, on its thread, alone writes the runtime state
-(:mod:`motor_driver.drive.ledger`): one :class:`DriveRuntime` per drive and one :class:`BusRuntime`
+Owner: the :class:`Supervisor`, on its thread, alone writes the ledger's records
+(:mod:`motor_driver.drive.ledger`): one :class:`DriveRecord` per drive and one :class:`BusRecord`
 per bus. The receive thread posts what it heard (:meth:`Supervisor.post`, never waits); a boot
 or a reconnect on a worker reports its result (:meth:`Supervisor.report`) and goes on once the
 supervisor applied it, within a period. Its jobs on a worker are supervised
@@ -38,12 +38,12 @@ from motor_driver.drive.ledger import (
     Booted,
     Booting,
     BootRestarted,
-    DriveRuntime,
+    DriveRecord,
     Event,
     Heard,
     RebootFailed,
     RestoreFailed,
-    RuntimePort,
+    SupervisorPort,
 )
 from motor_driver.process.jobs import JobFaults, cause_of
 from motor_driver.process.ratelimit import RateLimitedLog
@@ -63,16 +63,16 @@ __all__ = ["BUS_CHECK_PERIODS", "SUPERVISOR_PERIOD_S", "Supervisor"]
 
 
 class Supervisor:
-    """The one writer of the runtime state of every drive and bus of a driver."""
+    """The one writer of the records of every drive and bus of a driver."""
 
     def __init__(self, config: RoverConfig, handles: dict[str, BusHandle], recorder: FlightRecorder | None) -> None:
         self.config = config
         self.handles = handles
         self.recorder = recorder
         self.drives: dict[str, Drive] = {}
-        self.runtimes: dict[str, DriveRuntime] = {}
+        self.records: dict[str, DriveRecord] = {}
         self.faults = JobFaults()
-        self.bus = BusSupervision(config, handles, recorder, RateLimitedLog(logger), self.drives, self.runtimes,
+        self.bus = BusSupervision(config, handles, recorder, RateLimitedLog(logger), self.drives, self.records,
                                   self._drive_gone, self.report, self.faults)
         #: why the loop ended on its own ('' while it runs, or stopped by stop()): this thread's, once
         self.ended = ""
@@ -85,10 +85,10 @@ class Supervisor:
         self._take_over = False
 
     # ------------------------------------------------------------------ the ports
-    def port(self, drive: str) -> tuple[DriveRuntime, RuntimePort]:
-        """A new drive's runtime state (read by its parts) and its way to hand results here."""
-        runtime = self.runtimes[drive] = DriveRuntime()
-        return runtime, RuntimePort(self.post, self.report)
+    def port(self, drive: str) -> tuple[DriveRecord, SupervisorPort]:
+        """A new drive's record (read by its parts) and its way to hand results here."""
+        record = self.records[drive] = DriveRecord()
+        return record, SupervisorPort(self.post, self.report)
 
     def add(self, drive: Drive) -> None:
         self.drives[drive.name] = drive
@@ -179,7 +179,7 @@ class Supervisor:
             self.recorder.sample([d.snapshot() for d in self.drives.values()])
         for drive in self.drives.values():
             try:
-                self._supervise_drive(drive, self.runtimes[drive.name], now)
+                self._supervise_drive(drive, self.records[drive.name], now)
             except MotorError as err:
                 logger.error("supervisor: %s", err)
             except Exception as err:
@@ -214,68 +214,68 @@ class Supervisor:
         if isinstance(event, Heard):
             self._heard(event)
         elif isinstance(event, BootRestarted):
-            runtime = self.runtimes[event.drive]
-            runtime.boot_restarts += 1
-            runtime.boot_restart_why = event.why
+            record = self.records[event.drive]
+            record.boot_restarts += 1
+            record.boot_restart_why = event.why
         elif isinstance(event, RestoreFailed):
             self.faults.failed("restore_enable", f"{event.drive}: enabling it again after its re-configuration",
                                event.error)
         elif isinstance(event, (Booting, Booted, RebootFailed)):
-            runtime = self.runtimes[event.drive]
-            runtime.booted = isinstance(event, Booted)
+            record = self.records[event.drive]
+            record.booted = isinstance(event, Booted)
             if isinstance(event, Booted):
-                self._booted(event, runtime, now)
+                self._booted(event, record, now)
             elif isinstance(event, Booting):
-                runtime.reboot_wanted = False
+                record.reboot_wanted = False
             else:
-                runtime.reboot_wanted, runtime.reboot_at = True, now + event.retry_s
-                runtime.reconfigure_failures += 1
-                runtime.reconfigure_error = event.error
+                record.reboot_wanted, record.reboot_at = True, now + event.retry_s
+                record.reconfigure_failures += 1
+                record.reconfigure_error = event.error
         else:
             self.bus.bus_event(event, now)
 
-    def _booted(self, event: Booted, runtime: DriveRuntime, now: float) -> None:
+    def _booted(self, event: Booted, record: DriveRecord, now: float) -> None:
         """A boot ended. A boot-up heard after the boot's last look (its report was on its way) is
         a reset that undid the configuration: not booted, configured again."""
-        runtime.lost, runtime.lost_since, runtime.reboot_wanted = False, 0.0, False
-        runtime.booted_at = now
-        runtime.bootups_confirmed = event.bootups
+        record.lost, record.lost_since, record.reboot_wanted = False, 0.0, False
+        record.booted_at = now
+        record.bootups_confirmed = event.bootups
         drive = self.drives.get(event.drive)
         if drive is not None and drive.cache.bootups > event.bootups:
             why = "it sent boot-up as its boot ended"
             logger.warning("node %d (%s): %s: it reset; it will be configured again", drive.node_id, drive.name, why)
-            runtime.boot_restarts += 1
-            runtime.boot_restart_why = why
-            self._configure_again(runtime)
+            record.boot_restarts += 1
+            record.boot_restart_why = why
+            self._configure_again(record)
 
     def _heard(self, event: Heard) -> None:
         """A heartbeat the receive thread posted: a boot-up, a lost drive heard again, or a change of
         NMT state, this driver's doing (an NMT command it sent asks for it) or another master's."""
-        drive, runtime = self.drives[event.drive], self.runtimes[event.drive]
+        drive, record = self.drives[event.drive], self.records[event.drive]
         if event.state == NmtState.BOOTUP:
             # one the last configuration accounted for is history; one during a boot is the boot's
             # to see (it starts its configuration again), or this thread's when its Booted comes
-            if event.bootups > runtime.bootups_confirmed and runtime.booted:
+            if event.bootups > record.bootups_confirmed and record.booted:
                 logger.warning("node %d (%s) sent boot-up: it power-cycled or reset; it will be configured again",
                                drive.node_id, drive.name)
-                self._configure_again(runtime)
+                self._configure_again(record)
             return
-        if event.at <= runtime.booted_at:
+        if event.at <= record.booted_at:
             return  # heard before the boot that followed it ended (posted while the supervisor was not running)
         name = drive.cache.nmt_state if event.state != NmtState.OPERATIONAL else "OPERATIONAL"
-        if runtime.lost and runtime.booted:
+        if record.lost and record.booted:
             if event.state == NmtState.OPERATIONAL:
                 logger.warning("node %d (%s): heartbeat back after %.1f s lost; it was told to stop %d times; enable"
                                " it again to drive it", drive.node_id, drive.name,
-                               event.at - runtime.lost_since if runtime.lost_since else 0.0, runtime.lost_stops)
-                runtime.lost = False
+                               event.at - record.lost_since if record.lost_since else 0.0, record.lost_stops)
+                record.lost = False
             else:
                 logger.warning("node %d (%s): heard again in NMT %s (told to stop while lost); configuring it again,"
                                " left disabled", drive.node_id, drive.name, name)
-                self._configure_again(runtime)
-            runtime.lost_since = 0.0
+                self._configure_again(record)
+            record.lost_since = 0.0
             return
-        if not runtime.booted or runtime.lost or event.state == NmtState.OPERATIONAL or event.was != "OPERATIONAL":
+        if not record.booted or record.lost or event.state == NmtState.OPERATIONAL or event.was != "OPERATIONAL":
             return
         if drive.watch.nmt_ledger.in_flight(event.state, event.at, drive.config.heartbeat_period_s):
             return  # sent before it obeyed this driver's newest NMT command
@@ -284,35 +284,35 @@ class Supervisor:
             logger.warning("node %d (%s): now NMT %s, as this driver told it (%s, %.0f ms before); configuring it"
                            " again, left disabled", drive.node_id, drive.name, name,
                            command.name if command is not None else "?", (event.at - when) * 1000)
-            self._configure_again(runtime)
+            self._configure_again(record)
         else:
-            runtime.behind_back = (event.at, f"node {drive.node_id} went {name} without an NMT command from"
+            record.behind_back = (event.at, f"node {drive.node_id} went {name} without an NMT command from"
                                              " this driver")
 
     @staticmethod
-    def _configure_again(runtime: DriveRuntime) -> None:
-        runtime.booted = False
-        runtime.reboot_wanted = True
+    def _configure_again(record: DriveRecord) -> None:
+        record.booted = False
+        record.reboot_wanted = True
 
     # ------------------------------------------------------------------ each drive, each period
-    def _supervise_drive(self, drive: Drive, runtime: DriveRuntime, now: float) -> None:
+    def _supervise_drive(self, drive: Drive, record: DriveRecord, now: float) -> None:
         cfg = drive.config
-        self._check_foreign(drive, runtime, now)
-        if runtime.foreign_master:
+        self._check_foreign(drive, record, now)
+        if record.foreign_master:
             return  # nothing of ours goes to a drive another master drives (no re-boot, no watchdog)
-        if runtime.forget_pending:
-            runtime.forget_pending = not drive.channel.forget_commanded(timeout_s=0.0)
-        if runtime.reboot_wanted:
-            job = runtime.reboot_job
-            if (job is None or job.done()) and now >= runtime.reboot_at and not self.bus.runtime[cfg.bus].lost:
-                runtime.reboot_wanted = False
-                runtime.reboot_job = self.handles[cfg.bus].worker.submit(self.faults.supervised(
+        if record.forget_pending:
+            record.forget_pending = not drive.channel.forget_commanded(timeout_s=0.0)
+        if record.reboot_wanted:
+            job = record.reboot_job
+            if (job is None or job.done()) and now >= record.reboot_at and not self.bus.bus_records[cfg.bus].lost:
+                record.reboot_wanted = False
+                record.reboot_job = self.handles[cfg.bus].worker.submit(self.faults.supervised(
                     "reconfigure", drive.name, drive.boot.reconfigure,
                     lambda err: self.report(RebootFailed(drive.name, REBOOT_RETRY_S))))
             return
-        self._check_heartbeat(drive, runtime, now)
-        if drive.boot.host_loss_stops != runtime.host_loss_seen:
-            runtime.host_loss_seen = drive.boot.host_loss_stops
+        self._check_heartbeat(drive, record, now)
+        if drive.boot.host_loss_stops != record.host_loss_seen:
+            record.host_loss_seen = drive.boot.host_loss_stops
             self._incident("host_loss_stop", drive, "the drive had stopped itself: the host was gone (0x8130)")
         channel = drive.channel
         if channel.velocity_commanded and now - channel.last_velocity_cmd > cfg.watchdog_s:
@@ -322,64 +322,64 @@ class Supervisor:
                 self._incident("watchdog_stop", drive, f"no command for {cfg.watchdog_s * 1000:.0f} ms")
         drive.limits.guard_limits()
 
-    def _check_heartbeat(self, drive: Drive, runtime: DriveRuntime, now: float) -> None:
+    def _check_heartbeat(self, drive: Drive, record: DriveRecord, now: float) -> None:
         """Guard a guarded drive when due; declare the drive lost when its heartbeat is overdue and
         tell it to stop, again every heartbeat period while it stays lost (the SDO copy of the
         stop, which waits, on the bus's worker)."""
         cfg, cache = drive.config, drive.cache
-        if cache.guarding and now >= runtime.next_guard and not runtime.lost_since:  # a lost drive's life guard trips
-            runtime.next_guard = max(runtime.next_guard + cfg.heartbeat_period_s, now)
+        if cache.guarding and now >= record.next_guard and not record.lost_since:  # a lost drive's life guard trips
+            record.next_guard = max(record.next_guard + cfg.heartbeat_period_s, now)
             drive.watch.send_guard()
-        if runtime.booted and not runtime.lost and cache.last_heartbeat and \
+        if record.booted and not record.lost and cache.last_heartbeat and \
                 now - cache.last_heartbeat > cfg.heartbeat_timeout_s:
-            runtime.lost, runtime.lost_since = True, now
+            record.lost, record.lost_since = True, now
             logger.error("node %d (%s): heartbeat lost (none for %.0f ms, consumer time %.0f ms); telling it to stop"
                          " (quick stop by RPDO and SDO, NMT stop) until it is heard again", drive.node_id, drive.name,
                          (now - cache.last_heartbeat) * 1000, cfg.heartbeat_timeout_s * 1000)
-            self._stop_lost(drive, runtime, now)
+            self._stop_lost(drive, record, now)
             self.handles[cfg.bus].worker.submit(self.faults.supervised(  # its RPDO copy is repeated meanwhile
                 "stop_by_sdo", drive.name, drive.watch.quick_stop_lost_by_sdo))
             self._incident("heartbeat_lost", drive, "heartbeat lost; told to stop")
-        elif runtime.lost_since and runtime.booted and (now >= runtime.next_stop or runtime.stop_pending):
-            self._stop_lost(drive, runtime, now)
+        elif record.lost_since and record.booted and (now >= record.next_stop or record.stop_pending):
+            self._stop_lost(drive, record, now)
 
     @staticmethod
-    def _stop_lost(drive: Drive, runtime: DriveRuntime, now: float) -> None:
-        runtime.next_stop = now + drive.config.heartbeat_period_s
-        runtime.lost_stops += 1
-        runtime.stop_pending = not drive.watch.stop_lost()  # a busy channel: its RPDO stop next period
+    def _stop_lost(drive: Drive, record: DriveRecord, now: float) -> None:
+        record.next_stop = now + drive.config.heartbeat_period_s
+        record.lost_stops += 1
+        record.stop_pending = not drive.watch.stop_lost()  # a busy channel: its RPDO stop next period
 
-    def _check_foreign(self, drive: Drive, runtime: DriveRuntime, now: float) -> None:
+    def _check_foreign(self, drive: Drive, record: DriveRecord, now: float) -> None:
         """Another master on the drive's bus (within FOREIGN_HOLD_S): mark it; once it has been
         quiet for FOREIGN_RELEASE_S, clear the mark and configure the drive again (not enabled)."""
         if self._take_over:
             return  # told to take the bus over: the other master's traffic is expected
         foreign = self.handles[drive.config.bus].foreign
         evidence = foreign.evidence(drive.node_id, now - FOREIGN_HOLD_S)
-        changes = (runtime.behind_back, drive.cache.behind_back)
+        changes = (record.behind_back, drive.cache.behind_back)
         evidence = "; ".join(filter(None, (evidence, *(what for when, what in changes if when > now - FOREIGN_HOLD_S))))
-        if evidence and not runtime.foreign_master:
+        if evidence and not record.foreign_master:
             stopped = drive.watch.lose_control(evidence)
             if stopped is None:
                 return  # the channel was busy: next period
-            runtime.foreign_master = evidence
+            record.foreign_master = evidence
             if stopped:  # an SDO waits: on the bus's worker
                 self.handles[drive.config.bus].worker.submit(self.faults.supervised(
                     "stop_by_sdo", drive.name, lambda: drive.watch.quick_stop_by_sdo(now)))
         elif evidence:
-            runtime.foreign_master = evidence
-        elif runtime.foreign_master and not foreign.evidence(drive.node_id, now - FOREIGN_RELEASE_S) \
+            record.foreign_master = evidence
+        elif record.foreign_master and not foreign.evidence(drive.node_id, now - FOREIGN_RELEASE_S) \
                 and max(when for when, _ in changes) <= now - FOREIGN_RELEASE_S:
             logger.warning("%s (node %d): the other master is gone; configuring the drive again (not enabled)",
                            drive.name, drive.node_id)
-            runtime.foreign_master = ""
-            self._configure_again(runtime)
+            record.foreign_master = ""
+            self._configure_again(record)
 
     def _drive_gone(self, drive: Drive) -> None:
         """The drive's bus is gone: lost, not booted; nothing is commanded until it is booted again."""
-        runtime = self.runtimes[drive.name]
-        runtime.lost, runtime.booted, runtime.lost_since = True, False, 0.0
-        runtime.forget_pending = not drive.channel.forget_commanded(timeout_s=0.0)
+        record = self.records[drive.name]
+        record.lost, record.booted, record.lost_since = True, False, 0.0
+        record.forget_pending = not drive.channel.forget_commanded(timeout_s=0.0)
 
     def _incident(self, kind: str, drive: Drive, text: str) -> None:
         if self.recorder is not None:

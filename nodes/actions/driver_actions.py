@@ -31,7 +31,7 @@ from can_config.objects import OperationMode
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive.verdict import Condition
 from motor_driver.follow import TrajectoryGroup
-from nodes.process import runtime
+from nodes.process import spinning
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -86,7 +86,7 @@ class DriverActionsNode(Node):
                 done.set_result(True)
             executor = self.executor
             if executor is not None:  # the goal resumes at the executor's next turn, now (it does not poll)
-                runtime.give_work(executor)
+                spinning.give_work(executor)
         timer = threading.Timer(period_s, finish)
         timer.daemon = True
         timer.start()

@@ -52,7 +52,7 @@ from nodes.joints.rawcmd import float32_data
 from nodes.joints.refusals import RefusalLog
 from nodes.process.params import DRIVER, ONE_JOINT, declare, qos_depth
 from nodes.process.qos import DIAGNOSTICS_QOS, NO_PUB_EVENTS, NO_SUB_EVENTS, SETPOINT_QOS, state_qos
-from nodes.process.runtime import CallbackFailures
+from nodes.process.spinning import CallbackFailures
 
 
 class DriverNode(Node):
@@ -66,7 +66,7 @@ class DriverNode(Node):
         demo joint too. Without ``driver`` the entry point reads the process's parameters from this
         node first (nodes/assembly.py: the scheduling before the driver's threads exist), then serves."""
         super().__init__(name, **kwargs)
-        #: the callbacks of this process's nodes that raised (nodes/process/runtime.py: supervise); in /diagnostics
+        #: the callbacks of this process's nodes that raised (nodes/process/spinning.py: supervise); in /diagnostics
         self.callback_failures = CallbackFailures()
         declare(self, *(ONE_JOINT if one_joint else DRIVER))
         self._one_joint = one_joint
@@ -288,8 +288,8 @@ class DriverNode(Node):
                                       tpdos_applied=drive.cache.tpdo_count, safety=drive.boot.safety,
                                       rejected=Rejections.of(rejected, time.monotonic()),
                                       frame_loss=loss, frame_loss_warn_percent=drive.config.frame_loss_warn_percent)
-                if (runtime := self.driver.supervisor.runtimes.get(name)) is not None:
-                    health = with_boot(health, runtime)
+                if (record := self.driver.supervisor.records.get(name)) is not None:
+                    health = with_boot(health, record)
                 health.values["wrong_length_tpdos"] = str(drive.cache.wrong_length_tpdos)
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
@@ -321,7 +321,7 @@ class DriverNode(Node):
 
 
     def _driver_status(self) -> DiagnosticStatus:
-        """The driver's background jobs, and the callbacks of this process that raised (nodes/process/runtime.py:
+        """The driver's background jobs, and the callbacks of this process that raised (nodes/process/spinning.py:
         a bug, answered and carried on): counted, the last named, WARN while recent as a job's failure."""
         jobs = self.driver.jobs_health()
         level, message = jobs.level, jobs.message

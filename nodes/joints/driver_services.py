@@ -13,7 +13,7 @@ on one joint are taken one after the other; the driver refuses at once an operat
 busy with another (``arm`` reports a homing drive as busy, and enables the others).
 
 Every answer says what happened: a refusal or a drive's error by its own text; an unexpected
-exception (a bug) by the supervisor that wraps each callback (:func:`nodes.process.runtime.supervise`: a
+exception (a bug) by the supervisor that wraps each callback (:func:`nodes.process.spinning.supervise`: a
 failed answer naming the service, the trace logged once, counted on /diagnostics); an SDO value
 the SdoRead reply's int64 cannot carry (NaN, an infinity, an UNSIGNED64 above int64) as text, its
 ``value`` 0 (:func:`reply_value`).
@@ -34,7 +34,7 @@ from std_srvs.srv import Trigger
 from can_config.errors import RovercanError
 from can_config.objects import OperationMode, sdo_abort_text
 from motor_driver import Drive, MotorDriver
-from nodes.process.runtime import CallbackFailures
+from nodes.process.spinning import CallbackFailures
 
 SERVICE_JOIN_S = 5.0  # longest a service callback may take to notice the driver is closed
 
@@ -59,7 +59,7 @@ def reply_value(value: int | float | bytes) -> tuple[int, str, bool]:
 
 def trigger(drive: Drive, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
     """A std_srvs/Trigger callback that runs ``action`` and says what happened. An unexpected
-    exception is the supervisor's (nodes/process/runtime.py: logged with its trace, counted, answered)."""
+    exception is the supervisor's (nodes/process/spinning.py: logged with its trace, counted, answered)."""
     def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             action()

@@ -24,7 +24,7 @@ the last. The cause of a fault (the newest EMCY with an error code) is kept unti
 resets the fault (:meth:`DriveCache.acknowledge_emcy`): an EMCY 0x0000 (error reset) that comes
 while the drive still says FAULT, a spoofed one or one ahead of its statusword, clears nothing.
 
-Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.drive.ledger.DriveRuntime`),
+Lost, booted, another master: the supervisor's judgement (:class:`motor_driver.drive.ledger.DriveRecord`),
 read here, never written: the receive thread posts each heartbeat that may change it
 (:class:`motor_driver.drive.ledger.Heard`) and goes on.
 
@@ -59,7 +59,7 @@ import canopen
 from can_config.config import DriveConfig
 from can_config.objects import OD, FunctionCode, NmtState, emcy_text
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
-from motor_driver.drive.ledger import DriveRuntime, Heard, RuntimePort
+from motor_driver.drive.ledger import DriveRecord, Heard, SupervisorPort
 from motor_driver.drive.received.position import PositionFilter
 from motor_driver.drive.received.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Emcy, Noted, Received, StatusSink
@@ -86,9 +86,9 @@ class DriveCache:
     """Identity, the PDO layouts, and the received state of one drive."""
 
     def __init__(self, config: DriveConfig, network: canopen.Network, plan: PdoPlan, scale: Scale, *,
-                 sync_period_s: float, runtime: DriveRuntime, port: RuntimePort) -> None:
+                 sync_period_s: float, record: DriveRecord, port: SupervisorPort) -> None:
         self.config = config
-        self._runtime = runtime  # the supervisor's: read only
+        self._record = record  # the supervisor's: read only
         self._port = port
         self.name, self.node_id = config.name, config.node_id
         self._network = network
@@ -217,11 +217,11 @@ class DriveCache:
 
     @property
     def booted(self) -> bool:
-        return self._runtime.booted
+        return self._record.booted
 
     @property
     def lost(self) -> bool:
-        return self._runtime.lost
+        return self._record.lost
 
     def expect_bootup(self) -> None:
         """Boot, before its NMT reset: the next boot-up is the one it waits for."""
@@ -329,7 +329,7 @@ class DriveCache:
     def _on_statusword(self, sw: int, now: float) -> None:
         now_enabled = decode_state(sw) == State.OPERATION_ENABLED
         sink = self._sink
-        if now_enabled and not self._sw_enabled and self._runtime.booted and sink is not None and \
+        if now_enabled and not self._sw_enabled and self._record.booted and sink is not None and \
                 not sink.enabled_by_us(now, TRANSITION_TIMEOUT_S):
             self._behind_back = (now, f"node {self.node_id} became OPERATION_ENABLED, which this driver did not"
                                       " command")
@@ -376,7 +376,7 @@ class DriveCache:
         if state == NmtState.OPERATIONAL:
             self._operational_at = now
         # the supervisor judges a change (another master's, or its own NMT command's) and a lost drive heard again
-        if heard != was or self._runtime.lost:
+        if heard != was or self._record.lost:
             self._port.post(Heard(self.name, state, was, now))
 
     def on_emcy(self, cob_id: int, data: bytearray, timestamp: float) -> None:
@@ -400,11 +400,11 @@ class DriveCache:
     def _key(self, rx: Received, now: float, others: Others) -> tuple[object, ...]:
         """Every input of the verdict but the clock, and whether the data is past its bound: equal
         keys judge alike (ages aside)."""
-        runtime, job = self._runtime, self._runtime.reboot_job
+        record, job = self._record, self._record.reboot_job
         late = not now - rx.rx_monotonic <= self._stale_after_s if rx.rx_monotonic else True
         return (rx.statusword, late, others, self._heard_at, self._started_at, self._last_emcy, self._emcy_ack,
-                self._fault_seq, self._fault_ack, self._boot_fault_ack, runtime.lost, runtime.booted,
-                runtime.reboot_wanted, job is not None and not job.done())
+                self._fault_seq, self._fault_ack, self._boot_fault_ack, record.lost, record.booted,
+                record.reboot_wanted, job is not None and not job.done())
 
     def verdict(self, others: Others = NOBODY) -> Verdict:
         """The verdict alone (a command's check): judged again when an input changed; a verdict
@@ -437,16 +437,16 @@ class DriveCache:
     def _facts(self, rx: Received, now: float, others: Others) -> DriveFacts:
         """What the verdict is judged from (:mod:`motor_driver.drive.verdict`), each input read once
         from its one writer, the received state given (the snapshot's one read)."""
-        runtime = self._runtime
+        record = self._record
         emcy = self.last_emcy
-        job = runtime.reboot_job
-        rebooting = not runtime.booted and (runtime.reboot_wanted or self.reset_since_operational() or
+        job = record.reboot_job
+        rebooting = not record.booted and (record.reboot_wanted or self.reset_since_operational() or
                                             (job is not None and not job.done()))
         heard = self.last_heartbeat
         foreign_master, armed, stopped_by, held, enables = others
         return DriveFacts(self.name, data_age_s=self._data_age(rx, now), stale_after_s=self._stale_after_s,
                           heartbeat_age_s=now - heard if heard else math.inf, nmt=self.nmt_state,
-                          state=decode_state(rx.statusword), lost=runtime.lost, booted=runtime.booted,
+                          state=decode_state(rx.statusword), lost=record.lost, booted=record.booted,
                           rebooting=rebooting, foreign_master=foreign_master, armed=armed, stopped_by=stopped_by,
                           held=held, enables=enables,
                           emcy_code=emcy.code if emcy is not None else 0, emcy_text=emcy.text if emcy is not None else "",

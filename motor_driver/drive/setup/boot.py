@@ -44,7 +44,7 @@ from motor_driver.drive.constants import (
     STATE_POLL_S,
     TRANSITION_TIMEOUT_S,
 )
-from motor_driver.drive.ledger import Booted, Booting, BootRestarted, RebootFailed, RestoreFailed, RuntimePort
+from motor_driver.drive.ledger import Booted, Booting, BootRestarted, RebootFailed, RestoreFailed, SupervisorPort
 from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.setup.hostwatch import HostWatch
@@ -63,7 +63,7 @@ class Boot:
     """Boot of one drive, a table of steps, and re-configuration after a reset."""
 
     def __init__(self, config: DriveConfig, od: ObjectDictionary, plan: PdoPlan, cache: DriveCache,
-                 channel: CommandChannel, sdo: SdoPort, power: PowerStateMachine, watch: HostWatch, port: RuntimePort) -> None:
+                 channel: CommandChannel, sdo: SdoPort, power: PowerStateMachine, watch: HostWatch, port: SupervisorPort) -> None:
         self.config, self._od, self._plan, self._cache, self._channel, self._sdo = config, od, plan, cache, channel, sdo
         self.name, self.node_id = config.name, config.node_id
         self._power = power

@@ -6,8 +6,8 @@ Owners: boot (the bus's worker, drive not booted) writes ``host_watch``, ``host_
 :meth:`configure`; the driver sets ``remote_frames`` once, before the first boot. The count of host
 heartbeats sent on the drive's bus is the supervisor's (its bus handle, read through
 ``host_beats``); the count of guard answers is the receive thread's (the cache). This object
-keeps no runtime state: lost, another master and the stop bookkeeping are the supervisor's
-(:class:`motor_driver.drive.ledger.DriveRuntime`, read here), which decides when :meth:`send_guard`,
+keeps none of the ledger's records: lost, another master and the stop bookkeeping are the supervisor's
+(:class:`motor_driver.drive.ledger.DriveRecord`, read here), which decides when :meth:`send_guard`,
 :meth:`stop_lost` and :meth:`lose_control` run, on its thread; none of them waits (the
 channel's lock is tried, not waited for). Blocking SDO work (the SDO copy of a stop) runs on the
 bus's worker. Every NMT command goes through the drive's :class:`motor_driver.drive.ledger.NmtLedger`,
@@ -44,7 +44,7 @@ from motor_driver.drive.constants import (
     WATCH_START_BEATS,
     WATCH_START_PERIODS,
 )
-from motor_driver.drive.ledger import DriveRuntime, NmtLedger
+from motor_driver.drive.ledger import DriveRecord, NmtLedger
 from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.protocol.cia402 import Command, State
@@ -72,12 +72,12 @@ class HostWatch:
     """The drive's watch of the host, and the supervisor's of the drive."""
 
     def __init__(self, config: DriveConfig, od: ObjectDictionary, cache: DriveCache, channel: CommandChannel,
-                 sdo: SdoPort, network: canopen.Network, host: Host, *, runtime: DriveRuntime, nmt: NmtLedger) -> None:
+                 sdo: SdoPort, network: canopen.Network, host: Host, *, record: DriveRecord, nmt: NmtLedger) -> None:
         self.config, self._od, self._cache, self._channel, self._sdo = config, od, cache, channel, sdo
         self.name, self.node_id = config.name, config.node_id
         self._network = network
         self.host_node_id = host.node_id
-        self._runtime = runtime  # the supervisor's: read only
+        self._record = record  # the supervisor's: read only
         self.nmt_ledger = nmt
         #: the bus carries remote frames (a kernel bus; socketcand's rawmode cannot)
         self.remote_frames = False
@@ -96,7 +96,7 @@ class HostWatch:
     @property
     def foreign_master(self) -> str:
         """Evidence that another master drives it (the supervisor's judgement): commands are refused."""
-        return self._runtime.foreign_master
+        return self._record.foreign_master
 
     # ------------------------------------------------------------------ boot's
     def choose(self) -> bool:
