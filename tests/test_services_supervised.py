@@ -126,15 +126,15 @@ def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Rig]:
     probe = rclpy.create_node("probe", context=context)
     probe_executor = SingleThreadedExecutor(context=context)
     probe_executor.add_node(probe)
-    spinning: list[spinning.SpinThread] = []
+    spins: list[spinning.SpinThread] = []
     try:
         assembly.build()
         assembly.start()
-        spinning = [spinning.SpinThread(hot, "test-hot", assembly.failures),
-                    spinning.SpinThread(probe_executor, "test-probe")]
+        spins = [spinning.SpinThread(hot, "test-hot", assembly.failures),
+                 spinning.SpinThread(probe_executor, "test-probe")]
         yield Rig(sim, assembly, probe)
     finally:
-        for spin in spinning:
+        for spin in spins:
             spin.stop(5.0)
         assembly.close()
         probe.destroy_node()
