@@ -42,6 +42,27 @@ def test_a_set_point_on_stale_data_is_refused_with_its_age(driver_factory: Drive
     drive.set_velocity(5.0)  # taken again
 
 
+def test_a_zero_on_late_data_is_refused_once_the_drive_stopped_itself(driver_factory: DriverFactory) -> None:
+    """A zero is taken on late data only while that data said Operation Enabled: a drive that
+    stopped itself (its host watch: Quick Stop Active) and then fell silent is sent no Enable
+    Operation (on a quick-stop option code 5-7 that is transition 16, back to Operation Enabled,
+    and the next /cmd_vel would drive a wheel that stopped itself, without /arm)."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.set_velocity(10.0)
+    runner = sim.simulator_for(1)
+    wait_for(lambda: bool(runner.call(lambda: dict(runner.drive(1)._consumer_seen))), 30.0, "its host watch armed")
+    apply_action(sim, {"action": "heartbeat_deaf", "node": 1})  # its consumer trips: it stops itself
+    wait_for(lambda: drive.cache.state.name != "OPERATION_ENABLED", 30.0, "the drive stopped by itself")
+    apply_action(sim, {"action": "tpdos", "node": 1, "on": False})  # then its data goes late
+    wait_for(drive.cache.data_stale, 10.0, "its data stale")
+    assert drive.snapshot().verdict.condition is Condition.LATE
+    with pytest.raises(DriveStateError, match=r"^joint1: no data for \d+ ms .*a zero is taken only while the drive"
+                                              r" last said OPERATION_ENABLED"):
+        drive.set_velocity(0.0)
+
+
 def test_a_host_watch_stop_is_named_by_the_refusal_and_diagnostics(driver_factory: DriverFactory) -> None:
     sim, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")

@@ -80,21 +80,27 @@ class Motion:
                                   " (bench: --counts-per-rev N). Nothing was sent.")
 
     def _require_enabled(self, doing: str, live: bool = True) -> None:
-        """Read from the drive's verdict (nothing else of the drive's): a set-point that moves
-        (``live``) needs it usable; a zero (a stop) is taken on late data too. Besides the verdict,
-        this driver's own last controlword must be Enable Operation (no stop of ours since)."""
+        """Read from the drive's verdict: a set-point that moves (``live``) needs it usable; a zero
+        (a stop) is taken on late data too, while the state that data last said is Operation
+        Enabled (a drive that stopped itself meanwhile must not be sent Enable Operation again:
+        on a quick-stop option code 5-7 that is transition 16, back to Operation Enabled). Besides
+        the verdict, this driver's own last controlword must be Enable Operation (no stop of ours since)."""
         self._channel.admit(doing)  # motion held (the lifecycle node inactive) is said before "not enabled"
         verdict = self._power.require_usable(doing, fresh=live)
-        condition = verdict.condition
         word_enabled = self._channel.cw & ENABLED_CW_MASK == ENABLED_CW_MASK
-        if (condition is Condition.USABLE or (condition is Condition.LATE and not live)) and word_enabled:
+        if verdict.condition is Condition.USABLE and word_enabled:
             return
-        snapshot = self._power.snapshot()  # refused: its verdict and the state it was judged from (one read), named
+        snapshot = self._power.snapshot()  # its verdict and the state it was judged from (one read)
         verdict, condition, state = snapshot.verdict, snapshot.verdict.condition, snapshot.state
-        if (condition is Condition.USABLE or (condition is Condition.LATE and not live)) and word_enabled:
-            return  # judged again since (a newer frame): the verdict now
+        late_zero = condition is Condition.LATE and not live and state == _ENABLED
+        if (condition is Condition.USABLE or late_zero) and word_enabled:
+            return  # usable (judged again since: a newer frame), or a zero on late data of an enabled drive
         if condition is Condition.FAULTED and state in FAULT_STATES:
             raise self._power.fault_error(doing)
+        if condition is Condition.LATE and not live and word_enabled:
+            raise DriveStateError(f"{verdict.text()} ({doing} refused; nothing was sent: on late data a zero is"
+                                  f" taken only while the drive last said OPERATION_ENABLED, and it said {state.name})",
+                                  node_id=self.node_id, statusword=self._cache.received.statusword)
         if condition in _SAID_AS_IT_IS:  # faulted since enabled, stopped itself: the verdict says why
             raise DriveStateError(f"{verdict.text()} ({doing} refused; nothing was sent)", node_id=self.node_id,
                                   statusword=self._cache.received.statusword)
