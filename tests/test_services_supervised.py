@@ -313,3 +313,40 @@ def test_a_callback_that_escapes_supervision_never_ends_the_spin(kind: str, give
         rclpy.shutdown(context=context)
     ours = [r for r in caplog.records if r.name == "nodes.process.spinning" and "Boom unsupervised" in r.getMessage()]
     assert len(ours) == (0 if kind == "events" else 1), [r.getMessage() for r in ours]
+
+
+def test_a_step_that_fails_every_time_is_waited_on_never_a_busy_loop() -> None:
+    """A failure at every step (here the executor's own, not a callback's) is counted and the
+    loop waits ``poll_s`` before each next step (a busy loop would take a real-time core whole);
+    it never ends the loop: the stop does. The old loop stepped again at once."""
+    import threading
+
+    class Waits(threading.Event):
+        count = 0
+
+        def wait(self, timeout: float | None = None) -> bool:
+            self.count += 1
+            return super().wait(timeout)
+
+    stop = Waits()
+
+    class Broken(SingleThreadedExecutor):
+        steps = 0
+
+        def spin_once(self, timeout_sec: float | None = None) -> None:
+            self.steps += 1
+            if self.steps == 6:
+                stop.set()
+            raise RuntimeError("the executor itself is broken")
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    executor = Broken(context=context)
+    failures = spinning.CallbackFailures()
+    try:
+        spinning.spin_until(executor, stop, 0.001, failures)
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        rclpy.shutdown(context=context)
+    assert executor.steps == 6 and failures.snapshot()[0] == 6
+    assert stop.count >= executor.steps - 1, stop.count  # a wait before every step after the first failure

@@ -246,7 +246,10 @@ def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S
     looking at both every ``poll_s`` at the latest (sooner where the stopper gives the executor work).
     A callback's exception that reaches here (one :func:`supervise` did not wrap) is logged, counted
     in ``failures`` (None: those of the executor's driver node, when it has one then, else of this
-    loop alone) and the executor spins on: it never ends the loop.
+    loop alone) and the executor spins on: a failure never ends the loop. A failure that comes
+    back at the next step, none passing between (a timer that raises each time, or not a
+    callback's at all: a node destroyed while still added), is waited on for ``poll_s`` before
+    the next step, so that the loop never turns busy on a real-time core; each is counted.
 
     The EventsExecutor dispatches everything that comes in ``poll_s`` in one call into C++
     (``spin_until_future_complete`` of a future nobody completes, a new one each time: that call
@@ -260,9 +263,11 @@ def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S
     else:  # rclpy's EventsExecutor (C++; not an rclpy Executor subclass)
         def step() -> None:
             executor.spin_until_future_complete(Future(), timeout_sec=poll_s)
+    failing = 0  # steps in a row that raised
     while not stop.is_set() and executor.context.ok():
         try:
             step()
+            failing = 0
         except ExternalShutdownException:
             return
         except Exception as err:  # a callback's, re-raised by the executor: logged, counted, spun on
@@ -270,6 +275,9 @@ def spin_until(executor: Executor, stop: threading.Event, poll_s: float = POLL_S
                                         if isinstance(getattr(n, "callback_failures", None), CallbackFailures)), own)
             counted.record(f"a callback of {type(executor).__name__}", err,
                            logged=not isinstance(executor, Executor))  # the EventsExecutor logged it with its trace
+            failing += 1
+            if failing > 1:
+                stop.wait(poll_s)  # failing at every step: never a busy loop on a real-time core
 
 
 def spin_node(node: Node, stop: threading.Event, *, on_stop: Callable[[], None] | None = None,
