@@ -246,3 +246,15 @@ def test_an_error_frame_is_read_as_python_can_reads_it() -> None:
     want = convert_ascii_message_to_can_message(text)
     assert rest == "" and got.is_error_frame and want.is_error_frame
     assert (got.arbitration_id, got.timestamp, bytes(got.data)) == (want.arbitration_id, want.timestamp, bytes(want.data))
+
+
+@pytest.mark.parametrize("bad", ["< frame 18x 1700000000.0 0102 >", "< frame 181 soon 0102 >",
+                                 "< frame 181 1700000000.0 01020 >", "< error zz 1700000000.0 >"])
+def test_a_frame_that_does_not_parse_is_skipped_and_the_others_kept(bad: str) -> None:
+    """One malformed line among good frames (python-can raised on it, and the whole read was lost:
+    the receive error took the bus for lost) is skipped; the frames around it and the text a read
+    cut in two after it are kept."""
+    good = "< frame 181 1700000000.000100 0637 >"
+    got, rest = parse_frames(good + bad + good + "< frame 281 17", "can0")
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(0x181, b"\x06\x37")] * 2
+    assert rest == "< frame 281 17"

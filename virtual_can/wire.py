@@ -31,7 +31,7 @@ ARRIVAL_ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
 #: ``struct tcp_info`` (linux/tcp.h, Linux 4.1 on): ``tcpi_bytes_received``, a u64 at this offset.
 _TCP_INFO_BYTES_RECEIVED = struct.Struct("@Q")
 _TCP_INFO_BYTES_RECEIVED_AT = 128
-_TCP_INFO = getattr(socket, "TCP_INFO", 11 if sys.platform == "linux" else None)
+_TCP_INFO = getattr(socket, "TCP_INFO", 11) if sys.platform == "linux" else None  # elsewhere another layout
 
 
 def tcp_bytes_received(sock: socket.socket) -> int | None:

@@ -97,7 +97,9 @@ def parse_frames(text: str, channel: str | int | None) -> tuple[list[can.Message
     """The frames of socketcand's rawmode text (``< frame ID SECONDS.MICROS DATA >``; ``< error
     ID SECONDS.MICROS ... >`` an error frame, as python-can reads it) in one pass, and the text
     after the last complete one (a frame a read cut in two). Other messages (``< ok >``) are
-    skipped. The same fields as python-can's ``convert_ascii_message_to_can_message``."""
+    skipped, and so is a frame whose fields do not parse (python-can raised, and the whole read
+    was lost with it: the bus taken for lost). The same fields as python-can's
+    ``convert_ascii_message_to_can_message``."""
     out: list[can.Message] = []
     end = 0
     while (start := text.find("<", end)) != -1:
@@ -108,15 +110,22 @@ def parse_frames(text: str, channel: str | int | None) -> tuple[list[can.Message
         end = close + 1
         if len(body) < 3 or body[0] not in ("frame", "error"):
             continue
-        ident, stamp = body[1], float(body[2])
-        if body[0] == "frame":
-            data = bytearray.fromhex(body[3]) if len(body) > 3 else bytearray()
-            out.append(can.Message(timestamp=stamp, arbitration_id=int(ident, 16), data=data, dlc=len(data),
-                                   is_extended_id=len(ident) != 3, is_rx=True, channel=channel))
-        else:
-            out.append(can.Message(timestamp=stamp, arbitration_id=int(ident, 16) & 0x1FFFFFFF, is_error_frame=True,
-                                   data=bytearray(1), dlc=1, is_extended_id=True, is_rx=True, channel=channel))
+        try:
+            out.append(_message(body, channel))
+        except ValueError:
+            continue  # a frame that does not parse: skipped, the read's others kept
     return out, ""
+
+
+def _message(body: list[str], channel: str | int | None) -> can.Message:
+    """One frame of :func:`parse_frames` (``ValueError``: its fields do not parse)."""
+    ident, stamp = body[1], float(body[2])
+    if body[0] == "frame":
+        data = bytearray.fromhex(body[3]) if len(body) > 3 else bytearray()
+        return can.Message(timestamp=stamp, arbitration_id=int(ident, 16), data=data, dlc=len(data),
+                           is_extended_id=len(ident) != 3, is_rx=True, channel=channel)
+    return can.Message(timestamp=stamp, arbitration_id=int(ident, 16) & 0x1FFFFFFF, is_error_frame=True,
+                       data=bytearray(1), dlc=1, is_extended_id=True, is_rx=True, channel=channel)
 
 
 def batch_receive(bus: can.BusABC) -> can.BusABC:
