@@ -235,17 +235,19 @@ class TrajectoryGroup:
 
     def _reference(self, joints: Sequence[str]) -> tuple[Knot, ...]:
         """Where each joint's set-points are now, and how fast they move (read from any thread: a
-        running goal's last set-point, a ramp's, else the drive's last target or its position)."""
+        ramp's set-point (a preempted goal's joints ramp down while a new goal waits for its stamp:
+        the ramp's is the newer), a running goal's last set-point, else the drive's last target or
+        its position)."""
         running, ramp = self._running, dict(self._ramp)
         desired = dict(zip((d.name for d in running.joints), running.last_desired, strict=False)) if running else {}
         out: list[Knot] = []
         for name in joints:
-            if name in desired:
-                p, v, a = desired[name]
-                out.append((p, v, a))
-            elif name in ramp:
+            if name in ramp:
                 p, v = ramp[name]
                 out.append((p, v, 0.0))
+            elif name in desired:
+                p, v, a = desired[name]
+                out.append((p, v, a))
             else:
                 drive = self.drives[name]
                 held = drive.motion.streaming()
@@ -538,8 +540,17 @@ class TrajectoryGroup:
                 slower = 0.0
             if slower == 0.0:
                 del self._ramp[name]
+                self._held_at(name, position)
             else:
                 self._ramp[name] = (position, slower)
+
+    def _held_at(self, name: str, position: float) -> None:
+        """A joint whose ramp ended holds ``position``: a goal waiting for its stamp holds it there
+        (its last set-point was the preempted goal's, from before the ramp)."""
+        running = self._running
+        if running is not None and running.spline is None:
+            running.last_desired = tuple((position, 0.0, 0.0) if d.name == name else knot
+                                         for d, knot in zip(running.joints, running.last_desired, strict=True))
 
     def _shut_down(self) -> None:
         if self._clock is not None:
