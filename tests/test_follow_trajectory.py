@@ -285,7 +285,7 @@ def test_move_joint_gives_up_after_its_overall_timeout(rig: Rig, monkeypatch: py
     from action_msgs.msg import GoalStatus
     from rovercan_msgs.action import MoveJoint
 
-    from nodes import actions
+    from nodes.actions import driver_actions as actions
 
     monkeypatch.setattr(actions, "MOVE_MARGIN_S", 0.5)
     client = ActionClient(rig.client._node, MoveJoint, "move_joint")

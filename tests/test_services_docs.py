@@ -15,9 +15,10 @@ def test_every_diagnostics_publisher_and_status_is_in_the_docs() -> None:
     text = (REPO / "docs" / "ros.md").read_text()
     assert SECTION in text
     section = text.split(SECTION, 1)[1].split("\n## ", 1)[0]
-    publishers = {path.stem: path.read_text() for path in sorted((REPO / "nodes").glob("*.py"))
+    publishers = {path.stem: path.read_text() for path in sorted((REPO / "nodes").rglob("*.py"))
                   if re.search(r"create_publisher\(\s*DiagnosticArray", path.read_text())}
-    assert set(publishers) == {"driver_node", "drive_system"}, "a new /diagnostics publisher: add it to docs/ros.md"
+    assert set(publishers) == {"driver_node", "drive_system", "follow_trajectory"}, \
+        "a new /diagnostics publisher: add it to docs/ros.md"
     for module, source in publishers.items():
         names = set(re.findall(r'name=f?"(rovercan: [a-z_ ]+)', source))
         assert names, module
