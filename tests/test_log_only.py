@@ -65,7 +65,9 @@ def test_a_run_with_a_lost_drive_writes_nothing_outside_the_log(tmp_path: Path) 
             for reader in readers:
                 reader.join(10.0)
     assert "heartbeat lost" in said()
-    assert "Transfer aborted by client" in said()  # canopen's line, through the log
+    # canopen's abort of this driver's own SDO transfer (the lost drive's stop timing out) is DEBUG,
+    # below the node's INFO (motor_driver/bus/library_log.py): the driver's own lines say it
+    assert "Transfer aborted by client" not in said()
     outside = [line for line in out + err if not ROS_LINE.match(line)]
     assert not outside, "".join(outside)
 
@@ -88,7 +90,7 @@ def test_a_node_modules_line_and_canopens_go_through_the_ros_log(capfd: pytest.C
         logging.getLogger("nodes.actions.driver_actions").warning("goal for unknown joint %r refused; joints: %s", "wheel_x", ["a"])
         logging.getLogger("nodes.rover.drive_system").warning("drive system: %s left out, its quick stop failed (%s)", "b",
                                                         "timeout")
-        logging.getLogger("canopen.sdo.client").error("Transfer aborted by client with code 0x%08X", 0x05040000)
+        logging.getLogger("canopen.sdo.client").error("Block transfer was not finished")  # canopen's ERROR
         thread = threading.Thread(target=boom, name="test-boom")
         thread.start()
         thread.join(10.0)
@@ -100,7 +102,7 @@ def test_a_node_modules_line_and_canopens_go_through_the_ros_log(capfd: pytest.C
     out, err = capfd.readouterr()
     lines = (out + err).splitlines(keepends=True)
     for text in ("goal for unknown joint 'wheel_x' refused", "drive system: b left out",
-                 "Transfer aborted by client with code 0x05040000", "thread test-boom ended: Boom: in a thread"):
+                 "Block transfer was not finished", "thread test-boom ended: Boom: in a thread"):
         assert any(text in line and ROS_LINE.match(line) for line in lines), (text, lines)
     outside = [line for line in lines if not ROS_LINE.match(line) and not TRACEBACK_LINE.match(line)]
     assert not outside, "".join(outside)
