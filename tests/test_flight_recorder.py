@@ -85,7 +85,10 @@ def test_an_emcy_is_recorded_read_back_and_replayed_as_a_regression(tmp_path: Pa
     assert "plot_skipped" not in summary  # drawn now, or (the process went late on a busy runner) when it stopped
     png = incidents / summary["png"]  # drawn by a helper process
     wait_for(lambda: png.exists() and png.stat().st_size > 10_000, 20.0, "the incident's plot")
-    assert set(summary["states"]) == {"wheel", "arm"} and len(summary["states"]["wheel"]["t_s"]) > 30
+    # the drives' states sampled over the window (each supervisor period: how many depends on the
+    # CPU the supervisor got, 28 in 2.3 s on a busy CI run; their span is what the window holds)
+    series = summary["states"]["wheel"]["t_s"]
+    assert set(summary["states"]) == {"wheel", "arm"} and len(series) > 10 and series[0] <= -SECONDS + 0.5, series
 
     with (incidents / summary["mcap"]).open("rb") as f:  # the same frames as ROS 2 messages, the drives decoded
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
