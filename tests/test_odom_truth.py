@@ -53,8 +53,10 @@ HOST_TIMEOUT_S, HEARTBEAT_TIMEOUT_S = 2.0, 2.5
 
 
 class Rover:
-    def __init__(self, on_wheel_loss: str, sync_period_s: dict[str, float] | None = None) -> None:
-        """``sync_period_s``: a bus's SYNC period other than the shipped one (by bus name)."""
+    def __init__(self, on_wheel_loss: str, sync_period_s: dict[str, float] | None = None, *,
+                 sim_tick_s: float | None = None) -> None:
+        """``sync_period_s``: a bus's SYNC period other than the shipped one (by bus name);
+        ``sim_tick_s``: the simulated drives' physics tick other than the simulator's own."""
         config = load_config(REPO / "config" / "rover.yaml")
         assert config.drive_system is not None
         if sync_period_s:
@@ -66,7 +68,7 @@ class Rover:
         config = dataclasses.replace(config, drives=drives, drive_system=dataclasses.replace(
             config.drive_system, on_wheel_loss=on_wheel_loss))
         self.config: RoverConfig = config
-        self.sim = SimService.from_config(config, port=0)
+        self.sim = SimService.from_config(config, port=0, **({"tick_s": sim_tick_s} if sim_tick_s else {}))
         self.driver = MotorDriver(with_bus_overrides(config, host=self.sim.host, port=self.sim.port)).start()
         self.context = rclpy.Context()
         # a domain of its own where the suite's worker has none (a run outside xdist beside other

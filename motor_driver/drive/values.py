@@ -74,7 +74,7 @@ class Received(NamedTuple):
     position_counts: int = 0
     velocity_counts_s: int = 0
     torque_permille: float = math.nan
-    stamp: float = 0.0  # time.time() of the frame
+    stamp: float = 0.0  # when measured: a SYNC TPDO's SYNC, else the frame (bus stamp, time.time()'s clock)
     rx_monotonic: float = 0.0  # when it arrived
     reference: int = 0  # the position reference it belongs to (PositionFilter.reference)
     noted_at: float = 0.0  # the SDO note (Noted.at) its values carry already (0.0: none)

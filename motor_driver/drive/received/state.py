@@ -1,8 +1,9 @@
 """The state cache: what the driver knows of one drive, fed by the bus's receive thread.
 
-Owner: the bus's receive thread (``on_tpdo``, ``on_heartbeat``, ``on_emcy``), the only writer of
+Owner: the bus's receive thread (``on_tpdo``, ``on_sync``, ``on_heartbeat``, ``on_emcy``), the only writer of
 the received state (``_rx``): each TPDO's values are published as one immutable :class:`Received`
-in a single assignment, so a reader never sees half a frame; the heard NMT state and heartbeat
+in a single assignment, so a reader never sees half a frame, stamped when it was measured (a
+synchronous TPDO at its bus's SYNC before it: :meth:`DriveCache._measured_at`); the heard NMT state and heartbeat
 time, EMCY, the guard toggle and the counters are its own too. It notifies waiters
 (:meth:`wait_until`) and sends nothing: the set-point handshake's reply is the command channel's
 (``StatusSink.on_status``).
@@ -107,11 +108,14 @@ class DriveCache:
         # receive thread
         self._fault_seq = 0  # FAULT statuswords seen
         self._fault_word = 0  # the last of them
-        self.position_seq = 0
-        self.status_seq = 0  # statuswords received: one that arrives after a frame was sent has a higher number
+        # positions taken; statuswords received (one that arrives after a frame was sent has a higher number)
+        self.position_seq = self.status_seq = 0
         self.tpdo_count = 0
         self.emcy_count = 0  # EMCYs received (logged or not)
         self.sync_tpdos = 0  # TPDOs received of those sent every SYNC (frame loss: expected per SYNC)
+        # the bus stamp of the newest SYNC heard (when the next synchronous TPDOs measured), and the
+        # SYNC stamp each synchronous TPDO took last
+        self._sync_stamp, self._sync_answered = 0.0, dict.fromkeys(self._per_sync, 0.0)
         self.heartbeats = 0  # heartbeats (or guard answers) received
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
@@ -156,6 +160,8 @@ class DriveCache:
     def subscribe(self) -> None:
         for cob in self._layouts:
             self._network.subscribe(cob, self.on_tpdo)
+        if self._per_sync:
+            self._network.subscribe(FunctionCode.SYNC, self.on_sync)
         self._network.subscribe(FunctionCode.HEARTBEAT + self.node_id, self.on_heartbeat)
         self._network.subscribe(FunctionCode.EMCY + self.node_id, self.on_emcy)
 
@@ -292,6 +298,25 @@ class DriveCache:
         self._boot_fault_ack = self._fault_seq
 
     # ------------------------------------------------------------------ the receive thread
+    def on_sync(self, cob_id: int, data: bytearray, timestamp: float) -> None:
+        """A SYNC on this drive's bus (its stamp: when it was on the bus): the moment the drive
+        latches what its next synchronous TPDOs carry (CiA 402)."""
+        self._sync_stamp = timestamp
+
+    def _measured_at(self, cob_id: int, timestamp: float) -> float:
+        """When a TPDO received with the bus stamp ``timestamp`` measured what it carries: a
+        synchronous one at the SYNC before it (CiA 402 drives latch their actual values at the
+        SYNC; its answer comes within the SYNC period, CiA 301's synchronous window), any other when
+        it was sent. Where that SYNC was taken by an earlier frame of this TPDO (a SYNC not heard,
+        a late answer), or none came within the period (a bus that does not show this driver its
+        own SYNC: a kernel socket sending it), the frame's own stamp stands."""
+        if cob_id in self._per_sync:
+            sync = self._sync_stamp
+            if 0.0 <= timestamp - sync < self.sync_period_s and self._sync_answered.get(cob_id) != sync:
+                self._sync_answered[cob_id] = sync
+                return sync
+        return timestamp
+
     def on_tpdo(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         layout = self._layouts[cob_id]
         try:
@@ -304,6 +329,7 @@ class DriveCache:
                                " one this driver wrote (reset, or another tool remapped it)%s",
                                self.node_id, cob_id, len(data), layout.codec.size, held)
             return
+        timestamp = self._measured_at(cob_id, timestamp)
         rx = self.received
         if (trusts := (self._boot_trusts, self._cmd_trusts)) != self._trusts_seen:  # asked by boot or homing
             self._trusts_seen = trusts

@@ -36,6 +36,9 @@ class DriveBase:
         self.sdo = SdoServer(self.store)
         self.faults = Faults()
         self._now = 0.0
+        self._plant_at = 0.0  # the runner's time the plant's state (theta, omega) is of: the last tick's
+        #: the least (handling time - bus stamp) of a SYNC seen: a SYNC's bus stamp on the runner's clock
+        self._bus_offset: float | None = None
         #: every profile-position target the drive accepted, in order (None: not recorded)
         self.accepted_targets: list[float] | None = None
         self.nmt = NmtState.BOOTUP

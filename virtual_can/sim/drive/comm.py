@@ -18,7 +18,17 @@ import can
 from canopen.objectdictionary import ObjectDictionary
 
 from can_config.objects import OD, PDO_COB_ID_INVALID, STRUCT_FORMAT, FunctionCode, NmtCommand, NmtState
-from virtual_can.sim.drive.model import CYCLIC_GAP_S, EMCY_PDO_LENGTH, SAVE_RANGES, SAVE_SIGNATURE, SAVE_SILENCE_S, MotorParams, Pdo
+from virtual_can.sim.drive.model import (
+    BUS_CLOCK_STEP_S,
+    BUS_OFFSET_SLEW,
+    CYCLIC_GAP_S,
+    EMCY_PDO_LENGTH,
+    SAVE_RANGES,
+    SAVE_SIGNATURE,
+    SAVE_SILENCE_S,
+    MotorParams,
+    Pdo,
+)
 from virtual_can.sim.drive.plant import Plant
 from virtual_can.sim.objects import ABORT_DEVICE_STATE, ABORT_NO_OBJECT, ABORT_NOT_MAPPABLE, ABORT_PDO_LENGTH, SdoAbort
 
@@ -324,9 +334,23 @@ class CommNode(Plant):
                         out += self._send_pdo(pdo, data, now)
         return out
 
+    def _sync_moment(self, now: float, stamp: float, interval: float) -> float:
+        """The moment a SYNC stamped ``stamp`` (bus time) and handled at ``now`` was on the bus, on
+        the runner's clock: its stamp plus the least handling delay seen (the two clocks' offset;
+        a SYNC handled late, by a runner held meanwhile, was still on the bus when its stamp says)."""
+        seen = now - stamp
+        offset = self._bus_offset
+        if offset is None or abs(seen - offset) > BUS_CLOCK_STEP_S:
+            offset = seen
+        else:
+            offset = min(offset + BUS_OFFSET_SLEW * max(0.0, min(interval, 1.0)), seen)
+        self._bus_offset = offset
+        return stamp + offset
+
     def _on_sync(self, now: float, stamp: float) -> list[can.Message]:
         """A SYNC, at bus time ``stamp``: the cycle is measured by the bus's clock, not by when this
-        process got to it (a late process takes several SYNCs at once)."""
+        process got to it (a late process takes several SYNCs at once). The synchronous TPDOs carry
+        the position at the SYNC's moment (:meth:`_latch_position`), as a drive latches it."""
         interval = stamp - self._last_sync
         self._last_sync = stamp
         self._syncs += 1
@@ -337,6 +361,7 @@ class CommNode(Plant):
         for pdo, data in self._pending_rpdos:
             self._apply_rpdo(pdo, data)
         self._pending_rpdos.clear()
+        self._latch_position(self._sync_moment(now, stamp, interval))
         out = []
         for pdo in self.tpdos:
             tt = pdo.trans_type

@@ -81,6 +81,7 @@ class SimulatedDrive(CommNode):
             self._slow_transition = None
             self._enter(new)
         out += self._move(now, dt)
+        self._plant_at = now
         out += self._check_position_limits(now)
         self._update_status()
         if self.faults.unplugged:

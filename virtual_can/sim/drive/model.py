@@ -44,6 +44,15 @@ PHYSICS_STEP_S = 0.001
 LIMIT_TOLERANCE_REV = 0.25
 #: A cyclic position set-point older than this is held (no velocity fed forward from it).
 CYCLIC_GAP_S = 0.1
+#: A SYNC's actual values are the plant's at the SYNC's moment, moved on from the last physics tick
+#: at the shaft's speed (a tick is 2 ms, the SYNC falls anywhere in it), by at most this much (a
+#: runner held for longer has not simulated the time in between: its next tick catches up)
+LATCH_AHEAD_MAX_S = 0.01
+#: The bus's stamps against the runner's clock: a handling delay of a SYNC further than this from the
+#: least seen is a clock step (the offset starts anew); the least may rise this much per second of bus
+#: time (the wall clock's slew against the monotonic one: NTP slews at most 0.5 ms/s)
+BUS_CLOCK_STEP_S = 0.2
+BUS_OFFSET_SLEW = 1.0e-3
 
 #: 0x1010 "save" signature ("save" in ASCII, little endian) and what each sub-index stores.
 SAVE_SIGNATURE = int.from_bytes(b"save", "little")

@@ -15,6 +15,7 @@ from virtual_can.sim.drive.model import (
     CYCLIC_GAP_S,
     EMCY_FOLLOWING_ERROR,
     EMCY_POSITION_LIMIT,
+    LATCH_AHEAD_MAX_S,
     LIMIT_TOLERANCE_REV,
     PHYSICS_STEP_S,
     POWERED,
@@ -69,6 +70,16 @@ class Plant(StateMachine):
         if store.has(OD.FOLLOWING_ERROR_ACTUAL):
             store.values[(OD.FOLLOWING_ERROR_ACTUAL, 0)] = self._as_type(
                 OD.FOLLOWING_ERROR_ACTUAL, self.sp_pos - self.position_counts)
+
+    def _latch_position(self, at: float) -> None:
+        """The position actual (0x6064) at ``at`` (the runner's clock: a SYNC's moment), as a CiA 402
+        drive latches it at the SYNC: the plant's state of the last tick moved on at the shaft's speed
+        to that moment (never back, at most LATCH_AHEAD_MAX_S), not the last tick's, up to a tick old.
+        The next tick writes its own again."""
+        ahead = min(max(0.0, at - self._plant_at), LATCH_AHEAD_MAX_S)
+        if ahead and self.omega:
+            counts = (self.theta + self.omega * ahead) / self._rad_per_count + self.position_offset
+            self.store.values[(OD.POSITION_ACTUAL, 0)] = self._as_type(OD.POSITION_ACTUAL, counts)
 
     def _setpoint_step(self, mode: int, halt: bool, now: float, dt: float) -> None:
         """The set-point generator of a powered drive, one tick: the mode's own, a halt, or the

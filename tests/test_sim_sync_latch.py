@@ -1,0 +1,67 @@
+"""The simulated drive's synchronous TPDOs carry its actual position at the SYNC's moment, as a
+CiA 402 drive latches it (issue 70): the simulator's physics ticks every few ms and answered a SYNC
+with the position of its last tick, up to a tick old, so that two buses' samples of one SYNC moment
+told two moments apart (a straight drive's heading swung). Exact values of one drive, no bus, no
+clock: the runner's time and the bus's stamps are given."""
+
+from __future__ import annotations
+
+import struct
+
+import can
+import pytest
+
+from can_config import GENERIC_EDS, load_drive_od
+from can_config.objects import OD, OperationMode
+from virtual_can.sim import SimulatedDrive
+from virtual_can.sim.drive import State as SimState
+from virtual_can.sim.drive.model import Pdo
+
+TICK_S = 0.01
+POSITION_TPDO = 0x281
+#: the bus's clock is the runner's plus this (a wall clock against a monotonic one)
+BUS_AHEAD_S = 1000.0
+SPEED_COUNTS_S = 100_000
+
+
+def cruising() -> SimulatedDrive:
+    """A drive turning at a steady speed (profile velocity), a synchronous TPDO with its position."""
+    drive = SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))
+    drive.on_frame(can.Message(arbitration_id=0x000, data=[0x01, 1], is_extended_id=False), 0.0)  # NMT start
+    drive.tpdos.append(Pdo(POSITION_TPDO, 1, [(OD.POSITION_ACTUAL, 0, "<i")]))
+    drive.store.values[(OD.MODES_OF_OPERATION_DISPLAY, 0)] = int(OperationMode.PROFILE_VELOCITY)
+    drive.store.values[(OD.PROFILE_ACCELERATION, 0)] = 400_000
+    drive.store.values[(OD.TARGET_VELOCITY, 0)] = SPEED_COUNTS_S
+    drive.state = SimState.OPERATION_ENABLED
+    return drive
+
+
+def sync(drive: SimulatedDrive, handled: float, on_bus: float) -> int:
+    """A SYNC that was on the bus at ``on_bus`` (runner's time), handled at ``handled``: the position
+    its TPDO carries."""
+    msg = can.Message(arbitration_id=0x080, timestamp=on_bus + BUS_AHEAD_S, is_extended_id=False)
+    out = [m for m in drive.on_frame(msg, handled) if m.arbitration_id == POSITION_TPDO]
+    assert len(out) == 1
+    return int(struct.unpack("<i", out[0].data)[0])
+
+
+@pytest.mark.parametrize(("into_tick", "late"), [(0.003, 0.0), (0.008, 0.0), (0.004, 0.005)])
+def test_a_sync_tpdo_carries_the_position_at_the_syncs_moment(into_tick: float, late: float) -> None:
+    """A SYNC ``into_tick`` after the last physics tick (handled ``late`` after it was on the bus: a
+    runner held meanwhile): its TPDO says where the shaft was at the SYNC, which a twin drive ticked
+    to that very moment shows, within a count; the last tick's position is thousands of counts off."""
+    drive, twin = cruising(), cruising()
+    now = 0.0
+    while now < 1.0:  # at speed; the SYNCs before teach the drive the bus's clock (handled at once)
+        sync(drive, now, now)
+        now += TICK_S
+        drive.tick(now, TICK_S)
+        twin.tick(now, TICK_S)
+    last_tick = drive.position_counts
+    assert abs(drive.omega / drive._rad_per_count - SPEED_COUNTS_S) < 0.01 * SPEED_COUNTS_S
+    latched = sync(drive, now + into_tick + late, now + into_tick)
+    twin.tick(now + into_tick, into_tick)  # the plant at the SYNC's moment
+    assert abs(latched - twin.position_counts) <= 2.0, (latched, twin.position_counts, last_tick)
+    assert abs(latched - last_tick) > 0.5 * SPEED_COUNTS_S * into_tick  # not the last tick's
+    drive.tick(now + TICK_S, TICK_S)
+    assert drive.store.values[(OD.POSITION_ACTUAL, 0)] == round(drive.position_counts)  # the tick's own again

@@ -1,0 +1,64 @@
+"""A synchronous TPDO's values are stamped with the SYNC they answer (issue 70): a CiA 402 drive
+latches its actual values at the SYNC, so two buses' samples are paired by the moment they
+measured, not by when each answer reached the bus (a drive's, or a simulator's, reply time varies
+by milliseconds). The cache on a canopen network of its own (no bus): frames notified as the bus's
+receive thread notifies them, with their bus stamps."""
+
+from __future__ import annotations
+
+import struct
+
+import canopen
+import pytest
+
+from can_config import load_config
+from can_config.eds import load_drive_od
+from motor_driver.drive.ledger import DriveRecord, SupervisorPort
+from motor_driver.drive.received.state import DriveCache
+from motor_driver.protocol.pdo import plan_pdos
+from motor_driver.protocol.units import Scale
+
+from .conftest import REPO
+from .test_cache_writers import POSITION_VELOCITY, STATUS_MODE, ignore
+
+SYNC = 0x080
+PERIOD_S = 0.01
+
+
+@pytest.fixture
+def network() -> canopen.Network:
+    config = load_config(REPO / "config" / "rover.yaml")
+    d = config.drives[0]
+    plan = plan_pdos(load_drive_od(d.eds, d.node_id), d.node_id)
+    scale = Scale(d.counts_per_deg, d.rated_torque_nm, d.gear_ratio, invert=d.invert, offset_deg=d.offset_deg)
+    net = canopen.Network()
+    cache = DriveCache(d, net, plan, scale, sync_period_s=PERIOD_S, record=DriveRecord(), port=SupervisorPort(ignore, ignore))
+    cache.subscribe()
+    net.cache = cache  # type: ignore[attr-defined]
+    return net
+
+
+def position(net: canopen.Network, counts: int, stamp: float) -> float:
+    net.notify(POSITION_VELOCITY, bytearray(struct.pack("<ii", counts, 0)), stamp)
+    return float(net.cache.received.stamp)  # type: ignore[attr-defined]
+
+
+def test_a_sync_tpdo_is_stamped_with_its_sync(network: canopen.Network) -> None:
+    net = network
+    net.notify(SYNC, bytearray(), 100.000)
+    assert position(net, 1000, 100.0043) == 100.000  # the answer, 4.3 ms later: measured at its SYNC
+    net.notify(SYNC, bytearray(), 100.010)
+    assert position(net, 1100, 100.0101) == 100.010  # answered at once: the same rule
+    assert net.cache.received.position_counts == 1100  # type: ignore[attr-defined]
+
+
+def test_without_its_sync_a_tpdo_keeps_its_own_stamp(network: canopen.Network) -> None:
+    net = network
+    assert position(net, 1000, 50.0) == 50.0  # no SYNC heard (a kernel socket sending this driver's own)
+    net.notify(SYNC, bytearray(), 100.000)
+    assert position(net, 1000, 100.002) == 100.000
+    assert position(net, 1010, 100.008) == 100.008  # its SYNC not heard: not the one before, taken already
+    assert position(net, 1020, 100.0125) == 100.0125  # more than a period after the newest SYNC
+    net.notify(SYNC, bytearray(), 100.020)
+    net.notify(STATUS_MODE, bytearray(struct.pack("<Hb", 0x0637, 1)), 100.021)  # event-driven: when it was sent
+    assert net.cache.received.stamp == 100.021  # type: ignore[attr-defined]
