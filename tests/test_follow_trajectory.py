@@ -8,7 +8,9 @@ arm beside the wheels are the benchmark's (benchmarks/follow_trajectory.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import os
 import re
 import signal
 import statistics
@@ -27,7 +29,15 @@ from motor_driver import MotorDriver
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
 
-from .conftest import HAVE_ROS, IN_PROCESS_STALE_SYNCS, REPO, make_config, requires_ros, wait_for
+from .conftest import (
+    HAVE_ROS,
+    IN_PROCESS_STALE_SYNCS,
+    REPO,
+    in_process_stale_after_syncs,
+    make_config,
+    requires_ros,
+    wait_for,
+)
 
 pytestmark = requires_ros
 
@@ -61,15 +71,25 @@ class Rig:
     assembly: Any
     client: Any  # ActionClient
     states: list[Any]  # /joint_states as the client hears them
+    domain: int | None = None  # the graph's ROS domain where it has one of its own
 
 
 @pytest.fixture
 def rig(monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> Iterator[Rig]:
     monkeypatch.setattr(spinning, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a goal's pause wakes them
-    config = make_config(2, **ARM | getattr(request, "param", {}))  # indirect: the drives' settings changed
+    param = dict(getattr(request, "param", {}))  # indirect: the drives' settings changed, or the SYNC's
+    sync_s = param.pop("sync_period_s", None)
+    config = make_config(2, **ARM | param)
+    if sync_s is not None:  # the arm's bus at another SYNC rate, the drives' staleness bound in time kept
+        config = dataclasses.replace(config, buses=tuple(dataclasses.replace(b, sync_period_s=sync_s) for b in config.buses),
+                                     drives=tuple(dataclasses.replace(d, stale_after_syncs=in_process_stale_after_syncs(sync_s))
+                                                  for d in config.drives))
     sim = SimService.from_config(config, port=0)
+    # a domain of its own where the suite's worker has none (a run beside other graphs on this
+    # machine: their /joint_states of joints named alike would be heard here)
+    domain = None if os.environ.get("ROS_DOMAIN_ID") else 150 + os.getpid() % 80
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, domain_id=domain)
     hot = make_executor("events", context)
     assembly = Assembly(MotorDriver(with_bus_overrides(config, host=sim.host, port=sim.port)), hot, context=context,
                         overrides=[Parameter("arm", value=True), Parameter("state_rate_hz", value=100.0)])
@@ -77,7 +97,7 @@ def rig(monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> Iter
     assembly.start()
     spin = SpinThread(hot, "test-hot")
     theirs = rclpy.Context()  # the client: another participant, as MoveIt would be
-    rclpy.init(context=theirs)
+    rclpy.init(context=theirs, domain_id=domain)
     node = rclpy.create_node("trajectory_client", context=theirs)
     states: list[Any] = []
     node.create_subscription(JointState, "/joint_states", states.append, STATE_QOS)
@@ -88,7 +108,7 @@ def rig(monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> Iter
     try:
         assert client.wait_for_server(timeout_sec=HANG_S), f"{ACTION} not served"
         wait_for(lambda: all(d.snapshot().verdict.usable for d in assembly.driver), HANG_S, "the arm armed")
-        yield Rig(sim, assembly, client, states)
+        yield Rig(sim, assembly, client, states, domain)
     finally:
         client_spin.stop(5.0)
         node.destroy_node()
@@ -184,6 +204,45 @@ def test_the_plan_runs_from_its_acceptance(rig: Rig) -> None:
     assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.error_string
     late = lag(rig, seconds(handle.stamp), 30.0, 4.0)
     assert -0.02 < late < 0.06, late
+
+
+#: joint_trajectory_controller's promise as issue 70 judges it: the measured positions against the
+#: plan timed from the goal's acceptance, over the run, within this RMS and this maximum (deg)
+TRACKING_RMS_DEG, TRACKING_MAX_DEG = 0.5, 1.5
+
+
+def tracking_errors(rig: Rig, start_s: float, amplitude_deg: float, duration_s: float) -> list[float]:
+    """Each /joint_states position (stamped when measured: its SYNC, on the bus's clock) against the
+    half-sine timed from ``start_s`` (the node's clock), over the plan's whole time."""
+    w = math.pi / duration_s
+    errors = []
+    for msg in list(rig.states):
+        t = seconds(msg.header.stamp) - start_s
+        at = dict(zip(msg.name, msg.position, strict=False))
+        if 0.0 <= t <= duration_s and {"joint1", "joint2"} <= set(at):
+            plan = amplitude_deg * math.sin(w * t)
+            errors += [math.degrees(at["joint1"]) - plan, math.degrees(at["joint2"]) + plan]
+    assert len(errors) > 2 * 20 * duration_s, len(errors)
+    return errors
+
+
+@pytest.mark.parametrize("rig", [{"sync_period_s": 0.004}, {"sync_period_s": 0.002}], indirect=True,
+                         ids=["250Hz", "500Hz"])
+def test_a_trajectory_is_tracked_against_the_plan_from_acceptance(rig: Rig) -> None:
+    """At 250 and 500 Hz (the bus's SYNC), a 4 s half-sine to +-30 deg and back: the joints'
+    measured positions against the plan timed from the goal's acceptance (header stamp 0), as a
+    MoveIt user measures it: within 0.5 deg RMS and 1.5 deg at most (issue 70: 1.0-1.7 deg RMS,
+    2.2-3.5 deg max, the plan run from the driver's hand-over after its checks and mode switches).
+    Judged by the measurements' own stamps (their SYNC), not by when anything was received."""
+    from action_msgs.msg import GoalStatus
+
+    handle = send(rig, half_sine(30.0, 4.0))
+    assert handle.accepted
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.error_string
+    errors = tracking_errors(rig, seconds(handle.stamp), 30.0, 4.0)
+    rms, worst = math.sqrt(sum(e * e for e in errors) / len(errors)), max(abs(e) for e in errors)
+    assert rms <= TRACKING_RMS_DEG and worst <= TRACKING_MAX_DEG, (rms, worst)
 
 
 def test_a_plan_stamped_ahead_waits_then_tracks(rig: Rig) -> None:
@@ -344,7 +403,8 @@ def test_the_client_example_of_the_docs_runs(rig: Rig, tmp_path: Path) -> None:
     assert found, "docs/ros.md has the client example"
     script = tmp_path / "client.py"
     script.write_text(found.group(1))
-    run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    env = os.environ | ({"ROS_DOMAIN_ID": str(rig.domain)} if rig.domain is not None else {})
+    run = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env)
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     assert "error_code 0" in run.stdout
 

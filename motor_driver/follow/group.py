@@ -73,19 +73,22 @@ from motor_driver.follow.trajectory import Knot, Spline
 
 logger = logging.getLogger(__name__)
 
-#: A clock sample older than this share of the SYNC period when its set-points would go out (or
-#: one with a newer sample behind it) is let go: they wait for the next SYNC, so that no SYNC is
-#: followed by two set-points of a joint (the trajectory waits a period; nothing is skipped). Its
-#: age is counted from the sample's frame on the bus, which comes a little after its SYNC.
+#: A clock sample older than this share of the SYNC period when its set-points go out is late (a
+#: count for /diagnostics): its set-points are then the plan at the SYNC after the next, the first
+#: they can still reach. Its age is counted from its SYNC (the sample's stamp: when it measured).
+#: A sample with a newer one behind it is let go for that one.
 LATE_SHARE = 0.5
 #: How long close() waits for the group's thread.
 JOIN_S = 2.0
 #: How long a goal's preparation waits for its joints' other operations (an enable under way) to end.
 BUSY_WAIT_S = 5.0
-#: The most the plan's time advances from one set-point to the next, in SYNC periods: a SYNC missed
-#: is caught up at once; after a host stalled for longer the plan catches up at this pace rather than
-#: jump further than its joints may move in a step (the drive's guard: max velocity over two periods).
+#: The plan's time advances from one set-point to the next by this many SYNC periods at least when
+#: it is behind (a SYNC missed is caught up at once), and further only as far as every joint's step
+#: stays within GUARD_SHARE of its drive's guard (stream_position refuses a step beyond max velocity
+#: over two periods): a thread that sends every few SYNCs (a starved host at 500 Hz) keeps the plan's
+#: time, and one that stalled for long catches up as fast as its joints may move, never by a jump.
 CATCH_UP_PERIODS = 2
+GUARD_SHARE = 0.8
 #: How much of the gap between the SYNCs counted and the monotonic clock (the sample's reception) one
 #: set-point closes: the plan keeps the clock's time (a SYNC producer slower or faster than its period
 #: does not stretch it), while a receive thread's jitter moves a step by this share of it only.
@@ -345,19 +348,31 @@ class TrajectoryGroup:
             if running is not None and running.run.cancel_requested:
                 return None
         self._clock_seq = seq = clock.cache.position_seq
-        if self._age(clock) > LATE_SHARE * self.period_s or clock.cache.position_seq != seq:
+        if self._age(clock) > LATE_SHARE * self.period_s:
             self.late += 1
-            return None
-        return True
+        return None if clock.cache.position_seq != seq else True
 
     @staticmethod
     def _age(clock: Drive) -> float:
-        """How long ago the clock's sample was on the bus: by the frame's own time where it is this
-        host's clock (SocketCAN, a local socketcand daemon: a receive thread that was late itself
-        does not hide it), else since the receive thread took it."""
+        """How long ago the clock's sample was measured: by its stamp (its SYNC's, on the bus) where
+        that is this host's clock (SocketCAN, a local socketcand daemon: a receive thread that was
+        late itself does not hide it), else since the receive thread took it."""
         rx = clock.cache.received
         on_bus = time.time() - rx.stamp
         return on_bus if 0.0 <= on_bus < 1.0 else time.monotonic() - rx.rx_monotonic
+
+    def _taken_at(self, clock: Drive) -> tuple[float, bool]:
+        """(the monotonic time of the SYNC this step's set-points are taken at, whether it is the
+        bus's): the clock sample's SYNC (its stamp, on this host's clock) plus the periods to the
+        first SYNC they still reach (one, or the one after when sent later than LATE_SHARE into the
+        period, or later still after a longer wait: a late thread shifts no plan); where the stamp
+        is another clock's, its reception plus a period (False)."""
+        rx = clock.cache.received
+        wall, now = time.time(), time.monotonic()
+        age = wall - rx.stamp
+        if not 0.0 <= age < 1.0:
+            return rx.rx_monotonic + self.period_s, False
+        return now - age + (math.floor(age / self.period_s + LATE_SHARE) + 1) * self.period_s, True
 
     def _judge_silence(self) -> None:
         """No sample from the clock: a joint whose verdict is not usable (lost, or late beyond its
@@ -389,12 +404,15 @@ class TrajectoryGroup:
             f"; {verdict.helps}" if verdict.helps else "")
 
     def _step(self, running: _Running, clock: Drive) -> None:
-        """This SYNC's set-points: the plan at the next SYNC's time, where the drives take them. The
-        plan's time: the monotonic clock's at the first sample (when it came, from the plan's time
-        zero), then the SYNCs counted by the clock's samples (one a SYNC, counted by the receive
-        thread: a sample this thread let go still counts, a receive thread's jitter is no step)."""
+        """This SYNC's set-points: the plan at the time of the SYNC where the drives take them. The
+        plan's time, from its time zero: that SYNC's, on the bus's clock (the clock sample's SYNC
+        stamp: no receive thread's jitter, no late thread's wait moves it); where the bus stamps
+        another clock, the monotonic clock's at the first sample, then the SYNCs counted by the
+        clock's samples (one a SYNC, counted by the receive thread: a sample this thread let go
+        still counts), closing a share of the gap to the clock each step."""
         seq = clock.cache.position_seq
-        now = clock.cache.received.rx_monotonic + self.period_s - running.run.start_at
+        taken_at, on_bus = self._taken_at(clock)
+        now = taken_at - running.run.start_at
         if running.spline is None:
             if now <= 0.0:
                 self._hold(running)
@@ -404,8 +422,8 @@ class TrajectoryGroup:
         else:
             drive, last_seq = running.last
             counted = running.last_t + (seq - last_seq if drive is clock else 1) * self.period_s
-            t = counted + CLOCK_GAIN * (now - counted)
-            t = min(max(t, running.last_t), running.last_t + CATCH_UP_PERIODS * self.period_s)
+            t = now if on_bus else counted + CLOCK_GAIN * (now - counted)
+            t = self._guarded(running, max(t, running.last_t))
         running.last, running.last_t = (clock, seq), t
         spline = running.spline
         assert spline is not None
@@ -432,6 +450,26 @@ class TrajectoryGroup:
                            " the group stops")
                 return
         running.last_desired = desired
+
+    def _guarded(self, running: _Running, t: float) -> float:
+        """``t``, or as far toward it from the last set-points' time as every joint may step: at least
+        CATCH_UP_PERIODS, beyond only within GUARD_SHARE of its drive's guard (max velocity over two
+        SYNC periods from its last set-point)."""
+        floor = running.last_t + CATCH_UP_PERIODS * self.period_s
+        spline = running.spline
+        if t <= floor or spline is None:
+            return t
+        for _ in range(3):  # the spline is smooth: a share of the way is about that share of the step
+            desired = spline.sample(min(t - running.offset_s, spline.end_s))
+            share = min((GUARD_SHARE * 2.0 * self.period_s * d.config.max_velocity_deg_s / abs(p - last[0])
+                         for d, (p, _, _), last in zip(running.joints, desired, running.last_desired, strict=True)
+                         if p != last[0]), default=math.inf)
+            if share >= 1.0:
+                return t
+            t = max(floor, running.last_t + (t - running.last_t) * share)
+            if t == floor:
+                return t
+        return floor
 
     def _hold(self, running: _Running) -> None:
         """A goal waiting for its stamp: its joints not ramping down hold their set-point, one a SYNC."""
