@@ -359,6 +359,20 @@ def due(tick: int, every: list[int]) -> list[int]:
     return [i for i, n in enumerate(every) if tick % n == 0]
 
 
+#: How late the command loop may fall and still catch up in a burst: beyond it the ticks missed are
+#: skipped. A burst is published microseconds apart, the driver's keep-last-1 subscription takes
+#: its newest, and a burst of 28 ticks (56 ms at 500 Hz) moved the ramp beyond a streamed joint's
+#: step (2.88 deg): refused as a jump, and so was the rest of the ramp (the run in issue 72).
+CATCH_UP_MAX_PERIODS = 10
+
+
+def next_tick(next_t: float, period: float, now: float) -> float:
+    """When the command loop's next tick is due: one period on, or, when the loop is more than
+    CATCH_UP_MAX_PERIODS late, now (the ticks missed skipped: fewer commands, no jump in a ramp)."""
+    next_t += period
+    return now if now - next_t > CATCH_UP_MAX_PERIODS * period else next_t
+
+
 _FLOAT32 = struct.Struct("<f")
 
 
@@ -549,7 +563,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
                     pub.publish(Float32(data=angle))
                 executor.spin_once(timeout_sec=0)
                 ramps.replan(diags, k, every)
-                next_t += period
+                next_t = next_tick(next_t, period, time.monotonic())
                 time.sleep(max(0.0, next_t - time.monotonic()))
             cpu = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
             threads = {name: (t - threads0.get(name, 0.0)) / (time.monotonic() - wall0)

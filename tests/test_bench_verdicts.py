@@ -229,3 +229,14 @@ def test_a_ramp_the_driver_refused_starts_again_where_its_joint_stands_and_the_o
     assert round(ramps.angle(1, 200), 3) == 20.05  # b's ramp as it was
     ramps.replan(diags, 500, every)  # arrays already looked at are not taken twice
     assert ramps.replanned == 1 and round(ramps.angle(0, 401), 3) == 3.6
+
+
+def test_a_late_command_loop_catches_up_a_little_and_skips_the_rest() -> None:
+    """A burst of catch-up commands is taken as its newest: beyond ten periods late the ticks
+    are skipped, so that the ramp moves at most ten steps between two commands the driver takes."""
+    from stack_run import CATCH_UP_MAX_PERIODS, next_tick
+
+    assert next_tick(1.0, 0.002, 0.999) == 1.002  # on time: one period on
+    late = 1.002 + CATCH_UP_MAX_PERIODS * 0.002 - 1e-6
+    assert next_tick(1.0, 0.002, late) == 1.002  # late within the bound: caught up in a burst
+    assert next_tick(1.0, 0.002, 1.2) == 1.2  # 100 periods late: from now, the missed ticks skipped
