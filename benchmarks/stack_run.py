@@ -33,6 +33,7 @@ import os
 import re
 import socket
 import statistics
+import struct
 import subprocess
 import sys
 import tempfile
@@ -358,6 +359,97 @@ def due(tick: int, every: list[int]) -> list[int]:
     return [i for i, n in enumerate(every) if tick % n == 0]
 
 
+#: How late the command loop may fall and still catch up in a burst: beyond it the ticks missed are
+#: skipped. A burst is published microseconds apart, the driver's keep-last-1 subscription takes
+#: its newest, and a burst of 28 ticks (56 ms at 500 Hz) moved the ramp beyond a streamed joint's
+#: step (2.88 deg): refused as a jump, and so was the rest of the ramp (the run in issue 72).
+CATCH_UP_MAX_PERIODS = 10
+
+
+def next_tick(next_t: float, period: float, now: float) -> float:
+    """When the command loop's next tick is due: one period on, or, when the loop is more than
+    CATCH_UP_MAX_PERIODS late, now (the ticks missed skipped: fewer commands, no jump in a ramp)."""
+    next_t += period
+    return now if now - next_t > CATCH_UP_MAX_PERIODS * period else next_t
+
+
+_FLOAT32 = struct.Struct("<f")
+
+
+class Ramps:
+    """Each joint's ramp: the team's demo ramp, +0.1 deg a command from 0.15, modulo 360
+    (continuous on a continuous joint; a streamed joint, position_mode: cyclic, refuses a jump:
+    modulo 300 jumped 60 deg). A joint whose commands the driver refused (its /diagnostics
+    ``refused_commands``) has its ramp planned again from where it stands (``angle_deg``), as a
+    trajectory client starts its next goal from the joint's state: a streamed joint judges each
+    step from the set-point it last sent, so after a stall of 28 commands (56 ms at 500 Hz: late
+    data, a starved process) the ramp had gone out of its reach and every later command was
+    refused, and the run measured refusals (94 % of the set-points beside another session's
+    real-time load). The refused commands still count as lost (``setpoint_loss_fraction``)."""
+
+    def __init__(self, names: list[str], seen: int) -> None:
+        self._index = {name: i for i, name in enumerate(names)}
+        self._start = [(0.05, 0)] * len(names)  # (angle, command count) each ramp starts from
+        self._seen = seen  # /diagnostics arrays looked at
+        self.replanned = 0
+
+    def angle(self, i: int, count: int) -> float:
+        """Joint ``i``'s ``count``-th command, as its Float32 carries it."""
+        base, at = self._start[i]
+        return float(_FLOAT32.unpack(_FLOAT32.pack((base + (count - at) * 0.1) % 360.0))[0])
+
+    def replan(self, diags: list[Any], tick: int, every: list[int]) -> None:
+        """The joints the newest /diagnostics arrays say refused commands start again from where they stand."""
+        for array in diags[self._seen:]:
+            for st in array.status:
+                i = self._index.get(st.name)
+                values = {kv.key: kv.value for kv in st.values}
+                if i is not None and values.get("refused_commands", "0") != "0" and "angle_deg" in values:
+                    self._start[i] = (float(values["angle_deg"]), tick // every[i])
+                    self.replanned += 1
+        self._seen = len(diags)
+
+
+#: the modes of operation a first position command switches a drive to: a stream (CSP, IP), a profile move
+STREAMED_MODES, PROFILE_MODE = frozenset({"8", "7"}), frozenset({"1"})
+
+
+def modes_are(diags: list[Any], wanted: dict[str, frozenset[str]]) -> bool:
+    """Each named drive's mode of operation, as the newest /diagnostics array that reports it says, is one of those wanted."""
+    for array in reversed(diags):
+        modes = {st.name: kv.value for st in array.status for kv in st.values if kv.key == "mode"}
+        if modes:
+            return all(modes.get(name) in allowed for name, allowed in wanted.items())
+    return False
+
+
+def start_streams(pubs: list[Any], shipped: Any, diags: list[Any], executor: Any, proc: subprocess.Popen[bytes]) -> None:
+    """Each joint's first command (the ramp's start) before the measured window: a stream's first
+    set-point switches its drive's mode by SDO (on a worker of its joint since
+    nodes/joints/handoff.py; it held every other joint's commands before: docs/performance.md);
+    the window measures the streams running, not their start. It waits for each drive's switch to
+    be done, not a fixed half second: on a busy machine six switches took longer, the handoff kept
+    each joint's newest command, and the first set-point after the switch jumped (37 deg at
+    500 Hz) and was refused, and so was the rest of its ramp (a streamed joint judges each step
+    from the last one sent). The window's first command is then one step from the start."""
+    from std_msgs.msg import Float32
+
+    for pub in pubs:
+        pub.publish(Float32(data=0.05))
+    wanted = {f"rovercan: {d.name}": STREAMED_MODES if d.position_mode == "cyclic" else PROFILE_MODE
+              for d in shipped.drives}
+    deadline = time.monotonic() + 30
+    while not modes_are(diags, wanted):
+        if time.monotonic() > deadline or proc.poll() is not None:
+            raise RuntimeError("the drives did not switch to their position mode for the first command")
+        executor.spin_once(timeout_sec=0.1)
+    time.sleep(0.2)  # the worker's set-point after the switch (the switch's last step) goes out
+
+
+def _stamp_s(array: Any) -> float:
+    return float(array.header.stamp.sec + array.header.stamp.nanosec * 1e-9)
+
+
 def _tpdos_applied(diags: list[Any]) -> list[int]:
     """The driver's per-drive ``tpdos_applied`` from the newest /diagnostics array that has them:
     the drive system publishes its own array on the same topic, without them (taking the newest
@@ -367,6 +459,20 @@ def _tpdos_applied(diags: list[Any]) -> list[int]:
         if counts:
             return counts
     return []
+
+
+def refusals(diags: list[Any]) -> tuple[int, str]:
+    """The commands the driver refused, summed over the /diagnostics arrays (each drive's
+    ``refused_commands`` counts those since its previous array), and the newest reason: a run
+    whose set-points went missing says whether the driver refused them, and why."""
+    total, last = 0, ""
+    for array in diags:
+        for st in array.status:
+            values = {kv.key: kv.value for kv in st.values}
+            if values.get("refused_commands", "0") != "0":
+                total += int(values["refused_commands"])
+                last = values.get("last_refusal", "") or last
+    return total, last
 
 
 def every_topic_matched(pubs: list[Any], deadline: float, proc: subprocess.Popen[bytes]) -> None:
@@ -434,13 +540,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
                     raise RuntimeError("the measured process did not enable its drives")
                 executor.spin_once(timeout_sec=0.1)
             every_topic_matched(pubs, deadline, proc)
-            # each joint's first command (the ramp's start) before the measured window: a stream's
-            # first set-point switches its drive's mode by SDO (on a worker of its joint since
-            # nodes/joints/handoff.py; it held every other joint's commands before: docs/performance.md);
-            # the window measures the streams running, not their start
-            for pub in pubs:
-                pub.publish(Float32(data=0.05))
-            time.sleep(0.5)
+            start_streams(pubs, shipped, diags, executor, proc)
             sent: dict[tuple[str, int, int], list[float]] = {}
             names = python_thread_names(proc.pid)
             cpu0, wall0, threads0 = proc_cpu_s(proc.pid), time.monotonic(), thread_cpu_s(proc.pid, names)
@@ -453,17 +553,17 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             period = 1.001 / loop_hz
             next_t = time.monotonic()
             k = 0
+            ramps = Ramps([f"rovercan: {d.name}" for d in shipped.drives], len(diags))
             while time.monotonic() - wall0 < seconds:
                 k += 1
                 for i in due(k, every):
                     (d, ch, scale, per_rev), pub, n = drives[i], pubs[i], every[i]
-                    # the team's demo ramp, +0.1 deg a command, modulo 360: continuous on a continuous joint
-                    # (a streamed joint, position_mode: cyclic, refuses a jump; modulo 300 jumped 60 deg)
-                    angle = (k // n % 3600) * 0.1 + 0.05
+                    angle = ramps.angle(i, k // n)
                     sent.setdefault((ch, d.node_id, scale.deg_to_counts(angle) % per_rev), []).append(time.time())
                     pub.publish(Float32(data=angle))
                 executor.spin_once(timeout_sec=0)
-                next_t += period
+                ramps.replan(diags, k, every)
+                next_t = next_tick(next_t, period, time.monotonic())
                 time.sleep(max(0.0, next_t - time.monotonic()))
             cpu = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
             threads = {name: (t - threads0.get(name, 0.0)) / (time.monotonic() - wall0)
@@ -483,6 +583,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             end = time.monotonic() + 1.0
             while time.monotonic() < end:
                 executor.spin_once(timeout_sec=0.05)
+            refused, last_refusal = refusals([a for a in diags if _stamp_s(a) >= window0])
             diags.clear()
             end = time.monotonic() + 5
             while not _tpdos_applied(diags) and time.monotonic() < end:
@@ -536,6 +637,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             "commands_published": n_published, "commands_matched": matched, "commands_superseded": unmatched,
             "setpoint_loss_fraction": round((n_published - matched) / n_published, 5) if n_published else None,
             "setpoint_loss_by_bus": {ch: round((n - matched_by_bus[ch]) / n, 5) for ch, n in sorted(published_by_bus.items()) if n},
+            "commands_refused": refused, "last_refusal": last_refusal, "ramps_replanned": ramps.replanned,
             "harness_catch_up_by_bus": caught_up,
             "tpdo_sent": tpdo_sent, "tpdo_applied": tpdo_applied, "tpdo_loss": tpdo_sent - tpdo_applied,
             "cpu_core_fraction": round(cpu, 3), "rss_mb": round(rss, 1),

@@ -11,19 +11,25 @@ import time
 import can
 import canopen
 import pytest
-from can.interfaces.socketcand.socketcand import convert_ascii_message_to_can_message
+from can.interfaces.socketcand.socketcand import (
+    SocketCanDaemonBus,
+    convert_ascii_message_to_can_message,
+    convert_can_message_to_ascii_message,
+)
 from hypothesis import given
 from hypothesis import strategies as st
 
 from motor_driver.bus.adapters import (
     CLOSED_PAUSE_S,
     SOCKETCAND_SOCKET_ATTRIBUTE,
+    SOCKETCAND_TCP_TUNE,
     SYNC_TEXT_BYTES,
     GuardedNetwork,
     connection_closed,
     hold_lone_sync,
     parse_frames,
     queue_full,
+    socketcand_sender,
 )
 from motor_driver.bus.connect import open_bus
 from virtual_can import SimService
@@ -258,3 +264,82 @@ def test_a_frame_that_does_not_parse_is_skipped_and_the_others_kept(bad: str) ->
     got, rest = parse_frames(good + bad + good + "< frame 281 17", "can0")
     assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(0x181, b"\x06\x37")] * 2
     assert rest == "< frame 281 17"
+
+
+def _unconnected_socketcand(sock: socket.socket, tune: bool) -> can.BusABC:
+    """python-can's socketcand client around ``sock`` (no server handshake): what its send writes is read at the other end."""
+    bus = SocketCanDaemonBus.__new__(SocketCanDaemonBus)
+    setattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, sock)
+    setattr(bus, SOCKETCAND_TCP_TUNE, tune)
+    return bus
+
+
+def _tcp_pair() -> tuple[socket.socket, socket.socket]:
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        client = socket.create_connection(server.getsockname())
+        peer, _ = server.accept()
+    return client, peer
+
+
+def _read_text(peer: socket.socket, size: int) -> str:
+    got = b""
+    while len(got) < size:
+        got += peer.recv(size - len(got))
+    return got.decode("ascii")
+
+
+@given(st.lists(st.tuples(st.one_of(st.integers(0, 0x7FF), st.integers(0x800, 0x1FFFFFFF)), st.binary(max_size=8),
+                          st.booleans()), min_size=1, max_size=8), st.booleans())
+def test_the_direct_send_writes_what_python_can_writes_for_canopens_message(frames: list[tuple[int, bytes, bool]],
+                                                                            tune: bool) -> None:
+    """Byte for byte the text python-can's socketcand ``send`` writes for the message canopen's
+    ``send_message`` makes (an id above 0x7FF extended; a remote frame, which socketcand's rawmode
+    cannot carry, written as python-can writes it: no data), on a TCP socket with and without ``tcp_tune``."""
+    client, peer = _tcp_pair()
+    try:
+        send = socketcand_sender(_unconnected_socketcand(client, tune))
+        assert send is not None
+        for can_id, data, remote in frames:
+            want = convert_can_message_to_ascii_message(can.Message(is_extended_id=can_id > 0x7FF, arbitration_id=can_id,
+                                                                    data=data, is_remote_frame=remote))
+            send(can_id, data, remote)
+            assert _read_text(peer, len(want)) == want
+    finally:
+        client.close()
+        peer.close()
+
+
+def test_the_direct_send_is_only_for_python_cans_socketcand_send() -> None:
+    bus = FullQueueBus(0)  # its own send: the network must call it, not a socket
+    try:
+        assert socketcand_sender(bus) is None and socketcand_sender(None) is None
+        network = GuardedNetwork(bus)
+        network.send_message(0x201, b"\x0f")
+        assert [m.arbitration_id for m in bus.sent] == [0x201]
+    finally:
+        bus.shutdown()
+
+
+def test_a_network_sends_on_the_server_directly_and_on_the_new_bus_after_a_reconnect() -> None:
+    """End to end on the simulator's socketcand server: what the network sends, a peer hears; given
+    a new bus (a reconnect), the network writes to the new one, not the old socket."""
+    sim = SimService([], port=0)
+    buses = [can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port) for _ in range(3)]
+    first, second, peer = buses
+    network = GuardedNetwork(first)
+    try:
+        told: list[tuple[int, bytes | bytearray, bool]] = []
+        network.on_sent = lambda *frame: told.append(frame)
+        network.send_message(0x201, b"\x0f\x00\x10\x27")
+        heard = peer.recv(10.0)
+        assert heard is not None and (heard.arbitration_id, bytes(heard.data)) == (0x201, b"\x0f\x00\x10\x27")
+        first.shutdown()
+        network.bus = second
+        network.send_message(0x12345, b"")
+        heard = peer.recv(10.0)
+        assert heard is not None and (heard.arbitration_id, heard.is_extended_id, heard.dlc) == (0x12345, True, 0)
+        assert told == [(0x201, b"\x0f\x00\x10\x27", False), (0x12345, b"", False)]
+    finally:
+        for bus in buses:
+            bus.shutdown()
+        sim.close()

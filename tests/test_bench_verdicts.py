@@ -5,6 +5,7 @@ MISSED and only that makes the run exit 1 (a crashed benchmark: 2)."""
 from __future__ import annotations
 
 import sys
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -190,3 +191,52 @@ def test_the_cpu_ratios_are_gated_at_issue_72s_bounds() -> None:
     assert verdict("bus_limit_cpu_ratio_canopen", {"bus_limit_cpu_ratio_canopen": 1.2}).verdict == "pass"
     assert verdict("bus_limit_cpu_ratio_canopen", {"bus_limit_cpu_ratio_canopen": 1.3}).verdict == "MISSED"
     assert verdict("cpu_ratio_canopen", {"cpu_ratio_canopen": 1.6}).verdict == "MISSED"
+
+
+def test_a_refused_stream_names_the_driver_s_reason_and_a_lost_one_says_it_was_not_refused() -> None:
+    from bus_limit import not_carried
+
+    figures = {"bus_limit_emulator_frames_per_s": 6500, "bus_limit_tpdo_loss": 0, "bus_limit_setpoint_loss_fraction": 0.3}
+    refused = not_carried({**figures, "bus_limit_commands_refused": 900,
+                           "bus_limit_last_refusal": "j6: CSP setpoint jumps 37.301 deg from the last one"})
+    assert "the driver refused 900 of them, the last: j6: CSP setpoint jumps 37.301 deg" in str(refused)
+    assert "none refused by the driver" in str(not_carried({**figures, "bus_limit_commands_refused": 0}))
+
+
+def _array(**joints: tuple[int, float]) -> SimpleNamespace:
+    """A /diagnostics array as the driver publishes it: per joint its refused commands and angle."""
+    return SimpleNamespace(status=[SimpleNamespace(name=f"rovercan: {name}", values=[
+        SimpleNamespace(key="refused_commands", value=str(refused)), SimpleNamespace(key="angle_deg", value=f"{angle:.3f}")])
+        for name, (refused, angle) in joints.items()])
+
+
+def test_a_ramp_the_driver_refused_starts_again_where_its_joint_stands_and_the_others_go_on() -> None:
+    """A streamed joint judges each step from the set-point it last sent: after a stall the ramp
+    is out of its reach for good, unless planned again from where the joint stands."""
+    from stack_run import Ramps
+
+    ramps = Ramps(["rovercan: a", "rovercan: b"], seen=0)
+    every = [1, 2]  # b commanded every second tick
+    assert [round(ramps.angle(0, n), 3) for n in (1, 2, 3)] == [0.15, 0.25, 0.35]
+    assert round(ramps.angle(0, 3601), 3) == 0.15  # modulo 360: continuous
+    diags = [_array(a=(0, 0.25), b=(0, 0.05))]
+    ramps.replan(diags, 400, every)
+    assert ramps.replanned == 0 and round(ramps.angle(0, 400), 3) == 40.05  # nothing refused: the ramp goes on
+    diags.append(_array(a=(12, 3.5), b=(0, 20.05)))  # a refused 12 commands, standing at 3.5 deg
+    ramps.replan(diags, 400, every)
+    assert ramps.replanned == 1
+    assert [round(ramps.angle(0, n), 3) for n in (400, 401)] == [3.5, 3.6]  # one step from where it stands
+    assert round(ramps.angle(1, 200), 3) == 20.05  # b's ramp as it was
+    ramps.replan(diags, 500, every)  # arrays already looked at are not taken twice
+    assert ramps.replanned == 1 and round(ramps.angle(0, 401), 3) == 3.6
+
+
+def test_a_late_command_loop_catches_up_a_little_and_skips_the_rest() -> None:
+    """A burst of catch-up commands is taken as its newest: beyond ten periods late the ticks
+    are skipped, so that the ramp moves at most ten steps between two commands the driver takes."""
+    from stack_run import CATCH_UP_MAX_PERIODS, next_tick
+
+    assert next_tick(1.0, 0.002, 0.999) == 1.002  # on time: one period on
+    late = 1.002 + CATCH_UP_MAX_PERIODS * 0.002 - 1e-6
+    assert next_tick(1.0, 0.002, late) == 1.002  # late within the bound: caught up in a burst
+    assert next_tick(1.0, 0.002, 1.2) == 1.2  # 100 periods late: from now, the missed ticks skipped

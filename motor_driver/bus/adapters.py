@@ -11,6 +11,9 @@ that changes the behaviour fails there, loudly, instead of in the field:
 - :func:`batch_receive`: the same client's receive, read from its socket by this driver: every
   frame of one read parsed in one pass (:func:`parse_frames`), without python-can's per-read debug
   text and its warning for each frame a read cut in two.
+- :func:`socketcand_sender`: the same client's send, written to its socket by this driver: the
+  text python-can would write for the frame, without the ``can.Message``, the per-send debug
+  text and the layers in between (every command's RPDO goes this way).
 - :class:`GuardedNetwork`: canopen's ``Network.notify`` stops the receive thread when one
   callback raises; this override isolates each callback (its loop mirrors canopen's). Its
   listener also drops 29-bit frames, which canopen would dispatch by their low bits.
@@ -165,6 +168,39 @@ def batch_receive(bus: can.BusABC) -> can.BusABC:
     return bus
 
 
+#: a byte as python-can's socketcand client writes it: lower-case hex, no leading zero
+_HEX = tuple(f"{b:x}" for b in range(256))
+
+
+def socketcand_sender(bus: can.BusABC | None) -> Callable[[int, bytes | bytearray, bool], None] | None:
+    """``send(can_id, data, remote)`` writing a frame on a python-can socketcand bus's socket as its own
+    ``send`` does (the same text: ``convert_can_message_to_ascii_message`` of the ``can.Message``
+    canopen's ``send_message`` makes, an id above 0x7FF extended, a remote frame's data dropped as
+    ``can.Message`` drops it (socketcand's rawmode has no remote frames); the same TCP_QUICKACK after it
+    when the bus was opened with ``tcp_tune``; a socket error raised as it is), without building
+    the message, formatting python-can's per-send debug line and going through four calls: about
+    a fifth of a streamed set-point's Python time (docs/performance.md). The caller holds the
+    network's send lock. None for other interfaces (and buses whose ``send`` is not python-can's)."""
+    from can.interfaces.socketcand.socketcand import SocketCanDaemonBus
+
+    sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
+    if bus is None or not isinstance(sock, socket.socket) or type(bus).send is not SocketCanDaemonBus.send:
+        return None
+    sendall, setsockopt, hexes = sock.sendall, sock.setsockopt, _HEX.__getitem__
+    tune = bool(getattr(bus, SOCKETCAND_TCP_TUNE, False))
+    quickack = (socket.IPPROTO_TCP, socket.TCP_QUICKACK, 1)
+
+    def send(can_id: int, data: bytes | bytearray, remote: bool) -> None:
+        if remote:
+            data = b""
+        ident = f"{can_id & 0x1FFFFFFF:08X}" if can_id > 0x7FF else f"{can_id:03X}"
+        sendall(f"< send {ident} {len(data):X} {' '.join(map(hexes, data))} >".encode("ascii"))
+        if tune:
+            setsockopt(*quickack)
+
+    return send
+
+
 #: socketcand's text of a SYNC (its ``< frame %03X %ld.%06ld  >`` with no data, a Unix-time stamp:
 #: socketcand's rawmode and the simulator's server both write it so): 32 bytes until the year 2286.
 #: A frame with data is longer; of the rest only a remote frame (no data in rawmode) is as short.
@@ -297,6 +333,8 @@ class GuardedNetwork(canopen.Network):
         #: the frames given up on after TX_QUEUE_FULL_RETRY_S
         self.tx_queue_full = 0
         self.tx_queue_dropped = 0
+        # the bus the direct sender was made for, and it (socketcand_sender; None: canopen's send)
+        self._sender: tuple[can.BusABC | None, Callable[[int, bytes | bytearray, bool], None] | None] = (None, None)
 
     def listen_with(self, listener: can.Listener) -> None:
         """Before :meth:`connect`: ``listener`` is the receive thread's one listener, in place of
@@ -312,7 +350,7 @@ class GuardedNetwork(canopen.Network):
         deadline = 0.0
         while True:
             try:
-                super().send_message(can_id, data, remote)
+                self._send_once(can_id, data, remote)
                 break
             except (can.CanError, OSError) as err:
                 if not queue_full(err):
@@ -330,6 +368,22 @@ class GuardedNetwork(canopen.Network):
         hook = self.on_sent
         if hook is not None:
             hook(can_id, data, remote)
+
+    def _send_once(self, can_id: int, data: bytes | bytearray, remote: bool) -> None:
+        """canopen's ``send_message`` (its lock, its check of the receive thread after), through the
+        socketcand socket directly where the bus is python-can's socketcand client: made again for
+        each bus this network is given (a reconnect)."""
+        bus = self.bus
+        made_for, send = self._sender
+        if bus is not made_for:
+            send = socketcand_sender(bus)
+            self._sender = (bus, send)
+        if send is None or bus is None:
+            super().send_message(can_id, data, remote)
+            return
+        with self.send_lock:
+            send(can_id, data, remote)
+        self.check()
 
     def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
         callbacks = self.subscribers.get(can_id)
