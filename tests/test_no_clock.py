@@ -100,16 +100,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_server.py::test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout":
         ("outlasts the server's handshake timeout (the test's own short setting), the rule under test; the "
          "client's staying connected after it is the verdict"),
-    "test_server.py::test_client_cap_and_slow_client_do_not_hurt_others":
-        DEBT,
-    "test_server.py::test_frames_reach_every_other_client_in_order":
-        DEBT,
-    "test_server.py::test_half_open_client_is_dropped_and_others_continue":
-        DEBT,
-    "test_server.py::test_hostile_and_idle_clients_never_starve_a_well_behaved_one":
-        DEBT,
-    "test_server.py::test_hostile_client_affects_only_itself":
-        DEBT,
     "test_server_slots.py::test_full_slots_and_resetting_clients_do_not_end_the_accept_loop":
         DEBT,
     "test_server_slots.py::test_idle_hostile_connections_give_way_to_a_well_behaved_client":
