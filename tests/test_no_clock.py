@@ -45,12 +45,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_cli_inputs.py::test_ctrl_c_during_a_step_test_stops_the_drive_without_a_traceback":
         ("the Ctrl-C's moment (during the step test) is the input; debt: wait for the step test's first step "
          'on the bus'),
-    "test_cli_rules.py::test_replay_leaves_commands_out_unless_allowed_and_filters":
-        DEBT,
-    "test_cyclic_jobs.py::test_each_job_keeps_its_period_among_many_idle_ones_and_a_deleted_one_stops":
-        DEBT,
-    "test_extended_ids.py::test_spoofed_extended_frames_change_no_state":
-        DEBT,
     "test_faults.py::test_disconnected_client_sees_the_bus_go":
         DEBT,
     "test_faults.py::test_scenario_file":
@@ -100,8 +94,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_server.py::test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout":
         ("outlasts the server's handshake timeout (the test's own short setting), the rule under test; the "
          "client's staying connected after it is the verdict"),
-    "test_server_slots.py::test_full_slots_and_resetting_clients_do_not_end_the_accept_loop":
-        DEBT,
     "test_server_slots.py::test_idle_hostile_connections_give_way_to_a_well_behaved_client":
         ('idle_s is the input: a connection idle that long is what the server must drop (the test sets idle_s '
          'itself)'),

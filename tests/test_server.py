@@ -24,7 +24,7 @@ from virtual_can import BusEngine, SocketcandServer, VirtualBus
 from virtual_can.server import format_frame, parse_send
 from virtual_can.wire import frame_bits
 
-from .conftest import REPO, drain, realtime_allowed, received_id, wait_for
+from .conftest import REPO, drain, on_the_bus, realtime_allowed, received_id, wait_for
 
 
 @pytest.fixture
@@ -36,12 +36,6 @@ def server() -> Iterator[SocketcandServer]:
 def raw_client(srv: SocketcandServer) -> socket.socket:
     sock = socket.create_connection((srv.host, srv.port), timeout=2.0)
     return sock
-
-
-def on_the_bus(srv: SocketcandServer, count: int) -> None:
-    """Wait until ``count`` clients are on the bus: the rawmode reply goes before the server attaches
-    its endpoint, so a frame sent right after python-can's connect may find the client not yet there."""
-    wait_for(lambda: sum(c.endpoint is not None for c in srv.clients) == count, 5.0, f"{count} clients on the bus")
 
 
 def read_until(sock: socket.socket, text: str, timeout_s: float = 2.0) -> str:
