@@ -45,12 +45,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_cli_inputs.py::test_ctrl_c_during_a_step_test_stops_the_drive_without_a_traceback":
         ("the Ctrl-C's moment (during the step test) is the input; debt: wait for the step test's first step "
          'on the bus'),
-    "test_faults.py::test_disconnected_client_sees_the_bus_go":
-        DEBT,
-    "test_faults.py::test_scenario_file":
-        DEBT,
-    "test_faults.py::test_sdo_delay_and_abort":
-        DEBT,
     "test_host_loss.py::run_and_stop":
         ("the host process runs past the drives' consumer time before it is stopped: the span is the input (a "
          "host that kept beating that long), the drives' stop is judged on the bus"),
