@@ -48,8 +48,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_host_loss.py::run_and_stop":
         ("the host process runs past the drives' consumer time before it is stopped: the span is the input (a "
          "host that kept beating that long), the drives' stop is judged on the bus"),
-    "test_host_loss.py::signal_and_wait":
-        DEBT,
     "test_host_loss.py::watching":
         RAW_HOLD,
     "test_hostile_sdo.py::__init__":
@@ -61,12 +59,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_kernel_tier.py::test_the_interface_down_then_up_stops_commands_and_configures_again_unarmed":
         DEBT,
     "test_launch.py::test_the_rover_launch_names_each_node_once_and_its_parameters_answer_alike":
-        DEBT,
-    "test_look_before_reset.py::test_bench_commands_beside_a_running_driver_refuse_and_its_drive_stays_enabled":
-        DEBT,
-    "test_reliability.py::test_bus_server_dies_driver_reports_reconnects_reconfigures_no_leaks":
-        DEBT,
-    "test_reliability.py::test_frame_faults_no_crash_no_wrong_state":
         DEBT,
     "test_reliability.py::test_random_frames_never_crash_the_driver":
         ("paces generated bursts so that the driver's threads run between them (load shaping, no verdict "
