@@ -69,12 +69,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
         ELSEWHERE,
     "test_second_master.py::test_a_drive_another_master_left_enabled_is_disabled_when_configured_again":
         RAW_HOLD,
-    "test_second_master.py::test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master":
-        DEBT,
-    "test_second_master.py::test_a_second_driver_is_noticed_refused_and_control_comes_back":
-        DEBT,
-    "test_second_master.py::test_an_nmt_command_from_a_bench_tool_marks_the_drive":
-        DEBT,
     "test_second_master.py::test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_does_not":
         RAW_HOLD + '; and (debt) a 0.6 s wait for the driver to notice the write, to be turned into a wait on its mark',
     "test_server.py::test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout":
