@@ -77,10 +77,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_server_slots.py::test_idle_hostile_connections_give_way_to_a_well_behaved_client":
         ('idle_s is the input: a connection idle that long is what the server must drop (the test sets idle_s '
          'itself)'),
-    "test_shutdown.py::test_node_leaves_drives_safe_on_signal":
-        DEBT,
-    "test_sim_cli.py::test_other_process_sees_heartbeats_pdos_and_reads_identity":
-        DEBT,
     "test_sim_model.py::test_a_constant_load_is_held_by_the_servo":
         DEBT,
     "test_sim_pdo.py::test_sync_cyclic_every_third_sync_and_nothing_in_pre_operational":
