@@ -77,12 +77,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_server_slots.py::test_idle_hostile_connections_give_way_to_a_well_behaved_client":
         ('idle_s is the input: a connection idle that long is what the server must drop (the test sets idle_s '
          'itself)'),
-    "test_sim_model.py::test_a_constant_load_is_held_by_the_servo":
-        DEBT,
-    "test_sim_pdo.py::test_sync_cyclic_every_third_sync_and_nothing_in_pre_operational":
-        DEBT,
-    "test_units_from_drive.py::test_an_eds_of_another_vendor_fails_at_boot_naming_both_ids":
-        DEBT,
 }
 
 
