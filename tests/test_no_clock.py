@@ -68,7 +68,7 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_second_master.py::test_a_drive_another_master_left_enabled_is_disabled_when_configured_again":
         RAW_HOLD,
     "test_second_master.py::test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_does_not":
-        RAW_HOLD + '; and (debt) a 0.6 s wait for the driver to notice the write, to be turned into a wait on its mark',
+        RAW_HOLD,
     "test_server.py::test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout":
         ("outlasts the server's handshake timeout (the test's own short setting), the rule under test; the "
          "client's staying connected after it is the verdict"),

@@ -165,7 +165,10 @@ def test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_doe
             time.sleep(RAWMODE_HOLD_S + 0.02)
             node = bench.add_node(1, load_drive_od(GENERIC_EDS, 1))
             node.sdo.upload(0x1000, 0)  # a bench read (rovercan info, scan)
-            time.sleep(0.6)
+            # the driver's own read after it: its receive thread took the bench's request before
+            # this answer (one bus, one order); then its supervisor judged
+            assert drive.sdo_read(0x1000, 0)
+            judged_since(driver, time.monotonic())
             assert not drive.watch.foreign_master and drive.snapshot().verdict.usable
             node.sdo.download(0x6065, 0, (1000).to_bytes(4, "little"))  # a write behind the driver's back
             wait_for(lambda: "SDO writes to node 1 from another client" in drive.watch.foreign_master, 1.0, "marked")
