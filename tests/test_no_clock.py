@@ -41,9 +41,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_bench_manners.py::test_ctrl_c_at_any_moment_gives_one_line_and_no_traceback":
         ("the moment of the Ctrl-C is the test's input (generated moments after the start), not a wait for "
          'anything'),
-    "test_cli_inputs.py::test_ctrl_c_during_a_step_test_stops_the_drive_without_a_traceback":
-        ("the Ctrl-C's moment (during the step test) is the input; debt: wait for the step test's first step "
-         'on the bus'),
     "test_host_loss.py::run_and_stop":
         ("the host process runs past the drives' consumer time before it is stopped: the span is the input (a "
          "host that kept beating that long), the drives' stop is judged on the bus"),
