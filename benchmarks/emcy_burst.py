@@ -13,8 +13,12 @@ the peak VmHWM) before the storm, at its end and STORM_SETTLE_S after it, and a 
 driver ends within STORM_RSS_MB of where it started (the flight recorder is bounded by count as
 well as time, EMCY history and python-can's queues by theirs).
 
+With ``--node`` the driver is the rover's ROS driver node (``python -m nodes.rover_driver`` on
+the shipped config/rover.yaml, six drives on two buses, against ``rovercan sim --config`` of it), as
+a rover runs it: rclpy and its publishers beside the same driver.
+
 ``python benchmarks/emcy_burst.py [FRAMES]`` prints the figures as JSON;
-``python benchmarks/emcy_burst.py --storm [SECONDS]`` prints the storm's.
+``python benchmarks/emcy_burst.py --storm [--node] [SECONDS]`` prints the storm's.
 """
 
 from __future__ import annotations
@@ -22,16 +26,19 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
 import tempfile
 import time
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
 import can  # noqa: E402
 
@@ -46,6 +53,8 @@ STORM_S = 10.0
 STORM_SETTLE_S = 5.0
 STORM_RSS_MB = 20.0
 STORM_LINE = b"< send 081 8 10 23 01 00 00 00 00 00 >"
+#: The node's start and its six drives' boot on the simulator, with room (no figure is taken before).
+NODE_BOOT_S = 30.0
 
 
 def bench_config() -> RoverConfig:
@@ -115,18 +124,30 @@ def babble(host: str, port: int, seconds: float) -> int:
         sock.close()
 
 
-def storm(seconds: float = STORM_S) -> dict[str, Any]:
-    config = bench_config()
-    with SimService.from_config(config, port=0) as sim, tempfile.TemporaryDirectory() as incidents:
+def storm(seconds: float = STORM_S, node: bool = False) -> dict[str, Any]:
+    with ExitStack() as stack:
+        incidents = stack.enter_context(tempfile.TemporaryDirectory())
         env = {**os.environ, "ROVERCAN_INCIDENT_DIR": incidents}  # the storm's incidents, not in the home directory
-        child = subprocess.Popen([sys.executable, __file__, "--drive", sim.host, str(sim.port)], stdin=subprocess.PIPE,
-                                 stdout=subprocess.PIPE, text=True, env=env)
-        try:
+        if node:
+            from stack_run import SHIPPED, on_port, simulator
+            host, port = "127.0.0.1", stack.enter_context(simulator("--config", str(SHIPPED["rover"])))
+            config = on_port(SHIPPED["rover"], port, stack.enter_context(tempfile.TemporaryDirectory()))
+            env.setdefault("ROS_DOMAIN_ID", str(70 + os.getpid() % 30))  # /arm and /cmd_vel of its own
+            child = subprocess.Popen([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p", f"config:={config}"],
+                                     cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, text=True)
+            boot_s = NODE_BOOT_S
+        else:
+            sim = stack.enter_context(SimService.from_config(bench_config(), port=0))
+            host, port = sim.host, sim.port
+            child = subprocess.Popen([sys.executable, __file__, "--drive", host, str(port)], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True, env=env)
             assert child.stdout is not None and child.stdout.readline().strip() == "ready"
-            time.sleep(2.0)  # booted: its heap settles before the first figure
+            boot_s = 2.0
+        try:
+            time.sleep(boot_s)  # booted: its heap settles before the first figure
             before = rss_mb(child.pid)
             started = time.monotonic()
-            frames = babble(sim.host, sim.port, seconds)
+            frames = babble(host, port, seconds)
             took_s = time.monotonic() - started
             end = rss_mb(child.pid)
             time.sleep(STORM_SETTLE_S)
@@ -134,9 +155,16 @@ def storm(seconds: float = STORM_S) -> dict[str, Any]:
         finally:
             if child.stdin is not None:
                 child.stdin.close()
-            child.wait(30)
+            else:
+                child.send_signal(signal.SIGINT)
+            try:
+                child.wait(30)
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait()
     grown = round(after - before, 1)
-    return {"storm_frames": frames, "storm_s": round(took_s, 1), "storm_frames_per_s": round(frames / took_s),
+    return {"driver": "nodes.rover_driver (config/rover.yaml)" if node else "MotorDriver (2 drives)",
+            "storm_frames": frames, "storm_s": round(took_s, 1), "storm_frames_per_s": round(frames / took_s),
             "rss_before_mb": before, "rss_end_mb": end, f"rss_{STORM_SETTLE_S:g}s_after_mb": after,
             "rss_grown_mb": grown, "rss_bound_mb": STORM_RSS_MB,
             "verdict": "pass" if grown <= STORM_RSS_MB else f"FAIL: the driver kept {grown} MB after the storm"}
@@ -149,7 +177,9 @@ def main() -> int:
             drive(sys.argv[2], int(sys.argv[3]))
             return 0
         if sys.argv[1:2] == ["--storm"]:
-            figures = storm(float(sys.argv[2]) if len(sys.argv) > 2 else STORM_S)
+            node = "--node" in sys.argv
+            rest = [a for a in sys.argv[2:] if a != "--node"]
+            figures = storm(float(rest[0]) if rest else STORM_S, node)
             print(json.dumps(figures, indent=1))
             return 0 if figures["verdict"] == "pass" else 1
         print(json.dumps(burst(int(sys.argv[1]) if len(sys.argv) > 1 else 10_000), indent=1))
