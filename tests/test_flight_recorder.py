@@ -265,9 +265,11 @@ def test_writing_an_incident_of_full_rings_makes_no_object_per_frame_at_once(tmp
     beat = can.Message(arbitration_id=0x702, data=b"\x05")
     cap = flight.frames_cap(rover.buses[0].bitrate, 11.0)
     try:
-        for i in range(cap + 1000):  # can0's ring full, can1 beating every 10 ms, slightly out of order
-            emcy.timestamp = t0 + i / 34_520 + (0.0005 if i % 7 == 0 else 0.0)
+        for i in range(cap + 1000):  # can0's ring full, can1 beating every 10 ms, the driver's own frames
+            emcy.timestamp = t0 + i / 34_520  # stamped by its clock, later than the bus's stamps of the storm
             recorder.append("can0", emcy)
+            if i % 700 == 0:
+                recorder.record_sent("can0", can.Message(arbitration_id=0x77F, data=b"\x05", timestamp=emcy.timestamp + 0.3))
             if i % 345 == 0:
                 beat.timestamp = t0 + i / 34_520
                 recorder.append("can1", beat)
@@ -281,7 +283,7 @@ def test_writing_an_incident_of_full_rings_makes_no_object_per_frame_at_once(tmp
         recorder.close()
     assert peak - before < 8e6, f"writing the incident took {(peak - before) / 1e6:.0f} MB at once"
     summary = load_incident(written)
-    assert summary["frames"] == cap + (cap + 999) // 345 + 1 and summary["frames_cap"]["can0"] == cap
+    assert summary["frames"] == cap + (cap + 999) // 345 + 1 and summary["frames_cap"]["can0"] == cap  # (can0 full)
     assert len(incident_frames(written, summary)) == summary["frames"]  # every frame in the BLF
     with open(written.with_suffix(".mcap"), "rb") as f:  # and the MCAP's in time order, as written
         times = [m.log_time for _, _, m in make_reader(f).iter_messages(topics=["/can/frames"], log_time_order=False)]
