@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import signal
@@ -27,7 +28,7 @@ from motor_driver import MotorDriver
 from motor_driver.drive import Drive
 from motor_driver.process import heap
 from rovercan.launch import LOCAL_DISCOVERY
-from virtual_can import SimService
+from virtual_can import BusEngine, SimService, SocketcandServer, VirtualBus
 from virtual_can.server import RAWMODE_HOLD_S
 
 REPO = Path(__file__).resolve().parent.parent
@@ -246,6 +247,39 @@ def drain(bus: can.BusABC, seconds: float) -> list[can.Message]:
         if msg is not None:
             out.append(msg)
     return out
+
+
+#: A COB-ID no CANopen service of the simulated drives uses: the tests' marker frames.
+MARKER_COB = 0x500
+_markers = itertools.count(1)
+
+
+def heard_before_marker(listener: can.BusABC, engine: BusEngine, channel: str = "can0",
+                        timeout_s: float = 10.0) -> list[can.Message]:
+    """Put a marker frame on ``channel`` from the bus itself and return every frame ``listener``
+    heard before it: whatever the bus carried before the marker reached the listener too (one
+    wire, one order), so an absence among them is heard, not waited for. Fails at the hang bound
+    ``timeout_s`` naming the marker (is the listener listening?)."""
+    token = next(_markers).to_bytes(4, "little")
+    with VirtualBus(channel, engine=engine) as marker:
+        marker.send(can.Message(arbitration_id=MARKER_COB, data=token, is_extended_id=False))
+    heard: list[can.Message] = []
+    deadline = time.monotonic() + timeout_s
+    while True:
+        msg = listener.recv(max(0.0, deadline - time.monotonic()))
+        if msg is None:
+            raise AssertionError(f"marker {token.hex()} not heard in {timeout_s} s: is the listener listening?")
+        if msg.arbitration_id == MARKER_COB and bytes(msg.data) == token:
+            return heard
+        heard.append(msg)
+
+
+def on_the_bus(server: SocketcandServer, count: int, timeout_s: float = 10.0) -> None:
+    """Wait until ``count`` clients of ``server`` are on its bus: the server replies to rawmode
+    before it attaches the client, so a frame sent just after python-can's connect may find the
+    client not yet there."""
+    wait_for(lambda: sum(c.endpoint is not None for c in server.clients) == count, timeout_s,
+             f"{count} clients on the bus")
 
 
 def received_id(bus: can.BusABC, timeout_s: float) -> int | None:

@@ -8,18 +8,19 @@ import argparse
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
+import can
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from can_config import load_config
+from can_config import GENERIC_EDS, load_config
 from can_config.errors import ConfigError
 from rovercan.cli import build_parser, main
 
-from .conftest import REPO, rovercan_cli
+from .conftest import REPO, rovercan_cli, wait_for
+from .test_host_loss import statusword_enabled, statusword_tpdo
 from .test_sim_cli import free_port
 
 
@@ -166,7 +167,15 @@ def test_ctrl_c_during_a_step_test_stops_the_drive_without_a_traceback(tmp_path:
                                  "--out", str(tmp_path / "step"), "-i", "socketcand", "-c", "can0", "--bus-kwargs",
                                  "host=127.0.0.1", f"port={port}"], cwd=REPO, stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
-        time.sleep(4.0)  # booted, enabled, stepping
+        # booted and enabled (the drive's statusword TPDO, as the driver maps it, on the bus): the step
+        # starts right after the enable, so the Ctrl-C comes during the step test
+        cob, offset = statusword_tpdo(GENERIC_EDS, 1)
+        with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port) as listener:
+            def enabled() -> bool:
+                msg = listener.recv(1.0)
+                return msg is not None and msg.arbitration_id == cob and \
+                    statusword_enabled(int.from_bytes(msg.data[offset:offset + 2], "little"))
+            wait_for(enabled, 60.0, "the step test's drive enabled on the bus")
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=20)
     finally:

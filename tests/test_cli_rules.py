@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import REPO, rovercan_cli, rovercan_sim
+from .conftest import REPO, heard_before_marker, on_the_bus, rovercan_cli, rovercan_sim, wait_for
 from .test_sim_cli import free_port
 
 
@@ -127,8 +127,6 @@ def test_sdo_and_boot_timeouts_come_from_the_config(tmp_path: Path) -> None:
 
 
 def test_replay_leaves_commands_out_unless_allowed_and_filters(tmp_path: Path) -> None:
-    import time
-
     import can
 
     from can_config import GENERIC_EDS
@@ -139,17 +137,15 @@ def test_replay_leaves_commands_out_unless_allowed_and_filters(tmp_path: Path) -
     log.write_text("".join(f"({1.0 + i * 0.001:.6f}) can0 {f}\n" for i, f in enumerate(frames)))
     with SimService([SimDriveSpec(5, GENERIC_EDS, "can0", "other", 4096)], port=0) as sim:
         listener = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+        on_the_bus(sim.server, 1)
         try:
             def replayed(*extra: str) -> tuple[subprocess.CompletedProcess[str], set[int]]:
-                time.sleep(0.1)
-                while listener.recv(0.05) is not None:
-                    pass
                 result = run("replay", str(log), "--fast", *extra, *bus(sim.port))
-                seen: set[int] = set()
-                while (msg := listener.recv(0.3)) is not None:
-                    if msg.arbitration_id not in (0x705, 0x185, 0x285, 0x385, 0x485):  # the simulated drive's own
-                        seen.add(msg.arbitration_id)
-                return result, seen
+                # its connection gone from the server: every frame it sent is on the bus, before the marker
+                wait_for(lambda: len(sim.server.clients) == 1, 10.0, "the replay's connection closed")
+                heard = heard_before_marker(listener, sim.engine)
+                own = (0x705, 0x185, 0x285, 0x385, 0x485)  # the simulated drive's own
+                return result, {m.arbitration_id for m in heard if m.arbitration_id not in own}
 
             result, seen = replayed()
             assert result.returncode == 0 and "3 command frames (NMT, RPDO, SDO requests, LSS) left out" in result.stderr

@@ -19,7 +19,7 @@ import can
 
 from virtual_can import BusEngine, SocketcandServer
 
-from .conftest import REPO, wait_for
+from .conftest import REPO, received_id, wait_for
 from .test_sim_cli import free_port
 
 
@@ -69,7 +69,7 @@ def test_each_job_keeps_its_period_among_many_idle_ones_and_a_deleted_one_stops(
             jobs.sendall(b"".join(f"< add 3600 0 {0x1000_0000 + i:08X} 1 00 >".encode() for i in range(2000)))
             jobs.sendall(b"< add 0 20000 181 1 01 >< add 0 50000 182 1 02 >< add 0 10000 183 1 03 >")
             assert b"error" not in replies(jobs)
-            time.sleep(0.3)
+            wait_for(lambda: received_id(listener, HANG_S) == 0x183, HANG_S, "job 0x183 running before its delete")
             jobs.sendall(b"< delete 183 >< add 0 10000 182 1 04 >")  # 183 stops; 182 replaced: 10 ms, new data
             assert b"error" not in replies(jobs)
             changed = time.time()

@@ -12,7 +12,7 @@ from can_config import RoverConfig
 from motor_driver import MotorDriver, State
 from virtual_can import SimService
 
-from .conftest import drain, make_config
+from .conftest import make_config
 
 DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
 
@@ -39,11 +39,18 @@ def test_spoofed_extended_frames_change_no_state(driver_factory: DriverFactory,
     spoofer.send(extended(0x000, b"\x81\x00"))  # "reset every node", extended
     spoofer.send(extended(0x601, bytes([0x40, 0x00, 0x10, 0, 0, 0, 0, 0])))  # an SDO upload, extended
     spoofer.send(extended(0x201, b"\x0f\x00"))  # "enable operation" on RPDO1's id, extended
-    time.sleep(0.3)
-    answers = [m for m in drain(spoofer, 0.2) if m.arbitration_id in (0x581, 0x701) and not m.is_extended_id]
+    # the driver's own SDO read, standard: the drive answers it after it handled every spoof, and the
+    # driver's receive thread takes the answer after the spoofs (one bus, one order); the listener
+    # hears all the drive said up to that answer
+    assert drive.sdo_read(0x1000, 0)
+    heard: list[can.Message] = []
+    while (msg := spoofer.recv(10.0)) is not None and not (msg.arbitration_id == 0x581 and not msg.is_extended_id):
+        heard.append(msg)
+    assert msg is not None, "the drive's answer to the driver's SDO read never reached the listener"
+    answers = [m for m in heard if m.arbitration_id in (0x581, 0x701) and not m.is_extended_id]
     assert all(state is State.SWITCH_ON_DISABLED for state in seen) and drive.cache.state is State.SWITCH_ON_DISABLED
     assert runner.call(lambda: sim_drive.state.name) == "SWITCH_ON_DISABLED"
-    assert runner.call(lambda: sim_drive.counters["sdo"]) == sdo  # no SDO request taken
+    assert runner.call(lambda: sim_drive.counters["sdo"]) == sdo + 1  # no SDO request taken but the driver's read
     assert not [m for m in answers if m.arbitration_id == 0x581]
     assert not [m for m in answers if m.arbitration_id == 0x701 and m.data[:1] == b"\x00"]  # no boot-up: no reset
     assert drive.cache.booted and not drive.watch.foreign_master

@@ -13,6 +13,7 @@ it, then the drive disabled and still, read by SDO; outcomes and order, no clock
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -33,13 +34,14 @@ from can_config.config import GENERIC_EDS
 from can_config.errors import CommandRejected, DriveTimeoutError
 from motor_driver import MotorDriver, State
 from motor_driver.protocol.pdo import plan_pdos
-from virtual_can import SimDriveSpec, SimService
+from virtual_can import SimDriveSpec, SimService, VirtualBus
 from virtual_can.server import RAWMODE_HOLD_S
 
-from .conftest import REPO, SHARED_EDS, enable_letting_go, make_config, requires_shared, wait_for
+from .conftest import MARKER_COB, REPO, SHARED_EDS, enable_letting_go, make_config, requires_shared, wait_for
 
 SimFactory = Callable[[RoverConfig], tuple[SimService, RoverConfig]]
 CLIENT = REPO / "tests" / "clients" / "hold_velocity.py"
+MARKERS = itertools.count(1)
 HOST_TIMEOUT_S = 0.15  # the default: 3 x the 50 ms host heartbeat
 BOUND_S = HOST_TIMEOUT_S + 0.1
 
@@ -118,9 +120,12 @@ def statusword_tpdo(eds: Path, node: int) -> tuple[int, int]:
     raise AssertionError(f"{eds.name}: no event-driven statusword TPDO")
 
 
-def signal_and_wait(proc: subprocess.Popen[str], sig: int) -> tuple[float, str, str]:
+def signal_and_wait(proc: subprocess.Popen[str], sig: int, sim: SimService, watches: dict[str, Watch]
+                    ) -> tuple[float, str, str]:
     """Send ``sig``, wait for the process to end (killed after 10 s); the signal's wall time,
-    then stdout and stderr. A short pause lets the listeners take the last frames."""
+    then stdout and stderr. Once the server has closed the process's connections (every frame
+    it sent is on the bus), a marker put on each bus after them reaches each watch: the watches
+    hold the process's last frames."""
     t_signal = time.time()
     proc.send_signal(sig)
     try:
@@ -128,8 +133,21 @@ def signal_and_wait(proc: subprocess.Popen[str], sig: int) -> tuple[float, str, 
     finally:
         if proc.poll() is None:
             proc.kill()
-    time.sleep(0.1)
+    watches_heard_all(sim, watches, len(watches))
     return t_signal, out, err
+
+
+def watches_heard_all(sim: SimService, watches: dict[str, Watch], clients: int) -> None:
+    """Once the server is down to ``clients`` connections (a process that ended: every frame it
+    sent is on the bus), put a marker on each bus and wait until its watch heard it: the watch
+    holds every frame the bus carried before."""
+    wait_for(lambda: len(sim.server.clients) == clients, 10.0, f"the server down to {clients} connections")
+    for channel, watch in watches.items():
+        token = next(MARKERS).to_bytes(4, "little")
+        with VirtualBus(channel, engine=sim.engine) as marker:
+            marker.send(can.Message(arbitration_id=MARKER_COB, data=token, is_extended_id=False))
+        wait_for(lambda w=watch, t=token: any(m.arbitration_id == MARKER_COB and bytes(m.data) == t  # type: ignore[misc]
+                                              for _, m in list(w.frames)), 10.0, f"the marker at {channel}'s watch")
 
 
 def run_and_stop(tmp_path: Path, drives: list[tuple[str, int, str, Path]], sig: int, velocity: float = 60.0,
@@ -381,7 +399,7 @@ def test_sigterm_to_an_api_script_with_the_helper_stops_the_drive_in_the_driver(
             except BaseException:
                 proc.kill()
                 raise
-            t_signal, out, err = signal_and_wait(proc, signal.SIGTERM)
+            t_signal, out, err = signal_and_wait(proc, signal.SIGTERM, sim, watches)
         frames = watches["can0"].frames
     assert proc.returncode == 0 and f"STOPPED {int(signal.SIGTERM)}" in out, err
     stopped = first_stop(frames, 0x181, 0, t_signal)
@@ -423,7 +441,7 @@ def test_a_signal_to_rovercan_jog_stops_the_drive(tmp_path: Path, sig: int) -> N
             except BaseException:
                 proc.kill()
                 raise
-            t_signal, _, err = signal_and_wait(proc, sig)
+            t_signal, _, err = signal_and_wait(proc, sig, sim, watches)
         frames = watches["can0"].frames
         final = runner.call(lambda: sim_drive.state.name)
     assert proc.returncode == 1, err

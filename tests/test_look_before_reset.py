@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import can
@@ -22,7 +21,7 @@ from motor_driver.protocol.pdo import plan_pdos
 from virtual_can import SimDriveSpec, SimService
 
 from .conftest import REPO, make_config, rovercan_cli
-from .test_host_loss import CLIENT, statusword_enabled, watching, write_config
+from .test_host_loss import CLIENT, statusword_enabled, watches_heard_all, watching, write_config
 
 
 def statusword_tpdos(eds: Path, node: int) -> dict[int, int]:
@@ -55,6 +54,7 @@ def test_bench_commands_beside_a_running_driver_refuse_and_its_drive_stays_enabl
             assert proc.stdout is not None and proc.stdout.readline().strip() == "READY"
             sync_tpdos = statusword_tpdos(GENERIC_EDS, 1)
             with watching(sim, ["can0"]) as watches:
+                clients = len(sim.server.clients)  # the driver's and the watch's
                 for args in (["jog", "1", "10", "--for", "0.5", "--counts-per-rev", "4096"],
                              ["move", "1", "45", "--counts-per-rev", "4096"], ["nmt", "reset", "1"],
                              ["enable", "1"]):
@@ -62,7 +62,7 @@ def test_bench_commands_beside_a_running_driver_refuse_and_its_drive_stays_enabl
                     assert result.returncode == 1, (args, result.stderr)
                     assert "another master is live on the bus" in result.stderr and "--force" in result.stderr, result.stderr
                     assert "SYNC frames" in result.stderr or "heartbeats of node 127" in result.stderr, result.stderr
-                time.sleep(0.2)
+                watches_heard_all(sim, watches, clients)  # the bench commands' connections gone
             words = [int.from_bytes(m.data[sync_tpdos[m.arbitration_id]:][:2], "little")
                      for _, m in watches["can0"].frames if m.arbitration_id in sync_tpdos]
             assert words and all(statusword_enabled(w) for w in words), [hex(w) for w in words]

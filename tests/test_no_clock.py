@@ -31,7 +31,6 @@ CLOCKS = {"monotonic", "time", "perf_counter", "monotonic_ns", "perf_counter_ns"
 RAW_HOLD = ("the socketcand server holds a new raw client's frames for RAWMODE_HOLD_S unless it speaks, and"
             " python-can's client never speaks: the sleep outlasts a rule of the server, it waits for no outcome")
 DEBT = "debt (issue 73): a fixed wait before judging; to be turned into a wait on the condition it stands for"
-ELSEWHERE = "kept: its file is being changed by another session of issue 73; convert it there (debt)"
 #: Bare sleeps not turned into waits on a condition, by test function, each with its reason: a
 #: rule of another part outlasted, a moment that is the test's input, or named debt (issue 73).
 #: A new one anywhere fails this check, and so does an entry whose function has no bare sleep
@@ -42,89 +41,38 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_bench_manners.py::test_ctrl_c_at_any_moment_gives_one_line_and_no_traceback":
         ("the moment of the Ctrl-C is the test's input (generated moments after the start), not a wait for "
          'anything'),
-    "test_cli_inputs.py::test_ctrl_c_during_a_step_test_stops_the_drive_without_a_traceback":
-        ("the Ctrl-C's moment (during the step test) is the input; debt: wait for the step test's first step "
-         'on the bus'),
-    "test_cli_rules.py::test_replay_leaves_commands_out_unless_allowed_and_filters":
-        DEBT,
-    "test_cyclic_jobs.py::test_each_job_keeps_its_period_among_many_idle_ones_and_a_deleted_one_stops":
-        DEBT,
-    "test_extended_ids.py::test_spoofed_extended_frames_change_no_state":
-        DEBT,
-    "test_faults.py::test_disconnected_client_sees_the_bus_go":
-        DEBT,
-    "test_faults.py::test_scenario_file":
-        DEBT,
-    "test_faults.py::test_sdo_delay_and_abort":
-        DEBT,
     "test_host_loss.py::run_and_stop":
         ("the host process runs past the drives' consumer time before it is stopped: the span is the input (a "
          "host that kept beating that long), the drives' stop is judged on the bus"),
-    "test_host_loss.py::signal_and_wait":
-        DEBT,
     "test_host_loss.py::watching":
         RAW_HOLD,
     "test_hostile_sdo.py::__init__":
-        ELSEWHERE,
+        RAW_HOLD,
     "test_hostile_sdo.py::test_fuzzed_answers_never_raise_outside_the_tree":
-        ELSEWHERE,
+        RAW_HOLD,
     "test_kernel_tier.py::test_a_candump_of_a_session_decodes_and_replays":
         DEBT,
     "test_kernel_tier.py::test_the_interface_down_then_up_stops_commands_and_configures_again_unarmed":
-        DEBT,
+        ("the interface stays down 2 s once the driver said the bus lost: the span is the input (a link down"
+         " for a while, retried through), the verdict is what follows (configured again, not armed)"),
     "test_launch.py::test_the_rover_launch_names_each_node_once_and_its_parameters_answer_alike":
-        DEBT,
-    "test_look_before_reset.py::test_bench_commands_beside_a_running_driver_refuse_and_its_drive_stays_enabled":
-        DEBT,
-    "test_reliability.py::test_bus_server_dies_driver_reports_reconnects_reconfigures_no_leaks":
-        DEBT,
-    "test_reliability.py::test_frame_faults_no_crash_no_wrong_state":
         DEBT,
     "test_reliability.py::test_random_frames_never_crash_the_driver":
         ("paces generated bursts so that the driver's threads run between them (load shaping, no verdict "
          'follows it)'),
     "test_ros_interface.py::test_cmd_vel_beyond_every_limit_is_scaled_whole_and_nothing_moves_after_it_stops":
-        ELSEWHERE,
-    "test_ros_interface.py::test_home_and_move_joint_actions_give_feedback_and_cancel_stops_the_joint":
-        ELSEWHERE,
+        RAW_HOLD + ("; and 10 s of the bus after /cmd_vel stopped: the span is the input (the wheels stay stopped"
+                    " that long), judged on every TPDO of it read back from the listeners' queues"),
     "test_second_master.py::test_a_drive_another_master_left_enabled_is_disabled_when_configured_again":
         RAW_HOLD,
-    "test_second_master.py::test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master":
-        DEBT,
-    "test_second_master.py::test_a_second_driver_is_noticed_refused_and_control_comes_back":
-        DEBT,
-    "test_second_master.py::test_an_nmt_command_from_a_bench_tool_marks_the_drive":
-        DEBT,
     "test_second_master.py::test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_does_not":
-        RAW_HOLD + '; and (debt) a 0.6 s wait for the driver to notice the write, to be turned into a wait on its mark',
+        RAW_HOLD,
     "test_server.py::test_a_client_with_a_cyclic_job_outlives_the_handshake_timeout":
         ("outlasts the server's handshake timeout (the test's own short setting), the rule under test; the "
          "client's staying connected after it is the verdict"),
-    "test_server.py::test_client_cap_and_slow_client_do_not_hurt_others":
-        DEBT,
-    "test_server.py::test_frames_reach_every_other_client_in_order":
-        DEBT,
-    "test_server.py::test_half_open_client_is_dropped_and_others_continue":
-        DEBT,
-    "test_server.py::test_hostile_and_idle_clients_never_starve_a_well_behaved_one":
-        DEBT,
-    "test_server.py::test_hostile_client_affects_only_itself":
-        DEBT,
-    "test_server_slots.py::test_full_slots_and_resetting_clients_do_not_end_the_accept_loop":
-        DEBT,
     "test_server_slots.py::test_idle_hostile_connections_give_way_to_a_well_behaved_client":
         ('idle_s is the input: a connection idle that long is what the server must drop (the test sets idle_s '
          'itself)'),
-    "test_shutdown.py::test_node_leaves_drives_safe_on_signal":
-        DEBT,
-    "test_sim_cli.py::test_other_process_sees_heartbeats_pdos_and_reads_identity":
-        DEBT,
-    "test_sim_model.py::test_a_constant_load_is_held_by_the_servo":
-        DEBT,
-    "test_sim_pdo.py::test_sync_cyclic_every_third_sync_and_nothing_in_pre_operational":
-        DEBT,
-    "test_units_from_drive.py::test_an_eds_of_another_vendor_fails_at_boot_naming_both_ids":
-        DEBT,
 }
 
 

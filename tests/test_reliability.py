@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from can_config import RoverConfig, with_bus_overrides
 from can_config.errors import BusLostError, MotorError
 from motor_driver import Drive, MotorDriver, State
+from motor_driver.bus.handle import RECONNECT_MIN_S
 from motor_driver.runtime.driver import HANDSHAKE_TIMEOUT_S, OPEN_ATTEMPTS
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -66,7 +67,8 @@ def test_bus_server_dies_driver_reports_reconnects_reconfigures_no_leaks(
     assert lost(drive.snapshot()) and fault(drive.snapshot())
     with pytest.raises(MotorError):
         drive.move_to(10.0)  # no motion commanded while the bus is gone
-    time.sleep(1.0)  # a few reconnect attempts with back-off
+    record = driver.supervisor.bus.bus_records["can0"]  # a few reconnect attempts, each doubling the back-off
+    wait_for(lambda: record.backoff_s >= 4 * RECONNECT_MIN_S, 30.0, "two failed reconnect attempts")
     second = SimService.from_config(make_config(2), port=port)  # the bus returns
     try:
         wait_for(lambda: not driver.bus_lost["can0"], 10.0, "bus re-established")
@@ -120,12 +122,15 @@ def test_frame_faults_no_crash_no_wrong_state(driver_factory: DriverFactory, rat
             assert isinstance(state.state, State) and -1e6 < state.angle_deg < 1e6
         time.sleep(0.05)
     apply_action(sim, {"action": "frames", "drop": 0.0, "delay": 0.0, "corrupt": 0.0})
-    time.sleep(0.5)
     for drive in driver:
-        simulated = sim.simulator_for(drive.node_id).call(
-            lambda d=drive: sim.simulator_for(d.node_id).drive(d.node_id).position_counts)
-        # what the driver reports is what the drive has (within one SYNC of motion)
-        assert drive.cache.received.position_counts == pytest.approx(simulated, abs=50)
+        def simulated(d: Drive = drive) -> object:
+            runner = sim.simulator_for(d.node_id)
+            return runner.call(lambda: runner.drive(d.node_id).position_counts)
+
+        # what the driver reports comes to be what the drive has (within one SYNC of motion) once
+        # the delayed frames are in: a wrong state that stays fails at the hang bound
+        wait_for(lambda d=drive: d.cache.received.position_counts == pytest.approx(simulated(d), abs=50), 10.0,  # type: ignore[misc]
+                 f"{drive.name}'s reported position at the drive's")
     assert not driver.supervisor.dead
     assert all(h.network.notifier is not None and h.network.notifier.exception is None for h in driver.buses.values())
 

@@ -580,14 +580,14 @@ def test_home_and_move_joint_actions_give_feedback_and_cancel_stops_the_joint(gr
         assert move.wait_for_server(timeout_sec=5.0) and home.wait_for_server(timeout_sec=5.0)
         assert graph.call(Trigger, f"wheels/{joint}/enable").success
 
-        def run(client: Any, goal: Any, cancel_after_s: float | None = None) -> tuple[Any, list[Any]]:
+        def run(client: Any, goal: Any, cancel_when: Callable[[], bool] | None = None) -> tuple[Any, list[Any]]:
             feedback: list[Any] = []
             sent = client.send_goal_async(goal, feedback_callback=lambda f: feedback.append(f.feedback))
             eventually(sent.done, 5.0, "the goal accepted")
             handle = sent.result()
             assert handle.accepted
-            if cancel_after_s is not None:
-                time.sleep(cancel_after_s)
+            if cancel_when is not None:  # the cancel's moment: a state of the move, not a span
+                eventually(cancel_when, 30.0, "the moment to cancel")
                 cancel = handle.cancel_goal_async()
                 eventually(cancel.done, 5.0, "the cancel answered")
             result = handle.get_result_async()
@@ -601,7 +601,7 @@ def test_home_and_move_joint_actions_give_feedback_and_cancel_stops_the_joint(gr
         assert moved.result.success and moved.result.angle == pytest.approx(40.0, abs=0.3), moved.result.message
         assert len(feedback) >= 3 and feedback[0].remaining_deg > feedback[-1].remaining_deg > -0.5
         canceled, feedback = run(move, MoveJoint.Goal(joint=joint, target_deg=200.0, speed_deg_s=60.0),
-                                 cancel_after_s=1.0)
+                                 cancel_when=lambda: drive.snapshot().angle_deg > 70.0)  # well under way
         assert canceled.status == 5 and not canceled.result.success  # GoalStatus.STATUS_CANCELED
         assert "halted" in canceled.result.message
         state = drive.snapshot()

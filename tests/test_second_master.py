@@ -55,6 +55,17 @@ class TruthWatch:
         return self.false_claims
 
 
+def judged_since(driver: MotorDriver, since: float, bus: str = "can0") -> None:
+    """Wait until the supervisor has judged every drive in a period that began after ``since``
+    (``time.monotonic()``): its host heartbeat of such a period is out, and a call handed to it
+    after that is answered at the start of the next period, once that period's judgement is done
+    (each period drains its calls, beats, then judges each drive). An absence of a mark after it
+    is the supervisor's verdict, not a wait that happened to end first."""
+    record = driver.supervisor.bus.bus_records[bus]
+    wait_for(lambda: record.last_beat > since, 10.0, "a supervisor period after the traffic")
+    driver.supervisor.call(lambda: None)
+
+
 def test_a_second_driver_is_noticed_refused_and_control_comes_back(sim_factory: SimFactory) -> None:
     sim, cfg = sim_factory(make_config(1, watchdog_ms=10_000))
     first = MotorDriver(cfg).start()
@@ -80,7 +91,10 @@ def test_a_second_driver_is_noticed_refused_and_control_comes_back(sim_factory: 
             health = drive_health(drive.snapshot(), heartbeat_period_s=0.1)
             assert health.level == ERROR and health.message.startswith("not under this driver's control")
             # the second was told to take the bus over: the first one's traffic is not held against it
-            time.sleep(0.5)
+            # (the second hears it: the first's own SYNC and heartbeat; its supervisor then judges)
+            foreign, heard_from = second.buses["can0"].foreign, time.monotonic()
+            wait_for(lambda: foreign.newest > heard_from, 10.0, "the second driver hearing the first's traffic")
+            judged_since(second, foreign.newest)
             assert not second.drive("joint1").watch.foreign_master
         finally:
             second.close()
@@ -106,8 +120,7 @@ def test_an_nmt_command_from_a_bench_tool_marks_the_drive(sim_factory: SimFactor
     sim, cfg = sim_factory(make_config(2))
     with MotorDriver(cfg).start() as driver:
         bench = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
-        try:
-            time.sleep(0.1)
+        try:  # (the server takes the bench's frames as soon as its connect returns)
             bench.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 2]), is_extended_id=False))  # pre-op node 2
             wait_for(lambda: bool(driver.drive("joint2").watch.foreign_master), 1.0, "node 2 marked")
             assert "NMT command 0x80 to node 2" in driver.drive("joint2").watch.foreign_master
@@ -152,7 +165,10 @@ def test_an_sdo_write_by_another_client_stops_and_marks_the_drive_but_a_read_doe
             time.sleep(RAWMODE_HOLD_S + 0.02)
             node = bench.add_node(1, load_drive_od(GENERIC_EDS, 1))
             node.sdo.upload(0x1000, 0)  # a bench read (rovercan info, scan)
-            time.sleep(0.6)
+            # the driver's own read after it: its receive thread took the bench's request before
+            # this answer (one bus, one order); then its supervisor judged
+            assert drive.sdo_read(0x1000, 0)
+            judged_since(driver, time.monotonic())
             assert not drive.watch.foreign_master and drive.snapshot().verdict.usable
             node.sdo.download(0x6065, 0, (1000).to_bytes(4, "little"))  # a write behind the driver's back
             wait_for(lambda: "SDO writes to node 1 from another client" in drive.watch.foreign_master, 1.0, "marked")
@@ -187,7 +203,7 @@ def test_a_heartbeat_sent_before_the_drive_obeyed_nmt_start_is_no_foreign_master
         driver.supervisor.call(release)
         drive.boot.boot(reset=False)  # ... ends with NMT start
         drive.cache.on_heartbeat(0x701, bytearray([NmtState.PRE_OPERATIONAL]), 0.0)  # the one on its way
-        time.sleep(0.6)
+        judged_since(driver, time.monotonic())  # the supervisor has looked at it
         assert not drive.watch.foreign_master
         wait_for(lambda: drive.cache.nmt_state == "OPERATIONAL", 1.0, "the drive's own OPERATIONAL heartbeat")
         runner.call(lambda: setattr(runner.drive(1), "nmt", NmtState.PRE_OPERATIONAL))  # now it is a change

@@ -24,7 +24,7 @@ from virtual_can import BusEngine, SocketcandServer, VirtualBus
 from virtual_can.server import format_frame, parse_send
 from virtual_can.wire import frame_bits
 
-from .conftest import REPO, drain, realtime_allowed, received_id, wait_for
+from .conftest import REPO, drain, on_the_bus, realtime_allowed, received_id, wait_for
 
 
 @pytest.fixture
@@ -78,7 +78,7 @@ def test_frames_reach_every_other_client_in_order(server: SocketcandServer) -> N
     b = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
     other = can.Bus(interface="socketcand", channel="can1", host=server.host, port=server.port)
     try:
-        time.sleep(0.05)
+        on_the_bus(server, 3)
         for i in range(500):
             a.send(can.Message(arbitration_id=0x100 + i % 7, data=i.to_bytes(2, "little"), is_extended_id=False))
         got = []
@@ -105,7 +105,7 @@ def test_hostile_client_affects_only_itself(server: SocketcandServer) -> None:
         bad.sendall(b"< send 7FF 9 1 2 >" + b"x" * 5000 + b"< send zz 1 1 >" + b"<" + b"A" * 400)
         reply = read_until(bad, "error")
         assert "< error" in reply
-        time.sleep(0.05)
+        on_the_bus(server, 2)  # the hostile client is still on it
         engine_bus.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
         assert received_id(good, 2.0) == 0x181
         good.send(can.Message(arbitration_id=0x201, data=b"\x02", is_extended_id=False))
@@ -121,8 +121,7 @@ def test_half_open_client_is_dropped_and_others_continue(server: SocketcandServe
     sock.recv(256)
     sock.sendall(b"< open can0 >")
     sock.close()
-    time.sleep(0.4)
-    assert len(server.clients) == 0
+    wait_for(lambda: len(server.clients) == 0, 5.0, "the half-open client dropped")
     bus = can.Bus(interface="socketcand", channel="can0", host=server.host, port=server.port)
     bus.shutdown()
 
@@ -166,7 +165,7 @@ def test_client_cap_and_slow_client_do_not_hurt_others() -> None:
         first.sendall(b"< rawmode >")
         first.recv(256)
         second.close()
-        time.sleep(0.1)
+        wait_for(lambda: len(srv.clients) == 1, 5.0, "the second client gone")
         slow = [c for c in srv.clients if c.raw]
         assert len(slow) == 1
         good = can.Bus(interface="socketcand", channel="can0", host=srv.host, port=srv.port)
@@ -285,7 +284,7 @@ def test_hostile_and_idle_clients_never_starve_a_well_behaved_one() -> None:
         got: list[int] = []
         other_ids: list[tuple[int, bool]] = []
         try:
-            time.sleep(0.1)
+            on_the_bus(srv, 1)
             pump.start()
             # non-ASCII bytes in a line: the error reply stays ASCII and the client stays served
             rude = raw_client(srv)
@@ -433,8 +432,9 @@ def test_the_cyclic_timer_is_a_real_time_process_where_the_os_allows_it(how: str
                 sock.sendall(b"< open can0 >")
                 assert "< ok >" in read_until(sock, "< ok >")
                 sock.sendall(b"< add 0 10000 080 0 >")
-                syncs = [m for m in drain(listener, 0.5) if m.arbitration_id == 0x080]
-                assert len(syncs) >= 20  # the SYNC runs either way
+                syncs: list[can.Message] = []  # the SYNC runs either way: 20 of them heard, however late
+                wait_for(lambda: bool(syncs.extend(m for m in drain(listener, 0.05) if m.arbitration_id == 0x080))
+                         or len(syncs) >= 20, 30.0, "20 SYNCs of the timer")
                 timer = fifo_thread_count(proc.pid, children=True) - fifo_thread_count(proc.pid)
                 assert timer == int(expected)  # the timer process, beside the process's own
                 assert expected or fifo_thread_count(proc.pid) == 0

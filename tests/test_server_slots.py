@@ -16,7 +16,7 @@ from motor_driver.bus import cyclic
 from virtual_can import BusEngine, SocketcandServer
 from virtual_can.server import DEFAULT_MAX_CLIENTS
 
-from .conftest import received_id, wait_for
+from .conftest import on_the_bus, received_id, wait_for
 
 
 def resetting_connect(port: int) -> None:
@@ -33,7 +33,8 @@ def test_full_slots_and_resetting_clients_do_not_end_the_accept_loop() -> None:
             wait_for(lambda: len(srv.clients) == DEFAULT_MAX_CLIENTS, 5.0, "every slot taken")
             for _ in range(20):
                 resetting_connect(srv.port)
-            time.sleep(0.2)
+            with socket.create_connection(("127.0.0.1", srv.port), timeout=2.0) as marker:  # accepted after them
+                assert marker.recv(64) == b"< error too many clients >"
             assert srv._thread.is_alive()  # the accept loop runs on
             for sock in held[:2]:
                 sock.close()
@@ -44,7 +45,7 @@ def test_full_slots_and_resetting_clients_do_not_end_the_accept_loop() -> None:
             wait_for(lambda: len(srv.clients) <= DEFAULT_MAX_CLIENTS - 2, 5.0, "the good client's slot free again")
             with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as a, \
                     can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=srv.port) as b:
-                time.sleep(0.1)
+                on_the_bus(srv, 2)
                 a.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
                 assert received_id(b, 2.0) == 0x123  # and it reads frames
         finally:

@@ -15,7 +15,7 @@ import pytest
 
 from virtual_can import SimDriveSpec, SimService
 
-from .conftest import REPO, drain, realtime_allowed, requires_ros
+from .conftest import REPO, drain, heard_before_marker, realtime_allowed, requires_ros, wait_for
 
 pytestmark = requires_ros
 
@@ -72,11 +72,16 @@ def test_node_leaves_drives_safe_on_signal(tmp_path: Path, sig: int, module: str
                 assert set(policies) == {os.SCHED_FIFO}, policies
             else:
                 assert os.SCHED_FIFO not in policies, policies
-            time.sleep(0.3)
+            # every drive armed before the signal (the stop has something to stop)
+            wait_for(lambda: all(sim.simulator_for(n).call(lambda n=n: sim.simulator_for(n).drive(n).state.name)
+                                 == "OPERATION_ENABLED" for n in nodes), 20.0, "every drive enabled")
             drain(listener, 0.05)
             proc.send_signal(sig)
             out, _ = proc.communicate(timeout=20)
-            frames = drain(listener, 0.3)
+            # the node's connections closed (its frames on the bus): what the listener heard before a
+            # marker after them is all the node sent
+            wait_for(lambda: len(sim.server.clients) == 1, 10.0, "the node's connections closed")
+            frames = heard_before_marker(listener, sim.engine)
         finally:
             if proc.poll() is None:
                 proc.kill()

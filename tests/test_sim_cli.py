@@ -19,7 +19,7 @@ import pytest
 from can_config import GENERIC_EDS
 from can_config.realtime import DRIVER_PRIORITY
 
-from .conftest import REPO, drain, realtime_allowed, requires_ros, stop_process
+from .conftest import REPO, drain, realtime_allowed, requires_ros, stop_process, wait_for
 
 
 def free_port() -> int:
@@ -74,9 +74,8 @@ def test_other_process_sees_heartbeats_pdos_and_reads_identity(sim_process: tupl
         assert node.sdo[0x6041].raw & 0x4F == 0x40  # switch on disabled
         node.sdo[0x1017].raw = 50  # heartbeat on
         node.nmt.state = "OPERATIONAL"
-        time.sleep(0.06)  # a heartbeat sent before the command was processed may still be in flight
-        node.nmt.wait_for_heartbeat(timeout=1.0)
-        assert node.nmt.state == "OPERATIONAL"
+        # a heartbeat sent before the command was processed may still be in flight: the next ones say it
+        wait_for(lambda: node.nmt.wait_for_heartbeat(timeout=1.0) == "OPERATIONAL", 10.0, "an OPERATIONAL heartbeat")
         drain(listener, 0.05)
         node.sdo[0x6040].raw = 0x06  # shutdown: the statusword changes, event TPDO1 goes out
         frames = drain(listener, 0.3)

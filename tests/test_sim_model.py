@@ -133,7 +133,18 @@ def test_a_constant_load_is_held_by_the_servo(driver_factory: DriverFactory) -> 
     drive = driver.drive("joint1")
     drive.enable()
     apply_action(sim, {"node": 1, "action": "load", "nm": 0.5})  # a slope
-    time.sleep(0.5)
+    held = pytest.approx(0.5 * GEAR, abs=COULOMB_NM * GEAR * 1.05)
+    still: list[float] = []  # stamps of the samples in a row with the shaft still and the torque at the load's
+
+    def settled() -> bool:  # five samples in a row (a turning point of an overshoot is one)
+        s = drive.snapshot()
+        if s.torque_nm != held or abs(s.velocity_deg_s) >= 0.1:
+            still.clear()
+        elif not still or s.stamp != still[-1]:
+            still.append(s.stamp)
+        return len(still) >= 5
+
+    wait_for(settled, 10.0, "the servo settled against the load")
     state = drive.snapshot()
     assert abs(state.angle_deg) < 0.05  # the position loop holds it ...
     assert state.torque_nm == pytest.approx(0.5 * GEAR, abs=COULOMB_NM * GEAR * 1.05)  # ... against the load

@@ -17,7 +17,7 @@ from can_config import GENERIC_EDS
 from virtual_can import SimService
 from virtual_can.service import specs_for_count
 
-from .conftest import drain
+from .conftest import drain, wait_for
 
 TPDO1 = 0x181
 
@@ -80,7 +80,9 @@ def test_sync_cyclic_every_third_sync_and_nothing_in_pre_operational(
         syncs(node, 9)
         assert drain(bus, 0.2) == []  # pre-operational: no PDOs
         node.nmt.state = "OPERATIONAL"
-        time.sleep(0.05)
+        runner = sim.simulators["can0"]
+        wait_for(lambda: runner.call(lambda: runner.drive(node.id).nmt.name) == "OPERATIONAL", 10.0,
+                 "the drive in OPERATIONAL")
         syncs(node, 9)
         assert len(drain(bus, 0.2)) == 3
 

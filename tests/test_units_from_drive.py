@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import subprocess
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from can_config.objects import DataType
 from motor_driver import MotorDriver
 from virtual_can import SimService
 
-from .conftest import SHARED_EDS, make_config, requires_shared, rovercan_cli
+from .conftest import SHARED_EDS, heard_before_marker, make_config, requires_shared, rovercan_cli, wait_for
 
 SimFactory = Callable[[RoverConfig], tuple[SimService, RoverConfig]]
 EPOS4 = SHARED_EDS / "maxon_epos4_module50_5.eds"
@@ -157,11 +156,9 @@ def test_an_eds_of_another_vendor_fails_at_boot_naming_both_ids(sim_factory: Sim
     text = str(err.value)
     assert "identity mismatch: vendor id is 0x00524F56 on the device" in text and "0x000001A3" in text, text
     assert err.value.step == "identity"
-    time.sleep(0.1)
-    requests = []
-    while (msg := listener.recv(0.05)) is not None:
-        if msg.arbitration_id == 0x601:
-            requests.append(bytes(msg.data[:4]))
+    # the driver's connection closed (all it sent on the bus): what the listener heard before a marker
+    wait_for(lambda: len(sim.server.clients) == 1, 10.0, "the driver's connection closed")
+    requests = [bytes(m.data[:4]) for m in heard_before_marker(listener, sim.engine) if m.arbitration_id == 0x601]
     # before any other object is touched: only uploads of 0x1018:1 went to the drive
     assert requests and set(requests) == {bytes([0x40, 0x18, 0x10, 0x01])}, [r.hex() for r in requests]
 

@@ -55,11 +55,12 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from heapq import merge
+from itertools import islice
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import can
 
@@ -117,6 +118,56 @@ def frames_cap(bitrate: int, window_s: float) -> int:
     """The frames one bus's ring keeps at most: what the bus carries in ``window_s`` at its full
     rate of 8-byte frames."""
     return max(1, math.ceil(bitrate / FULL_RATE_FRAME_BITS * window_s))
+
+
+class _Frames(Sequence[Frame]):
+    """An incident's frames: each bus's ring as packed (a copy of its references), unpacked one at
+    a time as a writer reads them, the buses merged (each bus's in arrival order; :meth:`in_time`:
+    every frame in time order). Writing the full rings of a babbling node's storm unpacked them all
+    at once, and the MCAP sorted a copy (20 MB of small objects in the driver, its heap fragmented
+    after: it kept the memory); now no object per frame lives longer than the writer's look at it."""
+
+    def __init__(self, per_bus: Sequence[tuple[str, Sequence[bytes]]]) -> None:
+        self._per_bus = [(bus, packed) for bus, packed in per_bus if packed]
+        self._count = sum(len(packed) for _, packed in self._per_bus)
+        self.buses = [bus for bus, _ in self._per_bus]
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __iter__(self) -> Iterator[Frame]:
+        return merge(*(_unpacked(bus, packed) for bus, packed in self._per_bus), key=lambda frame: frame[0])
+
+    def in_time(self) -> Iterator[Frame]:
+        """Every frame in time order (each bus's references sorted by their packed time, then merged)."""
+        return merge(*(_unpacked(bus, sorted(packed, key=_time_key)) for bus, packed in self._per_bus),
+                     key=lambda frame: frame[0])
+
+    @overload
+    def __getitem__(self, index: int) -> Frame: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[Frame]: ...
+
+    def __getitem__(self, index: int | slice) -> Frame | list[Frame]:
+        if isinstance(index, slice):
+            return list(self)[index]
+        if index in (0, -1) and self._count:  # the first and the last: one look per bus
+            ends = [next(_unpacked(bus, (packed[index],))) for bus, packed in self._per_bus]
+            return min(ends) if index == 0 else max(ends)
+        if not -self._count <= index < self._count:
+            raise IndexError(index)
+        return next(islice(iter(self), index % self._count, None))
+
+
+def _time_key(raw: bytes) -> float:
+    return float(_time_of(raw)[0])
+
+
+def _unpacked(bus: str, packed: Iterable[bytes]) -> Iterator[Frame]:
+    for raw in packed:
+        t, cob, flags, dlc = _HEAD.unpack_from(raw)
+        yield t, bus, cob, bool(flags & _EXTENDED), bool(flags & _REMOTE), bool(flags & _ERROR), dlc, raw[_HEAD.size:]
 
 
 class _Ring:
@@ -368,7 +419,7 @@ class FlightRecorder:
         stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(first.t)) + f"-{int(first.t * 1000) % 1000:03d}"
         who = first.drive or (f"node{first.node}" if first.node is not None else first.bus)
         base = self.directory / f"{stamp}-{first.kind}-{who}"
-        buses = sorted({frame[1] for frame in frames} | {e.bus for e in events})
+        buses = sorted(set(frames.buses) | {e.bus for e in events})
         channel_of = {bus: i + 1 for i, bus in enumerate(buses)}
         _write_blf(base.with_suffix(".blf"), frames, channel_of)
         summary: dict[str, Any] = {
@@ -415,20 +466,18 @@ class FlightRecorder:
         _enforce_cap(self.directory, self.config.max_mb * 1e6, keep=base.name)
         return json_path
 
-    def _take_frames(self) -> tuple[list[Frame], dict[str, int]]:
-        """Writer: every bus's ring now, merged in time order and unpacked, and the frames each
-        bus's count bound dropped since the last incident written (then counted as said)."""
-        per_bus: list[list[Frame]] = []
+    def _take_frames(self) -> tuple[_Frames, dict[str, int]]:
+        """Writer: every bus's ring now (unpacked as read, in time order: :class:`_Frames`), and the
+        frames each bus's count bound dropped since the last incident written (then counted as said)."""
+        per_bus: list[tuple[str, Sequence[bytes]]] = []
         dropped: dict[str, int] = {}
         for bus, ring in list(self._rings.items()):
             total = ring.dropped
-            packed = ring.frames.copy()
+            per_bus.append((bus, ring.frames.copy()))
             dropped[bus], ring.said = total - ring.said, total
-            per_bus.append([(t, bus, cob, bool(flags & _EXTENDED), bool(flags & _REMOTE), bool(flags & _ERROR), dlc,
-                             raw[_HEAD.size:]) for raw in packed for t, cob, flags, dlc in (_HEAD.unpack_from(raw),)])
-        return list(merge(*per_bus, key=lambda frame: frame[0])), dropped
+        return _Frames(per_bus), dropped
 
-    def _write_mcap(self, path: Path, frames: list[Frame], events: list[IncidentEvent], summary: dict[str, Any]) -> None:
+    def _write_mcap(self, path: Path, frames: Sequence[Frame], events: list[IncidentEvent], summary: dict[str, Any]) -> None:
         """The incident's .mcap (named in ``summary``): a failure costs it alone, not the BLF and JSON."""
         told = [(e.t, e.drive or e.bus, f"incident {e.kind}" + (f": 0x{e.code:04X}" if e.code is not None else "")
                  + (f" {e.text}" if e.text else "")) for e in events]
@@ -481,7 +530,7 @@ class FlightRecorder:
         self._helpers = []
 
 
-def _write_blf(path: Path, frames: list[Frame], channel_of: Mapping[str, int]) -> None:
+def _write_blf(path: Path, frames: Iterable[Frame], channel_of: Mapping[str, int]) -> None:
     """An incident's frames as BLF, each bus a channel."""
     with can.BLFWriter(path) as blf:
         for t, bus, cob, extended, remote, error, dlc, data in frames:

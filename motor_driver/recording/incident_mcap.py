@@ -27,7 +27,8 @@ def write_incident_mcap(path: Path, frames: Sequence[Frame], events: Sequence[tu
     with McapSink(path, metadata) as sink:
         drives = view_drives(config, units, FROM_DRIVER) if config is not None else []
         view = BusView(drives, sink, hold_s=0.0)  # sorted here: nothing to wait for
-        for frame in sorted(frames, key=lambda f: f[0]):
+        in_time = getattr(frames, "in_time", None)  # the flight recorder's: in time order, unpacked as read
+        for frame in in_time() if in_time is not None else sorted(frames, key=lambda f: f[0]):
             while pending and pending[0][0] <= frame[0]:
                 t, who, text = pending.pop(0)
                 view.incident(t, who, text, ERROR)
