@@ -55,8 +55,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
     "test_kernel_tier.py::test_the_interface_down_then_up_stops_commands_and_configures_again_unarmed":
         ("the interface stays down 2 s once the driver said the bus lost: the span is the input (a link down"
          " for a while, retried through), the verdict is what follows (configured again, not armed)"),
-    "test_launch.py::test_the_rover_launch_names_each_node_once_and_its_parameters_answer_alike":
-        DEBT,
     "test_reliability.py::test_random_frames_never_crash_the_driver":
         ("paces generated bursts so that the driver's threads run between them (load shaping, no verdict "
          'follows it)'),
