@@ -335,3 +335,31 @@ def test_a_drive_lost_mid_goal_aborts_and_stops_the_group(arm: Arm) -> None:
     runner = arm.sim.simulators["can0"]
     wait_for(lambda: abs(runner.call(lambda: runner.drive(1).omega)) < 1e-3, 10.0, "joint1 at rest")  # type: ignore[arg-type]
     assert angle(arm, "joint1") < 55.0
+
+
+def test_a_held_group_thread_catches_up_within_the_drives_step_guard(arm: Arm) -> None:
+    """The group's thread held for 30 SYNCs mid-goal (inside its set-point call: a starved host):
+    the plan catches up after, but no set-point steps further than the drive's guard (max velocity
+    over two SYNC periods from the last), which a CSP drive would take within one period. A
+    catch-up by the SYNCs that passed would have asked joint1 for a jump of many degrees."""
+    drive = arm.driver.drive("joint1")
+    calls = itertools.count()
+    real = drive.stream_position
+
+    def held(angle_deg: float, **kwargs: object) -> None:
+        if next(calls) == 20:  # mid-goal: the thread waits for the bus to carry 30 SYNCs
+            mark = len(arm.frames)
+            wait_for(lambda: sum(m.arbitration_id == SYNC for m in arm.frames[mark:]) >= 30, 30.0, "30 SYNC frames")
+        real(angle_deg, **kwargs)  # type: ignore[arg-type]
+
+    drive.stream_position = held  # type: ignore[method-assign]
+    mark = len(arm.frames)
+    free = {"joint1": Tolerance(position_deg=-1.0), "joint2": Tolerance(position_deg=-1.0)}  # none: the lag after a hold is not judged here
+    run = arm.group.follow(goal((1.5, (80.0, 0.0)), path_tolerance=free))
+    assert finished(run) == TrajectoryCode.SUCCESSFUL, run.outcome
+    assert next(calls) > 21, "the hold came before the goal ended"
+    scale = drive.cache.scale
+    path = [scale.counts_to_deg(c) for c in setpoints(frames_after(arm, mark), 1)]
+    guard = drive.config.max_velocity_deg_s * 2 * arm.group.period_s
+    steps = [abs(b - a) for a, b in itertools.pairwise(path)]
+    assert max(steps) <= guard + 1e-6, f"a step of {max(steps):.2f} deg; the guard {guard:.2f} deg"

@@ -21,7 +21,10 @@ sample's reception (its SYNC): the set-point sent is the spline at the next SYNC
 drive takes it (:class:`motor_driver.follow.trajectory.Spline`). Each set-point advances the plan by
 the SYNCs the receive thread counted and closes a share of the gap to the clock (:data:`CLOCK_GAIN`:
 a receive thread's jitter is no jump, a SYNC producer off its period no stretch); a SYNC the thread
-let go is caught up in the next set-point, never stretched. Whatever must happen before
+let go is caught up in the next set-point, as far as the drives' step guard allows (max velocity
+over two SYNC periods, which a CSP drive takes within one): a thread held for longer (a starved
+host) makes the plan run late, counted (:attr:`TrajectoryGroup.stretched_s`), never a jump.
+Whatever must happen before
 motion (the checks, each joint's switch to streaming) happens before the goal is handed over. A
 goal starts from where the group's set-points are at its first set-point (a preempted goal's or a
 ramp's, else the drive's last target) with that velocity, so a new goal joins the old without a
@@ -82,13 +85,13 @@ LATE_SHARE = 0.5
 JOIN_S = 2.0
 #: How long a goal's preparation waits for its joints' other operations (an enable under way) to end.
 BUSY_WAIT_S = 5.0
-#: The most the plan's time advances from one set-point to the next, in SYNC periods beyond the
-#: SYNCs between the two (a thread that sends every few SYNCs, a starved host at 500 Hz, keeps the
-#: plan's time: the drive takes the step over those SYNCs): a SYNC missed is caught up at once;
-#: after a host stalled for longer the plan catches up at this pace rather than jump further than its
-#: joints may move (each step is held to the drive's guard, max velocity over the SYNCs it spans
-#: plus one).
+#: The plan's time advances from one set-point to the next by this many SYNC periods at least when
+#: it is behind (a SYNC missed is caught up at once), and further only as far as every joint's step
+#: stays within GUARD_SHARE of its drive's guard (stream_position refuses a step beyond max velocity
+#: over two periods): a thread that sends every few SYNCs (a starved host at 500 Hz) keeps the plan's
+#: time, and one that stalled for long catches up as fast as its joints may move, never by a jump.
 CATCH_UP_PERIODS = 2
+GUARD_SHARE = 0.8
 #: How much of the gap between the SYNCs counted and the monotonic clock (the sample's reception) one
 #: set-point closes: the plan keeps the clock's time (a SYNC producer slower or faster than its period
 #: does not stretch it), while a receive thread's jitter moves a step by this share of it only.
@@ -108,7 +111,6 @@ class _Running:
     offset_s: float = 0.0  # the plan's time of the spline's start
     last: tuple[object, int] = (None, 0)  # the clock drive and its sample count at the last set-point
     last_t: float = 0.0  # the plan time of the last set-point
-    taken_at: float = 0.0  # the monotonic time of the SYNC the last set-points were for (0.0: none yet)
     final_sent: bool = False
     last_desired: tuple[tuple[float, float, float], ...] = ()
     seen: list[int] = field(default_factory=list)  # each joint's position sample count when it last changed
@@ -126,6 +128,9 @@ class TrajectoryGroup:
         self.period_s = first.cache.sync_period_s
         self.errors = 0  # unexpected errors of the thread (each ended a goal in a stop)
         self.late = 0  # SYNCs let go because this thread took their sample too late (LATE_SHARE)
+        #: the most (s) a plan ran behind its time because this thread, held (a starved host), would not
+        #: step further than the drives' guard to catch up: late, never by a jump
+        self.stretched_s = 0.0
         self.silences = 0  # waits for a sample that ended without one (SILENCE_PERIODS)
         self._lock = threading.Lock()
         self._pending: GoalRun | None = None
@@ -153,9 +158,10 @@ class TrajectoryGroup:
         """A goal runs, waits to start, or its joints ramp down."""
         return self._running is not None or self._pending is not None or bool(self._ramp)
 
-    def counters(self) -> dict[str, int]:
+    def counters(self) -> dict[str, float]:
         """The thread's background counts, for /diagnostics."""
-        return {"errors": self.errors, "late samples": self.late, "silences": self.silences}
+        return {"errors": self.errors, "late samples": self.late, "silences": self.silences,
+                "plan behind at most (s)": round(self.stretched_s, 3)}
 
     def follow(self, goal: TrajectoryGoal, cancelled: Callable[[], bool] | None = None) -> GoalRun:
         """Check ``goal`` (:class:`TrajectoryRejected` with its code: nothing moved), switch its
@@ -414,9 +420,6 @@ class TrajectoryGroup:
         seq = clock.cache.position_seq
         taken_at, on_bus = self._taken_at(clock)
         now = taken_at - running.run.start_at
-        # the SYNCs between the last set-points' and these: the drive takes the step over them
-        spans = max(1, round((taken_at - running.taken_at) / self.period_s)) if on_bus and running.taken_at else 1
-        running.taken_at = taken_at
         if running.spline is None:
             if now <= 0.0:
                 self._hold(running)
@@ -427,7 +430,9 @@ class TrajectoryGroup:
             drive, last_seq = running.last
             counted = running.last_t + (seq - last_seq if drive is clock else 1) * self.period_s
             t = now if on_bus else counted + CLOCK_GAIN * (now - counted)
-            t = min(max(t, running.last_t), running.last_t + (spans + CATCH_UP_PERIODS - 1) * self.period_s)
+            wanted = max(t, running.last_t)
+            t = self._guarded(running, wanted)
+            self.stretched_s = max(self.stretched_s, wanted - t)  # behind the plan's time, held to the guard
         running.last, running.last_t = (clock, seq), t
         spline = running.spline
         assert spline is not None
@@ -448,12 +453,32 @@ class TrajectoryGroup:
         desired = spline.sample(min(local, spline.end_s))
         for drive, (p, _, _) in zip(running.joints, desired, strict=True):
             try:
-                drive.stream_position(p, max_step_deg=drive.config.max_velocity_deg_s * (spans + 1) * self.period_s)
+                drive.stream_position(p)
             except RovercanError as err:
                 self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"{drive.name}: set-point refused mid-goal: {err};"
                            " the group stops")
                 return
         running.last_desired = desired
+
+    def _guarded(self, running: _Running, t: float) -> float:
+        """``t``, or as far toward it from the last set-points' time as every joint may step: at least
+        CATCH_UP_PERIODS, beyond only within GUARD_SHARE of its drive's guard (max velocity over two
+        SYNC periods from its last set-point)."""
+        floor = running.last_t + CATCH_UP_PERIODS * self.period_s
+        spline = running.spline
+        if t <= floor or spline is None:
+            return t
+        for _ in range(3):  # the spline is smooth: a share of the way is about that share of the step
+            desired = spline.sample(min(t - running.offset_s, spline.end_s))
+            share = min((GUARD_SHARE * 2.0 * self.period_s * d.config.max_velocity_deg_s / abs(p - last[0])
+                         for d, (p, _, _), last in zip(running.joints, desired, running.last_desired, strict=True)
+                         if p != last[0]), default=math.inf)
+            if share >= 1.0:
+                return t
+            t = max(floor, running.last_t + (t - running.last_t) * share)
+            if t == floor:
+                return t
+        return floor
 
     def _hold(self, running: _Running) -> None:
         """A goal waiting for its stamp: its joints not ramping down hold their set-point, one a SYNC."""
