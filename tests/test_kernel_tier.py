@@ -59,6 +59,10 @@ START_S = 60.0
 #: A bound on a wait in the VM: a hang, not a timing claim (Python there is about 12x slower,
 #: and a process is held a second and more at times beside the host tier).
 HANG_S = 60.0
+#: A frame no CANopen device of the tests sends (0x7E0: outside CiA 301's predefined set), put on
+#: the bus after a session so that a reader proves it heard everything before it
+MARK_ID, MARK_DATA = 0x7E0, b"MARK"
+MARK_LINE = f"{MARK_ID:03X}#{MARK_DATA.hex().upper()}"
 
 
 @pytest.fixture(autouse=True)
@@ -373,7 +377,11 @@ def test_a_candump_of_a_session_decodes_and_replays(tmp_path: Path, listener: Li
                 drive = driver.drive("wheel1")
                 drive.enable(HANG_S)  # per transition: the VM's emulation starves at times
                 drive.move_to(10.0, wait=True, timeout_s=30.0)
-            time.sleep(0.5)
+            # a marker after the session: candump writes and flushes each frame as it reads it, so
+            # once the marker's line is in the log every frame of the session before it is too
+            with can.Bus(interface="socketcan", channel=VCAN.driver) as bus:
+                bus.send(can.Message(arbitration_id=MARK_ID, data=MARK_DATA, is_extended_id=False))
+            wait_for(lambda: MARK_LINE in log.read_text(), HANG_S, "candump's line of the marker frame")
         finally:
             dump.send_signal(signal.SIGINT)
             dump.wait(10)

@@ -30,9 +30,8 @@ CLOCKS = {"monotonic", "time", "perf_counter", "monotonic_ns", "perf_counter_ns"
 #: Reasons shared by several entries below.
 RAW_HOLD = ("the socketcand server holds a new raw client's frames for RAWMODE_HOLD_S unless it speaks, and"
             " python-can's client never speaks: the sleep outlasts a rule of the server, it waits for no outcome")
-DEBT = "debt (issue 73): a fixed wait before judging; to be turned into a wait on the condition it stands for"
 #: Bare sleeps not turned into waits on a condition, by test function, each with its reason: a
-#: rule of another part outlasted, a moment that is the test's input, or named debt (issue 73).
+#: rule of another part outlasted, or a moment that is the test's input.
 #: A new one anywhere fails this check, and so does an entry whose function has no bare sleep
 #: left (test_the_allow_list_holds_no_stale_entry). Shrink it; never grow it.
 ALLOWED_BARE_SLEEPS: dict[str, str] = {
@@ -50,8 +49,6 @@ ALLOWED_BARE_SLEEPS: dict[str, str] = {
         RAW_HOLD,
     "test_hostile_sdo.py::test_fuzzed_answers_never_raise_outside_the_tree":
         RAW_HOLD,
-    "test_kernel_tier.py::test_a_candump_of_a_session_decodes_and_replays":
-        DEBT,
     "test_kernel_tier.py::test_the_interface_down_then_up_stops_commands_and_configures_again_unarmed":
         ("the interface stays down 2 s once the driver said the bus lost: the span is the input (a link down"
          " for a while, retried through), the verdict is what follows (configured again, not armed)"),
