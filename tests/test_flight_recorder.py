@@ -47,6 +47,7 @@ def run(*args: str) -> subprocess.CompletedProcess[str]:
                           timeout=60)
 
 
+@pytest.mark.timeout(600)  # 20 s quiet; four times that and more beside two busy loops per core
 def test_an_emcy_is_recorded_read_back_and_replayed_as_a_regression(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     """The field: the drives in a process of their own, as real drives are. In this test's
@@ -249,6 +250,7 @@ def test_the_writer_survives_an_exception_in_its_pass_and_counts_it(tmp_path: Pa
     assert any(r.exc_info and "reaper broke" in str(r.exc_info[1]) for r in caplog.records)
 
 
+@pytest.mark.timeout(600)  # 40 s with a VM beside it; the full rings are its input
 def test_writing_an_incident_of_full_rings_makes_no_object_per_frame_at_once(tmp_path: Path) -> None:
     """The driver node grew 34 MB in the emulator's EMCY storm and stayed there, though its rings
     hold 6 MB: writing the storm's incident unpacked every frame of the full rings into a tuple at

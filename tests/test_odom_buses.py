@@ -47,13 +47,15 @@ SKEWED_SYNCS_S = {"can0": 0.061, "can1": 0.089}
 SIM_TICK_S = 0.01
 SPEED_M_S = 0.5
 #: "yaw 0": the middle half of /odom's headings while cruising straight (25th to 75th percentile)
-#: lies within the travel of one millisecond of pairing error, SPEED_M_S * 1 ms / 0.6 m track =
-#: 0.83 mrad. A sample up to a tick old, or stamped at its reply, spreads it by a tick's travel
-#: (8.3 mrad for 10 ms; measured 4.4 mrad before the fix, 0.2-0.35 mrad after). The middle half:
+#: lies within the travel of two milliseconds of pairing error, SPEED_M_S * 2 ms / 0.6 m track =
+#: 1.67 mrad: each bus's simulator places its SYNC's moment by the least handling delay it saw, and
+#: a loaded machine moves that by up to about a millisecond a bus (0.85 mrad measured beside two
+#: busy loops per core; 0.2-0.35 quiet). A sample up to a tick old, or stamped at its reply, spreads
+#: it by a tick's travel (8.3 mrad for 10 ms; measured 4.1-7.6 mrad before the fix). The middle half:
 #: a simulator starved of the CPU for longer than a SYNC period answers a SYNC after the next one
 #: (no real drive does: CiA 301's synchronous window), a sample now and then that the wider spread
 #: below still bounds.
-CRUISE_YAW_MIDDLE_RAD = SPEED_M_S * 0.001 / 0.6
+CRUISE_YAW_MIDDLE_RAD = SPEED_M_S * 0.002 / 0.6
 #: /odom's heading may wander this much (its 10th to 90th percentile) while cruising straight, a
 #: simulator starved now and then included. Pairing a can0 sample with a can1 sample of another
 #: SYNC swings it by up to SPEED_M_S * 89 ms / 0.6 m = 74 mrad each way (72 mrad measured before
