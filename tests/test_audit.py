@@ -58,7 +58,10 @@ def test_audit_of_the_simulated_rover_reports_every_figure_and_meets_every_other
 
 def test_audit_of_an_overloaded_wire_names_the_missed_target(tmp_path: Path) -> None:
     """250 kbit/s wire time, six drives, SYNC every 10 ms: planned at 106 % (the driver would
-    refuse it; the audit measures it anyway): the wire is full, late frames and lost ones."""
+    refuse it; the audit measures it anyway): the planned load is missed on any machine, and each
+    target missed is named. How full the wire was depends on the simulated drives getting CPU to
+    send (a starved simulator left it under half full in a loaded CI run): the measured load is
+    judged by the figure the audit heard, its verdict the one that figure earns."""
     drives = "".join(f"  - {{name: j{i}, node_id: {i}, counts_per_rev: 4096}}\n" for i in range(1, 7))
 
     def text(port: int) -> str:
@@ -72,6 +75,11 @@ def test_audit_of_an_overloaded_wire_names_the_missed_target(tmp_path: Path) -> 
         result = audit(config, "--seconds", "2", "--no-motion")
     assert result.returncode == 1, result.stderr
     assert "rovercan audit: targets missed:" in result.stderr
-    assert "bus load (measured, worst-case stuffing)" in result.stderr
-    missed = [r["figure"] for r in json.loads(result.stdout) if r["status"] == "MISSED"]
-    assert "bus load (planned, rovercan plan), %" in missed and "bus load (measured, worst-case stuffing), %" in missed
+    rows = json.loads(result.stdout)
+    missed = [r["figure"] for r in rows if r["status"] == "MISSED"]
+    assert "bus load (planned, rovercan plan), %" in missed
+    named = result.stderr.split("rovercan audit: targets missed:")[1]
+    assert all(figure in named for figure in missed), (missed, named)
+    (measured,) = [r for r in rows if r["figure"] == "bus load (measured, worst-case stuffing), %"]
+    assert measured["measured"] > 0.0, "nothing heard on the wire"
+    assert (measured["status"] == "MISSED") == (measured["measured"] > 50.0), measured
