@@ -21,9 +21,10 @@ sample's reception (its SYNC): the set-point sent is the spline at the next SYNC
 drive takes it (:class:`motor_driver.follow.trajectory.Spline`). Each set-point advances the plan by
 the SYNCs the receive thread counted and closes a share of the gap to the clock (:data:`CLOCK_GAIN`:
 a receive thread's jitter is no jump, a SYNC producer off its period no stretch); a SYNC the thread
-let go is caught up in the next set-point, as far as the drives' step guard allows (max velocity
-over two SYNC periods, which a CSP drive takes within one): a thread held for longer (a starved
-host) makes the plan run late, counted (:attr:`TrajectoryGroup.stretched_s`), never a jump.
+let go is caught up in the next set-points, each step within its joint's max velocity over one
+SYNC period (a CSP drive takes a set-point within one period: :data:`STEP_SHARE`): a thread held
+for long (a starved host) makes the plan run late until it has caught up, counted
+(:attr:`TrajectoryGroup.stretched_s`), never a jump and never a joint commanded past its limit.
 Whatever must happen before
 motion (the checks, each joint's switch to streaming) happens before the goal is handed over. A
 goal starts from where the group's set-points are at its first set-point (a preempted goal's or a
@@ -85,13 +86,18 @@ LATE_SHARE = 0.5
 JOIN_S = 2.0
 #: How long a goal's preparation waits for its joints' other operations (an enable under way) to end.
 BUSY_WAIT_S = 5.0
-#: The plan's time advances from one set-point to the next by this many SYNC periods at least when
-#: it is behind (a SYNC missed is caught up at once), and further only as far as every joint's step
-#: stays within GUARD_SHARE of its drive's guard (stream_position refuses a step beyond max velocity
-#: over two periods): a thread that sends every few SYNCs (a starved host at 500 Hz) keeps the plan's
-#: time, and one that stalled for long catches up as fast as its joints may move, never by a jump.
-CATCH_UP_PERIODS = 2
-GUARD_SHARE = 0.8
+#: The plan's time advances from one set-point to the next only as far as every joint's step stays
+#: within its max velocity over one SYNC period (a CSP drive takes a set-point within one period, so
+#: a longer step commands the joint faster than its limit; stream_position's guard, two periods'
+#: travel, is the drive's last line): a thread that missed SYNCs (a starved host) catches up as fast
+#: as its joints may move, and where the plan itself runs near their limit it runs late instead,
+#: counted (stretched_s), never by a jump. GUARD_PASSES: the tries at a shorter advance (the spline
+#: is smooth: a share of the way is about that share of the step); GUARD_HALVINGS: then halvings.
+STEP_SHARE = 1.0
+GUARD_PASSES = 4
+GUARD_HALVINGS = 12
+#: The first set-point of a goal is the plan at most this many SYNC periods from its join.
+JOIN_PERIODS = 2
 #: How much of the gap between the SYNCs counted and the monotonic clock (the sample's reception) one
 #: set-point closes: the plan keeps the clock's time (a SYNC producer slower or faster than its period
 #: does not stretch it), while a receive thread's jitter moves a step by this share of it only.
@@ -111,6 +117,7 @@ class _Running:
     offset_s: float = 0.0  # the plan's time of the spline's start
     last: tuple[object, int] = (None, 0)  # the clock drive and its sample count at the last set-point
     last_t: float = 0.0  # the plan time of the last set-point
+    behind_s: float = 0.0  # how far that ran behind the plan's time (each step held to the joints' limit)
     final_sent: bool = False
     last_desired: tuple[tuple[float, float, float], ...] = ()
     seen: list[int] = field(default_factory=list)  # each joint's position sample count when it last changed
@@ -127,9 +134,9 @@ class TrajectoryGroup:
         first = self.drives[config.joints[0]]
         self.period_s = first.cache.sync_period_s
         self.errors = 0  # unexpected errors of the thread (each ended a goal in a stop)
-        self.late = 0  # SYNCs let go because this thread took their sample too late (LATE_SHARE)
-        #: the most (s) a plan ran behind its time because this thread, held (a starved host), would not
-        #: step further than the drives' guard to catch up: late, never by a jump
+        self.late = 0  # samples this thread took later than LATE_SHARE of a period (aimed a SYNC further)
+        #: the most (s) a plan ran behind its time because no joint may step further than its max velocity
+        #: over one SYNC period to catch up (this thread held: a starved host): late, never by a jump
         self.stretched_s = 0.0
         self.silences = 0  # waits for a sample that ended without one (SILENCE_PERIODS)
         self._lock = threading.Lock()
@@ -425,14 +432,21 @@ class TrajectoryGroup:
                 self._hold(running)
                 return  # stamped ahead: its joints hold (or ramp down) until then
             self._join(running, now - self.period_s)
-            t = min(now, running.offset_s + CATCH_UP_PERIODS * self.period_s)
+            t = self._guarded(running, min(now, running.offset_s + JOIN_PERIODS * self.period_s))
         else:
             drive, last_seq = running.last
             counted = running.last_t + (seq - last_seq if drive is clock else 1) * self.period_s
             t = now if on_bus else counted + CLOCK_GAIN * (now - counted)
             wanted = max(t, running.last_t)
-            t = self._guarded(running, wanted)
-            self.stretched_s = max(self.stretched_s, wanted - t)  # behind the plan's time, held to the guard
+            if running.final_sent:  # the goal time runs from the last set-point, late or not, at the clock's pace
+                t = max(running.last_t, wanted - running.behind_s)
+            else:
+                t = self._guarded(running, wanted)
+                self.stretched_s = max(self.stretched_s, wanted - t)  # behind the plan, held to the limit
+                assert running.spline is not None
+                # the last set-point is the plan's end, and however late it goes out the goal time runs from it
+                t = min(t, running.offset_s + running.spline.end_s)
+                running.behind_s = wanted - t
         running.last, running.last_t = (clock, seq), t
         spline = running.spline
         assert spline is not None
@@ -461,24 +475,37 @@ class TrajectoryGroup:
         running.last_desired = desired
 
     def _guarded(self, running: _Running, t: float) -> float:
-        """``t``, or as far toward it from the last set-points' time as every joint may step: at least
-        CATCH_UP_PERIODS, beyond only within GUARD_SHARE of its drive's guard (max velocity over two
-        SYNC periods from its last set-point)."""
-        floor = running.last_t + CATCH_UP_PERIODS * self.period_s
-        spline = running.spline
-        if t <= floor or spline is None:
+        """``t``, or as far toward it from the last set-points' time as every joint may step within
+        one SYNC period at its max velocity (STEP_SHARE): a share of the way by the step's share
+        (GUARD_PASSES tries), then halving between the last time known within and the nearest known
+        beyond (GUARD_HALVINGS): the plan advances wherever the spline is continuous."""
+        if running.spline is None or t <= running.last_t:
             return t
-        for _ in range(3):  # the spline is smooth: a share of the way is about that share of the step
-            desired = spline.sample(min(t - running.offset_s, spline.end_s))
-            share = min((GUARD_SHARE * 2.0 * self.period_s * d.config.max_velocity_deg_s / abs(p - last[0])
-                         for d, (p, _, _), last in zip(running.joints, desired, running.last_desired, strict=True)
-                         if p != last[0]), default=math.inf)
+        within, beyond = running.last_t, t
+        candidate = t
+        for _ in range(GUARD_PASSES):
+            share = self._step_share(running, candidate)
             if share >= 1.0:
-                return t
-            t = max(floor, running.last_t + (t - running.last_t) * share)
-            if t == floor:
-                return t
-        return floor
+                return candidate
+            beyond = candidate
+            candidate = within + (candidate - within) * share * (1.0 - 1e-6)
+        for _ in range(GUARD_HALVINGS):
+            middle = 0.5 * (within + beyond)
+            if self._step_share(running, middle) >= 1.0:
+                within = middle
+            else:
+                beyond = middle
+        return within
+
+    def _step_share(self, running: _Running, t: float) -> float:
+        """The share of the step to the plan at ``t`` that every joint may take in one SYNC period
+        (at least 1: all of it)."""
+        spline = running.spline
+        assert spline is not None
+        desired = spline.sample(min(t - running.offset_s, spline.end_s))
+        return min((STEP_SHARE * self.period_s * d.config.max_velocity_deg_s / abs(p - last[0])
+                    for d, (p, _, _), last in zip(running.joints, desired, running.last_desired, strict=True)
+                    if p != last[0]), default=math.inf)
 
     def _hold(self, running: _Running) -> None:
         """A goal waiting for its stamp: its joints not ramping down hold their set-point, one a SYNC."""
@@ -503,6 +530,7 @@ class TrajectoryGroup:
         running.offset_s = offset
         running.spline = Spline((0.0, *(t - offset for t in plan.times_s)), (start, *plan.knots))
         running.last_desired = tuple((p, v or 0.0, a or 0.0) for p, v, a in start)
+        running.last_t = offset
 
     def _strayed(self, running: _Running, actual: tuple[tuple[float, float], ...]) -> str | None:
         """The first joint outside its path tolerance (from the set-point it is following), lost, or
