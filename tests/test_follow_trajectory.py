@@ -209,6 +209,21 @@ def test_the_plan_runs_from_its_acceptance(rig: Rig) -> None:
 #: joint_trajectory_controller's promise as issue 70 judges it: the measured positions against the
 #: plan timed from the goal's acceptance, over the run, within this RMS and this maximum (deg)
 TRACKING_RMS_DEG, TRACKING_MAX_DEG = 0.5, 1.5
+#: On the wire: SYNC 0x080, and joint1's CSP set-point (RPDO2 of node 1).
+SYNC, JOINT1_SETPOINT = 0x080, 0x301
+
+
+def longest_silence(frames: list[can.Message]) -> int:
+    """The most SYNCs the bus carried between two of joint1's set-points (by the order of frames,
+    heard by a listener of the test's own; none before the first): 1 where the group's thread kept
+    pace."""
+    longest, syncs = 0, None  # None: before the first set-point (the goal's checks and mode switch)
+    for msg in frames:
+        if msg.arbitration_id == SYNC and syncs is not None:
+            syncs += 1
+        elif msg.arbitration_id == JOINT1_SETPOINT:
+            longest, syncs = max(longest, syncs or 0), 0
+    return longest
 
 
 def tracking_errors(rig: Rig, start_s: float, amplitude_deg: float, duration_s: float) -> list[float]:
@@ -228,29 +243,45 @@ def tracking_errors(rig: Rig, start_s: float, amplitude_deg: float, duration_s: 
 
 @pytest.mark.parametrize("rig", [{"sync_period_s": 0.004}, {"sync_period_s": 0.002}], indirect=True,
                          ids=["250Hz", "500Hz"])
-def test_a_trajectory_is_tracked_against_the_plan_from_acceptance(rig: Rig) -> None:
+def test_a_trajectory_is_tracked_against_the_plan_from_acceptance(
+        rig: Rig, listener_factory: Callable[[SimService], can.BusABC]) -> None:
     """At 250 and 500 Hz (the bus's SYNC), a 4 s half-sine to +-30 deg and back: the joints'
     measured positions against the plan timed from the goal's acceptance (header stamp 0), as a
     MoveIt user measures it: within 0.5 deg RMS and 1.5 deg at most (issue 70: 1.0-1.7 deg RMS,
     2.2-3.5 deg max, the plan run from the driver's hand-over after its checks and mode switches).
-    Judged by the measurements' own stamps (their SYNC), not by when anything was received."""
+    Judged by the measurements' own stamps (their SYNC), not by when anything was received.
+
+    No verdict only where the wire shows the group's thread silent so long (a starved host) that a
+    drive holding its last target alone strays half the maximum error: each step is held to the
+    joint's max velocity over one period, so the plan may then run late (never by a jump). Shorter
+    silences are caught up and judged: the listener's record and the simulator's count of its own
+    holds (its drives' physics late), not the group's own counters, decide."""
     from action_msgs.msg import GoalStatus
 
-    (group,) = rig.assembly.trajectories.values()
-    handle = send(rig, half_sine(30.0, 4.0))
-    assert handle.accepted
-    done = result_of(handle)
+    runner = rig.sim.simulators["can0"]
+    holds = runner.clock.holds
+    frames: list[can.Message] = []
+    notifier = can.Notifier(listener_factory(rig.sim), [frames.append], timeout=0.1)
+    try:
+        handle = send(rig, half_sine(30.0, 4.0))
+        assert handle.accepted
+        done = result_of(handle)
+    finally:
+        notifier.stop()
     assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.error_string
     errors = tracking_errors(rig, seconds(handle.stamp), 30.0, 4.0)
     rms, worst = math.sqrt(sum(e * e for e in errors) / len(errors)), max(abs(e) for e in errors)
-    if group.stretched_s > 0.0 and not (rms <= TRACKING_RMS_DEG and worst <= TRACKING_MAX_DEG):
-        # the machine held the group's thread longer than the drives' step guard lets a plan catch
-        # up (a jump a CSP drive takes within one period is never sent): the plan ran late by what
-        # the counter says, and tracking is the machine's, not the driver's: judged where the thread
-        # kept pace (a quiet machine), no verdict here
-        pytest.skip(f"no verdict: the plan ran up to {group.stretched_s:.3f} s behind a held thread"
-                    f" (RMS {rms:.2f} deg, max {worst:.2f} deg)")
-    assert rms <= TRACKING_RMS_DEG and worst <= TRACKING_MAX_DEG, (rms, worst)
+    (group,) = rig.assembly.trajectories.values()
+    peak_step_deg = 30.0 * math.pi / 4.0 * group.period_s  # the half-sine's fastest travel in one period
+    silence = longest_silence(frames)
+    assert silence >= 1, "the listener heard no set-point between SYNCs"
+    if silence > TRACKING_MAX_DEG / 2 / peak_step_deg:
+        pytest.skip(f"no verdict: the group's thread sent no set-point for {silence} SYNCs (a starved host;"
+                    f" RMS {rms:.2f} deg, max {worst:.2f} deg)")
+    if runner.clock.holds > holds:  # the simulated drives' physics, not the driver, ran late
+        pytest.skip(f"no verdict: the simulator's thread was held {runner.clock.holds - holds} time(s) (a starved"
+                    f" host; RMS {rms:.2f} deg, max {worst:.2f} deg)")
+    assert rms <= TRACKING_RMS_DEG and worst <= TRACKING_MAX_DEG, (rms, worst, silence)
 
 
 def test_a_plan_stamped_ahead_waits_then_tracks(rig: Rig) -> None:

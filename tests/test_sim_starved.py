@@ -194,11 +194,13 @@ def test_the_bus_clock_stands_still_after_a_hold_and_then_takes_the_stamps_and_t
         t += 0.002
         clock.look(t, emptied=True)
     assert clock.look(t + 0.002, emptied=True) == t + 0.002  # steady: the wall clock
+    assert clock.holds == 0  # the first look follows none: no hold counted
     t += 0.002
     judged = t
     t += 10 * LOOK_GAP_S  # held
     clock.stamp(can.Message(arbitration_id=0x80, timestamp=t - 0.001))  # a SYNC stamped late in the hold
     settling = [clock.look(t + i * 0.002, emptied=False) for i in range(SETTLE_LOOKS)]  # a queue never emptied
     assert settling == [judged] * SETTLE_LOOKS
+    assert clock.holds == 1  # counted once (tests that judge the drives' motion read it)
     assert clock.look(t + SETTLE_LOOKS * 0.002, emptied=False) == t - 0.001  # then the newest stamp
     assert clock.look(t + (SETTLE_LOOKS + 1) * 0.002, emptied=True) == t + (SETTLE_LOOKS + 1) * 0.002

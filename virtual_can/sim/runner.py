@@ -77,6 +77,9 @@ class BusClock:
         self.looked = 0.0
         self._last_look: float | None = None
         self._settling = 0  # looks left before the bus time the drives are judged on moves again
+        #: looks that followed a hold (further than LOOK_GAP_S after the one before): the runner,
+        #: and the drives' physics with it, were starved (a test that judges their motion says so)
+        self.holds = 0
         self._judged = 0.0  # the bus time they were last judged on
 
     def stamp(self, msg: can.Message) -> float:
@@ -92,6 +95,8 @@ class BusClock:
         time to judge the drives' watch on: never past ``on_bus_until``, so that a SYNC stamped
         after a heartbeat that waits in a starved reader does not convict its producer."""
         steady = self._last_look is not None and wall - self._last_look <= LOOK_GAP_S
+        if self._last_look is not None and not steady:
+            self.holds += 1
         self._last_look = wall
         if not steady and not self._settling:
             self._settling = SETTLE_LOOKS
