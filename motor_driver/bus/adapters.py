@@ -9,8 +9,9 @@ that changes the behaviour fails there, loudly, instead of in the field:
 - :func:`hold_lone_sync`: the same socket's receive low-water mark, so that the echo of the
   driver's own SYNC, alone, does not wake the bus's receive thread.
 - :func:`batch_receive`: the same client's receive, read from its socket by this driver: every
-  frame of one read parsed in one pass (:func:`parse_frames`), without python-can's per-read debug
-  text and its warning for each frame a read cut in two.
+  frame of one read parsed in one pass (:func:`parse_frame_tuples`), without python-can's per-read
+  debug text and its warning for each frame a read cut in two; with :func:`dispatch_batches`, the
+  read's frames handed to the bus's listener in one call, no ``can.Message`` made for them.
 - :func:`socketcand_sender`: the same client's send, written to its socket by this driver: the
   text python-can would write for the frame, without the ``can.Message``, the per-send debug
   text and the layers in between (every command's RPDO goes this way).
