@@ -83,6 +83,15 @@ _EMCY_HEAD = struct.Struct("<HB")
 EMCY_LOG_PERIOD_S = 1.0
 
 
+#: One TPDO's decoding, read once a frame: (unpack, objects, sent every SYNC, carries the statusword)
+Decoder = tuple[Callable[[bytes | bytearray], tuple[int, ...]], tuple[int, ...], bool, bool]
+
+
+def _decoders(layouts: dict[int, TpdoLayout], per_sync: frozenset[int]) -> dict[int, Decoder]:
+    return {cob: (lay.codec.unpack_from, lay.indexes, cob in per_sync, _STATUSWORD in lay.indexes)
+            for cob, lay in layouts.items()}
+
+
 class DriveCache:
     """Identity, the PDO layouts, and the received state of one drive."""
 
@@ -98,10 +107,7 @@ class DriveCache:
         self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in plan.tpdos}
         self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in plan.tpdos)
         self._per_sync = frozenset(p.cob_id for p in plan.tpdos if p.trans_type == TT_SYNC)
-        # each TPDO's decoding, read once a frame: (unpack, objects, sent every SYNC, has the statusword)
-        self.tpdos_per_sync, self._decoders = len(self._per_sync), {
-            cob: (lay.codec.unpack_from, lay.indexes, cob in self._per_sync, _STATUSWORD in lay.indexes)
-            for cob, lay in self._layouts.items()}
+        self.tpdos_per_sync, self._decoders = len(self._per_sync), _decoders(self._layouts, self._per_sync)
         self._event = threading.Condition()
         self._rx = Received()  # the receive thread's
         self._noted: Noted | None = None  # the SDO readers' (boot, a mode switch)
