@@ -6,14 +6,18 @@ One drive of config/rover.yaml, booted on the simulator (``rovercan sim --drive-
 into the state cache: what the receive thread does per frame), a snapshot (what every publisher,
 the drive system and diagnostics read), the verdict alone, and a streamed set-point (the command
 path, its RPDO sent); and a frame through every listener of the bus's receive thread (what
-python-can's Notifier does with a frame it read). Prints microseconds per call as JSON. Used to A/B a change against the last
-commit (the same script on both, one machine, one run each: their ratio is the figure).
+python-can's Notifier does with a frame it read); and a read of socketcand text through the bus's
+receive path into the caches (``batch_frame_us``, per frame: three rounds of the drive's TPDOs in
+one read, parsed and dispatched as the commit under test does it, the read included).
+Prints microseconds per call as JSON. Used to A/B a change against the last commit (the same
+script on both, one machine, one run each: their ratio is the figure).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import socket
 import sys
 import time
 from collections.abc import Callable
@@ -53,6 +57,43 @@ def per_call_us(fn: Callable[[], object], n: int, rounds: int = 3) -> float:
     return round(best / (max(1, n // CHUNK) * CHUNK) * 1e6, 2)
 
 
+def batch_path(handle: object, notifier: can.Notifier, layouts: list[tuple[int, bytes]]) -> tuple[Callable[[], object], int]:
+    """One read of three rounds of the drive's TPDOs (a bus of three such drives),
+    written to a socket pair and read by a socketcand bus wired as the driver wires it (its read,
+    parse and dispatch: the batch sink where the commit has one, else python-can's recv a frame at
+    a time through the Notifier's listeners, as its thread does); and the frames per read."""
+    from can.interfaces.socketcand.socketcand import SocketCanDaemonBus
+
+    from motor_driver.bus import adapters
+
+    ours, peer = socket.socketpair()
+    bus = SocketCanDaemonBus.__new__(SocketCanDaemonBus)
+    for name, value in ((adapters.SOCKETCAND_SOCKET_ATTRIBUTE, ours), (adapters.SOCKETCAND_TCP_TUNE, False),
+                        (adapters.SOCKETCAND_BUFFERS[0], []), (adapters.SOCKETCAND_BUFFERS[1], "")):
+        setattr(bus, name, value)
+    bus._filters, bus.channel = None, "bench"
+    adapters.batch_receive(bus)
+    stamp = time.time()
+    # no SYNC among them: one every call would be another master's SYNC, refusing the commands
+    text = "".join(f"< frame {cob:03X} {stamp:.6f} {data.hex().upper()} >" for _ in range(3) for cob, data in layouts)
+    chunk = text.encode("ascii")
+    frames = 3 * len(layouts)
+    sink = getattr(getattr(handle, "dispatch", None), "on_frames", None)
+    if sink is not None and getattr(adapters, "dispatch_batches", None) is not None:
+        adapters.dispatch_batches(bus, sink)
+
+        def read() -> None:
+            peer.sendall(chunk)
+            bus.recv(0)
+    else:
+        def read() -> None:
+            peer.sendall(chunk)
+            while (msg := bus.recv(0)) is not None:
+                with notifier._lock:
+                    notifier._on_message_received(msg)
+    return read, frames
+
+
 def measure(n: int) -> dict[str, float]:
     config = load_config(ROVER)
     # a busy machine starves the simulator now and then: data late by 0.2 s would refuse the
@@ -86,13 +127,17 @@ def measure(n: int) -> dict[str, float]:
             def received() -> None:  # what python-can's Notifier does per frame, after its recv
                 notifier._on_message_received(msg)
 
+            layouts = [(cob_id, bytes(bytearray(lay.codec.pack(*(fields.get(i, 0) for i in lay.indexes)))))
+                       for cob_id, lay in drive.cache._layouts.items()]
+            read, per_read = batch_path(driver.buses[drive.config.bus], notifier, layouts)
             # the command first: a round of the others holds the interpreter long enough on a busy
             # machine for the drive's host watch to stop it
             out = {"stream_setpoint_us": per_call_us(lambda: drive.stream_position(angle, at_once=True), n),
                    "verdict_us": per_call_us(drive.verdict, n),
                    "snapshot_us": per_call_us(drive.snapshot, n),
                    "tpdo_dispatch_us": per_call_us(frame, n),
-                   "frame_received_us": per_call_us(received, n)}
+                   "frame_received_us": per_call_us(received, n),
+                   "batch_frame_us": round(per_call_us(read, max(CHUNK, n // per_read)) / per_read, 2)}
     return out
 
 

@@ -9,8 +9,9 @@ that changes the behaviour fails there, loudly, instead of in the field:
 - :func:`hold_lone_sync`: the same socket's receive low-water mark, so that the echo of the
   driver's own SYNC, alone, does not wake the bus's receive thread.
 - :func:`batch_receive`: the same client's receive, read from its socket by this driver: every
-  frame of one read parsed in one pass (:func:`parse_frames`), without python-can's per-read debug
-  text and its warning for each frame a read cut in two.
+  frame of one read parsed in one pass (:func:`parse_frame_tuples`), without python-can's per-read
+  debug text and its warning for each frame a read cut in two; with :func:`dispatch_batches`, the
+  read's frames handed to the bus's listener in one call, no ``can.Message`` made for them.
 - :func:`socketcand_sender`: the same client's send, written to its socket by this driver: the
   text python-can would write for the frame, without the ``can.Message``, the per-send debug
   text and the layers in between (every command's RPDO goes this way).
@@ -96,76 +97,143 @@ SOCKETCAND_TCP_TUNE = "_SocketCanDaemonBus__tcp_tune"
 RECEIVE_CHUNK_BYTES = 65536
 
 
-def parse_frames(text: str, channel: str | int | None) -> tuple[list[can.Message], str]:
+#: A frame the batch read hands on: (id, data, the bus's stamp, flags: FRAME_EXTENDED, FRAME_ERROR as
+#: the flight recorder stores them; socketcand's rawmode has no remote frames). No ``can.Message``.
+Frame = tuple[int, bytearray, float, int]
+FRAME_EXTENDED, FRAME_REMOTE, FRAME_ERROR = 1, 2, 4
+
+
+def parse_frame_tuples(text: str) -> tuple[list[Frame], str]:
     """The frames of socketcand's rawmode text (``< frame ID SECONDS.MICROS DATA >``; ``< error
-    ID SECONDS.MICROS ... >`` an error frame, as python-can reads it) in one pass, and the text
-    after the last complete one (a frame a read cut in two). Other messages (``< ok >``) are
-    skipped, and so is a frame whose fields do not parse (python-can raised, and the whole read
-    was lost with it: the bus taken for lost). The same fields as python-can's
-    ``convert_ascii_message_to_can_message``."""
-    out: list[can.Message] = []
+    ID SECONDS.MICROS ... >`` an error frame, as python-can reads it) in one pass, as
+    :data:`Frame` tuples, and the text after the last complete one (a frame a read cut in two).
+    Other messages (``< ok >``) are skipped, and so is a frame whose fields do not parse (python-can
+    raised, and the whole read was lost with it: the bus taken for lost). The same fields as
+    python-can's ``convert_ascii_message_to_can_message``."""
+    out: list[Frame] = []
     end = 0
-    while (start := text.find("<", end)) != -1:
-        close = text.find(">", start)
+    find, append = text.find, out.append
+    while (start := find("<", end)) != -1:
+        close = find(">", start)
         if close == -1:
             return out, text[start:] if len(text) - start <= 200 else ""  # python-can drops a longer one too
         body = text[start + 1:close].split()
         end = close + 1
-        if len(body) < 3 or body[0] not in ("frame", "error"):
+        if len(body) < 3:
             continue
         try:
-            out.append(_message(body, channel))
+            if body[0] == "frame":
+                ident = body[1]
+                append((int(ident, 16), bytearray.fromhex(body[3]) if len(body) > 3 else bytearray(),
+                        float(body[2]), 0 if len(ident) == 3 else FRAME_EXTENDED))
+            elif body[0] == "error":
+                append((int(body[1], 16) & 0x1FFFFFFF, bytearray(1), float(body[2]), FRAME_EXTENDED | FRAME_ERROR))
         except ValueError:
             continue  # a frame that does not parse: skipped, the read's others kept
     return out, ""
 
 
-def _message(body: list[str], channel: str | int | None) -> can.Message:
-    """One frame of :func:`parse_frames` (``ValueError``: its fields do not parse)."""
-    ident, stamp = body[1], float(body[2])
-    if body[0] == "frame":
-        data = bytearray.fromhex(body[3]) if len(body) > 3 else bytearray()
-        return can.Message(timestamp=stamp, arbitration_id=int(ident, 16), data=data, dlc=len(data),
-                           is_extended_id=len(ident) != 3, is_rx=True, channel=channel)
-    return can.Message(timestamp=stamp, arbitration_id=int(ident, 16) & 0x1FFFFFFF, is_error_frame=True,
-                       data=bytearray(1), dlc=1, is_extended_id=True, is_rx=True, channel=channel)
+def frame_message(frame: Frame, channel: str | int | None) -> can.Message:
+    """A :data:`Frame` as python-can's socketcand client returns it from ``recv``."""
+    can_id, data, stamp, flags = frame
+    return can.Message(timestamp=stamp, arbitration_id=can_id, data=data, dlc=len(data),
+                       is_extended_id=bool(flags & FRAME_EXTENDED), is_error_frame=bool(flags & FRAME_ERROR),
+                       is_rx=True, channel=channel)
+
+
+def parse_frames(text: str, channel: str | int | None) -> tuple[list[can.Message], str]:
+    """:func:`parse_frame_tuples` as ``can.Message``s (python-can's ``recv`` API)."""
+    frames, rest = parse_frame_tuples(text)
+    return [frame_message(f, channel) for f in frames], rest
+
+
+#: Where :func:`batch_receive` keeps its reader on the bus (:func:`dispatch_batches` finds it there).
+BATCH_READER_ATTRIBUTE = "_rovercan_batch_reader"
+
+
+class _BatchReader:
+    """The receive of one socketcand bus (:func:`batch_receive`); the bus's receive thread's."""
+
+    def __init__(self, bus: can.BusABC, sock: socket.socket) -> None:
+        parsed, unparsed = (getattr(bus, name) for name in SOCKETCAND_BUFFERS)
+        # what python-can parsed already (its handshake's read)
+        self.frames: deque[Frame] = deque((m.arbitration_id, m.data, m.timestamp,
+                                           (FRAME_EXTENDED if m.is_extended_id else 0) |
+                                           (FRAME_ERROR if m.is_error_frame else 0)) for m in parsed)
+        self.rest = str(unparsed)
+        self.sock = sock
+        self.quickack = bool(getattr(bus, SOCKETCAND_TCP_TUNE, False))
+        self.channel = getattr(bus, "channel", None)  # python-can's socketcand client sets it; BusABC does not declare it
+        #: takes each read's frames from the deque in order (:func:`dispatch_batches`); None: python-can's recv API
+        self.sink: Callable[[deque[Frame]], None] | None = None
+
+    def read(self, timeout: float | None) -> bool:
+        """One ``select`` and one read into :attr:`frames`; False: nothing came within ``timeout``,
+        or the stream ended (python-can's 'no frame': :func:`connection_closed` tells)."""
+        sock = self.sock
+        try:
+            ready, _, _ = select.select([sock], [], [], timeout)
+            if not ready:
+                return False
+            chunk = sock.recv(RECEIVE_CHUNK_BYTES)
+            if self.quickack:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_QUICKACK, 1)
+        except OSError as err:  # the interface went away: the notifier's error (ReceiveErrors, the supervisor)
+            raise can.CanOperationError(f"Failed to receive: {err}") from err
+        if not chunk:
+            return False
+        got, self.rest = parse_frame_tuples(self.rest + chunk.decode("ascii", "replace"))
+        self.frames.extend(got)
+        return True
+
+    def recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        frames, sink = self.frames, self.sink
+        if sink is None:  # a frame at a time, as python-can's recv returns them
+            if not frames:
+                self.read(timeout)
+            return (frame_message(frames.popleft(), self.channel) if frames else None), False
+        if frames:  # left by a sink that raised (it takes them in order), or read before it was set
+            sink(frames)
+        deadline = time.monotonic() + timeout if timeout is not None else 0.0
+        while self.read(timeout):
+            sink(frames)  # a raise leaves the rest in the deque: the notifier's error, then these
+            if timeout is None or (timeout := deadline - time.monotonic()) <= 0:
+                break
+        return None, False
 
 
 def batch_receive(bus: can.BusABC) -> can.BusABC:
     """A socketcand bus whose receive reads its socket itself: one ``select`` and one read take
-    whatever has come (a SYNC period's frames), parsed in one pass (:func:`parse_frames`); the
-    next calls return them in order without touching the socket. python-can's own receive did
-    the same work with a debug line formatted per read and a WARNING logged for every frame a
-    read cut in two (the bus's receive thread's largest cost after the parsing itself,
-    docs/performance.md). The end of the stream is 'no frame', as python-can reads it
-    (:func:`connection_closed` tells). Other interfaces are left as they are. Returns ``bus``."""
+    whatever has come (a SYNC period's frames), parsed in one pass (:func:`parse_frame_tuples`).
+    Without a sink the next calls return them in order without touching the socket; with one
+    (:func:`dispatch_batches`) each read's frames go to it as they are, and ``recv`` returns
+    None at its timeout. python-can's own receive did the same work with a debug line formatted
+    per read and a WARNING logged for every frame a read cut in two (the bus's receive thread's
+    largest cost after the parsing itself, docs/performance.md). The end of the stream is 'no
+    frame', as python-can reads it (:func:`connection_closed` tells). Other interfaces are left
+    as they are. Returns ``bus``."""
     sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
     if not isinstance(sock, socket.socket):
         return bus
-    parsed, unparsed = (getattr(bus, name) for name in SOCKETCAND_BUFFERS)
-    frames: deque[can.Message] = deque(parsed)  # what python-can parsed already (its handshake's read)
-    rest = [str(unparsed)]
-    quickack = bool(getattr(bus, SOCKETCAND_TCP_TUNE, False))
-    channel = getattr(bus, "channel", None)  # python-can's socketcand client sets it; BusABC does not declare it
-
-    def recv_internal(timeout: float | None) -> tuple[can.Message | None, bool]:
-        if frames:
-            return frames.popleft(), False
-        try:
-            ready, _, _ = select.select([sock], [], [], timeout)
-            if not ready:
-                return None, False
-            chunk = sock.recv(RECEIVE_CHUNK_BYTES)
-            if quickack:
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_QUICKACK, 1)
-        except OSError as err:  # the interface went away: the notifier's error (ReceiveErrors, the supervisor)
-            raise can.CanOperationError(f"Failed to receive: {err}") from err
-        got, rest[0] = parse_frames(rest[0] + chunk.decode("ascii", "replace"), channel)
-        frames.extend(got)
-        return (frames.popleft() if frames else None), False
-
-    bus._recv_internal = recv_internal  # type: ignore[method-assign]  # this one bus, as pause_when_closed does
+    reader = _BatchReader(bus, sock)
+    setattr(bus, BATCH_READER_ATTRIBUTE, reader)
+    bus._recv_internal = reader.recv_internal  # type: ignore[method-assign]  # this one bus, as pause_when_closed does
     return bus
+
+
+def dispatch_batches(bus: can.BusABC, sink: Callable[[deque[Frame]], None] | None) -> bool:
+    """Each read of a :func:`batch_receive` bus handed to ``sink`` as it came, without a
+    ``can.Message`` or a call of python-can's Notifier per frame: ``sink`` takes the frames from
+    the deque in order (what it leaves when it raises comes first at the next read, after the
+    notifier's error), and ``recv`` returns None when its timeout passed or the stream ended
+    (the Notifier then checks whether it was stopped). Set it before the Notifier runs; None:
+    a frame at a time again. False where the bus reads otherwise (a kernel socket: python-can's
+    ``recv``, one ``can.Message`` a frame)."""
+    reader = getattr(bus, BATCH_READER_ATTRIBUTE, None)
+    if not isinstance(reader, _BatchReader):
+        return False
+    reader.sink = sink
+    return True
 
 
 #: a byte as python-can's socketcand client writes it: lower-case hex, no leading zero

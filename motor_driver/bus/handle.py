@@ -23,16 +23,18 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
 import can
 
+from can_config.bits import frame_bits
 from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
-from motor_driver.bus.adapters import GuardedNetwork, hold_lone_sync, queue_full
+from motor_driver.bus.adapters import FRAME_ERROR, Frame, GuardedNetwork, dispatch_batches, hold_lone_sync, queue_full
 from motor_driver.bus.connect import is_kernel_bus
 from motor_driver.bus.cyclic import DaemonCyclicTask
 from motor_driver.bus.traffic import BusStats, ForeignTraffic
@@ -56,15 +58,30 @@ def sync_daemon(bus_cfg: BusConfig) -> tuple[str, int, str] | None:
     return str(kwargs.get("host", "127.0.0.1")), int(kwargs.get("port", SOCKETCAND_PORT)), bus_cfg.channel
 
 
+class FrameTap(Protocol):
+    """The flight recorder's receive tap of one bus: a frame as python-can hands it, or as the
+    batch read does (:data:`motor_driver.bus.adapters.Frame`'s fields, no ``can.Message``)."""
+
+    def on_message_received(self, msg: can.Message) -> None: ...
+
+    def on_frame(self, t: float, cob: int, flags: int, data: bytes | bytearray) -> None: ...
+
+
 class FrameRecorder(Protocol):
     """What a bus hands the flight recorder (:class:`motor_driver.recording.flight.FlightRecorder`
     is one; the bus, a layer below, does not import it): every frame heard and every frame sent."""
 
-    def listener(self, bus: str) -> can.Listener: ...
+    def listener(self, bus: str) -> FrameTap: ...
 
     def record_sent(self, bus: str, msg: can.Message) -> None: ...
 
     def record_frame(self, bus: str, can_id: int, data: bytes | bytearray, remote: bool = False) -> None: ...
+
+
+#: worst-case bits of an 11-bit data frame by its length (a longer one, which socketcand's text can
+#: carry, counted as 8 bytes as BusStats counts it)
+_STD_BITS = tuple(frame_bits(min(n, 8)) for n in range(9))
+_EXT_BITS = tuple(frame_bits(min(n, 8), extended=True) for n in range(9))
 
 
 class FrameDispatch(can.Listener):  # type: ignore[misc]
@@ -74,12 +91,18 @@ class FrameDispatch(can.Listener):  # type: ignore[misc]
     one call. python-can's Notifier called five listeners a frame, each through
     ``Listener.__call__``, and the dispatch went through canopen's listener and an 11-bit filter in
     front of it (docs/performance.md: a third of the receive thread's own time). A receive error
-    is the counters' (:meth:`BusStats.on_error`: noted for the supervisor, paused)."""
+    is the counters' (:meth:`BusStats.on_error`: noted for the supervisor, paused).
+
+    On socketcand a read's frames come in one call (:meth:`on_frames`, through
+    :func:`~motor_driver.bus.adapters.dispatch_batches`): the same work in the same order without
+    a ``can.Message``, a Notifier round and four calls per frame; the counters are added once a read."""
 
     def __init__(self, network: GuardedNetwork, stats: BusStats, foreign: ForeignTraffic,
-                 tap: can.Listener | None = None) -> None:
+                 tap: FrameTap | None = None) -> None:
         self._notify, self._stats, self._foreign = network.notify, stats.on_message_received, foreign.on_message_received
+        self._counters, self._foreign_frame = stats, foreign.on_frame
         self._tap = tap.on_message_received if tap is not None else None
+        self._tap_frame = tap.on_frame if tap is not None else None
         self._on_error = stats.on_error
 
     def on_message_received(self, msg: can.Message) -> None:
@@ -89,6 +112,36 @@ class FrameDispatch(can.Listener):  # type: ignore[misc]
         self._foreign(msg)
         if (tap := self._tap) is not None:
             tap(msg)
+
+    def on_frames(self, frames: deque[Frame]) -> None:
+        """The frames of one read, taken in order (what a raise leaves stays in ``frames``): as
+        :meth:`on_message_received` does each. A TPDO (0x181-0x4FF, bit 7 set) is no other
+        master's evidence and skips that look."""
+        notify, foreign, tap, stats = self._notify, self._foreign_frame, self._tap_frame, self._counters
+        count = syncs = bits = 0
+        try:
+            while frames:
+                can_id, data, stamp, flags = frames.popleft()
+                size = len(data)
+                if not flags:
+                    count += 1
+                    bits += _STD_BITS[size if size < 8 else 8]
+                    notify(can_id, data, stamp)
+                    if can_id == 0x080:
+                        syncs += 1
+                        foreign(can_id, data, stamp)
+                    elif not (can_id & 0x80 and 0x180 <= can_id < 0x500):
+                        foreign(can_id, data, stamp)
+                elif flags & FRAME_ERROR:
+                    stats.on_error_frame(can_id, data)
+                else:
+                    count += 1
+                    bits += _EXT_BITS[size if size < 8 else 8]
+                if tap is not None:
+                    tap(stamp, can_id, flags, data)
+        finally:
+            if count:
+                stats.count(count, syncs, bits)
 
     def on_error(self, exc: Exception) -> None:
         logger.debug("receive failed: %s", brief_error(exc))
@@ -115,9 +168,12 @@ class BusHandle:
         self.foreign.set_marks_local_frames(is_kernel_bus(bus))
         self.network = GuardedNetwork(bus, (), functools.partial(recorder.record_frame, name)
                                       if recorder is not None else None)
-        # one listener does it all (its on_error keeps a receive error quiet: the supervisor says the loss)
-        self.network.listen_with(FrameDispatch(self.network, self.stats, self.foreign,
-                                               recorder.listener(name) if recorder is not None else None))
+        # one listener does it all (its on_error keeps a receive error quiet: the supervisor says the loss);
+        # on socketcand it takes each read's frames at once
+        self.dispatch = FrameDispatch(self.network, self.stats, self.foreign,
+                                      recorder.listener(name) if recorder is not None else None)
+        self.network.listen_with(self.dispatch)
+        dispatch_batches(bus, self.dispatch.on_frames)
         self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         self.network.connect()  # its receive thread takes this thread's scheduling: module docstring
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | DaemonCyclicTask | None = None
@@ -139,6 +195,7 @@ class BusHandle:
     def reconnect(self, bus: can.BusABC) -> None:
         self.bus = bus
         self.network.bus = bus
+        dispatch_batches(bus, self.dispatch.on_frames)
         # the new receive thread takes this thread's scheduling (the bus's worker: the process's)
         self.network.notifier = can.Notifier(bus, self.network.listeners, NOTIFIER_TIMEOUT_S)
 

@@ -65,19 +65,27 @@ class BusStats(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
-            self.error_frames += 1
-            error = decode_error_frame(msg.arbitration_id, bytes(msg.data))
-            now = time.monotonic()
-            self.last_error = (now, error)
-            if error.loses_the_bus:
-                self.last_losing_error = now
+            self.on_error_frame(msg.arbitration_id, msg.data)
             return
-        self.frames += 1
-        if msg.arbitration_id == 0x080 and not msg.is_extended_id:
-            self.syncs += 1
-        bits = frame_bits(min(msg.dlc, 8), extended=msg.is_extended_id)
+        syncs = 1 if msg.arbitration_id == 0x080 and not msg.is_extended_id else 0
+        self.count(1, syncs, frame_bits(min(msg.dlc, 8), extended=msg.is_extended_id))
+
+    def count(self, frames: int, syncs: int, bits: int) -> None:
+        """Frames received (of them SYNCs) and their bits: one frame's, or a batch read's at once
+        (motor_driver.bus.handle.FrameDispatch.on_frames)."""
+        self.frames += frames
+        self.syncs += syncs
         self.bits += bits
         self._window_bits += bits
+
+    def on_error_frame(self, can_id: int, data: bytes | bytearray) -> None:
+        """An error frame (its class bits in ``can_id``): noted for the supervisor, which reports and acts."""
+        self.error_frames += 1
+        error = decode_error_frame(can_id, bytes(data))
+        now = time.monotonic()
+        self.last_error = (now, error)
+        if error.loses_the_bus:
+            self.last_losing_error = now
 
     def on_error(self, exc: Exception) -> None:
         """The receive thread's error (python-can calls it; handled here, the thread does not die
@@ -138,17 +146,19 @@ class ForeignTraffic(can.Listener):
         """The bus handle: the bus marks frames made on this host (SocketCAN's is_rx)."""
         self.marks_local_frames = marks
     def on_message_received(self, msg: can.Message) -> None:
-        cob = msg.arbitration_id
-        if msg.is_error_frame or msg.is_extended_id:
-            return
+        if not (msg.is_error_frame or msg.is_extended_id):
+            self.on_frame(msg.arbitration_id, msg.data, msg.timestamp, msg.is_rx)
+
+    def on_frame(self, cob: int, data: bytes | bytearray, timestamp: float, is_rx: bool = True) -> None:
+        """An 11-bit data frame (its bus stamp; ``is_rx``: received from the wire, as SocketCAN marks it)."""
         if cob == 0x080:
             now = time.monotonic()
             period = self.own_sync_period_s
-            if period <= 0 or (self.marks_local_frames and msg.is_rx):
+            if period <= 0 or (self.marks_local_frames and is_rx):
                 self.sync = self.newest = now
                 return
             # counted by the bus's timestamps, not by arrival: a busy process reads a burst of them
-            wire = msg.timestamp or time.time()
+            wire = timestamp or time.time()
             syncs, long = self._syncs, self._syncs_long
             syncs.append(wire)
             long.append(wire)
@@ -161,11 +171,11 @@ class ForeignTraffic(can.Listener):
                     len(long) > SYNC_RATE_LONG_FACTOR * span / period + 2:
                 self.sync_excess = (len(syncs), SYNC_RATE_WINDOW_S / period)
                 self.sync = self.newest = now
-        elif cob == 0x000 and len(msg.data) == 2:
-            self.nmt[msg.data[1], msg.data[0]] = self.newest = time.monotonic()  # each kept: a reset then a start
+        elif cob == 0x000 and len(data) == 2:
+            self.nmt[data[1], data[0]] = self.newest = time.monotonic()  # each kept: a reset then a start
         elif cob == FunctionCode.HEARTBEAT + self.host_node_id:
             self.host_twin = self.newest = time.monotonic()
-        elif 0x601 <= cob <= 0x67F and cob - 0x600 in self.node_ids and msg.data and msg.data[0] & 0xE0 == 0x20:
+        elif 0x601 <= cob <= 0x67F and cob - 0x600 in self.node_ids and data and data[0] & 0xE0 == 0x20:
             self.sdo[cob - 0x600] = self.newest = time.monotonic()  # a download (write); bench reads are harmless
         elif 0x200 <= cob < 0x580 and not cob & 0x80 and cob & 0x7F in self.node_ids:
             self.rpdo[cob & 0x7F] = time.monotonic()  # RPDO1-4 (0x200, 0x300, 0x400, 0x500 + node)

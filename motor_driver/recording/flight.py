@@ -205,15 +205,24 @@ class _BusTap(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         self.recorder.append(self.bus, msg)
-        cob = msg.arbitration_id
-        if 0x081 <= cob <= 0x0FF and not msg.is_extended_id and len(msg.data) >= 3:
-            code = int.from_bytes(msg.data[:2], "little")
+        if not msg.is_extended_id:
+            self._emcy(msg.arbitration_id, msg.data, msg.timestamp)
+
+    def on_frame(self, t: float, cob: int, flags: int, data: bytes | bytearray) -> None:
+        """A frame as the bus's batch read hands it (no can.Message; flags as the ring stores them)."""
+        self.recorder._push(self.bus, t or time.time(), cob, flags, len(data), data)
+        if not flags & _EXTENDED:
+            self._emcy(cob, data, t)
+
+    def _emcy(self, cob: int, data: bytes | bytearray, t: float) -> None:
+        if 0x081 <= cob <= 0x0FF and len(data) >= 3:
+            code = int.from_bytes(data[:2], "little")
             said_code, said_at = self._emcy_said.get(cob, (0, -EMCY_REPEAT_S))
             now = time.monotonic()
             if code and (code != said_code or now - said_at >= EMCY_REPEAT_S):  # a babbling node: one a second
                 self._emcy_said[cob] = (code, now)
                 self.recorder.trigger("emcy", self.bus, node=cob - 0x80, code=code, text=emcy_text(code),
-                                      t=msg.timestamp or time.time())
+                                      t=t or time.time())
 
 
 class FlightRecorder:
@@ -261,7 +270,7 @@ class FlightRecorder:
         self._thread.start()
 
     # ------------------------------------------------------------------ recording (many threads)
-    def listener(self, bus: str) -> can.Listener:
+    def listener(self, bus: str) -> _BusTap:
         return _BusTap(self, bus)
 
     def append(self, bus: str, msg: can.Message) -> None:

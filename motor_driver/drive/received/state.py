@@ -83,6 +83,15 @@ _EMCY_HEAD = struct.Struct("<HB")
 EMCY_LOG_PERIOD_S = 1.0
 
 
+#: One TPDO's decoding, read once a frame: (unpack, objects, sent every SYNC, carries the statusword)
+Decoder = tuple[Callable[[bytes | bytearray], tuple[int, ...]], tuple[int, ...], bool, bool]
+
+
+def _decoders(layouts: dict[int, TpdoLayout], per_sync: frozenset[int]) -> dict[int, Decoder]:
+    return {cob: (lay.codec.unpack_from, lay.indexes, cob in per_sync, _STATUSWORD in lay.indexes)
+            for cob, lay in layouts.items()}
+
+
 class DriveCache:
     """Identity, the PDO layouts, and the received state of one drive."""
 
@@ -98,7 +107,7 @@ class DriveCache:
         self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in plan.tpdos}
         self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in plan.tpdos)
         self._per_sync = frozenset(p.cob_id for p in plan.tpdos if p.trans_type == TT_SYNC)
-        self.tpdos_per_sync = len(self._per_sync)
+        self.tpdos_per_sync, self._decoders = len(self._per_sync), _decoders(self._layouts, self._per_sync)
         self._event = threading.Condition()
         self._rx = Received()  # the receive thread's
         self._noted: Noted | None = None  # the SDO readers' (boot, a mode switch)
@@ -318,42 +327,48 @@ class DriveCache:
         return timestamp
 
     def on_tpdo(self, cob_id: int, data: bytearray, timestamp: float) -> None:
-        layout = self._layouts[cob_id]
+        unpack, indexes, per_sync, has_statusword = self._decoders[cob_id]
         try:
-            values = layout.codec.unpack_from(data)
+            values = unpack(data)
         except struct.error:
-            self.wrong_length_tpdos += 1
-            if (passed := self._emcy_log.admit(("tpdo length", cob_id))) is not None:  # at most one line a period
-                held = f" ({passed[0]} more not logged in the last {passed[1]:.1f} s)" if passed[0] else ""
-                logger.warning("node %d: TPDO 0x%03X with %d bytes, expected %d; ignored: its PDO mapping is not the"
-                               " one this driver wrote (reset, or another tool remapped it)%s",
-                               self.node_id, cob_id, len(data), layout.codec.size, held)
+            self._wrong_length(cob_id, data)
             return
-        timestamp = self._measured_at(cob_id, timestamp)
-        rx = self.received
-        if (trusts := (self._boot_trusts, self._cmd_trusts)) != self._trusts_seen:  # asked by boot or homing
-            self._trusts_seen = trusts
+        if per_sync:
+            timestamp = self._measured_at(cob_id, timestamp)
+        noted = self._noted
+        rx = noted.over(self._rx) if noted is not None else self._rx  # self.received
+        boot_trusts, cmd_trusts = self._boot_trusts, self._cmd_trusts
+        if boot_trusts != self._trusts_seen[0] or cmd_trusts != self._trusts_seen[1]:  # asked by boot or homing
+            self._trusts_seen = (boot_trusts, cmd_trusts)
             self.positions.trust_next()
-        sw, mode, position, velocity, torque, took = decode_tpdo(layout.indexes, values, rx, timestamp, self.positions)
+        sw, mode, position, velocity, torque, took = decode_tpdo(indexes, values, rx, timestamp, self.positions)
         if took:
             self.position_seq += 1
-        has_statusword = _STATUSWORD in layout.indexes
-        if has_statusword and decode_state(sw) in FAULT_STATES:
+        state = decode_state(sw) if has_statusword else None
+        if state in FAULT_STATES:
             self._fault_word = sw
             self._fault_seq += 1
         now = time.monotonic()
         self._rx = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference, rx.noted_at)
         self.tpdo_count += 1
-        if cob_id in self._per_sync:
+        if per_sync:
             self.sync_tpdos += 1
         if took and (tick := self._on_sample) is not None:
             tick()
-        if has_statusword:
+        if state is not None:
             self.status_seq += 1
-            self._on_statusword(sw, now)
+            self._on_statusword(sw, state, now)
 
-    def _on_statusword(self, sw: int, now: float) -> None:
-        now_enabled = decode_state(sw) == State.OPERATION_ENABLED
+    def _wrong_length(self, cob_id: int, data: bytearray) -> None:
+        self.wrong_length_tpdos += 1
+        if (passed := self._emcy_log.admit(("tpdo length", cob_id))) is not None:  # at most one line a period
+            held = f" ({passed[0]} more not logged in the last {passed[1]:.1f} s)" if passed[0] else ""
+            logger.warning("node %d: TPDO 0x%03X with %d bytes, expected %d; ignored: its PDO mapping is not the"
+                           " one this driver wrote (reset, or another tool remapped it)%s",
+                           self.node_id, cob_id, len(data), self._layouts[cob_id].codec.size, held)
+
+    def _on_statusword(self, sw: int, state: State, now: float) -> None:
+        now_enabled = state == State.OPERATION_ENABLED
         sink = self._sink
         if now_enabled and not self._sw_enabled and self._record.booted and sink is not None and \
                 not sink.enabled_by_us(now, TRANSITION_TIMEOUT_S):
