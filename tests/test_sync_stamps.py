@@ -62,3 +62,29 @@ def test_without_its_sync_a_tpdo_keeps_its_own_stamp(network: canopen.Network) -
     net.notify(SYNC, bytearray(), 100.020)
     net.notify(STATUS_MODE, bytearray(struct.pack("<Hb", 0x0637, 1)), 100.021)  # event-driven: when it was sent
     assert net.cache.received.stamp == 100.021  # type: ignore[attr-defined]
+
+
+def test_a_late_answer_keeps_the_sync_it_answers(network: canopen.Network) -> None:
+    """The answer to one SYNC reaching the bus after the next (a drive or a simulator late) carries
+    what was latched at the first: it is stamped with it, and the next answer with the next SYNC,
+    never the first one period too new (the review's case: 100.030 for a value of 100.020)."""
+    net = network
+    net.notify(SYNC, bytearray(), 100.000)
+    assert position(net, 1000, 100.004) == 100.000
+    net.notify(SYNC, bytearray(), 100.010)  # its answer is late: after the next SYNC
+    net.notify(SYNC, bytearray(), 100.020)
+    assert position(net, 1100, 100.0235) == 100.010  # the late answer: latched at 100.010
+    assert position(net, 1200, 100.0245) == 100.020  # the answer to 100.020, on time
+    net.notify(SYNC, bytearray(), 100.030)
+    assert position(net, 1300, 100.034) == 100.030
+
+
+def test_an_answer_after_a_silence_is_the_newest_syncs(network: canopen.Network) -> None:
+    """A TPDO back after several SYNCs without an answer (a drive silent, a bus back) answers the
+    newest SYNC, not the one before it."""
+    net = network
+    net.notify(SYNC, bytearray(), 100.000)
+    assert position(net, 1000, 100.004) == 100.000
+    for k in range(1, 5):
+        net.notify(SYNC, bytearray(), 100.000 + 0.010 * k)
+    assert position(net, 1400, 100.043) == pytest.approx(100.040)

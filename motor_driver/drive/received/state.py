@@ -81,6 +81,9 @@ NOBODY: Others = ("", False, "", "", 0)
 _EMCY_HEAD = struct.Struct("<HB")
 #: A drive's EMCY log lines: at most one every this long (the others counted, said with the next).
 EMCY_LOG_PERIOD_S = 1.0
+#: A synchronous TPDO not yet heard counts as having answered this many SYNCs before the first:
+#: its first answer is taken for the newest SYNC's, never for a late one.
+NEVER_ANSWERED = 10
 
 
 #: One TPDO's decoding, read once a frame: (unpack, objects, sent every SYNC, carries the statusword)
@@ -115,16 +118,16 @@ class DriveCache:
         self.positions = PositionFilter(config.node_id, sync_period_s)  # others read it; only this module calls it
         self.set_scale(scale)
         # receive thread
-        self._fault_seq = 0  # FAULT statuswords seen
-        self._fault_word = 0  # the last of them
+        self._fault_seq, self._fault_word = 0, 0  # FAULT statuswords seen, the last of them
         # positions taken; statuswords received (one that arrives after a frame was sent has a higher number)
         self.position_seq = self.status_seq = 0
         self.tpdo_count = 0
         self.emcy_count = 0  # EMCYs received (logged or not)
         self.sync_tpdos = 0  # TPDOs received of those sent every SYNC (frame loss: expected per SYNC)
-        # the bus stamp of the newest SYNC heard (when the next synchronous TPDOs measured), and the
-        # SYNC stamp each synchronous TPDO took last
-        self._sync_stamp, self._sync_answered = 0.0, dict.fromkeys(self._per_sync, 0.0)
+        # the bus stamps of the newest SYNC heard (when the next synchronous TPDOs measured) and of the
+        # one before, the SYNCs heard, and the count of the SYNC each synchronous TPDO answered last
+        self._sync_stamp, self._prev_sync_stamp, self._syncs, self._sync_answered = (
+            0.0, 0.0, 0, dict.fromkeys(self._per_sync, -NEVER_ANSWERED))
         self.heartbeats = 0  # heartbeats (or guard answers) received
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
@@ -310,20 +313,27 @@ class DriveCache:
     def on_sync(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         """A SYNC on this drive's bus (its stamp: when it was on the bus): the moment the drive
         latches what its next synchronous TPDOs carry (CiA 402)."""
-        self._sync_stamp = timestamp
+        self._prev_sync_stamp, self._sync_stamp = self._sync_stamp, timestamp
+        self._syncs += 1
 
     def _measured_at(self, cob_id: int, timestamp: float) -> float:
         """When a TPDO received with the bus stamp ``timestamp`` measured what it carries: a
         synchronous one at the SYNC before it (CiA 402 drives latch their actual values at the
         SYNC; its answer comes within the SYNC period, CiA 301's synchronous window), any other when
-        it was sent. Where that SYNC was taken by an earlier frame of this TPDO (a SYNC not heard,
-        a late answer), or none came within the period (a bus that does not show this driver its
-        own SYNC: a kernel socket sending it), the frame's own stamp stands."""
-        if cob_id in self._per_sync:
-            sync = self._sync_stamp
-            if 0.0 <= timestamp - sync < self.sync_period_s and self._sync_answered.get(cob_id) != sync:
-                self._sync_answered[cob_id] = sync
-                return sync
+        it was sent. A TPDO that answered every SYNC until the one before the newest and comes after
+        the newest is the late answer to that one (latched there: stamped with it, never one period
+        too new); one back after a longer silence answers the newest. Where the newest SYNC was taken
+        by an earlier frame of this TPDO (a SYNC not heard), or none came within the period (a bus
+        that does not show this driver its own SYNC: a kernel socket sending it), the frame's own
+        stamp stands."""
+        if cob_id in self._per_sync and 0.0 <= timestamp - self._sync_stamp < self.sync_period_s:
+            behind = self._syncs - self._sync_answered[cob_id]
+            if behind == 2:
+                self._sync_answered[cob_id] = self._syncs - 1
+                return self._prev_sync_stamp
+            if behind >= 1:
+                self._sync_answered[cob_id] = self._syncs
+                return self._sync_stamp
         return timestamp
 
     def on_tpdo(self, cob_id: int, data: bytearray, timestamp: float) -> None:
