@@ -225,6 +225,9 @@ class BusHandle:
             if isinstance(task, can.broadcastmanager.ThreadBasedCyclicSendTask):
                 self.foreign.set_own_sync(0.0)
                 task.on_error = self._sync_failed
+                # its sends take the network's lock, as every other writer of this socket does (a
+                # lock of its own let a SYNC's text interleave with an RPDO's on a TCP bus)
+                task.send_lock = self.network.send_lock
             if isinstance(task, can.broadcastmanager.RestartableCyclicTaskABC):
                 task.start()
 
@@ -250,7 +253,8 @@ class BusHandle:
         try:
             beat = can.Message(arbitration_id=FunctionCode.HEARTBEAT + host_node_id, data=bytes([NmtState.OPERATIONAL]),
                                is_extended_id=False)
-            self.bus.send(beat)
+            with self.network.send_lock:  # one writer of the socket at a time (RPDOs, SDO, SYNC)
+                self.bus.send(beat)
             self.host_beats += 1
             if self.recorder is not None:
                 self.recorder.record_sent(self.name, beat)
