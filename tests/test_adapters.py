@@ -35,7 +35,7 @@ from motor_driver.bus.connect import open_bus
 from virtual_can import SimService
 from virtual_can.client import format_frame
 
-from .conftest import received_id, wait_for
+from .conftest import on_the_bus, received_id, wait_for
 
 
 def test_the_socketcand_client_keeps_its_socket_where_connection_closed_looks() -> None:
@@ -328,14 +328,18 @@ def test_a_network_sends_on_the_server_directly_and_on_the_new_bus_after_a_recon
     first, second, peer = buses
     network = GuardedNetwork(first)
     try:
+        on_the_bus(sim.server, 3)  # the peer listens before anything is sent
         told: list[tuple[int, bytes | bytearray, bool]] = []
         network.on_sent = lambda *frame: told.append(frame)
         network.send_message(0x201, b"\x0f\x00\x10\x27")
+        assert network._sender[0] is first and network._sender[1] is not None  # the direct path, not canopen's
         heard = peer.recv(10.0)
         assert heard is not None and (heard.arbitration_id, bytes(heard.data)) == (0x201, b"\x0f\x00\x10\x27")
         first.shutdown()
         network.bus = second
+        on_the_bus(sim.server, 2)
         network.send_message(0x12345, b"")
+        assert network._sender[0] is second and network._sender[1] is not None
         heard = peer.recv(10.0)
         assert heard is not None and (heard.arbitration_id, heard.is_extended_id, heard.dlc) == (0x12345, True, 0)
         assert told == [(0x201, b"\x0f\x00\x10\x27", False), (0x12345, b"", False)]
