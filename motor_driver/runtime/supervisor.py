@@ -315,7 +315,9 @@ class Supervisor:
             record.host_loss_seen = drive.boot.host_loss_stops
             self._incident("host_loss_stop", drive, "the drive had stopped itself: the host was gone (0x8130)")
         channel = drive.channel
-        if channel.velocity_commanded and now - channel.last_velocity_cmd > cfg.watchdog_s:
+        if not channel.velocity_commanded:
+            return  # the watchdog and the limit guard watch a live velocity or torque command only
+        if now - channel.last_velocity_cmd > cfg.watchdog_s:
             logger.warning("%s: no velocity command for %.0f ms (watchdog %.0f ms); stopping",
                            drive.name, (now - channel.last_velocity_cmd) * 1000, cfg.watchdog_s * 1000)
             if drive.limits.stop_velocity():
@@ -330,12 +332,12 @@ class Supervisor:
         if cache.guarding and now >= record.next_guard and not record.lost_since:  # a lost drive's life guard trips
             record.next_guard = max(record.next_guard + cfg.heartbeat_period_s, now)
             drive.watch.send_guard()
-        if record.booted and not record.lost and cache.last_heartbeat and \
-                now - cache.last_heartbeat > cfg.heartbeat_timeout_s:
+        heard = cache.last_heartbeat  # read once: the receive thread may renew it meanwhile
+        if record.booted and not record.lost and heard and now - heard > cfg.heartbeat_timeout_s:
             record.lost, record.lost_since = True, now
             logger.error("node %d (%s): heartbeat lost (none for %.0f ms, consumer time %.0f ms); telling it to stop"
                          " (quick stop by RPDO and SDO, NMT stop) until it is heard again", drive.node_id, drive.name,
-                         (now - cache.last_heartbeat) * 1000, cfg.heartbeat_timeout_s * 1000)
+                         (now - heard) * 1000, cfg.heartbeat_timeout_s * 1000)
             self._stop_lost(drive, record, now)
             self.handles[cfg.bus].worker.submit(self.faults.supervised(  # its RPDO copy is repeated meanwhile
                 "stop_by_sdo", drive.name, drive.watch.quick_stop_lost_by_sdo))
@@ -355,9 +357,12 @@ class Supervisor:
         if self._take_over:
             return  # told to take the bus over: the other master's traffic is expected
         foreign = self.handles[drive.config.bus].foreign
-        evidence = foreign.evidence(drive.node_id, now - FOREIGN_HOLD_S)
+        since = now - FOREIGN_HOLD_S
+        evidence = foreign.evidence(drive.node_id, since)
         changes = (record.behind_back, drive.cache.behind_back)
-        evidence = "; ".join(filter(None, (evidence, *(what for when, what in changes if when > now - FOREIGN_HOLD_S))))
+        if not evidence and not record.foreign_master and changes[0][0] <= since and changes[1][0] <= since:
+            return  # nothing of another master's, none marked: the usual answer, without building one
+        evidence = "; ".join(filter(None, (evidence, *(what for when, what in changes if when > since))))
         if evidence and not record.foreign_master:
             stopped = drive.watch.lose_control(evidence)
             if stopped is None:

@@ -37,6 +37,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import NamedTuple
 
 from can_config.errors import CommandRejected, DriveStateError
 from can_config.objects import OD, OperationMode
@@ -44,7 +45,7 @@ from motor_driver.drive.command.busy import BusyRegistry, Op
 from motor_driver.drive.command.setpoint import SetpointHandshake
 from motor_driver.drive.constants import COMMAND_LOCK_WAIT_S, ENABLED_CW_MASK
 from motor_driver.protocol.cia402 import CW, Command, controlword
-from motor_driver.protocol.pdo import PdoPlan, encode_rpdo
+from motor_driver.protocol.pdo import PdoMap, PdoPlan, encode_rpdo
 
 logger = logging.getLogger(__name__)
 
@@ -83,6 +84,8 @@ class CommandChannel:
         self.last_velocity_cmd = 0.0
         self._handshake = SetpointHandshake(self._send_setpoint, self._clear_setpoint)
         self._hook: Callable[[str], None] | None = None
+        #: each streamed mode: its set-point's frame (:class:`StreamFrame`), judged once from the plan (frozen)
+        self._streams = {mode: StreamFrame.of(plan, cw, target) for mode, (cw, target) in _STREAM_CW_TARGET.items()}
 
     # ------------------------------------------------------------------ reading
     @property
@@ -382,6 +385,31 @@ class CommandChannel:
         self._wake()
 
 
+class StreamFrame(NamedTuple):
+    """A streamed set-point's frame in one mode: its controlword, its target object and the RPDO
+    that carries both (None: the target goes by SDO), with the order of the two in its payload
+    (``cw_first``; None: that RPDO maps more, and the payload is :func:`encode_rpdo`'s)."""
+
+    cw: int
+    target: int
+    pdo: PdoMap | None
+    cw_first: bool | None
+
+    @classmethod
+    def of(cls, plan: PdoPlan, cw: int, target: int) -> StreamFrame:
+        pdo = plan.rpdo_with(target)
+        indexes = pdo.indexes if pdo is not None else ()
+        pair = sorted(indexes) == sorted((_CONTROLWORD, target))
+        return cls(cw, target, pdo, indexes[0] == _CONTROLWORD if pair else None)
+
+    def payload(self, pdo: PdoMap, counts: int) -> bytes:
+        """``pdo``'s (this frame's RPDO) bytes for a target of ``counts``: encode_rpdo's, packed without a
+        mapping built for each set-point (tests/test_stream_frame.py holds the two equal)."""
+        if self.cw_first is None:
+            return encode_rpdo(pdo, {_CONTROLWORD: self.cw, self.target: counts})
+        return pdo.codec.pack(self.cw, counts) if self.cw_first else pdo.codec.pack(counts, self.cw)
+
+
 class LockedCommand:
     """One command holding the channel's lock (taken on enter, released on exit), handed out by
     :meth:`CommandChannel.command`: the frames it may send, each checking that this driver's last
@@ -439,12 +467,12 @@ class LockedCommand:
         c = self._c
         c._require_enabled_word(self._doing)
         c.target_counts = counts
-        cw, target = _STREAM_CW_TARGET[mode]  # IP: "enable ip mode", the drive follows 0x60C1:1 at each SYNC
-        pdo = c._plan.rpdo_with(target)
+        frame = c._streams[mode]  # IP: "enable ip mode", the drive follows 0x60C1:1 at each SYNC
+        pdo = frame.pdo
         if pdo is not None and not sdo_written:
-            c._send(pdo.cob_id, encode_rpdo(pdo, {_CONTROLWORD: cw, target: counts}))
+            c._send(pdo.cob_id, frame.payload(pdo, counts))
         else:
-            c._send_rpdo_cw(cw)
+            c._send_rpdo_cw(frame.cw)
 
     def halt(self, on: bool) -> None:
         c = self._c

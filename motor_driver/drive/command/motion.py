@@ -69,6 +69,10 @@ class Motion:
         self.name, self.node_id = config.name, config.node_id
         self._power = power
         self._limits = limits
+        #: each streamed mode by number: the mode, what its set-point is called, its target object and
+        #: whether only an SDO takes that target (no RPDO maps it); judged once from the plan, which is frozen
+        self._streams = {int(m): (m, doing, target, plan.rpdo_with(target) is None)
+                         for m, (doing, target) in _STREAMED.items()}
 
     # ------------------------------------------------------------------ checks
     def require_resolution(self, doing: str) -> None:
@@ -79,13 +83,15 @@ class Motion:
                                   " degrees cannot be turned into the drive's units. Set counts_per_rev for this drive"
                                   " (bench: --counts-per-rev N). Nothing was sent.")
 
-    def _require_enabled(self, doing: str, live: bool = True) -> None:
+    def _require_enabled(self, doing: str, live: bool = True, *, admitted: bool = False) -> None:
         """Read from the drive's verdict: a set-point that moves (``live``) needs it usable; a zero
         (a stop) is taken on late data too, while the state that data last said is Operation
         Enabled (a drive that stopped itself meanwhile must not be sent Enable Operation again:
         on a quick-stop option code 5-7 that is transition 16, back to Operation Enabled). Besides
-        the verdict, this driver's own last controlword must be Enable Operation (no stop of ours since)."""
-        self._channel.admit(doing)  # motion held (the lifecycle node inactive) is said before "not enabled"
+        the verdict, this driver's own last controlword must be Enable Operation (no stop of ours since).
+        ``admitted``: the channel's command that holds its lock has asked :meth:`CommandChannel.admit`."""
+        if not admitted:
+            self._channel.admit(doing)  # motion held (the lifecycle node inactive) is said before "not enabled"
         verdict = self._power.require_usable(doing, fresh=live)
         word_enabled = self._channel.cw & ENABLED_CW_MASK == ENABLED_CW_MASK
         if verdict.condition is Condition.USABLE and word_enabled:
@@ -132,8 +138,9 @@ class Motion:
     def _require_motion(self, mode: OperationMode, doing: str, live: bool = True) -> None:
         """Inside the channel, right before a motion frame, decided with it as one step: the drive
         is usable, this driver's last controlword was Enable Operation (no stop since), the last
-        statusword said Operation Enabled, and the mode is still ``mode``."""
-        self._require_enabled(doing, live)
+        statusword said Operation Enabled, and the mode is still ``mode``. Motion held was asked by
+        the channel's command itself, under the same lock (a hold takes it: it cannot come between)."""
+        self._require_enabled(doing, live, admitted=True)
         if self._cache.received.mode != mode:
             raise CommandRejected(f"{self.name}: {doing} refused: the drive left {mode.name} meanwhile (now"
                                   f" {self._cache.received.mode}); nothing was sent. Send it again.")
@@ -384,15 +391,13 @@ class Motion:
         over two SYNC periods) from the previous one: a streamed trajectory must be smooth.
         """
         counts = self._position_target_counts(angle_deg)
-        streaming = _STREAMING.get(self._cache.received.mode)  # one read decides: streaming already, or not
-        if streaming is None and at_once:  # a switch first (the supported modes may take an SDO too)
+        stream = self._streams.get(self._cache.received.mode)  # one read decides: streaming already, or not
+        if stream is None and at_once:  # a switch first (the supported modes may take an SDO too)
             self._require_free_and_enabled("a streamed set-point")
             self._would_wait(True, "a streamed set-point", "a switch to a streamed position mode first")
-        mode = streaming or self._mode_to_stream_in()
-        doing, target = _STREAMED[mode]
-        by_sdo = self._plan.rpdo_with(target) is None
-        if by_sdo or streaming is None:  # before an SDO or a mode switch; streaming by RPDO
-            switching = streaming is None
+        switching = stream is None
+        mode, doing, target, by_sdo = stream or self._streams[self._mode_to_stream_in()]
+        if by_sdo or switching:  # before an SDO or a mode switch; streaming by RPDO
             self._ensure_mode(mode, doing, at_once)  # already, the channel decides busy, enabled and mode with the frame
             if by_sdo:
                 self._would_wait(at_once, doing, "its target written by SDO")

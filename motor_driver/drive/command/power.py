@@ -80,7 +80,8 @@ class PowerStateMachine:
             raise DriveStateError(f"{self.name} (node {self.node_id}): {doing}: the driver is shut down;"
                                   " nothing was sent", node_id=self.node_id)
         verdict = self.verdict()
-        if verdict.condition in UNREACHABLE or (fresh and verdict.condition is Condition.LATE):
+        condition = verdict.condition
+        if condition is not Condition.USABLE and (condition in UNREACHABLE or (fresh and condition is Condition.LATE)):
             raise DriveStateError(f"{verdict.text()} ({doing} refused; nothing was sent)", node_id=self.node_id)
         return verdict
 
