@@ -234,6 +234,11 @@ def test_homing_attained_with_no_position_after_it_is_an_error_not_the_old_angle
     def silence(point: str) -> None:
         if point == "home: attained":
             runner.call(lambda: setattr(runner.drive(1).faults, "tpdo_silent", True))
+            # a TPDO the drive sent before it fell silent may still be on its way (a loaded CI run
+            # took one for the new position): its second heartbeat after, from the same connection
+            # and so behind it, heard by the driver, says every earlier frame was
+            heard = drive.cache.heartbeats
+            wait_for(lambda: drive.cache.heartbeats >= heard + 2, 30.0, "two heartbeats after the silence")
 
     drive.channel.set_hook(silence)
     with pytest.raises(DriveTimeoutError, match="homing attained, but no position came from the drive"):
