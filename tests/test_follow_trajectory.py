@@ -38,6 +38,7 @@ from .conftest import (
     requires_ros,
     wait_for,
 )
+from .test_follow import syncs_between
 
 pytestmark = requires_ros
 
@@ -209,21 +210,12 @@ def test_the_plan_runs_from_its_acceptance(rig: Rig) -> None:
 #: joint_trajectory_controller's promise as issue 70 judges it: the measured positions against the
 #: plan timed from the goal's acceptance, over the run, within this RMS and this maximum (deg)
 TRACKING_RMS_DEG, TRACKING_MAX_DEG = 0.5, 1.5
-#: On the wire: SYNC 0x080, and joint1's CSP set-point (RPDO2 of node 1).
-SYNC, JOINT1_SETPOINT = 0x080, 0x301
 
 
 def longest_silence(frames: list[can.Message]) -> int:
     """The most SYNCs the bus carried between two of joint1's set-points (by the order of frames,
-    heard by a listener of the test's own; none before the first): 1 where the group's thread kept
-    pace."""
-    longest, syncs = 0, None  # None: before the first set-point (the goal's checks and mode switch)
-    for msg in frames:
-        if msg.arbitration_id == SYNC and syncs is not None:
-            syncs += 1
-        elif msg.arbitration_id == JOINT1_SETPOINT:
-            longest, syncs = max(longest, syncs or 0), 0
-    return longest
+    heard by a listener of the test's own): 1 where the group's thread kept pace."""
+    return max(syncs_between(frames, 1), default=0)
 
 
 def tracking_errors(rig: Rig, start_s: float, amplitude_deg: float, duration_s: float) -> list[float]:
