@@ -366,6 +366,16 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, said: C
         time.sleep(0.005)
 
 
+def stop_reason(status: Any, ends: str) -> str | None:
+    """The drive system's stop reason in a /diagnostics status when it ends with ``ends``, else
+    None. health() says "stopped: <reason>" and, while odometry is not trusted, "; <why not>"
+    after it: that tail must be the status's own "odometry" value (under load a wheel's first
+    PDOs come late and odometry says so beside the stop)."""
+    reason, found, after = status.message.partition(ends)
+    odometry = next((kv.value for kv in status.values if kv.key == "odometry"), "")
+    return reason + found if found and after in ("", f"; {odometry}") else None
+
+
 def publish_until(publish: Callable[[], object], done: Callable[[], bool], timeout_s: float, what: str,
                   period_s: float = 0.05) -> None:
     """Publish a stream (every ``period_s``) until ``done``: its outcome, not a span of the wall

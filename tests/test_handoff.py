@@ -33,6 +33,7 @@ from .conftest import (
     in_process_stale_after_syncs,
     make_config,
     requires_ros,
+    stop_reason,
     wait_for,
 )
 
@@ -337,9 +338,10 @@ def test_a_wheels_velocity_refused_on_the_worker_stops_every_wheel() -> None:
         # every wheel stops on the simulated drives (no /cmd_vel is sent after the halt)
         wait_for(lambda: rover.sim_stopped(LEFT + RIGHT), 30.0, "every simulated wheel stopped",
                  lambda: str({n: rover.sim_speed_rad_s(n) for n in LEFT + RIGHT}))
-        said = [st.message for array in rover.diags for st in array.status if st.name == "rovercan: drive_system"
+        said = [st for array in rover.diags for st in array.status if st.name == "rovercan: drive_system"
                 and "wheel wheel_rear_right refused" in st.message]
-        assert said[0].startswith("stopped: /cmd_vel not applied: wheel wheel_rear_right refused") \
-            and "0x6061 never showed the mode (the test's)" in said[0] and said[0].endswith("every wheel stopped"), said
+        reason = stop_reason(said[0], "; every wheel stopped")
+        assert reason is not None and reason.startswith("stopped: /cmd_vel not applied: wheel wheel_rear_right refused") \
+            and "0x6061 never showed the mode (the test's)" in reason, [st.message for st in said]
     finally:
         rover.close()
