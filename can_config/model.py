@@ -120,6 +120,13 @@ class SimModelConfig:
     velocity_ki: float | None = key("opt_float", None, 0.0, 1_000_000.0, unit="Nm/rad",
                                     help="velocity integral gain (default: from the bandwidth)")
     velocity_ff: float = key("float", 1.0, 0.0, 2.0, help="velocity feed-forward")
+    sync_answer_delay_s: float = key(
+        "float", 0.0, 0.0, 1000.0, yaml="sync_answer_delay_ms", scale=1000, unit="ms",
+        help="its synchronous TPDOs leave this long after the SYNC, with the values of the SYNC's moment"
+             " (a slow drive, a busy bus); its frames stay in order")
+    sync_answer_jitter_s: float = key(
+        "float", 0.0, 0.0, 1000.0, yaml="sync_answer_jitter_ms", scale=1000, unit="ms",
+        help="plus a random 0 to this much each SYNC, the drive's frames still in order")
 
 
 @dataclass(frozen=True)

@@ -157,14 +157,14 @@ def _sim_on_bus(args: argparse.Namespace) -> int:
 
     from can_config import load_drive_od
     from can_config.config import GENERIC_EDS
-    from virtual_can.sim import DriveSimulator, MotorParams, SimulatedDrive
+    from virtual_can.service import specs_from_config
+    from virtual_can.sim import DriveSimulator, SimulatedDrive
 
     if args.config:
         config = load_config(args.config)
         served = _config_bus_for(config, args.config, getattr(args, "bus_channel", None))
-        drives = [SimulatedDrive(d.node_id, load_drive_od(d.eds, d.node_id),
-                                 MotorParams.from_model(d.sim, d.counts_per_rev), name=d.name)
-                  for d in config.drives if d.bus == served]
+        drives = [spec.drive() for spec, d in zip(specs_from_config(config), config.drives, strict=True)
+                  if d.bus == served]
     else:
         eds = Path(args.eds) if args.eds else GENERIC_EDS
         drives = [SimulatedDrive(i, load_drive_od(eds, i)) for i in range(1, args.drives + 1)]

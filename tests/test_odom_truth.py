@@ -54,14 +54,21 @@ HOST_TIMEOUT_S, HEARTBEAT_TIMEOUT_S = 2.0, 2.5
 
 class Rover:
     def __init__(self, on_wheel_loss: str, sync_period_s: dict[str, float] | None = None, *,
-                 sim_tick_s: float | None = None) -> None:
+                 sim_tick_s: float | None = None, sync_answer_s: dict[str, tuple[float, float]] | None = None) -> None:
         """``sync_period_s``: a bus's SYNC period other than the shipped one (by bus name);
-        ``sim_tick_s``: the simulated drives' physics tick other than the simulator's own."""
+        ``sim_tick_s``: the simulated drives' physics tick other than the simulator's own;
+        ``sync_answer_s``: a bus's simulated drives answer SYNC late, from their start, by (delay,
+        random 0 to jitter) (their ``sim:`` keys sync_answer_delay_ms and sync_answer_jitter_ms)."""
         config = load_config(REPO / "config" / "rover.yaml")
         assert config.drive_system is not None
         if sync_period_s:
             config = dataclasses.replace(config, buses=tuple(
                 dataclasses.replace(b, sync_period_s=sync_period_s.get(b.name, b.sync_period_s)) for b in config.buses))
+        late = sync_answer_s or {}
+        config = dataclasses.replace(config, drives=tuple(
+            dataclasses.replace(d, sim=dataclasses.replace(d.sim, sync_answer_delay_s=late[d.bus][0],
+                                                           sync_answer_jitter_s=late[d.bus][1]))
+            if d.bus in late else d for d in config.drives))
         drives = tuple(dataclasses.replace(d, host_timeout_s=HOST_TIMEOUT_S, heartbeat_timeout_s=HEARTBEAT_TIMEOUT_S,
                                            stale_after_syncs=in_process_stale_after_syncs(config.bus(d.bus).sync_period_s))
                        for d in config.drives)

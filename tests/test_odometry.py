@@ -148,7 +148,7 @@ def test_buses_with_skewed_syncs_are_paired_by_when_they_measured(skew_s: float,
     """Two buses, SYNC every 10 ms, can1's ``skew_s`` after can0's; the step reads each side's
     newest sample at 20 ms, whatever SYNC it came from, each received late by its own jitter (a
     receive thread's wake-up) but stamped on the bus when it was sent. Every wheel turns alike:
-    once each wheel has been received with its least lateness (the alignment of bus stamps to the
+    once a wheel has been received with the least lateness (the alignment of bus stamps to the
     receive clock learns it), the heading stays 0 at every step (within the alignment's slew allowance, OFFSET_DRIFT_S a
     sample, and a straight line between two samples 10 ms apart at ACCEL_RAD_S2: 2e-4 rad; a sample
     of one SYNC paired with one of another is 0.017 rad at 10 rad/s),
@@ -174,3 +174,55 @@ def test_buses_with_skewed_syncs_are_paired_by_when_they_measured(skew_s: float,
     assert step.trusted and step.measured_at
     assert math.isclose(step.pose.x_m, rate * travelled_s(step.measured_at - mono_minus_wall - 0.0005 - 1.5) * RADIUS_M,
                         rel_tol=0.01, abs_tol=abs(rate) * 0.005 * RADIUS_M + 1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(late_s=st.floats(0.01, 0.08), jitter=st.lists(st.floats(0.0, 0.005), min_size=1, max_size=8),
+       rate=st.floats(5.0, 10.0))
+def test_a_bus_answering_its_syncs_late_is_paired_at_its_syncs(late_s: float, jitter: list[float],
+                                                              rate: float) -> None:
+    """can0 SYNCs every 61 ms and its drives answer at once; can1 SYNCs every 89 ms and its drives
+    answer ``late_s`` after each SYNC, from the start (a slow drive, a busy bus's arbitration; within
+    the SYNC period), each wheel received a little later still by its own jitter (a receive thread's
+    wake-up). Every sample is stamped with its SYNC (the driver's stamp); the step reads each
+    wheel's newest received sample every 20 ms. Every wheel turns alike, so the heading stays 0:
+    while cruising within the alignment's slew (as above), while speeding up within a straight line
+    between samples 89 ms apart at ACCEL_RAD_S2 (10 * 0.089^2 / 8 rad at the wheel, 1.7 mrad; can1's
+    newest SYNC is up to 89 + 80 ms old, older than a can0 wheel's previous sample: with two samples
+    kept, a wheel could not start until they happened to cover it, and lines bridged 150 ms, 4.7
+    mrad), and the rover drives from the start. The receive-minus-bus-time
+    difference of can1's wheels is their lateness plus the clocks' offset: taken for the clocks'
+    offset (a wheel's own least), it stamped can1's samples when they came, and the heading leaned by
+    rate * 0.1 m * late_s / 0.6 m while moving (8 mrad at 10 ms and 5 rad/s; 25 at 30 ms)."""
+    odo = odometry()
+    mono_minus_wall = 5000.0  # the receive clock (monotonic) against the bus stamps' (wall)
+    ramp_s = rate / ACCEL_RAD_S2
+    buses = {LEFT: (0.061, 0.0), RIGHT: (0.089, late_s)}  # side: (SYNC period, its drives' lateness)
+
+    def travelled_s(t: float) -> float:  # seconds at full speed: from standing at 1.5 s, at ACCEL_RAD_S2
+        t -= 1.5
+        return 0.0 if t <= 0.0 else 0.5 * t * t / ramp_s if t < ramp_s else t - 0.5 * ramp_s
+
+    def newest(side: tuple[str, ...], now: float, k: int) -> dict[str, WheelSample]:
+        """Each wheel's newest sample received by ``now`` (receive clock)."""
+        period, late = buses[side]
+        out = {}
+        for i, name in enumerate(side):
+            came = late + 0.0005 + jitter[(k + i) % len(jitter)]  # after its SYNC
+            sync = math.floor((now - mono_minus_wall - came) / period) * period
+            out[name] = WheelSample(rate * travelled_s(sync), sync + mono_minus_wall + came, 1, bus_stamp=sync)
+        return out
+
+    worst = {"speeding up": 0.0, "cruising": 0.0}
+    measured, at = 0, 0.0
+    for k in range(1, 200):  # 4 s: standing 1.5 s (the alignment learns the clocks), then driving
+        now = mono_minus_wall + 0.5 + k * 0.02 + 0.003
+        step = odo.step(newest(LEFT, now, k) | newest(RIGHT, now, k + 3))
+        # cruising once every sample a step may reach back to (at most 89 + 80 + 5.5 ms) was of full speed
+        phase = "cruising" if now - mono_minus_wall > 1.5 + ramp_s + 0.2 else "speeding up"
+        worst[phase] = max(worst[phase], abs(step.pose.yaw_rad))
+        if step.trusted and step.measured_at:
+            measured, at = measured + 1, step.measured_at
+    assert worst["cruising"] < 2e-4 and worst["speeding up"] < 2e-3, worst
+    want_m = rate * travelled_s(at - mono_minus_wall - 0.0005) * RADIUS_M  # the instant of can0's lateness, 0.5 ms
+    assert measured > 40 and abs(step.pose.x_m - want_m) < 0.01, (measured, step.pose, want_m)  # from the start

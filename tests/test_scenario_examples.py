@@ -44,6 +44,9 @@ def _model(sim: SimService, step: dict[str, Any]) -> Any:
     """What the step's drive (or channel) now holds, read on its simulator's thread."""
     if step["action"] == "frames":
         return sim.engine.channel(step.get("channel", "can0")).faults
+    if "node" not in step:  # every drive of its channel (sync_answer)
+        simulator = sim.simulators[step["channel"]]
+        return [simulator.call(lambda d=d: _copy(d)) for d in simulator.drives.values()]
     simulator = sim.simulator_for(step["node"], step.get("channel"))
     drive = simulator.drive(step["node"])
     return simulator.call(lambda: _copy(drive))
@@ -57,7 +60,8 @@ def _copy(drive: SimulatedDrive) -> dict[str, Any]:
             "enable_step_delay_s": faults.enable_step_delay_s, "ack_delay_max_s": faults.ack_delay_max_s,
             "stalled": faults.stalled, "load_nm": drive.params.load_nm, "off": faults.power_off_until > 0,
             "statusword": drive.statusword, "reset_at_writes": list(faults.reset_at_writes),
-            "reset_at_object": faults.reset_at_object, "reset_answers": faults.reset_answers}
+            "reset_at_object": faults.reset_at_object, "reset_answers": faults.reset_answers,
+            "sync_answer": (faults.sync_delay_s, faults.sync_jitter_s)}
 
 
 #: What each action's step must leave in the model: a check of (model, step).
@@ -80,6 +84,8 @@ EFFECTS: dict[str, Callable[[Any, dict[str, Any]], bool]] = {
     "sdo_reset": lambda m, s: (m["reset_at_writes"] == list(s.get("at_writes", []))
                                and m["reset_at_object"] == ((s["index"], s.get("subindex")) if "index" in s else None)
                                and m["reset_answers"] == s.get("answer", True)),
+    "sync_answer": lambda m, s: all(d["sync_answer"] == (s.get("delay_s", 0.0), s.get("jitter_s", 0.0))
+                                    for d in (m if isinstance(m, list) else [m])),
 }
 
 
@@ -144,6 +150,10 @@ def test_on_true_restores_the_tpdos(tmp_path: Path, sim: SimService) -> None:
     ("{at_s: 1, node: 1, action: tpdos, on: yes}", r"line 3\).*tpdos's on is 'yes'; give true or false"),
     ("{at_s: 1, action: frames, node: 1}", r"line 3\).*frames takes no key 'node'"),
     ("{at_s: soon, node: 1, action: plug}", r"line 3\).*plug's at_s is 'soon'; give a number"),
+    ("{at_s: 1, channel: can1, action: sync_answer, delay_s: 2}",
+     r"line 3\).*sync_answer's delay_s is 2.0; give 0 to 1.0 s"),
+    ("{at_s: 1, channel: can1, action: sync_answer, jitter_s: -0.01}",
+     r"line 3\).*sync_answer's jitter_s is -0.01; give 0 to 1.0 s"),
 ])
 def test_a_step_that_is_not_one_is_refused_with_its_line(tmp_path: Path, step: str, refusal: str) -> None:
     path = tmp_path / "bad.yaml"

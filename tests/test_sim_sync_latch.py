@@ -65,3 +65,31 @@ def test_a_sync_tpdo_carries_the_position_at_the_syncs_moment(into_tick: float, 
     assert abs(latched - last_tick) > 0.5 * SPEED_COUNTS_S * into_tick  # not the last tick's
     drive.tick(now + TICK_S, TICK_S)
     assert drive.store.values[(OD.POSITION_ACTUAL, 0)] == round(drive.position_counts)  # the tick's own again
+
+
+def test_a_late_answer_leaves_when_due_with_the_syncs_position_and_in_order() -> None:
+    """``Faults.sync_delay_s`` (a slow drive, a busy bus): a SYNC's answer is held, not sent, and
+    leaves that long after the SYNC's moment (when the runner asks at its ``next_release``, not at a
+    tick), carrying the position of the SYNC's moment; an SDO answer the drive made meanwhile leaves
+    after it, never before (one transmit queue)."""
+    drive, twin = cruising(), cruising()
+    now = 0.0
+    while now < 1.0:
+        sync(drive, now, now)
+        now += TICK_S
+        drive.tick(now, TICK_S)
+        twin.tick(now, TICK_S)
+    drive.faults.sync_delay_s = 0.03
+    at = now + 0.004
+    assert drive.on_frame(can.Message(arbitration_id=0x080, timestamp=at + BUS_AHEAD_S, is_extended_id=False), at) == []
+    twin.tick(at, 0.004)  # the plant at the SYNC's moment
+    assert drive.next_release == pytest.approx(at + 0.03)
+    upload = can.Message(arbitration_id=0x601, data=[0x40, 0x41, 0x60, 0, 0, 0, 0, 0], is_extended_id=False)
+    assert drive.on_frame(upload, at + 0.001) == []  # behind the held answer
+    drive.tick(now + TICK_S, TICK_S)  # time moves on: nothing leaves before it is due
+    assert drive.release(at + 0.029) == []
+    out = drive.release(at + 0.0301)
+    ids = [m.arbitration_id for m in out]
+    assert POSITION_TPDO in ids and ids[-1] == 0x581 and drive.next_release is None, [hex(i) for i in ids]
+    latched = struct.unpack("<i", out[ids.index(POSITION_TPDO)].data)[0]
+    assert abs(latched - twin.position_counts) <= 2.0, (latched, twin.position_counts)

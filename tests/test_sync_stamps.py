@@ -88,3 +88,34 @@ def test_an_answer_after_a_silence_is_the_newest_syncs(network: canopen.Network)
     for k in range(1, 5):
         net.notify(SYNC, bytearray(), 100.000 + 0.010 * k)
     assert position(net, 1400, 100.043) == pytest.approx(100.040)
+
+
+def test_an_answer_later_than_the_period_still_counts_its_sync(network: canopen.Network) -> None:
+    """An answer that comes more than a period after its SYNC (the next SYNC late too) keeps its own
+    stamp, and the SYNC it answered is counted: the next answer, after the next SYNC, is stamped with
+    that SYNC, and every one after it with its own (before: with the SYNC before, ever after)."""
+    net = network
+    net.notify(SYNC, bytearray(), 100.000)
+    assert position(net, 1000, 100.004) == 100.000
+    net.notify(SYNC, bytearray(), 100.010)
+    assert position(net, 1100, 100.0205) == 100.0205  # 10.5 ms after its SYNC: beyond the period
+    net.notify(SYNC, bytearray(), 100.022)  # the next SYNC, late
+    assert position(net, 1200, 100.024) == 100.022
+    net.notify(SYNC, bytearray(), 100.030)
+    assert position(net, 1300, 100.034) == 100.030
+
+
+def test_after_a_lost_answer_the_answers_are_the_newest_syncs_again(network: canopen.Network) -> None:
+    """One answer lost (frame loss): the next, after the next SYNC, cannot be told from a late answer
+    to the lost one's SYNC and is stamped with it; the one after it, again after the next SYNC, says
+    the drive answers the newest SYNC: stamped with it, and so on (before: a period early, ever after)."""
+    net = network
+    net.notify(SYNC, bytearray(), 100.000)
+    assert position(net, 1000, 100.004) == 100.000
+    net.notify(SYNC, bytearray(), 100.010)  # its answer lost
+    net.notify(SYNC, bytearray(), 100.020)
+    assert position(net, 1200, 100.024) == 100.010  # taken for the late answer to 100.010
+    net.notify(SYNC, bytearray(), 100.030)
+    assert position(net, 1300, 100.034) == 100.030
+    net.notify(SYNC, bytearray(), 100.040)
+    assert position(net, 1400, 100.044) == 100.040

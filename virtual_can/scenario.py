@@ -24,6 +24,8 @@
       - {at_s: 21.0, node: 1, action: guard_toggle_stuck, on: false}
       - {at_s: 16.0, node: 1, action: sdo_reset, at_writes: [15, 4]}  # resets at the 15th SDO write, again 4 later
       - {at_s: 17.0, node: 1, action: sdo_reset, index: 0x1600, subindex: 0, answer: false}
+      - {at_s: 18.0, channel: can1, action: sync_answer, delay_s: 0.03}   # every drive of can1 answers SYNC 30 ms late
+      - {at_s: 19.0, node: 2, channel: can0, action: sync_answer, delay_s: 0.005, jitter_s: 0.02}  # 5-25 ms, in order
 
 A scenario's keys are read as written: only ``true`` and ``false`` are booleans (YAML 1.2), so
 ``on`` and ``off`` (YAML 1.1's booleans, which PyYAML reads as such) are plain words here and
@@ -65,8 +67,12 @@ ACTION_KEYS: dict[str, dict[str, type]] = {
     "sdo": {**_DRIVE, "delay_s": float, "abort": int}, "disconnect_clients": {},
     "load": {**_DRIVE, "nm": float, "stall": bool}, "tx_dead": _SWITCH, "guard_toggle_stuck": _SWITCH,
     "heartbeat_deaf": _SWITCH,
-    "sdo_reset": {**_DRIVE, "at_writes": list, "index": int, "subindex": int, "answer": bool, "bootup": bool}}
+    "sdo_reset": {**_DRIVE, "at_writes": list, "index": int, "subindex": int, "answer": bool, "bootup": bool},
+    "sync_answer": {**_DRIVE, "delay_s": float, "jitter_s": float}}
 ACTIONS = tuple(ACTION_KEYS)
+#: ``sync_answer``'s delay and jitter (s): a synchronous TPDO is due within its SYNC period (CiA 301's
+#: synchronous window); a second covers any SYNC period this project configures
+SYNC_ANSWER_MAX_S = 1.0
 _KIND_NAMES = {float: "a number", int: "a whole number", bool: "true or false", str: "a name",
                list: "a whole number or a list of them"}
 
@@ -93,6 +99,8 @@ def check_step(step: Mapping[Any, Any], where: str = "scenario step") -> None:
             raise ConfigError(f"{where}: {action} takes no key {key!r}; its keys are {', '.join(allowed)}")
         if not _is_kind(value, allowed[key]):
             raise ConfigError(f"{where}: {action}'s {key} is {value!r}; give {_KIND_NAMES[allowed[key]]}")
+    if action == "sync_answer":
+        _sync_answer(step, where)
 
 
 class _Step(dict[Any, Any]):
@@ -149,6 +157,25 @@ def _arm_sdo_reset(drive: SimulatedDrive, step: Mapping[str, Any]) -> None:
     faults.reset_pending = False
 
 
+#: switches that are on unless ``on: false``, each the drive's Faults field of its name: tx_dead (it
+#: hears and obeys, sends nothing: a broken TX line), guard_toggle_stuck (its node-guarding answers
+#: keep toggle bit 0), heartbeat_deaf (it stops hearing heartbeats: its RX filter, a stalled host;
+#: its host watch trips)
+_ON_SWITCHES = ("tx_dead", "guard_toggle_stuck", "heartbeat_deaf")
+
+
+def _sync_answer(step: Mapping[str, Any], where: str = "sync_answer") -> tuple[float, float]:
+    """The ``sync_answer`` action's (delay_s, jitter_s), each checked against its range."""
+    values = []
+    for key in ("delay_s", "jitter_s"):
+        value = float(step.get(key, 0.0))
+        if not 0.0 <= value <= SYNC_ANSWER_MAX_S:
+            raise ConfigError(f"{where}: sync_answer's {key} is {value!r}; give 0 to {SYNC_ANSWER_MAX_S} s"
+                              " (a late answer within the SYNC period; 0: at once)")
+        values.append(value)
+    return values[0], values[1]
+
+
 def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -> None:
     """One drive's fault switch, on its simulator's thread."""
     now = time.monotonic()
@@ -160,12 +187,8 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
         drive.raise_fault(int(step.get("code", 0x1000)))
     elif action == "tpdos":  # the drive stops (or resumes) sending its TPDOs; heartbeat and SDO go on
         drive.faults.tpdo_silent = not bool(step.get("on", False))
-    elif action == "tx_dead":  # it hears and obeys, sends nothing (a broken TX line); on: false heals it
-        drive.faults.tx_dead = bool(step.get("on", True))
-    elif action == "guard_toggle_stuck":  # its node-guarding answers keep toggle bit 0
-        drive.faults.guard_toggle_stuck = bool(step.get("on", True))
-    elif action == "heartbeat_deaf":  # it stops hearing heartbeats (its RX filter, a stalled host): its host watch trips
-        drive.faults.heartbeat_deaf = bool(step.get("on", True))
+    elif action in _ON_SWITCHES:  # on: false heals it
+        setattr(drive.faults, action, bool(step.get("on", True)))
     elif action == "slow_enable":  # each enabling transition takes delay_s
         drive.faults.enable_step_delay_s = float(step.get("delay_s", 0.0))
     elif action == "slow_ack":  # the set-point acknowledge comes 0..max_s late
@@ -178,6 +201,8 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
         drive.faults.sto_low = bool(step.get("low", True))
     elif action == "sdo_reset":  # it resets itself at the n-th SDO write from now, or at a write to an object
         _arm_sdo_reset(drive, step)
+    elif action == "sync_answer":  # its synchronous TPDOs leave delay_s (+ 0..jitter_s) after the SYNC, in order
+        drive.faults.sync_delay_s, drive.faults.sync_jitter_s = _sync_answer(step)
     elif action == "sdo":
         drive.faults.sdo_delay_s = float(step.get("delay_s", 0.0))
         abort = step.get("abort")
@@ -196,6 +221,20 @@ def apply_action(sim: SimService, step: Mapping[str, Any]) -> None:
         return
     node = int(step.get("node", 0))
     channel = step.get("channel")
+    if action == "sync_answer" and "node" not in step:  # every drive of the channel (a busy bus)
+        if channel is None:
+            raise ConfigError("sync_answer without a node needs its channel (every drive of it answers late)")
+        bus_sim = sim.simulators.get(str(channel))
+        if bus_sim is None:
+            raise ConfigError(f"sync_answer: no simulated drives on channel {channel!r}; have {', '.join(sim.simulators)}")
+        delay_s, jitter_s = _sync_answer(step)
+
+        def answer_late() -> None:
+            for each in bus_sim.drives.values():
+                each.faults.sync_delay_s, each.faults.sync_jitter_s = delay_s, jitter_s
+
+        bus_sim.call(answer_late)
+        return
     simulator = sim.simulator_for(node, str(channel) if channel is not None else None)
     drive = simulator.drive(node)
 

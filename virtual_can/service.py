@@ -42,6 +42,13 @@ class SimDriveSpec:
     def motor(self) -> MotorParams:
         return MotorParams.from_model(self.model, self.counts_per_rev)
 
+    def drive(self) -> SimulatedDrive:
+        """The simulated drive: its object dictionary, motor model and SYNC answer's lateness."""
+        drive = SimulatedDrive(self.node_id, load_drive_od(self.eds, self.node_id), self.motor(), name=self.name)
+        drive.faults.sync_delay_s = self.model.sync_answer_delay_s
+        drive.faults.sync_jitter_s = self.model.sync_answer_jitter_s
+        return drive
+
 
 def specs_from_config(config: RoverConfig) -> list[SimDriveSpec]:
     """The simulator as a twin of the rover: one drive per configured drive, on its bus's channel."""
@@ -96,8 +103,7 @@ class SimService:
         self._buses: list[VirtualBus] = []
         try:
             for channel in channels if drive_models else ():
-                drives = [SimulatedDrive(s.node_id, load_drive_od(s.eds, s.node_id), s.motor(), name=s.name)
-                          for s in specs if s.channel == channel]
+                drives = [s.drive() for s in specs if s.channel == channel]
                 bus = VirtualBus(channel, engine=self.engine)
                 self._buses.append(bus)
                 self.simulators[channel] = DriveSimulator(bus, drives, tick_s=tick_s, name=channel)

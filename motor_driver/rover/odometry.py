@@ -9,11 +9,14 @@ drive's verdict, ``nodes/rover/wheels.py``).
 Samples of different buses are paired by the moment they measure, not by the step that reads them:
 each step integrates up to one common instant, the oldest newest sample of the wheels that count
 (:attr:`OdometryStep.measured_at`), and every wheel's position at that instant is interpolated
-between two of its own samples (its position at the last instant, its previous and its newest
-sample; never extrapolated). Two buses whose SYNCs are apart (each bus has its own) thus give the
-heading the wheels had at one moment: the left side's newest sample is no longer paired with the
-right side's of a SYNC earlier. An interpolation error is not lost either: the next step's delta
-starts from the same interpolated point, so each wheel's sum of deltas is its own travel.
+between two of its own samples (its position at the last instant and its RAW_SAMPLES newest
+samples; never extrapolated). A sample's instant is its bus stamp (a synchronous TPDO's: the SYNC it
+answers) on the receive clock, by one offset for every wheel (the least receive-minus-bus-time
+difference any wheel shows): a bus whose drives answer their SYNC late is still paired at its SYNCs.
+Two buses whose SYNCs are apart (each bus has its own) thus give the heading the wheels had at one
+moment: the left side's newest sample is no longer paired with the right side's of a SYNC earlier.
+An interpolation error is not lost either: the next step's delta starts from the same interpolated
+point, so each wheel's sum of deltas is its own travel.
 
 * a sample is taken only from a wheel that is usable and heard within its PDO period
   (``WheelSample.trusted``); a wheel that cannot count (lost, out, disabled, quick-stopped,
@@ -53,9 +56,17 @@ from motor_driver.rover.skid_steer import Pose2D, Twist2D, integrate
 #: earlier than that least by more): the wall clock stepped (or the process was starved); the
 #: alignment starts anew from this frame (s)
 CLOCK_STEP_S = 0.2
-#: How far the least receive-minus-bus-time offset may rise per sample: the wall clock's slew against
-#: the monotonic clock (NTP slews at most 0.5 ms/s; 50 samples a second)
+#: How far the least receive-minus-bus-time offset may rise per step: the wall clock's slew against
+#: the monotonic clock (NTP slews at most 0.5 ms/s; 50 steps a second)
 OFFSET_DRIFT_S = 1.0e-5
+
+#: The samples of each wheel kept to interpolate its position at a common instant: the instant is
+#: the oldest newest sample of all wheels, which on another bus (a longer SYNC period, drives that
+#: answer late) may be older than this wheel's previous sample (can1's SYNC every 89 ms answered
+#: 30 ms late: up to 119 ms old, against can0's samples every 61 ms); with two, a wheel starting a
+#: reference could not start until the two happened to cover it, and a straight line from its last
+#: point over an older sample bridged more than one SYNC period
+RAW_SAMPLES = 4
 
 #: the variance published for what is not measured (a planar robot's z, roll, pitch; all of it
 #: while the odometry stands still for want of trusted wheels)
@@ -128,46 +139,55 @@ class WheelOdometry:
         #: each wheel's position at the last common instant it was counted at (or its first
         #: sample of a reference): where its next delta starts
         self._last: dict[str, WheelSample] = {}
-        #: each wheel's two newest trusted samples (newest, previous), of one reference: what its
+        #: each wheel's RAW_SAMPLES newest trusted samples (newest first), of one reference: what its
         #: position at a common instant is interpolated from
-        self._raw: dict[str, tuple[WheelSample, WheelSample | None]] = {}
+        self._raw: dict[str, tuple[WheelSample, ...]] = {}
         self._instant = 0.0  # the last common instant integrated (monotonic, s)
-        #: each wheel's least (receive time - bus stamp) seen: its bus stamps on the monotonic clock
-        self._offset: dict[str, float] = {}
+        #: the least (receive time - bus stamp) any wheel showed: the bus stamps on the monotonic clock
+        #: (one clock for every bus: the host's wall clock its kernel or bus server stamps by)
+        self._offset: float | None = None
         #: late wheels' travel already counted as their side's others' (m): taken off their next delta
         self._attributed: dict[str, float] = {}
         self._never_settled_m = 0.0  # estimates of wheels forgotten before they were heard again
 
-    def _measured(self, name: str, sample: WheelSample) -> WheelSample:
-        """``sample`` stamped when it was on the bus, on the receive times' (monotonic) clock: its
-        bus stamp plus the least offset between the two clocks its wheel showed (never later than
-        its receive time)."""
-        if not sample.bus_stamp:
-            return sample
-        seen = sample.stamp - sample.bus_stamp
-        offset = self._offset.get(name)
-        if offset is None or abs(seen - offset) > CLOCK_STEP_S:
-            offset = seen
+    def _align(self, samples: Mapping[str, WheelSample]) -> None:
+        """The offset between the bus stamps' clock and the receive times': the least (receive time -
+        bus stamp) of the wheels' samples, this step's least and the last (risen by OFFSET_DRIFT_S).
+        One for all wheels, never a wheel's own: a wheel (or a whole bus) whose answers come late
+        after its SYNC shows its lateness in that difference, and an offset of its own would take the
+        lateness for the clocks' and stamp its samples when they came, not when they measured."""
+        seen = [s.stamp - s.bus_stamp for s in samples.values() if s.trusted and s.bus_stamp]
+        if not seen:
+            return
+        least, offset = min(seen), self._offset
+        if offset is None or abs(least - offset) > CLOCK_STEP_S:
+            self._offset = least
         else:
-            offset = min(offset + OFFSET_DRIFT_S, seen)
-        self._offset[name] = offset
-        return dataclasses.replace(sample, stamp=min(sample.bus_stamp + offset, sample.stamp))
+            self._offset = min(offset + OFFSET_DRIFT_S, least)
+
+    def _measured(self, sample: WheelSample) -> WheelSample:
+        """``sample`` stamped when it was on the bus, on the receive times' (monotonic) clock: its
+        bus stamp plus the clocks' offset (:meth:`_align`; never later than its receive time)."""
+        if not sample.bus_stamp or self._offset is None:
+            return sample
+        return dataclasses.replace(sample, stamp=min(sample.bus_stamp + self._offset, sample.stamp))
 
     def _remember(self, samples: Mapping[str, WheelSample]) -> None:
         """Each trusted sample into its wheel's history (two newest, one reference), stamped when
         it was on the bus; a wheel to be forgotten loses its history."""
+        self._align(samples)
         for name, given in samples.items():
             if not math.isfinite(given.angle_rad) or (given.forget and not given.trusted):
                 self._raw.pop(name, None)
                 continue
             if not given.trusted:
                 continue
-            sample = self._measured(name, given)
+            sample = self._measured(given)
             raw = self._raw.get(name)
             if raw is None or raw[0].reference != sample.reference:
-                self._raw[name] = (sample, None)
+                self._raw[name] = (sample,)
             elif sample.stamp > raw[0].stamp:
-                self._raw[name] = (sample, raw[0])
+                self._raw[name] = (sample, *raw[:RAW_SAMPLES - 1])
 
     def _common_instant(self, samples: Mapping[str, WheelSample]) -> float:
         """The instant this step integrates to: the oldest newest sample among the wheels that
@@ -193,15 +213,15 @@ class WheelOdometry:
         if sample is None or not sample.trusted or not math.isfinite(sample.angle_rad):
             forget = sample is None or sample.forget or not math.isfinite(sample.angle_rad)
             return None, _Update(name, None, forget)
-        newest, previous = self._raw[name]
+        history = self._raw[name][::-1]  # in time order
         if last is None or last.reference != sample.reference:
-            start = self._interpolate([p for p in (previous, newest) if p is not None], instant)
+            start = self._interpolate(history, instant)
             if start is None:  # its first sample is newer than the others': it starts at a later step
                 return None, _Update(name, None, last is not None)
             return None, _Update(name, WheelSample(start, instant, sample.reference), False, restart=True)
         if instant <= last.stamp:
             return 0.0, _Update(name, None, False)  # nothing new: no motion, still trusted
-        points = [last] + [p for p in (previous, newest) if p is not None and p.stamp > last.stamp]
+        points = [last] + [p for p in history if p.stamp > last.stamp]
         angle = self._interpolate(points, instant)
         if angle is None:  # the instant lies before its last point: nothing new of it
             return 0.0, _Update(name, None, False)

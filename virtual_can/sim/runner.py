@@ -1,6 +1,8 @@
 """Runs simulated drives on any python-can bus: the emulator's own, socketcand, or a kernel
 ``vcan``/``can`` interface. One thread serves every drive on the bus: it receives frames,
-hands them to the drives, advances their physics every ``tick_s`` and sends what they say.
+hands them to the drives, advances their physics every ``tick_s`` and sends what they say, at
+once or, what a drive holds (a SYNC answered late: ``Faults.sync_delay_s``), when it is due (the
+thread wakes for it, not at the next tick).
 
 The drives' watch on other nodes (the heartbeat consumer, life guarding) is judged on the bus's
 time line, never on when this thread got to look: each frame carries the time it reached the
@@ -199,6 +201,12 @@ class DriveSimulator:
             if out and not drive.faults.tx_dead:
                 self._send(out)
 
+    def _release(self, drives: list[SimulatedDrive], now: float) -> None:
+        """The frames drives held (a late SYNC answer, and what they made after it) that are due."""
+        for drive in drives:
+            if drive.next_release is not None and (out := drive.release(now)) and not drive.faults.tx_dead:
+                self._send(out)
+
     def _run_calls(self) -> None:
         """Calls handed to this thread (:meth:`call`), each answered on its own queue."""
         while True:
@@ -257,8 +265,9 @@ class DriveSimulator:
         next_tick = last + tick
         while not self._stop.is_set():
             now = time.monotonic()
+            wake = min((t for d in drives if (t := d.next_release) is not None), default=next_tick)
             try:
-                msg = self.bus.recv(timeout=max(0.0, next_tick - now))
+                msg = self.bus.recv(timeout=max(0.0, min(next_tick, wake) - now))
             except (can.CanError, OSError, ValueError) as err:
                 if self._stop.is_set():
                     break
@@ -269,6 +278,7 @@ class DriveSimulator:
             self._at("looked")
             now = time.monotonic()
             self._handle_queued(drives, msg, now)
+            self._release(drives, now)
             self._run_calls()
             if now >= next_tick:
                 dt = min(now - last, 10 * tick)

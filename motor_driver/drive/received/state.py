@@ -124,10 +124,10 @@ class DriveCache:
         self.tpdo_count = 0
         self.emcy_count = 0  # EMCYs received (logged or not)
         self.sync_tpdos = 0  # TPDOs received of those sent every SYNC (frame loss: expected per SYNC)
-        # the bus stamps of the newest SYNC heard (when the next synchronous TPDOs measured) and of the
-        # one before, the SYNCs heard, and the count of the SYNC each synchronous TPDO answered last
-        self._sync_stamp, self._prev_sync_stamp, self._syncs, self._sync_answered = (
-            0.0, 0.0, 0, dict.fromkeys(self._per_sync, -NEVER_ANSWERED))
+        # the bus stamps of the newest SYNC heard (when the next synchronous TPDOs measured) and of the one
+        # before, the SYNCs heard, the count of the SYNC each synchronous TPDO answered last, and those whose
+        self._sync_stamp, self._prev_sync_stamp, self._syncs, self._sync_answered, self._took_previous = (
+            0.0, 0.0, 0, dict.fromkeys(self._per_sync, -NEVER_ANSWERED), set[int]())  # last answer was the one before's
         self.heartbeats = 0  # heartbeats (or guard answers) received
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
@@ -322,19 +322,27 @@ class DriveCache:
         SYNC; its answer comes within the SYNC period, CiA 301's synchronous window), any other when
         it was sent. A TPDO that answered every SYNC until the one before the newest and comes after
         the newest is the late answer to that one (latched there: stamped with it, never one period
-        too new); one back after a longer silence answers the newest. Where the newest SYNC was taken
-        by an earlier frame of this TPDO (a SYNC not heard), or none came within the period (a bus
-        that does not show this driver its own SYNC: a kernel socket sending it), the frame's own
-        stamp stands."""
-        if cob_id in self._per_sync and 0.0 <= timestamp - self._sync_stamp < self.sync_period_s:
-            behind = self._syncs - self._sync_answered[cob_id]
-            if behind == 2:
-                self._sync_answered[cob_id] = self._syncs - 1
-                return self._prev_sync_stamp
-            if behind >= 1:
-                self._sync_answered[cob_id] = self._syncs
-                return self._sync_stamp
-        return timestamp
+        too new), unless its last frame was taken so too: two in a row say it missed a SYNC (its
+        answer lost, or never sent) and answers the newest, which it is stamped with (else every
+        later answer would be stamped a period early). One back after a longer silence answers the
+        newest. Where the newest SYNC was taken by an earlier frame of this TPDO (a SYNC not heard),
+        or none came within the period (a bus that does not show this driver its own SYNC: a kernel
+        socket sending it; an answer later than the period), the frame's own stamp stands, and the
+        SYNC it answered is counted all the same."""
+        if cob_id not in self._per_sync:
+            return timestamp
+        behind = self._syncs - self._sync_answered[cob_id]
+        if behind == 2 and cob_id not in self._took_previous:
+            self._sync_answered[cob_id] = self._syncs - 1
+            self._took_previous.add(cob_id)
+            sync = self._prev_sync_stamp
+        elif behind >= 1:
+            self._sync_answered[cob_id] = self._syncs
+            self._took_previous.discard(cob_id)
+            sync = self._sync_stamp
+        else:
+            return timestamp
+        return sync if 0.0 <= timestamp - self._sync_stamp < self.sync_period_s else timestamp
 
     def on_tpdo(self, cob_id: int, data: bytearray, timestamp: float) -> None:
         unpack, indexes, per_sync, has_statusword = self._decoders[cob_id]

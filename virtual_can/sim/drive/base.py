@@ -7,8 +7,10 @@ thread-safe; :class:`~virtual_can.sim.runner.DriveSimulator` calls it from one t
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
+import random
 
 import can
 from canopen.objectdictionary import ObjectDictionary
@@ -35,6 +37,7 @@ class DriveBase:
         self.store = ObjectStore(od)
         self.sdo = SdoServer(self.store)
         self.faults = Faults()
+        self._rng = random.Random(node_id)  # the random part of a late SYNC answer (reproducible)
         self._now = 0.0
         self._plant_at = 0.0  # the runner's time the plant's state (theta, omega) is of: the last tick's
         #: the least (handling time - bus stamp) of a SYNC seen: a SYNC's bus stamp on the runner's clock
@@ -92,6 +95,8 @@ class DriveBase:
         self._pending_rpdos: list[tuple[Pdo, bytes]] = []
         self._cycle_rpdos: list[tuple[Pdo, bytes]] = []  # faults.cw_per_cycle: read at the tick
         self._delayed_sdo: tuple[float, bytes] | None = None
+        #: frames that leave later, (when on the runner's clock, frame), in order (Faults.sync_delay_s)
+        self._held: collections.deque[tuple[float, can.Message]] = collections.deque()
         self._consumers: dict[int, tuple[int, float]] = {}  # 0x1016 sub -> (watched node, consumer time s)
         self._consumer_seen: dict[int, float] = {}  # 0x1016 sub -> bus time its producer was last heard
         self._guard_toggle = 0  # node guarding: the toggle bit of the next answer (0 after a reset)

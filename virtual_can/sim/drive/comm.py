@@ -61,6 +61,7 @@ class CommNode(Plant):
     def _reset_comm(self, now: float, announce: bool) -> list[can.Message]:
         self.store.reset(0x1000, 0x1FFF)
         self.nmt = NmtState.PRE_OPERATIONAL
+        self._held.clear()  # its transmit queue does not outlive the reset
         self._consumer_seen = {}  # 0x1016 sub -> bus time its producer was last heard
         self._guard_toggle = 0  # node guarding: the toggle bit of the next answer (0 after a reset)
         self._guarded_at = None  # the bus time of the last guard; life guarding armed by the first one
@@ -219,7 +220,36 @@ class CommNode(Plant):
 
     def on_frame(self, msg: can.Message, now: float, stamp: float | None = None) -> list[can.Message]:
         """A frame handled at ``now`` (the runner's monotonic time) that reached the bus at
-        ``stamp`` (the bus's time line; default: its own stamp, else ``now``)."""
+        ``stamp`` (the bus's time line; default: its own stamp, else ``now``); the frames that
+        leave now (any behind a held one are held too: :meth:`release`)."""
+        return self._in_order(self._answer(msg, now, stamp))
+
+    def _in_order(self, frames: list[can.Message]) -> list[can.Message]:
+        """``frames`` to leave now, unless frames of this drive are held: then behind them (one
+        transmit queue: a drive's frames leave in the order it made them)."""
+        if self._held and frames:
+            return self._hold(frames, self._held[-1][0])
+        return frames
+
+    def _hold(self, frames: list[can.Message], due: float) -> list[can.Message]:
+        """Hold ``frames`` until ``due`` (the runner's clock), never ahead of one held before."""
+        due = max(due, self._held[-1][0]) if self._held else due
+        self._held.extend((due, frame) for frame in frames)
+        return []
+
+    @property
+    def next_release(self) -> float | None:
+        """When the oldest held frame is due (the runner's clock); None when none is held."""
+        return self._held[0][0] if self._held else None
+
+    def release(self, now: float) -> list[can.Message]:
+        """The held frames due by ``now``, in order (an unplugged drive's are lost)."""
+        out = []
+        while self._held and self._held[0][0] <= now:
+            out.append(self._held.popleft()[1])
+        return [] if self.faults.unplugged else out
+
+    def _answer(self, msg: can.Message, now: float, stamp: float | None) -> list[can.Message]:
         if self.faults.unplugged or now < self.faults.power_off_until or msg.is_extended_id:
             return []  # CANopen (CiA 301) uses 11-bit identifiers only
         stamp = stamp if stamp is not None else msg.timestamp or now
@@ -361,8 +391,9 @@ class CommNode(Plant):
         for pdo, data in self._pending_rpdos:
             self._apply_rpdo(pdo, data)
         self._pending_rpdos.clear()
-        self._latch_position(self._sync_moment(now, stamp, interval))
-        out = []
+        moment = self._sync_moment(now, stamp, interval)
+        self._latch_position(moment)
+        out: list[can.Message] = []
         for pdo in self.tpdos:
             tt = pdo.trans_type
             if tt == 0:
@@ -374,6 +405,9 @@ class CommNode(Plant):
                 if pdo.sync_count >= tt:
                     pdo.sync_count = 0
                     out += self._send_pdo(pdo, pdo.pack(self.store), now)
+        faults = self.faults
+        if out and (faults.sync_delay_s or faults.sync_jitter_s):  # packed now, at the SYNC; sent late
+            return self._hold(out, moment + faults.sync_delay_s + self._rng.uniform(0.0, faults.sync_jitter_s))
         return out
 
     def _send_pdo(self, pdo: Pdo, data: bytes, now: float) -> list[can.Message]:

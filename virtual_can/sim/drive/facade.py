@@ -44,9 +44,12 @@ class SimulatedDrive(CommNode):
         self.state = State.NOT_READY_TO_SWITCH_ON
 
     def tick(self, now: float, dt: float, bus_now: float | None = None) -> list[can.Message]:
-        """Advance the simulation by ``dt`` seconds; return the frames the drive sends.
-        ``bus_now``: the bus time up to which every frame was handled, that the watch on other
-        nodes is judged on (default ``now``: the caller keeps one clock)."""
+        """Advance the simulation by ``dt`` seconds; return the frames the drive sends now (behind
+        any held: :meth:`release`). ``bus_now``: the bus time up to which every frame was handled,
+        that the watch on other nodes is judged on (default ``now``: the caller keeps one clock)."""
+        return self._in_order(self._advance(now, dt, bus_now))
+
+    def _advance(self, now: float, dt: float, bus_now: float | None) -> list[can.Message]:
         bus_now = now if bus_now is None else bus_now
         self._now = now
         if self.faults.power_off_until:
@@ -93,6 +96,11 @@ class SimulatedDrive(CommNode):
             self._next_heartbeat = max(self._next_heartbeat + period_ms / 1000.0, now)
             out.append(self._msg(FunctionCode.HEARTBEAT + self.node_id, bytes([self.nmt])))
         return out
+
+    def shaft(self) -> tuple[float, float, float]:
+        """(angle rad, speed rad/s, the runner's time they are of): the motor shaft's motion as the
+        physics last moved it (a test's truth to judge what the driver measured by)."""
+        return self.theta, self.omega, self._plant_at
 
     def status_line(self) -> str:
         return (f"node {self.node_id:3d} {self.name:<10} NMT={self.nmt.name:<15} {self.state.name:<22}"

@@ -209,6 +209,11 @@ class Faults:
     heartbeat_deaf: bool = False  # it no longer hears others' heartbeats: its consumer (host watch) trips
     sto_low: bool = False
     sdo_delay_s: float = 0.0
+    #: its synchronous TPDOs leave this long after the SYNC's moment, plus a random 0..sync_jitter_s
+    #: each SYNC, still carrying what it latched at the SYNC (CiA 301), and every frame of its own
+    #: in the order it made them (one transmit queue): a slow drive, or a busy bus's arbitration
+    sync_delay_s: float = 0.0
+    sync_jitter_s: float = 0.0
     ack_delay_max_s: float = 0.0  # the set-point acknowledge comes after a random delay up to this
     enable_step_delay_s: float = 0.0  # each enabling transition (2, 3, 4) takes this long
     power_off_until: float = 0.0
