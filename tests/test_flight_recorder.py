@@ -296,8 +296,9 @@ def test_writing_an_incident_of_full_rings_makes_no_object_per_frame_at_once(tmp
 def test_a_storm_s_full_rings_cost_a_slot_a_frame_not_an_object(tmp_path: Path) -> None:
     """Issue 73's thin margin: a bus's ring at its count bound held one bytes object a frame (56 B
     and a deque slot of 8 for 22 B of frame: 6.3 MB at 1 Mbit/s over 11 s). Each bus's ring is now
-    one buffer of 22-byte slots, grown to its bound: the recorder with its full ring and the other
-    bus's beats within 24 B a frame of the full ring's bound. Python's own count of memory, no clock."""
+    one buffer of 22-byte slots allocated at its bound: the recorder, its full ring and the other
+    bus's within 24 B a frame of the two rings' bounds (the deque: 64 B a frame of the full one's
+    alone). Python's own count of memory, no clock."""
     rover = parse_config({"buses": [{"name": "can0", "interface": "virtual", "channel": "a"},
                                     {"name": "can1", "interface": "virtual", "channel": "b"}],
                           "drives": [{"name": "wheel", "node_id": 1}]})
@@ -325,7 +326,7 @@ def test_a_storm_s_full_rings_cost_a_slot_a_frame_not_an_object(tmp_path: Path) 
             recorder.close()
     finally:
         tracemalloc.stop()
-    assert held - before < 24 * cap, f"the recorder holds {(held - before) / cap:.0f} B a frame of its full ring"
+    assert held - before < 24 * 2 * cap, f"the recorder holds {(held - before) / cap:.0f} B a frame of its full ring"
 
 
 class ArrivalLock:
@@ -447,3 +448,27 @@ def test_an_incident_in_time_order_from_streams_whose_clocks_disagree(tmp_path: 
     arrived = list(frames)
     assert len(arrived) == len(frames) == 200 + 20 + 10
     assert list(frames.in_time()) == sorted(arrived, key=lambda f: f[0])
+
+
+def test_a_full_ring_counts_only_frames_pushed_out_within_their_window(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The count bound's drops are frames an incident would have had: a full ring whose oldest
+    frames are past the window gives their slots uncounted, and they are in no incident."""
+    monkeypatch.setattr(flight, "DEFAULT_BITRATE", 8 * flight.FULL_RATE_FRAME_BITS)  # 8 frames in its 1 s
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, seconds=1.0, after_s=0.0, plot=False),
+                              {"wheel": ("can0", 1)}, {"can0": "can0"})
+    t0 = 1_000_000.0
+    try:
+        for i in range(8):
+            recorder._push("can0", t0 + i * 1e-3, 0x181, 0, 1, bytes([i]))
+        assert recorder.frames_kept() == 8 and recorder.dropped() == {"can0": 0}
+        for i in range(3):  # 5 s later: the first frames are past the window
+            recorder._push("can0", t0 + 5.0 + i * 1e-3, 0x281, 0, 1, bytes([i]))
+        assert recorder.frames_kept() == 3 and recorder.dropped() == {"can0": 0}
+        for i in range(3, 9):  # the ring full of frames within the window: the oldest of them pushed out
+            recorder._push("can0", t0 + 5.0 + i * 1e-3, 0x281, 0, 1, bytes([i]))
+        assert recorder.frames_kept() == 8 and recorder.dropped() == {"can0": 1}
+        frames, dropped = recorder._take_frames()
+    finally:
+        recorder.close()
+    assert dropped == {"can0": 1} and [f[7] for f in frames] == [bytes([i]) for i in range(1, 9)]

@@ -28,7 +28,7 @@ Threads and what each owns: the buses' receive threads append received frames to
 ring and flag an EMCY as an incident (a queue put); command threads append the frames they send
 the same way; the supervisor appends drive-state samples and flags its own incidents. A bus's
 ring is one buffer of fixed-size slots (22 bytes a frame, not watched by the garbage collector;
-a bytes object a frame cost 64), written in place under the ring's own lock, which its appenders
+a bytes object a frame cost 64) allocated at its count bound, written in place under the ring's own lock, which its appenders
 and the writer hold only to write or copy slots and indexes (:class:`_Ring`): no frame is torn or
 lost between two appenders, no count of ``dropped`` is lost. The writer thread
 (``rovercan-recorder``) waits ``after_s`` so that what follows is kept, copies the rings (under
@@ -118,9 +118,6 @@ _SLOT_SIZE = _SLOT.size  # 22 bytes
 _EXTENDED, _REMOTE, _ERROR, _SENT = 1, 2, 4, 8
 _DATA_MAX = 8
 _time_at = struct.Struct("<d").unpack_from  # a slot's time.time()
-#: A ring's buffer starts with this many slots and doubles, up to its count bound, when it is full
-#: by count before its time (a few times in its life, none once it is at its bound).
-FIRST_SLOTS = 4096
 #: An incident's frames in time order are merged from at most this many runs of a bus's frames (each
 #: in time order) at once; a bus of more (clocks that disagree within one stream) is merged in passes.
 MERGE_FAN_IN = 16
@@ -139,7 +136,7 @@ class _Frames(Sequence[Frame]):
     the time order is made without a sort key per frame (writing the full rings of a babbling node's
     storm once took 20 MB of small objects in the driver, its heap fragmented after)."""
 
-    def __init__(self, per_bus: Sequence[tuple[str, bytes]]) -> None:
+    def __init__(self, per_bus: Sequence[tuple[str, bytes | memoryview]]) -> None:
         self._per_bus = [(bus, slots) for bus, slots in per_bus if slots]
         self._count = sum(len(slots) // _SLOT_SIZE for _, slots in self._per_bus)
         self.buses = [bus for bus, _ in self._per_bus]
@@ -188,7 +185,7 @@ def _unpacked(bus: str, slots: bytes | bytearray | memoryview, mask: int = 0, wa
 _Run = tuple[int, int, int, int]
 
 
-def _runs_in_time(bus: str, slots: bytes) -> list[Iterator[Frame]]:
+def _runs_in_time(bus: str, slots: bytes | memoryview) -> list[Iterator[Frame]]:
     """One bus's frames (slots in arrival order) as at most MERGE_FAN_IN iterators, each in time order.
 
     The frames the bus's receive thread appends carry the bus's stamps, which its single thread
@@ -199,14 +196,14 @@ def _runs_in_time(bus: str, slots: bytes) -> list[Iterator[Frame]]:
     split where its time goes back (a clock stepped): a few runs, merged by time without a key per
     frame. A bus of more runs than MERGE_FAN_IN is merged in passes into new buffers first."""
     runs = _runs(slots)
-    buffer: bytes | bytearray = slots
+    buffer: bytes | bytearray | memoryview = slots
     while len(runs) > MERGE_FAN_IN:
         buffer, runs = _merged(buffer, runs)
     view = memoryview(buffer)
     return [_unpacked(bus, view[first:end], mask, want) for mask, want, first, end in runs]
 
 
-def _runs(slots: bytes | bytearray) -> list[_Run]:
+def _runs(slots: bytes | bytearray | memoryview) -> list[_Run]:
     """The runs in time order of a bus's received frames and of its sent frames, in one pass."""
     runs: list[_Run] = []
     first = [-1, -1]  # byte where the current run of the received (0) and the sent (1) frames began
@@ -225,7 +222,7 @@ def _runs(slots: bytes | bytearray) -> list[_Run]:
     return runs
 
 
-def _merged(slots: bytes | bytearray, runs: list[_Run]) -> tuple[bytearray, list[_Run]]:
+def _merged(slots: bytes | bytearray | memoryview, runs: list[_Run]) -> tuple[bytearray, list[_Run]]:
     """One merge pass: every MERGE_FAN_IN runs of ``slots`` into one, in a new buffer."""
     out = bytearray()
     merged: list[_Run] = []
@@ -247,50 +244,53 @@ def _times(view: memoryview, mask: int, want: int, first: int, end: int) -> Iter
 
 
 class _Ring:
-    """One bus's frames: one buffer of fixed-size slots (_SLOT), a circle, the oldest at ``start``
-    and ``count`` of them; and what its count bound pushed out.
+    """One bus's frames: one buffer of fixed-size slots (_SLOT), allocated at the ring's count bound
+    (what the bus carries at its full rate in the window: a bounded cost known at start, not one
+    that grows with the traffic), written in a circle, ``end`` where the next frame goes (the
+    oldest's slot once ``count`` is the bound). The time window is applied as the ring is read
+    (:func:`_in_window`); a frame is pushed out before its time, and counted, when its slot is
+    written while it is within the window.
 
     Several threads append (the bus's receive thread, every thread that sends on it) and the writer
-    copies: each holds ``lock`` for all it reads or writes of the buffer, ``start``, ``count``,
-    ``size`` and ``dropped``, and does nothing else while it does (no I/O, no other lock taken:
-    uncontended, as it nearly always is, it costs what a deque append did). So two appenders never
-    write one slot or lose an index update, a count of ``dropped`` is never lost, and the writer's
-    copy is whole slots and one instant's ``start``, ``count`` and ``dropped``: it reads no slot an
-    appender is writing. ``said`` is the writer's alone."""
+    copies: each holds ``lock`` for all it reads or writes of the buffer, ``end``, ``count`` and
+    ``dropped``, and does nothing else while it does (no I/O, no other lock taken). So two appenders
+    never write one slot or lose an index update, a count of ``dropped`` is never lost, and the
+    writer's copy is whole slots and one instant's ``end``, ``count`` and ``dropped``: it reads no
+    slot an appender is writing. ``said`` is the writer's alone."""
 
-    __slots__ = ("cap", "count", "dropped", "end", "growing", "lock", "nbytes", "said", "size", "slots", "start")
+    __slots__ = ("cap", "count", "dropped", "end", "lock", "nbytes", "said", "slots")
 
     def __init__(self, cap: int) -> None:
         self.cap = cap
-        self.size = min(cap, FIRST_SLOTS)  # slots in the buffer now
-        self.growing = self.size < cap
-        self.nbytes = self.size * _SLOT_SIZE
+        self.nbytes = cap * _SLOT_SIZE
         self.slots = bytearray(self.nbytes)
-        self.start = 0  # the oldest frame's byte
-        self.end = 0  # the byte after the newest frame's (where the next goes)
-        self.count = 0
-        self.dropped = 0  # pushed out by the count bound, since the start
+        self.end = 0  # the byte where the next frame goes
+        self.count = 0  # slots written, up to cap
+        self.dropped = 0  # pushed out by the count bound before their time, since the start
         self.said = 0  # of them, named in an incident written already (writer thread)
         self.lock = threading.Lock()
 
-    def grow(self, start: int) -> None:
-        """(Holding the lock, the buffer full from ``start``) twice the slots, up to the count bound,
-        the oldest first."""
-        self.size = min(self.cap, 2 * self.size)
-        slots = bytearray(self.size * _SLOT_SIZE)
-        slots[:self.nbytes - start] = memoryview(self.slots)[start:]
-        slots[self.nbytes - start:self.nbytes] = memoryview(self.slots)[:start]
-        self.slots, self.nbytes, self.growing = slots, self.size * _SLOT_SIZE, self.size < self.cap
-
     def snapshot(self) -> tuple[bytes, int]:
-        """A copy of the frames now, oldest first, and the count dropped up to the same instant."""
+        """A copy of the slots written, oldest first, and the count dropped up to the same instant."""
         with self.lock:
             view = memoryview(self.slots)
-            if not self.count:
-                return b"", self.dropped
-            if self.start < self.end:
-                return view[self.start:self.end].tobytes(), self.dropped
-            return b"".join((view[self.start:], view[:self.end])), self.dropped
+            if self.count < self.cap:
+                return view[:self.end].tobytes(), self.dropped
+            return b"".join((view[self.end:], view[:self.end])), self.dropped
+
+
+def _in_window(slots: bytes, keep_s: float) -> memoryview:
+    """A ring's copy without its frames older than the window: those before the first one within
+    ``keep_s`` of its newest frame (a frame of an older stamp behind a newer one stays, as it came)."""
+    if not slots:
+        return memoryview(slots)
+    horizon = max(t for t, _, _, _, _ in _SLOT.iter_unpack(slots)) - keep_s
+    first = 0
+    for t, _, _, _, _ in _SLOT.iter_unpack(slots):
+        if t >= horizon:
+            break
+        first += _SLOT_SIZE
+    return memoryview(slots)[first:]
 
 
 @dataclass(frozen=True)
@@ -403,8 +403,7 @@ class FlightRecorder:
     def _push(self, bus: str, t: float, cob: int, flags: int, dlc: int, data: bytes | bytearray) -> None:
         """One frame into its bus's ring, ``t`` 0 for one stamped now: under the ring's lock, so a
         bus's frames stamped here are in time order as they are in the ring (see :func:`_runs_in_time`).
-        The frames older than the window go first; a full ring at its count bound pushes its oldest
-        out (counted); a full one below it doubles."""
+        A full ring's oldest frame gives its slot: counted if it is within the window still."""
         ring = self._rings.get(bus) or self._new_ring(bus)
         length = len(data)
         if length > _DATA_MAX:  # noqa: PLR1730 (min() costs a call a frame)
@@ -414,24 +413,15 @@ class FlightRecorder:
         try:
             if not t:
                 t = time.time()
-            slots, start, end, count = ring.slots, ring.start, ring.end, ring.count
-            if count:
-                horizon = t - self._keep_s
-                while _time_at(slots, start)[0] < horizon:  # older than the window: gone
-                    count -= 1
-                    start = start + _SLOT_SIZE if start + _SLOT_SIZE < ring.nbytes else 0
-                    if not count:
-                        break
-                if count == ring.size:  # full: the oldest is where this one goes
-                    if ring.growing:
-                        ring.grow(start)
-                        slots, start, end = ring.slots, 0, count * _SLOT_SIZE
-                    else:  # pushed out before its time
-                        ring.dropped += 1
-                        count -= 1
-                        start = end + _SLOT_SIZE if end + _SLOT_SIZE < ring.nbytes else 0
-            _SLOT.pack_into(slots, end, t, cob, flags | length << 4, dlc, data)
-            ring.start, ring.end, ring.count = start, end + _SLOT_SIZE if end + _SLOT_SIZE < ring.nbytes else 0, count + 1
+            end = ring.end
+            if ring.count == ring.cap:
+                if _time_at(ring.slots, end)[0] >= t - self._keep_s:  # pushed out before its time
+                    ring.dropped += 1
+            else:
+                ring.count += 1
+            _SLOT.pack_into(ring.slots, end, t, cob, flags | length << 4, dlc, data)
+            end += _SLOT_SIZE
+            ring.end = end if end < ring.nbytes else 0
         finally:
             lock.release()
 
@@ -445,8 +435,8 @@ class FlightRecorder:
         return {bus: ring.dropped for bus, ring in list(self._rings.items())}
 
     def frames_kept(self) -> int:
-        """Frames in the rings now (tests, tools)."""
-        return sum(ring.count for ring in list(self._rings.values()))
+        """Frames in the rings' windows now (tests, tools: each ring read)."""
+        return sum(len(_in_window(ring.snapshot()[0], self._keep_s)) // _SLOT_SIZE for ring in list(self._rings.values()))
 
     def wants_sample(self) -> bool:
         """Supervisor: whether this pass should call :meth:`sample` (every SAMPLE_EVERY-th)."""
@@ -612,11 +602,11 @@ class FlightRecorder:
         """Writer: a copy of every bus's ring now (unpacked as read, in time order: :class:`_Frames`),
         and the frames each bus's count bound dropped since the last incident written (then counted
         as said), of the same instant as the copy."""
-        per_bus: list[tuple[str, bytes]] = []
+        per_bus: list[tuple[str, memoryview]] = []
         dropped: dict[str, int] = {}
         for bus, ring in list(self._rings.items()):
             slots, total = ring.snapshot()
-            per_bus.append((bus, slots))
+            per_bus.append((bus, _in_window(slots, self._keep_s)))
             dropped[bus], ring.said = total - ring.said, total
         return _Frames(per_bus), dropped
 
