@@ -8,7 +8,10 @@ the drive system and diagnostics read), the verdict alone, and a streamed set-po
 path, its RPDO sent); and a frame through every listener of the bus's receive thread (what
 python-can's Notifier does with a frame it read); and a read of socketcand text through the bus's
 receive path into the caches (``batch_frame_us``, per frame: three rounds of the drive's TPDOs in
-one read, parsed and dispatched as the commit under test does it, the read included).
+one read, parsed and dispatched as the commit under test does it, the read included); and the
+flight recorder's keeping of one frame alone, a TPDO received (``recorder_received_us``, its
+receive tap as the batch read calls it) and an RPDO sent (``recorder_sent_us``, as canopen's send
+hands it over), each into the bus's live ring.
 Prints microseconds per call as JSON. Used to A/B a change against the last commit (the same
 script on both, one machine, one run each: their ratio is the figure).
 """
@@ -130,6 +133,15 @@ def measure(n: int) -> dict[str, float]:
             layouts = [(cob_id, bytes(bytearray(lay.codec.pack(*(fields.get(i, 0) for i in lay.indexes)))))
                        for cob_id, lay in drive.cache._layouts.items()]
             read, per_read = batch_path(driver.buses[drive.config.bus], notifier, layouts)
+            recorder = driver.recorder
+            assert recorder is not None, "config/rover.yaml's recorder is on"
+            tap, bus_name, rpdo = recorder.listener(drive.config.bus), drive.config.bus, bytes(8)
+
+            def kept_received() -> None:
+                tap.on_frame(time.time(), cob, 0, data)
+
+            def kept_sent() -> None:
+                recorder.record_frame(bus_name, 0x201, rpdo)
             # the command first: a round of the others holds the interpreter long enough on a busy
             # machine for the drive's host watch to stop it
             out = {"stream_setpoint_us": per_call_us(lambda: drive.stream_position(angle, at_once=True), n),
@@ -137,7 +149,9 @@ def measure(n: int) -> dict[str, float]:
                    "snapshot_us": per_call_us(drive.snapshot, n),
                    "tpdo_dispatch_us": per_call_us(frame, n),
                    "frame_received_us": per_call_us(received, n),
-                   "batch_frame_us": round(per_call_us(read, max(CHUNK, n // per_read)) / per_read, 2)}
+                   "batch_frame_us": round(per_call_us(read, max(CHUNK, n // per_read)) / per_read, 2),
+                   "recorder_received_us": per_call_us(kept_received, n),
+                   "recorder_sent_us": per_call_us(kept_sent, n)}
     return out
 
 

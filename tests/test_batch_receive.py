@@ -81,7 +81,7 @@ class Rig:
                 emcy and (emcy.code, emcy.register, emcy.timestamp), c.fault_seen, c.heartbeats, c.reported_nmt,
                 s.frames, s.syncs, s.bits, s.error_frames, s.last_error and s.last_error[1],
                 f.sync_excess, sorted(f.nmt), sorted(f.sdo), sorted(f.rpdo), bool(f.host_twin), bool(f.sync),
-                list(self.recorder._rings["can0"].frames) if "can0" in self.recorder._rings else [],
+                self.recorder._rings["can0"].snapshot() if "can0" in self.recorder._rings else None,
                 self.recorder.said, self.network.rejected_frames)
 
     def close(self) -> None:

@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -290,3 +291,184 @@ def test_writing_an_incident_of_full_rings_makes_no_object_per_frame_at_once(tmp
     with open(written.with_suffix(".mcap"), "rb") as f:  # and the MCAP's in time order, as written
         times = [m.log_time for _, _, m in make_reader(f).iter_messages(topics=["/can/frames"], log_time_order=False)]
     assert len(times) == summary["frames"] and times == sorted(times)
+
+
+def test_a_storm_s_full_rings_cost_a_slot_a_frame_not_an_object(tmp_path: Path) -> None:
+    """Issue 73's thin margin: a bus's ring at its count bound held one bytes object a frame (56 B
+    and a deque slot of 8 for 22 B of frame: 6.3 MB at 1 Mbit/s over 11 s). Each bus's ring is now
+    one buffer of 22-byte slots allocated at its bound: the recorder, its full ring and the other
+    bus's within 24 B a frame of the two rings' bounds (the deque: 64 B a frame of the full one's
+    alone). Python's own count of memory, no clock."""
+    rover = parse_config({"buses": [{"name": "can0", "interface": "virtual", "channel": "a"},
+                                    {"name": "can1", "interface": "virtual", "channel": "b"}],
+                          "drives": [{"name": "wheel", "node_id": 1}]})
+    cap = flight.frames_cap(rover.buses[0].bitrate, 11.0)  # 99,100 frames
+    t0 = 1_000_000.0
+    emcy = can.Message(arbitration_id=0x081, data=bytes([0x10, 0x23, 1, 0, 0, 0, 0, 0]))
+    beat = can.Message(arbitration_id=0x702, data=b"\x05")
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before, _ = tracemalloc.get_traced_memory()
+        recorder = FlightRecorder(RecorderConfig(dir=tmp_path, seconds=10.0, after_s=1.0, plot=False),
+                                  {"wheel": ("can0", 1)}, {"can0": "a", "can1": "b"}, rover=rover)
+        try:
+            for i in range(cap + 1000):  # a babbling node fills can0's ring past its bound
+                emcy.timestamp = t0 + i / 34_520
+                recorder.append("can0", emcy)
+                if i % 345 == 0:
+                    beat.timestamp = emcy.timestamp
+                    recorder.append("can1", beat)
+            gc.collect()
+            held, _ = tracemalloc.get_traced_memory()
+            assert recorder.frames_kept() == cap + (cap + 999) // 345 + 1 and recorder.dropped()["can0"] == 1000
+        finally:
+            recorder.close()
+    finally:
+        tracemalloc.stop()
+    assert held - before < 24 * 2 * cap, f"the recorder holds {(held - before) / cap:.0f} B a frame of its full ring"
+
+
+class ArrivalLock:
+    """A ring's lock that notes each thread coming to it before that thread waits for it."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.arrived: set[int] = set()
+
+    def acquire(self) -> bool:
+        self.arrived.add(threading.get_ident())
+        return self._lock.acquire()
+
+    def release(self) -> None:
+        self._lock.release()
+
+    def __enter__(self) -> None:
+        self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+class HookedId:
+    """A COB-ID whose packing runs a hook once: inside the appender's write of its frame."""
+
+    def __init__(self, value: int, hook: Callable[[], None]) -> None:
+        self.value = value
+        self.hook: Callable[[], None] | None = hook
+
+    def __index__(self) -> int:
+        hook, self.hook = self.hook, None
+        if hook is not None:
+            hook()
+        return self.value
+
+
+@pytest.mark.parametrize("filled", ["one short of its bound", "at its bound"])
+def test_two_appenders_and_the_writer_at_once_tear_lose_and_miscount_nothing(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, filled: str) -> None:
+    """Frames come from the bus's receive thread and from every thread that sends on it; the writer
+    copies the ring meanwhile. Forced: appender A stops in the middle of writing its slot (its
+    COB-ID being packed; the ring at its bound, that slot is the oldest frame's) while appender B
+    and the writer each come to the ring; then A goes on. No frame the writer copies is torn (part
+    A's, part the oldest's), none is lost, and each frame pushed out is counted once: the old ring
+    (a deque of bytes, dropped counted before the append) lost the count of a frame that B's
+    append, between A's check and A's append, pushed out."""
+    monkeypatch.setattr(flight, "DEFAULT_BITRATE", 8 * flight.FULL_RATE_FRAME_BITS)  # 8 frames in its 1 s
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, seconds=1.0, after_s=0.0, plot=False),
+                              {"wheel": ("can0", 1)}, {"can0": "can0"})
+    t0 = 1_000_000.0
+    try:
+        ring = recorder._rings["can0"]
+        cap = ring.cap
+        assert cap == 8
+        before = [(t0 + i * 1e-3, "can0", 0x181, False, False, False, 4, i.to_bytes(4, "little"))
+                  for i in range(cap - 1 if filled == "one short of its bound" else cap)]
+        for t, _, cob, _, _, _, dlc, data in before:
+            recorder._push("can0", t, cob, 0, dlc, data)
+        a = (t0 + 0.1, "can0", 0x1A1, False, False, False, 8, b"\xaa" * 8)
+        b = (t0 + 0.2, "can0", 0x2A2, False, False, False, 3, b"\xbb" * 3)
+        lock = ArrivalLock()
+        ring.lock = lock  # type: ignore[assignment]
+        copies: list[tuple[list[Any], dict[str, int]]] = []
+
+        def writer() -> None:
+            frames, dropped = recorder._take_frames()
+            copies.append((list(frames), dropped))
+
+        others = [threading.Thread(target=recorder._push, args=("can0", b[0], b[2], 0, b[6], b[7])),
+                  threading.Thread(target=writer)]
+
+        def inside_a() -> None:  # A holds whatever an appender holds while it writes its slot
+            for thread in others:
+                thread.start()
+            wait_for(lambda: all(not th.is_alive() or th.ident in lock.arrived for th in others), 30.0,
+                     "appender B and the writer each done or waiting at the ring")
+
+        hooked = HookedId(a[2], inside_a)
+        recorder._push("can0", a[0], hooked, 0, a[6], a[7])  # type: ignore[arg-type]
+        for thread in others:
+            thread.join(30.0)
+            assert not thread.is_alive()
+        assert hooked.hook is None  # A's write ran the hook
+        final, _ = recorder._take_frames()
+    finally:
+        recorder.close()
+    pushed = [*before, a, b]
+    (seen, dropped_seen), = copies
+    assert all(frame in pushed for frame in seen), f"a torn frame in the writer's copy: {seen}"
+    assert len(set(seen)) == len(seen)
+    # every frame pushed by the copy's instant is in it or counted dropped, the oldest first
+    assert len(seen) + dropped_seen["can0"] == len(before) + (a in seen) + (b in seen)
+    assert seen[:len(seen) - (a in seen) - (b in seen)] == before[len(before) - len(seen) + (a in seen) + (b in seen):]
+    assert recorder.dropped() == {"can0": len(pushed) - cap} and recorder.frames_kept() == cap
+    assert sorted(final, key=lambda f: f[0]) == pushed[-cap:]  # A and B in either order: neither waited for the other
+
+
+def test_an_incident_in_time_order_from_streams_whose_clocks_disagree(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """The MCAP takes an incident's frames in time order without a sort key a frame: each bus's
+    received and sent frames are read apart, each in runs of time order. Here the bus's stamps step
+    back every 7 frames (more runs than are merged at once: merged in passes first) and the
+    driver's own frames, stamped as they are kept, sit among them; the other bus's in order."""
+    monkeypatch.setattr(flight, "MERGE_FAN_IN", 3)
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, seconds=60.0, plot=False), {"wheel": ("can0", 1)},
+                              {"can0": "can0", "can1": "can1"})
+    t0 = time.time() - 30.0  # the sent frames' stamps (now) within the window of the received frames'
+    try:
+        for i in range(200):
+            recorder._push("can0", t0 + (i % 7) * 1.0 + i * 1e-4, 0x181, 0, 2, i.to_bytes(2, "little"))
+            if i % 10 == 0:
+                recorder.record_frame("can0", 0x201, i.to_bytes(2, "little"))
+            if i % 20 == 0:
+                recorder._push("can1", t0 + i * 1e-2 + 5e-5, 0x702, 0, 1, b"\x05")
+        frames, _ = recorder._take_frames()
+    finally:
+        recorder.close()
+    arrived = list(frames)
+    assert len(arrived) == len(frames) == 200 + 20 + 10
+    assert list(frames.in_time()) == sorted(arrived, key=lambda f: f[0])
+
+
+def test_a_full_ring_counts_only_frames_pushed_out_within_their_window(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The count bound's drops are frames an incident would have had: a full ring whose oldest
+    frames are past the window gives their slots uncounted, and they are in no incident."""
+    monkeypatch.setattr(flight, "DEFAULT_BITRATE", 8 * flight.FULL_RATE_FRAME_BITS)  # 8 frames in its 1 s
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, seconds=1.0, after_s=0.0, plot=False),
+                              {"wheel": ("can0", 1)}, {"can0": "can0"})
+    t0 = 1_000_000.0
+    try:
+        for i in range(8):
+            recorder._push("can0", t0 + i * 1e-3, 0x181, 0, 1, bytes([i]))
+        assert recorder.frames_kept() == 8 and recorder.dropped() == {"can0": 0}
+        for i in range(3):  # 5 s later: the first frames are past the window
+            recorder._push("can0", t0 + 5.0 + i * 1e-3, 0x281, 0, 1, bytes([i]))
+        assert recorder.frames_kept() == 3 and recorder.dropped() == {"can0": 0}
+        for i in range(3, 9):  # the ring full of frames within the window: the oldest of them pushed out
+            recorder._push("can0", t0 + 5.0 + i * 1e-3, 0x281, 0, 1, bytes([i]))
+        assert recorder.frames_kept() == 8 and recorder.dropped() == {"can0": 1}
+        frames, dropped = recorder._take_frames()
+    finally:
+        recorder.close()
+    assert dropped == {"can0": 1} and [f[7] for f in frames] == [bytes([i]) for i in range(1, 9)]

@@ -25,15 +25,17 @@ or of shorter frames pushes the oldest frames out early: each is counted (``drop
 WARNING (rate-limited) and in the next incident written (``frames_dropped``, ``frames_cap``).
 
 Threads and what each owns: the buses' receive threads append received frames to their bus's
-ring (one deque append each; trimmed by whoever appends; a frame is one packed ``bytes``, not
-watched by the garbage collector and 60 bytes instead of 220) and flag an
-EMCY as an incident (a queue put); command threads append the frames they send the same way;
-the supervisor appends drive-state samples and flags its own incidents. The writer thread
-(``rovercan-recorder``) waits ``after_s`` so that what follows is kept, takes a copy of the
-rings (``deque.copy`` runs under the GIL in one step) and writes the files; each of its passes
-is supervised (an exception is logged and counted in ``writer_errors``, the thread goes on).
-Nothing waits on the writer, and no lock is shared with the bus. A ring's ``dropped`` count is
-incremented by the threads that append to its bus (a race may lose an increment, never make one).
+ring and flag an EMCY as an incident (a queue put); command threads append the frames they send
+the same way; the supervisor appends drive-state samples and flags its own incidents. A bus's
+ring is one buffer of fixed-size slots (22 bytes a frame, not watched by the garbage collector;
+a bytes object a frame cost 64) allocated at its count bound, written in place under the ring's own lock, which its appenders
+and the writer hold only to write or copy slots and indexes (:class:`_Ring`): no frame is torn or
+lost between two appenders, no count of ``dropped`` is lost. The writer thread
+(``rovercan-recorder``) waits ``after_s`` so that what follows is kept, copies the rings (under
+each ring's lock: whole slots of one instant) and writes the files from its copy, a frame unpacked
+at a time; each of its passes is supervised (an exception is logged and counted in
+``writer_errors``, the thread goes on). Nothing waits on the writer, and no lock is shared with
+the bus.
 
 What lives where: this module (the ring, the incidents, the writer thread),
 :mod:`.incident_mcap` (an incident's frames as MCAP beside its BLF), :mod:`.plot` (its PNG,
@@ -108,10 +110,17 @@ KEPT_IN_MEMORY = 20
 FULL_RATE_FRAME_BITS = 111
 #: A bus the recorder has no config for is taken to run at this bitrate.
 DEFAULT_BITRATE = 1_000_000
-#: One kept frame packed: time.time(), COB-ID, flags (extended 1, remote 2, error 4), DLC; the data follows.
-_HEAD = struct.Struct("<dIBB")
-_EXTENDED, _REMOTE, _ERROR = 1, 2, 4
-_time_of = struct.Struct("<d").unpack_from  # a packed frame's time.time()
+#: One kept frame, a fixed-size slot of its bus's ring: time.time(), COB-ID, flags (extended 1,
+#: remote 2, error 4, sent by this driver 8; the data's length in the upper four bits), DLC, data
+#: (classic CAN: 8 bytes at most, the rest of a longer frame's is not kept).
+_SLOT = struct.Struct("<dIBB8s")
+_SLOT_SIZE = _SLOT.size  # 22 bytes
+_EXTENDED, _REMOTE, _ERROR, _SENT = 1, 2, 4, 8
+_DATA_MAX = 8
+_time_at = struct.Struct("<d").unpack_from  # a slot's time.time()
+#: An incident's frames in time order are merged from at most this many runs of a bus's frames (each
+#: in time order) at once; a bus of more (clocks that disagree within one stream) is merged in passes.
+MERGE_FAN_IN = 16
 
 
 def frames_cap(bitrate: int, window_s: float) -> int:
@@ -121,27 +130,26 @@ def frames_cap(bitrate: int, window_s: float) -> int:
 
 
 class _Frames(Sequence[Frame]):
-    """An incident's frames: each bus's ring as packed (a copy of its references), unpacked one at
-    a time as a writer reads them, the buses merged (each bus's in arrival order; :meth:`in_time`:
-    every frame in time order). Writing the full rings of a babbling node's storm unpacked them all
-    at once, and the MCAP sorted a copy (20 MB of small objects in the driver, its heap fragmented
-    after: it kept the memory); now no object per frame lives longer than the writer's look at it."""
+    """An incident's frames: each bus's ring as copied (its slots, oldest first), unpacked one at a
+    time as a writer reads them, the buses merged (each bus's in arrival order; :meth:`in_time`:
+    every frame in time order). No object per frame lives longer than the writer's look at it, and
+    the time order is made without a sort key per frame (writing the full rings of a babbling node's
+    storm once took 20 MB of small objects in the driver, its heap fragmented after)."""
 
-    def __init__(self, per_bus: Sequence[tuple[str, Sequence[bytes]]]) -> None:
-        self._per_bus = [(bus, packed) for bus, packed in per_bus if packed]
-        self._count = sum(len(packed) for _, packed in self._per_bus)
+    def __init__(self, per_bus: Sequence[tuple[str, bytes | memoryview]]) -> None:
+        self._per_bus = [(bus, slots) for bus, slots in per_bus if slots]
+        self._count = sum(len(slots) // _SLOT_SIZE for _, slots in self._per_bus)
         self.buses = [bus for bus, _ in self._per_bus]
 
     def __len__(self) -> int:
         return self._count
 
     def __iter__(self) -> Iterator[Frame]:
-        return merge(*(_unpacked(bus, packed) for bus, packed in self._per_bus), key=lambda frame: frame[0])
+        return merge(*(_unpacked(bus, slots) for bus, slots in self._per_bus), key=_frame_time)
 
     def in_time(self) -> Iterator[Frame]:
-        """Every frame in time order (each bus's references sorted by their packed time, then merged)."""
-        return merge(*(_unpacked(bus, sorted(packed, key=_time_key)) for bus, packed in self._per_bus),
-                     key=lambda frame: frame[0])
+        """Every frame in time order: each bus's runs in time order (:func:`_runs_in_time`), merged."""
+        return merge(*(run for bus, slots in self._per_bus for run in _runs_in_time(bus, slots)), key=_frame_time)
 
     @overload
     def __getitem__(self, index: int) -> Frame: ...
@@ -153,33 +161,136 @@ class _Frames(Sequence[Frame]):
         if isinstance(index, slice):
             return list(self)[index]
         if index in (0, -1) and self._count:  # the first and the last: one look per bus
-            ends = [next(_unpacked(bus, (packed[index],))) for bus, packed in self._per_bus]
+            ends = [next(_unpacked(bus, slots[-_SLOT_SIZE:] if index else slots[:_SLOT_SIZE])) for bus, slots in self._per_bus]
             return min(ends) if index == 0 else max(ends)
         if not -self._count <= index < self._count:
             raise IndexError(index)
         return next(islice(iter(self), index % self._count, None))
 
 
-def _time_key(raw: bytes) -> float:
-    return float(_time_of(raw)[0])
+def _frame_time(frame: Frame) -> float:
+    return frame[0]
 
 
-def _unpacked(bus: str, packed: Iterable[bytes]) -> Iterator[Frame]:
-    for raw in packed:
-        t, cob, flags, dlc = _HEAD.unpack_from(raw)
-        yield t, bus, cob, bool(flags & _EXTENDED), bool(flags & _REMOTE), bool(flags & _ERROR), dlc, raw[_HEAD.size:]
+def _unpacked(bus: str, slots: bytes | bytearray | memoryview, mask: int = 0, want: int = 0) -> Iterator[Frame]:
+    """The frames of ``slots`` (whole slots, in their order) whose flags masked by ``mask`` are ``want``."""
+    for t, cob, flags, dlc, data in _SLOT.iter_unpack(slots):
+        if flags & mask == want:
+            yield (t, bus, cob, bool(flags & _EXTENDED), bool(flags & _REMOTE), bool(flags & _ERROR), dlc,
+                   data[:flags >> 4])
+
+
+#: A run of one bus's slots: (mask, want, first byte, end byte): the slots in [first, end) whose
+#: flags masked by ``mask`` are ``want``, in time order.
+_Run = tuple[int, int, int, int]
+
+
+def _runs_in_time(bus: str, slots: bytes | memoryview) -> list[Iterator[Frame]]:
+    """One bus's frames (slots in arrival order) as at most MERGE_FAN_IN iterators, each in time order.
+
+    The frames the bus's receive thread appends carry the bus's stamps, which its single thread
+    takes in order; the frames this driver sends are stamped as they are appended (:meth:`FlightRecorder._push`,
+    under the ring's lock), so each is in time order alone. Between the two they are not: a bus's
+    stamps come from its interface's clock (socketcand's server, the kernel), and the sent frames
+    sit between received ones stamped later than they. So the two streams are read apart, each
+    split where its time goes back (a clock stepped): a few runs, merged by time without a key per
+    frame. A bus of more runs than MERGE_FAN_IN is merged in passes into new buffers first."""
+    runs = _runs(slots)
+    buffer: bytes | bytearray | memoryview = slots
+    while len(runs) > MERGE_FAN_IN:
+        buffer, runs = _merged(buffer, runs)
+    view = memoryview(buffer)
+    return [_unpacked(bus, view[first:end], mask, want) for mask, want, first, end in runs]
+
+
+def _runs(slots: bytes | bytearray | memoryview) -> list[_Run]:
+    """The runs in time order of a bus's received frames and of its sent frames, in one pass."""
+    runs: list[_Run] = []
+    first = [-1, -1]  # byte where the current run of the received (0) and the sent (1) frames began
+    last = [-math.inf, -math.inf]
+    at = 0
+    for t, _, flags, _, _ in _SLOT.iter_unpack(slots):
+        sent = 1 if flags & _SENT else 0
+        if t < last[sent]:
+            runs.append((_SENT, flags & _SENT, first[sent], at))
+            first[sent] = at
+        elif first[sent] < 0:
+            first[sent] = at
+        last[sent] = t
+        at += _SLOT_SIZE
+    runs.extend((_SENT, _SENT if sent else 0, first[sent], at) for sent in (0, 1) if first[sent] >= 0)
+    return runs
+
+
+def _merged(slots: bytes | bytearray | memoryview, runs: list[_Run]) -> tuple[bytearray, list[_Run]]:
+    """One merge pass: every MERGE_FAN_IN runs of ``slots`` into one, in a new buffer."""
+    out = bytearray()
+    merged: list[_Run] = []
+    view = memoryview(slots)
+    for i in range(0, len(runs), MERGE_FAN_IN):
+        first = len(out)
+        for _, at in merge(*(_times(view, *run) for run in runs[i:i + MERGE_FAN_IN])):
+            out += view[at:at + _SLOT_SIZE]
+        merged.append((0, 0, first, len(out)))
+    return out, merged
+
+
+def _times(view: memoryview, mask: int, want: int, first: int, end: int) -> Iterator[tuple[float, int]]:
+    at = first
+    for t, _, flags, _, _ in _SLOT.iter_unpack(view[first:end]):
+        if flags & mask == want:
+            yield t, at
+        at += _SLOT_SIZE
 
 
 class _Ring:
-    """One bus's frames, oldest first, packed (see _HEAD), and what its count bound pushed out."""
+    """One bus's frames: one buffer of fixed-size slots (_SLOT), allocated at the ring's count bound
+    (what the bus carries at its full rate in the window: a bounded cost known at start, not one
+    that grows with the traffic), written in a circle, ``end`` where the next frame goes (the
+    oldest's slot once ``count`` is the bound). The time window is applied as the ring is read
+    (:func:`_in_window`); a frame is pushed out before its time, and counted, when its slot is
+    written while it is within the window.
 
-    __slots__ = ("cap", "dropped", "frames", "said")
+    Several threads append (the bus's receive thread, every thread that sends on it) and the writer
+    copies: each holds ``lock`` for all it reads or writes of the buffer, ``end``, ``count`` and
+    ``dropped``, and does nothing else while it does (no I/O, no other lock taken). So two appenders
+    never write one slot or lose an index update, a count of ``dropped`` is never lost, and the
+    writer's copy is whole slots and one instant's ``end``, ``count`` and ``dropped``: it reads no
+    slot an appender is writing. ``said`` is the writer's alone."""
+
+    __slots__ = ("cap", "count", "dropped", "end", "lock", "nbytes", "said", "slots")
 
     def __init__(self, cap: int) -> None:
         self.cap = cap
-        self.frames: deque[bytes] = deque(maxlen=cap)
-        self.dropped = 0  # pushed out by the count bound, since the start (the appending threads)
+        self.nbytes = cap * _SLOT_SIZE
+        self.slots = bytearray(self.nbytes)
+        self.end = 0  # the byte where the next frame goes
+        self.count = 0  # slots written, up to cap
+        self.dropped = 0  # pushed out by the count bound before their time, since the start
         self.said = 0  # of them, named in an incident written already (writer thread)
+        self.lock = threading.Lock()
+
+    def snapshot(self) -> tuple[bytes, int]:
+        """A copy of the slots written, oldest first, and the count dropped up to the same instant."""
+        with self.lock:
+            view = memoryview(self.slots)
+            if self.count < self.cap:
+                return view[:self.end].tobytes(), self.dropped
+            return b"".join((view[self.end:], view[:self.end])), self.dropped
+
+
+def _in_window(slots: bytes, keep_s: float) -> memoryview:
+    """A ring's copy without its frames older than the window: those before the first one within
+    ``keep_s`` of its newest frame (a frame of an older stamp behind a newer one stays, as it came)."""
+    if not slots:
+        return memoryview(slots)
+    horizon = max(t for t, _, _, _, _ in _SLOT.iter_unpack(slots)) - keep_s
+    first = 0
+    for t, _, _, _, _ in _SLOT.iter_unpack(slots):
+        if t >= horizon:
+            break
+        first += _SLOT_SIZE
+    return memoryview(slots)[first:]
 
 
 @dataclass(frozen=True)
@@ -210,7 +321,7 @@ class _BusTap(can.Listener):
 
     def on_frame(self, t: float, cob: int, flags: int, data: bytes | bytearray) -> None:
         """A frame as the bus's batch read hands it (no can.Message; flags as the ring stores them)."""
-        self.recorder._push(self.bus, t or time.time(), cob, flags, len(data), data)
+        self.recorder._push(self.bus, t, cob, flags, len(data), data)
         if not flags & _EXTENDED:
             self._emcy(cob, data, t)
 
@@ -242,10 +353,10 @@ class FlightRecorder:
         self.directory = config.directory
         self._names = {(bus, node): name for name, (bus, node) in drives.items()}
         self._keep_s = config.seconds + config.after_s
-        # a frame is kept as one packed bytes (see _HEAD), not a can.Message: the garbage collector
-        # does not watch it, so 10 s of frames (50,000 at 6 drives) cost nothing in its full
-        # collections, which stop every thread of the process; as can.Messages they made one take
-        # 70 ms and the host heartbeat went out 110 ms late
+        # a frame is kept as one slot of its bus's buffer (see _SLOT), not a can.Message: the garbage
+        # collector does not watch it, so 10 s of frames (50,000 at 6 drives) cost nothing in its
+        # full collections, which stop every thread of the process; as can.Messages they made one
+        # take 70 ms and the host heartbeat went out 110 ms late
         bitrates = {b.name: b.bitrate for b in rover.buses} if rover is not None else {}
         self._rings = {bus: _Ring(frames_cap(bitrates.get(bus, DEFAULT_BITRATE), self._keep_s))
                        for bus in {*self._bus_channels, *bitrates}}
@@ -273,34 +384,46 @@ class FlightRecorder:
     def listener(self, bus: str) -> _BusTap:
         return _BusTap(self, bus)
 
-    def append(self, bus: str, msg: can.Message) -> None:
+    def append(self, bus: str, msg: can.Message, sent: int = 0) -> None:
+        """A frame received on ``bus`` (``sent``: _SENT for one this driver sent)."""
         flags = (_EXTENDED if msg.is_extended_id else 0) | (_REMOTE if msg.is_remote_frame else 0) \
-            | (_ERROR if msg.is_error_frame else 0)
-        self._push(bus, msg.timestamp or time.time(), msg.arbitration_id, flags, msg.dlc, msg.data)
+            | (_ERROR if msg.is_error_frame else 0) | sent
+        self._push(bus, msg.timestamp, msg.arbitration_id, flags, msg.dlc, msg.data)
 
     def record_sent(self, bus: str, msg: can.Message) -> None:
-        if not msg.timestamp:
-            msg.timestamp = time.time()
-        self.append(bus, msg)
+        """A frame this driver sent (without a timestamp: stamped now)."""
+        self.append(bus, msg, _SENT)
 
     def record_frame(self, bus: str, can_id: int, data: bytes | bytearray, remote: bool = False) -> None:
         """A frame this driver sent, as canopen hands it to the bus (GuardedNetwork.on_sent):
-        kept without a can.Message made for it (every command's RPDO comes this way)."""
-        self._push(bus, time.time(), can_id, (_EXTENDED if can_id > 0x7FF else 0) | (_REMOTE if remote else 0),
+        kept without a can.Message made for it (every command's RPDO comes this way), stamped now."""
+        self._push(bus, 0.0, can_id, (_EXTENDED if can_id > 0x7FF else 0) | (_REMOTE if remote else 0) | _SENT,
                    len(data), data)
 
     def _push(self, bus: str, t: float, cob: int, flags: int, dlc: int, data: bytes | bytearray) -> None:
+        """One frame into its bus's ring, ``t`` 0 for one stamped now: under the ring's lock, so a
+        bus's frames stamped here are in time order as they are in the ring (see :func:`_runs_in_time`).
+        A full ring's oldest frame gives its slot: counted if it is within the window still."""
         ring = self._rings.get(bus) or self._new_ring(bus)
-        frames = ring.frames
-        horizon = t - self._keep_s
+        length = len(data)
+        if length > _DATA_MAX:  # noqa: PLR1730 (min() costs a call a frame)
+            length = _DATA_MAX
+        lock = ring.lock
+        lock.acquire()  # (not `with`: a third cheaper; nothing in here raises but a bad frame's packing)
         try:
-            while _time_of(frames[0])[0] < horizon:
-                frames.popleft()
-        except IndexError:  # empty (or emptied by another appending thread meanwhile)
-            pass
-        if len(frames) == ring.cap:  # the append pushes the oldest out before its time
-            ring.dropped += 1
-        frames.append(_HEAD.pack(t, cob, flags, dlc) + data)
+            if not t:
+                t = time.time()
+            end = ring.end
+            if ring.count == ring.cap:
+                if _time_at(ring.slots, end)[0] >= t - self._keep_s:  # pushed out before its time
+                    ring.dropped += 1
+            else:
+                ring.count += 1
+            _SLOT.pack_into(ring.slots, end, t, cob, flags | length << 4, dlc, data)
+            end += _SLOT_SIZE
+            ring.end = end if end < ring.nbytes else 0
+        finally:
+            lock.release()
 
     def _new_ring(self, bus: str) -> _Ring:
         with self._rings_lock:
@@ -312,8 +435,8 @@ class FlightRecorder:
         return {bus: ring.dropped for bus, ring in list(self._rings.items())}
 
     def frames_kept(self) -> int:
-        """Frames in the rings now (tests, tools)."""
-        return sum(len(ring.frames) for ring in list(self._rings.values()))
+        """Frames in the rings' windows now (tests, tools: each ring read)."""
+        return sum(len(_in_window(ring.snapshot()[0], self._keep_s)) // _SLOT_SIZE for ring in list(self._rings.values()))
 
     def wants_sample(self) -> bool:
         """Supervisor: whether this pass should call :meth:`sample` (every SAMPLE_EVERY-th)."""
@@ -476,13 +599,14 @@ class FlightRecorder:
         return json_path
 
     def _take_frames(self) -> tuple[_Frames, dict[str, int]]:
-        """Writer: every bus's ring now (unpacked as read, in time order: :class:`_Frames`), and the
-        frames each bus's count bound dropped since the last incident written (then counted as said)."""
-        per_bus: list[tuple[str, Sequence[bytes]]] = []
+        """Writer: a copy of every bus's ring now (unpacked as read, in time order: :class:`_Frames`),
+        and the frames each bus's count bound dropped since the last incident written (then counted
+        as said), of the same instant as the copy."""
+        per_bus: list[tuple[str, memoryview]] = []
         dropped: dict[str, int] = {}
         for bus, ring in list(self._rings.items()):
-            total = ring.dropped
-            per_bus.append((bus, ring.frames.copy()))
+            slots, total = ring.snapshot()
+            per_bus.append((bus, _in_window(slots, self._keep_s)))
             dropped[bus], ring.said = total - ring.said, total
         return _Frames(per_bus), dropped
 
