@@ -324,7 +324,8 @@ class RecorderConfig:
         "str", None,
         help="where incidents go (default `$ROVERCAN_INCIDENT_DIR`, else `~/.local/state/rovercan/incidents`)")
     seconds: float = key("float", 10.0, 1.0, 600.0, unit="s",
-                         help="the ring: frames and states kept before an incident")
+                         help="the ring: frames and states kept before an incident (each bus's ring of frames is allocated at"
+                         " start: 22 bytes a frame at the bus's full rate, about 0.2 MB a second per Mbit/s)")
     after_s: float = key("float", 1.0, 0.0, 60.0, unit="s", help="kept after the incident")
     max_mb: float = key("float", 200.0, 1.0, 1_000_000.0, unit="MB",
                         help="the directory's cap; the oldest incidents go first")
