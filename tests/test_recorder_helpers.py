@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -67,3 +68,59 @@ def test_close_ends_a_plot_still_being_drawn_at_its_budget(tmp_path: Path, monke
     closing.join(30.0)  # a hang bound: close() waits PLOT_WAIT_S, then ends the helper
     assert not closing.is_alive() and not errors
     assert ours(pid) == ""  # ended and reaped
+
+
+class _Finished:
+    """A helper the reap looks at: its poll() holds the reap in the middle of its rebuild of the
+    list until ``go_on``, then says it finished (reaped)."""
+
+    pid = -1
+
+    def __init__(self) -> None:
+        self.polling, self.go_on = threading.Event(), threading.Event()
+
+    def poll(self) -> int:
+        self.polling.set()
+        self.go_on.wait(30.0)
+        return 0
+
+
+class _Appends(list):  # type: ignore[type-arg]
+    """The recorder's list of helpers, saying when one is appended."""
+
+    def __init__(self, *items: object) -> None:
+        super().__init__(items)
+        self.appended = threading.Event()
+
+    def append(self, item: object) -> None:
+        super().append(item)
+        self.appended.set()
+
+
+def test_a_helper_started_while_the_writer_reaps_is_kept_and_ended(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """write() from a tool's thread (or a test's) starts a helper while the writer thread reaps:
+    the reap rebuilt the list from before the append and lost that helper, which close() then
+    never ended. The helpers' list is looked at under one lock."""
+    monkeypatch.setattr(recorder_module, "PLOT_COMMAND", (sys.executable, "-c", "import signal; signal.pause()"))
+    monkeypatch.setattr(recorder_module, "PLOT_WAIT_S", 0.5)
+    recorder = FlightRecorder(RecorderConfig(dir=tmp_path, plot=False), {"wheel": ("can0", 1)}, {"can0": "can0"})
+    finished = _Finished()
+    recorder._helpers = helpers = _Appends(finished)
+    try:
+        reaping, reap_errors = in_thread(recorder._reap, name="test-reap")
+        assert finished.polling.wait(30.0), "the reap looked at the finished helper"
+        starting, start_errors = in_thread(lambda: recorder._plot_in_helper(tmp_path / "incident.json"),
+                                           name="test-start")
+        # where the list is not locked the append lands in the list being rebuilt, at once; where
+        # it is, the start waits for the reap: this wait only gives the broken copy its chance
+        helpers.appended.wait(2.0)
+        finished.go_on.set()
+        reaping.join(30.0)
+        starting.join(30.0)
+        assert not reaping.is_alive() and not starting.is_alive() and not reap_errors and not start_errors
+        (pid,) = recorder.helper_pids()
+        assert ours(pid) not in ("", "Z")  # kept: still drawing (held)
+    finally:
+        recorder.close()
+    assert ours(pid) == "" and recorder.helper_pids() == []  # ended by close() and reaped

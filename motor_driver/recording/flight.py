@@ -369,7 +369,10 @@ class FlightRecorder:
         self._stop = threading.Event()
         self._source = source
         self.written: list[Path] = []  # the JSON of each incident written (writer thread)
-        self._helpers: list[subprocess.Popen[bytes]] = []  # plot processes (writer thread, then close)
+        #: plot processes: started by whichever thread writes an incident (the writer; a tool or a test
+        #: calling write()), reaped by the writer, ended by close(): each look at the list is under the lock
+        self._helpers: list[subprocess.Popen[bytes]] = []
+        self._helpers_lock = threading.Lock()
         self._deferred: list[Path] = []  # incidents whose plot waits for the process to be on time (writer)
         self._samples = 0  # supervisor passes seen by sample()
         self._late_at = -math.inf  # monotonic time the host heartbeat was last late (process_late)
@@ -632,17 +635,20 @@ class FlightRecorder:
         host heartbeat with it."""
         self._reap()
         with ordinary_thread():  # the helper takes this thread's scheduling: never the driver's SCHED_FIFO
-            self._helpers.append(subprocess.Popen([*PLOT_COMMAND, str(json_path)],
-                                                  stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                                  stderr=subprocess.DEVNULL))
+            helper = subprocess.Popen([*PLOT_COMMAND, str(json_path)], stdin=subprocess.DEVNULL,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        with self._helpers_lock:
+            self._helpers.append(helper)
 
     def _reap(self) -> None:
         """Writer: the helpers that finished are waited for (no zombie stays while the driver runs)."""
-        self._helpers = [p for p in self._helpers if p.poll() is None]
+        with self._helpers_lock:  # a list rebuilt while another thread appended lost that helper
+            self._helpers = [p for p in self._helpers if p.poll() is None]
 
     def helper_pids(self) -> list[int]:
         """The plot helpers not yet reaped (tests, tools)."""
-        return [p.pid for p in self._helpers]
+        with self._helpers_lock:
+            return [p.pid for p in self._helpers]
 
     def close(self) -> None:
         """Write what is pending, stop the writer, and end the plot helpers within PLOT_WAIT_S in all:
@@ -652,7 +658,9 @@ class FlightRecorder:
         self._stop.set()
         self._thread.join(timeout=30.0)
         deadline = time.monotonic() + PLOT_WAIT_S
-        for helper in self._helpers:  # none left running, none left a zombie
+        with self._helpers_lock:
+            helpers, self._helpers = self._helpers, []
+        for helper in helpers:  # none left running, none left a zombie
             try:
                 helper.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
@@ -660,7 +668,6 @@ class FlightRecorder:
                                " with `python -m motor_driver.recording` and the incident's JSON", PLOT_WAIT_S,
                                helper.pid)
                 _end_helper(helper)
-        self._helpers = []
 
 
 def _write_blf(path: Path, frames: Iterable[Frame], channel_of: Mapping[str, int]) -> None:
