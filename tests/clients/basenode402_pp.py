@@ -20,6 +20,8 @@ from canopen.profiles.p402 import BaseNode402
 
 logging.basicConfig(level=logging.ERROR)
 
+SDO_TIMEOUT_S = 5.0
+
 
 def main() -> int:
     host, port, node_id, eds, target = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], int(sys.argv[5])
@@ -28,6 +30,9 @@ def main() -> int:
     try:
         node = BaseNode402(node_id, eds)
         network.add_node(node)
+        # an SDO answer within 5 s, not the library's 0.3 s: the simulator shares a loaded CI
+        # machine's two cores (an answer missed there failed this client, not the drive)
+        node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
         # listen for the boot-up before sending the reset: canopen's wait_for_bootup() starts
         # listening only when called, and a quick drive's boot-up can come before that
         booted = threading.Event()
