@@ -71,30 +71,21 @@ def test_close_ends_a_plot_still_being_drawn_at_its_budget(tmp_path: Path, monke
 
 
 class _Finished:
-    """A helper the reap looks at: its poll() holds the reap in the middle of its rebuild of the
-    list until ``go_on``, then says it finished (reaped)."""
+    """A helper the writer's reap looks at first: its first poll() holds that reap in the middle of
+    its rebuild of the list until ``go_on``; then (and to every later look) it says it finished."""
 
     pid = -1
 
     def __init__(self) -> None:
         self.polling, self.go_on = threading.Event(), threading.Event()
+        self.polls = 0
 
     def poll(self) -> int:
-        self.polling.set()
-        self.go_on.wait(30.0)
+        self.polls += 1
+        if self.polls == 1:
+            self.polling.set()
+            self.go_on.wait(30.0)
         return 0
-
-
-class _Appends(list):  # type: ignore[type-arg]
-    """The recorder's list of helpers, saying when one is appended."""
-
-    def __init__(self, *items: object) -> None:
-        super().__init__(items)
-        self.appended = threading.Event()
-
-    def append(self, item: object) -> None:
-        super().append(item)
-        self.appended.set()
 
 
 def test_a_helper_started_while_the_writer_reaps_is_kept_and_ended(tmp_path: Path,
@@ -106,15 +97,19 @@ def test_a_helper_started_while_the_writer_reaps_is_kept_and_ended(tmp_path: Pat
     monkeypatch.setattr(recorder_module, "PLOT_WAIT_S", 0.5)
     recorder = FlightRecorder(RecorderConfig(dir=tmp_path, plot=False), {"wheel": ("can0", 1)}, {"can0": "can0"})
     finished = _Finished()
-    recorder._helpers = helpers = _Appends(finished)
+    recorder._helpers = [finished]  # type: ignore[list-item]
     try:
         reaping, reap_errors = in_thread(recorder._reap, name="test-reap")
         assert finished.polling.wait(30.0), "the reap looked at the finished helper"
         starting, start_errors = in_thread(lambda: recorder._plot_in_helper(tmp_path / "incident.json"),
                                            name="test-start")
-        # where the list is not locked the append lands in the list being rebuilt, at once; where
-        # it is, the start waits for the reap: this wait only gives the broken copy its chance
-        helpers.appended.wait(2.0)
+        # unlocked, the start's own reap and its append run at once beside the held reap, which then
+        # writes its list over theirs; locked, the start waits for the held reap. This bounded look
+        # (the list read as it is, not under the lock) only gives the unlocked copy its chance.
+        for _ in range(200):
+            if any(p is not finished for p in list(recorder._helpers)):
+                break
+            time.sleep(0.01)
         finished.go_on.set()
         reaping.join(30.0)
         starting.join(30.0)

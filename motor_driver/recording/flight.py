@@ -417,12 +417,13 @@ class FlightRecorder:
             if not t:
                 t = time.time()
             end = ring.end
-            if ring.count == ring.cap:
-                if _time_at(ring.slots, end)[0] >= t - self._keep_s:  # pushed out before its time
-                    ring.dropped += 1
-            else:
+            full = ring.count == ring.cap
+            early = full and _time_at(ring.slots, end)[0] >= t - self._keep_s  # pushed out before its time
+            _SLOT.pack_into(ring.slots, end, t, cob, flags | length << 4, dlc, data)  # first: a frame that
+            if early:  # does not pack changes no count
+                ring.dropped += 1
+            elif not full:
                 ring.count += 1
-            _SLOT.pack_into(ring.slots, end, t, cob, flags | length << 4, dlc, data)
             end += _SLOT_SIZE
             ring.end = end if end < ring.nbytes else 0
         finally:
