@@ -322,13 +322,16 @@ class DriveCache:
         SYNC; its answer comes within the SYNC period, CiA 301's synchronous window), any other when
         it was sent. A TPDO that answered every SYNC until the one before the newest and comes after
         the newest is the late answer to that one (latched there: stamped with it, never one period
-        too new), unless its last frame was taken so too: two in a row say it missed a SYNC (its
-        answer lost, or never sent) and answers the newest, which it is stamped with (else every
-        later answer would be stamped a period early). One back after a longer silence answers the
-        newest. Where the newest SYNC was taken by an earlier frame of this TPDO (a SYNC not heard),
-        or none came within the period (a bus that does not show this driver its own SYNC: a kernel
-        socket sending it; an answer later than the period), the frame's own stamp stands, and the
-        SYNC it answered is counted all the same."""
+        too new), unless its last frame was taken so too: two in a row are taken as a SYNC it did
+        not answer (its answer lost, or never sent) and an answer to the newest, which it is stamped
+        with (else one lost answer would stamp every later one a period early, for good).
+
+        The counts cannot tell that from answers that keep coming after the next SYNC (a bus over
+        its capacity, which the bus audit names): such a run is stamped a period too new from its
+        second frame on, until an answer comes before the next SYNC. One back after a longer
+        silence answers the newest. A frame more than a period after the newest SYNC (a SYNC not
+        heard; a bus that does not show this driver its own SYNC: a kernel socket sending it) keeps
+        its own stamp, and the SYNC it answered is counted all the same."""
         if cob_id not in self._per_sync:
             return timestamp
         behind = self._syncs - self._sync_answered[cob_id]
