@@ -99,13 +99,19 @@ def write_config(path: Path, port: int, drives: list[tuple[str, int, str, Path]]
     return path
 
 
+def put_marker(sim: SimService, channel: str) -> bytes:
+    """A marker frame of a token of its own on ``channel``, from the bus itself; the token."""
+    token = next(MARKERS).to_bytes(4, "little")
+    with VirtualBus(channel, engine=sim.engine) as marker:
+        marker.send(can.Message(arbitration_id=MARKER_COB, data=token, is_extended_id=False))
+    return token
+
+
 def syncs_while_listening(sim: SimService, watch: Watch, channel: str, node: int) -> int:
     """SYNCs ``watch`` heard between a marker put on ``channel`` now and the second heartbeat of
     ``node`` after it (a span of at least one heartbeat period, many SYNC periods): 0 says no SYNC
     came while the watch was shown to listen."""
-    token = next(MARKERS).to_bytes(4, "little")
-    with VirtualBus(channel, engine=sim.engine) as marker:
-        marker.send(can.Message(arbitration_id=MARKER_COB, data=token, is_extended_id=False))
+    token = put_marker(sim, channel)
 
     def since_marker() -> list[can.Message]:
         frames = [m for _, m in list(watch.frames)]
@@ -163,9 +169,7 @@ def watches_heard_all(sim: SimService, watches: dict[str, Watch], clients: int) 
     holds every frame the bus carried before."""
     wait_for(lambda: len(sim.server.clients) == clients, 10.0, f"the server down to {clients} connections")
     for channel, watch in watches.items():
-        token = next(MARKERS).to_bytes(4, "little")
-        with VirtualBus(channel, engine=sim.engine) as marker:
-            marker.send(can.Message(arbitration_id=MARKER_COB, data=token, is_extended_id=False))
+        token = put_marker(sim, channel)
         wait_for(lambda w=watch, t=token: any(m.arbitration_id == MARKER_COB and bytes(m.data) == t  # type: ignore[misc]
                                               for _, m in list(w.frames)), 10.0, f"the marker at {channel}'s watch")
 
