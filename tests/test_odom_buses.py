@@ -122,10 +122,11 @@ def sim_wheel_yaw(rover: Rover) -> float:
 
 def cruise_yaws(rover: Rover, each: Callable[[], object] = lambda: None) -> list[float]:
     """Drive 2.5 m straight (``each()`` at every /odom); /odom's measured headings from 0.5 m on
-    (accelerated: cruising), sorted."""
+    (accelerated: cruising), sorted. A measured /odom comes with new samples from both sides: at
+    least at can1's SYNC rate (89 ms: 45 over the 4 s of cruise), at most at the step's (50 Hz)."""
     rover.drive_until(SPEED_M_S, 0.0, lambda: each() or rover.odom[-1].pose.pose.position.x > 2.5, "2.5 m straight")
     cruise = [yaw(m) for m in rover.odom if 0.5 < m.pose.pose.position.x <= 2.5 and measured(m)]
-    assert len(cruise) > 50, len(cruise)
+    assert len(cruise) > 30, len(cruise)
     return sorted(cruise)
 
 

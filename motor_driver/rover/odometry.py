@@ -142,6 +142,7 @@ class WheelOdometry:
         #: each wheel's RAW_SAMPLES newest trusted samples (newest first), of one reference: what its
         #: position at a common instant is interpolated from
         self._raw: dict[str, tuple[WheelSample, ...]] = {}
+        self._received: dict[str, float] = {}  # the receive time of each wheel's newest kept sample
         self._instant = 0.0  # the last common instant integrated (monotonic, s)
         #: the least (receive time - bus stamp) any wheel showed: the bus stamps on the monotonic clock
         #: (one clock for every bus: the host's wall clock its kernel or bus server stamps by)
@@ -173,12 +174,16 @@ class WheelOdometry:
         return dataclasses.replace(sample, stamp=min(sample.bus_stamp + self._offset, sample.stamp))
 
     def _remember(self, samples: Mapping[str, WheelSample]) -> None:
-        """Each trusted sample into its wheel's history (two newest, one reference), stamped when
-        it was on the bus; a wheel to be forgotten loses its history."""
+        """Each trusted sample into its wheel's history (RAW_SAMPLES newest, one reference), stamped
+        when it was on the bus; a wheel to be forgotten loses its history. A sample is new when it
+        was received after the newest kept (its receive time, never its measured stamp: the clocks'
+        offset rises a little every step, so the same PDO read at two steps would measure apart and
+        be kept twice, its copies pushing out the samples an instant lies between)."""
         self._align(samples)
         for name, given in samples.items():
             if not math.isfinite(given.angle_rad) or (given.forget and not given.trusted):
                 self._raw.pop(name, None)
+                self._received.pop(name, None)
                 continue
             if not given.trusted:
                 continue
@@ -186,8 +191,11 @@ class WheelOdometry:
             raw = self._raw.get(name)
             if raw is None or raw[0].reference != sample.reference:
                 self._raw[name] = (sample,)
-            elif sample.stamp > raw[0].stamp:
+            elif given.stamp > self._received[name] and sample.stamp > raw[0].stamp:
                 self._raw[name] = (sample, *raw[:RAW_SAMPLES - 1])
+            else:
+                continue
+            self._received[name] = given.stamp
 
     def _common_instant(self, samples: Mapping[str, WheelSample]) -> float:
         """The instant this step integrates to: the oldest newest sample among the wheels that

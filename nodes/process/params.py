@@ -55,7 +55,8 @@ PARAMS: dict[str, Param] = {
     "realtime_priority": Param(DRIVER_PRIORITY, "SCHED_FIFO priority of the driver process's threads (commands, supervisor, stops,"
                                    " DDS, each bus's receive thread), 1 to 99, where the OS allows it (CAP_SYS_NICE, an rtprio"
                                    " limit; else ordinary, said once); 0: ordinary scheduling"),
-    "odom_rate_hz": Param(50.0, "rate of the drive system's control loop and /odom", 1.0, 200.0),
+    "odom_rate_hz": Param(50.0, "rate of the drive system's control loop and at most of /odom (a measured /odom"
+                                " comes only with new samples of both sides)", 1.0, 200.0),
     "odom_frame": Param("odom", "frame_id of /odom"),
     "base_frame": Param("base_link", "child_frame_id of /odom"),
     "publish_tf": Param(True, "drive_system: publish /tf odom -> base_link from the wheel odometry; false: another"
