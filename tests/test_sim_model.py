@@ -279,3 +279,36 @@ def test_a_csp_stream_enabled_again_from_quick_stop_goes_on_from_where_the_stop_
         drive.tick(now, 0.002)
         steps.append(drive.sp_pos - before)
     assert max(abs(step) for step in steps[330:]) < 3 * 57, max(steps[330:], key=abs)
+
+
+def _furthest_past_the_limit(tick_s: float) -> tuple[float, SimState]:
+    """A drive in profile velocity at 400,000 counts/s (98 motor turns a second) towards its
+    software limit 100,000 counts ahead, ticked every ``tick_s``: the furthest it went (counts) and
+    its state once it stands."""
+    drive = SimulatedDrive(1, load_drive_od(GENERIC_EDS, 1))
+    drive.store.values[(OD.MODES_OF_OPERATION_DISPLAY, 0)] = int(OperationMode.PROFILE_VELOCITY)
+    drive.store.values[(OD.PROFILE_ACCELERATION, 0)] = 2_000_000
+    drive.store.values[(OD.QUICK_STOP_DECELERATION, 0)] = 2_000_000  # its fault reaction: 0.2 s from speed
+    drive.store.values[(OD.TARGET_VELOCITY, 0)] = 400_000
+    drive.store.values[(OD.SOFTWARE_POSITION_LIMIT, 1)] = -100_000
+    drive.store.values[(OD.SOFTWARE_POSITION_LIMIT, 2)] = 100_000
+    drive.state = SimState.OPERATION_ENABLED
+    now, furthest = 0.0, 0.0
+    while now < 2.0:
+        now += tick_s
+        drive.tick(now, tick_s)
+        furthest = max(furthest, drive.position_counts)
+    assert drive.omega == 0.0 or abs(drive.omega) < 1e-6, drive.omega
+    return furthest, drive.state
+
+
+def test_a_late_simulator_tick_faults_at_the_software_limit_as_one_on_time() -> None:
+    """A busy machine runs the simulator's thread late (a tick of 40 ms instead of 2): the drive
+    still faults where it crosses its software limit and stops from there. Checked once a tick,
+    it went on for the rest of the late tick first (up to 40 ms at 400,000 counts/s, 16,000
+    counts; here 2,400 further than on time), and a test of a drive's overshoot judged the CPU."""
+    on_time, state = _furthest_past_the_limit(0.002)
+    assert state == SimState.FAULT
+    late, state = _furthest_past_the_limit(0.04)
+    assert state == SimState.FAULT
+    assert abs(late - on_time) < 400_000 * 0.002, (late, on_time)  # within one check's travel

@@ -25,6 +25,7 @@ Owner: the simulator's runner thread, all of it.
 from __future__ import annotations
 
 import logging
+import math
 
 import can
 
@@ -33,6 +34,11 @@ from virtual_can.sim.drive.comm import CommNode
 from virtual_can.sim.drive.model import EMCY_STO, POWERED, State
 
 logger = logging.getLogger(__name__)
+
+
+#: A tick longer than this (a late simulator thread) moves the plant in parts this long while its
+#: software position limits are on, each part's end checked against them (the runner's own tick)
+LIMIT_CHECK_S = 0.002
 
 
 class SimulatedDrive(CommNode):
@@ -83,9 +89,7 @@ class SimulatedDrive(CommNode):
             new, _ = self._slow_transition
             self._slow_transition = None
             self._enter(new)
-        out += self._move(now, dt)
-        self._plant_at = now
-        out += self._check_position_limits(now)
+        out += self._move_within_limits(now, dt)
         self._update_status()
         if self.faults.unplugged:
             return []
@@ -95,6 +99,22 @@ class SimulatedDrive(CommNode):
         if period_ms and now >= self._next_heartbeat:
             self._next_heartbeat = max(self._next_heartbeat + period_ms / 1000.0, now)
             out.append(self._msg(FunctionCode.HEARTBEAT + self.node_id, bytes([self.nmt])))
+        return out
+
+    def _move_within_limits(self, now: float, dt: float) -> list[can.Message]:
+        """The plant moved by ``dt`` up to ``now``, its software position limits checked every
+        LIMIT_CHECK_S of it while they are on: a late tick (a busy machine's simulator thread)
+        faults at the crossing as a tick on time does, and its quick stop starts there, not a late
+        tick's travel beyond it (the overshoot a drive's limit allows is the machine's, not the CPU's)."""
+        chunks = 1
+        if dt > LIMIT_CHECK_S and self.state == State.OPERATION_ENABLED and self._limits_on():
+            chunks = math.ceil(dt / LIMIT_CHECK_S)
+        out: list[can.Message] = []
+        for i in range(1, chunks + 1):
+            at = now - dt * (chunks - i) / chunks
+            out += self._move(at, dt / chunks)
+            self._plant_at = at
+            out += self._check_position_limits(at)
         return out
 
     def shaft(self) -> tuple[float, float, float]:

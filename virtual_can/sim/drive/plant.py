@@ -212,14 +212,18 @@ class Plant(StateMachine):
             omega = new_omega
         self.omega, self.theta, self.torque_nm, self._vel_integral = omega, theta, tau, integral
 
+    def _limits_on(self) -> bool:
+        """0x607D holds software position limits (CiA 402: low >= high switches them off)."""
+        store = self.store
+        return store.has(OD.SOFTWARE_POSITION_LIMIT, 2) and \
+            float(store.get(OD.SOFTWARE_POSITION_LIMIT, 1)) < float(store.get(OD.SOFTWARE_POSITION_LIMIT, 2))  # type: ignore[arg-type]
+
     def _check_position_limits(self, now: float) -> list[can.Message]:
         """0x607D while enabled: moving on beyond a software position limit is a fault."""
-        if self.state != State.OPERATION_ENABLED or not self.store.has(OD.SOFTWARE_POSITION_LIMIT, 2):
+        if self.state != State.OPERATION_ENABLED or not self._limits_on():
             return []
         low = float(self.store.get(OD.SOFTWARE_POSITION_LIMIT, 1))  # type: ignore[arg-type]
         high = float(self.store.get(OD.SOFTWARE_POSITION_LIMIT, 2))  # type: ignore[arg-type]
-        if low >= high:  # CiA 402: limits switched off
-            return []
         pos = self.position_counts
         tolerance = LIMIT_TOLERANCE_REV * self.units_per_motor_rev
         if (pos > high + tolerance and self.omega > 0) or (pos < low - tolerance and self.omega < 0):
