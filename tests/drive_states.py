@@ -18,8 +18,11 @@ def drive_state(*, enabled: bool = False, fault: bool = False, lost: bool = Fals
                 **values: Any) -> DriveState:
     """``DriveState(**values)`` judged with these facts: ``enabled`` (armed by this driver),
     ``lost`` (no heartbeat), ``stale`` (its data older than its bound). ``fault`` is the
-    statusword's (``state``), accepted and ignored, as the driver's snapshot derives it."""
+    statusword's (``state``), accepted and ignored, as the driver's snapshot derives it. Its
+    position is of its newest TPDO unless given (``position_stamp``, ``position_rx``)."""
     del fault
+    values.setdefault("position_stamp", values.get("stamp", 0.0))
+    values.setdefault("position_rx", values.get("rx_monotonic", 0.0))
     state = DriveState(**values)
     facts = state.facts._replace(lost=lost, armed=enabled,
                                  stale_after_s=-1.0 if stale else state.facts.stale_after_s)

@@ -13,6 +13,8 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import struct
+from pathlib import Path
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -21,9 +23,10 @@ from motor_driver.drive import DriveState
 from motor_driver.drive.verdict import judge
 from motor_driver.protocol.cia402 import State
 from motor_driver.rover.odometry import WheelOdometry
-from nodes.rover.wheels import odometry_samples
+from nodes.rover.wheels import odometry_sample, odometry_samples
 
 from .drive_states import drive_state
+from .test_batch_receive import PLAN, T0, Rig
 
 LEFT, RIGHT = ("fl", "ml", "rl"), ("fr", "mr", "rr")
 TRACK_M, RADIUS_M = 0.6, 0.1
@@ -156,3 +159,30 @@ def test_a_step_back_of_the_wall_clock_does_not_freeze_odometry() -> None:
             x.append(step.pose.x_m)
     assert all(b > a for a, b in itertools.pairwise(x[1:])), x  # it never stood still (the first starts)
     assert math.isclose(x[-1], math.radians(5.0 * (40 - 2)) * RADIUS_M, rel_tol=1e-9)  # from the first sample
+
+
+def test_a_tpdo_without_a_position_is_no_new_sample_of_it(tmp_path: Path) -> None:
+    """A drive answers each SYNC with its position TPDO (0x281) and then its torque and statusword
+    (0x381), and sends a statusword on change (0x181): only the first carries a position. The wheel
+    sample the odometry reads is the position's own (its TPDO's receive time and SYNC stamp), so a
+    step between the two TPDOs and a step after them read one sample, not two: stamped by the
+    newest frame, the same position came as a new one (kept twice, published as a new measurement)."""
+    rig = Rig(tmp_path)
+    try:
+        by_cob = {p.cob_id: p for p in PLAN.tpdos}
+        position = next(p for p in PLAN.tpdos if 0x6064 in p.indexes)
+        others = [p for p in PLAN.tpdos if 0x6064 not in p.indexes]
+        assert position.cob_id == 0x281 and {p.cob_id for p in others} == {0x181, 0x381}, by_cob
+        rig.network.notify(0x080, bytearray(), T0)
+        rig.network.notify(position.cob_id, bytearray(struct.pack("<ii", 1000, 0)), T0 + 0.0005)
+        first = rig.cache.snapshot()
+        samples = [odometry_sample(first, SYNC_S)]
+        for layout in others:
+            rig.network.notify(layout.cob_id, bytearray(layout.codec.size), T0 + 0.001)
+            later = rig.cache.snapshot()
+            assert later.rx_monotonic > first.rx_monotonic  # a newer frame...
+            samples.append(odometry_sample(later, SYNC_S))
+    finally:
+        rig.close()
+    assert first.position_stamp == T0 and first.position_rx == first.rx_monotonic  # the SYNC it answers
+    assert {(s.stamp, s.bus_stamp, s.angle_rad) for s in samples} == {(samples[0].stamp, T0, samples[0].angle_rad)}

@@ -49,6 +49,11 @@ class DriveState:
     foreign_master: str = ""  # evidence that another master drives it: commands are refused
     reference: int = 0  # the position reference (boot, homing, a reboot's jump start a new one)
     rx_monotonic: float = 0.0  # when the PDOs carrying this state arrived (monotonic; 0.0 never)
+    #: when ``angle_deg`` was measured (``stamp``'s clock) and received (``rx_monotonic``'s): its own
+    #: TPDO's, which a later TPDO without a position (torque, a statusword on change) does not move;
+    #: 0.0 no position TPDO yet. What the odometry takes a sample's time and newness from.
+    position_stamp: float = 0.0
+    position_rx: float = 0.0
     #: the facts and verdict the driver judged (the snapshot's); None: judged from the values
     #: above (a snapshot made by hand, a test's or a recording's, and every dataclasses.replace)
     judged: InitVar[tuple[DriveFacts, Verdict] | None] = None
@@ -78,6 +83,10 @@ class Received(NamedTuple):
     rx_monotonic: float = 0.0  # when it arrived
     reference: int = 0  # the position reference it belongs to (PositionFilter.reference)
     noted_at: float = 0.0  # the SDO note (Noted.at) its values carry already (0.0: none)
+    #: the position's own ``stamp`` and ``rx_monotonic``: of the TPDO that carried it, not of the
+    #: newest frame (a SYNC's torque TPDO after its position TPDO; a statusword sent on change)
+    position_stamp: float = 0.0
+    position_rx: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -176,8 +176,10 @@ class ViewDrive:
             values = layout.codec.unpack_from(data)
         except struct.error:
             return  # a short TPDO: the driver ignores it too
-        sw, mode, position, velocity, torque, _ = decode_tpdo(layout.indexes, values, self.rx, t, self.positions)
-        self.rx = Received(sw, mode, position, velocity, torque, t, t, self.positions.reference)
+        sw, mode, position, velocity, torque, took = decode_tpdo(layout.indexes, values, self.rx, t, self.positions)
+        rx = self.rx
+        self.rx = Received(sw, mode, position, velocity, torque, t, t, self.positions.reference, 0.0,
+                           t if took else rx.position_stamp, t if took else rx.position_rx)
         self.got.add(cob)
         self.newest = max(self.newest, t)
 

@@ -51,24 +51,25 @@ SIDE_LAG_PERIODS = 0.5
 
 def odometry_sample(state: DriveState, pdo_period_s: float, *, driven: bool = True,
                     side_newest_s: float = 0.0) -> WheelSample:
-    """What the odometry may take from a wheel: its position at its receive time (monotonic) and
-    reference. Counted only when usable and heard within PDO_SILENCE_PERIODS of its PDO period
+    """What the odometry may take from a wheel: its position at its own TPDO's receive time
+    (monotonic) and bus stamp, and its reference. Counted only when usable and heard within PDO_SILENCE_PERIODS of its PDO period
     and in its side's newest SYNC (``side_newest_s``, the newest receive time of its side);
     else, if usable or only late, it keeps its last sample (its next one settles the gap);
     anything else (lost, out, disabled, quick-stopped, faulted, re-booting) forgets it.
     ``driven``: some wheel of the rover is usable; when none is (the rover disarmed, standing or
     pushed), every wheel whose data is news counts: what they measure is all the motion there is."""
     verdict = state.verdict
-    silent = verdict.age_s > PDO_SILENCE_PERIODS * pdo_period_s or \
-        side_newest_s - state.rx_monotonic > SIDE_LAG_PERIODS * pdo_period_s
+    received = state.position_rx  # the position's own TPDO: a later one without a position is no news of it
+    age_s = verdict.age_s + (state.rx_monotonic - received) if received else math.inf
+    silent = age_s > PDO_SILENCE_PERIODS * pdo_period_s or side_newest_s - received > SIDE_LAG_PERIODS * pdo_period_s
     if verdict.usable or (not driven and verdict.fresh):
         trusted, forget, why = not silent, False, f"silent for {ms(verdict.age_s)}" if silent else ""
     else:
         trusted, forget, why = False, verdict.condition is not Condition.LATE, verdict.cause
-    return WheelSample(math.radians(state.angle_deg), state.rx_monotonic, state.reference, trusted and
-                       bool(state.rx_monotonic), why or ("" if state.rx_monotonic else "no position yet"),
+    return WheelSample(math.radians(state.angle_deg), received, state.reference, trusted and bool(received),
+                       why or ("" if received else "no position yet"),
                        forget=forget, silent=not forget and not trusted and verdict.condition is not Condition.LATE,
-                       velocity_rad_s=math.radians(state.velocity_deg_s), bus_stamp=state.stamp)
+                       velocity_rad_s=math.radians(state.velocity_deg_s), bus_stamp=state.position_stamp)
 
 
 def odometry_samples(states: Mapping[str, DriveState], sides: Iterable[Sequence[str]],
@@ -78,7 +79,7 @@ def odometry_samples(states: Mapping[str, DriveState], sides: Iterable[Sequence[
     driven = any(s.verdict.usable for s in states.values())
     samples = {}
     for side in sides:
-        newest = max((states[n].rx_monotonic for n in side if states[n].verdict.fresh), default=0.0)
+        newest = max((states[n].position_rx for n in side if states[n].verdict.fresh), default=0.0)
         for name in side:
             samples[name] = odometry_sample(states[name], pdo_period_s[name], driven=driven, side_newest_s=newest)
     return samples

@@ -363,14 +363,18 @@ class DriveCache:
             self._trusts_seen = (boot_trusts, cmd_trusts)
             self.positions.trust_next()
         sw, mode, position, velocity, torque, took = decode_tpdo(indexes, values, rx, timestamp, self.positions)
+        now = time.monotonic()
         if took:
             self.position_seq += 1
+            position_stamp, position_rx = timestamp, now
+        else:
+            position_stamp, position_rx = rx.position_stamp, rx.position_rx
         state = decode_state(sw) if has_statusword else None
         if state in FAULT_STATES:
             self._fault_word = sw
             self._fault_seq += 1
-        now = time.monotonic()
-        self._rx = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference, rx.noted_at)
+        self._rx = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference, rx.noted_at,
+                            position_stamp, position_rx)
         self.tpdo_count += 1
         if per_sync:
             self.sync_tpdos += 1
@@ -530,4 +534,4 @@ class DriveCache:
             stamp=rx.stamp, heartbeat_age_s=facts.heartbeat_age_s,
             target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age,
             foreign_master=facts.foreign_master, reference=rx.reference, rx_monotonic=rx.rx_monotonic,
-            judged=(facts, verdict))
+            position_stamp=rx.position_stamp, position_rx=rx.position_rx, judged=(facts, verdict))
