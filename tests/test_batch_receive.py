@@ -229,3 +229,26 @@ def test_without_a_sink_the_bus_returns_a_frame_at_a_time() -> None:
     finally:
         ours.close()
         peer.close()
+
+
+def test_frames_no_can_bus_carries_are_skipped_and_the_read_s_others_recorded(tmp_path: Path) -> None:
+    """A stream's frame with an id beyond its width or more than 8 bytes is no CAN frame: skipped
+    like one that does not parse, and the frames around it in the same read are dispatched, counted
+    and recorded (an EMCY among them still an incident). Passed on, its id did not fit the flight
+    recorder's slot: the read's later frames were lost to the recorder and its EMCY to the incidents."""
+    rig = Rig(tmp_path)
+    ours, peer = socket.socketpair()
+    try:
+        bus = _socketcand_on(ours)
+        dispatch_batches(bus, rig.dispatch.on_frames)
+        peer.sendall((text(0x080 + NODE, b"\x10\x23\x01\0\0\0\0\0", T0) + f"< frame 123456789 {T0 + 0.001:.6f} 01 >"
+                      + f"< frame 800 {T0 + 0.002:.6f} 01 >" + f"< frame 701 {T0 + 0.003:.6f} {'05' * 9} >"
+                      + text(0x701, b"\x05", T0 + 0.004)).encode())
+        assert bus.recv(0) is None
+        assert rig.stats.frames == 2 and rig.cache.emcy_count == 1
+        assert [kind for kind, _, _ in rig.recorder.said] == ["emcy"]
+        assert rig.recorder.frames_kept() == 2
+    finally:
+        ours.close()
+        peer.close()
+        rig.close()

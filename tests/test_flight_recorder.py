@@ -13,13 +13,15 @@ import sys
 import threading
 import time
 import tracemalloc
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import can
 import pytest
 import yaml
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
@@ -472,3 +474,44 @@ def test_a_full_ring_counts_only_frames_pushed_out_within_their_window(tmp_path:
     finally:
         recorder.close()
     assert dropped == {"can0": 1} and [f[7] for f in frames] == [bytes([i]) for i in range(1, 9)]
+
+
+#: a frame of a read: (COB-ID, data, seconds after the last frame, ring flags); the times make full
+#: rings whose oldest frame is within the window (a counted drop), on its edge, and past it
+_READ_FRAME = st.tuples(st.integers(0, 0x1FFFFFFF), st.binary(max_size=8),
+                        st.sampled_from([0.0, 0.001, 0.125, 0.25, 1.0, 2.5]) | st.floats(0.0, 3.0),
+                        st.sampled_from([0, 1, 2, 3]))
+
+
+@pytest.fixture(scope="module")
+def two_recorders(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[FlightRecorder, FlightRecorder]]:
+    """Two recorders of 1 s windows whose can0 ring holds 8 frames (each example gives them new rings)."""
+    config = RecorderConfig(dir=tmp_path_factory.mktemp("rings"), seconds=1.0, after_s=0.0, plot=False)
+    pair = tuple(FlightRecorder(config, {"wheel": ("can0", 1)}, {"can0": "can0"}) for _ in range(2))
+    yield pair  # type: ignore[misc]
+    for recorder in pair:
+        recorder.close()
+
+
+@settings(max_examples=100, deadline=None)
+@example(reads=[[(0x181, b"\x01", 0.125, 0)] * 9])  # the 9th frame: the oldest exactly 1 s old, counted
+@given(reads=st.lists(st.lists(_READ_FRAME, min_size=1, max_size=20), min_size=1, max_size=8))
+def test_a_read_s_frames_pushed_together_leave_the_ring_as_pushed_one_by_one(
+        two_recorders: tuple[FlightRecorder, FlightRecorder], reads: list[list[tuple[int, bytes, float, int]]]) -> None:
+    """The batch read hands the recorder its frames together (one take of the ring's lock a read):
+    the ring's slots, next slot, count and drops come out as if each frame were pushed alone, through
+    the ring's wrap and its count bound (8 frames), with frames inside and past the 1 s window."""
+    alone, together = two_recorders
+    for recorder in two_recorders:
+        recorder._rings["can0"] = flight._Ring(8)
+    at = 1_000_000.0
+    for read in reads:
+        frames = []
+        for cob, data, step_s, flags in read:
+            at += step_s
+            frames.append((cob, bytearray(data), at, flags))
+        together._push_read("can0", frames)
+        for cob, data, stamp, flags in frames:
+            alone._push("can0", stamp, cob, flags, len(data), data)
+    a, b = alone._rings["can0"], together._rings["can0"]
+    assert (bytes(b.slots), b.end, b.count, b.dropped) == (bytes(a.slots), a.end, a.count, a.dropped)

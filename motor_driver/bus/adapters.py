@@ -108,7 +108,9 @@ def parse_frame_tuples(text: str) -> tuple[list[Frame], str]:
     ID SECONDS.MICROS ... >`` an error frame, as python-can reads it) in one pass, as
     :data:`Frame` tuples, and the text after the last complete one (a frame a read cut in two).
     Other messages (``< ok >``) are skipped, and so is a frame whose fields do not parse (python-can
-    raised, and the whole read was lost with it: the bus taken for lost). The same fields as
+    raised, and the whole read was lost with it: the bus taken for lost) or that no classic CAN bus
+    carries (an 11-bit id above 0x7FF, a 29-bit one above 0x1FFFFFFF, data beyond 8 bytes: python-can
+    passes them on, and the recorder's slot could not hold them). The same fields as
     python-can's ``convert_ascii_message_to_can_message``."""
     out: list[Frame] = []
     end = 0
@@ -124,8 +126,10 @@ def parse_frame_tuples(text: str) -> tuple[list[Frame], str]:
         try:
             if body[0] == "frame":
                 ident = body[1]
-                append((int(ident, 16), bytearray.fromhex(body[3]) if len(body) > 3 else bytearray(),
-                        float(body[2]), 0 if len(ident) == 3 else FRAME_EXTENDED))
+                can_id, data = int(ident, 16), bytearray.fromhex(body[3]) if len(body) > 3 else bytearray()
+                if can_id > (0x7FF if len(ident) == 3 else 0x1FFFFFFF) or len(data) > 8:
+                    continue  # no classic CAN frame (an id beyond its width, more than 8 bytes): skipped
+                append((can_id, data, float(body[2]), 0 if len(ident) == 3 else FRAME_EXTENDED))
             elif body[0] == "error":
                 append((int(body[1], 16) & 0x1FFFFFFF, bytearray(1), float(body[2]), FRAME_EXTENDED | FRAME_ERROR))
         except ValueError:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import functools
 import logging
 from collections import deque
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
@@ -59,12 +60,12 @@ def sync_daemon(bus_cfg: BusConfig) -> tuple[str, int, str] | None:
 
 
 class FrameTap(Protocol):
-    """The flight recorder's receive tap of one bus: a frame as python-can hands it, or as the
-    batch read does (:data:`motor_driver.bus.adapters.Frame`'s fields, no ``can.Message``)."""
+    """The flight recorder's receive tap of one bus: a frame as python-can hands it, or the frames
+    of one batch read (:data:`motor_driver.bus.adapters.Frame`, no ``can.Message``), together."""
 
     def on_message_received(self, msg: can.Message) -> None: ...
 
-    def on_frame(self, t: float, cob: int, flags: int, data: bytes | bytearray) -> None: ...
+    def on_read(self, frames: Sequence[Frame]) -> None: ...
 
 
 class FrameRecorder(Protocol):
@@ -102,7 +103,7 @@ class FrameDispatch(can.Listener):  # type: ignore[misc]
         self._notify, self._stats, self._foreign = network.notify, stats.on_message_received, foreign.on_message_received
         self._counters, self._foreign_frame = stats, foreign.on_frame
         self._tap = tap.on_message_received if tap is not None else None
-        self._tap_frame = tap.on_frame if tap is not None else None
+        self._tap_read = tap.on_read if tap is not None else None
         self._on_error = stats.on_error
 
     def on_message_received(self, msg: can.Message) -> None:
@@ -116,12 +117,17 @@ class FrameDispatch(can.Listener):  # type: ignore[misc]
     def on_frames(self, frames: deque[Frame]) -> None:
         """The frames of one read, taken in order (what a raise leaves stays in ``frames``): as
         :meth:`on_message_received` does each. A TPDO (0x181-0x4FF, bit 7 set) is no other
-        master's evidence and skips that look."""
-        notify, foreign, tap, stats = self._notify, self._foreign_frame, self._tap_frame, self._counters
+        master's evidence and skips that look. The recorder gets the frames taken at the end, together
+        (one take of its ring's lock a read)."""
+        notify, foreign, tap, stats = self._notify, self._foreign_frame, self._tap_read, self._counters
         count = syncs = bits = 0
+        taken: list[Frame] = []
+        keep = taken.append
         try:
             while frames:
-                can_id, data, stamp, flags = frames.popleft()
+                frame = frames.popleft()
+                keep(frame)
+                can_id, data, stamp, flags = frame
                 size = len(data)
                 if not flags:
                     count += 1
@@ -137,11 +143,11 @@ class FrameDispatch(can.Listener):  # type: ignore[misc]
                 else:
                     count += 1
                     bits += _EXT_BITS[size if size < 8 else 8]
-                if tap is not None:
-                    tap(stamp, can_id, flags, data)
         finally:
             if count:
                 stats.count(count, syncs, bits)
+            if tap is not None and taken:
+                tap(taken)
 
     def on_error(self, exc: Exception) -> None:
         logger.debug("receive failed: %s", brief_error(exc))

@@ -319,11 +319,13 @@ class _BusTap(can.Listener):
         if not msg.is_extended_id:
             self._emcy(msg.arbitration_id, msg.data, msg.timestamp)
 
-    def on_frame(self, t: float, cob: int, flags: int, data: bytes | bytearray) -> None:
-        """A frame as the bus's batch read hands it (no can.Message; flags as the ring stores them)."""
-        self.recorder._push(self.bus, t, cob, flags, len(data), data)
-        if not flags & _EXTENDED:
-            self._emcy(cob, data, t)
+    def on_read(self, frames: Sequence[tuple[int, bytes | bytearray, float, int]]) -> None:
+        """The frames of one batch read, as it took them ((cob, data, stamp, flags); flags as the
+        ring stores them): into the ring under one take of its lock, then each EMCY looked at."""
+        self.recorder._push_read(self.bus, frames)
+        for cob, data, t, flags in frames:
+            if 0x081 <= cob <= 0x0FF and not flags & _EXTENDED:
+                self._emcy(cob, data, t)
 
     def _emcy(self, cob: int, data: bytes | bytearray, t: float) -> None:
         if 0x081 <= cob <= 0x0FF and len(data) >= 3:
@@ -427,6 +429,32 @@ class FlightRecorder:
             end += _SLOT_SIZE
             ring.end = end if end < ring.nbytes else 0
         finally:
+            lock.release()
+
+    def _push_read(self, bus: str, frames: Sequence[tuple[int, bytes | bytearray, float, int]]) -> None:
+        """The frames of one read ((cob, data, stamp, flags)) into their bus's ring, as :meth:`_push`
+        does each, under one take of the ring's lock (once a read, not once a frame: issue 72)."""
+        ring = self._rings.get(bus) or self._new_ring(bus)
+        slots, cap, nbytes, keep_s, pack = ring.slots, ring.cap, ring.nbytes, self._keep_s, _SLOT.pack_into
+        lock = ring.lock
+        lock.acquire()
+        end, count, dropped = ring.end, ring.count, ring.dropped
+        try:
+            for cob, data, stamp, flags in frames:
+                length = len(data)
+                t = stamp or time.time()
+                full = count == cap
+                early = full and _time_at(slots, end)[0] >= t - keep_s
+                pack(slots, end, t, cob, flags | (length if length < _DATA_MAX else _DATA_MAX) << 4, length, data)
+                if early:
+                    dropped += 1
+                elif not full:
+                    count += 1
+                end += _SLOT_SIZE
+                if end >= nbytes:
+                    end = 0
+        finally:  # a frame that does not pack changes no count: those before it are kept
+            ring.end, ring.count, ring.dropped = end, count, dropped
             lock.release()
 
     def _new_ring(self, bus: str) -> _Ring:
