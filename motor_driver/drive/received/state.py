@@ -136,7 +136,8 @@ class DriveCache:
         self._bootup_at = 0.0
         self.bootups = 0  # boot-ups heard: one numbered above what a configuration began with is a reset in it
         self._operational_at = 0.0
-        self._heard_at, self._heard_stamp = 0.0, 0.0  # the newest heartbeat: monotonic, and the bus's stamp of it
+        self._heard_at = 0.0  # the newest heartbeat (monotonic)
+        self._heard_stamp = 0.0  # ... and the bus's stamp of it (the bus's clock)
         self._last_emcy: Emcy | None = None
         self._emcy_log = Throttle(EMCY_LOG_PERIOD_S)  # the receive thread's (EMCY lines, wrong-length TPDOs)
         self.wrong_length_tpdos = 0  # TPDOs of a length this driver's mapping does not give (receive thread)
