@@ -22,7 +22,6 @@ import pytest
 
 from can_config import RoverConfig
 from motor_driver import MotorDriver
-from motor_driver.bus.adapters import watch_idle
 from motor_driver.diagnostics.health import drive_health, with_boot
 from motor_driver.runtime import supervisor as supervisor_module
 from virtual_can import SimService
@@ -157,39 +156,3 @@ def test_a_receive_thread_held_past_the_bound_leaves_the_verdict_to_the_clock(
         assert hold.holding.is_set() and not hold.release.is_set()
     finally:
         hold.release.set()
-
-
-def test_a_drive_silent_on_an_otherwise_silent_bus_is_lost_though_no_frame_moves_the_read_stamp(
-        driver_factory: DriverFactory, read_behind_max: Callable[[float], None]) -> None:
-    """One drive, the SYNC from the driver's own thread (its socket does not hear its own frames):
-    once the drive's transmitter dies no frame comes at all, so nothing the bus stamps shows how
-    far the receive thread has read; its waits that come back empty do (BusStats.idle_at), and
-    the drive is declared lost without the bound's help (set far beyond the test's wait)."""
-    read_behind_max(600.0)
-    config = make_config(1, bus_keys={"sync_timer": "thread"}, heartbeat_timeout_ms=TIMEOUT_MS)
-    sim, driver = driver_factory(config)
-    assert driver.buses["can0"].foreign.own_sync_period_s == 0.0  # its SYNC does not come back to it
-    cache = driver.drive("joint1").cache
-    heard = cache.heartbeats
-    wait_for(lambda: cache.heartbeats > heard, 30.0, "a heartbeat after the boot")  # judged by its stamp, not the boot's
-    assert cache.heartbeat_stamp
-    apply_action(sim, {"action": "tx_dead", "node": 1})
-    wait_for(lambda: driver.drive("joint1").cache.lost, 30.0, "joint1 declared lost on a silent bus")
-    assert driver.supervisor.records["joint1"].lost_stops >= 1
-
-
-def test_a_bus_read_a_frame_at_a_time_tells_each_wait_that_came_back_empty() -> None:
-    """The kernel path's evidence (python-can's own receive, here its virtual interface): a wait
-    with nothing is told, one that brought a frame is not."""
-    told: list[int] = []
-    reader = watch_idle(can.Bus(interface="virtual", channel="read-behind", receive_own_messages=False),
-                        lambda: told.append(1))
-    writer = can.Bus(interface="virtual", channel="read-behind")
-    try:
-        assert reader.recv(0.01) is None and len(told) == 1
-        writer.send(can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False))
-        msg = reader.recv(10.0)
-        assert msg is not None and msg.arbitration_id == 0x701 and len(told) == 1
-    finally:
-        reader.shutdown()
-        writer.shutdown()

@@ -56,7 +56,7 @@ logger = logging.getLogger(__name__)
 SUPERVISOR_PERIOD_S = 0.01
 #: A drive's heartbeat overdue by the clock is judged by how far the bus's receive thread has read
 #: (Supervisor._read_behind) for at most this long past its timeout (s); then by the clock alone
-#: (a receive thread that stopped reading).
+#: (a receive thread that stopped reading; a bus without one frame, not even the driver's SYNC).
 READ_BEHIND_MAX_S = 2.0
 #: Periods in a row that raise before the loop ends (one bad period is counted and passed over).
 SUPERVISOR_FAILURES_MAX = 5
@@ -295,7 +295,7 @@ class Supervisor:
 
     @staticmethod
     def _configure_again(record: DriveRecord) -> None:
-        record.booted = record.read_behind = False
+        record.booted = False
         record.reboot_wanted = True
 
     # ------------------------------------------------------------------ each drive, each period
@@ -338,7 +338,7 @@ class Supervisor:
             drive.watch.send_guard()
         heard = cache.last_heartbeat  # read once: the receive thread may renew it meanwhile
         if record.booted and not record.lost and heard and now - heard > cfg.heartbeat_timeout_s:
-            if self._read_behind(drive, record, heard, now):
+            if self._read_behind(drive, record, now - heard):
                 return
             record.read_behind = False
             record.lost, record.lost_since = True, now
@@ -355,25 +355,18 @@ class Supervisor:
             record.read_behind = False
             logger.info("%s: its heartbeat read after all (the receive thread caught up); not lost", drive.name)
 
-    def _read_behind(self, drive: Drive, record: DriveRecord, heard: float, now: float) -> bool:
-        """Whether a heartbeat overdue by this thread's clock (read at ``heard``) is the bus's
-        receive thread's lateness rather than the drive's silence. The silence is proven when that
-        thread has read a frame the bus stamped a heartbeat timeout after the drive's last
-        heartbeat (frames come in order), or found its socket empty a timeout after it read that
-        heartbeat (a silent bus: :attr:`BusStats.idle_at`). Until then the period is not judged:
-        a starved reader must not stop drives that spoke. Past READ_BEHIND_MAX_S the clock
-        judges alone (a receive thread that no longer reads): the drive is declared lost as before."""
+    def _read_behind(self, drive: Drive, record: DriveRecord, overdue_s: float) -> bool:
+        """Whether a heartbeat overdue by this thread's clock (``overdue_s`` since it was read) is
+        the bus's receive thread's lateness rather than the drive's silence: that thread has not
+        yet read a frame the bus stamped a heartbeat timeout after the drive's last heartbeat
+        (frames come in order; the bus's own SYNC goes by every period, so a live bus always has
+        one). Such a period is not judged: a starved reader must not stop drives that spoke. Past
+        READ_BEHIND_MAX_S the clock judges (a receive thread that no longer reads, or a bus with
+        no frame at all to read): the drive is declared lost as before."""
         timeout = drive.config.heartbeat_timeout_s
-        stats = self.handles[drive.config.bus].stats
-        # the receive thread writes a heartbeat's stamp, then read_to and idle_at: read the other way
-        # round, and the heartbeat once more, so that no stamp older than what they cover is paired
-        read_to, idle_at = stats.read_to, stats.idle_at
         stamp = drive.cache.heartbeat_stamp
-        if drive.cache.last_heartbeat != heard:
-            return True  # heard meanwhile: the next period judges the new one
-        overdue_s = now - heard
-        if not stamp or read_to - stamp > timeout or idle_at - heard > timeout \
-                or overdue_s > timeout + READ_BEHIND_MAX_S:
+        read_to = self.handles[drive.config.bus].stats.read_to
+        if not stamp or read_to - stamp > timeout or overdue_s > timeout + READ_BEHIND_MAX_S:
             return False
         if not record.read_behind:
             record.read_behind = True
@@ -422,7 +415,7 @@ class Supervisor:
     def _drive_gone(self, drive: Drive) -> None:
         """The drive's bus is gone: lost, not booted; nothing is commanded until it is booted again."""
         record = self.records[drive.name]
-        record.lost, record.booted, record.lost_since, record.read_behind = True, False, 0.0, False
+        record.lost, record.booted, record.lost_since = True, False, 0.0
         record.forget_pending = not drive.channel.forget_commanded(timeout_s=0.0)
 
     def _incident(self, kind: str, drive: Drive, text: str) -> None:
