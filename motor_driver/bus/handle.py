@@ -144,10 +144,10 @@ class FrameDispatch(can.Listener):  # type: ignore[misc]
                     count += 1
                     bits += _EXT_BITS[size if size < 8 else 8]
         finally:
-            if taken:
-                stats.count(count, syncs, bits, taken[-1][2])
-                if tap is not None:
-                    tap(taken)
+            if count:
+                stats.count(count, syncs, bits)
+            if tap is not None and taken:
+                tap(taken)
 
     def on_error(self, exc: Exception) -> None:
         logger.debug("receive failed: %s", brief_error(exc))
