@@ -160,13 +160,16 @@ def kernel_controllers_available() -> str | None:
     return None
 
 
-def make_config(n: int = 1, *, eds: str = "generic", **drive: object) -> RoverConfig:
+def make_config(n: int = 1, *, eds: str = "generic", bus_keys: dict[str, object] | None = None,
+                **drive: object) -> RoverConfig:
+    """``n`` drives (joint1.. on nodes 1..) on the simulator's socketcand bus can0, each with
+    ``drive``'s keys over the in-process rigs' defaults; ``bus_keys``: more of the bus's."""
     drive.setdefault("host_timeout_ms", IN_PROCESS_HOST_TIMEOUT_MS)
     drive.setdefault("heartbeat_timeout_ms", IN_PROCESS_HEARTBEAT_TIMEOUT_MS)
     drive.setdefault("stale_after_syncs", in_process_stale_after_syncs(0.01))  # the bus's default SYNC period
     drives = [{"name": f"joint{i}", "node_id": i, "eds": eds, **drive} for i in range(1, n + 1)]
     return parse_config({"buses": [{"name": "can0", "interface": "socketcand", "channel": "can0",
-                                    "kwargs": {"host": "127.0.0.1", "port": 1}}],
+                                    "kwargs": {"host": "127.0.0.1", "port": 1}, **(bus_keys or {})}],
                          "drives": drives}, source=REPO / "tests" / "generated.yaml")
 
 

@@ -67,10 +67,10 @@ def test_a_lost_drive_is_told_to_stop_when_the_driver_shuts_down(driver_factory:
 
 def test_a_lost_drive_heard_again_in_the_stop_it_was_told_is_configured_again_not_called_another_master(
         driver_factory: DriverFactory, caplog: pytest.LogCaptureFixture) -> None:
-    """The driver's own NMT stop of a lost drive (what a starved driver does to every drive
-    whose heartbeat it read late) is no other master's: when the drive is heard again, STOPPED,
-    it is configured again (NMT start, left disabled) and can be enabled; nothing says "another
-    master" and no command is refused for one."""
+    """The driver's own NMT stop of a lost drive (what a driver starved past READ_BEHIND_MAX_S
+    does to every drive whose heartbeat it read late, tests/test_read_behind.py) is no other
+    master's: when the drive is heard again, STOPPED, it is configured again (NMT start, left
+    disabled) and can be enabled; nothing says "another master" and no command is refused for one."""
     sim, driver = driver_factory(make_config(1, joint="continuous", heartbeat_timeout_ms=300.0))
     turning_then_deaf(sim, driver)
     drive = driver.drive("joint1")

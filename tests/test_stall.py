@@ -1,8 +1,9 @@
 """A driver process stalled (SIGSTOP, then SIGCONT: a starved or paused process) stops hearing its
-drives while they stop themselves (their host watch); on waking it marks them lost and tells them
-NMT stop, the drives' queued OPERATIONAL heartbeats bring them "back", then the stop takes
-effect. That is this driver's own doing (issue 53): nothing says "another master", the drives are
-configured again, and /arm arms the rover again. The real processes: the ROS driver node (and
+drives while they stop themselves (their host watch). On waking it judges their heartbeats by
+how far its receive thread has read on the bus's own time line (tests/test_read_behind.py), so
+the heartbeats waiting in its socket are read before any drive is judged lost; where it did
+tell one to stop (an older driver did, to all of them), that was its own doing (issue 53). Either
+way nothing says "another master", and /arm arms the rover again. The real processes: the ROS driver node (and
 the lifecycle node, configured, activated and armed at start) as subprocesses, the simulator in this
 one; the stall lasts until the simulated drives have stopped themselves (a condition, not a
 clock)."""

@@ -170,6 +170,8 @@ class _BatchReader:
         self.channel = getattr(bus, "channel", None)  # python-can's socketcand client sets it; BusABC does not declare it
         #: takes each read's frames from the deque in order (:func:`dispatch_batches`); None: python-can's recv API
         self.sink: Callable[[deque[Frame]], None] | None = None
+        #: told when a wait came back with nothing (:func:`dispatch_batches`)
+        self.on_idle: Callable[[], None] | None = None
 
     def read(self, timeout: float | None) -> bool:
         """One ``select`` and one read into :attr:`frames`; False: nothing came within ``timeout``,
@@ -177,7 +179,9 @@ class _BatchReader:
         sock = self.sock
         try:
             ready, _, _ = select.select([sock], [], [], timeout)
-            if not ready:
+            if not ready:  # nothing came (a lone SYNC's echo may wait below the low-water mark: no other frame)
+                if self.on_idle is not None:
+                    self.on_idle()
                 return False
             chunk = sock.recv(RECEIVE_CHUNK_BYTES)
             if self.quickack:
@@ -225,19 +229,38 @@ def batch_receive(bus: can.BusABC) -> can.BusABC:
     return bus
 
 
-def dispatch_batches(bus: can.BusABC, sink: Callable[[deque[Frame]], None] | None) -> bool:
+def dispatch_batches(bus: can.BusABC, sink: Callable[[deque[Frame]], None] | None,
+                     on_idle: Callable[[], None] | None = None) -> bool:
     """Each read of a :func:`batch_receive` bus handed to ``sink`` as it came, without a
     ``can.Message`` or a call of python-can's Notifier per frame: ``sink`` takes the frames from
     the deque in order (what it leaves when it raises comes first at the next read, after the
     notifier's error), and ``recv`` returns None when its timeout passed or the stream ended
     (the Notifier then checks whether it was stopped). Set it before the Notifier runs; None:
-    a frame at a time again. False where the bus reads otherwise (a kernel socket: python-can's
-    ``recv``, one ``can.Message`` a frame)."""
+    a frame at a time again. ``on_idle`` is called when a wait came back with nothing. False where
+    the bus reads otherwise (a kernel socket: python-can's ``recv``, one ``can.Message`` a frame;
+    :func:`watch_idle` then)."""
     reader = getattr(bus, BATCH_READER_ATTRIBUTE, None)
     if not isinstance(reader, _BatchReader):
         return False
-    reader.sink = sink
+    reader.sink, reader.on_idle = sink, on_idle
     return True
+
+
+def watch_idle(bus: can.BusABC, on_idle: Callable[[], None]) -> can.BusABC:
+    """``on_idle`` called whenever the bus's receive came back with nothing within its timeout
+    (python-can's ``_recv_internal``: its ``select`` on a kernel socket, a queue's wait on a
+    virtual bus), so the receive thread's listener knows when it had read everything that came. For
+    a bus that :func:`dispatch_batches` does not read. Returns ``bus``."""
+    inner = bus._recv_internal
+
+    def recv_internal(timeout: float | None) -> tuple[can.Message | None, bool]:
+        got: tuple[can.Message | None, bool] = inner(timeout)
+        if got[0] is None:
+            on_idle()
+        return got
+
+    bus._recv_internal = recv_internal  # type: ignore[method-assign]  # this one bus, as batch_receive does
+    return bus
 
 
 #: a byte as python-can's socketcand client writes it: lower-case hex, no leading zero

@@ -24,7 +24,7 @@ from __future__ import annotations
 import functools
 import logging
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
@@ -35,7 +35,7 @@ from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
-from motor_driver.bus.adapters import FRAME_ERROR, Frame, GuardedNetwork, dispatch_batches, hold_lone_sync, queue_full
+from motor_driver.bus.adapters import FRAME_ERROR, Frame, GuardedNetwork, dispatch_batches, hold_lone_sync, queue_full, watch_idle
 from motor_driver.bus.connect import is_kernel_bus
 from motor_driver.bus.cyclic import DaemonCyclicTask
 from motor_driver.bus.traffic import BusStats, ForeignTraffic
@@ -144,10 +144,10 @@ class FrameDispatch(can.Listener):  # type: ignore[misc]
                     count += 1
                     bits += _EXT_BITS[size if size < 8 else 8]
         finally:
-            if count:
-                stats.count(count, syncs, bits)
-            if tap is not None and taken:
-                tap(taken)
+            if taken:
+                stats.count(count, syncs, bits, taken[-1][2])
+                if tap is not None:
+                    tap(taken)
 
     def on_error(self, exc: Exception) -> None:
         logger.debug("receive failed: %s", brief_error(exc))
@@ -155,6 +155,14 @@ class FrameDispatch(can.Listener):  # type: ignore[misc]
 
     def stop(self, *args: object) -> None:
         pass
+
+
+def receive_from(bus: can.BusABC, sink: Callable[[deque[Frame]], None], on_idle: Callable[[], None]) -> None:
+    """How the bus's receive thread reads: a socketcand read's frames at once to ``sink``, elsewhere
+    python-can's ``recv`` (a frame at a time to the listener); either way ``on_idle`` is told of
+    every wait that came back with nothing (:attr:`BusStats.idle_at`)."""
+    if not dispatch_batches(bus, sink, on_idle):
+        watch_idle(bus, on_idle)
 
 
 class BusHandle:
@@ -179,7 +187,7 @@ class BusHandle:
         self.dispatch = FrameDispatch(self.network, self.stats, self.foreign,
                                       recorder.listener(name) if recorder is not None else None)
         self.network.listen_with(self.dispatch)
-        dispatch_batches(bus, self.dispatch.on_frames)
+        receive_from(bus, self.dispatch.on_frames, self.stats.on_idle)
         self.network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         self.network.connect()  # its receive thread takes this thread's scheduling: module docstring
         self.sync_task: can.broadcastmanager.CyclicSendTaskABC | DaemonCyclicTask | None = None
@@ -201,7 +209,7 @@ class BusHandle:
     def reconnect(self, bus: can.BusABC) -> None:
         self.bus = bus
         self.network.bus = bus
-        dispatch_batches(bus, self.dispatch.on_frames)
+        receive_from(bus, self.dispatch.on_frames, self.stats.on_idle)
         # the new receive thread takes this thread's scheduling (the bus's worker: the process's)
         self.network.notifier = can.Notifier(bus, self.network.listeners, NOTIFIER_TIMEOUT_S)
 

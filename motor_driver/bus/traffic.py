@@ -58,6 +58,15 @@ class BusStats(can.Listener):
         self.last_error: tuple[float, ErrorFrame] | None = None
         self.last_losing_error = 0.0
         self.receive_error: tuple[float, str] | None = None
+        #: the bus's own stamp (its clock: the kernel's, the daemon's) of the newest frame this
+        #: thread has taken: how far it has read. Frames come in order, so a drive's heartbeat
+        #: stamped before it was read (motor_driver.runtime.supervisor: a drive is silent by the
+        #: bus's record, not by a starved reader's).
+        self.read_to = 0.0
+        #: when (monotonic) this thread last found its socket empty (a wait that came back with
+        #: nothing): every frame that had come before it was dispatched by then. The evidence of a
+        #: silent bus, where no frame moves ``read_to``.
+        self.idle_at = 0.0
         self.bits = 0
         self._window_start = time.monotonic()
         self._window_bits = 0
@@ -65,18 +74,24 @@ class BusStats(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
+            self.read_to = msg.timestamp
             self.on_error_frame(msg.arbitration_id, msg.data)
             return
         syncs = 1 if msg.arbitration_id == 0x080 and not msg.is_extended_id else 0
-        self.count(1, syncs, frame_bits(min(msg.dlc, 8), extended=msg.is_extended_id))
+        self.count(1, syncs, frame_bits(min(msg.dlc, 8), extended=msg.is_extended_id), msg.timestamp)
 
-    def count(self, frames: int, syncs: int, bits: int) -> None:
+    def count(self, frames: int, syncs: int, bits: int, read_to: float) -> None:
         """Frames received (of them SYNCs) and their bits: one frame's, or a batch read's at once
-        (motor_driver.bus.handle.FrameDispatch.on_frames)."""
+        (motor_driver.bus.handle.FrameDispatch.on_frames); ``read_to``: the bus's stamp of the last."""
+        self.read_to = read_to
         self.frames += frames
         self.syncs += syncs
         self.bits += bits
         self._window_bits += bits
+
+    def on_idle(self) -> None:
+        """The receive thread's wait came back with nothing (:attr:`idle_at`)."""
+        self.idle_at = time.monotonic()
 
     def on_error_frame(self, can_id: int, data: bytes | bytearray) -> None:
         """An error frame (its class bits in ``can_id``): noted for the supervisor, which reports and acts."""

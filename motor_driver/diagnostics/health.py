@@ -170,11 +170,14 @@ RECONFIGURE_FAILURES_ERROR = 3
 
 def with_boot(health: Health, record: DriveRecord) -> Health:
     """A drive's grade with what its boots went through (the supervisor's ledger): restarts of a
-    configuration and failed re-configurations in its values; ERROR once re-configuration has
+    configuration, failed re-configurations and the times its heartbeat was overdue only because
+    this driver had not read that far (Supervisor._read_behind) in its values; ERROR once re-configuration has
     failed RECONFIGURE_FAILURES_ERROR times, naming the newest error."""
     values = {**health.values, "boot_restarts": str(record.boot_restarts),
               "boot_restart_why": record.boot_restart_why, "reconfigure_failures": str(record.reconfigure_failures),
-              "reconfigure_error": record.reconfigure_error}
+              "reconfigure_error": record.reconfigure_error,
+              # heartbeats overdue while this driver's receive thread was behind: its lateness, not judged
+              "heartbeat_read_behind": str(record.read_behind_episodes)}
     if record.reconfigure_failures >= RECONFIGURE_FAILURES_ERROR and health.level < ERROR:
         return Health(ERROR, f"re-configuration failed {record.reconfigure_failures} times ({record.reconfigure_error});"
                       " it is retried: check its power, wiring and EDS", values)

@@ -51,6 +51,10 @@ class DriveRecord:
         self.next_stop = 0.0  # the next stop told to it while lost
         self.lost_stops = 0  # stop frames sent to it while lost
         self.stop_pending = False  # the channel was busy: the quick stop goes next period
+        #: its heartbeat overdue by the clock while the bus's receive thread had not read that far
+        #: (the driver's own lateness, not the drive's silence): so now, and how often it began
+        self.read_behind = False
+        self.read_behind_episodes = 0
         self.forget_pending = False  # the channel was busy: commanded state forgotten next period
         self.next_guard = 0.0  # node guarding: the next guard
         self.host_loss_seen = 0  # host-loss stops already reported

@@ -54,6 +54,10 @@ from motor_driver.runtime.supervise_bus import BUS_CHECK_PERIODS, BusSupervision
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
+#: A drive's heartbeat overdue by the clock is judged by how far the bus's receive thread has read
+#: (Supervisor._read_behind) for at most this long past its timeout (s); then by the clock alone
+#: (a receive thread that stopped reading).
+READ_BEHIND_MAX_S = 2.0
 #: Periods in a row that raise before the loop ends (one bad period is counted and passed over).
 SUPERVISOR_FAILURES_MAX = 5
 #: How long the loop's end waits for each drive's command channel to send the stop.
@@ -291,7 +295,7 @@ class Supervisor:
 
     @staticmethod
     def _configure_again(record: DriveRecord) -> None:
-        record.booted = False
+        record.booted = record.read_behind = False
         record.reboot_wanted = True
 
     # ------------------------------------------------------------------ each drive, each period
@@ -334,6 +338,9 @@ class Supervisor:
             drive.watch.send_guard()
         heard = cache.last_heartbeat  # read once: the receive thread may renew it meanwhile
         if record.booted and not record.lost and heard and now - heard > cfg.heartbeat_timeout_s:
+            if self._read_behind(drive, record, heard, now):
+                return
+            record.read_behind = False
             record.lost, record.lost_since = True, now
             logger.error("node %d (%s): heartbeat lost (none for %.0f ms, consumer time %.0f ms); telling it to stop"
                          " (quick stop by RPDO and SDO, NMT stop) until it is heard again", drive.node_id, drive.name,
@@ -344,6 +351,38 @@ class Supervisor:
             self._incident("heartbeat_lost", drive, "heartbeat lost; told to stop")
         elif record.lost_since and record.booted and (now >= record.next_stop or record.stop_pending):
             self._stop_lost(drive, record, now)
+        elif record.read_behind:  # heard in time once the receive thread had read that far
+            record.read_behind = False
+            logger.info("%s: its heartbeat read after all (the receive thread caught up); not lost", drive.name)
+
+    def _read_behind(self, drive: Drive, record: DriveRecord, heard: float, now: float) -> bool:
+        """Whether a heartbeat overdue by this thread's clock (read at ``heard``) is the bus's
+        receive thread's lateness rather than the drive's silence. The silence is proven when that
+        thread has read a frame the bus stamped a heartbeat timeout after the drive's last
+        heartbeat (frames come in order), or found its socket empty a timeout after it read that
+        heartbeat (a silent bus: :attr:`BusStats.idle_at`). Until then the period is not judged:
+        a starved reader must not stop drives that spoke. Past READ_BEHIND_MAX_S the clock
+        judges alone (a receive thread that no longer reads): the drive is declared lost as before."""
+        timeout = drive.config.heartbeat_timeout_s
+        stats = self.handles[drive.config.bus].stats
+        # the receive thread writes a heartbeat's stamp, then read_to and idle_at: read the other way
+        # round, and the heartbeat once more, so that no stamp older than what they cover is paired
+        read_to, idle_at = stats.read_to, stats.idle_at
+        stamp = drive.cache.heartbeat_stamp
+        if drive.cache.last_heartbeat != heard:
+            return True  # heard meanwhile: the next period judges the new one
+        overdue_s = now - heard
+        if not stamp or read_to - stamp > timeout or idle_at - heard > timeout \
+                or overdue_s > timeout + READ_BEHIND_MAX_S:
+            return False
+        if not record.read_behind:
+            record.read_behind = True
+            record.read_behind_episodes += 1
+            logger.warning("%s: no heartbeat read for %.0f ms (timeout %.0f ms), but the receive thread of %s has"
+                           " read only %.0f ms of the bus past its last one: this driver is behind (a starved"
+                           " process), not the drive silent; judged once it has read that far", drive.name,
+                           overdue_s * 1000, timeout * 1000, drive.config.bus, max(read_to - stamp, 0.0) * 1000)
+        return True
 
     @staticmethod
     def _stop_lost(drive: Drive, record: DriveRecord, now: float) -> None:
@@ -383,7 +422,7 @@ class Supervisor:
     def _drive_gone(self, drive: Drive) -> None:
         """The drive's bus is gone: lost, not booted; nothing is commanded until it is booted again."""
         record = self.records[drive.name]
-        record.lost, record.booted, record.lost_since = True, False, 0.0
+        record.lost, record.booted, record.lost_since, record.read_behind = True, False, 0.0, False
         record.forget_pending = not drive.channel.forget_commanded(timeout_s=0.0)
 
     def _incident(self, kind: str, drive: Drive, text: str) -> None:

@@ -136,7 +136,7 @@ class DriveCache:
         self._bootup_at = 0.0
         self.bootups = 0  # boot-ups heard: one numbered above what a configuration began with is a reset in it
         self._operational_at = 0.0
-        self._heard_at = 0.0  # the newest heartbeat (monotonic)
+        self._heard_at, self._heard_stamp = 0.0, 0.0  # the newest heartbeat: monotonic, and the bus's stamp of it
         self._last_emcy: Emcy | None = None
         self._emcy_log = Throttle(EMCY_LOG_PERIOD_S)  # the receive thread's (EMCY lines, wrong-length TPDOs)
         self.wrong_length_tpdos = 0  # TPDOs of a length this driver's mapping does not give (receive thread)
@@ -193,6 +193,13 @@ class DriveCache:
     def last_heartbeat(self) -> float:
         """The newest heartbeat (monotonic; boot's NMT start counts as one); 0.0 never."""
         return max(self._heard_at, self._started_at)
+
+    @property
+    def heartbeat_stamp(self) -> float:
+        """The bus's own stamp of the newest heartbeat (its clock, as
+        :attr:`~motor_driver.bus.traffic.BusStats.read_to`); 0.0 when none, or when boot's NMT start
+        is newer (no frame of the drive's)."""
+        return self._heard_stamp if self._heard_at >= self._started_at else 0.0
 
     @property
     def state(self) -> State:
@@ -425,6 +432,7 @@ class DriveCache:
                 return
             self._guard_toggle ^= 1
             self.guard_answers += 1
+        self._heard_stamp = timestamp
         now = self._heard_at = time.monotonic()
         was = self.reported_nmt
         if state == NmtState.BOOTUP:
