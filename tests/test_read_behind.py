@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 
 import can
@@ -181,9 +182,9 @@ def test_a_drive_silent_on_an_otherwise_silent_bus_is_lost_though_no_frame_moves
 def test_a_bus_read_a_frame_at_a_time_tells_each_wait_that_came_back_empty() -> None:
     """The kernel path's evidence (python-can's own receive, here its virtual interface): a wait
     with nothing is told, one that brought a frame is not."""
-    told: list[int] = []
+    told: list[float] = []
     reader = watch_idle(can.Bus(interface="virtual", channel="read-behind", receive_own_messages=False),
-                        lambda: told.append(1))
+                        told.append)
     writer = can.Bus(interface="virtual", channel="read-behind")
     try:
         assert reader.recv(0.01) is None and len(told) == 1
@@ -193,3 +194,62 @@ def test_a_bus_read_a_frame_at_a_time_tells_each_wait_that_came_back_empty() -> 
     finally:
         reader.shutdown()
         writer.shutdown()
+
+
+def test_an_empty_wait_is_told_with_when_it_began_and_a_second_watch_replaces_the_first() -> None:
+    """The evidence is the wait's start, taken before the bus's own receive is entered (a hold of
+    the thread after the wait came back proves nothing of what came meanwhile), and a bus watched
+    again (handed to a second driver) tells only its newest watcher, once a wait."""
+    bus = can.Bus(interface="virtual", channel="read-behind-start", receive_own_messages=False)
+    entered: list[float] = []
+    own = bus._recv_internal
+
+    def recv_internal(timeout: float | None) -> tuple[can.Message | None, bool]:
+        entered.append(time.monotonic())
+        got: tuple[can.Message | None, bool] = own(timeout)
+        return got
+
+    bus._recv_internal = recv_internal  # the bus's own receive, seen from inside the watch
+    first: list[float] = []
+    second: list[float] = []
+    try:
+        watch_idle(bus, first.append)
+        assert bus.recv(0.02) is None and len(first) == 1 and first[0] <= entered[-1]
+        watch_idle(bus, second.append)
+        assert bus.recv(0.02) is None
+        assert len(first) == 1 and len(second) == 1 and len(entered) == 2 and second[0] <= entered[-1]
+    finally:
+        bus.shutdown()
+
+
+def test_a_drive_silent_on_a_bus_read_a_frame_at_a_time_is_lost_by_its_empty_waits(
+        read_behind_max: Callable[[float], None]) -> None:
+    """The kernel buses' path in a running driver (python-can's receive, a frame at a time, here
+    its virtual interface; the simulated drive on another handle of that channel): with the bound
+    out of reach, only the receive thread's empty waits can prove the silence of a drive that was
+    heard, once its transmitter dies on a bus with no other frame for the driver."""
+    from can_config import load_drive_od, parse_config
+    from virtual_can.sim import MotorParams, SimulatedDrive
+    from virtual_can.sim.runner import DriveSimulator
+
+    read_behind_max(600.0)
+    channel = f"read-behind-frames-{id(read_behind_max)}"
+    config = parse_config({"buses": [{"name": "can0", "interface": "virtual", "channel": channel}],
+                           "drives": [{"name": "joint1", "node_id": 1, "heartbeat_timeout_ms": TIMEOUT_MS,
+                                       "host_timeout_ms": 2000}]})
+    spec = config.drives[0]
+    drive = SimulatedDrive(1, load_drive_od(spec.eds, 1), MotorParams.from_model(spec.sim, spec.counts_per_rev),
+                           name="joint1")
+    with can.Bus(interface="virtual", channel=channel, receive_own_messages=False) as sim_bus, \
+            DriveSimulator(sim_bus, [drive], realtime=False) as runner:
+        runner.start()
+        with can.Bus(interface="virtual", channel=channel, receive_own_messages=False) as bus, \
+                MotorDriver(config, {"can0": bus}) as driver:
+            driver.start()
+            cache = driver.drive("joint1").cache
+            heard = cache.heartbeats
+            wait_for(lambda: cache.heartbeats > heard, 30.0, "a heartbeat after the boot")
+            assert cache.heartbeat_stamp and not cache.lost
+            drive.faults.tx_dead = True
+            wait_for(lambda: cache.lost, 30.0, "joint1 declared lost on a bus read a frame at a time")
+            assert driver.buses["can0"].stats.idle_at > 0.0

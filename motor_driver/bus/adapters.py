@@ -170,18 +170,19 @@ class _BatchReader:
         self.channel = getattr(bus, "channel", None)  # python-can's socketcand client sets it; BusABC does not declare it
         #: takes each read's frames from the deque in order (:func:`dispatch_batches`); None: python-can's recv API
         self.sink: Callable[[deque[Frame]], None] | None = None
-        #: told when a wait came back with nothing (:func:`dispatch_batches`)
-        self.on_idle: Callable[[], None] | None = None
+        #: told, with when (monotonic) it began, of a wait that came back with nothing (:func:`dispatch_batches`)
+        self.on_idle: Callable[[float], None] | None = None
 
     def read(self, timeout: float | None) -> bool:
         """One ``select`` and one read into :attr:`frames`; False: nothing came within ``timeout``,
         or the stream ended (python-can's 'no frame': :func:`connection_closed` tells)."""
-        sock = self.sock
+        sock, on_idle = self.sock, self.on_idle
+        began = time.monotonic() if on_idle is not None else 0.0  # before: a hold after the wait proves nothing
         try:
             ready, _, _ = select.select([sock], [], [], timeout)
             if not ready:  # nothing came (a lone SYNC's echo may wait below the low-water mark: no other frame)
-                if self.on_idle is not None:
-                    self.on_idle()
+                if on_idle is not None:
+                    on_idle(began)
                 return False
             chunk = sock.recv(RECEIVE_CHUNK_BYTES)
             if self.quickack:
@@ -230,13 +231,14 @@ def batch_receive(bus: can.BusABC) -> can.BusABC:
 
 
 def dispatch_batches(bus: can.BusABC, sink: Callable[[deque[Frame]], None] | None,
-                     on_idle: Callable[[], None] | None = None) -> bool:
+                     on_idle: Callable[[float], None] | None = None) -> bool:
     """Each read of a :func:`batch_receive` bus handed to ``sink`` as it came, without a
     ``can.Message`` or a call of python-can's Notifier per frame: ``sink`` takes the frames from
     the deque in order (what it leaves when it raises comes first at the next read, after the
     notifier's error), and ``recv`` returns None when its timeout passed or the stream ended
     (the Notifier then checks whether it was stopped). Set it before the Notifier runs; None:
-    a frame at a time again. ``on_idle`` is called when a wait came back with nothing. False where
+    a frame at a time again. ``on_idle`` is called when a wait came back with nothing, with the
+    monotonic time that wait began (every frame that had come by then was read). False where
     the bus reads otherwise (a kernel socket: python-can's ``recv``, one ``can.Message`` a frame;
     :func:`watch_idle` then)."""
     reader = getattr(bus, BATCH_READER_ATTRIBUTE, None)
@@ -246,21 +248,29 @@ def dispatch_batches(bus: can.BusABC, sink: Callable[[deque[Frame]], None] | Non
     return True
 
 
-def watch_idle(bus: can.BusABC, on_idle: Callable[[], None]) -> can.BusABC:
+def watch_idle(bus: can.BusABC, on_idle: Callable[[float], None]) -> can.BusABC:
     """``on_idle`` called whenever the bus's receive came back with nothing within its timeout
-    (python-can's ``_recv_internal``: its ``select`` on a kernel socket, a queue's wait on a
-    virtual bus), so the receive thread's listener knows when it had read everything that came. For
-    a bus that :func:`dispatch_batches` does not read. Returns ``bus``."""
-    inner = bus._recv_internal
+    (python-can's ``_recv_internal``, whose contract is None for a wait with no frame: its
+    ``select`` on a kernel socket, a queue's wait on a virtual bus), with the monotonic time that
+    wait began, so the receive thread's listener knows when it had read everything that came. For
+    a bus that :func:`dispatch_batches` does not read. Watching a bus again replaces the watch
+    (a bus handed to a second driver), never stacks it. Returns ``bus``."""
+    inner = getattr(bus, _UNWATCHED_RECV, None) or bus._recv_internal
 
     def recv_internal(timeout: float | None) -> tuple[can.Message | None, bool]:
+        began = time.monotonic()  # before: a hold after the wait proves nothing of what came meanwhile
         got: tuple[can.Message | None, bool] = inner(timeout)
         if got[0] is None:
-            on_idle()
+            on_idle(began)
         return got
 
+    setattr(bus, _UNWATCHED_RECV, inner)
     bus._recv_internal = recv_internal  # type: ignore[method-assign]  # this one bus, as batch_receive does
     return bus
+
+
+#: where :func:`watch_idle` keeps the bus's own ``_recv_internal``
+_UNWATCHED_RECV = "_rovercan_unwatched_recv"
 
 
 #: a byte as python-can's socketcand client writes it: lower-case hex, no leading zero

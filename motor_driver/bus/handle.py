@@ -157,7 +157,7 @@ class FrameDispatch(can.Listener):  # type: ignore[misc]
         pass
 
 
-def receive_from(bus: can.BusABC, sink: Callable[[deque[Frame]], None], on_idle: Callable[[], None]) -> None:
+def receive_from(bus: can.BusABC, sink: Callable[[deque[Frame]], None], on_idle: Callable[[float], None]) -> None:
     """How the bus's receive thread reads: a socketcand read's frames at once to ``sink``, elsewhere
     python-can's ``recv`` (a frame at a time to the listener); either way ``on_idle`` is told of
     every wait that came back with nothing (:attr:`BusStats.idle_at`)."""

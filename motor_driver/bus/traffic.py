@@ -63,8 +63,9 @@ class BusStats(can.Listener):
         #: stamped before it was read (motor_driver.runtime.supervisor: a drive is silent by the
         #: bus's record, not by a starved reader's).
         self.read_to = 0.0
-        #: when (monotonic) this thread last found its socket empty (a wait that came back with
-        #: nothing): every frame that had come before it was dispatched by then. The evidence of a
+        #: when (monotonic) this thread last found its socket empty: the start of a wait that came
+        #: back with nothing (not its end: a hold after it proves nothing of what came meanwhile),
+        #: so every frame that had come by then was dispatched. The evidence of a
         #: silent bus, where no frame moves ``read_to``.
         self.idle_at = 0.0
         self.bits = 0
@@ -89,9 +90,10 @@ class BusStats(can.Listener):
         self.bits += bits
         self._window_bits += bits
 
-    def on_idle(self) -> None:
-        """The receive thread's wait came back with nothing (:attr:`idle_at`)."""
-        self.idle_at = time.monotonic()
+    def on_idle(self, began: float) -> None:
+        """The receive thread's wait that began at ``began`` (monotonic) came back with nothing: every
+        frame that had come by then was taken (:attr:`idle_at`)."""
+        self.idle_at = began
 
     def on_error_frame(self, can_id: int, data: bytes | bytearray) -> None:
         """An error frame (its class bits in ``can_id``): noted for the supervisor, which reports and acts."""

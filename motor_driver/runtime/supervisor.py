@@ -76,6 +76,7 @@ class Supervisor:
         self.drives: dict[str, Drive] = {}
         self.records: dict[str, DriveRecord] = {}
         self.faults = JobFaults()
+        self._behind_log = RateLimitedLog(logger)  # a starved driver's "behind" and "caught up", per drive
         self.bus = BusSupervision(config, handles, recorder, RateLimitedLog(logger), self.drives, self.records,
                                   self._drive_gone, self.report, self.faults)
         #: why the loop ended on its own ('' while it runs, or stopped by stop()): this thread's, once
@@ -351,9 +352,11 @@ class Supervisor:
             self._incident("heartbeat_lost", drive, "heartbeat lost; told to stop")
         elif record.lost_since and record.booted and (now >= record.next_stop or record.stop_pending):
             self._stop_lost(drive, record, now)
-        elif record.read_behind:  # heard in time once the receive thread had read that far
+        elif record.read_behind:  # heard in time once the receive thread had read that far (or re-booting)
             record.read_behind = False
-            logger.info("%s: its heartbeat read after all (the receive thread caught up); not lost", drive.name)
+            if record.booted and not record.lost:
+                self._behind_log.log(logging.INFO, (drive.name, "caught up"), "%s: its heartbeat read after all"
+                                     " (the receive thread caught up); not lost", drive.name)
 
     def _read_behind(self, drive: Drive, record: DriveRecord, heard: float, now: float) -> bool:
         """Whether a heartbeat overdue by this thread's clock (read at ``heard``) is the bus's
@@ -362,7 +365,11 @@ class Supervisor:
         heartbeat (frames come in order), or found its socket empty a timeout after it read that
         heartbeat (a silent bus: :attr:`BusStats.idle_at`). Until then the period is not judged:
         a starved reader must not stop drives that spoke. Past READ_BEHIND_MAX_S the clock
-        judges alone (a receive thread that no longer reads): the drive is declared lost as before."""
+        judges alone (a receive thread that no longer reads): the drive is declared lost as before.
+        A node-guarded drive is judged by the clock alone: it answers only when asked, and a driver
+        held as a whole asked nothing (its own life guard stopped it meanwhile)."""
+        if drive.cache.guarding:
+            return False
         timeout = drive.config.heartbeat_timeout_s
         stats = self.handles[drive.config.bus].stats
         # the receive thread writes a heartbeat's stamp, then read_to and idle_at: read the other way
@@ -378,10 +385,11 @@ class Supervisor:
         if not record.read_behind:
             record.read_behind = True
             record.read_behind_episodes += 1
-            logger.warning("%s: no heartbeat read for %.0f ms (timeout %.0f ms), but the receive thread of %s has"
-                           " read only %.0f ms of the bus past its last one: this driver is behind (a starved"
-                           " process), not the drive silent; judged once it has read that far", drive.name,
-                           overdue_s * 1000, timeout * 1000, drive.config.bus, max(read_to - stamp, 0.0) * 1000)
+            self._behind_log.log(logging.WARNING, (drive.name, "behind"), "%s: no heartbeat read for %.0f ms"
+                                 " (timeout %.0f ms), but the receive thread of %s has read only %.0f ms of the bus"
+                                 " past its last one: this driver is behind (a starved process), not the drive"
+                                 " silent; judged once it has read that far", drive.name, overdue_s * 1000,
+                                 timeout * 1000, drive.config.bus, max(read_to - stamp, 0.0) * 1000)
         return True
 
     @staticmethod
