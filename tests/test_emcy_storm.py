@@ -7,6 +7,7 @@ orders and outcomes (a second independent client records the bus's order); no cl
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 from collections.abc import Callable
@@ -64,12 +65,16 @@ def test_ten_thousand_emcys_leave_the_log_short_and_every_heartbeat_between_them
         network.subscribe(cob, lambda cob_id, data, timestamp: by_driver.frame(cob_id, data))
     on_bus = Order()
     watcher = listener_factory(sim)
+    beats: dict[int, list[float]] = {cob: [] for cob in HEARTBEATS}  # the bus's stamps of each drive's heartbeats
+    listening = threading.Event()  # set by the test once the bus's record covers its verdicts
 
     def watch() -> None:
-        while not on_bus.done.is_set():
+        while not listening.is_set():
             msg = watcher.recv(0.5)
             if msg is not None:
                 on_bus.frame(msg.arbitration_id, msg.data)
+                if msg.arbitration_id in beats:
+                    beats[msg.arbitration_id].append(msg.timestamp)
 
     watching, failed = in_thread(watch, name="test-bus-order")
     sender = listener_factory(sim)
@@ -80,6 +85,12 @@ def test_ten_thousand_emcys_leave_the_log_short_and_every_heartbeat_between_them
     sender.send(can.Message(arbitration_id=0x081, data=LAST, is_extended_id=False))
     wait_for(by_driver.done.is_set, 120.0, "the burst's last EMCY at the driver")
     wait_for(on_bus.done.is_set, 120.0, "the burst's last EMCY on the bus")
+    lost = {drive.name: drive.cache.lost or driver.supervisor.records[drive.name].lost_stops > 0 for drive in driver}
+    lost_lines = [r.getMessage() for r in caplog.records if "heartbeat lost" in r.getMessage()]
+    # the bus's record up to past that verdict: one more heartbeat of each drive on the bus
+    heard = {cob: len(stamps) for cob, stamps in beats.items()}
+    wait_for(lambda: all(len(beats[cob]) > n for cob, n in heard.items()), 30.0, "a heartbeat of each drive after the verdict")
+    listening.set()
     watching.join(10.0)
     assert not failed
     assert by_driver.seen.count("E") == on_bus.seen.count("E") == BURST  # nothing dropped on the way
@@ -88,9 +99,18 @@ def test_ten_thousand_emcys_leave_the_log_short_and_every_heartbeat_between_them
     lines = [r for r in caplog.records if r.levelno >= logging.INFO]
     assert len(lines) < 100, len(lines)
     assert driver.drive("joint1").cache.emcy_count == BURST  # each counted, logged or not
+    # No drive whose heartbeats were on the bus is declared lost: the driver judges by the bus's
+    # record, however far behind the storm leaves its receive thread. A drive the bus itself carried
+    # no heartbeat of for its timeout (a simulated drive starved beside the storm in this process:
+    # its lateness, not the driver's) may be, and only then (the verdict read above, the record
+    # taken to past it).
     for drive in driver:
-        assert not drive.cache.lost and driver.supervisor.records[drive.name].lost_stops == 0, drive.name
-    assert not any("heartbeat lost" in r.getMessage() for r in caplog.records)
+        stamps = beats[0x700 + drive.node_id]
+        silent = max((b - a for a, b in itertools.pairwise(stamps)), default=0.0)
+        if silent <= drive.config.heartbeat_timeout_s:
+            assert not lost[drive.name], (drive.name, f"its heartbeats were on the bus at most {silent:.3f} s apart",
+                                          lost_lines)
+            assert not any(f"({drive.name}): heartbeat lost" in line for line in lost_lines), lost_lines
 
 
 def test_an_emcy_error_reset_that_is_not_the_drivers_keeps_the_cause_of_the_fault(
