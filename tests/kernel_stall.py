@@ -56,9 +56,13 @@ class StallWatch:
         self._thread.join()
 
 
-def longest_silence(frames: Sequence[can.Message], cob_id: int) -> float:
-    """The longest gap between two frames of ``cob_id`` (kernel receive times), 0.0 with fewer than two."""
+def longest_silence(frames: Sequence[can.Message], cob_id: int, heard_until: float | None = None) -> float:
+    """The longest gap between two frames of ``cob_id`` (kernel receive times), and from its last
+    frame to ``heard_until`` (a time by which the listener had read everything the kernel had
+    received: a silence still going on when a test fails); 0.0 with none to judge."""
     stamps = [m.timestamp for m in frames if m.arbitration_id == cob_id and not m.is_error_frame]
+    if stamps and heard_until is not None and heard_until > stamps[-1]:
+        stamps.append(heard_until)
     return max((b - a for a, b in itertools.pairwise(stamps)), default=0.0)
 
 
@@ -76,11 +80,14 @@ class Evidence:
     host_timeout_s: float
     heartbeat_timeout_s: float
     watch: StallWatch | None = None
+    #: the wall-clock time by which the listener had read all the kernel had received (None: unknown)
+    heard_until: Callable[[], float | None] = lambda: None
 
     def verdict(self) -> str:
+        until = self.heard_until()  # before the frames: every frame stamped before it is among them
         frames = list(self.frames())
-        host = longest_silence(frames, 0x700 + HOST_NODE_ID)
-        drive = longest_silence(frames, 0x700 + self.node)
+        host = longest_silence(frames, 0x700 + HOST_NODE_ID, until)
+        drive = longest_silence(frames, 0x700 + self.node, until)
         held = self.watch.worst_s if self.watch is not None else 0.0
         seen = (f"longest silence on the wire: host heartbeat {host * 1000:.0f} ms (the drive's consumer time"
                 f" {self.host_timeout_s * 1000:.0f} ms), node {self.node}'s heartbeat {drive * 1000:.0f} ms (the"
