@@ -32,6 +32,7 @@ import pytest
 from can_config import GENERIC_EDS, load_config, load_drive_od
 from can_config.errors import MotorError
 from motor_driver import Drive, MotorDriver, State
+from motor_driver.bus.adapters import receive_behind, watch_idle
 from motor_driver.runtime.driver import is_kernel_bus
 from virtual_can.sim import MotorParams, SimulatedDrive
 from virtual_can.sim.runner import DriveSimulator
@@ -574,6 +575,28 @@ def test_a_full_transmit_queue_is_counted_and_said_never_a_crash(
         wait_for(lambda: not driver.bus_lost["can0"] and drive.cache.booted and not drive.cache.lost, 120.0, "the bus usable again")
         assert drive.cache.state != State.OPERATION_ENABLED
     assert "Traceback" not in caplog.text
+
+def test_a_kernel_sockets_reader_is_behind_only_with_a_frame_unread() -> None:
+    """The evidence an SDO waiter past its deadline reads on the kernel's path (a CAN raw socket
+    read by python-can, watched as the driver's receive thread watches it): a reader in its wait
+    with nothing queued is not behind; a frame queued while nobody reads it is
+    (motor_driver.bus.adapters.receive_behind: the socket's unread bytes)."""
+    bus = watch_idle(can.Bus(interface="socketcan", channel=VCAN.driver), lambda began: None)
+    writer = can.Bus(interface="socketcan", channel=VCAN.driver)
+    got: list[can.Message | None] = []
+    try:
+        reader = threading.Thread(target=lambda: got.append(bus.recv(HANG_S)), daemon=True)
+        reader.start()
+        wait_for(lambda: receive_behind(bus) is False, HANG_S, "the reader in its wait, nothing unread")
+        writer.send(can.Message(arbitration_id=MARK_ID, data=MARK_DATA, is_extended_id=False))
+        reader.join(HANG_S)
+        assert got and got[0] is not None and got[0].arbitration_id == MARK_ID
+        writer.send(can.Message(arbitration_id=MARK_ID, data=MARK_DATA, is_extended_id=False))
+        wait_for(lambda: receive_behind(bus) is True, HANG_S, "a frame unread, nobody reading")
+    finally:
+        writer.shutdown()
+        bus.shutdown()
+
 
 def test_error_frames_are_reported_and_a_bus_off_stops_commands(tmp_path: Path, caplog: pytest.LogCaptureFixture,
                                                                  listener: Listener, stall_watch: StallWatch) -> None:

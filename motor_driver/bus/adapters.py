@@ -28,9 +28,13 @@ that changes the behaviour fails there, loudly, instead of in the field:
 from __future__ import annotations
 
 import errno
+import fcntl
 import logging
+import queue
 import select
 import socket
+import struct
+import termios
 import time
 from collections import deque
 from collections.abc import Callable
@@ -172,6 +176,8 @@ class _BatchReader:
         self.sink: Callable[[deque[Frame]], None] | None = None
         #: told, with when (monotonic) it began, of a wait that came back with nothing (:func:`dispatch_batches`)
         self.on_idle: Callable[[float], None] | None = None
+        #: in its ``select``, every frame it read before handed on (:func:`receive_behind`)
+        self.waiting = False
 
     def read(self, timeout: float | None) -> bool:
         """One ``select`` and one read into :attr:`frames`; False: nothing came within ``timeout``,
@@ -179,7 +185,9 @@ class _BatchReader:
         sock, on_idle = self.sock, self.on_idle
         began = time.monotonic() if on_idle is not None else 0.0  # before: a hold after the wait proves nothing
         try:
+            self.waiting = True  # set after the last read's frames were handed on, cleared before this read
             ready, _, _ = select.select([sock], [], [], timeout)
+            self.waiting = False
             if not ready:  # nothing came (a lone SYNC's echo may wait below the low-water mark: no other frame)
                 if on_idle is not None:
                     on_idle(began)
@@ -188,6 +196,7 @@ class _BatchReader:
             if self.quickack:
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_QUICKACK, 1)
         except OSError as err:  # the interface went away: the notifier's error (ReceiveErrors, the supervisor)
+            self.waiting = False
             raise can.CanOperationError(f"Failed to receive: {err}") from err
         if not chunk:
             return False
@@ -256,21 +265,89 @@ def watch_idle(bus: can.BusABC, on_idle: Callable[[float], None]) -> can.BusABC:
     a bus that :func:`dispatch_batches` does not read. Watching a bus again replaces the watch
     (a bus handed to a second driver), never stacks it. Returns ``bus``."""
     inner = getattr(bus, _UNWATCHED_RECV, None) or bus._recv_internal
+    state = _ReceiveState()
 
     def recv_internal(timeout: float | None) -> tuple[can.Message | None, bool]:
         began = time.monotonic()  # before: a hold after the wait proves nothing of what came meanwhile
-        got: tuple[can.Message | None, bool] = inner(timeout)
+        state.waiting = True  # the frame before was handed on (python-can dispatches it before calling again)
+        try:
+            got: tuple[can.Message | None, bool] = inner(timeout)
+        finally:
+            state.waiting = False
         if got[0] is None:
             on_idle(began)
         return got
 
     setattr(bus, _UNWATCHED_RECV, inner)
+    setattr(bus, _RECEIVE_STATE, state)
     bus._recv_internal = recv_internal  # type: ignore[method-assign]  # this one bus, as batch_receive does
     return bus
 
 
-#: where :func:`watch_idle` keeps the bus's own ``_recv_internal``
+#: where :func:`watch_idle` keeps the bus's own ``_recv_internal``, and the state of its receive
 _UNWATCHED_RECV = "_rovercan_unwatched_recv"
+_RECEIVE_STATE = "_rovercan_receive_state"
+
+
+class _ReceiveState:
+    """Whether the receive thread of a :func:`watch_idle` bus is in the bus's own receive."""
+
+    __slots__ = ("waiting",)
+
+    def __init__(self) -> None:
+        self.waiting = False
+
+
+#: getsockopt's SO_MEMINFO (Linux: the socket's memory; its first word the receive queue's bytes)
+_SO_MEMINFO = getattr(socket, "SO_MEMINFO", 55)
+
+
+def _unread_bytes(sock: socket.socket) -> int | None:
+    """Bytes waiting in ``sock``'s receive queue (FIONREAD; a socket without it, such as a CAN
+    raw socket: the memory its receive queue holds), None when it cannot tell (closed)."""
+    try:
+        got = fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0")
+    except (OSError, ValueError):
+        try:
+            got = sock.getsockopt(socket.SOL_SOCKET, _SO_MEMINFO, 4)
+        except (OSError, ValueError):
+            return None
+    unread: int = struct.unpack("i", got[:4])[0]
+    return unread
+
+
+def receive_behind(bus: can.BusABC | None) -> bool | None:
+    """Whether the bus's receive thread has yet to hand on something that has come: it is outside
+    its wait (reading, dispatching, or not running), or frames wait in its socket or its batch.
+    False: it waits with nothing unread, so every frame that came before this call was handed on
+    (the socket is read first, then the thread: one it read meanwhile is either handed on by
+    then or keeps the thread outside its wait). On a socketcand bus, less than the socket's
+    low-water mark waits without waking it (:func:`hold_lone_sync`: a lone SYNC, never an
+    answer). None: not known for this bus (read neither by :func:`batch_receive` nor watched by
+    :func:`watch_idle`). For a waiter past its deadline (motor_driver.process.held.ReadBehind);
+    a system call or two, never on the per-frame path."""
+    reader = getattr(bus, BATCH_READER_ATTRIBUTE, None)
+    if isinstance(reader, _BatchReader):
+        unread = _unread_bytes(reader.sock)
+        if unread is None:
+            return None
+        try:
+            wakes = reader.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT)
+        except OSError:
+            return None
+        return unread >= wakes or not reader.waiting or bool(reader.frames)
+    state = getattr(bus, _RECEIVE_STATE, None)
+    if not isinstance(state, _ReceiveState):
+        return None
+    sock = getattr(bus, "socket", None)  # python-can's SocketCAN
+    if isinstance(sock, socket.socket):
+        unread = _unread_bytes(sock)
+    else:
+        waiting = getattr(bus, "queue", None)  # python-can's virtual interface
+        unread = waiting.qsize() if isinstance(waiting, queue.Queue) else None
+    if unread is None:
+        return None
+    return unread > 0 or not state.waiting
 
 
 #: a byte as python-can's socketcand client writes it: lower-case hex, no leading zero

@@ -26,7 +26,8 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
-from motor_driver.process.held import POLL_S, HeldDeadline
+from motor_driver.bus.adapters import receive_behind
+from motor_driver.process.held import POLL_S, HeldDeadline, ReadBehind
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +38,11 @@ _ANSWER_CLASS = {0x40: 0x40,  # upload initiate -> upload initiate answer (names
                  0x60: 0x00,  # upload segment -> upload segment
                  0x00: 0x20}  # download segment -> download segment answer
 _NAMES_OBJECT = (0x40, 0x60)
+
+
+class ReceiveBehindError(canopen.SdoCommunicationError):  # type: ignore[misc]
+    """No answer read, and this driver's receive thread was still behind the bus at the bound
+    (motor_driver.process.held.ReadBehind): the drive may have answered; the host was late."""
 
 
 class MultiplexedSdoClient(SdoClient):  # type: ignore[misc]
@@ -58,14 +64,20 @@ class MultiplexedSdoClient(SdoClient):  # type: ignore[misc]
         """The answer to this client's request, or canopen's errors (an abort of this transfer,
         no answer within RESPONSE_TIMEOUT); answers to other requests are dropped."""
         deadline = HeldDeadline(self.RESPONSE_TIMEOUT)  # a hold of this process is not the drive's silence
+        behind = ReadBehind(lambda: receive_behind(getattr(self.network, "bus", None)))  # nor a starved reader
         while True:
             left = deadline.remaining()
+            judged = left <= 0 and not behind.wait_on()  # past the deadline, the receive thread not behind
             try:
-                response: bytes = self.responses.get(block=True, timeout=max(0.0, min(left, POLL_S)))
+                if judged:  # what the receive thread handed on as it caught up, else no answer
+                    response: bytes = self.responses.get_nowait()
+                else:
+                    response = self.responses.get(block=True, timeout=min(left, POLL_S) if left > 0 else POLL_S)
             except queue.Empty:
-                if left > 0:
+                if not judged:
                     continue
-                raise canopen.SdoCommunicationError("No SDO response received" + deadline.said()) from None
+                error = ReceiveBehindError if behind.gave_up else canopen.SdoCommunicationError
+                raise error("No SDO response received" + deadline.said() + behind.said()) from None
             why = self._not_ours(response)
             if why is None:
                 break

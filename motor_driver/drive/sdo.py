@@ -25,6 +25,7 @@ from can_config.config import SdoSetting
 from can_config.eds import has_object, variable
 from can_config.errors import BootError, BusLostError, CommandRejected, SdoError, SdoTimeoutError
 from can_config.objects import OD, sdo_abort_text
+from motor_driver.bus.sdo_client import ReceiveBehindError
 from motor_driver.drive.constants import SDO_ABORT_OUT_OF_MEMORY, SDO_ABORT_TIMEOUT, SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
 from motor_driver.process.held import HeldDeadline
 from motor_driver.protocol.codec import pack_value, unpack_value, value_format
@@ -89,6 +90,11 @@ class SdoPort:
         except canopen.SdoAbortedError as err:
             raise SdoError(f"{where} aborted with 0x{err.code:08X} ({sdo_abort_text(err.code)})",
                            node_id=self.node_id, index=index, subindex=subindex, abort_code=err.code) from err
+        except ReceiveBehindError as err:
+            raise SdoTimeoutError(f"{where}: no answer read ({err}). This driver was late, not the drive silent:"
+                                  " its receive thread did not keep up (a starved host: CPU, real-time priorities);"
+                                  " give the driver its real-time priority (docs/deployment.md) or relieve the CPU",
+                                  node_id=self.node_id, index=index, subindex=subindex) from err
         except canopen.SdoCommunicationError as err:
             if "No SDO response" not in str(err):  # an answer came, but not a valid one
                 raise SdoError(f"{where}: the drive answered wrongly ({err}); the transfer was aborted",

@@ -15,6 +15,14 @@ thread runs once before the verdict; at most ``MAX_RESUMES`` times a wait. Nothi
 excused: a wait lasts its timeout plus at most those looks (and the holds themselves), however
 starved the process, and a drive that does not answer is still declared silent.
 
+A process that runs while its receive thread does not (a starved thread among busier ones, a
+real-time thread of another process on its core) leaves the answer unread too, and no hold of
+the waiter shows it. :class:`ReadBehind` asks, once the deadline is up, whether the receive thread
+has handed on everything that had come to its socket (:func:`motor_driver.bus.adapters.receive_behind`);
+while it has not, the waiter looks again, for at most ``READ_BEHIND_MAX_S`` past the deadline.
+A receive thread that catches up and brought no answer leaves the verdict to the drive; one
+still behind at the bound is named as the cause.
+
 Owner: the one waiting thread.
 """
 
@@ -31,6 +39,9 @@ HELD_GAP_S = 0.25
 RESUME_S = 0.25
 #: At most this many such looks in one wait.
 MAX_RESUMES = 2
+#: How long past its deadline a wait goes on while the receive thread is behind (s): as long as
+#: the supervisor waits for it before judging a heartbeat by the clock alone.
+READ_BEHIND_MAX_S = 2.0
 
 
 class HeldDeadline:
@@ -64,3 +75,45 @@ class HeldDeadline:
             return ""
         looked = "; looked again after it" if self.resumes else ""
         return f" (this process was held up to {self.held_s:.1f} s meanwhile{looked})"
+
+
+class ReadBehind:
+    """Whether a wait whose deadline is up looks again because the receive thread is behind (see
+    the module). ``behind`` says whether that thread has yet to hand on what had come to its
+    socket: True, False, or None when the bus cannot tell (then nothing is excused)."""
+
+    def __init__(self, behind: Callable[[], bool | None], bound_s: float | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self._behind = behind
+        self._bound_s = READ_BEHIND_MAX_S if bound_s is None else bound_s
+        self._clock = clock
+        self._since: float | None = None  # when the deadline was first found up
+        self.behind_s = 0.0  # how long past the deadline the receive thread was seen behind
+        self.gave_up = False  # still behind at the bound: the receive thread is the cause
+        self._looked = False  # it looked on at least once
+
+    def wait_on(self) -> bool:
+        """Called at each look once the deadline is up: True to look again (the receive thread is
+        behind, within the bound), False to judge now."""
+        now = self._clock()
+        if self._since is None:
+            self._since = now
+        if self._behind() is not True:
+            if self._looked:  # it had looked on: for how long, in the message
+                self.behind_s = now - self._since
+            return False
+        self._looked = True
+        self.behind_s = now - self._since
+        if self.behind_s >= self._bound_s:
+            self.gave_up = True
+            return False
+        return True
+
+    def said(self) -> str:
+        """What the receive thread's lateness did, for a timeout's message ('' when it was not seen)."""
+        if self.gave_up:
+            return (f" (this driver's receive thread was still behind the bus {self.behind_s:.1f} s past the"
+                    " deadline: the answer may be among what it had not read)")
+        if self.behind_s:
+            return f" (looked {self.behind_s:.2f} s past the deadline, until this driver's receive thread had caught up)"
+        return ""

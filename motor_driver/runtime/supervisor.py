@@ -45,6 +45,7 @@ from motor_driver.drive.ledger import (
     RestoreFailed,
     SupervisorPort,
 )
+from motor_driver.process.held import READ_BEHIND_MAX_S
 from motor_driver.process.jobs import JobFaults, cause_of
 from motor_driver.process.ratelimit import RateLimitedLog
 from motor_driver.protocol.cia402 import Command
@@ -55,9 +56,8 @@ logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
 #: A drive's heartbeat overdue by the clock is judged by how far the bus's receive thread has read
-#: (Supervisor._read_behind) for at most this long past its timeout (s); then by the clock alone
-#: (a receive thread that stopped reading).
-READ_BEHIND_MAX_S = 2.0
+#: (Supervisor._read_behind) for at most READ_BEHIND_MAX_S past its timeout (s); then by the clock
+#: alone (a receive thread that stopped reading). The same bound as an SDO answer's wait (held.ReadBehind).
 #: Periods in a row that raise before the loop ends (one bad period is counted and passed over).
 SUPERVISOR_FAILURES_MAX = 5
 #: How long the loop's end waits for each drive's command channel to send the stop.

@@ -1,0 +1,170 @@
+"""An SDO answer the drive sent while this driver's receive thread was behind is not the drive's
+silence: the waiter, past its deadline, looks on while that thread has yet to hand on what came
+(motor_driver.process.held.ReadBehind, motor_driver.bus.adapters.receive_behind), and a thread
+still behind at the bound is named as the cause, not the drive.
+
+The receive thread is held by a callback of its own (tests/test_read_behind.py's Hold), a hook
+inside the critical section; the waiter is seen past its deadline by a hook in its own loop,
+and the drive's answer is seen on the bus by an independent client before the thread is let go,
+so no clock decides anything. The whole process is not held (that is HeldDeadline's case,
+tests/test_held_waits.py): the waiter runs on time while the receive thread does not.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+
+import can
+import pytest
+
+from can_config import RoverConfig
+from can_config.errors import SdoTimeoutError
+from motor_driver import MotorDriver
+from motor_driver.bus import sdo_client
+from motor_driver.bus.adapters import receive_behind, watch_idle
+from motor_driver.process import held
+from motor_driver.runtime import supervisor as supervisor_module
+from virtual_can import SimService
+
+from .conftest import make_config, wait_for
+from .test_read_behind import HOLD_ID, Hold
+
+DriverFactory = Callable[[RoverConfig], tuple[SimService, MotorDriver]]
+ListenerFactory = Callable[[SimService], can.BusABC]
+
+DEVICE_TYPE = 0x1000
+SDO_TIMEOUT_MS = 200.0
+
+
+class SeenBehind(held.ReadBehind):
+    """held.ReadBehind that says when a waiter first looked on past its deadline for the receive thread."""
+
+    looked_on = threading.Event()
+
+    def wait_on(self) -> bool:
+        again = super().wait_on()
+        if again:
+            SeenBehind.looked_on.set()
+        return again
+
+
+@pytest.fixture
+def seen_behind(monkeypatch: pytest.MonkeyPatch) -> Iterator[threading.Event]:
+    SeenBehind.looked_on = threading.Event()
+    monkeypatch.setattr(sdo_client, "ReadBehind", SeenBehind)
+    # the drive's heartbeats go unread meanwhile: the supervisor waits for the reader as long as needed
+    monkeypatch.setattr(supervisor_module, "READ_BEHIND_MAX_S", 600.0)
+    yield SeenBehind.looked_on
+
+
+class HeldRead:
+    """An SDO read of 0x1000 from a thread of its own, started once the receive thread is held."""
+
+    def __init__(self, driver: MotorDriver) -> None:
+        self.drive = driver.drive("joint1")
+        self.value: bytes | None = None
+        self.error: Exception | None = None
+        self.thread = threading.Thread(target=self._read, name="held-sdo-read", daemon=True)
+
+    def _read(self) -> None:
+        try:
+            self.value = self.drive.sdo_read(DEVICE_TYPE)
+        except Exception as err:
+            self.error = err
+
+
+def hold_and_read(sim: SimService, driver: MotorDriver, listener_factory: ListenerFactory,
+                  looked_on: threading.Event) -> tuple[Hold, HeldRead]:
+    """The receive thread held, then the read: returns once the drive's answer is on the bus (an
+    independent client heard it) and the waiter has looked on past its deadline for the thread."""
+    hold = Hold(driver)
+    listener, sender = listener_factory(sim), listener_factory(sim)
+    read = HeldRead(driver)
+    sender.send(can.Message(arbitration_id=HOLD_ID, data=b"\x01", is_extended_id=False))
+    wait_for(hold.holding.is_set, 30.0, "the receive thread in the hold's callback")
+    assert receive_behind(driver.buses["can0"].network.bus) is True
+    read.thread.start()
+    while True:  # the drive answered: 0x581, an upload initiate answer naming 0x1000:0
+        msg = listener.recv(30.0)
+        assert msg is not None, "the drive's answer never came on the bus"
+        if msg.arbitration_id == 0x581 and bytes(msg.data[1:4]) == b"\x00\x10\x00":
+            break
+    wait_for(looked_on.is_set, 30.0, "the waiter past its deadline, looking on for the receive thread")
+    return hold, read
+
+
+def test_an_answer_that_came_while_the_receive_thread_was_held_is_read_not_timed_out(
+        driver_factory: DriverFactory, listener_factory: ListenerFactory, seen_behind: threading.Event) -> None:
+    sim, driver = driver_factory(make_config(1, sdo_timeout_ms=SDO_TIMEOUT_MS))
+    hold, read = hold_and_read(sim, driver, listener_factory, seen_behind)
+    assert read.thread.is_alive() and read.error is None  # waiting on, past its deadline
+    hold.release.set()
+    read.thread.join(30.0)
+    assert read.error is None, read.error
+    assert read.value is not None and int.from_bytes(read.value, "little") == 0x00020192  # the generic EDS's device type
+    assert not driver.drive("joint1").cache.lost
+
+
+def test_a_receive_thread_still_behind_at_the_bound_is_named_not_the_drive(
+        driver_factory: DriverFactory, listener_factory: ListenerFactory, seen_behind: threading.Event,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(held, "READ_BEHIND_MAX_S", 0.3)
+    sim, driver = driver_factory(make_config(1, sdo_timeout_ms=SDO_TIMEOUT_MS))
+    hold, read = hold_and_read(sim, driver, listener_factory, seen_behind)
+    try:
+        read.thread.join(30.0)  # the bound passes while the thread is still held
+        assert not read.thread.is_alive() and hold.holding.is_set() and not hold.release.is_set()
+    finally:
+        hold.release.set()
+    assert isinstance(read.error, SdoTimeoutError), read.error
+    said = str(read.error)
+    assert "This driver was late, not the drive silent" in said and "receive thread was still behind" in said, said
+    assert "check power" not in said, said
+
+
+def test_a_reader_that_waits_with_nothing_unread_is_not_behind_and_one_with_a_frame_queued_is() -> None:
+    """The kernel path's evidence (a bus python-can reads a frame at a time; here its virtual
+    interface, read by a thread as the driver's Notifier reads it): waiting with nothing queued
+    is not behind, a frame queued while the thread is elsewhere is."""
+    bus = watch_idle(can.Bus(interface="virtual", channel="sdo-read-behind", receive_own_messages=False),
+                     lambda began: None)
+    writer = can.Bus(interface="virtual", channel="sdo-read-behind")
+    got: list[can.Message] = []
+    try:
+        assert receive_behind(bus) is True  # nobody reads it yet
+        reader = threading.Thread(target=lambda: got.append(bus.recv(30.0)), daemon=True)  # type: ignore[arg-type]
+        reader.start()
+        wait_for(lambda: receive_behind(bus) is False, 30.0, "the reader in its wait, nothing queued")
+        writer.send(can.Message(arbitration_id=0x581, data=b"\x43\x00\x10\x00\x92\x01\x02\x00", is_extended_id=False))
+        reader.join(30.0)
+        assert got and got[0].arbitration_id == 0x581
+        writer.send(can.Message(arbitration_id=0x581, data=b"\x43", is_extended_id=False))
+        wait_for(lambda: receive_behind(bus) is True, 30.0, "a frame queued, nobody reading")
+    finally:
+        writer.shutdown()
+        bus.shutdown()
+    assert receive_behind(can.Bus(interface="virtual", channel="unwatched")) is None  # not known: nothing excused
+
+
+def test_read_behind_looks_on_only_while_the_thread_is_behind_and_within_its_bound() -> None:
+    now = [0.0]
+    behind: list[bool | None] = [True]
+    looks = held.ReadBehind(lambda: behind[0], bound_s=1.0, clock=lambda: now[0])
+    assert looks.wait_on()  # behind at the deadline: look on
+    now[0] = 0.6
+    assert looks.wait_on() and not looks.gave_up
+    now[0] = 1.0
+    assert not looks.wait_on() and looks.gave_up and "still behind the bus 1.0 s" in looks.said()
+
+    caught_up = held.ReadBehind(lambda: behind[0], bound_s=1.0, clock=lambda: now[0])
+    now[0] = 5.0
+    assert caught_up.wait_on()
+    now[0], behind[0] = 5.4, False
+    assert not caught_up.wait_on() and not caught_up.gave_up  # caught up: the drive's silence, judged now
+    assert "looked 0.40 s past the deadline" in caught_up.said()
+
+    for unknown in (None, False):  # a bus that cannot tell, or a thread that kept up: nothing excused
+        behind[0] = unknown
+        plain = held.ReadBehind(lambda: behind[0], bound_s=1.0, clock=lambda: now[0])
+        assert not plain.wait_on() and not plain.gave_up and plain.said() == ""
