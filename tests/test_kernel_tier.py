@@ -576,24 +576,52 @@ def test_a_full_transmit_queue_is_counted_and_said_never_a_crash(
         assert drive.cache.state != State.OPERATION_ENABLED
     assert "Traceback" not in caplog.text
 
-def test_a_kernel_sockets_reader_is_behind_only_with_a_frame_unread() -> None:
+def test_a_kernel_sockets_reader_is_behind_until_it_waits_with_nothing_unread() -> None:
     """The evidence an SDO waiter past its deadline reads on the kernel's path (a CAN raw socket
-    read by python-can, watched as the driver's receive thread watches it): a reader in its wait
-    with nothing queued is not behind; a frame queued while nobody reads it is
-    (motor_driver.bus.adapters.receive_behind: the socket's unread bytes)."""
-    bus = watch_idle(can.Bus(interface="socketcan", channel=VCAN.driver), lambda began: None)
+    read by python-can, watched as the driver's receive thread watches it;
+    motor_driver.bus.adapters.receive_behind). A reader in its marked wait with nothing unread is
+    not behind. One that took a frame from the socket and has not handed it on is (held here right
+    after python-can's read, as a thread waiting for the interpreter after its recvmsg is). A frame
+    unread in the socket while the thread waits is too."""
+    from motor_driver.bus import adapters
+
+    raw = can.Bus(interface="socketcan", channel=VCAN.driver)
+    took, release = threading.Event(), threading.Event()
+    own = raw._recv_internal
+
+    def held_after_its_read(timeout: float | None) -> tuple[can.Message | None, bool]:
+        got: tuple[can.Message | None, bool] = own(timeout)
+        if got[0] is not None and got[0].arbitration_id == MARK_ID + 1:
+            took.set()
+            release.wait(HANG_S)
+        return got
+
+    raw._recv_internal = held_after_its_read  # type: ignore[method-assign]
+    bus = watch_idle(raw, lambda began: None)
     writer = can.Bus(interface="socketcan", channel=VCAN.driver)
     got: list[can.Message | None] = []
+
+    def read(n: int) -> None:
+        got.extend(bus.recv(HANG_S) for _ in range(n))
+
     try:
-        reader = threading.Thread(target=lambda: got.append(bus.recv(HANG_S)), daemon=True)
+        assert receive_behind(bus) is True  # nobody reads it yet (and its waits are marked from now on)
+        reader = threading.Thread(target=read, args=(2,), daemon=True)
         reader.start()
         wait_for(lambda: receive_behind(bus) is False, HANG_S, "the reader in its wait, nothing unread")
         writer.send(can.Message(arbitration_id=MARK_ID, data=MARK_DATA, is_extended_id=False))
+        wait_for(lambda: len(got) == 1, HANG_S, "the first frame handed on")
+        writer.send(can.Message(arbitration_id=MARK_ID + 1, data=MARK_DATA, is_extended_id=False))
+        wait_for(took.is_set, HANG_S, "the second frame taken from the socket, not yet handed on")
+        assert receive_behind(bus) is True  # the frame is in the thread's hands: behind
+        release.set()
         reader.join(HANG_S)
-        assert got and got[0] is not None and got[0].arbitration_id == MARK_ID
+        assert [m.arbitration_id for m in got if m is not None] == [MARK_ID, MARK_ID + 1]
+        getattr(bus, adapters._RECEIVE_STATE).waiting = True  # as in its wait: only the socket tells
         writer.send(can.Message(arbitration_id=MARK_ID, data=MARK_DATA, is_extended_id=False))
-        wait_for(lambda: receive_behind(bus) is True, HANG_S, "a frame unread, nobody reading")
+        wait_for(lambda: receive_behind(bus) is True, HANG_S, "a frame unread in the socket")
     finally:
+        release.set()
         writer.shutdown()
         bus.shutdown()
 

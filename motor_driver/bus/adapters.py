@@ -30,7 +30,6 @@ from __future__ import annotations
 import errno
 import fcntl
 import logging
-import queue
 import select
 import socket
 import struct
@@ -263,17 +262,32 @@ def watch_idle(bus: can.BusABC, on_idle: Callable[[float], None]) -> can.BusABC:
     ``select`` on a kernel socket, a queue's wait on a virtual bus), with the monotonic time that
     wait began, so the receive thread's listener knows when it had read everything that came. For
     a bus that :func:`dispatch_batches` does not read. Watching a bus again replaces the watch
-    (a bus handed to a second driver), never stacks it. Returns ``bus``."""
+    (a bus handed to a second driver), never stacks it. Returns ``bus``.
+
+    On a kernel socket (python-can's SocketCAN), while a waiter past its deadline asks
+    (:func:`receive_behind` sets ``careful_until``), the wait is this function's own ``select``,
+    marked, and the bus's receive is called after it with no timeout: python-can's waits and
+    reads inside one call, so a thread in it may hold a frame it took from the socket and not yet
+    handed on (a starved thread waits for the interpreter right after its ``recvmsg``). Outside
+    those seconds a frame costs no more than it did."""
     inner = getattr(bus, _UNWATCHED_RECV, None) or bus._recv_internal
     state = _ReceiveState()
+    sock = getattr(bus, "socket", None)
+    sock = sock if isinstance(sock, socket.socket) else None
 
     def recv_internal(timeout: float | None) -> tuple[can.Message | None, bool]:
         began = time.monotonic()  # before: a hold after the wait proves nothing of what came meanwhile
-        state.waiting = True  # the frame before was handed on (python-can dispatches it before calling again)
-        try:
-            got: tuple[can.Message | None, bool] = inner(timeout)
-        finally:
-            state.waiting = False
+        if sock is not None and began < state.careful_until:
+            state.waiting = True  # the frame before was handed on (python-can dispatches it before calling again)
+            try:
+                ready, _, _ = select.select([sock], [], [], timeout)
+            except (OSError, ValueError):
+                ready = [sock]  # the bus's own receive says what went wrong, as it would have
+            finally:
+                state.waiting = False
+            got: tuple[can.Message | None, bool] = inner(0.0) if ready else (None, False)
+        else:
+            got = inner(timeout)
         if got[0] is None:
             on_idle(began)
         return got
@@ -289,12 +303,18 @@ _UNWATCHED_RECV = "_rovercan_unwatched_recv"
 _RECEIVE_STATE = "_rovercan_receive_state"
 
 
-class _ReceiveState:
-    """Whether the receive thread of a :func:`watch_idle` bus is in the bus's own receive."""
+#: How long a kernel socket's receive waits in its own marked ``select`` after a waiter asked (s).
+CAREFUL_S = 5.0
 
-    __slots__ = ("waiting",)
+
+class _ReceiveState:
+    """The receive of a :func:`watch_idle` bus on a kernel socket: until when (monotonic) its
+    waits are marked, and whether the receive thread is in such a wait."""
+
+    __slots__ = ("careful_until", "waiting")
 
     def __init__(self) -> None:
+        self.careful_until = 0.0
         self.waiting = False
 
 
@@ -323,11 +343,16 @@ def receive_behind(bus: can.BusABC | None) -> bool | None:
     (the socket is read first, then the thread: one it read meanwhile is either handed on by
     then or keeps the thread outside its wait). On a socketcand bus, less than the socket's
     low-water mark waits without waking it (:func:`hold_lone_sync`: a lone SYNC, never an
-    answer). None: not known for this bus (read neither by :func:`batch_receive` nor watched by
-    :func:`watch_idle`). For a waiter past its deadline (motor_driver.process.held.ReadBehind);
-    a system call or two, never on the per-frame path."""
+    answer). On a kernel socket the thread's waits are marked only from the first call on
+    (:func:`watch_idle`): until it is in one, it counts as behind. None: not known (a bus read
+    neither by :func:`batch_receive` nor by :func:`watch_idle` on a kernel socket, such as
+    python-can's virtual one, or a socketcand server gone: the bus is lost, not the reader
+    late). For a waiter past its deadline (motor_driver.process.held.ReadBehind); a system
+    call or two, never on the per-frame path."""
     reader = getattr(bus, BATCH_READER_ATTRIBUTE, None)
     if isinstance(reader, _BatchReader):
+        if bus is None or connection_closed(bus):
+            return None
         unread = _unread_bytes(reader.sock)
         if unread is None:
             return None
@@ -337,14 +362,11 @@ def receive_behind(bus: can.BusABC | None) -> bool | None:
             return None
         return unread >= wakes or not reader.waiting or bool(reader.frames)
     state = getattr(bus, _RECEIVE_STATE, None)
-    if not isinstance(state, _ReceiveState):
+    sock = getattr(bus, "socket", None)
+    if not isinstance(state, _ReceiveState) or not isinstance(sock, socket.socket):
         return None
-    sock = getattr(bus, "socket", None)  # python-can's SocketCAN
-    if isinstance(sock, socket.socket):
-        unread = _unread_bytes(sock)
-    else:
-        waiting = getattr(bus, "queue", None)  # python-can's virtual interface
-        unread = waiting.qsize() if isinstance(waiting, queue.Queue) else None
+    state.careful_until = time.monotonic() + CAREFUL_S
+    unread = _unread_bytes(sock)
     if unread is None:
         return None
     return unread > 0 or not state.waiting

@@ -101,6 +101,7 @@ class ReadBehind:
         if self._behind() is not True:
             if self._looked:  # it had looked on: for how long, in the message
                 self.behind_s = now - self._since
+            self.gave_up = False  # caught up after all: the verdict is the drive's
             return False
         self._looked = True
         self.behind_s = now - self._since
