@@ -211,37 +211,43 @@ def test_the_plan_runs_from_its_acceptance(rig: Rig) -> None:
 TRACKING_RMS_DEG, TRACKING_MAX_DEG = 0.5, 1.5
 
 
-#: a silence of the group's thread (the listener heard no set-point of joint1 between two SYNCs or
-#: more) long enough for a drive holding its last target to stray this far from the plan at its
-#: fastest is a starved host's (16 ms: 8 SYNCs at 500 Hz, 4 at 250 Hz); shorter ones are the pace
-#: kept (a switch of the interpreter's lock is 5 ms) and judged
+#: a silence (the listener heard no set-point of joint1, or no SYNC) long enough for a drive holding
+#: its last target to stray this far from the plan at its fastest is a starved host's (16 ms: 8 SYNC
+#: periods at 500 Hz, 4 at 250 Hz); shorter ones are the pace kept (a switch of the interpreter's
+#: lock is 5 ms) and judged
 SILENT_STRAY_DEG = TRACKING_MAX_DEG / 4
 #: no verdict when fewer of the plan's /joint_states than this share lie outside the silences' reach
 JUDGED_SHARE_MIN = 0.8
+#: the drive's own following after a silence (s): its measurements that long after it are the host's too
+FOLLOWING_S = 0.02
 
 
-def silences(frames: list[can.Message], silent_syncs: int) -> list[tuple[float, float]]:
-    """(last set-point before, first after) bus stamps of each gap between two of joint1's
-    set-points that spans ``silent_syncs`` SYNCs or more, by the order of the listener's frames."""
+def silences(frames: list[can.Message], silent_s: float, since: float) -> list[tuple[float, float]]:
+    """(from, to) bus stamps of each span of ``silent_s`` or longer, after ``since`` (the plan's
+    start), in which the listener heard no set-point of joint1 (the group's thread held; a first
+    set-point late counts from ``since``) or no SYNC (its producer held: a CSP drive takes its
+    set-point at a SYNC, so without one it holds its last target as well)."""
     out = []
-    syncs, last = 0, None
+    last = {SYNC: since, SETPOINTS[0]: since}
     for msg in frames:
-        if msg.arbitration_id == SYNC:
-            syncs += 1
-        elif msg.arbitration_id == SETPOINTS[0]:
-            if last is not None and syncs >= silent_syncs:
-                out.append((last, msg.timestamp))
-            syncs, last = 0, msg.timestamp
-    return out
+        before = last.get(msg.arbitration_id)
+        if before is None or msg.timestamp <= since:
+            continue
+        if msg.timestamp - before >= silent_s:
+            out.append((before, msg.timestamp))
+        last[msg.arbitration_id] = msg.timestamp
+    return sorted(out)
 
 
 def tracking_errors(rig: Rig, start_s: float, amplitude_deg: float, duration_s: float,
-                    unjudged: Sequence[tuple[float, float]] = ()) -> tuple[list[float], int]:
+                    unjudged: Sequence[tuple[float, float]] = ()) -> tuple[list[float], int, float]:
     """Each /joint_states position (stamped when measured: its SYNC, on the bus's clock) against the
     half-sine timed from ``start_s`` (the node's clock), over the plan's whole time but within the
-    ``unjudged`` spans (bus stamps); and how many of the plan's /joint_states were in them."""
+    ``unjudged`` spans (bus stamps); how many of the plan's /joint_states were in them; and the
+    plan's time of the worst (s, to say where it was)."""
     w = math.pi / duration_s
-    errors = []
+    errors: list[float] = []
+    worst_at, worst = 0.0, -1.0
     skipped = 0
     for msg in list(rig.states):
         stamp = seconds(msg.header.stamp)
@@ -253,7 +259,9 @@ def tracking_errors(rig: Rig, start_s: float, amplitude_deg: float, duration_s: 
                 continue
             plan = amplitude_deg * math.sin(w * t)
             errors += [math.degrees(at["joint1"]) - plan, math.degrees(at["joint2"]) + plan]
-    return errors, skipped
+            if max(abs(errors[-1]), abs(errors[-2])) > worst:
+                worst_at, worst = t, max(abs(errors[-1]), abs(errors[-2]))
+    return errors, skipped, worst_at
 
 
 @pytest.mark.parametrize("rig", [{"sync_period_s": 0.004}, {"sync_period_s": 0.002}], indirect=True,
@@ -266,11 +274,16 @@ def test_a_trajectory_is_tracked_against_the_plan_from_acceptance(
     2.2-3.5 deg max, the plan run from the driver's hand-over after its checks and mode switches).
     Judged by the measurements' own stamps (their SYNC), not by when anything was received.
 
-    A starved host holds the group's thread now and then (the wire shows it: SYNCs without a
-    set-point for as long as the plan at its fastest moves SILENT_STRAY_DEG): the drives then hold their last target while the plan runs on,
-    and the group catches up within the joints' max velocity (180 deg/s, the plan's peak 23.6). The
-    measurements from a silence's start to as long again after its end (and 20 ms at least: the
-    drive's own following) are the host's, not the tracking's, and are left out; everything else
+    A starved host holds the group's thread now and then, or the SYNC's producer (the wire shows
+    it: no set-point, or no SYNC, for as long as the plan at its fastest moves SILENT_STRAY_DEG):
+    the drives then hold their last target while the plan runs on, and the group catches up within
+    the joints' max velocity (180 deg/s, the plan's peak 23.6). The measurements from a silence's
+    start to as long again after its end (and 20 ms at least: the drive's own following) are the
+    host's, not the tracking's, and are left out. So are those of a silence from acceptance (the
+    plan's peak speed is at its start) up to the plan's first knot, 0.1 s: the group joins the plan
+    from the joints at rest by then. (Beside two busy loops per core: the first set-point 22-27 ms
+    after acceptance, or the SYNC silent for 30 ms from it, the worst error then at 60-83 ms, 1.1-1.6
+    deg; the SYNC silent for 14 ms now and then, which counting SYNCs did not see.) Everything else
     is judged, and a plan timed late, or stretched by a silence, stays wrong beyond them. No
     verdict where less than 80 % is left to judge, or where the simulator counted its own thread
     held (its drives' physics late): the listener's record and the simulator decide, not the
@@ -292,14 +305,20 @@ def test_a_trajectory_is_tracked_against_the_plan_from_acceptance(
     assert any(m.arbitration_id == SETPOINTS[0] for m in frames), "the listener heard no set-point"
     (group,) = rig.assembly.trajectories.values()
     peak_step_deg = 30.0 * math.pi / 4.0 * group.period_s  # the half-sine's fastest travel in one period
-    gaps = silences(frames, math.ceil(SILENT_STRAY_DEG / peak_step_deg))
-    unjudged = [(a, b + max(b - a, 0.02)) for a, b in gaps]
-    errors, skipped = tracking_errors(rig, seconds(handle.stamp), 30.0, 4.0, unjudged)
+    accepted = seconds(handle.stamp)
+    gaps = silences(frames, math.ceil(SILENT_STRAY_DEG / peak_step_deg) * group.period_s, accepted)
+    first_knot_s = 4.0 / 40  # half_sine's points
+    unjudged = [(a, max(b + max(b - a, FOLLOWING_S),
+                        # a first set-point late: the group joins the plan by its first knot (TrajectoryGroup._join)
+                        accepted + first_knot_s + FOLLOWING_S if a == accepted else 0.0)) for a, b in gaps]
+    errors, skipped, worst_at = tracking_errors(rig, accepted, 30.0, 4.0, unjudged)
     judged = len(errors) // 2
     assert judged + skipped > 20 * 4.0, (judged, skipped)  # /joint_states heard all along
     rms, worst = math.sqrt(sum(e * e for e in errors) / len(errors)), max(abs(e) for e in errors)
-    said = (f"RMS {rms:.2f} deg, max {worst:.2f} deg over {judged} /joint_states; {skipped} left out in {len(gaps)}"
-            f" silence(s) of the group's thread, the longest {max((b - a for a, b in gaps), default=0.0) * 1e3:.0f} ms")
+    said = (f"RMS {rms:.2f} deg, max {worst:.2f} deg at {worst_at * 1e3:.0f} ms over {judged} /joint_states; {skipped}"
+            f" left out in {len(gaps)} silence(s) of the group's thread, the longest"
+            f" {max((b - a for a, b in gaps), default=0.0) * 1e3:.0f} ms; silences (from, ms long):"
+            f" {[(round((a - accepted) * 1e3), round((b - a) * 1e3)) for a, b in gaps]}")
     if judged < JUDGED_SHARE_MIN * (judged + skipped):
         pytest.skip(f"no verdict: a starved host ({said})")
     if runner.clock.holds > holds:  # the simulated drives' physics, not the driver, ran late
