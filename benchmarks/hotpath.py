@@ -4,7 +4,8 @@ wall time: a busy machine slows it less): ``python benchmarks/hotpath.py [N]``.
 One drive of config/rover.yaml, booted on the simulator (``rovercan sim --drive-processes``), enabled and streaming in CSP; then, each
 ``N`` times and the best of three rounds: a TPDO through the bus's dispatch (``GuardedNetwork.notify``
 into the state cache: what the receive thread does per frame), a snapshot (what every publisher,
-the drive system and diagnostics read), the verdict alone, and a streamed set-point (the command
+the drive system and diagnostics read; ``snapshot_us`` of one already judged, ``tpdo_then_snapshot_us``
+a TPDO dispatched and then judged anew, each reader's first look after a SYNC), the verdict alone, and a streamed set-point (the command
 path, its RPDO sent); and a frame through every listener of the bus's receive thread (what
 python-can's Notifier does with a frame it read); and a read of socketcand text through the bus's
 receive path into the caches (``batch_frame_us``, per frame: three rounds of the drive's TPDOs in
@@ -155,6 +156,8 @@ def measure(n: int) -> dict[str, float]:
                    "verdict_us": per_call_us(drive.verdict, n),
                    "snapshot_us": per_call_us(drive.snapshot, n),
                    "tpdo_dispatch_us": per_call_us(frame, n),
+                   # a TPDO, then a snapshot of it: judged anew, as each reader's first look after a SYNC
+                   "tpdo_then_snapshot_us": per_call_us(lambda: (frame(), drive.snapshot()), n),
                    "frame_received_us": per_call_us(received, n),
                    "batch_frame_us": round(per_call_us(read, max(CHUNK, n // per_read)) / per_read, 2),
                    "recorder_received_us": round(per_call_us(kept_received, max(CHUNK, n // len(read_frames)))

@@ -113,6 +113,30 @@ def test_the_verdict_is_judged_again_only_when_an_input_changes() -> None:
     assert c.verdict(("", False, "disarm", "", 1)).condition is Condition.NOT_ARMED  # the channel's input changed
 
 
+def test_the_caches_snapshot_is_the_dataclass_it_stands_for() -> None:
+    """The cache builds its snapshot in one step (DriveState.judged_as, not the frozen dataclass's
+    __init__): every field set, equal to the dataclass made from the same values with the same
+    judgement, frozen, and dataclasses.replace judges a changed copy from its fields."""
+    c = cache()
+    c._stale_after_s = math.inf
+    c.on_tpdo(0x181, bytearray(b"\x37\x06\x08"), 1.0)  # Operation Enabled, CSP
+    state = c.snapshot(ARMED)
+    fields = {f.name for f in dataclasses.fields(DriveState)}
+    assert set(vars(state)) == fields, set(vars(state)) ^ fields
+    values = {name: getattr(state, name) for name in fields - {"facts", "verdict"}}
+    made = DriveState(**values, judged=(state.facts, state.verdict))  # type: ignore[arg-type]
+    assert made == state and repr(made) == repr(state)
+    assert made.facts is state.facts and made.verdict is state.verdict and state.verdict.usable
+    try:
+        state.angle_deg = 1.0  # type: ignore[misc]
+    except dataclasses.FrozenInstanceError:
+        pass
+    else:
+        raise AssertionError("the snapshot is not frozen")
+    moved = dataclasses.replace(state, state=State.FAULT)
+    assert moved.state is State.FAULT and not moved.verdict.usable  # judged from its own fields
+
+
 def _usable_state(**changes: object) -> DriveState:
     fields: dict[str, object] = dict(
         name="w", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=ENABLED,

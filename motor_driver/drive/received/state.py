@@ -534,7 +534,8 @@ class DriveCache:
         data_age = facts.data_age_s
         scale = self.scale
         torque = scale.permille_to_nm(rx.torque_permille) if self._has_torque else math.nan
-        return DriveState(
+        return DriveState.judged_as(
+            facts, verdict,
             name=self.name, node_id=self.node_id, angle_deg=scale.counts_to_deg(rx.position_counts),
             velocity_deg_s=scale.counts_s_to_deg_s(rx.velocity_counts_s), torque_nm=torque,
             statusword=sw, state=state, mode=rx.mode, nmt=facts.nmt, error_code=error_code,
@@ -542,4 +543,4 @@ class DriveCache:
             stamp=rx.stamp, heartbeat_age_s=facts.heartbeat_age_s,
             target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age,
             foreign_master=facts.foreign_master, reference=rx.reference, rx_monotonic=rx.rx_monotonic,
-            position_stamp=rx.position_stamp, position_rx=rx.position_rx, judged=(facts, verdict))
+            position_stamp=rx.position_stamp, position_rx=rx.position_rx)
