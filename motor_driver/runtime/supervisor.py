@@ -269,6 +269,12 @@ class Supervisor:
             return  # heard before the boot that followed it ended (posted while the supervisor was not running)
         name = drive.cache.nmt_state if event.state != NmtState.OPERATIONAL else "OPERATIONAL"
         if record.lost and record.booted:
+            if event.state == NmtState.OPERATIONAL and \
+                    drive.watch.nmt_ledger.in_flight(event.state, event.at, drive.config.heartbeat_period_s):
+                # sent before it obeyed the NMT stop this driver tells a lost drive every period: it
+                # is about to go STOPPED, not back (an enable now would meet a stopped node); its
+                # next heartbeat says which
+                return
             if event.state == NmtState.OPERATIONAL:
                 logger.warning("node %d (%s): heartbeat back after %.1f s lost; it was told to stop %d times; enable"
                                " it again to drive it", drive.node_id, drive.name,
