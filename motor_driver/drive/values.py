@@ -74,9 +74,11 @@ class DriveState:
     def judged_as(cls, facts: DriveFacts, verdict: Verdict, **values: Any) -> DriveState:
         """The driver's own snapshot (:meth:`DriveCache.snapshot`, once per new frame or SYNC
         period): ``values`` are every field of the class, set in one step rather than one
-        ``object.__setattr__`` each as a frozen dataclass's ``__init__`` does (a third of its cost;
-        benchmarks/hotpath.py's ``fresh_snapshot_us``). The same object otherwise: equal to
-        ``DriveState(**values, judged=(facts, verdict))``, frozen, replaceable (tests hold both)."""
+        ``object.__setattr__`` each as a frozen dataclass's ``__init__`` does (3 us against 13-15
+        in isolation; benchmarks/hotpath.py's ``tpdo_then_snapshot_us``). The same object
+        otherwise: equal to ``DriveState(**values, judged=(facts, verdict))``, frozen, replaceable
+        (tests/test_verdict_once.py holds a real snapshot to the class's fields; mypy does not see
+        the names and types of ``values``)."""
         state = object.__new__(cls)
         state.__dict__.update(values, facts=facts, verdict=verdict)
         return state
