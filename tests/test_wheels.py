@@ -102,6 +102,8 @@ def test_a_wheel_out_comes_back_only_after_an_enable_since_it_went_out() -> None
     states["a"] = state(name="a")
     for _ in range(3):
         assert book.update(states, driving=True) == ([], []) and book.still_running(states) == ["a"]
+    # /arm under way: Operation Enabled (usable) before its enable is counted; not told to stop
+    assert book.still_running(states, enabling=["a"]) == []
     # /arm stopped and enabled it between two looks (its way down never seen): back all the same
     states["a"] = enabled("a", 1)
     assert book.update(states, driving=True) == ([], ["a"]) and book.share() == 1.0

@@ -12,7 +12,7 @@ Owner: the drive system's control loop (one thread, the executor that runs its t
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from motor_driver.drive import DriveState
@@ -121,10 +121,13 @@ class WheelsOut:
                 back.append(name)
         return went, back
 
-    def still_running(self, states: dict[str, DriveState]) -> list[str]:
+    def still_running(self, states: dict[str, DriveState], enabling: Collection[str] = ()) -> list[str]:
         """Wheels out that still run under their own steam (usable, armed from before they went
-        out: no stop of ours reached the channel since, nor an enable): told to stop again."""
-        return [n for n in self.out if states[n].verdict.usable]
+        out: no stop of ours reached the channel since, nor an enable): told to stop again. Not a
+        wheel in ``enabling`` (an enable under way, /arm taking it back: Operation Enabled is usable
+        before the enable is counted, and a stop then interrupted the /arm; a loaded CI showed it);
+        one whose enable fails is told at the next look."""
+        return [n for n in self.out if states[n].verdict.usable and n not in enabling]
 
     def share(self) -> float:
         """The share of wheels left on the weaker side (1.0: all; 0.0: a side has none)."""
