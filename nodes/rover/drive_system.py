@@ -248,7 +248,7 @@ class DriveSystemNode(Node):
             if (pending := self._stops.get(name)) is not None:
                 pending.cancel()  # one not yet started; the tick still reads it (_read_stops)
         retried = [name for name in self.stop_failing if name in self.wheels_out.out]
-        enabling = [d.name for d in self.wheels if d.channel.busy == "enable"]  # /arm taking it back
+        enabling = [d.name for d in self.wheels if d.channel.enabling]  # /arm taking it back
         for name in [*retried, *went, *self.wheels_out.still_running(states, enabling)]:
             if now >= self._stop_retry_at.get(name, 0.0):
                 self._tell_to_stop(name)

@@ -94,6 +94,11 @@ class CommandChannel:
         return self._busy.oldest
 
     @property
+    def enabling(self) -> bool:
+        """An enable is under way (its own, or under a parent operation such as homing)."""
+        return self._busy.under_way("enable")
+
+    @property
     def stopped_by(self) -> str:
         """The newest stop of this driver's (who and why), "" none yet."""
         return self._preempted[1]
@@ -123,7 +128,7 @@ class CommandChannel:
         or it sent one within ``within_s``."""
         enable = int(Command.ENABLE_OPERATION)
         sent = self.last_enable_sent
-        return self.cw & enable == enable or self._busy.under_way("enable") or (sent > 0.0 and now - sent < within_s)
+        return self.cw & enable == enable or self.enabling or (sent > 0.0 and now - sent < within_s)
 
     def set_hook(self, hook: Callable[[str], None] | None) -> None:
         """Tests only: ``hook(point)`` at the named points of the channel (see the module doc)."""
