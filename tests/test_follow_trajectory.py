@@ -31,6 +31,8 @@ from virtual_can.scenario import apply_action
 
 from .conftest import (
     HAVE_ROS,
+    IN_PROCESS_HEARTBEAT_TIMEOUT_MS,
+    IN_PROCESS_HOST_TIMEOUT_MS,
     IN_PROCESS_STALE_SYNCS,
     REPO,
     in_process_stale_after_syncs,
@@ -642,7 +644,11 @@ def test_the_driver_killed_mid_goal_leaves_the_arm_to_stop_itself(tmp_path: Path
     from .test_host_loss import host_process, signal_the_host_and_see_the_drives_stop, watching, write_config
 
     drives = [("joint1", 1, "can0", GENERIC_EDS), ("joint2", 2, "can0", GENERIC_EDS)]
-    arm = {k: v for k, v in ARM.items() if k != "stale_after_syncs"}  # a process of its own: the default
+    # a process of its own: the default staleness; the drives' consumer time of the host's heartbeat
+    # and the driver's of theirs as in the in-process rigs (a driver starved 150 ms beside the suite
+    # had the drives stop themselves before the goal came): the kill outlasts any consumer time
+    arm = {k: v for k, v in ARM.items() if k != "stale_after_syncs"} | {
+        "host_timeout_ms": IN_PROCESS_HOST_TIMEOUT_MS, "heartbeat_timeout_ms": IN_PROCESS_HEARTBEAT_TIMEOUT_MS}
     with SimService([SimDriveSpec(node, eds, ch, name, 4096) for name, node, ch, eds in drives], port=0) as sim:
         config = write_config(tmp_path / "arm.yaml", sim.port, drives, **arm)
         runner = sim.simulators["can0"]

@@ -659,7 +659,10 @@ def test_the_active_node_killed_while_driving_leaves_each_drive_to_stop_itself(t
 
     drives = [("a", 1, "can0", GENERIC_EDS), ("b", 2, "can0", GENERIC_EDS)]
     with SimService([SimDriveSpec(node, eds, ch, name, 4096) for name, node, ch, eds in drives], port=0) as sim:
-        config = write_config(tmp_path / "rover.yaml", sim.port, drives)
+        # consumer times as in the in-process rigs: a node starved 150 ms beside the suite would have
+        # the drives stop themselves before the signal; the signal outlasts any consumer time
+        config = write_config(tmp_path / "rover.yaml", sim.port, drives, host_timeout_ms=IN_PROCESS_HOST_TIMEOUT_MS,
+                              heartbeat_timeout_ms=IN_PROCESS_HEARTBEAT_TIMEOUT_MS)
         config.write_text(config.read_text() + DRIVE_SYSTEM_HELD)
         runner = sim.simulators["can0"]
         context = rclpy.Context()
