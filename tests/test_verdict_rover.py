@@ -83,3 +83,47 @@ def test_tf_is_not_advanced_while_odometry_is_not_trusted(rover: Rover) -> None:
     late = [t for t in tf_stamps(rover, tf_from) if t > max(trusted)]
     assert not late, f"/tf stamped after the last trusted /odom ({max(trusted)}): {late[:5]}"
     silence_left(rover, on=True)
+
+
+@pytest.mark.parametrize("rover", ["continue"], indirect=True)
+def test_a_wheel_taken_back_is_not_stopped_between_operation_enabled_and_the_enable_counted(rover: Rover) -> None:
+    """``on_wheel_loss: continue``: a wheel out whose data is back is stopped as told; its /arm
+    then reaches Operation Enabled (usable) a moment before the enable is counted. A hook holds the
+    enable in that moment, right after its last transition, until the drive shows Operation
+    Enabled and two drive-system ticks have run while the book still has the wheel out: none of
+    them tells it to stop, and the enable ends armed (a loaded CI saw "interrupted by quick stop")."""
+    wheel = LEFT[0]
+    drive = rover.driver.drive(wheel)
+    rover.arm()
+    rover.drive_until(0.3, 0.0, lambda: rover.odom[-1].pose.pose.position.x > 0.05, "0.05 m straight")
+    apply_action(rover.sim, {"action": "tpdos", "node": 1, "channel": "can0", "on": False})
+    assert rover.system.wheels_out is not None
+    book = rover.system.wheels_out
+    rover.drive_until(0.3, 0.0, lambda: wheel in book.out and rover.sim_stopped([wheel]), f"{wheel} out and stopped")
+    apply_action(rover.sim, {"action": "tpdos", "node": 1, "channel": "can0", "on": True})
+    wait_for(lambda: not drive.cache.data_stale(), 30.0, f"{wheel} heard again")
+    # the drive system's stop of it done (sent while it was unheard, it failed and is tried again):
+    # an /arm meanwhile is refused, "busy with quick stop"
+    system = rover.system
+    wait_for(lambda: wheel not in system.stop_failing and drive.channel.busy is None
+             and ((stop := system._stops.get(wheel)) is None or stop.done()), 30.0, f"{wheel}'s stop done")
+    held: list[tuple[int, bool, bool]] = []  # (ticks run in the window, out all along, usable)
+
+    def hold_in_the_window(point: str) -> None:
+        if point != "enable: sent transition 4":
+            return
+        wait_for(lambda: drive.snapshot().verdict.usable, 30.0, f"{wheel} Operation Enabled, usable")
+        ticks = rover.system._ticks
+        wait_for(lambda: rover.system._ticks >= ticks + 2, 30.0, "two drive-system ticks in the window")
+        held.append((rover.system._ticks - ticks, wheel in book.out, drive.snapshot().verdict.usable))
+
+    drive.channel.set_hook(hold_in_the_window)
+    try:
+        drive.enable()  # raises "interrupted by quick stop" where a tick in the window told it to stop
+    finally:
+        drive.channel.set_hook(None)
+    assert held and held[0][0] >= 2 and held[0][1] and held[0][2], held  # the window was reached and held
+    wait_for(lambda: wheel not in book.out, 30.0, f"{wheel} back in the drive system")
+    x = rover.odom[-1].pose.pose.position.x
+    rover.drive_until(0.3, 0.0, lambda: rover.odom[-1].pose.pose.position.x > x + 0.05, "driving on with it")
+    assert wheel not in book.out and not rover.sim_stopped([wheel])
