@@ -26,7 +26,7 @@ from can_config import GENERIC_EDS
 from virtual_can import SimService
 from virtual_can.service import SimDriveSpec
 
-from .conftest import REPO, requires_ros, ros_probe, wait_for
+from .conftest import IN_PROCESS_HOST_TIMEOUT_MS, REPO, requires_ros, ros_probe, wait_for
 
 #: Heartbeats (100 ms apart) of a drive the stalled driver does not read: 0.8 s, past its 300 ms timeout.
 STALL_HEARTBEATS = 8
@@ -81,11 +81,13 @@ def test_a_stalled_driver_process_is_no_other_master_and_arms_again(tmp_path: Pa
     specs = [SimDriveSpec(n, GENERIC_EDS, "can0", name, 4096) for n, name in ((1, "a"), (2, "b"))]
     with SimService(specs, port=0) as sim:
         config = tmp_path / "rover.yaml"
+        # the drives' host consumer time as in the in-process rigs: at 150 ms a driver starved beside
+        # the suite after the re-arm had them stop themselves again (the stall outlasts any bound)
+        watch = f"heartbeat_period_ms: 100, heartbeat_timeout_ms: 300, host_timeout_ms: {IN_PROCESS_HOST_TIMEOUT_MS:g}"
         config.write_text("buses: [{name: can0, interface: socketcand, channel: can0,"
                           f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}]\n"
-                          "drives: [{name: a, node_id: 1, counts_per_rev: 4096, heartbeat_period_ms: 100,"
-                          " heartbeat_timeout_ms: 300}, {name: b, node_id: 2, counts_per_rev: 4096,"
-                          " heartbeat_period_ms: 100, heartbeat_timeout_ms: 300}]\n")
+                          f"drives: [{{name: a, node_id: 1, counts_per_rev: 4096, {watch}}},"
+                          f" {{name: b, node_id: 2, counts_per_rev: 4096, {watch}}}]\n")
         args = ["--ros-args", "-p", f"config:={config}"] + (["-p", "autostart:=true", "-p", "arm:=true"] if entry == "lifecycle" else [])
         proc = subprocess.Popen([sys.executable, "-m", *ENTRY_POINTS[entry], *args], cwd=REPO,
                                 env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"),
