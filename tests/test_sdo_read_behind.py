@@ -15,6 +15,7 @@ from __future__ import annotations
 import socket
 import threading
 from collections.abc import Callable, Iterator
+from types import ModuleType
 
 import can
 import pytest
@@ -50,39 +51,58 @@ class SeenBehind(held.ReadBehind):
         return again
 
 
-@pytest.fixture
-def seen_behind(monkeypatch: pytest.MonkeyPatch) -> Iterator[threading.Event]:
+def see_behind(monkeypatch: pytest.MonkeyPatch, waiter: ModuleType) -> threading.Event:
+    """The waits of ``waiter`` (the module that makes their ReadBehind) use SeenBehind, and no
+    bound ends a held test early; the event it sets."""
     SeenBehind.looked_on = threading.Event()
-    monkeypatch.setattr(sdo_client, "ReadBehind", SeenBehind)
+    monkeypatch.setattr(waiter, "ReadBehind", SeenBehind)
     monkeypatch.setattr(held, "READ_BEHIND_MAX_S", 600.0)  # a test that shortens it sets it after this
     # the drive's heartbeats go unread meanwhile: the supervisor waits for the reader as long as needed
     monkeypatch.setattr(supervisor_module, "READ_BEHIND_MAX_S", 600.0)
-    yield SeenBehind.looked_on
+    return SeenBehind.looked_on
 
 
-class HeldRead:
-    """An SDO read of 0x1000 from a thread of its own, started once the receive thread is held."""
+@pytest.fixture
+def seen_behind(monkeypatch: pytest.MonkeyPatch) -> Iterator[threading.Event]:
+    yield see_behind(monkeypatch, sdo_client)
 
-    def __init__(self, driver: MotorDriver) -> None:
-        self.drive = driver.drive("joint1")
-        self.value: bytes | None = None
+
+class HeldCall:
+    """``call()`` (a wait for the drive) in a thread of its own, started once the receive thread
+    is held: its value or its error."""
+
+    def __init__(self, call: Callable[[], object], name: str) -> None:
+        self.value: object = None
         self.error: Exception | None = None
-        self.thread = threading.Thread(target=self._read, name="held-sdo-read", daemon=True)
+        self._call = call
+        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
 
-    def _read(self) -> None:
+    def _run(self) -> None:
         try:
-            self.value = self.drive.sdo_read(DEVICE_TYPE)
+            self.value = self._call()
         except Exception as err:
             self.error = err
 
 
+def error_at_the_bound(hold: Hold, call: HeldCall, kind: type[Exception]) -> str:
+    """The held call's end while the receive thread is still held (the bound passed): its error,
+    of ``kind``, said; the thread let go after."""
+    try:
+        call.thread.join(30.0)
+        assert not call.thread.is_alive() and hold.holding.is_set() and not hold.release.is_set()
+    finally:
+        hold.release.set()
+    assert isinstance(call.error, kind), call.error
+    return str(call.error)
+
+
 def hold_and_read(sim: SimService, driver: MotorDriver, listener_factory: ListenerFactory,
-                  looked_on: threading.Event) -> tuple[Hold, HeldRead]:
+                  looked_on: threading.Event) -> tuple[Hold, HeldCall]:
     """The receive thread held, then the read: returns once the drive's answer is on the bus (an
     independent client heard it) and the waiter has looked on past its deadline for the thread."""
     hold = Hold(driver)
     listener, sender = listener_factory(sim), listener_factory(sim)
-    read = HeldRead(driver)
+    read = HeldCall(lambda: driver.drive("joint1").sdo_read(DEVICE_TYPE), "held-sdo-read")
     sender.send(can.Message(arbitration_id=HOLD_ID, data=b"\x01", is_extended_id=False))
     wait_for(hold.holding.is_set, 30.0, "the receive thread in the hold's callback")
     assert receive_behind(driver.buses["can0"].network.bus) is True
@@ -104,7 +124,7 @@ def test_an_answer_that_came_while_the_receive_thread_was_held_is_read_not_timed
     hold.release.set()
     read.thread.join(30.0)
     assert read.error is None, read.error
-    assert read.value is not None and int.from_bytes(read.value, "little") == 0x00020192  # the generic EDS's device type
+    assert isinstance(read.value, bytes) and int.from_bytes(read.value, "little") == 0x00020192  # the generic EDS's device type
     assert not driver.drive("joint1").cache.lost
 
 
@@ -113,14 +133,7 @@ def test_a_receive_thread_still_behind_at_the_bound_is_named_not_the_drive(
         monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(held, "READ_BEHIND_MAX_S", 0.3)
     sim, driver = driver_factory(make_config(1, sdo_timeout_ms=SDO_TIMEOUT_MS))
-    hold, read = hold_and_read(sim, driver, listener_factory, seen_behind)
-    try:
-        read.thread.join(30.0)  # the bound passes while the thread is still held
-        assert not read.thread.is_alive() and hold.holding.is_set() and not hold.release.is_set()
-    finally:
-        hold.release.set()
-    assert isinstance(read.error, SdoTimeoutError), read.error
-    said = str(read.error)
+    said = error_at_the_bound(*hold_and_read(sim, driver, listener_factory, seen_behind), SdoTimeoutError)
     assert "This driver was late, not the drive silent" in said and "receive thread was still behind" in said, said
     assert "check power" not in said, said
 

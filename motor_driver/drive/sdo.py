@@ -25,9 +25,10 @@ from can_config.config import SdoSetting
 from can_config.eds import has_object, variable
 from can_config.errors import BootError, BusLostError, CommandRejected, SdoError, SdoTimeoutError
 from can_config.objects import OD, sdo_abort_text
+from motor_driver.bus.adapters import receive_behind
 from motor_driver.bus.sdo_client import ReceiveBehindError
 from motor_driver.drive.constants import SDO_ABORT_OUT_OF_MEMORY, SDO_ABORT_TIMEOUT, SDO_TRANSFER_TIMEOUTS, SDO_UPLOAD_MAX_BYTES
-from motor_driver.process.held import HeldDeadline
+from motor_driver.process.held import LATE_READER_HELPS, HeldDeadline
 from motor_driver.protocol.codec import pack_value, unpack_value, value_format
 
 logger = logging.getLogger(__name__)
@@ -79,6 +80,11 @@ class SdoPort:
         node.sdo.RESPONSE_TIMEOUT = timeout_s
         self._lock = threading.Lock()
 
+    def receive_behind(self) -> bool | None:
+        """Whether the receive thread of this drive's bus has yet to hand on what came
+        (:func:`motor_driver.bus.adapters.receive_behind`; None: the bus cannot tell)."""
+        return receive_behind(getattr(self._node.network, "bus", None))
+
     @contextmanager
     def _sdo_errors(self, what: str, index: int, subindex: int) -> Iterator[None]:
         """canopen's SDO exceptions -> this project's, with the abort code and its meaning; a
@@ -92,8 +98,7 @@ class SdoPort:
                            node_id=self.node_id, index=index, subindex=subindex, abort_code=err.code) from err
         except ReceiveBehindError as err:
             raise SdoTimeoutError(f"{where}: no answer read ({err}). This driver was late, not the drive silent:"
-                                  " its receive thread did not keep up (a starved host: CPU, real-time priorities);"
-                                  " give the driver its real-time priority (docs/deployment.md) or relieve the CPU",
+                                  f" {LATE_READER_HELPS}",
                                   node_id=self.node_id, index=index, subindex=subindex) from err
         except canopen.SdoCommunicationError as err:
             if "No SDO response" not in str(err):  # an answer came, but not a valid one

@@ -44,6 +44,11 @@ MAX_RESUMES = 2
 READ_BEHIND_MAX_S = 2.0
 
 
+#: What helps when a receive thread did not keep up, for the messages that blame it.
+LATE_READER_HELPS = ("its receive thread did not keep up (a starved host: CPU, real-time priorities); give the driver"
+                     " its real-time priority (docs/deployment.md) or relieve the CPU")
+
+
 class HeldDeadline:
     """A deadline ``timeout_s`` away that gives one more look after a hold (see the module)."""
 

@@ -113,9 +113,15 @@ class Homing:
                 raise stopped
             return False
 
-        if not cache.wait_until(attained, timeout_s):
+        behind = self._power.read_behind()
+        if not cache.wait_until(attained, timeout_s, behind):
             statusword = cache.received.statusword
-            raise DriveTimeoutError(f"{self.config.name}: homing not attained within {timeout_s:g} s; {self._stop()}."
+            if behind.gave_up:
+                raise DriveTimeoutError(f"{self.config.name}: homing: attained not read within {timeout_s:g} s"
+                                        f"{self._power.late_reader(behind)}; {self._stop()}.",
+                                        node_id=self.config.node_id, statusword=statusword)
+            raise DriveTimeoutError(f"{self.config.name}: homing not attained within {timeout_s:g} s{behind.said()};"
+                                    f" {self._stop()}."
                                     " Check the homing method, its speed and the switches it looks for (or raise"
                                     " homing_timeout_s for a long search), then home again.",
                                     node_id=self.config.node_id, statusword=statusword)

@@ -215,10 +215,13 @@ class Motion:
                 raise stopped
             return self._channel.handshake_idle and bool(cache.received.statusword & SW.TARGET_REACHED)
 
-        if not cache.wait_until(reached, timeout_s):
-            raise DriveTimeoutError(f"{self.name}: target not reached within {timeout_s:.1f} s"
+        behind = self._power.read_behind()
+        if not cache.wait_until(reached, timeout_s, behind):
+            said = "not read as reached" if behind.gave_up else "not reached"
+            raise DriveTimeoutError(f"{self.name}: target {said} within {timeout_s:.1f} s"
                                     f" (at {cache.angle_deg:.2f} deg, target"
-                                    f" {cache.scale.counts_to_deg(self._channel.target_counts):.2f} deg)",
+                                    f" {cache.scale.counts_to_deg(self._channel.target_counts):.2f} deg)"
+                                    f"{self._power.late_reader(behind)}",
                                     node_id=self.node_id, statusword=cache.received.statusword)
         # the statusword comes on change, the position on SYNC: wait for a position sampled
         # after the drive said 'reached', so the caller's snapshot is not one period old

@@ -37,6 +37,7 @@ from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.setup.hostwatch import HostWatch
 from motor_driver.drive.values import DriveState
 from motor_driver.drive.verdict import UNREACHABLE, Condition, Verdict
+from motor_driver.process.held import LATE_READER_HELPS, ReadBehind
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, Command, State, decode_state, next_step_to_enable
 
 logger = logging.getLogger(__name__)
@@ -112,6 +113,20 @@ class PowerStateMachine:
                                " again to retry", node_id=self.node_id, statusword=self._cache.received.statusword,
                                error_code=emcy.code if emcy is not None else None)
 
+    def read_behind(self) -> ReadBehind:
+        """A wait's look past its deadline while this drive's bus's receive thread is behind
+        (:meth:`DriveCache.wait_until`): one per wait."""
+        return ReadBehind(self._sdo.receive_behind)
+
+    @staticmethod
+    def late_reader(behind: ReadBehind) -> str:
+        """What a wait that timed out says of the receive thread: '' when it kept up; else how
+        long it was looked for, and, still behind at the bound, that the driver was late."""
+        said = behind.said()
+        if behind.gave_up:
+            said += f". This driver was late, not the drive: {LATE_READER_HELPS}"
+        return said
+
     def wait_state(self, wanted: set[State], timeout_s: float, doing: str, *, fault_ok: bool = False,
                    op: Op | None = None, left: State | None = None, after: int | None = None) -> State:
         """Wait for one of ``wanted``; a stop since ``op`` began ends the wait with its error.
@@ -132,14 +147,20 @@ class PowerStateMachine:
                 raise self.fault_error(doing)
             return state in wanted or (left is not None and state != left)
 
-        if cache.wait_until(done, timeout_s):
+        behind = self.read_behind()
+        if cache.wait_until(done, timeout_s, behind):
             return cache.state
         state, sw = cache.state, cache.received.statusword
+        if behind.gave_up:  # what the drive said may be among what was not read: not its fault
+            raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: last read {state.name} (statusword"
+                                    f" 0x{sw:04X}) after {timeout_s:g} s{self.late_reader(behind)}.",
+                                    node_id=self.node_id, statusword=sw)
         hint = ""
         if state == State.READY_TO_SWITCH_ON and not sw & SW.VOLTAGE_ENABLED:
             hint = " The drive reports no voltage: is STO low or the E-stop pressed?"
         raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: still in {state.name} (statusword"
-                                f" 0x{sw:04X}) after {timeout_s:g} s.{hint}", node_id=self.node_id, statusword=sw)
+                                f" 0x{sw:04X}) after {timeout_s:g} s{behind.said()}.{hint}", node_id=self.node_id,
+                                statusword=sw)
 
     # ------------------------------------------------------------------ enable
     def enable(self, timeout_s: float = TRANSITION_TIMEOUT_S, parent: Op | None = None, *,

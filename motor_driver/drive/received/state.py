@@ -65,7 +65,7 @@ from motor_driver.drive.received.position import PositionFilter
 from motor_driver.drive.received.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Emcy, Noted, Received, StatusSink
 from motor_driver.drive.verdict import DriveFacts, Verdict, judge
-from motor_driver.process.held import POLL_S, HeldDeadline
+from motor_driver.process.held import POLL_S, HeldDeadline, ReadBehind
 from motor_driver.process.ratelimit import Throttle
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
 from motor_driver.protocol.pdo import TT_SYNC, PdoPlan, TpdoLayout
@@ -256,17 +256,22 @@ class DriveCache:
         return self._bootup.wait(timeout_s)
 
     # ------------------------------------------------------------------ waiting
-    def wait_until(self, done: Callable[[], bool], timeout_s: float) -> bool:
+    def wait_until(self, done: Callable[[], bool], timeout_s: float, behind: ReadBehind | None = None) -> bool:
         """Wait for ``done()`` (checked at each statusword and stop); False at the timeout.
         ``done`` may raise to end the wait. After a hold of this process that left less than a
         look of the wait, it looks once more (:class:`HeldDeadline`): what the drive said while
-        the process was held is read before the verdict."""
+        the process was held is read before the verdict. With ``behind`` (a wait for what the
+        drive says: a state, a target reached), past the deadline it looks on while this
+        driver's receive thread has yet to hand on what came (:class:`ReadBehind`, bounded);
+        the caller's timeout says what it saw. Not for a wait on this process's own state."""
         deadline = HeldDeadline(timeout_s)
         with self._event:
             while not done():
                 remaining = deadline.remaining()
                 if remaining <= 0:
-                    return False
+                    if behind is None or not behind.wait_on():
+                        return False
+                    remaining = POLL_S
                 self._event.wait(min(remaining, POLL_S))
         return True
 
