@@ -80,10 +80,16 @@ class Homing:
         next TPDO can be later than a few SYNC periods)."""
         seq = self._cache.position_seq
         bound_s = max(TRANSITION_TIMEOUT_S, 10 * self._cache.sync_period_s)
-        if not self._cache.wait_until(lambda: self._cache.position_seq != seq, bound_s):
+        behind = self._power.read_behind()
+        if not self._cache.wait_until(lambda: self._cache.position_seq != seq, bound_s, behind=behind):
+            if behind.gave_up:
+                raise DriveTimeoutError(f"{self.config.name}: homing attained, but no position after it was read"
+                                        f" within {bound_s:g} s{self._power.late_reader(behind)}; its new zero is"
+                                        " unknown: home again.", node_id=self.config.node_id,
+                                        statusword=self._cache.received.statusword)
             raise DriveTimeoutError(f"{self.config.name}: homing attained, but no position came from the drive within"
-                                    f" {bound_s:g} s after it; its new zero is unknown. Check the bus and the"
-                                    " drive's TPDOs, then home again.", node_id=self.config.node_id,
+                                    f" {bound_s:g} s after it{behind.said()}; its new zero is unknown. Check the bus"
+                                    " and the drive's TPDOs, then home again.", node_id=self.config.node_id,
                                     statusword=self._cache.received.statusword)
 
     def _after_start(self) -> tuple[int, int]:
@@ -114,7 +120,7 @@ class Homing:
             return False
 
         behind = self._power.read_behind()
-        if not cache.wait_until(attained, timeout_s, behind):
+        if not cache.wait_until(attained, timeout_s, behind=behind):
             statusword = cache.received.statusword
             if behind.gave_up:
                 raise DriveTimeoutError(f"{self.config.name}: homing: attained not read within {timeout_s:g} s"

@@ -216,7 +216,7 @@ class Motion:
             return self._channel.handshake_idle and bool(cache.received.statusword & SW.TARGET_REACHED)
 
         behind = self._power.read_behind()
-        if not cache.wait_until(reached, timeout_s, behind):
+        if not cache.wait_until(reached, timeout_s, behind=behind):
             said = "not read as reached" if behind.gave_up else "not reached"
             raise DriveTimeoutError(f"{self.name}: target {said} within {timeout_s:.1f} s"
                                     f" (at {cache.angle_deg:.2f} deg, target"

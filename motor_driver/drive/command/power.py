@@ -113,10 +113,11 @@ class PowerStateMachine:
                                " again to retry", node_id=self.node_id, statusword=self._cache.received.statusword,
                                error_code=emcy.code if emcy is not None else None)
 
-    def read_behind(self) -> ReadBehind:
+    def read_behind(self, bound_s: float | None = None) -> ReadBehind:
         """A wait's look past its deadline while this drive's bus's receive thread is behind
-        (:meth:`DriveCache.wait_until`): one per wait."""
-        return ReadBehind(self._sdo.receive_behind)
+        (:meth:`DriveCache.wait_until`), for at most ``bound_s`` (default READ_BEHIND_MAX_S; 0:
+        asked once at the deadline, to name the cause, never waiting longer): one per wait."""
+        return ReadBehind(self._sdo.receive_behind, bound_s)
 
     @staticmethod
     def late_reader(behind: ReadBehind) -> str:
@@ -128,12 +129,14 @@ class PowerStateMachine:
         return said
 
     def wait_state(self, wanted: set[State], timeout_s: float, doing: str, *, fault_ok: bool = False,
-                   op: Op | None = None, left: State | None = None, after: int | None = None) -> State:
+                   op: Op | None = None, left: State | None = None, after: int | None = None,
+                   look_on_s: float | None = None) -> State:
         """Wait for one of ``wanted``; a stop since ``op`` began ends the wait with its error.
         ``left``: also return when the drive shows another state than this one (the caller
         plans again from there). ``after``: only a statusword numbered above this counts (one
         that left the drive after a frame of ours), or, for a drive that reports its statusword
-        only on change, the last one once FRESH_STATUS_SYNCS SYNC periods passed."""
+        only on change, the last one once FRESH_STATUS_SYNCS SYNC periods passed. ``look_on_s``:
+        how long past the timeout it looks on while the receive thread is behind (read_behind)."""
         cache = self._cache
         fresh_by = time.monotonic() + FRESH_STATUS_SYNCS * cache.sync_period_s + FRESH_STATUS_MARGIN_S
 
@@ -147,8 +150,8 @@ class PowerStateMachine:
                 raise self.fault_error(doing)
             return state in wanted or (left is not None and state != left)
 
-        behind = self.read_behind()
-        if cache.wait_until(done, timeout_s, behind):
+        behind = self.read_behind(look_on_s)
+        if cache.wait_until(done, timeout_s, behind=behind):
             return cache.state
         state, sw = cache.state, cache.received.statusword
         if behind.gave_up:  # what the drive said may be among what was not read: not its fault
@@ -279,7 +282,9 @@ class PowerStateMachine:
         seq = self._cache.status_seq
         with self._channel.stopping(command, name):
             self._channel.point(f"{name}: sent")
-            self.wait_state(wanted | FAULT_STATES, timeout_s, name, after=seq)
+            # no look past the timeout: a stop's confirmation holds up the next drive's stop
+            # (safe_stop, the drive system's stopper); a reader behind is named, not waited for
+            self.wait_state(wanted | FAULT_STATES, timeout_s, name, after=seq, look_on_s=0.0)
 
     def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Shutdown (transition 8, 6 or 2): power stage off, drive in Ready to Switch On."""

@@ -256,21 +256,29 @@ class DriveCache:
         return self._bootup.wait(timeout_s)
 
     # ------------------------------------------------------------------ waiting
-    def wait_until(self, done: Callable[[], bool], timeout_s: float, behind: ReadBehind | None = None) -> bool:
+    def wait_until(self, done: Callable[[], bool], timeout_s: float, *, behind: ReadBehind | None = None) -> bool:
         """Wait for ``done()`` (checked at each statusword and stop); False at the timeout.
         ``done`` may raise to end the wait. After a hold of this process that left less than a
         look of the wait, it looks once more (:class:`HeldDeadline`): what the drive said while
         the process was held is read before the verdict. With ``behind`` (a wait for what the
-        drive says: a state, a target reached), past the deadline it looks on while this
-        driver's receive thread has yet to hand on what came (:class:`ReadBehind`, bounded);
-        the caller's timeout says what it saw. Not for a wait on this process's own state."""
+        drive says: a state, a target reached, a new position), past the deadline it looks on
+        while this driver's receive thread has yet to hand on what came (:class:`ReadBehind`,
+        bounded; asked with the lock let go, so that a thread delivering meanwhile is not taken
+        for behind); the caller's timeout says what it saw."""
         deadline = HeldDeadline(timeout_s)
         with self._event:
             while not done():
                 remaining = deadline.remaining()
                 if remaining <= 0:
-                    if behind is None or not behind.wait_on():
+                    if behind is None:
                         return False
+                    self._event.release()
+                    try:
+                        again = behind.wait_on()
+                    finally:
+                        self._event.acquire()
+                    if not again:  # caught up (or given up): what it handed on meanwhile decides
+                        return bool(done())
                     remaining = POLL_S
                 self._event.wait(min(remaining, POLL_S))
         return True
