@@ -17,7 +17,7 @@ from canopen.objectdictionary import ObjectDictionary
 
 from can_config.config import DriveConfig
 from can_config.eds import has_object
-from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError
+from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError, MotorError
 from can_config.objects import EMCY_HEARTBEAT_LOST, OD, SUPPORTED_MODE_BIT, OperationMode, emcy_text
 from motor_driver.drive.command.busy import Op
 from motor_driver.drive.command.channel import CommandChannel
@@ -176,6 +176,9 @@ class PowerStateMachine:
         (:attr:`CommandChannel.stop_mark`); a stop since then refuses it (decided with its
         registration, so none can fall in between).
         """
+        if parent is None and unless_stopped_since is None and self._armed_already():
+            logger.debug("%s (node %d): armed already (Operation Enabled, read by SDO now)", self.name, self.node_id)
+            return
         with self._channel.operation("enable", parent, unless_stopped_since=unless_stopped_since) as op:
             self.require_usable("enable")
             if self._watch.host_watch is None and not self.config.allow_no_host_watch:
@@ -202,6 +205,20 @@ class PowerStateMachine:
             self._channel.mark_enabled(op, verdict)  # the verdict and a stop are ordered too
         if parent is None:
             logger.info("%s (node %d): armed (Operation Enabled)", self.name, self.node_id)
+
+    def _armed_already(self) -> bool:
+        """Armed by this driver (its last controlword Enable Operation, no operation under way, the
+        verdict usable) and the drive says Operation Enabled now (by SDO: answered after this
+        request, not a statusword from before a stall). An enable then sends nothing and registers
+        no operation: what streams to the drive is not refused meanwhile (a second /arm while a
+        trajectory ran aborted the goal, "busy with enable"). Anything else takes the whole path."""
+        channel = self._channel
+        if channel.busy or channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK or not self.verdict().usable:
+            return False
+        try:
+            return decode_state(self._sdo.read_number(OD.STATUSWORD)) == State.OPERATION_ENABLED
+        except MotorError:  # the whole path says what is wrong
+            return False
 
     def _wait_watching(self, op: Op, timeout_s: float) -> None:
         """Enable only a drive that is watching the host (its first host heartbeat or guard after
