@@ -187,7 +187,10 @@ def test_the_rover_launch_names_each_node_once_and_its_parameters_answer_alike(t
         # judged once the driver process answered: it makes all its nodes before it serves any
         # (nodes/assembly.py), and the probe has heard that process, so a twin name is in the graph
         names = [n for n, ns in probe.get_node_names_and_namespaces() if ns == "/"]
-        assert len(names) == len(set(names)), f"a node name twice: {sorted(names)}"
+        # the launch's own names: another test's client nodes in this worker's DDS domain can linger
+        # in the graph a while (three trajectory_client seen beside a loaded CI), and are not its
+        made = [n for n in names if n.startswith(("rovercan_", "drive_system", "motor_"))]
+        assert len(made) == len(set(made)), f"a node name twice: {sorted(made)} (the graph: {sorted(names)})"
     finally:
         probe.destroy_node()
         rclpy.shutdown(context=context)

@@ -56,11 +56,13 @@ def test_in_continue_a_late_side_stops_every_wheel_and_is_named(rover: Rover) ->
     rover.drive_until(0.3, 0.0, lambda: rover.sim_stopped(RIGHT) and rover.sim_stopped(LEFT), "every wheel stopped")
     assert "the left side has no usable wheel" in rover.system.halted, rover.system.halted
     rover.drive_until(0.3, 0.0, lambda: rover.said("the left side has no usable wheel"), "the side on /diagnostics")
-    held = rover.odom[-1].pose.pose.position.x
-    seen = len(rover.odom)
+    # judged from the first /odom that says it is not trusted (the newest one held may be older)
+    rover.drive_until(0.3, 0.0, lambda: untrusted(rover.odom[-1]), "/odom not trusted")
+    seen = next(i for i in range(len(rover.odom) - 1, -1, -1) if not untrusted(rover.odom[i])) + 1
+    held = rover.odom[seen].pose.pose.position.x
     rover.drive_until(0.3, 0.0, lambda: len(rover.odom) > seen + 25, "25 more /odom")
-    assert all(m.pose.pose.position.x == held for m in rover.odom[seen:])
-    assert all(untrusted(m) for m in rover.odom[seen:])
+    after = [(m.pose.pose.position.x, untrusted(m), stamp_s(m)) for m in rover.odom[seen:]]
+    assert all(x == held and not_trusted for x, not_trusted, _ in after), (held, after)
     # /tf: nothing stamped later than what was measured (the silence's first PDO periods at most)
     assert all(t <= tf_before + 0.5 for t in tf_stamps(rover, tf_from)), (tf_before, tf_stamps(rover, tf_from))
     silence_left(rover, on=True)
