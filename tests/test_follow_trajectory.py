@@ -117,7 +117,8 @@ def rig(monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> Iter
         yield Rig(sim, assembly, client, states, domain)
     finally:
         client_spin.stop(5.0)
-        node.destroy_node()
+        client.destroy()  # a failed test's traceback holds the client: its node and DDS participant
+        node.destroy_node()  # then lingered in the worker's graph (test_launch saw three)
         rclpy.shutdown(context=theirs)
         spin.stop(5.0)
         assembly.close()
@@ -715,5 +716,6 @@ def test_the_driver_killed_mid_goal_leaves_the_arm_to_stop_itself(tmp_path: Path
                 signal_the_host_and_see_the_drives_stop(proc, sim, watches, drives, sig)
         finally:
             client_spin.stop(5.0)
+            client.destroy()  # as the rig's: not left to a failed test's traceback
             node.destroy_node()
             rclpy.shutdown(context=context)
