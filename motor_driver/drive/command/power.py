@@ -42,6 +42,12 @@ from motor_driver.protocol.cia402 import FAULT_STATES, SW, Command, State, decod
 
 logger = logging.getLogger(__name__)
 
+#: How long past its timeout a stop's confirmation looks on while the receive thread is behind (s):
+#: long enough for a kernel socket's thread to enter a marked wait (its first look always counts
+#: as behind: motor_driver.bus.adapters.receive_behind) on a bus with SYNC, short beside the
+#: 2 s an enable may look (the next drive's stop waits behind this one in safe_stop).
+STOP_READ_BEHIND_S = 0.1
+
 #: The verdicts an operation that needs Operation Enabled goes on under (late: nothing says it
 #: stopped), and those that mean the drive left Operation Enabled
 _GOES_ON = frozenset({Condition.USABLE, Condition.LATE})
@@ -115,8 +121,7 @@ class PowerStateMachine:
 
     def read_behind(self, bound_s: float | None = None) -> ReadBehind:
         """A wait's look past its deadline while this drive's bus's receive thread is behind
-        (:meth:`DriveCache.wait_until`), for at most ``bound_s`` (default READ_BEHIND_MAX_S; 0:
-        asked once at the deadline, to name the cause, never waiting longer): one per wait."""
+        (:meth:`DriveCache.wait_until`), for at most ``bound_s`` (default READ_BEHIND_MAX_S): one per wait."""
         return ReadBehind(self._sdo.receive_behind, bound_s)
 
     @staticmethod
@@ -299,9 +304,9 @@ class PowerStateMachine:
         seq = self._cache.status_seq
         with self._channel.stopping(command, name):
             self._channel.point(f"{name}: sent")
-            # no look past the timeout: a stop's confirmation holds up the next drive's stop
-            # (safe_stop, the drive system's stopper); a reader behind is named, not waited for
-            self.wait_state(wanted | FAULT_STATES, timeout_s, name, after=seq, look_on_s=0.0)
+            # a short look past the timeout: a stop's confirmation holds up the next drive's stop
+            # (safe_stop, the drive system's stopper); a reader behind longer is named, not waited for
+            self.wait_state(wanted | FAULT_STATES, timeout_s, name, after=seq, look_on_s=STOP_READ_BEHIND_S)
 
     def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Shutdown (transition 8, 6 or 2): power stage off, drive in Ready to Switch On."""
