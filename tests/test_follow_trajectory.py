@@ -191,6 +191,7 @@ def test_an_arm_again_while_a_goal_runs_leaves_it_running(rig: Rig) -> None:
     ended = handle.get_result_async()
     wait_for(lambda: ended.done() or bool(feedback), HANG_S, "the goal under way")
     enables = 0
+    counted = [drive.channel.enables for drive in rig.assembly.driver]
     while not ended.done() and enables < 40:  # /arm again and again while it runs
         for drive in rig.assembly.driver:
             drive.enable()
@@ -198,6 +199,8 @@ def test_an_arm_again_while_a_goal_runs_leaves_it_running(rig: Rig) -> None:
     done = result_of(handle)
     assert done.status == GoalStatus.STATUS_SUCCEEDED, (enables, done.result.error_string)
     assert enables >= 10, enables  # the enables did fall while it ran
+    # each counted as an enable (the drive system takes a wheel back on one), nothing walked again
+    assert [drive.channel.enables - n for drive, n in zip(rig.assembly.driver, counted, strict=True)] == [enables] * 2
 
 
 def silence_and_mark(rig: Rig) -> list[int]:

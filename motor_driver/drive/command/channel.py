@@ -272,6 +272,19 @@ class CommandChannel:
             self.was_enabled = True
             self.enables += 1
 
+    def confirm_armed(self, since: int) -> bool:
+        """An enable of a drive armed already (the caller read Operation Enabled from it after the
+        stop mark ``since``): counted as an enable, as one that walked the states would be (the
+        drive system takes a wheel back on it), unless a stop or a hold came since, an operation
+        is under way or this driver's last word is no longer Enable Operation. Nothing is sent."""
+        with self._lock:
+            if (self.closed or self.held or self._busy.oldest or self._preempted[0] != since
+                    or self.cw & ENABLED_CW_MASK != ENABLED_CW_MASK):
+                return False
+            self.was_enabled = True
+            self.enables += 1
+            return True
+
     def _restop_after_sdo(self, op: Op) -> None:
         """A controlword written by SDO after the lock: a stop decided meanwhile is written again."""
         with self._lock:

@@ -216,14 +216,18 @@ class PowerStateMachine:
         verdict usable) and the drive says Operation Enabled now (by SDO: answered after this
         request, not a statusword from before a stall). An enable then sends nothing and registers
         no operation: what streams to the drive is not refused meanwhile (a second /arm while a
-        trajectory ran aborted the goal, "busy with enable"). Anything else takes the whole path."""
+        trajectory ran aborted the goal, "busy with enable"); it is counted as an enable. Anything
+        else takes the whole path."""
         channel = self._channel
+        since = channel.stop_mark
         if channel.busy or channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK or not self.verdict().usable:
             return False
         try:
-            return decode_state(self._sdo.read_number(OD.STATUSWORD)) == State.OPERATION_ENABLED
+            if decode_state(self._sdo.read_number(OD.STATUSWORD)) != State.OPERATION_ENABLED:
+                return False
         except MotorError:  # the whole path says what is wrong
             return False
+        return channel.confirm_armed(since)  # counted, unless a stop came meanwhile
 
     def _wait_watching(self, op: Op, timeout_s: float) -> None:
         """Enable only a drive that is watching the host (its first host heartbeat or guard after
