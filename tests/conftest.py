@@ -12,6 +12,7 @@ import tempfile
 import threading
 import time
 import warnings
+import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -64,9 +65,13 @@ os.environ.setdefault("ROVERCAN_INCIDENT_DIR", tempfile.mkdtemp(prefix="rovercan
 # by default Fast DDS multicasts on every interface, and the tests' traffic stays on this machine
 os.environ.setdefault(*LOCAL_DISCOVERY)
 # pytest-xdist runs modules side by side (./dev test): each worker's ROS graphs in a DDS domain
-# of their own, or one worker's /cmd_vel would reach another's driver
+# of their own, or one worker's /cmd_vel would reach another's driver; and each run's workers in
+# domains of their own too (10-99, by the run's id), or a second run on this machine (another
+# clone's CI, a developer's tests) reaches them: one's /arm aborted the other's trajectory goal
 if (_worker := os.environ.get("PYTEST_XDIST_WORKER", "")).startswith("gw"):
-    os.environ["ROS_DOMAIN_ID"] = str(60 + int(_worker[2:]))
+    _workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "2")))
+    _run = zlib.crc32(os.environ.get("PYTEST_XDIST_TESTRUNUID", "").encode()) % max(1, 90 // _workers)
+    os.environ["ROS_DOMAIN_ID"] = str(10 + _run * _workers + int(_worker[2:]) % _workers)
 # load_config() reads $ROVERCAN_CONFIG when set: the suite's calls mean the embedded default
 os.environ.pop("ROVERCAN_CONFIG", None)
 
