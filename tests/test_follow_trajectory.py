@@ -710,6 +710,11 @@ def test_the_driver_killed_mid_goal_leaves_the_arm_to_stop_itself(tmp_path: Path
                     return runner.call(lambda: [(runner.drive(n).state.name, runner.drive(n).omega) for n in (1, 2)])
 
                 wait_for(lambda: all(state == "OPERATION_ENABLED" for state, _ in joints()), HANG_S, "the arm armed")
+                # and the driver done arming both (its own word): a drive shows Operation Enabled
+                # before the driver's enable ends, and a goal then was refused "not armed"
+                log = tmp_path / "driver.log"
+                wait_for(lambda: all(f"{name} (node {node}): armed" in log.read_text() for name, node, _, _ in drives),
+                         HANG_S, "the driver's 'armed' for both joints", lambda: log.read_text()[-3000:])
                 feedback: list[Any] = []
                 handle = send(Rig(sim, None, client, []), half_sine(40.0, 30.0), feedback)  # no assembly here
                 assert handle.accepted, (tmp_path / "driver.log").read_text()[-3000:]  # why it refused
