@@ -404,3 +404,28 @@ def test_motion_held_during_each_step_of_enable_ends_it_and_nothing_enables_unti
     driver.allow_motion()
     drive.enable()
     assert sim_state(sim) == "OPERATION_ENABLED"
+
+
+def test_a_stop_while_an_arm_asks_whether_it_is_armed_already_wins(
+        driver_factory: Callable[[RoverConfig], tuple[SimService, MotorDriver]]) -> None:
+    """An enable of a drive armed already sends nothing (it is counted, not walked); a quick stop
+    that lands while it looks (a hook at its look, outside the lock) wins: the enable is refused,
+    not walked again from the stop, and the drive stays stopped."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    stopped: list[str] = []
+
+    def stop_in_the_look(point: str) -> None:
+        if point == "enable: armed already?" and not stopped:
+            stopped.append(point)
+            drive.quick_stop()
+
+    drive.channel.set_hook(stop_in_the_look)
+    try:
+        with pytest.raises(DriveStateError, match="refused: stopped since it was asked"):
+            drive.enable()
+    finally:
+        drive.channel.set_hook(None)
+    assert stopped and drive.channel.stopped_by
+    assert sim_state(sim) in STOPS["quick stop"][2]  # the stop was confirmed before the enable went on

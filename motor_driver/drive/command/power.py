@@ -181,9 +181,12 @@ class PowerStateMachine:
         (:attr:`CommandChannel.stop_mark`); a stop since then refuses it (decided with its
         registration, so none can fall in between).
         """
-        if parent is None and unless_stopped_since is None and self._armed_already():
-            logger.debug("%s (node %d): armed already (Operation Enabled, read by SDO now)", self.name, self.node_id)
-            return
+        if parent is None and unless_stopped_since is None:
+            # a stop from here on wins over this enable, as one after its registration does
+            unless_stopped_since = self._channel.stop_mark
+            if self._armed_already(unless_stopped_since):
+                logger.debug("%s (node %d): armed already (Operation Enabled, read by SDO now)", self.name, self.node_id)
+                return
         with self._channel.operation("enable", parent, unless_stopped_since=unless_stopped_since) as op:
             self.require_usable("enable")
             if self._watch.host_watch is None and not self.config.allow_no_host_watch:
@@ -211,7 +214,7 @@ class PowerStateMachine:
         if parent is None:
             logger.info("%s (node %d): armed (Operation Enabled)", self.name, self.node_id)
 
-    def _armed_already(self) -> bool:
+    def _armed_already(self, since: int) -> bool:
         """Armed by this driver (its last controlword Enable Operation, no operation under way, the
         verdict usable) and the drive says Operation Enabled now (by SDO: answered after this
         request, not a statusword from before a stall). An enable then sends nothing and registers
@@ -219,7 +222,7 @@ class PowerStateMachine:
         trajectory ran aborted the goal, "busy with enable"); it is counted as an enable. Anything
         else takes the whole path."""
         channel = self._channel
-        since = channel.stop_mark
+        channel.point("enable: armed already?")
         if channel.busy or channel.cw & ENABLED_CW_MASK != ENABLED_CW_MASK or not self.verdict().usable:
             return False
         try:
