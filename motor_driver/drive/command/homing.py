@@ -16,7 +16,7 @@ from canopen.objectdictionary import ObjectDictionary
 
 from can_config.config import DriveConfig
 from can_config.eds import has_object
-from can_config.errors import CommandRejected, DriveStateError, DriveTimeoutError, MotorError
+from can_config.errors import CommandRejected, DriveStateError, MotorError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.drive.command.busy import Op
 from motor_driver.drive.command.channel import CommandChannel
@@ -82,15 +82,12 @@ class Homing:
         bound_s = max(TRANSITION_TIMEOUT_S, 10 * self._cache.sync_period_s)
         behind = self._power.read_behind()
         if not self._cache.wait_until(lambda: self._cache.position_seq != seq, bound_s, behind=behind):
-            if behind.gave_up:
-                raise DriveTimeoutError(f"{self.config.name}: homing attained, but no position after it was read"
-                                        f" within {bound_s:g} s{self._power.late_reader(behind)}; its new zero is"
-                                        " unknown: home again.", node_id=self.config.node_id,
-                                        statusword=self._cache.received.statusword)
-            raise DriveTimeoutError(f"{self.config.name}: homing attained, but no position came from the drive within"
-                                    f" {bound_s:g} s after it{behind.said()}; its new zero is unknown. Check the bus"
-                                    " and the drive's TPDOs, then home again.", node_id=self.config.node_id,
-                                    statusword=self._cache.received.statusword)
+            name = self.config.name
+            raise self._power.timed_out(
+                behind, (f"{name}: homing attained, but no position after it was read within {bound_s:g} s",
+                         "; its new zero is unknown: home again."),
+                (f"{name}: homing attained, but no position came from the drive within {bound_s:g} s after it",
+                 "; its new zero is unknown. Check the bus and the drive's TPDOs, then home again."))
 
     def _after_start(self) -> tuple[int, int]:
         """The drive's statusword after it saw the start, and the count of statuswords received by
@@ -121,16 +118,12 @@ class Homing:
 
         behind = self._power.read_behind()
         if not cache.wait_until(attained, timeout_s, behind=behind):
-            statusword = cache.received.statusword
-            if behind.gave_up:
-                raise DriveTimeoutError(f"{self.config.name}: homing: attained not read within {timeout_s:g} s"
-                                        f"{self._power.late_reader(behind)}; {self._stop()}.",
-                                        node_id=self.config.node_id, statusword=statusword)
-            raise DriveTimeoutError(f"{self.config.name}: homing not attained within {timeout_s:g} s{behind.said()};"
-                                    f" {self._stop()}."
-                                    " Check the homing method, its speed and the switches it looks for (or raise"
-                                    " homing_timeout_s for a long search), then home again.",
-                                    node_id=self.config.node_id, statusword=statusword)
+            name, statusword = self.config.name, cache.received.statusword
+            raise self._power.timed_out(
+                behind, (f"{name}: homing: attained not read within {timeout_s:g} s", f"; {self._stop()}."),
+                (f"{name}: homing not attained within {timeout_s:g} s",
+                 f"; {self._stop()}. Check the homing method, its speed and the switches it looks for (or raise"
+                 " homing_timeout_s for a long search), then home again."), statusword)
 
     def _stop(self) -> str:
         """A homing that timed out is still searching: the drive is quick-stopped (a stop wins

@@ -24,7 +24,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 from can_config.config import DriveConfig
-from can_config.errors import CommandRejected, CommandWouldWait, DriveStateError, DriveTimeoutError
+from can_config.errors import CommandRejected, CommandWouldWait, DriveStateError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.drive.command.busy import Op
 from motor_driver.drive.command.channel import CommandChannel, LockedCommand
@@ -217,12 +217,10 @@ class Motion:
 
         behind = self._power.read_behind()
         if not cache.wait_until(reached, timeout_s, behind=behind):
-            said = "not read as reached" if behind.gave_up else "not reached"
-            raise DriveTimeoutError(f"{self.name}: target {said} within {timeout_s:.1f} s"
-                                    f" (at {cache.angle_deg:.2f} deg, target"
-                                    f" {cache.scale.counts_to_deg(self._channel.target_counts):.2f} deg)"
-                                    f"{self._power.late_reader(behind)}",
-                                    node_id=self.node_id, statusword=cache.received.statusword)
+            where = (f" within {timeout_s:.1f} s (at {cache.angle_deg:.2f} deg, target"
+                     f" {cache.scale.counts_to_deg(self._channel.target_counts):.2f} deg)")
+            raise self._power.timed_out(behind, (f"{self.name}: target not read as reached{where}", ""),
+                                        (f"{self.name}: target not reached{where}", ""))
         # the statusword comes on change, the position on SYNC: wait for a position sampled
         # after the drive said 'reached', so the caller's snapshot is not one period old
         seq = cache.position_seq

@@ -124,14 +124,18 @@ class PowerStateMachine:
         (:meth:`DriveCache.wait_until`), for at most ``bound_s`` (default READ_BEHIND_MAX_S): one per wait."""
         return ReadBehind(self._sdo.receive_behind, bound_s)
 
-    @staticmethod
-    def late_reader(behind: ReadBehind) -> str:
-        """What a wait that timed out says of the receive thread: '' when it kept up; else how
-        long it was looked for, and, still behind at the bound, that the driver was late."""
-        said = behind.said()
+    def timed_out(self, behind: ReadBehind, read: tuple[str, str], drive: tuple[str, str],
+                  statusword: int | None = None) -> DriveTimeoutError:
+        """The error of a wait for what the drive says of itself that timed out, blaming the one
+        that was late. Its receive thread still behind at the bound (``behind.gave_up``): what the
+        drive said may be among what was not read, so the driver is named, in ``read``'s words;
+        else the drive, in ``drive``'s. Each is (what, then): the look's words go between them."""
         if behind.gave_up:
-            said += f". This driver was late, not the drive: {LATE_READER_HELPS}"
-        return said
+            (what, then), looked = read, f"{behind.said()}. This driver was late, not the drive: {LATE_READER_HELPS}"
+        else:
+            (what, then), looked = drive, behind.said()
+        return DriveTimeoutError(f"{what}{looked}{then}", node_id=self.node_id,
+                                 statusword=self._cache.received.statusword if statusword is None else statusword)
 
     def wait_state(self, wanted: set[State], timeout_s: float, doing: str, *, fault_ok: bool = False,
                    op: Op | None = None, left: State | None = None, after: int | None = None,
@@ -159,16 +163,12 @@ class PowerStateMachine:
         if cache.wait_until(done, timeout_s, behind=behind):
             return cache.state
         state, sw = cache.state, cache.received.statusword
-        if behind.gave_up:  # what the drive said may be among what was not read: not its fault
-            raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: last read {state.name} (statusword"
-                                    f" 0x{sw:04X}) after {timeout_s:g} s{self.late_reader(behind)}.",
-                                    node_id=self.node_id, statusword=sw)
         hint = ""
         if state == State.READY_TO_SWITCH_ON and not sw & SW.VOLTAGE_ENABLED:
             hint = " The drive reports no voltage: is STO low or the E-stop pressed?"
-        raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: still in {state.name} (statusword"
-                                f" 0x{sw:04X}) after {timeout_s:g} s{behind.said()}.{hint}", node_id=self.node_id,
-                                statusword=sw)
+        who = f"{self.name} (node {self.node_id}): {doing}"
+        word = f"{state.name} (statusword 0x{sw:04X}) after {timeout_s:g} s"
+        raise self.timed_out(behind, (f"{who}: last read {word}", "."), (f"{who}: still in {word}", f".{hint}"), sw)
 
     # ------------------------------------------------------------------ enable
     def enable(self, timeout_s: float = TRANSITION_TIMEOUT_S, parent: Op | None = None, *,
