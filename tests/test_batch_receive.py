@@ -77,7 +77,7 @@ class Rig:
         c, s, f = self.cache, self.stats, self.foreign
         rx = c.received._replace(rx_monotonic=bool(c.received.rx_monotonic), position_rx=bool(c.received.position_rx))
         emcy = c.last_emcy
-        return (rx, c.tpdo_count, c.sync_tpdos, c.status_seq, c.position_seq, c.emcy_count, c.wrong_length_tpdos,
+        return (rx, c.tpdo_count, c.sync_tpdos, c.status_seq, c.position_seq, c.emcy_count, c.wrong_length_tpdos, c.stale_statuswords,
                 emcy and (emcy.code, emcy.register, emcy.timestamp), c.fault_seen, c.heartbeats, c.reported_nmt,
                 s.frames, s.syncs, s.bits, s.error_frames, s.last_error and s.last_error[1],
                 f.sync_excess, sorted(f.nmt), sorted(f.sdo), sorted(f.rpdo), bool(f.host_twin), bool(f.sync),

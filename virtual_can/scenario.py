@@ -61,7 +61,7 @@ _SWITCH: dict[str, type] = {**_DRIVE, "on": bool}
 #: Each action's own keys and the kind of value each takes (float: any number).
 ACTION_KEYS: dict[str, dict[str, type]] = {
     "unplug": _DRIVE, "plug": _DRIVE, "power_cycle": {**_DRIVE, "off_s": float},
-    "fault": {**_DRIVE, "code": int}, "sto": {**_DRIVE, "low": bool}, "tpdos": _SWITCH,
+    "fault": {**_DRIVE, "code": int, "latched": bool}, "sto": {**_DRIVE, "low": bool}, "tpdos": _SWITCH,
     "slow_enable": {**_DRIVE, "delay_s": float}, "slow_ack": {**_DRIVE, "max_s": float},
     "frames": {"channel": str, "drop": float, "delay": float, "delay_s": float, "corrupt": float},
     "sdo": {**_DRIVE, "delay_s": float, "abort": int}, "disconnect_clients": {},
@@ -183,8 +183,12 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
         drive.faults.unplugged = action == "unplug"
     elif action == "power_cycle":
         drive.power_cycle(now, float(step.get("off_s", 0.5)))
-    elif action == "fault":
-        drive.raise_fault(int(step.get("code", 0x1000)))
+    elif action == "fault":  # latched: in the cycle of the next SYNC, after its TPDOs latched (Faults.latched_fault)
+        code = int(step.get("code", 0x1000))
+        if step.get("latched", False):
+            drive.faults.latched_fault = code
+        else:
+            drive.raise_fault(code)
     elif action == "tpdos":  # the drive stops (or resumes) sending its TPDOs; heartbeat and SDO go on
         drive.faults.tpdo_silent = not bool(step.get("on", False))
     elif action in _ON_SWITCHES:  # on: false heals it

@@ -291,6 +291,7 @@ class DriverNode(Node):
                 if (record := self.driver.supervisor.records.get(name)) is not None:
                     health = with_boot(health, record)
                 health.values["wrong_length_tpdos"] = str(drive.cache.wrong_length_tpdos)
+                health.values["stale_statuswords"] = str(drive.cache.stale_statuswords)
                 array.status.append(DiagnosticStatus(
                     level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
                     hardware_id=f"{drive.config.bus}/node{drive.node_id}",

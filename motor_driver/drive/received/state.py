@@ -128,6 +128,9 @@ class DriveCache:
         # before, the SYNCs heard, the count of the SYNC each synchronous TPDO answered last, and those whose
         self._sync_stamp, self._prev_sync_stamp, self._syncs, self._sync_answered, self._took_previous = (
             0.0, 0.0, 0, dict.fromkeys(self._per_sync, -NEVER_ANSWERED), set[int]())  # last answer was the one before's
+        # the bus stamp of the newest event-driven statusword taken (a synchronous one latched before it is
+        # older), and the synchronous statuswords left untaken for that reason
+        self._event_sw_stamp, self.stale_statuswords = 0.0, 0
         self.heartbeats = 0  # heartbeats (or guard answers) received
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
@@ -383,6 +386,12 @@ class DriveCache:
             self._trusts_seen = (boot_trusts, cmd_trusts)
             self.positions.trust_next()
         sw, mode, position, velocity, torque, took = decode_tpdo(indexes, values, rx, timestamp, self.positions)
+        if has_statusword:
+            if not per_sync:
+                self._event_sw_stamp = timestamp
+            elif (sent := self._event_sw_stamp) > timestamp and sent - timestamp < self.sync_period_s:
+                sw, has_statusword = rx.statusword, False  # _keeps_newer_statusword
+                self.stale_statuswords += 1
         now = time.monotonic()
         if took:
             self.position_seq += 1
@@ -403,6 +412,15 @@ class DriveCache:
         if state is not None:
             self.status_seq += 1
             self._on_statusword(sw, state, now)
+
+    # _keeps_newer_statusword: a statusword latched at a SYNC, received after an event-driven one the
+    # drive sent after that SYNC, is older than the one held: the drive's transmit buffers go out by
+    # identifier (CAN arbitration), so its TPDO1 sent on a change passes its synchronous TPDO3 latched
+    # before the change. Taking it would show the state before the change for a SYNC period (a fault
+    # shown as Operation Enabled again, an old set-point acknowledge to the handshake). Only within a
+    # period after the SYNC: a later event cannot have passed it (CiA 301's synchronous window), and a
+    # bus clock stepped back never stops the synchronous statuswords for good. Without the SYNC heard
+    # (a kernel socket sending this driver's own) a synchronous TPDO keeps its own stamp: taken.
 
     def _wrong_length(self, cob_id: int, data: bytearray) -> None:
         self.wrong_length_tpdos += 1

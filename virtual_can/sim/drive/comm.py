@@ -406,6 +406,12 @@ class CommNode(Plant):
                     pdo.sync_count = 0
                     out += self._send_pdo(pdo, pdo.pack(self.store), now)
         faults = self.faults
+        if faults.latched_fault:  # a fault in this cycle, after the latch: its frames pass the latched ones
+            code, faults.latched_fault = faults.latched_fault, 0
+            out += self._raise_fault(code, now)
+            self._update_status()
+            out += self._event_tpdos(now)
+            out.sort(key=lambda frame: frame.arbitration_id)
         if out and (faults.sync_delay_s or faults.sync_jitter_s):  # packed now, at the SYNC; sent late
             return self._hold(out, moment + faults.sync_delay_s + self._rng.uniform(0.0, faults.sync_jitter_s))
         return out

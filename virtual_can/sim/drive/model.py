@@ -214,6 +214,10 @@ class Faults:
     #: in the order it made them (one transmit queue): a slow drive, or a busy bus's arbitration
     sync_delay_s: float = 0.0
     sync_jitter_s: float = 0.0
+    #: an EMCY code it detects in the cycle of its next SYNC, after its synchronous TPDOs latched:
+    #: that cycle's frames leave by identifier (its transmit buffers' CAN arbitration), so the
+    #: EMCY and the statusword's event TPDO pass the synchronous TPDOs latched before the fault
+    latched_fault: int = 0
     ack_delay_max_s: float = 0.0  # the set-point acknowledge comes after a random delay up to this
     enable_step_delay_s: float = 0.0  # each enabling transition (2, 3, 4) takes this long
     power_off_until: float = 0.0
