@@ -121,24 +121,20 @@ class DriveCache:
         self._fault_seq, self._fault_word = 0, 0  # FAULT statuswords seen, the last of them
         # positions taken; statuswords received (one that arrives after a frame was sent has a higher number)
         self.position_seq = self.status_seq = 0
-        self.tpdo_count = 0
-        self.emcy_count = 0  # EMCYs received (logged or not)
+        self.tpdo_count = self.emcy_count = 0  # TPDOs received; EMCYs received (logged or not)
         self.sync_tpdos = 0  # TPDOs received of those sent every SYNC (frame loss: expected per SYNC)
         # the bus stamps of the newest SYNC heard (when the next synchronous TPDOs measured) and of the one
         # before, the SYNCs heard, the count of the SYNC each synchronous TPDO answered last, and those whose
         self._sync_stamp, self._prev_sync_stamp, self._syncs, self._sync_answered, self._took_previous = (
             0.0, 0.0, 0, dict.fromkeys(self._per_sync, -NEVER_ANSWERED), set[int]())  # last answer was the one before's
-        # the bus stamp of the newest event-driven statusword taken (a synchronous one latched before it is
-        # older), and the synchronous statuswords left untaken for that reason
+        # the newest event-driven statusword's bus stamp; synchronous ones left as older (_keeps_newer_statusword)
         self._event_sw_stamp, self.stale_statuswords = 0.0, 0
         self.heartbeats = 0  # heartbeats (or guard answers) received
         self._sw_enabled = False
         self._behind_back: tuple[float, str] = (0.0, "")
-        self._heard_nmt = "UNKNOWN"
-        self.reported_nmt = "UNKNOWN"
-        self._bootup_at = 0.0
+        self._heard_nmt = self.reported_nmt = "UNKNOWN"
+        self._bootup_at = self._operational_at = 0.0
         self.bootups = 0  # boot-ups heard: one numbered above what a configuration began with is a reset in it
-        self._operational_at = 0.0
         self._heard_at, self._heard_stamp = 0.0, 0.0  # the newest heartbeat: monotonic, and the bus's stamp of it
         self._last_emcy: Emcy | None = None
         self._emcy_log = Throttle(EMCY_LOG_PERIOD_S)  # the receive thread's (EMCY lines, wrong-length TPDOs)
