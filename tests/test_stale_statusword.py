@@ -49,10 +49,8 @@ def sync_statusword_tpdo(eds: object, node: int) -> tuple[int, struct.Struct, in
     """The synchronous TPDO carrying the statusword, as the driver maps it: its COB-ID, its
     layout and the statusword's place in it."""
     for pdo in plan_pdos(load_drive_od(eds, node), node).tpdos:  # type: ignore[arg-type]
-        indexes = [index for index, _, _ in pdo.objects]
-        if pdo.trans_type == TT_SYNC and OD.STATUSWORD in indexes:
-            fmt = "<" + "".join({0x2: "b", 0x5: "B", 0x3: "h", 0x6: "H", 0x4: "i", 0x7: "I"}[t] for _, _, t in pdo.objects)
-            return pdo.cob_id, struct.Struct(fmt), indexes.index(OD.STATUSWORD)
+        if pdo.trans_type == TT_SYNC and OD.STATUSWORD in pdo.indexes:
+            return pdo.cob_id, pdo.codec, pdo.indexes.index(OD.STATUSWORD)
     raise AssertionError("no synchronous TPDO carries the statusword")
 
 
@@ -82,7 +80,7 @@ class Frames:
         self.net.notify(STATUS_MODE, bytearray(struct.pack("<Hb", sw, 8)), stamp)
 
     def latched(self, sw: int, stamp: float) -> None:
-        values = [0] * len(self.layout.format[1:])
+        values = [0] * len(self.layout.unpack(bytes(self.layout.size)))
         values[self.place] = sw
         self.net.notify(self.cob, bytearray(self.layout.pack(*values)), stamp)
 
