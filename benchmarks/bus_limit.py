@@ -106,9 +106,11 @@ def traffic(frames: list[tuple[float, int, bytes]]) -> dict[str, float]:
             "load_worst_case": worst / span / WIRE_BITRATE}
 
 
-def stack(config: Path, seconds: float, hz: float = HZ, prefix: str = "bus_limit_", channel: str = "can0") -> dict[str, Any]:
+def stack(config: Path, seconds: float, hz: float = HZ, prefix: str = "bus_limit_", channel: str = "can0",
+          joint_commands: bool = False) -> dict[str, Any]:
     """The stack run on ``config`` commanded at ``hz`` (0: each drive at its bus's SYNC rate), keys
-    prefixed, with the traffic the listener of ``channel`` saw."""
+    prefixed, with the traffic the listener of ``channel`` saw; ``joint_commands``: the set-points
+    as one /joint_commands message a tick (stack_run.run_stack)."""
     seen: list[list[tuple[float, int, bytes]]] = []
 
     class Recording(stack_run.Listener):
@@ -120,7 +122,7 @@ def stack(config: Path, seconds: float, hz: float = HZ, prefix: str = "bus_limit
     listener = stack_run.Listener
     stack_run.Listener = Recording  # type: ignore[misc]  # the run's own listener, its frames kept
     try:
-        out = stack_run.run_stack(config, seconds, hz, ("--drive-processes",))
+        out = stack_run.run_stack(config, seconds, hz, ("--drive-processes",), joint_commands)
     finally:
         stack_run.Listener = listener  # type: ignore[misc]
     carried = traffic(seen[0]) if seen else {}

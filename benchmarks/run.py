@@ -182,6 +182,15 @@ def bench_stack(seconds: float, pairs: int, errors: dict[str, str], invalid: dic
     # stack run; then more such pairs, each in the other order (cpu_ratio_pairs)
     validated(out, invalid, errors, "canopen same work", same_work.baseline_same_work, stack_run.SHIPPED["rover"], seconds,
               100.0, priority)
+    base = out.get("baseline_canopen_same_work_rt_cpu_core_fraction")
+    # the same set-points as one /joint_commands JointState a tick (ros2_control's topic-based
+    # hardware interface), right after the baseline: what a sixth of the ROS messages costs (reference)
+    joint_commands: dict[str, Any] = {}
+    measured(joint_commands, errors, "stack run, /joint_commands", stack_run.run_stack, stack_run.SHIPPED["rover"],
+             seconds, 100.0, ("--drive-processes",), True)
+    out.update({f"joint_commands_{k}": v for k, v in joint_commands.items() if k != "config"})
+    if joint_commands.get("cpu_core_fraction") and base:
+        out["cpu_ratio_canopen_joint_commands"] = round(joint_commands["cpu_core_fraction"] / base, 2)
     default: dict[str, Any] = {}
     measured(default, errors, "stack run, embedded default", stack_run.run_stack, stack_run.SHIPPED["default"],
              min(seconds, 10.0), 100.0)
@@ -241,7 +250,16 @@ def bench_bus_limit(seconds: float, errors: dict[str, str], invalid: dict[str, s
         base: dict[str, Any] = {}
         validated(base, invalid, errors, "bus limit: canopen same work", same_work.baseline_same_work, config, seconds,
                   bus_limit.HZ, priority)
+        # reference: the same set-points as one /joint_commands message a SYNC
+        joint_commands: dict[str, Any] = {}
+        measured(joint_commands, errors, "bus limit, /joint_commands", bus_limit.stack, config, seconds, bus_limit.HZ,
+                 "bus_limit_joint_commands_", "can0", True)
     out.update(bus_limit.ratio(out, base))
+    base_cpu = base.get("baseline_canopen_same_work_rt_cpu_core_fraction")
+    out.update(joint_commands)
+    if joint_commands.get("bus_limit_joint_commands_cpu_core_fraction") and base_cpu:
+        out["bus_limit_cpu_ratio_canopen_joint_commands"] = round(
+            joint_commands["bus_limit_joint_commands_cpu_core_fraction"] / base_cpu, 2)
     return out
 
 

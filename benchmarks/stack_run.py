@@ -31,6 +31,7 @@ import json
 import multiprocessing
 import os
 import re
+import signal
 import socket
 import statistics
 import struct
@@ -423,7 +424,7 @@ def modes_are(diags: list[Any], wanted: dict[str, frozenset[str]]) -> bool:
     return False
 
 
-def start_streams(pubs: list[Any], shipped: Any, diags: list[Any], executor: Any, proc: subprocess.Popen[bytes]) -> None:
+def start_streams(first: Any, shipped: Any, diags: list[Any], executor: Any, proc: subprocess.Popen[bytes]) -> None:
     """Each joint's first command (the ramp's start) before the measured window: a stream's first
     set-point switches its drive's mode by SDO (on a worker of its joint since
     nodes/joints/handoff.py; it held every other joint's commands before: docs/performance.md);
@@ -432,10 +433,7 @@ def start_streams(pubs: list[Any], shipped: Any, diags: list[Any], executor: Any
     each joint's newest command, and the first set-point after the switch jumped (37 deg at
     500 Hz) and was refused, and so was the rest of its ramp (a streamed joint judges each step
     from the last one sent). The window's first command is then one step from the start."""
-    from std_msgs.msg import Float32
-
-    for pub in pubs:
-        pub.publish(Float32(data=0.05))
+    first()  # every joint's first command, 0.05 deg
     wanted = {f"rovercan: {d.name}": STREAMED_MODES if d.position_mode == "cyclic" else PROFILE_MODE
               for d in shipped.drives}
     deadline = time.monotonic() + 30
@@ -484,18 +482,76 @@ def every_topic_matched(pubs: list[Any], deadline: float, proc: subprocess.Popen
         time.sleep(0.05)
 
 
-def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tuple[str, ...] = ()) -> dict[str, Any]:
+class Commands:
+    """A stack run's command publishers: a Float32 ``degree_cmd`` a joint, or (``joint_commands``)
+    one ``/joint_commands`` JointState a tick naming every joint due, its positions in radians, as
+    ros2_control's topic-based hardware interface sends them (the driver's /joint_commands)."""
+
+    def __init__(self, node: Any, shipped: Any, joint_commands: bool) -> None:
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float32
+
+        from motor_driver.protocol.units import DEG_PER_RAD
+        from nodes.process.qos import COMMAND_QOS
+
+        self._float32, self._joint_state, self._per_rad = Float32, JointState, DEG_PER_RAD
+        self.joint_commands = joint_commands
+        self.names = [d.name for d in shipped.drives]
+        self.pubs = ([node.create_publisher(JointState, "/joint_commands", COMMAND_QOS)] if joint_commands else
+                     [node.create_publisher(Float32, f"{d.ros_prefix}/degree_cmd", COMMAND_QOS) for d in shipped.drives])
+
+    def as_driver_reads(self, angle: float) -> float:
+        """The degrees the driver commands for ``angle`` (a JointState's radians times its DEG_PER_RAD)."""
+        return angle / self._per_rad * self._per_rad if self.joint_commands else angle
+
+    def publish(self, indexes: list[int], angles: list[float]) -> None:
+        """Joints ``indexes`` commanded to ``angles`` (degrees)."""
+        if self.joint_commands:
+            self.pubs[0].publish(self._joint_state(name=[self.names[i] for i in indexes],
+                                                   position=[a / self._per_rad for a in angles]))
+            return
+        for i, angle in zip(indexes, angles, strict=True):
+            self.pubs[i].publish(self._float32(data=angle))
+
+
+def node_command(accounts: str | None) -> list[str]:
+    """The measured node as deployed, or (``accounts``: $ROVERCAN_CALLBACK_CPU) by callback_cpu.py,
+    each callback's CPU counted into that file."""
+    if accounts:
+        return [sys.executable, str(REPO / "benchmarks" / "callback_cpu.py"), accounts]
+    return [sys.executable, "-m", "nodes.rover_driver"]
+
+
+def snapshot_accounts(proc: subprocess.Popen[bytes], accounts: str | None) -> None:
+    """A snapshot of a node run by callback_cpu.py (its SIGUSR1); nothing for a node run as deployed."""
+    if accounts:
+        proc.send_signal(signal.SIGUSR1)
+
+
+def callback_accounts(accounts: str | None) -> dict[str, Any]:
+    """The window's callback accounts (callback_cpu.window) from the file the node wrote; none without."""
+    if not accounts:
+        return {}
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import callback_cpu
+    return callback_cpu.window(json.loads(Path(accounts).read_text()))
+
+
+def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tuple[str, ...] = (),
+              joint_commands: bool = False) -> dict[str, Any]:
     """The measured process runs a shipped config as a user gets it; only the simulator's port
     is put into it. Every drive gets a ``degree_cmd`` at ``command_hz`` (0.1 % slow: below), or
     with ``command_hz`` 0 at its bus's SYNC rate (:func:`command_rates`).
-    ``sim_args``: more arguments of ``rovercan sim`` (``--drive-processes``)."""
+    ``sim_args``: more arguments of ``rovercan sim`` (``--drive-processes``).
+    ``joint_commands``: the same set-points as one ``/joint_commands`` JointState a tick for every
+    joint due (radians), as ros2_control's topic-based hardware interface sends its joints'
+    commands, instead of a Float32 a joint: the same CAN work for a sixth of the ROS messages."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
-    from std_msgs.msg import Float32
 
     from can_config import load_config
     from motor_driver.protocol.units import Scale
-    from nodes.process.qos import COMMAND_QOS, DIAGNOSTICS_QOS
+    from nodes.process.qos import DIAGNOSTICS_QOS
 
     shipped = load_config(config_path)
     channels = {b.name: b.channel for b in shipped.buses}
@@ -506,7 +562,8 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
         listeners = {ch: Listener(port, ch) for ch in sorted(set(channels.values()))}
         for listener in listeners.values():
             listener.start()
-        proc = subprocess.Popen(unboosted([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p", f"config:={config}",
+        accounts = os.environ.get("ROVERCAN_CALLBACK_CPU")  # FILE.json: each callback's CPU counted
+        proc = subprocess.Popen(unboosted([*node_command(accounts), "--ros-args", "-p", f"config:={config}",
                                  "-p", "arm:=true", "-p", "diagnostics_rate_hz:=2.0"]),
                                 cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         context = rclpy.Context()
@@ -520,7 +577,8 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
                   for d in shipped.drives]
         drives = [(d, channels[d.bus], scale, round(d.counts_per_deg * 360))
                   for d, scale in zip(shipped.drives, scales, strict=True)]
-        pubs = [node.create_publisher(Float32, f"{d.ros_prefix}/degree_cmd", COMMAND_QOS) for d in shipped.drives]
+        commands = Commands(node, shipped, joint_commands)
+        pubs = commands.pubs
         from rclpy.executors import SingleThreadedExecutor
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
@@ -540,11 +598,13 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
                     raise RuntimeError("the measured process did not enable its drives")
                 executor.spin_once(timeout_sec=0.1)
             every_topic_matched(pubs, deadline, proc)
-            start_streams(pubs, shipped, diags, executor, proc)
+            start_streams(lambda: commands.publish(list(range(len(drives))), [0.05] * len(drives)), shipped, diags,
+                          executor, proc)
             sent: dict[tuple[str, int, int], list[float]] = {}
             names = python_thread_names(proc.pid)
             cpu0, wall0, threads0 = proc_cpu_s(proc.pid), time.monotonic(), thread_cpu_s(proc.pid, names)
             spy = profiler(proc.pid, seconds)
+            snapshot_accounts(proc, accounts)  # the window's first
             window0 = time.time()
             # the command clock runs 0.1 % slow: over each 10 s the bursts pass once through every
             # phase of the SYNC period. At exactly the SYNC's rate one run would see one phase only
@@ -556,15 +616,18 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             ramps = Ramps([f"rovercan: {d.name}" for d in shipped.drives], len(diags))
             while time.monotonic() - wall0 < seconds:
                 k += 1
-                for i in due(k, every):
-                    (d, ch, scale, per_rev), pub, n = drives[i], pubs[i], every[i]
-                    angle = ramps.angle(i, k // n)
-                    sent.setdefault((ch, d.node_id, scale.deg_to_counts(angle) % per_rev), []).append(time.time())
-                    pub.publish(Float32(data=angle))
+                indexes = due(k, every)
+                angles = [ramps.angle(i, k // every[i]) for i in indexes]
+                for i, angle in zip(indexes, angles, strict=True):
+                    d, ch, scale, per_rev = drives[i]
+                    sent.setdefault((ch, d.node_id, scale.deg_to_counts(commands.as_driver_reads(angle)) % per_rev),
+                                    []).append(time.time())
+                commands.publish(indexes, angles)
                 executor.spin_once(timeout_sec=0)
                 ramps.replan(diags, k, every)
                 next_t = next_tick(next_t, period, time.monotonic())
                 time.sleep(max(0.0, next_t - time.monotonic()))
+            snapshot_accounts(proc, accounts)  # and its last
             cpu = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
             threads = {name: (t - threads0.get(name, 0.0)) / (time.monotonic() - wall0)
                        for name, t in thread_cpu_s(proc.pid, names).items()}
@@ -597,6 +660,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             proc.wait(20)
             for listener in listeners.values():
                 listener.close()
+    by_callback = callback_accounts(accounts)
     tpdo_sent = tpdos_on_wire(listeners.values(), t_stop)
     published_by_bus, caught_up = count_by_bus(sent), catch_up_by_bus(sent)
     n_published = sum(published_by_bus.values())
@@ -646,7 +710,8 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             # how late the listener (a client like the drives) heard the SYNC after its bus time
             "sync_delivery_p99_us": round(pct(first.sync_lags, 0.99) * 1e6, 1) if first.sync_lags else None,
             "tpdo_delivery_p99_us": round(pct(first.tpdo_lags, 0.99) * 1e6, 1) if first.tpdo_lags else None,
-            "sync_timer_realtime": sync_timer_realtime, "emcy_in_window": emcy, "drive_stops": len(emcy)}
+            "sync_timer_realtime": sync_timer_realtime, "emcy_in_window": emcy, "drive_stops": len(emcy),
+            **by_callback}
 
 
 def bare_path(seconds: float, topics: int = 1, priority: int = 0) -> dict[str, Any]:

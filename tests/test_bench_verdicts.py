@@ -44,7 +44,9 @@ def test_an_invalid_baseline_takes_only_the_figures_resting_on_it() -> None:
 def test_a_crashed_baseline_gives_no_verdict_and_the_run_says_it_crashed() -> None:
     results = {"cpu_ratio_canopen": 1.0, "errors": {"canopen same work": "RuntimeError: boom"}}
     rows = verdicts(results)
-    assert [r.verdict for r in rows] == ["no verdict: canopen same work failed"]
+    # both figures resting on it: the gated ratio and the /joint_commands reference
+    assert {r.figure: r.verdict for r in rows} == {"cpu_ratio_canopen": "no verdict: canopen same work failed",
+                                                   "cpu_ratio_canopen_joint_commands": "no verdict: canopen same work failed"}
     assert exit_status(rows, results["errors"]) == 2
 
 
@@ -58,6 +60,17 @@ def test_reference_figures_are_shown_never_gated() -> None:
     rows = verdicts({"cpu_core_fraction": 0.3, "cmd_latency_p50_ms": 0.4})
     assert {r.figure: r.verdict for r in rows} == {"cpu_core_fraction": "over (reference, not gated)",
                                                    "cmd_latency_p50_ms": "pass (reference)"}
+    assert exit_status(rows, {}) == 0
+
+
+def test_the_joint_commands_ratios_are_shown_beside_the_gated_ones_never_gated() -> None:
+    rows = verdicts({"cpu_ratio_canopen": 1.4, "cpu_ratio_canopen_joint_commands": 1.6,
+                     "bus_limit_cpu_ratio_canopen": 1.1, "bus_limit_cpu_ratio_canopen_joint_commands": 1.0})
+    assert {r.figure: r.verdict for r in rows} == {
+        "cpu_ratio_canopen": "pass", "cpu_ratio_canopen_joint_commands": "over (reference, not gated)",
+        "bus_limit_cpu_ratio_canopen": "pass", "bus_limit_cpu_ratio_canopen_joint_commands": "pass (reference)"}
+    assert {r.figure: r.target for r in rows if "joint_commands" in r.figure} == {
+        "cpu_ratio_canopen_joint_commands": "<= 1.5", "bus_limit_cpu_ratio_canopen_joint_commands": "<= 1.2"}
     assert exit_status(rows, {}) == 0
 
 
