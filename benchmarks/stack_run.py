@@ -39,7 +39,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -504,13 +504,19 @@ class Commands:
         """The degrees the driver commands for ``angle`` (a JointState's radians times its DEG_PER_RAD)."""
         return angle / self._per_rad * self._per_rad if self.joint_commands else angle
 
-    def publish(self, indexes: list[int], angles: list[float]) -> None:
-        """Joints ``indexes`` commanded to ``angles`` (degrees)."""
+    def publish(self, indexes: list[int], angles: list[float],
+                stamp: Callable[[int, float], None] = lambda i, angle: None) -> None:
+        """Joints ``indexes`` commanded to ``angles`` (degrees); ``stamp(i, angle)`` right before the
+        message that carries joint ``i``'s command is published (a latency runs from there: stamped
+        before the other joints' messages of its burst, it would carry their publishing too)."""
         if self.joint_commands:
+            for i, angle in zip(indexes, angles, strict=True):
+                stamp(i, angle)
             self.pubs[0].publish(self._joint_state(name=[self.names[i] for i in indexes],
                                                    position=[a / self._per_rad for a in angles]))
             return
         for i, angle in zip(indexes, angles, strict=True):
+            stamp(i, angle)
             self.pubs[i].publish(self._float32(data=angle))
 
 
@@ -614,15 +620,15 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             next_t = time.monotonic()
             k = 0
             ramps = Ramps([f"rovercan: {d.name}" for d in shipped.drives], len(diags))
+
+            def stamp(i: int, angle: float) -> None:  # the set-point joint i's command puts on the wire, when
+                d, ch, scale, per_rev = drives[i]
+                sent.setdefault((ch, d.node_id, scale.deg_to_counts(commands.as_driver_reads(angle)) % per_rev),
+                                []).append(time.time())
             while time.monotonic() - wall0 < seconds:
                 k += 1
                 indexes = due(k, every)
-                angles = [ramps.angle(i, k // every[i]) for i in indexes]
-                for i, angle in zip(indexes, angles, strict=True):
-                    d, ch, scale, per_rev = drives[i]
-                    sent.setdefault((ch, d.node_id, scale.deg_to_counts(commands.as_driver_reads(angle)) % per_rev),
-                                    []).append(time.time())
-                commands.publish(indexes, angles)
+                commands.publish(indexes, [ramps.angle(i, k // every[i]) for i in indexes], stamp)
                 executor.spin_once(timeout_sec=0)
                 ramps.replan(diags, k, every)
                 next_t = next_tick(next_t, period, time.monotonic())
