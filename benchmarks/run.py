@@ -182,7 +182,7 @@ def bench_stack(seconds: float, pairs: int, errors: dict[str, str], invalid: dic
     # stack run; then more such pairs, each in the other order (cpu_ratio_pairs)
     validated(out, invalid, errors, "canopen same work", same_work.baseline_same_work, stack_run.SHIPPED["rover"], seconds,
               100.0, priority)
-    base = out.get("baseline_canopen_same_work_rt_cpu_core_fraction")
+    base = out.get("baseline_canopen_same_work_rt_cpu_core_fraction")  # the CPU ratios' reference
     # the same set-points as one /joint_commands JointState a tick (ros2_control's topic-based
     # hardware interface), right after the baseline: what a sixth of the ROS messages costs (reference)
     joint_commands: dict[str, Any] = {}
@@ -211,7 +211,6 @@ def bench_stack(seconds: float, pairs: int, errors: dict[str, str], invalid: dic
     validated(out, invalid, errors, "driver alone, state run", stack_run.driver_only, 6, 10.0, seconds)
     validated(out, invalid, errors, "canopen same work, ordinary", same_work.baseline_same_work,
               stack_run.SHIPPED["rover"], min(seconds, 10.0), 100.0)
-    base = out.get("baseline_canopen_same_work_rt_cpu_core_fraction")
     state_base = out.get("baseline_canopen_cpu_core_fraction")
     if out.get("cpu_core_fraction") and base:
         measured(out, errors, "CPU ratio pairs", cpu_ratio_pairs, pairs, min(seconds, 20.0), priority)
