@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 
 import can
 
@@ -152,8 +152,24 @@ class ForeignTraffic(can.Listener):
         self.rpdo: dict[int, float] = {}
         #: when the newest of what :meth:`evidence` reports came (SYNC, NMT, host twin, SDO): the
         #: supervisor asks for each drive every period, and nearly always nothing came
-        self.newest = 0.0
+        self._newest = 0.0
+        #: called (on the receive thread, never waits) when another master's sign comes: the
+        #: supervisor's wake, so that a quiet supervisor judges it now (Supervisor.wait_s)
+        self.wake: Callable[[], None] = lambda: None
 
+    @property
+    def newest(self) -> float:
+        return self._newest
+
+    @newest.setter
+    def newest(self, when: float) -> None:
+        self._newest = when
+        self.wake()
+
+
+    def set_wake(self, wake: Callable[[], None]) -> None:
+        """The supervisor: ``wake()`` (on the receive thread, never waits) when another master's sign comes."""
+        self.wake = wake
 
     def set_own_sync(self, period_s: float) -> None:
         """The bus handle: this driver's SYNC reaches this listener at this period (0: it does not)."""

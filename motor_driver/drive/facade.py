@@ -74,7 +74,7 @@ class Drive:
         self.cache = DriveCache(config, network, self.plan, scale, sync_period_s=sync_period_s, record=record,
                                 port=port)
         self.channel = CommandChannel(config.name, config.node_id, self.plan, self._send, self._write_cw_sdo,
-                                      self.cache.wake)
+                                      self.cache.wake, port.wake)
         self.sdo = SdoPort(config.name, self.node, od, config.sdo_timeout_s, admit=self._admit_tool_write)
         cache, channel, sdo = self.cache, self.channel, self.sdo  # each part is handed those it uses
         self.watch = HostWatch(config, od, cache, channel, sdo, network, Host(host_node_id, host_heartbeat_s, host_beats),

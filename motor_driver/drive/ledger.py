@@ -170,11 +170,16 @@ Event = Heard | Booting | Booted | BootRestarted | RebootFailed | RestoreFailed 
 
 class SupervisorPort:
     """How a part hands the supervisor what it found: ``post`` (never waits: the receive thread)
-    and ``report`` (returns once the supervisor applied it: a worker, a caller's thread)."""
+    and ``report`` (returns once the supervisor applied it: a worker, a caller's thread); ``wake``
+    (never waits): something it watches changed (a velocity or torque command went live, another
+    master's sign), so its next period comes now rather than at the quiet supervisor's next due
+    time (:meth:`motor_driver.runtime.supervisor.Supervisor.wait_s`)."""
 
-    def __init__(self, post: Callable[[Event], None], report: Callable[[Event], None]) -> None:
+    def __init__(self, post: Callable[[Event], None], report: Callable[[Event], None],
+                 wake: Callable[[], None] = lambda: None) -> None:
         self.post = post
         self.report = report
+        self.wake = wake
 
 
 class NmtLedger:

@@ -87,8 +87,10 @@ Frame = tuple[float, str, int, bool, bool, bool, int, bytes]
 INCIDENT_KINDS = ("emcy", "heartbeat_lost", "watchdog_stop", "bus_lost", "host_loss_stop")
 #: How often the writer looks for the stop of the driver while it waits.
 WRITER_POLL_S = 0.2
-#: The drives' states are kept from every SAMPLE_EVERY-th supervisor pass (20 Hz).
-SAMPLE_EVERY = 5
+#: The drives' states are kept every SAMPLE_PERIOD_S (20 Hz): at the supervisor's first pass at most
+#: SAMPLE_EARLY_S before it is due (its pass, not a wake of its own: it rides the supervisor's cadence).
+SAMPLE_PERIOD_S = 0.05
+SAMPLE_EARLY_S = 0.01
 #: The same EMCY of a node again within this long is no new incident (the frames are kept all the same).
 EMCY_REPEAT_S = 1.0
 #: close() waits this long, in all, for the plots still being drawn; a helper still drawing then
@@ -376,7 +378,7 @@ class FlightRecorder:
         self._helpers: list[subprocess.Popen[bytes]] = []
         self._helpers_lock = threading.Lock()
         self._deferred: list[Path] = []  # incidents whose plot waits for the process to be on time (writer)
-        self._samples = 0  # supervisor passes seen by sample()
+        self._sampled_at = -math.inf  # when the supervisor's pass last sampled the drives (monotonic)
         self._late_at = -math.inf  # monotonic time the host heartbeat was last late (process_late)
         self._last_written: dict[tuple[str, str], float] = {}  # (kind, drive or bus) -> its t (writer)
         self._repeats: dict[tuple[str, str], int] = {}  # incidents not written since (writer)
@@ -470,10 +472,13 @@ class FlightRecorder:
         """Frames in the rings' windows now (tests, tools: each ring read)."""
         return sum(len(_in_window(ring.snapshot()[0], self._keep_s)) // _SLOT_SIZE for ring in list(self._rings.values()))
 
-    def wants_sample(self) -> bool:
-        """Supervisor: whether this pass should call :meth:`sample` (every SAMPLE_EVERY-th)."""
-        self._samples += 1
-        return self._samples % SAMPLE_EVERY == 0
+    def wants_sample(self, now: float) -> bool:
+        """Supervisor: whether its pass at ``now`` (monotonic) should call :meth:`sample`: about every
+        SAMPLE_PERIOD_S, whatever the supervisor's period (at most SAMPLE_EARLY_S early)."""
+        if now - self._sampled_at < SAMPLE_PERIOD_S - SAMPLE_EARLY_S:
+            return False
+        self._sampled_at = now
+        return True
 
     def sample(self, states: Sequence[DriveState]) -> None:
         """Supervisor: the drives' states now."""

@@ -1,7 +1,16 @@
-"""The supervisor (thread ``rovercan-supervisor``), period SUPERVISOR_PERIOD_S, never blocks: the
-host heartbeat on every bus, the drives' heartbeats, the velocity watchdog and the limit guard,
-another master, every period; lost buses every BUS_CHECK_PERIODS (:mod:`motor_driver.runtime.supervise_bus`).
+"""The supervisor (thread ``rovercan-supervisor``), never blocks: the host heartbeat on every bus,
+the drives' heartbeats, the velocity watchdog and the limit guard, another master, every period;
+the buses (lost, error frames, the SYNC job) about every BUS_CHECK_S (:mod:`motor_driver.runtime.supervise_bus`).
 Re-boots and reconnects run on the bus's worker.
+
+Its period (:meth:`Supervisor.wait_s`): SUPERVISOR_PERIOD_S while anything wants a look that often
+(a live velocity or torque command's watchdog and limit guard, a drive lost, booting, stopping or
+another master's, a bus lost or failing); otherwise the supervisor is quiet and waits until the
+first thing falls due (a host heartbeat, a drive's heartbeat timeout, a node guard), at most
+QUIET_WAIT_MAX_S. What changes meanwhile wakes it at once (:meth:`Supervisor.wake`): a report or
+an event handed over, a command going live, another master's sign. Its wake-ups, not its checks,
+were its cost (docs/performance.md): a quiet rover's supervisor wakes at the host heartbeat's
+period instead of every SUPERVISOR_PERIOD_S.
 
 Owner: the :class:`Supervisor`, on its thread, alone writes the ledger's records
 (:mod:`motor_driver.drive.ledger`): one :class:`DriveRecord` per drive and one :class:`BusRecord`
@@ -19,7 +28,6 @@ channel's lock is tried; a busy channel is tried again the next period).
 
 from __future__ import annotations
 
-import itertools
 import logging
 import queue
 import threading
@@ -55,6 +63,10 @@ from motor_driver.runtime.supervise_bus import BUS_CHECK_PERIODS, BusSupervision
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
+#: The buses are looked at about this often (at the first period at most SUPERVISOR_PERIOD_S before).
+BUS_CHECK_S = BUS_CHECK_PERIODS * SUPERVISOR_PERIOD_S
+#: The longest a quiet supervisor waits for its next period (s).
+QUIET_WAIT_MAX_S = BUS_CHECK_S
 #: A drive's heartbeat overdue by the clock is judged by how far the bus's receive thread has read
 #: (Supervisor._read_behind) for at most READ_BEHIND_MAX_S past its timeout (s); then by the clock
 #: alone (a receive thread that stopped reading). The same bound as an SDO answer's wait (held.ReadBehind).
@@ -63,7 +75,7 @@ SUPERVISOR_FAILURES_MAX = 5
 #: How long the loop's end waits for each drive's command channel to send the stop.
 END_STOP_LOCK_S = 0.1
 
-__all__ = ["BUS_CHECK_PERIODS", "SUPERVISOR_PERIOD_S", "Supervisor"]
+__all__ = ["BUS_CHECK_PERIODS", "BUS_CHECK_S", "QUIET_WAIT_MAX_S", "SUPERVISOR_PERIOD_S", "Supervisor"]
 
 
 class Supervisor:
@@ -86,21 +98,30 @@ class Supervisor:
         self._lock = threading.Lock()  # the inbox's: running or not, and a report applied inline
         self._running = False
         self._stop = threading.Event()
+        self._wake = threading.Event()  # set by wake(): the next period now
+        self._bus_checked = -float("inf")  # when the buses were last looked at (monotonic)
         self._thread: threading.Thread | None = None
         self._take_over = False
+        for handle in handles.values():
+            handle.foreign.set_wake(self.wake)  # another master's sign: judged now
 
     # ------------------------------------------------------------------ the ports
     def port(self, drive: str) -> tuple[DriveRecord, SupervisorPort]:
         """A new drive's record (read by its parts) and its way to hand results here."""
         record = self.records[drive] = DriveRecord()
-        return record, SupervisorPort(self.post, self.report)
+        return record, SupervisorPort(self.post, self.report, self.wake)
 
     def add(self, drive: Drive) -> None:
         self.drives[drive.name] = drive
 
+    def wake(self) -> None:
+        """The next period now (never waits; any thread): something it watches changed."""
+        self._wake.set()
+
     def post(self, event: Event) -> None:
-        """Hand an event over without waiting (the receive thread): applied at the next period."""
+        """Hand an event over without waiting (the receive thread): applied at the next period, now."""
         self._inbox.put((event, None))
+        self._wake.set()
 
     def report(self, event: Event) -> None:
         """Hand a result over and return once it is applied (a worker, a caller's thread)."""
@@ -115,6 +136,7 @@ class Supervisor:
             if not self._running:
                 return fn()
             self._inbox.put((fn, reply))
+            self._wake.set()
         return reply.result()
 
     # ------------------------------------------------------------------ the thread
@@ -132,6 +154,7 @@ class Supervisor:
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
+        self._wake.set()
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=timeout_s)
@@ -147,17 +170,49 @@ class Supervisor:
                 self._drain(time.monotonic())  # every report handed over before this is answered
 
     def _supervise(self) -> None:
-        periods = itertools.count()
         failing = 0
-        while not self._stop.wait(SUPERVISOR_PERIOD_S):
+        wait = SUPERVISOR_PERIOD_S
+        while True:
+            self._wake.wait(wait)
+            if self._stop.is_set():
+                return
+            self._wake.clear()  # before the period: a wake during it brings the next one at once
+            wait = SUPERVISOR_PERIOD_S
             try:
-                self._period(next(periods))
+                self._period(time.monotonic())
                 failing = 0
+                wait = self.wait_s(time.monotonic())
             except Exception as err:
                 failing += 1
                 self.faults.failed("supervisor", "supervisor", err)
                 if failing >= SUPERVISOR_FAILURES_MAX:
                     raise
+
+    def wait_s(self, now: float) -> float:
+        """How long the loop waits for its next period (module docstring): SUPERVISOR_PERIOD_S while
+        anything wants a look every period, else until the first thing falls due, at least
+        SUPERVISOR_PERIOD_S and at most QUIET_WAIT_MAX_S."""
+        due = now + QUIET_WAIT_MAX_S
+        for rt in self.bus.bus_records.values():
+            if rt.lost or not rt.job_done() or rt.send_failing is not None:
+                return SUPERVISOR_PERIOD_S  # a bus lost, reconnecting, restarting its SYNC, failing to send
+            due = min(due, rt.next_beat)
+        since = now - FOREIGN_HOLD_S
+        for drive in self.drives.values():
+            record = self.records[drive.name]
+            job = record.reboot_job
+            if drive.channel.velocity_commanded or not record.booted or record.lost or record.lost_since \
+                    or record.stop_pending or record.forget_pending or record.reboot_wanted or record.read_behind \
+                    or record.foreign_master or (job is not None and not job.done()) \
+                    or record.behind_back[0] > since or drive.cache.behind_back[0] > since \
+                    or self.handles[drive.config.bus].foreign.newest > since:
+                return SUPERVISOR_PERIOD_S
+            heard = drive.cache.last_heartbeat
+            if heard:
+                due = min(due, heard + drive.config.heartbeat_timeout_s)
+            if drive.cache.guarding:
+                due = min(due, record.next_guard)
+        return min(max(due - now, SUPERVISOR_PERIOD_S), QUIET_WAIT_MAX_S)
 
     def _end(self, err: Exception) -> None:
         """The loop failed SUPERVISOR_FAILURES_MAX periods in a row: nothing watches the drives any
@@ -174,13 +229,12 @@ class Supervisor:
                 logger.error("%s: not told to stop (%s); it stops by itself on host loss", drive.name,
                              cause_of(stop_err))
 
-    def _period(self, period: int) -> None:
-        """One period: reports, host heartbeat, recorder sample, each drive, and every
-        BUS_CHECK_PERIODS the buses."""
-        now = time.monotonic()
+    def _period(self, now: float) -> None:
+        """One period: reports, host heartbeat, recorder sample, each drive, and about every
+        BUS_CHECK_S the buses."""
         self._drain(now)
         self.bus.beat(now)
-        if self.recorder is not None and self.recorder.wants_sample():
+        if self.recorder is not None and self.recorder.wants_sample(now):
             self.recorder.sample([d.snapshot() for d in self.drives.values()])
         for drive in self.drives.values():
             try:
@@ -189,8 +243,9 @@ class Supervisor:
                 logger.error("supervisor: %s", err)
             except Exception as err:
                 self.faults.failed("supervisor", f"supervisor: {drive.name}", err)
-        if period % BUS_CHECK_PERIODS:
+        if now - self._bus_checked < BUS_CHECK_S - SUPERVISOR_PERIOD_S:
             return
+        self._bus_checked = now
         self.bus.supervise_buses(now)
 
     def _drain(self, now: float) -> None:

@@ -61,12 +61,15 @@ class CommandChannel:
     """Decides and sends every frame carrying a controlword or a set-point of one drive."""
 
     def __init__(self, name: str, node_id: int, plan: PdoPlan, send: Callable[[int, bytes], None],
-                 write_cw_sdo: Callable[[int], None], wake: Callable[[], None]) -> None:
+                 write_cw_sdo: Callable[[int], None], wake: Callable[[], None],
+                 on_live: Callable[[], None] = lambda: None) -> None:
         self.name, self.node_id = name, node_id
         self._plan = plan
         self._send = send
         self._write_cw_sdo = write_cw_sdo
         self._wake = wake
+        #: a velocity or torque command went live (never waits): the supervisor's wake
+        self.on_live = on_live
         self._lock = threading.Lock()
         # read by anyone, written here only (tests/test_ownership.py), under _lock
         self.cw = 0
@@ -469,9 +472,15 @@ class LockedCommand:
         self.commanded(live)
 
     def commanded(self, live: bool) -> None:
-        """A velocity or torque command went out (by RPDO, or by SDO before this): the watchdog's."""
-        self._c.last_velocity_cmd = time.monotonic()
-        self._c.velocity_commanded = live
+        """A velocity or torque command went out (by RPDO, or by SDO before this): the watchdog's.
+        One that goes live wakes the supervisor: its watchdog and limit guard look every period
+        from now (a quiet supervisor waits longer: Supervisor.wait_s)."""
+        c = self._c
+        c.last_velocity_cmd = time.monotonic()
+        went_live = live and not c.velocity_commanded
+        c.velocity_commanded = live
+        if went_live:
+            c.on_live()
 
     def setpoint(self, counts: int) -> None:
         """A profile-position target through the set-point handshake (halt cleared)."""

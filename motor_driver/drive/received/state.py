@@ -433,6 +433,7 @@ class DriveCache:
                 not sink.enabled_by_us(now, TRANSITION_TIMEOUT_S):
             self._behind_back = (now, f"node {self.node_id} became OPERATION_ENABLED, which this driver did not"
                                       " command")
+            self._port.wake()  # another master's sign: judged at the supervisor's next period, now
         self._sw_enabled = now_enabled
         if sink is not None:
             try:  # the handshake's reply: the channel's, never the reason this thread dies
