@@ -11,7 +11,8 @@ Threads and what they own:
   received state and notifies waiters; it sends nothing but the set-point handshake's reply, and
   posts the heartbeats that may change a judgement to the supervisor.
 - the supervisor thread (``rovercan-supervisor``, :class:`motor_driver.runtime.supervisor.Supervisor`),
-  period SUPERVISOR_PERIOD_S, never blocks: produces the host heartbeat on every bus, checks the
+  period SUPERVISOR_PERIOD_S while anything is live, else when something falls due (woken by a
+  change), never blocks: produces the host heartbeat on every bus, checks the
   drives' heartbeats, runs the velocity watchdog and the limit guard, notices lost buses and hands
   re-boots and reconnects to the bus's worker. It alone writes the ledger's records (lost, booted,
   another master, reconnect and back-off: :mod:`motor_driver.drive.ledger`); ``bus_lost`` reads it.
