@@ -77,7 +77,7 @@ def pause_when_closed(bus: can.BusABC) -> can.BusABC:
     """A socketcand bus whose server has gone pauses CLOSED_PAUSE_S after each read that found
     nothing (python-can reads the end of the stream as 'no frame' at once, so its ``recv()``
     went round until its timeout): the bus's receive thread, real-time, would otherwise spin
-    until the supervisor drops the bus (:func:`connection_closed`, every few periods). Other
+    until the supervisor drops the bus (:func:`connection_closed`, about every 50 ms). Other
     interfaces are left as they are. Returns ``bus``."""
     if not isinstance(getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None), socket.socket):
         return bus

@@ -151,10 +151,12 @@ class ForeignTraffic(can.Listener):
         #: (read by :meth:`master_evidence`, the look before the first NMT command)
         self.rpdo: dict[int, float] = {}
         #: when the newest of what :meth:`evidence` reports came (SYNC, NMT, host twin, SDO): the
-        #: supervisor asks for each drive every period, and nearly always nothing came
+        #: supervisor asks for each drive at each of its periods, and nearly always nothing came
         self._newest = 0.0
-        #: called (on the receive thread, never waits) when another master's sign comes: the
-        #: supervisor's wake, so that a quiet supervisor judges it now (Supervisor.wait_s)
+        #: called (on the receive thread, never waits) at another master's first sign after
+        #: FOREIGN_HOLD_S without one: the supervisor's wake, so that a quiet supervisor judges it
+        #: now; within the hold it looks every period anyway (Supervisor.wait_s), so a flood of
+        #: another master's frames does not wake it once a frame
         self.wake: Callable[[], None] = lambda: None
 
     @property
@@ -163,8 +165,10 @@ class ForeignTraffic(can.Listener):
 
     @newest.setter
     def newest(self, when: float) -> None:
+        first = when - self._newest > FOREIGN_HOLD_S
         self._newest = when
-        self.wake()
+        if first:
+            self.wake()
 
 
     def set_wake(self, wake: Callable[[], None]) -> None:

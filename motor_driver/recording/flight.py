@@ -90,7 +90,7 @@ WRITER_POLL_S = 0.2
 #: The drives' states are kept every SAMPLE_PERIOD_S (20 Hz): at the supervisor's first pass at most
 #: SAMPLE_EARLY_S before it is due (its pass, not a wake of its own: it rides the supervisor's cadence).
 SAMPLE_PERIOD_S = 0.05
-SAMPLE_EARLY_S = 0.01
+SAMPLE_EARLY_S = 0.005
 #: The same EMCY of a node again within this long is no new incident (the frames are kept all the same).
 EMCY_REPEAT_S = 1.0
 #: close() waits this long, in all, for the plots still being drawn; a helper still drawing then

@@ -1,5 +1,5 @@
 """The supervisor's work on buses (part of :class:`motor_driver.runtime.supervisor.Supervisor`, on its
-thread): the host heartbeat every period, and every BUS_CHECK_PERIODS a look at each bus (its
+thread): the host heartbeat when it falls due, and about every BUS_CHECK_S a look at each bus (its
 connection, error frames, the SYNC job, silence); a lost bus the driver opened is reconnected
 with back-off by a job on the bus's worker, which reports back (:class:`BusBack`,
 :class:`BusDown`) instead of writing anything of the supervisor's.
@@ -32,7 +32,8 @@ from motor_driver.recording.flight import FlightRecorder
 logger = logging.getLogger(__name__)
 
 #: A bus is looked at (its connection, error frames, the SYNC job, silence) every this many
-#: periods: a bus that goes is marked lost within 50 ms, inside the drives' own 150 ms host
+#: supervisor periods of SUPERVISOR_PERIOD_S (BUS_CHECK_S, at most a period later: the
+#: supervisor's wait_s): a bus that goes is marked lost within 60 ms, inside the drives' own 150 ms host
 #: timeout, which is what stops them; every period it would be half the supervisor's CPU (a
 #: socket peek and a select per bus). Drives are looked at every period.
 BUS_CHECK_PERIODS = 5

@@ -63,7 +63,8 @@ from motor_driver.runtime.supervise_bus import BUS_CHECK_PERIODS, BusSupervision
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
-#: The buses are looked at about this often (at the first period at most SUPERVISOR_PERIOD_S before).
+#: The buses are looked at about this often: at a period at most half a period early (a heartbeat's,
+#: so that a quiet supervisor does both in one wake-up), at most a period late.
 BUS_CHECK_S = BUS_CHECK_PERIODS * SUPERVISOR_PERIOD_S
 #: The longest a quiet supervisor waits for its next period (s).
 QUIET_WAIT_MAX_S = BUS_CHECK_S
@@ -174,25 +175,30 @@ class Supervisor:
         wait = SUPERVISOR_PERIOD_S
         while True:
             self._wake.wait(wait)
-            if self._stop.is_set():
-                return
             self._wake.clear()  # before the period: a wake during it brings the next one at once
-            wait = SUPERVISOR_PERIOD_S
+            if self._stop.is_set():  # (stop() sets it before it wakes: never missed)
+                return
             try:
                 self._period(time.monotonic())
                 failing = 0
-                wait = self.wait_s(time.monotonic())
             except Exception as err:
                 failing += 1
                 self.faults.failed("supervisor", "supervisor", err)
                 if failing >= SUPERVISOR_FAILURES_MAX:
                     raise
+            try:
+                wait = self.wait_s(time.monotonic())
+            except Exception as err:  # the period it would judge: as before this was judged at all
+                wait = SUPERVISOR_PERIOD_S
+                self.faults.failed("supervisor", "supervisor: its next period", err)
 
     def wait_s(self, now: float) -> float:
         """How long the loop waits for its next period (module docstring): SUPERVISOR_PERIOD_S while
         anything wants a look every period, else until the first thing falls due, at least
-        SUPERVISOR_PERIOD_S and at most QUIET_WAIT_MAX_S."""
-        due = now + QUIET_WAIT_MAX_S
+        SUPERVISOR_PERIOD_S and at most QUIET_WAIT_MAX_S. The buses' look is due BUS_CHECK_S after
+        the last, a period later at most (it rides a heartbeat's period when one comes a little
+        before: :meth:`_period`)."""
+        due = min(now + QUIET_WAIT_MAX_S, self._bus_checked + BUS_CHECK_S + SUPERVISOR_PERIOD_S)
         for rt in self.bus.bus_records.values():
             if rt.lost or not rt.job_done() or rt.send_failing is not None:
                 return SUPERVISOR_PERIOD_S  # a bus lost, reconnecting, restarting its SYNC, failing to send
@@ -205,7 +211,8 @@ class Supervisor:
                     or record.stop_pending or record.forget_pending or record.reboot_wanted or record.read_behind \
                     or record.foreign_master or (job is not None and not job.done()) \
                     or record.behind_back[0] > since or drive.cache.behind_back[0] > since \
-                    or self.handles[drive.config.bus].foreign.newest > since:
+                    or (not self._take_over and self.handles[drive.config.bus].foreign.newest > since):
+                # (told to take the bus over, another master's traffic is expected: not looked at)
                 return SUPERVISOR_PERIOD_S
             heard = drive.cache.last_heartbeat
             if heard:
@@ -243,7 +250,7 @@ class Supervisor:
                 logger.error("supervisor: %s", err)
             except Exception as err:
                 self.faults.failed("supervisor", f"supervisor: {drive.name}", err)
-        if now - self._bus_checked < BUS_CHECK_S - SUPERVISOR_PERIOD_S:
+        if now - self._bus_checked < BUS_CHECK_S - SUPERVISOR_PERIOD_S / 2:
             return
         self._bus_checked = now
         self.bus.supervise_buses(now)
