@@ -38,15 +38,23 @@ def booted(driver: MotorDriver) -> Supervisor:
     return supervisor
 
 
+def wants_every_period(supervisor: Supervisor) -> bool:
+    """What a loaded machine can bring about in a quiet test rover: a drive judged by how far its
+    bus's receive thread has read (a starved process), one not booted or lost (each looked at every
+    period by design)."""
+    return any(r.read_behind or r.lost or r.lost_since or not r.booted for r in supervisor.records.values())
+
+
 class Periods:
-    """The supervisor's periods and the host heartbeats they sent, counted in its own thread."""
+    """The supervisor's periods and the host heartbeats they sent, counted in its own thread, and
+    the periods that followed a wait cut short for a reason of :func:`wants_every_period`."""
 
     def __init__(self, supervisor: Supervisor, bus: str = "can0") -> None:
-        self.periods = self.beats = 0
+        self.periods = self.beats = self.excused = 0
         self.enough = threading.Event()
         self._want = 0
         record = supervisor.bus.bus_records[bus]
-        period = supervisor._period
+        period, wait_s = supervisor._period, supervisor.wait_s
 
         def counted(now: float) -> None:
             before = record.last_beat
@@ -55,24 +63,31 @@ class Periods:
             self.beats += record.last_beat != before
             if self._want and self.beats >= self._want:
                 self.enough.set()
-        supervisor._period = counted  # type: ignore[method-assign]
 
-    def over(self, beats: int) -> tuple[int, int]:
-        """(periods, beats) over the next ``beats`` host heartbeats."""
-        periods0, beats0 = self.periods, self.beats
+        def judged(now: float) -> float:
+            wait = wait_s(now)
+            self.excused += wait == SUPERVISOR_PERIOD_S and wants_every_period(supervisor)
+            return wait
+        supervisor._period = counted  # type: ignore[method-assign]
+        supervisor.wait_s = judged  # type: ignore[method-assign]
+
+    def over(self, beats: int) -> tuple[int, int, int]:
+        """(periods, beats, excused) over the next ``beats`` host heartbeats."""
+        periods0, beats0, excused0 = self.periods, self.beats, self.excused
         self.enough.clear()
         self._want = beats0 + beats
         assert self.enough.wait(60.0), "the supervisor sent no heartbeats"
-        return self.periods - periods0, self.beats - beats0
+        return self.periods - periods0, self.beats - beats0, self.excused - excused0
 
 
 def test_a_quiet_supervisor_wakes_about_once_a_host_heartbeat(driver_factory: DriverFactory) -> None:
     """Every drive booted, nothing live: a period or two a heartbeat (each bus's beat, a drive's
-    timeout), not the five a heartbeat of a 10 ms period (50 ms host heartbeat)."""
+    timeout), not the five a heartbeat of a 10 ms period (50 ms host heartbeat). A period a loaded
+    machine made the supervisor want (a drive read behind) is not held against it."""
     _, driver = driver_factory(make_config(2))
     supervisor = booted(driver)
-    periods, beats = Periods(supervisor).over(10)
-    assert periods <= 2 * beats + 2, (periods, beats)
+    periods, beats, excused = Periods(supervisor).over(10)
+    assert periods <= 2 * beats + 2 + excused, (periods, beats, excused)
 
 
 def due(supervisor: Supervisor) -> float:
