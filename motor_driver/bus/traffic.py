@@ -157,7 +157,7 @@ class ForeignTraffic(can.Listener):
         #: FOREIGN_HOLD_S without one: the supervisor's wake, so that a quiet supervisor judges it
         #: now; within the hold it looks every period anyway (Supervisor.wait_s), so a flood of
         #: another master's frames does not wake it once a frame
-        self.wake: Callable[[], None] = lambda: None
+        self._wake: Callable[[], None] = lambda: None
 
     @property
     def newest(self) -> float:
@@ -168,12 +168,11 @@ class ForeignTraffic(can.Listener):
         first = when - self._newest > FOREIGN_HOLD_S
         self._newest = when
         if first:
-            self.wake()
-
+            self._wake()
 
     def set_wake(self, wake: Callable[[], None]) -> None:
         """The supervisor: ``wake()`` (on the receive thread, never waits) when another master's sign comes."""
-        self.wake = wake
+        self._wake = wake
 
     def set_own_sync(self, period_s: float) -> None:
         """The bus handle: this driver's SYNC reaches this listener at this period (0: it does not)."""

@@ -122,7 +122,7 @@ class Supervisor:
     def post(self, event: Event) -> None:
         """Hand an event over without waiting (the receive thread): applied at the next period, now."""
         self._inbox.put((event, None))
-        self._wake.set()
+        self.wake()
 
     def report(self, event: Event) -> None:
         """Hand a result over and return once it is applied (a worker, a caller's thread)."""
@@ -137,7 +137,7 @@ class Supervisor:
             if not self._running:
                 return fn()
             self._inbox.put((fn, reply))
-            self._wake.set()
+            self.wake()
         return reply.result()
 
     # ------------------------------------------------------------------ the thread
@@ -155,7 +155,7 @@ class Supervisor:
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
-        self._wake.set()
+        self.wake()
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=timeout_s)

@@ -35,7 +35,6 @@ STATE_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=Re
 DIAGNOSTICS_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 
 
-
 def state_qos(depth: int) -> QoSProfile:
     """STATE_QOS with the configured keep-last depth."""
     return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
