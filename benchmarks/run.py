@@ -103,30 +103,15 @@ def validated(out: dict[str, Any], invalid: dict[str, str], errors: dict[str, st
                   flush=True)
 
 
-def cpu_ratio_pairs(pairs: int, seconds: float, priority: int) -> dict[str, Any]:
-    """``pairs`` more pairs of the stack run's CPU and the canopen same work's, each pair side by
-    side and every other one in the other order; their ratios (``more_pairs``). The CPU ratio is
-    the median of these and the main runs' pair. A busy machine's load drifts over the minutes between a run's first
-    and last benchmark, and the driver's process (more threads woken) and the library's take it
-    differently; one pair, minutes apart, moved the ratio by a third (2.0 and 3.5 on one day)."""
-    import same_work
-    import stack_run
-
-    shipped = stack_run.SHIPPED["rover"]
-
-    def stack_cpu() -> float:
-        return float(stack_run.run_stack(shipped, seconds, 100.0, ("--drive-processes",))["cpu_core_fraction"])
-
-    def base_cpu() -> float | None:
-        """The baseline's CPU, run once more when the machine made it invalid; None when still invalid."""
-        for _ in (1, 2):
-            try:
-                return float(same_work.baseline_same_work(shipped, seconds, 100.0, priority)
-                             ["baseline_canopen_same_work_rt_cpu_core_fraction"])
-            except InvalidBaseline as err:
-                print(f"baseline of a CPU ratio pair invalid: {err}", file=sys.stderr, flush=True)
-        return None
-
+def more_pairs(pairs: int, stack_cpu: Callable[[], float], base_cpu: Callable[[], float | None],
+               dropped_key: str) -> dict[str, Any]:
+    """``pairs`` more pairs of a stack run's CPU (``stack_cpu``) and the canopen same work's
+    (``base_cpu``; None: invalid twice), each pair side by side and every other one in the other
+    order; their ratios (``more_pairs``). A CPU ratio is the median of these and the main runs'
+    pair. A busy machine's load drifts over the minutes between a run's first and last benchmark,
+    and the driver's process (more threads woken) and the library's take it differently; one
+    pair, minutes apart, moved the ratio by a third (2.0 and 3.5 on one day; six drives at 500 Hz
+    1.75 and 1.40 in one run)."""
     ratios = []
     dropped = 0
     for i in range(pairs):
@@ -144,7 +129,38 @@ def cpu_ratio_pairs(pairs: int, seconds: float, priority: int) -> dict[str, Any]
             dropped += 1  # a pair without a valid baseline is no ratio
         else:
             ratios.append(stack / base)
-    return {"more_pairs": ratios, "cpu_ratio_canopen_pairs_dropped_invalid": dropped}
+    return {"more_pairs": ratios, dropped_key: dropped}
+
+
+def baseline_cpu(config: Path, seconds: float, hz: float, priority: int) -> float | None:
+    """The canopen same work's CPU on ``config``, run once more when the machine made it invalid;
+    None when still invalid."""
+    import same_work
+
+    for _ in (1, 2):
+        try:
+            return float(same_work.baseline_same_work(config, seconds, hz, priority)
+                         ["baseline_canopen_same_work_rt_cpu_core_fraction"])
+        except InvalidBaseline as err:
+            print(f"baseline of a CPU ratio pair invalid: {err}", file=sys.stderr, flush=True)
+    return None
+
+
+def cpu_ratio_pairs(pairs: int, seconds: float, priority: int) -> dict[str, Any]:
+    """The shipped rover's more pairs (:func:`more_pairs`)."""
+    import stack_run
+
+    shipped = stack_run.SHIPPED["rover"]
+    return more_pairs(pairs, lambda: float(stack_run.run_stack(shipped, seconds, 100.0, ("--drive-processes",))
+                                           ["cpu_core_fraction"]),
+                      lambda: baseline_cpu(shipped, seconds, 100.0, priority), "cpu_ratio_canopen_pairs_dropped_invalid")
+
+
+def with_median(out: dict[str, Any], key: str, first: float, more: list[float]) -> None:
+    """``key`` the median of the main runs' ratio ``first`` and ``more`` pairs', ``key``_pairs them all."""
+    ratios = [first, *more]
+    out[f"{key}_pairs"] = [round(r, 2) for r in ratios]
+    out[key] = round(statistics.median(ratios), 2)
 
 
 def carried_stack_run(seconds: float, invalid: dict[str, str]) -> dict[str, Any]:
@@ -214,9 +230,7 @@ def bench_stack(seconds: float, pairs: int, errors: dict[str, str], invalid: dic
     state_base = out.get("baseline_canopen_cpu_core_fraction")
     if out.get("cpu_core_fraction") and base:
         measured(out, errors, "CPU ratio pairs", cpu_ratio_pairs, pairs, min(seconds, 20.0), priority)
-        ratios = [out["cpu_core_fraction"] / base, *out.pop("more_pairs", [])]
-        out["cpu_ratio_canopen_pairs"] = [round(r, 2) for r in ratios]
-        out["cpu_ratio_canopen"] = round(statistics.median(ratios), 2)
+        with_median(out, "cpu_ratio_canopen", out["cpu_core_fraction"] / base, out.pop("more_pairs", []))
     if out.get("cpu_core_fraction") and state_base:
         # the ratio as first measured: against the canopen library's state run (one bus, no commands)
         out["cpu_ratio_canopen_state_run"] = round(out["cpu_core_fraction"] / state_base, 2)
@@ -229,8 +243,9 @@ def bench_stack(seconds: float, pairs: int, errors: dict[str, str], invalid: dic
     return out
 
 
-def bench_bus_limit(seconds: float, errors: dict[str, str], invalid: dict[str, str]) -> dict[str, Any]:
-    """Six drives on one bus at 500 Hz CSP (bus_limit.py) beside the canopen library's same work."""
+def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid: dict[str, str]) -> dict[str, Any]:
+    """Six drives on one bus at 500 Hz CSP (bus_limit.py) beside the canopen library's same work;
+    its CPU ratio the median of that pair and ``pairs`` more (:func:`more_pairs`), as the rover's."""
     import bus_limit
     import same_work
 
@@ -253,7 +268,16 @@ def bench_bus_limit(seconds: float, errors: dict[str, str], invalid: dict[str, s
         joint_commands: dict[str, Any] = {}
         measured(joint_commands, errors, "bus limit, /joint_commands", bus_limit.stack, config, seconds, bus_limit.HZ,
                  "bus_limit_joint_commands_", "can0", True)
-    out.update(bus_limit.ratio(out, base))
+        out.update(bus_limit.ratio(out, base))
+        if "bus_limit_cpu_ratio_canopen" in out:
+            more: dict[str, Any] = {}
+            measured(more, errors, "bus limit: CPU ratio pairs", more_pairs, pairs,
+                     lambda: float(bus_limit.stack(config, seconds)["bus_limit_cpu_core_fraction"]),
+                     lambda: baseline_cpu(config, seconds, bus_limit.HZ, priority),
+                     "bus_limit_cpu_ratio_canopen_pairs_dropped_invalid")
+            out.update({k: v for k, v in more.items() if k != "more_pairs"})
+            with_median(out, "bus_limit_cpu_ratio_canopen", out["bus_limit_cpu_core_fraction"]
+                        / base["baseline_canopen_same_work_rt_cpu_core_fraction"], more.get("more_pairs", []))
     base_cpu = base.get("baseline_canopen_same_work_rt_cpu_core_fraction")
     out.update(joint_commands)
     if joint_commands.get("bus_limit_joint_commands_cpu_core_fraction") and base_cpu:
@@ -400,7 +424,8 @@ def main() -> int:
     measured(results, errors, "stack run, config/rover.yaml", bench_stack, 10.0 if args.quick else 60.0,
              2 if args.quick else 4, errors, invalid)
     print("benchmark: the bus at its limit (six drives on one bus, 500 Hz CSP) ...", flush=True)
-    measured(results, errors, "bus limit", bench_bus_limit, 10.0 if args.quick else 30.0, errors, invalid)
+    measured(results, errors, "bus limit", bench_bus_limit, 10.0 if args.quick else 30.0, 2 if args.quick else 4, errors,
+             invalid)
     if errors:
         results["errors"] = errors
     if invalid:
