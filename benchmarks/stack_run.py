@@ -230,26 +230,40 @@ SIM_PIDS: list[int] = []  # the simulator processes started, newest last
 
 
 @contextmanager
-def simulator(*args: str) -> Iterator[int]:
-    """``rovercan sim ARGS`` in a process of its own on a free port, as a user runs it; yields
-    the port once it serves (its pid goes to SIM_PIDS). Its output goes to a file: a pipe nobody
-    reads could block it."""
-    port = free_port()
-    with tempfile.TemporaryFile("w+") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "rovercan", "sim", *args, "--port", str(port)], cwd=REPO,
-                                stdout=out, stderr=subprocess.STDOUT, text=True)
-        SIM_PIDS.append(proc.pid)
+def started(what: str, argv: list[str], ready: str, timeout_s: float = 30.0,
+            poll_s: float = 0.05) -> Iterator[tuple[subprocess.Popen[str], Path]]:
+    """``argv`` (``what``) in a process of its own until the block ends, yielded once its output has said
+    ``ready``. Its output goes to a file (a pipe nobody reads could block it) that it writes in
+    append mode and this process reads through a handle of its own: one shared file offset (a
+    ``TemporaryFile`` for both, sought back to its start to read) had the child's lines written
+    over the start of the file while it was read, its ready line among them now and then (the
+    "simulator did not start" of a quiet run, exit status None). Yields the process and its output file."""
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / "output.txt"
+        with log.open("a") as out:
+            proc = subprocess.Popen(argv, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, text=True)
         try:
-            deadline = time.monotonic() + 30
-            while "simulated drive" not in (out.seek(0) or out.read()):
+            deadline = time.monotonic() + timeout_s
+            while ready not in log.read_text(errors="replace"):
                 if time.monotonic() > deadline or proc.poll() is not None:
-                    out.seek(0)
-                    raise RuntimeError(f"the simulator did not start (exit status {proc.poll()}): {out.read()}")
-                time.sleep(0.05)
-            yield port
+                    raise RuntimeError(f"{what} did not start (no {ready!r} within {timeout_s:g} s, exit status"
+                                       f" {proc.poll()}): {log.read_text(errors='replace')}")
+                time.sleep(poll_s)
+            yield proc, log
         finally:
             proc.terminate()
             proc.wait(20)
+
+
+@contextmanager
+def simulator(*args: str) -> Iterator[int]:
+    """``rovercan sim ARGS`` in a process of its own on a free port, as a user runs it; yields
+    the port once it serves (its pid goes to SIM_PIDS)."""
+    port = free_port()
+    with started("the simulator", [sys.executable, "-m", "rovercan", "sim", *args, "--port", str(port)],
+                 "simulated drive") as (proc, _):
+        SIM_PIDS.append(proc.pid)
+        yield port
 
 
 def on_port(config_path: Path, port: int, directory: str) -> Path:
