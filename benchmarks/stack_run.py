@@ -245,7 +245,9 @@ def started(what: str, argv: list[str], ready: str, timeout_s: float = 30.0,
         try:
             deadline = time.monotonic() + timeout_s
             while ready not in log.read_text(errors="replace"):
-                if time.monotonic() > deadline or proc.poll() is not None:
+                # read once more after the look at its end: it may have said it and ended in between
+                if (time.monotonic() > deadline or proc.poll() is not None) and \
+                        ready not in log.read_text(errors="replace"):
                     raise RuntimeError(f"{what} did not start (no {ready!r} within {timeout_s:g} s, exit status"
                                        f" {proc.poll()}): {log.read_text(errors='replace')}")
                 time.sleep(poll_s)
