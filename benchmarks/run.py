@@ -148,14 +148,21 @@ def baseline_cpu(config: Path, seconds: float, hz: float, priority: int) -> floa
     return None
 
 
-def carried_cpu(config: Path, seconds: float, hz: float, drives: int) -> float:
-    """A stack run's CPU (as bus_limit.stack runs it, its listener on can0 counting what the
-    emulator carried), RuntimeError when the emulator did not carry the load: a starved run measures
-    less work, and a ratio from it would be low for no merit of the driver's."""
+def judged_stack_run(config: Path, seconds: float, hz: float) -> tuple[dict[str, Any], str | None]:
+    """A stack run on ``config`` (bus_limit.stack: its listener on can0 counting what the emulator
+    carried) and why its figures do not count (bus_limit.not_carried over can0's drives), or None."""
     import bus_limit
 
     out = bus_limit.stack(config, seconds, hz, prefix="")
-    reason = bus_limit.not_carried(out, drives, hz, prefix="")
+    drives = sum(1 for d in load_config(config).drives if d.bus == "can0")
+    return out, bus_limit.not_carried(out, drives, hz, prefix="")
+
+
+def carried_cpu(config: Path, seconds: float, hz: float) -> float:
+    """A stack run's CPU (:func:`judged_stack_run`), RuntimeError when the emulator did not carry
+    the load: a starved run measures less work, and a ratio from it would be low for no merit of
+    the driver's."""
+    out, reason = judged_stack_run(config, seconds, hz)
     if reason is not None:
         raise RuntimeError(f"the emulator did not carry the stack run: {reason}")
     return float(out["cpu_core_fraction"])
@@ -166,8 +173,7 @@ def cpu_ratio_pairs(pairs: int, seconds: float, priority: int) -> dict[str, Any]
     import stack_run
 
     shipped = stack_run.SHIPPED["rover"]
-    can0_drives = sum(1 for d in load_config(shipped).drives if d.bus == "can0")
-    return more_pairs(pairs, lambda: carried_cpu(shipped, seconds, 100.0, can0_drives),
+    return more_pairs(pairs, lambda: carried_cpu(shipped, seconds, 100.0),
                       lambda: baseline_cpu(shipped, seconds, 100.0, priority), "cpu_ratio_canopen_pairs_dropped_invalid")
 
 
@@ -185,11 +191,10 @@ def carried_stack_run(seconds: float, invalid: dict[str, str]) -> dict[str, Any]
     import bus_limit
     import stack_run
 
-    can0_drives = sum(1 for d in load_config(stack_run.SHIPPED["rover"]).drives if d.bus == "can0")
     runs: list[dict[str, Any]] = []
     for attempt in (1, 2):
-        runs.append(out := bus_limit.stack(stack_run.SHIPPED["rover"], seconds, 100.0, prefix=""))
-        reason = bus_limit.not_carried(out, can0_drives, 100.0, prefix="")
+        out, reason = judged_stack_run(stack_run.SHIPPED["rover"], seconds, 100.0)
+        runs.append(out)
         if reason is None:
             invalid.pop("stack run: emulator", None)
             break
@@ -287,7 +292,7 @@ def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid:
         if "bus_limit_cpu_ratio_canopen" in out:
             more: dict[str, Any] = {}
             measured(more, errors, "bus limit: CPU ratio pairs", more_pairs, pairs,
-                     lambda: carried_cpu(config, seconds, bus_limit.HZ, bus_limit.DRIVES),
+                     lambda: carried_cpu(config, seconds, bus_limit.HZ),
                      lambda: baseline_cpu(config, seconds, bus_limit.HZ, priority),
                      "bus_limit_cpu_ratio_canopen_pairs_dropped_invalid")
             out.update({k: v for k, v in more.items() if k != "more_pairs"})
