@@ -268,6 +268,7 @@ def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid:
     its CPU ratio the median of that pair and ``pairs`` more (:func:`more_pairs`), as the rover's."""
     import bus_limit
     import same_work
+    import stack_run
 
     priority = int(PARAMS["realtime_priority"].default)  # type: ignore[call-overload]
     with bus_limit.limit_config() as config:
@@ -303,6 +304,18 @@ def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid:
     if joint_commands.get("bus_limit_joint_commands_cpu_core_fraction") and base_cpu:
         out["bus_limit_cpu_ratio_canopen_joint_commands"] = round(
             joint_commands["bus_limit_joint_commands_cpu_core_fraction"] / base_cpu, 2)
+    # the floor of the ratio, as the rover's (bench_rover): rclpy taking the same 3,000 Float32 a
+    # second, one python-can send each, plus the canopen library's state run of six drives at 500 Hz
+    floor: dict[str, Any] = {}
+    short = min(seconds, 10.0)
+    measured(floor, errors, "bus limit: bare path", stack_run.bare_path, short, bus_limit.DRIVES, priority, bus_limit.HZ)
+    validated(floor, invalid, errors, "bus limit: canopen state run", stack_run.baseline_canopen, bus_limit.DRIVES,
+              1000.0 / bus_limit.HZ, short)
+    out.update({f"bus_limit_{k}": v for k, v in floor.items()})
+    bare = floor.get(f"bare_rt_{bus_limit.DRIVES}_topics_cpu_core_fraction")
+    state = floor.get("baseline_canopen_cpu_core_fraction")
+    if bare is not None and state is not None and base_cpu:
+        out["bus_limit_cpu_floor_ratio_canopen"] = round((bare + state) / base_cpu, 2)
     return out
 
 

@@ -736,10 +736,10 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             **by_callback}
 
 
-def bare_path(seconds: float, topics: int = 1, priority: int = 0) -> dict[str, Any]:
+def bare_path(seconds: float, topics: int = 1, priority: int = 0, hz: float = 100.0) -> dict[str, Any]:
     """rclpy publish -> subscription callback -> one python-can send, to the listener, for
-    ``topics`` topics published in a burst every 10 ms, as the stack run publishes one command
-    per drive.
+    ``topics`` topics published in a burst ``hz`` times a second (every 10 ms by default), as the
+    stack run publishes one command per drive.
 
     The subscriber is its own process (``bare_peer.py``), as the driver node is: publisher and
     subscriber in one process would take DDS's intra-process shortcut the node never gets.
@@ -778,7 +778,7 @@ def bare_path(seconds: float, topics: int = 1, priority: int = 0) -> dict[str, A
                 for i, pub in enumerate(pubs):
                     sent[(0x301 + i, round(angle * BARE_COUNTS_PER_DEG))] = time.time()
                     pub.publish(Float32(data=angle))
-                next_t += 0.01
+                next_t += 1.0 / hz
                 time.sleep(max(0.0, next_t - time.monotonic()))
             cpu = (proc_cpu_s(peer.pid) - cpu0) / (time.monotonic() - start)
             time.sleep(0.3)
