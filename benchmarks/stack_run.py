@@ -55,6 +55,8 @@ os.environ.setdefault(*LOCAL_DISCOVERY)  # DDS on loopback; the peers it spawns 
 
 #: The bare path's peer (bare_peer.py) sends targets in counts of a 4096-count revolution.
 BARE_COUNTS_PER_DEG = 4096 / 360.0
+BARE_TICKS = 36_000  # the bare path's distinct values (0.1 deg apart): more than any run's ticks
+FLOAT32 = struct.Struct("<f")
 
 from can_config.objects import TPDO_BASES  # noqa: E402
 from can_config.realtime import fifo_thread_count  # noqa: E402
@@ -771,13 +773,16 @@ def bare_path(seconds: float, topics: int = 1, priority: int = 0, hz: float = 10
             start = time.monotonic()
             cpu0 = proc_cpu_s(peer.pid)
             next_t = start
-            k = 0
+            k = published = 0
             while time.monotonic() - start < seconds:
                 k += 1
-                angle = (k % 3600) * 0.1 + 0.05
+                # a value a tick, never repeated within a run (60 s at 500 Hz: 30,000 ticks), as the
+                # peer reads it: a Float32's (a send's latency is matched to its frame by the value)
+                angle = FLOAT32.unpack(FLOAT32.pack((k % BARE_TICKS) * 0.1 + 0.05))[0]
                 for i, pub in enumerate(pubs):
                     sent[(0x301 + i, round(angle * BARE_COUNTS_PER_DEG))] = time.time()
                     pub.publish(Float32(data=angle))
+                published += len(pubs)
                 next_t += 1.0 / hz
                 time.sleep(max(0.0, next_t - time.monotonic()))
             cpu = (proc_cpu_s(peer.pid) - cpu0) / (time.monotonic() - start)
@@ -792,10 +797,12 @@ def bare_path(seconds: float, topics: int = 1, priority: int = 0, hz: float = 10
                  for t, cob, d in listener.frames if (cob, int.from_bytes(d[2:6], "little", signed=True)) in sent]
     name = "bare_rt" if priority else "bare"
     key = f"{name}_latency_p50_ms" if topics == 1 else f"{name}_latency_{topics}_topics_p50_ms"
-    # what rclpy itself costs to take the commands and python-can to send them: the floor under
-    # any driver node's CPU for the same commands
+    # what rclpy itself costs to take the commands and python-can to send them (a starved run, its
+    # commands lost on the way, costs less: the share that went on the wire says so)
     cpu_key = f"{name}_cpu_core_fraction" if topics == 1 else f"{name}_{topics}_topics_cpu_core_fraction"
-    return {key: round(statistics.median(latencies), 3), cpu_key: round(cpu, 3)}
+    delivered_key = f"{name}_delivered" if topics == 1 else f"{name}_{topics}_topics_delivered"
+    return {key: round(statistics.median(latencies), 3), cpu_key: round(cpu, 3),
+            delivered_key: round(len(latencies) / max(published, 1), 3)}
 
 
 def state_run(script: str, prefix: str, n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]:
