@@ -51,7 +51,7 @@ from nodes.process.params import PARAMS
 from virtual_can import BusEngine, SimService, SocketcandServer, VirtualBus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from verdicts import TARGETS, InvalidBaseline, exit_status, table, verdicts
+from verdicts import TARGETS, InvalidBaseline, exit_status, rclpy_canopen_ratio, table, verdicts
 
 logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
 OUT = Path(__file__).resolve().parent / "results.json"
@@ -263,15 +263,6 @@ def bench_stack(seconds: float, pairs: int, errors: dict[str, str], invalid: dic
     if floor is not None:
         out["cpu_floor_ratio_canopen"] = floor
     return out
-
-
-def rclpy_canopen_ratio(bare: float | None, delivered: float | None, state: float | None,
-                        base: float | None) -> float | None:
-    """(bare + state) / base, or None where a part is missing or the bare path lost more than 5 % of
-    its commands on the way (a starved run costs less, and would lower the figure unsaid)."""
-    if bare is None or state is None or not base or delivered is None or delivered < 0.95:
-        return None
-    return round((bare + state) / base, 2)
 
 
 def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid: dict[str, str]) -> dict[str, Any]:

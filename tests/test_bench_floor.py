@@ -1,6 +1,7 @@
 """run.py's reference of a node made of rclpy and the canopen library, in parts (the bare path plus
-the canopen library's state run, over its same work): none where a part is missing, or where the
-bare path lost its commands on the way (a starved run costs less and would lower the figure unsaid)."""
+the canopen library's state run, over its same work; benchmarks/verdicts.py, pure, no ROS): none
+where a part is missing, or where the bare path lost its commands on the way (a starved run costs
+less and would lower the figure unsaid)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 from .conftest import REPO
 
 sys.path.insert(0, str(REPO / "benchmarks"))
-from run import rclpy_canopen_ratio
+from verdicts import rclpy_canopen_ratio
 
 
 def test_the_parts_over_the_same_work() -> None:
