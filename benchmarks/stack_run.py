@@ -19,7 +19,8 @@ socketcand client that sees every frame with the server's wire timestamp). Figur
   (BaseNode402 + PDO callbacks) and by the driver alone; the stack run's whole CAN work done the
   library's way is ``same_work.py`` (the reference of the CPU ratio).
 * the bare path's CPU (``bare_path``): rclpy taking the same commands and python-can sending one
-  frame each, nothing else; with the baseline, the floor of the node's CPU.
+  frame each, nothing else; with the canopen library's state run, a reference for the node's CPU
+  (not a lower bound: this driver's receive path costs less than the library's).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import bisect
 import collections
 import itertools
 import json
+import math
 import multiprocessing
 import os
 import re
@@ -124,9 +126,10 @@ def proc_cpu_s(pid: int) -> float:
 
 def python_thread_names(pid: int) -> dict[int, str]:
     """Thread id -> Python thread name of ``pid`` (``py-spy dump --nonblocking``: the process is
-    not paused), {} without py-spy: Python 3.11 leaves its threads named after the process. Now and
-    then a dump names no thread (2 of about 25 stack runs on 12-04, the cause not found; that run's
-    threads then came out as one "python" row): tried up to three times."""
+    not paused), {} without py-spy: Python 3.11 leaves its threads named after the process. py-spy
+    writes the thread holding the interpreter at the dump as ``(active+gil)``. A dump that names no
+    thread at all (2 of about 25 stack runs on 12-04: that run's threads came out as one "python"
+    row) is tried again, up to three times."""
     spy = str(Path(sys.executable).parent / "py-spy")
     for _ in range(3):
         try:
@@ -134,10 +137,15 @@ def python_thread_names(pid: int) -> dict[int, str]:
                                   timeout=30).stdout
         except (OSError, subprocess.TimeoutExpired):
             return {}
-        names = {int(tid): name for tid, name in re.findall(r'^Thread (\d+) \([a-z ]+\): "(.*)"$', dump, re.MULTILINE)}
+        names = thread_names_in(dump)
         if names:
             return names
     return {}
+
+
+def thread_names_in(dump: str) -> dict[int, str]:
+    """Thread id -> name in the text of ``py-spy dump`` (``Thread 17988 (active+gil): "spinner"``)."""
+    return {int(tid): name for tid, name in re.findall(r'^Thread (\d+) \([a-z+ ]+\): "(.*)"$', dump, re.MULTILINE)}
 
 
 def thread_cpu_s(pid: int, names: dict[int, str] | None = None) -> dict[str, float]:
@@ -807,8 +815,9 @@ def bare_path(seconds: float, topics: int = 1, priority: int = 0, hz: float = 10
     # commands lost on the way, costs less: the share that went on the wire says so)
     cpu_key = f"{name}_cpu_core_fraction" if topics == 1 else f"{name}_{topics}_topics_cpu_core_fraction"
     delivered_key = f"{name}_delivered" if topics == 1 else f"{name}_{topics}_topics_delivered"
-    return {key: round(statistics.median(latencies), 3), cpu_key: round(cpu, 3),
-            delivered_key: round(len(latencies) / max(published, 1), 3)}
+    # the share floored, never rounded up over a bound (run.py's 95 %)
+    return {key: round(statistics.median(latencies), 3) if latencies else None, cpu_key: round(cpu, 3),
+            delivered_key: math.floor(1000 * len(latencies) / max(published, 1)) / 1000}
 
 
 def state_run(script: str, prefix: str, n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]:
