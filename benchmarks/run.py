@@ -258,11 +258,18 @@ def bench_stack(seconds: float, pairs: int, errors: dict[str, str], invalid: dic
     # receive path costs less than the library's): rclpy's own cost for the commands (the bare path,
     # one frame sent per command) plus the canopen library's for the state (its state run), over the
     # canopen library's same work (its main pair's: measured minutes apart, so as noisy as one pair)
-    floor = rclpy_canopen_ratio(out.get(f"bare_rt_{out['drives']}_topics_cpu_core_fraction"),
-                                out.get(f"bare_rt_{out['drives']}_topics_delivered"), state_base, base)
-    if floor is not None:
-        out["cpu_floor_ratio_canopen"] = floor
+    with_rclpy_canopen(out, "cpu_floor_ratio_canopen", out, out["drives"], state_base, base)
     return out
+
+
+def with_rclpy_canopen(out: dict[str, Any], key: str, bare: dict[str, Any], drives: int, state: float | None,
+                       base: float | None) -> None:
+    """``out[key]``: :func:`verdicts.rclpy_canopen_ratio` of the bare path's figures in ``bare``
+    (``drives`` topics, SCHED_FIFO), when it gives one."""
+    ratio = rclpy_canopen_ratio(bare.get(f"bare_rt_{drives}_topics_cpu_core_fraction"),
+                                bare.get(f"bare_rt_{drives}_topics_delivered"), state, base)
+    if ratio is not None:
+        out[key] = ratio
 
 
 def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid: dict[str, str]) -> dict[str, Any]:
@@ -315,11 +322,8 @@ def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid:
     validated(floor, invalid, errors, "bus limit: canopen state run", stack_run.baseline_canopen, bus_limit.DRIVES,
               1000.0 / bus_limit.HZ, short)
     out.update({f"bus_limit_{k}": v for k, v in floor.items()})
-    ratio = rclpy_canopen_ratio(floor.get(f"bare_rt_{bus_limit.DRIVES}_topics_cpu_core_fraction"),
-                                floor.get(f"bare_rt_{bus_limit.DRIVES}_topics_delivered"),
-                                floor.get("baseline_canopen_cpu_core_fraction"), base_cpu)
-    if ratio is not None:
-        out["bus_limit_cpu_floor_ratio_canopen"] = ratio
+    with_rclpy_canopen(out, "bus_limit_cpu_floor_ratio_canopen", floor, bus_limit.DRIVES,
+                       floor.get("baseline_canopen_cpu_core_fraction"), base_cpu)
     return out
 
 

@@ -813,11 +813,10 @@ def bare_path(seconds: float, topics: int = 1, priority: int = 0, hz: float = 10
     key = f"{name}_latency_p50_ms" if topics == 1 else f"{name}_latency_{topics}_topics_p50_ms"
     # what rclpy itself costs to take the commands and python-can to send them (a starved run, its
     # commands lost on the way, costs less: the share that went on the wire says so)
-    cpu_key = f"{name}_cpu_core_fraction" if topics == 1 else f"{name}_{topics}_topics_cpu_core_fraction"
-    delivered_key = f"{name}_delivered" if topics == 1 else f"{name}_{topics}_topics_delivered"
+    of = name if topics == 1 else f"{name}_{topics}_topics"
     # the share floored, never rounded up over a bound (run.py's 95 %)
-    return {key: round(statistics.median(latencies), 3) if latencies else None, cpu_key: round(cpu, 3),
-            delivered_key: math.floor(1000 * len(latencies) / max(published, 1)) / 1000}
+    return {key: round(statistics.median(latencies), 3) if latencies else None, f"{of}_cpu_core_fraction": round(cpu, 3),
+            f"{of}_delivered": math.floor(1000 * len(latencies) / max(published, 1)) / 1000}
 
 
 def state_run(script: str, prefix: str, n_drives: int, sync_ms: float, seconds: float) -> dict[str, Any]:
