@@ -191,15 +191,9 @@ def carried_stack_run(seconds: float, invalid: dict[str, str]) -> dict[str, Any]
     import bus_limit
     import stack_run
 
-    runs: list[dict[str, Any]] = []
-    for attempt in (1, 2):
-        out, reason = judged_stack_run(stack_run.SHIPPED["rover"], seconds, 100.0)
-        runs.append(out)
-        if reason is None:
-            invalid.pop("stack run: emulator", None)
-            break
-        invalid["stack run: emulator"] = reason
-        print(f"stack run invalid (run {attempt} of 2): {reason}", file=sys.stderr, flush=True)
+    runs = stack_run.two_tries("stack run", "stack run: emulator", invalid,
+                     lambda: judged_stack_run(stack_run.SHIPPED["rover"], seconds, 100.0))
+    out = runs[-1]
     out.update(bus_limit.every_stop(runs, prefix=""))
     return out
 
@@ -281,15 +275,12 @@ def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid:
 
     priority = int(PARAMS["realtime_priority"].default)  # type: ignore[call-overload]
     with bus_limit.limit_config() as config:
-        runs: list[dict[str, Any]] = []
-        for attempt in (1, 2):  # the machine made it invalid: once more
-            runs.append(out := bus_limit.stack(config, seconds))
-            reason = bus_limit.not_carried(out)
-            if reason is None:
-                invalid.pop("bus limit: emulator", None)
-                break
-            invalid["bus limit: emulator"] = reason
-            print(f"bus limit invalid (run {attempt} of 2): {reason}", file=sys.stderr, flush=True)
+        def one_run() -> tuple[dict[str, Any], str | None]:
+            run = bus_limit.stack(config, seconds)
+            return run, bus_limit.not_carried(run)
+
+        runs = stack_run.two_tries("bus limit", "bus limit: emulator", invalid, one_run)
+        out = runs[-1]
         out.update(bus_limit.every_stop(runs))
         base: dict[str, Any] = {}
         validated(base, invalid, errors, "bus limit: canopen same work", same_work.baseline_same_work, config, seconds,

@@ -447,13 +447,43 @@ class Ramps:
 STREAMED_MODES, PROFILE_MODE = frozenset({"8", "7"}), frozenset({"1"})
 
 
-def modes_are(diags: list[Any], wanted: dict[str, frozenset[str]]) -> bool:
-    """Each named drive's mode of operation, as the newest /diagnostics array that reports it says, is one of those wanted."""
+def two_tries(name: str, key: str, invalid: dict[str, str],
+              run: Callable[[], tuple[dict[str, Any], str | None]]) -> list[dict[str, Any]]:
+    """A stack run (``run``: its figures and why the emulator did not carry it, None when it did),
+    once more when it was not carried or did not start (RuntimeError: the machine can starve a
+    start as well as a window); the runs made, the one to report last. Not carried twice, the
+    reason goes into ``invalid`` under ``key`` and the figures resting on it get no verdict; not
+    started twice, the second start's error is raised."""
+    runs: list[dict[str, Any]] = []
+    for attempt in (1, 2):
+        try:
+            out, reason = run()
+        except RuntimeError as err:
+            print(f"{name} did not start (run {attempt} of 2): {err}", file=sys.stderr, flush=True)
+            if attempt == 2 and not runs:
+                raise
+            continue
+        runs.append(out)
+        if reason is None:
+            invalid.pop(key, None)
+            break
+        invalid[key] = reason
+        print(f"{name} invalid (run {attempt} of 2): {reason}", file=sys.stderr, flush=True)
+    return runs
+
+
+def modes_off(diags: list[Any], wanted: dict[str, frozenset[str]]) -> dict[str, str] | None:
+    """Each named drive whose mode of operation, as the newest /diagnostics array that reports
+    modes says, is not one of those wanted, with that mode ("none": not reported); None before any
+    array reports a mode."""
     for array in reversed(diags):
         modes = {st.name: kv.value for st in array.status for kv in st.values if kv.key == "mode"}
         if modes:
-            return all(modes.get(name) in allowed for name, allowed in wanted.items())
-    return False
+            return {name: modes.get(name, "none") for name, allowed in wanted.items() if modes.get(name) not in allowed}
+    return None
+
+
+FIRST_COMMAND_AGAIN_S = 2.0
 
 
 def start_streams(first: Any, shipped: Any, diags: list[Any], executor: Any, proc: subprocess.Popen[bytes]) -> None:
@@ -464,14 +494,28 @@ def start_streams(first: Any, shipped: Any, diags: list[Any], executor: Any, pro
     be done, not a fixed half second: on a busy machine six switches took longer, the handoff kept
     each joint's newest command, and the first set-point after the switch jumped (37 deg at
     500 Hz) and was refused, and so was the rest of its ramp (a streamed joint judges each step
-    from the last one sent). The window's first command is then one step from the start."""
+    from the last one sent). The window's first command is then one step from the start.
+
+    The first command goes out again every FIRST_COMMAND_AGAIN_S until the switch is seen: the
+    publisher seeing the subscription matched does not mean the subscriber has matched the
+    publisher (DDS discovery is two one-way matches), and a volatile message sent between the two
+    is lost (a quick run once waited the whole 30 s for one). The same set-point again is no
+    step for the driver to judge."""
     first()  # every joint's first command, 0.05 deg
     wanted = {f"rovercan: {d.name}": STREAMED_MODES if d.position_mode == "cyclic" else PROFILE_MODE
               for d in shipped.drives}
     deadline = time.monotonic() + 30
-    while not modes_are(diags, wanted):
+    again = time.monotonic() + FIRST_COMMAND_AGAIN_S
+    while (off := modes_off(diags, wanted)) != {}:
         if time.monotonic() > deadline or proc.poll() is not None:
-            raise RuntimeError("the drives did not switch to their position mode for the first command")
+            refused, reason = refusals(diags)
+            said = "no /diagnostics array reported a mode" if off is None else ", ".join(
+                f"{name} in {mode}" for name, mode in sorted(off.items()))
+            raise RuntimeError(f"the drives did not switch to their position mode for the first command ({said}; "
+                               f"{refused} commands refused{': ' + reason if reason else ''})")
+        if time.monotonic() > again:
+            first()
+            again = time.monotonic() + FIRST_COMMAND_AGAIN_S
         executor.spin_once(timeout_sec=0.1)
     time.sleep(0.2)  # the worker's set-point after the switch (the switch's last step) goes out
 
