@@ -191,7 +191,7 @@ def carried_stack_run(seconds: float, invalid: dict[str, str]) -> dict[str, Any]
     import bus_limit
     import stack_run
 
-    runs = stack_run.two_tries("stack run", "stack run: emulator", invalid,
+    runs = stack_run.two_tries("stack run", "stack run: emulator", invalid, "",
                      lambda: judged_stack_run(stack_run.SHIPPED["rover"], seconds, 100.0))
     out = runs[-1]
     out.update(bus_limit.every_stop(runs, prefix=""))
@@ -279,7 +279,7 @@ def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid:
             run = bus_limit.stack(config, seconds)
             return run, bus_limit.not_carried(run)
 
-        runs = stack_run.two_tries("bus limit", "bus limit: emulator", invalid, one_run)
+        runs = stack_run.two_tries("bus limit", "bus limit: emulator", invalid, "bus_limit_", one_run)
         out = runs[-1]
         out.update(bus_limit.every_stop(runs))
         base: dict[str, Any] = {}

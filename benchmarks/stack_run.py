@@ -203,6 +203,12 @@ def _listen(port: int, channel: str, conn: Connection) -> None:
         bus.shutdown()
 
 
+class StartFailed(RuntimeError):
+    """The measured stack did not start: a helper process, the listener, the drives' enable, a
+    command topic's match, or the first command's switch of mode. A try of its own
+    (:func:`two_tries`); any other RuntimeError is a failure of the run."""
+
+
 class Listener:
     """An independent listener in a process of its own: its parsing of every frame on the bus
     (thousands a second) must not hold the interpreter the benchmark publishes commands from."""
@@ -219,7 +225,7 @@ class Listener:
     def start(self) -> None:
         self._proc.start()
         if not self._conn.poll(30) or self._conn.recv() != "ready":
-            raise RuntimeError(f"the listener on {self.channel} did not start")
+            raise StartFailed(f"the listener on {self.channel} did not start")
 
     def send(self, cob_id: int, data: bytes) -> None:
         self._conn.send(("send", cob_id, data))
@@ -264,8 +270,8 @@ def started(what: str, argv: list[str], ready: str, timeout_s: float = 30.0,
                 # read once more after the look at its end: it may have said it and ended in between
                 if (time.monotonic() > deadline or proc.poll() is not None) and \
                         ready not in log.read_text(errors="replace"):
-                    raise RuntimeError(f"{what} did not start (no {ready!r} within {timeout_s:g} s, exit status"
-                                       f" {proc.poll()}): {log.read_text(errors='replace')}")
+                    raise StartFailed(f"{what} did not start (no {ready!r} within {timeout_s:g} s, exit status"
+                                      f" {proc.poll()}): {log.read_text(errors='replace')}")
                 time.sleep(poll_s)
             yield proc, log
         finally:
@@ -447,28 +453,34 @@ class Ramps:
 STREAMED_MODES, PROFILE_MODE = frozenset({"8", "7"}), frozenset({"1"})
 
 
-def two_tries(name: str, key: str, invalid: dict[str, str],
+def two_tries(name: str, key: str, invalid: dict[str, str], prefix: str,
               run: Callable[[], tuple[dict[str, Any], str | None]]) -> list[dict[str, Any]]:
     """A stack run (``run``: its figures and why the emulator did not carry it, None when it did),
-    once more when it was not carried or did not start (RuntimeError: the machine can starve a
-    start as well as a window); the runs made, the one to report last. Not carried twice, the
-    reason goes into ``invalid`` under ``key`` and the figures resting on it get no verdict; not
-    started twice, the second start's error is raised."""
+    once more when it was not carried or did not start (:class:`StartFailed`: the machine can
+    starve a start as well as a window); the runs made, the one to report last. Each run's
+    ``{prefix}run_try`` says which try it was, and the last's ``{prefix}start_failures`` each
+    start that failed before it: a start that fails now and then is a finding, not hidden by the
+    try after it. Not carried twice, the reason goes into ``invalid`` under ``key`` and the
+    figures resting on it get no verdict; not started twice, the second start's error is raised."""
     runs: list[dict[str, Any]] = []
+    failures: list[str] = []
     for attempt in (1, 2):
         try:
             out, reason = run()
-        except RuntimeError as err:
+        except StartFailed as err:
             print(f"{name} did not start (run {attempt} of 2): {err}", file=sys.stderr, flush=True)
+            failures.append(f"run {attempt}: {err}")
             if attempt == 2 and not runs:
                 raise
             continue
+        out[f"{prefix}run_try"] = attempt
         runs.append(out)
         if reason is None:
             invalid.pop(key, None)
             break
         invalid[key] = reason
         print(f"{name} invalid (run {attempt} of 2): {reason}", file=sys.stderr, flush=True)
+    runs[-1][f"{prefix}start_failures"] = failures
     return runs
 
 
@@ -483,7 +495,8 @@ def modes_off(diags: list[Any], wanted: dict[str, frozenset[str]]) -> dict[str, 
     return None
 
 
-FIRST_COMMAND_AGAIN_S = 2.0
+#: how long the start waits for the first command's switches, and how often it sends that command again
+FIRST_SWITCH_WAIT_S, FIRST_COMMAND_AGAIN_S = 30.0, 2.0
 
 
 def start_streams(first: Any, shipped: Any, diags: list[Any], executor: Any, proc: subprocess.Popen[bytes]) -> None:
@@ -504,15 +517,18 @@ def start_streams(first: Any, shipped: Any, diags: list[Any], executor: Any, pro
     first()  # every joint's first command, 0.05 deg
     wanted = {f"rovercan: {d.name}": STREAMED_MODES if d.position_mode == "cyclic" else PROFILE_MODE
               for d in shipped.drives}
-    deadline = time.monotonic() + 30
+    deadline = time.monotonic() + FIRST_SWITCH_WAIT_S
     again = time.monotonic() + FIRST_COMMAND_AGAIN_S
     while (off := modes_off(diags, wanted)) != {}:
-        if time.monotonic() > deadline or proc.poll() is not None:
+        if proc.poll() is not None:
+            raise StartFailed(f"the measured process ended (exit status {proc.returncode}) before its drives switched"
+                              " to their position mode for the first command")
+        if time.monotonic() > deadline:
             refused, reason = refusals(diags)
             said = "no /diagnostics array reported a mode" if off is None else ", ".join(
                 f"{name} in {mode}" for name, mode in sorted(off.items()))
-            raise RuntimeError(f"the drives did not switch to their position mode for the first command ({said}; "
-                               f"{refused} commands refused{': ' + reason if reason else ''})")
+            raise StartFailed(f"the drives did not switch to their position mode for the first command ({said}; "
+                              f"{refused} commands refused{': ' + reason if reason else ''})")
         if time.monotonic() > again:
             first()
             again = time.monotonic() + FIRST_COMMAND_AGAIN_S
@@ -554,7 +570,7 @@ def every_topic_matched(pubs: list[Any], deadline: float, proc: subprocess.Popen
     alone had been waited for: another's first commands could be lost before its match)."""
     while any(pub.get_subscription_count() == 0 for pub in pubs):
         if time.monotonic() > deadline or proc.poll() is not None:
-            raise RuntimeError("the measured process did not subscribe to every command topic")
+            raise StartFailed("the measured process did not subscribe to every command topic")
         time.sleep(0.05)
 
 
@@ -677,7 +693,7 @@ def run_stack(config_path: Path, seconds: float, command_hz: float, sim_args: tu
             deadline = time.monotonic() + 30
             while not all_enabled():  # every drive enabled, as the driver reports it
                 if time.monotonic() > deadline or proc.poll() is not None:
-                    raise RuntimeError("the measured process did not enable its drives")
+                    raise StartFailed("the measured process did not enable its drives")
                 executor.spin_once(timeout_sec=0.1)
             every_topic_matched(pubs, deadline, proc)
             start_streams(lambda: commands.publish(list(range(len(drives))), [0.05] * len(drives)), shipped, diags,
