@@ -176,8 +176,9 @@ def not_carried(figures: dict[str, Any], drives: int = DRIVES, hz: float = HZ, p
 
 
 def every_stop(runs: list[dict[str, Any]], prefix: str = "bus_limit_") -> dict[str, Any]:
-    """The drives' stops (EMCYs in the window) of every attempt: a run tried again because its
-    drives faulted must not lose the fault when the next one is clean."""
+    """The drives' stops (EMCYs in the window) of every attempt (by its try where stack_run.two_tries
+    says it, else its place): a run tried again because its drives faulted must not lose the fault when
+    the next one is clean."""
     stops = [f"run {run.get(f'{prefix}run_try', n)}: {stop}" for n, run in enumerate(runs, start=1)
              for stop in run.get(f"{prefix}emcy_in_window") or []]
     return {f"{prefix}emcy_in_window": stops, f"{prefix}drive_stops": len(stops)}

@@ -192,7 +192,7 @@ def carried_stack_run(seconds: float, invalid: dict[str, str]) -> dict[str, Any]
     import stack_run
 
     runs = stack_run.two_tries("stack run", "stack run: emulator", invalid, "",
-                     lambda: judged_stack_run(stack_run.SHIPPED["rover"], seconds, 100.0))
+                               lambda: judged_stack_run(stack_run.SHIPPED["rover"], seconds, 100.0))
     out = runs[-1]
     out.update(bus_limit.every_stop(runs, prefix=""))
     return out

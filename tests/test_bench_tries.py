@@ -112,7 +112,7 @@ class Stack:
     """What start_streams waits on: the first command (counted), the /diagnostics arrays, an
     executor whose turns bring arrays (``after`` turns: the switch done), a measured process."""
 
-    def __init__(self, after: int, exit_status: int | None = None) -> None:
+    def __init__(self, after: float, exit_status: int | None = None) -> None:
         self.firsts = 0
         self.turns = 0
         self.after = after
@@ -155,7 +155,7 @@ def test_a_switch_not_seen_names_the_drive_and_its_mode(monkeypatch: pytest.Monk
     stack.start()
     assert stack.firsts == 1  # not again within its period
     monkeypatch.setattr(stack_run, "FIRST_SWITCH_WAIT_S", -1.0)
-    stack = Stack(after=math.inf)  # type: ignore[arg-type]
+    stack = Stack(after=math.inf)
     stack.diags.append(diagnostics(("rovercan: a", "0"), ("rovercan: b", "1")))
     with pytest.raises(stack_run.StartFailed, match=r"\(rovercan: a in 0; 0 commands refused\)"):
         stack.start()
