@@ -33,9 +33,15 @@ interface spins on the hot executor given.
 
 With ``autostart`` (the team's demo) it configures and activates itself: the drives are enabled
 only with ``arm`` too (``rover_launch.xml lifecycle:=true autostart:=true arm:=true``), as
-``rover_driver`` enables them at start only with ``arm``. A failed transition
+``rover_driver`` enables them at start only with ``arm``. A stop signal (SIGINT, SIGTERM) during
+the auto-start's configure ends it there: nothing is activated or armed. A failed transition
 logs why and returns FAILURE; the node stays where it was (after a failed configure, with no
-driver and no bus).
+driver and no bus). A transition that raised unexpectedly is logged with its trace and counted
+(``callback_failures``), and ends in ERROR as rclpy makes it: on_error closes the driver, its
+safe stop first. A ``change_state`` request for a transition the current state does not have
+(Nav2's RESET after PAUSE asks for deactivate twice) is answered ``success=false`` and logged, as
+rclcpp's managed nodes answer it (rclpy's own sends no answer: its client, a lifecycle manager,
+waits for ever). Transitions run one at a time: the auto-start's and the service's alike.
 
 Owner: the lifecycle transitions run on the node's service executor thread; the nodes it
 makes at configure are served by the process's executors (nodes/assembly.py).
@@ -43,11 +49,15 @@ makes at configure are served by the process's executors (nodes/assembly.py).
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
-from typing import Any
+import threading
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.lifecycle import Node as LifecycleNode
 from rclpy.lifecycle import State, TransitionCallbackReturn
@@ -59,8 +69,27 @@ from motor_driver.process import heap
 from nodes.assembly import Assembly, set_up
 from nodes.process import spinning
 from nodes.process.params import declare
+from nodes.process.spinning import CallbackFailures
 
 logger = logging.getLogger(__name__)
+
+Transition = TypeVar("Transition", bound=Callable[..., TransitionCallbackReturn])
+
+
+def supervised(transition: Transition) -> Transition:
+    """A transition callback whose unexpected exception is logged with its trace and counted, then
+    ends in ERROR as rclpy makes it (rclpy's lifecycle returns ERROR and logs nothing)."""
+    @functools.wraps(transition)
+    def call(node: DriveLifecycleNode, state: State) -> TransitionCallbackReturn:
+        try:
+            return transition(node, state)
+        except Exception as err:
+            node.callback_failures.record(f"transition {transition.__name__} of {node.get_name()}", err)
+            node.get_logger().error(f"{transition.__name__.removeprefix('on_')} failed unexpectedly: {err!r} (its trace"
+                                    " logged; counted in callback_failures); the node goes to error processing,"
+                                    " which closes the driver, its safe stop first")
+            return TransitionCallbackReturn.ERROR
+    return call  # type: ignore[return-value]
 
 
 class DriveLifecycleNode(LifecycleNode):
@@ -71,6 +100,11 @@ class DriveLifecycleNode(LifecycleNode):
         declare(self, "config", "autostart")
         self.hot = set_up(self).hot if hot is None else hot
         self.assembly: Assembly | None = None
+        self.callback_failures = CallbackFailures()  # spinning.spin_until counts what escapes here too
+        self.transitions = threading.Lock()  # one transition at a time: the auto-start's, the service's
+        service = self._service_change_state
+        service.callback = self._change_state_answered(service.callback)
+        spinning.supervise(self, self.callback_failures)  # any other exception: answered, logged, counted
 
     @property
     def driver(self) -> MotorDriver | None:
@@ -81,7 +115,41 @@ class DriveLifecycleNode(LifecycleNode):
         """Why motion is refused while the node is not active, and what to do."""
         return f"{self.get_name()} is inactive: activate it"
 
+    @property
+    def state_label(self) -> str:
+        """The lifecycle state now: "unconfigured", "inactive", "active", "finalized", ..."""
+        return str(self._state_machine.current_state[1])
+
+    def _change_state_answered(self, rclpy_change_state: Callable[[Any, Any], Any]) -> Callable[[Any, Any], Any]:
+        """rclpy's change_state service callback, answering ``success=false`` where it raises for a
+        transition the current state does not have, as rclcpp answers (rclpy sends no response)."""
+        def change_state(request: Any, response: Any) -> Any:
+            with self.transitions:
+                try:
+                    return rclpy_change_state(request, response)
+                except RCLError as err:
+                    allowed = ", ".join(f"{t[1]} ({t[0]})" for t in self._state_machine.available_transitions)
+                    self.get_logger().error(
+                        f"change_state refused: transition {request.transition.id}"
+                        f"{f' ({request.transition.label})' if request.transition.label else ''} is not allowed from"
+                        f" {self.state_label} ({err}); allowed from here: {allowed or 'none'}")
+                    response.success = False
+                    return response
+        return change_state
+
+    def autostart(self, stop: threading.Event) -> None:
+        """Configure, then activate (arming only with ``arm``), as a lifecycle manager's STARTUP
+        would; nothing after a stop was asked, nor a transition a manager made already."""
+        with self.transitions:
+            if not stop.is_set() and self.state_label == "unconfigured":
+                self.trigger_configure()
+            if stop.is_set():
+                self.get_logger().info(f"auto-start ended by a stop signal ({self.state_label}): nothing activated")
+            elif self.driver is not None and self.state_label == "inactive":
+                self.trigger_activate()
+
     # ------------------------------------------------------------------ transitions
+    @supervised
     def on_configure(self, state: State) -> TransitionCallbackReturn:
         try:
             driver = MotorDriver(load_config(str(self.get_parameter("config").value) or None))  # nothing sent yet
@@ -100,6 +168,7 @@ class DriveLifecycleNode(LifecycleNode):
         self.get_logger().info(f"configured: {len(driver.drives)} drive(s) booted, not enabled; motion held until activate")
         return TransitionCallbackReturn.SUCCESS
 
+    @supervised
     def on_activate(self, state: State) -> TransitionCallbackReturn:
         assembly = self.assembly
         assert assembly is not None and assembly.node is not None
@@ -109,9 +178,11 @@ class DriveLifecycleNode(LifecycleNode):
             name for name, drive in drives.items() if drive.config.arm_on_start]
         failed = assembly.arm(asked)
         if failed:
-            self.get_logger().error(f"activate failed: {'; '.join(failed)}; every drive is stopped again")
             assembly.driver.hold_motion(self.inactive)
-            assembly.stop_drives()
+            unconfirmed = self.stop_drives()  # each logged
+            self.get_logger().error(f"activate failed: {'; '.join(failed)}; " + (
+                f"{len(unconfirmed)} stop(s) not confirmed (above); motion held" if unconfirmed
+                else "every drive is stopped again"))
             return TransitionCallbackReturn.FAILURE
         self.get_logger().info("active: motion taken; " + (
             "every drive armed (arm:=true)" if asked is None else
@@ -119,6 +190,7 @@ class DriveLifecycleNode(LifecycleNode):
             else "no drive enabled: call /arm (std_srvs/Trigger), or launch with arm:=true"))
         return super().on_activate(state)
 
+    @supervised
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
         if self.driver is not None:
             self.driver.hold_motion(self.inactive)  # first: nothing re-enables a drive once it is stopped
@@ -132,12 +204,14 @@ class DriveLifecycleNode(LifecycleNode):
         self.get_logger().info(f"inactive: motion held; {self._drives_safe()}; activate to take motion again")
         return super().on_deactivate(state)
 
+    @supervised
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
         said = self._drives_safe()
         self.release()
         self.get_logger().info(f"cleaned up: {said}; the driver closed and the bus released")
         return TransitionCallbackReturn.SUCCESS
 
+    @supervised
     def on_shutdown(self, state: State) -> TransitionCallbackReturn:
         had = self.driver is not None
         self.release()  # the driver's close: its safe stop first
@@ -146,6 +220,7 @@ class DriveLifecycleNode(LifecycleNode):
             if had else "no driver (nothing was configured)"))
         return TransitionCallbackReturn.SUCCESS
 
+    @supervised
     def on_error(self, state: State) -> TransitionCallbackReturn:
         had = self.driver is not None
         self.release()
@@ -197,9 +272,7 @@ def main(args: list[str] | None = None) -> int:
         transitions = spinning.SpinThread(cold, "rovercan-lifecycle")
         try:
             if node.get_parameter("autostart").value:
-                node.trigger_configure()
-                if node.driver is not None:
-                    node.trigger_activate()
+                node.autostart(stop.event)
             heap.settle()  # built (and, with autostart, the driver too): keep it out of the collector's walks
             spinning.spin_until(hot, stop.event)
         finally:

@@ -690,3 +690,99 @@ def test_the_active_node_killed_while_driving_leaves_each_drive_to_stop_itself(t
         finally:
             probe.close()
             rclpy.shutdown(context=context)
+
+
+# ---------------------------------------------------------------------------- what a lifecycle manager meets
+def test_a_transition_the_state_does_not_have_is_answered_false_as_rclcpp_answers_it(tmp_path: Path) -> None:
+    """rclpy's managed node raises for a change_state whose transition id its state does not have,
+    and sends no answer; Nav2's lifecycle_manager asks by id and waits without a bound (its RESET
+    after PAUSE asks for deactivate twice). rclcpp's managed node answers success=false: so does
+    this one, logs why, counts no failure, and stays where it was. The sequence is Nav2's:
+    STARTUP (configure, activate), PAUSE (deactivate), RESET (deactivate, cleanup)."""
+    with make_rig(tmp_path, args=("arm:=true",)) as (node, sim, _, _), _probe(node.context) as probe:
+        def ask(transition_id: int) -> bool:
+            request = ChangeState.Request(transition=Transition(id=transition_id))
+            return bool(probe.call(ChangeState, "/rovercan_lifecycle/change_state", request).success)
+
+        for refused in (Transition.TRANSITION_ACTIVATE, Transition.TRANSITION_DEACTIVATE,
+                        Transition.TRANSITION_CLEANUP, 99):
+            assert not ask(refused), refused
+            assert node.state_label == "unconfigured"
+        assert [ask(t) for t in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE)] == [True, True]
+        assert states(sim) == ["OPERATION_ENABLED"] * 2
+        assert ask(Transition.TRANSITION_DEACTIVATE) and node.state_label == "inactive"
+        assert not ask(Transition.TRANSITION_DEACTIVATE) and node.state_label == "inactive"  # RESET's first step
+        assert ask(Transition.TRANSITION_CLEANUP) and node.state_label == "unconfigured"
+        assert node.callback_failures.snapshot()[0] == 0  # a refusal, not a failure
+        assert states(sim) == ["SWITCH_ON_DISABLED"] * 2
+
+
+@contextmanager
+def _probe(context: Any) -> Iterator[Probe]:
+    probe = Probe(context)
+    try:
+        yield probe
+    finally:
+        probe.close()
+
+
+def test_an_unexpected_exception_in_a_transition_is_logged_counted_and_ends_safe(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """rclpy turns a transition callback's exception into ERROR and logs nothing; here it is logged
+    with its trace and counted, and error processing closes the driver, its safe stop first."""
+    import logging
+
+    caplog.set_level(logging.INFO)
+    with make_rig(tmp_path, args=("arm:=true",)) as (node, sim, _, _):
+        node.trigger_configure()
+        arm = node.assembly.arm
+
+        def arm_then_fail(joints: Any = None) -> list[str]:
+            arm(joints)  # every drive enabled, then a bug
+            raise RuntimeError("a bug after the drives were armed")
+
+        node.assembly.arm = arm_then_fail
+        node.trigger_activate()
+        assert node.state_label == "unconfigured" and node.driver is None  # ERROR, then on_error
+        assert states(sim) == ["SWITCH_ON_DISABLED"] * 2
+        count, last, _ = node.callback_failures.snapshot()
+        assert count == 1 and "a bug after the drives were armed" in last
+        assert "RuntimeError: a bug after the drives were armed" in caplog.text  # its trace
+        assert "transition on_activate of rovercan_lifecycle failed unexpectedly" in caplog.text
+
+
+def test_a_stop_signal_during_the_auto_starts_configure_activates_nothing(tmp_path: Path) -> None:
+    """``autostart:=true arm:=true``, SIGTERM while configure boots the drive (its first SDO
+    request on the bus): configure ends, nothing is activated, no Enable Operation leaves after the
+    signal, and the process exits 0 with the drive disabled."""
+    import os
+    import subprocess
+
+    from .conftest import REPO
+
+    with SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "a", 4096)], port=0) as sim:
+        config = tmp_path / "rover.yaml"
+        config.write_text("buses: [{name: can0, interface: socketcand, channel: can0,"
+                          f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}]\n"
+                          "drives: [{name: a, node_id: 1, counts_per_rev: 4096}]\n")
+        listener = Listener(sim)
+        proc = subprocess.Popen([sys.executable, "-m", "nodes.rover_lifecycle", "--ros-args", "-p", f"config:={config}",
+                                 "-p", "autostart:=true", "-p", "arm:=true", "-p", "realtime_priority:=0"], cwd=REPO,
+                                env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"),
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            wait_for(lambda: listener.since(0.0, 0x601), 60.0, "configure under way (its first SDO request)")
+            signalled = time.monotonic()
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            listener.stop.set()
+            listener.join(2)
+            listener.bus.shutdown()
+        enables = [cw for cw in controlwords(listener, signalled, 0x201) if cw & 0x000F == 0x000F]
+        assert not enables, out[-2000:]
+        assert proc.returncode == 0 and "auto-start ended by a stop signal" in out, out[-2000:]
+        runner = sim.simulators["can0"]
+        assert runner.call(lambda: runner.drive(1).state.name) == "SWITCH_ON_DISABLED", out[-2000:]
