@@ -312,6 +312,10 @@ class TrajectoryGroupConfig:
     allow_partial_joints_goal: bool = key("bool", False, help="accept a goal naming some of the group's joints (the"
                                                               " others hold); false: a goal must name them all, as"
                                                               " joint_trajectory_controller's default")
+    allow_nonzero_velocity_at_trajectory_end: bool = key(
+        "bool", False, help="accept a trajectory whose last point has a velocity (the joints then stop dead at its end:"
+                            " one SYNC from that velocity to rest); false: such a goal is rejected (INVALID_GOAL), as"
+                            " joint_trajectory_controller's default")
 
 
 @dataclass(frozen=True)

@@ -178,6 +178,24 @@ def test_times_that_do_not_increase_are_refused(arm: Arm) -> None:
             "one finite value")
 
 
+def test_a_trajectory_ending_in_motion_is_refused_unless_the_group_allows_it(arm: Arm) -> None:
+    """joint_trajectory_controller's validate_trajectory_msg: a last point with a velocity (over float
+    epsilon) is rejected unless allow_nonzero_velocity_at_trajectory_end; nothing follows the last
+    set-point, so the joints would stop dead from that velocity within one SYNC."""
+    moving = TrajectoryGoal(("joint1", "joint2"), (1.0, 2.0), ((10.0, 5.0), (20.0, 5.0)), ((10.0, 0.0), (30.0, 0.0)))
+    refused(arm, moving, TrajectoryCode.INVALID_GOAL, "joint1", "30 deg/s", "allow_nonzero_velocity_at_trajectory_end")
+    refused(arm, dataclasses.replace(moving, velocities_deg_s=((10.0, 0.0), (0.0, 1e-5))), TrajectoryCode.INVALID_GOAL,
+            "joint2")
+    at_rest = dataclasses.replace(moving, velocities_deg_s=((10.0, 0.0), (0.0, 1e-6)))  # below epsilon: at rest
+    assert arm.group.plan(at_rest).times_s == (1.0, 2.0)
+    allowing = TrajectoryGroup(dataclasses.replace(arm.group.config, allow_nonzero_velocity_at_trajectory_end=True),
+                               arm.driver.drives)
+    try:
+        assert allowing.plan(moving).times_s == (1.0, 2.0)
+    finally:
+        allowing.close()
+
+
 def test_a_joint_not_armed_is_refused(arm: Arm) -> None:
     refused(arm, goal((1.0, (5.0, 5.0, 5.0)), joints=("joint1", "joint2", "joint3")), TrajectoryCode.INVALID_GOAL,
             "joint3", "not armed")

@@ -127,13 +127,14 @@ def rig(monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> Iter
 
 
 def half_sine(amplitude_deg: float, duration_s: float, points: int = 41) -> Any:
-    """joint1 up and back, joint2 down and back, over ``duration_s``: positions and velocities."""
+    """joint1 up and back, joint2 down and back, over ``duration_s``: positions and velocities, the
+    last point at rest (a trajectory ending with a velocity is rejected, as the controller does)."""
     goal = FollowJointTrajectory.Goal()
     goal.trajectory.joint_names = ["joint1", "joint2"]
     a, w = math.radians(amplitude_deg), math.pi / duration_s
     for k in range(points):
         t = duration_s * k / (points - 1)
-        p, v = a * math.sin(w * t), a * w * math.cos(w * t)
+        p, v = a * math.sin(w * t), a * w * math.cos(w * t) if k < points - 1 else 0.0
         seconds = int(t)
         goal.trajectory.points.append(JointTrajectoryPoint(
             positions=[p, -p], velocities=[v, -v], time_from_start=Duration(sec=seconds, nanosec=int((t - seconds) * 1e9))))
@@ -561,6 +562,26 @@ def test_what_can_be_judged_at_goal_time_is_rejected(rig: Rig) -> None:
     for name, goal in (("unknown", unknown), ("partial", partial), ("backwards", backwards), ("past", past),
                        ("illegal", illegal)):
         assert not send(rig, goal).accepted, name
+
+
+def test_a_trajectory_ending_in_motion_or_with_effort_is_rejected_and_nothing_moves(rig: Rig) -> None:
+    """joint_trajectory_controller's validate_trajectory_msg: a last point with a velocity is rejected
+    (allow_nonzero_velocity_at_trajectory_end false, the default: the joints would stop dead from
+    60 deg/s at its end), and so is a point with effort (only with an effort command interface)."""
+    moving = FollowJointTrajectory.Goal()
+    moving.trajectory.joint_names = ["joint1", "joint2"]
+    moving.trajectory.points = [
+        JointTrajectoryPoint(positions=[0.0, 0.0], velocities=[0.0, 0.0], time_from_start=Duration(sec=0)),
+        JointTrajectoryPoint(positions=[math.radians(30.0), 0.0], velocities=[math.radians(60.0), 0.0],
+                             time_from_start=Duration(sec=1))]
+    effort = half_sine(5.0, 1.0, points=5)
+    for point in effort.trajectory.points:
+        point.effort = [1.0, 1.0]
+    for name, goal in (("moving at the end", moving), ("effort", effort)):
+        assert not send(rig, goal).accepted, name
+    n = len(rig.states)
+    wait_for(lambda: len(rig.states) > n + 5, HANG_S, "/joint_states after the rejections")
+    assert max(abs(p) for p in positions(rig)) <= 0.1, positions(rig)
 
 
 def test_a_replanned_goal_preempts_the_first_canceled_as_the_controller_does(rig: Rig) -> None:

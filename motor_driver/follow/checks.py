@@ -16,6 +16,9 @@ from motor_driver.follow.trajectory import Knot, Spline, sample_times
 
 #: Slack on the velocity limit for the sampled set-points (rounding of a spline that touches it).
 VELOCITY_SLACK = 1e-6
+#: A last point's velocity above this is not zero: joint_trajectory_controller's
+#: ``std::numeric_limits<float>::epsilon()`` (2**-23 rad/s), in deg/s.
+END_VELOCITY_EPSILON_DEG_S = math.degrees(2.0**-23)
 
 
 class GoalChecks:
@@ -97,8 +100,21 @@ class GoalChecks:
             for j, name in enumerate(goal.joints):
                 row.append(self._knot(goal, k, j, n, name))
             knots.append(tuple(row))
+        self._check_end_at_rest(goal, knots[-1])
         first = 1 if goal.times_s[0] == 0.0 else 0
         return goal.times_s[first:], tuple(knots[first:])
+
+    def _check_end_at_rest(self, goal: TrajectoryGoal, last: tuple[Knot, ...]) -> None:
+        """The last point's velocities zero (or none) unless ``allow_nonzero_velocity_at_trajectory_end``:
+        after it no set-point follows, so the joints would stop dead from that velocity within one SYNC
+        (joint_trajectory_controller's validate_trajectory_msg, INVALID_GOAL)."""
+        if self.config.allow_nonzero_velocity_at_trajectory_end:
+            return
+        for name, (_, velocity, _) in zip(goal.joints, last, strict=True):
+            if velocity is not None and abs(velocity) > END_VELOCITY_EPSILON_DEG_S:
+                raise refuse(TrajectoryCode.INVALID_GOAL, f"{name}: the trajectory's last point has a velocity of"
+                              f" {velocity:.6g} deg/s: it must end at rest (velocity 0, or none), or set"
+                              f" allow_nonzero_velocity_at_trajectory_end for group {self.name}; nothing moved")
 
     def _knot(self, goal: TrajectoryGoal, k: int, j: int, n: int, name: str) -> Knot:
         values: list[float | None] = []

@@ -7,7 +7,8 @@ Before anything moves (:meth:`TrajectoryGroup.plan`, on the caller's thread: :mo
 the standard's code (:class:`TrajectoryRejected`): joints unknown, repeated, of another group or
 not all of the group's unless ``allow_partial_joints_goal`` (INVALID_JOINTS); points of the wrong
 length, not finite, times not strictly increasing, a point or any sampled set-point beyond a joint's
-limits or its max velocity, a tolerance negative other than -1, a joint not usable (its verdict) or
+limits or its max velocity, a last point with a velocity (unless
+``allow_nonzero_velocity_at_trajectory_end``), a tolerance negative other than -1, a joint not usable (its verdict) or
 its motion held, a first point (at time 0) further than ``start_tolerance_deg`` from both its joint's
 set-point and its measured position (INVALID_GOAL); a header stamp whose trajectory is over already
 (OLD_HEADER_TIMESTAMP, the node's).

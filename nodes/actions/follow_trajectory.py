@@ -9,7 +9,8 @@ runs it on its own thread at the bus's SYNC; this side publishes feedback at the
 What can be judged at goal time is judged in the goal callback, as joint_trajectory_controller
 does, and a goal failing it is REJECTED, the reason logged (WARNING): joints unknown, repeated, of
 another group or not all of the group's (unless ``allow_partial_joints_goal``), points of the wrong
-size, not finite or not strictly increasing in time, beyond a joint's limits, a tolerance negative
+size, not finite or not strictly increasing in time, beyond a joint's limits, a last point with a
+velocity (unless ``allow_nonzero_velocity_at_trajectory_end``), a point with effort, a tolerance negative
 other than -1, a header stamp whose trajectory is over, a joint not usable or its motion held (the
 lifecycle node inactive). Each joint's switch to a streamed mode (SDO answers) happens there too,
 awaited off the executor: before acceptance, so that it never shifts the plan. Acceptance is the
@@ -91,6 +92,11 @@ def goal_from_message(request: Any, now_s: float) -> TrajectoryGoal:
         raise TrajectoryRejected(f"multi-DOF joints {list(request.multi_dof_trajectory.joint_names)}: this driver moves"
                                  " single-DOF joints only; nothing moved", code=int(TrajectoryCode.INVALID_JOINTS))
     points = trajectory.points
+    for k, point in enumerate(points):
+        if len(point.effort):
+            raise TrajectoryRejected(f"point {k} carries effort {list(point.effort)}: this driver commands positions"
+                                     " only (joint_trajectory_controller takes effort with an effort command interface"
+                                     " only); send no effort. Nothing moved", code=int(TrajectoryCode.INVALID_GOAL))
     times = tuple(_seconds(p.time_from_start) for p in points)
     stamp = _seconds(trajectory.header.stamp)
     delay = 0.0
