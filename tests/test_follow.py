@@ -20,7 +20,6 @@ from can_config import RoverConfig
 from can_config.errors import TrajectoryRejected
 from motor_driver import MotorDriver
 from motor_driver.follow import GoalRun, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
-from motor_driver.follow.goal import PREEMPTED
 from motor_driver.follow.trajectory import Spline
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -308,9 +307,9 @@ def test_a_new_goal_preempts_the_old_at_its_setpoint_without_a_jump(arm: Arm) ->
     wait_for(lambda: first.progress is not None and first.progress.time_s > 1.5, 20.0, "the first goal half way")
     here = angle(arm, "joint1")
     second = arm.group.follow(goal((0.0, (here, 0.0)), (2.0, (0.0, 0.0))))
-    # as joint_trajectory_controller: the older goal CANCELED with INVALID_GOAL and its words
+    # as joint_trajectory_controller (jazzy >= 4.41.0): the older goal ABORTED with INVALID_GOAL and its words
     assert finished(first) == TrajectoryCode.INVALID_GOAL and first.outcome is not None
-    assert first.outcome.canceled and first.outcome.message == PREEMPTED
+    assert not first.outcome.canceled and first.outcome.message == "Current goal preempted by new incoming action."
     assert finished(second) == TrajectoryCode.SUCCESSFUL, second.outcome
     scale = arm.driver.drive("joint1").cache.scale
     frames = frames_after(arm)

@@ -491,6 +491,16 @@ def test_move_joint_gives_up_after_its_overall_timeout(rig: Rig, monkeypatch: py
     client.destroy()
 
 
+def assert_preempted(older: Any) -> None:
+    """Ended as joint_trajectory_controller (jazzy >= 4.41.0, preempt_active_goal) ends a goal a newer
+    one preempts: ABORTED, INVALID_GOAL, its words (up to 4.40: CANCELED, "cancelled due to")."""
+    from action_msgs.msg import GoalStatus
+
+    assert older.status == GoalStatus.STATUS_ABORTED, (older.status, older.result.error_string)
+    assert older.result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
+    assert older.result.error_string == "Current goal preempted by new incoming action."
+
+
 @pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
 def test_goals_start_in_the_order_they_came_while_the_first_waits_on_the_drive(rig: Rig) -> None:
     """A second goal sent while the first one's switch to streaming waits on the drive starts
@@ -508,9 +518,7 @@ def test_goals_start_in_the_order_they_came_while_the_first_waits_on_the_drive(r
     first, second = asked.result(), again.result()
     assert first.accepted and second.accepted
     older, newer = result_of(first), result_of(second)
-    assert older.status == GoalStatus.STATUS_CANCELED, older.result.error_string
-    assert older.result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
-    assert older.result.error_string == "Current goal cancelled due to new incoming action."
+    assert_preempted(older)
     assert newer.status == GoalStatus.STATUS_SUCCEEDED, newer.result.error_string
 
 
@@ -584,11 +592,11 @@ def test_a_trajectory_ending_in_motion_or_with_effort_is_rejected_and_nothing_mo
     assert max(abs(p) for p in positions(rig)) <= 0.1, positions(rig)
 
 
-def test_a_replanned_goal_preempts_the_first_canceled_as_the_controller_does(rig: Rig) -> None:
+def test_a_replanned_goal_preempts_the_first_aborted_as_the_controller_does(rig: Rig) -> None:
     """MoveIt's replan: a second goal from /joint_states 1.5 s into a first. It is accepted; the
-    first ends CANCELED with INVALID_GOAL and joint_trajectory_controller's message; the second
-    is joined from the set-point and succeeds. (It was refused on the start tolerance, and the
-    preempted goal ended ABORTED.)"""
+    first ends ABORTED with INVALID_GOAL and joint_trajectory_controller's message (jazzy >= 4.41.0;
+    it ended CANCELED as up to 4.40); the second is joined from the set-point and succeeds. (It was
+    refused on the start tolerance once.)"""
     from action_msgs.msg import GoalStatus
 
     feedback: list[Any] = []
@@ -605,9 +613,7 @@ def test_a_replanned_goal_preempts_the_first_canceled_as_the_controller_does(rig
     second = send(rig, replan)
     assert second.accepted
     older, newer = result_of(first), result_of(second)
-    assert older.status == GoalStatus.STATUS_CANCELED, older.result.error_string
-    assert older.result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
-    assert older.result.error_string == "Current goal cancelled due to new incoming action."
+    assert_preempted(older)
     assert newer.status == GoalStatus.STATUS_SUCCEEDED, newer.result.error_string
 
 

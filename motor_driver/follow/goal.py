@@ -49,13 +49,14 @@ class TrajectoryGoal:
     start_delay_s: float = 0.0  # from its acceptance (a header stamp in the future)
 
 
-#: A goal preempted by a newer one ends CANCELED with INVALID_GOAL and joint_trajectory_controller's words.
-PREEMPTED = "Current goal cancelled due to new incoming action."
+#: A goal preempted by a newer one ends ABORTED with INVALID_GOAL and joint_trajectory_controller's words
+#: (ros2_controllers jazzy >= 4.41.0, preempt_active_goal; before: CANCELED, "cancelled due to").
+PREEMPTED = "Current goal preempted by new incoming action."
 
 
 @dataclass(frozen=True)
 class Outcome:
-    """How a goal ended: ``canceled`` for a cancel and a preemption (the action's CANCELED)."""
+    """How a goal ended: ``canceled`` for a cancel (the action's CANCELED); a preemption is not one."""
 
     code: TrajectoryCode
     message: str

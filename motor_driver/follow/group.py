@@ -39,7 +39,7 @@ GOAL_TOLERANCE_VIOLATED); PATH_TOLERANCE_VIOLATED when a joint strays further th
 tolerance, or refuses a set-point, or its drive's verdict (:mod:`motor_driver.drive.verdict`, the one
 every part reads) is not usable: lost, late beyond its staleness bound, faulted, held, stopped;
 CANCELED at once on a cancel (the group's thread is woken by it, whether or not a sample comes);
-CANCELED with INVALID_GOAL and joint_trajectory_controller's words (:data:`PREEMPTED`) when a newer
+ABORTED with INVALID_GOAL and joint_trajectory_controller's words (:data:`PREEMPTED`) when a newer
 goal is handed over. A cancel's or a failure's joints ramp down at ``stop_deceleration_deg_s2`` and
 then hold (no more set-points: a CSP drive holds its last target); a joint whose verdict is not
 usable is sent nothing more (it holds, or stopped itself).
@@ -197,7 +197,7 @@ class TrajectoryGroup:
 
     def start(self, plan: Plan, start_at: float, cancelled: bool = False) -> GoalRun:
         """Hand a checked plan (its joints streaming: :meth:`prepare`) to the group's thread, which
-        takes it at once: the goal running (or pending) ends CANCELED (:data:`PREEMPTED`). ``start_at``:
+        takes it at once: the goal running (or pending) ends INVALID_GOAL (:data:`PREEMPTED`). ``start_at``:
         the plan's time zero on the monotonic clock. ``cancelled``: the run ends "cancelled before it
         started" and the goal running goes on."""
         run = GoalRun(plan, start_at, wake=self._tick.set)
@@ -213,7 +213,7 @@ class TrajectoryGroup:
                 return run
             older, self._pending = self._pending, run
         if older is not None:
-            older.finish(Outcome(TrajectoryCode.INVALID_GOAL, PREEMPTED, canceled=True))
+            older.finish(Outcome(TrajectoryCode.INVALID_GOAL, PREEMPTED))
         self._wake.set()
         self._tick.set()  # a thread waiting for the clock takes it now
         return run
@@ -329,7 +329,7 @@ class TrajectoryGroup:
         start = self._reference(joints)
         old = self._running
         if old is not None:  # its joints ramp from its last set-point until the new spline takes them
-            old.run.finish(Outcome(TrajectoryCode.INVALID_GOAL, PREEMPTED, canceled=True))
+            old.run.finish(Outcome(TrajectoryCode.INVALID_GOAL, PREEMPTED))
             self._to_ramp(old)
         drives = tuple(self.drives[j] for j in joints)
         self._running = _Running(run, drives, last_desired=tuple((p, v or 0.0, a or 0.0) for p, v, a in start),

@@ -17,8 +17,8 @@ awaited off the executor: before acceptance, so that it never shifts the plan. A
 plan's time zero (header stamp zero), or the stamp: the group samples the plan at each SYNC's time
 from it (motor_driver/follow/group.py).
 
-A newer goal preempts: it is accepted and the older one ends CANCELED with INVALID_GOAL and "Current
-goal cancelled due to new incoming action." (the controller's words); the new plan is joined from
+A newer goal preempts: it is accepted and the older one ends ABORTED with INVALID_GOAL and "Current
+goal preempted by new incoming action." (the controller's, jazzy >= 4.41.0); the new plan is joined from
 the current set-point. A cancel is passed to the group in the cancel callback and wakes its thread:
 the goal ends CANCELED within a SYNC period whether or not samples come, its joints then ramp down
 and hold. What goes wrong later ends ABORTED with the standard's code and a message naming the joint.
@@ -266,7 +266,7 @@ class FollowTrajectoryServer:
             outcome = run.outcome
             assert outcome is not None  # done is set with it
             result.error_code, result.error_string = int(outcome.code), outcome.message
-            if outcome.canceled and not goal_handle.is_cancel_requested:  # preempted: CANCELED, as the controller
+            if outcome.canceled and not goal_handle.is_cancel_requested:  # a cancel ended it before rclpy's state did
                 goal_handle._update_state(GoalEvent.CANCEL_GOAL)  # rclpy's one way there (its cancel service's)
             if goal_handle.is_cancel_requested or outcome.canceled:
                 goal_handle.canceled()
