@@ -297,7 +297,9 @@ class TrajectoryGroupConfig:
                                          " (GOAL_TOLERANCE_VIOLATED); 0: not checked. A goal's own tolerance wins")
     goal_time_tolerance_s: float = key("float", 1000.0, 0.0, 60_000.0, yaml="goal_time_tolerance_ms", scale=1000,
                                        unit="ms", help="how long after the trajectory's end the joints may take to get"
-                                                       " within the goal tolerance (a goal's own value wins)")
+                                                       " within the goal tolerance (a goal's own value wins); 0: no"
+                                                       " bound, the goal waits until they are (as"
+                                                       " joint_trajectory_controller's goal_time 0)")
     start_tolerance_deg: float = key("float", 2.0, 0.0, 360.0, low_open=True, unit="deg",
                                      help="a trajectory whose first point (at time 0) is further than this from both a"
                                           " joint's set-point and its measured position is rejected: nothing moves")

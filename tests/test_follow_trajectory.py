@@ -85,7 +85,10 @@ def rig(monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> Iter
     monkeypatch.setattr(spinning, "IDLE_POLL_S", 600.0)  # the idle executors never poll: a goal's pause wakes them
     param = dict(getattr(request, "param", {}))  # indirect: the drives' settings changed, or the SYNC's
     sync_s = param.pop("sync_period_s", None)
+    group_keys = param.pop("group", {})  # the trajectory group's settings changed
     config = make_config(2, **ARM | param)
+    config = dataclasses.replace(config, trajectory_groups=tuple(dataclasses.replace(g, **group_keys)
+                                                                 for g in config.trajectory_groups))
     if sync_s is not None:  # the arm's bus at another SYNC rate, the drives' staleness bound in time kept
         config = dataclasses.replace(config, buses=tuple(dataclasses.replace(b, sync_period_s=sync_s) for b in config.buses),
                                      drives=tuple(dataclasses.replace(d, stale_after_syncs=in_process_stale_after_syncs(sync_s))
@@ -590,6 +593,34 @@ def test_a_trajectory_ending_in_motion_or_with_effort_is_rejected_and_nothing_mo
     n = len(rig.states)
     wait_for(lambda: len(rig.states) > n + 5, HANG_S, "/joint_states after the rejections")
     assert max(abs(p) for p in positions(rig)) <= 0.1, positions(rig)
+
+
+@pytest.mark.parametrize("rig", [{"group": {"goal_time_tolerance_s": 0.0}}], indirect=True)
+def test_a_goal_time_tolerance_of_zero_waits_for_the_goal_without_a_bound(rig: Rig) -> None:
+    """joint_trajectory_controller's update() bounds the wait for the goal tolerance only where
+    goal_time != 0: the group's goal_time_tolerance_ms 0 (a JTC config ported), the goal's 0 (the
+    group's), and a goal tolerance no count of the encoder meets (10.0009 deg: 0.0007 deg at least
+    from every count): the goal stays active after its end, 100 /joint_states on, until cancelled.
+    (It ended GOAL_TOLERANCE_VIOLATED at the first SYNC after its end.)"""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.msg import JointTolerance
+
+    goal = FollowJointTrajectory.Goal()
+    goal.trajectory.joint_names = ["joint1", "joint2"]
+    goal.trajectory.points = [JointTrajectoryPoint(positions=[math.radians(10.0009), 0.0], velocities=[0.0, 0.0],
+                                                   time_from_start=Duration(sec=0, nanosec=500_000_000))]
+    goal.goal_tolerance = [JointTolerance(name="joint1", position=1e-6)]
+    feedback: list[Any] = []
+    handle = send(rig, goal, feedback)
+    assert handle.accepted
+    ended = handle.get_result_async()
+    wait_for(lambda: ended.done() or any(seconds(f.desired.time_from_start) >= 0.5 for f in feedback), HANG_S,
+             "the trajectory's end")
+    n = len(rig.states)
+    wait_for(lambda: ended.done() or len(rig.states) > n + 100, HANG_S, "100 /joint_states after the end")
+    assert not ended.done(), ended.result().result.error_string
+    handle.cancel_goal_async()
+    assert result_of(handle).status == GoalStatus.STATUS_CANCELED
 
 
 def test_a_replanned_goal_preempts_the_first_aborted_as_the_controller_does(rig: Rig) -> None:

@@ -45,7 +45,8 @@ class GoalChecks:
     def _tolerances(self, goal: TrajectoryGoal) -> tuple[tuple[Tolerance, ...], tuple[Tolerance, ...], float]:
         """Each joint's path and goal tolerance and the goal time tolerance, as joint_trajectory_controller
         resolves them: the goal's value where it gives one, 0 the group's default, -1 none; the group's
-        stopped velocity tolerance the default at the goal; any other negative refused (INVALID_GOAL)."""
+        stopped velocity tolerance the default at the goal; any other negative refused (INVALID_GOAL). A goal
+        time tolerance of 0 (the goal's and the group's) is no bound: the goal waits for its tolerance."""
         cfg = self.config
         for kind, given in (("path", goal.path_tolerance), ("goal", goal.goal_tolerance)):
             for name in given:

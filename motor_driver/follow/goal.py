@@ -82,7 +82,7 @@ class Plan:
     knots: tuple[tuple[Knot, ...], ...]
     path: tuple[Tolerance, ...]  # resolved per joint: -1 none
     final: tuple[Tolerance, ...]
-    goal_time_s: float
+    goal_time_s: float  # 0: no bound
 
 
 class GoalRun:

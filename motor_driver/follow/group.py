@@ -35,7 +35,8 @@ preempted goal's) or hold until then.
 
 A goal ends: SUCCESSFUL once every joint is within its goal tolerance (position, and the stopped
 velocity tolerance) after the last set-point (within the goal time tolerance: else
-GOAL_TOLERANCE_VIOLATED); PATH_TOLERANCE_VIOLATED when a joint strays further than its path
+GOAL_TOLERANCE_VIOLATED; a goal time tolerance of 0 waits without a bound, as
+joint_trajectory_controller's update()); PATH_TOLERANCE_VIOLATED when a joint strays further than its path
 tolerance, or refuses a set-point, or its drive's verdict (:mod:`motor_driver.drive.verdict`, the one
 every part reads) is not usable: lost, late beyond its staleness bound, faulted, held, stopped;
 CANCELED at once on a cancel (the group's thread is woken by it, whether or not a sample comes);
@@ -573,7 +574,7 @@ class TrajectoryGroup:
         if far is None:
             self._running = None
             running.run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "at the goal"))
-        elif after_s > plan.goal_time_s:
+        elif 0.0 < plan.goal_time_s < after_s:  # 0: no bound (joint_trajectory_controller's update())
             self._running = None  # it holds the last set-point
             running.run.finish(Outcome(TrajectoryCode.GOAL_TOLERANCE_VIOLATED,
                                        f"{far}, {after_s:.2f} s after the trajectory's end (goal time tolerance"
