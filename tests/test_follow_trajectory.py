@@ -595,6 +595,27 @@ def test_a_trajectory_ending_in_motion_or_with_effort_is_rejected_and_nothing_mo
     assert max(abs(p) for p in positions(rig)) <= 0.1, positions(rig)
 
 
+def send_to_an_unreachable_goal(rig: Rig, joint1_deg: float, end_s: float, path_tolerance_rad: float = 0.0) -> Any:
+    """A goal of one point at ``end_s`` s, joint1 to ``joint1_deg`` (between two counts of its encoder:
+    its goal tolerance of 1e-6 rad is never met); the handle and its result's future once the
+    trajectory's end is past (its feedback there), or the goal ended."""
+    from control_msgs.msg import JointTolerance
+
+    goal = FollowJointTrajectory.Goal()
+    goal.trajectory.joint_names = ["joint1", "joint2"]
+    goal.trajectory.points = [JointTrajectoryPoint(positions=[math.radians(joint1_deg), 0.0], velocities=[0.0, 0.0],
+                                                   time_from_start=Duration(sec=0, nanosec=int(end_s * 1e9)))]
+    goal.path_tolerance = [JointTolerance(name="joint1", position=path_tolerance_rad)]
+    goal.goal_tolerance = [JointTolerance(name="joint1", position=1e-6)]
+    feedback: list[Any] = []
+    handle = send(rig, goal, feedback)
+    assert handle.accepted
+    ended = handle.get_result_async()
+    wait_for(lambda: ended.done() or any(seconds(f.desired.time_from_start) >= end_s for f in feedback), HANG_S,
+             "the trajectory's end")
+    return handle, ended
+
+
 @pytest.mark.parametrize("rig", [{"group": {"goal_time_tolerance_s": 0.0}}], indirect=True)
 def test_a_goal_time_tolerance_of_zero_waits_for_the_goal_without_a_bound(rig: Rig) -> None:
     """joint_trajectory_controller's update() bounds the wait for the goal tolerance only where
@@ -603,21 +624,31 @@ def test_a_goal_time_tolerance_of_zero_waits_for_the_goal_without_a_bound(rig: R
     from every count): the goal stays active after its end, 100 /joint_states on, until cancelled.
     (It ended GOAL_TOLERANCE_VIOLATED at the first SYNC after its end.)"""
     from action_msgs.msg import GoalStatus
-    from control_msgs.msg import JointTolerance
 
-    goal = FollowJointTrajectory.Goal()
-    goal.trajectory.joint_names = ["joint1", "joint2"]
-    goal.trajectory.points = [JointTrajectoryPoint(positions=[math.radians(10.0009), 0.0], velocities=[0.0, 0.0],
-                                                   time_from_start=Duration(sec=0, nanosec=500_000_000))]
-    goal.goal_tolerance = [JointTolerance(name="joint1", position=1e-6)]
-    feedback: list[Any] = []
-    handle = send(rig, goal, feedback)
-    assert handle.accepted
-    ended = handle.get_result_async()
-    wait_for(lambda: ended.done() or any(seconds(f.desired.time_from_start) >= 0.5 for f in feedback), HANG_S,
-             "the trajectory's end")
+    handle, ended = send_to_an_unreachable_goal(rig, 10.0009, 0.5)
     n = len(rig.states)
     wait_for(lambda: ended.done() or len(rig.states) > n + 100, HANG_S, "100 /joint_states after the end")
+    assert not ended.done(), ended.result().result.error_string
+    handle.cancel_goal_async()
+    assert result_of(handle).status == GoalStatus.STATUS_CANCELED
+
+
+@pytest.mark.parametrize("rig", [{"group": {"goal_time_tolerance_s": 0.0}}], indirect=True)
+def test_the_path_tolerance_ends_with_the_trajectory(rig: Rig) -> None:
+    """joint_trajectory_controller's update() checks the path (state) tolerance only before the last
+    point: past the end only the goal tolerance and the goal time apply. A goal to 0.0009 deg (no
+    count of the encoder meets its goal tolerance; goal time 0: no bound) with a path tolerance of
+    1e-3 rad, and a load within the drive's torque pushing joint1 off after the end (0.2 deg and more):
+    the goal stays active, 100 /joint_states on, until cancelled. (It ended PATH_TOLERANCE_VIOLATED.)"""
+    from action_msgs.msg import GoalStatus
+
+    handle, ended = send_to_an_unreachable_goal(rig, 0.0009, 0.2, path_tolerance_rad=1e-3)
+    n = len(rig.states)
+    apply_action(rig.sim, {"action": "load", "node": 1, "nm": 2.5})
+    try:
+        wait_for(lambda: ended.done() or len(rig.states) > n + 100, HANG_S, "100 /joint_states after the load")
+    finally:
+        apply_action(rig.sim, {"action": "load", "node": 1, "nm": 0.0})
     assert not ended.done(), ended.result().result.error_string
     handle.cancel_goal_async()
     assert result_of(handle).status == GoalStatus.STATUS_CANCELED

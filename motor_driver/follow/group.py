@@ -36,9 +36,10 @@ preempted goal's) or hold until then.
 A goal ends: SUCCESSFUL once every joint is within its goal tolerance (position, and the stopped
 velocity tolerance) after the last set-point (within the goal time tolerance: else
 GOAL_TOLERANCE_VIOLATED; a goal time tolerance of 0 waits without a bound, as
-joint_trajectory_controller's update()); PATH_TOLERANCE_VIOLATED when a joint strays further than its path
-tolerance, or refuses a set-point, or its drive's verdict (:mod:`motor_driver.drive.verdict`, the one
-every part reads) is not usable: lost, late beyond its staleness bound, faulted, held, stopped;
+joint_trajectory_controller's update()); PATH_TOLERANCE_VIOLATED when a joint strays further than
+its path tolerance before the trajectory's end (after it only the goal tolerance applies), or
+refuses a set-point, or its drive's verdict (:mod:`motor_driver.drive.verdict`, the one every part
+reads) is not usable: lost, late beyond its staleness bound, faulted, held, stopped;
 CANCELED at once on a cancel (the group's thread is woken by it, whether or not a sample comes);
 ABORTED with INVALID_GOAL and joint_trajectory_controller's words (:data:`PREEMPTED`) when a newer
 goal is handed over. A cancel's or a failure's joints ramp down at ``stop_deceleration_deg_s2`` and
@@ -535,7 +536,8 @@ class TrajectoryGroup:
         running.last_t = offset
 
     def _strayed(self, running: _Running, actual: tuple[tuple[float, float], ...]) -> str | None:
-        """The first joint outside its path tolerance (from the set-point it is following), lost, or
+        """The first joint outside its path tolerance (from the set-point it is following; until the
+        trajectory's end, as joint_trajectory_controller's before_last_point), lost, or
         without a position sample for more than its stale_after_syncs of the clock's SYNCs (counted,
         not timed: a starved process catches up on the samples in order)."""
         for i, (drive, tol, (p, v, _), (ap, av)) in enumerate(zip(running.joints, running.run.plan.path,
@@ -548,8 +550,10 @@ class TrajectoryGroup:
                         f"{drive.config.stale_after_syncs}) mid-goal; the group stops")
             # while set-points go out, each is refused with the verdict's cause by the drive's own
             # check (stream_position: late, lost, not enabled); after the last one it is read here
-            if running.final_sent and (why := self._unusable(drive)) is not None:
-                return f"{drive.name}: {why} mid-goal; the group stops"
+            if running.final_sent:  # past the end only the goal tolerance and the goal time apply
+                if (why := self._unusable(drive)) is not None:  # (joint_trajectory_controller: before_last_point)
+                    return f"{drive.name}: {why} mid-goal; the group stops"
+                continue
             if tol.position_deg > 0 and abs(ap - p) > tol.position_deg:
                 return (f"{drive.name}: {abs(ap - p):.3f} deg from the trajectory ({ap:.3f} deg, set-point {p:.3f});"
                         f" path tolerance {tol.position_deg:g} deg")
