@@ -346,6 +346,29 @@ def test_a_goal_stamped_ahead_that_preempts_holds_where_the_ramp_ended(arm: Arm)
     assert path[-1] == pytest.approx(40.0, abs=0.01)
 
 
+def test_a_newer_goal_cancelled_before_the_group_took_it_still_preempts_the_older(arm: Arm) -> None:
+    """joint_trajectory_controller aborts the goal running when a newer one is accepted; a cancel of
+    the newer one then leaves the joints holding. Here the group's thread takes a newer goal at its
+    next turn: a cancel that came first (the hook below, at the thread's take) ends the newer goal
+    and the older one too, whose joints ramp down and hold; it went on moving before."""
+    first = arm.group.follow(goal((4.0, (60.0, 0.0))))
+    wait_for(lambda: first.progress is not None and first.progress.time_s > 1.0, 20.0, "the first goal under way")
+    take = arm.group._start
+
+    def cancelled_first(run: GoalRun) -> None:
+        run.cancel()  # the client's cancel, come before the group's thread took the goal
+        take(run)
+
+    arm.group._start = cancelled_first  # type: ignore[method-assign]
+    second = arm.group.follow(goal((0.0, (angle(arm, "joint1"), 0.0)), (2.0, (0.0, 0.0))))
+    assert finished(second) == TrajectoryCode.SUCCESSFUL and second.outcome is not None and second.outcome.canceled
+    assert finished(first) == TrajectoryCode.INVALID_GOAL, first.outcome
+    wait_for(lambda: not arm.group.ramping, RESULT_S, "the ramp done")
+    assert not streamed_later(arm), "streamed after the ramp"
+    ramped_down(arm, 1)
+    assert 2.0 < angle(arm, "joint1") < 59.0
+
+
 def test_cancel_ramps_the_group_down_and_it_holds(arm: Arm) -> None:
     run = arm.group.follow(goal((3.0, (60.0, -60.0))))
     wait_for(lambda: run.progress is not None and run.progress.time_s > 1.0, 20.0, "the goal under way")

@@ -324,15 +324,17 @@ class TrajectoryGroup:
         self._step_ramp()
 
     def _start(self, run: GoalRun) -> None:
-        if run.cancel_requested:
-            run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "cancelled before it started", canceled=True))
-            return
         joints = run.plan.goal.joints
-        start = self._reference(joints)
+        start = None if run.cancel_requested else self._reference(joints)  # with the running goal's acceleration
         old = self._running
         if old is not None:  # its joints ramp from its last set-point until the new spline takes them
             old.run.finish(Outcome(TrajectoryCode.INVALID_GOAL, PREEMPTED))
             self._to_ramp(old)
+        if start is None:  # cancelled before the thread took it: the older goal was preempted all the same,
+            # at the newer one's acceptance (joint_trajectory_controller's preempt_active_goal); its joints
+            # ramp down and hold
+            run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "cancelled before it started", canceled=True))
+            return
         drives = tuple(self.drives[j] for j in joints)
         self._running = _Running(run, drives, last_desired=tuple((p, v or 0.0, a or 0.0) for p, v, a in start),
                                  seen=[d.cache.position_seq for d in drives], quiet=[0] * len(drives))
