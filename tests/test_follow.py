@@ -150,7 +150,11 @@ def test_tolerances_take_the_controllers_meanings(arm: Arm) -> None:
                           Tolerance(0.5, cfg.stopped_velocity_tolerance_deg_s))
     refused(arm, goal((1.0, (10.0, 5.0)), goal_tolerance={"joint2": Tolerance(-0.5, 0.0)}),
             TrajectoryCode.INVALID_GOAL, "joint2", "goal position tolerance -0.5")
-    refused(arm, goal((1.0, (10.0, 5.0)), goal_time_tolerance_s=-1.0), TrajectoryCode.INVALID_GOAL,
+    # the goal time: -1 erases the bound (joint_trajectory_controller's resolve_tolerance_source, then
+    # 0: no bound in its update()); 0 the group's; any other negative refused
+    assert arm.group.plan(goal((1.0, (10.0, 5.0)), goal_time_tolerance_s=-1.0)).goal_time_s == 0.0
+    assert arm.group.plan(goal((1.0, (10.0, 5.0)))).goal_time_s == cfg.goal_time_tolerance_s > 0.0
+    refused(arm, goal((1.0, (10.0, 5.0)), goal_time_tolerance_s=-0.5), TrajectoryCode.INVALID_GOAL,
             "goal_time_tolerance")
 
 

@@ -46,7 +46,7 @@ class GoalChecks:
         """Each joint's path and goal tolerance and the goal time tolerance, as joint_trajectory_controller
         resolves them: the goal's value where it gives one, 0 the group's default, -1 none; the group's
         stopped velocity tolerance the default at the goal; any other negative refused (INVALID_GOAL). A goal
-        time tolerance of 0 (the goal's and the group's) is no bound: the goal waits for its tolerance."""
+        time tolerance of 0 (the group's) or -1 (the goal's) is no bound: the goal waits for its tolerance."""
         cfg = self.config
         for kind, given in (("path", goal.path_tolerance), ("goal", goal.goal_tolerance)):
             for name in given:
@@ -58,9 +58,11 @@ class GoalChecks:
         final = tuple(self._tolerance(j, "goal", goal.goal_tolerance.get(j), cfg.goal_tolerance_deg,
                                       cfg.stopped_velocity_tolerance_deg_s) for j in goal.joints)
         given_s = goal.goal_time_tolerance_s
+        if given_s == -1.0:  # "erased" (control_msgs' JointTolerance meanings): no bound, as 0 in the controller
+            return path, final, 0.0
         if not (math.isfinite(given_s) and given_s >= 0.0):
             raise refuse(TrajectoryCode.INVALID_GOAL, f"trajectory group {self.name}: goal_time_tolerance {given_s!r} s:"
-                          " allowed 0 (the group's default) or more; nothing moved")
+                          " allowed -1 (no bound), 0 (the group's default) or more; nothing moved")
         return path, final, given_s if given_s > 0 else cfg.goal_time_tolerance_s
 
     def _check_joints(self, joints: Sequence[str]) -> None:
