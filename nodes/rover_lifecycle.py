@@ -41,7 +41,9 @@ driver and no bus). A transition that raised unexpectedly is logged with its tra
 safe stop first. A ``change_state`` request for a transition the current state does not have
 (Nav2's RESET after PAUSE asks for deactivate twice) is answered ``success=false`` and logged, as
 rclcpp's managed nodes answer it (rclpy's own sends no answer: its client, a lifecycle manager,
-waits for ever). Transitions run one at a time: the auto-start's and the service's alike.
+waits for ever). Transitions run one at a time: the auto-start's and the service's alike. While
+active the node keeps a bond with a lifecycle manager (Nav2's waits for it after activate:
+:mod:`nodes.process.bond`), unless ``bond_heartbeat_period`` is 0.
 
 Owner: the lifecycle transitions run on the node's service executor thread; the nodes it
 makes at configure are served by the process's executors (nodes/assembly.py).
@@ -68,6 +70,7 @@ from motor_driver import MotorDriver
 from motor_driver.process import heap
 from nodes.assembly import Assembly, set_up
 from nodes.process import spinning
+from nodes.process.bond import BondHeartbeat, bond_interface
 from nodes.process.params import declare
 from nodes.process.spinning import CallbackFailures
 
@@ -97,9 +100,10 @@ class DriveLifecycleNode(LifecycleNode):
         """``hot``: where the drives' ROS interface spins; None (``main``): the process set-up from
         this node's parameters (nodes/assembly.py), which may raise :class:`ConfigError`."""
         super().__init__("rovercan_lifecycle", **kwargs)
-        declare(self, "config", "autostart")
+        declare(self, "config", "autostart", "bond_heartbeat_period")
         self.hot = set_up(self).hot if hot is None else hot
         self.assembly: Assembly | None = None
+        self.bond: BondHeartbeat | None = None  # with a lifecycle manager, while active (nodes/process/bond.py)
         self.callback_failures = CallbackFailures()  # spinning.spin_until counts what escapes here too
         self.transitions = threading.Lock()  # one transition at a time: the auto-start's, the service's
         service = self._service_change_state
@@ -188,10 +192,12 @@ class DriveLifecycleNode(LifecycleNode):
             "every drive armed (arm:=true)" if asked is None else
             f"{', '.join(asked)} armed (arm_on_start); the others on /arm" if asked
             else "no drive enabled: call /arm (std_srvs/Trigger), or launch with arm:=true"))
+        self._make_bond()
         return super().on_activate(state)
 
     @supervised
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        self._break_bond()  # as Nav2's managed nodes: the bond ends with the activity
         if self.driver is not None:
             self.driver.hold_motion(self.inactive)  # first: nothing re-enables a drive once it is stopped
         failed = self.stop_drives()
@@ -250,8 +256,30 @@ class DriveLifecycleNode(LifecycleNode):
         # rovercan_lifecycle whose change_state nobody answers)
         self._state_machine.destroy_when_not_in_use()
 
+    def _make_bond(self) -> None:
+        """The bond with a lifecycle manager (Nav2's waits for it after each activate), where asked
+        (``bond_heartbeat_period`` > 0) and the bond interface is installed."""
+        period = float(self.get_parameter("bond_heartbeat_period").value)
+        if period <= 0.0 or self.bond is not None:
+            return
+        status = bond_interface()
+        if status is None:
+            self.get_logger().warning("no bond with a lifecycle manager: the bond interface package is not installed"
+                                      " (apt: ros-jazzy-bond); a Nav2 lifecycle_manager with bond_timeout > 0 fails"
+                                      " its STARTUP here: install it, or set the manager's bond_timeout to 0")
+            return
+        self.bond = BondHeartbeat(self, status, period)
+        spinning.supervise(self, self.callback_failures)  # its timer and subscription, as the node's others
+
+    def _break_bond(self) -> None:
+        if self.bond is not None:
+            self.bond.close()
+            self.bond = None
+
     def release(self) -> None:
-        """The assembly closed (drives safe, threads joined, interface gone, bus released)."""
+        """The bond broken, the assembly closed (drives safe, threads joined, interface gone, bus
+        released)."""
+        self._break_bond()
         if self.assembly is not None:
             self.assembly.close()
             self.assembly = None

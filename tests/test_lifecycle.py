@@ -786,3 +786,90 @@ def test_a_stop_signal_during_the_auto_starts_configure_activates_nothing(tmp_pa
         assert proc.returncode == 0 and "auto-start ended by a stop signal" in out, out[-2000:]
         runner = sim.simulators["can0"]
         assert runner.call(lambda: runner.drive(1).state.name) == "SWITCH_ON_DISABLED", out[-2000:]
+
+
+# ---------------------------------------------------------------------------- the bond with Nav2's manager
+class ManagerBond:
+    """The manager's side of a bond as Nav2's lifecycle_manager makes it after an activate
+    (bondcpp: Status on ``bond`` under the managed node's name, its own instance id, every 0.1 s;
+    formed once the other side is heard active), on the probe's node, the real message type."""
+
+    def __init__(self, probe: Probe, node_name: str) -> None:
+        import uuid
+
+        from bond.msg import Status
+
+        self.probe, self.id, self.instance_id = probe, node_name, str(uuid.uuid4())
+        self.heard: list[Any] = []  # the other side's Statuses, in order
+        self.pub = probe.node.create_publisher(Status, "bond", 5)
+        self.sub = probe.node.create_subscription(Status, "bond", self._on_status, 100)
+        self.status = Status
+
+    def _on_status(self, msg: Any) -> None:
+        if msg.id == self.id and msg.instance_id != self.instance_id:
+            self.heard.append(msg)
+
+    def say(self, active: bool) -> None:
+        msg = self.status(id=self.id, instance_id=self.instance_id, active=active, heartbeat_timeout=4.0,
+                          heartbeat_period=0.1)
+        self.pub.publish(msg)
+
+    def beating(self, done: Any) -> Any:
+        """``done``, looked at after each of this side's heartbeats (they go on while it waits)."""
+        def beat() -> bool:
+            self.say(True)
+            return bool(done())
+        return beat
+
+    def formed(self) -> bool:
+        """bondcpp's waitUntilFormed: the other side heard active."""
+        return any(m.active for m in self.heard)
+
+
+def test_the_active_node_keeps_a_bond_with_a_nav2_lifecycle_manager(tmp_path: Path) -> None:
+    """Nav2's lifecycle_manager (bond_timeout > 0, its default) forms a bond with each node after
+    activating it and fails its STARTUP without one. rover_lifecycle makes it at activate as Nav2's
+    managed nodes do: heartbeats under its name, active, with the periods said; at deactivate one
+    inactive Status breaks it and its entities go; a manager that breaks it first is answered
+    inactive and heard no more."""
+    with make_rig(tmp_path) as (node, sim, _, _), _probe(node.context) as probe:
+        manager = ManagerBond(probe, "rovercan_lifecycle")
+
+        def change(transition_id: int) -> None:
+            request = ChangeState.Request(transition=Transition(id=transition_id))
+            assert probe.call(ChangeState, "/rovercan_lifecycle/change_state", request).success, transition_id
+
+        change(Transition.TRANSITION_CONFIGURE)
+        assert node.count_publishers("/bond") == 1  # the manager's only: no bond before activate
+        change(Transition.TRANSITION_ACTIVATE)
+        probe.wait(manager.beating(manager.formed), 30.0, "the bond formed (rovercan_lifecycle heard active)")
+        first = manager.heard[0]
+        assert (first.heartbeat_period, first.heartbeat_timeout) == (pytest.approx(0.1), pytest.approx(4.0))
+        sides = {m.instance_id for m in manager.heard}
+        assert len(sides) == 1 and sides != {manager.instance_id}
+        probe.wait(manager.beating(lambda: node.bond is not None and node.bond.sister == manager.instance_id), 30.0,
+                   "the node heard the manager's side")
+        count = len(manager.heard)
+        change(Transition.TRANSITION_DEACTIVATE)  # Nav2's PAUSE
+        probe.wait(lambda: any(not m.active for m in manager.heard[count:]), 30.0, "the bond broken by the node")
+        assert node.bond is None and node.count_publishers("/bond") == 1
+        # activate again (RESUME): a new bond, a new instance; the manager breaks this one first
+        change(Transition.TRANSITION_ACTIVATE)
+        probe.wait(lambda: any(m.active and m.instance_id not in sides for m in manager.heard), 30.0, "a new bond")
+        bond = node.bond
+        assert bond is not None
+        probe.wait(manager.beating(lambda: bond.sister == manager.instance_id), 30.0, "the manager's side heard")
+        count = len(manager.heard)
+        manager.say(False)
+        probe.wait(lambda: any(not m.active for m in manager.heard[count:]), 30.0, "the manager's break answered")
+        assert bond.state.name == "DEAD"
+        assert states(sim) == ["SWITCH_ON_DISABLED"] * 2  # no arm: the bond moves nothing
+
+
+def test_no_bond_when_its_heartbeat_period_is_zero(tmp_path: Path) -> None:
+    """``bond_heartbeat_period:=0`` (nav2_util's meaning): activate makes no bond."""
+    with make_rig(tmp_path, args=("bond_heartbeat_period:=0.0",)) as (node, _, _, _):
+        node.trigger_configure()
+        node.trigger_activate()
+        assert node.state_label == "active" and node.bond is None
+        assert node.count_publishers("/bond") == 0

@@ -9,4 +9,5 @@ parameters at its construction); the executors' threads spin, each named.
 - :mod:`.params`: every ROS parameter, defined once with a description and a range, and which
   node declares which
 - :mod:`.qos`: the QoS profiles, chosen on purpose
+- :mod:`.bond`: the managed side of a bond with a lifecycle manager (Nav2's), while active
 """

@@ -52,6 +52,9 @@ PARAMS: dict[str, Param] = {
                                  " 1 to 1000"),
     "autostart": Param(False, "rover_lifecycle: configure and activate at start (the demo); off: a lifecycle"
                               " manager drives the transitions"),
+    "bond_heartbeat_period": Param(0.1, "rover_lifecycle: seconds between two heartbeats of its bond with a"
+                                        " lifecycle manager (Nav2's; made at activate, as Nav2's managed nodes"
+                                        " make it); 0: no bond", 0.0, 10.0),
     "realtime_priority": Param(DRIVER_PRIORITY, "SCHED_FIFO priority of the driver process's threads (commands, supervisor, stops,"
                                    " DDS, each bus's receive thread), 1 to 99, where the OS allows it (CAP_SYS_NICE, an rtprio"
                                    " limit; else ordinary, said once); 0: ordinary scheduling"),
@@ -79,7 +82,7 @@ ONE_JOINT = ("joint", "arm", "state_rate_hz", "diagnostics_rate_hz", "state_qos_
 NODES: dict[str, tuple[str, ...]] = {
     "rovercan_driver": ("config", *PROCESS, *DRIVER),
     "motor_controller": ("config", *PROCESS, *ONE_JOINT),
-    "rovercan_lifecycle": ("config", *PROCESS, "autostart"),
+    "rovercan_lifecycle": ("config", *PROCESS, "autostart", "bond_heartbeat_period"),
     "drive_system": ("odom_rate_hz", "odom_frame", "base_frame", "state_qos_depth", "publish_tf"),
     "motor_degree": ("period_s", "step_deg", "start_deg"),
 }
