@@ -37,7 +37,7 @@ only with ``arm`` too (``rover_launch.xml lifecycle:=true autostart:=true arm:=t
 the auto-start's configure ends it there: nothing is activated or armed. A failed transition
 logs why and returns FAILURE; the node stays where it was (after a failed configure, with no
 driver and no bus). A transition that raised unexpectedly is logged with its trace and counted
-(``callback_failures``), and ends in ERROR as rclpy makes it: on_error closes the driver, its
+(``callback_failures`` of this node), and ends in ERROR as rclpy makes it: on_error closes the driver, its
 safe stop first. A ``change_state`` request for a transition the current state does not have
 (Nav2's RESET after PAUSE asks for deactivate twice) is answered ``success=false`` and logged, as
 rclcpp's managed nodes answer it (rclpy's own sends no answer: its client, a lifecycle manager,
@@ -75,6 +75,9 @@ from nodes.process.params import declare
 from nodes.process.spinning import CallbackFailures
 
 logger = logging.getLogger(__name__)
+
+#: How long the shutdown waits for a transition under way before it releases the driver, s.
+TRANSITION_WAIT_S = 60.0
 
 Transition = TypeVar("Transition", bound=Callable[..., TransitionCallbackReturn])
 
@@ -197,7 +200,6 @@ class DriveLifecycleNode(LifecycleNode):
 
     @supervised
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
-        self._break_bond()  # as Nav2's managed nodes: the bond ends with the activity
         if self.driver is not None:
             self.driver.hold_motion(self.inactive)  # first: nothing re-enables a drive once it is stopped
         failed = self.stop_drives()
@@ -207,6 +209,7 @@ class DriveLifecycleNode(LifecycleNode):
             self.get_logger().error(f"deactivate failed: {len(failed)} stop(s) not confirmed; motion held;"
                                     " deactivate again")
             return TransitionCallbackReturn.FAILURE
+        self._break_bond()  # as Nav2's managed nodes: the bond ends with the activity (kept while still active)
         self.get_logger().info(f"inactive: motion held; {self._drives_safe()}; activate to take motion again")
         return super().on_deactivate(state)
 
@@ -268,21 +271,34 @@ class DriveLifecycleNode(LifecycleNode):
                                       " (apt: ros-jazzy-bond); a Nav2 lifecycle_manager with bond_timeout > 0 fails"
                                       " its STARTUP here: install it, or set the manager's bond_timeout to 0")
             return
-        self.bond = BondHeartbeat(self, status, period)
+        try:
+            self.bond = BondHeartbeat(self, status, period)
+        except Exception as err:  # activate stands (the drives are armed as asked): a manager will say the rest
+            self.callback_failures.record(f"the bond of {self.get_name()}", err)
+            self.get_logger().warning(f"no bond with a lifecycle manager: it could not be made ({err!r}); a Nav2"
+                                      " lifecycle_manager with bond_timeout > 0 fails its STARTUP here")
+            return
         spinning.supervise(self, self.callback_failures)  # its timer and subscription, as the node's others
 
     def _break_bond(self) -> None:
-        if self.bond is not None:
-            self.bond.close()
-            self.bond = None
+        """The bond broken where there is one; a failure of it logged and counted, never raised: it
+        must not keep a stop or a release from running."""
+        bond, self.bond = self.bond, None
+        if bond is not None:
+            try:
+                bond.close()
+            except Exception as err:
+                self.callback_failures.record(f"breaking the bond of {self.get_name()}", err)
 
     def release(self) -> None:
-        """The bond broken, the assembly closed (drives safe, threads joined, interface gone, bus
-        released)."""
-        self._break_bond()
-        if self.assembly is not None:
-            self.assembly.close()
-            self.assembly = None
+        """The assembly closed (drives safe, threads joined, interface gone, bus released), then the
+        bond broken."""
+        try:
+            if self.assembly is not None:
+                self.assembly.close()
+                self.assembly = None
+        finally:
+            self._break_bond()
 
 
 def main(args: list[str] | None = None) -> int:
@@ -305,6 +321,12 @@ def main(args: list[str] | None = None) -> int:
             spinning.spin_until(hot, stop.event)
         finally:
             transitions.stop(5.0)
+            # a transition a manager asked for may still run on the stopped executor's thread (a
+            # configure's SDO waits): the release waits for it, else it would close a driver a
+            # configure then replaced, or arm one being closed
+            if not node.transitions.acquire(timeout=TRANSITION_WAIT_S):
+                logger.error("a lifecycle transition still runs after %g s; releasing the driver all the same",
+                             TRANSITION_WAIT_S)
             node.release()
             node.destroy_node()
             rclpy.try_shutdown()

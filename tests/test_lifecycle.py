@@ -751,48 +751,34 @@ def test_an_unexpected_exception_in_a_transition_is_logged_counted_and_ends_safe
         assert "transition on_activate of rovercan_lifecycle failed unexpectedly" in caplog.text
 
 
-def test_a_stop_signal_during_the_auto_starts_configure_activates_nothing(tmp_path: Path) -> None:
-    """``autostart:=true arm:=true``, SIGTERM while configure boots the drive (its first SDO
-    request on the bus): configure ends, nothing is activated, no Enable Operation leaves after the
-    signal, and the process exits 0 with the drive disabled."""
-    import os
-    import subprocess
+def test_a_stop_during_the_auto_starts_configure_activates_nothing(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """``autostart`` with ``arm:=true``: a stop asked while configure boots the drives (the hook sets
+    the stop event there, as SIGTERM's handler does) ends the auto-start after configure: inactive,
+    nothing enabled. The same call without a stop then activates and arms (the path the stop cut)."""
+    from nodes.assembly import Assembly
 
-    from .conftest import REPO
+    stop = threading.Event()
+    boot = Assembly.start
 
-    with SimService([SimDriveSpec(1, GENERIC_EDS, "can0", "a", 4096)], port=0) as sim:
-        config = tmp_path / "rover.yaml"
-        config.write_text("buses: [{name: can0, interface: socketcand, channel: can0,"
-                          f" kwargs: {{host: 127.0.0.1, port: {sim.port}}}}}]\n"
-                          "drives: [{name: a, node_id: 1, counts_per_rev: 4096}]\n")
-        listener = Listener(sim)
-        proc = subprocess.Popen([sys.executable, "-m", "nodes.rover_lifecycle", "--ros-args", "-p", f"config:={config}",
-                                 "-p", "autostart:=true", "-p", "arm:=true", "-p", "realtime_priority:=0"], cwd=REPO,
-                                env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"),
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        try:
-            wait_for(lambda: listener.since(0.0, 0x601), 60.0, "configure under way (its first SDO request)")
-            signalled = time.monotonic()
-            proc.send_signal(signal.SIGTERM)
-            out, _ = proc.communicate(timeout=60)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-            listener.stop.set()
-            listener.join(2)
-            listener.bus.shutdown()
-        enables = [cw for cw in controlwords(listener, signalled, 0x201) if cw & 0x000F == 0x000F]
-        assert not enables, out[-2000:]
-        assert proc.returncode == 0 and "auto-start ended by a stop signal" in out, out[-2000:]
-        runner = sim.simulators["can0"]
-        assert runner.call(lambda: runner.drive(1).state.name) == "SWITCH_ON_DISABLED", out[-2000:]
+    def stopped_while_booting(self: Any, *args: Any, **kwargs: Any) -> Any:
+        stop.set()
+        return boot(self, *args, **kwargs)
+
+    with make_rig(tmp_path, args=("arm:=true",)) as (node, sim, _, _):
+        monkeypatch.setattr(Assembly, "start", stopped_while_booting)
+        node.autostart(stop)
+        assert node.state_label == "inactive" and node.driver is not None
+        assert "OPERATION_ENABLED" not in states(sim)
+        node.autostart(threading.Event())
+        assert node.state_label == "active" and states(sim) == ["OPERATION_ENABLED"] * 2
 
 
 # ---------------------------------------------------------------------------- the bond with Nav2's manager
 class ManagerBond:
     """The manager's side of a bond as Nav2's lifecycle_manager makes it after an activate
-    (bondcpp: Status on ``bond`` under the managed node's name, its own instance id, every 0.1 s;
-    formed once the other side is heard active), on the probe's node, the real message type."""
+    (bondcpp: Status on ``bond`` under the managed node's name, its own instance id; formed once the
+    other side is heard active), on the probe's node, the real message type."""
 
     def __init__(self, probe: Probe, node_name: str) -> None:
         import uuid
@@ -821,49 +807,69 @@ class ManagerBond:
             return bool(done())
         return beat
 
-    def formed(self) -> bool:
-        """bondcpp's waitUntilFormed: the other side heard active."""
-        return any(m.active for m in self.heard)
+    def close(self) -> None:
+        """Gone, as Nav2's manager erases a node's bond after deactivating it."""
+        self.probe.node.destroy_publisher(self.pub)
+        self.probe.node.destroy_subscription(self.sub)
 
 
 def test_the_active_node_keeps_a_bond_with_a_nav2_lifecycle_manager(tmp_path: Path) -> None:
-    """Nav2's lifecycle_manager (bond_timeout > 0, its default) forms a bond with each node after
-    activating it and fails its STARTUP without one. rover_lifecycle makes it at activate as Nav2's
-    managed nodes do: heartbeats under its name, active, with the periods said; at deactivate one
-    inactive Status breaks it and its entities go; a manager that breaks it first is answered
-    inactive and heard no more."""
+    """Nav2's lifecycle_manager (bond_timeout > 0, its default) makes its side of a bond with each
+    node after activating it, and fails its STARTUP without the other. rover_lifecycle makes it at
+    activate as Nav2's managed nodes do: heartbeats under its name, active, again and again (the
+    manager's 4 s timeout watches them); at deactivate one inactive Status breaks it and its
+    entities go; a manager that breaks it first is answered inactive and the bond ends."""
     with make_rig(tmp_path) as (node, sim, _, _), _probe(node.context) as probe:
-        manager = ManagerBond(probe, "rovercan_lifecycle")
-
         def change(transition_id: int) -> None:
             request = ChangeState.Request(transition=Transition(id=transition_id))
             assert probe.call(ChangeState, "/rovercan_lifecycle/change_state", request).success, transition_id
 
         change(Transition.TRANSITION_CONFIGURE)
-        assert node.count_publishers("/bond") == 1  # the manager's only: no bond before activate
+        assert node.count_publishers("/bond") == 0 and node.bond is None  # no bond before activate
         change(Transition.TRANSITION_ACTIVATE)
-        probe.wait(manager.beating(manager.formed), 30.0, "the bond formed (rovercan_lifecycle heard active)")
+        manager = ManagerBond(probe, "rovercan_lifecycle")  # after activate returned, as Nav2's
+        probe.wait(lambda: sum(m.active for m in manager.heard) >= 10, 60.0,
+                   "ten heartbeats, the manager silent (the node's timer beats on)")
         first = manager.heard[0]
         assert (first.heartbeat_period, first.heartbeat_timeout) == (pytest.approx(0.1), pytest.approx(4.0))
         sides = {m.instance_id for m in manager.heard}
         assert len(sides) == 1 and sides != {manager.instance_id}
-        probe.wait(manager.beating(lambda: node.bond is not None and node.bond.sister == manager.instance_id), 30.0,
-                   "the node heard the manager's side")
-        count = len(manager.heard)
-        change(Transition.TRANSITION_DEACTIVATE)  # Nav2's PAUSE
-        probe.wait(lambda: any(not m.active for m in manager.heard[count:]), 30.0, "the bond broken by the node")
-        assert node.bond is None and node.count_publishers("/bond") == 1
-        # activate again (RESUME): a new bond, a new instance; the manager breaks this one first
-        change(Transition.TRANSITION_ACTIVATE)
-        probe.wait(lambda: any(m.active and m.instance_id not in sides for m in manager.heard), 30.0, "a new bond")
         bond = node.bond
         assert bond is not None
         probe.wait(manager.beating(lambda: bond.sister == manager.instance_id), 30.0, "the manager's side heard")
+        assert bond.state.name == "ALIVE"
         count = len(manager.heard)
-        manager.say(False)
-        probe.wait(lambda: any(not m.active for m in manager.heard[count:]), 30.0, "the manager's break answered")
+        change(Transition.TRANSITION_DEACTIVATE)  # Nav2's PAUSE
+        probe.wait(lambda: any(not m.active for m in manager.heard[count:]), 30.0, "the bond broken by the node")
+        assert node.bond is None and node.count_publishers("/bond") == 1  # the manager's
+        manager.close()
+        # activate again (RESUME): a new bond with a new manager side; the manager breaks this one first
+        change(Transition.TRANSITION_ACTIVATE)
+        again = ManagerBond(probe, "rovercan_lifecycle")
+        bond = node.bond
+        assert bond is not None and bond.instance_id not in sides
+        probe.wait(again.beating(lambda: bond.sister == again.instance_id), 30.0, "the new manager side heard")
+        count = len(again.heard)
+        again.say(False)
+        probe.wait(lambda: any(not m.active for m in again.heard[count:]), 30.0, "the manager's break answered")
         assert bond.state.name == "DEAD"
         assert states(sim) == ["SWITCH_ON_DISABLED"] * 2  # no arm: the bond moves nothing
+        again.close()
+
+
+def test_a_bond_no_manager_forms_ends_after_the_connect_timeout(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No manager speaks bond (activated by hand, or a manager with bond_timeout 0): the bond ends
+    after bond's connect timeout (here cut to a few heartbeats) and beats no more, as bondcpp's."""
+    from nodes.process import bond as bond_module
+
+    monkeypatch.setattr(bond_module, "CONNECT_TIMEOUT_S", 0.3)
+    with make_rig(tmp_path) as (node, _, _, _), _probe(node.context) as probe:
+        node.trigger_configure()
+        node.trigger_activate()
+        bond = node.bond
+        assert bond is not None
+        probe.wait(lambda: bond.state.name == "DEAD", 60.0, "the bond ended unformed")
+        assert bond._timer.is_canceled() and node.state_label == "active"  # the node's activity is not the bond's
 
 
 def test_no_bond_when_its_heartbeat_period_is_zero(tmp_path: Path) -> None:

@@ -52,7 +52,11 @@ def bond_interface() -> Any | None:
     """``bond.msg.Status``, or None where the bond interface package is not installed."""
     try:
         from bond.msg import Status
-    except ImportError:
+        from rclpy.type_support import check_for_type_support
+
+        check_for_type_support(Status)  # its C type support loads (a broken build fails here, not at activate)
+    except Exception as err:
+        logger.debug("no bond interface: %r", err)
         return None
     return Status
 
@@ -73,8 +77,8 @@ class BondHeartbeat:
         self._waited = 0  # heartbeats sent while waiting (the connect timeout, counted in periods)
         # plain (not lifecycle) publisher: the bond is said whatever the node's state
         self._pub = Node.create_publisher(node, status_type, TOPIC, QoSProfile(depth=5))
-        self._sub = node.create_subscription(status_type, TOPIC, self._on_status, QoSProfile(depth=100))
         self._timer = node.create_timer(period_s, self._beat)
+        self._sub = node.create_subscription(status_type, TOPIC, self._on_status, QoSProfile(depth=100))
         self._publish(True)
 
     def _publish(self, active: bool) -> None:
@@ -104,8 +108,8 @@ class BondHeartbeat:
                 self.state = BondState.ALIVE
                 self._node.get_logger().info(f"bond with the lifecycle manager formed ({TOPIC}, id {self.id})")
             return
-        self._publish(False)  # the manager broke it: acknowledged at once, as bondcpp does
         self._end("the lifecycle manager broke it")
+        self._publish(False)  # acknowledged at once, as bondcpp does
 
     def _end(self, why: str) -> None:
         self.state = BondState.DEAD
