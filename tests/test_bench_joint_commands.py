@@ -18,6 +18,8 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 import stack_run
 
 
+@pytest.mark.alone  # the shipped rover's real host timeout: beside another worker's real-time rig its drives
+# stopped themselves once (host heartbeat lost, EMCY 0x8130) before the first command switched them
 @pytest.mark.timeout(240)
 def test_the_rover_commanded_by_joint_commands_puts_every_wheel_s_ramp_on_the_wire(
         tmp_path: object, monkeypatch: pytest.MonkeyPatch) -> None:
