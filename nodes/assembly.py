@@ -99,12 +99,15 @@ class Assembly:
     then :meth:`close`. ``joints``: the drives served (None: every drive); ``overrides``: parameters
     of the driver node that the entry point fixes (the demo's ``arm``); ``node``: the driver node
     the entry point made first to read the process's parameters (:func:`set_up`), served by
-    :meth:`build` (else build makes one)."""
+    :meth:`build` (else build makes one); ``failures``: the count of callback failures the driver node
+    keeps (None: one of its own)."""
 
     def __init__(self, driver: MotorDriver, hot: Executor, *, name: str = "rovercan_driver",
                  joints: Sequence[str] | None = None, context: Context | None = None,
-                 overrides: Sequence[Parameter] = (), node: DriverNode | None = None) -> None:
+                 overrides: Sequence[Parameter] = (), node: DriverNode | None = None,
+                 failures: spinning.CallbackFailures | None = None) -> None:
         self.driver, self.hot = driver, hot
+        self._failures = failures  # the driver node's count, where the caller keeps one (DriverNode's ``failures``)
         self._name, self._joints, self._overrides = name, joints, list(overrides)
         self._kwargs: dict[str, Any] = {} if context is None else {"context": context}
         self.node: DriverNode | None = node
@@ -121,7 +124,7 @@ class Assembly:
         """Every ROS entity, added to its executor; nothing sent on the bus."""
         if self.node is None:
             node = self.node = DriverNode(self.driver, self._name, self._joints, parameter_overrides=self._overrides,
-                                          **self._kwargs)
+                                          failures=self._failures, **self._kwargs)
         else:
             node = self.node
             node.serve(self.driver, self._joints)

@@ -37,11 +37,12 @@ only with ``arm`` too (``rover_launch.xml lifecycle:=true autostart:=true arm:=t
 the auto-start's configure ends it there: nothing is activated or armed. A failed transition
 logs why and returns FAILURE; the node stays where it was (after a failed configure, with no
 driver and no bus). A transition that raised unexpectedly is logged with its trace and counted
-(``callback_failures`` of this node), and ends in ERROR as rclpy makes it: on_error closes the driver, its
-safe stop first. A ``change_state`` request for a transition the current state does not have
-(Nav2's RESET after PAUSE asks for deactivate twice) is answered ``success=false`` and logged, as
-rclcpp's managed nodes answer it (rclpy's own sends no answer: its client, a lifecycle manager,
-waits for ever). Transitions run one at a time: the auto-start's and the service's alike. While
+(``callback_failures`` of this node: one count with the driver node's, so that while configured its
+/diagnostics says these, the bond's callbacks' and the drives' alike), and ends in ERROR as rclpy makes
+it: on_error closes the driver, its safe stop first. A ``change_state`` request for a transition the
+current state does not have (Nav2's RESET after PAUSE asks for deactivate twice) is answered
+``success=false`` and logged, as rclcpp's managed nodes answer it (rclpy's own sends no answer: its
+client, a lifecycle manager, waits for ever). Transitions run one at a time: the auto-start's and the service's alike. While
 active the node keeps a bond with a lifecycle manager (Nav2's waits for it after activate:
 :mod:`nodes.process.bond`), unless ``bond_heartbeat_period`` is 0.
 
@@ -164,7 +165,8 @@ class DriveLifecycleNode(LifecycleNode):
             self.get_logger().error(f"configure failed: {err}")
             return TransitionCallbackReturn.FAILURE
         driver.hold_motion(self.inactive)  # before anything could enable a drive (arm_on_start included)
-        self.assembly = Assembly(driver, self.hot, context=self.context)
+        # one count of the process's callback failures: the driver node's /diagnostics says this node's too
+        self.assembly = Assembly(driver, self.hot, context=self.context, failures=self.callback_failures)
         try:
             self.assembly.build()  # the ROS interface first, then the bus (nodes/assembly.py says why)
             self.assembly.start(arm=False)  # connect and boot; nothing enabled: that is activate

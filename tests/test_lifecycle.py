@@ -879,3 +879,39 @@ def test_no_bond_when_its_heartbeat_period_is_zero(tmp_path: Path) -> None:
         node.trigger_activate()
         assert node.state_label == "active" and node.bond is None
         assert node.count_publishers("/bond") == 0
+
+
+def test_a_bond_heartbeat_that_raises_is_counted_in_diagnostics_and_the_bond_beats_on(tmp_path: Path) -> None:
+    """A bug in the bond's timer (one heartbeat raises) is logged, counted in the process's one
+    count and said on /diagnostics by the driver node ("rovercan: driver", ``callback_failures``);
+    the next heartbeats go out: the timer is not lost, nor the bond, nor the executor."""
+    with make_rig(tmp_path, args=("diagnostics_rate_hz:=10.0",)) as (node, _, _, _), _probe(node.context) as probe:
+        node.trigger_configure()
+        node.trigger_activate()
+        bond = node.bond
+        assert bond is not None
+        manager = ManagerBond(probe, "rovercan_lifecycle")
+        probe.wait(lambda: len(manager.heard) >= 2, 60.0, "heartbeats before the fault")
+        publish = bond._publish
+        raised: list[bool] = []
+
+        def publish_failing_once(active: bool) -> None:
+            if not raised:
+                raised.append(True)
+                raise RuntimeError("a bug in the bond's heartbeat")
+            publish(active)
+
+        bond._publish = publish_failing_once  # type: ignore[method-assign]
+        probe.wait(lambda: bool(raised), 60.0, "the faulty heartbeat ran")
+        heard = len(manager.heard)
+        probe.wait(lambda: sum(m.active for m in manager.heard[heard:]) >= 3, 60.0, "heartbeats after the fault")
+
+        def said() -> bool:
+            return any(name == "rovercan: driver" and values.get("callback_failures") == "1"
+                       and "BondHeartbeat._beat" in values.get("last_callback_failure", "")
+                       and "a bug in the bond's heartbeat" in values["last_callback_failure"]
+                       for name, _, values in probe.statuses)
+        probe.wait(said, 60.0, "the bond's failure on /diagnostics", lambda: probe.statuses[-3:])
+        count, last, _ = node.callback_failures.snapshot()
+        assert count == 1 and "BondHeartbeat._beat" in last and node.state_label == "active"
+        manager.close()

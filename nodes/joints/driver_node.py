@@ -60,14 +60,16 @@ class DriverNode(Node):
     ``joints`` named (``motor_controller``: one)."""
 
     def __init__(self, driver: MotorDriver | None, name: str = "rovercan_driver", joints: Sequence[str] | None = None,
-                 *, one_joint: bool = False, **kwargs: Any) -> None:
-        """Its parameters declared; with ``driver``, :meth:`serve` at once. ``one_joint``
+                 *, one_joint: bool = False, failures: CallbackFailures | None = None, **kwargs: Any) -> None:
+        """Its parameters declared; with ``driver``, :meth:`serve` at once. ``failures``: where this
+        process's callback failures are counted, if not a count of its own (rover_lifecycle's, which
+        lives across configures: its transitions' and its bond's failures reach /diagnostics too). ``one_joint``
         (``motor_controller``): the node serves the joint of its ``joint`` parameter, which is its
         demo joint too. Without ``driver`` the entry point reads the process's parameters from this
         node first (nodes/assembly.py: the scheduling before the driver's threads exist), then serves."""
         super().__init__(name, **kwargs)
         #: the callbacks of this process's nodes that raised (nodes/process/spinning.py: supervise); in /diagnostics
-        self.callback_failures = CallbackFailures()
+        self.callback_failures = CallbackFailures() if failures is None else failures
         declare(self, *(ONE_JOINT if one_joint else DRIVER))
         self._one_joint = one_joint
         if driver is not None:
