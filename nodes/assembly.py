@@ -100,12 +100,13 @@ class Assembly:
     of the driver node that the entry point fixes (the demo's ``arm``); ``node``: the driver node
     the entry point made first to read the process's parameters (:func:`set_up`), served by
     :meth:`build` (else build makes one); ``failures``: the count of callback failures the driver node
-    keeps (None: one of its own)."""
+    that build makes keeps (None: one of its own; a ``node`` given keeps its own)."""
 
     def __init__(self, driver: MotorDriver, hot: Executor, *, name: str = "rovercan_driver",
                  joints: Sequence[str] | None = None, context: Context | None = None,
                  overrides: Sequence[Parameter] = (), node: DriverNode | None = None,
                  failures: spinning.CallbackFailures | None = None) -> None:
+        assert node is None or failures is None, "a driver node given keeps its own failure count"
         self.driver, self.hot = driver, hot
         self._failures = failures  # the driver node's count, where the caller keeps one (DriverNode's ``failures``)
         self._name, self._joints, self._overrides = name, joints, list(overrides)

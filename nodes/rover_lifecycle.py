@@ -34,17 +34,19 @@ interface spins on the hot executor given.
 With ``autostart`` (the team's demo) it configures and activates itself: the drives are enabled
 only with ``arm`` too (``rover_launch.xml lifecycle:=true autostart:=true arm:=true``), as
 ``rover_driver`` enables them at start only with ``arm``. A stop signal (SIGINT, SIGTERM) during
-the auto-start's configure ends it there: nothing is activated or armed. A failed transition
-logs why and returns FAILURE; the node stays where it was (after a failed configure, with no
-driver and no bus). A transition that raised unexpectedly is logged with its trace and counted
-(``callback_failures`` of this node: one count with the driver node's, so that while configured its
-/diagnostics says these, the bond's callbacks' and the drives' alike), and ends in ERROR as rclpy makes
-it: on_error closes the driver, its safe stop first. A ``change_state`` request for a transition the
-current state does not have (Nav2's RESET after PAUSE asks for deactivate twice) is answered
-``success=false`` and logged, as rclcpp's managed nodes answer it (rclpy's own sends no answer: its
-client, a lifecycle manager, waits for ever). Transitions run one at a time: the auto-start's and the service's alike. While
+the auto-start's configure ends it there: nothing is activated or armed. A failed transition logs
+why and returns FAILURE; the node stays where it was (after a failed configure, with no driver and
+no bus). A transition that raised unexpectedly is logged with its trace and counted
+(``callback_failures`` of this node), and ends in ERROR as rclpy makes it: on_error closes the
+driver, its safe stop first. A ``change_state`` request for a transition the current state does not
+have (Nav2's RESET after PAUSE asks for deactivate twice) is answered ``success=false`` and logged,
+as rclcpp's managed nodes answer it (rclpy's own sends no answer: its client, a lifecycle manager,
+waits for ever). Transitions run one at a time: the auto-start's and the service's alike. While
 active the node keeps a bond with a lifecycle manager (Nav2's waits for it after activate:
-:mod:`nodes.process.bond`), unless ``bond_heartbeat_period`` is 0.
+:mod:`nodes.process.bond`), unless ``bond_heartbeat_period`` is 0. The failure count is the
+process's one: the driver node made at each configure keeps it too, and its /diagnostics ("rovercan:
+driver") says this node's failures (the bond's callbacks'; a transition's from the next configure
+on) with the drives' own.
 
 Owner: the lifecycle transitions run on the node's service executor thread; the nodes it
 makes at configure are served by the process's executors (nodes/assembly.py).
