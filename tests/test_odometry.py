@@ -92,6 +92,9 @@ def test_a_side_with_no_trusted_wheel_stops_the_integration_and_says_why() -> No
     again = odo.step(samples(dict.fromkeys(LEFT + RIGHT, 10.0), 0.4))
     assert again.trusted and abs(again.pose.yaw_rad) < 1e-12
     assert math.isclose(again.pose.x_m, 2 * RADIUS_M, rel_tol=1e-9)
+    # the right side's 8 rad over the two steps is missing from the pose: the pose's variance says it
+    assert moved.estimated_m == 0.0
+    assert math.isclose(again.estimated_m, 8.0 * RADIUS_M, rel_tol=1e-9)
 
 
 def test_one_wheel_lost_the_side_carries_on_with_the_others() -> None:

@@ -287,7 +287,8 @@ class WheelOdometry:
     @property
     def estimated_m(self) -> float:
         """Travel (m) estimated rather than measured so far: late wheels' shares not yet settled by
-        their own samples, and those never settled."""
+        their own samples, those never settled, and a side's travel dropped while the other side
+        had no trusted wheel (at least that much is missing from the pose)."""
         return self._never_settled_m + sum(abs(m) / self._side_size(n) for n, m in self._attributed.items())
 
     def step(self, samples: Mapping[str, WheelSample]) -> OdometryStep:
@@ -312,6 +313,8 @@ class WheelOdometry:
                 self._commit(updates, deltas=True)
                 self._attribute(left)
                 self._attribute(right)
+                # travel the pose will never have: estimated from now on (the silent side's own is unknown)
+                self._never_settled_m += abs(left.distance_m) + abs(right.distance_m)
             waiting = [samples.get(n) for n in silent]
             if any(w is not None and w.silent for w in waiting) and \
                     all(w is not None and (w.silent or w.forget) for w in waiting):
