@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -278,3 +279,24 @@ def test_tf_carries_odom_to_base_link_from_the_same_odometry(rover: Rover) -> No
         assert pose_cov[7] == pytest.approx(0.001 + estimated_sq)
         assert pose_cov[35] == pytest.approx(0.01 + estimated_sq / rover.config.drive_system.track_width_m ** 2)
         assert min(pose_cov[i * 7] for i in range(6)) > 0
+
+
+def test_a_step_back_of_the_wall_clock_silences_neither_odom_nor_tf(rover: Rover,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The system clock stepped back an hour (chrony at boot, an RTC ahead): /odom and /tf go on at
+    once, stamped on the stepped clock (each still a later measurement than the one before on the
+    monotonic clock). Compared on the wall clock, every stamp fell below the last one sent and
+    nothing was published for the hour."""
+    from nodes.rover import drive_system
+
+    rover.arm()
+    rover.drive_until(0.3, 0.0, lambda: len(rover.tf) > 5 and rover.odom[-1].pose.pose.position.x > 0.02, "/odom")
+    before = stamp_s(rover.odom[-1])
+    seen, tf_seen = len(rover.odom), len(rover.tf)
+    monkeypatch.setattr(drive_system, "wall_clock", lambda: time.time() - 3600.0)
+    rover.drive_until(0.3, 0.0, lambda: len(rover.odom) > seen + 20 and len(rover.tf) > tf_seen + 20,
+                      "20 /odom and /tf after the step")
+    stepped = [stamp_s(m) for m in rover.odom[seen:] if stamp_s(m) < before - 3000.0]
+    assert len(stepped) >= 20 and stepped == sorted(stepped)
+    assert all(m.pose.covariance[0] < 1e6 for m in rover.odom[-5:])  # measured, not the untrusted hold
+    assert stamp_s(rover.tf[-1].transforms[0]) < before - 3000.0

@@ -37,6 +37,7 @@ import logging
 import math
 import queue
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
@@ -72,6 +73,8 @@ logger = logging.getLogger(__name__)
 DIAGNOSTICS_PERIOD_S = 1.0
 #: A wheel's stop that failed is tried again after this long.
 STOP_RETRY_S = 0.5
+#: The clock of /odom's, /tf's and /diagnostics' stamps: the system's wall clock (a test steps it).
+wall_clock: Callable[[], float] = time.time
 #: tf2's own publishers keep 100 (a late listener's buffer fills from them)
 TF_QOS = QoSProfile(depth=100)
 
@@ -116,7 +119,7 @@ class DriveSystemNode(Node):
         self.active = False  # commanding the wheels (fresh /cmd_vel or ramping down after it)
         self.halted = ""  # why every wheel was stopped, until a fresh /cmd_vel drives again
         self.last_odometry = OdometryStep(self.odometry.pose, Twist2D(), False, "odometry: no wheel sampled yet")
-        self._stamp_sent = 0.0  # the newest /odom stamp sent (wall clock, s)
+        self._measured_sent = 0.0  # when the newest /odom sent was measured (monotonic clock, s)
         self._stopper = ThreadPoolExecutor(1, thread_name_prefix="drive_system-stop")
         self._stops: dict[str, Future[None]] = {}
         self._stop_retry_at: dict[str, float] = {}  # a failed stop's next try (the tick's)
@@ -345,14 +348,18 @@ class DriveSystemNode(Node):
         if was != step.trusted:
             self.publish_diagnostics()
         if not step.trusted:  # the last trusted pose, said to be unknown now (stamped now: it is no measurement)
-            stamp = time.time()
+            measured = time.monotonic()
         elif step.measured_at:  # a step measured on both sides: stamped when they measured it
-            stamp = step.measured_at + time.time() - time.monotonic()
+            measured = step.measured_at
         else:  # trusted, but nothing measured on both sides since the last step (a side's PDO late,
             return  # within its staleness bound): nothing is said as measured, nor repeated
-        if stamp > self._stamp_sent:  # /odom's and /tf's stamps only ever grow
-            self._stamp_sent = stamp
-            self._publish_odom(step, stamp)
+        # each /odom and /tf later than the one before on the monotonic clock; the stamp is that
+        # instant on the wall clock now (a step of the system clock shows in the stamps, as in
+        # every node's, and silences nothing: compared on the wall clock, a step back of an hour
+        # held /odom for an hour)
+        if measured > self._measured_sent:
+            self._measured_sent = measured
+            self._publish_odom(step, measured + wall_clock() - time.monotonic())
 
     def _publish_odom(self, step: OdometryStep, stamp: float) -> None:
         pose, twist = step.pose, step.twist
@@ -407,7 +414,7 @@ class DriveSystemNode(Node):
     def publish_diagnostics(self) -> None:
         level, message, values = self.health()
         array = DiagnosticArray()
-        stamp_header(array.header, time.time())
+        stamp_header(array.header, wall_clock())
         status = DiagnosticStatus(level=bytes([level]), name="rovercan: drive_system", message=message,
                                   hardware_id="drive_system")
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
