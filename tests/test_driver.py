@@ -447,6 +447,25 @@ def test_a_safe_stop_while_a_drive_is_configured_again_is_not_undone_by_its_rest
     assert peer.call(lambda: peer.drive(1).state.name) != "OPERATION_ENABLED"
 
 
+def test_a_stop_that_raises_unexpectedly_keeps_no_other_drive_from_its_stop(driver_factory: DriverFactory) -> None:
+    """The one safe stop (/disarm, deactivate, close): a bug in the first drive's stop is named in
+    what was not confirmed, and every drive after it is still quick-stopped and disabled."""
+    sim, driver = driver_factory(make_config(2))
+    first, second = driver.drive("joint1"), driver.drive("joint2")
+    first.enable()
+    second.enable()
+
+    def broken() -> None:
+        raise RuntimeError("a bug in the stop")
+
+    first.quick_stop = broken  # type: ignore[method-assign]
+    said = driver.safe_stop()
+    assert len(said) == 1 and said[0].startswith("joint1: its stop failed unexpectedly (RuntimeError: a bug in the stop")
+    peer = sim.simulator_for(2)
+    assert peer.call(lambda: peer.drive(2).state.name) == "SWITCH_ON_DISABLED"
+    assert second.cache.state is State.SWITCH_ON_DISABLED
+
+
 def test_an_unforeseen_failure_of_the_enable_after_a_re_configuration_is_counted(driver_factory: DriverFactory) -> None:
     """The enable of restore_enable_after_reboot fails in a way nobody foresaw (raised inside it,
     on the bus's worker): counted as a job's failure (/diagnostics), the drive configured and

@@ -253,25 +253,37 @@ class MotorDriver:
         deactivate, the /disarm service): each powered drive of ``drives`` (default: all)
         quick-stopped if Operation Enabled, then its voltage disabled (Switch On Disabled, no
         torque), whatever the others did. A drive lost after its boot gets one last stop it need
-        not answer. Returns what was not confirmed, one line a drive (empty: every drive is safe)."""
+        not answer. Returns what was not confirmed, one line a drive (empty: every drive is safe).
+        A drive whose stop raised anything (a bug included: logged with its trace) never keeps the
+        others from theirs."""
         unconfirmed: list[str] = []
         for drive in self.drives.values() if drives is None else drives:
-            if drive.cache.lost and drive.cache.booted:
-                drive.watch.lost_while_closing()  # unheard, maybe turning: one last stop it needs not answer
-                unconfirmed.append(f"{drive.name}: lost; a last quick stop was sent, unanswered")
-                continue
-            if drive.cache.lost or not drive.cache.booted:
-                if not drive.cache.lost:  # being configured again: not enabled again after it
-                    drive.channel.stopped_unsent("a safe stop while it was configured again")
-                continue
             try:
-                if drive.cache.state == State.OPERATION_ENABLED:
-                    drive.quick_stop()
-                drive.disable_voltage()
+                said = self._stop_safely(drive)
             except MotorError as err:
-                unconfirmed.append(str(err))
+                said = str(err)
                 logger.error("safe stop: %s", err)
+            except Exception as err:  # a fault of this driver's: the next drives are stopped all the same
+                said = f"{drive.name}: its stop failed unexpectedly ({type(err).__name__}: {err}); see the log"
+                logger.exception("safe stop: %s", said)
+            if said:
+                unconfirmed.append(said)
         return unconfirmed
+
+    @staticmethod
+    def _stop_safely(drive: Drive) -> str:
+        """One drive's part of :meth:`safe_stop`: what was not confirmed ("" safe, or nothing to do)."""
+        if drive.cache.lost and drive.cache.booted:
+            drive.watch.lost_while_closing()  # unheard, maybe turning: one last stop it needs not answer
+            return f"{drive.name}: lost; a last quick stop was sent, unanswered"
+        if drive.cache.lost or not drive.cache.booted:
+            if not drive.cache.lost:  # being configured again: not enabled again after it
+                drive.channel.stopped_unsent("a safe stop while it was configured again")
+            return ""
+        if drive.cache.state == State.OPERATION_ENABLED:
+            drive.quick_stop()
+        drive.disable_voltage()
+        return ""
 
     def _unit_objects(self) -> dict[str, dict[tuple[int, int], int]]:
         """Each booted drive's unit objects as it reported them at its last boot (the flight
