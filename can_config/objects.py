@@ -54,7 +54,9 @@ class OD(IntEnum):
     RATED_TORQUE = 0x6076
     TORQUE_ACTUAL = 0x6077
     TARGET_POSITION = 0x607A
+    HOME_OFFSET = 0x607C
     SOFTWARE_POSITION_LIMIT = 0x607D
+    POLARITY = 0x607E
     MAX_PROFILE_VELOCITY = 0x607F
     PROFILE_VELOCITY = 0x6081
     PROFILE_ACCELERATION = 0x6083
@@ -69,6 +71,8 @@ class OD(IntEnum):
     HOMING_ACCELERATION = 0x609A
     SI_UNIT_POSITION = 0x60A8
     SI_UNIT_VELOCITY = 0x60A9
+    SI_UNIT_ACCELERATION = 0x60AA
+    POSITION_OFFSET = 0x60B0  # CSP: added to the target position
     INTERPOLATION_DATA = 0x60C1  # record; sub 1: the interpolated position set-point
     VELOCITY_OFFSET = 0x60B1  # CSV: added to the target velocity
     TORQUE_OFFSET = 0x60B2  # CST: added to the target torque

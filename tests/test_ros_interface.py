@@ -217,6 +217,10 @@ def test_services_answer_with_what_happened(graph: Graph) -> None:
     assert not missing.success and "0x06020000" in missing.message and "does not exist" in missing.message
     refused = graph.call(SdoWrite, f"wheels/{joint}/sdo_write", SdoWrite.Request(index=0x607A, subindex=0, value=99999))
     assert not refused.success and "refused" in refused.message
+    for index, subindex, why in ((0x60C1, 1, "motion target"), (0x60B0, 0, "motion target"),
+                                 (0x6091, 1, "the drive's units"), (0x607E, 0, "set invert")):
+        said = graph.call(SdoWrite, f"wheels/{joint}/sdo_write", SdoWrite.Request(index=index, subindex=subindex, value=1))
+        assert not said.success and "refused" in said.message and why in said.message, (hex(index), said.message)
     ro = graph.call(SdoWrite, f"wheels/{joint}/sdo_write", SdoWrite.Request(index=0x1000, subindex=0, value=1))
     assert not ro.success and "read only" in ro.message
     ok = graph.call(SdoWrite, f"wheels/{joint}/sdo_write", SdoWrite.Request(index=0x6065, subindex=0, value=30000))

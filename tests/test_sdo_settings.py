@@ -33,6 +33,8 @@ def test_the_sdo_list_is_written_at_boot_in_order_and_checked(sim_factory: SimFa
     ({"index": 0x2345, "value": 1}, r"sdo setting 0x2345:0 is not in the drive's EDS; give its size"),
     ({"index": 0x607A, "value": 1}, r"sdo setting 0x607A:0 is refused: it is a motion target"),
     ({"index": 0x1016, "sub": 1, "value": 0}, r"is refused: it is how the drive watches the host's heartbeat"),
+    # read at boot before the settings: written after, the scale and every limit in degrees would be stale
+    ({"index": 0x6091, "sub": 1, "value": 2}, r"sdo setting 0x6091:1 is refused: it sets the drive's units"),
     ({"index": 0x6065, "value": -1}, r"value -1 does not fit the object"),
 ])
 def test_a_bad_sdo_entry_fails_the_boot_naming_the_object(sim_factory: SimFactory, entry: dict[str, int],
@@ -53,3 +55,13 @@ def test_a_bad_sdo_entry_fails_the_boot_naming_the_object(sim_factory: SimFactor
 def test_a_bad_sdo_entry_in_the_config_is_named(entry: dict[str, object], says: str) -> None:
     with pytest.raises(ConfigError, match=says):
         make_config(1, sdo=[entry])
+
+
+def test_every_object_the_drives_units_are_read_from_is_protected() -> None:
+    """The scale (and so every limit in degrees and Nm) comes from these objects, read at boot:
+    no tool, service or config setting writes one after that."""
+    from motor_driver.drive import protected_reason
+    from motor_driver.protocol.units import UNIT_OBJECTS
+
+    for index, _ in UNIT_OBJECTS:
+        assert "units" in (protected_reason(index) or ""), hex(index)
