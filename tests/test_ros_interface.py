@@ -627,6 +627,105 @@ def test_home_and_move_joint_actions_give_feedback_and_cancel_stops_the_joint(gr
         client_node.destroy_node()
 
 
+def test_a_move_goal_is_checked_whole_before_the_drive_is_touched(graph: Graph) -> None:
+    """A move_joint goal with a bad target or speed is refused naming it, and changes nothing on the
+    drive (its mode, its profile speed); a goal with speed 0 moves at the configured speed, not at
+    the one an earlier goal left in 0x6081."""
+    from rclpy.action import ActionClient
+    from rovercan_msgs.action import MoveJoint
+
+    joint = "wheel_rear_left"
+    drive = graph.driver.drive(joint)
+    sim_drive = graph.sim.simulator_for(drive.node_id, "can0")
+
+    def profile_velocity() -> int:
+        return int(sim_drive.call(lambda: sim_drive.drive(drive.node_id).store.get(0x6081, 0)))
+
+    client_node = rclpy.create_node("move_check_client", context=graph.context)
+    executor = SingleThreadedExecutor(context=graph.context)
+    executor.add_node(client_node)
+    spin = SpinThread(executor, "test-move-check")
+    try:
+        move = ActionClient(client_node, MoveJoint, "move_joint")
+        assert move.wait_for_server(timeout_sec=5.0)
+        assert graph.call(SetMode, f"wheels/{joint}/set_mode", SetMode.Request(mode="profile_velocity")).success
+        assert graph.call(Trigger, f"wheels/{joint}/enable").success
+
+        def run(goal: Any) -> Any:
+            sent = move.send_goal_async(goal)
+            eventually(sent.done, 5.0, "the goal answered")
+            result = sent.result().get_result_async()
+            eventually(result.done, 30.0, "the result")
+            return result.result().result
+
+        mode, speed = drive.snapshot().mode, profile_velocity()
+        assert mode == 3  # profile velocity: a goal that switched it to profile position would show
+        for goal, says in ((MoveJoint.Goal(joint=joint, target_deg=math.nan), "angle"),
+                           (MoveJoint.Goal(joint=joint, target_deg=10.0, speed_deg_s=math.nan), "profile velocity"),
+                           (MoveJoint.Goal(joint=joint, target_deg=10.0, speed_deg_s=-5.0), "allowed 0 < speed"),
+                           (MoveJoint.Goal(joint=joint, target_deg=10.0, speed_deg_s=1e-30), "velocity resolution")):
+            result = run(goal)
+            assert not result.success and says in result.message and "Nothing was sent" in result.message, result.message
+            assert drive.snapshot().mode == mode and profile_velocity() == speed
+        assert run(MoveJoint.Goal(joint=joint, target_deg=10.0, speed_deg_s=30.0)).success
+        assert profile_velocity() == drive.cache.scale.magnitude_to_drive(30.0)
+        assert run(MoveJoint.Goal(joint=joint, target_deg=0.0, speed_deg_s=0.0)).success
+        assert profile_velocity() == drive.cache.scale.magnitude_to_drive(drive.config.profile_velocity_deg_s)
+    finally:
+        spin.stop(5.0)
+        client_node.destroy_node()
+
+
+def test_a_home_goal_whose_cancel_could_not_quick_stop_says_so(graph: Graph) -> None:
+    """A cancelled home_joint goal says "quick-stopped" only when its quick stop was: one that
+    failed is the result's message, with what helps (/disarm), and the goal ends once the homing does."""
+    from rclpy.action import ActionClient
+    from rovercan_msgs.action import Home
+
+    from can_config.errors import DriveStateError
+
+    joint = SLOW_HOMING
+    drive = graph.driver.drive(joint)
+    runner = graph.sim.simulators["can1"]
+    runner.call(lambda: setattr(runner.drive(drive.node_id).params, "index_position_counts", 10**9))  # homes on
+    client_node = rclpy.create_node("home_cancel_client", context=graph.context)
+    executor = SingleThreadedExecutor(context=graph.context)
+    executor.add_node(client_node)
+    spin = SpinThread(executor, "test-home-cancel")
+    quick_stop = drive.quick_stop
+    try:
+        home = ActionClient(client_node, Home, "home_joint")
+        assert home.wait_for_server(timeout_sec=5.0)
+        assert graph.call(Trigger, f"wheels/{joint}/enable").success
+        sent = home.send_goal_async(Home.Goal(joint=joint))
+        eventually(sent.done, 5.0, "the goal accepted")
+        handle = sent.result()
+        assert handle.accepted
+        eventually(lambda: drive.channel.busy == "home", 10.0, "homing under way")
+
+        tried = threading.Event()
+
+        def refused() -> None:
+            tried.set()
+            raise DriveStateError(f"{joint}: the quick stop was not confirmed (a test's)", node_id=drive.node_id)
+
+        drive.quick_stop = refused  # type: ignore[method-assign]
+        cancel = handle.cancel_goal_async()
+        eventually(cancel.done, 5.0, "the cancel answered")
+        result = handle.get_result_async()
+        eventually(tried.is_set, 10.0, "the cancel's quick stop tried")
+        drive.quick_stop = quick_stop  # type: ignore[method-assign]
+        assert not result.done()  # the homing goes on: nothing stopped it
+        assert graph.call(Trigger, f"wheels/{joint}/quick_stop").success  # what the message says helps
+        eventually(result.done, 30.0, "the result once the homing ended")
+        message = result.result().result.message
+        assert "its quick stop failed" in message and "a test's" in message and "/disarm" in message, message
+    finally:
+        drive.quick_stop = quick_stop  # type: ignore[method-assign]
+        spin.stop(5.0)
+        client_node.destroy_node()
+
+
 def test_a_goals_last_wait_is_not_queued_behind_another_goals_start(graph: Graph) -> None:
     """A joint's goal starts (SDO writes, a mode switch) run one at a time in arrival order; a
     goal's last wait on its drive runs beside them: it ended behind a slow start of the next

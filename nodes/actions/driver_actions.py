@@ -144,18 +144,24 @@ class DriverActionsNode(Node):
         drive = self.drives[request.joint]
         feedback = MoveJoint.Feedback()
         def start() -> float | None:  # waits on the drive (SDO writes, a mode switch): off the executor
-            if request.speed_deg_s > 0:
-                drive.motion.set_profile_velocity(float(request.speed_deg_s))
+            # the goal checked whole before the drive is touched (a refused target or speed changes nothing)
+            drive.motion.check_position(float(request.target_deg))
+            speed = float(request.speed_deg_s)
+            if speed != 0.0:  # NaN, negative, beyond the limit or below the drive's resolution: refused
+                drive.motion.check_profile_velocity(speed)
             if not goal.is_cancel_requested:
+                # this goal's speed, or the configured one (never the speed an earlier goal left)
+                drive.motion.set_profile_velocity(speed or drive.config.profile_velocity_deg_s)
                 drive.power.set_mode(OperationMode.PROFILE_POSITION)  # where it is not: waits on the drive
             if goal.is_cancel_requested or not self._alive:
-                return None  # cancelled while it started: nothing moved
+                return None  # cancelled (or shut down) while it started: nothing moved
             return drive.move_to(float(request.target_deg))
 
         try:
             started = await self._off_executor(request.joint, start)
             if started is None:
-                return self._finish(goal, MoveJoint.Result(), request.joint, False, "canceled before it moved")
+                return self._finish(goal, MoveJoint.Result(), request.joint, False, "canceled before it moved"
+                                    if goal.is_cancel_requested else "the driver's actions shut down before it moved")
             target = started
             cfg = drive.config
             speed = float(request.speed_deg_s) if request.speed_deg_s > 0 else cfg.profile_velocity_deg_s
@@ -216,6 +222,7 @@ class DriverActionsNode(Node):
         homing.start()
         feedback = Home.Feedback()
         stopped = False
+        stop_failed = ""  # the cancel's quick stop, when it failed: the result says that, not "quick-stopped"
         while homing.is_alive():
             state = drive.snapshot()
             feedback.angle, feedback.state = float(state.angle_deg), state.state.name
@@ -225,10 +232,11 @@ class DriverActionsNode(Node):
                 try:
                     drive.quick_stop()  # preempts the homing operation, which then gives up
                 except RovercanError as err:
-                    failure.append(f"quick stop on cancel failed: {err}")
+                    stop_failed = f"canceled, but its quick stop failed: {err}; stop the joint with /disarm"
+                    logger.error("%s: home_joint %s", joint, stop_failed)
             await self._pause()
         if stopped:
-            return self._finish(goal, Home.Result(), joint, False, "canceled: quick-stopped while homing")
+            return self._finish(goal, Home.Result(), joint, False, stop_failed or "canceled: quick-stopped while homing")
         if failure:
             return self._finish(goal, Home.Result(), joint, False, failure[0])
         return self._finish(goal, Home.Result(), joint, True, "homed")

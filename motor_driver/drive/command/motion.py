@@ -226,15 +226,26 @@ class Motion:
         seq = cache.position_seq
         cache.wait_until(lambda: cache.position_seq != seq, 3 * cache.sync_period_s + 0.05)
 
-    def set_profile_velocity(self, velocity_deg_s: float) -> None:
-        """The speed of the following profile-position moves (0x6081), at most max_velocity_deg_s."""
+    def check_profile_velocity(self, velocity_deg_s: float) -> int:
+        """``velocity_deg_s`` as a profile velocity in drive units, or :class:`CommandRejected`
+        naming the range; nothing is sent."""
         speed = require_finite(f"{self.name} profile velocity", velocity_deg_s, "deg/s")
         self.require_resolution("a profile velocity")
         if not 0 < speed <= self.config.max_velocity_deg_s:
             raise CommandRejected(f"{self.name}: profile velocity {speed:g} deg/s: allowed 0 < speed <="
                                   f" {self.config.max_velocity_deg_s:g} (max_velocity_deg_s). Nothing was sent.")
+        units = self._cache.scale.magnitude_to_drive(speed)
+        if units == 0:  # 0x6081 = 0: the drive would never move, and the move's time bound never end
+            raise CommandRejected(f"{self.name}: profile velocity {speed:g} deg/s is below the drive's velocity"
+                                  f" resolution (one unit of 0x6081 is {abs(self._cache.scale.counts_s_to_deg_s(1.0)):g}"
+                                  " deg/s); give a faster one. Nothing was sent.")
+        return units
+
+    def set_profile_velocity(self, velocity_deg_s: float) -> None:
+        """The speed of the following profile-position moves (0x6081), at most max_velocity_deg_s."""
+        units = self.check_profile_velocity(velocity_deg_s)
         with self._channel.operation("profile velocity"):  # an SDO round trip: busy, not the lock
-            self._sdo.write_typed(OD.PROFILE_VELOCITY, 0, self._cache.scale.magnitude_to_drive(speed))
+            self._sdo.write_typed(OD.PROFILE_VELOCITY, 0, units)
 
     # ------------------------------------------------------------------ velocity and torque
     def _checked_velocity(self, velocity_deg_s: float) -> tuple[float, int]:
