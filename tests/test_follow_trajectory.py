@@ -419,6 +419,36 @@ def test_a_cancelled_goal_leaves_the_joints_still(rig: Rig) -> None:
     assert 10.0 < positions(rig)[0] < 40.0  # stopped on its way, not at the end
 
 
+def test_a_fault_of_the_server_mid_goal_aborts_it_and_the_joints_stop(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bug in the goal's follow loop (here its feedback raises once under way): rclpy would abort
+    the goal with a default result (error_code 0, SUCCESSFUL) and the joints would move on to the
+    trajectory's end. The goal ends INVALID_GOAL naming the fault, and the motion is ramped down."""
+    from action_msgs.msg import GoalStatus
+
+    from nodes.actions import follow_trajectory
+
+    fill = follow_trajectory.fill_feedback
+    calls: list[int] = []
+
+    def failing_once_under_way(feedback: Any, progress: Any) -> Any:
+        calls.append(1)
+        if len(calls) == 20:  # about a second in at the feedback rate (20 Hz): joint1 near 28 deg
+            raise RuntimeError("a bug in the feedback")
+        return fill(feedback, progress)
+
+    monkeypatch.setattr(follow_trajectory, "fill_feedback", failing_once_under_way)
+    done = result_of(send(rig, half_sine(40.0, 4.0)))
+    assert done.status == GoalStatus.STATUS_ABORTED
+    assert done.result.error_code == FollowJointTrajectory.Result.INVALID_GOAL
+    assert "failed unexpectedly (RuntimeError: a bug in the feedback)" in done.result.error_string
+
+    def still() -> bool:
+        last = [math.degrees(s.position[0]) for s in rig.states[-50:]]
+        return len(last) == 50 and max(last) - min(last) < 0.01
+    wait_for(still, HANG_S, "joint1 still")
+    assert 10.0 < positions(rig)[0] < 40.0  # stopped on its way, not carried on to the end (0 deg)
+
+
 @pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
 def test_the_server_answers_while_a_goals_switch_to_streaming_waits_on_the_drive(rig: Rig) -> None:
     """A goal's switch of its joints to a streamed mode (SDO: it waits on the drive) happens in the

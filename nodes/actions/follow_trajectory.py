@@ -262,7 +262,16 @@ class FollowTrajectoryServer:
                 result.error_code, result.error_string = Result.INVALID_GOAL, run
                 goal_handle.abort()
                 return result
-            await self._follow(goal_handle, run)
+            try:
+                await self._follow(goal_handle, run)
+            except Exception as err:  # a fault of this server's: the motion is not left running under it
+                run.cancel()  # the group's thread ramps the joints down within a SYNC period
+                logger.exception("%s: following a goal failed unexpectedly", self._group.name)
+                result.error_code = Result.INVALID_GOAL
+                result.error_string = (f"following the goal failed unexpectedly ({type(err).__name__}: {err});"
+                                       " its motion was cancelled (ramped down); see the driver's log")
+                goal_handle.abort()
+                return result
             outcome = run.outcome
             assert outcome is not None  # done is set with it
             result.error_code, result.error_string = int(outcome.code), outcome.message
