@@ -431,10 +431,11 @@ def test_a_fault_of_the_server_mid_goal_aborts_it_and_the_joints_stop(rig: Rig, 
     calls: list[int] = []
 
     def failing_once_under_way(feedback: Any, progress: Any) -> Any:
-        calls.append(1)
-        if len(calls) == 20:  # about a second in at the feedback rate (20 Hz): joint1 near 28 deg
+        filled = fill(feedback, progress)
+        if not calls and filled.desired.time_from_start.sec >= 1:  # a second into the plan: joint1 near 28 deg
+            calls.append(1)
             raise RuntimeError("a bug in the feedback")
-        return fill(feedback, progress)
+        return filled
 
     monkeypatch.setattr(follow_trajectory, "fill_feedback", failing_once_under_way)
     done = result_of(send(rig, half_sine(40.0, 4.0)))

@@ -37,21 +37,23 @@ logger = logging.getLogger(__name__)
 #: Objects no tool or service may write by SDO (see SdoPort.write_checked), each with why:
 #: they move the motor, bypass a limit, or undo what stops the drive when the host is gone.
 _TARGET = "it is a motion target; use move/jog (limits enforced)"
-_UNITS = ("it sets the drive's units, which the driver read at boot: its limits in degrees and newton-metres would"
-          " no longer hold; set counts_per_rev, gear_ratio or rated_torque_nm in the config, or store the object on"
-          " the drive with the vendor's tool and boot it again")
+_UNITS = ("it sets the drive's units, on which the driver's scale from boot rests: its limits in degrees and"
+          " newton-metres would no longer hold; set counts_per_rev, gear_ratio or rated_torque_nm in the config, or"
+          " store the object on the drive with the vendor's tool and boot it again")
 PROTECTED_OBJECTS: dict[int, str] = {
     OD.CONTROLWORD: "it drives the state machine (enable, quick stop); use enable/disable",
     OD.MODES_OF_OPERATION: "it changes the operation mode under the driver",
     OD.TARGET_POSITION: _TARGET, OD.TARGET_VELOCITY: _TARGET, OD.TARGET_TORQUE: _TARGET,
     OD.VELOCITY_OFFSET: _TARGET, OD.TORQUE_OFFSET: _TARGET, OD.POSITION_OFFSET: _TARGET,
     OD.INTERPOLATION_DATA: _TARGET,
-    **dict.fromkeys((OD.POSITION_ENCODER_RESOLUTION, OD.GEAR_RATIO, OD.FEED_CONSTANT, OD.POSITION_FACTOR,
-                     OD.SI_UNIT_POSITION, OD.SI_UNIT_VELOCITY, OD.SI_UNIT_ACCELERATION, OD.RATED_TORQUE), _UNITS),
+    # the unit objects (read at boot: protocol/units.py), and the factors and notation indexes of
+    # older CiA 402 editions (0x6089-0x608E, 0x6093-0x6097), which scale the same values
+    **dict.fromkeys((OD.POSITION_ENCODER_RESOLUTION, OD.GEAR_RATIO, OD.FEED_CONSTANT, OD.SI_UNIT_POSITION,
+                     OD.SI_UNIT_VELOCITY, OD.SI_UNIT_ACCELERATION, OD.RATED_TORQUE, *range(0x6089, 0x608F),
+                     *range(0x6093, 0x6098)), _UNITS),
     OD.POLARITY: "it reverses the motor's direction under the driver's limits and commands; set invert in the config",
     OD.HOME_OFFSET: "it moves the zero the next homing sets, under the driver's limits in degrees; set offset_deg in"
                     " the config",
-    OD.HOMING_ACCELERATION: "homing moves the motor by it; set homing in the config",
     OD.SOFTWARE_POSITION_LIMIT: "it is the drive's position limit; set min_deg/max_deg in the config",
     OD.MAX_PROFILE_VELOCITY: "it is a velocity limit; set max_velocity_deg_s in the config",
     OD.MAX_TORQUE: "it is the torque limit; set max_torque_nm in the config",

@@ -26,7 +26,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 from rovercan_msgs.action import Home, MoveJoint
 
-from can_config.errors import DriveStateError, RovercanError
+from can_config.errors import CommandRejected, DriveStateError, RovercanError
 from can_config.objects import OperationMode
 from motor_driver import Drive, MotorDriver
 from motor_driver.drive.verdict import Condition
@@ -139,26 +139,34 @@ class DriverActionsNode(Node):
             goal.abort()
         return result
 
+    def _start_move(self, goal: Any, drive: Drive) -> float | None:
+        """A move goal's start, off the executor (SDO writes, a mode switch: it waits on the drive):
+        the goal checked whole before anything is written (a refused target or speed changes
+        nothing); the move's target, or None when cancelled (or shut down) before it moved."""
+        request = goal.request
+        drive.motion.check_position(float(request.target_deg))
+        speed = float(request.speed_deg_s)
+        if speed != 0.0:  # NaN, negative, beyond the limit or below the drive's resolution: refused
+            try:
+                drive.motion.check_profile_velocity(speed)
+            except CommandRejected as err:
+                raise CommandRejected(f"{err} (speed_deg_s 0: the joint's configured profile velocity)") from err
+        if not goal.is_cancel_requested and speed:
+            drive.motion.set_profile_velocity(speed)
+        elif not goal.is_cancel_requested:  # the configured speed again, never the one an earlier goal left
+            drive.motion.restore_profile_velocity()
+        if not goal.is_cancel_requested:
+            drive.power.set_mode(OperationMode.PROFILE_POSITION)  # where it is not: waits on the drive
+        if goal.is_cancel_requested or not self._alive:
+            return None
+        return drive.move_to(float(request.target_deg))
+
     async def _execute_move(self, goal: Any) -> Any:
         request = goal.request
         drive = self.drives[request.joint]
         feedback = MoveJoint.Feedback()
-        def start() -> float | None:  # waits on the drive (SDO writes, a mode switch): off the executor
-            # the goal checked whole before the drive is touched (a refused target or speed changes nothing)
-            drive.motion.check_position(float(request.target_deg))
-            speed = float(request.speed_deg_s)
-            if speed != 0.0:  # NaN, negative, beyond the limit or below the drive's resolution: refused
-                drive.motion.check_profile_velocity(speed)
-            if not goal.is_cancel_requested:
-                # this goal's speed, or the configured one (never the speed an earlier goal left)
-                drive.motion.set_profile_velocity(speed or drive.config.profile_velocity_deg_s)
-                drive.power.set_mode(OperationMode.PROFILE_POSITION)  # where it is not: waits on the drive
-            if goal.is_cancel_requested or not self._alive:
-                return None  # cancelled (or shut down) while it started: nothing moved
-            return drive.move_to(float(request.target_deg))
-
         try:
-            started = await self._off_executor(request.joint, start)
+            started = await self._off_executor(request.joint, lambda: self._start_move(goal, drive))
             if started is None:
                 return self._finish(goal, MoveJoint.Result(), request.joint, False, "canceled before it moved"
                                     if goal.is_cancel_requested else "the driver's actions shut down before it moved")
@@ -232,7 +240,8 @@ class DriverActionsNode(Node):
                 try:
                     drive.quick_stop()  # preempts the homing operation, which then gives up
                 except RovercanError as err:
-                    stop_failed = f"canceled, but its quick stop failed: {err}; stop the joint with /disarm"
+                    stop_failed = (f"canceled, but its quick stop failed: {err}; stop the joint with"
+                                   f" {drive.config.ros_prefix}/quick_stop or /disarm")
                     logger.error("%s: home_joint %s", joint, stop_failed)
             await self._pause()
         if stopped:

@@ -24,6 +24,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 from can_config.config import DriveConfig
+from can_config.eds import has_object
 from can_config.errors import CommandRejected, CommandWouldWait, DriveStateError
 from can_config.objects import OD, SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.drive.command.busy import Op
@@ -246,6 +247,13 @@ class Motion:
         units = self.check_profile_velocity(velocity_deg_s)
         with self._channel.operation("profile velocity"):  # an SDO round trip: busy, not the lock
             self._sdo.write_typed(OD.PROFILE_VELOCITY, 0, units)
+
+    def restore_profile_velocity(self) -> None:
+        """The configured profile velocity again (``profile_velocity_deg_s``, as boot writes it),
+        where the drive has 0x6081: a move that asks for no speed of its own never runs at the
+        speed an earlier one set."""
+        if has_object(self._sdo.od, OD.PROFILE_VELOCITY):
+            self.set_profile_velocity(self.config.profile_velocity_deg_s)
 
     # ------------------------------------------------------------------ velocity and torque
     def _checked_velocity(self, velocity_deg_s: float) -> tuple[float, int]:
