@@ -6,7 +6,9 @@ from __future__ import annotations
 import errno
 import inspect
 import socket
+import threading
 import time
+from collections.abc import Iterator
 
 import can
 import canopen
@@ -297,13 +299,19 @@ def test_the_direct_send_writes_what_python_can_writes_for_canopens_message(fram
     cannot carry, written as python-can writes it: no data), on a TCP socket with and without ``tcp_tune``."""
     client, peer = _tcp_pair()
     try:
-        send = socketcand_sender(_unconnected_socketcand(client, tune))
-        assert send is not None
+        direct = socketcand_sender(_unconnected_socketcand(client, tune))
+        assert direct is not None
         for can_id, data, remote in frames:
             want = convert_can_message_to_ascii_message(can.Message(is_extended_id=can_id > 0x7FF, arbitration_id=can_id,
                                                                     data=data, is_remote_frame=remote))
-            send(can_id, data, remote)
+            direct.send(can_id, data, remote)
             assert _read_text(peer, len(want)) == want
+        texts = [direct.text(*frame) for frame in frames]  # one_write's: the same bytes, in one write
+        direct.write(b"".join(texts))
+        assert _read_text(peer, sum(map(len, texts))) == "".join(
+            convert_can_message_to_ascii_message(can.Message(is_extended_id=can_id > 0x7FF, arbitration_id=can_id,
+                                                             data=data, is_remote_frame=remote))
+            for can_id, data, remote in frames)
     finally:
         client.close()
         peer.close()
@@ -316,6 +324,116 @@ def test_the_direct_send_is_only_for_python_cans_socketcand_send() -> None:
         network = GuardedNetwork(bus)
         network.send_message(0x201, b"\x0f")
         assert [m.arbitration_id for m in bus.sent] == [0x201]
+    finally:
+        bus.shutdown()
+
+
+def _writes_of(network: GuardedNetwork) -> list[bytes]:
+    """A hook on the network's held write to its socket (the write itself real): each one's bytes."""
+    network._direct()  # the direct sender, made for the network's bus
+    bus, direct = network._sender
+    assert direct is not None
+    writes: list[bytes] = []
+
+    def write(payload: bytes) -> None:
+        writes.append(payload)
+        direct.write(payload)
+    network._sender = (bus, direct._replace(write=write))
+    return writes
+
+
+def _heard(peer: can.BusABC, count: int) -> list[tuple[int, bytes]]:
+    out = []
+    for _ in range(count):
+        msg = peer.recv(10.0)  # a bound for a hang
+        assert msg is not None, f"heard {out}, then nothing"
+        out.append((msg.arbitration_id, bytes(msg.data)))
+    return out
+
+
+@pytest.fixture
+def held_network() -> Iterator[tuple[SimService, GuardedNetwork, can.BusABC, list[tuple[int, bytes | bytearray, bool]]]]:
+    """A network on the simulator's socketcand server, a peer on the same bus, what on_sent was told."""
+    sim = SimService([], port=0)
+    buses = [can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port) for _ in range(2)]
+    network = GuardedNetwork(buses[0])
+    told: list[tuple[int, bytes | bytearray, bool]] = []
+    network.on_sent = lambda *frame: told.append(frame)
+    on_the_bus(sim.server, 2)  # the peer listens before anything is sent
+    try:
+        yield sim, network, buses[1], told
+    finally:
+        for bus in buses:
+            bus.shutdown()
+        sim.close()
+
+
+def test_frames_of_one_write_go_out_in_one_write_in_order_and_are_told_once_written(
+        held_network: tuple[SimService, GuardedNetwork, can.BusABC, list[tuple[int, bytes | bytearray, bool]]]) -> None:
+    _, network, peer, told = held_network
+    writes = _writes_of(network)
+    frames = [(0x301, b"\x0f\x00\x01\x00\x00\x00"), (0x302, b"\x0f\x00\x02\x00\x00\x00"), (0x303, b"\x1f\x00")]
+    with network.one_write():
+        for can_id, data in frames:
+            network.send_message(can_id, data)
+        assert told == [] and writes == []  # held: nothing written, nothing told
+    assert len(writes) == 1 and writes[0].count(b"< send ") == 3
+    assert told == [(can_id, data, False) for can_id, data in frames]
+    assert _heard(peer, 3) == frames
+
+
+def test_another_threads_frame_inside_one_write_goes_out_after_the_frames_held_before_it(
+        held_network: tuple[SimService, GuardedNetwork, can.BusABC, list[tuple[int, bytes | bytearray, bool]]]) -> None:
+    """The order on the wire is the order of the calls: a stop sent by another thread while a
+    SYNC's set-points are held follows the set-points handed over before it (a set-point carrying
+    Enable Operation after the stop would undo it), and those after it follow it."""
+    _, network, peer, told = held_network
+    stop = (0x201, b"\x02\x00")
+    with network.one_write():
+        network.send_message(0x301, b"\x0f\x00\x01\x00\x00\x00")
+        network.send_message(0x302, b"\x0f\x00\x02\x00\x00\x00")
+        other = threading.Thread(target=network.send_message, args=stop)
+        other.start()
+        other.join(10.0)
+        assert not other.is_alive()
+        network.send_message(0x303, b"\x0f\x00\x03\x00\x00\x00")
+    order = [0x301, 0x302, 0x201, 0x303]
+    assert [can_id for can_id, _ in _heard(peer, 4)] == order
+    assert [can_id for can_id, _, _ in told] == order
+
+
+def test_frames_held_for_a_bus_since_replaced_are_dropped_and_the_holder_told(
+        held_network: tuple[SimService, GuardedNetwork, can.BusABC, list[tuple[int, bytes | bytearray, bool]]]) -> None:
+    """A reconnect while frames are held: they were for the old connection (drives booted again since)
+    and are not written to the new one; the holder's end raises, another thread's frame goes out."""
+    sim, network, peer, told = held_network
+    second = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    try:
+        on_the_bus(sim.server, 3)
+        with pytest.raises(can.CanOperationError, match="replaced"), network.one_write():
+            network.send_message(0x301, b"\x0f\x00\x01\x00\x00\x00")
+            network.bus = second
+        assert network.held_dropped == 1 and told == []
+        with network.one_write():
+            network.send_message(0x302, b"\x0f\x00\x02\x00\x00\x00")
+            network.bus = peer
+            other = threading.Thread(target=network.send_message, args=(0x201, b"\x02\x00"))
+            other.start()
+            other.join(10.0)
+        assert network.held_dropped == 2
+        assert second.recv(10.0) is not None  # the stop, sent by the replacement (the peer's own socket)
+        assert [can_id for can_id, _, _ in told] == [0x201]
+    finally:
+        second.shutdown()
+
+
+def test_one_write_is_each_frame_at_once_where_the_bus_is_not_socketcand() -> None:
+    bus = FullQueueBus(0)
+    try:
+        network = GuardedNetwork(bus)
+        with network.one_write():
+            network.send_message(0x301, b"\x0f\x00")
+            assert [m.arbitration_id for m in bus.sent] == [0x301]
     finally:
         bus.shutdown()
 

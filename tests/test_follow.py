@@ -7,6 +7,7 @@ drive lost mid-goal, judged by the frames and the simulated drives, never by a c
 from __future__ import annotations
 
 import dataclasses
+import errno
 import itertools
 import math
 import struct
@@ -19,6 +20,7 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import TrajectoryRejected
 from motor_driver import MotorDriver
+from motor_driver.bus.adapters import GuardedNetwork
 from motor_driver.follow import GoalRun, Tolerance, TrajectoryCode, TrajectoryGoal, TrajectoryGroup
 from motor_driver.follow.trajectory import Spline
 from virtual_can import SimService
@@ -400,6 +402,29 @@ def test_a_drive_lost_mid_goal_aborts_and_stops_the_group(arm: Arm) -> None:
     runner = arm.sim.simulators["can0"]
     wait_for(lambda: abs(runner.call(lambda: runner.drive(1).omega)) < 1e-3, 10.0, "joint1 at rest")  # type: ignore[arg-type]
     assert angle(arm, "joint1") < 55.0
+
+
+def test_a_failed_write_of_a_syncs_set_points_ends_the_goal_naming_the_bus(arm: Arm) -> None:
+    """A SYNC's set-points go out in one write a bus (GuardedNetwork.one_write): that write failing
+    (a hook on it: the socket's error) ends the goal as a set-point refused does, naming the bus;
+    not an internal error of the group, whose thread goes on."""
+    network = arm.driver.drive("joint1").network
+    assert isinstance(network, GuardedNetwork)
+    run = arm.group.follow(goal((4.0, (60.0, -60.0))))
+    wait_for(lambda: run.progress is not None and run.progress.time_s > 0.5, 20.0, "the goal under way")
+    bus, direct = network._sender
+    assert direct is not None
+
+    def write(payload: bytes) -> None:
+        raise OSError(errno.EPIPE, "Broken pipe")
+    network._sender = (bus, direct._replace(write=write))
+    try:
+        assert finished(run) == TrajectoryCode.PATH_TOLERANCE_VIOLATED
+    finally:
+        network._sender = (bus, direct)
+    assert run.outcome is not None and "bus can0: set-points not sent" in run.outcome.message, run.outcome
+    assert arm.group.errors == 0 and arm.group.alive
+    wait_for(lambda: not arm.group.ramping, RESULT_S, "the ramp done")
 
 
 def test_a_held_group_thread_catches_up_within_the_drives_step_guard(arm: Arm) -> None:

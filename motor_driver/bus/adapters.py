@@ -14,7 +14,9 @@ that changes the behaviour fails there, loudly, instead of in the field:
   read's frames handed to the bus's listener in one call, no ``can.Message`` made for them.
 - :func:`socketcand_sender`: the same client's send, written to its socket by this driver: the
   text python-can would write for the frame, without the ``can.Message``, the per-send debug
-  text and the layers in between (every command's RPDO goes this way).
+  text and the layers in between (every command's RPDO goes this way); with
+  :meth:`GuardedNetwork.one_write`, a SYNC's set-points of several drives in one write, the
+  order on the wire still the order of the sends of every thread.
 - :class:`GuardedNetwork`: canopen's ``Network.notify`` stops the receive thread when one
   callback raises; this override isolates each callback (its loop mirrors canopen's). Its
   listener also drops 29-bit frames, which canopen would dispatch by their low bits.
@@ -34,11 +36,13 @@ import select
 import socket
 import struct
 import termios
+import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import can
 import canopen
@@ -376,15 +380,25 @@ def receive_behind(bus: can.BusABC | None) -> bool | None:
 _HEX = tuple(f"{b:x}" for b in range(256))
 
 
-def socketcand_sender(bus: can.BusABC | None) -> Callable[[int, bytes | bytearray, bool], None] | None:
-    """``send(can_id, data, remote)`` writing a frame on a python-can socketcand bus's socket as its own
-    ``send`` does (the same text: ``convert_can_message_to_ascii_message`` of the ``can.Message``
-    canopen's ``send_message`` makes, an id above 0x7FF extended, a remote frame's data dropped as
-    ``can.Message`` drops it (socketcand's rawmode has no remote frames); the same TCP_QUICKACK after it
-    when the bus was opened with ``tcp_tune``; a socket error raised as it is), without building
-    the message, formatting python-can's per-send debug line and going through four calls: about
-    a fifth of a streamed set-point's Python time (docs/performance.md). The caller holds the
-    network's send lock. None for other interfaces (and buses whose ``send`` is not python-can's)."""
+class DirectSend(NamedTuple):
+    """A python-can socketcand bus's send done by this driver (:func:`socketcand_sender`):
+    ``send(can_id, data, remote)`` writes one frame; ``text`` is the frame's bytes and ``write`` puts
+    several frames' bytes on the socket in one call (:meth:`GuardedNetwork.one_write`)."""
+
+    send: Callable[[int, bytes | bytearray, bool], None]
+    text: Callable[[int, bytes | bytearray, bool], bytes]
+    write: Callable[[bytes], None]
+
+
+def socketcand_sender(bus: can.BusABC | None) -> DirectSend | None:
+    """A frame written on a python-can socketcand bus's socket as its own ``send`` does (the same
+    text: ``convert_can_message_to_ascii_message`` of the ``can.Message`` canopen's ``send_message``
+    makes, an id above 0x7FF extended, a remote frame's data dropped as ``can.Message`` drops it
+    (socketcand's rawmode has no remote frames); the same TCP_QUICKACK after it when the bus was
+    opened with ``tcp_tune``; a socket error raised as it is), without building the message,
+    formatting python-can's per-send debug line and going through four calls: about a fifth of a
+    streamed set-point's Python time (docs/performance.md). The caller holds the network's send
+    lock. None for other interfaces (and buses whose ``send`` is not python-can's)."""
     from can.interfaces.socketcand.socketcand import SocketCanDaemonBus
 
     sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
@@ -394,15 +408,23 @@ def socketcand_sender(bus: can.BusABC | None) -> Callable[[int, bytes | bytearra
     tune = bool(getattr(bus, SOCKETCAND_TCP_TUNE, False))
     quickack = (socket.IPPROTO_TCP, socket.TCP_QUICKACK, 1)
 
-    def send(can_id: int, data: bytes | bytearray, remote: bool) -> None:
+    def text(can_id: int, data: bytes | bytearray, remote: bool) -> bytes:
         if remote:
             data = b""
         ident = f"{can_id & 0x1FFFFFFF:08X}" if can_id > 0x7FF else f"{can_id:03X}"
-        sendall(f"< send {ident} {len(data):X} {' '.join(map(hexes, data))} >".encode("ascii"))
+        return f"< send {ident} {len(data):X} {' '.join(map(hexes, data))} >".encode("ascii")
+
+    def write(payload: bytes) -> None:
+        sendall(payload)
         if tune:
             setsockopt(*quickack)
 
-    return send
+    def send(can_id: int, data: bytes | bytearray, remote: bool) -> None:
+        sendall(text(can_id, data, remote))
+        if tune:
+            setsockopt(*quickack)
+
+    return DirectSend(send, text, write)
 
 
 #: socketcand's text of a SYNC (its ``< frame %03X %ld.%06ld  >`` with no data, a Unix-time stamp:
@@ -538,7 +560,14 @@ class GuardedNetwork(canopen.Network):
         self.tx_queue_full = 0
         self.tx_queue_dropped = 0
         # the bus the direct sender was made for, and it (socketcand_sender; None: canopen's send)
-        self._sender: tuple[can.BusABC | None, Callable[[int, bytes | bytearray, bool], None] | None] = (None, None)
+        self._sender: tuple[can.BusABC | None, DirectSend | None] = (None, None)
+        # one_write's, under the send lock: the thread whose frames are held, the bus they are for,
+        # their bytes and the frames (for on_sent once written)
+        self._holder: int | None = None
+        self.held_dropped = 0  # held frames not written: their bus was replaced (a reconnect) meanwhile
+        self._held_for: can.BusABC | None = None
+        self._held: list[bytes] = []
+        self._held_frames: list[tuple[int, bytes | bytearray, bool]] = []
 
     def listen_with(self, listener: can.Listener) -> None:
         """Before :meth:`connect`: ``listener`` is the receive thread's one listener, in place of
@@ -554,7 +583,7 @@ class GuardedNetwork(canopen.Network):
         deadline = 0.0
         while True:
             try:
-                self._send_once(can_id, data, remote)
+                held = self._send_once(can_id, data, remote)
                 break
             except (can.CanError, OSError) as err:
                 if not queue_full(err):
@@ -570,24 +599,79 @@ class GuardedNetwork(canopen.Network):
                                                 errno.ENOBUFS) from err
                 time.sleep(TX_QUEUE_FULL_PAUSE_S)  # a frame's time at 1 Mbit/s is about 0.1 ms
         hook = self.on_sent
-        if hook is not None:
+        if hook is not None and not held:  # a held frame's once it is written
             hook(can_id, data, remote)
 
-    def _send_once(self, can_id: int, data: bytes | bytearray, remote: bool) -> None:
-        """canopen's ``send_message`` (its lock, its check of the receive thread after), through the
-        socketcand socket directly where the bus is python-can's socketcand client: made again for
+    def _direct(self) -> tuple[can.BusABC | None, DirectSend | None]:
+        """The bus and its direct sender (socketcand_sender; None: canopen's send), made again for
         each bus this network is given (a reconnect)."""
         bus = self.bus
         made_for, send = self._sender
         if bus is not made_for:
             send = socketcand_sender(bus)
             self._sender = (bus, send)
-        if send is None or bus is None:
+        return bus, send
+
+    def _send_once(self, can_id: int, data: bytes | bytearray, remote: bool) -> bool:
+        """canopen's ``send_message`` (its lock, its check of the receive thread after), through the
+        socketcand socket directly where the bus is python-can's socketcand client. True: the frame
+        is held (this thread's :meth:`one_write`); another thread's frame writes the held ones first."""
+        bus, direct = self._direct()
+        if direct is None or bus is None:
             super().send_message(can_id, data, remote)
+            return False
+        with self.send_lock:
+            if self._holder is not None:
+                if self._holder == threading.get_ident() and bus is self._held_for:
+                    self._held.append(direct.text(can_id, data, remote))
+                    self._held_frames.append((can_id, data, remote))
+                    return True
+                self._write_held(direct, mine=False)  # the order on the wire is the order of the calls
+            direct.send(can_id, data, remote)
+        self.check()
+        return False
+
+    @contextmanager
+    def one_write(self) -> Iterator[None]:
+        """The frames this thread sends inside go out in one write of the socket, at the end, where
+        the bus is python-can's socketcand client (elsewhere, and nested, each as it is sent): a
+        SYNC period's set-points of several drives for one system call, one TCP segment and one
+        wake-up of the daemon instead of one each (docs/performance.md). The wire keeps the order of
+        the calls: a frame another thread sends meanwhile (a stop, an SDO) first writes what is held.
+        A frame held is told to ``on_sent`` once written. The write's error (a lost bus, or a bus
+        replaced by a reconnect: the frames were for the old one and are dropped) is raised at the end."""
+        bus, direct = self._direct()
+        if direct is None or bus is None or self._holder is not None:
+            yield
             return
         with self.send_lock:
-            send(can_id, data, remote)
-        self.check()
+            self._holder, self._held_for = threading.get_ident(), bus
+        try:
+            yield
+        finally:
+            with self.send_lock:
+                self._holder = None
+                self._write_held(direct, mine=True)
+            self.check()
+
+    def _write_held(self, direct: DirectSend, mine: bool) -> None:
+        """Under the send lock: the frames held, in one write, then told to ``on_sent`` (none held:
+        nothing). Held for a bus since replaced, they are dropped (counted): raised only to the
+        holder (``mine``), another thread's frame goes out all the same."""
+        if not self._held:
+            return
+        payload, frames, self._held, self._held_frames = b"".join(self._held), self._held_frames, [], []
+        if self.bus is not self._held_for:
+            self.held_dropped += len(frames)
+            if mine:
+                raise can.CanOperationError(f"{len(frames)} frame(s) held for a bus since replaced (a reconnect)"
+                                            " not sent")
+            return
+        direct.write(payload)
+        hook = self.on_sent
+        if hook is not None:
+            for frame in frames:
+                hook(*frame)
 
     def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
         callbacks = self.subscribers.get(can_id)

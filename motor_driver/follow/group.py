@@ -16,7 +16,10 @@ set-point and its measured position (INVALID_GOAL); a header stamp whose traject
 The clock: the group's thread (``rovercan-follow-<group>``) wakes on each position sample of one of
 its drives (:meth:`DriveCache.on_sample`, set by the receive thread: one a SYNC) and sends every
 joint's next set-point then, a CSP (or IP) set-point through the drive's command channel
-(``stream_position``), so a stop still wins. The trajectory's time is the monotonic clock's, from
+(``stream_position``), so a stop still wins; a SYNC's set-points go out in one write a bus where
+the bus is socketcand (``GuardedNetwork.one_write``: a stop sent meanwhile still follows the
+set-points handed over before it), and a write that fails ends the goal as a refused set-point does.
+The trajectory's time is the monotonic clock's, from
 the plan's time zero (:attr:`GoalRun.start_at`: its acceptance, or its header stamp), read at the
 sample's reception (its SYNC): the set-point sent is the spline at the next SYNC's time, where the
 drive takes it (:class:`motor_driver.follow.trajectory.Spline`). Each set-point advances the plan by
@@ -62,8 +65,11 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+import can
+
 from can_config.errors import RovercanError
 from can_config.model import TrajectoryGroupConfig
+from motor_driver.bus.adapters import GuardedNetwork
 from motor_driver.drive import Drive
 from motor_driver.follow.checks import GoalChecks
 from motor_driver.follow.goal import (
@@ -154,6 +160,9 @@ class TrajectoryGroup:
         self._clock_seq = -1
         self._silences = 0  # the clock's waits in a row that ended without a sample
         self._checks = GoalChecks(config, self.drives, self.period_s)
+        #: the buses (name, network) whose set-points of one SYNC go out in one write (GuardedNetwork.one_write)
+        self._networks = tuple({id(d.network): (d.config.bus, d.network) for d in self.drives.values()
+                                if isinstance(d.network, GuardedNetwork)}.values())
         self._thread = threading.Thread(target=self._loop, name=f"rovercan-follow-{self.name}", daemon=True)
         self._thread.start()
 
@@ -319,9 +328,20 @@ class TrajectoryGroup:
             self._judge_silence()
             return
         self._silences = 0
-        if self._running is not None and self._clock is not None:
-            self._step(self._running, self._clock)
-        self._step_ramp()
+        held = [network.one_write() for _, network in self._networks]  # this SYNC's set-points, one write a bus
+        for each in held:
+            each.__enter__()
+        try:
+            if self._running is not None and self._clock is not None:
+                self._step(self._running, self._clock)
+            self._step_ramp()
+        finally:
+            for (bus, _), each in zip(self._networks, held, strict=True):
+                try:
+                    each.__exit__(None, None, None)
+                except (can.CanError, OSError) as err:  # as a set-point the drive's _send refused: the goal ends
+                    self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"bus {bus}: set-points not sent: the bus is"
+                               f" gone ({err}); the group stops")
 
     def _start(self, run: GoalRun) -> None:
         joints = run.plan.goal.joints
