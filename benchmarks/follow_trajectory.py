@@ -20,7 +20,8 @@ Figures per way, from the listener's frames (the server's wire stamps), for the 
   which a joint got exactly one set-point, none (the drive held: a stall), two or more (one was lost);
 * ``cpu_core_fraction``: CPU seconds of the driver (plus the publisher, for ``stream``) over the run's wall time.
 
-``python benchmarks/follow_trajectory.py [--seconds S]`` prints the figures as JSON. Run by hand; not in run.py.
+``python benchmarks/follow_trajectory.py [--seconds S]`` prints the figures as JSON, by hand. ``--six``: run.py's
+reference instead (:func:`six_following`: six drives on one bus at 500 Hz following a goal, the driver's CPU).
 """
 
 from __future__ import annotations
@@ -77,9 +78,9 @@ def spline(seconds: float) -> Spline:
 class Listener:
     """Every frame of the arm's bus, with the server's wire stamp."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, channel: str = ARM_BUS) -> None:
         self.frames: list[can.Message] = []
-        self.bus = can.Bus(interface="socketcand", channel=ARM_BUS, host="127.0.0.1", port=port)
+        self.bus = can.Bus(interface="socketcand", channel=channel, host="127.0.0.1", port=port)
         self.notifier = can.Notifier(self.bus, [self.frames.append], timeout=0.1)
 
     def close(self) -> None:
@@ -167,10 +168,86 @@ def run_action(client: Any, seconds: float) -> None:
         raise RuntimeError(f"the goal failed: {outcome[0].error_string}")
 
 
+def six_config_text() -> str:
+    """bus_limit.py's six drives on one bus at 500 Hz, the joints limited and one trajectory group."""
+    config = yaml.safe_load(bus_limit.config_text())
+    for drive in config["drives"]:
+        drive.update(joint="limited", min_deg=-170.0, max_deg=170.0)
+    config["trajectory_groups"] = [{"name": "arm_controller", "joints": JOINTS}]
+    return yaml.safe_dump(config, sort_keys=False)
+
+
+def six_following(seconds: float) -> dict[str, Any]:
+    """run.py's reference: bus_limit.py's six drives at 500 Hz following one FollowJointTrajectory
+    goal (the driver samples it at each SYNC: no ROS message a set-point), measured as the stack run
+    measures (the node as deployed, the simulator's drive models in processes of their own, the
+    driver's CPU from /proc over ``seconds`` in the goal's middle). The canopen library's same work is
+    bus_limit's (the same bus, drives, SYNC and set-point rate). ``periods_none``: the share of SYNC
+    periods in which a joint got no set-point (the work not done, judged by run.py)."""
+    import rclpy
+    from control_msgs.action import FollowJointTrajectory
+    from rclpy.action import ActionClient
+    from rclpy.executors import SingleThreadedExecutor
+
+    from nodes.process.spinning import SpinThread
+
+    failed: list[BaseException] = []
+
+    def follow(client: Any) -> None:
+        try:
+            run_action(client, seconds + 4.0)
+        except Exception as err:  # the goal's failure, said by the figures
+            failed.append(err)
+
+    with bus_limit.limit_config(text=six_config_text()) as template, simulator("--config", str(template),
+                                                                                "--drive-processes") as port, \
+            tempfile.TemporaryDirectory() as tmp:
+        config = stack_run.on_port(template, port, tmp)
+        listener = Listener(port, "can0")
+        driver = subprocess.Popen(unboosted([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p",
+                                             f"config:={config}", "-p", "arm:=true", "-p", "diagnostics_rate_hz:=2.0"]),
+                                  cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        node = rclpy.create_node("bench_follow", context=context)
+        client = ActionClient(node, FollowJointTrajectory, "/arm_controller/follow_joint_trajectory")
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        spin = SpinThread(executor, "bench-client")
+        try:
+            if not client.wait_for_server(timeout_sec=60):
+                raise stack_run.StartFailed("the driver serves no /arm_controller/follow_joint_trajectory")
+            time.sleep(3.0)  # every drive armed
+            goal = threading.Thread(target=follow, args=(client,), daemon=True)
+            goal.start()
+            time.sleep(2.0)  # the goal under way
+            mark, cpu0, t0 = len(listener.frames), proc_cpu_s(driver.pid), time.monotonic()
+            time.sleep(seconds)
+            cpu, wall = proc_cpu_s(driver.pid) - cpu0, time.monotonic() - t0
+            window = listener.frames[mark:]
+            goal.join(seconds + 40.0)
+            if failed or goal.is_alive():
+                raise RuntimeError(f"the goal did not succeed: {failed[0] if failed else 'no result'}")
+        finally:
+            spin.stop(5.0)
+            context.try_shutdown()
+            driver.terminate()
+            driver.wait(30)
+            listener.close()
+    tracked = figures(window, seconds, 4096 * 50 / 360)
+    return {"cpu_core_fraction": round(cpu / wall, 4), "periods_none": round(tracked["periods_none"], 4),
+            "following_rms_deg": round(tracked["following_rms_deg"], 4)}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=4.0, help="the trajectory's duration")
+    parser.add_argument("--six", action="store_true", help="run.py's reference: six drives at 500 Hz following a goal")
     args = parser.parse_args()
+    if args.six:
+        stack_run.harness_ahead()
+        print(json.dumps(six_following(args.seconds), indent=2))
+        return 0
     stack_run.harness_ahead()
     import rclpy
     from control_msgs.action import FollowJointTrajectory

@@ -270,6 +270,7 @@ def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid:
     """Six drives on one bus at 500 Hz CSP (bus_limit.py) beside the canopen library's same work;
     its CPU ratio the median of that pair and ``pairs`` more (:func:`more_pairs`), as the rover's."""
     import bus_limit
+    import follow_trajectory
     import same_work
     import stack_run
 
@@ -299,11 +300,21 @@ def bench_bus_limit(seconds: float, pairs: int, errors: dict[str, str], invalid:
             out.update({k: v for k, v in more.items() if k != "more_pairs"})
             with_median(out, "bus_limit_cpu_ratio_canopen", out["bus_limit_cpu_core_fraction"]
                         / base["baseline_canopen_same_work_rt_cpu_core_fraction"], more.get("more_pairs", []))
+        # reference: the same six drives following one FollowJointTrajectory goal, each set-point
+        # sampled by the driver at its SYNC (no ROS message a set-point, as the canopen library's run)
+        trajectory: dict[str, Any] = {}
+        measured(trajectory, errors, "bus limit, trajectory", follow_trajectory.six_following, seconds)
     base_cpu = base.get("baseline_canopen_same_work_rt_cpu_core_fraction")
     out.update(joint_commands)
     if joint_commands.get("bus_limit_joint_commands_cpu_core_fraction") and base_cpu:
         out["bus_limit_cpu_ratio_canopen_joint_commands"] = round(
             joint_commands["bus_limit_joint_commands_cpu_core_fraction"] / base_cpu, 2)
+    out.update({f"bus_limit_trajectory_{k}": v for k, v in trajectory.items()})
+    if trajectory.get("periods_none", 1.0) > bus_limit.SETPOINT_LOSS_MAX:  # the work not done: no figure
+        invalid["bus limit, trajectory"] = (f"the trajectory run's joints got no set-point in"
+                                            f" {trajectory.get('periods_none', 1.0):.1%} of the SYNC periods")
+    elif trajectory.get("cpu_core_fraction") and base_cpu:
+        out["bus_limit_cpu_ratio_canopen_trajectory"] = round(trajectory["cpu_core_fraction"] / base_cpu, 2)
     # a node of rclpy and the canopen library, in parts, as the rover's (bench_stack): rclpy taking the
     # same 3,000 Float32 a second, one python-can send each, plus the canopen library's state run of
     # six drives at 500 Hz

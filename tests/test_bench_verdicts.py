@@ -74,6 +74,20 @@ def test_the_joint_commands_ratios_are_shown_beside_the_gated_ones_never_gated()
     assert exit_status(rows, {}) == 0
 
 
+def test_the_trajectory_ratio_is_a_reference_and_says_when_its_work_was_not_done() -> None:
+    """Six drives at 500 Hz following a FollowJointTrajectory goal: shown beside the gated ratio,
+    never gated; a run whose joints went without set-points (run.py's "bus limit, trajectory"
+    invalid) gives no verdict rather than a figure of less work."""
+    rows = verdicts({"bus_limit_cpu_ratio_canopen": 1.7, "bus_limit_cpu_ratio_canopen_trajectory": 1.3})
+    assert {r.figure: r.verdict for r in rows} == {"bus_limit_cpu_ratio_canopen": "MISSED",
+                                                   "bus_limit_cpu_ratio_canopen_trajectory": "over (reference, not gated)"}
+    rows = verdicts({"invalid": {"bus limit, trajectory": "no set-point in 9% of the SYNC periods"}})
+    assert [(r.figure, r.verdict) for r in rows] == [
+        ("bus_limit_cpu_ratio_canopen_trajectory", "no verdict: bus limit, trajectory: no set-point in 9% of the SYNC"
+         " periods")]
+    assert exit_status(rows, {}) == 0
+
+
 def test_the_table_has_a_row_per_figure() -> None:
     text = table(verdicts({"tpdo_loss": 0, "sync_jitter_p99_us": 933.0}))
     assert "| tpdo_loss | 0 | == 0 | pass |" in text
