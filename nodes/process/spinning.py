@@ -36,6 +36,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.context import Context
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -155,13 +156,22 @@ def supervise(node: Node, failures: CallbackFailures) -> int:
     return wrapped
 
 
-def failed_response(srv_type: Any, text: str) -> Any:
-    """A fresh response of ``srv_type``: ``success`` False and ``message`` ``text`` where it has them."""
+def failed_response(srv_type: Any, text: str, request: Any = None) -> Any:
+    """A fresh response of ``srv_type``: ``success`` False and ``message`` ``text`` where it has them.
+    A parameter service's as rclpy's parameter service answers what it cannot do (its
+    ``_set_parameters_callback``): SetParameters one failed result a parameter of ``request`` with
+    ``text`` the reason (a client such as ``ros2 param set`` reads ``results[0]``),
+    SetParametersAtomically a failed result; the get, describe and list services no values, as
+    rclpy answers a name it does not know."""
     response = srv_type.Response()
     if hasattr(response, "success"):
         response.success = False
     if hasattr(response, "message"):
         response.message = text
+    if isinstance(getattr(response, "result", None), SetParametersResult):
+        response.result = SetParametersResult(successful=False, reason=text)
+    elif hasattr(response, "results") and hasattr(request, "parameters"):
+        response.results = [SetParametersResult(successful=False, reason=text) for _ in request.parameters]
     return response
 
 
@@ -174,24 +184,25 @@ def _service_callback(service: Any, callback: Callable[..., Any], failures: Call
     where = f"service {service.service_name}"
     response_type = service.srv_type.Response
 
-    def answered(response: Any) -> Any:
+    def answered(response: Any, request: Any) -> Any:
         if isinstance(response, response_type):
             return response
-        return failed_response(service.srv_type, failures.record(where, TypeError(f"the callback returned {response!r}")))
+        return failed_response(service.srv_type, failures.record(where, TypeError(f"the callback returned {response!r}")),
+                               request)
 
     if inspect.iscoroutinefunction(callback):
         async def call_async(request: Any, response: Any) -> Any:
             try:
-                return answered(await callback(request, response))
+                return answered(await callback(request, response), request)
             except Exception as err:
-                return failed_response(service.srv_type, failures.record(where, err))
+                return failed_response(service.srv_type, failures.record(where, err), request)
         return _mark(call_async)
 
     def call(request: Any, response: Any) -> Any:
         try:
-            return answered(callback(request, response))
+            return answered(callback(request, response), request)
         except Exception as err:
-            return failed_response(service.srv_type, failures.record(where, err))
+            return failed_response(service.srv_type, failures.record(where, err), request)
     return _mark(call)
 
 
