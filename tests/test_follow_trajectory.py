@@ -525,6 +525,30 @@ def test_move_joint_gives_up_after_its_overall_timeout(rig: Rig, monkeypatch: py
     client.destroy()
 
 
+def test_a_newer_move_joint_goal_preempts_the_older_on_its_joint(rig: Rig) -> None:
+    """Two move_joint goals for one joint: the newer is the joint's move, the older ends ABORTED as
+    preempted at its next look (it ran on, and its timeout halted the newer's motion)."""
+    from action_msgs.msg import GoalStatus
+    from rovercan_msgs.action import MoveJoint
+
+    client = ActionClient(rig.client._node, MoveJoint, "move_joint")
+    assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
+    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=60.0, speed_deg_s=20.0))
+    wait_for(sent.done, HANG_S, "the first goal answered")
+    drive = rig.assembly.driver.drive("joint1")
+    wait_for(lambda: drive.snapshot().angle_deg > 2.0, HANG_S, "joint1 on its way to 60 deg")
+    newer = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=-5.0, speed_deg_s=60.0))
+    wait_for(newer.done, HANG_S, "the second goal answered")
+    older = result_of(sent.result())
+    assert older.status == GoalStatus.STATUS_ABORTED and not older.result.success
+    assert older.result.message == "joint1: preempted by a newer move_joint goal; the joint goes to its target", \
+        older.result.message
+    done = result_of(newer.result())
+    assert done.status == GoalStatus.STATUS_SUCCEEDED and done.result.message == "at -5.00 deg", done.result.message
+    assert abs(done.result.angle + 5.0) < 0.5
+    client.destroy()
+
+
 def assert_preempted(older: Any) -> None:
     """Ended as joint_trajectory_controller (jazzy >= 4.41.0, preempt_active_goal) ends a goal a newer
     one preempts: ABORTED, INVALID_GOAL, its words (up to 4.40: CANCELED, "cancelled due to")."""

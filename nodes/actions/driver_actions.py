@@ -69,6 +69,7 @@ class DriverActionsNode(Node):
         # a joint's work on its drive, one at a time per lane: "start" (a goal's SDO writes and mode
         # switch, in arrival order) and "wait" (a goal's last wait, never queued behind another's start)
         self._workers: dict[tuple[str, str], ThreadPoolExecutor] = {}
+        self._moving: dict[str, Any] = {}  # joint -> its newest move_joint goal (the executor's thread alone)
         self._alive = True
         self._trajectories: list[Any] = []
         if trajectory_groups:  # control_msgs is needed only then (a wheels-only rover runs without it)
@@ -162,6 +163,26 @@ class DriverActionsNode(Node):
         return drive.move_to(float(request.target_deg))
 
     async def _execute_move(self, goal: Any) -> Any:
+        """A joint's newest goal is its move (as joint_trajectory_controller's newest goal preempts the
+        one running): an older goal of the joint still running ends ABORTED, "preempted", at its next
+        look, without halting the joint (the newer's target is its own), and its timeout no longer halts it."""
+        joint = goal.request.joint
+        self._moving[joint] = goal
+        try:
+            return await self._run_move(goal)
+        finally:
+            if self._moving.get(joint) is goal:
+                del self._moving[joint]
+
+    def _preempted(self, goal: Any) -> Any | None:
+        """The finished result of a move a newer goal of its joint took over, else None."""
+        joint = goal.request.joint
+        if self._moving.get(joint) is goal:
+            return None
+        return self._finish(goal, MoveJoint.Result(), joint, False,
+                            f"{joint}: preempted by a newer move_joint goal; the joint goes to its target")
+
+    async def _run_move(self, goal: Any) -> Any:
         request = goal.request
         drive = self.drives[request.joint]
         feedback = MoveJoint.Feedback()
@@ -170,6 +191,8 @@ class DriverActionsNode(Node):
             if started is None:
                 return self._finish(goal, MoveJoint.Result(), request.joint, False, "canceled before it moved"
                                     if goal.is_cancel_requested else "the driver's actions shut down before it moved")
+            if (preempted := self._preempted(goal)) is not None:
+                return preempted
             target = started
             cfg = drive.config
             speed = float(request.speed_deg_s) if request.speed_deg_s > 0 else cfg.profile_velocity_deg_s
@@ -177,6 +200,8 @@ class DriverActionsNode(Node):
             deadline = time.monotonic() + timeout_s
             while True:
                 await self._pause()
+                if (preempted := self._preempted(goal)) is not None:
+                    return preempted
                 state = drive.snapshot()
                 verdict = state.verdict  # the one judgement of the drive: nothing else is read
                 if not verdict.usable and verdict.condition is not Condition.LATE:
