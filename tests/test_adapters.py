@@ -396,10 +396,52 @@ def test_another_threads_frame_inside_one_write_goes_out_after_the_frames_held_b
         other.start()
         other.join(10.0)
         assert not other.is_alive()
+        # on the wire at once, the held set-points first: not at the block's end
+        assert [can_id for can_id, _ in _heard(peer, 3)] == [0x301, 0x302, 0x201]
         network.send_message(0x303, b"\x0f\x00\x03\x00\x00\x00")
-    order = [0x301, 0x302, 0x201, 0x303]
-    assert [can_id for can_id, _ in _heard(peer, 4)] == order
-    assert [can_id for can_id, _, _ in told] == order
+    assert [can_id for can_id, _ in _heard(peer, 1)] == [0x303]
+    assert [can_id for can_id, _, _ in told] == [0x301, 0x302, 0x201, 0x303]
+
+
+def test_the_holders_own_sdo_request_goes_out_at_once_after_the_set_points_held(
+        held_network: tuple[SimService, GuardedNetwork, can.BusABC, list[tuple[int, bytes | bytearray, bool]]]) -> None:
+    """Only RPDOs are held: a thread that sends an SDO request inside its block (a target or a mode
+    written by SDO) waits for the answer, so the request goes out now, after what it held."""
+    _, network, peer, told = held_network
+    with network.one_write():
+        network.send_message(0x301, b"\x0f\x00\x01\x00\x00\x00")
+        network.send_message(0x601, b"\x2f\x60\x60\x00\x08\x00\x00\x00")
+        assert [can_id for can_id, _ in _heard(peer, 2)] == [0x301, 0x601]
+        network.send_message(0x302, b"\x0f\x00\x02\x00\x00\x00")
+    assert [can_id for can_id, _ in _heard(peer, 1)] == [0x302]
+    assert [can_id for can_id, _, _ in told] == [0x301, 0x601, 0x302]
+
+
+def test_held_frames_another_threads_write_lost_are_said_to_the_holder(
+        held_network: tuple[SimService, GuardedNetwork, can.BusABC, list[tuple[int, bytes | bytearray, bool]]]) -> None:
+    """The write of the held frames fails in another thread's send (a hook on the write: the
+    socket's error): that send raises, and the holder, whose frames were lost, is told at its end."""
+    _, network, _, told = held_network
+    bus, direct = network._sender if network._direct() else (None, None)
+    assert direct is not None
+
+    def write(payload: bytes) -> None:
+        raise OSError(errno.EPIPE, "Broken pipe")
+    failures: list[BaseException] = []
+
+    def stop() -> None:
+        try:
+            network.send_message(0x201, b"\x02\x00")
+        except OSError as err:
+            failures.append(err)
+    with pytest.raises(can.CanOperationError, match=r"1 frame\(s\) held not sent: .*Broken pipe"), network.one_write():
+        network.send_message(0x301, b"\x0f\x00\x01\x00\x00\x00")
+        network._sender = (bus, direct._replace(write=write))
+        other = threading.Thread(target=stop)
+        other.start()
+        other.join(10.0)
+        network._sender = (bus, direct)
+    assert len(failures) == 1 and network.held_dropped == 1 and told == []
 
 
 def test_frames_held_for_a_bus_since_replaced_are_dropped_and_the_holder_told(
@@ -414,7 +456,7 @@ def test_frames_held_for_a_bus_since_replaced_are_dropped_and_the_holder_told(
             network.send_message(0x301, b"\x0f\x00\x01\x00\x00\x00")
             network.bus = second
         assert network.held_dropped == 1 and told == []
-        with network.one_write():
+        with pytest.raises(can.CanOperationError, match="replaced"), network.one_write():
             network.send_message(0x302, b"\x0f\x00\x02\x00\x00\x00")
             network.bus = peer
             other = threading.Thread(target=network.send_message, args=(0x201, b"\x02\x00"))

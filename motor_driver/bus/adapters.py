@@ -506,6 +506,10 @@ class ElevenBitListener(canopen.network.MessageListener):  # type: ignore[misc]
         super().on_message_received(msg)
 
 
+#: The frames :meth:`GuardedNetwork.one_write` holds: RPDOs (RPDO1-4 of every node). Any other (an
+#: SDO request the thread then waits an answer for, NMT, a heartbeat) writes the held ones and goes out.
+HELD_IDS = (0x200, 0x57F)
+
 #: A full transmit queue (ENOBUFS) is retried for this long, pausing this long between tries: a
 #: real controller's queue of 10 frames drains in about 1.3 ms at 1 Mbit/s.
 TX_QUEUE_FULL_RETRY_S = 0.02
@@ -564,6 +568,7 @@ class GuardedNetwork(canopen.Network):
         # one_write's, under the send lock: the thread whose frames are held, the bus they are for,
         # their bytes and the frames (for on_sent once written)
         self._holder: int | None = None
+        self._held_lost: str | None = None  # why frames held in the current block were not written
         self.held_dropped = 0  # held frames not written: their bus was replaced (a reconnect) meanwhile
         self._held_for: can.BusABC | None = None
         self._held: list[bytes] = []
@@ -615,59 +620,74 @@ class GuardedNetwork(canopen.Network):
     def _send_once(self, can_id: int, data: bytes | bytearray, remote: bool) -> bool:
         """canopen's ``send_message`` (its lock, its check of the receive thread after), through the
         socketcand socket directly where the bus is python-can's socketcand client. True: the frame
-        is held (this thread's :meth:`one_write`); another thread's frame writes the held ones first."""
+        is held (an RPDO of this thread's :meth:`one_write`); any other frame writes the held ones first."""
         bus, direct = self._direct()
         if direct is None or bus is None:
             super().send_message(can_id, data, remote)
             return False
+        written: list[tuple[int, bytes | bytearray, bool]] = []
         with self.send_lock:
             if self._holder is not None:
-                if self._holder == threading.get_ident() and bus is self._held_for:
+                if self._holder == threading.get_ident() and bus is self._held_for and HELD_IDS[0] <= can_id <= HELD_IDS[1]:
                     self._held.append(direct.text(can_id, data, remote))
                     self._held_frames.append((can_id, data, remote))
                     return True
-                self._write_held(direct, mine=False)  # the order on the wire is the order of the calls
+                written = self._write_held(direct)  # the order on the wire is the order of the calls
             direct.send(can_id, data, remote)
+        self._told(written)  # outside the lock, before this frame's (send_message's)
         self.check()
         return False
 
     @contextmanager
     def one_write(self) -> Iterator[None]:
-        """The frames this thread sends inside go out in one write of the socket, at the end, where
-        the bus is python-can's socketcand client (elsewhere, and nested, each as it is sent): a
-        SYNC period's set-points of several drives for one system call, one TCP segment and one
-        wake-up of the daemon instead of one each (docs/performance.md). The wire keeps the order of
-        the calls: a frame another thread sends meanwhile (a stop, an SDO) first writes what is held.
-        A frame held is told to ``on_sent`` once written. The write's error (a lost bus, or a bus
-        replaced by a reconnect: the frames were for the old one and are dropped) is raised at the end."""
+        """The RPDOs this thread sends inside go out in one write of the socket, at the end, where the
+        bus is python-can's socketcand client (elsewhere, nested, or while another thread holds, each
+        as it is sent): a SYNC period's set-points of several drives for one system call, one TCP
+        segment and one wake-up of the daemon instead of one each (docs/performance.md). The wire
+        keeps the order of the calls: any other frame (another thread's stop, this thread's SDO,
+        whose answer it waits for) first writes what is held. A frame held is told to ``on_sent``
+        once written. Held frames not written (a failed write, or a bus replaced by a reconnect: the
+        frames were for the old connection and are dropped, counted) raise at the end."""
         bus, direct = self._direct()
-        if direct is None or bus is None or self._holder is not None:
+        with self.send_lock:
+            holds = direct is not None and bus is not None and self._holder is None
+            if holds:
+                self._holder, self._held_for, self._held_lost = threading.get_ident(), bus, None
+        if not holds or direct is None:
             yield
             return
-        with self.send_lock:
-            self._holder, self._held_for = threading.get_ident(), bus
         try:
             yield
         finally:
             with self.send_lock:
                 self._holder = None
-                self._write_held(direct, mine=True)
+                written = self._write_held(direct)
+                lost = self._held_lost
+            self._told(written)
             self.check()
+            if lost is not None:
+                raise can.CanOperationError(lost)
 
-    def _write_held(self, direct: DirectSend, mine: bool) -> None:
-        """Under the send lock: the frames held, in one write, then told to ``on_sent`` (none held:
-        nothing). Held for a bus since replaced, they are dropped (counted): raised only to the
-        holder (``mine``), another thread's frame goes out all the same."""
+    def _write_held(self, direct: DirectSend) -> list[tuple[int, bytes | bytearray, bool]]:
+        """Under the send lock: the frames held, in one write; the frames written (for ``on_sent``).
+        Frames held for a bus since replaced are dropped (counted), and frames whose write failed are
+        lost (the error raised here, to this sender): either said to the holder at its end."""
         if not self._held:
-            return
+            return []
         payload, frames, self._held, self._held_frames = b"".join(self._held), self._held_frames, [], []
         if self.bus is not self._held_for:
             self.held_dropped += len(frames)
-            if mine:
-                raise can.CanOperationError(f"{len(frames)} frame(s) held for a bus since replaced (a reconnect)"
-                                            " not sent")
-            return
-        direct.write(payload)
+            self._held_lost = f"{len(frames)} frame(s) held for a bus since replaced (a reconnect) not sent"
+            return []
+        try:
+            direct.write(payload)
+        except Exception as err:
+            self.held_dropped += len(frames)
+            self._held_lost = f"{len(frames)} frame(s) held not sent: {err}"
+            raise
+        return frames
+
+    def _told(self, frames: list[tuple[int, bytes | bytearray, bool]]) -> None:
         hook = self.on_sent
         if hook is not None:
             for frame in frames:
