@@ -621,11 +621,14 @@ class GuardedNetwork(canopen.Network):
         """canopen's ``send_message`` (its lock, its check of the receive thread after), through the
         socketcand socket directly where the bus is python-can's socketcand client. True: the frame
         is held (an RPDO of this thread's :meth:`one_write`); any other frame writes the held ones first."""
-        bus, direct = self._direct()
+        bus = self.bus
+        made_for, direct = self._sender
+        if bus is not made_for:
+            bus, direct = self._direct()
         if direct is None or bus is None:
             super().send_message(can_id, data, remote)
             return False
-        written: list[tuple[int, bytes | bytearray, bool]] = []
+        written: list[tuple[int, bytes | bytearray, bool]] | None = None
         with self.send_lock:
             if self._holder is not None:
                 if self._holder == threading.get_ident() and bus is self._held_for and HELD_IDS[0] <= can_id <= HELD_IDS[1]:
@@ -634,7 +637,8 @@ class GuardedNetwork(canopen.Network):
                     return True
                 written = self._write_held(direct)  # the order on the wire is the order of the calls
             direct.send(can_id, data, remote)
-        self._told(written)  # outside the lock, before this frame's (send_message's)
+        if written:
+            self._told(written)  # outside the lock, before this frame's (send_message's)
         self.check()
         return False
 
