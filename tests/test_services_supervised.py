@@ -207,28 +207,35 @@ def test_a_raising_service_callback_answers_naming_itself_and_is_counted_once(
 
 def test_a_raising_parameter_check_fails_each_parameter_as_rclpy_answers(rig: Rig) -> None:
     """rclpy's own parameter service raises when a node's set-parameters check does: the supervised
-    answer is then rclpy's for a parameter it cannot set, one failed result a parameter naming the
-    failure (an empty ``results`` broke clients that read ``results[0]``, as ``ros2 param set``
-    does), a failed result for the atomic service; and a set works again after."""
+    answer is then rclpy's for a parameter it cannot set, a failed result naming the failure for
+    that parameter and each after it, the results of those set before it kept (an empty ``results``
+    broke clients that read ``results[0]``, as ``ros2 param set`` does); a failed result for the
+    atomic service; and a set works again after."""
+    from rcl_interfaces.msg import SetParametersResult
+
     node = rig.assembly.node
     assert node is not None
 
-    def boom(parameters: list[Parameter]) -> object:
-        raise RuntimeError("Boom in the parameter check")
+    def boom(parameters: list[Parameter]) -> SetParametersResult:
+        if any(p.value == 4.0 for p in parameters):
+            raise RuntimeError("Boom in the parameter check")
+        return SetParametersResult(successful=True)
     node.add_on_set_parameters_callback(boom)
     wanted = [Parameter("diagnostics_rate_hz", value=5.0).to_parameter_msg(),
-              Parameter("diagnostics_rate_hz", value=4.0).to_parameter_msg()]
+              Parameter("diagnostics_rate_hz", value=4.0).to_parameter_msg(),
+              Parameter("diagnostics_rate_hz", value=3.0).to_parameter_msg()]
     name = node.get_fully_qualified_name()
     reply = rig.call(SetParameters, f"{name}/set_parameters", SetParameters.Request(parameters=wanted))
-    assert [r.successful for r in reply.results] == [False, False], reply
-    assert all("set_parameters" in r.reason and "Boom in the parameter check" in r.reason for r in reply.results)
+    assert [r.successful for r in reply.results] == [True, False, False], reply
+    assert all("set_parameters" in r.reason and "Boom in the parameter check" in r.reason for r in reply.results[1:])
+    assert node.get_parameter("diagnostics_rate_hz").value == 5.0  # the first was set, as its result says
     atomic = rig.call(SetParametersAtomically, f"{name}/set_parameters_atomically",
                       SetParametersAtomically.Request(parameters=wanted))
     assert not atomic.result.successful and "Boom in the parameter check" in atomic.result.reason
     node.remove_on_set_parameters_callback(boom)
-    reply = rig.call(SetParameters, f"{name}/set_parameters", SetParameters.Request(parameters=wanted[:1]))
+    reply = rig.call(SetParameters, f"{name}/set_parameters", SetParameters.Request(parameters=wanted[1:2]))
     assert [r.successful for r in reply.results] == [True], reply
-    assert node.get_parameter("diagnostics_rate_hz").value == 5.0
+    assert node.get_parameter("diagnostics_rate_hz").value == 4.0
 
 
 def test_a_raising_timer_and_subscription_never_end_the_hot_executor(

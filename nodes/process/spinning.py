@@ -37,6 +37,7 @@ from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.srv import SetParameters, SetParametersAtomically
 from rclpy.context import Context
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -156,22 +157,25 @@ def supervise(node: Node, failures: CallbackFailures) -> int:
     return wrapped
 
 
-def failed_response(srv_type: Any, text: str, request: Any = None) -> Any:
+def failed_response(srv_type: Any, text: str, request: Any = None, partial: Any = None) -> Any:
     """A fresh response of ``srv_type``: ``success`` False and ``message`` ``text`` where it has them.
     A parameter service's as rclpy's parameter service answers what it cannot do (its
-    ``_set_parameters_callback``): SetParameters one failed result a parameter of ``request`` with
-    ``text`` the reason (a client such as ``ros2 param set`` reads ``results[0]``),
-    SetParametersAtomically a failed result; the get, describe and list services no values, as
-    rclpy answers a name it does not know."""
+    ``_set_parameters_callback``): SetParameters the results rclpy had made (``partial``: those
+    parameters were set) and a failed one, ``text`` the reason, for each other parameter of
+    ``request`` (a client such as ``ros2 param set`` reads ``results[0]``); SetParametersAtomically
+    a failed result; the get, describe and list services no values, as rclpy answers a name it does
+    not know."""
     response = srv_type.Response()
     if hasattr(response, "success"):
         response.success = False
     if hasattr(response, "message"):
         response.message = text
-    if isinstance(getattr(response, "result", None), SetParametersResult):
+    if srv_type is SetParametersAtomically:
         response.result = SetParametersResult(successful=False, reason=text)
-    elif hasattr(response, "results") and hasattr(request, "parameters"):
-        response.results = [SetParametersResult(successful=False, reason=text) for _ in request.parameters]
+    elif srv_type is SetParameters and request is not None:
+        done = list(getattr(partial, "results", []))[:len(request.parameters)]
+        response.results = done + [SetParametersResult(successful=False, reason=text)
+                                   for _ in request.parameters[len(done):]]
     return response
 
 
@@ -195,14 +199,14 @@ def _service_callback(service: Any, callback: Callable[..., Any], failures: Call
             try:
                 return answered(await callback(request, response), request)
             except Exception as err:
-                return failed_response(service.srv_type, failures.record(where, err), request)
+                return failed_response(service.srv_type, failures.record(where, err), request, response)
         return _mark(call_async)
 
     def call(request: Any, response: Any) -> Any:
         try:
             return answered(callback(request, response), request)
         except Exception as err:
-            return failed_response(service.srv_type, failures.record(where, err), request)
+            return failed_response(service.srv_type, failures.record(where, err), request, response)
     return _mark(call)
 
 
