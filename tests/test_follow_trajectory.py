@@ -549,6 +549,28 @@ def test_a_newer_move_joint_goal_preempts_the_older_on_its_joint(rig: Rig) -> No
     client.destroy()
 
 
+def test_a_newer_move_joint_goal_refused_preempts_nothing(rig: Rig) -> None:
+    """A newer goal for the joint whose target is beyond its limits is refused in its start, before
+    anything moves: the running goal is still the joint's move and ends at its own target (it ended
+    "preempted" while the joint went on to that target unwatched)."""
+    from action_msgs.msg import GoalStatus
+    from rovercan_msgs.action import MoveJoint
+
+    client = ActionClient(rig.client._node, MoveJoint, "move_joint")
+    assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
+    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=30.0, speed_deg_s=20.0))
+    wait_for(sent.done, HANG_S, "the first goal answered")
+    drive = rig.assembly.driver.drive("joint1")
+    wait_for(lambda: drive.snapshot().angle_deg > 2.0, HANG_S, "joint1 on its way to 30 deg")
+    refused = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=170.0, speed_deg_s=20.0))
+    wait_for(refused.done, HANG_S, "the second goal answered")
+    bad = result_of(refused.result())
+    assert bad.status == GoalStatus.STATUS_ABORTED and "170" in bad.result.message, bad.result.message
+    done = result_of(sent.result())
+    assert done.status == GoalStatus.STATUS_SUCCEEDED and done.result.message == "at 30.00 deg", done.result.message
+    client.destroy()
+
+
 def assert_preempted(older: Any) -> None:
     """Ended as joint_trajectory_controller (jazzy >= 4.41.0, preempt_active_goal) ends a goal a newer
     one preempts: ABORTED, INVALID_GOAL, its words (up to 4.40: CANCELED, "cancelled due to")."""

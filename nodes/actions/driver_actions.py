@@ -69,7 +69,12 @@ class DriverActionsNode(Node):
         # a joint's work on its drive, one at a time per lane: "start" (a goal's SDO writes and mode
         # switch, in arrival order) and "wait" (a goal's last wait, never queued behind another's start)
         self._workers: dict[tuple[str, str], ThreadPoolExecutor] = {}
-        self._moving: dict[str, Any] = {}  # joint -> its newest move_joint goal (the executor's thread alone)
+        # the executor's thread alone: per joint, the goals' arrival count, the goals (by arrival) whose
+        # start runs, and the newest whose move was sent (arrival, goal; kept after it ended: an older
+        # goal still looking learns it was preempted whenever it looks)
+        self._arrived: dict[str, int] = {}
+        self._starting: dict[str, set[int]] = {}
+        self._moving: dict[str, tuple[int, Any]] = {}
         self._alive = True
         self._trajectories: list[Any] = []
         if trajectory_groups:  # control_msgs is needed only then (a wheels-only rover runs without it)
@@ -163,26 +168,38 @@ class DriverActionsNode(Node):
         return drive.move_to(float(request.target_deg))
 
     async def _execute_move(self, goal: Any) -> Any:
-        """A joint's newest goal is its move (as joint_trajectory_controller's newest goal preempts the
-        one running): an older goal of the joint still running ends ABORTED, "preempted", at its next
-        look, without halting the joint (the newer's target is its own), and its timeout no longer halts it."""
+        """A joint's newest goal whose move was sent is its move (as joint_trajectory_controller's newest
+        goal, once accepted, preempts the one running): an older goal of the joint still running ends
+        ABORTED, "preempted", at its next look, without halting the joint (the newer's target is its
+        own). While a newer goal is starting the older's timeout does not halt (the newer may send its
+        move); a newer goal refused or cancelled before it moved preempts nothing."""
         joint = goal.request.joint
-        self._moving[joint] = goal
+        self._arrived[joint] = seq = self._arrived.get(joint, 0) + 1
+        self._starting.setdefault(joint, set()).add(seq)
         try:
-            return await self._run_move(goal)
+            return await self._run_move(goal, seq)
         finally:
-            if self._moving.get(joint) is goal:
-                del self._moving[joint]
+            self._starting[joint].discard(seq)
+
+    def _moved(self, goal: Any, seq: int) -> None:
+        """The goal's move was sent: it is its joint's move unless a newer one's was sent before."""
+        joint = goal.request.joint
+        self._starting[joint].discard(seq)
+        if self._moving.get(joint, (0, None))[0] < seq:
+            self._moving[joint] = (seq, goal)
+
+    def _newer_starting(self, joint: str, seq: int) -> bool:
+        return any(other > seq for other in self._starting.get(joint, ()))
 
     def _preempted(self, goal: Any) -> Any | None:
         """The finished result of a move a newer goal of its joint took over, else None."""
         joint = goal.request.joint
-        if self._moving.get(joint) is goal:
+        if self._moving.get(joint, (0, goal))[1] is goal:
             return None
         return self._finish(goal, MoveJoint.Result(), joint, False,
                             f"{joint}: preempted by a newer move_joint goal; the joint goes to its target")
 
-    async def _run_move(self, goal: Any) -> Any:
+    async def _run_move(self, goal: Any, seq: int) -> Any:
         request = goal.request
         drive = self.drives[request.joint]
         feedback = MoveJoint.Feedback()
@@ -191,7 +208,8 @@ class DriverActionsNode(Node):
             if started is None:
                 return self._finish(goal, MoveJoint.Result(), request.joint, False, "canceled before it moved"
                                     if goal.is_cancel_requested else "the driver's actions shut down before it moved")
-            if (preempted := self._preempted(goal)) is not None:
+            self._moved(goal, seq)
+            if (preempted := self._preempted(goal)) is not None:  # a newer goal's move went out after this one's
                 return preempted
             target = started
             cfg = drive.config
@@ -208,7 +226,7 @@ class DriverActionsNode(Node):
                     # faulted, stopped (a deactivate, /disarm, its own host watch), held or lost: the
                     # move cannot end at its target (late data only delays the feedback)
                     raise DriveStateError(f"{request.joint}: the move ended: {verdict.text()}", node_id=drive.node_id)
-                if time.monotonic() > deadline:
+                if time.monotonic() > deadline and not self._newer_starting(request.joint, seq):
                     drive.halt()
                     raise DriveStateError(f"{request.joint}: not at {target:.2f} deg after {timeout_s:.1f} s (the"
                                           f" move's time and {MOVE_MARGIN_S:g} s); halted at {state.angle_deg:.2f} deg,"
