@@ -525,18 +525,26 @@ def test_move_joint_gives_up_after_its_overall_timeout(rig: Rig, monkeypatch: py
     client.destroy()
 
 
+def moving(rig: Rig, target_deg: float) -> tuple[Any, Any]:
+    """A move_joint client, and its goal for joint1 (at 20 deg/s) under way past 2 deg."""
+    from rovercan_msgs.action import MoveJoint
+
+    client = ActionClient(rig.client._node, MoveJoint, "move_joint")
+    assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
+    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=target_deg, speed_deg_s=20.0))
+    wait_for(sent.done, HANG_S, "the move answered")
+    drive = rig.assembly.driver.drive("joint1")
+    wait_for(lambda: drive.snapshot().angle_deg > 2.0, HANG_S, f"joint1 on its way to {target_deg:g} deg")
+    return client, sent
+
+
 def test_a_newer_move_joint_goal_preempts_the_older_on_its_joint(rig: Rig) -> None:
     """Two move_joint goals for one joint: the newer is the joint's move, the older ends ABORTED as
     preempted at its next look (it ran on, and its timeout halted the newer's motion)."""
     from action_msgs.msg import GoalStatus
     from rovercan_msgs.action import MoveJoint
 
-    client = ActionClient(rig.client._node, MoveJoint, "move_joint")
-    assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
-    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=60.0, speed_deg_s=20.0))
-    wait_for(sent.done, HANG_S, "the first goal answered")
-    drive = rig.assembly.driver.drive("joint1")
-    wait_for(lambda: drive.snapshot().angle_deg > 2.0, HANG_S, "joint1 on its way to 60 deg")
+    client, sent = moving(rig, 60.0)
     newer = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=-5.0, speed_deg_s=60.0))
     wait_for(newer.done, HANG_S, "the second goal answered")
     older = result_of(sent.result())
@@ -556,18 +564,35 @@ def test_a_newer_move_joint_goal_refused_preempts_nothing(rig: Rig) -> None:
     from action_msgs.msg import GoalStatus
     from rovercan_msgs.action import MoveJoint
 
-    client = ActionClient(rig.client._node, MoveJoint, "move_joint")
-    assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
-    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=30.0, speed_deg_s=20.0))
-    wait_for(sent.done, HANG_S, "the first goal answered")
-    drive = rig.assembly.driver.drive("joint1")
-    wait_for(lambda: drive.snapshot().angle_deg > 2.0, HANG_S, "joint1 on its way to 30 deg")
+    client, sent = moving(rig, 30.0)
     refused = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=170.0, speed_deg_s=20.0))
     wait_for(refused.done, HANG_S, "the second goal answered")
     bad = result_of(refused.result())
     assert bad.status == GoalStatus.STATUS_ABORTED and "170" in bad.result.message, bad.result.message
     done = result_of(sent.result())
     assert done.status == GoalStatus.STATUS_SUCCEEDED and done.result.message == "at 30.00 deg", done.result.message
+    client.destroy()
+
+
+def test_a_trajectory_taking_a_moving_joint_ends_its_move_joint_goal_unhalted(rig: Rig) -> None:
+    """A FollowJointTrajectory goal takes a joint a move_joint goal is moving (to CSP): the move is
+    over, said at once, and the trajectory runs unhalted (the move ran on and its timeout halted
+    the joint under the trajectory)."""
+    from action_msgs.msg import GoalStatus
+
+    client, sent = moving(rig, 30.0)
+    goal = FollowJointTrajectory.Goal()
+    goal.trajectory.joint_names = ["joint1", "joint2"]
+    goal.trajectory.points.append(JointTrajectoryPoint(positions=[math.radians(10.0), 0.0], velocities=[0.0, 0.0],
+                                                       time_from_start=Duration(sec=2)))
+    handle = send(rig, goal)
+    assert handle.accepted
+    move = result_of(sent.result())
+    assert move.status == GoalStatus.STATUS_ABORTED and "joint1: the move is over: the joint left profile position" \
+        in move.result.message, move.result.message
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.error_string
+    assert abs(positions(rig)[0] - 10.0) < 0.5
     client.destroy()
 
 

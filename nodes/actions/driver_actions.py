@@ -48,6 +48,14 @@ TARGET_WINDOW_DEG = 0.5
 MOVE_MARGIN_S = 5.0
 
 
+def mode_name(mode: int) -> str:
+    """A 0x6061 value's name (its number where CiA 402 has none)."""
+    try:
+        return OperationMode(mode).name
+    except ValueError:
+        return str(mode)
+
+
 def move_timeout_s(distance_deg: float, speed_deg_s: float, accel_deg_s2: float) -> float:
     """How long a profile-position move of ``distance_deg`` may take before it is given up."""
     return MOVE_MARGIN_S + abs(distance_deg) / speed_deg_s + 2.0 * speed_deg_s / accel_deg_s2
@@ -221,6 +229,10 @@ class DriverActionsNode(Node):
                 if (preempted := self._preempted(goal)) is not None:
                     return preempted
                 state = drive.snapshot()
+                if state.mode != OperationMode.PROFILE_POSITION:  # a trajectory or a stream took the joint
+                    return self._finish(goal, MoveJoint.Result(), request.joint, False, f"{request.joint}: the move is"
+                                        f" over: the joint left profile position (mode {mode_name(state.mode)}):"
+                                        " another command took it")
                 verdict = state.verdict  # the one judgement of the drive: nothing else is read
                 if not verdict.usable and verdict.condition is not Condition.LATE:
                     # faulted, stopped (a deactivate, /disarm, its own host watch), held or lost: the
