@@ -596,6 +596,29 @@ def test_a_trajectory_taking_a_moving_joint_ends_its_move_joint_goal_unhalted(ri
     client.destroy()
 
 
+def test_a_degree_command_on_a_moving_joint_ends_its_move_joint_goal(rig: Rig) -> None:
+    """A position command (``degree_cmd``) to a joint a move_joint goal is moving sets its target:
+    the goal is over, said at once, and the joint goes to the command's target (the goal watched on
+    for its own and its timeout halted the joint)."""
+    from action_msgs.msg import GoalStatus
+    from std_msgs.msg import Float32
+
+    from nodes.process.qos import SETPOINT_QOS
+
+    client, sent = moving(rig, 30.0)
+    drive = rig.assembly.driver.drive("joint1")
+    publisher = rig.client._node.create_publisher(Float32, f"{drive.config.ros_prefix}/degree_cmd", SETPOINT_QOS)
+    wait_for(lambda: publisher.get_subscription_count() > 0, HANG_S, "the driver's degree_cmd subscription")
+    publisher.publish(Float32(data=10.0))
+    move = result_of(sent.result())
+    assert move.status == GoalStatus.STATUS_ABORTED, move.result.message
+    assert move.result.message == "joint1: the move is over: another command set its target (10.00 deg)", \
+        move.result.message
+    wait_for(lambda: abs(drive.snapshot().angle_deg - 10.0) < 0.5 and drive.snapshot().target_reached, HANG_S,
+             "joint1 at the command's 10 deg")
+    client.destroy()
+
+
 def assert_preempted(older: Any) -> None:
     """Ended as joint_trajectory_controller (jazzy >= 4.41.0, preempt_active_goal) ends a goal a newer
     one preempts: ABORTED, INVALID_GOAL, its words (up to 4.40: CANCELED, "cancelled due to")."""

@@ -153,10 +153,11 @@ class DriverActionsNode(Node):
             goal.abort()
         return result
 
-    def _start_move(self, goal: Any, drive: Drive) -> float | None:
+    def _start_move(self, goal: Any, drive: Drive) -> tuple[float, int | None] | None:
         """A move goal's start, off the executor (SDO writes, a mode switch: it waits on the drive):
         the goal checked whole before anything is written (a refused target or speed changes
-        nothing); the move's target, or None when cancelled (or shut down) before it moved."""
+        nothing); the move's target and its counts as commanded, or None when cancelled (or shut
+        down) before it moved."""
         request = goal.request
         drive.motion.check_position(float(request.target_deg))
         speed = float(request.speed_deg_s)
@@ -173,7 +174,8 @@ class DriverActionsNode(Node):
             drive.power.set_mode(OperationMode.PROFILE_POSITION)  # where it is not: waits on the drive
         if goal.is_cancel_requested or not self._alive:
             return None
-        return drive.move_to(float(request.target_deg))
+        target = drive.move_to(float(request.target_deg))
+        return target, drive.channel.newest_move_counts
 
     async def _execute_move(self, goal: Any) -> Any:
         """A joint's newest goal whose move was sent is its move (as joint_trajectory_controller's newest
@@ -199,6 +201,21 @@ class DriverActionsNode(Node):
     def _newer_starting(self, joint: str, seq: int) -> bool:
         return any(other > seq for other in self._starting.get(joint, ()))
 
+    def _taken(self, drive: Drive, mode: int, own: int | None, seq: int) -> str | None:
+        """Why the move is over because another command took its joint, else None: the drive left
+        profile position (a trajectory, a stream), or the newest target commanded is not the move's (a
+        position command, /joint_commands; a newer move_joint goal starting is waited for: it says
+        "preempted")."""
+        joint = drive.name
+        if mode != OperationMode.PROFILE_POSITION:
+            return (f"{joint}: the move is over: the joint left profile position (mode {mode_name(mode)}): another"
+                    " command took it")
+        newest = drive.channel.newest_move_counts
+        if newest != own and newest is not None and not self._newer_starting(joint, seq):
+            return (f"{joint}: the move is over: another command set its target"
+                    f" ({drive.cache.scale.counts_to_deg(newest):.2f} deg)")
+        return None
+
     def _preempted(self, goal: Any) -> Any | None:
         """The finished result of a move a newer goal of its joint took over, else None."""
         joint = goal.request.joint
@@ -219,7 +236,7 @@ class DriverActionsNode(Node):
             self._moved(goal, seq)
             if (preempted := self._preempted(goal)) is not None:  # a newer goal's move went out after this one's
                 return preempted
-            target = started
+            target, own = started
             cfg = drive.config
             speed = float(request.speed_deg_s) if request.speed_deg_s > 0 else cfg.profile_velocity_deg_s
             timeout_s = move_timeout_s(target - drive.snapshot().angle_deg, speed, cfg.profile_acceleration_deg_s2)
@@ -229,10 +246,8 @@ class DriverActionsNode(Node):
                 if (preempted := self._preempted(goal)) is not None:
                     return preempted
                 state = drive.snapshot()
-                if state.mode != OperationMode.PROFILE_POSITION:  # a trajectory or a stream took the joint
-                    return self._finish(goal, MoveJoint.Result(), request.joint, False, f"{request.joint}: the move is"
-                                        f" over: the joint left profile position (mode {mode_name(state.mode)}):"
-                                        " another command took it")
+                if (taken := self._taken(drive, state.mode, own, seq)) is not None:  # another command's now
+                    return self._finish(goal, MoveJoint.Result(), request.joint, False, taken)
                 verdict = state.verdict  # the one judgement of the drive: nothing else is read
                 if not verdict.usable and verdict.condition is not Condition.LATE:
                     # faulted, stopped (a deactivate, /disarm, its own host watch), held or lost: the

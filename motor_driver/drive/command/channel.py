@@ -125,6 +125,12 @@ class CommandChannel:
     def handshake_idle(self) -> bool:
         return self._handshake.idle
 
+    @property
+    def newest_move_counts(self) -> int | None:
+        """The newest profile-position target commanded (parked or sent; None: none yet), any thread:
+        a move's watcher tells from it that another command set the joint's target since."""
+        return self._handshake.newest
+
     def enabled_by_us(self, now: float, within_s: float) -> bool:
         """This driver's last controlword was Enable Operation, an enable of its own is under way (a
         drive's Operation Enabled reaches a starved process after its enable's steps, however late),

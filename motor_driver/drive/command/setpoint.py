@@ -83,6 +83,12 @@ class SetpointHandshake:
             self._pending = None
 
     @property
+    def newest(self) -> int | None:
+        """The newest target commanded: the one parked, else the last sent (None: none yet); any thread."""
+        pending = self._pending  # one read: sent meanwhile, it is the target as well
+        return pending if pending is not None else self.target
+
+    @property
     def idle(self) -> bool:
         """No target out unacknowledged, none parked, and the drive's acknowledge released."""
         return not self._awaiting and not self._releasing and self._pending is None
