@@ -143,6 +143,20 @@ def test_a_failed_send_leaves_nothing_awaited() -> None:
     with pytest.raises(OSError):
         handshake.command(1)
     assert handshake.idle  # no acknowledge can come for a frame that never left
+    assert handshake.target is None and handshake.newest is None  # nor is it the drive's target
+
+
+def test_the_newest_target_is_the_parked_one_else_the_last_sent() -> None:
+    """What a move's watcher reads (move_joint: another command set the joint's target since)."""
+    rec = Recorder()
+    handshake = SetpointHandshake(rec.setpoint, rec.clear)
+    assert handshake.newest is None
+    handshake.command(1)
+    assert handshake.newest == 1
+    handshake.command(2)
+    assert handshake.newest == 2 and handshake.target == 1  # parked: the newest all the same
+    acknowledge(handshake)
+    assert handshake.newest == 2 == handshake.target  # sent
 
 
 @pytest.mark.slow

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from can_config.errors import CommandRejected
 from motor_driver.protocol.units import Scale, check_limits, nearest_equivalent, require_finite
@@ -18,6 +20,15 @@ def test_degrees_to_counts_with_gear_ratio() -> None:
     # 0x6077 is per mille of the motor's rated torque; the joint sees it times the gear ratio
     assert scale.permille_to_nm(500) == pytest.approx(0.25 * 100)
     assert scale.nm_to_permille(25.0) == 500
+
+
+@given(st.integers(-(2**31), 2**31 - 1), st.floats(0.01, 1e6), st.booleans(), st.floats(-3600.0, 3600.0))
+def test_a_drive_position_in_degrees_converts_back_to_the_same_counts(counts: int, counts_per_deg: float, invert: bool,
+                                                                      offset_deg: float) -> None:
+    """move_to returns its target in degrees; move_joint takes the counts it commanded back from it
+    (to tell another command's target from its own), so the round trip is exact over 0x607A's range."""
+    scale = Scale(counts_per_deg=counts_per_deg, rated_torque_nm=1.0, invert=invert, offset_deg=offset_deg)
+    assert scale.deg_to_counts(scale.counts_to_deg(counts)) == counts
 
 
 @pytest.mark.parametrize(("cmd", "current", "expected"), [

@@ -153,7 +153,7 @@ class DriverActionsNode(Node):
             goal.abort()
         return result
 
-    def _start_move(self, goal: Any, drive: Drive) -> tuple[float, int | None] | None:
+    def _start_move(self, goal: Any, drive: Drive) -> tuple[float, int] | None:
         """A move goal's start, off the executor (SDO writes, a mode switch: it waits on the drive):
         the goal checked whole before anything is written (a refused target or speed changes
         nothing); the move's target and its counts as commanded, or None when cancelled (or shut
@@ -174,8 +174,8 @@ class DriverActionsNode(Node):
             drive.power.set_mode(OperationMode.PROFILE_POSITION)  # where it is not: waits on the drive
         if goal.is_cancel_requested or not self._alive:
             return None
-        target = drive.move_to(float(request.target_deg))
-        return target, drive.channel.newest_move_counts
+        target = drive.move_to(float(request.target_deg))  # the counts it commanded, exactly (not read back:
+        return target, drive.cache.scale.deg_to_counts(target)  # another command may have followed already)
 
     async def _execute_move(self, goal: Any) -> Any:
         """A joint's newest goal whose move was sent is its move (as joint_trajectory_controller's newest
@@ -201,7 +201,7 @@ class DriverActionsNode(Node):
     def _newer_starting(self, joint: str, seq: int) -> bool:
         return any(other > seq for other in self._starting.get(joint, ()))
 
-    def _taken(self, drive: Drive, mode: int, own: int | None, seq: int) -> str | None:
+    def _taken(self, drive: Drive, mode: int, own: int, seq: int) -> str | None:
         """Why the move is over because another command took its joint, else None: the drive left
         profile position (a trajectory, a stream), or the newest target commanded is not the move's (a
         position command, /joint_commands; a newer move_joint goal starting is waited for: it says
@@ -246,13 +246,13 @@ class DriverActionsNode(Node):
                 if (preempted := self._preempted(goal)) is not None:
                     return preempted
                 state = drive.snapshot()
-                if (taken := self._taken(drive, state.mode, own, seq)) is not None:  # another command's now
-                    return self._finish(goal, MoveJoint.Result(), request.joint, False, taken)
                 verdict = state.verdict  # the one judgement of the drive: nothing else is read
                 if not verdict.usable and verdict.condition is not Condition.LATE:
                     # faulted, stopped (a deactivate, /disarm, its own host watch), held or lost: the
                     # move cannot end at its target (late data only delays the feedback)
                     raise DriveStateError(f"{request.joint}: the move ended: {verdict.text()}", node_id=drive.node_id)
+                if (taken := self._taken(drive, state.mode, own, seq)) is not None:  # another command's now
+                    return self._finish(goal, MoveJoint.Result(), request.joint, False, taken)
                 if time.monotonic() > deadline and not self._newer_starting(request.joint, seq):
                     drive.halt()
                     raise DriveStateError(f"{request.joint}: not at {target:.2f} deg after {timeout_s:.1f} s (the"

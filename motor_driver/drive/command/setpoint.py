@@ -84,9 +84,10 @@ class SetpointHandshake:
 
     @property
     def newest(self) -> int | None:
-        """The newest target commanded: the one parked, else the last sent (None: none yet); any thread."""
-        pending = self._pending  # one read: sent meanwhile, it is the target as well
-        return pending if pending is not None else self.target
+        """The newest target commanded: the one parked, else the last sent (None: none yet); any
+        thread (under the lock: a parked target is being sent between the two)."""
+        with self._lock:
+            return self._pending if self._pending is not None else self.target
 
     @property
     def idle(self) -> bool:
@@ -95,11 +96,12 @@ class SetpointHandshake:
 
     def _send(self, counts: int) -> None:
         self._awaiting = True  # before the send: an acknowledge can come back at once
-        self.target = counts
+        before, self.target = self.target, counts
         try:
             self._send_setpoint(counts)
         except BaseException:
             self._awaiting = False  # nothing went out: the drive will not acknowledge
+            self.target = before  # nor take it
             raise
 
 
