@@ -449,7 +449,8 @@ def test_a_safe_stop_while_a_drive_is_configured_again_is_not_undone_by_its_rest
 
 def test_a_stop_that_raises_unexpectedly_keeps_no_other_drive_from_its_stop(driver_factory: DriverFactory) -> None:
     """The one safe stop (/disarm, deactivate, close): a bug in the first drive's stop is named in
-    what was not confirmed, and every drive after it is still quick-stopped and disabled."""
+    what was not confirmed, counted as a failed stop job, and every drive after it is still
+    quick-stopped and disabled."""
     sim, driver = driver_factory(make_config(2))
     first, second = driver.drive("joint1"), driver.drive("joint2")
     first.enable()
@@ -461,6 +462,9 @@ def test_a_stop_that_raises_unexpectedly_keeps_no_other_drive_from_its_stop(driv
     first.quick_stop = broken  # type: ignore[method-assign]
     said = driver.safe_stop()
     assert len(said) == 1 and said[0].startswith("joint1: its stop failed unexpectedly (RuntimeError: a bug in the stop")
+    fault = driver.supervisor.faults.snapshot()["stop"]  # counted: the driver's /diagnostics says it
+    assert fault.count == 1 and fault.cause == "RuntimeError: a bug in the stop" and "joint1" in fault.where, fault
+    assert driver.jobs_health().level > 0
     peer = sim.simulator_for(2)
     assert peer.call(lambda: peer.drive(2).state.name) == "SWITCH_ON_DISABLED"
     assert second.cache.state is State.SWITCH_ON_DISABLED

@@ -254,8 +254,8 @@ class MotorDriver:
         quick-stopped if Operation Enabled, then its voltage disabled (Switch On Disabled, no
         torque), whatever the others did. A drive lost after its boot gets one last stop it need
         not answer. Returns what was not confirmed, one line a drive (empty: every drive is safe).
-        A drive whose stop raised anything (a bug included: logged with its trace) never keeps the
-        others from theirs."""
+        A drive whose stop raised anything (a bug included: logged with its trace and counted as a
+        failed "stop" job, which /diagnostics says) never keeps the others from theirs."""
         unconfirmed: list[str] = []
         for drive in self.drives.values() if drives is None else drives:
             try:
@@ -265,7 +265,7 @@ class MotorDriver:
                 logger.error("safe stop: %s", err)
             except Exception as err:  # a fault of this driver's: the next drives are stopped all the same
                 said = f"{drive.name}: its stop failed unexpectedly ({type(err).__name__}: {err}); see the log"
-                logger.exception("safe stop: %s", said)
+                self.supervisor.faults.failed("stop", f"safe stop of {drive.name}", err)  # logged, counted: /diagnostics
             if said:
                 unconfirmed.append(said)
         return unconfirmed
