@@ -35,6 +35,8 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -56,14 +58,19 @@ PERIOD_S = 0.002
 ARM_BUS = bus_limit.ARM_BUS
 
 
-def config_text() -> str:
-    """bus_limit's twelve drives, the arm's joints limited to +-170 deg (a trajectory group's joints are)."""
-    config = yaml.safe_load(bus_limit.twelve_config_text())
+def arm_config(config: dict[str, Any], bus: str) -> str:
+    """``config`` with the joints on ``bus`` limited to +-170 deg (a trajectory group's joints are) and
+    grouped as ``arm_controller``."""
     for drive in config["drives"]:
-        if drive["bus"] == ARM_BUS:
+        if drive["bus"] == bus:
             drive.update(joint="limited", min_deg=-170.0, max_deg=170.0)
     config["trajectory_groups"] = [{"name": "arm_controller", "joints": JOINTS}]
     return yaml.safe_dump(config, sort_keys=False)
+
+
+def config_text() -> str:
+    """bus_limit's twelve drives, the arm's six on ``can2`` as the group."""
+    return arm_config(yaml.safe_load(bus_limit.twelve_config_text()), ARM_BUS)
 
 
 def spline(seconds: float) -> Spline:
@@ -170,20 +177,14 @@ def run_action(client: Any, seconds: float) -> None:
 
 def six_config_text() -> str:
     """bus_limit.py's six drives on one bus at 500 Hz, the joints limited and one trajectory group."""
-    config = yaml.safe_load(bus_limit.config_text())
-    for drive in config["drives"]:
-        drive.update(joint="limited", min_deg=-170.0, max_deg=170.0)
-    config["trajectory_groups"] = [{"name": "arm_controller", "joints": JOINTS}]
-    return yaml.safe_dump(config, sort_keys=False)
+    return arm_config(yaml.safe_load(bus_limit.config_text()), "can0")
 
 
-def six_following(seconds: float) -> dict[str, Any]:
-    """run.py's reference: bus_limit.py's six drives at 500 Hz following one FollowJointTrajectory
-    goal (the driver samples it at each SYNC: no ROS message a set-point), measured as the stack run
-    measures (the node as deployed, the simulator's drive models in processes of their own, the
-    driver's CPU from /proc over ``seconds`` in the goal's middle). The canopen library's same work is
-    bus_limit's (the same bus, drives, SYNC and set-point rate). ``periods_none``: the share of SYNC
-    periods in which a joint got no set-point (the work not done, judged by run.py)."""
+@contextmanager
+def following(template: Path, channel: str, *sim_args: str) -> Iterator[tuple[subprocess.Popen[bytes], Any, Listener]]:
+    """The simulator on ``template`` (``sim_args`` more of its arguments), the driver as deployed on
+    it (armed), a listener on ``channel`` and an action client whose server is up, the drives
+    armed; all ended after."""
     import rclpy
     from control_msgs.action import FollowJointTrajectory
     from rclpy.action import ActionClient
@@ -191,19 +192,9 @@ def six_following(seconds: float) -> dict[str, Any]:
 
     from nodes.process.spinning import SpinThread
 
-    failed: list[BaseException] = []
-
-    def follow(client: Any) -> None:
-        try:
-            run_action(client, seconds + 4.0)
-        except Exception as err:  # the goal's failure, said by the figures
-            failed.append(err)
-
-    with bus_limit.limit_config(text=six_config_text()) as template, simulator("--config", str(template),
-                                                                                "--drive-processes") as port, \
-            tempfile.TemporaryDirectory() as tmp:
+    with simulator("--config", str(template), *sim_args) as port, tempfile.TemporaryDirectory() as tmp:
         config = stack_run.on_port(template, port, tmp)
-        listener = Listener(port, "can0")
+        listener = Listener(port, channel)
         driver = subprocess.Popen(unboosted([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p",
                                              f"config:={config}", "-p", "arm:=true", "-p", "diagnostics_rate_hz:=2.0"]),
                                   cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -217,23 +208,43 @@ def six_following(seconds: float) -> dict[str, Any]:
         try:
             if not client.wait_for_server(timeout_sec=60):
                 raise stack_run.StartFailed("the driver serves no /arm_controller/follow_joint_trajectory")
-            time.sleep(3.0)  # every drive armed
-            goal = threading.Thread(target=follow, args=(client,), daemon=True)
-            goal.start()
-            time.sleep(2.0)  # the goal under way
-            mark, cpu0, t0 = len(listener.frames), proc_cpu_s(driver.pid), time.monotonic()
-            time.sleep(seconds)
-            cpu, wall = proc_cpu_s(driver.pid) - cpu0, time.monotonic() - t0
-            window = listener.frames[mark:]
-            goal.join(seconds + 40.0)
-            if failed or goal.is_alive():
-                raise RuntimeError(f"the goal did not succeed: {failed[0] if failed else 'no result'}")
+            time.sleep(3.0)  # every drive armed (the twelve's wheels streaming)
+            yield driver, client, listener
         finally:
             spin.stop(5.0)
             context.try_shutdown()
             driver.terminate()
             driver.wait(30)
             listener.close()
+
+
+def six_following(seconds: float) -> dict[str, Any]:
+    """run.py's reference: bus_limit.py's six drives at 500 Hz following one FollowJointTrajectory
+    goal (the driver samples it at each SYNC: no ROS message a set-point), measured as the stack run
+    measures (the node as deployed, the simulator's drive models in processes of their own, the
+    driver's CPU from /proc over ``seconds`` in the goal's middle). The canopen library's same work is
+    bus_limit's (the same bus, drives, SYNC and set-point rate). ``periods_none``: the share of SYNC
+    periods in which a joint got no set-point (the work not done, judged by run.py)."""
+    failed: list[BaseException] = []
+
+    def follow(client: Any) -> None:
+        try:
+            run_action(client, seconds + 4.0)
+        except Exception as err:  # the goal's failure, said by the figures
+            failed.append(err)
+
+    with bus_limit.limit_config(text=six_config_text()) as template, \
+            following(template, "can0", "--drive-processes") as (driver, client, listener):
+        goal = threading.Thread(target=follow, args=(client,), daemon=True)
+        goal.start()
+        time.sleep(2.0)  # the goal under way
+        mark, cpu0, t0 = len(listener.frames), proc_cpu_s(driver.pid), time.monotonic()
+        time.sleep(seconds)
+        cpu, wall = proc_cpu_s(driver.pid) - cpu0, time.monotonic() - t0
+        window = listener.frames[mark:]
+        goal.join(seconds + 40.0)
+        if failed or goal.is_alive():
+            raise RuntimeError(f"the goal did not succeed: {failed[0] if failed else 'no result'}")
     tracked = figures(window, seconds, 4096 * 50 / 360)
     return {"cpu_core_fraction": round(cpu / wall, 4), "periods_none": round(tracked["periods_none"], 4),
             "following_rms_deg": round(tracked["following_rms_deg"], 4)}
@@ -249,57 +260,27 @@ def main() -> int:
         print(json.dumps(six_following(args.seconds), indent=2))
         return 0
     stack_run.harness_ahead()
-    import rclpy
-    from control_msgs.action import FollowJointTrajectory
-    from rclpy.action import ActionClient
-    from rclpy.executors import SingleThreadedExecutor
-
-    from nodes.process.spinning import SpinThread
-
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(dir=REPO / "benchmarks" / "out" if (REPO / "benchmarks" / "out").is_dir() else None) as tmp:
         template = Path(tmp) / "arm.yaml"
         template.write_text(config_text())
-        with simulator("--config", str(template)) as port:
-            config = Path(tmp) / "arm_on_port.yaml"
-            config.write_text(template.read_text().replace("port: 29536", f"port: {port}"))
-            listener = Listener(port)
-            driver = subprocess.Popen(unboosted([sys.executable, "-m", "nodes.rover_driver", "--ros-args", "-p",
-                                                 f"config:={config}", "-p", "arm:=true", "-p", "diagnostics_rate_hz:=2.0"]),
-                                      cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            rclpy.init()
-            node = rclpy.create_node("bench_follow")
-            client = ActionClient(node, FollowJointTrajectory, "/arm_controller/follow_joint_trajectory")
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
-            spin = SpinThread(executor, "bench-client")
-            try:
-                if not client.wait_for_server(timeout_sec=60):
-                    raise RuntimeError("the driver serves no /arm_controller/follow_joint_trajectory")
-                time.sleep(3.0)  # every drive armed, the wheels streaming
-                cpd = 4096 * 50 / 360
-                for way in ("action", "stream"):
-                    mark = len(listener.frames)
-                    cpu0, t0 = proc_cpu_s(driver.pid), time.monotonic()
-                    if way == "action":
-                        run_action(client, args.seconds)
-                        extra = 0.0
-                    else:
-                        peer = subprocess.Popen(unboosted([sys.executable, __file__, "--publisher-run", str(args.seconds)]),
-                                                cwd=REPO)
-                        _, _, usage = os.wait4(peer.pid, 0)  # the publisher's whole CPU time
-                        extra = usage.ru_utime + usage.ru_stime
-                    time.sleep(0.5)
-                    wall = time.monotonic() - t0
-                    cpu = proc_cpu_s(driver.pid) - cpu0 + extra
-                    results[way] = {**figures(listener.frames[mark:], args.seconds, cpd),
-                                    "cpu_core_fraction": cpu / wall}
-            finally:
-                spin.stop(5.0)
-                rclpy.shutdown()
-                driver.terminate()
-                driver.wait(30)
-                listener.close()
+        with following(template, ARM_BUS) as (driver, client, listener):
+            cpd = 4096 * 50 / 360
+            for way in ("action", "stream"):
+                mark = len(listener.frames)
+                cpu0, t0 = proc_cpu_s(driver.pid), time.monotonic()
+                if way == "action":
+                    run_action(client, args.seconds)
+                    extra = 0.0
+                else:
+                    peer = subprocess.Popen(unboosted([sys.executable, __file__, "--publisher-run", str(args.seconds)]),
+                                            cwd=REPO)
+                    _, _, usage = os.wait4(peer.pid, 0)  # the publisher's whole CPU time
+                    extra = usage.ru_utime + usage.ru_stime
+                time.sleep(0.5)
+                wall = time.monotonic() - t0
+                cpu = proc_cpu_s(driver.pid) - cpu0 + extra
+                results[way] = {**figures(listener.frames[mark:], args.seconds, cpd), "cpu_core_fraction": cpu / wall}
     print(json.dumps(results, indent=2))
     return 0
 
