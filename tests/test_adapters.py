@@ -507,3 +507,45 @@ def test_a_network_sends_on_the_server_directly_and_on_the_new_bus_after_a_recon
         for bus in buses:
             bus.shutdown()
         sim.close()
+
+
+def test_each_one_write_writes_every_bus_whatever_another_s_write_did() -> None:
+    """Several buses held at once (a trajectory group's SYNC, a /joint_commands message): one bus's
+    write failing is named in the list yielded, the other bus's set-points still go out; an
+    unexpected error of one bus (its receive thread's death) is raised once every bus is written."""
+    sim = SimService([], port=0, extra_channels=("can0", "can1"))
+    buses = {ch: [can.Bus(interface="socketcand", channel=ch, host=sim.host, port=sim.port) for _ in range(2)]
+             for ch in ("can0", "can1")}
+    try:
+        networks = {ch: GuardedNetwork(pair[0]) for ch, pair in buses.items()}
+        on_the_bus(sim.server, 4)
+        writes = _writes_of(networks["can1"])
+        bus, direct = networks["can0"]._sender if networks["can0"]._direct() else (None, None)
+        assert direct is not None
+
+        def broken(payload: bytes) -> None:
+            raise OSError(errno.EPIPE, "Broken pipe")
+        networks["can0"]._sender = (bus, direct._replace(write=broken))
+        with GuardedNetwork.each_one_write(sorted(networks.items())) as failed:
+            networks["can0"].send_message(0x301, b"\x0f\x00\x01\x00\x00\x00")
+            networks["can1"].send_message(0x302, b"\x0f\x00\x02\x00\x00\x00")
+            networks["can1"].send_message(0x303, b"\x0f\x00\x03\x00\x00\x00")
+            assert failed == [] and writes == []
+        assert [name for name, _ in failed] == ["can0"] and "Broken pipe" in str(failed[0][1])
+        assert len(writes) == 1 and _heard(buses["can1"][1], 2) == [(0x302, b"\x0f\x00\x02\x00\x00\x00"),
+                                                                    (0x303, b"\x0f\x00\x03\x00\x00\x00")]
+        networks["can0"]._sender = (bus, direct)
+
+        def dead() -> None:
+            raise RuntimeError("the receive thread died")
+        networks["can0"].check = dead  # type: ignore[method-assign]
+        with pytest.raises(RuntimeError, match="receive thread died"), \
+                GuardedNetwork.each_one_write(sorted(networks.items())) as failed:
+            networks["can0"].send_message(0x304, b"\x0f\x00\x04\x00\x00\x00")
+            networks["can1"].send_message(0x305, b"\x0f\x00\x05\x00\x00\x00")
+        assert failed == [] and _heard(buses["can1"][1], 1) == [(0x305, b"\x0f\x00\x05\x00\x00\x00")]
+    finally:
+        for pair in buses.values():
+            for each in pair:
+                each.shutdown()
+        sim.close()

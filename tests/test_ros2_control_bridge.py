@@ -88,3 +88,58 @@ def test_the_bridge_s_velocity_commands_turn_the_wheels_and_stopping_them_stops_
     # the controller stops publishing (deactivated, crashed): the watchdog stops every wheel
     wait_for(lambda: all(abs(graph.driver.drive(w).snapshot().velocity_deg_s) < 1.0 for w in WHEELS), 30.0,
              "every wheel stopped after the commands stopped")
+
+
+@requires_ros
+def test_one_commands_set_points_go_out_in_one_write_a_bus_and_a_failed_write_refuses_that_bus_s_joints(
+        graph: Graph) -> None:  # noqa: F811
+    """A /joint_commands message's set-points of one bus go out in one write of its socket (the
+    driver's one_write, as a trajectory group's SYNC does): seen by a hook on each bus's write, which
+    a command sent a frame at a time never calls. A write that fails refuses the joints of that bus
+    only, naming the bus, on /diagnostics; the other bus's joints are not blamed."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from motor_driver.bus.adapters import GuardedNetwork
+    from nodes.process.qos import DIAGNOSTICS_QOS
+
+    for wheel in WHEELS:
+        assert graph.call(Trigger, f"wheels/{wheel}/enable").success
+    by_bus: dict[str, list[str]] = {}
+    for wheel in WHEELS:
+        by_bus.setdefault(graph.driver.drive(wheel).config.bus, []).append(wheel)
+    writes: dict[str, list[bytes]] = {bus: [] for bus in by_bus}
+    failing: set[str] = set()
+    restore = []
+    for bus, wheels in by_bus.items():
+        network = graph.driver.drive(wheels[0]).network
+        assert isinstance(network, GuardedNetwork)
+        made_for, direct = network._direct()
+        assert direct is not None, "the shipped buses are socketcand"
+
+        def write(payload: bytes, bus: str = bus, real: Any = direct.write) -> None:
+            writes[bus].append(payload)
+            if bus in failing:
+                raise OSError(32, "Broken pipe")
+            real(payload)
+        network._sender = (made_for, direct._replace(write=write))
+        restore.append((network, made_for, direct))
+    diags = graph.listen(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+    commands = graph.probe.create_publisher(JointState, "/joint_commands", COMMAND_QOS)
+    wanted = {w: 1.0 for w in WHEELS}
+    try:
+        publish_until(lambda: commands.publish(bridge_command(wanted)),
+                      lambda: all(any(p.count(b"< send ") == len(by_bus[bus]) for p in writes[bus]) for bus in by_bus),
+                      30.0, "each bus's wheels' set-points of one message in one write", period_s=0.02)
+        failed_bus, other_bus = sorted(by_bus)[1], sorted(by_bus)[0]
+        failing.add(failed_bus)
+
+        def warned(wheel: str) -> bool:
+            return any(st.name == f"rovercan: {wheel}" and st.level == bytes([1]) and f"bus {failed_bus}" in st.message
+                       and "not sent" in st.message for array in diags for st in array.status)
+        publish_until(lambda: commands.publish(bridge_command(wanted)),
+                      lambda: all(warned(w) for w in by_bus[failed_bus]), 30.0,
+                      f"the wheels of {failed_bus} refused, naming the bus", period_s=0.02)
+        assert not any(warned(w) for w in by_bus[other_bus]), f"{other_bus}'s wheels blamed for {failed_bus}'s write"
+    finally:
+        for network, made_for, direct in restore:
+            network._sender = (made_for, direct)

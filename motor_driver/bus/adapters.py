@@ -39,8 +39,8 @@ import termios
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -671,6 +671,34 @@ class GuardedNetwork(canopen.Network):
             self.check()
             if lost is not None:
                 raise can.CanOperationError(lost)
+
+    @staticmethod
+    @contextmanager
+    def each_one_write(networks: Iterable[tuple[str, GuardedNetwork]]) -> Iterator[list[tuple[str, Exception]]]:
+        """:meth:`one_write` on several buses at once (``networks``: name, network): each bus's RPDOs
+        sent inside go out in one write at the end, each bus written whatever the others' write did.
+        The list yielded is filled at the end with the buses whose held frames were not written (name,
+        error: a failed write or a reconnect), for the caller to say which commands were lost; any
+        other error is raised once every bus is written."""
+        failed: list[tuple[str, Exception]] = []
+        held: list[tuple[str, AbstractContextManager[None]]] = []
+        try:
+            for name, network in networks:
+                block = network.one_write()
+                block.__enter__()
+                held.append((name, block))
+            yield failed
+        finally:
+            unexpected: Exception | None = None
+            for name, each in held:
+                try:
+                    each.__exit__(None, None, None)
+                except (can.CanError, OSError) as err:
+                    failed.append((name, err))
+                except Exception as err:  # the receive thread's death (check()), a hook's: once all are written
+                    unexpected = unexpected or err
+            if unexpected is not None:
+                raise unexpected
 
     def _write_held(self, direct: DirectSend) -> list[tuple[int, bytes | bytearray, bool]]:
         """Under the send lock: the frames held, in one write; the frames written (for ``on_sent``).

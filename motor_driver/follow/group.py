@@ -63,10 +63,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
-
-import can
 
 from can_config.errors import RovercanError
 from can_config.model import TrajectoryGroupConfig
@@ -329,39 +326,25 @@ class TrajectoryGroup:
             self._judge_silence()
             return
         self._silences = 0
-        held: list[tuple[str, AbstractContextManager[None]]] = []  # this SYNC's set-points, one write a bus
-        try:
-            for bus, network in self._networks:
-                each = network.one_write()
-                each.__enter__()
-                held.append((bus, each))
+        # this SYNC's set-points, one write a bus
+        with GuardedNetwork.each_one_write(self._networks) as failed:
             if self._running is not None and self._clock is not None:
                 self._step(self._running, self._clock)
             self._step_ramp()
-        finally:
-            self._release(held)
+        for bus, error in failed:
+            self._not_sent(bus, error)
 
-    def _release(self, held: list[tuple[str, AbstractContextManager[None]]]) -> None:
-        """Every bus's held set-points written, each whatever the others' did; a write that failed ends
-        the goal as a refused set-point does (or the ramp of that bus's joints), any other error is
-        raised after all are released."""
-        unexpected: Exception | None = None
-        for bus, each in held:
-            try:
-                each.__exit__(None, None, None)
-            except (can.CanError, OSError) as err:
-                why = f"bus {bus}: set-points not sent: the bus is gone ({err})"
-                if self._running is not None:
-                    self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"{why}; the group stops")
-                else:
-                    logger.warning("trajectory group %s: %s; its joints' stop ramp ends (they hold, or stop"
-                                   " themselves)", self.name, why)
-                    for name in [n for n in self._ramp if self.drives[n].config.bus == bus]:
-                        del self._ramp[name]
-            except Exception as err:  # the receive thread's death (check()), a hook's: raised once all are done
-                unexpected = unexpected or err
-        if unexpected is not None:
-            raise unexpected
+    def _not_sent(self, bus: str, err: Exception) -> None:
+        """The set-points of ``bus`` held for this SYNC were not written: the goal ends as a refused
+        set-point ends it (or the ramp of that bus's joints)."""
+        why = f"bus {bus}: set-points not sent: the bus is gone ({err})"
+        if self._running is not None:
+            self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"{why}; the group stops")
+        else:
+            logger.warning("trajectory group %s: %s; its joints' stop ramp ends (they hold, or stop"
+                           " themselves)", self.name, why)
+            for name in [n for n in self._ramp if self.drives[n].config.bus == bus]:
+                del self._ramp[name]
 
     def _start(self, run: GoalRun) -> None:
         joints = run.plan.goal.joints

@@ -45,12 +45,13 @@ import logging
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import AbstractContextManager
 
 import can
 
 from can_config import RoverConfig, load_drive_od
 from can_config.errors import BusLostError, ConfigError, MotorError
-from motor_driver.bus.adapters import Rejected, quiet_dependency_tracebacks
+from motor_driver.bus.adapters import GuardedNetwork, Rejected, quiet_dependency_tracebacks
 from motor_driver.bus.connect import (
     CONNECT_TIMEOUT_S,
     HANDSHAKE_TIMEOUT_S,
@@ -128,6 +129,7 @@ class MotorDriver:
                                                         bus_cfg.bitrate, foreign, sync_daemon(bus_cfg),
                                                         self.recorder)
             self.supervisor = Supervisor(config, self._handles, self.recorder)
+            self._networks = tuple((name, h.network) for name, h in self._handles.items())
             for drive_cfg in config.drives:
                 bus_cfg = config.bus(drive_cfg.bus)
                 record, port = self.supervisor.port(drive_cfg.name)
@@ -227,6 +229,13 @@ class MotorDriver:
     @property
     def buses(self) -> dict[str, BusHandle]:
         return dict(self._handles)
+
+    def one_write(self) -> AbstractContextManager[list[tuple[str, Exception]]]:
+        """The RPDOs this thread sends inside go out in one write a bus at the end, where the bus is
+        socketcand (:meth:`GuardedNetwork.each_one_write`: another thread's frame, or this thread's
+        SDO, still follows what was handed over before it): the set-points of one message for several
+        joints. The list yielded names, at the end, the buses whose set-points were not written."""
+        return GuardedNetwork.each_one_write(self._networks)
 
     @property
     def bus_lost(self) -> dict[str, bool]:

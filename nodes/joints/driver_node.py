@@ -201,23 +201,42 @@ class DriverNode(Node):
                                  SETPOINT_QOS, event_callbacks=NO_SUB_EVENTS, raw=True)
 
     def _on_joint_commands(self, msg: JointState) -> None:
-        for i, name in enumerate(msg.name):
-            drive = self.drives.get(name)
-            if drive is None:
-                self.refusals.refuse(name or "?", f"/joint_commands names unknown joint {name!r};"
-                                     f" joints: {sorted(self.drives)}")
-                continue
-            # the first field given for this joint; NaN means "not commanded" (ros2_control's
-            # topic-based hardware interface sends NaN in the fields it does not command)
-            position, velocity, effort = (_given(values, i) for values in (msg.position, msg.velocity, msg.effort))
-            if position is not None:
-                self.command(name, "joint position", drive.command_position, position * DEG_PER_RAD)
-            elif velocity is not None:
-                self.command(name, "joint velocity", drive.command_velocity, velocity * DEG_PER_RAD)
-            elif effort is not None:
-                self.command(name, "joint effort", drive.command_torque, effort)
-            else:
-                self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort (or only NaN)")
+        """Each joint named: its first field given, sent at once; the set-points of one message go
+        out in one write a bus (MotorDriver.one_write), and a bus whose write failed refuses its joints'."""
+        if len(msg.name) < 2:  # nothing to put in one write
+            for i, name in enumerate(msg.name):
+                self._joint_command(msg, i, name)
+            return
+        commanded: list[str] = []
+        with self.driver.one_write() as failed:
+            for i, name in enumerate(msg.name):
+                if self._joint_command(msg, i, name):
+                    commanded.append(name)
+        for bus, err in failed:
+            for name in commanded:
+                if self.drives[name].config.bus == bus:
+                    self.refusals.refuse(name, f"/joint_commands: the set-point was not sent: bus {bus}: {err}")
+
+    def _joint_command(self, msg: JointState, i: int, name: str) -> bool:
+        """Entry ``i`` of a /joint_commands message handed to its joint (True), or refused."""
+        drive = self.drives.get(name)
+        if drive is None:
+            self.refusals.refuse(name or "?", f"/joint_commands names unknown joint {name!r};"
+                                 f" joints: {sorted(self.drives)}")
+            return False
+        # the first field given for this joint; NaN means "not commanded" (ros2_control's
+        # topic-based hardware interface sends NaN in the fields it does not command)
+        position, velocity, effort = (_given(values, i) for values in (msg.position, msg.velocity, msg.effort))
+        if position is not None:
+            self.command(name, "joint position", drive.command_position, position * DEG_PER_RAD)
+        elif velocity is not None:
+            self.command(name, "joint velocity", drive.command_velocity, velocity * DEG_PER_RAD)
+        elif effort is not None:
+            self.command(name, "joint effort", drive.command_torque, effort)
+        else:
+            self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort (or only NaN)")
+            return False
+        return True
 
     # --------------------------------------------------------------------- publishing
     def share_tick(self, period_s: float, hook: Callable[[], None]) -> bool:
