@@ -619,6 +619,30 @@ def test_a_degree_command_on_a_moving_joint_ends_its_move_joint_goal(rig: Rig) -
     client.destroy()
 
 
+def test_a_halt_of_a_moving_joint_ends_its_move_joint_goal_naming_the_halt(rig: Rig) -> None:
+    """``<joint>/halt`` while a move_joint goal moves the joint: the goal is over, said at once and
+    naming the halt (it watched on until its timeout and then asked whether the joint was blocked),
+    and the joint stands short of the goal's target, enabled."""
+    from action_msgs.msg import GoalStatus
+    from std_srvs.srv import Trigger
+
+    client, sent = moving(rig, 60.0)
+    drive = rig.assembly.driver.drive("joint1")
+    halt = rig.client._node.create_client(Trigger, f"{drive.config.ros_prefix}/halt")
+    assert halt.wait_for_service(timeout_sec=HANG_S), "no halt service"
+    answer = halt.call_async(Trigger.Request())
+    wait_for(answer.done, HANG_S, "the halt answered")
+    assert answer.result().success, answer.result().message
+    move = result_of(sent.result())
+    assert move.status == GoalStatus.STATUS_ABORTED, move.result.message
+    assert move.result.message.startswith("joint1: the move is over: the joint was halted (a halt command,"), \
+        move.result.message
+    assert "blocked" not in move.result.message
+    assert drive.snapshot().angle_deg < 55.0 and drive.snapshot().state.name == "OPERATION_ENABLED"
+    rig.client._node.destroy_client(halt)
+    client.destroy()
+
+
 def assert_preempted(older: Any) -> None:
     """Ended as joint_trajectory_controller (jazzy >= 4.41.0, preempt_active_goal) ends a goal a newer
     one preempts: ABORTED, INVALID_GOAL, its words (up to 4.40: CANCELED, "cancelled due to")."""

@@ -203,13 +203,17 @@ class DriverActionsNode(Node):
 
     def _taken(self, drive: Drive, mode: int, own: int, seq: int) -> str | None:
         """Why the move is over because another command took its joint, else None: the drive left
-        profile position (a trajectory, a stream), or the newest target commanded is not the move's (a
-        position command, /joint_commands; a newer move_joint goal starting is waited for: it says
-        "preempted")."""
+        profile position (a trajectory, a stream), a halt of the joint stands (``<joint>/halt``: the
+        goal ran on to its timeout and blamed the joint), or the newest target commanded is not the
+        move's (a position command, /joint_commands; a newer move_joint goal starting is waited for:
+        it says "preempted")."""
         joint = drive.name
         if mode != OperationMode.PROFILE_POSITION:
             return (f"{joint}: the move is over: the joint left profile position (mode {mode_name(mode)}): another"
                     " command took it")
+        if drive.channel.halted:  # not the move's own halt: it ends the goal where it halts
+            return (f"{joint}: the move is over: the joint was halted (a halt command, {drive.config.ros_prefix}/halt)"
+                    f" at {drive.snapshot().angle_deg:.2f} deg")
         newest = drive.channel.newest_move_counts
         if newest != own and newest is not None and not self._newer_starting(joint, seq):
             return (f"{joint}: the move is over: another command set its target"

@@ -131,6 +131,12 @@ class CommandChannel:
         a move's watcher tells from it that another command set the joint's target since."""
         return self._handshake.newest
 
+    @property
+    def halted(self) -> bool:
+        """This driver's last controlword carries halt (bit 8), any thread: a halt stands (the next
+        profile-position target, an enable or a stop clears it)."""
+        return bool(self.cw & CW.HALT)
+
     def enabled_by_us(self, now: float, within_s: float) -> bool:
         """This driver's last controlword was Enable Operation, an enable of its own is under way (a
         drive's Operation Enabled reaches a starved process after its enable's steps, however late),
