@@ -27,6 +27,7 @@ from motor_driver.bus.adapters import (
     SOCKETCAND_TCP_TUNE,
     SYNC_TEXT_BYTES,
     GuardedNetwork,
+    HeldFramesLost,
     connection_closed,
     hold_lone_sync,
     parse_frames,
@@ -532,6 +533,7 @@ def test_each_one_write_writes_every_bus_whatever_another_s_write_did() -> None:
             networks["can1"].send_message(0x303, b"\x0f\x00\x03\x00\x00\x00")
             assert failed == [] and writes == []
         assert [name for name, _ in failed] == ["can0"] and "Broken pipe" in str(failed[0][1])
+        assert isinstance(failed[0][1], HeldFramesLost), failed
         assert len(writes) == 1 and _heard(buses["can1"][1], 2) == [(0x302, b"\x0f\x00\x02\x00\x00\x00"),
                                                                     (0x303, b"\x0f\x00\x03\x00\x00\x00")]
         networks["can0"]._sender = (bus, direct)
@@ -544,6 +546,20 @@ def test_each_one_write_writes_every_bus_whatever_another_s_write_did() -> None:
             networks["can0"].send_message(0x304, b"\x0f\x00\x04\x00\x00\x00")
             networks["can1"].send_message(0x305, b"\x0f\x00\x05\x00\x00\x00")
         assert failed == [] and _heard(buses["can1"][1], 1) == [(0x305, b"\x0f\x00\x05\x00\x00\x00")]
+        assert _heard(buses["can0"][1], 1) == [(0x304, b"\x0f\x00\x04\x00\x00\x00")]  # written, then judged
+
+        def gone() -> None:  # the receive thread ended on the socket's error: the frames were written
+            raise can.CanOperationError("Failed to receive: connection reset")
+        networks["can0"].check = gone  # type: ignore[method-assign]
+        with pytest.raises(ValueError, match="the body's"), \
+                GuardedNetwork.each_one_write(sorted(networks.items())) as failed:
+            networks["can0"].send_message(0x306, b"\x0f\x00\x06\x00\x00\x00")
+            networks["can1"].send_message(0x307, b"\x0f\x00\x07\x00\x00\x00")
+            raise ValueError("the body's own error")
+        assert [name for name, _ in failed] == ["can0"] and not isinstance(failed[0][1], HeldFramesLost), failed
+        assert _heard(buses["can0"][1], 1) == [(0x306, b"\x0f\x00\x06\x00\x00\x00")]
+        assert _heard(buses["can1"][1], 1) == [(0x307, b"\x0f\x00\x07\x00\x00\x00")]
+        assert all(n._holder is None for n in networks.values())
     finally:
         for pair in buses.values():
             for each in pair:

@@ -285,18 +285,18 @@ def test_the_handoff_keeps_a_joints_order_and_only_its_newest_command() -> None:
         failures.append(f"{joint} {what.format(value)}: {err}")
 
     try:
-        handoff.send("a", a.command, 1.0, "{!r}", failed)  # would wait: to the worker
+        assert not handoff.send("a", a.command, 1.0, "{!r}", failed)  # would wait: to the worker (False)
         for value in (2.0, 3.0, 4.0):
-            handoff.send("a", a.command, value, "{!r}", failed)  # behind it: only the newest kept
+            assert not handoff.send("a", a.command, value, "{!r}", failed)  # behind it: only the newest kept
         assert handoff.busy("a") and handoff.waiting("a") == 4.0
-        handoff.send("b", b.command, 5.0, "{!r}", failed)  # another joint: at once, not behind a
+        assert handoff.send("b", b.command, 5.0, "{!r}", failed)  # another joint: at once (True), not behind a
         assert b.sent == [(5.0, True)] and a.sent == []
         with pytest.raises(CommandRejected, match="below 0"):
             handoff.send("b", b.command, -1.0, "{!r}", failed)  # a refusal at once raises here
         a.gate.set()
         wait_for(lambda: not handoff.busy("a"), 30.0, "a's worker done")
         assert a.sent == [(1.0, False), (4.0, False)]
-        handoff.send("a", a.command, 6.0, "{!r}", failed)  # ready now: at once again
+        assert handoff.send("a", a.command, 6.0, "{!r}", failed)  # ready now: at once again
         assert a.sent[-1] == (6.0, True)
         a.ready = False
         a.gate.clear()

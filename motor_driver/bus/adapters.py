@@ -526,6 +526,11 @@ def queue_full(err: BaseException) -> bool:
 REJECTED_LOG_PERIOD_S = 10.0
 
 
+class HeldFramesLost(can.CanOperationError):  # type: ignore[misc]
+    """Frames held by :meth:`GuardedNetwork.one_write` were not written (their write failed, or
+    their bus was replaced by a reconnect): raised to the holder at the end of its block."""
+
+
 @dataclass(frozen=True)
 class Rejected:
     """Frames of one node a receive callback raised on: how many, the newest cause (``callback:
@@ -665,21 +670,25 @@ class GuardedNetwork(canopen.Network):
         finally:
             with self.send_lock:
                 self._holder = None
-                written = self._write_held(direct)
+                try:
+                    written = self._write_held(direct)
+                except Exception:  # the write failed: in _held_lost, raised below as the frames' loss
+                    written = []
                 lost = self._held_lost
             self._told(written)
-            self.check()
             if lost is not None:
-                raise can.CanOperationError(lost)
+                raise HeldFramesLost(lost)
+            self.check()  # the frames were written: whatever it raises is the bus's, not theirs
 
     @staticmethod
     @contextmanager
     def each_one_write(networks: Iterable[tuple[str, GuardedNetwork]]) -> Iterator[list[tuple[str, Exception]]]:
         """:meth:`one_write` on several buses at once (``networks``: name, network): each bus's RPDOs
         sent inside go out in one write at the end, each bus written whatever the others' write did.
-        The list yielded is filled at the end with the buses whose held frames were not written (name,
-        error: a failed write or a reconnect), for the caller to say which commands were lost; any
-        other error is raised once every bus is written."""
+        The list yielded is filled at the end with the buses that failed (name, error): their held frames
+        not written (:class:`HeldFramesLost`: a failed write, a reconnect), or written and the bus then
+        found broken (a CAN or socket error of its receive thread, ``check()``), for the caller to say
+        which commands were lost; any other error is raised once every bus is written."""
         failed: list[tuple[str, Exception]] = []
         held: list[tuple[str, AbstractContextManager[None]]] = []
         try:

@@ -67,7 +67,7 @@ from dataclasses import dataclass, field
 
 from can_config.errors import RovercanError
 from can_config.model import TrajectoryGroupConfig
-from motor_driver.bus.adapters import GuardedNetwork
+from motor_driver.bus.adapters import GuardedNetwork, HeldFramesLost
 from motor_driver.drive import Drive
 from motor_driver.follow.checks import GoalChecks
 from motor_driver.follow.goal import (
@@ -335,9 +335,10 @@ class TrajectoryGroup:
             self._not_sent(bus, error)
 
     def _not_sent(self, bus: str, err: Exception) -> None:
-        """The set-points of ``bus`` held for this SYNC were not written: the goal ends as a refused
-        set-point ends it (or the ramp of that bus's joints)."""
-        why = f"bus {bus}: set-points not sent: the bus is gone ({err})"
+        """The set-points of ``bus`` held for this SYNC were not written, or the bus was found broken
+        after they were: the goal ends as a refused set-point ends it (or the ramp of that bus's joints)."""
+        why = (f"bus {bus}: set-points not sent: the bus is gone ({err})" if isinstance(err, HeldFramesLost)
+               else f"bus {bus}: the bus is gone after this SYNC's set-points ({err})")
         if self._running is not None:
             self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, f"{why}; the group stops")
         else:

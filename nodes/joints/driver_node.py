@@ -42,6 +42,7 @@ from std_msgs.msg import Float32
 
 from can_config.errors import ConfigError, RovercanError
 from motor_driver import Drive, DriveState, MotorDriver
+from motor_driver.bus.adapters import HeldFramesLost
 from motor_driver.diagnostics.frameloss import Counts, FrameLoss, Loss, total
 from motor_driver.diagnostics.health import JOB_FAULT_RECENT_S, OK, WARN, Rejections, bus_health, drive_health, with_boot
 from motor_driver.protocol.units import DEG_PER_RAD
@@ -169,14 +170,15 @@ class DriverNode(Node):
             self.handoff.close()
         super().destroy_node()
 
-    def command(self, joint: str, what: str, command: Callable[..., object], value: float) -> None:
-        """``command(value)`` for ``joint``: sent at once from this (the hot) thread, or by the
+    def command(self, joint: str, what: str, command: Callable[..., object], value: float) -> bool:
+        """``command(value)`` for ``joint``: sent at once from this (the hot) thread (True), or by the
         handoff's worker when it must wait for the drive (nodes/joints/handoff.py); a refusal, here or
         there, is counted and said by :meth:`refused`."""
         try:
-            self.handoff.send(joint, command, value, what, self.refused)
+            return self.handoff.send(joint, command, value, what, self.refused)
         except Exception as err:  # never raise into the executor
             self.refused(joint, what, value, err)
+            return False
 
     def refused(self, joint: str, what: str, value: float, err: Exception) -> None:
         """A command of ``joint`` was refused: a throttled warning and a diagnostic (``what``, with
@@ -202,23 +204,32 @@ class DriverNode(Node):
 
     def _on_joint_commands(self, msg: JointState) -> None:
         """Each joint named: its first field given, sent at once; the set-points of one message go
-        out in one write a bus (MotorDriver.one_write), and a bus whose write failed refuses its joints'."""
+        out in one write a bus (MotorDriver.one_write). A bus that failed refuses the joints whose
+        set-points this thread sent on it (not those refused, nor those handed to the worker)."""
         if len(msg.name) < 2:  # nothing to put in one write
             for i, name in enumerate(msg.name):
                 self._joint_command(msg, i, name)
             return
-        commanded: list[str] = []
-        with self.driver.one_write() as failed:
-            for i, name in enumerate(msg.name):
-                if self._joint_command(msg, i, name):
-                    commanded.append(name)
-        for bus, err in failed:
-            for name in commanded:
+        sent: list[str] = []
+        failed: list[tuple[str, Exception]] = []
+        try:
+            with self.driver.one_write() as failed:
+                for i, name in enumerate(msg.name):
+                    if self._joint_command(msg, i, name):
+                        sent.append(name)
+        except Exception as err:  # raised once every bus was written (a bus's receive thread dead): said per joint
+            named = {bus for bus, _ in failed}
+            failed = [*failed, *((bus, err) for bus in sorted({self.drives[n].config.bus for n in sent}) if bus not in named)]
+        for bus, error in failed:
+            why = (f"the set-point was not sent: bus {bus}: {error}" if isinstance(error, HeldFramesLost)
+                   else f"bus {bus} failed after the set-point was written: {error!r}")
+            for name in sent:
                 if self.drives[name].config.bus == bus:
-                    self.refusals.refuse(name, f"/joint_commands: the set-point was not sent: bus {bus}: {err}")
+                    self.refusals.refuse(name, f"/joint_commands: {why}")
 
     def _joint_command(self, msg: JointState, i: int, name: str) -> bool:
-        """Entry ``i`` of a /joint_commands message handed to its joint (True), or refused."""
+        """Entry ``i`` of a /joint_commands message: True when sent at once from this thread (else
+        refused, or handed to the worker)."""
         drive = self.drives.get(name)
         if drive is None:
             self.refusals.refuse(name or "?", f"/joint_commands names unknown joint {name!r};"
@@ -228,15 +239,13 @@ class DriverNode(Node):
         # topic-based hardware interface sends NaN in the fields it does not command)
         position, velocity, effort = (_given(values, i) for values in (msg.position, msg.velocity, msg.effort))
         if position is not None:
-            self.command(name, "joint position", drive.command_position, position * DEG_PER_RAD)
-        elif velocity is not None:
-            self.command(name, "joint velocity", drive.command_velocity, velocity * DEG_PER_RAD)
-        elif effort is not None:
-            self.command(name, "joint effort", drive.command_torque, effort)
-        else:
-            self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort (or only NaN)")
-            return False
-        return True
+            return self.command(name, "joint position", drive.command_position, position * DEG_PER_RAD)
+        if velocity is not None:
+            return self.command(name, "joint velocity", drive.command_velocity, velocity * DEG_PER_RAD)
+        if effort is not None:
+            return self.command(name, "joint effort", drive.command_torque, effort)
+        self.refusals.refuse(name, "/joint_commands entry has no position, velocity or effort (or only NaN)")
+        return False
 
     # --------------------------------------------------------------------- publishing
     def share_tick(self, period_s: float, hook: Callable[[], None]) -> bool:

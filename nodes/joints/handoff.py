@@ -53,19 +53,19 @@ class Handoff:
         self._closed = False
 
     def send(self, joint: str, command: Callable[..., object], value: float, what: str,
-             failed: Callable[[str, str, float, Exception], None]) -> None:
-        """``command(value, at_once=True)`` now; a refusal raises here, as from the command. When
-        it would wait, or a command of ``joint`` is still with the worker, the command goes to the
-        worker, and a failure there to ``failed(joint, what, value, error)``."""
+             failed: Callable[[str, str, float, Exception], None]) -> bool:
+        """``command(value, at_once=True)`` now (True); a refusal raises here, as from the command.
+        When it would wait, or a command of ``joint`` is still with the worker, the command goes to
+        the worker (False), and a failure there to ``failed(joint, what, value, error)``."""
         with self._lock:  # the command at once inside it: the worker never overtakes it
             if self._closed:
                 raise CommandRejected(f"{joint}: the node is shutting down; no command is taken. Nothing was sent.")
             if joint in self._with_worker:
                 self._newest[joint] = Call(command, value, what, failed)
-                return
+                return False
             try:
                 command(value, at_once=True)
-                return
+                return True
             except CommandWouldWait:
                 pass
             try:
@@ -74,6 +74,7 @@ class Handoff:
                 raise CommandRejected(f"{joint}: no worker to send a command that waits for the drive ({err});"
                                       " nothing was sent") from err
             self._with_worker.add(joint)  # under the lock: the worker cannot be done before this
+            return False
 
     def busy(self, joint: str) -> bool:
         """A command of ``joint`` is with the worker (or waits behind it)."""
