@@ -145,7 +145,7 @@ def test_one_commands_set_points_go_out_in_one_write_a_bus_and_a_failed_write_re
         publish_until(lambda: commands.publish(bridge_command(wanted)),
                       lambda: all(warned(w) for w in sent) and said(victim, "no position, velocity or effort"), 30.0,
                       f"the wheels of {failed_bus} refused, naming the bus", period_s=0.02)
-        assert not any(warned(w) for w in [victim, *by_bus[other_bus]]), \
+        assert not any(said(w, f"bus {failed_bus}") for w in [victim, *by_bus[other_bus]]), \
             f"{other_bus}'s wheels or {victim} (refused at once) blamed for {failed_bus}'s write"
     finally:
         for network, made_for, direct in restore:

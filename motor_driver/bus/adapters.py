@@ -528,7 +528,12 @@ REJECTED_LOG_PERIOD_S = 10.0
 
 class HeldFramesLost(can.CanOperationError):  # type: ignore[misc]
     """Frames held by :meth:`GuardedNetwork.one_write` were not written (their write failed, or
-    their bus was replaced by a reconnect): raised to the holder at the end of its block."""
+    their bus was replaced by a reconnect): raised to the holder at the end of its block, with
+    their CAN IDs (``can_ids``: whose commands were lost)."""
+
+    def __init__(self, message: str, can_ids: tuple[int, ...] = ()) -> None:
+        super().__init__(message)
+        self.can_ids = can_ids
 
 
 @dataclass(frozen=True)
@@ -574,6 +579,7 @@ class GuardedNetwork(canopen.Network):
         # their bytes and the frames (for on_sent once written)
         self._holder: int | None = None
         self._held_lost: str | None = None  # why frames held in the current block were not written
+        self._held_lost_ids: list[int] = []  # and their CAN IDs
         self.held_dropped = 0  # held frames not written: their bus was replaced (a reconnect) meanwhile
         self._held_for: can.BusABC | None = None
         self._held: list[bytes] = []
@@ -661,7 +667,7 @@ class GuardedNetwork(canopen.Network):
         with self.send_lock:
             holds = direct is not None and bus is not None and self._holder is None
             if holds:
-                self._holder, self._held_for, self._held_lost = threading.get_ident(), bus, None
+                self._holder, self._held_for, self._held_lost, self._held_lost_ids = threading.get_ident(), bus, None, []
         if not holds or direct is None:
             yield
             return
@@ -674,10 +680,10 @@ class GuardedNetwork(canopen.Network):
                     written = self._write_held(direct)
                 except Exception:  # the write failed: in _held_lost, raised below as the frames' loss
                     written = []
-                lost = self._held_lost
+                lost, lost_ids = self._held_lost, tuple(self._held_lost_ids)
             self._told(written)
             if lost is not None:
-                raise HeldFramesLost(lost)
+                raise HeldFramesLost(lost, lost_ids)
             self.check()  # the frames were written: whatever it raises is the bus's, not theirs
 
     @staticmethod
@@ -685,10 +691,10 @@ class GuardedNetwork(canopen.Network):
     def each_one_write(networks: Iterable[tuple[str, GuardedNetwork]]) -> Iterator[list[tuple[str, Exception]]]:
         """:meth:`one_write` on several buses at once (``networks``: name, network): each bus's RPDOs
         sent inside go out in one write at the end, each bus written whatever the others' write did.
-        The list yielded is filled at the end with the buses that failed (name, error): their held frames
-        not written (:class:`HeldFramesLost`: a failed write, a reconnect), or written and the bus then
-        found broken (a CAN or socket error of its receive thread, ``check()``), for the caller to say
-        which commands were lost; any other error is raised once every bus is written."""
+        The list yielded is filled at the end with the buses that failed, each with its error: its
+        held frames not written (:class:`HeldFramesLost`, naming them: a failed write, a reconnect),
+        or written and the bus then found broken (its receive thread's error, ``check()``), for the
+        caller to say which commands were lost and to raise what it does not expect."""
         failed: list[tuple[str, Exception]] = []
         held: list[tuple[str, AbstractContextManager[None]]] = []
         try:
@@ -698,16 +704,11 @@ class GuardedNetwork(canopen.Network):
                 held.append((name, block))
             yield failed
         finally:
-            unexpected: Exception | None = None
             for name, each in held:
                 try:
                     each.__exit__(None, None, None)
-                except (can.CanError, OSError) as err:
+                except Exception as err:  # every bus written first; the caller says it
                     failed.append((name, err))
-                except Exception as err:  # the receive thread's death (check()), a hook's: once all are written
-                    unexpected = unexpected or err
-            if unexpected is not None:
-                raise unexpected
 
     def _write_held(self, direct: DirectSend) -> list[tuple[int, bytes | bytearray, bool]]:
         """Under the send lock: the frames held, in one write; the frames written (for ``on_sent``).
@@ -719,12 +720,14 @@ class GuardedNetwork(canopen.Network):
         if self.bus is not self._held_for:
             self.held_dropped += len(frames)
             self._held_lost = f"{len(frames)} frame(s) held for a bus since replaced (a reconnect) not sent"
+            self._held_lost_ids.extend(can_id for can_id, _, _ in frames)
             return []
         try:
             direct.write(payload)
         except Exception as err:
             self.held_dropped += len(frames)
             self._held_lost = f"{len(frames)} frame(s) held not sent: {err}"
+            self._held_lost_ids.extend(can_id for can_id, _, _ in frames)
             raise
         return frames
 

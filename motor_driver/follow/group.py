@@ -65,6 +65,8 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+import can
+
 from can_config.errors import RovercanError
 from can_config.model import TrajectoryGroupConfig
 from motor_driver.bus.adapters import GuardedNetwork, HeldFramesLost
@@ -331,8 +333,12 @@ class TrajectoryGroup:
             if self._running is not None and self._clock is not None:
                 self._step(self._running, self._clock)
             self._step_ramp()
+        unexpected = [error for bus, error in failed if not isinstance(error, (can.CanError, OSError))]
         for bus, error in failed:
-            self._not_sent(bus, error)
+            if isinstance(error, (can.CanError, OSError)):
+                self._not_sent(bus, error)
+        if unexpected:  # a hook's, a receive thread dead otherwise: the loop's handler says it
+            raise unexpected[0]
 
     def _not_sent(self, bus: str, err: Exception) -> None:
         """The set-points of ``bus`` held for this SYNC were not written, or the bus was found broken

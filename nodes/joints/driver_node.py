@@ -204,27 +204,25 @@ class DriverNode(Node):
 
     def _on_joint_commands(self, msg: JointState) -> None:
         """Each joint named: its first field given, sent at once; the set-points of one message go
-        out in one write a bus (MotorDriver.one_write). A bus that failed refuses the joints whose
-        set-points this thread sent on it (not those refused, nor those handed to the worker)."""
+        out in one write a bus (MotorDriver.one_write). A bus that failed refuses the joints this
+        thread commanded on it: those whose frames were lost (not one refused, handed to the worker or
+        parked in its handshake), or all of them where the bus failed after the write."""
         if len(msg.name) < 2:  # nothing to put in one write
             for i, name in enumerate(msg.name):
                 self._joint_command(msg, i, name)
             return
         sent: list[str] = []
-        failed: list[tuple[str, Exception]] = []
-        try:
-            with self.driver.one_write() as failed:
-                for i, name in enumerate(msg.name):
-                    if self._joint_command(msg, i, name):
-                        sent.append(name)
-        except Exception as err:  # raised once every bus was written (a bus's receive thread dead): said per joint
-            named = {bus for bus, _ in failed}
-            failed = [*failed, *((bus, err) for bus in sorted({self.drives[n].config.bus for n in sent}) if bus not in named)]
-        for bus, error in failed:
-            why = (f"the set-point was not sent: bus {bus}: {error}" if isinstance(error, HeldFramesLost)
-                   else f"bus {bus} failed after the set-point was written: {error!r}")
+        with self.driver.one_write() as failed:
+            for i, name in enumerate(msg.name):
+                if self._joint_command(msg, i, name):
+                    sent.append(name)
+        for bus, err in failed:
+            lost = err.can_ids if isinstance(err, HeldFramesLost) else None
+            why = (f"the set-point was not sent: bus {bus}: {err}" if lost is not None
+                   else f"bus {bus} failed after the set-point was written: {err!r}")
             for name in sent:
-                if self.drives[name].config.bus == bus:
+                drive = self.drives[name]
+                if drive.config.bus == bus and (lost is None or drive.channel.rpdo_ids.intersection(lost)):
                     self.refusals.refuse(name, f"/joint_commands: {why}")
 
     def _joint_command(self, msg: JointState, i: int, name: str) -> bool:

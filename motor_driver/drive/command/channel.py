@@ -132,6 +132,11 @@ class CommandChannel:
         return self._handshake.newest
 
     @property
+    def rpdo_ids(self) -> frozenset[int]:
+        """The CAN IDs of this drive's RPDOs (the frames a command of it sends by PDO)."""
+        return frozenset(pdo.cob_id for pdo in self._plan.rpdos)
+
+    @property
     def halted(self) -> bool:
         """This driver's last controlword carries halt (bit 8), any thread: a halt stands (the next
         profile-position target, an enable or a stop clears it)."""
