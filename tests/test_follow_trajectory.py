@@ -525,13 +525,13 @@ def test_move_joint_gives_up_after_its_overall_timeout(rig: Rig, monkeypatch: py
     client.destroy()
 
 
-def moving(rig: Rig, target_deg: float) -> tuple[Any, Any]:
+def moving(rig: Rig, target_deg: float, speed_deg_s: float = 20.0) -> tuple[Any, Any]:
     """A move_joint client, and its goal for joint1 (at 20 deg/s) under way past 2 deg."""
     from rovercan_msgs.action import MoveJoint
 
     client = ActionClient(rig.client._node, MoveJoint, "move_joint")
     assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
-    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=target_deg, speed_deg_s=20.0))
+    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=target_deg, speed_deg_s=speed_deg_s))
     wait_for(sent.done, HANG_S, "the move answered")
     drive = rig.assembly.driver.drive("joint1")
     wait_for(lambda: drive.snapshot().angle_deg > 2.0, HANG_S, f"joint1 on its way to {target_deg:g} deg")
@@ -554,6 +554,45 @@ def test_a_newer_move_joint_goal_preempts_the_older_on_its_joint(rig: Rig) -> No
     done = result_of(newer.result())
     assert done.status == GoalStatus.STATUS_SUCCEEDED and done.result.message == "at -5.00 deg", done.result.message
     assert abs(done.result.angle + 5.0) < 0.5
+    client.destroy()
+
+
+@pytest.mark.parametrize("rig", [{"sdo_timeout_ms": 10000}], indirect=True)
+def test_a_cancel_of_the_older_goal_while_a_newer_starts_leaves_the_newer_s_move_alone(rig: Rig) -> None:
+    """The older goal of a joint is cancelled while a newer one starts (its speed's SDO held at the
+    drive): the older's cancel waits for the newer's start and the newer preempts it (a halt then
+    would stop the newer's move once it went out, and the newer would end "halted"); the newer ends
+    at its own target."""
+    from action_msgs.msg import GoalStatus
+    from rovercan_msgs.action import MoveJoint
+
+    client = ActionClient(rig.client._node, MoveJoint, "move_joint")
+    assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
+    looks: list[Any] = []  # the older goal's feedback: one a look at the joint
+    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=85.0, speed_deg_s=8.0),
+                                  feedback_callback=looks.append)
+    wait_for(sent.done, HANG_S, "the move answered")
+    drive = rig.assembly.driver.drive("joint1")
+    wait_for(lambda: drive.snapshot().angle_deg > 2.0, HANG_S, "joint1 on its way to 85 deg")
+    sim = rig.sim.simulator_for(1)
+    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 5.0})
+    newer = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=-5.0, speed_deg_s=60.0))
+    wait_for(lambda: sim.call(lambda: sim.drive(1)._delayed_sdo is not None), HANG_S, "the newer's speed SDO at the drive")
+    older = sent.result()
+    cancel = older.cancel_goal_async()
+    wait_for(cancel.done, HANG_S, "the cancel answered")
+    seen = len(looks)
+    # two more looks: the older saw its cancel while the newer started, and went on
+    wait_for(lambda: len(looks) >= seen + 2, HANG_S, "the older goal looking on, its cancel deferred")
+    assert sim.call(lambda: sim.drive(1)._delayed_sdo is not None), "the newer's start is still held"
+    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 0.0})
+    wait_for(newer.done, HANG_S, "the newer goal answered")
+    first = result_of(older)  # CANCELED, as every goal whose cancel was accepted ends; its words say why
+    assert first.status == GoalStatus.STATUS_CANCELED and not first.result.success, first.status
+    assert first.result.message == "joint1: preempted by a newer move_joint goal; the joint goes to its target", \
+        first.result.message
+    done = result_of(newer.result())
+    assert done.status == GoalStatus.STATUS_SUCCEEDED and done.result.message == "at -5.00 deg", done.result.message
     client.destroy()
 
 
@@ -626,7 +665,7 @@ def test_a_halt_of_a_moving_joint_ends_its_move_joint_goal_naming_the_halt(rig: 
     from action_msgs.msg import GoalStatus
     from std_srvs.srv import Trigger
 
-    client, sent = moving(rig, 60.0)
+    client, sent = moving(rig, 60.0, 2.0)  # its timeout (35 s) beyond the test's wait: ended by the halt, not by it
     drive = rig.assembly.driver.drive("joint1")
     halt = rig.client._node.create_client(Trigger, f"{drive.config.ros_prefix}/halt")
     assert halt.wait_for_service(timeout_sec=HANG_S), "no halt service"

@@ -269,7 +269,10 @@ class DriverActionsNode(Node):
                     break
                 feedback.angle, feedback.remaining_deg = float(state.angle_deg), float(target - state.angle_deg)
                 goal.publish_feedback(feedback)
-                if goal.is_cancel_requested:
+                if goal.is_cancel_requested and not self._newer_starting(request.joint, seq):
+                    # (while a newer goal of the joint starts, its move may be out already: a halt now
+                    # would stop it, and it would end "halted"; the newer preempts this one, or fails
+                    # to start and this cancel halts at the next look)
                     drive.halt()  # the profile deceleration; the drive stays enabled
                     settle = time.monotonic() + CANCEL_SETTLE_S
                     while abs(drive.snapshot().velocity_deg_s) > 0.5 and time.monotonic() < settle:
