@@ -569,13 +569,15 @@ def test_a_cancel_of_the_older_goal_while_a_newer_starts_leaves_the_newer_s_move
     client = ActionClient(rig.client._node, MoveJoint, "move_joint")
     assert client.wait_for_server(timeout_sec=HANG_S), "move_joint not served"
     looks: list[Any] = []  # the older goal's feedback: one a look at the joint
-    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=85.0, speed_deg_s=8.0),
+    sent = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=85.0, speed_deg_s=4.0),
                                   feedback_callback=looks.append)
     wait_for(sent.done, HANG_S, "the move answered")
     drive = rig.assembly.driver.drive("joint1")
     wait_for(lambda: drive.snapshot().angle_deg > 2.0, HANG_S, "joint1 on its way to 85 deg")
     sim = rig.sim.simulator_for(1)
-    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 5.0})
+    # the newer's SDO answered 9 s after it came (within the 10 s SDO timeout): the two looks below
+    # take a tenth of a second; the older, at 4 deg/s, is far from 85 deg when the newer moves
+    apply_action(rig.sim, {"action": "sdo", "node": 1, "delay_s": 9.0})
     newer = client.send_goal_async(MoveJoint.Goal(joint="joint1", target_deg=-5.0, speed_deg_s=60.0))
     wait_for(lambda: sim.call(lambda: sim.drive(1)._delayed_sdo is not None), HANG_S, "the newer's speed SDO at the drive")
     older = sent.result()
