@@ -718,18 +718,20 @@ class GuardedNetwork(canopen.Network):
             return []
         payload, frames, self._held, self._held_frames = b"".join(self._held), self._held_frames, [], []
         if self.bus is not self._held_for:
-            self.held_dropped += len(frames)
-            self._held_lost = f"{len(frames)} frame(s) held for a bus since replaced (a reconnect) not sent"
-            self._held_lost_ids.extend(can_id for can_id, _, _ in frames)
+            self._lose(frames, "for a bus since replaced (a reconnect) not sent")
             return []
         try:
             direct.write(payload)
         except Exception as err:
-            self.held_dropped += len(frames)
-            self._held_lost = f"{len(frames)} frame(s) held not sent: {err}"
-            self._held_lost_ids.extend(can_id for can_id, _, _ in frames)
+            self._lose(frames, f"not sent: {err}")
             raise
         return frames
+
+    def _lose(self, frames: list[tuple[int, bytes | bytearray, bool]], why: str) -> None:
+        """Under the send lock: held ``frames`` not written, counted and kept for the holder's end."""
+        self.held_dropped += len(frames)
+        self._held_lost = f"{len(frames)} frame(s) held {why}"
+        self._held_lost_ids.extend(can_id for can_id, _, _ in frames)
 
     def _told(self, frames: list[tuple[int, bytes | bytearray, bool]]) -> None:
         hook = self.on_sent

@@ -333,12 +333,14 @@ class TrajectoryGroup:
             if self._running is not None and self._clock is not None:
                 self._step(self._running, self._clock)
             self._step_ramp()
-        unexpected = [error for bus, error in failed if not isinstance(error, (can.CanError, OSError))]
+        unexpected: Exception | None = None
         for bus, error in failed:
             if isinstance(error, (can.CanError, OSError)):
                 self._not_sent(bus, error)
-        if unexpected:  # a hook's, a receive thread dead otherwise: the loop's handler says it
-            raise unexpected[0]
+            else:  # a hook's, a receive thread dead otherwise: the loop's handler says it
+                unexpected = unexpected or error
+        if unexpected is not None:
+            raise unexpected
 
     def _not_sent(self, bus: str, err: Exception) -> None:
         """The set-points of ``bus`` held for this SYNC were not written, or the bus was found broken

@@ -234,7 +234,8 @@ class MotorDriver:
         """The RPDOs this thread sends inside go out in one write a bus at the end, where the bus is
         socketcand (:meth:`GuardedNetwork.each_one_write`: another thread's frame, or this thread's
         SDO, still follows what was handed over before it): the set-points of one message for several
-        joints. The list yielded names, at the end, the buses whose set-points were not written."""
+        joints. The list yielded names, at the end, each bus that failed with its error (its frames
+        not written: :class:`HeldFramesLost`, naming them; or the bus broken after the write)."""
         return GuardedNetwork.each_one_write(self._networks)
 
     @property
