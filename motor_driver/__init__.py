@@ -54,7 +54,7 @@ from can_config.errors import (
 from motor_driver.drive import Drive, DriveState, Emcy
 from motor_driver.process.stop import StopRequested, stop_on_signals
 from motor_driver.protocol.cia402 import Command, State
-from motor_driver.runtime.driver import MotorDriver
+from motor_driver.runtime.driver import MotorDriver, StopReport
 
 __all__ = [
     "BootError",
@@ -74,6 +74,7 @@ __all__ = [
     "SdoError",
     "SdoTimeoutError",
     "State",
+    "StopReport",
     "StopRequested",
     "stop_on_signals",
 ]

@@ -59,7 +59,7 @@ from rclpy.parameter import Parameter
 
 from can_config import load_config
 from can_config.errors import RovercanError
-from motor_driver import MotorDriver
+from motor_driver import MotorDriver, StopReport
 from motor_driver.follow import TrajectoryGroup, groups_of
 from motor_driver.process import heap
 from motor_driver.process.stop import StopSignal
@@ -202,9 +202,9 @@ class Assembly:
                 failed.append(str(err))
         return failed
 
-    def stop_drives(self) -> list[str]:
-        """The driver's safe stop on the served drives; what was not confirmed (empty: all safe)."""
-        return self.driver.safe_stop(None if self.node is None else self.node.drives.values())
+    def stop_drives(self) -> StopReport:
+        """The driver's safe stop on the served drives; what was not confirmed (``lines`` empty: all safe)."""
+        return self.driver.stop_report(None if self.node is None else self.node.drives.values())
 
     def close(self) -> None:
         """Drives safe (the driver closed), threads joined, nodes destroyed. Idempotent."""

@@ -69,7 +69,7 @@ from rclpy.lifecycle import State, TransitionCallbackReturn
 
 from can_config import load_config
 from can_config.errors import RovercanError
-from motor_driver import MotorDriver
+from motor_driver import MotorDriver, StopReport
 from motor_driver.process import heap
 from nodes.assembly import Assembly, set_up
 from nodes.process import spinning
@@ -190,7 +190,7 @@ class DriveLifecycleNode(LifecycleNode):
         failed = assembly.arm(asked)
         if failed:
             assembly.driver.hold_motion(self.inactive)
-            unconfirmed = self.stop_drives()  # each logged
+            unconfirmed = self.stop_drives().lines  # each logged
             self.get_logger().error(f"activate failed: {'; '.join(failed)}; " + (
                 f"{len(unconfirmed)} stop(s) not confirmed (above); motion held" if unconfirmed
                 else "every drive is stopped again"))
@@ -206,7 +206,8 @@ class DriveLifecycleNode(LifecycleNode):
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
         if self.driver is not None:
             self.driver.hold_motion(self.inactive)  # first: nothing re-enables a drive once it is stopped
-        failed = self.stop_drives()
+        report = self.stop_drives()
+        failed = report.retry  # a lost drive's stop fails every deactivate alike: it is said, not retried
         if failed and self.driver is not None:  # the node stays active, its motion held all the same
             self.driver.hold_motion(f"{self.get_name()}'s deactivate did not confirm every stop"
                                     f" ({'; '.join(failed)}): deactivate it again")
@@ -214,7 +215,8 @@ class DriveLifecycleNode(LifecycleNode):
                                     " deactivate again")
             return TransitionCallbackReturn.FAILURE
         self._break_bond()  # as Nav2's managed nodes: the bond ends with the activity (kept while still active)
-        self.get_logger().info(f"inactive: motion held; {self._drives_safe()}; activate to take motion again")
+        lost = f" Lost, their stop unconfirmed: {'; '.join(report.lost)}." if report.lost else ""
+        self.get_logger().info(f"inactive: motion held; {self._drives_safe(report)}; activate to take motion again.{lost}")
         return super().on_deactivate(state)
 
     @supervised
@@ -241,20 +243,23 @@ class DriveLifecycleNode(LifecycleNode):
                                                           if had else "no driver") + "; configure to start again")
         return TransitionCallbackReturn.SUCCESS
 
-    def _drives_safe(self) -> str:
-        """What the drives are now, for a transition's line."""
+    def _drives_safe(self, report: StopReport | None = None) -> str:
+        """What the drives are now, for a transition's line (``report``: the stop's, whose lost
+        drives are not said to be stopped)."""
         driver = self.driver
         if driver is None:
             return "no driver"
-        return f"{len(driver.drives)} drive(s) quick-stopped if enabled and their voltage disabled (Switch On Disabled)"
+        lost = len(report.lost) if report is not None else 0
+        return f"{len(driver.drives) - lost} drive(s) quick-stopped if enabled and their voltage disabled" \
+               f" (Switch On Disabled){f', {lost} lost' if lost else ''}"
 
     # ------------------------------------------------------------------ steps
-    def stop_drives(self) -> list[str]:
+    def stop_drives(self) -> StopReport:
         """The driver's safe stop; what was not confirmed, each also logged."""
-        failed = [] if self.assembly is None else self.assembly.stop_drives()
-        for line in failed:
+        report = StopReport([], []) if self.assembly is None else self.assembly.stop_drives()
+        for line in report.lines:
             self.get_logger().error(f"stop not confirmed: {line}")
-        return failed
+        return report
 
     def destroy_node(self) -> None:
         super().destroy_node()

@@ -179,6 +179,42 @@ def test_each_transition_is_confirmed_on_the_bus(rig: tuple[Any, SimService, Lis
     assert node._state_machine.current_state[1] == "finalized"
 
 
+def test_a_lost_drive_does_not_keep_the_node_active_and_a_failed_stop_does(
+        rig: tuple[Any, SimService, Listener, Any]) -> None:
+    """Deactivate with drive b lost (its transmitter dead: a last quick stop sent, which it cannot
+    answer, at every deactivate alike): the node goes inactive, drive a safe, and the lost drive is
+    not said to be stopped. A reachable drive's stop that fails keeps the node active (motion held),
+    as before: deactivating again may confirm it. (A Nav2 manager's PAUSE failed for as long as a
+    wheel stayed unplugged, the node active while every reachable drive was disabled.)"""
+    from can_config.errors import DriveTimeoutError
+    from virtual_can.scenario import apply_action
+
+    node, sim, _, _ = rig
+    node.trigger_configure()
+    node.trigger_activate()
+    assert states(sim) == ["OPERATION_ENABLED"] * 2
+    apply_action(sim, {"action": "tx_dead", "node": 2})
+    wait_for(lambda: node.driver.drive("b").cache.lost, 10.0, "b lost")
+    a = node.driver.drive("a")
+    quick_stop = a.quick_stop
+
+    def refused() -> None:
+        raise DriveTimeoutError("a: the quick stop was not confirmed (a test's refusal)")
+
+    a.quick_stop = refused
+    node.trigger_deactivate()
+    assert node._state_machine.current_state[1] == "active"  # a's stop failed: trying again may help
+    assert "deactivate did not confirm every stop" in (node.driver.motion_held or "")
+    assert states(sim)[0] == "OPERATION_ENABLED"  # held, not stopped: the failed stop left it as it was
+
+    a.quick_stop = quick_stop
+    node.trigger_deactivate()
+    assert node._state_machine.current_state[1] == "inactive"  # b lost: said, not a failure
+    assert states(sim)[0] == "SWITCH_ON_DISABLED"
+    said = node._drives_safe(node.stop_drives())  # what the transition's line says of the drives
+    assert said.startswith("1 drive(s) quick-stopped") and said.endswith(", 1 lost"), said
+
+
 def test_through_the_lifecycle_services_one_joints_enable_answers_while_another_homes(
         rig: tuple[Any, SimService, Listener, Any]) -> None:
     """Configured and activated through the standard lifecycle service (change_state), as a

@@ -46,6 +46,7 @@ import time
 from collections.abc import Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager
+from typing import NamedTuple
 
 import can
 
@@ -80,6 +81,20 @@ from motor_driver.recording.flight import FlightRecorder
 from motor_driver.runtime.supervisor import SUPERVISOR_PERIOD_S, Supervisor
 
 logger = logging.getLogger(__name__)
+
+
+class StopReport(NamedTuple):
+    """What a safe stop could not confirm, one line a drive in the drives' order (``lines``), and
+    which of them are drives lost after their boot (``lost``): each was sent one last quick stop
+    it cannot answer, so stopping it again cannot confirm it either (its power or cable can).
+    ``retry``: the others (a stop refused, timed out or raised), where stopping again may help."""
+
+    lines: list[str]
+    lost: list[str]
+
+    @property
+    def retry(self) -> list[str]:
+        return [line for line in self.lines if line not in self.lost]
 
 
 class MotorDriver:
@@ -266,10 +281,17 @@ class MotorDriver:
         not answer. Returns what was not confirmed, one line a drive (empty: every drive is safe).
         A drive whose stop raised anything (a bug included: logged with its trace and counted as a
         failed "stop" job, which /diagnostics says) never keeps the others from theirs."""
-        unconfirmed: list[str] = []
+        return self.stop_report(drives).lines
+
+    def stop_report(self, drives: Iterable[Drive] | None = None) -> StopReport:
+        """:meth:`safe_stop`, with the lost drives among what was not confirmed told apart (a
+        transition that fails on a stop nobody can confirm would fail for as long as the drive
+        is unplugged: the lifecycle node's deactivate)."""
+        report = StopReport([], [])
         for drive in self.drives.values() if drives is None else drives:
+            lost = False
             try:
-                said = self._stop_safely(drive)
+                said, lost = self._stop_safely(drive)
             except MotorError as err:
                 said = str(err)
                 logger.error("safe stop: %s", err)
@@ -277,23 +299,26 @@ class MotorDriver:
                 said = f"{drive.name}: its stop failed unexpectedly ({type(err).__name__}: {err}); see the log"
                 self.supervisor.faults.failed("stop", f"safe stop of {drive.name}", err)  # logged, counted: /diagnostics
             if said:
-                unconfirmed.append(said)
-        return unconfirmed
+                report.lines.append(said)
+                if lost:
+                    report.lost.append(said)
+        return report
 
     @staticmethod
-    def _stop_safely(drive: Drive) -> str:
-        """One drive's part of :meth:`safe_stop`: what was not confirmed ("" safe, or nothing to do)."""
+    def _stop_safely(drive: Drive) -> tuple[str, bool]:
+        """One drive's part of :meth:`safe_stop`: what was not confirmed ("" safe, or nothing to
+        do), and whether that is because the drive was lost."""
         if drive.cache.lost and drive.cache.booted:
             drive.watch.lost_while_closing()  # unheard, maybe turning: one last stop it needs not answer
-            return f"{drive.name}: lost; a last quick stop was sent, unanswered"
+            return f"{drive.name}: lost; a last quick stop was sent, unanswered (check its power and CAN cable)", True
         if drive.cache.lost or not drive.cache.booted:
             if not drive.cache.lost:  # being configured again: not enabled again after it
                 drive.channel.stopped_unsent("a safe stop while it was configured again")
-            return ""
+            return "", False
         if drive.cache.state == State.OPERATION_ENABLED:
             drive.quick_stop()
         drive.disable_voltage()
-        return ""
+        return "", False
 
     def _unit_objects(self) -> dict[str, dict[tuple[int, int], int]]:
         """Each booted drive's unit objects as it reported them at its last boot (the flight
