@@ -11,7 +11,7 @@ import math
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from motor_driver.rover.odometry import WheelOdometry, WheelSample, yaw_from_wheels
+from motor_driver.rover.odometry import MAX_BRIDGED_GAP_S, WheelOdometry, WheelSample, yaw_from_wheels
 
 LEFT, RIGHT = ("fl", "ml", "rl"), ("fr", "mr", "rr")
 TRACK_M, RADIUS_M = 0.6, 0.1
@@ -118,6 +118,25 @@ def test_a_late_wheel_keeps_its_last_sample_and_counts_the_gap_after() -> None:
     assert step.trusted and math.isclose(step.pose.x_m, 2.0 * RADIUS_M, rel_tol=1e-9)
 
 
+def test_a_late_wheel_back_in_a_new_reference_leaves_its_estimate_estimated() -> None:
+    """fl late for three steps (its share taken as its side's others'), then heard again in a new
+    position reference (its counter wrapped, it was homed): nothing of its own will settle the
+    estimate, which stays in ``estimated_m`` (it fell to 0, and the covariance with it)."""
+    odo = odometry()
+    odo.step(samples(dict.fromkeys(LEFT + RIGHT, 0.0), 0.0))
+    odo.step(samples(dict.fromkeys(LEFT + RIGHT, 1.0), 0.02))
+    late = WheelSample(1.0, 0.02, 1, False, "silent", silent=True)
+    for t in (0.04, 0.06, 0.08):
+        now = samples(dict.fromkeys(LEFT + RIGHT, 1.0 + 50 * (t - 0.02)), t)
+        step = odo.step({**now, "fl": late})
+    estimated = step.estimated_m
+    assert math.isclose(estimated, 3 * RADIUS_M / len(LEFT), rel_tol=1e-9)  # 3 rad of fl's, one wheel of three
+    for t in (0.10, 0.12):
+        now = samples(dict.fromkeys(LEFT + RIGHT, 1.0 + 50 * (t - 0.02)), t)
+        step = odo.step({**now, "fl": WheelSample(-1.0e6 + 50 * t, t, 2)})
+    assert step.trusted and math.isclose(step.estimated_m, estimated, rel_tol=1e-9)
+
+
 def test_the_same_pdos_read_again_measure_nothing() -> None:
     """A step that reads the PDOs the last step read measures nothing (``measured_at`` 0.0: /odom
     says nothing as measured), even while the clocks' offset rises (every sample later than the
@@ -147,18 +166,21 @@ def test_late_data_never_turns_the_heading(moves: list[tuple[float, float, list[
     at random, a whole side at a time too. Once every wheel is fresh again the heading is exactly
     the wheels': a late wheel's gap is its side's others' while they measure, and a whole late
     side's gap is paired with the other side's travel meanwhile, never dropped on one side only (a
-    loaded host made one side's PDOs late and /odom turned 4 deg driving straight)."""
+    loaded host made one side's PDOs late and /odom turned 4 deg driving straight). The whole run
+    lasts less than MAX_BRIDGED_GAP_S (a longer gap starts the late side anew:
+    tests/test_odometry_verdict.py)."""
     odo = odometry()
     names = LEFT + RIGHT
     angle = dict.fromkeys(names, 0.0)
+    tick = MAX_BRIDGED_GAP_S / 62
     odo.step({n: WheelSample(0.0, 0.0, 1) for n in names})
     for k, (left, right, fresh) in enumerate(moves, start=1):
         step = {}
         for n, f in zip(names, fresh, strict=True):
             angle[n] += left if n in LEFT else right
-            step[n] = WheelSample(angle[n], float(k), 1) if f else WheelSample(0.0, 0.0, 1, False, "stale")
+            step[n] = WheelSample(angle[n], k * tick, 1) if f else WheelSample(0.0, 0.0, 1, False, "stale")
         odo.step(step)
-    final = odo.step({n: WheelSample(angle[n], float(len(moves) + 1), 1) for n in names})
+    final = odo.step({n: WheelSample(angle[n], (len(moves) + 1) * tick, 1) for n in names})
     want = yaw_from_wheels([angle[n] for n in LEFT], [angle[n] for n in RIGHT], TRACK_M, RADIUS_M)
     assert final.trusted
     assert math.isclose(math.remainder(final.pose.yaw_rad - want, math.tau), 0.0, abs_tol=1e-9)

@@ -144,6 +144,33 @@ def test_a_silence_shorter_than_the_staleness_bound_leaves_no_heading_error(
         assert same_heading(yaw, rover.wheels_yaw(k)), (k, yaw, rover.wheels_yaw(k))
 
 
+def test_a_side_late_beyond_a_bridge_starts_anew_and_the_pose_never_jumps() -> None:
+    """The right side's TPDOs stop (its SYNC stopped, its heartbeats on: late, never lost) while
+    the rover turns, then come back in the same reference. For 0.3 s its next samples bridge the
+    gap: the heading is the wheels' at the end. For 1 s (beyond MAX_BRIDGED_GAP_S) the gap's
+    travel of both sides was one straight step, a chord (a ten-second circle put /odom metres
+    off, trusted); now the late wheels start anew: no step moves the pose further than a step's
+    travel, and the travel not measured is counted as estimated (the covariance's)."""
+    most_m = math.radians(8.0) * 2 * RADIUS_M * 1.001  # a step (two SYNCs) of the faster side
+    for gap, bridged in ((range(40, 70), True), (range(40, 140), False)):
+        rover = Rover(4.0, 8.0)
+        poses = []
+        for k in range(1, 200):
+            rover.run_sync(frozenset(RIGHT) if k in gap else frozenset())
+            if k % 2 == 0:
+                now = 100.0 + k * SYNC_S + 0.001
+                step = rover.odometry.step(odometry_samples({n: rover.state(n, now) for n in LEFT + RIGHT},
+                                                            (LEFT, RIGHT), PERIODS))
+                poses.append(step.pose)
+        moved = [math.hypot(b.x_m - a.x_m, b.y_m - a.y_m) for a, b in itertools.pairwise(poses)]
+        if bridged:
+            assert same_heading(poses[-1].yaw_rad, rover.wheels_yaw(198)), gap
+            assert step.estimated_m == 0.0
+        else:
+            assert max(moved) <= most_m, (max(moved), most_m)
+            assert step.trusted and step.estimated_m >= math.radians(4.0) * 100 * RADIUS_M, step  # the left side over the gap
+
+
 def test_a_step_back_of_the_wall_clock_does_not_freeze_odometry() -> None:
     """The frames' stamps (CLOCK_REALTIME) step back 30 s (chrony at boot); the receive times
     (monotonic) go on: the odometry goes on counting."""

@@ -23,10 +23,11 @@ point, so each wheel's sum of deltas is its own travel.
   faulted, re-booting) forgets its last sample (``forget``), so its next trusted one starts anew;
   a wheel whose data is only late (silent for longer than its PDO period, or stale) keeps its last
   sample: while its side's other wheels measure, it is taken to travel as they do, and when it is
-  heard again its own delta over the gap settles the difference (a wheel lost meanwhile leaves
-  their estimate standing); while its whole side is late, its next sample carries the gap (the
-  other side's travel waits for it). The travel estimated rather than measured, settled or not,
-  is :attr:`OdometryStep.estimated_m`, for the caller's covariance;
+  heard again its own delta over the gap settles the difference (a wheel lost meanwhile, or back
+  in a new reference, leaves their estimate standing); while its whole side is late, its next
+  sample carries the gap (the other side's travel waits for it), for at most MAX_BRIDGED_GAP_S:
+  late for longer, its wheels start anew as lost ones do. The travel estimated rather than
+  measured, settled or not, is :attr:`OdometryStep.estimated_m`, for the caller's covariance;
 * two samples are subtracted only within one position reference (``reference``: boot, homing and a
   reboot's jump start a new one): the first sample of a new reference is never a jump;
 * a sample no newer than the last one is no motion (the same PDO read twice); a step whose common
@@ -67,6 +68,13 @@ OFFSET_DRIFT_S = 1.0e-5
 #: reference could not start until the two happened to cover it, and a straight line from its last
 #: point over an older sample bridged more than one SYNC period
 RAW_SAMPLES = 4
+
+#: The longest gap a late side's next sample may bridge (s since the last instant integrated): its
+#: travel over the gap and the other side's are one straight step of the midpoint rule, a chord
+#: of whatever the rover drove meanwhile (0.5 s at 1.7 rad/s: 3 % short). Late for longer (its
+#: SYNC stopped while its heartbeats went on), its wheels are dropped as lost ones are and start
+#: anew when heard: the pose does not jump by the chord of a ten-second circle.
+MAX_BRIDGED_GAP_S = 0.5
 
 #: the variance published for what is not measured (a planar robot's z, roll, pitch; all of it
 #: while the odometry stands still for want of trusted wheels)
@@ -273,7 +281,20 @@ class WheelOdometry:
                 self._never_settled_m += abs(self._attributed.pop(update.name, 0.0)) / self._side_size(update.name)
             elif update.sample is not None and (deltas or update.restart):
                 self._last[update.name] = update.sample
-                self._attributed.pop(update.name, None)
+                estimated = self._attributed.pop(update.name, 0.0)
+                if update.restart:  # a new reference: no delta of its own will settle that estimate
+                    self._never_settled_m += abs(estimated) / self._side_size(update.name)
+
+    def _drop_late(self, names: tuple[str, ...]) -> None:
+        """The late wheels of ``names`` forgotten, their history with them (a sample from before
+        the gap never starts a new reference across it); what was estimated for them is never
+        settled."""
+        for name in names:
+            if name in self._last:
+                self._last.pop(name)
+                self._raw.pop(name, None)
+                self._received.pop(name, None)
+                self._never_settled_m += abs(self._attributed.pop(name, 0.0)) / self._side_size(name)
 
     def _attribute(self, side: _Side) -> None:
         """A side's late wheels are taken to have travelled as its measuring wheels did (their mean):
@@ -308,16 +329,20 @@ class WheelOdometry:
             updates = left.updates + right.updates  # committed before `late` is judged: forgets count
             self._commit([u for u in updates if u.forget or u.restart], deltas=False)
             silent_updates = left.updates if not left.counted else right.updates
+            waiting = [samples.get(n) for n in silent]
+            only_silent = any(w is not None and w.silent for w in waiting) and \
+                all(w is not None and (w.silent or w.forget) for w in waiting)
             late = any(u.sample is None and not u.forget and u.name in self._last for u in silent_updates)
+            if late and not only_silent and self._instant and instant - self._instant > MAX_BRIDGED_GAP_S:
+                self._drop_late(silent)  # too long a gap for one step: they start anew, as lost wheels do
+                late = False
             if not late:  # nothing will carry the gap on the silent side: drop the other's too
                 self._commit(updates, deltas=True)
                 self._attribute(left)
                 self._attribute(right)
                 # travel the pose will never have: estimated from now on (the silent side's own is unknown)
                 self._never_settled_m += abs(left.distance_m) + abs(right.distance_m)
-            waiting = [samples.get(n) for n in silent]
-            if any(w is not None and w.silent for w in waiting) and \
-                    all(w is not None and (w.silent or w.forget) for w in waiting):
+            if only_silent:
                 # a PDO or two late (within the staleness bound): the pose waits for them, still trusted
                 return OdometryStep(self.pose, self._twist, True, estimated_m=self.estimated_m)
             side = "left" if not left.counted else "right"
