@@ -126,6 +126,7 @@ class DriveSystemNode(Node):
         self.stop_failing: dict[str, str] = {}  # a wheel whose last stop failed, and why (the tick's)
         self.stop_failures = 0  # stops that failed so far (the tick's)
         self.tick_failures = 0  # ticks that raised so far (the tick's; /diagnostics says them)
+        self.tick_failing = ""  # why the last tick failed, "" it did not (the tick's)
         self._tick_errors: set[type[BaseException]] = set()  # kinds of tick failure whose trace was logged
         self.held = ""  # why motion is held, from the wheels' verdicts (the lifecycle node inactive), "" not
         self._stop_log = RateLimitedLog(logger)
@@ -187,17 +188,26 @@ class DriveSystemNode(Node):
                 states = {n: self._judged(s) for n, s in states.items()}
             self._integrate(states)
             self._control(states, now, dt)
-            self._ticks += 1
-            if self._ticks % self._diag_every == 0:
-                self.publish_diagnostics()
+            self.tick_failing = ""
         except Exception as err:
-            self.tick_failures += 1
-            if type(err) not in self._tick_errors:  # its trace once; then at most a line a period
-                self._tick_errors.add(type(err))
-                logger.exception("drive system tick failed (%d so far); the next tick tries again", self.tick_failures)
-            else:
-                self._stop_log.log(logging.ERROR, ("tick", type(err)), "drive system tick failed (%d so far): %r",
-                                   self.tick_failures, err)
+            self._tick_failed(err)
+        self._ticks += 1  # /diagnostics whatever the tick did: a tick that keeps failing is said there
+        if self._ticks % self._diag_every == 0:
+            try:
+                self.publish_diagnostics()
+            except Exception as err:
+                self._tick_failed(err)
+
+    def _tick_failed(self, err: Exception) -> None:
+        self.tick_failures += 1
+        self.tick_failing = f"{type(err).__name__}: {err}"
+        if type(err) not in self._tick_errors:  # its trace once; then at most a line a period
+            self._tick_errors.add(type(err))
+            logger.exception("drive system tick failed (%d so far); the next tick tries again", self.tick_failures,
+                             exc_info=err)
+        else:
+            self._stop_log.log(logging.ERROR, ("tick", type(err)), "drive system tick failed (%d so far): %r",
+                               self.tick_failures, err)
 
     def _control(self, states: dict[str, DriveState], now: float, dt: float) -> None:
         late = self._refused_on_workers()
@@ -397,6 +407,9 @@ class DriveSystemNode(Node):
         values = {"on_wheel_loss": self.system.on_wheel_loss, "odometry": "integrating" if odom.trusted else
                   odom.why_not, "wheels_out": self.wheels_out.summary() if self.wheels_out else "", "driving": str(self.active),
                   "stop_failures": str(self.stop_failures), "tick_failures": str(self.tick_failures)}
+        if self.tick_failing:  # no wheel driven, no /odom: the driver's command watchdog stops the wheels
+            return ERROR, (f"the control loop failed ({self.tick_failing}; {self.tick_failures} so far): no wheel"
+                           " is driven and /odom is not published; a bug, please report it with the logged trace"), values
         if self.stop_failing:
             return ERROR, "a wheel's stop failed, tried again: " + "; ".join(
                 f"{name} ({why})" for name, why in self.stop_failing.items()), values
