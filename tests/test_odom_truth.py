@@ -242,6 +242,66 @@ def test_with_continue_the_other_wheels_drive_on_and_diagnostics_say_degraded(ro
     assert abs(rover.odom_yaw()) < YAW_TOLERANCE_RAD  # straight
 
 
+def test_a_control_loop_that_keeps_failing_is_said_on_diagnostics_and_the_wheels_stop(rover: Rover) -> None:
+    """The drive system's tick raises at every period (a bug in its odometry): /diagnostics says so,
+    ERROR, naming the failure (its publish sat after the failing step: the drive system's status
+    vanished while the driver's said OK), no /odom goes out, and the wheels stop (the driver's
+    command watchdog: no velocity follows); once it works again, it says so no more."""
+    rover.arm()
+    wait_for(lambda: len(rover.odom) > 2, 30.0, "/odom")
+    rover.drive_until(0.3, 0.0, lambda: rover.odom[-1].pose.pose.position.x > 0.05, "0.05 m")
+    working = rover.system.odometry.step
+
+    def broken(samples: Any) -> Any:
+        raise ZeroDivisionError("a bug in the odometry (the test's)")
+
+    rover.system.odometry.step = broken  # type: ignore[method-assign]
+    failing = "the control loop failed (ZeroDivisionError: a bug in the odometry (the test's)"
+    wait_for(lambda: rover.said(failing), 30.0, "the failing tick on /diagnostics")
+    assert any(st.level == bytes([2]) for array in rover.diags for st in array.status if failing in st.message)
+    seen = len(rover.odom)
+    rover.stand_still()  # no velocity follows: the driver's watchdog stopped them
+    assert len(rover.odom) == seen  # nothing measured was integrated: nothing published
+    rover.system.odometry.step = working  # type: ignore[method-assign]
+    rover.diags.clear()
+    wait_for(lambda: any(st.name == "rovercan: drive_system" for a in rover.diags for st in a.status), 30.0,
+             "the drive system's next status")
+    wait_for(lambda: len(rover.odom) > seen, 30.0, "/odom again")
+    rover.diags.clear()
+    wait_for(lambda: any(st.name == "rovercan: drive_system" for a in rover.diags for st in a.status), 30.0,
+             "a status after /odom came back")
+    assert not rover.said("the control loop failed")
+
+
+def test_one_drive_s_failing_diagnostics_silence_no_other_status(rover: Rover) -> None:
+    """The making of one wheel's status raises at every period (a bug): /diagnostics carries that
+    wheel's status as ERROR naming the failure, and every other status as before, the driver's
+    counting the failure (the whole array was one try: nothing went out, the status that would
+    have said why included)."""
+    rejected = rover.driver.rejected
+
+    def broken(drive: Any) -> Any:
+        if drive.name == "wheel_front_left":
+            raise KeyError("a bug in a drive's diagnostics (the test's)")
+        return rejected(drive)
+
+    rover.driver.rejected = broken  # type: ignore[method-assign]
+    rover.diags.clear()
+
+    def failed_array() -> Any:
+        return next((a for a in list(rover.diags) if any(
+            st.name == "rovercan: wheel_front_left" and "its diagnostics failed" in st.message for st in a.status)), None)
+
+    wait_for(lambda: failed_array() is not None, 30.0, "the failing wheel's status")
+    statuses = {st.name: st for st in failed_array().status}
+    assert statuses["rovercan: wheel_front_left"].level == bytes([2])
+    assert "KeyError" in statuses["rovercan: wheel_front_left"].message
+    assert {f"rovercan: {n}" for n in LEFT + RIGHT} | {"rovercan: driver", "rovercan: command input"} <= set(statuses)
+    assert all(f"rovercan: bus {b.name}" in statuses for b in rover.config.buses)
+    driver = {kv.key: kv.value for kv in statuses["rovercan: driver"].values}
+    assert int(driver["callback_failures"]) >= 1 and "wheel_front_left" in driver["last_callback_failure"]
+
+
 def test_a_killed_bus_leaves_odom_standing_with_a_large_covariance(rover: Rover) -> None:
     rover.arm()
     wait_for(lambda: len(rover.odom) > 2, 30.0, "/odom")

@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -44,7 +45,7 @@ from can_config.errors import ConfigError, RovercanError
 from motor_driver import Drive, DriveState, MotorDriver
 from motor_driver.bus.adapters import HeldFramesLost
 from motor_driver.diagnostics.frameloss import Counts, FrameLoss, Loss, total
-from motor_driver.diagnostics.health import JOB_FAULT_RECENT_S, OK, WARN, Rejections, bus_health, drive_health, with_boot
+from motor_driver.diagnostics.health import ERROR, JOB_FAULT_RECENT_S, OK, WARN, Rejections, bus_health, drive_health, with_boot
 from motor_driver.protocol.units import DEG_PER_RAD
 from motor_driver.recording.published import joint_entry
 from nodes.joints.handoff import Handoff
@@ -299,55 +300,76 @@ class DriverNode(Node):
             self.callback_failures.record(f"timer {self.get_name()}: the state publish", err)
 
     def _publish_diagnostics(self) -> None:
+        """/diagnostics: a status per drive, the command input, a status per bus and the driver's.
+        A status whose making raised is counted and said in its place, ERROR: one drive's never
+        silences the others', nor the driver's, which counts it."""
         try:
             array = DiagnosticArray()
             stamp_header(array.header, time.time())
             losses: dict[str, list[Loss]] = {}
             for name, drive in self.drives.items():
-                refused, last = self.refusals.take(name)
-                rejected = self.driver.rejected(drive)
-                state = drive.snapshot()
-                loss = self._frame_loss(name, drive, state)
-                if loss is not None:
-                    losses.setdefault(drive.config.bus, []).append(loss)
-                health = drive_health(state, heartbeat_period_s=drive.config.heartbeat_period_s,
-                                      refused_since_last=refused, last_refusal=last,
-                                      bus_lost=self.driver.bus_lost.get(drive.config.bus, False),
-                                      tpdos_applied=drive.cache.tpdo_count, safety=drive.boot.safety,
-                                      rejected=Rejections.of(rejected, time.monotonic()),
-                                      frame_loss=loss, frame_loss_warn_percent=drive.config.frame_loss_warn_percent)
-                if (record := self.driver.supervisor.records.get(name)) is not None:
-                    health = with_boot(health, record)
-                health.values["wrong_length_tpdos"] = str(drive.cache.wrong_length_tpdos)
-                health.values["stale_statuswords"] = str(drive.cache.stale_statuswords)
-                array.status.append(DiagnosticStatus(
-                    level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
-                    hardware_id=f"{drive.config.bus}/node{drive.node_id}",
-                    values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
-            refused, last = self.refusals.take_others(self.drives)
-            array.status.append(DiagnosticStatus(
-                level=bytes([1 if refused else 0]), name="rovercan: command input",
-                message=f"{refused} command(s) refused: {last}" if refused else "no refused commands",
-                hardware_id="ros", values=[KeyValue(key="refused_commands", value=str(refused)),
-                                           KeyValue(key="last_refusal", value=last)]))
-            for bus_name, handle in self.driver.buses.items():
-                kernel, why = self.driver.kernel_health(bus_name)
-                health = bus_health(load=handle.stats.sample(), lost=self.driver.bus_lost.get(bus_name, False),
-                                    frames=handle.stats.frames, error_frames=handle.stats.error_frames,
-                                    kernel=kernel, why_unknown=why, tx_queue_full=handle.network.tx_queue_full,
-                                    tx_not_sent=handle.network.tx_queue_dropped,
-                                    rejected_frames=handle.network.rejected_frames,
-                                    frame_loss=total(losses.get(bus_name, ())))
-                if self.driver.recorder is not None:  # a babbling node pushed frames out of the flight recorder
-                    health.values["recorder_frames_dropped"] = str(self.driver.recorder.dropped().get(bus_name, 0))
-                array.status.append(DiagnosticStatus(
-                    level=bytes([health.level]), name=f"rovercan: bus {bus_name}", message=health.message,
-                    hardware_id=bus_name, values=[KeyValue(key=k, value=v) for k, v in health.values.items()]))
-            array.status.append(self._driver_status())
+                array.status.append(self._status_of(f"rovercan: {name}", f"{drive.config.bus}/node{drive.node_id}",
+                                                    partial(self._drive_status, name, drive, losses)))
+            array.status.append(self._status_of("rovercan: command input", "ros", self._input_status))
+            for bus_name in self.driver.buses:
+                array.status.append(self._status_of(f"rovercan: bus {bus_name}", bus_name,
+                                                    partial(self._bus_status, bus_name, losses)))
+            array.status.append(self._status_of("rovercan: driver", "driver", self._driver_status))
             self._diag_pub.publish(array)
         except Exception as err:
             self.callback_failures.record(f"timer {self.get_name()}: the diagnostics publish", err)
 
+    def _status_of(self, name: str, hardware_id: str, make: Callable[[], DiagnosticStatus]) -> DiagnosticStatus:
+        """``make()``; if it raises, the failure counted and an ERROR status ``name`` saying it."""
+        try:
+            return make()
+        except Exception as err:
+            said = self.callback_failures.record(f"timer {self.get_name()}: the diagnostics of {name}", err)
+            return DiagnosticStatus(level=bytes([ERROR]), name=name, hardware_id=hardware_id,
+                                    message=f"its diagnostics failed: {said}")
+
+    def _drive_status(self, name: str, drive: Drive, losses: dict[str, list[Loss]]) -> DiagnosticStatus:
+        refused, last = self.refusals.take(name)
+        rejected = self.driver.rejected(drive)
+        state = drive.snapshot()
+        loss = self._frame_loss(name, drive, state)
+        if loss is not None:
+            losses.setdefault(drive.config.bus, []).append(loss)
+        health = drive_health(state, heartbeat_period_s=drive.config.heartbeat_period_s,
+                              refused_since_last=refused, last_refusal=last,
+                              bus_lost=self.driver.bus_lost.get(drive.config.bus, False),
+                              tpdos_applied=drive.cache.tpdo_count, safety=drive.boot.safety,
+                              rejected=Rejections.of(rejected, time.monotonic()),
+                              frame_loss=loss, frame_loss_warn_percent=drive.config.frame_loss_warn_percent)
+        if (record := self.driver.supervisor.records.get(name)) is not None:
+            health = with_boot(health, record)
+        health.values["wrong_length_tpdos"] = str(drive.cache.wrong_length_tpdos)
+        health.values["stale_statuswords"] = str(drive.cache.stale_statuswords)
+        return DiagnosticStatus(level=bytes([health.level]), name=f"rovercan: {name}", message=health.message,
+                                hardware_id=f"{drive.config.bus}/node{drive.node_id}",
+                                values=[KeyValue(key=k, value=v) for k, v in health.values.items()])
+
+    def _input_status(self) -> DiagnosticStatus:
+        refused, last = self.refusals.take_others(self.drives)
+        return DiagnosticStatus(
+            level=bytes([1 if refused else 0]), name="rovercan: command input",
+            message=f"{refused} command(s) refused: {last}" if refused else "no refused commands",
+            hardware_id="ros", values=[KeyValue(key="refused_commands", value=str(refused)),
+                                       KeyValue(key="last_refusal", value=last)])
+
+    def _bus_status(self, bus_name: str, losses: dict[str, list[Loss]]) -> DiagnosticStatus:
+        handle = self.driver.buses[bus_name]
+        kernel, why = self.driver.kernel_health(bus_name)
+        health = bus_health(load=handle.stats.sample(), lost=self.driver.bus_lost.get(bus_name, False),
+                            frames=handle.stats.frames, error_frames=handle.stats.error_frames,
+                            kernel=kernel, why_unknown=why, tx_queue_full=handle.network.tx_queue_full,
+                            tx_not_sent=handle.network.tx_queue_dropped,
+                            rejected_frames=handle.network.rejected_frames,
+                            frame_loss=total(losses.get(bus_name, ())))
+        if self.driver.recorder is not None:  # a babbling node pushed frames out of the flight recorder
+            health.values["recorder_frames_dropped"] = str(self.driver.recorder.dropped().get(bus_name, 0))
+        return DiagnosticStatus(level=bytes([health.level]), name=f"rovercan: bus {bus_name}", message=health.message,
+                                hardware_id=bus_name, values=[KeyValue(key=k, value=v) for k, v in health.values.items()])
 
     def _driver_status(self) -> DiagnosticStatus:
         """The driver's background jobs, and the callbacks of this process that raised (nodes/process/spinning.py:
