@@ -159,6 +159,34 @@ def test_close_quick_stops_and_disables_before_the_bus_closes(enabled_one: tuple
     assert not sync_after  # SYNC stopped
 
 
+def test_disable_never_takes_a_disabled_drive_toward_enabled(driver_factory: DriverFactory,
+                                                             listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    """``disable`` (the ``<joint>/disable`` service, taken while the rover is held too) of a drive
+    in Switch On Disabled sends Disable Voltage, and the drive stays there: Shutdown, sent before,
+    is transition 2 from there (Ready to Switch On: a step toward enabled, high voltage allowed).
+    From Operation Enabled it is Shutdown, as ever."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    listener = listener_factory(sim)
+    peer = sim.simulator_for(1)
+    words: list[int] = []
+
+    def controlword() -> int | None:
+        words.extend(int.from_bytes(m.data[:2], "little") for m in drain(listener, 0.05) if m.arbitration_id == 0x201)
+        return words.pop(0) if words else None
+
+    while controlword() is not None:  # the boot's, if any came late
+        pass
+    drive.disable()
+    heard: list[int] = []
+    wait_for(lambda: (word := controlword()) is not None and not heard.append(word), 10.0, "disable's controlword")
+    assert heard == [0x0000]
+    assert peer.call(lambda: peer.drive(1).state.name) == "SWITCH_ON_DISABLED"
+    drive.enable()
+    drive.disable()
+    assert peer.call(lambda: peer.drive(1).state.name) == "READY_TO_SWITCH_ON"
+
+
 def test_commands_after_close_are_refused_and_nothing_is_sent(enabled_one: tuple[SimService, can.BusABC, MotorDriver]) -> None:
     """A service or topic callback racing the shutdown must not re-enable or move a drive."""
     _, listener, driver = enabled_one

@@ -316,8 +316,13 @@ class PowerStateMachine:
             self.wait_state(wanted | FAULT_STATES, timeout_s, name, after=seq, look_on_s=STOP_READ_BEHIND_S)
 
     def disable(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
-        """Shutdown (transition 8, 6 or 2): power stage off, drive in Ready to Switch On."""
-        self._stop("disable", Command.SHUTDOWN, {State.READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED}, timeout_s)
+        """Shutdown (transition 8 or 6): power stage off, drive in Ready to Switch On. A drive
+        that says Switch On Disabled (or has not said it is ready) is sent Disable Voltage instead:
+        Shutdown there is transition 2, a step toward enabled; Disable Voltage ends in Switch On
+        Disabled from any state, so a state read late never costs the stop."""
+        command = Command.DISABLE_VOLTAGE if self._cache.state in (
+            State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON) else Command.SHUTDOWN
+        self._stop("disable", command, {State.READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED}, timeout_s)
 
     def quick_stop(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Quick stop (transition 11; 7 or 10 from the states before): the drive brakes on its
