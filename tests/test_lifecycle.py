@@ -28,6 +28,7 @@ if HAVE_ROS:
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.lifecycle import TransitionCallbackReturn
     from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
@@ -213,6 +214,18 @@ def test_a_lost_drive_does_not_keep_the_node_active_and_a_failed_stop_does(
     assert states(sim)[0] == "SWITCH_ON_DISABLED"
     said = node._drives_safe(node.stop_drives())  # what the transition's line says of the drives
     assert said.startswith("1 drive(s) quick-stopped") and said.endswith(", 1 lost"), said
+
+
+@pytest.mark.parametrize("arg", ["arm:=1", "state_rate_hz:=100000.0"])
+def test_a_parameter_of_the_wrong_type_or_range_fails_configure_naming_it(tmp_path: Path, arg: str) -> None:
+    """``-p arm:=1`` (an integer for a bool) or a rate out of its range: configure FAILS, naming the
+    parameter and what it takes, the bus released; no ERROR, no "bug" counted (rclpy's exception
+    escaped the transition: ERROR processing, counted in callback_failures as a bug)."""
+    with make_rig(tmp_path, args=(arg,)) as (node, sim, _, _):
+        assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
+        assert node._state_machine.current_state[1] == "unconfigured" and node.driver is None
+        assert node.callback_failures.snapshot()[0] == 0
+        wait_for(lambda: len(sim.server.clients) == 1, 10.0, "the bus released (only the listener connected)")
 
 
 def test_through_the_lifecycle_services_one_joints_enable_answers_while_another_homes(

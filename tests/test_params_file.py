@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from can_config import load_config
+from can_config.errors import ConfigError
 from virtual_can.service import SimService
 
 from .conftest import REPO
@@ -27,7 +28,7 @@ if True:  # ROS present
 
     from nodes.assembly import assemble
     from nodes.motor_degree import MotorDegreeNode
-    from nodes.process.params import BEGIN, DRIVER, END, NODES, PARAMS, table
+    from nodes.process.params import BEGIN, DRIVER, END, NODES, PARAMS, declare, table
     from nodes.rover_lifecycle import DriveLifecycleNode
 
 PARAMS_FILE = REPO / "config" / "rovercan.params.yaml"
@@ -44,6 +45,24 @@ def test_the_docs_hold_the_generated_table() -> None:
     text = DOCS.read_text()
     start, end = text.index(BEGIN), text.index(END) + len(END)
     assert text[start:end] + "\n" == table(), "docs/ros.md is stale: python -m nodes.process.params"
+
+
+@pytest.mark.parametrize(("arg", "said"), [
+    ("arm:=1", "parameter arm: .*expecting type 'BOOL'.*; expected a bool \\(the default: -p arm:=false\\)"),
+    ("state_rate_hz:=1000.0", "parameter state_rate_hz: .*out of range.*; expected a float from 1 to 500 \\(the"
+                              " default: -p state_rate_hz:=50.0\\)")])
+def test_a_parameter_of_the_wrong_type_or_range_is_a_config_error_naming_it(arg: str, said: str) -> None:
+    """rclpy's own exception (a bug's trace, ERROR processing in the lifecycle node) becomes the
+    driver's ConfigError: the parameter, what was wrong, what it takes and how to give it."""
+    context = rclpy.Context()
+    rclpy.init(context=context, args=["--ros-args", "-p", arg])
+    node = rclpy.create_node("declares", context=context)
+    try:
+        with pytest.raises(ConfigError, match=said):
+            declare(node, arg.split(":=", maxsplit=1)[0])
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
 
 
 def test_the_file_has_a_section_per_node_with_what_it_declares() -> None:

@@ -20,6 +20,7 @@ import sys
 from dataclasses import dataclass
 
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 
 from can_config.errors import ConfigError
@@ -100,7 +101,15 @@ def declare(node: Node, *names: str) -> None:
             descriptor.additional_constraints = AT_START
         if spec.low is not None and spec.high is not None:
             descriptor.floating_point_range = [FloatingPointRange(from_value=spec.low, to_value=spec.high)]
-        node.declare_parameter(name, spec.default, descriptor)
+        try:
+            node.declare_parameter(name, spec.default, descriptor)
+        except (InvalidParameterTypeException, InvalidParameterValueException) as err:  # -p name:=a bad value
+            kind = type(spec.default).__name__
+            span = f" from {spec.low:g} to {spec.high:g}" if spec.low is not None and spec.high is not None else ""
+            example = str(spec.default).lower() if isinstance(spec.default, bool) else repr(spec.default)
+            raise ConfigError(f"parameter {name}: {err}; expected a {kind}{span} (the default: -p {name}:={example});"
+                              " a typed launch or YAML value is taken as given (1 is an integer, 1.0 a float,"
+                              " true a bool)") from None
 
 
 def qos_depth(node: Node) -> int:
