@@ -75,7 +75,8 @@ class Rig:
 
     def seen(self) -> tuple[Any, ...]:
         c, s, f = self.cache, self.stats, self.foreign
-        rx = c.received._replace(rx_monotonic=bool(c.received.rx_monotonic), position_rx=bool(c.received.position_rx))
+        rx = c.received._replace(rx_monotonic=bool(c.received.rx_monotonic), position_rx=bool(c.received.position_rx),
+                                    whole_rx=bool(c.received.whole_rx))
         emcy = c.last_emcy
         return (rx, c.tpdo_count, c.sync_tpdos, c.status_seq, c.position_seq, c.emcy_count, c.wrong_length_tpdos, c.stale_statuswords,
                 emcy and (emcy.code, emcy.register, emcy.timestamp), c.fault_seen, c.heartbeats, c.reported_nmt,

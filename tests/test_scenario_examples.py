@@ -61,7 +61,7 @@ def _copy(drive: SimulatedDrive) -> dict[str, Any]:
             "stalled": faults.stalled, "load_nm": drive.params.load_nm, "off": faults.power_off_until > 0,
             "statusword": drive.statusword, "reset_at_writes": list(faults.reset_at_writes),
             "reset_at_object": faults.reset_at_object, "reset_answers": faults.reset_answers,
-            "sync_answer": (faults.sync_delay_s, faults.sync_jitter_s)}
+            "sync_answer": (faults.sync_delay_s, faults.sync_jitter_s), "lost_tpdos": faults.lost_tpdos}
 
 
 #: What each action's step must leave in the model: a check of (model, step).
@@ -79,6 +79,7 @@ EFFECTS: dict[str, Callable[[Any, dict[str, Any]], bool]] = {
     "slow_ack": lambda m, s: m["ack_delay_max_s"] == s["max_s"],
     "load": lambda m, s: m["load_nm"] == s["nm"] if "nm" in s else m["stalled"] == s["stall"],
     "tx_dead": lambda m, s: m["tx_dead"] is s["on"],
+    "tpdo_lost": lambda m, s: (s["cob_id"] in m["lost_tpdos"]) is s.get("on", True),
     "heartbeat_deaf": lambda m, s: m["heartbeat_deaf"] is s["on"],
     "guard_toggle_stuck": lambda m, s: m["guard_toggle_stuck"] is s["on"],
     "sdo_reset": lambda m, s: (m["reset_at_writes"] == list(s.get("at_writes", []))

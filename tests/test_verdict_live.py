@@ -42,6 +42,30 @@ def test_a_set_point_on_stale_data_is_refused_with_its_age(driver_factory: Drive
     drive.set_velocity(5.0)  # taken again
 
 
+def test_a_drive_whose_position_tpdo_alone_stops_is_late_naming_that_tpdo(driver_factory: DriverFactory) -> None:
+    """Its TPDO with the position (0x281: 0x6064, 0x606C) stops while its statusword's keep coming
+    (a mapping lost, a PDO dropped): its position is old however fresh the others are. The data's
+    age was the newest TPDO's: the drive stayed usable, /joint_states republished the frozen
+    position as measured and the odometry waited for it for ever, "trusted". Now it is late,
+    naming the TPDO; set-points are refused; healed, it is usable again."""
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.set_velocity(10.0)
+    apply_action(sim, {"action": "tpdo_lost", "node": 1, "cob_id": 0x281})
+    wait_for(lambda: drive.snapshot().verdict.condition is Condition.LATE, 10.0, "the drive late")
+    state = drive.snapshot()
+    assert state.verdict.cause.startswith("TPDO 0x281 (0x6064, 0x606C) not heard for"), state.verdict
+    assert "while its other PDOs are" in state.verdict.cause
+    assert drive.cache.received.rx_monotonic > drive.cache.received.position_rx  # its others still heard
+    with pytest.raises(DriveStateError, match=r"^joint1: TPDO 0x281 \(0x6064, 0x606C\) not heard for \d+ ms"):
+        drive.set_velocity(5.0)
+    drive.set_velocity(0.0)  # a stop is taken on late data all the same
+    apply_action(sim, {"action": "tpdo_lost", "node": 1, "cob_id": 0x281, "on": False})
+    wait_for(lambda: drive.snapshot().verdict.usable, 10.0, "usable again")
+    drive.set_velocity(5.0)  # taken again
+
+
 def test_a_zero_on_late_data_is_refused_once_the_drive_stopped_itself(driver_factory: DriverFactory) -> None:
     """A zero is taken on late data only while that data said Operation Enabled: a drive that
     stopped itself (its host watch: Quick Stop Active) and then fell silent is sent no Enable

@@ -54,6 +54,14 @@ def cache(kind: type[DriveCache] = DriveCache) -> DriveCache:
                 port=SupervisorPort(ignore, ignore))
 
 
+def heard_whole(c: DriveCache, t: float) -> None:
+    """Every TPDO the drive sends each SYNC heard (zeros) at ``t``: its data whole
+    (``Received.whole_rx``); a TPDO sent on change after it sets the statusword."""
+    for cob, layout in c._layouts.items():
+        if cob in c._per_sync:
+            c.on_tpdo(cob, bytearray(layout.codec.size), t)
+
+
 def test_a_snapshots_verdict_and_values_come_from_one_frame() -> None:
     """Fails on a snapshot that reads the received state once for the verdict and again for the
     values (drive/state.py before issue 72): here each read is another frame."""
@@ -61,7 +69,8 @@ def test_a_snapshots_verdict_and_values_come_from_one_frame() -> None:
     assert isinstance(c, SwappingCache)
     now = time.monotonic()  # a fresh frame: its age well inside the bound (no duration is asserted)
     c._stale_after_s = math.inf
-    c.frames = (Received(ENABLED, 8, 1000, 0, 0.0, 1.0, now, 1), Received(DISABLED, 8, 900_000, 0, 0.0, 2.0, now + 1e-3, 1))
+    c.frames = (Received(ENABLED, 8, 1000, 0, 0.0, 1.0, now, 1, whole_rx=now),
+                Received(DISABLED, 8, 900_000, 0, 0.0, 2.0, now + 1e-3, 1, whole_rx=now + 1e-3))
     for _ in range(4):  # each snapshot starts on the other frame
         state = c.snapshot(ARMED)
         assert state.facts.state is state.state is decode_state(state.statusword), state
@@ -103,6 +112,7 @@ def test_the_verdict_is_judged_again_only_when_an_input_changes() -> None:
     """Readers between two inputs get the same value (judged once); a new input is judged anew."""
     c = cache()
     c._stale_after_s = math.inf
+    heard_whole(c, 0.99)
     c.on_tpdo(0x181, bytearray(b"\x37\x06\x08"), 1.0)  # Operation Enabled, CSP
     first = c.verdict(ARMED)
     assert first.usable and c.verdict(ARMED) is first
@@ -119,6 +129,7 @@ def test_the_caches_snapshot_is_the_dataclass_it_stands_for() -> None:
     judgement, frozen, and dataclasses.replace judges a changed copy from its fields."""
     c = cache()
     c._stale_after_s = math.inf
+    heard_whole(c, 0.99)
     c.on_tpdo(0x181, bytearray(b"\x37\x06\x08"), 1.0)  # Operation Enabled, CSP
     state = c.snapshot(ARMED)
     fields = {f.name for f in dataclasses.fields(DriveState)}

@@ -12,6 +12,8 @@
       - {at_s: 10.0, action: disconnect_clients}
       - {at_s: 11.0, node: 2, channel: can1, action: tpdos, on: false}   # its TPDOs stop
       - {at_s: 11.5, node: 2, channel: can1, action: tpdos, on: true}    # and come again
+      - {at_s: 11.7, node: 2, channel: can1, action: tpdo_lost, cob_id: 0x282}   # that TPDO alone stops
+      - {at_s: 11.8, node: 2, channel: can1, action: tpdo_lost, cob_id: 0x282, on: false}
       - {at_s: 12.0, node: 1, action: slow_enable, delay_s: 0.7}
       - {at_s: 13.0, node: 1, action: slow_ack, max_s: 0.004}
       - {at_s: 14.0, node: 1, action: load, nm: 0.05}      # a slope: motor-side load torque
@@ -66,7 +68,7 @@ ACTION_KEYS: dict[str, dict[str, type]] = {
     "frames": {"channel": str, "drop": float, "delay": float, "delay_s": float, "corrupt": float},
     "sdo": {**_DRIVE, "delay_s": float, "abort": int}, "disconnect_clients": {},
     "load": {**_DRIVE, "nm": float, "stall": bool}, "tx_dead": _SWITCH, "guard_toggle_stuck": _SWITCH,
-    "heartbeat_deaf": _SWITCH,
+    "heartbeat_deaf": _SWITCH, "tpdo_lost": {**_SWITCH, "cob_id": int},
     "sdo_reset": {**_DRIVE, "at_writes": list, "index": int, "subindex": int, "answer": bool, "bootup": bool},
     "sync_answer": {**_DRIVE, "delay_s": float, "jitter_s": float}}
 ACTIONS = tuple(ACTION_KEYS)
@@ -176,6 +178,18 @@ def _sync_answer(step: Mapping[str, Any], where: str = "sync_answer") -> tuple[f
     return values[0], values[1]
 
 
+def _silence_tpdos(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -> None:
+    """``tpdos``: the drive stops (``on: false``) or resumes sending its TPDOs, heartbeat and SDO going
+    on; ``tpdo_lost``: the TPDO ``cob_id`` alone no longer leaves it (a mapping lost, a PDO dropped;
+    ``on: false`` heals it)."""
+    faults = drive.faults
+    if action == "tpdos":
+        faults.tpdo_silent = not bool(step.get("on", False))
+        return
+    cob_id = int(step["cob_id"])
+    faults.lost_tpdos = faults.lost_tpdos | {cob_id} if step.get("on", True) else faults.lost_tpdos - {cob_id}
+
+
 def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -> None:
     """One drive's fault switch, on its simulator's thread."""
     now = time.monotonic()
@@ -189,8 +203,8 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
             drive.faults.latched_fault = code
         else:
             drive.raise_fault(code)
-    elif action == "tpdos":  # the drive stops (or resumes) sending its TPDOs; heartbeat and SDO go on
-        drive.faults.tpdo_silent = not bool(step.get("on", False))
+    elif action in ("tpdos", "tpdo_lost"):
+        _silence_tpdos(drive, action, step)
     elif action in _ON_SWITCHES:  # on: false heals it
         setattr(drive.faults, action, bool(step.get("on", True)))
     elif action == "slow_enable":  # each enabling transition takes delay_s

@@ -100,6 +100,10 @@ class Received(NamedTuple):
     #: newest frame (a SYNC's torque TPDO after its position TPDO; a statusword sent on change)
     position_stamp: float = 0.0
     position_rx: float = 0.0
+    #: when the data was last whole (monotonic; 0.0 never): the oldest of the newest receptions of
+    #: each TPDO sent every SYNC (one of them lost, its values are old however fresh the others'), or
+    #: with none sent every SYNC the newest TPDO's; what the data's age is judged from
+    whole_rx: float = 0.0
 
 
 @dataclass(frozen=True)

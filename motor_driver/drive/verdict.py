@@ -46,11 +46,13 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from enum import Enum
 from typing import NamedTuple
 
 from can_config.objects import EMCY_HEARTBEAT_LOST
 from motor_driver.protocol.cia402 import FAULT_STATES, State
+from motor_driver.protocol.pdo import TpdoLayout
 
 
 class Condition(Enum):
@@ -85,7 +87,7 @@ class DriveFacts(NamedTuple):
     dataclass's constructor cost ten times as much.)"""
 
     name: str
-    data_age_s: float = math.inf  # since its newest TPDO (inf: never)
+    data_age_s: float = math.inf  # since its data was last whole: every TPDO sent each SYNC heard (inf: never)
     stale_after_s: float = math.inf  # its staleness bound (stale_after_syncs SYNC periods)
     heartbeat_age_s: float = math.inf
     nmt: str = "UNKNOWN"
@@ -103,6 +105,7 @@ class DriveFacts(NamedTuple):
     left_out: str = ""  # why the drive system left it out ("" it did not)
     held: str = ""  # why motion is held ("" it is not: the lifecycle node active, or no lifecycle)
     fault_seen: int = 0  # a FAULT statusword it reported since its faults were last dealt with (0: none)
+    missing: str = ""  # late while other TPDOs of its are heard: those not heard ("TPDO 0x282 (0x6064, 0x606C)")
 
 
 class Verdict(NamedTuple):
@@ -165,8 +168,7 @@ def judge(facts: DriveFacts) -> Verdict:
         return say(Condition.NOT_CONFIGURED, f"not configured (NMT {f.nmt})",
                    "boot it (the driver configures it once it answers), then /arm")
     if not (age < math.inf and age <= f.stale_after_s):  # never heard (inf, NaN) is late under any bound
-        return say(Condition.LATE, f"no data for {ms(age)} (bus or drive stalled)",
-                   "it is usable again once its data is fresh (/arm does not help)")
+        return _late(f)
     if f.state in FAULT_STATES:
         emcy = f": EMCY 0x{f.emcy_code:04X} {f.emcy_text}" if f.emcy_code else ""
         return say(Condition.FAULTED, f"faulted ({f.state.name}{emcy})", f"clear it with {f.name}/recover, then /arm")
@@ -186,6 +188,29 @@ def judge(facts: DriveFacts) -> Verdict:
         return say(Condition.NOT_ARMED, f"not armed ({f.state.name}{by})",
                    "arm the rover with the service /arm (std_srvs/Trigger), or launch with arm:=true")
     return say(Condition.USABLE, "usable")
+
+
+def missing_tpdos(heard: Mapping[int, float], layouts: Mapping[int, TpdoLayout], *, now: float, bound: float) -> str:
+    """The TPDOs sent every SYNC (``heard``: COB-ID -> its newest reception, 0.0 never) not heard
+    within ``bound`` while another of them was, each with its objects; "" when none is missing
+    or none was heard within it (a stalled bus or drive: no TPDO to name; a TPDO sent on a change
+    says nothing of the others still coming). For :attr:`DriveFacts.missing`: the cache's and the
+    bus view's alike."""
+    if not any(now - at <= bound for at in heard.values()):
+        return ""
+    return ", ".join(f"TPDO 0x{cob:03X} ({', '.join(f'0x{i:04X}' for i in layouts[cob].indexes)})"
+                     for cob, at in list(heard.items()) if not now - at <= bound)
+
+
+def _late(f: DriveFacts) -> Verdict:
+    age = f.data_age_s
+    if f.missing:
+        return Verdict(f.name, Condition.LATE, age, f"{f.missing} not heard for {ms(age)} while its other PDOs are"
+                       " (lost on the bus, or the drive maps or sends it otherwise)",
+                       "check the drive's PDO mapping and the bus's frame loss (/diagnostics); it is usable again"
+                       " once that TPDO comes (/arm does not help)")
+    return Verdict(f.name, Condition.LATE, age, f"no data for {ms(age)} (bus or drive stalled)",
+                   "it is usable again once its data is fresh (/arm does not help)")
 
 
 def _stopped_itself(f: DriveFacts) -> str:

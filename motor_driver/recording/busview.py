@@ -45,7 +45,7 @@ from motor_driver.diagnostics.health import ERROR, OK, STALE, WARN, drive_health
 from motor_driver.drive.received.position import PositionFilter
 from motor_driver.drive.received.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Received
-from motor_driver.drive.verdict import DriveFacts, Verdict, judge
+from motor_driver.drive.verdict import DriveFacts, Verdict, judge, missing_tpdos
 from motor_driver.protocol.cia402 import SW, State, decode_state
 from motor_driver.protocol.pdo import TpdoLayout, plan_pdos
 from motor_driver.protocol.units import Scale, scale_from_objects, unit_object_answer
@@ -128,11 +128,13 @@ class ViewDrive:
     got: set[int] = field(default_factory=set)  # TPDOs of this cycle
     newest: float = 0.0  # the time of the newest of them
     sync_cobs: frozenset[int] = frozenset()
+    sync_heard: dict[int, float] = field(default_factory=dict)  # each SYNC TPDO's newest time (0.0 never)
 
     def __post_init__(self) -> None:
         self.name, self.bus, self.node_id = self.config.name, self.config.bus, self.config.node_id
         self.sync_cobs = frozenset(c for c, layout in self.layouts.items() if set(layout.indexes) & {
             OD.POSITION_ACTUAL, OD.VELOCITY_ACTUAL, OD.TORQUE_ACTUAL})
+        self.sync_heard = dict.fromkeys(sorted(self.sync_cobs), 0.0)
         self.has_torque = any(OD.TORQUE_ACTUAL in layout.indexes for layout in self.layouts.values())
         self.positions = PositionFilter(self.config.node_id, self.sync_period_s)
         self._rescale()
@@ -178,8 +180,13 @@ class ViewDrive:
             return  # a short TPDO: the driver ignores it too
         sw, mode, position, velocity, torque, took = decode_tpdo(layout.indexes, values, self.rx, t, self.positions)
         rx = self.rx
+        if cob in self.sync_cobs:  # the data whole as the driver judges it (Received.whole_rx)
+            self.sync_heard[cob] = t
+            whole = min(self.sync_heard.values())
+        else:
+            whole = rx.whole_rx if self.sync_cobs else t
         self.rx = Received(sw, mode, position, velocity, torque, t, t, self.positions.reference, 0.0,
-                           t if took else rx.position_stamp, t if took else rx.position_rx)
+                           t if took else rx.position_stamp, t if took else rx.position_rx, whole)
         self.got.add(cob)
         self.newest = max(self.newest, t)
 
@@ -189,9 +196,10 @@ class ViewDrive:
         rx, cfg = self.rx, self.config
         state = decode_state(rx.statusword)
         code = self.emcy_code
+        bound = cfg.stale_after_syncs * self.sync_period_s
         return DriveFacts(
-            self.name, data_age_s=now - rx.rx_monotonic if rx.rx_monotonic else math.inf,
-            stale_after_s=cfg.stale_after_syncs * self.sync_period_s,
+            self.name, data_age_s=now - rx.whole_rx if rx.whole_rx else math.inf, stale_after_s=bound,
+            missing=missing_tpdos(self.sync_heard, self.layouts, now=now, bound=bound),
             heartbeat_age_s=now - self.last_heartbeat if self.last_heartbeat is not None else math.inf,
             nmt=self.nmt or "UNKNOWN", state=state, lost=self.heartbeat_missing,
             booted=self.nmt == NmtState.OPERATIONAL.name or (not self.nmt and bool(rx.rx_monotonic)),

@@ -63,7 +63,7 @@ def odometry_sample(state: DriveState, pdo_period_s: float, *, driven: bool = Tr
     age_s = verdict.age_s + (state.rx_monotonic - received) if received else math.inf
     silent = age_s > PDO_SILENCE_PERIODS * pdo_period_s or side_newest_s - received > SIDE_LAG_PERIODS * pdo_period_s
     if verdict.usable or (not driven and verdict.fresh):
-        trusted, forget, why = not silent, False, f"silent for {ms(verdict.age_s)}" if silent else ""
+        trusted, forget, why = not silent, False, f"its position silent for {ms(age_s)}" if silent else ""
     else:
         trusted, forget, why = False, verdict.condition is not Condition.LATE, verdict.cause
     return WheelSample(math.radians(state.angle_deg), received, state.reference, trusted and bool(received),

@@ -64,7 +64,7 @@ from motor_driver.drive.ledger import DriveRecord, Heard, SupervisorPort
 from motor_driver.drive.received.position import PositionFilter
 from motor_driver.drive.received.tpdo import decode_tpdo
 from motor_driver.drive.values import DriveState, Emcy, Noted, Received, StatusSink
-from motor_driver.drive.verdict import DriveFacts, Verdict, judge
+from motor_driver.drive.verdict import DriveFacts, Verdict, judge, missing_tpdos
 from motor_driver.process.held import POLL_S, HeldDeadline, ReadBehind
 from motor_driver.process.ratelimit import Throttle
 from motor_driver.protocol.cia402 import FAULT_STATES, SW, State, decode_state
@@ -110,6 +110,7 @@ class DriveCache:
         self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in plan.tpdos}
         self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in plan.tpdos)
         self._per_sync = frozenset(p.cob_id for p in plan.tpdos if p.trans_type == TT_SYNC)
+        self._sync_heard = dict.fromkeys(sorted(self._per_sync), 0.0)  # each one's newest reception (monotonic)
         self.tpdos_per_sync, self._decoders = len(self._per_sync), _decoders(self._layouts, self._per_sync)
         self._event = threading.Condition()
         self._rx = Received()  # the receive thread's
@@ -212,7 +213,8 @@ class DriveCache:
 
     @staticmethod
     def _data_age(rx: Received, now: float) -> float:
-        return now - rx.rx_monotonic if rx.rx_monotonic else math.inf
+        """Since the data was last whole (``Received.whole_rx``); inf: never."""
+        return now - rx.whole_rx if rx.whole_rx else math.inf
 
     def _stale(self, data_age: float) -> bool:
         return data_age > self.config.stale_after_syncs * self.sync_period_s
@@ -394,12 +396,18 @@ class DriveCache:
             position_stamp, position_rx = timestamp, now
         else:
             position_stamp, position_rx = rx.position_stamp, rx.position_rx
+        if per_sync:
+            heard = self._sync_heard
+            heard[cob_id] = now
+            whole = min(heard.values())
+        else:
+            whole = rx.whole_rx if self._per_sync else now
         state = decode_state(sw) if has_statusword else None
         if state in FAULT_STATES:
             self._fault_word = sw
             self._fault_seq += 1
         self._rx = Received(sw, mode, position, velocity, torque, timestamp, now, self.positions.reference, rx.noted_at,
-                            position_stamp, position_rx)
+                            position_stamp, position_rx, whole)
         self.tpdo_count += 1
         if per_sync:
             self.sync_tpdos += 1
@@ -503,7 +511,7 @@ class DriveCache:
         """Every input of the verdict but the clock, and whether the data is past its bound: equal
         keys judge alike (ages aside)."""
         record, job = self._record, self._record.reboot_job
-        late = not now - rx.rx_monotonic <= self._stale_after_s if rx.rx_monotonic else True
+        late = not now - rx.whole_rx <= self._stale_after_s if rx.whole_rx else True
         return (rx.statusword, late, others, self._heard_at, self._started_at, self._last_emcy, self._emcy_ack,
                 self._fault_seq, self._fault_ack, self._boot_fault_ack, record.lost, record.booted,
                 record.reboot_wanted, job is not None and not job.done())
@@ -552,7 +560,8 @@ class DriveCache:
                           rebooting=rebooting, foreign_master=foreign_master, armed=armed, stopped_by=stopped_by,
                           held=held, enables=enables,
                           emcy_code=emcy.code if emcy is not None else 0, emcy_text=emcy.text if emcy is not None else "",
-                          emcy_stamp=emcy.timestamp if emcy is not None else 0.0, fault_seen=self.fault_seen or 0)
+                          emcy_stamp=emcy.timestamp if emcy is not None else 0.0, fault_seen=self.fault_seen or 0,
+                          missing=missing_tpdos(self._sync_heard, self._layouts, now=now, bound=self._stale_after_s))
 
     def _judge(self, rx: Received, now: float, others: Others) -> DriveState:
         facts = self._facts(rx, now, others)

@@ -417,7 +417,7 @@ class CommNode(Plant):
         return out
 
     def _send_pdo(self, pdo: Pdo, data: bytes, now: float) -> list[can.Message]:
-        if self.faults.tpdo_silent:
+        if self.faults.tpdo_silent or pdo.cob_id in self.faults.lost_tpdos:
             return []
         pdo.last_data = data
         pdo.last_sent = now

@@ -204,6 +204,7 @@ class Faults:
 
     unplugged: bool = False
     tpdo_silent: bool = False  # heartbeat and SDO go on, no TPDO leaves (a PDO set lost, a stuck stack)
+    lost_tpdos: frozenset[int] = frozenset()  # the COB-IDs of the TPDOs that no longer leave (its others do)
     tx_dead: bool = False  # it receives and acts, sends nothing (a broken TX line, a hung CAN task)
     guard_toggle_stuck: bool = False  # its node-guarding answers keep toggle bit 0
     heartbeat_deaf: bool = False  # it no longer hears others' heartbeats: its consumer (host watch) trips
