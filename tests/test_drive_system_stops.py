@@ -6,6 +6,7 @@ driver node and the drive system in a real rclpy graph (tests/test_odom_truth.py
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -58,3 +59,29 @@ def test_a_left_out_wheels_stop_that_raises_is_said_counted_and_tried_again(
     wait_for(said, 30.0, "the failed stop on /diagnostics")
     lines = [r for r in caplog.records if "Boom" in r.getMessage() and r.levelno >= logging.ERROR]
     assert 1 <= len(lines) < len(calls)  # said with its cause, repeats held back and counted
+
+
+def test_a_wheel_whose_stop_waits_holds_no_other_wheels_stop(rover: Rover, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two wheels told to stop: the first one's stop waits for its drive (unconfirmed: up to a
+    second each), the second's frame goes out meanwhile and its drive stops. One worker for all
+    wheels queued the second behind the first."""
+    rover.arm()
+    first, second = rover.driver.drive("wheel_front_left"), rover.driver.drive("wheel_rear_left")
+    release, waiting = threading.Event(), threading.Event()
+
+    def unconfirmed(*args: Any, **kwargs: Any) -> None:
+        waiting.set()
+        release.wait(60.0)
+
+    monkeypatch.setattr(first, "quick_stop", unconfirmed)
+    try:
+        rover.system._tell_to_stop(first.name)
+        wait_for(waiting.is_set, 30.0, "the first wheel's stop under way")
+        rover.system._tell_to_stop(second.name)
+        runner = rover.sim.simulator_for(3, "can0")
+        wait_for(lambda: runner.call(lambda: runner.drive(3).state.name) != "OPERATION_ENABLED", 30.0,
+                 "the second wheel stopped while the first one's stop waits")
+        wait_for(lambda: second.cache.state.name != "OPERATION_ENABLED", 30.0, "the driver seeing it stop")
+        assert not release.is_set()  # the first one's stop still waits
+    finally:
+        release.set()

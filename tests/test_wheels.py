@@ -83,6 +83,18 @@ def enabled(name: str, enables: int) -> DriveState:
     return dataclasses.replace(BASE, name=name, judged=(facts, judge(facts)))
 
 
+def test_a_held_rover_leaves_no_wheel_out() -> None:
+    """on_wheel_loss: continue, /cmd_vel fresh while the lifecycle node is inactive (motion held):
+    every wheel's verdict is HELD, the rover's state and no wheel's loss; it booked every wheel
+    out and told each to stop (six "degraded" warnings for a refusal that sent nothing)."""
+    book = WheelsOut(["a"], ["b"])
+    held = {n: state(name=n) for n in ("a", "b")}
+    held = {n: dataclasses.replace(s, judged=(f := s.facts._replace(held="inactive: activate it"), judge(f)))
+            for n, s in held.items()}
+    assert all(not s.verdict.usable for s in held.values())
+    assert book.update(held, driving=True) == ([], []) and not book.out
+
+
 def test_a_wheel_out_comes_back_only_after_an_enable_since_it_went_out() -> None:
     book = WheelsOut(["a", "b"], ["c"])
     states = {"a": state(name="a"), "b": state(name="b"), "c": state(name="c")}  # enabled at start

@@ -120,7 +120,8 @@ class DriveSystemNode(Node):
         self.halted = ""  # why every wheel was stopped, until a fresh /cmd_vel drives again
         self.last_odometry = OdometryStep(self.odometry.pose, Twist2D(), False, "odometry: no wheel sampled yet")
         self._measured_sent = 0.0  # when the newest /odom sent was measured (monotonic clock, s)
-        self._stopper = ThreadPoolExecutor(1, thread_name_prefix="drive_system-stop")
+        # a worker a wheel (made when first needed): a stop that waits for its drive holds no other's
+        self._stopper = ThreadPoolExecutor(len(self.wheels), thread_name_prefix="drive_system-stop")
         self._stops: dict[str, Future[None]] = {}
         self._stop_retry_at: dict[str, float] = {}  # a failed stop's next try (the tick's)
         self.stop_failing: dict[str, str] = {}  # a wheel whose last stop failed, and why (the tick's)

@@ -111,8 +111,8 @@ class WheelsOut:
         for name, state in states.items():
             verdict = state.verdict
             out = self.out.get(name)
-            if out is None:
-                if driving and not verdict.usable:
+            if out is None:  # held (the lifecycle node inactive) is the whole rover's state, not a wheel's loss
+                if driving and not verdict.usable and verdict.condition is not Condition.HELD:
                     self.out[name] = OutWheel(verdict.text(), state.facts.enables)
                     went.append(name)
                 continue
