@@ -62,7 +62,7 @@ from can_config.errors import RovercanError
 from motor_driver import MotorDriver, StopReport
 from motor_driver.follow import TrajectoryGroup, groups_of
 from motor_driver.process import heap
-from motor_driver.process.stop import StopSignal
+from motor_driver.process.stop import StopSignal, teardown
 from nodes.actions.driver_actions import DriverActionsNode
 from nodes.joints.driver_node import DriverNode
 from nodes.joints.driver_services import SERVICE_JOIN_S, DriverServicesNode, DriverStopsNode
@@ -119,6 +119,7 @@ class Assembly:
         self._log_handler: RclpyLogHandler | None = None
         self._started = False
         self._closed = False
+        self._joined = False  # every thread of its own stopped at its close (its nodes may then be destroyed)
 
     # ------------------------------------------------------------------ steps
     def build(self) -> DriverNode:
@@ -211,17 +212,26 @@ class Assembly:
         if self._closed:
             return
         self._closed = True
+        teardown("assembly close", (self._close_groups, self.driver.close, self._join_threads, self._unbridge,
+                                    self._remove_nodes))
+
+    def _close_groups(self) -> None:
         for group in self.trajectories.values():  # no set-point of theirs after the driver's safe stop
             group.close()
-        self.driver.close()
-        joined = all([spin.stop(timeout_s=SERVICE_JOIN_S) for spin in self._threads])  # every one stopped
+
+    def _join_threads(self) -> None:
+        self._joined = all([spin.stop(timeout_s=SERVICE_JOIN_S) for spin in self._threads])  # every one stopped
+
+    def _unbridge(self) -> None:
         if self._log_handler is not None:
             unbridge(self._log_handler)
+
+    def _remove_nodes(self) -> None:
         hot = self.hot
         for n in self.nodes:
             if n in hot.get_nodes():
                 hot.remove_node(n)
-        if joined:  # a thread still inside rclpy must not see its node destroyed under it
+        if self._joined:  # a thread still inside rclpy must not see its node destroyed under it
             for n in self.nodes:
                 n.destroy_node()
 

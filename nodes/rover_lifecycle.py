@@ -112,6 +112,7 @@ class DriveLifecycleNode(LifecycleNode):
         self.bond: BondHeartbeat | None = None  # with a lifecycle manager, while active (nodes/process/bond.py)
         self.callback_failures = CallbackFailures()  # spinning.spin_until counts what escapes here too
         self.transitions = threading.Lock()  # one transition at a time: the auto-start's, the service's
+        self.exiting = False  # a stop signal came: no activate takes motion (set by main's thread, once)
         service = self._service_change_state
         service.callback = self._change_state_answered(service.callback)
         spinning.supervise(self, self.callback_failures)  # any other exception: answered, logged, counted
@@ -124,6 +125,13 @@ class DriveLifecycleNode(LifecycleNode):
     def inactive(self) -> str:
         """Why motion is refused while the node is not active, and what to do."""
         return f"{self.get_name()} is inactive: activate it"
+
+    def stop_for_exit(self) -> None:
+        """A stop signal: motion held now, before the wait for a transition under way (it may run
+        a minute: a configure's SDO waits), and no activate takes it back (:meth:`on_activate`)."""
+        self.exiting = True
+        if (driver := self.driver) is not None:
+            driver.hold_motion(f"{self.get_name()} is shutting down (a stop signal)")
 
     @property
     def state_label(self) -> str:
@@ -184,6 +192,10 @@ class DriveLifecycleNode(LifecycleNode):
         assembly = self.assembly
         assert assembly is not None and assembly.node is not None
         assembly.driver.allow_motion()
+        if self.exiting:  # a stop signal came (main: stop_for_exit): nothing is armed
+            assembly.driver.hold_motion(f"{self.get_name()} is shutting down (a stop signal)")
+            self.get_logger().error("activate refused: the process is shutting down (a stop signal)")
+            return TransitionCallbackReturn.FAILURE
         drives = assembly.node.drives
         asked = None if assembly.node.get_parameter("arm").value else [
             name for name, drive in drives.items() if drive.config.arm_on_start]
@@ -329,6 +341,7 @@ def main(args: list[str] | None = None) -> int:
             heap.settle()  # built (and, with autostart, the driver too): keep it out of the collector's walks
             spinning.spin_until(hot, stop.event)
         finally:
+            node.stop_for_exit()  # motion held before any wait: a transition under way arms nothing
             transitions.stop(5.0)
             # a transition a manager asked for may still run on the stopped executor's thread (a
             # configure's SDO waits): the release waits for it, else it would close a driver a

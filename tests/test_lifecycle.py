@@ -216,6 +216,41 @@ def test_a_lost_drive_does_not_keep_the_node_active_and_a_failed_stop_does(
     assert said.startswith("1 drive(s) quick-stopped") and said.endswith(", 1 lost"), said
 
 
+def test_a_step_of_the_release_that_raises_stops_none_of_the_others(rig: tuple[Any, SimService, Listener, Any]) -> None:
+    """Cleanup with the driver's release of its host watch raising (a bug): the rest of the
+    teardown goes on. It stopped at the first failure: the buses stayed connected with their
+    SYNC, the executor threads ran and the nodes stayed in the graph while error processing said
+    all was released, and every configure after it met its own SYNC as another master's."""
+    node, sim, _, _ = rig
+    node.trigger_configure()
+    assert node._state_machine.current_state[1] == "inactive"
+
+    def broken() -> None:
+        raise RuntimeError("a bug in the release of the host watch (the test's)")
+
+    node.driver._release_host_watch = broken
+    node.trigger_cleanup()  # ends in ERROR processing, which releases what is left
+    assert node._state_machine.current_state[1] == "unconfigured" and node.assembly is None
+    assert node.callback_failures.snapshot()[0] >= 1  # said and counted as the bug it is
+    wait_for(lambda: len(sim.server.clients) == 1 and len(sim.server.cyclic) == 0, 10.0,
+             "the bus released: only the listener connected, no SYNC job")
+    wait_for(lambda: node.get_node_names() == ["rovercan_lifecycle"], 10.0, "the driver's nodes out of the graph")
+    node.trigger_configure()
+    assert node._state_machine.current_state[1] == "inactive"  # no SYNC of its own left behind to refuse it
+
+
+def test_after_a_stop_signal_motion_is_held_and_no_activate_arms(rig: tuple[Any, SimService, Listener, Any]) -> None:
+    """main's stop: motion held at once (``stop_for_exit``), before its wait for a transition under
+    way (up to a minute), and an activate a manager asked for meanwhile arms nothing: FAILURE."""
+    node, sim, _, _ = rig
+    node.trigger_configure()
+    node.stop_for_exit()
+    assert "shutting down" in node.driver.motion_held
+    assert node.trigger_activate() == TransitionCallbackReturn.FAILURE
+    assert node._state_machine.current_state[1] == "inactive" and "shutting down" in node.driver.motion_held
+    assert states(sim) == ["SWITCH_ON_DISABLED"] * 2  # the rig's arm:=true armed nothing
+
+
 @pytest.mark.parametrize("arg", ["arm:=1", "state_rate_hz:=100000.0"])
 def test_a_parameter_of_the_wrong_type_or_range_fails_configure_naming_it(tmp_path: Path, arg: str) -> None:
     """``-p arm:=1`` (an integer for a bool) or a rate out of its range: configure FAILS, naming the

@@ -23,14 +23,17 @@ Two ways, one per kind of program:
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from types import FrameType
 from typing import Any
+
+logger = logging.getLogger(__name__)
 
 #: What systemd / docker stop (SIGTERM), Ctrl+C (SIGINT) and a closed terminal (SIGHUP) send.
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -112,3 +115,19 @@ def stop_on_signals() -> Iterator[_Stop]:
         sys.unraisablehook = previous_hook
         for sig, handler in old.items():
             signal.signal(sig, handler)
+
+
+def teardown(what: str, steps: Iterable[Callable[[], object]]) -> None:
+    """Each of ``steps`` in order, whatever an earlier one raised: a teardown that stops half-way
+    leaves buses open, threads running and nodes in the graph (a lifecycle node's cleanup then
+    said all was released, and every configure after it met its own SYNC as another master's).
+    A step that raises is logged with its trace; the first exception is raised again at the end."""
+    first: Exception | None = None
+    for step in steps:
+        try:
+            step()
+        except Exception as err:
+            logger.exception("%s: %s failed; the rest of the teardown goes on", what, getattr(step, "__name__", step))
+            first = first or err
+    if first is not None:
+        raise first

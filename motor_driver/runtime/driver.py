@@ -76,6 +76,7 @@ from motor_driver.bus.traffic import (
 )
 from motor_driver.diagnostics.health import Health, jobs_health
 from motor_driver.drive import Drive, DriveState
+from motor_driver.process.stop import teardown
 from motor_driver.protocol.cia402 import State
 from motor_driver.recording.flight import FlightRecorder
 from motor_driver.runtime.supervisor import SUPERVISOR_PERIOD_S, Supervisor
@@ -332,16 +333,17 @@ class MotorDriver:
         self._closed = True
         for drive in self.drives.values():
             drive.close()  # refuse new commands from here on; the stops of safe_stop are still taken
-        try:
-            self.safe_stop()  # the host heartbeat goes on meanwhile: no drive reacts to its loss yet
-        finally:
-            self.supervisor.stop()
-            for handle in self._handles.values():
-                handle.worker.shutdown(wait=True, cancel_futures=True)  # a re-boot under way ends first
-            self._release_host_watch()
-            self._close_buses()
-            if self.recorder is not None:
-                self.recorder.close()  # writes what is pending
+        # the host heartbeat goes on during the safe stop: no drive reacts to its loss yet
+        teardown("driver close", (self.safe_stop, self.supervisor.stop, self._end_workers, self._release_host_watch,
+                                  self._close_buses, self._close_recorder))
+
+    def _end_workers(self) -> None:
+        for handle in self._handles.values():
+            handle.worker.shutdown(wait=True, cancel_futures=True)  # a re-boot under way ends first
+
+    def _close_recorder(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()  # writes what is pending
 
     def _release_host_watch(self) -> None:
         for drive in self.drives.values():
