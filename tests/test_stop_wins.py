@@ -90,7 +90,12 @@ def test_a_stop_during_each_step_of_enable_wins(driver_factory: DriverFactory, l
     assert at.fired and at.error is None, at.error
     frames = drain(listener, 0.4)  # the drive has settled: its last word came in long ago
     words = controlwords(frames)
-    assert words and words[-1] == stop_cw, [hex(w) for w in words]  # nothing of enable() after the stop
+    wanted = {stop_cw}
+    if stop_name == "disable" and "transition 2" in point:  # the drive said Switch On Disabled: Disable Voltage
+        # (Shutdown there is transition 2, toward enabled); once transition 2 is sent the drive's
+        # answer may be read before the stop, and the stop is then Shutdown
+        wanted = {0x0000} if point.startswith("enable: before") else {0x0000, 0x0006}
+    assert words and words[-1] in wanted, [hex(w) for w in words]  # nothing of enable() after the stop
     assert sim_state(sim) in stopped_states and drive.cache.state.name in stopped_states, (sim_state(sim), drive.cache.state)
     drive.enable()  # a later enable that asks for it is obeyed
     assert sim_state(sim) == "OPERATION_ENABLED"
