@@ -23,6 +23,7 @@ def drive_state(*, enabled: bool = False, fault: bool = False, lost: bool = Fals
     del fault
     values.setdefault("position_stamp", values.get("stamp", 0.0))
     values.setdefault("position_rx", values.get("rx_monotonic", 0.0))
+    values.setdefault("whole_rx", values.get("rx_monotonic", 0.0))
     state = DriveState(**values)
     facts = state.facts._replace(lost=lost, armed=enabled,
                                  stale_after_s=-1.0 if stale else state.facts.stale_after_s)

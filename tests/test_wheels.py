@@ -54,6 +54,12 @@ def test_odometry_takes_a_fresh_wheel_keeps_a_late_one_and_forgets_a_lost_one() 
     assert not silent.trusted and not silent.forget and silent.silent and "silent for 30 ms" in silent.why_not
     lost = odometry_sample(state(lost=True, fault=True, enabled=False), PDO_S)
     assert not lost.trusted and lost.forget and "heartbeat lost" in lost.why_not
+    # a frame of its other SYNC TPDO lost: the data whole as of 30 ms ago (the verdict's age counts
+    # from then), its position fresh: measured, not silent
+    gap = odometry_sample(state(data_age_s=0.03, whole_rx=49.98, rx_monotonic=50.0, position_rx=50.0), PDO_S)
+    assert gap.trusted, gap.why_not
+    older = odometry_sample(state(data_age_s=0.03, whole_rx=49.98, rx_monotonic=50.0, position_rx=49.98), PDO_S)
+    assert not older.trusted and older.silent and "its position silent for 30 ms" in older.why_not
 
 
 def test_a_wheel_out_disabled_quick_stopped_or_rebooting_counts_for_nothing() -> None:

@@ -45,7 +45,7 @@ class DriveState:
     stamp: float  # time.time() when the PDOs carrying this state arrived
     heartbeat_age_s: float
     target_reached: bool
-    data_age_s: float = math.inf  # since the last TPDO arrived
+    data_age_s: float = math.inf  # since its data was last whole (``whole_rx``)
     foreign_master: str = ""  # evidence that another master drives it: commands are refused
     reference: int = 0  # the position reference (boot, homing, a reboot's jump start a new one)
     rx_monotonic: float = 0.0  # when the PDOs carrying this state arrived (monotonic; 0.0 never)
@@ -54,6 +54,8 @@ class DriveState:
     #: 0.0 no position TPDO yet. What the odometry takes a sample's time and newness from.
     position_stamp: float = 0.0
     position_rx: float = 0.0
+    #: when its data was last whole (Received.whole_rx: what ``data_age_s`` counts from; 0.0 never)
+    whole_rx: float = 0.0
     #: the facts and verdict the driver judged (the snapshot's); None: judged from the values
     #: above (a snapshot made by hand, a test's or a recording's, and every dataclasses.replace)
     judged: InitVar[tuple[DriveFacts, Verdict] | None] = None

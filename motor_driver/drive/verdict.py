@@ -207,8 +207,8 @@ def _late(f: DriveFacts) -> Verdict:
     if f.missing:
         return Verdict(f.name, Condition.LATE, age, f"{f.missing} not heard for {ms(age)} while its other PDOs are"
                        " (lost on the bus, or the drive maps or sends it otherwise)",
-                       "check the drive's PDO mapping and the bus's frame loss (/diagnostics); it is usable again"
-                       " once that TPDO comes (/arm does not help)")
+                       "check the drive's PDO mapping, and the bus's error frames and load (/diagnostics); it is"
+                       " usable again once that TPDO comes (/arm does not help)")
     return Verdict(f.name, Condition.LATE, age, f"no data for {ms(age)} (bus or drive stalled)",
                    "it is usable again once its data is fresh (/arm does not help)")
 

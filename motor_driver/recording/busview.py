@@ -219,7 +219,7 @@ class ViewDrive:
             statusword=rx.statusword, state=facts.state, mode=rx.mode, nmt=facts.nmt, error_code=code,
             error_text=emcy_text(code) if code else "", stamp=rx.stamp, heartbeat_age_s=facts.heartbeat_age_s,
             target_reached=bool(rx.statusword & SW.TARGET_REACHED), data_age_s=facts.data_age_s,
-            reference=rx.reference, judged=(facts, verdict)), verdict
+            reference=rx.reference, whole_rx=rx.whole_rx, judged=(facts, verdict)), verdict
 
 
 def view_drives(config: RoverConfig, units: Mapping[str, UnitObjects] | None = None,

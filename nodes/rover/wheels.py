@@ -60,7 +60,9 @@ def odometry_sample(state: DriveState, pdo_period_s: float, *, driven: bool = Tr
     pushed), every wheel whose data is news counts: what they measure is all the motion there is."""
     verdict = state.verdict
     received = state.position_rx  # the position's own TPDO: a later one without a position is no news of it
-    age_s = verdict.age_s + (state.rx_monotonic - received) if received else math.inf
+    # the verdict's age counts from when the data was last whole: the position's own is older by
+    # the time between (a hand-made state without it: from its newest TPDO)
+    age_s = verdict.age_s + ((state.whole_rx or state.rx_monotonic) - received) if received else math.inf
     silent = age_s > PDO_SILENCE_PERIODS * pdo_period_s or side_newest_s - received > SIDE_LAG_PERIODS * pdo_period_s
     if verdict.usable or (not driven and verdict.fresh):
         trusted, forget, why = not silent, False, f"its position silent for {ms(age_s)}" if silent else ""

@@ -580,4 +580,4 @@ class DriveCache:
             stamp=rx.stamp, heartbeat_age_s=facts.heartbeat_age_s,
             target_reached=bool(sw & SW.TARGET_REACHED), data_age_s=data_age,
             foreign_master=facts.foreign_master, reference=rx.reference, rx_monotonic=rx.rx_monotonic,
-            position_stamp=rx.position_stamp, position_rx=rx.position_rx)
+            position_stamp=rx.position_stamp, position_rx=rx.position_rx, whole_rx=rx.whole_rx)
