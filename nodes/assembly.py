@@ -130,32 +130,31 @@ class Assembly:
         else:
             node = self.node
             node.serve(self.driver, self._joints)
+        if node not in self.nodes:
+            self._own(node, self.hot)
         self._log_handler = bridge_core_logging(node)
-        hot: list[Node] = [node]
         config = self.driver.config
         if config.drive_system is not None and self._joints is None and node.get_parameter("drive_system").value:
-            hot.append(DriveSystemNode.beside(node, self.driver, config, **self._kwargs))  # on the same executor
-        for n in hot:
-            self.hot.add_node(n)
-            self.executors[n.get_name()] = self.hot
-        self.nodes += hot
+            self._own(DriveSystemNode.beside(node, self.driver, config, **self._kwargs), self.hot)  # its executor
         failures = node.callback_failures
+        self._own(DriverStopsNode(self.driver, node.drives, failures=failures, **self._kwargs),
+                  SingleThreadedExecutor(**self._kwargs))
         services = DriverServicesNode(self.driver, node.drives, failures=failures, **self._kwargs)
+        self._own(services, MultiThreadedExecutor(num_threads=len(services.groups), **self._kwargs))
         self.trajectories = groups_of(config.trajectory_groups, node.drives)
-        waiting: list[tuple[Node, Executor]] = [
-            (DriverStopsNode(self.driver, node.drives, failures=failures, **self._kwargs),
-             SingleThreadedExecutor(**self._kwargs)),
-            (services, MultiThreadedExecutor(num_threads=len(services.groups), **self._kwargs)),
-            (DriverActionsNode(self.driver, node.drives, trajectory_groups=self.trajectories, **self._kwargs),
-             SingleThreadedExecutor(**self._kwargs))]
-        for n, executor in waiting:
-            executor.add_node(n)
-            self.executors[n.get_name()] = executor
-            self.nodes.append(n)
+        self._own(DriverActionsNode(self.driver, node.drives, trajectory_groups=self.trajectories, **self._kwargs),
+                  SingleThreadedExecutor(**self._kwargs))
         self._supervise()
         heap.settle()  # what exists now lives as long as the process (a full collection stops
         # every thread, so it comes before the heartbeat starts)
         return node
+
+    def _own(self, node: Node, executor: Executor) -> None:
+        """``node`` on ``executor`` and this assembly's from now on: a build that fails after it
+        (a parameter of a later node refused) still removes and destroys it at close."""
+        executor.add_node(node)
+        self.executors[node.get_name()] = executor
+        self.nodes.append(node)
 
     def start(self, *, arm: bool = True) -> None:
         """The driver started (unless it was), the executors' threads, and, with ``arm``, every

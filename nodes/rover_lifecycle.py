@@ -191,8 +191,9 @@ class DriveLifecycleNode(LifecycleNode):
     def on_activate(self, state: State) -> TransitionCallbackReturn:
         assembly = self.assembly
         assert assembly is not None and assembly.node is not None
-        assembly.driver.allow_motion()
-        if self.exiting:  # a stop signal came (main: stop_for_exit): nothing is armed
+        if not self.exiting:
+            assembly.driver.allow_motion()
+        if self.exiting:  # a stop signal came (main: stop_for_exit), before or while motion was taken: nothing armed
             assembly.driver.hold_motion(f"{self.get_name()} is shutting down (a stop signal)")
             self.get_logger().error("activate refused: the process is shutting down (a stop signal)")
             return TransitionCallbackReturn.FAILURE

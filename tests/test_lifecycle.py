@@ -251,16 +251,19 @@ def test_after_a_stop_signal_motion_is_held_and_no_activate_arms(rig: tuple[Any,
     assert states(sim) == ["SWITCH_ON_DISABLED"] * 2  # the rig's arm:=true armed nothing
 
 
-@pytest.mark.parametrize("arg", ["arm:=1", "state_rate_hz:=100000.0"])
+@pytest.mark.parametrize("arg", ["arm:=1", "state_rate_hz:=100000.0", "odom_rate_hz:=20"])
 def test_a_parameter_of_the_wrong_type_or_range_fails_configure_naming_it(tmp_path: Path, arg: str) -> None:
-    """``-p arm:=1`` (an integer for a bool) or a rate out of its range: configure FAILS, naming the
-    parameter and what it takes, the bus released; no ERROR, no "bug" counted (rclpy's exception
-    escaped the transition: ERROR processing, counted in callback_failures as a bug)."""
-    with make_rig(tmp_path, args=(arg,)) as (node, sim, _, _):
+    """``-p arm:=1`` (an integer for a bool), a rate out of its range, or the drive system's rate as
+    an integer (refused after the driver node was made): configure FAILS, naming the parameter
+    and what it takes, the bus released and no node of the driver left in the graph; no ERROR, no
+    "bug" counted (rclpy's exception escaped the transition: ERROR processing, counted in
+    callback_failures as a bug; a node made before the refusal stayed in the graph)."""
+    with make_rig(tmp_path, args=(arg,), extra=DRIVE_SYSTEM) as (node, sim, _, _):
         assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
         assert node._state_machine.current_state[1] == "unconfigured" and node.driver is None
         assert node.callback_failures.snapshot()[0] == 0
         wait_for(lambda: len(sim.server.clients) == 1, 10.0, "the bus released (only the listener connected)")
+        wait_for(lambda: node.get_node_names() == ["rovercan_lifecycle"], 10.0, "no node of the driver left")
 
 
 def test_through_the_lifecycle_services_one_joints_enable_answers_while_another_homes(
