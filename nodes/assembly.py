@@ -277,9 +277,11 @@ def run(program: str, stop: StopSignal, *, name: str = "rovercan_driver", one_jo
         print(f"{program}: {err}", file=sys.stderr)
         return 2
     finally:
-        if assembly is not None:
-            assembly.close()
-        rclpy.try_shutdown()
+        try:
+            if assembly is not None:
+                assembly.close()  # each step runs; a step that raised is logged and raised here
+        finally:
+            rclpy.try_shutdown()
     return 0
 
 

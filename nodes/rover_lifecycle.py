@@ -350,9 +350,11 @@ def main(args: list[str] | None = None) -> int:
             if not node.transitions.acquire(timeout=TRANSITION_WAIT_S):
                 logger.error("a lifecycle transition still runs after %g s; releasing the driver all the same",
                              TRANSITION_WAIT_S)
-            node.release()
-            node.destroy_node()
-            rclpy.try_shutdown()
+            try:
+                node.release()  # each step runs; a step that raised is logged and raised here
+            finally:
+                node.destroy_node()
+                rclpy.try_shutdown()
     return 0
 
 
