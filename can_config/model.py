@@ -197,8 +197,11 @@ class DriveConfig:
     #: 20: a starved non-real-time host sees a whole bus's TPDOs 50-90 ms late now and then; late
     #: data refuses set-points and takes a wheel out, so the bound is past such a pause
     stale_after_syncs: int = key("int", 20, 2, 1000, unit="SYNC periods",
-                                 help="no PDO for this many SYNC periods: the drive's data are late (reported stale;"
-                                      " set-points that would move it are refused)")
+                                 help="one of the drive's TPDOs sent every SYNC (its position's, its statusword's)"
+                                      " not heard for this many SYNC periods: the drive's data are late (reported"
+                                      " stale; set-points that would move it are refused; the verdict names a TPDO"
+                                      " missing while the others come); one lost frame ages the data by a period, so"
+                                      " 2 or 3 tolerate no lost frame")
     frame_loss_window_syncs: int = key("int", 500, 20, 1_000_000, unit="SYNC periods",
                                        help="frame loss is measured over this many SYNC periods (TPDOs expected per"
                                             " SYNC against received; heartbeats due, one fewer than the window's"
