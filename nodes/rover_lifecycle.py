@@ -126,12 +126,17 @@ class DriveLifecycleNode(LifecycleNode):
         """Why motion is refused while the node is not active, and what to do."""
         return f"{self.get_name()} is inactive: activate it"
 
+    @property
+    def shutting_down(self) -> str:
+        """Why motion is held after a stop signal."""
+        return f"{self.get_name()} is shutting down (a stop signal)"
+
     def stop_for_exit(self) -> None:
         """A stop signal: motion held now, before the wait for a transition under way (it may run
         a minute: a configure's SDO waits), and no activate takes it back (:meth:`on_activate`)."""
         self.exiting = True
         if (driver := self.driver) is not None:
-            driver.hold_motion(f"{self.get_name()} is shutting down (a stop signal)")
+            driver.hold_motion(self.shutting_down)
 
     @property
     def state_label(self) -> str:
@@ -194,7 +199,7 @@ class DriveLifecycleNode(LifecycleNode):
         if not self.exiting:
             assembly.driver.allow_motion()
         if self.exiting:  # a stop signal came (main: stop_for_exit), before or while motion was taken: nothing armed
-            assembly.driver.hold_motion(f"{self.get_name()} is shutting down (a stop signal)")
+            assembly.driver.hold_motion(self.shutting_down)
             self.get_logger().error("activate refused: the process is shutting down (a stop signal)")
             return TransitionCallbackReturn.FAILURE
         drives = assembly.node.drives
