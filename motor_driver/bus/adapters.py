@@ -17,6 +17,9 @@ that changes the behaviour fails there, loudly, instead of in the field:
   text and the layers in between (every command's RPDO goes this way); with
   :meth:`GuardedNetwork.one_write`, a SYNC's set-points of several drives in one write, the
   order on the wire still the order of the sends of every thread.
+- :func:`bound_sends`: the same socket's writes bounded (SO_SNDTIMEO): a server that stopped
+  reading held a write, and the send lock with it, for ever; :func:`stall_of` gives the
+  connection up and says why.
 - :class:`GuardedNetwork`: canopen's ``Network.notify`` stops the receive thread when one
   callback raises; this override isolates each callback (its loop mirrors canopen's). Its
   listener also drops 29-bit frames, which canopen would dispatch by their low bits.
@@ -70,6 +73,69 @@ def connection_closed(bus: can.BusABC) -> bool:
     except (BlockingIOError, InterruptedError):
         return False
     except OSError:
+        return True
+
+
+#: The longest one write to a socketcand bus's socket may block (SO_SNDTIMEO). It blocks only
+#: when the connection's buffers are full: the server has not read for about a second of traffic or
+#: more (hung, stopped, blocked on its own CAN write with no node acknowledging, a dropped link).
+#: Unbounded, that write held the bus's send lock for ever: every other sender (another thread's
+#: stop, an SDO) waited behind it, and nothing said why. Past it the connection is given up
+#: (:func:`stall_of`) and the supervisor reconnects, naming the stall.
+SEND_STALL_S = 0.2
+#: Why a socketcand bus's connection was given up after a write that blocked (:func:`stall_of`).
+SEND_STALLED_ATTRIBUTE = "_rovercan_send_stalled"
+
+
+class SendStalled(can.CanOperationError):  # type: ignore[misc]
+    """A write to a socketcand server blocked SEND_STALL_S (or followed one that did): the
+    connection was given up; the message says why."""
+
+
+def bound_sends(bus: can.BusABC) -> can.BusABC:
+    """A socketcand bus whose socket's writes block at most SEND_STALL_S (SO_SNDTIMEO; its reads
+    are untouched). Other interfaces (python-can's SocketCAN send never blocks) are left as they
+    are. Returns ``bus``."""
+    sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
+    if isinstance(sock, socket.socket):
+        whole = int(SEND_STALL_S)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO,
+                        struct.pack("ll", whole, round((SEND_STALL_S - whole) * 1e6)))
+    return bus
+
+
+def stall_of(bus: can.BusABC | None, err: BaseException | None = None) -> str:
+    """Why ``bus``'s connection was given up after a write that blocked, or '' (never given up).
+    ``err``, a write's error: a write that timed out (EAGAIN from :func:`bound_sends`'s bound)
+    gives the connection up now: its write side shut, so that no later frame completes the text
+    of one cut in two (the server reads the end of the stream instead), and the reason kept."""
+    why = str(getattr(bus, SEND_STALLED_ATTRIBUTE, ""))
+    if why or not isinstance(err, BlockingIOError):
+        return why
+    sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
+    if not isinstance(sock, socket.socket):
+        return ""
+    why = (f"a write to the socketcand server blocked for {SEND_STALL_S * 1000:.0f} ms (the connection full: the"
+           " server stopped reading: hung or stopped, its own CAN writes blocked with no node acknowledging,"
+           " or the link dropped); the connection was given up")
+    setattr(bus, SEND_STALLED_ATTRIBUTE, why)
+    try:
+        sock.shutdown(socket.SHUT_WR)
+    except OSError:
+        pass
+    return why
+
+
+def room_to_send(bus: can.BusABC) -> bool:
+    """False when a socketcand bus's socket would block a write now (its buffer full: the server
+    is not reading): the supervisor's host heartbeat is then not written, and its loop never waits
+    on one bus. True for other interfaces."""
+    sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
+    if not isinstance(sock, socket.socket):
+        return True
+    try:
+        return bool(select.select([], [sock], [], 0)[1])
+    except (OSError, ValueError):  # closed: the write says so
         return True
 
 
@@ -395,7 +461,8 @@ def socketcand_sender(bus: can.BusABC | None) -> DirectSend | None:
     text: ``convert_can_message_to_ascii_message`` of the ``can.Message`` canopen's ``send_message``
     makes, an id above 0x7FF extended, a remote frame's data dropped as ``can.Message`` drops it
     (socketcand's rawmode has no remote frames); the same TCP_QUICKACK after it when the bus was
-    opened with ``tcp_tune``; a socket error raised as it is), without building the message,
+    opened with ``tcp_tune``; a socket error raised as it is, a write that blocked SEND_STALL_S as
+    :class:`SendStalled`), without building the message,
     formatting python-can's per-send debug line and going through four calls: about a fifth of a
     streamed set-point's Python time (docs/performance.md). The caller holds the network's send
     lock. None for other interfaces (and buses whose ``send`` is not python-can's)."""
@@ -414,13 +481,26 @@ def socketcand_sender(bus: can.BusABC | None) -> DirectSend | None:
         ident = f"{can_id & 0x1FFFFFFF:08X}" if can_id > 0x7FF else f"{can_id:03X}"
         return f"< send {ident} {len(data):X} {' '.join(map(hexes, data))} >".encode("ascii")
 
+    def stalled(err: OSError) -> None:
+        why = stall_of(bus, err)
+        if why:
+            raise SendStalled(why) from err
+
     def write(payload: bytes) -> None:
-        sendall(payload)
+        try:
+            sendall(payload)
+        except OSError as err:
+            stalled(err)
+            raise
         if tune:
             setsockopt(*quickack)
 
     def send(can_id: int, data: bytes | bytearray, remote: bool) -> None:
-        sendall(text(can_id, data, remote))
+        try:
+            sendall(text(can_id, data, remote))
+        except OSError as err:
+            stalled(err)
+            raise
         if tune:
             setsockopt(*quickack)
 

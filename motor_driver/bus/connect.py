@@ -17,7 +17,7 @@ import can
 
 from can_config.errors import BusLostError
 from motor_driver.bus import library_log
-from motor_driver.bus.adapters import batch_receive, pause_when_closed
+from motor_driver.bus.adapters import batch_receive, bound_sends, pause_when_closed
 
 logger = logging.getLogger(__name__)
 
@@ -136,7 +136,8 @@ def open_bus(kwargs: dict[str, Any], connect_timeout_s: float = CONNECT_TIMEOUT_
     def opened() -> can.BusABC:
         # a lost server's end of stream pauses the receive thread instead of spinning it (adapters),
         # its frames read a batch at a time (adapters.batch_receive)
-        return pause_when_closed(batch_receive(_bus_within(kwargs, HANDSHAKE_TIMEOUT_S))) if socketcand else can.Bus(**kwargs)
+        return pause_when_closed(batch_receive(bound_sends(_bus_within(kwargs, HANDSHAKE_TIMEOUT_S)))) if socketcand \
+            else can.Bus(**kwargs)
 
     for attempt in range(1, OPEN_ATTEMPTS):
         try:

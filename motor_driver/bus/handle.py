@@ -35,7 +35,17 @@ from can_config.config import BusConfig
 from can_config.errors import BusLostError
 from can_config.model import SOCKETCAND_PORT
 from can_config.objects import FunctionCode, NmtState
-from motor_driver.bus.adapters import FRAME_ERROR, Frame, GuardedNetwork, dispatch_batches, hold_lone_sync, queue_full, watch_idle
+from motor_driver.bus.adapters import (
+    FRAME_ERROR,
+    Frame,
+    GuardedNetwork,
+    dispatch_batches,
+    hold_lone_sync,
+    queue_full,
+    room_to_send,
+    stall_of,
+    watch_idle,
+)
 from motor_driver.bus.connect import is_kernel_bus
 from motor_driver.bus.cyclic import DaemonCyclicTask
 from motor_driver.bus.traffic import BusStats, ForeignTraffic
@@ -46,6 +56,11 @@ logger = logging.getLogger(__name__)
 NOTIFIER_TIMEOUT_S = 0.1
 #: Host heartbeats that could not be sent in a row (their periods) before the bus counts as lost.
 SEND_FAILING_BEATS = 3
+#: The longest the host heartbeat waits for the bus's send lock. A frame's write holds it for tens
+#: of microseconds; longer is a write blocked (at most SEND_STALL_S, adapters) or its thread
+#: starved: the beat is then skipped, tried again next period, and the supervisor's loop (every
+#: bus's heartbeat) never waits behind one bus's writer.
+BEAT_LOCK_S = 0.01
 RECONNECT_MIN_S = 0.2
 RECONNECT_MAX_S = 5.0
 
@@ -251,8 +266,9 @@ class BusHandle:
         self.start_sync()
 
     def _sync_failed(self, exc: Exception) -> bool:
-        """The SYNC thread could not send (bus gone): stop it; the supervisor says the loss and reconnects."""
-        logger.info("bus %s: SYNC stopped: %s", self.name, brief_error(exc))
+        """The SYNC thread could not send (bus gone, or its write blocked: :func:`stall_of`): stop it;
+        the supervisor says the loss and reconnects."""
+        logger.info("bus %s: SYNC stopped: %s", self.name, stall_of(self.bus, exc) or brief_error(exc))
         return False
 
     def stop_sync(self) -> None:
@@ -263,12 +279,22 @@ class BusHandle:
 
     def beat(self, host_node_id: int) -> str | None:
         """One host heartbeat (NMT state operational), sent from the supervisor loop; why it could
-        not be sent, or None."""
+        not be sent, or None. It never waits on this bus: the send lock is waited for at most
+        BEAT_LOCK_S, and a socket that would block (the server not reading) is not written."""
+        lock = self.network.send_lock  # one writer of the socket at a time (RPDOs, SDO, SYNC)
         try:
             beat = can.Message(arbitration_id=FunctionCode.HEARTBEAT + host_node_id, data=bytes([NmtState.OPERATIONAL]),
                                is_extended_id=False)
-            with self.network.send_lock:  # one writer of the socket at a time (RPDOs, SDO, SYNC)
+            if not lock.acquire(timeout=BEAT_LOCK_S):
+                return (stall_of(self.bus) or f"the bus's send lock stayed held over {BEAT_LOCK_S * 1000:.0f} ms"
+                        " (a write blocked, or its thread starved)")
+            try:
+                stalled = stall_of(self.bus)
+                if stalled or not room_to_send(self.bus):
+                    return stalled or "the server is not reading (the connection's buffer is full); heartbeat not sent"
                 self.bus.send(beat)
+            finally:
+                lock.release()
             self.host_beats += 1
             if self.recorder is not None:
                 self.recorder.record_sent(self.name, beat)
@@ -276,7 +302,7 @@ class BusHandle:
             logger.debug("bus %s: host heartbeat not sent: %s", self.name, err)
             if queue_full(err):  # counted with the network's (not retried: this loop never waits)
                 self.network.count_queue_full()
-            return brief_error(err)
+            return stall_of(self.bus, err) or brief_error(err)
         return None
 
     def beats_sent(self) -> int:

@@ -18,7 +18,7 @@ import can
 
 from can_config import RoverConfig
 from can_config.errors import BusLostError, ConfigError, MotorError
-from motor_driver.bus.adapters import connection_closed
+from motor_driver.bus.adapters import connection_closed, stall_of
 from motor_driver.bus.connect import open_bus
 from motor_driver.bus.cyclic import DaemonCyclicTask
 from motor_driver.bus.handle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
@@ -101,9 +101,10 @@ class BusSupervision:
                 self.faults.failed("supervisor", f"bus {name}", err)
 
     def _lost_why(self, name: str, handle: BusHandle, rt: BusRecord, now: float) -> str:
-        """Why the bus counts as lost now ('' while it does not): its receive thread failed, the
-        server closed the connection, an error frame that loses it, sends that keep failing, or
-        every drive on it lost and nothing at all received for a consumer time."""
+        """Why the bus counts as lost now ('' while it does not): a write to it blocked (the server
+        stopped reading), its receive thread failed, the server closed the connection, an error
+        frame that loses it, sends that keep failing, or every drive on it lost and nothing at all
+        received for a consumer time."""
         exc = handle.network.notifier.exception if handle.network.notifier else None
         drives = [d for d in self.drives.values() if d.config.bus == name]
         if handle.stats.frames != rt.last_frames:
@@ -112,6 +113,9 @@ class BusSupervision:
         timeout = max((d.config.heartbeat_timeout_s for d in drives), default=1.0)
         losing = self._bus_error(name, handle, rt)
         failing = rt.send_failing
+        stalled = stall_of(handle.bus)  # before the rest: its connection given up reads as closed too
+        if stalled:
+            return stalled
         if exc is not None:
             return f"receive failed: {brief_error(exc)}"
         if connection_closed(handle.bus):
