@@ -150,3 +150,58 @@ def test_enable_waits_until_a_guarded_drive_answers_guards(tmp_path: Path, monke
         assert runner.call(lambda: sim_drive.state) != SimState.OPERATION_ENABLED
         enable_letting_go(drive, held)
         assert runner.call(lambda: sim_drive._guarded_at) is not None and drive.cache.state is State.OPERATION_ENABLED
+
+
+def guarded_config(tmp_path: Path, channel: str, **drive: object) -> tuple[Path, object]:
+    eds = guarded_generic_eds(tmp_path / "guarded.eds")
+    return eds, parse_config({"buses": [{"name": "can0", "interface": "virtual", "channel": channel}],
+                              "drives": [{"name": "joint1", "node_id": 1, "eds": str(eds), "host_watch": "guarding",
+                                          **drive}]}, source=tmp_path / "rover.yaml")
+
+
+@pytest.mark.parametrize("index", [OD.GUARD_TIME, OD.LIFE_TIME_FACTOR])
+def test_a_config_sdo_entry_cannot_turn_a_guarded_drives_watch_off(tmp_path: Path, index: int) -> None:
+    """0x100D = 0 in the config's ``sdo:`` list was written after the host watch and turned it off
+    (life guarding stops at a factor of 0), the drive then armed and left moving when the host
+    fell silent (an independent review's finding). 0x100C and 0x100D are the driver's, as 0x1016 is:
+    the boot refuses the entry, naming it and what to set instead."""
+    channel = f"guard-sdo-{index:X}-{tmp_path.name}"
+    eds, config = guarded_config(tmp_path, channel, sdo=[{"index": index, "value": 0}])
+    sim_drive = SimulatedDrive(1, load_drive_od(eds, 1))
+    with can.Bus(interface="virtual", channel=channel) as sim_bus, DriveSimulator(sim_bus, [sim_drive]) as runner, \
+            MotorDriver(config) as driver:  # type: ignore[arg-type]
+        runner.start()
+        with pytest.raises(MotorError, match=rf"0x{index:04X}.*guarded drive watches the host.*heartbeat_ms"):
+            driver.start()
+        assert runner.call(lambda: sim_drive.state) != SimState.OPERATION_ENABLED
+
+
+@pytest.mark.parametrize("allowed", [False, True])
+def test_a_guard_setting_the_drive_did_not_keep_refuses_enable(tmp_path: Path, allowed: bool) -> None:
+    """A drive that keeps another life time factor than the one written (0: guarding off) was
+    said FAIL by the boot's safety check and armed all the same. The watch read back wrong counts
+    as no watch: enable is refused naming what was read, nothing sent; allow_no_host_watch
+    overrides, as it does for a drive without one."""
+    channel = f"guard-kept-{allowed}-{tmp_path.name}"
+    eds, config = guarded_config(tmp_path, channel, allow_no_host_watch=allowed)
+    sim_drive = SimulatedDrive(1, load_drive_od(eds, 1))
+    write = sim_drive.store.write
+
+    def keeps_zero(index: int, subindex: int, raw: bytes) -> None:
+        write(index, subindex, bytes(len(raw)) if index == OD.LIFE_TIME_FACTOR else raw)
+
+    sim_drive.store.write = keeps_zero  # type: ignore[method-assign]
+    with can.Bus(interface="virtual", channel=channel) as sim_bus, DriveSimulator(sim_bus, [sim_drive]) as runner, \
+            MotorDriver(config) as driver:  # type: ignore[arg-type]
+        runner.start()
+        driver.start()
+        drive = driver.drive("joint1")
+        assert [c.check for c in drive.boot.safety if c.status not in ("pass", "n/a")] == ["host watch (node guarding)"]
+        if allowed:
+            drive.enable()
+            assert drive.cache.state is State.OPERATION_ENABLED
+            return
+        with pytest.raises(MotorError, match=r"enable refused: its host watch read back wrong after boot"
+                                             r" \(0x100C/0x100D is 100 ms x 0"):
+            drive.enable()
+        assert runner.call(lambda: sim_drive.state) != SimState.OPERATION_ENABLED

@@ -124,7 +124,7 @@ def test_a_write_to_a_server_that_stopped_reading_gives_the_connection_up_and_sa
 
 
 def test_the_host_heartbeat_never_waits_on_the_bus(deaf: tuple[DeafServer, BusHandle]) -> None:
-    server, handle = deaf
+    _, handle = deaf
     said: list[str | None] = []
 
     def beat_on_a_thread() -> str | None:

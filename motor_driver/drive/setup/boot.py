@@ -277,6 +277,9 @@ class Boot:
             if check.failed:
                 logger.error("node %d (%s): safety check failed: %s: %s is %s, expected %s", self.node_id,
                              self.name, check.check, check.object, check.actual, check.expected)
+            if check.failed and check.check.startswith("host watch"):  # what was written did not hold: not armed
+                self._watch.read_back_wrong(f"its host watch read back wrong after boot ({check.object} is {check.actual},"
+                                            f" expected {check.expected}: the drive refused or changed the values)")
 
     def _write_stamp(self) -> None:
         """Where the drive has 0x1020 (CiA 301 verify configuration) to write: a stamp, the

@@ -128,6 +128,16 @@ class HostWatch:
             logger.warning("node %d (%s): %s; it will not be enabled (allow_no_host_watch: true overrides)",
                            self.node_id, self.name, self.host_watch_problem)
 
+    def read_back_wrong(self, why: str) -> None:
+        """Boot's safety check: the watch written did not hold (read back otherwise): the drive
+        counts as not watching the host, and enable is refused as for one that cannot (a drive
+        already without a watch keeps the reason it has)."""
+        if self.host_watch is None:
+            return
+        self.host_watch, self.host_watch_problem = None, why
+        logger.warning("node %d (%s): %s; it will not be enabled (allow_no_host_watch: true overrides)",
+                       self.node_id, self.name, why)
+
     def not_watching_yet(self) -> str:
         """Why the drive told to watch the host is not watching it yet, and what helps ('' once it
         is). CiA 301 starts a heartbeat consumer at the first heartbeat it hears after its entry
