@@ -152,8 +152,11 @@ def _parse_drive(where: Where, prefix: str, raw: Any, buses: list[BusConfig], ba
         raise where.fail(prefix + "node_id", f"node id {drive.node_id} is the host's own id on bus {bus!r}"
                          f" (host_node_id, default 127); give the drive another id or set the bus's"
                          " host_node_id to a free one.")
-    if drive.host_timeout_s is not None and drive.host_timeout_s <= bus_cfg.host_heartbeat_s:
-        raise where.fail(prefix + "host_timeout_ms", f"got {drive.host_timeout_s * 1000:g}; it must be"
+    # judged as the drive holds it (0x1016: whole milliseconds): 50.4 against a 50 ms heartbeat was 50
+    timeout_ms = None if drive.host_timeout_s is None else drive.host_timeout_s * 1000
+    if timeout_ms is not None and round(timeout_ms) <= bus_cfg.host_heartbeat_s * 1000:
+        held = "" if round(timeout_ms) == timeout_ms else f", which the drive holds as {round(timeout_ms)} ms"
+        raise where.fail(prefix + "host_timeout_ms", f"got {timeout_ms:g}{held}; it must be"
                          f" longer than the bus's host_heartbeat_ms ({bus_cfg.host_heartbeat_s * 1000:g}),"
                          " typically 3x.")
     return drive
@@ -166,6 +169,14 @@ def _parse_drive_system(where: Where, raw: Any, known: set[str]) -> DriveSystemC
             if name not in known:
                 raise where.fail(f"drive_system.{side}", f"names drive {name!r}, which is not"
                                  f" configured; configured drives: {sorted(known)}.")
+        twice = sorted({name for name in values[side] if list(values[side]).count(name) > 1})
+        if twice:  # its speed sent twice a tick, its travel counted twice in the odometry
+            raise where.fail(f"drive_system.{side}", f"names {', '.join(map(repr, twice))} more than once; name each"
+                             " wheel once.")
+    both = sorted(set(values["left"]) & set(values["right"]))
+    if both:  # told the left and the right speed each tick (opposite in a spin), counted on both sides
+        raise where.fail("drive_system.right", f"names {', '.join(map(repr, both))}, also on the left; a wheel is on"
+                         " one side: remove it from the other.")
     return DriveSystemConfig(**values)
 
 

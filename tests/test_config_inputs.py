@@ -137,3 +137,30 @@ def test_check_names_a_missing_eds_and_an_unknown_wheel(tmp_path: Path) -> None:
                       " max_speed_m_s: 1.0}\n")
     run = check("--config", str(config))
     assert run.returncode == 2 and "'x'" in run.stderr, run.stderr
+
+
+@pytest.mark.parametrize(("left", "right", "said"), [("[m, n]", "[m]", "drive_system.right: names 'm', also on the left"),
+                                                     ("[m, m]", "[n]", "drive_system.left: names 'm' more than once"),
+                                                     ("[m]", "[n, n]", "drive_system.right: names 'n' more than once")])
+def test_check_refuses_a_wheel_on_both_sides_or_twice(tmp_path: Path, left: str, right: str, said: str) -> None:
+    """A wheel on both sides was told the left and the right speed every tick (opposite in a
+    spin) and counted on both sides by the odometry; one named twice, its speed sent twice and
+    its travel counted twice (an independent review's finding)."""
+    config = tmp_path / "rover.yaml"
+    config.write_text(BUS + "drives: [{name: m, node_id: 1, counts_per_rev: 4096}, {name: n, node_id: 2,"
+                      " counts_per_rev: 4096}]\n"
+                      f"drive_system: {{left: {left}, right: {right}, track_width_m: 0.5, wheel_radius_m: 0.1,"
+                      " max_speed_m_s: 1.0}\n")
+    run = check("--config", str(config))
+    assert run.returncode == 2 and said in run.stderr and run.stderr.count("\n") == 1, run.stderr
+
+
+def test_a_host_timeout_is_judged_in_the_whole_milliseconds_the_drive_holds(tmp_path: Path) -> None:
+    """host_timeout_ms 50.4 beside the default 50 ms host heartbeat passed as longer, and the drive
+    held 50 ms (0x1016 keeps whole milliseconds): it stopped at any jitter (a review's finding)."""
+    config = tmp_path / "rover.yaml"
+    config.write_text(BUS + "drives: [{name: m, node_id: 1, counts_per_rev: 4096, host_timeout_ms: 50.4}]\n")
+    run = check("--config", str(config))
+    assert run.returncode == 2 and "host_timeout_ms: got 50.4, which the drive holds as 50 ms" in run.stderr, run.stderr
+    config.write_text(BUS + "drives: [{name: m, node_id: 1, counts_per_rev: 4096, host_timeout_ms: 51}]\n")
+    assert check("--config", str(config)).returncode == 0

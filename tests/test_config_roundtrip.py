@@ -79,14 +79,14 @@ def configs(draw: st.DrawFn) -> dict[str, Any]:
         drive["heartbeat_timeout_ms"] = draw(st.floats(max(period * 1.001, 20.0), 60_000.0))  # longer than the period
         vmax = drive.get("max_velocity_deg_s", 360.0)
         drive["profile_velocity_deg_s"] = draw(st.floats(0.0, vmax, exclude_min=True))
-        drive["host_timeout_ms"] = draw(st.none() | st.floats(max(20.0, host_ms * 1.01), 65_535.0))
+        drive["host_timeout_ms"] = draw(st.none() | st.floats(max(20.0, host_ms + 1.0), 65_535.0))
         drive["identity"] = draw(section(IDENTITY_FIELDS, set()))
         drive["sim"] = draw(section(SIM_FIELDS, set()))
         drive["sdo"] = draw(st.lists(section(SDO_FIELDS, {"index", "value"}).map(lambda s: s | {"index": 0x2000}).flatmap(
             lambda s: value_of(SDO_FIELDS["value"]).map(lambda v: s | {"value": v})), max_size=2))
         drives.append(drive)
     out: dict[str, Any] = {"buses": [bus], "drives": drives, "recorder": draw(section(RECORDER_FIELDS))}
-    if draw(st.booleans()):
+    if len(drives) > 1 and draw(st.booleans()):  # a wheel is on one side only
         out["drive_system"] = draw(section(DRIVE_SYSTEM_FIELDS)) | {"left": [drives[0]["name"]],
                                                                     "right": [drives[-1]["name"]]}
     return out
