@@ -142,6 +142,24 @@ def test_recordings_of_an_unknown_format_are_refused_before_the_bus_opens(tmp_pa
     assert result.returncode == 0 and "heartbeat" in result.stdout.lower(), result.stdout
 
 
+@pytest.mark.parametrize(("args", "name", "what"), [(["step-test", "1", "--step", "10", "--out"], "x", "--out"),
+                                                    (["record"], "x.asc", "recording"),
+                                                    (["record"], "x.mcap", "recording")])
+def test_an_output_path_that_cannot_be_written_is_refused_before_the_bus_opens(
+        tmp_path: Path, args: list[str], name: str, what: str) -> None:
+    """``step-test --out afile/x`` enabled the drive, stepped it and then lost the measurement to
+    the path (exit 1, "[Errno 17] File exists", the argument unnamed); ``record`` opened the bus
+    first too (a review's finding). Refused first, naming the argument: the bus here is a port
+    where nothing listens, which the old order reached and said."""
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    target = str(afile / name)
+    result = run(*args, target, "-i", "socketcand", "-c", "can0", "--bus-kwargs", "host=127.0.0.1", "port=1")
+    assert result.returncode == 2, result.stderr
+    assert f"{what} {target}" in result.stderr and "is a file, not a folder" in result.stderr, result.stderr
+    assert "not reachable" not in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
 def test_a_key_given_twice_in_a_config_is_refused_with_both_lines(tmp_path: Path) -> None:
     config = tmp_path / "rover.yaml"
     config.write_text("buses:\n  - {name: can0, interface: virtual, channel: x}\ndrives:\n"

@@ -9,11 +9,13 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import re
 import sys
 import time
 from collections.abc import Collection, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import can
@@ -48,6 +50,26 @@ class CliError(RovercanError):
 
 
 # ------------------------------------------------------------------------------ shared helpers
+def output_file(path: str | Path, what: str) -> Path:
+    """A file the command writes at its end, checked before it opens a bus or moves a motor (a
+    step test moved the motor and then lost its measurement to a bad ``--out``): its folder made
+    now, as the write would, and writable; the path not a folder. ``what`` names the argument."""
+    out = Path(path)
+    folder = out.parent
+    if folder.exists() and not folder.is_dir():
+        raise ConfigError(f"{what} {path}: {folder} is a file, not a folder; give a path in a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"{what} {path}: its folder {folder} cannot be made ({err.strerror}); give a path in a"
+                          " writable folder") from err
+    if out.is_dir():
+        raise ConfigError(f"{what} {path}: is a folder; give a file's path")
+    if not os.access(folder, os.W_OK):
+        raise ConfigError(f"{what} {path}: folder {folder} is not writable; give a path in a writable folder")
+    return out
+
+
 def add_bus_args(parser: argparse.ArgumentParser) -> None:
     can.cli.add_bus_arguments(parser)
     parser.add_argument("--timeout", type=real(0.1, 600), default=CLI_CONNECT_TIMEOUT_S, metavar="S",

@@ -22,7 +22,16 @@ from can_config.errors import CommandRejected, ConfigError
 from can_config.objects import SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.follow.trajectory import trapezoid
 from rovercan.argtypes import real
-from rovercan.bench.common import CliError, add_bus_args, add_drive_args, add_json, add_master_flags, bench_driver, emit
+from rovercan.bench.common import (
+    CliError,
+    add_bus_args,
+    add_drive_args,
+    add_json,
+    add_master_flags,
+    bench_driver,
+    emit,
+    output_file,
+)
 
 if TYPE_CHECKING:
     from motor_driver.drive import Drive, DriveState
@@ -287,6 +296,9 @@ def _plot_step(png: Path, node_id: int, step: float, metrics: dict[str, Any], ts
 
 
 def cmd_step_test(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    for suffix in (".png", ".json"):  # before the motor moves: a measurement is not lost to its path
+        output_file(out.with_suffix(suffix), "--out")
     with bench_driver(args, args.node) as drive:
         node_id = drive.node_id
         if drive.config.is_continuous and abs(args.step) >= 180:
@@ -321,8 +333,6 @@ def cmd_step_test(args: argparse.Namespace) -> int:
     metrics.update({"step_deg": args.step, "start_deg": round(start, 3),
                     "profile_velocity_deg_s": drive.config.profile_velocity_deg_s,
                     "profile_acceleration_deg_s2": drive.config.profile_acceleration_deg_s2})
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     _plot_step(out.with_suffix(".png"), node_id, args.step, metrics, ts, (setpoint, angle, velocity, torque))
     out.with_suffix(".json").write_text(json.dumps(metrics, indent=2) + "\n")
     emit(args, metrics, f"step test node {node_id} -> {out.with_suffix('.png')}")

@@ -25,7 +25,7 @@ from can_config.objects import OD, STRUCT_FORMAT
 from motor_driver.process.stop import StopSignal
 from motor_driver.recording.files import read_recording
 from rovercan.argtypes import real, whole
-from rovercan.bench.common import add_bus_args, add_json, emit, open_bus, receive
+from rovercan.bench.common import add_bus_args, add_json, emit, open_bus, output_file, receive
 from rovercan.decode import PdoField, PdoLayouts, candump_line, decode, node_of
 
 logger = logging.getLogger(__name__)
@@ -104,6 +104,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     from rovercan.bench.views import open_buses, read_buses, record_mcap
 
     if Path(args.file).suffix.lower() == ".mcap":
+        output_file(args.file, "recording")
         return record_mcap(args)
     check_recording_target(args.file)
     buses = open_buses(args)
@@ -133,6 +134,7 @@ def check_recording_target(path: str) -> None:
     if suffix not in writers:
         raise ConfigError(f"{path}: {suffix or 'a file without suffix'} is not a format python-can records;"
                           f" use one of {', '.join(sorted(writers))}")
+    output_file(path, "recording")
 
 
 def is_command_frame(msg: can.Message) -> bool:
