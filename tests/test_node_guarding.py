@@ -13,6 +13,7 @@ import threading
 from pathlib import Path
 
 import can
+import canopen
 import pytest
 
 from can_config import GENERIC_EDS, load_drive_od, parse_config, with_bus_overrides
@@ -205,3 +206,29 @@ def test_a_guard_setting_the_drive_did_not_keep_refuses_enable(tmp_path: Path, a
                                              r" \(0x100C/0x100D is 100 ms x 0"):
             drive.enable()
         assert runner.call(lambda: sim_drive.state) != SimState.OPERATION_ENABLED
+
+
+def test_safety_check_judges_a_guarded_drive_by_its_guard_settings(tmp_path: Path) -> None:
+    """``rovercan safety-check`` judged every drive by 0x1016: a correctly guarded drive failed
+    "host watch: no 0x1016" and "drive heartbeat: expected 100 ms, got 0" (a review's finding),
+    and a guard turned off would have gone unseen among those. Read from the bus by a network of
+    its own, beside the driver that booted the drive, as the command reads it."""
+    from rovercan.bench.checks import _drive_safety_rows
+
+    channel = f"guard-check-{tmp_path.name}"
+    eds, config = guarded_config(tmp_path, channel)
+    sim_drive = SimulatedDrive(1, load_drive_od(eds, 1))
+    with can.Bus(interface="virtual", channel=channel) as sim_bus, DriveSimulator(sim_bus, [sim_drive]) as runner, \
+            MotorDriver(config) as driver, can.Bus(interface="virtual", channel=channel) as tool_bus:  # type: ignore[arg-type]
+        runner.start()
+        driver.start()
+        network = canopen.Network(tool_bus)
+        network.connect()
+        try:
+            rows = {r["check"]: r for r in _drive_safety_rows(network, config.drives[0], config.buses[0])}  # type: ignore[attr-defined]
+        finally:
+            network.disconnect()
+    guard_ms, factor = guard_settings(config.drives[0])  # type: ignore[attr-defined]
+    assert rows["host watch (node guarding)"]["status"] == "pass", rows
+    assert rows["host watch (node guarding)"]["actual"] == f"{guard_ms} ms x {factor}"
+    assert "host watch" not in rows and all(r["status"] in ("pass", "n/a") for r in rows.values()), rows

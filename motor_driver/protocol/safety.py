@@ -26,7 +26,10 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from canopen.objectdictionary import ObjectDictionary
+
 from can_config.config import ON_HOST_LOSS, DriveConfig
+from can_config.eds import has_object
 from can_config.objects import OD
 from motor_driver.protocol.units import Scale
 
@@ -50,6 +53,17 @@ class SafetyCheck:
 
 #: Reads an object from the drive: its value, or None when the drive does not have it.
 Reader = Callable[[int, int], "int | None"]
+
+
+def watch_mode(cfg: DriveConfig, od: ObjectDictionary) -> str:
+    """How a drive watches the host: ``heartbeat`` (0x1016) or ``guarding`` (0x100C/0x100D);
+    ``host_watch: auto`` takes the heartbeat consumer where the drive has one. Guarding happens
+    only on a bus that carries remote frames (the driver's and ``rovercan safety-check``'s rule)."""
+    mode = cfg.host_watch
+    if mode == "auto":
+        guardable = has_object(od, OD.GUARD_TIME) and has_object(od, OD.LIFE_TIME_FACTOR)
+        mode = "guarding" if guardable and not has_object(od, OD.CONSUMER_HEARTBEAT_TIME, 1) else "heartbeat"
+    return mode
 
 
 def guard_settings(cfg: DriveConfig) -> tuple[int, int]:

@@ -89,8 +89,10 @@ def _host_heartbeat(bus: can.BusABC, bus_cfg: BusConfig, listen_s: float) -> Saf
 
 
 def _drive_safety_rows(network: canopen.Network, cfg: DriveConfig, bus_cfg: BusConfig) -> list[dict[str, Any]]:
-    """One drive's safety objects read back by SDO and judged by the driver's rules."""
-    from motor_driver.protocol.safety import judge
+    """One drive's safety objects read back by SDO and judged by the driver's rules: a drive the
+    driver would guard (:func:`watch_mode`, a bus with remote frames) by its guard settings."""
+    from motor_driver.bus.connect import carries_remote_frames
+    from motor_driver.protocol.safety import judge, watch_mode
     from motor_driver.protocol.units import UNIT_OBJECTS, scale_from_objects
 
     rows: list[dict[str, Any]] = []
@@ -111,7 +113,8 @@ def _drive_safety_rows(network: canopen.Network, cfg: DriveConfig, bus_cfg: BusC
     scale, _ = scale_from_objects(cfg.counts_per_rev, cfg.gear_ratio, cfg.rated_torque_nm, objects,
                                   invert=cfg.invert, offset_deg=cfg.offset_deg)
     subs = consumer_subs(od)
-    for check in judge(cfg, bus_cfg.host_node_id, scale, read, consumer_subs=subs):
+    guarding = watch_mode(cfg, od) == "guarding" and carries_remote_frames(network.bus)
+    for check in judge(cfg, bus_cfg.host_node_id, scale, read, consumer_subs=subs, guarding=guarding):
         rows.append({"node": cfg.node_id, "drive": cfg.name, **vars(check)})
     return rows
 

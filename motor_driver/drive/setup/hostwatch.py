@@ -48,7 +48,7 @@ from motor_driver.drive.ledger import DriveRecord, NmtLedger
 from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.protocol.cia402 import Command, State
-from motor_driver.protocol.safety import guard_settings
+from motor_driver.protocol.safety import guard_settings, watch_mode
 
 logger = logging.getLogger(__name__)
 
@@ -187,12 +187,8 @@ class HostWatch:
 
     def watch_mode(self) -> str:
         """How this drive watches the host: ``heartbeat`` (0x1016) or ``guarding`` (0x100C/0x100D);
-        ``auto`` takes the heartbeat consumer where the drive has one."""
-        mode = self.config.host_watch
-        if mode == "auto":
-            guardable = has_object(self._od, OD.GUARD_TIME) and has_object(self._od, OD.LIFE_TIME_FACTOR)
-            mode = "guarding" if guardable and not has_object(self._od, OD.CONSUMER_HEARTBEAT_TIME, 1) else "heartbeat"
-        return mode
+        ``auto`` takes the heartbeat consumer where the drive has one (:func:`watch_mode`)."""
+        return watch_mode(self.config, self._od)
 
     def _configure_guarding(self) -> None:
         """Node guarding: guard time and life time factor written; the supervisor guards the drive
