@@ -177,6 +177,33 @@ def test_another_send_error_is_not_taken_for_a_full_queue() -> None:
     assert queue_full(OSError(errno.ENOBUFS, "No buffer space available"))
 
 
+def test_python_cans_socketcan_send_on_an_unwritable_socket_is_a_full_queue() -> None:
+    """python-can's SocketCAN ``send`` without a timeout (canopen's) raises "Transmit buffer full",
+    with no errno, when its socket is not writable: the frames queued in the interface hold the
+    socket's send buffer, which with the default txqueuelen of 1000 comes before ENOBUFS. It was
+    not taken for a full queue: no retry, no count, the advice on cabling never said (an
+    independent review's finding). Its send here on a socket filled until it is not writable (no
+    SocketCAN in this kernel; the text is what the check pins)."""
+    from can.interfaces.socketcan.socketcan import SocketcanBus
+
+    ours, peer = socket.socketpair()
+    try:
+        ours.setblocking(False)
+        while True:
+            try:
+                ours.send(bytes(4096))
+            except BlockingIOError:
+                break
+        bus = SocketcanBus.__new__(SocketcanBus)
+        bus.socket, bus.channel = ours, "can0"
+        with pytest.raises(can.CanOperationError) as refused:
+            bus.send(can.Message(arbitration_id=0x201, data=b"\x0f\x00", is_extended_id=False))
+        assert queue_full(refused.value), repr(refused.value)
+    finally:
+        ours.close()
+        peer.close()
+
+
 @given(st.integers(0, 0x7FF), st.booleans(), st.binary(min_size=1, max_size=8),
        st.floats(1_000_000_000, 9_999_999_999))
 def test_only_a_frame_without_data_is_as_short_as_a_sync(can_id: int, extended: bool, data: bytes, stamp: float) -> None:

@@ -596,8 +596,18 @@ TX_QUEUE_FULL_RETRY_S = 0.02
 TX_QUEUE_FULL_PAUSE_S = 0.0005
 
 
+#: python-can's SocketCAN ``send`` (no timeout: canopen's) when the socket is not writable: the
+#: frames waiting in the interface's queue fill the socket's send buffer (half of it, about 100-200
+#: frames) before a queue of the default 1000 refuses one with ENOBUFS. The same full queue, with
+#: no errno: pinned by tests/test_adapters.py against the installed python-can.
+SOCKETCAN_BUFFER_FULL = "Transmit buffer full"
+
+
 def queue_full(err: BaseException) -> bool:
-    """The kernel refused a send because the interface's transmit queue is full (ENOBUFS)."""
+    """The kernel refused a send because the interface's transmit queue is full (ENOBUFS, or a
+    SocketCAN socket not writable for the frames waiting in it: :data:`SOCKETCAN_BUFFER_FULL`)."""
+    if isinstance(err, can.CanOperationError) and err.error_code is None and str(err) == SOCKETCAN_BUFFER_FULL:
+        return True
     code = getattr(err, "error_code", None) if isinstance(err, can.CanError) else getattr(err, "errno", None)
     return code == errno.ENOBUFS or (isinstance(err.__cause__, OSError) and err.__cause__.errno == errno.ENOBUFS)
 
