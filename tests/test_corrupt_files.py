@@ -201,6 +201,19 @@ def test_a_whole_incident_reads(tmp_path: Path) -> None:
     assert code == 0, stderr
 
 
+@pytest.mark.parametrize("kind", ["missing", "folder"])
+def test_an_incident_that_cannot_be_read_is_said_so_not_called_a_bad_summary(tmp_path: Path, kind: str) -> None:
+    """A missing .json (or a folder) was "not an incident summary (it nests deeper, or holds
+    longer numbers, ...)": the file reader's own error, a ValueError too, was caught as the
+    parser's (a review's finding)."""
+    path = tmp_path / "nosuch.json"
+    if kind == "folder":
+        path.mkdir()
+    for argv in (["incident", str(path)], ["sim", "--scenario-from-log", str(path)]):
+        code, err = cli(*argv)
+        assert code == 2 and str(path) in err and "nests deeper" not in err, err
+
+
 def test_a_wrong_typed_field_is_named(tmp_path: Path) -> None:
     json_path, summary = incident(tmp_path)
     summary["events"][0]["code"] = "0x2310"

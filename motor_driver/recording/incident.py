@@ -40,6 +40,8 @@ def load_incident(path: Path | str) -> dict[str, Any]:
                                             max_bytes=SUMMARY_MAX_BYTES))
     except json.JSONDecodeError as err:
         raise ConfigError(f"{json_path}: not an incident summary (invalid JSON: {err.msg}, line {err.lineno})") from err
+    except ConfigError:  # the file's own reading said why (missing, a folder, binary): a ValueError too
+        raise
     except (RecursionError, ValueError) as err:  # nesting past the parser's depth; a 5,000-digit number
         raise ConfigError(f"{json_path}: not an incident summary (it nests deeper, or holds longer numbers, than"
                           " any summary the flight recorder writes); give a .json the flight recorder wrote") from err
