@@ -127,6 +127,13 @@ def _parse_buses(where: Where, raw_buses: Any) -> list[BusConfig]:
     if not isinstance(raw_buses, list) or not raw_buses:
         raise where.fail("buses", "expected a non-empty list of buses.")
     buses = [BusConfig(**build(where, f"buses[{i}].", raw, BusConfig)) for i, raw in enumerate(raw_buses)]
+    for i, bus in enumerate(buses):
+        # python-can's own arguments from the bus's keys: in kwargs they replaced them unseen (a
+        # channel there slipped past every check of the bus's channel)
+        shadowed = sorted(set(bus.kwargs) & {"interface", "channel", "bitrate"})
+        if shadowed:
+            raise where.fail(f"buses[{i}].kwargs", f"sets {', '.join(shadowed)}, which are the bus's own keys; give"
+                             f" {' and '.join(shadowed)} as keys of the bus, not in kwargs.")
     names = [b.name for b in buses]
     if len(set(names)) != len(names):
         raise where.fail("buses", f"bus names must be unique; got {names}.")

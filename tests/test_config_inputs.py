@@ -4,6 +4,7 @@ naming the file, fast, and never blocks, exhausts memory or raises outside the p
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -17,7 +18,7 @@ from can_config.errors import ConfigError, EdsError
 from can_config.textfile import TEXT_MAX_BYTES, YAML_MAX_DEPTH
 from virtual_can.scenario import load_scenario
 
-from .conftest import REPO
+from .conftest import REPO, guarded_generic_eds
 
 BUS = "buses: [{name: can0, interface: socketcand, channel: can0}]\n"
 
@@ -164,3 +165,25 @@ def test_a_host_timeout_is_judged_in_the_whole_milliseconds_the_drive_holds(tmp_
     assert run.returncode == 2 and "host_timeout_ms: got 50.4, which the drive holds as 50 ms" in run.stderr, run.stderr
     config.write_text(BUS + "drives: [{name: m, node_id: 1, counts_per_rev: 4096, host_timeout_ms: 51}]\n")
     assert check("--config", str(config)).returncode == 0
+
+
+def test_check_says_what_the_boot_would_refuse(tmp_path: Path) -> None:
+    """``rovercan check`` said "valid" for an ``sdo:`` entry on an object the driver owns (the boot
+    refused it, exit 1), took a channel given in a bus's kwargs (it replaced the bus's channel,
+    past the check of two buses on one channel), and called a guarded drive on socketcand "node
+    guarding" where the driver arms nothing (a review's findings)."""
+    config = tmp_path / "rover.yaml"
+    config.write_text(BUS + "drives: [{name: m, node_id: 1, counts_per_rev: 4096, sdo: [{index: 0x6040, value: 15}]}]\n")
+    run = check("--config", str(config))
+    assert run.returncode == 2 and "sdo entry 0x6040:0 is the driver's own" in run.stderr, run.stderr
+    config.write_text("buses: [{name: can0, interface: socketcand, channel: can0, kwargs: {channel: can1}}]\n"
+                      "drives: [{name: m, node_id: 1, counts_per_rev: 4096}]\n")
+    run = check("--config", str(config))
+    assert run.returncode == 2 and "buses[0].kwargs: sets channel, which are the bus's own keys" in run.stderr, run.stderr
+    eds = guarded_generic_eds(tmp_path / "guarded.eds")
+    for interface, says in (("socketcand", "NONE: node guarding needs remote frames"),
+                            ("virtual", "node guarding (0x100C/0x100D)")):
+        config.write_text(f"buses: [{{name: can0, interface: {interface}, channel: can0}}]\n"
+                          f"drives: [{{name: m, node_id: 1, counts_per_rev: 4096, eds: {eds}}}]\n")
+        run = check("--config", str(config), "--json")
+        assert run.returncode == 0 and says in json.loads(run.stdout)[0]["host watch"], run.stdout + run.stderr

@@ -228,23 +228,44 @@ def served_text(config: RoverConfig) -> str:
     return f"rovercan sim --config serves it as {len(served)} server(s) on 127.0.0.1: {servers}"
 
 
+def _host_watch_text(drive: DriveConfig, od: ObjectDictionary, bus: BusConfig) -> str:
+    """How the driver will have ``drive`` watch the host, by its own rule (:func:`watch_mode`;
+    guarding only where the bus carries remote frames), or why nothing will."""
+    from can_config.eds import has_object
+    from motor_driver.protocol.safety import watch_mode
+
+    if watch_mode(drive, od) == "guarding":
+        if not (has_object(od, OD.GUARD_TIME) and has_object(od, OD.LIFE_TIME_FACTOR)):
+            why = "host_watch: guarding, but the drive has no 0x100C/0x100D"
+        elif bus.interface == "socketcand":
+            why = "node guarding needs remote frames, which socketcand does not carry"
+        else:
+            return "node guarding (0x100C/0x100D)"
+    elif has_object(od, OD.CONSUMER_HEARTBEAT_TIME, 1):
+        return "heartbeat consumer (0x1016)"
+    else:
+        why = "no heartbeat consumer (0x1016)"
+    return f"none: {why} (allow_no_host_watch)" if drive.allow_no_host_watch else f"NONE: {why}; it will not be enabled"
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     """A config checked without a bus: parsed, each drive's EDS read (with the objects the driver
     needs for its host watch), the drive system's wheels known, each bus's planned load. Exit 0,
     or 2 with the first problem (a ConfigError names file, key and what is allowed)."""
-    from can_config.eds import has_object
     from motor_driver.bus.load import MAX_LOAD, plan_load
+    from motor_driver.drive import protected_reason
 
     config = load_config(args.config)
     rows: list[dict[str, Any]] = []
     for drive in config.drives:
+        for setting in drive.sdo:  # the boot refuses them: said here, before any bus
+            reason = protected_reason(setting.index)
+            if reason:
+                raise ConfigError(f"{args.config}: drive {drive.name!r}: sdo entry 0x{setting.index:04X}:{setting.sub}"
+                                  f" is the driver's own: {reason}; remove the entry")
         od = load_drive_od(drive.eds, drive.node_id)  # an EdsError names the file
-        watch = ("heartbeat consumer (0x1016)" if has_object(od, OD.CONSUMER_HEARTBEAT_TIME, 1) and
-                 drive.host_watch != "guarding" else "node guarding (0x100C/0x100D)"
-                 if has_object(od, OD.GUARD_TIME) and has_object(od, OD.LIFE_TIME_FACTOR) else
-                 "none (allow_no_host_watch)" if drive.allow_no_host_watch else "NONE: it will not be enabled")
         rows.append({"bus": drive.bus, "drive": drive.name, "node": drive.node_id, "eds": Path(drive.eds).name,
-                     "host watch": watch})
+                     "host watch": _host_watch_text(drive, od, config.bus(drive.bus))})
     loads = {load.bus: load.load for load in plan_load(config)}
     for bus in config.buses:
         rows.append({"bus": bus.name, "drive": "-", "node": "-", "eds": f"{bus.interface} {bus.channel}",
