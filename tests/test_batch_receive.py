@@ -253,3 +253,51 @@ def test_frames_no_can_bus_carries_are_skipped_and_the_read_s_others_recorded(tm
         ours.close()
         peer.close()
         rig.close()
+
+
+#: Only for a read to fail instead of hanging: the frame is read at once when it passes.
+READ_BOUND_S = 10.0
+
+
+@pytest.mark.parametrize("hold_after_cut", [False, True])
+def test_a_frame_cut_in_two_is_read_whole_at_once_under_the_lone_sync_hold(hold_after_cut: bool) -> None:
+    """With the lone-SYNC hold (SO_RCVLOWAT above a SYNC's text), a TPDO whose last bytes a TCP
+    segment boundary cut off, shorter than that mark, were not read until the next frame (the next
+    SYNC): the frame came a period late, and "nothing unread" was said meanwhile (an independent
+    review's finding). Over real TCP on 127.0.0.1 (a Unix socket pair ignores the mark in select),
+    one select and read at a time, as the receive thread's; the hold set before the cut, or while
+    the frame is cut."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    client = socket.create_connection(listener.getsockname())
+    server, _ = listener.accept()
+    got: list[int] = []
+
+    try:
+        server.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        bus = _socketcand_on(client)
+        reader = getattr(bus, adapters.BATCH_READER_ATTRIBUTE)
+
+        def read_once() -> bool:  # the receive thread's one select and read; its frames taken
+            came = reader.read(READ_BOUND_S)
+            got.extend(frame[0] for frame in reader.frames)
+            reader.frames.clear()
+            return bool(came)
+
+        if not hold_after_cut:
+            assert adapters.hold_lone_sync(bus, True)
+        line = b"< frame 181 1700000000.000000 3706E8030000 >"
+        server.sendall(line[:-8])
+        assert read_once() and reader.rest and got == []  # the first part read, the frame not whole
+        if hold_after_cut:
+            assert adapters.hold_lone_sync(bus, True)
+        server.sendall(line[-8:])  # 8 bytes: below the mark of 33
+        assert read_once() and got == [0x181]
+        server.sendall(b"< frame 080 1700000000.002000  >")  # a lone SYNC's echo waits (the hold holds) ...
+        server.sendall(b"< frame 281 1700000000.002100 0100 >")  # ... for the next frame
+        while len(got) < 3:
+            assert read_once()
+        assert got == [0x181, 0x080, 0x281]
+        assert not reader.lowered and client.getsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT) == reader.hold_mark > 1
+    finally:
+        for sock in (client, server, listener):
+            sock.close()

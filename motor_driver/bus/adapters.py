@@ -247,6 +247,11 @@ class _BatchReader:
         self.on_idle: Callable[[float], None] | None = None
         #: in its ``select``, every frame it read before handed on (:func:`receive_behind`)
         self.waiting = False
+        #: the receive low-water mark :func:`hold_lone_sync` set (1: none), and whether a read left
+        #: part of a frame (the rest of its text may be shorter than the mark): then the mark is 1
+        #: until that frame is whole, or the rest would wait for the next frame (the next SYNC)
+        self.hold_mark = 1
+        self.lowered = False
 
     def read(self, timeout: float | None) -> bool:
         """One ``select`` and one read into :attr:`frames`; False: nothing came within ``timeout``,
@@ -271,6 +276,12 @@ class _BatchReader:
             return False
         got, self.rest = parse_frame_tuples(self.rest + chunk.decode("ascii", "replace"))
         self.frames.extend(got)
+        if self.hold_mark > 1 and bool(self.rest) != self.lowered:  # a frame cut in two, or made whole again
+            self.lowered = bool(self.rest)
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, 1 if self.lowered else self.hold_mark)
+            except OSError:  # closed: the next read says so
+                pass
         return True
 
     def recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -520,13 +531,22 @@ def hold_lone_sync(bus: can.BusABC, hold: bool) -> bool:
     (the TPDOs it asks for, within its period) instead of waking the thread alone, about a third
     of its wake-ups (docs/performance.md). Any frame with data wakes it at once, and so does the
     end of the connection; only a frame without data (SYNC, a remote frame) waits, for the next
-    frame. Without ``hold``: every byte wakes it. Returns False where there is no such socket
-    (other interfaces: nothing to do) or it is closed."""
+    frame. A frame whose text a read cut in two is read whole at once: its batch reader lowers the
+    mark until it is (the rest can be shorter). Without ``hold``: every byte wakes it. Returns
+    False where there is no such socket (other interfaces: nothing to do) or it is closed."""
     sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
     if not isinstance(sock, socket.socket):
         return False
+    mark = SYNC_TEXT_BYTES + 1 if hold else 1
+    reader = getattr(bus, BATCH_READER_ATTRIBUTE, None)
+    if isinstance(reader, _BatchReader):
+        reader.hold_mark = mark
+        if reader.rest:  # a frame cut in two now: the reader raises the mark once it is whole
+            mark, reader.lowered = 1, True
+        else:
+            reader.lowered = False
     try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, SYNC_TEXT_BYTES + 1 if hold else 1)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, mark)
     except OSError:
         return False
     return True
