@@ -22,7 +22,7 @@ import can
 import pytest
 
 from can_config import load_config
-from motor_driver.bus.adapters import SendStalled, stall_of
+from motor_driver.bus.adapters import SendStalled, bound_sends, stall_of
 from motor_driver.bus.connect import open_bus
 from motor_driver.bus.handle import BusHandle
 from motor_driver.drive.ledger import BusRecord
@@ -118,9 +118,50 @@ def test_a_write_to_a_server_that_stopped_reading_gives_the_connection_up_and_sa
     # every later write (another thread's stop) is refused at once, naming the same cause
     with pytest.raises(SendStalled, match="stopped reading"):
         handle.network.send_message(0x000, b"\x02\x00")
-    # the connection's write side was shut: the server reads to the end of the stream, and no
-    # later write ever completed the text of a frame cut in two (nothing follows the stall)
-    assert server.rest_until_end().count(b"<") >= 1
+    # the connection's write side was shut: the server reads to the end of the stream (kept open,
+    # this read would wait for ever), and every frame's text in it is whole but the last, which no
+    # later write completed with the text of another
+    parts = server.rest_until_end().split(b">")
+    assert all(part.strip().startswith(b"<") and part.count(b"<") == 1 for part in parts[:-1] if part.strip())
+    assert parts[-1].count(b"<") <= 1
+
+
+def test_the_bus_own_send_gives_the_connection_up_inside_its_callers_lock(deaf: tuple[DeafServer, BusHandle]) -> None:
+    """python-can's own send (the SYNC thread's, the heartbeat's) under the send lock, as its
+    callers hold it: the stall is recorded and the write side shut before the lock is let go, so
+    no writer waiting for the lock adds to the frame cut in two (an independent review's finding:
+    the SYNC thread's error handler ran after its lock was released)."""
+    _, handle = deaf
+    sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
+    with handle.network.send_lock:
+        with pytest.raises(SendStalled, match="stopped reading"):
+            while True:
+                handle.bus.send(sync)
+        assert "stopped reading" in stall_of(handle.bus)  # given up while the lock is still held
+
+
+def test_a_heartbeat_not_sent_is_tried_again_the_next_period(deaf: tuple[DeafServer, BusHandle], tmp_path: Path) -> None:
+    """A beat skipped (the send lock held a moment) moved the next one a whole heartbeat period
+    on: the drive went two periods without one, and nothing said so. It is tried again at the
+    supervisor's next period. The supervisor's clock is its argument here: nothing is timed."""
+    server, handle = deaf
+    config_file = tmp_path / "rover.yaml"
+    config_file.write_text("buses: [{name: can0, interface: socketcand, channel: can0,"
+                           f" kwargs: {{host: 127.0.0.1, port: {server.port}}}}}]\n"
+                           "drives: [{name: a, node_id: 1, counts_per_rev: 4096}]\n")
+    config = load_config(config_file)
+    watch = BusSupervision(config, {"can0": handle}, None, RateLimitedLog(logging.getLogger(__name__)),
+                           {}, {}, lambda drive: None, lambda event: None)
+    record = watch.bus_records["can0"]
+    watch.beat(1000.0)
+    watch.beat(1000.01)  # from here on a beat every heartbeat period
+    t = record.next_beat
+    assert handle.host_beats == 2 and t == pytest.approx(1000.0 + config.buses[0].host_heartbeat_s)
+    with handle.network.send_lock:  # held a moment longer than the beat waits
+        watch.beat(t)
+    assert handle.host_beats == 2 and record.send_failing is not None
+    watch.beat(t + 0.01)  # the supervisor's next period
+    assert handle.host_beats == 3 and record.send_failing is None
 
 
 def test_the_host_heartbeat_never_waits_on_the_bus(deaf: tuple[DeafServer, BusHandle]) -> None:
@@ -174,8 +215,11 @@ def test_the_supervisor_counts_the_bus_lost_naming_the_stall(
 
 
 def test_a_bus_that_is_not_socketcand_has_no_stall() -> None:
+    """A virtual bus's send is left as it is; a timed-out write's error from elsewhere gives nothing up."""
     bus = can.Bus(interface="virtual", channel="stall-none", receive_own_messages=False)
     try:
+        send = bus.send
+        assert bound_sends(bus).send == send
         assert stall_of(bus, BlockingIOError(11, "Resource temporarily unavailable")) == ""
     finally:
         bus.shutdown()

@@ -94,13 +94,27 @@ class SendStalled(can.CanOperationError):  # type: ignore[misc]
 
 def bound_sends(bus: can.BusABC) -> can.BusABC:
     """A socketcand bus whose socket's writes block at most SEND_STALL_S (SO_SNDTIMEO; its reads
-    are untouched). Other interfaces (python-can's SocketCAN send never blocks) are left as they
-    are. Returns ``bus``."""
+    are untouched), and whose own ``send`` (the SYNC thread's, the host heartbeat's) gives the
+    connection up inside its caller's lock when one did (:func:`stall_of`): a writer waiting for
+    the lock never adds to a frame cut in two. Other interfaces (python-can's SocketCAN send never
+    blocks) are left as they are. Returns ``bus``."""
     sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
-    if isinstance(sock, socket.socket):
-        whole = int(SEND_STALL_S)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO,
-                        struct.pack("ll", whole, round((SEND_STALL_S - whole) * 1e6)))
+    if not isinstance(sock, socket.socket):
+        return bus
+    whole = int(SEND_STALL_S)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, struct.pack("ll", whole, round((SEND_STALL_S - whole) * 1e6)))
+    send = bus.send
+
+    def bounded(msg: can.Message, timeout: float | None = None) -> None:
+        try:
+            send(msg, timeout)
+        except OSError as err:
+            why = stall_of(bus, err)
+            if why:
+                raise SendStalled(why) from err
+            raise
+
+    bus.send = bounded  # type: ignore[method-assign]  # this one bus, as batch_receive does
     return bus
 
 
@@ -247,17 +261,20 @@ class _BatchReader:
         self.on_idle: Callable[[float], None] | None = None
         #: in its ``select``, every frame it read before handed on (:func:`receive_behind`)
         self.waiting = False
-        #: the receive low-water mark :func:`hold_lone_sync` set (1: none), and whether a read left
-        #: part of a frame (the rest of its text may be shorter than the mark): then the mark is 1
-        #: until that frame is whole, or the rest would wait for the next frame (the next SYNC)
+        #: the receive low-water mark asked for (:func:`hold_lone_sync`; 1: none), and the mark the
+        #: socket has: this thread alone sets it, before each wait: 1 while a read left part of a
+        #: frame (the rest of its text may be shorter than the mark, and would wait for the next
+        #: frame, the next SYNC), else the one asked for
         self.hold_mark = 1
-        self.lowered = False
+        self.mark = 1
 
     def read(self, timeout: float | None) -> bool:
         """One ``select`` and one read into :attr:`frames`; False: nothing came within ``timeout``,
         or the stream ended (python-can's 'no frame': :func:`connection_closed` tells)."""
         sock, on_idle = self.sock, self.on_idle
         began = time.monotonic() if on_idle is not None else 0.0  # before: a hold after the wait proves nothing
+        if (mark := 1 if self.rest else self.hold_mark) != self.mark:  # a frame cut in two, whole again, a new hold
+            self._set_mark(mark)
         try:
             self.waiting = True  # set after the last read's frames were handed on, cleared before this read
             ready, _, _ = select.select([sock], [], [], timeout)
@@ -276,13 +293,14 @@ class _BatchReader:
             return False
         got, self.rest = parse_frame_tuples(self.rest + chunk.decode("ascii", "replace"))
         self.frames.extend(got)
-        if self.hold_mark > 1 and bool(self.rest) != self.lowered:  # a frame cut in two, or made whole again
-            self.lowered = bool(self.rest)
-            try:
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, 1 if self.lowered else self.hold_mark)
-            except OSError:  # closed: the next read says so
-                pass
         return True
+
+    def _set_mark(self, mark: int) -> None:
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, mark)
+            self.mark = mark
+        except OSError:  # closed: the read says so
+            pass
 
     def recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         frames, sink = self.frames, self.sink
@@ -531,20 +549,18 @@ def hold_lone_sync(bus: can.BusABC, hold: bool) -> bool:
     (the TPDOs it asks for, within its period) instead of waking the thread alone, about a third
     of its wake-ups (docs/performance.md). Any frame with data wakes it at once, and so does the
     end of the connection; only a frame without data (SYNC, a remote frame) waits, for the next
-    frame. A frame whose text a read cut in two is read whole at once: its batch reader lowers the
-    mark until it is (the rest can be shorter). Without ``hold``: every byte wakes it. Returns
-    False where there is no such socket (other interfaces: nothing to do) or it is closed."""
+    frame. A frame whose text a read cut in two is read whole at once: a batch reader (its
+    receive thread, the socket's mark's one writer) takes the mark asked for at its next wait,
+    and 1 while a frame is cut (the rest can be shorter). Without ``hold``: every byte wakes it.
+    Returns False where there is no such socket (other interfaces: nothing to do) or it is closed."""
     sock = getattr(bus, SOCKETCAND_SOCKET_ATTRIBUTE, None)
     if not isinstance(sock, socket.socket):
         return False
     mark = SYNC_TEXT_BYTES + 1 if hold else 1
     reader = getattr(bus, BATCH_READER_ATTRIBUTE, None)
-    if isinstance(reader, _BatchReader):
+    if isinstance(reader, _BatchReader):  # within its wait's timeout (the notifier's, 0.1 s)
         reader.hold_mark = mark
-        if reader.rest:  # a frame cut in two now: the reader raises the mark once it is whole
-            mark, reader.lowered = 1, True
-        else:
-            reader.lowered = False
+        return sock.fileno() != -1
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, mark)
     except OSError:

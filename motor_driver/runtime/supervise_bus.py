@@ -71,18 +71,22 @@ class BusSupervision:
 
     def beat(self, now: float) -> None:
         """The host heartbeat on every bus that is up, from the supervisor's loop: when the loop
-        stops (the process killed, hung, stopped), the heartbeat stops and the drives stop themselves."""
+        stops (the process killed, hung, stopped), the heartbeat stops and the drives stop themselves.
+        A beat not sent is tried again the next period (about 10 ms), not a heartbeat period later:
+        skipped for a send lock held a moment, it had left the drive a whole period without one."""
         for name, handle in self.handles.items():
             rt = self.bus_records[name]
             if now < rt.next_beat or rt.lost:
                 continue
             bus_cfg = self.config.bus(name)
             failed = handle.beat(bus_cfg.host_node_id)
-            if failed is None:
-                rt.send_failing = None
-            elif rt.send_failing is None:
-                rt.send_failing = (now, failed)
-            if rt.last_beat and now - rt.last_beat > 2 * bus_cfg.host_heartbeat_s:
+            if failed is not None:  # lost once failing long enough (_lost_why)
+                if rt.send_failing is None:
+                    rt.send_failing = (now, failed)
+                continue
+            was_failing, rt.send_failing = rt.send_failing is not None, None
+            # late from the last beat sent; after failed ones the failure is the cause, not starvation
+            if rt.last_beat and not was_failing and now - rt.last_beat > 2 * bus_cfg.host_heartbeat_s:
                 if self.recorder is not None:
                     self.recorder.process_late()
                 self.rate_limited.log(logging.WARNING, ("late", name),
