@@ -172,7 +172,7 @@ def test_a_config_sdo_entry_cannot_turn_a_guarded_drives_watch_off(tmp_path: Pat
     with can.Bus(interface="virtual", channel=channel) as sim_bus, DriveSimulator(sim_bus, [sim_drive]) as runner, \
             MotorDriver(config) as driver:  # type: ignore[arg-type]
         runner.start()
-        with pytest.raises(MotorError, match=rf"0x{index:04X}.*guarded drive watches the host.*heartbeat_ms"):
+        with pytest.raises(MotorError, match=rf"0x{index:04X}.*guarded drive watches the host.*heartbeat_period_ms"):
             driver.start()
         assert runner.call(lambda: sim_drive.state) != SimState.OPERATION_ENABLED
 
@@ -198,7 +198,8 @@ def test_a_guard_setting_the_drive_did_not_keep_refuses_enable(tmp_path: Path, a
         driver.start()
         drive = driver.drive("joint1")
         assert [c.check for c in drive.boot.safety if c.status not in ("pass", "n/a")] == ["host watch (node guarding)"]
-        if allowed:
+        if allowed:  # armed, and said to be armed without a watch, naming what was read
+            assert drive.watch.host_watch is None and "read back wrong" in str(drive.watch.host_watch_problem)
             drive.enable()
             assert drive.cache.state is State.OPERATION_ENABLED
             return

@@ -65,11 +65,11 @@ PROTECTED_OBJECTS: dict[int, str] = {
     OD.ABORT_CONNECTION_OPTION: "it decides what the drive does when the host is gone (on_host_loss in the config)",
     OD.CONSUMER_HEARTBEAT_TIME: "it is how the drive watches the host's heartbeat (the stop when the host dies)",
     **dict.fromkeys((OD.GUARD_TIME, OD.LIFE_TIME_FACTOR), "it is how a guarded drive watches the host (the stop when"
-                    " the host dies; 0 turns it off); set heartbeat_ms and host_timeout_ms in the config"),
+                    " the host dies; 0 turns it off); set heartbeat_period_ms and host_timeout_ms in the config"),
     OD.HOMING_METHOD: "homing moves the motor by it; set homing in the config",
     OD.HOMING_SPEEDS: "homing moves the motor by it; set homing in the config",
     OD.PRODUCER_HEARTBEAT_TIME: "the driver watches the drive's heartbeat at the configured period; a change makes"
-                                " it declare the drive lost, or miss a loss (heartbeat_ms in the config)",
+                                " it declare the drive lost, or miss a loss (heartbeat_period_ms in the config)",
     OD.COB_ID_SYNC: "it moves the SYNC every PDO of the drive runs on",
 }
 

@@ -52,7 +52,7 @@ from motor_driver.process.jobs import cause_of
 from motor_driver.protocol.cia402 import SW, Command, State, decode_state
 from motor_driver.protocol.codec import value_format
 from motor_driver.protocol.pdo import PdoPlan, mapping_writes
-from motor_driver.protocol.safety import SafetyCheck, judge
+from motor_driver.protocol.safety import ALLOWED, FAIL, SafetyCheck, judge
 from motor_driver.protocol.unit_ranges import check_drive_value
 from motor_driver.protocol.units import read_unit_objects, scale_from_objects
 
@@ -277,7 +277,8 @@ class Boot:
             if check.failed:
                 logger.error("node %d (%s): safety check failed: %s: %s is %s, expected %s", self.node_id,
                              self.name, check.check, check.object, check.actual, check.expected)
-            if check.failed and check.check.startswith("host watch"):  # what was written did not hold: not armed
+            # what was written did not hold (allowed: the config arms a drive without a watch): no watch
+            if check.status in (FAIL, ALLOWED) and check.check.startswith("host watch"):
                 self._watch.read_back_wrong(f"its host watch read back wrong after boot ({check.object} is {check.actual},"
                                             f" expected {check.expected}: the drive refused or changed the values)")
 

@@ -135,8 +135,12 @@ class HostWatch:
         if self.host_watch is None:
             return
         self.host_watch, self.host_watch_problem = None, why
-        logger.warning("node %d (%s): %s; it will not be enabled (allow_no_host_watch: true overrides)",
-                       self.node_id, self.name, why)
+        if self.config.allow_no_host_watch:
+            logger.warning("node %d (%s): %s; allowed by allow_no_host_watch: if this process dies, hangs or loses"
+                           " power while the drive is enabled, NOTHING stops it", self.node_id, self.name, why)
+        else:
+            logger.warning("node %d (%s): %s; it will not be enabled (allow_no_host_watch: true overrides)",
+                           self.node_id, self.name, why)
 
     def not_watching_yet(self) -> str:
         """Why the drive told to watch the host is not watching it yet, and what helps ('' once it
