@@ -12,7 +12,7 @@ import can
 
 from can_config import RoverConfig, parse_config, with_bus_overrides
 from motor_driver import MotorDriver
-from motor_driver.bus.adapters import SOCKETCAND_SOCKET_ATTRIBUTE, SYNC_TEXT_BYTES
+from motor_driver.bus.adapters import BATCH_READER_ATTRIBUTE, SOCKETCAND_SOCKET_ATTRIBUTE, SYNC_TEXT_BYTES
 from motor_driver.bus.cyclic import DaemonCyclicTask, add_command
 from virtual_can.service import SimService
 
@@ -91,18 +91,25 @@ def test_a_config_can_keep_the_sync_in_a_thread(driver_factory: DriverFactory,
 
 def test_the_sync_echo_is_held_back_only_while_the_daemon_sends_the_sync(driver_factory: DriverFactory) -> None:
     """adapters.hold_lone_sync: set with the daemon's SYNC job, cleared when the job stops (no
-    SYNC would then push a frame without data through) and never set with the thread's SYNC."""
+    SYNC would then push a frame without data through) and never set with the thread's SYNC.
+    The mark is asked of the bus's batch reader, and its receive thread (the socket mark's one
+    writer) sets it before its next wait: the socket's mark is waited for, within that wait's
+    timeout (the notifier's, 0.1 s) or the next frame."""
     def mark(driver: MotorDriver) -> int:
         sock = getattr(driver.buses["can0"].bus, SOCKETCAND_SOCKET_ATTRIBUTE)
         return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT))
 
+    def becomes(driver: MotorDriver, value: int) -> None:
+        wait_for(lambda: mark(driver) == value, 30.0, f"the receive mark {value}", lambda: str(mark(driver)))
+
     _, driver = driver_factory(config())
     handle = driver.buses["can0"]
     assert isinstance(handle.sync_task, DaemonCyclicTask)
-    assert mark(driver) == SYNC_TEXT_BYTES + 1
+    becomes(driver, SYNC_TEXT_BYTES + 1)
     handle.stop_sync()
-    assert mark(driver) == 1
+    becomes(driver, 1)
     handle.restart_sync()
-    assert mark(driver) == SYNC_TEXT_BYTES + 1
+    becomes(driver, SYNC_TEXT_BYTES + 1)
     _, threaded = driver_factory(config(sync_timer="thread"))
-    assert mark(threaded) == 1
+    reader = getattr(threaded.buses["can0"].bus, BATCH_READER_ATTRIBUTE)
+    assert reader.hold_mark == 1 and mark(threaded) == 1  # never asked for
