@@ -61,6 +61,8 @@ SEND_FAILING_BEATS = 3
 #: starved: the beat is then skipped, tried again next period, and the supervisor's loop (every
 #: bus's heartbeat) never waits behind one bus's writer.
 BEAT_LOCK_S = 0.01
+#: What :meth:`BusHandle.beat` says when it skipped for the lock (nothing was tried on the bus).
+BEAT_LOCK_BUSY = f"the bus's send lock stayed held over {BEAT_LOCK_S * 1000:.0f} ms (a write blocked, or its thread starved)"
 RECONNECT_MIN_S = 0.2
 RECONNECT_MAX_S = 5.0
 
@@ -286,8 +288,7 @@ class BusHandle:
             beat = can.Message(arbitration_id=FunctionCode.HEARTBEAT + host_node_id, data=bytes([NmtState.OPERATIONAL]),
                                is_extended_id=False)
             if not lock.acquire(timeout=BEAT_LOCK_S):
-                return (stall_of(self.bus) or f"the bus's send lock stayed held over {BEAT_LOCK_S * 1000:.0f} ms"
-                        " (a write blocked, or its thread starved)")
+                return stall_of(self.bus) or BEAT_LOCK_BUSY
             try:
                 stalled = stall_of(self.bus)
                 if stalled or not room_to_send(self.bus):

@@ -21,7 +21,7 @@ from can_config.errors import BusLostError, ConfigError, MotorError
 from motor_driver.bus.adapters import connection_closed, stall_of
 from motor_driver.bus.connect import open_bus
 from motor_driver.bus.cyclic import DaemonCyclicTask
-from motor_driver.bus.handle import RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
+from motor_driver.bus.handle import BEAT_LOCK_BUSY, RECONNECT_MAX_S, RECONNECT_MIN_S, SEND_FAILING_BEATS, BusHandle
 from motor_driver.bus.link import KernelBusHealth, read_kernel_health
 from motor_driver.drive import Drive
 from motor_driver.drive.ledger import BusBack, BusDown, BusRecord, DriveRecord, Event
@@ -72,21 +72,23 @@ class BusSupervision:
     def beat(self, now: float) -> None:
         """The host heartbeat on every bus that is up, from the supervisor's loop: when the loop
         stops (the process killed, hung, stopped), the heartbeat stops and the drives stop themselves.
-        A beat not sent is tried again the next period (about 10 ms), not a heartbeat period later:
-        skipped for a send lock held a moment, it had left the drive a whole period without one."""
+        A beat skipped for the send lock (another writer held it a moment: nothing was tried on the
+        bus) is tried again the next period (about 10 ms), not a heartbeat period later, which left
+        the drive a whole period without one; a send that failed keeps the heartbeat's own cadence
+        (a full queue that lets a frame through now and then is still a bus that carries nothing)."""
         for name, handle in self.handles.items():
             rt = self.bus_records[name]
             if now < rt.next_beat or rt.lost:
                 continue
             bus_cfg = self.config.bus(name)
             failed = handle.beat(bus_cfg.host_node_id)
-            if failed is not None:  # lost once failing long enough (_lost_why)
-                if rt.send_failing is None:
-                    rt.send_failing = (now, failed)
+            if failed is None:
+                rt.send_failing = None
+            elif rt.send_failing is None:  # lost once failing long enough (_lost_why)
+                rt.send_failing = (now, failed)
+            if failed == BEAT_LOCK_BUSY:
                 continue
-            was_failing, rt.send_failing = rt.send_failing is not None, None
-            # late from the last beat sent; after failed ones the failure is the cause, not starvation
-            if rt.last_beat and not was_failing and now - rt.last_beat > 2 * bus_cfg.host_heartbeat_s:
+            if rt.last_beat and now - rt.last_beat > 2 * bus_cfg.host_heartbeat_s:
                 if self.recorder is not None:
                     self.recorder.process_late()
                 self.rate_limited.log(logging.WARNING, ("late", name),
