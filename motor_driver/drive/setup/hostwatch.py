@@ -120,11 +120,16 @@ class HostWatch:
         elif has_object(self._od, OD.CONSUMER_HEARTBEAT_TIME, 1) and cfg.host_timeout_s is not None:
             self._configure_consumer(cfg.host_timeout_s)
         self._told_at = (self._host_beats(), self._cache.guard_answers)
-        if self.host_watch is None and cfg.allow_no_host_watch:
+        if self.host_watch is None:
+            self._say_no_watch()
+
+    def _say_no_watch(self) -> None:
+        """The drive watches nothing (``host_watch_problem`` says why): armed only if the config allows it."""
+        if self.config.allow_no_host_watch:
             logger.warning("node %d (%s): %s; allowed by allow_no_host_watch: if this process dies, hangs or"
                            " loses power while the drive is enabled, NOTHING stops it", self.node_id, self.name,
                            self.host_watch_problem)
-        elif self.host_watch is None:
+        else:
             logger.warning("node %d (%s): %s; it will not be enabled (allow_no_host_watch: true overrides)",
                            self.node_id, self.name, self.host_watch_problem)
 
@@ -135,12 +140,7 @@ class HostWatch:
         if self.host_watch is None:
             return
         self.host_watch, self.host_watch_problem = None, why
-        if self.config.allow_no_host_watch:
-            logger.warning("node %d (%s): %s; allowed by allow_no_host_watch: if this process dies, hangs or loses"
-                           " power while the drive is enabled, NOTHING stops it", self.node_id, self.name, why)
-        else:
-            logger.warning("node %d (%s): %s; it will not be enabled (allow_no_host_watch: true overrides)",
-                           self.node_id, self.name, why)
+        self._say_no_watch()
 
     def not_watching_yet(self) -> str:
         """Why the drive told to watch the host is not watching it yet, and what helps ('' once it
