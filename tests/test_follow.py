@@ -308,6 +308,45 @@ def test_a_goal_tolerance_violated_aborts(arm: Arm) -> None:
     assert run.outcome is not None and "joint1" in run.outcome.message and "goal tolerance" in run.outcome.message
 
 
+def jammed_hold(arm: Arm, node: int) -> tuple[float, float]:
+    """(where joint ``node`` stands, its last set-point on the wire), in deg, once the group's ramp is done."""
+    wait_for(lambda: not arm.group.ramping, RESULT_S, "the ramp done")
+    drive = arm.driver.drive(f"joint{node}")
+    last = setpoints(frames_after(arm), node)[-1]
+    return drive.cache.angle_deg, drive.cache.scale.counts_to_deg(last)
+
+
+def test_a_jammed_joint_s_abort_holds_it_where_it_stands_not_at_its_set_point(arm: Arm) -> None:
+    """joint1's shaft blocked from the start, under a 5 deg path tolerance (more than the stream's step
+    guard, 180 deg/s over two SYNC periods: 3.6 deg at 100 Hz): the goal aborts and joint1 is held where
+    it stands, as joint_trajectory_controller holds the measured state; its set-point ramped on from
+    5 deg ahead, and the drive pushed against what blocks it (and jumped there once freed)."""
+    apply_action(arm.sim, {"action": "load", "node": 1, "stall": True})
+    try:
+        tolerance = {n: Tolerance(position_deg=5.0) for n in ("joint1", "joint2")}
+        run = arm.group.follow(goal((2.0, (40.0, 0.0)), path_tolerance=tolerance))
+        assert finished(run) == TrajectoryCode.PATH_TOLERANCE_VIOLATED
+        assert run.outcome is not None and "joint1" in run.outcome.message, run.outcome
+        stands, held = jammed_hold(arm, 1)
+        assert abs(held - stands) < 0.2, f"joint1 stands at {stands:.3f} deg, held at {held:.3f} deg"
+    finally:
+        apply_action(arm.sim, {"action": "load", "node": 1, "stall": False})
+
+
+def test_a_goal_tolerance_missed_by_a_jammed_joint_holds_it_where_it_stands(arm: Arm) -> None:
+    """joint1 blocked, no path tolerance: the plan runs to its end, the goal tolerance is missed after
+    the goal time, and joint1 is then held where it stands, not left pushing toward the goal."""
+    apply_action(arm.sim, {"action": "load", "node": 1, "stall": True})
+    try:
+        none = {n: Tolerance(position_deg=-1.0) for n in ("joint1", "joint2")}
+        run = arm.group.follow(goal((0.5, (10.0, 0.0)), path_tolerance=none, goal_time_tolerance_s=0.1))
+        assert finished(run) == TrajectoryCode.GOAL_TOLERANCE_VIOLATED
+        stands, held = jammed_hold(arm, 1)
+        assert abs(held - stands) < 0.2, f"joint1 stands at {stands:.3f} deg, held at {held:.3f} deg"
+    finally:
+        apply_action(arm.sim, {"action": "load", "node": 1, "stall": False})
+
+
 def test_a_new_goal_preempts_the_old_at_its_setpoint_without_a_jump(arm: Arm) -> None:
     first = arm.group.follow(goal((4.0, (60.0, 0.0))))
     wait_for(lambda: first.progress is not None and first.progress.time_s > 1.5, 20.0, "the first goal half way")

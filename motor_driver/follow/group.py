@@ -155,7 +155,9 @@ class TrajectoryGroup:
         self._closed = False
         # the thread's own
         self._running: _Running | None = None
-        self._ramp: dict[str, tuple[float, float]] = {}  # joint -> (position, velocity) ramping down
+        #: joint -> (position, velocity, rebased) ramping down; rebased: its next set-point may jump to where the
+        #: joint was measured (an abort's ramp: _to_ramp), beyond the step guard a set-point's stream keeps
+        self._ramp: dict[str, tuple[float, float, bool]] = {}
         self._clock: Drive | None = None
         self._clock_seq = -1
         self._silences = 0  # the clock's waits in a row that ended without a sample
@@ -272,7 +274,7 @@ class TrajectoryGroup:
         out: list[Knot] = []
         for name in joints:
             if name in ramp:
-                p, v = ramp[name]
+                p, v, _ = ramp[name]
                 out.append((p, v, 0.0))
             elif name in desired:
                 p, v, a = desired[name]
@@ -613,10 +615,10 @@ class TrajectoryGroup:
             self._running = None
             running.run.finish(Outcome(TrajectoryCode.SUCCESSFUL, "at the goal"))
         elif 0.0 < plan.goal_time_s < after_s:  # 0: no bound (joint_trajectory_controller's update())
-            self._running = None  # it holds the last set-point
             running.run.finish(Outcome(TrajectoryCode.GOAL_TOLERANCE_VIOLATED,
                                        f"{far}, {after_s:.2f} s after the trajectory's end (goal time tolerance"
                                        f" {plan.goal_time_s:g} s)"))
+            self._to_ramp(running, measured=True)  # held where they are, not pushed on toward the goal
 
     # ------------------------------------------------------------------ stopping
     def _fail(self, code: TrajectoryCode, message: str) -> None:
@@ -626,13 +628,19 @@ class TrajectoryGroup:
             return
         logger.warning("trajectory group %s: goal aborted: %s", self.name, message)
         running.run.finish(Outcome(code, message))
-        self._to_ramp(running)
+        self._to_ramp(running, measured=True)
 
-    def _to_ramp(self, running: _Running, keep: Sequence[str] = ()) -> None:
-        """A goal's joints (but ``keep``, which a new goal takes) ramp down from their last set-point."""
+    def _to_ramp(self, running: _Running, keep: Sequence[str] = (), *, measured: bool = False) -> None:
+        """A goal's joints (but ``keep``, which a new goal takes) ramp down: from their last set-point
+        (a cancel, a preemption: the joints were following it), or, after an abort (``measured``),
+        from their measured position and velocity, as joint_trajectory_controller holds the measured
+        state: a joint that strayed (blocked, slipping) is not driven on into what held it. That
+        ramp's first set-point may jump back to the joint, beyond the stream's step guard."""
         for drive, (p, v, _) in zip(running.joints, running.last_desired, strict=True):
             if drive.name not in keep and self._unusable(drive) is None:
-                self._ramp[drive.name] = (p, v)
+                cache = drive.cache
+                self._ramp[drive.name] = ((cache.angle_deg, cache.scale.counts_s_to_deg_s(
+                    cache.received.velocity_counts_s), True) if measured else (p, v, False))
         if self._running is running:
             self._running = None
 
@@ -640,7 +648,7 @@ class TrajectoryGroup:
         """One set-point of each ramping joint: the velocity cut by the stop deceleration a period,
         clamped to the joint's limits; a joint at rest leaves the ramp (it holds)."""
         dv = self.config.stop_deceleration_deg_s2 * self.period_s
-        for name, (p, v) in list(self._ramp.items()):
+        for name, (p, v, rebased) in list(self._ramp.items()):
             drive = self.drives[name]
             slower = math.copysign(max(abs(v) - dv, 0.0), v)
             position = p + (v + slower) / 2 * self.period_s
@@ -648,7 +656,7 @@ class TrajectoryGroup:
             if cfg.min_deg is not None and cfg.max_deg is not None:
                 position = min(max(position, cfg.min_deg), cfg.max_deg)
             try:
-                drive.stream_position(position)
+                drive.stream_position(position, max_step_deg=math.inf if rebased else None)
             except RovercanError as err:
                 logger.warning("trajectory group %s: %s's stop ramp refused (%s); it holds or stopped itself",
                                self.name, name, err)
@@ -657,7 +665,7 @@ class TrajectoryGroup:
                 del self._ramp[name]
                 self._held_at(name, position)
             else:
-                self._ramp[name] = (position, slower)
+                self._ramp[name] = (position, slower, False)
 
     def _held_at(self, name: str, position: float) -> None:
         """A joint whose ramp ended holds ``position``: a goal waiting for its stamp holds it there
