@@ -174,6 +174,32 @@ def test_a_point_beyond_a_limit_is_refused_naming_the_joint_and_the_limit(arm: A
             "max_velocity_deg_s=180")
 
 
+def test_a_segment_shorter_than_a_sync_period_is_judged_too(arm: Arm) -> None:
+    """10 deg in 8 ms between points 1.001 s and 1.009 s (1,250 deg/s, beyond 180): no SYNC sample of a
+    10 ms period falls inside that segment, and a check at the samples let it through; the group then
+    samples where its clock says, and the drive would have been asked for the jump."""
+    dash = goal((1.0, (0.0, 0.0)), (1.001, (0.0, 0.0)), (1.009, (10.0, 0.0)), (2.0, (10.0, 0.0)), velocities=False)
+    refused(arm, dash, TrajectoryCode.INVALID_GOAL, "joint1", "max_velocity_deg_s=180", "at 1.00")
+
+
+def test_a_trajectory_s_check_does_not_grow_with_its_duration(arm: Arm, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A point 2e9 s away (a client's nanoseconds written in ``sec``) is judged without sampling its
+    time: a check of a sample a SYNC period held the executor, and every cancel, for ever. A counter on
+    the spline's sampling fails the test where the check samples the plan's time."""
+    calls: list[float] = []
+
+    def counted(self: Spline, t: float) -> tuple[tuple[float, float, float], ...]:
+        calls.append(t)
+        if len(calls) > 1000:
+            raise AssertionError("the check samples the plan's time")
+        return original(self, t)
+
+    original = Spline.sample
+    monkeypatch.setattr(Spline, "sample", counted)
+    plan = arm.group.plan(goal((2e9, (0.0, 0.0))))
+    assert plan.times_s == (2e9,)
+
+
 def test_times_that_do_not_increase_are_refused(arm: Arm) -> None:
     refused(arm, goal((1.0, (5.0, 5.0)), (1.0, (6.0, 6.0))), TrajectoryCode.INVALID_GOAL, "point 1", "strictly increasing")
     refused(arm, goal((-0.5, (5.0, 5.0))), TrajectoryCode.INVALID_GOAL, "point 0")

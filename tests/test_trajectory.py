@@ -7,9 +7,11 @@ import itertools
 import math
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from can_config.errors import CommandRejected
-from motor_driver.follow.trajectory import Spline, evaluate, sample_times, segment, trapezoid
+from motor_driver.follow.trajectory import Spline, derivative, evaluate, excursion, sample_times, segment, trapezoid
 
 PERIOD_S = 0.01
 
@@ -114,3 +116,40 @@ def test_sample_times_one_a_period_and_the_end_exactly() -> None:
     assert list(sample_times(0.04, 0.02)) == [0.02, 0.04]
     assert list(sample_times(0.001, 0.02)) == [0.001]
     assert len(list(sample_times(4.0, 0.002))) == 2000
+
+
+coefficient = st.floats(-1e3, 1e3, allow_nan=False)
+
+
+@given(st.lists(coefficient, min_size=1, max_size=6), st.floats(1e-4, 100.0), st.floats(-50.0, 50.0),
+       st.floats(0.0, 100.0))
+def test_excursion_finds_a_value_beyond_the_bounds_exactly_where_dense_samples_do(
+        coefficients: list[float], duration_s: float, low: float, width: float) -> None:
+    """Against 4,001 samples of the polynomial: a value found beyond is the polynomial's there and
+    beyond; None only where no sample lies beyond the bounds (by more than rounding)."""
+    poly, high = tuple(coefficients), low + width
+    found = excursion(poly, duration_s, low, high)
+    if found is not None:
+        t, value = found
+        assert 0.0 <= t <= duration_s
+        assert value == pytest.approx(evaluate(poly, t)[0], rel=1e-6, abs=1e-6)
+        assert not low <= value <= high
+    else:
+        slack = 1e-9 * max(1.0, *(abs(c) * duration_s**i for i, c in enumerate(poly)))
+        for k in range(4001):
+            value = evaluate(poly, duration_s * k / 4000)[0]
+            assert low - slack <= value <= high + slack, (k, value)
+
+
+def test_excursion_is_exact_between_samples_and_the_derivative_is_the_polynomial_s() -> None:
+    # 10 deg in 8 ms: a line at 1,250 deg/s; within bounds of 1,250 and not of 1,249
+    line = segment(0.0, None, None, 10.0, None, None, 0.008)
+    assert derivative(line) == pytest.approx((1250.0,))
+    assert excursion(derivative(line), 0.008, -1250.0, 1250.0) is None
+    assert excursion(derivative(line), 0.008, -1249.0, 1249.0) == (0.0, pytest.approx(1250.0))
+    # a cubic from 80 deg at 170 deg/s to 89 deg at rest in 0.5 s peaks between its ends, near 95.4 deg
+    cubic = segment(80.0, 170.0, None, 89.0, 0.0, None, 0.5)
+    assert excursion(cubic, 0.5, -90.0, 96.0) is None
+    t, value = excursion(cubic, 0.5, -90.0, 90.0) or (0.0, 0.0)
+    assert 0.0 < t < 0.5 and value > 90.0
+    assert derivative((3.0,)) == (0.0,)

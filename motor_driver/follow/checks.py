@@ -12,9 +12,9 @@ from can_config.model import TrajectoryGroupConfig
 from motor_driver.drive import Drive
 from motor_driver.drive.constants import ENABLED_CW_MASK
 from motor_driver.follow.goal import Plan, Tolerance, TrajectoryCode, TrajectoryGoal, refuse
-from motor_driver.follow.trajectory import Knot, Spline, sample_times
+from motor_driver.follow.trajectory import Knot, Spline, derivative, excursion
 
-#: Slack on the velocity limit for the sampled set-points (rounding of a spline that touches it).
+#: Slack on the velocity limit between the points (rounding of a spline that touches it).
 VELOCITY_SLACK = 1e-6
 #: A last point's velocity above this is not zero: joint_trajectory_controller's
 #: ``std::numeric_limits<float>::epsilon()`` (2**-23 rad/s), in deg/s.
@@ -39,7 +39,7 @@ class GoalChecks:
         start = reference(goal.joints)
         if goal.times_s[0] == 0.0:
             self._check_start(goal, drives, start)
-        self._check_samples(goal.joints, times, knots, start)
+        self._check_between(goal.joints, times, knots, start)
         return Plan(goal, times, knots, path, final, goal_time)
 
     def _tolerances(self, goal: TrajectoryGoal) -> tuple[tuple[Tolerance, ...], tuple[Tolerance, ...], float]:
@@ -173,22 +173,26 @@ class GoalChecks:
                               f" {off:.3g} deg from where the joint is ({actual:.3f} deg, set-point {setpoint:.3f});"
                               f" at most start_tolerance_deg={limit:g}. Plan from the current state; nothing moved")
 
-    def _check_samples(self, joints: Sequence[str], times: tuple[float, ...], knots: tuple[tuple[Knot, ...], ...],
+    def _check_between(self, joints: Sequence[str], times: tuple[float, ...], knots: tuple[tuple[Knot, ...], ...],
                        start: tuple[Knot, ...]) -> None:
-        """Every set-point the spline will give, at each SYNC, within the limits (a cubic can overshoot its points)."""
+        """The spline within the limits at every instant, not only at its points (a cubic can overshoot
+        them) nor at SYNC samples (the group samples the plan where its clock says, and a segment
+        shorter than a period falls between samples): each segment's position and velocity polynomial
+        judged whole (:func:`excursion`), whatever the trajectory's duration."""
         spline = Spline((0.0, *times), (start, *knots))
         cfgs = [self.drives[j].config for j in joints]
-        for t in sample_times(spline.end_s, self.period_s):
-            for cfg, (p, v, _) in zip(cfgs, spline.sample(t), strict=True):
+        for t0, duration, polys in spline.segments():
+            for cfg, poly in zip(cfgs, polys, strict=True):
                 low, high = cfg.min_deg, cfg.max_deg
-                if low is not None and high is not None and not low <= p <= high:
-                    raise refuse(TrajectoryCode.INVALID_GOAL, f"{cfg.name}: the trajectory passes {p:.3f} deg at"
-                                  f" {t:.3f} s, beyond the joint's limits min_deg={low:g}, max_deg={high:g} (between its"
-                                  " points); nothing moved")
-                if abs(v) > cfg.max_velocity_deg_s * (1 + VELOCITY_SLACK):
-                    raise refuse(TrajectoryCode.INVALID_GOAL, f"{cfg.name}: the trajectory moves at {v:.1f} deg/s at"
-                                  f" {t:.3f} s, beyond max_velocity_deg_s={cfg.max_velocity_deg_s:g}; slow it down;"
-                                  " nothing moved")
+                if low is not None and high is not None and (beyond := excursion(poly, duration, low, high)):
+                    raise refuse(TrajectoryCode.INVALID_GOAL, f"{cfg.name}: the trajectory passes {beyond[1]:.3f} deg"
+                                  f" at {t0 + beyond[0]:.3f} s, beyond the joint's limits min_deg={low:g}, max_deg={high:g}"
+                                  " (between its points); nothing moved")
+                top = cfg.max_velocity_deg_s * (1 + VELOCITY_SLACK)
+                if (faster := excursion(derivative(poly), duration, -top, top)) is not None:
+                    raise refuse(TrajectoryCode.INVALID_GOAL, f"{cfg.name}: the trajectory moves at {faster[1]:.1f} deg/s"
+                                  f" at {t0 + faster[0]:.3f} s, beyond max_velocity_deg_s={cfg.max_velocity_deg_s:g};"
+                                  " slow it down; nothing moved")
 
     def _tolerance(self, joint: str, kind: str, given: Tolerance | None, default_deg: float,
                    default_deg_s: float) -> Tolerance:
