@@ -397,6 +397,52 @@ def test_a_plan_stamped_ahead_waits_then_tracks(rig: Rig) -> None:
     assert -0.02 < late < 0.06, late
 
 
+def test_a_plan_stamped_in_the_past_runs_from_its_acceptance(rig: Rig) -> None:
+    """A header stamp 1 s before now (the client's clock behind the driver's): the plan runs from
+    acceptance, whole, as if stamped 0; it was joined 1 s in and caught up at the joints' limit from
+    rest (joint_trajectory_controller jumps into it)."""
+    from action_msgs.msg import GoalStatus
+
+    goal = half_sine(30.0, 4.0)
+    then = rig.assembly.node.get_clock().now().nanoseconds * 1e-9 - 1.0
+    goal.trajectory.header.stamp.sec, goal.trajectory.header.stamp.nanosec = int(then), int(then % 1 * 1e9)
+    handle = send(rig, goal)
+    assert handle.accepted
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_SUCCEEDED, done.result.error_string
+    late = lag(rig, seconds(handle.stamp), 30.0, 4.0)
+    assert -0.02 < late < 0.06, late
+
+
+def test_a_cancel_as_the_goal_ends_on_its_own_leaves_its_outcome(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The group reached the goal; a cancel accepted before the server's next look does not turn that
+    into CANCELED (MoveIt reads CANCELED as preempted): the controller cancels only a goal still active.
+    The group's thread is held as it ends the goal until the cancel was answered."""
+    from action_msgs.msg import GoalStatus
+
+    from motor_driver.follow.goal import GoalRun
+
+    ending, answered = threading.Event(), threading.Event()
+    finish = GoalRun.finish
+
+    def held(self: GoalRun, outcome: Any) -> None:
+        if not outcome.canceled and not ending.is_set():
+            ending.set()
+            answered.wait(HANG_S)
+        finish(self, outcome)
+
+    monkeypatch.setattr(GoalRun, "finish", held)
+    handle = send(rig, half_sine(10.0, 0.5))
+    assert handle.accepted
+    assert ending.wait(HANG_S), "the goal never ended"
+    cancel = handle.cancel_goal_async()
+    wait_for(cancel.done, HANG_S, "the cancel answered")
+    answered.set()
+    done = result_of(handle)
+    assert done.status == GoalStatus.STATUS_SUCCEEDED, (done.status, done.result.error_string)
+    assert done.result.error_code == FollowJointTrajectory.Result.SUCCESSFUL
+
+
 def test_a_cancelled_goal_leaves_the_joints_still(rig: Rig) -> None:
     from action_msgs.msg import GoalStatus
 
@@ -760,8 +806,10 @@ def test_what_can_be_judged_at_goal_time_is_rejected(rig: Rig) -> None:
     past.trajectory.header.stamp.sec = int(now // 10**9) - 10  # its 1 s ended 9 s ago
     illegal = half_sine(10.0, 1.0)
     illegal.path_tolerance = [JointTolerance(name="joint1", position=-0.5)]
+    acceleration = half_sine(10.0, 1.0)  # a bound this driver cannot hold (it measures no acceleration)
+    acceleration.goal_tolerance = [JointTolerance(name="joint1", acceleration=0.5)]
     for name, goal in (("unknown", unknown), ("partial", partial), ("backwards", backwards), ("past", past),
-                       ("illegal", illegal)):
+                       ("illegal", illegal), ("acceleration", acceleration)):
         assert not send(rig, goal).accepted, name
 
 

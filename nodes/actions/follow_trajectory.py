@@ -71,7 +71,8 @@ def _degrees(values: Any) -> tuple[float, ...]:
 
 def _tolerances(entries: Any) -> dict[str, Tolerance]:
     """JointTolerance[] in degrees; the special values 0 (the default) and -1 (none) kept as they are,
-    any other negative refused (joint_trajectory_controller's meanings)."""
+    any other negative refused (joint_trajectory_controller's meanings); an acceleration bound refused
+    (no acceleration is measured here: a goal is not run without a tolerance it asked for)."""
     def deg(name: str, what: str, value: float) -> float:
         if value in (0.0, -1.0):
             return float(value)
@@ -79,6 +80,11 @@ def _tolerances(entries: Any) -> dict[str, Tolerance]:
             raise TrajectoryRejected(f"{name}: {what} tolerance {value!r}: allowed -1 (none), 0 (the default) or a"
                                      " bound > 0; nothing moved", code=int(TrajectoryCode.INVALID_GOAL))
         return float(value) * DEG_PER_RAD
+    for t in entries:
+        if t.acceleration not in (0.0, -1.0):
+            raise TrajectoryRejected(f"{t.name}: acceleration tolerance {t.acceleration!r}: this driver measures no joint"
+                                     " acceleration and cannot hold a goal to one; send 0 (none given) or -1 (none)."
+                                     " Nothing moved", code=int(TrajectoryCode.INVALID_GOAL))
     return {t.name: Tolerance(deg(t.name, "position", t.position), deg(t.name, "velocity", t.velocity))
             for t in entries}
 
@@ -235,7 +241,10 @@ class FollowTrajectoryServer:
         request = goal_handle.request
         _, plan = self._plans.pop(id(request), (None, None))
         stamp = _seconds(request.trajectory.header.stamp)
-        delay = stamp - self._node.get_clock().now().nanoseconds * 1e-9 if stamp > 0.0 else 0.0
+        # a stamp in the past (another host's clock behind this one's) runs the plan from acceptance:
+        # joint_trajectory_controller samples it at now, a jump into the part that has passed, and a
+        # plan joined there would be caught up at the joints' limit from rest (docs/ros.md)
+        delay = max(stamp - self._node.get_clock().now().nanoseconds * 1e-9, 0.0) if stamp > 0.0 else 0.0
         try:
             if plan is None:
                 raise RuntimeError("accepted without a plan")
@@ -277,7 +286,9 @@ class FollowTrajectoryServer:
             result.error_code, result.error_string = int(outcome.code), outcome.message
             if outcome.canceled and not goal_handle.is_cancel_requested:  # a cancel ended it before rclpy's state did
                 goal_handle._update_state(GoalEvent.CANCEL_GOAL)  # rclpy's one way there (its cancel service's)
-            if goal_handle.is_cancel_requested or outcome.canceled:
+            # the group's outcome decides: a cancel that came as the goal ended on its own (at the goal, or
+            # aborted) does not make it CANCELED, as the controller cancels only its goal still active
+            if outcome.canceled:
                 goal_handle.canceled()
             elif outcome.code == TrajectoryCode.SUCCESSFUL:
                 goal_handle.succeed()
