@@ -312,6 +312,38 @@ class WheelOdometry:
         had no trusted wheel (at least that much is missing from the pose)."""
         return self._never_settled_m + sum(abs(m) / self._side_size(n) for n, m in self._attributed.items())
 
+    def _without_a_side(self, samples: Mapping[str, WheelSample], instant: float, left: _Side, right: _Side) -> OdometryStep:
+        """A step where one side, or both, has no trusted wheel (:meth:`step`): each such side judged
+        alike, the left as the right. The pose waits, still trusted, only where every silent side is
+        only late; the other side's travel is kept only where every silent side has a late wheel whose
+        next sample will carry the gap."""
+        quiet = [(label, names, side) for label, names, side in (("left", self.left, left), ("right", self.right, right))
+                 if not side.counted]
+        updates = left.updates + right.updates  # committed before `late` is judged: forgets count
+        self._commit([u for u in updates if u.forget or u.restart], deltas=False)
+        only_silent = all(any(w is not None and w.silent for w in waiting)
+                          and all(w is not None and (w.silent or w.forget) for w in waiting)
+                          for waiting in ([samples.get(n) for n in names] for _, names, _ in quiet))
+        late = all(any(u.sample is None and not u.forget and u.name in self._last for u in side.updates)
+                   for _, _, side in quiet)
+        silent = tuple(n for _, names, _ in quiet for n in names)
+        if late and not only_silent and self._instant and instant - self._instant > MAX_BRIDGED_GAP_S:
+            self._drop_late(silent)  # too long a gap for one step: they start anew, as lost wheels do
+            late = False
+        if not late:  # nothing will carry the gap on a silent side: drop the other's too
+            self._commit(updates, deltas=True)
+            self._attribute(left)
+            self._attribute(right)
+            # travel the pose will never have: estimated from now on (the silent side's own is unknown)
+            self._never_settled_m += abs(left.distance_m) + abs(right.distance_m)
+        if only_silent:
+            # a PDO or two late (within the staleness bound): the pose waits for them, still trusted
+            return OdometryStep(self.pose, self._twist, True, estimated_m=self.estimated_m)
+        sides = " and ".join(label for label, _, _ in quiet) + (" sides" if len(quiet) > 1 else " side")
+        reasons = ", ".join(f"{n} {self._why(samples.get(n))}" for n in silent)
+        return OdometryStep(self.pose, Twist2D(), False, f"odometry stopped: no trusted wheel on the {sides} ({reasons})",
+                            self.estimated_m)
+
     def step(self, samples: Mapping[str, WheelSample]) -> OdometryStep:
         """Integrate what the wheels measured since the last step.
 
@@ -325,30 +357,7 @@ class WheelOdometry:
         instant = self._common_instant(samples)
         left, right = self._side(self.left, samples, instant), self._side(self.right, samples, instant)
         if not left.counted or not right.counted:
-            silent = self.left if not left.counted else self.right
-            updates = left.updates + right.updates  # committed before `late` is judged: forgets count
-            self._commit([u for u in updates if u.forget or u.restart], deltas=False)
-            silent_updates = left.updates if not left.counted else right.updates
-            waiting = [samples.get(n) for n in silent]
-            only_silent = any(w is not None and w.silent for w in waiting) and \
-                all(w is not None and (w.silent or w.forget) for w in waiting)
-            late = any(u.sample is None and not u.forget and u.name in self._last for u in silent_updates)
-            if late and not only_silent and self._instant and instant - self._instant > MAX_BRIDGED_GAP_S:
-                self._drop_late(silent)  # too long a gap for one step: they start anew, as lost wheels do
-                late = False
-            if not late:  # nothing will carry the gap on the silent side: drop the other's too
-                self._commit(updates, deltas=True)
-                self._attribute(left)
-                self._attribute(right)
-                # travel the pose will never have: estimated from now on (the silent side's own is unknown)
-                self._never_settled_m += abs(left.distance_m) + abs(right.distance_m)
-            if only_silent:
-                # a PDO or two late (within the staleness bound): the pose waits for them, still trusted
-                return OdometryStep(self.pose, self._twist, True, estimated_m=self.estimated_m)
-            side = "left" if not left.counted else "right"
-            reasons = ", ".join(f"{n} {self._why(samples.get(n))}" for n in silent)
-            return OdometryStep(self.pose, Twist2D(), False,
-                                f"odometry stopped: no trusted wheel on the {side} side ({reasons})", self.estimated_m)
+            return self._without_a_side(samples, instant, left, right)
         if instant <= self._instant:  # nothing measured on both sides since the last step's instant
             self._commit([u for u in left.updates + right.updates if u.forget or u.restart], deltas=False)
             return OdometryStep(self.pose, self._twist, True, estimated_m=self.estimated_m)
