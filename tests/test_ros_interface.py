@@ -836,3 +836,22 @@ def test_a_parameter_read_at_start_refuses_a_set_and_a_rate_takes_one(graph: Gra
     assert graph.driver_node._diag_timer.timer_period_ns == 500_000_000
     result = set_one("state_rate_hz", 20.0)
     assert not result.successful and "control loop" in result.reason, result
+
+
+def test_disarm_with_the_bus_killed_names_each_wheel_lost_not_safe(graph: Graph) -> None:
+    """Both buses' server killed with the wheels armed: /disarm can send and confirm nothing, and says
+    so, each wheel named lost (its last statusword no news of it); it answered success, every wheel
+    "OPERATION_ENABLED" from before the loss, and deactivate said them quick-stopped."""
+    from std_srvs.srv import Trigger
+
+    armed = graph.call(Trigger, "/arm")
+    assert armed.success, armed.message
+    graph.sim.close()
+    wait_for(lambda: all(graph.driver.drive(w).cache.lost for w in WHEELS), HANG_S, "every wheel lost")
+    disarmed = graph.call(Trigger, "/disarm")
+    assert not disarmed.success, disarmed.message
+    for wheel in WHEELS:
+        assert f"{wheel}: lost with its bus; no stop could be sent or confirmed" in disarmed.message, disarmed.message
+        assert f"{wheel} LOST (last heard" in disarmed.message, disarmed.message
+    report = graph.driver.stop_report()
+    assert len(report.lost) == len(WHEELS) and report.lines == report.lost

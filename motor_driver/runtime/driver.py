@@ -312,9 +312,11 @@ class MotorDriver:
         if drive.cache.lost and drive.cache.booted:
             drive.watch.lost_while_closing()  # unheard, maybe turning: one last stop it needs not answer
             return f"{drive.name}: lost; a last quick stop was sent, unanswered (check its power and CAN cable)", True
-        if drive.cache.lost or not drive.cache.booted:
-            if not drive.cache.lost:  # being configured again: not enabled again after it
-                drive.channel.stopped_unsent("a safe stop while it was configured again")
+        if drive.cache.lost:  # its bus gone (the supervisor's _drive_gone): nothing can be sent, nothing confirmed
+            return (f"{drive.name}: lost with its bus; no stop could be sent or confirmed: it stops itself on its"
+                    " watch of this host (host_timeout_ms); check the bus (its adapter, the cable, the server)"), True
+        if not drive.cache.booted:  # being configured again: not enabled again after it
+            drive.channel.stopped_unsent("a safe stop while it was configured again")
             return "", False
         if drive.cache.state == State.OPERATION_ENABLED:
             drive.quick_stop()

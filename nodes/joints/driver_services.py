@@ -57,13 +57,20 @@ def reply_value(value: int | float | bytes) -> tuple[int, str, bool]:
     return (whole, text, True) if INT64_MIN <= whole <= INT64_MAX else (0, text, False)
 
 
+def state_said(drive: Drive) -> str:
+    """A drive's state for a service's answer: its last statusword's, or LOST with the last one
+    heard (a lost drive's statusword is no news of it)."""
+    state = drive.cache.state.name
+    return f"LOST (last heard {state})" if drive.cache.lost else state
+
+
 def trigger(drive: Drive, service: str, action: Callable[[], object]) -> Callable[[Any, Any], Any]:
     """A std_srvs/Trigger callback that runs ``action`` and says what happened. An unexpected
     exception is the supervisor's (nodes/process/spinning.py: logged with its trace, counted, answered)."""
     def call(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             action()
-            response.success, response.message = True, f"{drive.name}: {service} done; state {drive.cache.state.name}"
+            response.success, response.message = True, f"{drive.name}: {service} done; state {state_said(drive)}"
         except RovercanError as err:
             response.success, response.message = False, str(err)
         return response
@@ -73,7 +80,7 @@ def trigger(drive: Drive, service: str, action: Callable[[], object]) -> Callabl
 def answer(response: Trigger.Response, service: str, failed: list[str], drives: Mapping[str, Drive]) -> Trigger.Response:
     """``response`` for a whole-rover service: success only when nothing failed, the failures
     named, and every drive's state."""
-    states = ", ".join(f"{d.name} {d.cache.state.name}" for d in drives.values())
+    states = ", ".join(f"{d.name} {state_said(d)}" for d in drives.values())
     response.success = not failed
     response.message = f"{service}: {'; '.join(failed)}; now {states}" if failed else f"{service} done: {states}"
     return response
