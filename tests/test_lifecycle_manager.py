@@ -3,8 +3,8 @@ lifecycle_msgs ChangeState and GetState clients (what Nav2's lifecycle_manager c
 managed node through configure, activate, deactivate, activate, deactivate, cleanup and shutdown
 on the shipped six-wheel rover (config/rover.yaml on the simulator), without ``arm``.
 
-- While inactive the drive system's /diagnostics is level OK, "inactive", even with /cmd_vel
-  coming (refused: the node is inactive).
+- While inactive the drive system's /diagnostics is level OK, "motion held: " and the hold's reason
+  (the node inactive), even with /cmd_vel coming (refused: the node is inactive).
 - Once active, a /cmd_vel refusal and the drive system's /diagnostics name what is missing now:
   not armed, and /arm or arm:=true; never the inactive node.
 - Every transition and the shutdown is logged at INFO on /rosout, saying what was done to the drives.
@@ -131,7 +131,8 @@ def test_a_manager_is_told_what_is_missing_now_and_every_transition_is_logged(ma
     assert m.transition(Transition.TRANSITION_CONFIGURE) == "inactive"
     wait_for(lambda: m.said(logs, "configured: 6 drive(s) booted, not enabled"), HANG_S, "configure logged")
 
-    # inactive: /cmd_vel refused, and the drive system says "inactive" at OK (a state, not a failure)
+    # inactive: /cmd_vel refused, and the drive system says its motion held by the inactive node, at OK (a
+    # state, not a failure)
     seen = len(m.diags)
     stop = Twist()  # a command to drive, refused
     stop.linear.x = 0.2
@@ -139,7 +140,7 @@ def test_a_manager_is_told_what_is_missing_now_and_every_transition_is_logged(ma
     def inactive_said() -> bool:
         m.cmd.publish(stop)
         said = m.drive_system(seen)
-        return bool(said) and said[-1].message == "inactive" and any(
+        return bool(said) and said[-1].message.startswith("motion held: ") and "inactive" in said[-1].message and any(
             kv.key == "held" and "inactive" in kv.value for kv in said[-1].values)
 
     wait_for(inactive_said, HANG_S, "the drive system's inactive on /diagnostics")

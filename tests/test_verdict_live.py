@@ -14,7 +14,7 @@ import pytest
 from can_config import RoverConfig
 from can_config.errors import DriveStateError
 from motor_driver import MotorDriver
-from motor_driver.diagnostics.health import ERROR, OK, drive_health
+from motor_driver.diagnostics.health import ERROR, OK, WARN, drive_health
 from motor_driver.drive.verdict import Condition
 from virtual_can import SimService
 from virtual_can.scenario import apply_action
@@ -101,6 +101,22 @@ def test_a_host_watch_stop_is_named_by_the_refusal_and_diagnostics(driver_factor
         drive.set_velocity(5.0)
     health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s)
     assert health.level == ERROR and health.message.startswith("stopped itself: host heartbeat lost at"), health
+
+
+def test_a_held_drive_still_enabled_is_not_ok(driver_factory: DriverFactory) -> None:
+    """Motion held with the drive still Operation Enabled (a deactivate whose stop was not confirmed
+    holds motion and fails): WARN naming it, where it said OK "ready: motion held"; once stopped, OK."""
+    _, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    drive.enable()
+    driver.hold_motion("a test's hold: deactivate did not confirm every stop")
+    health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s)
+    assert health.level == WARN, health
+    assert health.message.startswith("motion held, yet still OPERATION_ENABLED (its stop not confirmed)"), health
+    assert "deactivate did not confirm every stop" in health.message, health
+    assert driver.safe_stop() == []
+    health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s)
+    assert health.level == OK and health.message.startswith("ready: motion held"), health
 
 
 def test_a_rebooted_drive_not_yet_configured_is_not_ok(driver_factory: DriverFactory) -> None:

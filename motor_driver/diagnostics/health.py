@@ -49,7 +49,7 @@ from motor_driver.drive import DriveState
 from motor_driver.drive.ledger import DriveRecord
 from motor_driver.drive.verdict import Condition
 from motor_driver.process.jobs import JOB_KINDS, JobFault
-from motor_driver.protocol.cia402 import SW
+from motor_driver.protocol.cia402 import SW, State
 from motor_driver.protocol.safety import ALLOWED, SafetyCheck
 
 #: The levels of diagnostic_msgs/DiagnosticStatus: every grade on /diagnostics, the driver's and the
@@ -137,6 +137,8 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         return graded
     if GRADE[verdict.condition] == WARN:
         return Health(WARN, said, values)
+    if verdict.condition is Condition.HELD and state.state is State.OPERATION_ENABLED:  # a hold's stop not confirmed
+        return Health(WARN, f"motion held, yet still OPERATION_ENABLED (its stop not confirmed): {said}", values)
     if frame_loss is not None and frame_loss.worst_percent > frame_loss_warn_percent:
         return Health(WARN, f"frames lost: {frame_loss.text()} (over {frame_loss_warn_percent:g} %): check the"
                       " cabling, termination and bus load", values)

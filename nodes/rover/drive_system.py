@@ -414,9 +414,9 @@ class DriveSystemNode(Node):
         if self.stop_failing:
             return ERROR, "a wheel's stop failed, tried again: " + "; ".join(
                 f"{name} ({why})" for name, why in self.stop_failing.items()), values
-        if self.held:  # deliberately inactive (a lifecycle node): a state, not a failure
-            values["held"] = self.held
-            return OK, "inactive", values
+        if self.held:  # a state, not a failure (the lifecycle node inactive); the holder's reason says which
+            values["held"] = self.held  # each drive's own status says one still enabled under the hold
+            return OK, f"motion held: {self.held}", values
         if self.halted:
             return ERROR, f"stopped: {self.halted}" + ("" if odom.trusted else f"; {odom.why_not}"), values
         if self.wheels_out is not None and self.wheels_out.out:
