@@ -117,8 +117,7 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
     }
     for check in safety:
         values[f"safety: {check.check} ({check.object})"] = f"{check.status}: {check.actual}"
-    failed = [c for c in safety if c.failed]
-    allowed = [c for c in safety if c.status == ALLOWED]
+    failed, allowed = [c for c in safety if c.failed], [c for c in safety if c.status == ALLOWED]
     values["data_age_s"] = "never" if math.isinf(state.data_age_s) else f"{state.data_age_s:.3f}"
     values["foreign_master"] = state.foreign_master
     graded = rejections(state, values, rejected)  # its values whatever the grade
