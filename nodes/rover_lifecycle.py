@@ -58,6 +58,7 @@ import functools
 import logging
 import sys
 import threading
+import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -79,6 +80,11 @@ from nodes.process.spinning import CallbackFailures
 
 logger = logging.getLogger(__name__)
 
+#: The hot executor counts as hung (the bond withholds its heartbeats) after this many of its state
+#: timer's periods without a tick, and never sooner than HOT_SILENT_MIN_S (a manager's bond_timeout,
+#: 4 s by default in Nav2, then breaks the bond).
+HOT_SILENT_PERIODS = 25
+HOT_SILENT_MIN_S = 1.0
 #: How long the shutdown waits for a transition under way before it releases the driver, s.
 TRANSITION_WAIT_S = 60.0
 
@@ -299,13 +305,25 @@ class DriveLifecycleNode(LifecycleNode):
                                       " its STARTUP here: install it, or set the manager's bond_timeout to 0")
             return
         try:
-            self.bond = BondHeartbeat(self, status, period)
+            self.bond = BondHeartbeat(self, status, period, alive=self._work_runs)
         except Exception as err:  # activate stands (the drives are armed as asked): a manager will say the rest
             self.callback_failures.record(f"the bond of {self.get_name()}", err)
             self.get_logger().warning(f"no bond with a lifecycle manager: it could not be made ({err!r}); a Nav2"
                                       " lifecycle_manager with bond_timeout > 0 fails its STARTUP here")
             return
         spinning.supervise(self, self.callback_failures)  # its timer and subscription, as the node's others
+
+    def _work_runs(self) -> str:
+        """"" while the hot executor runs the driver node's state timer, else why not: the bond's
+        heartbeats come from this node's own thread, which serves only the transitions, and a hung
+        hot executor (no command, no /odom) would have kept them going."""
+        node = self.assembly.node if self.assembly is not None else None
+        if node is None:
+            return ""
+        silent = time.monotonic() - node.ticked_at
+        bound = max(HOT_SILENT_PERIODS * node.state_period_s, HOT_SILENT_MIN_S)
+        return "" if silent <= bound else (f"the driver's executor has run no state tick for {silent:.1f} s (over"
+                                           f" {bound:g} s): hung, or starved of CPU")
 
     def _break_bond(self) -> None:
         """The bond broken where there is one; a failure of it logged and counted, never raised: it

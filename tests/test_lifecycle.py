@@ -944,6 +944,62 @@ def test_the_active_node_keeps_a_bond_with_a_nav2_lifecycle_manager(tmp_path: Pa
         again.close()
 
 
+def test_a_hung_driver_executor_withholds_the_bond_s_heartbeats(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bond beats from the lifecycle node's own thread, which serves only the transitions; the
+    work (commands, /odom, the states) is the hot executor's. With that executor hung (a tick that
+    never returns) the heartbeats stop, as a Nav2 node's bond stops with its executor, so a manager
+    resets the nodes; they resume once it runs again. The manager's own Statuses, heard by the same
+    listener meanwhile, show it listened."""
+    from nodes import rover_lifecycle
+
+    monkeypatch.setattr(rover_lifecycle, "HOT_SILENT_MIN_S", 0.2)
+    monkeypatch.setattr(rover_lifecycle, "HOT_SILENT_PERIODS", 2)
+    with make_rig(tmp_path) as (node, _, _, _), _probe(node.context) as probe:
+        node.trigger_configure()
+        node.trigger_activate()
+        bond = node.bond
+        assert bond is not None and node.assembly is not None and node.assembly.node is not None
+        manager = ManagerBond(probe, "rovercan_lifecycle")
+        own: list[Any] = []
+        probe.node.create_subscription(type(manager.status()), "bond",
+                                       lambda m: own.append(m) if m.instance_id == manager.instance_id else None, 100)
+        try:
+            probe.wait(manager.beating(lambda: bond.state.name == "ALIVE"), 60.0, "the bond formed")
+            release, held = threading.Event(), threading.Event()
+
+            def hang() -> None:
+                held.set()
+                release.wait(60.0)
+
+            beats: list[str] = []  # each of the bond timer's runs (it asks alive() once a beat)
+            alive = bond._alive
+            assert alive is not None
+
+            def counted() -> str:
+                beats.append(alive())
+                return beats[-1]
+
+            bond._alive = counted
+            node.assembly.node._tick_hooks.append(hang)
+            try:
+                probe.wait(lambda: held.is_set() and bool(bond.withheld), 60.0, "the heartbeats withheld")
+                assert "no state tick" in bond.withheld, bond.withheld
+                heard, ran = len(manager.heard), len(beats)
+                probe.wait(lambda: len(beats) >= ran + 5, 60.0, "five beats of the bond's timer, hung")
+                mine = len(own)  # the listener hears what the manager says after those beats: it listened
+                probe.wait(manager.beating(lambda: len(own) >= mine + 3), 60.0, "the manager's own heard")
+                assert len(manager.heard) <= heard + 1, manager.heard[heard:]  # one may have been on its way
+            finally:
+                node.assembly.node._tick_hooks.remove(hang)
+                release.set()
+            heard = len(manager.heard)
+            probe.wait(manager.beating(lambda: sum(m.active for m in manager.heard[heard:]) >= 3), 60.0,
+                       "heartbeats again")
+            assert bond.withheld == "" and bond.state.name == "ALIVE"
+        finally:
+            manager.close()
+
+
 def test_a_bond_no_manager_forms_ends_after_the_connect_timeout(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """No manager speaks bond (activated by hand, or a manager with bond_timeout 0): the bond ends
     after bond's connect timeout (here cut to a few heartbeats) and beats no more, as bondcpp's."""

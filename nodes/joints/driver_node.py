@@ -122,6 +122,7 @@ class DriverNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=NO_PUB_EVENTS)
         self.state_period_s = 1.0 / float(self.get_parameter("state_rate_hz").value)
         self._tick_hooks: list[Callable[[], None]] = []
+        self.ticked_at = time.monotonic()  # the state timer's last run (monotonic): the hot executor's sign of life
         self._state_timer = self.create_timer(self.state_period_s, self._tick)
         self._diag_timer = self.create_timer(1.0 / float(self.get_parameter("diagnostics_rate_hz").value),
                                              self._publish_diagnostics)
@@ -257,6 +258,7 @@ class DriverNode(Node):
         return True
 
     def _tick(self) -> None:
+        self.ticked_at = time.monotonic()  # this thread's, read by the bond (nodes/rover_lifecycle.py)
         for hook in self._tick_hooks:
             try:
                 hook()

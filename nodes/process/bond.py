@@ -17,6 +17,11 @@ activate and resets every node it manages when heartbeats stop for that long: a 
 that died or hangs. Its own safety does not rest on that: each drive's host-heartbeat consumer
 stops it (docs/safety.md).
 
+The heartbeats say the node's work runs, not only its lifecycle services: where that work is on
+another executor (rover_lifecycle's hot one), ``alive`` says whether it does, and a heartbeat is
+withheld while it does not (a hung or starved executor), so a manager resets the nodes as it would
+a Nav2 node whose executor hung.
+
 Owner: the lifecycle node's executor thread (the timer and the subscription run there; made and
 closed in its transitions, which run on that thread or under its transition lock).
 """
@@ -26,6 +31,7 @@ from __future__ import annotations
 import logging
 import math
 import uuid
+from collections.abc import Callable
 from enum import Enum
 from typing import Any
 
@@ -64,10 +70,14 @@ def bond_interface() -> Any | None:
 class BondHeartbeat:
     """One bond of ``node`` with its lifecycle manager, heartbeats every ``period_s`` from now."""
 
-    def __init__(self, node: Node, status_type: Any, period_s: float) -> None:
+    def __init__(self, node: Node, status_type: Any, period_s: float, alive: Callable[[], str] | None = None) -> None:
+        """``alive``: "" while the node's work runs, else why not: its heartbeats are then withheld
+        (a Nav2 node's bond beats on the executor that does its work, and stops with it)."""
         if not (math.isfinite(period_s) and period_s > 0.0):
             raise ValueError(f"bond heartbeat period {period_s!r} s: expected a number > 0")
         self._node = node
+        self._alive = alive
+        self.withheld = ""  # why the heartbeats are withheld now ("" beating)
         self._status = status_type
         self.id = node.get_name()
         self.instance_id = str(uuid.uuid4())
@@ -97,7 +107,16 @@ class BondHeartbeat:
                 self._end(f"no lifecycle manager formed it within {CONNECT_TIMEOUT_S:g} s (none uses a bond, or"
                           " its bond_timeout is 0)")
                 return
-        self._publish(True)
+        why = self._alive() if self._alive is not None else ""
+        if why != self.withheld:
+            if why:
+                self._node.get_logger().error(f"bond heartbeats withheld: {why}; a lifecycle manager breaks the bond"
+                                              " after its bond_timeout and resets its nodes")
+            else:
+                self._node.get_logger().info("bond heartbeats resumed: the driver's executor runs again")
+            self.withheld = why
+        if not why:
+            self._publish(True)
 
     def _on_status(self, msg: Any) -> None:
         if msg.id != self.id or msg.instance_id == self.instance_id or self.state is BondState.DEAD:
