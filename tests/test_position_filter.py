@@ -58,3 +58,33 @@ def test_a_corrupted_position_is_still_held_back() -> None:
     assert positions.plausible(0, 0, 100.0, 500)
     assert not positions.plausible(1_000_000, 0, 100.0 + PERIOD_S, 500)  # 1e8 counts/s: no drive measured that
     assert positions.plausible(5, 0, 100.0 + 2 * PERIOD_S, 500)
+
+
+@given(st.integers(0, 200), st.integers(1, LIMIT_COUNTS_S), st.sampled_from([1, -1]))
+def test_the_32_bit_counter_wrapping_is_a_step_in_a_new_reference_never_held(before: int, speed: int,
+                                                                              direction: int) -> None:
+    """A continuous joint turning on past the INTEGER32 counter's end (0x6064 wraps from 2**31 - 1
+    to -2**31, or back), from ``before`` counts short of it: every position is taken as it comes,
+    none held back as a jump (which repeated the last one), and the wrap, once, starts a new
+    reference, so the odometry never subtracts across it."""
+    positions = PositionFilter(1, PERIOD_S)
+    positions.set_bound(LIMIT_COUNTS_S, 10.0)
+    unwrapped = (2**31 - 1 - before) * direction
+    last = unwrapped
+    assert positions.plausible(last, last, 100.0)
+    first = positions.reference
+    for i in range(1, 60):
+        unwrapped += direction * (speed * i // 100 - speed * (i - 1) // 100)  # speed counts/s, one a period
+        value = (unwrapped + 2**31) % 2**32 - 2**31
+        assert positions.plausible(value, last, 100.0 + i * PERIOD_S), (value, last)
+        last = value
+    assert positions.reference == first + (not -(2**31) <= unwrapped <= 2**31 - 1)
+
+
+def test_a_position_at_the_counter_s_other_end_is_held_unless_it_is_a_wrap() -> None:
+    positions = PositionFilter(1, PERIOD_S)
+    positions.set_bound(LIMIT_COUNTS_S, 10.0)
+    top = 2**31 - 5
+    assert positions.plausible(top, top, 100.0)
+    assert positions.plausible(-(2**31) + 4, top, 100.0 + PERIOD_S)  # 10 counts on, past the end
+    assert not positions.plausible(2**31 - 1000, -(2**31) + 4, 100.0 + 2 * PERIOD_S)  # 999 counts back at once
