@@ -174,6 +174,15 @@ def test_a_point_beyond_a_limit_is_refused_naming_the_joint_and_the_limit(arm: A
             "max_velocity_deg_s=180")
 
 
+def test_a_goal_ending_at_a_joint_s_limit_is_taken(arm: Arm) -> None:
+    """A point exactly at min_deg or max_deg is allowed (the points' own check); the check between
+    the points must not refuse it for the rounding of its polynomial at the end (an ulp past 90)."""
+    for end in (90.0, -90.0):
+        for duration in (1.3, 1.7, 2.2, 3.1):
+            for velocities, accelerations in (((), ()), (((0.0,),), ()), (((0.0,),), ((0.0,),))):
+                arm.group.plan(TrajectoryGoal(("joint1",), (duration,), ((end,),), velocities, accelerations))
+
+
 def test_a_segment_shorter_than_a_sync_period_is_judged_too(arm: Arm) -> None:
     """10 deg in 8 ms between points 1.001 s and 1.009 s (1,250 deg/s, beyond 180): no SYNC sample of a
     10 ms period falls inside that segment, and a check at the samples let it through; the group then

@@ -16,6 +16,10 @@ from motor_driver.follow.trajectory import Knot, Spline, derivative, excursion
 
 #: Slack on the velocity limit between the points (rounding of a spline that touches it).
 VELOCITY_SLACK = 1e-6
+#: Slack on the position limits between the points, deg: a point at a limit is allowed (its own
+#: check is exact), and its polynomial's value there, through the hull's arithmetic, may round an
+#: ulp past it (a count is 0.002 deg on the shipped arm).
+POSITION_SLACK_DEG = 1e-6
 #: A last point's velocity above this is not zero: joint_trajectory_controller's
 #: ``std::numeric_limits<float>::epsilon()`` (2**-23 rad/s), in deg/s.
 END_VELOCITY_EPSILON_DEG_S = math.degrees(2.0**-23)
@@ -175,16 +179,19 @@ class GoalChecks:
 
     def _check_between(self, joints: Sequence[str], times: tuple[float, ...], knots: tuple[tuple[Knot, ...], ...],
                        start: tuple[Knot, ...]) -> None:
-        """The spline within the limits at every instant, not only at its points (a cubic can overshoot
-        them) nor at SYNC samples (the group samples the plan where its clock says, and a segment
-        shorter than a period falls between samples): each segment's position and velocity polynomial
-        judged whole (:func:`excursion`), whatever the trajectory's duration."""
+        """The plan as given within the limits at every instant, not only at its points (a cubic can
+        overshoot them) nor at SYNC samples (the group samples the plan where its clock says, and a
+        segment shorter than a period falls between samples): each segment's position and velocity
+        polynomial judged whole (:func:`excursion`), whatever the trajectory's duration. The group
+        joins the plan from where its joints are (the first segment may start elsewhere and be
+        shorter, ``TrajectoryGroup._join``); each step it sends is held to the joint's limit there."""
         spline = Spline((0.0, *times), (start, *knots))
         cfgs = [self.drives[j].config for j in joints]
         for t0, duration, polys in spline.segments():
             for cfg, poly in zip(cfgs, polys, strict=True):
                 low, high = cfg.min_deg, cfg.max_deg
-                if low is not None and high is not None and (beyond := excursion(poly, duration, low, high)):
+                if low is not None and high is not None and (
+                        beyond := excursion(poly, duration, low - POSITION_SLACK_DEG, high + POSITION_SLACK_DEG)):
                     raise refuse(TrajectoryCode.INVALID_GOAL, f"{cfg.name}: the trajectory passes {beyond[1]:.3f} deg"
                                   f" at {t0 + beyond[0]:.3f} s, beyond the joint's limits min_deg={low:g}, max_deg={high:g}"
                                   " (between its points); nothing moved")

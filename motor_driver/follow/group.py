@@ -274,7 +274,10 @@ class TrajectoryGroup:
         out: list[Knot] = []
         for name in joints:
             if name in ramp:
-                p, v, _ = ramp[name]
+                p, v, rebased = ramp[name]
+                if rebased:  # its step back to the measured joint not sent yet: the drive holds its last target
+                    drive = self.drives[name]
+                    p = drive.cache.scale.counts_to_deg(drive.channel.target_counts)
                 out.append((p, v, 0.0))
             elif name in desired:
                 p, v, a = desired[name]
@@ -493,7 +496,7 @@ class TrajectoryGroup:
         actual = tuple((d.cache.angle_deg, d.cache.scale.counts_s_to_deg_s(d.cache.received.velocity_counts_s))
                        for d in running.joints)
         if (error := self._strayed(running, actual)) is not None:
-            self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, error)
+            self._fail(TrajectoryCode.PATH_TOLERANCE_VIOLATED, error, measured=True)
             return
         if running.final_sent:
             self._settle(running, actual, local - spline.end_s)
@@ -621,26 +624,34 @@ class TrajectoryGroup:
             self._to_ramp(running, measured=True)  # held where they are, not pushed on toward the goal
 
     # ------------------------------------------------------------------ stopping
-    def _fail(self, code: TrajectoryCode, message: str) -> None:
+    def _fail(self, code: TrajectoryCode, message: str, *, measured: bool = False) -> None:
+        """The goal aborted, its joints ramped down (``measured``: judged on this SYNC's samples, which
+        :meth:`_to_ramp` may ramp from)."""
         running = self._running
         if running is None:
             self._ramp.clear()
             return
         logger.warning("trajectory group %s: goal aborted: %s", self.name, message)
         running.run.finish(Outcome(code, message))
-        self._to_ramp(running, measured=True)
+        self._to_ramp(running, measured=measured)
 
     def _to_ramp(self, running: _Running, keep: Sequence[str] = (), *, measured: bool = False) -> None:
         """A goal's joints (but ``keep``, which a new goal takes) ramp down: from their last set-point
-        (a cancel, a preemption: the joints were following it), or, after an abort (``measured``),
-        from their measured position and velocity, as joint_trajectory_controller holds the measured
-        state: a joint that strayed (blocked, slipping) is not driven on into what held it. That
-        ramp's first set-point may jump back to the joint, beyond the stream's step guard."""
-        for drive, (p, v, _) in zip(running.joints, running.last_desired, strict=True):
-            if drive.name not in keep and self._unusable(drive) is None:
-                cache = drive.cache
-                self._ramp[drive.name] = ((cache.angle_deg, cache.scale.counts_s_to_deg_s(
-                    cache.received.velocity_counts_s), True) if measured else (p, v, False))
+        (a cancel, a preemption: the joints were following it), or, after a tolerance missed on this
+        SYNC's samples (``measured``), from each joint's measured position and velocity (the velocity
+        within its limit) where its sample is this SYNC's, as joint_trajectory_controller holds the
+        measured state: a joint that strayed (blocked, slipping) is not driven on into what held it.
+        That ramp's first set-point may step back to the joint beyond the stream's step guard; a joint
+        without a sample this SYNC ramps from its set-point (an old sample is no place to jump to)."""
+        for i, (drive, (p, v, _)) in enumerate(zip(running.joints, running.last_desired, strict=True)):
+            if drive.name in keep or self._unusable(drive) is not None:
+                continue
+            if measured and running.quiet[i] == 0:
+                cache, top = drive.cache, drive.config.max_velocity_deg_s
+                velocity = cache.scale.counts_s_to_deg_s(cache.received.velocity_counts_s)
+                self._ramp[drive.name] = (cache.angle_deg, max(-top, min(top, velocity)), True)
+            else:
+                self._ramp[drive.name] = (p, v, False)
         if self._running is running:
             self._running = None
 
