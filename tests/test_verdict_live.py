@@ -13,7 +13,7 @@ import pytest
 
 from can_config import RoverConfig
 from can_config.errors import DriveStateError
-from motor_driver import MotorDriver
+from motor_driver import MotorDriver, State
 from motor_driver.diagnostics.health import ERROR, OK, WARN, drive_health
 from motor_driver.drive.verdict import Condition
 from virtual_can import SimService
@@ -117,6 +117,28 @@ def test_a_held_drive_still_enabled_is_not_ok(driver_factory: DriverFactory) -> 
     assert driver.safe_stop() == []
     health = drive_health(drive.snapshot(), heartbeat_period_s=drive.config.heartbeat_period_s)
     assert health.level == OK and health.message.startswith("ready: motion held"), health
+
+
+@pytest.mark.parametrize(("state", "level"), [(State.OPERATION_ENABLED, WARN), (State.QUICK_STOP_ACTIVE, WARN),
+                                               (State.SWITCH_ON_DISABLED, OK), (State.READY_TO_SWITCH_ON, OK)])
+def test_a_held_drive_is_graded_by_whether_it_still_holds_its_motor(state: State, level: int) -> None:
+    """Under a hold, a drive whose drive function is still on (Operation Enabled, or Quick Stop Active
+    after a quick stop whose disable failed) is WARN; one whose voltage is off, OK."""
+    import dataclasses
+
+    from motor_driver.drive.verdict import judge
+
+    from .drive_states import drive_state
+
+    made = drive_state(name="joint1", node_id=1, angle_deg=0.0, velocity_deg_s=0.0, torque_nm=0.0, statusword=0x0007,
+                       state=state, mode=8, nmt="OPERATIONAL", error_code=0, error_text="", stamp=0.0,
+                       heartbeat_age_s=0.0, target_reached=False, data_age_s=0.0, enabled=True)
+    facts = made.facts._replace(held="a test's hold")
+    held = dataclasses.replace(made, judged=(facts, judge(facts)))
+    assert held.verdict.condition is Condition.HELD
+    health = drive_health(held, heartbeat_period_s=0.1)
+    assert health.level == level, health
+    assert (f"still {state.name}" in health.message) == (level == WARN), health
 
 
 def test_a_rebooted_drive_not_yet_configured_is_not_ok(driver_factory: DriverFactory) -> None:

@@ -60,6 +60,8 @@ REJECTED_RECENT_S = 10.0
 #: A background job's unexpected failure makes the driver's status WARN for this long.
 JOB_FAULT_RECENT_S = 30.0
 
+#: The states whose drive function holds the motor (torque on): under a hold, a stop not yet confirmed.
+_POWERED = frozenset({State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE})
 #: The level of each verdict (the rules above may raise it, never lower it).
 GRADE = {Condition.USABLE: OK, Condition.NOT_ARMED: OK, Condition.HELD: OK, Condition.OUT: WARN, Condition.REBOOTING: WARN,
          Condition.ANOTHER_MASTER: ERROR, Condition.LOST: ERROR, Condition.NOT_CONFIGURED: ERROR,
@@ -136,8 +138,8 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         return graded
     if GRADE[verdict.condition] == WARN:
         return Health(WARN, said, values)
-    if verdict.condition is Condition.HELD and state.state is State.OPERATION_ENABLED:  # a hold's stop not confirmed
-        return Health(WARN, f"motion held, yet still OPERATION_ENABLED (its stop not confirmed): {said}", values)
+    if verdict.condition is Condition.HELD and state.state in _POWERED:  # a hold's stop not confirmed
+        return Health(WARN, f"motion held, yet still {state.state.name} (its stop not confirmed): {said}", values)
     if frame_loss is not None and frame_loss.worst_percent > frame_loss_warn_percent:
         return Health(WARN, f"frames lost: {frame_loss.text()} (over {frame_loss_warn_percent:g} %): check the"
                       " cabling, termination and bus load", values)

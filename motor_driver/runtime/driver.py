@@ -312,9 +312,10 @@ class MotorDriver:
         if drive.cache.lost and drive.cache.booted:
             drive.watch.lost_while_closing()  # unheard, maybe turning: one last stop it needs not answer
             return f"{drive.name}: lost; a last quick stop was sent, unanswered (check its power and CAN cable)", True
-        if drive.cache.lost:  # its bus gone (the supervisor's _drive_gone): nothing can be sent, nothing confirmed
-            return (f"{drive.name}: lost with its bus; no stop could be sent or confirmed: it stops itself on its"
-                    " watch of this host (host_timeout_ms); check the bus (its adapter, the cable, the server)"), True
+        if drive.cache.lost:  # its bus gone (the supervisor's _drive_gone), or heard again and configured anew
+            return (f"{drive.name}: lost and not configured (its bus gone, or it is being configured again); no stop"
+                    " could be sent or confirmed: it stops itself on its watch of this host (host_timeout_ms);"
+                    " check the bus (its adapter, the cable, the server) and the drive's power"), True
         if not drive.cache.booted:  # being configured again: not enabled again after it
             drive.channel.stopped_unsent("a safe stop while it was configured again")
             return "", False
