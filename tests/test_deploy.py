@@ -11,6 +11,8 @@ import shlex
 import subprocess
 from pathlib import Path
 
+import pytest
+
 from can_config import load_config
 from rovercan.bench import can_up_commands
 from rovercan.launch import parse_launch
@@ -56,18 +58,48 @@ def test_the_entry_point_launches_the_rover_launch_file_of_the_image() -> None:
     assert os.access(entry, os.X_OK)
     assert subprocess.run(["bash", "-n", str(entry)], capture_output=True).returncode == 0
     text = entry.read_text()
-    assert "source /opt/rovercan/install/setup.bash" in text  # the Dockerfile's colcon --install-base
-    assert "/opt/rovercan/install" in (DEPLOY / "Dockerfile").read_text()
-    launch = re.search(r"ros2 launch rovercan_bringup (\S+) \"config:=\$ROVERCAN_CONFIG\"", text)
+    assert 'ROVERCAN_HOME="${ROVERCAN_HOME:-/opt/rovercan}"' in text and "/opt/rovercan/install" in (
+        DEPLOY / "Dockerfile").read_text()  # the Dockerfile's colcon --install-base under it
+    launch = re.search(r'exec rovercan launch "\$ROVERCAN_HOME/(\S+)" "config:=\$ROVERCAN_CONFIG"', text)
     assert launch is not None
-    processes = parse_launch(REPO / "ros" / "rovercan_bringup" / "launch" / launch.group(1), {"config": "/x.yaml"})
+    processes = parse_launch(REPO / launch.group(1), {"config": "/x.yaml"})
     assert any("config:=/x.yaml" in p.argv for p in processes)
+
+
+def test_the_entry_point_runs_past_ros_s_setup_scripts_to_the_launch(tmp_path: Path) -> None:
+    """Run as the image runs it, each path of the image a stand-in: ROS's setup scripts read
+    variables they never set (ament_package's AMENT_TRACE_SETUP_FILES, colcon's COLCON_TRACE), which
+    ended the script under `set -u` before the launch (every start, exit 1); it reaches the launcher
+    with the config and the extra arguments, and the rover's discovery left at ROS's default."""
+    home = tmp_path / "opt"
+    (home / "install").mkdir(parents=True)
+    (home / "venv" / "bin").mkdir(parents=True)
+    ros_setup = tmp_path / "setup.bash"
+    ros_setup.write_text('if [ -n "$AMENT_TRACE_SETUP_FILES" ]; then echo trace; fi\n')
+    (home / "install" / "setup.bash").write_text('if [ -n "$COLCON_TRACE" ]; then echo trace; fi\n')
+    launcher = home / "venv" / "bin" / "rovercan"
+    launcher.write_text('#!/usr/bin/env bash\necho "$ROS_AUTOMATIC_DISCOVERY_RANGE $*"\n')
+    launcher.chmod(0o755)
+    config = tmp_path / "rover.yaml"
+    config.write_text("")
+    env = {k: v for k, v in os.environ.items() if k not in ("AMENT_TRACE_SETUP_FILES", "COLCON_TRACE",
+                                                             "ROS_AUTOMATIC_DISCOVERY_RANGE")}
+    env |= {"ROS_SETUP": str(ros_setup), "ROVERCAN_HOME": str(home), "ROVERCAN_CONFIG": str(config)}
+    ran = subprocess.run([str(DEPLOY / "entrypoint.sh"), "arm:=true"], env=env, capture_output=True, text=True)
+    assert ran.returncode == 0, ran.stderr
+    assert ran.stdout.strip() == (f"SUBNET launch {home}/ros/rovercan_bringup/launch/rover_launch.xml"
+                                  f" config:={config} arm:=true"), ran.stdout
+    missing = subprocess.run([str(DEPLOY / "entrypoint.sh")], env=env | {"ROVERCAN_CONFIG": str(tmp_path / "no.yaml")},
+                             capture_output=True, text=True)
+    assert missing.returncode == 2 and "mount the rover config" in missing.stderr, missing
 
 
 def test_the_unit_starts_the_image_after_can0_with_the_config_mounted() -> None:
     unit = ini(DEPLOY / "rovercan.service")
-    assert "sys-subsystem-net-devices-can0.device" in unit["Unit"]["Requires"]
-    assert "sys-subsystem-net-devices-can0.device" in unit["Unit"]["After"]
+    for bus in load_config(REPO / "config" / "rover.yaml").buses:  # every bus of the rover, not can0 alone
+        assert f"sys-subsystem-net-devices-{bus.channel}.device" in unit["Unit"]["Requires"].split()
+        assert f"sys-subsystem-net-devices-{bus.channel}.device" in unit["Unit"]["After"].split()
+    assert unit["Service"]["Restart"] == "always"  # a driver that ended (a link not up at boot) starts again
     start = shlex.split(unit["Service"]["ExecStart"])
     assert start[:3] == ["/usr/bin/docker", "run", "--rm"] and start[-1] == "rovercan:latest"
     assert "--network" in start and start[start.index("--network") + 1] == "host"  # SocketCAN is the host's
@@ -83,15 +115,16 @@ def test_the_unit_starts_the_image_after_can0_with_the_config_mounted() -> None:
     assert unit["Install"]["WantedBy"] == "multi-user.target"
 
 
-def test_the_boot_time_can_settings_are_the_ones_can_up_applies() -> None:
-    network = ini(DEPLOY / "80-can0.network")
-    link = ini(DEPLOY / "80-can0.link")
+@pytest.mark.parametrize("channel", sorted({b.channel for b in load_config(REPO / "config" / "rover.yaml").buses}))
+def test_the_boot_time_can_settings_are_the_ones_can_up_applies(channel: str) -> None:
+    network = ini(DEPLOY / f"80-{channel}.network")
+    link = ini(DEPLOY / f"80-{channel}.link")
     rover_bitrates = {b.bitrate for b in load_config(REPO / "config" / "rover.yaml").buses}
     assert rover_bitrates == {int(network["CAN"]["BitRate"])}
-    ip = [" ".join(c) for c in can_up_commands("can0", int(network["CAN"]["BitRate"]), 100, 1000)]
+    ip = [" ".join(c) for c in can_up_commands(channel, int(network["CAN"]["BitRate"]), 100, 1000)]
     assert f"restart-ms {int(network['CAN']['RestartSec'].removesuffix('ms'))}" in ip[1]
     assert "berr-reporting on" in ip[1] and network["CAN"]["BusErrorReporting"] == "yes"
     assert f"txqueuelen {link['Link']['TransmitQueueLength']}" in ip[2]
-    assert network["Match"]["Name"] == link["Match"]["OriginalName"] == "can0"
+    assert network["Match"]["Name"] == link["Match"]["OriginalName"] == channel
     modules = [m for m in (DEPLOY / "modules-load.conf").read_text().splitlines() if m and not m.startswith("#")]
     assert modules == ["can", "can_raw", "mttcan"]

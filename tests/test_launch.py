@@ -112,22 +112,32 @@ def test_a_launch_value_is_one_argument_whatever_it_holds(tmp_path: Path) -> Non
     assert hostile in sim.argv and "--allow-remote" not in sim.argv
 
 
-def test_ctrl_c_stops_the_processes_in_reverse_order_each_before_the_next(tmp_path: Path) -> None:
-    """A terminal's Ctrl+C goes to the whole foreground process group. The launched processes
-    get it from the runner only, last started first, each gone before the next is signalled:
-    the driver's safe stop still finds the bus (the simulator) there."""
+def run_launcher(tmp_path: Path, launch: Path, log: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(launch), f"py:={sys.executable}",
+                             f"log:={log}"], cwd=tmp_path, start_new_session=True,
+                            env=dict(os.environ, PYTHONPATH=str(REPO)), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
+@pytest.mark.parametrize("how", ["ctrl_c", "sigterm"])
+def test_a_stop_reaches_the_processes_in_reverse_order_each_before_the_next(tmp_path: Path, how: str) -> None:
+    """A terminal's Ctrl+C goes to the whole foreground process group; `docker stop` sends SIGTERM
+    to the container's PID 1 alone (deploy/entrypoint.sh execs the launcher). Either way the
+    launched processes get SIGINT (the driver's safe stop) from the runner only, last started
+    first, each gone before the next is signalled: the driver's safe stop still finds the bus (the
+    simulator) there."""
     import signal
 
     log = tmp_path / "log.txt"
-    runner = subprocess.Popen([sys.executable, "-m", "rovercan", "launch", str(write_launch(tmp_path)),
-                               f"py:={sys.executable}", f"log:={log}"], cwd=tmp_path, start_new_session=True,
-                              env=dict(os.environ, PYTHONPATH=str(REPO)), stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True)
+    runner = run_launcher(tmp_path, write_launch(tmp_path), log)
     try:
         deadline = time.monotonic() + 20
         while (not log.exists() or log.read_text().count("ready") < 2) and time.monotonic() < deadline:
             time.sleep(0.05)
-        os.killpg(runner.pid, signal.SIGINT)  # what the terminal does
+        if how == "ctrl_c":
+            os.killpg(runner.pid, signal.SIGINT)  # what the terminal does
+        else:
+            runner.send_signal(signal.SIGTERM)  # the launcher alone, not its group
         out, _ = runner.communicate(timeout=30)
     finally:
         if runner.poll() is None:
@@ -136,6 +146,30 @@ def test_ctrl_c_stops_the_processes_in_reverse_order_each_before_the_next(tmp_pa
     assert [line for line in lines if "stop" in line] == ["driver stopping", "driver stopped", "bus stopping",
                                                           "bus stopped"], out
     assert runner.returncode == 0, out
+
+
+def test_a_process_that_fails_stops_the_others_and_the_launcher_fails(tmp_path: Path) -> None:
+    """The driver ending with an error (a boot error: a link not up yet) stops the rest and the
+    launcher exits non-zero, so systemd starts the service again (`ros2 launch` exits 0 there)."""
+    (tmp_path / "failer.py").write_text(  # once the other is ready: its stop is then its own SIGINT handler's
+        "import os, sys, time\n"
+        "while not (os.path.exists(sys.argv[1]) and 'bus ready' in open(sys.argv[1]).read()):\n"
+        "    time.sleep(0.02)\n"
+        "open(sys.argv[1], 'a').write('driver failed\\n')\nsys.exit(2)\n")
+    launch = write_launch(tmp_path)
+    launch.write_text('<launch>\n  <arg name="py" default="python3"/>\n  <arg name="log" default="log.txt"/>\n'
+                      '  <executable cmd="$(var py) stopper.py bus $(var log)"/>\n'
+                      '  <executable cmd="$(var py) failer.py $(var log)"/>\n</launch>\n')
+    log = tmp_path / "log.txt"
+    runner = run_launcher(tmp_path, launch, log)
+    try:
+        out, _ = runner.communicate(timeout=60)
+    finally:
+        if runner.poll() is None:
+            runner.kill()
+    assert runner.returncode == 1, out
+    assert "exited with 2; stopping the others" in out, out
+    assert "bus stopped" in log.read_text(), log.read_text()
 
 
 ROVER_LAUNCH = BRINGUP / "launch" / "rover_launch.xml"
