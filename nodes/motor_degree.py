@@ -24,10 +24,20 @@ class MotorDegreeNode(Node):
         super().__init__("motor_degree", **kwargs)  # type: ignore[arg-type]
         declare(self, *NODES["motor_degree"])
         period = float(self.get_parameter("period_s").value)
-        self._step_tenths = round(float(self.get_parameter("step_deg").value) * 10)
-        self._tenths = round(float(self.get_parameter("start_deg").value) * 10)
+        self._step_tenths = self._tenths_of("step_deg")
+        self._tenths = self._tenths_of("start_deg")
         self._pub = self.create_publisher(Float32, "/motor_degree_cmd", COMMAND_QOS)
         self._timer = self.create_timer(period, self._tick)
+
+    def _tenths_of(self, name: str) -> int:
+        """A parameter in whole tenths of a degree (the command's unit: no float drift), a value
+        between them rounded and said (a step of 0.04 is none at all)."""
+        value = float(self.get_parameter(name).value)
+        tenths = round(value * 10)
+        if abs(tenths / 10 - value) > 1e-9:
+            self.get_logger().warning(f"{name} {value:g} taken as {tenths / 10:g} deg: the command moves in tenths of"
+                                      " a degree")
+        return tenths
 
     def _tick(self) -> None:
         # integer tenths: no float drift however long it runs

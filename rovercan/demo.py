@@ -14,14 +14,16 @@ Owner: the CLI's main thread; the simulator and the node's executors own their t
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from can_config import load_config, with_bus_overrides
+from can_config import DEFAULT_CONFIG, RoverConfig, load_config, with_bus_overrides
 from can_config.errors import ConfigError
 from motor_driver.process.stop import StopSignal
 from rovercan.exits import EXIT_FAILED, EXIT_OK
@@ -57,7 +59,7 @@ def run_demo(args: argparse.Namespace) -> int:
     from nodes.process.logbridge import consoles_print_once
     from virtual_can.service import SimService
 
-    config = load_config(args.config)
+    config = demo_config(args.config)
     joint = config.drives[0].name  # the demo names its joint: the config's first
     spinning.init([])  # no rclpy signal handlers: StopSignal owns SIGINT/SIGTERM
     driver_node, hot, realtime = _demo_process(joint, args.realtime_priority)
@@ -73,7 +75,7 @@ def run_demo(args: argparse.Namespace) -> int:
         try:
             assembly.build()
             extra = [MotorDegreeNode(parameter_overrides=[Parameter("step_deg", value=args.step)])]
-            monitor, last, latest = _demo_monitor(args.print_period)
+            monitor, track, latest = _demo_monitor(args.print_period)
             extra.append(monitor)
             for node in extra:
                 hot.add_node(node)
@@ -91,8 +93,9 @@ def run_demo(args: argparse.Namespace) -> int:
             spinning.spin_until(hot, stop.event, failures=assembly.failures)
             drive = assembly.driver.drive(joint)
             if timed_out.is_set() and stop.signum is None:  # a Ctrl+C or SIGTERM is obeyed at once
-                _await_fresh_state(hot, extra.pop(0), lambda: drive.snapshot().verdict.fresh, assembly.failures)
-            result = demo_verdict(last["cmd"], latest[0] if latest else None, drive.snapshot().verdict)
+                _await_fresh_state(hot, extra.pop(0), lambda: drive.snapshot().verdict.fresh and bool(latest)
+                                   and math.isfinite(latest[0].angle), assembly.failures)
+            result = demo_verdict(track, latest[0] if latest else None, drive.snapshot().verdict)
         finally:
             assembly.close()  # drives safe first
             for node in extra:
@@ -127,8 +130,38 @@ def _demo_process(joint: str, realtime_priority: int) -> tuple[Any, Any, bool]:
     return node, hot, realtime
 
 
-def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[Any]]:
-    """The demo's own node: the last degree command and MotorState, printed every period."""
+def demo_config(path: str | None) -> RoverConfig:
+    """The demo's config: ``path``, else the embedded one (never ``$ROVERCAN_CONFIG``, which names
+    the rover's real buses where it is deployed). The demo runs on its own simulator: a bus of
+    another interface (a kernel SocketCAN bus, a real adapter) is refused, nothing opened."""
+    config = load_config(path if path is not None else DEFAULT_CONFIG)
+    real = [f"{b.name} ({b.interface} {b.channel})" for b in config.buses if b.interface != "socketcand"]
+    if real:
+        raise ConfigError(f"the demo runs on its own simulator and arms the first drive; {', '.join(real)} would be a"
+                          " real bus: give it a config whose buses are socketcand (the simulator's), or run the rover"
+                          " with rovercan launch")
+    return config
+
+
+@dataclass
+class Track:
+    """What the demo's monitor heard: the first and last degree command, the first measured angle."""
+
+    first_cmd: float = math.nan
+    cmd: float = math.nan
+    first_angle: float = math.nan
+
+    def command(self, value: float) -> None:
+        self.first_cmd = value if math.isnan(self.first_cmd) else self.first_cmd
+        self.cmd = value
+
+    def state(self, angle: float) -> None:
+        if math.isnan(self.first_angle) and math.isfinite(angle):
+            self.first_angle = angle
+
+
+def _demo_monitor(print_period_s: float) -> tuple[Any, Track, list[Any]]:
+    """The demo's own node: the degree commands and MotorState it heard, printed every period."""
     import rclpy
     from rovercan_msgs.msg import MotorState
     from std_msgs.msg import Float32
@@ -136,20 +169,25 @@ def _demo_monitor(print_period_s: float) -> tuple[Any, dict[str, float], list[An
     from nodes.process.qos import COMMAND_QOS, STATE_QOS
 
     monitor = rclpy.create_node("demo_monitor")
-    last: dict[str, float] = {"cmd": float("nan")}
+    track = Track()
     latest: list[MotorState] = []
-    monitor.create_subscription(Float32, "/motor_degree_cmd", lambda m: last.__setitem__("cmd", m.data), COMMAND_QOS)
-    monitor.create_subscription(MotorState, "/motor_state", lambda m: latest.__setitem__(slice(None), [m]), STATE_QOS)
+
+    def on_state(m: MotorState) -> None:
+        latest[:] = [m]
+        track.state(m.angle)
+
+    monitor.create_subscription(Float32, "/motor_degree_cmd", lambda m: track.command(m.data), COMMAND_QOS)
+    monitor.create_subscription(MotorState, "/motor_state", on_state, STATE_QOS)
 
     def show() -> None:
         if latest:
             m = latest[0]
-            print(f"cmd {last['cmd']:7.2f} deg | angle {m.angle:7.2f} deg | velocity"
+            print(f"cmd {track.cmd:7.2f} deg | angle {m.angle:7.2f} deg | velocity"
                   f" {m.velocity:6.2f} deg/s | torque {m.torque:+.3f} Nm | {m.state}"
                   f"{f' FAULT 0x{m.error_code:04X}' if m.fault else ''}", flush=True)
 
     monitor.create_timer(print_period_s, show)
-    return monitor, last, latest
+    return monitor, track, latest
 
 
 #: How long the demo waits at its end for a MotorState of fresh data when the last one was stale.
@@ -179,14 +217,25 @@ def _await_fresh_state(hot: Any, degree: Any, fresh: Callable[[], bool], failure
     spinning.spin_until(hot, done, failures=failures)  # the monitor's subscription brings the next MotorState
 
 
-def demo_verdict(cmd: float, state: Any, verdict: Verdict) -> int:
-    """0 when the drive is usable at the end (its ``verdict``: fresh data, Operation Enabled) and
-    its angle (the last MotorState, or None when none came) followed the command."""
+def _shortest(deg: float) -> float:
+    return (deg + 180.0) % 360.0 - 180.0
+
+
+#: The demo's tolerance, deg: the angle at the end within it of the command.
+FOLLOW_DEG = 2.0
+#: The least the command must move over a run for the demo to tell that the motor followed, deg.
+MIN_TRAVEL_DEG = 1.0
+
+
+def demo_verdict(track: Track, state: Any, verdict: Verdict) -> int:
+    """0 when the drive is usable at the end (its ``verdict``: fresh data, Operation Enabled), the
+    command moved, the motor moved with it, and its angle (the last MotorState's, measured) ended
+    within FOLLOW_DEG of the command. What was not measured (no command, a stale angle) fails."""
     if state is None:
         print("rovercan demo: no MotorState received", file=sys.stderr)
         return EXIT_FAILED
-    angle = float(state.angle)
-    error = abs((angle - cmd + 180.0) % 360.0 - 180.0)
+    angle, cmd = float(state.angle), track.cmd
+    error = abs(_shortest(angle - cmd))
     print(f"rovercan demo: done; last command {cmd:.2f} deg, angle {angle:.2f} deg, error {error:.2f} deg",
           flush=True)
     if not verdict.fresh:
@@ -200,10 +249,25 @@ def demo_verdict(cmd: float, state: Any, verdict: Verdict) -> int:
               " this process was held longer than the drive's host timeout and the drive stopped itself, as told"
               " (give it real-time scheduling: run as root or with CAP_SYS_NICE)", file=sys.stderr)
         return EXIT_FAILED
-    if error > 2.0:
-        print("rovercan demo: the motor did not follow the command", file=sys.stderr)
+    return _followed(track, angle, error)
+
+
+def _followed(track: Track, angle: float, error: float) -> int:
+    """The motor's part of the verdict: measured, moved as commanded, at the command at the end."""
+    if not (math.isfinite(angle) and math.isfinite(track.cmd) and math.isfinite(track.first_angle)):
+        print("rovercan demo: nothing to judge: " + ("no degree command was heard" if math.isnan(track.cmd) else
+              "the last MotorState carries no measured angle (its data were late)"), file=sys.stderr)
+        return EXIT_FAILED
+    commanded, moved = _shortest(track.cmd - track.first_cmd), _shortest(angle - track.first_angle)
+    if not abs(commanded) >= MIN_TRAVEL_DEG:
+        print(f"rovercan demo: the command moved {commanded:.2f} deg over the run, too little to tell that the motor"
+              " followed: run longer (--duration) or with a larger --step", file=sys.stderr)
+        return EXIT_FAILED
+    if moved * commanded <= 0.0 or abs(moved) < abs(commanded) / 2 or error > FOLLOW_DEG:
+        print(f"rovercan demo: the motor did not follow the command (it moved {moved:.2f} deg while the command"
+              f" moved {commanded:.2f} deg; error at the end {error:.2f} deg, at most {FOLLOW_DEG:g})", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
 
 
-__all__ = ["demo_verdict", "run_demo"]
+__all__ = ["Track", "demo_config", "demo_verdict", "run_demo"]

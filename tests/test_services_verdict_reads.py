@@ -18,6 +18,16 @@ from .conftest import requires_ros
 FRESH = {"data_age_s": 0.001, "stale_after_s": 0.1, "heartbeat_age_s": 0.01, "nmt": "OPERATIONAL", "booted": True}
 
 
+def ran(first_cmd: float = 0.0, cmd: float = 3.0, first_angle: float = 0.0) -> object:
+    """A demo run's track: the command from ``first_cmd`` to ``cmd``, the angle first measured."""
+    from rovercan.demo import Track
+
+    return Track(first_cmd, cmd, first_angle)
+
+
+RAN = ran()
+
+
 def verdict(**facts: object) -> Verdict:
     return judge(DriveFacts("motor", **{**FRESH, **facts}))  # type: ignore[arg-type]
 
@@ -52,7 +62,7 @@ def test_the_demo_fails_a_drive_whose_verdict_is_not_usable_whatever_the_message
 
     state = MotorState(angle=2.9, enabled=True, stale=False, fault=False, state="OPERATION_ENABLED")
     stopped = verdict(state=State.SWITCH_ON_DISABLED, armed=True, emcy_code=0x8130, emcy_text="heartbeat lost")
-    assert demo_verdict(3.0, state, stopped) == EXIT_FAILED
+    assert demo_verdict(RAN, state, stopped) == EXIT_FAILED
     err = capsys.readouterr().err
     assert "stopped itself at the end, not usable" in err and "host heartbeat lost" in err and "CAP_SYS_NICE" in err
 
@@ -65,7 +75,7 @@ def test_the_demo_passes_a_usable_drive_whatever_the_message_says(capsys: pytest
 
     state = MotorState(angle=2.9, enabled=False, stale=True, fault=True, state="LATE")
     usable = verdict(state=State.OPERATION_ENABLED, armed=True)
-    assert usable.usable and demo_verdict(3.0, state, usable) == EXIT_OK
+    assert usable.usable and demo_verdict(RAN, state, usable) == EXIT_OK
     assert capsys.readouterr().err == ""
 
 
@@ -79,6 +89,59 @@ def test_the_demo_judges_no_data_that_is_not_fresh(capsys: pytest.CaptureFixture
 
     state = MotorState(angle=math.nan, enabled=True, stale=False, data_age=0.4, state="OPERATION_ENABLED")
     late = verdict(state=State.OPERATION_ENABLED, armed=True, data_age_s=0.4)
-    assert demo_verdict(3.0, state, late) == EXIT_FAILED
+    assert demo_verdict(RAN, state, late) == EXIT_FAILED
     err = capsys.readouterr().err
     assert "no fresh data from the drive at the end (motor: no data for 400 ms" in err and "not usable" not in err
+
+
+@requires_ros
+@pytest.mark.parametrize(("track", "angle", "says"), [
+    (ran(), math.nan, "carries no measured angle"),  # the last MotorState stale, the drive fresh since
+    (ran(cmd=math.nan, first_cmd=math.nan), 2.9, "no degree command was heard"),
+    (ran(cmd=0.0), 0.0, "too little to tell"),  # a step that rounds to none: nothing commanded, nothing seen
+    (ran(cmd=2.5), 0.5, "did not follow"),  # within 2 deg at the end, yet the motor barely moved
+    (ran(cmd=-3.0), 0.0, "did not follow"),
+    (ran(first_cmd=350.0, cmd=5.0, first_angle=350.0), 150.0, "did not follow"),
+])
+def test_the_demo_fails_what_it_did_not_measure(track: object, angle: float, says: str,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A NaN compares false with the tolerance and passed; a command that never moved matched a
+    motor that never moved. Each now fails, saying what was not measured."""
+    from rovercan_msgs.msg import MotorState
+
+    from rovercan.demo import demo_verdict
+
+    usable = verdict(state=State.OPERATION_ENABLED, armed=True)
+    assert demo_verdict(track, MotorState(angle=angle, state="OPERATION_ENABLED"), usable) == EXIT_FAILED  # type: ignore[arg-type]
+    assert says in capsys.readouterr().err
+
+
+@requires_ros
+def test_the_demo_passes_a_motor_that_followed_across_the_wrap() -> None:
+    from rovercan_msgs.msg import MotorState
+
+    from rovercan.demo import demo_verdict
+
+    usable = verdict(state=State.OPERATION_ENABLED, armed=True)
+    track = ran(first_cmd=355.0, cmd=5.0, first_angle=354.5)  # 10 deg across 360
+    assert demo_verdict(track, MotorState(angle=4.2, state="OPERATION_ENABLED"), usable) == EXIT_OK  # type: ignore[arg-type]
+
+
+def test_the_demo_takes_the_embedded_config_and_refuses_a_real_bus(tmp_path: object, monkeypatch: pytest.MonkeyPatch
+                                                                    ) -> None:
+    """$ROVERCAN_CONFIG names the rover's real buses where it is deployed (the image sets it): the
+    demo, which arms its first drive, never reads it; a config given with a kernel bus is refused
+    before anything opens."""
+    from pathlib import Path
+
+    from can_config import DEFAULT_CONFIG, load_config
+    from can_config.errors import ConfigError
+    from rovercan.demo import demo_config
+
+    real = Path(str(tmp_path)) / "real.yaml"
+    real.write_text((Path(__file__).resolve().parent.parent / "config" / "rover.yaml").read_text()
+                    .replace("interface: socketcand", "interface: socketcan"))
+    monkeypatch.setenv("ROVERCAN_CONFIG", str(real))
+    assert demo_config(None) == load_config(DEFAULT_CONFIG)
+    with pytest.raises(ConfigError, match=r"can0 \(socketcan can0\).*real bus"):
+        demo_config(str(real))

@@ -37,7 +37,8 @@ class Param:
 
 
 PARAMS: dict[str, Param] = {
-    "config": Param("", "rover config YAML (buses, drives, drive system); empty: the embedded default"),
+    "config": Param("", "rover config YAML (buses, drives, drive system); empty: $ROVERCAN_CONFIG where set, else"
+                       " the embedded default"),
     "executor": Param("events", "hot-path executor: events (rclpy's EventsExecutor, measured fastest) or single"),
     "arm": Param(False, "enable every drive at start (rover_lifecycle: at activate); off by default: arming is an"
                         " explicit act"),
@@ -65,9 +66,11 @@ PARAMS: dict[str, Param] = {
     "base_frame": Param("base_link", "child_frame_id of /odom"),
     "publish_tf": Param(True, "drive_system: publish /tf odom -> base_link from the wheel odometry; false: another"
                               " node fuses odometry (robot_localization) and owns that transform"),
-    "period_s": Param(0.1, "motor_degree: seconds between two commands"),
-    "step_deg": Param(0.1, "motor_degree: degrees added to the command each period (modulo 360)"),
-    "start_deg": Param(0.0, "motor_degree: the command before the first step, degrees"),
+    "period_s": Param(0.1, "motor_degree: seconds between two commands", 0.001, 3600.0),
+    "step_deg": Param(0.1, "motor_degree: degrees added to the command each period (modulo 360), in tenths of a"
+                           " degree (another value is rounded, and said)", -360.0, 360.0),
+    "start_deg": Param(0.0, "motor_degree: the command before the first step, degrees, in tenths (as step_deg)",
+                       -360.0, 360.0),
 }
 
 #: Read by the process set-up (:func:`nodes.assembly.set_up`), on the entry point's own node.
