@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from motor_driver import DriveState, State
 from motor_driver.drive.verdict import DriveFacts, Verdict, judge
@@ -145,3 +147,15 @@ def test_the_demo_takes_the_embedded_config_and_refuses_a_real_bus(tmp_path: obj
     assert demo_config(None) == load_config(DEFAULT_CONFIG)
     with pytest.raises(ConfigError, match=r"can0 \(socketcan can0\).*real bus"):
         demo_config(str(real))
+
+
+@given(st.floats(-1e9, 1e9, allow_nan=False) | st.sampled_from([-1e-20, -0.0, 359.99999, 360.0, 719.999999]))
+def test_a_continuous_joint_s_angle_is_in_0_to_360_as_float32_carries_it(angle: float) -> None:
+    """MotorState's angle of a continuous joint lies in [0, 360) (docs): a tiny negative angle's
+    remainder is 360.0 in doubles, and float32 rounds 359.99999 up to 360.0."""
+    import struct
+
+    from motor_driver.recording.published import wrapped_deg
+
+    carried = struct.unpack("<f", struct.pack("<f", wrapped_deg(angle)))[0]
+    assert 0.0 <= carried < 360.0, (angle, carried)

@@ -17,6 +17,7 @@ old news, as its angle is). No state of its own.
 from __future__ import annotations
 
 import math
+import struct
 from typing import NamedTuple
 
 from motor_driver.drive.values import DriveState
@@ -44,9 +45,16 @@ class MotorStateFields(NamedTuple):
     stamp: float
 
 
+def wrapped_deg(angle_deg: float) -> float:
+    """A continuous joint's angle in [0, 360) as MotorState's float32 carries it: a tiny negative
+    angle's remainder (360.0 in doubles) and one that float32 rounds up to 360 are 0."""
+    angle = angle_deg % 360.0
+    return 0.0 if struct.unpack("<f", struct.pack("<f", angle))[0] >= 360.0 else angle
+
+
 def motor_state_fields(state: DriveState, continuous: bool) -> MotorStateFields:
     """A MotorState of ``state`` (see the module's rules)."""
-    angle = state.angle_deg % 360.0 if continuous else state.angle_deg
+    angle = wrapped_deg(state.angle_deg) if continuous else state.angle_deg
     verdict = state.verdict
     stale = not verdict.fresh
     return MotorStateFields(
