@@ -85,3 +85,33 @@ def test_halt_forgets_the_ramp() -> None:
         steer.step(Twist2D(1.0, 0.0), 0.1)
     steer.halt()
     assert steer.step(Twist2D(), 0.1) == (0.0, 0.0)  # a stale ramp-down from nothing is nothing
+
+
+@given(limit=st.floats(60.0, 3000.0), radius=st.floats(0.05, 0.5), track=st.floats(0.2, 2.0),
+       v=st.floats(-1e3, 1e3), w=st.floats(-1e3, 1e3), speed=st.floats(0.1, 10.0))
+def test_no_wheel_speed_is_ever_over_its_drive_s_own_limit_in_its_unit(limit: float, radius: float, track: float,
+                                                                       v: float, w: float, speed: float) -> None:
+    """Each wheel's set-point, as the drive system sends it (rad/s x DEG_PER_RAD), against the
+    drive's own check (`abs(velocity) > max_velocity_deg_s`: refused, and every wheel halted). A
+    command scaled to the drive's limit came out an ulp over it for a third of the commands over
+    it: at top speed the rover stopped, started again, and stopped."""
+    from motor_driver.protocol.units import DEG_PER_RAD
+
+    steer = SkidSteer(track, radius, max_accel_m_s2=1e9, max_speed_m_s=speed, max_wheel_rad_s=math.radians(limit))
+    for _ in range(3):  # the ramp's last step lands on the target
+        left, right = steer.step(Twist2D(v, w), 0.01)
+        assert abs(left * DEG_PER_RAD) <= limit and abs(right * DEG_PER_RAD) <= limit, (left, right)
+
+
+@pytest.mark.parametrize(("v", "w"), [(1e308, 0.0), (-1e308, 0.0), (0.0, 1e308), (1e308, 1e308), (1e300, -3e299)])
+def test_a_huge_command_is_scaled_to_the_limits_not_turned_into_a_stop(v: float, w: float) -> None:
+    """Its wheel speeds overflowed to inf and the scale factor to 0: the rover stopped while the
+    drive system said "driving". Scaled as any command over the limits: the limit, its curvature."""
+    steer = SkidSteer(0.6, 0.1, max_accel_m_s2=1.0, max_speed_m_s=1.0, max_angular_rad_s=2.0,
+                      max_wheel_rad_s=math.radians(720.0))
+    got = steer.desaturate(Twist2D(v, w))
+    left, right = wheel_speeds_rad_s(got, 0.6, 0.1)
+    assert max(abs(left), abs(right)) == pytest.approx(10.0) or abs(got.angular_rad_s) == pytest.approx(2.0)
+    if v and w:
+        assert got.angular_rad_s / got.linear_m_s == pytest.approx(w / v)
+    assert math.copysign(1.0, got.linear_m_s or got.angular_rad_s) == math.copysign(1.0, v or w)

@@ -62,6 +62,13 @@ def integrate(pose: Pose2D, twist: Twist2D, dt: float) -> Pose2D:
                   math.remainder(pose.yaw_rad + twist.angular_rad_s * dt, 2 * math.pi))
 
 
+#: The share of a wheel's limit kept as margin against rounding (a nanometre a second at 1 m/s).
+LIMIT_MARGIN = 1e-9
+#: A command whose speed or turn rate exceeds this is first brought to it, curvature kept: beyond
+#: any rover's limit, so the limits then scale it as any command over them.
+BEYOND_ANY_LIMIT = 1e6
+
+
 class SkidSteer:
     """Commanded twist -> desaturated, ramped wheel speed setpoints."""
 
@@ -73,8 +80,10 @@ class SkidSteer:
         self.max_accel_m_s2 = max_accel_m_s2
         self.max_speed_m_s = max_speed_m_s
         self.max_angular_rad_s = max_angular_rad_s
-        #: the slowest wheel's limit: its drive's max velocity, and max_speed_m_s at its rim
-        self.max_wheel_rad_s = min(max_wheel_rad_s, max_speed_m_s / wheel_radius_m)
+        #: the slowest wheel's limit: its drive's max velocity, and max_speed_m_s at its rim, less a
+        #: rounding's margin: a speed scaled to it and turned into the drive's unit must not come out an
+        #: ulp over the drive's own limit, which refuses it (and the drive system then halts every wheel)
+        self.max_wheel_rad_s = min(max_wheel_rad_s, max_speed_m_s / wheel_radius_m) * (1.0 - LIMIT_MARGIN)
         self.left_rad_s = 0.0
         self.right_rad_s = 0.0
         #: the share of every limit in force (1.0; less while wheels are left out: the drive system's
@@ -87,12 +96,14 @@ class SkidSteer:
         share = self.share
         if share <= 0.0:
             return Twist2D()
+        if (size := max(abs(v), abs(w))) > BEYOND_ANY_LIMIT:  # its wheel speeds would overflow to inf (a
+            v, w = v / size * BEYOND_ANY_LIMIT, w / size * BEYOND_ANY_LIMIT  # factor 0: a stop); same curvature
         factor = 1.0
         if abs(v) > self.max_speed_m_s * share:
             factor = min(factor, self.max_speed_m_s * share / abs(v))
         if abs(w) > self.max_angular_rad_s * share:
             factor = min(factor, self.max_angular_rad_s * share / abs(w))
-        peak = max(abs(x) for x in wheel_speeds_rad_s(twist, self.track_width_m, self.wheel_radius_m))
+        peak = max(abs(x) for x in wheel_speeds_rad_s(Twist2D(v, w), self.track_width_m, self.wheel_radius_m))
         if peak > self.max_wheel_rad_s * share:
             factor = min(factor, self.max_wheel_rad_s * share / peak)
         return Twist2D(v * factor, w * factor)
@@ -101,6 +112,8 @@ class SkidSteer:
         """(left, right) wheel setpoints in rad/s toward the desaturated ``target``; neither side
         changes faster than the rim acceleration allows, and both arrive together."""
         left, right = wheel_speeds_rad_s(self.desaturate(target), self.track_width_m, self.wheel_radius_m)
+        cap = self.max_wheel_rad_s * self.share  # what scaling's rounding left over it, cut (never more than an ulp)
+        left, right = max(-cap, min(cap, left)), max(-cap, min(cap, right))
         d_left, d_right = left - self.left_rad_s, right - self.right_rad_s
         largest = max(abs(d_left), abs(d_right))
         step = self.max_accel_m_s2 / self.wheel_radius_m * dt
