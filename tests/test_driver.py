@@ -562,3 +562,41 @@ def test_halt_sets_bit_8_on_the_wire_and_clears_it(driver_factory: DriverFactory
     assert next_controlword() == 0x010F
     drive.halt(False)
     assert next_controlword() == 0x000F
+
+
+def test_a_safe_stop_cuts_a_drive_s_voltage_only_once_its_quick_stop_has_braked_it(
+        driver_factory: DriverFactory, listener_factory: Callable[[SimService], can.BusABC]) -> None:
+    """Disable voltage mid-ramp switches the power stage off, and a real drive's shaft coasts from
+    there (the simulator's stops dead, so the order of the frames on the wire judges): the safe
+    stop sent it as soon as the drive said Quick Stop Active. Its voltage goes now only after the
+    drive said it braked (Switch On Disabled by itself, or standstill in Quick Stop Active)."""
+    from motor_driver.protocol.cia402 import SW, decode_state
+
+    sim, driver = driver_factory(make_config(2, quick_stop_deceleration_deg_s2=200.0))  # 100 deg/s: a 0.5 s ramp
+    frames: list[can.Message] = []
+    notifier = can.Notifier(listener_factory(sim), [frames.append], timeout=0.1)
+    try:
+        for name in ("joint1", "joint2"):
+            driver.drive(name).enable()
+            driver.drive(name).set_velocity(100.0)
+        wait_for(lambda: all(driver.drive(n).snapshot().velocity_deg_s > 90.0 for n in ("joint1", "joint2")), 10.0,
+                 "both at speed")
+        mark = len(frames)
+        assert driver.safe_stop() == []
+    finally:
+        notifier.stop()
+    for node in (1, 2):
+        sent = [(i, int.from_bytes(m.data[:2], "little")) for i, m in enumerate(frames) if i >= mark
+                and m.arbitration_id == 0x200 + node]
+        stop = next(i for i, cw in sent if cw == 0x0002)
+        off = next(i for i, cw in sent if cw == 0x0000 and i > stop)
+        words = [int.from_bytes(m.data[:2], "little") for m in frames[stop:off] if m.arbitration_id == 0x180 + node]
+        braked = [sw for sw in words if decode_state(sw) is State.SWITCH_ON_DISABLED
+                  or (decode_state(sw) is State.QUICK_STOP_ACTIVE and sw & SW.TARGET_REACHED)]
+        assert braked, f"node {node}: voltage off mid-ramp, after {[hex(w) for w in words]}"
+    # both quick stops went out before either drive's voltage: no drive waited for another's ramp
+    first_off = min(i for i, m in enumerate(frames) if i >= mark and m.arbitration_id in (0x201, 0x202)
+                    and int.from_bytes(m.data[:2], "little") == 0x0000)
+    stops = [i for i, m in enumerate(frames) if i >= mark and m.arbitration_id in (0x201, 0x202)
+             and int.from_bytes(m.data[:2], "little") == 0x0002]
+    assert len(stops) == 2 and max(stops) < first_off, (stops, first_off)

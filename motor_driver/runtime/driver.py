@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager
 from typing import NamedTuple
@@ -287,42 +287,61 @@ class MotorDriver:
     def stop_report(self, drives: Iterable[Drive] | None = None) -> StopReport:
         """:meth:`safe_stop`, with the lost drives among what was not confirmed told apart (a
         transition that fails on a stop nobody can confirm would fail for as long as the drive
-        is unplugged: the lifecycle node's deactivate)."""
+        is unplugged: the lifecycle node's deactivate). Every drive's quick stop first, then each
+        one's voltage disabled once it has braked: no drive waits for another's ramp, and none
+        has its power cut mid-ramp (a real drive's shaft would coast from there)."""
         report = StopReport([], [])
-        for drive in self.drives.values() if drives is None else drives:
-            lost = False
-            try:
-                said, lost = self._stop_safely(drive)
-            except MotorError as err:
-                said = str(err)
-                logger.error("safe stop: %s", err)
-            except Exception as err:  # a fault of this driver's: the next drives are stopped all the same
-                said = f"{drive.name}: its stop failed unexpectedly ({type(err).__name__}: {err}); see the log"
-                self.supervisor.faults.failed("stop", f"safe stop of {drive.name}", err)  # logged, counted: /diagnostics
-            if said:
-                report.lines.append(said)
-                if lost:
-                    report.lost.append(said)
+        braking = [d for d in (self.drives.values() if drives is None else drives)
+                   if self._stop_step(d, report, self._quick_stop_first)]
+        for drive in braking:
+            self._stop_step(drive, report, self._off_once_braked)
         return report
 
+    def _stop_step(self, drive: Drive, report: StopReport, step: Callable[[Drive], tuple[str, bool, bool]]) -> bool:
+        """One step of a drive's safe stop; what it could not confirm in ``report``. True: the drive
+        goes on to the next step. Whatever it raises (a bug too: logged with its trace, counted as a
+        failed "stop" job) ends that drive's stop, never another's."""
+        lost = more = False
+        try:
+            said, lost, more = step(drive)
+        except MotorError as err:
+            said = str(err)
+            logger.error("safe stop: %s", err)
+        except Exception as err:  # a fault of this driver's: the next drives are stopped all the same
+            said = f"{drive.name}: its stop failed unexpectedly ({type(err).__name__}: {err}); see the log"
+            self.supervisor.faults.failed("stop", f"safe stop of {drive.name}", err)  # logged, counted: /diagnostics
+        if said:
+            report.lines.append(said)
+            if lost:
+                report.lost.append(said)
+        return more
+
     @staticmethod
-    def _stop_safely(drive: Drive) -> tuple[str, bool]:
-        """One drive's part of :meth:`safe_stop`: what was not confirmed ("" safe, or nothing to
-        do), and whether that is because the drive was lost."""
+    def _quick_stop_first(drive: Drive) -> tuple[str, bool, bool]:
+        """A drive's first step: what was not confirmed ("" safe, or nothing to do), whether that is
+        because it was lost, and whether its voltage is to be disabled next."""
         if drive.cache.lost and drive.cache.booted:
             drive.watch.lost_while_closing()  # unheard, maybe turning: one last stop it needs not answer
-            return f"{drive.name}: lost; a last quick stop was sent, unanswered (check its power and CAN cable)", True
+            return f"{drive.name}: lost; a last quick stop was sent, unanswered (check its power and CAN cable)", True, False
         if drive.cache.lost:  # its bus gone (the supervisor's _drive_gone), or heard again and configured anew
             return (f"{drive.name}: lost and not configured (its bus gone, or it is being configured again); no stop"
                     " could be sent or confirmed: it stops itself on its watch of this host (host_timeout_ms);"
-                    " check the bus (its adapter, the cable, the server) and the drive's power"), True
+                    " check the bus (its adapter, the cable, the server) and the drive's power"), True, False
         if not drive.cache.booted:  # being configured again: not enabled again after it
             drive.channel.stopped_unsent("a safe stop while it was configured again")
-            return "", False
+            return "", False, False
         if drive.cache.state == State.OPERATION_ENABLED:
             drive.quick_stop()
+        return "", False, True
+
+    @staticmethod
+    def _off_once_braked(drive: Drive) -> tuple[str, bool, bool]:
+        """A drive's second step: its voltage disabled once its quick stop has braked it."""
+        if not drive.power.wait_braked():
+            logger.warning("safe stop: %s is still braking (Quick Stop Active, no standstill said) past twice its"
+                           " ramp; its voltage is disabled now, and its shaft may coast from there", drive.name)
         drive.disable_voltage()
-        return "", False
+        return "", False, False
 
     def _unit_objects(self) -> dict[str, dict[tuple[int, int], int]]:
         """Each booted drive's unit objects as it reported them at its last boot (the flight

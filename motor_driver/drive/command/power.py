@@ -47,6 +47,9 @@ logger = logging.getLogger(__name__)
 #: as behind: motor_driver.bus.adapters.receive_behind) on a bus with SYNC, short beside the
 #: 2 s an enable may look (the next drive's stop waits behind this one in safe_stop).
 STOP_READ_BEHIND_S = 0.1
+#: What a safe stop waits for a quick stop's ramp beyond twice its length from the drive's speed
+#: (a statusword's way back, a drive that reports standstill late), s.
+BRAKE_MARGIN_S = 0.5
 
 #: The verdicts an operation that needs Operation Enabled goes on under (late: nothing says it
 #: stopped), and those that mean the drive left Operation Enabled
@@ -328,6 +331,18 @@ class PowerStateMachine:
         """Quick stop (transition 11; 7 or 10 from the states before): the drive brakes on its
         quick-stop ramp."""
         self._stop("quick stop", Command.QUICK_STOP, {State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED}, timeout_s)
+
+    def wait_braked(self) -> bool:
+        """After a quick stop: until the drive has stopped braking (Switch On Disabled by itself,
+        quick-stop options 1-3 and the driver's 2; Quick Stop Active with target reached, 5-7 hold
+        there at standstill; any other state: it left the ramp), for at most twice the ramp from its
+        speed at its quick-stop deceleration, and BRAKE_MARGIN_S. Its voltage disabled before that
+        cuts the ramp short: a real drive's shaft then coasts. False: still braking at the bound."""
+        cache = self._cache
+        speed = abs(cache.scale.counts_s_to_deg_s(cache.received.velocity_counts_s))
+        bound = 2.0 * speed / self.config.quick_stop_decel_deg_s2 + BRAKE_MARGIN_S
+        return cache.wait_until(lambda: cache.state != State.QUICK_STOP_ACTIVE
+                                or bool(cache.received.statusword & SW.TARGET_REACHED), bound)
 
     def disable_voltage(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Disable voltage (transitions 7, 9, 10, 12): power stage off, Switch On Disabled."""
