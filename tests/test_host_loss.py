@@ -126,11 +126,19 @@ def syncs_while_listening(sim: SimService, watch: Watch, channel: str, node: int
 
 
 def first_stop(frames: list[tuple[float, can.Message]], cob_id: int, offset: int, after: float) -> float | None:
-    """Arrival time of the first statusword (in TPDO ``cob_id`` at byte ``offset``) after
-    ``after`` that says the drive is no longer in Operation Enabled."""
+    """Arrival time of the first frame after ``after`` by which the drive says it stopped itself:
+    a statusword (in TPDO ``cob_id`` at byte ``offset``) no longer in Operation Enabled, or its
+    EMCY 0x8130 (host heartbeat lost: its 0x6007 reaction comes with it; a drive whose 0x1029 takes
+    it to PRE-OPERATIONAL on that error sends no TPDO after it). The tests read its state by SDO
+    after."""
+    emcy = 0x080 + (cob_id & 0x7F)
     for t, msg in frames:
-        if t >= after and msg.arbitration_id == cob_id and len(msg.data) >= offset + 2 \
+        if t < after:
+            continue
+        if msg.arbitration_id == cob_id and len(msg.data) >= offset + 2 \
                 and not statusword_enabled(int.from_bytes(msg.data[offset:offset + 2], "little")):
+            return t
+        if msg.arbitration_id == emcy and bytes(msg.data[:2]) == b"\x30\x81":
             return t
     return None
 

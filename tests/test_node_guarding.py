@@ -67,6 +67,33 @@ def test_life_guarding_stops_the_drive_after_guard_time_x_factor() -> None:
     assert drive.state in (SimState.QUICK_STOP_ACTIVE, SimState.SWITCH_ON_DISABLED)
 
 
+@pytest.mark.parametrize(("behaviour", "after"), [(None, NmtState.OPERATIONAL), (0, NmtState.PRE_OPERATIONAL),
+                                                  (1, NmtState.OPERATIONAL), (2, NmtState.STOPPED)])
+@pytest.mark.parametrize("watch", ["heartbeat", "guarding"])
+def test_a_lost_master_takes_the_drive_where_its_0x1029_says(watch: str, behaviour: int | None,
+                                                             after: NmtState) -> None:
+    """CiA 301 0x1029:1 on a communication error (a heartbeat consumer's timeout, a life guarding
+    event): 0 PRE-OPERATIONAL (its PDOs stop: the default of most drives that list it, the
+    Faulhaber's, ros2_canopen's), 1 no change, 2 STOPPED; a drive without it stays as it was. The
+    0x6007 reaction and its EMCY come all the same."""
+    drive = guarded_drive()
+    if behaviour is not None:
+        drive.store.values[(OD.ERROR_BEHAVIOUR, 1)] = behaviour
+    drive.state = SimState.OPERATION_ENABLED
+    if watch == "heartbeat":
+        drive.store.values[(OD.GUARD_TIME, 0)] = 0
+        drive.store.values[(OD.CONSUMER_HEARTBEAT_TIME, 1)] = 127 << 16 | 100
+        drive._load_consumers()
+        drive.on_frame(can.Message(arbitration_id=0x77F, data=bytes([5]), is_extended_id=False), 1.0)
+    else:
+        drive.on_frame(GUARD, 1.0)
+    out = [m for t in range(1, 50) for m in drive.tick(1.0 + t * 0.01, 0.01)]
+    emcys = [m for m in out if m.arbitration_id == 0x082]
+    assert emcys and int.from_bytes(emcys[0].data[:2], "little") == 0x8130
+    assert drive.state in (SimState.QUICK_STOP_ACTIVE, SimState.SWITCH_ON_DISABLED)
+    assert drive.nmt == after
+
+
 def test_life_guarding_waits_for_the_first_guard() -> None:
     drive = guarded_drive()
     drive.state = SimState.OPERATION_ENABLED

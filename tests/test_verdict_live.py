@@ -141,6 +141,35 @@ def test_a_held_drive_is_graded_by_whether_it_still_holds_its_motor(state: State
     assert (f"still {state.name}" in health.message) == (level == WARN), health
 
 
+def test_a_drive_that_went_pre_operational_on_losing_the_host_is_not_blamed_on_another_master(
+        driver_factory: DriverFactory) -> None:
+    """A drive whose 0x1029:1 is 0 (the Faulhaber's and ros2_canopen's default) goes PRE-OPERATIONAL
+    on its heartbeat consumer's timeout, with EMCY 0x8130: its own doing on this host's silence,
+    not another master's NMT command. It is configured again, left disabled, and enabled again
+    once the host is heard; never marked "another master is on the bus" (which told the user to
+    stop a bench tool that does not exist)."""
+    from can_config.objects import NmtState
+
+    sim, driver = driver_factory(make_config(1))
+    drive = driver.drive("joint1")
+    runner = sim.simulator_for(1)
+    runner.call(lambda: runner.drive(1).store.values.__setitem__((0x1029, 1), 0))
+    drive.enable()
+    wait_for(lambda: bool(runner.call(lambda: dict(runner.drive(1)._consumer_seen))), 30.0, "its host watch armed")
+    boots = drive.boot.boot_count
+    seen: list[Condition] = []
+    apply_action(sim, {"action": "heartbeat_deaf", "node": 1})  # it hears this host no more
+    wait_for(lambda: seen.append(drive.snapshot().verdict.condition) or
+             runner.call(lambda: runner.drive(1).nmt) == NmtState.PRE_OPERATIONAL, 30.0, "the drive PRE-OPERATIONAL")
+    apply_action(sim, {"action": "heartbeat_deaf", "node": 1, "on": False})
+    wait_for(lambda: seen.append(drive.snapshot().verdict.condition) or
+             (drive.boot.boot_count > boots and drive.cache.booted), 30.0, "configured again")
+    assert Condition.ANOTHER_MASTER not in seen, seen
+    assert driver.supervisor.records["joint1"].foreign_master == ""
+    drive.enable()
+    assert drive.cache.state is State.OPERATION_ENABLED
+
+
 def test_a_rebooted_drive_not_yet_configured_is_not_ok(driver_factory: DriverFactory) -> None:
     sim, driver = driver_factory(make_config(1))
     drive = driver.drive("joint1")

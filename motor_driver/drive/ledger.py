@@ -40,6 +40,8 @@ class DriveRecord:
         self.lost = False
         self.booted = False
         self.booted_at = 0.0  # when the last boot ended: a heartbeat heard before it is history
+        #: the drive's EMCY 0x8130 count (DriveCache.host_loss_emcys) when its last boot ended
+        self.host_loss_emcys_at_boot = 0
         #: configure it again (a boot-up, a stop it was told, the other master gone, a failed try)
         self.reboot_wanted = False
         self.reboot_at = 0.0  # not before this (a failed re-configuration waits)

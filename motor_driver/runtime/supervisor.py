@@ -308,6 +308,8 @@ class Supervisor:
         record.booted_at = now
         record.bootups_confirmed = event.bootups
         drive = self.drives.get(event.drive)
+        if drive is not None:
+            record.host_loss_emcys_at_boot = drive.cache.host_loss_emcys
         if drive is not None and drive.cache.bootups > event.bootups:
             why = "it sent boot-up as its boot ended"
             logger.warning("node %d (%s): %s: it reset; it will be configured again", drive.node_id, drive.name, why)
@@ -357,6 +359,13 @@ class Supervisor:
             logger.warning("node %d (%s): now NMT %s, as this driver told it (%s, %.0f ms before); configuring it"
                            " again, left disabled", drive.node_id, drive.name, name,
                            command.name if command is not None else "?", (event.at - when) * 1000)
+            self._configure_again(record)
+        elif drive.cache.host_loss_emcys > record.host_loss_emcys_at_boot:
+            # its own doing: a communication error (this host's heartbeat lost, EMCY 0x8130) takes a
+            # drive whose 0x1029:1 says so to PRE-OPERATIONAL or STOPPED; not another master's command
+            logger.warning("node %d (%s): now NMT %s after it heard no heartbeat from this host (EMCY 0x8130: its"
+                           " communication-error behaviour, 0x1029); configuring it again, left disabled. Was this"
+                           " process stalled, or the bus cut?", drive.node_id, drive.name, name)
             self._configure_again(record)
         else:
             record.behind_back = (event.at, f"node {drive.node_id} went {name} without an NMT command from"

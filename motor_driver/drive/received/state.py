@@ -58,7 +58,7 @@ from collections.abc import Callable
 import canopen
 
 from can_config.config import DriveConfig
-from can_config.objects import OD, FunctionCode, NmtState, emcy_text
+from can_config.objects import EMCY_HEARTBEAT_LOST, OD, FunctionCode, NmtState, emcy_text
 from motor_driver.drive.constants import TRANSITION_TIMEOUT_S
 from motor_driver.drive.ledger import DriveRecord, Heard, SupervisorPort
 from motor_driver.drive.received.position import PositionFilter
@@ -101,11 +101,9 @@ class DriveCache:
     def __init__(self, config: DriveConfig, network: canopen.Network, plan: PdoPlan, scale: Scale, *,
                  sync_period_s: float, record: DriveRecord, port: SupervisorPort) -> None:
         self.config = config
-        self._record = record  # the supervisor's: read only
-        self._port = port
+        self._record, self._port = record, port  # the supervisor's record (read only) and port
         self.name, self.node_id = config.name, config.node_id
-        self._network = network
-        self.sync_period_s = sync_period_s
+        self._network, self.sync_period_s = network, sync_period_s
         self._sink: StatusSink | None = None
         self._layouts = {p.cob_id: TpdoLayout.from_map(p) for p in plan.tpdos}
         self._has_torque = any(OD.TORQUE_ACTUAL in p.indexes for p in plan.tpdos)
@@ -122,7 +120,9 @@ class DriveCache:
         self._fault_seq, self._fault_word = 0, 0  # FAULT statuswords seen, the last of them
         # positions taken; statuswords received (one that arrives after a frame was sent has a higher number)
         self.position_seq = self.status_seq = 0
-        self.tpdo_count = self.emcy_count = 0  # TPDOs received; EMCYs received (logged or not)
+        # TPDOs received; EMCYs received (logged or not); of them 0x8130 (no heartbeat heard from this host:
+        # what explains the drive's own NMT change on that error, 0x1029; the supervisor reads it)
+        self.tpdo_count = self.emcy_count = self.host_loss_emcys = 0
         self.sync_tpdos = 0  # TPDOs received of those sent every SYNC (frame loss: expected per SYNC)
         # the bus stamps of the newest SYNC heard (when the next synchronous TPDOs measured) and of the one
         # before, the SYNCs heard, the count of the SYNC each synchronous TPDO answered last, and those whose
@@ -494,6 +494,8 @@ class DriveCache:
             return
         code, register = _EMCY_HEAD.unpack_from(data)
         self.emcy_count += 1
+        if code == EMCY_HEARTBEAT_LOST:
+            self.host_loss_emcys += 1
         if code or decode_state(self.received.statusword) not in FAULT_STATES:  # a fault's cause stays
             self._last_emcy = Emcy(code, register, emcy_text(code), timestamp)
         passed = self._emcy_log.admit(None)

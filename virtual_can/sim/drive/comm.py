@@ -194,7 +194,18 @@ class CommNode(Plant):
                 logger.warning("node %d: heartbeat of node %d lost (consumer time %.0f ms)", self.node_id,
                                node, timeout_s * 1000)
                 out += self._connection_lost(now)
+                self._communication_error()
         return out
+
+    def _communication_error(self) -> None:
+        """CiA 301 0x1029:1, the device's behaviour on a communication error (a heartbeat consumer
+        timeout), where its dictionary has it: 0 to PRE-OPERATIONAL if OPERATIONAL (its PDOs stop;
+        the default of most drives that list it), 1 no change, 2 to STOPPED."""
+        behaviour = self.store.get(OD.ERROR_BEHAVIOUR, 1, 1)  # absent: no change
+        if behaviour == 0 and self.nmt == NmtState.OPERATIONAL:
+            self.nmt = NmtState.PRE_OPERATIONAL
+        elif behaviour == 2:
+            self.nmt = NmtState.STOPPED
 
     def _on_guard(self, stamp: float) -> list[can.Message]:
         """CiA 301 node guarding, the slave's side: answer toggle bit + NMT state; the first
@@ -216,7 +227,9 @@ class CommNode(Plant):
             return []
         self._guarded_at = None  # disarmed until the next guard
         logger.warning("node %d: life guarding event (no guard for %d ms x %d)", self.node_id, guard_ms, factor)
-        return self._connection_lost(now)
+        out = self._connection_lost(now)
+        self._communication_error()
+        return out
 
     def on_frame(self, msg: can.Message, now: float, stamp: float | None = None) -> list[can.Message]:
         """A frame handled at ``now`` (the runner's monotonic time) that reached the bus at
