@@ -143,21 +143,38 @@ def demo_config(path: str | None) -> RoverConfig:
     return config
 
 
+def _shortest(deg: float) -> float:
+    return (deg + 180.0) % 360.0 - 180.0
+
+
 @dataclass
 class Track:
-    """What the demo's monitor heard: the first and last degree command, the first measured angle."""
+    """What the demo's monitor heard: the first and last degree command and how far the commands
+    went (each step the short way round, added: a long run's travel is not wrapped), the first
+    measured angle and how far the measured angles went."""
 
     first_cmd: float = math.nan
     cmd: float = math.nan
     first_angle: float = math.nan
+    commanded: float = 0.0
+    moved: float = 0.0
+    angle: float = math.nan
 
     def command(self, value: float) -> None:
-        self.first_cmd = value if math.isnan(self.first_cmd) else self.first_cmd
+        if math.isnan(self.first_cmd):
+            self.first_cmd = value
+        elif math.isfinite(value):
+            self.commanded += _shortest(value - self.cmd)
         self.cmd = value
 
     def state(self, angle: float) -> None:
-        if math.isnan(self.first_angle) and math.isfinite(angle):
+        if not math.isfinite(angle):
+            return
+        if math.isnan(self.first_angle):
             self.first_angle = angle
+        else:
+            self.moved += _shortest(angle - self.angle)
+        self.angle = angle
 
 
 def _demo_monitor(print_period_s: float) -> tuple[Any, Track, list[Any]]:
@@ -217,10 +234,6 @@ def _await_fresh_state(hot: Any, degree: Any, fresh: Callable[[], bool], failure
     spinning.spin_until(hot, done, failures=failures)  # the monitor's subscription brings the next MotorState
 
 
-def _shortest(deg: float) -> float:
-    return (deg + 180.0) % 360.0 - 180.0
-
-
 #: The demo's tolerance, deg: the angle at the end within it of the command.
 FOLLOW_DEG = 2.0
 #: The least the command must move over a run for the demo to tell that the motor followed, deg.
@@ -253,19 +266,22 @@ def demo_verdict(track: Track, state: Any, verdict: Verdict) -> int:
 
 
 def _followed(track: Track, angle: float, error: float) -> int:
-    """The motor's part of the verdict: measured, moved as commanded, at the command at the end."""
+    """The motor's part of the verdict: measured, moved as commanded, at the command at the end.
+    The motor's travel is from where it stood to the first command, then the commands' travel."""
     if not (math.isfinite(angle) and math.isfinite(track.cmd) and math.isfinite(track.first_angle)):
         print("rovercan demo: nothing to judge: " + ("no degree command was heard" if math.isnan(track.cmd) else
               "the last MotorState carries no measured angle (its data were late)"), file=sys.stderr)
         return EXIT_FAILED
-    commanded, moved = _shortest(track.cmd - track.first_cmd), _shortest(angle - track.first_angle)
+    commanded = track.commanded
+    expected = _shortest(track.first_cmd - track.first_angle) + commanded
     if not abs(commanded) >= MIN_TRAVEL_DEG:
         print(f"rovercan demo: the command moved {commanded:.2f} deg over the run, too little to tell that the motor"
               " followed: run longer (--duration) or with a larger --step", file=sys.stderr)
         return EXIT_FAILED
-    if moved * commanded <= 0.0 or abs(moved) < abs(commanded) / 2 or error > FOLLOW_DEG:
-        print(f"rovercan demo: the motor did not follow the command (it moved {moved:.2f} deg while the command"
-              f" moved {commanded:.2f} deg; error at the end {error:.2f} deg, at most {FOLLOW_DEG:g})", file=sys.stderr)
+    moved = track.moved
+    if moved * expected <= 0.0 or abs(moved) < abs(expected) / 2 or error > FOLLOW_DEG:
+        print(f"rovercan demo: the motor did not follow the command (it moved {moved:.2f} deg where the commands"
+              f" asked {expected:.2f} deg; error at the end {error:.2f} deg, at most {FOLLOW_DEG:g})", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
 

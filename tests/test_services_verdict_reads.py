@@ -20,11 +20,22 @@ from .conftest import requires_ros
 FRESH = {"data_age_s": 0.001, "stale_after_s": 0.1, "heartbeat_age_s": 0.01, "nmt": "OPERATIONAL", "booted": True}
 
 
-def ran(first_cmd: float = 0.0, cmd: float = 3.0, first_angle: float = 0.0) -> object:
-    """A demo run's track: the command from ``first_cmd`` to ``cmd``, the angle first measured."""
+def ran(first_cmd: float = 0.0, travel: float = 3.0, first_angle: float = 0.0, moved: float | None = None) -> object:
+    """A demo run's track: commands from ``first_cmd`` over ``travel`` deg (0.1 deg steps, wrapped
+    into [0, 360) as motor_degree sends them), the motor first measured at ``first_angle`` and then
+    moving ``moved`` deg (default: to each command, 0.5 deg behind), in as many samples."""
     from rovercan.demo import Track
 
-    return Track(first_cmd, cmd, first_angle)
+    track = Track()
+    track.state(first_angle)
+    steps = max(1, round(abs(travel) / 0.1))
+    for k in range(steps + 1):
+        track.command((first_cmd + travel * k / steps) % 360.0)
+        if moved is None:
+            track.state((first_cmd + travel * k / steps - math.copysign(0.5, travel) * (k > 0)) % 360.0)
+        else:
+            track.state((first_angle + moved * k / steps) % 360.0)
+    return track
 
 
 RAN = ran()
@@ -96,14 +107,22 @@ def test_the_demo_judges_no_data_that_is_not_fresh(capsys: pytest.CaptureFixture
     assert "no fresh data from the drive at the end (motor: no data for 400 ms" in err and "not usable" not in err
 
 
+def heard_nothing() -> object:
+    from rovercan.demo import Track
+
+    track = Track()
+    track.state(0.0)
+    return track
+
+
 @requires_ros
 @pytest.mark.parametrize(("track", "angle", "says"), [
     (ran(), math.nan, "carries no measured angle"),  # the last MotorState stale, the drive fresh since
-    (ran(cmd=math.nan, first_cmd=math.nan), 2.9, "no degree command was heard"),
-    (ran(cmd=0.0), 0.0, "too little to tell"),  # a step that rounds to none: nothing commanded, nothing seen
-    (ran(cmd=2.5), 0.5, "did not follow"),  # within 2 deg at the end, yet the motor barely moved
-    (ran(cmd=-3.0), 0.0, "did not follow"),
-    (ran(first_cmd=350.0, cmd=5.0, first_angle=350.0), 150.0, "did not follow"),
+    (heard_nothing(), 2.9, "no degree command was heard"),
+    (ran(travel=0.0), 0.0, "too little to tell"),  # a step that rounds to none: nothing commanded, nothing seen
+    (ran(travel=2.5, moved=0.5), 0.5, "did not follow"),  # within 2 deg at the end, yet the motor barely moved
+    (ran(travel=-3.0, moved=0.0), 0.0, "did not follow"),
+    (ran(first_cmd=350.0, travel=15.0, first_angle=350.0, moved=160.0), 150.0, "did not follow"),
 ])
 def test_the_demo_fails_what_it_did_not_measure(track: object, angle: float, says: str,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
@@ -125,8 +144,26 @@ def test_the_demo_passes_a_motor_that_followed_across_the_wrap() -> None:
     from rovercan.demo import demo_verdict
 
     usable = verdict(state=State.OPERATION_ENABLED, armed=True)
-    track = ran(first_cmd=355.0, cmd=5.0, first_angle=354.5)  # 10 deg across 360
-    assert demo_verdict(track, MotorState(angle=4.2, state="OPERATION_ENABLED"), usable) == EXIT_OK  # type: ignore[arg-type]
+    track = ran(first_cmd=355.0, travel=10.0, first_angle=354.5)  # 10 deg across 360
+    assert demo_verdict(track, MotorState(angle=4.5, state="OPERATION_ENABLED"), usable) == EXIT_OK  # type: ignore[arg-type]
+
+
+@requires_ros
+@pytest.mark.parametrize(("travel", "first_angle"), [(180.5, 0.0), (359.5, 0.0), (360.0, 0.0), (725.0, 0.0),
+                                                    (-200.0, 0.0), (20.0, 30.0)])
+def test_the_demo_passes_a_long_run_and_a_motor_that_first_went_to_the_first_command(travel: float,
+                                                                                       first_angle: float) -> None:
+    """Travel added step by step, not the net change wrapped into +-180 (a run of 180.5 deg read as
+    -179.5, one of 360 as none), and the motor's way from where it stood to the first command
+    counted as commanded (a joint with an offset stands elsewhere at the start)."""
+    from rovercan_msgs.msg import MotorState
+
+    from rovercan.demo import demo_verdict
+
+    usable = verdict(state=State.OPERATION_ENABLED, armed=True)
+    track = ran(first_cmd=0.1, travel=travel, first_angle=first_angle)
+    end = (0.1 + travel - math.copysign(0.5, travel)) % 360.0
+    assert demo_verdict(track, MotorState(angle=end, state="OPERATION_ENABLED"), usable) == EXIT_OK  # type: ignore[arg-type]
 
 
 def test_the_demo_takes_the_embedded_config_and_refuses_a_real_bus(tmp_path: object, monkeypatch: pytest.MonkeyPatch

@@ -221,3 +221,23 @@ def test_a_per_joint_command_on_stale_data_is_refused_and_said(driver_factory: D
         wait_for(lambda: bool(states) and states[-1].stale, 30.0, "a stale MotorState")
         assert math.isnan(states[-1].velocity) and not states[-1].enabled
         apply_action(sim, {"action": "tpdos", "node": 1, "on": True})
+
+
+def test_an_old_or_used_host_loss_emcy_explains_no_later_nmt_change() -> None:
+    """The drive's EMCY 0x8130 explains one NMT change that comes with it, not one hours later (a
+    drive that stopped itself and stayed OPERATIONAL, re-armed; then another master's NMT command),
+    nor a second one: each of those stays another master's evidence."""
+    from types import SimpleNamespace
+
+    from motor_driver.drive.ledger import DriveRecord
+    from motor_driver.runtime.supervisor import HOST_LOSS_NMT_S, Supervisor
+
+    record = DriveRecord()
+    cache = SimpleNamespace(host_loss_emcys=1, host_loss_at=100.0)
+    drive = SimpleNamespace(cache=cache, config=SimpleNamespace(heartbeat_period_s=0.1))
+    assert not Supervisor._own_comm_error(drive, record, 100.0 + HOST_LOSS_NMT_S + 0.01)  # type: ignore[arg-type]
+    assert Supervisor._own_comm_error(drive, record, 100.2)  # type: ignore[arg-type]
+    assert not Supervisor._own_comm_error(drive, record, 100.3)  # type: ignore[arg-type]  # used
+    record.host_loss_emcys_at_boot = 0
+    cache.host_loss_emcys = 0  # none since the boot
+    assert not Supervisor._own_comm_error(drive, record, 100.2)  # type: ignore[arg-type]

@@ -84,6 +84,11 @@ from motor_driver.runtime.supervisor import SUPERVISOR_PERIOD_S, Supervisor
 logger = logging.getLogger(__name__)
 
 
+#: The safe stop's wait for every drive's quick-stop ramp, together, before their voltage goes, s:
+#: within the stop grace a launcher or a container gives the process (5 s before SIGTERM).
+BRAKE_WAIT_MAX_S = 3.0
+
+
 class StopReport(NamedTuple):
     """What a safe stop could not confirm, one line a drive in the drives' order (``lines``), and
     which of them are drives lost after their boot (``lost``): each was sent one last quick stop
@@ -293,8 +298,9 @@ class MotorDriver:
         report = StopReport([], [])
         braking = [d for d in (self.drives.values() if drives is None else drives)
                    if self._stop_step(d, report, self._quick_stop_first)]
+        deadline = time.monotonic() + BRAKE_WAIT_MAX_S  # every drive brakes at once: one bound for all
         for drive in braking:
-            self._stop_step(drive, report, self._off_once_braked)
+            self._stop_step(drive, report, lambda d: self._off_once_braked(d, deadline))
         return report
 
     def _stop_step(self, drive: Drive, report: StopReport, step: Callable[[Drive], tuple[str, bool, bool]]) -> bool:
@@ -334,12 +340,16 @@ class MotorDriver:
             drive.quick_stop()
         return "", False, True
 
-    @staticmethod
-    def _off_once_braked(drive: Drive) -> tuple[str, bool, bool]:
-        """A drive's second step: its voltage disabled once its quick stop has braked it."""
-        if not drive.power.wait_braked():
-            logger.warning("safe stop: %s is still braking (Quick Stop Active, no standstill said) past twice its"
-                           " ramp; its voltage is disabled now, and its shaft may coast from there", drive.name)
+    @classmethod
+    def _off_once_braked(cls, drive: Drive, deadline: float) -> tuple[str, bool, bool]:
+        """A drive's second step: its voltage disabled once its quick stop has braked it (by
+        ``deadline`` at the latest); a drive lost meanwhile gets the lost drive's stop instead."""
+        if not drive.cache.lost and not drive.power.wait_braked(deadline):
+            logger.warning("safe stop: %s is still braking (Quick Stop Active, no standstill said) at the stop's"
+                           " bound; its voltage is disabled now, and its shaft may coast from there", drive.name)
+        if drive.cache.lost:
+            said, lost, _ = cls._quick_stop_first(drive)
+            return said, lost, False
         drive.disable_voltage()
         return "", False, False
 

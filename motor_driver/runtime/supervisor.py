@@ -63,6 +63,9 @@ from motor_driver.runtime.supervise_bus import BUS_CHECK_PERIODS, BusSupervision
 logger = logging.getLogger(__name__)
 
 SUPERVISOR_PERIOD_S = 0.01
+#: How near a drive's EMCY 0x8130 and its NMT change must come for the EMCY to explain it, s (at
+#: least three of its heartbeat periods: the change is said by its next heartbeat).
+HOST_LOSS_NMT_S = 1.0
 #: The buses are looked at about this often: at a period at most half a period early (a heartbeat's,
 #: so that a quiet supervisor does both in one wake-up), at most a period late.
 BUS_CHECK_S = BUS_CHECK_PERIODS * SUPERVISOR_PERIOD_S
@@ -360,7 +363,7 @@ class Supervisor:
                            " again, left disabled", drive.node_id, drive.name, name,
                            command.name if command is not None else "?", (event.at - when) * 1000)
             self._configure_again(record)
-        elif drive.cache.host_loss_emcys > record.host_loss_emcys_at_boot:
+        elif self._own_comm_error(drive, record, event.at):
             # its own doing: a communication error (this host's heartbeat lost, EMCY 0x8130) takes a
             # drive whose 0x1029:1 says so to PRE-OPERATIONAL or STOPPED; not another master's command
             logger.warning("node %d (%s): now NMT %s after it heard no heartbeat from this host (EMCY 0x8130: its"
@@ -370,6 +373,19 @@ class Supervisor:
         else:
             record.behind_back = (event.at, f"node {drive.node_id} went {name} without an NMT command from"
                                              " this driver")
+
+    @staticmethod
+    def _own_comm_error(drive: Drive, record: DriveRecord, at: float) -> bool:
+        """An NMT change ``at`` explained by the drive's own EMCY 0x8130 (this host's heartbeat lost):
+        one not yet used to explain a change, since its last boot, heard within HOST_LOSS_NMT_S of the
+        change (they come together; a starved receive thread hands both on at once). Used once: a
+        later change (another master's) is not explained by an old one."""
+        cache = drive.cache
+        if cache.host_loss_emcys <= record.host_loss_emcys_at_boot or abs(at - cache.host_loss_at) > max(
+                HOST_LOSS_NMT_S, 3 * drive.config.heartbeat_period_s):
+            return False
+        record.host_loss_emcys_at_boot = cache.host_loss_emcys
+        return True
 
     @staticmethod
     def _configure_again(record: DriveRecord) -> None:

@@ -120,9 +120,9 @@ class DriveCache:
         self._fault_seq, self._fault_word = 0, 0  # FAULT statuswords seen, the last of them
         # positions taken; statuswords received (one that arrives after a frame was sent has a higher number)
         self.position_seq = self.status_seq = 0
-        # TPDOs received; EMCYs received (logged or not); of them 0x8130 (no heartbeat heard from this host:
-        # what explains the drive's own NMT change on that error, 0x1029; the supervisor reads it)
-        self.tpdo_count = self.emcy_count = self.host_loss_emcys = 0
+        # TPDOs; EMCYs (logged or not); of them 0x8130 (no heartbeat heard from this host: what explains
+        # the drive's own NMT change on that error, 0x1029; the supervisor reads it) and the newest one's arrival
+        self.tpdo_count, self.emcy_count, self.host_loss_emcys, self.host_loss_at = 0, 0, 0, 0.0
         self.sync_tpdos = 0  # TPDOs received of those sent every SYNC (frame loss: expected per SYNC)
         # the bus stamps of the newest SYNC heard (when the next synchronous TPDOs measured) and of the one
         # before, the SYNCs heard, the count of the SYNC each synchronous TPDO answered last, and those whose
@@ -495,6 +495,7 @@ class DriveCache:
         code, register = _EMCY_HEAD.unpack_from(data)
         self.emcy_count += 1
         if code == EMCY_HEARTBEAT_LOST:
+            self.host_loss_at = time.monotonic()
             self.host_loss_emcys += 1
         if code or decode_state(self.received.statusword) not in FAULT_STATES:  # a fault's cause stays
             self._last_emcy = Emcy(code, register, emcy_text(code), timestamp)
