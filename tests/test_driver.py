@@ -600,3 +600,29 @@ def test_a_safe_stop_cuts_a_drive_s_voltage_only_once_its_quick_stop_has_braked_
     stops = [i for i, m in enumerate(frames) if i >= mark and m.arbitration_id in (0x201, 0x202)
              and int.from_bytes(m.data[:2], "little") == 0x0002]
     assert len(stops) == 2 and max(stops) < first_off, (stops, first_off)
+
+
+def test_a_drive_that_never_says_it_braked_is_disabled_at_the_stop_s_bound(
+        driver_factory: DriverFactory, caplog: pytest.LogCaptureFixture) -> None:
+    """A quick stop whose ramp outlasts the safe stop's bound (here 1 deg/s^2 from 30 deg/s: 30 s):
+    its voltage goes at the bound all the same, said at WARNING (its shaft may coast from there);
+    the safe stop does not wait out the ramp (a launcher's stop grace would kill it first)."""
+    import logging
+
+    from motor_driver.runtime import driver as runtime_driver
+
+    caplog.set_level(logging.WARNING)
+    sim, driver = driver_factory(make_config(1, quick_stop_deceleration_deg_s2=1.0))
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.set_velocity(30.0)
+    wait_for(lambda: drive.snapshot().velocity_deg_s > 25.0, 10.0, "at speed")
+    assert runtime_driver.BRAKE_WAIT_MAX_S < 30.0
+    before = drive.cache.angle_deg
+    assert driver.safe_stop() == []
+    # the whole ramp is 450 deg (30^2 / 2); cut at the bound, the simulated shaft stops (its brake) well short
+    assert drive.cache.angle_deg - before < 200.0, drive.cache.angle_deg - before
+    said = [r.getMessage() for r in caplog.records if "still braking" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("safe stop: joint1 is still braking"), said
+    runner = sim.simulator_for(1)
+    assert runner.call(lambda: runner.drive(1).state.name) == "SWITCH_ON_DISABLED"
