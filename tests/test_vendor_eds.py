@@ -31,6 +31,10 @@ def test_vendor_drive_boots_enables_moves(eds: str, driver_factory: Callable[[Ro
     drive = driver.drive("joint1")
     drive.enable()
     assert drive.cache.state is State.OPERATION_ENABLED
+    # a move acts on the state as read: it waits for the drive's first SYNC's TPDOs (the bus
+    # daemon's SYNC timer starts in a process of its own, late on a loaded machine; a move before
+    # them is refused, "no data for ever", as it should be)
+    wait_for(lambda: drive.snapshot().verdict.usable, 10.0, "the drive's first whole data")
     if eds == "schunk_prl120.eds":
         # its 0x6502 = 0x60 lists only homing and interpolated position: profile position is
         # refused, clearly; it moves by streamed IP set-points (0x60C1:1 in its second RPDO)
