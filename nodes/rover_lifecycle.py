@@ -81,10 +81,12 @@ from nodes.process.spinning import CallbackFailures
 logger = logging.getLogger(__name__)
 
 #: The hot executor counts as hung (the bond withholds its heartbeats) after this many of its state
-#: timer's periods without a tick, and never sooner than HOT_SILENT_MIN_S (a manager's bond_timeout,
-#: 4 s by default in Nav2, then breaks the bond).
+#: timer's periods without a tick, never sooner than HOT_SILENT_MIN_S and never later than
+#: HOT_SILENT_MAX_S (a manager's bond_timeout, 4 s by default in Nav2, then breaks the bond: a state
+#: timer at 1 Hz would otherwise be judged hung only after 25 s).
 HOT_SILENT_PERIODS = 25
 HOT_SILENT_MIN_S = 1.0
+HOT_SILENT_MAX_S = 2.0
 #: How long the shutdown waits for a transition under way before it releases the driver, s.
 TRANSITION_WAIT_S = 60.0
 
@@ -105,6 +107,14 @@ def supervised(transition: Transition) -> Transition:
                                     " which closes the driver, its safe stop first")
             return TransitionCallbackReturn.ERROR
     return call  # type: ignore[return-value]
+
+
+def hot_silence(silent_s: float, state_period_s: float) -> str:
+    """"" while the hot executor's last state tick (``silent_s`` ago, its timer's period
+    ``state_period_s``) is recent enough, else why it counts as hung (HOT_SILENT_*)."""
+    bound = min(max(HOT_SILENT_PERIODS * state_period_s, HOT_SILENT_MIN_S), HOT_SILENT_MAX_S)
+    return "" if silent_s <= bound else (f"the driver's executor has run no state tick for {silent_s:.1f} s (over"
+                                         f" {bound:g} s): hung, or starved of CPU")
 
 
 class DriveLifecycleNode(LifecycleNode):
@@ -320,10 +330,7 @@ class DriveLifecycleNode(LifecycleNode):
         node = self.assembly.node if self.assembly is not None else None
         if node is None:
             return ""
-        silent = time.monotonic() - node.ticked_at
-        bound = max(HOT_SILENT_PERIODS * node.state_period_s, HOT_SILENT_MIN_S)
-        return "" if silent <= bound else (f"the driver's executor has run no state tick for {silent:.1f} s (over"
-                                           f" {bound:g} s): hung, or starved of CPU")
+        return hot_silence(time.monotonic() - node.ticked_at, node.state_period_s)
 
     def _break_bond(self) -> None:
         """The bond broken where there is one; a failure of it logged and counted, never raised: it

@@ -984,8 +984,10 @@ def test_a_hung_driver_executor_withholds_the_bond_s_heartbeats(tmp_path: Path, 
             try:
                 probe.wait(lambda: held.is_set() and bool(bond.withheld), 60.0, "the heartbeats withheld")
                 assert "no state tick" in bond.withheld, bond.withheld
-                heard, ran = len(manager.heard), len(beats)
+                heard, ran, said = len(manager.heard), len(beats), bond.withheld
                 probe.wait(lambda: len(beats) >= ran + 5, 60.0, "five beats of the bond's timer, hung")
+                # said once as they stopped (an ERROR a beat, each with its new age, flooded a starved node)
+                assert bond.withheld == said and beats[-1] != said, (said, beats[-1])
                 mine = len(own)  # the listener hears what the manager says after those beats: it listened
                 probe.wait(manager.beating(lambda: len(own) >= mine + 3), 60.0, "the manager's own heard")
                 assert len(manager.heard) <= heard + 1, manager.heard[heard:]  # one may have been on its way
@@ -998,6 +1000,19 @@ def test_a_hung_driver_executor_withholds_the_bond_s_heartbeats(tmp_path: Path, 
             assert bond.withheld == "" and bond.state.name == "ALIVE"
         finally:
             manager.close()
+
+
+@pytest.mark.parametrize(("rate_hz", "silent_s", "hung"), [(50.0, 0.99, False), (50.0, 1.01, True), (10.0, 1.99, False),
+                                                      (10.0, 2.01, True), (1.0, 2.01, True), (1.0, 1.5, False)])
+def test_the_hot_executor_counts_as_hung_within_a_manager_s_bond_timeout(rate_hz: float, silent_s: float,
+                                                                        hung: bool) -> None:
+    """25 state periods without a tick, 1 s at least: a slow state timer (1 Hz: 25 s) is capped at 2 s,
+    within Nav2's default 4 s bond_timeout, so a hang is still the bond's to report."""
+    from nodes.rover_lifecycle import hot_silence
+
+    said = hot_silence(silent_s, 1.0 / rate_hz)
+    assert bool(said) is hung, said
+    assert not said or said.startswith(f"the driver's executor has run no state tick for {silent_s:.1f} s"), said
 
 
 def test_a_bond_no_manager_forms_ends_after_the_connect_timeout(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -77,7 +77,7 @@ class BondHeartbeat:
             raise ValueError(f"bond heartbeat period {period_s!r} s: expected a number > 0")
         self._node = node
         self._alive = alive
-        self.withheld = ""  # why the heartbeats are withheld now ("" beating)
+        self.withheld = ""  # why the heartbeats are withheld, as said when they stopped ("" beating)
         self._status = status_type
         self.id = node.get_name()
         self.instance_id = str(uuid.uuid4())
@@ -108,7 +108,7 @@ class BondHeartbeat:
                           " its bond_timeout is 0)")
                 return
         why = self._alive() if self._alive is not None else ""
-        if why != self.withheld:
+        if bool(why) != bool(self.withheld):  # said once as they stop and once as they resume, not a beat
             if why:
                 self._node.get_logger().error(f"bond heartbeats withheld: {why}; a lifecycle manager breaks the bond"
                                               " after its bond_timeout and resets its nodes")
