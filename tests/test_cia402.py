@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import pytest
 
-from motor_driver.protocol.cia402 import TRANSITIONS, Command, State, controlword, decode_state, next_step_to_enable
+from motor_driver.protocol.cia402 import (
+    TRANSITIONS,
+    Command,
+    State,
+    braked,
+    controlword,
+    decode_state,
+    next_step_to_enable,
+)
 
 
 @pytest.mark.parametrize(("statusword", "state"), [
@@ -53,3 +61,19 @@ def test_enable_path_walks_2_3_4() -> None:
     assert steps == [(2, 0x06), (3, 0x07), (4, 0x0F)]
     assert state is State.OPERATION_ENABLED
     assert next_step_to_enable(State.FAULT) is None
+
+
+@pytest.mark.parametrize(("statusword", "velocity_deg_s", "done"), [
+    (0x0240, 0.0, True),     # Switch On Disabled by itself after the ramp (options 1-3)
+    (0x0240, 50.0, True),    # ... whatever a stale velocity says: the power stage is off already
+    (0x0617, 0.0, True),     # Quick Stop Active, target reached at standstill (options 5-7 hold there)
+    (0x0617, -1.0, True),    # the standstill bound, either way round
+    (0x0617, 30.0, False),   # bit 10 at speed: a velocity mode's "speed reached" kept into the ramp
+    (0x0617, -1.5, False),
+    (0x0217, 0.0, False),    # Quick Stop Active without bit 10: still on its ramp
+    (0x0237, 0.0, True),     # Operation Enabled: it left the ramp (another's enable): nothing to wait for
+    (0x0638, 10.0, True),    # Fault: its reaction ended
+])
+def test_a_quick_stop_has_braked_only_off_its_ramp_or_at_standstill(statusword: int, velocity_deg_s: float,
+                                                                     done: bool) -> None:
+    assert braked(decode_state(statusword), statusword, velocity_deg_s) is done

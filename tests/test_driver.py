@@ -626,3 +626,129 @@ def test_a_drive_that_never_says_it_braked_is_disabled_at_the_stop_s_bound(
     assert len(said) == 1 and said[0].startswith("safe stop: joint1 is still braking"), said
     runner = sim.simulator_for(1)
     assert runner.call(lambda: runner.drive(1).state.name) == "SWITCH_ON_DISABLED"
+
+
+def test_a_drive_lost_while_it_brakes_gets_the_lost_drive_s_stop_not_a_voltage_cut(
+        driver_factory: DriverFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The cable pulled between a safe stop's two steps (its quick stop sent, the ramp under way):
+    the wait for its standstill ends on the loss, not at the bound (set far past the ramp here, so
+    only the loss can end it), and the drive gets the lost drive's last stop and line, counted as
+    lost (a lifecycle transition tells it from a refusal), not a voltage cut that waits for an
+    answer that cannot come and blames a timeout."""
+    from motor_driver.runtime import driver as runtime_driver
+
+    monkeypatch.setattr(runtime_driver, "BRAKE_WAIT_MAX_S", 600.0)
+    sim, driver = driver_factory(make_config(2, heartbeat_timeout_ms=350, quick_stop_deceleration_deg_s2=1.0))
+    for name in ("joint1", "joint2"):
+        driver.drive(name).enable()
+    braking, other = driver.drive("joint1"), driver.drive("joint2")
+    braking.set_velocity(30.0)  # its quick stop: a 30 s ramp
+    wait_for(lambda: braking.snapshot().velocity_deg_s > 25.0, 10.0, "at speed")
+    reports: list[object] = []
+    stopping = threading.Thread(target=lambda: reports.append(driver.stop_report()), daemon=True)
+    stopping.start()
+    wait_for(lambda: braking.cache.state is State.QUICK_STOP_ACTIVE, 10.0, "its quick stop under way")
+    apply_action(sim, {"action": "unplug", "node": 1})
+    stopping.join(120.0)  # a bound on a hang, not a timing claim: only the loss ends its wait
+    assert not stopping.is_alive(), "the safe stop still waits for a lost drive's standstill"
+    report = reports[0]
+    assert isinstance(report, runtime_driver.StopReport)
+    assert len(report.lost) == 1 and report.lost[0].startswith("joint1: lost; a last quick stop was sent"), report
+    assert report.lines == report.lost, report  # the other drive stopped and confirmed
+    assert other.cache.state is State.SWITCH_ON_DISABLED
+
+
+def cut_beyond_standstill(runner: object, drive: Drive) -> list[float]:
+    """The simulated drive's power-stage cuts (its set-point's speed then, counts/s) above what the
+    driver counts as standstill (cia402.STANDSTILL_DEG_S in the drive's units)."""
+    from motor_driver.protocol.cia402 import STANDSTILL_DEG_S
+
+    still = abs(drive.cache.scale.deg_s_to_counts_s(STANDSTILL_DEG_S))
+    cuts: list[float] = runner.call(lambda: list(runner.drive(1).cut_at_speed))  # type: ignore[attr-defined]
+    return [c for c in cuts if c > still]
+
+
+def test_a_drive_that_holds_in_quick_stop_with_speed_reached_set_is_disabled_at_standstill(
+        driver_factory: DriverFactory, caplog: pytest.LogCaptureFixture) -> None:
+    """A drive whose firmware fixes its quick stop at option 6 (it brakes, then holds in Quick Stop
+    Active with bit 10 set) and keeps a velocity mode's "speed reached" (bit 10) set through the
+    ramp: bit 10 alone said "braked" at full speed, and its voltage was cut mid-ramp (a real shaft
+    coasts from there; the simulator records the cut). Its voltage goes once it says standstill,
+    before the stop's bound (nothing said "still braking")."""
+    import logging
+
+    caplog.set_level(logging.WARNING)
+    sim, driver = driver_factory(make_config(1, quick_stop_deceleration_deg_s2=100.0))  # 60 deg/s: a 0.6 s ramp
+    runner = sim.simulator_for(1)
+    apply_action(sim, {"action": "quick_stop_option", "node": 1, "option": 6})
+    apply_action(sim, {"action": "speed_reached_in_quick_stop", "node": 1, "on": True})
+    drive = driver.drive("joint1")
+    drive.enable()
+    drive.set_velocity(60.0)
+    wait_for(lambda: drive.snapshot().velocity_deg_s > 55.0, 10.0, "at speed")
+    assert driver.safe_stop() == []
+    assert cut_beyond_standstill(runner, drive) == [], "its voltage was cut mid-ramp"
+    assert runner.call(lambda: runner.drive(1).state.name) == "SWITCH_ON_DISABLED"
+    assert not [r for r in caplog.records if "still braking" in r.getMessage()], "the wait ran to its bound"
+
+
+def test_a_drive_found_braking_at_a_re_configuration_is_disabled_only_at_standstill(
+        driver_factory: DriverFactory) -> None:
+    """Configured again without a reset (another master had it), a drive found turning in profile
+    velocity is quick-stopped by SDO, and its voltage disabled only once it stands: it keeps bit 10
+    ("speed reached") through its ramp and holds in Quick Stop Active after it (option 6), so bit 10
+    alone had cut its power stage at full speed (the simulator records the cut)."""
+    import canopen
+
+    from can_config import GENERIC_EDS, load_drive_od
+    from virtual_can.server import RAWMODE_HOLD_S
+
+    sim, driver = driver_factory(make_config(1, quick_stop_deceleration_deg_s2=100.0))
+    runner = sim.simulator_for(1)
+    drive = driver.drive("joint1")
+    apply_action(sim, {"action": "quick_stop_option", "node": 1, "option": 6})
+    apply_action(sim, {"action": "speed_reached_in_quick_stop", "node": 1, "on": True})
+    bench = canopen.Network()
+    bench.connect(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    try:
+        time.sleep(RAWMODE_HOLD_S + 0.02)  # the server's raw mode, not a timing claim of the driver's
+        node = bench.add_node(1, load_drive_od(GENERIC_EDS, 1))
+        node.sdo.download(0x6060, 0, bytes([3]))  # profile velocity
+        node.sdo.download(0x60FF, 0, drive.cache.scale.deg_s_to_counts_s(60.0).to_bytes(4, "little", signed=True))
+        for cw in (0x06, 0x07, 0x0F):  # shutdown, switch on, enable operation
+            node.sdo.download(0x6040, 0, cw.to_bytes(2, "little"))
+        wait_for(lambda: bool(drive.watch.foreign_master), 5.0, "the bench tool noticed")
+        wait_for(lambda: runner.call(lambda: abs(runner.drive(1).sp_vel)) > 0.9 * abs(
+            drive.cache.scale.deg_s_to_counts_s(60.0)), 10.0, "turning at speed")
+    finally:
+        bench.disconnect()
+    wait_for(lambda: not drive.watch.foreign_master and drive.cache.booted, 30.0, "configured again after the quiet period")
+    assert runner.call(lambda: runner.drive(1).state.name) == "SWITCH_ON_DISABLED"
+    assert cut_beyond_standstill(runner, drive) == [], "its voltage was cut mid-ramp"
+
+
+def test_a_safe_stop_waits_for_the_ramp_the_drive_was_given_not_the_config_s(
+        driver_factory: DriverFactory, tmp_path: object, caplog: pytest.LogCaptureFixture) -> None:
+    """A quick-stop deceleration beyond the drive's range (its EDS HighLimit on 0x6085) is written
+    as the drive's maximum, a tenth of the config's here: the safe stop reckoned its wait from the
+    config's, ten times too short, and cut the drive's voltage mid-ramp at the bound. It waits for
+    the ramp the drive was given."""
+    import logging
+    from pathlib import Path
+
+    from can_config import GENERIC_EDS
+
+    caplog.set_level(logging.WARNING)
+    eds = Path(str(tmp_path)) / "low_quick_stop.eds"
+    eds.write_text(GENERIC_EDS.read_text().replace("ParameterName=Quick stop deceleration\n",
+                                                   "ParameterName=Quick stop deceleration\nHighLimit=683\n"))
+    sim, driver = driver_factory(make_config(1, eds=str(eds), quick_stop_deceleration_deg_s2=600.0))
+    drive = driver.drive("joint1")
+    assert drive.cache.scale.acceleration_to_drive(60.0) == 683  # the drive's maximum: 60 deg/s^2
+    assert drive.cache.quick_stop_decel_deg_s2 == pytest.approx(60.0, rel=1e-3)
+    drive.enable()
+    drive.set_velocity(60.0)  # a 1 s ramp at what the drive was given (0.1 s at the config's)
+    wait_for(lambda: drive.snapshot().velocity_deg_s > 55.0, 10.0, "at speed")
+    assert driver.safe_stop() == []
+    assert cut_beyond_standstill(sim.simulator_for(1), drive) == [], "its voltage was cut mid-ramp"
+    assert not [r for r in caplog.records if "still braking" in r.getMessage()]

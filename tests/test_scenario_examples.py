@@ -61,7 +61,8 @@ def _copy(drive: SimulatedDrive) -> dict[str, Any]:
             "stalled": faults.stalled, "load_nm": drive.params.load_nm, "off": faults.power_off_until > 0,
             "statusword": drive.statusword, "reset_at_writes": list(faults.reset_at_writes),
             "reset_at_object": faults.reset_at_object, "reset_answers": faults.reset_answers,
-            "sync_answer": (faults.sync_delay_s, faults.sync_jitter_s), "lost_tpdos": faults.lost_tpdos}
+            "sync_answer": (faults.sync_delay_s, faults.sync_jitter_s), "lost_tpdos": faults.lost_tpdos,
+            "quick_stop_option": drive.quick_stop_option, "speed_reached_in_quick_stop": faults.speed_reached_in_quick_stop}
 
 
 #: What each action's step must leave in the model: a check of (model, step).
@@ -85,6 +86,8 @@ EFFECTS: dict[str, Callable[[Any, dict[str, Any]], bool]] = {
     "sdo_reset": lambda m, s: (m["reset_at_writes"] == list(s.get("at_writes", []))
                                and m["reset_at_object"] == ((s["index"], s.get("subindex")) if "index" in s else None)
                                and m["reset_answers"] == s.get("answer", True)),
+    "quick_stop_option": lambda m, s: m["quick_stop_option"] == s["option"],
+    "speed_reached_in_quick_stop": lambda m, s: m["speed_reached_in_quick_stop"] is s["on"],
     "sync_answer": lambda m, s: all(d["sync_answer"] == (s.get("delay_s", 0.0), s.get("jitter_s", 0.0))
                                     for d in (m if isinstance(m, list) else [m])),
 }

@@ -28,6 +28,8 @@
       - {at_s: 17.0, node: 1, action: sdo_reset, index: 0x1600, subindex: 0, answer: false}
       - {at_s: 18.0, channel: can1, action: sync_answer, delay_s: 0.03}   # every drive of can1 answers SYNC 30 ms late
       - {at_s: 19.0, node: 2, channel: can0, action: sync_answer, delay_s: 0.005, jitter_s: 0.02}  # 5-25 ms, in order
+      - {at_s: 20.0, node: 1, action: quick_stop_option, option: 6}   # its firmware's: stays in Quick Stop Active
+      - {at_s: 21.0, node: 1, action: speed_reached_in_quick_stop, on: true}   # bit 10 set through the ramp
 
 A scenario's keys are read as written: only ``true`` and ``false`` are booleans (YAML 1.2), so
 ``on`` and ``off`` (YAML 1.1's booleans, which PyYAML reads as such) are plain words here and
@@ -70,7 +72,8 @@ ACTION_KEYS: dict[str, dict[str, type]] = {
     "load": {**_DRIVE, "nm": float, "stall": bool}, "tx_dead": _SWITCH, "guard_toggle_stuck": _SWITCH,
     "heartbeat_deaf": _SWITCH, "tpdo_lost": {**_SWITCH, "cob_id": int},
     "sdo_reset": {**_DRIVE, "at_writes": list, "index": int, "subindex": int, "answer": bool, "bootup": bool},
-    "sync_answer": {**_DRIVE, "delay_s": float, "jitter_s": float}}
+    "sync_answer": {**_DRIVE, "delay_s": float, "jitter_s": float},
+    "quick_stop_option": {**_DRIVE, "option": int}, "speed_reached_in_quick_stop": _SWITCH}
 ACTIONS = tuple(ACTION_KEYS)
 #: ``sync_answer``'s delay and jitter (s): a synchronous TPDO is due within its SYNC period (CiA 301's
 #: synchronous window); a second covers any SYNC period this project configures
@@ -103,6 +106,8 @@ def check_step(step: Mapping[Any, Any], where: str = "scenario step") -> None:
             raise ConfigError(f"{where}: {action}'s {key} is {value!r}; give {_KIND_NAMES[allowed[key]]}")
     if action == "sync_answer":
         _sync_answer(step, where)
+    if action == "quick_stop_option":
+        _quick_stop_option(step, where)
 
 
 class _Step(dict[Any, Any]):
@@ -162,8 +167,13 @@ def _arm_sdo_reset(drive: SimulatedDrive, step: Mapping[str, Any]) -> None:
 #: switches that are on unless ``on: false``, each the drive's Faults field of its name: tx_dead (it
 #: hears and obeys, sends nothing: a broken TX line), guard_toggle_stuck (its node-guarding answers
 #: keep toggle bit 0), heartbeat_deaf (it stops hearing heartbeats: its RX filter, a stalled host;
-#: its host watch trips)
-_ON_SWITCHES = ("tx_dead", "guard_toggle_stuck", "heartbeat_deaf")
+#: its host watch trips), speed_reached_in_quick_stop (a velocity mode's bit 10 stays set through its
+#: quick-stop ramp, as some vendors' drives keep "speed reached")
+_ON_SWITCHES = ("tx_dead", "guard_toggle_stuck", "heartbeat_deaf", "speed_reached_in_quick_stop")
+#: the quick-stop options (0x605A) the model has: 1-3 (a ramp, then Switch On Disabled), 5-7 (a ramp,
+#: then held in Quick Stop Active); 0 (the power stage off at once), 4 and 8 (voltage or current
+#: limit, then held) are not modelled
+QUICK_STOP_OPTIONS = (1, 2, 3, 5, 6, 7)
 
 
 def _sync_answer(step: Mapping[str, Any], where: str = "sync_answer") -> tuple[float, float]:
@@ -176,6 +186,19 @@ def _sync_answer(step: Mapping[str, Any], where: str = "sync_answer") -> tuple[f
                               " (a late answer within the SYNC period; 0: at once)")
         values.append(value)
     return values[0], values[1]
+
+
+#: the slow drive's actions: each its Faults field and the step's key that sets it (slow_enable: each
+#: enabling transition takes delay_s; slow_ack: the set-point acknowledge comes 0..max_s late)
+_SLOW = {"slow_enable": ("enable_step_delay_s", "delay_s"), "slow_ack": ("ack_delay_max_s", "max_s")}
+
+
+def _quick_stop_option(step: Mapping[str, Any], where: str = "quick_stop_option") -> int:
+    option = int(step.get("option", 2))
+    if option not in QUICK_STOP_OPTIONS:
+        raise ConfigError(f"{where}: quick_stop_option's option is {option!r}; give one of"
+                          f" {', '.join(map(str, QUICK_STOP_OPTIONS))} (CiA 402's 0x605A; 0, 4 and 8 are not modelled)")
+    return option
 
 
 def _silence_tpdos(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -> None:
@@ -207,10 +230,9 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
         _silence_tpdos(drive, action, step)
     elif action in _ON_SWITCHES:  # on: false heals it
         setattr(drive.faults, action, bool(step.get("on", True)))
-    elif action == "slow_enable":  # each enabling transition takes delay_s
-        drive.faults.enable_step_delay_s = float(step.get("delay_s", 0.0))
-    elif action == "slow_ack":  # the set-point acknowledge comes 0..max_s late
-        drive.faults.ack_delay_max_s = float(step.get("max_s", 0.0))
+    elif action in _SLOW:
+        field, key = _SLOW[action]
+        setattr(drive.faults, field, float(step.get(key, 0.0)))
     elif action == "load":  # external load torque (motor side) and/or a blocked shaft
         if "nm" in step:
             drive.params.load_nm = float(step["nm"])
@@ -221,6 +243,8 @@ def _drive_action(drive: SimulatedDrive, action: str, step: Mapping[str, Any]) -
         _arm_sdo_reset(drive, step)
     elif action == "sync_answer":  # its synchronous TPDOs leave delay_s (+ 0..jitter_s) after the SYNC, in order
         drive.faults.sync_delay_s, drive.faults.sync_jitter_s = _sync_answer(step)
+    elif action == "quick_stop_option":  # fixed by its firmware: what 0x605A says is not what it does
+        drive.faults.quick_stop_option = _quick_stop_option(step)
     elif action == "sdo":
         drive.faults.sdo_delay_s = float(step.get("delay_s", 0.0))
         abort = step.get("abort")

@@ -49,7 +49,7 @@ from motor_driver.drive import DriveState
 from motor_driver.drive.ledger import DriveRecord
 from motor_driver.drive.verdict import Condition
 from motor_driver.process.jobs import JOB_KINDS, JobFault
-from motor_driver.protocol.cia402 import SW, State
+from motor_driver.protocol.cia402 import DRIVE_FUNCTION_ON, SW
 from motor_driver.protocol.safety import ALLOWED, SafetyCheck
 
 #: The levels of diagnostic_msgs/DiagnosticStatus: every grade on /diagnostics, the driver's and the
@@ -60,8 +60,6 @@ REJECTED_RECENT_S = 10.0
 #: A background job's unexpected failure makes the driver's status WARN for this long.
 JOB_FAULT_RECENT_S = 30.0
 
-#: The states whose drive function holds the motor (torque on): under a hold, a stop not yet confirmed.
-_POWERED = frozenset({State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE})
 #: The level of each verdict (the rules above may raise it, never lower it).
 GRADE = {Condition.USABLE: OK, Condition.NOT_ARMED: OK, Condition.HELD: OK, Condition.OUT: WARN, Condition.REBOOTING: WARN,
          Condition.ANOTHER_MASTER: ERROR, Condition.LOST: ERROR, Condition.NOT_CONFIGURED: ERROR,
@@ -138,7 +136,7 @@ def drive_health(state: DriveState, *, heartbeat_period_s: float, refused_since_
         return graded
     if GRADE[verdict.condition] == WARN:
         return Health(WARN, said, values)
-    if verdict.condition is Condition.HELD and state.state in _POWERED:  # a hold's stop not confirmed
+    if verdict.condition is Condition.HELD and state.state in DRIVE_FUNCTION_ON:  # a hold's stop not confirmed
         return Health(WARN, f"motion held, yet still {state.state.name} (its stop not confirmed): {said}", values)
     if frame_loss is not None and frame_loss.worst_percent > frame_loss_warn_percent:
         return Health(WARN, f"frames lost: {frame_loss.text()} (over {frame_loss_warn_percent:g} %): check the"

@@ -70,6 +70,21 @@ _STATE_CODING: tuple[tuple[int, int, State], ...] = (
 
 #: The states of a drive in fault (its reaction running, or done).
 FAULT_STATES = frozenset({State.FAULT, State.FAULT_REACTION_ACTIVE})
+#: The states whose drive function is on: the motor under torque, the drive in charge of its motion.
+DRIVE_FUNCTION_ON = frozenset({State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE})
+#: A quick stop's "target reached" counts as standstill only at this speed or under, deg/s (a word
+#: that kept a velocity mode's "speed reached" into Quick Stop Active is no standstill).
+STANDSTILL_DEG_S = 1.0
+
+
+def braked(state: State, statusword: int, velocity_deg_s: float) -> bool:
+    """After a quick stop: has the drive stopped braking? Any state but Quick Stop Active (Switch On
+    Disabled by itself after the ramp, quick-stop options 1-3; any other: it left the ramp), or Quick
+    Stop Active with "target reached" (bit 10) at standstill (options 5-7 hold there; bit 10 alone
+    is not enough: some drives keep a velocity mode's "speed reached" set through the ramp). Until
+    then its voltage disabled cuts the ramp short, and a real drive's shaft coasts from there."""
+    return state != State.QUICK_STOP_ACTIVE or bool(
+        statusword & SW.TARGET_REACHED and abs(velocity_deg_s) <= STANDSTILL_DEG_S)
 
 
 def _decode_by_coding(statusword: int) -> State:

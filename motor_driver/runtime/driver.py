@@ -90,10 +90,12 @@ BRAKE_WAIT_MAX_S = 3.0
 
 
 class StopReport(NamedTuple):
-    """What a safe stop could not confirm, one line a drive in the drives' order (``lines``), and
-    which of them are drives lost after their boot (``lost``): each was sent one last quick stop
-    it cannot answer, so stopping it again cannot confirm it either (its power or cable can).
-    ``retry``: the others (a stop refused, timed out or raised), where stopping again may help."""
+    """What a safe stop could not confirm, one line a drive (``lines``: those of its quick stops
+    first, in the drives' order, then those of its voltage cuts), and which of them are lost drives
+    (``lost``): a drive lost after its boot was sent one last quick stop it cannot answer, one lost
+    with its bus or being configured again was sent nothing; stopping either again cannot confirm it
+    (its power, cable or bus can). ``retry``: the others (a stop refused, timed out or raised), where
+    stopping again may help."""
 
     lines: list[str]
     lost: list[str]

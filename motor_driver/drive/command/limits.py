@@ -102,7 +102,7 @@ class LimitGuard:
         cache = self._cache
         velocity = cache.scale.counts_s_to_deg_s(cache.received.velocity_counts_s)
         torque_mode = cache.received.mode in TORQUE_MODES
-        decel = self.config.quick_stop_decel_deg_s2 if torque_mode else self.config.profile_acceleration_deg_s2
+        decel = self._cache.quick_stop_decel_deg_s2 if torque_mode else self.config.profile_acceleration_deg_s2
         limit = self.limit_ahead(velocity, abs(velocity), decel, torque_mode)
         if limit is None:
             return

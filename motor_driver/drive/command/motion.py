@@ -317,7 +317,7 @@ class Motion:
         scale = self._cache.scale
         previous = scale.counts_s_to_deg_s(self._channel.stream_velocity_counts_s) \
             if self._channel.velocity_commanded else 0.0
-        max_step = self.config.quick_stop_decel_deg_s2 * 2 * self._cache.sync_period_s
+        max_step = self._cache.quick_stop_decel_deg_s2 * 2 * self._cache.sync_period_s
         if abs(velocity) > abs(previous) and abs(velocity - previous) > max_step:
             raise CommandRejected(f"{self.name}: CSV set-point {velocity:g} deg/s jumps"
                                   f" {abs(velocity - previous):.1f} deg/s from the last one ({previous:g});"
@@ -341,14 +341,14 @@ class Motion:
         velocity, counts_s = self._checked_velocity(velocity_deg_s)
         self._ensure_mode(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point", at_once, live=velocity != 0.0)
         self._target(OperationMode.CYCLIC_SYNC_VELOCITY, "CSV set-point", counts_s, live=velocity != 0.0,
-                     guard=Approach(velocity, abs(velocity), self.config.quick_stop_decel_deg_s2,
+                     guard=Approach(velocity, abs(velocity), self._cache.quick_stop_decel_deg_s2,
                                     f"CSV velocity {velocity:g} deg/s"), check_step=velocity, at_once=at_once)
 
     def _torque_command(self, torque_nm: float, mode: OperationMode, doing: str, what: str, at_once: bool) -> None:
         torque = self._checked_torque(torque_nm)
         self._ensure_mode(mode, doing, at_once, live=torque != 0.0)
         self._target(mode, doing, self._cache.scale.nm_to_permille(torque), live=torque != 0.0,
-                     guard=Approach(torque, 0.0, self.config.quick_stop_decel_deg_s2, f"{what} {torque:g} Nm"),
+                     guard=Approach(torque, 0.0, self._cache.quick_stop_decel_deg_s2, f"{what} {torque:g} Nm"),
                      at_once=at_once)
 
     def set_torque(self, torque_nm: float, *, at_once: bool = False) -> None:

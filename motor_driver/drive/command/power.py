@@ -38,7 +38,7 @@ from motor_driver.drive.setup.hostwatch import HostWatch
 from motor_driver.drive.values import DriveState
 from motor_driver.drive.verdict import UNREACHABLE, Condition, Verdict
 from motor_driver.process.held import LATE_READER_HELPS, ReadBehind
-from motor_driver.protocol.cia402 import FAULT_STATES, SW, Command, State, decode_state, next_step_to_enable
+from motor_driver.protocol.cia402 import FAULT_STATES, SW, Command, State, braked, decode_state, next_step_to_enable
 
 logger = logging.getLogger(__name__)
 
@@ -50,9 +50,6 @@ STOP_READ_BEHIND_S = 0.1
 #: What a safe stop waits for a quick stop's ramp beyond twice its length from the drive's speed
 #: (a statusword's way back, a drive that reports standstill late), s.
 BRAKE_MARGIN_S = 0.5
-#: A quick stop's "target reached" counts as standstill only at this speed or under, deg/s (a word
-#: that kept a velocity mode's "speed reached" into Quick Stop Active is no standstill).
-STANDSTILL_DEG_S = 1.0
 
 #: The verdicts an operation that needs Operation Enabled goes on under (late: nothing says it
 #: stopped), and those that mean the drive left Operation Enabled
@@ -336,23 +333,26 @@ class PowerStateMachine:
         self._stop("quick stop", Command.QUICK_STOP, {State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED}, timeout_s)
 
     def wait_braked(self, deadline: float) -> bool:
-        """After a quick stop: until the drive has stopped braking (Switch On Disabled by itself,
-        quick-stop options 1-3 and the driver's 2; Quick Stop Active with target reached at
-        standstill, 5-7 hold there; any other state: it left the ramp; lost), for at most twice the
-        ramp from its speed (at most twice its limit) at its quick-stop deceleration and
-        BRAKE_MARGIN_S, and never past ``deadline`` (monotonic: the safe stop's, for every drive at
-        once). Its voltage disabled before that cuts the ramp short: a real drive's shaft then
-        coasts. False: still braking when the wait ended."""
-        cache, cfg = self._cache, self.config
-        speed = min(abs(cache.scale.counts_s_to_deg_s(cache.received.velocity_counts_s)), 2 * cfg.max_velocity_deg_s)
-        bound = min(2.0 * speed / cfg.quick_stop_decel_deg_s2 + BRAKE_MARGIN_S, deadline - time.monotonic())
+        """After a quick stop: until the drive has stopped braking (:func:`~motor_driver.protocol.
+        cia402.braked`) or is lost, for at most :meth:`brake_bound_s` from its speed now, and never
+        past ``deadline`` (monotonic: the safe stop's, for every drive at once). False: still
+        braking when the wait ended."""
+        cache = self._cache
+        bound = min(self.brake_bound_s(cache.scale.counts_s_to_deg_s(cache.received.velocity_counts_s)),
+                    deadline - time.monotonic())
 
-        def braked() -> bool:
+        def done() -> bool:
             rx = cache.received
-            return cache.lost or cache.state != State.QUICK_STOP_ACTIVE or bool(
-                rx.statusword & SW.TARGET_REACHED
-                and abs(cache.scale.counts_s_to_deg_s(rx.velocity_counts_s)) <= STANDSTILL_DEG_S)
-        return cache.wait_until(braked, max(bound, 0.0))
+            return cache.lost or braked(cache.state, rx.statusword,
+                                        cache.scale.counts_s_to_deg_s(rx.velocity_counts_s))
+        return cache.wait_until(done, max(bound, 0.0))
+
+    def brake_bound_s(self, velocity_deg_s: float) -> float:
+        """How long a quick stop from ``velocity_deg_s`` may take to brake: twice its ramp at the
+        deceleration the drive was given (the speed counted at most twice the joint's limit: a
+        garbage velocity waits no longer), and BRAKE_MARGIN_S."""
+        speed = min(abs(velocity_deg_s), 2 * self.config.max_velocity_deg_s)
+        return 2.0 * speed / self._cache.quick_stop_decel_deg_s2 + BRAKE_MARGIN_S
 
     def disable_voltage(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Disable voltage (transitions 7, 9, 10, 12): power stage off, Switch On Disabled."""

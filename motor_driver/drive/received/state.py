@@ -98,6 +98,12 @@ def _decoders(layouts: dict[int, TpdoLayout], per_sync: frozenset[int]) -> dict[
 class DriveCache:
     """Identity, the PDO layouts, and the received state of one drive."""
 
+    #: the drive's units (the config's until a boot read the drive's own), and the quick-stop
+    #: deceleration it was given (deg/s^2: the config's, or the drive's maximum where the config's is
+    #: beyond its range): each the boot's to write; stops, guards and limits read them
+    scale: Scale
+    quick_stop_decel_deg_s2: float
+
     def __init__(self, config: DriveConfig, network: canopen.Network, plan: PdoPlan, scale: Scale, *,
                  sync_period_s: float, record: DriveRecord, port: SupervisorPort) -> None:
         self.config = config
@@ -113,7 +119,7 @@ class DriveCache:
         self._event = threading.Condition()
         self._rx = Received()  # the receive thread's
         self._noted: Noted | None = None  # the SDO readers' (boot, a mode switch)
-        self.scale = scale
+        self.scale, self.quick_stop_decel_deg_s2 = scale, config.quick_stop_decel_deg_s2
         self.positions = PositionFilter(config.node_id, sync_period_s)  # others read it; only this module calls it
         self.set_scale(scale)
         # receive thread

@@ -49,7 +49,7 @@ from motor_driver.drive.received.state import DriveCache
 from motor_driver.drive.sdo import SdoPort
 from motor_driver.drive.setup.hostwatch import HostWatch
 from motor_driver.process.jobs import cause_of
-from motor_driver.protocol.cia402 import SW, Command, State, decode_state
+from motor_driver.protocol.cia402 import Command, State, braked, decode_state
 from motor_driver.protocol.codec import value_format
 from motor_driver.protocol.pdo import PdoPlan, mapping_writes
 from motor_driver.protocol.safety import ALLOWED, FAIL, SafetyCheck, judge
@@ -463,15 +463,24 @@ class Boot:
         if state == State.OPERATION_ENABLED:
             self._sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
         if state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):  # no power off while it brakes
-            # stopped: Switch On Disabled (quick-stop options 1-3), or Quick Stop Active with
-            # bit 10 set (options 5-7 hold there)
-            self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED or (
-                st == State.QUICK_STOP_ACTIVE and bool(sw & SW.TARGET_REACHED)), "quick stop at boot")
+            # as the safe stop judges it (Operation Enabled here: the quick stop not taken yet)
+            speed = self._velocity_by_sdo()
+            self._poll_state_sdo(lambda st, sw: st != State.OPERATION_ENABLED and braked(
+                st, sw, self._velocity_by_sdo() if st == State.QUICK_STOP_ACTIVE else 0.0), "quick stop at boot",
+                max(TRANSITION_TIMEOUT_S, self._power.brake_bound_s(speed)))
         self._sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.DISABLE_VOLTAGE)))
         self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED, "disable voltage at boot")
 
-    def _poll_state_sdo(self, done: Callable[[State, int], bool], doing: str) -> None:
-        deadline = time.monotonic() + TRANSITION_TIMEOUT_S
+    def _velocity_by_sdo(self) -> float:
+        """The drive's velocity actual value (0x606C) now, deg/s, in the scale the driver last knew
+        (the config's before a first boot read the drive's units); 0 where the drive has none."""
+        if not has_object(self._od, OD.VELOCITY_ACTUAL):
+            return 0.0
+        return self._cache.scale.counts_s_to_deg_s(self._sdo.read_number(OD.VELOCITY_ACTUAL))
+
+    def _poll_state_sdo(self, done: Callable[[State, int], bool], doing: str,
+                        timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+        deadline = time.monotonic() + timeout_s
         while True:
             sw = self._sdo.read_number(OD.STATUSWORD)
             if done(decode_state(sw), sw):
@@ -480,7 +489,7 @@ class Boot:
             if time.monotonic() > deadline:
                 raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: still in"
                                         f" {decode_state(sw).name} (statusword 0x{sw:04X}) after"
-                                        f" {TRANSITION_TIMEOUT_S:g} s", node_id=self.node_id, statusword=sw)
+                                        f" {timeout_s:g} s", node_id=self.node_id, statusword=sw)
             time.sleep(0.02)
 
     def _read_units(self) -> None:
@@ -510,10 +519,13 @@ class Boot:
         var = variable(self._od, OD.QUICK_STOP_DECELERATION, 0)
         high = var.max if var is not None else None
         if isinstance(high, int) and wanted > high:
+            given = high * self.config.quick_stop_decel_deg_s2 / wanted
             logger.warning("node %d (%s): quick-stop deceleration %g deg/s^2 is beyond the drive's range"
                            " (0x6085 <= %d); using its maximum, %.0f deg/s^2", self.node_id, self.name,
-                           self.config.quick_stop_decel_deg_s2, high, high * self.config.quick_stop_decel_deg_s2 / wanted)
+                           self.config.quick_stop_decel_deg_s2, high, given)
+            self._cache.quick_stop_decel_deg_s2 = given  # a stop waits for this ramp, a guard brakes by it
             return high
+        self._cache.quick_stop_decel_deg_s2 = self.config.quick_stop_decel_deg_s2
         return wanted
 
     def _wake_stopped(self) -> bool:

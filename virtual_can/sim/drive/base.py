@@ -44,6 +44,9 @@ class DriveBase:
         self._bus_offset: float | None = None
         #: every profile-position target the drive accepted, in order (None: not recorded)
         self.accepted_targets: list[float] | None = None
+        #: the set-point speed (counts/s) each time a controlword switched its power stage off while it
+        #: still moved (mid-ramp): a real drive's shaft coasts from there, this one's brake holds it
+        self.cut_at_speed: list[float] = []
         self.nmt = NmtState.BOOTUP
         self.counters = {"tpdo": 0, "rpdo": 0, "emcy": 0, "sdo": 0}
         # the drive's units (_units_from_od)
@@ -147,6 +150,13 @@ class DriveBase:
     @property
     def mode(self) -> int:
         return int(self.store.get(OD.MODES_OF_OPERATION_DISPLAY, 0))  # type: ignore[arg-type]
+
+    @property
+    def quick_stop_option(self) -> int:
+        """What its quick stop does: 0x605A (2 where the drive has none: the common default), unless
+        its firmware fixes it (the ``quick_stop_option`` fault)."""
+        fixed = self.faults.quick_stop_option
+        return fixed if fixed is not None else int(self.store.get(OD.QUICK_STOP_OPTION, 0, 2))  # type: ignore[arg-type]
 
     @property
     def position_counts(self) -> float:

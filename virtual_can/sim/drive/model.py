@@ -12,7 +12,7 @@ import struct
 from dataclasses import dataclass, field
 
 from can_config.config import SimModelConfig
-from can_config.objects import Cia402State
+from can_config.objects import Cia402State, OperationMode
 from virtual_can.sim.objects import ObjectStore
 
 logger = logging.getLogger(__name__)
@@ -83,6 +83,11 @@ CW_FAULT_RESET = 1 << 7
 CW_HALT = 1 << 8
 
 POWERED = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE)
+#: the quick-stop options (0x605A) after whose ramp the drive stays in Quick Stop Active, halted
+QUICK_STOP_HOLDS = frozenset({5, 6, 7})
+#: a set-point speed below this (counts/s) is standstill: a power stage switched off then cuts no ramp
+STANDSTILL_COUNTS_S = 1.0
+VELOCITY_MODES = (OperationMode.PROFILE_VELOCITY, OperationMode.CYCLIC_SYNC_VELOCITY)
 ENABLING = (State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.OPERATION_ENABLED)
 ERROR_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}  # by code's first nibble
 
@@ -233,4 +238,9 @@ class Faults:
     reset_bootup: bool = True  # it sends its boot-up after that reset (False: the frame is lost)
     reset_pending: bool = False  # a write asked for the reset: it follows that write's answer
     garbled_statusword: bool = False  # its statusword's state bits show no CiA 402 state (broken firmware)
+    #: a velocity mode's "speed reached" (bit 10) stays set through its quick-stop ramp (some vendors'):
+    #: bit 10 alone then says nothing of standstill
+    speed_reached_in_quick_stop: bool = False
+    #: what its quick stop does whatever 0x605A says (its firmware's, as where 0x605A is read-only); None: 0x605A
+    quick_stop_option: int | None = None
     pending: list[int] = field(default_factory=list)  # EMCY codes to raise at the next tick

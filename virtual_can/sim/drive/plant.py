@@ -19,6 +19,7 @@ from virtual_can.sim.drive.model import (
     LIMIT_TOLERANCE_REV,
     PHYSICS_STEP_S,
     POWERED,
+    QUICK_STOP_HOLDS,
     State,
 )
 from virtual_can.sim.drive.statemachine import StateMachine
@@ -90,9 +91,12 @@ class Plant(StateMachine):
         vlimit = self._v(OD.MAX_PROFILE_VELOCITY, 0, 0) or vmax
         vmax = min(vmax, vlimit)
         if self.state != State.OPERATION_ENABLED:
-            qs_decel = self._v(OD.QUICK_STOP_DECELERATION, 0, 65536) or 65536.0
-            self._ramp_velocity(0.0, qs_decel, qs_decel, dt)
-            if abs(self.sp_vel) < 1e-6:
+            # 0x605A: 1 and 5 brake on the slow-down ramp (0x6084), the others on the quick-stop ramp
+            # (0x6085; 3 and 7, the current limit, modelled so); 5-7 then stay in Quick Stop Active
+            option = self.quick_stop_option if self.state == State.QUICK_STOP_ACTIVE else 2
+            rate = decel if option in (1, 5) else self._v(OD.QUICK_STOP_DECELERATION, 0, 65536) or 65536.0
+            self._ramp_velocity(0.0, rate, rate, dt)
+            if abs(self.sp_vel) < 1e-6 and option not in QUICK_STOP_HOLDS:
                 self.state = State.FAULT if self.state == State.FAULT_REACTION_ACTIVE else State.SWITCH_ON_DISABLED
         elif halt and mode in (OperationMode.PROFILE_POSITION, OperationMode.PROFILE_VELOCITY, OperationMode.HOMING):
             self._ramp_velocity(0.0, decel, decel, dt)

@@ -16,6 +16,7 @@ from virtual_can.sim.drive.model import (
     CW_RELATIVE,
     ENABLING,
     POWERED,
+    STANDSTILL_COUNTS_S,
     STATUS_BITS,
     SW_OMS12,
     SW_OMS13,
@@ -23,6 +24,7 @@ from virtual_can.sim.drive.model import (
     SW_TARGET_REACHED,
     SW_VOLTAGE_ENABLED,
     SW_WARNING,
+    VELOCITY_MODES,
     State,
     next_state,
 )
@@ -36,7 +38,7 @@ class StateMachine(ErrorStack):
     def _apply_controlword(self) -> None:
         cw = int(self.store.get(OD.CONTROLWORD, 0))  # type: ignore[arg-type]
         new = next_state(self.state, cw, self.prev_cw, voltage_ok=not self.faults.sto_low,
-                         quick_stop_option=int(self.store.get(OD.QUICK_STOP_OPTION, 0, 2)))  # type: ignore[arg-type]
+                         quick_stop_option=self.quick_stop_option)
         pending, self._slow_transition = self._slow_transition, None  # a new controlword overrides it
         if new != self.state:
             if self.faults.enable_step_delay_s > 0 and new in ENABLING and self.state in (State.SWITCH_ON_DISABLED,
@@ -57,6 +59,10 @@ class StateMachine(ErrorStack):
         self.prev_cw = cw
 
     def _enter(self, new: State) -> None:
+        if self.state in POWERED and new not in POWERED and abs(self.sp_vel) > STANDSTILL_COUNTS_S:
+            self.cut_at_speed.append(abs(self.sp_vel))
+            logger.info("node %d: power stage off at %.0f counts/s (%s -> %s): a real shaft coasts from here",
+                        self.node_id, abs(self.sp_vel), self.state.name, new.name)
         if self.state == State.FAULT:
             self._clear_error()
         if new == State.OPERATION_ENABLED and self.state != State.QUICK_STOP_ACTIVE:
@@ -143,6 +149,9 @@ class StateMachine(ErrorStack):
             sw |= SW_VOLTAGE_ENABLED
         if self.state == State.OPERATION_ENABLED:
             sw |= self._mode_status_bits(self.mode)
+        elif self.state == State.QUICK_STOP_ACTIVE and (abs(self.sp_vel) < 1e-6 or (
+                self.faults.speed_reached_in_quick_stop and self.mode in VELOCITY_MODES)):
+            sw |= SW_TARGET_REACHED  # halted (options 5-7 hold here); or the quirk's "speed reached"
         if self.following_since is not None:
             sw |= SW_WARNING
         if self.faults.garbled_statusword:  # bits 0-3, 5, 6: "ready to switch on" alone is no state
