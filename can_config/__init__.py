@@ -36,6 +36,7 @@ from can_config.config import (
     config_to_dict,
     load_config,
     parse_config,
+    simulated_config,
     with_bus_overrides,
 )
 from can_config.eds import check_cia402, load_drive_od, load_od
@@ -58,5 +59,6 @@ __all__ = [
     "load_drive_od",
     "load_od",
     "parse_config",
+    "simulated_config",
     "with_bus_overrides",
 ]

@@ -285,6 +285,19 @@ def load_config(path: Path | str | None = None) -> RoverConfig:
     return parse_config(data, source)
 
 
+def simulated_config(path: Path | str | None, who: str) -> RoverConfig:
+    """The config of a run on the simulator (``who``: the demo, a launch's ``sim:=true``): ``path``,
+    else the embedded default; never ``$ROVERCAN_CONFIG``, which names the rover's real buses where it
+    is deployed (the image sets it). A bus the simulator cannot serve (any interface but socketcand:
+    a kernel SocketCAN bus, a real adapter) is refused, nothing opened."""
+    config = load_config(path or DEFAULT_CONFIG)
+    real = [f"{b.name} ({b.interface} {b.channel})" for b in config.buses if b.interface != "socketcand"]
+    if real:
+        raise ConfigError(f"{who} runs on the simulator, and {', '.join(real)} would be a real bus: give it a config"
+                          " whose buses are socketcand (the simulator's), or run the rover without the simulator")
+    return config
+
+
 def config_to_dict(config: RoverConfig) -> dict[str, Any]:
     """Back to the YAML shape (used to hand a config to a subprocess or a ROS parameter):
     ``parse_config(config_to_dict(c)) == c``."""

@@ -57,7 +57,7 @@ from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from can_config import load_config
+from can_config import RoverConfig, load_config, simulated_config
 from can_config.errors import RovercanError
 from motor_driver import MotorDriver, StopReport
 from motor_driver.follow import TrajectoryGroup, groups_of
@@ -241,6 +241,18 @@ class Assembly:
                 for name, executor in self.executors.items()}
 
 
+
+def config_of(node: Node) -> RoverConfig:
+    """The process's rover config, by its node's ``config`` (empty: ``$ROVERCAN_CONFIG`` where set,
+    else the embedded default) and ``sim`` parameters: a launch that started the simulator for it
+    (``sim:=true``) never reads ``$ROVERCAN_CONFIG`` (the deployed rover's real buses) and opens no
+    bus but the simulator's (:func:`can_config.simulated_config`)."""
+    path = str(node.get_parameter("config").value) or None
+    if node.get_parameter("sim").value:
+        return simulated_config(path, "this launch (sim:=true)")
+    return load_config(path)
+
+
 def assemble(name: str = "rovercan_driver", *, one_joint: bool = False, context: Context | None = None) -> Assembly:
     """An entry point's driver node with its parameters, the process set-up (:func:`set_up`), the
     driver of its ``config`` and their assembly built: nothing sent on the bus yet. ``one_joint``:
@@ -250,10 +262,10 @@ def assemble(name: str = "rovercan_driver", *, one_joint: bool = False, context:
     node = DriverNode(None, name, one_joint=one_joint, **kwargs)  # the node's name: a params file's values apply
     assembly = None
     try:
-        declare(node, "config")
+        declare(node, "config", "sim")
         process = set_up(node)
         joints = [node.joint()] if one_joint else None
-        driver = MotorDriver(load_config(str(node.get_parameter("config").value) or None))  # nothing sent yet
+        driver = MotorDriver(config_of(node))  # nothing sent yet
         assembly = Assembly(driver, process.hot, name=name, joints=joints, context=context, node=node)
         assembly.build()
     except BaseException:

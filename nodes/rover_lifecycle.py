@@ -68,11 +68,10 @@ from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.lifecycle import Node as LifecycleNode
 from rclpy.lifecycle import State, TransitionCallbackReturn
 
-from can_config import load_config
 from can_config.errors import RovercanError
 from motor_driver import MotorDriver, StopReport
 from motor_driver.process import heap
-from nodes.assembly import Assembly, set_up
+from nodes.assembly import Assembly, config_of, set_up
 from nodes.process import spinning
 from nodes.process.bond import BondHeartbeat, bond_interface
 from nodes.process.params import declare
@@ -122,7 +121,7 @@ class DriveLifecycleNode(LifecycleNode):
         """``hot``: where the drives' ROS interface spins; None (``main``): the process set-up from
         this node's parameters (nodes/assembly.py), which may raise :class:`ConfigError`."""
         super().__init__("rovercan_lifecycle", **kwargs)
-        declare(self, "config", "autostart", "bond_heartbeat_period")
+        declare(self, "config", "sim", "autostart", "bond_heartbeat_period")
         self.hot = set_up(self).hot if hot is None else hot
         self.assembly: Assembly | None = None
         self.bond: BondHeartbeat | None = None  # with a lifecycle manager, while active (nodes/process/bond.py)
@@ -191,7 +190,7 @@ class DriveLifecycleNode(LifecycleNode):
     @supervised
     def on_configure(self, state: State) -> TransitionCallbackReturn:
         try:
-            driver = MotorDriver(load_config(str(self.get_parameter("config").value) or None))  # nothing sent yet
+            driver = MotorDriver(config_of(self))  # nothing sent yet
         except RovercanError as err:
             self.get_logger().error(f"configure failed: {err}")
             return TransitionCallbackReturn.FAILURE

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from can_config import DEFAULT_CONFIG, RoverConfig, load_config, with_bus_overrides
+from can_config import RoverConfig, simulated_config, with_bus_overrides
 from can_config.errors import ConfigError
 from motor_driver.process.stop import StopSignal
 from rovercan.exits import EXIT_FAILED, EXIT_OK
@@ -131,16 +131,9 @@ def _demo_process(joint: str, realtime_priority: int) -> tuple[Any, Any, bool]:
 
 
 def demo_config(path: str | None) -> RoverConfig:
-    """The demo's config: ``path``, else the embedded one (never ``$ROVERCAN_CONFIG``, which names
-    the rover's real buses where it is deployed). The demo runs on its own simulator: a bus of
-    another interface (a kernel SocketCAN bus, a real adapter) is refused, nothing opened."""
-    config = load_config(path if path is not None else DEFAULT_CONFIG)
-    real = [f"{b.name} ({b.interface} {b.channel})" for b in config.buses if b.interface != "socketcand"]
-    if real:
-        raise ConfigError(f"the demo runs on its own simulator and arms the first drive; {', '.join(real)} would be a"
-                          " real bus: give it a config whose buses are socketcand (the simulator's), or run the rover"
-                          " with rovercan launch")
-    return config
+    """The demo's config (it arms the first drive): ``path``, else the embedded one, never
+    ``$ROVERCAN_CONFIG``; a bus of another interface than the simulator's is refused."""
+    return simulated_config(path, "the demo (it arms its first drive)")
 
 
 def _shortest(deg: float) -> float:

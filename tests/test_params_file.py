@@ -164,3 +164,41 @@ def test_the_degree_publisher_takes_the_file(rig: tuple[dict[str, dict[str, Any]
         check([node], values, {"motor_degree": NODES["motor_degree"]})
     finally:
         node.destroy_node()
+
+
+@pytest.mark.parametrize(("sim", "given", "opens"), [(True, False, "socketcand"), (False, False, "socketcan"),
+                                                     (True, True, None)])
+def test_a_launch_with_the_simulator_never_takes_the_rover_s_real_buses(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                        sim: bool, given: bool, opens: str | None) -> None:
+    """``sim:=true`` (the launch starts the simulator beside the driver): $ROVERCAN_CONFIG, which names
+    the deployed rover's real buses, is not read (the simulator serves the embedded default), and a
+    config given with a kernel bus is refused before anything opens; without sim it is the rover's.
+    Every launch node that takes the launch's config takes its sim too."""
+    import xml.etree.ElementTree as ET
+
+    from can_config import DEFAULT_CONFIG
+    from nodes.assembly import config_of
+
+    real = tmp_path / "real.yaml"
+    real.write_text(ROVER.read_text().replace("interface: socketcand", "interface: socketcan"))
+    monkeypatch.setenv("ROVERCAN_CONFIG", str(real))
+    args = ["-p", f"sim:={str(sim).lower()}", *(["-p", f"config:={real}"] if given else [])]
+    context = rclpy.Context()
+    rclpy.init(args=["--ros-args", *args], context=context)
+    node = rclpy.create_node("rovercan_driver", context=context)
+    try:
+        declare(node, "config", "sim")
+        if opens is None:
+            with pytest.raises(ConfigError, match=r"sim:=true.*can0 \(socketcan can0\).*would be a real bus"):
+                config_of(node)
+        else:
+            config = config_of(node)
+            assert {b.interface for b in config.buses} == {opens}
+            assert config == load_config(DEFAULT_CONFIG if sim else real)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    for launch in sorted((REPO / "ros" / "rovercan_bringup" / "launch").glob("*.xml")):
+        for element in ET.parse(launch).getroot().iter("node"):
+            params = {p.get("name"): p.get("value") for p in element.iter("param")}
+            assert "config" not in params or params.get("sim") == "$(var sim)", (launch.name, element.get("exec"))

@@ -39,6 +39,9 @@ class Param:
 PARAMS: dict[str, Param] = {
     "config": Param("", "rover config YAML (buses, drives, drive system); empty: $ROVERCAN_CONFIG where set, else"
                        " the embedded default"),
+    "sim": Param(False, "the launch started the simulator for this process (sim:=true): its config is never"
+                        " $ROVERCAN_CONFIG (empty: the embedded default), and a bus that is not the simulator's"
+                        " (not socketcand) is refused, nothing opened"),
     "executor": Param("events", "hot-path executor: events (rclpy's EventsExecutor, measured fastest) or single"),
     "arm": Param(False, "enable every drive at start (rover_lifecycle: at activate); off by default: arming is an"
                         " explicit act"),
@@ -84,9 +87,9 @@ ONE_JOINT = ("joint", "arm", "state_rate_hz", "diagnostics_rate_hz", "state_qos_
 #: ``rover_lifecycle``'s process the node of that name has :data:`DRIVER` only (the process's
 #: ``config``, ``executor`` and ``realtime_priority`` are ``rovercan_lifecycle``'s).
 NODES: dict[str, tuple[str, ...]] = {
-    "rovercan_driver": ("config", *PROCESS, *DRIVER),
-    "motor_controller": ("config", *PROCESS, *ONE_JOINT),
-    "rovercan_lifecycle": ("config", *PROCESS, "autostart", "bond_heartbeat_period"),
+    "rovercan_driver": ("config", "sim", *PROCESS, *DRIVER),
+    "motor_controller": ("config", "sim", *PROCESS, *ONE_JOINT),
+    "rovercan_lifecycle": ("config", "sim", *PROCESS, "autostart", "bond_heartbeat_period"),
     "drive_system": ("odom_rate_hz", "odom_frame", "base_frame", "state_qos_depth", "publish_tf"),
     "motor_degree": ("period_s", "step_deg", "start_deg"),
 }
