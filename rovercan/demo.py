@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 from can_config import RoverConfig, simulated_config, with_bus_overrides
 from can_config.errors import ConfigError
 from motor_driver.process.stop import StopSignal
+from motor_driver.protocol.units import shortest_delta_deg
 from rovercan.exits import EXIT_FAILED, EXIT_OK
 from rovercan.launch import LOCAL_DISCOVERY
 
@@ -136,10 +137,6 @@ def demo_config(path: str | None) -> RoverConfig:
     return simulated_config(path, "the demo (it arms its first drive)")
 
 
-def _shortest(deg: float) -> float:
-    return (deg + 180.0) % 360.0 - 180.0
-
-
 @dataclass
 class Track:
     """What the demo's monitor heard: the first and last degree command and how far the commands
@@ -157,7 +154,7 @@ class Track:
         if math.isnan(self.first_cmd):
             self.first_cmd = value
         elif math.isfinite(value):
-            self.commanded += _shortest(value - self.cmd)
+            self.commanded += shortest_delta_deg(value - self.cmd)
         self.cmd = value
 
     def state(self, angle: float) -> None:
@@ -166,7 +163,7 @@ class Track:
         if math.isnan(self.first_angle):
             self.first_angle = angle
         else:
-            self.moved += _shortest(angle - self.angle)
+            self.moved += shortest_delta_deg(angle - self.angle)
         self.angle = angle
 
 
@@ -241,7 +238,7 @@ def demo_verdict(track: Track, state: Any, verdict: Verdict) -> int:
         print("rovercan demo: no MotorState received", file=sys.stderr)
         return EXIT_FAILED
     angle, cmd = float(state.angle), track.cmd
-    error = abs(_shortest(angle - cmd))
+    error = abs(shortest_delta_deg(angle - cmd))
     print(f"rovercan demo: done; last command {cmd:.2f} deg, angle {angle:.2f} deg, error {error:.2f} deg",
           flush=True)
     if not verdict.fresh:
@@ -266,7 +263,7 @@ def _followed(track: Track, angle: float, error: float) -> int:
               "the last MotorState carries no measured angle (its data were late)"), file=sys.stderr)
         return EXIT_FAILED
     commanded = track.commanded
-    expected = _shortest(track.first_cmd - track.first_angle) + commanded
+    expected = shortest_delta_deg(track.first_cmd - track.first_angle) + commanded
     if not abs(commanded) >= MIN_TRAVEL_DEG:
         print(f"rovercan demo: the command moved {commanded:.2f} deg over the run, too little to tell that the motor"
               " followed: run longer (--duration) or with a larger --step", file=sys.stderr)

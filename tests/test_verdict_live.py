@@ -238,6 +238,6 @@ def test_an_old_or_used_host_loss_emcy_explains_no_later_nmt_change() -> None:
     assert not Supervisor._own_comm_error(drive, record, 100.0 + HOST_LOSS_NMT_S + 0.01)  # type: ignore[arg-type]
     assert Supervisor._own_comm_error(drive, record, 100.2)  # type: ignore[arg-type]
     assert not Supervisor._own_comm_error(drive, record, 100.3)  # type: ignore[arg-type]  # used
-    record.host_loss_emcys_at_boot = 0
+    record.host_loss_emcys_spent = 0
     cache.host_loss_emcys = 0  # none since the boot
     assert not Supervisor._own_comm_error(drive, record, 100.2)  # type: ignore[arg-type]

@@ -40,8 +40,9 @@ class DriveRecord:
         self.lost = False
         self.booted = False
         self.booted_at = 0.0  # when the last boot ended: a heartbeat heard before it is history
-        #: the drive's EMCY 0x8130 count (DriveCache.host_loss_emcys) when its last boot ended
-        self.host_loss_emcys_at_boot = 0
+        #: the drive's EMCY 0x8130 count (DriveCache.host_loss_emcys) up to which they are spent: set
+        #: as its boot ends (older ones explain nothing) and as one explains an NMT change of the drive's
+        self.host_loss_emcys_spent = 0
         #: configure it again (a boot-up, a stop it was told, the other master gone, a failed try)
         self.reboot_wanted = False
         self.reboot_at = 0.0  # not before this (a failed re-configuration waits)

@@ -28,8 +28,8 @@ END_VELOCITY_EPSILON_DEG_S = math.degrees(2.0**-23)
 class GoalChecks:
     """The checks of one trajectory group's goals."""
 
-    def __init__(self, config: TrajectoryGroupConfig, drives: Mapping[str, Drive], period_s: float) -> None:
-        self.config, self.name, self.drives, self.period_s = config, config.name, drives, period_s
+    def __init__(self, config: TrajectoryGroupConfig, drives: Mapping[str, Drive]) -> None:
+        self.config, self.name, self.drives = config, config.name, drives
 
     def plan(self, goal: TrajectoryGoal, reference: Callable[[Sequence[str]], tuple[Knot, ...]]) -> Plan:
         """``goal`` checked against the group, the joints' limits and their drives (nothing sent);

@@ -6,8 +6,8 @@ control_msgs/FollowJointTrajectory, one :class:`TrajectoryGroup` per configured 
 Before anything moves (:meth:`TrajectoryGroup.plan`, on the caller's thread: :mod:`motor_driver.follow.checks`) a goal is refused with
 the standard's code (:class:`TrajectoryRejected`): joints unknown, repeated, of another group or
 not all of the group's unless ``allow_partial_joints_goal`` (INVALID_JOINTS); points of the wrong
-length, not finite, times not strictly increasing, a point or any sampled set-point beyond a joint's
-limits or its max velocity, a last point with a velocity (unless
+length, not finite, times not strictly increasing, a point or any instant of a segment between two
+beyond a joint's limits or its max velocity, a last point with a velocity (unless
 ``allow_nonzero_velocity_at_trajectory_end``), a tolerance negative other than -1, a joint not usable (its verdict) or
 its motion held, a first point (at time 0) further than ``start_tolerance_deg`` from both its joint's
 set-point and its measured position (INVALID_GOAL); a header stamp whose trajectory is over already
@@ -161,7 +161,7 @@ class TrajectoryGroup:
         self._clock: Drive | None = None
         self._clock_seq = -1
         self._silences = 0  # the clock's waits in a row that ended without a sample
-        self._checks = GoalChecks(config, self.drives, self.period_s)
+        self._checks = GoalChecks(config, self.drives)
         #: the buses (name, network) whose set-points of one SYNC go out in one write (GuardedNetwork.one_write)
         self._networks = tuple({id(d.network): (d.config.bus, d.network) for d in self.drives.values()
                                 if isinstance(d.network, GuardedNetwork)}.values())

@@ -101,11 +101,15 @@ def require_finite(name: str, value: float, unit: str) -> float:
     return float(value)
 
 
+def shortest_delta_deg(delta_deg: float) -> float:
+    """An angle difference the short way round, in [-180, 180): 359.9 -> -0.1."""
+    return (delta_deg + 180.0) % 360.0 - 180.0
+
+
 def nearest_equivalent(command_deg: float, current_deg: float) -> float:
     """For a continuous joint: the angle equal to ``command_deg`` modulo 360 that is closest to
     ``current_deg`` (multi-turn), so 359.9 -> 0.0 moves +0.1 degree, not -359.9."""
-    delta = (command_deg - current_deg + 180.0) % 360.0 - 180.0
-    return current_deg + delta
+    return current_deg + shortest_delta_deg(command_deg - current_deg)
 
 
 def check_limits(name: str, angle_deg: float, min_deg: float | None, max_deg: float | None) -> None:

@@ -319,13 +319,12 @@ class WheelOdometry:
         next sample will carry the gap."""
         quiet = [(label, names, side) for label, names, side in (("left", self.left, left), ("right", self.right, right))
                  if not side.counted]
-        updates = left.updates + right.updates  # committed before `late` is judged: forgets count
+        updates = left.updates + right.updates
         self._commit([u for u in updates if u.forget or u.restart], deltas=False)
         only_silent = all(any(w is not None and w.silent for w in waiting)
                           and all(w is not None and (w.silent or w.forget) for w in waiting)
                           for waiting in ([samples.get(n) for n in names] for _, names, _ in quiet))
-        late = all(any(u.sample is None and not u.forget and u.name in self._last for u in side.updates)
-                   for _, _, side in quiet)
+        late = all(bool(side.late) for _, _, side in quiet)
         silent = tuple(n for _, names, _ in quiet for n in names)
         if late and not only_silent and self._instant and instant - self._instant > MAX_BRIDGED_GAP_S:
             self._drop_late(silent)  # too long a gap for one step: they start anew, as lost wheels do

@@ -312,7 +312,7 @@ class Supervisor:
         record.bootups_confirmed = event.bootups
         drive = self.drives.get(event.drive)
         if drive is not None:
-            record.host_loss_emcys_at_boot = drive.cache.host_loss_emcys
+            record.host_loss_emcys_spent = drive.cache.host_loss_emcys
         if drive is not None and drive.cache.bootups > event.bootups:
             why = "it sent boot-up as its boot ended"
             logger.warning("node %d (%s): %s: it reset; it will be configured again", drive.node_id, drive.name, why)
@@ -381,10 +381,10 @@ class Supervisor:
         change (they come together; a starved receive thread hands both on at once). Used once: a
         later change (another master's) is not explained by an old one."""
         cache = drive.cache
-        if cache.host_loss_emcys <= record.host_loss_emcys_at_boot or abs(at - cache.host_loss_at) > max(
+        if cache.host_loss_emcys <= record.host_loss_emcys_spent or abs(at - cache.host_loss_at) > max(
                 HOST_LOSS_NMT_S, 3 * drive.config.heartbeat_period_s):
             return False
-        record.host_loss_emcys_at_boot = cache.host_loss_emcys
+        record.host_loss_emcys_spent = cache.host_loss_emcys
         return True
 
     @staticmethod

@@ -105,20 +105,25 @@ def goal_from_message(request: Any, now_s: float) -> TrajectoryGoal:
                                      " only); send no effort. Nothing moved", code=int(TrajectoryCode.INVALID_GOAL))
     times = tuple(_seconds(p.time_from_start) for p in points)
     stamp = _seconds(trajectory.header.stamp)
-    delay = 0.0
-    if stamp > 0.0:
-        delay = stamp - now_s
-        if times and delay + times[-1] < 0.0:
-            raise TrajectoryRejected(f"the trajectory's header stamp {stamp:.3f} s and its {times[-1]:.3f} s end before"
-                                     f" now ({now_s:.3f} s); stamp 0 starts it on arrival. Nothing moved",
-                                     code=int(TrajectoryCode.OLD_HEADER_TIMESTAMP))
+    if stamp > 0.0 and times and stamp - now_s + times[-1] < 0.0:
+        raise TrajectoryRejected(f"the trajectory's header stamp {stamp:.3f} s and its {times[-1]:.3f} s end before"
+                                 f" now ({now_s:.3f} s); stamp 0 starts it on arrival. Nothing moved",
+                                 code=int(TrajectoryCode.OLD_HEADER_TIMESTAMP))
     return TrajectoryGoal(
         joints=tuple(trajectory.joint_names), times_s=times,
         positions_deg=tuple(_degrees(p.positions) for p in points),
         velocities_deg_s=tuple(_degrees(p.velocities) for p in points),
         accelerations_deg_s2=tuple(_degrees(p.accelerations) for p in points),
         path_tolerance=_tolerances(request.path_tolerance), goal_tolerance=_tolerances(request.goal_tolerance),
-        goal_time_tolerance_s=_seconds(request.goal_time_tolerance), start_delay_s=max(delay, 0.0))
+        goal_time_tolerance_s=_seconds(request.goal_time_tolerance), start_delay_s=start_delay(stamp, now_s))
+
+
+def start_delay(stamp_s: float, now_s: float) -> float:
+    """How long after ``now_s`` a goal with header stamp ``stamp_s`` (ROS time, s) starts: 0 for
+    stamp 0 (on arrival) and for a stamp in the past (another host's clock behind this one's: run from
+    acceptance; joint_trajectory_controller samples it at now, a jump into the part that has passed,
+    and a plan joined there would be caught up at the joints' limit from rest: docs/ros.md)."""
+    return max(stamp_s - now_s, 0.0) if stamp_s > 0.0 else 0.0
 
 
 def fill_feedback(feedback: Any, progress: Progress) -> Any:
@@ -240,11 +245,7 @@ class FollowTrajectoryServer:
         accepted_at = time.monotonic()
         request = goal_handle.request
         _, plan = self._plans.pop(id(request), (None, None))
-        stamp = _seconds(request.trajectory.header.stamp)
-        # a stamp in the past (another host's clock behind this one's) runs the plan from acceptance:
-        # joint_trajectory_controller samples it at now, a jump into the part that has passed, and a
-        # plan joined there would be caught up at the joints' limit from rest (docs/ros.md)
-        delay = max(stamp - self._node.get_clock().now().nanoseconds * 1e-9, 0.0) if stamp > 0.0 else 0.0
+        delay = start_delay(_seconds(request.trajectory.header.stamp), self._node.get_clock().now().nanoseconds * 1e-9)
         try:
             if plan is None:
                 raise RuntimeError("accepted without a plan")

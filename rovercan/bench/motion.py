@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 from can_config.errors import CommandRejected, ConfigError
 from can_config.objects import SUPPORTED_MODE_BIT, OperationMode
 from motor_driver.follow.trajectory import trapezoid
+from motor_driver.protocol.units import shortest_delta_deg
 from rovercan.argtypes import real
 from rovercan.bench.common import (
     CliError,
@@ -84,7 +85,7 @@ class UnitCheck:
         for (t0, a0, v0), (t1, a1, v1) in itertools.pairwise(self.samples):
             step = a1 - a0
             if self.drive.config.is_continuous:
-                step = (step + 180.0) % 360.0 - 180.0  # across the wrap of a continuous joint
+                step = shortest_delta_deg(step)  # across the wrap of a continuous joint
             moved += step
             reported += (v0 + v1) / 2 * (t1 - t0)
         if max(abs(moved), abs(reported)) < self.MIN_TRAVEL_DEG:
