@@ -221,12 +221,15 @@ class DriveSimulator:
 
     def _handle_queued(self, drives: list[SimulatedDrive], msg: can.Message | None, now: float) -> bool:
         """``msg`` and every frame already queued behind it, up to MAX_FRAMES_PER_TICK; True if the
-        queue was found empty."""
-        for _ in range(MAX_FRAMES_PER_TICK):
+        queue was found empty. Nothing is read past the bound (a frame read and not handled would
+        be lost: an SDO request among them went unanswered)."""
+        for handled in range(1, MAX_FRAMES_PER_TICK + 1):
             if msg is None:
                 return True
             if not msg.is_error_frame:
                 self._deliver(drives, msg, now)
+            if handled == MAX_FRAMES_PER_TICK:
+                break
             try:
                 msg = self.bus.recv(timeout=0.0)
             except (can.CanError, OSError, ValueError):
