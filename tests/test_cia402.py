@@ -71,8 +71,11 @@ def test_enable_path_walks_2_3_4() -> None:
     (0x0617, 30.0, False),   # bit 10 at speed: a velocity mode's "speed reached" kept into the ramp
     (0x0617, -1.5, False),
     (0x0217, 0.0, False),    # Quick Stop Active without bit 10: still on its ramp
-    (0x0237, 0.0, True),     # Operation Enabled: it left the ramp (another's enable): nothing to wait for
-    (0x0638, 10.0, True),    # Fault: its reaction ended
+    (0x0237, 0.0, False),    # Operation Enabled: the stop not taken yet, or another master's enable
+    (0x021F, 0.0, False),    # Fault Reaction Active: on its fault reaction's ramp
+    (0x0638, 10.0, True),    # Fault: its reaction ended, the power stage off
+    (0x0221, 5.0, True),     # Ready to Switch On: the power stage off
+    (0x0001, 0.0, False),    # no state (a garbled word): nothing said of the ramp
 ])
 def test_a_quick_stop_has_braked_only_off_its_ramp_or_at_standstill(statusword: int, velocity_deg_s: float,
                                                                      done: bool) -> None:

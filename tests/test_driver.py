@@ -631,13 +631,15 @@ def test_a_drive_that_never_says_it_braked_is_disabled_at_the_stop_s_bound(
 def test_a_drive_lost_while_it_brakes_gets_the_lost_drive_s_stop_not_a_voltage_cut(
         driver_factory: DriverFactory, monkeypatch: pytest.MonkeyPatch) -> None:
     """The cable pulled between a safe stop's two steps (its quick stop sent, the ramp under way):
-    the wait for its standstill ends on the loss, not at the bound (set far past the ramp here, so
-    only the loss can end it), and the drive gets the lost drive's last stop and line, counted as
+    the wait for its standstill ends on the loss, not at a bound (both set far past the join here,
+    so only the loss can end it in time), and the drive gets the lost drive's last stop and line, counted as
     lost (a lifecycle transition tells it from a refusal), not a voltage cut that waits for an
     answer that cannot come and blames a timeout."""
+    from motor_driver.drive.command import power
     from motor_driver.runtime import driver as runtime_driver
 
     monkeypatch.setattr(runtime_driver, "BRAKE_WAIT_MAX_S", 600.0)
+    monkeypatch.setattr(power, "BRAKE_MARGIN_S", 600.0)  # the ramp's own bound too: only the loss ends the wait
     sim, driver = driver_factory(make_config(2, heartbeat_timeout_ms=350, quick_stop_deceleration_deg_s2=1.0))
     for name in ("joint1", "joint2"):
         driver.drive(name).enable()
@@ -669,7 +671,7 @@ def cut_beyond_standstill(runner: object, drive: Drive) -> list[float]:
 
 
 def test_a_drive_that_holds_in_quick_stop_with_speed_reached_set_is_disabled_at_standstill(
-        driver_factory: DriverFactory, caplog: pytest.LogCaptureFixture) -> None:
+        driver_factory: DriverFactory, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
     """A drive whose firmware fixes its quick stop at option 6 (it brakes, then holds in Quick Stop
     Active with bit 10 set) and keeps a velocity mode's "speed reached" (bit 10) set through the
     ramp: bit 10 alone said "braked" at full speed, and its voltage was cut mid-ramp (a real shaft
@@ -677,7 +679,12 @@ def test_a_drive_that_holds_in_quick_stop_with_speed_reached_set_is_disabled_at_
     before the stop's bound (nothing said "still braking")."""
     import logging
 
+    from motor_driver.drive.command import power
+    from motor_driver.runtime import driver as runtime_driver
+
     caplog.set_level(logging.WARNING)
+    monkeypatch.setattr(power, "BRAKE_MARGIN_S", 30.0)  # a starved simulator's ramp ends well within it
+    monkeypatch.setattr(runtime_driver, "BRAKE_WAIT_MAX_S", 60.0)
     sim, driver = driver_factory(make_config(1, quick_stop_deceleration_deg_s2=100.0))  # 60 deg/s: a 0.6 s ramp
     runner = sim.simulator_for(1)
     apply_action(sim, {"action": "quick_stop_option", "node": 1, "option": 6})
@@ -728,27 +735,30 @@ def test_a_drive_found_braking_at_a_re_configuration_is_disabled_only_at_standst
 
 
 def test_a_safe_stop_waits_for_the_ramp_the_drive_was_given_not_the_config_s(
-        driver_factory: DriverFactory, tmp_path: object, caplog: pytest.LogCaptureFixture) -> None:
+        driver_factory: DriverFactory, tmp_path: object, caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """A quick-stop deceleration beyond the drive's range (its EDS HighLimit on 0x6085) is written
-    as the drive's maximum, a tenth of the config's here: the safe stop reckoned its wait from the
-    config's, ten times too short, and cut the drive's voltage mid-ramp at the bound. It waits for
-    the ramp the drive was given."""
+    as the drive's maximum, a hundredth of the config's here: the safe stop reckoned its wait from
+    the config's, far too short, and cut the drive's voltage mid-ramp at that bound. It waits for the
+    ramp the drive was given (read back at its boot)."""
     import logging
     from pathlib import Path
 
     from can_config import GENERIC_EDS
+    from motor_driver.runtime import driver as runtime_driver
 
     caplog.set_level(logging.WARNING)
+    monkeypatch.setattr(runtime_driver, "BRAKE_WAIT_MAX_S", 60.0)  # the ramp's own bound judges
     eds = Path(str(tmp_path)) / "low_quick_stop.eds"
     eds.write_text(GENERIC_EDS.read_text().replace("ParameterName=Quick stop deceleration\n",
-                                                   "ParameterName=Quick stop deceleration\nHighLimit=683\n"))
+                                                   "ParameterName=Quick stop deceleration\nHighLimit=68\n"))
     sim, driver = driver_factory(make_config(1, eds=str(eds), quick_stop_deceleration_deg_s2=600.0))
     drive = driver.drive("joint1")
-    assert drive.cache.scale.acceleration_to_drive(60.0) == 683  # the drive's maximum: 60 deg/s^2
-    assert drive.cache.quick_stop_decel_deg_s2 == pytest.approx(60.0, rel=1e-3)
+    given = 68 / (drive.cache.scale.acceleration_to_drive(1000.0) / 1000.0)  # about 6 deg/s^2
+    assert 5.0 < given < 7.0 and drive.cache.quick_stop_decel_deg_s2 == pytest.approx(given)
     drive.enable()
-    drive.set_velocity(60.0)  # a 1 s ramp at what the drive was given (0.1 s at the config's)
-    wait_for(lambda: drive.snapshot().velocity_deg_s > 55.0, 10.0, "at speed")
+    drive.set_velocity(30.0)  # a 5 s ramp at what the drive was given (0.05 s at the config's)
+    wait_for(lambda: drive.snapshot().velocity_deg_s > 27.0, 10.0, "at speed")
     assert driver.safe_stop() == []
     assert cut_beyond_standstill(sim.simulator_for(1), drive) == [], "its voltage was cut mid-ramp"
     assert not [r for r in caplog.records if "still braking" in r.getMessage()]

@@ -170,10 +170,10 @@ def _arm_sdo_reset(drive: SimulatedDrive, step: Mapping[str, Any]) -> None:
 #: its host watch trips), speed_reached_in_quick_stop (a velocity mode's bit 10 stays set through its
 #: quick-stop ramp, as some vendors' drives keep "speed reached")
 _ON_SWITCHES = ("tx_dead", "guard_toggle_stuck", "heartbeat_deaf", "speed_reached_in_quick_stop")
-#: the quick-stop options (0x605A) the model has: 1-3 (a ramp, then Switch On Disabled), 5-7 (a ramp,
-#: then held in Quick Stop Active); 0 (the power stage off at once), 4 and 8 (voltage or current
-#: limit, then held) are not modelled
-QUICK_STOP_OPTIONS = (1, 2, 3, 5, 6, 7)
+#: the quick-stop options (0x605A) the model has: 1-4 (a ramp, then Switch On Disabled), 5-8 (a ramp,
+#: then held in Quick Stop Active); the current (3, 7) and voltage (4, 8) limits brake on the quick-stop
+#: ramp; 0 (the power stage off at once: the shaft coasts) is not modelled
+QUICK_STOP_OPTIONS = (1, 2, 3, 4, 5, 6, 7, 8)
 
 
 def _sync_answer(step: Mapping[str, Any], where: str = "sync_answer") -> tuple[float, float]:
@@ -197,7 +197,7 @@ def _quick_stop_option(step: Mapping[str, Any], where: str = "quick_stop_option"
     option = int(step.get("option", 2))
     if option not in QUICK_STOP_OPTIONS:
         raise ConfigError(f"{where}: quick_stop_option's option is {option!r}; give one of"
-                          f" {', '.join(map(str, QUICK_STOP_OPTIONS))} (CiA 402's 0x605A; 0, 4 and 8 are not modelled)")
+                          f" {', '.join(map(str, QUICK_STOP_OPTIONS))} (CiA 402's 0x605A; 0 is not modelled)")
     return option
 
 

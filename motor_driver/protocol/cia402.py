@@ -77,14 +77,22 @@ DRIVE_FUNCTION_ON = frozenset({State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE,
 STANDSTILL_DEG_S = 1.0
 
 
+#: After a quick stop, the states that say nothing of a finished ramp: still on it, its fault
+#: reaction's ramp, enabled again (another master's enable, or the stop not taken yet), no state.
+_NOT_BRAKED = frozenset({State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE, State.OPERATION_ENABLED,
+                         State.UNKNOWN})
+
+
 def braked(state: State, statusword: int, velocity_deg_s: float) -> bool:
-    """After a quick stop: has the drive stopped braking? Any state but Quick Stop Active (Switch On
-    Disabled by itself after the ramp, quick-stop options 1-3; any other: it left the ramp), or Quick
-    Stop Active with "target reached" (bit 10) at standstill (options 5-7 hold there; bit 10 alone
-    is not enough: some drives keep a velocity mode's "speed reached" set through the ramp). Until
-    then its voltage disabled cuts the ramp short, and a real drive's shaft coasts from there."""
-    return state != State.QUICK_STOP_ACTIVE or bool(
-        statusword & SW.TARGET_REACHED and abs(velocity_deg_s) <= STANDSTILL_DEG_S)
+    """After a quick stop: has the drive stopped braking? Its power stage off by itself (Switch On
+    Disabled after the ramp, quick-stop options 1-4; Fault after a fault reaction; Ready to Switch
+    On, Switched On), or Quick Stop Active with "target reached" (bit 10) at standstill (options 5-8
+    hold there; bit 10 alone is not enough: some drives keep a velocity mode's "speed reached" set
+    through the ramp). Until then its voltage disabled cuts the ramp short, and a real drive's shaft
+    coasts from there. A drive without a velocity (0x606C unmapped, unread: 0) is judged by bit 10."""
+    if state == State.QUICK_STOP_ACTIVE:
+        return bool(statusword & SW.TARGET_REACHED and abs(velocity_deg_s) <= STANDSTILL_DEG_S)
+    return state not in _NOT_BRAKED
 
 
 def _decode_by_coding(statusword: int) -> State:

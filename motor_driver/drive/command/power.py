@@ -347,12 +347,13 @@ class PowerStateMachine:
                                         cache.scale.counts_s_to_deg_s(rx.velocity_counts_s))
         return cache.wait_until(done, max(bound, 0.0))
 
-    def brake_bound_s(self, velocity_deg_s: float) -> float:
-        """How long a quick stop from ``velocity_deg_s`` may take to brake: twice its ramp at the
-        deceleration the drive was given (the speed counted at most twice the joint's limit: a
-        garbage velocity waits no longer), and BRAKE_MARGIN_S."""
+    def brake_bound_s(self, velocity_deg_s: float, decel_deg_s2: float | None = None) -> float:
+        """How long a quick stop from ``velocity_deg_s`` may take to brake: twice its ramp at
+        ``decel_deg_s2`` (default: what the drive's quick stop brakes at, as its boot read it back),
+        the speed counted at most twice the joint's limit (a garbage velocity waits no longer), and
+        BRAKE_MARGIN_S."""
         speed = min(abs(velocity_deg_s), 2 * self.config.max_velocity_deg_s)
-        return 2.0 * speed / self._cache.quick_stop_decel_deg_s2 + BRAKE_MARGIN_S
+        return 2.0 * speed / (decel_deg_s2 or self._cache.quick_stop_decel_deg_s2) + BRAKE_MARGIN_S
 
     def disable_voltage(self, timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
         """Disable voltage (transitions 7, 9, 10, 12): power stage off, Switch On Disabled."""

@@ -150,7 +150,8 @@ class Boot:
                 ("position limits", self._write_position_limits), ("profile parameters", self._write_profile),
                 ("sdo settings", self._write_settings), ("operation mode", self._boot_mode),
                 ("read state", self._read_state), ("confirm configuration", self._held),
-                ("safety check", self._safety_check), ("start", self._start_confirmed))
+                ("safety check", self._safety_check), ("stop ramp", self._note_stop_ramp),
+                ("start", self._start_confirmed))
 
     def _at(self, index: int, subindex: int) -> None:
         """The object the boot step is at: a failure names it."""
@@ -462,14 +463,50 @@ class Boot:
                        " quick stop, then disable voltage", self.name, self.node_id, state.name)
         if state == State.OPERATION_ENABLED:
             self._sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
-        if state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):  # no power off while it brakes
-            # as the safe stop judges it (Operation Enabled here: the quick stop not taken yet)
-            speed = self._velocity_by_sdo()
-            self._poll_state_sdo(lambda st, sw: st != State.OPERATION_ENABLED and braked(
-                st, sw, self._velocity_by_sdo() if st == State.QUICK_STOP_ACTIVE else 0.0), "quick stop at boot",
-                max(TRANSITION_TIMEOUT_S, self._power.brake_bound_s(speed)))
+        if state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE) and not self._braked_by_sdo():
+            logger.warning("%s (node %d): still braking at the bound of its quick stop at boot; its voltage is"
+                           " disabled now, and its shaft may coast from there", self.name, self.node_id)
+        if decode_state(self._sdo.read_number(OD.STATUSWORD)) == State.FAULT:
+            return  # its fault reaction ended it: the power stage is off (a fault reset is the user's act)
         self._sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.DISABLE_VOLTAGE)))
         self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED, "disable voltage at boot")
+
+    def _braked_by_sdo(self) -> bool:
+        """After the boot's quick stop: until the drive has braked (as the safe stop judges it:
+        :func:`cia402.braked`, its velocity read by SDO), for at most the ramp from its speed now at
+        the deceleration its quick stop brakes at now (:meth:`_stop_ramp_deg_s2`, read from it:
+        another master may have changed it). False: still braking at that bound."""
+        bound = self._power.brake_bound_s(self._velocity_by_sdo(), self._stop_ramp_deg_s2())
+        deadline = time.monotonic() + max(TRANSITION_TIMEOUT_S, bound)
+        while True:
+            sw = self._sdo.read_number(OD.STATUSWORD)
+            state = decode_state(sw)
+            if braked(state, sw, self._velocity_by_sdo() if state == State.QUICK_STOP_ACTIVE else 0.0):
+                self._cache.note_statusword(sw)
+                return True
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.02)
+
+    def _stop_ramp_deg_s2(self) -> float:
+        """The deceleration the drive's quick stop brakes at, deg/s^2, as the drive holds it now (by
+        SDO, whatever the EDS lists): its quick-stop ramp (0x6085), or its slow-down ramp (0x6084)
+        where its quick-stop option (0x605A) is 1 or 5; where it says none, the slower of the
+        config's two (a wait too long ends at its bound; one too short cuts a ramp)."""
+        fallback = min(self.config.quick_stop_decel_deg_s2, self.config.profile_acceleration_deg_s2)
+        option = self._sdo.read_optional(OD.QUICK_STOP_OPTION, 0)
+        slow_down = option is not None and int.from_bytes(option[:2], "little", signed=True) in (1, 5)
+        raw = self._sdo.read_optional(OD.PROFILE_DECELERATION if slow_down else OD.QUICK_STOP_DECELERATION, 0)
+        per_deg_s2 = self._cache.scale.acceleration_to_drive(1000.0) / 1000.0  # drive units per deg/s^2
+        value = int.from_bytes(raw[:4], "little") if raw is not None else 0
+        return value / per_deg_s2 if value > 0 and per_deg_s2 > 0 else fallback
+
+    def _note_stop_ramp(self) -> None:
+        """What the drive's quick stop brakes at, read back after every write (the safe stop waits
+        for that ramp; the limit and step guards brake by it): the config's, the drive's maximum
+        where the config's was beyond its range, or its slow-down ramp where it kept option 1 or 5."""
+        self._at(OD.QUICK_STOP_DECELERATION, 0)
+        self._cache.quick_stop_decel_deg_s2 = self._stop_ramp_deg_s2()
 
     def _velocity_by_sdo(self) -> float:
         """The drive's velocity actual value (0x606C) now, deg/s, in the scale the driver last knew
@@ -478,8 +515,8 @@ class Boot:
             return 0.0
         return self._cache.scale.counts_s_to_deg_s(self._sdo.read_number(OD.VELOCITY_ACTUAL))
 
-    def _poll_state_sdo(self, done: Callable[[State, int], bool], doing: str,
-                        timeout_s: float = TRANSITION_TIMEOUT_S) -> None:
+    def _poll_state_sdo(self, done: Callable[[State, int], bool], doing: str) -> None:
+        timeout_s = TRANSITION_TIMEOUT_S
         deadline = time.monotonic() + timeout_s
         while True:
             sw = self._sdo.read_number(OD.STATUSWORD)
@@ -519,13 +556,10 @@ class Boot:
         var = variable(self._od, OD.QUICK_STOP_DECELERATION, 0)
         high = var.max if var is not None else None
         if isinstance(high, int) and wanted > high:
-            given = high * self.config.quick_stop_decel_deg_s2 / wanted
             logger.warning("node %d (%s): quick-stop deceleration %g deg/s^2 is beyond the drive's range"
                            " (0x6085 <= %d); using its maximum, %.0f deg/s^2", self.node_id, self.name,
-                           self.config.quick_stop_decel_deg_s2, high, given)
-            self._cache.quick_stop_decel_deg_s2 = given  # a stop waits for this ramp, a guard brakes by it
+                           self.config.quick_stop_decel_deg_s2, high, high * self.config.quick_stop_decel_deg_s2 / wanted)
             return high
-        self._cache.quick_stop_decel_deg_s2 = self.config.quick_stop_decel_deg_s2
         return wanted
 
     def _wake_stopped(self) -> bool:

@@ -84,7 +84,9 @@ CW_HALT = 1 << 8
 
 POWERED = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE)
 #: the quick-stop options (0x605A) after whose ramp the drive stays in Quick Stop Active, halted
-QUICK_STOP_HOLDS = frozenset({5, 6, 7})
+#: (5: the slow-down ramp, 6: the quick-stop ramp, 7: the current limit, 8: the voltage limit; 1-4
+#: the same ramps, then Switch On Disabled)
+QUICK_STOP_HOLDS = frozenset({5, 6, 7, 8})
 #: a set-point speed below this (counts/s) is standstill: a power stage switched off then cuts no ramp
 STANDSTILL_COUNTS_S = 1.0
 VELOCITY_MODES = (OperationMode.PROFILE_VELOCITY, OperationMode.CYCLIC_SYNC_VELOCITY)
@@ -137,7 +139,7 @@ def next_state(state: State, cw: int, prev_cw: int, *, voltage_ok: bool,  # noqa
     if state == State.QUICK_STOP_ACTIVE:
         if not ev:
             return State.SWITCH_ON_DISABLED  # 12
-        if switch_on and eo and quick_stop_option >= 5:
+        if switch_on and eo and quick_stop_option in QUICK_STOP_HOLDS:
             return State.OPERATION_ENABLED  # 16
         return state
     return state

@@ -92,7 +92,8 @@ class Plant(StateMachine):
         vmax = min(vmax, vlimit)
         if self.state != State.OPERATION_ENABLED:
             # 0x605A: 1 and 5 brake on the slow-down ramp (0x6084), the others on the quick-stop ramp
-            # (0x6085; 3 and 7, the current limit, modelled so); 5-7 then stay in Quick Stop Active
+            # (0x6085; 3, 4, 7 and 8, the current and voltage limits, modelled so); 5-8 then stay in
+            # Quick Stop Active
             option = self.quick_stop_option if self.state == State.QUICK_STOP_ACTIVE else 2
             rate = decel if option in (1, 5) else self._v(OD.QUICK_STOP_DECELERATION, 0, 65536) or 65536.0
             self._ramp_velocity(0.0, rate, rate, dt)
