@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import ipaddress
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -291,11 +292,24 @@ def simulated_config(path: Path | str | None, who: str) -> RoverConfig:
     is deployed (the image sets it). A bus the simulator cannot serve (any interface but socketcand:
     a kernel SocketCAN bus, a real adapter) is refused, nothing opened."""
     config = load_config(path or DEFAULT_CONFIG)
-    real = [f"{b.name} ({b.interface} {b.channel})" for b in config.buses if b.interface != "socketcand"]
+    real = [f"{b.name} ({b.interface} {b.channel}{_remote_host(b)})" for b in config.buses
+            if b.interface != "socketcand" or _remote_host(b)]
     if real:
         raise ConfigError(f"{who} runs on the simulator, and {', '.join(real)} would be a real bus: give it a config"
-                          " whose buses are socketcand (the simulator's), or run the rover without the simulator")
+                          " whose buses are socketcand on this host (127.0.0.1: the simulator's), or run the rover"
+                          " without the simulator")
     return config
+
+
+def _remote_host(bus: BusConfig) -> str:
+    """`` on HOST`` for a socketcand bus whose server is not on this host (a real socketcand daemon
+    beside real drives: the simulator serves loopback only), else ""."""
+    host = str(bus.kwargs.get("host", "127.0.0.1"))
+    try:
+        local = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a name: not the simulator's
+        local = False
+    return "" if local else f" on {host}"
 
 
 def config_to_dict(config: RoverConfig) -> dict[str, Any]:

@@ -167,9 +167,10 @@ def test_the_degree_publisher_takes_the_file(rig: tuple[dict[str, dict[str, Any]
 
 
 @pytest.mark.parametrize(("sim", "given", "opens"), [(True, False, "socketcand"), (False, False, "socketcan"),
-                                                     (True, True, None)])
+                                                     (True, True, None), (True, "remote", None)])
 def test_a_launch_with_the_simulator_never_takes_the_rover_s_real_buses(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                                        sim: bool, given: bool, opens: str | None) -> None:
+                                                                        sim: bool, given: bool | str,
+                                                                        opens: str | None) -> None:
     """``sim:=true`` (the launch starts the simulator beside the driver): $ROVERCAN_CONFIG, which names
     the deployed rover's real buses, is not read (the simulator serves the embedded default), and a
     config given with a kernel bus is refused before anything opens; without sim it is the rover's.
@@ -181,15 +182,19 @@ def test_a_launch_with_the_simulator_never_takes_the_rover_s_real_buses(tmp_path
 
     real = tmp_path / "real.yaml"
     real.write_text(ROVER.read_text().replace("interface: socketcand", "interface: socketcan"))
+    remote = tmp_path / "remote.yaml"  # a real socketcand daemon beside the rover's drives
+    remote.write_text(ROVER.read_text().replace("host: 127.0.0.1", "host: 192.168.1.20"))
     monkeypatch.setenv("ROVERCAN_CONFIG", str(real))
-    args = ["-p", f"sim:={str(sim).lower()}", *(["-p", f"config:={real}"] if given else [])]
+    given_path = remote if given == "remote" else real
+    args = ["-p", f"sim:={str(sim).lower()}", *(["-p", f"config:={given_path}"] if given else [])]
     context = rclpy.Context()
     rclpy.init(args=["--ros-args", *args], context=context)
     node = rclpy.create_node("rovercan_driver", context=context)
     try:
         declare(node, "config", "sim")
         if opens is None:
-            with pytest.raises(ConfigError, match=r"sim:=true.*can0 \(socketcan can0\).*would be a real bus"):
+            said = r"can0 \(socketcand can0 on 192\.168\.1\.20\)" if given == "remote" else r"can0 \(socketcan can0\)"
+            with pytest.raises(ConfigError, match=rf"sim:=true.*{said}.*would be a real bus"):
                 config_of(node)
         else:
             config = config_of(node)
