@@ -80,12 +80,14 @@ from nodes.process.spinning import CallbackFailures
 logger = logging.getLogger(__name__)
 
 #: The hot executor counts as hung (the bond withholds its heartbeats) after this many of its state
-#: timer's periods without a tick, never sooner than HOT_SILENT_MIN_S and never later than
-#: HOT_SILENT_MAX_S (a manager's bond_timeout, 4 s by default in Nav2, then breaks the bond: a state
-#: timer at 1 Hz would otherwise be judged hung only after 25 s).
+#: timer's periods without a tick, never sooner than HOT_SILENT_MIN_S, and no later than
+#: HOT_SILENT_MAX_S or HOT_SILENT_LEAST_PERIODS periods, whichever is longer (a manager's
+#: bond_timeout, 4 s by default in Nav2, then breaks the bond: a state timer at 1 Hz was judged hung
+#: only after 25 s; two periods late is a busy machine's, not a hang).
 HOT_SILENT_PERIODS = 25
 HOT_SILENT_MIN_S = 1.0
 HOT_SILENT_MAX_S = 2.0
+HOT_SILENT_LEAST_PERIODS = 3
 #: How long the shutdown waits for a transition under way before it releases the driver, s.
 TRANSITION_WAIT_S = 60.0
 
@@ -111,7 +113,8 @@ def supervised(transition: Transition) -> Transition:
 def hot_silence(silent_s: float, state_period_s: float) -> str:
     """"" while the hot executor's last state tick (``silent_s`` ago, its timer's period
     ``state_period_s``) is recent enough, else why it counts as hung (HOT_SILENT_*)."""
-    bound = min(max(HOT_SILENT_PERIODS * state_period_s, HOT_SILENT_MIN_S), HOT_SILENT_MAX_S)
+    bound = min(max(HOT_SILENT_PERIODS * state_period_s, HOT_SILENT_MIN_S),
+                max(HOT_SILENT_MAX_S, HOT_SILENT_LEAST_PERIODS * state_period_s))
     return "" if silent_s <= bound else (f"the driver's executor has run no state tick for {silent_s:.1f} s (over"
                                          f" {bound:g} s): hung, or starved of CPU")
 

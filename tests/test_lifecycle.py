@@ -1003,11 +1003,12 @@ def test_a_hung_driver_executor_withholds_the_bond_s_heartbeats(tmp_path: Path, 
 
 
 @pytest.mark.parametrize(("rate_hz", "silent_s", "hung"), [(50.0, 0.99, False), (50.0, 1.01, True), (10.0, 1.99, False),
-                                                      (10.0, 2.01, True), (1.0, 2.01, True), (1.0, 1.5, False)])
+                                                      (10.0, 2.01, True), (1.0, 3.01, True), (1.0, 2.99, False)])
 def test_the_hot_executor_counts_as_hung_within_a_manager_s_bond_timeout(rate_hz: float, silent_s: float,
                                                                         hung: bool) -> None:
-    """25 state periods without a tick, 1 s at least: a slow state timer (1 Hz: 25 s) is capped at 2 s,
-    within Nav2's default 4 s bond_timeout, so a hang is still the bond's to report."""
+    """25 state periods without a tick, 1 s at least: a slow state timer (1 Hz: 25 s) is capped at 2 s
+    or three periods (3 s at 1 Hz), within Nav2's default 4 s bond_timeout, so a hang is still the
+    bond's to report, and a tick two periods late on a busy machine is not one."""
     from nodes.rover_lifecycle import hot_silence
 
     said = hot_silence(silent_s, 1.0 / rate_hz)
