@@ -243,6 +243,7 @@ class Faults:
     #: a velocity mode's "speed reached" (bit 10) stays set through its quick-stop ramp (some vendors'):
     #: bit 10 alone then says nothing of standstill
     speed_reached_in_quick_stop: bool = False
-    #: what its quick stop does whatever 0x605A says (its firmware's, as where 0x605A is read-only); None: 0x605A
+    #: what its quick stop does whatever 0x605A says (a firmware that ignores it; reads of 0x605A still
+    #: return what was written, so a master cannot see it); None: 0x605A
     quick_stop_option: int | None = None
     pending: list[int] = field(default_factory=list)  # EMCY codes to raise at the next tick
