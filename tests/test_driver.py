@@ -708,7 +708,6 @@ def test_a_drive_found_braking_at_a_re_configuration_is_disabled_only_at_standst
     import canopen
 
     from can_config import GENERIC_EDS, load_drive_od
-    from virtual_can.server import RAWMODE_HOLD_S
 
     sim, driver = driver_factory(make_config(1, quick_stop_deceleration_deg_s2=100.0))
     runner = sim.simulator_for(1)
@@ -718,8 +717,7 @@ def test_a_drive_found_braking_at_a_re_configuration_is_disabled_only_at_standst
     bench = canopen.Network()
     bench.connect(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
     try:
-        time.sleep(RAWMODE_HOLD_S + 0.02)  # the server's raw mode, not a timing claim of the driver's
-        node = bench.add_node(1, load_drive_od(GENERIC_EDS, 1))
+        node = bench.add_node(1, load_drive_od(GENERIC_EDS, 1))  # its first request speaks: held frames flow
         node.sdo.download(0x6060, 0, bytes([3]))  # profile velocity
         node.sdo.download(0x60FF, 0, drive.cache.scale.deg_s_to_counts_s(60.0).to_bytes(4, "little", signed=True))
         for cw in (0x06, 0x07, 0x0F):  # shutdown, switch on, enable operation

@@ -300,6 +300,10 @@ class DriveCache:
         self.scale = scale
         self.positions.set_units(scale, self.config.max_velocity_deg_s)
 
+    def set_quick_stop_decel(self, deg_s2: float) -> None:
+        """Boot: the deceleration the drive's quick stop brakes at, read back from it."""
+        self.quick_stop_decel_deg_s2 = deg_s2
+
     def seed(self, statusword: int, position_counts: int, mode: int) -> None:
         """Boot (drive not booted, no PDO flows yet): the state read by SDO; the next position
         TPDO is trusted as it comes."""

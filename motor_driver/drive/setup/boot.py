@@ -506,7 +506,7 @@ class Boot:
         for that ramp; the limit and step guards brake by it): the config's, the drive's maximum
         where the config's was beyond its range, or its slow-down ramp where it kept option 1 or 5."""
         self._at(OD.QUICK_STOP_DECELERATION, 0)
-        self._cache.quick_stop_decel_deg_s2 = self._stop_ramp_deg_s2()
+        self._cache.set_quick_stop_decel(self._stop_ramp_deg_s2())
 
     def _velocity_by_sdo(self) -> float:
         """The drive's velocity actual value (0x606C) now, deg/s, in the scale the driver last knew
