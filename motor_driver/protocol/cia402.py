@@ -79,8 +79,7 @@ STANDSTILL_DEG_S = 1.0
 
 #: After a quick stop, the states that say nothing of a finished ramp: still on it, its fault
 #: reaction's ramp, enabled again (another master's enable, or the stop not taken yet), no state.
-_NOT_BRAKED = frozenset({State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE, State.OPERATION_ENABLED,
-                         State.UNKNOWN})
+_NOT_BRAKED = DRIVE_FUNCTION_ON | {State.UNKNOWN}
 
 
 def braked(state: State, statusword: int, velocity_deg_s: float) -> bool:

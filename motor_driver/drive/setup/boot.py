@@ -463,30 +463,24 @@ class Boot:
                        " quick stop, then disable voltage", self.name, self.node_id, state.name)
         if state == State.OPERATION_ENABLED:
             self._sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.QUICK_STOP)))
-        if state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE) and not self._braked_by_sdo():
-            logger.warning("%s (node %d): still braking at the bound of its quick stop at boot; its voltage is"
-                           " disabled now, and its shaft may coast from there", self.name, self.node_id)
-        if decode_state(self._sdo.read_number(OD.STATUSWORD)) == State.FAULT:
-            return  # its fault reaction ended it: the power stage is off (a fault reset is the user's act)
+        if state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
+            stood, sw = self._braked_by_sdo()
+            if not stood:
+                logger.warning("%s (node %d): still braking at the bound of its quick stop at boot; its voltage is"
+                               " disabled now, and its shaft may coast from there", self.name, self.node_id)
+            if decode_state(sw) == State.FAULT:
+                return  # its fault reaction ended it: the power stage is off (a fault reset is the user's act)
         self._sdo.write(OD.CONTROLWORD, 0, struct.pack("<H", int(Command.DISABLE_VOLTAGE)))
         self._poll_state_sdo(lambda st, sw: st == State.SWITCH_ON_DISABLED, "disable voltage at boot")
 
-    def _braked_by_sdo(self) -> bool:
+    def _braked_by_sdo(self) -> tuple[bool, int]:
         """After the boot's quick stop: until the drive has braked (as the safe stop judges it:
         :func:`cia402.braked`, its velocity read by SDO), for at most the ramp from its speed now at
         the deceleration its quick stop brakes at now (:meth:`_stop_ramp_deg_s2`, read from it:
-        another master may have changed it). False: still braking at that bound."""
+        another master may have changed it). (False: still braking at that bound, its last statusword)."""
         bound = self._power.brake_bound_s(self._velocity_by_sdo(), self._stop_ramp_deg_s2())
-        deadline = time.monotonic() + max(TRANSITION_TIMEOUT_S, bound)
-        while True:
-            sw = self._sdo.read_number(OD.STATUSWORD)
-            state = decode_state(sw)
-            if braked(state, sw, self._velocity_by_sdo() if state == State.QUICK_STOP_ACTIVE else 0.0):
-                self._cache.note_statusword(sw)
-                return True
-            if time.monotonic() > deadline:
-                return False
-            time.sleep(0.02)
+        return self._poll_sdo(lambda st, sw: braked(st, sw, self._velocity_by_sdo() if st == State.QUICK_STOP_ACTIVE
+                                                    else 0.0), max(TRANSITION_TIMEOUT_S, bound))
 
     def _stop_ramp_deg_s2(self) -> float:
         """The deceleration the drive's quick stop brakes at, deg/s^2, as the drive holds it now (by
@@ -516,17 +510,23 @@ class Boot:
         return self._cache.scale.counts_s_to_deg_s(self._sdo.read_number(OD.VELOCITY_ACTUAL))
 
     def _poll_state_sdo(self, done: Callable[[State, int], bool], doing: str) -> None:
-        timeout_s = TRANSITION_TIMEOUT_S
+        held, sw = self._poll_sdo(done, TRANSITION_TIMEOUT_S)
+        if not held:
+            raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: still in {decode_state(sw).name}"
+                                    f" (statusword 0x{sw:04X}) after {TRANSITION_TIMEOUT_S:g} s",
+                                    node_id=self.node_id, statusword=sw)
+
+    def _poll_sdo(self, done: Callable[[State, int], bool], timeout_s: float) -> tuple[bool, int]:
+        """The statusword read by SDO until ``done(state, statusword)`` (noted in the cache then), for
+        at most ``timeout_s``: (whether it came, the last statusword read)."""
         deadline = time.monotonic() + timeout_s
         while True:
             sw = self._sdo.read_number(OD.STATUSWORD)
             if done(decode_state(sw), sw):
                 self._cache.note_statusword(sw)
-                return
+                return True, sw
             if time.monotonic() > deadline:
-                raise DriveTimeoutError(f"{self.name} (node {self.node_id}): {doing}: still in"
-                                        f" {decode_state(sw).name} (statusword 0x{sw:04X}) after"
-                                        f" {timeout_s:g} s", node_id=self.node_id, statusword=sw)
+                return False, sw
             time.sleep(0.02)
 
     def _read_units(self) -> None:
